@@ -1,0 +1,37 @@
+/* The command line: the only place that prints or exits. Each subcommand lives in
+ * cli/cmd_<name>.c as `int swfs_cmd_<name>(int argc, char **argv)` (argv[0] is the
+ * subcommand name) and returns the process exit code. Register it in cli/main.c. */
+#ifndef SWFS_CLI_H
+#define SWFS_CLI_H
+
+#include <stddef.h>
+
+int swfs_cmd_estimate(int argc, char **argv);
+int swfs_cmd_pupil(int argc, char **argv);
+int swfs_cmd_simulate(int argc, char **argv);
+int swfs_cmd_demo(int argc, char **argv);
+
+/* Exit codes. */
+enum { CLI_OK = 0, CLI_FAIL = 1, CLI_USAGE = 2 };
+
+/* Print "specklewfs <cmd>: <library message>" to stderr; return CLI_FAIL. */
+int cli_error(const char *cmd);
+/* Print "specklewfs <cmd>: <formatted message>" to stderr; return CLI_USAGE. */
+int cli_usage_error(const char *cmd, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3)))
+#endif
+    ;
+/* Strict number parsing for option values; on failure prints and returns non-zero. */
+int cli_parse_double(const char *cmd, const char *opt, const char *s, double *out);
+int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out);
+/* The command line joined into one string, for provenance (HISTORY) cards. */
+void cli_command_line(int argc, char **argv, char *buf, size_t cap);
+/* Seconds since an arbitrary epoch (monotonic). */
+double cli_now(void);
+/* Progress on stderr: "\r<label> k/n" when stderr is a terminal, sparse lines otherwise. */
+void cli_progress(const char *label, size_t k, size_t n);
+/* mkdir -p for an output folder; prints and returns non-zero on failure. */
+int cli_make_dir(const char *cmd, const char *path);
+
+#endif

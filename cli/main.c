@@ -1,0 +1,50 @@
+/* specklewfs: focal-plane wavefront sensing with residual AO speckles
+ * (Codona & Kenworthy 2013). Dispatches to the subcommands in cli/cmd_*.c. */
+#include "cli.h"
+
+#include "specklewfs/version.h"
+
+#include <stdio.h>
+#include <string.h>
+
+struct command {
+    const char *name;
+    int (*run)(int argc, char **argv);
+    const char *summary;
+};
+
+static const struct command commands[] = {
+    {"simulate", swfs_cmd_simulate, "simulate the paper's Sec. 3 data set (science, speckles, truth, pupil)"},
+    {"estimate", swfs_cmd_estimate, "static complex halo, scale factor, visibility, SNR from science + speckle cubes"},
+    {"pupil", swfs_cmd_pupil, "pupil field and NCP wavefront from a halo product"},
+    {"demo", swfs_cmd_demo, "the paper's simulation end to end at four noise levels, with a table"},
+};
+
+static void usage(FILE *out)
+{
+    fprintf(out, "specklewfs %s -- focal-plane wavefront sensing with residual AO speckles\n\n", SWFS_VERSION);
+    fprintf(out, "usage: specklewfs <command> [options]   (specklewfs <command> --help for details)\n\ncommands:\n");
+    for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)
+        fprintf(out, "  %-10s %s\n", commands[i].name, commands[i].summary);
+}
+
+int main(int argc, char **argv)
+{
+    if (argc < 2) {
+        usage(stderr);
+        return CLI_USAGE;
+    }
+    if (!strcmp(argv[1], "--help") || !strcmp(argv[1], "-h") || !strcmp(argv[1], "help")) {
+        usage(stdout);
+        return CLI_OK;
+    }
+    if (!strcmp(argv[1], "--version")) {
+        printf("specklewfs %s\n", SWFS_VERSION);
+        return CLI_OK;
+    }
+    for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)
+        if (!strcmp(argv[1], commands[i].name)) return commands[i].run(argc - 1, argv + 1);
+    fprintf(stderr, "specklewfs: unknown command '%s'\n", argv[1]);
+    usage(stderr);
+    return CLI_USAGE;
+}

@@ -1,0 +1,102 @@
+#include "cli.h"
+
+#include "specklewfs/status.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+int cli_error(const char *cmd)
+{
+    fprintf(stderr, "specklewfs %s: %s\n", cmd, swfs_last_error());
+    return CLI_FAIL;
+}
+
+int cli_usage_error(const char *cmd, const char *fmt, ...)
+{
+    va_list ap;
+    fprintf(stderr, "specklewfs %s: ", cmd);
+    va_start(ap, fmt);
+    vfprintf(stderr, fmt, ap);
+    va_end(ap);
+    fprintf(stderr, " (see 'specklewfs %s --help')\n", cmd);
+    return CLI_USAGE;
+}
+
+int cli_parse_double(const char *cmd, const char *opt, const char *s, double *out)
+{
+    if (!s) return cli_usage_error(cmd, "%s needs a value", opt);
+    char *end;
+    errno = 0;
+    double v = strtod(s, &end);
+    if (end == s || *end || errno == ERANGE || !isfinite(v))
+        return cli_usage_error(cmd, "%s expects a finite number, got '%s'", opt, s);
+    *out = v;
+    return 0;
+}
+
+int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out)
+{
+    if (!s) return cli_usage_error(cmd, "%s needs a value", opt);
+    char *end;
+    errno = 0;
+    long v = strtol(s, &end, 10);
+    if (end == s || *end || errno == ERANGE) return cli_usage_error(cmd, "%s expects an integer, got '%s'", opt, s);
+    *out = v;
+    return 0;
+}
+
+void cli_command_line(int argc, char **argv, char *buf, size_t cap)
+{
+    size_t len = 0;
+    buf[0] = '\0';
+    len += (size_t)snprintf(buf, cap, "specklewfs");
+    for (int i = 0; i < argc && len < cap; i++) len += (size_t)snprintf(buf + len, cap - len, " %s", argv[i]);
+}
+
+double cli_now(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}
+
+void cli_progress(const char *label, size_t k, size_t n)
+{
+    static int tty = -1;
+    if (tty < 0) tty = isatty(fileno(stderr));
+    if (tty) {
+        fprintf(stderr, "\r%s %zu/%zu", label, k, n);
+        if (k == n) fputc('\n', stderr);
+    } else if (k == n || (n >= 10 && k % (n / 10 ? n / 10 : 1) == 0)) {
+        fprintf(stderr, "%s %zu/%zu\n", label, k, n);
+    }
+    fflush(stderr);
+}
+
+int cli_make_dir(const char *cmd, const char *path)
+{
+    char tmp[4096];
+    if (strlen(path) >= sizeof tmp) return cli_usage_error(cmd, "output folder name too long");
+    strcpy(tmp, path);
+    for (char *p = tmp + 1; *p; p++) {
+        if (*p == '/') {
+            *p = '\0';
+            if (mkdir(tmp, 0777) != 0 && errno != EEXIST) goto fail;
+            *p = '/';
+        }
+    }
+    if (mkdir(tmp, 0777) != 0 && errno != EEXIST) goto fail;
+    struct stat sb;
+    if (stat(tmp, &sb) != 0 || !S_ISDIR(sb.st_mode)) goto fail;
+    return 0;
+fail:
+    fprintf(stderr, "specklewfs %s: cannot create output folder %s: %s\n", cmd, path, strerror(errno));
+    return CLI_FAIL;
+}

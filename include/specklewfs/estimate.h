@@ -1,0 +1,77 @@
+/* The random-reference estimator (paper Sec. 2.2-2.4): per-pixel statistics of
+ * synchronized science intensities I and computed speckle fields psi give the static
+ * complex halo Psi, the scale factor g, the visibility and the SNR.
+ *
+ * Noise model: the per-frame noise variance in counts^2 is
+ *   sigma_noise^2 = read_noise^2 + Phi_I / gain        (gain in e-/count; 0 = no photon term)
+ * and is removed from sigma_I^2 before eq:scale-factor, as Sec. 2.3 requires.
+ *
+ * Invalid pixels. g is defined where its radicand (eq:scale-factor) and Phi_sp, sigma_sp^2
+ * are positive; VALID = 1 there. Elsewhere g falls back to the median of the valid g in
+ * the smallest square neighbourhood holding at least SWFS_G_FALLBACK_MIN valid pixels
+ * (the whole map at most), so HALO and HALO_LF stay finite and smooth and one bad pixel
+ * does not poison the pupil transform; VALID = 0 marks them. Pixels with no usable
+ * frames or no speckle power have HALO = HALO_LF = 0 and SNR = 0. */
+#ifndef SWFS_ESTIMATE_H
+#define SWFS_ESTIMATE_H
+
+#include <stddef.h>
+
+#include "specklewfs/accum.h"
+#include "specklewfs/array.h"
+
+#define SWFS_G_FALLBACK_MIN 9
+
+typedef struct swfs_noise {
+    double read_noise; /* [counts] per frame, >= 0 */
+    double gain;       /* [e-/count]; 0 disables the photon-noise term */
+} swfs_noise;
+
+typedef struct swfs_halo {
+    size_t nx, ny;
+    swfs_cplx *halo;     /* Psi, eq:TheAnswer */
+    swfs_cplx *halo_lf;  /* eq:PSI-LowFreq */
+    swfs_cplx *stab;     /* <psi' I>, eq:stabilized / eq:betterStabilized */
+    swfs_real *gain;     /* g, eq:scale-factor (fallback where VALID = 0) */
+    swfs_real *visib;    /* eq:visibility */
+    swfs_real *snr;      /* eq:SNR with Phi_noise = sigma_noise */
+    swfs_real *mean_i;   /* Phi_I */
+    swfs_real *var_i;    /* sigma_I^2 with the noise variance removed */
+    swfs_real *mean_sp;  /* Phi_sp */
+    swfs_real *var_sp;   /* sigma_sp^2 */
+    swfs_real *stab_err; /* standard error of <psi' I> (complex Gaussian moments) */
+    swfs_real *circ;     /* |<psi'^2>| / <|psi'|^2>, eq:zeroSqMean */
+    swfs_real *valid;    /* 1 where g is defined */
+    swfs_real *nframes;  /* frames used per pixel */
+    /* Summary. */
+    size_t npix, n_valid, n_bad_radicand, n_no_speckle, n_no_frames;
+    double valid_fraction;
+    double median_snr;   /* over valid pixels */
+    double radicand_min; /* most negative radicand seen (diagnostic) */
+    unsigned long long frames, skipped;
+    swfs_noise noise;
+} swfs_halo;
+
+int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **out);
+void swfs_halo_free(swfs_halo *h);
+
+/* Classic phase-shifting interferometry (Sec. 2.1), the baseline the random-reference
+ * method generalizes: n interferograms I_k = |Psi + psi e^{i eta_k}|^2 of one pixel with
+ * phase steps eta_k satisfying eq:zeroMeanUnitPhasors and eq:doublePhaseScrambledUnit.
+ * Returns the stabilized product <I e^{i eta}> = Psi psi^* (eq:stabilizedInterferograms),
+ * the subject phase given the reference phase (eq:subjectPhase), and the two intensity
+ * solutions of eq:subjectIntensity (|Psi|^2 is one of them: the ambiguity is physical). */
+typedef struct swfs_psi_result {
+    double complex stab;
+    double subject_phase;
+    double intensity_hi, intensity_lo;
+} swfs_psi_result;
+
+int swfs_phase_shift(const double *intensity, const double *eta, size_t n, double ref_phase,
+                     swfs_psi_result *out);
+/* Per-pixel version over images: intensities is n frames of npix. */
+int swfs_phase_shift_map(const double *intensities, const double *eta, size_t n, size_t npix,
+                         const double *ref_phase, double complex *stab, double *subject_phase,
+                         double *intensity_hi, double *intensity_lo);
+
+#endif

@@ -1,0 +1,104 @@
+/* FITS input and output through CFITSIO, with the conventions of DESIGN.md:
+ *  - cubes: NAXIS1 = x (fastest), NAXIS2 = y, NAXIS3 = frame;
+ *  - complex data (FITS standard §8.5): BITPIX -32/-64, NAXIS1 = 2 with CTYPE1 = 'COMPLEX'
+ *    (real, imaginary), then x, y[, frame] -- the memory layout of C99 complex arrays;
+ *  - geometry keywords WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN carried through;
+ *  - every product records SWFSVER and the parameters that made it (HISTORY cards);
+ *  - outputs are written to "<path>.part" and renamed on commit, so a failed run never
+ *    leaves a file that looks complete.
+ * Real input of any BITPIX is scaled by BZERO/BSCALE into doubles (CFITSIO does it). */
+#ifndef SWFS_FITS_H
+#define SWFS_FITS_H
+
+#include <complex.h>
+#include <stddef.h>
+
+#include "specklewfs/array.h"
+
+/* Geometry of the focal and pupil grids. Missing values are NaN (pupn: 0). */
+typedef struct swfs_geom {
+    double wavelen;  /* [m] */
+    double teldiam;  /* [m] */
+    double obscur;   /* central obstruction, fraction of the diameter */
+    double pixscale; /* [lambda/D per focal pixel] */
+    double pupdx;    /* [m per pupil sample] */
+    long pupn;       /* pupil samples across */
+} swfs_geom;
+
+void swfs_geom_init(swfs_geom *g); /* all missing */
+/* SWFS_ERR_FORMAT naming `what` and the first missing keyword. */
+int swfs_geom_require(const swfs_geom *g, const char *what);
+
+/* ---- reading ---------------------------------------------------------- */
+
+typedef struct swfs_fits_in swfs_fits_in;
+
+typedef struct swfs_fits_shape {
+    size_t nx, ny, nz; /* nz = 1 for a 2-D image */
+    int is_complex;    /* NAXIS1 = 2 with CTYPE1 = 'COMPLEX' */
+    int bitpix;
+} swfs_fits_shape;
+
+/* Open `path` at the image HDU named `extname` (NULL: the first HDU holding an image). */
+int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname);
+void swfs_fits_in_close(swfs_fits_in *f);
+/* Move to another image HDU of the same file by EXTNAME. */
+int swfs_fits_in_move(swfs_fits_in *f, const char *extname);
+int swfs_fits_in_has_ext(swfs_fits_in *f, const char *extname);
+const swfs_fits_shape *swfs_fits_in_shape(const swfs_fits_in *f);
+const char *swfs_fits_in_path(const swfs_fits_in *f);
+
+/* Read frames [first, first + n) into buf (nx*ny*n values). Real reads of a complex
+ * HDU, or complex reads of a real one, are SWFS_ERR_FORMAT. */
+int swfs_fits_in_read_real(swfs_fits_in *f, size_t first, size_t n, double *buf);
+int swfs_fits_in_read_cplx(swfs_fits_in *f, size_t first, size_t n, double complex *buf);
+/* Whole HDU into a new array. */
+int swfs_fits_in_read_real_all(swfs_fits_in *f, swfs_real **out);
+int swfs_fits_in_read_cplx_all(swfs_fits_in *f, swfs_cplx **out);
+
+/* Keywords of the current HDU, falling back to the primary header. */
+int swfs_fits_in_key_double(swfs_fits_in *f, const char *key, double *val);      /* missing: error */
+int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, int *found);
+int swfs_fits_in_key_string_opt(swfs_fits_in *f, const char *key, char *val, size_t cap, int *found);
+int swfs_fits_in_geom(swfs_fits_in *f, swfs_geom *g);
+
+/* Convenience: read one HDU of a file. */
+int swfs_fits_read_real(const char *path, const char *extname, swfs_real **out, swfs_geom *g);
+int swfs_fits_read_cplx(const char *path, const char *extname, swfs_cplx **out, swfs_geom *g);
+
+/* ---- writing ---------------------------------------------------------- */
+
+typedef struct swfs_fits_out swfs_fits_out;
+
+/* Create "<path>.part"; nothing appears at `path` until swfs_fits_out_commit(). */
+int swfs_fits_out_create(swfs_fits_out **out, const char *path);
+/* Close, rename to the final path, free. On failure the partial file is removed. */
+int swfs_fits_out_commit(swfs_fits_out *o);
+/* Close, remove the partial file, free. Safe on NULL. */
+void swfs_fits_out_abort(swfs_fits_out *o);
+
+/* Append an image HDU. extname NULL: the data go into the primary HDU (single-cube
+ * files such as science.fits); otherwise an empty primary is written first if needed.
+ * bitpix: -32 or -64 (and 16/32 for real data). */
+int swfs_fits_out_real(swfs_fits_out *o, const char *extname, const swfs_real *a, int bitpix);
+int swfs_fits_out_cplx(swfs_fits_out *o, const char *extname, const swfs_cplx *a, int bitpix);
+/* Start a cube HDU to be filled frame by frame with swfs_fits_out_*_frames. */
+int swfs_fits_out_begin(swfs_fits_out *o, const char *extname, size_t nx, size_t ny, size_t nz,
+                        int is_complex, int bitpix);
+int swfs_fits_out_real_frames(swfs_fits_out *o, size_t first, size_t n, const double *buf);
+int swfs_fits_out_cplx_frames(swfs_fits_out *o, size_t first, size_t n, const double complex *buf);
+
+/* Keywords on the current HDU. */
+int swfs_fits_out_key_double(swfs_fits_out *o, const char *key, double v, const char *comment);
+int swfs_fits_out_key_long(swfs_fits_out *o, const char *key, long v, const char *comment);
+int swfs_fits_out_key_string(swfs_fits_out *o, const char *key, const char *v, const char *comment);
+int swfs_fits_out_history(swfs_fits_out *o, const char *text);
+/* Geometry keywords that are present in g. */
+int swfs_fits_out_geom(swfs_fits_out *o, const swfs_geom *g);
+/* SWFSVER, DATE, and one HISTORY card per provenance line (e.g. the command line and
+ * parameters). Written on the current HDU. */
+int swfs_fits_out_provenance(swfs_fits_out *o, const char *const *lines, size_t nlines);
+/* Provenance lines set once and stamped on every HDU written afterwards. */
+int swfs_fits_out_set_stamp(swfs_fits_out *o, const swfs_geom *g, const char *const *lines, size_t nlines);
+
+#endif

@@ -1,0 +1,25 @@
+/* Seeded pseudo-random numbers: xoshiro256** (uniform), polar Box-Muller (normal),
+ * inversion / PTRS transformed rejection (Poisson). Every simulation and test is
+ * reproducible from its seed; independent streams come from swfs_rng_seed2(seed, index). */
+#ifndef SWFS_RNG_H
+#define SWFS_RNG_H
+
+#include <complex.h>
+#include <stdint.h>
+
+typedef struct swfs_rng {
+    uint64_t s[4];
+    int has_spare;
+    double spare;
+} swfs_rng;
+
+void swfs_rng_seed(swfs_rng *r, uint64_t seed);
+/* A stream for (seed, index), e.g. one per frame, independent of evaluation order. */
+void swfs_rng_seed2(swfs_rng *r, uint64_t seed, uint64_t index);
+uint64_t swfs_rng_u64(swfs_rng *r);
+double swfs_rng_uniform(swfs_rng *r);            /* [0, 1) */
+double swfs_rng_normal(swfs_rng *r);             /* N(0, 1) */
+double complex swfs_rng_cnormal(swfs_rng *r);    /* circular complex Gaussian, E|z|^2 = 1 */
+double swfs_rng_poisson(swfs_rng *r, double mean);
+
+#endif

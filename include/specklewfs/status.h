@@ -1,0 +1,43 @@
+/* Status codes and the last error message.
+ *
+ * Every library call that can fail returns an int status (SWFS_OK = 0) and, on failure,
+ * leaves a human-readable message that says what and where, e.g.
+ *   "speckles.fits: cube is 60x60x980 but science.fits is 60x60x960".
+ * The library never prints and never exits; cli/ chooses messages and exit codes.
+ * The message is thread-local, so workers can fail independently. */
+#ifndef SWFS_STATUS_H
+#define SWFS_STATUS_H
+
+enum swfs_status {
+    SWFS_OK = 0,
+    SWFS_ERR_ARG,      /* a caller passed an invalid argument or option */
+    SWFS_ERR_NOMEM,    /* allocation failed */
+    SWFS_ERR_IO,       /* file could not be opened, read or written */
+    SWFS_ERR_FORMAT,   /* file is not what it must be (not FITS, missing keyword, wrong type) */
+    SWFS_ERR_SHAPE,    /* array shapes do not match */
+    SWFS_ERR_VALUE,    /* a value is out of range, NaN/Inf where not allowed */
+    SWFS_ERR_NUMERIC,  /* a computation has no valid result (e.g. nothing valid to estimate) */
+    SWFS_ERR_INTERNAL
+};
+
+/* Set the thread's error message (printf-style) and return code, so that
+ *   return swfs_fail(SWFS_ERR_SHAPE, "%s: ...", path);
+ * is the whole error path. */
+int swfs_fail(int code, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3)))
+#endif
+    ;
+
+/* Prefix the current message with more context ("reading science.fits: <old message>"). */
+int swfs_fail_context(int code, const char *fmt, ...)
+#if defined(__GNUC__)
+    __attribute__((format(printf, 2, 3)))
+#endif
+    ;
+
+const char *swfs_last_error(void);
+void swfs_clear_error(void);
+const char *swfs_status_name(int code);
+
+#endif

@@ -1,0 +1,39 @@
+#include "testutil.h"
+
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <sys/stat.h>
+
+const char *test_path(const char *name)
+{
+    static char buf[8][1024];
+    static int k = 0;
+    mkdir(SWFS_TEST_TMPDIR, 0777);
+    char *b = buf[k++ % 8];
+    snprintf(b, sizeof buf[0], "%s/%s", SWFS_TEST_TMPDIR, name);
+    return b;
+}
+
+void test_assert_ok(int rc, const char *expr, const char *file, int line)
+{
+    if (rc != 0) {
+        print_error("%s:%d: %s returned %d: %s\n", file, line, expr, rc, swfs_last_error());
+        _fail(file, line);
+    }
+}
+
+void test_assert_close(double a, double b, double tol, const char *expr, const char *file, int line)
+{
+    if (!(fabs(a - b) <= tol)) {
+        print_error("%s:%d: %s = %.10g, expected %.10g within %.3g\n", file, line, expr, a, b, tol);
+        _fail(file, line);
+    }
+}
+
+int test_file_exists(const char *path)
+{
+    struct stat sb;
+    return stat(path, &sb) == 0;
+}

@@ -1,0 +1,21 @@
+/* Shared helpers for the cmocka tests. */
+#ifndef SWFS_TESTUTIL_H
+#define SWFS_TESTUTIL_H
+
+#include <stdarg.h>
+#include <stddef.h>
+#include <setjmp.h>
+#include <stdint.h>
+#include <cmocka.h>
+
+/* A path inside the test scratch folder (created on demand): tmp/<name>. */
+const char *test_path(const char *name);
+/* Fail the test with the library's message unless rc == 0. */
+#define assert_ok(rc) test_assert_ok((rc), #rc, __FILE__, __LINE__)
+void test_assert_ok(int rc, const char *expr, const char *file, int line);
+/* |a - b| <= tol, with a readable message. */
+#define assert_close(a, b, tol) test_assert_close((a), (b), (tol), #a, __FILE__, __LINE__)
+void test_assert_close(double a, double b, double tol, const char *expr, const char *file, int line);
+int test_file_exists(const char *path);
+
+#endif
