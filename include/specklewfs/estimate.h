@@ -19,6 +19,7 @@
 
 #include "specklewfs/accum.h"
 #include "specklewfs/array.h"
+#include "specklewfs/fits.h"
 
 #define SWFS_G_FALLBACK_MIN 9
 
@@ -54,6 +55,15 @@ typedef struct swfs_halo {
 
 int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **out);
 void swfs_halo_free(swfs_halo *h);
+
+/* HALO.fits: an empty primary HDU with the summary keywords (NFRAMES, SKIPPED, NVALID,
+ * VALIDFR, NBADRAD, NNOSP, MEDSNR, RDNOISE, GAIN), the geometry and provenance, then the
+ * image extensions HALO, HALO_LF, STAB (complex), GAIN, VISIB, SNR, MEAN_I, VAR_I, MEAN_SP,
+ * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES (real). Written atomically (.part + rename). */
+int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, const char *const *prov,
+                    size_t nprov);
+/* Read back every extension present (HALO and HALO_LF are required). */
+int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g);
 
 /* Classic phase-shifting interferometry (Sec. 2.1), the baseline the random-reference
  * method generalizes: n interferograms I_k = |Psi + psi e^{i eta_k}|^2 of one pixel with

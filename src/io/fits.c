@@ -8,6 +8,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 
 /* Turn a CFITSIO status into our status with a message naming the file and action. */
 static int fits_fail(int code, int fstatus, const char *path, const char *action)
@@ -82,6 +83,19 @@ static int load_shape(swfs_fits_in *f)
     }
     if (!f->shape.nx || !f->shape.ny || !f->shape.nz)
         return swfs_fail(SWFS_ERR_FORMAT, "%s: image has an empty axis", f->path);
+    /* Catch truncated files when they are opened, not frames later. */
+    LONGLONG head = 0, dstart = 0, dend = 0;
+    struct stat sb;
+    int ast = 0;
+    fits_get_hduaddrll(f->fp, &head, &dstart, &dend, &ast);
+    if (!ast && stat(f->path, &sb) == 0 && S_ISREG(sb.st_mode)) {
+        LONGLONG need = dstart + (LONGLONG)(f->shape.nx * f->shape.ny * f->shape.nz * (is_complex ? 2 : 1)) *
+                                     (LONGLONG)(abs(bitpix) / 8);
+        if ((LONGLONG)sb.st_size < need)
+            return swfs_fail(SWFS_ERR_FORMAT, "%s: file is truncated: the %zux%zux%zu%s image needs %lld bytes but "
+                             "the file has %lld", f->path, f->shape.nx, f->shape.ny, f->shape.nz,
+                             is_complex ? " complex" : "", (long long)need, (long long)sb.st_size);
+    }
     return SWFS_OK;
 }
 

@@ -1,0 +1,181 @@
+/* FITS round trips (real, complex, integer BITPIX with BZERO/BSCALE) and bad files. */
+#include "testutil.h"
+
+#include "specklewfs/fits.h"
+#include "specklewfs/status.h"
+
+#include <fitsio.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+static void test_real_and_complex_round_trip(void **state)
+{
+    (void)state;
+    const char *path = test_path("rt.fits");
+    remove(path);
+    swfs_real *r = swfs_real_alloc(7, 5, 3);
+    swfs_cplx *c = swfs_cplx_alloc(7, 5, 3);
+    for (size_t k = 0; k < swfs_real_size(r); k++) {
+        r->data[k] = sin(0.37 * (double)k) * 1e3;
+        c->data[k] = cos(0.11 * (double)k) + I * (double)k;
+    }
+    r->data[4] = NAN; /* NaN survives as NaN */
+    swfs_geom g;
+    swfs_geom_init(&g);
+    g.wavelen = 3.8e-6; g.teldiam = 6.5; g.obscur = 0.1; g.pixscale = 0.25; g.pupdx = 0.04; g.pupn = 163;
+    const char *prov[] = {"specklewfs test", "param=1"};
+    swfs_fits_out *o;
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_set_stamp(o, &g, prov, 2));
+    assert_ok(swfs_fits_out_real(o, "R64", r, -64));
+    assert_ok(swfs_fits_out_real(o, "R32", r, -32));
+    assert_ok(swfs_fits_out_cplx(o, "C64", c, -64));
+    assert_ok(swfs_fits_out_begin(o, "C32", 7, 5, 3, 1, -32));
+    for (size_t k = 0; k < 3; k++) assert_ok(swfs_fits_out_cplx_frames(o, k, 1, swfs_cplx_frame(c, k)));
+    assert_false(test_file_exists(path)); /* nothing at the final name before commit */
+    assert_ok(swfs_fits_out_commit(o));
+    assert_true(test_file_exists(path));
+
+    swfs_real *r2;
+    swfs_geom g2;
+    assert_ok(swfs_fits_read_real(path, "R64", &r2, &g2));
+    assert_int_equal(r2->nx, 7); assert_int_equal(r2->ny, 5); assert_int_equal(r2->nz, 3);
+    for (size_t k = 0; k < swfs_real_size(r); k++) {
+        if (k == 4) assert_true(isnan(r2->data[k]));
+        else assert_true(r2->data[k] == r->data[k]);
+    }
+    assert_close(g2.wavelen, 3.8e-6, 0); assert_close(g2.pixscale, 0.25, 0);
+    assert_int_equal(g2.pupn, 163);
+    assert_ok(swfs_geom_require(&g2, "rt.fits"));
+    swfs_real_free(r2);
+    assert_ok(swfs_fits_read_real(path, "R32", &r2, NULL));
+    for (size_t k = 0; k < swfs_real_size(r); k++)
+        if (k != 4) assert_close(r2->data[k], r->data[k], 1e-4);
+    swfs_real_free(r2);
+
+    swfs_cplx *c2;
+    assert_ok(swfs_fits_read_cplx(path, "C64", &c2, NULL));
+    for (size_t k = 0; k < swfs_cplx_size(c); k++) assert_true(c2->data[k] == c->data[k]);
+    swfs_cplx_free(c2);
+    /* Frame-by-frame read of the single-precision cube. */
+    swfs_fits_in *f;
+    assert_ok(swfs_fits_in_open(&f, path, "C32"));
+    assert_true(swfs_fits_in_shape(f)->is_complex);
+    double complex frame[35];
+    assert_ok(swfs_fits_in_read_cplx(f, 2, 1, frame));
+    for (size_t k = 0; k < 35; k++) assert_close(cabs(frame[k] - c->data[70 + k]), 0, 1e-4 * (1 + cabs(c->data[70 + k])));
+    /* A real read of a complex HDU is a format error naming the file. */
+    double rb[35];
+    assert_int_equal(swfs_fits_in_read_real(f, 0, 1, rb), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "rt.fits"));
+    assert_int_equal(swfs_fits_in_read_cplx(f, 3, 1, frame), SWFS_ERR_ARG); /* beyond the cube */
+    /* Provenance and version recorded on the extension. */
+    char ver[80];
+    int found = 0;
+    assert_ok(swfs_fits_in_key_string_opt(f, "SWFSVER", ver, sizeof ver, &found));
+    assert_true(found);
+    assert_int_equal(swfs_fits_in_move(f, "NOPE"), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "NOPE"));
+    swfs_fits_in_close(f);
+    swfs_real_free(r);
+    swfs_cplx_free(c);
+}
+
+static void test_integer_bitpix_with_bzero(void **state)
+{
+    (void)state;
+    /* A camera cube as a 16-bit unsigned image (BITPIX 16, BZERO 32768) and a scaled one
+     * (BSCALE 0.5, BZERO 100): both come back as physical values. */
+    const char *path = test_path("u16.fits");
+    remove(path);
+    fitsfile *fp;
+    int st = 0;
+    long naxes[3] = {4, 3, 2};
+    fits_create_file(&fp, path, &st);
+    fits_create_img(fp, USHORT_IMG, 3, naxes, &st);
+    unsigned short v[24];
+    for (int k = 0; k < 24; k++) v[k] = (unsigned short)(60000 - 1000 * k);
+    fits_write_img(fp, TUSHORT, 1, 24, v, &st);
+    fits_create_img(fp, SHORT_IMG, 3, naxes, &st);
+    double bscale = 0.5, bzero = 100.0;
+    fits_write_key(fp, TDOUBLE, "BSCALE", &bscale, NULL, &st);
+    fits_write_key(fp, TDOUBLE, "BZERO", &bzero, NULL, &st);
+    fits_write_key(fp, TSTRING, "EXTNAME", "SCALED", NULL, &st);
+    fits_set_bscale(fp, 0.5, 100.0, &st);
+    short raw[24];
+    for (int k = 0; k < 24; k++) raw[k] = (short)(k - 12);
+    fits_set_bscale(fp, 1.0, 0.0, &st); /* write raw integers */
+    fits_write_img(fp, TSHORT, 1, 24, raw, &st);
+    fits_close_file(fp, &st);
+    assert_int_equal(st, 0);
+
+    swfs_real *a;
+    assert_ok(swfs_fits_read_real(path, NULL, &a, NULL));
+    assert_int_equal(a->nz, 2);
+    for (int k = 0; k < 24; k++) assert_close(a->data[k], 60000.0 - 1000.0 * k, 0);
+    swfs_real_free(a);
+    assert_ok(swfs_fits_read_real(path, "SCALED", &a, NULL));
+    for (int k = 0; k < 24; k++) assert_close(a->data[k], 100.0 + 0.5 * (k - 12), 0);
+    swfs_real_free(a);
+}
+
+static void test_bad_files(void **state)
+{
+    (void)state;
+    swfs_real *a = NULL;
+    /* Missing file. */
+    assert_int_equal(swfs_fits_read_real(test_path("does-not-exist.fits"), NULL, &a, NULL), SWFS_ERR_IO);
+    assert_non_null(strstr(swfs_last_error(), "does-not-exist.fits"));
+    /* Not FITS. */
+    const char *txt = test_path("notfits.fits");
+    FILE *f = fopen(txt, "w");
+    fputs("this is not a FITS file\n", f);
+    fclose(f);
+    assert_int_not_equal(swfs_fits_read_real(txt, NULL, &a, NULL), SWFS_OK);
+    assert_non_null(strstr(swfs_last_error(), "notfits.fits"));
+    /* Truncated: a valid cube cut in half. */
+    const char *full = test_path("full.fits");
+    swfs_real *r = swfs_real_alloc(64, 64, 8);
+    swfs_fits_out *o;
+    assert_ok(swfs_fits_out_create(&o, full));
+    assert_ok(swfs_fits_out_real(o, NULL, r, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    assert_ok(truncate(full, 2880 * 30));
+    assert_int_not_equal(swfs_fits_read_real(full, NULL, &a, NULL), SWFS_OK);
+    print_message("truncated file: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "full.fits"));
+    assert_null(a);
+    /* Unwritable output: no file, no .part left behind. */
+    assert_int_equal(swfs_fits_out_create(&o, test_path("no/such/dir/out.fits")), SWFS_ERR_IO);
+    assert_non_null(strstr(swfs_last_error(), "out.fits"));
+    /* Abort removes the partial file. */
+    const char *ab = test_path("aborted.fits");
+    remove(ab);
+    assert_ok(swfs_fits_out_create(&o, ab));
+    assert_ok(swfs_fits_out_real(o, NULL, r, -32));
+    swfs_fits_out_abort(o);
+    assert_false(test_file_exists(ab));
+    char part[1100];
+    snprintf(part, sizeof part, "%s.part", ab);
+    assert_false(test_file_exists(part));
+    swfs_real_free(r);
+    /* Missing geometry keyword is named. */
+    swfs_geom g;
+    swfs_geom_init(&g);
+    g.wavelen = 1e-6;
+    assert_int_equal(swfs_geom_require(&g, "x.fits"), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "TELDIAM"));
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_real_and_complex_round_trip),
+        cmocka_unit_test(test_integer_bitpix_with_bzero),
+        cmocka_unit_test(test_bad_files),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
