@@ -1,0 +1,32 @@
+/* Scattered-point -> grid interpolation: Delaunay triangulation (qhull) with the
+ * Clough-Tocher C1 piecewise-cubic element (Farin's modified form, the normal
+ * derivative linear along every edge), precomputed once as a sparse matrix.
+ *
+ * Paper Sec. 4.4: the wavefront displacements reconstructed at the actuators are
+ * "interpolated ... to a 4 cm square grid using Delaunay triangularization and cubic
+ * interpolation". Each frame is then one sparse product z_grid = T z_act.
+ *
+ * Vertex gradients come from a local least-squares quadratic fit over the vertex's
+ * Delaunay neighbours (1-ring, widened to the 2-ring when it holds fewer than 6 points),
+ * so the whole operator is linear in the point values and exact for every quadratic
+ * polynomial inside the convex hull (planes included). Query points outside the hull get
+ * an empty row (value 0). */
+#ifndef SWFS_INTERP_H
+#define SWFS_INTERP_H
+
+#include <stddef.h>
+
+#include "specklewfs/sparse.h"
+
+/* T: nq x npts, row q = weights of the data points for query point (qx[q], qy[q]).
+ * pts: npts (x, y) pairs [m]. *n_outside (may be NULL): query points outside the hull. */
+int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, const double *qy,
+                          size_t nq, swfs_sparse **out, size_t *n_outside);
+
+/* The same on the square pupil grid of DESIGN.md, x = (p - (npup-1)/2) * pupdx, rows in
+ * FITS order (p fastest). mask (npup*npup, may be NULL): rows where mask <= 0 are left
+ * empty and do not count as outside. */
+int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupdx,
+                        const double *mask, swfs_sparse **out, size_t *n_outside);
+
+#endif

@@ -1,0 +1,92 @@
+/* The AO telemetry model: actuator geometry, a Shack-Hartmann wavefront sensor on the
+ * pupil grid, the interaction matrix and the regularized SVD reconstructor
+ * (paper Sec. 4.1 and 4.4).
+ *
+ * Units (docs/telemetry.md):
+ *  - slopes are wavefront tilt angles [rad] = mean dz/dx over a subaperture, z the
+ *    wavefront displacement [m]. The slopes vector holds all nsub*nsub x slopes (subaperture
+ *    (a, b) at index b*nsub + a, a along x) then all y slopes: 2 nsub^2 values (288 for
+ *    12 x 12). Unilluminated subapertures report 0, as the MMT's quad-cells do;
+ *  - the reconstructor W is nact x nslopes, row-major, [m per rad]: z_act = W s;
+ *  - actuator positions are (x, y) pairs [m] in the pupil frame of DESIGN.md.
+ *
+ * The DM surface (and the reconstruction's wavefront) is the Clough-Tocher interpolation
+ * of the actuator values (interp.h), T z_act on the pupil grid, so the interaction matrix
+ * is D = S T with S the Shack-Hartmann operator: the reconstructor is consistent with the
+ * interpolation that turns its output into a wavefront. */
+#ifndef SWFS_WFS_H
+#define SWFS_WFS_H
+
+#include <stddef.h>
+
+#include "specklewfs/sparse.h"
+
+/* ---- actuator geometry ------------------------------------------------ */
+
+/* Hexapolar layout: a centre actuator and rings at radius k*pitch holding 6k actuators,
+ * out to the first ring whose polygon covers the pupil radius diam/2 + margin (so the
+ * Delaunay hull covers every illuminated pupil sample). *xy: 2*nact doubles (free()). */
+int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **xy, size_t *nact);
+
+/* ---- Shack-Hartmann --------------------------------------------------- */
+
+typedef struct swfs_shwfs {
+    size_t nsub;           /* subapertures across the diameter */
+    size_t nslopes;        /* 2 nsub^2 */
+    size_t npup;           /* pupil grid */
+    double pupdx, diam;
+    swfs_sparse *S;        /* nslopes x npup^2: slopes = S z */
+    unsigned char *valid;  /* nsub^2: 1 for an illuminated subaperture */
+    size_t nvalid;
+} swfs_shwfs;
+
+/* Subaperture (a, b) covers x in [-D/2 + a d, -D/2 + (a+1) d), d = diam/nsub (same in y).
+ * Its x slope is the mean of (z[p+1,q] - z[p,q]) / pupdx over the grid pairs whose two
+ * samples are illuminated (mask > 0.5) and whose midpoint lies in the subaperture (y
+ * likewise). A subaperture is valid when it holds at least min_illum (0..1) of the pairs
+ * a fully illuminated one holds. */
+int swfs_shwfs_create(swfs_shwfs **out, size_t nsub, double diam, const double *mask, size_t npup, double pupdx,
+                      double min_illum);
+void swfs_shwfs_free(swfs_shwfs *w);
+/* slopes (nslopes) [rad] of the displacement map z (npup^2) [m]. */
+void swfs_shwfs_measure(const swfs_shwfs *w, const double *z, double *slopes);
+
+/* D = S T (nslopes x nact, row-major) [rad per m] for the interpolation T (npup^2 x nact). */
+int swfs_interaction_matrix(const swfs_shwfs *w, const swfs_sparse *T, double **D);
+
+/* ---- tip-tilt --------------------------------------------------------- */
+
+/* Subtract the mean x and the mean y slope over the valid subapertures (valid may be
+ * NULL: all), leaving invalid entries 0 (Sec. 4.4: "we estimated and removed the mean x
+ * and y slopes"). */
+void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *valid);
+
+/* ---- reconstructor ---------------------------------------------------- */
+
+typedef struct swfs_recon {
+    size_t nact, nslopes;
+    double *W;      /* nact x nslopes, row-major [m/rad] */
+    size_t nmodes;  /* modes kept */
+    double *sv;     /* all singular values of D, descending (min(nact, nslopes)); NULL if loaded */
+    size_t nsv;
+} swfs_recon;
+
+/* Truncated pseudo-inverse of D (nslopes x nact) by LAPACKE SVD: keep mode i when
+ * sv[i] > rcond * sv[0] and i < max_modes (0 = no count limit). This is the "better
+ * reconstructor" of Sec. 4.4, or the AO loop's conservative modal filter with few modes. */
+int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, size_t max_modes,
+                   swfs_recon **out);
+void swfs_recon_free(swfs_recon *r);
+/* W <- W (I - M) with M the mean-slope (tip-tilt) projector over the valid subapertures:
+ * the reconstructor then ignores tip-tilt exactly, so no separate removal step is needed. */
+int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid);
+/* z = W s. */
+void swfs_recon_apply(const swfs_recon *r, const double *slopes, double *z);
+/* FITS: NAXIS1 = nslopes, NAXIS2 = nact, BUNIT m/rad. */
+int swfs_recon_write(const swfs_recon *r, const char *path);
+int swfs_recon_read(const char *path, swfs_recon **out);
+/* Actuators: NAXIS1 = 2 (x, y), NAXIS2 = nact [m]. */
+int swfs_actuators_write(const double *xy, size_t nact, const char *path);
+int swfs_actuators_read(const char *path, double **xy, size_t *nact);
+
+#endif

@@ -1,0 +1,184 @@
+/* Actuator geometry, the Shack-Hartmann slope operator and the interaction matrix
+ * (see wfs.h). */
+#include "specklewfs/wfs.h"
+#include "specklewfs/array.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **xy, size_t *nact)
+{
+    *xy = NULL;
+    *nact = 0;
+    if (!(diam > 0) || !(pitch > 0) || !(margin >= 0) || pitch > diam)
+        return swfs_fail(SWFS_ERR_ARG, "actuator layout: diameter %g m, pitch %g m, margin %g m out of range",
+                         diam, pitch, margin);
+    double need = 0.5 * diam + margin;
+    size_t nring = 1;
+    /* The ring-k polygon (6k sides) covers radius k pitch cos(pi / 6k). */
+    while ((double)nring * pitch * cos(M_PI / (6.0 * (double)nring)) < need) nring++;
+    size_t n = 1 + 3 * nring * (nring + 1);
+    double *p = malloc(2 * n * sizeof *p);
+    if (!p) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    p[0] = p[1] = 0;
+    size_t k = 1;
+    for (size_t r = 1; r <= nring; r++) {
+        size_t m = 6 * r;
+        /* Stagger alternate rings by half a step: a "modified" hexapolar pattern that
+         * avoids radial rows of actuators (and co-circular Delaunay ties along them). */
+        double off = (r % 2) ? 0.0 : M_PI / (double)m;
+        for (size_t j = 0; j < m; j++) {
+            double th = off + 2 * M_PI * (double)j / (double)m;
+            p[2 * k] = (double)r * pitch * cos(th);
+            p[2 * k + 1] = (double)r * pitch * sin(th);
+            k++;
+        }
+    }
+    *xy = p;
+    *nact = n;
+    return SWFS_OK;
+}
+
+void swfs_shwfs_free(swfs_shwfs *w)
+{
+    if (!w) return;
+    swfs_sparse_free(w->S);
+    free(w->valid);
+    free(w);
+}
+
+/* Subaperture index along one axis of a coordinate, or -1 outside. */
+static long sub_index(double x, double diam, size_t nsub)
+{
+    double u = (x + 0.5 * diam) / diam * (double)nsub;
+    if (!(u >= 0) || u >= (double)nsub) return -1;
+    return (long)floor(u);
+}
+
+int swfs_shwfs_create(swfs_shwfs **out, size_t nsub, double diam, const double *mask, size_t npup, double pupdx,
+                      double min_illum)
+{
+    *out = NULL;
+    if (nsub == 0 || npup < 2 || !(diam > 0) || !(pupdx > 0))
+        return swfs_fail(SWFS_ERR_ARG, "Shack-Hartmann: %zu subapertures, %zu pupil samples of %g m, D = %g m",
+                         nsub, npup, pupdx, diam);
+    if (diam / (double)nsub < 2 * pupdx)
+        return swfs_fail(SWFS_ERR_ARG, "Shack-Hartmann: subaperture %g m spans fewer than 2 pupil samples of %g m",
+                         diam / (double)nsub, pupdx);
+    swfs_shwfs *w = calloc(1, sizeof *w);
+    if (!w) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    w->nsub = nsub; w->nslopes = 2 * nsub * nsub; w->npup = npup; w->pupdx = pupdx; w->diam = diam;
+    size_t nsa = nsub * nsub;
+    w->valid = calloc(nsa, 1);
+    size_t *cnt = calloc(2 * nsa, sizeof *cnt);
+    if (!w->valid || !cnt) { free(cnt); swfs_shwfs_free(w); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    const double c0 = 0.5 * (double)(npup - 1);
+    /* Pass 1: count pairs per slope (axis 0 = x pairs, 1 = y pairs). */
+    for (int pass = 0; pass < 2; pass++) {
+        size_t *fill = NULL;
+        if (pass == 1) {
+            size_t nnz = 0;
+            for (size_t s = 0; s < 2 * nsa; s++) nnz += 2 * cnt[s];
+            w->S = swfs_sparse_alloc(w->nslopes, npup * npup, nnz);
+            fill = calloc(2 * nsa, sizeof *fill);
+            if (!w->S || !fill) { free(cnt); free(fill); swfs_shwfs_free(w); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+            /* Full subaperture: pairs a fully illuminated one holds (either axis). */
+            double d = diam / (double)nsub;
+            double full = (d / pupdx) * (d / pupdx);
+            size_t pos = 0;
+            for (size_t s = 0; s < 2 * nsa; s++) {
+                w->S->row_ptr[s] = pos;
+                pos += 2 * cnt[s];
+            }
+            w->S->row_ptr[2 * nsa] = pos;
+            for (size_t sa = 0; sa < nsa; sa++) {
+                size_t m = cnt[sa] < cnt[nsa + sa] ? cnt[sa] : cnt[nsa + sa];
+                if ((double)m >= min_illum * full && m > 0) { w->valid[sa] = 1; w->nvalid++; }
+            }
+        }
+        for (int axis = 0; axis < 2; axis++)
+            for (size_t q = 0; q + (axis == 1) < npup; q++)
+                for (size_t p = 0; p + (axis == 0) < npup; p++) {
+                    size_t k0 = q * npup + p, k1 = axis == 0 ? k0 + 1 : k0 + npup;
+                    if (!(mask[k0] > 0.5) || !(mask[k1] > 0.5)) continue;
+                    double mx = ((double)p - c0 + (axis == 0 ? 0.5 : 0.0)) * pupdx;
+                    double my = ((double)q - c0 + (axis == 1 ? 0.5 : 0.0)) * pupdx;
+                    long a = sub_index(mx, diam, nsub), b = sub_index(my, diam, nsub);
+                    if (a < 0 || b < 0) continue;
+                    size_t s = (size_t)axis * nsa + (size_t)b * nsub + (size_t)a;
+                    if (pass == 0) { cnt[s]++; continue; }
+                    size_t sa = (size_t)b * nsub + (size_t)a;
+                    if (!w->valid[sa]) continue;
+                    size_t at = w->S->row_ptr[s] + 2 * fill[s]++;
+                    double v = 1.0 / ((double)cnt[s] * pupdx);
+                    w->S->col[at] = k0; w->S->val[at] = -v;
+                    w->S->col[at + 1] = k1; w->S->val[at + 1] = v;
+                }
+        if (pass == 1) {
+            /* Invalid subapertures: empty rows (compact the CSR). */
+            size_t pos = 0;
+            for (size_t s = 0; s < 2 * nsa; s++) {
+                size_t b = w->S->row_ptr[s], n = 2 * fill[s];
+                w->S->row_ptr[s] = pos;
+                memmove(w->S->col + pos, w->S->col + b, n * sizeof *w->S->col);
+                memmove(w->S->val + pos, w->S->val + b, n * sizeof *w->S->val);
+                pos += n;
+            }
+            w->S->row_ptr[2 * nsa] = pos;
+            w->S->nnz = pos;
+            free(fill);
+        }
+    }
+    free(cnt);
+    if (w->nvalid == 0) {
+        swfs_shwfs_free(w);
+        return swfs_fail(SWFS_ERR_VALUE, "Shack-Hartmann: no subaperture is illuminated (check the pupil mask)");
+    }
+    *out = w;
+    return SWFS_OK;
+}
+
+void swfs_shwfs_measure(const swfs_shwfs *w, const double *z, double *slopes)
+{
+    swfs_sparse_apply(w->S, z, slopes);
+}
+
+int swfs_interaction_matrix(const swfs_shwfs *w, const swfs_sparse *T, double **D)
+{
+    *D = NULL;
+    if (T->nrows != w->npup * w->npup)
+        return swfs_fail(SWFS_ERR_SHAPE, "interaction matrix: interpolation has %zu rows, pupil grid has %zu samples",
+                         T->nrows, w->npup * w->npup);
+    size_t nact = T->ncols;
+    double *d = calloc(w->nslopes * nact, sizeof *d);
+    if (!d) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    /* Row s of D = sum over the pairs of S's row s of val * T[grid row]. */
+    for (size_t s = 0; s < w->nslopes; s++) {
+        double *ds = d + s * nact;
+        for (size_t k = w->S->row_ptr[s]; k < w->S->row_ptr[s + 1]; k++) {
+            size_t g = w->S->col[k];
+            double v = w->S->val[k];
+            for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) ds[T->col[j]] += v * T->val[j];
+        }
+    }
+    *D = d;
+    return SWFS_OK;
+}
+
+void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *valid)
+{
+    size_t nsa = nslopes / 2;
+    for (int axis = 0; axis < 2; axis++) {
+        double *v = s + (size_t)axis * nsa;
+        double sum = 0;
+        size_t n = 0;
+        for (size_t i = 0; i < nsa; i++)
+            if (!valid || valid[i]) { sum += v[i]; n++; }
+        if (!n) continue;
+        double mean = sum / (double)n;
+        for (size_t i = 0; i < nsa; i++)
+            if (!valid || valid[i]) v[i] -= mean;
+    }
+}

@@ -1,0 +1,231 @@
+/* WFS model: Clough-Tocher interpolation exactness, Shack-Hartmann slopes, SVD
+ * reconstructor recovering known low-order modes, tip-tilt projection, FITS files. */
+#include "testutil.h"
+
+#include "specklewfs/interp.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+static double poly2(double x, double y, int which)
+{
+    switch (which) {
+    case 0: return 0.3 - 1.2 * x + 0.7 * y;                                     /* plane */
+    case 1: return 0.1 + 0.4 * x - 0.2 * y + 0.9 * x * x - 0.5 * x * y + 0.3 * y * y; /* quadratic */
+    default: return 2.0 * (x * x + y * y) - 1.0;                                 /* focus */
+    }
+}
+
+static void check_exact(const double *pts, size_t n, double span)
+{
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 7);
+    enum { NQ = 400 };
+    double qx[NQ], qy[NQ];
+    for (size_t q = 0; q < NQ; q++) {
+        /* Inside the disc of radius 0.8 span: inside the hull of both layouts below. */
+        double r = 0.8 * span * sqrt(swfs_rng_uniform(&rng)), t = 2 * M_PI * swfs_rng_uniform(&rng);
+        qx[q] = r * cos(t); qy[q] = r * sin(t);
+    }
+    swfs_sparse *T = NULL;
+    size_t outside = 99;
+    assert_ok(swfs_interp_ct_points(pts, n, qx, qy, NQ, &T, &outside));
+    assert_int_equal(outside, 0);
+    double *f = malloc(n * sizeof *f), out[NQ];
+    for (int which = 0; which < 3; which++) {
+        for (size_t i = 0; i < n; i++) f[i] = poly2(pts[2 * i], pts[2 * i + 1], which);
+        swfs_sparse_apply(T, f, out);
+        double maxerr = 0;
+        for (size_t q = 0; q < NQ; q++) maxerr = fmax(maxerr, fabs(out[q] - poly2(qx[q], qy[q], which)));
+        assert_true(maxerr < 1e-9);
+    }
+    /* A cubic is not reproduced exactly, but closely (the element is C1 cubic). */
+    for (size_t i = 0; i < n; i++) f[i] = pow(pts[2 * i], 3);
+    swfs_sparse_apply(T, f, out);
+    double maxerr = 0;
+    for (size_t q = 0; q < NQ; q++) maxerr = fmax(maxerr, fabs(out[q] - pow(qx[q], 3)));
+    assert_true(maxerr > 1e-12 && maxerr < 0.05 * span * span * span);
+    free(f);
+    swfs_sparse_free(T);
+}
+
+static void test_interp_exact_quadratics(void **state)
+{
+    (void)state;
+    /* Scattered random points in a disc plus a ring to make the hull round. */
+    enum { NR = 150, NB = 24 };
+    double pts[2 * (NR + NB)];
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 3);
+    for (size_t i = 0; i < NR; i++) {
+        double r = sqrt(swfs_rng_uniform(&rng)), t = 2 * M_PI * swfs_rng_uniform(&rng);
+        pts[2 * i] = r * cos(t); pts[2 * i + 1] = r * sin(t);
+    }
+    for (size_t i = 0; i < NB; i++) {
+        pts[2 * (NR + i)] = 1.05 * cos(2 * M_PI * (double)i / NB);
+        pts[2 * (NR + i) + 1] = 1.05 * sin(2 * M_PI * (double)i / NB);
+    }
+    check_exact(pts, NR + NB, 1.0);
+    /* The hexapolar actuator layout (co-circular rings: a degenerate Delaunay case). */
+    double *xy = NULL;
+    size_t nact = 0;
+    assert_ok(swfs_actuators_hexapolar(6.5, 0.45, 0.05, &xy, &nact));
+    assert_true(nact > 150 && nact < 400);
+    check_exact(xy, nact, 3.25);
+    free(xy);
+}
+
+static void test_interp_outside_and_bad(void **state)
+{
+    (void)state;
+    double pts[] = {0, 0, 1, 0, 0, 1, 1, 1, 0.5, 0.5, 0.2, 0.7};
+    double qx[] = {0.5, 2.0}, qy[] = {0.5, 2.0};
+    swfs_sparse *T = NULL;
+    size_t outside = 0;
+    assert_ok(swfs_interp_ct_points(pts, 6, qx, qy, 2, &T, &outside));
+    assert_int_equal(outside, 1);
+    assert_int_equal(T->row_ptr[2] - T->row_ptr[1], 0);
+    swfs_sparse_free(T);
+    double line[] = {0, 0, 1, 1, 2, 2, 3, 3};
+    assert_int_not_equal(swfs_interp_ct_points(line, 4, qx, qy, 2, &T, NULL), 0);
+    assert_null(T);
+    assert_int_not_equal(swfs_interp_ct_points(pts, 2, qx, qy, 2, &T, NULL), 0);
+}
+
+/* Circular pupil with a central obstruction on the DESIGN.md grid. */
+static double *make_mask(size_t n, double dx, double diam, double obs)
+{
+    double *m = malloc(n * n * sizeof *m);
+    for (size_t q = 0; q < n; q++)
+        for (size_t p = 0; p < n; p++) {
+            double x = ((double)p - 0.5 * (double)(n - 1)) * dx, y = ((double)q - 0.5 * (double)(n - 1)) * dx;
+            double r = sqrt(x * x + y * y);
+            m[q * n + p] = (r <= 0.5 * diam && r >= 0.5 * obs * diam) ? 1.0 : 0.0;
+        }
+    return m;
+}
+
+/* Piston-removed rms of a - b over the mask. */
+static double rms_diff(const double *a, const double *b, const double *mask, size_t n)
+{
+    double s = 0, s2 = 0, c = 0;
+    for (size_t i = 0; i < n; i++)
+        if (mask[i] > 0) { double d = a[i] - (b ? b[i] : 0); s += d; s2 += d * d; c++; }
+    return sqrt(s2 / c - (s / c) * (s / c));
+}
+
+static void test_shwfs_and_reconstructor(void **state)
+{
+    (void)state;
+    const double D = 6.5;
+    const size_t npup = 66, nsub = 12;
+    const double dx = D / 64.0;
+    double *mask = make_mask(npup, dx, D, 0.1);
+    swfs_shwfs *w = NULL;
+    assert_ok(swfs_shwfs_create(&w, nsub, D, mask, npup, dx, 0.5));
+    assert_int_equal(w->nslopes, 288);
+    assert_true(w->nvalid > 90 && w->nvalid < 144);
+
+    /* Slopes of a pure tilt z = a x are a in every valid x slope, 0 in y. */
+    size_t ng = npup * npup;
+    double *z = malloc(ng * sizeof *z), *z2 = malloc(ng * sizeof *z2), s[288];
+    for (size_t q = 0; q < npup; q++)
+        for (size_t p = 0; p < npup; p++) z[q * npup + p] = 2e-7 * ((double)p - 0.5 * (double)(npup - 1)) * dx;
+    swfs_shwfs_measure(w, z, s);
+    for (size_t i = 0; i < 144; i++) {
+        assert_close(s[i], w->valid[i] ? 2e-7 : 0.0, 1e-18);
+        assert_close(s[144 + i], 0.0, 1e-18);
+    }
+
+    double *xy = NULL;
+    size_t nact = 0;
+    assert_ok(swfs_actuators_hexapolar(D, 0.45, dx, &xy, &nact));
+    swfs_sparse *T = NULL;
+    size_t outside = 1;
+    assert_ok(swfs_interp_ct_grid(xy, nact, npup, dx, mask, &T, &outside));
+    assert_int_equal(outside, 0);
+    double *Dm = NULL;
+    assert_ok(swfs_interaction_matrix(w, T, &Dm));
+    swfs_recon *r = NULL;
+    assert_ok(swfs_recon_svd(Dm, w->nslopes, nact, 1e-3, 0, &r));
+    assert_true(r->nmodes > 100);
+    assert_true(r->sv[0] >= r->sv[r->nmodes - 1]);
+
+    /* Low-order modes (focus, astigmatism, coma, trefoil) sampled on the grid: their
+     * slopes reconstruct to the same wavefront through W and T. */
+    double *act = malloc(nact * sizeof *act);
+    for (int mode = 0; mode < 4; mode++) {
+        for (size_t q = 0; q < npup; q++)
+            for (size_t p = 0; p < npup; p++) {
+                double x = ((double)p - 0.5 * (double)(npup - 1)) * dx / (0.5 * D);
+                double y = ((double)q - 0.5 * (double)(npup - 1)) * dx / (0.5 * D);
+                double rr = x * x + y * y, v;
+                if (mode == 0) v = 2 * rr - 1;
+                else if (mode == 1) v = x * x - y * y;
+                else if (mode == 2) v = (3 * rr - 2) * x;
+                else v = x * x * x - 3 * x * y * y;
+                z[q * npup + p] = 1e-7 * v;
+            }
+        swfs_shwfs_measure(w, z, s);
+        swfs_recon_apply(r, s, act);
+        swfs_sparse_apply(T, act, z2);
+        double err = rms_diff(z2, z, mask, ng), ref = rms_diff(z, NULL, mask, ng);
+        assert_true(err < 0.05 * ref);
+    }
+
+    /* Tip-tilt projection: a tilt reconstructs to (almost) nothing, focus survives. */
+    swfs_recon *rt = NULL;
+    assert_ok(swfs_recon_svd(Dm, w->nslopes, nact, 1e-3, 0, &rt));
+    assert_ok(swfs_recon_project_tiptilt(rt, w->valid));
+    for (size_t q = 0; q < npup; q++)
+        for (size_t p = 0; p < npup; p++)
+            z[q * npup + p] = 1e-7 * (((double)p - 0.5 * (double)(npup - 1)) - 0.5 * ((double)q - 0.5 * (double)(npup - 1))) * dx;
+    swfs_shwfs_measure(w, z, s);
+    double s2[288];
+    memcpy(s2, s, sizeof s);
+    swfs_slopes_remove_tiptilt(s2, 288, w->valid);
+    for (size_t i = 0; i < 288; i++) assert_close(s2[i], 0.0, 1e-20);
+    swfs_recon_apply(rt, s, act);
+    swfs_sparse_apply(T, act, z2);
+    assert_true(rms_diff(z2, NULL, mask, ng) < 1e-3 * rms_diff(z, NULL, mask, ng));
+
+    /* Mode-count cut. */
+    swfs_recon *r56 = NULL;
+    assert_ok(swfs_recon_svd(Dm, w->nslopes, nact, 0.0, 56, &r56));
+    assert_int_equal(r56->nmodes, 56);
+
+    /* FITS round trip, and a wrong-shape actuator file. */
+    assert_ok(swfs_recon_write(r, test_path("recon.fits")));
+    swfs_recon *rr = NULL;
+    assert_ok(swfs_recon_read(test_path("recon.fits"), &rr));
+    assert_int_equal(rr->nact, nact);
+    assert_int_equal(rr->nslopes, 288);
+    assert_memory_equal(rr->W, r->W, nact * 288 * sizeof(double));
+    assert_ok(swfs_actuators_write(xy, nact, test_path("act.fits")));
+    double *xy2 = NULL;
+    size_t n2 = 0;
+    assert_ok(swfs_actuators_read(test_path("act.fits"), &xy2, &n2));
+    assert_int_equal(n2, nact);
+    assert_memory_equal(xy2, xy, 2 * nact * sizeof(double));
+    assert_int_not_equal(swfs_actuators_read(test_path("recon.fits"), &xy2, &n2), 0);
+    assert_non_null(strstr(swfs_last_error(), "2 x nact"));
+
+    free(xy2); swfs_recon_free(rr); swfs_recon_free(r56); swfs_recon_free(rt); swfs_recon_free(r);
+    free(Dm); free(act); free(z); free(z2); free(xy); free(mask);
+    swfs_sparse_free(T);
+    swfs_shwfs_free(w);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_interp_exact_quadratics),
+        cmocka_unit_test(test_interp_outside_and_bad),
+        cmocka_unit_test(test_shwfs_and_reconstructor),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
