@@ -18,6 +18,7 @@ static const struct command commands[] = {
     {"estimate", swfs_cmd_estimate, "static complex halo, scale factor, visibility, SNR from science + speckle cubes"},
     {"pupil", swfs_cmd_pupil, "pupil field and NCP wavefront from a halo product"},
     {"demo", swfs_cmd_demo, "the paper's simulation end to end at four noise levels, with a table"},
+    {"reduce", swfs_cmd_reduce, "camera frames: dark, flat, bad pixels, registration, noise variance (Sec. 4.3)"},
 };
 
 static void usage(FILE *out)

@@ -1,0 +1,55 @@
+/* Science-camera frame reduction (paper Sec. 4.3): dark and flat, bad pixels replaced by
+ * the median of their 3 x 3 neighbourhood, the star located by correlation with a
+ * Gaussian reference peak, the frame shifted with bilinear interpolation so the peak sits
+ * on the fixed centre (W/2, H/2) of DESIGN.md, and the background noise variance from a
+ * source-free region (fed to estimate as RDNOISE).
+ *
+ * Plan once (dark, flat, bad-pixel map, Gaussian kernel, work buffers), then one
+ * allocation-free call per frame. */
+#ifndef SWFS_REDUCE_H
+#define SWFS_REDUCE_H
+
+#include <stddef.h>
+
+typedef struct swfs_reduce_params {
+    double hot_sigma;    /* dark pixels more than this many robust sigmas from the median
+                            are bad (8) */
+    double flat_min, flat_max; /* flat outside [min, max] (relative to its median) is bad (0.5, 1.5) */
+    double gauss_sigma;  /* [pixels] reference peak for the registration (0.45 lambda/D in pixels; 2) */
+    int do_register;     /* shift each frame so the peak is at (W/2, H/2) (1) */
+    double bg_radius;    /* [pixels] pixels farther than this from the centre are the
+                            source-free region for the noise variance (0: 0.45 min(W, H)) */
+} swfs_reduce_params;
+
+void swfs_reduce_params_default(swfs_reduce_params *p);
+
+typedef struct swfs_reduce swfs_reduce;
+
+/* dark, flat (may be NULL: 0 and 1) and badmap (may be NULL; nonzero = bad) are nx*ny.
+ * Bad pixels = badmap | hot dark | flat out of range | non-finite dark or flat. */
+int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *dark, const double *flat,
+                       const double *badmap, const swfs_reduce_params *p);
+void swfs_reduce_free(swfs_reduce *r);
+size_t swfs_reduce_nbad(const swfs_reduce *r);
+const unsigned char *swfs_reduce_badmap(const swfs_reduce *r);
+
+/* Calibrate (dark, flat), replace bad pixels (also non-finite raw values), locate the
+ * peak (*px, *py in pixels, sub-pixel) and, if registering, shift it to (W/2, H/2):
+ * pixels whose source falls outside the frame are NaN (the estimator skips them).
+ * raw and out are nx*ny and may alias. The calibrated, unshifted frame's source-free
+ * pixels feed the noise-variance accumulator. */
+int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px, double *py);
+
+/* Mean over the source-free pixels of their variance over the frames reduced so far
+ * [counts^2]; NaN before two frames. */
+double swfs_reduce_noise_var(const swfs_reduce *r);
+
+/* Building blocks (tests): 3 x 3 median replacement in place of flagged or non-finite
+ * pixels (median of the unflagged finite neighbours of the input; a pixel with none keeps
+ * its value; work: nx*ny), and the Gaussian correlation peak of an image (work: 2 nx ny). */
+void swfs_badpix_replace(double *img, size_t nx, size_t ny, const unsigned char *bad, double *work);
+int swfs_peak_gauss(const double *img, size_t nx, size_t ny, double sigma, double *work, double *px, double *py);
+/* out(i, j) = img(i + sx, j + sy), bilinear; NaN where the source is outside. */
+void swfs_shift_bilinear(const double *img, size_t nx, size_t ny, double sx, double sy, double *out);
+
+#endif

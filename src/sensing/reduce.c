@@ -1,0 +1,266 @@
+/* Science-camera frame reduction (paper Sec. 4.3), see reduce.h. */
+#include "specklewfs/reduce.h"
+#include "specklewfs/array.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_reduce_params_default(swfs_reduce_params *p)
+{
+    p->hot_sigma = 8;
+    p->flat_min = 0.5;
+    p->flat_max = 1.5;
+    p->gauss_sigma = 2;
+    p->do_register = 1;
+    p->bg_radius = 0;
+}
+
+struct swfs_reduce {
+    size_t nx, ny;
+    swfs_reduce_params p;
+    double *dark, *flat;
+    unsigned char *bad;
+    size_t nbad;
+    double *work;        /* 2 nx ny */
+    double *frame;       /* nx ny */
+    size_t *bg;          /* indices of the source-free pixels */
+    size_t nbg;
+    double *bg_mean, *bg_m2; /* Welford per source-free pixel */
+    size_t nframes;
+};
+
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static double median_of(double *v, size_t n)
+{
+    qsort(v, n, sizeof *v, cmp_double);
+    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+void swfs_reduce_free(swfs_reduce *r)
+{
+    if (!r) return;
+    free(r->dark); free(r->flat); free(r->bad); free(r->work); free(r->frame);
+    free(r->bg); free(r->bg_mean); free(r->bg_m2);
+    free(r);
+}
+
+size_t swfs_reduce_nbad(const swfs_reduce *r) { return r->nbad; }
+const unsigned char *swfs_reduce_badmap(const swfs_reduce *r) { return r->bad; }
+
+int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *dark, const double *flat,
+                       const double *badmap, const swfs_reduce_params *p)
+{
+    *out = NULL;
+    if (nx < 3 || ny < 3) return swfs_fail(SWFS_ERR_ARG, "reduce: frame %zux%zu is too small (at least 3x3)", nx, ny);
+    if (!(p->gauss_sigma > 0) || !(p->hot_sigma > 0) || !(p->flat_min < p->flat_max))
+        return swfs_fail(SWFS_ERR_ARG, "reduce: gauss_sigma %g, hot_sigma %g, flat range [%g, %g] out of range",
+                         p->gauss_sigma, p->hot_sigma, p->flat_min, p->flat_max);
+    size_t n = nx * ny;
+    swfs_reduce *r = calloc(1, sizeof *r);
+    if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    r->nx = nx; r->ny = ny; r->p = *p;
+    r->dark = malloc(n * sizeof *r->dark);
+    r->flat = malloc(n * sizeof *r->flat);
+    r->bad = calloc(n, 1);
+    r->work = malloc(2 * n * sizeof *r->work);
+    r->frame = malloc(n * sizeof *r->frame);
+    r->bg = malloc(n * sizeof *r->bg);
+    if (!r->dark || !r->flat || !r->bad || !r->work || !r->frame || !r->bg) {
+        swfs_reduce_free(r);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t i = 0; i < n; i++) {
+        r->dark[i] = dark ? dark[i] : 0.0;
+        r->flat[i] = flat ? flat[i] : 1.0;
+        if (badmap && badmap[i] != 0) r->bad[i] = 1;
+        if (!isfinite(r->dark[i]) || !isfinite(r->flat[i])) r->bad[i] = 1;
+    }
+    /* Hot pixels: robust (median, 1.4826 MAD) outliers of the dark. */
+    if (dark) {
+        size_t m = 0;
+        for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = r->dark[i];
+        if (m > 0) {
+            double med = median_of(r->work, m);
+            m = 0;
+            for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = fabs(r->dark[i] - med);
+            double sig = 1.4826 * median_of(r->work, m);
+            if (sig > 0)
+                for (size_t i = 0; i < n; i++)
+                    if (fabs(r->dark[i] - med) > p->hot_sigma * sig) r->bad[i] = 1;
+        }
+    }
+    /* Dead or hot flat pixels, relative to the flat's median. */
+    if (flat) {
+        size_t m = 0;
+        for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = r->flat[i];
+        double med = m ? median_of(r->work, m) : 1.0;
+        if (!(med > 0)) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_VALUE, "reduce: flat field median %g is not positive", med); }
+        for (size_t i = 0; i < n; i++) {
+            if (r->bad[i]) continue;
+            double f = r->flat[i] / med;
+            if (!(f >= p->flat_min && f <= p->flat_max)) r->bad[i] = 1;
+        }
+    }
+    for (size_t i = 0; i < n; i++) {
+        r->nbad += r->bad[i];
+        if (!(r->flat[i] > 0)) r->flat[i] = 1.0; /* flagged anyway: avoid dividing by 0 */
+    }
+    if (r->nbad * 2 > n) {
+        size_t nb = r->nbad;
+        swfs_reduce_free(r);
+        return swfs_fail(SWFS_ERR_VALUE, "reduce: %zu of %zu pixels are bad (dark/flat do not match the frames?)", nb, n);
+    }
+    double rad = p->bg_radius > 0 ? p->bg_radius : 0.45 * (double)(nx < ny ? nx : ny);
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            double dx = (double)i - (double)(nx / 2), dy = (double)j - (double)(ny / 2);
+            if (sqrt(dx * dx + dy * dy) > rad && !r->bad[j * nx + i]) r->bg[r->nbg++] = j * nx + i;
+        }
+    r->bg_mean = calloc(r->nbg ? r->nbg : 1, sizeof *r->bg_mean);
+    r->bg_m2 = calloc(r->nbg ? r->nbg : 1, sizeof *r->bg_m2);
+    if (!r->bg_mean || !r->bg_m2) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    *out = r;
+    return SWFS_OK;
+}
+
+void swfs_badpix_replace(double *img, size_t nx, size_t ny, const unsigned char *bad, double *work)
+{
+    /* Medians are taken from the unflagged, finite neighbours of the input (a copy in
+     * work), so replacements do not feed each other. */
+    memcpy(work, img, nx * ny * sizeof *work);
+    const double *src = work;
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            size_t k = j * nx + i;
+            if (!bad[k] && isfinite(src[k])) continue;
+            double v[8];
+            size_t m = 0;
+            for (long dj = -1; dj <= 1; dj++)
+                for (long di = -1; di <= 1; di++) {
+                    long ii = (long)i + di, jj = (long)j + dj;
+                    if ((di == 0 && dj == 0) || ii < 0 || jj < 0 || ii >= (long)nx || jj >= (long)ny) continue;
+                    size_t kk = (size_t)jj * nx + (size_t)ii;
+                    if (!bad[kk] && isfinite(src[kk])) v[m++] = src[kk];
+                }
+            if (m) img[k] = median_of(v, m);
+        }
+}
+
+/* Sub-pixel vertex of three samples: log-parabola (exact for a Gaussian) when all are
+ * positive, else a parabola. */
+static double vertex3(double a, double b, double c)
+{
+    double den;
+    if (a > 0 && b > 0 && c > 0) {
+        double la = log(a), lb = log(b), lc = log(c);
+        den = la - 2 * lb + lc;
+        if (den < 0) return 0.5 * (la - lc) / den;
+    }
+    den = a - 2 * b + c;
+    if (den < 0) {
+        double v = 0.5 * (a - c) / den;
+        return v > 0.5 ? 0.5 : (v < -0.5 ? -0.5 : v);
+    }
+    return 0;
+}
+
+int swfs_peak_gauss(const double *img, size_t nx, size_t ny, double sigma, double *work, double *px, double *py)
+{
+    /* Separable correlation with a unit Gaussian: rows into work, then columns into
+     * work + nx ny. */
+    long rad = (long)ceil(3 * sigma);
+    double kern[257];
+    if (rad > 128) rad = 128;
+    for (long t = -rad; t <= rad; t++) kern[t + rad] = exp(-0.5 * (double)(t * t) / (sigma * sigma));
+    double *tmp = work, *cor = work + nx * ny;
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            double s = 0;
+            for (long t = -rad; t <= rad; t++) {
+                long ii = (long)i + t;
+                if (ii < 0 || ii >= (long)nx) continue;
+                double v = img[j * nx + (size_t)ii];
+                if (isfinite(v)) s += kern[t + rad] * v;
+            }
+            tmp[j * nx + i] = s;
+        }
+    size_t best = 0;
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            double s = 0;
+            for (long t = -rad; t <= rad; t++) {
+                long jj = (long)j + t;
+                if (jj < 0 || jj >= (long)ny) continue;
+                s += kern[t + rad] * tmp[(size_t)jj * nx + i];
+            }
+            cor[j * nx + i] = s;
+            if (s > cor[best]) best = j * nx + i;
+        }
+    size_t bi = best % nx, bj = best / nx;
+    if (!(cor[best] > 0)) return swfs_fail(SWFS_ERR_NUMERIC, "registration: no positive peak in the frame");
+    double fx = 0, fy = 0;
+    if (bi > 0 && bi + 1 < nx) fx = vertex3(cor[best - 1], cor[best], cor[best + 1]);
+    if (bj > 0 && bj + 1 < ny) fy = vertex3(cor[best - nx], cor[best], cor[best + nx]);
+    *px = (double)bi + fx;
+    *py = (double)bj + fy;
+    return SWFS_OK;
+}
+
+void swfs_shift_bilinear(const double *img, size_t nx, size_t ny, double sx, double sy, double *out)
+{
+    double fx0 = floor(sx), fy0 = floor(sy);
+    double ax = sx - fx0, ay = sy - fy0;
+    long ox = (long)fx0, oy = (long)fy0;
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            long x0 = (long)i + ox, y0 = (long)j + oy;
+            /* Exact integer shifts need only one source pixel. */
+            long x1 = ax > 0 ? x0 + 1 : x0, y1 = ay > 0 ? y0 + 1 : y0;
+            if (x0 < 0 || y0 < 0 || x1 >= (long)nx || y1 >= (long)ny) { out[j * nx + i] = NAN; continue; }
+            double v00 = img[(size_t)y0 * nx + (size_t)x0], v10 = img[(size_t)y0 * nx + (size_t)x1];
+            double v01 = img[(size_t)y1 * nx + (size_t)x0], v11 = img[(size_t)y1 * nx + (size_t)x1];
+            out[j * nx + i] = (1 - ay) * ((1 - ax) * v00 + ax * v10) + ay * ((1 - ax) * v01 + ax * v11);
+        }
+}
+
+int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px, double *py)
+{
+    size_t n = r->nx * r->ny;
+    double *f = r->frame;
+    for (size_t i = 0; i < n; i++) f[i] = (raw[i] - r->dark[i]) / r->flat[i];
+    swfs_badpix_replace(f, r->nx, r->ny, r->bad, r->work);
+    /* Noise variance: Welford over frames on the source-free pixels. */
+    r->nframes++;
+    for (size_t b = 0; b < r->nbg; b++) {
+        double v = f[r->bg[b]];
+        if (!isfinite(v)) continue;
+        double d = v - r->bg_mean[b];
+        r->bg_mean[b] += d / (double)r->nframes;
+        r->bg_m2[b] += d * (v - r->bg_mean[b]);
+    }
+    double cx = 0, cy = 0;
+    int rc = swfs_peak_gauss(f, r->nx, r->ny, r->p.gauss_sigma, r->work, &cx, &cy);
+    if (rc) return rc;
+    if (px) *px = cx;
+    if (py) *py = cy;
+    if (r->p.do_register)
+        swfs_shift_bilinear(f, r->nx, r->ny, cx - (double)(r->nx / 2), cy - (double)(r->ny / 2), out);
+    else
+        memmove(out, f, n * sizeof *out);
+    return SWFS_OK;
+}
+
+double swfs_reduce_noise_var(const swfs_reduce *r)
+{
+    if (r->nframes < 2 || r->nbg == 0) return NAN;
+    double s = 0;
+    for (size_t b = 0; b < r->nbg; b++) s += r->bg_m2[b] / (double)(r->nframes - 1);
+    return s / (double)r->nbg;
+}
