@@ -11,6 +11,7 @@ int swfs_cmd_pupil(int argc, char **argv);
 int swfs_cmd_simulate(int argc, char **argv);
 int swfs_cmd_demo(int argc, char **argv);
 int swfs_cmd_reduce(int argc, char **argv);
+int swfs_cmd_coherence(int argc, char **argv);
 
 /* Exit codes. */
 enum { CLI_OK = 0, CLI_FAIL = 1, CLI_USAGE = 2 };

@@ -19,6 +19,7 @@ static const struct command commands[] = {
     {"pupil", swfs_cmd_pupil, "pupil field and NCP wavefront from a halo product"},
     {"demo", swfs_cmd_demo, "the paper's simulation end to end at four noise levels, with a table"},
     {"reduce", swfs_cmd_reduce, "camera frames: dark, flat, bad pixels, registration, noise variance (Sec. 4.3)"},
+    {"coherence", swfs_cmd_coherence, "speckle MCF, coherence time, phase-rotation time, SNR loss vs exposure (Sec. 3.3, 4.4)"},
 };
 
 static void usage(FILE *out)
