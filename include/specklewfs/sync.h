@@ -1,0 +1,104 @@
+/* Synchronizing WFS telemetry and science-camera cubes (paper Sec. 4.2).
+ *
+ * Time is counted in WFS frames: WFS frame k of a telemetry file covers [k, k+1). Camera
+ * exposure j of a cube covers [s + j r, s + (j+1) r), r = <t_sci/t_wfs> (not an integer),
+ * s = logged - lag: the handshake log gives the WFS frame `logged` current when the cube
+ * started, late by an unknown lag. The star's track (peak x, y per exposure, from reduce)
+ * follows the residual tip-tilt, i.e. the mean x/y slopes averaged over each exposure;
+ * maximizing the correlation between the two over (r, lag), for all four pairings of
+ * camera axis and slope axis (signs from the correlation), gives r and the lag.
+ *
+ * File formats (docs/telemetry.md): the handshake log and the timing table are small
+ * text files; see swfs_handshake_read and swfs_timing_write. */
+#ifndef SWFS_SYNC_H
+#define SWFS_SYNC_H
+
+#include <stddef.h>
+
+/* ---- handshake log -------------------------------------------------------- */
+
+#define SWFS_SYNC_NAME 512
+
+typedef struct swfs_handshake {
+    char camera[SWFS_SYNC_NAME]; /* camera cube file (base name) */
+    char slopes[SWFS_SYNC_NAME]; /* telemetry file being written when it started */
+    long frame;                  /* logged WFS frame in that file (0-based) */
+} swfs_handshake;
+
+/* Text, one cube per line: "CAMERA_FILE SLOPES_FILE WFS_FRAME"; '#' starts a comment. */
+int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n);
+int swfs_handshake_write(const char *path, const swfs_handshake *h, size_t n);
+
+/* ---- estimation ------------------------------------------------------------ */
+
+typedef struct swfs_sync_cube {
+    size_t nframes;         /* exposures in the cube */
+    const double *tx, *ty;  /* star position per exposure [pixels] */
+    const double *mx, *my;  /* mean x / y slope of every WFS frame of its telemetry file */
+    size_t nwfs;            /* frames in that file */
+    double logged;          /* handshake frame */
+} swfs_sync_cube;
+
+typedef struct swfs_sync_params {
+    double ratio_min, ratio_max; /* search range of <t_sci/t_wfs> (defaults 2, 12) */
+    double lag_min, lag_max;     /* search range of the lag [WFS frames] (-20, 20) */
+    double ratio_step, lag_step; /* coarse grid (0.01, 0.5); refined 20x around the peak */
+} swfs_sync_params;
+
+void swfs_sync_params_default(swfs_sync_params *p);
+
+typedef struct swfs_sync_result {
+    double ratio, ratio_err; /* <t_sci/t_wfs> and its 1-sigma uncertainty (scatter of the
+                                per-cube estimates / sqrt(n); the refined step if n < 3) */
+    double lag;              /* [WFS frames] start = logged - lag */
+    int swap;                /* 0: camera x <- slope x, y <- y; 1: x <- y, y <- x */
+    int sign_x, sign_y;      /* +1 / -1 for the camera x and y axes */
+    double corr_x, corr_y;   /* correlations of the chosen pairing */
+    double corr4[4];         /* |corr| of (tx, mx), (tx, my), (ty, mx), (ty, my) at the optimum */
+    size_t ncubes_used;
+} swfs_sync_result;
+
+/* For each candidate (ratio, lag), exposures that would leave their telemetry file are
+ * left out of the correlation; ncubes_used counts the cubes with at least half of their
+ * exposures inside at the optimum (those give the per-cube ratio scatter). */
+int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sync_params *p, swfs_sync_result *r);
+
+/* Predicted exposure means of a per-WFS-frame series m (n frames) for exposures
+ * [start + j ratio, start + (j+1) ratio), j < nexp: out[j] = (1/ratio) * integral of the
+ * piecewise-constant m. Returns SWFS_ERR_VALUE if an exposure leaves [0, n). */
+int swfs_sync_box_means(const double *m, size_t n, double start, double ratio, size_t nexp, double *out);
+
+/* Mean x and y slopes per frame over the valid subapertures (valid NULL: the
+ * subapertures with a nonzero x or y slope in that frame): slopes is nwfs frames of
+ * nslopes, x slopes first. */
+void swfs_slopes_mean_xy(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid, double *mx,
+                         double *my);
+
+/* ---- timing table -------------------------------------------------------------- */
+
+enum { SWFS_CUBE_OK = 0, SWFS_CUBE_STRADDLES = 1 };
+
+typedef struct swfs_timing_cube {
+    char camera[SWFS_SYNC_NAME];
+    char slopes[SWFS_SYNC_NAME];
+    size_t first;     /* first frame of the cube in the reduced science file */
+    size_t nframes;
+    double start;     /* exposure start [WFS frames of the slopes file] = logged - lag */
+    int status;       /* SWFS_CUBE_OK, or discarded */
+} swfs_timing_cube;
+
+typedef struct swfs_timing {
+    double ratio, ratio_err, lag;
+    swfs_sync_result fit;
+    size_t ncubes;
+    swfs_timing_cube *cubes;
+} swfs_timing;
+
+/* Text:  "ratio R ERR" / "lag L" / "pairing SWAP SX SY CX CY" lines, then one
+ * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok or
+ * straddles); '#' comments. */
+int swfs_timing_write(const char *path, const swfs_timing *t);
+int swfs_timing_read(const char *path, swfs_timing **out);
+void swfs_timing_free(swfs_timing *t);
+
+#endif

@@ -1,0 +1,378 @@
+/* WFS / science-camera synchronization by tip-tilt cross-correlation (Sec. 4.2), the
+ * handshake log and the timing table (see sync.h). */
+#include "specklewfs/sync.h"
+#include "specklewfs/status.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_sync_params_default(swfs_sync_params *p)
+{
+    p->ratio_min = 2;
+    p->ratio_max = 12;
+    p->lag_min = -20;
+    p->lag_max = 20;
+    p->ratio_step = 0.01;
+    p->lag_step = 0.5;
+}
+
+void swfs_slopes_mean_xy(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid, double *mx,
+                         double *my)
+{
+    size_t nsa = nslopes / 2;
+    for (size_t k = 0; k < nwfs; k++) {
+        const double *s = slopes + k * nslopes;
+        double sx = 0, sy = 0;
+        size_t n = 0;
+        for (size_t i = 0; i < nsa; i++) {
+            int use = valid ? valid[i] != 0 : (s[i] != 0 || s[nsa + i] != 0);
+            if (!use) continue;
+            sx += s[i]; sy += s[nsa + i]; n++;
+        }
+        mx[k] = n ? sx / (double)n : 0;
+        my[k] = n ? sy / (double)n : 0;
+    }
+}
+
+/* Integral of the piecewise-constant series over [0, t) from its prefix sums C. */
+static inline double cum_at(const double *C, const double *m, double t)
+{
+    double fl = floor(t);
+    size_t k = (size_t)fl;
+    return C[k] + (t - fl) * m[k];
+}
+
+int swfs_sync_box_means(const double *m, size_t n, double start, double ratio, size_t nexp, double *out)
+{
+    if (!(ratio > 0)) return swfs_fail(SWFS_ERR_ARG, "sync: frame ratio %g must be positive", ratio);
+    if (!(start >= 0) || start + (double)nexp * ratio > (double)n)
+        return swfs_fail(SWFS_ERR_VALUE, "sync: exposures [%g, %g) leave the %zu telemetry frames", start,
+                         start + (double)nexp * ratio, n);
+    double *C = malloc((n + 1) * sizeof *C);
+    if (!C) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    C[0] = 0;
+    for (size_t k = 0; k < n; k++) C[k + 1] = C[k] + m[k];
+    for (size_t j = 0; j < nexp; j++) {
+        double a = start + (double)j * ratio, b = a + ratio;
+        double cb = b >= (double)n ? C[n] : cum_at(C, m, b);
+        out[j] = (cb - cum_at(C, m, a)) / ratio;
+    }
+    free(C);
+    return SWFS_OK;
+}
+
+typedef struct prep_cube {
+    const swfs_sync_cube *c;
+    double *Cx, *Cy; /* prefix sums, nwfs + 1 */
+} prep_cube;
+
+/* Pooled correlations of the four pairings at (ratio, lag) over the cubes in [c0, c1):
+ * per cube the means are removed (each cube has its own pointing offset). */
+typedef struct corr_acc {
+    double s[4], vt[2], vp[2];
+    size_t nexp;
+} corr_acc;
+
+static void score_cubes(const prep_cube *pc, size_t c0, size_t c1, double ratio, double lag, corr_acc *acc)
+{
+    memset(acc, 0, sizeof *acc);
+    for (size_t ci = c0; ci < c1; ci++) {
+        const swfs_sync_cube *c = pc[ci].c;
+        double start = c->logged - lag;
+        /* Exposures inside the file for this candidate. */
+        double jlo = ceil(-start / ratio);
+        if (jlo < 0) jlo = 0;
+        double jhi = floor(((double)c->nwfs - start) / ratio) - 1; /* last j with end <= nwfs */
+        if (jhi > (double)c->nframes - 1) jhi = (double)c->nframes - 1;
+        if (jhi < jlo + 1) continue;
+        size_t j0 = (size_t)jlo, j1 = (size_t)jhi + 1, nj = j1 - j0;
+        /* Two passes: means, then co-moments. */
+        double mtx = 0, mty = 0, mpx = 0, mpy = 0;
+        for (size_t j = j0; j < j1; j++) {
+            double a = start + (double)j * ratio, b = a + ratio;
+            double cbx = b >= (double)c->nwfs ? pc[ci].Cx[c->nwfs] : cum_at(pc[ci].Cx, c->mx, b);
+            double cby = b >= (double)c->nwfs ? pc[ci].Cy[c->nwfs] : cum_at(pc[ci].Cy, c->my, b);
+            double px = cbx - cum_at(pc[ci].Cx, c->mx, a), py = cby - cum_at(pc[ci].Cy, c->my, a);
+            mtx += c->tx[j]; mty += c->ty[j]; mpx += px; mpy += py;
+        }
+        mtx /= (double)nj; mty /= (double)nj; mpx /= (double)nj; mpy /= (double)nj;
+        for (size_t j = j0; j < j1; j++) {
+            double a = start + (double)j * ratio, b = a + ratio;
+            double cbx = b >= (double)c->nwfs ? pc[ci].Cx[c->nwfs] : cum_at(pc[ci].Cx, c->mx, b);
+            double cby = b >= (double)c->nwfs ? pc[ci].Cy[c->nwfs] : cum_at(pc[ci].Cy, c->my, b);
+            double px = cbx - cum_at(pc[ci].Cx, c->mx, a) - mpx, py = cby - cum_at(pc[ci].Cy, c->my, a) - mpy;
+            double tx = c->tx[j] - mtx, ty = c->ty[j] - mty;
+            acc->s[0] += tx * px; acc->s[1] += tx * py; acc->s[2] += ty * px; acc->s[3] += ty * py;
+            acc->vt[0] += tx * tx; acc->vt[1] += ty * ty;
+            acc->vp[0] += px * px; acc->vp[1] += py * py;
+        }
+        acc->nexp += nj;
+    }
+}
+
+static void corr4(const corr_acc *a, double c[4])
+{
+    for (int t = 0; t < 2; t++)
+        for (int p = 0; p < 2; p++) {
+            double den = sqrt(a->vt[t] * a->vp[p]);
+            c[2 * t + p] = den > 0 ? a->s[2 * t + p] / den : 0;
+        }
+}
+
+/* Best of the straight (tx-mx, ty-my) and swapped (tx-my, ty-mx) pairings. */
+static double best_score(const double c[4], int *swap)
+{
+    double straight = fabs(c[0]) + fabs(c[3]), swapped = fabs(c[1]) + fabs(c[2]);
+    if (swap) *swap = swapped > straight;
+    return swapped > straight ? swapped : straight;
+}
+
+/* Grid search of (ratio, lag) over [r0, r1] x [l0, l1]; keeps the best. */
+static void grid(const prep_cube *pc, size_t c0, size_t c1, double r0, double r1, double dr, double l0, double l1,
+                 double dl, double *best_r, double *best_l, double *best_s)
+{
+    size_t nr = (size_t)floor((r1 - r0) / dr + 1e-9) + 1, nl = (size_t)floor((l1 - l0) / dl + 1e-9) + 1;
+    for (size_t ir = 0; ir < nr; ir++) {
+        double r = r0 + (double)ir * dr;
+        if (!(r > 0)) continue;
+        for (size_t il = 0; il < nl; il++) {
+            double l = l0 + (double)il * dl;
+            corr_acc acc;
+            score_cubes(pc, c0, c1, r, l, &acc);
+            if (acc.nexp < 4) continue;
+            double c[4];
+            corr4(&acc, c);
+            double s = best_score(c, NULL);
+            if (s > *best_s) { *best_s = s; *best_r = r; *best_l = l; }
+        }
+    }
+}
+
+int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sync_params *p, swfs_sync_result *r)
+{
+    memset(r, 0, sizeof *r);
+    if (ncubes == 0) return swfs_fail(SWFS_ERR_ARG, "sync: no camera cube to synchronize");
+    if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
+          p->lag_step > 0))
+        return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
+                         p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
+    prep_cube *pc = calloc(ncubes, sizeof *pc);
+    if (!pc) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    int rc = SWFS_OK;
+    for (size_t i = 0; i < ncubes && rc == SWFS_OK; i++) {
+        const swfs_sync_cube *c = cubes + i;
+        pc[i].c = c;
+        pc[i].Cx = malloc((c->nwfs + 1) * sizeof *pc[i].Cx);
+        pc[i].Cy = malloc((c->nwfs + 1) * sizeof *pc[i].Cy);
+        if (!pc[i].Cx || !pc[i].Cy) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+        pc[i].Cx[0] = pc[i].Cy[0] = 0;
+        for (size_t k = 0; k < c->nwfs; k++) {
+            if (!isfinite(c->mx[k]) || !isfinite(c->my[k])) { rc = swfs_fail(SWFS_ERR_VALUE, "sync: cube %zu: slope mean of WFS frame %zu is not finite", i, k); break; }
+            pc[i].Cx[k + 1] = pc[i].Cx[k] + c->mx[k];
+            pc[i].Cy[k + 1] = pc[i].Cy[k] + c->my[k];
+        }
+        for (size_t j = 0; j < c->nframes && rc == SWFS_OK; j++)
+            if (!isfinite(c->tx[j]) || !isfinite(c->ty[j]))
+                rc = swfs_fail(SWFS_ERR_VALUE, "sync: cube %zu: star position of frame %zu is not finite", i, j);
+    }
+    if (rc) goto done;
+
+    double br = NAN, bl = NAN, bs = -1;
+    grid(pc, 0, ncubes, p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step, &br, &bl, &bs);
+    if (!(bs > 0)) { rc = swfs_fail(SWFS_ERR_NUMERIC, "sync: no overlap between the camera cubes and the telemetry anywhere in the search range"); goto done; }
+    /* Refine twice, 10x finer each time, around the peak. */
+    double dr = p->ratio_step, dl = p->lag_step;
+    for (int it = 0; it < 2; it++) {
+        double r0 = br - 2 * dr, l0 = bl - 2 * dl;
+        dr /= 10; dl /= 10;
+        grid(pc, 0, ncubes, r0, r0 + 40 * dr, dr, l0, l0 + 40 * dl, dl, &br, &bl, &bs);
+    }
+    corr_acc acc;
+    score_cubes(pc, 0, ncubes, br, bl, &acc);
+    double c[4];
+    corr4(&acc, c);
+    int swap = 0;
+    best_score(c, &swap);
+    r->ratio = br;
+    r->lag = bl;
+    r->swap = swap;
+    r->corr_x = swap ? c[1] : c[0];
+    r->corr_y = swap ? c[2] : c[3];
+    r->sign_x = r->corr_x >= 0 ? 1 : -1;
+    r->sign_y = r->corr_y >= 0 ? 1 : -1;
+    for (int k = 0; k < 4; k++) r->corr4[k] = fabs(c[k]);
+    /* Uncertainty: scatter of per-cube ratio estimates at the common lag. */
+    size_t nuse = 0;
+    double s1 = 0, s2 = 0;
+    for (size_t i = 0; i < ncubes; i++) {
+        corr_acc a1;
+        score_cubes(pc, i, i + 1, br, bl, &a1);
+        if (a1.nexp * 2 < cubes[i].nframes) continue;
+        double cr = br, cl = bl, cs = -1;
+        grid(pc, i, i + 1, br - 5 * p->ratio_step, br + 5 * p->ratio_step, p->ratio_step / 20, bl, bl, 1, &cr, &cl, &cs);
+        nuse++;
+        s1 += cr; s2 += cr * cr;
+    }
+    r->ncubes_used = nuse;
+    if (nuse >= 3) {
+        double m = s1 / (double)nuse, var = (s2 - (double)nuse * m * m) / (double)(nuse - 1);
+        r->ratio_err = sqrt(fmax(var, 0) / (double)nuse);
+        if (r->ratio_err < dr) r->ratio_err = dr;
+    } else {
+        r->ratio_err = p->ratio_step;
+    }
+done:
+    for (size_t i = 0; i < ncubes; i++) { free(pc[i].Cx); free(pc[i].Cy); }
+    free(pc);
+    return rc;
+}
+
+/* ---- handshake log ----------------------------------------------------------- */
+
+static char *trim(char *s)
+{
+    char *h = strchr(s, '#');
+    if (h) *h = 0;
+    while (*s == ' ' || *s == '\t') s++;
+    size_t n = strlen(s);
+    while (n && (s[n - 1] == '\n' || s[n - 1] == '\r' || s[n - 1] == ' ' || s[n - 1] == '\t')) s[--n] = 0;
+    return s;
+}
+
+int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
+{
+    *out = NULL;
+    *n = 0;
+    FILE *f = fopen(path, "r");
+    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the handshake log: %s", path, strerror(errno));
+    size_t cap = 16, cnt = 0;
+    swfs_handshake *h = malloc(cap * sizeof *h);
+    char line[4096];
+    long lineno = 0;
+    int rc = SWFS_OK;
+    if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    while (fgets(line, sizeof line, f)) {
+        lineno++;
+        char *s = trim(line);
+        if (!*s) continue;
+        if (cnt == cap) {
+            swfs_handshake *t = realloc(h, 2 * cap * sizeof *h);
+            if (!t) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+            h = t; cap *= 2;
+        }
+        char cam[SWFS_SYNC_NAME], slo[SWFS_SYNC_NAME], extra[8];
+        long fr;
+        int k = sscanf(s, "%511s %511s %ld %7s", cam, slo, &fr, extra);
+        if (k != 3 || fr < 0) {
+            rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: expected \"CAMERA_FILE SLOPES_FILE WFS_FRAME\" (frame >= 0), got \"%.80s\"",
+                           path, lineno, s);
+            break;
+        }
+        snprintf(h[cnt].camera, sizeof h[cnt].camera, "%s", cam);
+        snprintf(h[cnt].slopes, sizeof h[cnt].slopes, "%s", slo);
+        h[cnt].frame = fr;
+        cnt++;
+    }
+    fclose(f);
+    if (rc == SWFS_OK && cnt == 0) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the handshake log has no entries", path);
+    if (rc) { free(h); return rc; }
+    *out = h;
+    *n = cnt;
+    return SWFS_OK;
+}
+
+int swfs_handshake_write(const char *path, const swfs_handshake *h, size_t n)
+{
+    FILE *f = fopen(path, "w");
+    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the handshake log: %s", path, strerror(errno));
+    fprintf(f, "# specklewfs handshake log: one camera cube per line\n# CAMERA_FILE SLOPES_FILE WFS_FRAME "
+               "(frame of SLOPES_FILE logged when the cube started, late by an unknown lag)\n");
+    for (size_t i = 0; i < n; i++) fprintf(f, "%s %s %ld\n", h[i].camera, h[i].slopes, h[i].frame);
+    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
+    return SWFS_OK;
+}
+
+/* ---- timing table ---------------------------------------------------------------- */
+
+void swfs_timing_free(swfs_timing *t)
+{
+    if (!t) return;
+    free(t->cubes);
+    free(t);
+}
+
+int swfs_timing_write(const char *path, const swfs_timing *t)
+{
+    FILE *f = fopen(path, "w");
+    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the timing table: %s", path, strerror(errno));
+    fprintf(f, "# specklewfs timing table (specklewfs sync): WFS time in frames of each slopes file\n");
+    fprintf(f, "# camera exposure j of a cube covers [start + j ratio, start + (j+1) ratio)\n");
+    fprintf(f, "ratio %.6f %.6f\n", t->ratio, t->ratio_err);
+    fprintf(f, "lag %.4f\n", t->lag);
+    fprintf(f, "# pairing SWAP SIGN_X SIGN_Y CORR_X CORR_Y  (SWAP 1: camera x follows the y slopes)\n");
+    fprintf(f, "pairing %d %d %d %.4f %.4f\n", t->fit.swap, t->fit.sign_x, t->fit.sign_y, t->fit.corr_x, t->fit.corr_y);
+    fprintf(f, "# cube INDEX CAMERA_FILE FIRST_FRAME NFRAMES SLOPES_FILE START STATUS\n");
+    for (size_t i = 0; i < t->ncubes; i++) {
+        const swfs_timing_cube *c = t->cubes + i;
+        fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
+                c->status == SWFS_CUBE_OK ? "ok" : "straddles");
+    }
+    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
+    return SWFS_OK;
+}
+
+int swfs_timing_read(const char *path, swfs_timing **out)
+{
+    *out = NULL;
+    FILE *f = fopen(path, "r");
+    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the timing table: %s", path, strerror(errno));
+    swfs_timing *t = calloc(1, sizeof *t);
+    size_t cap = 16;
+    if (t) t->cubes = malloc(cap * sizeof *t->cubes);
+    if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    t->ratio = NAN;
+    t->lag = NAN;
+    char line[4096];
+    long lineno = 0;
+    int rc = SWFS_OK;
+    while (fgets(line, sizeof line, f)) {
+        lineno++;
+        char *s = trim(line);
+        if (!*s) continue;
+        int ok = 1;
+        if (!strncmp(s, "ratio ", 6)) ok = sscanf(s + 6, "%lf %lf", &t->ratio, &t->ratio_err) == 2;
+        else if (!strncmp(s, "lag ", 4)) ok = sscanf(s + 4, "%lf", &t->lag) == 1;
+        else if (!strncmp(s, "pairing ", 8))
+            ok = sscanf(s + 8, "%d %d %d %lf %lf", &t->fit.swap, &t->fit.sign_x, &t->fit.sign_y, &t->fit.corr_x,
+                        &t->fit.corr_y) == 5;
+        else if (!strncmp(s, "cube ", 5)) {
+            if (t->ncubes == cap) {
+                swfs_timing_cube *nc = realloc(t->cubes, 2 * cap * sizeof *nc);
+                if (!nc) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+                t->cubes = nc; cap *= 2;
+            }
+            swfs_timing_cube *c = t->cubes + t->ncubes;
+            size_t idx;
+            char status[32];
+            ok = sscanf(s + 5, "%zu %511s %zu %zu %511s %lf %31s", &idx, c->camera, &c->first, &c->nframes, c->slopes,
+                        &c->start, status) == 7 && idx == t->ncubes && isfinite(c->start);
+            if (ok) {
+                if (!strcmp(status, "ok")) c->status = SWFS_CUBE_OK;
+                else if (!strcmp(status, "straddles")) c->status = SWFS_CUBE_STRADDLES;
+                else ok = 0;
+            }
+            if (ok) t->ncubes++;
+        } else ok = 0;
+        if (!ok) { rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: cannot parse \"%.80s\" (see docs/telemetry.md)", path, lineno, s); break; }
+    }
+    fclose(f);
+    if (rc == SWFS_OK && (!(t->ratio > 0) || !isfinite(t->lag)))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table needs 'ratio' and 'lag' lines", path);
+    if (rc == SWFS_OK && t->ncubes == 0) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table lists no cube", path);
+    if (rc) { swfs_timing_free(t); return rc; }
+    *out = t;
+    return SWFS_OK;
+}

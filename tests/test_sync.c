@@ -1,0 +1,164 @@
+/* Synchronization: fractional exposure weights, box means, recovery of a planted frame
+ * ratio, lag and axis pairing, handshake log and timing table round trips and errors. */
+#include "testutil.h"
+
+#include "specklewfs/engine.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/status.h"
+#include "specklewfs/sync.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static void test_fractional_weights(void **state)
+{
+    (void)state;
+    /* Every exposure's weights sum to its length (the ratio), and consecutive exposures
+     * share a straddling frame whose two weights sum to 1. */
+    const double ratios[] = {6.48, 1.0, 2.5, 7.0, 3.3333};
+    for (size_t t = 0; t < sizeof ratios / sizeof ratios[0]; t++) {
+        swfs_exposure sch[100];
+        double off = 0.37 * (double)t;
+        size_t need = swfs_engine_schedule(ratios[t], off, 100, sch);
+        /* Rounding may add a last frame of weight ~1e-13. */
+        size_t want = (size_t)ceil(off + 100 * ratios[t] - 1e-9);
+        assert_true(need == want || need == want + 1);
+        for (size_t j = 0; j < 100; j++) {
+            double w = sch[j].count == 1 ? sch[j].w_first
+                                         : sch[j].w_first + sch[j].w_last + (double)(sch[j].count - 2);
+            assert_close(w, ratios[t], 1e-9);
+            double a = off + (double)j * ratios[t];
+            assert_int_equal(sch[j].first, (size_t)floor(a));
+        }
+        /* The box means use the same weights: a ramp m[k] = k has the mean of its
+         * piecewise-constant integral. */
+        double m[800], out[100];
+        for (size_t k = 0; k < 800; k++) m[k] = (double)k;
+        assert_ok(swfs_sync_box_means(m, 800, off, ratios[t], 100, out));
+        for (size_t j = 0; j < 100; j++) {
+            double acc = 0;
+            for (size_t k = 0; k < sch[j].count; k++) {
+                double w = k == 0 ? sch[j].w_first : (k + 1 == sch[j].count ? sch[j].w_last : 1.0);
+                acc += w * m[sch[j].first + k];
+            }
+            assert_close(out[j], acc / ratios[t], 1e-9);
+        }
+        assert_int_not_equal(swfs_sync_box_means(m, 100, off, ratios[t], 100, out), 0);
+    }
+}
+
+/* A residual tip-tilt series: a 20 Hz vibration at 527 Hz plus red noise. */
+static void make_tiptilt(double *mx, double *my, size_t n, swfs_rng *rng)
+{
+    double ax = 0, ay = 0, ph = 2 * M_PI * swfs_rng_uniform(rng);
+    for (size_t k = 0; k < n; k++) {
+        ax = 0.95 * ax + 0.3 * swfs_rng_normal(rng);
+        ay = 0.95 * ay + 0.3 * swfs_rng_normal(rng);
+        double v = sin(2 * M_PI * 20.0 / 527.0 * (double)k + ph);
+        mx[k] = 1e-7 * (v + ax + 0.2 * swfs_rng_normal(rng));
+        my[k] = 1e-7 * (0.7 * cos(2 * M_PI * 20.0 / 527.0 * (double)k + ph) + ay + 0.2 * swfs_rng_normal(rng));
+    }
+}
+
+static void test_sync_recovers_ratio_and_lag(void **state)
+{
+    (void)state;
+    enum { NFILE = 2, NWFS = 2600, NCUBE = 6, NF = 100 };
+    const double ratio = 6.48, lag = 3.0;
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 2024);
+    double *mx = malloc(NFILE * NWFS * sizeof *mx), *my = malloc(NFILE * NWFS * sizeof *my);
+    for (int f = 0; f < NFILE; f++) make_tiptilt(mx + f * NWFS, my + f * NWFS, NWFS, &rng);
+    double tx[NCUBE][NF], ty[NCUBE][NF], bx[NF], by[NF];
+    swfs_sync_cube cubes[NCUBE];
+    double truth_start[NCUBE];
+    for (int c = 0; c < NCUBE; c++) {
+        int f = c % NFILE;
+        /* True start anywhere inside a frame; the log is late by `lag` whole frames. */
+        double start = 100.0 + 700.0 * (c / NFILE) + swfs_rng_uniform(&rng);
+        truth_start[c] = start;
+        assert_ok(swfs_sync_box_means(mx + f * NWFS, NWFS, start, ratio, NF, bx));
+        assert_ok(swfs_sync_box_means(my + f * NWFS, NWFS, start, ratio, NF, by));
+        /* Camera axes swapped and x flipped relative to the WFS; 1 rad = 2e6 pixels. */
+        for (int j = 0; j < NF; j++) {
+            tx[c][j] = 27.0 + c - 2e6 * by[j] + 0.02 * swfs_rng_normal(&rng);
+            ty[c][j] = 26.0 + 2e6 * bx[j] + 0.02 * swfs_rng_normal(&rng);
+        }
+        cubes[c] = (swfs_sync_cube){NF, tx[c], ty[c], mx + f * NWFS, my + f * NWFS, NWFS, floor(start) + lag};
+    }
+    swfs_sync_params p;
+    swfs_sync_params_default(&p);
+    p.ratio_min = 5; p.ratio_max = 8;
+    swfs_sync_result r;
+    assert_ok(swfs_sync_estimate(cubes, NCUBE, &p, &r));
+    print_message("ratio %.4f +- %.4f lag %.3f swap %d signs %d %d corr %.3f %.3f\n", r.ratio, r.ratio_err, r.lag,
+                  r.swap, r.sign_x, r.sign_y, r.corr_x, r.corr_y);
+    assert_close(r.ratio, ratio, 0.03);
+    assert_true(r.ratio_err > 0 && r.ratio_err < 0.03);
+    assert_close(r.lag, lag, 1.0);
+    assert_int_equal(r.swap, 1);
+    assert_int_equal(r.sign_x, -1);
+    assert_int_equal(r.sign_y, 1);
+    assert_true(r.corr_y > 0.9 && r.corr_x < -0.9);
+    assert_int_equal(r.ncubes_used, NCUBE);
+    /* The estimated start of every cube is within a frame of the truth. */
+    for (int c = 0; c < NCUBE; c++) assert_close(cubes[c].logged - r.lag, truth_start[c], 1.0);
+    free(mx); free(my);
+}
+
+static void test_files_and_errors(void **state)
+{
+    (void)state;
+    swfs_handshake h[2] = {{"raw_000.fits", "slopes_000.fits", 120}, {"raw_001.fits", "slopes_001.fits", 4}};
+    assert_ok(swfs_handshake_write(test_path("hs.log"), h, 2));
+    swfs_handshake *hr = NULL;
+    size_t n = 0;
+    assert_ok(swfs_handshake_read(test_path("hs.log"), &hr, &n));
+    assert_int_equal(n, 2);
+    assert_string_equal(hr[1].slopes, "slopes_001.fits");
+    assert_int_equal(hr[0].frame, 120);
+    free(hr);
+    FILE *f = fopen(test_path("bad.log"), "w");
+    fprintf(f, "# comment\nraw_000.fits slopes_000.fits\n");
+    fclose(f);
+    assert_int_not_equal(swfs_handshake_read(test_path("bad.log"), &hr, &n), 0);
+    assert_non_null(strstr(swfs_last_error(), "bad.log:2"));
+
+    swfs_timing_cube tc[2] = {{"raw_000.fits", "slopes_000.fits", 0, 100, 117.25, SWFS_CUBE_OK},
+                              {"raw_001.fits", "slopes_000.fits", 100, 100, 2590.5, SWFS_CUBE_STRADDLES}};
+    swfs_timing t;
+    memset(&t, 0, sizeof t);
+    t.ratio = 6.48; t.ratio_err = 0.01; t.lag = 2.75; t.ncubes = 2; t.cubes = tc;
+    t.fit.sign_x = t.fit.sign_y = 1;
+    assert_ok(swfs_timing_write(test_path("timing.txt"), &t));
+    swfs_timing *tr = NULL;
+    assert_ok(swfs_timing_read(test_path("timing.txt"), &tr));
+    assert_close(tr->ratio, 6.48, 1e-9);
+    assert_close(tr->lag, 2.75, 1e-9);
+    assert_int_equal(tr->ncubes, 2);
+    assert_int_equal(tr->cubes[1].status, SWFS_CUBE_STRADDLES);
+    assert_close(tr->cubes[0].start, 117.25, 1e-9);
+    assert_int_equal(tr->cubes[1].first, 100);
+    swfs_timing_free(tr);
+
+    /* No overlap anywhere in the search range. */
+    double m[50] = {0}, tt[10] = {0};
+    swfs_sync_cube c = {10, tt, tt, m, m, 50, 5000};
+    swfs_sync_params p;
+    swfs_sync_params_default(&p);
+    swfs_sync_result r;
+    assert_int_not_equal(swfs_sync_estimate(&c, 1, &p, &r), 0);
+    assert_non_null(strstr(swfs_last_error(), "overlap"));
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_fractional_weights),
+        cmocka_unit_test(test_sync_recovers_ratio_and_lag),
+        cmocka_unit_test(test_files_and_errors),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
