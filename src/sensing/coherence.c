@@ -147,9 +147,15 @@ static void block_autocorr(coh_work *w, size_t nb, double complex *out)
             const double complex *x = w->buf + t * BLOCK;
             size_t kmax = w->nt - 1 - t < L ? w->nt - 1 - t : L;
             for (size_t k = 0; k <= kmax; k++) {
-                const double complex *y = w->buf + (t + k) * BLOCK;
-                double complex *a = w->acc + k * BLOCK;
-                for (size_t b = 0; b < BLOCK; b++) a[b] += x[b] * conj(y[b]);
+                /* x y* written out on (re, im) pairs: C's complex multiply carries NaN/Inf
+                 * recovery (__muldc3) that stops vectorization; the data here are finite. */
+                const double *y = (const double *)(w->buf + (t + k) * BLOCK);
+                const double *xr = (const double *)x;
+                double *a = (double *)(w->acc + k * BLOCK);
+                for (size_t b = 0; b < 2 * BLOCK; b += 2) {
+                    a[b] += xr[b] * y[b] + xr[b + 1] * y[b + 1];
+                    a[b + 1] += xr[b + 1] * y[b] - xr[b] * y[b + 1];
+                }
             }
         }
         for (size_t b = 0; b < nb; b++)
