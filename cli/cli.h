@@ -10,6 +10,7 @@ int swfs_cmd_estimate(int argc, char **argv);
 int swfs_cmd_pupil(int argc, char **argv);
 int swfs_cmd_simulate(int argc, char **argv);
 int swfs_cmd_demo(int argc, char **argv);
+int swfs_cmd_report(int argc, char **argv);
 int swfs_cmd_reduce(int argc, char **argv);
 int swfs_cmd_sync(int argc, char **argv);
 int swfs_cmd_coherence(int argc, char **argv);

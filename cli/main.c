@@ -18,6 +18,7 @@ static const struct command commands[] = {
     {"estimate", swfs_cmd_estimate, "static complex halo, scale factor, visibility, SNR from science + speckle cubes"},
     {"pupil", swfs_cmd_pupil, "pupil field and NCP wavefront from a halo product"},
     {"demo", swfs_cmd_demo, "the paper's simulation end to end at four noise levels, with a table"},
+    {"report", swfs_cmd_report, "PNG figures and index.html of a run's products (halo, g, pupil WFE, coherence)"},
     {"reduce", swfs_cmd_reduce, "camera frames: dark, flat, bad pixels, registration, noise variance (Sec. 4.3)"},
     {"sync", swfs_cmd_sync, "WFS/camera frame-rate ratio and handshake lag by tip-tilt cross-correlation (Sec. 4.2)"},
     {"coherence", swfs_cmd_coherence, "speckle MCF, coherence time, phase-rotation time, SNR loss vs exposure (Sec. 3.3, 4.4)"},

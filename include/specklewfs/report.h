@@ -1,0 +1,95 @@
+/* The report: PNG figures of a run's products and one index.html with the key numbers,
+ * so a halo or a wavefront map can be judged by looking at it (the paper's figures).
+ *
+ * Reads whatever exists in RUN_DIR -- science.fits, speckles.fits, truth.fits,
+ * pupil.fits, halo.fits, wavefront.fits, coherence.fits (formats in DESIGN.md) -- and
+ * writes into the report folder:
+ *   halo.png       log10 |Psi| (normalized to the reference pixel in the first Airy ring),
+ *                  arg Psi, visibility (fig:Sim-PSI-Vis)
+ *   focal.png      scale factor g with circles at 1..6 lambda/D (fig:Gain-map), mean
+ *                  science image, science variance on a 4-decade log scale
+ *                  (fig:Sim-PSF-Sigma2), mean speckle power (fig:Sim-SpeckleHaloMeanPower)
+ *   pixel.png      one first-ring pixel's intensity against the speckle phase, with a
+ *                  least-squares sinusoid, the model and arg Psi (fig:MMT-example-data)
+ *   pupil.png      pupil amplitude and WFE [nm] with the pupil outline; for simulations
+ *                  the true NCP and the error map (fig:Sim-NCP, fig:Sim-PField)
+ *   coherence.png  tau0, phase-rotation time, SNR factor maps and Gamma(tau)/Gamma(0)
+ *                  of one pixel with the e^{-1/2} circle (fig:Halo-tau0,
+ *                  fig:Speckles-MCF-4panel1)
+ *   index.html     the figures with the key numbers, and a note for each one skipped
+ * Figures whose products are missing are skipped with a note; a product that exists
+ * but cannot be read is an error.
+ *
+ * Colour ranges come from robust percentiles of the finite, displayed pixels (see
+ * docs/report.md): "auto" maps use [P_lo, P_hi] and switch to log10 when both are
+ * positive and P_hi/P_lo > 100 (then at most log_decades decades below log10 P_hi);
+ * the science variance always spans exactly log_decades decades below log10 P_hi;
+ * signed maps (WFE, NCP, error) use +-P_hi(|v|); phases use [-pi, pi], visibility [0, 1].
+ *
+ * Not thread-safe (PLplot, see plot.h). */
+#ifndef SWFS_REPORT_H
+#define SWFS_REPORT_H
+
+#include <stddef.h>
+
+#define SWFS_REPORT_MAX_FIGURES 8
+#define SWFS_REPORT_MAX_RANGES 24
+#define SWFS_REPORT_MAX_NOTES 16
+
+typedef struct swfs_report_options {
+    double pct_lo, pct_hi; /* robust percentiles for colour ranges [%]: 1, 99.5 */
+    double log_decades;    /* decades shown on log scales: 4 */
+    long pixel_i, pixel_j; /* pixel for pixel.png and the MCF plot; -1: chosen from the data */
+    const char *title;     /* page title; NULL: "specklewfs report: <run dir>" */
+} swfs_report_options;
+
+void swfs_report_options_default(swfs_report_options *o);
+
+/* One colour range as drawn: in displayed units (nm, ms, counts, ...), and for log
+ * scales the log10 of them. */
+typedef struct swfs_report_range {
+    char name[24]; /* halo_amp, halo_phase, visib, gain, mean_i, var_i, mean_sp, amplitude,
+                      wfe, ncp, err, tau0, trot, snr_fact */
+    double lo, hi;
+    int log;
+} swfs_report_range;
+
+typedef struct swfs_report_figure {
+    char file[32]; /* relative to the report folder */
+    int width, height;
+} swfs_report_figure;
+
+typedef struct swfs_report_summary {
+    size_t nfigures;
+    swfs_report_figure figures[SWFS_REPORT_MAX_FIGURES];
+    size_t nranges;
+    swfs_report_range ranges[SWFS_REPORT_MAX_RANGES];
+    size_t nnotes; /* figures skipped and why */
+    char notes[SWFS_REPORT_MAX_NOTES][200];
+    /* Key numbers; NaN when the products do not give them. */
+    double frames;         /* frames in the estimate (halo NFRAMES, else science cube depth) */
+    double valid_fraction; /* VALIDFR */
+    double median_snr;     /* MEDSNR */
+    double wfe_rms, wfe_pv; /* [m], inside the pupil */
+    double strehl;          /* STREHL key, else Marechal exp(-(2 pi rms / lambda)^2) */
+    double ncp_rms;         /* true NCP rms [m], piston removed (simulations) */
+    double err_rms;         /* rms of WFE - NCP [m], piston removed (simulations) */
+    double tau0_median;     /* [s] */
+    long pixel_i, pixel_j;  /* pixel of pixel.png; -1 if not drawn */
+    double pixel_halo_phase, pixel_fit_phase; /* arg Psi and the fitted sinusoid's phase [rad] */
+    char html[4096];        /* path of index.html */
+} swfs_report_summary;
+
+/* Draw the figures and write index.html (via .part + rename) into out_dir (NULL:
+ * RUN_DIR/report; created if needed). opt may be NULL (defaults); summary may be NULL. */
+int swfs_report_run(const char *run_dir, const char *out_dir, const swfs_report_options *opt,
+                    swfs_report_summary *summary);
+
+/* The range named `name` in a summary, or NULL. */
+const swfs_report_range *swfs_report_find_range(const swfs_report_summary *s, const char *name);
+
+/* pct-th percentile (linear interpolation between order statistics) of the finite
+ * values v[k] with mask[k] != 0 (mask may be NULL); NaN if there are none. */
+double swfs_report_percentile(const double *v, size_t n, const unsigned char *mask, double pct);
+
+#endif
