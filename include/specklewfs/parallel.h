@@ -1,0 +1,19 @@
+/* A minimal parallel for-loop over chunks with pthreads, for the simulators' bulk work
+ * (screen FFT rows/columns, spectrum draws, frames). Chunk c covers items
+ * [c*chunk, min((c+1)*chunk, n)); worker w runs chunks w, w + T, w + 2T, ... (the caller's
+ * thread is worker 0). Results are independent of the number of threads as long as each
+ * chunk writes only its own outputs. */
+#ifndef SWFS_PARALLEL_H
+#define SWFS_PARALLEL_H
+
+#include <stddef.h>
+
+typedef void (*swfs_parallel_fn)(void *ctx, size_t begin, size_t end, int worker);
+
+/* requested <= 0: online CPUs; the result is clamped to [1, max_useful] (max_useful 0: no cap). */
+int swfs_parallel_threads(int requested, size_t max_useful);
+/* Run fn over [0, n) in chunks on nthreads workers. If a thread cannot be started its
+ * chunks run on the caller's thread, so this always completes; returns SWFS_OK. */
+int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn, void *ctx);
+
+#endif

@@ -1,0 +1,62 @@
+/* Parallel for-loop over chunks: see include/specklewfs/parallel.h. */
+#include "specklewfs/parallel.h"
+#include "specklewfs/status.h"
+
+#include <pthread.h>
+#include <stdlib.h>
+#include <unistd.h>
+
+int swfs_parallel_threads(int requested, size_t max_useful)
+{
+    long t = requested;
+    if (t <= 0) {
+        t = sysconf(_SC_NPROCESSORS_ONLN);
+        if (t < 1) t = 1;
+    }
+    if (t > 256) t = 256;
+    if (max_useful && (size_t)t > max_useful) t = (long)max_useful;
+    return t < 1 ? 1 : (int)t;
+}
+
+struct pf_job {
+    swfs_parallel_fn fn;
+    void *ctx;
+    size_t n, chunk, nchunks;
+    int worker, stride;
+    pthread_t thread;
+};
+
+static void *pf_main(void *arg)
+{
+    const struct pf_job *j = arg;
+    for (size_t c = (size_t)j->worker; c < j->nchunks; c += (size_t)j->stride) {
+        const size_t b = c * j->chunk, e = b + j->chunk < j->n ? b + j->chunk : j->n;
+        j->fn(j->ctx, b, e, j->worker);
+    }
+    return NULL;
+}
+
+int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn, void *ctx)
+{
+    if (!n) return SWFS_OK;
+    if (!chunk) chunk = 1;
+    const size_t nchunks = (n + chunk - 1) / chunk;
+    int nt = nthreads < 1 ? 1 : nthreads;
+    if ((size_t)nt > nchunks) nt = (int)nchunks;
+    struct pf_job local[8] = {{0}}, *jobs = nt <= 8 ? local : malloc((size_t)nt * sizeof *jobs);
+    if (!jobs) { /* no memory for job records: run serially */
+        struct pf_job one = {fn, ctx, n, chunk, nchunks, 0, 1, 0};
+        pf_main(&one);
+        return SWFS_OK;
+    }
+    int started = 0; /* workers 1..started are running */
+    for (int w = 0; w < nt; w++) {
+        jobs[w] = (struct pf_job){fn, ctx, n, chunk, nchunks, w, nt, 0};
+        if (w > 0 && started == w - 1 && pthread_create(&jobs[w].thread, NULL, pf_main, &jobs[w]) == 0) started = w;
+    }
+    for (int w = started + 1; w < nt; w++) pf_main(&jobs[w]); /* workers that did not start */
+    pf_main(&jobs[0]);
+    for (int w = 1; w <= started; w++) pthread_join(jobs[w].thread, NULL);
+    if (jobs != local) free(jobs);
+    return SWFS_OK;
+}
