@@ -54,6 +54,16 @@ void swfs_shwfs_measure(const swfs_shwfs *w, const double *z, double *slopes);
 /* D = S T (nslopes x nact, row-major) [rad per m] for the interpolation T (npup^2 x nact). */
 int swfs_interaction_matrix(const swfs_shwfs *w, const swfs_sparse *T, double **D);
 
+/* ---- DM modes ----------------------------------------------------------- */
+
+/* "Lowest-energy mechanical modes" of the DM (Sec. 4.1): actuator vectors v solving
+ * B v = lambda M v, B the bending energy sum |laplacian(T v)|^2 and M the mean square
+ * sum |T v|^2 over the pupil grid (mask > 0), in increasing energy: piston, tip, tilt
+ * (lambda = 0), then focus and astigmatism, and so on. modes: nact x nact, column k =
+ * mode k (row-major, modes[a * nact + k]), M-orthonormal. Actuators that do not reach
+ * the pupil end up in the last modes. */
+int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double **modes);
+
 /* ---- tip-tilt --------------------------------------------------------- */
 
 /* Subtract the mean x and the mean y slope over the valid subapertures (valid may be
@@ -76,6 +86,10 @@ typedef struct swfs_recon {
  * reconstructor" of Sec. 4.4, or the AO loop's conservative modal filter with few modes. */
 int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, size_t max_modes,
                    swfs_recon **out);
+/* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
+ * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
+int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
+                     swfs_recon **out);
 void swfs_recon_free(swfs_recon *r);
 /* W <- W (I - M) with M the mean-slope (tip-tilt) projector over the valid subapertures:
  * the reconstructor then ignores tip-tilt exactly, so no separate removal step is needed. */

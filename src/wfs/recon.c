@@ -67,6 +67,36 @@ int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, s
     return SWFS_OK;
 }
 
+int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
+                     swfs_recon **out)
+{
+    *out = NULL;
+    if (K == 0 || first + K > nact)
+        return swfs_fail(SWFS_ERR_ARG, "modal reconstructor: modes %zu..%zu of %zu", first, first + K, nact);
+    double *VK = malloc(nact * K * sizeof *VK), *DV = malloc(nslopes * K * sizeof *DV);
+    if (!VK || !DV) { free(VK); free(DV); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    for (size_t a = 0; a < nact; a++)
+        for (size_t k = 0; k < K; k++) VK[a * K + k] = modes[a * nact + first + k];
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nslopes, (int)K, (int)nact, 1.0, D, (int)nact, VK,
+                (int)K, 0.0, DV, (int)K);
+    swfs_recon *rk = NULL;
+    int rc = swfs_recon_svd(DV, nslopes, K, 1e-6, 0, &rk);
+    free(DV);
+    if (rc) { free(VK); return rc; }
+    swfs_recon *r = calloc(1, sizeof *r);
+    if (r) r->W = malloc(nact * nslopes * sizeof *r->W);
+    if (!r || !r->W) { free(VK); swfs_recon_free(rk); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nact, (int)nslopes, (int)K, 1.0, VK, (int)K, rk->W,
+                (int)nslopes, 0.0, r->W, (int)nslopes);
+    r->nact = nact; r->nslopes = nslopes; r->nmodes = rk->nmodes;
+    r->sv = rk->sv; r->nsv = rk->nsv;
+    rk->sv = NULL;
+    swfs_recon_free(rk);
+    free(VK);
+    *out = r;
+    return SWFS_OK;
+}
+
 int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid)
 {
     size_t nsa = r->nslopes / 2;

@@ -4,6 +4,8 @@
 #include "specklewfs/array.h"
 #include "specklewfs/status.h"
 
+#include <lapacke.h>
+
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -181,4 +183,55 @@ void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *
         for (size_t i = 0; i < nsa; i++)
             if (!valid || valid[i]) v[i] -= mean;
     }
+}
+
+int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double **modes)
+{
+    *modes = NULL;
+    size_t nact = T->ncols, ng = npup * npup;
+    if (T->nrows != ng) return swfs_fail(SWFS_ERR_SHAPE, "DM modes: interpolation has %zu rows, grid %zu", T->nrows, ng);
+    double *B = calloc(nact * nact, sizeof *B), *M = calloc(nact * nact, sizeof *M), *w = malloc(nact * sizeof *w);
+    double *row = calloc(nact, sizeof *row);
+    size_t *idx = malloc(nact * sizeof *idx);
+    unsigned char *in = calloc(nact, 1);
+    if (!B || !M || !w || !row || !idx || !in) {
+        free(B); free(M); free(w); free(row); free(idx); free(in);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t q = 0; q < npup; q++)
+        for (size_t p = 0; p < npup; p++) {
+            size_t g = q * npup + p;
+            if (!(mask[g] > 0)) continue;
+            /* Mass: the row of T itself. */
+            for (size_t k = T->row_ptr[g]; k < T->row_ptr[g + 1]; k++)
+                for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) M[T->col[k] * nact + T->col[j]] += T->val[k] * T->val[j];
+            /* Bending: the 5-point Laplacian where all neighbours are in the pupil. */
+            if (p == 0 || q == 0 || p + 1 == npup || q + 1 == npup) continue;
+            size_t nb[5] = {g, g - 1, g + 1, g - npup, g + npup};
+            double cf[5] = {-4, 1, 1, 1, 1};
+            int ok = 1;
+            for (int t = 1; t < 5; t++) ok &= mask[nb[t]] > 0;
+            if (!ok) continue;
+            size_t n = 0;
+            for (int t = 0; t < 5; t++)
+                for (size_t k = T->row_ptr[nb[t]]; k < T->row_ptr[nb[t] + 1]; k++) {
+                    size_t a = T->col[k];
+                    if (!in[a]) { in[a] = 1; idx[n++] = a; }
+                    row[a] += cf[t] * T->val[k];
+                }
+            for (size_t i = 0; i < n; i++)
+                for (size_t j = 0; j < n; j++) B[idx[i] * nact + idx[j]] += row[idx[i]] * row[idx[j]];
+            for (size_t i = 0; i < n; i++) { row[idx[i]] = 0; in[idx[i]] = 0; }
+        }
+    /* Regularize so actuators outside the pupil (zero rows of T) sort to the top. */
+    double bd = 0, md = 0;
+    for (size_t a = 0; a < nact; a++) { bd += B[a * nact + a]; md += M[a * nact + a]; }
+    bd /= (double)nact; md /= (double)nact;
+    for (size_t a = 0; a < nact; a++) { B[a * nact + a] += 1e-6 * bd; M[a * nact + a] += 1e-10 * md; }
+    lapack_int info = LAPACKE_dsygv(LAPACK_ROW_MAJOR, 1, 'V', 'U', (lapack_int)nact, B, (lapack_int)nact, M,
+                                    (lapack_int)nact, w);
+    free(M); free(w); free(row); free(idx); free(in);
+    if (info != 0) { free(B); return swfs_fail(SWFS_ERR_NUMERIC, "DM modes: generalized eigenproblem failed (%d)", (int)info); }
+    *modes = B; /* eigenvectors in the columns, ascending eigenvalues */
+    return SWFS_OK;
 }

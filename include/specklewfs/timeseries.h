@@ -1,0 +1,96 @@
+/* Time-series simulation of the real-data path (paper Sec. 4): frozen-flow von Karman
+ * layers blown across the pupil, a closed AO loop at the WFS rate (Shack-Hartmann slopes
+ * with noise, integrator with gain and delay, a DM of a few hundred actuators driven
+ * through a modal filter keeping K modes), tip-tilt vibration, and a science camera whose
+ * exposures integrate the instantaneous PSF (with the NCP) over a non-integer number of
+ * WFS frames, in cubes with gaps, started at an offset and logged by a handshake that is
+ * late by an unknown lag. Design notes: docs/telemetry.md.
+ *
+ * Everything shared with the Sec. 3 simulator (telescope, wavelength, focal window,
+ * counts, camera noise, NCP, r0, L0, screen size, seed) comes from swfs_sim_params and
+ * its config keys; the keys below are the time-series ones (config/mmt-clio.conf).
+ *
+ * Written to DIR:
+ *   slopes_NNN.fits   telemetry files, NAXIS1 = 2 nsub^2 slopes [rad] (x then y),
+ *                     NAXIS2 = WFS frames (wfs_file_frames per file)
+ *   actuators.fits    2 x nact [m];  recon_ao.fits  the loop's K-mode reconstructor [m/rad]
+ *   handshake.log     CAMERA_FILE SLOPES_FILE WFS_FRAME per cube (late by handshake_lag)
+ *   raw_NNN.fits      raw camera cubes [counts]: flat * (signal + background + noise) + dark,
+ *                     with the geometry keywords and GAIN
+ *   dark.fits, flat.fits          calibration frames (hot / dead pixels inside)
+ *   speckles_ideal.fits           the ideal speckles (true residual without NCP, tip-tilt
+ *                     removed, same exposure sums and core-phase referencing as the
+ *                     slopes path, ensemble mean removed), one frame per camera frame
+ *   speckles_ideal_tt.fits        the same with the tip-tilt left in
+ *   truth.fits        NCP [m] (piston removed), PUPIL; keys RATIO, HSLAG, residual rms
+ *   truth_timing.txt  the true exposure start of every cube (global WFS frames)
+ */
+#ifndef SWFS_TIMESERIES_H
+#define SWFS_TIMESERIES_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "specklewfs/config.h"
+#include "specklewfs/sim.h"
+
+#define SWFS_TS_MAX_LAYERS 3
+
+typedef struct swfs_ts_params {
+    swfs_sim_params base;      /* shared keys (teldiam, pupn, pupdx, wavelen, nfx, ...) */
+    /* turbulence layers (lists of nlayers values) */
+    int nlayers;               /* 2 */
+    double layer_frac[SWFS_TS_MAX_LAYERS];  /* fraction of the turbulence (sum 1) */
+    double layer_speed[SWFS_TS_MAX_LAYERS]; /* [m/s] */
+    double layer_dir[SWFS_TS_MAX_LAYERS];   /* [deg] from +x */
+    /* AO loop */
+    double wfs_rate;           /* [Hz] 527 */
+    long nsub;                 /* 12 */
+    double act_pitch;          /* [m] hexapolar ring spacing, 0.45 (217 actuators on 6.5 m) */
+    double ao_gain;            /* 0.4 */
+    long ao_delay;             /* [frames] 1 or 2 (2) */
+    long ao_modes;             /* K modes kept by the modal filter (56) */
+    double slope_noise;        /* [rad] rms per slope (3e-8) */
+    /* tip-tilt vibration added upstream of the loop */
+    double vib_amp;            /* [lambda/D at wavelen] amplitude (1.0) */
+    double vib_freq;           /* [Hz] 20 */
+    double vib_angle;          /* [deg] 30 */
+    /* science camera */
+    double frame_ratio;        /* <t_sci/t_wfs> 6.48 */
+    long ncubes, cube_frames;  /* 6 x 100 */
+    double cube_gap;           /* [WFS frames] dead time between cubes (200) */
+    double start_offset;       /* [WFS frames] first cube start (300.4: loop settled) */
+    long handshake_lag;        /* [WFS frames] 3 */
+    long wfs_file_frames;      /* frames per telemetry file (0: one file) */
+    double bandwidth;          /* fractional optical bandwidth (0; 0.2 for 20 %) */
+    long nlambda;              /* wavelengths across the band when bandwidth > 0 (5) */
+    double background;         /* [counts per pixel per exposure] 20 */
+    double dark_level;         /* [counts] bias 3700 */
+    double flat_rms;           /* 0.02 */
+    long nhot, ndead;          /* bad pixels (5, 5) */
+} swfs_ts_params;
+
+void swfs_ts_params_default(swfs_ts_params *p);
+/* The shared keys via swfs_sim_params_from_config, then the time-series keys. */
+int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p);
+int swfs_ts_params_check(const swfs_ts_params *p);
+
+typedef struct swfs_ts_summary {
+    size_t nwfs;               /* WFS frames simulated */
+    size_t nact, nvalid;       /* actuators, valid subapertures */
+    size_t ao_modes;
+    double residual_rms;       /* [m] mean piston-removed pupil rms during the exposures */
+    double residual_rms_nott;  /* [m] the same with tip-tilt removed */
+    double tt_rms;             /* [lambda/D] residual tip-tilt (2-axis rms) */
+    double strehl;             /* mean short-exposure-field Strehl with NCP */
+    double ncp_rms;            /* [m] */
+    double seconds;
+} swfs_ts_summary;
+
+typedef void (*swfs_ts_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
+
+/* Simulate and write DIR (must exist). */
+int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
+                swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
+
+#endif
