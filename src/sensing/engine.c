@@ -1,10 +1,12 @@
 /* The fast per-frame engine: see include/specklewfs/engine.h and docs/streaming.md.
  *
- * Data layout of one worker's pass over a block of BLK WFS frames:
- *   sblk  BLK x nslopes       slopes (float, tip-tilt removed)
- *   zt    nact x BLK          phases at the actuators, (2 pi/lambda) W s, one GEMM
- *   y     BLK x TILE          phases on TILE illuminated pupil samples: each CSR nonzero of
- *                             the interpolation is one BLK-wide FMA over the frames
+ * Data layout of one worker's pass over up to NG WFS frames, in blocks of BLK:
+ *   sblk  NG x nslopes        slopes (float, tip-tilt removed)
+ *   zt    nact x NG           phases at the actuators, (2 pi/lambda) W s, one GEMM for all
+ *                             NG frames (a GEMM with few columns would re-read W, 32 MB for
+ *                             the ExAO case, for every handful of frames)
+ *   y     BLK x TILE          phases of one block on TILE illuminated pupil samples: each
+ *                             CSR nonzero of the interpolation is one BLK-wide FMA
  *   s, c  BLK x TILE          sin, cos (kernels.h)
  *   fre, fim  per exposure    sum over the exposure's frames of w cos, w sin (npin each)
  * then per exposure: grid = amp (fre + i fim) scattered onto the pupil grid, one float MFT,
@@ -24,12 +26,19 @@
 #include <string.h>
 
 enum {
-    BLK = 16,          /* WFS frames per GEMM / interpolation pass: one AVX-512 float vector */
-    TILE = 512,        /* pupil samples per pass: y, s, c stay in L2 (3 x 32 KB) */
-    CHUNK_EXP = 16,    /* exposures per worker chunk (bounds the field buffers) */
-    CHUNK_FRAMES = 64, /* WFS frames spanned by a chunk (unless one exposure is longer) */
+    BLK = 16,           /* WFS frames per interpolation pass: one AVX-512 float vector */
+    NG = 256,           /* WFS frames per reconstruction GEMM (OpenBLAS sgemm reaches its rate here) */
+    LDZ = NG + BLK,     /* row stride of zt: a power-of-two stride (1 KB) would map the rows
+                           the interpolation reads onto a few cache sets */
+    TILE = 512,         /* pupil samples per pass: y, s, c stay in L2 (3 x 32 KB) */
+    CHUNK_EXP = 16,     /* exposures open at once in a worker (field buffers) */
+    CHUNK_FRAMES = 256, /* WFS frames spanned by a chunk (unless one exposure is longer) */
     MAX_THREADS = 64
 };
+
+/* 16 floats, one frame per lane (GCC/Clang vector extension: the auto-vectorizer does not
+ * find this loop on its own). */
+typedef float v16f __attribute__((vector_size(BLK * sizeof(float))));
 
 typedef struct seg {
     size_t b0, b1;  /* frames [b0, b1) of the block */
@@ -39,8 +48,8 @@ typedef struct seg {
 
 typedef struct worker {
     float *zt, *y, *s, *c;
-    float *sblk;             /* BLK x nslopes (batch path) */
-    float *fre, *fim;        /* CHUNK_EXP x npin */
+    float *sblk;             /* NG x nslopes (batch path) */
+    float *fre, *fim;        /* CHUNK_EXP slots x npin */
     float complex *grid;     /* npup^2, zero outside the illuminated samples */
     float complex *focal;    /* nfx * nfy */
     swfs_mft *mft;
@@ -72,8 +81,8 @@ struct swfs_engine {
     float *amp;         /* npin: pupil transmission */
     worker *wk;
     /* Stream state (add_wfs / end_exposure). */
-    float *pend;        /* BLK x nslopes */
-    float pend_w[BLK];
+    float *pend;        /* NG x nslopes */
+    float pend_w[NG];
     size_t npend;
     float *run_re, *run_im;
     /* Thread pool: nthreads - 1 helpers; the caller is worker 0. */
@@ -110,13 +119,17 @@ static int convert_slopes(const swfs_engine *e, const double *s, float *out, siz
     return SWFS_OK;
 }
 
-/* The pupil-field sums of nb frames (rows of sblk) into the segments' targets. */
-static void run_block(const swfs_engine *e, worker *w, const float *sblk, size_t nb, const seg *segs,
-                      size_t nseg)
+/* zt (nact x NG, row stride LDZ) = wf (nact x nslopes) * sblk^T: ng <= NG frames in one GEMM. */
+static void reconstruct(const swfs_engine *e, worker *w, const float *sblk, size_t ng)
 {
-    /* zt (nact x BLK) = wf (nact x nslopes) * sblk^T: every frame of the block in one GEMM. */
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)e->nact, (int)nb, (int)e->nslopes, 1.0f, e->wf,
-                (int)e->nslopes, sblk, (int)e->nslopes, 0.0f, w->zt, BLK);
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)e->nact, (int)ng, (int)e->nslopes, 1.0f, e->wf,
+                (int)e->nslopes, sblk, (int)e->nslopes, 0.0f, w->zt, LDZ);
+}
+
+/* The pupil-field sums of the nb frames in columns [bo, bo + nb) of zt into the segments'
+ * targets (segment frame indices are relative to bo). */
+static void project_block(const swfs_engine *e, worker *w, size_t bo, size_t nb, const seg *segs, size_t nseg)
+{
     unsigned used = 0; /* frames of the block some segment needs */
     for (size_t k = 0; k < nseg; k++)
         for (size_t b = segs[k].b0; b < segs[k].b1; b++)
@@ -125,16 +138,31 @@ static void run_block(const swfs_engine *e, worker *w, const float *sblk, size_t
     for (size_t r0 = 0; r0 < e->npin; r0 += TILE) {
         const size_t len = e->npin - r0 < TILE ? e->npin - r0 : TILE;
         float *restrict y = w->y;
-        const float *restrict zt = w->zt;
-        /* Interpolation, 16 frames per nonzero (lanes beyond nb are never read). */
+        const float *restrict zt = w->zt + bo;
+        /* Interpolation, 16 frames per nonzero (lanes beyond nb are never read): one vector
+         * multiply-add of a whole zt row segment per nonzero, then the lanes are stored
+         * frame-major so that everything downstream runs over contiguous samples. */
         for (size_t rr = 0; rr < len; rr++) {
             const size_t r = r0 + rr;
-            float acc[BLK] = {0};
-            for (size_t k = e->rp[r]; k < e->rp[r + 1]; k++) {
-                const float v = e->val[k];
-                const float *restrict zr = zt + (size_t)e->col[k] * BLK;
-                for (int b = 0; b < BLK; b++) acc[b] += v * zr[b];
+            /* Four independent sums: one chain would wait on the add latency. */
+            v16f a0 = {0}, a1 = {0}, a2 = {0}, a3 = {0}, z0, z1, z2, z3;
+            size_t k = e->rp[r];
+            const size_t kend = e->rp[r + 1];
+            for (; k + 4 <= kend; k += 4) {
+                memcpy(&z0, zt + (size_t)e->col[k] * LDZ, sizeof z0);
+                memcpy(&z1, zt + (size_t)e->col[k + 1] * LDZ, sizeof z1);
+                memcpy(&z2, zt + (size_t)e->col[k + 2] * LDZ, sizeof z2);
+                memcpy(&z3, zt + (size_t)e->col[k + 3] * LDZ, sizeof z3);
+                a0 += e->val[k] * z0;
+                a1 += e->val[k + 1] * z1;
+                a2 += e->val[k + 2] * z2;
+                a3 += e->val[k + 3] * z3;
             }
+            for (; k < kend; k++) {
+                memcpy(&z0, zt + (size_t)e->col[k] * LDZ, sizeof z0);
+                a0 += e->val[k] * z0;
+            }
+            const v16f acc = (a0 + a1) + (a2 + a3);
             for (int b = 0; b < BLK; b++) y[(size_t)b * TILE + rr] = acc[b];
         }
         for (size_t b = 0; b < nb; b++)
@@ -186,9 +214,13 @@ static void get_exposure(const job *j, size_t i, swfs_exposure *x)
     }
 }
 
-/* Exposures [e0, e1) handed to one worker. The split depends on the schedule only. */
+/* Exposures [e0, e1) handed to one worker. The split depends on the schedule only. With a
+ * schedule: at most CHUNK_EXP exposures (one field slot each) spanning at most CHUNK_FRAMES
+ * WFS frames (more only for a single long exposure). Single-frame exposures: CHUNK_FRAMES of
+ * them; those of one BLK block occupy distinct slots and all finish with the block. */
 static size_t chunk_end(const job *j, size_t e0)
 {
+    if (!j->sched) return j->nexp - e0 < CHUNK_FRAMES ? j->nexp : e0 + CHUNK_FRAMES;
     swfs_exposure x;
     get_exposure(j, e0, &x);
     size_t lo = x.first, hi = x.first + x.count, e1 = e0 + 1;
@@ -213,36 +245,45 @@ static int run_chunk(const swfs_engine *e, worker *w, const job *j, size_t e0, s
         if (x.first < lo) lo = x.first;
         if (x.first + x.count > hi) hi = x.first + x.count;
     }
-    const size_t n = e1 - e0;
-    memset(w->fre, 0, n * e->npin * sizeof(float));
-    memset(w->fim, 0, n * e->npin * sizeof(float));
-    for (size_t b0 = lo; b0 < hi; b0 += BLK) {
-        const size_t nb = hi - b0 < BLK ? hi - b0 : BLK;
-        size_t nseg = 0;
-        for (size_t i = e0; i < e1; i++) {
-            get_exposure(j, i, &x);
-            const size_t last = x.first + x.count - 1;
-            const size_t f0 = x.first > b0 ? x.first : b0;
-            const size_t f1 = last + 1 < b0 + nb ? last + 1 : b0 + nb;
-            if (f0 >= f1) continue;
-            seg *sg = &w->segs[nseg++];
-            sg->b0 = f0 - b0;
-            sg->b1 = f1 - b0;
-            for (size_t f = f0; f < f1; f++)
-                sg->w[f - b0] = (float)(f == x.first ? x.w_first : f == last ? x.w_last : 1.0);
-            sg->re = w->fre + (i - e0) * e->npin;
-            sg->im = w->fim + (i - e0) * e->npin;
-        }
-        if (!nseg) continue; /* a gap between exposures */
-        for (size_t b = 0; b < nb; b++) {
-            int rc = convert_slopes(e, j->slopes + (b0 + b) * e->nslopes, w->sblk + b * e->nslopes, b0 + b);
+    memset(w->fre, 0, CHUNK_EXP * e->npin * sizeof(float));
+    memset(w->fim, 0, CHUNK_EXP * e->npin * sizeof(float));
+    for (size_t g0 = lo; g0 < hi; g0 += NG) {
+        const size_t ng = hi - g0 < NG ? hi - g0 : NG;
+        for (size_t b = 0; b < ng; b++) {
+            int rc = convert_slopes(e, j->slopes + (g0 + b) * e->nslopes, w->sblk + b * e->nslopes, g0 + b);
             if (rc) return rc;
         }
-        run_block(e, w, w->sblk, nb, w->segs, nseg);
+        reconstruct(e, w, w->sblk, ng);
+        for (size_t bo = 0; bo < ng; bo += BLK) {
+            const size_t b0 = g0 + bo, nb = ng - bo < BLK ? ng - bo : BLK;
+            size_t nseg = 0;
+            for (size_t i = e0; i < e1; i++) {
+                get_exposure(j, i, &x);
+                const size_t last = x.first + x.count - 1;
+                const size_t f0 = x.first > b0 ? x.first : b0;
+                const size_t f1 = last + 1 < b0 + nb ? last + 1 : b0 + nb;
+                if (f0 >= f1) continue;
+                seg *sg = &w->segs[nseg++];
+                sg->b0 = f0 - b0;
+                sg->b1 = f1 - b0;
+                for (size_t f = f0; f < f1; f++)
+                    sg->w[f - b0] = (float)(f == x.first ? x.w_first : f == last ? x.w_last : 1.0);
+                sg->re = w->fre + (i - e0) % CHUNK_EXP * e->npin;
+                sg->im = w->fim + (i - e0) % CHUNK_EXP * e->npin;
+            }
+            if (nseg) project_block(e, w, bo, nb, w->segs, nseg);
+            /* Exposures that end in this block: propagate, then free their slot. */
+            for (size_t i = e0; i < e1; i++) {
+                get_exposure(j, i, &x);
+                const size_t last = x.first + x.count - 1;
+                if (last < b0 || last >= b0 + nb) continue;
+                float *re = w->fre + (i - e0) % CHUNK_EXP * e->npin, *im = w->fim + (i - e0) % CHUNK_EXP * e->npin;
+                finish_exposure(e, w, re, im, j->out + i * e->nfx * e->nfy);
+                memset(re, 0, e->npin * sizeof(float));
+                memset(im, 0, e->npin * sizeof(float));
+            }
+        }
     }
-    for (size_t i = e0; i < e1; i++)
-        finish_exposure(e, w, w->fre + (i - e0) * e->npin, w->fim + (i - e0) * e->npin,
-                        j->out + i * e->nfx * e->nfy);
     return SWFS_OK;
 }
 
@@ -369,15 +410,20 @@ size_t swfs_engine_schedule(double ratio, double offset, size_t nexp, swfs_expos
 static void flush_pending(swfs_engine *e)
 {
     if (!e->npend) return;
-    seg *sg = &e->wk[0].segs[0];
-    sg->b0 = 0;
-    sg->b1 = e->npend;
-    memcpy(sg->w, e->pend_w, sizeof sg->w);
-    sg->re = e->run_re;
-    sg->im = e->run_im;
+    worker *w = &e->wk[0];
     const int blas_threads = openblas_get_num_threads();
     openblas_set_num_threads(1);
-    run_block(e, &e->wk[0], e->pend, e->npend, sg, 1);
+    reconstruct(e, w, e->pend, e->npend);
+    for (size_t bo = 0; bo < e->npend; bo += BLK) {
+        const size_t nb = e->npend - bo < BLK ? e->npend - bo : BLK;
+        seg *sg = &w->segs[0];
+        sg->b0 = 0;
+        sg->b1 = nb;
+        memcpy(sg->w, e->pend_w + bo, nb * sizeof(float));
+        sg->re = e->run_re;
+        sg->im = e->run_im;
+        project_block(e, w, bo, nb, sg, 1);
+    }
     openblas_set_num_threads(blas_threads);
     e->npend = 0;
 }
@@ -388,7 +434,7 @@ int swfs_engine_add_wfs(swfs_engine *e, const double *slopes, double weight)
     int rc = convert_slopes(e, slopes, e->pend + e->npend * e->nslopes, e->npend);
     if (rc) return rc;
     e->pend_w[e->npend++] = (float)weight;
-    if (e->npend == BLK) flush_pending(e);
+    if (e->npend == NG) flush_pending(e);
     return SWFS_OK;
 }
 
@@ -415,11 +461,11 @@ size_t swfs_engine_npin(const swfs_engine *e) { return e->npin; }
 static int worker_init(const swfs_engine *e, worker *w)
 {
     const size_t np2 = e->npup * e->npup;
-    w->zt = swfs_calloc(e->nact * BLK, sizeof(float));
+    w->zt = swfs_calloc(e->nact * LDZ, sizeof(float));
     w->y = swfs_calloc(BLK * TILE, sizeof(float));
     w->s = swfs_calloc(BLK * TILE, sizeof(float));
     w->c = swfs_calloc(BLK * TILE, sizeof(float));
-    w->sblk = swfs_calloc(BLK * e->nslopes, sizeof(float));
+    w->sblk = swfs_calloc(NG * e->nslopes, sizeof(float));
     w->fre = swfs_calloc(CHUNK_EXP * e->npin, sizeof(float));
     w->fim = swfs_calloc(CHUNK_EXP * e->npin, sizeof(float));
     w->grid = swfs_calloc(np2, sizeof(float complex));
@@ -520,7 +566,7 @@ swfs_engine *swfs_engine_create(const swfs_engine_config *c)
         e->rp[++r] = q;
     }
 
-    e->pend = swfs_calloc(BLK * c->nslopes, sizeof(float));
+    e->pend = swfs_calloc(NG * c->nslopes, sizeof(float));
     e->run_re = swfs_calloc(npin, sizeof(float));
     e->run_im = swfs_calloc(npin, sizeof(float));
     e->wk = calloc((size_t)e->nthreads, sizeof *e->wk);

@@ -1,0 +1,39 @@
+/* Accumulator checkpoints: the per-pixel state of accum.h saved to a FITS file, so a night
+ * can be processed in chunks, on several machines, or resumed after a stop, and the parts
+ * merged exactly (Chan et al.'s pairwise update, swfs_accum_merge).
+ *
+ * File layout (DESIGN.md conventions): an empty primary HDU with SWFSVER/DATE/HISTORY
+ * provenance and the geometry keywords, then the image extension EXTNAME = 'ACCUM': a real
+ * cube (BITPIX -64) nx x ny x 15 whose plane k is field k of accum.h (count, the 4 means
+ * of (I, x, y, |psi|^2), the 10 co-moments), with the keywords
+ *   ACCVER  = 1                  layout version
+ *   ACCFLDS = 'N MI MX MY MA CII CIX CIY CIA CXX CXY CXA CYY CYA CAA'
+ *   FRAMES  frames offered;  SKIPPED  pixel-frames skipped (non-finite science)
+ * and the geometry. Written atomically (.part + rename), so a checkpoint that exists is
+ * complete. Doubles are stored exactly: load(save(a)) == a bit for bit. */
+#ifndef SWFS_CHECKPOINT_H
+#define SWFS_CHECKPOINT_H
+
+#include <stddef.h>
+
+#include "specklewfs/accum.h"
+#include "specklewfs/fits.h"
+
+#define SWFS_CHECKPOINT_VERSION 1
+
+/* g (may be NULL): geometry to record; prov: provenance lines (HISTORY). */
+int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, const char *const *prov,
+                    size_t nprov);
+/* A new accumulator from a checkpoint; g (may be NULL) receives its geometry. */
+int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g);
+
+/* SWFS_ERR_VALUE naming both files and the keyword when two geometries disagree on a
+ * keyword that both record (relative tolerance 1e-9): merging halos of different
+ * wavelengths or samplings would be meaningless. */
+int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b);
+
+/* Load and merge n checkpoints (same frame size and geometry) into *out; g (may be NULL)
+ * receives the merged geometry (the union of the keywords recorded). */
+int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out, swfs_geom *g);
+
+#endif

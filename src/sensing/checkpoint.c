@@ -1,0 +1,167 @@
+/* Accumulator checkpoints: see include/specklewfs/checkpoint.h. */
+#include "specklewfs/checkpoint.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static const char *const field_names = "N MI MX MY MA CII CIX CIY CIA CXX CXY CXA CYY CYA CAA";
+
+int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, const char *const *prov,
+                    size_t nprov)
+{
+    if (!a || !path) return swfs_fail(SWFS_ERR_ARG, "checkpoint: missing accumulator or path");
+    swfs_geom none;
+    swfs_geom_init(&none);
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_set_stamp(o, g ? g : &none, prov, nprov);
+    if (!rc) rc = swfs_fits_out_begin(o, "ACCUM", a->nx, a->ny, SWFS_ACC_NFIELDS, 0, -64);
+    for (int k = 0; k < SWFS_ACC_NFIELDS && !rc; k++) rc = swfs_fits_out_real_frames(o, (size_t)k, 1, a->f[k]);
+    if (!rc) rc = swfs_fits_out_key_long(o, "ACCVER", SWFS_CHECKPOINT_VERSION, "specklewfs accumulator layout");
+    if (!rc) rc = swfs_fits_out_key_string(o, "ACCFLDS", field_names, "planes: count, means of I x y |psi|^2, co-moments");
+    if (!rc) rc = swfs_fits_out_key_long(o, "FRAMES", (long)a->frames, "frames offered");
+    if (!rc) rc = swfs_fits_out_key_long(o, "SKIPPED", (long)a->skipped, "pixel-frames skipped (non-finite science)");
+    if (rc) {
+        swfs_fits_out_abort(o);
+        return swfs_fail_context(rc, "%s", path);
+    }
+    return swfs_fits_out_commit(o);
+}
+
+/* A count key: a non-negative integer. */
+static int count_key(swfs_fits_in *f, const char *path, const char *key, uint64_t *out)
+{
+    double v;
+    int rc = swfs_fits_in_key_double(f, key, &v);
+    if (rc) return swfs_fail_context(rc, "%s: not a specklewfs checkpoint", path);
+    if (!(v >= 0) || v != floor(v) || v > 9.0e15)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: %s = %g is not a frame count", path, key, v);
+    *out = (uint64_t)v;
+    return SWFS_OK;
+}
+
+int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g)
+{
+    *out = NULL;
+    swfs_fits_in *f = NULL;
+    swfs_accum *a = NULL;
+    int rc = swfs_fits_in_open(&f, path, "ACCUM");
+    if (rc) return rc;
+    const swfs_fits_shape *sh = swfs_fits_in_shape(f);
+    double ver;
+    char names[128];
+    int found = 0;
+    if (sh->is_complex || sh->nz != SWFS_ACC_NFIELDS) {
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: ACCUM is %zux%zux%zu%s; a checkpoint holds a real cube of %d planes", path,
+                       sh->nx, sh->ny, sh->nz, sh->is_complex ? " complex" : "", SWFS_ACC_NFIELDS);
+        goto done;
+    }
+    if ((rc = swfs_fits_in_key_double(f, "ACCVER", &ver))) {
+        swfs_fail_context(rc, "%s: not a specklewfs checkpoint", path);
+        goto done;
+    }
+    if (ver != SWFS_CHECKPOINT_VERSION) {
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: checkpoint layout version %g, this program reads version %d", path, ver,
+                       SWFS_CHECKPOINT_VERSION);
+        goto done;
+    }
+    if ((rc = swfs_fits_in_key_string_opt(f, "ACCFLDS", names, sizeof names, &found))) goto done;
+    if (found && strcmp(names, field_names)) {
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: ACCFLDS = '%s', expected '%s'", path, names, field_names);
+        goto done;
+    }
+    if (!(a = swfs_accum_create(sh->nx, sh->ny))) { rc = SWFS_ERR_NOMEM; goto done; }
+    if ((rc = count_key(f, path, "FRAMES", &a->frames)) || (rc = count_key(f, path, "SKIPPED", &a->skipped))) goto done;
+    for (int k = 0; k < SWFS_ACC_NFIELDS && !rc; k++) rc = swfs_fits_in_read_real(f, (size_t)k, 1, a->f[k]);
+    if (rc) goto done;
+    /* The state must be one an accumulator can be in. */
+    const size_t np = a->nx * a->ny;
+    static const int diag[4] = {SWFS_ACC_CII, SWFS_ACC_CXX, SWFS_ACC_CYY, SWFS_ACC_CAA};
+    for (size_t p = 0; p < np && !rc; p++) {
+        const double n = a->f[SWFS_ACC_N][p];
+        if (!(n >= 0) || n != floor(n) || n > (double)a->frames)
+            rc = swfs_fail(SWFS_ERR_FORMAT, "%s: pixel (%zu, %zu) has count %g with FRAMES = %llu", path, p % a->nx,
+                           p / a->nx, n, (unsigned long long)a->frames);
+        for (int k = 1; k < SWFS_ACC_NFIELDS && !rc; k++)
+            if (!isfinite(a->f[k][p]))
+                rc = swfs_fail(SWFS_ERR_FORMAT, "%s: plane %d of pixel (%zu, %zu) is not finite", path, k, p % a->nx,
+                               p / a->nx);
+        for (int k = 0; k < 4 && !rc; k++)
+            if (a->f[diag[k]][p] < 0)
+                rc = swfs_fail(SWFS_ERR_FORMAT, "%s: negative variance in plane %d at pixel (%zu, %zu)", path, diag[k],
+                               p % a->nx, p / a->nx);
+    }
+    if (!rc && g) rc = swfs_fits_in_geom(f, g);
+done:
+    swfs_fits_in_close(f);
+    if (rc) {
+        swfs_accum_free(a);
+        return rc;
+    }
+    *out = a;
+    return SWFS_OK;
+}
+
+static int same_value(double a, double b)
+{
+    if (isnan(a) || isnan(b)) return 1; /* not recorded by one of them */
+    return fabs(a - b) <= 1e-9 * fmax(fabs(a), fabs(b));
+}
+
+int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b)
+{
+    const struct { const char *key; double va, vb; } k[] = {
+        {"WAVELEN", a->wavelen, b->wavelen}, {"TELDIAM", a->teldiam, b->teldiam},
+        {"OBSCUR", a->obscur, b->obscur},    {"PIXSCALE", a->pixscale, b->pixscale},
+        {"PUPDX", a->pupdx, b->pupdx},
+        {"PUPN", a->pupn ? (double)a->pupn : NAN, b->pupn ? (double)b->pupn : NAN},
+    };
+    for (size_t i = 0; i < sizeof k / sizeof k[0]; i++)
+        if (!same_value(k[i].va, k[i].vb))
+            return swfs_fail(SWFS_ERR_VALUE, "%s has %s = %.10g but %s has %.10g: not the same observing setup",
+                             what_b, k[i].key, k[i].vb, what_a, k[i].va);
+    return SWFS_OK;
+}
+
+/* Keywords recorded by b but not by a are taken from b. */
+static void geom_union(swfs_geom *a, const swfs_geom *b)
+{
+    if (isnan(a->wavelen)) a->wavelen = b->wavelen;
+    if (isnan(a->teldiam)) a->teldiam = b->teldiam;
+    if (isnan(a->obscur)) a->obscur = b->obscur;
+    if (isnan(a->pixscale)) a->pixscale = b->pixscale;
+    if (isnan(a->pupdx)) a->pupdx = b->pupdx;
+    if (!a->pupn) a->pupn = b->pupn;
+}
+
+int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out, swfs_geom *g)
+{
+    *out = NULL;
+    if (!n) return swfs_fail(SWFS_ERR_ARG, "merge: no checkpoint files");
+    swfs_accum *acc = NULL, *part = NULL;
+    swfs_geom gacc, gpart;
+    int rc = swfs_accum_load(paths[0], &acc, &gacc);
+    for (size_t i = 1; i < n && !rc; i++) {
+        rc = swfs_accum_load(paths[i], &part, &gpart);
+        if (rc) break;
+        if (part->nx != acc->nx || part->ny != acc->ny)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: accumulators are %zux%zu pixels but %s has %zux%zu", paths[i], part->nx,
+                           part->ny, paths[0], acc->nx, acc->ny);
+        if (!rc) rc = swfs_geom_check_same(&gacc, paths[0], &gpart, paths[i]);
+        if (!rc) rc = swfs_accum_merge(acc, part);
+        geom_union(&gacc, &gpart);
+        swfs_accum_free(part);
+        part = NULL;
+    }
+    if (rc) {
+        swfs_accum_free(acc);
+        return rc;
+    }
+    if (g) *g = gacc;
+    *out = acc;
+    return SWFS_OK;
+}
