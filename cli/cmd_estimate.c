@@ -25,6 +25,8 @@ static const char *usage_text =
     "                        header's RDNOISE, else 0\n"
     "  --gain G              detector gain [e-/count] for the photon-noise variance Phi_I/G;\n"
     "                        default: the science header's GAIN, else no photon term\n"
+    "  --g-smooth L          regularize the scale factor over a Gaussian neighbourhood of L lambda/D\n"
+    "                        (default 2; 0 = the paper's per-pixel g, see docs/ARCHITECTURE.md)\n"
     "  --frames-per-read N   frames read per block (default 64)\n"
     "\n"
     "Non-finite science pixels are skipped for that frame and counted; the speckle mean over\n"
@@ -34,7 +36,7 @@ int swfs_cmd_estimate(int argc, char **argv)
 {
     const char *cmd = "estimate";
     const char *in_sci = NULL, *in_sp = NULL, *out = NULL;
-    double read_noise = NAN, gain = NAN;
+    double read_noise = NAN, gain = NAN, g_smooth_lod = 2.0;
     long block = 64;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -42,6 +44,7 @@ int swfs_cmd_estimate(int argc, char **argv)
         else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
         else if (!strcmp(a, "--read-noise")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &read_noise)) return CLI_USAGE; }
         else if (!strcmp(a, "--gain")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &gain)) return CLI_USAGE; }
+        else if (!strcmp(a, "--g-smooth")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &g_smooth_lod)) return CLI_USAGE; }
         else if (!strcmp(a, "--frames-per-read")) { if (cli_parse_long(cmd, a, i + 1 < argc ? argv[++i] : NULL, &block)) return CLI_USAGE; }
         else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
         else if (!in_sci) in_sci = a;
@@ -53,6 +56,7 @@ int swfs_cmd_estimate(int argc, char **argv)
     if (!isnan(read_noise) && read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0, got %g", read_noise);
     if (!isnan(gain) && gain <= 0) return cli_usage_error(cmd, "--gain must be > 0, got %g", gain);
     if (block < 1) return cli_usage_error(cmd, "--frames-per-read must be >= 1");
+    if (!(g_smooth_lod >= 0)) return cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", g_smooth_lod);
 
     double t0 = cli_now();
     swfs_fits_in *fs = NULL, *fp = NULL;
@@ -102,6 +106,16 @@ int swfs_cmd_estimate(int argc, char **argv)
     swfs_geom geom;
     if (swfs_fits_in_geom(fp, &geom)) { cli_error(cmd); goto done; }
 
+    /* The g regularization is given in lambda/D; the library works in pixels. */
+    swfs_estimate_options eopt = {0.0};
+    if (g_smooth_lod > 0) {
+        if (!isfinite(geom.pixscale) || !(geom.pixscale > 0)) {
+            fprintf(stderr, "specklewfs %s: %s: no PIXSCALE keyword, so --g-smooth %g lambda/D cannot be converted to "
+                    "pixels; add PIXSCALE [lambda/D per pixel] or use --g-smooth 0\n", cmd, in_sp, g_smooth_lod);
+            goto done;
+        }
+        eopt.g_smooth = g_smooth_lod / geom.pixscale;
+    }
     const size_t nx = ss->nx, ny = ss->ny, nz = ss->nz, np = nx * ny;
     acc = swfs_accum_create(nx, ny);
     ibuf = malloc((size_t)block * np * sizeof *ibuf);
@@ -119,7 +133,7 @@ int swfs_cmd_estimate(int argc, char **argv)
         }
         cli_progress("estimate: frames", k + n, nz);
     }
-    if (swfs_estimate(acc, &noise, &halo)) {
+    if (swfs_estimate(acc, &noise, &eopt, &halo)) {
         fprintf(stderr, "specklewfs %s: %s + %s: %s\n", cmd, in_sci, in_sp, swfs_last_error());
         goto done;
     }
@@ -147,8 +161,12 @@ int swfs_cmd_estimate(int argc, char **argv)
     printf("  noise model       read noise %.4g counts, gain %.4g e-/count\n", noise.read_noise, noise.gain);
     printf("  valid pixels      %zu of %zu (%.1f %%); radicand of g <= 0 in %zu, no speckle power in %zu\n",
            halo->n_valid, halo->npix, 100.0 * halo->valid_fraction, halo->n_bad_radicand, halo->n_no_speckle);
-    printf("  fallback g        local median of valid neighbours for the %zu invalid pixels with speckles\n",
-           halo->npix - halo->n_valid - halo->n_no_speckle - halo->n_no_frames);
+    if (halo->g_smooth > 0)
+        printf("  scale factor g    regularized over %.3g pixels (GAIN; the paper's per-pixel g is GAIN_PIX), "
+               "%zu pixels on the local-median fallback\n", halo->g_smooth, halo->n_g_fallback);
+    else
+        printf("  scale factor g    per pixel (eq:scale-factor); %zu invalid pixels use the local median of valid "
+               "neighbours\n", halo->n_g_fallback);
     printf("  median SNR        %.3g (eq:SNR, valid pixels)\n", halo->median_snr);
     if (isfinite(circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", circ_core);
     printf("  time              %.2f s\n", cli_now() - t0);

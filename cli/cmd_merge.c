@@ -67,7 +67,7 @@ int swfs_cmd_merge(int argc, char **argv)
            (unsigned long long)acc->frames, (unsigned long long)acc->skipped, acc->nx, acc->ny);
     if (halo_path) {
         swfs_noise noise = {read_noise, gain};
-        if (swfs_estimate(acc, &noise, &halo)) { cli_error(cmd); goto free_acc; }
+        if (swfs_estimate(acc, &noise, NULL, &halo)) { cli_error(cmd); goto free_acc; }
         char nl[256];
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", noise.read_noise, noise.gain);
         const char *hprov[] = {cl, nl};

@@ -118,8 +118,8 @@ static void test_merge_equals_single_pass(void **state)
     /* And the estimator sees the same data set (eq:TheAnswer, eq:scale-factor). */
     swfs_noise noise = {1.0, 0.0};
     swfs_halo *h1 = NULL, *h2 = NULL;
-    assert_ok(swfs_estimate(all, &noise, &h1));
-    assert_ok(swfs_estimate(m, &noise, &h2));
+    assert_ok(swfs_estimate(all, &noise, NULL, &h1));
+    assert_ok(swfs_estimate(m, &noise, NULL, &h2));
     assert_int_equal(h1->n_valid, h2->n_valid);
     double emax = 0, hmax = 0;
     for (size_t p = 0; p < NP; p++) {

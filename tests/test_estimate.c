@@ -10,6 +10,12 @@
 #include <stdlib.h>
 #include <string.h>
 
+static int cmp_d(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
 #define NX 6
 #define NY 5
 #define NP (NX * NY)
@@ -72,7 +78,8 @@ static void test_recovers_known_halo_and_gain(void **state)
             feed(acc, ns[t], 0.05, seed * 1000 + (uint64_t)t);
             swfs_halo *h;
             swfs_noise nz = {0.05, 0.0};
-            assert_ok(swfs_estimate(acc, &nz, &h));
+            swfs_estimate_options paper = {0.0}; /* g varies pixel to pixel here */
+            assert_ok(swfs_estimate(acc, &nz, &paper, &h));
             assert_int_equal(h->n_valid, NP);
             double g1;
             e += halo_rms_error(h, &g1);
@@ -112,7 +119,8 @@ static void test_statistics_match_two_pass(void **state)
         assert_ok(swfs_accum_add(acc, sci + k * NP, psi + k * NP));
     }
     swfs_halo *h;
-    assert_ok(swfs_estimate(acc, NULL, &h));
+    swfs_estimate_options paper = {0.0};
+    assert_ok(swfs_estimate(acc, NULL, &paper, &h));
     for (size_t p = 0; p < NP; p++) {
         double complex m = 0.0;
         double mi = 0.0;
@@ -137,17 +145,19 @@ static void test_statistics_match_two_pass(void **state)
         }
         vsp /= (double)n;
         assert_close(h->mean_i->data[p], mi, 1e-12 * fabs(mi));
-        assert_close(h->var_i->data[p], vi, 1e-10 * vi);
+        /* VAR_I: the unbiased 1/(N-1) variance (the noise model is removed from it). */
+        assert_close(h->var_i->data[p], vi * n / (n - 1.0), 1e-10 * vi);
         assert_close(h->mean_sp->data[p], phisp, 1e-10 * phisp);
         assert_close(h->var_sp->data[p], vsp, 1e-9 * vsp);
         assert_close(creal(h->stab->data[p]), creal(stab), 1e-10 * cabs(stab));
         assert_close(cimag(h->stab->data[p]), cimag(stab), 1e-10 * cabs(stab));
         assert_close(h->circ->data[p], cabs(sq) / phisp, 1e-9);
         /* eq:scale-factor and eq:TheAnswer from the direct sums. */
-        double rad = vi / vsp - 2.0 * creal(stab * conj(stab)) / (phisp * vsp);
+        double rad = vi * n / (n - 1.0) / vsp - 2.0 * creal(stab * conj(stab)) / (phisp * vsp);
         assert_true(rad > 0);
         double g = pow(rad, 0.25);
         assert_close(h->gain->data[p], g, 1e-9 * g);
+        assert_close(h->gain_pix->data[p], g, 1e-9 * g);
         assert_close(cabs(h->halo->data[p] - stab / (g * phisp)), 0.0, 1e-9);
         /* eq:visibility */
         assert_close(h->visib->data[p], 2.0 * cabs(stab) / (mi * sqrt(phisp)), 1e-9);
@@ -240,7 +250,7 @@ static void test_nonfinite_science_skipped(void **state)
     }
     assert_int_equal(acc->skipped, 40 + 16);
     swfs_halo *h;
-    assert_ok(swfs_estimate(acc, NULL, &h));
+    assert_ok(swfs_estimate(acc, NULL, NULL, &h));
     assert_close(h->nframes->data[3], 360, 0);
     assert_close(h->nframes->data[7], 384, 0);
     for (size_t p = 0; p < NP; p++) assert_true(isfinite(creal(h->halo->data[p])));
@@ -272,7 +282,7 @@ static void test_invalid_pixels_fall_back(void **state)
         assert_ok(swfs_accum_add(acc, sci, psi));
     }
     swfs_halo *h;
-    assert_ok(swfs_estimate(acc, NULL, &h));
+    assert_ok(swfs_estimate(acc, NULL, NULL, &h));
     assert_int_equal(h->n_valid, NP - 2);
     assert_int_equal(h->n_bad_radicand, 1);
     assert_int_equal(h->n_no_speckle, 1);
@@ -282,6 +292,53 @@ static void test_invalid_pixels_fall_back(void **state)
     assert_close(cabs(h->halo->data[9]), 0.0, 0.0);
     assert_close(h->valid_fraction, (double)(NP - 2) / NP, 1e-12);
     swfs_halo_free(h);
+    swfs_accum_free(acc);
+}
+
+static void test_regularized_gain_at_low_snr(void **state)
+{
+    (void)state;
+    /* A faint halo under strong read noise, g = 3 everywhere: the paper's per-pixel g is
+     * undefined in many pixels and biased high where it is defined (only upward
+     * fluctuations give a positive radicand); the regularized g is close to 3. */
+    enum { W = 32, Hh = 32, N = 400 };
+    swfs_accum *acc = swfs_accum_create(W, Hh);
+    swfs_rng r;
+    swfs_rng_seed(&r, 31);
+    static double sci[W * Hh];
+    static double complex psi[W * Hh];
+    const double g = 3.0, rn = 60.0;
+    for (int k = 0; k < N; k++) {
+        for (int p = 0; p < W * Hh; p++) {
+            psi[p] = swfs_rng_cnormal(&r);
+            double complex t = 2.0 + g * psi[p];
+            sci[p] = creal(t * conj(t)) + rn * swfs_rng_normal(&r);
+        }
+        assert_ok(swfs_accum_add(acc, sci, psi));
+    }
+    swfs_noise nz = {rn, 0.0};
+    swfs_halo *hp, *hr;
+    swfs_estimate_options paper = {0.0}, reg = {SWFS_G_SMOOTH_DEFAULT};
+    assert_ok(swfs_estimate(acc, &nz, &paper, &hp));
+    assert_ok(swfs_estimate(acc, &nz, &reg, &hr));
+    double vp[W * Hh], gr = 0.0;
+    size_t nv = 0;
+    for (int p = 0; p < W * Hh; p++) {
+        if (hp->valid->data[p] > 0.5) vp[nv++] = hp->gain_pix->data[p];
+        gr += hr->gain->data[p];
+        if (hp->valid->data[p] > 0.5) /* the same paper g is kept */
+            assert_close(hr->gain_pix->data[p], hp->gain_pix->data[p], 0.0);
+        else
+            assert_true(isnan(hr->gain_pix->data[p]));
+    }
+    gr /= W * Hh;
+    qsort(vp, nv, sizeof *vp, cmp_d);
+    print_message("valid %zu of %d; paper g median %.2f, regularized g mean %.2f (true 3)\n", nv, W * Hh, vp[nv / 2], gr);
+    assert_true(nv < W * Hh * 9 / 10);
+    assert_true(vp[nv / 2] > 3.3);
+    assert_close(gr, 3.0, 0.2);
+    swfs_halo_free(hp);
+    swfs_halo_free(hr);
     swfs_accum_free(acc);
 }
 
@@ -298,11 +355,11 @@ static void test_no_valid_pixel_is_an_error(void **state)
         assert_ok(swfs_accum_add(acc, sci, psi));
     }
     swfs_halo *h = NULL;
-    assert_int_equal(swfs_estimate(acc, NULL, &h), SWFS_ERR_NUMERIC);
+    assert_int_equal(swfs_estimate(acc, NULL, NULL, &h), SWFS_ERR_NUMERIC);
     assert_null(h);
     assert_non_null(strstr(swfs_last_error(), "radicand"));
     swfs_noise bad = {-1.0, 0.0};
-    assert_int_equal(swfs_estimate(acc, &bad, &h), SWFS_ERR_ARG);
+    assert_int_equal(swfs_estimate(acc, &bad, NULL, &h), SWFS_ERR_ARG);
     swfs_accum_free(acc);
 }
 
@@ -324,7 +381,7 @@ static void test_noise_variance_removed(void **state)
     }
     swfs_halo *h;
     swfs_noise nz = {rn, gain};
-    assert_ok(swfs_estimate(acc, &nz, &h));
+    assert_ok(swfs_estimate(acc, &nz, NULL, &h));
     print_message("g with noise removed: %.4f (true 5); |Psi| %.4f (true 3)\n", h->gain->data[0], cabs(h->halo->data[0]));
     assert_close(h->gain->data[0], g, 0.05);
     assert_close(cabs(h->halo->data[0]), psi0, 0.05);
@@ -332,7 +389,7 @@ static void test_noise_variance_removed(void **state)
     assert_close(h->snr->data[0], 2.0 * cabs(h->stab->data[0]) / (noise_phi * sqrt(h->mean_sp->data[0])), 1e-9);
     swfs_halo_free(h);
     /* Without removing the noise g comes out biased high. */
-    assert_ok(swfs_estimate(acc, NULL, &h));
+    assert_ok(swfs_estimate(acc, NULL, NULL, &h));
     assert_true(h->gain->data[0] > g + 0.2);
     swfs_halo_free(h);
     swfs_accum_free(acc);
@@ -383,6 +440,7 @@ int main(void)
         cmocka_unit_test(test_bright_pixel_precision),
         cmocka_unit_test(test_nonfinite_science_skipped),
         cmocka_unit_test(test_invalid_pixels_fall_back),
+        cmocka_unit_test(test_regularized_gain_at_low_snr),
         cmocka_unit_test(test_no_valid_pixel_is_an_error),
         cmocka_unit_test(test_noise_variance_removed),
         cmocka_unit_test(test_phase_shifting),

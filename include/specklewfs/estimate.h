@@ -6,12 +6,23 @@
  *   sigma_noise^2 = read_noise^2 + Phi_I / gain        (gain in e-/count; 0 = no photon term)
  * and is removed from sigma_I^2 before eq:scale-factor, as Sec. 2.3 requires.
  *
- * Invalid pixels. g is defined where its radicand (eq:scale-factor) and Phi_sp, sigma_sp^2
- * are positive; VALID = 1 there. Elsewhere g falls back to the median of the valid g in
- * the smallest square neighbourhood holding at least SWFS_G_FALLBACK_MIN valid pixels
- * (the whole map at most), so HALO and HALO_LF stay finite and smooth and one bad pixel
- * does not poison the pupil transform; VALID = 0 marks them. Pixels with no usable
- * frames or no speckle power have HALO = HALO_LF = 0 and SNR = 0. */
+ * The scale factor. The paper's g (eq:scale-factor) is a per-pixel fourth root of a
+ * difference of noisy variances: at low SNR the radicand is often <= 0 and, where it is
+ * positive, biased high (only upward fluctuations survive; at the paper's sigma = 100 the
+ * median valid g is twice the true one, which empties HALO_LF's amplitude). Beyond the
+ * paper, g is regularized (g_smooth > 0, the default): the radicand is debiased
+ * (|<psi' I>|^2 minus its noise power), then averaged over a Gaussian neighbourhood of
+ * g_smooth pixels (sigma) with inverse-variance weights from a noise model that uses only
+ * well-measured quantities (Phi_I, Phi_sp, sigma_sp^2, the camera noise), iterated three
+ * times; g = (that average)^(1/4). GAIN holds the g used; GAIN_PIX the paper's per-pixel g.
+ * g_smooth = 0 gives the paper's estimator exactly.
+ *
+ * Invalid pixels. VALID = 1 where the paper's per-pixel radicand and Phi_sp, sigma_sp^2 are
+ * positive. Where the smoothed radicand is not positive either, g falls back to the median
+ * of the valid per-pixel g in the smallest square neighbourhood holding at least
+ * SWFS_G_FALLBACK_MIN valid pixels (the whole map at most), so HALO and HALO_LF stay finite
+ * and one bad pixel does not poison the pupil transform. Pixels with no usable frames or
+ * no speckle power have HALO = HALO_LF = 0 and SNR = 0. */
 #ifndef SWFS_ESTIMATE_H
 #define SWFS_ESTIMATE_H
 
@@ -33,7 +44,8 @@ typedef struct swfs_halo {
     swfs_cplx *halo;     /* Psi, eq:TheAnswer */
     swfs_cplx *halo_lf;  /* eq:PSI-LowFreq */
     swfs_cplx *stab;     /* <psi' I>, eq:stabilized / eq:betterStabilized */
-    swfs_real *gain;     /* g, eq:scale-factor (fallback where VALID = 0) */
+    swfs_real *gain;     /* g used for HALO, HALO_LF (regularized eq:scale-factor, see above) */
+    swfs_real *gain_pix; /* the paper's per-pixel g (eq:scale-factor), NaN where undefined */
     swfs_real *visib;    /* eq:visibility */
     swfs_real *snr;      /* eq:SNR with Phi_noise = sigma_noise */
     swfs_real *mean_i;   /* Phi_I */
@@ -51,15 +63,24 @@ typedef struct swfs_halo {
     double radicand_min; /* most negative radicand seen (diagnostic) */
     unsigned long long frames, skipped;
     swfs_noise noise;
+    double g_smooth;     /* [pixels] regularization used (0 = the paper's per-pixel g) */
+    size_t n_g_fallback; /* pixels whose g came from the local-median fallback */
 } swfs_halo;
 
-int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **out);
+#define SWFS_G_SMOOTH_DEFAULT 8.0 /* pixels: 2 lambda/D at the paper's 0.25 lambda/D sampling */
+
+typedef struct swfs_estimate_options {
+    double g_smooth; /* [pixels] Gaussian sigma of the g regularization; 0 = per-pixel (paper) */
+} swfs_estimate_options;
+
+/* opt may be NULL (defaults). */
+int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_estimate_options *opt, swfs_halo **out);
 void swfs_halo_free(swfs_halo *h);
 
 /* HALO.fits: an empty primary HDU with the summary keywords (NFRAMES, SKIPPED, NVALID,
  * VALIDFR, NBADRAD, NNOSP, MEDSNR, RDNOISE, GAIN), the geometry and provenance, then the
  * image extensions HALO, HALO_LF, STAB (complex), GAIN, VISIB, SNR, MEAN_I, VAR_I, MEAN_SP,
- * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES (real). Written atomically (.part + rename). */
+ * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES, GAIN_PIX (real). Written atomically (.part + rename). */
 int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, const char *const *prov,
                     size_t nprov);
 /* Read back every extension present (HALO and HALO_LF are required). */

@@ -11,7 +11,7 @@ void swfs_halo_free(swfs_halo *h)
 {
     if (!h) return;
     swfs_cplx_free(h->halo); swfs_cplx_free(h->halo_lf); swfs_cplx_free(h->stab);
-    swfs_real_free(h->gain); swfs_real_free(h->visib); swfs_real_free(h->snr);
+    swfs_real_free(h->gain); swfs_real_free(h->gain_pix); swfs_real_free(h->visib); swfs_real_free(h->snr);
     swfs_real_free(h->mean_i); swfs_real_free(h->var_i); swfs_real_free(h->mean_sp);
     swfs_real_free(h->var_sp); swfs_real_free(h->stab_err); swfs_real_free(h->circ);
     swfs_real_free(h->valid); swfs_real_free(h->nframes);
@@ -24,7 +24,14 @@ static int cmp_double(const void *a, const void *b)
     return (x > y) - (x < y);
 }
 
-/* Median of the valid g values in the smallest square window around (i, j) that holds
+static double median(double *v, size_t n)
+{
+    if (!n) return NAN;
+    qsort(v, n, sizeof *v, cmp_double);
+    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+/* Median of the valid per-pixel g in the smallest square window around (i, j) that holds
  * at least SWFS_G_FALLBACK_MIN of them (or all of them). */
 static double fallback_g(const swfs_halo *h, size_t i, size_t j, double *scratch)
 {
@@ -37,62 +44,145 @@ static double fallback_g(const swfs_halo *h, size_t i, size_t j, double *scratch
         size_t y0 = j >= r ? j - r : 0, y1 = j + r < ny ? j + r : ny - 1;
         for (size_t y = y0; y <= y1; y++)
             for (size_t x = x0; x <= x1; x++)
-                if (h->valid->data[y * nx + x] > 0.5) scratch[cnt++] = h->gain->data[y * nx + x];
+                if (h->valid->data[y * nx + x] > 0.5) scratch[cnt++] = h->gain_pix->data[y * nx + x];
         if (cnt >= SWFS_G_FALLBACK_MIN || (x0 == 0 && y0 == 0 && x1 == nx - 1 && y1 == ny - 1)) break;
     }
-    if (!cnt) return NAN;
-    qsort(scratch, cnt, sizeof *scratch, cmp_double);
-    return cnt % 2 ? scratch[cnt / 2] : 0.5 * (scratch[cnt / 2 - 1] + scratch[cnt / 2]);
+    return median(scratch, cnt);
 }
 
-int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **out)
+/* Separable Gaussian smoothing (sigma in pixels, truncated at 4 sigma) of v into out,
+ * zero outside the map; tmp is nx*ny scratch. */
+static void gauss_smooth(const double *v, size_t nx, size_t ny, double sigma, double *tmp, double *out)
+{
+    const long r = (long)ceil(4.0 * sigma);
+    double kern[512];
+    const long rr = r < 255 ? r : 255;
+    for (long k = -rr; k <= rr; k++) kern[k + rr] = exp(-0.5 * (double)(k * k) / (sigma * sigma));
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            double s = 0.0;
+            for (long k = -rr; k <= rr; k++) {
+                long x = (long)i + k;
+                if (x >= 0 && x < (long)nx) s += kern[k + rr] * v[j * nx + (size_t)x];
+            }
+            tmp[j * nx + i] = s;
+        }
+    for (size_t j = 0; j < ny; j++)
+        for (size_t i = 0; i < nx; i++) {
+            double s = 0.0;
+            for (long k = -rr; k <= rr; k++) {
+                long y = (long)j + k;
+                if (y >= 0 && y < (long)ny) s += kern[k + rr] * tmp[(size_t)y * nx + i];
+            }
+            out[j * nx + i] = s;
+        }
+}
+
+/* The regularized scale factor (see estimate.h). rdb: debiased radicands (NaN where the
+ * pixel has no speckles); g: in, the starting g per pixel; out, the regularized g where the
+ * smoothed radicand is positive, unchanged elsewhere. noise_var: per-pixel camera noise. */
+static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var, double sigma, double *g)
+{
+    const size_t nx = h->nx, ny = h->ny, np = nx * ny;
+    double *w = swfs_calloc(np, sizeof *w), *wr = swfs_calloc(np, sizeof *wr);
+    double *sw = swfs_malloc(np * sizeof *sw), *swr = swfs_malloc(np * sizeof *swr), *tmp = swfs_malloc(np * sizeof *tmp);
+    if (!w || !wr || !sw || !swr || !tmp) {
+        swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp);
+        return SWFS_ERR_NOMEM;
+    }
+    double *g_start = swfs_malloc(np * sizeof *g_start);
+    if (!g_start) { swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp); return SWFS_ERR_NOMEM; }
+    memcpy(g_start, g, np * sizeof *g);
+    for (int it = 0; it < 3; it++) {
+        for (size_t p = 0; p < np; p++) {
+            w[p] = wr[p] = 0.0;
+            if (!isfinite(rdb[p]) || !(g[p] > 0.0)) continue;
+            /* Model variance of I from the intensity model (eq:betterVariance) and the
+             * noise: sigma_I^2 = noise + 2 g^2 |Psi|^2 Phi_sp + g^4 sigma_sp^2, |Psi|^2 from
+             * eq:betterMean. Var of a sample variance ~ 2 sigma^4 / N. */
+            const double g2 = g[p] * g[p], phi_sp = h->mean_sp->data[p], vsp = h->var_sp->data[p];
+            const double psi2 = fmax(h->mean_i->data[p] - g2 * phi_sp, 0.0);
+            const double s2 = noise_var[p] + 2.0 * g2 * psi2 * phi_sp + g2 * g2 * vsp;
+            const double var_r = 2.0 * s2 * s2 / (h->nframes->data[p] * vsp * vsp);
+            if (!(var_r > 0.0) || !isfinite(var_r)) continue;
+            w[p] = 1.0 / var_r;
+            wr[p] = w[p] * rdb[p];
+        }
+        gauss_smooth(w, nx, ny, sigma, tmp, sw);
+        gauss_smooth(wr, nx, ny, sigma, tmp, swr);
+        for (size_t p = 0; p < np; p++) {
+            g[p] = g_start[p];
+            if (isfinite(rdb[p]) && sw[p] > 0.0 && swr[p] > 0.0) g[p] = sqrt(sqrt(swr[p] / sw[p]));
+        }
+    }
+    swfs_free(g_start);
+    swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp);
+    return SWFS_OK;
+}
+
+int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_estimate_options *opt, swfs_halo **out)
 {
     *out = NULL;
     const size_t nx = acc->nx, ny = acc->ny, np = nx * ny;
     swfs_noise nz = {0.0, 0.0};
     if (noise) nz = *noise;
+    swfs_estimate_options o = {SWFS_G_SMOOTH_DEFAULT};
+    if (opt) o = *opt;
     if (!(nz.read_noise >= 0.0) || !(nz.gain >= 0.0) || !isfinite(nz.read_noise) || !isfinite(nz.gain))
         return swfs_fail(SWFS_ERR_ARG, "noise model: read noise %g counts and gain %g e-/count must be finite "
                          "and >= 0", nz.read_noise, nz.gain);
+    if (!(o.g_smooth >= 0.0) || o.g_smooth > 60.0)
+        return swfs_fail(SWFS_ERR_ARG, "g smoothing %g pixels: expected 0 (per-pixel) to 60", o.g_smooth);
 
     swfs_halo *h = calloc(1, sizeof *h);
     if (!h) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    h->nx = nx; h->ny = ny; h->npix = np; h->noise = nz;
+    h->nx = nx; h->ny = ny; h->npix = np; h->noise = nz; h->g_smooth = o.g_smooth;
     h->frames = acc->frames; h->skipped = acc->skipped;
     h->halo = swfs_cplx_alloc(nx, ny, 1); h->halo_lf = swfs_cplx_alloc(nx, ny, 1);
     h->stab = swfs_cplx_alloc(nx, ny, 1);
-    h->gain = swfs_real_alloc(nx, ny, 1); h->visib = swfs_real_alloc(nx, ny, 1);
+    h->gain = swfs_real_alloc(nx, ny, 1); h->gain_pix = swfs_real_alloc(nx, ny, 1);
+    h->visib = swfs_real_alloc(nx, ny, 1);
     h->snr = swfs_real_alloc(nx, ny, 1); h->mean_i = swfs_real_alloc(nx, ny, 1);
     h->var_i = swfs_real_alloc(nx, ny, 1); h->mean_sp = swfs_real_alloc(nx, ny, 1);
     h->var_sp = swfs_real_alloc(nx, ny, 1); h->stab_err = swfs_real_alloc(nx, ny, 1);
     h->circ = swfs_real_alloc(nx, ny, 1); h->valid = swfs_real_alloc(nx, ny, 1);
     h->nframes = swfs_real_alloc(nx, ny, 1);
     double *scratch = swfs_malloc(np * sizeof(double));
-    if (!h->halo || !h->halo_lf || !h->stab || !h->gain || !h->visib || !h->snr || !h->mean_i || !h->var_i ||
-        !h->mean_sp || !h->var_sp || !h->stab_err || !h->circ || !h->valid || !h->nframes || !scratch) {
-        swfs_free(scratch);
-        swfs_halo_free(h);
-        return SWFS_ERR_NOMEM;
+    double *rdb = swfs_malloc(np * sizeof(double));  /* debiased radicand, NaN without speckles */
+    double *nvar = swfs_malloc(np * sizeof(double)); /* camera noise variance per pixel */
+    int rc = SWFS_OK;
+    if (!h->halo || !h->halo_lf || !h->stab || !h->gain || !h->gain_pix || !h->visib || !h->snr || !h->mean_i ||
+        !h->var_i || !h->mean_sp || !h->var_sp || !h->stab_err || !h->circ || !h->valid || !h->nframes || !scratch ||
+        !rdb || !nvar) {
+        rc = SWFS_ERR_NOMEM;
+        goto fail;
     }
 
     double *const *f = acc->f;
     h->radicand_min = INFINITY;
-    /* Pass 1: moments, g where defined. */
+    /* Pass 1: moments and the paper's per-pixel g. */
     for (size_t p = 0; p < np; p++) {
         const double n = f[SWFS_ACC_N][p];
         h->nframes->data[p] = n;
+        rdb[p] = NAN;
+        h->gain_pix->data[p] = NAN;
         if (n < 2.0) {
             h->n_no_frames++;
             h->gain->data[p] = h->visib->data[p] = h->snr->data[p] = NAN;
             h->mean_i->data[p] = h->var_i->data[p] = h->mean_sp->data[p] = h->var_sp->data[p] = NAN;
             h->stab_err->data[p] = h->circ->data[p] = NAN;
+            nvar[p] = NAN;
             continue;
         }
         const double r = 1.0 / n; /* the paper's 1/N statistics (Sec. 4.4) */
         const double phi_i = f[SWFS_ACC_MI][p];
         const double var_raw = f[SWFS_ACC_CII][p] * r;
         const double noise_var = nz.read_noise * nz.read_noise + (nz.gain > 0.0 ? fmax(phi_i, 0.0) / nz.gain : 0.0);
-        const double var_i = var_raw - noise_var;
+        /* Sec. 2.3: remove the noise variance. The sample variance with 1/N (the paper's
+         * convention) is low by sigma^2/N, which against a noise variance much larger than
+         * the speckle signal (faint halo, bright background) is a real bias; the noise is
+         * removed from the unbiased 1/(N-1) variance instead. */
+        const double var_i = f[SWFS_ACC_CII][p] / (n - 1.0) - noise_var;
         const double complex stab = (f[SWFS_ACC_CIX][p] + I * f[SWFS_ACC_CIY][p]) * r;
         const double vxx = f[SWFS_ACC_CXX][p] * r, vyy = f[SWFS_ACC_CYY][p] * r, vxy = f[SWFS_ACC_CXY][p] * r;
         const double phi_sp = vxx + vyy;
@@ -101,16 +191,18 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **ou
         const double var_sp = (f[SWFS_ACC_CAA][p] + 4.0 * (mx * mx * f[SWFS_ACC_CXX][p] + my * my * f[SWFS_ACC_CYY][p]) +
                                8.0 * mx * my * f[SWFS_ACC_CXY][p] - 4.0 * (mx * f[SWFS_ACC_CXA][p] + my * f[SWFS_ACC_CYA][p])) * r;
         const double s2 = creal(stab) * creal(stab) + cimag(stab) * cimag(stab);
+        /* Standard error of <psi' I>: for circular complex Gaussian psi' jointly Gaussian
+         * with I', Isserlis gives Var(psi' I') = Phi_sp sigma_I,raw^2 + |<psi' I'>|^2. */
+        const double e2 = (phi_sp * var_raw + s2) * r;
 
+        nvar[p] = noise_var;
         h->mean_i->data[p] = phi_i;
         h->var_i->data[p] = var_i;
         h->mean_sp->data[p] = phi_sp;
         h->var_sp->data[p] = var_sp;
         h->stab->data[p] = stab;
-        /* Standard error of <psi' I>: for circular complex Gaussian psi' jointly Gaussian
-         * with I', Isserlis gives Var(psi' I') = Phi_sp sigma_I,raw^2 + |<psi' I'>|^2. */
-        h->stab_err->data[p] = sqrt((phi_sp * var_raw + s2) * r);
-        h->circ->data[p] = phi_sp > 0.0 ? cabs((vxx - vyy) + 2.0 * I * vxy) / phi_sp : NAN;
+        h->stab_err->data[p] = sqrt(e2);
+        h->circ->data[p] = phi_sp > 0.0 ? cabs((vxx - vyy) + 2.0 * I * vxy) / phi_sp : NAN; /* eq:zeroSqMean */
         h->visib->data[p] = phi_i > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (phi_i * sqrt(phi_sp)) : NAN; /* eq:visibility */
         h->snr->data[p] = noise_var > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (sqrt(noise_var) * sqrt(phi_sp)) : NAN; /* eq:SNR */
 
@@ -121,38 +213,44 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **ou
         }
         /* eq:scale-factor */
         const double radicand = var_i / var_sp - 2.0 * s2 / (phi_sp * var_sp);
+        /* The same with |<psi' I>|^2 debiased by its noise power, for the regularized g. */
+        rdb[p] = var_i / var_sp - 2.0 * (s2 - e2) / (phi_sp * var_sp);
         if (radicand < h->radicand_min) h->radicand_min = radicand;
         if (radicand > 0.0 && isfinite(radicand)) {
-            h->gain->data[p] = sqrt(sqrt(radicand));
+            h->gain_pix->data[p] = sqrt(sqrt(radicand));
             h->valid->data[p] = 1.0;
             h->n_valid++;
         } else {
             h->n_bad_radicand++;
-            h->gain->data[p] = NAN;
         }
     }
     if (h->n_valid == 0) {
-        int rc = swfs_fail(SWFS_ERR_NUMERIC,
-                           "no pixel has a defined scale factor g: the radicand of eq:scale-factor is <= 0 in %zu "
-                           "pixels (most negative %.3g), %zu pixels have no speckle power and %zu fewer than 2 "
-                           "frames; is the noise model (read noise %g, gain %g) too large, or are the science and "
-                           "speckle cubes unrelated?", h->n_bad_radicand, h->radicand_min, h->n_no_speckle,
-                           h->n_no_frames, nz.read_noise, nz.gain);
-        swfs_free(scratch);
-        swfs_halo_free(h);
-        return rc;
+        rc = swfs_fail(SWFS_ERR_NUMERIC,
+                       "no pixel has a defined scale factor g: the radicand of eq:scale-factor is <= 0 in %zu "
+                       "pixels (most negative %.3g), %zu pixels have no speckle power and %zu fewer than 2 "
+                       "frames; is the noise model (read noise %g, gain %g) too large, or are the science and "
+                       "speckle cubes unrelated?", h->n_bad_radicand, h->radicand_min, h->n_no_speckle,
+                       h->n_no_frames, nz.read_noise, nz.gain);
+        goto fail;
     }
-    /* Pass 2: fallback g where undefined but speckles exist. It reads only valid pixels
-     * and writes to a copy, so the order of filling does not matter. */
-    double *gfb = swfs_malloc(np * sizeof(double));
-    if (!gfb) { swfs_free(scratch); swfs_halo_free(h); return SWFS_ERR_NOMEM; }
+    /* Pass 2: g for every pixel with speckles. Start from the paper's g where it is
+     * defined and the local median of valid neighbours elsewhere; then regularize. */
     for (size_t p = 0; p < np; p++) {
-        gfb[p] = h->gain->data[p];
-        if (h->valid->data[p] < 0.5 && h->mean_sp->data[p] > 0.0 && h->var_sp->data[p] > 0.0)
-            gfb[p] = fallback_g(h, p % nx, p / nx, scratch);
+        if (!isfinite(rdb[p])) continue;
+        if (h->valid->data[p] > 0.5) {
+            h->gain->data[p] = h->gain_pix->data[p];
+        } else {
+            h->gain->data[p] = fallback_g(h, p % nx, p / nx, scratch);
+            h->n_g_fallback++;
+        }
     }
-    memcpy(h->gain->data, gfb, np * sizeof(double));
-    swfs_free(gfb);
+    if (o.g_smooth > 0.0) {
+        memcpy(scratch, h->gain->data, np * sizeof(double));
+        if ((rc = regularize_g(h, rdb, nvar, o.g_smooth, h->gain->data))) goto fail;
+        h->n_g_fallback = 0;
+        for (size_t p = 0; p < np; p++)
+            if (isfinite(rdb[p]) && h->valid->data[p] < 0.5 && h->gain->data[p] == scratch[p]) h->n_g_fallback++;
+    }
 
     /* Pass 3: the halo (eq:TheAnswer) and its low-frequency form (eq:PSI-LowFreq). */
     size_t nsnr = 0;
@@ -170,14 +268,17 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, swfs_halo **ou
         h->halo_lf->data[p] = cabs(stab) > 0.0 ? amp * stab / cabs(stab) : 0.0;
         if (h->valid->data[p] > 0.5 && isfinite(h->snr->data[p])) scratch[nsnr++] = h->snr->data[p];
     }
-    if (nsnr) {
-        qsort(scratch, nsnr, sizeof *scratch, cmp_double);
-        h->median_snr = nsnr % 2 ? scratch[nsnr / 2] : 0.5 * (scratch[nsnr / 2 - 1] + scratch[nsnr / 2]);
-    } else {
-        h->median_snr = NAN;
-    }
+    h->median_snr = median(scratch, nsnr);
     h->valid_fraction = (double)h->n_valid / (double)np;
     swfs_free(scratch);
+    swfs_free(rdb);
+    swfs_free(nvar);
     *out = h;
     return SWFS_OK;
+fail:
+    swfs_free(scratch);
+    swfs_free(rdb);
+    swfs_free(nvar);
+    swfs_halo_free(h);
+    return rc;
 }

@@ -14,7 +14,7 @@ static const struct real_ext real_exts[] = {
     REAL_EXT(gain, "GAIN"), REAL_EXT(visib, "VISIB"), REAL_EXT(snr, "SNR"),
     REAL_EXT(mean_i, "MEAN_I"), REAL_EXT(var_i, "VAR_I"), REAL_EXT(mean_sp, "MEAN_SP"),
     REAL_EXT(var_sp, "VAR_SP"), REAL_EXT(stab_err, "STAB_ERR"), REAL_EXT(circ, "CIRC"),
-    REAL_EXT(valid, "VALID"), REAL_EXT(nframes, "NFRAMES"),
+    REAL_EXT(valid, "VALID"), REAL_EXT(nframes, "NFRAMES"), REAL_EXT(gain_pix, "GAIN_PIX"),
 };
 #define NREAL (sizeof real_exts / sizeof real_exts[0])
 
@@ -43,16 +43,18 @@ int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, co
     if (!rc) rc = swfs_fits_out_key_double(o, "MEDSNR", h->median_snr, "median eq:SNR over valid pixels");
     if (!rc) rc = swfs_fits_out_key_double(o, "RDNOISE", h->noise.read_noise, "[counts] read noise removed");
     if (!rc) rc = swfs_fits_out_key_double(o, "GAIN", h->noise.gain, "[e-/count] 0 = no photon-noise term");
-    if (!rc) rc = swfs_fits_out_key_string(o, "GFALLBCK", "local median of valid g",
-                                           "g where VALID = 0");
+    if (!rc) rc = swfs_fits_out_key_double(o, "GSMOOTH", h->g_smooth, "[pixels] g regularization (0 = paper)");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NGFALLBK", (long)h->n_g_fallback, "pixels with local-median fallback g");
     if (!rc) rc = swfs_fits_out_cplx(o, "HALO", h->halo, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:TheAnswer", "Psi = <psi I>/(g Phi_sp)");
     if (!rc) rc = swfs_fits_out_cplx(o, "HALO_LF", h->halo_lf, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:PSI-LowFreq", NULL);
     if (!rc) rc = swfs_fits_out_cplx(o, "STAB", h->stab, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:betterStabilized", "<psi' I>, psi' = psi - <psi>");
-    for (size_t k = 0; k < NREAL && !rc; k++)
-        rc = swfs_fits_out_real(o, real_exts[k].name, *real_slot((swfs_halo *)h, k), -64);
+    for (size_t k = 0; k < NREAL && !rc; k++) {
+        const swfs_real *a = *real_slot((swfs_halo *)h, k);
+        if (a) rc = swfs_fits_out_real(o, real_exts[k].name, a, -64);
+    }
     if (rc) {
         swfs_fits_out_abort(o);
         return rc;

@@ -1,0 +1,61 @@
+/* Pupil field and NCP wavefront from the static halo (paper Sec. 4.6):
+ *   field(x) = alpha^2 sum_theta w(theta) Psi(theta) exp(+2 pi i theta.x / lambda)
+ * (the inverse MFT of eq:Pupil-field-with-NCP1 on the PUPN x PUPN grid, alpha =
+ * PIXSCALE*PUPDX/TELDIAM; the constant 1/((2 pi)^2 S^{1/2}) is left out: it changes
+ * the amplitude scale, not the wavefront), then
+ *   WFE(x) = lambda/(2 pi) arg{ field(x) + bias <field>_pupil }        (eq:NCP-WFE-estimate,
+ *                                                                     eq:LFBiased-WFE-estimate)
+ * inside the pupil with piston removed; SURFACE = WFE/2 (reflective DM).
+ *
+ * Weighting (beyond the paper): the paper lets every focal pixel in at full weight, so
+ * noisy outer pixels add noise to the wavefront. With SWFS_WEIGHT_SNR each pixel is
+ * multiplied by the Wiener factor SNR^2/(SNR^2 + k^2), SNR = |<psi' I>| / stderr (the
+ * STAB and STAB_ERR extensions), k = 2 by default.
+ */
+#ifndef SWFS_PUPIL_H
+#define SWFS_PUPIL_H
+
+#include "specklewfs/array.h"
+#include "specklewfs/estimate.h"
+#include "specklewfs/fits.h"
+
+enum { SWFS_WEIGHT_NONE = 0, SWFS_WEIGHT_SNR = 1 };
+enum { SWFS_SOURCE_HALO_LF = 0, SWFS_SOURCE_HALO = 1 };
+
+typedef struct swfs_pupil_options {
+    int weight;      /* SWFS_WEIGHT_NONE or SWFS_WEIGHT_SNR */
+    double wiener_k; /* k of the Wiener factor (default 2) */
+    double bias;     /* constant field added, as a fraction of the mean pupil field (0 = none) */
+    int source;      /* SWFS_SOURCE_HALO_LF (eq:PSI-LowFreq, default) or SWFS_SOURCE_HALO */
+} swfs_pupil_options;
+
+void swfs_pupil_options_default(swfs_pupil_options *o);
+
+typedef struct swfs_pupil_result {
+    swfs_cplx *field;     /* complex pupil field */
+    swfs_real *wfe;       /* [m], 0 outside the pupil */
+    swfs_real *surface;   /* [m] = WFE/2 */
+    swfs_real *amplitude; /* |field| */
+    swfs_real *mask;      /* pupil used */
+    double wfe_rms, wfe_pv; /* inside the pupil, piston removed [m] */
+    double strehl;          /* Marechal, exp(-(2 pi rms / lambda)^2) */
+    swfs_pupil_options opt;
+} swfs_pupil_result;
+
+/* mask: PUPN x PUPN transmission, or NULL to build the annulus from TELDIAM/OBSCUR. */
+int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask,
+                        const swfs_pupil_options *opt, swfs_pupil_result **out);
+void swfs_pupil_result_free(swfs_pupil_result *r);
+/* PUPIL.fits: FIELD (complex), WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL. */
+int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
+                     size_t nprov);
+
+/* Compare an estimated wavefront with the truth inside the mask: the difference with
+ * piston, tip and tilt removed (least squares), rms [m]. Also the truth's rms with
+ * piston removed and with piston + tip/tilt removed. Any output may be NULL. */
+int swfs_wfe_compare(const double *est, const double *truth, const double *mask, size_t n, double *err_rms,
+                     double *truth_rms_piston, double *truth_rms_ptt);
+/* Remove piston, tip and tilt (least squares over the mask) from w in place; returns rms. */
+double swfs_wfe_remove_ptt(double *w, const double *mask, size_t n);
+
+#endif

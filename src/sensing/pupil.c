@@ -1,0 +1,271 @@
+/* Pupil field and NCP wavefront from the static halo: see include/specklewfs/pupil.h. */
+#include "specklewfs/pupil.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/mft.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_pupil_options_default(swfs_pupil_options *o)
+{
+    o->weight = SWFS_WEIGHT_SNR;
+    o->wiener_k = 2.0;
+    o->bias = 0.0;
+    o->source = SWFS_SOURCE_HALO_LF;
+}
+
+void swfs_pupil_result_free(swfs_pupil_result *r)
+{
+    if (!r) return;
+    swfs_cplx_free(r->field);
+    swfs_real_free(r->wfe);
+    swfs_real_free(r->surface);
+    swfs_real_free(r->amplitude);
+    swfs_real_free(r->mask);
+    free(r);
+}
+
+int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask, const swfs_pupil_options *opt,
+                        swfs_pupil_result **out)
+{
+    *out = NULL;
+    swfs_pupil_options o;
+    swfs_pupil_options_default(&o);
+    if (opt) o = *opt;
+    int rc = swfs_geom_require(g, "halo product");
+    if (rc) return rc;
+    const swfs_cplx *src = o.source == SWFS_SOURCE_HALO ? h->halo : h->halo_lf;
+    if (!src) return swfs_fail(SWFS_ERR_FORMAT, "halo product has no %s", o.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF");
+    if (o.weight == SWFS_WEIGHT_SNR && (!h->stab || !h->stab_err))
+        return swfs_fail(SWFS_ERR_FORMAT, "SNR weighting needs the STAB and STAB_ERR extensions of the halo product");
+    if (!(o.wiener_k > 0.0)) return swfs_fail(SWFS_ERR_ARG, "Wiener k must be > 0, got %g", o.wiener_k);
+    if (!isfinite(o.bias)) return swfs_fail(SWFS_ERR_ARG, "bias must be finite");
+    const size_t n = (size_t)g->pupn, nx = h->nx, ny = h->ny, nf = nx * ny;
+    if (mask && (mask->nx != n || mask->ny != n))
+        return swfs_fail(SWFS_ERR_SHAPE, "pupil mask is %zux%zu but the geometry says PUPN = %zu", mask->nx, mask->ny, n);
+
+    swfs_pupil_result *r = calloc(1, sizeof *r);
+    if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    r->opt = o;
+    r->field = swfs_cplx_alloc(n, n, 1);
+    r->wfe = swfs_real_alloc(n, n, 1);
+    r->surface = swfs_real_alloc(n, n, 1);
+    r->amplitude = swfs_real_alloc(n, n, 1);
+    r->mask = mask ? swfs_real_copy(mask) : swfs_real_alloc(n, n, 1);
+    double complex *focal = swfs_malloc(nf * sizeof *focal);
+    double *weights = swfs_malloc(nf * sizeof *weights);
+    const double alpha = g->pixscale * g->pupdx / g->teldiam;
+    swfs_mft *m = swfs_mft_create(n, nx, ny, alpha, SWFS_MFT_DOUBLE);
+    if (!r->field || !r->wfe || !r->surface || !r->amplitude || !r->mask || !focal || !weights || !m) {
+        rc = SWFS_ERR_NOMEM;
+        goto fail;
+    }
+    if (!mask && (rc = swfs_aperture_make(r->mask->data, n, g->pupdx, g->teldiam, g->obscur, 0, 0.0))) goto fail;
+
+    /* SNR^2 per pixel, then (optionally) its local mean: a weight computed from the same
+     * noisy |<psi' I>| it multiplies favours pixels whose noise happened to add up. */
+    for (size_t p = 0; p < nf; p++) {
+        double snr2 = 0.0;
+        if (o.weight == SWFS_WEIGHT_SNR) {
+            const double e = h->stab_err->data[p], s2 = cabs(h->stab->data[p]);
+            if (e > 0.0 && isfinite(e) && isfinite(s2)) snr2 = (s2 / e) * (s2 / e);
+        }
+        weights[p] = snr2;
+    }
+    int rad = getenv("SWFS_SMOOTH") ? atoi(getenv("SWFS_SMOOTH")) : 0;
+    if (o.weight == SWFS_WEIGHT_SNR && rad > 0) {
+        double *tmp = swfs_malloc(nf * sizeof *tmp);
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                double acc = 0; int cnt = 0;
+                for (int dj = -rad; dj <= rad; dj++)
+                    for (int di = -rad; di <= rad; di++) {
+                        long ii = (long)i + di, jj = (long)j + dj;
+                        if (ii < 0 || jj < 0 || ii >= (long)nx || jj >= (long)ny) continue;
+                        acc += weights[(size_t)jj * nx + (size_t)ii]; cnt++;
+                    }
+                double v = acc / cnt - (getenv("SWFS_DEBIAS") ? 1.0 : 0.0);
+                tmp[j * nx + i] = v > 0 ? v : 0;
+            }
+        memcpy(weights, tmp, nf * sizeof *tmp);
+        swfs_free(tmp);
+    }
+    for (size_t p = 0; p < nf; p++) {
+        double complex v = src->data[p];
+        if (!isfinite(creal(v)) || !isfinite(cimag(v))) v = 0.0;
+        double w = 1.0;
+        if (o.weight == SWFS_WEIGHT_SNR) w = weights[p] / (weights[p] + o.wiener_k * o.wiener_k);
+        weights[p] = w;
+        focal[p] = w * v;
+    }
+    if ((rc = swfs_mft_inverse(m, focal, r->field->data))) goto fail;
+
+    const size_t np = n * n;
+    for (size_t q = 0; q < np; q++) r->field->data[q] *= alpha * alpha;
+    double complex mean = 0.0;
+    double wsum = 0.0;
+    for (size_t q = 0; q < np; q++) {
+        mean += r->mask->data[q] * r->field->data[q];
+        wsum += r->mask->data[q];
+    }
+    if (!(wsum > 0.0)) { rc = swfs_fail(SWFS_ERR_VALUE, "pupil mask is empty"); goto fail; }
+    mean /= wsum;
+    /* eq:LFBiased-WFE-estimate: a constant field restores the missing low frequencies. */
+    if (o.bias != 0.0)
+        for (size_t q = 0; q < np; q++) r->field->data[q] += o.bias * mean;
+    if (o.bias != 0.0) mean *= 1.0 + o.bias;
+    /* eq:NCP-WFE-estimate. The phase is taken relative to the mean field so that a
+     * global phase offset never wraps; piston is then removed exactly. */
+    const double k2m = g->wavelen / (2.0 * M_PI);
+    const double complex ref = cabs(mean) > 0.0 ? conj(mean) / cabs(mean) : 1.0;
+    double ph_mean = 0.0;
+    for (size_t q = 0; q < np; q++) {
+        r->amplitude->data[q] = cabs(r->field->data[q]);
+        if (r->mask->data[q] > 0.0) {
+            double ph = carg(r->field->data[q] * ref);
+            r->wfe->data[q] = ph * k2m;
+            ph_mean += r->mask->data[q] * ph * k2m;
+        }
+    }
+    ph_mean /= wsum;
+    double s2 = 0.0, lo = INFINITY, hi = -INFINITY;
+    for (size_t q = 0; q < np; q++) {
+        if (r->mask->data[q] > 0.0) {
+            double w = r->wfe->data[q] -= ph_mean;
+            s2 += r->mask->data[q] * w * w;
+            if (w < lo) lo = w;
+            if (w > hi) hi = w;
+        } else {
+            r->wfe->data[q] = 0.0;
+        }
+        r->surface->data[q] = 0.5 * r->wfe->data[q];
+    }
+    r->wfe_rms = sqrt(s2 / wsum);
+    r->wfe_pv = hi - lo;
+    const double sig = 2.0 * M_PI * r->wfe_rms / g->wavelen;
+    r->strehl = exp(-sig * sig);
+    swfs_mft_free(m);
+    swfs_free(focal);
+    swfs_free(weights);
+    *out = r;
+    return SWFS_OK;
+fail:
+    swfs_mft_free(m);
+    swfs_free(focal);
+    swfs_free(weights);
+    swfs_pupil_result_free(r);
+    return rc;
+}
+
+int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
+                     size_t nprov)
+{
+    swfs_fits_out *o;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_set_stamp(o, g, prov, nprov);
+    if (!rc) rc = swfs_fits_out_geom(o, g);
+    if (!rc) rc = swfs_fits_out_provenance(o, prov, nprov);
+    if (!rc) rc = swfs_fits_out_key_double(o, "WFERMS", r->wfe_rms, "[m] WFE rms in the pupil, piston removed");
+    if (!rc) rc = swfs_fits_out_key_double(o, "WFEPV", r->wfe_pv, "[m] WFE peak to valley in the pupil");
+    if (!rc) rc = swfs_fits_out_key_double(o, "STREHL", r->strehl, "Marechal estimate from WFERMS");
+    if (!rc) rc = swfs_fits_out_key_string(o, "SOURCE", r->opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
+                                           "halo extension transformed");
+    if (!rc) rc = swfs_fits_out_key_string(o, "WEIGHT", r->opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
+                                           "focal-plane weighting");
+    if (!rc) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
+    if (!rc) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
+    if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:Pupil-field-with-NCP1", NULL);
+    if (!rc) rc = swfs_fits_out_real(o, "WFE", r->wfe, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "eq:NCP-WFE-estimate, piston removed");
+    if (!rc) rc = swfs_fits_out_real(o, "SURFACE", r->surface, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "WFE/2 for a reflective DM");
+    if (!rc) rc = swfs_fits_out_real(o, "AMPLITUDE", r->amplitude, -64);
+    if (!rc) rc = swfs_fits_out_real(o, "PUPIL", r->mask, -32);
+    if (rc) {
+        swfs_fits_out_abort(o);
+        return rc;
+    }
+    return swfs_fits_out_commit(o);
+}
+
+/* Least-squares fit of a + b x + c y over the mask (normal equations, 3x3). */
+static void fit_ptt(const double *w, const double *mask, size_t n, double coef[3])
+{
+    double A[3][3] = {{0}}, b[3] = {0};
+    const double c = 0.5 * (double)(n - 1);
+    for (size_t j = 0; j < n; j++)
+        for (size_t i = 0; i < n; i++) {
+            double m = mask[j * n + i];
+            if (!(m > 0.0)) continue;
+            double v[3] = {1.0, (double)i - c, (double)j - c};
+            for (int r = 0; r < 3; r++) {
+                b[r] += m * v[r] * w[j * n + i];
+                for (int s = 0; s < 3; s++) A[r][s] += m * v[r] * v[s];
+            }
+        }
+    /* Gaussian elimination with partial pivoting. */
+    for (int k = 0; k < 3; k++) {
+        int piv = k;
+        for (int r = k + 1; r < 3; r++)
+            if (fabs(A[r][k]) > fabs(A[piv][k])) piv = r;
+        for (int s = 0; s < 3; s++) { double t = A[k][s]; A[k][s] = A[piv][s]; A[piv][s] = t; }
+        double t = b[k]; b[k] = b[piv]; b[piv] = t;
+        if (A[k][k] == 0.0) { coef[0] = coef[1] = coef[2] = 0.0; return; }
+        for (int r = k + 1; r < 3; r++) {
+            double f = A[r][k] / A[k][k];
+            for (int s = k; s < 3; s++) A[r][s] -= f * A[k][s];
+            b[r] -= f * b[k];
+        }
+    }
+    for (int k = 2; k >= 0; k--) {
+        double s = b[k];
+        for (int r = k + 1; r < 3; r++) s -= A[k][r] * coef[r];
+        coef[k] = s / A[k][k];
+    }
+}
+
+double swfs_wfe_remove_ptt(double *w, const double *mask, size_t n)
+{
+    double coef[3];
+    fit_ptt(w, mask, n, coef);
+    const double c = 0.5 * (double)(n - 1);
+    double s2 = 0.0, ws = 0.0;
+    for (size_t j = 0; j < n; j++)
+        for (size_t i = 0; i < n; i++) {
+            double m = mask[j * n + i];
+            if (!(m > 0.0)) continue;
+            double *v = &w[j * n + i];
+            *v -= coef[0] + coef[1] * ((double)i - c) + coef[2] * ((double)j - c);
+            s2 += m * *v * *v;
+            ws += m;
+        }
+    return ws > 0.0 ? sqrt(s2 / ws) : NAN;
+}
+
+int swfs_wfe_compare(const double *est, const double *truth, const double *mask, size_t n, double *err_rms,
+                     double *truth_rms_piston, double *truth_rms_ptt)
+{
+    double *d = swfs_malloc(n * n * sizeof *d);
+    if (!d) return SWFS_ERR_NOMEM;
+    if (err_rms) {
+        for (size_t q = 0; q < n * n; q++) d[q] = est[q] - truth[q];
+        *err_rms = swfs_wfe_remove_ptt(d, mask, n);
+    }
+    double mean = 0.0, ws = 0.0, s2 = 0.0;
+    for (size_t q = 0; q < n * n; q++)
+        if (mask[q] > 0.0) { mean += mask[q] * truth[q]; ws += mask[q]; }
+    mean /= ws;
+    for (size_t q = 0; q < n * n; q++)
+        if (mask[q] > 0.0) s2 += mask[q] * (truth[q] - mean) * (truth[q] - mean);
+    if (truth_rms_piston) *truth_rms_piston = sqrt(s2 / ws);
+    if (truth_rms_ptt) {
+        memcpy(d, truth, n * n * sizeof *d);
+        *truth_rms_ptt = swfs_wfe_remove_ptt(d, mask, n);
+    }
+    swfs_free(d);
+    return SWFS_OK;
+}
