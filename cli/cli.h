@@ -14,6 +14,7 @@ int swfs_cmd_report(int argc, char **argv);
 int swfs_cmd_reduce(int argc, char **argv);
 int swfs_cmd_sync(int argc, char **argv);
 int swfs_cmd_merge(int argc, char **argv);
+int swfs_cmd_stream(int argc, char **argv);
 /* mode=timeseries of `simulate` (cli/cmd_simulate_ts.c), called from cmd_simulate.c. */
 struct swfs_config;
 int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet, int argc, char **argv);

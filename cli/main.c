@@ -20,6 +20,7 @@ static const struct command commands[] = {
     {"demo", swfs_cmd_demo, "the paper's simulation end to end at four noise levels, with a table"},
     {"report", swfs_cmd_report, "PNG figures and index.html of a run's products (halo, g, pupil WFE, coherence)"},
     {"reduce", swfs_cmd_reduce, "camera frames: dark, flat, bad pixels, registration, noise variance (Sec. 4.3)"},
+    {"stream", swfs_cmd_stream, "real-time path: slopes + camera frames in time order -> HALO.fits updated as they arrive"},
     {"merge", swfs_cmd_merge, "combine accumulator checkpoints of disjoint frame sets exactly (optionally -> HALO.fits)"},
     {"sync", swfs_cmd_sync, "WFS/camera frame-rate ratio and handshake lag by tip-tilt cross-correlation (Sec. 4.2)"},
     {"coherence", swfs_cmd_coherence, "speckle MCF, coherence time, phase-rotation time, SNR loss vs exposure (Sec. 3.3, 4.4)"},
