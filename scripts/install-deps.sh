@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# Install the Debian packages specklewfs builds and tests with (root or sudo).
+set -euo pipefail
+SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+$SUDO apt-get install -y -qq --no-install-recommends \
+  build-essential cmake pkg-config \
+  libcfitsio-dev libfftw3-dev libopenblas-dev liblapacke-dev libcmocka-dev libqhull-dev \
+  libplplot-dev plplot-driver-cairo libpng-dev fonts-dejavu-core "$@" >/dev/null
