@@ -269,7 +269,7 @@ static void test_per_wfs_frame(void **state)
 {
     (void)state;
     fixture f;
-    make_fixture(&f, 37, 21);
+    make_fixture(&f, 300, 21); /* more frames than one worker chunk (256) */
     double complex *out = malloc(f.nwfs * NFX * NFY * sizeof *out), ref[NFX * NFY];
     double complex *out1 = malloc(f.nwfs * NFX * NFY * sizeof *out1);
     assert_true(out && out1);
