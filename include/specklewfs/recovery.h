@@ -12,9 +12,10 @@ typedef struct swfs_recovery {
     double bad_radicand;   /* fraction of pixels whose radicand of eq:scale-factor is <= 0 */
     double median_snr;     /* eq:SNR, valid pixels */
     /* recovered NCP error [m rms in the pupil, piston + tip/tilt removed]: */
-    double err_halo;       /* eq:TheAnswer, full weight (the paper) */
-    double err_lf;         /* eq:PSI-LowFreq, full weight (the paper) */
-    double err_lf_snr;     /* eq:PSI-LowFreq with the SNR (Wiener) weight: the default */
+    double err_paper;      /* the paper's formulae: per-pixel g, eq:PSI-LowFreq, full weight */
+    double err_halo;       /* eq:TheAnswer with the regularized g, full weight */
+    double err_lf;         /* eq:PSI-LowFreq with the regularized g, full weight */
+    double err_lf_snr;     /* eq:PSI-LowFreq, regularized g, SNR (Wiener) weight: the default */
     double wfe_rms, wfe_pv, strehl; /* of the default estimate */
 } swfs_recovery;
 

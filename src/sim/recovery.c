@@ -16,8 +16,8 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     const swfs_sim_params *p = &sim->params;
     swfs_real *noisy = swfs_real_copy(sim->science);
     swfs_accum *acc = noisy ? swfs_accum_create(noisy->nx, noisy->ny) : NULL;
-    swfs_halo *h = NULL;
-    swfs_pupil_result *pr[3] = {NULL, NULL, NULL};
+    swfs_halo *h = NULL, *hp = NULL;
+    swfs_pupil_result *pr[4] = {NULL, NULL, NULL, NULL};
     char path[4096];
     int rc = SWFS_OK;
     if (!noisy || !acc) { rc = SWFS_ERR_NOMEM; goto done; }
@@ -29,6 +29,8 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
         if ((rc = swfs_accum_add(acc, noisy->data + k * np, sim->speckles->data + k * np))) goto done;
     const swfs_noise nz = {sigma, p->gain > 0 ? p->gain : 0.0};
     if ((rc = swfs_estimate(acc, &nz, NULL, &h))) goto done;
+    const swfs_estimate_options paper = {0.0};
+    if ((rc = swfs_estimate(acc, &nz, &paper, &hp))) goto done;
     if (dir) {
         if (snprintf(path, sizeof path, "%s/halo.fits", dir) >= (int)sizeof path) {
             rc = swfs_fail(SWFS_ERR_ARG, "%s: folder name too long", dir);
@@ -43,10 +45,12 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     o[0].source = SWFS_SOURCE_HALO; o[0].weight = SWFS_WEIGHT_NONE;
     o[1].source = SWFS_SOURCE_HALO_LF; o[1].weight = SWFS_WEIGHT_NONE;
     o[2].source = SWFS_SOURCE_HALO_LF; o[2].weight = SWFS_WEIGHT_SNR;
-    double err[3];
-    for (int k = 0; k < 3; k++) {
-        if ((rc = swfs_pupil_estimate(h, &sim->geom, sim->pupil, &o[k], &pr[k]))) goto done;
-        if ((rc = swfs_wfe_compare(pr[k]->wfe->data, sim->ncp->data, sim->pupil->data, (size_t)sim->geom.pupn, &err[k],
+    double err[4];
+    for (int k = 0; k < 4; k++) {
+        /* k = 3: the paper's estimator end to end (per-pixel g, HALO_LF, full weight). */
+        swfs_pupil_result **slot = k < 3 ? &pr[k] : &pr[3];
+        if ((rc = swfs_pupil_estimate(k < 3 ? h : hp, &sim->geom, sim->pupil, &o[k < 3 ? k : 1], slot))) goto done;
+        if ((rc = swfs_wfe_compare((*slot)->wfe->data, sim->ncp->data, sim->pupil->data, (size_t)sim->geom.pupn, &err[k],
                                    NULL, NULL))) goto done;
     }
     if (dir) {
@@ -56,6 +60,7 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     out->valid_fraction = h->valid_fraction;
     out->bad_radicand = (double)h->n_bad_radicand / (double)h->npix;
     out->median_snr = h->median_snr;
+    out->err_paper = err[3];
     out->err_halo = err[0];
     out->err_lf = err[1];
     out->err_lf_snr = err[2];
@@ -63,8 +68,9 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     out->wfe_pv = pr[2]->wfe_pv;
     out->strehl = pr[2]->strehl;
 done:
-    for (int k = 0; k < 3; k++) swfs_pupil_result_free(pr[k]);
+    for (int k = 0; k < 4; k++) swfs_pupil_result_free(pr[k]);
     swfs_halo_free(h);
+    swfs_halo_free(hp);
     swfs_accum_free(acc);
     swfs_real_free(noisy);
     return rc;
