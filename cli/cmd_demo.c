@@ -4,6 +4,7 @@
 #include "specklewfs/config.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/recovery.h"
+#include "specklewfs/report.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
 
@@ -13,13 +14,14 @@
 #include <string.h>
 
 static const char *usage_text =
-    "usage: specklewfs demo [-o DIR] [CONFIG] [key=value ...] [--levels S1,S2,...]\n"
+    "usage: specklewfs demo [-o DIR] [CONFIG] [key=value ...] [--levels S1,S2,...] [--no-report]\n"
     "\n"
     "The paper's Sec. 3 simulation (980 AO-residual wavefronts, trefoil + Gaussian NCP,\n"
     "157,000 counts per exposure) end to end: simulate once, add camera noise at each\n"
     "background level (default 0,10,100,1000 counts), estimate the static halo, transform to\n"
     "the pupil and compare the recovered NCP wavefront with the injected one. Prints the\n"
-    "recovery table and leaves the FITS products in DIR/sigma<level>/ (default DIR: demo-out).\n"
+    "recovery table and leaves the FITS products in DIR/sigma<level>/ (default DIR: demo-out),\n"
+    "with figures and an index.html in DIR/sigma<level>/report/ (unless --no-report).\n"
     "CONFIG and key=value override the simulation (see config/paper-sec3.conf).\n";
 
 static void progress(void *ctx, const char *stage, size_t done, size_t total)
@@ -36,6 +38,7 @@ int swfs_cmd_demo(int argc, char **argv)
     const char *outdir = "demo-out";
     double levels[16] = {0, 10, 100, 1000};
     size_t nlevels = 4;
+    int want_report = 1;
     swfs_config *cfg = swfs_config_new();
     swfs_sim_result *sim = NULL;
     int rc = CLI_FAIL;
@@ -56,6 +59,8 @@ int swfs_cmd_demo(int argc, char **argv)
             }
             for (size_t k = 0; k < nlevels; k++)
                 if (!(levels[k] >= 0)) { swfs_config_free(cfg); return cli_usage_error(cmd, "noise levels must be >= 0"); }
+        } else if (!strcmp(a, "--no-report")) {
+            want_report = 0;
         } else if (strchr(a, '=')) {
             if (swfs_config_set(cfg, a)) { swfs_config_free(cfg); return cli_error(cmd); }
         } else if (a[0] == '-' && a[1]) {
@@ -84,6 +89,7 @@ int swfs_cmd_demo(int argc, char **argv)
 
     swfs_recovery res[16];
     double secs[16];
+    static char html[16][4096];
     for (size_t k = 0; k < nlevels; k++) {
         char dir[4096], noise_line[160];
         snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
@@ -96,6 +102,17 @@ int swfs_cmd_demo(int argc, char **argv)
         if (swfs_recovery_run(sim, levels[k], p.seed * 1000003ULL + (uint64_t)levels[k], dir, prov, 2, &res[k])) {
             cli_error(cmd);
             goto done;
+        }
+        if (want_report) {
+            swfs_report_summary *rs = calloc(1, sizeof *rs);
+            if (!rs) { cli_error(cmd); goto done; }
+            if (swfs_report_run(dir, NULL, NULL, rs)) {
+                free(rs);
+                cli_error(cmd);
+                goto done;
+            }
+            snprintf(html[k], sizeof html[k], "%s", rs->html);
+            free(rs);
         }
         secs[k] = cli_now() - t1;
     }
@@ -122,6 +139,11 @@ int swfs_cmd_demo(int argc, char **argv)
            "  full weight). Right of '|': specklewfs' regularized g; HALO = eq:TheAnswer, HALO_LF = eq:PSI-LowFreq, both\n"
            "  at full weight; HALO_LF+SNR adds the Wiener weight SNR^2/(SNR^2+4) -- the default of 'specklewfs pupil'.\n"
            "  valid / g undef.: pixels where the radicand of the per-pixel g is positive / not positive.\n");
+    if (want_report) {
+        printf("  figures:");
+        for (size_t k = 0; k < nlevels; k++) printf("%s %s", k ? "," : "", html[k]);
+        printf("\n");
+    }
     printf("  total %.2f s\n", total);
     rc = CLI_OK;
 done:
