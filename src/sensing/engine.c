@@ -75,7 +75,7 @@ struct swfs_engine {
     /* Plans, built once. */
     float *wf;          /* nact x nslopes: (2 pi / lambda) W */
     size_t *rp;         /* npin + 1: CSR of the interpolation restricted to illuminated rows */
-    uint32_t *col;
+    uint32_t *col;      /* column (actuator) a, stored as its row offset a * LDZ in zt */
     float *val;
     size_t *pidx;       /* npin: grid index of illuminated sample r */
     float *amp;         /* npin: pupil transmission */
@@ -149,17 +149,17 @@ static void project_block(const swfs_engine *e, worker *w, size_t bo, size_t nb,
             size_t k = e->rp[r];
             const size_t kend = e->rp[r + 1];
             for (; k + 4 <= kend; k += 4) {
-                memcpy(&z0, zt + (size_t)e->col[k] * LDZ, sizeof z0);
-                memcpy(&z1, zt + (size_t)e->col[k + 1] * LDZ, sizeof z1);
-                memcpy(&z2, zt + (size_t)e->col[k + 2] * LDZ, sizeof z2);
-                memcpy(&z3, zt + (size_t)e->col[k + 3] * LDZ, sizeof z3);
+                memcpy(&z0, zt + e->col[k], sizeof z0);
+                memcpy(&z1, zt + e->col[k + 1], sizeof z1);
+                memcpy(&z2, zt + e->col[k + 2], sizeof z2);
+                memcpy(&z3, zt + e->col[k + 3], sizeof z3);
                 a0 += e->val[k] * z0;
                 a1 += e->val[k + 1] * z1;
                 a2 += e->val[k + 2] * z2;
                 a3 += e->val[k + 3] * z3;
             }
             for (; k < kend; k++) {
-                memcpy(&z0, zt + (size_t)e->col[k] * LDZ, sizeof z0);
+                memcpy(&z0, zt + e->col[k], sizeof z0);
                 a0 += e->val[k] * z0;
             }
             const v16f acc = (a0 + a1) + (a2 + a3);
@@ -501,7 +501,7 @@ static int check_config(const swfs_engine_config *c)
     if (c->remove_tiptilt && c->nslopes % 2)
         return swfs_fail(SWFS_ERR_ARG, "engine: tip-tilt removal needs x then y slopes, got an odd count %zu",
                          c->nslopes);
-    if (c->nact > UINT32_MAX || c->npup > 46340 || c->nslopes > (size_t)INT32_MAX)
+    if (c->nact > UINT32_MAX / LDZ || c->npup > 46340 || c->nslopes > (size_t)INT32_MAX)
         return swfs_fail(SWFS_ERR_ARG, "engine: sizes too large");
     if (c->nthreads < 0 || c->nthreads > MAX_THREADS)
         return swfs_fail(SWFS_ERR_ARG, "engine: %d threads (1..%d)", c->nthreads, MAX_THREADS);
@@ -557,7 +557,7 @@ swfs_engine *swfs_engine_create(const swfs_engine_config *c)
     for (size_t p = 0; p < np2; p++) {
         if (!(c->pupil[p] > 0.0)) continue;
         for (size_t t = c->interp->row_ptr[p]; t < c->interp->row_ptr[p + 1]; t++) {
-            e->col[q] = (uint32_t)c->interp->col[t];
+            e->col[q] = (uint32_t)(c->interp->col[t] * LDZ); /* offset of the actuator's row in zt */
             e->val[q] = (float)c->interp->val[t];
             q++;
         }
