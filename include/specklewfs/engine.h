@@ -12,8 +12,8 @@
  * If h(core) = 0 (e.g. an empty exposure) no phase is removed.
  *
  * How it is fast (docs/streaming.md): the plans are built once; slopes are reconstructed
- * 16 frames at a time by one single-precision GEMM; the interpolation is applied to the 16
- * frames at once (each nonzero is one 16-wide vector FMA); exp(i phi) uses the vectorized
+ * up to 256 frames at a time by one single-precision GEMM; the interpolation is applied to
+ * 16 frames at once (each nonzero is one 16-wide vector FMA); exp(i phi) uses the vectorized
  * sin/cos of kernels.h; only illuminated pupil samples are computed; the MFT is two cgemms
  * in single precision per camera frame. Nothing allocates after swfs_engine_create.
  * Batches run on nthreads cores, parallel over camera frames, each worker with its own
@@ -55,7 +55,7 @@ size_t swfs_engine_npin(const swfs_engine *e);
 
 /* Add weight * P exp(2 pi i z / lambda) of one WFS frame (nslopes values, must be finite)
  * to the current exposure's pupil-field sum. Frames are buffered internally and
- * processed 16 at a time; allocation-free. */
+ * processed 256 at a time (or at end_exposure); allocation-free. */
 int swfs_engine_add_wfs(swfs_engine *e, const double *slopes, double weight);
 /* One MFT of the summed field, core-phase referencing, nfx*nfy complex to halo_out;
  * then start a new exposure. */
