@@ -13,6 +13,7 @@ int swfs_cmd_demo(int argc, char **argv);
 int swfs_cmd_report(int argc, char **argv);
 int swfs_cmd_reduce(int argc, char **argv);
 int swfs_cmd_sync(int argc, char **argv);
+int swfs_cmd_speckles(int argc, char **argv);
 int swfs_cmd_merge(int argc, char **argv);
 int swfs_cmd_stream(int argc, char **argv);
 /* mode=timeseries of `simulate` (cli/cmd_simulate_ts.c), called from cmd_simulate.c. */

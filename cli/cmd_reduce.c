@@ -31,6 +31,9 @@ static const char *usage_text =
     "  --hot-sigma K       dark outliers beyond K robust sigmas are bad (default 8)\n"
     "  --bg-radius PIX     source-free region: farther than PIX from the centre (default\n"
     "                      0.45 min(W, H))\n"
+    "  --noise-region      take the noise variance from that region even when the raw header\n"
+    "                      has PIXSCALE; by default (PIXSCALE < 0.45) it comes from the spatial\n"
+    "                      frequencies beyond the optical cutoff, where only white noise lives\n"
     "  --no-register       keep the frames where they are (the track is still measured)\n"
     "Geometry keywords and GAIN of the first raw cube are copied.\n";
 
@@ -64,6 +67,7 @@ int swfs_cmd_reduce(int argc, char **argv)
     size_t nraw = 0;
     swfs_reduce_params p;
     swfs_reduce_params_default(&p);
+    int bg_region = 0;
     if (!raws) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -80,6 +84,7 @@ int swfs_cmd_reduce(int argc, char **argv)
         else if (!strcmp(a, "--hot-sigma")) { if (cli_parse_double(cmd, a, v, &p.hot_sigma)) { free(raws); return CLI_USAGE; } i++; }
         else if (!strcmp(a, "--bg-radius")) { if (cli_parse_double(cmd, a, v, &p.bg_radius)) { free(raws); return CLI_USAGE; } i++; }
         else if (!strcmp(a, "--no-register")) p.do_register = 0;
+        else if (!strcmp(a, "--noise-region")) bg_region = 1;
         else if (a[0] == '-' && a[1]) { free(raws); return cli_usage_error(cmd, "unknown option '%s'", a); }
         else raws[nraw++] = a;
     }
@@ -111,16 +116,17 @@ int swfs_cmd_reduce(int argc, char **argv)
     if (darkf && read_map(cmd, darkf, nx, ny, &dark)) goto done;
     if (flatf && read_map(cmd, flatf, nx, ny, &flat)) goto done;
     if (badf && read_map(cmd, badf, nx, ny, &bad)) goto done;
-    if (swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p)) { cli_error(cmd); goto done; }
-
     swfs_geom geom;
     double gainv = NAN;
     {
         int found = 0;
         if (swfs_fits_in_geom(in[0], &geom)) { cli_error(cmd); goto done; }
+        /* The out-of-band noise estimate needs the sampling (PIXSCALE). */
+        if (!bg_region && isfinite(geom.pixscale) && geom.pixscale > 0 && geom.pixscale < 0.45) p.pixscale = geom.pixscale;
         if (swfs_fits_in_key_double_opt(in[0], "GAIN", &gainv, &found)) { cli_error(cmd); goto done; }
         if (!found) gainv = NAN;
     }
+    if (swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p)) { cli_error(cmd); goto done; }
     size_t np = nx * ny;
     buf = malloc(np * sizeof *buf);
     track = malloc(4 * ntot * sizeof *track);

@@ -37,6 +37,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet,
            s.ao_modes, p.ao_gain, p.ao_delay);
     printf("  residual %.1f nm rms (%.1f nm without tip-tilt), residual tip-tilt %.3f lambda/D rms, Strehl %.3f\n",
            1e9 * s.residual_rms, 1e9 * s.residual_rms_nott, s.tt_rms, s.strehl);
+    printf("  time-mean residual (static, not in the speckles) %.1f nm rms\n", 1e9 * s.static_rms);
     printf("  NCP %.1f nm rms; %.1f s -> %s/\n", 1e9 * s.ncp_rms, s.seconds, outdir);
     return CLI_OK;
 }

@@ -27,7 +27,9 @@ static const char *usage_text =
     "                   files are found relative to the log's folder\n"
     "  -o TIMING.txt    timing table: ratio +- error, lag, axis pairing, one line per cube\n"
     "  --ratio-min/max  search range of <t_sci/t_wfs> (default 2 .. 12)\n"
-    "  --lag-min/max    search range of the lag [WFS frames] (default -20 .. 20)\n"
+    "  --lag-min/max    search range of the lag [WFS frames] (default -3 .. 12: the log is written\n"
+    "                   after the camera starts). Keep it narrower than the period of a dominant\n"
+    "                   vibration: a pure sinusoid makes the lag ambiguous by half periods\n"
     "  --ratio-step, --lag-step  coarse grid (0.01, 0.5), refined 100x around the peak\n";
 
 static void dir_of(const char *path, char *dir, size_t cap)
@@ -53,6 +55,8 @@ int swfs_cmd_sync(int argc, char **argv)
     const char *sci = NULL, *logf = NULL, *out = NULL;
     swfs_sync_params p;
     swfs_sync_params_default(&p);
+    p.lag_min = -3;
+    p.lag_max = 12;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         double *dst = NULL;
@@ -188,7 +192,18 @@ int swfs_cmd_sync(int argc, char **argv)
         cubes[ci] = (swfs_sync_cube){cube_n[ci], tx + cube_first[ci], ty + cube_first[ci], files[fi].mx, files[fi].my,
                                      files[fi].nwfs, (double)hs[h].frame};
         snprintf(t.cubes[ci].camera, sizeof t.cubes[ci].camera, "%s", cam);
-        snprintf(t.cubes[ci].slopes, sizeof t.cubes[ci].slopes, "%s", hs[h].slopes);
+        /* The timing table may live elsewhere: record the telemetry file's absolute path. */
+        {
+            char rel[8192], *abs = NULL;
+            snprintf(rel, sizeof rel, "%s/%s", logdir, hs[h].slopes);
+            abs = realpath(rel, NULL);
+            int len = snprintf(t.cubes[ci].slopes, sizeof t.cubes[ci].slopes, "%s", abs ? abs : rel);
+            free(abs);
+            if (len < 0 || (size_t)len >= sizeof t.cubes[ci].slopes) {
+                fprintf(stderr, "specklewfs %s: %s: telemetry path too long\n", cmd, rel);
+                goto done;
+            }
+        }
         t.cubes[ci].first = cube_first[ci];
         t.cubes[ci].nframes = cube_n[ci];
     }

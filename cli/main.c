@@ -23,6 +23,7 @@ static const struct command commands[] = {
     {"stream", swfs_cmd_stream, "real-time path: slopes + camera frames in time order -> HALO.fits updated as they arrive"},
     {"merge", swfs_cmd_merge, "combine accumulator checkpoints of disjoint frame sets exactly (optionally -> HALO.fits)"},
     {"sync", swfs_cmd_sync, "WFS/camera frame-rate ratio and handshake lag by tip-tilt cross-correlation (Sec. 4.2)"},
+    {"speckles", swfs_cmd_speckles, "speckle cube from WFS slopes matching the science frames (Sec. 4.4)"},
     {"coherence", swfs_cmd_coherence, "speckle MCF, coherence time, phase-rotation time, SNR loss vs exposure (Sec. 3.3, 4.4)"},
 };
 

@@ -73,8 +73,13 @@ static void test_reduce_pipeline(void **state)
     swfs_reduce_params p;
     swfs_reduce_params_default(&p);
     p.gauss_sigma = 2.0;
-    swfs_reduce *r = NULL;
+    swfs_reduce *r = NULL, *r2 = NULL;
     assert_ok(swfs_reduce_create(&r, NX, NY, dark, flat, NULL, &p));
+    /* The out-of-band noise estimate: the star (sigma 2.2 px) is band-limited well inside
+     * 0.25 cycles/pixel, the noise is white. */
+    swfs_reduce_params p2 = p;
+    p2.pixscale = 0.25;
+    assert_ok(swfs_reduce_create(&r2, NX, NY, dark, flat, NULL, &p2));
     assert_int_equal(swfs_reduce_nbad(r), 5);
     const double noise = 3.0;
     double maxdev = 0;
@@ -87,6 +92,7 @@ static void test_reduce_pipeline(void **state)
                 raw[k] = flat[k] * sig + dark[k];
             }
         double px, py;
+        assert_ok(swfs_reduce_frame(r2, raw, out, &px, &py));
         assert_ok(swfs_reduce_frame(r, raw, out, &px, &py));
         assert_close(px, x0, 0.05);
         assert_close(py, y0, 0.05);
@@ -104,7 +110,11 @@ static void test_reduce_pipeline(void **state)
     assert_true(maxdev < 0.07);
     double nv = swfs_reduce_noise_var(r);
     assert_close(nv, noise * noise, 0.15 * noise * noise);
+    double nv2 = swfs_reduce_noise_var(r2);
+    print_message("noise variance %.3f (region) %.3f (out of band), true %.3f\n", nv, nv2, noise * noise);
+    assert_close(nv2, noise * noise, 0.1 * noise * noise);
     swfs_reduce_free(r);
+    swfs_reduce_free(r2);
 
     /* Bad input: mostly-bad calibration is rejected. */
     for (size_t i = 0; i < n; i++) flat[i] = (i % 3) ? 0.0 : 1.0;

@@ -19,6 +19,12 @@ typedef struct swfs_reduce_params {
     int do_register;     /* shift each frame so the peak is at (W/2, H/2) (1) */
     double bg_radius;    /* [pixels] pixels farther than this from the centre are the
                             source-free region for the noise variance (0: 0.45 min(W, H)) */
+    double pixscale;     /* [lambda/D per pixel] when in (0, 0.45): the noise variance comes
+                            instead from the spatial frequencies the telescope cannot pass
+                            (|f| > PIXSCALE cycles/pixel, the optical cutoff D/lambda, plus a
+                            margin of 2 frequency bins) of each Hann-windowed frame: white
+                            noise is there, the star's halo is not -- robust where no pixel
+                            is free of the halo. 0: use the source-free region (default 0) */
 } swfs_reduce_params;
 
 void swfs_reduce_params_default(swfs_reduce_params *p);
@@ -40,8 +46,9 @@ const unsigned char *swfs_reduce_badmap(const swfs_reduce *r);
  * pixels feed the noise-variance accumulator. */
 int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px, double *py);
 
-/* Mean over the source-free pixels of their variance over the frames reduced so far
- * [counts^2]; NaN before two frames. */
+/* Background noise variance per pixel [counts^2]: the mean over the frames of the
+ * out-of-band spectral estimate (pixscale set), else the mean over the source-free pixels
+ * of their variance over the frames reduced so far (NaN before two frames). */
 double swfs_reduce_noise_var(const swfs_reduce *r);
 
 /* Building blocks (tests): 3 x 3 median replacement in place of flagged or non-finite

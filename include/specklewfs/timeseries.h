@@ -22,7 +22,8 @@
  *                     removed, same exposure sums and core-phase referencing as the
  *                     slopes path, ensemble mean removed), one frame per camera frame
  *   speckles_ideal_tt.fits        the same with the tip-tilt left in
- *   truth.fits        NCP [m] (piston removed), PUPIL; keys RATIO, HSLAG, residual rms
+ *   truth.fits        NCP [m] (piston removed), PUPIL, RESMEAN (time-mean residual [m]);
+ *                     keys RATIO, HSLAG, residual rms, STATRMS
  *   truth_timing.txt  the true exposure start of every cube (global WFS frames)
  */
 #ifndef SWFS_TIMESERIES_H
@@ -55,6 +56,9 @@ typedef struct swfs_ts_params {
     double vib_amp;            /* [lambda/D at wavelen] amplitude (1.0) */
     double vib_freq;           /* [Hz] 20 */
     double vib_angle;          /* [deg] 30 */
+    double jitter_amp;         /* [lambda/D] rms per axis of broadband pointing jitter (0.3):
+                                  first-order low-pass white noise, corner jitter_freq */
+    double jitter_freq;        /* [Hz] 30 */
     /* science camera */
     double frame_ratio;        /* <t_sci/t_wfs> 6.48 */
     long ncubes, cube_frames;  /* 6 x 100 */
@@ -83,6 +87,8 @@ typedef struct swfs_ts_summary {
     double residual_rms_nott;  /* [m] the same with tip-tilt removed */
     double tt_rms;             /* [lambda/D] residual tip-tilt (2-axis rms) */
     double strehl;             /* mean short-exposure-field Strehl with NCP */
+    double static_rms;         /* [m] rms of the time-mean residual (tip-tilt removed) over the
+                                  exposures: a static aberration not in the speckles */
     double ncp_rms;            /* [m] */
     double seconds;
 } swfs_ts_summary;

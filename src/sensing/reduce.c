@@ -3,6 +3,9 @@
 #include "specklewfs/array.h"
 #include "specklewfs/status.h"
 
+#include <complex.h>
+#include <fftw3.h>
+
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -15,6 +18,7 @@ void swfs_reduce_params_default(swfs_reduce_params *p)
     p->gauss_sigma = 2;
     p->do_register = 1;
     p->bg_radius = 0;
+    p->pixscale = 0;
 }
 
 struct swfs_reduce {
@@ -29,7 +33,18 @@ struct swfs_reduce {
     size_t nbg;
     double *bg_mean, *bg_m2; /* Welford per source-free pixel */
     size_t nframes;
+    /* Out-of-band noise estimate. */
+    fftw_plan plan;
+    double *fin, *hann;
+    fftw_complex *fout;
+    unsigned char *oob;      /* (nx/2+1) * ny: 1 where |f| is beyond the cutoff */
+    double hann2;            /* sum of the window squared */
+    size_t noob;
+    double spec_sum;         /* sum over frames of the per-frame estimates */
+    size_t spec_n;
 };
+
+static long swfs_fft_index(size_t k, size_t n) { return k < (n + 1) / 2 ? (long)k : (long)k - (long)n; }
 
 static int cmp_double(const void *a, const void *b)
 {
@@ -48,6 +63,9 @@ void swfs_reduce_free(swfs_reduce *r)
     if (!r) return;
     free(r->dark); free(r->flat); free(r->bad); free(r->work); free(r->frame);
     free(r->bg); free(r->bg_mean); free(r->bg_m2);
+    if (r->plan) fftw_destroy_plan(r->plan);
+    fftw_free(r->fin); fftw_free(r->fout);
+    free(r->hann); free(r->oob);
     free(r);
 }
 
@@ -123,6 +141,36 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
             double dx = (double)i - (double)(nx / 2), dy = (double)j - (double)(ny / 2);
             if (sqrt(dx * dx + dy * dy) > rad && !r->bad[j * nx + i]) r->bg[r->nbg++] = j * nx + i;
         }
+    if (p->pixscale > 0 && p->pixscale < 0.45) {
+        size_t nh = nx / 2 + 1;
+        r->fin = fftw_malloc(n * sizeof *r->fin);
+        r->fout = fftw_malloc(nh * ny * sizeof *r->fout);
+        r->hann = malloc(n * sizeof *r->hann);
+        r->oob = calloc(nh * ny, 1);
+        if (!r->fin || !r->fout || !r->hann || !r->oob) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+        /* FFTW planning is not thread-safe; reduce plans are made by one thread. */
+        r->plan = fftw_plan_dft_r2c_2d((int)ny, (int)nx, r->fin, r->fout, FFTW_ESTIMATE);
+        if (!r->plan) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_INTERNAL, "reduce: FFTW plan failed"); }
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                double w = (0.5 - 0.5 * cos(2 * M_PI * ((double)i + 0.5) / (double)nx)) *
+                           (0.5 - 0.5 * cos(2 * M_PI * ((double)j + 0.5) / (double)ny));
+                r->hann[j * nx + i] = w;
+                r->hann2 += w * w;
+            }
+        /* Beyond the optical cutoff PIXSCALE cycles/pixel by 2 bins (the window's width). */
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nh; i++) {
+                double fx = (double)i / (double)nx, fy = (double)swfs_fft_index(j, ny) / (double)ny;
+                double fmargin = 2.0 / (double)(nx < ny ? nx : ny);
+                if (sqrt(fx * fx + fy * fy) > p->pixscale + fmargin) { r->oob[j * nh + i] = 1; r->noob++; }
+            }
+        if (r->noob < 8) {
+            swfs_reduce_free(r);
+            return swfs_fail(SWFS_ERR_ARG, "reduce: PIXSCALE %g leaves no spatial frequency beyond the optical cutoff in a "
+                             "%zux%zu frame", p->pixscale, nx, ny);
+        }
+    }
     r->bg_mean = calloc(r->nbg ? r->nbg : 1, sizeof *r->bg_mean);
     r->bg_m2 = calloc(r->nbg ? r->nbg : 1, sizeof *r->bg_m2);
     if (!r->bg_mean || !r->bg_m2) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
@@ -245,6 +293,22 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
         r->bg_mean[b] += d / (double)r->nframes;
         r->bg_m2[b] += d * (v - r->bg_mean[b]);
     }
+    if (r->plan) {
+        /* Out-of-band power of the Hann-windowed, mean-removed frame: white noise only.
+         * Each r2c bin stands for itself and its conjugate, so the mean over the half
+         * plane is the mean over the full plane. */
+        double m = 0;
+        for (size_t i = 0; i < n; i++) m += f[i];
+        m /= (double)n;
+        for (size_t i = 0; i < n; i++) r->fin[i] = (f[i] - m) * r->hann[i];
+        fftw_execute(r->plan);
+        size_t nh = r->nx / 2 + 1;
+        double s = 0;
+        for (size_t k = 0; k < nh * r->ny; k++)
+            if (r->oob[k]) s += creal(r->fout[k]) * creal(r->fout[k]) + cimag(r->fout[k]) * cimag(r->fout[k]);
+        r->spec_sum += s / (double)r->noob / r->hann2;
+        r->spec_n++;
+    }
     double cx = 0, cy = 0;
     int rc = swfs_peak_gauss(f, r->nx, r->ny, r->p.gauss_sigma, r->work, &cx, &cy);
     if (rc) return rc;
@@ -259,6 +323,7 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
 
 double swfs_reduce_noise_var(const swfs_reduce *r)
 {
+    if (r->plan) return r->spec_n ? r->spec_sum / (double)r->spec_n : NAN;
     if (r->nframes < 2 || r->nbg == 0) return NAN;
     double s = 0;
     for (size_t b = 0; b < r->nbg; b++) s += r->bg_m2[b] / (double)(r->nframes - 1);

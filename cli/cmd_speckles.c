@@ -1,0 +1,328 @@
+/* specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits:
+ * the speckle cube from WFS slopes that matches the reduced science cube frame for frame
+ * (Sec. 4.4, eq:downsampledHalo, eq:computedSpeckleField). */
+#include "cli.h"
+
+#include "specklewfs/aperture.h"
+#include "specklewfs/engine.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/speckles.h"
+#include "specklewfs/status.h"
+#include "specklewfs/sync.h"
+#include "specklewfs/wfs.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+static const char *usage_text =
+    "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
+    "                           [--recon W.fits | --rcond R | --modes K] [--keep-tiptilt] [--mean ensemble|cube]\n"
+    "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
+    "\n"
+    "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
+    "exposure of the usable cubes of TIMING.txt (from `specklewfs sync`): z = W s at the\n"
+    "actuators (mean x/y slopes removed), Clough-Tocher interpolation to the pupil grid,\n"
+    "P exp(2 pi i z / lambda) summed over the exposure's WFS frames with fractional end\n"
+    "weights, one MFT, core-phase referencing (eq:downsampledHalo); then the ensemble-average\n"
+    "static halo is subtracted (eq:computedSpeckleField).\n"
+    "\n"
+    "  TIMING.txt          timing table; relative slopes paths are taken from its folder\n"
+    "  --science FILE      reduced science cube (reduce): geometry keywords WAVELEN, TELDIAM,\n"
+    "                      OBSCUR, PIXSCALE, PUPDX, PUPN and the focal window size\n"
+    "  --actuators FILE    actuator positions, 2 x nact [m]\n"
+    "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
+    "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; default:\n"
+    "                      built here as the SVD pseudo-inverse of the Shack-Hartmann\n"
+    "                      interaction matrix, singular values above --rcond (1e-2) x the\n"
+    "                      largest, at most --modes K (0 = no limit)\n"
+    "  --keep-tiptilt      do not remove the mean x/y slopes (pair with reduce --no-register)\n"
+    "  --mean MODE         static halo: ensemble (all frames, default) or cube (each cube)\n"
+    "  --match IN OUT      write OUT = the frames of IN (a cube aligned with SCIENCE.fits, e.g.\n"
+    "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
+    "  --pupil MASK.fits   pupil mask PUPN x PUPN (default: annulus from TELDIAM, OBSCUR)\n"
+    "  --threads N         engine workers (default 1)\n";
+
+typedef struct match_pair { const char *in, *out; } match_pair;
+
+static void dir_of(const char *path, char *dir, size_t cap)
+{
+    const char *s = strrchr(path, '/');
+    if (!s) { snprintf(dir, cap, "."); return; }
+    size_t n = (size_t)(s - path);
+    if (n >= cap) n = cap - 1;
+    memcpy(dir, path, n);
+    dir[n] = 0;
+    if (n == 0) snprintf(dir, cap, "/");
+}
+
+static void slopes_path(const char *tdir, const char *name, char *path, size_t cap)
+{
+    if (name[0] == '/') snprintf(path, cap, "%s", name);
+    else snprintf(path, cap, "%s/%s", tdir, name);
+}
+
+/* Copy the frames of the usable cubes of IN to OUT, with its keywords that matter. */
+static int write_match(const char *cmd, const char *in, const char *out, const swfs_timing *t, size_t nsci,
+                       const swfs_geom *g, const char *const *prov, size_t nprov)
+{
+    swfs_fits_in *f = NULL;
+    swfs_fits_out *o = NULL;
+    double *buf = NULL;
+    int rc = CLI_FAIL;
+    if (swfs_fits_in_open(&f, in, NULL)) return cli_error(cmd);
+    const swfs_fits_shape *s = swfs_fits_in_shape(f);
+    if (s->nz != nsci) {
+        fprintf(stderr, "specklewfs %s: %s: %zu frames but the science cube has %zu; --match needs a cube aligned "
+                "with it\n", cmd, in, s->nz, nsci);
+        goto done;
+    }
+    size_t nout = 0, np = s->nx * s->ny;
+    for (size_t c = 0; c < t->ncubes; c++)
+        if (t->cubes[c].status == SWFS_CUBE_OK) nout += t->cubes[c].nframes;
+    buf = malloc(np * (s->is_complex ? 2 : 1) * sizeof *buf);
+    if (!buf) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    if (swfs_fits_out_create(&o, out) || swfs_fits_out_set_stamp(o, g, prov, nprov) ||
+        swfs_fits_out_begin(o, NULL, s->nx, s->ny, nout, s->is_complex, -32)) {
+        cli_error(cmd);
+        goto done;
+    }
+    const char *keys[] = {"RDNOISE", "GAIN", "NOISEVAR"};
+    for (size_t k = 0; k < 3; k++) {
+        double v;
+        int found = 0;
+        if (swfs_fits_in_key_double_opt(f, keys[k], &v, &found)) { cli_error(cmd); goto done; }
+        if (found && swfs_fits_out_key_double(o, keys[k], v, "copied from the input")) { cli_error(cmd); goto done; }
+    }
+    size_t k = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        for (size_t j = 0; j < t->cubes[c].nframes; j++, k++) {
+            size_t src = t->cubes[c].first + j;
+            int r1 = s->is_complex ? swfs_fits_in_read_cplx(f, src, 1, (double complex *)buf) : swfs_fits_in_read_real(f, src, 1, buf);
+            int r2 = r1 ? r1
+                        : (s->is_complex ? swfs_fits_out_cplx_frames(o, k, 1, (double complex *)buf)
+                                         : swfs_fits_out_real_frames(o, k, 1, buf));
+            if (r2) { cli_error(cmd); goto done; }
+        }
+    }
+    int crc = swfs_fits_out_commit(o);
+    o = NULL;
+    if (crc) { cli_error(cmd); goto done; }
+    rc = CLI_OK;
+done:
+    swfs_fits_out_abort(o);
+    swfs_fits_in_close(f);
+    free(buf);
+    return rc;
+}
+
+int swfs_cmd_speckles(int argc, char **argv)
+{
+    const char *cmd = "speckles";
+    const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL;
+    double rcond = 1e-2;
+    long modes = 0, threads = 1;
+    int keep_tt = 0, mean_mode = SWFS_MEAN_ENSEMBLE;
+    match_pair *match = calloc((size_t)argc, sizeof *match);
+    size_t nmatch = 0;
+    if (!match) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
+        int bad = 0;
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); free(match); return CLI_OK; }
+        else if (!strcmp(a, "-o") || !strcmp(a, "--science") || !strcmp(a, "--actuators") || !strcmp(a, "--recon") ||
+                 !strcmp(a, "--pupil")) {
+            if (!v) { free(match); return cli_usage_error(cmd, "%s needs a file name", a); }
+            if (!strcmp(a, "-o")) out = v;
+            else if (!strcmp(a, "--science")) sci = v;
+            else if (!strcmp(a, "--actuators")) actf = v;
+            else if (!strcmp(a, "--recon")) reconf = v;
+            else pupf = v;
+            i++;
+        } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); i++; }
+        else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); i++; }
+        else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
+        else if (!strcmp(a, "--keep-tiptilt")) keep_tt = 1;
+        else if (!strcmp(a, "--mean")) {
+            if (!v || (strcmp(v, "ensemble") && strcmp(v, "cube"))) { free(match); return cli_usage_error(cmd, "--mean needs ensemble or cube"); }
+            mean_mode = strcmp(v, "cube") ? SWFS_MEAN_ENSEMBLE : SWFS_MEAN_CUBE;
+            i++;
+        } else if (!strcmp(a, "--match")) {
+            if (i + 2 >= argc) { free(match); return cli_usage_error(cmd, "--match needs IN.fits OUT.fits"); }
+            match[nmatch].in = argv[i + 1];
+            match[nmatch].out = argv[i + 2];
+            nmatch++;
+            i += 2;
+        } else if (a[0] == '-' && a[1]) { free(match); return cli_usage_error(cmd, "unknown option '%s'", a); }
+        else if (!timing) timing = a;
+        else { free(match); return cli_usage_error(cmd, "unexpected argument '%s'", a); }
+        if (bad) { free(match); return CLI_USAGE; }
+    }
+    if (!timing || !sci || !actf || !out) { free(match); return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators and -o"); }
+    if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) { free(match); return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1"); }
+
+    int rc = CLI_FAIL;
+    swfs_timing *t = NULL;
+    swfs_fits_in *fs = NULL;
+    double *xy = NULL, *mask = NULL;
+    swfs_recon *rin = NULL;
+    swfs_speckle_model *m = NULL;
+    swfs_engine *eng = NULL;
+    swfs_cplx *halo = NULL;
+    swfs_real *slopes = NULL;
+    swfs_exposure *sched = NULL;
+    size_t *cfirst = NULL, *cn = NULL;
+    char cur_slopes[SWFS_SYNC_NAME] = "";
+
+    if (swfs_timing_read(timing, &t)) { cli_error(cmd); goto done; }
+    if (swfs_fits_in_open(&fs, sci, NULL)) { cli_error(cmd); goto done; }
+    const swfs_fits_shape *ss = swfs_fits_in_shape(fs);
+    swfs_geom g;
+    if (swfs_fits_in_geom(fs, &g) || swfs_geom_require(&g, sci)) { cli_error(cmd); goto done; }
+    const size_t nfx = ss->nx, nfy = ss->ny, npup = (size_t)g.pupn, nsci = ss->nz;
+    size_t nact = 0;
+    if (swfs_actuators_read(actf, &xy, &nact)) { cli_error(cmd); goto done; }
+    mask = malloc(npup * npup * sizeof *mask);
+    if (!mask) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    if (pupf) {
+        swfs_real *pm = NULL;
+        if (swfs_fits_read_real(pupf, NULL, &pm, NULL)) { cli_error(cmd); goto done; }
+        if (pm->nx != npup || pm->ny != npup || pm->nz != 1) {
+            fprintf(stderr, "specklewfs %s: %s: pupil mask is %zux%zu but PUPN = %zu\n", cmd, pupf, pm->nx, pm->ny, npup);
+            swfs_real_free(pm);
+            goto done;
+        }
+        memcpy(mask, pm->data, npup * npup * sizeof *mask);
+        swfs_real_free(pm);
+    } else if (swfs_aperture_make(mask, npup, g.pupdx, g.teldiam, g.obscur, 0, 0)) { cli_error(cmd); goto done; }
+
+    /* Usable cubes and their place in the output. */
+    size_t nout = 0, nok = 0, maxn = 0;
+    cfirst = calloc(t->ncubes, sizeof *cfirst);
+    cn = calloc(t->ncubes, sizeof *cn);
+    if (!cfirst || !cn) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->first + tc->nframes > nsci) {
+            fprintf(stderr, "specklewfs %s: %s: cube %zu (frames %zu..%zu) is beyond the %zu frames of %s\n", cmd, timing,
+                    c, tc->first, tc->first + tc->nframes, nsci, sci);
+            goto done;
+        }
+        if (tc->status != SWFS_CUBE_OK) continue;
+        cfirst[nok] = nout;
+        cn[nok] = tc->nframes;
+        nout += tc->nframes;
+        nok++;
+        if (tc->nframes > maxn) maxn = tc->nframes;
+    }
+    if (!nok) { fprintf(stderr, "specklewfs %s: %s: no usable cube (all straddle telemetry files)\n", cmd, timing); goto done; }
+
+    /* The slopes length fixes the Shack-Hartmann geometry: 2 nsub^2. Peek at the first file. */
+    char tdir[4096], path[8192];
+    dir_of(timing, tdir, sizeof tdir);
+    size_t nslopes = 0;
+    {
+        swfs_fits_in *f = NULL;
+        for (size_t c = 0; c < t->ncubes; c++)
+            if (t->cubes[c].status == SWFS_CUBE_OK) { slopes_path(tdir, t->cubes[c].slopes, path, sizeof path); break; }
+        if (swfs_fits_in_open(&f, path, NULL)) { cli_error(cmd); goto done; }
+        nslopes = swfs_fits_in_shape(f)->nx;
+        swfs_fits_in_close(f);
+    }
+    size_t nsub = (size_t)llround(sqrt((double)nslopes / 2));
+    if (reconf) {
+        if (swfs_recon_read(reconf, &rin)) { cli_error(cmd); goto done; }
+        if (rin->nslopes != nslopes) {
+            fprintf(stderr, "specklewfs %s: %s: %zu slopes per frame but the reconstructor %s expects %zu\n", cmd, path,
+                    nslopes, reconf, rin->nslopes);
+            goto done;
+        }
+    }
+    if (2 * nsub * nsub != nslopes) {
+        fprintf(stderr, "specklewfs %s: %s: %zu slopes per frame is not 2 nsub^2 (x then y slopes of a square "
+                "Shack-Hartmann)\n", cmd, path, nslopes);
+        goto done;
+    }
+    if (swfs_speckle_model_create(&m, xy, nact, mask, npup, g.pupdx, g.teldiam, nsub, rin, rcond, (size_t)modes, !keep_tt)) {
+        cli_error(cmd);
+        goto done;
+    }
+    swfs_engine_config ec = {nslopes, nact, npup, nfx, nfy, g.pixscale * g.pupdx / g.teldiam, g.wavelen, m->recon->W,
+                             m->T, mask, 0, (int)threads};
+    eng = swfs_engine_create(&ec);
+    if (!eng) { cli_error(cmd); goto done; }
+    halo = swfs_cplx_alloc(nfx, nfy, nout);
+    sched = malloc(maxn * sizeof *sched);
+    if (!halo || !sched) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+
+    size_t ok_i = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        slopes_path(tdir, tc->slopes, path, sizeof path);
+        if (strcmp(cur_slopes, tc->slopes)) {
+            swfs_real_free(slopes);
+            slopes = NULL;
+            cur_slopes[0] = 0;
+            if (swfs_fits_read_real(path, NULL, &slopes, NULL)) { cli_error(cmd); goto done; }
+            if (slopes->nz != 1 || slopes->nx != nslopes) {
+                fprintf(stderr, "specklewfs %s: %s: %zu slopes per frame but the reconstructor expects %zu\n", cmd, path,
+                        slopes->nx, nslopes);
+                goto done;
+            }
+            snprintf(cur_slopes, sizeof cur_slopes, "%s", tc->slopes);
+        }
+        double k0 = floor(tc->start);
+        size_t need = swfs_engine_schedule(t->ratio, tc->start - k0, tc->nframes, sched);
+        if (!(tc->start >= 0) || need == 0 || (size_t)k0 + need > slopes->ny) {
+            fprintf(stderr, "specklewfs %s: %s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu\n", cmd, timing, c,
+                    tc->start, tc->start + (double)tc->nframes * t->ratio, path, slopes->ny);
+            goto done;
+        }
+        if (swfs_engine_process(eng, slopes->data + (size_t)k0 * nslopes, need, sched, tc->nframes,
+                                swfs_cplx_frame(halo, cfirst[ok_i]))) {
+            swfs_fail_context(SWFS_ERR_VALUE, "%s cube %zu", path, c);
+            cli_error(cmd);
+            goto done;
+        }
+        ok_i++;
+        cli_progress("speckles: cubes", ok_i, nok);
+    }
+    if (swfs_speckles_subtract_static(halo, cfirst, cn, nok, mean_mode)) { cli_error(cmd); goto done; }
+
+    char cl[2048], info[512];
+    cli_command_line(argc, argv, cl, sizeof cl);
+    snprintf(info, sizeof info, "speckles: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor modes, "
+             "tip-tilt %s, static halo %s", t->ratio, t->lag, nact, nslopes, m->recon->nmodes,
+             keep_tt ? "kept" : "removed", mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
+    const char *prov[] = {cl, info};
+    {
+        swfs_fits_out *o = NULL;
+        if (swfs_fits_out_create(&o, out)) { cli_error(cmd); goto done; }
+        if (swfs_fits_out_set_stamp(o, &g, prov, 2) || swfs_fits_out_cplx(o, NULL, halo, -32) ||
+            swfs_fits_out_key_double(o, "FRATIO", t->ratio, "<t_sci/t_wfs> from sync") ||
+            swfs_fits_out_key_double(o, "HSLAG", t->lag, "handshake lag [WFS frames] from sync")) {
+            swfs_fits_out_abort(o);
+            cli_error(cmd);
+            goto done;
+        }
+        if (swfs_fits_out_commit(o)) { cli_error(cmd); goto done; }
+    }
+    for (size_t k = 0; k < nmatch; k++)
+        if (write_match(cmd, match[k].in, match[k].out, t, nsci, &g, prov, 2)) goto done;
+    fprintf(stderr, "speckles: %zu frames from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside the "
+            "actuator hull) -> %s\n", nout, nok, t->ncubes, m->recon->nmodes, m->n_outside, out);
+    rc = CLI_OK;
+done:
+    swfs_timing_free(t);
+    swfs_fits_in_close(fs);
+    free(xy); free(mask); free(sched); free(cfirst); free(cn); free(match);
+    swfs_recon_free(rin);
+    swfs_speckle_model_free(m);
+    swfs_engine_free(eng);
+    swfs_cplx_free(halo);
+    swfs_real_free(slopes);
+    return rc;
+}

@@ -1,0 +1,600 @@
+/* Time-series simulation with a closed AO loop, telemetry and raw camera cubes
+ * (see include/specklewfs/timeseries.h and docs/telemetry.md). */
+#include "specklewfs/timeseries.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/array.h"
+#include "specklewfs/engine.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/interp.h"
+#include "specklewfs/kernels.h"
+#include "specklewfs/mft.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/screen.h"
+#include "specklewfs/status.h"
+#include "specklewfs/sync.h"
+#include "specklewfs/wfs.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+void swfs_ts_params_default(swfs_ts_params *p)
+{
+    memset(p, 0, sizeof *p);
+    swfs_sim_params_default(&p->base);
+    p->base.screen.n = 1024;
+    p->base.screen.subharmonics = 0; /* periodic screens: frozen flow wraps around */
+    p->base.nfx = p->base.nfy = 54;  /* Clio's 54 x 54 sub-stamp at 0.25 lambda/D */
+    p->base.read_noise = 19;         /* Clio: 19 dn read noise, 4.9 e-/dn */
+    p->base.gain = 4.9;
+    p->nlayers = 2;
+    p->layer_frac[0] = 0.6; p->layer_speed[0] = 10; p->layer_dir[0] = 0;
+    p->layer_frac[1] = 0.4; p->layer_speed[1] = 15; p->layer_dir[1] = 110;
+    p->layer_frac[2] = 0.0; p->layer_speed[2] = 5; p->layer_dir[2] = 250;
+    p->wfs_rate = 527;
+    p->nsub = 12;
+    p->act_pitch = 0.45;
+    p->ao_gain = 0.4;
+    p->ao_delay = 2;
+    p->ao_modes = 56;
+    p->slope_noise = 3e-8;
+    p->vib_amp = 1.0;
+    p->vib_freq = 20;
+    p->vib_angle = 30;
+    p->jitter_amp = 0.3;
+    p->jitter_freq = 30;
+    p->frame_ratio = 6.48;
+    p->ncubes = 6;
+    p->cube_frames = 100;
+    p->cube_gap = 200;
+    p->start_offset = 300.4;
+    p->handshake_lag = 3;
+    p->wfs_file_frames = 0;
+    p->bandwidth = 0;
+    p->nlambda = 5;
+    p->background = 20;
+    p->dark_level = 3700;
+    p->flat_rms = 0.02;
+    p->nhot = 5;
+    p->ndead = 5;
+}
+
+int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
+{
+    int rc;
+    if ((rc = swfs_sim_params_from_config(c, &p->base))) return rc;
+    long nl = p->nlayers;
+    if ((rc = swfs_config_long(c, "nlayers", nl, &nl))) return rc;
+    if (nl < 1 || nl > SWFS_TS_MAX_LAYERS)
+        return swfs_fail(SWFS_ERR_VALUE, "setting nlayers=%ld: must be 1..%d", nl, SWFS_TS_MAX_LAYERS);
+    p->nlayers = (int)nl;
+    const char *lists[3] = {"layer_frac", "layer_speed", "layer_dir"};
+    double *dst[3] = {p->layer_frac, p->layer_speed, p->layer_dir};
+    for (int k = 0; k < 3; k++) {
+        if (!swfs_config_has(c, lists[k])) continue;
+        double v[SWFS_TS_MAX_LAYERS + 1];
+        size_t n = SWFS_TS_MAX_LAYERS + 1;
+        if ((rc = swfs_config_doubles(c, lists[k], v, &n))) return rc;
+        if (n != (size_t)p->nlayers)
+            return swfs_fail(SWFS_ERR_VALUE, "setting %s: %zu values for nlayers=%d", lists[k], n, p->nlayers);
+        memcpy(dst[k], v, n * sizeof *v);
+    }
+#define D_(key, f) if ((rc = swfs_config_double(c, key, p->f, &p->f))) return rc
+#define L_(key, f) if ((rc = swfs_config_long(c, key, p->f, &p->f))) return rc
+    D_("wfs_rate", wfs_rate); L_("nsub", nsub); D_("act_pitch", act_pitch); D_("ao_gain", ao_gain);
+    L_("ao_delay", ao_delay); L_("ao_modes", ao_modes); D_("slope_noise", slope_noise);
+    D_("vib_amp", vib_amp); D_("vib_freq", vib_freq); D_("vib_angle", vib_angle);
+    D_("jitter_amp", jitter_amp); D_("jitter_freq", jitter_freq);
+    D_("frame_ratio", frame_ratio); L_("ncubes", ncubes); L_("cube_frames", cube_frames); D_("cube_gap", cube_gap);
+    D_("start_offset", start_offset); L_("handshake_lag", handshake_lag); L_("wfs_file_frames", wfs_file_frames);
+    D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
+    D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
+#undef D_
+#undef L_
+    /* mode=timeseries selects this simulator; it is not a parameter of it. */
+    const char *mode = NULL;
+    if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
+    return SWFS_OK;
+}
+
+static int badv(const char *key, double v, const char *what)
+{
+    return swfs_fail(SWFS_ERR_VALUE, "time-series parameter %s=%g: %s", key, v, what);
+}
+
+int swfs_ts_params_check(const swfs_ts_params *p)
+{
+    const swfs_sim_params *b = &p->base;
+    if (b->pupn < 8 || (size_t)b->pupn > b->screen.n) return badv("pupn", (double)b->pupn, "must be 8..screen_n");
+    if (!(b->pupdx > 0) || fabs(b->pupdx - b->screen.dx) > 1e-12 * b->pupdx) return badv("pupdx", b->pupdx, "must be > 0 and equal screen_dx");
+    if (!(b->teldiam > 0) || b->teldiam > (double)b->pupn * b->pupdx + 1e-9)
+        return badv("teldiam", b->teldiam, "must be > 0 and fit in pupn * pupdx");
+    if (!(b->wavelen > 0)) return badv("wavelen", b->wavelen, "must be > 0");
+    if (b->nfx < 4 || b->nfy < 4) return badv("nfx", (double)b->nfx, "focal window must be at least 4 x 4");
+    if (!(b->pixscale > 0)) return badv("pixscale", b->pixscale, "must be > 0");
+    if (!(b->screen.r0 > 0)) return badv("r0", b->screen.r0, "must be > 0");
+    double fs = 0;
+    for (int l = 0; l < p->nlayers; l++) {
+        if (!(p->layer_frac[l] >= 0)) return badv("layer_frac", p->layer_frac[l], "must be >= 0");
+        if (!(p->layer_speed[l] >= 0)) return badv("layer_speed", p->layer_speed[l], "must be >= 0");
+        fs += p->layer_frac[l];
+    }
+    if (fabs(fs - 1) > 1e-6) return badv("layer_frac", fs, "must sum to 1");
+    if (!(p->wfs_rate > 0)) return badv("wfs_rate", p->wfs_rate, "must be > 0");
+    if (p->nsub < 2 || b->teldiam / (double)p->nsub < 2 * b->pupdx) return badv("nsub", (double)p->nsub, "subapertures must span >= 2 pupil samples");
+    if (!(p->act_pitch > 2 * b->pupdx)) return badv("act_pitch", p->act_pitch, "must exceed 2 pupil samples");
+    if (!(p->ao_gain >= 0 && p->ao_gain < 2)) return badv("ao_gain", p->ao_gain, "must be in [0, 2)");
+    if (p->ao_delay < 1 || p->ao_delay > 8) return badv("ao_delay", (double)p->ao_delay, "must be 1..8 frames");
+    if (p->ao_modes < 1) return badv("ao_modes", (double)p->ao_modes, "must be >= 1");
+    if (!(p->slope_noise >= 0)) return badv("slope_noise", p->slope_noise, "must be >= 0");
+    if (!(p->vib_amp >= 0) || !(p->vib_freq >= 0)) return badv("vib_amp", p->vib_amp, "vibration must be >= 0");
+    if (!(p->jitter_amp >= 0) || !(p->jitter_freq > 0)) return badv("jitter_amp", p->jitter_amp, "jitter must be >= 0 with jitter_freq > 0");
+    if (!(p->frame_ratio >= 1)) return badv("frame_ratio", p->frame_ratio, "must be >= 1 WFS frame per exposure");
+    if (p->ncubes < 1 || p->cube_frames < 2) return badv("ncubes", (double)p->ncubes, "need >= 1 cube of >= 2 frames");
+    if (!(p->cube_gap >= 0) || !(p->start_offset >= 0)) return badv("cube_gap", p->cube_gap, "gap and start_offset must be >= 0");
+    if (p->handshake_lag < 0) return badv("handshake_lag", (double)p->handshake_lag, "must be >= 0");
+    if (p->wfs_file_frames < 0) return badv("wfs_file_frames", (double)p->wfs_file_frames, "must be >= 0");
+    if (!(p->bandwidth >= 0 && p->bandwidth < 1)) return badv("bandwidth", p->bandwidth, "must be in [0, 1)");
+    if (p->nlambda < 1 || p->nlambda > 64) return badv("nlambda", (double)p->nlambda, "must be 1..64");
+    if (!(p->background >= 0) || !(p->flat_rms >= 0)) return badv("background", p->background, "background and flat_rms must be >= 0");
+    if (p->nhot < 0 || p->ndead < 0) return badv("nhot", (double)p->nhot, "bad-pixel counts must be >= 0");
+    return SWFS_OK;
+}
+
+/* Bilinear sample of a periodic n x n screen at (u, v) in samples. */
+static inline double screen_at(const double *s, size_t n, double u, double v)
+{
+    double nn = (double)n;
+    u -= nn * floor(u / nn);
+    v -= nn * floor(v / nn);
+    size_t i0 = (size_t)u, j0 = (size_t)v;
+    if (i0 >= n) i0 = n - 1;
+    if (j0 >= n) j0 = n - 1;
+    size_t i1 = (i0 + 1) % n, j1 = (j0 + 1) % n;
+    double a = u - (double)i0, b = v - (double)j0;
+    return (1 - b) * ((1 - a) * s[j0 * n + i0] + a * s[j0 * n + i1]) + b * ((1 - a) * s[j1 * n + i0] + a * s[j1 * n + i1]);
+}
+
+static void core_reference(double complex *h, size_t nfx, size_t nfy)
+{
+    double complex c = h[(nfy / 2) * nfx + nfx / 2];
+    double a = cabs(c);
+    if (!(a > 0)) return;
+    double complex ph = conj(c) / a;
+    for (size_t i = 0; i < nfx * nfy; i++) h[i] *= ph;
+}
+
+static int write_cplx_cube(const char *path, const swfs_cplx *c, const swfs_geom *g, const char *const *prov, size_t nprov,
+                           const char *what)
+{
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    if (!(rc = swfs_fits_out_set_stamp(o, g, prov, nprov)) && !(rc = swfs_fits_out_cplx(o, NULL, c, -32)))
+        rc = swfs_fits_out_history(o, what);
+    if (rc) { swfs_fits_out_abort(o); return rc; }
+    return swfs_fits_out_commit(o);
+}
+
+static int write_real(const char *path, const swfs_real *a, const swfs_geom *g, const char *const *prov, size_t nprov,
+                      double gain)
+{
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    if (!(rc = swfs_fits_out_set_stamp(o, g, prov, nprov)) && !(rc = swfs_fits_out_real(o, NULL, a, -32)) && gain > 0)
+        rc = swfs_fits_out_key_double(o, "GAIN", gain, "[e-/count]");
+    if (rc) { swfs_fits_out_abort(o); return rc; }
+    return swfs_fits_out_commit(o);
+}
+
+int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
+                swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
+{
+    memset(sum, 0, sizeof *sum);
+    int rc = swfs_ts_params_check(p);
+    if (rc) return rc;
+    struct timespec ts0;
+    clock_gettime(CLOCK_MONOTONIC, &ts0);
+    const swfs_sim_params *b = &p->base;
+    const size_t np = (size_t)b->pupn, ng = np * np, nfx = (size_t)b->nfx, nfy = (size_t)b->nfy, nfp = nfx * nfy;
+    const double dx = b->pupdx, D = b->teldiam, lam0 = b->wavelen;
+    const size_t nlam = p->bandwidth > 0 ? (size_t)p->nlambda : 1;
+    const size_t nf = (size_t)p->cube_frames, ncub = (size_t)p->ncubes, nexp = nf * ncub;
+    const size_t nsn = b->screen.n;
+    char path[4096];
+
+    double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
+    double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
+    double *sbuf = NULL, *rmean = NULL;
+    size_t *pin = NULL;
+    swfs_sparse *T = NULL;
+    swfs_shwfs *sh = NULL;
+    swfs_recon *rao = NULL;
+    swfs_mft **mft = NULL;
+    double complex *fld = NULL, *efoc = NULL, *eid = NULL, *eidtt = NULL, *cpin = NULL;
+    swfs_exposure *sched = NULL;
+    swfs_real *clean = NULL, *dark = NULL, *flat = NULL;
+    swfs_cplx *spk = NULL, *spktt = NULL;
+    swfs_handshake *hs = NULL;
+
+    /* Pupil, NCP. */
+    mask = malloc(ng * sizeof *mask);
+    ncp = malloc(ng * sizeof *ncp);
+    if (!mask || !ncp) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    if ((rc = swfs_aperture_make(mask, np, dx, D, b->obscur, b->nspiders, b->spider_width))) goto done;
+    if ((rc = swfs_sim_ncp_map(b, mask, ncp, &sum->ncp_rms, NULL))) goto done;
+    size_t npin = 0;
+    double S = 0;
+    pin = malloc(ng * sizeof *pin);
+    xs = malloc(ng * sizeof *xs);
+    ys = malloc(ng * sizeof *ys);
+    if (!pin || !xs || !ys) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    double sxx = 0, syy = 0;
+    for (size_t q = 0; q < np; q++)
+        for (size_t i = 0; i < np; i++) {
+            size_t k = q * np + i;
+            xs[k] = ((double)i - 0.5 * (double)(np - 1)) * dx;
+            ys[k] = ((double)q - 0.5 * (double)(np - 1)) * dx;
+            if (mask[k] > 0) { pin[npin++] = k; S += mask[k]; sxx += xs[k] * xs[k]; syy += ys[k] * ys[k]; }
+        }
+
+    /* Frozen-flow layers: periodic von Karman screens, scaled to their share of r0^{-5/3}. */
+    screens = malloc((size_t)p->nlayers * nsn * nsn * sizeof *screens);
+    if (!screens) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    for (int l = 0; l < p->nlayers; l++) {
+        swfs_screen_params sp = b->screen;
+        sp.subharmonics = 0;
+        swfs_rng rng;
+        swfs_rng_seed2(&rng, b->seed, 1000 + (uint64_t)l);
+        double *s = screens + (size_t)l * nsn * nsn;
+        if ((rc = swfs_screen_vonkarman(&sp, &rng, s, NULL))) goto done;
+        double sc = sqrt(p->layer_frac[l]);
+        for (size_t k = 0; k < nsn * nsn; k++) s[k] *= sc;
+        if (progress) progress(ctx, "screens", (size_t)l + 1, (size_t)p->nlayers);
+    }
+
+    /* DM, WFS, the loop's reconstructor. */
+    size_t nact = 0;
+    if ((rc = swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact))) goto done;
+    if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
+    if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
+    if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
+    {
+        /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1). */
+        double *modes = NULL;
+        if ((rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
+        size_t K = (size_t)p->ao_modes < nact - 1 ? (size_t)p->ao_modes : nact - 1;
+        rc = swfs_recon_modal(Dm, sh->nslopes, nact, modes, 1, K, &rao);
+        free(modes);
+        if (rc) goto done;
+    }
+    sum->nact = nact;
+    sum->nvalid = sh->nvalid;
+    sum->ao_modes = rao->nmodes;
+    const size_t ns = sh->nslopes;
+
+    /* Camera schedule: cube c starts at t_c (global WFS frames). */
+    sched = malloc(nexp * sizeof *sched);
+    hs = calloc(ncub, sizeof *hs);
+    double *tstart = malloc(ncub * sizeof *tstart);
+    if (!sched || !hs || !tstart) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    size_t nwfs = 0;
+    for (size_t c = 0; c < ncub; c++) {
+        tstart[c] = p->start_offset + (double)c * ((double)nf * p->frame_ratio + p->cube_gap);
+        size_t need = swfs_engine_schedule(p->frame_ratio, tstart[c], nf, sched + c * nf);
+        if (need > nwfs) nwfs = need;
+    }
+    nwfs += (size_t)p->handshake_lag + 10;
+    sum->nwfs = nwfs;
+    const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
+    for (size_t c = 0; c < ncub; c++) {
+        size_t logged = (size_t)floor(tstart[c]) + (size_t)p->handshake_lag;
+        snprintf(hs[c].camera, sizeof hs[c].camera, "raw_%03zu.fits", c);
+        snprintf(hs[c].slopes, sizeof hs[c].slopes, "slopes_%03zu.fits", logged / ffr);
+        hs[c].frame = (long)(logged % ffr);
+    }
+
+    /* Work buffers. */
+    act = calloc(nact, sizeof *act);
+    dmz = calloc(ng, sizeof *dmz);
+    res = calloc(ng, sizeof *res);
+    resn = calloc(ng, sizeof *resn);
+    slopes = calloc(nwfs * ns, sizeof *slopes);
+    phi = malloc(npin * sizeof *phi);
+    cpin = malloc(npin * sizeof *cpin);
+    fld = calloc(ng, sizeof *fld);
+    efoc = malloc(nfp * sizeof *efoc);
+    absq = malloc(nfp * sizeof *absq);
+    iacc = calloc(2 * nfp, sizeof *iacc);
+    eid = calloc(2 * ng, sizeof *eid);
+    eidtt = calloc(2 * ng, sizeof *eidtt);
+    sbuf = calloc(ns, sizeof *sbuf);
+    rmean = calloc(ng, sizeof *rmean);
+    mft = calloc(nlam, sizeof *mft);
+    clean = swfs_real_alloc(nfx, nfy, nexp);
+    spk = swfs_cplx_alloc(nfx, nfy, nexp);
+    spktt = swfs_cplx_alloc(nfx, nfy, nexp);
+    if (!act || !dmz || !res || !resn || !slopes || !phi || !cpin || !fld || !efoc || !absq || !iacc || !eid || !eidtt ||
+        !sbuf || !rmean || !mft || !clean || !spk || !spktt) {
+        free(tstart);
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        goto done;
+    }
+    double lam[64];
+    for (size_t l = 0; l < nlam; l++) {
+        lam[l] = nlam == 1 ? lam0 : lam0 * (1 + p->bandwidth * ((double)l / (double)(nlam - 1) - 0.5));
+        /* Pixels are fixed in angle: PIXSCALE lambda0/D per pixel = PIXSCALE (lambda0/lambda) lambda/D. */
+        mft[l] = swfs_mft_create(np, nfx, nfy, b->pixscale * dx / D * lam0 / lam[l], SWFS_MFT_SINGLE);
+        if (!mft[l]) { free(tstart); rc = SWFS_ERR_NOMEM; goto done; }
+    }
+    swfs_mft *mft0 = nlam == 1 ? mft[0] : swfs_mft_create(np, nfx, nfy, b->pixscale * dx / D, SWFS_MFT_SINGLE);
+    if (!mft0) { free(tstart); rc = SWFS_ERR_NOMEM; goto done; }
+    const double alpha0 = b->pixscale * dx / D;
+    double S2 = 0;
+    for (size_t k = 0; k < npin; k++) S2 += mask[pin[k]] * mask[pin[k]];
+    const double C = b->total_counts * alpha0 * alpha0 / S2 / p->frame_ratio;
+
+    /* The loop. Commands a act on frame k; the slopes of frame k - delay + 1 update them
+     * for frame k + 1 (delay 1: the classic one-frame integrator). */
+    swfs_rng nrng;
+    swfs_rng_seed2(&nrng, b->seed, 7);
+    const double vib = p->vib_amp * lam0 / D, va = p->vib_angle * M_PI / 180;
+    const double jrho = exp(-2 * M_PI * p->jitter_freq / p->wfs_rate);
+    const double jsig = p->jitter_amp * lam0 / D * sqrt(1 - jrho * jrho);
+    double jx = 0, jy = 0;
+    size_t e_lo = 0, ninexp = 0;
+    double sres2 = 0, sres2n = 0, stt2 = 0, sstrehl = 0;
+    double *dact = malloc(nact * sizeof *dact);
+    if (!dact) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    for (size_t k = 0; k < nwfs; k++) {
+        double t = (double)k / p->wfs_rate;
+        swfs_sparse_apply(T, act, dmz);
+        double th = vib * sin(2 * M_PI * p->vib_freq * t);
+        /* Broadband jitter: AR(1) low-pass white noise per axis (breaks the half-period
+         * ambiguity a pure sinusoid leaves in the synchronization). */
+        jx = jrho * jx + jsig * swfs_rng_normal(&nrng);
+        jy = jrho * jy + jsig * swfs_rng_normal(&nrng);
+        double tvx = th * cos(va) + jx, tvy = th * sin(va) + jy;
+        double mean = 0;
+        for (size_t m = 0; m < npin; m++) {
+            size_t g = pin[m];
+            double z = tvx * xs[g] + tvy * ys[g] - dmz[g];
+            for (int l = 0; l < p->nlayers; l++) {
+                double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
+                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, (double)(g % np) - sh_ * cos(ang),
+                               (double)(g / np) - sh_ * sin(ang));
+            }
+            res[g] = z;
+            mean += z;
+        }
+        mean /= (double)npin;
+        /* WFS: slopes with noise. */
+        double *sk = slopes + k * ns;
+        swfs_shwfs_measure(sh, res, sk);
+        for (size_t i = 0; i < ns; i++)
+            if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
+        /* Controller. */
+        if (k + 1 >= (size_t)p->ao_delay) {
+            swfs_recon_apply(rao, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
+            for (size_t a = 0; a < nact; a++) act[a] += p->ao_gain * dact[a];
+        }
+        /* Camera: exposures containing frame k (at most two, consecutive). */
+        while (e_lo < nexp && sched[e_lo].first + sched[e_lo].count <= k) e_lo++;
+        int any = 0;
+        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++)
+            if (sched[e].first <= k && k < sched[e].first + sched[e].count) any = 1;
+        if (!any) continue;
+        /* Statistics and the tip-tilt-free residual. */
+        double v2 = 0, cx = 0, cy = 0;
+        for (size_t m = 0; m < npin; m++) {
+            size_t g = pin[m];
+            res[g] -= mean;
+            v2 += res[g] * res[g];
+            cx += res[g] * xs[g];
+            cy += res[g] * ys[g];
+        }
+        cx /= sxx; cy /= syy;
+        double v2n = 0;
+        for (size_t m = 0; m < npin; m++) {
+            size_t g = pin[m];
+            resn[g] = res[g] - cx * xs[g] - cy * ys[g];
+            v2n += resn[g] * resn[g];
+        }
+        ninexp++;
+        for (size_t m = 0; m < npin; m++) rmean[pin[m]] += resn[pin[m]];
+        sres2 += v2 / (double)npin;
+        sres2n += v2n / (double)npin;
+        stt2 += (cx * cx + cy * cy) / ((lam0 / D) * (lam0 / D));
+        /* Science intensity (with NCP) at each wavelength. */
+        for (size_t i = 0; i < nfp; i++) absq[i] = 0;
+        for (size_t l = 0; l < nlam; l++) {
+            for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * (res[pin[m]] + ncp[pin[m]]) / lam[l];
+            swfs_expi_d(phi, NULL, cpin, npin);
+            double complex core = 0;
+            for (size_t m = 0; m < npin; m++) { fld[pin[m]] = mask[pin[m]] * cpin[m]; core += fld[pin[m]]; }
+            if (l == nlam / 2) sstrehl += creal(core * conj(core)) / (S * S);
+            if ((rc = swfs_mft_forward(mft[l], fld, efoc))) { free(tstart); free(dact); goto done; }
+            for (size_t i = 0; i < nfp; i++) absq[i] += creal(efoc[i] * conj(efoc[i])) / (double)nlam;
+        }
+        /* Ideal speckle fields at lambda0 (no NCP): tip-tilt removed, and kept. */
+        for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * resn[pin[m]] / lam0;
+        swfs_expi_d(phi, NULL, cpin, npin);
+        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++) {
+            const swfs_exposure *x = sched + e;
+            if (!(x->first <= k && k < x->first + x->count)) continue;
+            double w = k == x->first ? x->w_first : (k + 1 == x->first + x->count ? x->w_last : 1.0);
+            double *ia = iacc + (e % 2) * nfp;
+            double complex *ei = eid + (e % 2) * ng;
+            for (size_t i = 0; i < nfp; i++) ia[i] += w * absq[i];
+            for (size_t m = 0; m < npin; m++) ei[pin[m]] += w * mask[pin[m]] * cpin[m];
+        }
+        for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * res[pin[m]] / lam0;
+        swfs_expi_d(phi, NULL, cpin, npin);
+        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++) {
+            const swfs_exposure *x = sched + e;
+            if (!(x->first <= k && k < x->first + x->count)) continue;
+            double w = k == x->first ? x->w_first : (k + 1 == x->first + x->count ? x->w_last : 1.0);
+            double complex *et = eidtt + (e % 2) * ng;
+            for (size_t m = 0; m < npin; m++) et[pin[m]] += w * mask[pin[m]] * cpin[m];
+            /* Exposure complete: finalize (eq:downsampledHalo for the ideal fields). */
+            if (k + 1 == x->first + x->count) {
+                double *ia = iacc + (e % 2) * nfp;
+                double complex *ei = eid + (e % 2) * ng;
+                double *dst = swfs_real_frame(clean, e);
+                for (size_t i = 0; i < nfp; i++) { dst[i] = C * ia[i] + p->background; ia[i] = 0; }
+                double complex *h = swfs_cplx_frame(spk, e);
+                if ((rc = swfs_mft_forward(mft0, ei, h))) { free(tstart); free(dact); goto done; }
+                core_reference(h, nfx, nfy);
+                h = swfs_cplx_frame(spktt, e);
+                if ((rc = swfs_mft_forward(mft0, et, h))) { free(tstart); free(dact); goto done; }
+                core_reference(h, nfx, nfy);
+                memset(ei, 0, ng * sizeof *ei);
+                memset(et, 0, ng * sizeof *et);
+            }
+        }
+        if (progress && (k % 256 == 0 || k + 1 == nwfs)) progress(ctx, "WFS frames", k + 1, nwfs);
+    }
+    free(dact);
+    if (nlam > 1) swfs_mft_free(mft0);
+    {
+        /* The time-mean residual (tip-tilt removed): a static aberration the speckles do
+         * not carry, so the NCP estimate sees it too. */
+        double s1 = 0, s2 = 0;
+        for (size_t m = 0; m < npin; m++) {
+            double v = rmean[pin[m]] / (double)(ninexp ? ninexp : 1);
+            rmean[pin[m]] = v;
+            s1 += v; s2 += v * v;
+        }
+        sum->static_rms = sqrt(fmax(s2 / (double)npin - (s1 / (double)npin) * (s1 / (double)npin), 0));
+    }
+    sum->residual_rms = sqrt(sres2 / (double)(ninexp ? ninexp : 1));
+    sum->residual_rms_nott = sqrt(sres2n / (double)(ninexp ? ninexp : 1));
+    sum->tt_rms = sqrt(stt2 / (double)(ninexp ? ninexp : 1));
+    sum->strehl = sstrehl / (double)(ninexp ? ninexp : 1);
+
+    /* Ideal speckles: minus the ensemble mean (eq:computedSpeckleField). */
+    swfs_cplx *cubes2[2] = {spk, spktt};
+    for (int w = 0; w < 2; w++)
+        for (size_t i = 0; i < nfp; i++) {
+            double complex m = 0;
+            for (size_t e = 0; e < nexp; e++) m += cubes2[w]->data[e * nfp + i];
+            m /= (double)nexp;
+            for (size_t e = 0; e < nexp; e++) cubes2[w]->data[e * nfp + i] -= m;
+        }
+
+    /* Raw camera: noise on the photons, then flat and dark (hot and dead pixels). */
+    swfs_real *noisy = swfs_real_copy(clean);
+    dark = swfs_real_alloc(nfx, nfy, 1);
+    flat = swfs_real_alloc(nfx, nfy, 1);
+    if (!noisy || !dark || !flat) { swfs_real_free(noisy); free(tstart); rc = SWFS_ERR_NOMEM; goto done; }
+    if ((rc = swfs_sim_camera(clean, b->read_noise, b->gain, b->seed ^ 0xca3e7aULL, noisy))) { swfs_real_free(noisy); free(tstart); goto done; }
+    swfs_rng crng;
+    swfs_rng_seed2(&crng, b->seed, 11);
+    for (size_t i = 0; i < nfp; i++) {
+        dark->data[i] = p->dark_level + 2 * swfs_rng_normal(&crng);
+        flat->data[i] = 1 + p->flat_rms * swfs_rng_normal(&crng);
+    }
+    for (long h = 0; h < p->nhot + p->ndead; h++) {
+        size_t i = (size_t)(swfs_rng_uniform(&crng) * (double)nfp);
+        if (h < p->nhot) dark->data[i] += 2000 + 3000 * swfs_rng_uniform(&crng);
+        else flat->data[i] = 0.02;
+    }
+    for (size_t e = 0; e < nexp; e++)
+        for (size_t i = 0; i < nfp; i++) noisy->data[e * nfp + i] = flat->data[i] * noisy->data[e * nfp + i] + dark->data[i];
+
+    /* Files. */
+    swfs_geom geom = {lam0, D, b->obscur, b->pixscale, dx, (long)np};
+    for (size_t f = 0; f * ffr < nwfs && rc == SWFS_OK; f++) {
+        size_t n = nwfs - f * ffr < ffr ? nwfs - f * ffr : ffr;
+        swfs_real sa = {ns, n, 1, slopes + f * ffr * ns};
+        snprintf(path, sizeof path, "%s/slopes_%03zu.fits", dir, f);
+        swfs_fits_out *o = NULL;
+        if ((rc = swfs_fits_out_create(&o, path))) break;
+        if ((rc = swfs_fits_out_set_stamp(o, NULL, prov, nprov)) || (rc = swfs_fits_out_real(o, NULL, &sa, -32)) ||
+            (rc = swfs_fits_out_key_string(o, "BUNIT", "rad", "wavefront tilt: x slopes then y slopes")) ||
+            (rc = swfs_fits_out_key_double(o, "WFSRATE", p->wfs_rate, "[Hz]")) ||
+            (rc = swfs_fits_out_key_long(o, "NSUB", p->nsub, "subapertures across")) ||
+            (rc = swfs_fits_out_key_long(o, "FRAME0", (long)(f * ffr), "global WFS frame of row 0"))) {
+            swfs_fits_out_abort(o);
+            break;
+        }
+        rc = swfs_fits_out_commit(o);
+    }
+    if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
+    snprintf(path, sizeof path, "%s/actuators.fits", dir);
+    if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
+    snprintf(path, sizeof path, "%s/recon_ao.fits", dir);
+    if ((rc = swfs_recon_write(rao, path))) { swfs_real_free(noisy); free(tstart); goto done; }
+    snprintf(path, sizeof path, "%s/handshake.log", dir);
+    if ((rc = swfs_handshake_write(path, hs, ncub))) { swfs_real_free(noisy); free(tstart); goto done; }
+    for (size_t c = 0; c < ncub && rc == SWFS_OK; c++) {
+        swfs_real cube = {nfx, nfy, nf, noisy->data + c * nf * nfp};
+        snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);
+        rc = write_real(path, &cube, &geom, prov, nprov, b->gain);
+    }
+    swfs_real_free(noisy);
+    if (!rc) { snprintf(path, sizeof path, "%s/dark.fits", dir); rc = write_real(path, dark, &geom, prov, nprov, 0); }
+    if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0); }
+    if (!rc) {
+        snprintf(path, sizeof path, "%s/speckles_ideal.fits", dir);
+        rc = write_cplx_cube(path, spk, &geom, prov, nprov, "ideal speckles: true residual, no NCP, tip-tilt removed");
+    }
+    if (!rc) {
+        snprintf(path, sizeof path, "%s/speckles_ideal_tt.fits", dir);
+        rc = write_cplx_cube(path, spktt, &geom, prov, nprov, "ideal speckles: true residual, no NCP, tip-tilt kept");
+    }
+    if (!rc) {
+        snprintf(path, sizeof path, "%s/truth.fits", dir);
+        swfs_fits_out *o = NULL;
+        swfs_real nm = {np, np, 1, ncp}, pm = {np, np, 1, mask}, rm = {np, np, 1, rmean};
+        if (!(rc = swfs_fits_out_create(&o, path))) {
+            if ((rc = swfs_fits_out_set_stamp(o, &geom, prov, nprov)) || (rc = swfs_fits_out_real(o, "NCP", &nm, -64)) ||
+                (rc = swfs_fits_out_key_double(o, "RATIO", p->frame_ratio, "true <t_sci/t_wfs>")) ||
+                (rc = swfs_fits_out_key_long(o, "HSLAG", p->handshake_lag, "true handshake lag [WFS frames]")) ||
+                (rc = swfs_fits_out_key_double(o, "RESRMS", sum->residual_rms, "[m] AO residual rms")) ||
+                (rc = swfs_fits_out_key_double(o, "RESRMSNT", sum->residual_rms_nott, "[m] same, tip-tilt removed")) ||
+                (rc = swfs_fits_out_key_double(o, "TTRMS", sum->tt_rms, "[lambda/D] residual tip-tilt")) ||
+                (rc = swfs_fits_out_key_double(o, "NCPRMS", sum->ncp_rms, "[m]")) ||
+                (rc = swfs_fits_out_key_double(o, "STATRMS", sum->static_rms, "[m] time-mean AO residual, tip-tilt removed")) ||
+                (rc = swfs_fits_out_real(o, "PUPIL", &pm, -32)) ||
+                (rc = swfs_fits_out_real(o, "RESMEAN", &rm, -64)))
+                swfs_fits_out_abort(o);
+            else
+                rc = swfs_fits_out_commit(o);
+        }
+    }
+    if (!rc) {
+        snprintf(path, sizeof path, "%s/truth_timing.txt", dir);
+        FILE *f = fopen(path, "w");
+        if (!f) rc = swfs_fail(SWFS_ERR_IO, "%s: cannot write", path);
+        else {
+            fprintf(f, "# true timing: ratio %.6f, handshake lag %ld WFS frames, file length %zu\n", p->frame_ratio,
+                    p->handshake_lag, ffr);
+            fprintf(f, "# cube  start (global WFS frame)  slopes file  start in file\n");
+            for (size_t c = 0; c < ncub; c++)
+                fprintf(f, "%zu %.6f slopes_%03zu.fits %.6f\n", c, tstart[c], (size_t)floor(tstart[c]) / ffr,
+                        tstart[c] - (double)(((size_t)floor(tstart[c]) / ffr) * ffr));
+            fclose(f);
+        }
+    }
+    free(tstart);
+    struct timespec ts1;
+    clock_gettime(CLOCK_MONOTONIC, &ts1);
+    sum->seconds = (double)(ts1.tv_sec - ts0.tv_sec) + 1e-9 * (double)(ts1.tv_nsec - ts0.tv_nsec);
+done:
+    if (mft)
+        for (size_t l = 0; l < nlam; l++) swfs_mft_free(mft[l]);
+    free(mft);
+    free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
+    free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
+    free(eidtt); free(cpin); free(sched); free(hs); free(rmean);
+    swfs_sparse_free(T);
+    swfs_shwfs_free(sh);
+    swfs_recon_free(rao);
+    swfs_real_free(clean); swfs_real_free(dark); swfs_real_free(flat);
+    swfs_cplx_free(spk); swfs_cplx_free(spktt);
+    return rc;
+}

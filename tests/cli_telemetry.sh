@@ -1,0 +1,61 @@
+# The real-data path end to end on a small time-series simulation:
+#   simulate mode=timeseries -> reduce -> sync -> speckles -> estimate -> pupil
+# asserting the recovered frame ratio (+-0.03) and handshake lag (+-1 WFS frame), the
+# discarding of a cube that straddles two telemetry files, the frame-for-frame match of
+# the speckle and science cubes, and clear errors for bad input.
+# usage: bash cli_telemetry.sh <specklewfs> <scratch dir>
+set -u
+B=$1
+D=$2
+rm -rf "$D"
+mkdir -p "$D"
+fail() { echo "FAIL: $*" >&2; exit 1; }
+
+# 3 cubes x 60 frames at <t_sci/t_wfs> = 6.48, lag 3; telemetry files of 1000 WFS frames,
+# so cube 1 (WFS frames ~839..1228) straddles slopes_000/slopes_001.
+"$B" simulate mode=timeseries --quiet -o "$D/sim" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 \
+    cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 wfs_file_frames=1000 seed=5 > "$D/sim.log" \
+    || fail "simulate"
+for f in slopes_000.fits slopes_001.fits actuators.fits recon_ao.fits handshake.log raw_000.fits raw_002.fits \
+         dark.fits flat.fits speckles_ideal.fits truth.fits; do
+    [ -f "$D/sim/$f" ] || fail "simulate did not write $f"
+done
+
+# Tip-tilt kept on both sides (no registration, --keep-tiptilt): see docs/telemetry.md.
+"$B" reduce "$D"/sim/raw_000.fits "$D"/sim/raw_001.fits "$D"/sim/raw_002.fits --dark "$D/sim/dark.fits" \
+    --flat "$D/sim/flat.fits" --no-register -o "$D/science.fits" 2> "$D/reduce.log" || fail "reduce"
+"$B" sync "$D/science.fits" "$D/sim/handshake.log" -o "$D/timing.txt" --ratio-min 5 --ratio-max 8 > "$D/sync.log" \
+    || fail "sync"
+cat "$D/sync.log"
+ratio=$(awk '$1 == "ratio" {print $2}' "$D/timing.txt")
+lag=$(awk '$1 == "lag" {print $2}' "$D/timing.txt")
+awk -v r="$ratio" 'BEGIN { d = r - 6.48; if (d < 0) d = -d; exit !(d <= 0.03) }' || fail "ratio $ratio not within 0.03 of 6.48"
+awk -v l="$lag" 'BEGIN { d = l - 3; if (d < 0) d = -d; exit !(d <= 1) }' || fail "lag $lag not within 1 of 3"
+[ "$(awk '$1 == "cube" && $8 == "straddles"' "$D/timing.txt" | wc -l)" -eq 1 ] || fail "expected one straddling cube"
+[ "$(awk '$1 == "cube" && $8 == "ok"' "$D/timing.txt" | wc -l)" -eq 2 ] || fail "expected two usable cubes"
+
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" \
+    --keep-tiptilt --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
+grep -q "120 frames from 2 of 3 cubes" "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles frame count"; }
+"$B" estimate "$D/sci_m.fits" "$D/speckles.fits" -o "$D/halo.fits" > "$D/estimate.log" || fail "estimate on the matched cubes"
+"$B" pupil "$D/halo.fits" -o "$D/pupil.fits" --source halo > "$D/pupil.log" || fail "pupil"
+
+# ---- bad input --------------------------------------------------------------------
+expect_error() { # expect_error <pattern> <command...>
+    local pat=$1; shift
+    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
+    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
+}
+# A reconstructor whose length does not match the slopes (here: the 2 x nact actuator table).
+expect_error "expects" "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" \
+    -o "$D/x.fits" --recon "$D/sim/actuators.fits"
+# A handshake log that does not cover a cube.
+grep -v raw_001 "$D/sim/handshake.log" > "$D/sim/short.log"
+expect_error "does not cover cube 1" "$B" sync "$D/science.fits" "$D/sim/short.log" -o "$D/x.txt"
+# Camera cubes of different frame sizes (the 66 x 66 NCP map as a second "cube").
+expect_error "same frame size" "$B" reduce "$D/sim/raw_000.fits" "$D/sim/truth.fits" -o "$D/x.fits"
+# A timing table without the ratio line.
+grep -v "^ratio" "$D/timing.txt" > "$D/bad_timing.txt"
+expect_error "ratio" "$B" speckles "$D/bad_timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" \
+    -o "$D/x.fits"
+echo "cli_telemetry: ok (ratio $ratio, lag $lag)"
