@@ -196,8 +196,22 @@ int main(int argc, char **argv)
                "interpolation %.1f nonzeros per illuminated sample; plans built in %.2f s\n",
                defs[i].name, defs[i].nslopes, sys[i].nact, defs[i].npup, defs[i].nf, defs[i].nf, defs[i].ratio,
                sys[i].nnz_per_row, sys[i].build_s);
+        fflush(stdout);
+        if (i == 0 && !only) {
+            /* Memory versus time, before the larger configuration raises the peak. */
+            const size_t mem_at[3] = {1000, 10000, 100000};
+            double mem[3] = {0, 0, 0};
+            const size_t n_mem = quick ? 2 : 3;
+            const double rss0 = peak_rss_mb(), tm = now();
+            run(&sys[0], 2, 0, 0.0, mem_at[n_mem - 1], mem, mem_at, n_mem);
+            printf("\npeak RSS, MMT-like, 2 threads, one MFT per camera frame, batches of 512 camera frames "
+                   "(%.1f s for %zu camera frames); %.1f MB before the run (inputs and plans):\n",
+                   now() - tm, mem_at[n_mem - 1], rss0);
+            for (size_t k = 0; k < n_mem; k++) printf("  after %6zu camera frames: %7.1f MB\n", mem_at[k], mem[k]);
+            printf("\n");
+            fflush(stdout);
+        }
     }
-    fflush(stdout);
     if (only) {
         const int i = atoi(argv[2]) != 0, per_wfs = atoi(argv[3]) != 0, nt = atoi(argv[4]);
         run_result rr = run(&sys[i], nt < 1 ? 1 : nt, per_wfs, 3.0, 0, NULL, NULL, 0);
@@ -207,16 +221,6 @@ int main(int argc, char **argv)
         for (int k = 0; k < 2; k++) free_system(&sys[k]);
         return 0;
     }
-
-    /* Memory versus time first, before the larger configuration raises the peak. */
-    const size_t mem_at[3] = {1000, 10000, 100000};
-    double mem[3] = {0, 0, 0};
-    const size_t n_mem = quick ? 2 : 3;
-    const double tm = now();
-    run(&sys[0], 2, 0, 0.0, mem_at[n_mem - 1], mem, mem_at, n_mem);
-    printf("\npeak RSS, MMT-like, 2 threads, one MFT per camera frame (%.1f s for %zu camera frames):\n",
-           now() - tm, mem_at[n_mem - 1]);
-    for (size_t k = 0; k < n_mem; k++) printf("  after %6zu camera frames: %7.1f MB\n", mem_at[k], mem[k]);
 
     printf("\n%-9s %-22s %7s %14s %12s %16s\n", "system", "mode", "threads", "WFS frames/s", "x real time",
            "engine only /s");

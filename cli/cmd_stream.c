@@ -70,7 +70,7 @@ static const char *usage_text =
     "  --pupil MASK.fits     pupil transmission (PUPN x PUPN; default: annulus from TELDIAM,\n"
     "                        OBSCUR)\n"
     "  --keep-tiptilt        do not remove the mean x / y slopes of each frame (default: remove)\n"
-    "  --batch B             camera frames per batch (default 64)\n"
+    "  --batch B             camera frames per batch (default 128)\n"
     "  --max-frames N        stop after N camera frames\n"
     "  --read-noise, --gain  noise model for the estimate (default: science header)\n";
 
@@ -173,7 +173,7 @@ static int parse(int argc, char **argv, opts *o)
     const char *cmd = "stream";
     memset(o, 0, sizeof *o);
     o->threads = 2;
-    o->batch = 64;
+    o->batch = 128;
     o->stat = "auto";
     o->read_noise = o->gain = NAN;
     for (int i = 1; i < argc; i++) {

@@ -66,6 +66,7 @@ typedef struct job {
     size_t nexp;
     double complex *out;
     size_t next;                /* next exposure to hand out (under mu) */
+    size_t chunk1;              /* single-frame exposures per chunk */
 } job;
 
 struct swfs_engine {
@@ -217,10 +218,12 @@ static void get_exposure(const job *j, size_t i, swfs_exposure *x)
 /* Exposures [e0, e1) handed to one worker. The split depends on the schedule only. With a
  * schedule: at most CHUNK_EXP exposures (one field slot each) spanning at most CHUNK_FRAMES
  * WFS frames (more only for a single long exposure). Single-frame exposures: CHUNK_FRAMES of
- * them; those of one BLK block occupy distinct slots and all finish with the block. */
+ * them at most, fewer for small batches (chunk1: at least 8 chunks per batch when possible,
+ * so that a worker slowed by other load does not hold up the batch); those of one BLK
+ * block occupy distinct slots and all finish with the block. */
 static size_t chunk_end(const job *j, size_t e0)
 {
-    if (!j->sched) return j->nexp - e0 < CHUNK_FRAMES ? j->nexp : e0 + CHUNK_FRAMES;
+    if (!j->sched) return j->nexp - e0 < j->chunk1 ? j->nexp : e0 + j->chunk1;
     swfs_exposure x;
     get_exposure(j, e0, &x);
     size_t lo = x.first, hi = x.first + x.count, e1 = e0 + 1;
@@ -373,7 +376,7 @@ int swfs_engine_process(swfs_engine *e, const double *slopes, size_t nwfs, const
             return swfs_fail(SWFS_ERR_VALUE, "engine: camera frame %zu has a non-finite weight", i);
     }
     if (!nexp) return SWFS_OK;
-    job j = {slopes, nwfs, sched, nexp, halo_out, 0};
+    job j = {slopes, nwfs, sched, nexp, halo_out, 0, 0};
     return run_batch(e, &j);
 }
 
@@ -382,7 +385,10 @@ int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, d
     if (!e || (nwfs && (!slopes || !halo_out)))
         return swfs_fail(SWFS_ERR_ARG, "engine: missing slopes or output buffer");
     if (!nwfs) return SWFS_OK;
-    job j = {slopes, nwfs, NULL, nwfs, halo_out, 0};
+    /* Chunk size from the batch size only: results must not depend on the thread count. */
+    size_t c1 = (nwfs / 8 + BLK - 1) / BLK * BLK;
+    c1 = c1 < BLK ? BLK : c1 > CHUNK_FRAMES ? CHUNK_FRAMES : c1;
+    job j = {slopes, nwfs, NULL, nwfs, halo_out, 0, c1};
     return run_batch(e, &j);
 }
 
