@@ -113,6 +113,11 @@ typedef void (*swfs_progress_fn)(void *ctx, const char *stage, size_t done, size
 /* Run the whole simulation. progress may be NULL; it is called from the calling thread
  * only, with stages "screens" and "frames". */
 int swfs_sim_paper_run(const swfs_sim_params *p, swfs_progress_fn progress, void *ctx, swfs_sim_result **out);
+/* The same with the NCP given as a map ncp [m] on the pupil grid (pupn x pupn) instead of
+ * the NCP terms of p (piston is removed over the pupil, values outside it are ignored);
+ * ncp = NULL is swfs_sim_paper_run. Used by the closed-loop simulation (closed_loop.h). */
+int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_progress_fn progress, void *ctx,
+                           swfs_sim_result **out);
 void swfs_sim_result_free(swfs_sim_result *r);
 
 /* Building blocks (exposed for tests and other simulators). */

@@ -246,6 +246,39 @@ static int apply_residual_filter(swfs_screen_gen *gen, const swfs_sim_params *p,
 
 int swfs_sim_paper_run(const swfs_sim_params *p, swfs_progress_fn progress, void *ctx, swfs_sim_result **out)
 {
+    return swfs_sim_paper_run_ncp(p, NULL, progress, ctx, out);
+}
+
+/* ncp (pupn x pupn [m], may be NULL) replaces the NCP terms of p: the closed-loop
+ * simulation (closed_loop.h) injects the residual after its DM corrections this way. */
+static int ncp_override(const double *in, const double *mask, size_t n, double *ncp, double *rms, double *pv)
+{
+    double s = 0.0, s1 = 0.0;
+    for (size_t k = 0; k < n; k++) {
+        if (mask[k] > 0 && !isfinite(in[k]))
+            return swfs_fail(SWFS_ERR_VALUE, "NCP map: non-finite value at pupil sample %zu", k);
+        s += mask[k];
+        s1 += mask[k] > 0 ? mask[k] * in[k] : 0.0;
+    }
+    if (!(s > 0)) return swfs_fail(SWFS_ERR_VALUE, "NCP map: the pupil mask is empty");
+    const double mean = s1 / s;
+    double s2 = 0.0, lo = INFINITY, hi = -INFINITY;
+    for (size_t k = 0; k < n; k++) {
+        ncp[k] = mask[k] > 0 ? in[k] - mean : 0.0;
+        if (mask[k] > 0) {
+            s2 += mask[k] * ncp[k] * ncp[k];
+            if (ncp[k] < lo) lo = ncp[k];
+            if (ncp[k] > hi) hi = ncp[k];
+        }
+    }
+    *rms = sqrt(s2 / s);
+    *pv = hi - lo;
+    return SWFS_OK;
+}
+
+int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_progress_fn progress, void *ctx,
+                           swfs_sim_result **out)
+{
     const double t0 = now_seconds();
     *out = NULL;
     int rc = swfs_sim_params_check(p);
@@ -302,7 +335,11 @@ int swfs_sim_paper_run(const swfs_sim_params *p, swfs_progress_fn progress, void
     /* Pupil and NCP. */
     if ((rc = swfs_aperture_make(r->pupil->data, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width)))
         goto done;
-    if ((rc = swfs_sim_ncp_map(p, r->pupil->data, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) goto done;
+    if (ncp) {
+        if ((rc = ncp_override(ncp, r->pupil->data, np * np, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) goto done;
+    } else if ((rc = swfs_sim_ncp_map(p, r->pupil->data, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) {
+        goto done;
+    }
     double ssum = 0.0, ssum2 = 0.0;
     const double kphase = 2.0 * M_PI / p->wavelen;
     for (size_t k = 0; k < np * np; k++) {

@@ -1,0 +1,436 @@
+/* Deformable-mirror offsets: least-squares fit of a surface onto actuator influence
+ * functions, optionally through a Zernike modal filter. See include/specklewfs/dmfit.h. */
+#include "specklewfs/dmfit.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/array.h"
+#include "specklewfs/interp.h"
+#include "specklewfs/status.h"
+
+#include <cblas.h>
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+struct swfs_dmfit {
+    swfs_dmfit_options opt;
+    size_t nact, npup, npix, nactive;
+    double pitch;
+    double *xy;      /* 2 nact */
+    double *mask;    /* npup^2 */
+    size_t *pix;     /* npix indices of the samples inside the pupil */
+    swfs_sparse *A;  /* npup^2 x nact influence (empty rows outside the pupil) */
+    double *pinv;    /* nact x nact: (A^T W A + mu)^+ */
+    double *Z;       /* npix x K Zernike values (K = opt.modes), row-major */
+    double *zpinv;   /* K x K: (Z^T W Z)^+ */
+    unsigned char *active; /* nact: 1 when the influence reaches the pupil */
+    /* work space */
+    double *b, *a, *proj, *modal, *surf; /* nact, K, K, npup^2, npup^2 */
+};
+
+void swfs_dmfit_options_default(swfs_dmfit_options *o)
+{
+    o->influence = SWFS_INFLUENCE_GAUSS;
+    o->coupling = 0.2;
+    o->pitch = 0.0;
+    o->modes = 0;
+    o->reg = 1e-3;
+    o->rcond = 1e-9;
+}
+
+void swfs_dmfit_free(swfs_dmfit *f)
+{
+    if (!f) return;
+    free(f->xy);
+    free(f->mask);
+    free(f->pix);
+    swfs_sparse_free(f->A);
+    free(f->pinv);
+    free(f->Z);
+    free(f->zpinv);
+    free(f->b);
+    free(f->a);
+    free(f->proj);
+    free(f->active);
+    free(f->modal);
+    free(f->surf);
+    free(f);
+}
+
+size_t swfs_dmfit_nact(const swfs_dmfit *f) { return f->nact; }
+double swfs_dmfit_pitch(const swfs_dmfit *f) { return f->pitch; }
+size_t swfs_dmfit_active(const swfs_dmfit *f) { return f->nactive; }
+const swfs_sparse *swfs_dmfit_influence(const swfs_dmfit *f) { return f->A; }
+const double *swfs_dmfit_mask(const swfs_dmfit *f) { return f->mask; }
+const swfs_dmfit_options *swfs_dmfit_opts(const swfs_dmfit *f) { return &f->opt; }
+
+/* Median nearest-neighbour distance [m]. */
+static double median_nn(const double *xy, size_t n)
+{
+    double *d = malloc(n * sizeof *d);
+    if (!d) return NAN;
+    for (size_t i = 0; i < n; i++) {
+        double best = INFINITY;
+        for (size_t j = 0; j < n; j++) {
+            if (j == i) continue;
+            const double r = hypot(xy[2 * j] - xy[2 * i], xy[2 * j + 1] - xy[2 * i + 1]);
+            if (r < best) best = r;
+        }
+        d[i] = best;
+    }
+    /* insertion sort: n is a few hundred */
+    for (size_t i = 1; i < n; i++) {
+        const double v = d[i];
+        size_t j = i;
+        while (j > 0 && d[j - 1] > v) { d[j] = d[j - 1]; j--; }
+        d[j] = v;
+    }
+    const double m = n % 2 ? d[n / 2] : 0.5 * (d[n / 2 - 1] + d[n / 2]);
+    free(d);
+    return m;
+}
+
+/* Gaussian influence matrix: f_a(x) = coupling^(r^2/pitch^2), cut below 1e-5. */
+static int gauss_influence(swfs_dmfit *f, double pupdx, swfs_sparse **out)
+{
+    const size_t np = f->npup, nact = f->nact;
+    const double c = 0.5 * (double)(np - 1), lnc = log(f->opt.coupling);
+    const double rmax2 = f->pitch * f->pitch * log(1e-5) / lnc;
+    size_t nnz = 0;
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double x = ((double)(s % np) - c) * pupdx, y = ((double)(s / np) - c) * pupdx;
+        for (size_t a = 0; a < nact; a++) {
+            const double dx = x - f->xy[2 * a], dy = y - f->xy[2 * a + 1];
+            if (dx * dx + dy * dy < rmax2) nnz++;
+        }
+    }
+    swfs_sparse *A = swfs_sparse_alloc(np * np, nact, nnz ? nnz : 1);
+    if (!A) return swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for %zu influence values", nnz);
+    size_t e = 0, k = 0;
+    const double inv_p2 = 1.0 / (f->pitch * f->pitch);
+    for (size_t s = 0; s < np * np; s++) {
+        A->row_ptr[s] = e;
+        if (k < f->npix && f->pix[k] == s) {
+            const double x = ((double)(s % np) - c) * pupdx, y = ((double)(s / np) - c) * pupdx;
+            for (size_t a = 0; a < nact; a++) {
+                const double dx = x - f->xy[2 * a], dy = y - f->xy[2 * a + 1], r2 = dx * dx + dy * dy;
+                if (r2 < rmax2) {
+                    A->col[e] = a;
+                    A->val[e] = exp(lnc * r2 * inv_p2);
+                    e++;
+                }
+            }
+            k++;
+        }
+    }
+    A->row_ptr[np * np] = e;
+    A->nnz = e;
+    *out = A;
+    return SWFS_OK;
+}
+
+/* P = (G + mu)^+ of a symmetric n x n matrix (overwritten), eigenvalues below rcond * max
+ * dropped. */
+static int sym_pinv(double *G, size_t n, double mu, double rcond, double **P)
+{
+    double *w = malloc(n * sizeof *w), *vd = malloc(n * n * sizeof *vd);
+    *P = malloc(n * n * sizeof **P);
+    if (!w || !vd || !*P) {
+        free(w); free(vd); free(*P); *P = NULL;
+        return swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for a %zux%zu matrix", n, n);
+    }
+    lapack_int info = LAPACKE_dsyevd(LAPACK_ROW_MAJOR, 'V', 'U', (lapack_int)n, G, (lapack_int)n, w);
+    if (info != 0) {
+        free(w); free(vd); free(*P); *P = NULL;
+        return swfs_fail(SWFS_ERR_NUMERIC, "DM fit: eigen-decomposition failed (LAPACK info %d)", (int)info);
+    }
+    const double wmax = w[n - 1]; /* ascending */
+    for (size_t j = 0; j < n; j++) {
+        const double d = w[j] > rcond * wmax && w[j] > 0 ? 1.0 / (w[j] + mu) : 0.0;
+        for (size_t i = 0; i < n; i++) vd[i * n + j] = G[i * n + j] * d;
+    }
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)n, (int)n, (int)n, 1.0, vd, (int)n, G, (int)n, 0.0, *P,
+                (int)n);
+    free(w);
+    free(vd);
+    return SWFS_OK;
+}
+
+int swfs_dmfit_create(const double *xy, size_t nact, const swfs_geom *g, const double *mask,
+                      const swfs_dmfit_options *opt, swfs_dmfit **out)
+{
+    *out = NULL;
+    swfs_dmfit_options o;
+    swfs_dmfit_options_default(&o);
+    if (opt) o = *opt;
+    if (!(g->pupn > 1) || !(g->pupdx > 0) || !(g->teldiam > 0))
+        return swfs_fail(SWFS_ERR_FORMAT, "DM fit: the pupil geometry needs PUPN, PUPDX and TELDIAM");
+    if (nact < 3) return swfs_fail(SWFS_ERR_ARG, "DM fit: %zu actuators (at least 3 needed)", nact);
+    if (o.influence != SWFS_INFLUENCE_GAUSS && o.influence != SWFS_INFLUENCE_CUBIC)
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: unknown influence function %d", o.influence);
+    if (o.influence == SWFS_INFLUENCE_GAUSS && !(o.coupling > 0 && o.coupling < 1))
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: coupling must be in (0, 1), got %g", o.coupling);
+    if (!(o.reg >= 0) || !(o.rcond >= 0) || !isfinite(o.pitch))
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: regularization and rcond must be >= 0, pitch finite");
+    for (size_t a = 0; a < 2 * nact; a++)
+        if (!isfinite(xy[a])) return swfs_fail(SWFS_ERR_VALUE, "DM fit: actuator %zu has a non-finite position", a / 2);
+
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    swfs_dmfit *f = calloc(1, sizeof *f);
+    if (!f) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    f->opt = o;
+    f->nact = nact;
+    f->npup = np;
+    int rc = SWFS_OK;
+    swfs_sparse *T = NULL;
+    double *G = NULL;
+    f->xy = malloc(2 * nact * sizeof *f->xy);
+    f->mask = malloc(n2 * sizeof *f->mask);
+    f->pix = malloc(n2 * sizeof *f->pix);
+    f->b = calloc(nact, sizeof *f->b);
+    f->active = calloc(nact, 1);
+    f->modal = calloc(n2, sizeof *f->modal);
+    f->surf = calloc(n2, sizeof *f->surf);
+    if (!f->xy || !f->mask || !f->pix || !f->b || !f->active || !f->modal || !f->surf) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    memcpy(f->xy, xy, 2 * nact * sizeof *xy);
+    if (mask) {
+        memcpy(f->mask, mask, n2 * sizeof *mask);
+    } else {
+        if (!isfinite(g->obscur)) { rc = swfs_fail(SWFS_ERR_FORMAT, "DM fit: no pupil mask and no OBSCUR keyword"); goto done; }
+        if ((rc = swfs_aperture_make(f->mask, np, g->pupdx, g->teldiam, g->obscur, 0, 0.0))) goto done;
+    }
+    for (size_t s = 0; s < n2; s++) {
+        if (!isfinite(f->mask[s]) || f->mask[s] < 0) f->mask[s] = 0.0;
+        if (f->mask[s] > 0) f->pix[f->npix++] = s;
+    }
+    if (f->npix == 0) { rc = swfs_fail(SWFS_ERR_VALUE, "DM fit: the pupil mask is empty"); goto done; }
+
+    /* Coverage: the pupil inside the actuators' convex hull (the Clough-Tocher operator
+     * finds the samples outside it). */
+    size_t nout = 0;
+    if ((rc = swfs_interp_ct_grid(xy, nact, np, g->pupdx, f->mask, &T, &nout))) {
+        rc = swfs_fail_context(rc, "DM fit: actuator triangulation");
+        goto done;
+    }
+    if (nout > 0) {
+        double rmax = 0.0, pr = 0.0;
+        const double c = 0.5 * (double)(np - 1);
+        for (size_t a = 0; a < nact; a++) rmax = fmax(rmax, hypot(xy[2 * a], xy[2 * a + 1]));
+        for (size_t k = 0; k < f->npix; k++)
+            pr = fmax(pr, hypot(((double)(f->pix[k] % np) - c) * g->pupdx, ((double)(f->pix[k] / np) - c) * g->pupdx));
+        rc = swfs_fail(SWFS_ERR_VALUE,
+                       "the actuators do not cover the pupil: %zu of %zu pupil samples lie outside their convex hull "
+                       "(actuators reach r = %.3g m from the centre, the pupil reaches %.3g m)",
+                       nout, f->npix, rmax, pr);
+        goto done;
+    }
+    f->pitch = o.pitch > 0 ? o.pitch : median_nn(xy, nact);
+    if (!(f->pitch > 0)) { rc = swfs_fail(SWFS_ERR_VALUE, "DM fit: actuators coincide (pitch %g m)", f->pitch); goto done; }
+    if (o.influence == SWFS_INFLUENCE_CUBIC) {
+        f->A = T;
+        T = NULL;
+    } else if ((rc = gauss_influence(f, g->pupdx, &f->A))) {
+        goto done;
+    }
+
+    /* Normal equations G = A^T W A. */
+    G = calloc(nact * nact, sizeof *G);
+    if (!G) { rc = swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for %zu actuators", nact); goto done; }
+    const swfs_sparse *A = f->A;
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double w = f->mask[s];
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) {
+            const double v = w * A->val[e];
+            double *row = G + A->col[e] * nact;
+            for (size_t e2 = A->row_ptr[s]; e2 < A->row_ptr[s + 1]; e2++) row[A->col[e2]] += v * A->val[e2];
+        }
+    }
+    double tr = 0.0;
+    for (size_t a = 0; a < nact; a++) {
+        tr += G[a * nact + a];
+        if (G[a * nact + a] > 0) {
+            f->active[a] = 1;
+            f->nactive++;
+        }
+    }
+    if (f->nactive == 0) { rc = swfs_fail(SWFS_ERR_VALUE, "DM fit: no actuator influences the pupil"); goto done; }
+    if ((rc = sym_pinv(G, nact, o.reg * tr / (double)f->nactive, o.rcond, &f->pinv))) goto done;
+
+    /* Zernike modal filter. */
+    if (o.modes > 0) {
+        const size_t K = o.modes;
+        const double c = 0.5 * (double)(np - 1), rad = 0.5 * g->teldiam;
+        f->Z = malloc(f->npix * K * sizeof *f->Z);
+        f->a = calloc(K, sizeof *f->a);
+        f->proj = calloc(K, sizeof *f->proj);
+        double *zg = calloc(K * K, sizeof *zg);
+        if (!f->Z || !f->a || !f->proj || !zg) { free(zg); rc = swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for %zu modes", K); goto done; }
+        for (size_t j = 0; j < K; j++) {
+            int zn, zm;
+            if ((rc = swfs_zernike_noll((int)j + 1, &zn, &zm))) { free(zg); goto done; }
+            for (size_t k = 0; k < f->npix; k++) {
+                const size_t s = f->pix[k];
+                const double x = ((double)(s % np) - c) * g->pupdx, y = ((double)(s / np) - c) * g->pupdx;
+                f->Z[k * K + j] = swfs_zernike(zn, zm, hypot(x, y) / rad, atan2(y, x));
+            }
+        }
+        for (size_t k = 0; k < f->npix; k++) {
+            const double w = f->mask[f->pix[k]];
+            const double *z = f->Z + k * K;
+            for (size_t i = 0; i < K; i++)
+                for (size_t j = 0; j < K; j++) zg[i * K + j] += w * z[i] * z[j];
+        }
+        rc = sym_pinv(zg, K, 0.0, 1e-12, &f->zpinv);
+        free(zg);
+        if (rc) goto done;
+    }
+
+done:
+    swfs_sparse_free(T);
+    free(G);
+    if (rc) {
+        swfs_dmfit_free(f);
+        return rc;
+    }
+    *out = f;
+    return SWFS_OK;
+}
+
+void swfs_dmfit_surface(const swfs_dmfit *f, const double *cmd, double *surface)
+{
+    swfs_sparse_apply(f->A, cmd, surface);
+    for (size_t s = 0; s < f->npup * f->npup; s++)
+        if (!(f->mask[s] > 0)) surface[s] = 0.0;
+}
+
+/* Mask-weighted rms with the weighted mean removed, over the plan's pupil samples of
+ * u - v (v may be NULL). */
+static double rms_diff(const swfs_dmfit *f, const double *u, const double *v)
+{
+    double s = 0.0, s1 = 0.0, s2 = 0.0;
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t p = f->pix[k];
+        const double w = f->mask[p], d = u[p] - (v ? v[p] : 0.0);
+        s += w;
+        s1 += w * d;
+        s2 += w * d * d;
+    }
+    const double m = s1 / s, var = s2 / s - m * m;
+    return var > 0 ? sqrt(var) : 0.0;
+}
+
+int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *fitted, swfs_dmfit_stats *st)
+{
+    const size_t nact = f->nact, K = f->opt.modes;
+    for (size_t k = 0; k < f->npix; k++)
+        if (!isfinite(target[f->pix[k]]))
+            return swfs_fail(SWFS_ERR_VALUE, "DM fit: the target surface is not finite at pupil sample %zu", f->pix[k]);
+    /* Modal projection (least squares over the pupil). */
+    const double *t = target;
+    if (K > 0) {
+        double *proj = f->proj;
+        for (size_t j = 0; j < K; j++) proj[j] = 0.0;
+        for (size_t k = 0; k < f->npix; k++) {
+            const double w = f->mask[f->pix[k]] * target[f->pix[k]];
+            const double *z = f->Z + k * K;
+            for (size_t j = 0; j < K; j++) proj[j] += w * z[j];
+        }
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)K, (int)K, 1.0, f->zpinv, (int)K, proj, 1, 0.0, f->a, 1);
+        memset(f->modal, 0, f->npup * f->npup * sizeof *f->modal);
+        for (size_t k = 0; k < f->npix; k++)
+            f->modal[f->pix[k]] = cblas_ddot((int)K, f->Z + k * K, 1, f->a, 1);
+        t = f->modal;
+    }
+    /* b = A^T W t, cmd = P b. */
+    const swfs_sparse *A = f->A;
+    for (size_t a = 0; a < nact; a++) f->b[a] = 0.0;
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double wt = f->mask[s] * t[s];
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) f->b[A->col[e]] += wt * A->val[e];
+    }
+    cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nact, (int)nact, 1.0, f->pinv, (int)nact, f->b, 1, 0.0, cmd, 1);
+    if (fitted || st) {
+        double *surf = fitted ? fitted : f->surf;
+        swfs_dmfit_surface(f, cmd, surf);
+        if (st) {
+            st->target_rms = rms_diff(f, target, NULL);
+            st->modal_rms = rms_diff(f, t, NULL);
+            st->filtered_rms = K > 0 ? rms_diff(f, target, t) : 0.0;
+            st->fit_rms = rms_diff(f, surf, NULL);
+            st->fiterr_rms = rms_diff(f, t, surf);
+            st->unfit_rms = rms_diff(f, target, surf);
+            double s2 = 0.0, lo = INFINITY, hi = -INFINITY;
+            size_t n = 0;
+            for (size_t a = 0; a < nact; a++) {
+                if (!f->active[a]) continue;
+                s2 += cmd[a] * cmd[a];
+                lo = fmin(lo, cmd[a]);
+                hi = fmax(hi, cmd[a]);
+                n++;
+            }
+            st->cmd_rms = n ? sqrt(s2 / (double)n) : 0.0;
+            st->cmd_min = n ? lo : 0.0;
+            st->cmd_max = n ? hi : 0.0;
+        }
+    }
+    return SWFS_OK;
+}
+
+int swfs_dmfit_write(const swfs_dmfit *f, const double *cmd, const double *target, const swfs_dmfit_stats *st,
+                     const char *path, const swfs_geom *g, const char *const *prov, size_t nprov)
+{
+    const size_t np = f->npup, nact = f->nact;
+    swfs_real *off = swfs_real_alloc(nact, 1, 1), *act = swfs_real_alloc(2, nact, 1);
+    swfs_real *surf = swfs_real_alloc(np, np, 1), *unfit = swfs_real_alloc(np, np, 1), *pm = swfs_real_alloc(np, np, 1);
+    swfs_fits_out *o = NULL;
+    int rc = SWFS_OK;
+    if (!off || !act || !surf || !unfit || !pm) { rc = SWFS_ERR_NOMEM; goto done; }
+    memcpy(off->data, cmd, nact * sizeof *cmd);
+    memcpy(act->data, f->xy, 2 * nact * sizeof *f->xy);
+    memcpy(pm->data, f->mask, np * np * sizeof *f->mask);
+    swfs_dmfit_surface(f, cmd, surf->data);
+    for (size_t s = 0; s < np * np; s++) unfit->data[s] = f->mask[s] > 0 ? target[s] - surf->data[s] : 0.0;
+    if ((rc = swfs_fits_out_create(&o, path))) goto done;
+    if ((rc = swfs_fits_out_set_stamp(o, g, prov, nprov))) goto done;
+    if ((rc = swfs_fits_out_real(o, "OFFSETS", off, -64))) goto done;
+    rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface offset per actuator (wavefront change = 2x)");
+    if (!rc) rc = swfs_fits_out_key_string(o, "INFLUENC", f->opt.influence == SWFS_INFLUENCE_CUBIC ? "cubic" : "gauss",
+                                           "influence functions: gauss or cubic (Clough-Tocher)");
+    if (!rc && f->opt.influence == SWFS_INFLUENCE_GAUSS)
+        rc = swfs_fits_out_key_double(o, "COUPLING", f->opt.coupling, "Gaussian influence at one pitch");
+    if (!rc) rc = swfs_fits_out_key_double(o, "ACTPITCH", f->pitch, "[m] actuator pitch used");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NACT", (long)nact, "actuators");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NACTIVE", (long)f->nactive, "actuators reaching the pupil");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)f->opt.modes, "Noll Zernikes kept (0 = no modal filter)");
+    if (!rc) rc = swfs_fits_out_key_double(o, "DMREG", f->opt.reg, "Tikhonov mu relative to the mean diagonal");
+    if (!rc && st) {
+        rc = swfs_fits_out_key_double(o, "TGTRMS", st->target_rms, "[m] target surface rms (-WFE/2)");
+        if (!rc) rc = swfs_fits_out_key_double(o, "MODERMS", st->modal_rms, "[m] its part in the kept modes");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FILTRMS", st->filtered_rms, "[m] left out by the modal filter");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FITRMS", st->fit_rms, "[m] fitted DM surface rms");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FITERRMS", st->fiterr_rms, "[m] DM fitting error");
+        if (!rc) rc = swfs_fits_out_key_double(o, "UNFITRMS", st->unfit_rms, "[m] target - fitted surface rms");
+    }
+    if (rc) goto done;
+    if ((rc = swfs_fits_out_real(o, "ACTUATORS", act, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "actuator (x, y) in the pupil frame"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "SURFACE", surf, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface made by OFFSETS"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "UNFIT", unfit, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "target - SURFACE inside the pupil"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "PUPIL", pm, -32))) goto done;
+    rc = swfs_fits_out_commit(o);
+    o = NULL;
+done:
+    swfs_fits_out_abort(o);
+    swfs_real_free(off);
+    swfs_real_free(act);
+    swfs_real_free(surf);
+    swfs_real_free(unfit);
+    swfs_real_free(pm);
+    if (rc == SWFS_ERR_NOMEM) swfs_fail(rc, "%s: out of memory", path);
+    return rc;
+}
