@@ -211,6 +211,8 @@ static void test_shwfs_and_reconstructor(void **state)
     assert_ok(swfs_actuators_read(test_path("act.fits"), &xy2, &n2));
     assert_int_equal(n2, nact);
     assert_memory_equal(xy2, xy, 2 * nact * sizeof(double));
+    free(xy2);
+    xy2 = NULL;
     assert_int_not_equal(swfs_actuators_read(test_path("recon.fits"), &xy2, &n2), 0);
     assert_non_null(strstr(swfs_last_error(), "2 x nact"));
 
