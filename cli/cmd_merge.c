@@ -14,6 +14,7 @@
 
 static const char *usage_text =
     "usage: specklewfs merge A.fits B.fits ... -o C.fits [--halo HALO.fits] [--read-noise SIGMA] [--gain G]\n"
+    "                        [--g-smooth L]\n"
     "\n"
     "Combine accumulator checkpoints (written by 'specklewfs stream --checkpoint') of disjoint\n"
     "sets of frames -- a night split into chunks, or run on several machines -- into the\n"
@@ -26,13 +27,15 @@ static const char *usage_text =
     "                        HALO.fits (same extensions as 'specklewfs estimate')\n"
     "  --read-noise SIGMA    per-frame read noise [counts] for --halo (default 0)\n"
     "  --gain G              detector gain [e-/count] for --halo's photon-noise term\n"
-    "                        (default: none)\n";
+    "                        (default: none)\n"
+    "  --g-smooth L          scale-factor regularization [lambda/D] for --halo, as in\n"
+    "                        'specklewfs estimate' (default 2; 0 = per-pixel g)\n";
 
 int swfs_cmd_merge(int argc, char **argv)
 {
     const char *cmd = "merge";
     const char *out = NULL, *halo_path = NULL;
-    double read_noise = 0.0, gain = 0.0;
+    double read_noise = 0.0, gain = 0.0, g_smooth = 2.0;
     const char **inputs = calloc((size_t)argc, sizeof *inputs);
     size_t nin = 0;
     if (!inputs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
@@ -44,6 +47,7 @@ int swfs_cmd_merge(int argc, char **argv)
         else if (!strcmp(a, "--halo")) { if (++i >= argc) { cli_usage_error(cmd, "--halo needs a file name"); goto done; } halo_path = argv[i]; }
         else if (!strcmp(a, "--read-noise")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &read_noise)) goto done; }
         else if (!strcmp(a, "--gain")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &gain)) goto done; }
+        else if (!strcmp(a, "--g-smooth")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &g_smooth)) goto done; }
         else if (a[0] == '-' && a[1]) { cli_usage_error(cmd, "unknown option '%s'", a); goto done; }
         else inputs[nin++] = a;
     }
@@ -51,6 +55,7 @@ int swfs_cmd_merge(int argc, char **argv)
     if (!out) { cli_usage_error(cmd, "needs -o C.fits"); goto done; }
     if (read_noise < 0) { cli_usage_error(cmd, "--read-noise must be >= 0, got %g", read_noise); goto done; }
     if (gain < 0) { cli_usage_error(cmd, "--gain must be >= 0, got %g", gain); goto done; }
+    if (!(g_smooth >= 0)) { cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", g_smooth); goto done; }
     for (size_t i = 0; i < nin; i++)
         if (!strcmp(inputs[i], out)) { cli_usage_error(cmd, "-o %s is also an input", out); goto done; }
 
@@ -67,7 +72,16 @@ int swfs_cmd_merge(int argc, char **argv)
            (unsigned long long)acc->frames, (unsigned long long)acc->skipped, acc->nx, acc->ny);
     if (halo_path) {
         swfs_noise noise = {read_noise, gain};
-        if (swfs_estimate(acc, &noise, NULL, &halo)) { cli_error(cmd); goto free_acc; }
+        swfs_estimate_options eopt = {0.0};
+        if (g_smooth > 0) {
+            if (!(g.pixscale > 0)) {
+                fprintf(stderr, "specklewfs %s: the checkpoints record no PIXSCALE, so --g-smooth %g lambda/D cannot be "
+                        "converted to pixels; use --g-smooth 0\n", cmd, g_smooth);
+                goto free_acc;
+            }
+            eopt.g_smooth = g_smooth / g.pixscale;
+        }
+        if (swfs_estimate(acc, &noise, &eopt, &halo)) { cli_error(cmd); goto free_acc; }
         char nl[256];
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", noise.read_noise, noise.gain);
         const char *hprov[] = {cl, nl};

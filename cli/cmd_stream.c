@@ -15,8 +15,8 @@
 #include "specklewfs/engine.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
-#include "specklewfs/interp.h"
 #include "specklewfs/pupil.h"
+#include "specklewfs/speckles.h"
 #include "specklewfs/status.h"
 #include "specklewfs/sync.h"
 #include "specklewfs/wfs.h"
@@ -29,13 +29,13 @@
 #include <sys/stat.h>
 
 static const char *usage_text =
-    "usage: specklewfs stream --timing TIMING.txt --science SCIENCE.fits --slopes DIR|FILE\n"
+    "usage: specklewfs stream --timing TIMING.txt --science SCIENCE.fits [--slopes DIR|FILE]\n"
     "                         --recon RECON.fits --actuators ACT.fits -o HALO.fits\n"
     "                         [--pupil-out PUPIL.fits] [--every K] [--every-seconds T]\n"
     "                         [--threads N] [--checkpoint FILE] [--static auto|none|HALO0.fits]\n"
     "                         [--static-out FILE] [--pupil MASK.fits] [--keep-tiptilt] [--batch B]\n"
     "                         [--max-frames N]\n"
-    "                         [--read-noise SIGMA] [--gain G]\n"
+    "                         [--read-noise SIGMA] [--gain G] [--g-smooth L]\n"
     "\n"
     "The whole real-time path in one pass (Codona & Kenworthy 2013, Sec. 4): WFS slopes ->\n"
     "reconstructed wavefront -> pupil field summed over each camera exposure -> focal field\n"
@@ -50,7 +50,8 @@ static const char *usage_text =
     "  --science FILE        reduced science cube ('specklewfs reduce'): frames, geometry\n"
     "                        keywords, RDNOISE / GAIN\n"
     "  --slopes DIR|FILE     folder holding the telemetry files the timing table names, or\n"
-    "                        one telemetry file used for every cube\n"
+    "                        one telemetry file used for every cube (default: the timing\n"
+    "                        table's folder; absolute names in the table are used as they are)\n"
     "  --recon, --actuators  reconstructor (nact x nslopes [m/rad]) and actuator positions\n"
     "  -o HALO.fits          the estimate (extensions as 'specklewfs estimate')\n"
     "  --pupil-out FILE      also the pupil field / NCP map at every update ('specklewfs pupil')\n"
@@ -69,10 +70,13 @@ static const char *usage_text =
     "  --static-out FILE     write the static halo used (complex image)\n"
     "  --pupil MASK.fits     pupil transmission (PUPN x PUPN; default: annulus from TELDIAM,\n"
     "                        OBSCUR)\n"
-    "  --keep-tiptilt        do not remove the mean x / y slopes of each frame (default: remove)\n"
+    "  --keep-tiptilt        keep the tip-tilt (default: the reconstructor ignores the mean\n"
+    "                        x / y slopes over the valid subapertures, as 'speckles' does)\n"
     "  --batch B             camera frames per batch (default 128)\n"
     "  --max-frames N        stop after N camera frames\n"
-    "  --read-noise, --gain  noise model for the estimate (default: science header)\n";
+    "  --read-noise, --gain  noise model for the estimate (default: science header)\n"
+    "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
+    "                        (default 2; 0 = the paper's per-pixel g)\n";
 
 /* ---- the file source ------------------------------------------------------ */
 
@@ -117,8 +121,9 @@ static int next_batch(file_source *s, batch *b)
     if (s->cube >= t->ncubes) return SWFS_OK;
     const swfs_timing_cube *c = &t->cubes[s->cube];
     char path[1100];
-    if (s->slopes_is_dir) snprintf(path, sizeof path, "%s/%s", s->slopes_arg, c->slopes);
-    else snprintf(path, sizeof path, "%s", s->slopes_arg);
+    if (!s->slopes_is_dir) snprintf(path, sizeof path, "%s", s->slopes_arg);
+    else if (c->slopes[0] == '/') snprintf(path, sizeof path, "%s", c->slopes);
+    else snprintf(path, sizeof path, "%s/%s", s->slopes_arg, c->slopes);
     if (strcmp(path, s->loaded)) {
         swfs_real_free(s->tel);
         s->tel = NULL;
@@ -164,7 +169,7 @@ static int next_batch(file_source *s, batch *b)
 typedef struct opts {
     const char *timing, *science, *slopes, *recon, *act, *out, *pupil_out, *checkpoint, *stat, *mask, *stat_out;
     long every, threads, batch, max_frames;
-    double every_s, read_noise, gain;
+    double every_s, read_noise, gain, g_smooth;
     int keep_tt;
 } opts;
 
@@ -176,6 +181,7 @@ static int parse(int argc, char **argv, opts *o)
     o->batch = 128;
     o->stat = "auto";
     o->read_noise = o->gain = NAN;
+    o->g_smooth = 2.0;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
         const char **str = NULL;
@@ -200,6 +206,7 @@ static int parse(int argc, char **argv, opts *o)
         else if (!strcmp(a, "--every-seconds")) dv = &o->every_s;
         else if (!strcmp(a, "--read-noise")) dv = &o->read_noise;
         else if (!strcmp(a, "--gain")) dv = &o->gain;
+        else if (!strcmp(a, "--g-smooth")) dv = &o->g_smooth;
         else if (!strcmp(a, "--keep-tiptilt")) { o->keep_tt = 1; continue; }
         else return cli_usage_error(cmd, "unknown argument '%s'", a);
         const char *v = i + 1 < argc ? argv[++i] : NULL;
@@ -212,8 +219,8 @@ static int parse(int argc, char **argv, opts *o)
             return CLI_USAGE;
         }
     }
-    if (!o->timing || !o->science || !o->slopes || !o->recon || !o->act || !o->out)
-        return cli_usage_error(cmd, "needs --timing, --science, --slopes, --recon, --actuators and -o");
+    if (!o->timing || !o->science || !o->recon || !o->act || !o->out)
+        return cli_usage_error(cmd, "needs --timing, --science, --recon, --actuators and -o");
     if (o->every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", o->every);
     if (o->every_s < 0) return cli_usage_error(cmd, "--every-seconds must be >= 0, got %g", o->every_s);
     if (o->threads < 1 || o->threads > 64) return cli_usage_error(cmd, "--threads must be 1..64, got %ld", o->threads);
@@ -221,6 +228,7 @@ static int parse(int argc, char **argv, opts *o)
     if (o->max_frames < 0) return cli_usage_error(cmd, "--max-frames must be >= 0");
     if (!isnan(o->read_noise) && o->read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0");
     if (!isnan(o->gain) && o->gain < 0) return cli_usage_error(cmd, "--gain must be >= 0");
+    if (!(o->g_smooth >= 0)) return cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", o->g_smooth);
     return 0;
 }
 
@@ -265,6 +273,7 @@ typedef struct update_ctx {
     const swfs_geom *g;
     const swfs_real *mask;
     swfs_noise noise;
+    swfs_estimate_options eopt;
     const char *const *prov;
     size_t nprov;
 } update_ctx;
@@ -274,7 +283,7 @@ static int update(const update_ctx *u, const swfs_accum *acc, size_t cam, double
 {
     swfs_halo *h = NULL;
     swfs_pupil_result *pr = NULL;
-    int rc = swfs_estimate(acc, &u->noise, NULL, &h);
+    int rc = swfs_estimate(acc, &u->noise, &u->eopt, &h);
     if (rc) {
         if (final) return rc;
         fprintf(stderr, "stream: %zu camera frames: no estimate yet (%s)\n", cam, swfs_last_error());
@@ -316,7 +325,7 @@ int swfs_cmd_stream(int argc, char **argv)
     size_t nact = 0;
     swfs_real *mask = NULL;
     swfs_cplx *stat_c = NULL;
-    swfs_sparse *T = NULL;
+    swfs_speckle_model *model = NULL;
     swfs_engine *e = NULL;
     swfs_accum *acc = NULL;
     double complex *out = NULL, *stat = NULL, *psi = NULL;
@@ -365,19 +374,37 @@ int swfs_cmd_stream(int argc, char **argv)
         goto done;
     }
     if (load_mask(o.mask, &g, &mask)) { cli_error(cmd); goto done; }
-    size_t n_outside = 0;
-    if (swfs_interp_ct_grid(act, nact, (size_t)g.pupn, g.pupdx, mask->data, &T, &n_outside)) { cli_error(cmd); goto done; }
-    if (n_outside)
+    /* The same model as 'specklewfs speckles' (speckles.h): Clough-Tocher interpolation from
+     * the actuators, and tip-tilt removed exactly by projecting the reconstructor onto the
+     * complement of the mean x/y slopes over the valid subapertures (Sec. 4.4). */
+    const size_t nsub = (size_t)llround(sqrt((double)rec->nslopes / 2.0));
+    if (2 * nsub * nsub != rec->nslopes) {
+        fprintf(stderr, "specklewfs %s: %s: %zu slopes is not 2 nsub^2 (x then y slopes of a square Shack-Hartmann)\n",
+                cmd, o.recon, rec->nslopes);
+        goto done;
+    }
+    if (swfs_speckle_model_create(&model, act, nact, mask->data, (size_t)g.pupn, g.pupdx, g.teldiam, nsub, rec, 0.0, 0,
+                                  !o.keep_tt)) {
+        cli_error(cmd);
+        goto done;
+    }
+    if (model->n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
-                "there)\n", cmd, n_outside);
+                "there)\n", cmd, model->n_outside);
 
     const size_t nfx = ss->nx, nfy = ss->ny, nf2 = nfx * nfy;
     swfs_engine_config ec = {rec->nslopes, nact, (size_t)g.pupn, nfx, nfy, g.pixscale * g.pupdx / g.teldiam,
-                             g.wavelen, rec->W, T, mask->data, !o.keep_tt, (int)o.threads};
+                             g.wavelen, model->recon->W, model->T, mask->data, 0, (int)o.threads};
     if (!(e = swfs_engine_create(&ec))) { cli_error(cmd); goto done; }
 
-    src.slopes_arg = o.slopes;
-    src.slopes_is_dir = is_dir(o.slopes);
+    /* Telemetry files: --slopes, else the timing table's folder. */
+    char tdir[1024];
+    snprintf(tdir, sizeof tdir, "%s", o.timing);
+    char *slash = strrchr(tdir, '/');
+    if (slash) *slash = '\0';
+    else snprintf(tdir, sizeof tdir, ".");
+    src.slopes_arg = o.slopes ? o.slopes : tdir;
+    src.slopes_is_dir = is_dir(src.slopes_arg);
     src.nslopes = rec->nslopes;
     src.nf2 = nf2;
     src.bmax = (size_t)o.batch;
@@ -415,7 +442,7 @@ int swfs_cmd_stream(int argc, char **argv)
     snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count; ratio %.6g WFS frames per camera "
              "frame", noise.read_noise, noise.gain, src.timing->ratio);
     const char *prov[] = {cl, nl};
-    update_ctx u = {&o, &g, mask, noise, prov, 2};
+    update_ctx u = {&o, &g, mask, noise, {o.g_smooth / g.pixscale}, prov, 2};
     if (!stat_auto && o.stat_out && write_static(o.stat_out, stat, nfx, nfy, &g, prov, 2)) { cli_error(cmd); goto done; }
 
     size_t cam = 0, since = 0;
@@ -473,7 +500,7 @@ int swfs_cmd_stream(int argc, char **argv)
 done:
     swfs_engine_free(e);
     swfs_accum_free(acc);
-    swfs_sparse_free(T);
+    swfs_speckle_model_free(model);
     swfs_recon_free(rec);
     free(act);
     swfs_real_free(mask);

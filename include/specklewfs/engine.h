@@ -38,7 +38,10 @@ typedef struct swfs_engine_config {
     const swfs_sparse *interp; /* npup*npup x nact */
     const double *pupil;       /* npup*npup transmission; samples <= 0 are skipped */
     int remove_tiptilt;        /* subtract the mean of the x slopes (first half) and of the
-                                  y slopes (second half) of every frame */
+                                  y slopes (second half) of every frame. The mean runs over
+                                  all slopes: if unilluminated subapertures report 0, project
+                                  the reconstructor instead (swfs_recon_project_tiptilt, as
+                                  speckles.h and 'specklewfs stream' do) and leave this 0 */
     int nthreads;              /* workers for the batch calls (0 or 1: the calling thread) */
 } swfs_engine_config;
 
