@@ -24,12 +24,14 @@ static const char *usage_text =
     "  --weight snr|none  weight each focal pixel by SNR^2/(SNR^2+k^2), SNR = |STAB|/STAB_ERR\n"
     "                     (default snr), or use every pixel at full weight as the paper does\n"
     "  --wiener-k K       k of the weight (default 2)\n"
-    "  --source lf|halo   transform HALO_LF (eq:PSI-LowFreq, default) or HALO (eq:TheAnswer)\n";
+    "  --source lf|halo   transform HALO_LF (eq:PSI-LowFreq, default) or HALO (eq:TheAnswer)\n"
+    "  --truth TRUTH.fits compare with a simulation's injected NCP (extension NCP [m]): prints the\n"
+    "                     error rms with piston and tip/tilt removed, and records it (NCPERR)\n";
 
 int swfs_cmd_pupil(int argc, char **argv)
 {
     const char *cmd = "pupil";
-    const char *in = NULL, *out = NULL, *maskfile = NULL;
+    const char *in = NULL, *out = NULL, *maskfile = NULL, *truthfile = NULL;
     swfs_pupil_options opt;
     swfs_pupil_options_default(&opt);
     for (int i = 1; i < argc; i++) {
@@ -37,6 +39,7 @@ int swfs_cmd_pupil(int argc, char **argv)
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
         else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
         else if (!strcmp(a, "--pupil")) { if (++i >= argc) return cli_usage_error(cmd, "--pupil needs a file name"); maskfile = argv[i]; }
+        else if (!strcmp(a, "--truth")) { if (++i >= argc) return cli_usage_error(cmd, "--truth needs a file name"); truthfile = argv[i]; }
         else if (!strcmp(a, "--bias")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.bias)) return CLI_USAGE; }
         else if (!strcmp(a, "--wiener-k")) {
             if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.wiener_k)) return CLI_USAGE;
@@ -59,7 +62,7 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
 
     swfs_halo *h = NULL;
-    swfs_real *mask = NULL;
+    swfs_real *mask = NULL, *truth = NULL;
     swfs_pupil_result *r = NULL;
     int rc = CLI_FAIL;
     swfs_geom g;
@@ -77,20 +80,40 @@ int swfs_cmd_pupil(int argc, char **argv)
         fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, in, swfs_last_error());
         goto done;
     }
+    double err = NAN, truth_p = NAN, truth_ptt = NAN;
+    if (truthfile) {
+        if (swfs_fits_read_real(truthfile, "NCP", &truth, NULL)) { cli_error(cmd); goto done; }
+        if (truth->nx != (size_t)g.pupn || truth->ny != (size_t)g.pupn || truth->nz != 1) {
+            fprintf(stderr, "specklewfs %s: %s: NCP is %zux%zux%zu but %s says PUPN = %ld\n", cmd, truthfile, truth->nx,
+                    truth->ny, truth->nz, in, g.pupn);
+            goto done;
+        }
+        if (swfs_wfe_compare(r->wfe->data, truth->data, r->mask->data, (size_t)g.pupn, &err, &truth_p, &truth_ptt)) {
+            cli_error(cmd);
+            goto done;
+        }
+    }
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    if (swfs_pupil_write(r, out, &g, prov, 1)) { cli_error(cmd); goto done; }
+    char tl[256];
+    snprintf(tl, sizeof tl, "compared with %s: NCP error %.4g m rms (piston, tip, tilt removed)", truthfile ? truthfile : "",
+             err);
+    const char *prov[] = {cl, tl};
+    if (swfs_pupil_write(r, out, &g, prov, truthfile ? 2 : 1)) { cli_error(cmd); goto done; }
     printf("pupil: %s\n", out);
     printf("  source            %s, weight %s (k = %g), bias %g\n", opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
            opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none", opt.wiener_k, opt.bias);
     printf("  WFE               %.1f nm rms, %.1f nm peak to valley (piston removed)\n", r->wfe_rms * 1e9, r->wfe_pv * 1e9);
     printf("  surface           %.1f nm rms\n", 0.5 * r->wfe_rms * 1e9);
     printf("  Strehl (Marechal) %.3f at %.3g um\n", r->strehl, g.wavelen * 1e6);
+    if (truthfile)
+        printf("  versus truth      injected %.1f nm rms (%.1f nm without tip/tilt); error %.1f nm rms (piston, tip, "
+               "tilt removed)\n", truth_p * 1e9, truth_ptt * 1e9, err * 1e9);
     rc = CLI_OK;
 done:
     swfs_pupil_result_free(r);
     swfs_real_free(mask);
+    swfs_real_free(truth);
     swfs_halo_free(h);
     return rc;
 }
