@@ -5,11 +5,13 @@
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
 
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/wait.h>
 
 /* 1024^2 screens, 3 of them: 147 frames of the paper's pupil and focal plane. */
 static void small_params(swfs_sim_params *p)
@@ -144,11 +146,48 @@ static void test_bad(void **state)
     double xy[] = {0, 0, 2, 0, 1, 1.7, -1, 1.7, -2, 0, -1, -1.7, 1, -1.7};
     lp.act_xy = xy;
     lp.nact = 7;
-    int rc = swfs_closed_loop_run(&p, &lp, NULL, NULL, NULL, &r);
-    fprintf(stderr, "  %s\n", swfs_last_error());
-    assert_int_equal(rc, SWFS_ERR_VALUE);
+    assert_int_equal(swfs_closed_loop_run(&p, &lp, NULL, NULL, NULL, &r), SWFS_ERR_VALUE);
     assert_non_null(strstr(swfs_last_error(), "do not cover the pupil"));
     assert_null(r);
+}
+
+/* `specklewfs correct` end to end on a tiny data set, and its bad-input errors. */
+static int run(const char *args, char *out, size_t cap)
+{
+    char cmd[4096];
+    snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
+    FILE *p = popen(cmd, "r");
+    size_t len = 0;
+    out[0] = '\0';
+    if (!p) return -1;
+    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
+    int st = pclose(p);
+    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+}
+
+static void test_cli(void **state)
+{
+    (void)state;
+    char dir[1024], act[1024], args[4096], out[16384], path[2048];
+    snprintf(dir, sizeof dir, "%s", test_path("correct_cli"));
+    snprintf(act, sizeof act, "%s", test_path("correct_small_act.fits"));
+    snprintf(args, sizeof args, "correct -o %s --iterations 1 --gain 0.5 screen_n=1024 nscreens=1 seed=4", dir);
+    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_non_null(strstr(out, "closed loop: gain 0.50"));
+    snprintf(path, sizeof path, "%s/loop.tsv", dir);
+    assert_true(test_file_exists(path));
+    snprintf(path, sizeof path, "%s/loop.fits", dir);
+    assert_true(test_file_exists(path));
+    /* a DM 4 m across for the 6.5 m pupil */
+    double xy[2 * 7] = {0, 0, 2, 0, 1, 1.7, -1, 1.7, -2, 0, -1, -1.7, 1, -1.7};
+    assert_ok(swfs_actuators_write(xy, 7, act));
+    snprintf(args, sizeof args, "correct -o %s --iterations 1 --actuators %s screen_n=1024 nscreens=1", dir, act);
+    assert_int_equal(run(args, out, sizeof out), 1);
+    assert_non_null(strstr(out, "correct_small_act.fits"));
+    assert_non_null(strstr(out, "do not cover the pupil"));
+    snprintf(args, sizeof args, "correct -o %s --gain 0", dir);
+    assert_int_equal(run(args, out, sizeof out), 2);
+    assert_non_null(strstr(out, "--gain"));
 }
 
 int main(void)
@@ -158,6 +197,7 @@ int main(void)
         cmocka_unit_test(test_ncp_hook),
         cmocka_unit_test(test_bad),
         cmocka_unit_test(test_loop),
+        cmocka_unit_test(test_cli),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }
