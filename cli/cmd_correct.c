@@ -158,13 +158,13 @@ int swfs_cmd_correct(int argc, char **argv)
     if (actfile) {
         if (swfs_actuators_read(actfile, &xy, &lp.nact)) { cli_error(cmd); goto done; }
         lp.act_xy = xy;
+        lp.act_name = actfile;
     }
     if (cli_make_dir(cmd, outdir)) goto done;
     fprintf(stderr, "correct: %zu iterations at gain %g, sigma %g counts (%d screens of %zu^2 each)\n", lp.iterations,
             lp.gain, lp.sigma, p.nscreens, p.screen.n);
     if (swfs_closed_loop_run(&p, &lp, NULL, progress, NULL, &res)) {
-        if (actfile) fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, actfile, swfs_last_error());
-        else cli_error(cmd);
+        cli_error(cmd);
         goto done;
     }
     char cl[2048];

@@ -40,6 +40,7 @@ typedef struct swfs_loop_params {
                                  actuators over 6.5 m (the MMT's DM has 336) */
     const double *act_xy;     /* optional actuator positions, nact (x, y) pairs [m] */
     size_t nact;
+    const char *act_name;     /* where act_xy came from (e.g. ACT.fits), for messages; may be NULL */
     swfs_dmfit_options fit;   /* influence functions, modal filter (dmfit.h defaults) */
     swfs_pupil_options pupil; /* wavefront estimate (pupil.h defaults) */
     double annulus_in, annulus_out; /* [lambda/D] raw-contrast annulus, 2 and 6 */

@@ -171,6 +171,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     r->params = *lp;
     r->params.act_xy = NULL; /* the positions are kept in r->actuators */
+    r->params.act_name = NULL;
     r->sim = *p;
     r->nrows = nrows;
     swfs_geom_init(&r->geom);
@@ -221,7 +222,10 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     } else if ((rc = swfs_actuators_hexapolar(p->teldiam, lp->act_pitch, p->pupdx, &xy, &nact))) {
         goto done;
     }
-    if ((rc = swfs_dmfit_create(xy, nact, &r->geom, r->pupil->data, &lp->fit, &fit))) goto done;
+    if ((rc = swfs_dmfit_create(xy, nact, &r->geom, r->pupil->data, &lp->fit, &fit))) {
+        if (lp->act_xy) rc = swfs_fail_context(rc, "%s", lp->act_name ? lp->act_name : "DM actuators");
+        goto done;
+    }
     r->nact = nact;
     r->pitch = swfs_dmfit_pitch(fit);
     r->actuators = swfs_real_alloc(2, nact, 1);
