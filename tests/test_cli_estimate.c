@@ -16,20 +16,6 @@
 #define H 10
 #define N 3000
 
-/* Run the CLI; return its exit status and capture stdout+stderr. */
-static int run(const char *args, char *out, size_t cap)
-{
-    char cmd[4096];
-    snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
-    FILE *p = popen(cmd, "r");
-    size_t len = 0;
-    out[0] = '\0';
-    if (!p) return -1;
-    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
-    int st = pclose(p);
-    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-}
-
 static double complex truth(size_t i, size_t j) { return (1.0 + 0.1 * (double)i) * cexp(I * 0.3 * (double)(i + 2 * j)); }
 
 static void write_cubes(const char *sci, const char *sp, size_t nframes, int nan_pixels, int real_speckles)
@@ -79,7 +65,7 @@ static void test_estimate_recovers_halo(void **state)
     remove(out);
     write_cubes(sci, sp, N, 1, 0);
     snprintf(args, sizeof args, "estimate %s %s -o %s", sci, sp, out);
-    int rc = run(args, text, sizeof text);
+    int rc = test_run_cli(NULL, args, text, sizeof text);
     print_message("%s", text);
     assert_int_equal(rc, 0);
     assert_non_null(strstr(text, "pixel-frames skipped"));
@@ -102,7 +88,7 @@ static void test_estimate_recovers_halo(void **state)
     swfs_halo_free(h);
     /* The read-noise flag overrides the header: a huge one makes g undefined everywhere. */
     snprintf(args, sizeof args, "estimate %s %s -o %s --read-noise 1000", sci, sp, out);
-    rc = run(args, text, sizeof text);
+    rc = test_run_cli(NULL, args, text, sizeof text);
     assert_int_equal(rc, 1);
     assert_non_null(strstr(text, "radicand"));
 }
@@ -123,18 +109,18 @@ static void test_estimate_bad_inputs(void **state)
     /* Frame counts differ: both files and both shapes are named. */
     remove(out);
     snprintf(args, sizeof args, "estimate %s %s -o %s", sci, sp2, out);
-    assert_int_equal(run(args, text, sizeof text), 1);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
     print_message("%s", text);
     assert_non_null(strstr(text, "12x10x50"));
     assert_non_null(strstr(text, "12x10x60"));
     assert_false(test_file_exists(out));
     /* Speckles not complex. */
     snprintf(args, sizeof args, "estimate %s %s -o %s", sci, spr, out);
-    assert_int_equal(run(args, text, sizeof text), 1);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
     assert_non_null(strstr(text, "not complex"));
     /* Not FITS / missing. */
     snprintf(args, sizeof args, "estimate /dev/null %s -o %s", sp, out);
-    assert_int_equal(run(args, text, sizeof text), 1);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
     assert_non_null(strstr(text, "/dev/null"));
     /* Truncated speckles. */
     char trunc[1024];
@@ -143,19 +129,19 @@ static void test_estimate_bad_inputs(void **state)
     assert_int_equal(system(args), 0);
     assert_ok(truncate(trunc, 2880 * 10));
     snprintf(args, sizeof args, "estimate %s %s -o %s", sci, trunc, out);
-    assert_int_equal(run(args, text, sizeof text), 1);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
     assert_non_null(strstr(text, "truncated"));
     assert_false(test_file_exists(out));
     /* Unwritable output. */
     snprintf(args, sizeof args, "estimate %s %s -o /nonexistent-dir/halo.fits", sci, sp);
-    assert_int_equal(run(args, text, sizeof text), 1);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
     assert_non_null(strstr(text, "halo.fits"));
     /* Usage errors. */
-    assert_int_equal(run("estimate", text, sizeof text), 2);
+    assert_int_equal(test_run_cli(NULL, "estimate", text, sizeof text), 2);
     snprintf(args, sizeof args, "estimate %s %s -o %s --gain abc", sci, sp, out);
-    assert_int_equal(run(args, text, sizeof text), 2);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 2);
     assert_non_null(strstr(text, "abc"));
-    assert_int_equal(run("estimate --help", text, sizeof text), 0);
+    assert_int_equal(test_run_cli(NULL, "estimate --help", text, sizeof text), 0);
     assert_non_null(strstr(text, "eq:scale-factor"));
 }
 

@@ -152,19 +152,6 @@ static void test_bad(void **state)
 }
 
 /* `specklewfs correct` end to end on a tiny data set, and its bad-input errors. */
-static int run(const char *args, char *out, size_t cap)
-{
-    char cmd[4096];
-    snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
-    FILE *p = popen(cmd, "r");
-    size_t len = 0;
-    out[0] = '\0';
-    if (!p) return -1;
-    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
-    int st = pclose(p);
-    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-}
-
 static void test_cli(void **state)
 {
     (void)state;
@@ -172,7 +159,7 @@ static void test_cli(void **state)
     snprintf(dir, sizeof dir, "%s", test_path("correct_cli"));
     snprintf(act, sizeof act, "%s", test_path("correct_small_act.fits"));
     snprintf(args, sizeof args, "correct -o %s --iterations 1 --gain 0.5 screen_n=1024 nscreens=1 seed=4", dir);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 0);
     assert_non_null(strstr(out, "closed loop: gain 0.50"));
     snprintf(path, sizeof path, "%s/loop.tsv", dir);
     assert_true(test_file_exists(path));
@@ -182,11 +169,11 @@ static void test_cli(void **state)
     double xy[2 * 7] = {0, 0, 2, 0, 1, 1.7, -1, 1.7, -2, 0, -1, -1.7, 1, -1.7};
     assert_ok(swfs_actuators_write(xy, 7, act));
     snprintf(args, sizeof args, "correct -o %s --iterations 1 --actuators %s screen_n=1024 nscreens=1", dir, act);
-    assert_int_equal(run(args, out, sizeof out), 1);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 1);
     assert_non_null(strstr(out, "correct_small_act.fits"));
     assert_non_null(strstr(out, "do not cover the pupil"));
     snprintf(args, sizeof args, "correct -o %s --gain 0", dir);
-    assert_int_equal(run(args, out, sizeof out), 2);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 2);
     assert_non_null(strstr(out, "--gain"));
 }
 

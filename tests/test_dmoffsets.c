@@ -190,19 +190,6 @@ static void test_not_covering(void **state)
 
 /* ---- CLI -------------------------------------------------------------- */
 
-static int run(const char *args, char *out, size_t cap)
-{
-    char cmd[4096];
-    snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
-    FILE *p = popen(cmd, "r");
-    size_t len = 0;
-    out[0] = '\0';
-    if (!p) return -1;
-    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
-    int st = pclose(p);
-    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-}
-
 /* A PUPIL.fits like `specklewfs pupil` writes (WFE with geometry, PUPIL); with_wfe = 0
  * leaves the WFE extension out. */
 static void write_pupil_product(const char *path, const double *wfe, int with_wfe)
@@ -247,7 +234,7 @@ static void test_cli(void **state)
 
     /* Good run: OFFSETS of the right length, SURFACE = -WFE/2 inside the pupil. */
     snprintf(args, sizeof args, "dmoffsets %s -o %s --actuators %s", pup, off, act);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 0);
     assert_non_null(strstr(out, "unfittable"));
     swfs_real *o = NULL, *s = NULL, *m = NULL;
     swfs_geom g;
@@ -273,7 +260,7 @@ static void test_cli(void **state)
 
     /* --modes 3 keeps only piston and tip/tilt: nothing of astigmatism + trefoil is fitted. */
     snprintf(args, sizeof args, "dmoffsets %s -o %s --hexapolar 0.45 --modes 3 --influence cubic", pup, off);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 0);
     assert_ok(swfs_fits_in_open(&fi, off, "OFFSETS"));
     double fitrms = NAN;
     assert_ok(swfs_fits_in_key_double(fi, "FITRMS", &fitrms));
@@ -282,15 +269,15 @@ static void test_cli(void **state)
 
     /* Bad inputs: clear one-line errors naming the file. */
     snprintf(args, sizeof args, "dmoffsets %s -o %s --actuators %s", nowfe, off, act);
-    assert_int_equal(run(args, out, sizeof out), 1);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 1);
     assert_non_null(strstr(out, "no WFE extension"));
     assert_non_null(strstr(out, "dmo_nowfe.fits"));
     snprintf(args, sizeof args, "dmoffsets %s -o %s --actuators %s", pup, off, small);
-    assert_int_equal(run(args, out, sizeof out), 1);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 1);
     assert_non_null(strstr(out, "do not cover the pupil"));
     assert_non_null(strstr(out, "dmo_small_act.fits"));
     snprintf(args, sizeof args, "dmoffsets %s -o %s", pup, off);
-    assert_int_equal(run(args, out, sizeof out), 2);
+    assert_int_equal(test_run_cli(NULL, args, out, sizeof out), 2);
     assert_non_null(strstr(out, "--actuators"));
     free(wfe);
 }

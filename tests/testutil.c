@@ -4,7 +4,9 @@
 
 #include <math.h>
 #include <stdio.h>
+#include <string.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
 
 const char *test_path(const char *name)
 {
@@ -36,4 +38,18 @@ int test_file_exists(const char *path)
 {
     struct stat sb;
     return stat(path, &sb) == 0;
+}
+
+int test_run_cli(const char *dir, const char *args, char *out, size_t cap)
+{
+    char cmd[8192];
+    if (dir) snprintf(cmd, sizeof cmd, "cd '%s' && %s %s 2>&1", dir, SWFS_CLI_BIN, args);
+    else snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
+    FILE *p = popen(cmd, "r");
+    size_t len = 0;
+    out[0] = '\0';
+    if (!p) return -1;
+    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
+    int st = pclose(p);
+    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
 }

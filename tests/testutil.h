@@ -17,5 +17,8 @@ void test_assert_ok(int rc, const char *expr, const char *file, int line);
 #define assert_close(a, b, tol) test_assert_close((a), (b), (tol), #a, __FILE__, __LINE__)
 void test_assert_close(double a, double b, double tol, const char *expr, const char *file, int line);
 int test_file_exists(const char *path);
+/* Run `specklewfs ARGS` (in folder dir unless NULL), capture stdout + stderr into out;
+ * return the exit status (-1 if it did not exit normally). */
+int test_run_cli(const char *dir, const char *args, char *out, size_t cap);
 
 #endif
