@@ -18,12 +18,13 @@
 
 static const char *usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
-    "                           [--recon W.fits | --rcond R | --modes K] [--keep-tiptilt] [--mean ensemble|cube]\n"
+    "                           [--recon W.fits | --rcond R | --modes K] [--tiptilt exposure|frame|keep]\n"
+    "                           [--mean ensemble|cube]"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
     "\n"
     "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
     "exposure of the usable cubes of TIMING.txt (from `specklewfs sync`): z = W s at the\n"
-    "actuators (mean x/y slopes removed), Clough-Tocher interpolation to the pupil grid,\n"
+    "actuators (tip-tilt: see --tiptilt), Clough-Tocher interpolation to the pupil grid,\n"
     "P exp(2 pi i z / lambda) summed over the exposure's WFS frames with fractional end\n"
     "weights, one MFT, core-phase referencing (eq:downsampledHalo); then the ensemble-average\n"
     "static halo is subtracted (eq:computedSpeckleField).\n"
@@ -37,7 +38,13 @@ static const char *usage_text =
     "                      built here as the SVD pseudo-inverse of the Shack-Hartmann\n"
     "                      interaction matrix, singular values above --rcond (1e-2) x the\n"
     "                      largest, at most --modes K (0 = no limit)\n"
-    "  --keep-tiptilt      do not remove the mean x/y slopes (pair with reduce --no-register)\n"
+    "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
+    "                      slope of its exposure and keep the motion within it, as registered\n"
+    "                      science frames have it (reduce re-centres, it cannot de-blur);\n"
+    "                      frame: remove every frame's own mean slopes (the paper's Sec. 4.4;\n"
+    "                      fine only when the image moves << lambda/D within an exposure);\n"
+    "                      keep: remove nothing (pair with reduce --no-register)\n"
+    "  --keep-tiptilt      same as --tiptilt keep\n"
     "  --mean MODE         static halo: ensemble (all frames, default) or cube (each cube)\n"
     "  --match IN OUT      write OUT = the frames of IN (a cube aligned with SCIENCE.fits, e.g.\n"
     "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
@@ -124,7 +131,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL;
     double rcond = 1e-2;
     long modes = 0, threads = 1;
-    int keep_tt = 0, mean_mode = SWFS_MEAN_ENSEMBLE;
+    int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE;
     match_pair *match = calloc((size_t)argc, sizeof *match);
     size_t nmatch = 0;
     if (!match) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
@@ -144,7 +151,15 @@ int swfs_cmd_speckles(int argc, char **argv)
         } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); i++; }
         else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); i++; }
         else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
-        else if (!strcmp(a, "--keep-tiptilt")) keep_tt = 1;
+        else if (!strcmp(a, "--keep-tiptilt")) tt_mode = SWFS_TT_KEEP;
+        else if (!strcmp(a, "--tiptilt")) {
+            if (!v || (strcmp(v, "exposure") && strcmp(v, "frame") && strcmp(v, "keep"))) {
+                free(match);
+                return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
+            }
+            tt_mode = !strcmp(v, "exposure") ? SWFS_TT_EXPOSURE : (!strcmp(v, "frame") ? SWFS_TT_FRAME : SWFS_TT_KEEP);
+            i++;
+        }
         else if (!strcmp(a, "--mean")) {
             if (!v || (strcmp(v, "ensemble") && strcmp(v, "cube"))) { free(match); return cli_usage_error(cmd, "--mean needs ensemble or cube"); }
             mean_mode = strcmp(v, "cube") ? SWFS_MEAN_ENSEMBLE : SWFS_MEAN_CUBE;
@@ -172,7 +187,8 @@ int swfs_cmd_speckles(int argc, char **argv)
     swfs_engine *eng = NULL;
     swfs_cplx *halo = NULL;
     swfs_real *slopes = NULL;
-    swfs_exposure *sched = NULL;
+    swfs_exposure *sched = NULL, *sched_x = NULL;
+    double *W_ext = NULL, *xslopes = NULL;
     size_t *cfirst = NULL, *cn = NULL;
     char cur_slopes[SWFS_SYNC_NAME] = "";
 
@@ -245,17 +261,23 @@ int swfs_cmd_speckles(int argc, char **argv)
                 "Shack-Hartmann)\n", cmd, path, nslopes);
         goto done;
     }
-    if (swfs_speckle_model_create(&m, xy, nact, mask, npup, g.pupdx, g.teldiam, nsub, rin, rcond, (size_t)modes, !keep_tt)) {
+    if (swfs_speckle_model_create(&m, xy, nact, mask, npup, g.pupdx, g.teldiam, nsub, rin, rcond, (size_t)modes,
+                                  tt_mode != SWFS_TT_KEEP)) {
         cli_error(cmd);
         goto done;
     }
-    swfs_engine_config ec = {nslopes, nact, npup, nfx, nfy, g.pixscale * g.pupdx / g.teldiam, g.wavelen, m->recon->W,
-                             m->T, mask, 0, (int)threads};
+    /* SWFS_TT_EXPOSURE: two extra columns carry each frame's tip-tilt minus its exposure's
+     * mean as exact tilts (speckles.h). */
+    const int xt = tt_mode == SWFS_TT_EXPOSURE;
+    if (xt && swfs_speckles_recon_tilt(m->recon, xy, &W_ext)) { cli_error(cmd); goto done; }
+    swfs_engine_config ec = {nslopes + (xt ? 2 : 0), nact, npup, nfx, nfy, g.pixscale * g.pupdx / g.teldiam, g.wavelen,
+                             xt ? W_ext : m->recon->W, m->T, mask, 0, (int)threads};
     eng = swfs_engine_create(&ec);
     if (!eng) { cli_error(cmd); goto done; }
     halo = swfs_cplx_alloc(nfx, nfy, nout);
     sched = malloc(maxn * sizeof *sched);
-    if (!halo || !sched) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    sched_x = malloc(maxn * sizeof *sched_x);
+    if (!halo || !sched || !sched_x) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
 
     size_t ok_i = 0;
     for (size_t c = 0; c < t->ncubes; c++) {
@@ -281,8 +303,24 @@ int swfs_cmd_speckles(int argc, char **argv)
                     tc->start, tc->start + (double)tc->nframes * t->ratio, path, slopes->ny);
             goto done;
         }
-        if (swfs_engine_process(eng, slopes->data + (size_t)k0 * nslopes, need, sched, tc->nframes,
-                                swfs_cplx_frame(halo, cfirst[ok_i]))) {
+        const double *sp = slopes->data + (size_t)k0 * nslopes;
+        size_t nsp = need;
+        const swfs_exposure *sc = sched;
+        if (xt) {
+            size_t nx = swfs_speckles_expand_frames(sched, tc->nframes);
+            double *tmp = realloc(xslopes, nx * (nslopes + 2) * sizeof *tmp);
+            if (!tmp) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+            xslopes = tmp;
+            if (swfs_speckles_expand(sp, nslopes, need, m->wfs->valid, sched, tc->nframes, xslopes, sched_x)) {
+                swfs_fail_context(SWFS_ERR_VALUE, "%s cube %zu", path, c);
+                cli_error(cmd);
+                goto done;
+            }
+            sp = xslopes;
+            nsp = nx;
+            sc = sched_x;
+        }
+        if (swfs_engine_process(eng, sp, nsp, sc, tc->nframes, swfs_cplx_frame(halo, cfirst[ok_i]))) {
             swfs_fail_context(SWFS_ERR_VALUE, "%s cube %zu", path, c);
             cli_error(cmd);
             goto done;
@@ -296,7 +334,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     cli_command_line(argc, argv, cl, sizeof cl);
     snprintf(info, sizeof info, "speckles: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor modes, "
              "tip-tilt %s, static halo %s", t->ratio, t->lag, nact, nslopes, m->recon->nmodes,
-             keep_tt ? "kept" : "removed", mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
+             tt_mode == SWFS_TT_KEEP ? "kept" : (xt ? "exposure mean removed" : "removed per WFS frame"), mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
     const char *prov[] = {cl, info};
     {
         swfs_fits_out *o = NULL;
@@ -318,7 +356,7 @@ int swfs_cmd_speckles(int argc, char **argv)
 done:
     swfs_timing_free(t);
     swfs_fits_in_close(fs);
-    free(xy); free(mask); free(sched); free(cfirst); free(cn); free(match);
+    free(xy); free(mask); free(sched); free(sched_x); free(W_ext); free(xslopes); free(cfirst); free(cn); free(match);
     swfs_recon_free(rin);
     swfs_speckle_model_free(m);
     swfs_engine_free(eng);

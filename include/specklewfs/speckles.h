@@ -8,6 +8,7 @@
 #include <stddef.h>
 
 #include "specklewfs/array.h"
+#include "specklewfs/engine.h"
 #include "specklewfs/sparse.h"
 #include "specklewfs/wfs.h"
 
@@ -34,6 +35,43 @@ typedef struct swfs_speckle_model {
     swfs_recon *recon;     /* nact x nslopes */
     size_t n_outside;      /* illuminated samples outside the actuators' hull (left at 0) */
 } swfs_speckle_model;
+
+/* ---- tip-tilt as the registered science frames have it ----------------------------
+ *
+ * reduce re-centres every science frame on its peak: that removes the exposure's mean
+ * image position, not the motion within the exposure, which stays in the frame as blur.
+ * The speckles must match: remove from every WFS frame the weighted mean tip-tilt of its
+ * exposure (the same weights as the exposure sum) and keep the rest. Removing each WFS
+ * frame's own tip-tilt instead (the paper's Sec. 4.4, fine when the image wander within an
+ * exposure is << lambda/D) drops the blur from the model: with 0.2 lambda/D rms of wander
+ * within the exposures the NCP estimate failed (158 nm error from 105 nm injected, vs 34
+ * nm with this model; docs/telemetry.md).
+ *
+ * The tip-tilt goes through the engine as two extra "slopes" per frame: an extended
+ * reconstructor [W | a_x | a_y] whose last two columns are the actuator values of the
+ * exact unit tilts z = x and z = y (the actuators' own coordinates: the Clough-Tocher
+ * interpolation is exact for linear functions inside the actuators' hull), and frames
+ * [s_k, t_k - tbar] with t_k the mean x / y slope of frame k over the valid subapertures
+ * (a pure tilt z = t.x has the slope t in every subaperture). W should be projected to
+ * ignore the mean slopes (remove_tiptilt of swfs_speckle_model_create). */
+enum { SWFS_TT_EXPOSURE = 0, SWFS_TT_FRAME = 1, SWFS_TT_KEEP = 2 };
+
+/* W_ext = [W | x_a | y_a]: recon->nact rows of recon->nslopes + 2 (row-major); xy holds
+ * the nact actuator positions (x, y) [m]. Caller frees *W_ext. */
+int swfs_speckles_recon_tilt(const swfs_recon *recon, const double *xy, double **W_ext);
+
+/* Frames needed by swfs_speckles_expand: the sum of the exposures' counts. */
+size_t swfs_speckles_expand_frames(const swfs_exposure *sched, size_t nexp);
+
+/* For the exposures sched[0..nexp) of slopes (nwfs frames of nslopes, x slopes then y),
+ * every exposure gets its own copy of its WFS frames (a frame shared by two exposures is
+ * copied into both), each followed by its mean x / y slope over the valid subapertures
+ * (valid: nslopes/2 flags; NULL: the subapertures with a nonzero slope) minus the
+ * exposure's weighted mean: out has swfs_speckles_expand_frames() frames of nslopes + 2,
+ * sched_out[j] the same weights over exposure j's copies (exposures no longer share
+ * frames). SWFS_ERR_VALUE if an exposure leaves [0, nwfs). */
+int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid,
+                         const swfs_exposure *sched, size_t nexp, double *out, swfs_exposure *sched_out);
 
 int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t nact, const double *mask,
                               size_t npup, double pupdx, double teldiam, size_t nsub, const swfs_recon *recon,

@@ -18,9 +18,12 @@
  *   raw_NNN.fits      raw camera cubes [counts]: flat * (signal + background + noise) + dark,
  *                     with the geometry keywords and GAIN
  *   dark.fits, flat.fits          calibration frames (hot / dead pixels inside)
- *   speckles_ideal.fits           the ideal speckles (true residual without NCP, tip-tilt
- *                     removed, same exposure sums and core-phase referencing as the
- *                     slopes path, ensemble mean removed), one frame per camera frame
+ *   speckles_ideal.fits           the ideal speckles (true residual without NCP, same
+ *                     exposure sums and core-phase referencing as the slopes path,
+ *                     ensemble mean removed), one frame per camera frame; from every WFS
+ *                     frame the weighted mean tip-tilt of its exposure is removed and the
+ *                     motion within the exposure kept, as in a registered science frame
+ *                     (speckles --tiptilt exposure)
  *   speckles_ideal_tt.fits        the same with the tip-tilt left in
  *   truth.fits        NCP [m] (piston removed), PUPIL, RESMEAN (time-mean residual [m]);
  *                     keys RATIO, HSLAG, residual rms, STATRMS

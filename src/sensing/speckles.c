@@ -2,6 +2,7 @@
 #include "specklewfs/speckles.h"
 #include "specklewfs/interp.h"
 #include "specklewfs/status.h"
+#include "specklewfs/sync.h"
 
 #include <stdlib.h>
 #include <string.h>
@@ -95,4 +96,57 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
 fail:
     swfs_speckle_model_free(m);
     return rc;
+}
+
+int swfs_speckles_recon_tilt(const swfs_recon *recon, const double *xy, double **W_ext)
+{
+    *W_ext = NULL;
+    size_t na = recon->nact, ns = recon->nslopes, ne = ns + 2;
+    double *w = malloc(na * ne * sizeof *w);
+    if (!w) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t a = 0; a < na; a++) {
+        memcpy(w + a * ne, recon->W + a * ns, ns * sizeof *w);
+        w[a * ne + ns] = xy[2 * a];
+        w[a * ne + ns + 1] = xy[2 * a + 1];
+    }
+    *W_ext = w;
+    return SWFS_OK;
+}
+
+size_t swfs_speckles_expand_frames(const swfs_exposure *sched, size_t nexp)
+{
+    size_t n = 0;
+    for (size_t j = 0; j < nexp; j++) n += sched[j].count;
+    return n;
+}
+
+int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid,
+                         const swfs_exposure *sched, size_t nexp, double *out, swfs_exposure *sched_out)
+{
+    const size_t ne = nslopes + 2;
+    size_t k = 0;
+    for (size_t j = 0; j < nexp; j++) {
+        const swfs_exposure *x = sched + j;
+        if (x->count == 0 || x->first + x->count > nwfs)
+            return swfs_fail(SWFS_ERR_VALUE, "speckles: exposure %zu needs WFS frames %zu..%zu of %zu", j, x->first,
+                             x->first + x->count, nwfs);
+        double sw = 0, tx = 0, ty = 0;
+        for (size_t r = 0; r < x->count; r++) {
+            double w = r == 0 ? x->w_first : (r + 1 == x->count ? x->w_last : 1.0), mx, my;
+            swfs_slopes_mean_xy(slopes + (x->first + r) * nslopes, nslopes, 1, valid, &mx, &my);
+            double *o = out + (k + r) * ne;
+            memcpy(o, slopes + (x->first + r) * nslopes, nslopes * sizeof *o);
+            o[nslopes] = mx;
+            o[nslopes + 1] = my;
+            sw += w; tx += w * mx; ty += w * my;
+        }
+        if (sw > 0) { tx /= sw; ty /= sw; }
+        for (size_t r = 0; r < x->count; r++) {
+            out[(k + r) * ne + nslopes] -= tx;
+            out[(k + r) * ne + nslopes + 1] -= ty;
+        }
+        sched_out[j] = (swfs_exposure){k, x->count, x->w_first, x->w_last};
+        k += x->count;
+    }
+    return SWFS_OK;
 }

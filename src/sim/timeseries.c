@@ -166,6 +166,27 @@ static void core_reference(double complex *h, size_t nfx, size_t nfy)
     for (size_t i = 0; i < nfx * nfy; i++) h[i] *= ph;
 }
 
+/* The pupil-field sum of one exposure for the ideal speckles (eq:downsampledHalo before the
+ * MFT): frame r has the tip-tilt-free residual ph[r] [m] over the illuminated samples, the
+ * weight w[3r] and the tip and tilt w[3r+1], w[3r+2] [rad]; the weighted mean tip-tilt of
+ * the exposure is removed, the motion within it kept. Registering the science frame on
+ * its peak removes exactly that mean: the frames are re-centred, not de-blurred. */
+static void ideal_exposure(const double *ph, const double *w, size_t n, const size_t *pin, size_t npin, const double *xs,
+                           const double *ys, const double *mask, double lam, double *phi, double complex *cpin,
+                           double complex *ei)
+{
+    double sw = 0, tx = 0, ty = 0;
+    for (size_t r = 0; r < n; r++) { sw += w[3 * r]; tx += w[3 * r] * w[3 * r + 1]; ty += w[3 * r] * w[3 * r + 2]; }
+    if (sw > 0) { tx /= sw; ty /= sw; }
+    for (size_t r = 0; r < n; r++) {
+        const double *p = ph + r * npin;
+        double dx = w[3 * r + 1] - tx, dy = w[3 * r + 2] - ty;
+        for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * (p[m] + dx * xs[pin[m]] + dy * ys[pin[m]]) / lam;
+        swfs_expi_d(phi, NULL, cpin, npin);
+        for (size_t m = 0; m < npin; m++) ei[pin[m]] += w[3 * r] * mask[pin[m]] * cpin[m];
+    }
+}
+
 static int write_cplx_cube(const char *path, const swfs_cplx *c, const swfs_geom *g, const char *const *prov, size_t nprov,
                            const char *what)
 {
@@ -208,7 +229,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
-    double *sbuf = NULL, *rmean = NULL;
+    double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL;
+    size_t xn[2] = {0, 0}, xcap = 0;
     size_t *pin = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
@@ -310,6 +332,13 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     absq = malloc(nfp * sizeof *absq);
     iacc = calloc(2 * nfp, sizeof *iacc);
     eid = calloc(2 * ng, sizeof *eid);
+    /* Per exposure slot (e % 2): the tip-tilt-free phases [m] of its WFS frames and their
+     * (weight, tip, tilt), so the exposure-mean tip-tilt can be put back into the frames
+     * once the exposure is complete (the ideal speckles keep the motion within it). */
+    for (size_t e = 0; e < nexp; e++)
+        if (sched[e].count > xcap) xcap = sched[e].count;
+    xph = malloc(2 * xcap * npin * sizeof *xph);
+    xw = malloc(2 * xcap * 3 * sizeof *xw);
     eidtt = calloc(2 * ng, sizeof *eidtt);
     sbuf = calloc(ns, sizeof *sbuf);
     rmean = calloc(ng, sizeof *rmean);
@@ -318,7 +347,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     spk = swfs_cplx_alloc(nfx, nfy, nexp);
     spktt = swfs_cplx_alloc(nfx, nfy, nexp);
     if (!act || !dmz || !res || !resn || !slopes || !phi || !cpin || !fld || !efoc || !absq || !iacc || !eid || !eidtt ||
-        !sbuf || !rmean || !mft || !clean || !spk || !spktt) {
+        !sbuf || !rmean || !xph || !xw || !mft || !clean || !spk || !spktt) {
         free(tstart);
         rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         goto done;
@@ -419,17 +448,19 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             if ((rc = swfs_mft_forward(mft[l], fld, efoc))) { free(tstart); free(dact); goto done; }
             for (size_t i = 0; i < nfp; i++) absq[i] += creal(efoc[i] * conj(efoc[i])) / (double)nlam;
         }
-        /* Ideal speckle fields at lambda0 (no NCP): tip-tilt removed, and kept. */
-        for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * resn[pin[m]] / lam0;
-        swfs_expi_d(phi, NULL, cpin, npin);
+        /* Ideal speckle fields at lambda0 (no NCP): the frames of each exposure are kept
+         * (tip-tilt-free phase, tip, tilt) and summed with the exposure-mean tip-tilt
+         * removed when it is complete (ideal_exposure); and with all of the tip-tilt kept. */
         for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++) {
             const swfs_exposure *x = sched + e;
             if (!(x->first <= k && k < x->first + x->count)) continue;
             double w = k == x->first ? x->w_first : (k + 1 == x->first + x->count ? x->w_last : 1.0);
             double *ia = iacc + (e % 2) * nfp;
-            double complex *ei = eid + (e % 2) * ng;
             for (size_t i = 0; i < nfp; i++) ia[i] += w * absq[i];
-            for (size_t m = 0; m < npin; m++) ei[pin[m]] += w * mask[pin[m]] * cpin[m];
+            size_t sl = e % 2, r = xn[sl]++;
+            double *ph = xph + (sl * xcap + r) * npin, *wt = xw + (sl * xcap + r) * 3;
+            for (size_t m = 0; m < npin; m++) ph[m] = resn[pin[m]];
+            wt[0] = w; wt[1] = cx; wt[2] = cy;
         }
         for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * res[pin[m]] / lam0;
         swfs_expi_d(phi, NULL, cpin, npin);
@@ -443,6 +474,9 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             if (k + 1 == x->first + x->count) {
                 double *ia = iacc + (e % 2) * nfp;
                 double complex *ei = eid + (e % 2) * ng;
+                ideal_exposure(xph + (e % 2) * xcap * npin, xw + (e % 2) * xcap * 3, xn[e % 2], pin, npin, xs, ys, mask,
+                               lam0, phi, cpin, ei);
+                xn[e % 2] = 0;
                 double *dst = swfs_real_frame(clean, e);
                 for (size_t i = 0; i < nfp; i++) { dst[i] = C * ia[i] + p->background; ia[i] = 0; }
                 double complex *h = swfs_cplx_frame(spk, e);
@@ -540,7 +574,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0); }
     if (!rc) {
         snprintf(path, sizeof path, "%s/speckles_ideal.fits", dir);
-        rc = write_cplx_cube(path, spk, &geom, prov, nprov, "ideal speckles: true residual, no NCP, tip-tilt removed");
+        rc = write_cplx_cube(path, spk, &geom, prov, nprov, "ideal speckles: true residual, no NCP, exposure-mean tip-tilt removed");
     }
     if (!rc) {
         snprintf(path, sizeof path, "%s/speckles_ideal_tt.fits", dir);
@@ -590,7 +624,7 @@ done:
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(eidtt); free(cpin); free(sched); free(hs); free(rmean);
+    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw);
     swfs_sparse_free(T);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
