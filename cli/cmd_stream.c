@@ -33,7 +33,8 @@ static const char *usage_text =
     "                         --recon RECON.fits --actuators ACT.fits -o HALO.fits\n"
     "                         [--pupil-out PUPIL.fits] [--every K] [--every-seconds T]\n"
     "                         [--threads N] [--checkpoint FILE] [--static auto|none|HALO0.fits]\n"
-    "                         [--static-out FILE] [--pupil MASK.fits] [--keep-tiptilt] [--batch B]\n"
+    "                         [--static-out FILE] [--pupil MASK.fits] [--tiptilt exposure|frame|keep]\n"
+    "                         [--batch B]\n"
     "                         [--max-frames N]\n"
     "                         [--read-noise SIGMA] [--gain G] [--g-smooth L]\n"
     "\n"
@@ -70,8 +71,12 @@ static const char *usage_text =
     "  --static-out FILE     write the static halo used (complex image)\n"
     "  --pupil MASK.fits     pupil transmission (PUPN x PUPN; default: annulus from TELDIAM,\n"
     "                        OBSCUR)\n"
-    "  --keep-tiptilt        keep the tip-tilt (default: the reconstructor ignores the mean\n"
-    "                        x / y slopes over the valid subapertures, as 'speckles' does)\n"
+    "  --tiptilt MODE        as in 'specklewfs speckles': exposure (default) removes from every\n"
+    "                        WFS frame the weighted mean x/y slope of its exposure and keeps\n"
+    "                        the motion within it, as registered science frames have it;\n"
+    "                        frame removes every frame's own mean slopes (the paper's Sec.\n"
+    "                        4.4); keep removes nothing (pair with reduce --no-register)\n"
+    "  --keep-tiptilt        same as --tiptilt keep\n"
     "  --batch B             camera frames per batch (default 128)\n"
     "  --max-frames N        stop after N camera frames\n"
     "  --read-noise, --gain  noise model for the estimate (default: science header)\n"
@@ -90,6 +95,10 @@ typedef struct batch {
 
 typedef struct file_source {
     swfs_timing *timing;
+    const unsigned char *valid; /* expansion (SWFS_TT_EXPOSURE): valid subapertures, else NULL */
+    double *xslopes;            /* expanded frames: [s_k, t_k - exposure mean] */
+    swfs_exposure *xsched;
+    int expand;
     swfs_fits_in *sci;
     const char *slopes_arg;
     int slopes_is_dir;
@@ -158,6 +167,14 @@ static int next_batch(file_source *s, batch *b)
     b->slopes = s->tel->data + base * s->nslopes;
     b->nwfs = nwfs_file - base;
     b->sched = s->sched;
+    if (s->expand) {
+        /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
+        rc = swfs_speckles_expand(b->slopes, s->nslopes, need, s->valid, s->sched, n, s->xslopes, s->xsched);
+        if (rc) return swfs_fail_context(rc, "%s, cube %zu", path, s->cube);
+        b->slopes = s->xslopes;
+        b->nwfs = swfs_speckles_expand_frames(s->sched, n);
+        b->sched = s->xsched;
+    }
     b->science = s->science;
     b->nexp = n;
     s->j += n;
@@ -170,7 +187,7 @@ typedef struct opts {
     const char *timing, *science, *slopes, *recon, *act, *out, *pupil_out, *checkpoint, *stat, *mask, *stat_out;
     long every, threads, batch, max_frames;
     double every_s, read_noise, gain, g_smooth;
-    int keep_tt;
+    int tt_mode; /* SWFS_TT_EXPOSURE (default), SWFS_TT_FRAME, SWFS_TT_KEEP (speckles.h) */
 } opts;
 
 static int parse(int argc, char **argv, opts *o)
@@ -180,6 +197,7 @@ static int parse(int argc, char **argv, opts *o)
     o->threads = 2;
     o->batch = 128;
     o->stat = "auto";
+    o->tt_mode = SWFS_TT_EXPOSURE;
     o->read_noise = o->gain = NAN;
     o->g_smooth = 2.0;
     for (int i = 1; i < argc; i++) {
@@ -207,7 +225,15 @@ static int parse(int argc, char **argv, opts *o)
         else if (!strcmp(a, "--read-noise")) dv = &o->read_noise;
         else if (!strcmp(a, "--gain")) dv = &o->gain;
         else if (!strcmp(a, "--g-smooth")) dv = &o->g_smooth;
-        else if (!strcmp(a, "--keep-tiptilt")) { o->keep_tt = 1; continue; }
+        else if (!strcmp(a, "--keep-tiptilt")) { o->tt_mode = SWFS_TT_KEEP; continue; }
+        else if (!strcmp(a, "--tiptilt")) {
+            const char *v = i + 1 < argc ? argv[++i] : "";
+            if (!strcmp(v, "exposure")) o->tt_mode = SWFS_TT_EXPOSURE;
+            else if (!strcmp(v, "frame")) o->tt_mode = SWFS_TT_FRAME;
+            else if (!strcmp(v, "keep")) o->tt_mode = SWFS_TT_KEEP;
+            else return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
+            continue;
+        }
         else return cli_usage_error(cmd, "unknown argument '%s'", a);
         const char *v = i + 1 < argc ? argv[++i] : NULL;
         if (str) {
@@ -326,6 +352,7 @@ int swfs_cmd_stream(int argc, char **argv)
     swfs_real *mask = NULL;
     swfs_cplx *stat_c = NULL;
     swfs_speckle_model *model = NULL;
+    double *W_ext = NULL;
     swfs_engine *e = NULL;
     swfs_accum *acc = NULL;
     double complex *out = NULL, *stat = NULL, *psi = NULL;
@@ -384,17 +411,20 @@ int swfs_cmd_stream(int argc, char **argv)
         goto done;
     }
     if (swfs_speckle_model_create(&model, act, nact, mask->data, (size_t)g.pupn, g.pupdx, g.teldiam, nsub, rec, 0.0, 0,
-                                  !o.keep_tt)) {
+                                  o.tt_mode != SWFS_TT_KEEP)) {
         cli_error(cmd);
         goto done;
     }
+    const int xt = o.tt_mode == SWFS_TT_EXPOSURE;
+    if (xt && swfs_speckles_recon_tilt(model->recon, act, &W_ext)) { cli_error(cmd); goto done; }
     if (model->n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, model->n_outside);
 
     const size_t nfx = ss->nx, nfy = ss->ny, nf2 = nfx * nfy;
-    swfs_engine_config ec = {rec->nslopes, nact, (size_t)g.pupn, nfx, nfy, g.pixscale * g.pupdx / g.teldiam,
-                             g.wavelen, model->recon->W, model->T, mask->data, 0, (int)o.threads};
+    swfs_engine_config ec = {rec->nslopes + (xt ? 2 : 0), nact, (size_t)g.pupn, nfx, nfy,
+                             g.pixscale * g.pupdx / g.teldiam, g.wavelen, xt ? W_ext : model->recon->W, model->T,
+                             mask->data, 0, (int)o.threads};
     if (!(e = swfs_engine_create(&ec))) { cli_error(cmd); goto done; }
 
     /* Telemetry files: --slopes, else the timing table's folder. */
@@ -409,6 +439,15 @@ int swfs_cmd_stream(int argc, char **argv)
     src.nf2 = nf2;
     src.bmax = (size_t)o.batch;
     src.sched = malloc(src.bmax * sizeof *src.sched);
+    if (xt) {
+        /* Each exposure gets its own copy of its frames: at most ceil(ratio) + 1 each. */
+        const size_t per = (size_t)ceil(src.timing->ratio) + 1;
+        src.expand = 1;
+        src.valid = model->wfs->valid;
+        src.xsched = malloc(src.bmax * sizeof *src.xsched);
+        src.xslopes = malloc(src.bmax * per * (rec->nslopes + 2) * sizeof *src.xslopes);
+        if (!src.xsched || !src.xslopes) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    }
     src.science = malloc(src.bmax * nf2 * sizeof *src.science);
     out = malloc(src.bmax * nf2 * sizeof *out);
     stat = calloc(nf2, sizeof *stat);
@@ -420,7 +459,7 @@ int swfs_cmd_stream(int argc, char **argv)
      * of flat slopes (the unaberrated pupil) and S^1/2 from the first batch's mean core. */
     int stat_auto = !strcmp(o.stat, "auto"), stat_pending = 0;
     if (stat_auto) {
-        double *zero = calloc(rec->nslopes, sizeof *zero);
+        double *zero = calloc(rec->nslopes + 2, sizeof *zero);
         if (!zero) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
         int erc = swfs_engine_add_wfs(e, zero, 1.0);
         if (!erc) erc = swfs_engine_end_exposure(e, stat);
@@ -509,6 +548,9 @@ done:
     free(stat);
     free(psi);
     free(src.sched);
+    free(src.xsched);
+    free(src.xslopes);
+    free(W_ext);
     free(src.science);
     swfs_real_free(src.tel);
     swfs_fits_in_close(src.sci);
