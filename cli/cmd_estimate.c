@@ -167,7 +167,11 @@ int swfs_cmd_estimate(int argc, char **argv)
     else
         printf("  scale factor g    per pixel (eq:scale-factor); %zu invalid pixels use the local median of valid "
                "neighbours\n", halo->n_g_fallback);
-    printf("  median SNR        %.3g (eq:SNR, valid pixels)\n", halo->median_snr);
+    if (isfinite(halo->median_snr))
+        printf("  median SNR        %.3g (eq:SNR, valid pixels)\n", halo->median_snr);
+    else
+        printf("  median SNR        undefined: eq:SNR divides by the camera noise, and the noise model is zero "
+               "(give --read-noise or --gain)\n");
     if (isfinite(circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", circ_core);
     printf("  time              %.2f s\n", cli_now() - t0);
     if (isfinite(circ_core) && circ_core > 0.3)
