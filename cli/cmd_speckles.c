@@ -1,6 +1,7 @@
 /* specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits:
  * the speckle cube from WFS slopes that matches the reduced science cube frame for frame
- * (Sec. 4.4, eq:downsampledHalo, eq:computedSpeckleField). */
+ * (Sec. 4.4, eq:downsampledHalo, eq:computedSpeckleField); with --wfs-rate, the same
+ * speckles at the WFS rate (one MFT per WFS frame) for `specklewfs coherence`. */
 #include "cli.h"
 
 #include "specklewfs/aperture.h"
@@ -19,7 +20,7 @@
 static const char *usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
     "                           [--recon W.fits | --rcond R | --modes K] [--tiptilt exposure|frame|keep]\n"
-    "                           [--mean ensemble|cube]"
+    "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
     "\n"
     "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
@@ -49,7 +50,15 @@ static const char *usage_text =
     "  --match IN OUT      write OUT = the frames of IN (a cube aligned with SCIENCE.fits, e.g.\n"
     "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
     "  --pupil MASK.fits   pupil mask PUPN x PUPN (default: annulus from TELDIAM, OBSCUR)\n"
-    "  --threads N         engine workers (default 1)\n";
+    "  --threads N         engine workers (default 1)\n"
+    "  --wfs-rate          write the speckles at the WFS rate instead, for `specklewfs coherence`:\n"
+    "                      one frame per WFS frame covered by the usable cubes (cube after cube,\n"
+    "                      each cube's frames contiguous), each propagated alone and core-phase\n"
+    "                      referenced, the static halo (--mean) subtracted; tip-tilt removed per\n"
+    "                      WFS frame (default; or --tiptilt keep). Header: FRAMEDT = 1/WFSRATE [s],\n"
+    "                      FRATIO (camera exposure = FRATIO x FRAMEDT), NSEGS (cubes). --match and\n"
+    "                      --tiptilt exposure do not apply\n"
+    "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n";
 
 typedef struct match_pair { const char *in, *out; } match_pair;
 
@@ -68,6 +77,18 @@ static void slopes_path(const char *tdir, const char *name, char *path, size_t c
 {
     if (name[0] == '/') snprintf(path, cap, "%s", name);
     else snprintf(path, cap, "%s/%s", tdir, name);
+}
+
+/* WFSRATE [Hz] of a telemetry file (*rate = 0 if the keyword is absent). */
+static int slopes_rate(const char *path, double *rate)
+{
+    swfs_fits_in *f = NULL;
+    int found = 0, rc = swfs_fits_in_open(&f, path, NULL);
+    *rate = 0;
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", rate, &found);
+    swfs_fits_in_close(f);
+    if (!rc && (!found || !(*rate > 0) || !isfinite(*rate))) *rate = 0;
+    return rc;
 }
 
 /* Copy the frames of the usable cubes of IN to OUT, with its keywords that matter. */
@@ -129,9 +150,9 @@ int swfs_cmd_speckles(int argc, char **argv)
 {
     const char *cmd = "speckles";
     const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL;
-    double rcond = 1e-2;
+    double rcond = 1e-2, wfs_hz = 0;
     long modes = 0, threads = 1;
-    int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE;
+    int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE, wfs_mode = 0, tt_given = 0;
     match_pair *match = calloc((size_t)argc, sizeof *match);
     size_t nmatch = 0;
     if (!match) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
@@ -151,13 +172,16 @@ int swfs_cmd_speckles(int argc, char **argv)
         } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); i++; }
         else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); i++; }
         else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
-        else if (!strcmp(a, "--keep-tiptilt")) tt_mode = SWFS_TT_KEEP;
+        else if (!strcmp(a, "--wfs-hz")) { bad = cli_parse_double(cmd, a, v, &wfs_hz); i++; }
+        else if (!strcmp(a, "--wfs-rate")) wfs_mode = 1;
+        else if (!strcmp(a, "--keep-tiptilt")) { tt_mode = SWFS_TT_KEEP; tt_given = 1; }
         else if (!strcmp(a, "--tiptilt")) {
             if (!v || (strcmp(v, "exposure") && strcmp(v, "frame") && strcmp(v, "keep"))) {
                 free(match);
                 return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
             }
             tt_mode = !strcmp(v, "exposure") ? SWFS_TT_EXPOSURE : (!strcmp(v, "frame") ? SWFS_TT_FRAME : SWFS_TT_KEEP);
+            tt_given = 1;
             i++;
         }
         else if (!strcmp(a, "--mean")) {
@@ -177,6 +201,14 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     if (!timing || !sci || !actf || !out) { free(match); return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators and -o"); }
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) { free(match); return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1"); }
+    if (!(wfs_hz >= 0)) { free(match); return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", wfs_hz); }
+    if (wfs_mode) {
+        /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
+         * of the speckles, not of the image motion, is what is measured. */
+        if (tt_given && tt_mode == SWFS_TT_EXPOSURE) { free(match); return cli_usage_error(cmd, "--wfs-rate removes the tip-tilt per WFS frame (or --tiptilt keep); --tiptilt exposure does not apply"); }
+        if (nmatch) { free(match); return cli_usage_error(cmd, "--match pairs camera frames; it does not apply with --wfs-rate"); }
+        if (!tt_given) tt_mode = SWFS_TT_FRAME;
+    } else if (wfs_hz > 0) { free(match); return cli_usage_error(cmd, "--wfs-hz goes with --wfs-rate"); }
 
     int rc = CLI_FAIL;
     swfs_timing *t = NULL;
@@ -214,7 +246,8 @@ int swfs_cmd_speckles(int argc, char **argv)
         swfs_real_free(pm);
     } else if (swfs_aperture_make(mask, npup, g.pupdx, g.teldiam, g.obscur, 0, 0)) { cli_error(cmd); goto done; }
 
-    /* Usable cubes and their place in the output. */
+    /* Usable cubes and their place in the output: their camera frames, or with --wfs-rate
+     * the WFS frames their exposures cover (floor(START) .. end of the last exposure). */
     size_t nout = 0, nok = 0, maxn = 0;
     cfirst = calloc(t->ncubes, sizeof *cfirst);
     cn = calloc(t->ncubes, sizeof *cn);
@@ -226,14 +259,26 @@ int swfs_cmd_speckles(int argc, char **argv)
                     c, tc->first, tc->first + tc->nframes, nsci, sci);
             goto done;
         }
-        if (tc->status != SWFS_CUBE_OK) continue;
-        cfirst[nok] = nout;
-        cn[nok] = tc->nframes;
-        nout += tc->nframes;
-        nok++;
-        if (tc->nframes > maxn) maxn = tc->nframes;
+        if (tc->status == SWFS_CUBE_OK && tc->nframes > maxn) maxn = tc->nframes;
     }
-    if (!nok) { fprintf(stderr, "specklewfs %s: %s: no usable cube (all straddle telemetry files)\n", cmd, timing); goto done; }
+    if (!maxn) { fprintf(stderr, "specklewfs %s: %s: no usable cube (all straddle telemetry files)\n", cmd, timing); goto done; }
+    sched = malloc(maxn * sizeof *sched);
+    sched_x = malloc(maxn * sizeof *sched_x);
+    if (!sched || !sched_x) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        size_t need = tc->start >= 0 ? swfs_engine_schedule(t->ratio, tc->start - floor(tc->start), tc->nframes, sched) : 0;
+        if (!need) {
+            fprintf(stderr, "specklewfs %s: %s: cube %zu starts at WFS frame %g with ratio %g; expected a start >= 0 and a "
+                    "ratio >= 1\n", cmd, timing, c, tc->start, t->ratio);
+            goto done;
+        }
+        cfirst[nok] = nout;
+        cn[nok] = wfs_mode ? need : tc->nframes;
+        nout += cn[nok];
+        nok++;
+    }
 
     /* The slopes length fixes the Shack-Hartmann geometry: 2 nsub^2. Peek at the first file. */
     char tdir[4096], path[8192];
@@ -246,6 +291,16 @@ int swfs_cmd_speckles(int argc, char **argv)
         if (swfs_fits_in_open(&f, path, NULL)) { cli_error(cmd); goto done; }
         nslopes = swfs_fits_in_shape(f)->nx;
         swfs_fits_in_close(f);
+        if (wfs_mode) {
+            double r;
+            if (slopes_rate(path, &r)) { cli_error(cmd); goto done; }
+            if (wfs_hz == 0) wfs_hz = r;
+            if (!(wfs_hz > 0)) {
+                fprintf(stderr, "specklewfs %s: %s: no WFSRATE keyword; --wfs-rate needs the WFS frame rate: give --wfs-hz HZ\n",
+                        cmd, path);
+                goto done;
+            }
+        }
     }
     size_t nsub = (size_t)llround(sqrt((double)nslopes / 2));
     if (reconf) {
@@ -275,9 +330,10 @@ int swfs_cmd_speckles(int argc, char **argv)
     eng = swfs_engine_create(&ec);
     if (!eng) { cli_error(cmd); goto done; }
     halo = swfs_cplx_alloc(nfx, nfy, nout);
-    sched = malloc(maxn * sizeof *sched);
-    sched_x = malloc(maxn * sizeof *sched_x);
-    if (!halo || !sched || !sched_x) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
+    if (!halo) {
+        fprintf(stderr, "specklewfs %s: out of memory for %zu frames of %zux%zu\n", cmd, nout, nfx, nfy);
+        goto done;
+    }
 
     size_t ok_i = 0;
     for (size_t c = 0; c < t->ncubes; c++) {
@@ -295,6 +351,13 @@ int swfs_cmd_speckles(int argc, char **argv)
                 goto done;
             }
             snprintf(cur_slopes, sizeof cur_slopes, "%s", tc->slopes);
+            double r;
+            if (wfs_mode && slopes_rate(path, &r)) { cli_error(cmd); goto done; }
+            if (wfs_mode && r > 0 && fabs(r - wfs_hz) > 1e-9 * wfs_hz) {
+                fprintf(stderr, "specklewfs %s: %s: WFSRATE %g Hz but the WFS rate in use is %g Hz; one rate per run\n",
+                        cmd, path, r, wfs_hz);
+                goto done;
+            }
         }
         double k0 = floor(tc->start);
         size_t need = swfs_engine_schedule(t->ratio, tc->start - k0, tc->nframes, sched);
@@ -306,6 +369,17 @@ int swfs_cmd_speckles(int argc, char **argv)
         const double *sp = slopes->data + (size_t)k0 * nslopes;
         size_t nsp = need;
         const swfs_exposure *sc = sched;
+        if (wfs_mode) {
+            /* One MFT per WFS frame: the speckles at the WFS rate. */
+            if (swfs_engine_process_wfs(eng, sp, need, swfs_cplx_frame(halo, cfirst[ok_i]))) {
+                swfs_fail_context(SWFS_ERR_VALUE, "%s cube %zu", path, c);
+                cli_error(cmd);
+                goto done;
+            }
+            ok_i++;
+            cli_progress("speckles: cubes", ok_i, nok);
+            continue;
+        }
         if (xt) {
             size_t nx = swfs_speckles_expand_frames(sched, tc->nframes);
             double *tmp = realloc(xslopes, nx * (nslopes + 2) * sizeof *tmp);
@@ -332,8 +406,8 @@ int swfs_cmd_speckles(int argc, char **argv)
 
     char cl[2048], info[512];
     cli_command_line(argc, argv, cl, sizeof cl);
-    snprintf(info, sizeof info, "speckles: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor modes, "
-             "tip-tilt %s, static halo %s", t->ratio, t->lag, nact, nslopes, m->recon->nmodes,
+    snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor modes, "
+             "tip-tilt %s, static halo %s", wfs_mode ? " at the WFS rate" : "", t->ratio, t->lag, nact, nslopes, m->recon->nmodes,
              tt_mode == SWFS_TT_KEEP ? "kept" : (xt ? "exposure mean removed" : "removed per WFS frame"), mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
     const char *prov[] = {cl, info};
     {
@@ -341,7 +415,10 @@ int swfs_cmd_speckles(int argc, char **argv)
         if (swfs_fits_out_create(&o, out)) { cli_error(cmd); goto done; }
         if (swfs_fits_out_set_stamp(o, &g, prov, 2) || swfs_fits_out_cplx(o, NULL, halo, -32) ||
             swfs_fits_out_key_double(o, "FRATIO", t->ratio, "<t_sci/t_wfs> from sync") ||
-            swfs_fits_out_key_double(o, "HSLAG", t->lag, "handshake lag [WFS frames] from sync")) {
+            swfs_fits_out_key_double(o, "HSLAG", t->lag, "handshake lag [WFS frames] from sync") ||
+            (wfs_mode && (swfs_fits_out_key_double(o, "FRAMEDT", 1 / wfs_hz, "[s] between frames (WFS rate)") ||
+                          swfs_fits_out_key_double(o, "WFSRATE", wfs_hz, "[Hz]") ||
+                          swfs_fits_out_key_long(o, "NSEGS", (long)nok, "contiguous segments (usable cubes)")))) {
             swfs_fits_out_abort(o);
             cli_error(cmd);
             goto done;
@@ -350,8 +427,8 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     for (size_t k = 0; k < nmatch; k++)
         if (write_match(cmd, match[k].in, match[k].out, t, nsci, &g, prov, 2)) goto done;
-    fprintf(stderr, "speckles: %zu frames from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside the "
-            "actuator hull) -> %s\n", nout, nok, t->ncubes, m->recon->nmodes, m->n_outside, out);
+    fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside the "
+            "actuator hull) -> %s\n", nout, wfs_mode ? "WFS " : "", nok, t->ncubes, m->recon->nmodes, m->n_outside, out);
     rc = CLI_OK;
 done:
     swfs_timing_free(t);
