@@ -22,7 +22,9 @@ static const char *usage_text =
     "  RAW.fits ...        raw camera cubes (x, y, frame), all of the same frame size, in time\n"
     "                      order; they are concatenated into SCIENCE.fits\n"
     "  -o SCIENCE.fits     reduced cube (primary HDU) with RDNOISE = sqrt(background noise\n"
-    "                      variance) for estimate, NCUBES, CUBEnnnn = raw file names, and the\n"
+    "                      variance of the output frames) for estimate (the bilinear shift\n"
+    "                      scales the raw variance NOISERAW by NOISEFAC, ~4/9; GAIN becomes\n"
+    "                      GAINRAW / NOISEFAC likewise), NCUBES, CUBEnnnn = raw file names, and the\n"
     "                      extension TRACK (4 x nframes: peak x, peak y [pixels, before the\n"
     "                      shift], cube index, frame within the cube) that sync uses\n"
     "  --dark, --flat      calibration frames (default: 0 and 1)\n"
@@ -36,7 +38,7 @@ static const char *usage_text =
     "                      has PIXSCALE; by default (PIXSCALE < 0.45) it comes from the spatial\n"
     "                      frequencies beyond the optical cutoff, where only white noise lives\n"
     "  --no-register       keep the frames where they are (the track is still measured)\n"
-    "Geometry keywords and GAIN of the first raw cube are copied.\n";
+    "Geometry keywords of the first raw cube are copied.\n";
 
 static int read_map(const char *cmd, const char *path, size_t nx, size_t ny, double **out)
 {
@@ -130,6 +132,8 @@ int swfs_cmd_reduce(int argc, char **argv)
         if (!sigma_set && isfinite(geom.pixscale) && geom.pixscale > 0) p.gauss_sigma = 1.0 / geom.pixscale;
         if (swfs_fits_in_key_double_opt(in[0], "GAIN", &gainv, &found)) { cli_error(cmd); goto done; }
         if (!found) gainv = NAN;
+        /* Photon noise is modelled per pixel by estimate (Phi_I / GAIN): measure the rest. */
+        if (isfinite(gainv) && gainv > 0) p.gain = gainv;
     }
     if (swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p)) { cli_error(cmd); goto done; }
     size_t np = nx * ny;
@@ -157,12 +161,22 @@ int swfs_cmd_reduce(int argc, char **argv)
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl};
     if (swfs_fits_out_geom(o, &geom) || swfs_fits_out_provenance(o, prov, 1)) { cli_error(cmd); goto done; }
-    if (isfinite(nv) && (swfs_fits_out_key_double(o, "NOISEVAR", nv, "background noise variance [counts^2]") ||
-                         swfs_fits_out_key_double(o, "RDNOISE", sqrt(nv), "sqrt(NOISEVAR) [counts], for estimate"))) {
+    /* The bilinear registration averages neighbouring pixels: the registered frames carry
+     * NOISEFAC times the raw per-pixel noise variance (read and photon alike), which is
+     * what estimate must remove (the raw variance over-subtracts: docs/telemetry.md). */
+    const double q = swfs_reduce_noise_factor(red);
+    if (isfinite(nv) && (swfs_fits_out_key_double(o, "NOISEVAR", q * nv, "noise variance of the output frames [counts^2]") ||
+                         swfs_fits_out_key_double(o, "RDNOISE", sqrt(q * nv), "sqrt(NOISEVAR) [counts], for estimate") ||
+                         swfs_fits_out_key_double(o, "NOISERAW", nv, "noise variance before registration [counts^2]"))) {
         cli_error(cmd);
         goto done;
     }
-    if (isfinite(gainv) && swfs_fits_out_key_double(o, "GAIN", gainv, "[e-/count] from the raw cube")) { cli_error(cmd); goto done; }
+    if (swfs_fits_out_key_double(o, "NOISEFAC", q, "variance factor of the registration's interpolation")) { cli_error(cmd); goto done; }
+    if (isfinite(gainv) && (swfs_fits_out_key_double(o, "GAIN", gainv / q, "[e-/count] raw GAIN / NOISEFAC: photon noise") ||
+                            swfs_fits_out_key_double(o, "GAINRAW", gainv, "[e-/count] from the raw cube"))) {
+        cli_error(cmd);
+        goto done;
+    }
     if (swfs_fits_out_key_long(o, "NCUBES", (long)nraw, "raw cubes concatenated") ||
         swfs_fits_out_key_long(o, "NBADPIX", (long)swfs_reduce_nbad(red), "pixels replaced by the 3x3 median") ||
         swfs_fits_out_key_long(o, "REGISTER", p.do_register, "1: peak shifted to (W/2, H/2)")) {
@@ -183,8 +197,8 @@ int swfs_cmd_reduce(int argc, char **argv)
     int crc = swfs_fits_out_commit(o);
     o = NULL;
     if (crc) { cli_error(cmd); goto done; }
-    fprintf(stderr, "reduce: %zu frames from %zu cubes, %zu bad pixels, background noise %.4g counts rms -> %s\n", ntot,
-            nraw, swfs_reduce_nbad(red), sqrt(nv), out);
+    fprintf(stderr, "reduce: %zu frames from %zu cubes, %zu bad pixels, background noise %.4g counts rms (%.4g after "
+            "registration) -> %s\n", ntot, nraw, swfs_reduce_nbad(red), sqrt(nv), sqrt(q * nv), out);
     rc = CLI_OK;
 done:
     swfs_fits_out_abort(o);

@@ -15,7 +15,7 @@ fail() { echo "FAIL: $*" >&2; exit 1; }
 # 3 cubes x 60 frames at <t_sci/t_wfs> = 6.48, lag 3; telemetry files of 1000 WFS frames,
 # so cube 1 (WFS frames ~839..1228) straddles slopes_000/slopes_001.
 "$B" simulate mode=timeseries --quiet -o "$D/sim" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 \
-    cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 wfs_file_frames=1000 seed=5 > "$D/sim.log" \
+    cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 wfs_file_frames=1000 seed=1 > "$D/sim.log" \
     || fail "simulate"
 for f in slopes_000.fits slopes_001.fits actuators.fits recon_ao.fits handshake.log raw_000.fits raw_002.fits \
          dark.fits flat.fits speckles_ideal.fits truth.fits; do
@@ -27,6 +27,11 @@ done
 # exposure: the motion within an exposure stays, as blur, in both).
 "$B" reduce "$D"/sim/raw_000.fits "$D"/sim/raw_001.fits "$D"/sim/raw_002.fits --dark "$D/sim/dark.fits" \
     --flat "$D/sim/flat.fits" -o "$D/science.fits" 2> "$D/reduce.log" || fail "reduce"
+# The simulated read noise is 19 counts; the photon part is left to estimate (Phi_I/GAIN) and
+# the bilinear registration scales the variance by ~4/9 (NOISEFAC).
+rn=$(sed -n 's/.*background noise \([0-9.]*\) counts rms (\([0-9.]*\) after.*/\1 \2/p' "$D/reduce.log")
+awk -v r="$rn" 'BEGIN { split(r, a, " "); exit !(a[1] > 18 && a[1] < 20.5 && a[2] > 0.6 * a[1] && a[2] < 0.75 * a[1]) }' \
+    || fail "reduce noise '$rn' (raw, registered): expected ~19 and ~2/3 of it"
 "$B" sync "$D/science.fits" "$D/sim/handshake.log" -o "$D/timing.txt" --ratio-min 5 --ratio-max 8 > "$D/sync.log" \
     || fail "sync"
 cat "$D/sync.log"
@@ -44,9 +49,11 @@ grep -q "120 frames from 2 of 3 cubes" "$D/speckles.log" || { cat "$D/speckles.l
 "$B" pupil "$D/halo.fits" -o "$D/pupil.fits" --source halo --truth "$D/sim/truth.fits" > "$D/pupil.log" || fail "pupil"
 cat "$D/pupil.log"
 # NCP error (piston, tip, tilt removed) against the 90.7 nm injected without tip/tilt:
-# measured 43.9 nm (seed 5).
+# measured 35.9 nm (seed 1; reduce's RDNOISE is the registered frames' read noise). Seed 5
+# puts a bad pixel by the core, whose 3x3-median error inflates the out-of-band noise
+# estimate (docs/telemetry.md, open problems).
 err=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil.log")
-awk -v e="$err" 'BEGIN { exit !(e > 0 && e < 60) }' || fail "NCP error $err nm, expected < 60 nm"
+awk -v e="$err" 'BEGIN { exit !(e > 0 && e < 50) }' || fail "NCP error $err nm, expected < 50 nm"
 # Removing every WFS frame's own tip-tilt from the speckles drops the image motion within
 # the exposures that the registered frames keep: the estimate breaks down (610 nm).
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles_f.fits" \

@@ -113,6 +113,11 @@ static void test_reduce_pipeline(void **state)
     double nv2 = swfs_reduce_noise_var(r2);
     print_message("noise variance %.3f (region) %.3f (out of band), true %.3f\n", nv, nv2, noise * noise);
     assert_close(nv2, noise * noise, 0.1 * noise * noise);
+    /* Registration by bilinear shifts of arbitrary fractional parts: the variance factor is
+     * between 1/4 (half a pixel on both axes) and 1, 4/9 on average. */
+    double q = swfs_reduce_noise_factor(r);
+    print_message("registration noise variance factor %.3f\n", q);
+    assert_true(q > 0.3 && q < 0.65);
     swfs_reduce_free(r);
     swfs_reduce_free(r2);
 

@@ -25,6 +25,12 @@ typedef struct swfs_reduce_params {
                             margin of 2 frequency bins) of each Hann-windowed frame: white
                             noise is there, the star's halo is not -- robust where no pixel
                             is free of the halo. 0: use the source-free region (default 0) */
+    double gain;         /* [e-/count] when > 0: the photon noise I/gain of the frame itself is
+                            removed from the noise estimate, which is then the signal-independent
+                            (read) part: estimate models the photon part per pixel as
+                            Phi_I/GAIN. The Hann window weights the bright centre, so leaving
+                            the photon noise in biased the estimate 17 % high for the faint
+                            halo (docs/telemetry.md). 0: unknown, kept (default 0) */
 } swfs_reduce_params;
 
 void swfs_reduce_params_default(swfs_reduce_params *p);
@@ -46,10 +52,20 @@ const unsigned char *swfs_reduce_badmap(const swfs_reduce *r);
  * pixels feed the noise-variance accumulator. */
 int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px, double *py);
 
-/* Background noise variance per pixel [counts^2]: the mean over the frames of the
- * out-of-band spectral estimate (pixscale set), else the mean over the source-free pixels
- * of their variance over the frames reduced so far (NaN before two frames). */
+/* Background noise variance per pixel [counts^2] of the calibrated, unshifted frames: the
+ * mean over the frames of the out-of-band spectral estimate (pixscale set), else the mean
+ * over the source-free pixels of their variance over the frames reduced so far (NaN before
+ * two frames); with gain > 0, less the photon noise of the frames' own counts. */
 double swfs_reduce_noise_var(const swfs_reduce *r);
+
+/* Mean over the registered frames of the factor by which the bilinear shift multiplies the
+ * per-pixel variance of white noise, ((1-a)^2 + a^2) ((1-b)^2 + b^2) for fractional shifts
+ * (a, b) (4/9 for uniform shifts); 1 without registration. The registered frames' noise
+ * variance is swfs_reduce_noise_var * this factor: what the estimator must remove
+ * (measured: removing the unshifted frames' variance instead over-subtracts, the radicand
+ * of eq:scale-factor goes negative in 94 % of the pixels and the time-series NCP error
+ * doubles, docs/telemetry.md). */
+double swfs_reduce_noise_factor(const swfs_reduce *r);
 
 /* Building blocks (tests): 3 x 3 median replacement in place of flagged or non-finite
  * pixels (median of the unflagged finite neighbours of the input; a pixel with none keeps

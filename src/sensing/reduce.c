@@ -19,6 +19,7 @@ void swfs_reduce_params_default(swfs_reduce_params *p)
     p->do_register = 1;
     p->bg_radius = 0;
     p->pixscale = 0;
+    p->gain = 0;
 }
 
 struct swfs_reduce {
@@ -42,6 +43,8 @@ struct swfs_reduce {
     size_t noob;
     double spec_sum;         /* sum over frames of the per-frame estimates */
     size_t spec_n;
+    double q_sum;            /* sum over registered frames of the interpolation's variance factor */
+    size_t q_n;
 };
 
 static long swfs_fft_index(size_t k, size_t n) { return k < (n + 1) / 2 ? (long)k : (long)k - (long)n; }
@@ -296,7 +299,9 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
     if (r->plan) {
         /* Out-of-band power of the Hann-windowed, mean-removed frame: white noise only.
          * Each r2c bin stands for itself and its conjugate, so the mean over the half
-         * plane is the mean over the full plane. */
+         * plane is the mean over the full plane. (A bad pixel replaced by its 3x3 median
+         * next to the bright core leaves a sharp error that counts here as noise: see
+         * docs/telemetry.md.) */
         double m = 0;
         for (size_t i = 0; i < n; i++) m += f[i];
         m /= (double)n;
@@ -306,7 +311,15 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
         double s = 0;
         for (size_t k = 0; k < nh * r->ny; k++)
             if (r->oob[k]) s += creal(r->fout[k]) * creal(r->fout[k]) + cimag(r->fout[k]) * cimag(r->fout[k]);
-        r->spec_sum += s / (double)r->noob / r->hann2;
+        /* White noise of per-pixel variance v_i gives sum_i hann_i^2 v_i / hann2 here: the
+         * photon part of v_i is the frame's own counts / gain (its window-weighted mean is
+         * dominated by the bright centre), the rest is the read noise. */
+        double ph = 0;
+        if (r->p.gain > 0) {
+            for (size_t i = 0; i < n; i++) ph += r->hann[i] * r->hann[i] * (f[i] > 0 ? f[i] : 0.0);
+            ph /= r->p.gain * r->hann2;
+        }
+        r->spec_sum += s / (double)r->noob / r->hann2 - ph;
         r->spec_n++;
     }
     double cx = 0, cy = 0;
@@ -314,18 +327,30 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
     if (rc) return rc;
     if (px) *px = cx;
     if (py) *py = cy;
-    if (r->p.do_register)
-        swfs_shift_bilinear(f, r->nx, r->ny, cx - (double)(r->nx / 2), cy - (double)(r->ny / 2), out);
-    else
+    if (r->p.do_register) {
+        double sx = cx - (double)(r->nx / 2), sy = cy - (double)(r->ny / 2);
+        swfs_shift_bilinear(f, r->nx, r->ny, sx, sy, out);
+        /* White noise through the bilinear weights (1-a, a) x (1-b, b): its per-pixel
+         * variance is multiplied by ((1-a)^2 + a^2) ((1-b)^2 + b^2) (1/2 at half a pixel
+         * per axis, 4/9 on average over uniform shifts). */
+        double ax = sx - floor(sx), ay = sy - floor(sy);
+        r->q_sum += ((1 - ax) * (1 - ax) + ax * ax) * ((1 - ay) * (1 - ay) + ay * ay);
+        r->q_n++;
+    } else
         memmove(out, f, n * sizeof *out);
     return SWFS_OK;
+}
+
+double swfs_reduce_noise_factor(const swfs_reduce *r)
+{
+    return r->q_n ? r->q_sum / (double)r->q_n : 1.0;
 }
 
 double swfs_reduce_noise_var(const swfs_reduce *r)
 {
     if (r->plan) return r->spec_n ? r->spec_sum / (double)r->spec_n : NAN;
     if (r->nframes < 2 || r->nbg == 0) return NAN;
-    double s = 0;
-    for (size_t b = 0; b < r->nbg; b++) s += r->bg_m2[b] / (double)(r->nframes - 1);
-    return s / (double)r->nbg;
+    double s = 0, m = 0;
+    for (size_t b = 0; b < r->nbg; b++) { s += r->bg_m2[b] / (double)(r->nframes - 1); m += r->bg_mean[b]; }
+    return (s - (r->p.gain > 0 && m > 0 ? m / r->p.gain : 0.0)) / (double)r->nbg;
 }
