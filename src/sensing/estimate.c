@@ -80,20 +80,24 @@ static void gauss_smooth(const double *v, size_t nx, size_t ny, double sigma, do
 
 /* The regularized scale factor (see estimate.h). rdb: debiased radicands (NaN where the
  * pixel has no speckles); g: in, the starting g per pixel; out, the regularized g where the
- * smoothed radicand is positive, unchanged elsewhere. noise_var: per-pixel camera noise. */
+ * smoothed radicand is positive, unchanged elsewhere. noise_var: per-pixel camera noise.
+ *
+ * The average is an inverse-variance weighted mean over a Gaussian neighbourhood of sigma
+ * pixels. Where even that is too noisy (its expected standard error, from the same weights,
+ * above a quarter of the map-wide mean radicand) the neighbourhood is doubled, up to the
+ * whole map. The choice depends on the weights (the noise model), never on the local values,
+ * so it does not select upward fluctuations the way a "first positive" rule would. */
 static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var, double sigma, double *g)
 {
     const size_t nx = h->nx, ny = h->ny, np = nx * ny;
-    double *w = swfs_calloc(np, sizeof *w), *wr = swfs_calloc(np, sizeof *wr);
-    double *sw = swfs_malloc(np * sizeof *sw), *swr = swfs_malloc(np * sizeof *swr), *tmp = swfs_malloc(np * sizeof *tmp);
-    if (!w || !wr || !sw || !swr || !tmp) {
-        swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp);
-        return SWFS_ERR_NOMEM;
-    }
-    double *g_start = swfs_malloc(np * sizeof *g_start);
-    if (!g_start) { swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp); return SWFS_ERR_NOMEM; }
+    const double largest = (double)(nx > ny ? nx : ny);
+    double *buf = swfs_calloc(8 * np, sizeof *buf);
+    if (!buf) return SWFS_ERR_NOMEM;
+    double *w = buf, *wr = buf + np, *k1 = buf + 2 * np, *k1r = buf + 3 * np, *k2 = buf + 4 * np;
+    double *tmp = buf + 5 * np, *g_start = buf + 6 * np, *scale = buf + 7 * np;
     memcpy(g_start, g, np * sizeof *g);
     for (int it = 0; it < 3; it++) {
+        double W = 0.0, WR = 0.0;
         for (size_t p = 0; p < np; p++) {
             w[p] = wr[p] = 0.0;
             if (!isfinite(rdb[p]) || !(g[p] > 0.0)) continue;
@@ -107,16 +111,39 @@ static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var
             if (!(var_r > 0.0) || !isfinite(var_r)) continue;
             w[p] = 1.0 / var_r;
             wr[p] = w[p] * rdb[p];
+            W += w[p];
+            WR += wr[p];
         }
-        gauss_smooth(w, nx, ny, sigma, tmp, sw);
-        gauss_smooth(wr, nx, ny, sigma, tmp, swr);
+        const double r_global = W > 0.0 ? WR / W : NAN;
         for (size_t p = 0; p < np; p++) {
             g[p] = g_start[p];
-            if (isfinite(rdb[p]) && sw[p] > 0.0 && swr[p] > 0.0) g[p] = sqrt(sqrt(swr[p] / sw[p]));
+            scale[p] = 0.0; /* 0: not yet assigned */
         }
+        if (!(r_global > 0.0)) continue; /* nothing to regularize towards: keep the fallback */
+        int pending = 1;
+        for (double sg = sigma; sg < largest && pending; sg *= 2.0) {
+            gauss_smooth(w, nx, ny, sg, tmp, k1);
+            gauss_smooth(wr, nx, ny, sg, tmp, k1r);
+            /* sum K^2 w for the standard error: K^2 of a Gaussian of sigma sg is a Gaussian
+             * of sg / sqrt(2). */
+            gauss_smooth(w, nx, ny, sg / M_SQRT2, tmp, k2);
+            pending = 0;
+            for (size_t p = 0; p < np; p++) {
+                if (scale[p] > 0.0 || !isfinite(rdb[p])) continue;
+                const double se = k1[p] > 0.0 ? sqrt(k2[p]) / k1[p] : INFINITY;
+                if (se < 0.25 * r_global) {
+                    scale[p] = sg;
+                    if (k1r[p] > 0.0) g[p] = sqrt(sqrt(k1r[p] / k1[p]));
+                } else {
+                    pending = 1;
+                }
+            }
+        }
+        /* Too noisy at every scale below the map size: the map-wide mean. */
+        for (size_t p = 0; p < np; p++)
+            if (scale[p] == 0.0 && isfinite(rdb[p])) g[p] = sqrt(sqrt(r_global));
     }
-    swfs_free(g_start);
-    swfs_free(w); swfs_free(wr); swfs_free(sw); swfs_free(swr); swfs_free(tmp);
+    swfs_free(buf);
     return SWFS_OK;
 }
 
