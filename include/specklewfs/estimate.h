@@ -15,7 +15,8 @@
  * g_smooth pixels (sigma) with inverse-variance weights from a noise model that uses only
  * well-measured quantities (Phi_I, Phi_sp, sigma_sp^2, the camera noise), iterated three
  * times; g = (that average)^(1/4). Where the average's expected standard error exceeds a
- * quarter of the map-wide mean radicand, the neighbourhood doubles (up to the whole map). GAIN holds the g used; GAIN_PIX the paper's per-pixel g.
+ * quarter of the map-wide mean radicand, the neighbourhood doubles (up to the whole map).
+ * GAIN holds the g used; GAIN_PIX the paper's per-pixel g.
  * g_smooth = 0 gives the paper's estimator exactly.
  *
  * Invalid pixels. VALID = 1 where the paper's per-pixel radicand and Phi_sp, sigma_sp^2 are
