@@ -59,7 +59,7 @@ typedef struct swfs_ts_params {
     double vib_amp;            /* [lambda/D at wavelen] amplitude (1.0) */
     double vib_freq;           /* [Hz] 20 */
     double vib_angle;          /* [deg] 30 */
-    double jitter_amp;         /* [lambda/D] rms per axis of broadband pointing jitter (0.3):
+    double jitter_amp;         /* [lambda/D] rms per axis of broadband pointing jitter (0.05):
                                   first-order low-pass white noise, corner jitter_freq */
     double jitter_freq;        /* [Hz] 30 */
     /* science camera */

@@ -43,7 +43,7 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->vib_amp = 1.0;
     p->vib_freq = 20;
     p->vib_angle = 30;
-    p->jitter_amp = 0.3;
+    p->jitter_amp = 0.05;
     p->jitter_freq = 30;
     p->frame_ratio = 6.48;
     p->ncubes = 6;
