@@ -217,7 +217,7 @@ int swfs_cmd_sync(int argc, char **argv)
         t.cubes[ci].start = start;
         int inside = start >= 0 && start + (double)cube_n[ci] * t.ratio <= (double)files[cube_file[ci]].nwfs;
         t.cubes[ci].status = inside ? SWFS_CUBE_OK : SWFS_CUBE_STRADDLES;
-        nok += inside;
+        nok += inside ? 1u : 0u;
     }
     if (swfs_timing_write(out, &t)) { cli_error(cmd); goto done; }
     printf("sync: <t_sci/t_wfs> = %.4f +- %.4f, lag = %.2f WFS frames (handshake frame - lag = exposure start)\n",

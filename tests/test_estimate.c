@@ -146,14 +146,15 @@ static void test_statistics_match_two_pass(void **state)
         vsp /= (double)n;
         assert_close(h->mean_i->data[p], mi, 1e-12 * fabs(mi));
         /* VAR_I: the unbiased 1/(N-1) variance (the noise model is removed from it). */
-        assert_close(h->var_i->data[p], vi * n / (n - 1.0), 1e-10 * vi);
+        const double nd = (double)n;
+        assert_close(h->var_i->data[p], vi * nd / (nd - 1.0), 1e-10 * vi);
         assert_close(h->mean_sp->data[p], phisp, 1e-10 * phisp);
         assert_close(h->var_sp->data[p], vsp, 1e-9 * vsp);
         assert_close(creal(h->stab->data[p]), creal(stab), 1e-10 * cabs(stab));
         assert_close(cimag(h->stab->data[p]), cimag(stab), 1e-10 * cabs(stab));
         assert_close(h->circ->data[p], cabs(sq) / phisp, 1e-9);
         /* eq:scale-factor and eq:TheAnswer from the direct sums. */
-        double rad = vi * n / (n - 1.0) / vsp - 2.0 * creal(stab * conj(stab)) / (phisp * vsp);
+        double rad = vi * nd / (nd - 1.0) / vsp - 2.0 * creal(stab * conj(stab)) / (phisp * vsp);
         assert_true(rad > 0);
         double g = pow(rad, 0.25);
         assert_close(h->gain->data[p], g, 1e-9 * g);

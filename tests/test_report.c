@@ -231,7 +231,7 @@ static void make_run(const char *dir, const char *which, run *r)
                 trot[k] = i == NX / 2 ? INFINITY : 0.15 / (0.2 + fabs(theta(i, NX)));
                 sf[k] = 0.5 + 0.4 * tau0[k] / 0.055;
                 for (int l = 0; l < NLAG; l++)
-                    mcf->data[(size_t)l * NX * NY + k] =
+                    mcf->data[(size_t)l * NX * NY + (size_t)k] =
                         exp(-0.5 * pow(lags[l] / tau0[k], 2)) *
                         cexp(I * (isfinite(trot[k]) ? 0.5 * M_PI * lags[l] / trot[k] : 0.0));
             }
@@ -303,7 +303,8 @@ static void check_not_blank(const char *path)
         s2 += (double)buf[k] * buf[k];
         dark += buf[k] < 240;
     }
-    double var = s2 / n - (s1 / n) * (s1 / n);
+    const double nd = (double)n;
+    double var = s2 / nd - (s1 / nd) * (s1 / nd);
     free(buf);
     if (var < 300.0 || dark < n / 50) {
         print_error("%s: grey variance %.1f, %zu of %zu pixels not background\n", path, var, dark, n);

@@ -65,7 +65,7 @@ static void test_structure_function(void **state)
         for (size_t l = 0; l < nl; l++) sum[l] += measured_D(a, p.n, lags[l]) + measured_D(b, p.n, lags[l]);
     }
     for (size_t l = 0; l < nl; l++) {
-        const double r = (double)lags[l] * p.dx, dm = sum[l] / (2.0 * npairs);
+        const double r = (double)lags[l] * p.dx, dm = sum[l] / (2.0 * (double)npairs);
         const double dt = swfs_vonkarman_structure(r, p.r0, p.L0);
         print_message("r = %6.3f m: D measured %10.3f theory %10.3f ratio %.3f\n", r, dm, dt, dm / dt);
         if (!(fabs(dm / dt - 1) < 0.10)) fail_msg("structure function at r = %.3f m off by %.1f %%", r, 100 * (dm / dt - 1));

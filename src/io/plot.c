@@ -454,7 +454,7 @@ int swfs_plot_legend(swfs_plot *p, const swfs_plot_legend_entry *e, size_t n)
         opt[i] = e[i].is_marker ? PL_LEGEND_SYMBOL : PL_LEGEND_LINE;
         tcol[i] = SWFS_COLOR_BLACK;
         lcol[i] = scol[i] = bcol[i] = e[i].color;
-        lsty[i] = e[i].style ? e[i].style : 1;
+        lsty[i] = e[i].style ? (PLINT)e[i].style : 1;
         lw[i] = 2.0;
         ssc[i] = 0.6;
         snum[i] = 1;

@@ -92,7 +92,7 @@ static int delaunay(const double *pts, size_t npts, tri_mesh *m)
     size_t *tmp = malloc(6 * m->ntri * sizeof *tmp);
     if (!deg || !tmp) { free(deg); free(tmp); mesh_free(m); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
     for (size_t t = 0; t < m->ntri; t++)
-        for (int e = 0; e < 3; e++) deg[m->tri[3 * t + e]] += 2;
+        for (size_t e = 0; e < 3; e++) deg[m->tri[3 * t + e]] += 2;
     m->nbr_ptr = calloc(npts + 1, sizeof *m->nbr_ptr);
     m->nbr = malloc(6 * m->ntri * sizeof *m->nbr);
     if (!m->nbr_ptr || !m->nbr) { free(deg); free(tmp); mesh_free(m); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
@@ -101,7 +101,7 @@ static int delaunay(const double *pts, size_t npts, tri_mesh *m)
     if (!fill || !start) { free(deg); free(tmp); free(fill); free(start); mesh_free(m); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
     for (size_t i = 0; i < npts; i++) start[i + 1] = start[i] + deg[i];
     for (size_t t = 0; t < m->ntri; t++)
-        for (int e = 0; e < 3; e++) {
+        for (size_t e = 0; e < 3; e++) {
             int a = m->tri[3 * t + e], b = m->tri[3 * t + (e + 1) % 3];
             tmp[start[a] + fill[a]++] = (size_t)b;
             tmp[start[b] + fill[b]++] = (size_t)a;
@@ -294,7 +294,7 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
         double *b = bb + 4 * t;
         b[0] = b[2] = pts[2 * m.tri[3 * t]];
         b[1] = b[3] = pts[2 * m.tri[3 * t] + 1];
-        for (int k = 1; k < 3; k++) {
+        for (size_t k = 1; k < 3; k++) {
             double x = pts[2 * m.tri[3 * t + k]], y = pts[2 * m.tri[3 * t + k] + 1];
             b[0] = fmin(b[0], x); b[2] = fmax(b[2], x);
             b[1] = fmin(b[1], y); b[3] = fmax(b[3], y);
@@ -318,7 +318,7 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
         }
         if (tri_of[q] == (size_t)-1) { outside++; continue; }
         /* Upper bound of the row length: the 3 vertices' stencils. */
-        for (int k = 0; k < 3; k++) {
+        for (size_t k = 0; k < 3; k++) {
             size_t v = (size_t)m.tri[3 * tri_of[q] + k];
             nnz += g.ptr[v + 1] - g.ptr[v] + 1;
         }
@@ -331,7 +331,7 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
         size_t t = tri_of[q];
         if (t == (size_t)-1) continue;
         double P[3][2];
-        for (int k = 0; k < 3; k++) { P[k][0] = pts[2 * m.tri[3 * t + k]]; P[k][1] = pts[2 * m.tri[3 * t + k] + 1]; }
+        for (size_t k = 0; k < 3; k++) { P[k][0] = pts[2 * m.tri[3 * t + k]]; P[k][1] = pts[2 * m.tri[3 * t + k] + 1]; }
         /* The element is linear in its 9 degrees of freedom: evaluate each unit one. */
         double wdof[9];
         for (int dof = 0; dof < 9; dof++) {
@@ -341,7 +341,7 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
             wdof[dof] = ct_eval((const double(*)[2])P, f, (const double(*)[2])gr, qx[q], qy[q]);
         }
         size_t nl = 0;
-        for (int k = 0; k < 3; k++) {
+        for (size_t k = 0; k < 3; k++) {
             size_t v = (size_t)m.tri[3 * t + k];
             if (!inlist[v]) { inlist[v] = 1; wlist[nl++] = v; }
             wval[v] += wdof[k];
