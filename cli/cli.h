@@ -46,6 +46,8 @@ void cli_command_line(int argc, char **argv, char *buf, size_t cap);
 double cli_now(void);
 /* Progress on stderr: "\r<label> k/n" when stderr is a terminal, sparse lines otherwise. */
 void cli_progress(const char *label, size_t k, size_t n);
+/* The folder part of a path ("." when there is none). */
+void cli_dir_of(const char *path, char *dir, size_t cap);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
 

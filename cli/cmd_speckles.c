@@ -62,17 +62,6 @@ static const char *usage_text =
 
 typedef struct match_pair { const char *in, *out; } match_pair;
 
-static void dir_of(const char *path, char *dir, size_t cap)
-{
-    const char *s = strrchr(path, '/');
-    if (!s) { snprintf(dir, cap, "."); return; }
-    size_t n = (size_t)(s - path);
-    if (n >= cap) n = cap - 1;
-    memcpy(dir, path, n);
-    dir[n] = 0;
-    if (n == 0) snprintf(dir, cap, "/");
-}
-
 static void slopes_path(const char *tdir, const char *name, char *path, size_t cap)
 {
     if (name[0] == '/') snprintf(path, cap, "%s", name);
@@ -282,7 +271,7 @@ int swfs_cmd_speckles(int argc, char **argv)
 
     /* The slopes length fixes the Shack-Hartmann geometry: 2 nsub^2. Peek at the first file. */
     char tdir[4096], path[8192];
-    dir_of(timing, tdir, sizeof tdir);
+    cli_dir_of(timing, tdir, sizeof tdir);
     size_t nslopes = 0;
     {
         swfs_fits_in *f = NULL;

@@ -32,17 +32,6 @@ static const char *usage_text =
     "                   vibration: a pure sinusoid makes the lag ambiguous by half periods\n"
     "  --ratio-step, --lag-step  coarse grid (0.01, 0.5), refined 100x around the peak\n";
 
-static void dir_of(const char *path, char *dir, size_t cap)
-{
-    const char *s = strrchr(path, '/');
-    if (!s) { snprintf(dir, cap, "."); return; }
-    size_t n = (size_t)(s - path);
-    if (n >= cap) n = cap - 1;
-    memcpy(dir, path, n);
-    dir[n] = 0;
-    if (n == 0) snprintf(dir, cap, "/");
-}
-
 typedef struct slopes_file {
     char name[SWFS_SYNC_NAME];
     size_t nwfs;
@@ -114,7 +103,7 @@ int swfs_cmd_sync(int argc, char **argv)
     }
     if (swfs_handshake_read(logf, &hs, &nhs)) { cli_error(cmd); goto done; }
     char logdir[4096];
-    dir_of(logf, logdir, sizeof logdir);
+    cli_dir_of(logf, logdir, sizeof logdir);
 
     t.ncubes = ncubes;
     t.cubes = calloc(ncubes, sizeof *t.cubes);

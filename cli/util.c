@@ -100,3 +100,14 @@ fail:
     fprintf(stderr, "specklewfs %s: cannot create output folder %s: %s\n", cmd, path, strerror(errno));
     return CLI_FAIL;
 }
+
+void cli_dir_of(const char *path, char *dir, size_t cap)
+{
+    const char *s = strrchr(path, '/');
+    if (!s) { snprintf(dir, cap, "."); return; }
+    size_t n = (size_t)(s - path);
+    if (n >= cap) n = cap - 1;
+    memcpy(dir, path, n);
+    dir[n] = 0;
+    if (n == 0) snprintf(dir, cap, "/");
+}

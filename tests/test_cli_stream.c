@@ -45,19 +45,6 @@ static const char *in_dir(const char *name)
     return b;
 }
 
-static int run(const char *args, char *out, size_t cap)
-{
-    char cmd[8192];
-    snprintf(cmd, sizeof cmd, "cd %s && %s %s 2>&1", dir, SWFS_CLI_BIN, args);
-    FILE *p = popen(cmd, "r");
-    size_t len = 0;
-    out[0] = '\0';
-    if (!p) return -1;
-    while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
-    int st = pclose(p);
-    return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
-}
-
 static swfs_geom geom(void)
 {
     swfs_geom g;
@@ -207,7 +194,7 @@ static void test_stream_and_merge(void **state)
 
     /* One pass, 2 threads, updates every 16 frames, checkpoint. */
     snprintf(args, sizeof args, "stream %s -o halo.fits --checkpoint ck.fits --every 16 --batch 8 --threads 2", common);
-    int rc = run(args, out, sizeof out);
+    int rc = test_run_cli(dir, args, out, sizeof out);
     print_message("%s", out);
     assert_int_equal(rc, 0);
     assert_non_null(strstr(out, "valid"));
@@ -225,10 +212,10 @@ static void test_stream_and_merge(void **state)
     /* The batch path gives the same halo: 'specklewfs speckles' then 'estimate' (its static
      * halo is the data-set mean, a constant: the estimate does not change, eq:zeroMean),
      * both with their default tip-tilt model (the exposure mean removed). */
-    assert_int_equal(run("speckles timing.txt --science sci.fits --actuators act.fits --recon recon.fits -o sp.fits",
+    assert_int_equal(test_run_cli(dir, "speckles timing.txt --science sci.fits --actuators act.fits --recon recon.fits -o sp.fits",
                          out, sizeof out), 0);
-    assert_int_equal(run("estimate sci.fits sp.fits -o halo_sp.fits", out, sizeof out), 0);
-    assert_int_equal(run("stream --timing timing.txt --science sci.fits --recon recon.fits --actuators act.fits "
+    assert_int_equal(test_run_cli(dir, "estimate sci.fits sp.fits -o halo_sp.fits", out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, "stream --timing timing.txt --science sci.fits --recon recon.fits --actuators act.fits "
                          "--static none -o halo_x.fits", out, sizeof out), 0);
     swfs_halo *hs = NULL, *hb = NULL;
     assert_ok(swfs_halo_read(in_dir("halo_x.fits"), &hs, NULL));
@@ -245,7 +232,7 @@ static void test_stream_and_merge(void **state)
 
     /* One thread: the same accumulators, bit for bit. */
     snprintf(args, sizeof args, "stream %s -o halo1.fits --checkpoint ck1.fits --batch 8 --threads 1", common);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     swfs_accum *got1 = NULL;
     assert_ok(swfs_accum_load(in_dir("ck1.fits"), &got1, NULL));
     for (int k = 0; k < SWFS_ACC_NFIELDS; k++) assert_memory_equal(got->f[k], got1->f[k], NF * NF * sizeof(double));
@@ -254,10 +241,10 @@ static void test_stream_and_merge(void **state)
     const char *part = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --static none "
                        "--tiptilt frame";
     snprintf(args, sizeof args, "stream --timing timing0.txt %s -o h0.fits --checkpoint p0.fits", part);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     snprintf(args, sizeof args, "stream --timing timing1.txt %s -o h1.fits --checkpoint p1.fits", part);
-    assert_int_equal(run(args, out, sizeof out), 0);
-    rc = run("merge p1.fits p0.fits -o merged.fits --halo merged_halo.fits --read-noise 2", out, sizeof out);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
+    rc = test_run_cli(dir, "merge p1.fits p0.fits -o merged.fits --halo merged_halo.fits --read-noise 2", out, sizeof out);
     print_message("%s", out);
     assert_int_equal(rc, 0);
     swfs_accum *m = NULL;
@@ -267,13 +254,13 @@ static void test_stream_and_merge(void **state)
     /* The same with the automatic static halo, shared through --static-out. */
     const char *pa = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --tiptilt frame";
     snprintf(args, sizeof args, "stream --timing timing0.txt %s -o s0.fits --checkpoint q0.fits --static-out st.fits", pa);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     assert_non_null(strstr(out, "S^1/2"));
     snprintf(args, sizeof args, "stream --timing timing1.txt %s -o s1.fits --checkpoint q1.fits --static st.fits", pa);
-    assert_int_equal(run(args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     snprintf(args, sizeof args, "stream --timing timing.txt %s -o s.fits --checkpoint q.fits --static st.fits", pa);
-    assert_int_equal(run(args, out, sizeof out), 0);
-    assert_int_equal(run("merge q0.fits q1.fits -o qm.fits", out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, "merge q0.fits q1.fits -o qm.fits", out, sizeof out), 0);
     swfs_accum *qa = NULL, *qm = NULL;
     assert_ok(swfs_accum_load(in_dir("q.fits"), &qa, NULL));
     assert_ok(swfs_accum_load(in_dir("qm.fits"), &qm, NULL));
@@ -288,7 +275,7 @@ static void test_stream_and_merge(void **state)
     swfs_accum_free(qm);
 
     /* Errors: a missing telemetry file; a cube reaching past its telemetry; bad options. */
-    rc = run("stream --timing timing.txt --science sci.fits --slopes nowhere.fits --recon recon.fits "
+    rc = test_run_cli(dir, "stream --timing timing.txt --science sci.fits --slopes nowhere.fits --recon recon.fits "
              "--actuators act.fits -o x.fits", out, sizeof out);
     assert_int_not_equal(rc, 0);
     assert_non_null(strstr(out, "nowhere.fits"));
@@ -297,11 +284,11 @@ static void test_stream_and_merge(void **state)
     fprintf(f, "ratio %.6f 0\nlag 0\ncube 0 raw_0.fits 0 30 slopes.fits 390.0 ok\n", RATIO);
     fclose(f);
     snprintf(args, sizeof args, "stream --timing timing_bad.txt %s -o x.fits", part);
-    rc = run(args, out, sizeof out);
+    rc = test_run_cli(dir, args, out, sizeof out);
     assert_int_not_equal(rc, 0);
     assert_non_null(strstr(out, "slopes.fits holds 400"));
-    assert_int_equal(run("stream --timing timing.txt -o x.fits", out, sizeof out), 2);
-    assert_int_not_equal(run("merge ck.fits sci.fits -o y.fits", out, sizeof out), 0);
+    assert_int_equal(test_run_cli(dir, "stream --timing timing.txt -o x.fits", out, sizeof out), 2);
+    assert_int_not_equal(test_run_cli(dir, "merge ck.fits sci.fits -o y.fits", out, sizeof out), 0);
     assert_non_null(strstr(out, "sci.fits"));
 
     swfs_accum_free(expect);
