@@ -174,6 +174,11 @@ int swfs_cmd_estimate(int argc, char **argv)
                "(give --read-noise or --gain)\n");
     if (isfinite(circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", circ_core);
     printf("  time              %.2f s\n", cli_now() - t0);
+    if (halo->n_var_below_noise > halo->npix / 50)
+        fprintf(stderr, "specklewfs %s: warning: in %zu of %zu pixels the intensity variance is below the noise model alone "
+                "(read noise %.4g counts, gain %.4g e-/count) by more than 3 sigma: the noise model looks too large, and "
+                "g's radicand (eq:scale-factor) goes negative where the speckle signal is faint; check --read-noise / "
+                "RDNOISE\n", cmd, halo->n_var_below_noise, halo->npix, noise.read_noise, noise.gain);
     if (isfinite(circ_core) && circ_core > 0.3)
         fprintf(stderr, "specklewfs %s: warning: the speckles are far from circular near the core (mean |<psi^2>|/<|psi|^2> "
                 "= %.2f inside 4 lambda/D, eq:zeroSqMean); tip-tilt vibration left in the speckles or images is the usual "

@@ -388,6 +388,12 @@ static void test_noise_variance_removed(void **state)
     assert_close(cabs(h->halo->data[0]), psi0, 0.05);
     double noise_phi = sqrt(rn * rn + h->mean_i->data[0] / gain);
     assert_close(h->snr->data[0], 2.0 * cabs(h->stab->data[0]) / (noise_phi * sqrt(h->mean_sp->data[0])), 1e-9);
+    assert_int_equal(h->n_var_below_noise, 0);
+    swfs_halo_free(h);
+    /* A noise model larger than the whole measured variance is flagged. */
+    swfs_noise big = {4.0 * rn, gain};
+    assert_ok(swfs_estimate(acc, &big, NULL, &h));
+    assert_int_equal(h->n_var_below_noise, 1);
     swfs_halo_free(h);
     /* Without removing the noise g comes out biased high. */
     assert_ok(swfs_estimate(acc, NULL, NULL, &h));

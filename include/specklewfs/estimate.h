@@ -67,6 +67,8 @@ typedef struct swfs_halo {
     swfs_noise noise;
     double g_smooth;     /* [pixels] regularization used (0 = the paper's per-pixel g) */
     size_t n_g_fallback; /* pixels whose g came from the local-median fallback */
+    size_t n_var_below_noise; /* pixels whose intensity variance is significantly (3 sigma)
+                                 below the noise model alone: the model is too large there */
 } swfs_halo;
 
 #define SWFS_G_SMOOTH_DEFAULT 8.0 /* pixels: 2 lambda/D at the paper's 0.25 lambda/D sampling */

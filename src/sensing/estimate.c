@@ -210,6 +210,9 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
          * the speckle signal (faint halo, bright background) is a real bias; the noise is
          * removed from the unbiased 1/(N-1) variance instead. */
         const double var_i = f[SWFS_ACC_CII][p] / (n - 1.0) - noise_var;
+        /* A variance below the noise alone, beyond its 3-sigma scatter (a sample variance
+         * scatters by sqrt(2/(N-1)) of itself), means the noise model is too large. */
+        if (noise_var > 0.0 && var_i < -3.0 * noise_var * sqrt(2.0 / (n - 1.0))) h->n_var_below_noise++;
         const double complex stab = (f[SWFS_ACC_CIX][p] + I * f[SWFS_ACC_CIY][p]) * r;
         const double vxx = f[SWFS_ACC_CXX][p] * r, vyy = f[SWFS_ACC_CYY][p] * r, vxy = f[SWFS_ACC_CXY][p] * r;
         const double phi_sp = vxx + vyy;

@@ -40,6 +40,7 @@ int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, co
     if (!rc) rc = swfs_fits_out_key_long(o, "NBADRAD", (long)h->n_bad_radicand, "pixels with radicand of g <= 0");
     if (!rc) rc = swfs_fits_out_key_long(o, "NNOSP", (long)h->n_no_speckle, "pixels without speckle power");
     if (!rc) rc = swfs_fits_out_key_long(o, "NNOFRM", (long)h->n_no_frames, "pixels with < 2 usable frames");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NVARLOW", (long)h->n_var_below_noise, "pixels with variance < noise model");
     if (!rc) rc = swfs_fits_out_key_double(o, "MEDSNR", h->median_snr, "median eq:SNR over valid pixels");
     if (!rc) rc = swfs_fits_out_key_double(o, "RDNOISE", h->noise.read_noise, "[counts] read noise removed");
     if (!rc) rc = swfs_fits_out_key_double(o, "GAIN", h->noise.gain, "[e-/count] 0 = no photon-noise term");
