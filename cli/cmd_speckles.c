@@ -209,7 +209,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     swfs_cplx *halo = NULL;
     swfs_real *slopes = NULL;
     swfs_exposure *sched = NULL, *sched_x = NULL;
-    double *W_ext = NULL, *xslopes = NULL;
+    double *W_ext = NULL, *Rtilt = NULL, *xslopes = NULL;
     size_t *cfirst = NULL, *cn = NULL;
     char cur_slopes[SWFS_SYNC_NAME] = "";
 
@@ -305,15 +305,17 @@ int swfs_cmd_speckles(int argc, char **argv)
                 "Shack-Hartmann)\n", cmd, path, nslopes);
         goto done;
     }
+    /* --tiptilt frame projects the mean slopes out of W; exposure needs W whole (its tilt
+     * is taken out as the Z-tilt by swfs_speckles_recon_tilt); keep uses it as it is. */
     if (swfs_speckle_model_create(&m, xy, nact, mask, npup, g.pupdx, g.teldiam, nsub, rin, rcond, (size_t)modes,
-                                  tt_mode != SWFS_TT_KEEP)) {
+                                  tt_mode == SWFS_TT_FRAME)) {
         cli_error(cmd);
         goto done;
     }
     /* SWFS_TT_EXPOSURE: two extra columns carry each frame's tip-tilt minus its exposure's
      * mean as exact tilts (speckles.h). */
     const int xt = tt_mode == SWFS_TT_EXPOSURE;
-    if (xt && swfs_speckles_recon_tilt(m->recon, xy, &W_ext)) { cli_error(cmd); goto done; }
+    if (xt && swfs_speckles_recon_tilt(m, xy, &W_ext, &Rtilt)) { cli_error(cmd); goto done; }
     swfs_engine_config ec = {nslopes + (xt ? 2 : 0), nact, npup, nfx, nfy, g.pixscale * g.pupdx / g.teldiam, g.wavelen,
                              xt ? W_ext : m->recon->W, m->T, mask, 0, (int)threads};
     eng = swfs_engine_create(&ec);
@@ -374,7 +376,7 @@ int swfs_cmd_speckles(int argc, char **argv)
             double *tmp = realloc(xslopes, nx * (nslopes + 2) * sizeof *tmp);
             if (!tmp) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
             xslopes = tmp;
-            if (swfs_speckles_expand(sp, nslopes, need, m->wfs->valid, sched, tc->nframes, xslopes, sched_x)) {
+            if (swfs_speckles_expand(sp, nslopes, need, Rtilt, sched, tc->nframes, xslopes, sched_x)) {
                 swfs_fail_context(SWFS_ERR_VALUE, "%s cube %zu", path, c);
                 cli_error(cmd);
                 goto done;
@@ -422,7 +424,7 @@ int swfs_cmd_speckles(int argc, char **argv)
 done:
     swfs_timing_free(t);
     swfs_fits_in_close(fs);
-    free(xy); free(mask); free(sched); free(sched_x); free(W_ext); free(xslopes); free(cfirst); free(cn); free(match);
+    free(xy); free(mask); free(sched); free(sched_x); free(W_ext); free(Rtilt); free(xslopes); free(cfirst); free(cn); free(match);
     swfs_recon_free(rin);
     swfs_speckle_model_free(m);
     swfs_engine_free(eng);

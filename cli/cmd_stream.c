@@ -95,7 +95,7 @@ typedef struct batch {
 
 typedef struct file_source {
     swfs_timing *timing;
-    const unsigned char *valid; /* expansion (SWFS_TT_EXPOSURE): valid subapertures, else NULL */
+    const double *rtilt;   /* expansion (SWFS_TT_EXPOSURE): tilt rows R (speckles.h), else NULL */
     double *xslopes;            /* expanded frames: [s_k, t_k - exposure mean] */
     swfs_exposure *xsched;
     int expand;
@@ -169,7 +169,7 @@ static int next_batch(file_source *s, batch *b)
     b->sched = s->sched;
     if (s->expand) {
         /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
-        rc = swfs_speckles_expand(b->slopes, s->nslopes, need, s->valid, s->sched, n, s->xslopes, s->xsched);
+        rc = swfs_speckles_expand(b->slopes, s->nslopes, need, s->rtilt, s->sched, n, s->xslopes, s->xsched);
         if (rc) return swfs_fail_context(rc, "%s, cube %zu", path, s->cube);
         b->slopes = s->xslopes;
         b->nwfs = swfs_speckles_expand_frames(s->sched, n);
@@ -352,7 +352,7 @@ int swfs_cmd_stream(int argc, char **argv)
     swfs_real *mask = NULL;
     swfs_cplx *stat_c = NULL;
     swfs_speckle_model *model = NULL;
-    double *W_ext = NULL;
+    double *W_ext = NULL, *Rtilt = NULL;
     swfs_engine *e = NULL;
     swfs_accum *acc = NULL;
     double complex *out = NULL, *stat = NULL, *psi = NULL;
@@ -402,8 +402,9 @@ int swfs_cmd_stream(int argc, char **argv)
     }
     if (load_mask(o.mask, &g, &mask)) { cli_error(cmd); goto done; }
     /* The same model as 'specklewfs speckles' (speckles.h): Clough-Tocher interpolation from
-     * the actuators, and tip-tilt removed exactly by projecting the reconstructor onto the
-     * complement of the mean x/y slopes over the valid subapertures (Sec. 4.4). */
+     * the actuators; tip-tilt: --tiptilt frame projects the reconstructor onto the complement
+     * of the mean x/y slopes over the valid subapertures (Sec. 4.4), exposure takes the
+     * reconstructed Z-tilt out (swfs_speckles_recon_tilt). */
     const size_t nsub = (size_t)llround(sqrt((double)rec->nslopes / 2.0));
     if (2 * nsub * nsub != rec->nslopes) {
         fprintf(stderr, "specklewfs %s: %s: %zu slopes is not 2 nsub^2 (x then y slopes of a square Shack-Hartmann)\n",
@@ -411,12 +412,12 @@ int swfs_cmd_stream(int argc, char **argv)
         goto done;
     }
     if (swfs_speckle_model_create(&model, act, nact, mask->data, (size_t)g.pupn, g.pupdx, g.teldiam, nsub, rec, 0.0, 0,
-                                  o.tt_mode != SWFS_TT_KEEP)) {
+                                  o.tt_mode == SWFS_TT_FRAME)) {
         cli_error(cmd);
         goto done;
     }
     const int xt = o.tt_mode == SWFS_TT_EXPOSURE;
-    if (xt && swfs_speckles_recon_tilt(model->recon, act, &W_ext)) { cli_error(cmd); goto done; }
+    if (xt && swfs_speckles_recon_tilt(model, act, &W_ext, &Rtilt)) { cli_error(cmd); goto done; }
     if (model->n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, model->n_outside);
@@ -443,7 +444,7 @@ int swfs_cmd_stream(int argc, char **argv)
         /* Each exposure gets its own copy of its frames: at most ceil(ratio) + 1 each. */
         const size_t per = (size_t)ceil(src.timing->ratio) + 1;
         src.expand = 1;
-        src.valid = model->wfs->valid;
+        src.rtilt = Rtilt;
         src.xsched = malloc(src.bmax * sizeof *src.xsched);
         src.xslopes = malloc(src.bmax * per * (rec->nslopes + 2) * sizeof *src.xslopes);
         if (!src.xsched || !src.xslopes) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto done; }
@@ -551,6 +552,7 @@ done:
     free(src.xsched);
     free(src.xslopes);
     free(W_ext);
+    free(Rtilt);
     free(src.science);
     swfs_real_free(src.tel);
     swfs_fits_in_close(src.sci);

@@ -29,6 +29,7 @@ int swfs_speckles_subtract_static(swfs_cplx *halo, const size_t *first, const si
  * (swfs_recon_project_tiptilt), exactly the paper's tip-tilt removal. */
 typedef struct swfs_speckle_model {
     size_t npup, nact, nslopes;
+    double pupdx;          /* [m] */
     double *mask;          /* npup^2 */
     swfs_sparse *T;        /* npup^2 x nact */
     swfs_shwfs *wfs;
@@ -48,29 +49,43 @@ typedef struct swfs_speckle_model {
  * nm with this model; docs/telemetry.md).
  *
  * The tip-tilt goes through the engine as two extra "slopes" per frame: an extended
- * reconstructor [W | a_x | a_y] whose last two columns are the actuator values of the
- * exact unit tilts z = x and z = y (the actuators' own coordinates: the Clough-Tocher
- * interpolation is exact for linear functions inside the actuators' hull), and frames
- * [s_k, t_k - tbar] with t_k the mean x / y slope of frame k over the valid subapertures
- * (a pure tilt z = t.x has the slope t in every subaperture). W should be projected to
- * ignore the mean slopes (remove_tiptilt of swfs_speckle_model_create). */
+ * reconstructor [W - C R | C] and frames [s_k, t_k - tbar]. t_k = R s_k is the tilt of
+ * frame k's reconstructed wavefront T W s_k, the least-squares plane over the illuminated
+ * pupil (the Z-tilt: what the simulator's ideal speckles remove, and what a peak
+ * registration follows, the peak of a PSF with coma sits at the Z-tilt, not at the mean
+ * gradient); tbar its exposure's weighted mean; C = the actuators' own coordinates (the
+ * Clough-Tocher interpolation is exact for linear functions inside the hull), normalized
+ * so a unit extra value is a unit tilt. W - C R reconstructs no tilt at all.
+ *
+ * Why not the mean slopes (the G-tilt), as the paper's Sec. 4.4 removes per frame: a
+ * reconstructor projected to ignore the mean slopes still reconstructs the Z-tilt of the
+ * coma-like part of the wavefront (Z - G: 0.031 lambda/D rms per exposure on the MMT-like
+ * time series), which then stayed in every exposure as a mean offset the registered frames
+ * do not have. Near the core that first-order error outweighs the second-order blur of
+ * the real motion within the exposure when the image barely moves: with 0.5 lambda/D of
+ * vibration the speckles had 6x the core power of the ideal ones and the NCP estimate
+ * failed (244 nm error from 105 nm injected; docs/telemetry.md).
+ *
+ * W must NOT be projected (remove_tiptilt = 0 in swfs_speckle_model_create): R needs the
+ * reconstructed tilt. */
 enum { SWFS_TT_EXPOSURE = 0, SWFS_TT_FRAME = 1, SWFS_TT_KEEP = 2 };
 
-/* W_ext = [W | x_a | y_a]: recon->nact rows of recon->nslopes + 2 (row-major); xy holds
- * the nact actuator positions (x, y) [m]. Caller frees *W_ext. */
-int swfs_speckles_recon_tilt(const swfs_recon *recon, const double *xy, double **W_ext);
+/* W_ext: m->nact rows of m->nslopes + 2 (row-major) = [W - C R | C] from the model's
+ * reconstructor m->recon (unprojected), interpolation and mask; xy the nact actuator
+ * positions (x, y) [m]. R (if R != NULL): 2 rows of nslopes, the x then y tilt [rad] of
+ * T W s. Caller frees *W_ext and *R. */
+int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R);
 
 /* Frames needed by swfs_speckles_expand: the sum of the exposures' counts. */
 size_t swfs_speckles_expand_frames(const swfs_exposure *sched, size_t nexp);
 
-/* For the exposures sched[0..nexp) of slopes (nwfs frames of nslopes, x slopes then y),
- * every exposure gets its own copy of its WFS frames (a frame shared by two exposures is
- * copied into both), each followed by its mean x / y slope over the valid subapertures
- * (valid: nslopes/2 flags; NULL: the subapertures with a nonzero slope) minus the
- * exposure's weighted mean: out has swfs_speckles_expand_frames() frames of nslopes + 2,
- * sched_out[j] the same weights over exposure j's copies (exposures no longer share
- * frames). SWFS_ERR_VALUE if an exposure leaves [0, nwfs). */
-int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid,
+/* For the exposures sched[0..nexp) of slopes (nwfs frames of nslopes), every exposure gets
+ * its own copy of its WFS frames (a frame shared by two exposures is copied into both),
+ * each followed by its tilt t = R s (R: 2 x nslopes, from swfs_speckles_recon_tilt) minus
+ * the exposure's weighted mean: out has swfs_speckles_expand_frames() frames of
+ * nslopes + 2, sched_out[j] the same weights over exposure j's copies (exposures no longer
+ * share frames). SWFS_ERR_VALUE if an exposure leaves [0, nwfs). */
+int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const double *R,
                          const swfs_exposure *sched, size_t nexp, double *out, swfs_exposure *sched_out);
 
 int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t nact, const double *mask,

@@ -2,8 +2,8 @@
 #include "specklewfs/speckles.h"
 #include "specklewfs/interp.h"
 #include "specklewfs/status.h"
-#include "specklewfs/sync.h"
 
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -65,7 +65,7 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
     size_t ng = npup * npup;
     swfs_speckle_model *m = calloc(1, sizeof *m);
     if (!m) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    m->npup = npup; m->nact = nact; m->nslopes = 2 * nsub * nsub;
+    m->npup = npup; m->nact = nact; m->pupdx = pupdx; m->nslopes = 2 * nsub * nsub;
     m->mask = malloc(ng * sizeof *m->mask);
     if (!m->mask) { swfs_speckle_model_free(m); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
     memcpy(m->mask, mask, ng * sizeof *mask);
@@ -98,18 +98,85 @@ fail:
     return rc;
 }
 
-int swfs_speckles_recon_tilt(const swfs_recon *recon, const double *xy, double **W_ext)
+int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R_out)
 {
     *W_ext = NULL;
-    size_t na = recon->nact, ns = recon->nslopes, ne = ns + 2;
-    double *w = malloc(na * ne * sizeof *w);
-    if (!w) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t a = 0; a < na; a++) {
-        memcpy(w + a * ne, recon->W + a * ns, ns * sizeof *w);
-        w[a * ne + ns] = xy[2 * a];
-        w[a * ne + ns + 1] = xy[2 * a + 1];
+    if (R_out) *R_out = NULL;
+    const swfs_recon *recon = m->recon;
+    const size_t na = recon->nact, ns = recon->nslopes, ne = ns + 2, np = m->npup, ng = np * np;
+    /* The least-squares fit p + cx x + cy y over the illuminated samples (the Z-tilt, as
+     * the simulator's ideal speckles and a peak-registered frame have it): c = G^-1 b with
+     * G the 3 x 3 normal matrix of (1, x, y), so the tilt of a grid phase z is the linear
+     * functional f_x . z, f_y . z. */
+    double G[3][3] = {{0}}, Gi[3][3];
+    for (size_t q = 0; q < np; q++)
+        for (size_t i = 0; i < np; i++) {
+            if (!(m->mask[q * np + i] > 0)) continue;
+            double v[3] = {1, ((double)i - 0.5 * (double)(np - 1)) * m->pupdx, ((double)q - 0.5 * (double)(np - 1)) * m->pupdx};
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) G[r][c] += v[r] * v[c];
+        }
+    double det = G[0][0] * (G[1][1] * G[2][2] - G[1][2] * G[2][1]) - G[0][1] * (G[1][0] * G[2][2] - G[1][2] * G[2][0]) +
+                 G[0][2] * (G[1][0] * G[2][1] - G[1][1] * G[2][0]);
+    if (!(fabs(det) > 0)) return swfs_fail(SWFS_ERR_VALUE, "speckles: the pupil has too few illuminated samples for a tilt fit");
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++) {
+            int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
+            Gi[r][c] = (G[r1][c1] * G[r2][c2] - G[r1][c2] * G[r2][c1]) / det;
+        }
+    double *w = malloc(na * ne * sizeof *w), *R = calloc(2 * ns, sizeof *R), *F = calloc(2 * na, sizeof *F);
+    double *e = calloc(na, sizeof *e), *z = malloc(ng * sizeof *z);
+    if (!w || !R || !F || !e || !z) {
+        free(w); free(R); free(F); free(e); free(z);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
+    /* F (2 x nact): the tilt of T e_a for every actuator a (nact sparse applies, once). */
+    for (size_t a = 0; a < na; a++) {
+        e[a] = 1;
+        swfs_sparse_apply(m->T, e, z);
+        e[a] = 0;
+        double b[3] = {0, 0, 0};
+        for (size_t q = 0; q < np; q++)
+            for (size_t i = 0; i < np; i++) {
+                size_t k = q * np + i;
+                if (!(m->mask[k] > 0) || z[k] == 0) continue;
+                b[0] += z[k];
+                b[1] += z[k] * ((double)i - 0.5 * (double)(np - 1)) * m->pupdx;
+                b[2] += z[k] * ((double)q - 0.5 * (double)(np - 1)) * m->pupdx;
+            }
+        for (int t = 0; t < 2; t++) F[(size_t)t * na + a] = Gi[t + 1][0] * b[0] + Gi[t + 1][1] * b[1] + Gi[t + 1][2] * b[2];
+    }
+    /* The tilt columns: the actuator coordinates, whose interpolation is the exact plane
+     * inside the hull; A = F [x_a y_a] is then the identity, and A^-1 keeps a unit extra
+     * value a unit tilt even with samples outside the hull. */
+    double A[2][2] = {{0, 0}, {0, 0}};
+    for (size_t a = 0; a < na; a++)
+        for (int t = 0; t < 2; t++) { A[t][0] += F[(size_t)t * na + a] * xy[2 * a]; A[t][1] += F[(size_t)t * na + a] * xy[2 * a + 1]; }
+    double dA = A[0][0] * A[1][1] - A[0][1] * A[1][0];
+    if (!(fabs(dA) > 0)) {
+        free(w); free(R); free(F); free(e); free(z);
+        return swfs_fail(SWFS_ERR_VALUE, "speckles: the actuators' tilts are degenerate on the pupil");
+    }
+    const double Ai[2][2] = {{A[1][1] / dA, -A[0][1] / dA}, {-A[1][0] / dA, A[0][0] / dA}};
+    /* R = F W: the tilt of the reconstructed wavefront as a function of the slopes. */
+    for (size_t a = 0; a < na; a++)
+        for (int t = 0; t < 2; t++) {
+            double f = F[(size_t)t * na + a];
+            if (f == 0) continue;
+            for (size_t s = 0; s < ns; s++) R[(size_t)t * ns + s] += f * recon->W[a * ns + s];
+        }
+    /* W_ext = [W - C R | C] with C = [x_a y_a] A^-1: the first block reconstructs no tilt,
+     * the two columns add exactly the tilt they are given. */
+    for (size_t a = 0; a < na; a++) {
+        double cx = xy[2 * a] * Ai[0][0] + xy[2 * a + 1] * Ai[1][0], cy = xy[2 * a] * Ai[0][1] + xy[2 * a + 1] * Ai[1][1];
+        for (size_t s = 0; s < ns; s++) w[a * ne + s] = recon->W[a * ns + s] - cx * R[s] - cy * R[ns + s];
+        w[a * ne + ns] = cx;
+        w[a * ne + ns + 1] = cy;
+    }
+    free(F); free(e); free(z);
     *W_ext = w;
+    if (R_out) *R_out = R;
+    else free(R);
     return SWFS_OK;
 }
 
@@ -120,7 +187,7 @@ size_t swfs_speckles_expand_frames(const swfs_exposure *sched, size_t nexp)
     return n;
 }
 
-int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid,
+int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, const double *R,
                          const swfs_exposure *sched, size_t nexp, double *out, swfs_exposure *sched_out)
 {
     const size_t ne = nslopes + 2;
@@ -132,10 +199,11 @@ int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, cons
                              x->first + x->count, nwfs);
         double sw = 0, tx = 0, ty = 0;
         for (size_t r = 0; r < x->count; r++) {
-            double w = r == 0 ? x->w_first : (r + 1 == x->count ? x->w_last : 1.0), mx, my;
-            swfs_slopes_mean_xy(slopes + (x->first + r) * nslopes, nslopes, 1, valid, &mx, &my);
+            double w = r == 0 ? x->w_first : (r + 1 == x->count ? x->w_last : 1.0), mx = 0, my = 0;
+            const double *s = slopes + (x->first + r) * nslopes;
+            for (size_t i = 0; i < nslopes; i++) { mx += R[i] * s[i]; my += R[nslopes + i] * s[i]; }
             double *o = out + (k + r) * ne;
-            memcpy(o, slopes + (x->first + r) * nslopes, nslopes * sizeof *o);
+            memcpy(o, s, nslopes * sizeof *o);
             o[nslopes] = mx;
             o[nslopes + 1] = my;
             sw += w; tx += w * mx; ty += w * my;
