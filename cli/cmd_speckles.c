@@ -37,7 +37,7 @@ static const char *usage_text =
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; default:\n"
     "                      built here as the SVD pseudo-inverse of the Shack-Hartmann\n"
-    "                      interaction matrix, singular values above --rcond (1e-2) x the\n"
+    "                      interaction matrix, singular values above --rcond (5e-2) x the\n"
     "                      largest, at most --modes K (0 = no limit)\n"
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
     "                      slope of its exposure and keep the motion within it, as registered\n"
@@ -139,7 +139,7 @@ int swfs_cmd_speckles(int argc, char **argv)
 {
     const char *cmd = "speckles";
     const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL;
-    double rcond = 1e-2, wfs_hz = 0;
+    double rcond = 5e-2, wfs_hz = 0; /* 1e-2 amplified the WFS noise (docs/telemetry.md) */
     long modes = 0, threads = 1;
     int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE, wfs_mode = 0, tt_given = 0;
     match_pair *match = calloc((size_t)argc, sizeof *match);

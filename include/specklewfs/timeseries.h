@@ -56,7 +56,7 @@ typedef struct swfs_ts_params {
     long ao_modes;             /* K modes kept by the modal filter (56) */
     double slope_noise;        /* [rad] rms per slope (3e-8) */
     /* tip-tilt vibration added upstream of the loop */
-    double vib_amp;            /* [lambda/D at wavelen] amplitude (1.0) */
+    double vib_amp;            /* [lambda/D at wavelen] amplitude (0.5) */
     double vib_freq;           /* [Hz] 20 */
     double vib_angle;          /* [deg] 30 */
     double jitter_amp;         /* [lambda/D] rms per axis of broadband pointing jitter (0.05):

@@ -40,7 +40,7 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->ao_delay = 2;
     p->ao_modes = 56;
     p->slope_noise = 3e-8;
-    p->vib_amp = 1.0;
+    p->vib_amp = 0.5;
     p->vib_freq = 20;
     p->vib_angle = 30;
     p->jitter_amp = 0.05;
