@@ -76,6 +76,7 @@ int swfs_cmd_coherence(int argc, char **argv)
     const char *cmd = "coherence";
     const char *in = NULL, *out = NULL;
     double exposure = 0, wind = 0, bw = 0, radius = 6, diam = NAN;
+    int exp_set = 0;
     long px = -1, py = -1, nfit = 4;
     int have_pixel = 0;
     for (int i = 1; i < argc; i++) {
@@ -83,7 +84,7 @@ int swfs_cmd_coherence(int argc, char **argv)
         const char *v = i + 1 < argc ? argv[i + 1] : NULL;
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
         else if (!strcmp(a, "-o")) { if (!v) return cli_usage_error(cmd, "-o needs a file name"); out = v; i++; }
-        else if (!strcmp(a, "--exposure")) { if (cli_parse_double(cmd, a, v, &exposure)) return CLI_USAGE; i++; }
+        else if (!strcmp(a, "--exposure")) { if (cli_parse_double(cmd, a, v, &exposure)) return CLI_USAGE; exp_set = 1; i++; }
         else if (!strcmp(a, "--wind")) { if (cli_parse_double(cmd, a, v, &wind)) return CLI_USAGE; i++; }
         else if (!strcmp(a, "--bandwidth")) { if (cli_parse_double(cmd, a, v, &bw)) return CLI_USAGE; i++; }
         else if (!strcmp(a, "--radius")) { if (cli_parse_double(cmd, a, v, &radius)) return CLI_USAGE; i++; }
@@ -94,7 +95,8 @@ int swfs_cmd_coherence(int argc, char **argv)
         else if (!in) in = a;
         else return cli_usage_error(cmd, "one speckle cube only (got '%s' and '%s')", in, a);
     }
-    if (exposure < 0) return cli_usage_error(cmd, "--exposure must be positive seconds, got %g", exposure);
+    if (exposure < 0 || (exposure == 0 && exp_set))
+        return cli_usage_error(cmd, "--exposure must be positive seconds, got %g", exposure);
     if (wind < 0) return cli_usage_error(cmd, "--wind must be a speed >= 0 [m/s], got %g", wind);
     if (bw < 0 || bw >= 1) return cli_usage_error(cmd, "--bandwidth is a fraction dlambda/lambda in (0, 1), got %g", bw);
     if (!(radius > 0)) return cli_usage_error(cmd, "--radius must be > 0 lambda/D, got %g", radius);

@@ -63,13 +63,11 @@ int swfs_cmd_merge(int argc, char **argv)
     swfs_accum *acc = NULL;
     swfs_halo *halo = NULL;
     swfs_geom g;
+    int halo_written = 0;
     if (swfs_accum_merge_files(inputs, nin, &acc, &g)) { cli_error(cmd); goto done; }
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl};
-    if (swfs_accum_save(acc, out, &g, prov, 1)) { cli_error(cmd); goto free_acc; }
-    printf("merge: %zu checkpoints -> %s: %llu frames, %llu pixel-frames skipped, %zux%zu pixels\n", nin, out,
-           (unsigned long long)acc->frames, (unsigned long long)acc->skipped, acc->nx, acc->ny);
     if (halo_path) {
         swfs_noise noise = {read_noise, gain};
         swfs_estimate_options eopt = {0.0};
@@ -86,9 +84,18 @@ int swfs_cmd_merge(int argc, char **argv)
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", noise.read_noise, noise.gain);
         const char *hprov[] = {cl, nl};
         if (swfs_halo_write(halo, halo_path, &g, hprov, 2)) { cli_error(cmd); goto free_acc; }
+        halo_written = 1;
         printf("merge: %s: valid pixels %zu of %zu (%.1f %%), median SNR %.3g\n", halo_path, halo->n_valid, halo->npix,
                100.0 * halo->valid_fraction, halo->median_snr);
     }
+    /* The halo first: a run that fails leaves neither product behind. */
+    if (swfs_accum_save(acc, out, &g, prov, 1)) {
+        cli_error(cmd);
+        if (halo_written) remove(halo_path);
+        goto free_acc;
+    }
+    printf("merge: %zu checkpoints -> %s: %llu frames, %llu pixel-frames skipped, %zux%zu pixels\n", nin, out,
+           (unsigned long long)acc->frames, (unsigned long long)acc->skipped, acc->nx, acc->ny);
     rc = CLI_OK;
 free_acc:
     swfs_halo_free(halo);

@@ -83,9 +83,15 @@ int swfs_cmd_reduce(int argc, char **argv)
             else if (!strcmp(a, "--flat")) flatf = v;
             else badf = v;
             i++;
-        } else if (!strcmp(a, "--gauss-sigma")) { if (cli_parse_double(cmd, a, v, &p.gauss_sigma)) { free(raws); return CLI_USAGE; } i++; }
-        else if (!strcmp(a, "--hot-sigma")) { if (cli_parse_double(cmd, a, v, &p.hot_sigma)) { free(raws); return CLI_USAGE; } i++; }
-        else if (!strcmp(a, "--bg-radius")) { if (cli_parse_double(cmd, a, v, &p.bg_radius)) { free(raws); return CLI_USAGE; } i++; }
+        } else if (!strcmp(a, "--gauss-sigma") || !strcmp(a, "--hot-sigma") || !strcmp(a, "--bg-radius")) {
+            double x;
+            if (cli_parse_double(cmd, a, v, &x)) { free(raws); return CLI_USAGE; }
+            if (!(x > 0)) { free(raws); return cli_usage_error(cmd, "%s expects a positive number, got %s", a, v); }
+            if (!strcmp(a, "--gauss-sigma")) { p.gauss_sigma = x; sigma_set = 1; }
+            else if (!strcmp(a, "--hot-sigma")) p.hot_sigma = x;
+            else p.bg_radius = x;
+            i++;
+        }
         else if (!strcmp(a, "--no-register")) p.do_register = 0;
         else if (!strcmp(a, "--noise-region")) bg_region = 1;
         else if (a[0] == '-' && a[1]) { free(raws); return cli_usage_error(cmd, "unknown option '%s'", a); }

@@ -122,8 +122,9 @@ int swfs_cmd_simulate(int argc, char **argv)
             return rc;
         }
         if (strcmp(mode, "paper")) {
+            cli_usage_error(cmd, "mode=%s: expected paper or timeseries", mode); /* before mode is freed */
             swfs_config_free(cfg);
-            return cli_usage_error(cmd, "mode=%s: expected paper or timeseries", mode);
+            return CLI_USAGE;
         }
     }
     swfs_sim_params p;

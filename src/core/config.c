@@ -3,6 +3,7 @@
 
 #include <ctype.h>
 #include <errno.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -122,7 +123,7 @@ int swfs_config_double(swfs_config *c, const char *key, double def, double *out)
     char *end;
     errno = 0;
     double v = strtod(e->value, &end);
-    if (end == e->value || *trim(end) != '\0' || errno == ERANGE)
+    if (end == e->value || *trim(end) != '\0' || errno == ERANGE || isnan(v))
         return swfs_fail(SWFS_ERR_VALUE, "setting %s=%s: expected a number", key, e->value);
     *out = v;
     return SWFS_OK;
@@ -166,7 +167,7 @@ int swfs_config_doubles(swfs_config *c, const char *key, double *out, size_t *n)
         if (!*s) break;
         char *end;
         double v = strtod(s, &end);
-        if (end == s) return swfs_fail(SWFS_ERR_VALUE, "setting %s=%s: expected numbers", key, e->value);
+        if (end == s || isnan(v)) return swfs_fail(SWFS_ERR_VALUE, "setting %s=%s: expected numbers", key, e->value);
         if (k == cap) return swfs_fail(SWFS_ERR_VALUE, "setting %s: more than %zu values", key, cap);
         out[k++] = v;
         s = end;

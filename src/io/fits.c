@@ -99,6 +99,44 @@ static int load_shape(swfs_fits_in *f)
     return SWFS_OK;
 }
 
+/* A file cut short behind the HDU being read (a halo file missing its last extensions): the
+ * last HDU CFITSIO can read must hold all its (padded) data, and no partial extension header may
+ * follow it. Only a cut exactly at an HDU boundary goes unnoticed (that is a valid file). */
+static int check_complete(fitsfile *fp, const char *path)
+{
+    struct stat sb;
+    if (stat(path, &sb) != 0 || !S_ISREG(sb.st_mode)) return SWFS_OK;
+    int st = 0, last = 0;
+    for (int i = 1;; i++) {
+        int type = 0;
+        fits_movabs_hdu(fp, i, &type, &st);
+        if (st == END_OF_FILE) { st = 0; fits_clear_errmsg(); break; }
+        if (st) return fits_fail(SWFS_ERR_FORMAT, st, path, "file is truncated or corrupt: reading HDU header");
+        last = i;
+    }
+    if (last < 1) return SWFS_OK;
+    fits_movabs_hdu(fp, last, NULL, &st);
+    LONGLONG head = 0, dstart = 0, dend = 0;
+    fits_get_hduaddrll(fp, &head, &dstart, &dend, &st);
+    if (st) { fits_clear_errmsg(); return SWFS_OK; } /* CFITSIO reports anything stranger when it is read */
+    /* CFITSIO reads whole 2880-byte blocks: the data's padding must be there too. */
+    LONGLONG need = dend;
+    if ((LONGLONG)sb.st_size < need)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: file is truncated: HDU %d needs %lld bytes but the file has %lld", path, last,
+                         (long long)need, (long long)sb.st_size);
+    if ((LONGLONG)sb.st_size > dend) {
+        char tag[8] = "";
+        FILE *fh = fopen(path, "rb");
+        if (fh && fseeko(fh, (off_t)dend, SEEK_SET) == 0 && fread(tag, 1, 8, fh) == 8 && !memcmp(tag, "XTENSION", 8)) {
+            fclose(fh);
+            return swfs_fail(SWFS_ERR_FORMAT, "%s: file is truncated: extension %d after byte %lld is incomplete (%lld bytes "
+                             "of it in the file)", path, last, (long long)dend, (long long)((LONGLONG)sb.st_size - dend));
+        }
+        if (fh) fclose(fh);
+    }
+    return SWFS_OK;
+}
+
 int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname)
 {
     *out = NULL;
@@ -113,6 +151,7 @@ int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname)
         swfs_fits_in_close(f);
         return rc;
     }
+    if ((rc = check_complete(f->fp, path))) { swfs_fits_in_close(f); return rc; }
     if (extname) {
         rc = swfs_fits_in_move(f, extname);
         if (rc) { swfs_fits_in_close(f); return rc; }

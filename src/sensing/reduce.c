@@ -80,9 +80,11 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
 {
     *out = NULL;
     if (nx < 3 || ny < 3) return swfs_fail(SWFS_ERR_ARG, "reduce: frame %zux%zu is too small (at least 3x3)", nx, ny);
-    if (!(p->gauss_sigma > 0) || !(p->hot_sigma > 0) || !(p->flat_min < p->flat_max))
-        return swfs_fail(SWFS_ERR_ARG, "reduce: gauss_sigma %g, hot_sigma %g, flat range [%g, %g] out of range",
-                         p->gauss_sigma, p->hot_sigma, p->flat_min, p->flat_max);
+    if (!(p->gauss_sigma > 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: reference peak sigma %g pixels, expected > 0", p->gauss_sigma);
+    if (!(p->hot_sigma > 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: hot-pixel threshold %g sigma, expected > 0", p->hot_sigma);
+    if (!(p->flat_min < p->flat_max))
+        return swfs_fail(SWFS_ERR_ARG, "reduce: flat range [%g, %g], expected min < max", p->flat_min, p->flat_max);
+    if (!(p->bg_radius >= 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: background radius %g pixels, expected >= 0", p->bg_radius);
     size_t n = nx * ny;
     swfs_reduce *r = calloc(1, sizeof *r);
     if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
@@ -132,6 +134,7 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
     for (size_t i = 0; i < n; i++) {
         r->nbad += r->bad[i];
         if (!(r->flat[i] > 0)) r->flat[i] = 1.0; /* flagged anyway: avoid dividing by 0 */
+        if (!isfinite(r->dark[i])) r->dark[i] = 0.0; /* flagged: keep the raw value finite */
     }
     if (r->nbad * 2 > n) {
         size_t nb = r->nbad;
@@ -144,6 +147,11 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
             double dx = (double)i - (double)(nx / 2), dy = (double)j - (double)(ny / 2);
             if (sqrt(dx * dx + dy * dy) > rad && !r->bad[j * nx + i]) r->bg[r->nbg++] = j * nx + i;
         }
+    if (r->nbg == 0 && !(p->pixscale > 0 && p->pixscale < 0.45)) {
+        swfs_reduce_free(r);
+        return swfs_fail(SWFS_ERR_ARG, "reduce: background radius %g pixels leaves no good pixel for the noise estimate in a "
+                         "%zux%zu frame (expected a radius below the frame's half-diagonal)", rad, nx, ny);
+    }
     if (p->pixscale > 0 && p->pixscale < 0.45) {
         size_t nh = nx / 2 + 1;
         r->fin = fftw_malloc(n * sizeof *r->fin);
@@ -302,10 +310,13 @@ int swfs_reduce_frame(swfs_reduce *r, const double *raw, double *out, double *px
          * plane is the mean over the full plane. (A bad pixel replaced by its 3x3 median
          * next to the bright core leaves a sharp error that counts here as noise: see
          * docs/telemetry.md.) */
+        /* Pixels still non-finite (no finite neighbour to take the median of) count as the mean. */
         double m = 0;
-        for (size_t i = 0; i < n; i++) m += f[i];
-        m /= (double)n;
-        for (size_t i = 0; i < n; i++) r->fin[i] = (f[i] - m) * r->hann[i];
+        size_t nf = 0;
+        for (size_t i = 0; i < n; i++)
+            if (isfinite(f[i])) { m += f[i]; nf++; }
+        m = nf ? m / (double)nf : 0.0;
+        for (size_t i = 0; i < n; i++) r->fin[i] = isfinite(f[i]) ? (f[i] - m) * r->hann[i] : 0.0;
         fftw_execute(r->plan);
         size_t nh = r->nx / 2 + 1;
         double s = 0;

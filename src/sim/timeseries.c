@@ -122,6 +122,18 @@ int swfs_ts_params_check(const swfs_ts_params *p)
         fs += p->layer_frac[l];
     }
     if (fabs(fs - 1) > 1e-6) return badv("layer_frac", fs, "must sum to 1");
+    {
+        /* Infinite values pass the range checks below but make no physical sense here. */
+        const struct { const char *key; double v; } fin[] = {
+            {"wfs_rate", p->wfs_rate},       {"act_pitch", p->act_pitch},     {"slope_noise", p->slope_noise},
+            {"vib_amp", p->vib_amp},         {"vib_freq", p->vib_freq},       {"jitter_amp", p->jitter_amp},
+            {"jitter_freq", p->jitter_freq}, {"frame_ratio", p->frame_ratio}, {"cube_gap", p->cube_gap},
+            {"start_offset", p->start_offset}, {"background", p->background}, {"flat_rms", p->flat_rms}};
+        for (size_t k = 0; k < sizeof fin / sizeof fin[0]; k++)
+            if (!isfinite(fin[k].v)) return badv(fin[k].key, fin[k].v, "must be finite");
+        for (int l = 0; l < p->nlayers; l++)
+            if (!isfinite(p->layer_speed[l])) return badv("layer_speed", p->layer_speed[l], "must be finite");
+    }
     if (!(p->wfs_rate > 0)) return badv("wfs_rate", p->wfs_rate, "must be > 0");
     if (p->nsub < 2 || b->teldiam / (double)p->nsub < 2 * b->pupdx) return badv("nsub", (double)p->nsub, "subapertures must span >= 2 pupil samples");
     if (!(p->act_pitch > 2 * b->pupdx)) return badv("act_pitch", p->act_pitch, "must exceed 2 pupil samples");
@@ -132,7 +144,8 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (!(p->vib_amp >= 0) || !(p->vib_freq >= 0)) return badv("vib_amp", p->vib_amp, "vibration must be >= 0");
     if (!(p->jitter_amp >= 0) || !(p->jitter_freq > 0)) return badv("jitter_amp", p->jitter_amp, "jitter must be >= 0 with jitter_freq > 0");
     if (!(p->frame_ratio >= 1)) return badv("frame_ratio", p->frame_ratio, "must be >= 1 WFS frame per exposure");
-    if (p->ncubes < 1 || p->cube_frames < 2) return badv("ncubes", (double)p->ncubes, "need >= 1 cube of >= 2 frames");
+    if (p->ncubes < 1) return badv("ncubes", (double)p->ncubes, "need >= 1 cube");
+    if (p->cube_frames < 2) return badv("cube_frames", (double)p->cube_frames, "need >= 2 frames per cube");
     if (!(p->cube_gap >= 0) || !(p->start_offset >= 0)) return badv("cube_gap", p->cube_gap, "gap and start_offset must be >= 0");
     if (p->handshake_lag < 0) return badv("handshake_lag", (double)p->handshake_lag, "must be >= 0");
     if (p->wfs_file_frames < 0) return badv("wfs_file_frames", (double)p->wfs_file_frames, "must be >= 0");
