@@ -1,0 +1,185 @@
+#!/bin/bash
+# Bad input across the commands: missing, non-FITS and truncated files, the wrong cube type,
+# missing keywords, NaN/Inf values, unwritable outputs, unknown options and out-of-range
+# numbers. Each case checks the exit code (1 failure, 2 usage), a key phrase of the
+# one-line message (file and value named) and that no output or .part is left behind.
+# usage: bash cli_badinput.sh <specklewfs> <scratch dir>
+set -u
+B=$(cd "$(dirname "$1")" && pwd)/$(basename "$1")
+D=$2
+rm -rf "$D"
+mkdir -p "$D"
+cd "$D" || exit 1
+pass=0
+nfail=0
+
+# chk NAME RC PHRASE OUTPUT -- ARGS...: run, expect exit code RC, PHRASE (grep -F) on stderr,
+# neither OUTPUT nor OUTPUT.part left.
+chk() {
+    local name=$1 want=$2 phrase=$3 out=$4
+    shift 5
+    rm -rf "$out" "$out.part"
+    "$B" "$@" > out.txt 2> err.txt
+    local rc=$? why=""
+    [ "$rc" = "$want" ] || why="exit code $rc, expected $want"
+    grep -qF -- "$phrase" err.txt || why="$why; message lacks '$phrase'"
+    [ "$(grep -c . err.txt)" -ge 1 ] || why="$why; no message"
+    [ -e "$out" ] && why="$why; $out left behind"
+    [ -e "$out.part" ] && why="$why; $out.part left behind"
+    if [ -n "$why" ]; then
+        echo "FAIL $name: $why"
+        sed 's/^/    /' err.txt | head -3
+        nfail=$((nfail + 1))
+    else
+        pass=$((pass + 1))
+    fi
+}
+# poke FILE OFFSET BYTES: overwrite bytes at OFFSET into the primary HDU's data.
+datastart() {
+    local n
+    n=$(head -c 288000 "$1" | fold -w 80 | grep -an -m1 '^END *$' | cut -d: -f1)
+    echo $(((n * 80 + 2879) / 2880 * 2880))
+}
+poke() { printf "$3" | dd of="$1" bs=1 seek=$(($(datastart "$1") + $2)) conv=notrunc status=none; }
+NAN='\x7f\xc0\x00\x00'
+setup_fail() { echo "FAIL setup: $*"; echo "$pass passed, $((nfail + 1)) failed"; exit 1; }
+
+# ---- inputs (all small: about 3 s in all)
+SMALL="screen_n=256 teldiam=2.5 pupn=64 nscreens=2 nfx=32 nfy=24"
+"$B" simulate $SMALL read_noise=10 -o run --seed 3 --quiet > /dev/null 2>&1 || setup_fail "simulate"
+"$B" estimate run/science.fits run/speckles.fits -o run/halo.fits > /dev/null 2>&1 || setup_fail "estimate"
+"$B" pupil run/halo.fits -o run/wavefront.fits > /dev/null 2>&1 || setup_fail "pupil"
+TS="pupn=66 pupdx=0.1 screen_n=256 wfs_file_frames=1000"
+"$B" simulate mode=timeseries $TS ncubes=2 cube_frames=20 cube_gap=10 seed=1 --quiet -o ts > /dev/null 2>&1 \
+    || setup_fail "simulate mode=timeseries"
+"$B" reduce ts/raw_000.fits ts/raw_001.fits --dark ts/dark.fits --flat ts/flat.fits -o sci.fits > /dev/null 2>&1 \
+    || setup_fail "reduce"
+"$B" sync sci.fits ts/handshake.log -o timing.txt --ratio-min 5 --ratio-max 8 > /dev/null 2>&1 || setup_fail "sync"
+"$B" speckles timing.txt --science sci.fits --actuators ts/actuators.fits -o spw.fits --wfs-rate > /dev/null 2>&1 \
+    || setup_fail "speckles --wfs-rate"
+"$B" stream --timing timing.txt --science sci.fits --slopes ts --recon ts/recon_ao.fits --actuators ts/actuators.fits \
+    -o sh.fits --checkpoint ck1.fits --max-frames 20 > /dev/null 2>&1 || setup_fail "stream --checkpoint"
+cp ck1.fits ck2.fits
+echo "not a fits file" > notfits.fits
+UW=notfits.fits/x.fits # unwritable even as root: a folder inside a regular file
+cp ts/raw_000.fits traw.fits && truncate -s 100000 traw.fits
+cp run/halo.fits thalo.fits && truncate -s 100000 thalo.fits # cut inside an extension behind HALO
+cp spw.fits tspw.fits && truncate -s 50000 tspw.fits
+cp ck1.fits tck.fits && truncate -s 30000 tck.fits
+cp run/wavefront.fits twf.fits && truncate -s 100000 twf.fits
+perl -0777 -pe 's/FRAMEDT =/FRAMEDX =/' spw.fits > nodt.fits
+perl -0777 -pe 's/FRAMEDT =  /FRAMEDT = -/' spw.fits > negdt.fits
+perl -0777 -pe 's/PIXSCALE=                 0.25/PIXSCALE=                 0.50/g' ck1.fits > ckg.fits
+cp ts/dark.fits nandark.fits
+for i in $(seq 0 4 800); do poke nandark.fits "$i" "$NAN"; done
+R=ts/raw_000.fits
+
+# ---- simulate (paper and time-series modes)
+chk sim-unwritable 1 "notfits.fits/x" $UW/science.fits -- simulate $SMALL -o $UW --quiet
+chk sim-negative 1 "nscreens=-1" o/science.fits -- simulate $SMALL nscreens=-1 -o o --quiet
+chk sim-nan 1 "read_noise=nan" o/science.fits -- simulate $SMALL read_noise=nan -o o --quiet
+chk sim-inf 1 "gain=inf" o/science.fits -- simulate $SMALL gain=inf -o o --quiet
+chk sim-unknown-key 1 "tel_diam" o/science.fits -- simulate $SMALL tel_diam=3 -o o --quiet
+chk sim-unknown-opt 2 "--bogus" o/science.fits -- simulate $SMALL --bogus -o o
+chk sim-bad-mode 2 "mode=foo: expected paper or timeseries" o/science.fits -- simulate mode=foo -o o
+chk sim-config-not-text 1 "notfits.fits:1: expected key=value" o/science.fits -- simulate notfits.fits -o o
+chk sim-bad-seed 1 "seed=abc" o/science.fits -- simulate $SMALL --seed abc -o o
+chk ts-zero-frames 1 "cube_frames=0" o/raw_000.fits -- simulate mode=timeseries $TS cube_frames=0 -o o --quiet
+chk ts-inf 1 "vib_amp=inf: must be finite" o/raw_000.fits -- simulate mode=timeseries $TS vib_amp=inf -o o --quiet
+chk ts-neg-ratio 1 "frame_ratio=-6" o/raw_000.fits -- simulate mode=timeseries $TS frame_ratio=-6 -o o --quiet
+chk ts-unknown-key 1 "'foo'" o/raw_000.fits -- simulate mode=timeseries $TS foo=1 -o o --quiet
+chk ts-unwritable 1 "notfits.fits/x" $UW/raw_000.fits -- simulate mode=timeseries $TS -o $UW --quiet
+
+# ---- reduce
+chk reduce-missing 1 "nofile.fits: cannot open" o.fits -- reduce nofile.fits -o o.fits
+chk reduce-nonfits 1 "notfits.fits: cannot open as FITS" o.fits -- reduce notfits.fits -o o.fits
+chk reduce-truncated 1 "traw.fits: file is truncated" o.fits -- reduce traw.fits -o o.fits
+chk reduce-complex 1 "run/speckles.fits: camera cube is complex; expected real" o.fits -- reduce run/speckles.fits -o o.fits
+chk reduce-shapes 1 "frames are 32x24 but $R has 54x54" o.fits -- reduce $R run/science.fits -o o.fits
+chk reduce-dark-shape 1 "run/pupil.fits: calibration frame is 64x64x1 but the camera frames are 54x54" o.fits -- \
+    reduce $R --dark run/pupil.fits -o o.fits
+chk reduce-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- reduce $R -o $UW
+chk reduce-unknown 2 "--frobnicate" o.fits -- reduce $R -o o.fits --frobnicate
+chk reduce-neg-sigma 2 "--gauss-sigma expects a positive number, got -1" o.fits -- reduce $R -o o.fits --gauss-sigma -1
+chk reduce-nan-sigma 2 "got 'nan'" o.fits -- reduce $R -o o.fits --gauss-sigma nan
+chk reduce-neg-hot 2 "--hot-sigma expects a positive number" o.fits -- reduce $R -o o.fits --hot-sigma -3
+chk reduce-bg-radius 1 "background radius 1e+06 pixels leaves no good pixel" o.fits -- \
+    reduce $R -o o.fits --bg-radius 1e6 --noise-region
+# NaN dark pixels are bad pixels: the run succeeds with a finite noise estimate.
+"$B" reduce $R --dark nandark.fits -o nd.fits > out.txt 2> err.txt
+if [ $? = 0 ] && grep -q "bad pixels, background noise [0-9]" err.txt && ! grep -qi "nan" err.txt; then
+    pass=$((pass + 1))
+else
+    echo "FAIL reduce-nan-dark: $(tail -1 err.txt)"
+    nfail=$((nfail + 1))
+fi
+
+# ---- sync
+H=ts/handshake.log
+chk sync-missing 1 "nofile.fits: cannot open" o.txt -- sync nofile.fits $H -o o.txt
+chk sync-truncated 1 "file is truncated" o.txt -- sync tspw.fits $H -o o.txt
+chk sync-not-reduced 1 "run/science.fits: no NCUBES keyword" o.txt -- sync run/science.fits $H -o o.txt
+chk sync-log-missing 1 "nolog.log: cannot open the handshake log" o.txt -- sync sci.fits nolog.log -o o.txt
+chk sync-log-garbage 1 "notfits.fits:1: expected" o.txt -- sync sci.fits notfits.fits -o o.txt
+chk sync-unwritable 1 "notfits.fits/x.fits: cannot write" $UW -- sync sci.fits $H -o $UW
+chk sync-ratio-range 1 "ratio [8, 5]" o.txt -- sync sci.fits $H -o o.txt --ratio-min 8 --ratio-max 5
+chk sync-nan 2 "got 'nan'" o.txt -- sync sci.fits $H -o o.txt --lag-step nan
+chk sync-unknown 2 "--bogus" o.txt -- sync sci.fits $H -o o.txt --bogus
+
+# ---- coherence
+chk coh-missing 1 "nofile.fits: cannot open" o.fits -- coherence nofile.fits -o o.fits
+chk coh-nonfits 1 "notfits.fits: cannot open as FITS" o.fits -- coherence notfits.fits -o o.fits
+chk coh-truncated 1 "tspw.fits: file is truncated" o.fits -- coherence tspw.fits -o o.fits
+chk coh-real 1 "run/science.fits: missing keyword FRAMEDT" o.fits -- coherence run/science.fits -o o.fits
+chk coh-no-framedt 1 "nodt.fits: missing keyword FRAMEDT" o.fits -- coherence nodt.fits -o o.fits
+chk coh-neg-framedt 1 "negdt.fits: FRAMEDT = -" o.fits -- coherence negdt.fits -o o.fits
+chk coh-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- coherence spw.fits -o $UW
+chk coh-zero-exposure 2 "--exposure must be positive seconds, got 0" o.fits -- coherence spw.fits -o o.fits --exposure 0
+chk coh-pixel 2 "--pixel 100,3 is outside the 54x54 image" o.fits -- coherence spw.fits -o o.fits --pixel 100,3
+chk coh-nfit 2 "--nfit must be 1..1000" o.fits -- coherence spw.fits -o o.fits --nfit 0
+chk coh-unknown 2 "--bogus" o.fits -- coherence spw.fits -o o.fits --bogus
+
+# ---- merge
+chk merge-missing 1 "nofile.fits: cannot open" o.fits -- merge nofile.fits ck1.fits -o o.fits
+chk merge-truncated 1 "tck.fits: file is truncated" o.fits -- merge tck.fits ck1.fits -o o.fits
+chk merge-not-checkpoint 1 "run/halo.fits: no image extension EXTNAME='ACCUM'" o.fits -- merge run/halo.fits ck1.fits -o o.fits
+chk merge-geometry 1 "PIXSCALE = 0.25 but ckg.fits has 0.5" o.fits -- merge ckg.fits ck2.fits -o o.fits
+chk merge-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- merge ck1.fits ck2.fits -o $UW
+chk merge-halo-unwritable 1 "notfits.fits/x.fits: cannot create" o.fits -- merge ck1.fits ck2.fits -o o.fits --halo $UW
+chk merge-same 2 "-o ck1.fits is also an input" ck1.fits.x -- merge ck1.fits ck2.fits -o ck1.fits
+chk merge-neg-rn 2 "--read-noise must be >= 0, got -1" o.fits -- merge ck1.fits ck2.fits -o o.fits --read-noise -1
+
+# ---- report (a failed run may leave its empty output folder, never an index.html)
+chk report-missing 1 "nodir: not a folder" rep/index.html -- report nodir -o rep
+mkdir -p badrun trrun swrun
+cp notfits.fits badrun/halo.fits
+cp thalo.fits trrun/halo.fits
+cp run/science.fits swrun/speckles.fits
+chk report-nonfits 1 "badrun/halo.fits: cannot open as FITS" badrun/report/index.html -- report badrun
+chk report-truncated 1 "trrun/halo.fits: file is truncated" trrun/report/index.html -- report trrun
+chk report-real-speckles 1 "swrun/speckles.fits: expected a complex cube" swrun/report/index.html -- report swrun
+chk report-unwritable 1 "notfits.fits/x.fits" $UW -- report run -o $UW
+chk report-pixel 1 "pixel (500, 3) is outside the 32x24" rep/index.html -- report run -o rep --pixel 500 3
+chk report-percentiles 2 "--percentiles needs 0 <= LO < HI <= 100" rep/index.html -- report run -o rep --percentiles 99 1
+
+# ---- dmoffsets
+chk dm-missing 1 "nofile.fits: cannot open" o.fits -- dmoffsets nofile.fits -o o.fits --hexapolar 0.35
+chk dm-truncated 1 "twf.fits: file is truncated" o.fits -- dmoffsets twf.fits -o o.fits --hexapolar 0.35
+chk dm-no-wfe 1 "run/science.fits: no WFE extension" o.fits -- dmoffsets run/science.fits -o o.fits --hexapolar 0.35
+chk dm-actuators 1 "run/science.fits: actuator positions must be a 2 x nact image" o.fits -- \
+    dmoffsets run/wavefront.fits -o o.fits --actuators run/science.fits
+chk dm-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- dmoffsets run/wavefront.fits -o $UW --hexapolar 0.35
+chk dm-pitch 2 "--hexapolar needs a pitch > 0" o.fits -- dmoffsets run/wavefront.fits -o o.fits --hexapolar 0
+chk dm-reg 2 "--reg expects a finite number, got 'nan'" o.fits -- dmoffsets run/wavefront.fits -o o.fits --hexapolar 0.35 --reg nan
+
+# ---- correct, demo (argument and configuration errors; they simulate everything else)
+chk correct-unknown-key 1 "tel_diam" o -- correct $SMALL tel_diam=3 -o o --iterations 1
+chk correct-gain 2 "--gain" o -- correct $SMALL -o o --gain nan
+chk correct-iterations 2 "--iterations" o -- correct $SMALL -o o --iterations -1
+chk correct-actuators 1 "noact.fits: cannot open" o -- correct $SMALL -o o --actuators noact.fits
+chk demo-levels 2 "--levels" o -- demo -o o --levels 1,abc
+chk demo-unknown-key 1 "tel_diam" o -- demo -o o tel_diam=3
+chk demo-unwritable 1 "notfits.fits/x" $UW -- demo -o $UW $SMALL --loop-iterations 0 --no-report
+
+echo "$pass passed, $nfail failed"
+[ "$nfail" = 0 ]
