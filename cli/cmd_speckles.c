@@ -19,7 +19,8 @@
 
 static const char *usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
-    "                           [--recon W.fits | --rcond R | --modes K] [--tiptilt exposure|frame|keep]\n"
+    "                           [--recon W.fits | --recon map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
+    "                           [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
     "\n"
@@ -35,10 +36,17 @@ static const char *usage_text =
     "                      OBSCUR, PIXSCALE, PUPDX, PUPN and the focal window size\n"
     "  --actuators FILE    actuator positions, 2 x nact [m]\n"
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
-    "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; default:\n"
-    "                      built here as the SVD pseudo-inverse of the Shack-Hartmann\n"
-    "                      interaction matrix, singular values above --rcond (5e-2) x the\n"
-    "                      largest, at most --modes K (0 = no limit)\n"
+    "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; or built\n"
+    "                      here from the Shack-Hartmann interaction matrix D = U S V^T:\n"
+    "  --recon map         MAP / Wiener reconstructor with the prior learned from the\n"
+    "                      slopes of the usable cubes' telemetry files: mode i of D gets the\n"
+    "                      gain (1 - sigma^2 / P_i)_+ / s_i, P_i the mean square of the slopes\n"
+    "                      on u_i, sigma^2 the slope noise (a smooth roll-off, no cut to choose)\n"
+    "  --recon svd         (default) truncated pseudo-inverse: singular values above\n"
+    "                      --rcond (5e-2) x the largest, at most --modes K (0 = no limit)\n"
+    "  --slope-noise RAD   effective slope noise rms [rad] for --recon map (default: estimated\n"
+    "                      from the slopes outside D's column space: noise + aliasing)\n"
+    "  --write-recon FILE  also write the reconstructor in use (e.g. for `specklewfs stream`)\n"
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
     "                      slope of its exposure and keep the motion within it, as registered\n"
     "                      science frames have it (reduce re-centres, it cannot de-blur);\n"
@@ -62,12 +70,6 @@ static const char *usage_text =
 
 typedef struct match_pair { const char *in, *out; } match_pair;
 
-static void slopes_path(const char *tdir, const char *name, char *path, size_t cap)
-{
-    if (name[0] == '/') snprintf(path, cap, "%s", name);
-    else snprintf(path, cap, "%s/%s", tdir, name);
-}
-
 /* WFSRATE [Hz] of a telemetry file (*rate = 0 if the keyword is absent). */
 static int slopes_rate(const char *path, double *rate)
 {
@@ -78,6 +80,51 @@ static int slopes_rate(const char *path, double *rate)
     swfs_fits_in_close(f);
     if (!rc && (!found || !(*rate > 0) || !isfinite(*rate))) *rate = 0;
     return rc;
+}
+
+static void slopes_path(const char *tdir, const char *name, char *path, size_t cap)
+{
+    if (name[0] == '/') snprintf(path, cap, "%s", name);
+    else snprintf(path, cap, "%s/%s", tdir, name);
+}
+
+enum { RECON_MAP = 0, RECON_SVD = 1, RECON_FILE = 2 };
+
+/* The training set of --recon map: every telemetry file the usable cubes use, in the
+ * order they first appear, concatenated (nslopes per frame). */
+static int load_training(const char *cmd, const char *tdir, const swfs_timing *t, size_t nslopes, double **out,
+                         size_t *nframes)
+{
+    char path[8192];
+    double *buf = NULL;
+    size_t n = 0;
+    *out = NULL;
+    *nframes = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        int seen = 0;
+        for (size_t d = 0; d < c && !seen; d++)
+            seen = t->cubes[d].status == SWFS_CUBE_OK && !strcmp(t->cubes[d].slopes, t->cubes[c].slopes);
+        if (seen) continue;
+        slopes_path(tdir, t->cubes[c].slopes, path, sizeof path);
+        swfs_real *s = NULL;
+        if (swfs_fits_read_real(path, NULL, &s, NULL)) { free(buf); return cli_error(cmd); }
+        if (s->nz != 1 || s->nx != nslopes) {
+            fprintf(stderr, "specklewfs %s: %s: %zu slopes per frame, expected %zu\n", cmd, path, s->nx, nslopes);
+            swfs_real_free(s);
+            free(buf);
+            return CLI_FAIL;
+        }
+        double *tmp = realloc(buf, (n + s->ny) * nslopes * sizeof *tmp);
+        if (!tmp) { swfs_real_free(s); free(buf); fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+        buf = tmp;
+        memcpy(buf + n * nslopes, s->data, s->ny * nslopes * sizeof *buf);
+        n += s->ny;
+        swfs_real_free(s);
+    }
+    *out = buf;
+    *nframes = n;
+    return CLI_OK;
 }
 
 /* Copy the frames of the usable cubes of IN to OUT, with its keywords that matter. */
@@ -138,8 +185,10 @@ done:
 int swfs_cmd_speckles(int argc, char **argv)
 {
     const char *cmd = "speckles";
-    const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL;
+    const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL, *wrecon = NULL;
     double rcond = 5e-2, wfs_hz = 0; /* 1e-2 amplified the WFS noise (docs/telemetry.md) */
+    double slope_noise = 0;
+    int recon_kind = RECON_SVD, rcond_given = 0; /* map: tied on average (docs/telemetry.md) */
     long modes = 0, threads = 1;
     int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE, wfs_mode = 0, tt_given = 0;
     match_pair *match = calloc((size_t)argc, sizeof *match);
@@ -150,16 +199,21 @@ int swfs_cmd_speckles(int argc, char **argv)
         int bad = 0;
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); free(match); return CLI_OK; }
         else if (!strcmp(a, "-o") || !strcmp(a, "--science") || !strcmp(a, "--actuators") || !strcmp(a, "--recon") ||
-                 !strcmp(a, "--pupil")) {
+                 !strcmp(a, "--pupil") || !strcmp(a, "--write-recon")) {
             if (!v) { free(match); return cli_usage_error(cmd, "%s needs a file name", a); }
             if (!strcmp(a, "-o")) out = v;
             else if (!strcmp(a, "--science")) sci = v;
             else if (!strcmp(a, "--actuators")) actf = v;
-            else if (!strcmp(a, "--recon")) reconf = v;
+            else if (!strcmp(a, "--recon")) {
+                if (!strcmp(v, "map")) { recon_kind = RECON_MAP; reconf = NULL; }
+                else if (!strcmp(v, "svd")) { recon_kind = RECON_SVD; reconf = NULL; }
+                else { recon_kind = RECON_FILE; reconf = v; }
+            } else if (!strcmp(a, "--write-recon")) wrecon = v;
             else pupf = v;
             i++;
-        } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); i++; }
-        else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); i++; }
+        } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); rcond_given = 1; i++; }
+        else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); rcond_given = 1; i++; }
+        else if (!strcmp(a, "--slope-noise")) { bad = cli_parse_double(cmd, a, v, &slope_noise); i++; }
         else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
         else if (!strcmp(a, "--wfs-hz")) { bad = cli_parse_double(cmd, a, v, &wfs_hz); i++; }
         else if (!strcmp(a, "--wfs-rate")) wfs_mode = 1;
@@ -190,6 +244,9 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     if (!timing || !sci || !actf || !out) { free(match); return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators and -o"); }
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) { free(match); return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1"); }
+    if (!(slope_noise >= 0) || !isfinite(slope_noise)) { free(match); return cli_usage_error(cmd, "--slope-noise must be a finite rms >= 0 [rad], got %g", slope_noise); }
+    if (rcond_given && recon_kind != RECON_SVD) { free(match); return cli_usage_error(cmd, "--rcond and --modes go with --recon svd"); }
+    if (slope_noise > 0 && recon_kind != RECON_MAP) { free(match); return cli_usage_error(cmd, "--slope-noise goes with --recon map"); }
     if (!(wfs_hz >= 0)) { free(match); return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", wfs_hz); }
     if (wfs_mode) {
         /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
@@ -312,6 +369,18 @@ int swfs_cmd_speckles(int argc, char **argv)
         cli_error(cmd);
         goto done;
     }
+    if (recon_kind == RECON_MAP) {
+        double *train = NULL;
+        size_t ntrain = 0;
+        if (load_training(cmd, tdir, t, nslopes, &train, &ntrain)) goto done;
+        int mrc = swfs_speckle_model_set_map(m, train, ntrain, slope_noise * slope_noise, tt_mode == SWFS_TT_FRAME);
+        free(train);
+        if (mrc) { cli_error(cmd); goto done; }
+        fprintf(stderr, "speckles: MAP reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
+                "%.1f effective\n", ntrain, sqrt(m->recon->noise_var), slope_noise > 0 ? "given" : "estimated",
+                m->recon->nmodes, m->recon->dof);
+    }
+    if (wrecon && swfs_recon_write(m->recon, wrecon)) { cli_error(cmd); goto done; }
     /* SWFS_TT_EXPOSURE: two extra columns carry each frame's tip-tilt minus its exposure's
      * mean as exact tilts (speckles.h). */
     const int xt = tt_mode == SWFS_TT_EXPOSURE;

@@ -92,5 +92,11 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
                               size_t npup, double pupdx, double teldiam, size_t nsub, const swfs_recon *recon,
                               double rcond, size_t max_modes, int remove_tiptilt);
 void swfs_speckle_model_free(swfs_speckle_model *m);
+/* Replace the model's reconstructor by the MAP (Wiener) reconstructor of D = S T learned
+ * from the telemetry (swfs_recon_map: slopes nframes x nslopes, consecutive WFS frames;
+ * noise_var [rad^2] > 0 fixes the slope noise, <= 0 estimates it), projected like
+ * swfs_speckle_model_create when remove_tiptilt. */
+int swfs_speckle_model_set_map(swfs_speckle_model *m, const double *slopes, size_t nframes, double noise_var,
+                               int remove_tiptilt);
 
 #endif

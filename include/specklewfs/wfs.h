@@ -79,6 +79,8 @@ typedef struct swfs_recon {
     size_t nmodes;  /* modes kept */
     double *sv;     /* all singular values of D, descending (min(nact, nslopes)); NULL if loaded */
     size_t nsv;
+    double noise_var; /* swfs_recon_map: the slope noise variance used [rad^2]; 0 otherwise */
+    double dof;       /* swfs_recon_map: sum of the modal Wiener factors (effective modes) */
 } swfs_recon;
 
 /* Truncated pseudo-inverse of D (nslopes x nact) by LAPACKE SVD: keep mode i when
@@ -86,6 +88,29 @@ typedef struct swfs_recon {
  * reconstructor" of Sec. 4.4, or the AO loop's conservative modal filter with few modes. */
 int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, size_t max_modes,
                    swfs_recon **out);
+/* MAP (Wiener) reconstructor with the prior learned from the telemetry itself: with
+ * D = U S V^T and white slope noise of variance sigma^2 on the valid slopes, the slopes'
+ * projection on mode i, y_i = u_i^T s, has mean square P_i = s_i^2 a_i + sigma^2 (a_i the
+ * prior variance of v_i^T z). a_i = (P_i - sigma^2)_+ / s_i^2 from the frames, capped at
+ * the largest a_i of the well-sensed modes (s_i >= 0.1 s_0), gives the MAP reconstructor
+ * of the Gaussian prior C_z = V diag(a) V^T,
+ *   W = (D^T D / sigma^2 + C_z^-1)^-1 D^T / sigma^2 = V diag(g_i) U^T,
+ *   g_i = s_i a_i / (s_i^2 a_i + sigma^2)  (= (1 - sigma^2 / P_i) / s_i below the cap),
+ * a smooth roll-off instead of a hard singular-value cut. slopes: nframes x nslopes
+ * (row-major, consecutive WFS frames); noise_var > 0 fixes sigma^2 [rad^2], noise_var
+ * <= 0 estimates it (swfs_slopes_noise_var). D's rows of unilluminated subapertures must
+ * be 0 (swfs_interaction_matrix), as the slopes there. r->noise_var, r->dof report the
+ * sigma^2 used and sum g_i s_i (effective modes). */
+int swfs_recon_map(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
+                   double noise_var, swfs_recon **out);
+/* Effective slope noise variance per slope [rad^2] of slopes (nframes x nslopes, nframes
+ * >= 8): the mean square of the slopes outside the column space of D over the valid slopes
+ * (rows of D not all 0), per degree of freedom -- white noise plus whatever the DM cannot
+ * make (aliasing), both noise to a reconstructor. If D spans every valid slope: for every
+ * mode, the temporal structure function d(tau) of y_i extrapolated to tau = 0 from
+ * tau = 1, 2, (2 d(1) - d(2)) / 2, the median over the modes. */
+int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
+                          double *noise_var);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
  * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,

@@ -67,6 +67,180 @@ int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, s
     return SWFS_OK;
 }
 
+/* Thin SVD of D (m x n, row-major): U m x k, sv k, VT k x n, k = min(m, n). */
+static int svd_thin(const double *D, size_t m, size_t n, double **U, double **sv, double **VT)
+{
+    size_t k = m < n ? m : n;
+    double *A = malloc(m * n * sizeof *A);
+    *U = malloc(m * k * sizeof **U);
+    *sv = malloc(k * sizeof **sv);
+    *VT = malloc(k * n * sizeof **VT);
+    if (!A || !*U || !*sv || !*VT) {
+        free(A); free(*U); free(*sv); free(*VT);
+        *U = *sv = *VT = NULL;
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t i = 0; i < m * n; i++) {
+        if (!isfinite(D[i])) {
+            free(A); free(*U); free(*sv); free(*VT);
+            *U = *sv = *VT = NULL;
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor: interaction matrix entry %zu is not finite", i);
+        }
+        A[i] = D[i];
+    }
+    lapack_int info = LAPACKE_dgesdd(LAPACK_ROW_MAJOR, 'S', (lapack_int)m, (lapack_int)n, A, (lapack_int)n, *sv, *U,
+                                     (lapack_int)k, *VT, (lapack_int)n);
+    free(A);
+    if (info != 0) {
+        free(*U); free(*sv); free(*VT);
+        *U = *sv = *VT = NULL;
+        return swfs_fail(SWFS_ERR_NUMERIC, "reconstructor: SVD of the %zu x %zu interaction matrix failed (%d)", m, n,
+                         (int)info);
+    }
+    return SWFS_OK;
+}
+
+static int cmp_double(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+/* Numerical rank: singular values above 1e-10 of the largest. */
+static size_t svd_rank(const double *sv, size_t k)
+{
+    size_t r = 0;
+    while (r < k && sv[r] > 1e-10 * sv[0]) r++;
+    return r;
+}
+
+/* For the modes i < rank of D = U S V^T: P[i] = mean square of y_i = u_i^T s over the
+ * frames, N[i] = (2 d(1) - d(2)) / 2 from the temporal structure function of y_i. */
+static int mode_stats(const double *U, size_t m, size_t k, size_t rank, const double *slopes, size_t nframes, double *P,
+                      double *N)
+{
+    for (size_t i = 0; i < m * nframes; i++)
+        if (!isfinite(slopes[i]))
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor: slope %zu of frame %zu is not finite", i % m, i / m);
+    double *Y = malloc(nframes * rank * sizeof *Y);
+    if (!Y) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    /* Y (nframes x rank) = slopes (nframes x m) U[:, :rank]. */
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nframes, (int)rank, (int)m, 1.0, slopes, (int)m, U,
+                (int)k, 0.0, Y, (int)rank);
+    for (size_t i = 0; i < rank; i++) {
+        double p = 0, d1 = 0, d2 = 0;
+        for (size_t t = 0; t < nframes; t++) {
+            double y = Y[t * rank + i];
+            p += y * y;
+            if (t + 1 < nframes) { double d = Y[(t + 1) * rank + i] - y; d1 += d * d; }
+            if (t + 2 < nframes) { double d = Y[(t + 2) * rank + i] - y; d2 += d * d; }
+        }
+        P[i] = p / (double)nframes;
+        N[i] = 0.5 * (2 * d1 / (double)(nframes - 1) - d2 / (double)(nframes - 2));
+    }
+    free(Y);
+    return SWFS_OK;
+}
+
+/* The effective slope noise variance per slope (see wfs.h): the mean square of the slopes
+ * outside the column space of D over the valid slopes (rows of D not all 0), per degree of
+ * freedom; if D spans every valid slope, the structure-function median of the modes. */
+static double noise_estimate(const double *D, size_t m, size_t n, size_t rank, const double *slopes, size_t nframes,
+                             const double *P, double *N)
+{
+    size_t nvs = 0;
+    for (size_t i = 0; i < m; i++) {
+        int nz = 0;
+        for (size_t j = 0; j < n && !nz; j++) nz = D[i * n + j] != 0;
+        nvs += (size_t)nz;
+    }
+    if (nvs > rank) {
+        double tot = 0, in = 0;
+        for (size_t t = 0; t < nframes; t++)
+            for (size_t i = 0; i < m; i++) tot += slopes[t * m + i] * slopes[t * m + i];
+        for (size_t i = 0; i < rank; i++) in += P[i];
+        double v = (tot / (double)nframes - in) / (double)(nvs - rank);
+        if (v > 0) return v;
+    }
+    qsort(N, rank, sizeof *N, cmp_double);
+    double med = rank % 2 ? N[rank / 2] : 0.5 * (N[rank / 2 - 1] + N[rank / 2]);
+    return med > 0 ? med : 0;
+}
+
+int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
+                          double *noise_var)
+{
+    *noise_var = 0;
+    if (nslopes == 0 || nact == 0) return swfs_fail(SWFS_ERR_ARG, "reconstructor: empty interaction matrix");
+    if (nframes < 8) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu frames, expected at least 8", nframes);
+    double *U, *sv, *VT;
+    int rc = svd_thin(D, nslopes, nact, &U, &sv, &VT);
+    if (rc) return rc;
+    size_t k = nslopes < nact ? nslopes : nact, rank = svd_rank(sv, k);
+    double *P = malloc((rank + 1) * sizeof *P), *N = malloc((rank + 1) * sizeof *N);
+    if (!P || !N) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    else if (!rank) rc = swfs_fail(SWFS_ERR_NUMERIC, "reconstructor: the interaction matrix is zero");
+    else rc = mode_stats(U, nslopes, k, rank, slopes, nframes, P, N);
+    if (!rc) *noise_var = noise_estimate(D, nslopes, nact, rank, slopes, nframes, P, N);
+    free(U); free(sv); free(VT); free(P); free(N);
+    return rc;
+}
+
+int swfs_recon_map(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
+                   double noise_var, swfs_recon **out)
+{
+    *out = NULL;
+    if (nslopes == 0 || nact == 0) return swfs_fail(SWFS_ERR_ARG, "reconstructor: empty interaction matrix");
+    if (!(noise_var <= 0) && !isfinite(noise_var))
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor: slope noise variance %g is not finite", noise_var);
+    if (nframes < 8)
+        return swfs_fail(SWFS_ERR_ARG, "MAP reconstructor: %zu frames to learn the prior from, expected at least 8", nframes);
+    const size_t m = nslopes, n = nact, k = m < n ? m : n;
+    double *U, *sv, *VT;
+    int rc = svd_thin(D, m, n, &U, &sv, &VT);
+    if (rc) return rc;
+    const size_t rank = svd_rank(sv, k);
+    double *P = malloc((rank + 1) * sizeof *P), *N = malloc((rank + 1) * sizeof *N);
+    swfs_recon *r = calloc(1, sizeof *r);
+    if (r) r->W = calloc(n * m, sizeof *r->W);
+    if (!P || !N || !r || !r->W) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    else if (!rank) rc = swfs_fail(SWFS_ERR_NUMERIC, "reconstructor: the interaction matrix is zero");
+    else rc = mode_stats(U, m, k, rank, slopes, nframes, P, N);
+    if (!rc && noise_var <= 0) noise_var = noise_estimate(D, m, n, rank, slopes, nframes, P, N);
+    if (!rc && !(noise_var > 0))
+        rc = swfs_fail(SWFS_ERR_NUMERIC, "MAP reconstructor: the slope noise estimate is 0 (noise-free slopes?); give it");
+    if (rc) { free(U); free(sv); free(VT); free(P); free(N); swfs_recon_free(r); return rc; }
+    /* Prior variances a_i = (P_i - sigma^2)_+ / s_i^2, capped at the largest one among the
+     * well-sensed modes (s_i >= 0.1 s_0): in a poorly sensed mode P_i - sigma^2 is mostly
+     * the scatter of the noise estimate, and 1 / s_i^2 would turn it into an implausible
+     * prior (and a huge gain). */
+    double amax = 0;
+    for (size_t j = 0; j < rank; j++)
+        if (sv[j] >= 0.1 * sv[0] && P[j] > noise_var) {
+            double a = (P[j] - noise_var) / (sv[j] * sv[j]);
+            if (a > amax) amax = a;
+        }
+    /* W = V diag(g_i) U^T, g_i = s_i a_i / (s_i^2 a_i + sigma^2): the MAP / Wiener gain of
+     * mode i, (1 - sigma^2 / P_i) / s_i when the cap is not reached. */
+    size_t kept = 0;
+    double dof = 0;
+    for (size_t j = 0; j < k; j++) {
+        double a = j < rank && P[j] > noise_var ? (P[j] - noise_var) / (sv[j] * sv[j]) : 0;
+        if (a > amax) a = amax;
+        double g = a > 0 ? sv[j] * a / (sv[j] * sv[j] * a + noise_var) : 0;
+        if (g > 0) kept++;
+        dof += g * sv[j];
+        for (size_t i = 0; i < m; i++) U[i * k + j] *= g;
+    }
+    cblas_dgemm(CblasRowMajor, CblasTrans, CblasTrans, (int)n, (int)m, (int)k, 1.0, VT, (int)n, U, (int)k, 0.0, r->W,
+                (int)m);
+    free(U); free(VT); free(P); free(N);
+    r->nact = n; r->nslopes = m; r->nmodes = kept; r->sv = sv; r->nsv = k;
+    r->noise_var = noise_var; r->dof = dof;
+    *out = r;
+    return SWFS_OK;
+}
+
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
                      swfs_recon **out)
 {
