@@ -285,6 +285,18 @@ static void apply_range(swfs_plot_image_spec *s, const swfs_report_range *r)
     s->zlog = r->log;
 }
 
+/* One colour-mapped panel: labels, the range r, then the image z (nx x ny). */
+static int image_panel(swfs_plot *p, int panel, swfs_plot_image_spec *s, const swfs_report_range *r, const char *title,
+                       const char *zlabel, swfs_cmap cmap, const double *z, size_t nx, size_t ny)
+{
+    s->title = title;
+    s->zlabel = zlabel;
+    s->cmap = cmap;
+    apply_range(s, r);
+    int rc = swfs_plot_panel(p, panel);
+    return rc ? rc : swfs_plot_image(p, z, nx, ny, s);
+}
+
 /* The pixel with the largest score among ok pixels at radius [rmin, rmax] lambda/D
  * (anywhere if PIXSCALE is unknown). */
 static int best_pixel(const ctx *c, const double *score, const unsigned char *ok, double rmin, double rmax,
@@ -453,11 +465,10 @@ static int fig_halo(ctx *c)
     focal_spec(c, &s);
 
     swfs_report_range r = prepare(c, "halo_amp", amp, n, NULL, R_LOG, 1.0, 0, 0, z);
-    s.title = "static halo: log₁₀ |Ψ|";
-    s.zlabel = c->ref_i >= 0 ? "|Ψ| / |Ψ| at the first-ring pixel" : "|Ψ| / max |Ψ|";
-    s.cmap = SWFS_CMAP_MAGMA;
-    apply_range(&s, &r);
-    if ((rc = swfs_plot_panel(p, 0)) || (rc = swfs_plot_image(p, z, c->nx, c->ny, &s))) goto done;
+    if ((rc = image_panel(p, 0, &s, &r, "static halo: log₁₀ |Ψ|",
+                          c->ref_i >= 0 ? "|Ψ| / |Ψ| at the first-ring pixel" : "|Ψ| / max |Ψ|", SWFS_CMAP_MAGMA, z,
+                          c->nx, c->ny)))
+        goto done;
     if (c->ref_i >= 0) {
         double x = focal_x(c, (double)c->ref_i, c->nx), y = focal_x(c, (double)c->ref_j, c->ny);
         double rr = have_pixscale(c) ? 0.6 : 1.5;
@@ -466,19 +477,15 @@ static int fig_halo(ctx *c)
 
     for (size_t k = 0; k < n; k++) amp[k] = carg(c->halo->data[k]);
     r = prepare(c, "halo_phase", amp, n, vmask, R_FIXED, 1.0, -M_PI, M_PI, z);
-    s.title = vmask ? "static halo: arg Ψ (valid pixels)" : "static halo: arg Ψ";
-    s.zlabel = "phase [rad]";
-    s.cmap = SWFS_CMAP_PHASE;
-    apply_range(&s, &r);
-    if ((rc = swfs_plot_panel(p, 1)) || (rc = swfs_plot_image(p, z, c->nx, c->ny, &s))) goto done;
+    if ((rc = image_panel(p, 1, &s, &r, vmask ? "static halo: arg Ψ (valid pixels)" : "static halo: arg Ψ",
+                          "phase [rad]", SWFS_CMAP_PHASE, z, c->nx, c->ny)))
+        goto done;
 
     if (c->visib) {
         r = prepare(c, "visib", c->visib->data, n, NULL, R_FIXED, 1.0, 0.0, 1.0, z);
-        s.title = "visibility (lighter is better)";
-        s.zlabel = "visibility";
-        s.cmap = SWFS_CMAP_GRAY;
-        apply_range(&s, &r);
-        if ((rc = swfs_plot_panel(p, 2)) || (rc = swfs_plot_image(p, z, c->nx, c->ny, &s))) goto done;
+        if ((rc = image_panel(p, 2, &s, &r, "visibility (lighter is better)", "visibility", SWFS_CMAP_GRAY, z, c->nx,
+                              c->ny)))
+            goto done;
     }
     rc = swfs_plot_commit(p);
     p = NULL;
@@ -879,11 +886,9 @@ static int fig_pupil(ctx *c)
     swfs_report_range r;
     if (amp) {
         r = prepare(c, "amplitude", amp->data, n, mask, R_AUTO, 1.0, 0, 0, z);
-        s.title = "pupil amplitude |A|";
-        s.zlabel = "amplitude [arbitrary units]";
-        s.cmap = SWFS_CMAP_GRAY;
-        apply_range(&s, &r);
-        if ((rc = swfs_plot_panel(p, panel++)) || (rc = swfs_plot_image(p, z, nx, ny, &s))) goto done;
+        if ((rc = image_panel(p, panel++, &s, &r, "pupil amplitude |A|", "amplitude [arbitrary units]", SWFS_CMAP_GRAY,
+                              z, nx, ny)))
+            goto done;
         if (pup && (rc = swfs_plot_contour(p, outline, nx, ny, 0.5, SWFS_COLOR_RED, 1.5))) goto done;
     }
     /* One symmetric range for the WFE, the truth and the error, so they compare by eye. */
@@ -1015,34 +1020,22 @@ static int fig_coherence(ctx *c)
     if (tau0) {
         c->sum->tau0_median = swfs_report_percentile(tau0->data, n, NULL, 50.0);
         r = prepare(c, "tau0", tau0->data, n, NULL, R_AUTO, 1e3, 0, 0, z);
-        s.title = "coherence time τ₀ (|Γ(τ)/Γ(0)| = e#u-1/2#d)";
-        s.zlabel = "τ₀ [ms]";
-        s.cmap = SWFS_CMAP_VIRIDIS;
-        apply_range(&s, &r);
-        rc = swfs_plot_panel(p, panel++);
-        if (!rc) rc = swfs_plot_image(p, z, c->nx, c->ny, &s);
+        rc = image_panel(p, panel++, &s, &r, "coherence time τ₀ (|Γ(τ)/Γ(0)| = e#u-1/2#d)", "τ₀ [ms]",
+                         SWFS_CMAP_VIRIDIS, z, c->nx, c->ny);
         if (!rc && have_pixscale(c))
             rc = swfs_plot_circles(p, 0, 0, circles, 6, SWFS_COLOR_WHITE, SWFS_LINE_DASHED, 1.0);
     }
     if (!rc && trot) {
         r = prepare(c, "trot", trot->data, n, NULL, R_AUTO, 1e3, 0, 0, z);
-        s.title = "phase-rotation time (±π/2)";
-        s.zlabel = "time [ms]";
-        s.cmap = SWFS_CMAP_VIRIDIS;
-        apply_range(&s, &r);
-        rc = swfs_plot_panel(p, panel++);
-        if (!rc) rc = swfs_plot_image(p, z, c->nx, c->ny, &s);
+        rc = image_panel(p, panel++, &s, &r, "phase-rotation time (±π/2)", "time [ms]", SWFS_CMAP_VIRIDIS, z, c->nx,
+                         c->ny);
         if (!rc && have_pixscale(c))
             rc = swfs_plot_circles(p, 0, 0, circles, 6, SWFS_COLOR_WHITE, SWFS_LINE_DASHED, 1.0);
     }
     if (!rc && sf) {
         r = prepare(c, "snr_fact", sf->data, n, NULL, R_AUTO, 1.0, 0, 0, z);
-        s.title = "SNR factor of the exposure time";
-        s.zlabel = "SNR / ideal short-exposure SNR";
-        s.cmap = SWFS_CMAP_GRAY;
-        apply_range(&s, &r);
-        rc = swfs_plot_panel(p, panel++);
-        if (!rc) rc = swfs_plot_image(p, z, c->nx, c->ny, &s);
+        rc = image_panel(p, panel++, &s, &r, "SNR factor of the exposure time", "SNR / ideal short-exposure SNR",
+                         SWFS_CMAP_GRAY, z, c->nx, c->ny);
     }
     if (!rc && mcf) {
         size_t nl = mcf->nz;
