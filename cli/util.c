@@ -14,7 +14,12 @@
 
 int cli_error(const char *cmd)
 {
-    fprintf(stderr, "specklewfs %s: %s\n", cmd, swfs_last_error());
+    /* Library messages of a module named like the command ("report: ...") would read
+     * "specklewfs report: report: ..."; say the command once. */
+    const char *msg = swfs_last_error();
+    size_t n = strlen(cmd);
+    if (!strncmp(msg, cmd, n) && msg[n] == ':' && msg[n + 1] == ' ') msg += n + 2;
+    fprintf(stderr, "specklewfs %s: %s\n", cmd, msg);
     return CLI_FAIL;
 }
 
