@@ -109,12 +109,14 @@ int swfs_cmd_estimate(int argc, char **argv)
     /* The g regularization is given in lambda/D; the library works in pixels. */
     swfs_estimate_options eopt = {0.0};
     if (g_smooth_lod > 0) {
-        if (!isfinite(geom.pixscale) || !(geom.pixscale > 0)) {
-            fprintf(stderr, "specklewfs %s: %s: no PIXSCALE keyword, so --g-smooth %g lambda/D cannot be converted to "
-                    "pixels; add PIXSCALE [lambda/D per pixel] or use --g-smooth 0\n", cmd, in_sp, g_smooth_lod);
-            goto done;
+        if (isfinite(geom.pixscale) && geom.pixscale > 0) {
+            eopt.g_smooth = g_smooth_lod / geom.pixscale;
+        } else {
+            /* No sampling known: assume the paper's 0.25 lambda/D per pixel, and say so. */
+            eopt.g_smooth = g_smooth_lod / 0.25;
+            fprintf(stderr, "specklewfs %s: note: %s has no PIXSCALE keyword; --g-smooth %g lambda/D taken as %g "
+                    "pixels (0.25 lambda/D per pixel)\n", cmd, in_sp, g_smooth_lod, eopt.g_smooth);
         }
-        eopt.g_smooth = g_smooth_lod / geom.pixscale;
     }
     const size_t nx = ss->nx, ny = ss->ny, nz = ss->nz, np = nx * ny;
     acc = swfs_accum_create(nx, ny);
