@@ -19,8 +19,8 @@
 
 static const char *usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
-    "                           [--recon W.fits | --recon map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
-    "                           [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
+    "                           [--recon W.fits | --recon vk|map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
+    "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
     "\n"
@@ -38,13 +38,15 @@ static const char *usage_text =
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; or built\n"
     "                      here from the Shack-Hartmann interaction matrix D = U S V^T:\n"
+    "  --recon vk          (default) MAP, von Karman prior C of the actuators (--vk-l0 M: 10)\n"
+    "                      scaled to the slopes: W = C D^T (D C D^T + sigma^2 I)^-1\n"
     "  --recon map         MAP / Wiener reconstructor with the prior learned from the\n"
     "                      slopes of the usable cubes' telemetry files: mode i of D gets the\n"
     "                      gain (1 - sigma^2 / P_i)_+ / s_i, P_i the mean square of the slopes\n"
-    "                      on u_i, sigma^2 the slope noise (a smooth roll-off, no cut to choose)\n"
-    "  --recon svd         (default) truncated pseudo-inverse: singular values above\n"
+    "                      on u_i, sigma^2 the slope noise\n"
+    "  --recon svd         truncated pseudo-inverse: singular values above\n"
     "                      --rcond (5e-2) x the largest, at most --modes K (0 = no limit)\n"
-    "  --slope-noise RAD   effective slope noise rms [rad] for --recon map (default: estimated\n"
+    "  --slope-noise RAD   effective slope noise rms [rad] for --recon vk|map (default: estimated\n"
     "                      from the slopes outside D's column space: noise + aliasing)\n"
     "  --write-recon FILE  also write the reconstructor in use (e.g. for `specklewfs stream`)\n"
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
@@ -88,7 +90,7 @@ static void slopes_path(const char *tdir, const char *name, char *path, size_t c
     else snprintf(path, cap, "%s/%s", tdir, name);
 }
 
-enum { RECON_MAP = 0, RECON_SVD = 1, RECON_FILE = 2 };
+enum { RECON_MAP = 0, RECON_SVD = 1, RECON_FILE = 2, RECON_VK = 3 };
 
 /* The training set of --recon map: every telemetry file the usable cubes use, in the
  * order they first appear, concatenated (nslopes per frame). */
@@ -187,8 +189,8 @@ int swfs_cmd_speckles(int argc, char **argv)
     const char *cmd = "speckles";
     const char *timing = NULL, *sci = NULL, *actf = NULL, *out = NULL, *reconf = NULL, *pupf = NULL, *wrecon = NULL;
     double rcond = 5e-2, wfs_hz = 0; /* 1e-2 amplified the WFS noise (docs/telemetry.md) */
-    double slope_noise = 0;
-    int recon_kind = RECON_SVD, rcond_given = 0; /* map: tied on average (docs/telemetry.md) */
+    double slope_noise = 0, vk_l0 = 10; /* an effective outer scale of the AO residual (docs/telemetry.md) */
+    int recon_kind = RECON_VK, rcond_given = 0; /* vk: better than svd in 4 of 4 cases (docs/telemetry.md) */
     long modes = 0, threads = 1;
     int tt_mode = SWFS_TT_EXPOSURE, mean_mode = SWFS_MEAN_ENSEMBLE, wfs_mode = 0, tt_given = 0;
     match_pair *match = calloc((size_t)argc, sizeof *match);
@@ -206,6 +208,7 @@ int swfs_cmd_speckles(int argc, char **argv)
             else if (!strcmp(a, "--actuators")) actf = v;
             else if (!strcmp(a, "--recon")) {
                 if (!strcmp(v, "map")) { recon_kind = RECON_MAP; reconf = NULL; }
+                else if (!strcmp(v, "vk")) { recon_kind = RECON_VK; reconf = NULL; }
                 else if (!strcmp(v, "svd")) { recon_kind = RECON_SVD; reconf = NULL; }
                 else { recon_kind = RECON_FILE; reconf = v; }
             } else if (!strcmp(a, "--write-recon")) wrecon = v;
@@ -213,6 +216,7 @@ int swfs_cmd_speckles(int argc, char **argv)
             i++;
         } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); rcond_given = 1; i++; }
         else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); rcond_given = 1; i++; }
+        else if (!strcmp(a, "--vk-l0")) { bad = cli_parse_double(cmd, a, v, &vk_l0); i++; }
         else if (!strcmp(a, "--slope-noise")) { bad = cli_parse_double(cmd, a, v, &slope_noise); i++; }
         else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
         else if (!strcmp(a, "--wfs-hz")) { bad = cli_parse_double(cmd, a, v, &wfs_hz); i++; }
@@ -246,7 +250,8 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) { free(match); return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1"); }
     if (!(slope_noise >= 0) || !isfinite(slope_noise)) { free(match); return cli_usage_error(cmd, "--slope-noise must be a finite rms >= 0 [rad], got %g", slope_noise); }
     if (rcond_given && recon_kind != RECON_SVD) { free(match); return cli_usage_error(cmd, "--rcond and --modes go with --recon svd"); }
-    if (slope_noise > 0 && recon_kind != RECON_MAP) { free(match); return cli_usage_error(cmd, "--slope-noise goes with --recon map"); }
+    if (slope_noise > 0 && recon_kind != RECON_MAP && recon_kind != RECON_VK) { free(match); return cli_usage_error(cmd, "--slope-noise goes with --recon vk or map"); }
+    if (!(vk_l0 > 0) || !isfinite(vk_l0)) { free(match); return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m], got %g", vk_l0); }
     if (!(wfs_hz >= 0)) { free(match); return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", wfs_hz); }
     if (wfs_mode) {
         /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
@@ -369,15 +374,18 @@ int swfs_cmd_speckles(int argc, char **argv)
         cli_error(cmd);
         goto done;
     }
-    if (recon_kind == RECON_MAP) {
+    if (recon_kind == RECON_MAP || recon_kind == RECON_VK) {
         double *train = NULL;
         size_t ntrain = 0;
         if (load_training(cmd, tdir, t, nslopes, &train, &ntrain)) goto done;
-        int mrc = swfs_speckle_model_set_map(m, train, ntrain, slope_noise * slope_noise, tt_mode == SWFS_TT_FRAME);
+        int mrc = recon_kind == RECON_MAP
+                      ? swfs_speckle_model_set_map(m, train, ntrain, slope_noise * slope_noise, tt_mode == SWFS_TT_FRAME)
+                      : swfs_speckle_model_set_vk(m, xy, vk_l0, train, ntrain, slope_noise * slope_noise,
+                                                  tt_mode == SWFS_TT_FRAME);
         free(train);
         if (mrc) { cli_error(cmd); goto done; }
-        fprintf(stderr, "speckles: MAP reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
-                "%.1f effective\n", ntrain, sqrt(m->recon->noise_var), slope_noise > 0 ? "given" : "estimated",
+        fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
+                "%.1f effective\n", recon_kind == RECON_MAP ? "MAP" : "vk (von Karman prior)", ntrain, sqrt(m->recon->noise_var), slope_noise > 0 ? "given" : "estimated",
                 m->recon->nmodes, m->recon->dof);
     }
     if (wrecon && swfs_recon_write(m->recon, wrecon)) { cli_error(cmd); goto done; }

@@ -98,5 +98,10 @@ void swfs_speckle_model_free(swfs_speckle_model *m);
  * swfs_speckle_model_create when remove_tiptilt. */
 int swfs_speckle_model_set_map(swfs_speckle_model *m, const double *slopes, size_t nframes, double noise_var,
                                int remove_tiptilt);
+/* Same with the spatial-prior MAP reconstructor swfs_recon_vk (wfs.h): von Karman
+ * covariance of the actuators xy (2 x nact [m]) with outer scale L0 [m], scaled to the
+ * tip-tilt-free mean square of the slopes. */
+int swfs_speckle_model_set_vk(swfs_speckle_model *m, const double *xy, double L0, const double *slopes, size_t nframes,
+                              double noise_var, int remove_tiptilt);
 
 #endif

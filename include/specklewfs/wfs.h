@@ -103,6 +103,21 @@ int swfs_recon_svd(const double *D, size_t nslopes, size_t nact, double rcond, s
  * sigma^2 used and sum g_i s_i (effective modes). */
 int swfs_recon_map(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
                    double noise_var, swfs_recon **out);
+/* Normalized von Karman phase covariance of the nact actuators at xy (2 x nact [m]):
+ * C[a][b] = f(2 pi r_ab / L0) / f(0), f(x) = x^(5/6) K_5/6(x), r_ab the actuator
+ * separation, L0 > 0 the outer scale [m] (C[a][a] = 1). C: nact x nact, row-major. */
+int swfs_vk_covariance(const double *xy, size_t nact, double L0, double *C);
+/* MAP reconstructor with a spatial prior: C_z = c C_vk (swfs_vk_covariance of the actuator
+ * positions xy with outer scale L0 [m]) and white slope noise sigma^2 on the valid slopes,
+ *   W = C_z D^T (D C_z D^T + sigma^2 I)^-1   (one Cholesky solve, LAPACKE dposv).
+ * The scale c is learned from the telemetry: with the mean x/y slope over the valid
+ * slopes (rows of D not all 0) removed frame by frame (tip-tilt: vibration, not
+ * turbulence), the slopes' mean square per frame equals c tr(P D C_vk D^T P) + (nvs - 2)
+ * sigma^2 (nvs valid slopes). slopes: nframes x nslopes (nframes >= 8); noise_var > 0 fixes
+ * sigma^2 [rad^2], <= 0 estimates it (swfs_slopes_noise_var: noise + aliasing).
+ * r->noise_var: the sigma^2 used; r->dof = tr(W D) (effective modes); r->nmodes = nact. */
+int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy, double L0, const double *slopes,
+                  size_t nframes, double noise_var, swfs_recon **out);
 /* Effective slope noise variance per slope [rad^2] of slopes (nframes x nslopes, nframes
  * >= 8): the mean square of the slopes outside the column space of D over the valid slopes
  * (rows of D not all 0), per degree of freedom -- white noise plus whatever the DM cannot

@@ -113,6 +113,21 @@ int swfs_speckle_model_set_map(swfs_speckle_model *m, const double *slopes, size
     return SWFS_OK;
 }
 
+int swfs_speckle_model_set_vk(swfs_speckle_model *m, const double *xy, double L0, const double *slopes, size_t nframes,
+                              double noise_var, int remove_tiptilt)
+{
+    double *D = NULL;
+    swfs_recon *r = NULL;
+    int rc = swfs_interaction_matrix(m->wfs, m->T, &D);
+    if (!rc) rc = swfs_recon_vk(D, m->nslopes, m->nact, xy, L0, slopes, nframes, noise_var, &r);
+    free(D);
+    if (!rc && remove_tiptilt) rc = swfs_recon_project_tiptilt(r, m->wfs->valid);
+    if (rc) { swfs_recon_free(r); return rc; }
+    swfs_recon_free(m->recon);
+    m->recon = r;
+    return SWFS_OK;
+}
+
 int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R_out)
 {
     *W_ext = NULL;
