@@ -5,32 +5,11 @@
  * patterns with less error than the truncated SVD at any of the cuts tried, and its error
  * changes smoothly with a wrong noise level (no cliff).
  * Measured (seed 42): MAP 38.7 nm, SVD 44.5 nm at best (rcond 5e-2), 192 nm at 0.2. */
-#include "testutil.h"
+#include "recon_fixture.h"
 
-#include "specklewfs/aperture.h"
-#include "specklewfs/interp.h"
-#include "specklewfs/rng.h"
-#include "specklewfs/sparse.h"
-#include "specklewfs/wfs.h"
-
-#include <math.h>
-#include <stdlib.h>
-#include <string.h>
-
-#define NPUP 66
-#define PUPDX 0.1
-#define TELD 6.5
-#define NSUB 12
 #define NTRAIN 1500
 #define NTEST 200
 #define NWAVE 24
-
-typedef struct setup {
-    double *xy, *mask, *D;
-    size_t nact, nslopes;
-    swfs_sparse *T;
-    swfs_shwfs *wfs;
-} setup;
 
 /* A smooth random pattern at the actuators: NWAVE cosines with |f| up to 0.6 cycles/m
  * (the actuator pitch 0.45 m samples up to 1.1), amplitudes ~ 1/|f| [m]. */
@@ -45,56 +24,19 @@ static void pattern(const setup *s, swfs_rng *r, double *z)
     }
 }
 
-/* rms over the pupil of T (zr - z), piston removed (the slopes do not see it) [m]. */
-static double pupil_err(const setup *s, const double *zr, const double *z, double *d, double *grid)
-{
-    for (size_t a = 0; a < s->nact; a++) d[a] = zr[a] - z[a];
-    swfs_sparse_apply(s->T, d, grid);
-    double m = 0, q = 0, n = 0;
-    for (size_t i = 0; i < NPUP * NPUP; i++)
-        if (s->mask[i] > 0) { m += grid[i]; q += grid[i] * grid[i]; n++; }
-    return sqrt(q / n - (m / n) * (m / n));
-}
-
-/* Mean pupil error of the reconstructor W over the test set. */
-static double test_err(const setup *s, const swfs_recon *W, const double *zt, const double *st)
-{
-    double *zr = malloc(s->nact * sizeof *zr), *d = malloc(s->nact * sizeof *d), *g = malloc(NPUP * NPUP * sizeof *g);
-    double e = 0;
-    for (size_t t = 0; t < NTEST; t++) {
-        swfs_recon_apply(W, st + t * s->nslopes, zr);
-        double x = pupil_err(s, zr, zt + t * s->nact, d, g);
-        e += x * x;
-    }
-    free(zr); free(d); free(g);
-    return sqrt(e / NTEST);
-}
-
 static void make_data(const setup *s, swfs_rng *r, size_t n, double sigma, double *z, double *sl)
 {
     for (size_t t = 0; t < n; t++) {
         pattern(s, r, z + t * s->nact);
-        double *o = sl + t * s->nslopes;
-        for (size_t i = 0; i < s->nslopes; i++) {
-            double v = 0;
-            for (size_t a = 0; a < s->nact; a++) v += s->D[i * s->nact + a] * z[t * s->nact + a];
-            o[i] = v + (s->wfs->valid[i % (s->nslopes / 2)] ? sigma * swfs_rng_normal(r) : 0);
-        }
+        slopes_of(s, r, z + t * s->nact, sigma, sl + t * s->nslopes);
     }
 }
 
 static void test_map_beats_svd(void **state)
 {
     (void)state;
-    setup s = {0};
-    s.mask = malloc(NPUP * NPUP * sizeof *s.mask);
-    assert_ok(swfs_aperture_make(s.mask, NPUP, PUPDX, TELD, 0.1, 0, 0));
-    assert_ok(swfs_actuators_hexapolar(TELD, 0.45, 0.2, &s.xy, &s.nact));
-    size_t nout = 0;
-    assert_ok(swfs_interp_ct_grid(s.xy, s.nact, NPUP, PUPDX, s.mask, &s.T, &nout));
-    assert_ok(swfs_shwfs_create(&s.wfs, NSUB, TELD, s.mask, NPUP, PUPDX, 0.5));
-    s.nslopes = s.wfs->nslopes;
-    assert_ok(swfs_interaction_matrix(s.wfs, s.T, &s.D));
+    setup s;
+    setup_init(&s);
 
     /* Slope noise: 1/4 of the slopes' rms, enough to make the SVD's noise gain matter. */
     const double sigma = 5e-8;
@@ -104,9 +46,7 @@ static void test_map_beats_svd(void **state)
     swfs_rng_seed(&r, 42);
     make_data(&s, &r, NTRAIN, sigma, z, sl);
     make_data(&s, &r, NTEST, sigma, zt, st);
-    double srms = 0;
-    for (size_t i = 0; i < NTRAIN * s.nslopes; i++) srms += sl[i] * sl[i];
-    srms = sqrt(srms / (double)(NTRAIN * 2 * s.wfs->nvalid));
+    const double srms = slopes_rms(&s, sl, NTRAIN);
 
     /* The slope noise from the slopes outside D's column space (the patterns lie in it). */
     double nv = 0;
@@ -117,25 +57,11 @@ static void test_map_beats_svd(void **state)
     swfs_recon *map = NULL;
     assert_ok(swfs_recon_map(s.D, s.nslopes, s.nact, sl, NTRAIN, 0, &map));
     assert_true(fabs(sqrt(map->noise_var) / sigma - 1) < 0.05);
-    double emap = test_err(&s, map, zt, st), ezero = 0;
-    {
-        swfs_recon zero = {s.nact, s.nslopes, calloc(s.nact * s.nslopes, sizeof(double)), 0, NULL, 0, 0, 0};
-        ezero = test_err(&s, &zero, zt, st);
-        free(zero.W);
-    }
+    const double emap = test_err(&s, map, zt, st, NTEST), ezero = zero_err(&s, zt, st, NTEST);
     print_message("MAP: %zu modes, %.1f effective, error %.3g nm (signal %.3g nm)\n", map->nmodes, map->dof, emap * 1e9,
                   ezero * 1e9);
     assert_true(emap < 0.35 * ezero);
-    double ebest_svd = INFINITY;
-    const double rconds[] = {1e-2, 2e-2, 5e-2, 0.1, 0.2, 0.3};
-    for (size_t i = 0; i < sizeof rconds / sizeof *rconds; i++) {
-        swfs_recon *svd = NULL;
-        assert_ok(swfs_recon_svd(s.D, s.nslopes, s.nact, rconds[i], 0, &svd));
-        double e = test_err(&s, svd, zt, st);
-        print_message("SVD rcond %.2g: %zu modes, error %.3g nm\n", rconds[i], svd->nmodes, e * 1e9);
-        if (e < ebest_svd) ebest_svd = e;
-        swfs_recon_free(svd);
-    }
+    const double ebest_svd = best_svd_err(&s, zt, st, NTEST);
     assert_true(emap < 0.9 * ebest_svd);
     /* A noise level off by 2x either way degrades smoothly (measured 1.4x at half the noise),
      * where the SVD's error jumps 4x between rcond 0.1 and 0.2: no cliff. */
@@ -143,7 +69,7 @@ static void test_map_beats_svd(void **state)
     for (size_t i = 0; i < 2; i++) {
         swfs_recon *w = NULL;
         assert_ok(swfs_recon_map(s.D, s.nslopes, s.nact, sl, NTRAIN, fac[i] * sigma * sigma, &w));
-        double e = test_err(&s, w, zt, st);
+        double e = test_err(&s, w, zt, st, NTEST);
         print_message("MAP with noise x %.2g: error %.3g nm\n", sqrt(fac[i]), e * 1e9);
         assert_true(e < 1.5 * emap);
         swfs_recon_free(w);
@@ -158,9 +84,7 @@ static void test_map_beats_svd(void **state)
 
     swfs_recon_free(map);
     free(z); free(sl); free(zt); free(st);
-    free(s.xy); free(s.mask); free(s.D);
-    swfs_sparse_free(s.T);
-    swfs_shwfs_free(s.wfs);
+    setup_free(&s);
 }
 
 int main(void)

@@ -4,56 +4,11 @@
  * noise. The vk reconstructor (its scale learned from the slopes, the noise estimated)
  * recovers them with less error than the truncated SVD at the best of the cuts tried.
  * Also: swfs_vk_covariance's normalization and its Kolmogorov r^(5/3) law for r << L0. */
-#include "testutil.h"
+#include "recon_fixture.h"
 
-#include "specklewfs/aperture.h"
-#include "specklewfs/interp.h"
-#include "specklewfs/rng.h"
-#include "specklewfs/sparse.h"
-#include "specklewfs/wfs.h"
-
-#include <math.h>
-#include <stdlib.h>
-#include <string.h>
-
-#define NPUP 66
-#define PUPDX 0.1
-#define TELD 6.5
-#define NSUB 12
 #define NTRAIN 600
 #define NTEST 200
 #define L0 10.0
-
-typedef struct setup {
-    double *xy, *mask, *D, *L; /* L: lower Cholesky factor of the prior, nact x nact */
-    size_t nact, nslopes;
-    swfs_sparse *T;
-    swfs_shwfs *wfs;
-} setup;
-
-/* rms over the pupil of T (zr - z), piston removed (the slopes do not see it) [m]. */
-static double pupil_err(const setup *s, const double *zr, const double *z, double *d, double *grid)
-{
-    for (size_t a = 0; a < s->nact; a++) d[a] = zr[a] - z[a];
-    swfs_sparse_apply(s->T, d, grid);
-    double m = 0, q = 0, n = 0;
-    for (size_t i = 0; i < NPUP * NPUP; i++)
-        if (s->mask[i] > 0) { m += grid[i]; q += grid[i] * grid[i]; n++; }
-    return sqrt(q / n - (m / n) * (m / n));
-}
-
-static double test_err(const setup *s, const swfs_recon *W, const double *zt, const double *st)
-{
-    double *zr = malloc(s->nact * sizeof *zr), *d = malloc(s->nact * sizeof *d), *g = malloc(NPUP * NPUP * sizeof *g);
-    double e = 0;
-    for (size_t t = 0; t < NTEST; t++) {
-        swfs_recon_apply(W, st + t * s->nslopes, zr);
-        double x = pupil_err(s, zr, zt + t * s->nact, d, g);
-        e += x * x;
-    }
-    free(zr); free(d); free(g);
-    return sqrt(e / NTEST);
-}
 
 /* z = amp L n (n white): von Karman distributed; slopes D z + noise on the valid slopes. */
 static void make_data(const setup *s, swfs_rng *r, size_t n, double amp, double sigma, double *z, double *sl)
@@ -67,12 +22,7 @@ static void make_data(const setup *s, swfs_rng *r, size_t n, double amp, double 
             for (size_t b = 0; b <= a; b++) v += s->L[a * s->nact + b] * w[b];
             zz[a] = amp * v;
         }
-        double *o = sl + t * s->nslopes;
-        for (size_t i = 0; i < s->nslopes; i++) {
-            double v = 0;
-            for (size_t a = 0; a < s->nact; a++) v += s->D[i * s->nact + a] * zz[a];
-            o[i] = v + (s->wfs->valid[i % (s->nslopes / 2)] ? sigma * swfs_rng_normal(r) : 0);
-        }
+        slopes_of(s, r, zz, sigma, sl + t * s->nslopes);
     }
     free(w);
 }
@@ -116,15 +66,8 @@ static void test_vk_covariance(void **state)
 static void test_vk_beats_svd(void **state)
 {
     (void)state;
-    setup s = {0};
-    s.mask = malloc(NPUP * NPUP * sizeof *s.mask);
-    assert_ok(swfs_aperture_make(s.mask, NPUP, PUPDX, TELD, 0.1, 0, 0));
-    assert_ok(swfs_actuators_hexapolar(TELD, 0.45, 0.2, &s.xy, &s.nact));
-    size_t nout = 0;
-    assert_ok(swfs_interp_ct_grid(s.xy, s.nact, NPUP, PUPDX, s.mask, &s.T, &nout));
-    assert_ok(swfs_shwfs_create(&s.wfs, NSUB, TELD, s.mask, NPUP, PUPDX, 0.5));
-    s.nslopes = s.wfs->nslopes;
-    assert_ok(swfs_interaction_matrix(s.wfs, s.T, &s.D));
+    setup s;
+    setup_init(&s);
     s.L = malloc(s.nact * s.nact * sizeof *s.L);
     assert_ok(swfs_vk_covariance(s.xy, s.nact, L0, s.L));
     for (size_t a = 0; a < s.nact; a++) s.L[a * s.nact + a] += 1e-9;
@@ -138,34 +81,18 @@ static void test_vk_beats_svd(void **state)
     swfs_rng_seed(&r, 7);
     make_data(&s, &r, NTRAIN, amp, sigma, z, sl);
     make_data(&s, &r, NTEST, amp, sigma, zt, st);
-    double srms = 0;
-    for (size_t i = 0; i < NTRAIN * s.nslopes; i++) srms += sl[i] * sl[i];
-    srms = sqrt(srms / (double)(NTRAIN * 2 * s.wfs->nvalid));
+    const double srms = slopes_rms(&s, sl, NTRAIN);
 
     swfs_recon *vk = NULL;
     assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, L0, sl, NTRAIN, 0, &vk));
     print_message("slopes rms %.3g rad, noise %.3g rad (true %.3g)\n", srms, sqrt(vk->noise_var), sigma);
     assert_true(fabs(sqrt(vk->noise_var) / sigma - 1) < 0.05);
-    double evk = test_err(&s, vk, zt, st), ezero = 0;
-    {
-        swfs_recon zero = {s.nact, s.nslopes, calloc(s.nact * s.nslopes, sizeof(double)), 0, NULL, 0, 0, 0};
-        ezero = test_err(&s, &zero, zt, st);
-        free(zero.W);
-    }
+    const double evk = test_err(&s, vk, zt, st, NTEST), ezero = zero_err(&s, zt, st, NTEST);
     print_message("vk: %.1f effective modes, error %.3g nm (signal %.3g nm)\n", vk->dof, evk * 1e9, ezero * 1e9);
-    double ebest_svd = INFINITY;
-    const double rconds[] = {1e-2, 2e-2, 5e-2, 0.1, 0.2, 0.3};
-    for (size_t i = 0; i < sizeof rconds / sizeof *rconds; i++) {
-        swfs_recon *svd = NULL;
-        assert_ok(swfs_recon_svd(s.D, s.nslopes, s.nact, rconds[i], 0, &svd));
-        double e = test_err(&s, svd, zt, st);
-        print_message("SVD rcond %.2g: %zu modes, error %.3g nm\n", rconds[i], svd->nmodes, e * 1e9);
-        if (e < ebest_svd) ebest_svd = e;
-        swfs_recon_free(svd);
-    }
+    const double ebest_svd = best_svd_err(&s, zt, st, NTEST);
     swfs_recon *map = NULL;
     assert_ok(swfs_recon_map(s.D, s.nslopes, s.nact, sl, NTRAIN, 0, &map));
-    double emap = test_err(&s, map, zt, st);
+    double emap = test_err(&s, map, zt, st, NTEST);
     print_message("MAP (per-mode prior): error %.3g nm\n", emap * 1e9);
     assert_true(evk < 0.5 * ezero);
     assert_true(evk < 0.9 * ebest_svd);
@@ -175,7 +102,7 @@ static void test_vk_beats_svd(void **state)
     for (size_t i = 0; i < 2; i++) {
         swfs_recon *w = NULL;
         assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, l0s[i], sl, NTRAIN, 0, &w));
-        double e = test_err(&s, w, zt, st);
+        double e = test_err(&s, w, zt, st, NTEST);
         print_message("vk with L0 %.3g m: error %.3g nm\n", l0s[i], e * 1e9);
         assert_true(e < 1.2 * evk);
         swfs_recon_free(w);
@@ -193,9 +120,7 @@ static void test_vk_beats_svd(void **state)
     swfs_recon_free(vk);
     swfs_recon_free(map);
     free(z); free(sl); free(zt); free(st);
-    free(s.xy); free(s.mask); free(s.D); free(s.L);
-    swfs_sparse_free(s.T);
-    swfs_shwfs_free(s.wfs);
+    setup_free(&s);
 }
 
 int main(void)
