@@ -48,6 +48,9 @@ double cli_now(void);
 void cli_progress(const char *label, size_t k, size_t n);
 /* The folder part of a path ("." when there is none). */
 void cli_dir_of(const char *path, char *dir, size_t cap);
+/* A progress callback for the library's long runs: ctx is a label prefix (const char *,
+ * or NULL for none) put before the stage name. */
+void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
 

@@ -71,14 +71,6 @@ void cli_print_loop_table(const swfs_loop_result *r)
            "  DM offsets reproduce / leave out of that iteration's estimate. Total %.2f s.\n", r->seconds);
 }
 
-static void progress(void *ctx, const char *stage, size_t done, size_t total)
-{
-    (void)ctx;
-    char label[64];
-    snprintf(label, sizeof label, "correct: %s", stage);
-    cli_progress(label, done, total);
-}
-
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
@@ -163,7 +155,7 @@ int swfs_cmd_correct(int argc, char **argv)
     if (cli_make_dir(cmd, outdir)) goto done;
     fprintf(stderr, "correct: %zu iterations at gain %g, sigma %g counts (%d screens of %zu^2 each)\n", lp.iterations,
             lp.gain, lp.sigma, p.nscreens, p.screen.n);
-    if (swfs_closed_loop_run(&p, &lp, NULL, progress, NULL, &res)) {
+    if (swfs_closed_loop_run(&p, &lp, NULL, cli_stage_progress, (void *)"correct:", &res)) {
         cli_error(cmd);
         goto done;
     }

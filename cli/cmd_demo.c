@@ -30,22 +30,6 @@ static const char *usage_text =
     "writes DIR/loop/loop.{tsv,fits}.\n"
     "CONFIG and key=value override the simulation (see config/paper-sec3.conf).\n";
 
-static void progress(void *ctx, const char *stage, size_t done, size_t total)
-{
-    (void)ctx;
-    char label[64];
-    snprintf(label, sizeof label, "demo: simulate %s", stage);
-    cli_progress(label, done, total);
-}
-
-static void loop_progress(void *ctx, const char *stage, size_t done, size_t total)
-{
-    (void)ctx;
-    char label[64];
-    snprintf(label, sizeof label, "demo: closed %s", stage);
-    cli_progress(label, done, total);
-}
-
 int swfs_cmd_demo(int argc, char **argv)
 {
     const char *cmd = "demo";
@@ -112,7 +96,7 @@ int swfs_cmd_demo(int argc, char **argv)
     double t0 = cli_now();
     fprintf(stderr, "demo: simulating the paper's Sec. 3 data set (%d screens of %zu^2, %ld^2 pupil, %ldx%ld window)\n",
             p.nscreens, p.screen.n, p.pupn, p.nfx, p.nfy);
-    if (swfs_sim_paper_run(&p, progress, NULL, &sim)) { cli_error(cmd); goto done; }
+    if (swfs_sim_paper_run(&p, cli_stage_progress, (void *)"demo: simulate", &sim)) { cli_error(cmd); goto done; }
     double t_sim = cli_now() - t0;
 
     swfs_recovery res[16];
@@ -152,7 +136,7 @@ int swfs_cmd_demo(int argc, char **argv)
                 lp.sigma, dir);
         if (cli_make_dir(cmd, dir)) goto done;
         const char *prov[] = {cl};
-        if (swfs_closed_loop_run(&p, &lp, sim, loop_progress, NULL, &loop) ||
+        if (swfs_closed_loop_run(&p, &lp, sim, cli_stage_progress, (void *)"demo: closed", &loop) ||
             swfs_closed_loop_write(loop, dir, prov, 1)) {
             cli_error(cmd);
             goto done;

@@ -31,17 +31,6 @@ static void help(FILE *out)
             "  -h, --help   this help\n");
 }
 
-struct progress_ctx {
-    int quiet;
-};
-
-static void progress(void *ctx, const char *stage, size_t done, size_t total)
-{
-    const struct progress_ctx *pc = ctx;
-    if (pc->quiet) return;
-    cli_progress(stage, done, total);
-}
-
 int swfs_cmd_simulate(int argc, char **argv)
 {
     const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL;
@@ -137,9 +126,8 @@ int swfs_cmd_simulate(int argc, char **argv)
     if ((rc = cli_make_dir(cmd, outdir))) return rc;
 
     const double t0 = cli_now();
-    struct progress_ctx pc = {quiet};
     swfs_sim_result *r = NULL;
-    if (swfs_sim_paper_run(&p, progress, &pc, &r)) return cli_error(cmd);
+    if (swfs_sim_paper_run(&p, quiet ? NULL : cli_stage_progress, NULL, &r)) return cli_error(cmd);
     swfs_real *noisy = swfs_real_copy(r->science);
     /* The camera stream is independent of the screen streams (seed2(seed, pair)). */
     if (!noisy || swfs_sim_camera(r->science, p.read_noise, p.gain, p.seed ^ 0x5eed0fca3e7aULL, noisy)) {

@@ -9,14 +9,6 @@
 #include <stdio.h>
 #include <string.h>
 
-static void ts_progress(void *ctx, const char *stage, size_t done, size_t total)
-{
-    if (*(const int *)ctx) return;
-    char label[64];
-    snprintf(label, sizeof label, "simulate: %s", stage);
-    cli_progress(label, done, total);
-}
-
 int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet, int argc, char **argv)
 {
     const char *cmd = "simulate";
@@ -30,7 +22,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet,
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl, "specklewfs time-series simulation (mode=timeseries)"};
     swfs_ts_summary s;
-    if (swfs_ts_run(&p, outdir, prov, 2, ts_progress, &quiet, &s)) return cli_error(cmd);
+    if (swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s)) return cli_error(cmd);
     printf("simulate (timeseries): %zu WFS frames at %.0f Hz, %ld cubes x %ld frames at <t_sci/t_wfs> = %.4f, "
            "handshake lag %ld\n", s.nwfs, p.wfs_rate, p.ncubes, p.cube_frames, p.frame_ratio, p.handshake_lag);
     printf("  AO: %zu actuators, %zu valid subapertures, %zu modes, gain %.2f, delay %ld\n", s.nact, s.nvalid,

@@ -85,6 +85,14 @@ void cli_progress(const char *label, size_t k, size_t n)
     fflush(stderr);
 }
 
+void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
+{
+    char label[128];
+    if (ctx) snprintf(label, sizeof label, "%s %s", (const char *)ctx, stage);
+    else snprintf(label, sizeof label, "%s", stage);
+    cli_progress(label, done, total);
+}
+
 int cli_make_dir(const char *cmd, const char *path)
 {
     char tmp[4096];
