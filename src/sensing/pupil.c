@@ -55,49 +55,25 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     r->amplitude = swfs_real_alloc(n, n, 1);
     r->mask = mask ? swfs_real_copy(mask) : swfs_real_alloc(n, n, 1);
     double complex *focal = swfs_malloc(nf * sizeof *focal);
-    double *weights = swfs_malloc(nf * sizeof *weights);
     const double alpha = g->pixscale * g->pupdx / g->teldiam;
     swfs_mft *m = swfs_mft_create(n, nx, ny, alpha, SWFS_MFT_DOUBLE);
-    if (!r->field || !r->wfe || !r->surface || !r->amplitude || !r->mask || !focal || !weights || !m) {
+    if (!r->field || !r->wfe || !r->surface || !r->amplitude || !r->mask || !focal || !m) {
         rc = SWFS_ERR_NOMEM;
         goto fail;
     }
     if (!mask && (rc = swfs_aperture_make(r->mask->data, n, g->pupdx, g->teldiam, g->obscur, 0, 0.0))) goto fail;
 
-    /* SNR^2 per pixel, then (optionally) its local mean: a weight computed from the same
-     * noisy |<psi' I>| it multiplies favours pixels whose noise happened to add up. */
-    for (size_t p = 0; p < nf; p++) {
-        double snr2 = 0.0;
-        if (o.weight == SWFS_WEIGHT_SNR) {
-            const double e = h->stab_err->data[p], s2 = cabs(h->stab->data[p]);
-            if (e > 0.0 && isfinite(e) && isfinite(s2)) snr2 = (s2 / e) * (s2 / e);
-        }
-        weights[p] = snr2;
-    }
-    int rad = getenv("SWFS_SMOOTH") ? atoi(getenv("SWFS_SMOOTH")) : 0;
-    if (o.weight == SWFS_WEIGHT_SNR && rad > 0) {
-        double *tmp = swfs_malloc(nf * sizeof *tmp);
-        for (size_t j = 0; j < ny; j++)
-            for (size_t i = 0; i < nx; i++) {
-                double acc = 0; int cnt = 0;
-                for (int dj = -rad; dj <= rad; dj++)
-                    for (int di = -rad; di <= rad; di++) {
-                        long ii = (long)i + di, jj = (long)j + dj;
-                        if (ii < 0 || jj < 0 || ii >= (long)nx || jj >= (long)ny) continue;
-                        acc += weights[(size_t)jj * nx + (size_t)ii]; cnt++;
-                    }
-                double v = acc / cnt - (getenv("SWFS_DEBIAS") ? 1.0 : 0.0);
-                tmp[j * nx + i] = v > 0 ? v : 0;
-            }
-        memcpy(weights, tmp, nf * sizeof *tmp);
-        swfs_free(tmp);
-    }
+    /* Wiener weight per focal pixel (beyond the paper): SNR^2 / (SNR^2 + k^2). */
     for (size_t p = 0; p < nf; p++) {
         double complex v = src->data[p];
         if (!isfinite(creal(v)) || !isfinite(cimag(v))) v = 0.0;
         double w = 1.0;
-        if (o.weight == SWFS_WEIGHT_SNR) w = weights[p] / (weights[p] + o.wiener_k * o.wiener_k);
-        weights[p] = w;
+        if (o.weight == SWFS_WEIGHT_SNR) {
+            const double e = h->stab_err->data[p], s2 = cabs(h->stab->data[p]);
+            double snr2 = 0.0;
+            if (e > 0.0 && isfinite(e) && isfinite(s2)) snr2 = (s2 / e) * (s2 / e);
+            w = snr2 / (snr2 + o.wiener_k * o.wiener_k);
+        }
         focal[p] = w * v;
     }
     if ((rc = swfs_mft_inverse(m, focal, r->field->data))) goto fail;
@@ -148,13 +124,11 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     r->strehl = exp(-sig * sig);
     swfs_mft_free(m);
     swfs_free(focal);
-    swfs_free(weights);
     *out = r;
     return SWFS_OK;
 fail:
     swfs_mft_free(m);
     swfs_free(focal);
-    swfs_free(weights);
     swfs_pupil_result_free(r);
     return rc;
 }
