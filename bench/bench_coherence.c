@@ -22,7 +22,7 @@ int main(int argc, char **argv)
     if (!c) { fprintf(stderr, "%s\n", swfs_last_error()); return 1; }
     swfs_rng r;
     swfs_rng_seed(&r, 1);
-    for (size_t i = 0; i < swfs_cplx_size(c); i++) c->data[i] = swfs_rng_cnormal(&r);
+    for (size_t i = 0; i < swfs_cplx_size(c); i++) c->data[i] = swfs_rng_cnormal_value(&r);
     const int methods[3] = {SWFS_COH_AUTO, SWFS_COH_FFT, SWFS_COH_DIRECT};
     const char *names[3] = {"auto", "fft", "direct"};
     for (int m = 0; m < 3; m++) {

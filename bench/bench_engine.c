@@ -145,7 +145,7 @@ static run_result run(const ao_system *s, int nthreads, int per_wfs, double seco
     for (size_t k = 0; k < nwfs * d->nslopes; k++) slopes[k] = swfs_rng_normal(&r);
     for (size_t k = 0; k < nf2; k++) {
         science[k] = 100.0 + 10.0 * swfs_rng_uniform(&r);
-        stat[k] = 0.1 * swfs_rng_cnormal(&r);
+        stat[k] = 0.1 * swfs_rng_cnormal_value(&r);
     }
     swfs_engine *e = make_engine(s, nthreads);
 

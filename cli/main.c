@@ -2,6 +2,7 @@
  * (Codona & Kenworthy 2013). Dispatches to the subcommands in cli/cmd_*.c. */
 #include "cli.h"
 
+#include "specklewfs/parallel.h"
 #include "specklewfs/version.h"
 
 #include <stdio.h>
@@ -39,6 +40,9 @@ static void usage(FILE *out)
 
 int main(int argc, char **argv)
 {
+    /* The library runs its own workers over frames; BLAS inside them stays single-threaded
+     * (parallel.h). */
+    swfs_blas_set_threads(1);
     if (argc < 2) {
         usage(stderr);
         return CLI_USAGE;

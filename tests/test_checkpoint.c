@@ -39,7 +39,7 @@ static void frame(size_t k, double *sci, double complex *psi)
     swfs_rng_seed2(&r, 99, k);
     for (size_t p = 0; p < NP; p++) {
         const double complex psi0 = (0.3 + 0.05 * (double)(p % 4)) * cexp(I * 0.7 * (double)p);
-        psi[p] = 0.6 * swfs_rng_cnormal(&r) + 0.2; /* a non-zero mean: removed exactly (eq:zeroMean) */
+        psi[p] = 0.6 * swfs_rng_cnormal_value(&r) + 0.2; /* a non-zero mean: removed exactly (eq:zeroMean) */
         const double complex tot = psi0 + 0.9 * psi[p];
         sci[p] = 1e3 * (creal(tot) * creal(tot) + cimag(tot) * cimag(tot)) + swfs_rng_normal(&r);
         if (p == 3 && k >= 40 && k < 60) sci[p] = NAN;

@@ -29,7 +29,7 @@ static void write_cubes(const char *sci, const char *sp, size_t nframes, int nan
         for (size_t j = 0; j < H; j++)
             for (size_t i = 0; i < W; i++) {
                 size_t q = (k * H + j) * W + i;
-                c->data[q] = swfs_rng_cnormal(&r);
+                c->data[q] = swfs_rng_cnormal_value(&r);
                 double complex t = truth(i, j) + g * c->data[q];
                 s->data[q] = creal(t * conj(t)) + rn * swfs_rng_normal(&r);
             }

@@ -40,10 +40,10 @@ static swfs_cplx *ar1_cube(size_t nx, size_t ny, size_t nt, double tau0f, const 
         swfs_rng r;
         swfs_rng_seed2(&r, seed, p);
         double complex rho = a * cexp(I * omega[p]);
-        double complex x = swfs_rng_cnormal(&r);
+        double complex x = swfs_rng_cnormal_value(&r);
         for (size_t t = 0; t < nt; t++) {
             c->data[t * npix + p] = x;
-            x = rho * x + s * swfs_rng_cnormal(&r);
+            x = rho * x + s * swfs_rng_cnormal_value(&r);
         }
     }
     return c;
@@ -215,7 +215,7 @@ static swfs_cplx *frozen_flow(const flow *fl, uint64_t seed)
     for (size_t j = 0; j < M; j++)
         for (size_t i = 0; i < M; i++) {
             double f2 = fx[i] * fx[i] + fx[j] * fx[j];
-            c0[j * M + i] = (i || j) ? swfs_rng_cnormal(&r) * pow(f2 + f0 * f0, -11.0 / 12.0) : 0;
+            c0[j * M + i] = (i || j) ? swfs_rng_cnormal_value(&r) * pow(f2 + f0 * f0, -11.0 / 12.0) : 0;
         }
     /* Normalize to the requested rms (real part of a circular field: half the power). */
     double pw = 0;

@@ -18,7 +18,7 @@ static double complex *random_field(size_t n, uint64_t seed)
     double complex *a = swfs_malloc(n * sizeof *a);
     swfs_rng r;
     swfs_rng_seed(&r, seed);
-    for (size_t k = 0; k < n; k++) a[k] = swfs_rng_cnormal(&r);
+    for (size_t k = 0; k < n; k++) a[k] = swfs_rng_cnormal_value(&r);
     return a;
 }
 

@@ -140,7 +140,7 @@ static void make_run(const char *dir, const char *which, run *r)
         double complex *fp = malloc(NX * NY * sizeof *fp);
         for (size_t t = 0; t < NFR; t++) {
             for (int k = 0; k < NX * NY; k++) {
-                fp[k] = sqrt(r->sig2[k]) * swfs_rng_cnormal(&rng);
+                fp[k] = sqrt(r->sig2[k]) * swfs_rng_cnormal_value(&rng);
                 double complex e = r->halo[k] + fp[k];
                 fi[k] = creal(e * conj(e)) + RDNOISE * swfs_rng_normal(&rng);
             }

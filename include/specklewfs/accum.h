@@ -16,9 +16,12 @@
 #ifndef SWFS_ACCUM_H
 #define SWFS_ACCUM_H
 
-#include <complex.h>
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
 #include <stdint.h>
+
+SWFS_BEGIN_DECLS
 
 enum {
     SWFS_ACC_N, /* count */
@@ -41,8 +44,10 @@ void swfs_accum_free(swfs_accum *a);
 void swfs_accum_reset(swfs_accum *a);
 
 /* One synchronized frame: science (nx*ny counts) and psi (nx*ny complex). Allocation-free. */
-int swfs_accum_add(swfs_accum *a, const double *science, const double complex *psi);
+int swfs_accum_add(swfs_accum *a, const double *science, const swfs_complex *psi);
 /* dst += src (disjoint frame sets), exactly the accumulator of the union. */
 int swfs_accum_merge(swfs_accum *dst, const swfs_accum *src);
+
+SWFS_END_DECLS
 
 #endif

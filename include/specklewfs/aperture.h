@@ -3,7 +3,11 @@
 #ifndef SWFS_APERTURE_H
 #define SWFS_APERTURE_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 /* Binary (0/1) annular pupil with optional spiders, evaluated at the sample centres:
  *   1 where obscur*diam/2 <= r <= diam/2 and the sample is not under a spider.
@@ -25,5 +29,7 @@ double swfs_zernike(int n, int m, double rho, double theta);
 /* Noll index j >= 1 -> (n, m) with the sign convention above (even j: cos, odd j: sin,
  * m = 0 for the radial terms). Returns 0, or SWFS_ERR_ARG for j < 1. */
 int swfs_zernike_noll(int j, int *n, int *m);
+
+SWFS_END_DECLS
 
 #endif

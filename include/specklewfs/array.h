@@ -4,8 +4,11 @@
 #ifndef SWFS_ARRAY_H
 #define SWFS_ARRAY_H
 
-#include <complex.h>
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_real {
     size_t nx, ny, nz;
@@ -14,7 +17,7 @@ typedef struct swfs_real {
 
 typedef struct swfs_cplx {
     size_t nx, ny, nz;
-    double complex *data;
+    swfs_complex *data;
 } swfs_cplx;
 
 /* Zero-filled; NULL (with swfs_last_error set) on failure or on a zero dimension. */
@@ -29,11 +32,13 @@ static inline size_t swfs_real_size(const swfs_real *a) { return a->nx * a->ny *
 static inline size_t swfs_cplx_size(const swfs_cplx *a) { return a->nx * a->ny * a->nz; }
 /* Pointer to frame k. */
 static inline double *swfs_real_frame(const swfs_real *a, size_t k) { return a->data + k * a->nx * a->ny; }
-static inline double complex *swfs_cplx_frame(const swfs_cplx *a, size_t k) { return a->data + k * a->nx * a->ny; }
+static inline swfs_complex *swfs_cplx_frame(const swfs_cplx *a, size_t k) { return a->data + k * a->nx * a->ny; }
 
 /* Aligned raw buffers for work arrays (free with swfs_free). */
 void *swfs_malloc(size_t bytes);
 void *swfs_calloc(size_t n, size_t size);
 void swfs_free(void *p);
+
+SWFS_END_DECLS
 
 #endif

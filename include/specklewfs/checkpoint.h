@@ -19,6 +19,8 @@
 #include "specklewfs/accum.h"
 #include "specklewfs/fits.h"
 
+SWFS_BEGIN_DECLS
+
 #define SWFS_CHECKPOINT_VERSION 1
 
 /* g (may be NULL): geometry to record; prov: provenance lines (HISTORY). */
@@ -27,13 +29,10 @@ int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, c
 /* A new accumulator from a checkpoint; g (may be NULL) receives its geometry. */
 int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g);
 
-/* SWFS_ERR_VALUE naming both files and the keyword when two geometries disagree on a
- * keyword that both record (relative tolerance 1e-9): merging halos of different
- * wavelengths or samplings would be meaningless. */
-int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b);
-
 /* Load and merge n checkpoints (same frame size and geometry) into *out; g (may be NULL)
  * receives the merged geometry (the union of the keywords recorded). */
 int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out, swfs_geom *g);
+
+SWFS_END_DECLS
 
 #endif

@@ -32,6 +32,8 @@
 #include "specklewfs/pupil.h"
 #include "specklewfs/sim.h"
 
+SWFS_BEGIN_DECLS
+
 typedef struct swfs_loop_params {
     size_t iterations;        /* corrections applied, 5 */
     double gain;              /* loop gain, 0.8 */
@@ -100,5 +102,7 @@ double swfs_halo_contrast(const swfs_cplx *h, double pixscale, double rin, doubl
 /* DIR/loop.fits (RESIDUAL, ESTIMATE, DMSURF cubes, COMMANDS, ACTUATORS, PUPIL, METRICS:
  * one row of the table per state) and DIR/loop.tsv (the table as text). */
 int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const char *const *prov, size_t nprov);
+
+SWFS_END_DECLS
 
 #endif

@@ -35,11 +35,12 @@
 #ifndef SWFS_COHERENCE_H
 #define SWFS_COHERENCE_H
 
-#include <complex.h>
 #include <stddef.h>
 
 #include "specklewfs/array.h"
 #include "specklewfs/fits.h"
+
+SWFS_BEGIN_DECLS
 
 enum { SWFS_COH_AUTO = 0, SWFS_COH_FFT = 1, SWFS_COH_DIRECT = 2 };
 
@@ -77,7 +78,7 @@ typedef struct swfs_coherence {
     double exposure;     /* [s] of snr_fact (0: none) */
     /* Dense normalized MCF, every lag 0..max_lag: gamma[p * (max_lag + 1) + k]. */
     long max_lag;
-    double complex *dense;
+    swfs_complex *dense;
     int nfit;            /* lags actually used for PHRATE */
     int method;          /* SWFS_COH_FFT or SWFS_COH_DIRECT, as used */
     size_t n_valid, n_nopower, n_nonfinite, n_tau0_beyond;
@@ -92,7 +93,7 @@ void swfs_coherence_free(swfs_coherence *c);
 int swfs_coherence_snr_map(const swfs_coherence *c, double exposure, swfs_real *out);
 /* S(T) for one normalized MCF gamma[0..nlag-1] at integer frame lags; NaN if T needs more
  * lags than given or gamma[0] is not finite. */
-double swfs_coh_snr_factor(const double complex *gamma, size_t nlag, double framedt, double exposure);
+double swfs_coh_snr_factor(const swfs_complex *gamma, size_t nlag, double framedt, double exposure);
 
 /* Apparent frozen-flow wind from PHRATE: weighted (by Phi_sp) least squares of
  * PHRATE(theta) = k theta.v over valid pixels off the star; needs PIXSCALE and TELDIAM.
@@ -123,5 +124,7 @@ int swfs_coherence_read_input(const char *path, swfs_cplx **cube, double *framed
 double swfs_exposure_limit_wind(double theta_lod, double diam, double wind);
 /* Sec. 3.3 bandwidth limit: theta < (lambda/dlambda) lambda/D, returned in lambda/D. */
 double swfs_bandwidth_radius(double frac_bw);
+
+SWFS_END_DECLS
 
 #endif

@@ -4,7 +4,11 @@
 #ifndef SWFS_CONFIG_H
 #define SWFS_CONFIG_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_config swfs_config;
 
@@ -30,5 +34,7 @@ int swfs_config_check_unused(const swfs_config *c);
 size_t swfs_config_count(const swfs_config *c);
 const char *swfs_config_key(const swfs_config *c, size_t i);
 const char *swfs_config_value(const swfs_config *c, size_t i);
+
+SWFS_END_DECLS
 
 #endif

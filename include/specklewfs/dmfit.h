@@ -37,6 +37,8 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/sparse.h"
 
+SWFS_BEGIN_DECLS
+
 enum { SWFS_INFLUENCE_GAUSS = 0, SWFS_INFLUENCE_CUBIC = 1 };
 
 typedef struct swfs_dmfit_options {
@@ -78,6 +80,8 @@ int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *f
 void swfs_dmfit_surface(const swfs_dmfit *f, const double *cmd, double *surface);
 
 size_t swfs_dmfit_nact(const swfs_dmfit *f);
+size_t swfs_dmfit_npup(const swfs_dmfit *f);        /* PUPN */
+const double *swfs_dmfit_xy(const swfs_dmfit *f);    /* 2 x nact actuator positions [m] */
 double swfs_dmfit_pitch(const swfs_dmfit *f);        /* [m] the pitch used */
 size_t swfs_dmfit_active(const swfs_dmfit *f);       /* actuators whose influence reaches the pupil */
 const swfs_sparse *swfs_dmfit_influence(const swfs_dmfit *f); /* PUPN^2 x nact */
@@ -91,5 +95,7 @@ const swfs_dmfit_options *swfs_dmfit_opts(const swfs_dmfit *f);
  * every HDU. */
 int swfs_dmfit_write(const swfs_dmfit *f, const double *cmd, const double *target, const swfs_dmfit_stats *st,
                      const char *path, const swfs_geom *g, const char *const *prov, size_t nprov);
+
+SWFS_END_DECLS
 
 #endif

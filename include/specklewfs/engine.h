@@ -25,10 +25,11 @@
 #ifndef SWFS_ENGINE_H
 #define SWFS_ENGINE_H
 
-#include <complex.h>
 #include <stddef.h>
 
 #include "specklewfs/sparse.h"
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_engine_config {
     size_t nslopes, nact, npup, nfx, nfy;
@@ -62,7 +63,7 @@ size_t swfs_engine_npin(const swfs_engine *e);
 int swfs_engine_add_wfs(swfs_engine *e, const double *slopes, double weight);
 /* One MFT of the summed field, core-phase referencing, nfx*nfy complex to halo_out;
  * then start a new exposure. */
-int swfs_engine_end_exposure(swfs_engine *e, double complex *halo_out);
+int swfs_engine_end_exposure(swfs_engine *e, swfs_complex *halo_out);
 /* Drop the current exposure (frames added since the last end_exposure). */
 void swfs_engine_reset(swfs_engine *e);
 
@@ -81,10 +82,10 @@ typedef struct swfs_exposure {
 /* slopes: nwfs frames of nslopes (frame-major, as a FITS cube NAXIS1 = nslopes).
  * halo_out: nexp frames of nfx*nfy. Independent of the add_wfs stream state. */
 int swfs_engine_process(swfs_engine *e, const double *slopes, size_t nwfs, const swfs_exposure *sched,
-                        size_t nexp, double complex *halo_out);
+                        size_t nexp, swfs_complex *halo_out);
 /* One MFT per WFS frame (weight 1), each core-referenced: the speckle field at the WFS
  * rate that the coherence maps need. halo_out: nwfs frames of nfx*nfy. */
-int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, double complex *halo_out);
+int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, swfs_complex *halo_out);
 
 /* Helper for the common schedule: camera frame j integrates the WFS-time interval
  * [offset + j ratio, offset + (j+1) ratio) (in WFS frames, ratio >= 1 not necessarily an
@@ -92,5 +93,7 @@ int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, d
  * weight. Fills sched[0..nexp) and returns the number of WFS frames needed (the end of
  * the last interval rounded up), or 0 for invalid arguments. */
 size_t swfs_engine_schedule(double ratio, double offset, size_t nexp, swfs_exposure *sched);
+
+SWFS_END_DECLS
 
 #endif

@@ -34,6 +34,8 @@
 #include "specklewfs/array.h"
 #include "specklewfs/fits.h"
 
+SWFS_BEGIN_DECLS
+
 #define SWFS_G_FALLBACK_MIN 9
 
 typedef struct swfs_noise {
@@ -97,7 +99,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g);
  * the subject phase given the reference phase (eq:subjectPhase), and the two intensity
  * solutions of eq:subjectIntensity (|Psi|^2 is one of them: the ambiguity is physical). */
 typedef struct swfs_psi_result {
-    double complex stab;
+    swfs_complex stab;
     double subject_phase;
     double intensity_hi, intensity_lo;
 } swfs_psi_result;
@@ -106,7 +108,9 @@ int swfs_phase_shift(const double *intensity, const double *eta, size_t n, doubl
                      swfs_psi_result *out);
 /* Per-pixel version over images: intensities is n frames of npix. */
 int swfs_phase_shift_map(const double *intensities, const double *eta, size_t n, size_t npix,
-                         const double *ref_phase, double complex *stab, double *subject_phase,
+                         const double *ref_phase, swfs_complex *stab, double *subject_phase,
                          double *intensity_hi, double *intensity_lo);
+
+SWFS_END_DECLS
 
 #endif

@@ -10,24 +10,13 @@
 #ifndef SWFS_FITS_H
 #define SWFS_FITS_H
 
-#include <complex.h>
 #include <stddef.h>
 
 #include "specklewfs/array.h"
+#include "specklewfs/geom.h"
 
-/* Geometry of the focal and pupil grids. Missing values are NaN (pupn: 0). */
-typedef struct swfs_geom {
-    double wavelen;  /* [m] */
-    double teldiam;  /* [m] */
-    double obscur;   /* central obstruction, fraction of the diameter */
-    double pixscale; /* [lambda/D per focal pixel] */
-    double pupdx;    /* [m per pupil sample] */
-    long pupn;       /* pupil samples across */
-} swfs_geom;
+SWFS_BEGIN_DECLS
 
-void swfs_geom_init(swfs_geom *g); /* all missing */
-/* SWFS_ERR_FORMAT naming `what` and the first missing keyword. */
-int swfs_geom_require(const swfs_geom *g, const char *what);
 
 /* ---- reading ---------------------------------------------------------- */
 
@@ -51,7 +40,7 @@ const char *swfs_fits_in_path(const swfs_fits_in *f);
 /* Read frames [first, first + n) into buf (nx*ny*n values). Real reads of a complex
  * HDU, or complex reads of a real one, are SWFS_ERR_FORMAT. */
 int swfs_fits_in_read_real(swfs_fits_in *f, size_t first, size_t n, double *buf);
-int swfs_fits_in_read_cplx(swfs_fits_in *f, size_t first, size_t n, double complex *buf);
+int swfs_fits_in_read_cplx(swfs_fits_in *f, size_t first, size_t n, swfs_complex *buf);
 /* Whole HDU into a new array. */
 int swfs_fits_in_read_real_all(swfs_fits_in *f, swfs_real **out);
 int swfs_fits_in_read_cplx_all(swfs_fits_in *f, swfs_cplx **out);
@@ -86,7 +75,7 @@ int swfs_fits_out_cplx(swfs_fits_out *o, const char *extname, const swfs_cplx *a
 int swfs_fits_out_begin(swfs_fits_out *o, const char *extname, size_t nx, size_t ny, size_t nz,
                         int is_complex, int bitpix);
 int swfs_fits_out_real_frames(swfs_fits_out *o, size_t first, size_t n, const double *buf);
-int swfs_fits_out_cplx_frames(swfs_fits_out *o, size_t first, size_t n, const double complex *buf);
+int swfs_fits_out_cplx_frames(swfs_fits_out *o, size_t first, size_t n, const swfs_complex *buf);
 
 /* Keywords on the current HDU. */
 int swfs_fits_out_key_double(swfs_fits_out *o, const char *key, double v, const char *comment);
@@ -100,5 +89,7 @@ int swfs_fits_out_geom(swfs_fits_out *o, const swfs_geom *g);
 int swfs_fits_out_provenance(swfs_fits_out *o, const char *const *lines, size_t nlines);
 /* Provenance lines set once and stamped on every HDU written afterwards. */
 int swfs_fits_out_set_stamp(swfs_fits_out *o, const swfs_geom *g, const char *const *lines, size_t nlines);
+
+SWFS_END_DECLS
 
 #endif

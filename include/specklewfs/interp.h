@@ -18,6 +18,8 @@
 
 #include "specklewfs/sparse.h"
 
+SWFS_BEGIN_DECLS
+
 /* T: nq x npts, row q = weights of the data points for query point (qx[q], qy[q]).
  * pts: npts (x, y) pairs [m]. *n_outside (may be NULL): query points outside the hull. */
 int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, const double *qy,
@@ -28,5 +30,7 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
  * empty and do not count as outside. */
 int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupdx,
                         const double *mask, swfs_sparse **out, size_t *n_outside);
+
+SWFS_END_DECLS
 
 #endif

@@ -11,15 +11,20 @@
 #ifndef SWFS_KERNELS_H
 #define SWFS_KERNELS_H
 
-#include <complex.h>
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 /* s[k] = sin(x[k]), c[k] = cos(x[k]); x, s, c must not overlap. */
 void swfs_sincos_f(const float *x, float *s, float *c, size_t n);
 void swfs_sincos_d(const double *x, double *s, double *c, size_t n);
 
 /* out[k] = amp[k] * exp(i phi[k]) (amp NULL: 1). */
-void swfs_expi_f(const float *phi, const float *amp, float complex *out, size_t n);
-void swfs_expi_d(const double *phi, const double *amp, double complex *out, size_t n);
+void swfs_expi_f(const float *phi, const float *amp, swfs_complexf *out, size_t n);
+void swfs_expi_d(const double *phi, const double *amp, swfs_complex *out, size_t n);
+
+SWFS_END_DECLS
 
 #endif

@@ -16,8 +16,11 @@
 #ifndef SWFS_MFT_H
 #define SWFS_MFT_H
 
-#include <complex.h>
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 enum { SWFS_MFT_DOUBLE = 0, SWFS_MFT_SINGLE = 1 };
 
@@ -30,9 +33,11 @@ size_t swfs_mft_nfx(const swfs_mft *m);
 size_t swfs_mft_nfy(const swfs_mft *m);
 
 /* Double-precision interface (a SINGLE plan converts internally). */
-int swfs_mft_forward(swfs_mft *m, const double complex *pupil, double complex *focal);
-int swfs_mft_inverse(swfs_mft *m, const double complex *focal, double complex *pupil);
+int swfs_mft_forward(swfs_mft *m, const swfs_complex *pupil, swfs_complex *focal);
+int swfs_mft_inverse(swfs_mft *m, const swfs_complex *focal, swfs_complex *pupil);
 /* Single-precision interface (SINGLE plans only): no conversion, the fast path. */
-int swfs_mft_forward_f(swfs_mft *m, const float complex *pupil, float complex *focal);
+int swfs_mft_forward_f(swfs_mft *m, const swfs_complexf *pupil, swfs_complexf *focal);
+
+SWFS_END_DECLS
 
 #endif

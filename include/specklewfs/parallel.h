@@ -6,7 +6,11 @@
 #ifndef SWFS_PARALLEL_H
 #define SWFS_PARALLEL_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef void (*swfs_parallel_fn)(void *ctx, size_t begin, size_t end, int worker);
 
@@ -15,5 +19,15 @@ int swfs_parallel_threads(int requested, size_t max_useful);
 /* Run fn over [0, n) in chunks on nthreads workers. If a thread cannot be started its
  * chunks run on the caller's thread, so this always completes; returns SWFS_OK. */
 int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn, void *ctx);
+
+/* The library parallelizes over frames with its own workers (engine, simulators) and
+ * never changes BLAS's thread count itself: that is process-wide state, the
+ * application's to choose. Its workers run best with a single-threaded BLAS (a threaded
+ * BLAS inside every small GEMM only adds contention); the command line sets 1 at start.
+ * These set and read OpenBLAS's thread count for applications that want the same. */
+void swfs_blas_set_threads(int n);
+int swfs_blas_threads(void);
+
+SWFS_END_DECLS
 
 #endif

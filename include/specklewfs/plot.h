@@ -21,7 +21,11 @@
 #ifndef SWFS_PLOT_H
 #define SWFS_PLOT_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_plot swfs_plot;
 
@@ -113,5 +117,7 @@ typedef struct swfs_plot_legend_entry {
     swfs_linestyle style;
 } swfs_plot_legend_entry;
 int swfs_plot_legend(swfs_plot *p, const swfs_plot_legend_entry *e, size_t n);
+
+SWFS_END_DECLS
 
 #endif

@@ -19,6 +19,8 @@
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
 
+SWFS_BEGIN_DECLS
+
 enum { SWFS_WEIGHT_NONE = 0, SWFS_WEIGHT_SNR = 1 };
 enum { SWFS_SOURCE_HALO_LF = 0, SWFS_SOURCE_HALO = 1 };
 
@@ -57,5 +59,7 @@ int swfs_wfe_compare(const double *est, const double *truth, const double *mask,
                      double *truth_rms_piston, double *truth_rms_ptt);
 /* Remove piston, tip and tilt (least squares over the mask) from w in place; returns rms. */
 double swfs_wfe_remove_ptt(double *w, const double *mask, size_t n);
+
+SWFS_END_DECLS
 
 #endif

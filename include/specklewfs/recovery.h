@@ -6,6 +6,8 @@
 
 #include "specklewfs/sim.h"
 
+SWFS_BEGIN_DECLS
+
 typedef struct swfs_recovery {
     double sigma;          /* [counts] background noise of this level */
     double valid_fraction; /* pixels where g is defined */
@@ -23,5 +25,7 @@ typedef struct swfs_recovery {
  * there (the folder must exist). */
 int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, const char *dir,
                       const char *const *prov, size_t nprov, swfs_recovery *out);
+
+SWFS_END_DECLS
 
 #endif

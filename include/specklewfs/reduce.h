@@ -9,7 +9,11 @@
 #ifndef SWFS_REDUCE_H
 #define SWFS_REDUCE_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_reduce_params {
     double hot_sigma;    /* dark pixels more than this many robust sigmas from the median
@@ -74,5 +78,7 @@ void swfs_badpix_replace(double *img, size_t nx, size_t ny, const unsigned char 
 int swfs_peak_gauss(const double *img, size_t nx, size_t ny, double sigma, double *work, double *px, double *py);
 /* out(i, j) = img(i + sx, j + sy), bilinear; NaN where the source is outside. */
 void swfs_shift_bilinear(const double *img, size_t nx, size_t ny, double sx, double sy, double *out);
+
+SWFS_END_DECLS
 
 #endif

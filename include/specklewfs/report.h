@@ -30,7 +30,11 @@
 #ifndef SWFS_REPORT_H
 #define SWFS_REPORT_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 #define SWFS_REPORT_MAX_FIGURES 8
 #define SWFS_REPORT_MAX_RANGES 24
@@ -91,5 +95,7 @@ const swfs_report_range *swfs_report_find_range(const swfs_report_summary *s, co
 /* pct-th percentile (linear interpolation between order statistics) of the finite
  * values v[k] with mask[k] != 0 (mask may be NULL); NaN if there are none. */
 double swfs_report_percentile(const double *v, size_t n, const unsigned char *mask, double pct);
+
+SWFS_END_DECLS
 
 #endif

@@ -22,10 +22,11 @@
 #ifndef SWFS_SCREEN_H
 #define SWFS_SCREEN_H
 
-#include <complex.h>
 #include <stddef.h>
 
 #include "specklewfs/rng.h"
+
+SWFS_BEGIN_DECLS
 
 #define SWFS_SCREEN_LAMBDA_REF 500e-9 /* [m] wavelength at which r0 is given */
 #define SWFS_SCREEN_NSUB 24           /* subharmonic plane waves: 3 levels x 8 */
@@ -59,7 +60,7 @@ typedef struct swfs_screen_gen swfs_screen_gen;
  * measured from sample (0, 0). coef is in the same units as the spectrum. */
 typedef struct swfs_screen_wave {
     double fx, fy;       /* [1/m] */
-    double complex coef; /* [m] */
+    swfs_complex coef; /* [m] */
 } swfs_screen_wave;
 
 swfs_screen_gen *swfs_screen_gen_create(const swfs_screen_params *p);
@@ -77,7 +78,7 @@ int swfs_screen_gen_draw(swfs_screen_gen *g, swfs_rng *rng);
 /* The drawn spectrum, n*n complex in FFTW order: element (kx, ky) at [ky*n + kx] holds the
  * coefficient [m] of frequency (kx', ky') / (n dx) with k' = k for k < n/2, k - n otherwise.
  * A caller may multiply it by a filter before swfs_screen_gen_finish(). */
-double complex *swfs_screen_gen_spectrum(swfs_screen_gen *g);
+swfs_complex *swfs_screen_gen_spectrum(swfs_screen_gen *g);
 /* The subharmonic waves (count SWFS_SCREEN_NSUB when enabled, else 0), also filterable. */
 swfs_screen_wave *swfs_screen_gen_waves(swfs_screen_gen *g, size_t *count);
 /* Inverse FFT of the (filtered) spectrum plus the waves: out1 = real part, out2 =
@@ -90,5 +91,7 @@ void swfs_screen_gen_execute(swfs_screen_gen *g);
 
 /* Signed FFT frequency index of bin k on an n grid: k for k < n/2, else k - n. */
 static inline long swfs_fft_freq_index(size_t k, size_t n) { return k < n / 2 ? (long)k : (long)k - (long)n; }
+
+SWFS_END_DECLS
 
 #endif

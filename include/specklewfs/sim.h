@@ -32,6 +32,8 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/screen.h"
 
+SWFS_BEGIN_DECLS
+
 #define SWFS_SIM_MAX_ZERNIKE 64 /* NCP Zernike terms */
 
 typedef struct swfs_sim_params {
@@ -145,5 +147,7 @@ int swfs_sim_camera(const swfs_real *clean, double read_noise, double gain, uint
  * science may be r->science (noise-free) or a noisy copy; DIR must exist. */
 int swfs_sim_write(const swfs_sim_result *r, const swfs_real *science, double read_noise, double gain, const char *dir,
                    const char *const *provenance, size_t nprov);
+
+SWFS_END_DECLS
 
 #endif

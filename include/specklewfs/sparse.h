@@ -3,7 +3,11 @@
 #ifndef SWFS_SPARSE_H
 #define SWFS_SPARSE_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 typedef struct swfs_sparse {
     size_t nrows, ncols, nnz;
@@ -19,5 +23,7 @@ void swfs_sparse_free(swfs_sparse *s);
 void swfs_sparse_apply(const swfs_sparse *s, const double *x, double *y);
 /* Y = S X for m column vectors stored row-major (X: ncols x m, Y: nrows x m). */
 void swfs_sparse_apply_multi(const swfs_sparse *s, const double *X, double *Y, size_t m);
+
+SWFS_END_DECLS
 
 #endif

@@ -12,6 +12,8 @@
 #include "specklewfs/sparse.h"
 #include "specklewfs/wfs.h"
 
+SWFS_BEGIN_DECLS
+
 enum { SWFS_MEAN_ENSEMBLE = 0, SWFS_MEAN_CUBE = 1 };
 
 /* eq:computedSpeckleField: psi = down-sampled halo - static halo. The static halo is the
@@ -103,5 +105,7 @@ int swfs_speckle_model_set_map(swfs_speckle_model *m, const double *slopes, size
  * tip-tilt-free mean square of the slopes. */
 int swfs_speckle_model_set_vk(swfs_speckle_model *m, const double *xy, double L0, const double *slopes, size_t nframes,
                               double noise_var, int remove_tiptilt);
+
+SWFS_END_DECLS
 
 #endif

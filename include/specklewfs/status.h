@@ -8,6 +8,10 @@
 #ifndef SWFS_STATUS_H
 #define SWFS_STATUS_H
 
+#include "specklewfs/defs.h"
+
+SWFS_BEGIN_DECLS
+
 enum swfs_status {
     SWFS_OK = 0,
     SWFS_ERR_ARG,      /* a caller passed an invalid argument or option */
@@ -39,5 +43,7 @@ int swfs_fail_context(int code, const char *fmt, ...)
 const char *swfs_last_error(void);
 void swfs_clear_error(void);
 const char *swfs_status_name(int code);
+
+SWFS_END_DECLS
 
 #endif

@@ -13,7 +13,11 @@
 #ifndef SWFS_SYNC_H
 #define SWFS_SYNC_H
 
+#include "specklewfs/defs.h"
+
 #include <stddef.h>
+
+SWFS_BEGIN_DECLS
 
 /* ---- handshake log -------------------------------------------------------- */
 
@@ -100,5 +104,7 @@ typedef struct swfs_timing {
 int swfs_timing_write(const char *path, const swfs_timing *t);
 int swfs_timing_read(const char *path, swfs_timing **out);
 void swfs_timing_free(swfs_timing *t);
+
+SWFS_END_DECLS
 
 #endif

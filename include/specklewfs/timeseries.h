@@ -38,6 +38,8 @@
 #include "specklewfs/config.h"
 #include "specklewfs/sim.h"
 
+SWFS_BEGIN_DECLS
+
 #define SWFS_TS_MAX_LAYERS 3
 
 typedef struct swfs_ts_params {
@@ -101,5 +103,7 @@ typedef void (*swfs_ts_progress_fn)(void *ctx, const char *stage, size_t done, s
 /* Simulate and write DIR (must exist). */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
+
+SWFS_END_DECLS
 
 #endif

@@ -21,6 +21,8 @@
 
 #include "specklewfs/sparse.h"
 
+SWFS_BEGIN_DECLS
+
 /* ---- actuator geometry ------------------------------------------------ */
 
 /* Hexapolar layout: a centre actuator and rings at radius k*pitch holding 6k actuators,
@@ -142,5 +144,7 @@ int swfs_recon_read(const char *path, swfs_recon **out);
 /* Actuators: NAXIS1 = 2 (x, y), NAXIS2 = nact [m]. */
 int swfs_actuators_write(const double *xy, size_t nact, const char *path);
 int swfs_actuators_read(const char *path, double **xy, size_t *nact);
+
+SWFS_END_DECLS
 
 #endif

@@ -63,10 +63,10 @@ double swfs_rng_normal(swfs_rng *r)
     return u * f;
 }
 
-double complex swfs_rng_cnormal(swfs_rng *r)
+void swfs_rng_cnormal(swfs_rng *r, swfs_complex *z)
 {
     double a = swfs_rng_normal(r), b = swfs_rng_normal(r);
-    return (a + I * b) * M_SQRT1_2;
+    *z = (a + I * b) * M_SQRT1_2;
 }
 
 /* PTRS: Hormann (1993), "The transformed rejection method for generating Poisson

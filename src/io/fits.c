@@ -24,30 +24,6 @@ static int fits_fail(int code, int fstatus, const char *path, const char *action
     return swfs_fail(code, "%s: %s: %s%s%s", path, action, text, detail[0] ? " -- " : "", detail);
 }
 
-void swfs_geom_init(swfs_geom *g)
-{
-    g->wavelen = g->teldiam = g->obscur = g->pixscale = g->pupdx = NAN;
-    g->pupn = 0;
-}
-
-int swfs_geom_require(const swfs_geom *g, const char *what)
-{
-    const char *missing = NULL;
-    if (!isfinite(g->wavelen)) missing = "WAVELEN";
-    else if (!isfinite(g->teldiam)) missing = "TELDIAM";
-    else if (!isfinite(g->obscur)) missing = "OBSCUR";
-    else if (!isfinite(g->pixscale)) missing = "PIXSCALE";
-    else if (!isfinite(g->pupdx)) missing = "PUPDX";
-    else if (g->pupn <= 0) missing = "PUPN";
-    if (missing)
-        return swfs_fail(SWFS_ERR_FORMAT, "%s: missing geometry keyword %s (expected WAVELEN, TELDIAM, "
-                         "OBSCUR, PIXSCALE, PUPDX, PUPN)", what, missing);
-    if (!(g->wavelen > 0 && g->teldiam > 0 && g->obscur >= 0 && g->obscur < 1 && g->pixscale > 0 && g->pupdx > 0))
-        return swfs_fail(SWFS_ERR_VALUE, "%s: geometry out of range (WAVELEN=%g TELDIAM=%g OBSCUR=%g "
-                         "PIXSCALE=%g PUPDX=%g)", what, g->wavelen, g->teldiam, g->obscur, g->pixscale, g->pupdx);
-    return SWFS_OK;
-}
-
 /* ---- reading ---------------------------------------------------------- */
 
 struct swfs_fits_in {

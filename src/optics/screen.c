@@ -1,4 +1,5 @@
 /* Von Karman phase screens by FFT with subharmonics: see include/specklewfs/screen.h. */
+#include "../core/planner.h"
 #include "specklewfs/screen.h"
 #include "specklewfs/array.h"
 #include "specklewfs/parallel.h"
@@ -74,15 +75,21 @@ struct swfs_screen_gen {
 static fftw_plan plan_rows(double complex *a, size_t n, size_t howmany)
 {
     const int len = (int)n;
-    return fftw_plan_many_dft(1, &len, (int)howmany, (fftw_complex *)a, NULL, 1, len, (fftw_complex *)a, NULL, 1, len,
-                              FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_lock();
+    fftw_plan p = fftw_plan_many_dft(1, &len, (int)howmany, (fftw_complex *)a, NULL, 1, len, (fftw_complex *)a, NULL,
+                                     1, len, FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_unlock();
+    return p;
 }
 
 static fftw_plan plan_cols(double complex *a, size_t n, size_t howmany)
 {
     const int len = (int)n;
-    return fftw_plan_many_dft(1, &len, (int)howmany, (fftw_complex *)a, NULL, len, 1, (fftw_complex *)a, NULL, len, 1,
-                              FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_lock();
+    fftw_plan p = fftw_plan_many_dft(1, &len, (int)howmany, (fftw_complex *)a, NULL, len, 1, (fftw_complex *)a, NULL,
+                                     len, 1, FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_unlock();
+    return p;
 }
 
 static void amp_rows(void *ctx, size_t b, size_t e, int worker)
@@ -159,10 +166,12 @@ swfs_screen_gen *swfs_screen_gen_create(const swfs_screen_params *p)
 void swfs_screen_gen_free(swfs_screen_gen *g)
 {
     if (!g) return;
+    swfs_planner_lock();
     if (g->rows) fftw_destroy_plan(g->rows);
     if (g->cols) fftw_destroy_plan(g->cols);
     if (g->rows_last) fftw_destroy_plan(g->rows_last);
     if (g->cols_last) fftw_destroy_plan(g->cols_last);
+    swfs_planner_unlock();
     fftw_free(g->spec);
     swfs_free(g->amp);
     swfs_free(g->ex);
@@ -213,7 +222,7 @@ static void draw_rows(void *ctx, size_t b, size_t e, int worker)
     for (size_t ky = b; ky < e; ky++) {
         swfs_rng r;
         swfs_rng_seed2(&r, g->row_seed, ky);
-        for (size_t kx = 0; kx < n; kx++) g->spec[ky * n + kx] = g->amp[ky * n + kx] * swfs_rng_cnormal(&r);
+        for (size_t kx = 0; kx < n; kx++) g->spec[ky * n + kx] = g->amp[ky * n + kx] * swfs_rng_cnormal_value(&r);
     }
 }
 
@@ -234,7 +243,7 @@ int swfs_screen_gen_draw(swfs_screen_gen *g, swfs_rng *rng)
                     w->fx = i * dfl;
                     w->fy = j * dfl;
                     const double a = sqrt(2.0 * swfs_vonkarman_psd(hypot(w->fx, w->fy), g->p.r0, g->p.L0)) * dfl * scale;
-                    w->coef = a * swfs_rng_cnormal(rng);
+                    w->coef = a * swfs_rng_cnormal_value(rng);
                 }
         }
     }

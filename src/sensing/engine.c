@@ -339,9 +339,6 @@ static void *pool_main(void *arg)
 
 static int run_batch(swfs_engine *e, job *j)
 {
-    /* Parallelism is ours (over camera frames): BLAS stays on the calling thread. */
-    const int blas_threads = openblas_get_num_threads();
-    openblas_set_num_threads(1);
     for (int t = 0; t < e->nthreads; t++) e->wk[t].status = SWFS_OK;
     e->cur = j;
     if (e->nthreads > 1) {
@@ -358,7 +355,6 @@ static int run_batch(swfs_engine *e, job *j)
         pthread_mutex_unlock(&e->mu);
     }
     e->cur = NULL;
-    openblas_set_num_threads(blas_threads);
     for (int t = 0; t < e->nthreads; t++)
         if (e->wk[t].status) return swfs_fail(e->wk[t].status, "%s", e->wk[t].err);
     return SWFS_OK;
@@ -420,8 +416,6 @@ static void flush_pending(swfs_engine *e)
 {
     if (!e->npend) return;
     worker *w = &e->wk[0];
-    const int blas_threads = openblas_get_num_threads();
-    openblas_set_num_threads(1);
     reconstruct(e, w, e->pend, e->npend);
     for (size_t bo = 0; bo < e->npend; bo += BLK) {
         const size_t nb = e->npend - bo < BLK ? e->npend - bo : BLK;
@@ -433,7 +427,6 @@ static void flush_pending(swfs_engine *e)
         sg->im = e->run_im;
         project_block(e, w, bo, nb, sg, 1);
     }
-    openblas_set_num_threads(blas_threads);
     e->npend = 0;
 }
 

@@ -133,39 +133,6 @@ fail:
     return rc;
 }
 
-int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
-                     size_t nprov)
-{
-    swfs_fits_out *o;
-    int rc = swfs_fits_out_create(&o, path);
-    if (rc) return rc;
-    rc = swfs_fits_out_set_stamp(o, g, prov, nprov);
-    if (!rc) rc = swfs_fits_out_geom(o, g);
-    if (!rc) rc = swfs_fits_out_provenance(o, prov, nprov);
-    if (!rc) rc = swfs_fits_out_key_double(o, "WFERMS", r->wfe_rms, "[m] WFE rms in the pupil, piston removed");
-    if (!rc) rc = swfs_fits_out_key_double(o, "WFEPV", r->wfe_pv, "[m] WFE peak to valley in the pupil");
-    if (!rc) rc = swfs_fits_out_key_double(o, "STREHL", r->strehl, "Marechal estimate from WFERMS");
-    if (!rc) rc = swfs_fits_out_key_string(o, "SOURCE", r->opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
-                                           "halo extension transformed");
-    if (!rc) rc = swfs_fits_out_key_string(o, "WEIGHT", r->opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
-                                           "focal-plane weighting");
-    if (!rc) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
-    if (!rc) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
-    if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);
-    if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:Pupil-field-with-NCP1", NULL);
-    if (!rc) rc = swfs_fits_out_real(o, "WFE", r->wfe, -64);
-    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "eq:NCP-WFE-estimate, piston removed");
-    if (!rc) rc = swfs_fits_out_real(o, "SURFACE", r->surface, -64);
-    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "WFE/2 for a reflective DM");
-    if (!rc) rc = swfs_fits_out_real(o, "AMPLITUDE", r->amplitude, -64);
-    if (!rc) rc = swfs_fits_out_real(o, "PUPIL", r->mask, -32);
-    if (rc) {
-        swfs_fits_out_abort(o);
-        return rc;
-    }
-    return swfs_fits_out_commit(o);
-}
-
 /* Least-squares fit of a + b x + c y over the mask (normal equations, 3x3). */
 static void fit_ptt(const double *w, const double *mask, size_t n, double coef[3])
 {

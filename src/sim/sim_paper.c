@@ -311,7 +311,6 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     double *scr1 = NULL, *scr2 = NULL;
     float *maskf = NULL;
     float complex *ncpph = NULL;
-    const int blas_threads = openblas_get_num_threads();
 
     r->science = swfs_real_alloc(nfx, nfy, nframes);
     r->speckles = swfs_cplx_alloc(nfx, nfy, nframes);
@@ -408,8 +407,6 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     sh.frame_strehl_ao = frame_buf + 2 * nframes;
     sh.frame_total = frame_buf + 3 * nframes;
     sh.workers = wk;
-    /* Parallelism is over frames; a threaded BLAS inside each small GEMM only costs. */
-    openblas_set_num_threads(1);
 
     swfs_rng rng;
     const size_t nbatch = ((size_t)p->nscreens + 1) / 2;
@@ -463,7 +460,6 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->seconds = now_seconds() - t0;
 
 done:
-    openblas_set_num_threads(blas_threads);
     workers_free(wk, nw);
     swfs_ao_model_free(model);
     swfs_screen_gen_free(gen);

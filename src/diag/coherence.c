@@ -1,4 +1,5 @@
 /* Speckle coherence diagnostics: see include/specklewfs/coherence.h and docs/coherence.md. */
+#include "../core/planner.h"
 #include "specklewfs/coherence.h"
 #include "specklewfs/status.h"
 
@@ -117,8 +118,10 @@ typedef struct coh_work {
 
 static void work_free(coh_work *w)
 {
+    swfs_planner_lock();
     if (w->fwd) fftw_destroy_plan(w->fwd);
     if (w->bwd) fftw_destroy_plan(w->bwd);
+    swfs_planner_unlock();
     if (w->buf) fftw_free(w->buf);
     swfs_free(w->acc);
 }
@@ -181,10 +184,12 @@ static int work_init(coh_work *w, size_t nt, size_t npix, size_t L, int method)
         if (!w->buf) return swfs_fail(SWFS_ERR_NOMEM, "coherence: out of memory for FFT buffers (%zu x %d)", nfft, BLOCK);
         int n = (int)nfft;
         /* FFTW_ESTIMATE: planning is instant and deterministic and never touches the data. */
+        swfs_planner_lock();
         w->fwd = fftw_plan_many_dft(1, &n, BLOCK, (fftw_complex *)w->buf, NULL, BLOCK, 1,
                                     (fftw_complex *)w->buf, NULL, BLOCK, 1, FFTW_FORWARD, FFTW_ESTIMATE);
         w->bwd = fftw_plan_many_dft(1, &n, BLOCK, (fftw_complex *)w->buf, NULL, BLOCK, 1,
                                     (fftw_complex *)w->buf, NULL, BLOCK, 1, FFTW_BACKWARD, FFTW_ESTIMATE);
+        swfs_planner_unlock();
         if (!w->fwd || !w->bwd) return swfs_fail(SWFS_ERR_INTERNAL, "coherence: FFTW could not plan length %zu", nfft);
     } else {
         w->buf = fftw_malloc(nt * BLOCK * sizeof *w->buf);
@@ -427,90 +432,6 @@ int swfs_coherence_fit_wind(const swfs_coherence *c, const swfs_geom *g, double 
 }
 
 /* ---- files ------------------------------------------------------------- */
-
-static int write_map(swfs_fits_out *o, const char *ext, const swfs_real *a, const char *bunit, const char *what)
-{
-    int rc = swfs_fits_out_real(o, ext, a, -32);
-    if (!rc && bunit) rc = swfs_fits_out_key_string(o, "BUNIT", bunit, NULL);
-    if (!rc && what) rc = swfs_fits_out_key_string(o, "CONTENTS", what, NULL);
-    return rc;
-}
-
-int swfs_coherence_write(const swfs_coherence *c, const char *path, const swfs_geom *g,
-                         const char *const *prov, size_t nprov)
-{
-    swfs_fits_out *o;
-    int rc = swfs_fits_out_create(&o, path);
-    if (rc) return rc;
-    rc = swfs_fits_out_set_stamp(o, g, prov, nprov);
-    /* Primary: the summary. */
-    if (!rc) rc = swfs_fits_out_key_double(o, "FRAMEDT", c->framedt, "[s] between WFS frames");
-    if (!rc && g) rc = swfs_fits_out_geom(o, g);
-    if (!rc) rc = swfs_fits_out_provenance(o, prov, nprov);
-    if (!rc) rc = swfs_fits_out_key_long(o, "NFRAMES", (long)c->nframes, "WFS frames used");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NLAGS", (long)c->nlags, "lags in MCF and LAGS");
-    if (!rc) rc = swfs_fits_out_key_long(o, "MAXLAG", c->max_lag, "[frames] largest lag computed");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NFIT", c->nfit, "[frames] phase-rate fit over lags 1..NFIT");
-    if (!rc) rc = swfs_fits_out_key_double(o, "EXPOSURE", c->exposure, "[s] camera exposure of SNR_FACT (0: none)");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NVALID", (long)c->n_valid, "pixels with speckle power");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NNOPOWER", (long)c->n_nopower, "pixels without speckle power (NaN)");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NNONFIN", (long)c->n_nonfinite, "pixels with non-finite speckles (NaN)");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NTAU0INF", (long)c->n_tau0_beyond, "pixels with TAU0 beyond MAXLAG (+Inf)");
-    if (!rc) rc = swfs_fits_out_key_string(o, "COHMETH", c->method == SWFS_COH_FFT ? "FFT" : "DIRECT",
-                                           "autocorrelation by FFT along time or direct sums");
-    if (!rc) rc = write_map(o, "MEAN_SP", c->mean_sp, NULL, "Phi_sp = Gamma(0), mean speckle power");
-    if (!rc) rc = write_map(o, "TAU0", c->tau0, "s", "|Gamma(tau)/Gamma(0)| first below exp(-1/2); +Inf: beyond MAXLAG");
-    if (!rc) rc = write_map(o, "TROT", c->trot, "s", "(pi/2)/|PHRATE|: time for the phase to turn by pi/2");
-    if (!rc) rc = write_map(o, "PHRATE", c->phrate, "rad/s", "d arg Gamma(tau)/d tau; frozen flow: +k theta.v");
-    if (!rc && c->snr_fact) {
-        rc = write_map(o, "SNR_FACT", c->snr_fact, NULL, "eq:MCF-SNReffect x2 (1 = coherent) at EXPOSURE");
-        if (!rc) rc = swfs_fits_out_key_double(o, "EXPOSURE", c->exposure, "[s] camera exposure");
-    }
-    if (!rc) rc = swfs_fits_out_cplx(o, "MCF", c->mcf, -32);
-    if (!rc) rc = swfs_fits_out_key_string(o, "CONTENTS", "Gamma(tau)/Gamma(0), lag along the last axis (see LAGS)", NULL);
-    if (!rc) rc = swfs_fits_out_real(o, "LAGS", c->lags, -64);
-    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "s", NULL);
-    if (!rc) rc = swfs_fits_out_key_string(o, "CONTENTS", "lags of the MCF planes (NLAGS x 1 image)", NULL);
-    if (!rc) rc = swfs_fits_out_key_double(o, "FRAMEDT", c->framedt, "[s] between WFS frames");
-    if (rc) {
-        swfs_fits_out_abort(o);
-        return swfs_fail_context(rc, "writing %s", path);
-    }
-    return swfs_fits_out_commit(o);
-}
-
-int swfs_coherence_read_input(const char *path, swfs_cplx **cube, double *framedt, swfs_geom *g, double *exposure)
-{
-    *cube = NULL;
-    if (exposure) *exposure = 0;
-    swfs_fits_in *f;
-    int rc = swfs_fits_in_open(&f, path, NULL);
-    if (rc) return rc;
-    int found = 0;
-    double dt = NAN;
-    rc = swfs_fits_in_key_double_opt(f, "FRAMEDT", &dt, &found);
-    if (!rc && !found)
-        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: missing keyword FRAMEDT (seconds between WFS frames); the "
-                       "coherence needs a WFS-rate cube", path);
-    if (!rc && !(dt > 0 && isfinite(dt)))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRAMEDT = %g, expected a positive number of seconds", path, dt);
-    if (!rc && !swfs_fits_in_shape(f)->is_complex)
-        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: expected a complex speckle cube (NAXIS1 = 2, CTYPE1 = 'COMPLEX')", path);
-    if (!rc && g) rc = swfs_fits_in_geom(f, g);
-    if (!rc && exposure) {
-        double v = 0;
-        rc = swfs_fits_in_key_double_opt(f, "CAMEXP", &v, &found);
-        if (!rc && found && v > 0) *exposure = v;
-        if (!rc && !found) {
-            rc = swfs_fits_in_key_double_opt(f, "FRATIO", &v, &found);
-            if (!rc && found && v > 0) *exposure = v * dt;
-        }
-    }
-    if (!rc) rc = swfs_fits_in_read_cplx_all(f, cube);
-    swfs_fits_in_close(f);
-    if (!rc) *framedt = dt;
-    return rc;
-}
 
 double swfs_exposure_limit_wind(double theta_lod, double diam, double wind)
 {

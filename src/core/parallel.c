@@ -1,5 +1,7 @@
 /* Parallel for-loop over chunks: see include/specklewfs/parallel.h. */
 #include "specklewfs/parallel.h"
+
+#include <cblas.h>
 #include "specklewfs/status.h"
 
 #include <pthread.h>
@@ -60,3 +62,6 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
     if (jobs != local) free(jobs);
     return SWFS_OK;
 }
+
+void swfs_blas_set_threads(int n) { openblas_set_num_threads(n < 1 ? 1 : n); }
+int swfs_blas_threads(void) { return openblas_get_num_threads(); }

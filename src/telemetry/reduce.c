@@ -1,4 +1,5 @@
 /* Science-camera frame reduction (paper Sec. 4.3), see reduce.h. */
+#include "../core/planner.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/array.h"
 #include "specklewfs/status.h"
@@ -66,7 +67,11 @@ void swfs_reduce_free(swfs_reduce *r)
     if (!r) return;
     free(r->dark); free(r->flat); free(r->bad); free(r->work); free(r->frame);
     free(r->bg); free(r->bg_mean); free(r->bg_m2);
-    if (r->plan) fftw_destroy_plan(r->plan);
+    if (r->plan) {
+        swfs_planner_lock();
+        fftw_destroy_plan(r->plan);
+        swfs_planner_unlock();
+    }
     fftw_free(r->fin); fftw_free(r->fout);
     free(r->hann); free(r->oob);
     free(r);
@@ -159,8 +164,9 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
         r->hann = malloc(n * sizeof *r->hann);
         r->oob = calloc(nh * ny, 1);
         if (!r->fin || !r->fout || !r->hann || !r->oob) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
-        /* FFTW planning is not thread-safe; reduce plans are made by one thread. */
+        swfs_planner_lock();
         r->plan = fftw_plan_dft_r2c_2d((int)ny, (int)nx, r->fin, r->fout, FFTW_ESTIMATE);
+        swfs_planner_unlock();
         if (!r->plan) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_INTERNAL, "reduce: FFTW plan failed"); }
         for (size_t j = 0; j < ny; j++)
             for (size_t i = 0; i < nx; i++) {

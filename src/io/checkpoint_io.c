@@ -106,38 +106,6 @@ done:
     return SWFS_OK;
 }
 
-static int same_value(double a, double b)
-{
-    if (isnan(a) || isnan(b)) return 1; /* not recorded by one of them */
-    return fabs(a - b) <= 1e-9 * fmax(fabs(a), fabs(b));
-}
-
-int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b)
-{
-    const struct { const char *key; double va, vb; } k[] = {
-        {"WAVELEN", a->wavelen, b->wavelen}, {"TELDIAM", a->teldiam, b->teldiam},
-        {"OBSCUR", a->obscur, b->obscur},    {"PIXSCALE", a->pixscale, b->pixscale},
-        {"PUPDX", a->pupdx, b->pupdx},
-        {"PUPN", a->pupn ? (double)a->pupn : NAN, b->pupn ? (double)b->pupn : NAN},
-    };
-    for (size_t i = 0; i < sizeof k / sizeof k[0]; i++)
-        if (!same_value(k[i].va, k[i].vb))
-            return swfs_fail(SWFS_ERR_VALUE, "%s has %s = %.10g but %s has %.10g: not the same observing setup",
-                             what_b, k[i].key, k[i].vb, what_a, k[i].va);
-    return SWFS_OK;
-}
-
-/* Keywords recorded by b but not by a are taken from b. */
-static void geom_union(swfs_geom *a, const swfs_geom *b)
-{
-    if (isnan(a->wavelen)) a->wavelen = b->wavelen;
-    if (isnan(a->teldiam)) a->teldiam = b->teldiam;
-    if (isnan(a->obscur)) a->obscur = b->obscur;
-    if (isnan(a->pixscale)) a->pixscale = b->pixscale;
-    if (isnan(a->pupdx)) a->pupdx = b->pupdx;
-    if (!a->pupn) a->pupn = b->pupn;
-}
-
 int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out, swfs_geom *g)
 {
     *out = NULL;
@@ -153,7 +121,7 @@ int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out,
                            part->ny, paths[0], acc->nx, acc->ny);
         if (!rc) rc = swfs_geom_check_same(&gacc, paths[0], &gpart, paths[i]);
         if (!rc) rc = swfs_accum_merge(acc, part);
-        geom_union(&gacc, &gpart);
+        swfs_geom_union(&gacc, &gpart);
         swfs_accum_free(part);
         part = NULL;
     }

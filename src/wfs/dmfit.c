@@ -57,6 +57,8 @@ void swfs_dmfit_free(swfs_dmfit *f)
     free(f);
 }
 
+size_t swfs_dmfit_npup(const swfs_dmfit *f) { return f->npup; }
+const double *swfs_dmfit_xy(const swfs_dmfit *f) { return f->xy; }
 size_t swfs_dmfit_nact(const swfs_dmfit *f) { return f->nact; }
 double swfs_dmfit_pitch(const swfs_dmfit *f) { return f->pitch; }
 size_t swfs_dmfit_active(const swfs_dmfit *f) { return f->nactive; }
@@ -377,60 +379,4 @@ int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *f
         }
     }
     return SWFS_OK;
-}
-
-int swfs_dmfit_write(const swfs_dmfit *f, const double *cmd, const double *target, const swfs_dmfit_stats *st,
-                     const char *path, const swfs_geom *g, const char *const *prov, size_t nprov)
-{
-    const size_t np = f->npup, nact = f->nact;
-    swfs_real *off = swfs_real_alloc(nact, 1, 1), *act = swfs_real_alloc(2, nact, 1);
-    swfs_real *surf = swfs_real_alloc(np, np, 1), *unfit = swfs_real_alloc(np, np, 1), *pm = swfs_real_alloc(np, np, 1);
-    swfs_fits_out *o = NULL;
-    int rc = SWFS_OK;
-    if (!off || !act || !surf || !unfit || !pm) { rc = SWFS_ERR_NOMEM; goto done; }
-    memcpy(off->data, cmd, nact * sizeof *cmd);
-    memcpy(act->data, f->xy, 2 * nact * sizeof *f->xy);
-    memcpy(pm->data, f->mask, np * np * sizeof *f->mask);
-    swfs_dmfit_surface(f, cmd, surf->data);
-    for (size_t s = 0; s < np * np; s++) unfit->data[s] = f->mask[s] > 0 ? target[s] - surf->data[s] : 0.0;
-    if ((rc = swfs_fits_out_create(&o, path))) goto done;
-    if ((rc = swfs_fits_out_set_stamp(o, g, prov, nprov))) goto done;
-    if ((rc = swfs_fits_out_real(o, "OFFSETS", off, -64))) goto done;
-    rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface offset per actuator (wavefront change = 2x)");
-    if (!rc) rc = swfs_fits_out_key_string(o, "INFLUENC", f->opt.influence == SWFS_INFLUENCE_CUBIC ? "cubic" : "gauss",
-                                           "influence functions: gauss or cubic (Clough-Tocher)");
-    if (!rc && f->opt.influence == SWFS_INFLUENCE_GAUSS)
-        rc = swfs_fits_out_key_double(o, "COUPLING", f->opt.coupling, "Gaussian influence at one pitch");
-    if (!rc) rc = swfs_fits_out_key_double(o, "ACTPITCH", f->pitch, "[m] actuator pitch used");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NACT", (long)nact, "actuators");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NACTIVE", (long)f->nactive, "actuators reaching the pupil");
-    if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)f->opt.modes, "Noll Zernikes kept (0 = no modal filter)");
-    if (!rc) rc = swfs_fits_out_key_double(o, "DMREG", f->opt.reg, "Tikhonov mu relative to the mean diagonal");
-    if (!rc && st) {
-        rc = swfs_fits_out_key_double(o, "TGTRMS", st->target_rms, "[m] target surface rms (-WFE/2)");
-        if (!rc) rc = swfs_fits_out_key_double(o, "MODERMS", st->modal_rms, "[m] its part in the kept modes");
-        if (!rc) rc = swfs_fits_out_key_double(o, "FILTRMS", st->filtered_rms, "[m] left out by the modal filter");
-        if (!rc) rc = swfs_fits_out_key_double(o, "FITRMS", st->fit_rms, "[m] fitted DM surface rms");
-        if (!rc) rc = swfs_fits_out_key_double(o, "FITERRMS", st->fiterr_rms, "[m] DM fitting error");
-        if (!rc) rc = swfs_fits_out_key_double(o, "UNFITRMS", st->unfit_rms, "[m] target - fitted surface rms");
-    }
-    if (rc) goto done;
-    if ((rc = swfs_fits_out_real(o, "ACTUATORS", act, -64))) goto done;
-    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "actuator (x, y) in the pupil frame"))) goto done;
-    if ((rc = swfs_fits_out_real(o, "SURFACE", surf, -64))) goto done;
-    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface made by OFFSETS"))) goto done;
-    if ((rc = swfs_fits_out_real(o, "UNFIT", unfit, -64))) goto done;
-    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "target - SURFACE inside the pupil"))) goto done;
-    if ((rc = swfs_fits_out_real(o, "PUPIL", pm, -32))) goto done;
-    rc = swfs_fits_out_commit(o);
-    o = NULL;
-done:
-    swfs_fits_out_abort(o);
-    swfs_real_free(off);
-    swfs_real_free(act);
-    swfs_real_free(surf);
-    swfs_real_free(unfit);
-    swfs_real_free(pm);
-    if (rc == SWFS_ERR_NOMEM) swfs_fail(rc, "%s: out of memory", path);
-    return rc;
 }

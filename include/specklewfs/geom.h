@@ -1,0 +1,34 @@
+/* Geometry of the focal and pupil grids (DESIGN.md's geometry keywords): the one domain
+ * type every stage shares. Focal pixel (i, j) sits at ((i - floor(W/2)), (j - floor(H/2)))
+ * PIXSCALE lambda/D; pupil sample (p, q) at (p - (PUPN - 1)/2, q - (PUPN - 1)/2) PUPDX. */
+#ifndef SWFS_GEOM_H
+#define SWFS_GEOM_H
+
+#include "specklewfs/defs.h"
+
+SWFS_BEGIN_DECLS
+
+/* Missing values are NaN (pupn: 0). */
+typedef struct swfs_geom {
+    double wavelen;  /* WAVELEN [m] */
+    double teldiam;  /* TELDIAM [m] */
+    double obscur;   /* OBSCUR: central obstruction, fraction of the diameter */
+    double pixscale; /* PIXSCALE [lambda/D per focal pixel] */
+    double pupdx;    /* PUPDX [m per pupil sample] */
+    long pupn;       /* PUPN: pupil samples across */
+} swfs_geom;
+
+void swfs_geom_init(swfs_geom *g); /* all missing */
+/* SWFS_ERR_FORMAT naming `what` and the first missing keyword; SWFS_ERR_VALUE when a value
+ * is out of its physical range. */
+int swfs_geom_require(const swfs_geom *g, const char *what);
+/* SWFS_ERR_VALUE naming both sources and the keyword when two geometries disagree on a
+ * keyword that both record (relative tolerance 1e-9): merging halos of different
+ * wavelengths or samplings would be meaningless. */
+int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b);
+/* Keywords recorded by b but not by a are taken from b. */
+void swfs_geom_union(swfs_geom *a, const swfs_geom *b);
+
+SWFS_END_DECLS
+
+#endif

@@ -1,0 +1,337 @@
+/* The product files of the method modules: PUPIL.fits (pupil.h), COH.fits and the
+ * coherence input (coherence.h), OFFSETS.fits (dmfit.h), reconstructor and actuator files
+ * (wfs.h), the closed-loop folder (closed_loop.h). The method code computes arrays; only
+ * this layer reads and writes files. */
+#include "specklewfs/closed_loop.h"
+#include "specklewfs/coherence.h"
+#include "specklewfs/dmfit.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/pupil.h"
+#include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
+                     size_t nprov)
+{
+    swfs_fits_out *o;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_set_stamp(o, g, prov, nprov);
+    if (!rc) rc = swfs_fits_out_geom(o, g);
+    if (!rc) rc = swfs_fits_out_provenance(o, prov, nprov);
+    if (!rc) rc = swfs_fits_out_key_double(o, "WFERMS", r->wfe_rms, "[m] WFE rms in the pupil, piston removed");
+    if (!rc) rc = swfs_fits_out_key_double(o, "WFEPV", r->wfe_pv, "[m] WFE peak to valley in the pupil");
+    if (!rc) rc = swfs_fits_out_key_double(o, "STREHL", r->strehl, "Marechal estimate from WFERMS");
+    if (!rc) rc = swfs_fits_out_key_string(o, "SOURCE", r->opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
+                                           "halo extension transformed");
+    if (!rc) rc = swfs_fits_out_key_string(o, "WEIGHT", r->opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
+                                           "focal-plane weighting");
+    if (!rc) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
+    if (!rc) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
+    if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:Pupil-field-with-NCP1", NULL);
+    if (!rc) rc = swfs_fits_out_real(o, "WFE", r->wfe, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "eq:NCP-WFE-estimate, piston removed");
+    if (!rc) rc = swfs_fits_out_real(o, "SURFACE", r->surface, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "WFE/2 for a reflective DM");
+    if (!rc) rc = swfs_fits_out_real(o, "AMPLITUDE", r->amplitude, -64);
+    if (!rc) rc = swfs_fits_out_real(o, "PUPIL", r->mask, -32);
+    if (rc) {
+        swfs_fits_out_abort(o);
+        return rc;
+    }
+    return swfs_fits_out_commit(o);
+}
+
+int swfs_recon_write(const swfs_recon *r, const char *path)
+{
+    swfs_real a = {r->nslopes, r->nact, 1, r->W};
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_real(o, NULL, &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m/rad", "actuator displacement per slope");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)r->nmodes, "SVD modes kept");
+    if (!rc) rc = swfs_fits_out_history(o, "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
+    if (rc) { swfs_fits_out_abort(o); return rc; }
+    return swfs_fits_out_commit(o);
+}
+
+int swfs_recon_read(const char *path, swfs_recon **out)
+{
+    *out = NULL;
+    swfs_real *a = NULL;
+    int rc = swfs_fits_read_real(path, NULL, &a, NULL);
+    if (rc) return rc;
+    if (a->nz != 1) {
+        size_t nz = a->nz;
+        swfs_real_free(a);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: reconstructor must be a 2-D image (nslopes x nact), got %zu planes", path, nz);
+    }
+    swfs_recon *r = calloc(1, sizeof *r);
+    if (r) r->W = malloc(a->nx * a->ny * sizeof *r->W);
+    if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    r->nslopes = a->nx; r->nact = a->ny;
+    for (size_t i = 0; i < a->nx * a->ny; i++) {
+        if (!isfinite(a->data[i])) {
+            swfs_real_free(a); swfs_recon_free(r);
+            return swfs_fail(SWFS_ERR_VALUE, "%s: reconstructor entry %zu is not finite", path, i);
+        }
+        r->W[i] = a->data[i];
+    }
+    r->nmodes = 0;
+    swfs_real_free(a);
+    *out = r;
+    return SWFS_OK;
+}
+
+int swfs_actuators_write(const double *xy, size_t nact, const char *path)
+{
+    swfs_real a = {2, nact, 1, (double *)xy};
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_real(o, NULL, &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "actuator (x, y) in the pupil frame");
+    if (rc) { swfs_fits_out_abort(o); return rc; }
+    return swfs_fits_out_commit(o);
+}
+
+int swfs_actuators_read(const char *path, double **xy, size_t *nact)
+{
+    *xy = NULL;
+    *nact = 0;
+    swfs_real *a = NULL;
+    int rc = swfs_fits_read_real(path, NULL, &a, NULL);
+    if (rc) return rc;
+    if (a->nx != 2 || a->nz != 1) {
+        size_t nx = a->nx;
+        swfs_real_free(a);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: actuator positions must be a 2 x nact image, NAXIS1 is %zu", path, nx);
+    }
+    double *p = malloc(2 * a->ny * sizeof *p);
+    if (!p) { swfs_real_free(a); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    memcpy(p, a->data, 2 * a->ny * sizeof *p);
+    *nact = a->ny;
+    *xy = p;
+    swfs_real_free(a);
+    return SWFS_OK;
+}
+
+static int write_map(swfs_fits_out *o, const char *ext, const swfs_real *a, const char *bunit, const char *what)
+{
+    int rc = swfs_fits_out_real(o, ext, a, -32);
+    if (!rc && bunit) rc = swfs_fits_out_key_string(o, "BUNIT", bunit, NULL);
+    if (!rc && what) rc = swfs_fits_out_key_string(o, "CONTENTS", what, NULL);
+    return rc;
+}
+
+int swfs_coherence_write(const swfs_coherence *c, const char *path, const swfs_geom *g,
+                         const char *const *prov, size_t nprov)
+{
+    swfs_fits_out *o;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    rc = swfs_fits_out_set_stamp(o, g, prov, nprov);
+    /* Primary: the summary. */
+    if (!rc) rc = swfs_fits_out_key_double(o, "FRAMEDT", c->framedt, "[s] between WFS frames");
+    if (!rc && g) rc = swfs_fits_out_geom(o, g);
+    if (!rc) rc = swfs_fits_out_provenance(o, prov, nprov);
+    if (!rc) rc = swfs_fits_out_key_long(o, "NFRAMES", (long)c->nframes, "WFS frames used");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NLAGS", (long)c->nlags, "lags in MCF and LAGS");
+    if (!rc) rc = swfs_fits_out_key_long(o, "MAXLAG", c->max_lag, "[frames] largest lag computed");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NFIT", c->nfit, "[frames] phase-rate fit over lags 1..NFIT");
+    if (!rc) rc = swfs_fits_out_key_double(o, "EXPOSURE", c->exposure, "[s] camera exposure of SNR_FACT (0: none)");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NVALID", (long)c->n_valid, "pixels with speckle power");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NNOPOWER", (long)c->n_nopower, "pixels without speckle power (NaN)");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NNONFIN", (long)c->n_nonfinite, "pixels with non-finite speckles (NaN)");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NTAU0INF", (long)c->n_tau0_beyond, "pixels with TAU0 beyond MAXLAG (+Inf)");
+    if (!rc) rc = swfs_fits_out_key_string(o, "COHMETH", c->method == SWFS_COH_FFT ? "FFT" : "DIRECT",
+                                           "autocorrelation by FFT along time or direct sums");
+    if (!rc) rc = write_map(o, "MEAN_SP", c->mean_sp, NULL, "Phi_sp = Gamma(0), mean speckle power");
+    if (!rc) rc = write_map(o, "TAU0", c->tau0, "s", "|Gamma(tau)/Gamma(0)| first below exp(-1/2); +Inf: beyond MAXLAG");
+    if (!rc) rc = write_map(o, "TROT", c->trot, "s", "(pi/2)/|PHRATE|: time for the phase to turn by pi/2");
+    if (!rc) rc = write_map(o, "PHRATE", c->phrate, "rad/s", "d arg Gamma(tau)/d tau; frozen flow: +k theta.v");
+    if (!rc && c->snr_fact) {
+        rc = write_map(o, "SNR_FACT", c->snr_fact, NULL, "eq:MCF-SNReffect x2 (1 = coherent) at EXPOSURE");
+        if (!rc) rc = swfs_fits_out_key_double(o, "EXPOSURE", c->exposure, "[s] camera exposure");
+    }
+    if (!rc) rc = swfs_fits_out_cplx(o, "MCF", c->mcf, -32);
+    if (!rc) rc = swfs_fits_out_key_string(o, "CONTENTS", "Gamma(tau)/Gamma(0), lag along the last axis (see LAGS)", NULL);
+    if (!rc) rc = swfs_fits_out_real(o, "LAGS", c->lags, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "s", NULL);
+    if (!rc) rc = swfs_fits_out_key_string(o, "CONTENTS", "lags of the MCF planes (NLAGS x 1 image)", NULL);
+    if (!rc) rc = swfs_fits_out_key_double(o, "FRAMEDT", c->framedt, "[s] between WFS frames");
+    if (rc) {
+        swfs_fits_out_abort(o);
+        return swfs_fail_context(rc, "writing %s", path);
+    }
+    return swfs_fits_out_commit(o);
+}
+
+int swfs_coherence_read_input(const char *path, swfs_cplx **cube, double *framedt, swfs_geom *g, double *exposure)
+{
+    *cube = NULL;
+    if (exposure) *exposure = 0;
+    swfs_fits_in *f;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (rc) return rc;
+    int found = 0;
+    double dt = NAN;
+    rc = swfs_fits_in_key_double_opt(f, "FRAMEDT", &dt, &found);
+    if (!rc && !found)
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: missing keyword FRAMEDT (seconds between WFS frames); the "
+                       "coherence needs a WFS-rate cube", path);
+    if (!rc && !(dt > 0 && isfinite(dt)))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRAMEDT = %g, expected a positive number of seconds", path, dt);
+    if (!rc && !swfs_fits_in_shape(f)->is_complex)
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: expected a complex speckle cube (NAXIS1 = 2, CTYPE1 = 'COMPLEX')", path);
+    if (!rc && g) rc = swfs_fits_in_geom(f, g);
+    if (!rc && exposure) {
+        double v = 0;
+        rc = swfs_fits_in_key_double_opt(f, "CAMEXP", &v, &found);
+        if (!rc && found && v > 0) *exposure = v;
+        if (!rc && !found) {
+            rc = swfs_fits_in_key_double_opt(f, "FRATIO", &v, &found);
+            if (!rc && found && v > 0) *exposure = v * dt;
+        }
+    }
+    if (!rc) rc = swfs_fits_in_read_cplx_all(f, cube);
+    swfs_fits_in_close(f);
+    if (!rc) *framedt = dt;
+    return rc;
+}
+
+int swfs_dmfit_write(const swfs_dmfit *f, const double *cmd, const double *target, const swfs_dmfit_stats *st,
+                     const char *path, const swfs_geom *g, const char *const *prov, size_t nprov)
+{
+    const size_t np = swfs_dmfit_npup(f), nact = swfs_dmfit_nact(f);
+    const swfs_dmfit_options *fo = swfs_dmfit_opts(f);
+    const double *fmask = swfs_dmfit_mask(f);
+    swfs_real *off = swfs_real_alloc(nact, 1, 1), *act = swfs_real_alloc(2, nact, 1);
+    swfs_real *surf = swfs_real_alloc(np, np, 1), *unfit = swfs_real_alloc(np, np, 1), *pm = swfs_real_alloc(np, np, 1);
+    swfs_fits_out *o = NULL;
+    int rc = SWFS_OK;
+    if (!off || !act || !surf || !unfit || !pm) { rc = SWFS_ERR_NOMEM; goto done; }
+    memcpy(off->data, cmd, nact * sizeof *cmd);
+    memcpy(act->data, swfs_dmfit_xy(f), 2 * nact * sizeof(double));
+    memcpy(pm->data, fmask, np * np * sizeof *fmask);
+    swfs_dmfit_surface(f, cmd, surf->data);
+    for (size_t s = 0; s < np * np; s++) unfit->data[s] = fmask[s] > 0 ? target[s] - surf->data[s] : 0.0;
+    if ((rc = swfs_fits_out_create(&o, path))) goto done;
+    if ((rc = swfs_fits_out_set_stamp(o, g, prov, nprov))) goto done;
+    if ((rc = swfs_fits_out_real(o, "OFFSETS", off, -64))) goto done;
+    rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface offset per actuator (wavefront change = 2x)");
+    if (!rc) rc = swfs_fits_out_key_string(o, "INFLUENC", fo->influence == SWFS_INFLUENCE_CUBIC ? "cubic" : "gauss",
+                                           "influence functions: gauss or cubic (Clough-Tocher)");
+    if (!rc && fo->influence == SWFS_INFLUENCE_GAUSS)
+        rc = swfs_fits_out_key_double(o, "COUPLING", fo->coupling, "Gaussian influence at one pitch");
+    if (!rc) rc = swfs_fits_out_key_double(o, "ACTPITCH", swfs_dmfit_pitch(f), "[m] actuator pitch used");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NACT", (long)nact, "actuators");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NACTIVE", (long)swfs_dmfit_active(f), "actuators reaching the pupil");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)fo->modes, "Noll Zernikes kept (0 = no modal filter)");
+    if (!rc) rc = swfs_fits_out_key_double(o, "DMREG", fo->reg, "Tikhonov mu relative to the mean diagonal");
+    if (!rc && st) {
+        rc = swfs_fits_out_key_double(o, "TGTRMS", st->target_rms, "[m] target surface rms (-WFE/2)");
+        if (!rc) rc = swfs_fits_out_key_double(o, "MODERMS", st->modal_rms, "[m] its part in the kept modes");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FILTRMS", st->filtered_rms, "[m] left out by the modal filter");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FITRMS", st->fit_rms, "[m] fitted DM surface rms");
+        if (!rc) rc = swfs_fits_out_key_double(o, "FITERRMS", st->fiterr_rms, "[m] DM fitting error");
+        if (!rc) rc = swfs_fits_out_key_double(o, "UNFITRMS", st->unfit_rms, "[m] target - fitted surface rms");
+    }
+    if (rc) goto done;
+    if ((rc = swfs_fits_out_real(o, "ACTUATORS", act, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "actuator (x, y) in the pupil frame"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "SURFACE", surf, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "DM surface made by OFFSETS"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "UNFIT", unfit, -64))) goto done;
+    if ((rc = swfs_fits_out_key_string(o, "BUNIT", "m", "target - SURFACE inside the pupil"))) goto done;
+    if ((rc = swfs_fits_out_real(o, "PUPIL", pm, -32))) goto done;
+    rc = swfs_fits_out_commit(o);
+    o = NULL;
+done:
+    swfs_fits_out_abort(o);
+    swfs_real_free(off);
+    swfs_real_free(act);
+    swfs_real_free(surf);
+    swfs_real_free(unfit);
+    swfs_real_free(pm);
+    if (rc == SWFS_ERR_NOMEM) swfs_fail(rc, "%s: out of memory", path);
+    return rc;
+}
+
+int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const char *const *prov, size_t nprov)
+{
+    char path[4096];
+    if (snprintf(path, sizeof path, "%s/loop.tsv", dir) >= (int)sizeof path)
+        return swfs_fail(SWFS_ERR_ARG, "%s: folder name too long", dir);
+    FILE *fp = fopen(path, "w");
+    if (!fp) return swfs_fail(SWFS_ERR_IO, "%s: cannot write", path);
+    /* Table columns: also the METRICS image rows below. */
+    static const char *cols[] = {"iter", "resid_nm", "resid_ptt_nm", "strehl", "strehl_ao", "strehl_marechal",
+                                 "contrast", "contrast_ao", "contrast_ncp", "est_nm", "est_err_nm", "median_snr", "fit_nm",
+                                 "unfit_nm", "fiterr_nm", "filtered_nm", "cmd_rms_nm", "seconds"};
+    enum { NCOL = sizeof cols / sizeof cols[0] };
+    swfs_real *met = swfs_real_alloc(NCOL, r->nrows, 1);
+    if (!met) { fclose(fp); return SWFS_ERR_NOMEM; }
+    for (size_t c = 0; c < NCOL; c++) fprintf(fp, "%s%s", c ? "\t" : "# ", cols[c]);
+    fputc('\n', fp);
+    for (size_t k = 0; k < r->nrows; k++) {
+        const swfs_loop_iter *it = &r->rows[k];
+        const double v[NCOL] = {(double)k, it->resid_rms * 1e9, it->resid_rms_ptt * 1e9, it->strehl, it->strehl_ao,
+                                it->strehl_marechal, it->contrast, it->contrast_ao, it->contrast_ncp, it->est_rms * 1e9, it->est_err * 1e9,
+                                it->median_snr, it->fit.fit_rms * 1e9, it->fit.unfit_rms * 1e9, it->fit.fiterr_rms * 1e9,
+                                it->fit.filtered_rms * 1e9, it->fit.cmd_rms * 1e9, it->seconds};
+        for (size_t c = 0; c < NCOL; c++) {
+            fprintf(fp, c ? "\t%.6g" : "%.0f", v[c]);
+            met->data[k * NCOL + c] = v[c];
+        }
+        fputc('\n', fp);
+    }
+    if (fclose(fp) != 0) {
+        swfs_real_free(met);
+        return swfs_fail(SWFS_ERR_IO, "%s: write failed", path);
+    }
+
+    snprintf(path, sizeof path, "%s/loop.fits", dir);
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (!rc) rc = swfs_fits_out_set_stamp(o, &r->geom, prov, nprov);
+    if (!rc) rc = swfs_fits_out_real(o, "METRICS", met, -64);
+    for (size_t c = 0; !rc && c < NCOL; c++) {
+        char key[16];
+        snprintf(key, sizeof key, "TTYPE%zu", c + 1);
+        rc = swfs_fits_out_key_string(o, key, cols[c], "column of METRICS (row = state after k corrections)");
+    }
+    if (!rc) rc = swfs_fits_out_key_long(o, "NITER", (long)(r->nrows - 1), "corrections applied");
+    if (!rc) rc = swfs_fits_out_key_double(o, "LOOPGAIN", r->params.gain, "loop gain");
+    if (!rc) rc = swfs_fits_out_key_double(o, "NOISESIG", r->params.sigma, "[counts] camera background noise");
+    if (!rc) rc = swfs_fits_out_key_double(o, "ACTPITCH", r->pitch, "[m] influence pitch");
+    if (!rc) rc = swfs_fits_out_key_string(o, "INFLUENC", r->params.fit.influence == SWFS_INFLUENCE_CUBIC ? "cubic" : "gauss",
+                                           "influence functions");
+    if (!rc) rc = swfs_fits_out_key_double(o, "COUPLING", r->params.fit.coupling, "Gaussian influence at one pitch");
+    if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)r->params.fit.modes, "Zernike modal filter (0 = none)");
+    if (!rc) rc = swfs_fits_out_real(o, "RESIDUAL", r->residual, -32);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "residual NCP wavefront after k corrections");
+    if (!rc) rc = swfs_fits_out_real(o, "ESTIMATE", r->estimate, -32);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "estimated WFE in state k");
+    if (!rc) rc = swfs_fits_out_real(o, "DMSURF", r->dm_surface, -32);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "accumulated DM surface in state k");
+    if (!rc) rc = swfs_fits_out_real(o, "COMMANDS", r->commands, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "accumulated actuator commands in state k");
+    if (!rc) rc = swfs_fits_out_real(o, "ACTUATORS", r->actuators, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "actuator (x, y)");
+    if (!rc) rc = swfs_fits_out_real(o, "PUPIL", r->pupil, -32);
+    if (!rc) {
+        rc = swfs_fits_out_commit(o);
+        o = NULL;
+    }
+    swfs_fits_out_abort(o);
+    swfs_real_free(met);
+    return rc;
+}
