@@ -1,0 +1,26 @@
+"""specklewfs: focal-plane wavefront sensing with residual AO speckles (Codona &
+Kenworthy 2013), Python bindings over libspecklewfs (ctypes, numpy).
+
+Arrays follow the FITS order of the C library: C-contiguous numpy arrays of shape
+(nframes, ny, nx) (x fastest); complex data are complex128. The library is found through
+$SPECKLEWFS_LIB, else the path recorded at install time, else the build tree next to the
+sources, else the dynamic loader. See docs/python.md.
+"""
+from ._lib import Error, LIBRARY_PATH
+from .core import Geom, set_blas_threads, blas_threads, aperture, zernike, wfe_compare, wfe_remove_ptt
+from .fits import read_fits, write_fits, fits_info, read_keys, read_geom
+from .estimate import Accumulator, Halo, ACC_FIELDS, HALO_EXTS, G_SMOOTH_DEFAULT, phase_shift_map
+from .pupil import PupilResult, pupil_estimate
+from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_read, actuators_write, ShackHartmann,
+                        dm_modes, slopes_remove_tiptilt, slopes_noise_var, vk_covariance, Recon, SpeckleModel,
+                        schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
+from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,
+                        bandwidth_radius)
+from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries
+
+try:
+    from ._config import VERSION as __version__
+except ImportError:
+    __version__ = "0.1.0"
+
+merge_files = Accumulator.merge_files

@@ -1,0 +1,492 @@
+"""Loading libspecklewfs, the C structures mirrored with ctypes, function prototypes,
+error handling and the numpy <-> C array helpers.
+
+Internal: the public API is in the other modules. The mirrored structures must match
+include/specklewfs/*.h field for field; python/tests/test_layout.py compiles a C program
+that prints every offset and size and compares them with these classes.
+"""
+import ctypes
+import ctypes.util
+import os
+
+import numpy as np
+
+c_size = ctypes.c_size_t
+c_dbl = ctypes.c_double
+c_int = ctypes.c_int
+c_long = ctypes.c_long
+c_u64 = ctypes.c_uint64
+c_ptr = ctypes.c_void_p
+c_str = ctypes.c_char_p
+P = ctypes.POINTER
+
+
+# ---- locating the library ------------------------------------------------------------
+
+def _candidates():
+    env = os.environ.get("SPECKLEWFS_LIB")
+    if env:
+        return [("SPECKLEWFS_LIB", env)]
+    out = []
+    try:
+        from . import _config  # written by CMake at install time
+        out.append(("installed", _config.LIBRARY))
+    except ImportError:
+        pass
+    here = os.path.dirname(os.path.abspath(__file__))
+    build = os.path.normpath(os.path.join(here, "..", "..", "build", "libspecklewfs.so"))
+    out.append(("build tree", build))
+    found = ctypes.util.find_library("specklewfs")
+    if found:
+        out.append(("find_library", found))
+    return out
+
+
+def _load():
+    tried = []
+    for how, path in _candidates():
+        # find_library returns a bare soname: let the dynamic loader search for it.
+        if os.sep in path and not os.path.exists(path):
+            tried.append(f"{how}: {path} (no such file)")
+            continue
+        try:
+            return ctypes.CDLL(path), path
+        except OSError as e:
+            tried.append(f"{how}: {path} ({e})")
+    raise ImportError("specklewfs: cannot load libspecklewfs.so; set SPECKLEWFS_LIB to its path. Tried: "
+                      + "; ".join(tried or ["nothing"]))
+
+
+lib, LIBRARY_PATH = _load()
+
+
+# ---- errors ----------------------------------------------------------------------------
+
+class Error(RuntimeError):
+    """A library call failed. `status` is the swfs_status code, `status_name` its name
+    (e.g. 'SWFS_ERR_IO'), `message` the library's message (swfs_last_error) and
+    `function` the C function that failed."""
+
+    def __init__(self, status, message, function):
+        self.status = int(status)
+        self.status_name = lib.swfs_status_name(self.status).decode()
+        self.message = message
+        self.function = function
+        super().__init__(f"{message} [{self.status_name} from {function}]")
+
+
+def _last_error():
+    m = lib.swfs_last_error()
+    return m.decode(errors="replace") if m else "(no message)"
+
+
+def check(rc, function):
+    """Raise Error if rc is not SWFS_OK. Call right after the C call: the message is
+    thread-local and the next call may overwrite it."""
+    if rc != 0:
+        raise Error(rc, _last_error(), function)
+
+
+def check_ptr(p, function, status=None):
+    if not p:
+        # Functions that return NULL give no status; SWFS_ERR_ARG unless told otherwise.
+        raise Error(status if status is not None else 1, _last_error(), function)
+    return p
+
+
+# ---- structures ----------------------------------------------------------------------
+
+class Struct(ctypes.Structure):
+    _cname_ = None  # the C type, for the layout test
+
+
+def _s(cname, fields):
+    return type(cname, (Struct,), {"_fields_": fields, "_cname_": cname})
+
+
+swfs_real = _s("swfs_real", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("data", P(c_dbl))])
+swfs_cplx = _s("swfs_cplx", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("data", c_ptr)])
+swfs_geom = _s("swfs_geom", [("wavelen", c_dbl), ("teldiam", c_dbl), ("obscur", c_dbl), ("pixscale", c_dbl),
+                             ("pupdx", c_dbl), ("pupn", c_long)])
+swfs_noise = _s("swfs_noise", [("read_noise", c_dbl), ("gain", c_dbl)])
+HALO_REAL = ["gain", "gain_pix", "visib", "snr", "mean_i", "var_i", "mean_sp", "var_sp", "stab_err", "circ",
+             "valid", "nframes"]
+HALO_CPLX = ["halo", "halo_lf", "stab"]
+swfs_halo = _s("swfs_halo", [("nx", c_size), ("ny", c_size)] + [(n, P(swfs_cplx)) for n in HALO_CPLX]
+               + [(n, P(swfs_real)) for n in HALO_REAL]
+               + [(n, c_size) for n in ("npix", "n_valid", "n_bad_radicand", "n_no_speckle", "n_no_frames")]
+               + [(n, c_dbl) for n in ("valid_fraction", "median_snr", "radicand_min")]
+               + [("frames", ctypes.c_ulonglong), ("skipped", ctypes.c_ulonglong), ("noise", swfs_noise),
+                  ("g_smooth", c_dbl), ("n_g_fallback", c_size), ("n_var_below_noise", c_size)])
+swfs_estimate_options = _s("swfs_estimate_options", [("g_smooth", c_dbl)])
+ACC_NFIELDS = 15
+ACC_FIELDS = ["N", "MI", "MX", "MY", "MA", "CII", "CIX", "CIY", "CIA", "CXX", "CXY", "CXA", "CYY", "CYA", "CAA"]
+swfs_accum = _s("swfs_accum", [("nx", c_size), ("ny", c_size), ("f", P(c_dbl) * ACC_NFIELDS), ("frames", c_u64),
+                               ("skipped", c_u64)])
+swfs_pupil_options = _s("swfs_pupil_options", [("weight", c_int), ("wiener_k", c_dbl), ("bias", c_dbl),
+                                               ("source", c_int)])
+swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(swfs_real)),
+                                             ("surface", P(swfs_real)), ("amplitude", P(swfs_real)),
+                                             ("mask", P(swfs_real)), ("wfe_rms", c_dbl), ("wfe_pv", c_dbl),
+                                             ("strehl", c_dbl), ("opt", swfs_pupil_options)])
+swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
+                                 ("col", P(c_size)), ("val", P(c_dbl))])
+swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
+                               ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
+                               ("nvalid", c_size)])
+swfs_recon = _s("swfs_recon", [("nact", c_size), ("nslopes", c_size), ("W", P(c_dbl)), ("nmodes", c_size),
+                               ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl)])
+swfs_speckle_model = _s("swfs_speckle_model", [("npup", c_size), ("nact", c_size), ("nslopes", c_size),
+                                               ("pupdx", c_dbl), ("mask", P(c_dbl)), ("T", P(swfs_sparse)),
+                                               ("wfs", P(swfs_shwfs)), ("recon", P(swfs_recon)),
+                                               ("n_outside", c_size)])
+swfs_engine_config = _s("swfs_engine_config", [("nslopes", c_size), ("nact", c_size), ("npup", c_size),
+                                               ("nfx", c_size), ("nfy", c_size), ("alpha", c_dbl),
+                                               ("wavelen", c_dbl), ("recon", P(c_dbl)),
+                                               ("interp", P(swfs_sparse)), ("pupil", P(c_dbl)),
+                                               ("remove_tiptilt", c_int), ("nthreads", c_int)])
+swfs_exposure = _s("swfs_exposure", [("first", c_size), ("count", c_size), ("w_first", c_dbl), ("w_last", c_dbl)])
+# The same layout as a numpy dtype, so schedules pass to C without copies.
+EXPOSURE_DTYPE = np.dtype([("first", np.uintp), ("count", np.uintp), ("w_first", np.float64),
+                           ("w_last", np.float64)], align=True)
+swfs_coh_options = _s("swfs_coh_options", [("lags", P(c_long)), ("nlags", c_size), ("max_lag", c_long),
+                                           ("nfit", c_int), ("exposure", c_dbl), ("min_power_rel", c_dbl),
+                                           ("method", c_int)])
+swfs_coherence = _s("swfs_coherence", [("nx", c_size), ("ny", c_size), ("nframes", c_size), ("framedt", c_dbl),
+                                       ("nlags", c_size), ("lag_frames", P(c_long)), ("lags", P(swfs_real)),
+                                       ("mean_sp", P(swfs_real)), ("tau0", P(swfs_real)), ("trot", P(swfs_real)),
+                                       ("phrate", P(swfs_real)), ("snr_fact", P(swfs_real)),
+                                       ("mcf", P(swfs_cplx)), ("exposure", c_dbl), ("max_lag", c_long),
+                                       ("dense", c_ptr), ("nfit", c_int), ("method", c_int), ("n_valid", c_size),
+                                       ("n_nopower", c_size), ("n_nonfinite", c_size),
+                                       ("n_tau0_beyond", c_size)])
+swfs_screen_params = _s("swfs_screen_params", [("n", c_size), ("dx", c_dbl), ("r0", c_dbl), ("L0", c_dbl),
+                                               ("subharmonics", c_int)])
+SIM_MAX_ZERNIKE = 64
+swfs_sim_params = _s("swfs_sim_params", [
+    ("screen", swfs_screen_params), ("nscreens", c_int), ("teldiam", c_dbl), ("pupn", c_long), ("pupdx", c_dbl),
+    ("obscur", c_dbl), ("nspiders", c_int), ("spider_width", c_dbl), ("wavelen", c_dbl), ("spacing", c_dbl),
+    ("per_screen", c_long), ("target_rms", c_dbl), ("lag_shift", c_dbl), ("lag_angle", c_dbl), ("nfx", c_long),
+    ("nfy", c_long), ("pixscale", c_dbl), ("total_counts", c_dbl), ("read_noise", c_dbl), ("gain", c_dbl),
+    ("ncp_trefoil", c_dbl), ("ncp_gauss_depth", c_dbl), ("ncp_gauss_radius", c_dbl), ("ncp_gauss_x", c_dbl),
+    ("ncp_gauss_y", c_dbl), ("ncp_zernike", c_dbl * (3 * SIM_MAX_ZERNIKE)), ("ncp_nzernike", c_size),
+    ("ncp_map", ctypes.c_char * 1024), ("seed", c_u64), ("threads", c_int)])
+SIM_RESULT_SCALARS = ["counts_scale", "field_scale", "residual_rms", "expected_rms", "lag_floor_rms",
+                      "kernel_sigma", "strehl", "strehl_ao", "window_fraction", "ncp_rms", "ncp_pv", "seconds"]
+swfs_sim_result = _s("swfs_sim_result", [
+    ("params", swfs_sim_params), ("geom", swfs_geom), ("nframes", c_size), ("per_screen", c_size),
+    ("science", P(swfs_real)), ("speckles", P(swfs_cplx)), ("speckle_mean", P(swfs_cplx)), ("ncp", P(swfs_real)),
+    ("halo_true", P(swfs_cplx)), ("pupil", P(swfs_real)), ("ref_phase", P(c_dbl))]
+    + [(n, c_dbl) for n in SIM_RESULT_SCALARS])
+RECOVERY_FIELDS = ["sigma", "valid_fraction", "bad_radicand", "median_snr", "err_paper", "err_halo", "err_lf",
+                   "err_lf_snr", "wfe_rms", "wfe_pv", "strehl"]
+swfs_recovery = _s("swfs_recovery", [(n, c_dbl) for n in RECOVERY_FIELDS])
+TS_MAX_LAYERS = 3
+swfs_ts_params = _s("swfs_ts_params", [
+    ("base", swfs_sim_params), ("nlayers", c_int), ("layer_frac", c_dbl * TS_MAX_LAYERS),
+    ("layer_speed", c_dbl * TS_MAX_LAYERS), ("layer_dir", c_dbl * TS_MAX_LAYERS), ("wfs_rate", c_dbl),
+    ("nsub", c_long), ("act_pitch", c_dbl), ("ao_gain", c_dbl), ("ao_delay", c_long), ("ao_modes", c_long),
+    ("slope_noise", c_dbl), ("vib_amp", c_dbl), ("vib_freq", c_dbl), ("vib_angle", c_dbl), ("jitter_amp", c_dbl),
+    ("jitter_freq", c_dbl), ("frame_ratio", c_dbl), ("ncubes", c_long), ("cube_frames", c_long),
+    ("cube_gap", c_dbl), ("start_offset", c_dbl), ("handshake_lag", c_long), ("wfs_file_frames", c_long),
+    ("bandwidth", c_dbl), ("nlambda", c_long), ("background", c_dbl), ("dark_level", c_dbl), ("flat_rms", c_dbl),
+    ("nhot", c_long), ("ndead", c_long)])
+TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("ao_modes", c_size),
+                     ("residual_rms", c_dbl), ("residual_rms_nott", c_dbl), ("tt_rms", c_dbl), ("strehl", c_dbl),
+                     ("static_rms", c_dbl), ("ncp_rms", c_dbl), ("seconds", c_dbl)]
+swfs_ts_summary = _s("swfs_ts_summary", TS_SUMMARY_FIELDS)
+swfs_fits_shape = _s("swfs_fits_shape", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("is_complex", c_int),
+                                         ("bitpix", c_int)])
+
+STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
+
+PROGRESS_FN = ctypes.CFUNCTYPE(None, c_ptr, c_str, c_size, c_size)
+
+# ---- prototypes ----------------------------------------------------------------------
+
+_PROTOS = {
+    # status.h
+    "swfs_last_error": (c_str, []),
+    "swfs_clear_error": (None, []),
+    "swfs_status_name": (c_str, [c_int]),
+    # array.h
+    "swfs_real_alloc": (P(swfs_real), [c_size, c_size, c_size]),
+    "swfs_cplx_alloc": (P(swfs_cplx), [c_size, c_size, c_size]),
+    "swfs_real_free": (None, [P(swfs_real)]),
+    "swfs_cplx_free": (None, [P(swfs_cplx)]),
+    "swfs_free": (None, [c_ptr]),
+    # parallel.h
+    "swfs_blas_set_threads": (None, [c_int]),
+    "swfs_blas_threads": (c_int, []),
+    # geom.h
+    "swfs_geom_init": (None, [P(swfs_geom)]),
+    "swfs_geom_require": (c_int, [P(swfs_geom), c_str]),
+    # config.h
+    "swfs_config_new": (c_ptr, []),
+    "swfs_config_free": (None, [c_ptr]),
+    "swfs_config_load": (c_int, [c_ptr, c_str]),
+    "swfs_config_set_kv": (c_int, [c_ptr, c_str, c_str]),
+    "swfs_config_check_unused": (c_int, [c_ptr]),
+    # accum.h
+    "swfs_accum_create": (P(swfs_accum), [c_size, c_size]),
+    "swfs_accum_free": (None, [P(swfs_accum)]),
+    "swfs_accum_reset": (None, [P(swfs_accum)]),
+    "swfs_accum_add": (c_int, [P(swfs_accum), P(c_dbl), c_ptr]),
+    "swfs_accum_merge": (c_int, [P(swfs_accum), P(swfs_accum)]),
+    # estimate.h
+    "swfs_estimate": (c_int, [P(swfs_accum), P(swfs_noise), P(swfs_estimate_options), P(P(swfs_halo))]),
+    "swfs_halo_free": (None, [P(swfs_halo)]),
+    "swfs_halo_write": (c_int, [P(swfs_halo), c_str, P(swfs_geom), P(c_str), c_size]),
+    "swfs_halo_read": (c_int, [c_str, P(P(swfs_halo)), P(swfs_geom)]),
+    "swfs_phase_shift_map": (c_int, [P(c_dbl), P(c_dbl), c_size, c_size, P(c_dbl), c_ptr, P(c_dbl), P(c_dbl),
+                                     P(c_dbl)]),
+    # checkpoint.h
+    "swfs_accum_save": (c_int, [P(swfs_accum), c_str, P(swfs_geom), P(c_str), c_size]),
+    "swfs_accum_load": (c_int, [c_str, P(P(swfs_accum)), P(swfs_geom)]),
+    "swfs_accum_merge_files": (c_int, [P(c_str), c_size, P(P(swfs_accum)), P(swfs_geom)]),
+    # pupil.h
+    "swfs_pupil_options_default": (None, [P(swfs_pupil_options)]),
+    "swfs_pupil_estimate": (c_int, [P(swfs_halo), P(swfs_geom), P(swfs_real), P(swfs_pupil_options),
+                                    P(P(swfs_pupil_result))]),
+    "swfs_pupil_result_free": (None, [P(swfs_pupil_result)]),
+    "swfs_pupil_write": (c_int, [P(swfs_pupil_result), c_str, P(swfs_geom), P(c_str), c_size]),
+    "swfs_wfe_compare": (c_int, [P(c_dbl), P(c_dbl), P(c_dbl), c_size, P(c_dbl), P(c_dbl), P(c_dbl)]),
+    "swfs_wfe_remove_ptt": (c_dbl, [P(c_dbl), P(c_dbl), c_size]),
+    # aperture.h
+    "swfs_aperture_make": (c_int, [P(c_dbl), c_size, c_dbl, c_dbl, c_dbl, c_int, c_dbl]),
+    "swfs_zernike": (c_dbl, [c_int, c_int, c_dbl, c_dbl]),
+    # fits.h
+    "swfs_fits_in_open": (c_int, [P(c_ptr), c_str, c_str]),
+    "swfs_fits_in_close": (None, [c_ptr]),
+    "swfs_fits_in_shape": (P(swfs_fits_shape), [c_ptr]),
+    "swfs_fits_in_read_real_all": (c_int, [c_ptr, P(P(swfs_real))]),
+    "swfs_fits_in_read_cplx_all": (c_int, [c_ptr, P(P(swfs_cplx))]),
+    "swfs_fits_in_key_double_opt": (c_int, [c_ptr, c_str, P(c_dbl), P(c_int)]),
+    "swfs_fits_in_key_string_opt": (c_int, [c_ptr, c_str, ctypes.c_char_p, c_size, P(c_int)]),
+    "swfs_fits_in_geom": (c_int, [c_ptr, P(swfs_geom)]),
+    "swfs_fits_out_create": (c_int, [P(c_ptr), c_str]),
+    "swfs_fits_out_commit": (c_int, [c_ptr]),
+    "swfs_fits_out_abort": (None, [c_ptr]),
+    "swfs_fits_out_real": (c_int, [c_ptr, c_str, P(swfs_real), c_int]),
+    "swfs_fits_out_cplx": (c_int, [c_ptr, c_str, P(swfs_cplx), c_int]),
+    "swfs_fits_out_key_double": (c_int, [c_ptr, c_str, c_dbl, c_str]),
+    "swfs_fits_out_key_long": (c_int, [c_ptr, c_str, c_long, c_str]),
+    "swfs_fits_out_key_string": (c_int, [c_ptr, c_str, c_str, c_str]),
+    "swfs_fits_out_set_stamp": (c_int, [c_ptr, P(swfs_geom), P(c_str), c_size]),
+    # wfs.h
+    "swfs_actuators_hexapolar": (c_int, [c_dbl, c_dbl, c_dbl, P(P(c_dbl)), P(c_size)]),
+    "swfs_shwfs_create": (c_int, [P(P(swfs_shwfs)), c_size, c_dbl, P(c_dbl), c_size, c_dbl, c_dbl]),
+    "swfs_shwfs_free": (None, [P(swfs_shwfs)]),
+    "swfs_shwfs_measure": (None, [P(swfs_shwfs), P(c_dbl), P(c_dbl)]),
+    "swfs_interaction_matrix": (c_int, [P(swfs_shwfs), P(swfs_sparse), P(P(c_dbl))]),
+    "swfs_dm_modes": (c_int, [P(swfs_sparse), P(c_dbl), c_size, P(P(c_dbl))]),
+    "swfs_slopes_remove_tiptilt": (None, [P(c_dbl), c_size, P(ctypes.c_ubyte)]),
+    "swfs_recon_svd": (c_int, [P(c_dbl), c_size, c_size, c_dbl, c_size, P(P(swfs_recon))]),
+    "swfs_recon_map": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_dbl, P(P(swfs_recon))]),
+    "swfs_recon_vk": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_dbl, P(c_dbl), c_size, c_dbl,
+                              P(P(swfs_recon))]),
+    "swfs_vk_covariance": (c_int, [P(c_dbl), c_size, c_dbl, P(c_dbl)]),
+    "swfs_slopes_noise_var": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, P(c_dbl)]),
+    "swfs_recon_modal": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_size, P(P(swfs_recon))]),
+    "swfs_recon_free": (None, [P(swfs_recon)]),
+    "swfs_recon_project_tiptilt": (c_int, [P(swfs_recon), P(ctypes.c_ubyte)]),
+    "swfs_recon_apply": (None, [P(swfs_recon), P(c_dbl), P(c_dbl)]),
+    "swfs_recon_write": (c_int, [P(swfs_recon), c_str]),
+    "swfs_recon_read": (c_int, [c_str, P(P(swfs_recon))]),
+    "swfs_actuators_write": (c_int, [P(c_dbl), c_size, c_str]),
+    "swfs_actuators_read": (c_int, [c_str, P(P(c_dbl)), P(c_size)]),
+    # interp.h
+    "swfs_interp_ct_grid": (c_int, [P(c_dbl), c_size, c_size, c_dbl, P(c_dbl), P(P(swfs_sparse)), P(c_size)]),
+    "swfs_sparse_free": (None, [P(swfs_sparse)]),
+    # speckles.h
+    "swfs_speckles_subtract_static": (c_int, [P(swfs_cplx), P(c_size), P(c_size), c_size, c_int]),
+    "swfs_speckles_recon_tilt": (c_int, [P(swfs_speckle_model), P(c_dbl), P(P(c_dbl)), P(P(c_dbl))]),
+    "swfs_speckles_expand_frames": (c_size, [c_ptr, c_size]),
+    "swfs_speckles_expand": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_ptr, c_size, P(c_dbl), c_ptr]),
+    "swfs_speckle_model_create": (c_int, [P(P(swfs_speckle_model)), P(c_dbl), c_size, P(c_dbl), c_size, c_dbl,
+                                          c_dbl, c_size, P(swfs_recon), c_dbl, c_size, c_int]),
+    "swfs_speckle_model_free": (None, [P(swfs_speckle_model)]),
+    "swfs_speckle_model_set_map": (c_int, [P(swfs_speckle_model), P(c_dbl), c_size, c_dbl, c_int]),
+    "swfs_speckle_model_set_vk": (c_int, [P(swfs_speckle_model), P(c_dbl), c_dbl, P(c_dbl), c_size, c_dbl,
+                                          c_int]),
+    # engine.h
+    "swfs_engine_create": (c_ptr, [P(swfs_engine_config)]),
+    "swfs_engine_free": (None, [c_ptr]),
+    "swfs_engine_nthreads": (c_int, [c_ptr]),
+    "swfs_engine_npin": (c_size, [c_ptr]),
+    "swfs_engine_add_wfs": (c_int, [c_ptr, P(c_dbl), c_dbl]),
+    "swfs_engine_end_exposure": (c_int, [c_ptr, c_ptr]),
+    "swfs_engine_reset": (None, [c_ptr]),
+    "swfs_engine_process": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr, c_size, c_ptr]),
+    "swfs_engine_process_wfs": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr]),
+    "swfs_engine_schedule": (c_size, [c_dbl, c_dbl, c_size, c_ptr]),
+    # mft.h
+    "swfs_mft_create": (c_ptr, [c_size, c_size, c_size, c_dbl, c_int]),
+    "swfs_mft_free": (None, [c_ptr]),
+    "swfs_mft_forward": (c_int, [c_ptr, c_ptr, c_ptr]),
+    "swfs_mft_inverse": (c_int, [c_ptr, c_ptr, c_ptr]),
+    # coherence.h
+    "swfs_coh_default_lags": (None, [P(c_long)]),
+    "swfs_coh_options_init": (None, [P(swfs_coh_options)]),
+    "swfs_coherence_compute": (c_int, [P(swfs_cplx), c_dbl, P(swfs_coh_options), P(P(swfs_coherence))]),
+    "swfs_coherence_free": (None, [P(swfs_coherence)]),
+    "swfs_coherence_snr_map": (c_int, [P(swfs_coherence), c_dbl, P(swfs_real)]),
+    "swfs_coh_snr_factor": (c_dbl, [c_ptr, c_size, c_dbl, c_dbl]),
+    "swfs_coherence_fit_wind": (c_int, [P(swfs_coherence), P(swfs_geom), P(c_dbl)]),
+    "swfs_coherence_write": (c_int, [P(swfs_coherence), c_str, P(swfs_geom), P(c_str), c_size]),
+    "swfs_coherence_read_input": (c_int, [c_str, P(P(swfs_cplx)), P(c_dbl), P(swfs_geom), P(c_dbl)]),
+    "swfs_exposure_limit_wind": (c_dbl, [c_dbl, c_dbl, c_dbl]),
+    "swfs_bandwidth_radius": (c_dbl, [c_dbl]),
+    # sim.h, recovery.h, timeseries.h
+    "swfs_sim_params_default": (None, [P(swfs_sim_params)]),
+    "swfs_sim_params_from_config": (c_int, [c_ptr, P(swfs_sim_params)]),
+    "swfs_sim_params_check": (c_int, [P(swfs_sim_params)]),
+    "swfs_sim_params_format": (c_size, [P(swfs_sim_params), ctypes.c_char_p, c_size]),
+    "swfs_sim_paper_run": (c_int, [P(swfs_sim_params), PROGRESS_FN, c_ptr, P(P(swfs_sim_result))]),
+    "swfs_sim_paper_run_ncp": (c_int, [P(swfs_sim_params), P(c_dbl), PROGRESS_FN, c_ptr,
+                                       P(P(swfs_sim_result))]),
+    "swfs_sim_result_free": (None, [P(swfs_sim_result)]),
+    "swfs_sim_ncp_map": (c_int, [P(swfs_sim_params), P(c_dbl), P(c_dbl), P(c_dbl), P(c_dbl)]),
+    "swfs_sim_camera": (c_int, [P(swfs_real), c_dbl, c_dbl, c_u64, P(swfs_real)]),
+    "swfs_sim_write": (c_int, [P(swfs_sim_result), P(swfs_real), c_dbl, c_dbl, c_str, P(c_str), c_size]),
+    "swfs_recovery_run": (c_int, [P(swfs_sim_result), c_dbl, c_u64, c_str, P(c_str), c_size, P(swfs_recovery)]),
+    "swfs_ts_params_default": (None, [P(swfs_ts_params)]),
+    "swfs_ts_params_from_config": (c_int, [c_ptr, P(swfs_ts_params)]),
+    "swfs_ts_params_check": (c_int, [P(swfs_ts_params)]),
+    "swfs_ts_run": (c_int, [P(swfs_ts_params), c_str, P(c_str), c_size, PROGRESS_FN, c_ptr, P(swfs_ts_summary)]),
+}
+
+for _name, (_res, _args) in _PROTOS.items():
+    _f = getattr(lib, _name)
+    _f.restype = _res
+    _f.argtypes = _args
+
+
+# ---- ownership of C-allocated data ---------------------------------------------------
+
+class Owner:
+    """Frees a library object when the last Python reference to it (the wrapper object
+    or any numpy view into its arrays) goes away."""
+    __slots__ = ("ptr", "free", "__weakref__")
+
+    def __init__(self, ptr, free):
+        self.ptr = ptr
+        self.free = free
+
+    def __del__(self):
+        if self.ptr is not None and self.free is not None:
+            self.free(self.ptr)
+            self.ptr = None
+
+
+def view(addr, shape, dtype, owner):
+    """A numpy array over library memory at addr (no copy) that keeps `owner` alive."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape)) * dtype.itemsize
+    if not addr or n == 0:
+        return np.zeros(shape, dtype)
+    buf = (ctypes.c_char * n).from_address(addr)
+    buf._owner = owner
+    return np.frombuffer(buf, dtype=dtype).reshape(shape)
+
+
+def real_view(p, owner, squeeze=True):
+    """numpy view of a swfs_real* (None for NULL): shape (nz, ny, nx), or (ny, nx) if nz == 1."""
+    if not p:
+        return None
+    a = p.contents
+    shape = (a.ny, a.nx) if (squeeze and a.nz == 1) else (a.nz, a.ny, a.nx)
+    return view(ctypes.cast(a.data, c_ptr).value, shape, np.float64, owner)
+
+
+def cplx_view(p, owner, squeeze=True):
+    if not p:
+        return None
+    a = p.contents
+    shape = (a.ny, a.nx) if (squeeze and a.nz == 1) else (a.nz, a.ny, a.nx)
+    return view(a.data, shape, np.complex128, owner)
+
+
+def take_real(p, squeeze=True):
+    """Own a library-allocated swfs_real*: a numpy view freed with it."""
+    return real_view(p, Owner(p, lib.swfs_real_free), squeeze)
+
+
+def take_cplx(p, squeeze=True):
+    return cplx_view(p, Owner(p, lib.swfs_cplx_free), squeeze)
+
+
+def take_buffer(addr, shape, dtype):
+    """A numpy view of a swfs_malloc'ed / malloc'ed buffer the caller must free with free()."""
+    return view(addr, shape, dtype, Owner(addr, _libc_free))
+
+
+_libc = ctypes.CDLL(None)
+_libc.free.argtypes = [c_ptr]
+_libc.free.restype = None
+
+
+def _libc_free(p):
+    _libc.free(p)
+
+
+# ---- numpy inputs ----------------------------------------------------------------------
+
+def _shape_str(shape):
+    return "(" + ", ".join("?" if s is None else str(s) for s in shape) + ")"
+
+
+def as_array(a, name, dtype, shape=None, ndim=None, writable=False):
+    """a as a C-contiguous array of dtype, without a copy when it already is one.
+    shape: expected shape with None for 'any'; ndim: allowed numbers of dimensions.
+    Raises ValueError naming the argument with the expected and actual shapes."""
+    dtype = np.dtype(dtype)
+    arr = np.asarray(a)
+    if dtype.kind == "f" and arr.dtype.kind == "c":
+        raise ValueError(f"{name}: expected real values ({dtype}), got {arr.dtype}")
+    if dtype.kind in "fc" and arr.dtype.kind not in "biufc":
+        raise ValueError(f"{name}: expected a numeric array ({dtype}), got {arr.dtype}")
+    if writable:
+        if arr.dtype != dtype or not arr.flags.c_contiguous or not arr.flags.writeable:
+            raise ValueError(f"{name}: expected a writable C-contiguous {dtype} array (modified in place), "
+                             f"got {arr.dtype}{'' if arr.flags.c_contiguous else ' non-contiguous'}")
+    else:
+        arr = np.ascontiguousarray(arr, dtype=dtype)
+    if ndim is not None and arr.ndim not in (ndim if isinstance(ndim, tuple) else (ndim,)):
+        raise ValueError(f"{name}: expected {' or '.join(str(d) for d in (ndim if isinstance(ndim, tuple) else (ndim,)))}"
+                         f" dimensions, got shape {arr.shape}")
+    if shape is not None:
+        if arr.ndim != len(shape) or any(e is not None and e != g for e, g in zip(shape, arr.shape)):
+            raise ValueError(f"{name}: expected shape {_shape_str(shape)}, got {arr.shape}")
+    return arr
+
+
+def dptr(arr):
+    return arr.ctypes.data_as(P(c_dbl)) if arr is not None else None
+
+
+def vptr(arr):
+    return arr.ctypes.data if arr is not None else None
+
+
+def real_struct(arr):
+    """swfs_real over a float64 C-contiguous 2-D or 3-D array (no copy; keep arr alive)."""
+    nz, ny, nx = (1,) + arr.shape if arr.ndim == 2 else arr.shape
+    return swfs_real(nx, ny, nz, arr.ctypes.data_as(P(c_dbl)))
+
+
+def cplx_struct(arr):
+    nz, ny, nx = (1,) + arr.shape if arr.ndim == 2 else arr.shape
+    return swfs_cplx(nx, ny, nz, arr.ctypes.data)
+
+
+def strings(lines):
+    """(char **, n, keepalive) for provenance lines."""
+    enc = [s.encode() for s in (lines or [])]
+    arr = (c_str * max(1, len(enc)))(*enc)
+    return arr, len(enc)
+
+
+def enc(path):
+    return os.fsencode(path)
+

@@ -1,0 +1,70 @@
+"""Pupil field and NCP wavefront from the static halo (pupil.h)."""
+import ctypes
+
+import numpy as np
+
+from . import _lib
+from ._lib import lib, check, as_array, enc
+from .core import Geom, geom_arg
+from .estimate import Halo
+
+_WEIGHTS = {"none": 0, "snr": 1}
+_SOURCES = {"lf": 0, "halo_lf": 0, "halo": 1}
+
+
+class PupilResult:
+    """field (complex pupil field), wfe [m] (0 outside the pupil, piston removed),
+    surface [m] (WFE/2), amplitude, mask: (pupn, pupn) views of the library's arrays;
+    wfe_rms, wfe_pv [m], strehl (Marechal); weight, wiener_k, bias, source: the options
+    used; geom."""
+
+    def __init__(self, ptr, geom):
+        self._p = ptr
+        self._owner = _lib.Owner(ptr, lib.swfs_pupil_result_free)
+        r = ptr.contents
+        self.field = _lib.cplx_view(r.field, self._owner)
+        for n in ("wfe", "surface", "amplitude", "mask"):
+            setattr(self, n, _lib.real_view(getattr(r, n), self._owner))
+        self.wfe_rms, self.wfe_pv, self.strehl = r.wfe_rms, r.wfe_pv, r.strehl
+        self.weight = {v: k for k, v in _WEIGHTS.items()}[r.opt.weight]
+        self.wiener_k, self.bias = r.opt.wiener_k, r.opt.bias
+        self.source = "halo" if r.opt.source == 1 else "lf"
+        self.geom = geom
+
+    def write(self, path, geom=None, provenance=()):
+        """PUPIL.fits: FIELD, WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL."""
+        g = geom_arg(geom if geom is not None else self.geom)
+        prov, n = _lib.strings(provenance)
+        check(lib.swfs_pupil_write(self._p, enc(path), ctypes.byref(g), prov, n), "swfs_pupil_write")
+
+
+def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf"):
+    """Pupil field and NCP wavefront from a Halo (pupil.h; the defaults are those of
+    `specklewfs pupil`). geom: a Geom (default halo.geom; needs WAVELEN, TELDIAM, OBSCUR,
+    PIXSCALE, PUPDX, PUPN); mask: (pupn, pupn) transmission or None for the annulus;
+    weight 'snr' (Wiener SNR^2/(SNR^2+k^2)) or 'none'; source 'lf' (HALO_LF) or 'halo'."""
+    if not isinstance(halo, Halo):
+        raise TypeError(f"halo: expected a specklewfs.Halo, got {type(halo).__name__}")
+    geom = geom if geom is not None else halo.geom
+    if geom is None:
+        raise ValueError("geom: the halo has no geometry; pass geom=Geom(...)")
+    if isinstance(geom, dict):
+        geom = Geom(**geom)
+    g = geom.to_c()
+    o = _lib.swfs_pupil_options()
+    lib.swfs_pupil_options_default(ctypes.byref(o))
+    try:
+        o.weight = _WEIGHTS[weight]
+        o.source = _SOURCES[source]
+    except KeyError as e:
+        raise ValueError(f"weight must be 'snr' or 'none' and source 'lf' or 'halo', got {e}") from None
+    o.wiener_k, o.bias = float(wiener_k), float(bias)
+    ms = ms_s = None
+    if mask is not None:
+        mask = as_array(mask, "mask", np.float64, ndim=2)
+        ms_s = _lib.real_struct(mask)
+        ms = ctypes.byref(ms_s)
+    out = ctypes.POINTER(_lib.swfs_pupil_result)()
+    check(lib.swfs_pupil_estimate(halo._p, ctypes.byref(g), ms, ctypes.byref(o), ctypes.byref(out)),
+          "swfs_pupil_estimate")
+    return PupilResult(out, geom)

@@ -1,0 +1,189 @@
+"""The simulators: the paper's Sec. 3 ensemble (sim.h), one noise level end to end
+(recovery.h) and the AO time series of the real-data path (timeseries.h)."""
+import ctypes
+import os
+
+import numpy as np
+
+from . import _lib
+from ._lib import lib, check, check_ptr, as_array, dptr, enc
+from .core import Geom
+
+P = ctypes.POINTER
+
+
+def _config(config, params):
+    """A swfs_config from a config file and key=value overrides (values: numbers, strings,
+    or sequences written comma-separated)."""
+    c = check_ptr(lib.swfs_config_new(), "swfs_config_new")
+    owner = _lib.Owner(c, lib.swfs_config_free)
+    if config is not None:
+        check(lib.swfs_config_load(c, enc(config)), "swfs_config_load")
+    for k, v in params.items():
+        if isinstance(v, (list, tuple, np.ndarray)):
+            v = ", ".join(repr(float(x)) if not isinstance(x, str) else x for x in np.ravel(v).tolist())
+        elif isinstance(v, float):
+            v = repr(v)
+        check(lib.swfs_config_set_kv(c, str(k).encode(), str(v).encode()), "swfs_config_set_kv")
+    return c, owner
+
+
+def _progress(progress):
+    if progress is None:
+        return _lib.PROGRESS_FN()
+
+    def cb(ctx, stage, done, total):
+        progress(stage.decode() if stage else "", int(done), int(total))
+    return _lib.PROGRESS_FN(cb)
+
+
+def _struct_dict(s):
+    out = {}
+    for name, _t in s._fields_:
+        v = getattr(s, name)
+        if isinstance(v, _lib.Struct):
+            out[name] = _struct_dict(v)
+        elif isinstance(v, bytes):
+            out[name] = v.decode()
+        elif isinstance(v, ctypes.Array):
+            out[name] = list(v)
+        else:
+            out[name] = v
+    return out
+
+
+def sim_params(config=None, **params):
+    """The Sec. 3 simulation parameters (config file keys, config/paper-sec3.conf) as the
+    library reads and checks them, as a dict."""
+    p = _params(config, params)
+    return _struct_dict(p)
+
+
+def _params(config, params):
+    c, owner = _config(config, params)
+    p = _lib.swfs_sim_params()
+    lib.swfs_sim_params_default(ctypes.byref(p))
+    check(lib.swfs_sim_params_from_config(c, ctypes.byref(p)), "swfs_sim_params_from_config")
+    check(lib.swfs_config_check_unused(c), "swfs_config_check_unused")
+    check(lib.swfs_sim_params_check(ctypes.byref(p)), "swfs_sim_params_check")
+    del owner
+    return p
+
+
+class SimResult:
+    """The Sec. 3 data set (sim.h). Arrays (views of the library's memory):
+    science (nframes, nfy, nfx) noise-free counts, speckles (nframes, nfy, nfx) complex
+    psi, speckle_mean, halo_true (nfy, nfx) complex, ncp [m] and pupil (pupn, pupn),
+    ref_phase (nframes,). Scalars: nframes, per_screen, counts_scale, field_scale,
+    residual_rms, expected_rms, lag_floor_rms, kernel_sigma, strehl, strehl_ao,
+    window_fraction, ncp_rms, ncp_pv, seconds; geom; params (dict)."""
+
+    def __init__(self, ptr):
+        self._p = ptr
+        self._owner = _lib.Owner(ptr, lib.swfs_sim_result_free)
+        r = ptr.contents
+        self.geom = Geom.from_c(r.geom)
+        self.params = _struct_dict(r.params)
+        self.nframes, self.per_screen = r.nframes, r.per_screen
+        self.science = _lib.real_view(r.science, self._owner, squeeze=False)
+        self.speckles = _lib.cplx_view(r.speckles, self._owner, squeeze=False)
+        self.speckle_mean = _lib.cplx_view(r.speckle_mean, self._owner)
+        self.halo_true = _lib.cplx_view(r.halo_true, self._owner)
+        self.ncp = _lib.real_view(r.ncp, self._owner)
+        self.pupil = _lib.real_view(r.pupil, self._owner)
+        self.ref_phase = _lib.view(ctypes.cast(r.ref_phase, ctypes.c_void_p).value, (r.nframes,), np.float64,
+                                   self._owner)
+        for n in _lib.SIM_RESULT_SCALARS:
+            setattr(self, n, getattr(r, n))
+
+    def camera(self, read_noise=None, gain=None, seed=None):
+        """A noisy copy of the science cube (sim.h swfs_sim_camera): per frame k an RNG
+        stream (seed, k), Poisson(clean * gain) / gain (gain <= 0: none) + read_noise
+        N(0, 1). Defaults: the parameters' read_noise and gain, and the seed that
+        `specklewfs simulate` uses (seed ^ 0x5eed0fca3e7a)."""
+        p = self._p.contents.params
+        read_noise = p.read_noise if read_noise is None else read_noise
+        gain = p.gain if gain is None else gain
+        seed = (p.seed ^ 0x5eed0fca3e7a) if seed is None else seed
+        noisy = np.empty_like(self.science)
+        src, dst = _lib.real_struct(self.science), _lib.real_struct(noisy)
+        check(lib.swfs_sim_camera(ctypes.byref(src), float(read_noise), float(gain), int(seed) & (2**64 - 1),
+                                  ctypes.byref(dst)), "swfs_sim_camera")
+        return noisy
+
+    def write(self, directory, science=None, read_noise=None, gain=None, provenance=()):
+        """DIR/science.fits, speckles.fits, truth.fits, pupil.fits, as `specklewfs simulate`
+        writes them. science: the cube to write (default: the noise-free one)."""
+        p = self._p.contents.params
+        read_noise = p.read_noise if read_noise is None else read_noise
+        gain = p.gain if gain is None else gain
+        sci = self.science if science is None else as_array(science, "science", np.float64,
+                                                            shape=self.science.shape)
+        s = _lib.real_struct(sci)
+        prov, n = _lib.strings(provenance)
+        check(lib.swfs_sim_write(self._p, ctypes.byref(s), float(read_noise), float(gain), enc(directory), prov, n),
+              "swfs_sim_write")
+
+    def recovery(self, sigma, seed=None, directory=None, provenance=()):
+        """One noise level end to end (recovery.h, a row of `specklewfs demo`): dict with
+        sigma, valid_fraction, bad_radicand, median_snr, err_paper, err_halo, err_lf,
+        err_lf_snr (the default path), wfe_rms, wfe_pv, strehl ([m] for errors). seed
+        defaults to the demo's, seed * 1000003 + sigma."""
+        p = self._p.contents.params
+        if seed is None:
+            seed = (p.seed * 1000003 + int(sigma)) & (2**64 - 1)
+        out = _lib.swfs_recovery()
+        prov, n = _lib.strings(provenance)
+        check(lib.swfs_recovery_run(self._p, float(sigma), int(seed), enc(directory) if directory else None, prov, n,
+                                    ctypes.byref(out)), "swfs_recovery_run")
+        return {k: getattr(out, k) for k in _lib.RECOVERY_FIELDS}
+
+
+def simulate(config=None, progress=None, ncp=None, **params):
+    """Run the paper's Sec. 3 simulation (sim.h). config: a config file (e.g.
+    config/paper-sec3.conf); params: key=value overrides with the config keys (screen_n,
+    nscreens, pupn, nfx, seed, threads, ...; unknown keys raise). progress: callable(stage,
+    done, total). ncp: an NCP map [m] (pupn, pupn) replacing the parameters' NCP terms.
+    Returns a SimResult."""
+    p = _params(config, params)
+    cb = _progress(progress)
+    out = P(_lib.swfs_sim_result)()
+    if ncp is None:
+        check(lib.swfs_sim_paper_run(ctypes.byref(p), cb, None, ctypes.byref(out)), "swfs_sim_paper_run")
+    else:
+        ncp = as_array(ncp, "ncp", np.float64, shape=(p.pupn, p.pupn))
+        check(lib.swfs_sim_paper_run_ncp(ctypes.byref(p), dptr(ncp), cb, None, ctypes.byref(out)),
+              "swfs_sim_paper_run_ncp")
+    return SimResult(out)
+
+
+def ncp_map(config=None, mask=None, **params):
+    """The NCP map [m] the parameters describe, on the pupil grid, and its rms and pv."""
+    from .core import aperture
+    p = _params(config, params)
+    if mask is None:
+        mask = aperture(p.pupn, p.pupdx, p.teldiam, p.obscur, p.nspiders, p.spider_width)
+    mask = as_array(mask, "mask", np.float64, shape=(p.pupn, p.pupn))
+    out = np.zeros((p.pupn, p.pupn))
+    rms, pv = ctypes.c_double(), ctypes.c_double()
+    check(lib.swfs_sim_ncp_map(ctypes.byref(p), dptr(mask), dptr(out), ctypes.byref(rms), ctypes.byref(pv)),
+          "swfs_sim_ncp_map")
+    return out, rms.value, pv.value
+
+
+def simulate_timeseries(directory, config=None, progress=None, provenance=(), **params):
+    """The AO time series of the real-data path (timeseries.h), written to directory
+    (created if needed): telemetry, raw camera cubes, calibrations, truth. params: the
+    shared and time-series config keys (config/mmt-clio.conf). Returns the summary dict."""
+    c, owner = _config(config, params)
+    p = _lib.swfs_ts_params()
+    lib.swfs_ts_params_default(ctypes.byref(p))
+    check(lib.swfs_ts_params_from_config(c, ctypes.byref(p)), "swfs_ts_params_from_config")
+    check(lib.swfs_config_check_unused(c), "swfs_config_check_unused")
+    check(lib.swfs_ts_params_check(ctypes.byref(p)), "swfs_ts_params_check")
+    os.makedirs(directory, exist_ok=True)
+    s = _lib.swfs_ts_summary()
+    prov, n = _lib.strings(provenance)
+    check(lib.swfs_ts_run(ctypes.byref(p), enc(directory), prov, n, _progress(progress), None, ctypes.byref(s)),
+          "swfs_ts_run")
+    return {k: getattr(s, k) for k, _t in _lib.TS_SUMMARY_FIELDS}

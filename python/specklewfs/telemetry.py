@@ -1,0 +1,522 @@
+"""From WFS telemetry to speckle fields: actuators, Shack-Hartmann model, reconstructors
+(wfs.h), Clough-Tocher interpolation (interp.h), the speckle model (speckles.h), the
+per-frame engine (engine.h) and the matrix Fourier transform (mft.h).
+
+Slopes are (nframes, nslopes) float64 arrays (x slopes then y slopes, wfs.h units [rad]);
+actuator positions (nact, 2) [m]; reconstructors (nact, nslopes) [m/rad]; pupil maps
+(npup, npup); focal fields (nfy, nfx) complex."""
+import ctypes
+
+import numpy as np
+
+from . import _lib
+from ._lib import lib, check, check_ptr, as_array, dptr, enc, EXPOSURE_DTYPE
+
+P = ctypes.POINTER
+_u8 = P(ctypes.c_ubyte)
+
+
+# ---- sparse matrices -----------------------------------------------------------------
+
+class Sparse:
+    """A CSR matrix (sparse.h) as numpy arrays row_ptr, col (uintp) and val (float64)."""
+
+    def __init__(self, row_ptr, col, val, shape, _owner=None):
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.row_ptr = as_array(row_ptr, "row_ptr", np.uintp, shape=(self.shape[0] + 1,))
+        nnz = int(self.row_ptr[-1])
+        self.col = as_array(col, "col", np.uintp, shape=(nnz,))
+        self.val = as_array(val, "val", np.float64, shape=(nnz,))
+        if nnz and int(self.col.max()) >= self.shape[1]:
+            raise ValueError(f"col: column index {int(self.col.max())} >= ncols {self.shape[1]}")
+        self._owner = _owner
+        self._s = _lib.swfs_sparse(self.shape[0], self.shape[1], nnz, self.row_ptr.ctypes.data_as(P(ctypes.c_size_t)),
+                                   self.col.ctypes.data_as(P(ctypes.c_size_t)), dptr(self.val))
+
+    @classmethod
+    def from_dense(cls, a):
+        a = np.asarray(a, dtype=np.float64)
+        if a.ndim != 2:
+            raise ValueError(f"a: expected a 2-D matrix, got shape {a.shape}")
+        rows, cols = np.nonzero(a)
+        row_ptr = np.zeros(a.shape[0] + 1, np.uintp)
+        np.cumsum(np.bincount(rows, minlength=a.shape[0]), out=row_ptr[1:])
+        return cls(row_ptr, cols.astype(np.uintp), a[rows, cols], a.shape)
+
+    @classmethod
+    def _take(cls, p, owner=None):
+        """Wrap a library swfs_sparse* (freed with it unless owned by another object)."""
+        if owner is None:
+            owner = _lib.Owner(p, lib.swfs_sparse_free)
+        s = p.contents
+        addr = lambda x: ctypes.cast(x, ctypes.c_void_p).value
+        rp = _lib.view(addr(s.row_ptr), (s.nrows + 1,), np.uintp, owner)
+        col = _lib.view(addr(s.col), (s.nnz,), np.uintp, owner)
+        val = _lib.view(addr(s.val), (s.nnz,), np.float64, owner)
+        return cls(rp, col, val, (s.nrows, s.ncols), _owner=owner)
+
+    @property
+    def nnz(self):
+        return int(self.row_ptr[-1])
+
+    def to_dense(self):
+        out = np.zeros(self.shape)
+        rows = np.repeat(np.arange(self.shape[0]), np.diff(self.row_ptr.astype(np.int64)))
+        out[rows, self.col.astype(np.int64)] = self.val
+        return out
+
+    def __matmul__(self, x):
+        return self.to_dense() @ x
+
+
+def interp_ct_grid(xy, npup, pupdx, mask=None):
+    """Clough-Tocher interpolation (interp.h) from the actuators xy (nact, 2) [m] to the
+    npup x npup pupil grid: (T as Sparse (npup^2 x nact), n_outside)."""
+    xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+    if mask is not None:
+        mask = as_array(mask, "mask", np.float64, shape=(npup, npup))
+    out = P(_lib.swfs_sparse)()
+    nout = ctypes.c_size_t()
+    check(lib.swfs_interp_ct_grid(dptr(xy), xy.shape[0], int(npup), float(pupdx), dptr(mask), ctypes.byref(out),
+                                  ctypes.byref(nout)), "swfs_interp_ct_grid")
+    return Sparse._take(out), nout.value
+
+
+# ---- actuators and the Shack-Hartmann model ------------------------------------------
+
+def actuators_hexapolar(diam, pitch, margin=0.0):
+    """Hexapolar actuator layout (wfs.h): (nact, 2) positions [m]."""
+    xy = P(ctypes.c_double)()
+    n = ctypes.c_size_t()
+    check(lib.swfs_actuators_hexapolar(float(diam), float(pitch), float(margin), ctypes.byref(xy), ctypes.byref(n)),
+          "swfs_actuators_hexapolar")
+    return _lib.take_buffer(ctypes.cast(xy, ctypes.c_void_p).value, (n.value, 2), np.float64)
+
+
+def actuators_write(xy, path):
+    xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+    check(lib.swfs_actuators_write(dptr(xy), xy.shape[0], enc(path)), "swfs_actuators_write")
+
+
+def actuators_read(path):
+    xy = P(ctypes.c_double)()
+    n = ctypes.c_size_t()
+    check(lib.swfs_actuators_read(enc(path), ctypes.byref(xy), ctypes.byref(n)), "swfs_actuators_read")
+    return _lib.take_buffer(ctypes.cast(xy, ctypes.c_void_p).value, (n.value, 2), np.float64)
+
+
+class ShackHartmann:
+    """Shack-Hartmann model on the pupil grid (wfs.h): nsub x nsub subapertures across
+    diam; S (Sparse nslopes x npup^2), valid (nsub, nsub) bool."""
+
+    def __init__(self, nsub, diam, mask, pupdx, min_illum=0.5, _ptr=None, _owner=None):
+        if _ptr is None:
+            mask = as_array(mask, "mask", np.float64, ndim=2)
+            if mask.shape[0] != mask.shape[1]:
+                raise ValueError(f"mask: expected a square (npup, npup) map, got shape {mask.shape}")
+            _ptr = P(_lib.swfs_shwfs)()
+            check(lib.swfs_shwfs_create(ctypes.byref(_ptr), int(nsub), float(diam), dptr(mask), mask.shape[0],
+                                        float(pupdx), float(min_illum)), "swfs_shwfs_create")
+            _owner = _lib.Owner(_ptr, lib.swfs_shwfs_free)
+        self._p, self._owner = _ptr, _owner
+        w = _ptr.contents
+        self.nsub, self.nslopes, self.npup, self.pupdx, self.diam, self.nvalid = (w.nsub, w.nslopes, w.npup, w.pupdx,
+                                                                                  w.diam, w.nvalid)
+        self.S = Sparse._take(w.S, owner=_owner)
+        self.valid = _lib.view(ctypes.cast(w.valid, ctypes.c_void_p).value, (w.nsub, w.nsub), np.uint8,
+                               _owner).astype(bool)
+
+    def measure(self, z):
+        """Slopes (nslopes,) [rad] of the displacement map z (npup, npup) [m]; z may also be
+        a stack (n, npup, npup) -> (n, nslopes)."""
+        z = np.asarray(z)
+        single = z.ndim == 2
+        z = as_array(z, "z", np.float64, shape=(self.npup, self.npup) if single else (None, self.npup, self.npup))
+        zz = z.reshape(-1, self.npup * self.npup)
+        out = np.empty((zz.shape[0], self.nslopes))
+        for k in range(zz.shape[0]):
+            lib.swfs_shwfs_measure(self._p, dptr(zz[k]), dptr(out[k]))
+        return out[0] if single else out
+
+    def interaction_matrix(self, T):
+        """D = S T (nslopes, nact) [rad per m] for the interpolation T (Sparse)."""
+        D = P(ctypes.c_double)()
+        check(lib.swfs_interaction_matrix(self._p, ctypes.byref(T._s), ctypes.byref(D)), "swfs_interaction_matrix")
+        return _lib.take_buffer(ctypes.cast(D, ctypes.c_void_p).value, (self.nslopes, T.shape[1]), np.float64)
+
+
+def dm_modes(T, mask):
+    """Lowest-energy DM modes (wfs.h): (nact, nact), column k = mode k."""
+    mask = as_array(mask, "mask", np.float64, ndim=2)
+    out = P(ctypes.c_double)()
+    check(lib.swfs_dm_modes(ctypes.byref(T._s), dptr(mask), mask.shape[0], ctypes.byref(out)), "swfs_dm_modes")
+    return _lib.take_buffer(ctypes.cast(out, ctypes.c_void_p).value, (T.shape[1], T.shape[1]), np.float64)
+
+
+def slopes_remove_tiptilt(slopes, valid=None):
+    """A copy of slopes ((nslopes,) or (n, nslopes)) with the mean x and y slopes over the
+    valid subapertures removed (wfs.h)."""
+    s = np.array(slopes, dtype=np.float64, order="C", copy=True)
+    ss = s.reshape(-1, s.shape[-1])
+    v = None
+    if valid is not None:
+        v = as_array(np.asarray(valid).astype(np.uint8), "valid", np.uint8, ndim=(1, 2))
+    for k in range(ss.shape[0]):
+        lib.swfs_slopes_remove_tiptilt(dptr(ss[k]), ss.shape[1], v.ctypes.data_as(_u8) if v is not None else None)
+    return s
+
+
+def slopes_noise_var(D, slopes):
+    """Effective slope noise variance per slope [rad^2] (wfs.h)."""
+    D = as_array(D, "D", np.float64, ndim=2)
+    s = as_array(slopes, "slopes", np.float64, shape=(None, D.shape[0]))
+    v = ctypes.c_double()
+    check(lib.swfs_slopes_noise_var(dptr(D), D.shape[0], D.shape[1], dptr(s), s.shape[0], ctypes.byref(v)),
+          "swfs_slopes_noise_var")
+    return v.value
+
+
+def vk_covariance(xy, L0):
+    """Normalized von Karman covariance of the actuators (nact, nact)."""
+    xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+    C = np.empty((xy.shape[0], xy.shape[0]))
+    check(lib.swfs_vk_covariance(dptr(xy), xy.shape[0], float(L0), dptr(C)), "swfs_vk_covariance")
+    return C
+
+
+# ---- reconstructors ------------------------------------------------------------------
+
+class Recon:
+    """A reconstructor (wfs.h): W (nact, nslopes) [m/rad], nmodes, sv (singular values of
+    D or None), noise_var, dof. Build with Recon.svd / map / vk / modal, or from_matrix."""
+
+    def __init__(self, ptr, owner):
+        self._p, self._owner = ptr, owner
+        r = ptr.contents
+        self.nact, self.nslopes = r.nact, r.nslopes
+        self.W = _lib.view(ctypes.cast(r.W, ctypes.c_void_p).value, (r.nact, r.nslopes), np.float64, owner)
+        self.sv = (_lib.view(ctypes.cast(r.sv, ctypes.c_void_p).value, (r.nsv,), np.float64, owner)
+                   if r.sv else None)
+
+    nmodes = property(lambda self: self._p.contents.nmodes)
+    noise_var = property(lambda self: self._p.contents.noise_var)
+    dof = property(lambda self: self._p.contents.dof)
+
+    @classmethod
+    def _take(cls, p):
+        return cls(p, _lib.Owner(p, lib.swfs_recon_free))
+
+    @classmethod
+    def from_matrix(cls, W):
+        """A reconstructor over a numpy matrix (nact, nslopes) (used in place)."""
+        W = as_array(W, "W", np.float64, ndim=2)
+        r = _lib.swfs_recon(W.shape[0], W.shape[1], dptr(W), W.shape[0], None, 0, 0.0, 0.0)
+        self = cls(ctypes.pointer(r), None)
+        self._keep = (W, r)
+        self.W = W
+        return self
+
+    @staticmethod
+    def _D(D):
+        return as_array(D, "D", np.float64, ndim=2)
+
+    @classmethod
+    def svd(cls, D, rcond=1e-3, max_modes=0):
+        """Truncated SVD pseudo-inverse of D (nslopes, nact)."""
+        D = cls._D(D)
+        out = P(_lib.swfs_recon)()
+        check(lib.swfs_recon_svd(dptr(D), D.shape[0], D.shape[1], float(rcond), int(max_modes), ctypes.byref(out)),
+              "swfs_recon_svd")
+        return cls._take(out)
+
+    @classmethod
+    def map(cls, D, slopes, noise_var=0.0):
+        """MAP (Wiener) reconstructor with the modal prior learned from slopes (n, nslopes);
+        noise_var <= 0 estimates the slope noise."""
+        D = cls._D(D)
+        s = as_array(slopes, "slopes", np.float64, shape=(None, D.shape[0]))
+        out = P(_lib.swfs_recon)()
+        check(lib.swfs_recon_map(dptr(D), D.shape[0], D.shape[1], dptr(s), s.shape[0], float(noise_var),
+                                 ctypes.byref(out)), "swfs_recon_map")
+        return cls._take(out)
+
+    @classmethod
+    def vk(cls, D, xy, L0, slopes, noise_var=0.0):
+        """MAP reconstructor with a von Karman spatial prior over the actuators xy."""
+        D = cls._D(D)
+        xy = as_array(xy, "xy", np.float64, shape=(D.shape[1], 2))
+        s = as_array(slopes, "slopes", np.float64, shape=(None, D.shape[0]))
+        out = P(_lib.swfs_recon)()
+        check(lib.swfs_recon_vk(dptr(D), D.shape[0], D.shape[1], dptr(xy), float(L0), dptr(s), s.shape[0],
+                                float(noise_var), ctypes.byref(out)), "swfs_recon_vk")
+        return cls._take(out)
+
+    @classmethod
+    def modal(cls, D, modes, first, K):
+        """W = V_K pinv(D V_K) over modes first..first+K-1 of `modes` (nact, nact)."""
+        D = cls._D(D)
+        modes = as_array(modes, "modes", np.float64, shape=(D.shape[1], D.shape[1]))
+        out = P(_lib.swfs_recon)()
+        check(lib.swfs_recon_modal(dptr(D), D.shape[0], D.shape[1], dptr(modes), int(first), int(K),
+                                   ctypes.byref(out)), "swfs_recon_modal")
+        return cls._take(out)
+
+    @classmethod
+    def read(cls, path):
+        out = P(_lib.swfs_recon)()
+        check(lib.swfs_recon_read(enc(path), ctypes.byref(out)), "swfs_recon_read")
+        return cls._take(out)
+
+    def write(self, path):
+        check(lib.swfs_recon_write(self._p, enc(path)), "swfs_recon_write")
+
+    def project_tiptilt(self, valid=None):
+        """W <- W (I - M), M the mean-slope projector over the valid subapertures (in place)."""
+        v = None if valid is None else np.ascontiguousarray(np.asarray(valid).astype(np.uint8))
+        check(lib.swfs_recon_project_tiptilt(self._p, v.ctypes.data_as(_u8) if v is not None else None),
+              "swfs_recon_project_tiptilt")
+        return self
+
+    def apply(self, slopes):
+        """z = W s for (nslopes,) or (n, nslopes) slopes."""
+        s = np.asarray(slopes)
+        single = s.ndim == 1
+        s = as_array(s, "slopes", np.float64, shape=(self.nslopes,) if single else (None, self.nslopes))
+        ss = s.reshape(-1, self.nslopes)
+        z = np.empty((ss.shape[0], self.nact))
+        for k in range(ss.shape[0]):
+            lib.swfs_recon_apply(self._p, dptr(ss[k]), dptr(z[k]))
+        return z[0] if single else z
+
+
+# ---- the speckle model -----------------------------------------------------------------
+
+class SpeckleModel:
+    """Everything the engine needs on the pupil grid (speckles.h): interpolation T from
+    the actuators xy (nact, 2), the Shack-Hartmann model (nsub across), and the
+    reconstructor (recon given, or the truncated SVD of D = S T with rcond / max_modes).
+    Attributes: mask, T (Sparse), wfs (ShackHartmann), recon (Recon), n_outside."""
+
+    def __init__(self, xy, mask, pupdx, teldiam, nsub, recon=None, rcond=1e-3, max_modes=0, remove_tiptilt=True):
+        xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+        mask = as_array(mask, "mask", np.float64, ndim=2)
+        if mask.shape[0] != mask.shape[1]:
+            raise ValueError(f"mask: expected a square (npup, npup) map, got shape {mask.shape}")
+        rin = None
+        if recon is not None:
+            rin = recon if isinstance(recon, Recon) else Recon.from_matrix(recon)
+        out = P(_lib.swfs_speckle_model)()
+        check(lib.swfs_speckle_model_create(ctypes.byref(out), dptr(xy), xy.shape[0], dptr(mask), mask.shape[0],
+                                            float(pupdx), float(teldiam), int(nsub), rin._p if rin else None,
+                                            float(rcond), int(max_modes), int(bool(remove_tiptilt))),
+              "swfs_speckle_model_create")
+        self._p = out
+        self._owner = _lib.Owner(out, lib.swfs_speckle_model_free)
+        self.xy = xy
+        self._refresh()
+
+    def _refresh(self):
+        m = self._p.contents
+        self.npup, self.nact, self.nslopes, self.pupdx, self.n_outside = m.npup, m.nact, m.nslopes, m.pupdx, m.n_outside
+        self.mask = _lib.view(ctypes.cast(m.mask, ctypes.c_void_p).value, (m.npup, m.npup), np.float64, self._owner)
+        self.T = Sparse._take(m.T, owner=self._owner)
+        self.wfs = ShackHartmann(0, 0, None, 0, _ptr=m.wfs, _owner=self._owner)
+        self.recon = Recon(m.recon, self._owner)
+
+    def interaction_matrix(self):
+        return self.wfs.interaction_matrix(self.T)
+
+    def set_map(self, slopes, noise_var=0.0, remove_tiptilt=True):
+        """Replace the reconstructor by the MAP reconstructor learned from slopes."""
+        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        check(lib.swfs_speckle_model_set_map(self._p, dptr(s), s.shape[0], float(noise_var), int(bool(remove_tiptilt))),
+              "swfs_speckle_model_set_map")
+        self._refresh()
+        return self
+
+    def set_vk(self, slopes, L0=30.0, noise_var=0.0, remove_tiptilt=True):
+        """Replace the reconstructor by the von Karman MAP reconstructor (the default of
+        `specklewfs speckles`)."""
+        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        check(lib.swfs_speckle_model_set_vk(self._p, dptr(self.xy), float(L0), dptr(s), s.shape[0], float(noise_var),
+                                            int(bool(remove_tiptilt))), "swfs_speckle_model_set_vk")
+        self._refresh()
+        return self
+
+    def recon_tilt(self):
+        """(W_ext (nact, nslopes + 2), R (2, nslopes)) of speckles.h for the exposure
+        tip-tilt model (the model's reconstructor must not be tip-tilt projected)."""
+        W = P(ctypes.c_double)()
+        R = P(ctypes.c_double)()
+        check(lib.swfs_speckles_recon_tilt(self._p, dptr(self.xy), ctypes.byref(W), ctypes.byref(R)),
+              "swfs_speckles_recon_tilt")
+        addr = lambda x: ctypes.cast(x, ctypes.c_void_p).value
+        return (_lib.take_buffer(addr(W), (self.nact, self.nslopes + 2), np.float64),
+                _lib.take_buffer(addr(R), (2, self.nslopes), np.float64))
+
+    def engine(self, nfx, nfy, alpha, wavelen, nthreads=1, recon=None, remove_tiptilt=False):
+        """An Engine over this model (recon: a matrix replacing the model's, e.g. W_ext)."""
+        W = self.recon.W if recon is None else recon
+        return Engine(W, self.T, self.mask, nfx, nfy, alpha, wavelen, remove_tiptilt=remove_tiptilt,
+                      nthreads=nthreads)
+
+
+# ---- schedules -------------------------------------------------------------------------
+
+def schedule(ratio, offset, nexp):
+    """The common camera schedule (engine.h): (sched, nwfs_needed). sched is a structured
+    array (fields first, count, w_first, w_last) with the C layout of swfs_exposure."""
+    s = np.zeros(int(nexp), EXPOSURE_DTYPE)
+    need = lib.swfs_engine_schedule(float(ratio), float(offset), int(nexp), s.ctypes.data)
+    if need == 0:
+        raise ValueError(f"schedule: invalid arguments ratio={ratio} offset={offset} nexp={nexp} (need ratio >= 1, "
+                         "offset >= 0, nexp >= 1)")
+    return s, int(need)
+
+
+def make_schedule(first, count, w_first=1.0, w_last=1.0):
+    """A schedule from arrays (broadcast)."""
+    first, count, w_first, w_last = np.broadcast_arrays(first, count, w_first, w_last)
+    s = np.zeros(first.shape, EXPOSURE_DTYPE)
+    s["first"], s["count"], s["w_first"], s["w_last"] = first, count, w_first, w_last
+    return s
+
+
+def _sched(s):
+    s = np.asarray(s)
+    if s.dtype != EXPOSURE_DTYPE:
+        raise ValueError(f"schedule: expected a structured array of dtype {EXPOSURE_DTYPE} (schedule() or "
+                         f"make_schedule()), got {s.dtype}")
+    return np.ascontiguousarray(s)
+
+
+def speckles_expand(slopes, R, sched):
+    """Per-exposure copies of the WFS frames with the exposure tip-tilt (speckles.h):
+    (expanded slopes (m, nslopes + 2), expanded schedule)."""
+    s = as_array(slopes, "slopes", np.float64, ndim=2)
+    nwfs, nslopes = s.shape
+    R = as_array(R, "R", np.float64, shape=(2, nslopes))
+    sched = _sched(sched)
+    m = lib.swfs_speckles_expand_frames(sched.ctypes.data, sched.shape[0])
+    out = np.empty((m, nslopes + 2))
+    so = np.zeros(sched.shape[0], EXPOSURE_DTYPE)
+    check(lib.swfs_speckles_expand(dptr(s), nslopes, nwfs, dptr(R), sched.ctypes.data, sched.shape[0], dptr(out),
+                                   so.ctypes.data), "swfs_speckles_expand")
+    return out, so
+
+
+def speckles_subtract_static(cube, first=None, n=None, mode="ensemble"):
+    """eq:computedSpeckleField in place on a complex cube (nframes, nfy, nfx): subtract the
+    ensemble mean ('ensemble', or 'cube': the mean of each camera cube [first[c],
+    first[c] + n[c]))."""
+    cube = as_array(cube, "cube", np.complex128, ndim=3, writable=True)
+    if first is None:
+        first, n = [0], [cube.shape[0]]
+    first = np.ascontiguousarray(first, dtype=np.uintp)
+    n = as_array(n, "n", np.uintp, shape=first.shape)
+    c = _lib.cplx_struct(cube)
+    sp = P(ctypes.c_size_t)
+    check(lib.swfs_speckles_subtract_static(ctypes.byref(c), first.ctypes.data_as(sp), n.ctypes.data_as(sp),
+                                            first.shape[0], {"ensemble": 0, "cube": 1}[mode]),
+          "swfs_speckles_subtract_static")
+    return cube
+
+
+# ---- the engine ------------------------------------------------------------------------
+
+class Engine:
+    """The per-frame engine (engine.h): slopes -> W -> T -> exp(i phi) -> MFT, core-phase
+    referenced. recon: (nact, nslopes) matrix; interp: Sparse (npup^2 x nact) or a dense
+    matrix; pupil: (npup, npup) transmission; alpha = PIXSCALE * PUPDX / TELDIAM."""
+
+    def __init__(self, recon, interp, pupil, nfx, nfy, alpha, wavelen, remove_tiptilt=False, nthreads=1):
+        W = as_array(recon.W if isinstance(recon, Recon) else recon, "recon", np.float64, ndim=2)
+        T = interp if isinstance(interp, Sparse) else Sparse.from_dense(interp)
+        pupil = as_array(pupil, "pupil", np.float64, ndim=2)
+        nact, nslopes = W.shape
+        c = _lib.swfs_engine_config(nslopes, nact, pupil.shape[0], int(nfx), int(nfy), float(alpha), float(wavelen),
+                                    dptr(W), ctypes.pointer(T._s), dptr(pupil), int(bool(remove_tiptilt)),
+                                    int(nthreads))
+        if pupil.shape[0] != pupil.shape[1]:
+            raise ValueError(f"pupil: expected a square (npup, npup) map, got shape {pupil.shape}")
+        e = check_ptr(lib.swfs_engine_create(ctypes.byref(c)), "swfs_engine_create")
+        self._e = e
+        self._owner = _lib.Owner(e, lib.swfs_engine_free)
+        self.nslopes, self.nact, self.npup, self.nfx, self.nfy = nslopes, nact, pupil.shape[0], int(nfx), int(nfy)
+
+    @property
+    def nthreads(self):
+        return lib.swfs_engine_nthreads(self._e)
+
+    @property
+    def npin(self):
+        """Illuminated pupil samples."""
+        return lib.swfs_engine_npin(self._e)
+
+    def _slopes(self, slopes):
+        return as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+
+    def add_wfs(self, slopes, weight=1.0):
+        """Add one WFS frame (nslopes,) to the current exposure."""
+        s = as_array(slopes, "slopes", np.float64, shape=(self.nslopes,))
+        check(lib.swfs_engine_add_wfs(self._e, dptr(s), float(weight)), "swfs_engine_add_wfs")
+
+    def end_exposure(self, out=None):
+        """The exposure's core-referenced focal field (nfy, nfx); starts a new exposure."""
+        if out is None:
+            out = np.empty((self.nfy, self.nfx), np.complex128)
+        out = as_array(out, "out", np.complex128, shape=(self.nfy, self.nfx), writable=True)
+        check(lib.swfs_engine_end_exposure(self._e, out.ctypes.data), "swfs_engine_end_exposure")
+        return out
+
+    def reset(self):
+        lib.swfs_engine_reset(self._e)
+
+    def process(self, slopes, sched, out=None):
+        """Camera frames (nexp, nfy, nfx) from slopes (nwfs, nslopes) and a schedule."""
+        s = self._slopes(slopes)
+        sched = _sched(sched)
+        nexp = sched.shape[0]
+        if nexp and int((sched["first"] + sched["count"]).max()) > s.shape[0]:
+            raise ValueError(f"sched: exposures need {int((sched['first'] + sched['count']).max())} WFS frames, "
+                             f"slopes has {s.shape[0]}")
+        if out is None:
+            out = np.empty((nexp, self.nfy, self.nfx), np.complex128)
+        out = as_array(out, "out", np.complex128, shape=(nexp, self.nfy, self.nfx), writable=True)
+        check(lib.swfs_engine_process(self._e, dptr(s), s.shape[0], sched.ctypes.data, nexp, out.ctypes.data),
+              "swfs_engine_process")
+        return out
+
+    def process_wfs(self, slopes, out=None):
+        """One core-referenced focal field per WFS frame: (nwfs, nfy, nfx)."""
+        s = self._slopes(slopes)
+        if out is None:
+            out = np.empty((s.shape[0], self.nfy, self.nfx), np.complex128)
+        out = as_array(out, "out", np.complex128, shape=(s.shape[0], self.nfy, self.nfx), writable=True)
+        check(lib.swfs_engine_process_wfs(self._e, dptr(s), s.shape[0], out.ctypes.data), "swfs_engine_process_wfs")
+        return out
+
+
+# ---- MFT -----------------------------------------------------------------------------
+
+class MFT:
+    """Matrix Fourier transform (mft.h) between an npup x npup pupil grid and an nfy x nfx
+    focal window with the conventions of DESIGN.md (double precision)."""
+
+    def __init__(self, npup, nfx, nfy, alpha, single=False):
+        self._m = check_ptr(lib.swfs_mft_create(int(npup), int(nfx), int(nfy), float(alpha), int(bool(single))),
+                            "swfs_mft_create")
+        self._owner = _lib.Owner(self._m, lib.swfs_mft_free)
+        self.npup, self.nfx, self.nfy = int(npup), int(nfx), int(nfy)
+
+    def forward(self, pupil):
+        p = as_array(pupil, "pupil", np.complex128, shape=(self.npup, self.npup))
+        out = np.empty((self.nfy, self.nfx), np.complex128)
+        check(lib.swfs_mft_forward(self._m, p.ctypes.data, out.ctypes.data), "swfs_mft_forward")
+        return out
+
+    def inverse(self, focal):
+        f = as_array(focal, "focal", np.complex128, shape=(self.nfy, self.nfx))
+        out = np.empty((self.npup, self.npup), np.complex128)
+        check(lib.swfs_mft_inverse(self._m, f.ctypes.data, out.ctypes.data), "swfs_mft_inverse")
+        return out
