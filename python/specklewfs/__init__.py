@@ -24,3 +24,28 @@ except ImportError:
     __version__ = "0.1.0"
 
 merge_files = Accumulator.merge_files
+
+
+def _init_blas_threads():
+    # The library's own workers (simulators, engine) run best with a single-threaded
+    # OpenBLAS; a threaded one inside every small GEMM made the paper's simulation 5x
+    # slower on 2 cores. The command line sets 1; so does the package at import, unless
+    # the environment chooses: SPECKLEWFS_BLAS_THREADS=N (N <= 0 or 'keep': leave it), or
+    # OPENBLAS_NUM_THREADS / OMP_NUM_THREADS set (then OpenBLAS already follows them).
+    import os
+    v = os.environ.get("SPECKLEWFS_BLAS_THREADS")
+    if v is None:
+        if os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS"):
+            return
+        v = "1"
+    if v.strip().lower() == "keep":
+        return
+    try:
+        n = int(v)
+    except ValueError:
+        raise ImportError(f"specklewfs: SPECKLEWFS_BLAS_THREADS must be an integer or 'keep', got {v!r}") from None
+    if n > 0:
+        set_blas_threads(n)
+
+
+_init_blas_threads()

@@ -62,17 +62,23 @@ lib, LIBRARY_PATH = _load()
 
 # ---- errors ----------------------------------------------------------------------------
 
+STATUS_NAMES = ["SWFS_OK", "SWFS_ERR_ARG", "SWFS_ERR_NOMEM", "SWFS_ERR_IO", "SWFS_ERR_FORMAT", "SWFS_ERR_SHAPE",
+                "SWFS_ERR_VALUE", "SWFS_ERR_NUMERIC", "SWFS_ERR_INTERNAL"]  # enum swfs_status (status.h)
+
+
 class Error(RuntimeError):
-    """A library call failed. `status` is the swfs_status code, `status_name` its name
-    (e.g. 'SWFS_ERR_IO'), `message` the library's message (swfs_last_error) and
+    """A library call failed. `status` is the swfs_status code, `status_name` its enum
+    name (e.g. 'SWFS_ERR_IO'), `description` the library's short description of it
+    (swfs_status_name), `message` the library's message (swfs_last_error) and
     `function` the C function that failed."""
 
     def __init__(self, status, message, function):
         self.status = int(status)
-        self.status_name = lib.swfs_status_name(self.status).decode()
+        self.status_name = STATUS_NAMES[self.status] if 0 <= self.status < len(STATUS_NAMES) else str(self.status)
+        self.description = lib.swfs_status_name(self.status).decode()
         self.message = message
         self.function = function
-        super().__init__(f"{message} [{self.status_name} from {function}]")
+        super().__init__(f"{message} [{self.status_name}: {self.description}, from {function}]")
 
 
 def _last_error():
