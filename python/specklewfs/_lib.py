@@ -50,7 +50,7 @@ def _load():
             tried.append(f"{how}: {path} (no such file)")
             continue
         try:
-            return ctypes.CDLL(path), path
+            return ctypes.CDLL(path), (os.path.abspath(path) if os.sep in path else path)
         except OSError as e:
             tried.append(f"{how}: {path} ({e})")
     raise ImportError("specklewfs: cannot load libspecklewfs.so; set SPECKLEWFS_LIB to its path. Tried: "

@@ -34,15 +34,20 @@ class _In:
         return Geom.from_c(g)
 
     def key(self, name):
-        v, found = ctypes.c_double(), ctypes.c_int()
-        check(lib.swfs_fits_in_key_double_opt(self.f, name.encode(), ctypes.byref(v), ctypes.byref(found)),
-              "swfs_fits_in_key_double_opt")
-        if found.value:
-            return v.value
+        """A keyword's value: a number (float) when it parses as one, else the string."""
         buf = ctypes.create_string_buffer(1024)
+        found = ctypes.c_int()
         check(lib.swfs_fits_in_key_string_opt(self.f, name.encode(), buf, len(buf), ctypes.byref(found)),
               "swfs_fits_in_key_string_opt")
-        return buf.value.decode() if found.value else None
+        if not found.value:
+            return None
+        s = buf.value.decode(errors="replace")
+        if s.strip().upper() in ("T", "F"):
+            return s.strip().upper() == "T"
+        try:
+            return float(s.replace("D", "E"))
+        except ValueError:
+            return s
 
     def read(self, squeeze=True):
         s = self.shape()

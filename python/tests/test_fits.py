@@ -1,0 +1,70 @@
+"""Generic FITS I/O, BLAS threads, the library locator."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import specklewfs as sw
+
+from conftest import ROOT
+
+
+def test_write_read_real_and_complex(tmp_path):
+    rng = np.random.default_rng(0)
+    cube = rng.normal(size=(3, 4, 5))
+    z = rng.normal(size=(4, 5)) + 1j * rng.normal(size=(4, 5))
+    geom = sw.Geom(wavelen=3.8e-6, teldiam=6.5, obscur=0.1, pixscale=0.25, pupdx=0.04, pupn=163)
+    p = str(tmp_path / "x.fits")
+    sw.write_fits(p, {"CUBE": cube, "Z": z}, geom=geom, provenance=["made by a test"],
+                  keys={"FRAMEDT": 0.002, "NAME": "abc", "COUNT": 7})
+    c, g = sw.read_fits(p, "CUBE")
+    assert c.dtype == np.float64 and c.shape == (3, 4, 5) and np.array_equal(c, cube) and g == geom
+    zz, _ = sw.read_fits(p, "Z")
+    assert zz.dtype == np.complex128 and np.array_equal(zz, z)
+    assert sw.fits_info(p, "Z") == {"nx": 5, "ny": 4, "nz": 1, "is_complex": True, "bitpix": -64}
+    assert sw.read_keys(p, ["FRAMEDT", "NAME", "COUNT", "NOPE"], ext="Z") == \
+        {"FRAMEDT": 0.002, "NAME": "abc", "COUNT": 7.0, "NOPE": None}
+    # A single array goes to the primary HDU; -32 rounds to single precision.
+    p1 = str(tmp_path / "one.fits")
+    sw.write_fits(p1, cube, bitpix=-32)
+    c1, g1 = sw.read_fits(p1)
+    np.testing.assert_array_equal(c1, cube.astype(np.float32).astype(np.float64))
+    assert np.isnan(g1.wavelen) and g1.pupn == 0
+    assert sw.read_fits(p1, squeeze=False)[0].shape == (3, 4, 5)
+
+
+def test_fits_errors(tmp_path):
+    missing = str(tmp_path / "missing.fits")
+    with pytest.raises(sw.Error) as e:
+        sw.read_fits(missing)
+    assert missing in e.value.message and e.value.status_name == "SWFS_ERR_IO"
+    p = str(tmp_path / "x.fits")
+    sw.write_fits(p, {"A": np.zeros((2, 2))})
+    with pytest.raises(sw.Error, match="NOPE"):
+        sw.read_fits(p, "NOPE")
+    with pytest.raises(ValueError, match=r"B: expected 2 or 3 dimensions, got shape \(4,\)"):
+        sw.write_fits(str(tmp_path / "y.fits"), {"B": np.zeros(4)})
+    assert not os.path.exists(str(tmp_path / "y.fits")) and not os.path.exists(str(tmp_path / "y.fits.part"))
+
+
+def test_blas_threads():
+    # The package sets 1 at import (as the command line does) unless told otherwise.
+    assert sw.blas_threads() == 1
+    sw.set_blas_threads(2)
+    try:
+        assert sw.blas_threads() == 2
+    finally:
+        sw.set_blas_threads(1)
+
+
+def test_library_is_found_from_the_environment_and_errors_are_clear():
+    env = dict(os.environ, SPECKLEWFS_LIB="/nonexistent/libspecklewfs.so")
+    r = subprocess.run([sys.executable, "-c", "import specklewfs"], env=env, capture_output=True, text=True,
+                       cwd=os.path.join(ROOT, "python"))
+    assert r.returncode != 0 and "SPECKLEWFS_LIB: /nonexistent/libspecklewfs.so (no such file)" in r.stderr
+    env = dict(os.environ, SPECKLEWFS_LIB=sw.LIBRARY_PATH, SPECKLEWFS_BLAS_THREADS="keep", OPENBLAS_NUM_THREADS="2")
+    r = subprocess.run([sys.executable, "-c", "import specklewfs as s; print(s.blas_threads(), s.LIBRARY_PATH)"],
+                       env=env, capture_output=True, text=True, cwd=os.path.join(ROOT, "python"), check=True)
+    assert r.stdout.split() == ["2", sw.LIBRARY_PATH]
