@@ -1,0 +1,169 @@
+"""The simulators, the paper's numbers through Python, and the same data set through the
+command line and through Python giving identical products."""
+import os
+import re
+import subprocess
+
+import numpy as np
+import pytest
+
+import specklewfs as sw
+
+from conftest import ROOT
+
+SMALL = dict(screen_n=512, nscreens=2, pupn=64, teldiam=2.5, nfx=32, nfy=32, seed=3, threads=2)
+
+
+def test_paper_default_path_through_python(paper_sim):
+    """simulate -> camera -> Accumulator -> estimate -> pupil -> compare, piece by piece
+    in Python: the demo's 15.6 nm NCP error at sigma = 0, seed 1."""
+    s = paper_sim
+    assert s.science.shape == (980, 60, 60) and s.speckles.shape == (980, 60, 60) and s.nframes == 980
+    assert s.geom == sw.Geom(wavelen=3.8e-6, teldiam=6.5, obscur=0.1, pixscale=0.25, pupdx=0.04, pupn=163)
+    assert round(s.ncp_rms * 1e9, 1) == 105.5 and round(s.residual_rms * 1e9, 1) == 249.8
+    assert s.params["seed"] == 1 and s.params["nfx"] == 60 and s.params["screen"]["n"] == 2048
+    gain = s.params["gain"]
+    noisy = s.camera(read_noise=0.0, gain=gain, seed=1 * 1000003 + 0)  # the demo's camera stream
+    h = sw.Accumulator(60, 60).add(noisy, s.speckles).estimate(read_noise=0.0, gain=gain)
+    assert round(100 * h.valid_fraction, 1) == 98.2
+    p = sw.pupil_estimate(h, s.geom, mask=s.pupil)
+    err, truth_p, truth_ptt = sw.wfe_compare(p.wfe, s.ncp, s.pupil)
+    assert round(err * 1e9, 1) == 15.6
+    assert round(truth_ptt * 1e9, 1) == 91.2
+    # The paper's formulae (per-pixel g, HALO_LF, full weight): 15.7.
+    hp = sw.Accumulator(60, 60).add(noisy, s.speckles).estimate(read_noise=0.0, gain=gain, g_smooth=0)
+    pp = sw.pupil_estimate(hp, s.geom, mask=s.pupil, weight="none")
+    assert round(sw.wfe_compare(pp.wfe, s.ncp, s.pupil)[0] * 1e9, 1) == 15.7
+
+
+def test_demo_table_equals_python_recovery(paper_sim, cli, tmp_path):
+    """`specklewfs demo` prints the same table as SimResult.recovery at every level."""
+    out = subprocess.run([cli, "demo", "-o", str(tmp_path / "demo"), "--no-report", "--loop-iterations", "0"],
+                         check=True, capture_output=True, text=True).stdout
+    rows = re.findall(r"^\s+(\d+)\s+([\d.]+)%\s+([\d.]+)%\s+([\d.]+) \|\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+(\S+)",
+                      out, re.M)
+    assert [r[0] for r in rows] == ["0", "10", "100", "1000"], out
+    for r in rows:
+        res = paper_sim.recovery(float(r[0]))
+        got = ("%g" % res["sigma"], "%.1f" % (100 * res["valid_fraction"]), "%.1f" % (100 * res["bad_radicand"]),
+               "%.1f" % (res["err_paper"] * 1e9), "%.1f" % (res["err_halo"] * 1e9), "%.1f" % (res["err_lf"] * 1e9),
+               "%.1f" % (res["err_lf_snr"] * 1e9), "%.3g" % res["median_snr"])
+        assert got == tuple(r), (got, r)
+    assert rows[0][6] == "15.6"
+
+
+def test_small_simulation(small_sim, tmp_path):
+    s = small_sim
+    assert s.science.shape == (s.nframes, 32, 32) and s.pupil.shape == (64, 64) and s.halo_true.shape == (32, 32)
+    assert s.ref_phase.shape == (s.nframes,)
+    # The speckles have their mean removed (sim.h).
+    assert np.abs(s.speckles.mean(0)).max() < 1e-12 * np.abs(s.speckles).max()
+    # Camera noise is reproducible from its seed and follows the model.
+    a, b = s.camera(10.0, 0.0, seed=5), s.camera(10.0, 0.0, seed=5)
+    assert np.array_equal(a, b)
+    assert np.std(a - s.science) == pytest.approx(10.0, rel=0.01)
+    assert not np.array_equal(a, s.camera(10.0, 0.0, seed=6))
+    # The NCP the parameters describe is the one injected.
+    ncp, rms, pv = sw.ncp_map(mask=s.pupil, **SMALL)
+    np.testing.assert_array_equal(ncp, s.ncp)
+    assert rms == pytest.approx(s.ncp_rms, rel=1e-12)
+    # A given NCP map replaces the parameters' terms.
+    s2 = sw.simulate(ncp=np.zeros((64, 64)), **dict(SMALL, nscreens=1, screen_n=256))
+    assert np.all(s2.ncp == 0)
+    # write(): the files of `specklewfs simulate`.
+    s.write(str(tmp_path), science=a, read_noise=10.0, gain=0.0)
+    sci, g = sw.read_fits(str(tmp_path / "science.fits"))
+    np.testing.assert_array_equal(sci, a.astype(np.float32))
+    assert g == s.geom
+    assert sw.read_keys(str(tmp_path / "science.fits"), ["RDNOISE"])["RDNOISE"] == 10.0
+    t, _ = sw.read_fits(str(tmp_path / "truth.fits"), "NCP")
+    np.testing.assert_array_equal(t, s.ncp)
+
+
+def test_simulation_parameters_errors():
+    with pytest.raises(sw.Error, match="bogus_key") as e:
+        sw.simulate(bogus_key=1)
+    assert e.value.function == "swfs_config_check_unused"
+    with pytest.raises(sw.Error, match="nfx"):
+        sw.sim_params(nfx="many")
+    p = sw.sim_params(config=os.path.join(ROOT, "config", "paper-sec3.conf"), nfx=40, ncp_zernike=[2, 0, 20e-9])
+    assert p["nfx"] == 40 and p["ncp_nzernike"] == 1 and p["ncp_zernike"][:3] == [2.0, 0.0, 20e-9]
+
+
+def test_progress_callback():
+    seen = []
+    sw.simulate(progress=lambda stage, done, total: seen.append((stage, done, total)),
+                **dict(SMALL, nscreens=1, screen_n=256))
+    stages = {s for s, _, _ in seen}
+    assert {"screens", "frames"} <= stages
+    assert all(0 <= d <= t for _, d, t in seen)
+
+
+def test_cli_and_python_give_identical_products(cli, tmp_path):
+    """simulate with the CLI; estimate and pupil with the CLI and with Python on the same
+    science/speckles FITS: identical arrays."""
+    d = tmp_path / "sim"
+    args = [f"{k}={v}" for k, v in SMALL.items()]
+    subprocess.run([cli, "simulate", *args, "read_noise=5", "-o", str(d), "--quiet"], check=True,
+                   capture_output=True)
+    sci_f, sp_f = str(d / "science.fits"), str(d / "speckles.fits")
+    halo_cli, pupil_cli = str(tmp_path / "halo_cli.fits"), str(tmp_path / "pupil_cli.fits")
+    subprocess.run([cli, "estimate", sci_f, sp_f, "-o", halo_cli], check=True, capture_output=True)
+    subprocess.run([cli, "pupil", halo_cli, "-o", pupil_cli], check=True, capture_output=True)
+
+    sci, _ = sw.read_fits(sci_f)
+    psi, geom = sw.read_fits(sp_f)
+    noise = sw.read_keys(sci_f, ["RDNOISE", "GAIN"])
+    assert noise == {"RDNOISE": 5.0, "GAIN": 1.0}
+    acc = sw.Accumulator(geom_nx := sci.shape[2], sci.shape[1]).add(sci, psi)
+    assert geom_nx == 32
+    # The CLI's --g-smooth is 2 lambda/D by default: 2 / PIXSCALE pixels.
+    h = acc.estimate(read_noise=noise["RDNOISE"], gain=noise["GAIN"], g_smooth=2.0 / geom.pixscale)
+    assert h.n_valid > 0.5 * h.npix
+    for ext, arr in h.maps.items():
+        ref, g = sw.read_fits(halo_cli, ext)
+        np.testing.assert_array_equal(arr, ref, err_msg=ext)
+    assert g == geom
+    keys = sw.read_keys(halo_cli, ["NVALID", "MEDSNR", "GSMOOTH"])
+    # Header keywords are printed with ~15 significant digits.
+    assert keys["NVALID"] == h.n_valid and keys["MEDSNR"] == pytest.approx(h.median_snr, rel=1e-13)
+    assert keys["GSMOOTH"] == h.g_smooth
+
+    p = sw.pupil_estimate(h, geom)  # the CLI's defaults: SNR weight, HALO_LF, annulus from the geometry
+    for ext, arr in [("FIELD", p.field), ("WFE", p.wfe), ("SURFACE", p.surface), ("AMPLITUDE", p.amplitude),
+                     ("PUPIL", p.mask)]:
+        ref, _ = sw.read_fits(pupil_cli, ext)
+        np.testing.assert_array_equal(arr, ref, err_msg=ext)
+    assert sw.read_keys(pupil_cli, ["WFERMS"], ext="WFE")["WFERMS"] == pytest.approx(p.wfe_rms, rel=1e-13)
+
+    # Python's products read by the CLI: the CLI's pupil of Python's halo.fits is the same.
+    halo_py, pupil_py = str(tmp_path / "halo_py.fits"), str(tmp_path / "pupil_py.fits")
+    h.write(halo_py, geom, provenance=["python"])
+    subprocess.run([cli, "pupil", halo_py, "-o", pupil_py], check=True, capture_output=True)
+    for ext in ("FIELD", "WFE"):
+        np.testing.assert_array_equal(sw.read_fits(pupil_py, ext)[0], sw.read_fits(pupil_cli, ext)[0])
+    p.write(str(tmp_path / "p.fits"))
+    np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "p.fits"), "WFE")[0], p.wfe)
+
+    # And the simulation itself: Python's run with the same parameters and the camera seed
+    # `simulate` uses writes the same files' contents (science and speckles are -32 files).
+    s = sw.simulate(read_noise=5, **SMALL)
+    np.testing.assert_array_equal(s.camera().astype(np.float32), sci)
+    np.testing.assert_array_equal(s.speckles.astype(np.complex64), psi)
+    np.testing.assert_array_equal(s.ncp, sw.read_fits(str(d / "truth.fits"), "NCP")[0])
+
+    # Checkpoints: the CLI's merge of Python's checkpoints equals Python's merge.
+    a, b = str(tmp_path / "a.ckpt.fits"), str(tmp_path / "b.ckpt.fits")
+    n = sci.shape[0] // 2
+    sw.Accumulator(32, 32).add(sci[:n], psi[:n]).save(a, geom)
+    sw.Accumulator(32, 32).add(sci[n:], psi[n:]).save(b, geom)
+    merged, mhalo = str(tmp_path / "m.ckpt.fits"), str(tmp_path / "m.halo.fits")
+    subprocess.run([cli, "merge", a, b, "-o", merged, "--halo", mhalo, "--read-noise", "5", "--gain", "1"],
+                   check=True, capture_output=True)
+    m = sw.Accumulator.load(merged)
+    np.testing.assert_array_equal(m.state(), sw.merge_files([a, b]).state())
+    hm = sw.merge_files([a, b]).estimate(read_noise=5, gain=1, g_smooth=2.0 / geom.pixscale)
+    for ext in ("HALO", "HALO_LF", "GAIN", "SNR"):
+        np.testing.assert_array_equal(hm.maps[ext], sw.read_fits(mhalo, ext)[0], err_msg=ext)
+    # ... and equals the single pass to rounding.
+    np.testing.assert_allclose(hm.halo, h.halo, rtol=1e-9, atol=1e-12 * np.abs(h.halo).max())
