@@ -123,6 +123,48 @@ typedef struct swfs_stream_run_result {
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 
+/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) ----------- */
+
+typedef struct swfs_reduce_run_options {
+    const char *const *raw;   /* nraw raw camera cubes, concatenated in this order */
+    size_t nraw;
+    const char *dark, *flat, *badpix, *out; /* calibration frames (NULL: 0, 1, none) */
+    swfs_reduce_params params; /* reduce.h; pixscale and gain are filled from the raw header */
+    int sigma_given;          /* 1: keep params.gauss_sigma; 0: 1 lambda/D when PIXSCALE is known */
+    int noise_region;         /* 1: noise from the source-free region even when PIXSCALE is known */
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_reduce_run_options;
+
+void swfs_reduce_run_options_default(swfs_reduce_run_options *o);
+
+typedef struct swfs_reduce_run_result {
+    size_t nframes, nbad;
+    double noise_var, noise_fac; /* raw background variance [counts^2] and the registration's factor */
+} swfs_reduce_run_result;
+
+int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);
+
+/* ---- sync: reduced science + handshake log -> the timing table -------------------- */
+
+typedef struct swfs_sync_run_options {
+    const char *science, *handshake, *out;
+    swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default */
+} swfs_sync_run_options;
+
+void swfs_sync_run_options_default(swfs_sync_run_options *o);
+
+/* r->t: the timing table written (the caller frees r->t.cubes, also on failure); r->nok usable cubes.
+ * SWFS_ERR_VALUE (after writing the table) when no cube lies inside its telemetry file. */
+typedef struct swfs_sync_run_result {
+    swfs_timing t;
+    size_t nok;
+} swfs_sync_run_result;
+
+int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);
+
 SWFS_END_DECLS
 
 #endif
