@@ -51,6 +51,8 @@ void cli_dir_of(const char *path, char *dir, size_t cap);
 /* A progress callback for the library's long runs: ctx is a label prefix (const char *,
  * or NULL for none) put before the stage name. */
 void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
+/* --tiptilt exposure|frame|keep -> SWFS_TT_* (speckles.h); prints and returns CLI_USAGE otherwise. */
+int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
 

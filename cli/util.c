@@ -1,5 +1,7 @@
 #include "cli.h"
 
+#include "specklewfs/speckles.h"
+
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -123,4 +125,13 @@ void cli_dir_of(const char *path, char *dir, size_t cap)
     memcpy(dir, path, n);
     dir[n] = 0;
     if (n == 0) snprintf(dir, cap, "/");
+}
+
+int cli_parse_tiptilt(const char *cmd, const char *v, int *mode)
+{
+    if (v && !strcmp(v, "exposure")) *mode = SWFS_TT_EXPOSURE;
+    else if (v && !strcmp(v, "frame")) *mode = SWFS_TT_FRAME;
+    else if (v && !strcmp(v, "keep")) *mode = SWFS_TT_KEEP;
+    else return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
+    return 0;
 }

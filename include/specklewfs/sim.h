@@ -31,6 +31,7 @@
 #include "specklewfs/config.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/screen.h"
+#include "specklewfs/status.h"
 
 SWFS_BEGIN_DECLS
 
@@ -110,7 +111,6 @@ typedef struct swfs_sim_result {
     double seconds;           /* wall time of swfs_sim_paper_run */
 } swfs_sim_result;
 
-typedef void (*swfs_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
 
 /* Run the whole simulation. progress may be NULL; it is called from the calling thread
  * only, with stages "screens" and "frames". */

@@ -10,6 +10,8 @@
 
 #include "specklewfs/defs.h"
 
+#include <stddef.h>
+
 SWFS_BEGIN_DECLS
 
 enum swfs_status {
@@ -43,6 +45,10 @@ int swfs_fail_context(int code, const char *fmt, ...)
 const char *swfs_last_error(void);
 void swfs_clear_error(void);
 const char *swfs_status_name(int code);
+
+/* Progress of a long run: `done` of `total` units of the named stage. The library calls
+ * it (when given one) and never prints; the application decides what to show. */
+typedef void (*swfs_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
 
 SWFS_END_DECLS
 

@@ -1,0 +1,94 @@
+/* The speckle pipeline: WFS telemetry arrays -> the complex speckle field psi that matches
+ * the science camera frames (paper Sec. 4.4, eq:downsampledHalo, eq:computedSpeckleField).
+ *
+ * One object owns every step that `specklewfs speckles`, `specklewfs stream` and any
+ * embedding application share: the speckle model on the pupil grid (Clough-Tocher
+ * interpolation from the actuators, the Shack-Hartmann model), the reconstructor (given,
+ * or built here: von Karman MAP, telemetry-learned MAP, truncated SVD), the tip-tilt
+ * treatment (speckles.h explains the three modes) and the per-frame engine (engine.h).
+ * It takes and returns arrays only; files are the io layer's (source.h, run.h).
+ *
+ *   swfs_pipeline_options o;  swfs_pipeline_options_default(&o);
+ *   swfs_pipeline *p;         swfs_pipeline_create(&p, &geom, nfx, nfy, xy, nact, NULL, nslopes,
+ *                                                  NULL, training, ntrain, &o);
+ *   swfs_pipeline_process(p, slopes, nwfs, sched, nexp, psi);   // per batch, no allocation
+ *   swfs_pipeline_free(p);
+ *
+ * An object is used by one thread at a time; independent objects may run concurrently. */
+#ifndef SWFS_PIPELINE_H
+#define SWFS_PIPELINE_H
+
+#include <stddef.h>
+
+#include "specklewfs/engine.h"
+#include "specklewfs/geom.h"
+#include "specklewfs/speckles.h"
+#include "specklewfs/wfs.h"
+
+SWFS_BEGIN_DECLS
+
+/* Reconstructor choices. */
+enum {
+    SWFS_RECON_VK = 0,    /* MAP with a von Karman prior on the actuators (default) */
+    SWFS_RECON_MAP = 1,   /* per-mode Wiener gain, prior learned from the training slopes */
+    SWFS_RECON_SVD = 2,   /* truncated pseudo-inverse (rcond, max_modes) */
+    SWFS_RECON_GIVEN = 3  /* the caller's matrix (swfs_pipeline_create's recon) */
+};
+
+typedef struct swfs_pipeline_options {
+    int recon;          /* SWFS_RECON_* (default SWFS_RECON_VK) */
+    double rcond;       /* SWFS_RECON_SVD: singular values kept above rcond x the largest (5e-2) */
+    size_t max_modes;   /* SWFS_RECON_SVD: at most this many modes, 0 = no limit */
+    double slope_noise; /* SWFS_RECON_VK|MAP: slope noise rms [rad]; 0 = estimated from the training slopes */
+    double vk_l0;       /* SWFS_RECON_VK: effective outer scale [m] (10) */
+    int tiptilt;        /* SWFS_TT_EXPOSURE (default), SWFS_TT_FRAME, SWFS_TT_KEEP (speckles.h) */
+    int threads;        /* engine workers (1) */
+    int wfs_rate;       /* 1: one focal field per WFS frame (swfs_pipeline_process_wfs), 0: per exposure */
+} swfs_pipeline_options;
+
+void swfs_pipeline_options_default(swfs_pipeline_options *o);
+
+typedef struct swfs_pipeline swfs_pipeline;
+
+/* What the pipeline was built with, for summaries and provenance. */
+typedef struct swfs_pipeline_info {
+    size_t nact, nslopes, npup, nfx, nfy;
+    size_t recon_modes;  /* modes the reconstructor keeps (SVD / MAP), 0 for a given matrix */
+    double recon_dof;    /* effective degrees of freedom (MAP / vk) */
+    double noise_var;    /* slope noise variance used [rad^2] (MAP / vk) */
+    int noise_given;     /* 1 if noise_var came from the options */
+    size_t ntrain;       /* training WFS frames (MAP / vk) */
+    size_t n_outside;    /* illuminated pupil samples outside the actuators' hull */
+} swfs_pipeline_info;
+
+/* geom: WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN all required; nfx x nfy: the
+ * focal window (the science frames); xy: nact actuator positions (x, y) [m]; mask: PUPN^2
+ * pupil transmission, or NULL for the annulus of TELDIAM/OBSCUR; nslopes: 2 nsub^2 (x then
+ * y slopes of a square Shack-Hartmann); recon: the reconstructor for SWFS_RECON_GIVEN
+ * (nact x nslopes, z_act [m] = W s [rad]), else NULL; training: ntrain consecutive WFS
+ * frames of nslopes for SWFS_RECON_VK/MAP (NULL otherwise). Copies what it keeps. */
+int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *geom, size_t nfx, size_t nfy, const double *xy,
+                         size_t nact, const double *mask, size_t nslopes, const swfs_recon *recon,
+                         const double *training, size_t ntrain, const swfs_pipeline_options *opt);
+void swfs_pipeline_free(swfs_pipeline *p);
+
+/* The nexp camera exposures sched[0..nexp) over slopes (nwfs frames of nslopes, the
+ * exposures' indices into them): out = nexp core-referenced focal fields nfx x nfy
+ * (eq:downsampledHalo), before the static halo is subtracted. Work space grows to the
+ * largest batch seen and is then reused: nothing is allocated in the steady state. */
+int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, const swfs_exposure *sched, size_t nexp,
+                          swfs_complex *out);
+/* One focal field per WFS frame (the WFS-rate speckles `coherence` needs). */
+int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwfs, swfs_complex *out);
+/* Psi_0 of eq:computedSpeckleField: the referenced focal field of flat slopes (the
+ * unaberrated pupil, unit exposure weight), nfx x nfy. */
+int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out);
+
+void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
+const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p);
+const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p);
+const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p);
+
+SWFS_END_DECLS
+
+#endif

@@ -1,0 +1,170 @@
+/* The file-driven runs: each command of the data flow as one library call that reads its
+ * inputs, runs the method on arrays and writes its products (atomically: a failed run
+ * leaves no file that looks complete). `specklewfs <command>` parses its options, calls
+ * one of these and prints the summary; an application can do the same without the CLI.
+ *
+ * Every run takes provenance lines (prov, nprov: e.g. the command line) recorded in the
+ * products, and an optional progress callback (status.h). Messages name the file, the
+ * value and what was expected. */
+#ifndef SWFS_RUN_H
+#define SWFS_RUN_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "specklewfs/estimate.h"
+#include "specklewfs/pipeline.h"
+#include "specklewfs/pupil.h"
+#include "specklewfs/reduce.h"
+#include "specklewfs/status.h"
+#include "specklewfs/stream.h"
+#include "specklewfs/sync.h"
+
+SWFS_BEGIN_DECLS
+
+/* ---- the camera noise model ------------------------------------------------------ */
+
+/* RDNOISE [counts] and GAIN [e-/count] from the header of `path`'s primary HDU (0 where
+ * absent), then the explicit values where they are not NaN. SWFS_ERR_VALUE naming the
+ * file if the result is negative or not finite. */
+int swfs_noise_from_header(const char *path, double read_noise, double gain, swfs_noise *out);
+/* The g regularization length in pixels from lambda/D: g_smooth_lod / PIXSCALE, or with no
+ * PIXSCALE the paper's 0.25 lambda/D per pixel (*assumed = 1 then). */
+double swfs_g_smooth_pixels(double g_smooth_lod, double pixscale, int *assumed);
+
+/* ---- estimate: science + speckle cubes -> HALO.fits ------------------------------ */
+
+typedef struct swfs_estimate_run_options {
+    const char *science, *speckles, *out;
+    double read_noise, gain;  /* NaN: from the science header (RDNOISE, GAIN; else 0) */
+    double g_smooth_lod;      /* scale-factor regularization [lambda/D] (2; 0 = the paper's g) */
+    size_t block;             /* frames read at a time (64) */
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_estimate_run_options;
+
+void swfs_estimate_run_options_default(swfs_estimate_run_options *o);
+
+typedef struct swfs_estimate_run_result {
+    swfs_halo *halo;          /* the estimate (caller frees with swfs_halo_free) */
+    swfs_geom geom;           /* of the speckle cube */
+    swfs_noise noise;         /* the noise model used */
+    double circ_core;         /* mean |<psi^2>|/<|psi|^2> inside 4 lambda/D (NaN without PIXSCALE) */
+    int g_smooth_assumed;     /* 1: no PIXSCALE, 0.25 lambda/D per pixel assumed */
+} swfs_estimate_run_result;
+
+int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_result *r);
+
+/* ---- speckles: timing table + telemetry -> the speckle cube ---------------------- */
+
+typedef struct swfs_speckles_run_options {
+    const char *timing;       /* timing table (sync); relative telemetry names are taken from its folder */
+    const char *science;      /* reduced science cube: geometry keywords and the focal window */
+    const char *actuators;    /* 2 x nact [m] */
+    const char *out;          /* the speckle cube */
+    const char *recon;        /* reconstructor file for SWFS_RECON_GIVEN (nslopes x nact image) */
+    const char *mask;         /* pupil mask PUPN x PUPN, NULL = annulus */
+    const char *write_recon;  /* also write the reconstructor in use, NULL = no */
+    swfs_pipeline_options pipe;
+    int mean_mode;            /* SWFS_MEAN_ENSEMBLE (default) or SWFS_MEAN_CUBE (speckles.h) */
+    double wfs_hz;            /* pipe.wfs_rate: WFS rate [Hz] when the telemetry has no WFSRATE */
+    const char *const *match_in, *const *match_out; /* nmatch pairs: OUT = the usable frames of IN */
+    size_t nmatch;
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_speckles_run_options;
+
+void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
+
+typedef struct swfs_speckles_run_result {
+    size_t nout;              /* frames written (camera frames, or WFS frames with wfs_rate) */
+    size_t ncubes, nok;       /* cubes in the table, usable cubes */
+    double ratio, lag, wfs_hz;
+    swfs_pipeline_info info;
+} swfs_speckles_run_result;
+
+int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);
+
+/* ---- stream: the whole real-time path from files ---------------------------------- */
+
+typedef struct swfs_stream_run_options {
+    const char *timing, *science, *slopes, *recon, *actuators, *out;
+    const char *pupil_out;    /* also the pupil field at every update (NULL: no) */
+    const char *checkpoint;   /* the accumulators at every update (NULL: no) */
+    const char *static_file;  /* SWFS_STATIC_GIVEN: a complex image */
+    const char *static_out;   /* write the static halo in use (NULL: no) */
+    const char *mask;         /* pupil mask (its PUPIL extension if it has one), NULL = annulus */
+    int tiptilt, threads;
+    size_t batch;             /* camera frames per batch (128) */
+    double read_noise, gain;  /* NaN: from the science header */
+    double g_smooth_lod;      /* (2) */
+    swfs_stream_options stream; /* static_mode, every, every_seconds, max_frames (noise, est set here) */
+    const char *const *prov;
+    size_t nprov;
+    /* Called after every product update (final = 1 at the end); may be NULL. */
+    void (*on_update)(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
+    void *update_ctx;
+} swfs_stream_run_options;
+
+void swfs_stream_run_options_default(swfs_stream_run_options *o);
+
+typedef struct swfs_stream_run_result {
+    size_t camera_frames;
+    double wfs_frames, seconds, wfs_rate; /* wfs_rate: WFSRATE of the telemetry [Hz], 0 if unknown */
+    double static_scale;      /* S^1/2 of the automatic static halo (NaN otherwise) */
+    double ratio;             /* WFS frames per camera frame (the timing table's) */
+    swfs_noise noise;
+    swfs_pipeline_info info;
+} swfs_stream_run_result;
+
+int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
+
+/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) ----------- */
+
+typedef struct swfs_reduce_run_options {
+    const char *const *raw;   /* nraw raw camera cubes, concatenated in this order */
+    size_t nraw;
+    const char *dark, *flat, *badpix, *out; /* calibration frames (NULL: 0, 1, none) */
+    swfs_reduce_params params; /* reduce.h; pixscale and gain are filled from the raw header */
+    int sigma_given;          /* 1: keep params.gauss_sigma; 0: 1 lambda/D when PIXSCALE is known */
+    int noise_region;         /* 1: noise from the source-free region even when PIXSCALE is known */
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_reduce_run_options;
+
+void swfs_reduce_run_options_default(swfs_reduce_run_options *o);
+
+typedef struct swfs_reduce_run_result {
+    size_t nframes, nbad;
+    double noise_var, noise_fac; /* raw background variance [counts^2] and the registration's factor */
+} swfs_reduce_run_result;
+
+int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);
+
+/* ---- sync: reduced science + handshake log -> the timing table -------------------- */
+
+typedef struct swfs_sync_run_options {
+    const char *science, *handshake, *out;
+    swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default */
+} swfs_sync_run_options;
+
+void swfs_sync_run_options_default(swfs_sync_run_options *o);
+
+/* r->t: the timing table written (the caller frees r->t.cubes, also on failure); r->nok usable cubes.
+ * SWFS_ERR_VALUE (after writing the table) when no cube lies inside its telemetry file. */
+typedef struct swfs_sync_run_result {
+    swfs_timing t;
+    size_t nok;
+} swfs_sync_run_result;
+
+int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);
+
+SWFS_END_DECLS
+
+#endif

@@ -1,0 +1,43 @@
+/* Sources of batches for the stream (stream.h) from files: the timing table of
+ * `specklewfs sync`, the telemetry files it names (FITS, nslopes x WFS frames) and the
+ * reduced science cube. Also the telemetry helpers the file-driven runs share. */
+#ifndef SWFS_SOURCE_H
+#define SWFS_SOURCE_H
+
+#include <stddef.h>
+
+#include "specklewfs/stream.h"
+#include "specklewfs/sync.h"
+
+SWFS_BEGIN_DECLS
+
+typedef struct swfs_file_source swfs_file_source;
+
+/* timing: the timing table (read and kept); science: the reduced science cube (real);
+ * slopes: a folder holding the telemetry files the table names (relative names are
+ * joined to it, absolute ones used as they are) or one telemetry file used for every
+ * cube; NULL = the timing table's folder. nslopes: values per WFS frame; batch: camera
+ * frames per batch (>= 1). tiptilt/expansion is the pipeline's business: a batch carries
+ * the raw slopes. */
+int swfs_file_source_open(swfs_file_source **out, const char *timing, const char *science, const char *slopes,
+                          size_t nslopes, size_t batch);
+void swfs_file_source_close(swfs_file_source *s);
+/* The swfs_source_fn of stream.h (ctx = the swfs_file_source). */
+int swfs_file_source_next(void *ctx, swfs_batch *b);
+const swfs_timing *swfs_file_source_timing(const swfs_file_source *s);
+/* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
+double swfs_file_source_wfs_rate(const swfs_file_source *s);
+
+/* The path of telemetry file `name` of a timing table in folder dir (absolute names are
+ * used as they are). SWFS_ERR_ARG if it does not fit in cap. */
+int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t cap);
+/* The folder part of a path ("." when there is none). */
+void swfs_path_dir(const char *path, char *dir, size_t cap);
+/* Every telemetry file the usable cubes of t use, in the order they first appear,
+ * concatenated: *out = *nframes frames of nslopes (caller frees). */
+int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,
+                                 size_t *nframes);
+
+SWFS_END_DECLS
+
+#endif

@@ -1,0 +1,201 @@
+/* Batches from files for the stream, and the telemetry helpers: see include/specklewfs/source.h. */
+#include "specklewfs/source.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+struct swfs_file_source {
+    swfs_timing *timing;
+    swfs_fits_in *sci;
+    char *slopes_arg;
+    int slopes_is_dir;
+    size_t nslopes, nf2, bmax;
+    size_t cube, j;        /* next camera frame: cube index, frame within the cube */
+    char *loaded;          /* telemetry file currently in memory ("" if none) */
+    swfs_real *tel;
+    double wfs_rate;       /* [Hz] from the telemetry header (WFSRATE), 0 if unknown */
+    swfs_exposure *sched;
+    double *science;
+};
+
+void swfs_path_dir(const char *path, char *dir, size_t cap)
+{
+    const char *slash = strrchr(path, '/');
+    if (!slash) snprintf(dir, cap, ".");
+    else if (slash == path) snprintf(dir, cap, "/");
+    else snprintf(dir, cap, "%.*s", (int)(slash - path), path);
+}
+
+int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t cap)
+{
+    int n = name[0] == '/' ? snprintf(path, cap, "%s", name) : snprintf(path, cap, "%s/%s", dir, name);
+    if (n < 0 || (size_t)n >= cap) return swfs_fail(SWFS_ERR_ARG, "telemetry path %s/%s is too long", dir, name);
+    return SWFS_OK;
+}
+
+int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,
+                                 size_t *nframes)
+{
+    char path[8192];
+    double *buf = NULL;
+    size_t n = 0;
+    *out = NULL;
+    *nframes = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        int seen = 0;
+        for (size_t d = 0; d < c && !seen; d++)
+            seen = t->cubes[d].status == SWFS_CUBE_OK && !strcmp(t->cubes[d].slopes, t->cubes[c].slopes);
+        if (seen) continue;
+        swfs_real *s = NULL;
+        int rc = swfs_telemetry_path(dir, t->cubes[c].slopes, path, sizeof path);
+        if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
+        if (!rc && (s->nz != 1 || s->nx != nslopes))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame, expected %zu", path, s->nx, nslopes);
+        double *tmp = rc ? NULL : realloc(buf, (n + s->ny) * nslopes * sizeof *tmp);
+        if (!rc && !tmp) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for the training slopes", path);
+        if (rc) {
+            swfs_real_free(s);
+            free(buf);
+            return rc;
+        }
+        buf = tmp;
+        memcpy(buf + n * nslopes, s->data, s->ny * nslopes * sizeof *buf);
+        n += s->ny;
+        swfs_real_free(s);
+    }
+    *out = buf;
+    *nframes = n;
+    return SWFS_OK;
+}
+
+void swfs_file_source_close(swfs_file_source *s)
+{
+    if (!s) return;
+    swfs_timing_free(s->timing);
+    swfs_fits_in_close(s->sci);
+    swfs_real_free(s->tel);
+    free(s->slopes_arg);
+    free(s->loaded);
+    free(s->sched);
+    free(s->science);
+    free(s);
+}
+
+int swfs_file_source_open(swfs_file_source **out, const char *timing, const char *science, const char *slopes,
+                          size_t nslopes, size_t batch)
+{
+    *out = NULL;
+    if (!batch) return swfs_fail(SWFS_ERR_ARG, "file source: batch must be >= 1 camera frame");
+    swfs_file_source *s = calloc(1, sizeof *s);
+    if (!s) return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory");
+    int rc = swfs_timing_read(timing, &s->timing);
+    if (!rc && !(s->timing->ratio >= 1.0))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame-rate ratio %g; expected >= 1 WFS frame per camera frame", timing,
+                       s->timing->ratio);
+    if (!rc) rc = swfs_fits_in_open(&s->sci, science, NULL);
+    const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(s->sci);
+    if (!rc && ss->is_complex)
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: science cube is complex; expected real intensities", science);
+    for (size_t c = 0; !rc && c < s->timing->ncubes; c++) {
+        const swfs_timing_cube *tc = &s->timing->cubes[c];
+        if (tc->status == SWFS_CUBE_OK && tc->first + tc->nframes > ss->nz)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: cube %zu needs frames %zu..%zu but %s holds %zu", timing, c, tc->first,
+                           tc->first + tc->nframes - 1, science, ss->nz);
+    }
+    if (rc) {
+        swfs_file_source_close(s);
+        return rc;
+    }
+    char dir[4096];
+    swfs_path_dir(timing, dir, sizeof dir);
+    s->slopes_arg = strdup(slopes ? slopes : dir);
+    s->loaded = calloc(1, 1);
+    struct stat sb;
+    s->slopes_is_dir = s->slopes_arg && stat(s->slopes_arg, &sb) == 0 && S_ISDIR(sb.st_mode);
+    s->nslopes = nslopes;
+    s->nf2 = ss->nx * ss->ny;
+    s->bmax = batch;
+    s->sched = malloc(batch * sizeof *s->sched);
+    s->science = batch <= SIZE_MAX / sizeof(double) / s->nf2 ? malloc(batch * s->nf2 * sizeof *s->science) : NULL;
+    if (!s->slopes_arg || !s->loaded || !s->sched || !s->science) {
+        swfs_file_source_close(s);
+        return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory for batches of %zu frames", batch);
+    }
+    *out = s;
+    return SWFS_OK;
+}
+
+/* Make the telemetry file of the current cube the one in memory. */
+static int load_telemetry(swfs_file_source *s, const swfs_timing_cube *c, char *path, size_t cap)
+{
+    int rc = s->slopes_is_dir ? swfs_telemetry_path(s->slopes_arg, c->slopes, path, cap)
+                              : (snprintf(path, cap, "%s", s->slopes_arg), SWFS_OK);
+    if (rc || !strcmp(path, s->loaded)) return rc;
+    swfs_real_free(s->tel);
+    s->tel = NULL;
+    s->loaded[0] = '\0';
+    swfs_fits_in *f = NULL;
+    int found = 0;
+    double rate = NAN;
+    rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", &rate, &found);
+    if (!rc) rc = swfs_fits_in_read_real_all(f, &s->tel);
+    swfs_fits_in_close(f);
+    if (rc) return rc;
+    if (found && rate > 0) s->wfs_rate = rate;
+    if (s->tel->nx != s->nslopes || s->tel->nz != 1)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path,
+                         s->tel->nx, s->tel->ny, s->tel->nz, s->nslopes);
+    char *t = strdup(path);
+    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory");
+    free(s->loaded);
+    s->loaded = t;
+    return SWFS_OK;
+}
+
+int swfs_file_source_next(void *ctx, swfs_batch *b)
+{
+    swfs_file_source *s = ctx;
+    b->nexp = 0;
+    const swfs_timing *t = s->timing;
+    while (s->cube < t->ncubes &&
+           (t->cubes[s->cube].status != SWFS_CUBE_OK || s->j >= t->cubes[s->cube].nframes)) {
+        s->cube++;
+        s->j = 0;
+    }
+    if (s->cube >= t->ncubes) return SWFS_OK;
+    const swfs_timing_cube *c = &t->cubes[s->cube];
+    char path[8192];
+    int rc = load_telemetry(s, c, path, sizeof path);
+    if (rc) return rc;
+    const size_t nwfs_file = s->tel->ny;
+    size_t n = c->nframes - s->j < s->bmax ? c->nframes - s->j : s->bmax;
+    const double t0 = c->start + (double)s->j * t->ratio;
+    if (!(t0 >= 0))
+        return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) starts at WFS frame %g, before the start of %s", s->cube,
+                         c->camera, t0, path);
+    const size_t base = (size_t)floor(t0);
+    const size_t need = swfs_engine_schedule(t->ratio, t0 - (double)base, n, s->sched);
+    if (!need || base + need > nwfs_file)
+        return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) frames %zu..%zu need WFS frames up to %zu but %s holds %zu",
+                         s->cube, c->camera, s->j, s->j + n - 1, base + need, path, nwfs_file);
+    if ((rc = swfs_fits_in_read_real(s->sci, c->first + s->j, n, s->science))) return rc;
+    b->slopes = s->tel->data + base * s->nslopes;
+    b->nwfs = need;
+    b->sched = s->sched;
+    b->science = s->science;
+    b->nexp = n;
+    b->cube = s->cube;
+    s->j += n;
+    return SWFS_OK;
+}
+
+const swfs_timing *swfs_file_source_timing(const swfs_file_source *s) { return s->timing; }
+double swfs_file_source_wfs_rate(const swfs_file_source *s) { return s->wfs_rate; }

@@ -1,0 +1,145 @@
+/* estimate from cubes, and the camera noise model: see include/specklewfs/run.h. */
+#include "specklewfs/run.h"
+#include "specklewfs/accum.h"
+#include "specklewfs/fits.h"
+#include "run_internal.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+int swfs_noise_from_header(const char *path, double read_noise, double gain, swfs_noise *out)
+{
+    swfs_fits_in *f = NULL;
+    swfs_noise n = {0.0, 0.0};
+    double v;
+    int found = 0;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "RDNOISE", &v, &found);
+    if (!rc && found) n.read_noise = v;
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "GAIN", &v, &found);
+    if (!rc && found) n.gain = v;
+    swfs_fits_in_close(f);
+    if (rc) return rc;
+    /* Explicit values win over the header. */
+    if (!isnan(read_noise)) n.read_noise = read_noise;
+    if (!isnan(gain)) n.gain = gain;
+    if (!(n.read_noise >= 0) || !(n.gain >= 0) || !isfinite(n.read_noise) || !isfinite(n.gain))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: noise model RDNOISE=%g GAIN=%g is invalid (need finite values >= 0)", path,
+                         n.read_noise, n.gain);
+    *out = n;
+    return SWFS_OK;
+}
+
+double swfs_g_smooth_pixels(double g_smooth_lod, double pixscale, int *assumed)
+{
+    *assumed = 0;
+    if (!(g_smooth_lod > 0)) return 0.0;
+    if (isfinite(pixscale) && pixscale > 0) return g_smooth_lod / pixscale;
+    /* No sampling known: the paper's 0.25 lambda/D per pixel. */
+    *assumed = 1;
+    return g_smooth_lod / 0.25;
+}
+
+void swfs_estimate_run_options_default(swfs_estimate_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->read_noise = o->gain = NAN;
+    o->g_smooth_lod = 2.0;
+    o->block = 64;
+}
+
+/* Shapes of the two cubes: real science, complex speckles, frame for frame, >= 2 frames. */
+static int check_cubes(const swfs_estimate_run_options *o, const swfs_fits_shape *ss, const swfs_fits_shape *sp)
+{
+    if (ss->is_complex)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: science cube is complex; expected real intensities (x, y, frame)",
+                         o->science);
+    if (!sp->is_complex)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: speckle cube is not complex; expected NAXIS1 = 2 with CTYPE1 = "
+                         "'COMPLEX' (real, imaginary), then x, y, frame", o->speckles);
+    if (ss->nx != sp->nx || ss->ny != sp->ny || ss->nz != sp->nz)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: cube is %zux%zux%zu but %s is %zux%zux%zu (they must match frame for "
+                         "frame)", o->speckles, sp->nx, sp->ny, sp->nz, o->science, ss->nx, ss->ny, ss->nz);
+    if (ss->nz < 2)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: only %zu frame; the statistics need at least 2", o->science, ss->nz);
+    return SWFS_OK;
+}
+
+/* Mean circularity |<psi^2>|/<|psi|^2> inside 4 lambda/D (eq:zeroSqMean), NaN without PIXSCALE. */
+static double core_circularity(const swfs_halo *h, double pix)
+{
+    const size_t nx = h->circ->nx, ny = h->circ->ny;
+    double sum = 0.0;
+    size_t n = 0;
+    for (size_t j = 0; j < ny && isfinite(pix); j++)
+        for (size_t i = 0; i < nx; i++) {
+            double dx = ((double)i - (double)(nx / 2)) * pix, dy = ((double)j - (double)(ny / 2)) * pix;
+            double c = h->circ->data[j * nx + i];
+            if (dx * dx + dy * dy <= 16.0 && isfinite(c)) { sum += c; n++; }
+        }
+    return n ? sum / (double)n : NAN;
+}
+
+int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    if (!o->science || !o->speckles || !o->out) return swfs_fail(SWFS_ERR_ARG, "estimate: needs science, speckles, out");
+    if (!o->block || o->block > 1u << 20)
+        return swfs_fail(SWFS_ERR_ARG, "estimate: frames per read must be 1..%u, got %zu", 1u << 20, o->block);
+    if (!(o->g_smooth_lod >= 0))
+        return swfs_fail(SWFS_ERR_ARG, "estimate: g smoothing must be >= 0 lambda/D, got %g", o->g_smooth_lod);
+    swfs_fits_in *fs = NULL, *fp = NULL;
+    swfs_accum *acc = NULL;
+    double *ibuf = NULL;
+    swfs_complex *pbuf = NULL;
+    int rc = swfs_fits_in_open(&fs, o->science, NULL);
+    if (!rc) rc = swfs_fits_in_open(&fp, o->speckles, NULL);
+    if (!rc) rc = check_cubes(o, swfs_fits_in_shape(fs), swfs_fits_in_shape(fp));
+    if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
+    if (!rc) rc = swfs_fits_in_geom(fp, &r->geom);
+    if (rc) goto done;
+    swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
+    const swfs_fits_shape *ss = swfs_fits_in_shape(fs);
+    const size_t nx = ss->nx, ny = ss->ny, nz = ss->nz, np = nx * ny;
+    const size_t block = o->block < nz ? o->block : nz;
+    acc = swfs_accum_create(nx, ny);
+    ibuf = block <= SIZE_MAX / sizeof *pbuf / np ? malloc(block * np * sizeof *ibuf) : NULL;
+    pbuf = ibuf ? malloc(block * np * sizeof *pbuf) : NULL;
+    if (!acc || !ibuf || !pbuf) { rc = swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory"); goto done; }
+    for (size_t k = 0; k < nz; k += block) {
+        size_t n = nz - k < block ? nz - k : block;
+        if ((rc = swfs_fits_in_read_real(fs, k, n, ibuf)) || (rc = swfs_fits_in_read_cplx(fp, k, n, pbuf))) goto done;
+        for (size_t j = 0; j < n; j++)
+            if ((rc = swfs_accum_add(acc, ibuf + j * np, pbuf + j * np))) {
+                swfs_fail_context(rc, "%s", o->speckles);
+                goto done;
+            }
+        if (o->progress) o->progress(o->progress_ctx, "frames", k + n, nz);
+    }
+    if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) {
+        swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
+        goto done;
+    }
+    char nl[256];
+    snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", r->noise.read_noise,
+             r->noise.gain);
+    const char **prov = swfs_prov_plus(o->prov, o->nprov, nl);
+    rc = prov ? swfs_halo_write(r->halo, o->out, &r->geom, prov, o->nprov + 1)
+              : swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
+    free(prov);
+    r->circ_core = core_circularity(r->halo, r->geom.pixscale);
+done:
+    if (rc) {
+        swfs_halo_free(r->halo);
+        r->halo = NULL;
+    }
+    swfs_accum_free(acc);
+    free(ibuf);
+    free(pbuf);
+    swfs_fits_in_close(fs);
+    swfs_fits_in_close(fp);
+    return rc;
+}

@@ -1,0 +1,309 @@
+/* speckles: timing table + telemetry -> the speckle cube. See include/specklewfs/run.h. */
+#include "specklewfs/run.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/source.h"
+#include "specklewfs/speckles.h"
+#include "run_internal.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    swfs_pipeline_options_default(&o->pipe);
+    o->mean_mode = SWFS_MEAN_ENSEMBLE;
+}
+
+/* Everything the run holds, freed in one place. */
+typedef struct work {
+    swfs_timing *t;
+    swfs_geom g;
+    size_t nfx, nfy, nsci, nslopes, maxn;
+    double *xy, *mask, *train;
+    size_t nact, ntrain;
+    swfs_recon *rin;
+    swfs_pipeline *p;
+    swfs_cplx *halo;
+    swfs_real *slopes;
+    swfs_exposure *sched;
+    size_t *cfirst, *cn;
+    char tdir[4096], path[8192], loaded[8192];
+} work;
+
+static void work_free(work *w)
+{
+    swfs_timing_free(w->t);
+    free(w->xy); free(w->mask); free(w->train); free(w->sched); free(w->cfirst); free(w->cn);
+    swfs_recon_free(w->rin);
+    swfs_pipeline_free(w->p);
+    swfs_cplx_free(w->halo);
+    swfs_real_free(w->slopes);
+}
+
+/* WFSRATE [Hz] of a telemetry file (0 if the keyword is absent or not a rate). */
+static int slopes_rate(const char *path, double *rate)
+{
+    swfs_fits_in *f = NULL;
+    int found = 0, rc = swfs_fits_in_open(&f, path, NULL);
+    *rate = 0;
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", rate, &found);
+    swfs_fits_in_close(f);
+    if (!rc && (!found || !(*rate > 0) || !isfinite(*rate))) *rate = 0;
+    return rc;
+}
+
+/* Science geometry and window, the actuators, the pupil mask. */
+static int load_inputs(const swfs_speckles_run_options *o, work *w)
+{
+    swfs_fits_in *fs = NULL;
+    int rc = swfs_timing_read(o->timing, &w->t);
+    if (!rc) rc = swfs_fits_in_open(&fs, o->science, NULL);
+    if (!rc) rc = swfs_fits_in_geom(fs, &w->g);
+    if (!rc) rc = swfs_geom_require(&w->g, o->science);
+    if (!rc) {
+        const swfs_fits_shape *ss = swfs_fits_in_shape(fs);
+        w->nfx = ss->nx;
+        w->nfy = ss->ny;
+        w->nsci = ss->nz;
+    }
+    swfs_fits_in_close(fs);
+    if (!rc) rc = swfs_actuators_read(o->actuators, &w->xy, &w->nact);
+    if (rc || !o->mask) return rc;
+    const size_t npup = (size_t)w->g.pupn;
+    swfs_real *pm = NULL;
+    if ((rc = swfs_fits_read_real(o->mask, NULL, &pm, NULL))) return rc;
+    if (pm->nx != npup || pm->ny != npup || pm->nz != 1)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zu but PUPN = %zu", o->mask, pm->nx, pm->ny, npup);
+    else if (!(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    else memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
+    swfs_real_free(pm);
+    return rc;
+}
+
+/* Usable cubes and their place in the output: their camera frames, or at the WFS rate
+ * the WFS frames their exposures cover (floor(START) .. end of the last exposure). */
+static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+{
+    const swfs_timing *t = w->t;
+    w->cfirst = calloc(t->ncubes, sizeof *w->cfirst);
+    w->cn = calloc(t->ncubes, sizeof *w->cn);
+    if (!w->cfirst || !w->cn) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->first + tc->nframes > w->nsci)
+            return swfs_fail(SWFS_ERR_SHAPE, "%s: cube %zu (frames %zu..%zu) is beyond the %zu frames of %s", o->timing, c,
+                             tc->first, tc->first + tc->nframes, w->nsci, o->science);
+        if (tc->status == SWFS_CUBE_OK && tc->nframes > w->maxn) w->maxn = tc->nframes;
+    }
+    if (!w->maxn) return swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle telemetry files)", o->timing);
+    if (!(w->sched = malloc(w->maxn * sizeof *w->sched))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        size_t need = tc->start >= 0 ? swfs_engine_schedule(t->ratio, tc->start - floor(tc->start), tc->nframes, w->sched) : 0;
+        if (!need)
+            return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu starts at WFS frame %g with ratio %g; expected a start >= 0 "
+                             "and a ratio >= 1", o->timing, c, tc->start, t->ratio);
+        w->cfirst[r->nok] = r->nout;
+        w->cn[r->nok] = o->pipe.wfs_rate ? need : tc->nframes;
+        r->nout += w->cn[r->nok];
+        r->nok++;
+    }
+    return SWFS_OK;
+}
+
+/* The slopes length and, at the WFS rate, the rate: from the first usable cube's file. */
+static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+{
+    const swfs_timing *t = w->t;
+    int rc = SWFS_OK;
+    for (size_t c = 0; c < t->ncubes; c++)
+        if (t->cubes[c].status == SWFS_CUBE_OK) {
+            rc = swfs_telemetry_path(w->tdir, t->cubes[c].slopes, w->path, sizeof w->path);
+            break;
+        }
+    swfs_fits_in *f = NULL;
+    if (!rc) rc = swfs_fits_in_open(&f, w->path, NULL);
+    if (!rc) w->nslopes = swfs_fits_in_shape(f)->nx;
+    swfs_fits_in_close(f);
+    if (rc || !o->pipe.wfs_rate) return rc;
+    double rate;
+    if ((rc = slopes_rate(w->path, &rate))) return rc;
+    r->wfs_hz = o->wfs_hz > 0 ? o->wfs_hz : rate;
+    if (!(r->wfs_hz > 0))
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: no WFSRATE keyword; the WFS-rate speckles need the WFS frame rate: give "
+                         "it", w->path);
+    return SWFS_OK;
+}
+
+static int build_pipeline(const swfs_speckles_run_options *o, work *w)
+{
+    int rc = SWFS_OK;
+    if (o->pipe.recon == SWFS_RECON_GIVEN) {
+        if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
+        if ((rc = swfs_recon_read(o->recon, &w->rin))) return rc;
+        if (w->rin->nslopes != w->nslopes)
+            return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
+                             w->nslopes, o->recon, w->rin->nslopes);
+    }
+    if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
+        rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
+    if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
+                                       w->train, w->ntrain, &o->pipe);
+    if (rc) return swfs_fail_context(rc, "%s", w->path);
+    free(w->train);
+    w->train = NULL;
+    if (o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
+    return rc;
+}
+
+/* Make cube c's telemetry file the one in memory (checked against the first one's shape and rate). */
+static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const swfs_timing_cube *tc, double wfs_hz)
+{
+    int rc = swfs_telemetry_path(w->tdir, tc->slopes, w->path, sizeof w->path);
+    if (rc || !strcmp(w->loaded, w->path)) return rc;
+    swfs_real_free(w->slopes);
+    w->slopes = NULL;
+    w->loaded[0] = 0;
+    if ((rc = swfs_fits_read_real(w->path, NULL, &w->slopes, NULL))) return rc;
+    if (w->slopes->nz != 1 || w->slopes->nx != w->nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor expects %zu", w->path,
+                         w->slopes->nx, w->nslopes);
+    snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
+    double r;
+    if (o->pipe.wfs_rate && (rc = slopes_rate(w->path, &r))) return rc;
+    if (o->pipe.wfs_rate && r > 0 && fabs(r - wfs_hz) > 1e-9 * wfs_hz)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: WFSRATE %g Hz but the WFS rate in use is %g Hz; one rate per run", w->path,
+                         r, wfs_hz);
+    return SWFS_OK;
+}
+
+/* Every usable cube through the pipeline, into its place in w->halo. */
+static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs_speckles_run_result *r)
+{
+    const swfs_timing *t = w->t;
+    size_t ok_i = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        const swfs_timing_cube *tc = t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        int rc = load_cube_slopes(o, w, tc, r->wfs_hz);
+        if (rc) return rc;
+        double k0 = floor(tc->start);
+        size_t need = swfs_engine_schedule(t->ratio, tc->start - k0, tc->nframes, w->sched);
+        if (!(tc->start >= 0) || need == 0 || (size_t)k0 + need > w->slopes->ny)
+            return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
+                             tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
+        const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
+        swfs_complex *dst = swfs_cplx_frame(w->halo, w->cfirst[ok_i]);
+        rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, need, dst)
+                              : swfs_pipeline_process(w->p, sp, need, w->sched, tc->nframes, dst);
+        if (rc) return swfs_fail_context(rc, "%s cube %zu", w->path, c);
+        ok_i++;
+        if (o->progress) o->progress(o->progress_ctx, "cubes", ok_i, r->nok);
+    }
+    return SWFS_OK;
+}
+
+/* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
+ * the noise keywords, so it matches the speckle cube frame for frame. */
+static int write_match(const char *in, const char *out, const work *w, const char *const *prov, size_t nprov)
+{
+    swfs_fits_in *f = NULL;
+    swfs_fits_out *fo = NULL;
+    double *buf = NULL;
+    int rc = swfs_fits_in_open(&f, in, NULL);
+    if (rc) return rc;
+    const swfs_fits_shape *s = swfs_fits_in_shape(f);
+    size_t nout = 0, np = s->nx * s->ny;
+    for (size_t c = 0; c < w->t->ncubes; c++)
+        if (w->t->cubes[c].status == SWFS_CUBE_OK) nout += w->t->cubes[c].nframes;
+    if (s->nz != w->nsci)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu frames but the science cube has %zu; a matched copy needs a cube aligned "
+                       "with it", in, s->nz, w->nsci);
+    else if (!(buf = malloc(np * (s->is_complex ? 2 : 1) * sizeof *buf))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) rc = swfs_fits_out_create(&fo, out);
+    if (!rc) rc = swfs_fits_out_set_stamp(fo, &w->g, prov, nprov);
+    if (!rc) rc = swfs_fits_out_begin(fo, NULL, s->nx, s->ny, nout, s->is_complex, -32);
+    const char *keys[] = {"RDNOISE", "GAIN", "NOISEVAR"};
+    for (size_t k = 0; !rc && k < 3; k++) {
+        double v;
+        int found = 0;
+        rc = swfs_fits_in_key_double_opt(f, keys[k], &v, &found);
+        if (!rc && found) rc = swfs_fits_out_key_double(fo, keys[k], v, "copied from the input");
+    }
+    for (size_t c = 0, k = 0; !rc && c < w->t->ncubes; c++) {
+        if (w->t->cubes[c].status != SWFS_CUBE_OK) continue;
+        for (size_t j = 0; !rc && j < w->t->cubes[c].nframes; j++, k++) {
+            size_t src = w->t->cubes[c].first + j;
+            rc = s->is_complex ? swfs_fits_in_read_cplx(f, src, 1, (swfs_complex *)buf) : swfs_fits_in_read_real(f, src, 1, buf);
+            if (!rc) rc = s->is_complex ? swfs_fits_out_cplx_frames(fo, k, 1, (swfs_complex *)buf)
+                                        : swfs_fits_out_real_frames(fo, k, 1, buf);
+        }
+    }
+    if (!rc) {
+        rc = swfs_fits_out_commit(fo);
+        fo = NULL;
+    }
+    swfs_fits_out_abort(fo);
+    swfs_fits_in_close(f);
+    free(buf);
+    return rc;
+}
+
+static int write_speckles(const swfs_speckles_run_options *o, const work *w, const swfs_speckles_run_result *r,
+                          const char *const *prov, size_t nprov)
+{
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_create(&f, o->out);
+    if (rc) return rc;
+    if ((rc = swfs_fits_out_set_stamp(f, &w->g, prov, nprov)) || (rc = swfs_fits_out_cplx(f, NULL, w->halo, -32)) ||
+        (rc = swfs_fits_out_key_double(f, "FRATIO", w->t->ratio, "<t_sci/t_wfs> from sync")) ||
+        (rc = swfs_fits_out_key_double(f, "HSLAG", w->t->lag, "handshake lag [WFS frames] from sync")) ||
+        (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||
+                              (rc = swfs_fits_out_key_double(f, "WFSRATE", r->wfs_hz, "[Hz]")) ||
+                              (rc = swfs_fits_out_key_long(f, "NSEGS", (long)r->nok, "contiguous segments (usable cubes)"))))) {
+        swfs_fits_out_abort(f);
+        return rc;
+    }
+    return swfs_fits_out_commit(f);
+}
+
+int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    if (!o->timing || !o->science || !o->actuators || !o->out)
+        return swfs_fail(SWFS_ERR_ARG, "speckles: needs a timing table, a science cube, actuators and an output");
+    work w;
+    memset(&w, 0, sizeof w);
+    swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);
+    int rc = load_inputs(o, &w);
+    if (!rc) rc = plan_cubes(o, &w, r);
+    if (!rc) rc = peek_telemetry(o, &w, r);
+    if (!rc) rc = build_pipeline(o, &w);
+    if (!rc && !(w.halo = swfs_cplx_alloc(w.nfx, w.nfy, r->nout)))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
+    if (!rc) rc = process_cubes(o, &w, r);
+    if (!rc) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
+    if (!rc) {
+        r->ncubes = w.t->ncubes;
+        r->ratio = w.t->ratio;
+        r->lag = w.t->lag;
+        swfs_pipeline_get_info(w.p, &r->info);
+        char info[512];
+        const int tt = o->pipe.tiptilt;
+        snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor "
+                 "modes, tip-tilt %s, static halo %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
+                 w.nact, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
+                 "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
+        const char **prov = swfs_prov_plus(o->prov, o->nprov, info);
+        if (!prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!rc) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
+        for (size_t k = 0; !rc && k < o->nmatch; k++) rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
+        free(prov);
+    }
+    work_free(&w);
+    return rc;
+}

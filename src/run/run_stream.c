@@ -1,0 +1,198 @@
+/* stream: the whole real-time path from files. See include/specklewfs/run.h. */
+#include "specklewfs/run.h"
+#include "specklewfs/checkpoint.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/source.h"
+#include "run_internal.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_stream_run_options_default(swfs_stream_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->tiptilt = SWFS_TT_EXPOSURE;
+    o->threads = 2;
+    o->batch = 128;
+    o->read_noise = o->gain = NAN;
+    o->g_smooth_lod = 2.0;
+    swfs_stream_options_default(&o->stream);
+}
+
+/* Pupil mask: a file (its PUPIL extension if it has one) or the annulus of the geometry. */
+static int load_mask(const char *path, const swfs_geom *g, swfs_real **out)
+{
+    *out = NULL;
+    if (!path) return SWFS_OK;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc && swfs_fits_in_has_ext(f, "PUPIL")) rc = swfs_fits_in_move(f, "PUPIL");
+    if (!rc) rc = swfs_fits_in_read_real_all(f, out);
+    swfs_fits_in_close(f);
+    if (rc) return rc;
+    if ((*out)->nx != (size_t)g->pupn || (*out)->ny != (size_t)g->pupn || (*out)->nz != 1)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but PUPN = %ld", path, (*out)->nx, (*out)->ny,
+                         (*out)->nz, g->pupn);
+    return SWFS_OK;
+}
+
+static int write_static(const char *path, const swfs_complex *stat, size_t nfx, size_t nfy, const swfs_geom *g,
+                        const char *const *prov, size_t nprov)
+{
+    swfs_cplx a = {nfx, nfy, 1, (swfs_complex *)stat};
+    swfs_fits_out *o = NULL;
+    int rc = swfs_fits_out_create(&o, path);
+    if (rc) return rc;
+    if ((rc = swfs_fits_out_set_stamp(o, g, prov, nprov)) || (rc = swfs_fits_out_cplx(o, NULL, &a, -64)) ||
+        (rc = swfs_fits_out_history(o, "static halo subtracted from the speckle fields (eq:computedSpeckleField)"))) {
+        swfs_fits_out_abort(o);
+        return rc;
+    }
+    return swfs_fits_out_commit(o);
+}
+
+typedef struct run_ctx {
+    const swfs_stream_run_options *o;
+    swfs_geom g;
+    swfs_real *mask;
+    const char **prov;
+    size_t nprov;
+    int static_written;
+} run_ctx;
+
+/* Estimate from the accumulators and write the products. Before the end a failed estimate
+ * (too few frames yet) is not an error: the next update tries again. */
+static int update(void *ctx, const swfs_stream *s, int final)
+{
+    run_ctx *u = ctx;
+    const swfs_stream_run_options *o = u->o;
+    swfs_halo *h = NULL;
+    swfs_pupil_result *pr = NULL;
+    int rc = SWFS_OK;
+    if (o->static_out && !u->static_written && swfs_stream_static(s)) {
+        const swfs_accum *a = swfs_stream_accum(s);
+        if ((rc = write_static(o->static_out, swfs_stream_static(s), a->nx, a->ny, &u->g, u->prov,
+                               u->nprov)))
+            return rc;
+        u->static_written = 1;
+    }
+    if ((rc = swfs_stream_estimate(s, &h))) {
+        if (final) return rc;
+        if (o->on_update) o->on_update(o->update_ctx, s, NULL, NULL, 0);
+        return SWFS_OK;
+    }
+    rc = swfs_halo_write(h, o->out, &u->g, u->prov, u->nprov);
+    if (!rc && o->pupil_out) {
+        swfs_pupil_options po;
+        swfs_pupil_options_default(&po);
+        rc = swfs_pupil_estimate(h, &u->g, u->mask, &po, &pr);
+        if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
+    }
+    if (!rc && o->checkpoint) rc = swfs_accum_save(swfs_stream_accum(s), o->checkpoint, &u->g, u->prov, u->nprov);
+    if (!rc && o->on_update) o->on_update(o->update_ctx, s, h, pr, final);
+    swfs_pupil_result_free(pr);
+    swfs_halo_free(h);
+    return rc;
+}
+
+/* Geometry and noise model of the science cube, the reconstructor and actuators -> the pipeline. */
+static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p, size_t *nfx, size_t *nfy,
+                 swfs_stream_run_result *r)
+{
+    swfs_fits_in *fs = NULL;
+    swfs_recon *rec = NULL;
+    double *act = NULL;
+    size_t nact = 0;
+    int rc = swfs_fits_in_open(&fs, o->science, NULL);
+    if (!rc) rc = swfs_fits_in_geom(fs, &u->g);
+    if (!rc) {
+        *nfx = swfs_fits_in_shape(fs)->nx;
+        *nfy = swfs_fits_in_shape(fs)->ny;
+    }
+    swfs_fits_in_close(fs);
+    if (!rc) rc = swfs_geom_require(&u->g, o->science);
+    if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
+    if (!rc) rc = swfs_recon_read(o->recon, &rec);
+    if (!rc) rc = swfs_actuators_read(o->actuators, &act, &nact);
+    if (!rc && rec->nact != nact)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s has %zu actuators but the reconstructor %s has %zu rows", o->actuators, nact,
+                       o->recon, rec->nact);
+    if (!rc) rc = load_mask(o->mask, &u->g, &u->mask);
+    if (!rc) {
+        swfs_pipeline_options po;
+        swfs_pipeline_options_default(&po);
+        po.recon = SWFS_RECON_GIVEN;
+        po.rcond = 0.0;
+        po.tiptilt = o->tiptilt;
+        po.threads = o->threads;
+        rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes, rec,
+                                  NULL, 0, &po);
+        if (rc) swfs_fail_context(rc, "%s", o->recon);
+        else swfs_pipeline_get_info(*p, &r->info);
+    }
+    swfs_recon_free(rec);
+    free(act);
+    return rc;
+}
+
+int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    r->static_scale = NAN;
+    if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
+        return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor, actuators and "
+                         "an output");
+    run_ctx u;
+    memset(&u, 0, sizeof u);
+    u.o = o;
+    swfs_pipeline *p = NULL;
+    swfs_stream *s = NULL;
+    swfs_file_source *src = NULL;
+    swfs_cplx *stat_c = NULL;
+    size_t nfx = 0, nfy = 0;
+    int rc = setup(o, &u, &p, &nfx, &nfy, r);
+    if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
+    swfs_stream_options so = o->stream;
+    so.noise = r->noise;
+    int assumed;
+    so.est.g_smooth = swfs_g_smooth_pixels(o->g_smooth_lod, u.g.pixscale, &assumed);
+    if (!rc && so.static_mode == SWFS_STATIC_GIVEN) {
+        rc = swfs_fits_read_cplx(o->static_file, NULL, &stat_c, NULL);
+        if (!rc && (stat_c->nx != nfx || stat_c->ny != nfy))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: static halo is %zux%zu but the science frames are %zux%zu", o->static_file,
+                           stat_c->nx, stat_c->ny, nfx, nfy);
+        if (!rc) so.static_halo = stat_c->data;
+    }
+    char nl[256];
+    snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count; ratio %.6g WFS frames per camera "
+             "frame", r->noise.read_noise, r->noise.gain, src ? swfs_file_source_timing(src)->ratio : NAN);
+    if (!rc && !(u.prov = swfs_prov_plus(o->prov, o->nprov, nl))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    u.nprov = o->nprov + 1;
+    if (!rc) rc = swfs_stream_create(&s, p, &so);
+    if (!rc && so.static_mode != SWFS_STATIC_AUTO && o->static_out) {
+        rc = write_static(o->static_out, swfs_stream_static(s), nfx, nfy, &u.g, u.prov, u.nprov);
+        u.static_written = 1;
+    }
+    if (!rc) rc = swfs_stream_run(s, swfs_file_source_next, src, update, &u);
+    if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
+    if (s) {
+        r->camera_frames = swfs_stream_camera_frames(s);
+        r->wfs_frames = swfs_stream_wfs_frames(s);
+        r->seconds = swfs_stream_seconds(s);
+        r->static_scale = swfs_stream_static_scale(s);
+    }
+    if (src) {
+        r->wfs_rate = swfs_file_source_wfs_rate(src);
+        r->ratio = swfs_file_source_timing(src)->ratio;
+    }
+    swfs_stream_free(s);
+    swfs_pipeline_free(p);
+    swfs_file_source_close(src);
+    swfs_cplx_free(stat_c);
+    swfs_real_free(u.mask);
+    free(u.prov);
+    return rc;
+}

@@ -1,0 +1,133 @@
+/* sync: reduced science + handshake log -> the timing table (Sec. 4.2). See include/specklewfs/run.h. */
+#include "specklewfs/run.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/science.h"
+#include "specklewfs/source.h"
+
+#include <limits.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_sync_run_options_default(swfs_sync_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    swfs_sync_params_default(&o->params);
+    o->params.lag_min = -3;
+    o->params.lag_max = 12;
+}
+
+/* The mean x/y slopes of one telemetry file, loaded once however many cubes use it. */
+typedef struct slopes_file {
+    char name[SWFS_SYNC_NAME];
+    size_t nwfs;
+    double *mx, *my;
+} slopes_file;
+
+typedef struct work {
+    swfs_science_track *tr;
+    swfs_handshake *hs;
+    size_t nhs, nfiles, nwfs_slopes;
+    slopes_file *files;
+    swfs_sync_cube *cubes;
+    size_t *cube_file;
+    long *cube_hs;
+    char logdir[4096];
+} work;
+
+static int load_file(work *w, const char *name, size_t *fi)
+{
+    for (*fi = 0; *fi < w->nfiles; (*fi)++)
+        if (!strcmp(w->files[*fi].name, name)) return SWFS_OK;
+    char path[8192];
+    int rc = swfs_telemetry_path(w->logdir, name, path, sizeof path);
+    swfs_real *s = NULL;
+    if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
+    if (rc) return rc;
+    if (s->nz != 1 || s->nx % 2 || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: slopes must be a 2-D image NSLOPES (even%s) x N_WFS, got %zux%zux%zu", path,
+                       w->nwfs_slopes ? ", same in every file" : "", s->nx, s->ny, s->nz);
+    slopes_file *f = &w->files[*fi];
+    if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) {
+        w->nwfs_slopes = s->nx;
+        snprintf(f->name, sizeof f->name, "%s", name);
+        f->nwfs = s->ny;
+        swfs_slopes_mean_xy(s->data, s->nx, s->ny, NULL, f->mx, f->my);
+        w->nfiles++;
+    }
+    swfs_real_free(s);
+    return rc;
+}
+
+/* Cube ci: its handshake entry, its telemetry file's mean slopes, its timing-table row. */
+static int setup_cube(const swfs_sync_run_options *o, work *w, size_t ci, swfs_timing_cube *tc)
+{
+    const char *cam = w->tr->camera[ci];
+    size_t h = w->nhs, fi;
+    for (size_t k = 0; k < w->nhs; k++)
+        if (!strcmp(w->hs[k].camera, cam)) { h = k; break; }
+    if (h == w->nhs) return swfs_fail(SWFS_ERR_VALUE, "%s: the handshake log does not cover cube %zu (%s)", o->handshake, ci, cam);
+    int rc = load_file(w, w->hs[h].slopes, &fi);
+    if (rc) return rc;
+    const size_t first = w->tr->first[ci], n = w->tr->n[ci];
+    w->cube_file[ci] = fi;
+    w->cube_hs[ci] = w->hs[h].frame;
+    w->cubes[ci] = (swfs_sync_cube){n, w->tr->x + first, w->tr->y + first, w->files[fi].mx, w->files[fi].my,
+                                    w->files[fi].nwfs, (double)w->hs[h].frame};
+    snprintf(tc->camera, sizeof tc->camera, "%s", cam);
+    /* The timing table may live elsewhere: record the telemetry file's absolute path. */
+    char rel[8192], *abs = NULL;
+    if ((rc = swfs_telemetry_path(w->logdir, w->hs[h].slopes, rel, sizeof rel))) return rc;
+    abs = realpath(rel, NULL);
+    int len = snprintf(tc->slopes, sizeof tc->slopes, "%s", abs ? abs : rel);
+    free(abs);
+    if (len < 0 || (size_t)len >= sizeof tc->slopes) return swfs_fail(SWFS_ERR_ARG, "%s: telemetry path too long", rel);
+    tc->first = first;
+    tc->nframes = n;
+    return SWFS_OK;
+}
+
+int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    if (!o->science || !o->handshake || !o->out) return swfs_fail(SWFS_ERR_ARG, "sync: needs science, handshake, out");
+    work w;
+    memset(&w, 0, sizeof w);
+    swfs_timing *t = &r->t;
+    int rc = swfs_science_track_read(o->science, &w.tr);
+    if (!rc) rc = swfs_handshake_read(o->handshake, &w.hs, &w.nhs);
+    if (!rc) {
+        const size_t nc = w.tr->ncubes;
+        swfs_path_dir(o->handshake, w.logdir, sizeof w.logdir);
+        t->ncubes = nc;
+        t->cubes = calloc(nc, sizeof *t->cubes);
+        w.cubes = calloc(nc, sizeof *w.cubes);
+        w.files = calloc(nc, sizeof *w.files);
+        w.cube_file = calloc(nc, sizeof *w.cube_file);
+        w.cube_hs = calloc(nc, sizeof *w.cube_hs);
+        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
+    if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &o->params, &t->fit);
+    if (!rc) {
+        t->ratio = t->fit.ratio;
+        t->ratio_err = t->fit.ratio_err;
+        t->lag = t->fit.lag;
+        for (size_t ci = 0; ci < t->ncubes; ci++) {
+            double start = (double)w.cube_hs[ci] - t->lag;
+            t->cubes[ci].start = start;
+            int inside = start >= 0 && start + (double)w.tr->n[ci] * t->ratio <= (double)w.files[w.cube_file[ci]].nwfs;
+            t->cubes[ci].status = inside ? SWFS_CUBE_OK : SWFS_CUBE_STRADDLES;
+            r->nok += inside ? 1u : 0u;
+        }
+        rc = swfs_timing_write(o->out, t);
+    }
+    if (!rc && !r->nok) rc = swfs_fail(SWFS_ERR_VALUE, "%s: no cube lies inside its telemetry file", o->science);
+    swfs_science_track_free(w.tr);
+    free(w.hs);
+    for (size_t k = 0; w.files && k < w.nfiles; k++) { free(w.files[k].mx); free(w.files[k].my); }
+    free(w.files); free(w.cubes); free(w.cube_file); free(w.cube_hs);
+    return rc;
+}

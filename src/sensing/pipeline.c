@@ -1,0 +1,208 @@
+/* The speckle pipeline: see include/specklewfs/pipeline.h. */
+#include "specklewfs/pipeline.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+struct swfs_pipeline {
+    swfs_pipeline_options opt;
+    swfs_pipeline_info info;
+    swfs_speckle_model *model;
+    double *W_ext, *Rtilt; /* SWFS_TT_EXPOSURE: [W - C R | C] and the tilt rows R (speckles.h) */
+    double *mask;
+    swfs_engine *engine;
+    /* SWFS_TT_EXPOSURE work space: every exposure's own copy of its frames + 2 tilt values */
+    double *xslopes;
+    size_t xcap;  /* frames xslopes holds */
+    swfs_exposure *xsched;
+    size_t xscap; /* exposures xsched holds */
+};
+
+void swfs_pipeline_options_default(swfs_pipeline_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->recon = SWFS_RECON_VK; /* better than svd in 4 of 4 cases (docs/telemetry.md) */
+    o->rcond = 5e-2;          /* 1e-2 amplified the WFS noise (docs/telemetry.md) */
+    o->max_modes = 0;
+    o->slope_noise = 0.0;
+    o->vk_l0 = 10.0;          /* an effective outer scale of the AO residual (docs/telemetry.md) */
+    o->tiptilt = SWFS_TT_EXPOSURE;
+    o->threads = 1;
+    o->wfs_rate = 0;
+}
+
+void swfs_pipeline_free(swfs_pipeline *p)
+{
+    if (!p) return;
+    swfs_speckle_model_free(p->model);
+    swfs_engine_free(p->engine);
+    free(p->W_ext);
+    free(p->Rtilt);
+    free(p->mask);
+    free(p->xslopes);
+    free(p->xsched);
+    free(p);
+}
+
+static int check_options(const swfs_pipeline_options *o, const swfs_recon *recon, const double *training,
+                         size_t ntrain)
+{
+    if (o->recon < SWFS_RECON_VK || o->recon > SWFS_RECON_GIVEN)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: unknown reconstructor choice %d", o->recon);
+    if (o->recon == SWFS_RECON_GIVEN && !recon)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: SWFS_RECON_GIVEN needs a reconstructor matrix");
+    if ((o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) && (!training || ntrain < 2))
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: the %s reconstructor learns from the telemetry: it needs training "
+                         "slopes (got %zu frames)", o->recon == SWFS_RECON_VK ? "von Karman MAP" : "MAP", ntrain);
+    if (!(o->rcond >= 0 && o->rcond < 1))
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: rcond must be in [0, 1), got %g", o->rcond);
+    if (!(o->slope_noise >= 0) || !isfinite(o->slope_noise))
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: slope noise must be a finite rms >= 0 [rad], got %g", o->slope_noise);
+    if (!(o->vk_l0 > 0) || !isfinite(o->vk_l0))
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: the von Karman outer scale must be > 0 [m], got %g", o->vk_l0);
+    if (o->tiptilt < SWFS_TT_EXPOSURE || o->tiptilt > SWFS_TT_KEEP)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: unknown tip-tilt mode %d", o->tiptilt);
+    if (o->wfs_rate && o->tiptilt == SWFS_TT_EXPOSURE)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: at the WFS rate there is no exposure to take a mean tip-tilt over; "
+                         "use SWFS_TT_FRAME or SWFS_TT_KEEP");
+    if (o->threads < 1 || o->threads > 256)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: threads must be 1..256, got %d", o->threads);
+    return SWFS_OK;
+}
+
+/* The model and its reconstructor: given, SVD, or learned from the training slopes. */
+static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, size_t nact, size_t nslopes,
+                       const swfs_recon *recon, const double *training, size_t ntrain)
+{
+    const swfs_pipeline_options *o = &p->opt;
+    const size_t nsub = (size_t)llround(sqrt((double)nslopes / 2));
+    if (2 * nsub * nsub != nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame is not 2 nsub^2 (x then y slopes of a square "
+                         "Shack-Hartmann)", nslopes);
+    if (recon && recon->nslopes != nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame but the reconstructor expects %zu", nslopes,
+                         recon->nslopes);
+    /* --tiptilt frame projects the mean slopes out of W; exposure needs W whole (its tilt
+     * is taken out as the Z-tilt by swfs_speckles_recon_tilt); keep uses it as it is. */
+    const int project = o->tiptilt == SWFS_TT_FRAME;
+    int rc = swfs_speckle_model_create(&p->model, xy, nact, p->mask, (size_t)g->pupn, g->pupdx, g->teldiam, nsub,
+                                       o->recon == SWFS_RECON_GIVEN ? recon : NULL, o->rcond, o->max_modes, project);
+    if (rc) return rc;
+    const double nv = o->slope_noise * o->slope_noise;
+    if (o->recon == SWFS_RECON_MAP) rc = swfs_speckle_model_set_map(p->model, training, ntrain, nv, project);
+    else if (o->recon == SWFS_RECON_VK)
+        rc = swfs_speckle_model_set_vk(p->model, xy, o->vk_l0, training, ntrain, nv, project);
+    if (rc) return rc;
+    swfs_pipeline_info *in = &p->info;
+    in->recon_modes = p->model->recon->nmodes;
+    in->recon_dof = p->model->recon->dof;
+    in->noise_var = p->model->recon->noise_var;
+    in->noise_given = o->slope_noise > 0;
+    in->ntrain = (o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) ? ntrain : 0;
+    in->n_outside = p->model->n_outside;
+    if (o->tiptilt == SWFS_TT_EXPOSURE) return swfs_speckles_recon_tilt(p->model, xy, &p->W_ext, &p->Rtilt);
+    return SWFS_OK;
+}
+
+int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *xy,
+                         size_t nact, const double *mask, size_t nslopes, const swfs_recon *recon,
+                         const double *training, size_t ntrain, const swfs_pipeline_options *opt)
+{
+    *out = NULL;
+    swfs_pipeline_options def;
+    if (!opt) {
+        swfs_pipeline_options_default(&def);
+        opt = &def;
+    }
+    int rc = check_options(opt, recon, training, ntrain);
+    if (rc) return rc;
+    if ((rc = swfs_geom_require(g, "pipeline geometry"))) return rc;
+    if (!nfx || !nfy || !nact || !nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: empty focal window (%zux%zu), actuators (%zu) or slopes (%zu)", nfx,
+                         nfy, nact, nslopes);
+    if (g->pupn > 100000) return swfs_fail(SWFS_ERR_VALUE, "pipeline: PUPN = %ld is beyond any pupil grid", g->pupn);
+    swfs_pipeline *p = calloc(1, sizeof *p);
+    if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    p->opt = *opt;
+    const size_t npup = (size_t)g->pupn;
+    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0};
+    p->mask = malloc(npup * npup * sizeof *p->mask);
+    if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
+    if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
+    else if ((rc = swfs_aperture_make(p->mask, npup, g->pupdx, g->teldiam, g->obscur, 0, 0))) {
+        swfs_pipeline_free(p);
+        return rc;
+    }
+    if ((rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain))) {
+        swfs_pipeline_free(p);
+        return rc;
+    }
+    const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
+    swfs_engine_config ec = {nslopes + (xt ? 2 : 0), nact, npup, nfx, nfy, g->pixscale * g->pupdx / g->teldiam,
+                             g->wavelen, xt ? p->W_ext : p->model->recon->W, p->model->T, p->mask, 0, opt->threads};
+    if (!(p->engine = swfs_engine_create(&ec))) {
+        swfs_pipeline_free(p);
+        return swfs_fail_context(SWFS_ERR_NOMEM, "pipeline");
+    }
+    *out = p;
+    return SWFS_OK;
+}
+
+/* Grow the expansion work space to hold nx frames and nexp exposures (only when a batch
+ * larger than any before arrives). */
+static int reserve(swfs_pipeline *p, size_t nx, size_t nexp)
+{
+    const size_t w = p->info.nslopes + 2;
+    if (nx > p->xcap) {
+        if (nx > SIZE_MAX / sizeof(double) / w) return swfs_fail(SWFS_ERR_VALUE, "pipeline: batch too large");
+        double *t = realloc(p->xslopes, nx * w * sizeof *t);
+        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory for %zu expanded frames", nx);
+        p->xslopes = t;
+        p->xcap = nx;
+    }
+    if (nexp > p->xscap) {
+        swfs_exposure *t = realloc(p->xsched, nexp * sizeof *t);
+        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory for %zu exposures", nexp);
+        p->xsched = t;
+        p->xscap = nexp;
+    }
+    return SWFS_OK;
+}
+
+int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, const swfs_exposure *sched, size_t nexp,
+                          swfs_complex *out)
+{
+    if (p->opt.wfs_rate) return swfs_fail(SWFS_ERR_ARG, "pipeline: made for the WFS rate; use swfs_pipeline_process_wfs");
+    if (p->opt.tiptilt != SWFS_TT_EXPOSURE) return swfs_engine_process(p->engine, slopes, nwfs, sched, nexp, out);
+    /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
+    const size_t nx = swfs_speckles_expand_frames(sched, nexp);
+    int rc = reserve(p, nx, nexp);
+    if (!rc) rc = swfs_speckles_expand(slopes, p->info.nslopes, nwfs, p->Rtilt, sched, nexp, p->xslopes, p->xsched);
+    if (!rc) rc = swfs_engine_process(p->engine, p->xslopes, nx, p->xsched, nexp, out);
+    return rc;
+}
+
+int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwfs, swfs_complex *out)
+{
+    if (!p->opt.wfs_rate) return swfs_fail(SWFS_ERR_ARG, "pipeline: made for camera exposures; use swfs_pipeline_process");
+    return swfs_engine_process_wfs(p->engine, slopes, nwfs, out);
+}
+
+int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
+{
+    double *zero = calloc(p->info.nslopes + 2, sizeof *zero);
+    if (!zero) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    int rc = swfs_engine_add_wfs(p->engine, zero, 1.0);
+    if (!rc) rc = swfs_engine_end_exposure(p->engine, out);
+    free(zero);
+    return rc;
+}
+
+void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info) { *info = p->info; }
+const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model->recon; }
+const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p) { return p->model; }
+const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p) { return &p->opt; }

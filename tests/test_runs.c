@@ -1,0 +1,255 @@
+/* The real-data path through the library alone (run.h, stream.h, pipeline.h; no
+ * subprocess): a small time-series simulation -> swfs_reduce_run -> swfs_sync_run ->
+ * swfs_speckles_run -> swfs_estimate_run -> the pupil step, asserting the recovered frame
+ * ratio and lag and the NCP error; then the stream (file source + stream object) against
+ * speckles + estimate, and the stream object fed in different batch sizes. */
+#include "testutil.h"
+
+#include "specklewfs/accum.h"
+#include "specklewfs/config.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/pupil.h"
+#include "specklewfs/run.h"
+#include "specklewfs/source.h"
+#include "specklewfs/stream.h"
+#include "specklewfs/timeseries.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+static char dir[1024];
+
+static const char *p(const char *name)
+{
+    static char buf[64][1200]; /* a ring: the options below keep these pointers */
+    static int k;
+    k = (k + 1) % 64;
+    snprintf(buf[k], sizeof buf[k], "%s/%s", dir, name);
+    return buf[k];
+}
+
+/* The same small system as tests/cli_telemetry.sh: 3 cubes x 60 frames at 6.48 WFS frames
+ * per camera frame, lag 3, telemetry files of 1000 WFS frames (cube 1 straddles two). */
+static int setup(void **state)
+{
+    (void)state;
+    snprintf(dir, sizeof dir, "%s", test_path("runs"));
+    mkdir(dir, 0755);
+    swfs_config *c = swfs_config_new();
+    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150",
+                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "wfs_file_frames=1000", "seed=1"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    assert_ok(swfs_ts_params_check(&tp));
+    swfs_config_free(c);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_runs"};
+    assert_ok(swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, &s));
+
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    const char *raw[] = {p("raw_000.fits"), p("raw_001.fits"), p("raw_002.fits")};
+    ro.raw = raw;
+    ro.nraw = 3;
+    ro.dark = p("dark.fits");
+    ro.flat = p("flat.fits");
+    ro.out = p("science.fits");
+    swfs_reduce_run_result rr;
+    assert_ok(swfs_reduce_run(&ro, &rr));
+    assert_int_equal(rr.nframes, 180);
+    /* The simulated read noise is 19 counts. */
+    assert_true(sqrt(rr.noise_var) > 18 && sqrt(rr.noise_var) < 20.5);
+    return 0;
+}
+
+static void test_sync_speckles_estimate(void **state)
+{
+    (void)state;
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = p("science.fits");
+    so.handshake = p("handshake.log");
+    so.out = p("timing.txt");
+    so.params.ratio_min = 5;
+    so.params.ratio_max = 8;
+    swfs_sync_run_result sr;
+    assert_ok(swfs_sync_run(&so, &sr));
+    assert_true(fabs(sr.t.ratio - 6.48) <= 0.03);
+    assert_true(fabs(sr.t.lag - 3) <= 1);
+    assert_int_equal(sr.nok, 2);
+    assert_int_equal(sr.t.cubes[1].status, SWFS_CUBE_STRADDLES);
+    free(sr.t.cubes);
+
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = p("science.fits");
+    sp.actuators = p("actuators.fits");
+    sp.out = p("speckles.fits");
+    const char *min[] = {p("science.fits")}, *mout[] = {p("sci_m.fits")};
+    sp.match_in = min;
+    sp.match_out = mout;
+    sp.nmatch = 1;
+    swfs_speckles_run_result spr;
+    assert_ok(swfs_speckles_run(&sp, &spr));
+    assert_int_equal(spr.nout, 120);
+    assert_int_equal(spr.nok, 2);
+    assert_true(spr.info.ntrain > 0 && spr.info.noise_var > 0);
+
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = p("sci_m.fits");
+    eo.speckles = p("speckles.fits");
+    eo.out = p("halo.fits");
+    swfs_estimate_run_result er;
+    assert_ok(swfs_estimate_run(&eo, &er));
+    assert_int_equal(er.halo->frames, 120);
+
+    /* NCP error against the injected map (piston, tip, tilt removed): < 50 nm, as the CLI test. */
+    swfs_real *ncp = NULL;
+    swfs_geom g;
+    assert_ok(swfs_fits_read_real(p("truth.fits"), "NCP", &ncp, &g));
+    swfs_pupil_options po;
+    swfs_pupil_options_default(&po);
+    po.source = SWFS_SOURCE_HALO;
+    swfs_pupil_result *pr = NULL;
+    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, &po, &pr));
+    double err = NAN;
+    assert_ok(swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, &err, NULL, NULL));
+    printf("test_runs: ratio, lag ok; NCP error %.1f nm\n", 1e9 * err);
+    assert_true(err > 0 && err < 50e-9);
+    swfs_pupil_result_free(pr);
+    swfs_real_free(ncp);
+    swfs_halo_free(er.halo);
+
+    /* Bad input: a reconstructor whose length does not match the slopes. */
+    sp.pipe.recon = SWFS_RECON_GIVEN;
+    sp.recon = p("actuators.fits");
+    sp.out = p("x.fits");
+    sp.nmatch = 0;
+    assert_int_not_equal(swfs_speckles_run(&sp, &spr), 0);
+    printf("test_runs: bad reconstructor: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "expects"));
+    assert_false(test_file_exists(p("x.fits")));
+}
+
+/* stream (file source -> pipeline -> stream) = speckles + estimate with the same reconstructor. */
+static void test_stream_equals_speckles(void **state)
+{
+    (void)state;
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = p("science.fits");
+    sp.actuators = p("actuators.fits");
+    sp.out = p("speckles_s.fits");
+    sp.write_recon = p("recon.fits");
+    const char *min[] = {p("science.fits")}, *mout[] = {p("sci_s.fits")};
+    sp.match_in = min;
+    sp.match_out = mout;
+    sp.nmatch = 1;
+    swfs_speckles_run_result spr;
+    assert_ok(swfs_speckles_run(&sp, &spr));
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = p("sci_s.fits");
+    eo.speckles = p("speckles_s.fits");
+    eo.out = p("halo_s.fits");
+    swfs_estimate_run_result er;
+    assert_ok(swfs_estimate_run(&eo, &er));
+
+    swfs_stream_run_options so;
+    swfs_stream_run_options_default(&so);
+    so.timing = p("timing.txt");
+    so.science = p("science.fits");
+    so.recon = p("recon.fits");
+    so.actuators = p("actuators.fits");
+    so.out = p("halo_stream.fits");
+    so.batch = 17;
+    so.stream.static_mode = SWFS_STATIC_NONE; /* the data-set mean is removed exactly either way */
+    swfs_stream_run_result sr;
+    assert_ok(swfs_stream_run_files(&so, &sr));
+    assert_int_equal(sr.camera_frames, 120);
+    swfs_halo *hs = NULL;
+    assert_ok(swfs_halo_read(p("halo_stream.fits"), &hs, NULL));
+    double peak = 0, d = 0;
+    for (size_t k = 0; k < hs->halo->nx * hs->halo->ny; k++) {
+        peak = fmax(peak, cabs(er.halo->halo->data[k]));
+        if (isfinite(creal(hs->halo->data[k])) && isfinite(creal(er.halo->halo->data[k])))
+            d = fmax(d, cabs(hs->halo->data[k] - er.halo->halo->data[k]));
+    }
+    printf("test_runs: stream vs speckles + estimate: max |dPsi| / peak = %.2g\n", d / peak);
+    /* The speckle cube is stored in single precision; the stream keeps double. */
+    assert_true(d / peak < 1e-4);
+    swfs_halo_free(hs);
+    swfs_halo_free(er.halo);
+}
+
+/* The stream object alone: the accumulators do not depend on how the source cuts batches. */
+static void test_stream_batches(void **state)
+{
+    (void)state;
+    swfs_accum *acc[2] = {NULL, NULL};
+    const size_t batches[2] = {7, 64};
+    for (int t = 0; t < 2; t++) {
+        swfs_file_source *src = NULL;
+        swfs_recon *rec = NULL;
+        double *xy = NULL;
+        size_t nact = 0;
+        swfs_geom g;
+        assert_ok(swfs_recon_read(p("recon.fits"), &rec));
+        assert_ok(swfs_actuators_read(p("actuators.fits"), &xy, &nact));
+        swfs_real *one = NULL;
+        assert_ok(swfs_fits_read_real(p("science.fits"), NULL, &one, &g));
+        swfs_pipeline_options po;
+        swfs_pipeline_options_default(&po);
+        po.recon = SWFS_RECON_GIVEN;
+        swfs_pipeline *pl = NULL;
+        assert_ok(swfs_pipeline_create(&pl, &g, one->nx, one->ny, xy, nact, NULL, rec->nslopes, rec, NULL, 0, &po));
+        assert_ok(swfs_file_source_open(&src, p("timing.txt"), p("science.fits"), NULL, rec->nslopes, batches[t]));
+        swfs_stream_options so;
+        swfs_stream_options_default(&so);
+        so.static_mode = SWFS_STATIC_NONE;
+        swfs_stream *s = NULL;
+        assert_ok(swfs_stream_create(&s, pl, &so));
+        assert_ok(swfs_stream_run(s, swfs_file_source_next, src, NULL, NULL));
+        assert_int_equal(swfs_stream_camera_frames(s), 120);
+        acc[t] = swfs_accum_create(one->nx, one->ny);
+        assert_ok(swfs_accum_merge(acc[t], swfs_stream_accum(s)));
+        swfs_stream_free(s);
+        swfs_file_source_close(src);
+        swfs_pipeline_free(pl);
+        swfs_real_free(one);
+        swfs_recon_free(rec);
+        free(xy);
+    }
+    /* Every statistic, to rounding (the automatic static halo would take its scale from
+     * the first batch: a constant offset of psi, which the estimate removes exactly but
+     * the raw co-moments of |psi|^2 do not). */
+    const size_t np = acc[0]->nx * acc[0]->ny;
+    double worst = 0;
+    for (int f = SWFS_ACC_MI; f < SWFS_ACC_NFIELDS; f++)
+        for (size_t k = 0; k < np; k++) {
+            double a = acc[0]->f[f][k], b = acc[1]->f[f][k], m = fmax(fabs(a), fabs(b));
+            if (m > 0) worst = fmax(worst, fabs(a - b) / m);
+        }
+    printf("test_runs: batch 7 vs 64: worst relative co-moment difference %.2g\n", worst);
+    assert_true(worst < 1e-6);
+    swfs_accum_free(acc[0]);
+    swfs_accum_free(acc[1]);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_sync_speckles_estimate),
+        cmocka_unit_test(test_stream_equals_speckles),
+        cmocka_unit_test(test_stream_batches),
+    };
+    return cmocka_run_group_tests(tests, setup, NULL);
+}
