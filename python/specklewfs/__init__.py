@@ -17,6 +17,7 @@ from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_r
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,
                         bandwidth_radius)
 from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries
+from .stream import Pipeline, Stream
 
 try:
     from ._config import VERSION as __version__

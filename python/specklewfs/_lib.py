@@ -201,12 +201,27 @@ TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("a
                      ("residual_rms", c_dbl), ("residual_rms_nott", c_dbl), ("tt_rms", c_dbl), ("strehl", c_dbl),
                      ("static_rms", c_dbl), ("ncp_rms", c_dbl), ("seconds", c_dbl)]
 swfs_ts_summary = _s("swfs_ts_summary", TS_SUMMARY_FIELDS)
+swfs_pipeline_options = _s("swfs_pipeline_options", [("recon", c_int), ("rcond", c_dbl), ("max_modes", c_size),
+                                                     ("slope_noise", c_dbl), ("vk_l0", c_dbl), ("tiptilt", c_int),
+                                                     ("threads", c_int), ("wfs_rate", c_int)])
+PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size), ("nfx", c_size), ("nfy", c_size),
+                        ("recon_modes", c_size), ("recon_dof", c_dbl), ("noise_var", c_dbl), ("noise_given", c_int),
+                        ("ntrain", c_size), ("n_outside", c_size)]
+swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
+swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
+                               ("nexp", c_size), ("cube", c_size)])
+swfs_stream_options = _s("swfs_stream_options", [("static_mode", c_int), ("static_halo", c_ptr),
+                                                 ("noise", swfs_noise), ("est", swfs_estimate_options),
+                                                 ("every", c_size), ("every_seconds", c_dbl),
+                                                 ("max_frames", c_size)])
 swfs_fits_shape = _s("swfs_fits_shape", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("is_complex", c_int),
                                          ("bitpix", c_int)])
 
 STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
 
 PROGRESS_FN = ctypes.CFUNCTYPE(None, c_ptr, c_str, c_size, c_size)
+SOURCE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, P(swfs_batch))
+UPDATE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, c_ptr, c_int)
 
 # ---- prototypes ----------------------------------------------------------------------
 
@@ -326,6 +341,30 @@ _PROTOS = {
     "swfs_engine_process": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr, c_size, c_ptr]),
     "swfs_engine_process_wfs": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr]),
     "swfs_engine_schedule": (c_size, [c_dbl, c_dbl, c_size, c_ptr]),
+    # pipeline.h
+    "swfs_pipeline_options_default": (None, [P(swfs_pipeline_options)]),
+    "swfs_pipeline_create": (c_int, [P(c_ptr), P(swfs_geom), c_size, c_size, P(c_dbl), c_size, P(c_dbl), c_size,
+                                     P(swfs_recon), P(c_dbl), c_size, P(swfs_pipeline_options)]),
+    "swfs_pipeline_free": (None, [c_ptr]),
+    "swfs_pipeline_process": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr, c_size, c_ptr]),
+    "swfs_pipeline_process_wfs": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr]),
+    "swfs_pipeline_flat_halo": (c_int, [c_ptr, c_ptr]),
+    "swfs_pipeline_get_info": (None, [c_ptr, P(swfs_pipeline_info)]),
+    "swfs_pipeline_recon": (P(swfs_recon), [c_ptr]),
+    "swfs_pipeline_model": (P(swfs_speckle_model), [c_ptr]),
+    # stream.h
+    "swfs_stream_options_default": (None, [P(swfs_stream_options)]),
+    "swfs_stream_create": (c_int, [P(c_ptr), c_ptr, P(swfs_stream_options)]),
+    "swfs_stream_free": (None, [c_ptr]),
+    "swfs_stream_push": (c_int, [c_ptr, P(swfs_batch)]),
+    "swfs_stream_run": (c_int, [c_ptr, SOURCE_FN, c_ptr, UPDATE_FN, c_ptr]),
+    "swfs_stream_estimate": (c_int, [c_ptr, P(P(swfs_halo))]),
+    "swfs_stream_accum": (P(swfs_accum), [c_ptr]),
+    "swfs_stream_static": (c_ptr, [c_ptr]),
+    "swfs_stream_camera_frames": (c_size, [c_ptr]),
+    "swfs_stream_wfs_frames": (c_dbl, [c_ptr]),
+    "swfs_stream_seconds": (c_dbl, [c_ptr]),
+    "swfs_stream_static_scale": (c_dbl, [c_ptr]),
     # mft.h
     "swfs_mft_create": (c_ptr, [c_size, c_size, c_size, c_dbl, c_int]),
     "swfs_mft_free": (None, [c_ptr]),

@@ -1,0 +1,234 @@
+"""The speckle pipeline (pipeline.h: WFS telemetry arrays -> speckle fields matching the
+science frames) and the stream (stream.h: batches of slopes and camera frames ->
+accumulators -> the static-halo estimate, updated as the data arrive), with a Python
+source callback."""
+import ctypes
+
+import numpy as np
+
+from . import _lib
+from ._lib import lib, check, as_array, dptr
+from .core import Geom
+from .estimate import Accumulator, Halo, G_SMOOTH_DEFAULT
+from .telemetry import Recon, SpeckleModel, _sched
+
+P = ctypes.POINTER
+_RECON = {"vk": 0, "map": 1, "svd": 2, "given": 3}
+_TT = {"exposure": 0, "frame": 1, "keep": 2}
+
+
+class Pipeline:
+    """The speckle pipeline (pipeline.h).
+
+    geom: a Geom with every keyword; nfx, nfy: the focal window; xy: (nact, 2) actuator
+    positions [m]; nslopes: 2 nsub^2; mask: (pupn, pupn) or None (annulus); recon: 'vk'
+    (default), 'map', 'svd' or a (nact, nslopes) matrix / Recon (used as given); training:
+    (ntrain, nslopes) WFS frames for 'vk' / 'map'; rcond, max_modes: for 'svd';
+    slope_noise [rad] (0: estimated); vk_l0 [m]; tiptilt: 'exposure' (default), 'frame'
+    or 'keep' (speckles.h); threads: engine workers; wfs_rate: one field per WFS frame
+    (process_wfs; needs tiptilt 'frame' or 'keep')."""
+
+    def __init__(self, geom, nfx, nfy, xy, nslopes, mask=None, recon="vk", training=None, rcond=5e-2, max_modes=0,
+                 slope_noise=0.0, vk_l0=10.0, tiptilt="exposure", threads=1, wfs_rate=False):
+        geom = geom if isinstance(geom, Geom) else Geom(**geom)
+        g = geom.to_c()
+        xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+        if mask is not None:
+            mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
+        o = _lib.swfs_pipeline_options()
+        lib.swfs_pipeline_options_default(ctypes.byref(o))
+        rin = None
+        if isinstance(recon, str):
+            if recon not in _RECON or recon == "given":
+                raise ValueError(f"recon: expected 'vk', 'map', 'svd' or a matrix, got {recon!r}")
+            o.recon = _RECON[recon]
+        else:
+            rin = recon if isinstance(recon, Recon) else Recon.from_matrix(
+                as_array(recon, "recon", np.float64, shape=(xy.shape[0], nslopes)))
+            o.recon = _RECON["given"]
+        if tiptilt not in _TT:
+            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+        o.rcond, o.max_modes, o.slope_noise, o.vk_l0 = float(rcond), int(max_modes), float(slope_noise), float(vk_l0)
+        o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+        tr, ntr = None, 0
+        if training is not None:
+            tr = as_array(training, "training", np.float64, shape=(None, nslopes))
+            ntr = tr.shape[0]
+        p = ctypes.c_void_p()
+        check(lib.swfs_pipeline_create(ctypes.byref(p), ctypes.byref(g), int(nfx), int(nfy), dptr(xy), xy.shape[0],
+                                       dptr(mask), int(nslopes), rin._p if rin is not None else None, dptr(tr), ntr,
+                                       ctypes.byref(o)), "swfs_pipeline_create")
+        self._p = p
+        self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
+        self.geom, self.nfx, self.nfy, self.nslopes = geom, int(nfx), int(nfy), int(nslopes)
+        self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+
+    @property
+    def info(self):
+        """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,
+        noise_given, ntrain, n_outside."""
+        i = _lib.swfs_pipeline_info()
+        lib.swfs_pipeline_get_info(self._p, ctypes.byref(i))
+        return {k: getattr(i, k) for k, _t in _lib.PIPELINE_INFO_FIELDS}
+
+    @property
+    def recon(self):
+        """The reconstructor in use (a view owned by the pipeline)."""
+        return Recon(lib.swfs_pipeline_recon(self._p), self._owner)
+
+    @property
+    def mask(self):
+        m = lib.swfs_pipeline_model(self._p).contents
+        return _lib.view(ctypes.cast(m.mask, ctypes.c_void_p).value, (m.npup, m.npup), np.float64, self._owner)
+
+    def process(self, slopes, sched, out=None):
+        """(nexp, nfy, nfx) core-referenced focal fields (before the static halo is
+        subtracted) of the exposures sched over slopes (nwfs, nslopes)."""
+        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        sched = _sched(sched)
+        if out is None:
+            out = np.empty((sched.shape[0], self.nfy, self.nfx), np.complex128)
+        out = as_array(out, "out", np.complex128, shape=(sched.shape[0], self.nfy, self.nfx), writable=True)
+        check(lib.swfs_pipeline_process(self._p, dptr(s), s.shape[0], sched.ctypes.data, sched.shape[0],
+                                        out.ctypes.data), "swfs_pipeline_process")
+        return out
+
+    def process_wfs(self, slopes, out=None):
+        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        if out is None:
+            out = np.empty((s.shape[0], self.nfy, self.nfx), np.complex128)
+        out = as_array(out, "out", np.complex128, shape=(s.shape[0], self.nfy, self.nfx), writable=True)
+        check(lib.swfs_pipeline_process_wfs(self._p, dptr(s), s.shape[0], out.ctypes.data),
+              "swfs_pipeline_process_wfs")
+        return out
+
+    def flat_halo(self):
+        """Psi_0: the referenced focal field of flat slopes (nfy, nfx)."""
+        out = np.empty((self.nfy, self.nfx), np.complex128)
+        check(lib.swfs_pipeline_flat_halo(self._p, out.ctypes.data), "swfs_pipeline_flat_halo")
+        return out
+
+
+class Stream:
+    """The stream (stream.h) over a Pipeline (kept alive by the stream).
+
+    static: 'auto' (default: the unaberrated halo scaled by the first batch's core
+    amplitude, the paper's choice), 'none', or an (nfy, nfx) complex array; read_noise
+    [counts], gain [e-/count], g_smooth [pixels]: the estimator's options; every: update
+    after this many camera frames (0: only at the end); every_seconds; max_frames (0: all).
+
+    Feed it with push(slopes, sched, science) per batch, or run(source) with an iterable
+    of batches (tuples (slopes, sched, science) or dicts with those keys and an optional
+    'cube' label); each batch: science (nexp, nfy, nfx) camera frames, slopes (nwfs,
+    nslopes) the WFS frames they integrate, sched (nexp,) exposure schedule into slopes."""
+
+    def __init__(self, pipeline, static="auto", read_noise=0.0, gain=0.0, g_smooth=G_SMOOTH_DEFAULT, every=0,
+                 every_seconds=0.0, max_frames=0):
+        if not isinstance(pipeline, Pipeline):
+            raise TypeError(f"pipeline: expected a specklewfs.Pipeline, got {type(pipeline).__name__}")
+        o = _lib.swfs_stream_options()
+        lib.swfs_stream_options_default(ctypes.byref(o))
+        self._static_in = None
+        if isinstance(static, str):
+            modes = {"auto": 0, "none": 1}
+            if static not in modes:
+                raise ValueError(f"static: expected 'auto', 'none' or an array, got {static!r}")
+            o.static_mode = modes[static]
+        else:
+            self._static_in = as_array(static, "static", np.complex128, shape=(pipeline.nfy, pipeline.nfx))
+            o.static_mode, o.static_halo = 2, self._static_in.ctypes.data
+        o.noise = _lib.swfs_noise(float(read_noise), float(gain))
+        o.est = _lib.swfs_estimate_options(float(g_smooth))
+        o.every, o.every_seconds, o.max_frames = int(every), float(every_seconds), int(max_frames)
+        s = ctypes.c_void_p()
+        check(lib.swfs_stream_create(ctypes.byref(s), pipeline._p, ctypes.byref(o)), "swfs_stream_create")
+        self._s = s
+        self.pipeline = pipeline  # borrowed by the C stream: keep it alive (and free it after)
+        self._owner = _lib.Owner(s, lib.swfs_stream_free)
+        self._pending = None
+
+    def _batch(self, item):
+        if isinstance(item, dict):
+            slopes, sched, science, cube = item["slopes"], item["sched"], item["science"], item.get("cube", 0)
+        else:
+            slopes, sched, science = item[:3]
+            cube = item[3] if len(item) > 3 else 0
+        p = self.pipeline
+        s = as_array(slopes, "slopes", np.float64, shape=(None, p.nslopes))
+        sc = _sched(sched)
+        sci = as_array(science, "science", np.float64, shape=(sc.shape[0], p.nfy, p.nfx))
+        if sc.shape[0] and int((sc["first"] + sc["count"]).max()) > s.shape[0]:
+            raise ValueError(f"sched: exposures need {int((sc['first'] + sc['count']).max())} WFS frames, slopes has "
+                             f"{s.shape[0]}")
+        b = _lib.swfs_batch(dptr(s), s.shape[0], sc.ctypes.data, dptr(sci), sc.shape[0], int(cube))
+        return b, (s, sc, sci)
+
+    def push(self, slopes, sched, science, cube=0):
+        """Process one batch."""
+        b, keep = self._batch((slopes, sched, science, cube))
+        check(lib.swfs_stream_push(self._s, ctypes.byref(b)), "swfs_stream_push")
+        return self
+
+    def run(self, source, on_update=None):
+        """Pull batches from `source` (an iterable) until it ends or max_frames, calling
+        on_update(stream, final) at every update and once at the end. An exception raised
+        by the source or the callback stops the run and is re-raised here."""
+        it = iter(source)
+        state = {"keep": None, "exc": None}
+
+        def next_batch(ctx, bp):
+            try:
+                item = next(it, None)
+                if item is None:
+                    bp.contents.nexp = 0
+                    state["keep"] = None
+                    return 0
+                b, keep = self._batch(item)
+                state["keep"] = keep  # valid until the next call, as stream.h asks
+                ctypes.memmove(bp, ctypes.byref(b), ctypes.sizeof(b))
+                return 0
+            except BaseException as e:  # noqa: BLE001 -- re-raised after the C call returns
+                state["exc"] = e
+                return 8  # SWFS_ERR_INTERNAL
+
+        def update(ctx, s, final):
+            try:
+                if on_update is not None:
+                    on_update(self, bool(final))
+                return 0
+            except BaseException as e:  # noqa: BLE001
+                state["exc"] = e
+                return 8
+
+        src_cb, upd_cb = _lib.SOURCE_FN(next_batch), _lib.UPDATE_FN(update)
+        rc = lib.swfs_stream_run(self._s, src_cb, None, upd_cb, None)
+        if state["exc"] is not None:
+            raise state["exc"]
+        check(rc, "swfs_stream_run")
+        return self
+
+    def estimate(self):
+        """The halo estimate from what has been accumulated."""
+        out = P(_lib.swfs_halo)()
+        check(lib.swfs_stream_estimate(self._s, ctypes.byref(out)), "swfs_stream_estimate")
+        return Halo._take(out)
+
+    def accumulator(self):
+        """A copy of the stream's accumulators (an Accumulator)."""
+        src = lib.swfs_stream_accum(self._s)
+        a = Accumulator(src.contents.nx, src.contents.ny)
+        check(lib.swfs_accum_merge(a._p, src), "swfs_accum_merge")
+        return a
+
+    @property
+    def static_halo(self):
+        """The static halo in use (nfy, nfx), or None before the first batch ('auto')."""
+        p = lib.swfs_stream_static(self._s)
+        if not p:
+            return None
+        return _lib.view(p, (self.pipeline.nfy, self.pipeline.nfx), np.complex128, self._owner)
+
+    camera_frames = property(lambda self: int(lib.swfs_stream_camera_frames(self._s)))
+    wfs_frames = property(lambda self: lib.swfs_stream_wfs_frames(self._s))
+    seconds = property(lambda self: lib.swfs_stream_seconds(self._s))
+    static_scale = property(lambda self: lib.swfs_stream_static_scale(self._s))

@@ -1,0 +1,151 @@
+"""The speckle pipeline and the stream with a Python source: streaming numpy batches gives
+the one-pass estimate."""
+import numpy as np
+import pytest
+
+import specklewfs as sw
+
+GEOM = sw.Geom(wavelen=1.6e-6, teldiam=2.0, obscur=0.1, pixscale=0.5, pupdx=0.05, pupn=40)
+NF = 24
+NSUB = 8
+NSLOPES = 2 * NSUB * NSUB
+
+
+@pytest.fixture(scope="module")
+def data():
+    """Random slopes, a camera schedule (3.5 WFS frames per exposure, straddling frames),
+    the pipeline's fields, and science frames |Psi + g psi|^2 with a known static halo."""
+    rng = np.random.default_rng(11)
+    xy = sw.actuators_hexapolar(GEOM.teldiam, 0.4, 0.2)
+    pipe = sw.Pipeline(GEOM, NF, NF, xy, NSLOPES, recon="svd")
+    sched, nwfs = sw.schedule(3.5, 0.3, 120)
+    slopes = rng.normal(size=(nwfs, NSLOPES)) * 2e-7
+    fields = pipe.process(slopes, sched)
+    static = pipe.flat_halo() * np.abs(fields[:, NF // 2, NF // 2]).mean() / np.abs(pipe.flat_halo()[NF // 2, NF // 2])
+    psi = fields - static
+    Psi = (rng.normal(size=(NF, NF)) + 1j * rng.normal(size=(NF, NF))) * np.abs(psi).std()
+    g = 0.8
+    science = np.abs(Psi + g * psi) ** 2
+    return dict(xy=xy, pipe=pipe, sched=sched, slopes=slopes, fields=fields, static=static, psi=psi, Psi=Psi, g=g,
+                science=science)
+
+
+def batches(d, size):
+    """The data set as a source would hand it over: per batch the WFS frames its
+    exposures cover and the schedule as indices into them."""
+    sched, n = d["sched"], len(d["sched"])
+    for j in range(0, n, size):
+        sc = sched[j:j + size].copy()
+        lo = int(sc["first"].min())
+        hi = int((sc["first"] + sc["count"]).max())
+        sc["first"] -= lo
+        yield d["slopes"][lo:hi], sc, d["science"][j:j + size]
+
+
+def test_pipeline_matches_engine_pieces(data):
+    """With tip-tilt kept, the pipeline is the engine over the model's reconstructor,
+    interpolation and mask."""
+    d = data
+    p = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    info = p.info
+    assert info["nact"] == len(d["xy"]) and info["nslopes"] == NSLOPES and info["npup"] == 40
+    assert 0 < info["recon_modes"] <= info["nact"]
+    T, nout = sw.interp_ct_grid(d["xy"], 40, GEOM.pupdx, p.mask)
+    assert nout == info["n_outside"] == 0
+    e = sw.Engine(p.recon.W, T, p.mask, NF, NF, GEOM.alpha, GEOM.wavelen)
+    a = p.process(d["slopes"], d["sched"])
+    b = e.process(d["slopes"], d["sched"])
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * np.abs(b).max())
+    # The flat-slopes field is the unaberrated PSF, real and positive at the core.
+    f = p.flat_halo()
+    assert abs(f[NF // 2, NF // 2].imag) < 1e-9 * abs(f[NF // 2, NF // 2]) and f[NF // 2, NF // 2].real > 0
+    assert np.abs(f).argmax() == (NF // 2) * NF + NF // 2
+    # WFS-rate fields need tiptilt 'frame' or 'keep'; the library says so.
+    with pytest.raises(sw.Error, match="SWFS_TT_FRAME or SWFS_TT_KEEP"):
+        sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", wfs_rate=True)
+    pw = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", wfs_rate=True)
+    w = pw.process_wfs(d["slopes"][:5])
+    np.testing.assert_allclose(w, e.process_wfs(d["slopes"][:5]), atol=1e-6 * np.abs(w).max())
+
+
+def test_pipeline_reconstructor_choices(data):
+    d = data
+    rng = np.random.default_rng(1)
+    # Training slopes: random actuator wavefronts seen through D = S T, plus noise.
+    model = sw.SpeckleModel(d["xy"], sw.aperture(40, GEOM.pupdx, GEOM.teldiam, GEOM.obscur), GEOM.pupdx,
+                            GEOM.teldiam, NSUB)
+    D = model.interaction_matrix()
+    training = (D @ rng.normal(size=(len(d["xy"]), 200)) * 5e-8).T + 1e-9 * rng.normal(size=(200, NSLOPES))
+    training[:, ~np.concatenate([model.wfs.valid.ravel()] * 2)] = 0  # unilluminated subapertures report 0
+    vk = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, training=training)  # the default: von Karman MAP
+    assert vk.info["ntrain"] == 200 and vk.info["noise_var"] > 0 and not vk.info["noise_given"]
+    mp = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="map", training=training, slope_noise=1e-8)
+    assert mp.info["noise_given"] and mp.info["noise_var"] == pytest.approx(1e-16)
+    W = np.zeros((len(d["xy"]), NSLOPES))
+    given = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=W, tiptilt="keep")
+    out = given.process(d["slopes"][:8], sw.make_schedule(np.arange(4) * 2, 2))
+    np.testing.assert_allclose(out, np.broadcast_to(given.flat_halo() * 2, out.shape), rtol=1e-6,
+                               atol=1e-6 * np.abs(out).max())  # W = 0: two flat frames per exposure
+    with pytest.raises(sw.Error, match="training") as e:
+        sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES)  # vk without training slopes
+    with pytest.raises(ValueError, match=r"recon: expected shape \(\d+, 128\), got \(3, 3\)"):
+        sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("size", [1, 7, 120])
+def test_streaming_numpy_batches_equals_one_pass(data, size):
+    d = data
+    one = sw.Accumulator(NF, NF).add(d["science"], d["psi"]).estimate(read_noise=0.5)
+    s = sw.Stream(d["pipe"], static=d["static"], read_noise=0.5)
+    updates = []
+    s.run(batches(d, size), on_update=lambda st, final: updates.append((st.camera_frames, final)))
+    assert s.camera_frames == 120 and updates[-1] == (120, True)
+    assert s.wfs_frames == pytest.approx(120 * 3.5)
+    np.testing.assert_array_equal(s.static_halo, d["static"])
+    h = s.estimate()
+    # One batch of everything is exactly the one-pass estimate over the pipeline's fields.
+    # Smaller batches re-slice the WFS frames the single-precision engine reconstructs
+    # together: the same to its precision (engine.h: ~1e-6 of the peak).
+    tol = 0 if size == 120 else 2e-5
+    for name in ("HALO", "HALO_LF", "STAB", "GAIN", "MEAN_I", "MEAN_SP", "VAR_SP", "SNR"):
+        ref = one.maps[name]
+        np.testing.assert_allclose(h.maps[name], ref, rtol=0, atol=tol * np.abs(ref).max(), err_msg=name)
+    assert h.frames == one.frames == 120
+    # ... and it is the known halo: g and Psi recovered.
+    assert np.median(np.abs(h.gain / d["g"] - 1)) < 0.05
+    # (120 frames of non-Gaussian speckles: a rough check; an unrelated map would be ~1.4)
+    assert np.median(np.abs(h.halo - d["Psi"])) < 0.3 * np.abs(d["Psi"]).mean()
+
+
+def test_stream_push_updates_auto_static_and_errors(data):
+    d = data
+    a = sw.Stream(d["pipe"], static=d["static"], every=30)
+    calls = []
+    a.run(batches(d, 10), on_update=lambda st, final: calls.append((st.camera_frames, final)))
+    assert [c for c in calls if not c[1]] and calls[-1] == (120, True)
+    assert all(n % 10 == 0 for n, _ in calls)
+    b = sw.Stream(d["pipe"], static=d["static"])
+    for sl, sc, sci in batches(d, 10):
+        b.push(sl, sc, sci)
+    np.testing.assert_array_equal(b.accumulator().state(), a.accumulator().state())
+    # 'auto': the unaberrated halo scaled to the first batch's core amplitude.
+    c = sw.Stream(d["pipe"])
+    assert c.static_halo is None
+    c.run(batches(d, 40))
+    np.testing.assert_allclose(c.static_halo, d["pipe"].flat_halo() * c.static_scale, rtol=1e-12)
+    # max_frames stops early.
+    m = sw.Stream(d["pipe"], static="none", max_frames=50).run(batches(d, 20))
+    assert m.camera_frames == 50
+    # A Python exception in the source stops the run and comes back as itself.
+
+    def bad():
+        yield next(batches(d, 5))
+        raise KeyError("source broke")
+    with pytest.raises(KeyError, match="source broke"):
+        sw.Stream(d["pipe"]).run(bad())
+    with pytest.raises(ValueError, match=r"science: expected shape \(5, 24, 24\), got \(5, 24, 23\)"):
+        sl, sc, sci = next(batches(d, 5))
+        sw.Stream(d["pipe"]).push(sl, sc, sci[:, :, :23])
+    with pytest.raises(sw.Error, match="no") as e:
+        sw.Stream(d["pipe"]).run([])
+    assert e.value.status_name == "SWFS_ERR_NUMERIC"
