@@ -21,7 +21,7 @@ void swfs_coh_default_lags(long *lags)
     for (long k = 25; k <= 100; k += 5) lags[n++] = k;
 }
 
-void swfs_coh_options_init(swfs_coh_options *o)
+void swfs_coh_options_default(swfs_coh_options *o)
 {
     memset(o, 0, sizeof *o);
     o->nfit = 4;
@@ -238,7 +238,7 @@ int swfs_coherence_compute(const swfs_cplx *cube, double framedt, const swfs_coh
     *out = NULL;
     swfs_coh_options opt;
     if (opt_in) opt = *opt_in;
-    else swfs_coh_options_init(&opt);
+    else swfs_coh_options_default(&opt);
     long deflags[SWFS_COH_DEFAULT_NLAGS];
     if (!opt.lags) {
         swfs_coh_default_lags(deflags);

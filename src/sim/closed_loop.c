@@ -222,7 +222,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     } else if ((rc = swfs_actuators_hexapolar(p->teldiam, lp->act_pitch, p->pupdx, &xy, &nact))) {
         goto done;
     }
-    if ((rc = swfs_dmfit_create(xy, nact, &r->geom, r->pupil->data, &lp->fit, &fit))) {
+    if ((rc = swfs_dmfit_create(&fit, xy, nact, &r->geom, r->pupil->data, &lp->fit))) {
         if (lp->act_xy) rc = swfs_fail_context(rc, "%s", lp->act_name ? lp->act_name : "DM actuators");
         goto done;
     }
