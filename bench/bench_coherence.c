@@ -27,7 +27,7 @@ int main(int argc, char **argv)
     const char *names[3] = {"auto", "fft", "direct"};
     for (int m = 0; m < 3; m++) {
         swfs_coh_options o;
-        swfs_coh_options_init(&o);
+        swfs_coh_options_default(&o);
         o.method = methods[m];
         o.exposure = 6.5e-3;
         double best = 1e30;

@@ -128,7 +128,7 @@ int swfs_cmd_coherence(int argc, char **argv)
     if (isnan(diam)) diam = g.teldiam;
 
     swfs_coh_options opt;
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     opt.nfit = (int)nfit;
     opt.exposure = exposure > 0 ? exposure : hdr_exp;
     /* Keep enough lags for the header exposure too, when --exposure overrides it. */

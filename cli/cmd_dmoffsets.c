@@ -129,7 +129,7 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
         cli_error(cmd);
         goto done;
     }
-    if (swfs_dmfit_create(xy, nact, &g, mask ? mask->data : NULL, &opt, &fit)) {
+    if (swfs_dmfit_create(&fit, xy, nact, &g, mask ? mask->data : NULL, &opt)) {
         fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, actfile ? actfile : "hexapolar actuators", swfs_last_error());
         goto done;
     }

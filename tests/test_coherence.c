@@ -89,7 +89,7 @@ static void test_exponential_decorrelation(void **state)
     for (size_t p = 0; p < npix; p++) omega[p] = 0.01 + 0.004 * (double)p; /* rad/frame */
     swfs_cplx *cube = ar1_cube(nx, ny, nt, tau0f, omega, 11);
     swfs_coh_options opt;
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     opt.method = SWFS_COH_FFT;
     swfs_coherence *c = NULL, *d = NULL;
     assert_ok(swfs_coherence_compute(cube, dt, &opt, &c));
@@ -140,7 +140,7 @@ static void test_snr_factor_downsampling(void **state)
     for (int im = 0; im < 3; im++) {
         const size_t M = Ms[im];
         swfs_coh_options opt;
-        swfs_coh_options_init(&opt);
+        swfs_coh_options_default(&opt);
         opt.exposure = (double)M * dt;
         swfs_coherence *c = NULL;
         assert_ok(swfs_coherence_compute(cube, dt, &opt, &c));
@@ -331,7 +331,7 @@ static void test_invalid_pixels(void **state)
     }
     cube->data[17 * npix + pn] = NAN;
     swfs_coh_options opt;
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     opt.exposure = 4e-3;
     swfs_coherence *c = NULL;
     assert_ok(swfs_coherence_compute(cube, 1e-3, &opt, &c));
@@ -360,12 +360,12 @@ static void test_bad_arguments(void **state)
     swfs_cplx *cube = ar1_cube(2, 2, 50, 5, omega, 1);
     swfs_coherence *c = NULL;
     swfs_coh_options opt;
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     opt.exposure = 0.1; /* 100 frames of 1 ms, the cube has 50 */
     assert_int_equal(swfs_coherence_compute(cube, 1e-3, &opt, &c), SWFS_ERR_ARG);
     assert_non_null(strstr(swfs_last_error(), "50 frames"));
     assert_null(c);
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     long lags[3] = {1, 2, 3};
     opt.lags = lags;
     opt.nlags = 3;
@@ -417,7 +417,7 @@ static void test_files(void **state)
     assert_int_equal(rd->nz, nt);
 
     swfs_coh_options opt;
-    swfs_coh_options_init(&opt);
+    swfs_coh_options_default(&opt);
     opt.exposure = expo;
     swfs_coherence *c = NULL;
     assert_ok(swfs_coherence_compute(rd, dt, &opt, &c));

@@ -55,7 +55,7 @@ static void known_surface(int influence)
     o.influence = influence;
     o.reg = 0.0; /* exact least squares */
     swfs_dmfit *f = NULL;
-    assert_ok(swfs_dmfit_create(xy, nact, &g, NULL, &o, &f));
+    assert_ok(swfs_dmfit_create(&f, xy, nact, &g, NULL, &o));
     assert_int_equal(swfs_dmfit_nact(f), nact);
     if (influence == SWFS_INFLUENCE_GAUSS) assert_close(swfs_dmfit_pitch(f), 0.6, 0.05);
 
@@ -143,7 +143,7 @@ static void test_modes(void **state)
     swfs_dmfit_options_default(&o);
     o.modes = 15; /* through n = 4 */
     swfs_dmfit *f = NULL;
-    assert_ok(swfs_dmfit_create(xy, nact, &g, NULL, &o, &f));
+    assert_ok(swfs_dmfit_create(&f, xy, nact, &g, NULL, &o));
     const double *mask = swfs_dmfit_mask(f);
     double *c = calloc(nact, sizeof *c), *s = calloc(NP * NP, sizeof *s), *d = calloc(NP * NP, sizeof *d);
     swfs_dmfit_stats st;
@@ -160,7 +160,7 @@ static void test_modes(void **state)
     /* Without the filter the fit follows the high orders too. */
     swfs_dmfit *f2 = NULL;
     o.modes = 0;
-    assert_ok(swfs_dmfit_create(xy, nact, &g, NULL, &o, &f2));
+    assert_ok(swfs_dmfit_create(&f2, xy, nact, &g, NULL, &o));
     assert_ok(swfs_dmfit_apply(f2, t, c, s, &st));
     assert_true(st.unfit_rms < 0.25 * rhi);
     swfs_dmfit_free(f2);
@@ -182,7 +182,7 @@ static void test_not_covering(void **state)
     size_t nact = 0;
     assert_ok(swfs_actuators_hexapolar(4.0, 0.5, 0.0, &xy, &nact)); /* a 4 m DM for a 6.3 m pupil */
     swfs_dmfit *f = NULL;
-    assert_int_equal(swfs_dmfit_create(xy, nact, &g, NULL, NULL, &f), SWFS_ERR_VALUE);
+    assert_int_equal(swfs_dmfit_create(&f, xy, nact, &g, NULL, NULL), SWFS_ERR_VALUE);
     assert_null(f);
     assert_non_null(strstr(swfs_last_error(), "do not cover the pupil"));
     free(xy);

@@ -61,7 +61,7 @@ typedef struct swfs_coh_options {
     int method;           /* SWFS_COH_AUTO / _FFT / _DIRECT */
 } swfs_coh_options;
 
-void swfs_coh_options_init(swfs_coh_options *o);
+void swfs_coh_options_default(swfs_coh_options *o);
 
 typedef struct swfs_coherence {
     size_t nx, ny, nframes;

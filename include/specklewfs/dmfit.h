@@ -67,8 +67,8 @@ typedef struct swfs_dmfit swfs_dmfit; /* plan: create once, apply many times */
 
 /* xy: nact (x, y) pairs [m]; g: PUPN, PUPDX, TELDIAM (and OBSCUR when mask is NULL);
  * mask: PUPN x PUPN pupil transmission or NULL for the annulus of g. */
-int swfs_dmfit_create(const double *xy, size_t nact, const swfs_geom *g, const double *mask,
-                      const swfs_dmfit_options *opt, swfs_dmfit **out);
+int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swfs_geom *g, const double *mask,
+                      const swfs_dmfit_options *opt);
 void swfs_dmfit_free(swfs_dmfit *f);
 
 /* target: PUPN x PUPN surface [m] (only samples inside the pupil are used). cmd: nact

@@ -25,6 +25,9 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
  * application's to choose. Its workers run best with a single-threaded BLAS (a threaded
  * BLAS inside every small GEMM only adds contention); the command line sets 1 at start.
  * These set and read OpenBLAS's thread count for applications that want the same. */
+/* Seconds on the monotonic clock since an arbitrary epoch (for rates and timings). */
+double swfs_wall_seconds(void);
+
 void swfs_blas_set_threads(int n);
 int swfs_blas_threads(void);
 

@@ -24,6 +24,7 @@
 
 #include <stddef.h>
 
+#include "specklewfs/numeric.h"
 #include "specklewfs/rng.h"
 
 SWFS_BEGIN_DECLS
@@ -88,9 +89,6 @@ int swfs_screen_gen_finish(swfs_screen_gen *g, double *out1, double *out2);
  * callers that need a transform of their own data on the same grid (e.g. an aperture
  * transfer function). */
 void swfs_screen_gen_execute(swfs_screen_gen *g);
-
-/* Signed FFT frequency index of bin k on an n grid: k for k < n/2, else k - n. */
-static inline long swfs_fft_freq_index(size_t k, size_t n) { return k < n / 2 ? (long)k : (long)k - (long)n; }
 
 SWFS_END_DECLS
 

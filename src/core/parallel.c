@@ -6,6 +6,7 @@
 
 #include <pthread.h>
 #include <stdlib.h>
+#include <time.h>
 #include <unistd.h>
 
 int swfs_parallel_threads(int requested, size_t max_useful)
@@ -65,3 +66,10 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
 
 void swfs_blas_set_threads(int n) { openblas_set_num_threads(n < 1 ? 1 : n); }
 int swfs_blas_threads(void) { return openblas_get_num_threads(); }
+
+double swfs_wall_seconds(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
+}

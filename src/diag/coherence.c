@@ -1,5 +1,6 @@
 /* Speckle coherence diagnostics: see include/specklewfs/coherence.h and docs/coherence.md. */
 #include "../core/planner.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/coherence.h"
 #include "specklewfs/status.h"
 
@@ -20,7 +21,7 @@ void swfs_coh_default_lags(long *lags)
     for (long k = 25; k <= 100; k += 5) lags[n++] = k;
 }
 
-void swfs_coh_options_init(swfs_coh_options *o)
+void swfs_coh_options_default(swfs_coh_options *o)
 {
     memset(o, 0, sizeof *o);
     o->nfit = 4;
@@ -83,12 +84,6 @@ double swfs_coh_snr_factor(const double complex *gamma, size_t nlag, double fram
     return 2 * sum / m;
 }
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
 double swfs_coh_median(const swfs_real *map)
 {
     size_t n = swfs_real_size(map), m = 0;
@@ -98,7 +93,7 @@ double swfs_coh_median(const swfs_real *map)
         if (!isnan(map->data[i])) v[m++] = map->data[i];
     double med = NAN;
     if (m) {
-        qsort(v, m, sizeof *v, cmp_double);
+        swfs_sort_doubles(v, m);
         med = (m % 2) ? v[m / 2] : 0.5 * (v[m / 2 - 1] + v[m / 2]);
         if (isnan(med)) med = v[m / 2]; /* -Inf and +Inf in the middle: cannot happen here, but be safe */
     }
@@ -243,7 +238,7 @@ int swfs_coherence_compute(const swfs_cplx *cube, double framedt, const swfs_coh
     *out = NULL;
     swfs_coh_options opt;
     if (opt_in) opt = *opt_in;
-    else swfs_coh_options_init(&opt);
+    else swfs_coh_options_default(&opt);
     long deflags[SWFS_COH_DEFAULT_NLAGS];
     if (!opt.lags) {
         swfs_coh_default_lags(deflags);

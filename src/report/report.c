@@ -1,6 +1,7 @@
 /* The report: figures of a run's products and index.html (see include/specklewfs/report.h
  * and docs/report.md). Reads products through the FITS layer, chooses colour ranges from
  * robust percentiles, draws through plot.h (PLplot), writes HTML via .part + rename. */
+#include "specklewfs/numeric.h"
 #include "specklewfs/report.h"
 
 #include "specklewfs/array.h"
@@ -177,12 +178,6 @@ static void add_figure(ctx *c, const char *file, int w, int h, const char *headi
 
 /* ---- robust ranges ----------------------------------------------------- */
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
 double swfs_report_percentile(const double *v, size_t n, const unsigned char *mask, double pct)
 {
     double *w = malloc((n ? n : 1) * sizeof *w);
@@ -192,7 +187,7 @@ double swfs_report_percentile(const double *v, size_t n, const unsigned char *ma
         if (isfinite(v[k]) && (!mask || mask[k])) w[m++] = v[k];
     double r = NAN;
     if (m) {
-        qsort(w, m, sizeof *w, cmp_double);
+        swfs_sort_doubles(w, m);
         double pos = fmin(fmax(pct, 0.0), 100.0) / 100.0 * (double)(m - 1);
         size_t k = (size_t)floor(pos);
         double f = pos - (double)k;

@@ -1,5 +1,6 @@
 /* The random-reference estimator: per-pixel statistics -> Psi, g, V, SNR.
  * See include/specklewfs/estimate.h and paper Sec. 2.2-2.4. */
+#include "specklewfs/numeric.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/status.h"
 
@@ -18,19 +19,6 @@ void swfs_halo_free(swfs_halo *h)
     free(h);
 }
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double median(double *v, size_t n)
-{
-    if (!n) return NAN;
-    qsort(v, n, sizeof *v, cmp_double);
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
-
 /* Median of the valid per-pixel g in the smallest square window around (i, j) that holds
  * at least SWFS_G_FALLBACK_MIN of them (or all of them). */
 static double fallback_g(const swfs_halo *h, size_t i, size_t j, double *scratch)
@@ -47,7 +35,7 @@ static double fallback_g(const swfs_halo *h, size_t i, size_t j, double *scratch
                 if (h->valid->data[y * nx + x] > 0.5) scratch[cnt++] = h->gain_pix->data[y * nx + x];
         if (cnt >= SWFS_G_FALLBACK_MIN || (x0 == 0 && y0 == 0 && x1 == nx - 1 && y1 == ny - 1)) break;
     }
-    return median(scratch, cnt);
+    return swfs_median_inplace(scratch, cnt);
 }
 
 /* Separable Gaussian smoothing (sigma in pixels, truncated at 4 sigma) of v into out,
@@ -298,7 +286,7 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
         h->halo_lf->data[p] = cabs(stab) > 0.0 ? amp * stab / cabs(stab) : 0.0;
         if (h->valid->data[p] > 0.5 && isfinite(h->snr->data[p])) scratch[nsnr++] = h->snr->data[p];
     }
-    h->median_snr = median(scratch, nsnr);
+    h->median_snr = swfs_median_inplace(scratch, nsnr);
     h->valid_fraction = (double)h->n_valid / (double)np;
     swfs_free(scratch);
     swfs_free(rdb);

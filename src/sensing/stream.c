@@ -1,4 +1,5 @@
 /* The stream: see include/specklewfs/stream.h. */
+#include "specklewfs/parallel.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/status.h"
 
@@ -22,13 +23,6 @@ struct swfs_stream {
     size_t cam;
     double wfs, seconds;
 };
-
-static double now_seconds(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
 
 void swfs_stream_options_default(swfs_stream_options *o)
 {
@@ -100,7 +94,7 @@ int swfs_stream_create(swfs_stream **out, swfs_pipeline *p, const swfs_stream_op
 int swfs_stream_push(swfs_stream *s, const swfs_batch *b)
 {
     if (!b->nexp) return SWFS_OK;
-    const double t0 = now_seconds();
+    const double t0 = swfs_wall_seconds();
     if (b->nexp > s->outcap) {
         if (b->nexp > SIZE_MAX / sizeof(swfs_complex) / s->nf2)
             return swfs_fail(SWFS_ERR_VALUE, "stream: batch of %zu frames is too large", b->nexp);
@@ -129,14 +123,14 @@ int swfs_stream_push(swfs_stream *s, const swfs_batch *b)
         s->wfs += e->count == 1 ? e->w_first : e->w_first + e->w_last + (double)(e->count - 2);
     }
     s->cam += b->nexp;
-    s->seconds += now_seconds() - t0;
+    s->seconds += swfs_wall_seconds() - t0;
     return SWFS_OK;
 }
 
 int swfs_stream_run(swfs_stream *s, swfs_source_fn next, void *src_ctx, swfs_stream_update_fn update, void *upd_ctx)
 {
     size_t since = 0;
-    double t_last = now_seconds();
+    double t_last = swfs_wall_seconds();
     for (;;) {
         swfs_batch b;
         memset(&b, 0, sizeof b);
@@ -146,12 +140,12 @@ int swfs_stream_run(swfs_stream *s, swfs_source_fn next, void *src_ctx, swfs_str
         if (s->opt.max_frames && s->cam + b.nexp > s->opt.max_frames) b.nexp = s->opt.max_frames - s->cam;
         if ((rc = swfs_stream_push(s, &b))) return swfs_fail_context(rc, "batch of cube %zu", b.cube);
         since += b.nexp;
-        const double now = now_seconds();
+        const double now = swfs_wall_seconds();
         if (update && ((s->opt.every && since >= s->opt.every) ||
                        (s->opt.every_seconds > 0 && now - t_last >= s->opt.every_seconds))) {
             if ((rc = update(upd_ctx, s, 0))) return rc;
             since = 0;
-            t_last = now_seconds();
+            t_last = swfs_wall_seconds();
         }
         if (s->opt.max_frames && s->cam >= s->opt.max_frames) break;
     }

@@ -1,6 +1,7 @@
 /* Closed-loop NCP correction in simulation: measure (Sec. 3 simulation + estimator +
  * pupil step), fit DM offsets, apply with a gain, measure again. See
  * include/specklewfs/closed_loop.h and docs/closed-loop.md. */
+#include "specklewfs/parallel.h"
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/aperture.h"
@@ -13,13 +14,6 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
-
-static double now_seconds(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
 
 void swfs_loop_params_default(swfs_loop_params *lp)
 {
@@ -159,7 +153,7 @@ static int check_loop_params(const swfs_loop_params *lp)
 int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, const swfs_sim_result *first,
                          swfs_progress_fn progress, void *ctx, swfs_loop_result **out)
 {
-    const double t0 = now_seconds();
+    const double t0 = swfs_wall_seconds();
     *out = NULL;
     int rc = swfs_sim_params_check(p);
     if (rc) return rc;
@@ -222,7 +216,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     } else if ((rc = swfs_actuators_hexapolar(p->teldiam, lp->act_pitch, p->pupdx, &xy, &nact))) {
         goto done;
     }
-    if ((rc = swfs_dmfit_create(xy, nact, &r->geom, r->pupil->data, &lp->fit, &fit))) {
+    if ((rc = swfs_dmfit_create(&fit, xy, nact, &r->geom, r->pupil->data, &lp->fit))) {
         if (lp->act_xy) rc = swfs_fail_context(rc, "%s", lp->act_name ? lp->act_name : "DM actuators");
         goto done;
     }
@@ -235,7 +229,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     memcpy(r->actuators->data, xy, 2 * nact * sizeof *xy);
 
     for (size_t k = 0; k < nrows; k++) {
-        const double t1 = now_seconds();
+        const double t1 = swfs_wall_seconds();
         swfs_loop_iter *row = &r->rows[k];
         double *resid = swfs_real_frame(r->residual, k), *surf = swfs_real_frame(r->dm_surface, k);
         double *ck = r->commands->data + k * nact;
@@ -289,10 +283,10 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
             double *cn = r->commands->data + (k + 1) * nact;
             for (size_t a = 0; a < nact; a++) cn[a] = ck[a] + lp->gain * cmd[a];
         }
-        row->seconds = now_seconds() - t1;
+        row->seconds = swfs_wall_seconds() - t1;
         if (progress) progress(ctx, "loop", k + 1, nrows);
     }
-    r->seconds = now_seconds() - t0;
+    r->seconds = swfs_wall_seconds() - t0;
 
 done:
     swfs_pupil_result_free(pr);

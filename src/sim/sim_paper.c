@@ -22,13 +22,6 @@
 #include <string.h>
 #include <time.h>
 
-static double now_seconds(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
 int swfs_sim_ncp_map(const swfs_sim_params *p, const double *mask, double *ncp, double *rms, double *pv)
 {
     const size_t np = (size_t)p->pupn;
@@ -279,7 +272,7 @@ static int ncp_override(const double *in, const double *mask, size_t n, double *
 int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_progress_fn progress, void *ctx,
                            swfs_sim_result **out)
 {
-    const double t0 = now_seconds();
+    const double t0 = swfs_wall_seconds();
     *out = NULL;
     int rc = swfs_sim_params_check(p);
     if (rc) return rc;
@@ -457,7 +450,7 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->strehl = st / (double)nframes;
     r->strehl_ao = sta / (double)nframes;
     r->window_fraction = tot / (double)nframes / p->total_counts;
-    r->seconds = now_seconds() - t0;
+    r->seconds = swfs_wall_seconds() - t0;
 
 done:
     workers_free(wk, nw);

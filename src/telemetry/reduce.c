@@ -1,5 +1,6 @@
 /* Science-camera frame reduction (paper Sec. 4.3), see reduce.h. */
 #include "../core/planner.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/array.h"
 #include "specklewfs/status.h"
@@ -48,19 +49,6 @@ struct swfs_reduce {
     size_t q_n;
 };
 
-static long swfs_fft_index(size_t k, size_t n) { return k < (n + 1) / 2 ? (long)k : (long)k - (long)n; }
-
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
-static double median_of(double *v, size_t n)
-{
-    qsort(v, n, sizeof *v, cmp_double);
-    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
 
 void swfs_reduce_free(swfs_reduce *r)
 {
@@ -115,10 +103,10 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
         size_t m = 0;
         for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = r->dark[i];
         if (m > 0) {
-            double med = median_of(r->work, m);
+            double med = swfs_median_inplace(r->work, m);
             m = 0;
             for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = fabs(r->dark[i] - med);
-            double sig = 1.4826 * median_of(r->work, m);
+            double sig = 1.4826 * swfs_median_inplace(r->work, m);
             if (sig > 0)
                 for (size_t i = 0; i < n; i++)
                     if (fabs(r->dark[i] - med) > p->hot_sigma * sig) r->bad[i] = 1;
@@ -128,7 +116,7 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
     if (flat) {
         size_t m = 0;
         for (size_t i = 0; i < n; i++) if (!r->bad[i]) r->work[m++] = r->flat[i];
-        double med = m ? median_of(r->work, m) : 1.0;
+        double med = m ? swfs_median_inplace(r->work, m) : 1.0;
         if (!(med > 0)) { swfs_reduce_free(r); return swfs_fail(SWFS_ERR_VALUE, "reduce: flat field median %g is not positive", med); }
         for (size_t i = 0; i < n; i++) {
             if (r->bad[i]) continue;
@@ -178,7 +166,7 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
         /* Beyond the optical cutoff PIXSCALE cycles/pixel by 2 bins (the window's width). */
         for (size_t j = 0; j < ny; j++)
             for (size_t i = 0; i < nh; i++) {
-                double fx = (double)i / (double)nx, fy = (double)swfs_fft_index(j, ny) / (double)ny;
+                double fx = (double)i / (double)nx, fy = (double)swfs_fft_freq_index(j, ny) / (double)ny;
                 double fmargin = 2.0 / (double)(nx < ny ? nx : ny);
                 if (sqrt(fx * fx + fy * fy) > p->pixscale + fmargin) { r->oob[j * nh + i] = 1; r->noob++; }
             }
@@ -214,7 +202,7 @@ void swfs_badpix_replace(double *img, size_t nx, size_t ny, const unsigned char 
                     size_t kk = (size_t)jj * nx + (size_t)ii;
                     if (!bad[kk] && isfinite(src[kk])) v[m++] = src[kk];
                 }
-            if (m) img[k] = median_of(v, m);
+            if (m) img[k] = swfs_median_inplace(v, m);
         }
 }
 

@@ -159,8 +159,8 @@ static int sym_pinv(double *G, size_t n, double mu, double rcond, double **P)
     return SWFS_OK;
 }
 
-int swfs_dmfit_create(const double *xy, size_t nact, const swfs_geom *g, const double *mask,
-                      const swfs_dmfit_options *opt, swfs_dmfit **out)
+int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swfs_geom *g, const double *mask,
+                      const swfs_dmfit_options *opt)
 {
     *out = NULL;
     swfs_dmfit_options o;

@@ -1,4 +1,5 @@
 /* Regularized SVD reconstructor and the telemetry FITS files (see wfs.h). */
+#include "specklewfs/numeric.h"
 #include "specklewfs/wfs.h"
 #include "specklewfs/array.h"
 #include "specklewfs/fits.h"
@@ -100,12 +101,6 @@ static int svd_thin(const double *D, size_t m, size_t n, double **U, double **sv
     return SWFS_OK;
 }
 
-static int cmp_double(const void *a, const void *b)
-{
-    double x = *(const double *)a, y = *(const double *)b;
-    return (x > y) - (x < y);
-}
-
 /* Numerical rank: singular values above 1e-10 of the largest. */
 static size_t svd_rank(const double *sv, size_t k)
 {
@@ -162,8 +157,7 @@ static double noise_estimate(const double *D, size_t m, size_t n, size_t rank, c
         double v = (tot / (double)nframes - in) / (double)(nvs - rank);
         if (v > 0) return v;
     }
-    qsort(N, rank, sizeof *N, cmp_double);
-    double med = rank % 2 ? N[rank / 2] : 0.5 * (N[rank / 2 - 1] + N[rank / 2]);
+    double med = swfs_median_inplace(N, rank);
     return med > 0 ? med : 0;
 }
 
