@@ -372,7 +372,7 @@ _PROTOS = {
     "swfs_mft_inverse": (c_int, [c_ptr, c_ptr, c_ptr]),
     # coherence.h
     "swfs_coh_default_lags": (None, [P(c_long)]),
-    "swfs_coh_options_init": (None, [P(swfs_coh_options)]),
+    "swfs_coh_options_default": (None, [P(swfs_coh_options)]),
     "swfs_coherence_compute": (c_int, [P(swfs_cplx), c_dbl, P(swfs_coh_options), P(P(swfs_coherence))]),
     "swfs_coherence_free": (None, [P(swfs_coherence)]),
     "swfs_coherence_snr_map": (c_int, [P(swfs_coherence), c_dbl, P(swfs_real)]),

@@ -70,7 +70,7 @@ def coherence(cube, framedt, lags=None, max_lag=0, nfit=4, exposure=0.0, min_pow
     (framedt [s] between frames). lags: output lags [frames] (None: the paper's)."""
     cube = as_array(cube, "cube", np.complex128, ndim=3)
     o = _lib.swfs_coh_options()
-    lib.swfs_coh_options_init(ctypes.byref(o))
+    lib.swfs_coh_options_default(ctypes.byref(o))
     lag_arr = None
     if lags is not None:
         lag_arr = (ctypes.c_long * len(lags))(*[int(x) for x in lags])
