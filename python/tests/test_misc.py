@@ -1,0 +1,68 @@
+"""The remaining bindings: reset, geometry reads, modal reconstructor, model reconstructor
+swaps, the wind fit."""
+import numpy as np
+import pytest
+
+import specklewfs as sw
+
+
+def test_accumulator_reset_and_fields():
+    rng = np.random.default_rng(0)
+    a = sw.Accumulator(3, 2).add(rng.normal(size=(4, 2, 3)), rng.normal(size=(4, 2, 3)) + 0j)
+    np.testing.assert_array_equal(a.field("N"), 4)
+    a.reset()
+    assert a.frames == 0 and np.all(a.state() == 0)
+    with pytest.raises(ValueError):
+        a.field("NOPE")
+
+
+def test_read_geom(tmp_path):
+    g = sw.Geom(wavelen=1e-6, teldiam=2, obscur=0.1, pixscale=0.5, pupdx=0.05, pupn=40)
+    p = str(tmp_path / "g.fits")
+    sw.write_fits(p, np.zeros((2, 2)), geom=g)
+    assert sw.read_geom(p) == g and g.require() is g
+    with pytest.raises(sw.Error, match="PIXSCALE"):
+        sw.Geom(wavelen=1e-6, teldiam=2, obscur=0.1, pupdx=0.05, pupn=40).require("test geometry")
+
+
+def test_modal_reconstructor_and_model_swaps():
+    xy = sw.actuators_hexapolar(2.0, 0.4, 0.2)
+    mask = sw.aperture(40, 0.05, 2.0, 0.1)
+    m = sw.SpeckleModel(xy, mask, 0.05, 2.0, 8)
+    wfs = sw.ShackHartmann(8, 2.0, mask, 0.05)
+    np.testing.assert_array_equal(wfs.valid, m.wfs.valid)
+    np.testing.assert_array_equal(wfs.S.to_dense(), m.wfs.S.to_dense())
+    D = m.interaction_matrix()
+    modes = sw.dm_modes(m.T, mask)
+    r = sw.Recon.modal(D, modes, 1, 20)
+    # W = V_K pinv(D V_K): W D is the identity on the K modes kept.
+    V = modes[:, 1:21]
+    np.testing.assert_allclose(r.W @ D @ V, V, atol=1e-6 * np.abs(V).max())
+    rng = np.random.default_rng(2)
+    slopes = (D @ rng.normal(size=(len(xy), 300)) * 5e-8).T
+    W0 = m.recon.W.copy()
+    m.set_map(slopes, noise_var=1e-20)
+    assert not np.allclose(m.recon.W, W0) and m.recon.noise_var == 1e-20
+    m.set_vk(slopes, L0=10.0, noise_var=1e-20)
+    assert m.recon.W.shape == W0.shape and m.recon.noise_var == 1e-20
+
+
+def test_fit_wind():
+    """Speckles whose phase turns at k theta.v (a frozen flow v): fit_wind finds v."""
+    geom = sw.Geom(wavelen=3.8e-6, teldiam=6.5, obscur=0.1, pixscale=0.25, pupdx=0.04, pupn=163)
+    v = np.array([30.0, -20.0])
+    dt, n, nf = 0.01, 3000, 12
+    i = np.arange(nf) - nf // 2
+    tx, ty = np.meshgrid(i * geom.pixscale * geom.wavelen / geom.teldiam, i * geom.pixscale * geom.wavelen /
+                         geom.teldiam)
+    rate = 2 * np.pi / geom.wavelen * (tx * v[0] + ty * v[1])  # PHRATE = +k theta.v (coherence.h)
+    rng = np.random.default_rng(4)
+    a = 0.97 * np.exp(-1j * rate * dt)  # Gamma(tau) ~ a^tau: arg turns by +rate per second
+    psi = np.empty((n, nf, nf), complex)
+    psi[0] = rng.normal(size=(nf, nf))
+    for t in range(1, n):
+        psi[t] = a * psi[t - 1] + np.sqrt(1 - 0.97 ** 2) * (rng.normal(size=(nf, nf)) + 1j * rng.normal(size=(nf, nf)))
+    c = sw.coherence(psi, dt, lags=[0, 1, 2, 3, 4, 5])
+    np.testing.assert_allclose(np.median((c.phrate / np.where(rate == 0, np.nan, rate))[rate != 0]), 1, rtol=0.05)
+    vx, vy = c.fit_wind(geom)
+    np.testing.assert_allclose([vx, vy], v, rtol=0.05)
