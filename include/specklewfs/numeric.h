@@ -10,7 +10,7 @@ SWFS_BEGIN_DECLS
 
 /* Sort v[0..n) ascending (NaN-free input; qsort with a total order on doubles). */
 void swfs_sort_doubles(double *v, size_t n);
-/* Median of v[0..n), n >= 1 (the mean of the two middle values for even n); sorts v. */
+/* Median of v[0..n) (the mean of the two middle values for even n; NaN for n = 0); sorts v. */
 double swfs_median_inplace(double *v, size_t n);
 /* Signed frequency index of FFT bin k of n: 0, 1, ..., ceil(n/2) - 1, then -floor(n/2),
  * ..., -1 (numpy's fftfreq order; correct for odd n as well). */
