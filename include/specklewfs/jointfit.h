@@ -34,11 +34,14 @@ typedef struct swfs_jointfit_options {
     double knot_factor;    /* B-spline intervals across D = knot_factor * (window width in
                               lambda/D), rounded up; 1 (see docs/estimator.md) */
     int legendre_order;    /* p + q <= order for log g; 4 */
+    double g_prior_sigma;  /* Gaussian prior of this standard deviation on each non-constant
+                              log g coefficient (keeps g finite where no pixel constrains it);
+                              0.5; <= 0: none */
     int fit_kappa;         /* 1: fit kappa >= 0; 0: kappa = 0 */
     int max_iter;          /* Levenberg-Marquardt iterations, 40 */
     int gls_iter;          /* Gauss-Newton iterations of the linear (constant g) start, 2 */
     double tol;            /* stop when an accepted step lowers the cost by less than tol
-                              (chi-square units) and the prior weights move < 1%; 0.05 */
+                              (chi-square units) and the prior weights move < 5%; 0.5 */
     double lambda_phi;     /* > 0: fixed prior weight on phi; <= 0: evidence rule (default) */
     double lambda_alpha;   /* > 0: fixed prior weight on alpha; <= 0: evidence rule (default) */
     double alpha_ratio;    /* lambda_alpha >= alpha_ratio * lambda_phi; 10 */

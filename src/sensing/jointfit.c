@@ -11,16 +11,6 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
-#ifdef JF_PROFILE
-#include <stdio.h>
-static double jf_now(void){struct timespec t;clock_gettime(CLOCK_MONOTONIC,&t);return (double)t.tv_sec+1e-9*(double)t.tv_nsec;}
-double jf_t[8];
-#define TIC(k) double _t##k = jf_now()
-#define TOC(k) jf_t[k] += jf_now() - _t##k
-#else
-#define TIC(k)
-#define TOC(k)
-#endif
 
 void swfs_jointfit_options_default(swfs_jointfit_options *o)
 {
@@ -29,7 +19,8 @@ void swfs_jointfit_options_default(swfs_jointfit_options *o)
     o->fit_kappa = 1;
     o->max_iter = 40;
     o->gls_iter = 2;
-    o->tol = 0.05;
+    o->tol = 0.5;
+    o->g_prior_sigma = 0.5;
     o->lambda_phi = 0.0;
     o->lambda_alpha = 0.0;
     o->alpha_ratio = 10.0;
@@ -72,6 +63,7 @@ typedef struct fit {
     double complex *z, *Z, *W, *psi;
     double *g;
     double lam_phi, lam_alpha, gam_phi, gam_alpha, rank;
+    double beta_prec;       /* 1 / g_prior_sigma^2 on the non-constant log g terms */
     int iters;
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
@@ -142,10 +134,7 @@ static void build_normal(fit *ft, const double *x)
 {
     const size_t nb = ft->nb, nf = ft->nf, nl = ft->nl, np = ft->np, nz = 2 * nb, nc = nl + 1;
     const double kappa = x[2 * nb + nl];
-    TIC(0);
     jf_jacobian(ft->B, ft->W, ft->yt);
-    TOC(0);
-    TIC(1);
     double *Hc = ft->H; /* row-major np x np */
     memset(Hc, 0, np * np * sizeof *Hc);
     memset(ft->grad, 0, np * sizeof *ft->grad);
@@ -228,10 +217,7 @@ static void build_normal(fit *ft, const double *x)
             y[2 * k + 1] = Rk[3 * k + 2] * y1;
         }
     }
-    TOC(1);
-    TIC(2);
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nz, nfd, 1.0, ft->yt, nfd, 0.0, Hc, (int)np);
-    TOC(2);
     if (ft->stage == 0 || !ft->o->fit_kappa) {
         /* frozen parameters: identity rows, no coupling */
         const size_t f0 = ft->stage == 0 ? nz : nz + nl;
@@ -255,6 +241,7 @@ static void assemble(fit *ft, double mu)
             ft->A[i * np + j] += ft->lam_alpha * ft->B->R[i * nb + j];
             ft->A[(nb + i) * np + nb + j] += ft->lam_phi * ft->B->R[i * nb + j];
         }
+    for (size_t m = 1; m < ft->nl; m++) ft->A[(2 * nb + m) * np + 2 * nb + m] += ft->beta_prec;
     if (mu > 0.0)
         for (size_t i = 0; i < np; i++) ft->A[i * np + i] += mu * (ft->H[i * np + i] > 0.0 ? ft->H[i * np + i] : 1.0);
 }
@@ -268,7 +255,6 @@ static int newton_evidence(fit *ft, int update, double *dl)
 {
     const size_t nb = ft->nb, np = ft->np;
     *dl = 0.0;
-    TIC(3);
     assemble(ft, 0.0);
     if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
     prior_terms(ft, ft->x, &(double){0}, &(double){0}); /* Rx at x */
@@ -277,10 +263,11 @@ static int newton_evidence(fit *ft, int update, double *dl)
         ft->step[i] -= ft->lam_alpha * ft->Rx[i];
         ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
     }
+    for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
     LAPACKE_dpotrs(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
     for (size_t i = 0; i < np; i++) ft->xt[i] = ft->x[i] + ft->step[i];
     if (ft->xt[np - 1] < 0.0) ft->xt[np - 1] = 0.0; /* kappa >= 0 */
-    if (!update) { TOC(3); return 1; }
+    if (!update) return 1;
     if (LAPACKE_dpotri(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
     double tra = 0.0, trp = 0.0;
     for (size_t i = 0; i < nb; i++)
@@ -289,7 +276,6 @@ static int newton_evidence(fit *ft, int update, double *dl)
             tra += ft->A[a * np + b] * ft->B->R[i * nb + j];
             trp += ft->A[(nb + a) * np + nb + b] * ft->B->R[i * nb + j];
         }
-    TOC(3);
     double pa, pp;
     prior_terms(ft, ft->xt, &pa, &pp);
     const double rank = ft->rank;
@@ -310,11 +296,11 @@ static int newton_evidence(fit *ft, int update, double *dl)
 static double total_cost(fit *ft, const double *x, double *chi2)
 {
     double pa, pp;
-    TIC(5);
     *chi2 = model_chi2(ft, x);
-    TOC(5);
     prior_terms(ft, x, &pa, &pp);
-    return *chi2 + ft->lam_alpha * pa + ft->lam_phi * pp;
+    double pb = 0.0;
+    for (size_t m = 1; m < ft->nl; m++) pb += x[2 * ft->nb + m] * x[2 * ft->nb + m];
+    return *chi2 + ft->lam_alpha * pa + ft->lam_phi * pp + ft->beta_prec * pb;
 }
 
 /* Per-pixel data from the regression: full F, f, the marginal information of c (Schur
@@ -403,9 +389,8 @@ static int lm_step(fit *ft, double *mu, double *cur, double *chi2)
             ft->step[i] -= ft->lam_alpha * ft->Rx[i];
             ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
         }
-        TIC(4);
+        for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
         int prc = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
-        TOC(4);
         if (prc != 0) {
             *mu = *mu > 0.0 ? *mu * 10.0 : 1e-6;
             continue;
@@ -442,7 +427,7 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
          * a secant step on log lambda - log T(lambda) (per weight) finds it in a few passes. */
         double lp[2] = {0, 0}, fp[2] = {0, 0};
         const double lam0[2] = {ft->lam_phi, ft->lam_alpha};
-        for (int inner = 0; inner < 12 && evid; inner++) {
+        for (int inner = 0; inner < (it < 2 ? 12 : 3) && evid; inner++) {
             const double l[2] = {log(ft->lam_phi), log(ft->lam_alpha)};
             if (!newton_evidence(ft, 1, &dl)) break;
             if (dl < 1e-2) break;
@@ -484,9 +469,6 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
         }
         cur = ok ? c : before;
         if (ft->stage == 1) ft->iters++;
-#ifdef JF_PROFILE
-        fprintf(stderr, "stage %d it %d cost %.3f dcost %.3g chi2 %.2f dl %.3g lphi %.3g lal %.3g kappa %.4f ok %d\n", ft->stage, it, cur, before - c, *chi2, dl, ft->lam_phi, ft->lam_alpha, ft->x[ft->np - 1], ok);
-#endif
         if (!ok || (before - c < ft->o->tol && dl < 0.05)) break;
     }
     return cur;
@@ -537,6 +519,7 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     if (ft.B->nb < 2) { rc = swfs_fail(SWFS_ERR_VALUE, "joint fit: the pupil mask is empty"); goto done; }
     ft.mft = swfs_mft_create(n, nfx, nfy, alpha, SWFS_MFT_DOUBLE);
     ft.nb = ft.B->nb;
+    ft.beta_prec = o.g_prior_sigma > 0.0 ? 1.0 / (o.g_prior_sigma * o.g_prior_sigma) : 0.0;
     if (o.prior == SWFS_JF_PRIOR_CURVATURE) jf_basis_penalty(ft.B, ft.mask, 1);
     /* R's null space: constants (gradient), constants and tilts (curvature) */
     ft.rank = (double)ft.nb - (o.prior == SWFS_JF_PRIOR_CURVATURE ? 3.0 : 1.0);
@@ -633,8 +616,5 @@ done:
     clock_gettime(CLOCK_MONOTONIC, &t1);
     res->seconds = (double)(t1.tv_sec - t0.tv_sec) + 1e-9 * (double)(t1.tv_nsec - t0.tv_nsec);
     *out = res;
-#ifdef JF_PROFILE
-    fprintf(stderr, "jac %.3f local %.3f syrk %.3f evid %.3f posv %.3f model %.3f\n", jf_t[0], jf_t[1], jf_t[2], jf_t[3], jf_t[4], jf_t[5]);
-#endif
     return SWFS_OK;
 }
