@@ -5,7 +5,8 @@
  * [nm rms, piston + tip/tilt removed, swfs_wfe_compare] of
  *   paper   the paper's formulae (per-pixel g, eq:PSI-LowFreq, full weight; err_paper)
  *   old     the current default (regularized g, HALO_LF, Wiener weight; err_lf_snr)
- *   joint   swfs_regress + swfs_jointfit
+ *   joint   swfs_regress + swfs_jointfit (defaults: thin-plate curvature prior)
+ *   j-grad  the same with the gradient prior of docs/estimator.md's first version
  * then the accumulation cost per pixel-frame of swfs_regress_add against swfs_accum_add,
  * and the joint fit's wall time.
  *
@@ -38,8 +39,8 @@ static int die(const char *what)
 }
 
 /* Joint-fit NCP error for one noisy cube; fills the fit time and the |Psi| error. */
-static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, double *err, double *fit_s, double *psi_err,
-                       swfs_jointfit_result **keep)
+static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, const swfs_jointfit_options *o, double *err,
+                       double *fit_s, double *psi_err)
 {
     const size_t np = noisy->nx * noisy->ny;
     swfs_regress *r = swfs_regress_create(noisy->nx, noisy->ny);
@@ -49,7 +50,7 @@ static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, doubl
     swfs_regress_sol *s;
     if (swfs_regress_solve(r, &s)) return 1;
     swfs_jointfit_result *j;
-    if (swfs_jointfit(s, &sim->geom, sim->pupil, NULL, &j)) return 1;
+    if (swfs_jointfit(s, &sim->geom, sim->pupil, o, &j)) return 1;
     if (swfs_wfe_compare(j->wfe->data, sim->ncp->data, sim->pupil->data, (size_t)sim->geom.pupn, err, NULL, NULL))
         return 1;
     *fit_s = j->seconds;
@@ -60,7 +61,7 @@ static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, doubl
         for (size_t b = a; b > 0 && rel[b - 1] > rel[b]; b--) { double t = rel[b]; rel[b] = rel[b - 1]; rel[b - 1] = t; }
     *psi_err = rel[np / 2];
     free(rel);
-    if (keep) *keep = j; else swfs_jointfit_result_free(j);
+    swfs_jointfit_result_free(j);
     swfs_regress_sol_free(s);
     swfs_regress_free(r);
     return 0;
@@ -76,7 +77,7 @@ int main(int argc, char **argv)
         nsig = 0;
         for (int k = 2; k < argc && nsig < 8; k++) sigmas[nsig++] = atof(argv[k]);
     }
-    double err[3][8][3], tfit[3][8], perr[3][8];
+    double err[3][8][4], tfit[3][8], perr[3][8];
     double acc_ns = 0.0, reg_ns = 0.0;
     for (int s = 0; s < nseeds; s++) {
         swfs_sim_params p;
@@ -91,8 +92,13 @@ int main(int argc, char **argv)
             if (swfs_recovery_run(sim, sigmas[k], nseed, NULL, NULL, 0, &rec)) return die("recovery");
             swfs_real *noisy = swfs_real_copy(sim->science);
             if (!noisy || swfs_sim_camera(sim->science, sigmas[k], p.gain, nseed, noisy)) return die("camera noise");
-            double ej;
-            if (joint_error(sim, noisy, &ej, &tfit[s][k], &perr[s][k], NULL)) return die("joint fit");
+            double ej, eg, tg, pg;
+            swfs_jointfit_options og;
+            swfs_jointfit_options_default(&og);
+            og.prior = SWFS_JF_PRIOR_GRADIENT;
+            if (joint_error(sim, noisy, NULL, &ej, &tfit[s][k], &perr[s][k])) return die("joint fit");
+            if (joint_error(sim, noisy, &og, &eg, &tg, &pg)) return die("joint fit (gradient prior)");
+            err[s][k][3] = eg * 1e9;
             err[s][k][0] = rec.err_paper * 1e9;
             err[s][k][1] = rec.err_lf_snr * 1e9;
             err[s][k][2] = ej * 1e9;
@@ -129,8 +135,8 @@ int main(int argc, char **argv)
     printf("%-6s %-7s", "seed", "method");
     for (int k = 0; k < nsig; k++) printf(" %8g", sigmas[k]);
     printf("\n");
-    static const char *names[3] = {"paper", "old", "joint"};
-    for (int m = 0; m < 3; m++)
+    static const char *names[4] = {"paper", "old", "joint", "j-grad"};
+    for (int m = 0; m < 4; m++)
         for (int s = 0; s <= nseeds; s++) {
             if (s < nseeds) printf("%-6d %-7s", s + 1, names[m]);
             else printf("%-6s %-7s", "mean", names[m]);

@@ -39,7 +39,7 @@ typedef struct swfs_jointfit_options {
                               0.5; <= 0: none */
     int fit_kappa;         /* 1: fit kappa >= 0; 0: kappa = 0 */
     int max_iter;          /* Levenberg-Marquardt iterations, 40 */
-    int gls_iter;          /* Gauss-Newton iterations of the linear (constant g) start, 2 */
+    int gls_iter;          /* Gauss-Newton iterations of the linear (constant g) start, 1 */
     double tol;            /* stop when an accepted step lowers the cost by less than tol
                               (chi-square units) and the prior weights move < 5%; 0.5 */
     double lambda_phi;     /* > 0: fixed prior weight on phi; <= 0: evidence rule (default) */
