@@ -13,11 +13,13 @@
  *
  *   S = sum_k (theta_k^T F_k theta_k - 2 theta_k^T f_k) + lambda_phi phi^T R phi + lambda_alpha alpha^T R alpha
  *
- * F_k, f_k from swfs_regress_solve (so the first sum is the chi-square of the model up
- * to a constant), R the squared differences of the B-spline expansion between neighbouring
- * pupil samples. Levenberg-Marquardt from the linear GLS solution with a constant g; the
- * prior weights follow MacKay's evidence rule every iteration (lambda_alpha >= alpha_ratio
- * lambda_phi). NCP wavefront = lambda / (2 pi) sum_j phi_j B_j, piston removed: no phase
+ (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2). F_k, f_k from swfs_regress_solve (so the
+ * first sum is the chi-square of the model up to a constant); R a roughness penalty of the
+ * B-spline expansion over the pupil samples: thin-plate second differences by default,
+ * first differences as an option. Levenberg-Marquardt from the linear GLS solution with a
+ * constant g; the prior weights follow MacKay's evidence rule every iteration
+ * (alpha_ratio lambda_phi <= lambda_alpha <= alpha_ratio_max lambda_phi). Geometry-derived
+ * knots and every constant: docs/estimator.md. NCP wavefront = lambda / (2 pi) sum_j phi_j B_j, piston removed: no phase
  * unwrapping is ever needed. */
 #ifndef SWFS_JOINTFIT_H
 #define SWFS_JOINTFIT_H
