@@ -1,0 +1,86 @@
+/* The joint pupil-domain fit (docs/estimator.md, Stage 2): one global model of the
+ * per-pixel regression statistics of regress.h.
+ *
+ * Unknowns: the pupil field W = P exp(sum_j z_j B_j), z_j = alpha_j + i phi_j on tensor
+ * cubic B-splines B_j restricted to the pupil P; log g = sum_m beta_m P_p(u) P_q(v) (2-D
+ * Legendre, p + q <= order, u, v in [-1, 1] across the window); kappa >= 0, the fraction
+ * of speckle power the computed speckles do not explain. Model per focal pixel k:
+ *
+ *   Psi = MFT(W)  (mft.h, the DESIGN.md conventions),
+ *   theta_k = (|Psi_k|^2 + kappa g_k^2 Phi_sp,k,  g_k^2,  g_k Re Psi_k,  g_k Im Psi_k)
+ *
+ * (eq:betterIModel, eq:betterMean, eq:betterStabilized with an incoherent term). Cost:
+ *
+ *   S = sum_k (theta_k^T F_k theta_k - 2 theta_k^T f_k) + lambda_phi phi^T R phi + lambda_alpha alpha^T R alpha
+ *
+ (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2). F_k, f_k from swfs_regress_solve (so the
+ * first sum is the chi-square of the model up to a constant); R a roughness penalty of the
+ * B-spline expansion over the pupil samples: thin-plate second differences by default,
+ * first differences as an option. Levenberg-Marquardt from the linear GLS solution with a
+ * constant g; the prior weights follow MacKay's evidence rule every iteration
+ * (alpha_ratio lambda_phi <= lambda_alpha <= alpha_ratio_max lambda_phi). Geometry-derived
+ * knots and every constant: docs/estimator.md. NCP wavefront = lambda / (2 pi) sum_j phi_j B_j, piston removed: no phase
+ * unwrapping is ever needed. */
+#ifndef SWFS_JOINTFIT_H
+#define SWFS_JOINTFIT_H
+
+#include <stddef.h>
+
+#include "specklewfs/array.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/regress.h"
+
+enum { SWFS_JF_PRIOR_GRADIENT = 0, SWFS_JF_PRIOR_CURVATURE = 1 };
+
+typedef struct swfs_jointfit_options {
+    double knot_factor;    /* B-spline intervals across D = knot_factor * (window width in
+                              lambda/D), rounded up; 1 (see docs/estimator.md) */
+    int legendre_order;    /* p + q <= order for log g; 4 */
+    double g_prior_sigma;  /* Gaussian prior of this standard deviation on each non-constant
+                              log g coefficient (keeps g finite where no pixel constrains it);
+                              0.5; <= 0: none */
+    int fit_kappa;         /* 1: fit kappa >= 0; 0: kappa = 0 */
+    int max_iter;          /* Levenberg-Marquardt iterations, 40 */
+    int gls_iter;          /* Gauss-Newton iterations of the linear (constant g) start, 1 */
+    double tol;            /* stop when an accepted step lowers the cost by less than tol
+                              (chi-square units) and the prior weights move < 5%; 0.5 */
+    double lambda_phi;     /* > 0: fixed prior weight on phi; <= 0: evidence rule (default) */
+    double lambda_alpha;   /* > 0: fixed prior weight on alpha; <= 0: evidence rule (default) */
+    double alpha_ratio;    /* lambda_alpha >= alpha_ratio * lambda_phi; 10 */
+    double alpha_ratio_max; /* lambda_alpha <= alpha_ratio_max * lambda_phi; 1000 (where the
+                              amplitude is uniform its evidence has no finite maximum) */
+    int prior;             /* R: SWFS_JF_PRIOR_CURVATURE (thin-plate second differences,
+                              default) or SWFS_JF_PRIOR_GRADIENT (first differences) */
+} swfs_jointfit_options;
+
+void swfs_jointfit_options_default(swfs_jointfit_options *o);
+
+typedef struct swfs_jointfit_result {
+    swfs_cplx *field;      /* pupil field W, PUPN x PUPN, 0 outside the pupil */
+    swfs_real *wfe;        /* [m] lambda/(2 pi) phi, piston removed in the pupil, 0 outside */
+    swfs_real *mask;       /* pupil used */
+    swfs_cplx *halo;       /* Psi = MFT(W) over the window [sqrt(counts)] in the frame of the
+                              regression (psi centred on its mean, eq:zeroMean) */
+    swfs_real *gain;       /* g per pixel, exp(sum beta_m P_p P_q) */
+    double kappa;
+    double lambda_phi, lambda_alpha; /* final prior weights */
+    double gamma_phi, gamma_alpha;   /* well-determined parameter counts (evidence) */
+    double chi2;           /* sum_k (theta - theta_hat)^T F (theta - theta_hat) at the end */
+    double cost;           /* chi2 + prior terms */
+    size_t npix;           /* focal pixels used (valid in the regression) */
+    size_t nintervals;     /* B-spline intervals across D */
+    size_t nbasis;         /* B-splines kept (support meets the pupil) */
+    size_t nparams;        /* 2 nbasis + Legendre terms + 1 */
+    int iterations;        /* Levenberg-Marquardt iterations (accepted steps) */
+    int evaluations;       /* model evaluations */
+    double seconds;        /* wall time of swfs_jointfit */
+    double wfe_rms;        /* [m] piston removed */
+} swfs_jointfit_result;
+
+/* sol: swfs_regress_solve over the focal window of the geometry g (PIXSCALE, PUPDX, TELDIAM,
+ * PUPN, WAVELEN); mask: PUPN x PUPN pupil, or NULL for the annulus of TELDIAM/OBSCUR. */
+int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *g, const swfs_real *mask,
+                  const swfs_jointfit_options *opt, swfs_jointfit_result **out);
+void swfs_jointfit_result_free(swfs_jointfit_result *r);
+
+#endif

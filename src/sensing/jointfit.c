@@ -1,0 +1,631 @@
+/* The joint pupil-domain fit: see include/specklewfs/jointfit.h and docs/estimator.md. */
+#include "specklewfs/jointfit.h"
+#include "jointfit_basis.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/mft.h"
+#include "specklewfs/status.h"
+
+#include <cblas.h>
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+
+void swfs_jointfit_options_default(swfs_jointfit_options *o)
+{
+    o->knot_factor = 1.0;
+    o->legendre_order = 4;
+    o->fit_kappa = 1;
+    o->max_iter = 40;
+    o->gls_iter = 1;
+    o->tol = 0.5;
+    o->g_prior_sigma = 0.5;
+    o->lambda_phi = 0.0;
+    o->lambda_alpha = 0.0;
+    o->alpha_ratio = 10.0;
+    o->alpha_ratio_max = 1000.0;
+    o->prior = SWFS_JF_PRIOR_CURVATURE;
+}
+
+void swfs_jointfit_result_free(swfs_jointfit_result *r)
+{
+    if (!r) return;
+    swfs_cplx_free(r->field);
+    swfs_real_free(r->wfe);
+    swfs_real_free(r->mask);
+    swfs_cplx_free(r->halo);
+    swfs_real_free(r->gain);
+    free(r);
+}
+
+/* 4x4 symmetric matrix entry (i, j) from the upper-triangle planes of the regression. */
+static inline size_t tri(size_t i, size_t j)
+{
+    if (i > j) { size_t t = i; i = j; j = t; }
+    return i * 4 - i * (i + 1) / 2 + j;
+}
+
+typedef struct fit {
+    const swfs_jointfit_options *o;
+    size_t n, nfx, nfy, nf, nb, nl, np;
+    jf_basis *B;
+    swfs_mft *mft;
+    const double *mask;
+    double *leg;            /* nl x nf */
+    /* per pixel (pixel-major): F 16 (full 4x4), f 4, Phi_sp, marginal c-information 3 */
+    double *F, *f, *phi, *mc, *chat, *konst;
+    unsigned char *use;
+    double g0;
+    int stage;              /* 0: linear GLS start (constant g0, c-part only); 1: joint */
+    /* state */
+    double *x, *xt;         /* parameters, trial */
+    double complex *z, *Z, *W, *psi;
+    double *g;
+    double lam_phi, lam_alpha, gam_phi, gam_alpha, rank;
+    double beta_prec;       /* 1 / g_prior_sigma^2 on the non-constant log g terms */
+    int iters;
+    /* work */
+    double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
+    float *ytf, *hf;        /* single-precision copy of the scaled Jacobian, field block of H */
+    int evals;
+} fit;
+
+static void fit_free(fit *ft)
+{
+    jf_basis_free(ft->B);
+    swfs_mft_free(ft->mft);
+    swfs_free(ft->leg); swfs_free(ft->F); swfs_free(ft->f); swfs_free(ft->phi); swfs_free(ft->mc);
+    swfs_free(ft->chat); swfs_free(ft->konst); free(ft->use);
+    swfs_free(ft->x); swfs_free(ft->xt); swfs_free(ft->z); swfs_free(ft->Z); swfs_free(ft->W); swfs_free(ft->psi);
+    swfs_free(ft->g); swfs_free(ft->yt); swfs_free(ft->H); swfs_free(ft->A); swfs_free(ft->grad);
+    swfs_free(ft->step); swfs_free(ft->et); swfs_free(ft->C); swfs_free(ft->Rx);
+    swfs_free(ft->ytf); swfs_free(ft->hf);
+}
+
+/* phi^T R phi and alpha^T R alpha; Rx = R x for both blocks. */
+static void prior_terms(fit *ft, const double *x, double *pa, double *pp)
+{
+    const size_t nb = ft->nb;
+    cblas_dsymv(CblasRowMajor, CblasUpper, (int)nb, 1.0, ft->B->R, (int)nb, x, 1, 0.0, ft->Rx, 1);
+    cblas_dsymv(CblasRowMajor, CblasUpper, (int)nb, 1.0, ft->B->R, (int)nb, x + nb, 1, 0.0, ft->Rx + nb, 1);
+    *pa = cblas_ddot((int)nb, x, 1, ft->Rx, 1);
+    *pp = cblas_ddot((int)nb, x + nb, 1, ft->Rx + nb, 1);
+}
+
+/* The model at x: W, Psi, g; returns the chi-square (sum over pixels). */
+static double model_chi2(fit *ft, const double *x)
+{
+    const size_t nb = ft->nb, n = ft->n, nf = ft->nf;
+    for (size_t j = 0; j < nb; j++) ft->z[j] = x[j] + I * x[nb + j];
+    jf_basis_eval(ft->B, ft->z, ft->Z);
+    for (size_t k = 0; k < n * n; k++) ft->W[k] = ft->mask[k] > 0.0 ? ft->mask[k] * cexp(ft->Z[k]) : 0.0;
+    swfs_mft_forward(ft->mft, ft->W, ft->psi);
+    ft->evals++;
+    double chi2 = 0.0;
+    const double kappa = x[2 * nb + ft->nl];
+    for (size_t k = 0; k < nf; k++) {
+        double lg = 0.0;
+        for (size_t m = 0; m < ft->nl; m++) lg += x[2 * nb + m] * ft->leg[m * nf + k];
+        ft->g[k] = exp(lg);
+        if (!ft->use[k]) continue;
+        const double pr = creal(ft->psi[k]), pi = cimag(ft->psi[k]);
+        if (ft->stage == 0) {
+            const double *M = ft->mc + 3 * k;
+            const double dr = ft->g0 * pr - ft->chat[2 * k], di = ft->g0 * pi - ft->chat[2 * k + 1];
+            chi2 += M[0] * dr * dr + 2.0 * M[1] * dr * di + M[2] * di * di;
+            continue;
+        }
+        const double g = ft->g[k], g2 = g * g;
+        const double th[4] = {pr * pr + pi * pi + kappa * g2 * ft->phi[k], g2, g * pr, g * pi};
+        const double *F = ft->F + 16 * k, *f = ft->f + 4 * k;
+        double q = 0.0;
+        for (int i = 0; i < 4; i++) {
+            double fi = 0.0;
+            for (int j = 0; j < 4; j++) fi += F[4 * i + j] * th[j];
+            q += th[i] * (fi - 2.0 * f[i]);
+        }
+        chi2 += q + ft->konst[k];
+    }
+    return chi2;
+}
+
+/* Gauss-Newton normal matrix H (np x np, full) and gradient grad of chi2/2 at the current
+ * model (model_chi2 must have been called at x). */
+static void build_normal(fit *ft, const double *x)
+{
+    const size_t nb = ft->nb, nf = ft->nf, nl = ft->nl, np = ft->np, nz = 2 * nb, nc = nl + 1;
+    const double kappa = x[2 * nb + nl];
+    jf_jacobian(ft->B, ft->W, ft->yt);
+    double *Hc = ft->H; /* row-major np x np */
+    memset(Hc, 0, np * np * sizeof *Hc);
+    memset(ft->grad, 0, np * sizeof *ft->grad);
+    double *Rk = ft->C + 2 * nf * nc; /* 3 per pixel: the 2x2 Cholesky factor of Q_psi,psi */
+    for (size_t k = 0; k < nf; k++) {
+        double Q[4][4] = {{0}}, e[4] = {0};
+        if (ft->use[k]) {
+            const double pr = creal(ft->psi[k]), pi = cimag(ft->psi[k]);
+            if (ft->stage == 0) {
+                const double *M = ft->mc + 3 * k, g0 = ft->g0;
+                const double dr = g0 * pr - ft->chat[2 * k], di = g0 * pi - ft->chat[2 * k + 1];
+                Q[0][0] = g0 * g0 * M[0]; Q[0][1] = Q[1][0] = g0 * g0 * M[1]; Q[1][1] = g0 * g0 * M[2];
+                e[0] = g0 * (M[0] * dr + M[1] * di);
+                e[1] = g0 * (M[1] * dr + M[2] * di);
+            } else {
+                const double g = ft->g[k], g2 = g * g, ph = ft->phi[k];
+                const double th[4] = {pr * pr + pi * pi + kappa * g2 * ph, g2, g * pr, g * pi};
+                /* D = d theta / d (Re Psi, Im Psi, log g, kappa) */
+                const double D[4][4] = {{2 * pr, 2 * pi, 2 * kappa * g2 * ph, g2 * ph},
+                                        {0, 0, 2 * g2, 0},
+                                        {g, 0, g * pr, 0},
+                                        {0, g, g * pi, 0}};
+                const double *F = ft->F + 16 * k, *f = ft->f + 4 * k;
+                double FD[4][4], r[4];
+                for (int i = 0; i < 4; i++) {
+                    r[i] = -f[i];
+                    for (int j = 0; j < 4; j++) {
+                        r[i] += F[4 * i + j] * th[j];
+                        double s = 0.0;
+                        for (int l = 0; l < 4; l++) s += F[4 * i + l] * D[l][j];
+                        FD[i][j] = s;
+                    }
+                }
+                for (int i = 0; i < 4; i++) {
+                    for (int l = 0; l < 4; l++) e[i] += D[l][i] * r[l];
+                    for (int j = 0; j < 4; j++) {
+                        double s = 0.0;
+                        for (int l = 0; l < 4; l++) s += D[l][i] * FD[l][j];
+                        Q[i][j] = s;
+                    }
+                }
+            }
+        }
+        ft->et[2 * k] = e[0];
+        ft->et[2 * k + 1] = e[1];
+        /* Cholesky of the 2x2 Psi block (positive semi-definite) */
+        const double r00 = Q[0][0] > 0.0 ? sqrt(Q[0][0]) : 0.0;
+        const double r01 = r00 > 0.0 ? Q[0][1] / r00 : 0.0;
+        const double r11 = sqrt(fmax(Q[1][1] - r01 * r01, 0.0));
+        Rk[3 * k] = r00; Rk[3 * k + 1] = r01; Rk[3 * k + 2] = r11;
+        if (ft->stage == 1) {
+            for (size_t m = 0; m < nl; m++) {
+                const double L = ft->leg[m * nf + k];
+                ft->C[(2 * k) * nc + m] = Q[0][2] * L;
+                ft->C[(2 * k + 1) * nc + m] = Q[1][2] * L;
+                ft->grad[nz + m] += e[2] * L;
+                for (size_t m2 = m; m2 < nl; m2++) Hc[(nz + m) * np + nz + m2] += Q[2][2] * L * ft->leg[m2 * nf + k];
+                Hc[(nz + m) * np + nz + nl] += Q[2][3] * L;
+            }
+            ft->C[(2 * k) * nc + nl] = Q[0][3];
+            ft->C[(2 * k + 1) * nc + nl] = Q[1][3];
+            ft->grad[nz + nl] += e[3];
+            Hc[(nz + nl) * np + nz + nl] += Q[3][3];
+        }
+    }
+    const int nfd = (int)(2 * nf);
+    /* gradient of the field block: Y^T e */
+    cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nz, nfd, 1.0, ft->yt, nfd, ft->et, 1, 0.0, ft->grad, 1);
+    if (ft->stage == 1) {
+        /* cross terms field x (log g, kappa): Y^T C, into rows 0..nz-1, columns nz.. */
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nz, (int)nc, nfd, 1.0, ft->yt, nfd, ft->C,
+                    (int)nc, 0.0, Hc + nz, (int)np);
+    }
+    /* Field block: (R_k Y_k)^T (R_k Y_k), one rank-k update, the fit's largest cost. It is
+     * done in single precision (SSYRK, twice the speed of DSYRK): the normal matrix only
+     * steers the steps (gradient and cost stay in double, so the minimum found is the
+     * double-precision one) and 1e-6 relative errors in it are far below the prior's
+     * regularization of its weakest directions. */
+    for (size_t r = 0; r < nz; r++) {
+        const double *y = ft->yt + r * 2 * nf;
+        float *yf = ft->ytf + r * 2 * nf;
+        for (size_t k = 0; k < nf; k++) {
+            const double y0 = y[2 * k], y1 = y[2 * k + 1];
+            yf[2 * k] = (float)(Rk[3 * k] * y0 + Rk[3 * k + 1] * y1);
+            yf[2 * k + 1] = (float)(Rk[3 * k + 2] * y1);
+        }
+    }
+    cblas_ssyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nz, nfd, 1.0f, ft->ytf, nfd, 0.0f, ft->hf, (int)nz);
+    for (size_t i = 0; i < nz; i++)
+        for (size_t j = i; j < nz; j++) Hc[i * np + j] = (double)ft->hf[i * nz + j];
+    if (ft->stage == 0 || !ft->o->fit_kappa) {
+        /* frozen parameters: identity rows, no coupling */
+        const size_t f0 = ft->stage == 0 ? nz : nz + nl;
+        for (size_t i = f0; i < np; i++) {
+            for (size_t j = 0; j < np; j++) Hc[j * np + i] = Hc[i * np + j] = 0.0;
+            Hc[i * np + i] = 1.0;
+            ft->grad[i] = 0.0;
+        }
+    }
+    for (size_t i = 0; i < np; i++)
+        for (size_t j = 0; j < i; j++) Hc[i * np + j] = Hc[j * np + i];
+}
+
+/* A = H + prior (+ mu diag(H)) in A. */
+static void assemble(fit *ft, double mu)
+{
+    const size_t nb = ft->nb, np = ft->np;
+    memcpy(ft->A, ft->H, np * np * sizeof *ft->A);
+    for (size_t i = 0; i < nb; i++)
+        for (size_t j = 0; j < nb; j++) {
+            ft->A[i * np + j] += ft->lam_alpha * ft->B->R[i * nb + j];
+            ft->A[(nb + i) * np + nb + j] += ft->lam_phi * ft->B->R[i * nb + j];
+        }
+    for (size_t m = 1; m < ft->nl; m++) ft->A[(2 * nb + m) * np + 2 * nb + m] += ft->beta_prec;
+    if (mu > 0.0)
+        for (size_t i = 0; i < np; i++) ft->A[i * np + i] += mu * (ft->H[i * np + i] > 0.0 ? ft->H[i * np + i] : 1.0);
+}
+
+/* The Gauss-Newton step of the quadratic model at x with the current prior weights (no
+ * damping): step = -(H + lambda R)^-1 (grad + lambda R x), xt = x + step. With update set,
+ * then MacKay's evidence rule on the same model: gamma = rank(R) - lambda tr(Sigma R),
+ * lambda = gamma / (xt^T R xt), Sigma = (H + lambda R)^-1. *dl: the largest relative change
+ * of the weights. Returns 0 if H + lambda R is not positive definite. */
+static int newton_evidence(fit *ft, int update, double *dl)
+{
+    const size_t nb = ft->nb, np = ft->np;
+    *dl = 0.0;
+    assemble(ft, 0.0);
+    if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
+    prior_terms(ft, ft->x, &(double){0}, &(double){0}); /* Rx at x */
+    for (size_t i = 0; i < np; i++) ft->step[i] = -ft->grad[i];
+    for (size_t i = 0; i < nb; i++) {
+        ft->step[i] -= ft->lam_alpha * ft->Rx[i];
+        ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
+    }
+    for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
+    LAPACKE_dpotrs(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
+    for (size_t i = 0; i < np; i++) ft->xt[i] = ft->x[i] + ft->step[i];
+    if (ft->xt[np - 1] < 0.0) ft->xt[np - 1] = 0.0; /* kappa >= 0 */
+    if (!update) return 1;
+    if (LAPACKE_dpotri(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
+    double tra = 0.0, trp = 0.0;
+    for (size_t i = 0; i < nb; i++)
+        for (size_t j = 0; j < nb; j++) {
+            const size_t a = i < j ? i : j, b = i < j ? j : i;
+            tra += ft->A[a * np + b] * ft->B->R[i * nb + j];
+            trp += ft->A[(nb + a) * np + nb + b] * ft->B->R[i * nb + j];
+        }
+    double pa, pp;
+    prior_terms(ft, ft->xt, &pa, &pp);
+    const double rank = ft->rank;
+    double ga = rank - ft->lam_alpha * tra, gp = rank - ft->lam_phi * trp;
+    ga = fmin(fmax(ga, 1.0), rank);
+    gp = fmin(fmax(gp, 1.0), rank);
+    ft->gam_alpha = ga;
+    ft->gam_phi = gp;
+    double lp = ft->o->lambda_phi > 0.0 ? ft->o->lambda_phi : (pp > 0.0 ? gp / pp : ft->lam_phi);
+    double la = ft->o->lambda_alpha > 0.0 ? ft->o->lambda_alpha : (pa > 0.0 ? ga / pa : ft->lam_alpha);
+    if (ft->o->lambda_alpha <= 0.0) la = fmin(fmax(la, ft->o->alpha_ratio * lp), ft->o->alpha_ratio_max * lp);
+    *dl = fmax(fabs(lp / ft->lam_phi - 1.0), fabs(la / ft->lam_alpha - 1.0));
+    ft->lam_phi = lp;
+    ft->lam_alpha = la;
+    return 1;
+}
+
+static double total_cost(fit *ft, const double *x, double *chi2)
+{
+    double pa, pp;
+    *chi2 = model_chi2(ft, x);
+    prior_terms(ft, x, &pa, &pp);
+    double pb = 0.0;
+    for (size_t m = 1; m < ft->nl; m++) pb += x[2 * ft->nb + m] * x[2 * ft->nb + m];
+    return *chi2 + ft->lam_alpha * pa + ft->lam_phi * pp + ft->beta_prec * pb;
+}
+
+/* Per-pixel data from the regression: full F, f, the marginal information of c (Schur
+ * complement, for the linear start), theta_hat^T f (so chi2 >= 0 at the truth), g0. */
+static int load_pixels(fit *ft, const swfs_regress_sol *s)
+{
+    const size_t nf = ft->nf;
+    double wsum = 0.0, bsum = 0.0;
+    for (size_t k = 0; k < nf; k++) {
+        if (!(s->valid->data[k] > 0.5)) continue;
+        double *F = ft->F + 16 * k, Fi[16];
+        for (size_t i = 0; i < 4; i++) {
+            ft->f[4 * k + i] = s->rhs->data[i * nf + k];
+            for (size_t j = 0; j < 4; j++) F[4 * i + j] = Fi[4 * i + j] = s->info->data[tri(i, j) * nf + k];
+        }
+        if (!(F[0] > 0.0) || !isfinite(F[0])) continue;
+        if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'U', 4, Fi, 4) != 0) continue;
+        if (LAPACKE_dpotri(LAPACK_ROW_MAJOR, 'U', 4, Fi, 4) != 0) continue;
+        /* covariance of theta_hat = F^-1; marginal information of c = (cov_cc)^-1 */
+        const double c22 = Fi[10], c23 = Fi[11], c33 = Fi[15], det = c22 * c33 - c23 * c23;
+        if (!(det > 0.0) || !(Fi[5] > 0.0)) continue;
+        ft->mc[3 * k] = c33 / det;
+        ft->mc[3 * k + 1] = -c23 / det;
+        ft->mc[3 * k + 2] = c22 / det;
+        ft->chat[2 * k] = s->theta->data[2 * nf + k];
+        ft->chat[2 * k + 1] = s->theta->data[3 * nf + k];
+        ft->phi[k] = s->phi_sp->data[k];
+        double kk = 0.0;
+        for (size_t i = 0; i < 4; i++) kk += s->theta->data[i * nf + k] * ft->f[4 * k + i];
+        ft->konst[k] = kk;
+        ft->use[k] = 1;
+        /* g0^2: information-weighted mean of b_hat */
+        wsum += 1.0 / Fi[5];
+        bsum += s->theta->data[nf + k] / Fi[5];
+    }
+    if (!(wsum > 0.0) || !(bsum > 0.0))
+        return swfs_fail(SWFS_ERR_NUMERIC, "joint fit: no pixel with a usable regression (scale factor undefined)");
+    ft->g0 = sqrt(bsum / wsum);
+    return SWFS_OK;
+}
+
+/* Linear start: constant field w0 P with the best complex w0 (2 x 2 GLS on the c-part). */
+static void start_constant(fit *ft)
+{
+    const size_t nb = ft->nb, nf = ft->nf;
+    for (size_t k = 0; k < ft->n * ft->n; k++) ft->W[k] = ft->mask[k];
+    swfs_mft_forward(ft->mft, ft->W, ft->psi);
+    double N00 = 0, N01 = 0, N11 = 0, r0 = 0, r1 = 0;
+    for (size_t k = 0; k < nf; k++) {
+        if (!ft->use[k]) continue;
+        const double *M = ft->mc + 3 * k, a = ft->g0 * creal(ft->psi[k]), b = ft->g0 * cimag(ft->psi[k]);
+        /* model c = A u, A = [[a, -b], [b, a]] */
+        const double A[2][2] = {{a, -b}, {b, a}};
+        const double Mm[2][2] = {{M[0], M[1]}, {M[1], M[2]}};
+        double MA[2][2];
+        for (int i = 0; i < 2; i++)
+            for (int j = 0; j < 2; j++) MA[i][j] = Mm[i][0] * A[0][j] + Mm[i][1] * A[1][j];
+        N00 += A[0][0] * MA[0][0] + A[1][0] * MA[1][0];
+        N01 += A[0][0] * MA[0][1] + A[1][0] * MA[1][1];
+        N11 += A[0][1] * MA[0][1] + A[1][1] * MA[1][1];
+        const double mc0 = Mm[0][0] * ft->chat[2 * k] + Mm[0][1] * ft->chat[2 * k + 1];
+        const double mc1 = Mm[1][0] * ft->chat[2 * k] + Mm[1][1] * ft->chat[2 * k + 1];
+        r0 += A[0][0] * mc0 + A[1][0] * mc1;
+        r1 += A[0][1] * mc0 + A[1][1] * mc1;
+    }
+    const double det = N00 * N11 - N01 * N01;
+    double complex w0 = det > 0.0 ? ((N11 * r0 - N01 * r1) + I * (N00 * r1 - N01 * r0)) / det : 1.0;
+    if (!(cabs(w0) > 0.0) || !isfinite(cabs(w0))) w0 = 1.0;
+    const double complex lw = clog(w0);
+    for (size_t j = 0; j < nb; j++) {
+        ft->x[j] = creal(lw);
+        ft->x[nb + j] = cimag(lw);
+    }
+    ft->x[2 * nb] = log(ft->g0); /* P_0 P_0 = 1 */
+}
+
+/* One Levenberg-Marquardt iteration at x (model evaluated at x, cost cur). Returns 1 if a
+ * step was accepted (x, cur updated, model left at the new x), 0 if none lowered the cost. */
+static int lm_step(fit *ft, double *mu, double *cur, double *chi2)
+{
+    const size_t np = ft->np, nb = ft->nb;
+    for (int tries = 0; tries < 12; tries++) {
+        assemble(ft, *mu);
+        for (size_t i = 0; i < np; i++) ft->step[i] = -ft->grad[i];
+        for (size_t i = 0; i < nb; i++) {
+            ft->step[i] -= ft->lam_alpha * ft->Rx[i];
+            ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
+        }
+        for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
+        int prc = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
+        if (prc != 0) {
+            *mu = *mu > 0.0 ? *mu * 10.0 : 1e-6;
+            continue;
+        }
+        for (size_t i = 0; i < np; i++) ft->xt[i] = ft->x[i] + ft->step[i];
+        double *kap = ft->xt + np - 1;
+        if (*kap < 0.0) *kap = 0.0;
+        double c2;
+        const double c = total_cost(ft, ft->xt, &c2);
+        if (c < *cur) {
+            memcpy(ft->x, ft->xt, np * sizeof *ft->x);
+            *cur = c;
+            *chi2 = c2;
+            *mu = fmax(*mu / 3.0, 1e-9);
+            return 1;
+        }
+        *mu = *mu > 0.0 ? *mu * 4.0 : 1e-6;
+    }
+    return 0;
+}
+
+/* Iterations of one stage from ft->x (model evaluated there, unless fresh is 0: then the
+ * caller has just built the normal equations at x). Each iteration: normal equations at x;
+ * the evidence fixed point on that quadratic model (cheap: no new Jacobian), then the
+ * step, accepted if the true cost falls, else Levenberg-Marquardt damping. Returns the cost. */
+static double run_stage(fit *ft, int maxit, int built, double *chi2)
+{
+    const int evid = ft->o->lambda_phi <= 0.0 || ft->o->lambda_alpha <= 0.0;
+    double mu = 1e-3, cur = total_cost(ft, ft->x, chi2), dl = 0.0;
+    for (int it = 0; it < maxit; it++) {
+        if (!built) build_normal(ft, ft->x);
+        built = 0;
+        /* The evidence fixed point lambda = T(lambda) converges slowly where gamma is small;
+         * a secant step on log lambda - log T(lambda) (per weight) finds it in a few passes. */
+        double lp[2] = {0, 0}, fp[2] = {0, 0};
+        const double lam0[2] = {ft->lam_phi, ft->lam_alpha};
+        for (int inner = 0; inner < (it < 2 ? 12 : 3) && evid; inner++) {
+            const double l[2] = {log(ft->lam_phi), log(ft->lam_alpha)};
+            if (!newton_evidence(ft, 1, &dl)) break;
+            if (dl < 1e-2) break;
+            const double f[2] = {log(ft->lam_phi) - l[0], log(ft->lam_alpha) - l[1]};
+            double ln[2];
+            for (int c = 0; c < 2; c++) {
+                ln[c] = l[c] + f[c];
+                if (inner > 0 && f[c] != fp[c]) {
+                    const double sec = l[c] - f[c] * (l[c] - lp[c]) / (f[c] - fp[c]);
+                    ln[c] = fmin(fmax(sec, l[c] - 3.0), l[c] + 3.0);
+                }
+                lp[c] = l[c];
+                fp[c] = f[c];
+            }
+            if (ft->o->lambda_phi <= 0.0) ft->lam_phi = exp(ln[0]);
+            if (ft->o->lambda_alpha <= 0.0)
+                ft->lam_alpha = fmin(fmax(exp(ln[1]), ft->o->alpha_ratio * ft->lam_phi), ft->o->alpha_ratio_max * ft->lam_phi);
+        }
+        /* Where the evidence is flat (gamma ~ 1: alpha, when the amplitude is uniform) the
+         * fixed point moves between outer iterations and can cycle; from the third
+         * iteration on, each weight moves only half-way (geometrically). */
+        if (evid && it >= 2) {
+            ft->lam_phi = sqrt(ft->lam_phi * lam0[0]);
+            ft->lam_alpha = sqrt(ft->lam_alpha * lam0[1]);
+        }
+        if (evid) dl = fmax(fabs(ft->lam_phi / lam0[0] - 1.0), fabs(ft->lam_alpha / lam0[1] - 1.0));
+        if (!newton_evidence(ft, 0, &(double){0})) break;
+        const double before = total_cost(ft, ft->x, chi2); /* the prior weights may have moved */
+        double c2;
+        double c = total_cost(ft, ft->xt, &c2);
+        int ok = c < before;
+        if (ok) {
+            memcpy(ft->x, ft->xt, ft->np * sizeof *ft->x);
+            *chi2 = c2;
+        } else {
+            cur = total_cost(ft, ft->x, chi2);
+            ok = lm_step(ft, &mu, &cur, chi2);
+            c = cur;
+        }
+        cur = ok ? c : before;
+        if (ft->stage == 1) ft->iters++;
+        if (!ok || (before - c < ft->o->tol && dl < 0.05)) break;
+    }
+    return cur;
+}
+
+int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask_in,
+                  const swfs_jointfit_options *opt, swfs_jointfit_result **out)
+{
+    *out = NULL;
+    struct timespec t0, t1;
+    clock_gettime(CLOCK_MONOTONIC, &t0);
+    swfs_jointfit_options o;
+    swfs_jointfit_options_default(&o);
+    if (opt) o = *opt;
+    int rc = swfs_geom_require(geo, "joint fit");
+    if (rc) return rc;
+    if (!(o.knot_factor > 0.0) || o.legendre_order < 0 || o.legendre_order > 8 || o.max_iter < 0 || o.gls_iter < 0 ||
+        !(o.alpha_ratio >= 0.0) || !(o.alpha_ratio_max >= o.alpha_ratio) || !(o.tol >= 0.0) ||
+        (o.prior != SWFS_JF_PRIOR_GRADIENT && o.prior != SWFS_JF_PRIOR_CURVATURE))
+        return swfs_fail(SWFS_ERR_ARG, "joint fit: invalid options (knot_factor %g, legendre_order %d, max_iter %d, "
+                                       "gls_iter %d, alpha_ratio %g, tol %g)",
+                         o.knot_factor, o.legendre_order, o.max_iter, o.gls_iter, o.alpha_ratio, o.tol);
+    const size_t n = (size_t)geo->pupn, nfx = sol->nx, nfy = sol->ny, nf = nfx * nfy;
+    if (nfx < 2 || nfy < 2) return swfs_fail(SWFS_ERR_SHAPE, "joint fit: the focal window %zux%zu is too small", nfx, nfy);
+    if (mask_in && (mask_in->nx != n || mask_in->ny != n))
+        return swfs_fail(SWFS_ERR_SHAPE, "joint fit: pupil mask is %zux%zu but the geometry says PUPN = %zu", mask_in->nx,
+                         mask_in->ny, n);
+    swfs_jointfit_result *res = calloc(1, sizeof *res);
+    fit ft;
+    memset(&ft, 0, sizeof ft);
+    if (!res) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    res->mask = mask_in ? swfs_real_copy(mask_in) : swfs_real_alloc(n, n, 1);
+    if (!res->mask) { rc = SWFS_ERR_NOMEM; goto done; }
+    if (!mask_in && (rc = swfs_aperture_make(res->mask->data, n, geo->pupdx, geo->teldiam, geo->obscur, 0, 0.0))) goto done;
+
+    /* Knots: the window spans +-(W/2) PIXSCALE lambda/D, so it constrains pupil-field
+     * structure up to that many cycles per D; a cubic B-spline grid resolves up to about
+     * one cycle per two intervals, hence intervals across D = window width in lambda/D. */
+    const double width = (double)(nfx > nfy ? nfx : nfy) * geo->pixscale;
+    size_t nint = (size_t)ceil(o.knot_factor * width - 1e-9);
+    if (nint < 2) nint = 2;
+    const double alpha = geo->pixscale * geo->pupdx / geo->teldiam;
+    ft.o = &o;
+    ft.n = n; ft.nfx = nfx; ft.nfy = nfy; ft.nf = nf;
+    ft.mask = res->mask->data;
+    ft.B = jf_basis_create(ft.mask, n, geo->teldiam / geo->pupdx, nint, nfx, nfy, alpha);
+    if (!ft.B) { rc = SWFS_ERR_NOMEM; goto done; }
+    if (ft.B->nb < 2) { rc = swfs_fail(SWFS_ERR_VALUE, "joint fit: the pupil mask is empty"); goto done; }
+    ft.mft = swfs_mft_create(n, nfx, nfy, alpha, SWFS_MFT_DOUBLE);
+    ft.nb = ft.B->nb;
+    ft.beta_prec = o.g_prior_sigma > 0.0 ? 1.0 / (o.g_prior_sigma * o.g_prior_sigma) : 0.0;
+    if (o.prior == SWFS_JF_PRIOR_CURVATURE) jf_basis_penalty(ft.B, ft.mask, 1);
+    /* R's null space: constants (gradient), constants and tilts (curvature) */
+    ft.rank = (double)ft.nb - (o.prior == SWFS_JF_PRIOR_CURVATURE ? 3.0 : 1.0);
+    ft.nl = jf_legendre_count(o.legendre_order);
+    ft.np = 2 * ft.nb + ft.nl + 1;
+    const size_t np = ft.np, nb = ft.nb, nc = ft.nl + 1;
+    ft.leg = swfs_malloc(ft.nl * nf * sizeof *ft.leg);
+    ft.F = swfs_calloc(16 * nf, sizeof *ft.F);
+    ft.f = swfs_calloc(4 * nf, sizeof *ft.f);
+    ft.phi = swfs_calloc(nf, sizeof *ft.phi);
+    ft.mc = swfs_calloc(3 * nf, sizeof *ft.mc);
+    ft.chat = swfs_calloc(2 * nf, sizeof *ft.chat);
+    ft.konst = swfs_calloc(nf, sizeof *ft.konst);
+    ft.use = calloc(nf, 1);
+    ft.x = swfs_calloc(np, sizeof *ft.x);
+    ft.xt = swfs_calloc(np, sizeof *ft.xt);
+    ft.z = swfs_malloc(nb * sizeof *ft.z);
+    ft.Z = swfs_malloc(n * n * sizeof *ft.Z);
+    ft.W = swfs_malloc(n * n * sizeof *ft.W);
+    ft.psi = swfs_malloc(nf * sizeof *ft.psi);
+    ft.g = swfs_malloc(nf * sizeof *ft.g);
+    ft.yt = swfs_malloc(2 * nb * 2 * nf * sizeof *ft.yt);
+    ft.H = swfs_malloc(np * np * sizeof *ft.H);
+    ft.A = swfs_malloc(np * np * sizeof *ft.A);
+    ft.grad = swfs_malloc(np * sizeof *ft.grad);
+    ft.step = swfs_malloc(np * sizeof *ft.step);
+    ft.et = swfs_malloc(2 * nf * sizeof *ft.et);
+    ft.C = swfs_calloc(2 * nf * nc + 3 * nf, sizeof *ft.C);
+    ft.Rx = swfs_malloc(2 * nb * sizeof *ft.Rx);
+    ft.ytf = swfs_malloc(2 * nb * 2 * nf * sizeof *ft.ytf);
+    ft.hf = swfs_malloc(4 * nb * nb * sizeof *ft.hf);
+    if (!ft.mft || !ft.leg || !ft.F || !ft.f || !ft.phi || !ft.mc || !ft.chat || !ft.konst || !ft.use || !ft.x ||
+        !ft.xt || !ft.z || !ft.Z || !ft.W || !ft.psi || !ft.g || !ft.yt || !ft.H || !ft.A || !ft.grad || !ft.step ||
+        !ft.et || !ft.C || !ft.Rx || !ft.ytf || !ft.hf) {
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory (joint fit, %zu parameters)", np);
+        goto done;
+    }
+    jf_legendre(o.legendre_order, nfx, nfy, ft.leg);
+    if ((rc = load_pixels(&ft, sol))) goto done;
+    start_constant(&ft);
+
+    /* Stage 0: the linear GLS start (constant g0, the c-part's marginal information), then
+     * stage 1: the joint fit. First prior weights: 1e-3 of the data's mean curvature per
+     * phase parameter relative to R's; the evidence rule takes over at once. */
+    double chi2 = 0.0, cur;
+    ft.stage = 0;
+    cur = total_cost(&ft, ft.x, &chi2);
+    build_normal(&ft, ft.x);
+    {
+        double hz = 0.0, rz = 0.0;
+        for (size_t i = 0; i < nb; i++) { hz += ft.H[(nb + i) * np + nb + i]; rz += ft.B->R[i * nb + i]; }
+        ft.lam_phi = o.lambda_phi > 0.0 ? o.lambda_phi : 1e-3 * hz / rz;
+        ft.lam_alpha = o.lambda_alpha > 0.0 ? o.lambda_alpha : o.alpha_ratio * ft.lam_phi;
+    }
+    cur = run_stage(&ft, o.gls_iter, 1, &chi2);
+    ft.stage = 1;
+    cur = run_stage(&ft, o.max_iter, 0, &chi2);
+    cur = total_cost(&ft, ft.x, &chi2); /* leaves the model at x */
+
+    res->field = swfs_cplx_alloc(n, n, 1);
+    res->wfe = swfs_real_alloc(n, n, 1);
+    res->halo = swfs_cplx_alloc(nfx, nfy, 1);
+    res->gain = swfs_real_alloc(nfx, nfy, 1);
+    if (!res->field || !res->wfe || !res->halo || !res->gain) { rc = SWFS_ERR_NOMEM; goto done; }
+    memcpy(res->field->data, ft.W, n * n * sizeof *ft.W);
+    memcpy(res->halo->data, ft.psi, nf * sizeof *ft.psi);
+    memcpy(res->gain->data, ft.g, nf * sizeof *ft.g);
+    /* eq:NCP-WFE-estimate without a wrapped arg: lambda/(2 pi) Im log W, piston removed */
+    const double k2m = geo->wavelen / (2.0 * M_PI);
+    double wsum = 0.0, mean = 0.0, s2 = 0.0;
+    for (size_t k = 0; k < n * n; k++)
+        if (ft.mask[k] > 0.0) { wsum += ft.mask[k]; mean += ft.mask[k] * cimag(ft.Z[k]); }
+    mean /= wsum;
+    for (size_t k = 0; k < n * n; k++) {
+        const double w = ft.mask[k] > 0.0 ? k2m * (cimag(ft.Z[k]) - mean) : 0.0;
+        res->wfe->data[k] = w;
+        s2 += ft.mask[k] * w * w;
+    }
+    res->wfe_rms = sqrt(s2 / wsum);
+    res->kappa = ft.x[np - 1];
+    res->lambda_phi = ft.lam_phi;
+    res->lambda_alpha = ft.lam_alpha;
+    res->gamma_phi = ft.gam_phi;
+    res->gamma_alpha = ft.gam_alpha;
+    res->chi2 = chi2;
+    res->cost = cur;
+    for (size_t k = 0; k < nf; k++) res->npix += ft.use[k];
+    res->nintervals = nint;
+    res->nbasis = nb;
+    res->nparams = np;
+    res->iterations = ft.iters;
+    res->evaluations = ft.evals;
+done:
+    fit_free(&ft);
+    if (rc) { swfs_jointfit_result_free(res); return rc; }
+    clock_gettime(CLOCK_MONOTONIC, &t1);
+    res->seconds = (double)(t1.tv_sec - t0.tv_sec) + 1e-9 * (double)(t1.tv_nsec - t0.tv_nsec);
+    *out = res;
+    return SWFS_OK;
+}
