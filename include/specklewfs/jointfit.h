@@ -27,8 +27,10 @@
 #include <stddef.h>
 
 #include "specklewfs/array.h"
-#include "specklewfs/fits.h"
+#include "specklewfs/geom.h"
 #include "specklewfs/regress.h"
+
+SWFS_BEGIN_DECLS
 
 enum { SWFS_JF_PRIOR_GRADIENT = 0, SWFS_JF_PRIOR_CURVATURE = 1 };
 
@@ -82,5 +84,7 @@ typedef struct swfs_jointfit_result {
 int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *g, const swfs_real *mask,
                   const swfs_jointfit_options *opt, swfs_jointfit_result **out);
 void swfs_jointfit_result_free(swfs_jointfit_result *r);
+
+SWFS_END_DECLS
 
 #endif

@@ -34,6 +34,8 @@
 
 #include "specklewfs/array.h"
 
+SWFS_BEGIN_DECLS
+
 /* The raw state: plane f of pixel k is state[f * nx * ny + k] (FITS order: a checkpoint is
  * an nx x ny x SWFS_REGRESS_NSTATE cube). G entries are the upper triangle row by row. */
 enum {
@@ -62,7 +64,7 @@ void swfs_regress_free(swfs_regress *r);
 void swfs_regress_reset(swfs_regress *r);
 
 /* One synchronized frame. science: nx*ny counts; psi: nx*ny complex values as interleaved
- * (re, im) doubles (a double complex array cast to const double *); weights: nx*ny
+ * (re, im) doubles (a swfs_complex array cast to const double *); weights: nx*ny
  * weights w > 0 (e.g. 1 / (read_noise^2 + max(mu, 0)/gain) from a previous fit), or NULL
  * for w = 1. A pixel whose weight is not finite and > 0 is skipped like a bad science value. */
 int swfs_regress_add(swfs_regress *r, const double *science, const double *psi, const double *weights);
@@ -98,5 +100,7 @@ typedef struct swfs_regress_sol {
 
 int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out);
 void swfs_regress_sol_free(swfs_regress_sol *s);
+
+SWFS_END_DECLS
 
 #endif
