@@ -42,6 +42,9 @@ int cli_parse_double(const char *cmd, const char *opt, const char *s, double *ou
 int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out);
 /* The command line joined into one string, for provenance (HISTORY) cards. */
 void cli_command_line(int argc, char **argv, char *buf, size_t cap);
+/* The command line as the provenance lines of a library run (static storage: one command
+ * runs per process); *n receives their count. */
+const char *const *cli_provenance(int argc, char **argv, size_t *n);
 /* Seconds since an arbitrary epoch (monotonic). */
 double cli_now(void);
 /* Progress on stderr: "\r<label> k/n" when stderr is a terminal, sparse lines otherwise. */

@@ -87,11 +87,7 @@ int swfs_cmd_estimate(int argc, char **argv)
     int prc = parse(argc, argv, &o);
     if (prc) return prc < 0 ? CLI_OK : prc;
     const double t0 = cli_now();
-    char cl[2048];
-    cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    o.prov = prov;
-    o.nprov = 1;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
     o.progress = cli_stage_progress;
     o.progress_ctx = "estimate:";
     swfs_estimate_run_result r;

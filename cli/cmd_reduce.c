@@ -76,11 +76,7 @@ int swfs_cmd_reduce(int argc, char **argv)
     if (rc == CLI_OK && !o.out) rc = cli_usage_error(cmd, "needs -o SCIENCE.fits");
     if (rc != CLI_OK) { free(raws); return rc; }
     o.raw = raws;
-    char cl[2048];
-    cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    o.prov = prov;
-    o.nprov = 1;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
     o.progress = cli_stage_progress;
     o.progress_ctx = "reduce:";
     swfs_reduce_run_result r;

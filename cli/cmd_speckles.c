@@ -154,11 +154,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     o.match_in = min;
     o.match_out = mout;
-    char cl[2048];
-    cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    o.prov = prov;
-    o.nprov = 1;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
     o.progress = cli_stage_progress;
     o.progress_ctx = "speckles:";
     swfs_speckles_run_result r;

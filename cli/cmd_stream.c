@@ -157,11 +157,7 @@ int swfs_cmd_stream(int argc, char **argv)
     if (prc < 0) return CLI_OK;
     if (prc) return prc;
     const double t_start = cli_now();
-    char cl[2048];
-    cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    o.prov = prov;
-    o.nprov = 1;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
     double t0 = cli_now();
     o.on_update = on_update;
     o.update_ctx = &t0;

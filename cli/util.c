@@ -135,3 +135,12 @@ int cli_parse_tiptilt(const char *cmd, const char *v, int *mode)
     else return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
     return 0;
 }
+
+const char *const *cli_provenance(int argc, char **argv, size_t *n)
+{
+    static char line[2048];
+    static const char *lines[1] = {line};
+    cli_command_line(argc, argv, line, sizeof line);
+    *n = 1;
+    return lines;
+}
