@@ -59,18 +59,16 @@ int swfs_cmd_sync(int argc, char **argv)
     swfs_sync_run_result r;
     int rc = swfs_sync_run(&o, &r);
     const swfs_timing *t = &r.t;
-    if (!rc || rc == SWFS_ERR_VALUE) {
-        if (t->cubes && t->ratio > 0) {
-            printf("sync: <t_sci/t_wfs> = %.4f +- %.4f, lag = %.2f WFS frames (handshake frame - lag = exposure start)\n",
-                   t->ratio, t->ratio_err, t->lag);
-            printf("sync: pairing camera x <- %s slopes (sign %+d, corr %.3f), camera y <- %s slopes (sign %+d, corr %.3f)\n",
-                   t->fit.swap ? "y" : "x", t->fit.sign_x, t->fit.corr_x, t->fit.swap ? "x" : "y", t->fit.sign_y,
-                   t->fit.corr_y);
-            printf("sync: |corr| tx-mx %.3f tx-my %.3f ty-mx %.3f ty-my %.3f\n", t->fit.corr4[0], t->fit.corr4[1],
-                   t->fit.corr4[2], t->fit.corr4[3]);
-            printf("sync: %zu of %zu cubes usable, %zu straddle a telemetry-file boundary -> %s\n", r.nok, t->ncubes,
-                   t->ncubes - r.nok, o.out);
-        }
+    if (t->cubes && t->ratio > 0) { /* the fit was made (also when no cube turned out usable) */
+        printf("sync: <t_sci/t_wfs> = %.4f +- %.4f, lag = %.2f WFS frames (handshake frame - lag = exposure start)\n",
+               t->ratio, t->ratio_err, t->lag);
+        printf("sync: pairing camera x <- %s slopes (sign %+d, corr %.3f), camera y <- %s slopes (sign %+d, corr %.3f)\n",
+               t->fit.swap ? "y" : "x", t->fit.sign_x, t->fit.corr_x, t->fit.swap ? "x" : "y", t->fit.sign_y,
+               t->fit.corr_y);
+        printf("sync: |corr| tx-mx %.3f tx-my %.3f ty-mx %.3f ty-my %.3f\n", t->fit.corr4[0], t->fit.corr4[1],
+               t->fit.corr4[2], t->fit.corr4[3]);
+        printf("sync: %zu of %zu cubes usable, %zu straddle a telemetry-file boundary -> %s\n", r.nok, t->ncubes,
+               t->ncubes - r.nok, o.out);
     }
     free(r.t.cubes);
     return rc ? cli_error(cmd) : CLI_OK;

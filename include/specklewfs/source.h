@@ -33,6 +33,9 @@ double swfs_file_source_wfs_rate(const swfs_file_source *s);
 int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t cap);
 /* The folder part of a path ("." when there is none). */
 void swfs_path_dir(const char *path, char *dir, size_t cap);
+/* A telemetry file: a 2-D image of nslopes x WFS frames (nslopes = 0: any width), and its
+ * WFSRATE [Hz] in *rate (0 when absent or not a rate; rate may be NULL). */
+int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate);
 /* Every telemetry file the usable cubes of t use, in the order they first appear,
  * concatenated: *out = *nframes frames of nslopes (caller frees). */
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,

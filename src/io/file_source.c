@@ -39,6 +39,28 @@ int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t ca
     return SWFS_OK;
 }
 
+int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate)
+{
+    *out = NULL;
+    swfs_fits_in *f = NULL;
+    int found = 0;
+    double r = 0;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", &r, &found);
+    if (!rc) rc = swfs_fits_in_read_real_all(f, out);
+    swfs_fits_in_close(f);
+    if (!rc && ((*out)->nz != 1 || (nslopes && (*out)->nx != nslopes)))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path,
+                       (*out)->nx, (*out)->ny, (*out)->nz, nslopes);
+    if (rc) {
+        swfs_real_free(*out);
+        *out = NULL;
+        return rc;
+    }
+    if (rate) *rate = found && r > 0 && isfinite(r) ? r : 0;
+    return SWFS_OK;
+}
+
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,
                                  size_t *nframes)
 {
@@ -55,9 +77,7 @@ int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t n
         if (seen) continue;
         swfs_real *s = NULL;
         int rc = swfs_telemetry_path(dir, t->cubes[c].slopes, path, sizeof path);
-        if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
-        if (!rc && (s->nz != 1 || s->nx != nslopes))
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame, expected %zu", path, s->nx, nslopes);
+        if (!rc) rc = swfs_telemetry_read(path, nslopes, &s, NULL);
         double *tmp = rc ? NULL : realloc(buf, (n + s->ny) * nslopes * sizeof *tmp);
         if (!rc && !tmp) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for the training slopes", path);
         if (rc) {
@@ -135,24 +155,16 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
 /* Make the telemetry file of the current cube the one in memory. */
 static int load_telemetry(swfs_file_source *s, const swfs_timing_cube *c, char *path, size_t cap)
 {
-    int rc = s->slopes_is_dir ? swfs_telemetry_path(s->slopes_arg, c->slopes, path, cap)
-                              : (snprintf(path, cap, "%s", s->slopes_arg), SWFS_OK);
+    int rc = SWFS_OK;
+    if (s->slopes_is_dir) rc = swfs_telemetry_path(s->slopes_arg, c->slopes, path, cap);
+    else snprintf(path, cap, "%s", s->slopes_arg);
     if (rc || !strcmp(path, s->loaded)) return rc;
     swfs_real_free(s->tel);
     s->tel = NULL;
     s->loaded[0] = '\0';
-    swfs_fits_in *f = NULL;
-    int found = 0;
-    double rate = NAN;
-    rc = swfs_fits_in_open(&f, path, NULL);
-    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", &rate, &found);
-    if (!rc) rc = swfs_fits_in_read_real_all(f, &s->tel);
-    swfs_fits_in_close(f);
-    if (rc) return rc;
-    if (found && rate > 0) s->wfs_rate = rate;
-    if (s->tel->nx != s->nslopes || s->tel->nz != 1)
-        return swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path,
-                         s->tel->nx, s->tel->ny, s->tel->nz, s->nslopes);
+    double rate;
+    if ((rc = swfs_telemetry_read(path, s->nslopes, &s->tel, &rate))) return rc;
+    if (rate > 0) s->wfs_rate = rate;
     char *t = strdup(path);
     if (!t) return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory");
     free(s->loaded);

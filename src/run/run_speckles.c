@@ -43,18 +43,6 @@ static void work_free(work *w)
     swfs_real_free(w->slopes);
 }
 
-/* WFSRATE [Hz] of a telemetry file (0 if the keyword is absent or not a rate). */
-static int slopes_rate(const char *path, double *rate)
-{
-    swfs_fits_in *f = NULL;
-    int found = 0, rc = swfs_fits_in_open(&f, path, NULL);
-    *rate = 0;
-    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", rate, &found);
-    swfs_fits_in_close(f);
-    if (!rc && (!found || !(*rate > 0) || !isfinite(*rate))) *rate = 0;
-    return rc;
-}
-
 /* Science geometry and window, the actuators, the pupil mask. */
 static int load_inputs(const swfs_speckles_run_options *o, work *w)
 {
@@ -115,7 +103,17 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
     return SWFS_OK;
 }
 
-/* The slopes length and, at the WFS rate, the rate: from the first usable cube's file. */
+/* One WFS rate per run: a telemetry file's WFSRATE (0: none) against the rate in use. */
+static int check_rate(const char *path, double rate, double wfs_hz)
+{
+    if (rate > 0 && fabs(rate - wfs_hz) > 1e-9 * wfs_hz)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: WFSRATE %g Hz but the WFS rate in use is %g Hz; one rate per run", path,
+                         rate, wfs_hz);
+    return SWFS_OK;
+}
+
+/* The slopes length and, at the WFS rate, the rate: from the first usable cube's file,
+ * which stays loaded for the first cube. */
 static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const swfs_timing *t = w->t;
@@ -125,18 +123,17 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
             rc = swfs_telemetry_path(w->tdir, t->cubes[c].slopes, w->path, sizeof w->path);
             break;
         }
-    swfs_fits_in *f = NULL;
-    if (!rc) rc = swfs_fits_in_open(&f, w->path, NULL);
-    if (!rc) w->nslopes = swfs_fits_in_shape(f)->nx;
-    swfs_fits_in_close(f);
-    if (rc || !o->pipe.wfs_rate) return rc;
-    double rate;
-    if ((rc = slopes_rate(w->path, &rate))) return rc;
+    double rate = 0;
+    if (!rc) rc = swfs_telemetry_read(w->path, 0, &w->slopes, &rate);
+    if (rc) return rc;
+    w->nslopes = w->slopes->nx;
+    snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
+    if (!o->pipe.wfs_rate) return SWFS_OK;
     r->wfs_hz = o->wfs_hz > 0 ? o->wfs_hz : rate;
     if (!(r->wfs_hz > 0))
         return swfs_fail(SWFS_ERR_FORMAT, "%s: no WFSRATE keyword; the WFS-rate speckles need the WFS frame rate: give "
                          "it", w->path);
-    return SWFS_OK;
+    return check_rate(w->path, rate, r->wfs_hz);
 }
 
 static int build_pipeline(const swfs_speckles_run_options *o, work *w)
@@ -168,17 +165,10 @@ static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const s
     swfs_real_free(w->slopes);
     w->slopes = NULL;
     w->loaded[0] = 0;
-    if ((rc = swfs_fits_read_real(w->path, NULL, &w->slopes, NULL))) return rc;
-    if (w->slopes->nz != 1 || w->slopes->nx != w->nslopes)
-        return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor expects %zu", w->path,
-                         w->slopes->nx, w->nslopes);
-    snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
     double r;
-    if (o->pipe.wfs_rate && (rc = slopes_rate(w->path, &r))) return rc;
-    if (o->pipe.wfs_rate && r > 0 && fabs(r - wfs_hz) > 1e-9 * wfs_hz)
-        return swfs_fail(SWFS_ERR_VALUE, "%s: WFSRATE %g Hz but the WFS rate in use is %g Hz; one rate per run", w->path,
-                         r, wfs_hz);
-    return SWFS_OK;
+    if ((rc = swfs_telemetry_read(w->path, w->nslopes, &w->slopes, &r))) return rc;
+    snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
+    return o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
 }
 
 /* Every usable cube through the pipeline, into its place in w->halo. */
