@@ -67,6 +67,31 @@ static int setup(void **state)
     return 0;
 }
 
+/* speckles (the default pipeline, the science cube matched to OUT_sci) then estimate:
+ * the CLI's documented path through the library. */
+static void speckles_estimate(const char *sp_out, const char *sci_out, const char *halo_out, const char *write_recon,
+                              swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
+{
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = p("science.fits");
+    sp.actuators = p("actuators.fits");
+    sp.out = sp_out;
+    sp.write_recon = write_recon;
+    const char *min[] = {p("science.fits")}, *mout[] = {sci_out};
+    sp.match_in = min;
+    sp.match_out = mout;
+    sp.nmatch = 1;
+    assert_ok(swfs_speckles_run(&sp, spr));
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = sci_out;
+    eo.speckles = sp_out;
+    eo.out = halo_out;
+    assert_ok(swfs_estimate_run(&eo, er));
+}
+
 static void test_sync_speckles_estimate(void **state)
 {
     (void)state;
@@ -85,29 +110,12 @@ static void test_sync_speckles_estimate(void **state)
     assert_int_equal(sr.t.cubes[1].status, SWFS_CUBE_STRADDLES);
     free(sr.t.cubes);
 
-    swfs_speckles_run_options sp;
-    swfs_speckles_run_options_default(&sp);
-    sp.timing = p("timing.txt");
-    sp.science = p("science.fits");
-    sp.actuators = p("actuators.fits");
-    sp.out = p("speckles.fits");
-    const char *min[] = {p("science.fits")}, *mout[] = {p("sci_m.fits")};
-    sp.match_in = min;
-    sp.match_out = mout;
-    sp.nmatch = 1;
     swfs_speckles_run_result spr;
-    assert_ok(swfs_speckles_run(&sp, &spr));
+    swfs_estimate_run_result er;
+    speckles_estimate(p("speckles.fits"), p("sci_m.fits"), p("halo.fits"), NULL, &spr, &er);
     assert_int_equal(spr.nout, 120);
     assert_int_equal(spr.nok, 2);
     assert_true(spr.info.ntrain > 0 && spr.info.noise_var > 0);
-
-    swfs_estimate_run_options eo;
-    swfs_estimate_run_options_default(&eo);
-    eo.science = p("sci_m.fits");
-    eo.speckles = p("speckles.fits");
-    eo.out = p("halo.fits");
-    swfs_estimate_run_result er;
-    assert_ok(swfs_estimate_run(&eo, &er));
     assert_int_equal(er.halo->frames, 120);
 
     /* NCP error against the injected map (piston, tip, tilt removed): < 50 nm, as the CLI test. */
@@ -128,10 +136,14 @@ static void test_sync_speckles_estimate(void **state)
     swfs_halo_free(er.halo);
 
     /* Bad input: a reconstructor whose length does not match the slopes. */
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = p("science.fits");
+    sp.actuators = p("actuators.fits");
     sp.pipe.recon = SWFS_RECON_GIVEN;
     sp.recon = p("actuators.fits");
     sp.out = p("x.fits");
-    sp.nmatch = 0;
     assert_int_not_equal(swfs_speckles_run(&sp, &spr), 0);
     printf("test_runs: bad reconstructor: %s\n", swfs_last_error());
     assert_non_null(strstr(swfs_last_error(), "expects"));
@@ -142,26 +154,9 @@ static void test_sync_speckles_estimate(void **state)
 static void test_stream_equals_speckles(void **state)
 {
     (void)state;
-    swfs_speckles_run_options sp;
-    swfs_speckles_run_options_default(&sp);
-    sp.timing = p("timing.txt");
-    sp.science = p("science.fits");
-    sp.actuators = p("actuators.fits");
-    sp.out = p("speckles_s.fits");
-    sp.write_recon = p("recon.fits");
-    const char *min[] = {p("science.fits")}, *mout[] = {p("sci_s.fits")};
-    sp.match_in = min;
-    sp.match_out = mout;
-    sp.nmatch = 1;
     swfs_speckles_run_result spr;
-    assert_ok(swfs_speckles_run(&sp, &spr));
-    swfs_estimate_run_options eo;
-    swfs_estimate_run_options_default(&eo);
-    eo.science = p("sci_s.fits");
-    eo.speckles = p("speckles_s.fits");
-    eo.out = p("halo_s.fits");
     swfs_estimate_run_result er;
-    assert_ok(swfs_estimate_run(&eo, &er));
+    speckles_estimate(p("speckles_s.fits"), p("sci_s.fits"), p("halo_s.fits"), p("recon.fits"), &spr, &er);
 
     swfs_stream_run_options so;
     swfs_stream_run_options_default(&so);

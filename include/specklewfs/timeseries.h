@@ -98,7 +98,8 @@ typedef struct swfs_ts_summary {
     double seconds;
 } swfs_ts_summary;
 
-typedef void (*swfs_ts_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
+/* The progress callback of status.h, under the name this module had first. */
+typedef swfs_progress_fn swfs_ts_progress_fn;
 
 /* Simulate and write DIR (must exist). */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,

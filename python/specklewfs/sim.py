@@ -59,15 +59,22 @@ def sim_params(config=None, **params):
     return _struct_dict(p)
 
 
-def _params(config, params):
+def _checked_params(kind, config, params):
+    """swfs_<kind>_params from the defaults, the config and the keyword overrides, read and
+    checked by the library (kind: "sim" or "ts")."""
     c, owner = _config(config, params)
-    p = _lib.swfs_sim_params()
-    lib.swfs_sim_params_default(ctypes.byref(p))
-    check(lib.swfs_sim_params_from_config(c, ctypes.byref(p)), "swfs_sim_params_from_config")
-    check(lib.swfs_config_check_unused(c), "swfs_config_check_unused")
-    check(lib.swfs_sim_params_check(ctypes.byref(p)), "swfs_sim_params_check")
+    p = getattr(_lib, "swfs_%s_params" % kind)()
+    getattr(lib, "swfs_%s_params_default" % kind)(ctypes.byref(p))
+    for name, args in (("swfs_%s_params_from_config" % kind, (c, ctypes.byref(p))),
+                       ("swfs_config_check_unused", (c,)),
+                       ("swfs_%s_params_check" % kind, (ctypes.byref(p),))):
+        check(getattr(lib, name)(*args), name)
     del owner
     return p
+
+
+def _params(config, params):
+    return _checked_params("sim", config, params)
 
 
 class SimResult:
@@ -175,12 +182,7 @@ def simulate_timeseries(directory, config=None, progress=None, provenance=(), **
     """The AO time series of the real-data path (timeseries.h), written to directory
     (created if needed): telemetry, raw camera cubes, calibrations, truth. params: the
     shared and time-series config keys (config/mmt-clio.conf). Returns the summary dict."""
-    c, owner = _config(config, params)
-    p = _lib.swfs_ts_params()
-    lib.swfs_ts_params_default(ctypes.byref(p))
-    check(lib.swfs_ts_params_from_config(c, ctypes.byref(p)), "swfs_ts_params_from_config")
-    check(lib.swfs_config_check_unused(c), "swfs_config_check_unused")
-    check(lib.swfs_ts_params_check(ctypes.byref(p)), "swfs_ts_params_check")
+    p = _checked_params("ts", config, params)
     os.makedirs(directory, exist_ok=True)
     s = _lib.swfs_ts_summary()
     prov, n = _lib.strings(provenance)
