@@ -1,5 +1,6 @@
 /* Speckle coherence: FFT along time against direct sums for a WFS-rate cube.
  * usage: bench_coherence [NFRAMES [NPIX]]   (default 650 frames of 60 x 60) */
+#include "specklewfs/parallel.h"
 #include "specklewfs/coherence.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
@@ -17,6 +18,9 @@ static double now(void)
 
 int main(int argc, char **argv)
 {
+    /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
+     * (parallel.h). */
+    swfs_blas_set_threads(1);
     size_t nt = argc > 1 ? (size_t)atol(argv[1]) : 650, n = argc > 2 ? (size_t)atol(argv[2]) : 60;
     swfs_cplx *c = swfs_cplx_alloc(n, n, nt);
     if (!c) { fprintf(stderr, "%s\n", swfs_last_error()); return 1; }

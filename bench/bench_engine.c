@@ -14,6 +14,7 @@
  *
  * Run:  ./build/bench/bench_engine            (about a minute)
  *       ./build/bench/bench_engine --quick    (shorter timings, memory to 10^4 frames) */
+#include "specklewfs/parallel.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/engine.h"
@@ -177,6 +178,9 @@ static run_result run(const ao_system *s, int nthreads, int per_wfs, double seco
 
 int main(int argc, char **argv)
 {
+    /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
+     * (parallel.h). */
+    swfs_blas_set_threads(1);
     int quick = argc > 1 && !strcmp(argv[1], "--quick");
     /* --case SYSTEM MODE THREADS (0/1 each, threads 1..): one timing only, for profiling. */
     int only = argc == 5 && !strcmp(argv[1], "--case");

@@ -12,6 +12,7 @@
  *
  * Run:  ./build/bench/bench_estimator              (3 seeds x 4 levels, about a minute)
  *       ./build/bench/bench_estimator SEEDS SIGMA... (e.g. "1 100 1000": seed 1 only) */
+#include "specklewfs/parallel.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/jointfit.h"
 #include "specklewfs/pupil.h"
@@ -69,6 +70,9 @@ static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, const
 
 int main(int argc, char **argv)
 {
+    /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
+     * (parallel.h). */
+    swfs_blas_set_threads(1);
     int nseeds = 3;
     double sigmas[8] = {0, 10, 100, 1000};
     int nsig = 4;
