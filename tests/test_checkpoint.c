@@ -73,6 +73,10 @@ static void test_round_trip(void **state)
     assert_int_equal(b->skipped, 20);
     assert_int_equal(b->frames, a->frames);
     for (int k = 0; k < SWFS_ACC_NFIELDS; k++) assert_memory_equal(a->f[k], b->f[k], NP * sizeof(double));
+    /* The regression statistics travel too (REGSTATE), bit for bit. */
+    assert_true(swfs_accum_has_regress(b));
+    assert_int_equal(b->reg->frames, 45);
+    assert_memory_equal(a->reg->state, b->reg->state, NP * SWFS_REGRESS_NSTATE * sizeof(double));
     assert_true(g2.wavelen == g.wavelen && g2.pixscale == g.pixscale && g2.pupn == g.pupn);
     assert_true(isnan(g2.obscur)); /* not recorded stays missing */
     swfs_accum_free(a);
@@ -115,6 +119,15 @@ static void test_merge_equals_single_pass(void **state)
             const double a = all->f[k][p], b = m->f[k][p];
             assert_close(b, a, 1e-11 * fmax(1.0, fabs(a)));
         }
+    /* The regression statistics merge to the single pass too (after both are re-centred on
+     * their own means, the merged centres being those of the first file merged). */
+    assert_true(swfs_accum_has_regress(m));
+    assert_ok(swfs_regress_recenter(all->reg, NULL));
+    assert_ok(swfs_regress_recenter(m->reg, NULL));
+    for (size_t k = 0; k < (size_t)NP * SWFS_REGRESS_NSTATE; k++) {
+        const double a = all->reg->state[k], b = m->reg->state[k];
+        assert_close(b, a, 1e-10 * fmax(1.0, fabs(a)));
+    }
     /* And the estimator sees the same data set (eq:TheAnswer, eq:scale-factor). */
     swfs_noise noise = {1.0, 0.0};
     swfs_halo *h1 = NULL, *h2 = NULL;
@@ -131,6 +144,39 @@ static void test_merge_equals_single_pass(void **state)
     swfs_halo_free(h2);
     swfs_accum_free(m);
     swfs_accum_free(all);
+}
+
+/* The flat state (for MPI or shared memory): export/import is exact, merging flat states in
+ * place equals merging accumulators, and an impossible state is refused. */
+static void test_flat_state(void **state)
+{
+    (void)state;
+    swfs_accum *a = swfs_accum_create(NX, NY), *b = swfs_accum_create(NX, NY), *c = swfs_accum_create(NX, NY);
+    assert_true(a && b && c);
+    feed(a, 0, 50);
+    feed(b, 50, 90);
+    const size_t len = swfs_accum_state_len(NX, NY);
+    assert_int_equal(len, (size_t)(SWFS_ACC_NFIELDS + SWFS_REGRESS_NSTATE) * NP + 4);
+    double *sa = malloc(len * sizeof *sa), *sb = malloc(len * sizeof *sb);
+    assert_true(sa && sb);
+    swfs_accum_export(a, sa);
+    swfs_accum_export(b, sb);
+    assert_ok(swfs_accum_merge_state(sa, sb, NX, NY));
+    assert_ok(swfs_accum_merge(a, b));
+    assert_ok(swfs_accum_import(c, sa));
+    assert_int_equal(c->frames, 90);
+    assert_int_equal(c->skipped, 20);
+    assert_true(swfs_accum_has_regress(c));
+    for (int k = 0; k < SWFS_ACC_NFIELDS; k++) assert_memory_equal(a->f[k], c->f[k], NP * sizeof(double));
+    assert_memory_equal(a->reg->state, c->reg->state, NP * SWFS_REGRESS_NSTATE * sizeof(double));
+    sa[NP * SWFS_ACC_CXX + 2] = -1.0; /* a negative variance */
+    assert_int_equal(swfs_accum_import(c, sa), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "negative variance"));
+    free(sa);
+    free(sb);
+    swfs_accum_free(a);
+    swfs_accum_free(b);
+    swfs_accum_free(c);
 }
 
 static void test_bad_files(void **state)
@@ -177,6 +223,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_round_trip),
         cmocka_unit_test(test_merge_equals_single_pass),
+        cmocka_unit_test(test_flat_state),
         cmocka_unit_test(test_bad_files),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

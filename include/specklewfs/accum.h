@@ -12,11 +12,18 @@
  *   <psi'^2>      = Var x - Var y + 2i Cov(x, y)                  (eq:zeroSqMean)
  * Memory is 15 doubles per pixel whatever the number of frames. Two accumulators over
  * disjoint frame sets merge into the accumulator of their union (to rounding).
- * Non-finite science values skip that pixel-frame (counted); speckles must be finite. */
+ * Non-finite science values skip that pixel-frame (counted); speckles must be finite.
+ *
+ * Every accumulator also carries the regression statistics of regress.h (reg, 21 doubles per
+ * pixel), updated by the same add and merged by the same merge, so that the joint fit
+ * (jointfit.h) is available wherever the moments are: estimate, stream, merge, checkpoints.
+ * reg->frames == frames says the two saw the same frames (a checkpoint from before the
+ * regression statistics existed loads with reg empty, and merging it makes them differ). */
 #ifndef SWFS_ACCUM_H
 #define SWFS_ACCUM_H
 
 #include "specklewfs/defs.h"
+#include "specklewfs/regress.h"
 
 #include <stddef.h>
 #include <stdint.h>
@@ -37,6 +44,7 @@ typedef struct swfs_accum {
     double *f[SWFS_ACC_NFIELDS];
     uint64_t frames;        /* frames offered */
     uint64_t skipped;       /* pixel-frames skipped for non-finite science values */
+    swfs_regress *reg;      /* regression statistics of the same frames (owned) */
 } swfs_accum;
 
 swfs_accum *swfs_accum_create(size_t nx, size_t ny);
@@ -47,6 +55,20 @@ void swfs_accum_reset(swfs_accum *a);
 int swfs_accum_add(swfs_accum *a, const double *science, const swfs_complex *psi);
 /* dst += src (disjoint frame sets), exactly the accumulator of the union. */
 int swfs_accum_merge(swfs_accum *dst, const swfs_accum *src);
+/* 1 when the regression statistics cover exactly the frames the moments do. */
+int swfs_accum_has_regress(const swfs_accum *a);
+
+/* The whole state as one flat array of doubles, for transport (MPI, shared memory, files):
+ * the 15 moment planes, then the SWFS_REGRESS_NSTATE regression planes (each nx*ny, FITS
+ * order), then frames, skipped, reg->frames, reg->skipped (exact as doubles below 2^53). */
+size_t swfs_accum_state_len(size_t nx, size_t ny);
+void swfs_accum_export(const swfs_accum *a, double *state);
+/* Import a state exported by an accumulator of the same size; checks that counts are
+ * whole, >= 0 and at most the frames offered, and variances >= 0. */
+int swfs_accum_import(swfs_accum *a, const double *state);
+/* dst_state += src_state on flat states of nx x ny pixels (exactly swfs_accum_merge),
+ * without allocating: usable as a reduction operator. */
+int swfs_accum_merge_state(double *dst_state, const double *src_state, size_t nx, size_t ny);
 
 SWFS_END_DECLS
 

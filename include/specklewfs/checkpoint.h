@@ -9,7 +9,12 @@
  *   ACCVER  = 1                  layout version
  *   ACCFLDS = 'N MI MX MY MA CII CIX CIY CIA CXX CXY CXA CYY CYA CAA'
  *   FRAMES  frames offered;  SKIPPED  pixel-frames skipped (non-finite science)
- * and the geometry. Written atomically (.part + rename), so a checkpoint that exists is
+ * and the geometry; then (version 2) the extension EXTNAME = 'REGSTATE': the regression
+ * statistics of regress.h, a real cube nx x ny x SWFS_REGRESS_NSTATE (plane order of its enum)
+ * with REGVER = 1, FRAMES, SKIPPED. Version 1 checkpoints (no REGSTATE) still load: their
+ * accumulator has empty regression statistics (swfs_accum_has_regress says 0 when it holds
+ * frames), and the joint fit is then unavailable for anything merged with them.
+ * Written atomically (.part + rename), so a checkpoint that exists is
  * complete. Doubles are stored exactly: load(save(a)) == a bit for bit. */
 #ifndef SWFS_CHECKPOINT_H
 #define SWFS_CHECKPOINT_H
@@ -21,7 +26,7 @@
 
 SWFS_BEGIN_DECLS
 
-#define SWFS_CHECKPOINT_VERSION 1
+#define SWFS_CHECKPOINT_VERSION 2
 
 /* g (may be NULL): geometry to record; prov: provenance lines (HISTORY). */
 int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, const char *const *prov,
@@ -32,6 +37,11 @@ int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g);
 /* Load and merge n checkpoints (same frame size and geometry) into *out; g (may be NULL)
  * receives the merged geometry (the union of the keywords recorded). */
 int swfs_accum_merge_files(const char *const *paths, size_t n, swfs_accum **out, swfs_geom *g);
+
+/* The REGSTATE extension alone (also carried by HALO.fits): write it as the next HDU of o;
+ * read it from f (which must hold it) into a new nx x ny regression accumulator. */
+int swfs_regress_write_ext(swfs_fits_out *o, const swfs_regress *r);
+int swfs_regress_read_ext(swfs_fits_in *f, const char *path, size_t nx, size_t ny, swfs_regress **out);
 
 SWFS_END_DECLS
 

@@ -71,6 +71,8 @@ typedef struct swfs_halo {
     size_t n_g_fallback; /* pixels whose g came from the local-median fallback */
     size_t n_var_below_noise; /* pixels whose intensity variance is significantly (3 sigma)
                                  below the noise model alone: the model is too large there */
+    swfs_regress *reg;   /* regression statistics of the same frames (regress.h), what the joint
+                            fit of pupil.h needs; NULL when the accumulator had none (owned) */
 } swfs_halo;
 
 #define SWFS_G_SMOOTH_DEFAULT 8.0 /* pixels: 2 lambda/D at the paper's 0.25 lambda/D sampling */
@@ -86,7 +88,8 @@ void swfs_halo_free(swfs_halo *h);
 /* HALO.fits: an empty primary HDU with the summary keywords (NFRAMES, SKIPPED, NVALID,
  * VALIDFR, NBADRAD, NNOSP, MEDSNR, RDNOISE, GAIN), the geometry and provenance, then the
  * image extensions HALO, HALO_LF, STAB (complex), GAIN, VISIB, SNR, MEAN_I, VAR_I, MEAN_SP,
- * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES, GAIN_PIX (real). Written atomically (.part + rename). */
+ * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES, GAIN_PIX (real), and when h->reg is set REGSTATE (the
+ * regression statistics, checkpoint.h's layout). Written atomically (.part + rename). */
 int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, const char *const *prov,
                     size_t nprov);
 /* Read back every extension present (HALO and HALO_LF are required). */

@@ -123,12 +123,13 @@ swfs_halo = _s("swfs_halo", [("nx", c_size), ("ny", c_size)] + [(n, P(swfs_cplx)
                + [(n, c_size) for n in ("npix", "n_valid", "n_bad_radicand", "n_no_speckle", "n_no_frames")]
                + [(n, c_dbl) for n in ("valid_fraction", "median_snr", "radicand_min")]
                + [("frames", ctypes.c_ulonglong), ("skipped", ctypes.c_ulonglong), ("noise", swfs_noise),
-                  ("g_smooth", c_dbl), ("n_g_fallback", c_size), ("n_var_below_noise", c_size)])
+                  ("g_smooth", c_dbl), ("n_g_fallback", c_size), ("n_var_below_noise", c_size),
+                  ("reg", c_ptr)])
 swfs_estimate_options = _s("swfs_estimate_options", [("g_smooth", c_dbl)])
 ACC_NFIELDS = 15
 ACC_FIELDS = ["N", "MI", "MX", "MY", "MA", "CII", "CIX", "CIY", "CIA", "CXX", "CXY", "CXA", "CYY", "CYA", "CAA"]
 swfs_accum = _s("swfs_accum", [("nx", c_size), ("ny", c_size), ("f", P(c_dbl) * ACC_NFIELDS), ("frames", c_u64),
-                               ("skipped", c_u64)])
+                               ("skipped", c_u64), ("reg", c_ptr)])
 swfs_pupil_options = _s("swfs_pupil_options", [("weight", c_int), ("wiener_k", c_dbl), ("bias", c_dbl),
                                                ("source", c_int)])
 swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(swfs_real)),

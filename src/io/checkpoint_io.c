@@ -25,11 +25,57 @@ int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, c
     if (!rc) rc = swfs_fits_out_key_string(o, "ACCFLDS", field_names, "planes: count, means of I x y |psi|^2, co-moments");
     if (!rc) rc = swfs_fits_out_key_long(o, "FRAMES", (long)a->frames, "frames offered");
     if (!rc) rc = swfs_fits_out_key_long(o, "SKIPPED", (long)a->skipped, "pixel-frames skipped (non-finite science)");
+    if (!rc) rc = swfs_regress_write_ext(o, a->reg);
     if (rc) {
         swfs_fits_out_abort(o);
         return swfs_fail_context(rc, "%s", path);
     }
     return swfs_fits_out_commit(o);
+}
+
+#define REGSTATE_VERSION 1
+
+int swfs_regress_write_ext(swfs_fits_out *o, const swfs_regress *r)
+{
+    const size_t np = r->nx * r->ny;
+    int rc = swfs_fits_out_begin(o, "REGSTATE", r->nx, r->ny, SWFS_REGRESS_NSTATE, 0, -64);
+    for (int k = 0; k < SWFS_REGRESS_NSTATE && !rc; k++)
+        rc = swfs_fits_out_real_frames(o, (size_t)k, 1, r->state + (size_t)k * np);
+    if (!rc) rc = swfs_fits_out_key_long(o, "REGVER", REGSTATE_VERSION, "specklewfs regression statistics layout");
+    if (!rc) rc = swfs_fits_out_key_string(o, "COMMENT", "planes: n, centre set, centre (re, im), sum p (re, im), "
+                                           "G (10, upper triangle), h (4), sum I^2 (regress.h)", NULL);
+    if (!rc) rc = swfs_fits_out_key_long(o, "FRAMES", (long)r->frames, "frames offered");
+    if (!rc) rc = swfs_fits_out_key_long(o, "SKIPPED", (long)r->skipped, "pixel-frames skipped (non-finite science)");
+    return rc;
+}
+
+static int count_key(swfs_fits_in *f, const char *path, const char *key, uint64_t *out);
+
+int swfs_regress_read_ext(swfs_fits_in *f, const char *path, size_t nx, size_t ny, swfs_regress **out)
+{
+    *out = NULL;
+    int rc = swfs_fits_in_move(f, "REGSTATE");
+    if (rc) return rc;
+    const swfs_fits_shape *sh = swfs_fits_in_shape(f);
+    if (sh->is_complex || sh->nx != nx || sh->ny != ny || sh->nz != SWFS_REGRESS_NSTATE)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: REGSTATE is %zux%zux%zu%s; expected a real cube %zux%zux%d", path, sh->nx,
+                         sh->ny, sh->nz, sh->is_complex ? " complex" : "", nx, ny, SWFS_REGRESS_NSTATE);
+    double ver;
+    if ((rc = swfs_fits_in_key_double(f, "REGVER", &ver))) return swfs_fail_context(rc, "%s: REGSTATE", path);
+    if (ver != REGSTATE_VERSION)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: REGSTATE layout version %g, this program reads version %d", path, ver,
+                         REGSTATE_VERSION);
+    swfs_regress *r = swfs_regress_create(nx, ny);
+    double *state = r ? malloc(nx * ny * SWFS_REGRESS_NSTATE * sizeof *state) : NULL;
+    if (!state) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for REGSTATE", path);
+    if (!rc) rc = count_key(f, path, "FRAMES", &r->frames);
+    if (!rc) rc = count_key(f, path, "SKIPPED", &r->skipped);
+    if (!rc) rc = swfs_fits_in_read_real(f, 0, SWFS_REGRESS_NSTATE, state);
+    if (!rc && (rc = swfs_regress_import(r, state))) swfs_fail_context(rc, "%s: REGSTATE", path);
+    free(state);
+    if (rc) { swfs_regress_free(r); return rc; }
+    *out = r;
+    return SWFS_OK;
 }
 
 /* A count key: a non-negative integer. */
@@ -64,8 +110,8 @@ int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g)
         swfs_fail_context(rc, "%s: not a specklewfs checkpoint", path);
         goto done;
     }
-    if (ver != SWFS_CHECKPOINT_VERSION) {
-        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: checkpoint layout version %g, this program reads version %d", path, ver,
+    if (ver != 1 && ver != SWFS_CHECKPOINT_VERSION) {
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: checkpoint layout version %g, this program reads versions 1 to %d", path, ver,
                        SWFS_CHECKPOINT_VERSION);
         goto done;
     }
@@ -96,6 +142,13 @@ int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g)
                                p % a->nx, p / a->nx);
     }
     if (!rc && g) rc = swfs_fits_in_geom(f, g);
+    if (!rc && ver >= 2) {
+        swfs_regress *r = NULL;
+        if (!(rc = swfs_regress_read_ext(f, path, a->nx, a->ny, &r))) {
+            swfs_regress_free(a->reg);
+            a->reg = r;
+        }
+    }
 done:
     swfs_fits_in_close(f);
     if (rc) {

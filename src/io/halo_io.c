@@ -1,5 +1,6 @@
 /* HALO.fits writer and reader (layout in include/specklewfs/estimate.h, DESIGN.md). */
 #include "specklewfs/estimate.h"
+#include "specklewfs/checkpoint.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/status.h"
 
@@ -56,6 +57,7 @@ int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, co
         const swfs_real *a = *real_slot((swfs_halo *)h, k);
         if (a) rc = swfs_fits_out_real(o, real_exts[k].name, a, -64);
     }
+    if (!rc && h->reg) rc = swfs_regress_write_ext(o, h->reg);
     if (rc) {
         swfs_fits_out_abort(o);
         return rc;
@@ -101,6 +103,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
         if (!swfs_fits_in_key_double_opt(f, "VALIDFR", &v, &found) && found) h->valid_fraction = v;
         if (!swfs_fits_in_key_double_opt(f, "MEDSNR", &v, &found) && found) h->median_snr = v;
     }
+    if (!rc && swfs_fits_in_has_ext(f, "REGSTATE")) rc = swfs_regress_read_ext(f, path, h->nx, h->ny, &h->reg);
     swfs_fits_in_close(f);
     if (rc) { swfs_halo_free(h); return rc; }
     *out = h;

@@ -21,6 +21,7 @@ swfs_accum *swfs_accum_create(size_t nx, size_t ny)
         a->f[k] = swfs_calloc(nx * ny, sizeof(double));
         if (!a->f[k]) { swfs_accum_free(a); return NULL; }
     }
+    if (!(a->reg = swfs_regress_create(nx, ny))) { swfs_accum_free(a); return NULL; }
     return a;
 }
 
@@ -28,6 +29,7 @@ void swfs_accum_free(swfs_accum *a)
 {
     if (!a) return;
     for (int k = 0; k < SWFS_ACC_NFIELDS; k++) swfs_free(a->f[k]);
+    swfs_regress_free(a->reg);
     free(a);
 }
 
@@ -35,6 +37,7 @@ void swfs_accum_reset(swfs_accum *a)
 {
     for (int k = 0; k < SWFS_ACC_NFIELDS; k++) memset(a->f[k], 0, a->nx * a->ny * sizeof(double));
     a->frames = a->skipped = 0;
+    swfs_regress_reset(a->reg);
 }
 
 int swfs_accum_add(swfs_accum *a, const double *Iv, const double complex *psi)
@@ -73,7 +76,8 @@ int swfs_accum_add(swfs_accum *a, const double *Iv, const double complex *psi)
     }
     a->frames++;
     a->skipped += skipped;
-    return SWFS_OK;
+    /* The regression statistics of the same frame (psi already checked finite). */
+    return swfs_regress_add(a->reg, Iv, ps, NULL);
 }
 
 int swfs_accum_merge(swfs_accum *dst, const swfs_accum *src)
@@ -102,5 +106,105 @@ int swfs_accum_merge(swfs_accum *dst, const swfs_accum *src)
     }
     dst->frames += src->frames;
     dst->skipped += src->skipped;
+    return swfs_regress_merge(dst->reg, src->reg);
+}
+
+int swfs_accum_has_regress(const swfs_accum *a)
+{
+    return a && a->reg && a->reg->frames == a->frames;
+}
+
+size_t swfs_accum_state_len(size_t nx, size_t ny)
+{
+    return (size_t)(SWFS_ACC_NFIELDS + SWFS_REGRESS_NSTATE) * nx * ny + 4;
+}
+
+void swfs_accum_export(const swfs_accum *a, double *state)
+{
+    const size_t np = a->nx * a->ny;
+    for (int k = 0; k < SWFS_ACC_NFIELDS; k++) memcpy(state + (size_t)k * np, a->f[k], np * sizeof *state);
+    double *tail = state + (size_t)SWFS_ACC_NFIELDS * np;
+    swfs_regress_export(a->reg, tail);
+    tail += (size_t)SWFS_REGRESS_NSTATE * np;
+    tail[0] = (double)a->frames;
+    tail[1] = (double)a->skipped;
+    tail[2] = (double)a->reg->frames;
+    tail[3] = (double)a->reg->skipped;
+}
+
+/* A count carried as a double: whole, >= 0, exact. */
+static int state_count(double v, const char *what, uint64_t *out)
+{
+    if (!(v >= 0) || v != floor(v) || v > 9007199254740992.0)
+        return swfs_fail(SWFS_ERR_VALUE, "accumulator state: %s = %g is not a count", what, v);
+    *out = (uint64_t)v;
+    return SWFS_OK;
+}
+
+int swfs_accum_import(swfs_accum *a, const double *state)
+{
+    const size_t np = a->nx * a->ny;
+    const double *tail = state + (size_t)(SWFS_ACC_NFIELDS + SWFS_REGRESS_NSTATE) * np;
+    uint64_t fr = 0, sk = 0, rfr = 0, rsk = 0;
+    int rc = state_count(tail[0], "frames", &fr);
+    if (!rc) rc = state_count(tail[1], "skipped", &sk);
+    if (!rc) rc = state_count(tail[2], "regression frames", &rfr);
+    if (!rc) rc = state_count(tail[3], "regression skipped", &rsk);
+    if (rc) return rc;
+    static const int diag[4] = {SWFS_ACC_CII, SWFS_ACC_CXX, SWFS_ACC_CYY, SWFS_ACC_CAA};
+    for (size_t p = 0; p < np; p++) {
+        const double n = state[p];
+        if (!(n >= 0) || n != floor(n) || n > (double)fr)
+            return swfs_fail(SWFS_ERR_VALUE, "accumulator state: pixel (%zu, %zu) has count %g with %llu frames",
+                             p % a->nx, p / a->nx, n, (unsigned long long)fr);
+        for (int k = 1; k < SWFS_ACC_NFIELDS; k++)
+            if (!isfinite(state[(size_t)k * np + p]))
+                return swfs_fail(SWFS_ERR_VALUE, "accumulator state: plane %d of pixel (%zu, %zu) is not finite", k,
+                                 p % a->nx, p / a->nx);
+        for (int k = 0; k < 4; k++)
+            if (state[(size_t)diag[k] * np + p] < 0)
+                return swfs_fail(SWFS_ERR_VALUE, "accumulator state: negative variance in plane %d at pixel (%zu, %zu)",
+                                 diag[k], p % a->nx, p / a->nx);
+    }
+    if ((rc = swfs_regress_import(a->reg, state + (size_t)SWFS_ACC_NFIELDS * np))) return rc;
+    for (int k = 0; k < SWFS_ACC_NFIELDS; k++) memcpy(a->f[k], state + (size_t)k * np, np * sizeof *state);
+    a->frames = fr;
+    a->skipped = sk;
+    a->reg->frames = rfr;
+    a->reg->skipped = rsk;
+    return SWFS_OK;
+}
+
+/* A non-owning accumulator over a flat state (the layout of swfs_accum_export). */
+static void state_view(double *state, size_t nx, size_t ny, swfs_accum *a, swfs_regress *r)
+{
+    const size_t np = nx * ny;
+    memset(a, 0, sizeof *a);
+    memset(r, 0, sizeof *r);
+    a->nx = r->nx = nx;
+    a->ny = r->ny = ny;
+    for (int k = 0; k < SWFS_ACC_NFIELDS; k++) a->f[k] = state + (size_t)k * np;
+    r->state = state + (size_t)SWFS_ACC_NFIELDS * np;
+    const double *tail = r->state + (size_t)SWFS_REGRESS_NSTATE * np;
+    a->frames = (uint64_t)tail[0];
+    a->skipped = (uint64_t)tail[1];
+    r->frames = (uint64_t)tail[2];
+    r->skipped = (uint64_t)tail[3];
+    a->reg = r;
+}
+
+int swfs_accum_merge_state(double *dst_state, const double *src_state, size_t nx, size_t ny)
+{
+    swfs_accum da, sa;
+    swfs_regress dr, sr;
+    state_view(dst_state, nx, ny, &da, &dr);
+    state_view((double *)src_state, nx, ny, &sa, &sr);
+    int rc = swfs_accum_merge(&da, &sa);
+    if (rc) return rc;
+    double *tail = dst_state + (size_t)(SWFS_ACC_NFIELDS + SWFS_REGRESS_NSTATE) * nx * ny;
+    tail[0] = (double)da.frames;
+    tail[1] = (double)da.skipped;
+    tail[2] = (double)dr.frames;
+    tail[3] = (double)dr.skipped;
     return SWFS_OK;
 }

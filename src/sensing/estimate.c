@@ -16,7 +16,22 @@ void swfs_halo_free(swfs_halo *h)
     swfs_real_free(h->mean_i); swfs_real_free(h->var_i); swfs_real_free(h->mean_sp);
     swfs_real_free(h->var_sp); swfs_real_free(h->stab_err); swfs_real_free(h->circ);
     swfs_real_free(h->valid); swfs_real_free(h->nframes);
+    swfs_regress_free(h->reg);
     free(h);
+}
+
+/* The regression statistics travel with the halo (HALO.fits REGSTATE) when they cover the
+ * same frames as the moments; otherwise the halo has none (h->reg = NULL). */
+static int copy_regress(const swfs_accum *acc, swfs_regress **out)
+{
+    *out = NULL;
+    if (!swfs_accum_has_regress(acc)) return SWFS_OK;
+    swfs_regress *r = swfs_regress_create(acc->nx, acc->ny);
+    if (!r) return SWFS_ERR_NOMEM;
+    int rc = swfs_regress_merge(r, acc->reg);
+    if (rc) { swfs_regress_free(r); return rc; }
+    *out = r;
+    return SWFS_OK;
 }
 
 /* Median of the valid per-pixel g in the smallest square window around (i, j) that holds
@@ -291,8 +306,12 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
     swfs_free(scratch);
     swfs_free(rdb);
     swfs_free(nvar);
+    if ((rc = copy_regress(acc, &h->reg))) goto fail_late;
     *out = h;
     return SWFS_OK;
+fail_late:
+    swfs_halo_free(h);
+    return rc;
 fail:
     swfs_free(scratch);
     swfs_free(rdb);
