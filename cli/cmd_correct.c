@@ -15,7 +15,7 @@
 static const char *usage_text =
     "usage: specklewfs correct [CONFIG] [key=value ...] -o DIR [--iterations N] [--gain G] [--sigma S]\n"
     "                          [--actuators ACT.fits | --pitch P] [--influence gauss|cubic] [--coupling C]\n"
-    "                          [--modes K] [--weight snr|none]\n"
+    "                          [--modes K] [--method fit|moments] [--weight snr|none]\n"
     "\n"
     "Closes the loop on the paper's Sec. 3 simulation: each iteration simulates the data with\n"
     "the current residual NCP (new turbulence and camera noise every time, as on the sky),\n"
@@ -32,7 +32,8 @@ static const char *usage_text =
     "  --actuators ACT.fits  DM actuator positions (2 x nact [m]); default: hexapolar with\n"
     "  --pitch P           ring spacing P [m] (default 0.35: 331 actuators on 6.5 m)\n"
     "  --influence gauss|cubic, --coupling C, --modes K: the DM fit (see 'dmoffsets --help')\n"
-    "  --weight snr|none   focal-plane weight of the pupil step (default snr)\n"
+    "  --method fit|moments  the pupil step: the joint fit (default) or the per-pixel moments\n"
+    "  --weight snr|none   focal-plane weight of the moments' pupil step (default snr; implies moments)\n"
     "CONFIG and key=value set the simulation (config/paper-sec3.conf), e.g. seed=3.\n";
 
 void cli_print_loop_table(const swfs_loop_result *r)
@@ -41,8 +42,11 @@ void cli_print_loop_table(const swfs_loop_result *r)
     char infl[64];
     if (lp->fit.influence == SWFS_INFLUENCE_CUBIC) snprintf(infl, sizeof infl, "cubic influence");
     else snprintf(infl, sizeof infl, "Gaussian influence, coupling %.2f", lp->fit.coupling);
+    const char *how = lp->pupil.method == SWFS_PUPIL_MOMENTS
+                          ? (lp->pupil.weight == SWFS_WEIGHT_SNR ? "moments, SNR-weighted HALO_LF" : "moments, HALO_LF")
+                          : "joint fit";
     printf("  closed loop: gain %.2f, sigma %g counts, %zu actuators (pitch %.3g m, %s), %s\n", lp->gain, lp->sigma,
-           r->nact, r->pitch, infl, lp->pupil.weight == SWFS_WEIGHT_SNR ? "SNR-weighted HALO_LF" : "HALO_LF");
+           r->nact, r->pitch, infl, how);
     if (lp->fit.modes) printf("  modal filter: first %zu Zernikes\n", lp->fit.modes);
     printf("  %4s %8s %8s %7s %8s %10s %10s %8s %7s %7s %6s\n", "iter", "resid", "resid-TT", "Strehl", "Marechal",
            "contrast", "NCP halo", "est.err", "fit", "unfit", "time");
@@ -125,7 +129,13 @@ int swfs_cmd_correct(int argc, char **argv)
             if (k < 0 || k > 5000) { cli_usage_error(cmd, "--modes must be 0..5000, got %ld", k); goto done; }
             lp.fit.modes = (size_t)k;
             i++;
+        } else if (!strcmp(a, "--method")) {
+            if (v && !strcmp(v, "fit")) lp.pupil.method = SWFS_PUPIL_FIT;
+            else if (v && !strcmp(v, "moments")) lp.pupil.method = SWFS_PUPIL_MOMENTS;
+            else { cli_usage_error(cmd, "--method expects 'fit' or 'moments', got '%s'", v ? v : ""); goto done; }
+            i++;
         } else if (!strcmp(a, "--weight")) {
+            lp.pupil.method = SWFS_PUPIL_MOMENTS;
             if (v && !strcmp(v, "snr")) lp.pupil.weight = SWFS_WEIGHT_SNR;
             else if (v && !strcmp(v, "none")) lp.pupil.weight = SWFS_WEIGHT_NONE;
             else { cli_usage_error(cmd, "--weight expects 'snr' or 'none', got '%s'", v ? v : ""); goto done; }

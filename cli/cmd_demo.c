@@ -155,16 +155,18 @@ int swfs_cmd_demo(int argc, char **argv)
            sim->ncp_rms * 1e9, ncp_ptt * 1e9, sim->ncp_pv * 1e9);
     printf("  simulation %.2f s; products in %s/sigma<level>/\n\n", t_sim, outdir);
     printf("  recovered NCP error [nm rms inside the pupil, piston and tip/tilt removed]\n");
-    printf("  %8s %8s %9s %8s | %8s %8s %12s %9s %7s\n", "sigma", "valid", "g undef.", "paper", "HALO", "HALO_LF",
-           "HALO_LF+SNR", "med.SNR", "time");
+    printf("  %8s %8s %9s %8s | %8s %8s %12s | %9s %9s %7s\n", "sigma", "valid", "g undef.", "paper", "HALO", "HALO_LF",
+           "HALO_LF+SNR", "joint fit", "med.SNR", "time");
     for (size_t k = 0; k < nlevels; k++)
-        printf("  %8g %7.1f%% %8.1f%% %8.1f | %8.1f %8.1f %12.1f %9.3g %6.2fs\n", res[k].sigma,
+        printf("  %8g %7.1f%% %8.1f%% %8.1f | %8.1f %8.1f %12.1f | %9.1f %9.3g %6.2fs\n", res[k].sigma,
                100 * res[k].valid_fraction, 100 * res[k].bad_radicand, res[k].err_paper * 1e9, res[k].err_halo * 1e9,
-               res[k].err_lf * 1e9, res[k].err_lf_snr * 1e9, res[k].median_snr, secs[k]);
+               res[k].err_lf * 1e9, res[k].err_lf_snr * 1e9, res[k].err_fit * 1e9, res[k].median_snr, secs[k]);
     printf("\n  paper: the paper's formulae end to end (per-pixel g of eq:scale-factor, eq:PSI-LowFreq, every pixel at\n"
-           "  full weight). Right of '|': specklewfs' regularized g; HALO = eq:TheAnswer, HALO_LF = eq:PSI-LowFreq, both\n"
-           "  at full weight; HALO_LF+SNR adds the Wiener weight SNR^2/(SNR^2+4) -- the default of 'specklewfs pupil'.\n"
-           "  valid / g undef.: pixels where the radicand of the per-pixel g is positive / not positive.\n");
+           "  full weight). Middle: specklewfs' per-pixel moments with the regularized g; HALO = eq:TheAnswer, HALO_LF =\n"
+           "  eq:PSI-LowFreq, both at full weight; HALO_LF+SNR adds the Wiener weight SNR^2/(SNR^2+4) -- the previous\n"
+           "  default ('pupil --method moments'). joint fit: the pupil field, a smooth g map and the unexplained speckle\n"
+           "  fraction fitted to every pixel's regression statistics at once -- the default of 'specklewfs pupil'\n"
+           "  (docs/estimator.md). valid / g undef.: pixels where the radicand of the per-pixel g is positive / not.\n");
     if (want_report) {
         printf("  figures:");
         for (size_t k = 0; k < nlevels; k++) printf("%s %s", k ? "," : "", html[k]);

@@ -1,4 +1,4 @@
-/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr] */
+/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments] [--bias B] [--weight none|snr] */
 #include "cli.h"
 
 #include "specklewfs/estimate.h"
@@ -11,14 +11,21 @@
 #include <string.h>
 
 static const char *usage_text =
-    "usage: specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr]\n"
-    "                        [--wiener-k K] [--source lf|halo]\n"
+    "usage: specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments]\n"
+    "                        [--bias B] [--weight none|snr] [--wiener-k K] [--source lf|halo]\n"
     "\n"
-    "Inverse MFT of the static halo to the pupil grid (eq:Pupil-field-with-NCP1) and the NCP\n"
-    "wavefront WFE = arg(field) lambda/2pi inside the pupil, piston removed (eq:NCP-WFE-estimate).\n"
+    "The pupil field and the NCP wavefront (eq:Pupil-field-with-NCP1, eq:NCP-WFE-estimate) from the\n"
+    "static halo, inside the pupil with piston removed.\n"
     "\n"
-    "  -o PUPIL.fits      output: FIELD (complex), WFE [m], SURFACE [m] (= WFE/2), AMPLITUDE, PUPIL\n"
+    "  -o PUPIL.fits      output: FIELD (complex), WFE [m], SURFACE [m] (= WFE/2), AMPLITUDE, PUPIL;\n"
+    "                     after a fit also HALO_FIT (complex Psi) and GAIN_FIT (g)\n"
     "  --pupil MASK.fits  pupil transmission (PUPN x PUPN); default: the annulus from TELDIAM, OBSCUR\n"
+    "  --method fit       (default when HALO.fits has REGSTATE) fit the pupil field, a smooth g map and\n"
+    "                     the unexplained speckle fraction to every focal pixel's regression statistics\n"
+    "                     at once; WFE = the fitted phase (docs/estimator.md)\n"
+    "  --method moments   inverse MFT of the per-pixel moment estimate (the paper's Sec. 4.6; with\n"
+    "                     'estimate --g-smooth 0 --weight none' the paper's formulae exactly). The\n"
+    "                     options below apply to it and imply it.\n"
     "  --bias B           add B times the mean pupil field before taking the phase\n"
     "                     (eq:LFBiased-WFE-estimate; the paper used 0.5 on sky); default 0\n"
     "  --weight snr|none  weight each focal pixel by SNR^2/(SNR^2+k^2), SNR = |STAB|/STAB_ERR\n"
@@ -34,22 +41,31 @@ int swfs_cmd_pupil(int argc, char **argv)
     const char *in = NULL, *out = NULL, *maskfile = NULL, *truthfile = NULL;
     swfs_pupil_options opt;
     swfs_pupil_options_default(&opt);
+    int moments_opt = 0; /* --bias/--weight/--wiener-k/--source given: they imply the moments */
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
         else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
         else if (!strcmp(a, "--pupil")) { if (++i >= argc) return cli_usage_error(cmd, "--pupil needs a file name"); maskfile = argv[i]; }
         else if (!strcmp(a, "--truth")) { if (++i >= argc) return cli_usage_error(cmd, "--truth needs a file name"); truthfile = argv[i]; }
-        else if (!strcmp(a, "--bias")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.bias)) return CLI_USAGE; }
-        else if (!strcmp(a, "--wiener-k")) {
+        else if (!strcmp(a, "--bias")) { moments_opt = 1; if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.bias)) return CLI_USAGE; }
+        else if (!strcmp(a, "--method")) {
+            const char *v = i + 1 < argc ? argv[++i] : "";
+            if (!strcmp(v, "fit")) opt.method = SWFS_PUPIL_FIT;
+            else if (!strcmp(v, "moments")) opt.method = SWFS_PUPIL_MOMENTS;
+            else return cli_usage_error(cmd, "--method expects 'fit' or 'moments', got '%s'", v);
+        } else if (!strcmp(a, "--wiener-k")) {
+            moments_opt = 1;
             if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.wiener_k)) return CLI_USAGE;
             if (!(opt.wiener_k > 0)) return cli_usage_error(cmd, "--wiener-k must be > 0");
         } else if (!strcmp(a, "--weight")) {
+            moments_opt = 1;
             const char *v = i + 1 < argc ? argv[++i] : "";
             if (!strcmp(v, "snr")) opt.weight = SWFS_WEIGHT_SNR;
             else if (!strcmp(v, "none")) opt.weight = SWFS_WEIGHT_NONE;
             else return cli_usage_error(cmd, "--weight expects 'snr' or 'none', got '%s'", v);
         } else if (!strcmp(a, "--source")) {
+            moments_opt = 1;
             const char *v = i + 1 < argc ? argv[++i] : "";
             if (!strcmp(v, "lf")) opt.source = SWFS_SOURCE_HALO_LF;
             else if (!strcmp(v, "halo")) opt.source = SWFS_SOURCE_HALO;
@@ -60,6 +76,9 @@ int swfs_cmd_pupil(int argc, char **argv)
     }
     if (!in) return cli_usage_error(cmd, "needs HALO.fits");
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
+    if (moments_opt && opt.method == SWFS_PUPIL_FIT)
+        return cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
+    if (moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 
     swfs_halo *h = NULL;
     swfs_real *mask = NULL, *truth = NULL;
@@ -101,8 +120,19 @@ int swfs_cmd_pupil(int argc, char **argv)
     const char *prov[] = {cl, tl};
     if (swfs_pupil_write(r, out, &g, prov, truthfile ? 2 : 1)) { cli_error(cmd); goto done; }
     printf("pupil: %s\n", out);
-    printf("  source            %s, weight %s (k = %g), bias %g\n", opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
-           opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none", opt.wiener_k, opt.bias);
+    if (r->method == SWFS_PUPIL_FIT) {
+        const swfs_jointfit_result *f = r->fit;
+        printf("  method            joint fit of %zu focal pixels, %zu parameters (%zu B-spline intervals across D),\n"
+               "                    %d steps, %.2f s; unexplained speckle fraction %.3f\n", f->npix, f->nparams,
+               f->nintervals, f->iterations, f->seconds, f->kappa);
+    } else {
+        if (opt.method == SWFS_PUPIL_AUTO)
+            printf("  note              %s has no regression statistics (REGSTATE): the per-pixel moments are used\n",
+                   in);
+        printf("  method            moments: source %s, weight %s (k = %g), bias %g\n",
+               opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF", opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
+               opt.wiener_k, opt.bias);
+    }
     printf("  WFE               %.1f nm rms, %.1f nm peak to valley (piston removed)\n", r->wfe_rms * 1e9, r->wfe_pv * 1e9);
     printf("  surface           %.1f nm rms\n", 0.5 * r->wfe_rms * 1e9);
     printf("  Strehl (Marechal) %.3f at %.3g um\n", r->strehl, g.wavelen * 1e6);

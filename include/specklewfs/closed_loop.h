@@ -6,7 +6,7 @@
  *      a new seed per iteration (p->seed + k: new turbulence, as on the sky) and camera
  *      noise sigma (seed stream (p->seed + k, 0x100p));
  *   2. estimate the static halo (eq:scale-factor, eq:TheAnswer, eq:PSI-LowFreq) and the
- *      pupil WFE (eq:NCP-WFE-estimate; default: SNR-weighted HALO_LF);
+ *      pupil WFE (default: the joint fit of pupil.h; moments one option away);
  *   3. fit the correction surface -WFE/2 onto the DM (dmfit.h) -> commands c_k;
  *   4. apply gain x c_k: DM commands C_{k+1} = C_k + gain c_k, and the residual wavefront
  *      becomes NCP + 2 A C_{k+1} (reflective DM; A the influence functions), so the

@@ -11,6 +11,13 @@
  * noisy outer pixels add noise to the wavefront. With SWFS_WEIGHT_SNR each pixel is
  * multiplied by the Wiener factor SNR^2/(SNR^2 + k^2), SNR = |<psi' I>| / stderr (the
  * STAB and STAB_ERR extensions), k = 2 by default.
+ *
+ * Two methods. SWFS_PUPIL_MOMENTS is the above: the per-pixel moment estimate (HALO or HALO_LF)
+ * transformed. SWFS_PUPIL_FIT (beyond the paper, docs/estimator.md) fits the pupil field, a
+ * smooth g map and the unexplained speckle fraction to all focal pixels at once from the
+ * regression statistics the halo carries (h->reg, HALO.fits REGSTATE; jointfit.h); the WFE is
+ * then the fitted phase, with no phase wrapping and no focal window edge. SWFS_PUPIL_AUTO
+ * (default) is the fit when the halo has regression statistics and the moments otherwise.
  */
 #ifndef SWFS_PUPIL_H
 #define SWFS_PUPIL_H
@@ -18,17 +25,22 @@
 #include "specklewfs/array.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/jointfit.h"
 
 SWFS_BEGIN_DECLS
 
 enum { SWFS_WEIGHT_NONE = 0, SWFS_WEIGHT_SNR = 1 };
 enum { SWFS_SOURCE_HALO_LF = 0, SWFS_SOURCE_HALO = 1 };
+enum { SWFS_PUPIL_AUTO = 0, SWFS_PUPIL_FIT = 1, SWFS_PUPIL_MOMENTS = 2 };
 
 typedef struct swfs_pupil_options {
     int weight;      /* SWFS_WEIGHT_NONE or SWFS_WEIGHT_SNR */
     double wiener_k; /* k of the Wiener factor (default 2) */
     double bias;     /* constant field added, as a fraction of the mean pupil field (0 = none) */
     int source;      /* SWFS_SOURCE_HALO_LF (eq:PSI-LowFreq, default) or SWFS_SOURCE_HALO */
+    int method;      /* SWFS_PUPIL_AUTO (default), SWFS_PUPIL_FIT or SWFS_PUPIL_MOMENTS; weight,
+                        wiener_k, bias and source apply to the moments only */
+    swfs_jointfit_options fit; /* the joint fit's options (swfs_jointfit_options_default) */
 } swfs_pupil_options;
 
 void swfs_pupil_options_default(swfs_pupil_options *o);
@@ -42,13 +54,18 @@ typedef struct swfs_pupil_result {
     double wfe_rms, wfe_pv; /* inside the pupil, piston removed [m] */
     double strehl;          /* Marechal, exp(-(2 pi rms / lambda)^2) */
     swfs_pupil_options opt;
+    int method;             /* SWFS_PUPIL_FIT or SWFS_PUPIL_MOMENTS: what was used */
+    swfs_jointfit_result *fit; /* the joint fit (owned), NULL for the moments */
 } swfs_pupil_result;
 
 /* mask: PUPN x PUPN transmission, or NULL to build the annulus from TELDIAM/OBSCUR. */
 int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask,
                         const swfs_pupil_options *opt, swfs_pupil_result **out);
 void swfs_pupil_result_free(swfs_pupil_result *r);
-/* PUPIL.fits: FIELD (complex), WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL. */
+/* PUPIL.fits: FIELD (complex), WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL, METHOD
+ * ('FIT' or 'MOMENTS'); after a fit also HALO_FIT (complex Psi of the fit over the focal
+ * window, in the frame of psi - <psi>) and GAIN_FIT (g), keys FITKAPPA, FITCHI2, FITNPIX,
+ * FITNPAR, FITLPHI, FITLAMP, FITITER. */
 int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
                      size_t nprov);
 

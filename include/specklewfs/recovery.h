@@ -17,12 +17,15 @@ typedef struct swfs_recovery {
     double err_paper;      /* the paper's formulae: per-pixel g, eq:PSI-LowFreq, full weight */
     double err_halo;       /* eq:TheAnswer with the regularized g, full weight */
     double err_lf;         /* eq:PSI-LowFreq with the regularized g, full weight */
-    double err_lf_snr;     /* eq:PSI-LowFreq, regularized g, SNR (Wiener) weight: the default */
-    double wfe_rms, wfe_pv, strehl; /* of the default estimate */
+    double err_lf_snr;     /* eq:PSI-LowFreq, regularized g, SNR (Wiener) weight: the moments'
+                              default (the default before the joint fit) */
+    double wfe_rms, wfe_pv, strehl; /* of the default estimate (the joint fit) */
+    double err_fit;        /* the joint pupil-domain fit (pupil.h SWFS_PUPIL_FIT): the default */
+    double fit_kappa;      /* its unexplained speckle power fraction */
 } swfs_recovery;
 
 /* dir: if not NULL, write science/speckles/truth/pupil.fits, halo.fits and wavefront.fits
- * there (the folder must exist). */
+ * (the joint fit's) there (the folder must exist). */
 int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, const char *dir,
                       const char *const *prov, size_t nprov, swfs_recovery *out);
 

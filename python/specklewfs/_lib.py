@@ -130,12 +130,24 @@ ACC_NFIELDS = 15
 ACC_FIELDS = ["N", "MI", "MX", "MY", "MA", "CII", "CIX", "CIY", "CIA", "CXX", "CXY", "CXA", "CYY", "CYA", "CAA"]
 swfs_accum = _s("swfs_accum", [("nx", c_size), ("ny", c_size), ("f", P(c_dbl) * ACC_NFIELDS), ("frames", c_u64),
                                ("skipped", c_u64), ("reg", c_ptr)])
+swfs_jointfit_options = _s("swfs_jointfit_options", [
+    ("knot_factor", c_dbl), ("legendre_order", c_int), ("g_prior_sigma", c_dbl), ("fit_kappa", c_int),
+    ("max_iter", c_int), ("gls_iter", c_int), ("tol", c_dbl), ("lambda_phi", c_dbl), ("lambda_alpha", c_dbl),
+    ("alpha_ratio", c_dbl), ("alpha_ratio_max", c_dbl), ("prior", c_int)])
+swfs_jointfit_result = _s("swfs_jointfit_result", [
+    ("field", P(swfs_cplx)), ("wfe", P(swfs_real)), ("mask", P(swfs_real)), ("halo", P(swfs_cplx)),
+    ("gain", P(swfs_real)), ("kappa", c_dbl), ("lambda_phi", c_dbl), ("lambda_alpha", c_dbl), ("gamma_phi", c_dbl),
+    ("gamma_alpha", c_dbl), ("chi2", c_dbl), ("cost", c_dbl), ("npix", c_size), ("nintervals", c_size),
+    ("nbasis", c_size), ("nparams", c_size), ("iterations", c_int), ("evaluations", c_int), ("seconds", c_dbl),
+    ("wfe_rms", c_dbl)])
 swfs_pupil_options = _s("swfs_pupil_options", [("weight", c_int), ("wiener_k", c_dbl), ("bias", c_dbl),
-                                               ("source", c_int)])
+                                               ("source", c_int), ("method", c_int),
+                                               ("fit", swfs_jointfit_options)])
 swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(swfs_real)),
                                              ("surface", P(swfs_real)), ("amplitude", P(swfs_real)),
                                              ("mask", P(swfs_real)), ("wfe_rms", c_dbl), ("wfe_pv", c_dbl),
-                                             ("strehl", c_dbl), ("opt", swfs_pupil_options)])
+                                             ("strehl", c_dbl), ("opt", swfs_pupil_options), ("method", c_int),
+                                             ("fit", P(swfs_jointfit_result))])
 swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
                                  ("col", P(c_size)), ("val", P(c_dbl))])
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
@@ -186,7 +198,7 @@ swfs_sim_result = _s("swfs_sim_result", [
     ("halo_true", P(swfs_cplx)), ("pupil", P(swfs_real)), ("ref_phase", P(c_dbl))]
     + [(n, c_dbl) for n in SIM_RESULT_SCALARS])
 RECOVERY_FIELDS = ["sigma", "valid_fraction", "bad_radicand", "median_snr", "err_paper", "err_halo", "err_lf",
-                   "err_lf_snr", "wfe_rms", "wfe_pv", "strehl"]
+                   "err_lf_snr", "wfe_rms", "wfe_pv", "strehl", "err_fit", "fit_kappa"]
 swfs_recovery = _s("swfs_recovery", [(n, c_dbl) for n in RECOVERY_FIELDS])
 TS_MAX_LAYERS = 3
 swfs_ts_params = _s("swfs_ts_params", [
@@ -255,6 +267,11 @@ _PROTOS = {
     "swfs_accum_reset": (None, [P(swfs_accum)]),
     "swfs_accum_add": (c_int, [P(swfs_accum), P(c_dbl), c_ptr]),
     "swfs_accum_merge": (c_int, [P(swfs_accum), P(swfs_accum)]),
+    "swfs_accum_has_regress": (c_int, [P(swfs_accum)]),
+    "swfs_accum_state_len": (c_size, [c_size, c_size]),
+    "swfs_accum_export": (None, [P(swfs_accum), P(c_dbl)]),
+    "swfs_accum_import": (c_int, [P(swfs_accum), P(c_dbl)]),
+    "swfs_accum_merge_state": (c_int, [P(c_dbl), P(c_dbl), c_size, c_size]),
     # estimate.h
     "swfs_estimate": (c_int, [P(swfs_accum), P(swfs_noise), P(swfs_estimate_options), P(P(swfs_halo))]),
     "swfs_halo_free": (None, [P(swfs_halo)]),

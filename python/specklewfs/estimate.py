@@ -60,6 +60,26 @@ class Accumulator:
         """All fields as a (15, ny, nx) copy (the checkpoint's cube)."""
         return np.stack([self.field(n) for n in ACC_FIELDS])
 
+    def export(self):
+        """The whole state (moments and regression statistics) as one flat float64 array
+        (swfs_accum_export): for transport between processes; merge with merge_states()."""
+        out = np.empty(lib.swfs_accum_state_len(self.nx, self.ny), np.float64)
+        lib.swfs_accum_export(self._p, out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)))
+        return out
+
+    @classmethod
+    def from_export(cls, state, nx, ny):
+        """A new accumulator from export()'s array (checked: counts, variances)."""
+        a = cls(nx, ny)
+        st = as_array(state, "state", np.float64, shape=(lib.swfs_accum_state_len(int(nx), int(ny)),))
+        check(lib.swfs_accum_import(a._p, st.ctypes.data_as(ctypes.POINTER(ctypes.c_double))), "swfs_accum_import")
+        return a
+
+    @property
+    def has_regress(self):
+        """True when the regression statistics (for the joint fit) cover every frame."""
+        return bool(lib.swfs_accum_has_regress(self._p))
+
     def reset(self):
         lib.swfs_accum_reset(self._p)
 

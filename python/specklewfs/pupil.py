@@ -10,13 +10,16 @@ from .estimate import Halo
 
 _WEIGHTS = {"none": 0, "snr": 1}
 _SOURCES = {"lf": 0, "halo_lf": 0, "halo": 1}
+_METHODS = {"auto": 0, "fit": 1, "moments": 2}
 
 
 class PupilResult:
     """field (complex pupil field), wfe [m] (0 outside the pupil, piston removed),
     surface [m] (WFE/2), amplitude, mask: (pupn, pupn) views of the library's arrays;
-    wfe_rms, wfe_pv [m], strehl (Marechal); weight, wiener_k, bias, source: the options
-    used; geom."""
+    wfe_rms, wfe_pv [m], strehl (Marechal); method ('fit' or 'moments', what was used);
+    weight, wiener_k, bias, source: the moments' options; geom. After a fit also halo_fit
+    (complex focal-plane Psi of the fit), gain_fit (g map), kappa (unexplained speckle
+    power fraction), fit_iterations."""
 
     def __init__(self, ptr, geom):
         self._p = ptr
@@ -29,6 +32,13 @@ class PupilResult:
         self.weight = {v: k for k, v in _WEIGHTS.items()}[r.opt.weight]
         self.wiener_k, self.bias = r.opt.wiener_k, r.opt.bias
         self.source = "halo" if r.opt.source == 1 else "lf"
+        self.method = "fit" if r.method == 1 else "moments"
+        self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = None
+        if r.method == 1 and r.fit:
+            f = r.fit.contents
+            self.halo_fit = _lib.cplx_view(f.halo, self._owner)
+            self.gain_fit = _lib.real_view(f.gain, self._owner)
+            self.kappa, self.fit_iterations = f.kappa, f.iterations
         self.geom = geom
 
     def write(self, path, geom=None, provenance=()):
@@ -38,11 +48,13 @@ class PupilResult:
         check(lib.swfs_pupil_write(self._p, enc(path), ctypes.byref(g), prov, n), "swfs_pupil_write")
 
 
-def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf"):
+def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf", method="auto"):
     """Pupil field and NCP wavefront from a Halo (pupil.h; the defaults are those of
     `specklewfs pupil`). geom: a Geom (default halo.geom; needs WAVELEN, TELDIAM, OBSCUR,
     PIXSCALE, PUPDX, PUPN); mask: (pupn, pupn) transmission or None for the annulus;
-    weight 'snr' (Wiener SNR^2/(SNR^2+k^2)) or 'none'; source 'lf' (HALO_LF) or 'halo'."""
+    method 'auto' (the joint fit when the halo carries regression statistics, else the
+    moments), 'fit' or 'moments'; for the moments: weight 'snr' (Wiener SNR^2/(SNR^2+k^2))
+    or 'none', source 'lf' (HALO_LF) or 'halo'."""
     if not isinstance(halo, Halo):
         raise TypeError(f"halo: expected a specklewfs.Halo, got {type(halo).__name__}")
     geom = geom if geom is not None else halo.geom
@@ -56,8 +68,10 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     try:
         o.weight = _WEIGHTS[weight]
         o.source = _SOURCES[source]
+        o.method = _METHODS[method]
     except KeyError as e:
-        raise ValueError(f"weight must be 'snr' or 'none' and source 'lf' or 'halo', got {e}") from None
+        raise ValueError(f"weight must be 'snr' or 'none', source 'lf' or 'halo', method 'auto', 'fit' or "
+                         f"'moments', got {e}") from None
     o.wiener_k, o.bias = float(wiener_k), float(bias)
     ms = ms_s = None
     if mask is not None:

@@ -26,13 +26,18 @@ def test_paper_default_path_through_python(paper_sim):
     noisy = s.camera(read_noise=0.0, gain=gain, seed=1 * 1000003 + 0)  # the demo's camera stream
     h = sw.Accumulator(60, 60).add(noisy, s.speckles).estimate(read_noise=0.0, gain=gain)
     assert round(100 * h.valid_fraction, 1) == 98.2
-    p = sw.pupil_estimate(h, s.geom, mask=s.pupil)
+    p = sw.pupil_estimate(h, s.geom, mask=s.pupil, method="moments")
+    assert p.method == "moments" and p.halo_fit is None
     err, truth_p, truth_ptt = sw.wfe_compare(p.wfe, s.ncp, s.pupil)
     assert round(err * 1e9, 1) == 15.6
     assert round(truth_ptt * 1e9, 1) == 91.2
+    # The default: the joint fit of the regression statistics the accumulator also kept.
+    pf = sw.pupil_estimate(h, s.geom, mask=s.pupil)
+    assert pf.method == "fit" and 0 <= pf.kappa < 0.1 and pf.halo_fit.shape == (60, 60)
+    assert sw.wfe_compare(pf.wfe, s.ncp, s.pupil)[0] < 9e-9
     # The paper's formulae (per-pixel g, HALO_LF, full weight): 15.7.
     hp = sw.Accumulator(60, 60).add(noisy, s.speckles).estimate(read_noise=0.0, gain=gain, g_smooth=0)
-    pp = sw.pupil_estimate(hp, s.geom, mask=s.pupil, weight="none")
+    pp = sw.pupil_estimate(hp, s.geom, mask=s.pupil, weight="none", method="moments")
     assert round(sw.wfe_compare(pp.wfe, s.ncp, s.pupil)[0] * 1e9, 1) == 15.7
 
 
@@ -40,16 +45,16 @@ def test_demo_table_equals_python_recovery(paper_sim, cli, tmp_path):
     """`specklewfs demo` prints the same table as SimResult.recovery at every level."""
     out = subprocess.run([cli, "demo", "-o", str(tmp_path / "demo"), "--no-report", "--loop-iterations", "0"],
                          check=True, capture_output=True, text=True).stdout
-    rows = re.findall(r"^\s+(\d+)\s+([\d.]+)%\s+([\d.]+)%\s+([\d.]+) \|\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+(\S+)",
-                      out, re.M)
+    rows = re.findall(r"^\s+(\d+)\s+([\d.]+)%\s+([\d.]+)%\s+([\d.]+) \|\s+([\d.]+)\s+([\d.]+)\s+([\d.]+) \|"
+                      r"\s+([\d.]+)\s+(\S+)", out, re.M)
     assert [r[0] for r in rows] == ["0", "10", "100", "1000"], out
     for r in rows:
         res = paper_sim.recovery(float(r[0]))
         got = ("%g" % res["sigma"], "%.1f" % (100 * res["valid_fraction"]), "%.1f" % (100 * res["bad_radicand"]),
                "%.1f" % (res["err_paper"] * 1e9), "%.1f" % (res["err_halo"] * 1e9), "%.1f" % (res["err_lf"] * 1e9),
-               "%.1f" % (res["err_lf_snr"] * 1e9), "%.3g" % res["median_snr"])
+               "%.1f" % (res["err_lf_snr"] * 1e9), "%.1f" % (res["err_fit"] * 1e9), "%.3g" % res["median_snr"])
         assert got == tuple(r), (got, r)
-    assert rows[0][6] == "15.6"
+    assert rows[0][6] == "15.6" and float(rows[0][7]) < 9.0
 
 
 def test_small_simulation(small_sim, tmp_path):

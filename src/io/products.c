@@ -27,12 +27,23 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc) rc = swfs_fits_out_key_double(o, "WFERMS", r->wfe_rms, "[m] WFE rms in the pupil, piston removed");
     if (!rc) rc = swfs_fits_out_key_double(o, "WFEPV", r->wfe_pv, "[m] WFE peak to valley in the pupil");
     if (!rc) rc = swfs_fits_out_key_double(o, "STREHL", r->strehl, "Marechal estimate from WFERMS");
-    if (!rc) rc = swfs_fits_out_key_string(o, "SOURCE", r->opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
-                                           "halo extension transformed");
-    if (!rc) rc = swfs_fits_out_key_string(o, "WEIGHT", r->opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
-                                           "focal-plane weighting");
-    if (!rc) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
-    if (!rc) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
+    const swfs_jointfit_result *f = r->method == SWFS_PUPIL_FIT ? r->fit : NULL;
+    if (!rc) rc = swfs_fits_out_key_string(o, "METHOD", f ? "FIT" : "MOMENTS",
+                                           f ? "joint pupil-domain fit (docs/estimator.md)" : "per-pixel moments");
+    if (!rc && !f) rc = swfs_fits_out_key_string(o, "SOURCE", r->opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
+                                                 "halo extension transformed");
+    if (!rc && !f) rc = swfs_fits_out_key_string(o, "WEIGHT", r->opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
+                                                 "focal-plane weighting");
+    if (!rc && !f) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
+    if (!rc && !f) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
+    if (!rc && f) rc = swfs_fits_out_key_double(o, "FITKAPPA", f->kappa, "unexplained speckle power fraction");
+    if (!rc && f) rc = swfs_fits_out_key_double(o, "FITCHI2", f->chi2, "chi-square of the fit to the statistics");
+    if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNPIX", (long)f->npix, "focal pixels fitted");
+    if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNPAR", (long)f->nparams, "parameters fitted");
+    if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNSPL", (long)f->nintervals, "B-spline intervals across D");
+    if (!rc && f) rc = swfs_fits_out_key_double(o, "FITLPHI", f->lambda_phi, "phase prior weight (evidence)");
+    if (!rc && f) rc = swfs_fits_out_key_double(o, "FITLAMP", f->lambda_alpha, "log-amplitude prior weight");
+    if (!rc && f) rc = swfs_fits_out_key_long(o, "FITITER", (long)f->iterations, "Levenberg-Marquardt steps");
     if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:Pupil-field-with-NCP1", NULL);
     if (!rc) rc = swfs_fits_out_real(o, "WFE", r->wfe, -64);
@@ -41,6 +52,10 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "WFE/2 for a reflective DM");
     if (!rc) rc = swfs_fits_out_real(o, "AMPLITUDE", r->amplitude, -64);
     if (!rc) rc = swfs_fits_out_real(o, "PUPIL", r->mask, -32);
+    if (!rc && f) rc = swfs_fits_out_cplx(o, "HALO_FIT", f->halo, -64);
+    if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "Psi of the joint fit, frame of psi - <psi>", NULL);
+    if (!rc && f) rc = swfs_fits_out_real(o, "GAIN_FIT", f->gain, -64);
+    if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "g of the joint fit (smooth log-g map)", NULL);
     if (rc) {
         swfs_fits_out_abort(o);
         return rc;

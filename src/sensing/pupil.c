@@ -14,6 +14,8 @@ void swfs_pupil_options_default(swfs_pupil_options *o)
     o->wiener_k = 2.0;
     o->bias = 0.0;
     o->source = SWFS_SOURCE_HALO_LF;
+    o->method = SWFS_PUPIL_AUTO;
+    swfs_jointfit_options_default(&o->fit);
 }
 
 void swfs_pupil_result_free(swfs_pupil_result *r)
@@ -24,8 +26,73 @@ void swfs_pupil_result_free(swfs_pupil_result *r)
     swfs_real_free(r->surface);
     swfs_real_free(r->amplitude);
     swfs_real_free(r->mask);
+    swfs_jointfit_result_free(r->fit);
     free(r);
 }
+
+/* Piston-removed rms, peak to valley and Marechal Strehl of r->wfe over r->mask. */
+static int wfe_stats(swfs_pupil_result *r, double wavelen)
+{
+    const size_t np = r->wfe->nx * r->wfe->ny;
+    double wsum = 0.0, mean = 0.0;
+    for (size_t q = 0; q < np; q++)
+        if (r->mask->data[q] > 0.0) { wsum += r->mask->data[q]; mean += r->mask->data[q] * r->wfe->data[q]; }
+    if (!(wsum > 0.0)) return swfs_fail(SWFS_ERR_VALUE, "pupil mask is empty");
+    mean /= wsum;
+    double s2 = 0.0, lo = INFINITY, hi = -INFINITY;
+    for (size_t q = 0; q < np; q++) {
+        if (r->mask->data[q] > 0.0) {
+            const double w = r->wfe->data[q] -= mean;
+            s2 += r->mask->data[q] * w * w;
+            if (w < lo) lo = w;
+            if (w > hi) hi = w;
+        } else {
+            r->wfe->data[q] = 0.0;
+        }
+        r->surface->data[q] = 0.5 * r->wfe->data[q];
+    }
+    r->wfe_rms = sqrt(s2 / wsum);
+    r->wfe_pv = hi - lo;
+    const double sig = 2.0 * M_PI * r->wfe_rms / wavelen;
+    r->strehl = exp(-sig * sig);
+    return SWFS_OK;
+}
+
+/* The joint fit (docs/estimator.md): regression statistics -> per-pixel information ->
+ * one pupil field; WFE = its phase. */
+static int pupil_fit(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask, const swfs_pupil_options *o,
+                     swfs_pupil_result **out)
+{
+    if (!h->reg)
+        return swfs_fail(SWFS_ERR_FORMAT, "halo product has no regression statistics (REGSTATE): it was made by "
+                         "a specklewfs before the joint fit or merged with an old checkpoint; use the moments");
+    swfs_regress_sol *sol = NULL;
+    swfs_pupil_result *r = calloc(1, sizeof *r);
+    if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    r->opt = *o;
+    r->method = SWFS_PUPIL_FIT;
+    int rc = swfs_regress_solve(h->reg, &sol);
+    if (!rc) rc = swfs_jointfit(sol, g, mask, &o->fit, &r->fit);
+    swfs_regress_sol_free(sol);
+    if (rc) goto fail;
+    const size_t n = (size_t)g->pupn;
+    r->field = swfs_cplx_copy(r->fit->field);
+    r->wfe = swfs_real_copy(r->fit->wfe);
+    r->mask = swfs_real_copy(r->fit->mask);
+    r->surface = swfs_real_alloc(n, n, 1);
+    r->amplitude = swfs_real_alloc(n, n, 1);
+    if (!r->field || !r->wfe || !r->mask || !r->surface || !r->amplitude) { rc = SWFS_ERR_NOMEM; goto fail; }
+    for (size_t q = 0; q < n * n; q++) r->amplitude->data[q] = cabs(r->field->data[q]);
+    if ((rc = wfe_stats(r, g->wavelen))) goto fail;
+    *out = r;
+    return SWFS_OK;
+fail:
+    swfs_pupil_result_free(r);
+    return rc;
+}
+
+static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask, const swfs_pupil_options *opt,
+                         swfs_pupil_result **out);
 
 int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask, const swfs_pupil_options *opt,
                         swfs_pupil_result **out)
@@ -36,6 +103,22 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     if (opt) o = *opt;
     int rc = swfs_geom_require(g, "halo product");
     if (rc) return rc;
+    const size_t n = (size_t)g->pupn;
+    if (mask && (mask->nx != n || mask->ny != n))
+        return swfs_fail(SWFS_ERR_SHAPE, "pupil mask is %zux%zu but the geometry says PUPN = %zu", mask->nx, mask->ny, n);
+    if (o.method == SWFS_PUPIL_FIT || (o.method == SWFS_PUPIL_AUTO && h->reg))
+        return pupil_fit(h, g, mask, &o, out);
+    if (o.method != SWFS_PUPIL_AUTO && o.method != SWFS_PUPIL_MOMENTS)
+        return swfs_fail(SWFS_ERR_ARG, "pupil method %d: expected auto, fit or moments", o.method);
+    return pupil_moments(h, g, mask, &o, out);
+}
+
+/* The per-pixel moments transformed (paper Sec. 4.6 with the weighting above). */
+static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask, const swfs_pupil_options *opt,
+                         swfs_pupil_result **out)
+{
+    const swfs_pupil_options o = *opt;
+    int rc;
     const swfs_cplx *src = o.source == SWFS_SOURCE_HALO ? h->halo : h->halo_lf;
     if (!src) return swfs_fail(SWFS_ERR_FORMAT, "halo product has no %s", o.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF");
     if (o.weight == SWFS_WEIGHT_SNR && (!h->stab || !h->stab_err))
@@ -49,6 +132,7 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     swfs_pupil_result *r = calloc(1, sizeof *r);
     if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     r->opt = o;
+    r->method = SWFS_PUPIL_MOMENTS;
     r->field = swfs_cplx_alloc(n, n, 1);
     r->wfe = swfs_real_alloc(n, n, 1);
     r->surface = swfs_real_alloc(n, n, 1);
@@ -96,32 +180,14 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
      * global phase offset never wraps; piston is then removed exactly. */
     const double k2m = g->wavelen / (2.0 * M_PI);
     const double complex ref = cabs(mean) > 0.0 ? conj(mean) / cabs(mean) : 1.0;
-    double ph_mean = 0.0;
     for (size_t q = 0; q < np; q++) {
         r->amplitude->data[q] = cabs(r->field->data[q]);
         if (r->mask->data[q] > 0.0) {
             double ph = carg(r->field->data[q] * ref);
             r->wfe->data[q] = ph * k2m;
-            ph_mean += r->mask->data[q] * ph * k2m;
         }
     }
-    ph_mean /= wsum;
-    double s2 = 0.0, lo = INFINITY, hi = -INFINITY;
-    for (size_t q = 0; q < np; q++) {
-        if (r->mask->data[q] > 0.0) {
-            double w = r->wfe->data[q] -= ph_mean;
-            s2 += r->mask->data[q] * w * w;
-            if (w < lo) lo = w;
-            if (w > hi) hi = w;
-        } else {
-            r->wfe->data[q] = 0.0;
-        }
-        r->surface->data[q] = 0.5 * r->wfe->data[q];
-    }
-    r->wfe_rms = sqrt(s2 / wsum);
-    r->wfe_pv = hi - lo;
-    const double sig = 2.0 * M_PI * r->wfe_rms / g->wavelen;
-    r->strehl = exp(-sig * sig);
+    if ((rc = wfe_stats(r, g->wavelen))) goto fail;
     swfs_mft_free(m);
     swfs_free(focal);
     *out = r;

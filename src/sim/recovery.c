@@ -17,7 +17,7 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     swfs_real *noisy = swfs_real_copy(sim->science);
     swfs_accum *acc = noisy ? swfs_accum_create(noisy->nx, noisy->ny) : NULL;
     swfs_halo *h = NULL, *hp = NULL;
-    swfs_pupil_result *pr[4] = {NULL, NULL, NULL, NULL};
+    swfs_pupil_result *pr[5] = {NULL, NULL, NULL, NULL, NULL};
     char path[4096];
     int rc = SWFS_OK;
     if (!noisy || !acc) { rc = SWFS_ERR_NOMEM; goto done; }
@@ -38,24 +38,29 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
         }
         if ((rc = swfs_halo_write(h, path, &sim->geom, prov, nprov))) goto done;
     }
-    /* The paper's formulae at full weight (HALO, HALO_LF), then the SNR-weighted HALO_LF
-     * that `specklewfs pupil` uses by default. */
-    swfs_pupil_options o[3];
-    for (int k = 0; k < 3; k++) swfs_pupil_options_default(&o[k]);
+    /* The moments at full weight (HALO, HALO_LF), the SNR-weighted HALO_LF (the default before
+     * the joint fit), the paper's estimator end to end (per-pixel g, HALO_LF, full weight) and
+     * the joint fit that `specklewfs pupil` uses by default. */
+    swfs_pupil_options o[5];
+    for (int k = 0; k < 5; k++) {
+        swfs_pupil_options_default(&o[k]);
+        o[k].method = SWFS_PUPIL_MOMENTS;
+    }
     o[0].source = SWFS_SOURCE_HALO; o[0].weight = SWFS_WEIGHT_NONE;
     o[1].source = SWFS_SOURCE_HALO_LF; o[1].weight = SWFS_WEIGHT_NONE;
     o[2].source = SWFS_SOURCE_HALO_LF; o[2].weight = SWFS_WEIGHT_SNR;
-    double err[4];
-    for (int k = 0; k < 4; k++) {
-        /* k = 3: the paper's estimator end to end (per-pixel g, HALO_LF, full weight). */
-        swfs_pupil_result **slot = k < 3 ? &pr[k] : &pr[3];
-        if ((rc = swfs_pupil_estimate(k < 3 ? h : hp, &sim->geom, sim->pupil, &o[k < 3 ? k : 1], slot))) goto done;
+    o[3] = o[1];
+    o[4].method = SWFS_PUPIL_FIT;
+    double err[5];
+    for (int k = 0; k < 5; k++) {
+        swfs_pupil_result **slot = &pr[k];
+        if ((rc = swfs_pupil_estimate(k == 3 ? hp : h, &sim->geom, sim->pupil, &o[k], slot))) goto done;
         if ((rc = swfs_wfe_compare((*slot)->wfe->data, sim->ncp->data, sim->pupil->data, (size_t)sim->geom.pupn, &err[k],
                                    NULL, NULL))) goto done;
     }
     if (dir) {
         snprintf(path, sizeof path, "%s/wavefront.fits", dir);
-        if ((rc = swfs_pupil_write(pr[2], path, &sim->geom, prov, nprov))) goto done;
+        if ((rc = swfs_pupil_write(pr[4], path, &sim->geom, prov, nprov))) goto done;
     }
     out->valid_fraction = h->valid_fraction;
     out->bad_radicand = (double)h->n_bad_radicand / (double)h->npix;
@@ -64,11 +69,13 @@ int swfs_recovery_run(const swfs_sim_result *sim, double sigma, uint64_t seed, c
     out->err_halo = err[0];
     out->err_lf = err[1];
     out->err_lf_snr = err[2];
-    out->wfe_rms = pr[2]->wfe_rms;
-    out->wfe_pv = pr[2]->wfe_pv;
-    out->strehl = pr[2]->strehl;
+    out->err_fit = err[4];
+    out->wfe_rms = pr[4]->wfe_rms;
+    out->wfe_pv = pr[4]->wfe_pv;
+    out->strehl = pr[4]->strehl;
+    out->fit_kappa = pr[4]->fit->kappa;
 done:
-    for (int k = 0; k < 4; k++) swfs_pupil_result_free(pr[k]);
+    for (int k = 0; k < 5; k++) swfs_pupil_result_free(pr[k]);
     swfs_halo_free(h);
     swfs_halo_free(hp);
     swfs_accum_free(acc);
