@@ -125,6 +125,11 @@ int swfs_cmd_pupil(int argc, char **argv)
         printf("  method            joint fit of %zu focal pixels, %zu parameters (%zu B-spline intervals across D),\n"
                "                    %d steps, %.2f s; unexplained speckle fraction %.3f\n", f->npix, f->nparams,
                f->nintervals, f->iterations, f->seconds, f->kappa);
+        if (isfinite(f->delta_chi2))
+            printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one; limit %.0f)\n",
+                   f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"
+                                                          : "modelled as |Psi|^2 + kappa g^2 Phi_sp",
+                   f->delta_chi2, f->delta_chi2_limit);
     } else {
         if (opt.method == SWFS_PUPIL_AUTO)
             printf("  note              %s has no regression statistics (REGSTATE): the per-pixel moments are used\n",

@@ -110,6 +110,9 @@ static void test_paper_case(void **state)
         /* g = sqrt(C) S by construction, less the NCP's ~1.5 % Strehl loss of the correlated part */
         assert_true(fabs(gmed - 1.0) < 0.03);
         assert_true(j->kappa >= 0.0 && j->kappa < 0.1);
+        /* the intercept model passes its likelihood-ratio test on the simulator's data */
+        assert_int_equal(j->intercept, SWFS_JF_INTERCEPT_MODEL);
+        assert_true(j->delta_chi2 > 0.0 && j->delta_chi2 <= j->delta_chi2_limit);
         assert_true(j->iterations >= 1 && j->iterations < 40);
         assert_int_equal(j->npix, nf);
         swfs_jointfit_result_free(j);
@@ -175,6 +178,53 @@ static void test_varying_gain(void **state)
     free(v);
 }
 
+/* Light the computed speckles do not model: a uniform background (thermal sky, stray light)
+ * of half the mean intensity over the outer window. The intercept model cannot explain it; the
+ * likelihood-ratio test must reject it and the free intercept keep the NCP error near the
+ * clean value, where the forced model is worse. */
+static void test_incoherent_background(void **state)
+{
+    (void)state;
+    swfs_real *noisy = noisy_science(0.0);
+    const size_t nx = noisy->nx, ny = noisy->ny, nf = nx * ny, nt = noisy->nz;
+    swfs_jointfit_result *clean = fit(noisy, sim->speckles);
+    double outer = 0.0;
+    size_t nout = 0;
+    for (size_t t = 0; t < nt; t++)
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                const double dx = (double)i - (double)(nx / 2), dy = (double)j - (double)(ny / 2);
+                if (sqrt(dx * dx + dy * dy) * sim->geom.pixscale > 5.0) { outer += noisy->data[t * nf + j * nx + i]; nout++; }
+            }
+    const double bg = 0.5 * outer / (double)nout;
+    for (size_t k = 0; k < nf * nt; k++) noisy->data[k] += bg;
+    swfs_jointfit_result *j = fit(noisy, sim->speckles);
+    swfs_regress *r = swfs_regress_create(nx, ny);
+    for (size_t t = 0; t < nt; t++)
+        assert_ok(swfs_regress_add(r, noisy->data + t * nf, (const double *)(sim->speckles->data + t * nf), NULL));
+    swfs_regress_sol *sol;
+    assert_ok(swfs_regress_solve(r, &sol));
+    swfs_jointfit_options o;
+    swfs_jointfit_options_default(&o);
+    o.intercept = SWFS_JF_INTERCEPT_MODEL;
+    swfs_jointfit_result *forced;
+    assert_ok(swfs_jointfit(sol, &sim->geom, sim->pupil, &o, &forced));
+    const double e_clean = ncp_error(clean), e = ncp_error(j), e_forced = ncp_error(forced);
+    print_message("background %.3g counts: NCP %.2f nm (auto: %s intercept, delta chi2 %.0f > %.0f), forced model "
+                  "%.2f nm, clean %.2f nm\n", bg, e * 1e9, j->intercept == SWFS_JF_INTERCEPT_FREE ? "free" : "model",
+                  j->delta_chi2, j->delta_chi2_limit, e_forced * 1e9, e_clean * 1e9);
+    assert_int_equal(j->intercept, SWFS_JF_INTERCEPT_FREE);
+    assert_true(j->delta_chi2 > j->delta_chi2_limit);
+    assert_true(e <= e_clean + 1.5e-9);
+    assert_true(e < e_forced);
+    swfs_jointfit_result_free(forced);
+    swfs_jointfit_result_free(j);
+    swfs_jointfit_result_free(clean);
+    swfs_regress_sol_free(sol);
+    swfs_regress_free(r);
+    swfs_real_free(noisy);
+}
+
 static void test_bad_input(void **state)
 {
     (void)state;
@@ -222,6 +272,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_paper_case),
         cmocka_unit_test(test_varying_gain),
+        cmocka_unit_test(test_incoherent_background),
         cmocka_unit_test(test_bad_input),
     };
     return cmocka_run_group_tests(tests, setup, teardown);

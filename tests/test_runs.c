@@ -124,14 +124,22 @@ static void test_sync_speckles_estimate(void **state)
     assert_ok(swfs_fits_read_real(p("truth.fits"), "NCP", &ncp, &g));
     swfs_pupil_options po;
     swfs_pupil_options_default(&po);
+    po.method = SWFS_PUPIL_MOMENTS;
     po.source = SWFS_SOURCE_HALO;
-    swfs_pupil_result *pr = NULL;
+    swfs_pupil_result *pr = NULL, *pf = NULL;
     assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, &po, &pr));
-    double err = NAN;
+    double err = NAN, errf = NAN;
     assert_ok(swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, &err, NULL, NULL));
-    printf("test_runs: ratio, lag ok; NCP error %.1f nm\n", 1e9 * err);
+    /* The default pupil step: the joint fit of the regression statistics the estimate kept. */
+    assert_non_null(er.halo->reg);
+    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
+    assert_int_equal(pf->method, SWFS_PUPIL_FIT);
+    assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &errf, NULL, NULL));
+    printf("test_runs: ratio, lag ok; NCP error %.1f nm (moments, HALO), %.1f nm (joint fit)\n", 1e9 * err, 1e9 * errf);
     assert_true(err > 0 && err < 50e-9);
+    assert_true(errf > 0 && errf < 35e-9 && errf < err); /* 25.5 vs 41.8 nm */
     swfs_pupil_result_free(pr);
+    swfs_pupil_result_free(pf);
     swfs_real_free(ncp);
     swfs_halo_free(er.halo);
 
@@ -181,6 +189,19 @@ static void test_stream_equals_speckles(void **state)
     printf("test_runs: stream vs speckles + estimate: max |dPsi| / peak = %.2g\n", d / peak);
     /* The speckle cube is stored in single precision; the stream keeps double. */
     assert_true(d / peak < 1e-4);
+    /* The regression statistics travel with both halos, and the joint fit agrees. */
+    assert_true(hs->reg && er.halo->reg);
+    assert_int_equal(hs->reg->frames, er.halo->reg->frames);
+    swfs_pupil_result *p1 = NULL, *p2 = NULL;
+    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &p1));
+    assert_ok(swfs_pupil_estimate(hs, &er.geom, NULL, NULL, &p2));
+    double dw = 0;
+    for (size_t q = 0; q < p1->wfe->nx * p1->wfe->ny; q++) dw = fmax(dw, fabs(p1->wfe->data[q] - p2->wfe->data[q]));
+    printf("test_runs: stream vs speckles + estimate, joint fit: max |dWFE| = %.2g nm (WFE %.1f nm rms)\n", dw * 1e9,
+           p1->wfe_rms * 1e9);
+    assert_true(dw < 1e-3 * p1->wfe_rms + 1e-12);
+    swfs_pupil_result_free(p1);
+    swfs_pupil_result_free(p2);
     swfs_halo_free(hs);
     swfs_halo_free(er.halo);
 }

@@ -33,6 +33,10 @@
 SWFS_BEGIN_DECLS
 
 enum { SWFS_JF_PRIOR_GRADIENT = 0, SWFS_JF_PRIOR_CURVATURE = 1 };
+enum { SWFS_JF_INTERCEPT_MODEL = 0, SWFS_JF_INTERCEPT_FREE = 1, SWFS_JF_INTERCEPT_AUTO = 2 };
+/* The rejection level of the intercept model's likelihood-ratio test (standard deviations of
+ * the chi-square difference under the model): a significance level, not a fitted constant. */
+#define SWFS_JF_INTERCEPT_Z 5.0
 
 typedef struct swfs_jointfit_options {
     double knot_factor;    /* B-spline intervals across D = knot_factor * (window width in
@@ -53,6 +57,13 @@ typedef struct swfs_jointfit_options {
                               amplitude is uniform its evidence has no finite maximum) */
     int prior;             /* R: SWFS_JF_PRIOR_CURVATURE (thin-plate second differences,
                               default) or SWFS_JF_PRIOR_GRADIENT (first differences) */
+    int intercept;         /* SWFS_JF_INTERCEPT_MODEL: the mean intensity a = |Psi|^2 + kappa g^2
+                              Phi_sp is fitted; SWFS_JF_INTERCEPT_FREE: a is a free nuisance per
+                              pixel (marginalized), so light the computed speckles do not model
+                              (an uncorrected halo, stray light) cannot bias Psi; kappa is then 0;
+                              SWFS_JF_INTERCEPT_AUTO (default): both, and the model is kept unless
+                              a likelihood-ratio test rejects it (chi-square difference above
+                              npix - 1 + SWFS_JF_INTERCEPT_Z sqrt(2 (npix - 1))) */
 } swfs_jointfit_options;
 
 void swfs_jointfit_options_default(swfs_jointfit_options *o);
@@ -77,6 +88,9 @@ typedef struct swfs_jointfit_result {
     int evaluations;       /* model evaluations */
     double seconds;        /* wall time of swfs_jointfit */
     double wfe_rms;        /* [m] piston removed */
+    int intercept;         /* SWFS_JF_INTERCEPT_MODEL or _FREE: the one this result used */
+    double delta_chi2;     /* AUTO: chi2(model) - chi2(free intercept); NaN otherwise */
+    double delta_chi2_limit; /* AUTO: the test's rejection threshold; NaN otherwise */
 } swfs_jointfit_result;
 
 /* sol: swfs_regress_solve over the focal window of the geometry g (PIXSCALE, PUPDX, TELDIAM,

@@ -26,6 +26,7 @@ void swfs_jointfit_options_default(swfs_jointfit_options *o)
     o->alpha_ratio = 10.0;
     o->alpha_ratio_max = 1000.0;
     o->prior = SWFS_JF_PRIOR_CURVATURE;
+    o->intercept = SWFS_JF_INTERCEPT_AUTO;
 }
 
 void swfs_jointfit_result_free(swfs_jointfit_result *r)
@@ -312,6 +313,24 @@ static double total_cost(fit *ft, const double *x, double *chi2)
     return *chi2 + ft->lam_alpha * pa + ft->lam_phi * pp + ft->beta_prec * pb;
 }
 
+/* The intercept a as a free nuisance per pixel: the quadratic form minimized over a, i.e. the
+ * Schur complement F_rr - F_r0 F_0r / F_00, f_r - F_r0 f_0 / F_00 on (b, Re c, Im c), with a's
+ * row and column zero (the model's a then has no weight). konst stays theta_hat_r^T f_r. */
+static void marginalize_a(double *F, double *f, const swfs_regress_sol *s, size_t k, size_t nf, double *konst)
+{
+    const double F00 = F[0];
+    double Fn[16] = {0}, fn[4] = {0};
+    for (size_t i = 1; i < 4; i++) {
+        fn[i] = f[i] - F[4 * i] * f[0] / F00;
+        for (size_t j = 1; j < 4; j++) Fn[4 * i + j] = F[4 * i + j] - F[4 * i] * F[j] / F00;
+    }
+    memcpy(F, Fn, sizeof Fn);
+    memcpy(f, fn, sizeof fn);
+    double kk = 0.0;
+    for (size_t i = 1; i < 4; i++) kk += s->theta->data[i * nf + k] * f[i];
+    *konst = kk;
+}
+
 /* Per-pixel data from the regression: full F, f, the marginal information of c (Schur
  * complement, for the linear start), theta_hat^T f (so chi2 >= 0 at the truth), g0. */
 static int load_pixels(fit *ft, const swfs_regress_sol *s)
@@ -340,6 +359,7 @@ static int load_pixels(fit *ft, const swfs_regress_sol *s)
         double kk = 0.0;
         for (size_t i = 0; i < 4; i++) kk += s->theta->data[i * nf + k] * ft->f[4 * k + i];
         ft->konst[k] = kk;
+        if (ft->o->intercept == SWFS_JF_INTERCEPT_FREE) marginalize_a(F, ft->f + 4 * k, s, k, nf, &ft->konst[k]);
         ft->use[k] = 1;
         /* g0^2: information-weighted mean of b_hat */
         wsum += 1.0 / Fi[5];
@@ -483,15 +503,14 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
     return cur;
 }
 
-int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask_in,
-                  const swfs_jointfit_options *opt, swfs_jointfit_result **out)
+static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask_in,
+                        const swfs_jointfit_options *opt, swfs_jointfit_result **out)
 {
     *out = NULL;
     struct timespec t0, t1;
     clock_gettime(CLOCK_MONOTONIC, &t0);
-    swfs_jointfit_options o;
-    swfs_jointfit_options_default(&o);
-    if (opt) o = *opt;
+    swfs_jointfit_options o = *opt;
+    if (o.intercept == SWFS_JF_INTERCEPT_FREE) o.fit_kappa = 0; /* kappa lives only in a */
     int rc = swfs_geom_require(geo, "joint fit");
     if (rc) return rc;
     if (!(o.knot_factor > 0.0) || o.legendre_order < 0 || o.legendre_order > 8 || o.max_iter < 0 || o.gls_iter < 0 ||
@@ -627,5 +646,47 @@ done:
     clock_gettime(CLOCK_MONOTONIC, &t1);
     res->seconds = (double)(t1.tv_sec - t0.tv_sec) + 1e-9 * (double)(t1.tv_nsec - t0.tv_nsec);
     *out = res;
+    return SWFS_OK;
+}
+
+/* SWFS_JF_INTERCEPT_AUTO: both fits, and a likelihood-ratio test of the intercept model. With a
+ * free intercept per pixel the data term is the profile chi-square over a; the model adds one
+ * constraint per pixel (less kappa), so when the model is right the difference of the two
+ * minimized chi-squares is chi-square distributed with npix - 1 degrees of freedom. The model
+ * is kept unless the difference exceeds its mean by SWFS_JF_INTERCEPT_Z standard deviations. */
+int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask,
+                  const swfs_jointfit_options *opt, swfs_jointfit_result **out)
+{
+    *out = NULL;
+    swfs_jointfit_options o;
+    swfs_jointfit_options_default(&o);
+    if (opt) o = *opt;
+    if (o.intercept != SWFS_JF_INTERCEPT_AUTO) {
+        if (o.intercept != SWFS_JF_INTERCEPT_MODEL && o.intercept != SWFS_JF_INTERCEPT_FREE)
+            return swfs_fail(SWFS_ERR_ARG, "joint fit: intercept %d: expected model, free or auto", o.intercept);
+        int rc = jointfit_one(sol, geo, mask, &o, out);
+        if (!rc) {
+            (*out)->intercept = o.intercept;
+            (*out)->delta_chi2 = (*out)->delta_chi2_limit = NAN;
+        }
+        return rc;
+    }
+    swfs_jointfit_result *rf = NULL, *rm = NULL;
+    o.intercept = SWFS_JF_INTERCEPT_FREE;
+    int rc = jointfit_one(sol, geo, mask, &o, &rf);
+    if (rc) return rc;
+    o.intercept = SWFS_JF_INTERCEPT_MODEL;
+    const double dof = (double)rf->npix - 1.0;
+    const double limit = dof + SWFS_JF_INTERCEPT_Z * sqrt(2.0 * (dof > 1.0 ? dof : 1.0));
+    double delta = NAN;
+    if (!jointfit_one(sol, geo, mask, &o, &rm)) delta = rm->chi2 - rf->chi2;
+    swfs_jointfit_result *keep = rf, *drop = rm;
+    if (rm && delta <= limit) { keep = rm; drop = rf; }
+    keep->intercept = keep == rm ? SWFS_JF_INTERCEPT_MODEL : SWFS_JF_INTERCEPT_FREE;
+    keep->delta_chi2 = delta;
+    keep->delta_chi2_limit = limit;
+    keep->seconds = rf->seconds + (rm ? rm->seconds : 0.0);
+    swfs_jointfit_result_free(drop);
+    *out = keep;
     return SWFS_OK;
 }
