@@ -88,6 +88,25 @@ def test_merge_of_two_halves_equals_single_pass():
         np.testing.assert_allclose(ha.maps[name], m, rtol=1e-9, atol=1e-12, err_msg=name)
 
 
+def test_export_import_carries_the_regression_statistics():
+    """The flat state (moments + regression statistics) round-trips exactly, and an
+    impossible state is refused with the library's message."""
+    _, psi, I = synth(500, seed=4)
+    a = sw.Accumulator(12, 10).add(I, psi)
+    assert a.has_regress
+    st = a.export()
+    assert st.shape == ((15 + 21) * 120 + 4,) and st[-4] == 500
+    b = sw.Accumulator.from_export(st, 12, 10)
+    assert b.frames == 500 and b.has_regress
+    np.testing.assert_array_equal(b.export(), st)
+    bad = st.copy()
+    bad[0] = -1  # a negative count
+    with pytest.raises(sw.Error, match="count"):
+        sw.Accumulator.from_export(bad, 12, 10)
+    with pytest.raises(ValueError, match="state"):
+        sw.Accumulator.from_export(st[:-1], 12, 10)
+
+
 def test_checkpoints_roundtrip_and_merge_files(tmp_path):
     _, psi, I = synth(900, seed=3)
     geom = sw.Geom(wavelen=3.8e-6, teldiam=6.5, obscur=0.1, pixscale=0.25, pupdx=0.04, pupn=163)
