@@ -59,4 +59,23 @@ int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
 
+/* Option parsing. Every helper prints its usage error and returns non-zero on failure. */
+/* -h or --help. */
+int cli_is_help(const char *a);
+/* The value after the option argv[*i] (advancing *i), or NULL when there is none. */
+const char *cli_next(int argc, char **argv, int *i);
+/* The value of option argv[*i] as a string ("<option> needs <what>" when missing), a finite
+ * number or an integer (cli_parse_double/long's messages); *i is advanced past it. */
+int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *what, const char **out);
+int cli_take_double(const char *cmd, int argc, char **argv, int *i, double *out);
+int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out);
+/* v is word a (-> va) or b (-> vb), else "<opt> expects 'a' or 'b', got 'v'". */
+int cli_parse_choice(const char *cmd, const char *opt, const char *v, const char *a, int va, const char *b, int vb,
+                     int *out);
+/* The simulation commands' CONFIG file or key=value argument; the library's message on failure. */
+struct swfs_sim_params;
+int cli_config_arg(const char *cmd, struct swfs_config *cfg, const char *a);
+/* Simulation parameters: the defaults, then cfg (unknown keys refused), then their checks. */
+int cli_sim_params(const char *cmd, struct swfs_config *cfg, struct swfs_sim_params *p);
+
 #endif

@@ -1,7 +1,8 @@
 #include "cli.h"
 
+#include "specklewfs/config.h"
+#include "specklewfs/sim.h"
 #include "specklewfs/speckles.h"
-
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -143,4 +144,51 @@ const char *const *cli_provenance(int argc, char **argv, size_t *n)
     cli_command_line(argc, argv, line, sizeof line);
     *n = 1;
     return lines;
+}
+
+int cli_is_help(const char *a) { return !strcmp(a, "-h") || !strcmp(a, "--help"); }
+
+const char *cli_next(int argc, char **argv, int *i) { return *i + 1 < argc ? argv[++*i] : NULL; }
+
+int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *what, const char **out)
+{
+    const char *opt = argv[*i], *v = cli_next(argc, argv, i);
+    if (!v) return cli_usage_error(cmd, "%s needs %s", opt, what);
+    *out = v;
+    return 0;
+}
+
+int cli_take_double(const char *cmd, int argc, char **argv, int *i, double *out)
+{
+    const char *opt = argv[*i];
+    return cli_parse_double(cmd, opt, cli_next(argc, argv, i), out);
+}
+
+int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out)
+{
+    const char *opt = argv[*i];
+    return cli_parse_long(cmd, opt, cli_next(argc, argv, i), out);
+}
+
+int cli_parse_choice(const char *cmd, const char *opt, const char *v, const char *a, int va, const char *b, int vb,
+                     int *out)
+{
+    if (v && !strcmp(v, a)) *out = va;
+    else if (v && !strcmp(v, b)) *out = vb;
+    else return cli_usage_error(cmd, "%s expects '%s' or '%s', got '%s'", opt, a, b, v ? v : "");
+    return 0;
+}
+
+int cli_config_arg(const char *cmd, swfs_config *cfg, const char *a)
+{
+    if (strchr(a, '=') ? swfs_config_set(cfg, a) : swfs_config_load(cfg, a)) return cli_error(cmd);
+    return 0;
+}
+
+int cli_sim_params(const char *cmd, swfs_config *cfg, swfs_sim_params *p)
+{
+    swfs_sim_params_default(p);
+    if (swfs_sim_params_from_config(cfg, p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(p))
+        return cli_error(cmd);
+    return 0;
 }

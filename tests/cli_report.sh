@@ -30,3 +30,48 @@ grep -q "halo.fits" "$tmp/err" || { echo "FAIL: message does not say what was lo
 test ! -e "$tmp/out/page/index.html"
 test ! -e "$tmp/out/page/index.html.part"
 echo "cli_report: ok"
+
+# ---- a demo folder: one page for the whole demo
+SMALL="screen_n=256 teldiam=2.5 pupn=64 nscreens=2 nfx=32 nfy=24"
+"$bin" demo -o "$tmp/demo" $SMALL --levels 0,100 --loop-iterations 1 >"$tmp/demo.txt" 2>"$tmp/demo.err" \
+    || { echo "FAIL: demo"; cat "$tmp/demo.err"; exit 1; }
+page="$tmp/demo/report/index.html"
+test -s "$page" || { echo "FAIL: demo wrote no page"; exit 1; }
+grep -q "figures: $page" "$tmp/demo.txt" || { echo "FAIL: demo does not name its page"; exit 1; }
+# The table is the demo's: as many rows and columns as recovery.tsv, one section per level.
+[ "$(grep -vc '^#' "$tmp/demo/recovery.tsv")" -eq 2 ] || { echo "FAIL: recovery.tsv rows"; exit 1; }
+ncol=$(head -1 "$tmp/demo/recovery.tsv" | awk -F'\t' '{print NF}')
+table=$(sed -n '/<table id="recovery">/,/<\/table>/p' "$page")
+[ "$(grep -c '<tr><td>' <<<"$table")" -eq 2 ] || { echo "FAIL: recovery table rows"; exit 1; }
+[ "$(grep -o '<th>' <<<"$table" | wc -l)" -eq "$ncol" ] || { echo "FAIL: recovery table columns"; exit 1; }
+grep -q '<th>HALO_LF+SNR \[nm\]</th>' <<<"$table" || { echo "FAIL: estimator column heading"; exit 1; }
+for s in 0 100; do
+    grep -q "<section id=\"sigma$s\">" "$page" || { echo "FAIL: no section for sigma $s"; exit 1; }
+    for f in halo focal pixel pupil; do
+        grep -q "src=\"sigma$s/$f.png\"" "$page" || { echo "FAIL: sigma$s/$f.png not on the page"; exit 1; }
+        test -s "$tmp/demo/report/sigma$s/$f.png" || { echo "FAIL: sigma$s/$f.png missing"; exit 1; }
+    done
+    # Each level's recovery error on the page is the demo table's HALO_LF+SNR column.
+    want=$(awk -v s="$s" '$1 == s && $5 == "|" {print $8}' "$tmp/demo.txt")
+    [ -n "$want" ] || { echo "FAIL: no demo row for sigma $s"; exit 1; }
+    grep -q "<td id=\"sigma$s-recovered-error\">$want nm rms" "$page" \
+        || { echo "FAIL: sigma $s recovery error on the page is not the table's $want nm"; exit 1; }
+done
+grep -q '<table id="loop-table">' "$page" || { echo "FAIL: no closed-loop table"; exit 1; }
+grep -q 'src="loop.png"' "$page" && test -s "$tmp/demo/report/loop.png" || { echo "FAIL: no loop.png"; exit 1; }
+
+# `report DEMO_DIR` draws the same page again; the figure count is every image on it.
+"$bin" report "$tmp/demo" -o "$tmp/demo/page2" >"$tmp/out.txt" 2>"$tmp/err" || { cat "$tmp/err"; exit 1; }
+nfig=$(sed -n 's/^report: \([0-9]*\) figures.*/\1/p' "$tmp/out.txt")
+[ "$nfig" = 9 ] || { echo "FAIL: report of the demo folder drew '$nfig' figures, expected 9"; cat "$tmp/out.txt"; exit 1; }
+[ "$(grep -c '<img ' "$tmp/demo/page2/index.html")" -eq 9 ] || { echo "FAIL: images on the page"; exit 1; }
+if command -v chromium >/dev/null 2>&1; then
+    dom=$(chromium --headless --no-sandbox --disable-gpu --disable-background-networking --no-first-run \
+        --disable-dev-shm-usage --user-data-dir="$tmp/chromium" --virtual-time-budget=5000 \
+        --dump-dom "file://$tmp/demo/page2/index.html" 2>/dev/null)
+    grep -q 'data-images-ok="9"' <<<"$dom" && grep -q 'data-images-total="9"' <<<"$dom" \
+        || { echo "FAIL: chromium did not load every image of the demo page"; grep -o '<body[^>]*>' <<<"$dom"; exit 1; }
+else
+    echo "cli_report: chromium is not on PATH: browser check of the demo page skipped"
+fi
+echo "cli_report: demo page ok"

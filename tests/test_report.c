@@ -17,7 +17,11 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <signal.h>
+#include <sys/resource.h>
 #include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #ifdef SWFS_HAVE_LIBPNG
 #include <png.h>
@@ -589,6 +593,77 @@ static void test_bad_inputs(void **state)
     assert_int_equal(swfs_report_run(d2, NULL, &o, &s), SWFS_ERR_ARG);
 }
 
+static void write_bytes(const char *path, const unsigned char *b, size_t n)
+{
+    FILE *f = fopen(path, "wb");
+    assert_non_null(f);
+    assert_int_equal(fwrite(b, 1, n, f), n);
+    fclose(f);
+}
+
+/* A PNG is complete only from its signature to an IEND chunk that ends the file; a report
+ * whose figures are cut short (a file-size limit, as a full disk) fails and leaves no PNG. */
+static void test_png_complete(void **state)
+{
+    (void)state;
+    if (!swfs_plot_available()) skip();
+    const char *dir = test_path("report_png");
+    run r;
+    make_run(dir, "halo", &r);
+    swfs_report_summary s;
+    assert_ok(swfs_report_run(dir, NULL, NULL, &s));
+    char png[1024], cut[1024];
+    snprintf(png, sizeof png, "%s/report/halo.png", dir);
+    snprintf(cut, sizeof cut, "%s/cut.png", dir);
+    char *full = slurp(png);
+    FILE *f = fopen(png, "rb");
+    fseek(f, 0, SEEK_END);
+    size_t n = (size_t)ftell(f);
+    fclose(f);
+    assert_ok(swfs_plot_png_check(png));
+    const size_t cuts[] = {0, 7, 8, 20, 33, n / 2, n - 12, n - 5, n - 1};
+    for (size_t k = 0; k < sizeof cuts / sizeof cuts[0]; k++) {
+        write_bytes(cut, (const unsigned char *)full, cuts[k]);
+        assert_int_not_equal(swfs_plot_png_check(cut), SWFS_OK);
+        assert_non_null(strstr(swfs_last_error(), "cut.png"));
+    }
+    unsigned char *more = malloc(n + 3);
+    memcpy(more, full, n);
+    memcpy(more + n, "xyz", 3);
+    write_bytes(cut, more, n + 3);
+    assert_int_not_equal(swfs_plot_png_check(cut), SWFS_OK);
+    assert_non_null(strstr(swfs_last_error(), "3 bytes after its IEND"));
+    free(more);
+    free(full);
+
+    /* Figures written under a 30 kB file-size limit: the run fails, nothing truncated stays. */
+    char out[512];
+    snprintf(out, sizeof out, "%s/limited", dir);
+    const char *leftovers[] = {"halo.png", "focal.png", "index.html"}; /* of an earlier run */
+    for (size_t k = 0; k < 3; k++) {
+        snprintf(png, sizeof png, "%s/%s", out, leftovers[k]);
+        remove(png);
+    }
+    pid_t pid = fork();
+    assert_true(pid >= 0);
+    if (pid == 0) {
+        signal(SIGXFSZ, SIG_IGN);
+        struct rlimit rl = {30000, 30000};
+        setrlimit(RLIMIT_FSIZE, &rl);
+        swfs_report_summary s2;
+        int rc = swfs_report_run(dir, out, NULL, &s2);
+        _exit(rc != SWFS_OK && strstr(swfs_last_error(), "halo.png") ? 0 : 1);
+    }
+    int st = 0;
+    waitpid(pid, &st, 0);
+    assert_true(WIFEXITED(st));
+    assert_int_equal(WEXITSTATUS(st), 0);
+    snprintf(png, sizeof png, "%s/halo.png", out);
+    assert_false(test_file_exists(png));
+    snprintf(png, sizeof png, "%s/halo.png.part", out);
+    assert_false(test_file_exists(png));
+}
+
 /* Headless Chromium loads index.html and every image in it. */
 static void test_chromium(void **state)
 {
@@ -645,6 +720,7 @@ int main(void)
         cmocka_unit_test(test_full_run),
         cmocka_unit_test(test_cubes_only),
         cmocka_unit_test(test_bad_inputs),
+        cmocka_unit_test(test_png_complete),
         cmocka_unit_test(test_chromium),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

@@ -143,6 +143,11 @@ static void recovery_section(rep_ctx *d, const swfs_table *t, const level *lv, s
         while (k < nlv && lv[k].sigma != s) k++;
         if (k == nlv) rep_note(d, "recovery.tsv lists σ = %g counts but sigma%g/ has no products", s, s);
     }
+    for (size_t k = 0; cs >= 0 && k < nlv; k++) {
+        size_t r = 0;
+        while (r < t->nrows && t->v[r * t->ncols + (size_t)cs] != lv[k].sigma) r++;
+        if (r == t->nrows) rep_note(d, "%s/ is not in recovery.tsv (left from an earlier demo?)", lv[k].name);
+    }
 }
 
 /* The closed loop: its table and loop.png. */
