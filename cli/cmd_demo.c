@@ -64,11 +64,11 @@ static int parse_args(const char *cmd, int argc, char **argv, swfs_config *cfg, 
             if (n < 0 || n > 1000) return cli_usage_error(cmd, "--loop-iterations must be 0..1000");
             d->lp.iterations = (size_t)n;
         } else if (!strcmp(a, "--loop-gain")) {
-            if (cli_take_double(cmd, argc, argv, &i, &d->lp.gain)) return CLI_USAGE;
-            if (!(d->lp.gain > 0 && d->lp.gain <= 2)) return cli_usage_error(cmd, "--loop-gain must be in (0, 2]");
+            if (cli_take_range(cmd, argc, argv, &i, &d->lp.gain, 0, 1, 2, 0, "--loop-gain must be in (0, 2]"))
+                return CLI_USAGE;
         } else if (!strcmp(a, "--loop-sigma")) {
-            if (cli_take_double(cmd, argc, argv, &i, &d->lp.sigma)) return CLI_USAGE;
-            if (!(d->lp.sigma >= 0)) return cli_usage_error(cmd, "--loop-sigma must be >= 0");
+            if (cli_take_range(cmd, argc, argv, &i, &d->lp.sigma, 0, 0, INFINITY, 0, "--loop-sigma must be >= 0"))
+                return CLI_USAGE;
         } else if (a[0] == '-' && a[1] && !strchr(a, '=')) {
             return cli_usage_error(cmd, "unknown option '%s'", a);
         } else if (cli_config_arg(cmd, cfg, a)) {

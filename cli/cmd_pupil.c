@@ -28,36 +28,42 @@ static const char *usage_text =
     "  --truth TRUTH.fits compare with a simulation's injected NCP (extension NCP [m]): prints the\n"
     "                     error rms with piston and tip/tilt removed, and records it (NCPERR)\n";
 
+/* The options checked as they come: --wiener-k, --weight, --source. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "pupil", *a = argv[*i];
+    swfs_pupil_options *opt = ctx;
+    if (!strcmp(a, "--wiener-k")) {
+        if (cli_take_range(cmd, argc, argv, i, &opt->wiener_k, 0, 1, INFINITY, 0, "--wiener-k must be > 0"))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--weight")) {
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "snr", SWFS_WEIGHT_SNR, "none", SWFS_WEIGHT_NONE,
+                             &opt->weight))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--source")) {
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "lf", SWFS_SOURCE_HALO_LF, "halo", SWFS_SOURCE_HALO,
+                             &opt->source))
+            return -CLI_USAGE;
+    } else {
+        return 0;
+    }
+    return 1;
+}
+
 int swfs_cmd_pupil(int argc, char **argv)
 {
     const char *cmd = "pupil";
     const char *in = NULL, *out = NULL, *maskfile = NULL, *truthfile = NULL;
     swfs_pupil_options opt;
     swfs_pupil_options_default(&opt);
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
-        else if (!strcmp(a, "--pupil")) { if (++i >= argc) return cli_usage_error(cmd, "--pupil needs a file name"); maskfile = argv[i]; }
-        else if (!strcmp(a, "--truth")) { if (++i >= argc) return cli_usage_error(cmd, "--truth needs a file name"); truthfile = argv[i]; }
-        else if (!strcmp(a, "--bias")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.bias)) return CLI_USAGE; }
-        else if (!strcmp(a, "--wiener-k")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.wiener_k)) return CLI_USAGE;
-            if (!(opt.wiener_k > 0)) return cli_usage_error(cmd, "--wiener-k must be > 0");
-        } else if (!strcmp(a, "--weight")) {
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "snr")) opt.weight = SWFS_WEIGHT_SNR;
-            else if (!strcmp(v, "none")) opt.weight = SWFS_WEIGHT_NONE;
-            else return cli_usage_error(cmd, "--weight expects 'snr' or 'none', got '%s'", v);
-        } else if (!strcmp(a, "--source")) {
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "lf")) opt.source = SWFS_SOURCE_HALO_LF;
-            else if (!strcmp(v, "halo")) opt.source = SWFS_SOURCE_HALO;
-            else return cli_usage_error(cmd, "--source expects 'lf' or 'halo', got '%s'", v);
-        } else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!in) in = a;
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-    }
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &out, "a file name", 0},         {"--pupil", CLI_STRING, &maskfile, "a file name", 0},
+        {"--truth", CLI_STRING, &truthfile, "a file name", 0}, {"--bias", CLI_DOUBLE, &opt.bias, NULL, 0},
+    };
+    const char **const pos[] = {&in};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &opt, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
     if (!in) return cli_usage_error(cmd, "needs HALO.fits");
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
 

@@ -28,38 +28,39 @@ static const char *usage_text =
     "\n"
     "figures: halo.png, focal.png, pixel.png, pupil.png, coherence.png; loop.png (demo)\n";
 
+/* --pixel I J and --percentiles LO HI, checked as they come. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "report", *a = argv[*i];
+    swfs_report_options *opt = ctx;
+    if (!strcmp(a, "--pixel")) {
+        if (cli_parse_long(cmd, a, cli_next(argc, argv, i), &opt->pixel_i) ||
+            cli_parse_long(cmd, a, cli_next(argc, argv, i), &opt->pixel_j))
+            return -CLI_USAGE;
+        if (opt->pixel_i < 0 || opt->pixel_j < 0) return -cli_usage_error(cmd, "--pixel needs two indices >= 0");
+    } else if (!strcmp(a, "--percentiles")) {
+        if (cli_parse_double(cmd, a, cli_next(argc, argv, i), &opt->pct_lo) ||
+            cli_parse_double(cmd, a, cli_next(argc, argv, i), &opt->pct_hi))
+            return -CLI_USAGE;
+        if (!(opt->pct_lo >= 0 && opt->pct_hi <= 100 && opt->pct_lo < opt->pct_hi))
+            return -cli_usage_error(cmd, "--percentiles needs 0 <= LO < HI <= 100");
+    } else {
+        return 0;
+    }
+    return 1;
+}
+
 int swfs_cmd_report(int argc, char **argv)
 {
     const char *cmd = "report";
     const char *run = NULL, *out = NULL;
     swfs_report_options opt;
     swfs_report_options_default(&opt);
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (cli_is_help(a)) {
-            fputs(usage_text, stdout);
-            return CLI_OK;
-        } else if (!strcmp(a, "-o")) {
-            if (cli_take_string(cmd, argc, argv, &i, "a folder name", &out)) return CLI_USAGE;
-        } else if (!strcmp(a, "--pixel")) {
-            if (cli_parse_long(cmd, a, cli_next(argc, argv, &i), &opt.pixel_i) ||
-                cli_parse_long(cmd, a, cli_next(argc, argv, &i), &opt.pixel_j))
-                return CLI_USAGE;
-            if (opt.pixel_i < 0 || opt.pixel_j < 0) return cli_usage_error(cmd, "--pixel needs two indices >= 0");
-        } else if (!strcmp(a, "--percentiles")) {
-            if (cli_parse_double(cmd, a, cli_next(argc, argv, &i), &opt.pct_lo) ||
-                cli_parse_double(cmd, a, cli_next(argc, argv, &i), &opt.pct_hi))
-                return CLI_USAGE;
-            if (!(opt.pct_lo >= 0 && opt.pct_hi <= 100 && opt.pct_lo < opt.pct_hi))
-                return cli_usage_error(cmd, "--percentiles needs 0 <= LO < HI <= 100");
-        } else if (a[0] == '-' && a[1]) {
-            return cli_usage_error(cmd, "unknown option '%s'", a);
-        } else if (!run) {
-            run = a;
-        } else {
-            return cli_usage_error(cmd, "unexpected argument '%s'", a);
-        }
-    }
+    const cli_opt opts[] = {{"-o", CLI_STRING, &out, "a folder name", 0}};
+    const char **const pos[] = {&run};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &opt, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
     if (!run) return cli_usage_error(cmd, "needs RUN_DIR");
     double t0 = cli_now();
     swfs_report_summary s;
