@@ -187,6 +187,11 @@ int rep_demo_run(const char *dir, const char *out_dir, const swfs_report_options
     if (!swfs_plot_available()) rep_note(&d, "no figures: this build has no PLplot pngcairo device");
     for (size_t k = 0; k < nlv && !rc; k++) rc = level_section(&d, &lv[k], &levels, &s->levels[s->nlevels++]);
     if (rc) goto done;
+    rep_printf(&body, "<p id=\"contents\">");
+    for (size_t k = 0; k < nlv; k++)
+        rep_printf(&body, "%s<a href=\"#%s\">σ = %g counts</a>", k ? " · " : "Noise levels: ", lv[k].name, lv[k].sigma);
+    if (loop) rep_printf(&body, "%s<a href=\"#loop\">closed loop</a>", nlv ? " · " : "");
+    rep_printf(&body, "</p>\n");
     recovery_section(&d, rec, lv, nlv, &body);
     s->recovery_rows = rec ? rec->nrows : 0;
     if (!nlv) rep_note(&d, "no sigma<level>/ folder with halo.fits or wavefront.fits: no figures per noise level");
