@@ -161,14 +161,11 @@ int rep_fig_coherence(rep_ctx *c)
     int w = cols == 2 ? REP_W_GRID : REP_W_PIXEL, panel = 0;
     if ((rc = swfs_plot_create(&p, path, w, h, cols, rows)) || (rc = map_panels(c, &m, p, z, 0, &panel))) goto done;
     if (m.mcf && (rc = mcf_panel(c, &m, p, z, panel))) goto done;
-    rc = swfs_plot_commit(p);
-    p = NULL;
-    if (!rc)
-        rep_add_figure(c, "coherence.png", w, h, "Speckle coherence",
-                       "Speckle coherence time τ₀ where |Γ(τ)/Γ(0)| falls to e^-1/2, the time for the speckle phase "
-                       "to rotate by ±π/2 (dashed circles at 1-6 λ/D), the SNR factor of the science exposure time, "
-                       "and the normalized mutual coherence function Γ(τ)/Γ(0) of one second-ring pixel in the "
-                       "complex plane with the e^-1/2 circle.");
+    rc = rep_commit(c, &p, "coherence.png", w, h, "Speckle coherence",
+                    "Speckle coherence time τ₀ where |Γ(τ)/Γ(0)| falls to e^-1/2, the time for the speckle phase "
+                    "to rotate by ±π/2 (dashed circles at 1-6 λ/D), the SNR factor of the science exposure time, "
+                    "and the normalized mutual coherence function Γ(τ)/Γ(0) of one second-ring pixel in the "
+                    "complex plane with the e^-1/2 circle.");
 done:
     swfs_plot_abort(p);
     maps_free(&m);

@@ -59,13 +59,10 @@ int rep_fig_halo(rep_ctx *c)
                               c->ny)))
             goto done;
     }
-    rc = swfs_plot_commit(p);
-    p = NULL;
-    if (!rc)
-        rep_add_figure(c, "halo.png", npanel == 3 ? REP_W_HALO : REP_W_ROW2, REP_H_HALO, "Static halo",
-                   "Left: base-10 log of the static halo amplitude |Ψ| (eq:TheAnswer), normalized to the "
-                   "first-Airy-ring pixel circled in green. Centre: its phase, shown where the scale factor is "
-                   "defined. Right: the visibility (eq:visibility); lighter is better.");
+    rc = rep_commit(c, &p, "halo.png", npanel == 3 ? REP_W_HALO : REP_W_ROW2, REP_H_HALO, "Static halo",
+                    "Left: base-10 log of the static halo amplitude |Ψ| (eq:TheAnswer), normalized to the "
+                    "first-Airy-ring pixel circled in green. Centre: its phase, shown where the scale factor is "
+                    "defined. Right: the visibility (eq:visibility); lighter is better.");
 done:
     swfs_plot_abort(p);
     free(amp);
@@ -99,50 +96,33 @@ int rep_fig_focal(rep_ctx *c)
     char t_mean[96], t_var[96];
     snprintf(t_mean, sizeof t_mean, "mean science image Φ#dI#u%s", c->moments_from_cubes ? " (from the cube)" : "");
     snprintf(t_var, sizeof t_var, "science variance σ#u2#d#dI#u%s", cnt);
+    /* g on valid pixels (fig:Gain-map), Phi_I, sigma_I^2 on exactly 4 decades
+     * (fig:Sim-PSF-Sigma2), Phi_sp. */
+    const struct {
+        const char *name, *title, *zlabel;
+        enum rep_range_kind kind;
+        swfs_cmap cmap;
+    } panels[4] = {
+        {"gain", "scale factor g (circles: 1-6 λ/D)", "g", R_AUTO, SWFS_CMAP_VIRIDIS},
+        {"mean_i", t_mean, "mean intensity [counts]", R_AUTO, SWFS_CMAP_MAGMA},
+        {"var_i", t_var, "variance [counts²]", R_LOG_FIXED, SWFS_CMAP_MAGMA},
+        {"mean_sp", "mean speckle power Φ#dsp#u", "⟨|ψ|²⟩ [counts]", R_AUTO, SWFS_CMAP_MAGMA},
+    };
     int panel = 0;
     for (int k = 0; k < 4 && !rc; k++) {
         if (!maps[k]) continue;
-        swfs_report_range r;
-        switch (k) {
-        case 0:
-            r = rep_prepare(c, "gain", maps[k]->data, n, vmask, R_AUTO, 1.0, 0, 0, z);
-            s.title = "scale factor g (circles: 1-6 λ/D)";
-            s.zlabel = "g";
-            s.cmap = SWFS_CMAP_VIRIDIS;
-            break;
-        case 1:
-            r = rep_prepare(c, "mean_i", maps[k]->data, n, NULL, R_AUTO, 1.0, 0, 0, z);
-            s.title = t_mean;
-            s.zlabel = "mean intensity [counts]";
-            s.cmap = SWFS_CMAP_MAGMA;
-            break;
-        case 2:
-            r = rep_prepare(c, "var_i", maps[k]->data, n, NULL, R_LOG_FIXED, 1.0, 0, 0, z);
-            s.title = t_var;
-            s.zlabel = "variance [counts²]";
-            s.cmap = SWFS_CMAP_MAGMA;
-            break;
-        default:
-            r = rep_prepare(c, "mean_sp", maps[k]->data, n, NULL, R_AUTO, 1.0, 0, 0, z);
-            s.title = "mean speckle power Φ#dsp#u";
-            s.zlabel = "⟨|ψ|²⟩ [counts]";
-            s.cmap = SWFS_CMAP_MAGMA;
-            break;
-        }
-        rep_apply_range(&s, &r);
-        if ((rc = swfs_plot_panel(p, panel++)) || (rc = swfs_plot_image(p, z, c->nx, c->ny, &s))) break;
-        if (k == 0 && rep_have_pixscale(c))
+        swfs_report_range r = rep_prepare(c, panels[k].name, maps[k]->data, n, k == 0 ? vmask : NULL, panels[k].kind,
+                                          1.0, 0, 0, z);
+        rc = rep_image_panel(p, panel++, &s, &r, panels[k].title, panels[k].zlabel, panels[k].cmap, z, c->nx, c->ny);
+        if (!rc && k == 0 && rep_have_pixscale(c))
             rc = swfs_plot_circles(p, 0.0, 0.0, circles, 6, SWFS_COLOR_WHITE, SWFS_LINE_DASHED, 1.0);
     }
-    if (rc) goto done;
-    rc = swfs_plot_commit(p);
-    p = NULL;
     if (!rc)
-        rep_add_figure(c, "focal.png", REP_W_GRID, h, "Focal-plane statistics",
-                   "Scale factor g (eq:scale-factor) with circles at 1-6 λ/D, shown where it is defined; the "
-                   "mean science image Φ_I; the science image variance σ²_I on a 4-decade log scale (noise "
-                   "variance removed when it comes from halo.fits); the mean speckle power Φ_sp. Colour ranges "
-                   "are robust percentiles of the data.");
+        rc = rep_commit(c, &p, "focal.png", REP_W_GRID, h, "Focal-plane statistics",
+                        "Scale factor g (eq:scale-factor) with circles at 1-6 λ/D, shown where it is defined; the "
+                        "mean science image Φ_I; the science image variance σ²_I on a 4-decade log scale (noise "
+                        "variance removed when it comes from halo.fits); the mean speckle power Φ_sp. Colour ranges "
+                        "are robust percentiles of the data.");
 done:
     swfs_plot_abort(p);
     free(z);

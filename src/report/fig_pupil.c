@@ -241,10 +241,7 @@ int rep_fig_pupil(rep_ctx *c)
         goto done;
     }
     if ((rc = swfs_plot_create(&p, path, w, h, cols, rows)) || (rc = draw(c, &m, p, z))) goto done;
-    rc = swfs_plot_commit(p);
-    p = NULL;
-    if (!rc)
-        rep_add_figure(c, "pupil.png", w, h, "Pupil field and wavefront",
+    rc = rep_commit(c, &p, "pupil.png", w, h, "Pupil field and wavefront",
                        m.ncp ? "Pupil amplitude and the estimated wavefront error (eq:NCP-WFE-estimate) in nm with the "
                                "pupil outline; the true non-common-path aberration of the simulation (piston removed) "
                                "and the error map (estimate minus truth, piston and tip/tilt removed, as the demo's "

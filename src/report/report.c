@@ -90,6 +90,14 @@ void rep_add_figure(rep_ctx *c, const char *file, int w, int h, const char *head
     rep_printf(&c->figs, "</figcaption></figure>\n</section>\n");
 }
 
+int rep_commit(rep_ctx *c, swfs_plot **p, const char *file, int w, int h, const char *heading, const char *caption)
+{
+    int rc = swfs_plot_commit(*p);
+    *p = NULL;
+    if (!rc) rep_add_figure(c, file, w, h, heading, caption);
+    return rc;
+}
+
 int rep_read_real_opt(swfs_fits_in *f, const char *ext, swfs_real **out)
 {
     *out = NULL;

@@ -96,6 +96,8 @@ __attribute__((format(printf, 2, 3)))
 void rep_note(rep_ctx *c, const char *fmt, ...);
 /* Record file (relative to c->out_dir) in the summary and its section in c->figs. */
 void rep_add_figure(rep_ctx *c, const char *file, int w, int h, const char *heading, const char *caption);
+/* Commit *p (then NULL) and, when it is written, add it with rep_add_figure. */
+int rep_commit(rep_ctx *c, swfs_plot **p, const char *file, int w, int h, const char *heading, const char *caption);
 void rep_summary_init(swfs_report_summary *s);
 
 /* Set up c for run_dir -> out_dir (products found, options checked by the caller). */
