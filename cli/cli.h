@@ -59,4 +59,64 @@ int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
 
+/* Option parsing. Every helper prints its usage error and returns non-zero on failure. */
+/* -h or --help. */
+int cli_is_help(const char *a);
+/* The value after the option argv[*i] (advancing *i), or NULL when there is none. */
+const char *cli_next(int argc, char **argv, int *i);
+/* The value of option argv[*i] as a string ("<option> needs <what>" when missing), a finite
+ * number or an integer (cli_parse_double/long's messages); *i is advanced past it. */
+int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *what, const char **out);
+int cli_take_double(const char *cmd, int argc, char **argv, int *i, double *out);
+int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out);
+/* A number in [lo, hi] (an end excluded where its *_open is 1), else the usage error msg. */
+int cli_take_range(const char *cmd, int argc, char **argv, int *i, double *out, double lo, int lo_open, double hi,
+                   int hi_open, const char *msg);
+/* An integer pair "X,Y" ("<opt> needs X,Y" / "<opt> expects X,Y (integers), got '<s>'"). */
+int cli_parse_xy(const char *cmd, const char *opt, const char *s, long *x, long *y);
+/* v is word a (-> va) or b (-> vb), else "<opt> expects 'a' or 'b', got 'v'". */
+int cli_parse_choice(const char *cmd, const char *opt, const char *v, const char *a, int va, const char *b, int vb,
+                     int *out);
+/* A table of a command's plain options: a string, a number, an integer or a flag that sets
+ * an int to `value`. */
+typedef enum { CLI_STRING, CLI_DOUBLE, CLI_LONG, CLI_SET } cli_kind;
+typedef struct cli_opt {
+    const char *name; /* "-o", "--gain" */
+    cli_kind kind;
+    void *dst;        /* const char **, double *, long * or int * */
+    const char *what; /* CLI_STRING: "<name> needs <what>" when the value is missing */
+    int value;        /* CLI_SET: *(int *)dst = value */
+} cli_opt;
+/* argv[*i] against opts: 0 if it is none of them, 1 + the index of the one it is (value
+ * parsed into dst, *i advanced past it), or -1 after printing the usage error. */
+int cli_match(const char *cmd, const cli_opt *opts, size_t n, int argc, char **argv, int *i);
+#define CLI_NOPTS(opts) (sizeof(opts) / sizeof((opts)[0]))
+/* A command's arguments: -h/--help prints usage (when not NULL), the options of the table,
+ * then special (may be NULL: returns 1 when it took argv[*i], 0 when not, -exit code after
+ * printing an error), then positional arguments: "unknown option '<a>'" for anything else
+ * starting with '-', the first empty slot *pos[k], then the list rest (argc entries; NULL:
+ * "unexpected argument '<a>'"). Returns 0, -1 after the help, or the exit code of a
+ * printed error. */
+typedef struct cli_args {
+    const char *cmd, *usage;
+    const cli_opt *opts;
+    size_t nopts;
+    const char **const *pos;
+    size_t npos;
+    int (*special)(void *ctx, int argc, char **argv, int *i);
+    void *ctx;
+    const char **rest;
+    size_t *nrest;
+} cli_args;
+int cli_parse_args(const cli_args *c, int argc, char **argv);
+/* The DM fit's --influence, --coupling and --modes (dmoffsets, correct), a cli_args special:
+ * 1 taken, 0 not one of them, -CLI_USAGE after the message. */
+struct swfs_dmfit_options;
+int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, struct swfs_dmfit_options *fo);
+/* The simulation commands' CONFIG file or key=value argument; the library's message on failure. */
+struct swfs_sim_params;
+int cli_config_arg(const char *cmd, struct swfs_config *cfg, const char *a);
+/* Simulation parameters: the defaults, then cfg (unknown keys refused), then their checks. */
+int cli_sim_params(const char *cmd, struct swfs_config *cfg, struct swfs_sim_params *p);
+
 #endif

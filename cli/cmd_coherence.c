@@ -6,7 +6,6 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/status.h"
 
-#include <errno.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -40,19 +39,6 @@ static const char *usage_text =
     "  --nfit N           WFS frames of the phase-rate fit (default 4, as in the paper)\n"
     "Pixels without speckle power (or with non-finite speckles) are NaN in the maps and counted.\n";
 
-static int parse_pixel(const char *cmd, const char *s, long *x, long *y)
-{
-    if (!s) return cli_usage_error(cmd, "--pixel needs X,Y");
-    char *end;
-    errno = 0;
-    *x = strtol(s, &end, 10);
-    if (end == s || *end != ',') return cli_usage_error(cmd, "--pixel expects X,Y (integers), got '%s'", s);
-    const char *t = end + 1;
-    *y = strtol(t, &end, 10);
-    if (end == t || *end || errno) return cli_usage_error(cmd, "--pixel expects X,Y (integers), got '%s'", s);
-    return 0;
-}
-
 static void print_limits(double diam, double wind, double radius, double bw, const swfs_geom *g)
 {
     if (wind > 0) {
@@ -79,21 +65,22 @@ int swfs_cmd_coherence(int argc, char **argv)
     int exp_set = 0;
     long px = -1, py = -1, nfit = 4;
     int have_pixel = 0;
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &out, "a file name", 0}, {"--wind", CLI_DOUBLE, &wind, NULL, 0},
+        {"--bandwidth", CLI_DOUBLE, &bw, NULL, 0},  {"--radius", CLI_DOUBLE, &radius, NULL, 0},
+        {"--diam", CLI_DOUBLE, &diam, NULL, 0},     {"--nfit", CLI_LONG, &nfit, NULL, 0},
+    };
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
-        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (!v) return cli_usage_error(cmd, "-o needs a file name"); out = v; i++; }
-        else if (!strcmp(a, "--exposure")) { if (cli_parse_double(cmd, a, v, &exposure)) return CLI_USAGE; exp_set = 1; i++; }
-        else if (!strcmp(a, "--wind")) { if (cli_parse_double(cmd, a, v, &wind)) return CLI_USAGE; i++; }
-        else if (!strcmp(a, "--bandwidth")) { if (cli_parse_double(cmd, a, v, &bw)) return CLI_USAGE; i++; }
-        else if (!strcmp(a, "--radius")) { if (cli_parse_double(cmd, a, v, &radius)) return CLI_USAGE; i++; }
-        else if (!strcmp(a, "--diam")) { if (cli_parse_double(cmd, a, v, &diam)) return CLI_USAGE; i++; }
-        else if (!strcmp(a, "--nfit")) { if (cli_parse_long(cmd, a, v, &nfit)) return CLI_USAGE; i++; }
-        else if (!strcmp(a, "--pixel")) { if (parse_pixel(cmd, v, &px, &py)) return CLI_USAGE; have_pixel = 1; i++; }
+        int bad = 0;
+        if (cli_is_help(a)) { fputs(usage_text, stdout); return CLI_OK; }
+        else if (!strcmp(a, "--exposure")) { bad = cli_take_double(cmd, argc, argv, &i, &exposure); exp_set = 1; }
+        else if (!strcmp(a, "--pixel")) { bad = cli_parse_xy(cmd, a, cli_next(argc, argv, &i), &px, &py); have_pixel = 1; }
+        else if ((bad = cli_match(cmd, opts, CLI_NOPTS(opts), argc, argv, &i)) != 0) bad = bad < 0;
         else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
         else if (!in) in = a;
         else return cli_usage_error(cmd, "one speckle cube only (got '%s' and '%s')", in, a);
+        if (bad) return CLI_USAGE;
     }
     if (exposure < 0 || (exposure == 0 && exp_set))
         return cli_usage_error(cmd, "--exposure must be positive seconds, got %g", exposure);
@@ -144,10 +131,9 @@ int swfs_cmd_coherence(int argc, char **argv)
     if (swfs_coherence_compute(cube, framedt, &opt, &c)) { cli_error(cmd); goto done; }
     double tcomp = cli_now() - t0;
 
-    char cmdline[2048];
-    cli_command_line(argc, argv, cmdline, sizeof cmdline);
-    const char *prov[1] = {cmdline};
-    if (swfs_coherence_write(c, out, &g, prov, 1)) { cli_error(cmd); goto done; }
+    size_t nprov;
+    const char *const *prov = cli_provenance(argc, argv, &nprov);
+    if (swfs_coherence_write(c, out, &g, prov, nprov)) { cli_error(cmd); goto done; }
 
     printf("specklewfs coherence: %s: %zu frames of %zux%zu, FRAMEDT %.4g ms; MCF by %s to lag %ld (%.1f ms), %.2f s\n",
            in, c->nframes, c->nx, c->ny, 1e3 * framedt, c->method == SWFS_COH_FFT ? "FFT" : "direct sums", c->max_lag,

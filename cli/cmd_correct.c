@@ -75,6 +75,46 @@ void cli_print_loop_table(const swfs_loop_result *r)
            "  DM offsets reproduce / leave out of that iteration's estimate. Total %.2f s.\n", r->seconds);
 }
 
+typedef struct corr_args {
+    swfs_loop_params *lp;
+    swfs_config *cfg;
+} corr_args;
+
+/* The loop's options, checked as they come, the DM fit's, then CONFIG or key=value. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "correct", *a = argv[*i];
+    corr_args *d = ctx;
+    swfs_loop_params *lp = d->lp;
+    if (!strcmp(a, "--iterations")) {
+        long k;
+        if (cli_take_long(cmd, argc, argv, i, &k)) return -CLI_USAGE;
+        if (k < 0 || k > 1000) return -cli_usage_error(cmd, "--iterations must be 0..1000, got %ld", k);
+        lp->iterations = (size_t)k;
+    } else if (!strcmp(a, "--gain")) {
+        if (cli_take_range(cmd, argc, argv, i, &lp->gain, 0, 1, 2, 0, "--gain must be in (0, 2]")) return -CLI_USAGE;
+    } else if (!strcmp(a, "--sigma")) {
+        if (cli_take_range(cmd, argc, argv, i, &lp->sigma, 0, 0, INFINITY, 0, "--sigma must be >= 0")) return -CLI_USAGE;
+    } else if (!strcmp(a, "--pitch")) {
+        if (cli_take_range(cmd, argc, argv, i, &lp->act_pitch, 0, 1, INFINITY, 0, "--pitch must be > 0 [m]"))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--method")) {
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
+                             &lp->pupil.method))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--weight")) {
+        lp->pupil.method = SWFS_PUPIL_MOMENTS;
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "snr", SWFS_WEIGHT_SNR, "none", SWFS_WEIGHT_NONE,
+                             &lp->pupil.weight))
+            return -CLI_USAGE;
+    } else {
+        int t = cli_dmfit_option(cmd, argc, argv, i, &lp->fit);
+        if (t || (a[0] == '-' && a[1] && !strchr(a, '='))) return t; /* 0: an unknown option */
+        if (cli_config_arg(cmd, d->cfg, a)) return -CLI_FAIL;
+    }
+    return 1;
+}
+
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
@@ -86,77 +126,18 @@ int swfs_cmd_correct(int argc, char **argv)
     int rc = CLI_USAGE;
     double *xy = NULL;
     swfs_loop_result *res = NULL;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); rc = CLI_OK; goto done; }
-        else if (!strcmp(a, "-o")) {
-            if (!v) { cli_usage_error(cmd, "-o needs a folder"); goto done; }
-            outdir = argv[++i];
-        } else if (!strcmp(a, "--iterations")) {
-            long k;
-            if (cli_parse_long(cmd, a, v, &k)) goto done;
-            if (k < 0 || k > 1000) { cli_usage_error(cmd, "--iterations must be 0..1000, got %ld", k); goto done; }
-            lp.iterations = (size_t)k;
-            i++;
-        } else if (!strcmp(a, "--gain")) {
-            if (cli_parse_double(cmd, a, v, &lp.gain)) goto done;
-            if (!(lp.gain > 0 && lp.gain <= 2)) { cli_usage_error(cmd, "--gain must be in (0, 2]"); goto done; }
-            i++;
-        } else if (!strcmp(a, "--sigma")) {
-            if (cli_parse_double(cmd, a, v, &lp.sigma)) goto done;
-            if (!(lp.sigma >= 0)) { cli_usage_error(cmd, "--sigma must be >= 0"); goto done; }
-            i++;
-        } else if (!strcmp(a, "--actuators")) {
-            if (!v) { cli_usage_error(cmd, "--actuators needs a file name"); goto done; }
-            actfile = argv[++i];
-        } else if (!strcmp(a, "--pitch")) {
-            if (cli_parse_double(cmd, a, v, &lp.act_pitch)) goto done;
-            if (!(lp.act_pitch > 0)) { cli_usage_error(cmd, "--pitch must be > 0 [m]"); goto done; }
-            i++;
-        } else if (!strcmp(a, "--influence")) {
-            if (v && !strcmp(v, "gauss")) lp.fit.influence = SWFS_INFLUENCE_GAUSS;
-            else if (v && !strcmp(v, "cubic")) lp.fit.influence = SWFS_INFLUENCE_CUBIC;
-            else { cli_usage_error(cmd, "--influence expects 'gauss' or 'cubic', got '%s'", v ? v : ""); goto done; }
-            i++;
-        } else if (!strcmp(a, "--coupling")) {
-            if (cli_parse_double(cmd, a, v, &lp.fit.coupling)) goto done;
-            if (!(lp.fit.coupling > 0 && lp.fit.coupling < 1)) { cli_usage_error(cmd, "--coupling must be in (0, 1)"); goto done; }
-            i++;
-        } else if (!strcmp(a, "--modes")) {
-            long k;
-            if (cli_parse_long(cmd, a, v, &k)) goto done;
-            if (k < 0 || k > 5000) { cli_usage_error(cmd, "--modes must be 0..5000, got %ld", k); goto done; }
-            lp.fit.modes = (size_t)k;
-            i++;
-        } else if (!strcmp(a, "--method")) {
-            if (v && !strcmp(v, "fit")) lp.pupil.method = SWFS_PUPIL_FIT;
-            else if (v && !strcmp(v, "moments")) lp.pupil.method = SWFS_PUPIL_MOMENTS;
-            else { cli_usage_error(cmd, "--method expects 'fit' or 'moments', got '%s'", v ? v : ""); goto done; }
-            i++;
-        } else if (!strcmp(a, "--weight")) {
-            lp.pupil.method = SWFS_PUPIL_MOMENTS;
-            if (v && !strcmp(v, "snr")) lp.pupil.weight = SWFS_WEIGHT_SNR;
-            else if (v && !strcmp(v, "none")) lp.pupil.weight = SWFS_WEIGHT_NONE;
-            else { cli_usage_error(cmd, "--weight expects 'snr' or 'none', got '%s'", v ? v : ""); goto done; }
-            i++;
-        } else if (strchr(a, '=')) {
-            if (swfs_config_set(cfg, a)) { rc = cli_error(cmd); goto done; }
-        } else if (a[0] == '-' && a[1]) {
-            cli_usage_error(cmd, "unknown option '%s'", a);
-            goto done;
-        } else if (swfs_config_load(cfg, a)) {
-            rc = cli_error(cmd);
-            goto done;
-        }
+    const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "a folder", 0},
+                            {"--actuators", CLI_STRING, &actfile, "a file name", 0}};
+    corr_args d = {&lp, cfg};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &d, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) {
+        rc = prc < 0 ? CLI_OK : prc;
+        goto done;
     }
     rc = CLI_FAIL;
     swfs_sim_params p;
-    swfs_sim_params_default(&p);
-    if (swfs_sim_params_from_config(cfg, &p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(&p)) {
-        cli_error(cmd);
-        goto done;
-    }
+    if (cli_sim_params(cmd, cfg, &p)) goto done;
     if (actfile) {
         if (swfs_actuators_read(actfile, &xy, &lp.nact)) { cli_error(cmd); goto done; }
         lp.act_xy = xy;
@@ -169,10 +150,9 @@ int swfs_cmd_correct(int argc, char **argv)
         cli_error(cmd);
         goto done;
     }
-    char cl[2048];
-    cli_command_line(argc, argv, cl, sizeof cl);
-    const char *prov[] = {cl};
-    if (swfs_closed_loop_write(res, outdir, prov, 1)) { cli_error(cmd); goto done; }
+    size_t nprov;
+    const char *const *prov = cli_provenance(argc, argv, &nprov);
+    if (swfs_closed_loop_write(res, outdir, prov, nprov)) { cli_error(cmd); goto done; }
     printf("specklewfs correct: Codona & Kenworthy (2013) Sec. 3 simulation in closed loop, %s/loop.{tsv,fits}\n", outdir);
     cli_print_loop_table(res);
     rc = CLI_OK;

@@ -8,6 +8,7 @@
 #include "specklewfs/report.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
+#include "specklewfs/table.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -22,73 +23,81 @@ static const char *usage_text =
     "157,000 counts per exposure) end to end: simulate once, add camera noise at each\n"
     "background level (default 0,10,100,1000 counts), estimate the static halo, transform to\n"
     "the pupil and compare the recovered NCP wavefront with the injected one. Prints the\n"
-    "recovery table and leaves the FITS products in DIR/sigma<level>/ (default DIR: demo-out),\n"
-    "with figures and an index.html in DIR/sigma<level>/report/ (unless --no-report).\n"
+    "recovery table (also DIR/recovery.tsv) and leaves the FITS products in DIR/sigma<level>/\n"
+    "(default DIR: demo-out); one page of figures for the whole demo, DIR/report/index.html\n"
+    "(unless --no-report; 'specklewfs report DIR' draws it again).\n"
     "Then closes the loop (as 'specklewfs correct'): N iterations (default 5; 0 skips it) of\n"
     "estimate -> DM offsets -> apply gain G (default 0.8) at noise S (default 100 counts), new\n"
     "turbulence every iteration; prints residual NCP, Strehl and contrast per iteration and\n"
     "writes DIR/loop/loop.{tsv,fits}.\n"
     "CONFIG and key=value override the simulation (see config/paper-sec3.conf).\n";
 
+typedef struct demo_args {
+    const char *outdir;
+    double levels[16];
+    size_t nlevels;
+    int want_report;
+    swfs_loop_params lp;
+} demo_args;
+
+/* The options into d and cfg; -1 to go on, else the exit code (help or a usage error). */
+static int parse_args(const char *cmd, int argc, char **argv, swfs_config *cfg, demo_args *d)
+{
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        if (cli_is_help(a)) { fputs(usage_text, stdout); return CLI_OK; }
+        else if (!strcmp(a, "-o")) {
+            if (cli_take_string(cmd, argc, argv, &i, "a folder", &d->outdir)) return CLI_USAGE;
+        } else if (!strcmp(a, "--levels")) {
+            if (++i >= argc) return cli_usage_error(cmd, "--levels needs a list");
+            if (swfs_config_set_kv(cfg, "demo.levels", argv[i])) return cli_error(cmd);
+            d->nlevels = sizeof d->levels / sizeof d->levels[0];
+            if (swfs_config_doubles(cfg, "demo.levels", d->levels, &d->nlevels) || d->nlevels == 0)
+                return cli_usage_error(cmd, "--levels expects numbers like 0,10,100,1000, got '%s'", argv[i]);
+            for (size_t k = 0; k < d->nlevels; k++)
+                if (!(d->levels[k] >= 0)) return cli_usage_error(cmd, "noise levels must be >= 0");
+        } else if (!strcmp(a, "--no-report")) {
+            d->want_report = 0;
+        } else if (!strcmp(a, "--loop-iterations")) {
+            long n;
+            if (cli_take_long(cmd, argc, argv, &i, &n)) return CLI_USAGE;
+            if (n < 0 || n > 1000) return cli_usage_error(cmd, "--loop-iterations must be 0..1000");
+            d->lp.iterations = (size_t)n;
+        } else if (!strcmp(a, "--loop-gain")) {
+            if (cli_take_range(cmd, argc, argv, &i, &d->lp.gain, 0, 1, 2, 0, "--loop-gain must be in (0, 2]"))
+                return CLI_USAGE;
+        } else if (!strcmp(a, "--loop-sigma")) {
+            if (cli_take_range(cmd, argc, argv, &i, &d->lp.sigma, 0, 0, INFINITY, 0, "--loop-sigma must be >= 0"))
+                return CLI_USAGE;
+        } else if (a[0] == '-' && a[1] && !strchr(a, '=')) {
+            return cli_usage_error(cmd, "unknown option '%s'", a);
+        } else if (cli_config_arg(cmd, cfg, a)) {
+            return CLI_FAIL;
+        }
+    }
+    return -1;
+}
+
 int swfs_cmd_demo(int argc, char **argv)
 {
     const char *cmd = "demo";
-    const char *outdir = "demo-out";
-    double levels[16] = {0, 10, 100, 1000};
-    size_t nlevels = 4;
-    int want_report = 1;
+    demo_args d = {"demo-out", {0, 10, 100, 1000}, 4, 1, {0}};
+    swfs_loop_params_default(&d.lp);
     swfs_loop_params lp;
-    swfs_loop_params_default(&lp);
     swfs_loop_result *loop = NULL;
     swfs_config *cfg = swfs_config_new();
     swfs_sim_result *sim = NULL;
     int rc = CLI_FAIL;
     if (!cfg) return cli_error(cmd);
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); swfs_config_free(cfg); return CLI_OK; }
-        else if (!strcmp(a, "-o")) {
-            if (++i >= argc) { swfs_config_free(cfg); return cli_usage_error(cmd, "-o needs a folder"); }
-            outdir = argv[i];
-        } else if (!strcmp(a, "--levels")) {
-            if (++i >= argc) { swfs_config_free(cfg); return cli_usage_error(cmd, "--levels needs a list"); }
-            if (swfs_config_set_kv(cfg, "demo.levels", argv[i])) { swfs_config_free(cfg); return cli_error(cmd); }
-            nlevels = sizeof levels / sizeof levels[0];
-            if (swfs_config_doubles(cfg, "demo.levels", levels, &nlevels) || nlevels == 0) {
-                swfs_config_free(cfg);
-                return cli_usage_error(cmd, "--levels expects numbers like 0,10,100,1000, got '%s'", argv[i]);
-            }
-            for (size_t k = 0; k < nlevels; k++)
-                if (!(levels[k] >= 0)) { swfs_config_free(cfg); return cli_usage_error(cmd, "noise levels must be >= 0"); }
-        } else if (!strcmp(a, "--no-report")) {
-            want_report = 0;
-        } else if (!strcmp(a, "--loop-iterations")) {
-            long n;
-            if (cli_parse_long(cmd, a, i + 1 < argc ? argv[++i] : NULL, &n)) { swfs_config_free(cfg); return CLI_USAGE; }
-            if (n < 0 || n > 1000) { swfs_config_free(cfg); return cli_usage_error(cmd, "--loop-iterations must be 0..1000"); }
-            lp.iterations = (size_t)n;
-        } else if (!strcmp(a, "--loop-gain")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &lp.gain)) { swfs_config_free(cfg); return CLI_USAGE; }
-            if (!(lp.gain > 0 && lp.gain <= 2)) { swfs_config_free(cfg); return cli_usage_error(cmd, "--loop-gain must be in (0, 2]"); }
-        } else if (!strcmp(a, "--loop-sigma")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &lp.sigma)) { swfs_config_free(cfg); return CLI_USAGE; }
-            if (!(lp.sigma >= 0)) { swfs_config_free(cfg); return cli_usage_error(cmd, "--loop-sigma must be >= 0"); }
-        } else if (strchr(a, '=')) {
-            if (swfs_config_set(cfg, a)) { swfs_config_free(cfg); return cli_error(cmd); }
-        } else if (a[0] == '-' && a[1]) {
-            swfs_config_free(cfg);
-            return cli_usage_error(cmd, "unknown option '%s'", a);
-        } else if (swfs_config_load(cfg, a)) {
-            swfs_config_free(cfg);
-            return cli_error(cmd);
-        }
-    }
+    if ((rc = parse_args(cmd, argc, argv, cfg, &d)) >= 0) goto done;
+    rc = CLI_FAIL;
+    const char *outdir = d.outdir;
+    const double *levels = d.levels;
+    const size_t nlevels = d.nlevels;
+    const int want_report = d.want_report;
+    lp = d.lp;
     swfs_sim_params p;
-    swfs_sim_params_default(&p);
-    if (swfs_sim_params_from_config(cfg, &p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(&p)) {
-        cli_error(cmd);
-        goto done;
-    }
+    if (cli_sim_params(cmd, cfg, &p)) goto done;
     if (cli_make_dir(cmd, outdir)) goto done;
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
@@ -101,7 +110,6 @@ int swfs_cmd_demo(int argc, char **argv)
 
     swfs_recovery res[16];
     double secs[16];
-    static char html[16][4096];
     for (size_t k = 0; k < nlevels; k++) {
         char dir[4096], noise_line[160];
         snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
@@ -115,19 +123,11 @@ int swfs_cmd_demo(int argc, char **argv)
             cli_error(cmd);
             goto done;
         }
-        if (want_report) {
-            swfs_report_summary *rs = calloc(1, sizeof *rs);
-            if (!rs) { cli_error(cmd); goto done; }
-            if (swfs_report_run(dir, NULL, NULL, rs)) {
-                free(rs);
-                cli_error(cmd);
-                goto done;
-            }
-            snprintf(html[k], sizeof html[k], "%s", rs->html);
-            free(rs);
-        }
         secs[k] = cli_now() - t1;
     }
+    char tsv[4096];
+    snprintf(tsv, sizeof tsv, "%s/recovery.tsv", outdir);
+    if (swfs_recovery_table_write(tsv, res, secs, nlevels)) { cli_error(cmd); goto done; }
     if (lp.iterations > 0) {
         /* The open-loop simulation above is the loop's first measurement (same parameters). */
         char dir[4096];
@@ -142,6 +142,8 @@ int swfs_cmd_demo(int argc, char **argv)
             goto done;
         }
     }
+    static swfs_report_summary rs; /* one page for the whole demo: the table, each level, the loop */
+    if (want_report && swfs_report_run(outdir, NULL, NULL, &rs)) { cli_error(cmd); goto done; }
     double total = cli_now() - t0;
 
     printf("specklewfs demo: Codona & Kenworthy (2013) Sec. 3 simulation, %zu frames, %.0f counts/exposure\n",
@@ -167,11 +169,7 @@ int swfs_cmd_demo(int argc, char **argv)
            "  default ('pupil --method moments'). joint fit: the pupil field, a smooth g map and the unexplained speckle\n"
            "  fraction fitted to every pixel's regression statistics at once -- the default of 'specklewfs pupil'\n"
            "  (docs/estimator.md). valid / g undef.: pixels where the radicand of the per-pixel g is positive / not.\n");
-    if (want_report) {
-        printf("  figures:");
-        for (size_t k = 0; k < nlevels; k++) printf("%s %s", k ? "," : "", html[k]);
-        printf("\n");
-    }
+    if (want_report) printf("  figures: %s\n", rs.html);
     if (loop) {
         printf("\n  closing the loop (specklewfs correct): products in %s/loop/\n", outdir);
         cli_print_loop_table(loop);

@@ -37,46 +37,42 @@ static const char *usage_text =
     "                      estimation noise is not driven into high orders (default: all)\n"
     "  --reg MU            Tikhonov damping relative to the mean diagonal (default 1e-3)\n";
 
+typedef struct dm_args {
+    swfs_dmfit_options opt;
+    double hexpitch;
+} dm_args;
+
+/* The options checked as they come. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "dmoffsets", *a = argv[*i];
+    dm_args *d = ctx;
+    int bad;
+    if (!strcmp(a, "--hexapolar"))
+        bad = cli_take_range(cmd, argc, argv, i, &d->hexpitch, 0, 1, INFINITY, 0, "--hexapolar needs a pitch > 0 [m]");
+    else if (!strcmp(a, "--pitch"))
+        bad = cli_take_range(cmd, argc, argv, i, &d->opt.pitch, 0, 1, INFINITY, 0, "--pitch must be > 0 [m]");
+    else if (!strcmp(a, "--reg"))
+        bad = cli_take_range(cmd, argc, argv, i, &d->opt.reg, 0, 0, INFINITY, 0, "--reg must be >= 0");
+    else
+        return cli_dmfit_option(cmd, argc, argv, i, &d->opt);
+    return bad ? -CLI_USAGE : 1;
+}
+
 int swfs_cmd_dmoffsets(int argc, char **argv)
 {
     const char *cmd = "dmoffsets";
     const char *in = NULL, *out = NULL, *actfile = NULL;
-    double hexpitch = 0.0;
-    swfs_dmfit_options opt;
-    swfs_dmfit_options_default(&opt);
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
-        else if (!strcmp(a, "--actuators")) {
-            if (++i >= argc) return cli_usage_error(cmd, "--actuators needs a file name");
-            actfile = argv[i];
-        } else if (!strcmp(a, "--hexapolar")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &hexpitch)) return CLI_USAGE;
-            if (!(hexpitch > 0)) return cli_usage_error(cmd, "--hexapolar needs a pitch > 0 [m]");
-        } else if (!strcmp(a, "--influence")) {
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "gauss")) opt.influence = SWFS_INFLUENCE_GAUSS;
-            else if (!strcmp(v, "cubic")) opt.influence = SWFS_INFLUENCE_CUBIC;
-            else return cli_usage_error(cmd, "--influence expects 'gauss' or 'cubic', got '%s'", v);
-        } else if (!strcmp(a, "--coupling")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.coupling)) return CLI_USAGE;
-            if (!(opt.coupling > 0 && opt.coupling < 1)) return cli_usage_error(cmd, "--coupling must be in (0, 1)");
-        } else if (!strcmp(a, "--pitch")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.pitch)) return CLI_USAGE;
-            if (!(opt.pitch > 0)) return cli_usage_error(cmd, "--pitch must be > 0 [m]");
-        } else if (!strcmp(a, "--modes")) {
-            long k;
-            if (cli_parse_long(cmd, a, i + 1 < argc ? argv[++i] : NULL, &k)) return CLI_USAGE;
-            if (k < 0 || k > 5000) return cli_usage_error(cmd, "--modes must be 0..5000, got %ld", k);
-            opt.modes = (size_t)k;
-        } else if (!strcmp(a, "--reg")) {
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.reg)) return CLI_USAGE;
-            if (!(opt.reg >= 0)) return cli_usage_error(cmd, "--reg must be >= 0");
-        } else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!in) in = a;
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-    }
+    dm_args d = {.hexpitch = 0.0};
+    swfs_dmfit_options_default(&d.opt);
+    const cli_opt opts[] = {{"-o", CLI_STRING, &out, "a file name", 0},
+                            {"--actuators", CLI_STRING, &actfile, "a file name", 0}};
+    const char **const pos[] = {&in};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
+    const swfs_dmfit_options opt = d.opt;
+    const double hexpitch = d.hexpitch;
     if (!in) return cli_usage_error(cmd, "needs PUPIL.fits");
     if (!out) return cli_usage_error(cmd, "needs -o OFFSETS.fits");
     if (!actfile && !(hexpitch > 0)) return cli_usage_error(cmd, "needs --actuators ACT.fits or --hexapolar PITCH");

@@ -33,19 +33,15 @@ static int parse(int argc, char **argv, swfs_estimate_run_options *o)
 {
     const char *cmd = "estimate";
     long block = (long)o->block;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
-        else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); o->out = argv[i]; }
-        else if (!strcmp(a, "--read-noise")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &o->read_noise)) return CLI_USAGE; }
-        else if (!strcmp(a, "--gain")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &o->gain)) return CLI_USAGE; }
-        else if (!strcmp(a, "--g-smooth")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &o->g_smooth_lod)) return CLI_USAGE; }
-        else if (!strcmp(a, "--frames-per-read")) { if (cli_parse_long(cmd, a, i + 1 < argc ? argv[++i] : NULL, &block)) return CLI_USAGE; }
-        else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!o->science) o->science = a;
-        else if (!o->speckles) o->speckles = a;
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-    }
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o->out, "a file name", 0},      {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0},
+        {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},          {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0},
+        {"--frames-per-read", CLI_LONG, &block, NULL, 0},
+    };
+    const char **const pos[] = {&o->science, &o->speckles};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 2, NULL, NULL, NULL, NULL};
+    int rc = cli_parse_args(&args, argc, argv);
+    if (rc) return rc;
     if (!o->science || !o->speckles) return cli_usage_error(cmd, "needs SCIENCE.fits and SPECKLES.fits");
     if (!o->out) return cli_usage_error(cmd, "needs -o HALO.fits");
     if (!isnan(o->read_noise) && o->read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0, got %g", o->read_noise);

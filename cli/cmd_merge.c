@@ -40,17 +40,15 @@ int swfs_cmd_merge(int argc, char **argv)
     size_t nin = 0;
     if (!inputs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
     int rc = CLI_USAGE;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); free(inputs); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (++i >= argc) { cli_usage_error(cmd, "-o needs a file name"); goto done; } out = argv[i]; }
-        else if (!strcmp(a, "--halo")) { if (++i >= argc) { cli_usage_error(cmd, "--halo needs a file name"); goto done; } halo_path = argv[i]; }
-        else if (!strcmp(a, "--read-noise")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &read_noise)) goto done; }
-        else if (!strcmp(a, "--gain")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &gain)) goto done; }
-        else if (!strcmp(a, "--g-smooth")) { if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &g_smooth)) goto done; }
-        else if (a[0] == '-' && a[1]) { cli_usage_error(cmd, "unknown option '%s'", a); goto done; }
-        else inputs[nin++] = a;
-    }
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &out, "a file name", 0},     {"--halo", CLI_STRING, &halo_path, "a file name", 0},
+        {"--read-noise", CLI_DOUBLE, &read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &gain, NULL, 0},
+        {"--g-smooth", CLI_DOUBLE, &g_smooth, NULL, 0},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, inputs, &nin};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc < 0) rc = CLI_OK;
+    if (prc) goto done;
     if (!nin) { cli_usage_error(cmd, "needs at least one checkpoint file"); goto done; }
     if (!out) { cli_usage_error(cmd, "needs -o C.fits"); goto done; }
     if (read_noise < 0) { cli_usage_error(cmd, "--read-noise must be >= 0, got %g", read_noise); goto done; }

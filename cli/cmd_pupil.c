@@ -1,4 +1,4 @@
-/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments] [--bias B] [--weight none|snr] */
+/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr] */
 #include "cli.h"
 
 #include "specklewfs/estimate.h"
@@ -35,50 +35,65 @@ static const char *usage_text =
     "  --truth TRUTH.fits compare with a simulation's injected NCP (extension NCP [m]): prints the\n"
     "                     error rms with piston and tip/tilt removed, and records it (NCPERR)\n";
 
+/* The options checked as they come: --method, and the moments' --bias, --wiener-k, --weight,
+ * --source (which imply the moments). */
+typedef struct pupil_ctx {
+    swfs_pupil_options *opt;
+    int moments_opt;
+} pupil_ctx;
+
+static int special(void *vctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "pupil", *a = argv[*i];
+    pupil_ctx *ctx = vctx;
+    swfs_pupil_options *opt = ctx->opt;
+    if (!strcmp(a, "--method")) {
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
+                             &opt->method))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--bias")) {
+        ctx->moments_opt = 1;
+        if (cli_parse_double(cmd, a, cli_next(argc, argv, i), &opt->bias)) return -CLI_USAGE;
+    } else if (!strcmp(a, "--wiener-k")) {
+        ctx->moments_opt = 1;
+        if (cli_take_range(cmd, argc, argv, i, &opt->wiener_k, 0, 1, INFINITY, 0, "--wiener-k must be > 0"))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--weight")) {
+        ctx->moments_opt = 1;
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "snr", SWFS_WEIGHT_SNR, "none", SWFS_WEIGHT_NONE,
+                             &opt->weight))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--source")) {
+        ctx->moments_opt = 1;
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "lf", SWFS_SOURCE_HALO_LF, "halo", SWFS_SOURCE_HALO,
+                             &opt->source))
+            return -CLI_USAGE;
+    } else {
+        return 0;
+    }
+    return 1;
+}
+
 int swfs_cmd_pupil(int argc, char **argv)
 {
     const char *cmd = "pupil";
     const char *in = NULL, *out = NULL, *maskfile = NULL, *truthfile = NULL;
     swfs_pupil_options opt;
     swfs_pupil_options_default(&opt);
-    int moments_opt = 0; /* --bias/--weight/--wiener-k/--source given: they imply the moments */
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (++i >= argc) return cli_usage_error(cmd, "-o needs a file name"); out = argv[i]; }
-        else if (!strcmp(a, "--pupil")) { if (++i >= argc) return cli_usage_error(cmd, "--pupil needs a file name"); maskfile = argv[i]; }
-        else if (!strcmp(a, "--truth")) { if (++i >= argc) return cli_usage_error(cmd, "--truth needs a file name"); truthfile = argv[i]; }
-        else if (!strcmp(a, "--bias")) { moments_opt = 1; if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.bias)) return CLI_USAGE; }
-        else if (!strcmp(a, "--method")) {
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "fit")) opt.method = SWFS_PUPIL_FIT;
-            else if (!strcmp(v, "moments")) opt.method = SWFS_PUPIL_MOMENTS;
-            else return cli_usage_error(cmd, "--method expects 'fit' or 'moments', got '%s'", v);
-        } else if (!strcmp(a, "--wiener-k")) {
-            moments_opt = 1;
-            if (cli_parse_double(cmd, a, i + 1 < argc ? argv[++i] : NULL, &opt.wiener_k)) return CLI_USAGE;
-            if (!(opt.wiener_k > 0)) return cli_usage_error(cmd, "--wiener-k must be > 0");
-        } else if (!strcmp(a, "--weight")) {
-            moments_opt = 1;
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "snr")) opt.weight = SWFS_WEIGHT_SNR;
-            else if (!strcmp(v, "none")) opt.weight = SWFS_WEIGHT_NONE;
-            else return cli_usage_error(cmd, "--weight expects 'snr' or 'none', got '%s'", v);
-        } else if (!strcmp(a, "--source")) {
-            moments_opt = 1;
-            const char *v = i + 1 < argc ? argv[++i] : "";
-            if (!strcmp(v, "lf")) opt.source = SWFS_SOURCE_HALO_LF;
-            else if (!strcmp(v, "halo")) opt.source = SWFS_SOURCE_HALO;
-            else return cli_usage_error(cmd, "--source expects 'lf' or 'halo', got '%s'", v);
-        } else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!in) in = a;
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-    }
+    pupil_ctx pctx = {&opt, 0};
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &out, "a file name", 0},         {"--pupil", CLI_STRING, &maskfile, "a file name", 0},
+        {"--truth", CLI_STRING, &truthfile, "a file name", 0},
+    };
+    const char **const pos[] = {&in};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &pctx, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
     if (!in) return cli_usage_error(cmd, "needs HALO.fits");
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
-    if (moments_opt && opt.method == SWFS_PUPIL_FIT)
+    if (pctx.moments_opt && opt.method == SWFS_PUPIL_FIT)
         return cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
-    if (moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
+    if (pctx.moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 
     swfs_halo *h = NULL;
     swfs_real *mask = NULL, *truth = NULL;

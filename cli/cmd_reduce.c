@@ -39,6 +39,24 @@ static const char *usage_text =
     "  --no-register       keep the frames where they are (the track is still measured)\n"
     "Geometry keywords of the first raw cube are copied.\n";
 
+/* The positive numbers, checked as they come: --gauss-sigma, --hot-sigma, --bg-radius. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "reduce", *a = argv[*i], *v = *i + 1 < argc ? argv[*i + 1] : NULL;
+    swfs_reduce_run_options *o = ctx;
+    double *dst = !strcmp(a, "--gauss-sigma") ? &o->params.gauss_sigma
+                  : !strcmp(a, "--hot-sigma") ? &o->params.hot_sigma
+                  : !strcmp(a, "--bg-radius") ? &o->params.bg_radius
+                                              : NULL;
+    double x;
+    if (!dst) return 0;
+    if (cli_take_double(cmd, argc, argv, i, &x)) return -CLI_USAGE;
+    if (!(x > 0)) return -cli_usage_error(cmd, "%s expects a positive number, got %s", a, v);
+    *dst = x;
+    if (dst == &o->params.gauss_sigma) o->sigma_given = 1;
+    return 1;
+}
+
 int swfs_cmd_reduce(int argc, char **argv)
 {
     const char *cmd = "reduce";
@@ -46,32 +64,15 @@ int swfs_cmd_reduce(int argc, char **argv)
     swfs_reduce_run_options_default(&o);
     const char **raws = calloc((size_t)argc + 1, sizeof *raws);
     if (!raws) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    int rc = CLI_OK;
-    for (int i = 1; i < argc && rc == CLI_OK; i++) {
-        const char *a = argv[i];
-        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); free(raws); return CLI_OK; }
-        else if (!strcmp(a, "-o") || !strcmp(a, "--dark") || !strcmp(a, "--flat") || !strcmp(a, "--badpix")) {
-            if (!v) { rc = cli_usage_error(cmd, "%s needs a file name", a); break; }
-            if (!strcmp(a, "-o")) o.out = v;
-            else if (!strcmp(a, "--dark")) o.dark = v;
-            else if (!strcmp(a, "--flat")) o.flat = v;
-            else o.badpix = v;
-            i++;
-        } else if (!strcmp(a, "--gauss-sigma") || !strcmp(a, "--hot-sigma") || !strcmp(a, "--bg-radius")) {
-            double x;
-            if (cli_parse_double(cmd, a, v, &x)) { rc = CLI_USAGE; break; }
-            if (!(x > 0)) { rc = cli_usage_error(cmd, "%s expects a positive number, got %s", a, v); break; }
-            if (!strcmp(a, "--gauss-sigma")) { o.params.gauss_sigma = x; o.sigma_given = 1; }
-            else if (!strcmp(a, "--hot-sigma")) o.params.hot_sigma = x;
-            else o.params.bg_radius = x;
-            i++;
-        }
-        else if (!strcmp(a, "--no-register")) o.params.do_register = 0;
-        else if (!strcmp(a, "--noise-region")) o.noise_region = 1;
-        else if (a[0] == '-' && a[1]) rc = cli_usage_error(cmd, "unknown option '%s'", a);
-        else raws[o.nraw++] = a;
-    }
+    const char *fn = "a file name";
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o.out, fn, 0},         {"--dark", CLI_STRING, &o.dark, fn, 0},
+        {"--flat", CLI_STRING, &o.flat, fn, 0},    {"--badpix", CLI_STRING, &o.badpix, fn, 0},
+        {"--no-register", CLI_SET, &o.params.do_register, NULL, 0}, {"--noise-region", CLI_SET, &o.noise_region, NULL, 1},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &o, raws, &o.nraw};
+    int rc = cli_parse_args(&args, argc, argv);
+    if (rc < 0) { free(raws); return CLI_OK; }
     if (rc == CLI_OK && !o.nraw) rc = cli_usage_error(cmd, "needs at least one raw camera cube");
     if (rc == CLI_OK && !o.out) rc = cli_usage_error(cmd, "needs -o SCIENCE.fits");
     if (rc != CLI_OK) { free(raws); return rc; }

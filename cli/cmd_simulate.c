@@ -9,86 +9,67 @@
 #include <stdlib.h>
 #include <string.h>
 
-static void help(FILE *out)
+static const char *usage_text =
+    "usage: specklewfs simulate [CONFIG] [key=value ...] -o DIR [--seed N] [--quiet]\n\n"
+    "Simulate the Sec. 3 data set of Codona & Kenworthy (2013): post-AO residual wavefronts\n"
+    "cut from von Karman screens, a static NCP aberration, science images with photon and\n"
+    "read noise, and the WFS-side complex speckle cube (no NCP, peak-phase referenced).\n\n"
+    "Writes DIR/science.fits  science cube [counts], keywords RDNOISE, GAIN (the noise model)\n"
+    "       DIR/speckles.fits complex speckle cube psi (field / unaberrated peak, mean removed)\n"
+    "       DIR/truth.fits    NCP (injected wavefront [m]), PUPIL, HALO (true static halo)\n"
+    "       DIR/pupil.fits    pupil mask\n\n"
+    "CONFIG is a key=value file (see config/paper-sec3.conf, which documents every key);\n"
+    "key=value arguments override it; without CONFIG the paper's values are used.\n"
+    "Noise: read_noise=SIGMA [counts], gain=E_PER_COUNT (<= 0: no photon noise).\n"
+    "Unknown keys are an error.\n\n"
+    "options:\n"
+    "  -o DIR       output folder (created if needed)\n"
+    "  --seed N     random seed (same as seed=N)\n"
+    "  --quiet      no progress on stderr\n"
+    "  -h, --help   this help\n";
+
+typedef struct sim_args {
+    swfs_config *cfg;
+    int have_file;
+} sim_args;
+
+/* key=value, or the CONFIG file: its settings must not override command-line ones given
+ * before it, so it is loaded into a fresh config and the overrides are re-applied. */
+static int special(void *ctx, int argc, char **argv, int *i)
 {
-    fprintf(out,
-            "usage: specklewfs simulate [CONFIG] [key=value ...] -o DIR [--seed N] [--quiet]\n\n"
-            "Simulate the Sec. 3 data set of Codona & Kenworthy (2013): post-AO residual wavefronts\n"
-            "cut from von Karman screens, a static NCP aberration, science images with photon and\n"
-            "read noise, and the WFS-side complex speckle cube (no NCP, peak-phase referenced).\n\n"
-            "Writes DIR/science.fits  science cube [counts], keywords RDNOISE, GAIN (the noise model)\n"
-            "       DIR/speckles.fits complex speckle cube psi (field / unaberrated peak, mean removed)\n"
-            "       DIR/truth.fits    NCP (injected wavefront [m]), PUPIL, HALO (true static halo)\n"
-            "       DIR/pupil.fits    pupil mask\n\n"
-            "CONFIG is a key=value file (see config/paper-sec3.conf, which documents every key);\n"
-            "key=value arguments override it; without CONFIG the paper's values are used.\n"
-            "Noise: read_noise=SIGMA [counts], gain=E_PER_COUNT (<= 0: no photon noise).\n"
-            "Unknown keys are an error.\n\n"
-            "options:\n"
-            "  -o DIR       output folder (created if needed)\n"
-            "  --seed N     random seed (same as seed=N)\n"
-            "  --quiet      no progress on stderr\n"
-            "  -h, --help   this help\n");
+    const char *cmd = "simulate", *a = argv[*i];
+    sim_args *d = ctx;
+    if (a[0] == '-' && a[1]) return 0; /* an unknown option */
+    if (strchr(a, '=')) return swfs_config_set(d->cfg, a) ? -cli_error(cmd) : 1;
+    if (d->have_file) return -cli_usage_error(cmd, "more than one config file ('%s')", a);
+    swfs_config *f = swfs_config_new();
+    int bad = !f || swfs_config_load(f, a);
+    for (size_t k = 0; !bad && k < swfs_config_count(d->cfg); k++)
+        bad = swfs_config_set_kv(f, swfs_config_key(d->cfg, k), swfs_config_value(d->cfg, k)) != 0;
+    if (bad) {
+        swfs_config_free(f);
+        return -cli_error(cmd);
+    }
+    swfs_config_free(d->cfg);
+    d->cfg = f;
+    d->have_file = 1;
+    return 1;
 }
 
 int swfs_cmd_simulate(int argc, char **argv)
 {
     const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL;
     int quiet = 0, rc;
-    swfs_config *cfg = swfs_config_new();
-    if (!cfg) return cli_error(cmd);
-    int have_file = 0;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) {
-            help(stdout);
-            swfs_config_free(cfg);
-            return CLI_OK;
-        } else if (!strcmp(a, "-o")) {
-            if (++i >= argc) {
-                swfs_config_free(cfg);
-                return cli_usage_error(cmd, "-o needs an output folder");
-            }
-            outdir = argv[i];
-        } else if (!strcmp(a, "--seed")) {
-            if (++i >= argc) {
-                swfs_config_free(cfg);
-                return cli_usage_error(cmd, "--seed needs a value");
-            }
-            seed_arg = argv[i];
-        } else if (!strcmp(a, "--quiet")) {
-            quiet = 1;
-        } else if (a[0] == '-' && a[1]) {
-            swfs_config_free(cfg);
-            return cli_usage_error(cmd, "unknown option '%s'", a);
-        } else if (strchr(a, '=')) {
-            if (swfs_config_set(cfg, a)) {
-                swfs_config_free(cfg);
-                return cli_error(cmd);
-            }
-        } else {
-            if (have_file) {
-                swfs_config_free(cfg);
-                return cli_usage_error(cmd, "more than one config file ('%s')", a);
-            }
-            /* A file's settings must not override command-line ones given before it:
-             * load into a fresh config, then re-apply the overrides. */
-            swfs_config *f = swfs_config_new();
-            if (!f || swfs_config_load(f, a)) {
-                swfs_config_free(f);
-                swfs_config_free(cfg);
-                return cli_error(cmd);
-            }
-            for (size_t k = 0; k < swfs_config_count(cfg); k++)
-                if (swfs_config_set_kv(f, swfs_config_key(cfg, k), swfs_config_value(cfg, k))) {
-                    swfs_config_free(f);
-                    swfs_config_free(cfg);
-                    return cli_error(cmd);
-                }
-            swfs_config_free(cfg);
-            cfg = f;
-            have_file = 1;
-        }
+    sim_args d = {swfs_config_new(), 0};
+    if (!d.cfg) return cli_error(cmd);
+    const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "an output folder", 0},
+                            {"--seed", CLI_STRING, &seed_arg, "a value", 0}, {"--quiet", CLI_SET, &quiet, NULL, 1}};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &d, NULL, NULL};
+    rc = cli_parse_args(&args, argc, argv);
+    swfs_config *cfg = d.cfg;
+    if (rc) {
+        swfs_config_free(cfg);
+        return rc < 0 ? CLI_OK : rc;
     }
     if (!outdir) {
         swfs_config_free(cfg);
@@ -117,12 +98,9 @@ int swfs_cmd_simulate(int argc, char **argv)
         }
     }
     swfs_sim_params p;
-    swfs_sim_params_default(&p);
-    if (swfs_sim_params_from_config(cfg, &p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(&p)) {
-        swfs_config_free(cfg);
-        return cli_error(cmd);
-    }
+    rc = cli_sim_params(cmd, cfg, &p);
     swfs_config_free(cfg);
+    if (rc) return rc;
     if ((rc = cli_make_dir(cmd, outdir))) return rc;
 
     const double t0 = cli_now();
@@ -135,10 +113,9 @@ int swfs_cmd_simulate(int argc, char **argv)
         swfs_sim_result_free(r);
         return cli_error(cmd);
     }
-    char cmdline[2048];
-    cli_command_line(argc, argv, cmdline, sizeof cmdline);
-    const char *prov[1] = {cmdline};
-    if (swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, 1)) {
+    size_t nprov;
+    const char *const *prov = cli_provenance(argc, argv, &nprov);
+    if (swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, nprov)) {
         swfs_real_free(noisy);
         swfs_sim_result_free(r);
         return cli_error(cmd);

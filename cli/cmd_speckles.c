@@ -66,57 +66,73 @@ static const char *usage_text =
     "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n";
 
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
+typedef struct spk_args {
+    swfs_speckles_run_options *o;
+    const char **min, **mout;
+    double rcond;
+    long modes;
+    int rcond_given, tt_given;
+} spk_args;
+
+/* --recon (a name or a file), --rcond and --modes (SVD only), the tip-tilt, --mean, --match. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    const char *cmd = "speckles", *a = argv[*i], *v = *i + 1 < argc ? argv[*i + 1] : NULL;
+    spk_args *d = ctx;
+    swfs_speckles_run_options *o = d->o;
+    if (!strcmp(a, "--recon")) {
+        if (cli_take_string(cmd, argc, argv, i, "a file name", &v)) return -CLI_USAGE;
+        o->recon = NULL;
+        if (!strcmp(v, "map")) o->pipe.recon = SWFS_RECON_MAP;
+        else if (!strcmp(v, "vk")) o->pipe.recon = SWFS_RECON_VK;
+        else if (!strcmp(v, "svd")) o->pipe.recon = SWFS_RECON_SVD;
+        else { o->pipe.recon = SWFS_RECON_GIVEN; o->recon = v; }
+    } else if (!strcmp(a, "--rcond") || !strcmp(a, "--modes")) {
+        d->rcond_given = 1;
+        if (a[2] == 'r' ? cli_take_double(cmd, argc, argv, i, &d->rcond) : cli_take_long(cmd, argc, argv, i, &d->modes))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--keep-tiptilt")) {
+        o->pipe.tiptilt = SWFS_TT_KEEP;
+        d->tt_given = 1;
+    } else if (!strcmp(a, "--tiptilt")) {
+        if (cli_parse_tiptilt(cmd, cli_next(argc, argv, i), &o->pipe.tiptilt)) return -CLI_USAGE;
+        d->tt_given = 1;
+    } else if (!strcmp(a, "--mean")) {
+        if (!v || (strcmp(v, "ensemble") && strcmp(v, "cube"))) return -cli_usage_error(cmd, "--mean needs ensemble or cube");
+        o->mean_mode = strcmp(v, "cube") ? SWFS_MEAN_ENSEMBLE : SWFS_MEAN_CUBE;
+        ++*i;
+    } else if (!strcmp(a, "--match")) {
+        if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
+        d->min[o->nmatch] = argv[*i + 1];
+        d->mout[o->nmatch++] = argv[*i + 2];
+        *i += 2;
+    } else {
+        return 0;
+    }
+    return 1;
+}
+
 static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char **min, const char **mout)
 {
     const char *cmd = "speckles";
-    double rcond = o->pipe.rcond, slope_noise = 0;
-    long modes = 0, threads = 1;
-    int rcond_given = 0, tt_given = 0;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
-        int bad = 0;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
-        else if (!strcmp(a, "-o") || !strcmp(a, "--science") || !strcmp(a, "--actuators") || !strcmp(a, "--recon") ||
-                 !strcmp(a, "--pupil") || !strcmp(a, "--write-recon")) {
-            if (!v) return cli_usage_error(cmd, "%s needs a file name", a);
-            if (!strcmp(a, "-o")) o->out = v;
-            else if (!strcmp(a, "--science")) o->science = v;
-            else if (!strcmp(a, "--actuators")) o->actuators = v;
-            else if (!strcmp(a, "--recon")) {
-                o->recon = NULL;
-                if (!strcmp(v, "map")) o->pipe.recon = SWFS_RECON_MAP;
-                else if (!strcmp(v, "vk")) o->pipe.recon = SWFS_RECON_VK;
-                else if (!strcmp(v, "svd")) o->pipe.recon = SWFS_RECON_SVD;
-                else { o->pipe.recon = SWFS_RECON_GIVEN; o->recon = v; }
-            } else if (!strcmp(a, "--write-recon")) o->write_recon = v;
-            else o->mask = v;
-            i++;
-        } else if (!strcmp(a, "--rcond")) { bad = cli_parse_double(cmd, a, v, &rcond); rcond_given = 1; i++; }
-        else if (!strcmp(a, "--modes")) { bad = cli_parse_long(cmd, a, v, &modes); rcond_given = 1; i++; }
-        else if (!strcmp(a, "--vk-l0")) { bad = cli_parse_double(cmd, a, v, &o->pipe.vk_l0); i++; }
-        else if (!strcmp(a, "--slope-noise")) { bad = cli_parse_double(cmd, a, v, &slope_noise); i++; }
-        else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
-        else if (!strcmp(a, "--wfs-hz")) { bad = cli_parse_double(cmd, a, v, &o->wfs_hz); i++; }
-        else if (!strcmp(a, "--wfs-rate")) o->pipe.wfs_rate = 1;
-        else if (!strcmp(a, "--keep-tiptilt")) { o->pipe.tiptilt = SWFS_TT_KEEP; tt_given = 1; }
-        else if (!strcmp(a, "--tiptilt")) {
-            if (cli_parse_tiptilt(cmd, v, &o->pipe.tiptilt)) return CLI_USAGE;
-            tt_given = 1;
-            i++;
-        } else if (!strcmp(a, "--mean")) {
-            if (!v || (strcmp(v, "ensemble") && strcmp(v, "cube"))) return cli_usage_error(cmd, "--mean needs ensemble or cube");
-            o->mean_mode = strcmp(v, "cube") ? SWFS_MEAN_ENSEMBLE : SWFS_MEAN_CUBE;
-            i++;
-        } else if (!strcmp(a, "--match")) {
-            if (i + 2 >= argc) return cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
-            min[o->nmatch] = argv[i + 1];
-            mout[o->nmatch++] = argv[i + 2];
-            i += 2;
-        } else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!o->timing) o->timing = a;
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-        if (bad) return CLI_USAGE;
-    }
+    double slope_noise = 0;
+    long threads = 1;
+    spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0};
+    const char *fn = "a file name";
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
+        {"--actuators", CLI_STRING, &o->actuators, fn, 0}, {"--pupil", CLI_STRING, &o->mask, fn, 0},
+        {"--write-recon", CLI_STRING, &o->write_recon, fn, 0}, {"--vk-l0", CLI_DOUBLE, &o->pipe.vk_l0, NULL, 0},
+        {"--slope-noise", CLI_DOUBLE, &slope_noise, NULL, 0}, {"--threads", CLI_LONG, &threads, NULL, 0},
+        {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
+    };
+    const char **const pos[] = {&o->timing};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc;
+    const int rcond_given = d.rcond_given, tt_given = d.tt_given;
+    const double rcond = d.rcond;
+    const long modes = d.modes;
     if (!o->timing || !o->science || !o->actuators || !o->out) return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators and -o");
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1");
     if (!(slope_noise >= 0) || !isfinite(slope_noise)) return cli_usage_error(cmd, "--slope-noise must be a finite rms >= 0 [rad], got %g", slope_noise);

@@ -67,52 +67,38 @@ static const char *usage_text =
     "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
     "                        (default 2; 0 = the paper's per-pixel g)\n";
 
+/* The tip-tilt options; anything else left over is an unknown argument. */
+static int special(void *ctx, int argc, char **argv, int *i)
+{
+    swfs_stream_run_options *o = ctx;
+    const char *a = argv[*i];
+    if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
+    else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
+    else return -cli_usage_error("stream", "unknown argument '%s'", a);
+    return 1;
+}
+
 static int parse(int argc, char **argv, swfs_stream_run_options *o)
 {
     const char *cmd = "stream";
     const char *stat = "auto";
     long every = 0, threads = o->threads, batch = (long)o->batch, max_frames = 0;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i];
-        const char **str = NULL;
-        long *lv = NULL;
-        double *dv = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
-        else if (!strcmp(a, "--timing")) str = &o->timing;
-        else if (!strcmp(a, "--science")) str = &o->science;
-        else if (!strcmp(a, "--slopes")) str = &o->slopes;
-        else if (!strcmp(a, "--recon")) str = &o->recon;
-        else if (!strcmp(a, "--actuators")) str = &o->actuators;
-        else if (!strcmp(a, "-o")) str = &o->out;
-        else if (!strcmp(a, "--pupil-out")) str = &o->pupil_out;
-        else if (!strcmp(a, "--checkpoint")) str = &o->checkpoint;
-        else if (!strcmp(a, "--static")) str = &stat;
-        else if (!strcmp(a, "--pupil")) str = &o->mask;
-        else if (!strcmp(a, "--static-out")) str = &o->static_out;
-        else if (!strcmp(a, "--every")) lv = &every;
-        else if (!strcmp(a, "--threads")) lv = &threads;
-        else if (!strcmp(a, "--batch")) lv = &batch;
-        else if (!strcmp(a, "--max-frames")) lv = &max_frames;
-        else if (!strcmp(a, "--every-seconds")) dv = &o->stream.every_seconds;
-        else if (!strcmp(a, "--read-noise")) dv = &o->read_noise;
-        else if (!strcmp(a, "--gain")) dv = &o->gain;
-        else if (!strcmp(a, "--g-smooth")) dv = &o->g_smooth_lod;
-        else if (!strcmp(a, "--keep-tiptilt")) { o->tiptilt = SWFS_TT_KEEP; continue; }
-        else if (!strcmp(a, "--tiptilt")) {
-            if (cli_parse_tiptilt(cmd, i + 1 < argc ? argv[++i] : NULL, &o->tiptilt)) return CLI_USAGE;
-            continue;
-        }
-        else return cli_usage_error(cmd, "unknown argument '%s'", a);
-        const char *v = i + 1 < argc ? argv[++i] : NULL;
-        if (str) {
-            if (!v) return cli_usage_error(cmd, "%s needs a value", a);
-            *str = v;
-        } else if (lv) {
-            if (cli_parse_long(cmd, a, v, lv)) return CLI_USAGE;
-        } else if (cli_parse_double(cmd, a, v, dv)) {
-            return CLI_USAGE;
-        }
-    }
+    const char *v = "a value";
+    const cli_opt opts[] = {
+        {"--timing", CLI_STRING, &o->timing, v, 0},       {"--science", CLI_STRING, &o->science, v, 0},
+        {"--slopes", CLI_STRING, &o->slopes, v, 0},       {"--recon", CLI_STRING, &o->recon, v, 0},
+        {"--actuators", CLI_STRING, &o->actuators, v, 0}, {"-o", CLI_STRING, &o->out, v, 0},
+        {"--pupil-out", CLI_STRING, &o->pupil_out, v, 0}, {"--checkpoint", CLI_STRING, &o->checkpoint, v, 0},
+        {"--static", CLI_STRING, &stat, v, 0},            {"--pupil", CLI_STRING, &o->mask, v, 0},
+        {"--static-out", CLI_STRING, &o->static_out, v, 0}, {"--every", CLI_LONG, &every, NULL, 0},
+        {"--threads", CLI_LONG, &threads, NULL, 0},       {"--batch", CLI_LONG, &batch, NULL, 0},
+        {"--max-frames", CLI_LONG, &max_frames, NULL, 0}, {"--every-seconds", CLI_DOUBLE, &o->stream.every_seconds, NULL, 0},
+        {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},
+        {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc;
     if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
         return cli_usage_error(cmd, "needs --timing, --science, --recon, --actuators and -o");
     if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);

@@ -36,24 +36,16 @@ int swfs_cmd_sync(int argc, char **argv)
     swfs_sync_run_options o;
     swfs_sync_run_options_default(&o);
     swfs_sync_params *p = &o.params;
-    for (int i = 1; i < argc; i++) {
-        const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
-        double *dst = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
-        else if (!strcmp(a, "-o")) { if (!v) return cli_usage_error(cmd, "-o needs a file name"); o.out = v; i++; continue; }
-        else if (!strcmp(a, "--ratio-min")) dst = &p->ratio_min;
-        else if (!strcmp(a, "--ratio-max")) dst = &p->ratio_max;
-        else if (!strcmp(a, "--lag-min")) dst = &p->lag_min;
-        else if (!strcmp(a, "--lag-max")) dst = &p->lag_max;
-        else if (!strcmp(a, "--ratio-step")) dst = &p->ratio_step;
-        else if (!strcmp(a, "--lag-step")) dst = &p->lag_step;
-        else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
-        else if (!o.science) { o.science = a; continue; }
-        else if (!o.handshake) { o.handshake = a; continue; }
-        else return cli_usage_error(cmd, "unexpected argument '%s'", a);
-        if (cli_parse_double(cmd, a, v, dst)) return CLI_USAGE;
-        i++;
-    }
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o.out, "a file name", 0},         {"--ratio-min", CLI_DOUBLE, &p->ratio_min, NULL, 0},
+        {"--ratio-max", CLI_DOUBLE, &p->ratio_max, NULL, 0},  {"--lag-min", CLI_DOUBLE, &p->lag_min, NULL, 0},
+        {"--lag-max", CLI_DOUBLE, &p->lag_max, NULL, 0},      {"--ratio-step", CLI_DOUBLE, &p->ratio_step, NULL, 0},
+        {"--lag-step", CLI_DOUBLE, &p->lag_step, NULL, 0},
+    };
+    const char **const pos[] = {&o.science, &o.handshake};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 2, NULL, NULL, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
     if (!o.science || !o.handshake) return cli_usage_error(cmd, "needs SCIENCE.fits and HANDSHAKE.log");
     if (!o.out) return cli_usage_error(cmd, "needs -o TIMING.txt");
     swfs_sync_run_result r;

@@ -1,7 +1,9 @@
 #include "cli.h"
 
+#include "specklewfs/config.h"
+#include "specklewfs/dmfit.h"
+#include "specklewfs/sim.h"
 #include "specklewfs/speckles.h"
-
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -143,4 +145,145 @@ const char *const *cli_provenance(int argc, char **argv, size_t *n)
     cli_command_line(argc, argv, line, sizeof line);
     *n = 1;
     return lines;
+}
+
+int cli_is_help(const char *a) { return !strcmp(a, "-h") || !strcmp(a, "--help"); }
+
+const char *cli_next(int argc, char **argv, int *i) { return *i + 1 < argc ? argv[++*i] : NULL; }
+
+int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *what, const char **out)
+{
+    const char *opt = argv[*i], *v = cli_next(argc, argv, i);
+    if (!v) return cli_usage_error(cmd, "%s needs %s", opt, what);
+    *out = v;
+    return 0;
+}
+
+int cli_take_double(const char *cmd, int argc, char **argv, int *i, double *out)
+{
+    const char *opt = argv[*i];
+    return cli_parse_double(cmd, opt, cli_next(argc, argv, i), out);
+}
+
+int cli_take_range(const char *cmd, int argc, char **argv, int *i, double *out, double lo, int lo_open, double hi,
+                   int hi_open, const char *msg)
+{
+    if (cli_take_double(cmd, argc, argv, i, out)) return CLI_USAGE;
+    const double v = *out;
+    if (lo_open ? !(v > lo) : !(v >= lo)) return cli_usage_error(cmd, "%s", msg);
+    if (hi_open ? !(v < hi) : !(v <= hi)) return cli_usage_error(cmd, "%s", msg);
+    return 0;
+}
+
+int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out)
+{
+    const char *opt = argv[*i];
+    return cli_parse_long(cmd, opt, cli_next(argc, argv, i), out);
+}
+
+int cli_parse_choice(const char *cmd, const char *opt, const char *v, const char *a, int va, const char *b, int vb,
+                     int *out)
+{
+    if (v && !strcmp(v, a)) *out = va;
+    else if (v && !strcmp(v, b)) *out = vb;
+    else return cli_usage_error(cmd, "%s expects '%s' or '%s', got '%s'", opt, a, b, v ? v : "");
+    return 0;
+}
+
+int cli_config_arg(const char *cmd, swfs_config *cfg, const char *a)
+{
+    if (strchr(a, '=') ? swfs_config_set(cfg, a) : swfs_config_load(cfg, a)) return cli_error(cmd);
+    return 0;
+}
+
+int cli_sim_params(const char *cmd, swfs_config *cfg, swfs_sim_params *p)
+{
+    swfs_sim_params_default(p);
+    if (swfs_sim_params_from_config(cfg, p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(p))
+        return cli_error(cmd);
+    return 0;
+}
+
+int cli_match(const char *cmd, const cli_opt *opts, size_t n, int argc, char **argv, int *i)
+{
+    const char *a = argv[*i];
+    for (size_t k = 0; k < n; k++) {
+        const cli_opt *o = &opts[k];
+        if (strcmp(a, o->name)) continue;
+        int bad = 0;
+        switch (o->kind) {
+        case CLI_STRING: bad = cli_take_string(cmd, argc, argv, i, o->what, (const char **)o->dst); break;
+        case CLI_DOUBLE: bad = cli_take_double(cmd, argc, argv, i, (double *)o->dst); break;
+        case CLI_LONG: bad = cli_take_long(cmd, argc, argv, i, (long *)o->dst); break;
+        case CLI_SET: *(int *)o->dst = o->value; break;
+        }
+        return bad ? -1 : (int)k + 1;
+    }
+    return 0;
+}
+
+static int positional(const cli_args *c, const char *a)
+{
+    if (a[0] == '-' && a[1]) return cli_usage_error(c->cmd, "unknown option '%s'", a);
+    for (size_t k = 0; k < c->npos; k++)
+        if (!*c->pos[k]) {
+            *c->pos[k] = a;
+            return 0;
+        }
+    if (c->rest) {
+        c->rest[(*c->nrest)++] = a;
+        return 0;
+    }
+    return cli_usage_error(c->cmd, "unexpected argument '%s'", a);
+}
+
+int cli_parse_args(const cli_args *c, int argc, char **argv)
+{
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        if (c->usage && cli_is_help(a)) {
+            fputs(c->usage, stdout);
+            return -1;
+        }
+        int m = cli_match(c->cmd, c->opts, c->nopts, argc, argv, &i);
+        if (m < 0) return CLI_USAGE;
+        if (m > 0) continue;
+        int t = c->special ? c->special(c->ctx, argc, argv, &i) : 0;
+        if (t < 0) return -t;
+        if (t == 0 && positional(c, a)) return CLI_USAGE;
+    }
+    return 0;
+}
+
+int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, swfs_dmfit_options *fo)
+{
+    const char *a = argv[*i];
+    if (!strcmp(a, "--influence")) {
+        if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "gauss", SWFS_INFLUENCE_GAUSS, "cubic",
+                             SWFS_INFLUENCE_CUBIC, &fo->influence))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--coupling")) {
+        if (cli_take_range(cmd, argc, argv, i, &fo->coupling, 0, 1, 1, 1, "--coupling must be in (0, 1)")) return -CLI_USAGE;
+    } else if (!strcmp(a, "--modes")) {
+        long k;
+        if (cli_take_long(cmd, argc, argv, i, &k)) return -CLI_USAGE;
+        if (k < 0 || k > 5000) return -cli_usage_error(cmd, "--modes must be 0..5000, got %ld", k);
+        fo->modes = (size_t)k;
+    } else {
+        return 0;
+    }
+    return 1;
+}
+
+int cli_parse_xy(const char *cmd, const char *opt, const char *s, long *x, long *y)
+{
+    if (!s) return cli_usage_error(cmd, "%s needs X,Y", opt);
+    char *end;
+    errno = 0;
+    *x = strtol(s, &end, 10);
+    if (end == s || *end != ',') return cli_usage_error(cmd, "%s expects X,Y (integers), got '%s'", opt, s);
+    const char *t = end + 1;
+    *y = strtol(t, &end, 10);
+    if (end == t || *end || errno) return cli_usage_error(cmd, "%s expects X,Y (integers), got '%s'", opt, s);
+    return 0;
 }

@@ -63,6 +63,11 @@ int swfs_plot_create(swfs_plot **out, const char *path, int width, int height, i
 int swfs_plot_commit(swfs_plot *p);
 /* End the stream, remove the partial file, free. Safe on NULL. */
 void swfs_plot_abort(swfs_plot *p);
+/* SWFS_OK if path is a complete PNG: the signature, an IHDR chunk first, every chunk
+ * within the file and an intact IEND chunk that ends it; else SWFS_ERR_FORMAT naming the
+ * file and where it breaks off. swfs_plot_commit checks every figure with it before the
+ * rename (a PNG cut short by a full disk is not put in place). Works without PLplot. */
+int swfs_plot_png_check(const char *path);
 
 /* Make panel k current (drawing goes there until the next call). */
 int swfs_plot_panel(swfs_plot *p, int k);

@@ -136,15 +136,8 @@ int swfs_plot_commit(swfs_plot *p)
     plsstrm(p->strm);
     int rc = plot_check(p, "drawing");
     plot_end(p);
-    if (!rc) {
-        FILE *f = fopen(p->part, "rb");
-        long size = -1;
-        if (f) {
-            if (fseek(f, 0, SEEK_END) == 0) size = ftell(f);
-            fclose(f);
-        }
-        if (size <= 0) rc = swfs_fail(SWFS_ERR_IO, "%s: PLplot wrote no image", p->path);
-    }
+    /* cairo's write errors (a full disk) do not reach PLplot's error state: check the file. */
+    if (!rc && (rc = swfs_plot_png_check(p->part))) swfs_fail_context(rc, "writing %s", p->path);
     if (!rc && rename(p->part, p->path) != 0)
         rc = swfs_fail(SWFS_ERR_IO, "%s: cannot rename %s into place", p->path, p->part);
     if (rc) remove(p->part);

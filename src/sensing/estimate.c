@@ -150,23 +150,13 @@ static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var
     return SWFS_OK;
 }
 
-int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_estimate_options *opt, swfs_halo **out)
+/* The halo with every map allocated (NULL when out of memory). */
+static swfs_halo *halo_alloc(const swfs_accum *acc, const swfs_noise *nz, double g_smooth)
 {
-    *out = NULL;
-    const size_t nx = acc->nx, ny = acc->ny, np = nx * ny;
-    swfs_noise nz = {0.0, 0.0};
-    if (noise) nz = *noise;
-    swfs_estimate_options o = {SWFS_G_SMOOTH_DEFAULT};
-    if (opt) o = *opt;
-    if (!(nz.read_noise >= 0.0) || !(nz.gain >= 0.0) || !isfinite(nz.read_noise) || !isfinite(nz.gain))
-        return swfs_fail(SWFS_ERR_ARG, "noise model: read noise %g counts and gain %g e-/count must be finite "
-                         "and >= 0", nz.read_noise, nz.gain);
-    if (!(o.g_smooth >= 0.0) || o.g_smooth > 60.0)
-        return swfs_fail(SWFS_ERR_ARG, "g smoothing %g pixels: expected 0 (per-pixel) to 60", o.g_smooth);
-
+    const size_t nx = acc->nx, ny = acc->ny;
     swfs_halo *h = calloc(1, sizeof *h);
-    if (!h) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    h->nx = nx; h->ny = ny; h->npix = np; h->noise = nz; h->g_smooth = o.g_smooth;
+    if (!h) return NULL;
+    h->nx = nx; h->ny = ny; h->npix = nx * ny; h->noise = *nz; h->g_smooth = g_smooth;
     h->frames = acc->frames; h->skipped = acc->skipped;
     h->halo = swfs_cplx_alloc(nx, ny, 1); h->halo_lf = swfs_cplx_alloc(nx, ny, 1);
     h->stab = swfs_cplx_alloc(nx, ny, 1);
@@ -177,97 +167,90 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
     h->var_sp = swfs_real_alloc(nx, ny, 1); h->stab_err = swfs_real_alloc(nx, ny, 1);
     h->circ = swfs_real_alloc(nx, ny, 1); h->valid = swfs_real_alloc(nx, ny, 1);
     h->nframes = swfs_real_alloc(nx, ny, 1);
-    double *scratch = swfs_malloc(np * sizeof(double));
-    double *rdb = swfs_malloc(np * sizeof(double));  /* debiased radicand, NaN without speckles */
-    double *nvar = swfs_malloc(np * sizeof(double)); /* camera noise variance per pixel */
-    int rc = SWFS_OK;
     if (!h->halo || !h->halo_lf || !h->stab || !h->gain || !h->gain_pix || !h->visib || !h->snr || !h->mean_i ||
-        !h->var_i || !h->mean_sp || !h->var_sp || !h->stab_err || !h->circ || !h->valid || !h->nframes || !scratch ||
-        !rdb || !nvar) {
-        rc = SWFS_ERR_NOMEM;
-        goto fail;
+        !h->var_i || !h->mean_sp || !h->var_sp || !h->stab_err || !h->circ || !h->valid || !h->nframes) {
+        swfs_halo_free(h);
+        return NULL;
     }
+    return h;
+}
 
-    double *const *f = acc->f;
-    h->radicand_min = INFINITY;
-    /* Pass 1: moments and the paper's per-pixel g. */
-    for (size_t p = 0; p < np; p++) {
-        const double n = f[SWFS_ACC_N][p];
-        h->nframes->data[p] = n;
-        rdb[p] = NAN;
-        h->gain_pix->data[p] = NAN;
-        if (n < 2.0) {
-            h->n_no_frames++;
-            h->gain->data[p] = h->visib->data[p] = h->snr->data[p] = NAN;
-            h->mean_i->data[p] = h->var_i->data[p] = h->mean_sp->data[p] = h->var_sp->data[p] = NAN;
-            h->stab_err->data[p] = h->circ->data[p] = NAN;
-            nvar[p] = NAN;
-            continue;
-        }
-        const double r = 1.0 / n; /* the paper's 1/N statistics (Sec. 4.4) */
-        const double phi_i = f[SWFS_ACC_MI][p];
-        const double var_raw = f[SWFS_ACC_CII][p] * r;
-        const double noise_var = nz.read_noise * nz.read_noise + (nz.gain > 0.0 ? fmax(phi_i, 0.0) / nz.gain : 0.0);
-        /* Sec. 2.3: remove the noise variance. The sample variance with 1/N (the paper's
-         * convention) is low by sigma^2/N, which against a noise variance much larger than
-         * the speckle signal (faint halo, bright background) is a real bias; the noise is
-         * removed from the unbiased 1/(N-1) variance instead. */
-        const double var_i = f[SWFS_ACC_CII][p] / (n - 1.0) - noise_var;
-        /* A variance below the noise alone, beyond its 3-sigma scatter (a sample variance
-         * scatters by sqrt(2/(N-1)) of itself), means the noise model is too large. */
-        if (noise_var > 0.0 && var_i < -3.0 * noise_var * sqrt(2.0 / (n - 1.0))) h->n_var_below_noise++;
-        const double complex stab = (f[SWFS_ACC_CIX][p] + I * f[SWFS_ACC_CIY][p]) * r;
-        const double vxx = f[SWFS_ACC_CXX][p] * r, vyy = f[SWFS_ACC_CYY][p] * r, vxy = f[SWFS_ACC_CXY][p] * r;
-        const double phi_sp = vxx + vyy;
-        /* Var |psi - m|^2 with |psi - m|^2 = A - 2 (x mx + y my) + |m|^2. */
-        const double mx = f[SWFS_ACC_MX][p], my = f[SWFS_ACC_MY][p];
-        const double var_sp = (f[SWFS_ACC_CAA][p] + 4.0 * (mx * mx * f[SWFS_ACC_CXX][p] + my * my * f[SWFS_ACC_CYY][p]) +
-                               8.0 * mx * my * f[SWFS_ACC_CXY][p] - 4.0 * (mx * f[SWFS_ACC_CXA][p] + my * f[SWFS_ACC_CYA][p])) * r;
-        const double s2 = creal(stab) * creal(stab) + cimag(stab) * cimag(stab);
-        /* Standard error of <psi' I>: for circular complex Gaussian psi' jointly Gaussian
-         * with I', Isserlis gives Var(psi' I') = Phi_sp sigma_I,raw^2 + |<psi' I'>|^2. */
-        const double e2 = (phi_sp * var_raw + s2) * r;
-
-        nvar[p] = noise_var;
-        h->mean_i->data[p] = phi_i;
-        h->var_i->data[p] = var_i;
-        h->mean_sp->data[p] = phi_sp;
-        h->var_sp->data[p] = var_sp;
-        h->stab->data[p] = stab;
-        h->stab_err->data[p] = sqrt(e2);
-        h->circ->data[p] = phi_sp > 0.0 ? cabs((vxx - vyy) + 2.0 * I * vxy) / phi_sp : NAN; /* eq:zeroSqMean */
-        h->visib->data[p] = phi_i > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (phi_i * sqrt(phi_sp)) : NAN; /* eq:visibility */
-        h->snr->data[p] = noise_var > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (sqrt(noise_var) * sqrt(phi_sp)) : NAN; /* eq:SNR */
-
-        if (!(phi_sp > 0.0) || !(var_sp > 0.0)) {
-            h->n_no_speckle++;
-            h->gain->data[p] = NAN;
-            continue;
-        }
-        /* eq:scale-factor */
-        const double radicand = var_i / var_sp - 2.0 * s2 / (phi_sp * var_sp);
-        /* The same with |<psi' I>|^2 debiased by its noise power, for the regularized g. */
-        rdb[p] = var_i / var_sp - 2.0 * (s2 - e2) / (phi_sp * var_sp);
-        if (radicand < h->radicand_min) h->radicand_min = radicand;
-        if (radicand > 0.0 && isfinite(radicand)) {
-            h->gain_pix->data[p] = sqrt(sqrt(radicand));
-            h->valid->data[p] = 1.0;
-            h->n_valid++;
-        } else {
-            h->n_bad_radicand++;
-        }
+/* Pass 1 at pixel p: the moments and the paper's per-pixel g; rdb[p] the debiased
+ * radicand (NaN without speckles), nvar[p] the camera noise variance. */
+static void pixel_moments(swfs_halo *h, double *const *f, size_t p, double *rdb, double *nvar)
+{
+    const swfs_noise nz = h->noise;
+    const double n = f[SWFS_ACC_N][p];
+    h->nframes->data[p] = n;
+    rdb[p] = NAN;
+    h->gain_pix->data[p] = NAN;
+    if (n < 2.0) {
+        h->n_no_frames++;
+        h->gain->data[p] = h->visib->data[p] = h->snr->data[p] = NAN;
+        h->mean_i->data[p] = h->var_i->data[p] = h->mean_sp->data[p] = h->var_sp->data[p] = NAN;
+        h->stab_err->data[p] = h->circ->data[p] = NAN;
+        nvar[p] = NAN;
+        return;
     }
-    if (h->n_valid == 0) {
-        rc = swfs_fail(SWFS_ERR_NUMERIC,
-                       "no pixel has a defined scale factor g: the radicand of eq:scale-factor is <= 0 in %zu "
-                       "pixels (most negative %.3g), %zu pixels have no speckle power and %zu fewer than 2 "
-                       "frames; is the noise model (read noise %g, gain %g) too large, or are the science and "
-                       "speckle cubes unrelated?", h->n_bad_radicand, h->radicand_min, h->n_no_speckle,
-                       h->n_no_frames, nz.read_noise, nz.gain);
-        goto fail;
+    const double r = 1.0 / n; /* the paper's 1/N statistics (Sec. 4.4) */
+    const double phi_i = f[SWFS_ACC_MI][p];
+    const double var_raw = f[SWFS_ACC_CII][p] * r;
+    const double noise_var = nz.read_noise * nz.read_noise + (nz.gain > 0.0 ? fmax(phi_i, 0.0) / nz.gain : 0.0);
+    /* Sec. 2.3: remove the noise variance. The sample variance with 1/N (the paper's
+     * convention) is low by sigma^2/N, which against a noise variance much larger than
+     * the speckle signal (faint halo, bright background) is a real bias; the noise is
+     * removed from the unbiased 1/(N-1) variance instead. */
+    const double var_i = f[SWFS_ACC_CII][p] / (n - 1.0) - noise_var;
+    /* A variance below the noise alone, beyond its 3-sigma scatter (a sample variance
+     * scatters by sqrt(2/(N-1)) of itself), means the noise model is too large. */
+    if (noise_var > 0.0 && var_i < -3.0 * noise_var * sqrt(2.0 / (n - 1.0))) h->n_var_below_noise++;
+    const double complex stab = (f[SWFS_ACC_CIX][p] + I * f[SWFS_ACC_CIY][p]) * r;
+    const double vxx = f[SWFS_ACC_CXX][p] * r, vyy = f[SWFS_ACC_CYY][p] * r, vxy = f[SWFS_ACC_CXY][p] * r;
+    const double phi_sp = vxx + vyy;
+    /* Var |psi - m|^2 with |psi - m|^2 = A - 2 (x mx + y my) + |m|^2. */
+    const double mx = f[SWFS_ACC_MX][p], my = f[SWFS_ACC_MY][p];
+    const double var_sp = (f[SWFS_ACC_CAA][p] + 4.0 * (mx * mx * f[SWFS_ACC_CXX][p] + my * my * f[SWFS_ACC_CYY][p]) +
+                           8.0 * mx * my * f[SWFS_ACC_CXY][p] - 4.0 * (mx * f[SWFS_ACC_CXA][p] + my * f[SWFS_ACC_CYA][p])) * r;
+    const double s2 = creal(stab) * creal(stab) + cimag(stab) * cimag(stab);
+    /* Standard error of <psi' I>: for circular complex Gaussian psi' jointly Gaussian
+     * with I', Isserlis gives Var(psi' I') = Phi_sp sigma_I,raw^2 + |<psi' I'>|^2. */
+    const double e2 = (phi_sp * var_raw + s2) * r;
+
+    nvar[p] = noise_var;
+    h->mean_i->data[p] = phi_i;
+    h->var_i->data[p] = var_i;
+    h->mean_sp->data[p] = phi_sp;
+    h->var_sp->data[p] = var_sp;
+    h->stab->data[p] = stab;
+    h->stab_err->data[p] = sqrt(e2);
+    h->circ->data[p] = phi_sp > 0.0 ? cabs((vxx - vyy) + 2.0 * I * vxy) / phi_sp : NAN; /* eq:zeroSqMean */
+    h->visib->data[p] = phi_i > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (phi_i * sqrt(phi_sp)) : NAN; /* eq:visibility */
+    h->snr->data[p] = noise_var > 0.0 && phi_sp > 0.0 ? 2.0 * sqrt(s2) / (sqrt(noise_var) * sqrt(phi_sp)) : NAN; /* eq:SNR */
+
+    if (!(phi_sp > 0.0) || !(var_sp > 0.0)) {
+        h->n_no_speckle++;
+        h->gain->data[p] = NAN;
+        return;
     }
-    /* Pass 2: g for every pixel with speckles. Start from the paper's g where it is
-     * defined and the local median of valid neighbours elsewhere; then regularize. */
+    /* eq:scale-factor */
+    const double radicand = var_i / var_sp - 2.0 * s2 / (phi_sp * var_sp);
+    /* The same with |<psi' I>|^2 debiased by its noise power, for the regularized g. */
+    rdb[p] = var_i / var_sp - 2.0 * (s2 - e2) / (phi_sp * var_sp);
+    if (radicand < h->radicand_min) h->radicand_min = radicand;
+    if (radicand > 0.0 && isfinite(radicand)) {
+        h->gain_pix->data[p] = sqrt(sqrt(radicand));
+        h->valid->data[p] = 1.0;
+        h->n_valid++;
+    } else {
+        h->n_bad_radicand++;
+    }
+}
+
+/* Pass 2: g for every pixel with speckles. Start from the paper's g where it is defined
+ * and the local median of valid neighbours elsewhere; then regularize. */
+static int scale_factor(swfs_halo *h, const double *rdb, const double *nvar, double g_smooth, double *scratch)
+{
+    const size_t nx = h->nx, np = h->npix;
     for (size_t p = 0; p < np; p++) {
         if (!isfinite(rdb[p])) continue;
         if (h->valid->data[p] > 0.5) {
@@ -277,15 +260,22 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
             h->n_g_fallback++;
         }
     }
-    if (o.g_smooth > 0.0) {
+    if (g_smooth > 0.0) {
         memcpy(scratch, h->gain->data, np * sizeof(double));
-        if ((rc = regularize_g(h, rdb, nvar, o.g_smooth, h->gain->data))) goto fail;
+        int rc = regularize_g(h, rdb, nvar, g_smooth, h->gain->data);
+        if (rc) return rc;
         h->n_g_fallback = 0;
         for (size_t p = 0; p < np; p++)
             if (isfinite(rdb[p]) && h->valid->data[p] < 0.5 && h->gain->data[p] == scratch[p]) h->n_g_fallback++;
     }
+    return SWFS_OK;
+}
 
-    /* Pass 3: the halo (eq:TheAnswer) and its low-frequency form (eq:PSI-LowFreq). */
+/* Pass 3: the halo (eq:TheAnswer) and its low-frequency form (eq:PSI-LowFreq), the median
+ * SNR over valid pixels and the valid fraction. */
+static void halo_maps(swfs_halo *h, double *scratch)
+{
+    const size_t np = h->npix;
     size_t nsnr = 0;
     for (size_t p = 0; p < np; p++) {
         const double g = h->gain->data[p], phi_sp = h->mean_sp->data[p];
@@ -303,6 +293,44 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
     }
     h->median_snr = swfs_median_inplace(scratch, nsnr);
     h->valid_fraction = (double)h->n_valid / (double)np;
+}
+
+int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_estimate_options *opt, swfs_halo **out)
+{
+    *out = NULL;
+    const size_t np = acc->nx * acc->ny;
+    swfs_noise nz = {0.0, 0.0};
+    if (noise) nz = *noise;
+    swfs_estimate_options o = {SWFS_G_SMOOTH_DEFAULT};
+    if (opt) o = *opt;
+    if (!(nz.read_noise >= 0.0) || !(nz.gain >= 0.0) || !isfinite(nz.read_noise) || !isfinite(nz.gain))
+        return swfs_fail(SWFS_ERR_ARG, "noise model: read noise %g counts and gain %g e-/count must be finite "
+                         "and >= 0", nz.read_noise, nz.gain);
+    if (!(o.g_smooth >= 0.0) || o.g_smooth > 60.0)
+        return swfs_fail(SWFS_ERR_ARG, "g smoothing %g pixels: expected 0 (per-pixel) to 60", o.g_smooth);
+
+    swfs_halo *h = halo_alloc(acc, &nz, o.g_smooth);
+    double *scratch = swfs_malloc(np * sizeof(double));
+    double *rdb = swfs_malloc(np * sizeof(double));  /* debiased radicand, NaN without speckles */
+    double *nvar = swfs_malloc(np * sizeof(double)); /* camera noise variance per pixel */
+    int rc = SWFS_OK;
+    if (!h || !scratch || !rdb || !nvar) {
+        rc = h ? SWFS_ERR_NOMEM : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        goto fail;
+    }
+    h->radicand_min = INFINITY;
+    for (size_t p = 0; p < np; p++) pixel_moments(h, acc->f, p, rdb, nvar);
+    if (h->n_valid == 0) {
+        rc = swfs_fail(SWFS_ERR_NUMERIC,
+                       "no pixel has a defined scale factor g: the radicand of eq:scale-factor is <= 0 in %zu "
+                       "pixels (most negative %.3g), %zu pixels have no speckle power and %zu fewer than 2 "
+                       "frames; is the noise model (read noise %g, gain %g) too large, or are the science and "
+                       "speckle cubes unrelated?", h->n_bad_radicand, h->radicand_min, h->n_no_speckle,
+                       h->n_no_frames, nz.read_noise, nz.gain);
+        goto fail;
+    }
+    if ((rc = scale_factor(h, rdb, nvar, o.g_smooth, scratch))) goto fail;
+    halo_maps(h, scratch);
     swfs_free(scratch);
     swfs_free(rdb);
     swfs_free(nvar);

@@ -269,21 +269,12 @@ static int ncp_override(const double *in, const double *mask, size_t n, double *
     return SWFS_OK;
 }
 
-int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_progress_fn progress, void *ctx,
-                           swfs_sim_result **out)
+/* The result with its geometry and every array allocated (NULL when out of memory). */
+static swfs_sim_result *result_alloc(const swfs_sim_params *p, size_t nframes, size_t nper)
 {
-    const double t0 = swfs_wall_seconds();
-    *out = NULL;
-    int rc = swfs_sim_params_check(p);
-    if (rc) return rc;
-    const size_t n = p->screen.n, np = (size_t)p->pupn, nfx = (size_t)p->nfx, nfy = (size_t)p->nfy, nf = nfx * nfy;
-    const size_t step = (size_t)lround(p->spacing * p->teldiam / p->screen.dx);
-    const size_t fit = (n - np) / step + 1, nper = p->per_screen ? (size_t)p->per_screen : fit;
-    const size_t off0 = (n - (np + (nper - 1) * step)) / 2;
-    const size_t per2 = nper * nper, nframes = per2 * (size_t)p->nscreens;
-
+    const size_t np = (size_t)p->pupn, nfx = (size_t)p->nfx, nfy = (size_t)p->nfy;
     swfs_sim_result *r = calloc(1, sizeof *r);
-    if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!r) return NULL;
     r->params = *p;
     r->nframes = nframes;
     r->per_screen = nper;
@@ -294,17 +285,6 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->geom.pixscale = p->pixscale;
     r->geom.pupdx = p->pupdx;
     r->geom.pupn = p->pupn;
-
-    struct shared sh;
-    memset(&sh, 0, sizeof sh);
-    struct worker *wk = NULL;
-    int nw = 0;
-    swfs_screen_gen *gen = NULL;
-    swfs_ao_model *model = NULL;
-    double *scr1 = NULL, *scr2 = NULL;
-    float *maskf = NULL;
-    float complex *ncpph = NULL;
-
     r->science = swfs_real_alloc(nfx, nfy, nframes);
     r->speckles = swfs_cplx_alloc(nfx, nfy, nframes);
     r->ncp = swfs_real_alloc(np, np, 1);
@@ -312,25 +292,25 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->speckle_mean = swfs_cplx_alloc(nfx, nfy, 1);
     r->pupil = swfs_real_alloc(np, np, 1);
     r->ref_phase = calloc(nframes, sizeof *r->ref_phase);
-    sh.halo_frames = swfs_malloc(nframes * nf * sizeof *sh.halo_frames);
-    double *frame_buf = calloc(4 * nframes, sizeof *frame_buf);
-    maskf = swfs_malloc(np * np * sizeof *maskf);
-    ncpph = swfs_malloc(np * np * sizeof *ncpph);
-    scr1 = swfs_malloc(n * n * sizeof *scr1);
-    scr2 = swfs_malloc(n * n * sizeof *scr2);
-    if (!r->science || !r->speckles || !r->ncp || !r->halo_true || !r->speckle_mean || !r->pupil || !r->ref_phase || !sh.halo_frames ||
-        !frame_buf || !maskf || !ncpph || !scr1 || !scr2) {
-        rc = swfs_fail(SWFS_ERR_NOMEM, "simulation: out of memory for %zu frames of %zux%zu", nframes, nfx, nfy);
-        goto done;
+    if (!r->science || !r->speckles || !r->ncp || !r->halo_true || !r->speckle_mean || !r->pupil || !r->ref_phase) {
+        swfs_sim_result_free(r);
+        return NULL;
     }
+    return r;
+}
 
-    /* Pupil and NCP. */
-    if ((rc = swfs_aperture_make(r->pupil->data, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width)))
-        goto done;
+/* The pupil and the NCP (ncp, else p's map) into r, their single-precision forms for the
+ * workers, and the field and counts scales. */
+static int pupil_and_ncp(const swfs_sim_params *p, const double *ncp, swfs_sim_result *r, float *maskf,
+                         float complex *ncpph, double *ssum_out)
+{
+    const size_t np = (size_t)p->pupn;
+    int rc = swfs_aperture_make(r->pupil->data, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width);
+    if (rc) return rc;
     if (ncp) {
-        if ((rc = ncp_override(ncp, r->pupil->data, np * np, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) goto done;
+        if ((rc = ncp_override(ncp, r->pupil->data, np * np, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) return rc;
     } else if ((rc = swfs_sim_ncp_map(p, r->pupil->data, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) {
-        goto done;
+        return rc;
     }
     double ssum = 0.0, ssum2 = 0.0;
     const double kphase = 2.0 * M_PI / p->wavelen;
@@ -345,6 +325,104 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->field_scale = ssum;
     /* C: the whole focal plane (1/alpha x 1/alpha equivalent pixels) holds total_counts. */
     r->counts_scale = p->total_counts * alpha * alpha / ssum2;
+    *ssum_out = ssum;
+    return SWFS_OK;
+}
+
+/* nw workers with their MFT and buffers (NULL with the message set when out of memory). */
+static struct worker *workers_create(int nw, size_t np, size_t nfx, size_t nfy, double alpha)
+{
+    const size_t nf = nfx * nfy;
+    struct worker *wk = calloc((size_t)nw, sizeof *wk);
+    if (!wk) {
+        swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        return NULL;
+    }
+    for (int i = 0; i < nw; i++) {
+        wk[i].mft = swfs_mft_create(np, nfx, nfy, alpha, SWFS_MFT_SINGLE);
+        wk[i].phi = swfs_malloc(np * np * sizeof(float));
+        wk[i].fnn = swfs_malloc(np * np * sizeof(float complex));
+        wk[i].fncp = swfs_malloc(np * np * sizeof(float complex));
+        wk[i].enn = swfs_malloc(nf * sizeof(float complex));
+        wk[i].encp = swfs_malloc(nf * sizeof(float complex));
+        if (!wk[i].mft || !wk[i].phi || !wk[i].fnn || !wk[i].fncp || !wk[i].enn || !wk[i].encp) {
+            workers_free(wk, nw);
+            swfs_fail(SWFS_ERR_NOMEM, "simulation: out of memory for worker buffers");
+            return NULL;
+        }
+    }
+    return wk;
+}
+
+/* Serial reductions in frame order: the speckle mean removed (eq:computedSpeckleField),
+ * the true static halo, and the summary numbers. */
+static void reduce_frames(const struct shared *sh, size_t nframes, swfs_sim_result *r)
+{
+    const size_t nf = sh->nf;
+    double complex *mean = r->speckle_mean->data;
+    for (size_t k = 0; k < nf; k++) mean[k] = 0.0;
+    for (size_t t = 0; t < nframes; t++) {
+        const double complex *s = swfs_cplx_frame(r->speckles, t);
+        for (size_t k = 0; k < nf; k++) mean[k] += s[k];
+    }
+    for (size_t k = 0; k < nf; k++) mean[k] /= (double)nframes;
+    for (size_t t = 0; t < nframes; t++) {
+        double complex *s = swfs_cplx_frame(r->speckles, t);
+        for (size_t k = 0; k < nf; k++) s[k] -= mean[k];
+    }
+    double complex *halo = r->halo_true->data;
+    for (size_t k = 0; k < nf; k++) halo[k] = 0.0;
+    for (size_t t = 0; t < nframes; t++) {
+        const float complex *h = sh->halo_frames + t * nf;
+        for (size_t k = 0; k < nf; k++) halo[k] += (double complex)h[k];
+    }
+    const double hs = sqrt(r->counts_scale) / (double)nframes;
+    for (size_t k = 0; k < nf; k++) halo[k] *= hs;
+    double var = 0.0, st = 0.0, sta = 0.0, tot = 0.0;
+    for (size_t t = 0; t < nframes; t++) {
+        var += sh->frame_var[t];
+        st += sh->frame_strehl[t];
+        sta += sh->frame_strehl_ao[t];
+        tot += sh->frame_total[t];
+    }
+    r->residual_rms = sqrt(var / (double)nframes);
+    r->strehl = st / (double)nframes;
+    r->strehl_ao = sta / (double)nframes;
+    r->window_fraction = tot / (double)nframes / sh->p->total_counts;
+}
+
+int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_progress_fn progress, void *ctx,
+                           swfs_sim_result **out)
+{
+    const double t0 = swfs_wall_seconds();
+    *out = NULL;
+    int rc = swfs_sim_params_check(p);
+    if (rc) return rc;
+    const size_t n = p->screen.n, np = (size_t)p->pupn, nfx = (size_t)p->nfx, nfy = (size_t)p->nfy, nf = nfx * nfy;
+    const size_t step = (size_t)lround(p->spacing * p->teldiam / p->screen.dx);
+    const size_t fit = (n - np) / step + 1, nper = p->per_screen ? (size_t)p->per_screen : fit;
+    const size_t off0 = (n - (np + (nper - 1) * step)) / 2;
+    const size_t per2 = nper * nper, nframes = per2 * (size_t)p->nscreens;
+
+    struct shared sh;
+    memset(&sh, 0, sizeof sh);
+    struct worker *wk = NULL;
+    int nw = 0;
+    swfs_screen_gen *gen = NULL;
+    swfs_ao_model *model = NULL;
+    swfs_sim_result *r = result_alloc(p, nframes, nper);
+    sh.halo_frames = swfs_malloc(nframes * nf * sizeof *sh.halo_frames);
+    double *frame_buf = calloc(4 * nframes, sizeof *frame_buf);
+    float *maskf = swfs_malloc(np * np * sizeof *maskf);
+    float complex *ncpph = swfs_malloc(np * np * sizeof *ncpph);
+    double *scr1 = swfs_malloc(n * n * sizeof *scr1), *scr2 = swfs_malloc(n * n * sizeof *scr2);
+    if (!r || !sh.halo_frames || !frame_buf || !maskf || !ncpph || !scr1 || !scr2) {
+        rc = swfs_fail(SWFS_ERR_NOMEM, "simulation: out of memory for %zu frames of %zux%zu", nframes, nfx, nfy);
+        goto done;
+    }
+    double ssum;
+    if ((rc = pupil_and_ncp(p, ncp, r, maskf, ncpph, &ssum))) goto done;
+    const double alpha = p->pixscale * p->pupdx / p->teldiam;
 
     /* Screens and the AO model. */
     gen = swfs_screen_gen_create(&p->screen);
@@ -362,24 +440,10 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     r->expected_rms = swfs_ao_model_rms(model, r->kernel_sigma);
     r->lag_floor_rms = swfs_ao_model_rms(model, 0.0);
 
-    /* Workers. */
     nw = swfs_parallel_threads(p->threads, 0);
-    wk = calloc((size_t)nw, sizeof *wk);
-    if (!wk) {
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!(wk = workers_create(nw, np, nfx, nfy, alpha))) {
+        rc = SWFS_ERR_NOMEM;
         goto done;
-    }
-    for (int i = 0; i < nw; i++) {
-        wk[i].mft = swfs_mft_create(np, nfx, nfy, alpha, SWFS_MFT_SINGLE);
-        wk[i].phi = swfs_malloc(np * np * sizeof(float));
-        wk[i].fnn = swfs_malloc(np * np * sizeof(float complex));
-        wk[i].fncp = swfs_malloc(np * np * sizeof(float complex));
-        wk[i].enn = swfs_malloc(nf * sizeof(float complex));
-        wk[i].encp = swfs_malloc(nf * sizeof(float complex));
-        if (!wk[i].mft || !wk[i].phi || !wk[i].fnn || !wk[i].fncp || !wk[i].enn || !wk[i].encp) {
-            rc = swfs_fail(SWFS_ERR_NOMEM, "simulation: out of memory for worker buffers");
-            goto done;
-        }
     }
     sh.p = p;
     sh.n = n;
@@ -390,7 +454,7 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
     sh.off0 = off0;
     sh.mask = maskf;
     sh.ncp_phasor = ncpph;
-    sh.kphase = kphase;
+    sh.kphase = 2.0 * M_PI / p->wavelen;
     sh.counts_scale = r->counts_scale;
     sh.inv_s = 1.0 / ssum;
     sh.center = (nfy / 2) * nfx + nfx / 2;
@@ -418,38 +482,7 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
         swfs_parallel_for(nw, sh.nscr * per2, 1, frames_fn, &sh);
         if (progress) progress(ctx, "frames", (2 * b + sh.nscr) * per2, nframes);
     }
-
-    /* Serial reductions in frame order. */
-    double complex *mean = r->speckle_mean->data;
-    for (size_t k = 0; k < nf; k++) mean[k] = 0.0;
-    for (size_t t = 0; t < nframes; t++) {
-        const double complex *s = swfs_cplx_frame(r->speckles, t);
-        for (size_t k = 0; k < nf; k++) mean[k] += s[k];
-    }
-    for (size_t k = 0; k < nf; k++) mean[k] /= (double)nframes;
-    for (size_t t = 0; t < nframes; t++) {
-        double complex *s = swfs_cplx_frame(r->speckles, t);
-        for (size_t k = 0; k < nf; k++) s[k] -= mean[k];
-    }
-    double complex *halo = r->halo_true->data;
-    for (size_t k = 0; k < nf; k++) halo[k] = 0.0;
-    for (size_t t = 0; t < nframes; t++) {
-        const float complex *h = sh.halo_frames + t * nf;
-        for (size_t k = 0; k < nf; k++) halo[k] += (double complex)h[k];
-    }
-    const double hs = sqrt(r->counts_scale) / (double)nframes;
-    for (size_t k = 0; k < nf; k++) halo[k] *= hs;
-    double var = 0.0, st = 0.0, sta = 0.0, tot = 0.0;
-    for (size_t t = 0; t < nframes; t++) {
-        var += sh.frame_var[t];
-        st += sh.frame_strehl[t];
-        sta += sh.frame_strehl_ao[t];
-        tot += sh.frame_total[t];
-    }
-    r->residual_rms = sqrt(var / (double)nframes);
-    r->strehl = st / (double)nframes;
-    r->strehl_ao = sta / (double)nframes;
-    r->window_fraction = tot / (double)nframes / p->total_counts;
+    reduce_frames(&sh, nframes, r);
     r->seconds = swfs_wall_seconds() - t0;
 
 done:
