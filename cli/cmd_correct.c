@@ -5,6 +5,7 @@
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
+#include "specklewfs/sweep.h"
 #include "specklewfs/wfs.h"
 
 #include <math.h>
@@ -33,6 +34,10 @@ static const char *usage_text =
     "  --pitch P           ring spacing P [m] (default 0.35: 331 actuators on 6.5 m)\n"
     "  --influence gauss|cubic, --coupling C, --modes K: the DM fit (see 'dmoffsets --help')\n"
     "  --weight snr|none   focal-plane weight of the pupil step (default snr)\n"
+    "  --sweep SETS.txt    a parameter sweep: one closed loop per line of SETS.txt (key=value\n"
+    "                      ... over the configuration; also loop_iterations, loop_gain,\n"
+    "                      loop_sigma, loop_pitch), one row per set in DIR/sweep.tsv; under\n"
+    "                      mpirun the sets are shared out over the processes (docs/cluster.md)\n"
     "CONFIG and key=value set the simulation (config/paper-sec3.conf), e.g. seed=3.\n";
 
 void cli_print_loop_table(const swfs_loop_result *r)
@@ -74,7 +79,7 @@ void cli_print_loop_table(const swfs_loop_result *r)
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
-    const char *outdir = "correct-out", *actfile = NULL;
+    const char *outdir = "correct-out", *actfile = NULL, *sweep = NULL;
     swfs_loop_params lp;
     swfs_loop_params_default(&lp);
     swfs_config *cfg = swfs_config_new();
@@ -103,6 +108,9 @@ int swfs_cmd_correct(int argc, char **argv)
             if (cli_parse_double(cmd, a, v, &lp.sigma)) goto done;
             if (!(lp.sigma >= 0)) { cli_usage_error(cmd, "--sigma must be >= 0"); goto done; }
             i++;
+        } else if (!strcmp(a, "--sweep")) {
+            if (!v) { cli_usage_error(cmd, "--sweep needs a file of parameter sets"); goto done; }
+            sweep = argv[++i];
         } else if (!strcmp(a, "--actuators")) {
             if (!v) { cli_usage_error(cmd, "--actuators needs a file name"); goto done; }
             actfile = argv[++i];
@@ -141,6 +149,15 @@ int swfs_cmd_correct(int argc, char **argv)
         }
     }
     rc = CLI_FAIL;
+    if (sweep) {
+        if (actfile) {
+            if (swfs_actuators_read(actfile, &xy, &lp.nact)) { cli_error(cmd); goto done; }
+            lp.act_xy = xy;
+            lp.act_name = actfile;
+        }
+        rc = cli_sweep(cmd, SWFS_SWEEP_CORRECT, cfg, &lp, outdir, sweep, argc, argv);
+        goto done;
+    }
     swfs_sim_params p;
     swfs_sim_params_default(&p);
     if (swfs_sim_params_from_config(cfg, &p) || swfs_config_check_unused(cfg) || swfs_sim_params_check(&p)) {

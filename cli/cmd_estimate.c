@@ -3,6 +3,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -77,6 +78,7 @@ static void print_summary(const swfs_estimate_run_options *o, const swfs_estimat
                "(give --read-noise or --gain)\n");
     if (isfinite(r->circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", r->circ_core);
     printf("  time              %.2f s\n", seconds);
+    if (swfs_team_active(o->team)) printf("  processes         %d (frames split evenly, accumulators merged)\n", o->team->size);
 }
 
 int swfs_cmd_estimate(int argc, char **argv)
@@ -87,11 +89,13 @@ int swfs_cmd_estimate(int argc, char **argv)
     int prc = parse(argc, argv, &o);
     if (prc) return prc < 0 ? CLI_OK : prc;
     const double t0 = cli_now();
+    if (cli_team_join(cmd, &o.team)) return CLI_FAIL;
     o.prov = cli_provenance(argc, argv, &o.nprov);
-    o.progress = cli_stage_progress;
+    o.progress = cli_writer() ? cli_stage_progress : NULL;
     o.progress_ctx = "estimate:";
     swfs_estimate_run_result r;
-    if (swfs_estimate_run(&o, &r)) return cli_error(cmd);
+    if (swfs_estimate_run(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
+    if (!cli_writer()) return CLI_OK;
     if (r.g_smooth_assumed)
         fprintf(stderr, "specklewfs %s: note: %s has no PIXSCALE keyword; --g-smooth %g lambda/D taken as %g pixels (0.25 "
                 "lambda/D per pixel)\n", cmd, o.speckles, o.g_smooth_lod, r.halo->g_smooth);

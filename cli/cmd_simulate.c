@@ -4,6 +4,7 @@
 #include "specklewfs/config.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
+#include "specklewfs/sweep.h"
 
 #include <stdio.h>
 #include <stdlib.h>
@@ -28,12 +29,16 @@ static void help(FILE *out)
             "  -o DIR       output folder (created if needed)\n"
             "  --seed N     random seed (same as seed=N)\n"
             "  --quiet      no progress on stderr\n"
+            "  --sweep SETS.txt  a parameter sweep: every line of SETS.txt (key=value ...) over\n"
+            "               the configuration is simulated and estimated end to end; one row per\n"
+            "               set (AO residual, Strehl, NCP recovery errors) in DIR/sweep.tsv; under\n"
+            "               mpirun the sets are shared out over the processes (docs/cluster.md)\n"
             "  -h, --help   this help\n");
 }
 
 int swfs_cmd_simulate(int argc, char **argv)
 {
-    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL;
+    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL, *sweep = NULL;
     int quiet = 0, rc;
     swfs_config *cfg = swfs_config_new();
     if (!cfg) return cli_error(cmd);
@@ -58,6 +63,12 @@ int swfs_cmd_simulate(int argc, char **argv)
             seed_arg = argv[i];
         } else if (!strcmp(a, "--quiet")) {
             quiet = 1;
+        } else if (!strcmp(a, "--sweep")) {
+            if (++i >= argc) {
+                swfs_config_free(cfg);
+                return cli_usage_error(cmd, "--sweep needs a file of parameter sets");
+            }
+            sweep = argv[i];
         } else if (a[0] == '-' && a[1]) {
             swfs_config_free(cfg);
             return cli_usage_error(cmd, "unknown option '%s'", a);
@@ -97,6 +108,11 @@ int swfs_cmd_simulate(int argc, char **argv)
     if (seed_arg && swfs_config_set_kv(cfg, "seed", seed_arg)) {
         swfs_config_free(cfg);
         return cli_error(cmd);
+    }
+    if (sweep) {
+        rc = cli_sweep(cmd, SWFS_SWEEP_SIMULATE, cfg, NULL, outdir, sweep, argc, argv);
+        swfs_config_free(cfg);
+        return rc;
     }
     /* mode=timeseries: the real-data-path simulator (cli/cmd_simulate_ts.c). */
     {

@@ -6,6 +6,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -17,7 +18,7 @@ static const char *usage_text =
     "                           [--recon W.fits | --recon vk|map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
-    "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
+    "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
     "\n"
     "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
     "exposure of the usable cubes of TIMING.txt (from `specklewfs sync`): z = W s at the\n"
@@ -39,6 +40,8 @@ static const char *usage_text =
     "                      slopes of the usable cubes' telemetry files: mode i of D gets the\n"
     "                      gain (1 - sigma^2 / P_i)_+ / s_i, P_i the mean square of the slopes\n"
     "                      on u_i, sigma^2 the slope noise\n"
+    ;
+static const char *usage_text2 =
     "  --recon svd         truncated pseudo-inverse: singular values above\n"
     "                      --rcond (5e-2) x the largest, at most --modes K (0 = no limit)\n"
     "  --slope-noise RAD   effective slope noise rms [rad] for --recon vk|map (default: estimated\n"
@@ -56,6 +59,8 @@ static const char *usage_text =
     "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
     "  --pupil MASK.fits   pupil mask PUPN x PUPN (default: annulus from TELDIAM, OBSCUR)\n"
     "  --threads N         engine workers (default 1)\n"
+    "  --batch B           frames per pipeline call (default 128); under mpirun the cubes are\n"
+    "                      shared out in pieces of B frames (docs/cluster.md)\n"
     "  --wfs-rate          write the speckles at the WFS rate instead, for `specklewfs coherence`:\n"
     "                      one frame per WFS frame covered by the usable cubes (cube after cube,\n"
     "                      each cube's frames contiguous), each propagated alone and core-phase\n"
@@ -70,12 +75,12 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
 {
     const char *cmd = "speckles";
     double rcond = o->pipe.rcond, slope_noise = 0;
-    long modes = 0, threads = 1;
+    long modes = 0, threads = 1, batch = (long)o->batch;
     int rcond_given = 0, tt_given = 0;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         int bad = 0;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(usage_text2, stdout); return -1; }
         else if (!strcmp(a, "-o") || !strcmp(a, "--science") || !strcmp(a, "--actuators") || !strcmp(a, "--recon") ||
                  !strcmp(a, "--pupil") || !strcmp(a, "--write-recon")) {
             if (!v) return cli_usage_error(cmd, "%s needs a file name", a);
@@ -96,6 +101,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         else if (!strcmp(a, "--vk-l0")) { bad = cli_parse_double(cmd, a, v, &o->pipe.vk_l0); i++; }
         else if (!strcmp(a, "--slope-noise")) { bad = cli_parse_double(cmd, a, v, &slope_noise); i++; }
         else if (!strcmp(a, "--threads")) { bad = cli_parse_long(cmd, a, v, &threads); i++; }
+        else if (!strcmp(a, "--batch")) { bad = cli_parse_long(cmd, a, v, &batch); i++; }
         else if (!strcmp(a, "--wfs-hz")) { bad = cli_parse_double(cmd, a, v, &o->wfs_hz); i++; }
         else if (!strcmp(a, "--wfs-rate")) o->pipe.wfs_rate = 1;
         else if (!strcmp(a, "--keep-tiptilt")) { o->pipe.tiptilt = SWFS_TT_KEEP; tt_given = 1; }
@@ -125,6 +131,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (!(o->pipe.vk_l0 > 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m], got %g", o->pipe.vk_l0);
     if (!(o->wfs_hz >= 0)) return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
     if (threads > 256) return cli_usage_error(cmd, "--threads must be 1..256, got %ld", threads);
+    if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
+    o->batch = (size_t)batch;
     if (o->pipe.wfs_rate) {
         /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
          * of the speckles, not of the image motion, is what is measured. */
@@ -154,11 +162,21 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     o.match_in = min;
     o.match_out = mout;
+    if (cli_team_join(cmd, &o.team)) {
+        free(min);
+        free(mout);
+        return CLI_FAIL;
+    }
     o.prov = cli_provenance(argc, argv, &o.nprov);
-    o.progress = cli_stage_progress;
+    o.progress = cli_writer() ? cli_stage_progress : NULL;
     o.progress_ctx = "speckles:";
     swfs_speckles_run_result r;
-    rc = swfs_speckles_run(&o, &r) ? cli_error(cmd) : CLI_OK;
+    rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
+    if (!cli_writer()) {
+        free(min);
+        free(mout);
+        return rc;
+    }
     if (!rc && (o.pipe.recon == SWFS_RECON_MAP || o.pipe.recon == SWFS_RECON_VK))
         fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
                 "%.1f effective\n", o.pipe.recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", r.info.ntrain,

@@ -6,6 +6,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -136,7 +137,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
 static void on_update(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pr, int final)
 {
     const double t0 = *(const double *)ctx, elapsed = cli_now() - t0, wfs = swfs_stream_wfs_frames(s);
-    const size_t cam = swfs_stream_camera_frames(s);
+    /* A team's one update holds the merged accumulators: its frames are the whole data set's. */
+    const size_t cam = h ? (size_t)h->frames : swfs_stream_camera_frames(s);
     (void)final;
     if (!h) {
         fprintf(stderr, "stream: %zu camera frames: no estimate yet (%s)\n", cam, swfs_last_error());
@@ -157,12 +159,14 @@ int swfs_cmd_stream(int argc, char **argv)
     if (prc < 0) return CLI_OK;
     if (prc) return prc;
     const double t_start = cli_now();
+    if (cli_team_join(cmd, &o.team)) return CLI_FAIL;
     o.prov = cli_provenance(argc, argv, &o.nprov);
     double t0 = cli_now();
-    o.on_update = on_update;
+    o.on_update = cli_writer() ? on_update : NULL;
     o.update_ctx = &t0;
     swfs_stream_run_result r;
-    if (swfs_stream_run_files(&o, &r)) return cli_error(cmd);
+    if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
+    if (!cli_writer()) return CLI_OK;
     if (r.info.n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);
@@ -172,6 +176,7 @@ int swfs_cmd_stream(int argc, char **argv)
     const double total = cli_now() - t_start, rate = r.wfs_frames / total;
     printf("stream: %s: %zu camera frames, %.0f WFS frames in %.2f s; processing %.0f WFS frames/s on %d threads", o.out,
            r.camera_frames, r.wfs_frames, total, rate, o.threads);
+    if (swfs_team_active(o.team)) printf(" x %d processes", o.team->size);
     if (r.wfs_rate > 0) printf(" = %.1f x real time (WFSRATE %.0f Hz)", rate / r.wfs_rate, r.wfs_rate);
     printf("\n");
     return CLI_OK;

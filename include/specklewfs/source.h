@@ -25,6 +25,11 @@ void swfs_file_source_close(swfs_file_source *s);
 /* The swfs_source_fn of stream.h (ctx = the swfs_file_source). */
 int swfs_file_source_next(void *ctx, swfs_batch *b);
 const swfs_timing *swfs_file_source_timing(const swfs_file_source *s);
+/* Serve only the usable camera frames [first, first + count) of the data set (counted over
+ * the usable cubes in table order): one member's share of a distributed run (team.h). Call
+ * before the first batch. Batches stop at the range's end, and they are the whole data
+ * set's batches when `first` lies a multiple of the batch size from its cube's start. */
+int swfs_file_source_set_range(swfs_file_source *s, size_t first, size_t count);
 /* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
 double swfs_file_source_wfs_rate(const swfs_file_source *s);
 

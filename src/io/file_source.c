@@ -22,6 +22,8 @@ struct swfs_file_source {
     double wfs_rate;       /* [Hz] from the telemetry header (WFSRATE), 0 if unknown */
     swfs_exposure *sched;
     double *science;
+    int limited;           /* swfs_file_source_set_range: serve `left` more frames */
+    size_t left;
 };
 
 void swfs_path_dir(const char *path, char *dir, size_t cap)
@@ -189,6 +191,10 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     if (rc) return rc;
     const size_t nwfs_file = s->tel->ny;
     size_t n = c->nframes - s->j < s->bmax ? c->nframes - s->j : s->bmax;
+    if (s->limited) {
+        if (!s->left) return SWFS_OK;
+        if (n > s->left) n = s->left;
+    }
     const double t0 = c->start + (double)s->j * t->ratio;
     if (!(t0 >= 0))
         return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) starts at WFS frame %g, before the start of %s", s->cube,
@@ -206,6 +212,31 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     b->nexp = n;
     b->cube = s->cube;
     s->j += n;
+    if (s->limited) s->left -= n;
+    return SWFS_OK;
+}
+
+int swfs_file_source_set_range(swfs_file_source *s, size_t first, size_t count)
+{
+    const swfs_timing *t = s->timing;
+    size_t skip = first;
+    s->cube = t->ncubes;
+    s->j = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        if (skip < t->cubes[c].nframes) {
+            s->cube = c;
+            s->j = skip;
+            skip = 0;
+            break;
+        }
+        skip -= t->cubes[c].nframes;
+    }
+    if (count && s->cube == t->ncubes)
+        return swfs_fail(SWFS_ERR_ARG, "file source: frames %zu..%zu are beyond the %zu usable frames of the data set",
+                         first, first + count - 1, first - skip);
+    s->limited = 1;
+    s->left = count;
     return SWFS_OK;
 }
 
