@@ -26,7 +26,8 @@ typedef struct swfs_team {
     void *ctx;       /* the implementation's own state */
     /* Every member passes its status; all return the status of the lowest-ranked member
      * that failed (SWFS_OK when none did), with that member's message, prefixed
-     * "rank r of n: ", as their last error (status.h). */
+     * "rank r of n: ", as their last error (status.h). A message that already has the
+     * prefix (a failure agreed on before, passed on) keeps it as it is. */
     int (*agree)(void *ctx, int status);
     /* `bytes` of buf from member `root` to every member. */
     int (*bcast)(void *ctx, void *buf, size_t bytes, int root);

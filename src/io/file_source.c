@@ -63,6 +63,19 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
     return SWFS_OK;
 }
 
+int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes)
+{
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    const swfs_fits_shape *sh = rc ? NULL : swfs_fits_in_shape(f);
+    if (!rc && (sh->is_complex || sh->nz != 1 || (nslopes && sh->nx != nslopes)))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path, sh->nx,
+                       sh->ny, sh->nz, nslopes);
+    if (!rc && nframes) *nframes = sh->ny;
+    swfs_fits_in_close(f);
+    return rc;
+}
+
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,
                                  size_t *nframes)
 {
@@ -213,6 +226,33 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     b->cube = s->cube;
     s->j += n;
     if (s->limited) s->left -= n;
+    return SWFS_OK;
+}
+
+int swfs_file_source_check(const swfs_file_source *s)
+{
+    const swfs_timing *t = s->timing;
+    size_t cube = s->cube, j = s->j, left = s->left;
+    char path[8192], last[8192] = "";
+    size_t nwfs = 0;
+    for (; cube < t->ncubes && (!s->limited || left); cube++, j = 0) {
+        const swfs_timing_cube *c = &t->cubes[cube];
+        if (c->status != SWFS_CUBE_OK || j >= c->nframes) continue;
+        size_t n = c->nframes - j;
+        if (s->limited && n > left) n = left;
+        left -= s->limited ? n : 0;
+        int rc = SWFS_OK;
+        if (s->slopes_is_dir) rc = swfs_telemetry_path(s->slopes_arg, c->slopes, path, sizeof path);
+        else snprintf(path, sizeof path, "%s", s->slopes_arg);
+        if (!rc && strcmp(path, last)) rc = swfs_telemetry_check(path, s->nslopes, &nwfs);
+        if (rc) return rc;
+        snprintf(last, sizeof last, "%s", path);
+        /* the last WFS frame the exposures of frames j .. j + n - 1 reach */
+        const double end = c->start + (double)(j + n) * t->ratio;
+        if (!(c->start >= 0) || ceil(end) > (double)nwfs)
+            return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) frames %zu..%zu need WFS frames up to %.0f but %s holds %zu",
+                             cube, c->camera, j, j + n - 1, ceil(end), path, nwfs);
+    }
     return SWFS_OK;
 }
 

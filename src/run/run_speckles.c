@@ -227,6 +227,16 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
         counts[k] = n * nf2 * sizeof(swfs_complex);
         if (k == t->rank) { first = f; count = n; }
     }
+    /* A missing or truncated telemetry file of any share stops every member before the work. */
+    size_t ok_i = 0;
+    for (size_t c = 0; !rc && c < w->t->ncubes; c++) {
+        const swfs_timing_cube *tc = w->t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        const size_t c0 = w->cfirst[ok_i], c1 = c0 + w->cn[ok_i++];
+        if (c1 > first && c0 < first + count && !(rc = swfs_telemetry_path(w->tdir, tc->slopes, w->path, sizeof w->path)))
+            rc = swfs_telemetry_check(w->path, w->nslopes, NULL);
+    }
+    rc = swfs_team_agree(t, rc);
     if (!rc && !(w->halo = swfs_cplx_alloc(w->nfx, w->nfy, t->rank ? (count ? count : 1) : r->nout)))
         rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", t->rank ? count : r->nout, w->nfx, w->nfy);
     if (!rc) rc = process_cubes(o, w, r, first, count);

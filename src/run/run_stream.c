@@ -181,6 +181,9 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
     size_t first = 0, count = 0;
     if (!rc) rc = plan_share(o, src, &first, &count);
     if (!rc) rc = swfs_file_source_set_range(src, first, count);
+    /* A missing or truncated telemetry file of any share stops every member now, not
+     * after the others' work. */
+    if (!rc) rc = swfs_file_source_check(src);
     so->max_frames = 0; /* the shares end at max_frames */
     const int autostat = so->static_mode == SWFS_STATIC_AUTO;
     swfs_complex *stat = NULL;
