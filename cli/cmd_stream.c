@@ -144,8 +144,12 @@ static void on_update(void *ctx, const swfs_stream *s, const swfs_halo *h, const
         fprintf(stderr, "stream: %zu camera frames: no estimate yet (%s)\n", cam, swfs_last_error());
         return;
     }
-    fprintf(stderr, "stream: %zu camera frames (%.0f WFS frames, %.0f/s): valid %.1f %%, median SNR %.3g", cam, wfs,
-            elapsed > 0 ? wfs / elapsed : 0.0, 100.0 * h->valid_fraction, h->median_snr);
+    if (cam == swfs_stream_camera_frames(s))
+        fprintf(stderr, "stream: %zu camera frames (%.0f WFS frames, %.0f/s): valid %.1f %%, median SNR %.3g", cam, wfs,
+                elapsed > 0 ? wfs / elapsed : 0.0, 100.0 * h->valid_fraction, h->median_snr);
+    else /* this process saw only its share: the rate is in the summary */
+        fprintf(stderr, "stream: %zu camera frames of all processes: valid %.1f %%, median SNR %.3g", cam,
+                100.0 * h->valid_fraction, h->median_snr);
     if (pr) fprintf(stderr, ", pupil WFE rms %.1f nm", 1e9 * pr->wfe_rms);
     fputc('\n', stderr);
 }
