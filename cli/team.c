@@ -6,6 +6,7 @@
 #include "cli.h"
 
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <stdio.h>
 #include <stdlib.h>
