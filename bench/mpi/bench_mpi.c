@@ -58,7 +58,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "bench_mpi: cannot create the team or bad REPS\n");
         MPI_Abort(MPI_COMM_WORLD, 1);
     }
-    const size_t sizes[] = {60, 128, 256};
+    const size_t sizes[] = {60, 127, 128, 255, 256};
     if (t->rank == 0)
         printf("bench_mpi: %d rank(s), median of %d\n%8s %12s %12s %14s %14s\n", t->size, reps, "pixels", "state [MB]",
                "merge [ms]", "reduce [ms]", "reduce-merge");
