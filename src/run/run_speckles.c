@@ -156,7 +156,8 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (rc) return swfs_fail_context(rc, "%s", w->path);
     free(w->train);
     w->train = NULL;
-    if (o->write_recon && swfs_team_writer(o->team)) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
+    /* (a team writes it with the other products, once every member has succeeded) */
+    if (o->write_recon && !swfs_team_active(o->team)) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
     return rc;
 }
 
@@ -345,6 +346,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
+        if (!rc && writer && team && o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w.p), o->write_recon);
         for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
             rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
         free(prov);

@@ -427,11 +427,13 @@ static void test_truncated_on_one_rank(void **state)
         assert_false(test_file_exists(in_dir("bad/halo.fits.part")));
         assert_false(test_file_exists(in_dir("bad/ck.fits")));
         rc = run(np, "speckles bad/timing.txt --science bad/sci.fits --actuators bad/act.fits --recon bad/recon.fits "
-                 "-o bad/sp.fits", out, sizeof out);
+                 "-o bad/sp.fits --write-recon bad/w.fits --match bad/sci.fits bad/scim.fits", out, sizeof out);
         print_message("%s", out);
         assert_int_not_equal(rc, 0);
         assert_non_null(strstr(out, "slopes_b.fits"));
         assert_false(test_file_exists(in_dir("bad/sp.fits")));
+        assert_false(test_file_exists(in_dir("bad/w.fits")));
+        assert_false(test_file_exists(in_dir("bad/scim.fits")));
     }
 }
 
