@@ -28,7 +28,9 @@ static const char *usage_text =
     "  --frames-per-read N   frames read per block (default 64)\n"
     "\n"
     "Non-finite science pixels are skipped for that frame and counted; the speckle mean over\n"
-    "the data set is removed exactly (eq:zeroMean).\n";
+    "the data set is removed exactly (eq:zeroMean). Under mpirun every process accumulates\n"
+    "a share of the frames and rank 0 writes HALO.fits from the merged accumulators\n"
+    "(docs/cluster.md).\n";
 
 static int parse(int argc, char **argv, swfs_estimate_run_options *o)
 {

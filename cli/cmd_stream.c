@@ -67,6 +67,12 @@ static const char *usage_text =
     "  --read-noise, --gain  noise model for the estimate (default: science header)\n"
     "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
     "                        (default 2; 0 = the paper's per-pixel g)\n";
+static const char *usage_mpi =
+    "\n"
+    "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
+    "boundaries) and rank 0 writes the products once, at the end, from the merged\n"
+    "accumulators: the single-process products. --every/--every-seconds do not apply.\n"
+    "See docs/cluster.md.\n";
 
 static int parse(int argc, char **argv, swfs_stream_run_options *o)
 {
@@ -78,7 +84,7 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         const char **str = NULL;
         long *lv = NULL;
         double *dv = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(usage_mpi, stdout); return -1; }
         else if (!strcmp(a, "--timing")) str = &o->timing;
         else if (!strcmp(a, "--science")) str = &o->science;
         else if (!strcmp(a, "--slopes")) str = &o->slopes;
