@@ -118,5 +118,19 @@ struct swfs_sim_params;
 int cli_config_arg(const char *cmd, struct swfs_config *cfg, const char *a);
 /* Simulation parameters: the defaults, then cfg (unknown keys refused), then their checks. */
 int cli_sim_params(const char *cmd, struct swfs_config *cfg, struct swfs_sim_params *p);
+/* Distributed runs (cli/team.c, docs/cluster.md). Started by an MPI launcher, join the
+ * team of its processes (*t; NULL when alone); prints and returns CLI_FAIL when that is
+ * impossible (e.g. a build without MPI started as several processes). */
+struct swfs_team;
+int cli_team_join(const char *cmd, const struct swfs_team **t);
+/* 1 on the process that prints summaries and writes products (rank 0, or alone). */
+int cli_writer(void);
+/* Leave the team and MPI (main(), after the command). */
+void cli_team_end(void);
+/* --sweep SETS.txt of simulate / correct (cli/sweep.c; kind: SWFS_SWEEP_* of sweep.h):
+ * the sets over the base configuration, DIR/sweep.tsv, the table on stdout. */
+struct swfs_loop_params;
+int cli_sweep(const char *cmd, int kind, const struct swfs_config *base, const struct swfs_loop_params *loop,
+              const char *outdir, const char *sets, int argc, char **argv);
 
 #endif

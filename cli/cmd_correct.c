@@ -5,6 +5,7 @@
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
+#include "specklewfs/sweep.h"
 #include "specklewfs/wfs.h"
 
 #include <math.h>
@@ -34,6 +35,10 @@ static const char *usage_text =
     "  --influence gauss|cubic, --coupling C, --modes K: the DM fit (see 'dmoffsets --help')\n"
     "  --method fit|moments  the pupil step: the joint fit (default) or the per-pixel moments\n"
     "  --weight snr|none   focal-plane weight of the moments' pupil step (default snr; implies moments)\n"
+    "  --sweep SETS.txt    a parameter sweep: one closed loop per line of SETS.txt (key=value\n"
+    "                      ... over the configuration; also loop_iterations, loop_gain,\n"
+    "                      loop_sigma, loop_pitch), one row per set in DIR/sweep.tsv; under\n"
+    "                      mpirun the sets are shared out over the processes (docs/cluster.md)\n"
     "CONFIG and key=value set the simulation (config/paper-sec3.conf), e.g. seed=3.\n";
 
 void cli_print_loop_table(const swfs_loop_result *r)
@@ -118,7 +123,7 @@ static int special(void *ctx, int argc, char **argv, int *i)
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
-    const char *outdir = "correct-out", *actfile = NULL;
+    const char *outdir = "correct-out", *actfile = NULL, *sweep = NULL;
     swfs_loop_params lp;
     swfs_loop_params_default(&lp);
     swfs_config *cfg = swfs_config_new();
@@ -127,7 +132,8 @@ int swfs_cmd_correct(int argc, char **argv)
     double *xy = NULL;
     swfs_loop_result *res = NULL;
     const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "a folder", 0},
-                            {"--actuators", CLI_STRING, &actfile, "a file name", 0}};
+                            {"--actuators", CLI_STRING, &actfile, "a file name", 0},
+                            {"--sweep", CLI_STRING, &sweep, "a file of parameter sets", 0}};
     corr_args d = {&lp, cfg};
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &d, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
@@ -136,6 +142,15 @@ int swfs_cmd_correct(int argc, char **argv)
         goto done;
     }
     rc = CLI_FAIL;
+    if (sweep) {
+        if (actfile) {
+            if (swfs_actuators_read(actfile, &xy, &lp.nact)) { cli_error(cmd); goto done; }
+            lp.act_xy = xy;
+            lp.act_name = actfile;
+        }
+        rc = cli_sweep(cmd, SWFS_SWEEP_CORRECT, cfg, &lp, outdir, sweep, argc, argv);
+        goto done;
+    }
     swfs_sim_params p;
     if (cli_sim_params(cmd, cfg, &p)) goto done;
     if (actfile) {

@@ -3,6 +3,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -27,7 +28,9 @@ static const char *usage_text =
     "  --frames-per-read N   frames read per block (default 64)\n"
     "\n"
     "Non-finite science pixels are skipped for that frame and counted; the speckle mean over\n"
-    "the data set is removed exactly (eq:zeroMean).\n";
+    "the data set is removed exactly (eq:zeroMean). Under mpirun every process accumulates\n"
+    "a share of the frames and rank 0 writes HALO.fits from the merged accumulators\n"
+    "(docs/cluster.md).\n";
 
 static int parse(int argc, char **argv, swfs_estimate_run_options *o)
 {
@@ -73,6 +76,7 @@ static void print_summary(const swfs_estimate_run_options *o, const swfs_estimat
                "(give --read-noise or --gain)\n");
     if (isfinite(r->circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", r->circ_core);
     printf("  time              %.2f s\n", seconds);
+    if (swfs_team_active(o->team)) printf("  processes         %d (frames split evenly, accumulators merged)\n", o->team->size);
 }
 
 int swfs_cmd_estimate(int argc, char **argv)
@@ -83,11 +87,13 @@ int swfs_cmd_estimate(int argc, char **argv)
     int prc = parse(argc, argv, &o);
     if (prc) return prc < 0 ? CLI_OK : prc;
     const double t0 = cli_now();
+    if (cli_team_join(cmd, &o.team)) return CLI_FAIL;
     o.prov = cli_provenance(argc, argv, &o.nprov);
-    o.progress = cli_stage_progress;
+    o.progress = cli_writer() ? cli_stage_progress : NULL;
     o.progress_ctx = "estimate:";
     swfs_estimate_run_result r;
-    if (swfs_estimate_run(&o, &r)) return cli_error(cmd);
+    if (swfs_estimate_run(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
+    if (!cli_writer()) return CLI_OK;
     if (r.g_smooth_assumed)
         fprintf(stderr, "specklewfs %s: note: %s has no PIXSCALE keyword; --g-smooth %g lambda/D taken as %g pixels (0.25 "
                 "lambda/D per pixel)\n", cmd, o.speckles, o.g_smooth_lod, r.halo->g_smooth);

@@ -4,6 +4,7 @@
 #include "specklewfs/config.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
+#include "specklewfs/sweep.h"
 
 #include <stdio.h>
 #include <stdlib.h>
@@ -26,6 +27,10 @@ static const char *usage_text =
     "  -o DIR       output folder (created if needed)\n"
     "  --seed N     random seed (same as seed=N)\n"
     "  --quiet      no progress on stderr\n"
+    "  --sweep SETS.txt  a parameter sweep: every line of SETS.txt (key=value ...) over\n"
+    "               the configuration is simulated and estimated end to end; one row per\n"
+    "               set (AO residual, Strehl, NCP recovery errors) in DIR/sweep.tsv; under\n"
+    "               mpirun the sets are shared out over the processes (docs/cluster.md)\n"
     "  -h, --help   this help\n";
 
 typedef struct sim_args {
@@ -58,12 +63,13 @@ static int special(void *ctx, int argc, char **argv, int *i)
 
 int swfs_cmd_simulate(int argc, char **argv)
 {
-    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL;
+    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL, *sweep = NULL;
     int quiet = 0, rc;
     sim_args d = {swfs_config_new(), 0};
     if (!d.cfg) return cli_error(cmd);
     const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "an output folder", 0},
-                            {"--seed", CLI_STRING, &seed_arg, "a value", 0}, {"--quiet", CLI_SET, &quiet, NULL, 1}};
+                            {"--seed", CLI_STRING, &seed_arg, "a value", 0}, {"--quiet", CLI_SET, &quiet, NULL, 1},
+                            {"--sweep", CLI_STRING, &sweep, "a file of parameter sets", 0}};
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &d, NULL, NULL};
     rc = cli_parse_args(&args, argc, argv);
     swfs_config *cfg = d.cfg;
@@ -78,6 +84,11 @@ int swfs_cmd_simulate(int argc, char **argv)
     if (seed_arg && swfs_config_set_kv(cfg, "seed", seed_arg)) {
         swfs_config_free(cfg);
         return cli_error(cmd);
+    }
+    if (sweep) {
+        rc = cli_sweep(cmd, SWFS_SWEEP_SIMULATE, cfg, NULL, outdir, sweep, argc, argv);
+        swfs_config_free(cfg);
+        return rc;
     }
     /* mode=timeseries: the real-data-path simulator (cli/cmd_simulate_ts.c). */
     {

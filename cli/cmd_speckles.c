@@ -6,6 +6,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -17,7 +18,7 @@ static const char *usage_text =
     "                           [--recon W.fits | --recon vk|map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
-    "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N]\n"
+    "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
     "\n"
     "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
     "exposure of the usable cubes of TIMING.txt (from `specklewfs sync`): z = W s at the\n"
@@ -39,6 +40,8 @@ static const char *usage_text =
     "                      slopes of the usable cubes' telemetry files: mode i of D gets the\n"
     "                      gain (1 - sigma^2 / P_i)_+ / s_i, P_i the mean square of the slopes\n"
     "                      on u_i, sigma^2 the slope noise\n"
+    ;
+static const char *usage_text2 =
     "  --recon svd         truncated pseudo-inverse: singular values above\n"
     "                      --rcond (5e-2) x the largest, at most --modes K (0 = no limit)\n"
     "  --slope-noise RAD   effective slope noise rms [rad] for --recon vk|map (default: estimated\n"
@@ -56,6 +59,8 @@ static const char *usage_text =
     "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
     "  --pupil MASK.fits   pupil mask PUPN x PUPN (default: annulus from TELDIAM, OBSCUR)\n"
     "  --threads N         engine workers (default 1)\n"
+    "  --batch B           frames per pipeline call (default 128); under mpirun the cubes are\n"
+    "                      shared out in pieces of B frames (docs/cluster.md)\n"
     "  --wfs-rate          write the speckles at the WFS rate instead, for `specklewfs coherence`:\n"
     "                      one frame per WFS frame covered by the usable cubes (cube after cube,\n"
     "                      each cube's frames contiguous), each propagated alone and core-phase\n"
@@ -72,6 +77,7 @@ typedef struct spk_args {
     double rcond;
     long modes;
     int rcond_given, tt_given;
+    int help; /* -h/--help seen (the usage is two strings) */
 } spk_args;
 
 /* --recon (a name or a file), --rcond and --modes (SVD only), the tip-tilt, --mean, --match. */
@@ -80,7 +86,9 @@ static int special(void *ctx, int argc, char **argv, int *i)
     const char *cmd = "speckles", *a = argv[*i], *v = *i + 1 < argc ? argv[*i + 1] : NULL;
     spk_args *d = ctx;
     swfs_speckles_run_options *o = d->o;
-    if (!strcmp(a, "--recon")) {
+    if (cli_is_help(a)) {
+        d->help = 1;
+    } else if (!strcmp(a, "--recon")) {
         if (cli_take_string(cmd, argc, argv, i, "a file name", &v)) return -CLI_USAGE;
         o->recon = NULL;
         if (!strcmp(v, "map")) o->pipe.recon = SWFS_RECON_MAP;
@@ -116,8 +124,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
 {
     const char *cmd = "speckles";
     double slope_noise = 0;
-    long threads = 1;
-    spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0};
+    long threads = 1, batch = (long)o->batch;
+    spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
@@ -125,11 +133,17 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--write-recon", CLI_STRING, &o->write_recon, fn, 0}, {"--vk-l0", CLI_DOUBLE, &o->pipe.vk_l0, NULL, 0},
         {"--slope-noise", CLI_DOUBLE, &slope_noise, NULL, 0}, {"--threads", CLI_LONG, &threads, NULL, 0},
         {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
+        {"--batch", CLI_LONG, &batch, NULL, 0},
     };
     const char **const pos[] = {&o->timing};
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
+    const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
+    if (d.help) {
+        fputs(usage_text, stdout);
+        fputs(usage_text2, stdout);
+        return -1;
+    }
     const int rcond_given = d.rcond_given, tt_given = d.tt_given;
     const double rcond = d.rcond;
     const long modes = d.modes;
@@ -141,6 +155,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (!(o->pipe.vk_l0 > 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m], got %g", o->pipe.vk_l0);
     if (!(o->wfs_hz >= 0)) return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
     if (threads > 256) return cli_usage_error(cmd, "--threads must be 1..256, got %ld", threads);
+    if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
+    o->batch = (size_t)batch;
     if (o->pipe.wfs_rate) {
         /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
          * of the speckles, not of the image motion, is what is measured. */
@@ -170,11 +186,21 @@ int swfs_cmd_speckles(int argc, char **argv)
     }
     o.match_in = min;
     o.match_out = mout;
+    if (cli_team_join(cmd, &o.team)) {
+        free(min);
+        free(mout);
+        return CLI_FAIL;
+    }
     o.prov = cli_provenance(argc, argv, &o.nprov);
-    o.progress = cli_stage_progress;
+    o.progress = cli_writer() ? cli_stage_progress : NULL;
     o.progress_ctx = "speckles:";
     swfs_speckles_run_result r;
-    rc = swfs_speckles_run(&o, &r) ? cli_error(cmd) : CLI_OK;
+    rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
+    if (!cli_writer()) {
+        free(min);
+        free(mout);
+        return rc;
+    }
     if (!rc && (o.pipe.recon == SWFS_RECON_MAP || o.pipe.recon == SWFS_RECON_VK))
         fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
                 "%.1f effective\n", o.pipe.recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", r.info.ntrain,

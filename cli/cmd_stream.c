@@ -6,6 +6,7 @@
 
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -40,6 +41,7 @@ static const char *usage_text =
     "  --recon, --actuators  reconstructor (nact x nslopes [m/rad]) and actuator positions\n"
     "  -o HALO.fits          the estimate (extensions as 'specklewfs estimate')\n"
     "  --pupil-out FILE      also the pupil field / NCP map at every update ('specklewfs pupil')\n"
+    "  --pupil-method M      fit (the default when possible) or moments, as 'pupil --method'\n"
     "  --every K             update after every K camera frames (default: only at the end)\n"
     "  --every-seconds T     update when T seconds have passed since the last one\n"
     "  --threads N           engine workers (default 2)\n"
@@ -66,6 +68,12 @@ static const char *usage_text =
     "  --read-noise, --gain  noise model for the estimate (default: science header)\n"
     "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
     "                        (default 2; 0 = the paper's per-pixel g)\n";
+static const char *usage_mpi =
+    "\n"
+    "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
+    "boundaries) and rank 0 writes the products once, at the end, from the merged\n"
+    "accumulators: the single-process products. --every/--every-seconds do not apply.\n"
+    "See docs/cluster.md.\n";
 
 /* The tip-tilt options; anything else left over is an unknown argument. */
 static int special(void *ctx, int argc, char **argv, int *i)
@@ -74,7 +82,11 @@ static int special(void *ctx, int argc, char **argv, int *i)
     const char *a = argv[*i];
     if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
-    else return -cli_usage_error("stream", "unknown argument '%s'", a);
+    else if (!strcmp(a, "--pupil-method")) {
+        if (cli_parse_choice("stream", a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
+                             &o->pupil_method))
+            return -CLI_USAGE;
+    } else return -cli_usage_error("stream", "unknown argument '%s'", a);
     return 1;
 }
 
@@ -96,7 +108,13 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},
         {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0},
     };
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
+    for (int i = 1; i < argc; i++)
+        if (cli_is_help(argv[i])) { /* the usage is two strings */
+            fputs(usage_text, stdout);
+            fputs(usage_mpi, stdout);
+            return -1;
+        }
+    const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
     if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
@@ -122,14 +140,19 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
 static void on_update(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pr, int final)
 {
     const double t0 = *(const double *)ctx, elapsed = cli_now() - t0, wfs = swfs_stream_wfs_frames(s);
-    const size_t cam = swfs_stream_camera_frames(s);
+    /* A team's one update holds the merged accumulators: its frames are the whole data set's. */
+    const size_t cam = h ? (size_t)h->frames : swfs_stream_camera_frames(s);
     (void)final;
     if (!h) {
         fprintf(stderr, "stream: %zu camera frames: no estimate yet (%s)\n", cam, swfs_last_error());
         return;
     }
-    fprintf(stderr, "stream: %zu camera frames (%.0f WFS frames, %.0f/s): valid %.1f %%, median SNR %.3g", cam, wfs,
-            elapsed > 0 ? wfs / elapsed : 0.0, 100.0 * h->valid_fraction, h->median_snr);
+    if (cam == swfs_stream_camera_frames(s))
+        fprintf(stderr, "stream: %zu camera frames (%.0f WFS frames, %.0f/s): valid %.1f %%, median SNR %.3g", cam, wfs,
+                elapsed > 0 ? wfs / elapsed : 0.0, 100.0 * h->valid_fraction, h->median_snr);
+    else /* this process saw only its share: the rate is in the summary */
+        fprintf(stderr, "stream: %zu camera frames of all processes: valid %.1f %%, median SNR %.3g", cam,
+                100.0 * h->valid_fraction, h->median_snr);
     if (pr) fprintf(stderr, ", pupil WFE rms %.1f nm", 1e9 * pr->wfe_rms);
     fputc('\n', stderr);
 }
@@ -143,12 +166,14 @@ int swfs_cmd_stream(int argc, char **argv)
     if (prc < 0) return CLI_OK;
     if (prc) return prc;
     const double t_start = cli_now();
+    if (cli_team_join(cmd, &o.team)) return CLI_FAIL;
     o.prov = cli_provenance(argc, argv, &o.nprov);
     double t0 = cli_now();
-    o.on_update = on_update;
+    o.on_update = cli_writer() ? on_update : NULL;
     o.update_ctx = &t0;
     swfs_stream_run_result r;
-    if (swfs_stream_run_files(&o, &r)) return cli_error(cmd);
+    if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
+    if (!cli_writer()) return CLI_OK;
     if (r.info.n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);
@@ -158,6 +183,7 @@ int swfs_cmd_stream(int argc, char **argv)
     const double total = cli_now() - t_start, rate = r.wfs_frames / total;
     printf("stream: %s: %zu camera frames, %.0f WFS frames in %.2f s; processing %.0f WFS frames/s on %d threads", o.out,
            r.camera_frames, r.wfs_frames, total, rate, o.threads);
+    if (swfs_team_active(o.team)) printf(" x %d processes", o.team->size);
     if (r.wfs_rate > 0) printf(" = %.1f x real time (WFSRATE %.0f Hz)", rate / r.wfs_rate, r.wfs_rate);
     printf("\n");
     return CLI_OK;

@@ -56,7 +56,11 @@ int main(int argc, char **argv)
         return CLI_OK;
     }
     for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)
-        if (!strcmp(argv[1], commands[i].name)) return commands[i].run(argc - 1, argv + 1);
+        if (!strcmp(argv[1], commands[i].name)) {
+            const int rc = commands[i].run(argc - 1, argv + 1);
+            cli_team_end();
+            return rc;
+        }
     fprintf(stderr, "specklewfs: unknown command '%s'\n", argv[1]);
     usage(stderr);
     return CLI_USAGE;

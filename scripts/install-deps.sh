@@ -8,4 +8,4 @@ $SUDO apt-get install -y -qq --no-install-recommends \
   build-essential cmake pkg-config \
   libcfitsio-dev libfftw3-dev libopenblas-dev liblapacke-dev libcmocka-dev libqhull-dev \
   libplplot-dev plplot-driver-cairo libpng-dev fonts-dejavu-core \
-  python3 python3-numpy python3-pytest "$@" >/dev/null
+  python3 python3-numpy python3-pytest openmpi-bin libopenmpi-dev "$@" >/dev/null

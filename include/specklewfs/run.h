@@ -5,7 +5,13 @@
  *
  * Every run takes provenance lines (prov, nprov: e.g. the command line) recorded in the
  * products, and an optional progress callback (status.h). Messages name the file, the
- * value and what was expected. */
+ * value and what was expected.
+ *
+ * estimate, speckles and stream also run as a team (team.h; `mpirun`, docs/cluster.md):
+ * with `team` set, every member calls the run with the same options, processes its share
+ * of the frames (balanced by frames; a member may take part of a cube) and member 0 writes
+ * the products, equal to the single-process run's to rounding. Only member 0's result
+ * holds the estimate; the counts in every member's result are the whole data set's. */
 #ifndef SWFS_RUN_H
 #define SWFS_RUN_H
 
@@ -19,6 +25,7 @@
 #include "specklewfs/status.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/sync.h"
+#include "specklewfs/team.h"
 
 SWFS_BEGIN_DECLS
 
@@ -43,12 +50,13 @@ typedef struct swfs_estimate_run_options {
     size_t nprov;
     swfs_progress_fn progress;
     void *progress_ctx;
+    const swfs_team *team;    /* NULL: alone; else this member's share of the frames */
 } swfs_estimate_run_options;
 
 void swfs_estimate_run_options_default(swfs_estimate_run_options *o);
 
 typedef struct swfs_estimate_run_result {
-    swfs_halo *halo;          /* the estimate (caller frees with swfs_halo_free) */
+    swfs_halo *halo;          /* the estimate (caller frees with swfs_halo_free); NULL on members > 0 */
     swfs_geom geom;           /* of the speckle cube */
     swfs_noise noise;         /* the noise model used */
     double circ_core;         /* mean |<psi^2>|/<|psi|^2> inside 4 lambda/D (NaN without PIXSCALE) */
@@ -76,6 +84,14 @@ typedef struct swfs_speckles_run_options {
     size_t nprov;
     swfs_progress_fn progress;
     void *progress_ctx;
+    size_t batch;             /* frames per pipeline call (128; 0 = 128): a cube goes through the
+                                 pipeline in pieces of `batch` frames from its start, as the
+                                 stream's batches do, so the fields do not depend on how the
+                                 cubes are shared out (the float engine's sums do depend on the
+                                 frames of a call) */
+    const swfs_team *team;    /* NULL: alone; else this member's share of the output frames, cut
+                                 at multiples of batch (each member builds the same reconstructor
+                                 from the files) */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -94,6 +110,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
 typedef struct swfs_stream_run_options {
     const char *timing, *science, *slopes, *recon, *actuators, *out;
     const char *pupil_out;    /* also the pupil field at every update (NULL: no) */
+    int pupil_method;         /* its method: SWFS_PUPIL_AUTO (0, the joint fit when possible),
+                                 SWFS_PUPIL_FIT or SWFS_PUPIL_MOMENTS (pupil.h) */
     const char *checkpoint;   /* the accumulators at every update (NULL: no) */
     const char *static_file;  /* SWFS_STATIC_GIVEN: a complex image */
     const char *static_out;   /* write the static halo in use (NULL: no) */
@@ -108,6 +126,11 @@ typedef struct swfs_stream_run_options {
     /* Called after every product update (final = 1 at the end); may be NULL. */
     void (*on_update)(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
     void *update_ctx;
+    /* NULL: alone. A team (team.h) splits the camera frames at batch boundaries, so every
+     * member's batches are the single-process run's; the automatic static halo is member
+     * 0's first batch, sent to the others; the products are written once, at the end
+     * (stream.every and every_seconds must be 0), by member 0, which alone calls on_update. */
+    const swfs_team *team;
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

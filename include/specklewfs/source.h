@@ -25,6 +25,15 @@ void swfs_file_source_close(swfs_file_source *s);
 /* The swfs_source_fn of stream.h (ctx = the swfs_file_source). */
 int swfs_file_source_next(void *ctx, swfs_batch *b);
 const swfs_timing *swfs_file_source_timing(const swfs_file_source *s);
+/* Serve only the usable camera frames [first, first + count) of the data set (counted over
+ * the usable cubes in table order): one member's share of a distributed run (team.h). Call
+ * before the first batch. Batches stop at the range's end, and they are the whole data
+ * set's batches when `first` lies a multiple of the batch size from its cube's start. */
+int swfs_file_source_set_range(swfs_file_source *s, size_t first, size_t count);
+/* Open every telemetry file the source's frames (its range, or the whole data set) need and
+ * check it (present, not truncated, nslopes x WFS frames covering the frames' exposures)
+ * without reading the data: a share's bad file is found before any work. */
+int swfs_file_source_check(const swfs_file_source *s);
 /* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
 double swfs_file_source_wfs_rate(const swfs_file_source *s);
 
@@ -36,6 +45,8 @@ void swfs_path_dir(const char *path, char *dir, size_t cap);
 /* A telemetry file: a 2-D image of nslopes x WFS frames (nslopes = 0: any width), and its
  * WFSRATE [Hz] in *rate (0 when absent or not a rate; rate may be NULL). */
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate);
+/* The same checks without reading the data: *nframes (may be NULL) receives the WFS frames. */
+int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);
 /* Every telemetry file the usable cubes of t use, in the order they first appear,
  * concatenated: *out = *nframes frames of nslopes (caller frees). */
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,

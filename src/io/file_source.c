@@ -22,6 +22,8 @@ struct swfs_file_source {
     double wfs_rate;       /* [Hz] from the telemetry header (WFSRATE), 0 if unknown */
     swfs_exposure *sched;
     double *science;
+    int limited;           /* swfs_file_source_set_range: serve `left` more frames */
+    size_t left;
 };
 
 void swfs_path_dir(const char *path, char *dir, size_t cap)
@@ -59,6 +61,19 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
     }
     if (rate) *rate = found && r > 0 && isfinite(r) ? r : 0;
     return SWFS_OK;
+}
+
+int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes)
+{
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    const swfs_fits_shape *sh = rc ? NULL : swfs_fits_in_shape(f);
+    if (!rc && (sh->is_complex || sh->nz != 1 || (nslopes && sh->nx != nslopes)))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path, sh->nx,
+                       sh->ny, sh->nz, nslopes);
+    if (!rc && nframes) *nframes = sh->ny;
+    swfs_fits_in_close(f);
+    return rc;
 }
 
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,
@@ -189,6 +204,10 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     if (rc) return rc;
     const size_t nwfs_file = s->tel->ny;
     size_t n = c->nframes - s->j < s->bmax ? c->nframes - s->j : s->bmax;
+    if (s->limited) {
+        if (!s->left) return SWFS_OK;
+        if (n > s->left) n = s->left;
+    }
     const double t0 = c->start + (double)s->j * t->ratio;
     if (!(t0 >= 0))
         return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) starts at WFS frame %g, before the start of %s", s->cube,
@@ -206,6 +225,58 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     b->nexp = n;
     b->cube = s->cube;
     s->j += n;
+    if (s->limited) s->left -= n;
+    return SWFS_OK;
+}
+
+int swfs_file_source_check(const swfs_file_source *s)
+{
+    const swfs_timing *t = s->timing;
+    size_t cube = s->cube, j = s->j, left = s->left;
+    char path[8192], last[8192] = "";
+    size_t nwfs = 0;
+    for (; cube < t->ncubes && (!s->limited || left); cube++, j = 0) {
+        const swfs_timing_cube *c = &t->cubes[cube];
+        if (c->status != SWFS_CUBE_OK || j >= c->nframes) continue;
+        size_t n = c->nframes - j;
+        if (s->limited && n > left) n = left;
+        left -= s->limited ? n : 0;
+        int rc = SWFS_OK;
+        if (s->slopes_is_dir) rc = swfs_telemetry_path(s->slopes_arg, c->slopes, path, sizeof path);
+        else snprintf(path, sizeof path, "%s", s->slopes_arg);
+        if (!rc && strcmp(path, last)) rc = swfs_telemetry_check(path, s->nslopes, &nwfs);
+        if (rc) return rc;
+        snprintf(last, sizeof last, "%s", path);
+        /* the last WFS frame the exposures of frames j .. j + n - 1 reach */
+        const double end = c->start + (double)(j + n) * t->ratio;
+        if (!(c->start >= 0) || ceil(end) > (double)nwfs)
+            return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) frames %zu..%zu need WFS frames up to %.0f but %s holds %zu",
+                             cube, c->camera, j, j + n - 1, ceil(end), path, nwfs);
+    }
+    return SWFS_OK;
+}
+
+int swfs_file_source_set_range(swfs_file_source *s, size_t first, size_t count)
+{
+    const swfs_timing *t = s->timing;
+    size_t skip = first;
+    s->cube = t->ncubes;
+    s->j = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        if (skip < t->cubes[c].nframes) {
+            s->cube = c;
+            s->j = skip;
+            skip = 0;
+            break;
+        }
+        skip -= t->cubes[c].nframes;
+    }
+    if (count && s->cube == t->ncubes)
+        return swfs_fail(SWFS_ERR_ARG, "file source: frames %zu..%zu are beyond the %zu usable frames of the data set",
+                         first, first + count - 1, first - skip);
+    s->limited = 1;
+    s->left = count;
     return SWFS_OK;
 }
 

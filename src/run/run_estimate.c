@@ -83,6 +83,28 @@ static double core_circularity(const swfs_halo *h, double pix)
     return n ? sum / (double)n : NAN;
 }
 
+/* This member's frames [first, first + count) of the cubes into acc. */
+static int accumulate(const swfs_estimate_run_options *o, swfs_fits_in *fs, swfs_fits_in *fp, swfs_accum *acc,
+                      size_t first, size_t count)
+{
+    const size_t np = acc->nx * acc->ny;
+    const size_t block = o->block < count ? o->block : (count ? count : 1);
+    double *ibuf = block <= SIZE_MAX / sizeof(swfs_complex) / np ? malloc(block * np * sizeof *ibuf) : NULL;
+    swfs_complex *pbuf = ibuf ? malloc(block * np * sizeof *pbuf) : NULL;
+    int rc = pbuf ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
+    for (size_t k = 0; !rc && k < count; k += block) {
+        const size_t n = count - k < block ? count - k : block;
+        if ((rc = swfs_fits_in_read_real(fs, first + k, n, ibuf)) || (rc = swfs_fits_in_read_cplx(fp, first + k, n, pbuf)))
+            break;
+        for (size_t j = 0; j < n && !rc; j++)
+            if ((rc = swfs_accum_add(acc, ibuf + j * np, pbuf + j * np))) swfs_fail_context(rc, "%s", o->speckles);
+        if (!rc && o->progress) o->progress(o->progress_ctx, "frames", k + n, count);
+    }
+    free(ibuf);
+    free(pbuf);
+    return rc;
+}
+
 int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -91,54 +113,41 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
         return swfs_fail(SWFS_ERR_ARG, "estimate: frames per read must be 1..%u, got %zu", 1u << 20, o->block);
     if (!(o->g_smooth_lod >= 0))
         return swfs_fail(SWFS_ERR_ARG, "estimate: g smoothing must be >= 0 lambda/D, got %g", o->g_smooth_lod);
+    /* With a team every member reaches every agreement, whatever failed before it. */
     swfs_fits_in *fs = NULL, *fp = NULL;
     swfs_accum *acc = NULL;
-    double *ibuf = NULL;
-    swfs_complex *pbuf = NULL;
     int rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_open(&fp, o->speckles, NULL);
     if (!rc) rc = check_cubes(o, swfs_fits_in_shape(fs), swfs_fits_in_shape(fp));
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc) rc = swfs_fits_in_geom(fp, &r->geom);
-    if (rc) goto done;
+    const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(fs);
+    if (!rc && !(acc = swfs_accum_create(ss->nx, ss->ny))) rc = swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
+    if (!rc) {
+        size_t first, count;
+        swfs_team_share(&ss->nz, 1, 1, o->team ? o->team->rank : 0, o->team ? o->team->size : 1, &first, &count);
+        rc = accumulate(o, fs, fp, acc, first, count);
+    }
+    rc = swfs_team_agree(o->team, rc);
+    if (!rc) rc = swfs_team_merge_accum(o->team, acc, acc);
     swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
-    const swfs_fits_shape *ss = swfs_fits_in_shape(fs);
-    const size_t nx = ss->nx, ny = ss->ny, nz = ss->nz, np = nx * ny;
-    const size_t block = o->block < nz ? o->block : nz;
-    acc = swfs_accum_create(nx, ny);
-    ibuf = block <= SIZE_MAX / sizeof *pbuf / np ? malloc(block * np * sizeof *ibuf) : NULL;
-    pbuf = ibuf ? malloc(block * np * sizeof *pbuf) : NULL;
-    if (!acc || !ibuf || !pbuf) { rc = swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory"); goto done; }
-    for (size_t k = 0; k < nz; k += block) {
-        size_t n = nz - k < block ? nz - k : block;
-        if ((rc = swfs_fits_in_read_real(fs, k, n, ibuf)) || (rc = swfs_fits_in_read_cplx(fp, k, n, pbuf))) goto done;
-        for (size_t j = 0; j < n; j++)
-            if ((rc = swfs_accum_add(acc, ibuf + j * np, pbuf + j * np))) {
-                swfs_fail_context(rc, "%s", o->speckles);
-                goto done;
-            }
-        if (o->progress) o->progress(o->progress_ctx, "frames", k + n, nz);
+    if (!rc && swfs_team_writer(o->team)) {
+        if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
+        char nl[256];
+        snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", r->noise.read_noise,
+                 r->noise.gain);
+        const char **prov = rc ? NULL : swfs_prov_plus(o->prov, o->nprov, nl);
+        if (!rc) rc = prov ? swfs_halo_write(r->halo, o->out, &r->geom, prov, o->nprov + 1)
+                           : swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
+        free(prov);
+        if (!rc) r->circ_core = core_circularity(r->halo, r->geom.pixscale);
     }
-    if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) {
-        swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
-        goto done;
-    }
-    char nl[256];
-    snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", r->noise.read_noise,
-             r->noise.gain);
-    const char **prov = swfs_prov_plus(o->prov, o->nprov, nl);
-    rc = prov ? swfs_halo_write(r->halo, o->out, &r->geom, prov, o->nprov + 1)
-              : swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
-    free(prov);
-    r->circ_core = core_circularity(r->halo, r->geom.pixscale);
-done:
+    rc = swfs_team_agree(o->team, rc); /* every member ends with member 0's writing status */
     if (rc) {
         swfs_halo_free(r->halo);
         r->halo = NULL;
     }
     swfs_accum_free(acc);
-    free(ibuf);
-    free(pbuf);
     swfs_fits_in_close(fs);
     swfs_fits_in_close(fp);
     return rc;

@@ -15,7 +15,10 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     memset(o, 0, sizeof *o);
     swfs_pipeline_options_default(&o->pipe);
     o->mean_mode = SWFS_MEAN_ENSEMBLE;
+    o->batch = 128;
 }
+
+static size_t piece(const swfs_speckles_run_options *o) { return o->batch ? o->batch : 128; }
 
 /* Everything the run holds, freed in one place. */
 typedef struct work {
@@ -153,7 +156,8 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (rc) return swfs_fail_context(rc, "%s", w->path);
     free(w->train);
     w->train = NULL;
-    if (o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
+    /* (a team writes it with the other products, once every member has succeeded) */
+    if (o->write_recon && !swfs_team_active(o->team)) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
     return rc;
 }
 
@@ -171,30 +175,76 @@ static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const s
     return o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
 }
 
-/* Every usable cube through the pipeline, into its place in w->halo. */
-static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs_speckles_run_result *r)
+/* The output frames [first, first + count) (all of them alone; a member's share in a team)
+ * through the pipeline, into w->halo, whose frame 0 is output frame `first`. A cube goes in
+ * pieces of `batch` frames from its start (a share starts on a piece): a piece from camera
+ * frame j starts at WFS frame START + j ratio, as the stream's file source schedules it (at
+ * the WFS rate: WFS frame floor(START) + j). */
+static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs_speckles_run_result *r, size_t first,
+                         size_t count)
 {
     const swfs_timing *t = w->t;
+    const size_t P = piece(o);
     size_t ok_i = 0;
     for (size_t c = 0; c < t->ncubes; c++) {
         const swfs_timing_cube *tc = t->cubes + c;
         if (tc->status != SWFS_CUBE_OK) continue;
+        const size_t c0 = w->cfirst[ok_i], c1 = c0 + w->cn[ok_i];
+        ok_i++;
+        const size_t lo = c0 > first ? c0 : first, hi = c1 < first + count ? c1 : first + count;
+        if (lo >= hi) continue;
         int rc = load_cube_slopes(o, w, tc, r->wfs_hz);
         if (rc) return rc;
-        double k0 = floor(tc->start);
-        size_t need = swfs_engine_schedule(t->ratio, tc->start - k0, tc->nframes, w->sched);
-        if (!(tc->start >= 0) || need == 0 || (size_t)k0 + need > w->slopes->ny)
-            return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
-                             tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
-        const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
-        swfs_complex *dst = swfs_cplx_frame(w->halo, w->cfirst[ok_i]);
-        rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, need, dst)
-                              : swfs_pipeline_process(w->p, sp, need, w->sched, tc->nframes, dst);
-        if (rc) return swfs_fail_context(rc, "%s cube %zu", w->path, c);
-        ok_i++;
+        for (size_t a = lo - c0; a < hi - c0; a += P) {
+            const size_t n = hi - c0 - a < P ? hi - c0 - a : P;
+            const double t0 = o->pipe.wfs_rate ? floor(tc->start) + (double)a : tc->start + (double)a * t->ratio;
+            const double k0 = floor(t0);
+            const size_t need = o->pipe.wfs_rate ? n : swfs_engine_schedule(t->ratio, t0 - k0, n, w->sched);
+            if (!(tc->start >= 0) || need == 0 || (size_t)k0 + need > w->slopes->ny)
+                return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
+                                 tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
+            const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
+            swfs_complex *dst = swfs_cplx_frame(w->halo, c0 + a - first);
+            rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, n, dst)
+                                  : swfs_pipeline_process(w->p, sp, need, w->sched, n, dst);
+            if (rc) return swfs_fail_context(rc, "%s cube %zu", w->path, c);
+        }
         if (o->progress) o->progress(o->progress_ctx, "cubes", ok_i, r->nok);
     }
     return SWFS_OK;
+}
+
+/* A team: this member's output frames, processed into a buffer of their own (member 0's
+ * at the start of the whole cube), then gathered in rank order into member 0's cube. */
+static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_speckles_run_result *r, int rc)
+{
+    const swfs_team *t = o->team;
+    const size_t nf2 = w->nfx * w->nfy;
+    size_t *counts = calloc((size_t)t->size, sizeof *counts), first = 0, count = 0;
+    if (!rc && !counts) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (int k = 0; !rc && k < t->size; k++) {
+        size_t f, n;
+        swfs_team_share(w->cn, r->nok, piece(o), k, t->size, &f, &n);
+        counts[k] = n * nf2 * sizeof(swfs_complex);
+        if (k == t->rank) { first = f; count = n; }
+    }
+    /* A missing or truncated telemetry file of any share stops every member before the work. */
+    size_t ok_i = 0;
+    for (size_t c = 0; !rc && c < w->t->ncubes; c++) {
+        const swfs_timing_cube *tc = w->t->cubes + c;
+        if (tc->status != SWFS_CUBE_OK) continue;
+        const size_t c0 = w->cfirst[ok_i], c1 = c0 + w->cn[ok_i++];
+        if (c1 > first && c0 < first + count && !(rc = swfs_telemetry_path(w->tdir, tc->slopes, w->path, sizeof w->path)))
+            rc = swfs_telemetry_check(w->path, w->nslopes, NULL);
+    }
+    rc = swfs_team_agree(t, rc);
+    if (!rc && !(w->halo = swfs_cplx_alloc(w->nfx, w->nfy, t->rank ? (count ? count : 1) : r->nout)))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", t->rank ? count : r->nout, w->nfx, w->nfy);
+    if (!rc) rc = process_cubes(o, w, r, first, count);
+    rc = swfs_team_agree(t, rc);
+    if (!rc) rc = t->gather(t->ctx, w->halo->data, counts[t->rank], t->rank ? NULL : w->halo->data, t->rank ? NULL : counts);
+    free(counts);
+    return rc;
 }
 
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
@@ -273,10 +323,15 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (!rc) rc = plan_cubes(o, &w, r);
     if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
-    if (!rc && !(w.halo = swfs_cplx_alloc(w.nfx, w.nfy, r->nout)))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
-    if (!rc) rc = process_cubes(o, &w, r);
-    if (!rc) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
+    const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
+    if (team) {
+        rc = process_team(o, &w, r, rc);
+    } else {
+        if (!rc && !(w.halo = swfs_cplx_alloc(w.nfx, w.nfy, r->nout)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
+        if (!rc) rc = process_cubes(o, &w, r, 0, r->nout);
+    }
+    if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
     if (!rc) {
         r->ncubes = w.t->ncubes;
         r->ratio = w.t->ratio;
@@ -288,12 +343,16 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
                  "modes, tip-tilt %s, static halo %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
                  w.nact, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
                  "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
-        const char **prov = swfs_prov_plus(o->prov, o->nprov, info);
-        if (!prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-        if (!rc) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
-        for (size_t k = 0; !rc && k < o->nmatch; k++) rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
+        const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
+        if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
+        if (!rc && writer && team && o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w.p), o->write_recon);
+        for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
+            rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
         free(prov);
     }
+    /* Every member ends with member 0's writing status. */
+    if (team) rc = swfs_team_agree(o->team, rc);
     work_free(&w);
     return rc;
 }

@@ -55,6 +55,8 @@ static int write_static(const char *path, const swfs_complex *stat, size_t nfx, 
 
 typedef struct run_ctx {
     const swfs_stream_run_options *o;
+    const swfs_stream_options *so;
+    const swfs_accum *merged; /* a team's union of the accumulators (member 0, at the end), else NULL */
     swfs_geom g;
     swfs_real *mask;
     const char **prov;
@@ -71,14 +73,13 @@ static int update(void *ctx, const swfs_stream *s, int final)
     swfs_halo *h = NULL;
     swfs_pupil_result *pr = NULL;
     int rc = SWFS_OK;
+    const swfs_accum *acc = u->merged ? u->merged : swfs_stream_accum(s);
     if (o->static_out && !u->static_written && swfs_stream_static(s)) {
-        const swfs_accum *a = swfs_stream_accum(s);
-        if ((rc = write_static(o->static_out, swfs_stream_static(s), a->nx, a->ny, &u->g, u->prov,
-                               u->nprov)))
+        if ((rc = write_static(o->static_out, swfs_stream_static(s), acc->nx, acc->ny, &u->g, u->prov, u->nprov)))
             return rc;
         u->static_written = 1;
     }
-    if ((rc = swfs_stream_estimate(s, &h))) {
+    if ((rc = u->merged ? swfs_estimate(acc, &u->so->noise, &u->so->est, &h) : swfs_stream_estimate(s, &h))) {
         if (final) return rc;
         if (o->on_update) o->on_update(o->update_ctx, s, NULL, NULL, 0);
         return SWFS_OK;
@@ -87,10 +88,11 @@ static int update(void *ctx, const swfs_stream *s, int final)
     if (!rc && o->pupil_out) {
         swfs_pupil_options po;
         swfs_pupil_options_default(&po);
+        po.method = u->o->pupil_method;
         rc = swfs_pupil_estimate(h, &u->g, u->mask, &po, &pr);
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
-    if (!rc && o->checkpoint) rc = swfs_accum_save(swfs_stream_accum(s), o->checkpoint, &u->g, u->prov, u->nprov);
+    if (!rc && o->checkpoint) rc = swfs_accum_save(acc, o->checkpoint, &u->g, u->prov, u->nprov);
     if (!rc && o->on_update) o->on_update(o->update_ctx, s, h, pr, final);
     swfs_pupil_result_free(pr);
     swfs_halo_free(h);
@@ -137,6 +139,98 @@ static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p
     return rc;
 }
 
+/* A team's share: the usable camera frames (the first max_frames of them), cut at batch
+ * boundaries within a cube so that every member's batches are the single-process run's. */
+static int plan_share(const swfs_stream_run_options *o, const swfs_file_source *src, size_t *first, size_t *count)
+{
+    const swfs_timing *t = swfs_file_source_timing(src);
+    size_t *len = calloc(t->ncubes ? t->ncubes : 1, sizeof *len), total = 0;
+    if (!len) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
+    const size_t cap = o->stream.max_frames;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
+        len[c] = t->cubes[c].nframes;
+        if (cap && total + len[c] > cap) len[c] = cap - total;
+        total += len[c];
+    }
+    swfs_team_share(len, t->ncubes, o->batch, o->team->rank, o->team->size, first, count);
+    free(len);
+    if (!total) return swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
+    return SWFS_OK;
+}
+
+/* Member 0's first batch (the data set's first) through the stream: the automatic static
+ * halo, as the single-process run makes it. */
+static int first_batch(swfs_stream *s, swfs_file_source *src)
+{
+    swfs_batch b;
+    memset(&b, 0, sizeof b);
+    int rc = swfs_file_source_next(src, &b);
+    if (!rc && !b.nexp) rc = swfs_fail(SWFS_ERR_INTERNAL, "stream: the first member's share is empty");
+    if (!rc && (rc = swfs_stream_push(s, &b))) swfs_fail_context(rc, "batch of cube %zu", b.cube);
+    return rc;
+}
+
+/* The team's run after setup (rc: this member's status so far): the share, the static
+ * halo, the share through the stream, then the union of the accumulators to member 0, who
+ * writes the products. Every member reaches every agreement. */
+static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline *p, swfs_file_source *src,
+                    swfs_stream_options *so, size_t nf2, swfs_stream **sp, swfs_accum **merged,
+                    swfs_stream_run_result *r, int rc)
+{
+    const swfs_team *t = o->team;
+    size_t first = 0, count = 0;
+    if (!rc) rc = plan_share(o, src, &first, &count);
+    if (!rc) rc = swfs_file_source_set_range(src, first, count);
+    /* A missing or truncated telemetry file of any share stops every member now, not
+     * after the others' work. */
+    if (!rc) rc = swfs_file_source_check(src);
+    so->max_frames = 0; /* the shares end at max_frames */
+    const int autostat = so->static_mode == SWFS_STATIC_AUTO;
+    swfs_complex *stat = NULL;
+    double scale = NAN, sums[2] = {0, 0};
+    if (!rc && autostat && !(stat = malloc(nf2 * sizeof *stat))) rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
+    if (!rc && (t->rank == 0 || !autostat)) rc = swfs_stream_create(sp, p, so);
+    if (!rc && autostat && t->rank == 0 && !(rc = first_batch(*sp, src))) {
+        memcpy(stat, swfs_stream_static(*sp), nf2 * sizeof *stat);
+        scale = swfs_stream_static_scale(*sp);
+    }
+    rc = swfs_team_agree(t, rc);
+    if (!rc && autostat) {
+        rc = t->bcast(t->ctx, stat, nf2 * sizeof *stat, 0);
+        if (!rc) rc = t->bcast(t->ctx, &scale, sizeof scale, 0);
+        if (!rc && t->rank > 0) {
+            swfs_stream_options given = *so;
+            given.static_mode = SWFS_STATIC_GIVEN;
+            given.static_halo = stat;
+            rc = swfs_stream_create(sp, p, &given);
+        }
+    }
+    free(stat);
+    if (rc) return rc;
+    /* The share through the stream; a failure (a truncated telemetry file) stops every
+     * member at the agreement that follows. */
+    if (count > swfs_stream_camera_frames(*sp)) rc = swfs_stream_run(*sp, swfs_file_source_next, src, NULL, NULL);
+    rc = swfs_team_agree(t, rc);
+    if (rc) return rc;
+    sums[0] = (double)swfs_stream_camera_frames(*sp);
+    sums[1] = swfs_stream_wfs_frames(*sp);
+    if ((rc = t->sum(t->ctx, sums, 2))) return rc;
+    const swfs_accum *mine = swfs_stream_accum(*sp);
+    if (t->rank == 0 && !(*merged = swfs_accum_create(mine->nx, mine->ny)))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory for the merged accumulators");
+    rc = swfs_team_agree(t, rc);
+    if (!rc) rc = swfs_team_merge_accum(t, mine, *merged);
+    if (!rc && t->rank == 0) {
+        u->merged = *merged;
+        rc = update(u, *sp, 1);
+    }
+    r->camera_frames = (size_t)sums[0];
+    r->wfs_frames = sums[1];
+    r->static_scale = autostat ? scale : NAN;
+    return swfs_team_agree(t, rc);
+}
+
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -144,9 +238,16 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
         return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor, actuators and "
                          "an output");
+    const int team = swfs_team_active(o->team);
+    if (team && (o->stream.every || o->stream.every_seconds > 0))
+        return swfs_fail(SWFS_ERR_ARG, "stream: a run of %d processes writes its products once, at the end, from the "
+                         "merged accumulators; periodic updates (every %zu camera frames / %g s) would not be the "
+                         "single-process run's intermediate products: leave them out (docs/cluster.md)",
+                         o->team->size, o->stream.every, o->stream.every_seconds);
     run_ctx u;
     memset(&u, 0, sizeof u);
     u.o = o;
+    swfs_accum *merged = NULL;
     swfs_pipeline *p = NULL;
     swfs_stream *s = NULL;
     swfs_file_source *src = NULL;
@@ -155,6 +256,7 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     int rc = setup(o, &u, &p, &nfx, &nfy, r);
     if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
     swfs_stream_options so = o->stream;
+    u.so = &so;
     so.noise = r->noise;
     int assumed;
     so.est.g_smooth = swfs_g_smooth_pixels(o->g_smooth_lod, u.g.pixscale, &assumed);
@@ -170,15 +272,19 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
              "frame", r->noise.read_noise, r->noise.gain, src ? swfs_file_source_timing(src)->ratio : NAN);
     if (!rc && !(u.prov = swfs_prov_plus(o->prov, o->nprov, nl))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     u.nprov = o->nprov + 1;
-    if (!rc) rc = swfs_stream_create(&s, p, &so);
-    if (!rc && so.static_mode != SWFS_STATIC_AUTO && o->static_out) {
-        rc = write_static(o->static_out, swfs_stream_static(s), nfx, nfy, &u.g, u.prov, u.nprov);
-        u.static_written = 1;
+    if (team) {
+        rc = run_team(o, &u, p, src, &so, nfx * nfy, &s, &merged, r, rc);
+    } else {
+        if (!rc) rc = swfs_stream_create(&s, p, &so);
+        if (!rc && so.static_mode != SWFS_STATIC_AUTO && o->static_out) {
+            rc = write_static(o->static_out, swfs_stream_static(s), nfx, nfy, &u.g, u.prov, u.nprov);
+            u.static_written = 1;
+        }
+        if (!rc) rc = swfs_stream_run(s, swfs_file_source_next, src, update, &u);
+        if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
     }
-    if (!rc) rc = swfs_stream_run(s, swfs_file_source_next, src, update, &u);
-    if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
-    if (s) {
+    if (s && !team) {
         r->camera_frames = swfs_stream_camera_frames(s);
         r->wfs_frames = swfs_stream_wfs_frames(s);
         r->seconds = swfs_stream_seconds(s);
@@ -188,6 +294,8 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
         r->wfs_rate = swfs_file_source_wfs_rate(src);
         r->ratio = swfs_file_source_timing(src)->ratio;
     }
+    if (s && team) r->seconds = swfs_stream_seconds(s);
+    swfs_accum_free(merged);
     swfs_stream_free(s);
     swfs_pipeline_free(p);
     swfs_file_source_close(src);
