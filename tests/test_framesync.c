@@ -90,9 +90,9 @@ static void feed(const feed_opts *fo, collected *c, swfs_framesync_stats *st)
         if (fo->restart_at && (int)k == fo->restart_at) {
             wcnt = 0;
             ccnt = 0;
-            swfs_framesync_restart(f, 0, 0);
-            if (fo->two_streams) swfs_framesync_restart(f, 0, 1);
-            swfs_framesync_restart(f, 1, 0);
+            swfs_framesync_expect(f, 0, 0, 0, 1);
+            if (fo->two_streams) swfs_framesync_expect(f, 0, 1, 0, 1);
+            swfs_framesync_expect(f, 1, 0, 0, 1);
         }
         /* WFS row k ends at (k + 1) periods. */
         const double tw = (double)(k + 1) * period;

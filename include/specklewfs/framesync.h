@@ -84,9 +84,10 @@ void swfs_framesync_free(swfs_framesync *f);
  * (copied). now: the monotonic time [s] for max_wait. */
 int swfs_framesync_add_wfs(swfs_framesync *f, size_t i, uint64_t cnt, int64_t stamp_ns, const double *vals, double now);
 int swfs_framesync_add_camera(swfs_framesync *f, uint64_t cnt, int64_t stamp_ns, const double *frame, double now);
-/* The writer of WFS stream i (camera = 0) or of the camera (camera = 1) restarted: its
- * counter starts again at 1, frames it skipped before the first one read count as dropped. */
-void swfs_framesync_restart(swfs_framesync *f, int camera, size_t i);
+/* The counter of WFS stream i (camera = 0) or of the camera (camera = 1) stood at `last`
+ * when it was opened: the frames after it that do not arrive count as dropped. restarted:
+ * the writer restarted (a new segment; its counter started again from 0). */
+void swfs_framesync_expect(swfs_framesync *f, int camera, size_t i, uint64_t last, int restarted);
 /* Skip camera exposures that begin before stamp_ns (e.g. until a DM change has settled). */
 void swfs_framesync_settle(swfs_framesync *f, int64_t stamp_ns);
 

@@ -30,8 +30,11 @@
 
 #include "specklewfs/defs.h"
 
+#include <signal.h>
 #include <stddef.h>
 #include <stdint.h>
+
+#include "specklewfs/framesync.h"
 
 SWFS_BEGIN_DECLS
 
@@ -94,6 +97,8 @@ int swfs_shm_create(swfs_shm **out, const char *dir, const char *name, const swf
 int swfs_shm_write(swfs_shm *s, const double *frame, int64_t atime_ns);
 /* A lost frame: cnt0 moves on without data (what a reader sees when a frame is missed). */
 void swfs_shm_skip(swfs_shm *s);
+/* Readers holding a semaphore now (semReadPID of a live process). */
+int swfs_shm_reader_count(const swfs_shm *s);
 /* Unmap and close; with unlink = 1 also remove the file (a writer that is done). */
 void swfs_shm_close(swfs_shm *s, int unlink_file);
 
@@ -124,6 +129,65 @@ int swfs_shm_read_latest(swfs_shm *s, double *frame, swfs_shm_frame *meta, size_
 int swfs_shm_check(const swfs_shm *s, int *state);
 /* Start reading at the current counter (skip what is already there). */
 void swfs_shm_skip_to_now(swfs_shm *s);
+/* Read next the frames after counter `last` (0: everything the stream still holds). */
+void swfs_shm_set_last(swfs_shm *s, uint64_t last);
+
+/* ---- the stream source: shared-memory streams -> stream.h batches --------------------- */
+
+/* One reader thread per stream waits on its semaphore and copies every new frame
+ * (converted to double) into a ring; the consumer (swfs_shm_source_next, the
+ * swfs_source_fn of stream.h) drains the rings into a framesync (framesync.h), which maps
+ * the WFS frames onto the camera exposures by their time stamps and hands out batches.
+ * A stream that is missing waits up to `timeout`; a writer that restarts (a new file at
+ * the path) is re-opened and its frames continue (the exposures that span the restart
+ * are skipped); a stream that disappears for longer than `timeout`, or comes back with
+ * another frame size, ends the run with an error naming it. Setting *stop (e.g. from a
+ * signal handler), `idle` seconds without a frame, or the end of the caller's frame
+ * budget end the data cleanly: the batch being filled is handed over first. */
+typedef struct swfs_shm_source_options {
+    const char *dir;             /* stream folder (swfs_shm_dir rules) */
+    const char *const *wfs;      /* nwfs WFS stream names, values concatenated in this order */
+    size_t nwfs;
+    const char *camera;          /* camera stream name */
+    size_t nslopes;              /* values the WFS streams must give together (0: any) */
+    size_t nfx, nfy;             /* camera frame size required (0: any) */
+    swfs_framesync_options sync; /* batch size, max_wait, exptime, clock memory, history */
+    double poll;                 /* [s] semaphore wait timeout and health-check period (0.02) */
+    double timeout;              /* [s] longest wait for a missing or vanished stream (10) */
+    double idle;                 /* [s] end when no frame arrived for this long after the first (0: never) */
+    volatile sig_atomic_t *stop; /* end cleanly when it becomes non-zero (may be NULL) */
+    size_t ring;                 /* frames buffered per stream (0: ~64 MB, 256..16384 frames) */
+} swfs_shm_source_options;
+
+void swfs_shm_source_options_default(swfs_shm_source_options *o);
+
+typedef struct swfs_shm_source swfs_shm_source;
+
+typedef struct swfs_shm_source_stats {
+    swfs_framesync_stats sync;   /* frames, drops, restarts, skipped exposures, batches */
+    uint64_t ring_overruns;      /* frames lost because the consumer fell behind the readers */
+    uint64_t reopens;            /* streams re-opened after their writer restarted */
+    size_t lag_count;            /* camera frames whose lag was measured */
+    double lag_median, lag_p99, lag_max; /* [s] camera stamp -> accumulated (next batch asked for) */
+    double seconds;              /* from the first frame to the end */
+} swfs_shm_source_stats;
+
+/* Opens (waiting up to timeout for) every stream, checks the frame sizes, starts the
+ * readers. Frames already in the streams are not used: the data start now. */
+int swfs_shm_source_open(swfs_shm_source **out, const swfs_shm_source_options *o);
+void swfs_shm_source_close(swfs_shm_source *s);
+/* The swfs_source_fn of stream.h (ctx = the swfs_shm_source). Blocks until a batch is
+ * ready or the data end (b->nexp = 0). */
+int swfs_shm_source_next(void *ctx, swfs_batch *b);
+/* Skip camera exposures that begin before now + seconds (a DM change settling). */
+void swfs_shm_source_settle(swfs_shm_source *s, double seconds);
+/* Record a failure to end the run with at the next batch (e.g. from an update callback
+ * that cannot return a status): code and the current swfs_last_error(). */
+void swfs_shm_source_fail(swfs_shm_source *s, int code);
+void swfs_shm_source_get_stats(const swfs_shm_source *s, swfs_shm_source_stats *st);
+/* Frame values of WFS stream i and of the camera (as opened). */
+size_t swfs_shm_source_wfs_values(const swfs_shm_source *s, size_t i);
+size_t swfs_shm_source_camera_values(const swfs_shm_source *s);
 
 /* ---- both -------------------------------------------------------------------------- */
 

@@ -563,6 +563,13 @@ int swfs_shm_claim(swfs_shm *s)
     return SWFS_OK;
 }
 
+int swfs_shm_reader_count(const swfs_shm *s)
+{
+    int n = 0;
+    for (int i = 0; i < s->shape.nsem; i++) n += pid_alive(__atomic_load_n(&s->readpid[i], __ATOMIC_ACQUIRE));
+    return n;
+}
+
 void swfs_shm_release(swfs_shm *s)
 {
     if (!s || s->claimed < 0 || !s->map) return;
@@ -732,6 +739,7 @@ int swfs_shm_check(const swfs_shm *s, int *state)
 }
 
 void swfs_shm_skip_to_now(swfs_shm *s) { s->last = __atomic_load_n(&s->m->cnt0, __ATOMIC_ACQUIRE); }
+void swfs_shm_set_last(swfs_shm *s, uint64_t last) { s->last = last; }
 
 const swfs_shm_shape *swfs_shm_get_shape(const swfs_shm *s) { return &s->shape; }
 const char *swfs_shm_get_path(const swfs_shm *s) { return s->path; }

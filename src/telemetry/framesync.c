@@ -66,12 +66,12 @@ static int clock_add(fclock *c, uint64_t cnt, double t)
     return fresh;
 }
 
-/* Frame counting: returns the frames lost before this one (a restart starts at 1). */
+/* Frame counting: returns the frames lost before this one. */
 static uint64_t count_lost(fclock *c, uint64_t cnt, uint64_t *restarts)
 {
     uint64_t lost = 0;
     if (c->restart) {
-        lost = cnt > 1 ? cnt - 1 : 0;
+        lost = cnt > c->last ? cnt - c->last - 1 : 0;
         (*restarts)++;
     } else if (c->have_last && cnt > c->last) {
         lost = cnt - c->last - 1;
@@ -116,7 +116,7 @@ struct swfs_framesync {
     unsigned char *bad;
     double *vals;                   /* hist x ns */
     /* camera */
-    fclock cc;
+    fclock cc, cc_prev;             /* the current segment's clock and the one before */
     int camseg;
     size_t qcap, qhead, qlen;
     camslot *q;
@@ -133,6 +133,8 @@ struct swfs_framesync {
     double *slopes, *science;
     swfs_exposure *sched;
     int64_t *stamps;
+    uint64_t *bcnt;                 /* camera counters of the batch's frames */
+    double *bt1;                    /* their exposure ends when appended */
     swfs_framesync_stats st;
 };
 
@@ -157,6 +159,8 @@ void swfs_framesync_free(swfs_framesync *f)
     free(f->science);
     free(f->sched);
     free(f->stamps);
+    free(f->bcnt);
+    free(f->bt1);
     free(f);
 }
 
@@ -209,7 +213,10 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
     f->science = malloc(o->batch * nf2 * sizeof *f->science);
     f->sched = malloc(o->batch * sizeof *f->sched);
     f->stamps = malloc(o->batch * sizeof *f->stamps);
-    if (!f->tag || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched || !f->stamps) {
+    f->bcnt = malloc(o->batch * sizeof *f->bcnt);
+    f->bt1 = malloc(o->batch * sizeof *f->bt1);
+    if (!f->tag || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched || !f->stamps ||
+        !f->bcnt || !f->bt1) {
         swfs_framesync_free(f);
         return swfs_fail(SWFS_ERR_NOMEM, "framesync: out of memory for %zu WFS frames of %zu values and %zu camera "
                          "frames of %zu pixels", f->hist, f->ns, f->qcap, nf2);
@@ -325,7 +332,9 @@ int swfs_framesync_add_camera(swfs_framesync *f, uint64_t cnt, int64_t stamp_ns,
     const double t = rel(f, stamp_ns);
     fclock *c = &f->cc;
     f->st.camera_dropped += count_lost(c, cnt, &f->st.camera_restarts);
+    const fclock before = *c;
     if (clock_add(c, cnt, t)) {
+        f->cc_prev = before;
         f->camseg++;
         f->st.camera_segments++;
     }
@@ -348,10 +357,13 @@ int swfs_framesync_add_camera(swfs_framesync *f, uint64_t cnt, int64_t stamp_ns,
     return SWFS_OK;
 }
 
-void swfs_framesync_restart(swfs_framesync *f, int camera, size_t i)
+void swfs_framesync_expect(swfs_framesync *f, int camera, size_t i, uint64_t last, int restarted)
 {
-    if (camera) f->cc.restart = 1;
-    else if (i < f->nw) f->wc[i].restart = 1;
+    fclock *c = camera ? &f->cc : i < f->nw ? &f->wc[i] : NULL;
+    if (!c) return;
+    c->last = last;
+    c->have_last = 1;
+    c->restart = restarted;
 }
 
 void swfs_framesync_settle(swfs_framesync *f, int64_t stamp_ns)
@@ -394,8 +406,39 @@ static int grow_slopes(swfs_framesync *f, size_t nrows)
     return SWFS_OK;
 }
 
+/* The weights of an exposure [x0, x1) in frame units over frames ga..gb. */
+static void weights(swfs_exposure *e, double x0, double x1, int64_t ga, int64_t gb)
+{
+    e->w_first = fmin((double)ga, x1) - x0;
+    e->w_last = e->count == 1 ? e->w_first : x1 - (double)(gb - 1);
+}
+
+/* Frames are appended as soon as their WFS frames are in; by the time the batch closes the
+ * clocks have seen more stamps. Re-evaluate the exposures with the current fits where the
+ * segments are still the current ones (the frames an exposure uses stay the same; a
+ * refinement that would change them is not applied). */
+static void refine(swfs_framesync *f)
+{
+    const wseg *s = NULL;
+    for (int k = 0; k < NSEG && k < f->nseg_total; k++)
+        if (f->seg[k].id == f->bseg_w) s = &f->seg[k];
+    const fclock *cc = f->bseg_c == f->camseg ? &f->cc : f->bseg_c + 1 == f->camseg ? &f->cc_prev : NULL;
+    if (!s || !cc) return;
+    const double cam_period = f->o.exptime > 0 ? f->o.exptime : clock_beta(cc);
+    if (!(cam_period > 0) || !(s->beta > 0)) return;
+    for (size_t j = 0; j < f->bn; j++) {
+        swfs_exposure *e = &f->sched[j];
+        const double t1 = clock_at(cc, (double)f->bcnt[j]), t0 = t1 - cam_period;
+        const double x0 = seg_g(s, t0), x1 = seg_g(s, t1);
+        const int64_t ga = (int64_t)floor(x0) + 1, gb0 = (int64_t)ceil(x1), gb = gb0 < ga ? ga : gb0;
+        if (ga - f->g0 != (int64_t)e->first || gb - ga + 1 != (int64_t)e->count) continue;
+        weights(e, x0, x1, ga, gb);
+    }
+}
+
 static void emit(swfs_framesync *f, swfs_batch *b)
 {
+    refine(f);
     b->slopes = f->slopes;
     b->nwfs = f->nwfs;
     b->sched = f->sched;
@@ -483,10 +526,11 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
         swfs_exposure *e = &f->sched[f->bn];
         e->first = (size_t)(ga - f->g0);
         e->count = (size_t)(gb - ga + 1);
-        e->w_first = fmin((double)ga, x1) - x0;
-        e->w_last = e->count == 1 ? e->w_first : x1 - (double)(gb - 1);
+        weights(e, x0, x1, ga, gb);
         memcpy(f->science + f->bn * f->nf2, q->data, f->nf2 * sizeof *f->science);
         f->stamps[f->bn] = q->stamp;
+        f->bcnt[f->bn] = q->cnt;
+        f->bt1[f->bn] = t1;
         f->blast = q->cnt;
         f->bn++;
         pop(f);
