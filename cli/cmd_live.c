@@ -39,7 +39,8 @@ static const char *usage_text =
     "  --idle-exit T         end when no frame arrived for T seconds (default: never)\n"
     "  --poll T              semaphore wait and stream check period [s] (0.02)\n"
     "  --dm-out NAME         write DM offsets (metres of surface per actuator, to add to the\n"
-    "                        DM) to this stream after every update; needs --pupil-out\n"
+    "                        DM) to this stream after every update, added to what it holds;\n"
+    "                        needs --pupil-out\n"
     "  --dm-file FILE        also the total offsets as OFFSETS.fits ('dmoffsets' layout)\n"
     "  --dm-gain G           fraction of the measured correction applied per update (0.5)\n"
     "  --dm-max-step M       largest change of one actuator per update [m] (default: none)\n"
@@ -47,6 +48,11 @@ static const char *usage_text =
     "  --dm-scale S          stream units per metre (1; 1e6 for micrometres)\n"
     "  --dm-settle T         skip exposures that begin within T s of a DM write (0.1)\n"
     "  --dm-keep             keep accumulating across DM updates (default: start anew)\n"
+    "  --dm-final            also correct at the end of the data (default: only at updates)\n"
+    "  --dm-tiptilt          correct tip and tilt too (default: piston, tip and tilt are removed\n"
+    "                        from the WFE first: registered frames do not see them)\n"
+    "  --pupil-source halo_lf|halo   the pupil product from HALO_LF (default, as 'pupil') or\n"
+    "                        HALO (better on closed-loop AO telemetry: docs/telemetry.md)\n"
     "  --influence, --coupling, --pitch, --modes, --reg   the fit, as 'specklewfs dmoffsets'\n";
 
 static volatile sig_atomic_t stop_flag = 0;
@@ -104,6 +110,15 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         else if (!strcmp(a, "--pitch")) dv = &o->dmfit.pitch;
         else if (!strcmp(a, "--reg")) dv = &o->dmfit.reg;
         else if (!strcmp(a, "--dm-keep")) { o->dm_keep = 1; continue; }
+        else if (!strcmp(a, "--dm-final")) { o->dm_final = 1; continue; }
+        else if (!strcmp(a, "--dm-tiptilt")) { o->dm_tiptilt = 1; continue; }
+        else if (!strcmp(a, "--pupil-source")) {
+            const char *v = i + 1 < argc ? argv[++i] : "";
+            if (!strcmp(v, "halo")) o->run.pupil_source = SWFS_SOURCE_HALO;
+            else if (!strcmp(v, "halo_lf")) o->run.pupil_source = SWFS_SOURCE_HALO_LF;
+            else return cli_usage_error(cmd, "--pupil-source expects 'halo' or 'halo_lf', got '%s'", v);
+            continue;
+        }
         else if (!strcmp(a, "--modes")) {
             long k;
             if (cli_parse_long(cmd, a, i + 1 < argc ? argv[++i] : NULL, &k)) return CLI_USAGE;

@@ -23,6 +23,7 @@
 #include "specklewfs/dmfit.h"
 #include "specklewfs/run.h"
 #include "specklewfs/shm.h"
+#include "specklewfs/timeseries.h"
 
 SWFS_BEGIN_DECLS
 
@@ -38,12 +39,14 @@ typedef struct swfs_live_options {
     /* The streams (shm.h): names, folder, batch size (src.sync.batch), max_wait,
      * exptime, timeouts, idle end, the stop flag. nslopes/nfx/nfy are set here. */
     swfs_shm_source_options src;
-    /* DM offsets: after every update (not the final one) the correction -WFE/2 of the
+    /* DM offsets: after every update (the final one too with dm_final) the correction -WFE/2 of the
      * pupil product fitted onto the actuators (dmfit.h, as `dmoffsets`), times dm_gain,
      * scaled down to at most dm_max_step per actuator, added to the total, which is
      * scaled down to at most dm_max_rms, and written to stream dm_out (nact values in
      * metres of surface x dm_scale; created as nact x 1 float32 unless a stream of nact
-     * values exists). Needs run.pupil_out. */
+     * values exists; an existing stream's current offsets are the starting total). Needs
+     * run.pupil_out; on AO telemetry (closed-loop residuals) take the pupil from HALO
+     * (run.pupil_source = SWFS_SOURCE_HALO, docs/telemetry.md). */
     const char *dm_out;         /* stream name (NULL: no offsets) */
     const char *dm_file;        /* also OFFSETS.fits of the total (dmfit_write) at every update (NULL: no) */
     swfs_dmfit_options dmfit;   /* influence functions, modes, regularization */
@@ -53,6 +56,10 @@ typedef struct swfs_live_options {
     double dm_scale;            /* stream units per metre (1) */
     double dm_settle;           /* [s] skip exposures that begin earlier than this after a write (0.1) */
     int dm_keep;                /* 1: keep accumulating across offsets; 0 (default): start anew */
+    int dm_final;               /* 1: also correct at the final update (the end of the data) */
+    int dm_tiptilt;             /* 1: correct tip and tilt too; 0 (default): piston, tip and tilt are
+                                   removed from the WFE first -- registered camera frames do not
+                                   see them, and pointing is the AO loop's */
 } swfs_live_options;
 
 void swfs_live_options_default(swfs_live_options *o);
@@ -62,6 +69,7 @@ typedef struct swfs_live_result {
     swfs_shm_source_stats src;      /* drops, restarts, skipped exposures, lag */
     size_t dm_updates;
     double dm_step_rms, dm_total_rms; /* [m] of the last update */
+    size_t dm_fixed;                /* pupil samples of the last update taken off a phase wrap or noise */
 } swfs_live_result;
 
 /* Runs until the data end (the stop flag, idle, max_frames). On an error after the first
@@ -104,6 +112,50 @@ typedef struct swfs_replay_result {
 } swfs_replay_result;
 
 int swfs_replay_run(const swfs_replay_options *o, swfs_replay_result *r);
+
+/* ---- a closed loop in simulation through the streams ------------------------------ */
+
+#define SWFS_LIVE_LOOP_MAX 32
+
+/* Iteration k: the time-series simulator (timeseries.h; seed + k) with the NCP plus twice
+ * the DM surface of the offsets it read from the DM stream -> reduce -> sync -> replay
+ * into streams -> live (its estimate at the end of the data corrected onto the DM stream)
+ * -> the simulator reads the DM stream for iteration k + 1. The reconstructor is the one
+ * `speckles` builds from iteration 0's telemetry (written to DIR/recon.fits). */
+typedef struct swfs_live_loop_options {
+    swfs_ts_params sim;
+    const char *dir;            /* output folder (must exist): iter_K/, recon.fits, dm_K.fits, shm/ */
+    size_t iterations;          /* corrections (3, at most SWFS_LIVE_LOOP_MAX) */
+    double speed;               /* replay speed (2) */
+    size_t batch;               /* live batch (16) */
+    swfs_dmfit_options dmfit;   /* (SWFS_INFLUENCE_CUBIC: the simulator's DM is the Clough-Tocher surface) */
+    double gain, max_step, max_rms; /* as live's dm_gain (0.5), dm_max_step, dm_max_rms */
+    int pupil_source;           /* (SWFS_SOURCE_HALO) */
+    int tiptilt;                /* live's dm_tiptilt (0) */
+    volatile sig_atomic_t *stop;
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_live_loop_options;
+
+void swfs_live_loop_options_default(swfs_live_loop_options *o);
+
+typedef struct swfs_live_loop_state {
+    double residual_rms;        /* [m] NCP + 2 x DM surface, piston, tip and tilt removed */
+    double estimate_err;        /* [m] live's WFE against it (piston, tip, tilt removed); NaN after the last */
+    double dm_rms;              /* [m] rms of the offsets over the pupil's actuators */
+    size_t frames_used;         /* camera frames live accumulated */
+    double lag_median, lag_p99; /* [s] */
+} swfs_live_loop_state;
+
+typedef struct swfs_live_loop_result {
+    size_t nstates;             /* iterations + 1: the state before each correction and after the last */
+    swfs_live_loop_state s[SWFS_LIVE_LOOP_MAX + 1];
+    double seconds;
+} swfs_live_loop_result;
+
+int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r);
 
 SWFS_END_DECLS
 

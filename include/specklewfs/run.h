@@ -108,6 +108,7 @@ typedef struct swfs_stream_run_options {
     /* Called after every product update (final = 1 at the end); may be NULL. */
     void (*on_update)(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
     void *update_ctx;
+    int pupil_source;         /* the pupil product's source: SWFS_SOURCE_HALO_LF (default) or SWFS_SOURCE_HALO (pupil.h) */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

@@ -2,6 +2,7 @@
  * include/specklewfs/live.h and docs/live.md. */
 #include "specklewfs/live.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
@@ -29,7 +30,7 @@ typedef struct live_ctx {
     size_t nact;
     swfs_dmfit *fit;
     swfs_shm *dm;
-    double *target, *cmd, *total, *out;
+    double *target, *cmd, *total, *out, *fitted;
     swfs_live_result *r;
 } live_ctx;
 
@@ -63,10 +64,51 @@ static int open_dm(live_ctx *l)
             return rc;
         }
         l->dm = m;
+        /* Offsets are added to what the DM channel holds now. */
+        size_t n = 0;
+        swfs_shm_frame fm;
+        int rc = swfs_shm_read_latest(m, l->out, &fm, &n);
+        if (rc) return rc;
+        for (size_t a = 0; a < l->nact && n; a++) l->total[a] = l->out[a] / o->dm_scale;
         return SWFS_OK;
     }
     swfs_shm_shape sh = {SWFS_SHM_F32, l->nact, 1, 1, 0, 0};
     return swfs_shm_create(&l->dm, o->src.dir, o->dm_out, &sh);
+}
+
+/* The fit of the correction surface, robust to the phase ambiguity of the pupil step: a
+ * WFE sample is known modulo the wavelength (a surface modulo lambda/2), and where the
+ * pupil field is faint (e.g. along the central obstruction) its phase is noise. A DM
+ * cannot make a step of lambda/4 between neighbours, so samples farther than lambda/4 of
+ * surface from the fitted surface are moved by whole lambda/2 onto the branch nearest to
+ * it, those still farther than lambda/8 take the fitted value, and the fit is repeated
+ * (at most three times; in the normal case, residuals of tens of nm, nothing changes). */
+static int fit_robust(live_ctx *l, swfs_dmfit_stats *st, size_t *nfixed)
+{
+    const size_t n2 = (size_t)l->g.pupn * (size_t)l->g.pupn;
+    const double *mask = swfs_dmfit_mask(l->fit), half = 0.5 * l->g.wavelen;
+    *nfixed = 0;
+    int rc = swfs_dmfit_apply(l->fit, l->target, l->cmd, l->fitted, st);
+    for (int pass = 0; pass < 3 && !rc; pass++) {
+        size_t changed = 0;
+        for (size_t k = 0; k < n2; k++) {
+            if (!(mask[k] > 0)) continue;
+            double d = l->target[k] - l->fitted[k];
+            if (fabs(d) > 0.5 * half) {
+                l->target[k] -= half * round(d / half);
+                d = l->target[k] - l->fitted[k];
+                changed++;
+            }
+            if (fabs(d) > 0.25 * half) {
+                l->target[k] = l->fitted[k];
+                changed++;
+            }
+        }
+        if (!changed) break;
+        *nfixed += changed;
+        rc = swfs_dmfit_apply(l->fit, l->target, l->cmd, l->fitted, st);
+    }
+    return rc;
 }
 
 static double rms_active(const double *c, size_t n, size_t nactive)
@@ -82,7 +124,7 @@ static int live_after(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_
     live_ctx *l = ctx;
     const swfs_live_options *o = l->o;
     (void)h;
-    if (!o->dm_out || final || !pr) return SWFS_OK;
+    if (!o->dm_out || (final && !o->dm_final) || !pr) return SWFS_OK;
     int rc = SWFS_OK;
     const size_t n2 = (size_t)l->g.pupn * (size_t)l->g.pupn;
     if (!l->fit) {
@@ -92,13 +134,17 @@ static int live_after(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_
         l->cmd = malloc(l->nact * sizeof *l->cmd);
         l->total = calloc(l->nact, sizeof *l->total);
         l->out = malloc(l->nact * sizeof *l->out);
-        if (!l->target || !l->cmd || !l->total || !l->out) return swfs_fail(SWFS_ERR_NOMEM, "live: out of memory");
+        l->fitted = malloc(n2 * sizeof *l->fitted);
+        if (!l->target || !l->cmd || !l->total || !l->out || !l->fitted) return swfs_fail(SWFS_ERR_NOMEM, "live: out of memory");
         if ((rc = open_dm(l))) return rc;
     }
     /* dmoffsets: the correction surface -WFE/2 (reflective DM) fitted onto the actuators. */
     for (size_t k = 0; k < n2; k++) l->target[k] = -0.5 * pr->wfe->data[k];
+    if (!o->dm_tiptilt) swfs_wfe_remove_ptt(l->target, swfs_dmfit_mask(l->fit), (size_t)l->g.pupn);
     swfs_dmfit_stats st;
-    if ((rc = swfs_dmfit_apply(l->fit, l->target, l->cmd, NULL, &st))) return rc;
+    size_t nfixed = 0;
+    if ((rc = fit_robust(l, &st, &nfixed))) return rc;
+    l->r->dm_fixed = nfixed;
     double amax = 0;
     for (size_t a = 0; a < l->nact; a++) {
         l->cmd[a] *= o->dm_gain;
@@ -169,5 +215,6 @@ int swfs_live_run(const swfs_live_options *o, swfs_live_result *r)
     free(l.cmd);
     free(l.total);
     free(l.out);
+    free(l.fitted);
     return rc;
 }

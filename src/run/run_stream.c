@@ -89,6 +89,7 @@ static int update(void *ctx, const swfs_stream *s, int final)
     if (!rc && o->pupil_out) {
         swfs_pupil_options po;
         swfs_pupil_options_default(&po);
+        if (o->pupil_source) po.source = o->pupil_source;
         rc = swfs_pupil_estimate(h, &u->g, u->mask, &po, &pr);
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
