@@ -333,6 +333,53 @@ static void test_drops(void **state)
     swfs_accum_free(a);
 }
 
+/* DM offsets into a stream, as `dmoffsets` computes them from the pupil product. */
+static void test_dm_offsets(void **state)
+{
+    (void)state;
+    char out[16384];
+    int rrc;
+    assert_int_equal(replay_live("--batch 8 --idle-exit 0.5 -o halo_dm.fits --pupil-out pupil_dm.fits --dm-out dm "
+                                 "--dm-final --dm-tiptilt --dm-gain 1",
+                                 "--depth 64 --remove --speed 2", out, sizeof out, &rrc), 0);
+    assert_non_null(strstr(out, "1 DM updates to dm"));
+    assert_int_equal(test_run_cli(dir, "dmoffsets pupil_dm.fits --actuators act.fits -o off.fits", out, sizeof out), 0);
+    swfs_real *off = NULL;
+    assert_ok(swfs_fits_read_real(in_dir("off.fits"), "OFFSETS", &off, NULL));
+    swfs_shm *dm = NULL;
+    assert_ok(swfs_shm_open(&dm, shm, "dm"));
+    const size_t nact = swfs_shm_frame_values(dm);
+    assert_int_equal(nact, off->nx * off->ny);
+    double *v = malloc(nact * sizeof *v);
+    swfs_shm_frame fm;
+    size_t n = 0;
+    assert_ok(swfs_shm_read_latest(dm, v, &fm, &n));
+    assert_int_equal(n, 1);
+    double omax = 0, dmax = 0;
+    for (size_t a = 0; a < nact; a++) {
+        omax = fmax(omax, fabs(off->data[a]));
+        dmax = fmax(dmax, fabs(v[a] - off->data[a]));
+    }
+    print_message("DM stream vs dmoffsets: largest difference %.3g m of %.3g m (float32 stream)\n", dmax, omax);
+    assert_true(omax > 0 && dmax <= 1e-6 * omax);
+    swfs_shm_close(dm, 0);
+    /* A second run adds to what the stream holds, each step limited to 1 nm per actuator. */
+    assert_int_equal(replay_live("--batch 8 --idle-exit 0.5 -o halo_dm2.fits --pupil-out pupil_dm2.fits --dm-out dm "
+                                 "--dm-final --dm-tiptilt --dm-gain 1 --dm-max-step 1e-9",
+                                 "--depth 64 --remove --speed 2", out, sizeof out, &rrc), 0);
+    assert_ok(swfs_shm_open(&dm, shm, "dm"));
+    double *v2 = malloc(nact * sizeof *v2);
+    assert_ok(swfs_shm_read_latest(dm, v2, &fm, &n));
+    double smax = 0;
+    for (size_t a = 0; a < nact; a++) smax = fmax(smax, fabs(v2[a] - v[a]));
+    print_message("second run: largest step %.4g m\n", smax);
+    assert_close(smax, 1e-9, 1e-12); /* float32 of the total */
+    swfs_shm_close(dm, 1);
+    free(v);
+    free(v2);
+    swfs_real_free(off);
+}
+
 static int no_part_files(void)
 {
     DIR *d = opendir(dir);
@@ -444,6 +491,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_equal_to_stream),
         cmocka_unit_test(test_drops),
+        cmocka_unit_test(test_dm_offsets),
         cmocka_unit_test(test_signal_and_errors),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
