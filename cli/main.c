@@ -28,6 +28,9 @@ static const struct command commands[] = {
     {"dmoffsets", swfs_cmd_dmoffsets, "deformable-mirror offsets (metres per actuator) that cancel a PUPIL.fits WFE"},
     {"correct", swfs_cmd_correct, "closed-loop NCP correction in simulation: measure, fit DM offsets, apply, repeat"},
     {"coherence", swfs_cmd_coherence, "speckle MCF, coherence time, phase-rotation time, SNR loss vs exposure (Sec. 3.3, 4.4)"},
+    {"live", swfs_cmd_live, "beside a running AO system: WFS + camera shared-memory streams -> HALO/PUPIL (+ DM offsets)"},
+    {"replay", swfs_cmd_replay, "publish telemetry + camera frames into shared-memory streams at the WFS rate (for live)"},
+    {"liveloop", swfs_cmd_liveloop, "closed NCP loop in simulation through streams: simulate -> replay -> live -> DM stream"},
 };
 
 static void usage(FILE *out)

@@ -131,6 +131,7 @@ typedef struct swfs_stream_run_options {
      * 0's first batch, sent to the others; the products are written once, at the end
      * (stream.every and every_seconds must be 0), by member 0, which alone calls on_update. */
     const swfs_team *team;
+    int pupil_source;         /* the pupil product's source: SWFS_SOURCE_HALO_LF (default) or SWFS_SOURCE_HALO (pupil.h) */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

@@ -74,6 +74,10 @@ int swfs_stream_push(swfs_stream *s, const swfs_batch *b);
  * NULL) as the options say and once at the end. SWFS_ERR_NUMERIC if no frame arrived. */
 int swfs_stream_run(swfs_stream *s, swfs_source_fn next, void *src_ctx, swfs_stream_update_fn update, void *upd_ctx);
 
+/* Start a new accumulation (e.g. after the NCP was corrected): the accumulators and the
+ * frame counts go back to zero; the static halo in use is kept. */
+void swfs_stream_reset(swfs_stream *s);
+
 /* The estimate from what has been accumulated (estimate.h); caller frees *out. */
 int swfs_stream_estimate(const swfs_stream *s, swfs_halo **out);
 const swfs_accum *swfs_stream_accum(const swfs_stream *s);

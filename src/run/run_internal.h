@@ -4,8 +4,27 @@
 
 #include <stddef.h>
 
+#include "specklewfs/run.h"
+
 /* The caller's provenance lines followed by `extra` (a new array the caller frees; the
  * strings are not copied). NULL when out of memory. */
 const char **swfs_prov_plus(const char *const *prov, size_t nprov, const char *extra);
+
+/* The streaming run of swfs_stream_run_files with another source of batches than the
+ * timing table's files (live: shared-memory streams, run_live.c). With hooks, o->timing
+ * is not used and o->science only gives the geometry, the frame size and the noise model.
+ * prepare (may be NULL) is called once the pipeline is built (its info says the slopes
+ * and the frame size) and before the first batch; after (may be NULL) after every product
+ * update with the stream itself, the estimate and the pupil product (NULL when not
+ * written); a non-zero return of either stops the run with that status. */
+typedef struct swfs_run_hooks {
+    swfs_source_fn source;
+    void *source_ctx;
+    int (*prepare)(void *ctx, const swfs_pipeline_info *info);
+    int (*after)(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
+    void *ctx;
+} swfs_run_hooks;
+
+int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r);
 
 #endif

@@ -62,6 +62,8 @@ typedef struct run_ctx {
     const char **prov;
     size_t nprov;
     int static_written;
+    const swfs_run_hooks *hk;
+    swfs_stream *stream;
 } run_ctx;
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
@@ -89,11 +91,13 @@ static int update(void *ctx, const swfs_stream *s, int final)
         swfs_pupil_options po;
         swfs_pupil_options_default(&po);
         po.method = u->o->pupil_method;
+        if (o->pupil_source) po.source = o->pupil_source;
         rc = swfs_pupil_estimate(h, &u->g, u->mask, &po, &pr);
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
     if (!rc && o->checkpoint) rc = swfs_accum_save(acc, o->checkpoint, &u->g, u->prov, u->nprov);
     if (!rc && o->on_update) o->on_update(o->update_ctx, s, h, pr, final);
+    if (!rc && u->hk && u->hk->after) rc = u->hk->after(u->hk->ctx, u->stream, h, pr, final);
     swfs_pupil_result_free(pr);
     swfs_halo_free(h);
     return rc;
@@ -233,12 +237,19 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r)
 {
+    return swfs_stream_run_hooked(o, NULL, r);
+}
+
+int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r)
+{
     memset(r, 0, sizeof *r);
     r->static_scale = NAN;
-    if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
+    if (hk && !hk->source) hk = NULL;
+    if ((!o->timing && !hk) || !o->science || !o->recon || !o->actuators || !o->out)
         return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor, actuators and "
                          "an output");
     const int team = swfs_team_active(o->team);
+    if (team && hk) return swfs_fail(SWFS_ERR_ARG, "stream: a live source runs alone, not as a team of processes");
     if (team && (o->stream.every || o->stream.every_seconds > 0))
         return swfs_fail(SWFS_ERR_ARG, "stream: a run of %d processes writes its products once, at the end, from the "
                          "merged accumulators; periodic updates (every %zu camera frames / %g s) would not be the "
@@ -248,13 +259,15 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     memset(&u, 0, sizeof u);
     u.o = o;
     swfs_accum *merged = NULL;
+    u.hk = hk;
     swfs_pipeline *p = NULL;
     swfs_stream *s = NULL;
     swfs_file_source *src = NULL;
     swfs_cplx *stat_c = NULL;
     size_t nfx = 0, nfy = 0;
     int rc = setup(o, &u, &p, &nfx, &nfy, r);
-    if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
+    if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info) : SWFS_OK;
+    else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
     swfs_stream_options so = o->stream;
     u.so = &so;
     so.noise = r->noise;
@@ -270,19 +283,24 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     char nl[256];
     snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count; ratio %.6g WFS frames per camera "
              "frame", r->noise.read_noise, r->noise.gain, src ? swfs_file_source_timing(src)->ratio : NAN);
+    if (hk) snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count; timing from the frames' "
+                     "time stamps", r->noise.read_noise, r->noise.gain);
     if (!rc && !(u.prov = swfs_prov_plus(o->prov, o->nprov, nl))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     u.nprov = o->nprov + 1;
     if (team) {
         rc = run_team(o, &u, p, src, &so, nfx * nfy, &s, &merged, r, rc);
     } else {
         if (!rc) rc = swfs_stream_create(&s, p, &so);
+        u.stream = s;
         if (!rc && so.static_mode != SWFS_STATIC_AUTO && o->static_out) {
             rc = write_static(o->static_out, swfs_stream_static(s), nfx, nfy, &u.g, u.prov, u.nprov);
             u.static_written = 1;
         }
-        if (!rc) rc = swfs_stream_run(s, swfs_file_source_next, src, update, &u);
+        if (!rc) rc = hk ? swfs_stream_run(s, hk->source, hk->source_ctx, update, &u)
+                         : swfs_stream_run(s, swfs_file_source_next, src, update, &u);
         if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
+            rc = hk ? swfs_fail(SWFS_ERR_VALUE, "no complete camera exposure arrived")
+                    : swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
     }
     if (s && !team) {
         r->camera_frames = swfs_stream_camera_frames(s);

@@ -153,6 +153,13 @@ int swfs_stream_run(swfs_stream *s, swfs_source_fn next, void *src_ctx, swfs_str
     return update ? update(upd_ctx, s, 1) : SWFS_OK;
 }
 
+void swfs_stream_reset(swfs_stream *s)
+{
+    swfs_accum_reset(s->acc);
+    s->cam = 0;
+    s->wfs = 0.0;
+}
+
 int swfs_stream_estimate(const swfs_stream *s, swfs_halo **out)
 {
     return swfs_estimate(s->acc, &s->opt.noise, &s->opt.est, out);
