@@ -2,7 +2,9 @@
  * per-iteration table that `demo` prints too. */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
@@ -74,7 +76,7 @@ void cli_print_loop_table(const swfs_loop_result *r)
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
-    const char *outdir = "correct-out", *actfile = NULL;
+    const char *outdir = "correct-out", *actfile = NULL, *cfgfile = NULL;
     swfs_loop_params lp;
     swfs_loop_params_default(&lp);
     swfs_config *cfg = swfs_config_new();
@@ -138,6 +140,8 @@ int swfs_cmd_correct(int argc, char **argv)
         } else if (swfs_config_load(cfg, a)) {
             rc = cli_error(cmd);
             goto done;
+        } else {
+            cfgfile = a;
         }
     }
     rc = CLI_FAIL;
@@ -153,6 +157,13 @@ int swfs_cmd_correct(int argc, char **argv)
         lp.act_name = actfile;
     }
     if (cli_make_dir(cmd, outdir)) goto done;
+    static const char *const products[] = {"loop.tsv", "loop.fits"};
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "config file", cfgfile);
+    swfs_paths_input(paths, "--actuators", actfile);
+    cli_paths_outputs_in(paths, outdir, products, 2);
+    if (cli_paths_check(cmd, paths)) goto done;
     fprintf(stderr, "correct: %zu iterations at gain %g, sigma %g counts (%d screens of %zu^2 each)\n", lp.iterations,
             lp.gain, lp.sigma, p.nscreens, p.screen.n);
     if (swfs_closed_loop_run(&p, &lp, NULL, cli_stage_progress, (void *)"correct:", &res)) {
@@ -162,7 +173,9 @@ int swfs_cmd_correct(int argc, char **argv)
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl};
-    if (swfs_closed_loop_write(res, outdir, prov, 1)) { cli_error(cmd); goto done; }
+    swfs_outputs_begin(); /* loop.tsv and loop.fits together (atomic.h) */
+    int wrc = swfs_closed_loop_write(res, outdir, prov, 1);
+    if (swfs_outputs_end(wrc == SWFS_OK) || wrc) { cli_error(cmd); goto done; }
     printf("specklewfs correct: Codona & Kenworthy (2013) Sec. 3 simulation in closed loop, %s/loop.{tsv,fits}\n", outdir);
     cli_print_loop_table(res);
     rc = CLI_OK;

@@ -1,7 +1,9 @@
 /* specklewfs demo: the paper's Sec. 3 simulation end to end at four noise levels. */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/recovery.h"
@@ -33,7 +35,7 @@ static const char *usage_text =
 int swfs_cmd_demo(int argc, char **argv)
 {
     const char *cmd = "demo";
-    const char *outdir = "demo-out";
+    const char *outdir = "demo-out", *cfgfile = NULL;
     double levels[16] = {0, 10, 100, 1000};
     size_t nlevels = 4;
     int want_report = 1;
@@ -42,7 +44,7 @@ int swfs_cmd_demo(int argc, char **argv)
     swfs_loop_result *loop = NULL;
     swfs_config *cfg = swfs_config_new();
     swfs_sim_result *sim = NULL;
-    int rc = CLI_FAIL;
+    int rc = CLI_FAIL, in_group = 0;
     if (!cfg) return cli_error(cmd);
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i];
@@ -81,6 +83,8 @@ int swfs_cmd_demo(int argc, char **argv)
         } else if (swfs_config_load(cfg, a)) {
             swfs_config_free(cfg);
             return cli_error(cmd);
+        } else {
+            cfgfile = a;
         }
     }
     swfs_sim_params p;
@@ -90,8 +94,34 @@ int swfs_cmd_demo(int argc, char **argv)
         goto done;
     }
     if (cli_make_dir(cmd, outdir)) goto done;
+    /* Every product of every level and of the loop, checked before the simulation. */
+    {
+        static const char *const level_products[] = {"science.fits", "speckles.fits", "truth.fits", "pupil.fits",
+                                                      "halo.fits", "wavefront.fits"};
+        static const char *const loop_products[] = {"loop.tsv", "loop.fits"};
+        swfs_paths *paths = NULL;
+        swfs_paths_create(&paths);
+        swfs_paths_input(paths, "config file", cfgfile);
+        for (size_t k = 0; k < nlevels; k++) {
+            char dir[4096];
+            snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
+            if (cli_make_dir(cmd, dir)) { swfs_paths_free(paths); goto done; }
+            cli_paths_outputs_in(paths, dir, level_products, 6);
+        }
+        if (lp.iterations > 0) {
+            char dir[4096];
+            snprintf(dir, sizeof dir, "%s/loop", outdir);
+            if (cli_make_dir(cmd, dir)) { swfs_paths_free(paths); goto done; }
+            cli_paths_outputs_in(paths, dir, loop_products, 2);
+        }
+        if (cli_paths_check(cmd, paths)) goto done;
+    }
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
+    /* The products of all levels and of the loop are renamed into place together when all
+     * are written (atomic.h); the figures are made from them afterwards. */
+    swfs_outputs_begin();
+    in_group = 1;
 
     double t0 = cli_now();
     fprintf(stderr, "demo: simulating the paper's Sec. 3 data set (%d screens of %zu^2, %ld^2 pupil, %ldx%ld window)\n",
@@ -106,7 +136,6 @@ int swfs_cmd_demo(int argc, char **argv)
         char dir[4096], noise_line[160];
         snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
         fprintf(stderr, "demo: noise level %g counts -> %s\n", levels[k], dir);
-        if (cli_make_dir(cmd, dir)) goto done;
         snprintf(noise_line, sizeof noise_line, "demo noise level: read noise %g counts, gain %g e-/count", levels[k],
                  p.gain);
         const char *prov[] = {cl, noise_line};
@@ -114,17 +143,6 @@ int swfs_cmd_demo(int argc, char **argv)
         if (swfs_recovery_run(sim, levels[k], p.seed * 1000003ULL + (uint64_t)levels[k], dir, prov, 2, &res[k])) {
             cli_error(cmd);
             goto done;
-        }
-        if (want_report) {
-            swfs_report_summary *rs = calloc(1, sizeof *rs);
-            if (!rs) { cli_error(cmd); goto done; }
-            if (swfs_report_run(dir, NULL, NULL, rs)) {
-                free(rs);
-                cli_error(cmd);
-                goto done;
-            }
-            snprintf(html[k], sizeof html[k], "%s", rs->html);
-            free(rs);
         }
         secs[k] = cli_now() - t1;
     }
@@ -134,13 +152,27 @@ int swfs_cmd_demo(int argc, char **argv)
         snprintf(dir, sizeof dir, "%s/loop", outdir);
         fprintf(stderr, "demo: closed loop, %zu iterations at gain %g, noise %g counts -> %s\n", lp.iterations, lp.gain,
                 lp.sigma, dir);
-        if (cli_make_dir(cmd, dir)) goto done;
         const char *prov[] = {cl};
         if (swfs_closed_loop_run(&p, &lp, sim, cli_stage_progress, (void *)"demo: closed", &loop) ||
             swfs_closed_loop_write(loop, dir, prov, 1)) {
             cli_error(cmd);
             goto done;
         }
+    }
+    in_group = 0;
+    if (swfs_outputs_end(1)) { cli_error(cmd); goto done; }
+    for (size_t k = 0; want_report && k < nlevels; k++) {
+        char dir[4096];
+        snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
+        swfs_report_summary *rs = calloc(1, sizeof *rs);
+        if (!rs) { cli_error(cmd); goto done; }
+        if (swfs_report_run(dir, NULL, NULL, rs)) {
+            free(rs);
+            cli_error(cmd);
+            goto done;
+        }
+        snprintf(html[k], sizeof html[k], "%s", rs->html);
+        free(rs);
     }
     double total = cli_now() - t0;
 
@@ -177,6 +209,7 @@ int swfs_cmd_demo(int argc, char **argv)
     printf("  total %.2f s\n", total);
     rc = CLI_OK;
 done:
+    if (in_group) swfs_outputs_end(0);
     swfs_loop_result_free(loop);
     swfs_sim_result_free(sim);
     swfs_config_free(cfg);

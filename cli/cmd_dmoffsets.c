@@ -4,6 +4,7 @@
 
 #include "specklewfs/dmfit.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 
@@ -81,6 +82,12 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
     if (!out) return cli_usage_error(cmd, "needs -o OFFSETS.fits");
     if (!actfile && !(hexpitch > 0)) return cli_usage_error(cmd, "needs --actuators ACT.fits or --hexapolar PITCH");
     if (actfile && hexpitch > 0) return cli_usage_error(cmd, "give --actuators or --hexapolar, not both");
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "pupil product", in);
+    swfs_paths_input(paths, "--actuators", actfile);
+    swfs_paths_output(paths, "-o", out);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     int rc = CLI_FAIL;
     swfs_fits_in *f = NULL;

@@ -3,6 +3,7 @@
 
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/status.h"
 
@@ -60,6 +61,14 @@ int swfs_cmd_pupil(int argc, char **argv)
     }
     if (!in) return cli_usage_error(cmd, "needs HALO.fits");
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
+
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "halo", in);
+    swfs_paths_input(paths, "--pupil mask", maskfile);
+    swfs_paths_input(paths, "--truth", truthfile);
+    swfs_paths_output(paths, "-o", out);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     swfs_halo *h = NULL;
     swfs_real *mask = NULL, *truth = NULL;

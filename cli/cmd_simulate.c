@@ -1,7 +1,9 @@
 /* specklewfs simulate: the paper's Sec. 3 data set (science, speckles, truth, pupil). */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/config.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
 
@@ -33,7 +35,7 @@ static void help(FILE *out)
 
 int swfs_cmd_simulate(int argc, char **argv)
 {
-    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL;
+    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL, *cfgfile = NULL;
     int quiet = 0, rc;
     swfs_config *cfg = swfs_config_new();
     if (!cfg) return cli_error(cmd);
@@ -88,6 +90,7 @@ int swfs_cmd_simulate(int argc, char **argv)
             swfs_config_free(cfg);
             cfg = f;
             have_file = 1;
+            cfgfile = a;
         }
     }
     if (!outdir) {
@@ -106,7 +109,7 @@ int swfs_cmd_simulate(int argc, char **argv)
             return cli_error(cmd);
         }
         if (!strcmp(mode, "timeseries")) {
-            rc = swfs_cmd_simulate_ts(cfg, outdir, quiet, argc, argv);
+            rc = swfs_cmd_simulate_ts(cfg, cfgfile, outdir, quiet, argc, argv);
             swfs_config_free(cfg);
             return rc;
         }
@@ -124,6 +127,12 @@ int swfs_cmd_simulate(int argc, char **argv)
     }
     swfs_config_free(cfg);
     if ((rc = cli_make_dir(cmd, outdir))) return rc;
+    static const char *const products[] = {"science.fits", "speckles.fits", "truth.fits", "pupil.fits"};
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "config file", cfgfile);
+    cli_paths_outputs_in(paths, outdir, products, 4);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     const double t0 = cli_now();
     swfs_sim_result *r = NULL;
@@ -138,7 +147,11 @@ int swfs_cmd_simulate(int argc, char **argv)
     char cmdline[2048];
     cli_command_line(argc, argv, cmdline, sizeof cmdline);
     const char *prov[1] = {cmdline};
-    if (swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, 1)) {
+    /* The four files come as a set (atomic.h): all renamed into place, or none. */
+    swfs_outputs_begin();
+    int wrc = swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, 1);
+    int erc = swfs_outputs_end(wrc == SWFS_OK);
+    if (wrc || erc) {
         swfs_real_free(noisy);
         swfs_sim_result_free(r);
         return cli_error(cmd);

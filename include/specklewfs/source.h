@@ -28,6 +28,10 @@ const swfs_timing *swfs_file_source_timing(const swfs_file_source *s);
 /* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
 double swfs_file_source_wfs_rate(const swfs_file_source *s);
 
+/* The telemetry file the source reads for a cube whose timing-table entry names `name`
+ * (timing, slopes: as for swfs_file_source_open). */
+int swfs_file_source_telemetry_path(const char *timing, const char *slopes, const char *name, char *path, size_t cap);
+
 /* The path of telemetry file `name` of a timing table in folder dir (absolute names are
  * used as they are). SWFS_ERR_ARG if it does not fit in cap. */
 int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t cap);

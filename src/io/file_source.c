@@ -152,6 +152,17 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
     return SWFS_OK;
 }
 
+int swfs_file_source_telemetry_path(const char *timing, const char *slopes, const char *name, char *path, size_t cap)
+{
+    char dir[4096];
+    struct stat sb;
+    swfs_path_dir(timing, dir, sizeof dir);
+    if (!slopes) slopes = dir;
+    if (stat(slopes, &sb) == 0 && S_ISDIR(sb.st_mode)) return swfs_telemetry_path(slopes, name, path, cap);
+    snprintf(path, cap, "%s", slopes);
+    return SWFS_OK;
+}
+
 /* Make the telemetry file of the current cube the one in memory. */
 static int load_telemetry(swfs_file_source *s, const swfs_timing_cube *c, char *path, size_t cap)
 {

@@ -2,6 +2,7 @@
  * coherence input (coherence.h), OFFSETS.fits (dmfit.h), reconstructor and actuator files
  * (wfs.h), the closed-loop folder (closed_loop.h). The method code computes arrays; only
  * this layer reads and writes files. */
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/coherence.h"
 #include "specklewfs/dmfit.h"
@@ -270,15 +271,17 @@ int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const cha
     char path[4096];
     if (snprintf(path, sizeof path, "%s/loop.tsv", dir) >= (int)sizeof path)
         return swfs_fail(SWFS_ERR_ARG, "%s: folder name too long", dir);
-    FILE *fp = fopen(path, "w");
-    if (!fp) return swfs_fail(SWFS_ERR_IO, "%s: cannot write", path);
+    swfs_atomic *tsv = NULL;
+    int rc = swfs_atomic_begin(&tsv, path, 1);
+    if (rc) return rc;
+    FILE *fp = swfs_atomic_stream(tsv);
     /* Table columns: also the METRICS image rows below. */
     static const char *cols[] = {"iter", "resid_nm", "resid_ptt_nm", "strehl", "strehl_ao", "strehl_marechal",
                                  "contrast", "contrast_ao", "contrast_ncp", "est_nm", "est_err_nm", "median_snr", "fit_nm",
                                  "unfit_nm", "fiterr_nm", "filtered_nm", "cmd_rms_nm", "seconds"};
     enum { NCOL = sizeof cols / sizeof cols[0] };
     swfs_real *met = swfs_real_alloc(NCOL, r->nrows, 1);
-    if (!met) { fclose(fp); return SWFS_ERR_NOMEM; }
+    if (!met) { swfs_atomic_abort(tsv); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     for (size_t c = 0; c < NCOL; c++) fprintf(fp, "%s%s", c ? "\t" : "# ", cols[c]);
     fputc('\n', fp);
     for (size_t k = 0; k < r->nrows; k++) {
@@ -293,14 +296,14 @@ int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const cha
         }
         fputc('\n', fp);
     }
-    if (fclose(fp) != 0) {
+    if ((rc = swfs_atomic_commit(tsv))) {
         swfs_real_free(met);
-        return swfs_fail(SWFS_ERR_IO, "%s: write failed", path);
+        return rc;
     }
 
     snprintf(path, sizeof path, "%s/loop.fits", dir);
     swfs_fits_out *o = NULL;
-    int rc = swfs_fits_out_create(&o, path);
+    rc = swfs_fits_out_create(&o, path);
     if (!rc) rc = swfs_fits_out_set_stamp(o, &r->geom, prov, nprov);
     if (!rc) rc = swfs_fits_out_real(o, "METRICS", met, -64);
     for (size_t c = 0; !rc && c < NCOL; c++) {

@@ -1,6 +1,8 @@
 /* speckles: timing table + telemetry -> the speckle cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/source.h"
 #include "specklewfs/speckles.h"
 #include "run_internal.h"
@@ -68,6 +70,30 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     else if (!(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     else memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
     swfs_real_free(pm);
+    return rc;
+}
+
+/* Every input (also the telemetry files the timing table names) and output, checked
+ * before the work (outpaths.h). */
+static int check_paths(const swfs_speckles_run_options *o, const work *w)
+{
+    swfs_paths *p = NULL;
+    char path[8192];
+    int rc = swfs_paths_create(&p);
+    swfs_paths_input(p, "timing table", o->timing);
+    swfs_paths_input(p, "science cube", o->science);
+    swfs_paths_input(p, "actuator file", o->actuators);
+    if (o->pipe.recon == SWFS_RECON_GIVEN) swfs_paths_input(p, "reconstructor", o->recon);
+    swfs_paths_input(p, "pupil mask", o->mask);
+    for (size_t k = 0; k < o->nmatch; k++) swfs_paths_input(p, "--match input", o->match_in[k]);
+    for (size_t c = 0; !rc && c < w->t->ncubes; c++)
+        if (!(rc = swfs_telemetry_path(w->tdir, w->t->cubes[c].slopes, path, sizeof path)))
+            rc = swfs_paths_input(p, "telemetry file named by the timing table", path);
+    swfs_paths_output(p, "output speckle cube", o->out);
+    swfs_paths_output(p, "reconstructor output", o->write_recon);
+    for (size_t k = 0; k < o->nmatch; k++) swfs_paths_output(p, "--match output", o->match_out[k]);
+    if (!rc) rc = swfs_paths_status(p);
+    swfs_paths_free(p);
     return rc;
 }
 
@@ -270,6 +296,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     memset(&w, 0, sizeof w);
     swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);
     int rc = load_inputs(o, &w);
+    if (!rc) rc = check_paths(o, &w);
+    /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */
+    int group = !rc;
+    if (group) swfs_outputs_begin();
     if (!rc) rc = plan_cubes(o, &w, r);
     if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
@@ -293,6 +323,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         if (!rc) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
         for (size_t k = 0; !rc && k < o->nmatch; k++) rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
         free(prov);
+    }
+    if (group) {
+        int erc = swfs_outputs_end(rc == SWFS_OK);
+        if (!rc) rc = erc;
     }
     work_free(&w);
     return rc;

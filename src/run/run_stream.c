@@ -1,7 +1,9 @@
 /* stream: the whole real-time path from files. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/checkpoint.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/source.h"
 #include "run_internal.h"
 
@@ -9,6 +11,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o)
 {
@@ -60,6 +63,7 @@ typedef struct run_ctx {
     const char **prov;
     size_t nprov;
     int static_written;
+    int updated;              /* products of an update are in place */
 } run_ctx;
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
@@ -83,6 +87,8 @@ static int update(void *ctx, const swfs_stream *s, int final)
         if (o->on_update) o->on_update(o->update_ctx, s, NULL, NULL, 0);
         return SWFS_OK;
     }
+    /* One update's products are renamed into place together (atomic.h). */
+    swfs_outputs_begin();
     rc = swfs_halo_write(h, o->out, &u->g, u->prov, u->nprov);
     if (!rc && o->pupil_out) {
         swfs_pupil_options po;
@@ -91,9 +97,41 @@ static int update(void *ctx, const swfs_stream *s, int final)
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
     if (!rc && o->checkpoint) rc = swfs_accum_save(swfs_stream_accum(s), o->checkpoint, &u->g, u->prov, u->nprov);
+    int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (!rc) rc = erc;
+    if (!rc) u->updated = 1;
     if (!rc && o->on_update) o->on_update(o->update_ctx, s, h, pr, final);
     swfs_pupil_result_free(pr);
     swfs_halo_free(h);
+    return rc;
+}
+
+/* Every input (the telemetry files of the timing table too) and output, before the work. */
+static int check_paths(const swfs_stream_run_options *o)
+{
+    swfs_paths *p = NULL;
+    swfs_timing *t = NULL;
+    char path[8192];
+    int rc = swfs_paths_create(&p);
+    swfs_paths_input(p, "timing table", o->timing);
+    swfs_paths_input(p, "science cube", o->science);
+    swfs_paths_input_or_dir(p, "telemetry (--slopes)", o->slopes);
+    swfs_paths_input(p, "reconstructor", o->recon);
+    swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_paths_input(p, "pupil mask", o->mask);
+    swfs_paths_input(p, "static halo", o->static_file);
+    if (!rc) rc = swfs_paths_status(p);
+    if (!rc) rc = swfs_timing_read(o->timing, &t);
+    for (size_t c = 0; !rc && c < t->ncubes; c++)
+        if (!(rc = swfs_file_source_telemetry_path(o->timing, o->slopes, t->cubes[c].slopes, path, sizeof path)))
+            rc = swfs_paths_input(p, "telemetry file of the timing table", path);
+    swfs_paths_output(p, "output halo", o->out);
+    swfs_paths_output(p, "pupil output", o->pupil_out);
+    swfs_paths_output(p, "checkpoint output", o->checkpoint);
+    swfs_paths_output(p, "static-halo output", o->static_out);
+    if (!rc) rc = swfs_paths_status(p);
+    swfs_timing_free(t);
+    swfs_paths_free(p);
     return rc;
 }
 
@@ -152,7 +190,8 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     swfs_file_source *src = NULL;
     swfs_cplx *stat_c = NULL;
     size_t nfx = 0, nfy = 0;
-    int rc = setup(o, &u, &p, &nfx, &nfy, r);
+    int rc = check_paths(o);
+    if (!rc) rc = setup(o, &u, &p, &nfx, &nfy, r);
     if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
     swfs_stream_options so = o->stream;
     so.noise = r->noise;
@@ -178,6 +217,16 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     if (!rc) rc = swfs_stream_run(s, swfs_file_source_next, src, update, &u);
     if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
         rc = swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
+    if (rc && (u.updated || u.static_written)) {
+        /* A failed run leaves no product that looks complete: the updates it had put in
+         * place describe only the frames before the failure. */
+        const char *const mine[] = {o->out, o->pupil_out, o->checkpoint};
+        for (size_t k = 0; u.updated && k < 3; k++)
+            if (mine[k]) unlink(mine[k]);
+        if (u.static_written && o->static_out) unlink(o->static_out);
+        swfs_fail_context(rc, "%s: the run failed after %zu camera frames and removed the products it had written",
+                          o->out, s ? swfs_stream_camera_frames(s) : (size_t)0);
+    }
     if (s) {
         r->camera_frames = swfs_stream_camera_frames(s);
         r->wfs_frames = swfs_stream_wfs_frames(s);

@@ -1,6 +1,7 @@
 /* sync: reduced science + handshake log -> the timing table (Sec. 4.2). See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
 #include "specklewfs/source.h"
 
@@ -96,8 +97,21 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     work w;
     memset(&w, 0, sizeof w);
     swfs_timing *t = &r->t;
-    int rc = swfs_science_track_read(o->science, &w.tr);
+    swfs_paths *paths = NULL;
+    int rc = swfs_paths_create(&paths);
+    swfs_paths_input(paths, "science cube", o->science);
+    swfs_paths_input(paths, "handshake log", o->handshake);
+    if (!rc) rc = swfs_paths_output(paths, "output timing table", o->out);
+    if (!rc) rc = swfs_science_track_read(o->science, &w.tr);
     if (!rc) rc = swfs_handshake_read(o->handshake, &w.hs, &w.nhs);
+    /* The telemetry files the log names are inputs too. */
+    for (size_t k = 0; !rc && k < w.nhs; k++) {
+        char dir[4096], path[8192];
+        swfs_path_dir(o->handshake, dir, sizeof dir);
+        if (!(rc = swfs_telemetry_path(dir, w.hs[k].slopes, path, sizeof path)))
+            rc = swfs_paths_input(paths, "telemetry file named by the handshake log", path);
+    }
+    swfs_paths_free(paths);
     if (!rc) {
         const size_t nc = w.tr->ncubes;
         swfs_path_dir(o->handshake, w.logdir, sizeof w.logdir);

@@ -1,6 +1,8 @@
 /* WFS / science-camera synchronization by tip-tilt cross-correlation (Sec. 4.2), the
  * handshake log and the timing table (see sync.h). */
 #include "specklewfs/sync.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -246,6 +248,7 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
 {
     *out = NULL;
     *n = 0;
+    if (swfs_input_check(path, "handshake log")) return SWFS_ERR_IO;
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the handshake log: %s", path, strerror(errno));
     size_t cap = 16, cnt = 0;
@@ -286,13 +289,14 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
 
 int swfs_handshake_write(const char *path, const swfs_handshake *h, size_t n)
 {
-    FILE *f = fopen(path, "w");
-    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the handshake log: %s", path, strerror(errno));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, path, 1);
+    if (rc) return rc;
+    FILE *f = swfs_atomic_stream(a);
     fprintf(f, "# specklewfs handshake log: one camera cube per line\n# CAMERA_FILE SLOPES_FILE WFS_FRAME "
                "(frame of SLOPES_FILE logged when the cube started, late by an unknown lag)\n");
     for (size_t i = 0; i < n; i++) fprintf(f, "%s %s %ld\n", h[i].camera, h[i].slopes, h[i].frame);
-    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
-    return SWFS_OK;
+    return swfs_atomic_commit(a);
 }
 
 /* ---- timing table ---------------------------------------------------------------- */
@@ -306,8 +310,10 @@ void swfs_timing_free(swfs_timing *t)
 
 int swfs_timing_write(const char *path, const swfs_timing *t)
 {
-    FILE *f = fopen(path, "w");
-    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the timing table: %s", path, strerror(errno));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, path, 1);
+    if (rc) return rc;
+    FILE *f = swfs_atomic_stream(a);
     fprintf(f, "# specklewfs timing table (specklewfs sync): WFS time in frames of each slopes file\n");
     fprintf(f, "# camera exposure j of a cube covers [start + j ratio, start + (j+1) ratio)\n");
     fprintf(f, "ratio %.6f %.6f\n", t->ratio, t->ratio_err);
@@ -320,13 +326,13 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
         fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
                 c->status == SWFS_CUBE_OK ? "ok" : "straddles");
     }
-    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
-    return SWFS_OK;
+    return swfs_atomic_commit(a);
 }
 
 int swfs_timing_read(const char *path, swfs_timing **out)
 {
     *out = NULL;
+    if (swfs_input_check(path, "timing table")) return SWFS_ERR_IO;
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the timing table: %s", path, strerror(errno));
     swfs_timing *t = calloc(1, sizeof *t);
