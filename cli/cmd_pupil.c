@@ -84,6 +84,7 @@ int swfs_cmd_pupil(int argc, char **argv)
                     cmd, maskfile, mask->nx, mask->ny, mask->nz, in, g.pupn, g.pupn, g.pupn);
             goto done;
         }
+        if (swfs_pupil_mask_check(mask, maskfile)) { cli_error(cmd); goto done; }
     }
     if (swfs_pupil_estimate(h, &g, mask, &opt, &r)) {
         fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, in, swfs_last_error());

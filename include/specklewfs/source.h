@@ -40,6 +40,11 @@ void swfs_path_dir(const char *path, char *dir, size_t cap);
 /* A telemetry file: a 2-D image of nslopes x WFS frames (nslopes = 0: any width), and its
  * WFSRATE [Hz] in *rate (0 when absent or not a rate; rate may be NULL). */
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate);
+/* Telemetry values: finite and at most SWFS_TELEMETRY_MAX in magnitude in any unit (FLT_MAX
+ * and similar fill values are refused rather than averaged into the synchronization or the
+ * reconstruction). SWFS_ERR_VALUE naming the file, slope and frame. */
+#define SWFS_TELEMETRY_MAX 1e30
+int swfs_telemetry_check_values(const char *path, const swfs_real *s);
 /* Every telemetry file the usable cubes of t use, in the order they first appear,
  * concatenated: *out = *nframes frames of nslopes (caller frees). */
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,

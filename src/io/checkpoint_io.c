@@ -55,6 +55,7 @@ int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g)
     double ver;
     char names[128];
     int found = 0;
+    if ((rc = swfs_fits_in_require_float(f, "an accumulator checkpoint"))) goto done;
     if (sh->is_complex || sh->nz != SWFS_ACC_NFIELDS) {
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: ACCUM is %zux%zux%zu%s; a checkpoint holds a real cube of %d planes", path,
                        sh->nx, sh->ny, sh->nz, sh->is_complex ? " complex" : "", SWFS_ACC_NFIELDS);

@@ -83,6 +83,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
     for (size_t k = 0; k < NREAL && !rc; k++) {
         if (!swfs_fits_in_has_ext(f, real_exts[k].name)) continue;
         rc = swfs_fits_in_move(f, real_exts[k].name);
+        if (!rc) rc = swfs_fits_in_require_float(f, "a HALO.fits product");
         if (!rc) rc = swfs_fits_in_read_real_all(f, real_slot(h, k));
         if (!rc) {
             const swfs_real *a = *real_slot(h, k);

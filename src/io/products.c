@@ -69,14 +69,15 @@ int swfs_recon_read(const char *path, swfs_recon **out)
     swfs_real *a = NULL;
     int rc = swfs_fits_read_real(path, NULL, &a, NULL);
     if (rc) return rc;
-    if (a->nz != 1) {
-        size_t nz = a->nz;
+    if (a->nz != 1 || a->nx < 2 || a->nx % 2) {
+        size_t nx = a->nx, ny = a->ny, nz = a->nz;
         swfs_real_free(a);
-        return swfs_fail(SWFS_ERR_FORMAT, "%s: reconstructor must be a 2-D image (nslopes x nact), got %zu planes", path, nz);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: a reconstructor is a 2-D image of nslopes (even: x then y slopes) x nact, "
+                         "got %zux%zux%zu", path, nx, ny, nz);
     }
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = malloc(a->nx * a->ny * sizeof *r->W);
-    if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     r->nslopes = a->nx; r->nact = a->ny;
     for (size_t i = 0; i < a->nx * a->ny; i++) {
         if (!isfinite(a->data[i])) {
@@ -115,8 +116,22 @@ int swfs_actuators_read(const char *path, double **xy, size_t *nact)
         swfs_real_free(a);
         return swfs_fail(SWFS_ERR_FORMAT, "%s: actuator positions must be a 2 x nact image, NAXIS1 is %zu", path, nx);
     }
+    /* Positions in the pupil frame [m]: finite, within a kilometre, at least three. */
+    for (size_t i = 0; i < 2 * a->ny; i++)
+        if (!isfinite(a->data[i]) || fabs(a->data[i]) > 1e3) {
+            double v = a->data[i];
+            size_t k = i / 2;
+            swfs_real_free(a);
+            return swfs_fail(SWFS_ERR_VALUE, "%s: actuator %zu has %c = %g m; positions must be finite and within "
+                             "1 km of the pupil centre", path, k, i % 2 ? 'y' : 'x', v);
+        }
+    if (a->ny < 3) {
+        size_t n = a->ny;
+        swfs_real_free(a);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: %zu actuator(s); the interpolation needs at least 3", path, n);
+    }
     double *p = malloc(2 * a->ny * sizeof *p);
-    if (!p) { swfs_real_free(a); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!p) { swfs_real_free(a); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     memcpy(p, a->data, 2 * a->ny * sizeof *p);
     *nact = a->ny;
     *xy = p;

@@ -67,8 +67,9 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     if ((rc = swfs_fits_read_real(o->mask, NULL, &pm, NULL))) return rc;
     if (pm->nx != npup || pm->ny != npup || pm->nz != 1)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zu but PUPN = %zu", o->mask, pm->nx, pm->ny, npup);
-    else if (!(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    else memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
+    else rc = swfs_pupil_mask_check(pm, o->mask);
+    if (!rc && !(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
     swfs_real_free(pm);
     return rc;
 }
@@ -176,7 +177,7 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
                                        w->train, w->ntrain, &o->pipe);
-    if (rc) return swfs_fail_context(rc, "%s", w->path);
+    if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
     free(w->train);
     w->train = NULL;
     if (o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);

@@ -38,7 +38,7 @@ static int load_mask(const char *path, const swfs_geom *g, swfs_real **out)
     if ((*out)->nx != (size_t)g->pupn || (*out)->ny != (size_t)g->pupn || (*out)->nz != 1)
         return swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but PUPN = %ld", path, (*out)->nx, (*out)->ny,
                          (*out)->nz, g->pupn);
-    return SWFS_OK;
+    return swfs_pupil_mask_check(*out, path);
 }
 
 static int write_static(const char *path, const swfs_complex *stat, size_t nfx, size_t nfy, const swfs_geom *g,
@@ -107,7 +107,7 @@ static int update(void *ctx, const swfs_stream *s, int final)
 }
 
 /* Every input (the telemetry files of the timing table too) and output, before the work. */
-static int check_paths(const swfs_stream_run_options *o)
+static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t cap)
 {
     swfs_paths *p = NULL;
     swfs_timing *t = NULL;
@@ -122,9 +122,12 @@ static int check_paths(const swfs_stream_run_options *o)
     swfs_paths_input(p, "static halo", o->static_file);
     if (!rc) rc = swfs_paths_status(p);
     if (!rc) rc = swfs_timing_read(o->timing, &t);
+    first_tel[0] = 0;
     for (size_t c = 0; !rc && c < t->ncubes; c++)
-        if (!(rc = swfs_file_source_telemetry_path(o->timing, o->slopes, t->cubes[c].slopes, path, sizeof path)))
+        if (!(rc = swfs_file_source_telemetry_path(o->timing, o->slopes, t->cubes[c].slopes, path, sizeof path))) {
             rc = swfs_paths_input(p, "telemetry file of the timing table", path);
+            if (!first_tel[0] && t->cubes[c].status == SWFS_CUBE_OK) snprintf(first_tel, cap, "%s", path);
+        }
     swfs_paths_output(p, "output halo", o->out);
     swfs_paths_output(p, "pupil output", o->pupil_out);
     swfs_paths_output(p, "checkpoint output", o->checkpoint);
@@ -136,8 +139,8 @@ static int check_paths(const swfs_stream_run_options *o)
 }
 
 /* Geometry and noise model of the science cube, the reconstructor and actuators -> the pipeline. */
-static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p, size_t *nfx, size_t *nfy,
-                 swfs_stream_run_result *r)
+static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ctx *u, swfs_pipeline **p, size_t *nfx,
+                 size_t *nfy, swfs_stream_run_result *r)
 {
     swfs_fits_in *fs = NULL;
     swfs_recon *rec = NULL;
@@ -153,6 +156,17 @@ static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p
     if (!rc) rc = swfs_geom_require(&u->g, o->science);
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
+    /* The reconstructor's width against the telemetry now, not after the first frames:
+     * a wrong --recon is named as such. */
+    if (!rc && first_tel[0]) {
+        swfs_fits_in *ft = NULL;
+        rc = swfs_fits_in_open(&ft, first_tel, NULL);
+        if (!rc && swfs_fits_in_shape(ft)->nx != rec->nslopes)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the reconstructor takes %zu slopes per WFS frame but the telemetry %s "
+                           "has %zu; --recon needs the reconstructor (nslopes x nact image)", o->recon, rec->nslopes,
+                           first_tel, swfs_fits_in_shape(ft)->nx);
+        swfs_fits_in_close(ft);
+    }
     if (!rc) rc = swfs_actuators_read(o->actuators, &act, &nact);
     if (!rc && rec->nact != nact)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s has %zu actuators but the reconstructor %s has %zu rows", o->actuators, nact,
@@ -167,7 +181,7 @@ static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p
         po.threads = o->threads;
         rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes, rec,
                                   NULL, 0, &po);
-        if (rc) swfs_fail_context(rc, "%s", o->recon);
+        if (rc) swfs_fail_context(rc, "%s with %s", o->recon, o->actuators);
         else swfs_pipeline_get_info(*p, &r->info);
     }
     swfs_recon_free(rec);
@@ -190,8 +204,9 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
     swfs_file_source *src = NULL;
     swfs_cplx *stat_c = NULL;
     size_t nfx = 0, nfy = 0;
-    int rc = check_paths(o);
-    if (!rc) rc = setup(o, &u, &p, &nfx, &nfy, r);
+    char first_tel[8192];
+    int rc = check_paths(o, first_tel, sizeof first_tel);
+    if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
     if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
     swfs_stream_options so = o->stream;
     so.noise = r->noise;
@@ -202,6 +217,10 @@ int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_resu
         if (!rc && (stat_c->nx != nfx || stat_c->ny != nfy))
             rc = swfs_fail(SWFS_ERR_SHAPE, "%s: static halo is %zux%zu but the science frames are %zux%zu", o->static_file,
                            stat_c->nx, stat_c->ny, nfx, nfy);
+        for (size_t q = 0; !rc && q < nfx * nfy * stat_c->nz; q++)
+            if (!isfinite(creal(stat_c->data[q])) || !isfinite(cimag(stat_c->data[q])))
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: static halo value at pixel (%zu, %zu) is not finite", o->static_file,
+                               q % nfx, q / nfx % nfy);
         if (!rc) so.static_halo = stat_c->data;
     }
     char nl[256];

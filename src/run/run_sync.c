@@ -48,6 +48,7 @@ static int load_file(work *w, const char *name, size_t *fi)
     if (s->nz != 1 || s->nx % 2 || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: slopes must be a 2-D image NSLOPES (even%s) x N_WFS, got %zux%zux%zu", path,
                        w->nwfs_slopes ? ", same in every file" : "", s->nx, s->ny, s->nz);
+    if (!rc) rc = swfs_telemetry_check_values(path, s);
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
         rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
@@ -98,7 +99,9 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     memset(&w, 0, sizeof w);
     swfs_timing *t = &r->t;
     swfs_paths *paths = NULL;
-    int rc = swfs_paths_create(&paths);
+    int rc = swfs_sync_params_check(&o->params);
+    if (rc) return rc;
+    rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
     swfs_paths_input(paths, "handshake log", o->handshake);
     if (!rc) rc = swfs_paths_output(paths, "output timing table", o->out);

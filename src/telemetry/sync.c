@@ -153,14 +153,28 @@ static void grid(const prep_cube *pc, size_t c0, size_t c1, double r0, double r1
     }
 }
 
+int swfs_sync_params_check(const swfs_sync_params *p)
+{
+    if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
+          p->lag_step > 0) || !isfinite(p->ratio_max) || !isfinite(p->lag_min) || !isfinite(p->lag_max))
+        return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
+                         p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
+    /* The coarse grid is searched exhaustively: bound it (the default is 1,000 x 31). */
+    const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step) + 1,
+                 nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
+    if (!(nr * nl <= SWFS_SYNC_MAX_GRID))
+        return swfs_fail(SWFS_ERR_ARG, "sync: the search grid has %.3g points (%.3g ratios x %.3g lags); at most %.0f: "
+                         "use a larger --ratio-step / --lag-step or narrower ranges", nr * nl, nr, nl,
+                         (double)SWFS_SYNC_MAX_GRID);
+    return SWFS_OK;
+}
+
 int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sync_params *p, swfs_sync_result *r)
 {
     memset(r, 0, sizeof *r);
     if (ncubes == 0) return swfs_fail(SWFS_ERR_ARG, "sync: no camera cube to synchronize");
-    if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
-          p->lag_step > 0))
-        return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
-                         p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
+    int prc = swfs_sync_params_check(p);
+    if (prc) return prc;
     prep_cube *pc = calloc(ncubes, sizeof *pc);
     if (!pc) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     int rc = SWFS_OK;
