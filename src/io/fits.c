@@ -175,6 +175,53 @@ static int verify_hdu(swfs_fits_in *f, int k)
     return SWFS_OK;
 }
 
+/* A tile-compressed image (fpack): tiles no larger than the image and one table row per
+ * tile, so that CFITSIO never allocates a tile buffer larger than the image itself. */
+static int check_tiles(swfs_fits_in *f)
+{
+    long long zn = 0, rows = 0;
+    int rc = structural(f->fp, f->path, "ZNAXIS", 1, 999, 0, &zn);
+    if (!rc) rc = structural(f->fp, f->path, "NAXIS2", 0, LLONG_MAX, 0, &rows);
+    double ntiles = 1;
+    for (long long i = 1; i <= zn && !rc; i++) {
+        char key[32], tkey[32];
+        long long ax = 0, tile = 0;
+        snprintf(key, sizeof key, "ZNAXIS%lld", i);
+        snprintf(tkey, sizeof tkey, "ZTILE%lld", i);
+        rc = structural(f->fp, f->path, key, 1, LLONG_MAX, 1, &ax);
+        if (!rc) rc = structural(f->fp, f->path, tkey, 1, LLONG_MAX, i == 1 ? ax : 1, &tile);
+        if (!rc && tile > ax)
+            return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: %s = %lld is larger than %s = %lld", f->path, tkey,
+                             tile, key, ax);
+        ntiles *= ceil((double)ax / (double)tile);
+    }
+    if (!rc && ntiles != (double)rows)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image of %.0f tiles has %lld table rows (one per tile)", f->path,
+                         ntiles, rows);
+    /* Each tile's compressed bytes (variable-length array descriptors) must lie inside the
+     * heap: CFITSIO allocates what a descriptor claims before reading it. */
+    long long heap = 0;
+    int ncol = 0, st = 0;
+    if (!rc) rc = structural(f->fp, f->path, "PCOUNT", 0, LLONG_MAX, 0, &heap);
+    if (!rc) fits_get_num_cols(f->fp, &ncol, &st);
+    for (int c = 1; c <= ncol && !rc && !st; c++) {
+        int type = 0;
+        LONGLONG rep = 0, width = 0;
+        fits_get_coltypell(f->fp, c, &type, &rep, &width, &st);
+        if (st || type >= 0) continue; /* fixed-size column */
+        for (LONGLONG row = 1; row <= rows && !st; row++) {
+            LONGLONG len = 0, off = 0;
+            fits_read_descriptll(f->fp, c, row, &len, &off, &st);
+            if (!st && (len < 0 || off < 0 || off > heap || (width > 0 && len > (heap - off) / width)))
+                rc = swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: tile %lld claims %lld elements at heap offset %lld, "
+                               "outside the %lld-byte heap (file corrupt)", f->path, (long long)row, (long long)len,
+                               (long long)off, heap);
+        }
+    }
+    if (!rc && st) rc = fits_fail(SWFS_ERR_FORMAT, st, f->path, "reading the compressed image's tile table");
+    return rc;
+}
+
 static int load_shape(swfs_fits_in *f)
 {
     int st = 0, bitpix = 0, naxis = 0, hdu = 0;
@@ -182,6 +229,9 @@ static int load_shape(swfs_fits_in *f)
     fits_get_hdu_num(f->fp, &hdu);
     int rc = verify_hdu(f, hdu);
     if (rc) return rc;
+    const int cmp = fits_is_compressed_image(f->fp, &st) && !st;
+    st = 0;
+    if (cmp && (rc = check_tiles(f))) return rc;
     fits_get_img_param(f->fp, 4, &bitpix, &naxis, naxes, &st);
     if (st) return fits_fail(SWFS_ERR_FORMAT, st, f->path, "reading image size");
     char ctype1[FLEN_VALUE] = "";
@@ -218,9 +268,8 @@ static int load_shape(swfs_fits_in *f)
     /* Catch truncated files when they are opened, not frames later (plain files only:
      * tile-compressed images hold fewer bytes than their pixels, and check_complete has
      * checked that their tables are whole). */
-    int cmp = 0;
     st = 0;
-    if (!f->zipped && !fits_is_compressed_image(f->fp, &cmp) && !cmp) {
+    if (!f->zipped && !cmp) {
         LONGLONG head = 0, dstart = 0, dend = 0;
         fits_get_hduaddrll(f->fp, &head, &dstart, &dend, &st);
         long long need = 0;

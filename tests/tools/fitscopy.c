@@ -1,8 +1,8 @@
-/* fitscopy IN OUT: copy a FITS file through CFITSIO, with CFITSIO's extended syntax on the
+/* fitscopy IN OUT [lossless]: copy a FITS file through CFITSIO, with CFITSIO's extended syntax on the
  * output name, for the tests of compressed inputs:
  *   fitscopy halo.fits 'halo.fits.fz[compress R]'       Rice tile compression of every image
  *   fitscopy halo.fits 'halo.fits.fz[compress H]'       Hcompress
- *   fitscopy halo.fits 'halo.fits.fz[compress G; q 0]'  lossless (GZIP tiles, floats unquantized)
+ *   fitscopy halo.fits 'halo.fits.fz[compress G]' lossless  floating-point data unquantized
  *   fitscopy halo.fits halo.fits.gz                      the whole file gzip-compressed
  * (what fpack and gzip make). Exit 0 on success, 1 with CFITSIO's message otherwise. */
 #include <fitsio.h>
@@ -11,8 +11,8 @@
 
 int main(int argc, char **argv)
 {
-    if (argc != 3) {
-        fprintf(stderr, "usage: fitscopy IN OUT\n");
+    if (argc != 3 && !(argc == 4 && !strcmp(argv[3], "lossless"))) {
+        fprintf(stderr, "usage: fitscopy IN OUT [lossless]\n");
         return 2;
     }
     fitsfile *in = NULL, *out = NULL;
@@ -22,6 +22,8 @@ int main(int argc, char **argv)
     const int tiles = strstr(argv[2], "[compress") != NULL;
     fits_open_diskfile(&in, argv[1], READONLY, &st);
     fits_create_file(&out, name, &st);
+    int ctype = 0;
+    fits_get_compression_type(out, &ctype, &st);
     fits_get_num_hdus(in, &nhdu, &st);
     for (int k = 1; k <= nhdu && !st; k++) {
         int type = 0, naxis = 0;
@@ -29,6 +31,10 @@ int main(int argc, char **argv)
         if (type == IMAGE_HDU) fits_get_img_dim(in, &naxis, &st);
         if (tiles && type == IMAGE_HDU && naxis > 0) {
             if (k == 1) fits_create_img(out, 8, 0, NULL, &st); /* compressed images are extensions */
+            /* The request is reset after each compressed HDU: set it again for every one.
+             * Quantize level 0: floating-point values stored losslessly. */
+            fits_set_compression_type(out, ctype, &st);
+            if (argc == 4) fits_set_quantize_level(out, 0.0, &st);
             fits_img_compress(in, out, &st);
         } else {
             fits_copy_hdu(in, out, 0, &st);

@@ -4,12 +4,15 @@ is to write headers a FITS library would refuse to write).
 
 usage: fitshdr.py IN OUT [--hdu N] [KEY=RAW ...] [-KEY ...]
        fitshdr.py IN OUT --nosum
+       fitshdr.py IN OUT [--hdu N] --fill VALUE FRACTION
   KEY=RAW   set KEY's value field to RAW verbatim (e.g. PUPN=2147483648, WAVELEN=T,
             "CTYPE1='REAL'"), replacing the card or inserting it before END
   -KEY      delete the card
   --hdu N   the HDU to edit (1 = primary, default); its CHECKSUM and DATASUM cards are
             dropped, since the edit invalidates them
   --nosum   only drop CHECKSUM and DATASUM from every HDU (after an edit by other means)
+  --fill VALUE FRACTION  set every (1/FRACTION)-th data value of the HDU (floating point
+            BITPIX) to VALUE (nan, inf, 1.8e308, ...): FRACTION 1 sets all
 A header that outgrows its 2880-byte blocks is refused (the tests never need that)."""
 import sys
 
@@ -62,6 +65,21 @@ def main(argv):
         open(dst, "wb").write(data)
         return
     start, end = hdus(bytes(data))[hdu - 1]
+    if args[:1] == ["--fill"]:
+        import struct
+        value, frac = float(args[1]), float(args[2])
+        cards = {}
+        for k in range(start, end, 80):
+            cards.setdefault(data[k:k + 8].decode().strip(), data[k + 10:k + 80].decode().split("/")[0].strip())
+        bitpix, n = int(cards["BITPIX"]), 1
+        for i in range(1, int(cards["NAXIS"]) + 1):
+            n *= int(cards["NAXIS%d" % i])
+        fmt, size = {-64: (">d", 8), -32: (">f", 4)}[bitpix]
+        step = max(1, round(1 / frac))
+        d0 = (end // 2880 + 1) * 2880
+        for i in range(0, n, step):
+            data[d0 + i * size:d0 + (i + 1) * size] = struct.pack(fmt, value)
+        args = []
     cards = [bytes(data[k:k + 80]) for k in range(start, end, 80)]
     cards = [c for c in cards if c[:8] not in (b"CHECKSUM", b"DATASUM ")]
     for a in args:
