@@ -7,6 +7,7 @@
 
 #include <errno.h>
 #include <fitsio.h>
+#include <fitsio2.h> /* ffgbyt: raw header bytes (check_raw_header) */
 #include <limits.h>
 #include <math.h>
 #include <stdio.h>
@@ -34,24 +35,9 @@ struct swfs_fits_in {
     fitsfile *fp;
     char *path;
     swfs_fits_shape shape;
-    int zipped;                /* gzip/compress/bzip2/zip file: CFITSIO uncompressed it into memory */
-    long long fsize;           /* bytes on disk */
+    long long fsize;           /* bytes of the FITS file (after CFITSIO's decompression of a gzip'd one) */
     unsigned long long checked; /* HDUs 1..64 whose checksums were verified (bit k-1 for HDU k) */
 };
-
-/* A whole file compressed by gzip, compress, bzip2 or zip (CFITSIO reads them through memory):
- * its size on disk says nothing about the size of the FITS data. */
-static int is_zipped(const char *path)
-{
-    unsigned char m[4] = {0};
-    FILE *fh = fopen(path, "rb");
-    if (!fh) return 0;
-    size_t n = fread(m, 1, 4, fh);
-    fclose(fh);
-    return n >= 2 && ((m[0] == 0x1f && (m[1] == 0x8b || m[1] == 0x9d || m[1] == 0xa0 || m[1] == 0x1e)) ||
-                      (n >= 3 && m[0] == 'B' && m[1] == 'Z' && m[2] == 'h') ||
-                      (n >= 4 && m[0] == 'P' && m[1] == 'K' && m[2] == 3 && m[3] == 4));
-}
 
 /* A header keyword's raw value string (never converted by CFITSIO: a value of 70 digits
  * must not reach its fixed-size integer conversion). *found = 0 when the HDU lacks it. */
@@ -269,7 +255,7 @@ static int load_shape(swfs_fits_in *f)
      * tile-compressed images hold fewer bytes than their pixels, and check_complete has
      * checked that their tables are whole). */
     st = 0;
-    if (!f->zipped && !cmp) {
+    if (!cmp) {
         LONGLONG head = 0, dstart = 0, dend = 0;
         fits_get_hduaddrll(f->fp, &head, &dstart, &dend, &st);
         long long need = 0;
@@ -281,6 +267,133 @@ static int load_shape(swfs_fits_in *f)
     }
     fits_clear_errmsg();
     return SWFS_OK;
+}
+
+/* ---- raw header checks --------------------------------------------------
+ * CFITSIO parses an extension's structural keywords as soon as it moves onto the HDU, and
+ * some malformed values crash it there (a division by ZTILEn = 0 in the tile-compression
+ * set-up, a strcpy overflow on a 70-character unquoted TTYPEn). So each extension header
+ * is read as raw bytes and checked before CFITSIO is allowed to move to it. */
+
+enum { KEY_STRING = 1, KEY_INT = 2 };
+
+/* What a structural keyword must be: a quoted string, an integer (>= lo), or 0 (not one). */
+static int key_kind(const char *key, long long *lo)
+{
+    static const char *const strs[] = {"XTENSION", "EXTNAME", "ZCMPTYPE", "ZQUANTIZ", "ZTENSION", "ZIMAGE"};
+    static const char *const strp[] = {"TTYPE", "TFORM", "TUNIT", "TDIM", "TDISP", "ZNAME", "CTYPE"};
+    static const struct { const char *key; long long lo; } ints[] = {
+        {"BITPIX", -64}, {"NAXIS", 0}, {"PCOUNT", 0}, {"GCOUNT", 0}, {"TFIELDS", 0}, {"THEAP", 0}, {"ZBITPIX", -64},
+        {"ZNAXIS", 0}, {"ZPCOUNT", 0}, {"ZGCOUNT", 0}};
+    static const struct { const char *prefix; long long lo; } intp[] = {
+        {"NAXIS", 0}, {"ZNAXIS", 0}, {"ZTILE", 1}, {"TBCOL", 1}};
+    for (size_t i = 0; i < sizeof strs / sizeof strs[0]; i++)
+        if (!strcmp(key, strs[i])) return strcmp(key, "ZIMAGE") ? KEY_STRING : 0;
+    for (size_t i = 0; i < sizeof ints / sizeof ints[0]; i++)
+        if (!strcmp(key, ints[i].key)) { *lo = ints[i].lo; return KEY_INT; }
+    for (size_t i = 0; i < sizeof strp / sizeof strp[0]; i++) {
+        size_t n = strlen(strp[i]);
+        if (!strncmp(key, strp[i], n) && key[n] >= '1' && key[n] <= '9') return KEY_STRING;
+    }
+    for (size_t i = 0; i < sizeof intp / sizeof intp[0]; i++) {
+        size_t n = strlen(intp[i].prefix);
+        if (!strncmp(key, intp[i].prefix, n) && key[n] >= '1' && key[n] <= '9') { *lo = intp[i].lo; return KEY_INT; }
+    }
+    return 0;
+}
+
+/* One header (starting at byte pos of the file as CFITSIO sees it, uncompressed) checked
+ * card by card up to END. */
+static int check_raw_header(swfs_fits_in *f, long long pos, int hdu)
+{
+    enum { MAXKEYS = 512, MAXZ = 10 };
+    char keys[MAXKEYS][9], zname[MAXZ][72] = {{0}};
+    double zval[MAXZ];
+    size_t nkeys = 0;
+    for (int k = 0; k < MAXZ; k++) zval[k] = NAN;
+    char blk[2880];
+    for (long long b = 0; b < 10000; b++) {
+        int st = 0;
+        ffmbyt(f->fp, pos + 2880 * b, REPORT_EOF, &st);
+        ffgbyt(f->fp, 2880, blk, &st);
+        if (st) {
+            fits_clear_errmsg();
+            return b ? swfs_fail(SWFS_ERR_FORMAT, "%s: file is truncated: the header of HDU %d has no END card", f->path,
+                                 hdu)
+                     : SWFS_OK; /* no further HDU: CFITSIO reports the end of the file */
+        }
+        for (int c = 0; c < 36; c++) {
+            const char *card = blk + 80 * c;
+            char key[9], val[73];
+            memcpy(key, card, 8);
+            key[8] = 0;
+            for (int k = 7; k >= 0 && key[k] == ' '; k--) key[k] = 0;
+            if (!strcmp(key, "END")) {
+                /* Rice BLOCKSIZE and BYTEPIX divide and size buffers inside CFITSIO. */
+                for (int k = 0; k < MAXZ; k++)
+                    if ((!strcmp(zname[k], "BLOCKSIZE") && !(zval[k] >= 1 && zval[k] <= 1e6)) ||
+                        (!strcmp(zname[k], "BYTEPIX") && zval[k] != 1 && zval[k] != 2 && zval[k] != 4 && zval[k] != 8))
+                        return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: compression parameter %s = %g is invalid (file "
+                                         "corrupt)", f->path, hdu, zname[k], zval[k]);
+                return SWFS_OK;
+            }
+            if (card[8] != '=' || card[9] != ' ') continue; /* commentary card */
+            long long lo = 0;
+            const int kind = key_kind(key, &lo);
+            /* The value: a quoted string (with '' inside), or the text before a comment. */
+            const char *v = card + 10;
+            int n = 70;
+            while (n && *v == ' ') { v++; n--; }
+            int quoted = n && *v == '\'', closed = 0, len = 0;
+            if (quoted) {
+                for (int k = 1; k < n; k++)
+                    if (v[k] == '\'') {
+                        if (k + 1 < n && v[k + 1] == '\'') { k++; continue; }
+                        closed = 1;
+                        break;
+                    }
+            } else {
+                while (len < n && v[len] != '/') len++;
+                while (len && v[len - 1] == ' ') len--;
+                memcpy(val, v, (size_t)len);
+                val[len] = 0;
+            }
+            if (quoted && !closed)
+                return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: keyword %s has an unterminated string value (file corrupt)",
+                                 f->path, hdu, key);
+            if (!quoted && len > 40 && strspn(val, "0123456789+-.EeDd") != (size_t)len)
+                return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: keyword %s has a %d-character value that is neither a "
+                                 "string nor a number (file corrupt)", f->path, hdu, key, len);
+            if (!strncmp(key, "ZNAME", 5) && key[5] >= '1' && key[5] <= '9' && !key[6] && quoted) {
+                int k = key[5] - '1', m = 0;
+                for (const char *q = v + 1; *q != '\'' && *q != ' ' && m < 71; q++) zname[k][m++] = *q;
+                zname[k][m] = 0;
+            }
+            if (!strncmp(key, "ZVAL", 4) && key[4] >= '1' && key[4] <= '9' && !key[5]) {
+                char *end;
+                zval[key[4] - '1'] = quoted ? NAN : strtod(val, &end);
+                if (!quoted && (end == val || *end)) zval[key[4] - '1'] = NAN;
+            }
+            if (!kind) continue;
+            for (size_t k = 0; k < nkeys; k++)
+                if (!strcmp(keys[k], key))
+                    return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: structural keyword %s appears twice (file corrupt)",
+                                     f->path, hdu, key);
+            if (nkeys < MAXKEYS) snprintf(keys[nkeys++], sizeof keys[0], "%s", key);
+            if (kind == KEY_STRING && !quoted)
+                return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: %s = %s, expected a quoted string (file corrupt)", f->path,
+                                 hdu, key, val);
+            if (kind == KEY_INT) {
+                char *end;
+                errno = 0;
+                long long x = quoted ? 0 : strtoll(val, &end, 10);
+                if (quoted || !len || *end || errno || x < lo)
+                    return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: %s = %.40s, expected an integer >= %lld (file corrupt)",
+                                     f->path, hdu, key, quoted ? "(a string)" : val, lo);
+            }
+        }
+    }
+    return swfs_fail(SWFS_ERR_FORMAT, "%s: HDU %d: no END card in 10000 header blocks (file corrupt)", f->path, hdu);
 }
 
 /* The whole file walked header by header before anything is read: every HDU's data (as
@@ -296,6 +409,10 @@ static int check_complete(swfs_fits_in *f)
     for (int i = 1;; i++) {
         int type = 0;
         if ((long long)(i - 1) * 2880 >= size) break; /* every HDU takes at least one block */
+        if (i > 1 && dend_last < size) {
+            int rc = check_raw_header(f, dend_last, i);
+            if (rc) return rc;
+        }
         fits_movabs_hdu(f->fp, i, &type, &st);
         if (st == END_OF_FILE) { st = 0; fits_clear_errmsg(); break; }
         if (st) return fits_fail(SWFS_ERR_FORMAT, st, path, "file is truncated or corrupt: reading HDU header");
@@ -323,13 +440,13 @@ static int check_complete(swfs_fits_in *f)
                          dend_last, size);
     if (size > dend_last) {
         char tag[8] = "";
-        FILE *fh = fopen(path, "rb");
-        if (fh && fseeko(fh, (off_t)dend_last, SEEK_SET) == 0 && fread(tag, 1, 8, fh) == 8 && !memcmp(tag, "XTENSION", 8)) {
-            fclose(fh);
+        int tst = 0;
+        ffmbyt(f->fp, dend_last, REPORT_EOF, &tst);
+        if (!tst && size - dend_last >= 8) ffgbyt(f->fp, 8, tag, &tst);
+        fits_clear_errmsg();
+        if (!tst && !memcmp(tag, "XTENSION", 8))
             return swfs_fail(SWFS_ERR_FORMAT, "%s: file is truncated: extension %d after byte %lld is incomplete (%lld bytes "
-                             "of it in the file)", path, last, dend_last, size - dend_last);
-        }
-        if (fh) fclose(fh);
+                             "of it in the file)", path, last + 1, dend_last, size - dend_last);
     }
     return SWFS_OK;
 }
@@ -345,9 +462,6 @@ int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname)
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     int st = 0;
-    struct stat sb;
-    f->fsize = stat(path, &sb) == 0 ? (long long)sb.st_size : 0;
-    f->zipped = is_zipped(path);
     /* The name is taken literally: no extended file-name syntax ("x.fits[1]"). */
     fits_open_diskfile(&f->fp, path, READONLY, &st);
     if (st) {
@@ -356,7 +470,9 @@ int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname)
         swfs_fits_in_close(f);
         return rc;
     }
-    if (!f->zipped && (rc = check_complete(f))) { swfs_fits_in_close(f); return rc; }
+    /* Sizes as CFITSIO sees the file: a gzip'd file is checked after its decompression. */
+    f->fsize = (long long)f->fp->Fptr->logfilesize;
+    if ((rc = check_complete(f))) { swfs_fits_in_close(f); return rc; }
     fits_movabs_hdu(f->fp, 1, NULL, &st);
     if (!st && (rc = verify_hdu(f, 1))) { swfs_fits_in_close(f); return rc; }
     if (extname) {

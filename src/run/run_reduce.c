@@ -91,14 +91,14 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     swfs_geom geom;
     double gainv = NAN;
     size_t nx = 0, ny = 0, ntot = 0;
-    int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
     if (!rc && o->dark) rc = read_map(o->dark, nx, ny, &dark);
     if (!rc && o->flat) rc = read_map(o->flat, nx, ny, &flat);
     if (!rc && o->badpix) rc = read_map(o->badpix, nx, ny, &bad);
     if (!rc) rc = header_params(o, in[0], &geom, &p, &gainv);
     if (!rc) rc = swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p);
     if (!rc && (!(buf = malloc(nx * ny * sizeof *buf)) || !(track = malloc(4 * ntot * sizeof *track))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
     if (!rc) rc = swfs_fits_out_create(&out, o->out);
     if (!rc) rc = swfs_fits_out_begin(out, NULL, nx, ny, ntot, 0, -32);
     for (size_t c = 0, k = 0; !rc && c < o->nraw; c++) {

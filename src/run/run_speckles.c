@@ -68,7 +68,7 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     if (pm->nx != npup || pm->ny != npup || pm->nz != 1)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zu but PUPN = %zu", o->mask, pm->nx, pm->ny, npup);
     else rc = swfs_pupil_mask_check(pm, o->mask);
-    if (!rc && !(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && !(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     if (!rc) memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
     swfs_real_free(pm);
     return rc;
@@ -105,7 +105,7 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
     const swfs_timing *t = w->t;
     w->cfirst = calloc(t->ncubes, sizeof *w->cfirst);
     w->cn = calloc(t->ncubes, sizeof *w->cn);
-    if (!w->cfirst || !w->cn) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!w->cfirst || !w->cn) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     for (size_t c = 0; c < t->ncubes; c++) {
         const swfs_timing_cube *tc = t->cubes + c;
         if (tc->first + tc->nframes > w->nsci)
@@ -114,7 +114,7 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
         if (tc->status == SWFS_CUBE_OK && tc->nframes > w->maxn) w->maxn = tc->nframes;
     }
     if (!w->maxn) return swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle telemetry files)", o->timing);
-    if (!(w->sched = malloc(w->maxn * sizeof *w->sched))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!(w->sched = malloc(w->maxn * sizeof *w->sched))) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     for (size_t c = 0; c < t->ncubes; c++) {
         const swfs_timing_cube *tc = t->cubes + c;
         if (tc->status != SWFS_CUBE_OK) continue;

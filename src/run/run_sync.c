@@ -51,7 +51,7 @@ static int load_file(work *w, const char *name, size_t *fi)
     if (!rc) rc = swfs_telemetry_check_values(path, s);
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     if (!rc) {
         w->nwfs_slopes = s->nx;
         snprintf(f->name, sizeof f->name, "%s", name);
@@ -124,7 +124,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         w.files = calloc(nc, sizeof *w.files);
         w.cube_file = calloc(nc, sizeof *w.cube_file);
         w.cube_hs = calloc(nc, sizeof *w.cube_hs);
-        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
     }
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
     if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &o->params, &t->fit);

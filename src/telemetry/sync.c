@@ -183,7 +183,7 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
         pc[i].c = c;
         pc[i].Cx = malloc((c->nwfs + 1) * sizeof *pc[i].Cx);
         pc[i].Cy = malloc((c->nwfs + 1) * sizeof *pc[i].Cy);
-        if (!pc[i].Cx || !pc[i].Cy) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+        if (!pc[i].Cx || !pc[i].Cy) { rc = swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory"); break; }
         pc[i].Cx[0] = pc[i].Cy[0] = 0;
         for (size_t k = 0; k < c->nwfs; k++) {
             if (!isfinite(c->mx[k]) || !isfinite(c->my[k])) { rc = swfs_fail(SWFS_ERR_VALUE, "sync: cube %zu: slope mean of WFS frame %zu is not finite", i, k); break; }
@@ -270,14 +270,14 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
     char line[4096];
     long lineno = 0;
     int rc = SWFS_OK;
-    if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     while (fgets(line, sizeof line, f)) {
         lineno++;
         char *s = trim(line);
         if (!*s) continue;
         if (cnt == cap) {
             swfs_handshake *t = realloc(h, 2 * cap * sizeof *h);
-            if (!t) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+            if (!t) { rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); break; }
             h = t; cap *= 2;
         }
         char cam[SWFS_SYNC_NAME], slo[SWFS_SYNC_NAME], extra[8];
@@ -352,7 +352,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
     swfs_timing *t = calloc(1, sizeof *t);
     size_t cap = 16;
     if (t) t->cubes = malloc(cap * sizeof *t->cubes);
-    if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     t->ratio = NAN;
     t->lag = NAN;
     char line[4096];
@@ -371,7 +371,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
         else if (!strncmp(s, "cube ", 5)) {
             if (t->ncubes == cap) {
                 swfs_timing_cube *nc = realloc(t->cubes, 2 * cap * sizeof *nc);
-                if (!nc) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+                if (!nc) { rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); break; }
                 t->cubes = nc; cap *= 2;
             }
             swfs_timing_cube *c = t->cubes + t->ncubes;
