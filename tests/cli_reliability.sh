@@ -259,6 +259,22 @@ done
 "$B" dmoffsets race.fits -o x.fits --hexapolar 0.35 > /dev/null 2> err.txt && ! ls race.fits.part* > /dev/null 2>&1 \
     && pass=$((pass + 1)) || bad concurrent "race.fits incomplete or part left"
 
+# ---- a full disk (a small tmpfs, where the system allows mounting one): no product in place
+mkdir -p full
+if mount -t tmpfs -o size=300k tmpfs full 2> /dev/null; then
+    expect full-simulate 1 "No space left on device" -- simulate $SMALL -o full/sim --quiet
+    [ -z "$(ls full/sim)" ] && pass=$((pass + 1)) || bad full-simulate "left $(ls full/sim)"
+    expect full-ts 1 "No space left on device" -- simulate mode=timeseries $TS ncubes=2 cube_frames=20 -o full/ts --quiet
+    [ -z "$(ls full/ts)" ] && pass=$((pass + 1)) || bad full-ts "left $(ls full/ts)"
+    rm -rf full/*
+    echo old > full/t.txt
+    cat /dev/zero > full/fill 2> /dev/null
+    expect full-sync 1 "No space left on device" -- sync sci.fits $H -o full/t.txt --ratio-min 5 --ratio-max 8
+    [ "$(cat full/t.txt)" = old ] && [ "$(ls full)" = "fill
+t.txt" ] && pass=$((pass + 1)) || bad full-sync "t.txt changed or part left: $(ls full)"
+    umount full
+fi
+
 ls ./*.part.* ./*/*.part.* > /dev/null 2>&1 && bad parts "part files left: $(ls ./*.part.* ./*/*.part.* 2> /dev/null)"
 echo "$pass passed, $nfail failed"
 [ "$nfail" = 0 ]

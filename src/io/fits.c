@@ -18,6 +18,7 @@
 /* Turn a CFITSIO status into our status with a message naming the file and action. */
 static int fits_fail(int code, int fstatus, const char *path, const char *action)
 {
+    const int sys = errno;
     char text[FLEN_STATUS] = "";
     char detail[FLEN_ERRMSG] = "";
     fits_get_errstatus(fstatus, text);
@@ -26,6 +27,9 @@ static int fits_fail(int code, int fstatus, const char *path, const char *action
     fits_clear_errmsg();
     if (fstatus == END_OF_FILE || fstatus == 107 /* tried to move past end of file */)
         return swfs_fail(code, "%s: %s: file is truncated (%s)", path, action, text);
+    /* A write that failed in the system (a full disk, a quota): say why. */
+    if ((fstatus == WRITE_ERROR || fstatus == FILE_NOT_CREATED) && sys)
+        return swfs_fail(code, "%s: %s: %s (%s)", path, action, text, strerror(sys));
     return swfs_fail(code, "%s: %s: %s%s%s", path, action, text, detail[0] ? " -- " : "", detail);
 }
 
