@@ -43,6 +43,30 @@ struct swfs_fits_in {
     unsigned long long checked; /* HDUs 1..64 whose checksums were verified (bit k-1 for HDU k) */
 };
 
+/* A gzip'd file's trailer states its uncompressed size (mod 2^32), and CFITSIO allocates
+ * that much before decompressing: a corrupt trailer (or a decompression bomb) must not
+ * make a 60-kB file allocate gigabytes. Real FITS files compress by far less than 1000:1. */
+static int check_gzip_size(const char *path)
+{
+    unsigned char m[2] = {0}, t[4] = {0};
+    FILE *fh = fopen(path, "rb");
+    if (!fh) return SWFS_OK;
+    int gz = fread(m, 1, 2, fh) == 2 && m[0] == 0x1f && m[1] == 0x8b;
+    long long csize = 0;
+    if (gz && fseeko(fh, -4, SEEK_END) == 0 && fread(t, 1, 4, fh) == 4) csize = (long long)ftello(fh);
+    fclose(fh);
+    if (!gz || !csize) return SWFS_OK;
+    const long long isize = (long long)t[0] | (long long)t[1] << 8 | (long long)t[2] << 16 | (long long)t[3] << 24;
+    /* Fewer bytes than compressed: CFITSIO takes that for a 4-GB wrap and allocates 4 GB more. */
+    if (isize + isize / 1000 + 64 < csize) /* deflate expands incompressible data by < 0.1 % */
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: gzip'd file of %lld bytes claims only %lld bytes uncompressed: corrupt "
+                         "(or over 4 GB uncompressed: gunzip it first)", path, csize, isize);
+    if (isize > 1000 * csize + (1LL << 20))
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: gzip'd file of %lld bytes claims %lld bytes uncompressed (more than 1000:1): "
+                         "corrupt, or gunzip it first", path, csize, isize);
+    return SWFS_OK;
+}
+
 /* A header keyword's raw value string (never converted by CFITSIO: a value of 70 digits
  * must not reach its fixed-size integer conversion). *found = 0 when the HDU lacks it. */
 static int raw_key(fitsfile *fp, const char *path, const char *key, char *val, int *found)
@@ -464,6 +488,10 @@ int swfs_fits_in_open(swfs_fits_in **out, const char *path, const char *extname)
     if (!f || !(f->path = strdup(path))) {
         free(f);
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    if ((rc = check_gzip_size(path))) {
+        swfs_fits_in_close(f);
+        return rc;
     }
     int st = 0;
     /* The name is taken literally: no extended file-name syntax ("x.fits[1]"). */
