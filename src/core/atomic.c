@@ -199,7 +199,7 @@ int swfs_outputs_end(int commit)
     for (size_t i = 0; i < group.n; i++) {
         if (rc && i < done) unlink(group.path[i]);
         else if (!commit || rc) unlink(group.part[i]);
-        else if (i == 0 || strcmp(group.path[i], group.path[i - 1])) sync_dir(group.path[i]);
+        else sync_dir(group.path[i]);
         free(group.part[i]);
         free(group.path[i]);
     }
