@@ -259,6 +259,14 @@ done
 "$B" dmoffsets race.fits -o x.fits --hexapolar 0.35 > /dev/null 2> err.txt && ! ls race.fits.part* > /dev/null 2>&1 \
     && pass=$((pass + 1)) || bad concurrent "race.fits incomplete or part left"
 
+# ---- a stream that fails mid-run removes the updates it had put in place
+hdr ts/slopes_000.fits tsb/bad.fits --fill nan 1
+sed "s|^\(cube 1 .*\) [^ ]*slopes_000.fits|\1 $PWD/tsb/bad.fits|" timing.txt > timing_bad.txt
+expect stream-midrun 1 "removed the products it had written" -- stream --timing timing_bad.txt --science sci.fits \
+    --recon ts/recon_ao.fits --actuators ts/actuators.fits -o mid.fits --checkpoint midck.fits --every 5
+[ ! -e mid.fits ] && [ ! -e midck.fits ] && grep -q "tsb/bad.fits" err.txt && pass=$((pass + 1)) \
+    || bad stream-midrun "products left or the bad telemetry file not named"
+
 # ---- a full disk (a small tmpfs, where the system allows mounting one): no product in place
 mkdir -p full
 if mount -t tmpfs -o size=300k tmpfs full 2> /dev/null; then
