@@ -27,6 +27,7 @@ chk() {
     [ "$(grep -c . err.txt)" -ge 1 ] || why="$why; no message"
     [ -e "$out" ] && why="$why; $out left behind"
     [ -e "$out.part" ] && why="$why; $out.part left behind"
+    ls "$out".part.* > /dev/null 2>&1 && why="$why; a part file of $out left behind"
     if [ -n "$why" ]; then
         echo "FAIL $name: $why"
         sed 's/^/    /' err.txt | head -3
