@@ -18,7 +18,8 @@ int swfs_cmd_merge(int argc, char **argv);
 int swfs_cmd_stream(int argc, char **argv);
 /* mode=timeseries of `simulate` (cli/cmd_simulate_ts.c), called from cmd_simulate.c. */
 struct swfs_config;
-int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet, int argc, char **argv);
+int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const char *outdir, int quiet, int argc,
+                         char **argv);
 int swfs_cmd_coherence(int argc, char **argv);
 int swfs_cmd_dmoffsets(int argc, char **argv);
 int swfs_cmd_correct(int argc, char **argv);
@@ -61,6 +62,12 @@ void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
 int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
+/* A command's files, checked before any work (specklewfs/outpaths.h): the paths' status,
+ * printed as the command's error (CLI_FAIL) when it is a failure; frees p. */
+struct swfs_paths;
+int cli_paths_check(const char *cmd, struct swfs_paths *p);
+/* DIR/name for each of the n names, as outputs of p. */
+void cli_paths_outputs_in(struct swfs_paths *p, const char *dir, const char *const *names, size_t n);
 
 /* Option parsing. Every helper prints its usage error and returns non-zero on failure. */
 /* -h or --help. */

@@ -4,6 +4,7 @@
 
 #include "specklewfs/coherence.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -99,6 +100,11 @@ int swfs_cmd_coherence(int argc, char **argv)
         return CLI_OK;
     }
     if (!out) return cli_usage_error(cmd, "needs -o COH.fits");
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "speckle cube", in);
+    swfs_paths_output(paths, "-o", out);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     int rc = CLI_FAIL;
     swfs_cplx *cube = NULL;

@@ -2,7 +2,9 @@
  * per-iteration table that `demo` prints too. */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
 #include "specklewfs/sweep.h"
@@ -83,6 +85,7 @@ void cli_print_loop_table(const swfs_loop_result *r)
 typedef struct corr_args {
     swfs_loop_params *lp;
     swfs_config *cfg;
+    const char **cfgfile; /* the CONFIG file given, for the path checks */
 } corr_args;
 
 /* The loop's options, checked as they come, the DM fit's, then CONFIG or key=value. */
@@ -115,6 +118,7 @@ static int special(void *ctx, int argc, char **argv, int *i)
     } else {
         int t = cli_dmfit_option(cmd, argc, argv, i, &lp->fit);
         if (t || (a[0] == '-' && a[1] && !strchr(a, '='))) return t; /* 0: an unknown option */
+        if (!strchr(a, '=')) *d->cfgfile = a;
         if (cli_config_arg(cmd, d->cfg, a)) return -CLI_FAIL;
     }
     return 1;
@@ -123,7 +127,7 @@ static int special(void *ctx, int argc, char **argv, int *i)
 int swfs_cmd_correct(int argc, char **argv)
 {
     const char *cmd = "correct";
-    const char *outdir = "correct-out", *actfile = NULL, *sweep = NULL;
+    const char *outdir = "correct-out", *actfile = NULL, *sweep = NULL, *cfgfile = NULL;
     swfs_loop_params lp;
     swfs_loop_params_default(&lp);
     swfs_config *cfg = swfs_config_new();
@@ -134,7 +138,7 @@ int swfs_cmd_correct(int argc, char **argv)
     const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "a folder", 0},
                             {"--actuators", CLI_STRING, &actfile, "a file name", 0},
                             {"--sweep", CLI_STRING, &sweep, "a file of parameter sets", 0}};
-    corr_args d = {&lp, cfg};
+    corr_args d = {&lp, cfg, &cfgfile};
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &d, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) {
@@ -159,6 +163,13 @@ int swfs_cmd_correct(int argc, char **argv)
         lp.act_name = actfile;
     }
     if (cli_make_dir(cmd, outdir)) goto done;
+    static const char *const products[] = {"loop.tsv", "loop.fits"};
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "config file", cfgfile);
+    swfs_paths_input(paths, "--actuators", actfile);
+    cli_paths_outputs_in(paths, outdir, products, 2);
+    if (cli_paths_check(cmd, paths)) goto done;
     fprintf(stderr, "correct: %zu iterations at gain %g, sigma %g counts (%d screens of %zu^2 each)\n", lp.iterations,
             lp.gain, lp.sigma, p.nscreens, p.screen.n);
     if (swfs_closed_loop_run(&p, &lp, NULL, cli_stage_progress, (void *)"correct:", &res)) {
@@ -167,7 +178,9 @@ int swfs_cmd_correct(int argc, char **argv)
     }
     size_t nprov;
     const char *const *prov = cli_provenance(argc, argv, &nprov);
-    if (swfs_closed_loop_write(res, outdir, prov, nprov)) { cli_error(cmd); goto done; }
+    swfs_outputs_begin(); /* loop.tsv and loop.fits together (atomic.h) */
+    int wrc = swfs_closed_loop_write(res, outdir, prov, nprov);
+    if (swfs_outputs_end(wrc == SWFS_OK) || wrc) { cli_error(cmd); goto done; }
     printf("specklewfs correct: Codona & Kenworthy (2013) Sec. 3 simulation in closed loop, %s/loop.{tsv,fits}\n", outdir);
     cli_print_loop_table(res);
     rc = CLI_OK;

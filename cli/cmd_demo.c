@@ -1,7 +1,9 @@
 /* specklewfs demo: the paper's Sec. 3 simulation end to end at four noise levels. */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/recovery.h"
@@ -38,6 +40,7 @@ typedef struct demo_args {
     size_t nlevels;
     int want_report;
     swfs_loop_params lp;
+    const char *cfgfile; /* the CONFIG file given, for the path checks */
 } demo_args;
 
 /* The options into d and cfg; -1 to go on, else the exit code (help or a usage error). */
@@ -71,8 +74,9 @@ static int parse_args(const char *cmd, int argc, char **argv, swfs_config *cfg, 
                 return CLI_USAGE;
         } else if (a[0] == '-' && a[1] && !strchr(a, '=')) {
             return cli_usage_error(cmd, "unknown option '%s'", a);
-        } else if (cli_config_arg(cmd, cfg, a)) {
-            return CLI_FAIL;
+        } else {
+            if (!strchr(a, '=')) d->cfgfile = a;
+            if (cli_config_arg(cmd, cfg, a)) return CLI_FAIL;
         }
     }
     return -1;
@@ -81,13 +85,13 @@ static int parse_args(const char *cmd, int argc, char **argv, swfs_config *cfg, 
 int swfs_cmd_demo(int argc, char **argv)
 {
     const char *cmd = "demo";
-    demo_args d = {"demo-out", {0, 10, 100, 1000}, 4, 1, {0}};
+    demo_args d = {"demo-out", {0, 10, 100, 1000}, 4, 1, {0}, NULL};
     swfs_loop_params_default(&d.lp);
     swfs_loop_params lp;
     swfs_loop_result *loop = NULL;
     swfs_config *cfg = swfs_config_new();
     swfs_sim_result *sim = NULL;
-    int rc = CLI_FAIL;
+    int rc = CLI_FAIL, in_group = 0;
     if (!cfg) return cli_error(cmd);
     if ((rc = parse_args(cmd, argc, argv, cfg, &d)) >= 0) goto done;
     rc = CLI_FAIL;
@@ -96,11 +100,38 @@ int swfs_cmd_demo(int argc, char **argv)
     const size_t nlevels = d.nlevels;
     const int want_report = d.want_report;
     lp = d.lp;
+    const char *cfgfile = d.cfgfile;
     swfs_sim_params p;
     if (cli_sim_params(cmd, cfg, &p)) goto done;
     if (cli_make_dir(cmd, outdir)) goto done;
+    /* Every product of every level and of the loop, checked before the simulation. */
+    {
+        static const char *const level_products[] = {"science.fits", "speckles.fits", "truth.fits", "pupil.fits",
+                                                      "halo.fits", "wavefront.fits"};
+        static const char *const loop_products[] = {"loop.tsv", "loop.fits"};
+        swfs_paths *paths = NULL;
+        swfs_paths_create(&paths);
+        swfs_paths_input(paths, "config file", cfgfile);
+        for (size_t k = 0; k < nlevels; k++) {
+            char dir[4096];
+            snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
+            if (cli_make_dir(cmd, dir)) { swfs_paths_free(paths); goto done; }
+            cli_paths_outputs_in(paths, dir, level_products, 6);
+        }
+        if (lp.iterations > 0) {
+            char dir[4096];
+            snprintf(dir, sizeof dir, "%s/loop", outdir);
+            if (cli_make_dir(cmd, dir)) { swfs_paths_free(paths); goto done; }
+            cli_paths_outputs_in(paths, dir, loop_products, 2);
+        }
+        if (cli_paths_check(cmd, paths)) goto done;
+    }
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
+    /* The products of all levels and of the loop are renamed into place together when all
+     * are written (atomic.h); the figures are made from them afterwards. */
+    swfs_outputs_begin();
+    in_group = 1;
 
     double t0 = cli_now();
     fprintf(stderr, "demo: simulating the paper's Sec. 3 data set (%d screens of %zu^2, %ld^2 pupil, %ldx%ld window)\n",
@@ -114,7 +145,6 @@ int swfs_cmd_demo(int argc, char **argv)
         char dir[4096], noise_line[160];
         snprintf(dir, sizeof dir, "%s/sigma%g", outdir, levels[k]);
         fprintf(stderr, "demo: noise level %g counts -> %s\n", levels[k], dir);
-        if (cli_make_dir(cmd, dir)) goto done;
         snprintf(noise_line, sizeof noise_line, "demo noise level: read noise %g counts, gain %g e-/count", levels[k],
                  p.gain);
         const char *prov[] = {cl, noise_line};
@@ -134,7 +164,6 @@ int swfs_cmd_demo(int argc, char **argv)
         snprintf(dir, sizeof dir, "%s/loop", outdir);
         fprintf(stderr, "demo: closed loop, %zu iterations at gain %g, noise %g counts -> %s\n", lp.iterations, lp.gain,
                 lp.sigma, dir);
-        if (cli_make_dir(cmd, dir)) goto done;
         const char *prov[] = {cl};
         if (swfs_closed_loop_run(&p, &lp, sim, cli_stage_progress, (void *)"demo: closed", &loop) ||
             swfs_closed_loop_write(loop, dir, prov, 1)) {
@@ -142,6 +171,8 @@ int swfs_cmd_demo(int argc, char **argv)
             goto done;
         }
     }
+    in_group = 0;
+    if (swfs_outputs_end(1)) { cli_error(cmd); goto done; }
     static swfs_report_summary rs; /* one page for the whole demo: the table, each level, the loop */
     if (want_report && swfs_report_run(outdir, NULL, NULL, &rs)) { cli_error(cmd); goto done; }
     double total = cli_now() - t0;
@@ -177,6 +208,7 @@ int swfs_cmd_demo(int argc, char **argv)
     printf("  total %.2f s\n", total);
     rc = CLI_OK;
 done:
+    if (in_group) swfs_outputs_end(0);
     swfs_loop_result_free(loop);
     swfs_sim_result_free(sim);
     swfs_config_free(cfg);

@@ -4,6 +4,7 @@
 
 #include "specklewfs/dmfit.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 
@@ -77,6 +78,12 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
     if (!out) return cli_usage_error(cmd, "needs -o OFFSETS.fits");
     if (!actfile && !(hexpitch > 0)) return cli_usage_error(cmd, "needs --actuators ACT.fits or --hexapolar PITCH");
     if (actfile && hexpitch > 0) return cli_usage_error(cmd, "give --actuators or --hexapolar, not both");
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "pupil product", in);
+    swfs_paths_input(paths, "--actuators", actfile);
+    swfs_paths_output(paths, "-o", out);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     int rc = CLI_FAIL;
     swfs_fits_in *f = NULL;
@@ -91,7 +98,8 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
                 cmd, in);
         goto done;
     }
-    if (swfs_fits_in_move(f, "WFE") || swfs_fits_in_read_real_all(f, &wfe) || swfs_fits_in_geom(f, &g)) {
+    if (swfs_fits_in_move(f, "WFE") || swfs_fits_in_require_float(f, "a pupil product") ||
+        swfs_fits_in_read_real_all(f, &wfe) || swfs_fits_in_geom(f, &g)) {
         cli_error(cmd);
         goto done;
     }
@@ -118,6 +126,13 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
     }
     swfs_fits_in_close(f);
     f = NULL;
+    /* The WFE of a pupil product is a phase times lambda/2 pi: finite, within a few waves. */
+    for (size_t s = 0; s < wfe->nx * wfe->ny; s++)
+        if ((!mask || mask->data[s] > 0) && (!isfinite(wfe->data[s]) || fabs(wfe->data[s]) > 10 * g.wavelen)) {
+            fprintf(stderr, "specklewfs %s: %s: WFE at pupil sample (%zu, %zu) is %g m; a pupil WFE is finite and within "
+                    "10 wavelengths (%g m)\n", cmd, in, s % wfe->nx, s / wfe->nx, wfe->data[s], 10 * g.wavelen);
+            goto done;
+        }
 
     if (actfile) {
         if (swfs_actuators_read(actfile, &xy, &nact)) { cli_error(cmd); goto done; }

@@ -5,6 +5,8 @@
 #include "specklewfs/checkpoint.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -54,15 +56,19 @@ int swfs_cmd_merge(int argc, char **argv)
     if (read_noise < 0) { cli_usage_error(cmd, "--read-noise must be >= 0, got %g", read_noise); goto done; }
     if (gain < 0) { cli_usage_error(cmd, "--gain must be >= 0, got %g", gain); goto done; }
     if (!(g_smooth >= 0)) { cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", g_smooth); goto done; }
-    for (size_t i = 0; i < nin; i++)
-        if (!strcmp(inputs[i], out)) { cli_usage_error(cmd, "-o %s is also an input", out); goto done; }
-
     rc = CLI_FAIL;
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    for (size_t i = 0; i < nin; i++) swfs_paths_input(paths, "checkpoint", inputs[i]);
+    swfs_paths_output(paths, "-o", out);
+    swfs_paths_output(paths, "--halo", halo_path);
+    if (cli_paths_check(cmd, paths)) goto done;
     swfs_accum *acc = NULL;
     swfs_halo *halo = NULL;
     swfs_geom g;
-    int halo_written = 0;
     if (swfs_accum_merge_files(inputs, nin, &acc, &g)) { cli_error(cmd); goto done; }
+    /* The halo and the checkpoint are renamed into place together (atomic.h). */
+    swfs_outputs_begin();
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl};
@@ -82,20 +88,18 @@ int swfs_cmd_merge(int argc, char **argv)
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", noise.read_noise, noise.gain);
         const char *hprov[] = {cl, nl};
         if (swfs_halo_write(halo, halo_path, &g, hprov, 2)) { cli_error(cmd); goto free_acc; }
-        halo_written = 1;
         printf("merge: %s: valid pixels %zu of %zu (%.1f %%), median SNR %.3g\n", halo_path, halo->n_valid, halo->npix,
                100.0 * halo->valid_fraction, halo->median_snr);
     }
-    /* The halo first: a run that fails leaves neither product behind. */
-    if (swfs_accum_save(acc, out, &g, prov, 1)) {
+    if (swfs_accum_save(acc, out, &g, prov, 1) || swfs_outputs_end(1)) {
         cli_error(cmd);
-        if (halo_written) remove(halo_path);
         goto free_acc;
     }
     printf("merge: %zu checkpoints -> %s: %llu frames, %llu pixel-frames skipped, %zux%zu pixels\n", nin, out,
            (unsigned long long)acc->frames, (unsigned long long)acc->skipped, acc->nx, acc->ny);
     rc = CLI_OK;
 free_acc:
+    if (rc) swfs_outputs_end(0);
     swfs_halo_free(halo);
     swfs_accum_free(acc);
 done:

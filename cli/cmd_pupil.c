@@ -3,6 +3,7 @@
 
 #include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/status.h"
 
@@ -95,6 +96,14 @@ int swfs_cmd_pupil(int argc, char **argv)
         return cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
     if (pctx.moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "halo", in);
+    swfs_paths_input(paths, "--pupil mask", maskfile);
+    swfs_paths_input(paths, "--truth", truthfile);
+    swfs_paths_output(paths, "-o", out);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
+
     swfs_halo *h = NULL;
     swfs_real *mask = NULL, *truth = NULL;
     swfs_pupil_result *r = NULL;
@@ -109,6 +118,7 @@ int swfs_cmd_pupil(int argc, char **argv)
                     cmd, maskfile, mask->nx, mask->ny, mask->nz, in, g.pupn, g.pupn, g.pupn);
             goto done;
         }
+        if (swfs_pupil_mask_check(mask, maskfile)) { cli_error(cmd); goto done; }
     }
     if (swfs_pupil_estimate(h, &g, mask, &opt, &r)) {
         fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, in, swfs_last_error());

@@ -1,7 +1,9 @@
 /* specklewfs simulate: the paper's Sec. 3 data set (science, speckles, truth, pupil). */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/config.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
 #include "specklewfs/sweep.h"
@@ -36,6 +38,7 @@ static const char *usage_text =
 typedef struct sim_args {
     swfs_config *cfg;
     int have_file;
+    const char **cfgfile; /* the CONFIG file given, for the path checks */
 } sim_args;
 
 /* key=value, or the CONFIG file: its settings must not override command-line ones given
@@ -58,14 +61,15 @@ static int special(void *ctx, int argc, char **argv, int *i)
     swfs_config_free(d->cfg);
     d->cfg = f;
     d->have_file = 1;
+    *d->cfgfile = a;
     return 1;
 }
 
 int swfs_cmd_simulate(int argc, char **argv)
 {
-    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL, *sweep = NULL;
+    const char *cmd = "simulate", *outdir = NULL, *seed_arg = NULL, *sweep = NULL, *cfgfile = NULL;
     int quiet = 0, rc;
-    sim_args d = {swfs_config_new(), 0};
+    sim_args d = {swfs_config_new(), 0, &cfgfile};
     if (!d.cfg) return cli_error(cmd);
     const cli_opt opts[] = {{"-o", CLI_STRING, &outdir, "an output folder", 0},
                             {"--seed", CLI_STRING, &seed_arg, "a value", 0}, {"--quiet", CLI_SET, &quiet, NULL, 1},
@@ -98,7 +102,7 @@ int swfs_cmd_simulate(int argc, char **argv)
             return cli_error(cmd);
         }
         if (!strcmp(mode, "timeseries")) {
-            rc = swfs_cmd_simulate_ts(cfg, outdir, quiet, argc, argv);
+            rc = swfs_cmd_simulate_ts(cfg, cfgfile, outdir, quiet, argc, argv);
             swfs_config_free(cfg);
             return rc;
         }
@@ -113,6 +117,12 @@ int swfs_cmd_simulate(int argc, char **argv)
     swfs_config_free(cfg);
     if (rc) return rc;
     if ((rc = cli_make_dir(cmd, outdir))) return rc;
+    static const char *const products[] = {"science.fits", "speckles.fits", "truth.fits", "pupil.fits"};
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "config file", cfgfile);
+    cli_paths_outputs_in(paths, outdir, products, 4);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 
     const double t0 = cli_now();
     swfs_sim_result *r = NULL;
@@ -126,7 +136,11 @@ int swfs_cmd_simulate(int argc, char **argv)
     }
     size_t nprov;
     const char *const *prov = cli_provenance(argc, argv, &nprov);
-    if (swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, nprov)) {
+    /* The four files come as a set (atomic.h): all renamed into place, or none. */
+    swfs_outputs_begin();
+    int wrc = swfs_sim_write(r, noisy, p.read_noise, p.gain, outdir, prov, nprov);
+    int erc = swfs_outputs_end(wrc == SWFS_OK);
+    if (wrc || erc) {
         swfs_real_free(noisy);
         swfs_sim_result_free(r);
         return cli_error(cmd);

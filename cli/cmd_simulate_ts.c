@@ -2,14 +2,17 @@
  * path (include/specklewfs/timeseries.h), dispatched from cmd_simulate.c. */
 #include "cli.h"
 
+#include "specklewfs/atomic.h"
 #include "specklewfs/config.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
 
 #include <stdio.h>
 #include <string.h>
 
-int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet, int argc, char **argv)
+int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const char *outdir, int quiet, int argc,
+                         char **argv)
 {
     const char *cmd = "simulate";
     swfs_ts_params p;
@@ -18,11 +21,20 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *outdir, int quiet,
         return cli_error(cmd);
     int rc = cli_make_dir(cmd, outdir);
     if (rc) return rc;
+    swfs_paths *paths = NULL;
+    swfs_paths_create(&paths);
+    swfs_paths_input(paths, "config file", cfgfile);
+    swfs_ts_add_outputs(&p, outdir, paths);
+    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
     const char *prov[] = {cl, "specklewfs time-series simulation (mode=timeseries)"};
     swfs_ts_summary s;
-    if (swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s)) return cli_error(cmd);
+    /* All files renamed into place at the end, or none (atomic.h). */
+    swfs_outputs_begin();
+    rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s);
+    int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (rc || erc) return cli_error(cmd);
     printf("simulate (timeseries): %zu WFS frames at %.0f Hz, %ld cubes x %ld frames at <t_sci/t_wfs> = %.4f, "
            "handshake lag %ld\n", s.nwfs, p.wfs_rate, p.ncubes, p.cube_frames, p.frame_ratio, p.handshake_lag);
     printf("  AO: %zu actuators, %zu valid subapertures, %zu modes, gain %.2f, delay %ld\n", s.nact, s.nvalid,

@@ -154,7 +154,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (slope_noise > 0 && o->pipe.recon != SWFS_RECON_MAP && o->pipe.recon != SWFS_RECON_VK) return cli_usage_error(cmd, "--slope-noise goes with --recon vk or map");
     if (!(o->pipe.vk_l0 > 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m], got %g", o->pipe.vk_l0);
     if (!(o->wfs_hz >= 0)) return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
-    if (threads > 256) return cli_usage_error(cmd, "--threads must be 1..256, got %ld", threads);
+    if (threads > SWFS_ENGINE_MAX_THREADS)
+        return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
     if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
     o->batch = (size_t)batch;
     if (o->pipe.wfs_rate) {

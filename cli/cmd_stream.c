@@ -121,7 +121,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         return cli_usage_error(cmd, "needs --timing, --science, --recon, --actuators and -o");
     if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);
     if (o->stream.every_seconds < 0) return cli_usage_error(cmd, "--every-seconds must be >= 0, got %g", o->stream.every_seconds);
-    if (threads < 1 || threads > 64) return cli_usage_error(cmd, "--threads must be 1..64, got %ld", threads);
+    if (threads < 1 || threads > SWFS_ENGINE_MAX_THREADS)
+        return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
     if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
     if (max_frames < 0) return cli_usage_error(cmd, "--max-frames must be >= 0");
     if (!isnan(o->read_noise) && o->read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0");

@@ -3,6 +3,7 @@
 #include "specklewfs/config.h"
 #include "specklewfs/dmfit.h"
 #include "specklewfs/sim.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/speckles.h"
 #include "specklewfs/status.h"
 
@@ -116,6 +117,22 @@ int cli_make_dir(const char *cmd, const char *path)
 fail:
     fprintf(stderr, "specklewfs %s: cannot create output folder %s: %s\n", cmd, path, strerror(errno));
     return CLI_FAIL;
+}
+
+int cli_paths_check(const char *cmd, swfs_paths *p)
+{
+    int rc = swfs_paths_status(p);
+    swfs_paths_free(p);
+    return rc ? cli_error(cmd) : CLI_OK;
+}
+
+void cli_paths_outputs_in(swfs_paths *p, const char *dir, const char *const *names, size_t n)
+{
+    char path[8192];
+    for (size_t k = 0; k < n; k++) {
+        snprintf(path, sizeof path, "%s/%s", dir, names[k]);
+        swfs_paths_output(p, "output", path);
+    }
 }
 
 void cli_dir_of(const char *path, char *dir, size_t cap)

@@ -9,3 +9,4 @@ $SUDO apt-get install -y -qq --no-install-recommends \
   libcfitsio-dev libfftw3-dev libopenblas-dev liblapacke-dev libcmocka-dev libqhull-dev \
   libplplot-dev plplot-driver-cairo libpng-dev fonts-dejavu-core \
   python3 python3-numpy python3-pytest openmpi-bin libopenmpi-dev "$@" >/dev/null
+# Optional, for the fuzzer of the FITS readers (docs/fuzzing.md): pass clang-14 libclang-rt-14-dev.

@@ -5,6 +5,7 @@
 # one-line message (file and value named) and that no output or .part is left behind.
 # usage: bash cli_badinput.sh <specklewfs> <scratch dir>
 set -u
+FITSHDR=$(cd "$(dirname "$0")" && pwd)/tools/fitshdr.py
 B=$(cd "$(dirname "$1")" && pwd)/$(basename "$1")
 D=$2
 rm -rf "$D"
@@ -26,6 +27,7 @@ chk() {
     [ "$(grep -c . err.txt)" -ge 1 ] || why="$why; no message"
     [ -e "$out" ] && why="$why; $out left behind"
     [ -e "$out.part" ] && why="$why; $out.part left behind"
+    ls "$out".part.* > /dev/null 2>&1 && why="$why; a part file of $out left behind"
     if [ -n "$why" ]; then
         echo "FAIL $name: $why"
         sed 's/^/    /' err.txt | head -3
@@ -67,11 +69,14 @@ cp run/halo.fits thalo.fits && truncate -s 100000 thalo.fits # cut inside an ext
 cp spw.fits tspw.fits && truncate -s 50000 tspw.fits
 cp ck1.fits tck.fits && truncate -s 30000 tck.fits
 cp run/wavefront.fits twf.fits && truncate -s 100000 twf.fits
-perl -0777 -pe 's/FRAMEDT =/FRAMEDX =/' spw.fits > nodt.fits
-perl -0777 -pe 's/FRAMEDT =  /FRAMEDT = -/' spw.fits > negdt.fits
-perl -0777 -pe 's/PIXSCALE=                 0.25/PIXSCALE=                 0.50/g' ck1.fits > ckg.fits
+# Files edited behind CFITSIO's back lose their (now wrong) CHECKSUM/DATASUM cards.
+NOSUM() { /usr/bin/python3 "$FITSHDR" "$1" "$1" --nosum; }
+perl -0777 -pe 's/FRAMEDT =/FRAMEDX =/' spw.fits > nodt.fits && NOSUM nodt.fits
+perl -0777 -pe 's/FRAMEDT =  /FRAMEDT = -/' spw.fits > negdt.fits && NOSUM negdt.fits
+perl -0777 -pe 's/PIXSCALE=                 0.25/PIXSCALE=                 0.50/g' ck1.fits > ckg.fits && NOSUM ckg.fits
 cp ts/dark.fits nandark.fits
 for i in $(seq 0 4 800); do poke nandark.fits "$i" "$NAN"; done
+NOSUM nandark.fits
 R=ts/raw_000.fits
 
 # ---- simulate (paper and time-series modes)
@@ -121,7 +126,7 @@ chk sync-truncated 1 "file is truncated" o.txt -- sync tspw.fits $H -o o.txt
 chk sync-not-reduced 1 "run/science.fits: no NCUBES keyword" o.txt -- sync run/science.fits $H -o o.txt
 chk sync-log-missing 1 "nolog.log: cannot open the handshake log" o.txt -- sync sci.fits nolog.log -o o.txt
 chk sync-log-garbage 1 "notfits.fits:1: expected" o.txt -- sync sci.fits notfits.fits -o o.txt
-chk sync-unwritable 1 "notfits.fits/x.fits: cannot write" $UW -- sync sci.fits $H -o $UW
+chk sync-unwritable 1 "notfits.fits/x.fits: cannot create output file (folder notfits.fits: Not a directory)" $UW -- sync sci.fits $H -o $UW
 chk sync-ratio-range 1 "ratio [8, 5]" o.txt -- sync sci.fits $H -o o.txt --ratio-min 8 --ratio-max 5
 chk sync-nan 2 "got 'nan'" o.txt -- sync sci.fits $H -o o.txt --lag-step nan
 chk sync-unknown 2 "--bogus" o.txt -- sync sci.fits $H -o o.txt --bogus
@@ -146,7 +151,7 @@ chk merge-not-checkpoint 1 "run/halo.fits: no image extension EXTNAME='ACCUM'" o
 chk merge-geometry 1 "PIXSCALE = 0.25 but ckg.fits has 0.5" o.fits -- merge ckg.fits ck2.fits -o o.fits
 chk merge-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- merge ck1.fits ck2.fits -o $UW
 chk merge-halo-unwritable 1 "notfits.fits/x.fits: cannot create" o.fits -- merge ck1.fits ck2.fits -o o.fits --halo $UW
-chk merge-same 2 "-o ck1.fits is also an input" ck1.fits.x -- merge ck1.fits ck2.fits -o ck1.fits
+chk merge-same 1 "ck1.fits (-o) is the same file as the input ck1.fits" ck1.fits.x -- merge ck1.fits ck2.fits -o ck1.fits
 chk merge-neg-rn 2 "--read-noise must be >= 0, got -1" o.fits -- merge ck1.fits ck2.fits -o o.fits --read-noise -1
 
 # ---- report (a failed run may leave its empty output folder, never an index.html)

@@ -29,6 +29,9 @@
 
 #include "specklewfs/sparse.h"
 
+/* Engine workers at most (speckles --threads, stream --threads, the pipeline). */
+#define SWFS_ENGINE_MAX_THREADS 64
+
 SWFS_BEGIN_DECLS
 
 typedef struct swfs_engine_config {

@@ -4,8 +4,15 @@
  *    (real, imaginary), then x, y[, frame] -- the memory layout of C99 complex arrays;
  *  - geometry keywords WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN carried through;
  *  - every product records SWFSVER and the parameters that made it (HISTORY cards);
- *  - outputs are written to "<path>.part" and renamed on commit, so a failed run never
- *    leaves a file that looks complete.
+ *  - outputs are written to a unique part file and renamed on commit (atomic.h), so a
+ *    failed run never leaves a file that looks complete; every HDU carries DATASUM and
+ *    CHECKSUM, and readers refuse an HDU whose checksums do not match;
+ *  - file names are taken literally (no CFITSIO extended syntax: "o[1].fits" is a name);
+ *  - inputs may be gzip-compressed files or tile-compressed images (fpack), which CFITSIO
+ *    reads transparently;
+ *  - header values are parsed from their text by specklewfs (a logical, string or
+ *    overlong value where a number is expected is an error naming file and keyword), and
+ *    the geometry keywords are checked against their physical ranges (swfs_geom_check).
  * Real input of any BITPIX is scaled by BZERO/BSCALE into doubles (CFITSIO does it). */
 #ifndef SWFS_FITS_H
 #define SWFS_FITS_H
@@ -49,7 +56,14 @@ int swfs_fits_in_read_cplx_all(swfs_fits_in *f, swfs_cplx **out);
 int swfs_fits_in_key_double(swfs_fits_in *f, const char *key, double *val);      /* missing: error */
 int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, int *found);
 int swfs_fits_in_key_string_opt(swfs_fits_in *f, const char *key, char *val, size_t cap, int *found);
+/* An integer keyword in lo..hi (SWFS_ERR_VALUE naming file, keyword and range otherwise). */
+int swfs_fits_in_key_long_opt(swfs_fits_in *f, const char *key, long lo, long hi, long *val, int *found);
+/* The geometry keywords present, each checked against its physical range (swfs_geom_check). */
 int swfs_fits_in_geom(swfs_fits_in *f, swfs_geom *g);
+/* SWFS_ERR_FORMAT unless the current HDU holds floating-point data (BITPIX -32 or -64): for
+ * product layouts that fix it (an integer BITPIX there is a corrupt or foreign file).
+ * `what` names the product in the message ("a HALO.fits product"). */
+int swfs_fits_in_require_float(swfs_fits_in *f, const char *what);
 
 /* Convenience: read one HDU of a file. */
 int swfs_fits_read_real(const char *path, const char *extname, swfs_real **out, swfs_geom *g);
@@ -59,9 +73,11 @@ int swfs_fits_read_cplx(const char *path, const char *extname, swfs_cplx **out, 
 
 typedef struct swfs_fits_out swfs_fits_out;
 
-/* Create "<path>.part"; nothing appears at `path` until swfs_fits_out_commit(). */
+/* Create the part file of `path` (atomic.h); nothing appears at `path` until
+ * swfs_fits_out_commit(). The output checks of outpaths.h apply to `path`. */
 int swfs_fits_out_create(swfs_fits_out **out, const char *path);
-/* Close, rename to the final path, free. On failure the partial file is removed. */
+/* Write DATASUM/CHECKSUM on every HDU, close, fsync, rename to the final path (or keep it
+ * for the group's commit, atomic.h), free. On failure the partial file is removed. */
 int swfs_fits_out_commit(swfs_fits_out *o);
 /* Close, remove the partial file, free. Safe on NULL. */
 void swfs_fits_out_abort(swfs_fits_out *o);

@@ -22,6 +22,13 @@ void swfs_geom_init(swfs_geom *g); /* all missing */
 /* SWFS_ERR_FORMAT naming `what` and the first missing keyword; SWFS_ERR_VALUE when a value
  * is out of its physical range. */
 int swfs_geom_require(const swfs_geom *g, const char *what);
+/* The keywords present (missing ones are not checked) against their physical ranges, each
+ * message naming `what`, the keyword, its value and the range:
+ *   WAVELEN 1e-8 .. 1e-3 m (10 nm .. 1 mm), TELDIAM 1e-3 .. 1e3 m, OBSCUR 0 .. <1,
+ *   PIXSCALE 1e-3 .. 100 lambda/D per pixel, PUPDX 1e-6 .. 100 m, PUPN 2 .. 8192,
+ * and, when present together, PUPDX <= TELDIAM/2 (two samples across the pupil) and
+ * PUPN PUPDX >= TELDIAM (the pupil grid holds the pupil). SWFS_ERR_VALUE. */
+int swfs_geom_check(const swfs_geom *g, const char *what);
 /* SWFS_ERR_VALUE naming both sources and the keyword when two geometries disagree on a
  * keyword that both record (relative tolerance 1e-9): merging halos of different
  * wavelengths or samplings would be meaningless. */

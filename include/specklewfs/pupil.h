@@ -58,6 +58,10 @@ typedef struct swfs_pupil_result {
     swfs_jointfit_result *fit; /* the joint fit (owned), NULL for the moments */
 } swfs_pupil_result;
 
+/* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE
+ * naming `what`, the sample and the value otherwise). */
+int swfs_pupil_mask_check(const swfs_real *mask, const char *what);
+
 /* mask: PUPN x PUPN transmission, or NULL to build the annulus from TELDIAM/OBSCUR. */
 int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask,
                         const swfs_pupil_options *opt, swfs_pupil_result **out);

@@ -33,7 +33,8 @@ SWFS_BEGIN_DECLS
 
 /* RDNOISE [counts] and GAIN [e-/count] from the header of `path`'s primary HDU (0 where
  * absent), then the explicit values where they are not NaN. SWFS_ERR_VALUE naming the
- * file if the result is negative or not finite. */
+ * file unless RDNOISE is in 0 .. 1e6 counts and GAIN is 0 (no photon noise) or in
+ * 1e-4 .. 1e6 e-/count. */
 int swfs_noise_from_header(const char *path, double read_noise, double gain, swfs_noise *out);
 /* The g regularization length in pixels from lambda/D: g_smooth_lod / PIXSCALE, or with no
  * PIXSCALE the paper's 0.25 lambda/D per pixel (*assumed = 1 then). */

@@ -37,6 +37,10 @@ int swfs_file_source_check(const swfs_file_source *s);
 /* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
 double swfs_file_source_wfs_rate(const swfs_file_source *s);
 
+/* The telemetry file the source reads for a cube whose timing-table entry names `name`
+ * (timing, slopes: as for swfs_file_source_open). */
+int swfs_file_source_telemetry_path(const char *timing, const char *slopes, const char *name, char *path, size_t cap);
+
 /* The path of telemetry file `name` of a timing table in folder dir (absolute names are
  * used as they are). SWFS_ERR_ARG if it does not fit in cap. */
 int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t cap);
@@ -47,6 +51,11 @@ void swfs_path_dir(const char *path, char *dir, size_t cap);
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate);
 /* The same checks without reading the data: *nframes (may be NULL) receives the WFS frames. */
 int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);
+/* Telemetry values: finite and at most SWFS_TELEMETRY_MAX in magnitude in any unit (FLT_MAX
+ * and similar fill values are refused rather than averaged into the synchronization or the
+ * reconstruction). SWFS_ERR_VALUE naming the file, slope and frame. */
+#define SWFS_TELEMETRY_MAX 1e30
+int swfs_telemetry_check_values(const char *path, const swfs_real *s);
 /* Every telemetry file the usable cubes of t use, in the order they first appear,
  * concatenated: *out = *nframes frames of nslopes (caller frees). */
 int swfs_telemetry_load_training(const char *dir, const swfs_timing *t, size_t nslopes, double **out,

@@ -50,6 +50,10 @@ typedef struct swfs_sync_params {
 } swfs_sync_params;
 
 void swfs_sync_params_default(swfs_sync_params *p);
+/* The search ranges and steps: valid, and a coarse grid of at most SWFS_SYNC_MAX_GRID
+ * (ratio, lag) points (SWFS_ERR_ARG naming the count otherwise). */
+#define SWFS_SYNC_MAX_GRID 1000000
+int swfs_sync_params_check(const swfs_sync_params *p);
 
 typedef struct swfs_sync_result {
     double ratio, ratio_err; /* <t_sci/t_wfs> and its 1-sigma uncertainty (scatter of the

@@ -101,6 +101,11 @@ typedef struct swfs_ts_summary {
 /* The progress callback of status.h, under the name this module had first. */
 typedef swfs_progress_fn swfs_ts_progress_fn;
 
+/* Every file swfs_ts_run writes into dir, as outputs of `paths` (outpaths.h): the
+ * command checks them before simulating. Returns the paths' status. */
+struct swfs_paths;
+int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_paths *paths);
+
 /* Simulate and write DIR (must exist). */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);

@@ -27,7 +27,9 @@ SWFS_BEGIN_DECLS
 
 /* Hexapolar layout: a centre actuator and rings at radius k*pitch holding 6k actuators,
  * out to the first ring whose polygon covers the pupil radius diam/2 + margin (so the
- * Delaunay hull covers every illuminated pupil sample). *xy: 2*nact doubles (free()). */
+ * Delaunay hull covers every illuminated pupil sample). *xy: 2*nact doubles (free()).
+ * At most SWFS_HEXAPOLAR_MAX_RINGS rings (SWFS_ERR_ARG naming the count otherwise). */
+#define SWFS_HEXAPOLAR_MAX_RINGS 200
 int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **xy, size_t *nact);
 
 /* ---- Shack-Hartmann --------------------------------------------------- */

@@ -1,4 +1,5 @@
 #include "specklewfs/config.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <ctype.h>
@@ -99,6 +100,7 @@ int swfs_config_set(swfs_config *c, const char *assignment)
 
 int swfs_config_load(swfs_config *c, const char *path)
 {
+    if (swfs_input_check(path, "config")) return SWFS_ERR_IO;
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open config file: %s", path, strerror(errno));
     char line[1024], where[600];

@@ -23,9 +23,38 @@ int swfs_geom_require(const swfs_geom *g, const char *what)
     if (missing)
         return swfs_fail(SWFS_ERR_FORMAT, "%s: missing geometry keyword %s (expected WAVELEN, TELDIAM, "
                          "OBSCUR, PIXSCALE, PUPDX, PUPN)", what, missing);
-    if (!(g->wavelen > 0 && g->teldiam > 0 && g->obscur >= 0 && g->obscur < 1 && g->pixscale > 0 && g->pupdx > 0))
-        return swfs_fail(SWFS_ERR_VALUE, "%s: geometry out of range (WAVELEN=%g TELDIAM=%g OBSCUR=%g "
-                         "PIXSCALE=%g PUPDX=%g)", what, g->wavelen, g->teldiam, g->obscur, g->pixscale, g->pupdx);
+    return swfs_geom_check(g, what);
+}
+
+/* The physical ranges: wide enough for any telescope, laboratory bench and camera
+ * (docs/reliability.md), narrow enough that a value in the wrong unit or a corrupt header
+ * (WAVELEN = 1E300, PIXSCALE = 1E-300) is refused instead of giving inf or 0 nm. */
+int swfs_geom_check(const swfs_geom *g, const char *what)
+{
+    const struct { const char *key; double v, lo, hi; const char *unit; } k[] = {
+        {"WAVELEN", g->wavelen, 1e-8, 1e-3, "m (10 nm .. 1 mm)"},
+        {"TELDIAM", g->teldiam, 1e-3, 1e3, "m"},
+        {"PIXSCALE", g->pixscale, 1e-3, 100, "lambda/D per pixel"},
+        {"PUPDX", g->pupdx, 1e-6, 100, "m per pupil sample"},
+    };
+    for (size_t i = 0; i < sizeof k / sizeof k[0]; i++)
+        if (!isnan(k[i].v) && !(k[i].v >= k[i].lo && k[i].v <= k[i].hi))
+            return swfs_fail(SWFS_ERR_VALUE, "%s: %s = %g is outside its physical range %g .. %g %s", what, k[i].key,
+                             k[i].v, k[i].lo, k[i].hi, k[i].unit);
+    if (!isnan(g->obscur) && !(g->obscur >= 0 && g->obscur < 1))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: OBSCUR = %g is outside its range 0 .. <1 (central obstruction as a "
+                         "fraction of the diameter)", what, g->obscur);
+    if (g->pupn != 0 && !(g->pupn >= 2 && g->pupn <= 8192))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: PUPN = %ld is outside its range 2 .. 8192 pupil samples across", what,
+                         g->pupn);
+    if (!isnan(g->pupdx) && !isnan(g->teldiam) && g->pupdx > 0.5 * g->teldiam)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: PUPDX = %g m is more than half of TELDIAM = %g m: fewer than two pupil "
+                         "samples across the telescope", what, g->pupdx, g->teldiam);
+    if (!isnan(g->pupdx) && !isnan(g->teldiam) && g->pupn > 0 &&
+        (double)g->pupn * g->pupdx < g->teldiam * (1 - 1e-6))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: PUPN x PUPDX = %ld x %g m = %g m does not hold TELDIAM = %g m: the pupil "
+                         "grid must cover the telescope", what, g->pupn, g->pupdx, (double)g->pupn * g->pupdx,
+                         g->teldiam);
     return SWFS_OK;
 }
 

@@ -71,7 +71,8 @@ int swfs_regress_read_ext(swfs_fits_in *f, const char *path, size_t nx, size_t n
     if (!rc) rc = count_key(f, path, "FRAMES", &r->frames);
     if (!rc) rc = count_key(f, path, "SKIPPED", &r->skipped);
     if (!rc) rc = swfs_fits_in_read_real(f, 0, SWFS_REGRESS_NSTATE, state);
-    if (!rc && (rc = swfs_regress_import(r, state))) swfs_fail_context(rc, "%s: REGSTATE", path);
+    if (!rc && (rc = swfs_regress_import(r, state)))
+        swfs_fail_context(rc, "%s: REGSTATE (a damaged file, or lossy compression of its floating-point data?)", path);
     free(state);
     if (rc) { swfs_regress_free(r); return rc; }
     *out = r;
@@ -101,6 +102,7 @@ int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g)
     double ver;
     char names[128];
     int found = 0;
+    if ((rc = swfs_fits_in_require_float(f, "an accumulator checkpoint"))) goto done;
     if (sh->is_complex || sh->nz != SWFS_ACC_NFIELDS) {
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: ACCUM is %zux%zux%zu%s; a checkpoint holds a real cube of %d planes", path,
                        sh->nx, sh->ny, sh->nz, sh->is_complex ? " complex" : "", SWFS_ACC_NFIELDS);

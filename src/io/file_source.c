@@ -41,6 +41,17 @@ int swfs_telemetry_path(const char *dir, const char *name, char *path, size_t ca
     return SWFS_OK;
 }
 
+int swfs_telemetry_check_values(const char *path, const swfs_real *s)
+{
+    const size_t n = s->nx * s->ny * s->nz;
+    for (size_t i = 0; i < n; i++)
+        if (!isfinite(s->data[i]) || fabs(s->data[i]) > SWFS_TELEMETRY_MAX)
+            return swfs_fail(SWFS_ERR_VALUE, "%s: slope %zu of WFS frame %zu is %g; telemetry values must be finite and "
+                             "below %g in magnitude (a fill value, or a corrupt file?)", path, i % s->nx, i / s->nx,
+                             s->data[i], SWFS_TELEMETRY_MAX);
+    return SWFS_OK;
+}
+
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate)
 {
     *out = NULL;
@@ -52,8 +63,9 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
     if (!rc) rc = swfs_fits_in_read_real_all(f, out);
     swfs_fits_in_close(f);
     if (!rc && ((*out)->nz != 1 || (nslopes && (*out)->nx != nslopes)))
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames", path,
-                       (*out)->nx, (*out)->ny, (*out)->nz, nslopes);
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes per frame (the "
+                       "reconstructor's width) x WFS frames", path, (*out)->nx, (*out)->ny, (*out)->nz, nslopes);
+    if (!rc) rc = swfs_telemetry_check_values(path, *out);
     if (rc) {
         swfs_real_free(*out);
         *out = NULL;
@@ -164,6 +176,17 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
         return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory for batches of %zu frames", batch);
     }
     *out = s;
+    return SWFS_OK;
+}
+
+int swfs_file_source_telemetry_path(const char *timing, const char *slopes, const char *name, char *path, size_t cap)
+{
+    char dir[4096];
+    struct stat sb;
+    swfs_path_dir(timing, dir, sizeof dir);
+    if (!slopes) slopes = dir;
+    if (stat(slopes, &sb) == 0 && S_ISDIR(sb.st_mode)) return swfs_telemetry_path(slopes, name, path, cap);
+    snprintf(path, cap, "%s", slopes);
     return SWFS_OK;
 }
 

@@ -72,7 +72,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
     int rc = swfs_fits_in_open(&f, path, "HALO");
     if (rc) return rc;
     swfs_halo *h = calloc(1, sizeof *h);
-    if (!h) { swfs_fits_in_close(f); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!h) { swfs_fits_in_close(f); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     rc = swfs_fits_in_read_cplx_all(f, &h->halo);
     if (!rc && g) rc = swfs_fits_in_geom(f, g);
     if (!rc) { h->nx = h->halo->nx; h->ny = h->halo->ny; h->npix = h->nx * h->ny; }
@@ -85,6 +85,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
     for (size_t k = 0; k < NREAL && !rc; k++) {
         if (!swfs_fits_in_has_ext(f, real_exts[k].name)) continue;
         rc = swfs_fits_in_move(f, real_exts[k].name);
+        if (!rc) rc = swfs_fits_in_require_float(f, "a HALO.fits product");
         if (!rc) rc = swfs_fits_in_read_real_all(f, real_slot(h, k));
         if (!rc) {
             const swfs_real *a = *real_slot(h, k);

@@ -2,6 +2,7 @@
  * coherence input (coherence.h), OFFSETS.fits (dmfit.h), reconstructor and actuator files
  * (wfs.h), the closed-loop folder (closed_loop.h). The method code computes arrays; only
  * this layer reads and writes files. */
+#include "specklewfs/atomic.h"
 #include "specklewfs/closed_loop.h"
 #include "specklewfs/coherence.h"
 #include "specklewfs/dmfit.h"
@@ -89,14 +90,15 @@ int swfs_recon_read(const char *path, swfs_recon **out)
     swfs_real *a = NULL;
     int rc = swfs_fits_read_real(path, NULL, &a, NULL);
     if (rc) return rc;
-    if (a->nz != 1) {
-        size_t nz = a->nz;
+    if (a->nz != 1 || a->nx < 2 || a->nx % 2) {
+        size_t nx = a->nx, ny = a->ny, nz = a->nz;
         swfs_real_free(a);
-        return swfs_fail(SWFS_ERR_FORMAT, "%s: reconstructor must be a 2-D image (nslopes x nact), got %zu planes", path, nz);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: a reconstructor is a 2-D image of nslopes (even: x then y slopes) x nact, "
+                         "got %zux%zux%zu", path, nx, ny, nz);
     }
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = malloc(a->nx * a->ny * sizeof *r->W);
-    if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     r->nslopes = a->nx; r->nact = a->ny;
     for (size_t i = 0; i < a->nx * a->ny; i++) {
         if (!isfinite(a->data[i])) {
@@ -135,8 +137,22 @@ int swfs_actuators_read(const char *path, double **xy, size_t *nact)
         swfs_real_free(a);
         return swfs_fail(SWFS_ERR_FORMAT, "%s: actuator positions must be a 2 x nact image, NAXIS1 is %zu", path, nx);
     }
+    /* Positions in the pupil frame [m]: finite, within a kilometre, at least three. */
+    for (size_t i = 0; i < 2 * a->ny; i++)
+        if (!isfinite(a->data[i]) || fabs(a->data[i]) > 1e3) {
+            double v = a->data[i];
+            size_t k = i / 2;
+            swfs_real_free(a);
+            return swfs_fail(SWFS_ERR_VALUE, "%s: actuator %zu has %c = %g m; positions must be finite and within "
+                             "1 km of the pupil centre", path, k, i % 2 ? 'y' : 'x', v);
+        }
+    if (a->ny < 3) {
+        size_t n = a->ny;
+        swfs_real_free(a);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: %zu actuator(s); the interpolation needs at least 3", path, n);
+    }
     double *p = malloc(2 * a->ny * sizeof *p);
-    if (!p) { swfs_real_free(a); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!p) { swfs_real_free(a); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     memcpy(p, a->data, 2 * a->ny * sizeof *p);
     *nact = a->ny;
     *xy = p;
@@ -291,15 +307,17 @@ int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const cha
     char path[4096];
     if (snprintf(path, sizeof path, "%s/loop.tsv", dir) >= (int)sizeof path)
         return swfs_fail(SWFS_ERR_ARG, "%s: folder name too long", dir);
-    FILE *fp = fopen(path, "w");
-    if (!fp) return swfs_fail(SWFS_ERR_IO, "%s: cannot write", path);
+    swfs_atomic *tsv = NULL;
+    int rc = swfs_atomic_begin(&tsv, path, 1);
+    if (rc) return rc;
+    FILE *fp = swfs_atomic_stream(tsv);
     /* Table columns: also the METRICS image rows below. */
     static const char *cols[] = {"iter", "resid_nm", "resid_ptt_nm", "strehl", "strehl_ao", "strehl_marechal",
                                  "contrast", "contrast_ao", "contrast_ncp", "est_nm", "est_err_nm", "median_snr", "fit_nm",
                                  "unfit_nm", "fiterr_nm", "filtered_nm", "cmd_rms_nm", "seconds"};
     enum { NCOL = sizeof cols / sizeof cols[0] };
     swfs_real *met = swfs_real_alloc(NCOL, r->nrows, 1);
-    if (!met) { fclose(fp); return SWFS_ERR_NOMEM; }
+    if (!met) { swfs_atomic_abort(tsv); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     for (size_t c = 0; c < NCOL; c++) fprintf(fp, "%s%s", c ? "\t" : "# ", cols[c]);
     fputc('\n', fp);
     for (size_t k = 0; k < r->nrows; k++) {
@@ -314,14 +332,14 @@ int swfs_closed_loop_write(const swfs_loop_result *r, const char *dir, const cha
         }
         fputc('\n', fp);
     }
-    if (fclose(fp) != 0) {
+    if ((rc = swfs_atomic_commit(tsv))) {
         swfs_real_free(met);
-        return swfs_fail(SWFS_ERR_IO, "%s: write failed", path);
+        return rc;
     }
 
     snprintf(path, sizeof path, "%s/loop.fits", dir);
     swfs_fits_out *o = NULL;
-    int rc = swfs_fits_out_create(&o, path);
+    rc = swfs_fits_out_create(&o, path);
     if (!rc) rc = swfs_fits_out_set_stamp(o, &r->geom, prov, nprov);
     if (!rc) rc = swfs_fits_out_real(o, "METRICS", met, -64);
     for (size_t c = 0; !rc && c < NCOL; c++) {

@@ -82,7 +82,7 @@ static int read_names(swfs_fits_in *fs, const char *path, swfs_science_track *t)
         if (rc) return rc;
         if (!found) return swfs_fail(SWFS_ERR_FORMAT, "%s: missing keyword %s (camera file of cube %zu)", path, key, ci);
         if (t->n[ci] == 0) return swfs_fail(SWFS_ERR_FORMAT, "%s: cube %zu (%s) has no frames", path, ci, cam);
-        if (!(t->camera[ci] = strdup(cam))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!(t->camera[ci] = strdup(cam))) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     }
     return SWFS_OK;
 }
@@ -93,7 +93,7 @@ int swfs_science_track_read(const char *path, swfs_science_track **out)
     swfs_fits_in *fs = NULL;
     swfs_real *track = NULL;
     swfs_science_track *t = calloc(1, sizeof *t);
-    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     double v = NAN;
     int found = 0;
     int rc = swfs_fits_in_open(&fs, path, NULL);
@@ -117,7 +117,7 @@ int swfs_science_track_read(const char *path, swfs_science_track **out)
         t->first = calloc(t->ncubes, sizeof *t->first);
         t->n = calloc(t->ncubes, sizeof *t->n);
         t->camera = calloc(t->ncubes, sizeof *t->camera);
-        if (!t->x || !t->y || !t->first || !t->n || !t->camera) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!t->x || !t->y || !t->first || !t->n || !t->camera) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     }
     if (!rc) rc = split_cubes(path, track, t);
     if (!rc) rc = read_names(fs, path, t);

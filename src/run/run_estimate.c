@@ -2,6 +2,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "run_internal.h"
 
 #include <math.h>
@@ -26,9 +27,14 @@ int swfs_noise_from_header(const char *path, double read_noise, double gain, swf
     /* Explicit values win over the header. */
     if (!isnan(read_noise)) n.read_noise = read_noise;
     if (!isnan(gain)) n.gain = gain;
-    if (!(n.read_noise >= 0) || !(n.gain >= 0) || !isfinite(n.read_noise) || !isfinite(n.gain))
-        return swfs_fail(SWFS_ERR_VALUE, "%s: noise model RDNOISE=%g GAIN=%g is invalid (need finite values >= 0)", path,
-                         n.read_noise, n.gain);
+    /* Physical ranges: a camera's read noise is at most 1e6 counts rms; a gain is 0 (no
+     * photon-noise term) or 1e-4 .. 1e6 e-/count -- a 1E-300 gain would turn Phi_I/GAIN
+     * into a noise variance of 1E300. */
+    if (!(n.read_noise >= 0 && n.read_noise <= 1e6))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: read noise RDNOISE = %g counts is outside 0 .. 1e6", path, n.read_noise);
+    if (!(n.gain == 0 || (n.gain >= 1e-4 && n.gain <= 1e6)))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: GAIN = %g e-/count is outside 1e-4 .. 1e6 (or 0: no photon noise)", path,
+                         n.gain);
     *out = n;
     return SWFS_OK;
 }
@@ -116,7 +122,14 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     /* With a team every member reaches every agreement, whatever failed before it. */
     swfs_fits_in *fs = NULL, *fp = NULL;
     swfs_accum *acc = NULL;
-    int rc = swfs_fits_in_open(&fs, o->science, NULL);
+    swfs_paths *paths = NULL;
+    int rc = swfs_paths_create(&paths);
+    swfs_paths_input(paths, "science cube", o->science);
+    swfs_paths_input(paths, "speckle cube", o->speckles);
+    if (!rc) rc = swfs_paths_output(paths, "output halo", o->out);
+    swfs_paths_free(paths);
+    if (rc) return rc;
+    rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_open(&fp, o->speckles, NULL);
     if (!rc) rc = check_cubes(o, swfs_fits_in_shape(fs), swfs_fits_in_shape(fp));
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);

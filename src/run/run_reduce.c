@@ -1,6 +1,7 @@
 /* reduce: raw camera cubes -> the reduced science cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
 
 #include <math.h>
@@ -73,6 +74,15 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 {
     memset(r, 0, sizeof *r);
     if (!o->nraw || !o->out) return swfs_fail(SWFS_ERR_ARG, "reduce: needs raw camera cubes and an output");
+    swfs_paths *paths = NULL;
+    int prc = swfs_paths_create(&paths);
+    for (size_t c = 0; !prc && c < o->nraw; c++) prc = swfs_paths_input(paths, "raw camera cube", o->raw[c]);
+    if (!prc) swfs_paths_input(paths, "dark frame", o->dark);
+    if (!prc) swfs_paths_input(paths, "flat field", o->flat);
+    if (!prc) swfs_paths_input(paths, "bad-pixel map", o->badpix);
+    if (!prc) prc = swfs_paths_output(paths, "output science cube", o->out);
+    swfs_paths_free(paths);
+    if (prc) return prc;
     swfs_fits_in **in = calloc(o->nraw, sizeof *in);
     double *dark = NULL, *flat = NULL, *bad = NULL, *buf = NULL, *track = NULL;
     swfs_reduce *red = NULL;
@@ -81,14 +91,14 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     swfs_geom geom;
     double gainv = NAN;
     size_t nx = 0, ny = 0, ntot = 0;
-    int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
     if (!rc && o->dark) rc = read_map(o->dark, nx, ny, &dark);
     if (!rc && o->flat) rc = read_map(o->flat, nx, ny, &flat);
     if (!rc && o->badpix) rc = read_map(o->badpix, nx, ny, &bad);
     if (!rc) rc = header_params(o, in[0], &geom, &p, &gainv);
     if (!rc) rc = swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p);
     if (!rc && (!(buf = malloc(nx * ny * sizeof *buf)) || !(track = malloc(4 * ntot * sizeof *track))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
     if (!rc) rc = swfs_fits_out_create(&out, o->out);
     if (!rc) rc = swfs_fits_out_begin(out, NULL, nx, ny, ntot, 0, -32);
     for (size_t c = 0, k = 0; !rc && c < o->nraw; c++) {

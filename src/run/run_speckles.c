@@ -1,6 +1,8 @@
 /* speckles: timing table + telemetry -> the speckle cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/source.h"
 #include "specklewfs/speckles.h"
 #include "run_internal.h"
@@ -68,9 +70,34 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     if ((rc = swfs_fits_read_real(o->mask, NULL, &pm, NULL))) return rc;
     if (pm->nx != npup || pm->ny != npup || pm->nz != 1)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zu but PUPN = %zu", o->mask, pm->nx, pm->ny, npup);
-    else if (!(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    else memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
+    else rc = swfs_pupil_mask_check(pm, o->mask);
+    if (!rc && !(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
+    if (!rc) memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
     swfs_real_free(pm);
+    return rc;
+}
+
+/* Every input (also the telemetry files the timing table names) and output, checked
+ * before the work (outpaths.h). */
+static int check_paths(const swfs_speckles_run_options *o, const work *w)
+{
+    swfs_paths *p = NULL;
+    char path[8192];
+    int rc = swfs_paths_create(&p);
+    swfs_paths_input(p, "timing table", o->timing);
+    swfs_paths_input(p, "science cube", o->science);
+    swfs_paths_input(p, "actuator file", o->actuators);
+    if (o->pipe.recon == SWFS_RECON_GIVEN) swfs_paths_input(p, "reconstructor", o->recon);
+    swfs_paths_input(p, "pupil mask", o->mask);
+    for (size_t k = 0; k < o->nmatch; k++) swfs_paths_input(p, "--match input", o->match_in[k]);
+    for (size_t c = 0; !rc && c < w->t->ncubes; c++)
+        if (!(rc = swfs_telemetry_path(w->tdir, w->t->cubes[c].slopes, path, sizeof path)))
+            rc = swfs_paths_input(p, "telemetry file named by the timing table", path);
+    swfs_paths_output(p, "output speckle cube", o->out);
+    swfs_paths_output(p, "reconstructor output", o->write_recon);
+    for (size_t k = 0; k < o->nmatch; k++) swfs_paths_output(p, "--match output", o->match_out[k]);
+    if (!rc) rc = swfs_paths_status(p);
+    swfs_paths_free(p);
     return rc;
 }
 
@@ -81,7 +108,7 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
     const swfs_timing *t = w->t;
     w->cfirst = calloc(t->ncubes, sizeof *w->cfirst);
     w->cn = calloc(t->ncubes, sizeof *w->cn);
-    if (!w->cfirst || !w->cn) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!w->cfirst || !w->cn) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     for (size_t c = 0; c < t->ncubes; c++) {
         const swfs_timing_cube *tc = t->cubes + c;
         if (tc->first + tc->nframes > w->nsci)
@@ -90,7 +117,7 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
         if (tc->status == SWFS_CUBE_OK && tc->nframes > w->maxn) w->maxn = tc->nframes;
     }
     if (!w->maxn) return swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle telemetry files)", o->timing);
-    if (!(w->sched = malloc(w->maxn * sizeof *w->sched))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!(w->sched = malloc(w->maxn * sizeof *w->sched))) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     for (size_t c = 0; c < t->ncubes; c++) {
         const swfs_timing_cube *tc = t->cubes + c;
         if (tc->status != SWFS_CUBE_OK) continue;
@@ -153,7 +180,7 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
                                        w->train, w->ntrain, &o->pipe);
-    if (rc) return swfs_fail_context(rc, "%s", w->path);
+    if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
     free(w->train);
     w->train = NULL;
     /* (a team writes it with the other products, once every member has succeeded) */
@@ -320,6 +347,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     memset(&w, 0, sizeof w);
     swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);
     int rc = load_inputs(o, &w);
+    if (!rc) rc = check_paths(o, &w);
+    /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */
+    int group = !rc;
+    if (group) swfs_outputs_begin();
     if (!rc) rc = plan_cubes(o, &w, r);
     if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
@@ -350,6 +381,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
             rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
         free(prov);
+    }
+    if (group) {
+        int erc = swfs_outputs_end(rc == SWFS_OK);
+        if (!rc) rc = erc;
     }
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);

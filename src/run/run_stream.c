@@ -1,7 +1,9 @@
 /* stream: the whole real-time path from files. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/checkpoint.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/source.h"
 #include "run_internal.h"
 
@@ -9,6 +11,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o)
 {
@@ -35,7 +38,7 @@ static int load_mask(const char *path, const swfs_geom *g, swfs_real **out)
     if ((*out)->nx != (size_t)g->pupn || (*out)->ny != (size_t)g->pupn || (*out)->nz != 1)
         return swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but PUPN = %ld", path, (*out)->nx, (*out)->ny,
                          (*out)->nz, g->pupn);
-    return SWFS_OK;
+    return swfs_pupil_mask_check(*out, path);
 }
 
 static int write_static(const char *path, const swfs_complex *stat, size_t nfx, size_t nfy, const swfs_geom *g,
@@ -64,6 +67,7 @@ typedef struct run_ctx {
     int static_written;
     const swfs_run_hooks *hk;
     swfs_stream *stream;
+    int updated;              /* products of an update are in place */
 } run_ctx;
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
@@ -86,6 +90,8 @@ static int update(void *ctx, const swfs_stream *s, int final)
         if (o->on_update) o->on_update(o->update_ctx, s, NULL, NULL, 0);
         return SWFS_OK;
     }
+    /* One update's products are renamed into place together (atomic.h). */
+    swfs_outputs_begin();
     rc = swfs_halo_write(h, o->out, &u->g, u->prov, u->nprov);
     if (!rc && o->pupil_out) {
         swfs_pupil_options po;
@@ -96,6 +102,9 @@ static int update(void *ctx, const swfs_stream *s, int final)
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
     if (!rc && o->checkpoint) rc = swfs_accum_save(acc, o->checkpoint, &u->g, u->prov, u->nprov);
+    int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (!rc) rc = erc;
+    if (!rc) u->updated = 1;
     if (!rc && o->on_update) o->on_update(o->update_ctx, s, h, pr, final);
     if (!rc && u->hk && u->hk->after) rc = u->hk->after(u->hk->ctx, u->stream, h, pr, final);
     swfs_pupil_result_free(pr);
@@ -103,9 +112,41 @@ static int update(void *ctx, const swfs_stream *s, int final)
     return rc;
 }
 
+/* Every input (the telemetry files of the timing table too) and output, before the work. */
+static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t cap)
+{
+    swfs_paths *p = NULL;
+    swfs_timing *t = NULL;
+    char path[8192];
+    int rc = swfs_paths_create(&p);
+    swfs_paths_input(p, "timing table", o->timing);
+    swfs_paths_input(p, "science cube", o->science);
+    swfs_paths_input_or_dir(p, "telemetry (--slopes)", o->slopes);
+    swfs_paths_input(p, "reconstructor", o->recon);
+    swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_paths_input(p, "pupil mask", o->mask);
+    swfs_paths_input(p, "static halo", o->static_file);
+    if (!rc) rc = swfs_paths_status(p);
+    if (!rc) rc = swfs_timing_read(o->timing, &t);
+    first_tel[0] = 0;
+    for (size_t c = 0; !rc && c < t->ncubes; c++)
+        if (!(rc = swfs_file_source_telemetry_path(o->timing, o->slopes, t->cubes[c].slopes, path, sizeof path))) {
+            rc = swfs_paths_input(p, "telemetry file of the timing table", path);
+            if (!first_tel[0] && t->cubes[c].status == SWFS_CUBE_OK) snprintf(first_tel, cap, "%s", path);
+        }
+    swfs_paths_output(p, "output halo", o->out);
+    swfs_paths_output(p, "pupil output", o->pupil_out);
+    swfs_paths_output(p, "checkpoint output", o->checkpoint);
+    swfs_paths_output(p, "static-halo output", o->static_out);
+    if (!rc) rc = swfs_paths_status(p);
+    swfs_timing_free(t);
+    swfs_paths_free(p);
+    return rc;
+}
+
 /* Geometry and noise model of the science cube, the reconstructor and actuators -> the pipeline. */
-static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p, size_t *nfx, size_t *nfy,
-                 swfs_stream_run_result *r)
+static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ctx *u, swfs_pipeline **p, size_t *nfx,
+                 size_t *nfy, swfs_stream_run_result *r)
 {
     swfs_fits_in *fs = NULL;
     swfs_recon *rec = NULL;
@@ -121,6 +162,17 @@ static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p
     if (!rc) rc = swfs_geom_require(&u->g, o->science);
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
+    /* The reconstructor's width against the telemetry now, not after the first frames:
+     * a wrong --recon is named as such. */
+    if (!rc && first_tel[0]) {
+        swfs_fits_in *ft = NULL;
+        rc = swfs_fits_in_open(&ft, first_tel, NULL);
+        if (!rc && swfs_fits_in_shape(ft)->nx != rec->nslopes)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the reconstructor takes %zu slopes per WFS frame but the telemetry %s "
+                           "has %zu; --recon needs the reconstructor (nslopes x nact image)", o->recon, rec->nslopes,
+                           first_tel, swfs_fits_in_shape(ft)->nx);
+        swfs_fits_in_close(ft);
+    }
     if (!rc) rc = swfs_actuators_read(o->actuators, &act, &nact);
     if (!rc && rec->nact != nact)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s has %zu actuators but the reconstructor %s has %zu rows", o->actuators, nact,
@@ -135,7 +187,7 @@ static int setup(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline **p
         po.threads = o->threads;
         rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes, rec,
                                   NULL, 0, &po);
-        if (rc) swfs_fail_context(rc, "%s", o->recon);
+        if (rc) swfs_fail_context(rc, "%s with %s", o->recon, o->actuators);
         else swfs_pipeline_get_info(*p, &r->info);
     }
     swfs_recon_free(rec);
@@ -265,7 +317,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     swfs_file_source *src = NULL;
     swfs_cplx *stat_c = NULL;
     size_t nfx = 0, nfy = 0;
-    int rc = setup(o, &u, &p, &nfx, &nfy, r);
+    char first_tel[8192];
+    int rc = hk ? SWFS_OK : check_paths(o, first_tel, sizeof first_tel);
+    if (hk) first_tel[0] = 0;
+    if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
     if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info) : SWFS_OK;
     else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
     swfs_stream_options so = o->stream;
@@ -278,6 +333,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
         if (!rc && (stat_c->nx != nfx || stat_c->ny != nfy))
             rc = swfs_fail(SWFS_ERR_SHAPE, "%s: static halo is %zux%zu but the science frames are %zux%zu", o->static_file,
                            stat_c->nx, stat_c->ny, nfx, nfy);
+        for (size_t q = 0; !rc && q < nfx * nfy * stat_c->nz; q++)
+            if (!isfinite(creal(stat_c->data[q])) || !isfinite(cimag(stat_c->data[q])))
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: static halo value at pixel (%zu, %zu) is not finite", o->static_file,
+                               q % nfx, q / nfx % nfy);
         if (!rc) so.static_halo = stat_c->data;
     }
     char nl[256];
@@ -301,6 +360,18 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
         if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
             rc = hk ? swfs_fail(SWFS_ERR_VALUE, "no complete camera exposure arrived")
                     : swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
+    }
+    /* (A live run keeps them: its products and checkpoint are the complete state of the
+     * frames that arrived before the streams failed, the point a restart resumes from.) */
+    if (rc && !hk && (u.updated || u.static_written)) {
+        /* A failed run leaves no product that looks complete: the updates it had put in
+         * place describe only the frames before the failure. */
+        const char *const mine[] = {o->out, o->pupil_out, o->checkpoint};
+        for (size_t k = 0; u.updated && k < 3; k++)
+            if (mine[k]) unlink(mine[k]);
+        if (u.static_written && o->static_out) unlink(o->static_out);
+        swfs_fail_context(rc, "%s: the run failed after %zu camera frames and removed the products it had written",
+                          o->out, s ? swfs_stream_camera_frames(s) : (size_t)0);
     }
     if (s && !team) {
         r->camera_frames = swfs_stream_camera_frames(s);

@@ -1,6 +1,7 @@
 /* sync: reduced science + handshake log -> the timing table (Sec. 4.2). See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
 #include "specklewfs/source.h"
 
@@ -47,9 +48,10 @@ static int load_file(work *w, const char *name, size_t *fi)
     if (s->nz != 1 || s->nx % 2 || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: slopes must be a 2-D image NSLOPES (even%s) x N_WFS, got %zux%zux%zu", path,
                        w->nwfs_slopes ? ", same in every file" : "", s->nx, s->ny, s->nz);
+    if (!rc) rc = swfs_telemetry_check_values(path, s);
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     if (!rc) {
         w->nwfs_slopes = s->nx;
         snprintf(f->name, sizeof f->name, "%s", name);
@@ -96,8 +98,23 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     work w;
     memset(&w, 0, sizeof w);
     swfs_timing *t = &r->t;
-    int rc = swfs_science_track_read(o->science, &w.tr);
+    swfs_paths *paths = NULL;
+    int rc = swfs_sync_params_check(&o->params);
+    if (rc) return rc;
+    rc = swfs_paths_create(&paths);
+    swfs_paths_input(paths, "science cube", o->science);
+    swfs_paths_input(paths, "handshake log", o->handshake);
+    if (!rc) rc = swfs_paths_output(paths, "output timing table", o->out);
+    if (!rc) rc = swfs_science_track_read(o->science, &w.tr);
     if (!rc) rc = swfs_handshake_read(o->handshake, &w.hs, &w.nhs);
+    /* The telemetry files the log names are inputs too. */
+    for (size_t k = 0; !rc && k < w.nhs; k++) {
+        char dir[4096], path[8192];
+        swfs_path_dir(o->handshake, dir, sizeof dir);
+        if (!(rc = swfs_telemetry_path(dir, w.hs[k].slopes, path, sizeof path)))
+            rc = swfs_paths_input(paths, "telemetry file named by the handshake log", path);
+    }
+    swfs_paths_free(paths);
     if (!rc) {
         const size_t nc = w.tr->ncubes;
         swfs_path_dir(o->handshake, w.logdir, sizeof w.logdir);
@@ -107,7 +124,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         w.files = calloc(nc, sizeof *w.files);
         w.cube_file = calloc(nc, sizeof *w.cube_file);
         w.cube_hs = calloc(nc, sizeof *w.cube_hs);
-        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
     }
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
     if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &o->params, &t->fit);

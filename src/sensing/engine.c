@@ -33,7 +33,7 @@ enum {
     TILE = 512,         /* pupil samples per pass: y, s, c stay in L2 (3 x 32 KB) */
     CHUNK_EXP = 16,     /* exposures open at once in a worker (field buffers) */
     CHUNK_FRAMES = 256, /* WFS frames spanned by a chunk (unless one exposure is longer) */
-    MAX_THREADS = 64
+    MAX_THREADS = SWFS_ENGINE_MAX_THREADS
 };
 
 /* 16 floats, one frame per lane (GCC/Clang vector extension: the auto-vectorizer does not

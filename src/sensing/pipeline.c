@@ -69,8 +69,8 @@ static int check_options(const swfs_pipeline_options *o, const swfs_recon *recon
     if (o->wfs_rate && o->tiptilt == SWFS_TT_EXPOSURE)
         return swfs_fail(SWFS_ERR_ARG, "pipeline: at the WFS rate there is no exposure to take a mean tip-tilt over; "
                          "use SWFS_TT_FRAME or SWFS_TT_KEEP");
-    if (o->threads < 1 || o->threads > 256)
-        return swfs_fail(SWFS_ERR_ARG, "pipeline: threads must be 1..256, got %d", o->threads);
+    if (o->threads < 1 || o->threads > SWFS_ENGINE_MAX_THREADS)
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: threads must be 1..%d, got %d", SWFS_ENGINE_MAX_THREADS, o->threads);
     return SWFS_OK;
 }
 

@@ -148,6 +148,7 @@ static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real
     if (!mask && (rc = swfs_aperture_make(r->mask->data, n, g->pupdx, g->teldiam, g->obscur, 0, 0.0))) goto fail;
 
     /* Wiener weight per focal pixel (beyond the paper): SNR^2 / (SNR^2 + k^2). */
+    size_t nused = 0;
     for (size_t p = 0; p < nf; p++) {
         double complex v = src->data[p];
         if (!isfinite(creal(v)) || !isfinite(cimag(v))) v = 0.0;
@@ -159,18 +160,37 @@ static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real
             w = snr2 / (snr2 + o.wiener_k * o.wiener_k);
         }
         focal[p] = w * v;
+        nused += focal[p] != 0.0;
+    }
+    /* Nothing to transform is an error, not a flat wavefront of 0 nm and Strehl 1. */
+    if (!nused) {
+        rc = swfs_fail(SWFS_ERR_VALUE, "no focal-plane pixel has a finite, non-zero %s%s: nothing to transform to the "
+                       "pupil", o.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF",
+                       o.weight == SWFS_WEIGHT_SNR ? " with a positive SNR weight (STAB / STAB_ERR)" : "");
+        goto fail;
     }
     if ((rc = swfs_mft_inverse(m, focal, r->field->data))) goto fail;
 
     const size_t np = n * n;
-    for (size_t q = 0; q < np; q++) r->field->data[q] *= alpha * alpha;
+    for (size_t q = 0; q < np; q++) {
+        r->field->data[q] *= alpha * alpha;
+        if (!isfinite(creal(r->field->data[q])) || !isfinite(cimag(r->field->data[q]))) {
+            rc = swfs_fail(SWFS_ERR_VALUE, "the pupil field overflows (sample %zu is not finite): the %s values are "
+                           "too large to be a halo", q, o.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF");
+            goto fail;
+        }
+    }
     double complex mean = 0.0;
     double wsum = 0.0;
     for (size_t q = 0; q < np; q++) {
         mean += r->mask->data[q] * r->field->data[q];
         wsum += r->mask->data[q];
     }
-    if (!(wsum > 0.0)) { rc = swfs_fail(SWFS_ERR_VALUE, "pupil mask is empty"); goto fail; }
+    if (!(wsum > 0.0)) {
+        rc = swfs_fail(SWFS_ERR_VALUE, "the pupil mask is empty (no sample > 0)%s", mask ? "" : ": TELDIAM, PUPDX, "
+                       "OBSCUR leave no illuminated sample");
+        goto fail;
+    }
     mean /= wsum;
     /* eq:LFBiased-WFE-estimate: a constant field restores the missing low frequencies. */
     if (o.bias != 0.0)
@@ -200,6 +220,20 @@ fail:
 }
 
 /* Least-squares fit of a + b x + c y over the mask (normal equations, 3x3). */
+int swfs_pupil_mask_check(const swfs_real *mask, const char *what)
+{
+    size_t lit = 0;
+    for (size_t q = 0; q < mask->nx * mask->ny * mask->nz; q++) {
+        const double v = mask->data[q];
+        if (!(v >= 0 && v <= 1))
+            return swfs_fail(SWFS_ERR_VALUE, "%s: pupil mask value %g at sample (%zu, %zu) is outside 0 .. 1 (a "
+                             "transmission)", what, v, q % mask->nx, q / mask->nx % mask->ny);
+        lit += v > 0;
+    }
+    if (!lit) return swfs_fail(SWFS_ERR_VALUE, "%s: the pupil mask is empty (every sample is 0)", what);
+    return SWFS_OK;
+}
+
 static void fit_ptt(const double *w, const double *mask, size_t n, double coef[3])
 {
     double A[3][3] = {{0}}, b[3] = {0};

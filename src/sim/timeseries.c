@@ -1,5 +1,7 @@
 /* Time-series simulation with a closed AO loop, telemetry and raw camera cubes
  * (see include/specklewfs/timeseries.h and docs/telemetry.md). */
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/timeseries.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/array.h"
@@ -224,6 +226,43 @@ static int write_real(const char *path, const swfs_real *a, const swfs_geom *g, 
     return swfs_fits_out_commit(o);
 }
 
+/* Cube c's first exposure starts at this global WFS frame. */
+static double cube_start(const swfs_ts_params *p, size_t c)
+{
+    return p->start_offset + (double)c * ((double)p->cube_frames * p->frame_ratio + p->cube_gap);
+}
+
+int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
+{
+    static const char *fixed[] = {"actuators.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
+                                  "speckles_ideal.fits", "speckles_ideal_tt.fits", "truth.fits", "truth_timing.txt"};
+    char path[8192];
+    const size_t ncub = (size_t)p->ncubes, nf = (size_t)p->cube_frames;
+    size_t nwfs = 0;
+    swfs_exposure *sched = malloc(nf * sizeof *sched);
+    if (!sched) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t c = 0; c < ncub; c++) {
+        size_t need = swfs_engine_schedule(p->frame_ratio, cube_start(p, c), nf, sched);
+        if (need > nwfs) nwfs = need;
+    }
+    free(sched);
+    nwfs += (size_t)p->handshake_lag + 10;
+    const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
+    for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
+        snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
+        swfs_paths_output(paths, "simulation output", path);
+    }
+    for (size_t f = 0; f * ffr < nwfs; f++) {
+        snprintf(path, sizeof path, "%s/slopes_%03zu.fits", dir, f);
+        swfs_paths_output(paths, "simulation output", path);
+    }
+    for (size_t c = 0; c < ncub; c++) {
+        snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);
+        swfs_paths_output(paths, "simulation output", path);
+    }
+    return swfs_paths_status(paths);
+}
+
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
 {
@@ -318,7 +357,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     if (!sched || !hs || !tstart) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     size_t nwfs = 0;
     for (size_t c = 0; c < ncub; c++) {
-        tstart[c] = p->start_offset + (double)c * ((double)nf * p->frame_ratio + p->cube_gap);
+        tstart[c] = cube_start(p, c);
         size_t need = swfs_engine_schedule(p->frame_ratio, tstart[c], nf, sched + c * nf);
         if (need > nwfs) nwfs = need;
     }
@@ -615,16 +654,16 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     }
     if (!rc) {
         snprintf(path, sizeof path, "%s/truth_timing.txt", dir);
-        FILE *f = fopen(path, "w");
-        if (!f) rc = swfs_fail(SWFS_ERR_IO, "%s: cannot write", path);
-        else {
+        swfs_atomic *a = NULL;
+        if (!(rc = swfs_atomic_begin(&a, path, 1))) {
+            FILE *f = swfs_atomic_stream(a);
             fprintf(f, "# true timing: ratio %.6f, handshake lag %ld WFS frames, file length %zu\n", p->frame_ratio,
                     p->handshake_lag, ffr);
             fprintf(f, "# cube  start (global WFS frame)  slopes file  start in file\n");
             for (size_t c = 0; c < ncub; c++)
                 fprintf(f, "%zu %.6f slopes_%03zu.fits %.6f\n", c, tstart[c], (size_t)floor(tstart[c]) / ffr,
                         tstart[c] - (double)(((size_t)floor(tstart[c]) / ffr) * ffr));
-            fclose(f);
+            rc = swfs_atomic_commit(a);
         }
     }
     free(tstart);

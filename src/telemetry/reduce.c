@@ -73,11 +73,14 @@ int swfs_reduce_create(swfs_reduce **out, size_t nx, size_t ny, const double *da
 {
     *out = NULL;
     if (nx < 3 || ny < 3) return swfs_fail(SWFS_ERR_ARG, "reduce: frame %zux%zu is too small (at least 3x3)", nx, ny);
-    if (!(p->gauss_sigma > 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: reference peak sigma %g pixels, expected > 0", p->gauss_sigma);
-    if (!(p->hot_sigma > 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: hot-pixel threshold %g sigma, expected > 0", p->hot_sigma);
+    if (!(p->gauss_sigma > 0 && p->gauss_sigma <= 1e4))
+        return swfs_fail(SWFS_ERR_ARG, "reduce: reference peak sigma %g pixels, expected 0 < sigma <= 1e4", p->gauss_sigma);
+    if (!(p->hot_sigma > 0 && p->hot_sigma <= 1e6))
+        return swfs_fail(SWFS_ERR_ARG, "reduce: hot-pixel threshold %g sigma, expected 0 < threshold <= 1e6", p->hot_sigma);
     if (!(p->flat_min < p->flat_max))
         return swfs_fail(SWFS_ERR_ARG, "reduce: flat range [%g, %g], expected min < max", p->flat_min, p->flat_max);
-    if (!(p->bg_radius >= 0)) return swfs_fail(SWFS_ERR_ARG, "reduce: background radius %g pixels, expected >= 0", p->bg_radius);
+    if (!(p->bg_radius >= 0 && p->bg_radius <= 1e7))
+        return swfs_fail(SWFS_ERR_ARG, "reduce: background radius %g pixels, expected 0 .. 1e7", p->bg_radius);
     size_t n = nx * ny;
     swfs_reduce *r = calloc(1, sizeof *r);
     if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
@@ -228,9 +231,10 @@ int swfs_peak_gauss(const double *img, size_t nx, size_t ny, double sigma, doubl
 {
     /* Separable correlation with a unit Gaussian: rows into work, then columns into
      * work + nx ny. */
-    long rad = (long)ceil(3 * sigma);
+    /* Clamped before the conversion: (long) of 3e300 is undefined. */
+    const double r3 = ceil(3 * sigma);
+    const long rad = r3 > 128 ? 128 : (r3 > 0 ? (long)r3 : 0);
     double kern[257];
-    if (rad > 128) rad = 128;
     for (long t = -rad; t <= rad; t++) kern[t + rad] = exp(-0.5 * (double)(t * t) / (sigma * sigma));
     double *tmp = work, *cor = work + nx * ny;
     for (size_t j = 0; j < ny; j++)

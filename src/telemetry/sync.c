@@ -1,6 +1,8 @@
 /* WFS / science-camera synchronization by tip-tilt cross-correlation (Sec. 4.2), the
  * handshake log and the timing table (see sync.h). */
 #include "specklewfs/sync.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -151,14 +153,28 @@ static void grid(const prep_cube *pc, size_t c0, size_t c1, double r0, double r1
     }
 }
 
+int swfs_sync_params_check(const swfs_sync_params *p)
+{
+    if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
+          p->lag_step > 0) || !isfinite(p->ratio_max) || !isfinite(p->lag_min) || !isfinite(p->lag_max))
+        return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
+                         p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
+    /* The coarse grid is searched exhaustively: bound it (the default is 1,000 x 31). */
+    const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step) + 1,
+                 nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
+    if (!(nr * nl <= SWFS_SYNC_MAX_GRID))
+        return swfs_fail(SWFS_ERR_ARG, "sync: the search grid has %.3g points (%.3g ratios x %.3g lags); at most %.0f: "
+                         "use a larger --ratio-step / --lag-step or narrower ranges", nr * nl, nr, nl,
+                         (double)SWFS_SYNC_MAX_GRID);
+    return SWFS_OK;
+}
+
 int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sync_params *p, swfs_sync_result *r)
 {
     memset(r, 0, sizeof *r);
     if (ncubes == 0) return swfs_fail(SWFS_ERR_ARG, "sync: no camera cube to synchronize");
-    if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
-          p->lag_step > 0))
-        return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
-                         p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
+    int prc = swfs_sync_params_check(p);
+    if (prc) return prc;
     prep_cube *pc = calloc(ncubes, sizeof *pc);
     if (!pc) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     int rc = SWFS_OK;
@@ -167,7 +183,7 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
         pc[i].c = c;
         pc[i].Cx = malloc((c->nwfs + 1) * sizeof *pc[i].Cx);
         pc[i].Cy = malloc((c->nwfs + 1) * sizeof *pc[i].Cy);
-        if (!pc[i].Cx || !pc[i].Cy) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+        if (!pc[i].Cx || !pc[i].Cy) { rc = swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory"); break; }
         pc[i].Cx[0] = pc[i].Cy[0] = 0;
         for (size_t k = 0; k < c->nwfs; k++) {
             if (!isfinite(c->mx[k]) || !isfinite(c->my[k])) { rc = swfs_fail(SWFS_ERR_VALUE, "sync: cube %zu: slope mean of WFS frame %zu is not finite", i, k); break; }
@@ -246,6 +262,7 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
 {
     *out = NULL;
     *n = 0;
+    if (swfs_input_check(path, "handshake log")) return SWFS_ERR_IO;
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the handshake log: %s", path, strerror(errno));
     size_t cap = 16, cnt = 0;
@@ -253,14 +270,14 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
     char line[4096];
     long lineno = 0;
     int rc = SWFS_OK;
-    if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     while (fgets(line, sizeof line, f)) {
         lineno++;
         char *s = trim(line);
         if (!*s) continue;
         if (cnt == cap) {
             swfs_handshake *t = realloc(h, 2 * cap * sizeof *h);
-            if (!t) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+            if (!t) { rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); break; }
             h = t; cap *= 2;
         }
         char cam[SWFS_SYNC_NAME], slo[SWFS_SYNC_NAME], extra[8];
@@ -286,13 +303,14 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
 
 int swfs_handshake_write(const char *path, const swfs_handshake *h, size_t n)
 {
-    FILE *f = fopen(path, "w");
-    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the handshake log: %s", path, strerror(errno));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, path, 1);
+    if (rc) return rc;
+    FILE *f = swfs_atomic_stream(a);
     fprintf(f, "# specklewfs handshake log: one camera cube per line\n# CAMERA_FILE SLOPES_FILE WFS_FRAME "
                "(frame of SLOPES_FILE logged when the cube started, late by an unknown lag)\n");
     for (size_t i = 0; i < n; i++) fprintf(f, "%s %s %ld\n", h[i].camera, h[i].slopes, h[i].frame);
-    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
-    return SWFS_OK;
+    return swfs_atomic_commit(a);
 }
 
 /* ---- timing table ---------------------------------------------------------------- */
@@ -306,8 +324,10 @@ void swfs_timing_free(swfs_timing *t)
 
 int swfs_timing_write(const char *path, const swfs_timing *t)
 {
-    FILE *f = fopen(path, "w");
-    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot write the timing table: %s", path, strerror(errno));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, path, 1);
+    if (rc) return rc;
+    FILE *f = swfs_atomic_stream(a);
     fprintf(f, "# specklewfs timing table (specklewfs sync): WFS time in frames of each slopes file\n");
     fprintf(f, "# camera exposure j of a cube covers [start + j ratio, start + (j+1) ratio)\n");
     fprintf(f, "ratio %.6f %.6f\n", t->ratio, t->ratio_err);
@@ -320,19 +340,19 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
         fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
                 c->status == SWFS_CUBE_OK ? "ok" : "straddles");
     }
-    if (fclose(f)) return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", path, strerror(errno));
-    return SWFS_OK;
+    return swfs_atomic_commit(a);
 }
 
 int swfs_timing_read(const char *path, swfs_timing **out)
 {
     *out = NULL;
+    if (swfs_input_check(path, "timing table")) return SWFS_ERR_IO;
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open the timing table: %s", path, strerror(errno));
     swfs_timing *t = calloc(1, sizeof *t);
     size_t cap = 16;
     if (t) t->cubes = malloc(cap * sizeof *t->cubes);
-    if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     t->ratio = NAN;
     t->lag = NAN;
     char line[4096];
@@ -351,7 +371,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
         else if (!strncmp(s, "cube ", 5)) {
             if (t->ncubes == cap) {
                 swfs_timing_cube *nc = realloc(t->cubes, 2 * cap * sizeof *nc);
-                if (!nc) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
+                if (!nc) { rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); break; }
                 t->cubes = nc; cap *= 2;
             }
             swfs_timing_cube *c = t->cubes + t->ncubes;

@@ -18,6 +18,12 @@ int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **
         return swfs_fail(SWFS_ERR_ARG, "actuator layout: diameter %g m, pitch %g m, margin %g m out of range",
                          diam, pitch, margin);
     double need = 0.5 * diam + margin;
+    /* Each ring adds 6k actuators: 200 rings are 120,601 of them, beyond any DM. */
+    if (!(need / pitch <= SWFS_HEXAPOLAR_MAX_RINGS))
+        return swfs_fail(SWFS_ERR_ARG, "actuator layout: covering radius %g m (diameter %g m / 2 + margin %g m) at a "
+                         "pitch of %g m needs %.3g rings of actuators; at most %d (%d actuators)", need, diam, margin,
+                         pitch, ceil(need / pitch), SWFS_HEXAPOLAR_MAX_RINGS,
+                         1 + 3 * SWFS_HEXAPOLAR_MAX_RINGS * (SWFS_HEXAPOLAR_MAX_RINGS + 1));
     size_t nring = 1;
     /* The ring-k polygon (6k sides) covers radius k pitch cos(pi / 6k). */
     while ((double)nring * pitch * cos(M_PI / (6.0 * (double)nring)) < need) nring++;

@@ -1,0 +1,44 @@
+/* A command's files checked before any work: every output against every input and every
+ * other output (the same file by device and inode, also for outputs that do not exist yet:
+ * by their folder's device and inode and their name), special files refused (a FIFO or
+ * device as input would block or never end; as output it would be replaced by a regular
+ * file, as would a symbolic link), output folders checked for existence and write
+ * permission with the system's reason, and names that would be read as compressed files
+ * (.gz, .fz, ...) refused as outputs.
+ *
+ * Usage (inherited status, like CFITSIO): create, add every input and output with a role
+ * that names it in messages ("science cube", "output halo", ...), read the status:
+ *     swfs_paths *p; swfs_paths_create(&p);
+ *     swfs_paths_input(p, "science cube", sci);
+ *     swfs_paths_output(p, "output", out);
+ *     int rc = swfs_paths_status(p); swfs_paths_free(p);
+ * Each call checks at once and returns the status; after a failure the later calls do
+ * nothing and return it again. */
+#ifndef SWFS_OUTPATHS_H
+#define SWFS_OUTPATHS_H
+
+#include "specklewfs/defs.h"
+
+SWFS_BEGIN_DECLS
+
+typedef struct swfs_paths swfs_paths;
+
+int swfs_paths_create(swfs_paths **out);
+void swfs_paths_free(swfs_paths *p);
+/* An input file. A missing file is left to its reader (which names it); a folder, FIFO,
+ * device or socket is refused. NULL path: nothing to check. */
+int swfs_paths_input(swfs_paths *p, const char *role, const char *path);
+/* An input that may be a folder (its files are added separately) or a file. */
+int swfs_paths_input_or_dir(swfs_paths *p, const char *role, const char *path);
+/* An output file. NULL path: nothing to check. */
+int swfs_paths_output(swfs_paths *p, const char *role, const char *path);
+int swfs_paths_status(const swfs_paths *p);
+
+/* The check every reader makes itself (also when a command's list missed the file): a
+ * regular file, or a missing one (SWFS_OK: the reader's open reports it). `what` names
+ * the kind of file in the message. */
+int swfs_input_check(const char *path, const char *what);
+
+SWFS_END_DECLS
+
+#endif
