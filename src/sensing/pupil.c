@@ -106,8 +106,13 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     const size_t n = (size_t)g->pupn;
     if (mask && (mask->nx != n || mask->ny != n))
         return swfs_fail(SWFS_ERR_SHAPE, "pupil mask is %zux%zu but the geometry says PUPN = %zu", mask->nx, mask->ny, n);
-    if (o.method == SWFS_PUPIL_FIT || (o.method == SWFS_PUPIL_AUTO && h->reg))
-        return pupil_fit(h, g, mask, &o, out);
+    if (o.method == SWFS_PUPIL_FIT) return pupil_fit(h, g, mask, &o, out);
+    if (o.method == SWFS_PUPIL_AUTO && h->reg) {
+        /* AUTO: the fit when the statistics allow one; too few frames or pixels for any
+         * regression (e.g. the first update of a live run) fall back to the moments. */
+        rc = pupil_fit(h, g, mask, &o, out);
+        if (rc != SWFS_ERR_NUMERIC) return rc;
+    }
     if (o.method != SWFS_PUPIL_AUTO && o.method != SWFS_PUPIL_MOMENTS)
         return swfs_fail(SWFS_ERR_ARG, "pupil method %d: expected auto, fit or moments", o.method);
     return pupil_moments(h, g, mask, &o, out);
