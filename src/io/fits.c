@@ -244,12 +244,33 @@ static int check_gzip_tile(swfs_fits_in *f, int col, LONGLONG row, double cap)
     return SWFS_OK;
 }
 
+/* An Hcompress tile's stream states its own dimensions, and CFITSIO decodes that many
+ * pixels into the tile's buffer: they must be the tile's. */
+static int check_hcompress_tile(swfs_fits_in *f, int col, LONGLONG row, long long npix)
+{
+    LONGLONG len = 0, off = 0;
+    int st = 0, anynul = 0;
+    unsigned char h[14];
+    fits_read_descriptll(f->fp, col, row, &len, &off, &st);
+    if (!st && len >= 14) fits_read_col(f->fp, TBYTE, col, row, 1, 14, NULL, h, &anynul, &st);
+    fits_clear_errmsg();
+    if (st || len < 14 || h[0] != 0xDD || h[1] != 0x99)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: the Hcompress data of tile %lld are corrupt", f->path,
+                         (long long)row);
+    const long long nx = (long long)h[2] << 24 | h[3] << 16 | h[4] << 8 | h[5],
+                    ny = (long long)h[6] << 24 | h[7] << 16 | h[8] << 8 | h[9];
+    if (nx <= 0 || ny <= 0 || nx * ny != npix)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: Hcompress tile %lld claims %lld x %lld pixels but the "
+                         "tile has %lld (file corrupt)", f->path, (long long)row, nx, ny, npix);
+    return SWFS_OK;
+}
+
 /* A tile-compressed image (fpack): tiles no larger than the image and one table row per
  * tile, so that CFITSIO never allocates a tile buffer larger than the image itself. */
 static int check_tiles(swfs_fits_in *f)
 {
-    long long zn = 0, rows = 0;
-    int rc = structural(f->fp, f->path, "ZNAXIS", 1, 999, 0, &zn);
+    long long zn = 0, rows = 0, axes[6] = {0}, tiles[6] = {0};
+    int rc = structural(f->fp, f->path, "ZNAXIS", 1, 6, 0, &zn); /* CFITSIO compresses up to 6 axes */
     if (!rc) rc = structural(f->fp, f->path, "NAXIS2", 0, LLONG_MAX, 0, &rows);
     double ntiles = 1, tilepix = 1;
     for (long long i = 1; i <= zn && !rc; i++) {
@@ -264,6 +285,8 @@ static int check_tiles(swfs_fits_in *f)
                              tile, key, ax);
         ntiles *= ceil((double)ax / (double)tile);
         tilepix *= (double)tile;
+        axes[i - 1] = ax;
+        tiles[i - 1] = tile;
     }
     if (!rc && ntiles != (double)rows)
         return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image of %.0f tiles has %lld table rows (one per tile)", f->path,
@@ -302,6 +325,20 @@ static int check_tiles(swfs_fits_in *f)
         fits_read_key(f->fp, TSTRING, tkey, name, NULL, &st);
         st = 0;
         fits_clear_errmsg();
+        const int hcomp = !strcmp(name, "COMPRESSED_DATA") && !strncmp(cmptype, "HCOMPRESS", 9);
+        if (hcomp) {
+            for (LONGLONG row = 1; row <= rows && !rc; row++) {
+                /* The pixels of this tile (edge tiles are smaller), first axis fastest. */
+                long long t = (long long)row - 1, npix = 1;
+                for (long long i = 0; i < zn; i++) {
+                    const long long nt = (axes[i] + tiles[i] - 1) / tiles[i], ti = t % nt;
+                    t /= nt;
+                    npix *= axes[i] - ti * tiles[i] < tiles[i] ? axes[i] - ti * tiles[i] : tiles[i];
+                }
+                rc = check_hcompress_tile(f, c, row, npix);
+            }
+            continue;
+        }
         if (strcmp(name, "GZIP_COMPRESSED_DATA") && (strcmp(name, "COMPRESSED_DATA") || strncmp(cmptype, "GZIP", 4)))
             continue;
         for (LONGLONG row = 1; row <= rows && !rc; row++)
