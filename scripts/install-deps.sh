@@ -6,7 +6,7 @@ export DEBIAN_FRONTEND=noninteractive
 $SUDO apt-get update -qq
 $SUDO apt-get install -y -qq --no-install-recommends \
   build-essential cmake pkg-config \
-  libcfitsio-dev libfftw3-dev libopenblas-dev liblapacke-dev libcmocka-dev libqhull-dev \
+  libcfitsio-dev zlib1g-dev libfftw3-dev libopenblas-dev liblapacke-dev libcmocka-dev libqhull-dev \
   libplplot-dev plplot-driver-cairo libpng-dev fonts-dejavu-core \
   python3 python3-numpy python3-pytest openmpi-bin libopenmpi-dev "$@" >/dev/null
 # Optional, for the fuzzer of the FITS readers (docs/fuzzing.md): pass clang-14 libclang-rt-14-dev.

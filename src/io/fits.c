@@ -9,6 +9,7 @@
 #include <fitsio.h>
 #include <fitsio2.h> /* ffgbyt: raw header bytes (check_raw_header) */
 #include <limits.h>
+#include <zlib.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -64,6 +65,19 @@ static int check_gzip_size(const char *path)
     if (isize > 1000 * csize + (1LL << 20))
         return swfs_fail(SWFS_ERR_FORMAT, "%s: gzip'd file of %lld bytes claims %lld bytes uncompressed (more than 1000:1): "
                          "corrupt, or gunzip it first", path, csize, isize);
+    /* And the stream itself must end where it should (CFITSIO loops on a cut-short one). */
+    gzFile gf = gzopen(path, "rb");
+    if (!gf) return SWFS_OK;
+    static _Thread_local char buf[65536];
+    long long total = 0;
+    int n;
+    while ((n = gzread(gf, buf, sizeof buf)) > 0 && total <= 1000 * csize + (1LL << 20)) total += n;
+    int err = 0;
+    gzerror(gf, &err);
+    gzclose(gf);
+    if (n < 0 || err < 0 || total > 1000 * csize + (1LL << 20) || (total & 0xffffffffLL) != isize)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: gzip'd file is corrupt or cut short (%lld bytes inflated, the trailer says "
+                         "%lld)", path, total, isize);
     return SWFS_OK;
 }
 
@@ -189,14 +203,76 @@ static int verify_hdu(swfs_fits_in *f, int k)
     return SWFS_OK;
 }
 
+/* Inflate GZIP data (gzip or zlib wrapper) without keeping it: SWFS_OK when the stream
+ * ends properly within cap bytes. */
+static int inflate_capped(const unsigned char *in, size_t n, double cap, double *total)
+{
+    unsigned char out[65536];
+    z_stream z;
+    memset(&z, 0, sizeof z);
+    if (inflateInit2(&z, 15 + 32) != Z_OK) return -1;
+    z.next_in = (unsigned char *)in;
+    z.avail_in = (uInt)n;
+    int zr;
+    *total = 0;
+    do {
+        z.next_out = out;
+        z.avail_out = sizeof out;
+        zr = inflate(&z, Z_NO_FLUSH);
+        *total += (double)(sizeof out - z.avail_out);
+    } while (zr == Z_OK && *total <= cap);
+    inflateEnd(&z);
+    return zr == Z_STREAM_END && *total <= cap ? 0 : -1;
+}
+
+static int check_gzip_tile(swfs_fits_in *f, int col, LONGLONG row, double cap)
+{
+    LONGLONG len = 0, off = 0;
+    int st = 0, anynul = 0;
+    fits_read_descriptll(f->fp, col, row, &len, &off, &st);
+    if (st || len <= 0) { fits_clear_errmsg(); return SWFS_OK; }
+    unsigned char *buf = malloc((size_t)len);
+    if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for a compressed tile", f->path);
+    fits_read_col(f->fp, TBYTE, col, row, 1, len, NULL, buf, &anynul, &st);
+    double total = 0;
+    int bad = st ? 0 : inflate_capped(buf, (size_t)len, cap, &total);
+    free(buf);
+    if (st) return fits_fail(SWFS_ERR_FORMAT, st, f->path, "reading a compressed tile");
+    if (bad)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: the GZIP data of tile %lld are %s (file corrupt)", f->path,
+                         (long long)row, total > cap ? "larger than the tile" : "corrupt or cut short");
+    return SWFS_OK;
+}
+
+/* An Hcompress tile's stream states its own dimensions, and CFITSIO decodes that many
+ * pixels into the tile's buffer: they must be the tile's. */
+static int check_hcompress_tile(swfs_fits_in *f, int col, LONGLONG row, long long npix)
+{
+    LONGLONG len = 0, off = 0;
+    int st = 0, anynul = 0;
+    unsigned char h[14];
+    fits_read_descriptll(f->fp, col, row, &len, &off, &st);
+    if (!st && len >= 14) fits_read_col(f->fp, TBYTE, col, row, 1, 14, NULL, h, &anynul, &st);
+    fits_clear_errmsg();
+    if (st || len < 14 || h[0] != 0xDD || h[1] != 0x99)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: the Hcompress data of tile %lld are corrupt", f->path,
+                         (long long)row);
+    const long long nx = (long long)h[2] << 24 | h[3] << 16 | h[4] << 8 | h[5],
+                    ny = (long long)h[6] << 24 | h[7] << 16 | h[8] << 8 | h[9];
+    if (nx <= 0 || ny <= 0 || nx * ny != npix)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: Hcompress tile %lld claims %lld x %lld pixels but the "
+                         "tile has %lld (file corrupt)", f->path, (long long)row, nx, ny, npix);
+    return SWFS_OK;
+}
+
 /* A tile-compressed image (fpack): tiles no larger than the image and one table row per
  * tile, so that CFITSIO never allocates a tile buffer larger than the image itself. */
 static int check_tiles(swfs_fits_in *f)
 {
-    long long zn = 0, rows = 0;
-    int rc = structural(f->fp, f->path, "ZNAXIS", 1, 999, 0, &zn);
+    long long zn = 0, rows = 0, axes[6] = {0}, tiles[6] = {0};
+    int rc = structural(f->fp, f->path, "ZNAXIS", 1, 6, 0, &zn); /* CFITSIO compresses up to 6 axes */
     if (!rc) rc = structural(f->fp, f->path, "NAXIS2", 0, LLONG_MAX, 0, &rows);
-    double ntiles = 1;
+    double ntiles = 1, tilepix = 1;
     for (long long i = 1; i <= zn && !rc; i++) {
         char key[32], tkey[32];
         long long ax = 0, tile = 0;
@@ -208,6 +284,9 @@ static int check_tiles(swfs_fits_in *f)
             return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image: %s = %lld is larger than %s = %lld", f->path, tkey,
                              tile, key, ax);
         ntiles *= ceil((double)ax / (double)tile);
+        tilepix *= (double)tile;
+        axes[i - 1] = ax;
+        tiles[i - 1] = tile;
     }
     if (!rc && ntiles != (double)rows)
         return swfs_fail(SWFS_ERR_FORMAT, "%s: compressed image of %.0f tiles has %lld table rows (one per tile)", f->path,
@@ -233,6 +312,38 @@ static int check_tiles(swfs_fits_in *f)
         }
     }
     if (!rc && st) rc = fits_fail(SWFS_ERR_FORMAT, st, f->path, "reading the compressed image's tile table");
+    /* GZIP tiles are inflated once here with a cap of the tile's size: CFITSIO grows its
+     * buffer without bound on a corrupt or cut-short stream (minutes of reallocation). */
+    char cmptype[FLEN_VALUE] = "";
+    st = 0;
+    fits_read_key(f->fp, TSTRING, "ZCMPTYPE", cmptype, NULL, &st);
+    st = 0;
+    fits_clear_errmsg();
+    for (int c = 1; c <= ncol && !rc; c++) {
+        char tkey[32], name[FLEN_VALUE] = "";
+        snprintf(tkey, sizeof tkey, "TTYPE%d", c);
+        fits_read_key(f->fp, TSTRING, tkey, name, NULL, &st);
+        st = 0;
+        fits_clear_errmsg();
+        const int hcomp = !strcmp(name, "COMPRESSED_DATA") && !strncmp(cmptype, "HCOMPRESS", 9);
+        if (hcomp) {
+            for (LONGLONG row = 1; row <= rows && !rc; row++) {
+                /* The pixels of this tile (edge tiles are smaller), first axis fastest. */
+                long long t = (long long)row - 1, npix = 1;
+                for (long long i = 0; i < zn; i++) {
+                    const long long nt = (axes[i] + tiles[i] - 1) / tiles[i], ti = t % nt;
+                    t /= nt;
+                    npix *= axes[i] - ti * tiles[i] < tiles[i] ? axes[i] - ti * tiles[i] : tiles[i];
+                }
+                rc = check_hcompress_tile(f, c, row, npix);
+            }
+            continue;
+        }
+        if (strcmp(name, "GZIP_COMPRESSED_DATA") && (strcmp(name, "COMPRESSED_DATA") || strncmp(cmptype, "GZIP", 4)))
+            continue;
+        for (LONGLONG row = 1; row <= rows && !rc; row++)
+            rc = check_gzip_tile(f, c, row, 8 * tilepix + 1024);
+    }
     return rc;
 }
 
