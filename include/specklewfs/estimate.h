@@ -11,17 +11,21 @@
  * positive, biased high (only upward fluctuations survive; at the paper's sigma = 100 the
  * median valid g is twice the true one, which empties HALO_LF's amplitude). Beyond the
  * paper, g is regularized (g_smooth > 0, the default): the radicand is debiased
- * (|<psi' I>|^2 minus its noise power), then averaged over a Gaussian neighbourhood of
- * g_smooth pixels (sigma) with inverse-variance weights from a noise model that uses only
- * well-measured quantities (Phi_I, Phi_sp, sigma_sp^2, the camera noise), iterated three
- * times; g = (that average)^(1/4). Where the average's expected standard error exceeds a
- * quarter of the map-wide mean radicand, the neighbourhood doubles (up to the whole map).
+ * (|<psi' I>|^2 minus its noise power), then averaged over a Gaussian neighbourhood with
+ * inverse-variance weights from a noise model that uses only well-measured quantities
+ * (Phi_I, Phi_sp, sigma_sp^2, the camera noise), iterated three times; g = (that
+ * average)^(1/4). The neighbourhood's size follows the information, pixel by pixel: on a
+ * ladder of scales g_smooth 2^k (k in Z, from half a pixel to beyond the map) the largest
+ * scale whose estimate stays inside the confidence intervals (SWFS_G_ICI_GAMMA standard
+ * errors) of all smaller scales is kept (intersection of confidence intervals). Real
+ * variation of g that the data resolve is kept; noise is averaged down.
  * GAIN holds the g used; GAIN_PIX the paper's per-pixel g.
  * g_smooth = 0 gives the paper's estimator exactly.
  *
  * Invalid pixels. VALID = 1 where the paper's per-pixel radicand and Phi_sp, sigma_sp^2 are
- * positive. Where the smoothed radicand is not positive either, g falls back to the median
- * of the valid per-pixel g in the smallest square neighbourhood holding at least
+ * positive. Where the chosen average of the radicand is not positive, g is the map-wide
+ * mean's; where that is not positive either, g falls back to the median of the valid
+ * per-pixel g in the smallest square neighbourhood holding at least
  * SWFS_G_FALLBACK_MIN valid pixels (the whole map at most), so HALO and HALO_LF stay finite
  * and one bad pixel does not poison the pupil transform. Pixels with no usable frames or
  * no speckle power have HALO = HALO_LF = 0 and SNR = 0. */
@@ -37,6 +41,9 @@
 SWFS_BEGIN_DECLS
 
 #define SWFS_G_FALLBACK_MIN 9
+/* Half-width of the confidence intervals of the scale choice, in standard errors (a two-sided
+ * 95 % interval). Measured over seeds, frame counts and noise levels in docs/estimator.md. */
+#define SWFS_G_ICI_GAMMA 2.0
 
 typedef struct swfs_noise {
     double read_noise; /* [counts] per frame, >= 0 */

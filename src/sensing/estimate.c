@@ -83,22 +83,32 @@ static void gauss_smooth(const double *v, size_t nx, size_t ny, double sigma, do
 
 /* The regularized scale factor (see estimate.h). rdb: debiased radicands (NaN where the
  * pixel has no speckles); g: in, the starting g per pixel; out, the regularized g where the
- * smoothed radicand is positive, unchanged elsewhere. noise_var: per-pixel camera noise.
+ * chosen average of the radicand is positive, the map-wide mean elsewhere. noise_var:
+ * per-pixel camera noise; sigma: the ladder's reference scale [pixels].
  *
- * The average is an inverse-variance weighted mean over a Gaussian neighbourhood of sigma
- * pixels. Where even that is too noisy (its expected standard error, from the same weights,
- * above a quarter of the map-wide mean radicand) the neighbourhood is doubled, up to the
- * whole map. The choice depends on the weights (the noise model), never on the local values,
- * so it does not select upward fluctuations the way a "first positive" rule would. */
+ * The average is an inverse-variance weighted mean over a Gaussian neighbourhood. Its scale
+ * is chosen per pixel by the intersection of confidence intervals (Goldenshluger &
+ * Nemirovski; Katkovnik's LPA-ICI): on a ladder of scales growing by 2 from half a pixel
+ * (sigma 2^k, k in Z), the interval [r_s - G se_s, r_s + G se_s] of each scale is intersected
+ * with those of all smaller scales, and the largest scale whose running intersection is not
+ * empty is kept. A larger scale only lowers the variance; it is refused once its estimate
+ * leaves what the smaller, less biased scales allow, i.e. where the radicand really varies
+ * beyond the noise. So at high SNR g follows a varying gain pixel by pixel, and at low SNR
+ * the scale grows until the noise is averaged down (to the whole map if need be): the
+ * smoothing follows the information (docs/estimator.md has the measurements). */
 static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var, double sigma, double *g)
 {
     const size_t nx = h->nx, ny = h->ny, np = nx * ny;
     const double largest = (double)(nx > ny ? nx : ny);
-    double *buf = swfs_calloc(8 * np, sizeof *buf);
+    double *buf = swfs_calloc(10 * np, sizeof *buf);
     if (!buf) return SWFS_ERR_NOMEM;
     double *w = buf, *wr = buf + np, *k1 = buf + 2 * np, *k1r = buf + 3 * np, *k2 = buf + 4 * np;
-    double *tmp = buf + 5 * np, *g_start = buf + 6 * np, *scale = buf + 7 * np;
+    double *tmp = buf + 5 * np, *g_start = buf + 6 * np, *lo = buf + 7 * np, *hi = buf + 8 * np, *rch = buf + 9 * np;
     memcpy(g_start, g, np * sizeof *g);
+    /* the ladder sigma 2^k from its first rung at or below half a pixel (one pixel's weight
+       dominates there) up to beyond the map, where every pixel gets the map-wide mean */
+    double s0 = sigma;
+    while (s0 > 0.5) s0 *= 0.5;
     for (int it = 0; it < 3; it++) {
         double W = 0.0, WR = 0.0;
         for (size_t p = 0; p < np; p++) {
@@ -106,7 +116,8 @@ static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var
             if (!isfinite(rdb[p]) || !(g[p] > 0.0)) continue;
             /* Model variance of I from the intensity model (eq:betterVariance) and the
              * noise: sigma_I^2 = noise + 2 g^2 |Psi|^2 Phi_sp + g^4 sigma_sp^2, |Psi|^2 from
-             * eq:betterMean. Var of a sample variance ~ 2 sigma^4 / N. */
+             * eq:betterMean. Var of a sample variance ~ 2 sigma^4 / N. The weights use
+             * only well-measured quantities, so they do not follow the radicand's noise. */
             const double g2 = g[p] * g[p], phi_sp = h->mean_sp->data[p], vsp = h->var_sp->data[p];
             const double psi2 = fmax(h->mean_i->data[p] - g2 * phi_sp, 0.0);
             const double s2 = noise_var[p] + 2.0 * g2 * psi2 * phi_sp + g2 * g2 * vsp;
@@ -118,33 +129,29 @@ static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var
             WR += wr[p];
         }
         const double r_global = W > 0.0 ? WR / W : NAN;
-        for (size_t p = 0; p < np; p++) {
-            g[p] = g_start[p];
-            scale[p] = 0.0; /* 0: not yet assigned */
-        }
+        memcpy(g, g_start, np * sizeof *g);
         if (!(r_global > 0.0)) continue; /* nothing to regularize towards: keep the fallback */
-        int pending = 1;
-        for (double sg = sigma; sg < largest && pending; sg *= 2.0) {
+        for (size_t p = 0; p < np; p++) {
+            lo[p] = -INFINITY;
+            hi[p] = INFINITY;
+            rch[p] = NAN;
+        }
+        for (double sg = s0; sg < 4.0 * largest; sg *= 2.0) {
             gauss_smooth(w, nx, ny, sg, tmp, k1);
             gauss_smooth(wr, nx, ny, sg, tmp, k1r);
             /* sum K^2 w for the standard error: K^2 of a Gaussian of sigma sg is a Gaussian
              * of sg / sqrt(2). */
             gauss_smooth(w, nx, ny, sg / M_SQRT2, tmp, k2);
-            pending = 0;
             for (size_t p = 0; p < np; p++) {
-                if (scale[p] > 0.0 || !isfinite(rdb[p])) continue;
-                const double se = k1[p] > 0.0 ? sqrt(k2[p]) / k1[p] : INFINITY;
-                if (se < 0.25 * r_global) {
-                    scale[p] = sg;
-                    if (k1r[p] > 0.0) g[p] = sqrt(sqrt(k1r[p] / k1[p]));
-                } else {
-                    pending = 1;
-                }
+                if (!(lo[p] <= hi[p]) || !isfinite(rdb[p]) || !(k1[p] > 0.0)) continue;
+                const double r = k1r[p] / k1[p], se = sqrt(k2[p]) / k1[p];
+                lo[p] = fmax(lo[p], r - SWFS_G_ICI_GAMMA * se);
+                hi[p] = fmin(hi[p], r + SWFS_G_ICI_GAMMA * se);
+                if (lo[p] <= hi[p]) rch[p] = r;
             }
         }
-        /* Too noisy at every scale below the map size: the map-wide mean. */
         for (size_t p = 0; p < np; p++)
-            if (scale[p] == 0.0 && isfinite(rdb[p])) g[p] = sqrt(sqrt(r_global));
+            if (isfinite(rdb[p])) g[p] = sqrt(sqrt(rch[p] > 0.0 ? rch[p] : r_global));
     }
     swfs_free(buf);
     return SWFS_OK;
