@@ -114,6 +114,10 @@ static int regularize_g(swfs_halo *h, const double *rdb, const double *noise_var
         for (size_t p = 0; p < np; p++) {
             w[p] = wr[p] = 0.0;
             if (!isfinite(rdb[p]) || !(g[p] > 0.0)) continue;
+            /* A pixel whose intensity does not fluctuate at all (dead, saturated, a
+             * constant fill) carries no information on the speckle modulation: no weight,
+             * its g comes from its neighbours. */
+            if (!(h->var_i->data[p] + noise_var[p] > 0.0)) continue;
             /* Model variance of I from the intensity model (eq:betterVariance) and the
              * noise: sigma_I^2 = noise + 2 g^2 |Psi|^2 Phi_sp + g^4 sigma_sp^2, |Psi|^2 from
              * eq:betterMean. Var of a sample variance ~ 2 sigma^4 / N. The weights use
