@@ -1,0 +1,276 @@
+/* The slopes -> speckles step on systems it was not tuned on (docs/telemetry.md, "Over many
+ * systems"). For each system of a matrix -- Shack-Hartmann 12 x 12, 16 x 16 and 24 x 24,
+ * frame ratios 4-10, one and two wind layers at 5-25 m/s, vibration 0-0.5 lambda/D, read
+ * noise 0-20 counts, WFS rates 500-1000 Hz -- and two seeds, the time-series simulation
+ * is run through the documented path with default options (reduce -> sync -> speckles ->
+ * estimate -> pupil) and, on the same reduced frames, with the simulator's ideal speckles
+ * (the true residual wavefront); the table gives both NCP errors and their ratio.
+ *
+ *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K]
+ *
+ * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
+ * every system runs with the same options; only the simulated system changes. */
+#include "specklewfs/fits.h"
+#include "specklewfs/parallel.h"
+#include "specklewfs/pupil.h"
+#include "specklewfs/run.h"
+#include "specklewfs/status.h"
+#include "specklewfs/timeseries.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <time.h>
+#include <unistd.h>
+
+typedef struct system_def {
+    const char *name;
+    int nsub;
+    double wfs_rate, ratio;
+    int nlayers;
+    double speed[2], dir[2];
+    double vib, vib_freq, read_noise;
+} system_def;
+
+/* The matrix: every parameter of the issue's range is visited, each value in several
+ * combinations. */
+static const system_def systems[] = {
+    {"sh12-mmt", 12, 527, 6.48, 2, {10, 15}, {0, 110}, 0.5, 20, 19},
+    {"sh12-slow", 12, 500, 4.0, 1, {5, 0}, {30, 0}, 0.0, 20, 0},
+    {"sh12-fast", 12, 1000, 10.0, 2, {20, 25}, {250, 340}, 0.3, 35, 10},
+    {"sh12-mid", 12, 800, 7.3, 1, {18, 0}, {135, 0}, 0.2, 12, 15},
+    {"sh16-issue", 16, 1000, 9.7, 1, {14, 0}, {200, 0}, 0.4, 12, 15},
+    {"sh16-calm", 16, 600, 5.0, 2, {8, 12}, {45, 300}, 0.2, 25, 5},
+    {"sh16-windy", 16, 1000, 8.0, 1, {25, 0}, {90, 0}, 0.5, 18, 20},
+    {"sh16-shear", 16, 700, 4.2, 2, {5, 22}, {10, 190}, 0.0, 20, 10},
+    {"sh24-base", 24, 1000, 6.0, 1, {10, 0}, {60, 0}, 0.1, 15, 10},
+    {"sh24-noisy", 24, 800, 4.5, 2, {15, 20}, {170, 260}, 0.3, 22, 20},
+    {"sh24-still", 24, 500, 9.0, 1, {5, 0}, {315, 0}, 0.0, 20, 0},
+    {"sh24-jet", 24, 1000, 7.7, 2, {12, 25}, {20, 220}, 0.5, 30, 5},
+};
+#define NSYS (sizeof systems / sizeof systems[0])
+
+static char dir[1024];
+
+static const char *pth(const char *name)
+{
+    static char buf[32][1200];
+    static int k;
+    k = (k + 1) % 32;
+    snprintf(buf[k], sizeof buf[k], "%s/%s", dir, name);
+    return buf[k];
+}
+
+static int die(const char *what)
+{
+    fprintf(stderr, "bench_telemetry: %s: %s\n", what, swfs_last_error());
+    return 1;
+}
+
+static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum)
+{
+    swfs_config *c = swfs_config_new();
+    char kv[24][96];
+    int n = 0;
+    /* One pupil grid for every system: 100 samples of 6.5 cm (>= 4 per subaperture at 24 x 24). */
+    snprintf(kv[n++], 96, "pupn=100");
+    snprintf(kv[n++], 96, "pupdx=0.065");
+    snprintf(kv[n++], 96, "screen_n=1024");
+    snprintf(kv[n++], 96, "nsub=%d", s->nsub);
+    /* The DM as the MMT's relative to its WFS: a hexapolar pitch 0.83 subapertures, a modal
+     * filter keeping 39 % of nsub^2 modes (56 of 144). */
+    snprintf(kv[n++], 96, "act_pitch=%.4f", 0.83 * 6.5 / s->nsub);
+    snprintf(kv[n++], 96, "ao_modes=%d", (int)lround(0.39 * s->nsub * s->nsub));
+    snprintf(kv[n++], 96, "wfs_rate=%g", s->wfs_rate);
+    snprintf(kv[n++], 96, "frame_ratio=%g", s->ratio);
+    snprintf(kv[n++], 96, "nlayers=%d", s->nlayers);
+    if (s->nlayers == 1) {
+        snprintf(kv[n++], 96, "layer_frac=1");
+        snprintf(kv[n++], 96, "layer_speed=%g", s->speed[0]);
+        snprintf(kv[n++], 96, "layer_dir=%g", s->dir[0]);
+    } else {
+        snprintf(kv[n++], 96, "layer_frac=0.6,0.4");
+        snprintf(kv[n++], 96, "layer_speed=%g,%g", s->speed[0], s->speed[1]);
+        snprintf(kv[n++], 96, "layer_dir=%g,%g", s->dir[0], s->dir[1]);
+    }
+    snprintf(kv[n++], 96, "vib_amp=%g", s->vib);
+    snprintf(kv[n++], 96, "vib_freq=%g", s->vib_freq);
+    snprintf(kv[n++], 96, "read_noise=%g", s->read_noise);
+    snprintf(kv[n++], 96, "ncubes=%d", quick ? 3 : 6);
+    snprintf(kv[n++], 96, "cube_frames=%d", quick ? 60 : 100);
+    /* camera cubes start at a random fraction of a WFS frame (the seed decides), telemetry
+       in files of 4000 frames so that some cubes straddle two */
+    snprintf(kv[n++], 96, "start_offset=%.3f", 300.0 + 0.137 * seed + 0.5 * (seed % 2));
+    snprintf(kv[n++], 96, "wfs_file_frames=4000");
+    snprintf(kv[n++], 96, "seed=%u", seed);
+    int rc = 0;
+    for (int i = 0; i < n && !rc; i++) rc = swfs_config_set(c, kv[i]);
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    if (!rc) rc = swfs_ts_params_from_config(c, &tp);
+    if (!rc) rc = swfs_ts_params_check(&tp);
+    swfs_config_free(c);
+    const char *prov[] = {"bench_telemetry"};
+    if (!rc) rc = swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, sum);
+    return rc;
+}
+
+/* The NCP error of the default pupil step on a halo file. */
+static int ncp_error(const char *halo_path, const swfs_real *ncp, double *err, int *method)
+{
+    swfs_halo *h = NULL;
+    swfs_geom g;
+    int rc = swfs_halo_read(halo_path, &h, &g);
+    swfs_pupil_result *pr = NULL;
+    if (!rc) rc = swfs_pupil_estimate(h, &g, NULL, NULL, &pr);
+    if (!rc) rc = swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, err, NULL, NULL);
+    if (!rc) *method = pr->method;
+    swfs_pupil_result_free(pr);
+    swfs_halo_free(h);
+    return rc;
+}
+
+static int estimate(const char *sci, const char *sp, const char *out)
+{
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = sci;
+    eo.speckles = sp;
+    eo.out = out;
+    swfs_estimate_run_result er;
+    int rc = swfs_estimate_run(&eo, &er);
+    if (!rc) swfs_halo_free(er.halo);
+    return rc;
+}
+
+typedef struct row {
+    double slopes, ideal, ratio_true, ratio, lag_true, lag, res_nm, tt, secs;
+    size_t nvalid, nact, nexp;
+} row;
+
+static int run_system(const system_def *s, unsigned seed, int quick, row *r)
+{
+    const double t0 = swfs_wall_seconds();
+    swfs_ts_summary sum;
+    if (simulate(s, seed, quick, &sum)) return die("simulate");
+    r->res_nm = sum.residual_rms_nott * 1e9;
+    r->tt = sum.tt_rms;
+    r->nvalid = sum.nvalid;
+    r->nact = sum.nact;
+    const int ncubes = quick ? 3 : 6;
+    const char *raw[6];
+    char names[6][32];
+    for (int k = 0; k < ncubes; k++) {
+        snprintf(names[k], sizeof names[k], "raw_%03d.fits", k);
+        raw[k] = strdup(pth(names[k]));
+    }
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    ro.raw = raw;
+    ro.nraw = (size_t)ncubes;
+    ro.dark = pth("dark.fits");
+    ro.flat = pth("flat.fits");
+    ro.out = pth("science.fits");
+    swfs_reduce_run_result rr;
+    int rc = swfs_reduce_run(&ro, &rr);
+    for (int k = 0; k < ncubes; k++) free((void *)raw[k]);
+    if (rc) return die("reduce");
+
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = pth("science.fits");
+    so.handshake = pth("handshake.log");
+    so.out = pth("timing.txt");
+    swfs_sync_run_result sr;
+    if (swfs_sync_run(&so, &sr)) return die("sync");
+    r->ratio = sr.t.ratio;
+    r->lag = sr.t.lag;
+    free(sr.t.cubes);
+    r->ratio_true = s->ratio;
+    r->lag_true = 3; /* the simulator's handshake_lag default */
+
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = pth("timing.txt");
+    sp.science = pth("science.fits");
+    sp.actuators = pth("actuators.fits");
+    sp.out = pth("speckles.fits");
+    const char *min[] = {pth("science.fits")}, *mout[] = {pth("science_m.fits")};
+    sp.match_in = min;
+    sp.match_out = mout;
+    sp.nmatch = 1;
+    swfs_speckles_run_result spr;
+    if (swfs_speckles_run(&sp, &spr)) return die("speckles");
+    r->nexp = spr.nout;
+
+    if (estimate(pth("science_m.fits"), pth("speckles.fits"), pth("halo.fits"))) return die("estimate (slopes)");
+    if (estimate(pth("science.fits"), pth("speckles_ideal.fits"), pth("halo_ideal.fits"))) return die("estimate (ideal)");
+
+    swfs_real *ncp = NULL;
+    swfs_geom g;
+    if (swfs_fits_read_real(pth("truth.fits"), "NCP", &ncp, &g)) return die("truth.fits");
+    int m1 = 0, m2 = 0;
+    rc = ncp_error(pth("halo.fits"), ncp, &r->slopes, &m1);
+    if (!rc) rc = ncp_error(pth("halo_ideal.fits"), ncp, &r->ideal, &m2);
+    swfs_real_free(ncp);
+    if (rc) return die("pupil");
+    r->secs = swfs_wall_seconds() - t0;
+    return 0;
+}
+
+int main(int argc, char **argv)
+{
+    int quick = 0, seeds = 2, only = -1;
+    const char *keep = NULL;
+    for (int i = 1; i < argc; i++) {
+        if (!strcmp(argv[i], "--quick")) quick = 1;
+        else if (!strcmp(argv[i], "--seeds") && i + 1 < argc) seeds = atoi(argv[++i]);
+        else if (!strcmp(argv[i], "--keep") && i + 1 < argc) keep = argv[++i];
+        else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = atoi(argv[++i]);
+        else {
+            fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K]\n");
+            return 2;
+        }
+    }
+    swfs_blas_set_threads(1);
+    if (keep) {
+        snprintf(dir, sizeof dir, "%s", keep);
+        mkdir(dir, 0755);
+    } else {
+        snprintf(dir, sizeof dir, "/tmp/bench_telemetry.%ld", (long)getpid());
+        if (mkdir(dir, 0755)) { perror(dir); return 1; }
+    }
+    printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)\n",
+           quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames");
+    printf("%-11s %4s %4s %5s %6s %4s %4s %5s | %7s %7s %6s | %6s %6s %5s | %5s\n", "system", "seed", "nsub", "rate",
+           "ratio", "vib", "rn", "res", "slopes", "ideal", "x", "ratio", "lag", "nexp", "s");
+    double worst = 0.0, sum_ratio = 0.0;
+    int nrun = 0, nfail = 0, within = 0;
+    for (size_t k = 0; k < NSYS; k++) {
+        if (only >= 0 && (size_t)only != k) continue;
+        for (int sd = 1; sd <= seeds; sd++) {
+            const system_def *s = &systems[k];
+            row r;
+            memset(&r, 0, sizeof r);
+            if (run_system(s, (unsigned)sd, quick, &r)) {
+                printf("%-11s %4d  failed\n", s->name, sd);
+                nfail++;
+                continue;
+            }
+            const double x = r.slopes / r.ideal;
+            worst = fmax(worst, x);
+            sum_ratio += x;
+            nrun++;
+            within += x <= 1.3;
+            printf("%-11s %4d %4d %5.0f %6.2f %4.1f %4.0f %5.0f | %7.1f %7.1f %6.2f | %6.3f %6.2f %5zu | %5.1f\n",
+                   s->name, sd, s->nsub, s->wfs_rate, s->ratio, s->vib, s->read_noise, r.res_nm, r.slopes * 1e9,
+                   r.ideal * 1e9, x, r.ratio, r.lag, r.nexp, r.secs);
+            fflush(stdout);
+        }
+    }
+    printf("runs %d (failed %d): slopes / ideal mean %.2f, worst %.2f; within 1.3x: %d of %d\n", nrun, nfail,
+           nrun ? sum_ratio / nrun : NAN, worst, within, nrun);
+    return nfail ? 1 : 0;
+}
