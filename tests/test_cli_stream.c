@@ -169,13 +169,19 @@ static swfs_accum *make_data(void)
     return acc;
 }
 
+/* Every accumulator field of b within rel of a, relative to the field's largest magnitude:
+ * the float engine's rounding depends on how frames are grouped into GEMMs (the stream's
+ * batches are not the whole cube), and a per-pixel relative test would measure that
+ * rounding against co-moments that cancel to near zero at some pixels. */
 static void assert_accum_close(const swfs_accum *a, const swfs_accum *b, double rel)
 {
     assert_int_equal(a->nx, b->nx);
     assert_int_equal(a->frames, b->frames);
-    for (int k = 0; k < SWFS_ACC_NFIELDS; k++)
-        for (size_t p = 0; p < a->nx * a->ny; p++)
-            assert_close(b->f[k][p], a->f[k][p], rel * fmax(1.0, fabs(a->f[k][p])));
+    for (int k = 0; k < SWFS_ACC_NFIELDS; k++) {
+        double peak = 0.0;
+        for (size_t p = 0; p < a->nx * a->ny; p++) peak = fmax(peak, fabs(a->f[k][p]));
+        for (size_t p = 0; p < a->nx * a->ny; p++) assert_close(b->f[k][p], a->f[k][p], rel * peak);
+    }
 }
 
 static void test_stream_and_merge(void **state)
@@ -203,7 +209,7 @@ static void test_stream_and_merge(void **state)
     assert_ok(swfs_accum_load(in_dir("ck.fits"), &got, NULL));
     /* Batches of 8 camera frames instead of the 30 computed directly: single-precision
      * rounding in the GEMMs may differ with the blocking, nothing else. */
-    assert_accum_close(expect, got, 2e-5);
+    assert_accum_close(expect, got, 1e-6); /* measured 1.2e-7 at most */
     swfs_halo *h = NULL;
     assert_ok(swfs_halo_read(in_dir("halo.fits"), &h, NULL));
     assert_int_equal(h->nx, NF);

@@ -33,6 +33,10 @@ enum {
     TILE = 512,         /* pupil samples per pass: y, s, c stay in L2 (3 x 32 KB) */
     CHUNK_EXP = 16,     /* exposures open at once in a worker (field buffers) */
     CHUNK_FRAMES = 256, /* WFS frames spanned by a chunk (unless one exposure is longer) */
+    CHUNK_MIN_FRAMES = 32, /* a batch is cut into CHUNKS_MIN chunks, but none spans fewer
+                              WFS frames than this unless one exposure is shorter: below it
+                              the GEMM re-reads W for too few frames */
+    CHUNKS_MIN = 4,
     MAX_THREADS = SWFS_ENGINE_MAX_THREADS
 };
 
@@ -67,6 +71,7 @@ typedef struct job {
     double complex *out;
     size_t next;                /* next exposure to hand out (under mu) */
     size_t chunk1;              /* single-frame exposures per chunk */
+    size_t span_max;            /* schedule: WFS frames a chunk may span (chunk_end) */
 } job;
 
 struct swfs_engine {
@@ -223,7 +228,10 @@ static void get_exposure(const job *j, size_t i, swfs_exposure *x)
  * WFS frames (more only for a single long exposure). Single-frame exposures: CHUNK_FRAMES of
  * them at most, fewer for small batches (chunk1: at least 8 chunks per batch when possible,
  * so that a worker slowed by other load does not hold up the batch); those of one BLK
- * block occupy distinct slots and all finish with the block. */
+ * block occupy distinct slots and all finish with the block. A schedule's chunks span at
+ * most span_max frames: the batch's span over CHUNKS_MIN, within [CHUNK_MIN_FRAMES,
+ * CHUNK_FRAMES], so that a small batch (a live stream's few camera frames) still gives
+ * every worker a chunk instead of one worker all of it. Fixed by the schedule alone. */
 static size_t chunk_end(const job *j, size_t e0)
 {
     if (!j->sched) return j->nexp - e0 < j->chunk1 ? j->nexp : e0 + j->chunk1;
@@ -234,7 +242,7 @@ static size_t chunk_end(const job *j, size_t e0)
         get_exposure(j, e1, &x);
         const size_t nlo = x.first < lo ? x.first : lo;
         const size_t nhi = x.first + x.count > hi ? x.first + x.count : hi;
-        if (nhi - nlo > CHUNK_FRAMES) break;
+        if (nhi - nlo > j->span_max) break;
         lo = nlo;
         hi = nhi;
         e1++;
@@ -375,7 +383,14 @@ int swfs_engine_process(swfs_engine *e, const double *slopes, size_t nwfs, const
             return swfs_fail(SWFS_ERR_VALUE, "engine: camera frame %zu has a non-finite weight", i);
     }
     if (!nexp) return SWFS_OK;
-    job j = {slopes, nwfs, sched, nexp, halo_out, 0, 0};
+    size_t lo = SIZE_MAX, hi = 0;
+    for (size_t i = 0; i < nexp; i++) {
+        if (sched[i].first < lo) lo = sched[i].first;
+        if (sched[i].first + sched[i].count > hi) hi = sched[i].first + sched[i].count;
+    }
+    size_t span_max = (hi - lo + CHUNKS_MIN - 1) / CHUNKS_MIN;
+    span_max = span_max < CHUNK_MIN_FRAMES ? CHUNK_MIN_FRAMES : span_max > CHUNK_FRAMES ? CHUNK_FRAMES : span_max;
+    job j = {slopes, nwfs, sched, nexp, halo_out, 0, 0, span_max};
     return run_batch(e, &j);
 }
 
@@ -387,7 +402,7 @@ int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, d
     /* Chunk size from the batch size only: results must not depend on the thread count. */
     size_t c1 = (nwfs / 8 + BLK - 1) / BLK * BLK;
     c1 = c1 < BLK ? BLK : c1 > CHUNK_FRAMES ? CHUNK_FRAMES : c1;
-    job j = {slopes, nwfs, NULL, nwfs, halo_out, 0, c1};
+    job j = {slopes, nwfs, NULL, nwfs, halo_out, 0, c1, CHUNK_FRAMES};
     return run_batch(e, &j);
 }
 
