@@ -232,6 +232,46 @@ static void test_moments_varying_gain(void **state)
     free(v); free(gerr); free(merr);
 }
 
+/* The data's weight by the evidence (noise_scale): counting every frame twice doubles every
+ * information matrix without adding information. The evidence must see through it -- beta
+ * halves, and the fit (its prior weights relative to the data) and so the NCP estimate stay
+ * the same. Before beta was estimated the prior stayed put while the data's weight doubled. */
+static void test_noise_scale_counts_information(void **state)
+{
+    (void)state;
+    swfs_real *noisy = noisy_science(100.0);
+    const size_t np = noisy->nx * noisy->ny;
+    swfs_jointfit_result *j[2];
+    for (int dup = 0; dup < 2; dup++) {
+        swfs_regress *r = swfs_regress_create(noisy->nx, noisy->ny);
+        assert_non_null(r);
+        for (size_t t = 0; t < noisy->nz; t++)
+            for (int c = 0; c <= dup; c++)
+                assert_ok(swfs_regress_add(r, noisy->data + t * np, (const double *)(sim->speckles->data + t * np), NULL));
+        swfs_regress_sol *s;
+        assert_ok(swfs_regress_solve(r, &s));
+        assert_ok(swfs_jointfit(s, &sim->geom, sim->pupil, NULL, &j[dup]));
+        swfs_regress_sol_free(s);
+        swfs_regress_free(r);
+    }
+    const double e0 = ncp_error(j[0]), e1 = ncp_error(j[1]);
+    double d = 0.0, n = 0.0;
+    for (size_t q = 0; q < j[0]->wfe->nx * j[0]->wfe->ny; q++) {
+        d += (j[1]->wfe->data[q] - j[0]->wfe->data[q]) * (j[1]->wfe->data[q] - j[0]->wfe->data[q]);
+        n += sim->pupil->data[q] > 0.0;
+    }
+    print_message("noise scale %.4f, frames counted twice %.4f (ratio %.4f); NCP error %.3f / %.3f nm, rms difference "
+                  "of the two wavefronts %.3g nm\n",
+                  j[0]->noise_scale, j[1]->noise_scale, j[1]->noise_scale / j[0]->noise_scale, e0 * 1e9, e1 * 1e9,
+                  sqrt(d / n) * 1e9);
+    assert_true(j[0]->noise_scale > 0.2 && j[0]->noise_scale <= 1.5);
+    assert_true(fabs(j[1]->noise_scale / j[0]->noise_scale - 0.5) < 0.01);
+    assert_true(sqrt(d / n) < 0.05e-9);
+    swfs_jointfit_result_free(j[0]);
+    swfs_jointfit_result_free(j[1]);
+    swfs_real_free(noisy);
+}
+
 /* Light the computed speckles do not model: a uniform background (thermal sky, stray light)
  * of half the mean intensity over the outer window. The intercept model cannot explain it; the
  * likelihood-ratio test must reject it and the free intercept keep the NCP error near the
@@ -327,6 +367,7 @@ int main(void)
         cmocka_unit_test(test_paper_case),
         cmocka_unit_test(test_varying_gain),
         cmocka_unit_test(test_moments_varying_gain),
+        cmocka_unit_test(test_noise_scale_counts_information),
         cmocka_unit_test(test_incoherent_background),
         cmocka_unit_test(test_bad_input),
     };

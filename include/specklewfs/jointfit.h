@@ -18,7 +18,9 @@
  * B-spline expansion over the pupil samples: thin-plate second differences by default,
  * first differences as an option. Levenberg-Marquardt from the linear GLS solution with a
  * constant g; the prior weights follow MacKay's evidence rule every iteration
- * (alpha_ratio lambda_phi <= lambda_alpha <= alpha_ratio_max lambda_phi). Geometry-derived
+ * (alpha_ratio lambda_phi <= lambda_alpha <= alpha_ratio_max lambda_phi), and so does the
+ * data's own weight beta (the noise scale, MacKay's second rule): the prior weights reported
+ * are lambda / beta. Geometry-derived
  * knots and every constant: docs/estimator.md. NCP wavefront = lambda / (2 pi) sum_j phi_j B_j, piston removed: no phase
  * unwrapping is ever needed. */
 #ifndef SWFS_JOINTFIT_H
@@ -37,6 +39,10 @@ enum { SWFS_JF_INTERCEPT_MODEL = 0, SWFS_JF_INTERCEPT_FREE = 1, SWFS_JF_INTERCEP
 /* The rejection level of the intercept model's likelihood-ratio test (standard deviations of
  * the chi-square difference under the model): a significance level, not a fitted constant. */
 #define SWFS_JF_INTERCEPT_Z 5.0
+/* The evidence's data weight beta = (rows - well-determined parameters) / chi2 is kept within
+ * [SWFS_JF_NOISE_SCALE_MIN, 1 / SWFS_JF_NOISE_SCALE_MIN]: a guard against a degenerate chi2,
+ * never reached on the cases of docs/estimator.md (0.14 - 0.95). */
+#define SWFS_JF_NOISE_SCALE_MIN 1e-3
 
 typedef struct swfs_jointfit_options {
     double knot_factor;    /* B-spline intervals across D = knot_factor * (window width in
@@ -89,8 +95,11 @@ typedef struct swfs_jointfit_result {
     double seconds;        /* wall time of swfs_jointfit */
     double wfe_rms;        /* [m] piston removed */
     int intercept;         /* SWFS_JF_INTERCEPT_MODEL or _FREE: the one this result used */
-    double delta_chi2;     /* AUTO: chi2(model) - chi2(free intercept); NaN otherwise */
+    double delta_chi2;     /* AUTO: (chi2(model) - chi2(free intercept)) x the free fit's
+                              noise_scale; NaN otherwise */
     double delta_chi2_limit; /* AUTO: the test's rejection threshold; NaN otherwise */
+    double noise_scale;    /* beta: the data's weight by the evidence, (rows - gamma) / chi2;
+                              1 = the statistics' own errors; 1 with fixed prior weights */
 } swfs_jointfit_result;
 
 /* sol: swfs_regress_solve over the focal window of the geometry g (PIXSCALE, PUPDX, TELDIAM,

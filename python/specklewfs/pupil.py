@@ -19,7 +19,7 @@ class PupilResult:
     wfe_rms, wfe_pv [m], strehl (Marechal); method ('fit' or 'moments', what was used);
     weight, wiener_k, bias, source: the moments' options; geom. After a fit also halo_fit
     (complex focal-plane Psi of the fit), gain_fit (g map), kappa (unexplained speckle
-    power fraction), fit_iterations."""
+    power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence)."""
 
     def __init__(self, ptr, geom):
         self._p = ptr
@@ -33,12 +33,12 @@ class PupilResult:
         self.wiener_k, self.bias = r.opt.wiener_k, r.opt.bias
         self.source = "halo" if r.opt.source == 1 else "lf"
         self.method = "fit" if r.method == 1 else "moments"
-        self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = None
+        self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = self.fit_noise_scale = None
         if r.method == 1 and r.fit:
             f = r.fit.contents
             self.halo_fit = _lib.cplx_view(f.halo, self._owner)
             self.gain_fit = _lib.real_view(f.gain, self._owner)
-            self.kappa, self.fit_iterations = f.kappa, f.iterations
+            self.kappa, self.fit_iterations, self.fit_noise_scale = f.kappa, f.iterations, f.noise_scale
         self.geom = geom
 
     def write(self, path, geom=None, provenance=()):

@@ -44,11 +44,12 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNSPL", (long)f->nintervals, "B-spline intervals across D");
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITLPHI", f->lambda_phi, "phase prior weight (evidence)");
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITLAMP", f->lambda_alpha, "log-amplitude prior weight");
+    if (!rc && f) rc = swfs_fits_out_key_double(o, "FITNSCL", f->noise_scale, "data weight (evidence): dof / chi2");
     if (!rc && f) rc = swfs_fits_out_key_long(o, "FITITER", (long)f->iterations, "Levenberg-Marquardt steps");
     if (!rc && f) rc = swfs_fits_out_key_string(o, "FITICPT", f->intercept == SWFS_JF_INTERCEPT_FREE ? "FREE" : "MODEL",
                                                 "mean intensity: modelled or free per pixel");
     if (!rc && f && isfinite(f->delta_chi2))
-        rc = swfs_fits_out_key_double(o, "FITDCHI2", f->delta_chi2, "chi2(model) - chi2(free intercept)");
+        rc = swfs_fits_out_key_double(o, "FITDCHI2", f->delta_chi2, "(chi2(model) - chi2(free)) x noise scale");
     if (!rc && f && isfinite(f->delta_chi2_limit))
         rc = swfs_fits_out_key_double(o, "FITDCLIM", f->delta_chi2_limit, "the model is kept below this");
     if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);

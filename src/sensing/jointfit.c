@@ -65,6 +65,8 @@ typedef struct fit {
     double *g;
     double lam_phi, lam_alpha, gam_phi, gam_alpha, rank;
     double beta_prec;       /* 1 / g_prior_sigma^2 on the non-constant log g terms */
+    double noise_scale;     /* the data's weight by the evidence: (ndata - gamma) / chi2 */
+    double ndata;           /* data rows: 4 (intercept modelled) or 3 (free) per pixel used */
     int iters;
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
@@ -294,8 +296,11 @@ static int newton_evidence(fit *ft, int update, double *dl)
     gp = fmin(fmax(gp, 1.0), rank);
     ft->gam_alpha = ga;
     ft->gam_phi = gp;
-    double lp = ft->o->lambda_phi > 0.0 ? ft->o->lambda_phi : (pp > 0.0 ? gp / pp : ft->lam_phi);
-    double la = ft->o->lambda_alpha > 0.0 ? ft->o->lambda_alpha : (pa > 0.0 ? ga / pa : ft->lam_alpha);
+    /* With the data weighted by beta (noise_scale), the cost beta chi2 + lambda x^T R x is
+     * chi2 + (lambda / beta) x^T R x: the weights kept here are lambda / beta. */
+    const double bs = ft->noise_scale;
+    double lp = ft->o->lambda_phi > 0.0 ? ft->o->lambda_phi : (pp > 0.0 ? gp / (bs * pp) : ft->lam_phi);
+    double la = ft->o->lambda_alpha > 0.0 ? ft->o->lambda_alpha : (pa > 0.0 ? ga / (bs * pa) : ft->lam_alpha);
     if (ft->o->lambda_alpha <= 0.0) la = fmin(fmax(la, ft->o->alpha_ratio * lp), ft->o->alpha_ratio_max * lp);
     *dl = fmax(fabs(lp / ft->lam_phi - 1.0), fabs(la / ft->lam_alpha - 1.0));
     ft->lam_phi = lp;
@@ -452,6 +457,18 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
     for (int it = 0; it < maxit; it++) {
         if (!built) build_normal(ft, ft->x);
         built = 0;
+        /* MacKay's rule for the data's own weight: beta = (rows - well-determined
+         * parameters) / chi2. The information matrices take every frame as independent;
+         * frames correlated in time (slow wind, several camera frames per speckle
+         * lifetime) or computed speckles with errors of their own make the data look more
+         * certain than they are, chi2 per degree of freedom rises above 1, and without
+         * this the prior weights followed the over-confident data into a rough phase
+         * that ran away at the pupil rim (docs/estimator.md). */
+        if (evid && ft->stage == 1 && *chi2 > 0.0) {
+            const double gtot = (double)ft->np - (ft->rank - ft->gam_phi) - (ft->rank - ft->gam_alpha);
+            const double b = (ft->ndata - gtot) / *chi2;
+            ft->noise_scale = fmin(fmax(b, SWFS_JF_NOISE_SCALE_MIN), 1.0 / SWFS_JF_NOISE_SCALE_MIN);
+        }
         /* The evidence fixed point lambda = T(lambda) converges slowly where gamma is small;
          * a secant step on log lambda - log T(lambda) (per weight) finds it in a few passes. */
         double lp[2] = {0, 0}, fp[2] = {0, 0};
@@ -527,6 +544,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     swfs_jointfit_result *res = calloc(1, sizeof *res);
     fit ft;
     memset(&ft, 0, sizeof ft);
+    ft.noise_scale = 1.0;
     if (!res) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     res->mask = mask_in ? swfs_real_copy(mask_in) : swfs_real_alloc(n, n, 1);
     if (!res->mask) { rc = SWFS_ERR_NOMEM; goto done; }
@@ -604,6 +622,12 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     }
     cur = run_stage(&ft, o.gls_iter, 1, &chi2);
     ft.stage = 1;
+    {
+        size_t nu = 0;
+        for (size_t k = 0; k < nf; k++) nu += ft.use[k];
+        ft.ndata = (o.intercept == SWFS_JF_INTERCEPT_FREE ? 3.0 : 4.0) * (double)nu;
+        ft.gam_phi = ft.gam_alpha = ft.rank; /* until the first evidence pass */
+    }
     cur = run_stage(&ft, o.max_iter, 0, &chi2);
     cur = total_cost(&ft, ft.x, &chi2); /* leaves the model at x */
 
@@ -629,6 +653,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     res->wfe_rms = sqrt(s2 / wsum);
     res->kappa = ft.x[np - 1];
     res->lambda_phi = ft.lam_phi;
+    res->noise_scale = ft.noise_scale;
     res->lambda_alpha = ft.lam_alpha;
     res->gamma_phi = ft.gam_phi;
     res->gamma_alpha = ft.gam_alpha;
@@ -652,8 +677,9 @@ done:
 /* SWFS_JF_INTERCEPT_AUTO: both fits, and a likelihood-ratio test of the intercept model. With a
  * free intercept per pixel the data term is the profile chi-square over a; the model adds one
  * constraint per pixel (less kappa), so when the model is right the difference of the two
- * minimized chi-squares is chi-square distributed with npix - 1 degrees of freedom. The model
- * is kept unless the difference exceeds its mean by SWFS_JF_INTERCEPT_Z standard deviations. */
+ * minimized chi-squares is chi-square distributed with npix - 1 degrees of freedom once it is
+ * put in units of the calibrated noise (times the free fit's noise_scale). The model is kept
+ * unless the difference exceeds its mean by SWFS_JF_INTERCEPT_Z standard deviations. */
 int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask,
                   const swfs_jointfit_options *opt, swfs_jointfit_result **out)
 {
@@ -679,7 +705,10 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     const double dof = (double)rf->npix - 1.0;
     const double limit = dof + SWFS_JF_INTERCEPT_Z * sqrt(2.0 * (dof > 1.0 ? dof : 1.0));
     double delta = NAN;
-    if (!jointfit_one(sol, geo, mask, &o, &rm)) delta = rm->chi2 - rf->chi2;
+    /* In units of the free fit's calibrated noise (its evidence data weight beta): frames that
+     * are not independent inflate both chi-squares by 1/beta, and the test must not read
+     * that as light the model cannot explain. */
+    if (!jointfit_one(sol, geo, mask, &o, &rm)) delta = rf->noise_scale * (rm->chi2 - rf->chi2);
     swfs_jointfit_result *keep = rf, *drop = rm;
     if (rm && delta <= limit) { keep = rm; drop = rf; }
     keep->intercept = keep == rm ? SWFS_JF_INTERCEPT_MODEL : SWFS_JF_INTERCEPT_FREE;
