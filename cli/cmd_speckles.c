@@ -34,7 +34,9 @@ static const char *usage_text =
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; or built\n"
     "                      here from the Shack-Hartmann interaction matrix D = U S V^T:\n"
-    "  --recon vk          (default) MAP, von Karman prior C of the actuators (--vk-l0 M: 10)\n"
+    "  --recon vk          (default) MAP, von Karman prior C of the actuators (--vk-l0 M: 10;\n"
+    "                      0: the outer scale, the prior's scale and the slope noise fitted to\n"
+    "                      the slopes by maximum likelihood)\n"
     "                      scaled to the slopes: W = C D^T (D C D^T + sigma^2 I)^-1\n"
     "  --recon map         MAP / Wiener reconstructor with the prior learned from the\n"
     "                      slopes of the usable cubes' telemetry files: mode i of D gets the\n"
@@ -152,7 +154,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (!(slope_noise >= 0) || !isfinite(slope_noise)) return cli_usage_error(cmd, "--slope-noise must be a finite rms >= 0 [rad], got %g", slope_noise);
     if (rcond_given && o->pipe.recon != SWFS_RECON_SVD) return cli_usage_error(cmd, "--rcond and --modes go with --recon svd");
     if (slope_noise > 0 && o->pipe.recon != SWFS_RECON_MAP && o->pipe.recon != SWFS_RECON_VK) return cli_usage_error(cmd, "--slope-noise goes with --recon vk or map");
-    if (!(o->pipe.vk_l0 > 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m], got %g", o->pipe.vk_l0);
+    if (!(o->pipe.vk_l0 >= 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m] (0: fitted), got %g", o->pipe.vk_l0);
     if (!(o->wfs_hz >= 0)) return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
     if (threads > SWFS_ENGINE_MAX_THREADS)
         return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
@@ -206,6 +208,9 @@ int swfs_cmd_speckles(int argc, char **argv)
         fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
                 "%.1f effective\n", o.pipe.recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", r.info.ntrain,
                 sqrt(r.info.noise_var), r.info.noise_given ? "given" : "estimated", r.info.recon_modes, r.info.recon_dof);
+    if (!rc && o.pipe.recon == SWFS_RECON_VK)
+        fprintf(stderr, "speckles: von Karman outer scale %.3g m (%s)\n", r.info.vk_l0,
+                o.pipe.vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");
     if (!rc)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes, r.info.recon_modes,

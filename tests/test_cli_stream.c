@@ -91,7 +91,7 @@ static swfs_accum *make_data(void)
     double *xy = NULL;
     size_t nact = 0;
     assert_ok(swfs_actuators_hexapolar(DIAM, 1.2, 0.6, &xy, &nact));
-    swfs_recon rec = {nact, NSL, malloc(nact * NSL * sizeof(double)), 0, NULL, 0, 0, 0};
+    swfs_recon rec = {nact, NSL, malloc(nact * NSL * sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
     assert_non_null(rec.W);
     for (size_t k = 0; k < nact * NSL; k++) rec.W[k] = LAMBDA / (2 * M_PI) * 0.3 * swfs_rng_normal(&r);
     assert_ok(swfs_recon_write(&rec, in_dir("recon.fits")));

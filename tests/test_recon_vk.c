@@ -1,14 +1,14 @@
 /* The MAP reconstructor with a von Karman spatial prior (swfs_recon_vk, wfs.h) on the
  * MMT-like geometry (217 hexapolar actuators, 12 x 12 Shack-Hartmann): actuator patterns
- * drawn from the von Karman covariance (L0 = 10 m) seen through D = S T with white slope
+ * drawn from the von Karman covariance (VK_L0 = 10 m) seen through D = S T with white slope
  * noise. The vk reconstructor (its scale learned from the slopes, the noise estimated)
  * recovers them with less error than the truncated SVD at the best of the cuts tried.
- * Also: swfs_vk_covariance's normalization and its Kolmogorov r^(5/3) law for r << L0. */
+ * Also: swfs_vk_covariance's normalization and its Kolmogorov r^(5/3) law for r << VK_L0. */
 #include "recon_fixture.h"
 
 #define NTRAIN 600
 #define NTEST 200
-#define L0 10.0
+#define VK_L0 10.0
 
 /* z = amp L n (n white): von Karman distributed; slopes D z + noise on the valid slopes. */
 static void make_data(const setup *s, swfs_rng *r, size_t n, double amp, double sigma, double *z, double *sl)
@@ -46,7 +46,7 @@ static void cholesky(double *A, size_t n)
 static void test_vk_covariance(void **state)
 {
     (void)state;
-    /* Three actuators on a line at 0, r, 2r with r << L0: 1 - C(r) ~ r^(5/3). */
+    /* Three actuators on a line at 0, r, 2r with r << VK_L0: 1 - C(r) ~ r^(5/3). */
     const double r = 0.05, xy[6] = {0, 0, r, 0, 2 * r, 0};
     double C[9];
     assert_ok(swfs_vk_covariance(xy, 3, 1000, C));
@@ -56,7 +56,7 @@ static void test_vk_covariance(void **state)
     double ratio = (1 - C[2]) / (1 - C[1]);
     print_message("(1 - C(2r)) / (1 - C(r)) = %.4f (Kolmogorov 2^(5/3) = %.4f)\n", ratio, pow(2, 5.0 / 3));
     assert_true(fabs(ratio / pow(2, 5.0 / 3) - 1) < 0.02);
-    /* Far beyond L0 the covariance vanishes; at r = L0 / (2 pi), x = 1: 1 K_5/6(1) / f(0). */
+    /* Far beyond VK_L0 the covariance vanishes; at r = VK_L0 / (2 pi), x = 1: 1 K_5/6(1) / f(0). */
     const double xy2[4] = {0, 0, 50, 0};
     assert_ok(swfs_vk_covariance(xy2, 2, 1, C));
     assert_true(fabs(C[1]) < 1e-20);
@@ -69,7 +69,7 @@ static void test_vk_beats_svd(void **state)
     setup s;
     setup_init(&s);
     s.L = malloc(s.nact * s.nact * sizeof *s.L);
-    assert_ok(swfs_vk_covariance(s.xy, s.nact, L0, s.L));
+    assert_ok(swfs_vk_covariance(s.xy, s.nact, VK_L0, s.L));
     for (size_t a = 0; a < s.nact; a++) s.L[a * s.nact + a] += 1e-9;
     cholesky(s.L, s.nact);
 
@@ -84,7 +84,7 @@ static void test_vk_beats_svd(void **state)
     const double srms = slopes_rms(&s, sl, NTRAIN);
 
     swfs_recon *vk = NULL;
-    assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, L0, sl, NTRAIN, 0, &vk));
+    assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, VK_L0, sl, NTRAIN, 0, &vk));
     print_message("slopes rms %.3g rad, noise %.3g rad (true %.3g)\n", srms, sqrt(vk->noise_var), sigma);
     assert_true(fabs(sqrt(vk->noise_var) / sigma - 1) < 0.05);
     const double evk = test_err(&s, vk, zt, st, NTEST), ezero = zero_err(&s, zt, st, NTEST);
@@ -98,7 +98,7 @@ static void test_vk_beats_svd(void **state)
     assert_true(evk < 0.9 * ebest_svd);
     assert_true(evk < emap);
     /* A wrong outer scale (x 0.5, x 2) costs little. */
-    const double l0s[] = {0.5 * L0, 2 * L0};
+    const double l0s[] = {0.5 * VK_L0, 2 * VK_L0};
     for (size_t i = 0; i < 2; i++) {
         swfs_recon *w = NULL;
         assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, l0s[i], sl, NTRAIN, 0, &w));
@@ -109,12 +109,12 @@ static void test_vk_beats_svd(void **state)
     }
     /* Bad input: too few frames, non-finite slopes, outer scale 0. */
     swfs_recon *bad = NULL;
-    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, L0, sl, 3, 0, &bad), 0);
+    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, VK_L0, sl, 3, 0, &bad), 0);
     assert_null(bad);
-    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, 0, sl, NTRAIN, 0, &bad), 0);
+    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, NAN, sl, NTRAIN, 0, &bad), 0);
     assert_null(bad);
     sl[5] = NAN;
-    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, L0, sl, NTRAIN, 0, &bad), 0);
+    assert_int_not_equal(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, VK_L0, sl, NTRAIN, 0, &bad), 0);
     assert_null(bad);
 
     swfs_recon_free(vk);
@@ -123,11 +123,54 @@ static void test_vk_beats_svd(void **state)
     setup_free(&s);
 }
 
+/* The prior fitted to the slopes by maximum likelihood (swfs_vk_fit_slopes): patterns drawn
+ * with outer scales of 3 m and 10 m; the fit must find the outer scale, the prior's scale and
+ * the noise, and its reconstructor must do as well as the one given the true outer scale. */
+static void test_vk_fit_recovers_prior(void **state)
+{
+    (void)state;
+    const double l0s[2] = {3.0, 10.0};
+    for (int q = 0; q < 2; q++) {
+        setup s;
+        setup_init(&s);
+        s.L = malloc(s.nact * s.nact * sizeof *s.L);
+        assert_ok(swfs_vk_covariance(s.xy, s.nact, l0s[q], s.L));
+        for (size_t a = 0; a < s.nact; a++) s.L[a * s.nact + a] += 1e-9;
+        cholesky(s.L, s.nact);
+        const double amp = 1e-7, sigma = 4e-8;
+        double *z = malloc(NTRAIN * 2 * s.nact * sizeof *z), *sl = malloc(NTRAIN * 2 * s.nslopes * sizeof *sl);
+        double *zt = malloc(NTEST * s.nact * sizeof *zt), *st = malloc(NTEST * s.nslopes * sizeof *st);
+        swfs_rng r;
+        swfs_rng_seed(&r, 11 + (uint64_t)q);
+        make_data(&s, &r, NTRAIN * 2, amp, sigma, z, sl);
+        make_data(&s, &r, NTEST, amp, sigma, zt, st);
+        swfs_vk_fit f;
+        assert_ok(swfs_vk_fit_slopes(s.D, s.nslopes, s.nact, s.xy, sl, NTRAIN * 2, &f));
+        swfs_recon *ml = NULL, *truth = NULL;
+        assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, 0, sl, NTRAIN * 2, 0, &ml));
+        assert_ok(swfs_recon_vk(s.D, s.nslopes, s.nact, s.xy, l0s[q], sl, NTRAIN * 2, 0, &truth));
+        const double eml = test_err(&s, ml, zt, st, NTEST), etrue = test_err(&s, truth, zt, st, NTEST);
+        print_message("true L0 %.3g m: fitted L0 %.3g m, prior scale %.3g m^2 (true %.3g), noise %.3g rad (true %.3g); "
+                      "error %.3g nm (true L0: %.3g nm)\n",
+                      l0s[q], f.L0, f.scale, amp * amp, sqrt(f.noise_var), sigma, eml * 1e9, etrue * 1e9);
+        assert_true(f.L0 > l0s[q] / 1.5 && f.L0 < l0s[q] * 1.5);
+        assert_true(fabs(f.scale / (amp * amp) - 1) < 0.3);
+        assert_true(fabs(sqrt(f.noise_var) / sigma - 1) < 0.05);
+        assert_true(ml->l0 == f.L0 && ml->prior_scale == f.scale);
+        assert_true(eml < 1.03 * etrue);
+        swfs_recon_free(ml);
+        swfs_recon_free(truth);
+        free(z); free(sl); free(zt); free(st);
+        setup_free(&s);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_vk_covariance),
         cmocka_unit_test(test_vk_beats_svd),
+        cmocka_unit_test(test_vk_fit_recovers_prior),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -40,7 +40,9 @@ typedef struct swfs_pipeline_options {
     double rcond;       /* SWFS_RECON_SVD: singular values kept above rcond x the largest (5e-2) */
     size_t max_modes;   /* SWFS_RECON_SVD: at most this many modes, 0 = no limit */
     double slope_noise; /* SWFS_RECON_VK|MAP: slope noise rms [rad]; 0 = estimated from the training slopes */
-    double vk_l0;       /* SWFS_RECON_VK: effective outer scale [m] (10) */
+    double vk_l0;       /* SWFS_RECON_VK: effective outer scale [m] (10); 0: fitted to the
+                           training slopes by maximum likelihood, with the prior's scale and the
+                           slope noise (swfs_vk_fit_slopes; docs/telemetry.md) */
     int tiptilt;        /* SWFS_TT_EXPOSURE (default), SWFS_TT_FRAME, SWFS_TT_KEEP (speckles.h) */
     int threads;        /* engine workers (1) */
     int wfs_rate;       /* 1: one focal field per WFS frame (swfs_pipeline_process_wfs), 0: per exposure */
@@ -59,6 +61,7 @@ typedef struct swfs_pipeline_info {
     int noise_given;     /* 1 if noise_var came from the options */
     size_t ntrain;       /* training WFS frames (MAP / vk) */
     size_t n_outside;    /* illuminated pupil samples outside the actuators' hull */
+    double vk_l0;        /* SWFS_RECON_VK: the outer scale used [m] */
 } swfs_pipeline_info;
 
 /* geom: WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN all required; nfx x nfy: the

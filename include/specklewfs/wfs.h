@@ -85,6 +85,8 @@ typedef struct swfs_recon {
     size_t nsv;
     double noise_var; /* swfs_recon_map: the slope noise variance used [rad^2]; 0 otherwise */
     double dof;       /* swfs_recon_map: sum of the modal Wiener factors (effective modes) */
+    double l0;          /* swfs_recon_vk: the outer scale used [m] (fitted when asked for 0) */
+    double prior_scale; /* swfs_recon_vk: the prior's scale c [m^2] */
 } swfs_recon;
 
 /* Truncated pseudo-inverse of D (nslopes x nact) by LAPACKE SVD: keep mode i when
@@ -119,9 +121,26 @@ int swfs_vk_covariance(const double *xy, size_t nact, double L0, double *C);
  * turbulence), the slopes' mean square per frame equals c tr(P D C_vk D^T P) + (nvs - 2)
  * sigma^2 (nvs valid slopes). slopes: nframes x nslopes (nframes >= 8); noise_var > 0 fixes
  * sigma^2 [rad^2], <= 0 estimates it (swfs_slopes_noise_var: noise + aliasing).
- * r->noise_var: the sigma^2 used; r->dof = tr(W D) (effective modes); r->nmodes = nact. */
+ * L0 <= 0: L0, and with noise_var <= 0 also c and sigma^2, by maximum likelihood from the
+ * slopes (swfs_vk_fit_slopes) instead.
+ * r->noise_var: the sigma^2 used; r->dof = tr(W D) (effective modes); r->nmodes = nact;
+ * r->l0, r->prior_scale: the L0 and c used. */
 int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy, double L0, const double *slopes,
                   size_t nframes, double noise_var, swfs_recon **out);
+/* The von Karman prior of swfs_recon_vk fitted to the telemetry by maximum likelihood: the
+ * valid slopes of every frame, each axis' mean removed, modelled as N(0, P (c D C_vk(L0) D^T
+ * + sigma^2 I) P); L0 over octaves of the actuator extent (1/8 to 32) refined by golden
+ * section, c and sigma^2 profiled exactly (src/wfs/vkfit.c). slopes: nframes >= 8 frames of
+ * nslopes; xy: 2 x nact actuator positions [m]. */
+typedef struct swfs_vk_fit {
+    double L0;        /* [m] effective outer scale of the AO residual */
+    double scale;     /* c [m^2]: the prior's variance per actuator */
+    double noise_var; /* sigma^2 [rad^2]: white noise plus aliasing per slope */
+    double loglik;    /* per frame, at the optimum */
+    size_t nvalid;    /* valid slopes used */
+} swfs_vk_fit;
+int swfs_vk_fit_slopes(const double *D, size_t nslopes, size_t nact, const double *xy, const double *slopes,
+                       size_t nframes, swfs_vk_fit *out);
 /* Effective slope noise variance per slope [rad^2] of slopes (nframes x nslopes, nframes
  * >= 8): the mean square of the slopes outside the column space of D over the valid slopes
  * (rows of D not all 0), per degree of freedom -- white noise plus whatever the DM cannot

@@ -155,7 +155,8 @@ swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
 swfs_recon = _s("swfs_recon", [("nact", c_size), ("nslopes", c_size), ("W", P(c_dbl)), ("nmodes", c_size),
-                               ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl)])
+                               ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl),
+                               ("l0", c_dbl), ("prior_scale", c_dbl)])
 swfs_speckle_model = _s("swfs_speckle_model", [("npup", c_size), ("nact", c_size), ("nslopes", c_size),
                                                ("pupdx", c_dbl), ("mask", P(c_dbl)), ("T", P(swfs_sparse)),
                                                ("wfs", P(swfs_shwfs)), ("recon", P(swfs_recon)),

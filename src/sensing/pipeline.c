@@ -29,7 +29,9 @@ void swfs_pipeline_options_default(swfs_pipeline_options *o)
     o->rcond = 5e-2;          /* 1e-2 amplified the WFS noise (docs/telemetry.md) */
     o->max_modes = 0;
     o->slope_noise = 0.0;
-    o->vk_l0 = 10.0;          /* an effective outer scale of the AO residual (docs/telemetry.md) */
+    o->vk_l0 = 10.0;          /* an effective outer scale of the AO residual (docs/telemetry.md: a
+                                 plateau at 5-20 m over four cases; the maximum-likelihood fit
+                                 to the slopes, vk_l0 = 0, reconstructs worse) */
     o->tiptilt = SWFS_TT_EXPOSURE;
     o->threads = 1;
     o->wfs_rate = 0;
@@ -62,8 +64,9 @@ static int check_options(const swfs_pipeline_options *o, const swfs_recon *recon
         return swfs_fail(SWFS_ERR_ARG, "pipeline: rcond must be in [0, 1), got %g", o->rcond);
     if (!(o->slope_noise >= 0) || !isfinite(o->slope_noise))
         return swfs_fail(SWFS_ERR_ARG, "pipeline: slope noise must be a finite rms >= 0 [rad], got %g", o->slope_noise);
-    if (!(o->vk_l0 > 0) || !isfinite(o->vk_l0))
-        return swfs_fail(SWFS_ERR_ARG, "pipeline: the von Karman outer scale must be > 0 [m], got %g", o->vk_l0);
+    if (!(o->vk_l0 >= 0) || !isfinite(o->vk_l0))
+        return swfs_fail(SWFS_ERR_ARG, "pipeline: the von Karman outer scale must be >= 0 [m] (0: fitted), got %g",
+                         o->vk_l0);
     if (o->tiptilt < SWFS_TT_EXPOSURE || o->tiptilt > SWFS_TT_KEEP)
         return swfs_fail(SWFS_ERR_ARG, "pipeline: unknown tip-tilt mode %d", o->tiptilt);
     if (o->wfs_rate && o->tiptilt == SWFS_TT_EXPOSURE)
@@ -101,6 +104,7 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     in->recon_modes = p->model->recon->nmodes;
     in->recon_dof = p->model->recon->dof;
     in->noise_var = p->model->recon->noise_var;
+    in->vk_l0 = o->recon == SWFS_RECON_VK ? p->model->recon->l0 : 0.0;
     in->noise_given = o->slope_noise > 0;
     in->ntrain = (o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) ? ntrain : 0;
     in->n_outside = p->model->n_outside;
@@ -129,7 +133,7 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0};
+    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);

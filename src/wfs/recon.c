@@ -336,7 +336,15 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
     for (size_t i = 0; i < m * nframes; i++)
         if (!isfinite(slopes[i]))
             return swfs_fail(SWFS_ERR_VALUE, "reconstructor: slope %zu of frame %zu is not finite", i % m, i / m);
+    if (isnan(L0) || isinf(L0)) return swfs_fail(SWFS_ERR_ARG, "vk reconstructor: outer scale %g: expected a length [m], or 0 to fit it", L0);
     int rc = SWFS_OK;
+    swfs_vk_fit fit = {0};
+    const int ml = !(L0 > 0), ml_noise = ml && noise_var <= 0;
+    if (ml) {
+        if ((rc = swfs_vk_fit_slopes(D, m, n, xy, slopes, nframes, &fit))) return rc;
+        L0 = fit.L0;
+        if (ml_noise) noise_var = fit.noise_var;
+    }
     if (noise_var <= 0 && (rc = swfs_slopes_noise_var(D, m, n, slopes, nframes, &noise_var))) return rc;
     if (!(noise_var > 0))
         return swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slope noise estimate is 0 (noise-free slopes?); give it");
@@ -383,7 +391,9 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
                        "(%.3g rad^2 per slope); nothing to reconstruct", meas, noise_var);
         goto done;
     }
-    const double c = sig / pred;
+    /* The prior's scale: the maximum-likelihood one with the fitted noise, else from the
+     * slopes' mean square given the noise. */
+    const double c = ml_noise ? fit.scale : sig / pred;
     /* B = D C_z (m x n); M = D C_z D^T + sigma^2 I; solve M X = B, W = X^T. */
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)m, (int)n, (int)n, c, D, (int)n, C, (int)n, 0.0, B,
                 (int)n);
@@ -401,6 +411,7 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
     for (size_t a = 0; a < n; a++)
         for (size_t s = 0; s < m; s++) dof += r->W[a * m + s] * D[s * n + a];
     r->nact = n; r->nslopes = m; r->nmodes = n; r->noise_var = noise_var; r->dof = dof;
+    r->l0 = L0; r->prior_scale = c;
     *out = r;
     r = NULL;
 done:
