@@ -66,7 +66,7 @@ class Pipeline:
     @property
     def info(self):
         """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,
-        noise_given, ntrain, n_outside."""
+        noise_given, ntrain, n_outside, vk_l0 (the outer scale used by the vk reconstructor)."""
         i = _lib.swfs_pipeline_info()
         lib.swfs_pipeline_get_info(self._p, ctypes.byref(i))
         return {k: getattr(i, k) for k, _t in _lib.PIPELINE_INFO_FIELDS}
