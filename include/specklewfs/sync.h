@@ -102,6 +102,23 @@ typedef struct swfs_timing {
     swfs_timing_cube *cubes;
 } swfs_timing;
 
+/* ---- the camera's orientation (src/telemetry/orient.c) ------------------------------
+ *
+ * The pairing sync found says how the camera's axes follow the slopes' axes: straight or
+ * swapped (a transposed camera), each with a sign (a flipped axis). The speckles are
+ * computed in the model's focal frame (DESIGN.md), so the science frames are brought into
+ * that frame: model pixel (cx + u, cy + v), (cx, cy) = (nx/2, ny/2), takes the camera's
+ * (cx + a, cy + b) with a = sx u, b = sy v, or a = sx v, b = sy u when swapped; NaN where
+ * the camera did not see. The frames keep their size. */
+int swfs_orient_is_identity(const swfs_sync_result *p);
+/* SWFS_ERR_VALUE for a pairing that is not one of the 8; SWFS_ERR_SHAPE for a transposed
+ * camera with frames that are not square (what: the file, for the message). */
+int swfs_orient_check(const swfs_sync_result *p, size_t nx, size_t ny, const char *what);
+/* "SWAP=s SX=+-1 SY=+-1", the CAMORIEN keyword of re-oriented products. */
+void swfs_orient_describe(const swfs_sync_result *p, char *buf, size_t cap);
+/* cam (camera frame, nx x ny values of comps doubles each: 1 real, 2 complex) into model. */
+void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t comps, const double *cam, double *model);
+
 /* Text:  "ratio R ERR" / "lag L" / "pairing SWAP SX SY CX CY" lines, then one
  * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok or
  * straddles); '#' comments. */

@@ -77,6 +77,9 @@ typedef struct swfs_ts_params {
     double dark_level;         /* [counts] bias 3700 */
     double flat_rms;           /* 0.02 */
     long nhot, ndead;          /* bad pixels (5, 5) */
+    /* the science camera's orientation on the sky: the detector shows the focal plane
+       transposed (camera_swap), then mirrored along its x and/or y axis (0, 0, 0) */
+    long camera_swap, camera_flip_x, camera_flip_y;
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

@@ -22,6 +22,8 @@ struct swfs_file_source {
     double wfs_rate;       /* [Hz] from the telemetry header (WFSRATE), 0 if unknown */
     swfs_exposure *sched;
     double *science;
+    double *raw;           /* the camera's frames before re-orientation (NULL: as the model) */
+    size_t nx, ny;
     int limited;           /* swfs_file_source_set_range: serve `left` more frames */
     size_t left;
 };
@@ -132,6 +134,7 @@ void swfs_file_source_close(swfs_file_source *s)
     free(s->loaded);
     free(s->sched);
     free(s->science);
+    free(s->raw);
     free(s);
 }
 
@@ -150,6 +153,17 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
     const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(s->sci);
     if (!rc && ss->is_complex)
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: science cube is complex; expected real intensities", science);
+    /* The camera's orientation (sync's pairing): frames are turned into the model's as they
+     * are read. A copy already turned (speckles --match) no longer matches the table. */
+    if (!rc) rc = swfs_orient_check(&s->timing->fit, ss->nx, ss->ny, timing);
+    if (!rc) {
+        char o[80];
+        int found = 0;
+        rc = swfs_fits_in_key_string_opt(s->sci, "CAMORIEN", o, sizeof o, &found);
+        if (!rc && found)
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: a copy already turned into the model's orientation (CAMORIEN = '%s'); "
+                           "give the reduced science cube that %s refers to", science, o, timing);
+    }
     for (size_t c = 0; !rc && c < s->timing->ncubes; c++) {
         const swfs_timing_cube *tc = &s->timing->cubes[c];
         if (tc->status == SWFS_CUBE_OK && tc->first + tc->nframes > ss->nz)
@@ -170,8 +184,11 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
     s->nf2 = ss->nx * ss->ny;
     s->bmax = batch;
     s->sched = malloc(batch * sizeof *s->sched);
+    s->nx = ss->nx;
+    s->ny = ss->ny;
     s->science = batch <= SIZE_MAX / sizeof(double) / s->nf2 ? malloc(batch * s->nf2 * sizeof *s->science) : NULL;
-    if (!s->slopes_arg || !s->loaded || !s->sched || !s->science) {
+    if (s->science && !swfs_orient_is_identity(&s->timing->fit)) s->raw = malloc(batch * s->nf2 * sizeof *s->raw);
+    if (!s->slopes_arg || !s->loaded || !s->sched || !s->science || (!swfs_orient_is_identity(&s->timing->fit) && !s->raw)) {
         swfs_file_source_close(s);
         return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory for batches of %zu frames", batch);
     }
@@ -240,7 +257,9 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     if (!need || base + need > nwfs_file)
         return swfs_fail(SWFS_ERR_VALUE, "cube %zu (%s) frames %zu..%zu need WFS frames up to %zu but %s holds %zu",
                          s->cube, c->camera, s->j, s->j + n - 1, base + need, path, nwfs_file);
-    if ((rc = swfs_fits_in_read_real(s->sci, c->first + s->j, n, s->science))) return rc;
+    if ((rc = swfs_fits_in_read_real(s->sci, c->first + s->j, n, s->raw ? s->raw : s->science))) return rc;
+    for (size_t k = 0; s->raw && k < n; k++)
+        swfs_orient_frame(&t->fit, s->nx, s->ny, 1, s->raw + k * s->nf2, s->science + k * s->nf2);
     b->slopes = s->tel->data + base * s->nslopes;
     b->nwfs = need;
     b->sched = s->sched;

@@ -74,6 +74,24 @@ static int check_cubes(const swfs_estimate_run_options *o, const swfs_fits_shape
     return SWFS_OK;
 }
 
+/* Speckles computed for a flipped or transposed camera (CAMORIEN on the speckle cube, from
+ * sync's pairing) go with science frames turned the same way (speckles --match writes them,
+ * with the same CAMORIEN): the camera's own frames would interfere with the mirror image of
+ * their speckles and give a wrong halo without any other sign. */
+static int check_orientation(const swfs_estimate_run_options *o, swfs_fits_in *fs, swfs_fits_in *fp)
+{
+    char a[80] = "", b[80] = "";
+    int fa = 0, fb = 0;
+    int rc = swfs_fits_in_key_string_opt(fp, "CAMORIEN", a, sizeof a, &fa);
+    if (!rc && fa) rc = swfs_fits_in_key_string_opt(fs, "CAMORIEN", b, sizeof b, &fb);
+    if (!rc && fa && (!fb || strcmp(a, b)))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: the speckles are for a camera oriented %s relative to the model, but %s %s%s%s; "
+                       "use the science cube 'speckles --match' wrote, which is turned into the model's orientation",
+                       o->speckles, a, o->science, fb ? "was turned " : "is in the camera's own orientation", fb ? b : "",
+                       "");
+    return rc;
+}
+
 /* Mean circularity |<psi^2>|/<|psi|^2> inside 4 lambda/D (eq:zeroSqMean), NaN without PIXSCALE. */
 static double core_circularity(const swfs_halo *h, double pix)
 {
@@ -132,6 +150,7 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_open(&fp, o->speckles, NULL);
     if (!rc) rc = check_cubes(o, swfs_fits_in_shape(fs), swfs_fits_in_shape(fp));
+    if (!rc) rc = check_orientation(o, fs, fp);
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc) rc = swfs_fits_in_geom(fp, &r->geom);
     const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(fs);

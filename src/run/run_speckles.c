@@ -63,6 +63,8 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
         w->nsci = ss->nz;
     }
     swfs_fits_in_close(fs);
+    /* The camera's orientation (sync's pairing) must be one the --match copies can undo. */
+    if (!rc) rc = swfs_orient_check(&w->t->fit, w->nfx, w->nfy, o->timing);
     if (!rc) rc = swfs_actuators_read(o->actuators, &w->xy, &w->nact);
     if (rc || !o->mask) return rc;
     const size_t npup = (size_t)w->g.pupn;
@@ -275,7 +277,8 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
 }
 
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
- * the noise keywords, so it matches the speckle cube frame for frame. */
+ * the noise keywords, so it matches the speckle cube frame for frame, and brought into the
+ * model's orientation when sync found the camera flipped or transposed (CAMORIEN). */
 static int write_match(const char *in, const char *out, const work *w, const char *const *prov, size_t nprov)
 {
     swfs_fits_in *f = NULL;
@@ -285,15 +288,25 @@ static int write_match(const char *in, const char *out, const work *w, const cha
     if (rc) return rc;
     const swfs_fits_shape *s = swfs_fits_in_shape(f);
     size_t nout = 0, np = s->nx * s->ny;
+    const size_t comps = s->is_complex ? 2 : 1;
+    const int turn = !swfs_orient_is_identity(&w->t->fit);
     for (size_t c = 0; c < w->t->ncubes; c++)
         if (w->t->cubes[c].status == SWFS_CUBE_OK) nout += w->t->cubes[c].nframes;
     if (s->nz != w->nsci)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu frames but the science cube has %zu; a matched copy needs a cube aligned "
                        "with it", in, s->nz, w->nsci);
-    else if (!(buf = malloc(np * (s->is_complex ? 2 : 1) * sizeof *buf))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    else if (turn && (s->nx != w->nfx || s->ny != w->nfy))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: frames of %zux%zu but the science cube's are %zux%zu; a matched copy is "
+                       "re-oriented like the science frames", in, s->nx, s->ny, w->nfx, w->nfy);
+    else if (!(buf = malloc(2 * np * comps * sizeof *buf))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc) rc = swfs_fits_out_create(&fo, out);
     if (!rc) rc = swfs_fits_out_set_stamp(fo, &w->g, prov, nprov);
     if (!rc) rc = swfs_fits_out_begin(fo, NULL, s->nx, s->ny, nout, s->is_complex, -32);
+    if (!rc && turn) {
+        char d[64];
+        swfs_orient_describe(&w->t->fit, d, sizeof d);
+        rc = swfs_fits_out_key_string(fo, "CAMORIEN", d, "camera frames turned into the model's orientation");
+    }
     const char *keys[] = {"RDNOISE", "GAIN", "NOISEVAR"};
     for (size_t k = 0; !rc && k < 3; k++) {
         double v;
@@ -305,7 +318,9 @@ static int write_match(const char *in, const char *out, const work *w, const cha
         if (w->t->cubes[c].status != SWFS_CUBE_OK) continue;
         for (size_t j = 0; !rc && j < w->t->cubes[c].nframes; j++, k++) {
             size_t src = w->t->cubes[c].first + j;
-            rc = s->is_complex ? swfs_fits_in_read_cplx(f, src, 1, (swfs_complex *)buf) : swfs_fits_in_read_real(f, src, 1, buf);
+            double *rd = turn ? buf + np * comps : buf;
+            rc = s->is_complex ? swfs_fits_in_read_cplx(f, src, 1, (swfs_complex *)rd) : swfs_fits_in_read_real(f, src, 1, rd);
+            if (!rc && turn) swfs_orient_frame(&w->t->fit, s->nx, s->ny, comps, rd, buf);
             if (!rc) rc = s->is_complex ? swfs_fits_out_cplx_frames(fo, k, 1, (swfs_complex *)buf)
                                         : swfs_fits_out_real_frames(fo, k, 1, buf);
         }
@@ -320,6 +335,15 @@ static int write_match(const char *in, const char *out, const work *w, const cha
     return rc;
 }
 
+/* The camera's orientation on the speckle cube: the science frames it goes with must have
+ * been turned the same way (--match does it; estimate checks). */
+static int speckles_orient_key(swfs_fits_out *f, const work *w)
+{
+    char d[64];
+    swfs_orient_describe(&w->t->fit, d, sizeof d);
+    return swfs_fits_out_key_string(f, "CAMORIEN", d, "the science camera's orientation (sync)");
+}
+
 static int write_speckles(const swfs_speckles_run_options *o, const work *w, const swfs_speckles_run_result *r,
                           const char *const *prov, size_t nprov)
 {
@@ -329,6 +353,7 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
     if ((rc = swfs_fits_out_set_stamp(f, &w->g, prov, nprov)) || (rc = swfs_fits_out_cplx(f, NULL, w->halo, -32)) ||
         (rc = swfs_fits_out_key_double(f, "FRATIO", w->t->ratio, "<t_sci/t_wfs> from sync")) ||
         (rc = swfs_fits_out_key_double(f, "HSLAG", w->t->lag, "handshake lag [WFS frames] from sync")) ||
+        (!swfs_orient_is_identity(&w->t->fit) && (rc = speckles_orient_key(f, w))) ||
         (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||
                               (rc = swfs_fits_out_key_double(f, "WFSRATE", r->wfs_hz, "[Hz]")) ||
                               (rc = swfs_fits_out_key_long(f, "NSEGS", (long)r->nok, "contiguous segments (usable cubes)"))))) {

@@ -93,6 +93,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("start_offset", start_offset); L_("handshake_lag", handshake_lag); L_("wfs_file_frames", wfs_file_frames);
     D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
+    L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
 #undef D_
 #undef L_
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
@@ -155,6 +156,10 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (p->nlambda < 1 || p->nlambda > 64) return badv("nlambda", (double)p->nlambda, "must be 1..64");
     if (!(p->background >= 0) || !(p->flat_rms >= 0)) return badv("background", p->background, "background and flat_rms must be >= 0");
     if (p->nhot < 0 || p->ndead < 0) return badv("nhot", (double)p->nhot, "bad-pixel counts must be >= 0");
+    if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
+        return badv("camera_swap", (double)(p->camera_swap + 10 * p->camera_flip_x + 100 * p->camera_flip_y),
+                    "camera_swap, camera_flip_x and camera_flip_y must each be 0 or 1");
+    if (p->camera_swap && b->nfx != b->nfy) return badv("camera_swap", 1.0, "a transposed camera needs nfx = nfy");
     return SWFS_OK;
 }
 
@@ -224,6 +229,27 @@ static int write_real(const char *path, const swfs_real *a, const swfs_geom *g, 
         rc = swfs_fits_out_key_double(o, "GAIN", gain, "[e-/count]");
     if (rc) { swfs_fits_out_abort(o); return rc; }
     return swfs_fits_out_commit(o);
+}
+
+/* Detector pixel (i, j) sees focal pixel (i', j'): transposed first (camera_swap), then
+ * i' = nx - 1 - i and/or j' = ny - 1 - j (a mirror of the whole detector: the star moves off
+ * the centre pixel by one for even sizes, as on a real camera; reduce re-centres it). */
+static int camera_turn(const swfs_ts_params *p, swfs_real *cube)
+{
+    const size_t nx = cube->nx, ny = cube->ny, np = nx * ny;
+    double *f = malloc(np * sizeof *f);
+    if (!f) return swfs_fail(SWFS_ERR_NOMEM, "time series: out of memory for the camera's orientation");
+    for (size_t e = 0; e < cube->nz; e++) {
+        double *d = cube->data + e * np;
+        memcpy(f, d, np * sizeof *f);
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                const size_t a = p->camera_flip_x ? nx - 1 - i : i, b = p->camera_flip_y ? ny - 1 - j : j;
+                d[j * nx + i] = p->camera_swap ? f[a * nx + b] : f[b * nx + a];
+            }
+    }
+    free(f);
+    return SWFS_OK;
 }
 
 /* Cube c's first exposure starts at this global WFS frame. */
@@ -571,6 +597,12 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             for (size_t e = 0; e < nexp; e++) cubes2[w]->data[e * nfp + i] -= m;
         }
 
+    /* The camera's orientation: the detector sees the focal plane turned (the flat, dark and
+     * bad pixels below belong to the detector). */
+    if ((p->camera_swap || p->camera_flip_x || p->camera_flip_y) && (rc = camera_turn(p, clean))) {
+        free(tstart);
+        goto done;
+    }
     /* Raw camera: noise on the photons, then flat and dark (hot and dead pixels). */
     swfs_real *noisy = swfs_real_copy(clean);
     dark = swfs_real_alloc(nfx, nfy, 1);

@@ -355,6 +355,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
     if (!t || !t->cubes) { fclose(f); swfs_timing_free(t); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
     t->ratio = NAN;
     t->lag = NAN;
+    t->fit.sign_x = t->fit.sign_y = 1; /* a table without a pairing line: the camera as the model */
     char line[4096];
     long lineno = 0;
     int rc = SWFS_OK;

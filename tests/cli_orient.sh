@@ -1,0 +1,70 @@
+# The science camera's orientation: a camera mirrored in x, one transposed, and one both
+# transposed and mirrored in x and y, simulated (simulate camera_flip_x / camera_swap /
+# camera_flip_y) and run through reduce -> sync -> speckles -> estimate -> pupil with default
+# options. sync must find the pairing, speckles must turn the matched science frames into
+# the model's orientation (CAMORIEN), and the NCP must come out as well as with the camera
+# as the model (measured 22.7 nm; 21.1 / 22.2 / 22.8 nm turned; ignoring the mirror gave
+# 77.5 nm). estimate refuses the camera's own frames with speckles made for a turned camera,
+# and stream refuses a copy already turned.
+# usage: bash cli_orient.sh <specklewfs> <scratch dir>
+set -u
+B=$1
+D=$2
+rm -rf "$D"
+mkdir -p "$D"
+fail() { echo "FAIL: $*" >&2; exit 1; }
+run() { # run <name> <expected pairing: swap sx sy> [simulate keys...]
+    local n=$1 want=$2; shift 2
+    local d="$D/$n"
+    "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 \
+        cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 nfx=54 nfy=54 seed=1 "$@" > "$D/$n.sim.log" \
+        || fail "$n: simulate"
+    "$B" reduce "$d"/sim/raw_000.fits "$d"/sim/raw_001.fits "$d"/sim/raw_002.fits --dark "$d/sim/dark.fits" \
+        --flat "$d/sim/flat.fits" -o "$d/science.fits" 2> "$D/$n.reduce.log" || fail "$n: reduce"
+    "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" --ratio-min 5 --ratio-max 8 \
+        > "$D/$n.sync.log" || fail "$n: sync"
+    local got
+    got=$(awk '$1 == "pairing" {print $2, $3, $4}' "$d/timing.txt")
+    [ "$got" = "$want" ] || fail "$n: sync's pairing '$got', expected '$want'"
+    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
+        -o "$d/speckles.fits" --match "$d/science.fits" "$d/sci_m.fits" 2> "$D/$n.speckles.log" \
+        || { cat "$D/$n.speckles.log"; fail "$n: speckles"; }
+    "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$D/$n.estimate.log" 2>&1 || fail "$n: estimate"
+    "$B" pupil "$d/halo.fits" -o "$d/pupil.fits" --truth "$d/sim/truth.fits" > "$D/$n.pupil.log" || fail "$n: pupil"
+    awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/$n.pupil.log"
+}
+e0=$(run plain "0 1 1")
+e1=$(run flipx "0 -1 1" camera_flip_x=1)
+e2=$(run swap "1 1 1" camera_swap=1)
+e3=$(run all "1 -1 -1" camera_swap=1 camera_flip_x=1 camera_flip_y=1)
+echo "NCP error: camera as the model $e0 nm; mirrored in x $e1 nm; transposed $e2 nm; transposed and mirrored $e3 nm"
+for e in "$e1" "$e2" "$e3"; do
+    awk -v a="$e0" -v b="$e" 'BEGIN { exit !(a > 0 && a < 35 && b > 0 && b < 1.15 * a) }' \
+        || fail "turned camera: NCP error $b nm against $a nm for the camera as the model"
+done
+grep -q "CAMORIEN" "$D/flipx/sci_m.fits" || fail "the matched science copy records no CAMORIEN"
+
+expect_error() { # expect_error <pattern> <command...>
+    local pat=$1; shift
+    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
+    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
+}
+# The camera's own (mirrored) frames with the speckles made for them: refused, no output.
+expect_error "speckles --match" "$B" estimate "$D/flipx/science.fits" "$D/flipx/speckles.fits" -o "$D/x.fits"
+[ ! -e "$D/x.fits" ] || fail "estimate left an output after refusing"
+# stream takes the reduced cube the timing table refers to, not a turned copy.
+"$B" speckles "$D/flipx/timing.txt" --science "$D/flipx/science.fits" --actuators "$D/flipx/sim/actuators.fits" \
+    -o "$D/flipx/sp2.fits" --write-recon "$D/flipx/recon.fits" 2> /dev/null || fail "speckles --write-recon"
+expect_error "already turned" "$B" stream --timing "$D/flipx/timing.txt" --science "$D/flipx/sci_m.fits" \
+    --recon "$D/flipx/recon.fits" --actuators "$D/flipx/sim/actuators.fits" -o "$D/x.fits"
+# stream on the camera's frames turns them as it reads them: the same halo as speckles + estimate.
+"$B" stream --timing "$D/flipx/timing.txt" --science "$D/flipx/science.fits" --recon "$D/flipx/recon.fits" \
+    --actuators "$D/flipx/sim/actuators.fits" -o "$D/flipx/halo_stream.fits" --static none > "$D/stream.log" 2>&1 \
+    || { cat "$D/stream.log"; fail "stream on a mirrored camera"; }
+"$B" pupil "$D/flipx/halo_stream.fits" -o "$D/flipx/pupil_stream.fits" --truth "$D/flipx/sim/truth.fits" \
+    > "$D/pupil_stream.log" || fail "pupil (stream)"
+es=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil_stream.log")
+echo "stream on the mirrored camera: $es nm"
+awk -v a="$e1" -v b="$es" 'BEGIN { d = a - b; if (d < 0) d = -d; exit !(d < 0.1 * a) }' \
+    || fail "stream on the mirrored camera: $es nm against $e1 nm from speckles + estimate"
+echo "cli_orient: ok"
