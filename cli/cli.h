@@ -122,7 +122,17 @@ int cli_parse_args(const cli_args *c, int argc, char **argv);
 /* The DM fit's --influence, --coupling and --modes (dmoffsets, correct), a cli_args special:
  * 1 taken, 0 not one of them, -CLI_USAGE after the message. */
 struct swfs_dmfit_options;
+struct swfs_geom;
 int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, struct swfs_dmfit_options *fo);
+/* The given geometry (reduce, speckles, stream): --geom FILE (swfs_geom_read_file) and
+ * --wavelen, --teldiam, --obscur, --pixscale, --pupdx, --pupn into g (later ones win); the
+ * run checks the values. 1 when it took argv[*i], 0 when not, -exit code after an error. */
+int cli_geom_option(const char *cmd, int argc, char **argv, int *i, struct swfs_geom *g);
+#define CLI_GEOM_HELP \
+    "  --geom FILE         geometry the files lack (no camera writes PUPDX, PUPN): a FITS header or\n" \
+    "                      KEY = VALUE lines of WAVELEN [m], TELDIAM [m], OBSCUR, PIXSCALE [lambda/D\n" \
+    "                      per pixel], PUPDX [m], PUPN; --wavelen, --teldiam, --obscur, --pixscale,\n" \
+    "                      --pupdx, --pupn X give one (they replace the header's values)\n"
 /* The simulation commands' CONFIG file or key=value argument; the library's message on failure. */
 struct swfs_sim_params;
 int cli_config_arg(const char *cmd, struct swfs_config *cfg, const char *a);

@@ -37,7 +37,8 @@ static const char *usage_text =
     "                      has PIXSCALE; by default (PIXSCALE < 0.45) it comes from the spatial\n"
     "                      frequencies beyond the optical cutoff, where only white noise lives\n"
     "  --no-register       keep the frames where they are (the track is still measured)\n"
-    "Geometry keywords of the first raw cube are copied.\n";
+    CLI_GEOM_HELP
+    "Geometry keywords of the first raw cube are copied, the given ones over them.\n";
 
 /* The positive numbers, checked as they come: --gauss-sigma, --hot-sigma, --bg-radius. */
 static int special(void *ctx, int argc, char **argv, int *i)
@@ -49,7 +50,7 @@ static int special(void *ctx, int argc, char **argv, int *i)
                   : !strcmp(a, "--bg-radius") ? &o->params.bg_radius
                                               : NULL;
     double x;
-    if (!dst) return 0;
+    if (!dst) return cli_geom_option(cmd, argc, argv, i, &o->geom);
     if (cli_take_double(cmd, argc, argv, i, &x)) return -CLI_USAGE;
     if (!(x > 0)) return -cli_usage_error(cmd, "%s expects a positive number, got %s", a, v);
     *dst = x;
@@ -82,6 +83,12 @@ int swfs_cmd_reduce(int argc, char **argv)
     o.progress_ctx = "reduce:";
     swfs_reduce_run_result r;
     rc = swfs_reduce_run(&o, &r) ? cli_error(cmd) : CLI_OK;
+    if (rc == CLI_OK && r.overridden)
+        fprintf(stderr, "reduce: note: the given geometry replaced %d keyword(s) of %s's header\n", r.overridden, raws[0]);
+    if (rc == CLI_OK && r.missing[0])
+        fprintf(stderr, "reduce: note: %s has no %s and none was given; speckles, stream and pupil need them "
+                "(--geom FILE, or --wavelen, --teldiam, --obscur, --pixscale, --pupdx, --pupn: here, or to speckles "
+                "and stream)\n", raws[0], r.missing);
     if (rc == CLI_OK)
         fprintf(stderr, "reduce: %zu frames from %zu cubes, %zu bad pixels, background noise %.4g counts rms (%.4g after "
                 "registration) -> %s\n", r.nframes, o.nraw, r.nbad, sqrt(r.noise_var), sqrt(r.noise_fac * r.noise_var), o.out);

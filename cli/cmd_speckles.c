@@ -49,6 +49,7 @@ static const char *usage_text2 =
     "  --slope-noise RAD   effective slope noise rms [rad] for --recon vk|map (default: estimated\n"
     "                      from the slopes outside D's column space: noise + aliasing)\n"
     "  --write-recon FILE  also write the reconstructor in use (e.g. for `specklewfs stream`)\n"
+    CLI_GEOM_HELP
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
     "                      slope of its exposure and keep the motion within it, as registered\n"
     "                      science frames have it (reduce re-centres, it cannot de-blur);\n"
@@ -88,6 +89,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     const char *cmd = "speckles", *a = argv[*i], *v = *i + 1 < argc ? argv[*i + 1] : NULL;
     spk_args *d = ctx;
     swfs_speckles_run_options *o = d->o;
+    const int gk = cli_geom_option(cmd, argc, argv, i, &o->geom);
+    if (gk) return gk;
     if (cli_is_help(a)) {
         d->help = 1;
     } else if (!strcmp(a, "--recon")) {

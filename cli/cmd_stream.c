@@ -69,6 +69,7 @@ static const char *usage_text =
     "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
     "                        (default 2; 0 = the paper's per-pixel g)\n";
 static const char *usage_mpi =
+    CLI_GEOM_HELP
     "\n"
     "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
     "boundaries) and rank 0 writes the products once, at the end, from the merged\n"
@@ -80,6 +81,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
 {
     swfs_stream_run_options *o = ctx;
     const char *a = argv[*i];
+    const int gk = cli_geom_option("stream", argc, argv, i, &o->geom);
+    if (gk) return gk;
     if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
     else if (!strcmp(a, "--pupil-method")) {

@@ -2,6 +2,7 @@
 
 #include "specklewfs/config.h"
 #include "specklewfs/dmfit.h"
+#include "specklewfs/fits.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/speckles.h"
@@ -289,6 +290,23 @@ int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, swfs_dmfit_
     } else {
         return 0;
     }
+    return 1;
+}
+
+int cli_geom_option(const char *cmd, int argc, char **argv, int *i, swfs_geom *g)
+{
+    const char *a = argv[*i];
+    static const char *const names[5] = {"--wavelen", "--teldiam", "--obscur", "--pixscale", "--pupdx"};
+    double *const dst[5] = {&g->wavelen, &g->teldiam, &g->obscur, &g->pixscale, &g->pupdx};
+    for (int k = 0; k < 5; k++)
+        if (!strcmp(a, names[k])) return cli_take_double(cmd, argc, argv, i, dst[k]) ? -CLI_USAGE : 1;
+    if (!strcmp(a, "--pupn")) return cli_take_long(cmd, argc, argv, i, &g->pupn) ? -CLI_USAGE : 1;
+    if (strcmp(a, "--geom")) return 0;
+    const char *path = NULL;
+    if (cli_take_string(cmd, argc, argv, i, "a geometry file (FITS header or KEY = VALUE lines)", &path)) return -CLI_USAGE;
+    swfs_geom f;
+    if (swfs_geom_read_file(path, &f)) return -cli_error(cmd);
+    swfs_geom_overlay(g, &f); /* options after --geom still win */
     return 1;
 }
 

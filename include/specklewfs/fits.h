@@ -60,6 +60,11 @@ int swfs_fits_in_key_string_opt(swfs_fits_in *f, const char *key, char *val, siz
 int swfs_fits_in_key_long_opt(swfs_fits_in *f, const char *key, long lo, long hi, long *val, int *found);
 /* The geometry keywords present, each checked against its physical range (swfs_geom_check). */
 int swfs_fits_in_geom(swfs_fits_in *f, swfs_geom *g);
+/* Geometry given in a file: a FITS file's first header with the keywords, or a text file of
+ * "KEY = VALUE" lines (WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN in any case; '#'
+ * comments). Keys it does not hold stay missing; a file with none of them, an unknown key or
+ * a value out of its physical range is an error naming the file (and line). */
+int swfs_geom_read_file(const char *path, swfs_geom *g);
 /* SWFS_ERR_FORMAT unless the current HDU holds floating-point data (BITPIX -32 or -64): for
  * product layouts that fix it (an integer BITPIX there is a corrupt or foreign file).
  * `what` names the product in the message ("a HALO.fits product"). */

@@ -4,6 +4,8 @@
 #ifndef SWFS_GEOM_H
 #define SWFS_GEOM_H
 
+#include <stddef.h>
+
 #include "specklewfs/defs.h"
 
 SWFS_BEGIN_DECLS
@@ -35,6 +37,11 @@ int swfs_geom_check(const swfs_geom *g, const char *what);
 int swfs_geom_check_same(const swfs_geom *a, const char *what_a, const swfs_geom *b, const char *what_b);
 /* Keywords recorded by b but not by a are taken from b. */
 void swfs_geom_union(swfs_geom *a, const swfs_geom *b);
+/* Keywords recorded by `given` replace a's (the user's word over a file's header); returns
+ * how many of them differed from a value a already had. */
+int swfs_geom_overlay(swfs_geom *a, const swfs_geom *given);
+/* The missing keywords as "WAVELEN PUPDX ..." into buf ("" when none); returns their count. */
+int swfs_geom_missing(const swfs_geom *g, char *buf, size_t cap);
 
 SWFS_END_DECLS
 

@@ -93,6 +93,7 @@ typedef struct swfs_speckles_run_options {
     const swfs_team *team;    /* NULL: alone; else this member's share of the output frames, cut
                                  at multiples of batch (each member builds the same reconstructor
                                  from the files) */
+    swfs_geom geom;           /* given geometry: fills or replaces the science header's */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -133,6 +134,7 @@ typedef struct swfs_stream_run_options {
      * (stream.every and every_seconds must be 0), by member 0, which alone calls on_update. */
     const swfs_team *team;
     int pupil_source;         /* the pupil product's source: SWFS_SOURCE_HALO_LF (default) or SWFS_SOURCE_HALO (pupil.h) */
+    swfs_geom geom;           /* given geometry: fills or replaces the science header's */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);
@@ -161,6 +163,8 @@ typedef struct swfs_reduce_run_options {
     size_t nprov;
     swfs_progress_fn progress;
     void *progress_ctx;
+    swfs_geom geom;           /* given geometry: its keywords fill or replace the raw header's and
+                                 go into the reduced cube (swfs_geom_init: none given) */
 } swfs_reduce_run_options;
 
 void swfs_reduce_run_options_default(swfs_reduce_run_options *o);
@@ -168,6 +172,9 @@ void swfs_reduce_run_options_default(swfs_reduce_run_options *o);
 typedef struct swfs_reduce_run_result {
     size_t nframes, nbad;
     double noise_var, noise_fac; /* raw background variance [counts^2] and the registration's factor */
+    char missing[96];         /* geometry keywords the reduced cube still lacks ("" if none): the
+                                 first raw cube's header and the given geometry had no value */
+    int overridden;           /* keywords of the raw header the given geometry replaced */
 } swfs_reduce_run_result;
 
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);

@@ -2,13 +2,49 @@
 #include "specklewfs/geom.h"
 #include "specklewfs/status.h"
 
+#include <ctype.h>
 #include <math.h>
+#include <stdio.h>
 #include <stddef.h>
 
 void swfs_geom_init(swfs_geom *g)
 {
     g->wavelen = g->teldiam = g->obscur = g->pixscale = g->pupdx = NAN;
     g->pupn = 0;
+}
+
+int swfs_geom_overlay(swfs_geom *a, const swfs_geom *given)
+{
+    int changed = 0;
+    double *const da[5] = {&a->wavelen, &a->teldiam, &a->obscur, &a->pixscale, &a->pupdx};
+    const double dg[5] = {given->wavelen, given->teldiam, given->obscur, given->pixscale, given->pupdx};
+    for (int k = 0; k < 5; k++)
+        if (isfinite(dg[k])) {
+            changed += isfinite(*da[k]) && *da[k] != dg[k];
+            *da[k] = dg[k];
+        }
+    if (given->pupn > 0) {
+        changed += a->pupn > 0 && a->pupn != given->pupn;
+        a->pupn = given->pupn;
+    }
+    return changed;
+}
+
+int swfs_geom_missing(const swfs_geom *g, char *buf, size_t cap)
+{
+    const char *names[6] = {"WAVELEN", "TELDIAM", "OBSCUR", "PIXSCALE", "PUPDX", "PUPN"};
+    const int miss[6] = {!isfinite(g->wavelen), !isfinite(g->teldiam), !isfinite(g->obscur), !isfinite(g->pixscale),
+                         !isfinite(g->pupdx), g->pupn <= 0};
+    int n = 0;
+    size_t len = 0;
+    if (cap) buf[0] = 0;
+    for (int k = 0; k < 6; k++)
+        if (miss[k]) {
+            int w = snprintf(buf + len, cap > len ? cap - len : 0, "%s%s", n ? " " : "", names[k]);
+            if (w > 0) len += (size_t)w;
+            n++;
+        }
+    return n;
 }
 
 int swfs_geom_require(const swfs_geom *g, const char *what)
@@ -20,9 +56,15 @@ int swfs_geom_require(const swfs_geom *g, const char *what)
     else if (!isfinite(g->pixscale)) missing = "PIXSCALE";
     else if (!isfinite(g->pupdx)) missing = "PUPDX";
     else if (g->pupn <= 0) missing = "PUPN";
-    if (missing)
-        return swfs_fail(SWFS_ERR_FORMAT, "%s: missing geometry keyword %s (expected WAVELEN, TELDIAM, "
-                         "OBSCUR, PIXSCALE, PUPDX, PUPN)", what, missing);
+    if (missing) {
+        char opt[16];
+        size_t k = 0;
+        for (; missing[k] && k + 1 < sizeof opt; k++) opt[k] = (char)tolower((unsigned char)missing[k]);
+        opt[k] = 0;
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: missing geometry keyword %s (expected WAVELEN, TELDIAM, OBSCUR, "
+                         "PIXSCALE, PUPDX, PUPN; give it with --%s or --geom FILE to reduce, speckles or stream)",
+                         what, missing, opt);
+    }
     return swfs_geom_check(g, what);
 }
 

@@ -12,6 +12,7 @@ void swfs_reduce_run_options_default(swfs_reduce_run_options *o)
 {
     memset(o, 0, sizeof *o);
     swfs_reduce_params_default(&o->params);
+    swfs_geom_init(&o->geom);
 }
 
 static int read_map(const char *path, size_t nx, size_t ny, double **out)
@@ -51,11 +52,15 @@ static int open_raw(const swfs_reduce_run_options *o, swfs_fits_in **in, size_t 
 
 /* Parameters that follow from the raw header: the sampling and the photon gain. */
 static int header_params(const swfs_reduce_run_options *o, swfs_fits_in *f, swfs_geom *geom, swfs_reduce_params *p,
-                         double *gainv)
+                         double *gainv, swfs_reduce_run_result *r)
 {
     int found = 0;
     int rc = swfs_fits_in_geom(f, geom);
     if (rc) return rc;
+    /* The given geometry over the header's, checked; what is still missing is reported. */
+    r->overridden = swfs_geom_overlay(geom, &o->geom);
+    if ((rc = swfs_geom_check(geom, o->raw[0]))) return rc;
+    swfs_geom_missing(geom, r->missing, sizeof r->missing);
     /* The out-of-band noise estimate needs the sampling (PIXSCALE). */
     if (!o->noise_region && isfinite(geom->pixscale) && geom->pixscale > 0 && geom->pixscale < 0.45)
         p->pixscale = geom->pixscale;
@@ -95,7 +100,7 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     if (!rc && o->dark) rc = read_map(o->dark, nx, ny, &dark);
     if (!rc && o->flat) rc = read_map(o->flat, nx, ny, &flat);
     if (!rc && o->badpix) rc = read_map(o->badpix, nx, ny, &bad);
-    if (!rc) rc = header_params(o, in[0], &geom, &p, &gainv);
+    if (!rc) rc = header_params(o, in[0], &geom, &p, &gainv, r);
     if (!rc) rc = swfs_reduce_create(&red, nx, ny, dark, flat, bad, &p);
     if (!rc && (!(buf = malloc(nx * ny * sizeof *buf)) || !(track = malloc(4 * ntot * sizeof *track))))
         rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);

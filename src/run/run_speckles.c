@@ -16,6 +16,7 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
 {
     memset(o, 0, sizeof *o);
     swfs_pipeline_options_default(&o->pipe);
+    swfs_geom_init(&o->geom);
     o->mean_mode = SWFS_MEAN_ENSEMBLE;
     o->batch = 128;
 }
@@ -55,6 +56,7 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     int rc = swfs_timing_read(o->timing, &w->t);
     if (!rc) rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_geom(fs, &w->g);
+    if (!rc) swfs_geom_overlay(&w->g, &o->geom);
     if (!rc) rc = swfs_geom_require(&w->g, o->science);
     if (!rc) {
         const swfs_fits_shape *ss = swfs_fits_in_shape(fs);

@@ -16,6 +16,7 @@
 void swfs_stream_run_options_default(swfs_stream_run_options *o)
 {
     memset(o, 0, sizeof *o);
+    swfs_geom_init(&o->geom);
     o->tiptilt = SWFS_TT_EXPOSURE;
     o->threads = 2;
     o->batch = 128;
@@ -154,6 +155,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     size_t nact = 0;
     int rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_geom(fs, &u->g);
+    if (!rc) swfs_geom_overlay(&u->g, &o->geom);
     if (!rc) {
         *nfx = swfs_fits_in_shape(fs)->nx;
         *nfy = swfs_fits_in_shape(fs)->ny;

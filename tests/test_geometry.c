@@ -1,0 +1,187 @@
+/* Geometry the files lack: camera cubes written without the geometry keywords (no camera
+ * writes PUPDX or PUPN). reduce says which keywords are missing and from which file; the
+ * geometry given to reduce (a file or values) goes into the reduced cube, and speckles then
+ * runs; given only to speckles it works too; with none, speckles fails naming the reduced
+ * file and the first missing keyword. The given geometry file: FITS header or KEY = VALUE
+ * text, bad ones refused with file and line. */
+#include "testutil.h"
+
+#include "specklewfs/config.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/run.h"
+#include "specklewfs/status.h"
+#include "specklewfs/timeseries.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+static char dir[1024];
+static swfs_geom truth_geom;
+
+static const char *p(const char *name)
+{
+    static char buf[32][1200];
+    static int k;
+    k = (k + 1) % 32;
+    snprintf(buf[k], sizeof buf[k], "%s/%s", dir, name);
+    return buf[k];
+}
+
+/* A raw cube rewritten with no geometry keyword (GAIN kept). */
+static void strip(const char *in, const char *out)
+{
+    swfs_real *a = NULL;
+    swfs_geom g;
+    assert_ok(swfs_fits_read_real(in, NULL, &a, &g));
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, out));
+    assert_ok(swfs_fits_out_real(o, NULL, a, -32));
+    assert_ok(swfs_fits_out_key_double(o, "GAIN", 4.9, "[e-/count]"));
+    assert_ok(swfs_fits_out_commit(o));
+    truth_geom = g;
+    swfs_real_free(a);
+}
+
+static int setup(void **state)
+{
+    (void)state;
+    snprintf(dir, sizeof dir, "%s", test_path("geometry"));
+    mkdir(dir, 0755);
+    swfs_config *c = swfs_config_new();
+    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=40", "cube_gap=150",
+                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=2"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    swfs_config_free(c);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_geometry"};
+    assert_ok(swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, &s));
+    /* same names as the handshake log's, in a folder of their own */
+    mkdir(p("bare"), 0755);
+    strip(p("raw_000.fits"), p("bare/raw_000.fits"));
+    strip(p("raw_001.fits"), p("bare/raw_001.fits"));
+    return 0;
+}
+
+static void reduce(const char *out, const swfs_geom *given, swfs_reduce_run_result *r)
+{
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    const char *raw[] = {p("bare/raw_000.fits"), p("bare/raw_001.fits")};
+    ro.raw = raw;
+    ro.nraw = 2;
+    ro.dark = p("dark.fits");
+    ro.flat = p("flat.fits");
+    ro.out = out;
+    if (given) ro.geom = *given;
+    assert_ok(swfs_reduce_run(&ro, r));
+}
+
+static int speckles(const char *science, const swfs_geom *given)
+{
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = science;
+    so.handshake = p("handshake.log");
+    so.out = p("timing.txt");
+    swfs_sync_run_result sr;
+    int rc = swfs_sync_run(&so, &sr);
+    if (rc) return rc;
+    free(sr.t.cubes);
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = science;
+    sp.actuators = p("actuators.fits");
+    sp.out = p("speckles.fits");
+    if (given) sp.geom = *given;
+    swfs_speckles_run_result spr;
+    return swfs_speckles_run(&sp, &spr);
+}
+
+static void test_missing_geometry_named(void **state)
+{
+    (void)state;
+    swfs_reduce_run_result r;
+    remove(p("speckles.fits")); /* the folder of an earlier run */
+    reduce(p("sci_bare.fits"), NULL, &r);
+    print_message("reduce without geometry: missing '%s'\n", r.missing);
+    assert_string_equal(r.missing, "WAVELEN TELDIAM OBSCUR PIXSCALE PUPDX PUPN");
+    assert_int_not_equal(speckles(p("sci_bare.fits"), NULL), 0);
+    print_message("speckles: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "sci_bare.fits: missing geometry keyword WAVELEN"));
+    assert_non_null(strstr(swfs_last_error(), "--geom FILE"));
+    assert_false(test_file_exists(p("speckles.fits")));
+}
+
+static void test_geometry_given(void **state)
+{
+    (void)state;
+    /* A text file gives four keywords, an option the other two. */
+    FILE *f = fopen(p("geom.txt"), "w");
+    assert_non_null(f);
+    fprintf(f, "# the camera's and the pupil grid's geometry\nWAVELEN = %.10g\nteldiam %.10g\nOBSCUR=%.10g\nPIXSCALE = %.10g\n",
+            truth_geom.wavelen, truth_geom.teldiam, truth_geom.obscur, truth_geom.pixscale);
+    fclose(f);
+    swfs_geom g;
+    assert_ok(swfs_geom_read_file(p("geom.txt"), &g));
+    char miss[96];
+    assert_int_equal(swfs_geom_missing(&g, miss, sizeof miss), 2);
+    assert_string_equal(miss, "PUPDX PUPN");
+    g.pupdx = truth_geom.pupdx;
+    g.pupn = truth_geom.pupn;
+    swfs_reduce_run_result r;
+    reduce(p("sci_given.fits"), &g, &r);
+    assert_string_equal(r.missing, "");
+    assert_int_equal(r.overridden, 0);
+    swfs_geom out;
+    swfs_real *a = NULL;
+    assert_ok(swfs_fits_read_real(p("sci_given.fits"), NULL, &a, &out));
+    swfs_real_free(a);
+    assert_true(out.wavelen == truth_geom.wavelen && out.pupn == truth_geom.pupn && out.pupdx == truth_geom.pupdx);
+    assert_ok(speckles(p("sci_given.fits"), NULL));
+    /* Or given to speckles alone: the same speckles. */
+    assert_ok(speckles(p("sci_bare.fits"), &g));
+    /* A FITS header works as the geometry file (here a raw cube that has the keywords). */
+    assert_ok(swfs_geom_read_file(p("raw_000.fits"), &g));
+    assert_int_equal(swfs_geom_missing(&g, miss, sizeof miss), 0);
+}
+
+static void test_bad_geometry_files(void **state)
+{
+    (void)state;
+    swfs_geom g;
+    FILE *f = fopen(p("bad1.txt"), "w");
+    fprintf(f, "WAVELEN = 3.8e-6\nPUPSIZE = 3\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad1.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "bad1.txt:2: unknown key 'PUPSIZE'"));
+    f = fopen(p("bad2.txt"), "w");
+    fprintf(f, "WAVELEN = 3.8\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad2.txt"), &g), 0);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "WAVELEN"));
+    f = fopen(p("bad3.txt"), "w");
+    fprintf(f, "# nothing\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad3.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "no geometry keyword"));
+    assert_int_not_equal(swfs_geom_read_file(p("none.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "none.txt"));
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_missing_geometry_named),
+        cmocka_unit_test(test_geometry_given),
+        cmocka_unit_test(test_bad_geometry_files),
+    };
+    return cmocka_run_group_tests(tests, setup, NULL);
+}
