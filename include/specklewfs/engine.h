@@ -31,6 +31,9 @@
 
 /* Engine workers at most (speckles --threads, stream --threads, the pipeline). */
 #define SWFS_ENGINE_MAX_THREADS 64
+/* Fewest WFS frames per camera frame a schedule takes: a camera up to 10x faster than the WFS
+ * (today's fastest pairs are ~1.25x: a 2.5 kHz science camera on a 2 kHz WFS). */
+#define SWFS_ENGINE_MIN_RATIO 0.1
 
 SWFS_BEGIN_DECLS
 
@@ -91,10 +94,12 @@ int swfs_engine_process(swfs_engine *e, const double *slopes, size_t nwfs, const
 int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, swfs_complex *halo_out);
 
 /* Helper for the common schedule: camera frame j integrates the WFS-time interval
- * [offset + j ratio, offset + (j+1) ratio) (in WFS frames, ratio >= 1 not necessarily an
- * integer; frame k covers [k, k+1)), so straddling frames get their fractional overlap as
- * weight. Fills sched[0..nexp) and returns the number of WFS frames needed (the end of
- * the last interval rounded up), or 0 for invalid arguments. */
+ * [offset + j ratio, offset + (j+1) ratio) (in WFS frames, not necessarily an integer;
+ * frame k covers [k, k+1)), so straddling frames get their fractional overlap as weight.
+ * A camera faster than the WFS (SWFS_ENGINE_MIN_RATIO <= ratio < 1): each exposure is
+ * the field interpolated linearly in time between the two WFS frames whose centres bracket
+ * its centre (count 2, weights summing to ratio). Fills sched[0..nexp) and returns the
+ * number of WFS frames needed, or 0 for invalid arguments. */
 size_t swfs_engine_schedule(double ratio, double offset, size_t nexp, swfs_exposure *sched);
 
 SWFS_END_DECLS

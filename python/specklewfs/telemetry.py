@@ -369,7 +369,7 @@ def schedule(ratio, offset, nexp):
     s = np.zeros(int(nexp), EXPOSURE_DTYPE)
     need = lib.swfs_engine_schedule(float(ratio), float(offset), int(nexp), s.ctypes.data)
     if need == 0:
-        raise ValueError(f"schedule: invalid arguments ratio={ratio} offset={offset} nexp={nexp} (need ratio >= 1, "
+        raise ValueError(f"schedule: invalid arguments ratio={ratio} offset={offset} nexp={nexp} (need ratio >= 0.1, "
                          "offset >= 0, nexp >= 1)")
     return s, int(need)
 

@@ -89,8 +89,14 @@ def test_schedule():
     # Every exposure integrates 6.48 WFS frames.
     w = s["w_first"] + s["w_last"] + (s["count"] - 2)
     np.testing.assert_allclose(w, 6.48, atol=1e-12)
+    # A camera faster than the WFS: each exposure interpolates the two WFS frames whose
+    # centres bracket its own (centres 0.8, 1.6, 2.4 -> frames 0-1, 1-2, 1-2), weights summing to 0.8.
+    s, need = sw.schedule(0.8, 0.4, 3)
+    assert need == 3 and list(s["first"]) == [0, 1, 1] and list(s["count"]) == [2, 2, 2]
+    np.testing.assert_allclose(s["w_first"], [0.56, 0.72, 0.08], atol=1e-12)
+    np.testing.assert_allclose(s["w_last"], [0.24, 0.08, 0.72], atol=1e-12)
     with pytest.raises(ValueError, match="invalid arguments"):
-        sw.schedule(0.5, 0, 3)
+        sw.schedule(0.05, 0, 3)
 
 
 def test_interpolation_and_dm_modes(model):

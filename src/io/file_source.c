@@ -146,9 +146,9 @@ int swfs_file_source_open(swfs_file_source **out, const char *timing, const char
     swfs_file_source *s = calloc(1, sizeof *s);
     if (!s) return swfs_fail(SWFS_ERR_NOMEM, "file source: out of memory");
     int rc = swfs_timing_read(timing, &s->timing);
-    if (!rc && !(s->timing->ratio >= 1.0))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame-rate ratio %g; expected >= 1 WFS frame per camera frame", timing,
-                       s->timing->ratio);
+    if (!rc && !(s->timing->ratio >= SWFS_ENGINE_MIN_RATIO))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame-rate ratio %g; expected >= %g WFS frames per camera frame", timing,
+                       s->timing->ratio, SWFS_ENGINE_MIN_RATIO);
     if (!rc) rc = swfs_fits_in_open(&s->sci, science, NULL);
     const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(s->sci);
     if (!rc && ss->is_complex)

@@ -223,8 +223,9 @@ int swfs_replay_run(const swfs_replay_options *o, swfs_replay_result *r)
     swfs_real *tel = NULL;
     double *frame = NULL;
     int rc = swfs_timing_read(o->timing, &p.t);
-    if (!rc && !(p.t->ratio >= 1.0))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame-rate ratio %g; expected >= 1", o->timing, p.t->ratio);
+    if (!rc && !(p.t->ratio >= SWFS_ENGINE_MIN_RATIO))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame-rate ratio %g; expected >= %g", o->timing, p.t->ratio,
+                       SWFS_ENGINE_MIN_RATIO);
     if (!rc) rc = scan_files(&p);
     if (!rc && o->wfs_rate > 0) p.rate = o->wfs_rate;
     if (!rc && !(p.rate > 0))

@@ -128,7 +128,8 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
         size_t need = tc->start >= 0 ? swfs_engine_schedule(t->ratio, tc->start - floor(tc->start), tc->nframes, w->sched) : 0;
         if (!need)
             return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu starts at WFS frame %g with ratio %g; expected a start >= 0 "
-                             "and a ratio >= 1", o->timing, c, tc->start, t->ratio);
+                             "and a ratio >= %g WFS frames per camera frame", o->timing, c, tc->start, t->ratio,
+                             SWFS_ENGINE_MIN_RATIO);
         w->cfirst[r->nok] = r->nout;
         w->cn[r->nok] = o->pipe.wfs_rate ? need : tc->nframes;
         r->nout += w->cn[r->nok];

@@ -408,9 +408,22 @@ int swfs_engine_process_wfs(swfs_engine *e, const double *slopes, size_t nwfs, d
 
 size_t swfs_engine_schedule(double ratio, double offset, size_t nexp, swfs_exposure *sched)
 {
-    if (!(ratio >= 1.0) || !isfinite(ratio) || !(offset >= 0.0) || !isfinite(offset)) return 0;
+    if (!(ratio >= SWFS_ENGINE_MIN_RATIO) || !isfinite(ratio) || !(offset >= 0.0) || !isfinite(offset)) return 0;
     size_t need = 0;
-    for (size_t j = 0; j < nexp; j++) {
+    for (size_t j = 0; j < nexp && ratio < 1.0; j++) {
+        /* An exposure shorter than a WFS frame: the field interpolated linearly in time
+         * between the two WFS frames whose centres (k + 1/2) bracket the exposure's centre,
+         * with a total weight equal to the exposure's length, as for longer exposures. */
+        const double s = offset + ((double)j + 0.5) * ratio - 0.5;
+        const double k0 = s < 0.0 ? 0.0 : floor(s), a = s < 0.0 ? 0.0 : s - k0;
+        swfs_exposure *x = &sched[j];
+        x->first = (size_t)k0;
+        x->count = 2;
+        x->w_first = (1.0 - a) * ratio;
+        x->w_last = a * ratio;
+        if (x->first + 2 > need) need = x->first + 2;
+    }
+    for (size_t j = 0; j < nexp && ratio >= 1.0; j++) {
         const double t0 = offset + (double)j * ratio, t1 = t0 + ratio;
         const size_t first = (size_t)floor(t0);
         size_t last = (size_t)ceil(t1) - 1;

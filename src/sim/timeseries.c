@@ -146,7 +146,8 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (!(p->slope_noise >= 0)) return badv("slope_noise", p->slope_noise, "must be >= 0");
     if (!(p->vib_amp >= 0) || !(p->vib_freq >= 0)) return badv("vib_amp", p->vib_amp, "vibration must be >= 0");
     if (!(p->jitter_amp >= 0) || !(p->jitter_freq > 0)) return badv("jitter_amp", p->jitter_amp, "jitter must be >= 0 with jitter_freq > 0");
-    if (!(p->frame_ratio >= 1)) return badv("frame_ratio", p->frame_ratio, "must be >= 1 WFS frame per exposure");
+    if (!(p->frame_ratio >= SWFS_ENGINE_MIN_RATIO))
+        return badv("frame_ratio", p->frame_ratio, "must be >= 0.1 WFS frame per exposure (a camera up to 10x faster)");
     if (p->ncubes < 1) return badv("ncubes", (double)p->ncubes, "need >= 1 cube");
     if (p->cube_frames < 2) return badv("cube_frames", (double)p->cube_frames, "need >= 2 frames per cube");
     if (!(p->cube_gap >= 0) || !(p->start_offset >= 0)) return badv("cube_gap", p->cube_gap, "gap and start_offset must be >= 0");
@@ -308,7 +309,10 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
     double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL;
-    size_t xn[2] = {0, 0}, xcap = 0;
+    /* Exposures open at once: two when an exposure spans at least a WFS frame; a camera
+     * faster than the WFS has each frame in up to ceil(2 / ratio) + 1 exposures (engine.h). */
+    const size_t nslot = p->frame_ratio >= 1.0 ? 2 : (size_t)ceil(2.0 / p->frame_ratio) + 1;
+    size_t xn[32] = {0}, xcap = 0;
     size_t *pin = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
@@ -408,16 +412,16 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     fld = calloc(ng, sizeof *fld);
     efoc = malloc(nfp * sizeof *efoc);
     absq = malloc(nfp * sizeof *absq);
-    iacc = calloc(2 * nfp, sizeof *iacc);
-    eid = calloc(2 * ng, sizeof *eid);
-    /* Per exposure slot (e % 2): the tip-tilt-free phases [m] of its WFS frames and their
+    iacc = calloc(nslot * nfp, sizeof *iacc);
+    eid = calloc(nslot * ng, sizeof *eid);
+    /* Per exposure slot (e % nslot): the tip-tilt-free phases [m] of its WFS frames and their
      * (weight, tip, tilt), so the exposure-mean tip-tilt can be put back into the frames
      * once the exposure is complete (the ideal speckles keep the motion within it). */
     for (size_t e = 0; e < nexp; e++)
         if (sched[e].count > xcap) xcap = sched[e].count;
-    xph = malloc(2 * xcap * npin * sizeof *xph);
-    xw = malloc(2 * xcap * 3 * sizeof *xw);
-    eidtt = calloc(2 * ng, sizeof *eidtt);
+    xph = malloc(nslot * xcap * npin * sizeof *xph);
+    xw = malloc(nslot * xcap * 3 * sizeof *xw);
+    eidtt = calloc(nslot * ng, sizeof *eidtt);
     sbuf = calloc(ns, sizeof *sbuf);
     rmean = calloc(ng, sizeof *rmean);
     mft = calloc(nlam, sizeof *mft);
@@ -488,10 +492,10 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             swfs_recon_apply(rao, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
             for (size_t a = 0; a < nact; a++) act[a] += p->ao_gain * dact[a];
         }
-        /* Camera: exposures containing frame k (at most two, consecutive). */
+        /* Camera: exposures containing frame k (at most nslot, consecutive). */
         while (e_lo < nexp && sched[e_lo].first + sched[e_lo].count <= k) e_lo++;
         int any = 0;
-        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++)
+        for (size_t e = e_lo; e < nexp && e < e_lo + nslot; e++)
             if (sched[e].first <= k && k < sched[e].first + sched[e].count) any = 1;
         if (!any) continue;
         /* Statistics and the tip-tilt-free residual. */
@@ -529,32 +533,32 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         /* Ideal speckle fields at lambda0 (no NCP): the frames of each exposure are kept
          * (tip-tilt-free phase, tip, tilt) and summed with the exposure-mean tip-tilt
          * removed when it is complete (ideal_exposure); and with all of the tip-tilt kept. */
-        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++) {
+        for (size_t e = e_lo; e < nexp && e < e_lo + nslot; e++) {
             const swfs_exposure *x = sched + e;
             if (!(x->first <= k && k < x->first + x->count)) continue;
             double w = k == x->first ? x->w_first : (k + 1 == x->first + x->count ? x->w_last : 1.0);
-            double *ia = iacc + (e % 2) * nfp;
+            double *ia = iacc + (e % nslot) * nfp;
             for (size_t i = 0; i < nfp; i++) ia[i] += w * absq[i];
-            size_t sl = e % 2, r = xn[sl]++;
+            size_t sl = e % nslot, r = xn[sl]++;
             double *ph = xph + (sl * xcap + r) * npin, *wt = xw + (sl * xcap + r) * 3;
             for (size_t m = 0; m < npin; m++) ph[m] = resn[pin[m]];
             wt[0] = w; wt[1] = cx; wt[2] = cy;
         }
         for (size_t m = 0; m < npin; m++) phi[m] = 2 * M_PI * res[pin[m]] / lam0;
         swfs_expi_d(phi, NULL, cpin, npin);
-        for (size_t e = e_lo; e < nexp && e < e_lo + 2; e++) {
+        for (size_t e = e_lo; e < nexp && e < e_lo + nslot; e++) {
             const swfs_exposure *x = sched + e;
             if (!(x->first <= k && k < x->first + x->count)) continue;
             double w = k == x->first ? x->w_first : (k + 1 == x->first + x->count ? x->w_last : 1.0);
-            double complex *et = eidtt + (e % 2) * ng;
+            double complex *et = eidtt + (e % nslot) * ng;
             for (size_t m = 0; m < npin; m++) et[pin[m]] += w * mask[pin[m]] * cpin[m];
             /* Exposure complete: finalize (eq:downsampledHalo for the ideal fields). */
             if (k + 1 == x->first + x->count) {
-                double *ia = iacc + (e % 2) * nfp;
-                double complex *ei = eid + (e % 2) * ng;
-                ideal_exposure(xph + (e % 2) * xcap * npin, xw + (e % 2) * xcap * 3, xn[e % 2], pin, npin, xs, ys, mask,
+                double *ia = iacc + (e % nslot) * nfp;
+                double complex *ei = eid + (e % nslot) * ng;
+                ideal_exposure(xph + (e % nslot) * xcap * npin, xw + (e % nslot) * xcap * 3, xn[e % nslot], pin, npin, xs, ys, mask,
                                lam0, phi, cpin, ei);
-                xn[e % 2] = 0;
+                xn[e % nslot] = 0;
                 double *dst = swfs_real_frame(clean, e);
                 for (size_t i = 0; i < nfp; i++) { dst[i] = C * ia[i] + p->background; ia[i] = 0; }
                 double complex *h = swfs_cplx_frame(spk, e);
