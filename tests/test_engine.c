@@ -145,7 +145,20 @@ static void test_schedule(void **state)
             else assert_int_equal(p->first + p->count, s[j].first);
         }
     }
-    assert_int_equal(swfs_engine_schedule(0.5, 0, 3, s), 0);
+    /* A camera faster than the WFS: each exposure interpolates the two WFS frames whose
+     * centres bracket its own, weights summing to its length; a constant phase field would
+     * come out with the exposure's weight. */
+    const double r = 0.8;
+    const size_t n2 = swfs_engine_schedule(r, 0.3, 20, s);
+    assert_int_equal(n2, s[19].first + 2);
+    for (size_t j = 0; j < 20; j++) {
+        const double centre = 0.3 + ((double)j + 0.5) * r, a = centre - 0.5 - (double)s[j].first;
+        assert_int_equal(s[j].count, 2);
+        assert_true(a >= 0 && a < 1);
+        assert_close(s[j].w_first + s[j].w_last, r, 1e-12);
+        assert_close(s[j].w_last / r, a, 1e-12);
+    }
+    assert_int_equal(swfs_engine_schedule(SWFS_ENGINE_MIN_RATIO / 2, 0, 3, s), 0);
 }
 
 /* Batch with fractional weights, tip-tilt removal, several chunks; threads 1 and 2. */

@@ -77,6 +77,16 @@ static void test_interp_exact_quadratics(void **state)
     assert_true(nact > 150 && nact < 400);
     check_exact(xy, nact, 3.25);
     free(xy);
+    /* Square grids clipped to a circle (co-circular squares; vertices whose Delaunay
+     * neighbours lie on two lines): exact for quadratics too. Pitch D/20 with a margin of a
+     * full pitch once failed with "neighbours do not determine a quadratic". */
+    const double pitches[3] = {6.5 / 20, 6.5 / 16, 0.36}, margins[3] = {6.5 / 20, 0.5 * 6.5 / 16, 0.1};
+    for (int k = 0; k < 3; k++) {
+        assert_ok(swfs_actuators_square(6.5, pitches[k], margins[k], &xy, &nact));
+        assert_true(nact > 100);
+        check_exact(xy, nact, 3.25 - pitches[k]);
+        free(xy);
+    }
 }
 
 static void test_interp_outside_and_bad(void **state)

@@ -80,6 +80,8 @@ typedef struct swfs_ts_params {
     /* the science camera's orientation on the sky: the detector shows the focal plane
        transposed (camera_swap), then mirrored along its x and/or y axis (0, 0, 0) */
     long camera_swap, camera_flip_x, camera_flip_y;
+    long act_square;           /* the DM's actuators on a square grid of pitch act_pitch clipped to
+                                  a circle (1), or hexapolar rings (0, default) */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

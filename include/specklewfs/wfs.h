@@ -31,6 +31,9 @@ SWFS_BEGIN_DECLS
  * At most SWFS_HEXAPOLAR_MAX_RINGS rings (SWFS_ERR_ARG naming the count otherwise). */
 #define SWFS_HEXAPOLAR_MAX_RINGS 200
 int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **xy, size_t *nact);
+/* A square grid of pitch [m] centred on the pupil, clipped to the circle of radius diam/2 +
+ * margin: the layout of most deformable mirrors. */
+int swfs_actuators_square(double diam, double pitch, double margin, double **xy, size_t *nact);
 
 /* ---- Shack-Hartmann --------------------------------------------------- */
 

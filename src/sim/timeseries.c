@@ -94,6 +94,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
+    L_("act_square", act_square);
 #undef D_
 #undef L_
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
@@ -157,6 +158,7 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (p->nlambda < 1 || p->nlambda > 64) return badv("nlambda", (double)p->nlambda, "must be 1..64");
     if (!(p->background >= 0) || !(p->flat_rms >= 0)) return badv("background", p->background, "background and flat_rms must be >= 0");
     if (p->nhot < 0 || p->ndead < 0) return badv("nhot", (double)p->nhot, "bad-pixel counts must be >= 0");
+    if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
     if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
         return badv("camera_swap", (double)(p->camera_swap + 10 * p->camera_flip_x + 100 * p->camera_flip_y),
                     "camera_swap, camera_flip_x and camera_flip_y must each be 0 or 1");
@@ -362,7 +364,9 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     /* DM, WFS, the loop's reconstructor. */
     size_t nact = 0;
-    if ((rc = swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact))) goto done;
+    if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
+                            : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
+        goto done;
     if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
     if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;

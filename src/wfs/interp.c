@@ -131,6 +131,68 @@ typedef struct grad_ops {
 
 static void grad_free(grad_ops *g) { free(g->ptr); free(g->idx); free(g->gx); free(g->gy); }
 
+/* The points within `rings` Delaunay rings of v (v excluded) into set; mark is all 0 on
+ * entry and exit. */
+static size_t collect(const tri_mesh *m, size_t v, int rings, unsigned char *mark, size_t *set)
+{
+    size_t ns = 0, lo = 0;
+    mark[v] = 1;
+    for (size_t k = m->nbr_ptr[v]; k < m->nbr_ptr[v + 1]; k++)
+        if (!mark[m->nbr[k]]) { mark[m->nbr[k]] = 1; set[ns++] = m->nbr[k]; }
+    for (int r = 1; r < rings; r++) {
+        const size_t hi = ns;
+        for (size_t s = lo; s < hi; s++)
+            for (size_t k = m->nbr_ptr[set[s]]; k < m->nbr_ptr[set[s] + 1]; k++)
+                if (!mark[m->nbr[k]]) { mark[m->nbr[k]] = 1; set[ns++] = m->nbr[k]; }
+        lo = hi;
+    }
+    mark[v] = 0;
+    for (size_t s = 0; s < ns; s++) mark[set[s]] = 0;
+    return ns;
+}
+
+/* Least squares of f(u) - f(v) on nterm terms (5: dx, dy, dx^2, dx dy, dy^2; 2: dx, dy) over
+ * the ns points of set; the gradient rows go to g at `used` (ns + 1 entries, v last) when
+ * the fit has full rank. *rank: the rank found. */
+static int fit_gradient(const tri_mesh *m, size_t v, const size_t *set, size_t ns, int nterm, grad_ops *g,
+                        size_t used, size_t *rank_out)
+{
+    const double *p0 = m->pts + 2 * v;
+    double h = 0;
+    for (size_t s = 0; s < ns; s++)
+        h = fmax(h, hypot(m->pts[2 * set[s]] - p0[0], m->pts[2 * set[s] + 1] - p0[1]));
+    const size_t nt = (size_t)nterm, rows = ns > nt ? ns : nt;
+    double *A = calloc(rows * nt, sizeof *A), *B = calloc(rows * ns, sizeof *B), *sv = malloc(nt * sizeof *sv);
+    if (!A || !B || !sv) { free(A); free(B); free(sv); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    for (size_t s = 0; s < ns; s++) {
+        const double dx = (m->pts[2 * set[s]] - p0[0]) / h, dy = (m->pts[2 * set[s] + 1] - p0[1]) / h;
+        const double t[5] = {dx, dy, dx * dx, dx * dy, dy * dy};
+        for (size_t c = 0; c < nt; c++) A[s * nt + c] = t[c];
+        B[s * ns + s] = 1.0;
+    }
+    lapack_int rank = 0;
+    lapack_int info = LAPACKE_dgelss(LAPACK_ROW_MAJOR, (lapack_int)ns, (lapack_int)nt, (lapack_int)ns, A,
+                                     (lapack_int)nt, B, (lapack_int)ns, sv, 1e-10, &rank);
+    *rank_out = info == 0 ? (size_t)rank : 0;
+    if (*rank_out == nt) {
+        /* B rows 0, 1 = pinv rows for gx, gy (in units of 1/h). */
+        double sx = 0, sy = 0;
+        for (size_t s = 0; s < ns; s++) {
+            g->idx[used + s] = set[s];
+            g->gx[used + s] = B[0 * ns + s] / h;
+            g->gy[used + s] = B[1 * ns + s] / h;
+            sx += g->gx[used + s];
+            sy += g->gy[used + s];
+        }
+        g->idx[used + ns] = v; g->gx[used + ns] = -sx; g->gy[used + ns] = -sy;
+        *rank_out = nterm == 2 ? 2 : 5;
+    } else if (nterm == 2) {
+        *rank_out = 0;
+    }
+    free(A); free(B); free(sv);
+    return SWFS_OK;
+}
+
 static int gradients(const tri_mesh *m, grad_ops *g)
 {
     size_t npts = m->npts;
@@ -138,7 +200,7 @@ static int gradients(const tri_mesh *m, grad_ops *g)
     size_t cap = 0;
     for (size_t v = 0; v < npts; v++) {
         size_t d = m->nbr_ptr[v + 1] - m->nbr_ptr[v];
-        cap += 1 + d + d * 8; /* generous bound for the 2-ring */
+        cap += 1 + d + d * 8 + (npts < 128 ? npts : 128); /* up to 4 rings (about 60 points on a lattice) */
     }
     g->ptr = calloc(npts + 1, sizeof *g->ptr);
     g->idx = malloc(cap * sizeof *g->idx);
@@ -153,61 +215,27 @@ static int gradients(const tri_mesh *m, grad_ops *g)
     size_t used = 0;
     int rc = SWFS_OK;
     for (size_t v = 0; v < npts && rc == SWFS_OK; v++) {
-        size_t ns = 0;
-        mark[v] = 1;
-        for (size_t k = m->nbr_ptr[v]; k < m->nbr_ptr[v + 1]; k++)
-            if (!mark[m->nbr[k]]) { mark[m->nbr[k]] = 1; set[ns++] = m->nbr[k]; }
-        if (ns < 6) {
-            size_t n1 = ns;
-            for (size_t s = 0; s < n1; s++)
-                for (size_t k = m->nbr_ptr[set[s]]; k < m->nbr_ptr[set[s] + 1]; k++)
-                    if (!mark[m->nbr[k]]) { mark[m->nbr[k]] = 1; set[ns++] = m->nbr[k]; }
-        }
-        mark[v] = 0;
-        for (size_t s = 0; s < ns; s++) mark[set[s]] = 0;
         g->ptr[v] = used;
-        if (ns < 5) {
-            rc = swfs_fail(SWFS_ERR_NUMERIC, "point %zu has only %zu neighbours: cannot estimate its gradient", v, ns);
+        /* The Delaunay ring, then wider rings until the points determine a quadratic: on a
+         * square grid (a DM's actuators clipped to a circle) a vertex's neighbours can lie
+         * on two lines, which leave the dx dy term undetermined. */
+        size_t ns = 0, rank = 0;
+        for (int rings = 1; rings <= 4 && rank < 5; rings++) {
+            ns = collect(m, v, rings, mark, set);
+            if ((rings == 1 && ns < 6) || ns < 5) continue; /* fewer than 6: the 2-ring, as always */
+            if (used + ns + 1 > cap) { rc = swfs_fail(SWFS_ERR_INTERNAL, "gradient stencil overflow"); break; }
+            if ((rc = fit_gradient(m, v, set, ns, 5, g, used, &rank))) break;
+        }
+        /* Still not (collinear stretches of a boundary): the gradient of a plane fit, exact
+         * for linear functions, so the tip/tilt contract of speckles.h still holds. */
+        if (!rc && rank < 5 && ns >= 2 && used + ns + 1 <= cap) rc = fit_gradient(m, v, set, ns, 2, g, used, &rank);
+        if (rc) break;
+        if (rank < 2) {
+            rc = swfs_fail(SWFS_ERR_NUMERIC, "actuator %zu at (%g, %g) m: its neighbours are collinear, its gradient is "
+                           "undetermined (a degenerate layout?)", v, m->pts[2 * v], m->pts[2 * v + 1]);
             break;
         }
-        if (used + ns + 1 > cap) { rc = swfs_fail(SWFS_ERR_INTERNAL, "gradient stencil overflow"); break; }
-        /* Scale coordinates by the neighbourhood size for conditioning. */
-        const double *p0 = m->pts + 2 * v;
-        double h = 0;
-        for (size_t s = 0; s < ns; s++) {
-            double dx = m->pts[2 * set[s]] - p0[0], dy = m->pts[2 * set[s] + 1] - p0[1];
-            h = fmax(h, sqrt(dx * dx + dy * dy));
-        }
-        size_t rows = ns > 5 ? ns : 5;
-        double *A = calloc(rows * 5, sizeof *A);
-        double *B = calloc(rows * ns, sizeof *B);
-        double *sv = malloc(5 * sizeof *sv);
-        if (!A || !B || !sv) { free(A); free(B); free(sv); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); break; }
-        for (size_t s = 0; s < ns; s++) {
-            double dx = (m->pts[2 * set[s]] - p0[0]) / h, dy = (m->pts[2 * set[s] + 1] - p0[1]) / h;
-            double *r = A + s * 5;
-            r[0] = dx; r[1] = dy; r[2] = dx * dx; r[3] = dx * dy; r[4] = dy * dy;
-            B[s * ns + s] = 1.0;
-        }
-        lapack_int rank;
-        lapack_int info = LAPACKE_dgelss(LAPACK_ROW_MAJOR, (lapack_int)ns, 5, (lapack_int)ns, A, 5, B,
-                                         (lapack_int)ns, sv, 1e-10, &rank);
-        if (info != 0 || rank < 5) {
-            free(A); free(B); free(sv);
-            rc = swfs_fail(SWFS_ERR_NUMERIC, "point %zu: neighbours do not determine a quadratic (rank %d)", v, (int)rank);
-            break;
-        }
-        /* B rows 0, 1 = pinv rows for gx, gy (in units of 1/h). */
-        double sx = 0, sy = 0;
-        for (size_t s = 0; s < ns; s++) {
-            g->idx[used] = set[s];
-            g->gx[used] = B[0 * ns + s] / h;
-            g->gy[used] = B[1 * ns + s] / h;
-            sx += g->gx[used]; sy += g->gy[used];
-            used++;
-        }
-        g->idx[used] = v; g->gx[used] = -sx; g->gy[used] = -sy; used++;
-        free(A); free(B); free(sv);
+        used += ns + 1;
     }
     g->ptr[npts] = used;
     free(mark); free(set);

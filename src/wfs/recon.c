@@ -346,8 +346,17 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
         if (ml_noise) noise_var = fit.noise_var;
     }
     if (noise_var <= 0 && (rc = swfs_slopes_noise_var(D, m, n, slopes, nframes, &noise_var))) return rc;
+    /* No slopes outside D's column space (at least as many actuators as valid slopes, the
+     * MMT's own case) and a temporal extrapolation that found nothing: the noise from the
+     * slopes' likelihood under the prior, which separates noise from signal by their
+     * spatial spectra (vkfit.c). */
+    if (!(noise_var > 0) && !ml) {
+        if ((rc = swfs_vk_fit_slopes(D, m, n, xy, slopes, nframes, &fit))) return rc;
+        noise_var = fit.noise_var;
+    }
     if (!(noise_var > 0))
-        return swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slope noise estimate is 0 (noise-free slopes?); give it");
+        return swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slope noise estimate is 0 from %zu frames of %zu "
+                         "slopes (noise-free slopes?); give it (--slope-noise)", nframes, m);
     double *C = malloc(n * n * sizeof *C), *PD = malloc(m * n * sizeof *PD), *B = malloc(m * n * sizeof *B);
     double *M = malloc(m * m * sizeof *M);
     unsigned char *valid = malloc(m);

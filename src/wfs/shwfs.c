@@ -10,6 +10,36 @@
 #include <stdlib.h>
 #include <string.h>
 
+int swfs_actuators_square(double diam, double pitch, double margin, double **xy, size_t *nact)
+{
+    *xy = NULL;
+    *nact = 0;
+    if (!(diam > 0) || !(pitch > 0) || !(margin >= 0) || pitch > diam)
+        return swfs_fail(SWFS_ERR_ARG, "actuator layout: diameter %g m, pitch %g m, margin %g m out of range",
+                         diam, pitch, margin);
+    const double r = 0.5 * diam + margin;
+    if (!(r / pitch <= 2.0 * SWFS_HEXAPOLAR_MAX_RINGS))
+        return swfs_fail(SWFS_ERR_ARG, "actuator layout: a square grid of pitch %g m over a radius of %g m has more "
+                         "than %d actuators across", pitch, r, 4 * SWFS_HEXAPOLAR_MAX_RINGS);
+    /* The grid is centred on the pupil, actuators on (i, j) pitch: an odd count across, the
+     * layout of most square-grid DMs. */
+    const long m = (long)floor(r / pitch);
+    double *p = malloc(2 * (size_t)(2 * m + 1) * (size_t)(2 * m + 1) * sizeof *p);
+    if (!p) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    size_t n = 0;
+    for (long j = -m; j <= m; j++)
+        for (long i = -m; i <= m; i++) {
+            const double x = (double)i * pitch, y = (double)j * pitch;
+            if (hypot(x, y) > r) continue;
+            p[2 * n] = x;
+            p[2 * n + 1] = y;
+            n++;
+        }
+    *xy = p;
+    *nact = n;
+    return SWFS_OK;
+}
+
 int swfs_actuators_hexapolar(double diam, double pitch, double margin, double **xy, size_t *nact)
 {
     *xy = NULL;
