@@ -32,7 +32,10 @@ static const char *usage_text =
     "                      OBSCUR, PIXSCALE, PUPDX, PUPN and the focal window size\n"
     "  --actuators FILE    actuator positions, 2 x nact [m]\n"
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
-    "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators) [m/rad]; or built\n"
+    "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators): the residual\n"
+    "                      wavefront [m of OPD, not DM surface] at the actuators = W slopes [rad];\n"
+    "                      its gain on the model's D must be 0.5..2 (--recon-scale S multiplies it:\n"
+    "                      -2 for a matrix to DM commands, a correction of the surface); or built\n"
     "                      here from the Shack-Hartmann interaction matrix D = U S V^T:\n"
     "  --recon vk          (default) MAP, von Karman prior C of the actuators (--vk-l0 M: 10;\n"
     "                      0: the outer scale, the prior's scale and the slope noise fitted to\n"
@@ -136,6 +139,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
         {"--actuators", CLI_STRING, &o->actuators, fn, 0}, {"--pupil", CLI_STRING, &o->mask, fn, 0},
         {"--write-recon", CLI_STRING, &o->write_recon, fn, 0}, {"--vk-l0", CLI_DOUBLE, &o->pipe.vk_l0, NULL, 0},
+        {"--recon-scale", CLI_DOUBLE, &o->pipe.recon_scale, NULL, 0},
         {"--slope-noise", CLI_DOUBLE, &slope_noise, NULL, 0}, {"--threads", CLI_LONG, &threads, NULL, 0},
         {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
         {"--batch", CLI_LONG, &batch, NULL, 0},
@@ -159,6 +163,10 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (slope_noise > 0 && o->pipe.recon != SWFS_RECON_MAP && o->pipe.recon != SWFS_RECON_VK) return cli_usage_error(cmd, "--slope-noise goes with --recon vk or map");
     if (!(o->pipe.vk_l0 >= 0) || !isfinite(o->pipe.vk_l0)) return cli_usage_error(cmd, "--vk-l0 must be an outer scale > 0 [m] (0: fitted), got %g", o->pipe.vk_l0);
     if (!(o->wfs_hz >= 0)) return cli_usage_error(cmd, "--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
+    if (!isfinite(o->pipe.recon_scale) || o->pipe.recon_scale == 0)
+        return cli_usage_error(cmd, "--recon-scale must be a finite, non-zero factor, got %g", o->pipe.recon_scale);
+    if (o->pipe.recon_scale != 1 && o->pipe.recon != SWFS_RECON_GIVEN)
+        return cli_usage_error(cmd, "--recon-scale goes with --recon W.fits");
     if (threads > SWFS_ENGINE_MAX_THREADS)
         return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
     if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
@@ -211,6 +219,10 @@ int swfs_cmd_speckles(int argc, char **argv)
         fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
                 "%.1f effective\n", o.pipe.recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", r.info.ntrain,
                 sqrt(r.info.noise_var), r.info.noise_given ? "given" : "estimated", r.info.recon_modes, r.info.recon_dof);
+    if (!rc && o.pipe.recon == SWFS_RECON_GIVEN)
+        fprintf(stderr, "speckles: given reconstructor %s: %zu slopes x %zu actuators, scale %g, gain %.3g on the model's "
+                "interaction matrix (1: a reconstructor of it)\n", o.recon, r.info.nslopes, r.info.nact,
+                o.pipe.recon_scale, r.info.recon_gain);
     if (!rc && o.pipe.recon == SWFS_RECON_VK)
         fprintf(stderr, "speckles: von Karman outer scale %.3g m (%s)\n", r.info.vk_l0,
                 o.pipe.vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");

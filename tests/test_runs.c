@@ -260,10 +260,52 @@ static void test_stream_batches(void **state)
     swfs_accum_free(acc[1]);
 }
 
+/* The AO system's own reconstructor given to speckles: the simulated loop's (recon_ao.fits,
+ * z [m of wavefront] = W s) has a gain near 1 on the model's interaction matrix and is used;
+ * the same matrix in the DM-command convention (-1/2 W: a correction of the surface) is
+ * refused with the scale that would fix it, and works with that scale. */
+static void test_given_reconstructor(void **state)
+{
+    (void)state;
+    swfs_recon *r = NULL;
+    assert_ok(swfs_recon_read(p("recon_ao.fits"), &r));
+    for (size_t i = 0; i < r->nact * r->nslopes; i++) r->W[i] *= -0.5;
+    assert_ok(swfs_recon_write(r, p("recon_dm.fits")));
+    swfs_recon_free(r);
+    const char *files[3] = {"recon_ao.fits", "recon_dm.fits", "recon_dm.fits"};
+    const double scale[3] = {1.0, 1.0, -2.0};
+    for (int k = 0; k < 3; k++) {
+        swfs_speckles_run_options sp;
+        swfs_speckles_run_options_default(&sp);
+        sp.timing = p("timing.txt");
+        sp.science = p("science.fits");
+        sp.actuators = p("actuators.fits");
+        sp.out = p("speckles_given.fits");
+        sp.pipe.recon = SWFS_RECON_GIVEN;
+        sp.recon = p(files[k]);
+        sp.pipe.recon_scale = scale[k];
+        remove(sp.out);
+        swfs_speckles_run_result spr;
+        const int rc = swfs_speckles_run(&sp, &spr);
+        if (k == 1) {
+            printf("test_runs: DM-command convention: %s\n", swfs_last_error());
+            assert_int_not_equal(rc, 0);
+            assert_non_null(strstr(swfs_last_error(), "gain -0.5"));
+            assert_non_null(strstr(swfs_last_error(), "a scale of -2 "));
+            assert_false(test_file_exists(sp.out));
+            continue;
+        }
+        assert_ok(rc);
+        printf("test_runs: given reconstructor %s x %g: gain %.3f\n", files[k], scale[k], spr.info.recon_gain);
+        assert_true(spr.info.recon_gain > 0.9 && spr.info.recon_gain < 1.1);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_sync_speckles_estimate),
+        cmocka_unit_test(test_given_reconstructor),
         cmocka_unit_test(test_stream_equals_speckles),
         cmocka_unit_test(test_stream_batches),
     };

@@ -27,6 +27,12 @@
 
 SWFS_BEGIN_DECLS
 
+/* A given reconstructor's gain on the model's D (swfs_pipeline_info.recon_gain) is accepted in
+ * [SWFS_RECON_GAIN_MIN, 1 / SWFS_RECON_GAIN_MIN]: a Wiener-type reconstructor keeps its noisy
+ * modes below 1 and the model's D differs from a real system's by calibration errors of tens
+ * of percent, while a convention error is a sign or a factor 2 (docs/telemetry.md). */
+#define SWFS_RECON_GAIN_MIN 0.5
+
 /* Reconstructor choices. */
 enum {
     SWFS_RECON_VK = 0,    /* MAP with a von Karman prior on the actuators (default) */
@@ -46,6 +52,8 @@ typedef struct swfs_pipeline_options {
     int tiptilt;        /* SWFS_TT_EXPOSURE (default), SWFS_TT_FRAME, SWFS_TT_KEEP (speckles.h) */
     int threads;        /* engine workers (1) */
     int wfs_rate;       /* 1: one focal field per WFS frame (swfs_pipeline_process_wfs), 0: per exposure */
+    double recon_scale; /* SWFS_RECON_GIVEN: the given matrix is multiplied by this first (1); e.g. -2
+                           for a matrix to DM commands (a correction, of the surface) */
 } swfs_pipeline_options;
 
 void swfs_pipeline_options_default(swfs_pipeline_options *o);
@@ -62,9 +70,16 @@ typedef struct swfs_pipeline_info {
     size_t ntrain;       /* training WFS frames (MAP / vk) */
     size_t n_outside;    /* illuminated pupil samples outside the actuators' hull */
     double vk_l0;        /* SWFS_RECON_VK: the outer scale used [m] */
+    double recon_gain;   /* SWFS_RECON_GIVEN: the matrix's gain on the model's interaction matrix D,
+                            tr((W D)^2) / tr(W D): 1 for a reconstructor of D on whatever modes it
+                            keeps, negative for the opposite sign (see swfs_pipeline_create) */
 } swfs_pipeline_info;
 
-/* geom: WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN all required; nfx x nfy: the
+/* A given reconstructor (SWFS_RECON_GIVEN, times recon_scale) is measured against the
+ * model's own interaction matrix D (info.recon_gain): W D is a projector (gain 1) for any
+ * reconstructor of D, whatever modes it keeps; a matrix to DM commands gives about -1/2
+ * (swfs_speckles_run refuses a gain outside [1/2, 2]).
+ * geom: WAVELEN, TELDIAM, OBSCUR, PIXSCALE, PUPDX, PUPN all required; nfx x nfy: the
  * focal window (the science frames); xy: nact actuator positions (x, y) [m]; mask: PUPN^2
  * pupil transmission, or NULL for the annulus of TELDIAM/OBSCUR; nslopes: 2 nsub^2 (x then
  * y slopes of a square Shack-Hartmann); recon: the reconstructor for SWFS_RECON_GIVEN

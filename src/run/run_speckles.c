@@ -186,6 +186,18 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
                                        w->train, w->ntrain, &o->pipe);
     if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
+    /* A given matrix in another convention (DM commands: a correction of the surface, about
+     * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
+    swfs_pipeline_info pinfo;
+    swfs_pipeline_get_info(w->p, &pinfo);
+    const double gain = pinfo.recon_gain;
+    if (o->pipe.recon == SWFS_RECON_GIVEN && !(gain >= SWFS_RECON_GAIN_MIN && gain <= 1.0 / SWFS_RECON_GAIN_MIN))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: gain %.3g on the model's interaction matrix%s (expected about 1: the "
+                         "residual wavefront [m of OPD] at the actuators = W slopes [rad]); a matrix to DM commands is a "
+                         "correction of the surface (about -0.5), slopes in other units scale it; a scale of %.3g "
+                         "(--recon-scale) would make it 1", o->recon, gain,
+                         o->pipe.recon_scale != 1.0 ? " after the scale given" : "",
+                         gain != 0.0 ? o->pipe.recon_scale / gain : 0.0);
     free(w->train);
     w->train = NULL;
     /* (a team writes it with the other products, once every member has succeeded) */

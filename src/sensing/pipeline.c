@@ -3,6 +3,8 @@
 #include "specklewfs/aperture.h"
 #include "specklewfs/status.h"
 
+#include <cblas.h>
+
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -35,6 +37,7 @@ void swfs_pipeline_options_default(swfs_pipeline_options *o)
     o->tiptilt = SWFS_TT_EXPOSURE;
     o->threads = 1;
     o->wfs_rate = 0;
+    o->recon_scale = 1.0;
 }
 
 void swfs_pipeline_free(swfs_pipeline *p)
@@ -77,6 +80,32 @@ static int check_options(const swfs_pipeline_options *o, const swfs_recon *recon
     return SWFS_OK;
 }
 
+/* A given reconstructor W (z [m of wavefront] = W s [rad]), times scale, against the model's
+ * interaction matrix D: any reconstructor of D makes W D a projector onto the modes it keeps
+ * (eigenvalues 0 and 1, oblique for a modal one), so the gain tr((W D)^2) / tr(W D) is 1
+ * whatever its rank (a Wiener-type one a little less). A matrix to DM commands is a
+ * correction of the surface: about -1/2. */
+static int check_given(swfs_pipeline *p, double scale)
+{
+    swfs_recon *r = p->model->recon;
+    const size_t na = r->nact, ns = r->nslopes;
+    for (size_t i = 0; i < na * ns; i++) r->W[i] *= scale;
+    double *D = NULL, *M = malloc(na * na * sizeof *M);
+    int rc = M ? swfs_interaction_matrix(p->model->wfs, p->model->T, &D) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) {
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)na, (int)na, (int)ns, 1.0, r->W, (int)ns, D,
+                    (int)na, 0.0, M, (int)na);
+        double tr = 0.0, f2 = 0.0;
+        for (size_t i = 0; i < na; i++) tr += M[i * na + i];
+        for (size_t i = 0; i < na; i++)
+            for (size_t j = 0; j < na; j++) f2 += M[i * na + j] * M[j * na + i]; /* tr((W D)^2) */
+        p->info.recon_gain = tr != 0.0 ? f2 / tr : 0.0;
+    }
+    free(D);
+    free(M);
+    return rc;
+}
+
 /* The model and its reconstructor: given, SVD, or learned from the training slopes. */
 static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, size_t nact, size_t nslopes,
                        const swfs_recon *recon, const double *training, size_t ntrain)
@@ -95,6 +124,7 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     int rc = swfs_speckle_model_create(&p->model, xy, nact, p->mask, (size_t)g->pupn, g->pupdx, g->teldiam, nsub,
                                        o->recon == SWFS_RECON_GIVEN ? recon : NULL, o->rcond, o->max_modes, project);
     if (rc) return rc;
+    if (o->recon == SWFS_RECON_GIVEN && (rc = check_given(p, o->recon_scale))) return rc;
     const double nv = o->slope_noise * o->slope_noise;
     if (o->recon == SWFS_RECON_MAP) rc = swfs_speckle_model_set_map(p->model, training, ntrain, nv, project);
     else if (o->recon == SWFS_RECON_VK)
@@ -133,7 +163,7 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0};
+    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
