@@ -87,21 +87,26 @@ static swfs_accum *make_data(void)
     swfs_rng r;
     swfs_rng_seed(&r, 2024);
     swfs_geom g = geom();
-    /* Actuators, reconstructor (phases ~1 rad), slopes with a tip-tilt to be removed. */
+    /* Actuators, a reconstructor of the model's own D (the truncated SVD: `speckles` checks a
+     * given matrix against D), slopes giving phases of ~1 rad, with a tip-tilt to be removed. */
     double *xy = NULL;
     size_t nact = 0;
     assert_ok(swfs_actuators_hexapolar(DIAM, 1.2, 0.6, &xy, &nact));
-    swfs_recon rec = {nact, NSL, malloc(nact * NSL * sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
-    assert_non_null(rec.W);
-    for (size_t k = 0; k < nact * NSL; k++) rec.W[k] = LAMBDA / (2 * M_PI) * 0.3 * swfs_rng_normal(&r);
-    assert_ok(swfs_recon_write(&rec, in_dir("recon.fits")));
+    {
+        double m0[NPUP * NPUP];
+        assert_ok(swfs_aperture_make(m0, NPUP, g.pupdx, DIAM, g.obscur, 0, 0.0));
+        swfs_speckle_model *m = NULL;
+        assert_ok(swfs_speckle_model_create(&m, xy, nact, m0, NPUP, g.pupdx, DIAM, NSUB, NULL, 5e-2, 0, 0));
+        assert_ok(swfs_recon_write(m->recon, in_dir("recon.fits")));
+        swfs_speckle_model_free(m);
+    }
     assert_ok(swfs_actuators_write(xy, nact, in_dir("act.fits")));
-    free(rec.W);
     free(xy);
     swfs_real *sl = swfs_real_alloc(NSL, NWFS, 1);
     assert_non_null(sl);
+    const double s1 = 0.3 * LAMBDA / (2 * M_PI) / (DIAM / NSUB); /* ~0.3 rad of phase per subaperture */
     for (size_t k = 0; k < NWFS; k++)
-        for (size_t i = 0; i < NSL; i++) sl->data[k * NSL + i] = swfs_rng_normal(&r) + (i < NSL / 2 ? 0.5 : -0.2);
+        for (size_t i = 0; i < NSL; i++) sl->data[k * NSL + i] = s1 * (swfs_rng_normal(&r) + (i < NSL / 2 ? 0.5 : -0.2));
     swfs_fits_out *o = NULL;
     assert_ok(swfs_fits_out_create(&o, in_dir("slopes.fits")));
     assert_ok(swfs_fits_out_real(o, NULL, sl, -64));
