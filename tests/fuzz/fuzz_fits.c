@@ -113,6 +113,7 @@ static void products(const char *path)
     if (!swfs_coherence_read_input(path, &cube, &dt, &g, &exp)) swfs_cplx_free(cube);
     swfs_noise nz;
     (void)swfs_noise_from_header(path, NAN, NAN, &nz);
+    (void)swfs_geom_read_file(path, &g); /* FITS header or KEY = VALUE text (--geom) */
 }
 
 static char tmp_path[256];
