@@ -76,3 +76,16 @@ else
     echo "cli_report: chromium is not on PATH: browser check of the demo page skipped"
 fi
 echo "cli_report: demo page ok"
+
+# ---- the report's output checked before any work (outpaths.h), nothing left behind
+touch "$tmp/afile"
+if "$bin" report "$tmp/demo" -o "$tmp/afile" >"$tmp/out.txt" 2>"$tmp/err"; then echo "FAIL: report onto a file"; exit 1; fi
+grep -q "is not a folder" "$tmp/err" || { echo "FAIL: report onto a file: message"; cat "$tmp/err"; exit 1; }
+mkfifo "$tmp/afifo"
+if "$bin" report "$tmp/demo" -o "$tmp/afifo" >"$tmp/out.txt" 2>"$tmp/err"; then echo "FAIL: report onto a FIFO"; exit 1; fi
+mkdir -p "$tmp/linked" && ln -sf "$tmp/demo/recovery.tsv" "$tmp/linked/index.html"
+if "$bin" report "$tmp/demo" -o "$tmp/linked" >"$tmp/out.txt" 2>"$tmp/err"; then echo "FAIL: report page onto a link"; exit 1; fi
+grep -q "symbolic link" "$tmp/err" || { echo "FAIL: report page onto a link: message"; cat "$tmp/err"; exit 1; }
+[ -z "$(ls "$tmp/linked" | grep -v '^index.html$')" ] || { echo "FAIL: a refused report left files"; ls "$tmp/linked"; exit 1; }
+[ "$(ls "$tmp/demo/page2" | grep -c '\.part')" -eq 0 ] || { echo "FAIL: part files left in the report folder"; exit 1; }
+echo "cli_report: output checks ok"

@@ -2,6 +2,7 @@
 #include "specklewfs/plot.h"
 
 #include "specklewfs/array.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -22,7 +23,7 @@ struct swfs_plot {
     double chr_mm; /* character height */
     double px0, px1, py0, py1; /* current panel, normalized page coordinates */
     char path[4096];
-    char part[4096 + 8];
+    swfs_atomic *atom;     /* the figure's part file (atomic.h: unique name, fsync, rename) */
     PLINT errcode;
     char errmsg[1024];
     /* Layout of the last image, for contours. */
@@ -80,12 +81,18 @@ int swfs_plot_create(swfs_plot **out, const char *path, int width, int height, i
     swfs_plot *p = calloc(1, sizeof *p);
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "plot: out of memory");
     snprintf(p->path, sizeof p->path, "%s", path);
-    snprintf(p->part, sizeof p->part, "%s.part", path);
     p->ncols = ncols;
     p->nrows = nrows;
-    /* Preflight: PLplot exits the process if it cannot open its output file. */
-    FILE *f = fopen(p->part, "wb");
+    /* The one atomic writer of every product (a unique part name per process, fsync, then
+     * rename). Preflight: PLplot exits the process if it cannot open its output file. */
+    int arc = swfs_atomic_begin(&p->atom, path, 0);
+    if (arc) {
+        free(p);
+        return arc;
+    }
+    FILE *f = fopen(swfs_atomic_part(p->atom), "wb");
     if (!f) {
+        swfs_atomic_abort(p->atom);
         free(p);
         return swfs_fail(SWFS_ERR_IO, "%s: cannot create the figure file", path);
     }
@@ -93,13 +100,13 @@ int swfs_plot_create(swfs_plot **out, const char *path, int width, int height, i
 
     plmkstrm(&p->strm);
     if (p->strm < 0) {
-        remove(p->part);
+        swfs_atomic_abort(p->atom);
         free(p);
         return swfs_fail(SWFS_ERR_INTERNAL, "%s: PLplot has no free stream", path);
     }
     plsError(&p->errcode, p->errmsg);
     plsdev("pngcairo");
-    plsfnam(p->part);
+    plsfnam(swfs_atomic_part(p->atom));
     p->width = width;
     p->height = height;
     plspage(SWFS_PLOT_DPI, SWFS_PLOT_DPI, width, height, 0, 0);
@@ -137,10 +144,9 @@ int swfs_plot_commit(swfs_plot *p)
     int rc = plot_check(p, "drawing");
     plot_end(p);
     /* cairo's write errors (a full disk) do not reach PLplot's error state: check the file. */
-    if (!rc && (rc = swfs_plot_png_check(p->part))) swfs_fail_context(rc, "writing %s", p->path);
-    if (!rc && rename(p->part, p->path) != 0)
-        rc = swfs_fail(SWFS_ERR_IO, "%s: cannot rename %s into place", p->path, p->part);
-    if (rc) remove(p->part);
+    if (!rc && (rc = swfs_plot_png_check(swfs_atomic_part(p->atom)))) swfs_fail_context(rc, "writing %s", p->path);
+    if (!rc) rc = swfs_atomic_commit(p->atom); /* fsync, rename; removes the part on failure */
+    else swfs_atomic_abort(p->atom);
     free(p);
     return rc;
 }
@@ -149,7 +155,7 @@ void swfs_plot_abort(swfs_plot *p)
 {
     if (!p) return;
     plot_end(p);
-    remove(p->part);
+    swfs_atomic_abort(p->atom);
     free(p);
 }
 

@@ -6,6 +6,7 @@
 
 #include "specklewfs/accum.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <complex.h>
@@ -350,6 +351,27 @@ static int report_folder(const char *run_dir, const char *out_dir, const swfs_re
     return rc;
 }
 
+/* The report's files checked before any work (outpaths.h), as every command's: an output
+ * folder that exists must be a folder, and the page must not be a special file, a link or
+ * one of the run's own files. The figures' names are the page's siblings and go through
+ * the same atomic writer. */
+static int check_paths(const char *run_dir, const char *out)
+{
+    struct stat sb;
+    if (lstat(out, &sb) == 0 && !S_ISDIR(sb.st_mode))
+        return swfs_fail(SWFS_ERR_IO, "%s: the report's output exists and is not a folder (a file, a link or a special "
+                         "file); give a folder", out);
+    if (!rep_dir_exists(out)) return SWFS_OK; /* created when the first figure is written */
+    char page[REP_PATHMAX];
+    int rc = rep_join(page, out, "index.html");
+    swfs_paths *p = NULL;
+    if (!rc) rc = swfs_paths_create(&p);
+    if (!rc) swfs_paths_input_or_dir(p, "run folder", run_dir);
+    if (!rc) rc = swfs_paths_output(p, "report page", page);
+    swfs_paths_free(p);
+    return rc;
+}
+
 int swfs_report_run(const char *run_dir, const char *out_dir, const swfs_report_options *opt,
                     swfs_report_summary *summary)
 {
@@ -374,6 +396,7 @@ int swfs_report_run(const char *run_dir, const char *out_dir, const swfs_report_
         snprintf(out, sizeof out, "%s", out_dir);
     else
         rc = rep_join(out, run_dir, "report");
+    if (!rc) rc = check_paths(run_dir, out);
     if (!rc) rc = rep_is_demo(run_dir) ? rep_demo_run(run_dir, out, &o, summary) : report_folder(run_dir, out, &o, summary);
     free(local);
     return rc;
