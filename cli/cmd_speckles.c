@@ -228,7 +228,7 @@ int swfs_cmd_speckles(int argc, char **argv)
                 o.pipe.vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");
     if (!rc)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside "
-                "the actuator hull) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes, r.info.recon_modes,
+                "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes, r.info.recon_modes,
                 r.info.n_outside, o.out);
     free(min);
     free(mout);

@@ -31,6 +31,15 @@ int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, cons
 int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupdx,
                         const double *mask, swfs_sparse **out, size_t *n_outside);
 
+/* Illuminated samples outside the points' hull (empty rows of T from swfs_interp_ct_grid, mask
+ * > 0) take the row of the nearest sample inside it when that lies within `reach` [m]: the
+ * wavefront continued flat across a rim the actuators do not quite cover. *n_extrap: rows
+ * filled; *n_far: samples farther than reach, left empty. T is replaced. */
+int swfs_interp_extend_rim(swfs_sparse **T, size_t npup, double pupdx, const double *mask, double reach,
+                           size_t *n_extrap, size_t *n_far);
+/* The median distance from each point to its nearest neighbour (the actuator pitch). */
+double swfs_points_pitch(const double *pts, size_t npts);
+
 SWFS_END_DECLS
 
 #endif

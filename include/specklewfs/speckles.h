@@ -36,7 +36,9 @@ typedef struct swfs_speckle_model {
     swfs_sparse *T;        /* npup^2 x nact */
     swfs_shwfs *wfs;
     swfs_recon *recon;     /* nact x nslopes */
-    size_t n_outside;      /* illuminated samples outside the actuators' hull (left at 0) */
+    size_t n_outside;      /* illuminated samples outside the actuators' hull: within one actuator
+                              pitch of it they continue the nearest inside sample's wavefront
+                              (swfs_interp_extend_rim); farther is an error */
 } swfs_speckle_model;
 
 /* ---- tip-tilt as the registered science frames have it ----------------------------

@@ -71,6 +71,20 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
     memcpy(m->mask, mask, ng * sizeof *mask);
     int rc;
     if ((rc = swfs_interp_ct_grid(xy, nact, npup, pupdx, mask, &m->T, &m->n_outside))) goto fail;
+    if (m->n_outside) {
+        /* Illuminated samples outside the actuators' hull (a rim the outer ring does not
+         * quite reach) continue the wavefront of the nearest sample inside, within one
+         * actuator pitch; farther out the actuators do not describe the pupil. */
+        const double pitch = swfs_points_pitch(xy, nact);
+        size_t next = 0, nfar = 0;
+        if ((rc = swfs_interp_extend_rim(&m->T, npup, pupdx, mask, pitch, &next, &nfar))) goto fail;
+        if (nfar) {
+            rc = swfs_fail(SWFS_ERR_VALUE, "%zu of the %zu illuminated pupil samples outside the actuators' hull lie more "
+                           "than one actuator pitch (%.3g m) from it: the actuator positions do not cover the pupil "
+                           "(units, a partial list, or the DM's registration?)", nfar, m->n_outside, pitch);
+            goto fail;
+        }
+    }
     if ((rc = swfs_shwfs_create(&m->wfs, nsub, teldiam, mask, npup, pupdx, 0.5))) goto fail;
     if (recon) {
         if (recon->nact != nact || recon->nslopes != m->nslopes) {

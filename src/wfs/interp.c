@@ -1,6 +1,7 @@
 /* Clough-Tocher interpolation matrix on a qhull Delaunay triangulation (see interp.h). */
 #include "specklewfs/interp.h"
 #include "specklewfs/array.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/status.h"
 
 #include <libqhull_r/qhull_ra.h>
@@ -417,4 +418,67 @@ int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupd
     int rc = swfs_interp_ct_points(pts, npts, qx, qy, n, out, n_outside);
     free(qx); free(qy);
     return rc;
+}
+
+double swfs_points_pitch(const double *pts, size_t npts)
+{
+    if (npts < 2) return NAN;
+    double *d = malloc(npts * sizeof *d);
+    if (!d) return NAN;
+    for (size_t a = 0; a < npts; a++) {
+        double best = INFINITY;
+        for (size_t b = 0; b < npts; b++)
+            if (b != a) best = fmin(best, hypot(pts[2 * a] - pts[2 * b], pts[2 * a + 1] - pts[2 * b + 1]));
+        d[a] = best;
+    }
+    const double m = swfs_median_inplace(d, npts);
+    free(d);
+    return m;
+}
+
+int swfs_interp_extend_rim(swfs_sparse **Tp, size_t npup, double pupdx, const double *mask, double reach,
+                           size_t *n_extrap, size_t *n_far)
+{
+    swfs_sparse *T = *Tp;
+    const size_t n = npup * npup;
+    *n_extrap = *n_far = 0;
+    if (T->nrows != n) return swfs_fail(SWFS_ERR_SHAPE, "rim extension: %zu rows for a %zux%zu grid", T->nrows, npup, npup);
+    size_t *src = malloc(n * sizeof *src);
+    if (!src) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    const long R = (long)ceil(reach / pupdx);
+    size_t nnz = 0;
+    for (size_t k = 0; k < n; k++) {
+        src[k] = k;
+        const int empty = T->row_ptr[k + 1] == T->row_ptr[k];
+        if (!empty || !mask || !(mask[k] > 0)) { nnz += T->row_ptr[k + 1] - T->row_ptr[k]; continue; }
+        /* the nearest sample with a row, within reach */
+        const long p = (long)(k % npup), q = (long)(k / npup);
+        double best = INFINITY;
+        for (long dq = -R; dq <= R; dq++)
+            for (long dp = -R; dp <= R; dp++) {
+                const long pp = p + dp, qq = q + dq;
+                if (pp < 0 || qq < 0 || pp >= (long)npup || qq >= (long)npup) continue;
+                const size_t j = (size_t)qq * npup + (size_t)pp;
+                const double d = hypot((double)dp, (double)dq) * pupdx;
+                if (T->row_ptr[j + 1] > T->row_ptr[j] && d <= reach && d < best) { best = d; src[k] = j; }
+            }
+        if (src[k] == k) (*n_far)++;
+        else { (*n_extrap)++; nnz += T->row_ptr[src[k] + 1] - T->row_ptr[src[k]]; }
+    }
+    if (!*n_extrap) { free(src); return SWFS_OK; }
+    swfs_sparse *E = swfs_sparse_alloc(T->nrows, T->ncols, nnz);
+    if (!E) { free(src); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    size_t w = 0;
+    for (size_t k = 0; k < n; k++) {
+        E->row_ptr[k] = w;
+        for (size_t e = T->row_ptr[src[k]]; e < T->row_ptr[src[k] + 1]; e++, w++) {
+            E->col[w] = T->col[e];
+            E->val[w] = T->val[e];
+        }
+    }
+    E->row_ptr[n] = w;
+    free(src);
+    swfs_sparse_free(T);
+    *Tp = E;
+    return SWFS_OK;
 }
