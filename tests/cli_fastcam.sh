@@ -5,33 +5,20 @@
 # bracket it), and the NCP must come out close to the simulator's ideal speckles (measured
 # 19.7 nm against 17.2 nm ideal; speckles refused any ratio below 1 before).
 # usage: bash cli_fastcam.sh <specklewfs> <scratch dir>
-set -u
-B=$1
-D=$2
-rm -rf "$D"
-mkdir -p "$D"
-fail() { echo "FAIL: $*" >&2; exit 1; }
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
 "$B" simulate mode=timeseries --quiet -o "$D/sim" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=400 \
     cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 frame_ratio=0.8 seed=1 > "$D/sim.log" || fail "simulate"
-"$B" reduce "$D"/sim/raw_000.fits "$D"/sim/raw_001.fits "$D"/sim/raw_002.fits --dark "$D/sim/dark.fits" \
-    --flat "$D/sim/flat.fits" -o "$D/science.fits" 2> "$D/reduce.log" || fail "reduce"
-"$B" sync "$D/science.fits" "$D/sim/handshake.log" -o "$D/timing.txt" --ratio-min 0.5 --ratio-max 8 > "$D/sync.log" \
-    || { cat "$D/sync.log"; fail "sync"; }
+d="$D"
+reduce_sync "$d" --ratio-min 0.5 --ratio-max 8
 ratio=$(awk '$1 == "ratio" {print $2}' "$D/timing.txt")
 lag=$(awk '$1 == "lag" {print $2}' "$D/timing.txt")
 echo "sync: ratio $ratio (true 0.8), lag $lag (true 2.6: 3 frames less the start's fraction 0.4)"
 awk -v r="$ratio" -v l="$lag" 'BEGIN { d = r - 0.8; e = l - 2.6; if (d < 0) d = -d; if (e < 0) e = -e; exit !(d < 0.002 && e < 0.2) }' \
     || fail "sync: ratio $ratio, lag $lag"
-"$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" \
-    --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
-grep -q "1200 frames from 3 of 3 cubes" "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles frame count"; }
-"$B" estimate "$D/sci_m.fits" "$D/speckles.fits" -o "$D/halo.fits" > "$D/estimate.log" 2>&1 || fail "estimate"
-"$B" pupil "$D/halo.fits" -o "$D/pupil.fits" --truth "$D/sim/truth.fits" > "$D/pupil.log" || fail "pupil"
-"$B" estimate "$D/science.fits" "$D/sim/speckles_ideal.fits" -o "$D/halo_i.fits" > "$D/estimate_i.log" 2>&1 \
-    || fail "estimate (ideal)"
-"$B" pupil "$D/halo_i.fits" -o "$D/pupil_i.fits" --truth "$D/sim/truth.fits" > "$D/pupil_i.log" || fail "pupil (ideal)"
-e=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil.log")
-ei=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil_i.log")
+e=$(speckles_pupil "$d")
+grep -q "1200 frames from 3 of 3 cubes" "$d/speckles.log" || { cat "$d/speckles.log"; fail "speckles frame count"; }
+ei=$(ideal_pupil "$d")
 echo "NCP error: $e nm from the slopes, $ei nm from the ideal speckles"
 awk -v a="$e" -v b="$ei" 'BEGIN { exit !(a > 0 && a < 30 && a < 1.3 * b) }' || fail "NCP error $e nm (ideal $ei nm)"
 echo "cli_fastcam: ok"

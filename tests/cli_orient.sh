@@ -7,31 +7,19 @@
 # 77.5 nm). estimate refuses the camera's own frames with speckles made for a turned camera,
 # and stream refuses a copy already turned.
 # usage: bash cli_orient.sh <specklewfs> <scratch dir>
-set -u
-B=$1
-D=$2
-rm -rf "$D"
-mkdir -p "$D"
-fail() { echo "FAIL: $*" >&2; exit 1; }
-run() { # run <name> <expected pairing: swap sx sy> [simulate keys...]
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
+run() { # run <name> <expected pairing: swap sx sy> [simulate keys...]: prints the NCP error
     local n=$1 want=$2; shift 2
     local d="$D/$n"
     "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 \
         cube_gap=150 layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 nfx=54 nfy=54 seed=1 "$@" > "$D/$n.sim.log" \
         || fail "$n: simulate"
-    "$B" reduce "$d"/sim/raw_000.fits "$d"/sim/raw_001.fits "$d"/sim/raw_002.fits --dark "$d/sim/dark.fits" \
-        --flat "$d/sim/flat.fits" -o "$d/science.fits" 2> "$D/$n.reduce.log" || fail "$n: reduce"
-    "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" --ratio-min 5 --ratio-max 8 \
-        > "$D/$n.sync.log" || fail "$n: sync"
+    reduce_sync "$d" --ratio-min 5 --ratio-max 8
     local got
     got=$(awk '$1 == "pairing" {print $2, $3, $4}' "$d/timing.txt")
     [ "$got" = "$want" ] || fail "$n: sync's pairing '$got', expected '$want'"
-    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
-        -o "$d/speckles.fits" --match "$d/science.fits" "$d/sci_m.fits" 2> "$D/$n.speckles.log" \
-        || { cat "$D/$n.speckles.log"; fail "$n: speckles"; }
-    "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$D/$n.estimate.log" 2>&1 || fail "$n: estimate"
-    "$B" pupil "$d/halo.fits" -o "$d/pupil.fits" --truth "$d/sim/truth.fits" > "$D/$n.pupil.log" || fail "$n: pupil"
-    awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/$n.pupil.log"
+    speckles_pupil "$d"
 }
 e0=$(run plain "0 1 1")
 e1=$(run flipx "0 -1 1" camera_flip_x=1)
@@ -44,11 +32,6 @@ for e in "$e1" "$e2" "$e3"; do
 done
 grep -q "CAMORIEN" "$D/flipx/sci_m.fits" || fail "the matched science copy records no CAMORIEN"
 
-expect_error() { # expect_error <pattern> <command...>
-    local pat=$1; shift
-    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
-    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
-}
 # The camera's own (mirrored) frames with the speckles made for them: refused, no output.
 expect_error "speckles --match" "$B" estimate "$D/flipx/science.fits" "$D/flipx/speckles.fits" -o "$D/x.fits"
 [ ! -e "$D/x.fits" ] || fail "estimate left an output after refusing"
@@ -63,7 +46,7 @@ expect_error "already turned" "$B" stream --timing "$D/flipx/timing.txt" --scien
     || { cat "$D/stream.log"; fail "stream on a mirrored camera"; }
 "$B" pupil "$D/flipx/halo_stream.fits" -o "$D/flipx/pupil_stream.fits" --truth "$D/flipx/sim/truth.fits" \
     > "$D/pupil_stream.log" || fail "pupil (stream)"
-es=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil_stream.log")
+es=$(ncp_error "$D/pupil_stream.log")
 echo "stream on the mirrored camera: $es nm"
 awk -v a="$e1" -v b="$es" 'BEGIN { d = a - b; if (d < 0) d = -d; exit !(d < 0.1 * a) }' \
     || fail "stream on the mirrored camera: $es nm against $e1 nm from speckles + estimate"

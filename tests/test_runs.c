@@ -260,6 +260,26 @@ static void test_stream_batches(void **state)
     swfs_accum_free(acc[1]);
 }
 
+/* speckles on the shared data set with default options. */
+static void speckles_opts(swfs_speckles_run_options *sp, const char *actuators, const char *out)
+{
+    swfs_speckles_run_options_default(sp);
+    sp->timing = p("timing.txt");
+    sp->science = p("science.fits");
+    sp->actuators = actuators;
+    sp->out = out;
+    remove(out);
+}
+
+/* A run that must fail: its message holds `pattern`, and it left no output. */
+static void assert_refused(int rc, const char *what, const char *pattern, const char *out)
+{
+    printf("test_runs: %s: %s\n", what, swfs_last_error());
+    assert_int_not_equal(rc, 0);
+    assert_non_null(strstr(swfs_last_error(), pattern));
+    assert_false(test_file_exists(out));
+}
+
 /* The AO system's own reconstructor given to speckles: the simulated loop's (recon_ao.fits,
  * z [m of wavefront] = W s) has a gain near 1 on the model's interaction matrix and is used;
  * the same matrix in the DM-command convention (-1/2 W: a correction of the surface) is
@@ -276,23 +296,15 @@ static void test_given_reconstructor(void **state)
     const double scale[3] = {1.0, 1.0, -2.0};
     for (int k = 0; k < 3; k++) {
         swfs_speckles_run_options sp;
-        swfs_speckles_run_options_default(&sp);
-        sp.timing = p("timing.txt");
-        sp.science = p("science.fits");
-        sp.actuators = p("actuators.fits");
-        sp.out = p("speckles_given.fits");
+        speckles_opts(&sp, p("actuators.fits"), p("speckles_given.fits"));
         sp.pipe.recon = SWFS_RECON_GIVEN;
         sp.recon = p(files[k]);
         sp.pipe.recon_scale = scale[k];
-        remove(sp.out);
         swfs_speckles_run_result spr;
         const int rc = swfs_speckles_run(&sp, &spr);
         if (k == 1) {
-            printf("test_runs: DM-command convention: %s\n", swfs_last_error());
-            assert_int_not_equal(rc, 0);
-            assert_non_null(strstr(swfs_last_error(), "gain -0.5"));
+            assert_refused(rc, "DM-command convention", "gain -0.5", sp.out);
             assert_non_null(strstr(swfs_last_error(), "a scale of -2 "));
-            assert_false(test_file_exists(sp.out));
             continue;
         }
         assert_ok(rc);
@@ -323,23 +335,15 @@ static void test_rim_coverage(void **state)
         assert_ok(swfs_actuators_write(keep, n, p("act_cut.fits")));
         free(keep);
         swfs_speckles_run_options sp;
-        swfs_speckles_run_options_default(&sp);
-        sp.timing = p("timing.txt");
-        sp.science = p("science.fits");
-        sp.actuators = p("act_cut.fits");
-        sp.out = p("speckles_cut.fits");
+        speckles_opts(&sp, p("act_cut.fits"), p("speckles_cut.fits"));
         const char *min[] = {p("science.fits")}, *mout[] = {p("sci_cut.fits")};
         sp.match_in = min;
         sp.match_out = mout;
         sp.nmatch = 1;
-        remove(sp.out);
         swfs_speckles_run_result spr;
         const int rc = swfs_speckles_run(&sp, &spr);
         if (k == 2) {
-            printf("test_runs: two rings left out: %s\n", swfs_last_error());
-            assert_int_not_equal(rc, 0);
-            assert_non_null(strstr(swfs_last_error(), "do not cover the pupil"));
-            assert_false(test_file_exists(sp.out));
+            assert_refused(rc, "two rings left out", "do not cover the pupil", sp.out);
             break;
         }
         assert_ok(rc);

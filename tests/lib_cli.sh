@@ -1,0 +1,42 @@
+# Helpers shared by the tests/cli_*.sh scripts that drive the time-series simulation through
+# the real-data path (sourced, not run: its name keeps it out of the cli_*.sh test list).
+#   . "$(dirname "$0")/lib_cli.sh"   then   cli_setup "$@"   (sets B and D)
+cli_setup() { # cli_setup <specklewfs> <scratch dir>
+    set -u
+    B=$1
+    D=$2
+    rm -rf "$D"
+    mkdir -p "$D"
+}
+fail() { echo "FAIL: $*" >&2; exit 1; }
+expect_error() { # expect_error <pattern> <command...>: fails, and says <pattern>
+    local pat=$1; shift
+    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
+    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
+}
+ncp_error() { # ncp_error <pupil log>: the NCP error [nm] 'pupil --truth' printed
+    awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"
+}
+reduce_sync() { # reduce_sync <run dir> <sync args...>: raw_000..002 -> science.fits, timing.txt
+    local d=$1; shift
+    "$B" reduce "$d"/sim/raw_000.fits "$d"/sim/raw_001.fits "$d"/sim/raw_002.fits --dark "$d/sim/dark.fits" \
+        --flat "$d/sim/flat.fits" -o "$d/science.fits" 2> "$d/reduce.log" || fail "$d: reduce"
+    "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" "$@" > "$d/sync.log" \
+        || { cat "$d/sync.log"; fail "$d: sync"; }
+}
+speckles_pupil() { # speckles_pupil <run dir>: speckles --match, estimate, pupil --truth; prints the NCP error
+    local d=$1
+    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
+        -o "$d/speckles.fits" --match "$d/science.fits" "$d/sci_m.fits" 2> "$d/speckles.log" \
+        || { cat "$d/speckles.log"; fail "$d: speckles"; }
+    "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$d/estimate.log" 2>&1 || fail "$d: estimate"
+    "$B" pupil "$d/halo.fits" -o "$d/pupil.fits" --truth "$d/sim/truth.fits" > "$d/pupil.log" || fail "$d: pupil"
+    ncp_error "$d/pupil.log"
+}
+ideal_pupil() { # ideal_pupil <run dir>: the same from the simulator's ideal speckles
+    local d=$1
+    "$B" estimate "$d/science.fits" "$d/sim/speckles_ideal.fits" -o "$d/halo_i.fits" > "$d/estimate_i.log" 2>&1 \
+        || fail "$d: estimate (ideal)"
+    "$B" pupil "$d/halo_i.fits" -o "$d/pupil_i.fits" --truth "$d/sim/truth.fits" > "$d/pupil_i.log" || fail "$d: pupil"
+    ncp_error "$d/pupil_i.log"
+}
