@@ -8,10 +8,11 @@ sources, else the dynamic loader. See docs/python.md.
 """
 from ._lib import Error, LIBRARY_PATH
 from .core import Geom, set_blas_threads, blas_threads, aperture, zernike, wfe_compare, wfe_remove_ptt
-from .fits import read_fits, write_fits, fits_info, read_keys, read_geom
+from .fits import read_fits, write_fits, fits_info, read_keys, read_geom, read_geom_file
 from .estimate import Accumulator, Halo, ACC_FIELDS, HALO_EXTS, G_SMOOTH_DEFAULT, phase_shift_map
 from .pupil import PupilResult, pupil_estimate
-from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_read, actuators_write, ShackHartmann,
+from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_square, actuators_read, actuators_write,
+                        ShackHartmann,
                         dm_modes, slopes_remove_tiptilt, slopes_noise_var, vk_covariance, Recon, SpeckleModel,
                         schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,

@@ -317,6 +317,8 @@ _PROTOS = {
     "swfs_fits_out_set_stamp": (c_int, [c_ptr, P(swfs_geom), P(c_str), c_size]),
     # wfs.h
     "swfs_actuators_hexapolar": (c_int, [c_dbl, c_dbl, c_dbl, P(P(c_dbl)), P(c_size)]),
+    "swfs_actuators_square": (c_int, [c_dbl, c_dbl, c_dbl, P(P(c_dbl)), P(c_size)]),
+    "swfs_geom_read_file": (c_int, [c_str, P(swfs_geom)]),
     "swfs_shwfs_create": (c_int, [P(P(swfs_shwfs)), c_size, c_dbl, P(c_dbl), c_size, c_dbl, c_dbl]),
     "swfs_shwfs_free": (None, [P(swfs_shwfs)]),
     "swfs_shwfs_measure": (None, [P(swfs_shwfs), P(c_dbl), P(c_dbl)]),

@@ -88,6 +88,14 @@ def read_geom(path, ext=None):
         return f.geom()
 
 
+def read_geom_file(path):
+    """Geometry given in a file (the command line's --geom): a FITS file's header with the
+    keywords, or KEY = VALUE lines; missing keys are NaN / 0 (fits.h, swfs_geom_read_file)."""
+    g = _lib.swfs_geom()
+    check(lib.swfs_geom_read_file(enc(path), ctypes.byref(g)), "swfs_geom_read_file")
+    return Geom.from_c(g)
+
+
 def write_fits(path, data, geom=None, provenance=(), bitpix=-64, keys=None):
     """Write arrays to a FITS file atomically (.part + rename).
 

@@ -93,6 +93,16 @@ def actuators_hexapolar(diam, pitch, margin=0.0):
     return _lib.take_buffer(ctypes.cast(xy, ctypes.c_void_p).value, (n.value, 2), np.float64)
 
 
+def actuators_square(diam, pitch, margin=0.0):
+    """Square-grid actuator layout centred on the pupil, clipped to the circle of radius
+    diam/2 + margin (wfs.h): (nact, 2) positions [m]."""
+    xy = P(ctypes.c_double)()
+    n = ctypes.c_size_t()
+    check(lib.swfs_actuators_square(float(diam), float(pitch), float(margin), ctypes.byref(xy), ctypes.byref(n)),
+          "swfs_actuators_square")
+    return _lib.take_buffer(ctypes.cast(xy, ctypes.c_void_p).value, (n.value, 2), np.float64)
+
+
 def actuators_write(xy, path):
     xy = as_array(xy, "xy", np.float64, shape=(None, 2))
     check(lib.swfs_actuators_write(dptr(xy), xy.shape[0], enc(path)), "swfs_actuators_write")

@@ -205,3 +205,27 @@ def test_speckle_model_and_tilt(model):
     np.testing.assert_allclose(cube.mean(0), 0, atol=1e-12 * np.abs(out).max())
     with pytest.raises(ValueError, match="writable C-contiguous complex128"):
         sw.speckles_subtract_static(out.astype(np.complex64))
+
+
+def test_square_actuators_and_geometry_file(tmp_path):
+    # A square grid clipped to a circle: every actuator within diam/2 + margin, a whole grid.
+    xy = sw.actuators_square(6.5, 0.45, 0.1)
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    assert len(xy) > 150 and r.max() <= 3.35 + 1e-12
+    np.testing.assert_allclose(np.round(xy / 0.45) * 0.45, xy, atol=1e-12)
+    # Its Clough-Tocher interpolation reproduces planes (the neighbourhoods of a square grid
+    # once left the gradient fit undetermined).
+    T, nout = sw.interp_ct_grid(xy, NPUP, DX, None)
+    X, Y = coords()
+    plane = 0.2 + 1.5 * xy[:, 0] - 0.7 * xy[:, 1]
+    z = (T @ plane).reshape(NPUP, NPUP)
+    inside = np.hypot(X, Y) < 3.0
+    np.testing.assert_allclose(z[inside], (0.2 + 1.5 * X - 0.7 * Y)[inside], atol=1e-9)
+    # The --geom file: KEY = VALUE lines; what it lacks stays missing.
+    f = tmp_path / "geom.txt"
+    f.write_text("# a camera's geometry\nWAVELEN = 3.8e-6\npixscale 0.25\nPUPN = 163\n")
+    g = sw.read_geom_file(str(f))
+    assert g.wavelen == 3.8e-6 and g.pixscale == 0.25 and g.pupn == 163 and np.isnan(g.pupdx)
+    f.write_text("WAVELEN = 3.8\n")
+    with pytest.raises(sw.Error, match="WAVELEN"):
+        sw.read_geom_file(str(f))
