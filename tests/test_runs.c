@@ -247,14 +247,19 @@ static void test_stream_batches(void **state)
     /* Every statistic, to rounding (the automatic static halo would take its scale from
      * the first batch: a constant offset of psi, which the estimate removes exactly but
      * the raw co-moments of |psi|^2 do not). */
+    /* Relative to each field's peak: the engine is single precision (engine.h: ~1e-6 of the
+     * peak), and a batch size re-slices the frames one GEMM reconstructs, so a co-moment that
+     * nearly cancels in one pixel differs by rounding relative to itself (measured 1.4 on this
+     * machine class) and not relative to its field. */
     const size_t np = acc[0]->nx * acc[0]->ny;
     double worst = 0;
-    for (int f = SWFS_ACC_MI; f < SWFS_ACC_NFIELDS; f++)
-        for (size_t k = 0; k < np; k++) {
-            double a = acc[0]->f[f][k], b = acc[1]->f[f][k], m = fmax(fabs(a), fabs(b));
-            if (m > 0) worst = fmax(worst, fabs(a - b) / m);
-        }
-    printf("test_runs: batch 7 vs 64: worst relative co-moment difference %.2g\n", worst);
+    for (int f = SWFS_ACC_MI; f < SWFS_ACC_NFIELDS; f++) {
+        double peak = 0;
+        for (size_t k = 0; k < np; k++) peak = fmax(peak, fmax(fabs(acc[0]->f[f][k]), fabs(acc[1]->f[f][k])));
+        for (size_t k = 0; peak > 0 && k < np; k++)
+            worst = fmax(worst, fabs(acc[0]->f[f][k] - acc[1]->f[f][k]) / peak);
+    }
+    printf("test_runs: batch 7 vs 64: worst co-moment difference %.2g of its field's peak\n", worst);
     assert_true(worst < 1e-6);
     swfs_accum_free(acc[0]);
     swfs_accum_free(acc[1]);
