@@ -22,6 +22,7 @@
 
 #include "specklewfs/engine.h"
 #include "specklewfs/geom.h"
+#include "specklewfs/sparse.h"
 #include "specklewfs/speckles.h"
 #include "specklewfs/wfs.h"
 
@@ -73,7 +74,31 @@ typedef struct swfs_pipeline_info {
     double recon_gain;   /* SWFS_RECON_GIVEN: the matrix's gain on the model's interaction matrix D,
                             tr((W D)^2) / tr(W D): 1 for a reconstructor of D on whatever modes it
                             keeps, negative for the opposite sign (see swfs_pipeline_create) */
+    /* The generic linear model (swfs_pipeline_create_linear; 0 for the Shack-Hartmann one): */
+    size_t nbasis;       /* basis functions */
+    size_t basis_nnz;    /* their nonzeros on the pupil grid */
+    int composed;        /* 1: basis x control folded into one matrix per illuminated sample */
+    double resid_rms;    /* rms over the pupil of the training frames' wavefront, tip-tilt
+                            removed [m] (NaN: no training frames) */
 } swfs_pipeline_info;
+
+/* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */
+typedef struct swfs_linear_input {
+    size_t nmeas;              /* telemetry values per WFS frame */
+    const swfs_sparse *basis;  /* npup^2 x nk: the basis on the pupil grid (swfs_basis_from_grid or _pupil) */
+    const double *control;     /* nk x nmeas (row-major) into the coefficients, or NULL */
+    const double *imat;        /* instead of control: nmeas x nk interaction matrix (the telemetry of a
+                                  unit coefficient), inverted here by the MAP reconstructor learned from
+                                  the training frames (swfs_recon_map; the default) or, with
+                                  opt->recon = SWFS_RECON_SVD, the truncated SVD */
+    double scale;              /* metres of wavefront per unit of basis x coefficient */
+} swfs_linear_input;
+
+/* The wavefront of a linear model's frame [m] beyond this rms is no residual of a working AO
+ * loop at any wavelength it is sensed at (a units error: um taken as m, ...); below the
+ * minimum the speckles vanish. Both are refused, naming the rms and the scale. */
+#define SWFS_LINEAR_MAX_RMS_WAVES 4.0
+#define SWFS_LINEAR_MIN_RMS_WAVES 1e-5
 
 /* A given reconstructor (SWFS_RECON_GIVEN, times recon_scale) is measured against the
  * model's own interaction matrix D (info.recon_gain): W D is a projector (gain 1) for any
@@ -89,6 +114,15 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *geom, size_t nfx,
                          size_t nact, const double *mask, size_t nslopes, const swfs_recon *recon,
                          const double *training, size_t ntrain, const swfs_pipeline_options *opt);
 void swfs_pipeline_free(swfs_pipeline *p);
+/* The same pipeline over the generic linear model: no actuators, no Shack-Hartmann. With
+ * neither control nor imat the telemetry values are the coefficients (nmeas = nk). The
+ * tip-tilt modes are those of the Shack-Hartmann pipeline (speckles.h), the tilt being the
+ * Z-tilt of the model's wavefront; opt->recon matters only with imat (VK, which needs
+ * actuator positions, means MAP here). training (ntrain frames of nmeas) is needed with imat
+ * and MAP; when given, the residual's rms is checked against SWFS_LINEAR_*_RMS_WAVES. */
+int swfs_pipeline_create_linear(swfs_pipeline **out, const swfs_geom *geom, size_t nfx, size_t nfy, const double *mask,
+                                const swfs_linear_input *in, const double *training, size_t ntrain,
+                                const swfs_pipeline_options *opt);
 
 /* The nexp camera exposures sched[0..nexp) over slopes (nwfs frames of nslopes, the
  * exposures' indices into them): out = nexp core-referenced focal fields nfx x nfy
@@ -103,6 +137,7 @@ int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwf
 int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out);
 
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
+/* The Shack-Hartmann model's reconstructor and model (NULL for a linear model). */
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p);
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p);
 const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p);

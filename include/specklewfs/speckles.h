@@ -80,6 +80,11 @@ enum { SWFS_TT_EXPOSURE = 0, SWFS_TT_FRAME = 1, SWFS_TT_KEEP = 2 };
  * T W s. Caller frees *W_ext and *R. */
 int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R);
 
+/* The Z-tilt as linear functionals of a pupil-grid wavefront: the least-squares plane
+ * p + tx x + ty y over the illuminated samples (mask > 0) of z (np x np, [m]) has
+ * tx = f[0..np^2) . z and ty = f[np^2..2 np^2) . z. f: 2 np^2 values. */
+int swfs_ztilt_functionals(const double *mask, size_t np, double pupdx, double *f);
+
 /* Frames needed by swfs_speckles_expand: the sum of the exposures' counts. */
 size_t swfs_speckles_expand_frames(const swfs_exposure *sched, size_t nexp);
 

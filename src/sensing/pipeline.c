@@ -2,6 +2,7 @@
 #include "specklewfs/pipeline.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/status.h"
+#include "pipeline_internal.h"
 
 #include <cblas.h>
 
@@ -9,20 +10,6 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
-
-struct swfs_pipeline {
-    swfs_pipeline_options opt;
-    swfs_pipeline_info info;
-    swfs_speckle_model *model;
-    double *W_ext, *Rtilt; /* SWFS_TT_EXPOSURE: [W - C R | C] and the tilt rows R (speckles.h) */
-    double *mask;
-    swfs_engine *engine;
-    /* SWFS_TT_EXPOSURE work space: every exposure's own copy of its frames + 2 tilt values */
-    double *xslopes;
-    size_t xcap;  /* frames xslopes holds */
-    swfs_exposure *xsched;
-    size_t xscap; /* exposures xsched holds */
-};
 
 void swfs_pipeline_options_default(swfs_pipeline_options *o)
 {
@@ -53,14 +40,15 @@ void swfs_pipeline_free(swfs_pipeline *p)
     free(p);
 }
 
+/* recon_checks: the Shack-Hartmann model's reconstructor choices (a linear model checks its own). */
 static int check_options(const swfs_pipeline_options *o, const swfs_recon *recon, const double *training,
-                         size_t ntrain)
+                         size_t ntrain, int recon_checks)
 {
     if (o->recon < SWFS_RECON_VK || o->recon > SWFS_RECON_GIVEN)
         return swfs_fail(SWFS_ERR_ARG, "pipeline: unknown reconstructor choice %d", o->recon);
-    if (o->recon == SWFS_RECON_GIVEN && !recon)
+    if (recon_checks && o->recon == SWFS_RECON_GIVEN && !recon)
         return swfs_fail(SWFS_ERR_ARG, "pipeline: SWFS_RECON_GIVEN needs a reconstructor matrix");
-    if ((o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) && (!training || ntrain < 2))
+    if (recon_checks && (o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) && (!training || ntrain < 2))
         return swfs_fail(SWFS_ERR_ARG, "pipeline: the %s reconstructor learns from the telemetry: it needs training "
                          "slopes (got %zu frames)", o->recon == SWFS_RECON_VK ? "von Karman MAP" : "MAP", ntrain);
     if (!(o->rcond >= 0 && o->rcond < 1))
@@ -142,6 +130,44 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     return SWFS_OK;
 }
 
+/* The part every pipeline shares: options, geometry, window, the pupil mask. */
+int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *mask,
+                         const swfs_pipeline_options *opt, const swfs_recon *recon, const double *training,
+                         size_t ntrain, int sh)
+{
+    *out = NULL;
+    int rc = check_options(opt, recon, training, ntrain, sh);
+    if (rc) return rc;
+    if ((rc = swfs_geom_require(g, "pipeline geometry"))) return rc;
+    if (!nfx || !nfy) return swfs_fail(SWFS_ERR_SHAPE, "pipeline: empty focal window (%zux%zu)", nfx, nfy);
+    if (g->pupn > 100000) return swfs_fail(SWFS_ERR_VALUE, "pipeline: PUPN = %ld is beyond any pupil grid", g->pupn);
+    swfs_pipeline *p = calloc(1, sizeof *p);
+    if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    p->opt = *opt;
+    const size_t npup = (size_t)g->pupn;
+    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN};
+    p->mask = malloc(npup * npup * sizeof *p->mask);
+    if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
+    if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
+    else if ((rc = swfs_aperture_make(p->mask, npup, g->pupdx, g->teldiam, g->obscur, 0, 0))) {
+        swfs_pipeline_free(p);
+        return rc;
+    }
+    *out = p;
+    return SWFS_OK;
+}
+
+/* The engine over the reconstructor W (nrows x ncols: ncols = the telemetry values, + 2
+ * tilt values for SWFS_TT_EXPOSURE) and the interpolation T (npup^2 x nrows). */
+int swfs_pipeline_engine_(swfs_pipeline *p, const swfs_geom *g, size_t nrows, size_t ncols, const double *W,
+                          const swfs_sparse *T)
+{
+    swfs_engine_config ec = {ncols, nrows, p->info.npup, p->info.nfx, p->info.nfy, g->pixscale * g->pupdx / g->teldiam,
+                             g->wavelen, W, T, p->mask, 0, p->opt.threads};
+    if (!(p->engine = swfs_engine_create(&ec))) return swfs_fail_context(SWFS_ERR_NOMEM, "pipeline");
+    return SWFS_OK;
+}
+
 int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *xy,
                          size_t nact, const double *mask, size_t nslopes, const swfs_recon *recon,
                          const double *training, size_t ntrain, const swfs_pipeline_options *opt)
@@ -152,35 +178,19 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
         swfs_pipeline_options_default(&def);
         opt = &def;
     }
-    int rc = check_options(opt, recon, training, ntrain);
+    if (!nact || !nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: no actuators (%zu) or slopes (%zu)", nact, nslopes);
+    swfs_pipeline *p;
+    int rc = swfs_pipeline_begin_(&p, g, nfx, nfy, mask, opt, recon, training, ntrain, 1);
     if (rc) return rc;
-    if ((rc = swfs_geom_require(g, "pipeline geometry"))) return rc;
-    if (!nfx || !nfy || !nact || !nslopes)
-        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: empty focal window (%zux%zu), actuators (%zu) or slopes (%zu)", nfx,
-                         nfy, nact, nslopes);
-    if (g->pupn > 100000) return swfs_fail(SWFS_ERR_VALUE, "pipeline: PUPN = %ld is beyond any pupil grid", g->pupn);
-    swfs_pipeline *p = calloc(1, sizeof *p);
-    if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-    p->opt = *opt;
-    const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){nact, nslopes, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN};
-    p->mask = malloc(npup * npup * sizeof *p->mask);
-    if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
-    if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
-    else if ((rc = swfs_aperture_make(p->mask, npup, g->pupdx, g->teldiam, g->obscur, 0, 0))) {
-        swfs_pipeline_free(p);
-        return rc;
-    }
-    if ((rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain))) {
-        swfs_pipeline_free(p);
-        return rc;
-    }
+    p->info.nact = nact;
+    p->info.nslopes = nslopes;
     const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
-    swfs_engine_config ec = {nslopes + (xt ? 2 : 0), nact, npup, nfx, nfy, g->pixscale * g->pupdx / g->teldiam,
-                             g->wavelen, xt ? p->W_ext : p->model->recon->W, p->model->T, p->mask, 0, opt->threads};
-    if (!(p->engine = swfs_engine_create(&ec))) {
+    if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)))
+        rc = swfs_pipeline_engine_(p, g, nact, nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W, p->model->T);
+    if (rc) {
         swfs_pipeline_free(p);
-        return swfs_fail_context(SWFS_ERR_NOMEM, "pipeline");
+        return rc;
     }
     *out = p;
     return SWFS_OK;
@@ -237,6 +247,6 @@ int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
 }
 
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info) { *info = p->info; }
-const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model->recon; }
+const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model ? p->model->recon : NULL; }
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p) { return p->model; }
 const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p) { return &p->opt; }

@@ -142,21 +142,18 @@ int swfs_speckle_model_set_vk(swfs_speckle_model *m, const double *xy, double L0
     return SWFS_OK;
 }
 
-int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R_out)
+int swfs_ztilt_functionals(const double *mask, size_t np, double pupdx, double *f)
 {
-    *W_ext = NULL;
-    if (R_out) *R_out = NULL;
-    const swfs_recon *recon = m->recon;
-    const size_t na = recon->nact, ns = recon->nslopes, ne = ns + 2, np = m->npup, ng = np * np;
     /* The least-squares fit p + cx x + cy y over the illuminated samples (the Z-tilt, as
      * the simulator's ideal speckles and a peak-registered frame have it): c = G^-1 b with
      * G the 3 x 3 normal matrix of (1, x, y), so the tilt of a grid phase z is the linear
      * functional f_x . z, f_y . z. */
+    const size_t ng = np * np;
     double G[3][3] = {{0}}, Gi[3][3];
     for (size_t q = 0; q < np; q++)
         for (size_t i = 0; i < np; i++) {
-            if (!(m->mask[q * np + i] > 0)) continue;
-            double v[3] = {1, ((double)i - 0.5 * (double)(np - 1)) * m->pupdx, ((double)q - 0.5 * (double)(np - 1)) * m->pupdx};
+            if (!(mask[q * np + i] > 0)) continue;
+            double v[3] = {1, ((double)i - 0.5 * (double)(np - 1)) * pupdx, ((double)q - 0.5 * (double)(np - 1)) * pupdx};
             for (int r = 0; r < 3; r++)
                 for (int c = 0; c < 3; c++) G[r][c] += v[r] * v[c];
         }
@@ -168,28 +165,40 @@ int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, doub
             int r1 = (c + 1) % 3, r2 = (c + 2) % 3, c1 = (r + 1) % 3, c2 = (r + 2) % 3;
             Gi[r][c] = (G[r1][c1] * G[r2][c2] - G[r1][c2] * G[r2][c1]) / det;
         }
+    for (size_t q = 0; q < np; q++)
+        for (size_t i = 0; i < np; i++) {
+            const size_t k = q * np + i;
+            const double x = ((double)i - 0.5 * (double)(np - 1)) * pupdx, y = ((double)q - 0.5 * (double)(np - 1)) * pupdx;
+            const int in = mask[k] > 0;
+            for (int t = 0; t < 2; t++) f[(size_t)t * ng + k] = in ? Gi[t + 1][0] + Gi[t + 1][1] * x + Gi[t + 1][2] * y : 0.0;
+        }
+    return SWFS_OK;
+}
+
+int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, double **W_ext, double **R_out)
+{
+    *W_ext = NULL;
+    if (R_out) *R_out = NULL;
+    const swfs_recon *recon = m->recon;
+    const size_t na = recon->nact, ns = recon->nslopes, ne = ns + 2, np = m->npup, ng = np * np;
     double *w = malloc(na * ne * sizeof *w), *R = calloc(2 * ns, sizeof *R), *F = calloc(2 * na, sizeof *F);
-    double *e = calloc(na, sizeof *e), *z = malloc(ng * sizeof *z);
-    if (!w || !R || !F || !e || !z) {
-        free(w); free(R); free(F); free(e); free(z);
-        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    double *e = calloc(na, sizeof *e), *z = malloc(ng * sizeof *z), *f = malloc(2 * ng * sizeof *f);
+    int rc = w && R && F && e && z && f ? swfs_ztilt_functionals(m->mask, np, m->pupdx, f)
+                                        : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (rc) {
+        free(w); free(R); free(F); free(e); free(z); free(f);
+        return rc;
     }
     /* F (2 x nact): the tilt of T e_a for every actuator a (nact sparse applies, once). */
     for (size_t a = 0; a < na; a++) {
         e[a] = 1;
         swfs_sparse_apply(m->T, e, z);
         e[a] = 0;
-        double b[3] = {0, 0, 0};
-        for (size_t q = 0; q < np; q++)
-            for (size_t i = 0; i < np; i++) {
-                size_t k = q * np + i;
-                if (!(m->mask[k] > 0) || z[k] == 0) continue;
-                b[0] += z[k];
-                b[1] += z[k] * ((double)i - 0.5 * (double)(np - 1)) * m->pupdx;
-                b[2] += z[k] * ((double)q - 0.5 * (double)(np - 1)) * m->pupdx;
-            }
-        for (int t = 0; t < 2; t++) F[(size_t)t * na + a] = Gi[t + 1][0] * b[0] + Gi[t + 1][1] * b[1] + Gi[t + 1][2] * b[2];
+        for (size_t k = 0; k < ng; k++)
+            if (z[k] != 0)
+                for (int t = 0; t < 2; t++) F[(size_t)t * na + a] += f[(size_t)t * ng + k] * z[k];
     }
+    free(f);
     /* The tilt columns: the actuator coordinates, whose interpolation is the exact plane
      * inside the hull; A = F [x_a y_a] is then the identity, and A^-1 keeps a unit extra
      * value a unit tilt even with samples outside the hull. */
@@ -205,9 +214,9 @@ int swfs_speckles_recon_tilt(const swfs_speckle_model *m, const double *xy, doub
     /* R = F W: the tilt of the reconstructed wavefront as a function of the slopes. */
     for (size_t a = 0; a < na; a++)
         for (int t = 0; t < 2; t++) {
-            double f = F[(size_t)t * na + a];
-            if (f == 0) continue;
-            for (size_t s = 0; s < ns; s++) R[(size_t)t * ns + s] += f * recon->W[a * ns + s];
+            double fa = F[(size_t)t * na + a];
+            if (fa == 0) continue;
+            for (size_t s = 0; s < ns; s++) R[(size_t)t * ns + s] += fa * recon->W[a * ns + s];
         }
     /* W_ext = [W - C R | C] with C = [x_a y_a] A^-1: the first block reconstructs no tilt,
      * the two columns add exactly the tilt they are given. */

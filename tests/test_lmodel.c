@@ -1,0 +1,313 @@
+/* The generic linear speckle model (lmodel.h, swfs_pipeline_create_linear): the DM-grid
+ * registration, the cubic resampling (exact for quadratics), and the speckles of a linear
+ * model equal to the Shack-Hartmann pipeline's when the model is that pipeline written
+ * linearly -- the actuators' interpolation as the basis and the reconstructor as the
+ * control matrix (the two-stage engine form), or the reconstructed wavefront per slope as
+ * a dense basis with the slopes as coefficients (the folded form) -- in every tip-tilt
+ * mode. Wrong units and bad shapes are refused with the values named. */
+#include "testutil.h"
+
+#include "specklewfs/aperture.h"
+#include "specklewfs/lmodel.h"
+#include "specklewfs/pipeline.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
+
+#include <complex.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define NPUP 48
+#define TELD 6.5
+#define NSUB 8
+#define NF 24
+
+static swfs_geom geom(void)
+{
+    swfs_geom g;
+    swfs_geom_init(&g);
+    g.wavelen = 3.8e-6;
+    g.teldiam = TELD;
+    g.obscur = 0.1;
+    g.pixscale = 0.25;
+    g.pupdx = TELD / (NPUP - 2);
+    g.pupn = NPUP;
+    return g;
+}
+
+static void test_registration_round_trip(void **state)
+{
+    (void)state;
+    const swfs_dm_registration r = {0.21, 0.13, -0.07, 0.4, 1};
+    double worst = 0;
+    for (double u = -1; u <= 50; u += 3.7)
+        for (double v = -2; v <= 40; v += 4.1) {
+            double x, y, u2, v2;
+            swfs_dm_to_pupil(&r, 50, 41, u, v, &x, &y);
+            swfs_pupil_to_dm(&r, 50, 41, x, y, &u2, &v2);
+            worst = fmax(worst, fmax(fabs(u2 - u), fabs(v2 - v)));
+        }
+    assert_true(worst < 1e-12);
+    /* The grid's centre is the offset; one step along the grid's x is the pitch, rotated and mirrored. */
+    double x, y;
+    swfs_dm_to_pupil(&r, 51, 41, 25, 20, &x, &y);
+    assert_true(fabs(x - 0.13) < 1e-15 && fabs(y + 0.07) < 1e-15);
+    swfs_dm_to_pupil(&r, 51, 41, 26, 20, &x, &y);
+    assert_true(fabs(x - 0.13 + 0.21 * cos(0.4)) < 1e-15 && fabs(y + 0.07 + 0.21 * sin(0.4)) < 1e-15);
+}
+
+/* A quadratic of the pupil position sampled on a rotated, mirrored, offset DM grid comes back
+ * exactly on the pupil samples inside the grid; samples beyond the grid are counted. */
+static void test_grid_resampling_exact_for_quadratics(void **state)
+{
+    (void)state;
+    const swfs_geom g = geom();
+    double *mask = malloc(NPUP * NPUP * sizeof *mask);
+    assert_ok(swfs_aperture_make(mask, NPUP, g.pupdx, g.teldiam, g.obscur, 0, 0));
+    const size_t gx = 30, gy = 28, nk = 2;
+    const swfs_dm_registration r = {0.29, 0.05, -0.11, 0.3, 1};
+    double *cube = malloc(gx * gy * nk * sizeof *cube);
+    for (size_t j = 0; j < gy; j++)
+        for (size_t i = 0; i < gx; i++) {
+            double x, y;
+            swfs_dm_to_pupil(&r, gx, gy, (double)i, (double)j, &x, &y);
+            cube[j * gx + i] = 1e-7 * (0.3 + x - 0.5 * y + 0.2 * x * x - 0.1 * x * y + 0.05 * y * y);
+            cube[gx * gy + j * gx + i] = 0; /* a function that is zero: no nonzeros at all */
+        }
+    swfs_sparse *B = NULL;
+    size_t nout = 0;
+    assert_ok(swfs_basis_from_grid(&B, cube, gx, gy, nk, &r, mask, NPUP, g.pupdx, &nout));
+    assert_int_equal(nout, 0);
+    double c[2] = {1, 1}, *z = malloc(NPUP * NPUP * sizeof *z), worst = 0;
+    swfs_sparse_apply(B, c, z);
+    size_t nin = 0, nz1 = 0;
+    for (size_t k = 0; k < B->nnz; k++) nz1 += B->col[k] == 1;
+    for (size_t q = 0; q < NPUP; q++)
+        for (size_t i = 0; i < NPUP; i++) {
+            const size_t k = q * NPUP + i;
+            if (!(mask[k] > 0)) { assert_true(z[k] == 0); continue; }
+            const double x = ((double)i - 0.5 * (NPUP - 1)) * g.pupdx, y = ((double)q - 0.5 * (NPUP - 1)) * g.pupdx;
+            double u, v;
+            swfs_pupil_to_dm(&r, gx, gy, x, y, &u, &v);
+            if (u < 1 || v < 1 || u > (double)gx - 2 || v > (double)gy - 2) continue; /* stencil clamped at the edge */
+            nin++;
+            worst = fmax(worst, fabs(z[k] - 1e-7 * (0.3 + x - 0.5 * y + 0.2 * x * x - 0.1 * x * y + 0.05 * y * y)));
+        }
+    printf("lmodel: quadratic through a rotated, mirrored DM grid: worst error %.2g m at %zu samples\n", worst, nin);
+    assert_true(nin > 1000);
+    assert_true(worst < 1e-19);
+    assert_int_equal(nz1, 0);
+    swfs_sparse_free(B);
+    /* The same grid at half the pitch covers less than the pupil: the samples beyond it are counted. */
+    const swfs_dm_registration small = {0.1, 0, 0, 0, 0};
+    assert_ok(swfs_basis_from_grid(&B, cube, gx, gy, nk, &small, mask, NPUP, g.pupdx, &nout));
+    assert_true(nout > 100);
+    swfs_sparse_free(B);
+    cube[5] = NAN;
+    assert_int_equal(swfs_basis_from_grid(&B, cube, gx, gy, nk, &r, mask, NPUP, g.pupdx, &nout), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "x 5, y 0, function 0"));
+    free(cube); free(z); free(mask);
+}
+
+/* Slopes of a random smooth residual (a few frames), and the SH pipeline with a given SVD reconstructor. */
+typedef struct fixture {
+    swfs_geom g;
+    double *xy, *slopes, *mask;
+    size_t nact, nslopes, nwfs;
+    swfs_recon *rec;
+} fixture;
+
+static void fixture_make(fixture *f)
+{
+    f->g = geom();
+    f->mask = malloc(NPUP * NPUP * sizeof *f->mask);
+    assert_ok(swfs_aperture_make(f->mask, NPUP, f->g.pupdx, f->g.teldiam, f->g.obscur, 0, 0));
+    assert_ok(swfs_actuators_hexapolar(TELD, 0.9, 0.2, &f->xy, &f->nact));
+    f->nslopes = 2 * NSUB * NSUB;
+    f->nwfs = 40;
+    f->slopes = malloc(f->nwfs * f->nslopes * sizeof *f->slopes);
+    /* the SVD reconstructor of the model's own D, taken as a given matrix */
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_SVD;
+    swfs_pipeline *p = NULL;
+    assert_ok(swfs_pipeline_create(&p, &f->g, NF, NF, f->xy, f->nact, f->mask, f->nslopes, NULL, NULL, 0, &o));
+    const swfs_recon *r = swfs_pipeline_recon(p);
+    /* slopes of smooth random actuator patterns (low orders with random weights, a little
+     * actuator-scale texture) plus white noise: something a MAP reconstructor can learn */
+    double *D = NULL, *za = malloc(f->nact * sizeof *za);
+    assert_ok(swfs_interaction_matrix(swfs_pipeline_model(p)->wfs, swfs_pipeline_model(p)->T, &D));
+    swfs_rng rng;
+    swfs_rng_seed2(&rng, 7, 0);
+    for (size_t t = 0; t < f->nwfs; t++) {
+        double c[6];
+        for (int k = 0; k < 6; k++) c[k] = 1e-7 * swfs_rng_normal(&rng);
+        for (size_t a = 0; a < f->nact; a++) {
+            const double x = f->xy[2 * a] / (TELD / 2), y = f->xy[2 * a + 1] / (TELD / 2);
+            za[a] = c[0] * x + c[1] * y + c[2] * (2 * (x * x + y * y) - 1) + c[3] * (x * x - y * y) + c[4] * x * y +
+                    c[5] * x * (x * x + y * y) + 2e-8 * swfs_rng_normal(&rng);
+        }
+        for (size_t s = 0; s < f->nslopes; s++) {
+            double v = 0;
+            for (size_t a = 0; a < f->nact; a++) v += D[s * f->nact + a] * za[a];
+            f->slopes[t * f->nslopes + s] = v + (v != 0 ? 2e-9 * swfs_rng_normal(&rng) : 0);
+        }
+    }
+    free(D);
+    free(za);
+    f->rec = calloc(1, sizeof *f->rec);
+    f->rec->nact = r->nact;
+    f->rec->nslopes = r->nslopes;
+    f->rec->W = malloc(r->nact * r->nslopes * sizeof *f->rec->W);
+    memcpy(f->rec->W, r->W, r->nact * r->nslopes * sizeof *f->rec->W);
+    swfs_pipeline_free(p);
+}
+
+static void fixture_free(fixture *f)
+{
+    free(f->xy); free(f->slopes); free(f->mask);
+    swfs_recon_free(f->rec);
+}
+
+/* Exposures of 3.5 WFS frames from a fractional start: the fields of pipeline a and b. */
+static double field_difference(swfs_pipeline *a, swfs_pipeline *b, const fixture *f, double *peak)
+{
+    swfs_exposure sched[10];
+    const size_t need = swfs_engine_schedule(3.5, 0.3, 10, sched);
+    assert_true(need <= f->nwfs);
+    swfs_complex *ha = malloc(10 * NF * NF * sizeof *ha), *hb = malloc(10 * NF * NF * sizeof *hb);
+    assert_ok(swfs_pipeline_process(a, f->slopes, f->nwfs, sched, 10, ha));
+    assert_ok(swfs_pipeline_process(b, f->slopes, f->nwfs, sched, 10, hb));
+    double d = 0;
+    *peak = 0;
+    for (size_t k = 0; k < 10 * NF * NF; k++) {
+        d = fmax(d, cabs(ha[k] - hb[k]));
+        *peak = fmax(*peak, cabs(ha[k]));
+    }
+    free(ha); free(hb);
+    return d;
+}
+
+static void test_linear_equals_shack_hartmann(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    const int modes[3] = {SWFS_TT_EXPOSURE, SWFS_TT_FRAME, SWFS_TT_KEEP};
+    for (int m = 0; m < 3; m++) {
+        swfs_pipeline_options o;
+        swfs_pipeline_options_default(&o);
+        o.recon = SWFS_RECON_GIVEN;
+        o.tiptilt = modes[m];
+        swfs_pipeline *sh = NULL, *lin = NULL, *fold = NULL;
+        assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
+        /* SWFS_TT_FRAME projects the mean slopes out of W: take the matrix the SH pipeline uses */
+        const swfs_recon *used = swfs_pipeline_recon(sh);
+        const swfs_sparse *T = swfs_pipeline_model(sh)->T;
+        /* (1) the interpolation as the basis, W as the control matrix: the two-stage form */
+        swfs_linear_input in = {f.nslopes, T, used->W, NULL, 1.0};
+        assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
+        swfs_pipeline_info li;
+        swfs_pipeline_get_info(lin, &li);
+        assert_int_equal(li.composed, 0);
+        assert_int_equal(li.nbasis, f.nact);
+        /* (2) T W e_s per slope as a dense basis, the slopes as coefficients: the folded form */
+        const size_t ng = NPUP * NPUP, ns = f.nslopes;
+        double *cube = calloc(ng * ns, sizeof *cube), *e = calloc(f.nact, sizeof *e), *z = malloc(ng * sizeof *z);
+        for (size_t s = 0; s < ns; s++) {
+            for (size_t a = 0; a < f.nact; a++) e[a] = used->W[a * ns + s];
+            swfs_sparse_apply(T, e, z);
+            memcpy(cube + s * ng, z, ng * sizeof *z);
+        }
+        swfs_sparse *B = NULL;
+        assert_ok(swfs_basis_from_pupil(&B, cube, NPUP, ns, f.mask));
+        swfs_linear_input in2 = {ns, B, NULL, NULL, 1.0};
+        assert_ok(swfs_pipeline_create_linear(&fold, &f.g, NF, NF, f.mask, &in2, f.slopes, f.nwfs, &o));
+        swfs_pipeline_get_info(fold, &li);
+        assert_int_equal(li.composed, 1);
+        assert_true(li.resid_rms > 1e-9 && li.resid_rms < 1e-5);
+        /* SWFS_TT_FRAME removes each frame's tilt: the Shack-Hartmann pipeline the mean slopes
+         * (the G-tilt, projected out of W), the linear model the Z-tilt of its wavefront (it
+         * has no slopes); there the two linear forms are compared with each other. */
+        double peak, d1 = field_difference(modes[m] == SWFS_TT_FRAME ? fold : sh, lin, &f, &peak);
+        double d2 = field_difference(sh, fold, &f, &peak);
+        printf("lmodel: tip-tilt mode %d: linear two-stage %.2g, folded %.2g of the peak; residual %.1f nm rms\n",
+               modes[m], d1 / peak, d2 / peak, li.resid_rms * 1e9);
+        /* single-precision engine: ~1e-6 of the peak */
+        assert_true(d1 / peak < 2e-5);
+        if (modes[m] != SWFS_TT_FRAME) assert_true(d2 / peak < 2e-5);
+        swfs_sparse_free(B);
+        free(cube); free(e); free(z);
+        swfs_pipeline_free(sh); swfs_pipeline_free(lin); swfs_pipeline_free(fold);
+    }
+    fixture_free(&f);
+}
+
+static void test_linear_refusals(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    swfs_pipeline *sh = NULL, *p = NULL;
+    o.recon = SWFS_RECON_GIVEN;
+    assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
+    const swfs_sparse *T = swfs_pipeline_model(sh)->T;
+    /* um of DM surface taken as metres: a wavefront of kilometres */
+    swfs_linear_input in = {f.nslopes, T, f.rec->W, NULL, 2e6};
+    assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o), SWFS_ERR_VALUE);
+    printf("lmodel: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "scale (2e+06)"));
+    /* the coefficients of a basis of another size */
+    swfs_linear_input bad = {f.nslopes + 1, T, NULL, NULL, 1.0};
+    assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &bad, NULL, 0, &o), SWFS_ERR_SHAPE);
+    assert_non_null(strstr(swfs_last_error(), "129 telemetry values per frame taken as the coefficients of"));
+    assert_null(p);
+    swfs_pipeline_free(sh);
+    fixture_free(&f);
+}
+
+/* An interaction matrix instead of a control matrix: the MAP reconstructor of it, learned
+ * from the telemetry, gives the fields of the SH pipeline's own MAP reconstructor. */
+static void test_interaction_matrix(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_MAP;
+    swfs_pipeline *sh = NULL, *lin = NULL;
+    assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, NULL, f.slopes, f.nwfs, &o));
+    const swfs_speckle_model *m = swfs_pipeline_model(sh);
+    double *D = NULL;
+    assert_ok(swfs_interaction_matrix(m->wfs, m->T, &D));
+    swfs_linear_input in = {f.nslopes, m->T, NULL, D, 1.0};
+    assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
+    swfs_pipeline_info a, b;
+    swfs_pipeline_get_info(sh, &a);
+    swfs_pipeline_get_info(lin, &b);
+    assert_int_equal(a.recon_modes, b.recon_modes);
+    double peak, d = field_difference(sh, lin, &f, &peak);
+    printf("lmodel: interaction matrix, MAP: %zu modes, fields differ by %.2g of the peak\n", b.recon_modes, d / peak);
+    assert_true(d / peak < 2e-5);
+    free(D);
+    swfs_pipeline_free(sh); swfs_pipeline_free(lin);
+    fixture_free(&f);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_registration_round_trip),
+        cmocka_unit_test(test_grid_resampling_exact_for_quadratics),
+        cmocka_unit_test(test_linear_equals_shack_hartmann),
+        cmocka_unit_test(test_linear_refusals),
+        cmocka_unit_test(test_interaction_matrix),
+    };
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
