@@ -133,6 +133,32 @@ int cli_geom_option(const char *cmd, int argc, char **argv, int *i, struct swfs_
     "                      KEY = VALUE lines of WAVELEN [m], TELDIAM [m], OBSCUR, PIXSCALE [lambda/D\n" \
     "                      per pixel], PUPDX [m], PUPN; --wavelen, --teldiam, --obscur, --pixscale,\n" \
     "                      --pupdx, --pupn X give one (they replace the header's values)\n"
+/* The generic linear model's options (run.h swfs_linear_files): --basis, --control, --imat,
+ * --dm-pitch, --dm-offset X,Y, --dm-rot DEG, --dm-flip, --coef-scale; same returns as
+ * cli_geom_option. cli_linear_summary prints what the model was built with. */
+struct swfs_linear_files;
+struct swfs_pipeline_info;
+int cli_linear_option(const char *cmd, int argc, char **argv, int *i, struct swfs_linear_files *lf);
+void cli_linear_summary(const char *cmd, const struct swfs_linear_files *lf, const struct swfs_pipeline_info *info);
+/* The Shack-Hartmann model's reconstructor: what it learned or was given. */
+struct swfs_pipeline_options;
+void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, const char *path,
+                       const struct swfs_pipeline_info *info);
+#define CLI_LINEAR_HELP \
+    "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \
+    "  --basis CUBE.fits   mode shapes or influence functions, one plane each: PUPN x PUPN on the\n" \
+    "                      pupil grid, or the DM's own grid placed by --dm-pitch M [m on the pupil\n" \
+    "                      per grid step], --dm-offset X,Y [m] (the grid centre's position),\n" \
+    "                      --dm-rot DEG (counter-clockwise), --dm-flip (x mirrored first)\n" \
+    "  --control C.fits    control matrix, NAXIS1 = telemetry values, NAXIS2 = basis functions:\n" \
+    "                      coefficients = C v for any WFS signal (pyramid, SH in any layout, ...);\n" \
+    "                      without it the telemetry values are the coefficients (cacao modevalWFS)\n" \
+    "  --imat D.fits       instead of --control: the interaction matrix (NAXIS1 = basis functions,\n" \
+    "                      NAXIS2 = telemetry values), inverted by the MAP reconstructor learned from\n" \
+    "                      the telemetry (--recon svd: the truncated SVD)\n" \
+    "  --coef-scale S      metres of wavefront OPD per unit of basis x coefficient (1; cacao: unit-rms\n" \
+    "                      modes of DM surface with coefficients in um: 2e-6); the residual must come\n" \
+    "                      out 1e-5..4 waves rms, else it is refused naming its size\n"
 /* The simulation commands' CONFIG file or key=value argument; the library's message on failure. */
 struct swfs_sim_params;
 int cli_config_arg(const char *cmd, struct swfs_config *cfg, const char *a);

@@ -5,9 +5,11 @@
 #include "specklewfs/atomic.h"
 #include "specklewfs/config.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/run.h"
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <string.h>
 
@@ -35,6 +37,14 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s);
     int erc = swfs_outputs_end(rc == SWFS_OK);
     if (rc || erc) return cli_error(cmd);
+    swfs_dm_registration reg;
+    size_t nmodes = 0;
+    if (p.export_modal) {
+        swfs_outputs_begin();
+        rc = swfs_ts_export_modal(&p, outdir, prov, 2, &reg, &nmodes);
+        erc = swfs_outputs_end(rc == SWFS_OK);
+        if (rc || erc) return cli_error(cmd);
+    }
     printf("simulate (timeseries): %zu WFS frames at %.0f Hz, %ld cubes x %ld frames at <t_sci/t_wfs> = %.4f, "
            "handshake lag %ld\n", s.nwfs, p.wfs_rate, p.ncubes, p.cube_frames, p.frame_ratio, p.handshake_lag);
     printf("  AO: %zu actuators, %zu valid subapertures, %zu modes, gain %.2f, delay %ld\n", s.nact, s.nvalid,
@@ -43,5 +53,9 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
            1e9 * s.residual_rms, 1e9 * s.residual_rms_nott, s.tt_rms, s.strehl);
     printf("  time-mean residual (static, not in the speckles) %.1f nm rms\n", 1e9 * s.static_rms);
     printf("  NCP %.1f nm rms; %.1f s -> %s/\n", 1e9 * s.ncp_rms, s.seconds, outdir);
+    if (p.export_modal)
+        printf("  modal telemetry: %zu modes in um of DM surface (modal_NNN.fits) on dm_modes.fits: --basis with "
+               "--dm-pitch %.6g --dm-offset %g,%g --dm-rot %g --dm-flip --coef-scale 2e-6\n", nmodes, reg.pitch, reg.x0,
+               reg.y0, reg.rot * 180 / M_PI);
     return CLI_OK;
 }

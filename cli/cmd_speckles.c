@@ -19,6 +19,8 @@ static const char *usage_text =
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
+    "       specklewfs speckles TIMING.txt --science SCIENCE.fits --basis CUBE.fits [--control C.fits | --imat D.fits]\n"
+    "                           [--dm-pitch M --dm-offset X,Y --dm-rot DEG --dm-flip] [--coef-scale S] -o SPECKLES.fits\n"
     "\n"
     "Complex speckles from WFS slopes (Codona & Kenworthy 2013, Sec. 4.4). For every camera\n"
     "exposure of the usable cubes of TIMING.txt (from `specklewfs sync`): z = W s at the\n"
@@ -74,7 +76,8 @@ static const char *usage_text2 =
     "                      WFS frame (default; or --tiptilt keep). Header: FRAMEDT = 1/WFSRATE [s],\n"
     "                      FRATIO (camera exposure = FRATIO x FRAMEDT), NSEGS (cubes). --match and\n"
     "                      --tiptilt exposure do not apply\n"
-    "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n";
+    "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n"
+    CLI_LINEAR_HELP;
 
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
 typedef struct spk_args {
@@ -94,6 +97,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     swfs_speckles_run_options *o = d->o;
     const int gk = cli_geom_option(cmd, argc, argv, i, &o->geom);
     if (gk) return gk;
+    const int lk = cli_linear_option(cmd, argc, argv, i, &o->lin);
+    if (lk) return lk;
     if (cli_is_help(a)) {
         d->help = 1;
     } else if (!strcmp(a, "--recon")) {
@@ -156,7 +161,12 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     const int rcond_given = d.rcond_given, tt_given = d.tt_given;
     const double rcond = d.rcond;
     const long modes = d.modes;
-    if (!o->timing || !o->science || !o->actuators || !o->out) return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators and -o");
+    if (!o->timing || !o->science || !(o->actuators || o->lin.basis) || !o->out)
+        return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators (or --basis) and -o");
+    if (o->lin.basis && (o->actuators || o->pipe.recon == SWFS_RECON_GIVEN || o->write_recon))
+        return cli_usage_error(cmd, "--basis (the linear model) takes no --actuators, --recon W.fits or --write-recon");
+    if (!o->lin.basis && (o->lin.control || o->lin.imat || o->lin.reg.pitch > 0 || o->lin.scale != 1))
+        return cli_usage_error(cmd, "--control, --imat, --dm-* and --coef-scale go with --basis");
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1");
     if (!(slope_noise >= 0) || !isfinite(slope_noise)) return cli_usage_error(cmd, "--slope-noise must be a finite rms >= 0 [rad], got %g", slope_noise);
     if (rcond_given && o->pipe.recon != SWFS_RECON_SVD) return cli_usage_error(cmd, "--rcond and --modes go with --recon svd");
@@ -215,21 +225,12 @@ int swfs_cmd_speckles(int argc, char **argv)
         free(mout);
         return rc;
     }
-    if (!rc && (o.pipe.recon == SWFS_RECON_MAP || o.pipe.recon == SWFS_RECON_VK))
-        fprintf(stderr, "speckles: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, "
-                "%.1f effective\n", o.pipe.recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", r.info.ntrain,
-                sqrt(r.info.noise_var), r.info.noise_given ? "given" : "estimated", r.info.recon_modes, r.info.recon_dof);
-    if (!rc && o.pipe.recon == SWFS_RECON_GIVEN)
-        fprintf(stderr, "speckles: given reconstructor %s: %zu slopes x %zu actuators, scale %g, gain %.3g on the model's "
-                "interaction matrix (1: a reconstructor of it)\n", o.recon, r.info.nslopes, r.info.nact,
-                o.pipe.recon_scale, r.info.recon_gain);
-    if (!rc && o.pipe.recon == SWFS_RECON_VK)
-        fprintf(stderr, "speckles: von Karman outer scale %.3g m (%s)\n", r.info.vk_l0,
-                o.pipe.vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");
+    if (!rc && o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
+    else if (!rc) cli_recon_summary(cmd, &o.pipe, o.recon, &r.info);
     if (!rc)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside "
-                "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes, r.info.recon_modes,
-                r.info.n_outside, o.out);
+                "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,
+                r.info.recon_modes, r.info.n_outside, o.out);
     free(min);
     free(mout);
     return rc;

@@ -1,4 +1,5 @@
 #include "cli.h"
+#include "specklewfs/run.h"
 
 #include "specklewfs/config.h"
 #include "specklewfs/dmfit.h"
@@ -308,6 +309,60 @@ int cli_geom_option(const char *cmd, int argc, char **argv, int *i, swfs_geom *g
     if (swfs_geom_read_file(path, &f)) return -cli_error(cmd);
     swfs_geom_overlay(g, &f); /* options after --geom still win */
     return 1;
+}
+
+int cli_linear_option(const char *cmd, int argc, char **argv, int *i, swfs_linear_files *lf)
+{
+    const char *a = argv[*i], *fn = "a file name";
+    if (!strcmp(a, "--basis")) return cli_take_string(cmd, argc, argv, i, fn, &lf->basis) ? -CLI_USAGE : 1;
+    if (!strcmp(a, "--control")) return cli_take_string(cmd, argc, argv, i, fn, &lf->control) ? -CLI_USAGE : 1;
+    if (!strcmp(a, "--imat")) return cli_take_string(cmd, argc, argv, i, fn, &lf->imat) ? -CLI_USAGE : 1;
+    if (!strcmp(a, "--dm-flip")) { lf->reg.flip_x = 1; return 1; }
+    double v;
+    if (!strcmp(a, "--dm-pitch") || !strcmp(a, "--dm-rot") || !strcmp(a, "--coef-scale")) {
+        if (cli_take_double(cmd, argc, argv, i, &v)) return -CLI_USAGE;
+        if (!isfinite(v) || (a[2] != 'd' && v == 0) || (a[5] == 'p' && !(v > 0)))
+            return -cli_usage_error(cmd, "%s must be finite%s, got %g", a, a[5] == 'p' ? " and > 0 [m]" : a[2] == 'c' ?
+                                    " and non-zero" : " [deg]", v);
+        if (a[5] == 'p') lf->reg.pitch = v;
+        else if (a[5] == 'r') lf->reg.rot = v * M_PI / 180;
+        else lf->scale = v;
+        return 1;
+    }
+    if (strcmp(a, "--dm-offset")) return 0;
+    const char *s = cli_next(argc, argv, i);
+    char *end;
+    double x = s ? strtod(s, &end) : 0, y = 0;
+    if (!s || end == s || *end != ',' || (y = strtod(end + 1, &end), *end) || !isfinite(x) || !isfinite(y))
+        return -cli_usage_error(cmd, "--dm-offset expects X,Y [m], got '%s'", s ? s : "");
+    lf->reg.x0 = x;
+    lf->reg.y0 = y;
+    return 1;
+}
+
+void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const char *path, const swfs_pipeline_info *in)
+{
+    if (o->recon == SWFS_RECON_MAP || o->recon == SWFS_RECON_VK)
+        fprintf(stderr, "%s: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, %.1f "
+                "effective\n", cmd, o->recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", in->ntrain,
+                sqrt(in->noise_var), in->noise_given ? "given" : "estimated", in->recon_modes, in->recon_dof);
+    if (o->recon == SWFS_RECON_GIVEN)
+        fprintf(stderr, "%s: given reconstructor %s: %zu slopes x %zu actuators, scale %g, gain %.3g on the model's "
+                "interaction matrix (1: a reconstructor of it)\n", cmd, path, in->nslopes, in->nact, o->recon_scale,
+                in->recon_gain);
+    if (o->recon == SWFS_RECON_VK)
+        fprintf(stderr, "%s: von Karman outer scale %.3g m (%s)\n", cmd, in->vk_l0,
+                o->vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");
+}
+
+void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs_pipeline_info *in)
+{
+    fprintf(stderr, "%s: linear model %s: %zu basis functions (%zu nonzeros on the pupil%s), %s, scale %g; residual "
+            "%.1f nm rms (tip-tilt removed)%s\n", cmd, lf->basis, in->nbasis, in->basis_nnz,
+            lf->reg.pitch > 0 ? ", from the DM grid" : "", lf->control ? "control matrix" : lf->imat ?
+            (in->ntrain ? "interaction matrix, MAP reconstructor" : "interaction matrix, SVD reconstructor") :
+            "the telemetry as coefficients", lf->scale, in->resid_rms * 1e9,
+            in->composed ? "; basis and control folded into one matrix" : "");
 }
 
 int cli_parse_xy(const char *cmd, const char *opt, const char *s, long *x, long *y)

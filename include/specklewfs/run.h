@@ -19,6 +19,7 @@
 #include <stdint.h>
 
 #include "specklewfs/estimate.h"
+#include "specklewfs/lmodel.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/reduce.h"
@@ -39,6 +40,41 @@ int swfs_noise_from_header(const char *path, double read_noise, double gain, swf
 /* The g regularization length in pixels from lambda/D: g_smooth_lod / PIXSCALE, or with no
  * PIXSCALE the paper's 0.25 lambda/D per pixel (*assumed = 1 then). */
 double swfs_g_smooth_pixels(double g_smooth_lod, double pixscale, int *assumed);
+
+/* ---- the generic linear speckle model from files (lmodel.h, docs/telemetry.md) ------ */
+
+/* Any AO system's telemetry: a basis of mode shapes or influence functions instead of the
+ * actuator positions and the Shack-Hartmann model. */
+typedef struct swfs_linear_files {
+    const char *basis;       /* NULL: the Shack-Hartmann model. A cube PUPN x PUPN x nk on the
+                                pupil grid, or gx x gy x nk on the DM's grid placed by reg */
+    const char *control;     /* NAXIS1 = telemetry values per frame, NAXIS2 = nk: the
+                                coefficients = C v; NULL (and no imat): v are the coefficients */
+    const char *imat;        /* NAXIS1 = nk, NAXIS2 = telemetry values: the interaction matrix,
+                                inverted by the telemetry-learned MAP reconstructor (or SVD) */
+    swfs_dm_registration reg;/* reg.pitch 0: the basis is on the pupil grid */
+    double scale;            /* metres of wavefront per unit of basis x coefficient (1) */
+} swfs_linear_files;
+
+void swfs_linear_files_default(swfs_linear_files *lf);
+/* The pipeline over lf's model (swfs_pipeline_create_linear) for telemetry of nmeas values
+ * per frame: the files read, their shapes checked against each other, nmeas and PUPN, each
+ * message naming the file. mask: PUPN^2 or NULL (the annulus of g). *n_outside: illuminated
+ * pupil samples beyond the DM grid (refused when any lies there). */
+int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,
+                         const double *mask, size_t nmeas, const double *train, size_t ntrain,
+                         const swfs_pipeline_options *po);
+
+/* The time-series simulation's telemetry (dir holds simulate mode=timeseries' files) in the
+ * modal form of cacao-based systems, the worked example of --basis: modal_NNN.fits (per WFS
+ * frame the coefficients of the DM's modes 1.. (swfs_dm_modes; piston dropped) of the
+ * default speckle reconstructor's wavefront, in um of DM surface on unit-rms modes, as
+ * cacao's modevalWFS) and dm_modes.fits (the mode cube on a DM grid of half the actuator
+ * pitch, offset, turned by 10 degrees and mirrored on the pupil; the registration in its
+ * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg). */
+struct swfs_ts_params;
+int swfs_ts_export_modal(const struct swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
+                         swfs_dm_registration *reg, size_t *nmodes);
 
 /* ---- estimate: science + speckle cubes -> HALO.fits ------------------------------ */
 
@@ -94,6 +130,7 @@ typedef struct swfs_speckles_run_options {
                                  at multiples of batch (each member builds the same reconstructor
                                  from the files) */
     swfs_geom geom;           /* given geometry: fills or replaces the science header's */
+    swfs_linear_files lin;    /* lin.basis: the generic linear model instead of the actuators */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);

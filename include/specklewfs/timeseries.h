@@ -82,6 +82,8 @@ typedef struct swfs_ts_params {
     long camera_swap, camera_flip_x, camera_flip_y;
     long act_square;           /* the DM's actuators on a square grid of pitch act_pitch clipped to
                                   a circle (1), or hexapolar rings (0, default) */
+    long export_modal;         /* 1: also the telemetry in cacao's modal form, modal_NNN.fits and
+                                  dm_modes.fits (swfs_ts_export_modal in run.h; `simulate` runs it) */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

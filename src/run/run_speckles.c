@@ -17,6 +17,7 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     memset(o, 0, sizeof *o);
     swfs_pipeline_options_default(&o->pipe);
     swfs_geom_init(&o->geom);
+    swfs_linear_files_default(&o->lin);
     o->mean_mode = SWFS_MEAN_ENSEMBLE;
     o->batch = 128;
 }
@@ -67,7 +68,7 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     swfs_fits_in_close(fs);
     /* The camera's orientation (sync's pairing) must be one the --match copies can undo. */
     if (!rc) rc = swfs_orient_check(&w->t->fit, w->nfx, w->nfy, o->timing);
-    if (!rc) rc = swfs_actuators_read(o->actuators, &w->xy, &w->nact);
+    if (!rc && !o->lin.basis) rc = swfs_actuators_read(o->actuators, &w->xy, &w->nact);
     if (rc || !o->mask) return rc;
     const size_t npup = (size_t)w->g.pupn;
     swfs_real *pm = NULL;
@@ -91,6 +92,9 @@ static int check_paths(const swfs_speckles_run_options *o, const work *w)
     swfs_paths_input(p, "timing table", o->timing);
     swfs_paths_input(p, "science cube", o->science);
     swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_paths_input(p, "basis (--basis)", o->lin.basis);
+    swfs_paths_input(p, "control matrix", o->lin.control);
+    swfs_paths_input(p, "interaction matrix", o->lin.imat);
     if (o->pipe.recon == SWFS_RECON_GIVEN) swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "pupil mask", o->mask);
     for (size_t k = 0; k < o->nmatch; k++) swfs_paths_input(p, "--match input", o->match_in[k]);
@@ -171,8 +175,25 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     return check_rate(w->path, rate, r->wfs_hz);
 }
 
+/* The generic linear model: every usable cube's telemetry trains the interaction matrix's
+ * MAP reconstructor and the check of the residual's size. */
+static int build_linear(const swfs_speckles_run_options *o, work *w)
+{
+    if (o->write_recon)
+        return swfs_fail(SWFS_ERR_ARG, "speckles: --write-recon writes the Shack-Hartmann model's reconstructor; the "
+                         "linear model of %s is its files", o->lin.basis);
+    int rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
+    if (!rc) rc = swfs_linear_pipeline(&w->p, &o->lin, &w->g, w->nfx, w->nfy, w->mask, w->nslopes, w->train, w->ntrain,
+                                       &o->pipe);
+    if (rc) return swfs_fail_context(rc, "with %s", w->path);
+    free(w->train);
+    w->train = NULL;
+    return SWFS_OK;
+}
+
 static int build_pipeline(const swfs_speckles_run_options *o, work *w)
 {
+    if (o->lin.basis) return build_linear(o, w);
     int rc = SWFS_OK;
     if (o->pipe.recon == SWFS_RECON_GIVEN) {
         if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
@@ -381,8 +402,12 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
-    if (!o->timing || !o->science || !o->actuators || !o->out)
-        return swfs_fail(SWFS_ERR_ARG, "speckles: needs a timing table, a science cube, actuators and an output");
+    if (!o->timing || !o->science || !(o->actuators || o->lin.basis) || !o->out)
+        return swfs_fail(SWFS_ERR_ARG, "speckles: needs a timing table, a science cube, actuators (or a basis) and an "
+                         "output");
+    if (o->actuators && o->lin.basis)
+        return swfs_fail(SWFS_ERR_ARG, "speckles: actuators (the Shack-Hartmann model) or a basis (the linear model), not "
+                         "both");
     work w;
     memset(&w, 0, sizeof w);
     swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);
@@ -410,9 +435,14 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         swfs_pipeline_get_info(w.p, &r->info);
         char info[512];
         const int tt = o->pipe.tiptilt;
-        snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %zu actuators, %zu slopes, %zu reconstructor "
+        char model[160];
+        if (o->lin.basis)
+            snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis, o->lin.scale,
+                     o->lin.control ? "control matrix" : o->lin.imat ? "interaction matrix" : "modal coefficients");
+        else snprintf(model, sizeof model, "%zu actuators", w.nact);
+        snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %s, %zu telemetry values, %zu reconstructor "
                  "modes, tip-tilt %s, static halo %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
-                 w.nact, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
+                 model, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
                  "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
         const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");

@@ -94,7 +94,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
-    L_("act_square", act_square);
+    L_("act_square", act_square); L_("export_modal", export_modal);
 #undef D_
 #undef L_
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
@@ -159,6 +159,7 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (!(p->background >= 0) || !(p->flat_rms >= 0)) return badv("background", p->background, "background and flat_rms must be >= 0");
     if (p->nhot < 0 || p->ndead < 0) return badv("nhot", (double)p->nhot, "bad-pixel counts must be >= 0");
     if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
+    if (p->export_modal & ~1L) return badv("export_modal", (double)p->export_modal, "must be 0 or 1");
     if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
         return badv("camera_swap", (double)(p->camera_swap + 10 * p->camera_flip_x + 100 * p->camera_flip_y),
                     "camera_swap, camera_flip_x and camera_flip_y must each be 0 or 1");
@@ -284,6 +285,15 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     for (size_t f = 0; f * ffr < nwfs; f++) {
         snprintf(path, sizeof path, "%s/slopes_%03zu.fits", dir, f);
         swfs_paths_output(paths, "simulation output", path);
+        snprintf(path, sizeof path, "%s/modal_%03zu.fits", dir, f);
+        if (p->export_modal) swfs_paths_output(paths, "simulation output (export_modal)", path);
+        snprintf(path, sizeof path, "%s/slopes_valid_%03zu.fits", dir, f);
+        if (p->export_modal) swfs_paths_output(paths, "simulation output (export_modal)", path);
+    }
+    static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits"};
+    for (size_t k = 0; p->export_modal && k < 3; k++) {
+        snprintf(path, sizeof path, "%s/%s", dir, modal_files[k]);
+        swfs_paths_output(paths, "simulation output (export_modal)", path);
     }
     for (size_t c = 0; c < ncub; c++) {
         snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);

@@ -1,0 +1,95 @@
+/* The generic linear speckle model from files: see include/specklewfs/run.h. */
+#include "specklewfs/run.h"
+#include "specklewfs/aperture.h"
+#include "specklewfs/fits.h"
+
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+void swfs_linear_files_default(swfs_linear_files *lf)
+{
+    memset(lf, 0, sizeof *lf);
+    swfs_dm_registration_default(&lf->reg);
+    lf->scale = 1.0;
+}
+
+/* A 2-D matrix file of ncols x nrows (either may be 0: taken from the file). */
+static int read_matrix(const char *path, const char *what, size_t *ncols, size_t *nrows, swfs_real **m)
+{
+    int rc = swfs_fits_read_real(path, NULL, m, NULL);
+    if (rc) return rc;
+    if ((*m)->nz != 1 || (*ncols && (*m)->nx != *ncols) || (*nrows && (*m)->ny != *nrows))
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: the %s is %zu x %zu x %zu; expected NAXIS1 = %zu%s, NAXIS2 = %zu%s", path,
+                         what, (*m)->nx, (*m)->ny, (*m)->nz, *ncols, *ncols ? "" : " (any)", *nrows,
+                         *nrows ? "" : " (any)");
+    *ncols = (*m)->nx;
+    *nrows = (*m)->ny;
+    return SWFS_OK;
+}
+
+static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, swfs_sparse **B)
+{
+    swfs_real *c = NULL;
+    int rc = swfs_fits_read_real(lf->basis, NULL, &c, NULL);
+    if (rc) return rc;
+    const size_t np = (size_t)g->pupn;
+    if (!(lf->reg.pitch > 0)) {
+        if (c->nx != np || c->ny != np)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the basis is %zu x %zu x %zu but the pupil grid is PUPN = %zu; a basis on "
+                           "the DM's own grid needs its registration (--dm-pitch, --dm-offset, --dm-rot, --dm-flip)",
+                           lf->basis, c->nx, c->ny, c->nz, np);
+        else if ((rc = swfs_basis_from_pupil(B, c->data, np, c->nz, mask))) swfs_fail_context(rc, "%s", lf->basis);
+    } else {
+        size_t nout = 0;
+        rc = swfs_basis_from_grid(B, c->data, c->nx, c->ny, c->nz, &lf->reg, mask, np, g->pupdx, &nout);
+        if (rc) swfs_fail_context(rc, "%s", lf->basis);
+        else if (nout) {
+            swfs_sparse_free(*B);
+            *B = NULL;
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: the registration (pitch %g m, centre %g, %g m, rotation %g deg%s) puts %zu "
+                           "illuminated pupil samples more than one grid step beyond the %zu x %zu DM grid: it does not "
+                           "describe the pupil (pitch units, offset?)", lf->basis, lf->reg.pitch, lf->reg.x0, lf->reg.y0,
+                           lf->reg.rot * 180 / M_PI, lf->reg.flip_x ? ", mirrored in x" : "", nout, c->nx, c->ny);
+        }
+    }
+    swfs_real_free(c);
+    return rc;
+}
+
+int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,
+                         const double *mask, size_t nmeas, const double *train, size_t ntrain,
+                         const swfs_pipeline_options *po)
+{
+    *p = NULL;
+    if (!lf->basis) return swfs_fail(SWFS_ERR_ARG, "linear model: no basis file");
+    if (lf->control && lf->imat) return swfs_fail(SWFS_ERR_ARG, "linear model: a control matrix or an interaction matrix, not both");
+    int rc = swfs_geom_require(g, "linear model");
+    if (rc) return rc;
+    const size_t np = (size_t)g->pupn;
+    double *annulus = NULL;
+    if (!mask) {
+        if (!(annulus = malloc(np * np * sizeof *annulus))) return swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory");
+        if ((rc = swfs_aperture_make(annulus, np, g->pupdx, g->teldiam, g->obscur, 0, 0))) { free(annulus); return rc; }
+        mask = annulus;
+    }
+    swfs_sparse *B = NULL;
+    swfs_real *m = NULL;
+    rc = load_basis(lf, g, mask, &B);
+    size_t nk = B ? B->ncols : 0, nm = nmeas;
+    if (!rc && lf->control) rc = read_matrix(lf->control, "control matrix (telemetry values x basis functions)", &nm, &nk, &m);
+    if (!rc && lf->imat) rc = read_matrix(lf->imat, "interaction matrix (basis functions x telemetry values)", &nk, &nm, &m);
+    if (!rc && !lf->control && !lf->imat && nmeas != nk)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions but the telemetry has %zu values per frame, taken as their "
+                       "coefficients; give the control matrix (--control) or the interaction matrix (--imat) to map "
+                       "other telemetry", lf->basis, nk, nmeas);
+    if (!rc) {
+        swfs_linear_input in = {nmeas, B, lf->control ? m->data : NULL, lf->imat ? m->data : NULL, lf->scale};
+        rc = swfs_pipeline_create_linear(p, g, nfx, nfy, mask, &in, train, ntrain, po);
+        if (rc) swfs_fail_context(rc, "the linear model of %s", lf->basis);
+    }
+    swfs_real_free(m);
+    swfs_sparse_free(B);
+    free(annulus);
+    return rc;
+}
