@@ -212,7 +212,7 @@ swfs_ts_params = _s("swfs_ts_params", [
     ("cube_gap", c_dbl), ("start_offset", c_dbl), ("handshake_lag", c_long), ("wfs_file_frames", c_long),
     ("bandwidth", c_dbl), ("nlambda", c_long), ("background", c_dbl), ("dark_level", c_dbl), ("flat_rms", c_dbl),
     ("nhot", c_long), ("ndead", c_long), ("camera_swap", c_long), ("camera_flip_x", c_long),
-    ("camera_flip_y", c_long), ("act_square", c_long)])
+    ("camera_flip_y", c_long), ("act_square", c_long), ("export_modal", c_long)])
 TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("ao_modes", c_size),
                      ("residual_rms", c_dbl), ("residual_rms_nott", c_dbl), ("tt_rms", c_dbl), ("strehl", c_dbl),
                      ("static_rms", c_dbl), ("ncp_rms", c_dbl), ("seconds", c_dbl)]
@@ -222,7 +222,8 @@ swfs_pipeline_options = _s("swfs_pipeline_options", [("recon", c_int), ("rcond",
                                                      ("threads", c_int), ("wfs_rate", c_int), ("recon_scale", c_dbl)])
 PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size), ("nfx", c_size), ("nfy", c_size),
                         ("recon_modes", c_size), ("recon_dof", c_dbl), ("noise_var", c_dbl), ("noise_given", c_int),
-                        ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl)]
+                        ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl),
+                        ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl)]
 swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
 swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
                                ("nexp", c_size), ("cube", c_size)])
