@@ -70,7 +70,9 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         const char *a = argv[i], **str = NULL;
         long *lv = NULL;
         double *dv = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(CLI_LINEAR_HELP, stdout); return -1; }
+        const int lk = cli_linear_option(cmd, argc, argv, &i, &o->run.lin);
+        if (lk) { if (lk < 0) return -lk; continue; }
         else if (!strcmp(a, "--wfs")) {
             if (*nwfs >= SWFS_FRAMESYNC_MAX_WFS) return cli_usage_error(cmd, "at most %d --wfs streams", SWFS_FRAMESYNC_MAX_WFS);
             str = &wfs[(*nwfs)++];
@@ -143,8 +145,11 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
             return CLI_USAGE;
         }
     }
-    if (!*nwfs || !o->src.camera || !o->run.science || !o->run.recon || !o->run.actuators || !o->run.out)
-        return cli_usage_error(cmd, "needs --wfs, --camera, --geom, --recon, --actuators and -o");
+    if (!*nwfs || !o->src.camera || !o->run.science || !((o->run.recon && o->run.actuators) || o->run.lin.basis) ||
+        !o->run.out)
+        return cli_usage_error(cmd, "needs --wfs, --camera, --geom, --recon and --actuators (or --basis) and -o");
+    if (o->run.lin.basis && o->run.recon) return cli_usage_error(cmd, "--basis (the linear model) takes no --recon");
+    if (o->dm_out && !o->run.actuators) return cli_usage_error(cmd, "--dm-out fits the offsets onto --actuators");
     if (o->dm_out && !o->run.pupil_out) return cli_usage_error(cmd, "--dm-out needs --pupil-out (the WFE it corrects)");
     if (every < 0 || max_frames < 0) return cli_usage_error(cmd, "--every and --max-frames must be >= 0");
     if (threads < 1 || threads > 64) return cli_usage_error(cmd, "--threads must be 1..64, got %ld", threads);

@@ -70,6 +70,7 @@ static const char *usage_text =
     "                        (default 2; 0 = the paper's per-pixel g)\n";
 static const char *usage_mpi =
     CLI_GEOM_HELP
+    CLI_LINEAR_HELP
     "\n"
     "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
     "boundaries) and rank 0 writes the products once, at the end, from the merged\n"
@@ -83,6 +84,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     const char *a = argv[*i];
     const int gk = cli_geom_option("stream", argc, argv, i, &o->geom);
     if (gk) return gk;
+    const int lk = cli_linear_option("stream", argc, argv, i, &o->lin);
+    if (lk) return lk;
     if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
     else if (!strcmp(a, "--pupil-method")) {
@@ -120,8 +123,10 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
-    if (!o->timing || !o->science || !o->recon || !o->actuators || !o->out)
-        return cli_usage_error(cmd, "needs --timing, --science, --recon, --actuators and -o");
+    if (!o->timing || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
+        return cli_usage_error(cmd, "needs --timing, --science, --recon and --actuators (or --basis) and -o");
+    if (o->lin.basis && (o->recon || o->actuators))
+        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon or --actuators");
     if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);
     if (o->stream.every_seconds < 0) return cli_usage_error(cmd, "--every-seconds must be >= 0, got %g", o->stream.every_seconds);
     if (threads < 1 || threads > SWFS_ENGINE_MAX_THREADS)
@@ -178,6 +183,7 @@ int swfs_cmd_stream(int argc, char **argv)
     swfs_stream_run_result r;
     if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
     if (!cli_writer()) return CLI_OK;
+    if (o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
     if (r.info.n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);

@@ -6,8 +6,9 @@
 #          actuators' influence functions on the pupil grid --
 # recovers the NCP as the native Shack-Hartmann path does on the same frames (within 10 %);
 # the registration matters (unmirrored: worse); wrong units, shapes and grids are refused
-# naming the file and the value, with no output left. Measured: 22.7 nm native, 22.7 modal,
-# 22.7 control.
+# naming the file and the value, with no output left; `stream --basis` runs the same model, and
+# `live` on the modal stream that `replay` publishes too. Measured: 22.7 nm native, 22.7 modal,
+# 22.7 control, 22.7 stream, 22.7 live.
 # usage: bash cli_modal.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
@@ -42,6 +43,28 @@ for e in "$modal" "$control"; do
     awk -v a="$e" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "NCP error $e nm against $native nm native"
 done
 awk -v a="$noflip" -v b="$native" 'BEGIN { exit !(a > 1.5 * b) }' || fail "unmirrored registration: $noflip nm"
+# stream runs the same model frame by frame
+# shellcheck disable=SC2086
+"$B" stream --timing "$D/timing_modal.txt" --science "$D/science.fits" --basis "$S/dm_modes.fits" $reg --coef-scale 2e-6 \
+    -o "$D/halo_stream.fits" > "$D/stream.log" 2>&1 || { cat "$D/stream.log"; fail "stream --basis"; }
+"$B" pupil "$D/halo_stream.fits" -o "$D/pupil_stream.fits" --truth "$S/truth.fits" > "$D/pupil_stream.log" || fail "pupil"
+streamed=$(ncp_error "$D/pupil_stream.log")
+echo "cli_modal: stream --basis: NCP error $streamed nm" >&2
+awk -v a="$streamed" -v b="$modal" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > 0.95 * b) }' || fail "stream: $streamed nm"
+# live takes the modal stream as it takes slopes: replay publishes the modal files
+mkdir -p "$D/shm"
+# shellcheck disable=SC2086
+"$B" live --shm-dir "$D/shm" --wfs w --camera c --geom "$D/science.fits" --basis "$S/dm_modes.fits" $reg \
+    --coef-scale 2e-6 --batch 8 --max-wait 60 --idle-exit 0.5 -o "$D/halo_live.fits" > "$D/live.log" 2>&1 &
+live_pid=$!
+"$B" replay --shm-dir "$D/shm" --wfs-name w --camera-name c --timing "$D/timing_modal.txt" --science "$D/science.fits" \
+    --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay.log" 2>&1 || { cat "$D/replay.log"; fail "replay"; }
+wait "$live_pid" || { cat "$D/live.log"; fail "live --basis"; }
+grep -q "halo_live.fits: 180 camera frames used" "$D/live.log" || { cat "$D/live.log"; fail "live: frames"; }
+"$B" pupil "$D/halo_live.fits" -o "$D/pupil_live.fits" --truth "$S/truth.fits" > "$D/pupil_live.log" || fail "pupil"
+lived=$(ncp_error "$D/pupil_live.log")
+echo "cli_modal: live --basis: NCP error $lived nm" >&2
+awk -v a="$lived" -v b="$streamed" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > 0.95 * b) }' || fail "live: $lived nm"
 # Refused, naming file and value, no output left:
 o="$D/bad.fits"
 expect_error "the basis is 35 x 35 x 216 but the pupil grid is PUPN = 66" \

@@ -58,7 +58,7 @@ typedef struct swfs_linear_files {
 
 void swfs_linear_files_default(swfs_linear_files *lf);
 /* The pipeline over lf's model (swfs_pipeline_create_linear) for telemetry of nmeas values
- * per frame: the files read, their shapes checked against each other, nmeas and PUPN, each
+ * per frame (0: as many as the control matrix takes, or the basis functions): the files read, their shapes checked against each other, nmeas and PUPN, each
  * message naming the file. mask: PUPN^2 or NULL (the annulus of g). *n_outside: illuminated
  * pupil samples beyond the DM grid (refused when any lies there). */
 int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,
@@ -172,6 +172,8 @@ typedef struct swfs_stream_run_options {
     const swfs_team *team;
     int pupil_source;         /* the pupil product's source: SWFS_SOURCE_HALO_LF (default) or SWFS_SOURCE_HALO (pupil.h) */
     swfs_geom geom;           /* given geometry: fills or replaces the science header's */
+    swfs_linear_files lin;    /* lin.basis: the generic linear model instead of recon + actuators
+                                 (an interaction matrix learns from the first telemetry file) */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

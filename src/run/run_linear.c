@@ -77,8 +77,10 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
     swfs_real *m = NULL;
     rc = load_basis(lf, g, mask, &B);
     size_t nk = B ? B->ncols : 0, nm = nmeas;
+    if (!rc && !nmeas) nmeas = nm = lf->control || lf->imat ? 0 : nk; /* taken from the files */
     if (!rc && lf->control) rc = read_matrix(lf->control, "control matrix (telemetry values x basis functions)", &nm, &nk, &m);
     if (!rc && lf->imat) rc = read_matrix(lf->imat, "interaction matrix (basis functions x telemetry values)", &nk, &nm, &m);
+    if (!rc && !nmeas) nmeas = nm;
     if (!rc && !lf->control && !lf->imat && nmeas != nk)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions but the telemetry has %zu values per frame, taken as their "
                        "coefficients; give the control matrix (--control) or the interaction matrix (--imat) to map "

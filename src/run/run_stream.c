@@ -17,6 +17,7 @@ void swfs_stream_run_options_default(swfs_stream_run_options *o)
 {
     memset(o, 0, sizeof *o);
     swfs_geom_init(&o->geom);
+    swfs_linear_files_default(&o->lin);
     o->tiptilt = SWFS_TT_EXPOSURE;
     o->threads = 2;
     o->batch = 128;
@@ -125,6 +126,9 @@ static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t
     swfs_paths_input_or_dir(p, "telemetry (--slopes)", o->slopes);
     swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_paths_input(p, "basis (--basis)", o->lin.basis);
+    swfs_paths_input(p, "control matrix", o->lin.control);
+    swfs_paths_input(p, "interaction matrix", o->lin.imat);
     swfs_paths_input(p, "pupil mask", o->mask);
     swfs_paths_input(p, "static halo", o->static_file);
     if (!rc) rc = swfs_paths_status(p);
@@ -142,6 +146,33 @@ static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t
     if (!rc) rc = swfs_paths_status(p);
     swfs_timing_free(t);
     swfs_paths_free(p);
+    return rc;
+}
+
+/* The generic linear model's pipeline (run.h swfs_linear_files): the first telemetry file
+ * (none for a live source) trains an interaction matrix's reconstructor and checks the
+ * residual's size. */
+static int setup_linear(const swfs_stream_run_options *o, const char *first_tel, run_ctx *u, swfs_pipeline **p,
+                        size_t nfx, size_t nfy, swfs_stream_run_result *r)
+{
+    swfs_real *tr = NULL;
+    int rc = load_mask(o->mask, &u->g, &u->mask);
+    if (!rc && first_tel[0]) rc = swfs_telemetry_read(first_tel, 0, &tr, NULL);
+    if (!rc && !tr && o->lin.imat)
+        rc = swfs_fail(SWFS_ERR_ARG, "stream: an interaction matrix (%s) needs telemetry to learn its reconstructor from; "
+                       "give a control matrix", o->lin.imat);
+    if (!rc) {
+        swfs_pipeline_options po;
+        swfs_pipeline_options_default(&po);
+        po.recon = SWFS_RECON_MAP;
+        po.tiptilt = o->tiptilt;
+        po.threads = o->threads;
+        rc = swfs_linear_pipeline(p, &o->lin, &u->g, nfx, nfy, u->mask ? u->mask->data : NULL, tr ? tr->nx : 0,
+                                  tr ? tr->data : NULL, tr ? tr->ny : 0, &po);
+        if (rc) swfs_fail_context(rc, "with %s", tr ? first_tel : "the live telemetry");
+        else swfs_pipeline_get_info(*p, &r->info);
+    }
+    swfs_real_free(tr);
     return rc;
 }
 
@@ -163,6 +194,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     swfs_fits_in_close(fs);
     if (!rc) rc = swfs_geom_require(&u->g, o->science);
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
+    if (!rc && o->lin.basis) return setup_linear(o, first_tel, u, p, *nfx, *nfy, r);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
     /* The reconstructor's width against the telemetry now, not after the first frames:
      * a wrong --recon is named as such. */
@@ -299,9 +331,9 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     memset(r, 0, sizeof *r);
     r->static_scale = NAN;
     if (hk && !hk->source) hk = NULL;
-    if ((!o->timing && !hk) || !o->science || !o->recon || !o->actuators || !o->out)
-        return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor, actuators and "
-                         "an output");
+    if ((!o->timing && !hk) || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
+        return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor and actuators (or "
+                         "a basis) and an output");
     const int team = swfs_team_active(o->team);
     if (team && hk) return swfs_fail(SWFS_ERR_ARG, "stream: a live source runs alone, not as a team of processes");
     if (team && (o->stream.every || o->stream.every_seconds > 0))
