@@ -43,6 +43,16 @@ for e in "$modal" "$control"; do
     awk -v a="$e" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "NCP error $e nm against $native nm native"
 done
 awk -v a="$noflip" -v b="$native" 'BEGIN { exit !(a > 1.5 * b) }' || fail "unmirrored registration: $noflip nm"
+# the report draws the registration from the keys speckles recorded
+mkdir -p "$D/rep"
+cp "$D/sci_modal.fits" "$D/rep/science.fits"
+cp "$D/sp_modal.fits" "$D/rep/speckles.fits"
+"$B" report "$D/rep" -o "$D/rep/out" > "$D/report.log" 2>&1 || { cat "$D/report.log"; fail "report"; }
+if grep -q "registration.png" "$D/report.log"; then
+    [ -s "$D/rep/out/registration.png" ] || fail "report: no registration.png"
+else
+    grep -q "0 figures\|PLplot" "$D/report.log" || { cat "$D/report.log"; fail "report: no registration figure"; }
+fi
 # stream runs the same model frame by frame
 # shellcheck disable=SC2086
 "$B" stream --timing "$D/timing_modal.txt" --science "$D/science.fits" --basis "$S/dm_modes.fits" $reg --coef-scale 2e-6 \

@@ -310,6 +310,7 @@ int rep_run_folder(rep_ctx *c)
     /* Pupil and coherence give key numbers even where nothing can be drawn. */
     if (!rc) rc = rep_fig_pupil(c);
     if (!rc) rc = rep_fig_coherence(c);
+    if (!rc) rc = rep_fig_registration(c);
     if (rc) return rc;
     if (!c->has[P_SCIENCE] || !c->has[P_SPECKLES])
         rep_note(c, "science.fits and speckles.fits needed for the intensity-against-phase figure");

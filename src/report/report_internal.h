@@ -148,6 +148,7 @@ int rep_fig_focal(rep_ctx *c);
 int rep_fig_pixel(rep_ctx *c);
 int rep_fig_pupil(rep_ctx *c);
 int rep_fig_coherence(rep_ctx *c);
+int rep_fig_registration(rep_ctx *c);
 
 /* ---- the page (html.c) ---------------------------------------------------- */
 

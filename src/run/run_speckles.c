@@ -7,6 +7,7 @@
 #include "specklewfs/speckles.h"
 #include "run_internal.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -380,6 +381,23 @@ static int speckles_orient_key(swfs_fits_out *f, const work *w)
     return swfs_fits_out_key_string(f, "CAMORIEN", d, "the science camera's orientation (sync)");
 }
 
+/* The linear model the speckles were computed with (the report draws its registration). */
+static int linear_keys(swfs_fits_out *f, const swfs_linear_files *lf)
+{
+    char abs[PATH_MAX];
+    const char *b = realpath(lf->basis, abs) ? abs : lf->basis;
+    int rc = swfs_fits_out_key_string(f, "BASIS", b, "the linear model's basis (--basis)");
+    if (!rc) rc = swfs_fits_out_key_double(f, "COEFSCL", lf->scale, "[m] of wavefront per unit basis x coefficient");
+    if (!rc && lf->reg.pitch > 0) {
+        if (!(rc = swfs_fits_out_key_double(f, "DMPITCH", lf->reg.pitch, "[m] on the pupil per DM-grid step")) &&
+            !(rc = swfs_fits_out_key_double(f, "DMOFFX", lf->reg.x0, "[m] DM-grid centre on the pupil")) &&
+            !(rc = swfs_fits_out_key_double(f, "DMOFFY", lf->reg.y0, "[m] DM-grid centre on the pupil")) &&
+            !(rc = swfs_fits_out_key_double(f, "DMROT", lf->reg.rot * 180 / M_PI, "[deg] counter-clockwise")))
+            rc = swfs_fits_out_key_long(f, "DMFLIPX", lf->reg.flip_x, "DM-grid x mirrored before the rotation");
+    }
+    return rc;
+}
+
 static int write_speckles(const swfs_speckles_run_options *o, const work *w, const swfs_speckles_run_result *r,
                           const char *const *prov, size_t nprov)
 {
@@ -390,6 +408,7 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
         (rc = swfs_fits_out_key_double(f, "FRATIO", w->t->ratio, "<t_sci/t_wfs> from sync")) ||
         (rc = swfs_fits_out_key_double(f, "HSLAG", w->t->lag, "handshake lag [WFS frames] from sync")) ||
         (!swfs_orient_is_identity(&w->t->fit) && (rc = speckles_orient_key(f, w))) ||
+        (o->lin.basis && (rc = linear_keys(f, &o->lin))) ||
         (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||
                               (rc = swfs_fits_out_key_double(f, "WFSRATE", r->wfs_hz, "[Hz]")) ||
                               (rc = swfs_fits_out_key_long(f, "NSEGS", (long)r->nok, "contiguous segments (usable cubes)"))))) {
