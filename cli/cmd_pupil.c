@@ -150,6 +150,8 @@ int swfs_cmd_pupil(int argc, char **argv)
         printf("  method            joint fit of %zu focal pixels, %zu parameters (%zu B-spline intervals across D),\n"
                "                    %d steps, %.2f s; unexplained speckle fraction %.3f\n", f->npix, f->nparams,
                f->nintervals, f->iterations, f->seconds, f->kappa);
+        printf("  self-check        the speckles explain %.1f %% of the science intensity's variance (median pixel "
+               "%.1f %%)\n", 100 * r->explained, 100 * r->explained_median);
         if (isfinite(f->delta_chi2))
             printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one; limit %.0f)\n",
                    f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"

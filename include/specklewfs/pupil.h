@@ -56,6 +56,8 @@ typedef struct swfs_pupil_result {
     swfs_pupil_options opt;
     int method;             /* SWFS_PUPIL_FIT or SWFS_PUPIL_MOMENTS: what was used */
     swfs_jointfit_result *fit; /* the joint fit (owned), NULL for the moments */
+    double explained, explained_median; /* the joint fit's self-check of the speckles (swfs_regress_sol):
+                                           NaN for the moments */
 } swfs_pupil_result;
 
 /* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE

@@ -96,6 +96,10 @@ typedef struct swfs_regress_sol {
     swfs_cplx *centre;  /* <psi>, the frame of theta */
     swfs_real *valid;   /* 1 where solved (n > 4, G positive definite, s^2 > 0) */
     size_t n_valid;
+    /* The self-check of the computed speckles: the fraction of the science intensity's
+     * variance about its mean that the regression on them explains, 1 - SSE / SST, summed
+     * over the valid pixels (dominated by the bright ones) and the median pixel's. */
+    double explained, explained_median;
 } swfs_regress_sol;
 
 int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out);

@@ -148,7 +148,8 @@ swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(
                                              ("surface", P(swfs_real)), ("amplitude", P(swfs_real)),
                                              ("mask", P(swfs_real)), ("wfe_rms", c_dbl), ("wfe_pv", c_dbl),
                                              ("strehl", c_dbl), ("opt", swfs_pupil_options), ("method", c_int),
-                                             ("fit", P(swfs_jointfit_result))])
+                                             ("fit", P(swfs_jointfit_result)), ("explained", c_dbl),
+                                             ("explained_median", c_dbl)])
 swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
                                  ("col", P(c_size)), ("val", P(c_dbl))])
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),

@@ -38,6 +38,10 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc && !f) rc = swfs_fits_out_key_double(o, "WIENERK", r->opt.wiener_k, "k in SNR^2/(SNR^2+k^2)");
     if (!rc && !f) rc = swfs_fits_out_key_double(o, "BIAS", r->opt.bias, "constant field / mean pupil field");
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITKAPPA", f->kappa, "unexplained speckle power fraction");
+    if (!rc && f && isfinite(r->explained))
+        rc = swfs_fits_out_key_double(o, "SPKEXPL", r->explained, "science variance the speckles explain");
+    if (!rc && f && isfinite(r->explained_median))
+        rc = swfs_fits_out_key_double(o, "SPKEXPLM", r->explained_median, "the same, median pixel");
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITCHI2", f->chi2, "chi-square of the fit to the statistics");
     if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNPIX", (long)f->npix, "focal pixels fitted");
     if (!rc && f) rc = swfs_fits_out_key_long(o, "FITNPAR", (long)f->nparams, "parameters fitted");

@@ -72,7 +72,11 @@ static int pupil_fit(const swfs_halo *h, const swfs_geom *g, const swfs_real *ma
     r->opt = *o;
     r->method = SWFS_PUPIL_FIT;
     int rc = swfs_regress_solve(h->reg, &sol);
-    if (!rc) rc = swfs_jointfit(sol, g, mask, &o->fit, &r->fit);
+    if (!rc) {
+        r->explained = sol->explained;
+        r->explained_median = sol->explained_median;
+        rc = swfs_jointfit(sol, g, mask, &o->fit, &r->fit);
+    }
     swfs_regress_sol_free(sol);
     if (rc) goto fail;
     const size_t n = (size_t)g->pupn;
@@ -136,6 +140,7 @@ static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real
 
     swfs_pupil_result *r = calloc(1, sizeof *r);
     if (!r) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    r->explained = r->explained_median = NAN;
     r->opt = o;
     r->method = SWFS_PUPIL_MOMENTS;
     r->field = swfs_cplx_alloc(n, n, 1);

@@ -1,6 +1,7 @@
 /* Streaming per-pixel regression statistics: see include/specklewfs/regress.h and
  * docs/estimator.md (Stage 1). */
 #include "specklewfs/regress.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/status.h"
 
 #include <lapacke.h>
@@ -244,7 +245,8 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
         swfs_regress_sol_free(s);
         return SWFS_ERR_NOMEM;
     }
-    double v[NS];
+    double v[NS], sst_sum = 0, sse_sum = 0, *r2 = malloc(np * sizeof *r2);
+    size_t nr2 = 0;
     for (size_t k = 0; k < np; k++) {
         gather(r->state, np, k, v);
         const double n = v[SWFS_REG_N];
@@ -274,7 +276,17 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
         for (int t = 0; t < 10; t++) s->info->data[(size_t)t * np + k] = v[SWFS_REG_G00 + t] / s2;
         s->valid->data[k] = 1.0;
         s->n_valid++;
+        /* the self-check: variance about the mean (the intercept alone) against what is left */
+        const double sst = v[SWFS_REG_YY] - v[SWFS_REG_H0] * v[SWFS_REG_H0] / G[0][0], sse = v[SWFS_REG_YY] - th;
+        if (sst > 0 && r2 && nr2 < np) {
+            sst_sum += sst;
+            sse_sum += sse;
+            r2[nr2++] = 1 - sse / sst;
+        }
     }
+    s->explained = sst_sum > 0 ? 1 - sse_sum / sst_sum : NAN;
+    s->explained_median = nr2 ? swfs_median_inplace(r2, nr2) : NAN;
+    free(r2);
     if (!s->n_valid) {
         swfs_regress_sol_free(s);
         return swfs_fail(SWFS_ERR_NUMERIC, "regression: no pixel has more than 4 usable frames and a solvable Gram matrix");
