@@ -150,7 +150,11 @@ typedef struct swfs_stream_run_result {
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 
-/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) ----------- */
+/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) -----------
+ * Raw cubes that are milk log files (a timestamp table X.txt beside X.fits or X.fits.fz,
+ * milklog.h) carry their frames' counters and stamps into the STAMPS extension: all of the
+ * raw cubes or none, each table's rows equal to its cube's frames, stamps in the order the
+ * cubes are given. */
 
 typedef struct swfs_reduce_run_options {
     const char *const *raw;   /* nraw raw camera cubes, concatenated in this order */
@@ -175,6 +179,10 @@ typedef struct swfs_reduce_run_result {
     char missing[96];         /* geometry keywords the reduced cube still lacks ("" if none): the
                                  first raw cube's header and the given geometry had no value */
     int overridden;           /* keywords of the raw header the given geometry replaced */
+    int stamped;              /* 1: every raw cube had a milk timestamp table (X.txt beside X.fits):
+                                 the STAMPS extension was written (science.h) */
+    uint64_t dropped;         /* camera counter jumps > 1 over the raw cubes (stamped only) */
+    double exptime;           /* [s] EXPTIME of the first raw cube (0: none) */
 } swfs_reduce_run_result;
 
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);
