@@ -18,7 +18,9 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "specklewfs/clocksync.h"
 #include "specklewfs/estimate.h"
+#include "specklewfs/milksource.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/reduce.h"
@@ -135,6 +137,14 @@ typedef struct swfs_stream_run_options {
     const swfs_team *team;
     int pupil_source;         /* the pupil product's source: SWFS_SOURCE_HALO_LF (default) or SWFS_SOURCE_HALO (pupil.h) */
     swfs_geom geom;           /* given geometry: fills or replaces the science header's */
+    /* Time-stamped input instead of the timing table (milksource.h): nwfs_logs WFS milk logs
+     * (each a folder or one file; their values concatenated in this order), the science cube's
+     * STAMPS, the clock file of `sync --wfs-log` (NULL: the camera on the WFS clock, oriented
+     * as the model) and the exposure time [s] (0: STAMPS' EXPTIME, else the frame period). */
+    const char *const *wfs_logs;
+    size_t nwfs_logs;
+    const char *clock;
+    double exptime;
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);
@@ -146,6 +156,8 @@ typedef struct swfs_stream_run_result {
     double ratio;             /* WFS frames per camera frame (the timing table's) */
     swfs_noise noise;
     swfs_pipeline_info info;
+    int stamped;              /* 1: a run over milk logs; stamps holds its counts */
+    swfs_milk_source_stats stamps;
 } swfs_stream_run_result;
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
@@ -204,6 +216,30 @@ typedef struct swfs_sync_run_result {
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);
+
+/* ---- sync --wfs-log: time-stamped frames -> the clock file (clocksync.h) ------------- */
+
+typedef struct swfs_clock_run_options {
+    const char *science;      /* reduced science cube with TRACK and STAMPS (reduce of milk camera logs) */
+    const char *const *wfs;   /* one WFS log (milklog.h: a folder, or its files): Shack-Hartmann slopes,
+                                 x then y, whose mean gives the tip-tilt */
+    size_t nwfs;
+    const char *out;          /* the clock file */
+    double exptime;           /* [s] camera exposure time; 0: STAMPS' EXPTIME, else the frame period */
+    swfs_clock_params params;
+    const char *const *prov;
+    size_t nprov;
+} swfs_clock_run_options;
+
+void swfs_clock_run_options_default(swfs_clock_run_options *o);
+
+typedef struct swfs_clock_run_result {
+    swfs_clock clock;
+    uint64_t wfs_dropped, cam_dropped; /* counter jumps of the WFS log and of STAMPS */
+    size_t wfs_frames, wfs_files;
+} swfs_clock_run_result;
+
+int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 
 SWFS_END_DECLS
 

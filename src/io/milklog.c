@@ -2,6 +2,7 @@
 #include "specklewfs/milklog.h"
 #include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
@@ -17,44 +18,9 @@
 
 #define NS_PER_S 1000000000LL
 
-int swfs_milk_parse_time(const char *s, int64_t *ns)
-{
-    const char *p = s;
-    if (!isdigit((unsigned char)*p) && !(*p == '.' && isdigit((unsigned char)p[1]))) return SWFS_ERR_FORMAT;
-    if (strpbrk(s, "eE")) { /* an exponent form: through a double */
-        char *end = NULL;
-        errno = 0;
-        const double v = strtod(s, &end);
-        if (errno || *end || !(v >= 0) || v > 9.2e9) return SWFS_ERR_FORMAT;
-        *ns = (int64_t)llround(v * 1e9);
-        return SWFS_OK;
-    }
-    int64_t sec = 0, frac = 0;
-    int nd = 0;
-    for (; isdigit((unsigned char)*p); p++) {
-        if (sec > 9200000000LL) return SWFS_ERR_FORMAT;
-        sec = 10 * sec + (*p - '0');
-    }
-    if (*p == '.') {
-        p++;
-        int round_up = 0;
-        for (; isdigit((unsigned char)*p); p++, nd++) {
-            if (nd < 9) frac = 10 * frac + (*p - '0');
-            else if (nd == 9) round_up = *p >= '5';
-        }
-        for (int k = nd; k < 9; k++) frac *= 10;
-        frac += round_up;
-    }
-    if (*p) return SWFS_ERR_FORMAT;
-    *ns = sec * NS_PER_S + frac;
-    return SWFS_OK;
-}
+int swfs_milk_parse_time(const char *s, int64_t *ns) { return swfs_time_parse_ns(s, ns) ? SWFS_ERR_FORMAT : SWFS_OK; }
 
-void swfs_milk_format_time(int64_t ns, char *buf, size_t cap)
-{
-    const int64_t s = ns / NS_PER_S, f = ns % NS_PER_S;
-    snprintf(buf, cap, "%lld.%09lld", (long long)s, (long long)f);
-}
+void swfs_milk_format_time(int64_t ns, char *buf, size_t cap) { swfs_time_format_ns(ns, buf, cap); }
 
 void swfs_milk_file_stem(const char *sname, int64_t ns, char *buf, size_t cap)
 {
