@@ -97,4 +97,11 @@ grep -q "late.*1700001" "$D/err.log" || { cat "$D/err.log"; fail "no-overlap mes
 [ ! -e "$D/x_halo.fits" ] || fail "stream left a product after refusing"
 expect_error "lies inside the WFS data" "$B" sync --wfs-log "$D/late" "$D/sci_milk.fits" -o "$D/x_clock.txt"
 [ ! -e "$D/x_clock.txt" ] || fail "sync left a clock file after refusing"
+# reduce: camera logs mixed with a raw cube that has no table; a camera table one row short.
+c=$(ls "$D"/sim/milk/cam/*.fits | head -1)
+expect_error "has none" "$B" reduce "$c" "$D/sim/raw_001.fits" -o "$D/x_sci.fits"
+rm -rf "$D/camrows" && mkdir "$D/camrows" && cp "$c" "${c%.fits}.txt" "$D/camrows/"
+sed -i '$d' "$D"/camrows/*.txt
+expect_error "holds [0-9]* frames but its timestamp table .*camrows.* lists" "$B" reduce "$D"/camrows/*.fits -o "$D/x_sci.fits"
+[ ! -e "$D/x_sci.fits" ] || fail "reduce left an output after refusing"
 echo "cli_milk: ok"

@@ -320,6 +320,12 @@ static int join(swfs_milklog *l)
         memcpy(l->cnt + m->first, m->cnt, m->n * sizeof *l->cnt);
         memcpy(l->stamp + m->first, m->stamp, m->n * sizeof *l->stamp);
     }
+    for (size_t k = 0; k < nf; k++) { /* the log's table is the one copy kept */
+        free(l->f[k].cnt);
+        free(l->f[k].stamp);
+        l->f[k].cnt = NULL;
+        l->f[k].stamp = NULL;
+    }
     for (size_t i = 1; i < n; i++) {
         if (l->cnt[i] > l->cnt[i - 1]) l->info.dropped += l->cnt[i] - l->cnt[i - 1] - 1;
         else l->info.restarts++;
