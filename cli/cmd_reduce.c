@@ -19,7 +19,10 @@ static const char *usage_text =
     "reference peak and shifted (bilinear) to the fixed centre (W/2, H/2).\n"
     "\n"
     "  RAW.fits ...        raw camera cubes (x, y, frame), all of the same frame size, in time\n"
-    "                      order; they are concatenated into SCIENCE.fits\n"
+    "                      order; they are concatenated into SCIENCE.fits. milk log files\n"
+    "                      (X.fits or X.fits.fz with its timestamp table X.txt) carry every\n"
+    "                      frame's cnt0 and stamp into the extension STAMPS (and EXPTIME), for\n"
+    "                      'sync --wfs-log' and 'stream --wfs-log'\n"
     "  -o SCIENCE.fits     reduced cube (primary HDU) with RDNOISE = sqrt(background noise\n"
     "                      variance of the output frames) for estimate (the bilinear shift\n"
     "                      scales the raw variance NOISERAW by NOISEFAC, ~4/9; GAIN becomes\n"
@@ -92,6 +95,9 @@ int swfs_cmd_reduce(int argc, char **argv)
     if (rc == CLI_OK)
         fprintf(stderr, "reduce: %zu frames from %zu cubes, %zu bad pixels, background noise %.4g counts rms (%.4g after "
                 "registration) -> %s\n", r.nframes, o.nraw, r.nbad, sqrt(r.noise_var), sqrt(r.noise_fac * r.noise_var), o.out);
+    if (rc == CLI_OK && r.stamped)
+        fprintf(stderr, "reduce: milk time stamps of every frame in STAMPS: %llu camera frames dropped (counter jumps), "
+                "EXPTIME %s\n", (unsigned long long)r.dropped, r.exptime > 0 ? "from the raw header" : "absent");
     free(raws);
     return rc;
 }

@@ -23,6 +23,11 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
         return cli_error(cmd);
     int rc = cli_make_dir(cmd, outdir);
     if (rc) return rc;
+    char sub[4200];
+    for (int k = 0; k < 2 && p.milk; k++) { /* the milk logs' stream folders */
+        snprintf(sub, sizeof sub, "%s/milk/%s", outdir, k ? "cam" : "wfs");
+        if ((rc = cli_make_dir(cmd, sub))) return rc;
+    }
     swfs_paths *paths = NULL;
     swfs_paths_create(&paths);
     swfs_paths_input(paths, "config file", cfgfile);
@@ -57,5 +62,9 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
         printf("  modal telemetry: %zu modes in um of DM surface (modal_NNN.fits) on dm_modes.fits: --basis with "
                "--dm-pitch %.6g --dm-offset %g,%g --dm-rot %g --dm-flip --coef-scale 2e-6\n", nmodes, reg.pitch, reg.x0,
                reg.y0, reg.rot * 180 / M_PI);
+    if (p.milk)
+        printf("  milk logs in %s/milk/{wfs,cam}: stamp jitter %.3g s, camera clock drift %.3g and offset %.3g s, %ld "
+               "WFS and %ld camera frames dropped (milk/truth.txt)\n", outdir, p.milk_jitter, p.milk_drift,
+               p.milk_offset, p.milk_drop_wfs, p.milk_drop_cam);
     return CLI_OK;
 }

@@ -15,6 +15,7 @@
 
 static const char *usage_text =
     "usage: specklewfs stream --timing TIMING.txt --science SCIENCE.fits [--slopes DIR|FILE]\n"
+    "                         | --wfs-log DIR|FILE [--wfs-log ...] [--clock CLOCK.txt] [--exptime T]\n"
     "                         --recon RECON.fits --actuators ACT.fits -o HALO.fits\n"
     "                         [--pupil-out PUPIL.fits] [--every K] [--every-seconds T]\n"
     "                         [--threads N] [--checkpoint FILE] [--static auto|none|HALO0.fits]\n"
@@ -65,10 +66,16 @@ static const char *usage_text =
     "  --keep-tiptilt        same as --tiptilt keep\n"
     "  --batch B             camera frames per batch (default 128)\n"
     "  --max-frames N        stop after N camera frames\n"
-    "  --read-noise, --gain  noise model for the estimate (default: science header)\n"
-    "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
-    "                        (default 2; 0 = the paper's per-pixel g)\n";
+    "  --read-noise, --gain  noise model for the estimate (default: science header)\n";
 static const char *usage_mpi =
+    "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
+    "                        (default 2; 0 = the paper's per-pixel g)\n"
+    "  --wfs-log DIR|FILE    instead of --timing: a WFS milk log (folder of NAME_hh:mm:ss.s.fits[.fz]\n"
+    "                        + .txt, or one file); several are concatenated into one slope vector.\n"
+    "                        The science cube's STAMPS (reduce of camera logs) place every exposure\n"
+    "                        [stamp - T, stamp] on the WFS frames (docs/telemetry.md)\n"
+    "  --clock CLOCK.txt     camera clock offset, drift and pairing from 'sync --wfs-log'\n"
+    "  --exptime T           camera exposure [s] (default: STAMPS' EXPTIME, else the frame period)\n"
     CLI_GEOM_HELP
     CLI_LINEAR_HELP
     "\n"
@@ -86,7 +93,14 @@ static int special(void *ctx, int argc, char **argv, int *i)
     if (gk) return gk;
     const int lk = cli_linear_option("stream", argc, argv, i, &o->lin);
     if (lk) return lk;
-    if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
+    static const char *logs[SWFS_FRAMESYNC_MAX_WFS];
+    if (!strcmp(a, "--wfs-log")) {
+        const char *v = cli_next(argc, argv, i);
+        if (!v) return -cli_usage_error("stream", "--wfs-log needs a folder or file");
+        if (o->nwfs_logs == SWFS_FRAMESYNC_MAX_WFS) return -cli_usage_error("stream", "at most %d --wfs-log", SWFS_FRAMESYNC_MAX_WFS);
+        logs[o->nwfs_logs++] = v;
+        o->wfs_logs = logs;
+    } else if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
     else if (!strcmp(a, "--pupil-method")) {
         if (cli_parse_choice("stream", a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
@@ -112,7 +126,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--threads", CLI_LONG, &threads, NULL, 0},       {"--batch", CLI_LONG, &batch, NULL, 0},
         {"--max-frames", CLI_LONG, &max_frames, NULL, 0}, {"--every-seconds", CLI_DOUBLE, &o->stream.every_seconds, NULL, 0},
         {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},
-        {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0},
+        {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0}, {"--clock", CLI_STRING, &o->clock, v, 0},
+        {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0},
     };
     for (int i = 1; i < argc; i++)
         if (cli_is_help(argv[i])) { /* the usage is two strings */
@@ -123,10 +138,13 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
-    if (!o->timing || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
-        return cli_usage_error(cmd, "needs --timing, --science, --recon and --actuators (or --basis) and -o");
+    if ((!o->timing == !o->nwfs_logs) || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
+        return cli_usage_error(cmd, "needs --timing or --wfs-log (one of them), --science, --recon and --actuators (or "
+                               "--basis) and -o");
     if (o->lin.basis && (o->recon || o->actuators))
         return cli_usage_error(cmd, "--basis (the linear model) takes no --recon or --actuators");
+    if ((o->clock || o->exptime != 0) && !o->nwfs_logs) return cli_usage_error(cmd, "--clock and --exptime go with --wfs-log");
+    if (!(o->exptime >= 0)) return cli_usage_error(cmd, "--exptime must be >= 0 s, got %g", o->exptime);
     if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);
     if (o->stream.every_seconds < 0) return cli_usage_error(cmd, "--every-seconds must be >= 0, got %g", o->stream.every_seconds);
     if (threads < 1 || threads > SWFS_ENGINE_MAX_THREADS)
@@ -196,5 +214,11 @@ int swfs_cmd_stream(int argc, char **argv)
     if (swfs_team_active(o.team)) printf(" x %d processes", o.team->size);
     if (r.wfs_rate > 0) printf(" = %.1f x real time (WFSRATE %.0f Hz)", rate / r.wfs_rate, r.wfs_rate);
     printf("\n");
+    const swfs_framesync_stats *f = &r.stamps.sync;
+    if (r.stamped)
+        printf("stream: time stamps: %llu camera frames used of %llu, exposure %.6g ms; dropped %llu camera and %llu WFS "
+               "frames; skipped %llu incomplete, %llu outside the WFS data\n", (unsigned long long)f->used,
+               (unsigned long long)f->camera_received, 1e3 * r.stamps.exptime, (unsigned long long)f->camera_dropped,
+               (unsigned long long)f->wfs_dropped, (unsigned long long)f->incomplete, (unsigned long long)f->no_wfs);
     return CLI_OK;
 }

@@ -12,6 +12,8 @@
 static const char *usage_text =
     "usage: specklewfs sync SCIENCE.fits HANDSHAKE.log -o TIMING.txt [--ratio-min R] [--ratio-max R]\n"
     "                       [--lag-min L] [--lag-max L] [--ratio-step S] [--lag-step S]\n"
+    "       specklewfs sync --wfs-log DIR|FILE SCIENCE.fits -o CLOCK.txt [--exptime T]\n"
+    "                       [--offset-min S] [--offset-max S] [--drift-max D]\n"
     "\n"
     "Synchronize the science cubes with the WFS telemetry (Codona & Kenworthy 2013, Sec. 4.2).\n"
     "The star's track (TRACK extension written by `specklewfs reduce`) is cross-correlated\n"
@@ -28,11 +30,61 @@ static const char *usage_text =
     "  --lag-min/max    search range of the lag [WFS frames] (default -3 .. 12: the log is written\n"
     "                   after the camera starts). Keep it narrower than the period of a dominant\n"
     "                   vibration: a pure sinusoid makes the lag ambiguous by half periods\n"
-    "  --ratio-step, --lag-step  coarse grid (0.01, 0.5), refined 100x around the peak\n";
+    "  --ratio-step, --lag-step  coarse grid (0.01, 0.5), refined 100x around the peak\n"
+    "\n"
+    "Time-stamped data (milk/cacao logs, docs/telemetry.md): the camera clock against the WFS\n"
+    "clock, t_wfs = epoch + (t_cam - epoch) (1 + drift) + offset, by the same correlation\n"
+    "over (offset, drift); every stamp marks the end of its frame.\n"
+    "  --wfs-log DIR|FILE  the WFS slopes' log (a folder of NAME_hh:mm:ss.s.fits[.fz] + .txt, or\n"
+    "                   one such file); SCIENCE.fits must have STAMPS ('reduce' of camera logs)\n"
+    "  -o CLOCK.txt     offset, drift (with their errors), pairing, correlation, residual\n"
+    "  --exptime T      camera exposure [s] (default: EXPTIME of the raw header, else the period)\n"
+    "  --offset-min/max search range of the offset [s] (default -0.01 .. 0.01); keep it within\n"
+    "                   half the period of a dominant vibration (a sinusoid repeats)\n"
+    "  --drift-max D    |drift| searched (default 5e-4)\n";
+
+/* sync --wfs-log: the clock file. */
+static int sync_clock(int argc, char **argv)
+{
+    const char *cmd = "sync";
+    swfs_clock_run_options o;
+    swfs_clock_run_options_default(&o);
+    const char *wfs = NULL;
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o.out, "a file name", 0},          {"--wfs-log", CLI_STRING, &wfs, "a folder or file", 0},
+        {"--exptime", CLI_DOUBLE, &o.exptime, NULL, 0},        {"--offset-min", CLI_DOUBLE, &o.params.offset_min, NULL, 0},
+        {"--offset-max", CLI_DOUBLE, &o.params.offset_max, NULL, 0}, {"--drift-max", CLI_DOUBLE, &o.params.drift_max, NULL, 0},
+    };
+    const char **const pos[] = {&o.science};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, NULL, NULL, NULL, NULL};
+    int prc = cli_parse_args(&args, argc, argv);
+    if (prc) return prc < 0 ? CLI_OK : prc;
+    if (!o.science || !o.out) return cli_usage_error(cmd, "--wfs-log needs SCIENCE.fits and -o CLOCK.txt");
+    if (!(o.exptime >= 0)) return cli_usage_error(cmd, "--exptime must be >= 0 s, got %g", o.exptime);
+    o.wfs = &wfs;
+    o.nwfs = 1;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
+    swfs_clock_run_result r;
+    if (swfs_clock_run(&o, &r)) return cli_error(cmd);
+    const swfs_clock *c = &r.clock;
+    printf("sync: WFS log %zu frames in %zu files (%llu dropped), period %.6g ms, stamp jitter %.3g us; camera %zu "
+           "frames (%llu dropped), period %.6g ms, jitter %.3g us, exposure %.6g ms\n", r.wfs_frames, r.wfs_files,
+           (unsigned long long)r.wfs_dropped, 1e3 * c->wfs_period, 1e6 * c->wfs_jitter, c->ncam,
+           (unsigned long long)r.cam_dropped, 1e3 * c->cam_period, 1e6 * c->cam_jitter, 1e3 * c->exptime);
+    printf("sync: clock offset %.4f +- %.4f ms, drift %.3e +- %.1e (t_wfs = epoch + (t_cam - epoch)(1 + drift) + "
+           "offset)\n", 1e3 * c->offset, 1e3 * c->offset_err, c->drift, c->drift_err);
+    printf("sync: pairing camera x <- %s slopes (sign %+d, corr %.3f), camera y <- %s slopes (sign %+d, corr %.3f); "
+           "track residual %.3g px rms over %zu frames in %zu segments -> %s\n", c->fit.swap ? "y" : "x",
+           c->fit.sign_x, c->fit.corr_x, c->fit.swap ? "x" : "y", c->fit.sign_y, c->fit.corr_y, c->resid, c->nused,
+           c->nsegments, o.out);
+    return CLI_OK;
+}
 
 int swfs_cmd_sync(int argc, char **argv)
 {
     const char *cmd = "sync";
+    for (int i = 1; i < argc; i++)
+        if (!strcmp(argv[i], "--wfs-log")) return sync_clock(argc, argv);
     swfs_sync_run_options o;
     swfs_sync_run_options_default(&o);
     swfs_sync_params *p = &o.params;

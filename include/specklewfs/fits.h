@@ -48,6 +48,9 @@ const char *swfs_fits_in_path(const swfs_fits_in *f);
  * HDU, or complex reads of a real one, are SWFS_ERR_FORMAT. */
 int swfs_fits_in_read_real(swfs_fits_in *f, size_t first, size_t n, double *buf);
 int swfs_fits_in_read_cplx(swfs_fits_in *f, size_t first, size_t n, swfs_complex *buf);
+/* Rows [first, first + n) of a real 2-D image (nx values each) into buf: one frame per row
+ * of a log of vectors (milklog.h). SWFS_ERR_FORMAT for a cube or a complex image. */
+int swfs_fits_in_read_rows(swfs_fits_in *f, size_t first, size_t n, double *buf);
 /* Whole HDU into a new array. */
 int swfs_fits_in_read_real_all(swfs_fits_in *f, swfs_real **out);
 int swfs_fits_in_read_cplx_all(swfs_fits_in *f, swfs_cplx **out);

@@ -1,10 +1,12 @@
-/* Small numeric helpers every stage shares: sorting, medians, FFT frequency indices. */
+/* Small numeric helpers every stage shares: sorting, medians, FFT frequency indices, time
+ * stamps as text. */
 #ifndef SWFS_NUMERIC_H
 #define SWFS_NUMERIC_H
 
 #include "specklewfs/defs.h"
 
 #include <stddef.h>
+#include <stdint.h>
 
 SWFS_BEGIN_DECLS
 
@@ -18,6 +20,14 @@ static inline long swfs_fft_freq_index(size_t k, size_t n)
 {
     return k < (n + 1) / 2 ? (long)k : (long)k - (long)n;
 }
+
+/* Seconds as text ("1700000000.123456789") <-> int64 nanoseconds, exactly: the integer and
+ * the fractional digits are parsed separately (a double of ~1.7e9 s resolves only ~0.2 us);
+ * at most 9 decimals are kept (the tenth rounds); an exponent form goes through a double.
+ * The parser returns 0, or non-zero for anything else (no message: the caller names the
+ * file and line); negative times are refused. */
+int swfs_time_parse_ns(const char *s, int64_t *ns);
+void swfs_time_format_ns(int64_t ns, char *buf, size_t cap);
 
 SWFS_END_DECLS
 

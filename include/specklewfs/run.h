@@ -18,8 +18,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "specklewfs/clocksync.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/lmodel.h"
+#include "specklewfs/milksource.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/reduce.h"
@@ -174,6 +176,14 @@ typedef struct swfs_stream_run_options {
     swfs_geom geom;           /* given geometry: fills or replaces the science header's */
     swfs_linear_files lin;    /* lin.basis: the generic linear model instead of recon + actuators
                                  (an interaction matrix learns from the first telemetry file) */
+    /* Time-stamped input instead of the timing table (milksource.h): nwfs_logs WFS milk logs
+     * (each a folder or one file; their values concatenated in this order), the science cube's
+     * STAMPS, the clock file of `sync --wfs-log` (NULL: the camera on the WFS clock, oriented
+     * as the model) and the exposure time [s] (0: STAMPS' EXPTIME, else the frame period). */
+    const char *const *wfs_logs;
+    size_t nwfs_logs;
+    const char *clock;
+    double exptime;
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);
@@ -185,11 +195,17 @@ typedef struct swfs_stream_run_result {
     double ratio;             /* WFS frames per camera frame (the timing table's) */
     swfs_noise noise;
     swfs_pipeline_info info;
+    int stamped;              /* 1: a run over milk logs; stamps holds its counts */
+    swfs_milk_source_stats stamps;
 } swfs_stream_run_result;
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 
-/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) ----------- */
+/* ---- reduce: raw camera cubes -> the reduced science cube (science.h) -----------
+ * Raw cubes that are milk log files (a timestamp table X.txt beside X.fits or X.fits.fz,
+ * milklog.h) carry their frames' counters and stamps into the STAMPS extension: all of the
+ * raw cubes or none, each table's rows equal to its cube's frames, stamps in the order the
+ * cubes are given. */
 
 typedef struct swfs_reduce_run_options {
     const char *const *raw;   /* nraw raw camera cubes, concatenated in this order */
@@ -214,6 +230,10 @@ typedef struct swfs_reduce_run_result {
     char missing[96];         /* geometry keywords the reduced cube still lacks ("" if none): the
                                  first raw cube's header and the given geometry had no value */
     int overridden;           /* keywords of the raw header the given geometry replaced */
+    int stamped;              /* 1: every raw cube had a milk timestamp table (X.txt beside X.fits):
+                                 the STAMPS extension was written (science.h) */
+    uint64_t dropped;         /* camera counter jumps > 1 over the raw cubes (stamped only) */
+    double exptime;           /* [s] EXPTIME of the first raw cube (0: none) */
 } swfs_reduce_run_result;
 
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);
@@ -235,6 +255,30 @@ typedef struct swfs_sync_run_result {
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);
+
+/* ---- sync --wfs-log: time-stamped frames -> the clock file (clocksync.h) ------------- */
+
+typedef struct swfs_clock_run_options {
+    const char *science;      /* reduced science cube with TRACK and STAMPS (reduce of milk camera logs) */
+    const char *const *wfs;   /* one WFS log (milklog.h: a folder, or its files): Shack-Hartmann slopes,
+                                 x then y, whose mean gives the tip-tilt */
+    size_t nwfs;
+    const char *out;          /* the clock file */
+    double exptime;           /* [s] camera exposure time; 0: STAMPS' EXPTIME, else the frame period */
+    swfs_clock_params params;
+    const char *const *prov;
+    size_t nprov;
+} swfs_clock_run_options;
+
+void swfs_clock_run_options_default(swfs_clock_run_options *o);
+
+typedef struct swfs_clock_run_result {
+    swfs_clock clock;
+    uint64_t wfs_dropped, cam_dropped; /* counter jumps of the WFS log and of STAMPS */
+    size_t wfs_frames, wfs_files;
+} swfs_clock_run_result;
+
+int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 
 SWFS_END_DECLS
 

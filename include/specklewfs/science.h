@@ -3,12 +3,16 @@
  * noise model (NOISEVAR, RDNOISE, NOISERAW, NOISEFAC, GAIN, GAINRAW), NCUBES and CUBEnnnn
  * (the raw camera file of each cube, in order), NBADPIX, REGISTER, and the extension
  * TRACK: 4 x nframes (peak x, peak y [pixels, before the shift], cube index, frame within
- * the cube), which `sync` cross-correlates with the WFS tip-tilt. This file is the one
- * owner of that layout. */
+ * the cube), which `sync` cross-correlates with the WFS tip-tilt; when the raw cubes were
+ * milk logs (a timestamp table beside each, milklog.h) also the extension STAMPS: 3 x
+ * nframes float64 (cnt0, whole seconds, nanoseconds: the stamp of the END of the frame's
+ * exposure, exact as two numbers) with EXPTIME [s] where the raw header had it. This file
+ * is the one owner of that layout. */
 #ifndef SWFS_SCIENCE_H
 #define SWFS_SCIENCE_H
 
 #include <stddef.h>
+#include <stdint.h>
 
 #include "specklewfs/fits.h"
 
@@ -23,6 +27,9 @@ typedef struct swfs_science_meta {
     const char *const *cubes; /* raw camera file names (base names are recorded) */
     size_t nbad;
     int registered;
+    const uint64_t *cnt;  /* nframes camera counters (cnt0) and stamps [ns]: STAMPS (NULL: none) */
+    const int64_t *stamp;
+    double exptime;       /* [s] the raw header's EXPTIME (0: none) */
 } swfs_science_meta;
 
 /* Keywords and the TRACK extension (track: 4 x nframes) on an output whose frames are
@@ -40,6 +47,11 @@ typedef struct swfs_science_track {
 
 int swfs_science_track_read(const char *path, swfs_science_track **out);
 void swfs_science_track_free(swfs_science_track *t);
+
+/* The STAMPS extension: *n = the cube's frames, counters and stamps [ns] (caller frees
+ * both), *exptime the EXPTIME recorded (0: none). SWFS_ERR_FORMAT naming the file when the
+ * cube has no STAMPS (its raw cubes had no timestamp table) or a malformed one. */
+int swfs_science_stamps_read(const char *path, uint64_t **cnt, int64_t **stamp, size_t *n, double *exptime);
 
 SWFS_END_DECLS
 

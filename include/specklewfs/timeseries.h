@@ -28,7 +28,19 @@
  *   truth.fits        NCP [m] (piston removed), PUPIL, RESMEAN (time-mean residual [m]);
  *                     keys RATIO, HSLAG, residual rms, STATRMS
  *   truth_timing.txt  the true exposure start of every cube (global WFS frames)
- */
+ *
+ * With milk=1 also the same WFS slopes and raw camera frames as milk/cacao stream logs
+ * (milklog.h, ../shared/FORMATS.md), the worked example of that format:
+ *   milk/wfs/wfs_hh:mm:ss.sssssssss.fits + .txt   slopes as N x 1 x T cubes, milk_file_frames
+ *                     WFS frames per file; stamp of WFS frame k (0-based) = milk_epoch + (k+1)
+ *                     / wfs_rate (the END of the frame) + jitter, cnt0 = k + 1
+ *   milk/cam/cam_hh:mm:ss.sssssssss.fits + .txt   raw camera frames, each cube cut into files
+ *                     of milk_cam_file_frames, EXPTIME, GAIN and the geometry in the header;
+ *                     cnt0 counts exposures over the cubes (1, 2, ...); the stamp is the
+ *                     exposure's end read on the camera clock: t_cam - epoch = (t_wfs - epoch
+ *                     - milk_offset) / (1 + milk_drift), + jitter
+ *   milk/truth.txt    epoch, drift, offset, jitter, dropped frames, exposure time
+ * milk_drop_wfs / milk_drop_cam frames are left out of the files (counter jumps). */
 #ifndef SWFS_TIMESERIES_H
 #define SWFS_TIMESERIES_H
 
@@ -84,6 +96,15 @@ typedef struct swfs_ts_params {
                                   a circle (1), or hexapolar rings (0, default) */
     long export_modal;         /* 1: also the telemetry in cacao's modal form, modal_NNN.fits and
                                   dm_modes.fits (swfs_ts_export_modal in run.h; `simulate` runs it) */
+    /* milk logs (above) */
+    long milk;                 /* 1: also write them (0) */
+    double milk_epoch;         /* [s] Unix time of the start of WFS frame 0, whole seconds (1.7e9) */
+    double milk_jitter;        /* [s] rms of every stamp (3e-6) */
+    double milk_drift;         /* camera clock rate error relative to the WFS clock (1e-4) */
+    double milk_offset;        /* [s] camera clock offset: t_wfs = epoch + (t_cam - epoch)(1 + drift) + offset (2.5e-3) */
+    long milk_drop_wfs, milk_drop_cam; /* frames dropped from each stream (5, 3) */
+    long milk_file_frames;     /* WFS frames per file (400) */
+    long milk_cam_file_frames; /* camera frames per file (40) */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

@@ -711,6 +711,22 @@ int swfs_fits_in_read_real(swfs_fits_in *f, size_t first, size_t n, double *buf)
     return read_frames(f, first, n, buf, 0);
 }
 
+int swfs_fits_in_read_rows(swfs_fits_in *f, size_t first, size_t n, double *buf)
+{
+    const swfs_fits_shape *s = &f->shape;
+    if (s->is_complex || s->nz != 1)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: rows of a real 2-D image requested from a %s %zux%zux%zu image", f->path,
+                         s->is_complex ? "complex" : "real", s->nx, s->ny, s->nz);
+    if (first > s->ny || n > s->ny - first)
+        return swfs_fail(SWFS_ERR_ARG, "%s: rows %zu..%zu requested but the image has %zu", f->path, first, first + n - 1,
+                         s->ny);
+    double nul = NAN;
+    int anynul = 0, st = 0;
+    fits_read_img(f->fp, TDOUBLE, (LONGLONG)(first * s->nx + 1), (LONGLONG)(n * s->nx), &nul, buf, &anynul, &st);
+    if (st) return fits_fail(SWFS_ERR_IO, st, f->path, "reading image rows");
+    return SWFS_OK;
+}
+
 int swfs_fits_in_read_cplx(swfs_fits_in *f, size_t first, size_t n, double complex *buf)
 {
     return read_frames(f, first, n, (double *)buf, 1);

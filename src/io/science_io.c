@@ -13,6 +13,22 @@ static const char *base_name(const char *p)
     return s ? s + 1 : p;
 }
 
+static int write_stamps(swfs_fits_out *o, const swfs_science_meta *m, size_t nframes)
+{
+    swfs_real *st = swfs_real_alloc(3, nframes, 1);
+    if (!st) return swfs_fail(SWFS_ERR_NOMEM, "out of memory for the STAMPS of %zu frames", nframes);
+    for (size_t k = 0; k < nframes; k++) {
+        st->data[3 * k] = (double)m->cnt[k];
+        st->data[3 * k + 1] = (double)(m->stamp[k] / 1000000000LL);
+        st->data[3 * k + 2] = (double)(m->stamp[k] % 1000000000LL);
+    }
+    int rc = swfs_fits_out_real(o, "STAMPS", st, -64);
+    swfs_real_free(st);
+    if (!rc) rc = swfs_fits_out_key_string(o, "COLUMNS", "cnt0 seconds nanoseconds", "stamp = end of the exposure");
+    if (!rc && m->exptime > 0) rc = swfs_fits_out_key_double(o, "EXPTIME", m->exptime, "[s] from the raw header");
+    return rc;
+}
+
 int swfs_science_write_meta(swfs_fits_out *o, const swfs_science_meta *m, const double *track, size_t nframes)
 {
     /* The bilinear registration averages neighbouring pixels: the registered frames carry
@@ -41,7 +57,54 @@ int swfs_science_write_meta(swfs_fits_out *o, const swfs_science_meta *m, const 
     }
     swfs_real tr = {4, nframes, 1, (double *)track};
     if ((rc = swfs_fits_out_real(o, "TRACK", &tr, -64))) return rc;
-    return swfs_fits_out_key_string(o, "COLUMNS", "peak_x peak_y cube frame", "pixels before the shift");
+    if ((rc = swfs_fits_out_key_string(o, "COLUMNS", "peak_x peak_y cube frame", "pixels before the shift"))) return rc;
+    return m->cnt && m->stamp ? write_stamps(o, m, nframes) : SWFS_OK;
+}
+
+int swfs_science_stamps_read(const char *path, uint64_t **cnt, int64_t **stamp, size_t *n, double *exptime)
+{
+    *cnt = NULL;
+    *stamp = NULL;
+    *n = 0;
+    *exptime = 0;
+    swfs_fits_in *f = NULL;
+    swfs_real *a = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL), found = 0;
+    const size_t nz = rc ? 0 : swfs_fits_in_shape(f)->nz;
+    if (!rc && !swfs_fits_in_has_ext(f, "STAMPS"))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: no STAMPS extension (frame counters and time stamps): reduce raw cubes "
+                       "that have their milk timestamp table (.txt) beside them", path);
+    if (!rc) rc = swfs_fits_in_move(f, "STAMPS");
+    if (!rc) rc = swfs_fits_in_read_real_all(f, &a);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "EXPTIME", exptime, &found);
+    if (!rc && !found) *exptime = 0;
+    if (!rc && (a->nx != 3 || a->ny != nz || a->nz != 1))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: STAMPS is %zux%zux%zu; expected 3 x %zu (cnt0, seconds, nanoseconds per "
+                       "frame)", path, a->nx, a->ny, a->nz, nz);
+    if (!rc && (!(*cnt = malloc(nz * sizeof **cnt)) || !(*stamp = malloc(nz * sizeof **stamp))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    for (size_t k = 0; !rc && k < nz; k++) {
+        const double c = a->data[3 * k], s = a->data[3 * k + 1], ns = a->data[3 * k + 2];
+        if (!(c >= 0 && c < 9e15 && c == floor(c) && s >= 0 && s < 9.2e9 && s == floor(s) && ns >= 0 && ns < 1e9 &&
+              ns == floor(ns)))
+            rc = swfs_fail(SWFS_ERR_FORMAT, "%s: STAMPS row %zu (%g, %g, %g) is not a counter, whole seconds and "
+                           "nanoseconds", path, k, c, s, ns);
+        else {
+            (*cnt)[k] = (uint64_t)c;
+            (*stamp)[k] = (int64_t)s * 1000000000LL + (int64_t)ns;
+        }
+    }
+    swfs_real_free(a);
+    swfs_fits_in_close(f);
+    if (rc) {
+        free(*cnt);
+        free(*stamp);
+        *cnt = NULL;
+        *stamp = NULL;
+        return rc;
+    }
+    *n = nz;
+    return SWFS_OK;
 }
 
 void swfs_science_track_free(swfs_science_track *t)

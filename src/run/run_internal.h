@@ -23,7 +23,12 @@ typedef struct swfs_run_hooks {
     int (*prepare)(void *ctx, const swfs_pipeline_info *info);
     int (*after)(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
     void *ctx;
+    int offline;  /* 1: files as the source (milk logs): a failed run removes the products it
+                     wrote, as the timing table's run does; 0 (live) keeps them */
 } swfs_run_hooks;
+
+/* stream --wfs-log: milk logs + STAMPS of the science cube through framesync (run_stream_milk.c). */
+int swfs_stream_run_milk(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 
 int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r);
 

@@ -204,7 +204,7 @@ int swfs_live_run(const swfs_live_options *o, swfs_live_result *r)
         swfs_fits_in_close(f);
         if (!rc && o->run.actuators) rc = swfs_actuators_read(o->run.actuators, &l.xy, &l.nact);
     }
-    swfs_run_hooks hk = {live_next, &l, live_prepare, live_after, &l};
+    swfs_run_hooks hk = {live_next, &l, live_prepare, live_after, &l, 0};
     if (!rc) rc = swfs_stream_run_hooked(&o->run, &hk, &r->run);
     if (l.src) swfs_shm_source_get_stats(l.src, &r->src);
     swfs_shm_source_close(l.src);

@@ -1,10 +1,12 @@
 /* reduce: raw camera cubes -> the reduced science cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/milklog.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
 
 #include <math.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -75,6 +77,57 @@ static int header_params(const swfs_reduce_run_options *o, swfs_fits_in *f, swfs
     return SWFS_OK;
 }
 
+/* The milk timestamp tables beside the raw cubes (all or none) -> counters and stamps of
+ * every frame, in the order the cubes are given. */
+static int raw_stamps(const swfs_reduce_run_options *o, swfs_fits_in **in, size_t ntot, uint64_t **cnt,
+                      int64_t **stamp, swfs_reduce_run_result *r)
+{
+    char txt[8192];
+    size_t have = 0, k = 0;
+    const char *without = NULL, *with = NULL;
+    for (size_t c = 0; c < o->nraw; c++) {
+        FILE *f = swfs_milk_txt_path(o->raw[c], txt, sizeof txt) ? NULL : fopen(txt, "r");
+        swfs_clear_error();
+        if (f) { fclose(f); have++; with = o->raw[c]; }
+        else without = o->raw[c];
+    }
+    if (!have) return SWFS_OK;
+    if (have < o->nraw)
+        return swfs_fail(SWFS_ERR_VALUE, "%s has a milk timestamp table beside it but %s has none: give raw cubes that "
+                         "all have one (their stamps go into STAMPS) or none", with, without);
+    if (!(*cnt = malloc(ntot * sizeof **cnt)) || !(*stamp = malloc(ntot * sizeof **stamp)))
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory for the stamps of %zu frames", ntot);
+    for (size_t c = 0; c < o->nraw; c++) {
+        uint64_t *cc = NULL;
+        int64_t *tt = NULL;
+        size_t n = 0, nz = swfs_fits_in_shape(in[c])->nz;
+        int rc = swfs_milk_txt_path(o->raw[c], txt, sizeof txt);
+        if (!rc) rc = swfs_milk_txt_read(txt, &cc, &tt, &n);
+        if (!rc && n != nz)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s holds %zu frames but its timestamp table %s lists %zu", o->raw[c], nz,
+                           txt, n);
+        if (!rc && k && tt[0] < (*stamp)[k - 1])
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: its first stamp is before the last one of %s: give the raw cubes in "
+                           "time order", o->raw[c], o->raw[c - 1]);
+        for (size_t j = 0; !rc && j < n; j++, k++) {
+            (*cnt)[k] = cc[j];
+            (*stamp)[k] = tt[j];
+            if (k && cc[j] > (*cnt)[k - 1] + 1) r->dropped += cc[j] - (*cnt)[k - 1] - 1;
+        }
+        free(cc);
+        free(tt);
+        if (rc) return rc;
+    }
+    int found = 0;
+    double e = 0;
+    int rc = swfs_fits_in_key_double_opt(in[0], "EXPTIME", &e, &found);
+    if (!rc && found && !(e > 0 && e < 1e4))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: EXPTIME = %g s; expected a positive exposure time", o->raw[0], e);
+    r->exptime = found ? e : 0;
+    r->stamped = 1;
+    return rc;
+}
+
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -90,6 +143,8 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     if (prc) return prc;
     swfs_fits_in **in = calloc(o->nraw, sizeof *in);
     double *dark = NULL, *flat = NULL, *bad = NULL, *buf = NULL, *track = NULL;
+    uint64_t *cnt = NULL;
+    int64_t *stamp = NULL;
     swfs_reduce *red = NULL;
     swfs_fits_out *out = NULL;
     swfs_reduce_params p = o->params;
@@ -97,6 +152,7 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     double gainv = NAN;
     size_t nx = 0, ny = 0, ntot = 0;
     int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
+    if (!rc) rc = raw_stamps(o, in, ntot, &cnt, &stamp, r);
     if (!rc && o->dark) rc = read_map(o->dark, nx, ny, &dark);
     if (!rc && o->flat) rc = read_map(o->flat, nx, ny, &flat);
     if (!rc && o->badpix) rc = read_map(o->badpix, nx, ny, &bad);
@@ -122,7 +178,8 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
         r->nbad = swfs_reduce_nbad(red);
         r->noise_var = swfs_reduce_noise_var(red);
         r->noise_fac = swfs_reduce_noise_factor(red);
-        swfs_science_meta m = {r->noise_var, r->noise_fac, gainv, o->nraw, o->raw, r->nbad, p.do_register};
+        swfs_science_meta m = {r->noise_var, r->noise_fac, gainv, o->nraw,   o->raw,
+                               r->nbad,      p.do_register, cnt,   stamp, r->exptime};
         if (!(rc = swfs_fits_out_geom(out, &geom)) && !(rc = swfs_fits_out_provenance(out, o->prov, o->nprov)) &&
             !(rc = swfs_science_write_meta(out, &m, track, ntot))) {
             rc = swfs_fits_out_commit(out);
@@ -131,7 +188,7 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     }
     swfs_fits_out_abort(out);
     for (size_t c = 0; in && c < o->nraw; c++) swfs_fits_in_close(in[c]);
-    free(in); free(dark); free(flat); free(bad); free(buf); free(track);
+    free(in); free(dark); free(flat); free(bad); free(buf); free(track); free(cnt); free(stamp);
     swfs_reduce_free(red);
     return rc;
 }

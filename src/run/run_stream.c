@@ -323,6 +323,7 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r)
 {
+    if (o->nwfs_logs) return swfs_stream_run_milk(o, r);
     return swfs_stream_run_hooked(o, NULL, r);
 }
 
@@ -397,7 +398,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     }
     /* (A live run keeps them: its products and checkpoint are the complete state of the
      * frames that arrived before the streams failed, the point a restart resumes from.) */
-    if (rc && !hk && (u.updated || u.static_written)) {
+    if (rc && (!hk || hk->offline) && (u.updated || u.static_written)) {
         /* A failed run leaves no product that looks complete: the updates it had put in
          * place describe only the frames before the failure. */
         const char *const mine[] = {o->out, o->pupil_out, o->checkpoint};

@@ -3,6 +3,7 @@
 #include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/timeseries.h"
+#include "ts_milk.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/array.h"
 #include "specklewfs/engine.h"
@@ -54,6 +55,15 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->start_offset = 300.4;
     p->handshake_lag = 3;
     p->wfs_file_frames = 0;
+    p->milk = 0;
+    p->milk_epoch = 1.7e9;
+    p->milk_jitter = 3e-6;
+    p->milk_drift = 1e-4;
+    p->milk_offset = 2.5e-3;
+    p->milk_drop_wfs = 5;
+    p->milk_drop_cam = 3;
+    p->milk_file_frames = 400;
+    p->milk_cam_file_frames = 40;
     p->bandwidth = 0;
     p->nlambda = 5;
     p->background = 20;
@@ -95,6 +105,9 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
     L_("act_square", act_square); L_("export_modal", export_modal);
+    L_("milk", milk); D_("milk_epoch", milk_epoch); D_("milk_jitter", milk_jitter); D_("milk_drift", milk_drift);
+    D_("milk_offset", milk_offset); L_("milk_drop_wfs", milk_drop_wfs); L_("milk_drop_cam", milk_drop_cam);
+    L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
 #undef D_
 #undef L_
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
@@ -158,6 +171,8 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (p->nlambda < 1 || p->nlambda > 64) return badv("nlambda", (double)p->nlambda, "must be 1..64");
     if (!(p->background >= 0) || !(p->flat_rms >= 0)) return badv("background", p->background, "background and flat_rms must be >= 0");
     if (p->nhot < 0 || p->ndead < 0) return badv("nhot", (double)p->nhot, "bad-pixel counts must be >= 0");
+    const int mrc = swfs_ts_milk_check(p);
+    if (mrc) return mrc;
     if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
     if (p->export_modal & ~1L) return badv("export_modal", (double)p->export_modal, "must be 0 or 1");
     if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
@@ -299,7 +314,13 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
         snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);
         swfs_paths_output(paths, "simulation output", path);
     }
-    return swfs_paths_status(paths);
+    if (!p->milk) return swfs_paths_status(paths);
+    double *tstart = malloc(ncub * sizeof *tstart);
+    if (!tstart) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t c = 0; c < ncub; c++) tstart[c] = cube_start(p, c);
+    const int rc = swfs_ts_milk_outputs(p, dir, nwfs, tstart, paths);
+    free(tstart);
+    return rc;
 }
 
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
@@ -671,6 +692,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);
         rc = write_real(path, &cube, &geom, prov, nprov, b->gain);
     }
+    if (!rc && p->milk) /* the same telemetry and frames as milk logs */
+        rc = swfs_ts_milk_write(p, dir, slopes, nwfs, ns, noisy->data, nfx, nfy, tstart, &geom, prov, nprov, b->gain);
     swfs_real_free(noisy);
     if (!rc) { snprintf(path, sizeof path, "%s/dark.fits", dir); rc = write_real(path, dark, &geom, prov, nprov, 0); }
     if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0); }
