@@ -41,7 +41,18 @@ static const char *usage_text =
     "  --exptime T      camera exposure [s] (default: EXPTIME of the raw header, else the period)\n"
     "  --offset-min/max search range of the offset [s] (default -0.01 .. 0.01); keep it within\n"
     "                   half the period of a dominant vibration (a sinusoid repeats)\n"
-    "  --drift-max D    |drift| searched (default 5e-4)\n";
+    "  --drift-max D    |drift| searched (default 5e-4)\n"
+    "\n"
+    "Telemetry that is not Shack-Hartmann slopes (modal coefficients, any WFS signal with a control\n"
+    "matrix): give its linear model as `speckles` takes it (--basis, --control or --imat, --dm-pitch,\n"
+    "--dm-offset, --dm-rot, --dm-flip, --coef-scale; geometry from SCIENCE.fits): the tip-tilt\n"
+    "correlated with the star's track is then the Z-tilt of the model's wavefront.\n";
+
+/* The linear model's options (the telemetry's tip-tilt through its wavefront). */
+static int lin_special(void *ctx, int argc, char **argv, int *i)
+{
+    return cli_linear_option("sync", argc, argv, i, ctx);
+}
 
 /* sync --wfs-log: the clock file. */
 static int sync_clock(int argc, char **argv)
@@ -56,7 +67,7 @@ static int sync_clock(int argc, char **argv)
         {"--offset-max", CLI_DOUBLE, &o.params.offset_max, NULL, 0}, {"--drift-max", CLI_DOUBLE, &o.params.drift_max, NULL, 0},
     };
     const char **const pos[] = {&o.science};
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, NULL, NULL, NULL, NULL};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, lin_special, &o.lin, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc < 0 ? CLI_OK : prc;
     if (!o.science || !o.out) return cli_usage_error(cmd, "--wfs-log needs SCIENCE.fits and -o CLOCK.txt");
@@ -95,7 +106,7 @@ int swfs_cmd_sync(int argc, char **argv)
         {"--lag-step", CLI_DOUBLE, &p->lag_step, NULL, 0},
     };
     const char **const pos[] = {&o.science, &o.handshake};
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 2, NULL, NULL, NULL, NULL};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 2, lin_special, &o.lin, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc < 0 ? CLI_OK : prc;
     if (!o.science || !o.handshake) return cli_usage_error(cmd, "needs SCIENCE.fits and HANDSHAKE.log");

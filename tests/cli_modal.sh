@@ -20,8 +20,17 @@ reg=$(sed -n 's/.*--basis with \(.*\) --coef-scale.*/\1/p' "$D/sim.log")
 [ -n "$reg" ] || { cat "$D/sim.log"; fail "simulate printed no registration"; }
 reduce_sync "$D" --ratio-min 5 --ratio-max 8
 native=$(speckles_pupil "$D")
-# The modal telemetry has the WFS's frames: the same timing table with its files.
-sed "s#/slopes_#/modal_#" "$D/timing.txt" > "$D/timing_modal.txt"
+# The modal telemetry times itself: sync correlates the star's track with the Z-tilt of the
+# model's wavefront (the handshake log names the modal files).
+sed "s#slopes_#modal_#" "$S/handshake.log" > "$S/handshake_modal.log"
+# shellcheck disable=SC2086
+"$B" sync "$D/science.fits" "$S/handshake_modal.log" -o "$D/timing_modal.txt" --ratio-min 5 --ratio-max 8 \
+    --basis "$S/dm_modes.fits" $reg --coef-scale 2e-6 > "$D/sync_modal.log" || { cat "$D/sync_modal.log"; fail "sync --basis"; }
+r0=$(awk '/^ratio/ { print $2 }' "$D/timing.txt"); r1=$(awk '/^ratio/ { print $2 }' "$D/timing_modal.txt")
+l0=$(awk '/^lag/ { print $2 }' "$D/timing.txt"); l1=$(awk '/^lag/ { print $2 }' "$D/timing_modal.txt")
+echo "cli_modal: sync on slopes: ratio $r0, lag $l0; on the modal coefficients: ratio $r1, lag $l1" >&2
+awk -v a="$r0" -v b="$r1" -v c="$l0" -v d="$l1" 'BEGIN { exit !(a - b < 0.01 && b - a < 0.01 && c - d < 0.2 && d - c < 0.2) }' \
+    || fail "sync --basis: ratio $r1, lag $l1 against $r0, $l0 from the slopes"
 sed "s#/slopes_#/slopes_valid_#" "$D/timing.txt" > "$D/timing_valid.txt"
 linear() { # linear <name> <timing> <speckles options...>: prints the NCP error
     local n=$1 t=$2; shift 2

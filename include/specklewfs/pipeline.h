@@ -137,6 +137,9 @@ int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwf
 int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out);
 
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
+/* SWFS_TT_EXPOSURE: the Z-tilt of the model's wavefront per telemetry value, 2 rows (x, y)
+ * of nslopes [rad per unit]; NULL in the other tip-tilt modes. */
+const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p);
 /* The Shack-Hartmann model's reconstructor and model (NULL for a linear model). */
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p);
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p);

@@ -59,6 +59,10 @@ typedef struct swfs_linear_files {
 } swfs_linear_files;
 
 void swfs_linear_files_default(swfs_linear_files *lf);
+/* The tip-tilt sync correlates, for telemetry of nmeas values per frame: the Z-tilt of lf's
+ * wavefront per value (2 x nmeas, caller frees; swfs_pipeline_tilt_rows) on the geometry of
+ * the science cube `science`. */
+int swfs_linear_tilt_rows(const swfs_linear_files *lf, const char *science, size_t nmeas, double **R);
 /* The pipeline over lf's model (swfs_pipeline_create_linear) for telemetry of nmeas values
  * per frame (0: as many as the control matrix takes, or the basis functions): the files read, their shapes checked against each other, nmeas and PUPN, each
  * message naming the file. mask: PUPN^2 or NULL (the annulus of g). *n_outside: illuminated
@@ -243,6 +247,9 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 typedef struct swfs_sync_run_options {
     const char *science, *handshake, *out;
     swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default */
+    swfs_linear_files lin;    /* lin.basis: the telemetry is the linear model's (modal coefficients, any
+                                 WFS signal with a control matrix): its tip-tilt is the Z-tilt of the
+                                 model's wavefront (geometry from the science cube), not mean slopes */
 } swfs_sync_run_options;
 
 void swfs_sync_run_options_default(swfs_sync_run_options *o);
@@ -265,6 +272,7 @@ typedef struct swfs_clock_run_options {
     size_t nwfs;
     const char *out;          /* the clock file */
     double exptime;           /* [s] camera exposure time; 0: STAMPS' EXPTIME, else the frame period */
+    swfs_linear_files lin;    /* lin.basis: the log is the linear model's (as swfs_sync_run_options.lin) */
     swfs_clock_params params;
     const char *const *prov;
     size_t nprov;

@@ -79,6 +79,10 @@ int swfs_sync_box_means(const double *m, size_t n, double start, double ratio, s
 /* Mean x and y slopes per frame over the valid subapertures (valid NULL: the
  * subapertures with a nonzero x or y slope in that frame): slopes is nwfs frames of
  * nslopes, x slopes first. */
+/* The tip-tilt of any telemetry through tilt rows R (2 x nvals: x then y, e.g. the Z-tilt
+ * of a linear model's wavefront, swfs_pipeline_tilt_rows): mx[k] = R[0] . v_k, my[k] = R[1] . v_k
+ * for the nwfs frames v of nvals values. */
+void swfs_tilt_rows_apply(const double *R, const double *v, size_t nvals, size_t nwfs, double *mx, double *my);
 void swfs_slopes_mean_xy(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid, double *mx,
                          double *my);
 

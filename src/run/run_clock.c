@@ -16,13 +16,15 @@ void swfs_clock_run_options_default(swfs_clock_run_options *o)
 {
     memset(o, 0, sizeof *o);
     swfs_clock_params_default(&o->params);
+    swfs_linear_files_default(&o->lin);
 }
 
-/* The mean x / y slope of every frame of the log, read in blocks. */
-static int mean_slopes(swfs_milklog *l, double *mx, double *my)
+/* The tip-tilt of every frame of the log, read in blocks: the mean x / y slope, or through
+ * the linear model's tilt rows R (2 x nvals) when R is given. */
+static int mean_slopes(swfs_milklog *l, const double *R, double *mx, double *my)
 {
     const swfs_milklog_info *in = swfs_milklog_get_info(l);
-    if (in->nvals < 2 || in->nvals % 2)
+    if (!R && (in->nvals < 2 || in->nvals % 2))
         return swfs_fail(SWFS_ERR_SHAPE, "%s: frames of %zu values; the WFS log sync correlates must hold "
                          "Shack-Hartmann slopes (an even count: x slopes, then y slopes)", in->source, in->nvals);
     enum { BLOCK = 256 };
@@ -36,7 +38,8 @@ static int mean_slopes(swfs_milklog *l, double *mx, double *my)
             if (!isfinite(buf[i]) || fabs(buf[i]) > SWFS_TELEMETRY_MAX)
                 rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu of frame %zu is %g; telemetry values must be finite",
                                swfs_milklog_file_of(l, k + i / in->nvals), i % in->nvals, k + i / in->nvals, buf[i]);
-        if (!rc) swfs_slopes_mean_xy(buf, in->nvals, n, NULL, mx + k, my + k);
+        if (!rc && R) swfs_tilt_rows_apply(R, buf, in->nvals, n, mx + k, my + k);
+        else if (!rc) swfs_slopes_mean_xy(buf, in->nvals, n, NULL, mx + k, my + k);
     }
     free(buf);
     return rc;
@@ -51,6 +54,9 @@ int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r)
     int rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
     for (size_t k = 0; k < o->nwfs; k++) swfs_paths_input_or_dir(paths, "WFS log", o->wfs[k]);
+    swfs_paths_input(paths, "basis (--basis)", o->lin.basis);
+    swfs_paths_input(paths, "control matrix", o->lin.control);
+    swfs_paths_input(paths, "interaction matrix", o->lin.imat);
     if (!rc) rc = swfs_paths_output(paths, "output clock file", o->out);
     swfs_paths_free(paths);
     if (rc) return rc;
@@ -66,7 +72,10 @@ int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r)
     const swfs_milklog_info *in = rc ? NULL : swfs_milklog_get_info(l);
     if (!rc && (!(mx = malloc(in->nframes * sizeof *mx)) || !(my = malloc(in->nframes * sizeof *my))))
         rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", in->source);
-    if (!rc) rc = mean_slopes(l, mx, my);
+    double *R = NULL;
+    if (!rc && o->lin.basis) rc = swfs_linear_tilt_rows(&o->lin, o->science, in->nvals, &R);
+    if (!rc) rc = mean_slopes(l, R, mx, my);
+    free(R);
     if (!rc) {
         r->wfs_dropped = in->dropped;
         r->wfs_frames = in->nframes;

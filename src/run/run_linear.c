@@ -95,3 +95,25 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
     free(annulus);
     return rc;
 }
+
+int swfs_linear_tilt_rows(const swfs_linear_files *lf, const char *science, size_t nmeas, double **R)
+{
+    *R = NULL;
+    swfs_geom g;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, science, NULL);
+    if (!rc) rc = swfs_fits_in_geom(f, &g);
+    swfs_fits_in_close(f);
+    if (!rc) rc = swfs_geom_require(&g, science);
+    if (rc) return rc;
+    swfs_pipeline_options po;
+    swfs_pipeline_options_default(&po);
+    po.recon = SWFS_RECON_SVD; /* an interaction matrix without telemetry to learn from */
+    swfs_pipeline *p = NULL;
+    if ((rc = swfs_linear_pipeline(&p, lf, &g, 2, 2, NULL, nmeas, NULL, 0, &po))) return rc;
+    const double *r = swfs_pipeline_tilt_rows(p);
+    if (!(*R = malloc(2 * nmeas * sizeof **R))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    else memcpy(*R, r, 2 * nmeas * sizeof **R);
+    swfs_pipeline_free(p);
+    return rc;
+}

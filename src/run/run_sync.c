@@ -14,6 +14,7 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o)
 {
     memset(o, 0, sizeof *o);
     swfs_sync_params_default(&o->params);
+    swfs_linear_files_default(&o->lin);
     o->params.lag_min = -3;
     o->params.lag_max = 12;
 }
@@ -26,6 +27,8 @@ typedef struct slopes_file {
 } slopes_file;
 
 typedef struct work {
+    const swfs_sync_run_options *o;
+    double *R;                /* the linear model's tilt rows (o->lin.basis), built at the first file */
     swfs_science_track *tr;
     swfs_handshake *hs;
     size_t nhs, nfiles, nwfs_slopes;
@@ -45,9 +48,11 @@ static int load_file(work *w, const char *name, size_t *fi)
     swfs_real *s = NULL;
     if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
     if (rc) return rc;
-    if (s->nz != 1 || s->nx % 2 || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: slopes must be a 2-D image NSLOPES (even%s) x N_WFS, got %zux%zux%zu", path,
-                       w->nwfs_slopes ? ", same in every file" : "", s->nx, s->ny, s->nz);
+    const int lin = w->o->lin.basis != NULL;
+    if (s->nz != 1 || (!lin && s->nx % 2) || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %s must be a 2-D image %s x N_WFS, got %zux%zux%zu", path,
+                       lin ? "telemetry" : "slopes", lin ? (w->nwfs_slopes ? "NVALUES (the same in every file)" : "NVALUES")
+                       : (w->nwfs_slopes ? "NSLOPES (even, the same in every file)" : "NSLOPES (even)"), s->nx, s->ny, s->nz);
     if (!rc) rc = swfs_telemetry_check_values(path, s);
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
@@ -56,7 +61,9 @@ static int load_file(work *w, const char *name, size_t *fi)
         w->nwfs_slopes = s->nx;
         snprintf(f->name, sizeof f->name, "%s", name);
         f->nwfs = s->ny;
-        swfs_slopes_mean_xy(s->data, s->nx, s->ny, NULL, f->mx, f->my);
+        if (lin && !w->R) rc = swfs_linear_tilt_rows(&w->o->lin, w->o->science, s->nx, &w->R);
+        if (lin && !rc) swfs_tilt_rows_apply(w->R, s->data, s->nx, s->ny, f->mx, f->my);
+        else if (!lin) swfs_slopes_mean_xy(s->data, s->nx, s->ny, NULL, f->mx, f->my);
         w->nfiles++;
     }
     swfs_real_free(s);
@@ -97,12 +104,16 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     if (!o->science || !o->handshake || !o->out) return swfs_fail(SWFS_ERR_ARG, "sync: needs science, handshake, out");
     work w;
     memset(&w, 0, sizeof w);
+    w.o = o;
     swfs_timing *t = &r->t;
     swfs_paths *paths = NULL;
     int rc = swfs_sync_params_check(&o->params);
     if (rc) return rc;
     rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
+    swfs_paths_input(paths, "basis (--basis)", o->lin.basis);
+    swfs_paths_input(paths, "control matrix", o->lin.control);
+    swfs_paths_input(paths, "interaction matrix", o->lin.imat);
     swfs_paths_input(paths, "handshake log", o->handshake);
     if (!rc) rc = swfs_paths_output(paths, "output timing table", o->out);
     if (!rc) rc = swfs_science_track_read(o->science, &w.tr);
@@ -145,6 +156,6 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     swfs_science_track_free(w.tr);
     free(w.hs);
     for (size_t k = 0; w.files && k < w.nfiles; k++) { free(w.files[k].mx); free(w.files[k].my); }
-    free(w.files); free(w.cubes); free(w.cube_file); free(w.cube_hs);
+    free(w.files); free(w.cubes); free(w.cube_file); free(w.cube_hs); free(w.R);
     return rc;
 }

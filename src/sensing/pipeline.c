@@ -249,4 +249,5 @@ int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info) { *info = p->info; }
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model ? p->model->recon : NULL; }
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p) { return p->model; }
+const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p) { return p->Rtilt; }
 const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p) { return &p->opt; }

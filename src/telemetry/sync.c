@@ -21,6 +21,17 @@ void swfs_sync_params_default(swfs_sync_params *p)
     p->lag_step = 0.5;
 }
 
+void swfs_tilt_rows_apply(const double *R, const double *v, size_t nvals, size_t nwfs, double *mx, double *my)
+{
+    for (size_t k = 0; k < nwfs; k++) {
+        const double *s = v + k * nvals;
+        double sx = 0, sy = 0;
+        for (size_t i = 0; i < nvals; i++) { sx += R[i] * s[i]; sy += R[nvals + i] * s[i]; }
+        mx[k] = sx;
+        my[k] = sy;
+    }
+}
+
 void swfs_slopes_mean_xy(const double *slopes, size_t nslopes, size_t nwfs, const unsigned char *valid, double *mx,
                          double *my)
 {
