@@ -152,6 +152,10 @@ swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(
                                              ("explained_median", c_dbl)])
 swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
                                  ("col", P(c_size)), ("val", P(c_dbl))])
+swfs_dm_registration = _s("swfs_dm_registration", [("pitch", c_dbl), ("x0", c_dbl), ("y0", c_dbl), ("rot", c_dbl),
+                                                   ("flip_x", c_int)])
+swfs_linear_input = _s("swfs_linear_input", [("nmeas", c_size), ("basis", P(swfs_sparse)), ("control", P(c_dbl)),
+                                             ("imat", P(c_dbl)), ("scale", c_dbl)])
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
@@ -346,6 +350,10 @@ _PROTOS = {
     # interp.h
     "swfs_interp_ct_grid": (c_int, [P(c_dbl), c_size, c_size, c_dbl, P(c_dbl), P(P(swfs_sparse)), P(c_size)]),
     "swfs_sparse_free": (None, [P(swfs_sparse)]),
+    # lmodel.h
+    "swfs_basis_from_grid": (c_int, [P(P(swfs_sparse)), P(c_dbl), c_size, c_size, c_size, P(swfs_dm_registration),
+                                     P(c_dbl), c_size, c_dbl, P(c_size)]),
+    "swfs_basis_from_pupil": (c_int, [P(P(swfs_sparse)), P(c_dbl), c_size, c_size, P(c_dbl)]),
     # speckles.h
     "swfs_speckles_subtract_static": (c_int, [P(swfs_cplx), P(c_size), P(c_size), c_size, c_int]),
     "swfs_speckles_recon_tilt": (c_int, [P(swfs_speckle_model), P(c_dbl), P(P(c_dbl)), P(P(c_dbl))]),
@@ -378,6 +386,9 @@ _PROTOS = {
     "swfs_pipeline_flat_halo": (c_int, [c_ptr, c_ptr]),
     "swfs_pipeline_get_info": (None, [c_ptr, P(swfs_pipeline_info)]),
     "swfs_pipeline_recon": (P(swfs_recon), [c_ptr]),
+    "swfs_pipeline_create_linear": (c_int, [P(c_ptr), P(swfs_geom), c_size, c_size, P(c_dbl), P(swfs_linear_input),
+                                            P(c_dbl), c_size, c_ptr]),
+    "swfs_pipeline_tilt_rows": (P(c_dbl), [c_ptr]),
     "swfs_pipeline_model": (P(swfs_speckle_model), [c_ptr]),
     # stream.h
     "swfs_stream_options_default": (None, [P(swfs_stream_options)]),

@@ -63,22 +63,106 @@ class Pipeline:
         self.geom, self.nfx, self.nfy, self.nslopes = geom, int(nfx), int(nfy), int(nslopes)
         self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
 
+    @classmethod
+    def linear(cls, geom, nfx, nfy, basis, control=None, imat=None, scale=1.0, registration=None, mask=None,
+               training=None, recon="map", rcond=5e-2, tiptilt="exposure", threads=1, wfs_rate=False):
+        """The pipeline over the generic linear model (lmodel.h, docs/telemetry.md): per WFS
+        frame the wavefront is scale * B (A v).
+
+        basis: (nk, pupn, pupn) on the pupil grid, or (nk, gy, gx) on the DM's own grid with
+        registration = dict(pitch=[m per grid step], offset=(x0, y0) [m], rot=[deg],
+        flip=bool); control: (nk, nmeas) or None (the telemetry values are the coefficients);
+        imat: (nmeas, nk) instead, inverted by the MAP reconstructor learned from training
+        (ntrain, nmeas) ('map') or the truncated SVD ('svd', rcond); scale: metres of
+        wavefront per unit of basis x coefficient (cacao: 2e-6)."""
+        geom = geom if isinstance(geom, Geom) else Geom(**geom)
+        g = geom.to_c()
+        b = as_array(basis, "basis", np.float64, ndim=(3,))
+        nk = b.shape[0]
+        if mask is not None:
+            mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
+        else:
+            from .core import aperture  # the annulus the library would build
+            mask = aperture(geom.pupn, geom.pupdx, geom.teldiam, geom.obscur)
+        B = P(_lib.swfs_sparse)()
+        if registration is not None:
+            r = _lib.swfs_dm_registration(float(registration["pitch"]), float(registration.get("offset", (0, 0))[0]),
+                                          float(registration.get("offset", (0, 0))[1]),
+                                          float(np.radians(registration.get("rot", 0.0))),
+                                          int(bool(registration.get("flip", False))))
+            nout = ctypes.c_size_t()
+            check(lib.swfs_basis_from_grid(ctypes.byref(B), dptr(b), b.shape[2], b.shape[1], nk, ctypes.byref(r),
+                                           dptr(mask), geom.pupn, geom.pupdx, ctypes.byref(nout)),
+                  "swfs_basis_from_grid")
+            if nout.value:
+                lib.swfs_sparse_free(B)
+                raise ValueError(f"registration: {nout.value} illuminated pupil samples lie more than one grid step "
+                                 f"beyond the {b.shape[2]} x {b.shape[1]} DM grid")
+        else:
+            b = as_array(b, "basis", np.float64, shape=(nk, geom.pupn, geom.pupn))
+            check(lib.swfs_basis_from_pupil(ctypes.byref(B), dptr(b), geom.pupn, nk, dptr(mask)),
+                  "swfs_basis_from_pupil")
+        try:
+            ctl = im = None
+            if control is not None and imat is not None:
+                raise ValueError("control and imat: give one of them")
+            if control is not None:
+                ctl = as_array(control, "control", np.float64, shape=(nk, None))
+                nmeas = ctl.shape[1]
+            elif imat is not None:
+                im = as_array(imat, "imat", np.float64, shape=(None, nk))
+                nmeas = im.shape[0]
+            else:
+                nmeas = nk
+            o = _lib.swfs_pipeline_options()
+            lib.swfs_pipeline_options_default(ctypes.byref(o))
+            if recon not in ("map", "svd"):
+                raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
+            if tiptilt not in _TT:
+                raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+            o.recon, o.rcond = _RECON[recon], float(rcond)
+            o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+            tr, ntr = None, 0
+            if training is not None:
+                tr = as_array(training, "training", np.float64, shape=(None, nmeas))
+                ntr = tr.shape[0]
+            lin = _lib.swfs_linear_input(nmeas, B, dptr(ctl), dptr(im), float(scale))
+            p = ctypes.c_void_p()
+            check(lib.swfs_pipeline_create_linear(ctypes.byref(p), ctypes.byref(g), int(nfx), int(nfy), dptr(mask),
+                                                  ctypes.byref(lin), dptr(tr), ntr, ctypes.byref(o)),
+                  "swfs_pipeline_create_linear")
+        finally:
+            lib.swfs_sparse_free(B)
+        self = cls.__new__(cls)
+        self._p = p
+        self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
+        self.geom, self.nfx, self.nfy, self.nslopes = geom, int(nfx), int(nfy), int(nmeas)
+        self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+        return self
+
     @property
     def info(self):
         """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,
-        noise_given, ntrain, n_outside, vk_l0 (the outer scale used by the vk reconstructor)."""
+        noise_given, ntrain, n_outside, vk_l0 (the outer scale used by the vk reconstructor);
+        for a linear model nbasis, basis_nnz, composed (basis and control folded into one
+        matrix) and resid_rms (the training frames' wavefront, tip-tilt removed [m])."""
         i = _lib.swfs_pipeline_info()
         lib.swfs_pipeline_get_info(self._p, ctypes.byref(i))
         return {k: getattr(i, k) for k, _t in _lib.PIPELINE_INFO_FIELDS}
 
     @property
     def recon(self):
-        """The reconstructor in use (a view owned by the pipeline)."""
-        return Recon(lib.swfs_pipeline_recon(self._p), self._owner)
+        """The reconstructor in use (a view owned by the pipeline); None for a linear model."""
+        r = lib.swfs_pipeline_recon(self._p)
+        return Recon(r, self._owner) if r else None
 
     @property
     def mask(self):
-        m = lib.swfs_pipeline_model(self._p).contents
+        """The Shack-Hartmann model's pupil mask (a view); None for a linear model."""
+        m = lib.swfs_pipeline_model(self._p)
+        if not m:
+            return None
+        m = m.contents
         return _lib.view(ctypes.cast(m.mask, ctypes.c_void_p).value, (m.npup, m.npup), np.float64, self._owner)
 
     def process(self, slopes, sched, out=None):

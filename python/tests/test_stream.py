@@ -151,3 +151,29 @@ def test_stream_push_updates_auto_static_and_errors(data):
     with pytest.raises(sw.Error, match="no") as e:
         sw.Stream(d["pipe"]).run([])
     assert e.value.status_name == "SWFS_ERR_NUMERIC"
+
+
+def test_linear_pipeline_equals_shack_hartmann(data):
+    """The generic linear model (Pipeline.linear) with the Shack-Hartmann pipeline's own
+    interpolation as the basis and its reconstructor as the control matrix gives the
+    Shack-Hartmann pipeline's fields; the dense basis of the reconstructed wavefront per
+    slope, with the slopes as coefficients, too; a units error is refused naming the size."""
+    d = data
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    from specklewfs._lib import lib
+    from specklewfs.telemetry import Sparse
+    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()  # (pupn^2, nact)
+    W = np.array(sh.recon.W)
+    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    lin = sw.Pipeline.linear(GEOM, NF, NF, basis, control=W, mask=sh.mask, tiptilt="keep")
+    dense = sw.Pipeline.linear(GEOM, NF, NF, (T @ W).T.reshape(-1, GEOM.pupn, GEOM.pupn), mask=sh.mask,
+                               tiptilt="keep", training=d["slopes"])
+    ref = sh.process(d["slopes"], d["sched"])
+    peak = np.abs(ref).max()
+    for p, composed in ((lin, 0), (dense, 1)):
+        assert p.info["composed"] == composed and p.recon is None and p.mask is None
+        out = p.process(d["slopes"], d["sched"])
+        assert np.abs(out - ref).max() < 2e-5 * peak
+    assert dense.info["resid_rms"] > 0
+    with pytest.raises(sw.Error, match=r"waves at .*scale \(1e\+06\)"):
+        sw.Pipeline.linear(GEOM, NF, NF, basis, control=W * 1e6, mask=sh.mask, scale=1e6, training=d["slopes"])
