@@ -6,7 +6,7 @@
  * estimate -> pupil) and, on the same reduced frames, with the simulator's ideal speckles
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
- *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K]
+ *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] [--tiptilt exposure|frame]
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -53,6 +53,7 @@ static const system_def systems[] = {
 #define NSYS (sizeof systems / sizeof systems[0])
 
 static char dir[1024];
+static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
 
 static const char *pth(const char *name)
 {
@@ -201,6 +202,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.match_in = min;
     sp.match_out = mout;
     sp.nmatch = 1;
+    sp.pipe.tiptilt = tiptilt;
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
     r->nexp = spr.nout;
@@ -229,8 +231,11 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--seeds") && i + 1 < argc) seeds = atoi(argv[++i]);
         else if (!strcmp(argv[i], "--keep") && i + 1 < argc) keep = argv[++i];
         else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = atoi(argv[++i]);
+        else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "frame")) tiptilt = SWFS_TT_FRAME, i++;
+        else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else {
-            fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K]\n");
+            fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] "
+                    "[--tiptilt exposure|frame]\n");
             return 2;
         }
     }
@@ -242,8 +247,8 @@ int main(int argc, char **argv)
         snprintf(dir, sizeof dir, "/tmp/bench_telemetry.%ld", (long)getpid());
         if (mkdir(dir, 0755)) { perror(dir); return 1; }
     }
-    printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)\n",
-           quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames");
+    printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
+           quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" : "");
     printf("%-11s %4s %4s %5s %6s %4s %4s %5s | %7s %7s %6s | %6s %6s %5s | %5s\n", "system", "seed", "nsub", "rate",
            "ratio", "vib", "rn", "res", "slopes", "ideal", "x", "ratio", "lag", "nexp", "s");
     double worst = 0.0, sum_ratio = 0.0;

@@ -55,15 +55,21 @@ cat "$D/pupil.log"
 # estimate (docs/telemetry.md, open problems).
 err=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil.log")
 awk -v e="$err" 'BEGIN { exit !(e > 0 && e < 50) }' || fail "NCP error $err nm, expected < 50 nm"
-# Removing every WFS frame's own tip-tilt from the speckles drops the image motion within
-# the exposures that the registered frames keep: the estimate breaks down (310 nm with --recon vk).
+# --tiptilt frame, the paper's Sec. 4.4: every WFS frame's own mean-slope tilt removed from
+# the speckles, and the --match copies re-centred on the exposure-mean tilt the slopes measure
+# instead of the image peak (which follows the Z-tilt and the NCP's own tilt). Measured 21.0
+# nm against 24.8 nm with the exposure-mean treatment (seed 1); before the re-centring the
+# per-frame path broke down (310 nm).
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles_f.fits" \
-    --tiptilt frame 2> "$D/speckles_f.log" || { cat "$D/speckles_f.log"; fail "speckles --tiptilt frame"; }
-"$B" estimate "$D/sci_m.fits" "$D/speckles_f.fits" -o "$D/halo_f.fits" > "$D/estimate_f.log" || fail "estimate (frame)"
-"$B" pupil "$D/halo_f.fits" -o "$D/pupil_f.fits" --source halo --truth "$D/sim/truth.fits" > "$D/pupil_f.log" \
-    || fail "pupil (frame)"
+    --tiptilt frame --match "$D/science.fits" "$D/sci_f.fits" 2> "$D/speckles_f.log" \
+    || { cat "$D/speckles_f.log"; fail "speckles --tiptilt frame"; }
+"$B" estimate "$D/sci_f.fits" "$D/speckles_f.fits" -o "$D/halo_f.fits" > "$D/estimate_f.log" || fail "estimate (frame)"
+"$B" pupil "$D/halo_f.fits" -o "$D/pupil_f.fits" --truth "$D/sim/truth.fits" > "$D/pupil_f.log" || fail "pupil (frame)"
+"$B" pupil "$D/halo.fits" -o "$D/pupil_d.fits" --truth "$D/sim/truth.fits" > "$D/pupil_d.log" || fail "pupil (default)"
 errf=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil_f.log")
-awk -v e="$err" -v f="$errf" 'BEGIN { exit !(2 * e < f) }' || fail "per-frame tip-tilt ($errf nm) not clearly worse than the exposure mean ($err nm)"
+errd=$(awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil_d.log")
+echo "cli_telemetry: --tiptilt frame (re-centred on the slopes' tilt): $errf nm; exposure mean: $errd nm" >&2
+awk -v e="$errd" -v f="$errf" 'BEGIN { exit !(f > 0 && f < 1.1 * e) }' || fail "per-frame tip-tilt: $errf nm against $errd nm"
 
 # ---- bad input --------------------------------------------------------------------
 expect_error() { # expect_error <pattern> <command...>

@@ -32,4 +32,13 @@ int swfs_stream_run_milk(const swfs_stream_run_options *o, swfs_stream_run_resul
 
 int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r);
 
+/* --tiptilt frame (speckles.h): the speckles lose every WFS frame's mean-slope tilt, while
+ * reduce centred every science frame on its peak, which follows the Z-tilt and the NCP's own
+ * tilt. (dx[k], dy[k]) [camera pixels] for the usable cubes' frames k of the timing table t
+ * (telemetry names relative to tdir): the registered frame k is to be taken at p - (dx, dy),
+ * which centres it on the exposure-mean mean slopes (mapped by sync's pairing, tilt [rad] /
+ * (PIXSCALE lambda / D) pixels) instead of its peak (science's TRACK); mean shift 0. */
+int swfs_frame_recentre_shifts(const char *tdir, const swfs_timing *t, const char *science, const swfs_geom *g,
+                               double *dx, double *dy);
+
 #endif

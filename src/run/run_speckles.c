@@ -5,6 +5,7 @@
 #include "specklewfs/outpaths.h"
 #include "specklewfs/source.h"
 #include "specklewfs/speckles.h"
+#include "specklewfs/reduce.h"
 #include "run_internal.h"
 
 #include <limits.h>
@@ -316,7 +317,8 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
  * the noise keywords, so it matches the speckle cube frame for frame, and brought into the
  * model's orientation when sync found the camera flipped or transposed (CAMORIEN). */
-static int write_match(const char *in, const char *out, const work *w, const char *const *prov, size_t nprov)
+static int write_match(const char *in, const char *out, const work *w, const double *shx, const double *shy,
+                       const char *const *prov, size_t nprov)
 {
     swfs_fits_in *f = NULL;
     swfs_fits_out *fo = NULL;
@@ -357,6 +359,11 @@ static int write_match(const char *in, const char *out, const work *w, const cha
             size_t src = w->t->cubes[c].first + j;
             double *rd = turn ? buf + np * comps : buf;
             rc = s->is_complex ? swfs_fits_in_read_cplx(f, src, 1, (swfs_complex *)rd) : swfs_fits_in_read_real(f, src, 1, rd);
+            if (!rc && shx && !s->is_complex) { /* re-centred on the slopes' tilt (--tiptilt frame) */
+                double *tmp = turn ? buf : buf + np;
+                swfs_shift_bilinear(rd, s->nx, s->ny, -shx[k], -shy[k], tmp);
+                memcpy(rd, tmp, np * sizeof *rd);
+            }
             if (!rc && turn) swfs_orient_frame(&w->t->fit, s->nx, s->ny, comps, rd, buf);
             if (!rc) rc = s->is_complex ? swfs_fits_out_cplx_frames(fo, k, 1, (swfs_complex *)buf)
                                         : swfs_fits_out_real_frames(fo, k, 1, buf);
@@ -467,8 +474,20 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
         if (!rc && writer && team && o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w.p), o->write_recon);
+        /* --tiptilt frame: the matched copies re-centred on the slopes' tilt (run_internal.h) */
+        double *shx = NULL, *shy = NULL;
+        const int recentre = writer && o->nmatch && o->pipe.tiptilt == SWFS_TT_FRAME && !o->pipe.wfs_rate &&
+                             !o->lin.basis;
+        if (!rc && recentre) {
+            shx = malloc(r->nout * sizeof *shx);
+            shy = malloc(r->nout * sizeof *shy);
+            rc = shx && shy ? swfs_frame_recentre_shifts(w.tdir, w.t, o->science, &w.g, shx, shy)
+                            : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        }
         for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
-            rc = write_match(o->match_in[k], o->match_out[k], &w, prov, o->nprov + 1);
+            rc = write_match(o->match_in[k], o->match_out[k], &w, shx, shy, prov, o->nprov + 1);
+        free(shx);
+        free(shy);
         free(prov);
     }
     if (group) {
