@@ -176,12 +176,49 @@ static void test_bad_geometry_files(void **state)
     assert_non_null(strstr(swfs_last_error(), "none.txt"));
 }
 
+/* A line longer than the readers' buffer is refused, naming the line: read in pieces, the
+ * tail of a long comment would be taken for a setting of its own. */
+static void test_long_lines(void **state)
+{
+    (void)state;
+    FILE *f = fopen(p("long.txt"), "w");
+    fprintf(f, "WAVELEN = 3.8e-6\n#");
+    for (int i = 0; i < 1022; i++) fputc('-', f); /* the tail starts the next 1023-byte piece */
+    fprintf(f, "PUPN = 7\n");
+    fclose(f);
+    swfs_geom g;
+    assert_int_equal(swfs_geom_read_file(p("long.txt"), &g), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "long.txt:2: line longer than 1022 characters"));
+    f = fopen(p("long.conf"), "w");
+    fprintf(f, "seed = 1\n#");
+    for (int i = 0; i < 1022; i++) fputc('-', f); /* the tail starts the next 1023-byte piece */
+    fprintf(f, "seed = 2\n");
+    fclose(f);
+    swfs_config *c = swfs_config_new();
+    assert_non_null(c);
+    assert_int_equal(swfs_config_load(c, p("long.conf")), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "long.conf:2: line longer than 1022 characters"));
+    swfs_config_free(c);
+    /* A last line without its newline that just fills the buffer is read. */
+    f = fopen(p("full.conf"), "w");
+    fprintf(f, "seed = 1\nseed = 3");
+    for (int i = 0; i < 1023 - 8; i++) fputc(' ', f);
+    fclose(f);
+    c = swfs_config_new();
+    long seed = 0;
+    assert_ok(swfs_config_load(c, p("full.conf")));
+    assert_ok(swfs_config_long(c, "seed", 0, &seed));
+    assert_int_equal(seed, 3);
+    swfs_config_free(c);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_missing_geometry_named),
         cmocka_unit_test(test_geometry_given),
         cmocka_unit_test(test_bad_geometry_files),
+        cmocka_unit_test(test_long_lines),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -142,6 +142,20 @@ static void test_files_and_errors(void **state)
     assert_close(tr->cubes[0].start, 117.25, 1e-9);
     assert_int_equal(tr->cubes[1].first, 100);
     swfs_timing_free(tr);
+    /* A negative first frame (which %zu reads as SIZE_MAX, and first + nframes would wrap)
+     * and an infinite ratio are refused, naming the file and line. */
+    f = fopen(test_path("neg.txt"), "w");
+    fprintf(f, "ratio 6.5 0.1\nlag 2\ncube 0 a.fits -1 2 s.fits 10.5 ok\n");
+    fclose(f);
+    tr = NULL;
+    assert_int_equal(swfs_timing_read(test_path("neg.txt"), &tr), SWFS_ERR_FORMAT);
+    assert_null(tr);
+    assert_non_null(strstr(swfs_last_error(), "neg.txt:3: cube 0: FIRST_FRAME"));
+    f = fopen(test_path("inf.txt"), "w");
+    fprintf(f, "ratio inf 0.1\nlag 2\ncube 0 a.fits 0 2 s.fits 10.5 ok\n");
+    fclose(f);
+    assert_int_equal(swfs_timing_read(test_path("inf.txt"), &tr), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "inf.txt: the timing table needs 'ratio' and 'lag' lines"));
 
     /* No overlap anywhere in the search range. */
     double m[50] = {0}, tt[10] = {0};

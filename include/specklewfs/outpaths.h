@@ -19,6 +19,8 @@
 
 #include "specklewfs/defs.h"
 
+#include <stdio.h>
+
 SWFS_BEGIN_DECLS
 
 typedef struct swfs_paths swfs_paths;
@@ -38,6 +40,12 @@ int swfs_paths_status(const swfs_paths *p);
  * regular file, or a missing one (SWFS_OK: the reader's open reports it). `what` names
  * the kind of file in the message. */
 int swfs_input_check(const char *path, const char *what);
+
+/* One line of a text input (the text readers' fgets): reads it into buf (cap bytes) and
+ * returns 1; returns 0 at the end of the file, or when the line does not fit in buf, then
+ * with *rc = SWFS_ERR_FORMAT naming path and lineno: a reader refuses the file rather
+ * than read the rest of the line as a line of its own (a long comment's tail as a setting). */
+int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, int *rc);
 
 SWFS_END_DECLS
 

@@ -104,10 +104,10 @@ int swfs_config_load(swfs_config *c, const char *path)
     FILE *f = fopen(path, "r");
     if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot open config file: %s", path, strerror(errno));
     char line[1024], where[600];
-    int lineno = 0, st = SWFS_OK;
-    while (fgets(line, sizeof line, f)) {
-        lineno++;
-        snprintf(where, sizeof where, "%s:%d", path, lineno);
+    long lineno = 0;
+    int st = SWFS_OK;
+    while (swfs_text_line(f, line, sizeof line, path, ++lineno, &st)) {
+        snprintf(where, sizeof where, "%s:%ld", path, lineno);
         if ((st = set_line(c, line, where)) != SWFS_OK) break;
     }
     fclose(f);

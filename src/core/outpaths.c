@@ -195,3 +195,17 @@ int swfs_paths_output(swfs_paths *p, const char *role, const char *path)
     if (clash(p, &e)) return p->status;
     return add(p, &e);
 }
+
+int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, int *rc)
+{
+    buf[cap - 1] = 1; /* fgets writes its terminator there only when it filled buf */
+    if (!fgets(buf, cap, f)) return 0;
+    if (buf[cap - 1] == 0 && buf[cap - 2] != '\n') {
+        const int ch = getc(f);
+        if (ch != EOF && ch != '\n') {
+            *rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: line longer than %d characters", path, lineno, cap - 2);
+            return 0;
+        }
+    }
+    return 1;
+}

@@ -2,6 +2,7 @@
  * do not carry the geometry keywords (no camera writes PUPDX or PUPN: they are pupil-grid
  * choices), one place to state them for reduce, speckles and stream. */
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
 #include <ctype.h>
@@ -16,8 +17,8 @@ static int read_text(const char *path, FILE *f, swfs_geom *g)
 {
     char line[1024];
     long lineno = 0;
-    while (fgets(line, sizeof line, f)) {
-        lineno++;
+    int rc = SWFS_OK;
+    while (swfs_text_line(f, line, sizeof line, path, ++lineno, &rc)) {
         char *h = strchr(line, '#');
         if (h) *h = 0;
         char key[64], *p = line;
@@ -46,7 +47,7 @@ static int read_text(const char *path, FILE *f, swfs_geom *g)
             return swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: unknown key '%s' (expected WAVELEN, TELDIAM, OBSCUR, PIXSCALE, "
                              "PUPDX, PUPN)", path, lineno, key);
     }
-    return SWFS_OK;
+    return rc;
 }
 
 int swfs_geom_read_file(const char *path, swfs_geom *g)

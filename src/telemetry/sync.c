@@ -282,8 +282,7 @@ int swfs_handshake_read(const char *path, swfs_handshake **out, size_t *n)
     long lineno = 0;
     int rc = SWFS_OK;
     if (!h) { fclose(f); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
-    while (fgets(line, sizeof line, f)) {
-        lineno++;
+    while (swfs_text_line(f, line, sizeof line, path, ++lineno, &rc)) {
         char *s = trim(line);
         if (!*s) continue;
         if (cnt == cap) {
@@ -325,6 +324,9 @@ int swfs_handshake_write(const char *path, const swfs_handshake *h, size_t n)
 }
 
 /* ---- timing table ---------------------------------------------------------------- */
+
+/* The largest frame number or count a timing table may give (2^40: more than any file). */
+#define MAX_FRAMES ((size_t)1 << 40)
 
 void swfs_timing_free(swfs_timing *t)
 {
@@ -370,8 +372,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
     char line[4096];
     long lineno = 0;
     int rc = SWFS_OK;
-    while (fgets(line, sizeof line, f)) {
-        lineno++;
+    while (swfs_text_line(f, line, sizeof line, path, ++lineno, &rc)) {
         char *s = trim(line);
         if (!*s) continue;
         int ok = 1;
@@ -391,6 +392,13 @@ int swfs_timing_read(const char *path, swfs_timing **out)
             char status[32];
             ok = sscanf(s + 5, "%zu %511s %zu %zu %511s %lf %31s", &idx, c->camera, &c->first, &c->nframes, c->slopes,
                         &c->start, status) == 7 && idx == t->ncubes && isfinite(c->start);
+            /* %zu takes "-1" for SIZE_MAX: frame numbers are bounded so that first + nframes,
+             * which the users compare with the science cube's length, cannot wrap. */
+            if (ok && (c->first > MAX_FRAMES || c->nframes > MAX_FRAMES)) {
+                rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: cube %zu: FIRST_FRAME %zu, NFRAMES %zu; expected whole numbers "
+                               "from 0 to %zu", path, lineno, idx, c->first, c->nframes, MAX_FRAMES);
+                break;
+            }
             if (ok) {
                 if (!strcmp(status, "ok")) c->status = SWFS_CUBE_OK;
                 else if (!strcmp(status, "straddles")) c->status = SWFS_CUBE_STRADDLES;
@@ -401,7 +409,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
         if (!ok) { rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: cannot parse \"%.80s\" (see docs/telemetry.md)", path, lineno, s); break; }
     }
     fclose(f);
-    if (rc == SWFS_OK && (!(t->ratio > 0) || !isfinite(t->lag)))
+    if (rc == SWFS_OK && (!(t->ratio > 0) || !isfinite(t->ratio) || !isfinite(t->lag)))
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table needs 'ratio' and 'lag' lines", path);
     if (rc == SWFS_OK && t->ncubes == 0) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table lists no cube", path);
     if (rc) { swfs_timing_free(t); return rc; }

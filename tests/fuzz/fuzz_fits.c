@@ -19,7 +19,6 @@
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 
-#include <dirent.h>
 #include <fitsio.h>
 #include <math.h>
 #include <stdint.h>
@@ -144,49 +143,7 @@ static int fuzz_one(const uint8_t *data, size_t size)
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size);
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) { return fuzz_one(data, size); }
 #else
-static int run_file(const char *path)
-{
-    FILE *fh = fopen(path, "rb");
-    if (!fh) return 1;
-    uint8_t *buf = NULL;
-    size_t n = 0, cap = 0, k;
-    do {
-        if (n == cap) {
-            cap = cap ? 2 * cap : 65536;
-            uint8_t *nb = realloc(buf, cap);
-            if (!nb) { free(buf); fclose(fh); return 1; }
-            buf = nb;
-        }
-        k = fread(buf + n, 1, cap - n, fh);
-        n += k;
-    } while (k > 0);
-    fclose(fh);
-    fuzz_one(buf, n);
-    free(buf);
-    return 0;
-}
-
-int main(int argc, char **argv)
-{
-    size_t nfiles = 0;
-    for (int i = 1; i < argc; i++) {
-        DIR *d = opendir(argv[i]);
-        if (!d) {
-            if (run_file(argv[i])) { fprintf(stderr, "fuzz_corpus: cannot read %s\n", argv[i]); return 1; }
-            nfiles++;
-            continue;
-        }
-        struct dirent *e;
-        while ((e = readdir(d))) {
-            if (e->d_name[0] == '.') continue;
-            char p[4096];
-            snprintf(p, sizeof p, "%s/%s", argv[i], e->d_name);
-            if (run_file(p)) { fprintf(stderr, "fuzz_corpus: cannot read %s\n", p); closedir(d); return 1; }
-            nfiles++;
-        }
-        closedir(d);
-    }
-    printf("fuzz_corpus: %zu files through the FITS readers, no crash\n", nfiles);
-    return nfiles ? 0 : 1;
-}
+#define FUZZ_REPLAY_NAME "fuzz_corpus"
+#define FUZZ_REPLAY_WHAT "the FITS readers"
+#include "fuzz_replay.h"
 #endif
