@@ -208,7 +208,7 @@ static void test_linear_equals_shack_hartmann(void **state)
         const swfs_recon *used = swfs_pipeline_recon(sh);
         const swfs_sparse *T = swfs_pipeline_model(sh)->T;
         /* (1) the interpolation as the basis, W as the control matrix: the two-stage form */
-        swfs_linear_input in = {f.nslopes, T, used->W, NULL, 1.0};
+        swfs_linear_input in = {f.nslopes, T, used->W, NULL, 1.0, NULL, 0};
         assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
         swfs_pipeline_info li;
         swfs_pipeline_get_info(lin, &li);
@@ -224,7 +224,7 @@ static void test_linear_equals_shack_hartmann(void **state)
         }
         swfs_sparse *B = NULL;
         assert_ok(swfs_basis_from_pupil(&B, cube, NPUP, ns, f.mask));
-        swfs_linear_input in2 = {ns, B, NULL, NULL, 1.0};
+        swfs_linear_input in2 = {ns, B, NULL, NULL, 1.0, NULL, 0};
         assert_ok(swfs_pipeline_create_linear(&fold, &f.g, NF, NF, f.mask, &in2, f.slopes, f.nwfs, &o));
         swfs_pipeline_get_info(fold, &li);
         assert_int_equal(li.composed, 1);
@@ -258,12 +258,12 @@ static void test_linear_refusals(void **state)
     assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
     const swfs_sparse *T = swfs_pipeline_model(sh)->T;
     /* um of DM surface taken as metres: a wavefront of kilometres */
-    swfs_linear_input in = {f.nslopes, T, f.rec->W, NULL, 2e6};
+    swfs_linear_input in = {f.nslopes, T, f.rec->W, NULL, 2e6, NULL, 0};
     assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o), SWFS_ERR_VALUE);
     printf("lmodel: %s\n", swfs_last_error());
     assert_non_null(strstr(swfs_last_error(), "scale (2e+06)"));
     /* the coefficients of a basis of another size */
-    swfs_linear_input bad = {f.nslopes + 1, T, NULL, NULL, 1.0};
+    swfs_linear_input bad = {f.nslopes + 1, T, NULL, NULL, 1.0, NULL, 0};
     assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &bad, NULL, 0, &o), SWFS_ERR_SHAPE);
     assert_non_null(strstr(swfs_last_error(), "129 telemetry values per frame taken as the coefficients of"));
     assert_null(p);
@@ -286,7 +286,7 @@ static void test_interaction_matrix(void **state)
     const swfs_speckle_model *m = swfs_pipeline_model(sh);
     double *D = NULL;
     assert_ok(swfs_interaction_matrix(m->wfs, m->T, &D));
-    swfs_linear_input in = {f.nslopes, m->T, NULL, D, 1.0};
+    swfs_linear_input in = {f.nslopes, m->T, NULL, D, 1.0, NULL, 0};
     assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
     swfs_pipeline_info a, b;
     swfs_pipeline_get_info(sh, &a);
@@ -300,6 +300,72 @@ static void test_interaction_matrix(void **state)
     fixture_free(&f);
 }
 
+/* A basis on a DM grid in factored form (the grid's interpolation, the cube's values at the
+ * grid points) is the resampled basis, and its pipeline gives the resampled basis' fields. */
+static void test_factored_grid_basis(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    const size_t gx = 21, gy = 19, nk = 12, gn = gx * gy;
+    const swfs_dm_registration r = {0.4, 0.02, -0.05, -0.2, 1};
+    double *cube = malloc(gn * nk * sizeof *cube), *shapes = malloc(gn * nk * sizeof *shapes);
+    swfs_rng rng;
+    swfs_rng_seed2(&rng, 3, 0);
+    for (size_t k = 0; k < gn * nk; k++) cube[k] = swfs_rng_normal(&rng);
+    for (size_t q = 0; q < gn; q++)
+        for (size_t k = 0; k < nk; k++) shapes[q * nk + k] = cube[k * gn + q];
+    swfs_sparse *B = NULL, *T = NULL;
+    size_t n1 = 0, n2 = 0;
+    assert_ok(swfs_basis_from_grid(&B, cube, gx, gy, nk, &r, f.mask, NPUP, f.g.pupdx, &n1));
+    assert_ok(swfs_grid_interp(&T, gx, gy, &r, f.mask, NPUP, f.g.pupdx, &n2));
+    assert_int_equal(n1, n2);
+    size_t maxrow = 0;
+    for (size_t q = 0; q < T->nrows; q++) maxrow = T->row_ptr[q + 1] - T->row_ptr[q] > maxrow ? T->row_ptr[q + 1] - T->row_ptr[q] : maxrow;
+    assert_true(maxrow <= 16);
+    double *e = calloc(nk, sizeof *e), *z1 = malloc(NPUP * NPUP * sizeof *z1), *z2 = malloc(NPUP * NPUP * sizeof *z2);
+    double *gv = malloc(gn * sizeof *gv), worst = 0;
+    for (size_t k = 0; k < nk; k++) {
+        e[k] = 1;
+        swfs_sparse_apply(B, e, z1);
+        e[k] = 0;
+        for (size_t q = 0; q < gn; q++) gv[q] = shapes[q * nk + k];
+        swfs_sparse_apply(T, gv, z2);
+        for (size_t p = 0; p < NPUP * NPUP; p++) worst = fmax(worst, fabs(z1[p] - z2[p]));
+    }
+    assert_true(worst < 1e-12);
+    /* the pipelines: random coefficients of the 12 functions as the telemetry */
+    double *v = malloc(f.nwfs * nk * sizeof *v);
+    for (size_t k = 0; k < f.nwfs * nk; k++) v[k] = 3e-8 * swfs_rng_normal(&rng);
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    swfs_pipeline *dense = NULL, *fact = NULL;
+    swfs_linear_input a = {nk, B, NULL, NULL, 1.0, NULL, 0}, b = {nk, T, NULL, NULL, 1.0, shapes, nk};
+    assert_ok(swfs_pipeline_create_linear(&dense, &f.g, NF, NF, f.mask, &a, v, f.nwfs, &o));
+    assert_ok(swfs_pipeline_create_linear(&fact, &f.g, NF, NF, f.mask, &b, v, f.nwfs, &o));
+    swfs_pipeline_info ia, ib;
+    swfs_pipeline_get_info(dense, &ia);
+    swfs_pipeline_get_info(fact, &ib);
+    assert_int_equal(ib.nbasis, nk);
+    assert_true(fabs(ia.resid_rms - ib.resid_rms) < 1e-9 * ia.resid_rms);
+    swfs_exposure sched[10];
+    assert_true(swfs_engine_schedule(3.5, 0.3, 10, sched) <= f.nwfs);
+    swfs_complex *ha = malloc(10 * NF * NF * sizeof *ha), *hb = malloc(10 * NF * NF * sizeof *hb);
+    assert_ok(swfs_pipeline_process(dense, v, f.nwfs, sched, 10, ha));
+    assert_ok(swfs_pipeline_process(fact, v, f.nwfs, sched, 10, hb));
+    double d = 0, peak = 0;
+    for (size_t k = 0; k < 10 * NF * NF; k++) { d = fmax(d, cabs(ha[k] - hb[k])); peak = fmax(peak, cabs(ha[k])); }
+    printf("lmodel: factored DM-grid basis: operator %.2g, fields %.2g of the peak (residual %.1f nm)\n", worst, d / peak,
+           ib.resid_rms * 1e9);
+    assert_true(d / peak < 2e-5);
+    free(ha); free(hb); free(v); free(e); free(z1); free(z2); free(gv); free(cube); free(shapes);
+    swfs_sparse_free(B);
+    swfs_sparse_free(T);
+    swfs_pipeline_free(dense);
+    swfs_pipeline_free(fact);
+    fixture_free(&f);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -308,6 +374,7 @@ int main(void)
         cmocka_unit_test(test_linear_equals_shack_hartmann),
         cmocka_unit_test(test_linear_refusals),
         cmocka_unit_test(test_interaction_matrix),
+        cmocka_unit_test(test_factored_grid_basis),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

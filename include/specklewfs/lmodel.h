@@ -55,6 +55,14 @@ void swfs_pupil_to_dm(const swfs_dm_registration *r, size_t gx, size_t gy, doubl
 int swfs_basis_from_grid(swfs_sparse **B, const double *cube, size_t gx, size_t gy, size_t nk,
                          const swfs_dm_registration *reg, const double *mask, size_t npup, double pupdx,
                          size_t *n_outside);
+/* The same resampling as an operator: T (npup^2 x gx gy, CSR) interpolates values on the DM
+ * grid (point (i, j) at column j gx + i) onto the illuminated pupil samples, at most 16
+ * nonzeros per row, so basis function k on the pupil is T times its grid values. A linear
+ * model keeps the basis in this factored form (swfs_linear_input.shapes): per frame one small
+ * GEMM on the grid and a sparse product, instead of a dense product per pupil sample and mode.
+ * *n_outside as swfs_basis_from_grid. */
+int swfs_grid_interp(swfs_sparse **T, size_t gx, size_t gy, const swfs_dm_registration *reg, const double *mask,
+                     size_t npup, double pupdx, size_t *n_outside);
 /* The basis given on the pupil grid itself (npup x npup x nk). */
 int swfs_basis_from_pupil(swfs_sparse **B, const double *cube, size_t npup, size_t nk, const double *mask);
 

@@ -92,6 +92,11 @@ typedef struct swfs_linear_input {
                                   the training frames (swfs_recon_map; the default) or, with
                                   opt->recon = SWFS_RECON_SVD, the truncated SVD */
     double scale;              /* metres of wavefront per unit of basis x coefficient */
+    const double *shapes;      /* NULL, or the basis in factored form: nq x nshapes (row-major), basis
+                                  function k = basis (npup^2 x nq, e.g. swfs_grid_interp) times column k
+                                  (e.g. a mode cube's values at the DM-grid points); control, imat and
+                                  the coefficients then refer to the nshapes functions */
+    size_t nshapes;
 } swfs_linear_input;
 
 /* The wavefront of a linear model's frame [m] beyond this rms is no residual of a working AO

@@ -155,7 +155,8 @@ swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c
 swfs_dm_registration = _s("swfs_dm_registration", [("pitch", c_dbl), ("x0", c_dbl), ("y0", c_dbl), ("rot", c_dbl),
                                                    ("flip_x", c_int)])
 swfs_linear_input = _s("swfs_linear_input", [("nmeas", c_size), ("basis", P(swfs_sparse)), ("control", P(c_dbl)),
-                                             ("imat", P(c_dbl)), ("scale", c_dbl)])
+                                             ("imat", P(c_dbl)), ("scale", c_dbl), ("shapes", P(c_dbl)),
+                                             ("nshapes", c_size)])
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
@@ -354,6 +355,8 @@ _PROTOS = {
     "swfs_basis_from_grid": (c_int, [P(P(swfs_sparse)), P(c_dbl), c_size, c_size, c_size, P(swfs_dm_registration),
                                      P(c_dbl), c_size, c_dbl, P(c_size)]),
     "swfs_basis_from_pupil": (c_int, [P(P(swfs_sparse)), P(c_dbl), c_size, c_size, P(c_dbl)]),
+    "swfs_grid_interp": (c_int, [P(P(swfs_sparse)), c_size, c_size, P(swfs_dm_registration), P(c_dbl), c_size, c_dbl,
+                                 P(c_size)]),
     # speckles.h
     "swfs_speckles_subtract_static": (c_int, [P(swfs_cplx), P(c_size), P(c_size), c_size, c_int]),
     "swfs_speckles_recon_tilt": (c_int, [P(swfs_speckle_model), P(c_dbl), P(P(c_dbl)), P(P(c_dbl))]),

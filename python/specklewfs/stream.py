@@ -85,15 +85,17 @@ class Pipeline:
             from .core import aperture  # the annulus the library would build
             mask = aperture(geom.pupn, geom.pupdx, geom.teldiam, geom.obscur)
         B = P(_lib.swfs_sparse)()
+        shapes = None
         if registration is not None:
             r = _lib.swfs_dm_registration(float(registration["pitch"]), float(registration.get("offset", (0, 0))[0]),
                                           float(registration.get("offset", (0, 0))[1]),
                                           float(np.radians(registration.get("rot", 0.0))),
                                           int(bool(registration.get("flip", False))))
             nout = ctypes.c_size_t()
-            check(lib.swfs_basis_from_grid(ctypes.byref(B), dptr(b), b.shape[2], b.shape[1], nk, ctypes.byref(r),
-                                           dptr(mask), geom.pupn, geom.pupdx, ctypes.byref(nout)),
-                  "swfs_basis_from_grid")
+            # the factored form: the grid's interpolation and the modes' values at the grid points
+            check(lib.swfs_grid_interp(ctypes.byref(B), b.shape[2], b.shape[1], ctypes.byref(r), dptr(mask),
+                                       geom.pupn, geom.pupdx, ctypes.byref(nout)), "swfs_grid_interp")
+            shapes = np.ascontiguousarray(b.reshape(nk, -1).T)
             if nout.value:
                 lib.swfs_sparse_free(B)
                 raise ValueError(f"registration: {nout.value} illuminated pupil samples lie more than one grid step "
@@ -126,7 +128,8 @@ class Pipeline:
             if training is not None:
                 tr = as_array(training, "training", np.float64, shape=(None, nmeas))
                 ntr = tr.shape[0]
-            lin = _lib.swfs_linear_input(nmeas, B, dptr(ctl), dptr(im), float(scale))
+            lin = _lib.swfs_linear_input(nmeas, B, dptr(ctl), dptr(im), float(scale), dptr(shapes),
+                                         nk if shapes is not None else 0)
             p = ctypes.c_void_p()
             check(lib.swfs_pipeline_create_linear(ctypes.byref(p), ctypes.byref(g), int(nfx), int(nfy), dptr(mask),
                                                   ctypes.byref(lin), dptr(tr), ntr, ctypes.byref(o)),

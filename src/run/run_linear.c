@@ -28,31 +28,42 @@ static int read_matrix(const char *path, const char *what, size_t *ncols, size_t
     return SWFS_OK;
 }
 
-static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, swfs_sparse **B)
+/* The basis: on the pupil grid, resampled as it is; on a DM grid, in factored form (the
+ * grid's interpolation onto the pupil, *shapes = the cube's values at the grid points,
+ * gx gy x nk: pipeline.h swfs_linear_input.shapes). *nk: the basis functions. */
+static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, swfs_sparse **B,
+                      double **shapes, size_t *nk)
 {
     swfs_real *c = NULL;
     int rc = swfs_fits_read_real(lf->basis, NULL, &c, NULL);
     if (rc) return rc;
     const size_t np = (size_t)g->pupn;
+    *nk = c->nz;
     if (!(lf->reg.pitch > 0)) {
         if (c->nx != np || c->ny != np)
             rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the basis is %zu x %zu x %zu but the pupil grid is PUPN = %zu; a basis on "
                            "the DM's own grid needs its registration (--dm-pitch, --dm-offset, --dm-rot, --dm-flip)",
                            lf->basis, c->nx, c->ny, c->nz, np);
         else if ((rc = swfs_basis_from_pupil(B, c->data, np, c->nz, mask))) swfs_fail_context(rc, "%s", lf->basis);
-    } else {
-        size_t nout = 0;
-        rc = swfs_basis_from_grid(B, c->data, c->nx, c->ny, c->nz, &lf->reg, mask, np, g->pupdx, &nout);
-        if (rc) swfs_fail_context(rc, "%s", lf->basis);
-        else if (nout) {
-            swfs_sparse_free(*B);
-            *B = NULL;
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: the registration (pitch %g m, centre %g, %g m, rotation %g deg%s) puts %zu "
-                           "illuminated pupil samples more than one grid step beyond the %zu x %zu DM grid: it does not "
-                           "describe the pupil (pitch units, offset?)", lf->basis, lf->reg.pitch, lf->reg.x0, lf->reg.y0,
-                           lf->reg.rot * 180 / M_PI, lf->reg.flip_x ? ", mirrored in x" : "", nout, c->nx, c->ny);
-        }
+        swfs_real_free(c);
+        return rc;
     }
+    size_t nout = 0;
+    const size_t gn = c->nx * c->ny;
+    for (size_t k = 0; !rc && k < gn * c->nz; k++)
+        if (!isfinite(c->data[k]))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (x %zu, y %zu, function %zu) is %g; expected finite",
+                           lf->basis, k, k % c->nx, k / c->nx % c->ny, k / gn, c->data[k]);
+    if (!rc && (rc = swfs_grid_interp(B, c->nx, c->ny, &lf->reg, mask, np, g->pupdx, &nout)))
+        swfs_fail_context(rc, "%s", lf->basis);
+    else if (!rc && nout)
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: the registration (pitch %g m, centre %g, %g m, rotation %g deg%s) puts %zu "
+                       "illuminated pupil samples more than one grid step beyond the %zu x %zu DM grid: it does not "
+                       "describe the pupil (pitch units, offset?)", lf->basis, lf->reg.pitch, lf->reg.x0, lf->reg.y0,
+                       lf->reg.rot * 180 / M_PI, lf->reg.flip_x ? ", mirrored in x" : "", nout, c->nx, c->ny);
+    if (!rc && !(*shapes = malloc(gn * c->nz * sizeof **shapes))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t q = 0; !rc && q < gn; q++)
+        for (size_t k = 0; k < c->nz; k++) (*shapes)[q * c->nz + k] = c->data[k * gn + q];
     swfs_real_free(c);
     return rc;
 }
@@ -75,8 +86,9 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
     }
     swfs_sparse *B = NULL;
     swfs_real *m = NULL;
-    rc = load_basis(lf, g, mask, &B);
-    size_t nk = B ? B->ncols : 0, nm = nmeas;
+    double *shapes = NULL;
+    size_t nk = 0, nm = nmeas;
+    rc = load_basis(lf, g, mask, &B, &shapes, &nk);
     if (!rc && !nmeas) nmeas = nm = lf->control || lf->imat ? 0 : nk; /* taken from the files */
     if (!rc && lf->control) rc = read_matrix(lf->control, "control matrix (telemetry values x basis functions)", &nm, &nk, &m);
     if (!rc && lf->imat) rc = read_matrix(lf->imat, "interaction matrix (basis functions x telemetry values)", &nk, &nm, &m);
@@ -86,12 +98,14 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
                        "coefficients; give the control matrix (--control) or the interaction matrix (--imat) to map "
                        "other telemetry", lf->basis, nk, nmeas);
     if (!rc) {
-        swfs_linear_input in = {nmeas, B, lf->control ? m->data : NULL, lf->imat ? m->data : NULL, lf->scale};
+        swfs_linear_input in = {nmeas, B, lf->control ? m->data : NULL, lf->imat ? m->data : NULL, lf->scale, shapes,
+                                shapes ? nk : 0};
         rc = swfs_pipeline_create_linear(p, g, nfx, nfy, mask, &in, train, ntrain, po);
         if (rc) swfs_fail_context(rc, "the linear model of %s", lf->basis);
     }
     swfs_real_free(m);
     swfs_sparse_free(B);
+    free(shapes);
     free(annulus);
     return rc;
 }

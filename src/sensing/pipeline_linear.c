@@ -6,6 +6,7 @@
 #include "specklewfs/wfs.h"
 #include "pipeline_internal.h"
 
+#include <cblas.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -31,19 +32,22 @@ static void lin_free(lin *l)
     if (l->T != l->B) swfs_sparse_free(l->T);
 }
 
+/* The basis functions the coefficients refer to. */
+static size_t nfunctions(const swfs_linear_input *in) { return in->shapes ? in->nshapes : in->basis->ncols; }
+
 static int check_input(const swfs_linear_input *in, size_t ng)
 {
-    if (!in->basis || !in->nmeas || !in->basis->ncols)
+    if (!in->basis || !in->nmeas || !in->basis->ncols || (in->shapes && !in->nshapes))
         return swfs_fail(SWFS_ERR_SHAPE, "pipeline: the linear model needs a basis and telemetry values (%zu)", in->nmeas);
     if (in->basis->nrows != ng)
         return swfs_fail(SWFS_ERR_SHAPE, "pipeline: the basis has %zu rows but the pupil grid %zu samples",
                          in->basis->nrows, ng);
     if (in->control && in->imat)
         return swfs_fail(SWFS_ERR_ARG, "pipeline: give a control matrix or an interaction matrix, not both");
-    if (!in->control && !in->imat && in->nmeas != in->basis->ncols)
+    if (!in->control && !in->imat && in->nmeas != nfunctions(in))
         return swfs_fail(SWFS_ERR_SHAPE, "pipeline: %zu telemetry values per frame taken as the coefficients of %zu basis "
                          "functions; expected as many (or give a control or interaction matrix)", in->nmeas,
-                         in->basis->ncols);
+                         nfunctions(in));
     if (!isfinite(in->scale) || in->scale == 0)
         return swfs_fail(SWFS_ERR_VALUE, "pipeline: the linear model's scale must be finite and non-zero, got %g",
                          in->scale);
@@ -54,8 +58,9 @@ static int check_input(const swfs_linear_input *in, size_t ng)
 static int build_control(lin *l, const swfs_linear_input *in, const double *training, size_t ntrain,
                          const swfs_pipeline_options *o, swfs_pipeline_info *info)
 {
-    const size_t nk = l->nk, nm = l->nmeas;
-    if (!(l->A = calloc(nk * nm, sizeof *l->A))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    const size_t nk = nfunctions(in), nm = l->nmeas;
+    if (nk > SIZE_MAX / sizeof(double) / nm || !(l->A = calloc(nk * nm, sizeof *l->A)))
+        return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     if (in->control) {
         for (size_t k = 0; k < nk * nm; k++) {
             if (!isfinite(in->control[k]))
@@ -82,6 +87,21 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
         info->ntrain = o->recon == SWFS_RECON_SVD ? 0 : ntrain;
         swfs_recon_free(r);
     }
+    if (!in->shapes) return SWFS_OK;
+    /* the factored basis: the functions' values at the basis' nq points times A */
+    const size_t nq = l->nk;
+    double *QA = calloc(nq * nm, sizeof *QA);
+    if (!QA) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t k = 0; k < nq * nk; k++)
+        if (!isfinite(in->shapes[k])) {
+            free(QA);
+            return swfs_fail(SWFS_ERR_VALUE, "pipeline: basis shape value (%zu, %zu) is %g; expected finite", k / nk,
+                             k % nk, in->shapes[k]);
+        }
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nq, (int)nm, (int)nk, 1.0, in->shapes, (int)nk, l->A,
+                (int)nm, 0.0, QA, (int)nm);
+    free(l->A);
+    l->A = QA;
     return SWFS_OK;
 }
 
@@ -237,7 +257,7 @@ static int build(swfs_pipeline *p, lin *l, const swfs_geom *g, const swfs_linear
     if (rc) return rc;
     p->info.nslopes = l->nmeas;
     p->info.nact = l->nrows;
-    p->info.nbasis = l->nk;
+    p->info.nbasis = nfunctions(in);
     p->info.basis_nnz = in->basis->nnz;
     p->info.composed = l->T != l->B;
     if (p->opt.tiptilt == SWFS_TT_EXPOSURE) {

@@ -179,6 +179,69 @@ int swfs_basis_from_grid(swfs_sparse **B, const double *cube, size_t gx, size_t 
     return finish(&b, B);
 }
 
+int swfs_grid_interp(swfs_sparse **T, size_t gx, size_t gy, const swfs_dm_registration *reg, const double *mask,
+                     size_t npup, double pupdx, size_t *n_outside)
+{
+    *T = NULL;
+    *n_outside = 0;
+    if (!gx || !gy || gx > SIZE_MAX / gy) return swfs_fail(SWFS_ERR_SHAPE, "basis: DM grid %zu x %zu", gx, gy);
+    if (!(reg->pitch > 0) || !isfinite(reg->pitch) || !isfinite(reg->x0) || !isfinite(reg->y0) || !isfinite(reg->rot))
+        return swfs_fail(SWFS_ERR_VALUE, "basis: the DM registration needs a finite pitch > 0 [m] and finite offset "
+                         "and rotation (pitch %g, offset %g, %g m, rotation %g rad)", reg->pitch, reg->x0, reg->y0,
+                         reg->rot);
+    const size_t gn = gx * gy;
+    double *row = calloc(gn, sizeof *row);
+    size_t *touched = malloc(16 * sizeof *touched);
+    builder b = {0};
+    int rc = row && touched ? begin(&b, npup * npup, gn) : swfs_fail(SWFS_ERR_NOMEM, "basis: out of memory");
+    const double c0 = 0.5 * (double)(npup - 1);
+    for (size_t q = 0; q < npup && !rc; q++)
+        for (size_t i = 0; i < npup && !rc; i++) {
+            const size_t r = q * npup + i;
+            size_t nt = 0;
+            if (mask[r] > 0) {
+                double u, v;
+                swfs_pupil_to_dm(reg, gx, gy, ((double)i - c0) * pupdx, ((double)q - c0) * pupdx, &u, &v);
+                if (u < -1 || v < -1 || u > (double)gx || v > (double)gy) (*n_outside)++;
+                const double fu = floor(u), fv = floor(v);
+                for (int dj = -1; dj <= 2; dj++) {
+                    const double wv = keys(v - (fv + dj)), jj = fv + dj;
+                    if (wv == 0) continue;
+                    const size_t j = jj < 0 ? 0 : jj > (double)(gy - 1) ? gy - 1 : (size_t)jj;
+                    for (int di = -1; di <= 2; di++) {
+                        const double w = wv * keys(u - (fu + di)), ii = fu + di;
+                        if (w == 0) continue;
+                        const size_t col = j * gx + (ii < 0 ? 0 : ii > (double)(gx - 1) ? gx - 1 : (size_t)ii);
+                        size_t a = 0;
+                        while (a < nt && touched[a] != col) a++;
+                        if (a == nt) touched[nt++] = col;
+                        row[col] += w;
+                    }
+                }
+            }
+            /* the row's entries in column order (the stencil clamped at an edge may repeat a point) */
+            for (size_t a = 1; a < nt; a++)
+                for (size_t c = a; c > 0 && touched[c - 1] > touched[c]; c--) {
+                    const size_t t = touched[c];
+                    touched[c] = touched[c - 1];
+                    touched[c - 1] = t;
+                }
+            rc = grow(&b, b.s->nnz + nt);
+            for (size_t a = 0; a < nt && !rc; a++) {
+                if (row[touched[a]] != 0) {
+                    b.s->col[b.s->nnz] = touched[a];
+                    b.s->val[b.s->nnz++] = row[touched[a]];
+                }
+                row[touched[a]] = 0;
+            }
+            if (!rc) b.s->row_ptr[r + 1] = b.s->nnz;
+        }
+    free(row);
+    free(touched);
+    if (rc) { discard(&b); return rc; }
+    return finish(&b, T);
+}
+
 int swfs_basis_from_pupil(swfs_sparse **B, const double *cube, size_t npup, size_t nk, const double *mask)
 {
     *B = NULL;
