@@ -137,44 +137,24 @@ int swfs_basis_from_grid(swfs_sparse **B, const double *cube, size_t gx, size_t 
     *B = NULL;
     *n_outside = 0;
     int rc = check_cube(cube, gx, gy, nk, "DM grid");
+    swfs_sparse *T = NULL;
+    if (!rc) rc = swfs_grid_interp(&T, gx, gy, reg, mask, npup, pupdx, n_outside);
     if (rc) return rc;
-    if (!(reg->pitch > 0) || !isfinite(reg->pitch) || !isfinite(reg->x0) || !isfinite(reg->y0) || !isfinite(reg->rot))
-        return swfs_fail(SWFS_ERR_VALUE, "basis: the DM registration needs a finite pitch > 0 [m] and finite offset "
-                         "and rotation (pitch %g, offset %g, %g m, rotation %g rad)", reg->pitch, reg->x0, reg->y0,
-                         reg->rot);
+    /* row r of B = row r of T times the cube's grid values */
     const size_t gn = gx * gy;
     double *row = malloc(nk * sizeof *row);
     builder b = {0};
-    if (!row) return swfs_fail(SWFS_ERR_NOMEM, "basis: out of memory");
-    if ((rc = begin(&b, npup * npup, nk))) { free(row); return rc; }
-    const double c0 = 0.5 * (double)(npup - 1);
-    for (size_t q = 0; q < npup && !rc; q++)
-        for (size_t i = 0; i < npup && !rc; i++) {
-            const size_t r = q * npup + i;
-            memset(row, 0, nk * sizeof *row);
-            if (mask[r] > 0) {
-                double u, v;
-                swfs_pupil_to_dm(reg, gx, gy, ((double)i - c0) * pupdx, ((double)q - c0) * pupdx, &u, &v);
-                if (u < -1 || v < -1 || u > (double)gx || v > (double)gy) (*n_outside)++;
-                const double fu = floor(u), fv = floor(v);
-                for (int dj = -1; dj <= 2; dj++) {
-                    const double wv = keys(v - (fv + dj));
-                    if (wv == 0) continue;
-                    double jj = fv + dj;
-                    const size_t j = jj < 0 ? 0 : jj > (double)(gy - 1) ? gy - 1 : (size_t)jj;
-                    for (int di = -1; di <= 2; di++) {
-                        const double w = wv * keys(u - (fu + di));
-                        if (w == 0) continue;
-                        double ii = fu + di;
-                        const size_t ix = ii < 0 ? 0 : ii > (double)(gx - 1) ? gx - 1 : (size_t)ii;
-                        const double *src = cube + j * gx + ix;
-                        for (size_t k = 0; k < nk; k++) row[k] += w * src[k * gn];
-                    }
-                }
-            }
-            rc = push_row(&b, r, row, nk);
+    rc = row ? begin(&b, npup * npup, nk) : swfs_fail(SWFS_ERR_NOMEM, "basis: out of memory");
+    for (size_t r = 0; r < T->nrows && !rc; r++) {
+        memset(row, 0, nk * sizeof *row);
+        for (size_t z = T->row_ptr[r]; z < T->row_ptr[r + 1]; z++) {
+            const double w = T->val[z], *src = cube + T->col[z];
+            for (size_t k = 0; k < nk; k++) row[k] += w * src[k * gn];
         }
+        rc = push_row(&b, r, row, nk);
+    }
     free(row);
+    swfs_sparse_free(T);
     if (rc) { discard(&b); return rc; }
     return finish(&b, B);
 }

@@ -26,6 +26,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <unistd.h>
+#include "fuzz_tmp.h"
 
 /* Images the harness lets the readers load: tile-compressed headers may claim any size,
  * and allocating terabytes is the system's "out of memory", not a bug of the reader. */
@@ -115,25 +116,14 @@ static void products(const char *path)
     (void)swfs_geom_read_file(path, &g); /* FITS header or KEY = VALUE text (--geom) */
 }
 
-static char tmp_path[256];
-
-static void remove_file(void) { unlink(tmp_path); }
-
 /* The readers on one file's bytes. */
 static int fuzz_one(const uint8_t *data, size_t size)
 {
-    if (!tmp_path[0]) {
-        const char *tmp = getenv("TMPDIR");
-        snprintf(tmp_path, sizeof tmp_path, "%s/swfs-fuzz-%ld.fits", tmp && *tmp ? tmp : "/tmp", (long)getpid());
-        atexit(remove_file);
-    }
-    FILE *fh = fopen(tmp_path, "wb");
-    if (!fh) return 0;
-    if (size) fwrite(data, 1, size, fh);
-    fclose(fh);
-    if (small_enough(tmp_path)) {
-        generic(tmp_path);
-        products(tmp_path);
+    const char *path = fuzz_write_tmp(data, size, "swfs-fuzz", "fits");
+    if (!path) return 0;
+    if (small_enough(path)) {
+        generic(path);
+        products(path);
     }
     swfs_clear_error();
     return 0;

@@ -23,6 +23,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include "fuzz_tmp.h"
 #include <unistd.h>
 
 static void timing(const char *path)
@@ -103,28 +104,17 @@ static void sweep(const char *path)
     swfs_sweep_free(s);
 }
 
-static char tmp_path[256];
-
-static void remove_file(void) { unlink(tmp_path); }
-
 /* The readers on one file's bytes. */
 static int fuzz_one(const uint8_t *data, size_t size)
 {
-    if (!tmp_path[0]) {
-        const char *tmp = getenv("TMPDIR");
-        snprintf(tmp_path, sizeof tmp_path, "%s/swfs-fuzz-text-%ld.txt", tmp && *tmp ? tmp : "/tmp", (long)getpid());
-        atexit(remove_file);
-    }
-    FILE *fh = fopen(tmp_path, "wb");
-    if (!fh) return 0;
-    if (size) fwrite(data, 1, size, fh);
-    fclose(fh);
-    timing(tmp_path);
-    handshake(tmp_path);
-    config(tmp_path, data, size);
-    geometry(tmp_path);
-    table(tmp_path);
-    sweep(tmp_path);
+    const char *path = fuzz_write_tmp(data, size, "swfs-fuzz-text", "txt");
+    if (!path) return 0;
+    timing(path);
+    handshake(path);
+    config(path, data, size);
+    geometry(path);
+    table(path);
+    sweep(path);
     swfs_clear_error();
     return 0;
 }
