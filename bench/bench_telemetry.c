@@ -7,6 +7,11 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] [--tiptilt exposure|frame]
+ *                                 [--kind slopes|modal]
+ *
+ * --kind modal: each system's telemetry exported as cacao's modal coefficients on a DM grid
+ * that is offset, turned and mirrored (simulate export_modal=1), timed by sync and turned into
+ * speckles through the linear model: the non-Shack-Hartmann input kind over the same matrix.
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -54,6 +59,10 @@ static const system_def systems[] = {
 
 static char dir[1024];
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
+/* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
+ * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
+static int modal;
+static swfs_dm_registration modal_reg;
 
 static const char *pth(const char *name)
 {
@@ -115,6 +124,8 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     swfs_config_free(c);
     const char *prov[] = {"bench_telemetry"};
     if (!rc) rc = swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, sum);
+    size_t nmodes;
+    if (!rc && modal) rc = swfs_ts_export_modal(&tp, dir, prov, 1, &modal_reg, &nmodes);
     return rc;
 }
 
@@ -151,6 +162,36 @@ typedef struct row {
     size_t nvalid, nact, nexp;
 } row;
 
+/* handshake_modal.log: the handshake log naming the modal files of the same WFS frames. */
+static int modal_handshake(void)
+{
+    FILE *in = fopen(pth("handshake.log"), "r"), *out = in ? fopen(pth("handshake_modal.log"), "w") : NULL;
+    if (!in || !out) {
+        if (in) fclose(in);
+        return 1;
+    }
+    char line[1024];
+    while (fgets(line, sizeof line, in)) {
+        char *m = strstr(line, "slopes_");
+        if (m) {
+            fwrite(line, 1, (size_t)(m - line), out);
+            fprintf(out, "modal_%s", m + 7);
+        } else {
+            fputs(line, out);
+        }
+    }
+    fclose(in);
+    return fclose(out) != 0;
+}
+
+static void modal_files(swfs_linear_files *lf)
+{
+    swfs_linear_files_default(lf);
+    lf->basis = pth("dm_modes.fits");
+    lf->reg = modal_reg;
+    lf->scale = 2e-6; /* um of DM surface on unit-rms modes */
+}
+
 static int run_system(const system_def *s, unsigned seed, int quick, row *r)
 {
     const double t0 = swfs_wall_seconds();
@@ -183,6 +224,11 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_sync_run_options_default(&so);
     so.science = pth("science.fits");
     so.handshake = pth("handshake.log");
+    if (modal) {
+        if (modal_handshake()) return die("handshake_modal.log");
+        so.handshake = pth("handshake_modal.log");
+        modal_files(&so.lin);
+    }
     so.out = pth("timing.txt");
     swfs_sync_run_result sr;
     if (swfs_sync_run(&so, &sr)) return die("sync");
@@ -197,6 +243,10 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.timing = pth("timing.txt");
     sp.science = pth("science.fits");
     sp.actuators = pth("actuators.fits");
+    if (modal) {
+        sp.actuators = NULL;
+        modal_files(&sp.lin);
+    }
     sp.out = pth("speckles.fits");
     const char *min[] = {pth("science.fits")}, *mout[] = {pth("science_m.fits")};
     sp.match_in = min;
@@ -233,9 +283,11 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = atoi(argv[++i]);
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "frame")) tiptilt = SWFS_TT_FRAME, i++;
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame]\n");
+                    "[--tiptilt exposure|frame] [--kind slopes|modal]\n");
             return 2;
         }
     }
@@ -248,7 +300,8 @@ int main(int argc, char **argv)
         if (mkdir(dir, 0755)) { perror(dir); return 1; }
     }
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
-           quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" : "");
+           quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
+           modal ? ", modal telemetry (--basis)" : "");
     printf("%-11s %4s %4s %5s %6s %4s %4s %5s | %7s %7s %6s | %6s %6s %5s | %5s\n", "system", "seed", "nsub", "rate",
            "ratio", "vib", "rn", "res", "slopes", "ideal", "x", "ratio", "lag", "nexp", "s");
     double worst = 0.0, sum_ratio = 0.0;
