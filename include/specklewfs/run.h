@@ -75,7 +75,7 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
  * modal form of cacao-based systems, the worked example of --basis: modal_NNN.fits (per WFS
  * frame the coefficients of the DM's modes 1.. (swfs_dm_modes; piston dropped) of the
  * default speckle reconstructor's wavefront, in um of DM surface on unit-rms modes, as
- * cacao's modevalWFS) and dm_modes.fits (the mode cube on a DM grid of half the actuator
+ * cacao's modevalWFS) and dm_modes.fits (the mode cube on a DM grid of a quarter of the actuator
  * pitch, offset, turned by 10 degrees and mirrored on the pupil; the registration in its
  * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg). */
 struct swfs_ts_params;

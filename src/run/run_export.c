@@ -86,7 +86,7 @@ static int modal_reconstructor(const swfs_geom *g, exp_work *w)
     return SWFS_OK;
 }
 
-/* The mode surfaces on a DM grid (half the actuator pitch, rotated and mirrored on the
+/* The mode surfaces on a DM grid (a quarter of the actuator pitch, rotated and mirrored on the
  * pupil), each normalized to unit rms over the grid points inside the actuators' hull. */
 static int mode_cube(const swfs_geom *g, const swfs_dm_registration *reg, exp_work *w)
 {
@@ -233,9 +233,11 @@ int swfs_ts_export_modal(const struct swfs_ts_params *p, const char *dir, const 
     int rc = swfs_actuators_read(path, &w.xy, &w.nact);
     if (!rc) rc = load_slopes(dir, &w);
     if (!rc) rc = modal_reconstructor(&g, &w);
-    /* A registration a real DM could have: half the actuator pitch per grid step, the grid's
+    /* A registration a real DM could have: a quarter of the actuator pitch per grid step (half
+     * the pitch resampled the highest modes too coarsely: on 24 x 24 the joint fit then landed
+     * at 29.3 nm instead of 10.9, docs/telemetry.md), the grid's
      * centre off the pupil's, turned by 10 degrees and mirrored. */
-    swfs_dm_registration reg = {swfs_points_pitch(w.xy, w.nact) / 2, 0.03, -0.02, 10 * M_PI / 180, 1};
+    swfs_dm_registration reg = {swfs_points_pitch(w.xy, w.nact) / 4, 0.03, -0.02, 10 * M_PI / 180, 1};
     if (!rc) rc = mode_cube(&g, &reg, &w);
     if (!rc) rc = write_modal(dir, &w, prov, nprov);
     if (!rc) rc = write_control(dir, &w, prov, nprov);
