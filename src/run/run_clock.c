@@ -1,6 +1,7 @@
 /* sync --wfs-log: a WFS milk log + the reduced science cube (TRACK, STAMPS) -> the clock
  * file (clocksync.h). See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
+#include "run_internal.h"
 #include "specklewfs/milklog.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
@@ -54,9 +55,7 @@ int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r)
     int rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
     for (size_t k = 0; k < o->nwfs; k++) swfs_paths_input_or_dir(paths, "WFS log", o->wfs[k]);
-    swfs_paths_input(paths, "basis (--basis)", o->lin.basis);
-    swfs_paths_input(paths, "control matrix", o->lin.control);
-    swfs_paths_input(paths, "interaction matrix", o->lin.imat);
+    swfs_linear_paths(paths, &o->lin);
     if (!rc) rc = swfs_paths_output(paths, "output clock file", o->out);
     swfs_paths_free(paths);
     if (rc) return rc;

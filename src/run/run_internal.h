@@ -41,4 +41,8 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
 int swfs_frame_recentre_shifts(const char *tdir, const swfs_timing *t, const char *science, const swfs_geom *g,
                                double *dx, double *dy);
 
+/* The linear model's files as inputs of a command's path check (outpaths.h). */
+struct swfs_paths;
+void swfs_linear_paths(struct swfs_paths *p, const swfs_linear_files *lf);
+
 #endif

@@ -2,10 +2,19 @@
 #include "specklewfs/run.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
+#include "run_internal.h"
 
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
+
+void swfs_linear_paths(swfs_paths *p, const swfs_linear_files *lf)
+{
+    swfs_paths_input(p, "basis (--basis)", lf->basis);
+    swfs_paths_input(p, "control matrix (--control)", lf->control);
+    swfs_paths_input(p, "interaction matrix (--imat)", lf->imat);
+}
 
 void swfs_linear_files_default(swfs_linear_files *lf)
 {

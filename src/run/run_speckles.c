@@ -94,9 +94,7 @@ static int check_paths(const swfs_speckles_run_options *o, const work *w)
     swfs_paths_input(p, "timing table", o->timing);
     swfs_paths_input(p, "science cube", o->science);
     swfs_paths_input(p, "actuator file", o->actuators);
-    swfs_paths_input(p, "basis (--basis)", o->lin.basis);
-    swfs_paths_input(p, "control matrix", o->lin.control);
-    swfs_paths_input(p, "interaction matrix", o->lin.imat);
+    swfs_linear_paths(p, &o->lin);
     if (o->pipe.recon == SWFS_RECON_GIVEN) swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "pupil mask", o->mask);
     for (size_t k = 0; k < o->nmatch; k++) swfs_paths_input(p, "--match input", o->match_in[k]);

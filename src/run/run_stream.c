@@ -126,9 +126,7 @@ static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t
     swfs_paths_input_or_dir(p, "telemetry (--slopes)", o->slopes);
     swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "actuator file", o->actuators);
-    swfs_paths_input(p, "basis (--basis)", o->lin.basis);
-    swfs_paths_input(p, "control matrix", o->lin.control);
-    swfs_paths_input(p, "interaction matrix", o->lin.imat);
+    swfs_linear_paths(p, &o->lin);
     swfs_paths_input(p, "pupil mask", o->mask);
     swfs_paths_input(p, "static halo", o->static_file);
     if (!rc) rc = swfs_paths_status(p);

@@ -41,6 +41,7 @@ static int check_paths(const swfs_stream_run_options *o)
     swfs_paths_input(p, "clock file", o->clock);
     swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_linear_paths(p, &o->lin);
     swfs_paths_input(p, "pupil mask", o->mask);
     swfs_paths_input(p, "static halo", o->static_file);
     swfs_paths_output(p, "output halo", o->out);

@@ -1,5 +1,6 @@
 /* sync: reduced science + handshake log -> the timing table (Sec. 4.2). See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
+#include "run_internal.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/science.h"
@@ -111,9 +112,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     if (rc) return rc;
     rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
-    swfs_paths_input(paths, "basis (--basis)", o->lin.basis);
-    swfs_paths_input(paths, "control matrix", o->lin.control);
-    swfs_paths_input(paths, "interaction matrix", o->lin.imat);
+    swfs_linear_paths(paths, &o->lin);
     swfs_paths_input(paths, "handshake log", o->handshake);
     if (!rc) rc = swfs_paths_output(paths, "output timing table", o->out);
     if (!rc) rc = swfs_science_track_read(o->science, &w.tr);
