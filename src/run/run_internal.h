@@ -44,5 +44,9 @@ int swfs_frame_recentre_shifts(const char *tdir, const swfs_timing *t, const cha
 /* The linear model's files as inputs of a command's path check (outpaths.h). */
 struct swfs_paths;
 void swfs_linear_paths(struct swfs_paths *p, const swfs_linear_files *lf);
+/* The inputs (science cube, reconstructor, actuators, the linear model's files, mask, static
+ * halo) and the outputs every stream run checks, whatever its source (run_stream.c). */
+void swfs_stream_paths_inputs(struct swfs_paths *p, const swfs_stream_run_options *o);
+void swfs_stream_paths_outputs(struct swfs_paths *p, const swfs_stream_run_options *o);
 
 #endif

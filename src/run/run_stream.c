@@ -114,6 +114,24 @@ static int update(void *ctx, const swfs_stream *s, int final)
     return rc;
 }
 
+void swfs_stream_paths_inputs(swfs_paths *p, const swfs_stream_run_options *o)
+{
+    swfs_paths_input(p, "science cube", o->science);
+    swfs_paths_input(p, "reconstructor", o->recon);
+    swfs_paths_input(p, "actuator file", o->actuators);
+    swfs_linear_paths(p, &o->lin);
+    swfs_paths_input(p, "pupil mask", o->mask);
+    swfs_paths_input(p, "static halo", o->static_file);
+}
+
+void swfs_stream_paths_outputs(swfs_paths *p, const swfs_stream_run_options *o)
+{
+    swfs_paths_output(p, "output halo", o->out);
+    swfs_paths_output(p, "pupil output", o->pupil_out);
+    swfs_paths_output(p, "checkpoint output", o->checkpoint);
+    swfs_paths_output(p, "static-halo output", o->static_out);
+}
+
 /* Every input (the telemetry files of the timing table too) and output, before the work. */
 static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t cap)
 {
@@ -122,13 +140,8 @@ static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t
     char path[8192];
     int rc = swfs_paths_create(&p);
     swfs_paths_input(p, "timing table", o->timing);
-    swfs_paths_input(p, "science cube", o->science);
     swfs_paths_input_or_dir(p, "telemetry (--slopes)", o->slopes);
-    swfs_paths_input(p, "reconstructor", o->recon);
-    swfs_paths_input(p, "actuator file", o->actuators);
-    swfs_linear_paths(p, &o->lin);
-    swfs_paths_input(p, "pupil mask", o->mask);
-    swfs_paths_input(p, "static halo", o->static_file);
+    swfs_stream_paths_inputs(p, o);
     if (!rc) rc = swfs_paths_status(p);
     if (!rc) rc = swfs_timing_read(o->timing, &t);
     first_tel[0] = 0;
@@ -137,10 +150,7 @@ static int check_paths(const swfs_stream_run_options *o, char *first_tel, size_t
             rc = swfs_paths_input(p, "telemetry file of the timing table", path);
             if (!first_tel[0] && t->cubes[c].status == SWFS_CUBE_OK) snprintf(first_tel, cap, "%s", path);
         }
-    swfs_paths_output(p, "output halo", o->out);
-    swfs_paths_output(p, "pupil output", o->pupil_out);
-    swfs_paths_output(p, "checkpoint output", o->checkpoint);
-    swfs_paths_output(p, "static-halo output", o->static_out);
+    swfs_stream_paths_outputs(p, o);
     if (!rc) rc = swfs_paths_status(p);
     swfs_timing_free(t);
     swfs_paths_free(p);

@@ -36,18 +36,10 @@ static int check_paths(const swfs_stream_run_options *o)
 {
     swfs_paths *p = NULL;
     int rc = swfs_paths_create(&p);
-    swfs_paths_input(p, "science cube", o->science);
     for (size_t k = 0; k < o->nwfs_logs; k++) swfs_paths_input_or_dir(p, "WFS log (--wfs-log)", o->wfs_logs[k]);
     swfs_paths_input(p, "clock file", o->clock);
-    swfs_paths_input(p, "reconstructor", o->recon);
-    swfs_paths_input(p, "actuator file", o->actuators);
-    swfs_linear_paths(p, &o->lin);
-    swfs_paths_input(p, "pupil mask", o->mask);
-    swfs_paths_input(p, "static halo", o->static_file);
-    swfs_paths_output(p, "output halo", o->out);
-    swfs_paths_output(p, "pupil output", o->pupil_out);
-    swfs_paths_output(p, "checkpoint output", o->checkpoint);
-    swfs_paths_output(p, "static-halo output", o->static_out);
+    swfs_stream_paths_inputs(p, o);
+    swfs_stream_paths_outputs(p, o);
     if (!rc) rc = swfs_paths_status(p);
     swfs_paths_free(p);
     return rc;
