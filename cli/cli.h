@@ -140,9 +140,10 @@ struct swfs_linear_files;
 struct swfs_pipeline_info;
 int cli_linear_option(const char *cmd, int argc, char **argv, int *i, struct swfs_linear_files *lf);
 void cli_linear_summary(const char *cmd, const struct swfs_linear_files *lf, const struct swfs_pipeline_info *info);
-/* The Shack-Hartmann model's reconstructor: what it learned or was given. */
+/* The Shack-Hartmann model: its subapertures (valid: the map's file or NULL) and what the
+ * reconstructor learned or was given. */
 struct swfs_pipeline_options;
-void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, const char *path,
+void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, const char *path, const char *valid,
                        const struct swfs_pipeline_info *info);
 #define CLI_LINEAR_HELP \
     "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \

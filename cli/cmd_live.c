@@ -30,7 +30,7 @@ static const char *usage_text =
     "                        (e.g. a reduced science cube)\n"
     "  --recon, --actuators, -o, --pupil-out, --checkpoint, --every, --every-seconds,\n"
     "  --threads, --static, --static-out, --pupil, --tiptilt, --read-noise, --gain,\n"
-    "  --g-smooth, --max-frames   as for 'specklewfs stream'\n"
+    "  --g-smooth, --max-frames, --valid   as for 'specklewfs stream'\n"
     "  --batch B             camera frames per batch (default 16; 'stream' with the same B\n"
     "                        gives the same result)\n"
     "  --max-wait T          longest wait [s] of a ready frame for its batch to fill (0.5)\n"
@@ -88,6 +88,7 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         else if (!strcmp(a, "--static")) str = &stat;
         else if (!strcmp(a, "--static-out")) str = &o->run.static_out;
         else if (!strcmp(a, "--pupil")) str = &o->run.mask;
+        else if (!strcmp(a, "--valid")) str = &o->run.valid;
         else if (!strcmp(a, "--dm-out")) str = &o->dm_out;
         else if (!strcmp(a, "--dm-file")) str = &o->dm_file;
         else if (!strcmp(a, "--every")) lv = &every;
@@ -148,7 +149,8 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
     if (!*nwfs || !o->src.camera || !o->run.science || !((o->run.recon && o->run.actuators) || o->run.lin.basis) ||
         !o->run.out)
         return cli_usage_error(cmd, "needs --wfs, --camera, --geom, --recon and --actuators (or --basis) and -o");
-    if (o->run.lin.basis && o->run.recon) return cli_usage_error(cmd, "--basis (the linear model) takes no --recon");
+    if (o->run.lin.basis && (o->run.recon || o->run.valid))
+        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon or --valid");
     if (o->dm_out && !o->run.actuators) return cli_usage_error(cmd, "--dm-out fits the offsets onto --actuators");
     if (o->dm_out && !o->run.pupil_out) return cli_usage_error(cmd, "--dm-out needs --pupil-out (the WFE it corrects)");
     if (every < 0 || max_frames < 0) return cli_usage_error(cmd, "--every and --max-frames must be >= 0");

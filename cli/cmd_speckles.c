@@ -67,6 +67,9 @@ static const char *usage_text2 =
     "  --match IN OUT      write OUT = the frames of IN (a cube aligned with SCIENCE.fits, e.g.\n"
     "                      SCIENCE.fits itself) of the usable cubes, so it matches SPECKLES.fits\n"
     "  --pupil MASK.fits   pupil mask PUPN x PUPN (default: annulus from TELDIAM, OBSCUR)\n"
+    "  --valid MAP.fits    the AO system's valid-subaperture map, nsub x nsub (nonzero = used):\n"
+    "                      those subapertures whatever their illumination (default: >= 50 % lit);\n"
+    "                      the slopes may then be the used subapertures' only (2 nvalid: x, then y)\n"
     "  --threads N         engine workers (default 1)\n"
     "  --batch B           frames per pipeline call (default 128); under mpirun the cubes are\n"
     "                      shared out in pieces of B frames (docs/cluster.md)\n"
@@ -77,8 +80,7 @@ static const char *usage_text2 =
     "                      WFS frame (default; or --tiptilt keep). Header: FRAMEDT = 1/WFSRATE [s],\n"
     "                      FRATIO (camera exposure = FRATIO x FRAMEDT), NSEGS (cubes). --match and\n"
     "                      --tiptilt exposure do not apply\n"
-    "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n"
-    CLI_LINEAR_HELP;
+    "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n";
 
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
 typedef struct spk_args {
@@ -144,6 +146,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
         {"--actuators", CLI_STRING, &o->actuators, fn, 0}, {"--pupil", CLI_STRING, &o->mask, fn, 0},
+        {"--valid", CLI_STRING, &o->valid, fn, 0},
         {"--write-recon", CLI_STRING, &o->write_recon, fn, 0}, {"--vk-l0", CLI_DOUBLE, &o->pipe.vk_l0, NULL, 0},
         {"--recon-scale", CLI_DOUBLE, &o->pipe.recon_scale, NULL, 0},
         {"--slope-noise", CLI_DOUBLE, &slope_noise, NULL, 0}, {"--threads", CLI_LONG, &threads, NULL, 0},
@@ -157,6 +160,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     if (d.help) {
         fputs(usage_text, stdout);
         fputs(usage_text2, stdout);
+        fputs(CLI_LINEAR_HELP, stdout);
         return -1;
     }
     const int rcond_given = d.rcond_given, tt_given = d.tt_given;
@@ -164,8 +168,9 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     const long modes = d.modes;
     if (!o->timing || !o->science || !(o->actuators || o->lin.basis) || !o->out)
         return cli_usage_error(cmd, "needs TIMING.txt, --science, --actuators (or --basis) and -o");
-    if (o->lin.basis && (o->actuators || o->pipe.recon == SWFS_RECON_GIVEN || o->write_recon))
-        return cli_usage_error(cmd, "--basis (the linear model) takes no --actuators, --recon W.fits or --write-recon");
+    if (o->lin.basis && (o->actuators || o->pipe.recon == SWFS_RECON_GIVEN || o->write_recon || o->valid))
+        return cli_usage_error(cmd, "--basis (the linear model) takes no --actuators, --recon W.fits, --write-recon or "
+                               "--valid (its control or interaction matrix takes the telemetry as it is)");
     if (!o->lin.basis && (o->lin.control || o->lin.imat || o->lin.reg.pitch > 0 || o->lin.scale != 1))
         return cli_usage_error(cmd, "--control, --imat, --dm-* and --coef-scale go with --basis");
     if (!(rcond >= 0 && rcond < 1) || modes < 0 || threads < 1) return cli_usage_error(cmd, "--rcond must be in [0, 1), --modes >= 0, --threads >= 1");
@@ -227,7 +232,7 @@ int swfs_cmd_speckles(int argc, char **argv)
         return rc;
     }
     if (!rc && o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
-    else if (!rc) cli_recon_summary(cmd, &o.pipe, o.recon, &r.info);
+    else if (!rc) cli_recon_summary(cmd, &o.pipe, o.recon, o.valid, &r.info);
     if (!rc)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,

@@ -68,6 +68,8 @@ static const char *usage_text =
     "  --max-frames N        stop after N camera frames\n"
     "  --read-noise, --gain  noise model for the estimate (default: science header)\n";
 static const char *usage_mpi =
+    "  --valid MAP.fits      the valid-subaperture map the reconstructor was made with\n"
+    "                        ('speckles --valid'): slopes of the used subapertures only\n"
     "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
     "                        (default 2; 0 = the paper's per-pixel g)\n"
     "  --wfs-log DIR|FILE    instead of --timing: a WFS milk log (folder of NAME_hh:mm:ss.s.fits[.fz]\n"
@@ -127,7 +129,7 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--max-frames", CLI_LONG, &max_frames, NULL, 0}, {"--every-seconds", CLI_DOUBLE, &o->stream.every_seconds, NULL, 0},
         {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},
         {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0}, {"--clock", CLI_STRING, &o->clock, v, 0},
-        {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0},
+        {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0}, {"--valid", CLI_STRING, &o->valid, v, 0},
     };
     for (int i = 1; i < argc; i++)
         if (cli_is_help(argv[i])) { /* the usage is two strings */
@@ -141,8 +143,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     if ((!o->timing == !o->nwfs_logs) || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
         return cli_usage_error(cmd, "needs --timing or --wfs-log (one of them), --science, --recon and --actuators (or "
                                "--basis) and -o");
-    if (o->lin.basis && (o->recon || o->actuators))
-        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon or --actuators");
+    if (o->lin.basis && (o->recon || o->actuators || o->valid))
+        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon, --actuators or --valid");
     if ((o->clock || o->exptime != 0) && !o->nwfs_logs) return cli_usage_error(cmd, "--clock and --exptime go with --wfs-log");
     if (!(o->exptime >= 0)) return cli_usage_error(cmd, "--exptime must be >= 0 s, got %g", o->exptime);
     if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);

@@ -340,8 +340,13 @@ int cli_linear_option(const char *cmd, int argc, char **argv, int *i, swfs_linea
     return 1;
 }
 
-void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const char *path, const swfs_pipeline_info *in)
+void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const char *path, const char *valid,
+                       const swfs_pipeline_info *in)
 {
+    if (in->nsub)
+        fprintf(stderr, "%s: Shack-Hartmann %zu x %zu, %zu subapertures used (%s%s), %zu slopes per frame%s\n", cmd,
+                in->nsub, in->nsub, in->nvalid, valid ? "the map " : ">= 50 % illuminated", valid ? valid : "",
+                in->nslopes, in->nslopes == 2 * in->nvalid && in->nvalid < in->nsub * in->nsub ? " (the used ones')" : "");
     if (o->recon == SWFS_RECON_MAP || o->recon == SWFS_RECON_VK)
         fprintf(stderr, "%s: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, %.1f "
                 "effective\n", cmd, o->recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", in->ntrain,

@@ -44,6 +44,18 @@ linear() { # linear <name> <timing> <speckles options...>: prints the NCP error
 # shellcheck disable=SC2086
 modal=$(linear modal "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $reg --coef-scale 2e-6)
 control=$(linear control "$D/timing_valid.txt" --basis "$S/influence.fits" --control "$S/control.fits")
+# The same valid-only slopes through the Shack-Hartmann model with the AO system's
+# valid-subaperture map: the native path's numbers, its reconstructor in the narrow layout.
+valid=$(linear valid "$D/timing_valid.txt" --actuators "$S/actuators.fits" --valid "$S/valid.fits" \
+    --write-recon "$D/recon_valid.fits")
+"$B" stream --timing "$D/timing_valid.txt" --science "$D/science.fits" --recon "$D/recon_valid.fits" \
+    --actuators "$S/actuators.fits" --valid "$S/valid.fits" -o "$D/halo_svalid.fits" > "$D/stream_valid.log" 2>&1 \
+    || { cat "$D/stream_valid.log"; fail "stream --valid"; }
+"$B" pupil "$D/halo_svalid.fits" -o "$D/pupil_svalid.fits" --truth "$S/truth.fits" > "$D/pupil_svalid.log" || fail "pupil"
+svalid=$(ncp_error "$D/pupil_svalid.log")
+echo "cli_modal: valid-only slopes with --valid: speckles $valid nm, stream $svalid nm (native $native nm)" >&2
+awk -v a="$valid" -v b="$native" 'BEGIN { exit !(a == b) }' || fail "--valid: $valid nm against $native nm native"
+awk -v a="$svalid" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "stream --valid: $svalid nm"
 noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "$reg" | sed 's/--dm-flip//') \
     --coef-scale 2e-6)
 echo "cli_modal: NCP error native $native nm, modal $modal nm, control $control nm; modal unmirrored $noflip nm" >&2
@@ -97,5 +109,10 @@ expect_error "illuminated pupil samples more than one grid step beyond the 63 x 
     "$B" speckles "$D/timing_modal.txt" --science "$D/science.fits" --basis "$S/dm_modes.fits" --dm-pitch 0.05 -o "$o"
 expect_error "takes no --actuators" \
     "$B" speckles "$D/timing_modal.txt" --science "$D/science.fits" --basis "$S/dm_modes.fits" --actuators "$S/actuators.fits" -o "$o"
+expect_error "slopes_valid_000.fits: 224 slopes per frame is not 2 nsub^2.*valid-subaperture map" \
+    "$B" speckles "$D/timing_valid.txt" --science "$D/science.fits" --actuators "$S/actuators.fits" -o "$o"
+expect_error "dm_modes.fits: a valid-subaperture map is a square nsub x nsub image" \
+    "$B" speckles "$D/timing_valid.txt" --science "$D/science.fits" --actuators "$S/actuators.fits" \
+    --valid "$S/dm_modes.fits" -o "$o"
 ls "$D"/bad.fits* > /dev/null 2>&1 && fail "an output was left after a refusal"
 echo "cli_modal: ok"

@@ -246,6 +246,125 @@ static void test_linear_equals_shack_hartmann(void **state)
     fixture_free(&f);
 }
 
+/* The AO system's valid-subaperture map (pipeline options valid/valid_nsub): with the map the
+ * illumination rule would make, slopes of the used subapertures only (2 nvalid values) give
+ * the full layout's fields, whatever the reconstructor (given in the same narrow layout, or
+ * learned from narrow training frames) and tip-tilt mode; the reconstructor comes back in
+ * the narrow layout; a map may use a partly lit subaperture the rule drops, not a dark one. */
+static void narrow(const double *full, size_t rows, size_t nfull, const unsigned char *valid, size_t nsa, double *out,
+                   size_t nv)
+{
+    for (size_t r = 0; r < rows; r++)
+        for (size_t a = 0, j = 0; a < nsa; a++)
+            if (valid[a]) {
+                out[r * 2 * nv + j] = full[r * nfull + a];
+                out[r * 2 * nv + nv + j++] = full[r * nfull + nsa + a];
+            }
+}
+
+static void test_valid_map(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    const size_t nsa = NSUB * NSUB;
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_GIVEN;
+    swfs_pipeline *sh = NULL, *nv_p = NULL;
+    assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
+    unsigned char valid[NSUB * NSUB];
+    memcpy(valid, swfs_pipeline_model(sh)->wfs->valid, nsa);
+    const size_t nv = swfs_pipeline_model(sh)->wfs->nvalid, nn = 2 * nv;
+    assert_true(nv > 20 && nv < nsa);
+    swfs_pipeline_free(sh);
+    double *ns = malloc(f.nwfs * nn * sizeof *ns);
+    narrow(f.slopes, f.nwfs, f.nslopes, valid, nsa, ns, nv);
+    swfs_recon rn = *f.rec;
+    rn.nslopes = nn;
+    rn.W = malloc(f.nact * nn * sizeof *rn.W);
+    narrow(f.rec->W, f.nact, f.nslopes, valid, nsa, rn.W, nv);
+    fixture fn = f;
+    fn.slopes = ns;
+    fn.nslopes = nn;
+    const int modes[3] = {SWFS_TT_EXPOSURE, SWFS_TT_FRAME, SWFS_TT_KEEP};
+    for (int m = 0; m < 4; m++) {
+        swfs_pipeline_options_default(&o);
+        o.recon = m < 3 ? SWFS_RECON_GIVEN : SWFS_RECON_VK;
+        o.tiptilt = modes[m % 3];
+        assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, m < 3 ? f.rec : NULL,
+                                       m < 3 ? NULL : f.slopes, m < 3 ? 0 : f.nwfs, &o));
+        o.valid = valid;
+        o.valid_nsub = NSUB;
+        assert_ok(swfs_pipeline_create(&nv_p, &f.g, NF, NF, f.xy, f.nact, f.mask, nn, m < 3 ? &rn : NULL,
+                                       m < 3 ? NULL : ns, m < 3 ? 0 : f.nwfs, &o));
+        swfs_pipeline_info info;
+        swfs_pipeline_get_info(nv_p, &info);
+        assert_int_equal(info.nsub, NSUB);
+        assert_int_equal(info.nvalid, nv);
+        assert_int_equal(info.nslopes, nn);
+        /* the reconstructor in the telemetry's layout: the full one's used columns */
+        const swfs_recon *rf = swfs_pipeline_recon(sh), *rv = swfs_pipeline_recon(nv_p);
+        assert_int_equal(rv->nslopes, nn);
+        double *w = malloc(f.nact * nn * sizeof *w), dw = 0, mw = 0;
+        narrow(rf->W, f.nact, f.nslopes, valid, nsa, w, nv);
+        for (size_t k = 0; k < f.nact * nn; k++) {
+            dw = fmax(dw, fabs(w[k] - rv->W[k]));
+            mw = fmax(mw, fabs(w[k]));
+        }
+        free(w);
+        /* the fields: each pipeline on its own layout of the same frames */
+        swfs_exposure sched[10];
+        assert_true(swfs_engine_schedule(3.5, 0.3, 10, sched) <= f.nwfs);
+        swfs_complex *ha = malloc(10 * NF * NF * sizeof *ha), *hb = malloc(10 * NF * NF * sizeof *hb);
+        assert_ok(swfs_pipeline_process(sh, f.slopes, f.nwfs, sched, 10, ha));
+        assert_ok(swfs_pipeline_process(nv_p, fn.slopes, f.nwfs, sched, 10, hb));
+        double d = 0, peak = 0;
+        for (size_t k = 0; k < 10 * NF * NF; k++) {
+            d = fmax(d, cabs(ha[k] - hb[k]));
+            peak = fmax(peak, cabs(ha[k]));
+        }
+        printf("lmodel: valid-only slopes (%zu of %zu), %s, tip-tilt %d: reconstructor %.2g, fields %.2g of the peak\n",
+               nn, f.nslopes, m < 3 ? "given" : "vk", modes[m % 3], dw / mw, d / peak);
+        assert_true(dw <= 1e-12 * mw);
+        assert_true(d <= 1e-6 * peak);
+        free(ha); free(hb);
+        swfs_pipeline_free(sh); swfs_pipeline_free(nv_p);
+    }
+    /* a partly lit subaperture the 50 % rule drops is used when the map says so; a dark one is refused */
+    swfs_shwfs *w0 = NULL, *w1 = NULL;
+    assert_ok(swfs_shwfs_create(&w0, NSUB, TELD, f.mask, NPUP, f.g.pupdx, 0.0));
+    size_t extra = nsa;
+    for (size_t a = 0; a < nsa; a++)
+        if (w0->valid[a] && !valid[a]) { extra = a; break; }
+    assert_true(extra < nsa);
+    unsigned char more[NSUB * NSUB];
+    memcpy(more, valid, nsa);
+    more[extra] = 1;
+    assert_ok(swfs_shwfs_create_valid(&w1, NSUB, TELD, f.mask, NPUP, f.g.pupdx, more));
+    assert_int_equal(w1->nvalid, nv + 1);
+    assert_true(w1->S->row_ptr[extra + 1] > w1->S->row_ptr[extra]);
+    assert_true(w1->S->row_ptr[nsa + extra + 1] > w1->S->row_ptr[nsa + extra]);
+    for (size_t a = 0; a < nsa; a++)
+        if (!more[a]) assert_true(w1->S->row_ptr[a + 1] == w1->S->row_ptr[a]);
+    swfs_shwfs_free(w1);
+    swfs_shwfs_free(w0);
+    more[0] = 1; /* the corner (0, 0): outside the pupil */
+    assert_int_equal(swfs_shwfs_create_valid(&w1, NSUB, TELD, f.mask, NPUP, f.g.pupdx, more), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "subaperture (0, 0)"));
+    /* a width that is neither layout */
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_SVD;
+    o.valid = valid;
+    o.valid_nsub = NSUB;
+    assert_int_equal(swfs_pipeline_create(&nv_p, &f.g, NF, NF, f.xy, f.nact, f.mask, nn + 2, NULL, NULL, 0, &o),
+                     SWFS_ERR_SHAPE);
+    assert_non_null(strstr(swfs_last_error(), "or 128 (all, unused ones 0)"));
+    free(ns);
+    free(rn.W);
+    fixture_free(&f);
+}
+
 static void test_linear_refusals(void **state)
 {
     (void)state;
@@ -373,6 +492,7 @@ int main(void)
         cmocka_unit_test(test_grid_resampling_exact_for_quadratics),
         cmocka_unit_test(test_linear_equals_shack_hartmann),
         cmocka_unit_test(test_linear_refusals),
+        cmocka_unit_test(test_valid_map),
         cmocka_unit_test(test_interaction_matrix),
         cmocka_unit_test(test_factored_grid_basis),
     };

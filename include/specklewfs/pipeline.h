@@ -55,6 +55,11 @@ typedef struct swfs_pipeline_options {
     int wfs_rate;       /* 1: one focal field per WFS frame (swfs_pipeline_process_wfs), 0: per exposure */
     double recon_scale; /* SWFS_RECON_GIVEN: the given matrix is multiplied by this first (1); e.g. -2
                            for a matrix to DM commands (a correction, of the surface) */
+    const unsigned char *valid; /* NULL, or the AO system's valid-subaperture map (valid_nsub^2 flags,
+                                   subaperture (a, b) at b nsub + a): the subapertures used, whatever
+                                   their illumination; the telemetry may then hold only theirs
+                                   (2 nvalid values: x, then y, in index order). Read at creation only */
+    size_t valid_nsub;
 } swfs_pipeline_options;
 
 void swfs_pipeline_options_default(swfs_pipeline_options *o);
@@ -80,6 +85,7 @@ typedef struct swfs_pipeline_info {
     int composed;        /* 1: basis x control folded into one matrix per illuminated sample */
     double resid_rms;    /* rms over the pupil of the training frames' wavefront, tip-tilt
                             removed [m] (NaN: no training frames) */
+    size_t nsub, nvalid; /* Shack-Hartmann: subapertures across, and used (0 for a linear model) */
 } swfs_pipeline_info;
 
 /* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */

@@ -137,6 +137,9 @@ typedef struct swfs_speckles_run_options {
                                  from the files) */
     swfs_geom geom;           /* given geometry: fills or replaces the science header's */
     swfs_linear_files lin;    /* lin.basis: the generic linear model instead of the actuators */
+    const char *valid;        /* the Shack-Hartmann model's valid-subaperture map (swfs_valid_map_read),
+                                 NULL = the illumination rule; the telemetry may then hold only the
+                                 used subapertures' slopes (pipeline.h) */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -188,6 +191,9 @@ typedef struct swfs_stream_run_options {
     size_t nwfs_logs;
     const char *clock;
     double exptime;
+    const char *valid;        /* the Shack-Hartmann model's valid-subaperture map (swfs_valid_map_read),
+                                 NULL = the illumination rule; the telemetry may then hold only the
+                                 used subapertures' slopes (pipeline.h) */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

@@ -100,6 +100,11 @@ int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, cons
 int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t nact, const double *mask,
                               size_t npup, double pupdx, double teldiam, size_t nsub, const swfs_recon *recon,
                               double rcond, size_t max_modes, int remove_tiptilt);
+/* The same with the AO system's valid-subaperture map (nsub^2 flags, swfs_shwfs_create_valid;
+ * NULL: the illumination rule). */
+int swfs_speckle_model_create_valid(swfs_speckle_model **out, const double *xy, size_t nact, const double *mask,
+                                    size_t npup, double pupdx, double teldiam, size_t nsub, const unsigned char *valid,
+                                    const swfs_recon *recon, double rcond, size_t max_modes, int remove_tiptilt);
 void swfs_speckle_model_free(swfs_speckle_model *m);
 /* Replace the model's reconstructor by the MAP (Wiener) reconstructor of D = S T learned
  * from the telemetry (swfs_recon_map: slopes nframes x nslopes, consecutive WFS frames;

@@ -54,6 +54,11 @@ typedef struct swfs_shwfs {
  * a fully illuminated one holds. */
 int swfs_shwfs_create(swfs_shwfs **out, size_t nsub, double diam, const double *mask, size_t npup, double pupdx,
                       double min_illum);
+/* The same with the subapertures the AO system uses given (valid: nsub^2 flags, subaperture
+ * (a, b) at b nsub + a; NULL = the min_illum 0.5 rule): a used subaperture needs at least one
+ * pair of illuminated samples (SWFS_ERR_VALUE naming it otherwise), an unused one reports 0. */
+int swfs_shwfs_create_valid(swfs_shwfs **out, size_t nsub, double diam, const double *mask, size_t npup,
+                            double pupdx, const unsigned char *valid);
 void swfs_shwfs_free(swfs_shwfs *w);
 /* slopes (nslopes) [rad] of the displacement map z (npup^2) [m]. */
 void swfs_shwfs_measure(const swfs_shwfs *w, const double *z, double *slopes);
@@ -168,6 +173,9 @@ int swfs_recon_read(const char *path, swfs_recon **out);
 /* Actuators: NAXIS1 = 2 (x, y), NAXIS2 = nact [m]. */
 int swfs_actuators_write(const double *xy, size_t nact, const char *path);
 int swfs_actuators_read(const char *path, double **xy, size_t *nact);
+/* The AO system's valid-subaperture map: a square nsub x nsub image, nonzero = used
+ * (subaperture (a, b) = pixel (x, y)); *map: nsub^2 flags (free()), *nvalid the used count. */
+int swfs_valid_map_read(const char *path, unsigned char **map, size_t *nsub, size_t *nvalid);
 
 SWFS_END_DECLS
 

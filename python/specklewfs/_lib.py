@@ -227,11 +227,13 @@ TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("a
 swfs_ts_summary = _s("swfs_ts_summary", TS_SUMMARY_FIELDS)
 swfs_pipeline_options = _s("swfs_pipeline_options", [("recon", c_int), ("rcond", c_dbl), ("max_modes", c_size),
                                                      ("slope_noise", c_dbl), ("vk_l0", c_dbl), ("tiptilt", c_int),
-                                                     ("threads", c_int), ("wfs_rate", c_int), ("recon_scale", c_dbl)])
+                                                     ("threads", c_int), ("wfs_rate", c_int), ("recon_scale", c_dbl),
+                                                     ("valid", c_ptr), ("valid_nsub", c_size)])
 PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size), ("nfx", c_size), ("nfy", c_size),
                         ("recon_modes", c_size), ("recon_dof", c_dbl), ("noise_var", c_dbl), ("noise_given", c_int),
                         ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl),
-                        ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl)]
+                        ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl),
+                        ("nsub", c_size), ("nvalid", c_size)]
 swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
 swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
                                ("nexp", c_size), ("cube", c_size)])

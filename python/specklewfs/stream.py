@@ -26,10 +26,13 @@ class Pipeline:
     (ntrain, nslopes) WFS frames for 'vk' / 'map'; rcond, max_modes: for 'svd';
     slope_noise [rad] (0: estimated); vk_l0 [m]; tiptilt: 'exposure' (default), 'frame'
     or 'keep' (speckles.h); threads: engine workers; wfs_rate: one field per WFS frame
-    (process_wfs; needs tiptilt 'frame' or 'keep')."""
+    (process_wfs; needs tiptilt 'frame' or 'keep'); valid: None or the AO system's
+    (nsub, nsub) valid-subaperture map (nonzero = used, [b, a] = subaperture (a, b)): the
+    subapertures used whatever their illumination, and nslopes may then be 2 nvalid (the
+    used subapertures' x slopes in index order, then their y slopes)."""
 
     def __init__(self, geom, nfx, nfy, xy, nslopes, mask=None, recon="vk", training=None, rcond=5e-2, max_modes=0,
-                 slope_noise=0.0, vk_l0=10.0, tiptilt="exposure", threads=1, wfs_rate=False):
+                 slope_noise=0.0, vk_l0=10.0, tiptilt="exposure", threads=1, wfs_rate=False, valid=None):
         geom = geom if isinstance(geom, Geom) else Geom(**geom)
         g = geom.to_c()
         xy = as_array(xy, "xy", np.float64, shape=(None, 2))
@@ -50,6 +53,13 @@ class Pipeline:
             raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
         o.rcond, o.max_modes, o.slope_noise, o.vk_l0 = float(rcond), int(max_modes), float(slope_noise), float(vk_l0)
         o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+        vmap = None
+        if valid is not None:
+            v = np.asarray(valid)
+            if v.ndim != 2 or v.shape[0] != v.shape[1] or v.shape[0] == 0:
+                raise ValueError(f"valid: expected a square (nsub, nsub) map, got shape {v.shape}")
+            vmap = np.ascontiguousarray(v != 0, dtype=np.uint8)
+            o.valid, o.valid_nsub = vmap.ctypes.data, vmap.shape[0]
         tr, ntr = None, 0
         if training is not None:
             tr = as_array(training, "training", np.float64, shape=(None, nslopes))

@@ -177,3 +177,32 @@ def test_linear_pipeline_equals_shack_hartmann(data):
     assert dense.info["resid_rms"] > 0
     with pytest.raises(sw.Error, match=r"waves at .*scale \(1e\+06\)"):
         sw.Pipeline.linear(GEOM, NF, NF, basis, control=W * 1e6, mask=sh.mask, scale=1e6, training=d["slopes"])
+
+
+def test_pipeline_valid_map_takes_used_slopes_only(data):
+    """With the AO system's valid-subaperture map the pipeline takes the used subapertures'
+    slopes only (x then y, 2 nvalid values): the same fields as the full layout, the
+    reconstructor in the narrow layout; a width of neither layout is refused."""
+    d = data
+    full = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    nsub = int(round(np.sqrt(NSLOPES / 2)))
+    assert full.info["nsub"] == nsub and full.info["nvalid"] > 0
+    sl = np.asarray(d["slopes"])
+    W = np.array(full.recon.W)
+    from specklewfs._lib import lib
+    from specklewfs.telemetry import ShackHartmann
+    used = ShackHartmann(0, 0, None, 0, _ptr=lib.swfs_pipeline_model(full._p).contents.wfs,
+                         _owner=full._owner).valid.ravel()  # the illumination rule's subapertures
+    assert used.sum() == full.info["nvalid"] < nsub * nsub
+    cols = np.concatenate([np.flatnonzero(used), nsub * nsub + np.flatnonzero(used)])
+    narrow = sw.Pipeline(GEOM, NF, NF, d["xy"], len(cols), recon=W[:, cols], tiptilt="keep",
+                         valid=used.reshape(nsub, nsub))
+    assert narrow.info["nvalid"] == used.sum() and narrow.info["nslopes"] == len(cols)
+    assert np.array_equal(np.array(narrow.recon.W), W[:, cols])
+    ref = full.process(sl, d["sched"])
+    out = narrow.process(np.ascontiguousarray(sl[:, cols]), d["sched"])
+    assert np.abs(out - ref).max() < 1e-6 * np.abs(ref).max()
+    with pytest.raises(sw.Error, match="valid-subaperture map"):
+        sw.Pipeline(GEOM, NF, NF, d["xy"], len(cols) + 2, recon="svd", valid=used.reshape(nsub, nsub))
+    with pytest.raises(ValueError, match="square"):
+        sw.Pipeline(GEOM, NF, NF, d["xy"], len(cols), recon="svd", valid=np.ones((3, 4)))

@@ -130,6 +130,47 @@ int swfs_actuators_write(const double *xy, size_t nact, const char *path)
     return swfs_fits_out_commit(o);
 }
 
+int swfs_valid_map_read(const char *path, unsigned char **map, size_t *nsub, size_t *nvalid)
+{
+    *map = NULL;
+    *nsub = *nvalid = 0;
+    swfs_real *a = NULL;
+    int rc = swfs_fits_read_real(path, NULL, &a, NULL);
+    if (rc) return rc;
+    if (a->nx != a->ny || a->nz != 1 || a->nx < 1 || a->nx > 4096) {
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: a valid-subaperture map is a square nsub x nsub image (nonzero = used), "
+                       "got %zu x %zu x %zu", path, a->nx, a->ny, a->nz);
+        swfs_real_free(a);
+        return rc;
+    }
+    const size_t n = a->nx, nsa = n * n;
+    unsigned char *m = malloc(nsa);
+    if (!m) {
+        swfs_real_free(a);
+        return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    }
+    size_t nv = 0;
+    for (size_t i = 0; i < nsa; i++) {
+        const double v = a->data[i];
+        if (!isfinite(v)) {
+            free(m);
+            swfs_real_free(a);
+            return swfs_fail(SWFS_ERR_VALUE, "%s: subaperture (%zu, %zu) is %g; expected 0 (unused) or nonzero (used)",
+                             path, i % n, i / n, v);
+        }
+        nv += (m[i] = v != 0);
+    }
+    swfs_real_free(a);
+    if (!nv) {
+        free(m);
+        return swfs_fail(SWFS_ERR_VALUE, "%s: no subaperture is used (all %zu values are 0)", path, nsa);
+    }
+    *map = m;
+    *nsub = n;
+    *nvalid = nv;
+    return SWFS_OK;
+}
+
 int swfs_actuators_read(const char *path, double **xy, size_t *nact)
 {
     *xy = NULL;

@@ -181,8 +181,9 @@ static int write_modal(const char *dir, exp_work *w, const char *const *prov, si
 }
 
 /* control.fits (the default speckle reconstructor on the valid slopes: NAXIS1 = 2 nvalid,
- * NAXIS2 = nact) and influence.fits (each actuator's influence on the pupil grid, the
- * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact). */
+ * NAXIS2 = nact), influence.fits (each actuator's influence on the pupil grid, the
+ * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact) and valid.fits (the
+ * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used). */
 static int write_control(const char *dir, exp_work *w, const char *const *prov, size_t nprov)
 {
     const swfs_speckle_model *m = swfs_pipeline_model(w->p);
@@ -190,8 +191,10 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
     const size_t n2 = wfs->nsub * wfs->nsub, nv = wfs->nvalid, na = w->nact, ns = w->nslopes, ng = m->npup * m->npup;
     const double *W = swfs_pipeline_recon(w->p)->W;
     swfs_real *C = swfs_real_alloc(2 * nv, na, 1), *F = swfs_real_alloc(m->npup, m->npup, na);
+    swfs_real *V = swfs_real_alloc(wfs->nsub, wfs->nsub, 1);
     double *e = calloc(na, sizeof *e), *z = malloc(ng * sizeof *z);
-    int rc = C && F && e && z ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
+    int rc = C && F && V && e && z ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
+    for (size_t a = 0; !rc && a < n2; a++) V->data[a] = wfs->valid[a] ? 1.0 : 0.0;
     for (size_t r = 0; !rc && r < na; r++)
         for (size_t a = 0, j = 0; a < n2; a++)
             if (wfs->valid[a]) {
@@ -205,19 +208,20 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
         memcpy(F->data + a * ng, z, ng * sizeof *z);
     }
     char path[4200];
-    const swfs_real *arr[2] = {C, F};
-    const char *names[2] = {"control.fits", "influence.fits"};
-    const char *units[2] = {"m/rad", "m/m"};
-    for (int k = 0; k < 2 && !rc; k++) {
+    const swfs_real *arr[3] = {C, F, V};
+    const char *names[3] = {"control.fits", "influence.fits", "valid.fits"};
+    const char *units[3] = {"m/rad", "m/m", ""};
+    for (int k = 0; k < 3 && !rc; k++) {
         swfs_fits_out *o = NULL;
         snprintf(path, sizeof path, "%s/%s", dir, names[k]);
         if ((rc = swfs_fits_out_create(&o, path))) break;
-        if ((rc = swfs_fits_out_set_stamp(o, NULL, prov, nprov)) || (rc = swfs_fits_out_real(o, NULL, arr[k], -64)) ||
-            (rc = swfs_fits_out_key_string(o, "BUNIT", units[k], NULL)))
+        if ((rc = swfs_fits_out_set_stamp(o, NULL, prov, nprov)) ||
+            (rc = swfs_fits_out_real(o, NULL, arr[k], k == 2 ? 8 : -64)) ||
+            (units[k][0] && (rc = swfs_fits_out_key_string(o, "BUNIT", units[k], NULL))))
             swfs_fits_out_abort(o);
         else rc = swfs_fits_out_commit(o);
     }
-    swfs_real_free(C); swfs_real_free(F); free(e); free(z);
+    swfs_real_free(C); swfs_real_free(F); swfs_real_free(V); free(e); free(z);
     return rc;
 }
 

@@ -94,6 +94,7 @@ static int check_paths(const swfs_speckles_run_options *o, const work *w)
     swfs_paths_input(p, "timing table", o->timing);
     swfs_paths_input(p, "science cube", o->science);
     swfs_paths_input(p, "actuator file", o->actuators);
+    if (o->valid) swfs_paths_input(p, "valid-subaperture map", o->valid);
     swfs_linear_paths(p, &o->lin);
     if (o->pipe.recon == SWFS_RECON_GIVEN) swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "pupil mask", o->mask);
@@ -202,11 +203,18 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
             return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
                              w->nslopes, o->recon, w->rin->nslopes);
     }
+    swfs_pipeline_options po = o->pipe;
+    unsigned char *vmap = NULL;
+    size_t nvalid = 0;
+    if (o->valid && (rc = swfs_valid_map_read(o->valid, &vmap, &po.valid_nsub, &nvalid))) return rc;
+    po.valid = vmap;
     if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
-                                       w->train, w->ntrain, &o->pipe);
-    if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
+                                       w->train, w->ntrain, &po);
+    free(vmap);
+    if (rc) return swfs_fail_context(rc, "%s with %s%s%s", o->actuators, w->path, o->valid ? " and " : "",
+                                     o->valid ? o->valid : "");
     /* A given matrix in another convention (DM commands: a correction of the surface, about
      * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
     swfs_pipeline_info pinfo;

@@ -119,6 +119,7 @@ void swfs_stream_paths_inputs(swfs_paths *p, const swfs_stream_run_options *o)
     swfs_paths_input(p, "science cube", o->science);
     swfs_paths_input(p, "reconstructor", o->recon);
     swfs_paths_input(p, "actuator file", o->actuators);
+    if (o->valid) swfs_paths_input(p, "valid-subaperture map", o->valid);
     swfs_linear_paths(p, &o->lin);
     swfs_paths_input(p, "pupil mask", o->mask);
     swfs_paths_input(p, "static halo", o->static_file);
@@ -227,9 +228,16 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         po.rcond = 0.0;
         po.tiptilt = o->tiptilt;
         po.threads = o->threads;
-        rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes, rec,
-                                  NULL, 0, &po);
-        if (rc) swfs_fail_context(rc, "%s with %s", o->recon, o->actuators);
+        unsigned char *vmap = NULL;
+        size_t nvalid = 0;
+        if (o->valid) rc = swfs_valid_map_read(o->valid, &vmap, &po.valid_nsub, &nvalid);
+        po.valid = vmap;
+        if (!rc)
+            rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes,
+                                      rec, NULL, 0, &po);
+        free(vmap);
+        if (rc) swfs_fail_context(rc, "%s with %s%s%s", o->recon, o->actuators, o->valid ? " and " : "",
+                                  o->valid ? o->valid : "");
         else swfs_pipeline_get_info(*p, &r->info);
     }
     swfs_recon_free(rec);

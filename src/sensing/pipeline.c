@@ -94,40 +94,127 @@ static int check_given(swfs_pipeline *p, double scale)
     return rc;
 }
 
-/* The model and its reconstructor: given, SVD, or learned from the training slopes. */
+/* The slopes' layout. Without a valid-subaperture map: 2 nsub^2 values (x then y, unused
+ * subapertures 0). With one (opt->valid, nsub = opt->valid_nsub): the same full layout, or
+ * the used subapertures only, 2 nvalid values (the x slopes of the used subapertures in
+ * index order, then their y slopes); *cols then receives their full-layout indices. */
+static int slopes_layout(const swfs_pipeline_options *o, size_t nslopes, size_t *nsub, size_t **cols)
+{
+    *cols = NULL;
+    if (!o->valid) {
+        *nsub = (size_t)llround(sqrt((double)nslopes / 2));
+        if (2 * *nsub * *nsub != nslopes)
+            return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame is not 2 nsub^2 (x then y slopes of a square "
+                             "Shack-Hartmann, unused subapertures 0); slopes of the used subapertures only need "
+                             "their valid-subaperture map", nslopes);
+        return SWFS_OK;
+    }
+    const size_t n = o->valid_nsub, nsa = n * n;
+    size_t nv = 0;
+    if (!n || n > 4096) return swfs_fail(SWFS_ERR_ARG, "valid-subaperture map: %zu subapertures across", n);
+    for (size_t i = 0; i < nsa; i++) nv += o->valid[i] != 0;
+    *nsub = n;
+    if (nslopes == 2 * nsa) return SWFS_OK;
+    if (nslopes != 2 * nv)
+        return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame, but the valid-subaperture map (%zu x %zu, %zu used) "
+                         "expects %zu (the used subapertures) or %zu (all, unused ones 0)", nslopes, n, n, nv, 2 * nv,
+                         2 * nsa);
+    size_t *c = malloc(2 * nv * sizeof *c), k = 0;
+    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (int axis = 0; axis < 2; axis++)
+        for (size_t i = 0; i < nsa; i++)
+            if (o->valid[i]) c[k++] = (size_t)axis * nsa + i;
+    *cols = c;
+    return SWFS_OK;
+}
+
+/* rows x ncols (row-major) of the used slopes' columns cols[0..nc) -> rows x nfull. */
+static double *expand_cols(const double *a, size_t rows, size_t nc, const size_t *cols, size_t nfull)
+{
+    if (rows > SIZE_MAX / sizeof(double) / nfull) return NULL;
+    double *b = calloc(rows * nfull, sizeof *b);
+    if (b)
+        for (size_t r = 0; r < rows; r++)
+            for (size_t k = 0; k < nc; k++) b[r * nfull + cols[k]] = a[r * nc + k];
+    return b;
+}
+
+/* In place: rows x (nfull + extra) -> rows x (nc + extra), keeping cols and the extra columns. */
+static void compress_cols(double *a, size_t rows, size_t nfull, size_t extra, size_t nc, const size_t *cols)
+{
+    for (size_t r = 0; r < rows; r++) {
+        const double *src = a + r * (nfull + extra);
+        double *dst = a + r * (nc + extra);
+        for (size_t k = 0; k < nc; k++) dst[k] = src[cols[k]]; /* cols ascending: dst never overtakes src */
+        for (size_t e = 0; e < extra; e++) dst[nc + e] = src[nfull + e];
+    }
+}
+
+/* The model and its reconstructor: given, SVD, or learned from the training slopes; built in
+ * the full slopes layout, then narrowed to the used subapertures' columns when the
+ * telemetry holds only those. */
 static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, size_t nact, size_t nslopes,
                        const swfs_recon *recon, const double *training, size_t ntrain)
 {
     const swfs_pipeline_options *o = &p->opt;
-    const size_t nsub = (size_t)llround(sqrt((double)nslopes / 2));
-    if (2 * nsub * nsub != nslopes)
-        return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame is not 2 nsub^2 (x then y slopes of a square "
-                         "Shack-Hartmann)", nslopes);
-    if (recon && recon->nslopes != nslopes)
+    size_t nsub = 0, *cols = NULL;
+    int rc = slopes_layout(o, nslopes, &nsub, &cols);
+    if (rc) return rc;
+    if (recon && recon->nslopes != nslopes) {
+        free(cols);
         return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame but the reconstructor expects %zu", nslopes,
                          recon->nslopes);
+    }
+    const size_t nfull = 2 * nsub * nsub;
+    double *train_full = NULL;
+    swfs_recon rfull;
+    if (cols && training && !(training = train_full = expand_cols(training, ntrain, nslopes, cols, nfull)))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory for %zu training frames", ntrain);
+    if (!rc && cols && recon) {
+        rfull = *recon;
+        rfull.nslopes = nfull;
+        rfull.sv = NULL;
+        if (!(rfull.W = expand_cols(recon->W, nact, nslopes, cols, nfull)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+        recon = &rfull;
+    }
     /* --tiptilt frame projects the mean slopes out of W; exposure needs W whole (its tilt
      * is taken out as the Z-tilt by swfs_speckles_recon_tilt); keep uses it as it is. */
     const int project = o->tiptilt == SWFS_TT_FRAME;
-    int rc = swfs_speckle_model_create(&p->model, xy, nact, p->mask, (size_t)g->pupn, g->pupdx, g->teldiam, nsub,
-                                       o->recon == SWFS_RECON_GIVEN ? recon : NULL, o->rcond, o->max_modes, project);
-    if (rc) return rc;
-    if (o->recon == SWFS_RECON_GIVEN && (rc = check_given(p, o->recon_scale))) return rc;
+    if (!rc)
+        rc = swfs_speckle_model_create_valid(&p->model, xy, nact, p->mask, (size_t)g->pupn, g->pupdx, g->teldiam, nsub,
+                                             o->valid, o->recon == SWFS_RECON_GIVEN ? recon : NULL, o->rcond,
+                                             o->max_modes, project);
+    if (cols && recon) free(rfull.W);
+    if (!rc && o->recon == SWFS_RECON_GIVEN) rc = check_given(p, o->recon_scale);
     const double nv = o->slope_noise * o->slope_noise;
-    if (o->recon == SWFS_RECON_MAP) rc = swfs_speckle_model_set_map(p->model, training, ntrain, nv, project);
-    else if (o->recon == SWFS_RECON_VK)
+    if (!rc && o->recon == SWFS_RECON_MAP) rc = swfs_speckle_model_set_map(p->model, training, ntrain, nv, project);
+    else if (!rc && o->recon == SWFS_RECON_VK)
         rc = swfs_speckle_model_set_vk(p->model, xy, o->vk_l0, training, ntrain, nv, project);
-    if (rc) return rc;
-    swfs_pipeline_info *in = &p->info;
-    in->recon_modes = p->model->recon->nmodes;
-    in->recon_dof = p->model->recon->dof;
-    in->noise_var = p->model->recon->noise_var;
-    in->vk_l0 = o->recon == SWFS_RECON_VK ? p->model->recon->l0 : 0.0;
-    in->noise_given = o->slope_noise > 0;
-    in->ntrain = (o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) ? ntrain : 0;
-    in->n_outside = p->model->n_outside;
-    if (o->tiptilt == SWFS_TT_EXPOSURE) return swfs_speckles_recon_tilt(p->model, xy, &p->W_ext, &p->Rtilt);
-    return SWFS_OK;
+    free(train_full);
+    if (!rc && o->tiptilt == SWFS_TT_EXPOSURE) rc = swfs_speckles_recon_tilt(p->model, xy, &p->W_ext, &p->Rtilt);
+    if (!rc) {
+        swfs_pipeline_info *in = &p->info;
+        in->recon_modes = p->model->recon->nmodes;
+        in->recon_dof = p->model->recon->dof;
+        in->noise_var = p->model->recon->noise_var;
+        in->vk_l0 = o->recon == SWFS_RECON_VK ? p->model->recon->l0 : 0.0;
+        in->noise_given = o->slope_noise > 0;
+        in->ntrain = (o->recon == SWFS_RECON_VK || o->recon == SWFS_RECON_MAP) ? ntrain : 0;
+        in->n_outside = p->model->n_outside;
+        in->nsub = nsub;
+        in->nvalid = p->model->wfs->nvalid;
+    }
+    if (!rc && cols) {
+        /* The reconstructor (and what --write-recon saves) in the telemetry's own layout. */
+        swfs_recon *r = p->model->recon;
+        compress_cols(r->W, nact, nfull, 0, nslopes, cols);
+        r->nslopes = nslopes;
+        if (p->W_ext) compress_cols(p->W_ext, nact, nfull, 2, nslopes, cols);
+        if (p->Rtilt) compress_cols(p->Rtilt, 2, nfull, 0, nslopes, cols);
+    }
+    free(cols);
+    return rc;
 }
 
 /* The part every pipeline shares: options, geometry, window, the pupil mask. */
@@ -145,7 +232,7 @@ int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN};
+    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
@@ -188,6 +275,7 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
     if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)))
         rc = swfs_pipeline_engine_(p, g, nact, nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W, p->model->T);
+    p->opt.valid = NULL; /* the caller's map: read at creation only */
     if (rc) {
         swfs_pipeline_free(p);
         return rc;

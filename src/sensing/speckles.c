@@ -61,6 +61,14 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
                               size_t npup, double pupdx, double teldiam, size_t nsub, const swfs_recon *recon,
                               double rcond, size_t max_modes, int remove_tiptilt)
 {
+    return swfs_speckle_model_create_valid(out, xy, nact, mask, npup, pupdx, teldiam, nsub, NULL, recon, rcond,
+                                           max_modes, remove_tiptilt);
+}
+
+int swfs_speckle_model_create_valid(swfs_speckle_model **out, const double *xy, size_t nact, const double *mask,
+                                    size_t npup, double pupdx, double teldiam, size_t nsub, const unsigned char *valid,
+                                    const swfs_recon *recon, double rcond, size_t max_modes, int remove_tiptilt)
+{
     *out = NULL;
     size_t ng = npup * npup;
     swfs_speckle_model *m = calloc(1, sizeof *m);
@@ -85,7 +93,7 @@ int swfs_speckle_model_create(swfs_speckle_model **out, const double *xy, size_t
             goto fail;
         }
     }
-    if ((rc = swfs_shwfs_create(&m->wfs, nsub, teldiam, mask, npup, pupdx, 0.5))) goto fail;
+    if ((rc = swfs_shwfs_create_valid(&m->wfs, nsub, teldiam, mask, npup, pupdx, valid))) goto fail;
     if (recon) {
         if (recon->nact != nact || recon->nslopes != m->nslopes) {
             rc = swfs_fail(SWFS_ERR_SHAPE, "reconstructor is %zu actuators x %zu slopes but the geometry has %zu actuators "

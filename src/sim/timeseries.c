@@ -305,8 +305,8 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
         snprintf(path, sizeof path, "%s/slopes_valid_%03zu.fits", dir, f);
         if (p->export_modal) swfs_paths_output(paths, "simulation output (export_modal)", path);
     }
-    static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits"};
-    for (size_t k = 0; p->export_modal && k < 3; k++) {
+    static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits", "valid.fits"};
+    for (size_t k = 0; p->export_modal && k < 4; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, modal_files[k]);
         swfs_paths_output(paths, "simulation output (export_modal)", path);
     }

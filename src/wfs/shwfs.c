@@ -178,6 +178,49 @@ int swfs_shwfs_create(swfs_shwfs **out, size_t nsub, double diam, const double *
     return SWFS_OK;
 }
 
+int swfs_shwfs_create_valid(swfs_shwfs **out, size_t nsub, double diam, const double *mask, size_t npup,
+                            double pupdx, const unsigned char *valid)
+{
+    if (!valid) return swfs_shwfs_create(out, nsub, diam, mask, npup, pupdx, 0.5);
+    /* Every subaperture with a pair of illuminated samples first, then only the map's. */
+    int rc = swfs_shwfs_create(out, nsub, diam, mask, npup, pupdx, 0.0);
+    if (rc) return rc;
+    swfs_shwfs *w = *out;
+    const size_t nsa = nsub * nsub;
+    for (size_t sa = 0; sa < nsa; sa++)
+        if (valid[sa] && !w->valid[sa]) {
+            swfs_shwfs_free(w);
+            *out = NULL;
+            return swfs_fail(SWFS_ERR_VALUE, "valid-subaperture map: subaperture (%zu, %zu) (x, y; index %zu) is used but "
+                             "no illuminated pupil sample pair lies in it (expected the map's orientation: x along "
+                             "NAXIS1, subaperture (a, b) at b nsub + a, and the pupil of TELDIAM/OBSCUR or --pupil)",
+                             sa % nsub, sa / nsub, sa);
+        }
+    /* Unused subapertures: empty rows, compacted. */
+    swfs_sparse *S = w->S;
+    size_t pos = 0;
+    for (size_t s = 0; s < 2 * nsa; s++) {
+        const size_t b = S->row_ptr[s], n = S->row_ptr[s + 1] - b;
+        const int keep = valid[s % nsa] != 0;
+        S->row_ptr[s] = pos;
+        if (keep) {
+            memmove(S->col + pos, S->col + b, n * sizeof *S->col);
+            memmove(S->val + pos, S->val + b, n * sizeof *S->val);
+            pos += n;
+        }
+    }
+    S->row_ptr[2 * nsa] = pos;
+    S->nnz = pos;
+    w->nvalid = 0;
+    for (size_t sa = 0; sa < nsa; sa++) w->nvalid += (w->valid[sa] = valid[sa] != 0);
+    if (!w->nvalid) {
+        swfs_shwfs_free(w);
+        *out = NULL;
+        return swfs_fail(SWFS_ERR_VALUE, "valid-subaperture map: no subaperture is used");
+    }
+    return SWFS_OK;
+}
+
 void swfs_shwfs_measure(const swfs_shwfs *w, const double *z, double *slopes)
 {
     swfs_sparse_apply(w->S, z, slopes);
