@@ -95,7 +95,9 @@ typedef struct swfs_ts_params {
     long act_square;           /* the DM's actuators on a square grid of pitch act_pitch clipped to
                                   a circle (1), or hexapolar rings (0, default) */
     long export_modal;         /* 1: also the telemetry in cacao's modal form, modal_NNN.fits and
-                                  dm_modes.fits (swfs_ts_export_modal in run.h; `simulate` runs it) */
+                                  dm_modes.fits, and as valid-only slopes, slopes_valid_NNN.fits with
+                                  control.fits, influence.fits and valid.fits (swfs_ts_export_modal
+                                  in run.h; `simulate` runs it) */
     /* milk logs (above) */
     long milk;                 /* 1: also write them (0) */
     double milk_epoch;         /* [s] Unix time of the start of WFS frame 0, whole seconds (1.7e9) */
