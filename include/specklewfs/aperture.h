@@ -1,4 +1,4 @@
-/* Telescope pupil masks and Zernike polynomials on the pupil grid of DESIGN.md:
+/* Telescope pupil masks and Zernike polynomials on the pupil grid of docs/conventions.md:
  * sample (p, q) sits at x = (p - (n-1)/2) dx, y = (q - (n-1)/2) dx, x fastest. */
 #ifndef SWFS_APERTURE_H
 #define SWFS_APERTURE_H

@@ -2,7 +2,7 @@
  * can be processed in chunks, on several machines, or resumed after a stop, and the parts
  * merged exactly (Chan et al.'s pairwise update, swfs_accum_merge).
  *
- * File layout (DESIGN.md conventions): an empty primary HDU with SWFSVER/DATE/HISTORY
+ * File layout (docs/conventions.md conventions): an empty primary HDU with SWFSVER/DATE/HISTORY
  * provenance and the geometry keywords, then the image extension EXTNAME = 'ACCUM': a real
  * cube (BITPIX -64) nx x ny x 15 whose plane k is field k of accum.h (count, the 4 means
  * of (I, x, y, |psi|^2), the 10 co-moments), with the keywords

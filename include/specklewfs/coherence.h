@@ -11,7 +11,7 @@
  *             lags computed)
  *   PHRATE    signed rate of arg{Gamma(tau)/Gamma(0)} [rad/s], a least-squares line through
  *             the origin over lags 1..nfit frames (phase unwrapped frame to frame). For a
- *             frozen pattern translated by the wind v with our sign convention (DESIGN.md:
+ *             frozen pattern translated by the wind v with our sign convention (docs/conventions.md:
  *             Psi = sum P exp(-i k theta.x)) the speckle phase turns by -k theta.v per second
  *             and PHRATE = +k theta.v (see docs/coherence.md; eq:MCF-spinningPhase writes
  *             2k, our derivation and test give k).

@@ -28,7 +28,7 @@
  * Coverage: every pupil sample must lie inside the convex hull of the actuators, or the
  * plan fails with SWFS_ERR_VALUE naming how many samples are uncovered.
  * Units: metres (surface and commands), actuator positions in the pupil frame of
- * DESIGN.md. Design notes: docs/closed-loop.md. */
+ * docs/conventions.md. Design notes: docs/closed-loop.md. */
 #ifndef SWFS_DMFIT_H
 #define SWFS_DMFIT_H
 

@@ -6,7 +6,7 @@
  *   phi_k = (2 pi / lambda) T z_k                  (interpolation to the pupil grid)
  *   E    += w_k P exp(i phi_k)                     (pupil-field sum over the exposure)
  * and per camera frame, by linearity of the propagation (sum of MFTs = MFT of the sum):
- *   h     = MFT(E)                                 (mft.h, sign and sampling of DESIGN.md)
+ *   h     = MFT(E)                                 (mft.h, sign and sampling of docs/conventions.md)
  *   out   = h exp(-i arg h(core))                  (eq:downsampledHalo: the core phase is
  *                                                   the reference; core = (nfx/2, nfy/2))
  * If h(core) = 0 (e.g. an empty exposure) no phase is removed.

@@ -1,4 +1,4 @@
-/* FITS input and output through CFITSIO, with the conventions of DESIGN.md:
+/* FITS input and output through CFITSIO, with the conventions of docs/conventions.md:
  *  - cubes: NAXIS1 = x (fastest), NAXIS2 = y, NAXIS3 = frame;
  *  - complex data (FITS standard §8.5): BITPIX -32/-64, NAXIS1 = 2 with CTYPE1 = 'COMPLEX'
  *    (real, imaginary), then x, y[, frame] -- the memory layout of C99 complex arrays;

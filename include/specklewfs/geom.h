@@ -1,4 +1,4 @@
-/* Geometry of the focal and pupil grids (DESIGN.md's geometry keywords): the one domain
+/* Geometry of the focal and pupil grids (docs/conventions.md's geometry keywords): the one domain
  * type every stage shares. Focal pixel (i, j) sits at ((i - floor(W/2)), (j - floor(H/2)))
  * PIXSCALE lambda/D; pupil sample (p, q) at (p - (PUPN - 1)/2, q - (PUPN - 1)/2) PUPDX. */
 #ifndef SWFS_GEOM_H

@@ -25,7 +25,7 @@ SWFS_BEGIN_DECLS
 int swfs_interp_ct_points(const double *pts, size_t npts, const double *qx, const double *qy,
                           size_t nq, swfs_sparse **out, size_t *n_outside);
 
-/* The same on the square pupil grid of DESIGN.md, x = (p - (npup-1)/2) * pupdx, rows in
+/* The same on the square pupil grid of docs/conventions.md, x = (p - (npup-1)/2) * pupdx, rows in
  * FITS order (p fastest). mask (npup*npup, may be NULL): rows where mask <= 0 are left
  * empty and do not count as outside. */
 int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupdx,

@@ -6,7 +6,7 @@
  * Legendre, p + q <= order, u, v in [-1, 1] across the window); kappa >= 0, the fraction
  * of speckle power the computed speckles do not explain. Model per focal pixel k:
  *
- *   Psi = MFT(W)  (mft.h, the DESIGN.md conventions),
+ *   Psi = MFT(W)  (mft.h, the docs/conventions.md conventions),
  *   theta_k = (|Psi_k|^2 + kappa g_k^2 Phi_sp,k,  g_k^2,  g_k Re Psi_k,  g_k Im Psi_k)
  *
  * (eq:betterIModel, eq:betterMean, eq:betterStabilized with an incoherent term). Cost:

@@ -32,7 +32,7 @@ SWFS_BEGIN_DECLS
  * (i, j), 0-based, i along FITS NAXIS1, sits at
  *     d = ((i - (gx-1)/2) pitch, (j - (gy-1)/2) pitch), mirrored in x first when flip_x,
  *     x = (x0, y0) + Rot(rot) d
- * in the pupil frame of DESIGN.md. */
+ * in the pupil frame of docs/conventions.md. */
 typedef struct swfs_dm_registration {
     double pitch;   /* [m] on the pupil per DM-grid step (> 0) */
     double x0, y0;  /* [m] the pupil position of the grid's centre */

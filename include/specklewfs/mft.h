@@ -1,5 +1,5 @@
 /* Matrix Fourier transform (Soummer et al. 2007) between a square pupil grid and a
- * small focal window, with the sign and sampling conventions of DESIGN.md:
+ * small focal window, with the sign and sampling conventions of docs/conventions.md:
  *
  *   focal(i, j) = sum_{p,q} pupil(p, q) exp(-2 pi i alpha [(i - nfx/2) u_p + (j - nfy/2) u_q])
  *   u_p = p - (npup - 1)/2,   alpha = PIXSCALE * PUPDX / TELDIAM

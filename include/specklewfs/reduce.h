@@ -1,7 +1,7 @@
 /* Science-camera frame reduction (paper Sec. 4.3): dark and flat, bad pixels replaced by
  * the median of their 3 x 3 neighbourhood, the star located by correlation with a
  * Gaussian reference peak, the frame shifted with bilinear interpolation so the peak sits
- * on the fixed centre (W/2, H/2) of DESIGN.md, and the background noise variance from a
+ * on the fixed centre (W/2, H/2) of docs/conventions.md, and the background noise variance from a
  * source-free region (fed to estimate as RDNOISE).
  *
  * Plan once (dark, flat, bad-pixel map, Gaussian kernel, work buffers), then one

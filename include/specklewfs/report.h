@@ -3,7 +3,7 @@
  *
  * A run folder: reads whatever exists in RUN_DIR -- science.fits, speckles.fits,
  * truth.fits, pupil.fits, halo.fits, wavefront.fits, coherence.fits (formats in
- * DESIGN.md) -- and writes into the report folder:
+ * docs/conventions.md) -- and writes into the report folder:
  *   halo.png       log10 |Psi| (normalized to the reference pixel in the first Airy ring),
  *                  arg Psi, visibility (fig:Sim-PSI-Vis)
  *   focal.png      scale factor g with circles at 1..6 lambda/D (fig:Gain-map), mean

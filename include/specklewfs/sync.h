@@ -110,7 +110,7 @@ typedef struct swfs_timing {
  *
  * The pairing sync found says how the camera's axes follow the slopes' axes: straight or
  * swapped (a transposed camera), each with a sign (a flipped axis). The speckles are
- * computed in the model's focal frame (DESIGN.md), so the science frames are brought into
+ * computed in the model's focal frame (docs/conventions.md), so the science frames are brought into
  * that frame: model pixel (cx + u, cy + v), (cx, cy) = (nx/2, ny/2), takes the camera's
  * (cx + a, cy + b) with a = sx u, b = sy v, or a = sx v, b = sy u when swapped; NaN where
  * the camera did not see. The frames keep their size. */

@@ -8,7 +8,7 @@
  *    (a, b) at index b*nsub + a, a along x) then all y slopes: 2 nsub^2 values (288 for
  *    12 x 12). Unilluminated subapertures report 0, as the MMT's quad-cells do;
  *  - the reconstructor W is nact x nslopes, row-major, [m per rad]: z_act = W s;
- *  - actuator positions are (x, y) pairs [m] in the pupil frame of DESIGN.md.
+ *  - actuator positions are (x, y) pairs [m] in the pupil frame of docs/conventions.md.
  *
  * The DM surface (and the reconstruction's wavefront) is the Clough-Tocher interpolation
  * of the actuator values (interp.h), T z_act on the pupil grid, so the interaction matrix

@@ -11,7 +11,7 @@ from ._lib import lib, check, as_array, dptr
 
 @dataclass
 class Geom:
-    """The geometry keywords of DESIGN.md (SI units). Missing values are NaN (pupn: 0)."""
+    """The geometry keywords of docs/conventions.md (SI units). Missing values are NaN (pupn: 0)."""
     wavelen: float = math.nan   # WAVELEN [m]
     teldiam: float = math.nan   # TELDIAM [m]
     obscur: float = math.nan    # OBSCUR, fraction of the diameter
@@ -65,7 +65,7 @@ def blas_threads():
 
 
 def aperture(n, dx, diam, obscur=0.0, nspiders=0, spider_width=0.0):
-    """Binary annular pupil (n, n) on the grid of DESIGN.md (aperture.h)."""
+    """Binary annular pupil (n, n) on the grid of docs/conventions.md (aperture.h)."""
     m = np.zeros((int(n), int(n)))
     check(lib.swfs_aperture_make(dptr(m), int(n), float(dx), float(diam), float(obscur), int(nspiders),
                                  float(spider_width)), "swfs_aperture_make")

@@ -1,4 +1,4 @@
-"""Generic FITS input and output with the conventions of DESIGN.md (fits.h): cubes are
+"""Generic FITS input and output with the conventions of docs/conventions.md (fits.h): cubes are
 (frame, y, x) numpy arrays, complex data use the FITS complex axis, geometry keywords
 travel as a Geom."""
 import ctypes

@@ -511,7 +511,7 @@ class Engine:
 
 class MFT:
     """Matrix Fourier transform (mft.h) between an npup x npup pupil grid and an nfy x nfx
-    focal window with the conventions of DESIGN.md (double precision)."""
+    focal window with the conventions of docs/conventions.md (double precision)."""
 
     def __init__(self, npup, nfx, nfy, alpha, single=False):
         self._m = check_ptr(lib.swfs_mft_create(int(npup), int(nfx), int(nfy), float(alpha), int(bool(single))),

@@ -13,7 +13,7 @@ def grid(n, dx):
 
 
 def mft_forward(field, geom, nfx, nfy):
-    """DESIGN.md's focal field, written out with numpy: sum_x P(x) exp(-2 pi i theta.x / lambda)."""
+    """docs/conventions.md's focal field, written out with numpy: sum_x P(x) exp(-2 pi i theta.x / lambda)."""
     n = field.shape[0]
     u = np.arange(n) - (n - 1) / 2
     a = geom.alpha

@@ -54,7 +54,7 @@ def test_engine_against_numpy():
         c = h[NF // 2, NF // 2]
         ref = h * np.exp(-1j * np.angle(c))
         np.testing.assert_allclose(out[k], ref, rtol=0, atol=2e-6 * np.abs(ref).max())
-    # A wavefront tilt z = s x puts the star at theta = s (DESIGN.md's sign): -1.1 lambda/D
+    # A wavefront tilt z = s x puts the star at theta = s (docs/conventions.md's sign): -1.1 lambda/D
     # is 2.2 pixels of 0.5 lambda/D toward -x, +0.3 lambda/D 0.6 pixels toward +x.
     assert np.unravel_index(np.abs(out[2]).argmax(), out[2].shape) == (NF // 2, NF // 2 - 2)
     assert np.unravel_index(np.abs(out[1]).argmax(), out[1].shape) == (NF // 2, NF // 2 + 1)

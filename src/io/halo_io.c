@@ -1,4 +1,4 @@
-/* HALO.fits writer and reader (layout in include/specklewfs/estimate.h, DESIGN.md). */
+/* HALO.fits writer and reader (layout in include/specklewfs/estimate.h, docs/conventions.md). */
 #include "specklewfs/estimate.h"
 #include "specklewfs/checkpoint.h"
 #include "specklewfs/fits.h"

@@ -1,5 +1,5 @@
 /* Colour ranges from robust percentiles of the displayed pixels (docs/report.md), and the
- * focal-plane panel geometry (DESIGN.md sampling) shared by the focal figures. */
+ * focal-plane panel geometry (docs/conventions.md sampling) shared by the focal figures. */
 #include "report_internal.h"
 
 #include "specklewfs/numeric.h"

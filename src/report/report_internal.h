@@ -131,7 +131,7 @@ int rep_image_panel(swfs_plot *p, int panel, swfs_plot_image_spec *s, const swfs
 unsigned char *rep_mask_from(const swfs_real *valid, size_t n);
 
 int rep_have_pixscale(const rep_ctx *c);
-/* Focal pixel -> theta [lambda/D] (pixels if PIXSCALE is unknown), DESIGN.md convention. */
+/* Focal pixel -> theta [lambda/D] (pixels if PIXSCALE is unknown), docs/conventions.md convention. */
 double rep_focal_x(const rep_ctx *c, double i, size_t n);
 void rep_focal_spec(const rep_ctx *c, swfs_plot_image_spec *s);
 /* The pixel with the largest score among ok pixels at radius [rmin, rmax] lambda/D

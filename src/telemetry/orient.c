@@ -1,7 +1,7 @@
 /* The camera's orientation relative to the model's focal plane (sync.h): the pairing `sync`
  * finds by correlating the star's track with the mean slopes says which camera axis follows
  * which slope axis and with which sign. The speckles are computed in the model's frame
- * (DESIGN.md's sign and sampling); the science frames are brought into that frame, so the
+ * (docs/conventions.md's sign and sampling); the science frames are brought into that frame, so the
  * halo, the pupil field and the DM offsets are all in the frame of the WFS and the DM.
  *
  * Model pixel (cx + u, cy + v), (cx, cy) = (nx/2, ny/2) the star, shows what the camera has
