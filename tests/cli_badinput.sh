@@ -131,6 +131,12 @@ chk sync-ratio-range 1 "ratio [8, 5]" o.txt -- sync sci.fits $H -o o.txt --ratio
 chk sync-nan 2 "got 'nan'" o.txt -- sync sci.fits $H -o o.txt --lag-step nan
 chk sync-unknown 2 "--bogus" o.txt -- sync sci.fits $H -o o.txt --bogus
 
+# ---- speckles, stream: a slopes file's NSUB against the Shack-Hartmann the slopes make
+mkdir -p nsub && /usr/bin/python3 "$FITSHDR" ts/slopes_000.fits nsub/slopes_000.fits NSUB=16
+sed "s#[^ ]*/ts/slopes_000.fits#$PWD/nsub/slopes_000.fits#" timing.txt > nsub/timing.txt
+chk speckles-nsub 1 "nsub/slopes_000.fits: NSUB = 16 subapertures across, but the slopes' width (and the valid map, if given) make a 12 x 12" o.fits -- speckles nsub/timing.txt --science sci.fits --actuators ts/actuators.fits -o o.fits
+chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
+
 # ---- coherence
 chk coh-missing 1 "nofile.fits: cannot open" o.fits -- coherence nofile.fits -o o.fits
 chk coh-nonfits 1 "notfits.fits: cannot open as FITS" o.fits -- coherence notfits.fits -o o.fits

@@ -49,6 +49,9 @@ void swfs_path_dir(const char *path, char *dir, size_t cap);
 /* A telemetry file: a 2-D image of nslopes x WFS frames (nslopes = 0: any width), and its
  * WFSRATE [Hz] in *rate (0 when absent or not a rate; rate may be NULL). */
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate);
+/* A telemetry file's NSUB keyword, when it has one, against the model's nsub
+ * (SWFS_ERR_VALUE naming the file and both values). */
+int swfs_telemetry_check_nsub(const char *path, size_t nsub);
 /* The same checks without reading the data: *nframes (may be NULL) receives the WFS frames. */
 int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);
 /* Telemetry values: finite and at most SWFS_TELEMETRY_MAX in magnitude in any unit (FLT_MAX

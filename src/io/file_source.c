@@ -54,6 +54,20 @@ int swfs_telemetry_check_values(const char *path, const swfs_real *s)
     return SWFS_OK;
 }
 
+int swfs_telemetry_check_nsub(const char *path, size_t nsub)
+{
+    swfs_fits_in *f = NULL;
+    int found = 0;
+    long v = 0;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_long_opt(f, "NSUB", 1, 1L << 20, &v, &found);
+    swfs_fits_in_close(f);
+    if (!rc && found && (size_t)v != nsub)
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: NSUB = %ld subapertures across, but the slopes' width (and the valid map, "
+                       "if given) make a %zu x %zu Shack-Hartmann", path, v, nsub, nsub);
+    return rc;
+}
+
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate)
 {
     *out = NULL;

@@ -215,10 +215,11 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     free(vmap);
     if (rc) return swfs_fail_context(rc, "%s with %s%s%s", o->actuators, w->path, o->valid ? " and " : "",
                                      o->valid ? o->valid : "");
-    /* A given matrix in another convention (DM commands: a correction of the surface, about
-     * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);
+    if ((rc = swfs_telemetry_check_nsub(w->path, pinfo.nsub))) return rc;
+    /* A given matrix in another convention (DM commands: a correction of the surface, about
+     * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
     const double gain = pinfo.recon_gain;
     if (o->pipe.recon == SWFS_RECON_GIVEN && !(gain >= SWFS_RECON_GAIN_MIN && gain <= 1.0 / SWFS_RECON_GAIN_MIN))
         return swfs_fail(SWFS_ERR_VALUE, "%s: gain %.3g on the model's interaction matrix%s (expected about 1: the "

@@ -239,6 +239,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         if (rc) swfs_fail_context(rc, "%s with %s%s%s", o->recon, o->actuators, o->valid ? " and " : "",
                                   o->valid ? o->valid : "");
         else swfs_pipeline_get_info(*p, &r->info);
+        if (!rc && first_tel[0]) rc = swfs_telemetry_check_nsub(first_tel, r->info.nsub);
     }
     swfs_recon_free(rec);
     free(act);
