@@ -8,12 +8,8 @@
 # PHRATE = +k theta.v, docs/coherence.md), the printed exposure limit at 6 lambda/D for
 # D = 6.5 m and 10 m/s (54.2 ms, eq:ExpLimit-Wind) and clear errors for bad input.
 # usage: bash cli_coherence_wind.sh <specklewfs> <scratch dir>
-set -u
-B=$1
-D=$2
-rm -rf "$D"
-mkdir -p "$D"
-fail() { echo "FAIL: $*" >&2; exit 1; }
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
 
 DIR=30
 # Small pupil (66 x 10 cm), one cube of 150 exposures = 973 WFS frames (1.85 s).
@@ -59,11 +55,6 @@ w2=$(awk '/apparent wind/ { for (i = 1; i <= NF; i++) if ($i == "toward") print 
 [ "$w2" = "$wdir" ] || fail "--mean cube on one cube changed the wind fit ($w2 vs $wdir)"
 
 # ---- bad input --------------------------------------------------------------------
-expect_error() { # expect_error <pattern> <command...>
-    local pat=$1; shift
-    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
-    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
-}
 # A cube whose WFS frames run past the end of the telemetry file.
 sed "s/ $start ok/ 500.4 ok/" "$D/sim/timing.txt" > "$D/sim/late.txt"
 expect_error "needs WFS frames" "$B" speckles "$D/sim/late.txt" --science "$D/sim/raw_000.fits" \

@@ -4,12 +4,8 @@
 # and that the residual NCP (piston, tip, tilt removed) falls: 90.7 -> 59 -> 42 nm measured
 # (seeds 1 and 2; with the 36-mode filter, gain 0.5).
 # usage: bash cli_liveloop.sh <specklewfs> <scratch dir>
-set -u
-B=$1
-D=$2
-rm -rf "$D"
-mkdir -p "$D"
-fail() { echo "FAIL: $*" >&2; exit 1; }
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
 
 "$B" liveloop -o "$D/loop" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 cube_gap=150 layer_speed=30,40 \
     vib_amp=0.6 jitter_amp=0.15 seed=1 --iterations 2 --speed 4 --modes 36 > "$D/loop.log" 2> "$D/loop.err" \

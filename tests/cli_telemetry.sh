@@ -5,12 +5,8 @@
 # the speckle and science cubes, the NCP error of the recovered wavefront, and clear
 # errors for bad input.
 # usage: bash cli_telemetry.sh <specklewfs> <scratch dir>
-set -u
-B=$1
-D=$2
-rm -rf "$D"
-mkdir -p "$D"
-fail() { echo "FAIL: $*" >&2; exit 1; }
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
 
 # 3 cubes x 60 frames at <t_sci/t_wfs> = 6.48, lag 3; telemetry files of 1000 WFS frames,
 # so cube 1 (WFS frames ~839..1228) straddles slopes_000/slopes_001.
@@ -72,11 +68,6 @@ echo "cli_telemetry: --tiptilt frame (re-centred on the slopes' tilt): $errf nm;
 awk -v e="$errd" -v f="$errf" 'BEGIN { exit !(f > 0 && f < 1.1 * e) }' || fail "per-frame tip-tilt: $errf nm against $errd nm"
 
 # ---- bad input --------------------------------------------------------------------
-expect_error() { # expect_error <pattern> <command...>
-    local pat=$1; shift
-    if "$@" > "$D/err.out" 2> "$D/err.log"; then fail "expected an error from: $*"; fi
-    grep -q "$pat" "$D/err.log" || { cat "$D/err.log"; fail "error message lacks '$pat'"; }
-}
 # A reconstructor whose length does not match the slopes (here: the 2 x nact actuator table).
 expect_error "expects" "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" \
     -o "$D/x.fits" --recon "$D/sim/actuators.fits"
