@@ -12,6 +12,8 @@
 static const char *usage_text =
     "usage: specklewfs replay --timing TIMING.txt --science SCIENCE.fits [--slopes DIR|FILE]\n"
     "                         [--shm-dir DIR] [--wfs-name NAME] [--camera-name NAME] [options]\n"
+    "       specklewfs replay --wfs-log DIR|FILE --science SCIENCE.fits [--shm-dir DIR] [--wfs-name NAME]\n"
+    "                         [--camera-name NAME] [--speed F] [--depth N] [--wait-reader T] [--remove]\n"
     "\n"
     "Publishes WFS telemetry and camera frames into two shared-memory streams (ImageStreamIO\n"
     "2.00) as an AO system would: every WFS row at its time ((row + 1) / rate: a stamp marks\n"
@@ -22,6 +24,10 @@ static const char *usage_text =
     "one after the other in the order the table names them.\n"
     "\n"
     "  --timing, --science, --slopes   as for 'specklewfs stream'\n"
+    "  --wfs-log DIR|FILE    instead of --timing: a WFS milk log (as 'stream --wfs-log'), published\n"
+    "                        with its own stamps and lost frames, and the science cube's frames at\n"
+    "                        their STAMPS (reduce of camera logs): live then sees exactly what\n"
+    "                        'stream --wfs-log' reads\n"
     "  --shm-dir DIR         stream folder (default $MILK_SHM_DIR, /milk/shm, /dev/shm, /tmp)\n"
     "  --wfs-name NAME       WFS stream (default swfs_wfs)\n"
     "  --camera-name NAME    camera stream (default swfs_camera)\n"
@@ -50,6 +56,7 @@ int swfs_cmd_replay(int argc, char **argv)
         double *dv = NULL;
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return CLI_OK; }
         else if (!strcmp(a, "--timing")) str = &o.timing;
+        else if (!strcmp(a, "--wfs-log")) str = &o.wfs_log;
         else if (!strcmp(a, "--science")) str = &o.science;
         else if (!strcmp(a, "--slopes")) str = &o.slopes;
         else if (!strcmp(a, "--shm-dir")) str = &o.dir;
@@ -75,7 +82,12 @@ int swfs_cmd_replay(int argc, char **argv)
             return CLI_USAGE;
         }
     }
-    if (!o.timing || !o.science) return cli_usage_error(cmd, "needs --timing and --science");
+    if (!(o.timing || o.wfs_log) || !o.science) return cli_usage_error(cmd, "needs --timing (or --wfs-log) and --science");
+    if (o.wfs_log && (o.timing || o.slopes))
+        return cli_usage_error(cmd, "--wfs-log publishes a milk log with its own stamps: no --timing or --slopes");
+    if (o.wfs_log && (o.drop_wfs > 0 || o.drop_camera > 0 || o.jitter > 0 || restart || o.wfs_rate > 0))
+        return cli_usage_error(cmd, "--wfs-log publishes the log as it was: no --drop-wfs, --drop-camera, --jitter, "
+                               "--restart-after or --wfs-rate");
     if (!(o.speed > 0)) return cli_usage_error(cmd, "--speed must be > 0, got %g", o.speed);
     if (!(o.drop_wfs >= 0 && o.drop_wfs < 1) || !(o.drop_camera >= 0 && o.drop_camera < 1))
         return cli_usage_error(cmd, "--drop-wfs and --drop-camera must be in [0, 1)");

@@ -29,7 +29,12 @@
  * not contiguous with it (a dropped or skipped camera frame, a new segment) or when its
  * oldest frame has waited max_wait seconds; flush closes it now. With regular stamps and
  * no drops the batches are those of the file source with the same batch size (one cube
- * = one contiguous camera segment), so `live` reproduces `stream`.
+ * = one contiguous camera segment), so `live` reproduces `stream`. When a batch closes
+ * its exposures are evaluated again with the clock fits of the frames up to its last
+ * camera frame and its last WFS frame (snapshots kept with each frame), not with frames
+ * that arrived since: the batches depend on the stamps alone, not on how the streams'
+ * frames interleaved, so `live` fed by `replay --wfs-log` gives `stream --wfs-log`'s
+ * results exactly.
  *
  * Nothing is allocated per frame after create (the batch work space grows to the
  * largest batch seen, as the pipeline's does). One thread at a time. */

@@ -98,6 +98,10 @@ typedef struct swfs_replay_options {
     int remove;                 /* remove the streams at the end (0: leave them, as a writer does) */
     swfs_progress_fn progress;
     void *progress_ctx;
+    const char *wfs_log;        /* instead of timing/slopes: a WFS milk log (milklog.h) published with its
+                                   own stamps and lost frames, the camera frames of `science` at their
+                                   STAMPS (run_replay_milk.c); drops, jitter, restarts and wfs_rate do
+                                   not apply */
 } swfs_replay_options;
 
 void swfs_replay_options_default(swfs_replay_options *o);

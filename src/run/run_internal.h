@@ -4,6 +4,7 @@
 
 #include <stddef.h>
 
+#include "specklewfs/live.h"
 #include "specklewfs/run.h"
 
 /* The caller's provenance lines followed by `extra` (a new array the caller frees; the
@@ -26,6 +27,9 @@ typedef struct swfs_run_hooks {
     int offline;  /* 1: files as the source (milk logs): a failed run removes the products it
                      wrote, as the timing table's run does; 0 (live) keeps them */
 } swfs_run_hooks;
+
+/* replay --wfs-log: a WFS milk log and the science cube's STAMPS, as logged (run_replay_milk.c). */
+int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r);
 
 /* stream --wfs-log: milk logs + STAMPS of the science cube through framesync (run_stream_milk.c). */
 int swfs_stream_run_milk(const swfs_stream_run_options *o, swfs_stream_run_result *r);

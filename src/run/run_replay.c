@@ -7,6 +7,7 @@
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/sync.h"
+#include "run_internal.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -210,8 +211,9 @@ static int choose_types(replay *p)
 int swfs_replay_run(const swfs_replay_options *o, swfs_replay_result *r)
 {
     memset(r, 0, sizeof *r);
+    if (o->wfs_log && o->science) return swfs_replay_milk_run_(o, r);
     if (!o->timing || !o->science)
-        return swfs_fail(SWFS_ERR_ARG, "replay: needs a timing table and a science cube");
+        return swfs_fail(SWFS_ERR_ARG, "replay: needs a timing table (or a WFS milk log) and a science cube");
     if (!(o->speed > 0) || !(o->drop_wfs >= 0 && o->drop_wfs < 1) || !(o->drop_camera >= 0 && o->drop_camera < 1) ||
         !(o->jitter >= 0) || !(o->wfs_rate >= 0) || !(o->wait_reader >= 0))
         return swfs_fail(SWFS_ERR_ARG, "replay: speed %g, drop probabilities %g %g, jitter %g, WFS rate %g, reader wait %g "

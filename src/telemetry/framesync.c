@@ -97,6 +97,7 @@ typedef struct camslot {
     double t_end, arrival;
     int64_t stamp;
     double *data;
+    fclock ck;          /* the camera clock right after this frame (its fit of frames up to it) */
 } camslot;
 
 struct swfs_framesync {
@@ -112,6 +113,11 @@ struct swfs_framesync {
     int64_t last_g[SWFS_FRAMESYNC_MAX_WFS];
     size_t hist;
     int64_t *tag;
+    /* per WFS slot: the master's time -> frame map right after that frame (segment id, ga, ta,
+     * beta), so a batch is refined with the fit of the frames up to its last one, whatever
+     * arrived since: the same numbers offline and live */
+    int *msid;
+    double *mmap;
     uint32_t *mask;
     unsigned char *bad;
     double *vals;                   /* hist x ns */
@@ -134,6 +140,7 @@ struct swfs_framesync {
     swfs_exposure *sched;
     int64_t *stamps;
     uint64_t *bcnt;                 /* camera counters of the batch's frames */
+    fclock bck;                     /* the camera clock right after the batch's last frame */
     double *bt1;                    /* their exposure ends when appended */
     swfs_framesync_stats st;
 };
@@ -150,6 +157,8 @@ void swfs_framesync_free(swfs_framesync *f)
 {
     if (!f) return;
     free(f->tag);
+    free(f->msid);
+    free(f->mmap);
     free(f->mask);
     free(f->bad);
     free(f->vals);
@@ -205,6 +214,8 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
     if (!o->camera_queue && f->qcap * nf2 * sizeof(double) > cap) f->qcap = cap / (nf2 * sizeof(double));
     if (f->qcap < o->batch + 1) f->qcap = o->batch + 1;
     f->tag = calloc(f->hist, sizeof *f->tag);
+    f->msid = calloc(f->hist, sizeof *f->msid);
+    f->mmap = calloc(3 * f->hist, sizeof *f->mmap);
     f->mask = calloc(f->hist, sizeof *f->mask);
     f->bad = calloc(f->hist, 1);
     f->vals = malloc(f->hist * f->ns * sizeof *f->vals);
@@ -215,7 +226,7 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
     f->stamps = malloc(o->batch * sizeof *f->stamps);
     f->bcnt = malloc(o->batch * sizeof *f->bcnt);
     f->bt1 = malloc(o->batch * sizeof *f->bt1);
-    if (!f->tag || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched || !f->stamps ||
+    if (!f->tag || !f->msid || !f->mmap || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched || !f->stamps ||
         !f->bcnt || !f->bt1) {
         swfs_framesync_free(f);
         return swfs_fail(SWFS_ERR_NOMEM, "framesync: out of memory for %zu WFS frames of %zu values and %zu camera "
@@ -319,6 +330,13 @@ int swfs_framesync_add_wfs(swfs_framesync *f, size_t i, uint64_t cnt, int64_t st
         f->mask[k] = 0;
         f->bad[k] = 0;
     }
+    if (i == 0) {
+        const wseg *s = &f->seg[f->cur];
+        f->msid[k] = s->id;
+        f->mmap[3 * k] = s->ga;
+        f->mmap[3 * k + 1] = s->ta;
+        f->mmap[3 * k + 2] = s->beta;
+    }
     memcpy(f->vals + (size_t)k * f->ns + f->voff[i], vals, f->nvals[i] * sizeof *vals);
     check_finite(f, (size_t)k, vals, f->nvals[i]);
     f->mask[k] |= 1u << i;
@@ -351,6 +369,7 @@ int swfs_framesync_add_camera(swfs_framesync *f, uint64_t cnt, int64_t stamp_ns,
     q->cnt = cnt;
     q->seg = f->camseg;
     q->t_end = clock_at(c, (double)cnt);
+    q->ck = *c;
     q->stamp = stamp_ns;
     q->arrival = now;
     memcpy(q->data, frame, f->nf2 * sizeof *frame);
@@ -414,16 +433,19 @@ static void weights(swfs_exposure *e, double x0, double x1, int64_t ga, int64_t 
 }
 
 /* Frames are appended as soon as their WFS frames are in; by the time the batch closes the
- * clocks have seen more stamps. Re-evaluate the exposures with the current fits where the
- * segments are still the current ones (the frames an exposure uses stay the same; a
- * refinement that would change them is not applied). */
+ * clocks have seen more stamps. Re-evaluate the exposures with the fits of the frames up to
+ * the batch's last ones: the camera clock right after its last camera frame and the WFS
+ * map right after its last WFS frame -- not with whatever arrived since, so the batch's
+ * numbers depend on the data alone, not on how the streams' frames interleaved (`live`
+ * and `stream --wfs-log` agree). The frames an exposure uses stay the same; a refinement
+ * that would change them is not applied. */
 static void refine(swfs_framesync *f)
 {
-    const wseg *s = NULL;
-    for (int k = 0; k < NSEG && k < f->nseg_total; k++)
-        if (f->seg[k].id == f->bseg_w) s = &f->seg[k];
-    const fclock *cc = f->bseg_c == f->camseg ? &f->cc : f->bseg_c + 1 == f->camseg ? &f->cc_prev : NULL;
-    if (!s || !cc) return;
+    const int64_t slot = slot_of(f, f->gend);
+    if (f->tag[slot] != f->gend || f->msid[slot] != f->bseg_w) return;
+    const wseg snap = {.ga = f->mmap[3 * slot], .ta = f->mmap[3 * slot + 1], .beta = f->mmap[3 * slot + 2]};
+    const wseg *s = &snap;
+    const fclock *cc = &f->bck;
     const double cam_period = f->o.exptime > 0 ? f->o.exptime : clock_beta(cc);
     if (!(cam_period > 0) || !(s->beta > 0)) return;
     for (size_t j = 0; j < f->bn; j++) {
@@ -532,6 +554,7 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
         f->bcnt[f->bn] = q->cnt;
         f->bt1[f->bn] = t1;
         f->blast = q->cnt;
+        f->bck = q->ck;
         f->bn++;
         pop(f);
         if (f->bn == f->o.batch) {
