@@ -7,7 +7,10 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] [--tiptilt exposure|frame]
- *                                 [--kind slopes|modal]
+ *                                 [--kind slopes|modal] [--vk-l0 M]
+ *
+ * --vk-l0 M: the von Karman reconstructor's outer scale (default: the library's, 10 m) on every
+ * system, to measure the constant over the whole matrix (docs/telemetry.md).
  *
  * --kind modal: each system's telemetry exported as cacao's modal coefficients on a DM grid
  * that is offset, turned and mirrored (simulate export_modal=1), timed by sync and turned into
@@ -59,6 +62,7 @@ static const system_def systems[] = {
 
 static char dir[1024];
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
+static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
@@ -253,6 +257,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.match_out = mout;
     sp.nmatch = 1;
     sp.pipe.tiptilt = tiptilt;
+    if (vk_l0 >= 0.0) sp.pipe.vk_l0 = vk_l0;
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
     r->nexp = spr.nout;
@@ -285,9 +290,10 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
+        else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal]\n");
+                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]\n");
             return 2;
         }
     }
@@ -302,6 +308,7 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            modal ? ", modal telemetry (--basis)" : "");
+    if (vk_l0 >= 0.0) printf("von Karman outer scale of the reconstructor: %g m%s\n", vk_l0, vk_l0 == 0 ? " (fitted)" : "");
     printf("%-11s %4s %4s %5s %6s %4s %4s %5s | %7s %7s %6s | %6s %6s %5s | %5s\n", "system", "seed", "nsub", "rate",
            "ratio", "vib", "rn", "res", "slopes", "ideal", "x", "ratio", "lag", "nexp", "s");
     double worst = 0.0, sum_ratio = 0.0;

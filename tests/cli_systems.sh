@@ -1,0 +1,44 @@
+# The slopes path on two systems of other geometries than the shipped 12 x 12, with default
+# options everywhere (reduce -> sync -> speckles -> estimate -> pupil), as bench_telemetry's
+# matrix runs them (docs/telemetry.md, "Over many systems"), on short data sets
+# (3 cubes x 60 frames; bench_telemetry --quick, seed 1):
+#   sh16-issue: 16 x 16 Shack-Hartmann at 1 kHz, 9.7 WFS frames per camera frame, 14 m/s wind
+#               at 200 deg, 0.4 lambda/D 12 Hz vibration, read noise 15 counts
+#               (measured: NCP error 20.0 nm from the slopes, 14.5 nm from the ideal speckles);
+#   sh24-base:  24 x 24 at 1 kHz, 6 frames per camera frame, 10 m/s at 60 deg, 0.1 lambda/D,
+#               read noise 10 (measured: 30.6 nm, 24.6 nm ideal).
+# Asserts sync's ratio within 0.005 of the truth and its lag within 0.2 WFS frames (the
+# cubes start at a fraction 0.637 of a WFS frame: true lag 3 - 0.637), and the NCP error
+# from the slopes within 1.6x the ideal speckles' and below 2.5x the full-size table's
+# ideal-speckle error on that system.
+# usage: bash cli_systems.sh <specklewfs> <scratch dir>
+. "$(dirname "$0")/lib_cli.sh"
+cli_setup "$@"
+
+run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM
+    local n=$1 nsub=$2 ratio=$3 d="$D/$1"
+    mkdir -p "$d"
+    local pitch modes
+    pitch=$(awk -v s="$nsub" 'BEGIN { printf "%.4f", 0.83 * 6.5 / s }')
+    modes=$(awk -v s="$nsub" 'BEGIN { printf "%d", 0.39 * s * s + 0.5 }')
+    "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn=100 pupdx=0.065 screen_n=1024 nsub="$nsub" \
+        act_pitch="$pitch" ao_modes="$modes" wfs_rate=1000 frame_ratio="$ratio" nlayers=1 layer_frac=1 \
+        layer_speed="$4" layer_dir="$5" vib_amp="$6" vib_freq="$7" read_noise="$8" ncubes=3 cube_frames=60 \
+        start_offset=300.637 wfs_file_frames=4000 seed=1 > "$d/sim.log" 2>&1 || { cat "$d/sim.log"; fail "$n: simulate"; }
+    reduce_sync "$d"
+    local r l
+    r=$(awk '/^ratio/ { print $2 }' "$d/timing.txt")
+    l=$(awk '/^lag/ { print $2 }' "$d/timing.txt")
+    awk -v r="$r" -v t="$ratio" -v l="$l" 'BEGIN { dr = r - t; dl = l - 2.363; exit !(dr < 0.005 && dr > -0.005 && dl < 0.2 && dl > -0.2) }' \
+        || fail "$n: sync ratio $r (true $ratio), lag $l (true 2.363)"
+    local e i
+    e=$(speckles_pupil "$d")
+    i=$(ideal_pupil "$d")
+    echo "cli_systems: $n: sync ratio $r lag $l; NCP error $e nm from the slopes, $i nm from the ideal speckles" >&2
+    awk -v e="$e" -v i="$i" -v m="$9" 'BEGIN { exit !(e > 0 && i > 0 && e <= 1.6 * i && e <= m) }' \
+        || fail "$n: NCP error $e nm (ideal $i nm, bound 1.6x and $9 nm)"
+}
+# the bounds: 2.5 x the full-size table's ideal-speckle error (10.4 and 13.2 nm)
+run_system sh16-issue 16 9.7 14 200 0.4 12 15 26
+run_system sh24-base 24 6.0 10 60 0.1 15 10 33
+echo "cli_systems: ok"
