@@ -157,6 +157,10 @@ int swfs_cmd_pupil(int argc, char **argv)
                    f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"
                                                           : "modelled as |Psi|^2 + kappa g^2 Phi_sp",
                    f->delta_chi2, f->delta_chi2_limit);
+        if (f->iterations == 0)
+            fprintf(stderr, "specklewfs pupil: warning: the joint fit took no step from its flat start (its normal "
+                    "equations were not positive definite there): the WFE of %s is the start, not an estimate; "
+                    "more frames, or --method moments, may do (FITITER = 0)\n", out);
     } else {
         if (opt.method == SWFS_PUPIL_AUTO)
             printf("  note              %s has no regression statistics (REGSTATE): the per-pixel moments are used\n",

@@ -10,13 +10,17 @@
 # Asserts sync's ratio within 0.005 of the truth and its lag within 0.2 WFS frames (the
 # cubes start at a fraction 0.637 of a WFS frame: true lag 3 - 0.637), and the NCP error
 # from the slopes within 1.6x the ideal speckles' and below 2.5x the full-size table's
-# ideal-speckle error on that system.
+# ideal-speckle error on that system. The other seed of sh24-base (start fraction 0.274) is
+# a known failure of the joint fit on so few frames (docs/telemetry.md): it must either
+# meet the same bounds or say that the fit took no step (pupil's warning), never pass a
+# flat start off as an estimate.
 # usage: bash cli_systems.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
 
-run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM
-    local n=$1 nsub=$2 ratio=$3 d="$D/$1"
+run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM SEED START
+    local n=$1-s${10} nsub=$2 ratio=$3 d="$D/$1-s${10}" lagt
+    lagt=$(awk -v s="${11}" 'BEGIN { printf "%.3f", 3 - (s - int(s)) }')
     mkdir -p "$d"
     local pitch modes
     pitch=$(awk -v s="$nsub" 'BEGIN { printf "%.4f", 0.83 * 6.5 / s }')
@@ -24,21 +28,26 @@ run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM
     "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn=100 pupdx=0.065 screen_n=1024 nsub="$nsub" \
         act_pitch="$pitch" ao_modes="$modes" wfs_rate=1000 frame_ratio="$ratio" nlayers=1 layer_frac=1 \
         layer_speed="$4" layer_dir="$5" vib_amp="$6" vib_freq="$7" read_noise="$8" ncubes=3 cube_frames=60 \
-        start_offset=300.637 wfs_file_frames=4000 seed=1 > "$d/sim.log" 2>&1 || { cat "$d/sim.log"; fail "$n: simulate"; }
+        start_offset="${11}" wfs_file_frames=4000 seed="${10}" > "$d/sim.log" 2>&1 || { cat "$d/sim.log"; fail "$n: simulate"; }
     reduce_sync "$d"
     local r l
     r=$(awk '/^ratio/ { print $2 }' "$d/timing.txt")
     l=$(awk '/^lag/ { print $2 }' "$d/timing.txt")
-    awk -v r="$r" -v t="$ratio" -v l="$l" 'BEGIN { dr = r - t; dl = l - 2.363; exit !(dr < 0.005 && dr > -0.005 && dl < 0.2 && dl > -0.2) }' \
-        || fail "$n: sync ratio $r (true $ratio), lag $l (true 2.363)"
+    awk -v r="$r" -v t="$ratio" -v l="$l" -v lt="$lagt" 'BEGIN { dr = r - t; dl = l - lt; exit !(dr < 0.005 && dr > -0.005 && dl < 0.2 && dl > -0.2) }' \
+        || fail "$n: sync ratio $r (true $ratio), lag $l (true $lagt)"
     local e i
     e=$(speckles_pupil "$d")
     i=$(ideal_pupil "$d")
     echo "cli_systems: $n: sync ratio $r lag $l; NCP error $e nm from the slopes, $i nm from the ideal speckles" >&2
-    awk -v e="$e" -v i="$i" -v m="$9" 'BEGIN { exit !(e > 0 && i > 0 && e <= 1.6 * i && e <= m) }' \
-        || fail "$n: NCP error $e nm (ideal $i nm, bound 1.6x and $9 nm)"
+    if awk -v e="$e" -v i="$i" -v m="$9" 'BEGIN { exit !(e > 0 && i > 0 && e <= 1.6 * i && e <= m) }'; then return; fi
+    # outside the bounds: only a fit that says it took no step is accepted
+    "$B" pupil "$d/halo.fits" -o "$d/pupil2.fits" > /dev/null 2> "$d/pupil2.err" || fail "$n: pupil"
+    grep -q "warning: the joint fit took no step" "$d/pupil2.err" && grep -q "FITITER = 0" "$d/pupil2.err" \
+        || fail "$n: NCP error $e nm (ideal $i nm, bound 1.6x and $9 nm) and no warning"
+    echo "cli_systems: $n: outside the bounds, and pupil says why: $(cat "$d/pupil2.err")" >&2
 }
 # the bounds: 2.5 x the full-size table's ideal-speckle error (10.4 and 13.2 nm)
-run_system sh16-issue 16 9.7 14 200 0.4 12 15 26
-run_system sh24-base 24 6.0 10 60 0.1 15 10 33
+run_system sh16-issue 16 9.7 14 200 0.4 12 15 26 1 300.637
+run_system sh24-base 24 6.0 10 60 0.1 15 10 33 1 300.637
+run_system sh24-base 24 6.0 10 60 0.1 15 10 33 2 300.274
 echo "cli_systems: ok"
