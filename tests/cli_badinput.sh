@@ -52,7 +52,7 @@ SMALL="screen_n=256 teldiam=2.5 pupn=64 nscreens=2 nfx=32 nfy=24"
 "$B" estimate run/science.fits run/speckles.fits -o run/halo.fits > /dev/null 2>&1 || setup_fail "estimate"
 "$B" pupil run/halo.fits -o run/wavefront.fits > /dev/null 2>&1 || setup_fail "pupil"
 TS="pupn=66 pupdx=0.1 screen_n=256 wfs_file_frames=1000"
-"$B" simulate mode=timeseries $TS ncubes=2 cube_frames=20 cube_gap=10 seed=1 --quiet -o ts > /dev/null 2>&1 \
+"$B" simulate mode=timeseries $TS ncubes=2 cube_frames=20 cube_gap=10 seed=1 milk=1 --quiet -o ts > /dev/null 2>&1 \
     || setup_fail "simulate mode=timeseries"
 "$B" reduce ts/raw_000.fits ts/raw_001.fits --dark ts/dark.fits --flat ts/flat.fits -o sci.fits > /dev/null 2>&1 \
     || setup_fail "reduce"
@@ -136,6 +136,13 @@ mkdir -p nsub && /usr/bin/python3 "$FITSHDR" ts/slopes_000.fits nsub/slopes_000.
 sed "s#[^ ]*/ts/slopes_000.fits#$PWD/nsub/slopes_000.fits#" timing.txt > nsub/timing.txt
 chk speckles-nsub 1 "nsub/slopes_000.fits: NSUB = 16 subapertures across, but the slopes' width (and the valid map, if given) make a 12 x 12" o.fits -- speckles nsub/timing.txt --science sci.fits --actuators ts/actuators.fits -o o.fits
 chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
+
+# ---- replay of milk logs (nothing is published: the checks come before the streams)
+chk replay-milk-nostamps 1 "sci.fits: no STAMPS extension" o.fits -- replay --wfs-log ts/milk/wfs --science sci.fits --shm-dir .
+chk replay-milk-timing 2 "--wfs-log publishes a milk log with its own stamps: no --timing" o.fits -- replay --wfs-log ts/milk/wfs --timing timing.txt --science sci.fits
+chk replay-milk-jitter 2 "no --drop-wfs, --drop-camera, --jitter" o.fits -- replay --wfs-log ts/milk/wfs --science sci.fits --jitter 1e-6
+chk replay-milk-nolog 1 "nolog: a milk log file name ends in .fits" o.fits -- replay --wfs-log nolog --science sci.fits --shm-dir .
+[ -e swfs_wfs.im.shm ] && echo "FAIL replay-milk: a stream was left" && nfail=$((nfail + 1))
 
 # ---- coherence
 chk coh-missing 1 "nofile.fits: cannot open" o.fits -- coherence nofile.fits -o o.fits
