@@ -396,8 +396,12 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
     meas /= (double)nframes;
     double sig = meas - (double)(nv[0] + nv[1] - 2) * noise_var;
     if (!(pred > 0) || !(sig > 0)) {
-        rc = swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slopes (%.3g rad^2 per frame) are no more than their noise "
-                       "(%.3g rad^2 per slope); nothing to reconstruct", meas, noise_var);
+        rc = swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slopes' mean square, tip-tilt removed (%.3g rad^2 per frame "
+                       "over %zu slopes), is no more than their noise (%.3g rad^2 per frame: %.3g per slope, estimated "
+                       "from the slopes outside the interaction matrix's column space, or given): nothing to "
+                       "reconstruct -- a loop that controls nearly every mode its WFS sees leaves the slopes little "
+                       "but noise; give the slope noise (--slope-noise) or a reconstructor", meas, nv[0] + nv[1],
+                       (double)(nv[0] + nv[1] - 2) * noise_var, noise_var);
         goto done;
     }
     /* The prior's scale: the maximum-likelihood one with the fitted noise, else from the
