@@ -66,16 +66,6 @@ typedef struct writer {
     swfs_shm *w, *c;
 } writer;
 
-static void sleep_until(double mono)
-{
-    for (;;) {
-        const double dt = mono - swfs_wall_seconds();
-        if (dt <= 0) return;
-        struct timespec ts = {(time_t)dt, (long)((dt - floor(dt)) * 1e9)};
-        nanosleep(&ts, NULL);
-    }
-}
-
 /* Publish for `seconds` at the real rates, then let the reader drain and stop it. */
 static void *writer_main(void *arg)
 {
@@ -90,7 +80,7 @@ static void *writer_main(void *arg)
         const double uw = (double)(k + 1), uc = 0.3 + (double)(j + 1) * d->ratio;
         const int is_wfs = uw <= uc;
         const double when = (is_wfs ? uw : uc) * per;
-        sleep_until(mono0 + when);
+        swfs_sleep_until(mono0 + when);
         const int64_t stamp = tai0 + llround(when * 1e9);
         if (is_wfs) {
             swfs_shm_write(w->w, w->slopes + (k % w->K) * w->nslopes, stamp);
@@ -104,7 +94,7 @@ static void *writer_main(void *arg)
     }
     w->wfs_sent = k;
     w->cam_sent = j;
-    sleep_until(swfs_wall_seconds() + 1.0);
+    swfs_sleep_until(swfs_wall_seconds() + 1.0);
     *w->stop = 1;
     return NULL;
 }

@@ -27,6 +27,8 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
  * These set and read OpenBLAS's thread count for applications that want the same. */
 /* Seconds on the monotonic clock since an arbitrary epoch (for rates and timings). */
 double swfs_wall_seconds(void);
+/* Sleep until swfs_wall_seconds() reaches mono (at once if it has; signals do not cut it short). */
+void swfs_sleep_until(double mono);
 
 void swfs_blas_set_threads(int n);
 int swfs_blas_threads(void);

@@ -73,3 +73,13 @@ double swfs_wall_seconds(void)
     clock_gettime(CLOCK_MONOTONIC, &ts);
     return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
 }
+
+void swfs_sleep_until(double mono)
+{
+    for (;;) {
+        const double dt = mono - swfs_wall_seconds();
+        if (dt <= 0) return;
+        struct timespec ts = {(time_t)dt, (long)((dt - (double)(time_t)dt) * 1e9)};
+        nanosleep(&ts, NULL); /* an interrupted sleep goes round again */
+    }
+}

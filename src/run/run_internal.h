@@ -28,6 +28,8 @@ typedef struct swfs_run_hooks {
                      wrote, as the timing table's run does; 0 (live) keeps them */
 } swfs_run_hooks;
 
+/* Wait up to o->wait_reader for a reader on both streams; *waited = the seconds waited. */
+int swfs_replay_wait_readers_(const swfs_replay_options *o, const swfs_shm *w, const swfs_shm *c, double *waited);
 /* replay --wfs-log: a WFS milk log and the science cube's STAMPS, as logged (run_replay_milk.c). */
 int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r);
 

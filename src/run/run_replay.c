@@ -151,31 +151,22 @@ static int make_streams(replay *p)
     return rc;
 }
 
-static void sleep_until(double mono)
-{
-    for (;;) {
-        const double d = mono - swfs_wall_seconds();
-        if (d <= 0) return;
-        struct timespec ts = {(time_t)d, (long)((d - floor(d)) * 1e9)};
-        nanosleep(&ts, NULL);
-    }
-}
-
-/* Wait up to o->wait_reader for a reader on both streams; returns the seconds waited. */
-static int wait_readers(replay *p, double *waited)
+int swfs_replay_wait_readers_(const swfs_replay_options *o, const swfs_shm *w, const swfs_shm *c, double *waited)
 {
     const double t0 = swfs_wall_seconds();
     *waited = 0;
-    if (!(p->o->wait_reader > 0)) return SWFS_OK;
-    while (swfs_shm_reader_count(p->w) < 1 || swfs_shm_reader_count(p->c) < 1) {
-        if (swfs_wall_seconds() - t0 > p->o->wait_reader)
-            return swfs_fail(SWFS_ERR_IO, "replay: no reader claimed %s and %s within %.3g s", swfs_shm_get_path(p->w),
-                             swfs_shm_get_path(p->c), p->o->wait_reader);
-        sleep_until(swfs_wall_seconds() + 0.002);
+    if (!(o->wait_reader > 0)) return SWFS_OK;
+    while (swfs_shm_reader_count(w) < 1 || swfs_shm_reader_count(c) < 1) {
+        if (swfs_wall_seconds() - t0 > o->wait_reader)
+            return swfs_fail(SWFS_ERR_IO, "replay: no reader claimed %s and %s within %.3g s", swfs_shm_get_path(w),
+                             swfs_shm_get_path(c), o->wait_reader);
+        swfs_sleep_until(swfs_wall_seconds() + 0.002);
     }
     *waited = swfs_wall_seconds() - t0;
     return SWFS_OK;
 }
+
+static int wait_readers(replay *p, double *waited) { return swfs_replay_wait_readers_(p->o, p->w, p->c, waited); }
 
 static int choose_types(replay *p)
 {
@@ -280,7 +271,7 @@ int swfs_replay_run(const swfs_replay_options *o, swfs_replay_result *r)
         const double jit = o->jitter > 0 ? o->jitter * swfs_rng_normal(&rng) : 0.0;
         const double when = (u - u0) * per + jit;
         const int64_t stamp = tai0 + llround(when * 1e9);
-        sleep_until(mono0 + when);
+        swfs_sleep_until(mono0 + when);
         if (is_wfs) {
             while (fi < p.nfiles && row >= p.files[fi].off + (int64_t)p.files[fi].rows) fi++;
             const int logged = fi < p.nfiles && row >= p.files[fi].off;

@@ -17,7 +17,6 @@
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
-#include <time.h>
 
 typedef struct mreplay {
     swfs_milklog *log;
@@ -28,16 +27,6 @@ typedef struct mreplay {
     swfs_shm *w, *c;
     double *buf;
 } mreplay;
-
-static void pause_until(double mono)
-{
-    for (;;) {
-        const double d = mono - swfs_wall_seconds();
-        if (d <= 0) return;
-        struct timespec ts = {(time_t)d, (long)((d - floor(d)) * 1e9)};
-        nanosleep(&ts, NULL);
-    }
-}
 
 static int open_inputs(const swfs_replay_options *o, mreplay *m)
 {
@@ -61,19 +50,6 @@ static int open_inputs(const swfs_replay_options *o, mreplay *m)
     rc = swfs_shm_create(&m->w, o->dir, o->wfs_name, &ws);
     if (!rc) rc = swfs_shm_create(&m->c, o->dir, o->camera_name, &cs);
     return rc;
-}
-
-static int wait_for_readers(const swfs_replay_options *o, const mreplay *m)
-{
-    const double t0 = swfs_wall_seconds();
-    if (!(o->wait_reader > 0)) return SWFS_OK;
-    while (swfs_shm_reader_count(m->w) < 1 || swfs_shm_reader_count(m->c) < 1) {
-        if (swfs_wall_seconds() - t0 > o->wait_reader)
-            return swfs_fail(SWFS_ERR_IO, "replay: no reader claimed %s and %s within %.3g s", swfs_shm_get_path(m->w),
-                             swfs_shm_get_path(m->c), o->wait_reader);
-        pause_until(swfs_wall_seconds() + 0.002);
-    }
-    return SWFS_OK;
 }
 
 static int cmp_i64(const void *a, const void *b)
@@ -120,7 +96,7 @@ int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r)
     mreplay m;
     memset(&m, 0, sizeof m);
     int rc = open_inputs(o, &m);
-    if (!rc) rc = wait_for_readers(o, &m);
+    if (!rc) rc = swfs_replay_wait_readers_(o, m.w, m.c, &(double){0});
     if (!rc) {
         const swfs_milklog_info *in = swfs_milklog_get_info(m.log);
         const uint64_t *wc = swfs_milklog_counters(m.log);
@@ -133,7 +109,7 @@ int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r)
             const int cam = j < m.ncam && (i >= in->nframes || m.cst[j] <= ws[i]);
             const int64_t stamp = cam ? m.cst[j] : ws[i];
             const double when = 1e-9 * (double)(stamp - s0) / o->speed;
-            pause_until(mono0 + when);
+            swfs_sleep_until(mono0 + when);
             if (cam) {
                 skip_lost(m.c, m.ccnt, j, &r->camera_dropped);
                 rc = swfs_fits_in_read_real(m.sci, j, 1, m.buf);
