@@ -345,6 +345,7 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
         L0 = fit.L0;
         if (ml_noise) noise_var = fit.noise_var;
     }
+    const int noise_estimated = noise_var <= 0;
     if (noise_var <= 0 && (rc = swfs_slopes_noise_var(D, m, n, slopes, nframes, &noise_var))) return rc;
     /* No slopes outside D's column space (at least as many actuators as valid slopes, the
      * MMT's own case) and a temporal extrapolation that found nothing: the noise from the
@@ -395,6 +396,15 @@ int swfs_recon_vk(const double *D, size_t nslopes, size_t nact, const double *xy
     }
     meas /= (double)nframes;
     double sig = meas - (double)(nv[0] + nv[1] - 2) * noise_var;
+    if (pred > 0 && !(sig > 0) && noise_estimated && !ml) {
+        /* The slopes outside D's column space hold more than noise: a loop that controls
+         * nearly every mode its WFS sees leaves little in the space it measures, while what
+         * the DM cannot make aliases outside it. The noise from the slopes' likelihood under
+         * the prior instead (vkfit.c), which tells noise from signal by their spatial spectra. */
+        if ((rc = swfs_vk_fit_slopes(D, m, n, xy, slopes, nframes, &fit))) goto done;
+        if (fit.noise_var > 0 && fit.noise_var < noise_var) noise_var = fit.noise_var;
+        sig = meas - (double)(nv[0] + nv[1] - 2) * noise_var;
+    }
     if (!(pred > 0) || !(sig > 0)) {
         rc = swfs_fail(SWFS_ERR_NUMERIC, "vk reconstructor: the slopes' mean square, tip-tilt removed (%.3g rad^2 per frame "
                        "over %zu slopes), is no more than their noise (%.3g rad^2 per frame: %.3g per slope, estimated "
