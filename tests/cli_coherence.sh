@@ -40,42 +40,43 @@ write_fits in.fits 1
 write_fits nodt.fits 0
 [ "$(stat -c %s in.fits)" -eq 5760 ] || fail "hand-made FITS has the wrong size"
 
-"$BIN" coherence --help | grep -q "eq:MutualCoh" || fail "--help"
+help=$("$BIN" coherence --help)
+grep -q "eq:MutualCoh" <<< "$help" || fail "--help"
 
 # The paper's number: 6 lambda/D, D = 6.5 m, 10 m/s -> about 54 ms (18.5 frames/s).
 out=$("$BIN" coherence --wind 10 --diam 6.5 --bandwidth 0.2)
-echo "$out" | grep -q "54.2 ms at 6 lambda/D" || fail "wind exposure limit: $out"
-echo "$out" | grep -q "18.5 frames/s" || fail "frame rate: $out"
-echo "$out" | grep -q "5.00 lambda/D" || fail "bandwidth radius: $out"
+grep -q "54.2 ms at 6 lambda/D" <<< "$out" || fail "wind exposure limit: $out"
+grep -q "18.5 frames/s" <<< "$out" || fail "frame rate: $out"
+grep -q "5.00 lambda/D" <<< "$out" || fail "bandwidth radius: $out"
 
 out=$("$BIN" coherence in.fits -o coh.fits --exposure 0.002 --pixel 0,0 --wind 10)
 echo "$out"
 [ -f coh.fits ] && [ ! -f coh.fits.part ] || fail "COH.fits not written"
-echo "$out" | grep -q "3 with speckle power; NaN: 1 without speckle power, 0 non-finite" || fail "NaN count"
-echo "$out" | grep -q "median TROT            1.00 ms" || fail "TROT"
-echo "$out" | grep -q "median SNR factor      0.5000 at exposure 2 ms" || fail "SNR factor"
-echo "$out" | grep -q "3 pixels beyond" || fail "tau0 beyond the lags"
-echo "$out" | grep -q "54.2 ms" || fail "wind limit from TELDIAM"
+grep -q "3 with speckle power; NaN: 1 without speckle power, 0 non-finite" <<< "$out" || fail "NaN count"
+grep -q "median TROT            1.00 ms" <<< "$out" || fail "TROT"
+grep -q "median SNR factor      0.5000 at exposure 2 ms" <<< "$out" || fail "SNR factor"
+grep -q "3 pixels beyond" <<< "$out" || fail "tau0 beyond the lags"
+grep -q "54.2 ms" <<< "$out" || fail "wind limit from TELDIAM"
 echo "$out" | grep -Eq "^ +1 +1.0000 +0.000000 +-1.000000 +1.000000 +-90.000" || fail "--pixel table lag 1"
 echo "$out" | grep -Eq "^ +7 " || fail "--pixel table stops at lag 7"
-echo "$out" | grep -q "PHRATE -1571 rad/s" || fail "signed phase rate"
+grep -q "PHRATE -1571 rad/s" <<< "$out" || fail "signed phase rate"
 
 # Error paths: one line naming the file or value, non-zero exit.
 set +e
 err=$("$BIN" coherence nodt.fits -o x.fits 2>&1); rc=$?
-[ $rc -ne 0 ] && echo "$err" | grep -q "nodt.fits: missing keyword FRAMEDT" || fail "missing FRAMEDT: $err"
+[ $rc -ne 0 ] && grep -q "nodt.fits: missing keyword FRAMEDT" <<< "$err" || fail "missing FRAMEDT: $err"
 err=$("$BIN" coherence missing.fits -o x.fits 2>&1); rc=$?
-[ $rc -ne 0 ] && echo "$err" | grep -q "missing.fits" || fail "missing file: $err"
+[ $rc -ne 0 ] && grep -q "missing.fits" <<< "$err" || fail "missing file: $err"
 err=$("$BIN" coherence in.fits -o x.fits --pixel 2,0 2>&1); rc=$?
-[ $rc -eq 2 ] && echo "$err" | grep -q "outside the 2x2 image" || fail "--pixel out of range: $err"
+[ $rc -eq 2 ] && grep -q "outside the 2x2 image" <<< "$err" || fail "--pixel out of range: $err"
 err=$("$BIN" coherence in.fits -o x.fits --pixel 1 2>&1); rc=$?
 [ $rc -eq 2 ] || fail "--pixel without Y: $err"
 err=$("$BIN" coherence in.fits -o x.fits --exposure 0.02 2>&1); rc=$?
-[ $rc -ne 0 ] && echo "$err" | grep -q "8 frames" || fail "exposure longer than the cube: $err"
+[ $rc -ne 0 ] && grep -q "8 frames" <<< "$err" || fail "exposure longer than the cube: $err"
 err=$("$BIN" coherence in.fits 2>&1); rc=$?
 [ $rc -eq 2 ] || fail "missing -o"
 err=$("$BIN" coherence --wind 10 2>&1); rc=$?
-[ $rc -eq 2 ] && echo "$err" | grep -q "diam" || fail "limits without --diam: $err"
+[ $rc -eq 2 ] && grep -q "diam" <<< "$err" || fail "limits without --diam: $err"
 set -e
 [ ! -f x.fits ] && [ ! -f x.fits.part ] || fail "a failed run left an output file"
 echo "cli_coherence: OK"

@@ -8,7 +8,8 @@ tmp=$2
 rm -rf "$tmp"
 mkdir -p "$tmp/run"
 
-"$bin" report --help | grep -q "REPORT_DIR"
+help=$("$bin" report --help)
+grep -q "REPORT_DIR" <<< "$help"
 
 if "$bin" report "$tmp/missing" 2>"$tmp/err"; then echo "FAIL: missing run folder accepted"; exit 1; fi
 grep -q "missing" "$tmp/err" || { echo "FAIL: error does not name the folder"; cat "$tmp/err"; exit 1; }
