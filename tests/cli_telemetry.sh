@@ -37,6 +37,16 @@ awk -v r="$ratio" 'BEGIN { d = r - 6.48; if (d < 0) d = -d; exit !(d <= 0.03) }'
 awk -v l="$lag" 'BEGIN { d = l - 3; if (d < 0) d = -d; exit !(d <= 1) }' || fail "lag $lag not within 1 of 3"
 [ "$(awk '$1 == "cube" && $8 == "straddles"' "$D/timing.txt" | wc -l)" -eq 1 ] || fail "expected one straddling cube"
 [ "$(awk '$1 == "cube" && $8 == "ok"' "$D/timing.txt" | wc -l)" -eq 2 ] || fail "expected two usable cubes"
+# A handshake log elsewhere naming the slopes files by absolute path: used as they are, not
+# joined to the log's folder; the same timing.
+mkdir -p "$D/logs"
+sim_abs=$(cd "$D/sim" && pwd)
+awk -v d="$sim_abs" '/^#/ || NF < 3 { print; next } { $2 = d "/" $2; print }' "$D/sim/handshake.log" > "$D/logs/abs.log"
+grep -q "^[^#].* $sim_abs/slopes_000.fits" "$D/logs/abs.log" || fail "the absolute handshake log"
+"$B" sync "$D/science.fits" "$D/logs/abs.log" -o "$D/timing_abs.txt" --ratio-min 5 --ratio-max 8 > "$D/sync_abs.log" \
+    || { cat "$D/sync_abs.log"; fail "sync with absolute slopes paths in the handshake log"; }
+[ "$(awk '$1 == "ratio" || $1 == "lag"' "$D/timing_abs.txt")" = "$(awk '$1 == "ratio" || $1 == "lag"' "$D/timing.txt")" ] \
+    || fail "absolute handshake paths: another timing"
 
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" \
     --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
