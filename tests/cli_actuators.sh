@@ -3,8 +3,8 @@
 # gives more (the MMT's own situation), through the default path (reduce -> sync ->
 # speckles -> estimate -> pupil). The Clough-Tocher gradients of a square grid used to fail
 # ("neighbours do not determine a quadratic"), and with more actuators than valid slopes the
-# default reconstructor stopped ("the slope noise estimate is 0"). Measured: 30.5 nm against
-# 29.1 nm from ideal speckles (0.45 m pitch, 137 actuators) and 23.3 against 23.4 nm (0.36 m,
+# default reconstructor stopped ("the slope noise estimate is 0"). Measured: 30.2 nm against
+# 29.1 nm from ideal speckles (0.45 m pitch, 137 actuators) and 23.4 against 23.4 nm (0.36 m,
 # 277 actuators).
 # usage: bash cli_actuators.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"

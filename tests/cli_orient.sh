@@ -3,7 +3,7 @@
 # camera_flip_y) and run through reduce -> sync -> speckles -> estimate -> pupil with default
 # options. sync must find the pairing, speckles must turn the matched science frames into
 # the model's orientation (CAMORIEN), and the NCP must come out as well as with the camera
-# as the model (measured 22.7 nm; 21.1 / 22.2 / 22.8 nm turned; ignoring the mirror gave
+# as the model (measured 23.0 nm; 21.5 / 22.5 / 22.9 nm turned; ignoring the mirror gave
 # 77.5 nm). estimate refuses the camera's own frames with speckles made for a turned camera,
 # and stream refuses a copy already turned.
 # usage: bash cli_orient.sh <specklewfs> <scratch dir>

@@ -64,7 +64,7 @@ awk -v e="$err" 'BEGIN { exit !(e > 0 && e < 50) }' || fail "NCP error $err nm, 
 # --tiptilt frame, the paper's Sec. 4.4: every WFS frame's own mean-slope tilt removed from
 # the speckles, and the --match copies re-centred on the exposure-mean tilt the slopes measure
 # instead of the image peak (which follows the Z-tilt and the NCP's own tilt). Measured 21.0
-# nm against 24.8 nm with the exposure-mean treatment (seed 1); before the re-centring the
+# nm against 25.5 nm with the exposure-mean treatment (seed 1); before the re-centring the
 # per-frame path broke down (310 nm).
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles_f.fits" \
     --tiptilt frame --match "$D/science.fits" "$D/sci_f.fits" 2> "$D/speckles_f.log" \

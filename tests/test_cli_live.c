@@ -78,13 +78,17 @@ static void make_data(void)
     assert_ok(swfs_actuators_hexapolar(DIAM, 1.2, 0.6, &xy, &nact));
     swfs_recon rec = {nact, NSL, malloc(nact * NSL * sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
     assert_non_null(rec.W);
-    for (size_t k = 0; k < nact * NSL; k++) rec.W[k] = LAMBDA / (2 * M_PI) * 0.3 * swfs_rng_normal(&r);
+    /* slopes of a physical size (~0.3 rad of phase per subaperture; their mean, the tilt, a
+     * fraction of lambda/D: the exposure tip-tilt model takes it as the image's motion) and a
+     * random reconstructor giving phases of order 1 rad */
+    const double s1 = 0.3 * LAMBDA / (2 * M_PI) / (DIAM / NSUB);
+    for (size_t k = 0; k < nact * NSL; k++) rec.W[k] = LAMBDA / (2 * M_PI) * 0.3 * swfs_rng_normal(&r) / s1;
     assert_ok(swfs_recon_write(&rec, in_dir("recon.fits")));
     assert_ok(swfs_actuators_write(xy, nact, in_dir("act.fits")));
     swfs_real *sl = swfs_real_alloc(NSL, NWFS, 1);
     assert_non_null(sl);
     for (size_t k = 0; k < NWFS; k++)
-        for (size_t i = 0; i < NSL; i++) sl->data[k * NSL + i] = swfs_rng_normal(&r) + (i < NSL / 2 ? 0.5 : -0.2);
+        for (size_t i = 0; i < NSL; i++) sl->data[k * NSL + i] = s1 * (swfs_rng_normal(&r) + (i < NSL / 2 ? 0.5 : -0.2));
     swfs_fits_out *o = NULL;
     assert_ok(swfs_fits_out_create(&o, in_dir("slopes.fits")));
     assert_ok(swfs_fits_out_real(o, NULL, sl, -64));

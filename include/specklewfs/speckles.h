@@ -70,8 +70,9 @@ typedef struct swfs_speckle_model {
  * vibration the speckles had 6x the core power of the ideal ones and the NCP estimate
  * failed (244 nm error from 105 nm injected; docs/telemetry.md).
  *
- * W must NOT be projected (remove_tiptilt = 0 in swfs_speckle_model_create): R needs the
- * reconstructed tilt. */
+ * W must not simply be projected (remove_tiptilt = 0 in swfs_speckle_model_create): R needs
+ * the reconstructed tilt. The pipeline (pipeline.c) gives it W (I - M) + C G instead: the
+ * mean slopes G out of the higher orders, and back as the plane they measure. */
 enum { SWFS_TT_EXPOSURE = 0, SWFS_TT_FRAME = 1, SWFS_TT_KEEP = 2 };
 
 /* W_ext: m->nact rows of m->nslopes + 2 (row-major) = [W - C R | C] from the model's
