@@ -28,10 +28,11 @@
 
 SWFS_BEGIN_DECLS
 
-/* A given reconstructor's gain on the model's D (swfs_pipeline_info.recon_gain) is accepted in
- * [SWFS_RECON_GAIN_MIN, 1 / SWFS_RECON_GAIN_MIN]: a Wiener-type reconstructor keeps its noisy
- * modes below 1 and the model's D differs from a real system's by calibration errors of tens
- * of percent, while a convention error is a sign or a factor 2 (docs/telemetry.md). */
+/* A given reconstructor's gain on the model's D (swfs_pipeline_info.recon_gain: the dominant
+ * eigenvalue of W D, 1 for any reconstructor of D and about 1 for a Wiener-type one, whose
+ * best-measured mode keeps nearly all of itself) is accepted in [SWFS_RECON_GAIN_MIN,
+ * 1 / SWFS_RECON_GAIN_MIN]: the model's D differs from a real system's by calibration errors
+ * of tens of percent, while a convention error is a sign or a factor 2 (docs/telemetry.md). */
 #define SWFS_RECON_GAIN_MIN 0.5
 
 /* Reconstructor choices. */
@@ -77,8 +78,9 @@ typedef struct swfs_pipeline_info {
     size_t n_outside;    /* illuminated pupil samples outside the actuators' hull */
     double vk_l0;        /* SWFS_RECON_VK: the outer scale used [m] */
     double recon_gain;   /* SWFS_RECON_GIVEN: the matrix's gain on the model's interaction matrix D,
-                            tr((W D)^2) / tr(W D): 1 for a reconstructor of D on whatever modes it
-                            keeps, negative for the opposite sign (see swfs_pipeline_create) */
+                            the eigenvalue of W D of largest magnitude: 1 for a reconstructor of D
+                            on whatever modes it keeps, its best-measured mode's Wiener factor for
+                            a MAP one, negative for the opposite sign (see swfs_pipeline_create) */
     /* The generic linear model (swfs_pipeline_create_linear; 0 for the Shack-Hartmann one): */
     size_t nbasis;       /* basis functions */
     size_t basis_nnz;    /* their nonzeros on the pupil grid */
