@@ -65,15 +65,21 @@ static void test_vk_covariance(void **state)
     assert_int_not_equal(swfs_vk_covariance(xy2, 2, 0, C), 0);
 }
 
+/* The MMT-like geometry with L, the Cholesky factor of the von Karman covariance (VK_L0). */
+static void setup_vk(setup *s)
+{
+    setup_init(s);
+    s->L = malloc(s->nact * s->nact * sizeof *s->L);
+    assert_ok(swfs_vk_covariance(s->xy, s->nact, VK_L0, s->L));
+    for (size_t a = 0; a < s->nact; a++) s->L[a * s->nact + a] += 1e-9;
+    cholesky(s->L, s->nact);
+}
+
 static void test_vk_beats_svd(void **state)
 {
     (void)state;
     setup s;
-    setup_init(&s);
-    s.L = malloc(s.nact * s.nact * sizeof *s.L);
-    assert_ok(swfs_vk_covariance(s.xy, s.nact, VK_L0, s.L));
-    for (size_t a = 0; a < s.nact; a++) s.L[a * s.nact + a] += 1e-9;
-    cholesky(s.L, s.nact);
+    setup_vk(&s);
 
     /* 100 nm rms per actuator; the slope noise 1/3 of the slopes' tip-tilt-free rms. */
     const double amp = 1e-7, sigma = 4e-8;
@@ -134,11 +140,7 @@ static void test_vk_aliasing_beyond_column_space(void **state)
 {
     (void)state;
     setup s;
-    setup_init(&s);
-    s.L = malloc(s.nact * s.nact * sizeof *s.L);
-    assert_ok(swfs_vk_covariance(s.xy, s.nact, VK_L0, s.L));
-    for (size_t a = 0; a < s.nact; a++) s.L[a * s.nact + a] += 1e-9;
-    cholesky(s.L, s.nact);
+    setup_vk(&s);
     const size_t m = s.nslopes, n = s.nact, k = m < n ? m : n;
     /* U: D's left singular vectors of the non-zero singular values */
     double *A = malloc(m * n * sizeof *A), *U = malloc(m * k * sizeof *U), *sv = malloc(k * sizeof *sv);
