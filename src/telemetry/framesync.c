@@ -91,6 +91,12 @@ typedef struct wseg {
     double ga, ta, beta, t_first, t_last;
 } wseg;
 
+/* The master WFS clock's time -> frame map right after one of its frames (segment id, ga, ta, beta). */
+typedef struct wmap {
+    int id;
+    double ga, ta, beta;
+} wmap;
+
 typedef struct camslot {
     uint64_t cnt;
     int seg;
@@ -116,13 +122,12 @@ struct swfs_framesync {
     /* per WFS slot: the master's time -> frame map right after that frame (segment id, ga, ta,
      * beta), so a batch is refined with the fit of the frames up to its last one, whatever
      * arrived since: the same numbers offline and live */
-    int *msid;
-    double *mmap;
+    wmap *snap;
     uint32_t *mask;
     unsigned char *bad;
     double *vals;                   /* hist x ns */
     /* camera */
-    fclock cc, cc_prev;             /* the current segment's clock and the one before */
+    fclock cc;                      /* the current segment's clock */
     int camseg;
     size_t qcap, qhead, qlen;
     camslot *q;
@@ -141,7 +146,6 @@ struct swfs_framesync {
     int64_t *stamps;
     uint64_t *bcnt;                 /* camera counters of the batch's frames */
     fclock bck;                     /* the camera clock right after the batch's last frame */
-    double *bt1;                    /* their exposure ends when appended */
     swfs_framesync_stats st;
 };
 
@@ -157,8 +161,7 @@ void swfs_framesync_free(swfs_framesync *f)
 {
     if (!f) return;
     free(f->tag);
-    free(f->msid);
-    free(f->mmap);
+    free(f->snap);
     free(f->mask);
     free(f->bad);
     free(f->vals);
@@ -169,7 +172,6 @@ void swfs_framesync_free(swfs_framesync *f)
     free(f->sched);
     free(f->stamps);
     free(f->bcnt);
-    free(f->bt1);
     free(f);
 }
 
@@ -214,8 +216,7 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
     if (!o->camera_queue && f->qcap * nf2 * sizeof(double) > cap) f->qcap = cap / (nf2 * sizeof(double));
     if (f->qcap < o->batch + 1) f->qcap = o->batch + 1;
     f->tag = calloc(f->hist, sizeof *f->tag);
-    f->msid = calloc(f->hist, sizeof *f->msid);
-    f->mmap = calloc(3 * f->hist, sizeof *f->mmap);
+    f->snap = calloc(f->hist, sizeof *f->snap);
     f->mask = calloc(f->hist, sizeof *f->mask);
     f->bad = calloc(f->hist, 1);
     f->vals = malloc(f->hist * f->ns * sizeof *f->vals);
@@ -225,9 +226,8 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
     f->sched = malloc(o->batch * sizeof *f->sched);
     f->stamps = malloc(o->batch * sizeof *f->stamps);
     f->bcnt = malloc(o->batch * sizeof *f->bcnt);
-    f->bt1 = malloc(o->batch * sizeof *f->bt1);
-    if (!f->tag || !f->msid || !f->mmap || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched || !f->stamps ||
-        !f->bcnt || !f->bt1) {
+    if (!f->tag || !f->snap || !f->mask || !f->bad || !f->vals || !f->q || !f->qdata || !f->science || !f->sched ||
+        !f->stamps || !f->bcnt) {
         swfs_framesync_free(f);
         return swfs_fail(SWFS_ERR_NOMEM, "framesync: out of memory for %zu WFS frames of %zu values and %zu camera "
                          "frames of %zu pixels", f->hist, f->ns, f->qcap, nf2);
@@ -332,10 +332,7 @@ int swfs_framesync_add_wfs(swfs_framesync *f, size_t i, uint64_t cnt, int64_t st
     }
     if (i == 0) {
         const wseg *s = &f->seg[f->cur];
-        f->msid[k] = s->id;
-        f->mmap[3 * k] = s->ga;
-        f->mmap[3 * k + 1] = s->ta;
-        f->mmap[3 * k + 2] = s->beta;
+        f->snap[k] = (wmap){s->id, s->ga, s->ta, s->beta};
     }
     memcpy(f->vals + (size_t)k * f->ns + f->voff[i], vals, f->nvals[i] * sizeof *vals);
     check_finite(f, (size_t)k, vals, f->nvals[i]);
@@ -350,9 +347,7 @@ int swfs_framesync_add_camera(swfs_framesync *f, uint64_t cnt, int64_t stamp_ns,
     const double t = rel(f, stamp_ns);
     fclock *c = &f->cc;
     f->st.camera_dropped += count_lost(c, cnt, &f->st.camera_restarts);
-    const fclock before = *c;
     if (clock_add(c, cnt, t)) {
-        f->cc_prev = before;
         f->camseg++;
         f->st.camera_segments++;
     }
@@ -442,9 +437,10 @@ static void weights(swfs_exposure *e, double x0, double x1, int64_t ga, int64_t 
 static void refine(swfs_framesync *f)
 {
     const int64_t slot = slot_of(f, f->gend);
-    if (f->tag[slot] != f->gend || f->msid[slot] != f->bseg_w) return;
-    const wseg snap = {.ga = f->mmap[3 * slot], .ta = f->mmap[3 * slot + 1], .beta = f->mmap[3 * slot + 2]};
-    const wseg *s = &snap;
+    const wmap *m = &f->snap[slot];
+    if (f->tag[slot] != f->gend || m->id != f->bseg_w) return;
+    const wseg map = {.ga = m->ga, .ta = m->ta, .beta = m->beta};
+    const wseg *s = &map;
     const fclock *cc = &f->bck;
     const double cam_period = f->o.exptime > 0 ? f->o.exptime : clock_beta(cc);
     if (!(cam_period > 0) || !(s->beta > 0)) return;
@@ -552,7 +548,6 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
         memcpy(f->science + f->bn * f->nf2, q->data, f->nf2 * sizeof *f->science);
         f->stamps[f->bn] = q->stamp;
         f->bcnt[f->bn] = q->cnt;
-        f->bt1[f->bn] = t1;
         f->blast = q->cnt;
         f->bck = q->ck;
         f->bn++;
