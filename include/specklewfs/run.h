@@ -70,6 +70,12 @@ int swfs_linear_tilt_rows(const swfs_linear_files *lf, const char *science, size
 int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,
                          const double *mask, size_t nmeas, const double *train, size_t ntrain,
                          const swfs_pipeline_options *po);
+/* The Shack-Hartmann pipeline (swfs_pipeline_create) with the valid-subaperture map of the
+ * file `valid` (NULL: po's own, normally none; swfs_valid_map_read), then the NSUB keyword of
+ * the telemetry file `telemetry` (NULL or "": none) checked against the model it made. */
+int swfs_sh_pipeline(swfs_pipeline **p, const char *valid, const char *telemetry, const swfs_geom *g, size_t nfx,
+                     size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
+                     const swfs_recon *recon, const double *train, size_t ntrain, const swfs_pipeline_options *po);
 
 /* The time-series simulation's telemetry (dir holds simulate mode=timeseries' files) in the
  * modal form of cacao-based systems, the worked example of --basis: modal_NNN.fits (per WFS

@@ -192,6 +192,28 @@ static int build_linear(const swfs_speckles_run_options *o, work *w)
     return SWFS_OK;
 }
 
+int swfs_sh_pipeline(swfs_pipeline **p, const char *valid, const char *telemetry, const swfs_geom *g, size_t nfx,
+                     size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
+                     const swfs_recon *recon, const double *train, size_t ntrain, const swfs_pipeline_options *po)
+{
+    *p = NULL;
+    swfs_pipeline_options o = *po;
+    unsigned char *map = NULL;
+    size_t nvalid = 0;
+    int rc = valid ? swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid) : SWFS_OK;
+    if (map) o.valid = map;
+    if (!rc) rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
+    free(map);
+    if (rc) return valid ? swfs_fail_context(rc, "the valid-subaperture map %s", valid) : rc;
+    swfs_pipeline_info in;
+    swfs_pipeline_get_info(*p, &in);
+    if (telemetry && telemetry[0] && (rc = swfs_telemetry_check_nsub(telemetry, in.nsub))) {
+        swfs_pipeline_free(*p);
+        *p = NULL;
+    }
+    return rc;
+}
+
 static int build_pipeline(const swfs_speckles_run_options *o, work *w)
 {
     if (o->lin.basis) return build_linear(o, w);
@@ -203,21 +225,13 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
             return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
                              w->nslopes, o->recon, w->rin->nslopes);
     }
-    swfs_pipeline_options po = o->pipe;
-    unsigned char *vmap = NULL;
-    size_t nvalid = 0;
-    if (o->valid && (rc = swfs_valid_map_read(o->valid, &vmap, &po.valid_nsub, &nvalid))) return rc;
-    po.valid = vmap;
     if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
-    if (!rc) rc = swfs_pipeline_create(&w->p, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask, w->nslopes, w->rin,
-                                       w->train, w->ntrain, &po);
-    free(vmap);
-    if (rc) return swfs_fail_context(rc, "%s with %s%s%s", o->actuators, w->path, o->valid ? " and " : "",
-                                     o->valid ? o->valid : "");
+    if (!rc) rc = swfs_sh_pipeline(&w->p, o->valid, w->path, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask,
+                                   w->nslopes, w->rin, w->train, w->ntrain, &o->pipe);
+    if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);
-    if ((rc = swfs_telemetry_check_nsub(w->path, pinfo.nsub))) return rc;
     /* A given matrix in another convention (DM commands: a correction of the surface, about
      * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
     const double gain = pinfo.recon_gain;

@@ -228,18 +228,10 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         po.rcond = 0.0;
         po.tiptilt = o->tiptilt;
         po.threads = o->threads;
-        unsigned char *vmap = NULL;
-        size_t nvalid = 0;
-        if (o->valid) rc = swfs_valid_map_read(o->valid, &vmap, &po.valid_nsub, &nvalid);
-        po.valid = vmap;
-        if (!rc)
-            rc = swfs_pipeline_create(p, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL, rec->nslopes,
-                                      rec, NULL, 0, &po);
-        free(vmap);
-        if (rc) swfs_fail_context(rc, "%s with %s%s%s", o->recon, o->actuators, o->valid ? " and " : "",
-                                  o->valid ? o->valid : "");
+        rc = swfs_sh_pipeline(p, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL,
+                              rec->nslopes, rec, NULL, 0, &po);
+        if (rc) swfs_fail_context(rc, "%s with %s", o->recon, o->actuators);
         else swfs_pipeline_get_info(*p, &r->info);
-        if (!rc && first_tel[0]) rc = swfs_telemetry_check_nsub(first_tel, r->info.nsub);
     }
     swfs_recon_free(rec);
     free(act);
