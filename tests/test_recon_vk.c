@@ -177,6 +177,45 @@ static void test_vk_aliasing_beyond_column_space(void **state)
     setup_free(&s);
 }
 
+/* swfs_recon_tilt_as_mean_slopes: equal x and y slopes (gx, gy) on the valid subapertures
+ * reconstruct exactly the plane gx x + gy y at the actuators, nothing else; slopes with zero
+ * mean reconstruct as the projected W does; applying it twice changes nothing. */
+static void test_tilt_as_mean_slopes(void **state)
+{
+    (void)state;
+    setup s;
+    setup_init(&s);
+    swfs_recon *w = NULL;
+    assert_ok(swfs_recon_svd(s.D, s.nslopes, s.nact, 5e-2, 0, &w));
+    assert_ok(swfs_recon_tilt_as_mean_slopes(w, s.wfs->valid, s.xy));
+    const size_t m = s.nslopes, n = s.nact, nsa = m / 2;
+    double *sl = calloc(m, sizeof *sl), *z = malloc(n * sizeof *z), *W1 = malloc(n * m * sizeof *W1);
+    const double gx = 3e-7, gy = -1.2e-7;
+    for (size_t i = 0; i < nsa; i++)
+        if (s.wfs->valid[i]) { sl[i] = gx; sl[nsa + i] = gy; }
+    swfs_recon_apply(w, sl, z);
+    double worst = 0, scale = 0;
+    for (size_t a = 0; a < n; a++) {
+        const double plane = gx * s.xy[2 * a] + gy * s.xy[2 * a + 1];
+        worst = fmax(worst, fabs(z[a] - plane));
+        scale = fmax(scale, fabs(plane));
+    }
+    print_message("mean slopes as a plane: worst %.2g of %.2g m\n", worst, scale);
+    assert_true(worst <= 1e-12 * scale);
+    memcpy(W1, w->W, n * m * sizeof *W1);
+    assert_ok(swfs_recon_tilt_as_mean_slopes(w, s.wfs->valid, s.xy));
+    double d = 0, wmax = 0;
+    for (size_t k = 0; k < n * m; k++) {
+        d = fmax(d, fabs(w->W[k] - W1[k]));
+        wmax = fmax(wmax, fabs(W1[k]));
+    }
+    print_message("applied twice: changes by %.2g of the largest element\n", d / wmax);
+    assert_true(d <= 1e-12 * wmax);
+    swfs_recon_free(w);
+    free(sl); free(z); free(W1);
+    setup_free(&s);
+}
+
 /* The prior fitted to the slopes by maximum likelihood (swfs_vk_fit_slopes): patterns drawn
  * with outer scales of 3 m and 10 m; the fit must find the outer scale, the prior's scale and
  * the noise, and its reconstructor must do as well as the one given the true outer scale. */
@@ -225,6 +264,7 @@ int main(void)
         cmocka_unit_test(test_vk_covariance),
         cmocka_unit_test(test_vk_beats_svd),
         cmocka_unit_test(test_vk_aliasing_beyond_column_space),
+        cmocka_unit_test(test_tilt_as_mean_slopes),
         cmocka_unit_test(test_vk_fit_recovers_prior),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

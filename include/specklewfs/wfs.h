@@ -165,6 +165,11 @@ void swfs_recon_free(swfs_recon *r);
 /* W <- W (I - M) with M the mean-slope (tip-tilt) projector over the valid subapertures:
  * the reconstructor then ignores tip-tilt exactly, so no separate removal step is needed. */
 int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid);
+/* W <- W (I - M) + C G: the mean slopes G (per axis over the valid subapertures) projected
+ * out, then put back as the plane they measure through the actuators xy (2 x nact [m]): the
+ * reconstructed tilt is the mean slope plus the Z-tilt of the rest, and nothing else depends
+ * on the mean slopes. Idempotent. */
+int swfs_recon_tilt_as_mean_slopes(swfs_recon *r, const unsigned char *valid, const double *xy);
 /* z = W s. */
 void swfs_recon_apply(const swfs_recon *r, const double *slopes, double *z);
 /* FITS: NAXIS1 = nslopes, NAXIS2 = nact, BUNIT m/rad. */

@@ -170,34 +170,6 @@ static void compress_cols(double *a, size_t rows, size_t nfull, size_t extra, si
     }
 }
 
-/* W -> W (I - M) + C G: the mean slopes (G, per axis over the valid subapertures) projected
- * out of the reconstruction and put back as a plane through the actuators (C: their
- * coordinates): the frame's tilt is its mean slope plus the Z-tilt of the rest, and
- * nothing else of the wavefront depends on the mean slopes. A MAP reconstructor whose prior
- * was scaled on the tip-tilt-free slopes otherwise spreads the large vibration and jitter
- * tilt into its correlated higher-order patterns: in a loop controlling 120 of 217 modes
- * the speckles from the slopes gave 21.6 nm against 16.9 with this (ideal 10.8), and
- * nothing changed by more than 0.1 nm over bench_telemetry's 24 runs (docs/telemetry.md).
- * Idempotent, so a reconstructor written by --write-recon and given back is unchanged. */
-static int tilt_as_mean_slopes(swfs_speckle_model *m, const double *xy)
-{
-    swfs_recon *r = m->recon;
-    const unsigned char *valid = m->wfs->valid;
-    int rc = swfs_recon_project_tiptilt(r, valid);
-    if (rc) return rc;
-    const size_t nsa = r->nslopes / 2;
-    size_t nv = 0;
-    for (size_t i = 0; i < nsa; i++) nv += valid[i] != 0;
-    for (size_t a = 0; a < r->nact; a++)
-        for (int axis = 0; axis < 2; axis++) {
-            double *w = r->W + a * r->nslopes + (size_t)axis * nsa;
-            const double c = xy[2 * a + (size_t)axis] / (double)nv;
-            for (size_t i = 0; i < nsa; i++)
-                if (valid[i]) w[i] += c;
-        }
-    return SWFS_OK;
-}
-
 /* The model and its reconstructor: given, SVD, or learned from the training slopes; built in
  * the full slopes layout, then narrowed to the used subapertures' columns when the
  * telemetry holds only those. */
@@ -240,7 +212,14 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     else if (!rc && o->recon == SWFS_RECON_VK)
         rc = swfs_speckle_model_set_vk(p->model, xy, o->vk_l0, training, ntrain, nv, project);
     free(train_full);
-    if (!rc && o->tiptilt == SWFS_TT_EXPOSURE) rc = tilt_as_mean_slopes(p->model, xy);
+    /* The frames' tilt is their mean slopes (plus the Z-tilt of the rest): a MAP reconstructor
+     * whose prior was scaled on the tip-tilt-free slopes otherwise spreads the large vibration
+     * and jitter tilt into its correlated higher-order patterns. In a loop controlling 120 of
+     * 217 modes the speckles from the slopes gave 21.6 nm against 16.9 with this (ideal 10.8);
+     * nothing moved by more than 0.1 nm over bench_telemetry's 24 runs (docs/telemetry.md).
+     * Idempotent, so a reconstructor written by --write-recon and given back is unchanged. */
+    if (!rc && o->tiptilt == SWFS_TT_EXPOSURE)
+        rc = swfs_recon_tilt_as_mean_slopes(p->model->recon, p->model->wfs->valid, xy);
     if (!rc && o->tiptilt == SWFS_TT_EXPOSURE) rc = swfs_speckles_recon_tilt(p->model, xy, &p->W_ext, &p->Rtilt);
     if (!rc) {
         swfs_pipeline_info *in = &p->info;

@@ -286,6 +286,23 @@ int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid)
     return SWFS_OK;
 }
 
+int swfs_recon_tilt_as_mean_slopes(swfs_recon *r, const unsigned char *valid, const double *xy)
+{
+    int rc = swfs_recon_project_tiptilt(r, valid);
+    if (rc) return rc;
+    const size_t nsa = r->nslopes / 2;
+    size_t nv = 0;
+    for (size_t i = 0; i < nsa; i++) nv += !valid || valid[i];
+    for (size_t a = 0; a < r->nact; a++)
+        for (size_t axis = 0; axis < 2; axis++) {
+            double *w = r->W + a * r->nslopes + axis * nsa;
+            const double c = xy[2 * a + axis] / (double)nv;
+            for (size_t i = 0; i < nsa; i++)
+                if (!valid || valid[i]) w[i] += c;
+        }
+    return SWFS_OK;
+}
+
 void swfs_recon_apply(const swfs_recon *r, const double *slopes, double *z)
 {
     cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)r->nact, (int)r->nslopes, 1.0, r->W, (int)r->nslopes, slopes, 1,
