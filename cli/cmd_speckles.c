@@ -234,7 +234,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!rc && o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
     else if (!rc) cli_recon_summary(cmd, &o.pipe, o.recon, o.valid, &r.info);
     if (!rc)
-        fprintf(stderr, "speckles: %zu %sframes from %zu of %zu cubes (%zu reconstructor modes, %zu pupil samples outside "
+        fprintf(stderr, "speckles: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,
                 r.info.recon_modes, r.info.n_outside, o.out);
     free(min);

@@ -122,9 +122,16 @@ int swfs_cmd_sync(int argc, char **argv)
                t->fit.corr_y);
         printf("sync: |corr| tx-mx %.3f tx-my %.3f ty-mx %.3f ty-my %.3f\n", t->fit.corr4[0], t->fit.corr4[1],
                t->fit.corr4[2], t->fit.corr4[3]);
-        printf("sync: %zu of %zu cubes usable, %zu straddle a telemetry-file boundary -> %s\n", r.nok, t->ncubes,
-               t->ncubes - r.nok, o.out);
+        printf("sync: %zu of %zu exposures usable in %zu rows; %zu cube part%s continue%s in the next or previous "
+               "telemetry file (checked on the data), %zu exposures straddle a file boundary -> %s\n", r.nexp_ok,
+               r.nexp, r.nok, r.ncontinued, r.ncontinued == 1 ? "" : "s", r.ncontinued == 1 ? "s" : "",
+               r.nexp - r.nexp_ok, o.out);
     }
+    for (size_t i = 0; t->cubes && i < t->ncubes; i++)
+        if (t->cubes[i].joined)
+            printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f\n",
+                   t->cubes[i].camera, t->cubes[i].first, t->cubes[i].first + t->cubes[i].nframes - 1,
+                   t->cubes[i].slopes, t->cubes[i].join_offset, t->cubes[i].join_corr_x, t->cubes[i].join_corr_y);
     free(r.t.cubes);
     return rc ? cli_error(cmd) : CLI_OK;
 }

@@ -30,7 +30,7 @@ need=$(awk -v s="$start" -v r="$ratio" 'BEGIN { e = s - int(s) + 150 * r; n = in
 
 "$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" --wfs-rate \
     -o "$D/sp_wfs.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles --wfs-rate"; }
-grep -q "$need WFS frames from 1 of 1 cubes" "$D/speckles.log" || { cat "$D/speckles.log"; fail "expected $need WFS frames"; }
+grep -q "$need WFS frames from 1 of 1 timing-table rows" "$D/speckles.log" || { cat "$D/speckles.log"; fail "expected $need WFS frames"; }
 "$B" coherence "$D/sp_wfs.fits" -o "$D/coh.fits" --wind 10 --diam 6.5 > "$D/coh.log" 2>&1 \
     || { cat "$D/coh.log"; fail "coherence"; }
 cat "$D/coh.log"

@@ -17,7 +17,7 @@ echo "sync: ratio $ratio (true 0.8), lag $lag (true 2.6: 3 frames less the start
 awk -v r="$ratio" -v l="$lag" 'BEGIN { d = r - 0.8; e = l - 2.6; if (d < 0) d = -d; if (e < 0) e = -e; exit !(d < 0.002 && e < 0.2) }' \
     || fail "sync: ratio $ratio, lag $lag"
 e=$(speckles_pupil "$d")
-grep -q "1200 frames from 3 of 3 cubes" "$d/speckles.log" || { cat "$d/speckles.log"; fail "speckles frame count"; }
+grep -q "1200 frames from 3 of 3 timing-table rows" "$d/speckles.log" || { cat "$d/speckles.log"; fail "speckles frame count"; }
 ei=$(ideal_pupil "$d")
 echo "NCP error: $e nm from the slopes, $ei nm from the ideal speckles"
 awk -v a="$e" -v b="$ei" 'BEGIN { exit !(a > 0 && a < 30 && a < 1.3 * b) }' || fail "NCP error $e nm (ideal $ei nm)"

@@ -19,6 +19,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 static char dir[1024];
 
@@ -106,17 +107,60 @@ static void test_sync_speckles_estimate(void **state)
     assert_ok(swfs_sync_run(&so, &sr));
     assert_true(fabs(sr.t.ratio - 6.48) <= 0.03);
     assert_true(fabs(sr.t.lag - 3) <= 1);
-    assert_int_equal(sr.nok, 2);
-    assert_int_equal(sr.t.cubes[1].status, SWFS_CUBE_STRADDLES);
+    /* Cube 1 crosses from slopes_000 into slopes_001, which continue each other: its
+       exposures in either file are used (rows 1 and 3), only the one across the boundary
+       (row 2) is not. */
+    assert_int_equal(sr.t.ncubes, 5);
+    assert_int_equal(sr.nok, 4);
+    assert_int_equal(sr.ncontinued, 1);
+    assert_int_equal(sr.nexp, 180);
+    assert_int_equal(sr.nexp_ok, 179);
+    assert_int_equal(sr.t.cubes[2].status, SWFS_CUBE_STRADDLES);
+    assert_int_equal(sr.t.cubes[2].nframes, 1);
+    assert_true(sr.t.cubes[3].joined && fabs(sr.t.cubes[3].join_offset) < 0.5);
+    assert_non_null(strstr(sr.t.cubes[3].slopes, "slopes_001.fits"));
+    assert_string_equal(sr.t.cubes[3].camera, "raw_001.fits");
+    assert_int_equal(sr.t.cubes[1].first + sr.t.cubes[1].nframes + 1, sr.t.cubes[3].first);
+    /* The part in slopes_001 starts where the cube's exposures reach past slopes_000's 1000 frames. */
+    const size_t j = sr.t.cubes[3].first - 60;
+    assert_close(sr.t.cubes[3].start, sr.t.cubes[1].start + (double)j * sr.t.ratio - 1000, 1e-9);
+    free(sr.t.cubes);
+
+    /* Three WFS frames lost at the end of slopes_000: the files no longer continue each other,
+       and the check on the data sees it (offset ~3 frames); the cube's exposures beyond its
+       file are left out. */
+    swfs_real *s0 = NULL;
+    assert_ok(swfs_fits_read_real(p("slopes_000.fits"), NULL, &s0, NULL));
+    mkdir(p("lost"), 0755);
+    swfs_fits_out *fo = NULL;
+    swfs_real cut = *s0;
+    cut.ny -= 3;
+    assert_ok(swfs_fits_out_create(&fo, p("lost/slopes_000.fits")));
+    assert_ok(swfs_fits_out_real(fo, NULL, &cut, -32));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(s0);
+    unlink(p("lost/slopes_001.fits"));
+    unlink(p("lost/handshake.log"));
+    assert_ok(symlink(p("slopes_001.fits"), p("lost/slopes_001.fits")));
+    assert_ok(symlink(p("handshake.log"), p("lost/handshake.log")));
+    so.handshake = p("lost/handshake.log");
+    so.out = p("lost/timing.txt");
+    assert_ok(swfs_sync_run(&so, &sr));
+    printf("test_runs: 3 frames lost between the files: %zu of %zu exposures usable, %zu continued\n", sr.nexp_ok,
+           sr.nexp, sr.ncontinued);
+    assert_int_equal(sr.ncontinued, 0);
+    assert_int_equal(sr.nok, 3);
+    assert_true(sr.nexp_ok < 160 && sr.nexp_ok > 120);
+    for (size_t k = 0; k < sr.t.ncubes; k++) assert_false(sr.t.cubes[k].joined);
     free(sr.t.cubes);
 
     swfs_speckles_run_result spr;
     swfs_estimate_run_result er;
     speckles_estimate(p("speckles.fits"), p("sci_m.fits"), p("halo.fits"), NULL, &spr, &er);
-    assert_int_equal(spr.nout, 120);
-    assert_int_equal(spr.nok, 2);
+    assert_int_equal(spr.nout, 179);
+    assert_int_equal(spr.nok, 4);
     assert_true(spr.info.ntrain > 0 && spr.info.noise_var > 0);
-    assert_int_equal(er.halo->frames, 120);
+    assert_int_equal(er.halo->frames, 179);
 
     /* NCP error against the injected map (piston, tip, tilt removed): < 50 nm, as the CLI test. */
     swfs_real *ncp = NULL;
@@ -177,7 +221,7 @@ static void test_stream_equals_speckles(void **state)
     so.stream.static_mode = SWFS_STATIC_NONE; /* the data-set mean is removed exactly either way */
     swfs_stream_run_result sr;
     assert_ok(swfs_stream_run_files(&so, &sr));
-    assert_int_equal(sr.camera_frames, 120);
+    assert_int_equal(sr.camera_frames, 179);
     swfs_halo *hs = NULL;
     assert_ok(swfs_halo_read(p("halo_stream.fits"), &hs, NULL));
     double peak = 0, d = 0;
@@ -234,7 +278,7 @@ static void test_stream_batches(void **state)
         swfs_stream *s = NULL;
         assert_ok(swfs_stream_create(&s, pl, &so));
         assert_ok(swfs_stream_run(s, swfs_file_source_next, src, NULL, NULL));
-        assert_int_equal(swfs_stream_camera_frames(s), 120);
+        assert_int_equal(swfs_stream_camera_frames(s), 179);
         acc[t] = swfs_accum_create(one->nx, one->ny);
         assert_ok(swfs_accum_merge(acc[t], swfs_stream_accum(s)));
         swfs_stream_free(s);

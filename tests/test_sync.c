@@ -108,6 +108,57 @@ static void test_sync_recovers_ratio_and_lag(void **state)
     free(mx); free(my);
 }
 
+/* A cube that crosses from one telemetry file into the next: its part in the next file is
+ * found to continue there when the files are contiguous, and not when WFS frames were lost
+ * between them or the next file holds other data. */
+static void test_continuation(void **state)
+{
+    (void)state;
+    enum { NWFS = 1500, NF = 100, LOST = 3 };
+    const double ratio = 6.48, lag = 3.0, start = 1200.37; /* exposures 46.. lie in the next file */
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 77);
+    double *mx = malloc(3 * NWFS * sizeof *mx), *my = malloc(3 * NWFS * sizeof *my);
+    make_tiptilt(mx, my, 3 * NWFS, &rng);
+    double bx[NF], by[NF], tx[NF], ty[NF];
+    assert_ok(swfs_sync_box_means(mx, 3 * NWFS, start, ratio, NF, bx));
+    assert_ok(swfs_sync_box_means(my, 3 * NWFS, start, ratio, NF, by));
+    for (int j = 0; j < NF; j++) {
+        tx[j] = 27.0 - 2e6 * by[j] + 0.02 * swfs_rng_normal(&rng);
+        ty[j] = 26.0 + 2e6 * bx[j] + 0.02 * swfs_rng_normal(&rng);
+    }
+    swfs_sync_result fit;
+    memset(&fit, 0, sizeof fit);
+    fit.ratio = ratio; fit.lag = lag; fit.swap = 1; fit.sign_x = -1; fit.sign_y = 1;
+    swfs_sync_params p;
+    swfs_sync_params_default(&p);
+    p.lag_min = -3; p.lag_max = 12;
+    const size_t j0 = (size_t)ceil((NWFS - start) / ratio);
+    const double sb = start - NWFS + (double)j0 * ratio; /* the part's start in the next file if contiguous */
+    /* Contiguous: the next file is the series' frames NWFS.. */
+    swfs_sync_cube part = {NF - j0, tx + j0, ty + j0, mx + NWFS, my + NWFS, NWFS, sb + lag};
+    swfs_sync_continuation cc;
+    assert_ok(swfs_sync_continuation_check(&part, &fit, &p, &cc));
+    print_message("contiguous: offset %+.3f corr %.3f %.3f over %zu\n", cc.offset, cc.corr_x, cc.corr_y, cc.nexp);
+    assert_int_equal(cc.continues, 1);
+    assert_true(fabs(cc.offset) < 0.2);
+    assert_true(cc.corr_x > 0.9 && cc.corr_y > 0.9);
+    /* LOST frames between the files: the next file starts LOST frames later in the series. */
+    part.mx = mx + NWFS + LOST;
+    part.my = my + NWFS + LOST;
+    assert_ok(swfs_sync_continuation_check(&part, &fit, &p, &cc));
+    print_message("%d lost: offset %+.3f\n", LOST, cc.offset);
+    assert_int_equal(cc.continues, 0);
+    assert_close(cc.offset, LOST, 0.3);
+    /* Other data: a file from elsewhere in the series. */
+    part.mx = mx + 2 * NWFS;
+    part.my = my + 2 * NWFS;
+    assert_ok(swfs_sync_continuation_check(&part, &fit, &p, &cc));
+    print_message("unrelated: offset %+.3f corr %.3f %.3f\n", cc.offset, cc.corr_x, cc.corr_y);
+    assert_int_equal(cc.continues, 0);
+    free(mx); free(my);
+}
+
 static void test_files_and_errors(void **state)
 {
     (void)state;
@@ -126,8 +177,10 @@ static void test_files_and_errors(void **state)
     assert_int_not_equal(swfs_handshake_read(test_path("bad.log"), &hr, &n), 0);
     assert_non_null(strstr(swfs_last_error(), "bad.log:2"));
 
-    swfs_timing_cube tc[2] = {{"raw_000.fits", "slopes_000.fits", 0, 100, 117.25, SWFS_CUBE_OK},
-                              {"raw_001.fits", "slopes_000.fits", 100, 100, 2590.5, SWFS_CUBE_STRADDLES}};
+    swfs_timing_cube tc[2] = {{.camera = "raw_000.fits", .slopes = "slopes_000.fits", .first = 0, .nframes = 100,
+                               .start = 117.25, .status = SWFS_CUBE_OK},
+                              {.camera = "raw_001.fits", .slopes = "slopes_000.fits", .first = 100, .nframes = 100,
+                               .start = 2590.5, .status = SWFS_CUBE_STRADDLES}};
     swfs_timing t;
     memset(&t, 0, sizeof t);
     t.ratio = 6.48; t.ratio_err = 0.01; t.lag = 2.75; t.ncubes = 2; t.cubes = tc;
@@ -172,6 +225,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_fractional_weights),
         cmocka_unit_test(test_sync_recovers_ratio_and_lag),
+        cmocka_unit_test(test_continuation),
         cmocka_unit_test(test_files_and_errors),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

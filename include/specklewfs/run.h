@@ -266,11 +266,16 @@ typedef struct swfs_sync_run_options {
 
 void swfs_sync_run_options_default(swfs_sync_run_options *o);
 
-/* r->t: the timing table written (the caller frees r->t.cubes, also on failure); r->nok usable cubes.
- * SWFS_ERR_VALUE (after writing the table) when no cube lies inside its telemetry file. */
+/* r->t: the timing table written (the caller frees r->t.cubes, also on failure). A cube's
+ * exposures that lie wholly in its telemetry file make one row; those of a cube that crosses
+ * into the file before or after it in the handshake log make a row of that file when the data
+ * show the two files contiguous there (swfs_sync_continuation_check); the rest are rows marked
+ * straddles. SWFS_ERR_VALUE (after writing the table) when no exposure is usable. */
 typedef struct swfs_sync_run_result {
     swfs_timing t;
-    size_t nok;
+    size_t nok;               /* usable rows */
+    size_t nexp, nexp_ok;     /* exposures in all, usable */
+    size_t ncontinued;        /* cube parts found to continue in an adjacent telemetry file */
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);

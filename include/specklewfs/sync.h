@@ -71,6 +71,24 @@ typedef struct swfs_sync_result {
  * exposures inside at the optimum (those give the per-cube ratio scatter). */
 int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sync_params *p, swfs_sync_result *r);
 
+/* Whether part of a camera cube continues in an adjacent telemetry file with no WFS frame
+ * lost or repeated between the two files. part: the cube's exposures that lie wholly in the
+ * adjacent file, with logged = their start there if the files were contiguous + fit->lag (so
+ * that the fit's lag puts them where contiguity says). The lag is searched for this part
+ * alone over p's lag range at the fit's ratio and pairing; the part continues when its best
+ * lag is the fit's to within half a WFS frame (files hold whole frames: a lost or repeated
+ * frame moves it by one or more) and both correlations of the fit's pairing are positive and
+ * significant at 5 sigma over the part's exposures (Fisher z: a short part cannot pass). */
+typedef struct swfs_sync_continuation {
+    int continues;
+    double offset;          /* best lag - fit->lag [WFS frames] */
+    double corr_x, corr_y;  /* the fit's pairing's correlations (signs applied) at the best lag */
+    size_t nexp;            /* exposures of the part inside the file at the best lag */
+} swfs_sync_continuation;
+
+int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_result *fit, const swfs_sync_params *p,
+                                 swfs_sync_continuation *out);
+
 /* Predicted exposure means of a per-WFS-frame series m (n frames) for exposures
  * [start + j ratio, start + (j+1) ratio), j < nexp: out[j] = (1/ratio) * integral of the
  * piecewise-constant m. Returns SWFS_ERR_VALUE if an exposure leaves [0, n). */
@@ -97,6 +115,9 @@ typedef struct swfs_timing_cube {
     size_t nframes;
     double start;     /* exposure start [WFS frames of the slopes file] = logged - lag */
     int status;       /* SWFS_CUBE_OK, or discarded */
+    int joined;       /* 1: the part of a cube that continues in the file before or after the one
+                         the handshake log names (sync's check; a comment of the table says so) */
+    double join_offset, join_corr_x, join_corr_y; /* that check's figures (swfs_sync_continuation) */
 } swfs_timing_cube;
 
 typedef struct swfs_timing {

@@ -7,9 +7,11 @@
 #include "specklewfs/source.h"
 
 #include <limits.h>
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 void swfs_sync_run_options_default(swfs_sync_run_options *o)
 {
@@ -56,8 +58,11 @@ static int load_file(work *w, const char *name, size_t *fi)
                        : (w->nwfs_slopes ? "NSLOPES (even, the same in every file)" : "NSLOPES (even)"), s->nx, s->ny, s->nz);
     if (!rc) rc = swfs_telemetry_check_values(path, s);
     slopes_file *f = &w->files[*fi];
-    if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double)))))
+    if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double))))) {
+        free(f->mx);
+        f->mx = NULL;
         rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    }
     if (!rc) {
         w->nwfs_slopes = s->nx;
         snprintf(f->name, sizeof f->name, "%s", name);
@@ -87,16 +92,155 @@ static int setup_cube(const swfs_sync_run_options *o, work *w, size_t ci, swfs_t
     w->cubes[ci] = (swfs_sync_cube){n, w->tr->x + first, w->tr->y + first, w->files[fi].mx, w->files[fi].my,
                                     w->files[fi].nwfs, (double)w->hs[h].frame};
     snprintf(tc->camera, sizeof tc->camera, "%s", cam);
-    /* The timing table may live elsewhere: record the telemetry file's absolute path. */
-    char rel[8192], *abs = NULL;
-    if ((rc = swfs_telemetry_path(w->logdir, w->hs[h].slopes, rel, sizeof rel))) return rc;
-    abs = realpath(rel, NULL);
-    int len = snprintf(tc->slopes, sizeof tc->slopes, "%s", abs ? abs : rel);
-    free(abs);
-    if (len < 0 || (size_t)len >= sizeof tc->slopes) return swfs_fail(SWFS_ERR_ARG, "%s: telemetry path too long", rel);
     tc->first = first;
     tc->nframes = n;
     return SWFS_OK;
+}
+
+/* The timing table may live elsewhere: it records the telemetry file's absolute path. */
+static int table_path(const work *w, const char *name, char *out, size_t cap)
+{
+    char rel[8192], *abs = NULL;
+    int rc = swfs_telemetry_path(w->logdir, name, rel, sizeof rel);
+    if (rc) return rc;
+    abs = realpath(rel, NULL);
+    int len = snprintf(out, cap, "%s", abs ? abs : rel);
+    free(abs);
+    if (len < 0 || (size_t)len >= cap) return swfs_fail(SWFS_ERR_ARG, "%s: telemetry path too long", rel);
+    return SWFS_OK;
+}
+
+/* Exposures [*j0, *j1) of n that lie wholly in a file of nwfs WFS frames when the cube starts
+ * at s there: s + j ratio >= 0 and s + (j + 1) ratio <= nwfs. */
+static void inside(double s, double ratio, size_t n, size_t nwfs, size_t *j0, size_t *j1)
+{
+    double lo = fmax(ceil(-s / ratio), 0), hi = fmin(floor(((double)nwfs - s) / ratio), (double)n);
+    *j0 = lo > (double)n ? n : (size_t)lo;
+    *j1 = hi > lo ? (size_t)hi : *j0;
+}
+
+/* The name with its last run of digits (in the base name) moved by dir, keeping its width:
+ * slopes_009.fits -> slopes_010.fits; 0 when there is none or it would go below zero. */
+static int numbered_neighbour(const char *name, int dir, char *out, size_t cap)
+{
+    const char *base = strrchr(name, '/');
+    base = base ? base + 1 : name;
+    const char *end = NULL;
+    for (const char *q = base; *q; q++)
+        if (*q >= '0' && *q <= '9' && !(q[1] >= '0' && q[1] <= '9')) end = q + 1;
+    if (!end) return 0;
+    const char *beg = end;
+    while (beg > base && beg[-1] >= '0' && beg[-1] <= '9') beg--;
+    if (end - beg > 18) return 0;
+    long long v = strtoll(beg, NULL, 10) + dir;
+    if (v < 0) return 0;
+    int len = snprintf(out, cap, "%.*s%0*lld%s", (int)(beg - name), name, (int)(end - beg), v, end);
+    return len > 0 && (size_t)len < cap;
+}
+
+/* The telemetry file just before (dir -1) or after (+1) name: the numbered neighbour in the
+ * same folder when it exists (slopes_004.fits -> slopes_005.fits), else the next or previous
+ * one in the order the handshake log first names them; NULL if none. sync's check on the
+ * data (split_cube) decides whether it really continues name. */
+static const char *adjacent_file(const work *w, const char *name, int dir, char *buf, size_t cap)
+{
+    char path[8192];
+    if (numbered_neighbour(name, dir, buf, cap) && !swfs_telemetry_path(w->logdir, buf, path, sizeof path) &&
+        access(path, R_OK) == 0)
+        return buf;
+    const char *prev = NULL;
+    int found = 0;
+    for (size_t k = 0; k < w->nhs; k++) {
+        const char *f = w->hs[k].slopes;
+        int seen = 0;
+        for (size_t q = 0; q < k && !seen; q++) seen = !strcmp(w->hs[q].slopes, f);
+        if (seen) continue;
+        if (found) return dir > 0 ? f : prev;
+        if (!strcmp(f, name)) found = 1;
+        else prev = f;
+    }
+    return found && dir < 0 ? prev : NULL;
+}
+
+/* One row of the table: exposures [j0, j1) of the cube, starting at s in the file name. */
+static int add_row(const work *w, const swfs_timing_cube *c, size_t j0, size_t j1, const char *name, double s,
+                   int status, swfs_timing *t)
+{
+    if (j1 <= j0) return SWFS_OK;
+    swfs_timing_cube *row = &t->cubes[t->ncubes++];
+    *row = *c;
+    row->first = c->first + j0;
+    row->nframes = j1 - j0;
+    row->start = s;
+    row->status = status;
+    return table_path(w, name, row->slopes, sizeof row->slopes);
+}
+
+/* Cube ci at the fit's timing -> its rows: the exposures wholly inside its own telemetry file,
+ * those wholly inside the file before or after it when sync's check on the data says that the
+ * files are contiguous there (swfs_sync_continuation_check), and the rest marked straddles. */
+static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing_cube *c, size_t ci, swfs_timing *t,
+                      swfs_sync_run_result *r)
+{
+    const swfs_timing *fit = t;
+    const slopes_file *fa = &w->files[w->cube_file[ci]];
+    const double R = fit->ratio, s = (double)w->cube_hs[ci] - fit->lag;
+    const size_t n = c->nframes;
+    size_t a0, a1, p0 = 0, p1 = 0, b0 = n, b1 = n;
+    inside(s, R, n, fa->nwfs, &a0, &a1);
+    r->nexp += n;
+    if (a1 <= a0) return add_row(w, c, 0, n, fa->name, s, SWFS_CUBE_STRADDLES, t); /* none in its own file */
+    const char *pname = NULL, *bname = NULL;
+    double ps = 0, bs = 0;
+    swfs_sync_continuation join[2];
+    char nbuf[2][SWFS_SYNC_NAME];
+    for (int dir = -1; dir <= 1; dir += 2) {
+        if (dir < 0 ? a0 == 0 : a1 == n) continue;
+        const char *name = adjacent_file(w, fa->name, dir, nbuf[dir > 0], sizeof nbuf[0]);
+        size_t fi;
+        int rc = name ? load_file(w, name, &fi) : SWFS_OK;
+        if (rc == SWFS_ERR_NOMEM) return rc;
+        if (rc || !name) continue; /* a neighbour that is not telemetry of this kind continues nothing */
+        const slopes_file *fb = &w->files[fi];
+        const double sb = dir < 0 ? s + (double)fb->nwfs : s - (double)fa->nwfs;
+        size_t j0, j1;
+        inside(sb, R, n, fb->nwfs, &j0, &j1);
+        if (dir < 0 && j1 > a0) j1 = a0;
+        if (dir > 0 && j0 < a1) j0 = a1;
+        if (j1 <= j0) continue;
+        const double st = sb + (double)j0 * R;
+        swfs_sync_cube part = {j1 - j0, w->tr->x + c->first + j0, w->tr->y + c->first + j0, fb->mx, fb->my, fb->nwfs,
+                               st + fit->lag};
+        swfs_sync_continuation cc;
+        if ((rc = swfs_sync_continuation_check(&part, &fit->fit, &o->params, &cc))) return rc;
+        if (!cc.continues) continue;
+        r->ncontinued++;
+        join[dir > 0] = cc;
+        if (dir < 0) p0 = j0, p1 = j1, pname = name, ps = st;
+        else b0 = j0, b1 = j1, bname = name, bs = st;
+    }
+    /* Rows in exposure order: [0, p0) straddles, [p0, p1) before, [p1, a0) straddles, [a0, a1)
+       its own file, [a1, b0) straddles, [b0, b1) after, [b1, n) straddles. */
+    const char *own = fa->name;
+    int rc = SWFS_OK;
+    const size_t cut[8] = {0, p0, p1, a0, a1, b0, b1, n}; /* 0 <= p0 <= p1 <= a0 < a1 <= b0 <= b1 <= n */
+    for (int k = 0; k < 7 && !rc; k++) {
+        const size_t j0 = cut[k], j1 = cut[k + 1];
+        const int ok = k == 1 || k == 3 || k == 5;
+        const char *name = k == 1 ? pname : k == 5 ? bname : own;
+        const double st = k == 1 ? ps : k == 5 ? bs : s + (double)j0 * R;
+        if (ok && j1 > j0) r->nexp_ok += j1 - j0, r->nok++;
+        rc = add_row(w, c, j0, j1, name, st, ok ? SWFS_CUBE_OK : SWFS_CUBE_STRADDLES, t);
+        if (!rc && j1 > j0 && (k == 1 || k == 5)) {
+            const swfs_sync_continuation *cc = &join[k == 5];
+            swfs_timing_cube *row = &t->cubes[t->ncubes - 1];
+            row->joined = 1;
+            row->join_offset = cc->offset;
+            row->join_corr_x = cc->corr_x;
+            row->join_corr_y = cc->corr_y;
+        }
+    }
+    return rc;
 }
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
@@ -131,7 +275,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         t->ncubes = nc;
         t->cubes = calloc(nc, sizeof *t->cubes);
         w.cubes = calloc(nc, sizeof *w.cubes);
-        w.files = calloc(nc, sizeof *w.files);
+        w.files = calloc(w.nhs + 3 * nc, sizeof *w.files); /* the log's files, and two neighbours a cube */
         w.cube_file = calloc(nc, sizeof *w.cube_file);
         w.cube_hs = calloc(nc, sizeof *w.cube_hs);
         if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
@@ -142,16 +286,17 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         t->ratio = t->fit.ratio;
         t->ratio_err = t->fit.ratio_err;
         t->lag = t->fit.lag;
-        for (size_t ci = 0; ci < t->ncubes; ci++) {
-            double start = (double)w.cube_hs[ci] - t->lag;
-            t->cubes[ci].start = start;
-            int inside = start >= 0 && start + (double)w.tr->n[ci] * t->ratio <= (double)w.files[w.cube_file[ci]].nwfs;
-            t->cubes[ci].status = inside ? SWFS_CUBE_OK : SWFS_CUBE_STRADDLES;
-            r->nok += inside ? 1u : 0u;
-        }
-        rc = swfs_timing_write(o->out, t);
+        /* Each cube becomes up to 7 rows (split_cube). */
+        swfs_timing_cube *cubes = t->cubes;
+        const size_t nc = t->ncubes;
+        t->cubes = calloc(7 * nc, sizeof *t->cubes);
+        t->ncubes = 0;
+        if (!t->cubes) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
+        for (size_t ci = 0; !rc && ci < nc; ci++) rc = split_cube(o, &w, &cubes[ci], ci, t, r);
+        free(cubes);
+        if (!rc) rc = swfs_timing_write(o->out, t);
     }
-    if (!rc && !r->nok) rc = swfs_fail(SWFS_ERR_VALUE, "%s: no cube lies inside its telemetry file", o->science);
+    if (!rc && !r->nok) rc = swfs_fail(SWFS_ERR_VALUE, "%s: no exposure lies inside a telemetry file", o->science);
     swfs_science_track_free(w.tr);
     free(w.hs);
     for (size_t k = 0; w.files && k < w.nfiles; k++) { free(w.files[k].mx); free(w.files[k].my); }

@@ -257,6 +257,64 @@ done:
     return rc;
 }
 
+/* The fit's pairing's correlations (signs applied) of one prepared cube at (ratio, lag). */
+static size_t paired_corr(const prep_cube *pc, const swfs_sync_result *fit, double lag, double *cx, double *cy)
+{
+    corr_acc acc;
+    score_cubes(pc, 0, 1, fit->ratio, lag, &acc);
+    double c[4];
+    corr4(&acc, c);
+    *cx = fit->sign_x * (fit->swap ? c[1] : c[0]);
+    *cy = fit->sign_y * (fit->swap ? c[2] : c[3]);
+    return acc.nexp;
+}
+
+int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_result *fit, const swfs_sync_params *p,
+                                 swfs_sync_continuation *out)
+{
+    memset(out, 0, sizeof *out);
+    int rc = swfs_sync_params_check(p);
+    if (rc) return rc;
+    if (!(fit->ratio > 0) || !isfinite(fit->lag)) return swfs_fail(SWFS_ERR_ARG, "sync: continuation check without a fit");
+    prep_cube pc = {part, malloc((part->nwfs + 1) * sizeof(double)), malloc((part->nwfs + 1) * sizeof(double))};
+    if (!pc.Cx || !pc.Cy) {
+        free(pc.Cx);
+        free(pc.Cy);
+        return swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
+    }
+    pc.Cx[0] = pc.Cy[0] = 0;
+    for (size_t k = 0; k < part->nwfs; k++) {
+        pc.Cx[k + 1] = pc.Cx[k] + part->mx[k];
+        pc.Cy[k + 1] = pc.Cy[k] + part->my[k];
+    }
+    /* The lag over the search range, then twice 10x finer around the best, as the fit. */
+    double best = NAN, bs = -INFINITY, l0 = p->lag_min, l1 = p->lag_max, dl = p->lag_step;
+    for (int it = 0; it < 3; it++) {
+        const size_t nl = (size_t)floor((l1 - l0) / dl + 1e-9) + 1;
+        for (size_t il = 0; il < nl; il++) {
+            double l = l0 + (double)il * dl, cx, cy;
+            if (paired_corr(&pc, fit, l, &cx, &cy) < 4) continue;
+            if (cx + cy > bs) { bs = cx + cy; best = l; }
+        }
+        if (!isfinite(best)) break;
+        l0 = best - 2 * dl;
+        dl /= 10;
+        l1 = l0 + 40 * dl;
+    }
+    if (isfinite(best)) {
+        out->nexp = paired_corr(&pc, fit, best, &out->corr_x, &out->corr_y);
+        out->offset = best - fit->lag;
+        /* Fisher z of each correlation against 0 over the part's exposures: 5 sigma. */
+        const double zs = sqrt(out->nexp > 3 ? (double)out->nexp - 3 : 0);
+        const int sig = out->corr_x > 0 && out->corr_y > 0 && atanh(fmin(out->corr_x, 1 - 1e-12)) * zs > 5 &&
+                        atanh(fmin(out->corr_y, 1 - 1e-12)) * zs > 5;
+        out->continues = sig && fabs(out->offset) < 0.5;
+    }
+    free(pc.Cx);
+    free(pc.Cy);
+    return SWFS_OK;
+}
+
 /* ---- handshake log ----------------------------------------------------------- */
 
 static char *trim(char *s)
@@ -350,6 +408,10 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
     fprintf(f, "# cube INDEX CAMERA_FILE FIRST_FRAME NFRAMES SLOPES_FILE START STATUS\n");
     for (size_t i = 0; i < t->ncubes; i++) {
         const swfs_timing_cube *c = t->cubes + i;
+        if (c->joined)
+            fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
+                    "frames, correlations %.3f %.3f\n", c->camera, c->first, c->first + c->nframes - 1, c->join_offset,
+                    c->join_corr_x, c->join_corr_y);
         fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
                 c->status == SWFS_CUBE_OK ? "ok" : "straddles");
     }
