@@ -229,7 +229,11 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_sh_pipeline(&w->p, o->valid, w->path, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask,
                                    w->nslopes, w->rin, w->train, w->ntrain, &o->pipe);
-    if (rc) return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
+    /* The context names the two files the model comes from, unless the message already
+       starts with the telemetry file (its NSUB check). */
+    if (rc && strncmp(swfs_last_error(), w->path, strlen(w->path)))
+        return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
+    if (rc) return rc;
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);
     /* A given matrix in another convention (DM commands: a correction of the surface, about
