@@ -152,6 +152,15 @@ int swfs_cmd_pupil(int argc, char **argv)
                f->nintervals, f->iterations, f->seconds, f->kappa);
         printf("  self-check        the speckles explain %.1f %% of the science intensity's variance (median pixel "
                "%.1f %%)\n", 100 * r->explained, 100 * r->explained_median);
+        if (r->explained_map && g.pixscale > 0) {
+            double ring[32];
+            const size_t nr = (size_t)fmin(32, ceil(0.5 * (double)r->explained_map->nx * g.pixscale));
+            swfs_pupil_explained_rings(r->explained_map, g.pixscale, ring, nr);
+            printf("  by ring [l/D]    ");
+            for (size_t k = 0; k < nr; k++)
+                if (isfinite(ring[k])) printf(" %zu-%zu %.0f%%", k, k + 1, 100 * ring[k]);
+            printf(" (median pixel; EXPLAINED)\n");
+        }
         if (isfinite(f->delta_chi2))
             printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one; limit %.0f)\n",
                    f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"

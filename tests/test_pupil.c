@@ -144,11 +144,43 @@ static void test_ptt_removal(void **state)
     assert_close(swfs_wfe_remove_ptt(w, mask, NP), 0.0, 1e-12);
 }
 
+/* The self-check by ring: the median of each ring [k, k + 1) lambda/D of a map, NaN values
+ * left out, NaN for a ring without a finite value. */
+static void test_explained_rings(void **state)
+{
+    (void)state;
+    enum { N = 21 };
+    const double ps = 0.5; /* lambda/D per pixel */
+    swfs_real *m = swfs_real_alloc(N, N, 1);
+    for (size_t j = 0; j < N; j++)
+        for (size_t i = 0; i < N; i++) {
+            const double r = hypot((double)i - N / 2, (double)j - N / 2) * ps;
+            const double k = floor(r);
+            /* ring k holds k/10, except a third of its pixels that hold 9 (above the median)
+               and ring 2, which is all NaN */
+            m->data[j * N + i] = k == 2 ? NAN : ((i + j) % 3 == 0 ? 9.0 : k / 10);
+        }
+    double out[7];
+    swfs_pupil_explained_rings(m, ps, out, 7);
+    for (int k = 0; k < 6; k++) {
+        if (k == 2) {
+            assert_true(isnan(out[k]));
+            continue;
+        }
+        print_message("ring %d: %.3f\n", k, out[k]);
+        assert_true(k == 0 ? out[k] == 0.0 || out[k] == 9.0 : fabs(out[k] - k / 10.0) < 1e-12);
+    }
+    /* ring 6 lies beyond the inscribed circle (radius 5 lambda/D) but reaches the corners */
+    assert_true(isfinite(out[6]));
+    swfs_real_free(m);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_recovers_known_wavefront),
         cmocka_unit_test(test_ptt_removal),
+        cmocka_unit_test(test_explained_rings),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

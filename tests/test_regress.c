@@ -172,6 +172,12 @@ static void test_merge_exact(void **state)
 
 /* The solution recovers the model it was built from: b = g^2, c = g Psi' (Psi' = Psi + g
  * <psi>, the static field in the frame centred on the mean psi), s^2 the noise. */
+static int cmp_double(const void *a, const void *b)
+{
+    const double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
 static void test_recovers_model(void **state)
 {
     (void)state;
@@ -192,6 +198,23 @@ static void test_recovers_model(void **state)
         const double v = noise * noise + pow(0.02 * s->g[k] * s->g[k], 2);
         es = fmax(es, fabs(so->s2->data[k] / v - 1.0));
     }
+    /* The self-check per pixel: 1 - SSE / SST with SSE = (n - 4) s^2 and SST the science's
+       variance about its mean, from the frames themselves; its median is explained_median. */
+    double er = 0.0, r2[NP];
+    for (size_t k = 0; k < NP; k++) {
+        double m = 0.0, sst = 0.0;
+        for (size_t t = 0; t < NF; t++) m += s->science[t][k] / NF;
+        for (size_t t = 0; t < NF; t++) sst += (s->science[t][k] - m) * (s->science[t][k] - m);
+        const double want = 1.0 - (NF - 4.0) * so->s2->data[k] / sst;
+        er = fmax(er, fabs(so->r2->data[k] - want));
+        r2[k] = so->r2->data[k];
+        assert_true(r2[k] > 0.0 && r2[k] < 1.0);
+    }
+    qsort(r2, NP, sizeof r2[0], cmp_double);
+    print_message("self-check: explained %.3f, median pixel %.3f (map: %.3f), map error %.2g\n", so->explained,
+                  so->explained_median, r2[NP / 2], er);
+    assert_true(er < 1e-6);
+    assert_true(fabs(so->explained_median - r2[NP / 2]) < 1e-12);
     print_message("max relative error: b %.3f, c %.4f, s^2 %.3f\n", eb, ec, es);
     assert_true(eb < 0.1);
     assert_true(ec < 0.02);

@@ -58,7 +58,15 @@ typedef struct swfs_pupil_result {
     swfs_jointfit_result *fit; /* the joint fit (owned), NULL for the moments */
     double explained, explained_median; /* the joint fit's self-check of the speckles (swfs_regress_sol):
                                            NaN for the moments */
+    swfs_real *explained_map; /* per focal pixel 1 - SSE / SST (NaN where not solved), NULL for the moments */
 } swfs_pupil_result;
+
+/* The self-check by ring: out[k] = the median of the finite values of map (a focal-plane
+ * window, pixel (i, j) at (i - nx/2, j - ny/2) PIXSCALE lambda/D) over the ring
+ * [k, k + 1) lambda/D, NaN where the ring has none, for k < nrings. Where the computed
+ * speckles lack what the WFS aliases, the rings inside the control radius that the aliases
+ * land on explain less than their neighbours (docs/telemetry.md). */
+void swfs_pupil_explained_rings(const swfs_real *map, double pixscale, double *out, size_t nrings);
 
 /* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE
  * naming `what`, the sample and the value otherwise). */
@@ -70,7 +78,7 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
 void swfs_pupil_result_free(swfs_pupil_result *r);
 /* PUPIL.fits: FIELD (complex), WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL, METHOD
  * ('FIT' or 'MOMENTS'); after a fit also HALO_FIT (complex Psi of the fit over the focal
- * window, in the frame of psi - <psi>) and GAIN_FIT (g), keys FITKAPPA, FITCHI2, FITNPIX,
+ * window, in the frame of psi - <psi>), GAIN_FIT (g) and EXPLAINED (the self-check per pixel), keys FITKAPPA, FITCHI2, FITNPIX,
  * FITNPAR, FITLPHI, FITLAMP, FITITER. */
 int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_geom *g, const char *const *prov,
                      size_t nprov);

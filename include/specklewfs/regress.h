@@ -100,6 +100,7 @@ typedef struct swfs_regress_sol {
      * variance about its mean that the regression on them explains, 1 - SSE / SST, summed
      * over the valid pixels (dominated by the bright ones) and the median pixel's. */
     double explained, explained_median;
+    swfs_real *r2;      /* per pixel 1 - SSE / SST, NaN where not solved or the intensity is constant */
 } swfs_regress_sol;
 
 int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out);

@@ -149,7 +149,7 @@ swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(
                                              ("mask", P(swfs_real)), ("wfe_rms", c_dbl), ("wfe_pv", c_dbl),
                                              ("strehl", c_dbl), ("opt", swfs_pupil_options), ("method", c_int),
                                              ("fit", P(swfs_jointfit_result)), ("explained", c_dbl),
-                                             ("explained_median", c_dbl)])
+                                             ("explained_median", c_dbl), ("explained_map", P(swfs_real))])
 swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
                                  ("col", P(c_size)), ("val", P(c_dbl))])
 swfs_dm_registration = _s("swfs_dm_registration", [("pitch", c_dbl), ("x0", c_dbl), ("y0", c_dbl), ("rot", c_dbl),
@@ -302,6 +302,7 @@ _PROTOS = {
     "swfs_pupil_estimate": (c_int, [P(swfs_halo), P(swfs_geom), P(swfs_real), P(swfs_pupil_options),
                                     P(P(swfs_pupil_result))]),
     "swfs_pupil_result_free": (None, [P(swfs_pupil_result)]),
+    "swfs_pupil_explained_rings": (None, [P(swfs_real), c_dbl, P(c_dbl), c_size]),
     "swfs_pupil_write": (c_int, [P(swfs_pupil_result), c_str, P(swfs_geom), P(c_str), c_size]),
     "swfs_wfe_compare": (c_int, [P(c_dbl), P(c_dbl), P(c_dbl), c_size, P(c_dbl), P(c_dbl), P(c_dbl)]),
     "swfs_wfe_remove_ptt": (c_dbl, [P(c_dbl), P(c_dbl), c_size]),

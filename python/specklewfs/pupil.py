@@ -1,5 +1,6 @@
 """Pupil field and NCP wavefront from the static halo (pupil.h)."""
 import ctypes
+import math
 
 import numpy as np
 
@@ -19,7 +20,10 @@ class PupilResult:
     wfe_rms, wfe_pv [m], strehl (Marechal); method ('fit' or 'moments', what was used);
     weight, wiener_k, bias, source: the moments' options; geom. After a fit also halo_fit
     (complex focal-plane Psi of the fit), gain_fit (g map), kappa (unexplained speckle
-    power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence)."""
+    power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence),
+    explained, explained_median (the self-check of the speckles: the science variance they
+    explain, summed and median pixel), explained_map (per pixel; NaN where not solved) and
+    explained_rings()."""
 
     def __init__(self, ptr, geom):
         self._p = ptr
@@ -34,12 +38,28 @@ class PupilResult:
         self.source = "halo" if r.opt.source == 1 else "lf"
         self.method = "fit" if r.method == 1 else "moments"
         self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = self.fit_noise_scale = None
+        self.explained, self.explained_median = r.explained, r.explained_median
+        self.explained_map = _lib.real_view(r.explained_map, self._owner) if r.explained_map else None
         if r.method == 1 and r.fit:
             f = r.fit.contents
             self.halo_fit = _lib.cplx_view(f.halo, self._owner)
             self.gain_fit = _lib.real_view(f.gain, self._owner)
             self.kappa, self.fit_iterations, self.fit_noise_scale = f.kappa, f.iterations, f.noise_scale
         self.geom = geom
+
+    def explained_rings(self, nrings=None):
+        """The self-check by ring of 1 lambda/D (pupil.h, swfs_pupil_explained_rings): array of
+        the median explained fraction over [k, k + 1) lambda/D, NaN where a ring has no pixel;
+        nrings defaults to the rings inside the window. None after the moments."""
+        if self.explained_map is None or self.geom is None:
+            return None
+        ps = float(self.geom.pixscale)
+        r = self._p.contents.explained_map.contents
+        n = int(nrings) if nrings is not None else min(32, int(math.ceil(0.5 * r.nx * ps)))
+        out = np.empty(n)
+        lib.swfs_pupil_explained_rings(self._p.contents.explained_map, ps,
+                                       out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), n)
+        return out
 
     def write(self, path, geom=None, provenance=()):
         """PUPIL.fits: FIELD, WFE, SURFACE, AMPLITUDE, PUPIL; keys WFERMS, WFEPV, STREHL."""

@@ -35,6 +35,19 @@ def test_paper_default_path_through_python(paper_sim):
     pf = sw.pupil_estimate(h, s.geom, mask=s.pupil)
     assert pf.method == "fit" and 0 <= pf.kappa < 0.1 and pf.halo_fit.shape == (60, 60)
     assert sw.wfe_compare(pf.wfe, s.ncp, s.pupil)[0] < 9e-9
+    # The self-check per pixel: its median is the median pixel's; by ring it is the median
+    # of each ring [k, k + 1) lambda/D (the exact speckles of the simulation explain most).
+    m = pf.explained_map
+    assert m.shape == (60, 60) and abs(np.nanmedian(m) - pf.explained_median) < 1e-12
+    rings = pf.explained_rings()
+    assert len(rings) == 8  # 60 pixels of 0.25 lambda/D: 7.5 lambda/D to the edge
+    y, x = np.mgrid[0:60, 0:60]
+    r = np.hypot(x - 30, y - 30) * 0.25
+    for k in range(8):
+        ring = m[(r >= k) & (r < k + 1)]
+        assert abs(rings[k] - np.nanmedian(ring)) < 1e-12
+    assert np.nanmin(rings[1:]) > 0.5
+    assert p.explained_map is None and p.explained_rings() is None  # the moments have no self-check
     # The paper's formulae (per-pixel g, HALO_LF, full weight): 15.7.
     hp = sw.Accumulator(60, 60).add(noisy, s.speckles).estimate(read_noise=0.0, gain=gain, g_smooth=0)
     pp = sw.pupil_estimate(hp, s.geom, mask=s.pupil, weight="none", method="moments")

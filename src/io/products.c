@@ -68,6 +68,9 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "Psi of the joint fit, frame of psi - <psi>", NULL);
     if (!rc && f) rc = swfs_fits_out_real(o, "GAIN_FIT", f->gain, -64);
     if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "g of the joint fit (smooth log-g map)", NULL);
+    if (!rc && f && r->explained_map) rc = swfs_fits_out_real(o, "EXPLAINED", r->explained_map, -32);
+    if (!rc && f && r->explained_map)
+        rc = swfs_fits_out_key_string(o, "COMMENT", "self-check: science variance the speckles explain, per pixel", NULL);
     if (rc) {
         swfs_fits_out_abort(o);
         return rc;

@@ -2,6 +2,7 @@
 #include "specklewfs/pupil.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/mft.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -27,7 +28,25 @@ void swfs_pupil_result_free(swfs_pupil_result *r)
     swfs_real_free(r->amplitude);
     swfs_real_free(r->mask);
     swfs_jointfit_result_free(r->fit);
+    swfs_real_free(r->explained_map);
     free(r);
+}
+
+void swfs_pupil_explained_rings(const swfs_real *map, double pixscale, double *out, size_t nrings)
+{
+    const size_t nx = map->nx, ny = map->ny, np = nx * ny;
+    double *v = malloc((np ? np : 1) * sizeof *v);
+    for (size_t k = 0; k < nrings; k++) {
+        size_t n = 0;
+        for (size_t j = 0; v && j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                const double r = hypot((double)i - (double)(nx / 2), (double)j - (double)(ny / 2)) * pixscale;
+                const double x = map->data[j * nx + i];
+                if (r >= (double)k && r < (double)(k + 1) && isfinite(x)) v[n++] = x;
+            }
+        out[k] = n ? swfs_median_inplace(v, n) : NAN;
+    }
+    free(v);
 }
 
 /* Piston-removed rms, peak to valley and Marechal Strehl of r->wfe over r->mask. */
@@ -75,6 +94,8 @@ static int pupil_fit(const swfs_halo *h, const swfs_geom *g, const swfs_real *ma
     if (!rc) {
         r->explained = sol->explained;
         r->explained_median = sol->explained_median;
+        r->explained_map = sol->r2;
+        sol->r2 = NULL;
         rc = swfs_jointfit(sol, g, mask, &o->fit, &r->fit);
     }
     swfs_regress_sol_free(sol);

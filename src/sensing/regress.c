@@ -224,6 +224,7 @@ void swfs_regress_sol_free(swfs_regress_sol *s)
     if (!s) return;
     swfs_real_free(s->theta); swfs_real_free(s->info); swfs_real_free(s->rhs);
     swfs_real_free(s->s2); swfs_real_free(s->phi_sp); swfs_cplx_free(s->centre); swfs_real_free(s->valid);
+    swfs_real_free(s->r2);
     free(s);
 }
 
@@ -241,12 +242,14 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
     s->phi_sp = swfs_real_alloc(nx, ny, 1);
     s->centre = swfs_cplx_alloc(nx, ny, 1);
     s->valid = swfs_real_alloc(nx, ny, 1);
-    if (!s->theta || !s->info || !s->rhs || !s->s2 || !s->phi_sp || !s->centre || !s->valid) {
+    s->r2 = swfs_real_alloc(nx, ny, 1);
+    if (!s->theta || !s->info || !s->rhs || !s->s2 || !s->phi_sp || !s->centre || !s->valid || !s->r2) {
         swfs_regress_sol_free(s);
         return SWFS_ERR_NOMEM;
     }
     double v[NS], sst_sum = 0, sse_sum = 0, *r2 = malloc(np * sizeof *r2);
     size_t nr2 = 0;
+    for (size_t k = 0; k < np; k++) s->r2->data[k] = NAN;
     for (size_t k = 0; k < np; k++) {
         gather(r->state, np, k, v);
         const double n = v[SWFS_REG_N];
@@ -278,6 +281,7 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
         s->n_valid++;
         /* the self-check: variance about the mean (the intercept alone) against what is left */
         const double sst = v[SWFS_REG_YY] - v[SWFS_REG_H0] * v[SWFS_REG_H0] / G[0][0], sse = v[SWFS_REG_YY] - th;
+        if (sst > 0) s->r2->data[k] = 1 - sse / sst;
         if (sst > 0 && r2 && nr2 < np) {
             sst_sum += sst;
             sse_sum += sse;
