@@ -421,6 +421,71 @@ static void test_rim_coverage(void **state)
     free(xy);
 }
 
+/* A cube that starts less than one exposure before the end of its telemetry file: no whole
+ * exposure lies in the file the handshake log names, and all but the one across the boundary
+ * lie in the next file, which continues it. */
+static void test_sync_cube_at_file_end(void **state)
+{
+    (void)state;
+    char sub[1200];
+    snprintf(sub, sizeof sub, "%s/edge", dir);
+    mkdir(sub, 0755);
+    swfs_config *c = swfs_config_new();
+    /* as setup, with files of 843 WFS frames: cube 1 starts at WFS frame 839.2 (logged 842) */
+    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150",
+                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "wfs_file_frames=843", "seed=1"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    swfs_config_free(c);
+    swfs_ts_summary sum;
+    const char *prov[] = {"test_runs"};
+    assert_ok(swfs_ts_run(&tp, sub, prov, 1, NULL, NULL, &sum));
+    char raw[3][1300];
+    const char *rawp[3];
+    for (int k = 0; k < 3; k++) {
+        snprintf(raw[k], sizeof raw[k], "%s/raw_%03d.fits", sub, k);
+        rawp[k] = raw[k];
+    }
+    char dark[1300], flat[1300], sci[1300], hs[1300], tim[1300];
+    snprintf(dark, sizeof dark, "%s/dark.fits", sub);
+    snprintf(flat, sizeof flat, "%s/flat.fits", sub);
+    snprintf(sci, sizeof sci, "%s/science.fits", sub);
+    snprintf(hs, sizeof hs, "%s/handshake.log", sub);
+    snprintf(tim, sizeof tim, "%s/timing.txt", sub);
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    ro.raw = rawp;
+    ro.nraw = 3;
+    ro.dark = dark;
+    ro.flat = flat;
+    ro.out = sci;
+    swfs_reduce_run_result rr;
+    assert_ok(swfs_reduce_run(&ro, &rr));
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = sci;
+    so.handshake = hs;
+    so.out = tim;
+    so.params.ratio_min = 5;
+    so.params.ratio_max = 8;
+    swfs_sync_run_result sr;
+    assert_ok(swfs_sync_run(&so, &sr));
+    size_t in_own = 0, in_next = 0;
+    for (size_t k = 0; k < sr.t.ncubes; k++) {
+        const swfs_timing_cube *row = &sr.t.cubes[k];
+        if (strcmp(row->camera, "raw_001.fits") || row->status != SWFS_CUBE_OK) continue;
+        if (strstr(row->slopes, "slopes_001.fits")) in_next += row->nframes, assert_true(row->joined);
+        else in_own += row->nframes;
+    }
+    printf("test_runs: a cube starting %.2f WFS frames before its file's end: %zu exposures in that file, %zu in "
+           "the next\n", 843 - (sr.t.cubes[1].start), in_own, in_next);
+    assert_int_equal(in_own, 0);
+    assert_int_equal(in_next, 59);
+    free(sr.t.cubes);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -429,6 +494,7 @@ int main(void)
         cmocka_unit_test(test_rim_coverage),
         cmocka_unit_test(test_stream_equals_speckles),
         cmocka_unit_test(test_stream_batches),
+        cmocka_unit_test(test_sync_cube_at_file_end),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

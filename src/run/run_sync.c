@@ -189,7 +189,10 @@ static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing
     size_t a0, a1, p0 = 0, p1 = 0, b0 = n, b1 = n;
     inside(s, R, n, fa->nwfs, &a0, &a1);
     r->nexp += n;
-    if (a1 <= a0) return add_row(w, c, 0, n, fa->name, s, SWFS_CUBE_STRADDLES, t); /* none in its own file */
+    if (a1 <= a0) { /* no whole exposure in its own file: the parts before and after meet at its edge */
+        const double e = s >= 0 ? floor(((double)fa->nwfs - s) / R) : ceil(-s / R);
+        a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
+    }
     const char *pname = NULL, *bname = NULL;
     double ps = 0, bs = 0;
     swfs_sync_continuation join[2];
@@ -223,7 +226,7 @@ static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing
        its own file, [a1, b0) straddles, [b0, b1) after, [b1, n) straddles. */
     const char *own = fa->name;
     int rc = SWFS_OK;
-    const size_t cut[8] = {0, p0, p1, a0, a1, b0, b1, n}; /* 0 <= p0 <= p1 <= a0 < a1 <= b0 <= b1 <= n */
+    const size_t cut[8] = {0, p0, p1, a0, a1, b0, b1, n}; /* 0 <= p0 <= p1 <= a0 <= a1 <= b0 <= b1 <= n */
     for (int k = 0; k < 7 && !rc; k++) {
         const size_t j0 = cut[k], j1 = cut[k + 1];
         const int ok = k == 1 || k == 3 || k == 5;
