@@ -32,16 +32,15 @@ static const char *p(const char *name)
     return buf[k];
 }
 
-/* The same small system as tests/cli_telemetry.sh: 3 cubes x 60 frames at 6.48 WFS frames
- * per camera frame, lag 3, telemetry files of 1000 WFS frames (cube 1 straddles two). */
-static int setup(void **state)
+/* The small system of tests/cli_telemetry.sh (3 cubes x 60 frames at 6.48 WFS frames per
+ * camera frame, lag 3) simulated into the folder `where` with telemetry files of
+ * `file_frames` WFS frames, then reduced to where/science.fits. */
+static void make_data(const char *where, const char *file_frames, swfs_reduce_run_result *rr)
 {
-    (void)state;
-    snprintf(dir, sizeof dir, "%s", test_path("runs"));
-    mkdir(dir, 0755);
+    mkdir(where, 0755);
     swfs_config *c = swfs_config_new();
     const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150",
-                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "wfs_file_frames=1000", "seed=1"};
+                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=1", file_frames};
     for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
     swfs_ts_params tp;
     swfs_ts_params_default(&tp);
@@ -50,18 +49,29 @@ static int setup(void **state)
     swfs_config_free(c);
     swfs_ts_summary s;
     const char *prov[] = {"test_runs"};
-    assert_ok(swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, &s));
+    assert_ok(swfs_ts_run(&tp, where, prov, 1, NULL, NULL, &s));
 
+    char f[6][1300];
+    const char *names[6] = {"raw_000.fits", "raw_001.fits", "raw_002.fits", "dark.fits", "flat.fits", "science.fits"};
+    for (int k = 0; k < 6; k++) snprintf(f[k], sizeof f[k], "%s/%s", where, names[k]);
     swfs_reduce_run_options ro;
     swfs_reduce_run_options_default(&ro);
-    const char *raw[] = {p("raw_000.fits"), p("raw_001.fits"), p("raw_002.fits")};
+    const char *raw[] = {f[0], f[1], f[2]};
     ro.raw = raw;
     ro.nraw = 3;
-    ro.dark = p("dark.fits");
-    ro.flat = p("flat.fits");
-    ro.out = p("science.fits");
+    ro.dark = f[3];
+    ro.flat = f[4];
+    ro.out = f[5];
+    assert_ok(swfs_reduce_run(&ro, rr));
+}
+
+/* Telemetry files of 1000 WFS frames: cube 1 crosses from the first into the second. */
+static int setup(void **state)
+{
+    (void)state;
+    snprintf(dir, sizeof dir, "%s", test_path("runs"));
     swfs_reduce_run_result rr;
-    assert_ok(swfs_reduce_run(&ro, &rr));
+    make_data(dir, "wfs_file_frames=1000", &rr);
     assert_int_equal(rr.nframes, 180);
     /* The simulated read noise is 19 counts. */
     assert_true(sqrt(rr.noise_var) > 18 && sqrt(rr.noise_var) < 20.5);
@@ -427,42 +437,14 @@ static void test_rim_coverage(void **state)
 static void test_sync_cube_at_file_end(void **state)
 {
     (void)state;
-    char sub[1200];
+    char sub[1200], sci[1300], hs[1300], tim[1300];
     snprintf(sub, sizeof sub, "%s/edge", dir);
-    mkdir(sub, 0755);
-    swfs_config *c = swfs_config_new();
-    /* as setup, with files of 843 WFS frames: cube 1 starts at WFS frame 839.2 (logged 842) */
-    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150",
-                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "wfs_file_frames=843", "seed=1"};
-    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
-    swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    assert_ok(swfs_ts_params_from_config(c, &tp));
-    swfs_config_free(c);
-    swfs_ts_summary sum;
-    const char *prov[] = {"test_runs"};
-    assert_ok(swfs_ts_run(&tp, sub, prov, 1, NULL, NULL, &sum));
-    char raw[3][1300];
-    const char *rawp[3];
-    for (int k = 0; k < 3; k++) {
-        snprintf(raw[k], sizeof raw[k], "%s/raw_%03d.fits", sub, k);
-        rawp[k] = raw[k];
-    }
-    char dark[1300], flat[1300], sci[1300], hs[1300], tim[1300];
-    snprintf(dark, sizeof dark, "%s/dark.fits", sub);
-    snprintf(flat, sizeof flat, "%s/flat.fits", sub);
+    /* files of 843 WFS frames: cube 1 starts at WFS frame 839.2 (logged 842) */
+    swfs_reduce_run_result rr;
+    make_data(sub, "wfs_file_frames=843", &rr);
     snprintf(sci, sizeof sci, "%s/science.fits", sub);
     snprintf(hs, sizeof hs, "%s/handshake.log", sub);
     snprintf(tim, sizeof tim, "%s/timing.txt", sub);
-    swfs_reduce_run_options ro;
-    swfs_reduce_run_options_default(&ro);
-    ro.raw = rawp;
-    ro.nraw = 3;
-    ro.dark = dark;
-    ro.flat = flat;
-    ro.out = sci;
-    swfs_reduce_run_result rr;
-    assert_ok(swfs_reduce_run(&ro, &rr));
     swfs_sync_run_options so;
     swfs_sync_run_options_default(&so);
     so.science = sci;
