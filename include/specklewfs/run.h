@@ -72,9 +72,11 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
                          const swfs_pipeline_options *po);
 /* The Shack-Hartmann pipeline (swfs_pipeline_create) with the valid-subaperture map of the
  * file `valid` (NULL: po's own, normally none; swfs_valid_map_read), then the NSUB keyword of
- * the telemetry file `telemetry` (NULL or "": none) checked against the model it made. */
-int swfs_sh_pipeline(swfs_pipeline **p, const char *valid, const char *telemetry, const swfs_geom *g, size_t nfx,
-                     size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
+ * the telemetry file `telemetry` (NULL or "": none) checked against the model it made.
+ * `model` (NULL: none) names what the model is built from: the context of a failure to build
+ * it (an NSUB mismatch names the telemetry file itself). */
+int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, const char *telemetry, const swfs_geom *g,
+                     size_t nfx, size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
                      const swfs_recon *recon, const double *train, size_t ntrain, const swfs_pipeline_options *po);
 
 /* The time-series simulation's telemetry (dir holds simulate mode=timeseries' files) in the

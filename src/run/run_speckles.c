@@ -192,8 +192,8 @@ static int build_linear(const swfs_speckles_run_options *o, work *w)
     return SWFS_OK;
 }
 
-int swfs_sh_pipeline(swfs_pipeline **p, const char *valid, const char *telemetry, const swfs_geom *g, size_t nfx,
-                     size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
+int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, const char *telemetry, const swfs_geom *g,
+                     size_t nfx, size_t nfy, const double *xy, size_t nact, const double *mask, size_t nslopes,
                      const swfs_recon *recon, const double *train, size_t ntrain, const swfs_pipeline_options *po)
 {
     *p = NULL;
@@ -204,7 +204,8 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *valid, const char *telemetry
     if (map) o.valid = map;
     if (!rc) rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
     free(map);
-    if (rc) return valid ? swfs_fail_context(rc, "the valid-subaperture map %s", valid) : rc;
+    if (rc && valid) swfs_fail_context(rc, "the valid-subaperture map %s", valid);
+    if (rc) return model ? swfs_fail_context(rc, "%s", model) : rc;
     swfs_pipeline_info in;
     swfs_pipeline_get_info(*p, &in);
     if (telemetry && telemetry[0] && (rc = swfs_telemetry_check_nsub(telemetry, in.nsub))) {
@@ -227,12 +228,10 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     }
     if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
-    if (!rc) rc = swfs_sh_pipeline(&w->p, o->valid, w->path, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask,
+    char model[8400];
+    snprintf(model, sizeof model, "%s with %s", o->actuators, w->path);
+    if (!rc) rc = swfs_sh_pipeline(&w->p, model, o->valid, w->path, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask,
                                    w->nslopes, w->rin, w->train, w->ntrain, &o->pipe);
-    /* The context names the two files the model comes from, unless the message already
-       starts with the telemetry file (its NSUB check). */
-    if (rc && strncmp(swfs_last_error(), w->path, strlen(w->path)))
-        return swfs_fail_context(rc, "%s with %s", o->actuators, w->path);
     if (rc) return rc;
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);

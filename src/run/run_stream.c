@@ -228,10 +228,11 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         po.rcond = 0.0;
         po.tiptilt = o->tiptilt;
         po.threads = o->threads;
-        rc = swfs_sh_pipeline(p, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact, u->mask ? u->mask->data : NULL,
-                              rec->nslopes, rec, NULL, 0, &po);
-        if (rc) swfs_fail_context(rc, "%s with %s", o->recon, o->actuators);
-        else swfs_pipeline_get_info(*p, &r->info);
+        char model[8400];
+        snprintf(model, sizeof model, "%s with %s", o->recon, o->actuators);
+        rc = swfs_sh_pipeline(p, model, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact,
+                              u->mask ? u->mask->data : NULL, rec->nslopes, rec, NULL, 0, &po);
+        if (!rc) swfs_pipeline_get_info(*p, &r->info);
     }
     swfs_recon_free(rec);
     free(act);
