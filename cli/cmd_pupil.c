@@ -154,7 +154,7 @@ int swfs_cmd_pupil(int argc, char **argv)
                "%.1f %%)\n", 100 * r->explained, 100 * r->explained_median);
         if (r->explained_map && g.pixscale > 0) {
             double ring[32];
-            const size_t nr = (size_t)fmin(32, ceil(0.5 * (double)r->explained_map->nx * g.pixscale));
+            const size_t nr = (size_t)fmin(32, (double)swfs_pupil_explained_nrings(r->explained_map, g.pixscale));
             swfs_pupil_explained_rings(r->explained_map, g.pixscale, ring, nr);
             printf("  by ring [l/D]    ");
             for (size_t k = 0; k < nr; k++)

@@ -67,6 +67,8 @@ typedef struct swfs_pupil_result {
  * speckles lack what the WFS aliases, the rings inside the control radius that the aliases
  * land on explain less than their neighbours (docs/telemetry.md). */
 void swfs_pupil_explained_rings(const swfs_real *map, double pixscale, double *out, size_t nrings);
+/* The rings out to the window's edge: ceil(nx PIXSCALE / 2). */
+size_t swfs_pupil_explained_nrings(const swfs_real *map, double pixscale);
 
 /* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE
  * naming `what`, the sample and the value otherwise). */

@@ -303,6 +303,7 @@ _PROTOS = {
                                     P(P(swfs_pupil_result))]),
     "swfs_pupil_result_free": (None, [P(swfs_pupil_result)]),
     "swfs_pupil_explained_rings": (None, [P(swfs_real), c_dbl, P(c_dbl), c_size]),
+    "swfs_pupil_explained_nrings": (c_size, [P(swfs_real), c_dbl]),
     "swfs_pupil_write": (c_int, [P(swfs_pupil_result), c_str, P(swfs_geom), P(c_str), c_size]),
     "swfs_wfe_compare": (c_int, [P(c_dbl), P(c_dbl), P(c_dbl), c_size, P(c_dbl), P(c_dbl), P(c_dbl)]),
     "swfs_wfe_remove_ptt": (c_dbl, [P(c_dbl), P(c_dbl), c_size]),

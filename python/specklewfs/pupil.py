@@ -1,6 +1,5 @@
 """Pupil field and NCP wavefront from the static halo (pupil.h)."""
 import ctypes
-import math
 
 import numpy as np
 
@@ -50,15 +49,13 @@ class PupilResult:
     def explained_rings(self, nrings=None):
         """The self-check by ring of 1 lambda/D (pupil.h, swfs_pupil_explained_rings): array of
         the median explained fraction over [k, k + 1) lambda/D, NaN where a ring has no pixel;
-        nrings defaults to the rings inside the window. None after the moments."""
+        nrings defaults to the rings out to the window's edge. None after the moments."""
         if self.explained_map is None or self.geom is None:
             return None
-        ps = float(self.geom.pixscale)
-        r = self._p.contents.explained_map.contents
-        n = int(nrings) if nrings is not None else min(32, int(math.ceil(0.5 * r.nx * ps)))
+        m, ps = self._p.contents.explained_map, float(self.geom.pixscale)
+        n = int(nrings) if nrings is not None else min(32, lib.swfs_pupil_explained_nrings(m, ps))
         out = np.empty(n)
-        lib.swfs_pupil_explained_rings(self._p.contents.explained_map, ps,
-                                       out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), n)
+        lib.swfs_pupil_explained_rings(m, ps, out.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), n)
         return out
 
     def write(self, path, geom=None, provenance=()):

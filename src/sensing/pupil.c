@@ -32,6 +32,12 @@ void swfs_pupil_result_free(swfs_pupil_result *r)
     free(r);
 }
 
+size_t swfs_pupil_explained_nrings(const swfs_real *map, double pixscale)
+{
+    const double edge = ceil(0.5 * (double)map->nx * pixscale);
+    return edge > 0 && isfinite(edge) ? (size_t)edge : 0;
+}
+
 void swfs_pupil_explained_rings(const swfs_real *map, double pixscale, double *out, size_t nrings)
 {
     const size_t nx = map->nx, ny = map->ny, np = nx * ny;
