@@ -247,8 +247,7 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
         swfs_regress_sol_free(s);
         return SWFS_ERR_NOMEM;
     }
-    double v[NS], sst_sum = 0, sse_sum = 0, *r2 = malloc(np * sizeof *r2);
-    size_t nr2 = 0;
+    double v[NS], sst_sum = 0, sse_sum = 0;
     for (size_t k = 0; k < np; k++) s->r2->data[k] = NAN;
     for (size_t k = 0; k < np; k++) {
         gather(r->state, np, k, v);
@@ -281,14 +280,18 @@ int swfs_regress_solve(const swfs_regress *r, swfs_regress_sol **out)
         s->n_valid++;
         /* the self-check: variance about the mean (the intercept alone) against what is left */
         const double sst = v[SWFS_REG_YY] - v[SWFS_REG_H0] * v[SWFS_REG_H0] / G[0][0], sse = v[SWFS_REG_YY] - th;
-        if (sst > 0) s->r2->data[k] = 1 - sse / sst;
-        if (sst > 0 && r2 && nr2 < np) {
+        if (sst > 0) {
             sst_sum += sst;
             sse_sum += sse;
-            r2[nr2++] = 1 - sse / sst;
+            s->r2->data[k] = 1 - sse / sst;
         }
     }
     s->explained = sst_sum > 0 ? 1 - sse_sum / sst_sum : NAN;
+    /* the median pixel's, from the map's finite values (a copy: the median sorts) */
+    double *r2 = malloc(np * sizeof *r2);
+    size_t nr2 = 0;
+    for (size_t k = 0; r2 && k < np; k++)
+        if (isfinite(s->r2->data[k])) r2[nr2++] = s->r2->data[k];
     s->explained_median = nr2 ? swfs_median_inplace(r2, nr2) : NAN;
     free(r2);
     if (!s->n_valid) {
