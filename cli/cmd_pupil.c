@@ -1,4 +1,4 @@
-/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr] */
+/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr] [--keep-resmean] */
 #include "cli.h"
 
 #include "specklewfs/estimate.h"
@@ -14,6 +14,7 @@
 static const char *usage_text =
     "usage: specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments]\n"
     "                        [--bias B] [--weight none|snr] [--wiener-k K] [--source lf|halo]\n"
+    "                        [--keep-resmean]\n"
     "\n"
     "The pupil field and the NCP wavefront (eq:Pupil-field-with-NCP1, eq:NCP-WFE-estimate) from the\n"
     "static halo, inside the pupil with piston removed.\n"
@@ -33,6 +34,10 @@ static const char *usage_text =
     "                     (default snr), or use every pixel at full weight as the paper does\n"
     "  --wiener-k K       k of the weight (default 2)\n"
     "  --source lf|halo   transform HALO_LF (eq:PSI-LowFreq, default) or HALO (eq:TheAnswer)\n"
+    "  --keep-resmean     keep the AO residual's time mean in WFE. By default, when HALO.fits carries\n"
+    "                     it (RESMEAN: speckles measure it from the telemetry over the same frames),\n"
+    "                     what the focal window sees of it is taken out of WFE and FIELD, so WFE is the\n"
+    "                     NCP alone; PUPIL.fits then has the map taken out (RESMEAN, RESMRMS)\n"
     "  --truth TRUTH.fits compare with a simulation's injected NCP (extension NCP [m]): prints the\n"
     "                     error rms with piston and tip/tilt removed, and records it (NCPERR)\n";
 
@@ -84,7 +89,7 @@ int swfs_cmd_pupil(int argc, char **argv)
     pupil_ctx pctx = {&opt, 0};
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &out, "a file name", 0},         {"--pupil", CLI_STRING, &maskfile, "a file name", 0},
-        {"--truth", CLI_STRING, &truthfile, "a file name", 0},
+        {"--truth", CLI_STRING, &truthfile, "a file name", 0},  {"--keep-resmean", CLI_SET, &opt.keep_resmean, NULL, 1},
     };
     const char **const pos[] = {&in};
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &pctx, NULL, NULL};
@@ -178,6 +183,11 @@ int swfs_cmd_pupil(int argc, char **argv)
                opt.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF", opt.weight == SWFS_WEIGHT_SNR ? "snr" : "none",
                opt.wiener_k, opt.bias);
     }
+    if (r->resmean)
+        printf("  AO residual mean  %.1f nm rms taken out (the telemetry's time mean over the same frames, as the "
+               "window sees it; RESMEAN): WFE is the NCP alone\n", r->resmean_rms * 1e9);
+    else if (h->resmean)
+        printf("  AO residual mean  kept (--keep-resmean): WFE is the whole static aberration the camera saw\n");
     printf("  WFE               %.1f nm rms, %.1f nm peak to valley (piston removed)\n", r->wfe_rms * 1e9, r->wfe_pv * 1e9);
     printf("  surface           %.1f nm rms\n", 0.5 * r->wfe_rms * 1e9);
     printf("  Strehl (Marechal) %.3f at %.3g um\n", r->strehl, g.wavelen * 1e6);

@@ -24,6 +24,10 @@ reduce_sync() { # reduce_sync <run dir> <sync args...>: raw_000..002 -> science.
     "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" "$@" > "$d/sync.log" \
         || { cat "$d/sync.log"; fail "$d: sync"; }
 }
+# speckles_pupil and ideal_pupil also run 'pupil --keep-resmean' (the AO residual's time mean
+# left in the wavefront) into pupil_k.log / pupil_ik.log: keep_errors <run dir> prints those
+# two errors, slopes then ideal.
+keep_errors() { echo "$(ncp_error "$1/pupil_k.log") $(ncp_error "$1/pupil_ik.log")"; }
 speckles_pupil() { # speckles_pupil <run dir>: speckles --match, estimate, pupil --truth; prints the NCP error
     local d=$1
     "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
@@ -31,6 +35,8 @@ speckles_pupil() { # speckles_pupil <run dir>: speckles --match, estimate, pupil
         || { cat "$d/speckles.log"; fail "$d: speckles"; }
     "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$d/estimate.log" 2>&1 || fail "$d: estimate"
     "$B" pupil "$d/halo.fits" -o "$d/pupil.fits" --truth "$d/sim/truth.fits" > "$d/pupil.log" || fail "$d: pupil"
+    "$B" pupil "$d/halo.fits" -o "$d/pupil_k.fits" --truth "$d/sim/truth.fits" --keep-resmean > "$d/pupil_k.log" \
+        || fail "$d: pupil --keep-resmean"
     ncp_error "$d/pupil.log"
 }
 ideal_pupil() { # ideal_pupil <run dir>: the same from the simulator's ideal speckles
@@ -38,5 +44,16 @@ ideal_pupil() { # ideal_pupil <run dir>: the same from the simulator's ideal spe
     "$B" estimate "$d/science.fits" "$d/sim/speckles_ideal.fits" -o "$d/halo_i.fits" > "$d/estimate_i.log" 2>&1 \
         || fail "$d: estimate (ideal)"
     "$B" pupil "$d/halo_i.fits" -o "$d/pupil_i.fits" --truth "$d/sim/truth.fits" > "$d/pupil_i.log" || fail "$d: pupil"
+    "$B" pupil "$d/halo_i.fits" -o "$d/pupil_ik.fits" --truth "$d/sim/truth.fits" --keep-resmean > "$d/pupil_ik.log" \
+        || fail "$d: pupil --keep-resmean (ideal)"
     ncp_error "$d/pupil_i.log"
+}
+# resmean_bounds <name> <slopes> <ideal> <slopes kept> <ideal kept> <factor>: the speckles from
+# the slopes within factor x the ideal speckles' (both with the residual's mean kept: the
+# speckles step itself), and the mean the telemetry measured, taken out, no worse than
+# keeping it (5 % for the estimate's own scatter)
+resmean_bounds() {
+    awk -v e="$2" -v i="$3" -v ek="$4" -v ik="$5" -v f="$6" \
+        'BEGIN { exit !(e > 0 && i > 0 && ek > 0 && ik > 0 && ek <= f * ik && e <= 1.05 * ek) }' \
+        || fail "$1: NCP error $2 nm (ideal $3), residual mean kept $4 nm (ideal $5): bounds ${6}x and 1.05x"
 }

@@ -10,6 +10,7 @@
 #include "specklewfs/aperture.h"
 #include "specklewfs/lmodel.h"
 #include "specklewfs/pipeline.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
@@ -243,6 +244,74 @@ static void test_linear_equals_shack_hartmann(void **state)
         free(cube); free(e); free(z);
         swfs_pipeline_free(sh); swfs_pipeline_free(lin); swfs_pipeline_free(fold);
     }
+    fixture_free(&f);
+}
+
+/* The reconstruction's time mean (swfs_pipeline_mean_wavefront): over the exposures
+ * processed, each its frames' weighted mean, it is T W s_bar with s_bar the mean of the
+ * exposures' weighted mean slopes, piston, tip and tilt removed -- the same from the
+ * Shack-Hartmann pipeline (tilt kept, or each exposure's tilt as its mean slopes) and from
+ * the linear model written as that pipeline; none before an exposure, none after a reset. */
+static void test_mean_wavefront(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    swfs_exposure sched[10];
+    const size_t need = swfs_engine_schedule(3.5, 0.3, 10, sched);
+    const size_t ns = f.nslopes, ng = NPUP * NPUP;
+    double *sbar = calloc(ns, sizeof *sbar), *e = calloc(f.nact, sizeof *e), *want = malloc(ng * sizeof *want);
+    double *got = malloc(ng * sizeof *got);
+    for (size_t i = 0; i < 10; i++) {
+        double wsum = 0;
+        for (size_t k = 0; k < sched[i].count; k++)
+            wsum += k == 0 ? sched[i].w_first : (k + 1 == sched[i].count ? sched[i].w_last : 1.0);
+        for (size_t k = 0; k < sched[i].count; k++) {
+            const double w = (k == 0 ? sched[i].w_first : (k + 1 == sched[i].count ? sched[i].w_last : 1.0)) / wsum;
+            for (size_t s = 0; s < ns; s++) sbar[s] += w * f.slopes[(sched[i].first + k) * ns + s] / 10.0;
+        }
+    }
+    assert_true(need <= f.nwfs);
+    for (size_t a = 0; a < f.nact; a++)
+        for (size_t s = 0; s < ns; s++) e[a] += f.rec->W[a * ns + s] * sbar[s];
+    const int modes[2] = {SWFS_TT_KEEP, SWFS_TT_EXPOSURE};
+    for (int m = 0; m < 2; m++) {
+        swfs_pipeline_options o;
+        swfs_pipeline_options_default(&o);
+        o.recon = SWFS_RECON_GIVEN;
+        o.tiptilt = modes[m];
+        swfs_pipeline *sh = NULL, *lin = NULL;
+        assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, ns, f.rec, NULL, 0, &o));
+        const swfs_sparse *T = swfs_pipeline_model(sh)->T;
+        swfs_linear_input in = {ns, T, f.rec->W, NULL, 1.0, NULL, 0};
+        assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
+        size_t nexp = 99;
+        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp), SWFS_ERR_VALUE);
+        assert_int_equal(nexp, 0);
+        double peak;
+        field_difference(sh, lin, &f, &peak);
+        swfs_sparse_apply(T, e, want);
+        const double rms = swfs_wfe_remove_ptt(want, f.mask, NPUP);
+        swfs_pipeline *both[2] = {sh, lin};
+        for (int b = 0; b < 2; b++) {
+            assert_ok(swfs_pipeline_mean_wavefront(both[b], got, &nexp));
+            assert_int_equal(nexp, 10);
+            double d = 0;
+            for (size_t k = 0; k < ng; k++) {
+                if (f.mask[k] > 0) d = fmax(d, fabs(got[k] - want[k]));
+                else assert_true(got[k] == 0.0);
+            }
+            printf("lmodel: time mean, tip-tilt mode %d, %s: %.1f nm rms, off by %.2g of it\n", modes[m],
+                   b ? "linear" : "Shack-Hartmann", rms * 1e9, d / rms);
+            assert_true(rms > 1e-9);
+            assert_true(d / rms < 1e-4); /* single-precision engine */
+        }
+        swfs_pipeline_mean_reset(sh);
+        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp), SWFS_ERR_VALUE);
+        swfs_pipeline_free(sh);
+        swfs_pipeline_free(lin);
+    }
+    free(sbar); free(e); free(want); free(got);
     fixture_free(&f);
 }
 
@@ -494,6 +563,7 @@ int main(void)
         cmocka_unit_test(test_registration_round_trip),
         cmocka_unit_test(test_grid_resampling_exact_for_quadratics),
         cmocka_unit_test(test_linear_equals_shack_hartmann),
+        cmocka_unit_test(test_mean_wavefront),
         cmocka_unit_test(test_linear_refusals),
         cmocka_unit_test(test_valid_map),
         cmocka_unit_test(test_interaction_matrix),

@@ -60,6 +60,11 @@ void swfs_engine_free(swfs_engine *e);
 int swfs_engine_nthreads(const swfs_engine *e);
 /* Illuminated pupil samples (those computed per frame). */
 size_t swfs_engine_npin(const swfs_engine *e);
+/* The wavefront [m] on the npup x npup grid (0 outside the illuminated samples) that the
+ * engine reconstructs from one vector v of nslopes telemetry values, with its own
+ * (single-precision) reconstructor and interpolation: the phase of the pupil field it
+ * forms, times lambda / (2 pi). Not on the per-frame path (it allocates nact values). */
+int swfs_engine_wavefront(const swfs_engine *e, const double *v, double *out);
 
 /* ---- one frame at a time (a stream) ---------------------------------------- */
 

@@ -80,6 +80,9 @@ typedef struct swfs_halo {
                                  below the noise model alone: the model is too large there */
     swfs_regress *reg;   /* regression statistics of the same frames (regress.h), what the joint
                             fit of pupil.h needs; NULL when the accumulator had none (owned) */
+    swfs_real *resmean;  /* PUPN x PUPN [m]: the AO residual's time mean over the same frames as the
+                            telemetry measures it (SPECKLES.fits RESMEAN, pipeline.h), which `pupil`
+                            subtracts; NULL when the speckles came without it (owned) */
 } swfs_halo;
 
 #define SWFS_G_SMOOTH_DEFAULT 8.0 /* pixels: 2 lambda/D at the paper's 0.25 lambda/D sampling */
@@ -95,12 +98,16 @@ void swfs_halo_free(swfs_halo *h);
 /* HALO.fits: an empty primary HDU with the summary keywords (NFRAMES, SKIPPED, NVALID,
  * VALIDFR, NBADRAD, NNOSP, MEDSNR, RDNOISE, GAIN), the geometry and provenance, then the
  * image extensions HALO, HALO_LF, STAB (complex), GAIN, VISIB, SNR, MEAN_I, VAR_I, MEAN_SP,
- * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES, GAIN_PIX (real), and when h->reg is set REGSTATE (the
- * regression statistics, checkpoint.h's layout). Written atomically (.part + rename). */
+ * VAR_SP, STAB_ERR, CIRC, VALID, NFRAMES, GAIN_PIX (real), when h->reg is set REGSTATE (the
+ * regression statistics, checkpoint.h's layout) and when h->resmean is set RESMEAN (PUPN x
+ * PUPN [m]). Written atomically (.part + rename). */
 int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, const char *const *prov,
                     size_t nprov);
 /* Read back every extension present (HALO and HALO_LF are required). */
 int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g);
+/* The extension RESMEAN of an open file (SPECKLES.fits, HALO.fits): one square map of finite
+ * values [m]; errors name path. */
+int swfs_resmean_read_ext(swfs_fits_in *f, const char *path, swfs_real **out);
 
 /* Classic phase-shifting interferometry (Sec. 2.1), the baseline the random-reference
  * method generalizes: n interferograms I_k = |Psi + psi e^{i eta_k}|^2 of one pixel with

@@ -41,6 +41,10 @@ typedef struct swfs_pupil_options {
     int method;      /* SWFS_PUPIL_AUTO (default), SWFS_PUPIL_FIT or SWFS_PUPIL_MOMENTS; weight,
                         wiener_k, bias and source apply to the moments only */
     swfs_jointfit_options fit; /* the joint fit's options (swfs_jointfit_options_default) */
+    int keep_resmean; /* 0 (default): where the halo carries the AO residual's time mean that the
+                         telemetry measured (swfs_halo.resmean), take it out of WFE and FIELD,
+                         band-limited to the window (swfs_pupil_remove_resmean): WFE is then the
+                         NCP alone. 1: keep it (WFE = the whole static aberration the camera saw) */
 } swfs_pupil_options;
 
 void swfs_pupil_options_default(swfs_pupil_options *o);
@@ -59,6 +63,9 @@ typedef struct swfs_pupil_result {
     double explained, explained_median; /* the joint fit's self-check of the speckles (swfs_regress_sol):
                                            NaN for the moments */
     swfs_real *explained_map; /* per focal pixel 1 - SSE / SST (NaN where not solved), NULL for the moments */
+    swfs_real *resmean;   /* [m] the AO residual's time mean taken out of WFE (band-limited, piston,
+                             tip and tilt removed); NULL when none was (no RESMEAN, or keep_resmean) */
+    double resmean_rms;   /* [m] its rms in the pupil; 0 when none */
 } swfs_pupil_result;
 
 /* The self-check by ring: out[k] = the median of the finite values of map (a focal-plane
@@ -92,6 +99,20 @@ int swfs_wfe_compare(const double *est, const double *truth, const double *mask,
                      double *truth_rms_piston, double *truth_rms_ptt);
 /* Remove piston, tip and tilt (least squares over the mask) from w in place; returns rms. */
 double swfs_wfe_remove_ptt(double *w, const double *mask, size_t n);
+
+/* The AO residual's time mean (speckles measure it from the telemetry over the frames they
+ * make: pipeline.h swfs_pipeline_mean_wavefront) is a static aberration of the science frames
+ * like the NCP, and the static halo holds it. Only what the nfx x nfy focal window sees of it
+ * is in the estimate, so it is band-limited to the window first: the spatial frequencies up to
+ * floor(nfx/2) PIXSCALE (x) and floor(nfy/2) PIXSCALE (y) cycles per D, by FFT, as a
+ * normalized convolution (the low-passed masked map over the low-passed mask) so the rim keeps
+ * its level; piston, tip and tilt removed. out: n x n, 0 outside the mask. */
+int swfs_resmean_bandlimit(const double *map, const double *mask, size_t n, const swfs_geom *g, size_t nfx,
+                           size_t nfy, double *out);
+/* That band-limited map subtracted from r->wfe and its phase from r->field, inside r->mask;
+ * r->resmean and r->resmean_rms set (the caller recomputes the WFE statistics). */
+int swfs_pupil_remove_resmean(swfs_pupil_result *r, const swfs_real *resmean, const swfs_geom *g, size_t nfx,
+                              size_t nfy);
 
 SWFS_END_DECLS
 

@@ -157,6 +157,8 @@ typedef struct swfs_speckles_run_result {
     size_t ncubes, nok;       /* cubes in the table, usable cubes */
     double ratio, lag, wfs_hz;
     swfs_pipeline_info info;
+    double resmean_rms;       /* [m] the reconstructed residual's time mean over the frames written
+                                 (SPECKLES.fits RESMEAN, swfs_pipeline_mean_wavefront), rms in the pupil */
 } swfs_speckles_run_result;
 
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);

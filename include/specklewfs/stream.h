@@ -80,6 +80,9 @@ void swfs_stream_reset(swfs_stream *s);
 
 /* The estimate from what has been accumulated (estimate.h); caller frees *out. */
 int swfs_stream_estimate(const swfs_stream *s, swfs_halo **out);
+/* h->resmean = the AO residual's time mean over the exposures pushed so far, from the
+ * stream's pipeline (swfs_pipeline_mean_wavefront); swfs_stream_estimate attaches it. */
+int swfs_stream_attach_resmean(const swfs_stream *s, swfs_halo *h);
 const swfs_accum *swfs_stream_accum(const swfs_stream *s);
 /* The static halo in use (nfx x nfy); NULL until the first batch with SWFS_STATIC_AUTO. */
 const swfs_complex *swfs_stream_static(const swfs_stream *s);

@@ -124,7 +124,7 @@ swfs_halo = _s("swfs_halo", [("nx", c_size), ("ny", c_size)] + [(n, P(swfs_cplx)
                + [(n, c_dbl) for n in ("valid_fraction", "median_snr", "radicand_min")]
                + [("frames", ctypes.c_ulonglong), ("skipped", ctypes.c_ulonglong), ("noise", swfs_noise),
                   ("g_smooth", c_dbl), ("n_g_fallback", c_size), ("n_var_below_noise", c_size),
-                  ("reg", c_ptr)])
+                  ("reg", c_ptr), ("resmean", P(swfs_real))])
 swfs_estimate_options = _s("swfs_estimate_options", [("g_smooth", c_dbl)])
 ACC_NFIELDS = 15
 ACC_FIELDS = ["N", "MI", "MX", "MY", "MA", "CII", "CIX", "CIY", "CIA", "CXX", "CXY", "CXA", "CYY", "CYA", "CAA"]
@@ -143,13 +143,14 @@ swfs_jointfit_result = _s("swfs_jointfit_result", [
     ("noise_scale", c_dbl)])
 swfs_pupil_options = _s("swfs_pupil_options", [("weight", c_int), ("wiener_k", c_dbl), ("bias", c_dbl),
                                                ("source", c_int), ("method", c_int),
-                                               ("fit", swfs_jointfit_options)])
+                                               ("fit", swfs_jointfit_options), ("keep_resmean", c_int)])
 swfs_pupil_result = _s("swfs_pupil_result", [("field", P(swfs_cplx)), ("wfe", P(swfs_real)),
                                              ("surface", P(swfs_real)), ("amplitude", P(swfs_real)),
                                              ("mask", P(swfs_real)), ("wfe_rms", c_dbl), ("wfe_pv", c_dbl),
                                              ("strehl", c_dbl), ("opt", swfs_pupil_options), ("method", c_int),
                                              ("fit", P(swfs_jointfit_result)), ("explained", c_dbl),
-                                             ("explained_median", c_dbl), ("explained_map", P(swfs_real))])
+                                             ("explained_median", c_dbl), ("explained_map", P(swfs_real)),
+                                             ("resmean", P(swfs_real)), ("resmean_rms", c_dbl)])
 swfs_sparse = _s("swfs_sparse", [("nrows", c_size), ("ncols", c_size), ("nnz", c_size), ("row_ptr", P(c_size)),
                                  ("col", P(c_size)), ("val", P(c_dbl))])
 swfs_dm_registration = _s("swfs_dm_registration", [("pitch", c_dbl), ("x0", c_dbl), ("y0", c_dbl), ("rot", c_dbl),

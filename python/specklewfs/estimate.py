@@ -161,7 +161,8 @@ class Halo:
     """A halo estimate (estimate.h). Every map is a (ny, nx) numpy array or None when
     absent: halo (Psi, eq:TheAnswer), halo_lf (eq:PSI-LowFreq), stab (<psi' I>), gain (g
     used), gain_pix (the paper's per-pixel g), visib, snr, mean_i, var_i, mean_sp, var_sp,
-    stab_err, circ, valid, nframes. Maps of a computed or read halo are views of the
+    stab_err, circ, valid, nframes; resmean ((pupn, pupn) [m]: the AO residual's time mean
+    that the speckles carried, HALO.fits RESMEAN). Maps of a computed or read halo are views of the
     library's memory (no copies). Summary: npix, n_valid, valid_fraction, median_snr,
     frames, skipped, read_noise, gain_e (e-/count), g_smooth, ... and geom (read())."""
 
@@ -188,6 +189,7 @@ class Halo:
             setattr(self, name, getattr(h, name))
         self.read_noise = h.noise.read_noise
         self.gain_e = h.noise.gain
+        self.resmean = _lib.real_view(h.resmean, owner) if h.resmean else None
         self.geom = None
         return self
 
@@ -210,8 +212,11 @@ class Halo:
     def from_arrays(cls, halo, halo_lf=None, geom=None, **maps):
         """A halo from numpy maps computed elsewhere, e.g. for pupil_estimate(): halo and
         halo_lf complex (ny, nx) (halo_lf defaults to halo), stab complex, any real map of
-        HALO_EXTS by attribute name (stab and stab_err are needed for the SNR weight).
+        HALO_EXTS by attribute name (stab and stab_err are needed for the SNR weight), and
+        resmean: the AO residual's time mean [m] on the (pupn, pupn) pupil grid, which
+        pupil_estimate() takes out of the wavefront.
         The arrays are used in place (no copies when already float64/complex128)."""
+        resmean = maps.pop("resmean", None)
         halo = as_array(halo, "halo", np.complex128, ndim=2)
         ny, nx = halo.shape
         halo_lf = halo if halo_lf is None else as_array(halo_lf, "halo_lf", np.complex128, shape=(ny, nx))
@@ -233,6 +238,14 @@ class Halo:
             keep[name] = arr
             structs.append(s)
             setattr(h, name, ctypes.pointer(s))
+        if resmean is not None:
+            resmean = as_array(resmean, "resmean", np.float64, ndim=2)
+            if resmean.shape[0] != resmean.shape[1]:
+                raise ValueError(f"resmean: expected a square (pupn, pupn) map, got shape {resmean.shape}")
+            s = _lib.real_struct(resmean)
+            keep["resmean"] = resmean
+            structs.append(s)
+            h.resmean = ctypes.pointer(s)
         h.median_snr = math.nan
         ptr = ctypes.pointer(h)
         self = cls._wrap(ptr, None, keep=(keep, structs, h))

@@ -22,7 +22,8 @@ class PupilResult:
     power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence),
     explained, explained_median (the self-check of the speckles: the science variance they
     explain, summed and median pixel), explained_map (per pixel; NaN where not solved) and
-    explained_rings()."""
+    explained_rings(). resmean: the AO residual's time mean [m] taken out of wfe (the halo's
+    RESMEAN band-limited to the window, pupil.h), None when none was; resmean_rms [m]."""
 
     def __init__(self, ptr, geom):
         self._p = ptr
@@ -39,6 +40,8 @@ class PupilResult:
         self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = self.fit_noise_scale = None
         self.explained, self.explained_median = r.explained, r.explained_median
         self.explained_map = _lib.real_view(r.explained_map, self._owner) if r.explained_map else None
+        self.resmean = _lib.real_view(r.resmean, self._owner) if r.resmean else None
+        self.resmean_rms = r.resmean_rms
         if r.method == 1 and r.fit:
             f = r.fit.contents
             self.halo_fit = _lib.cplx_view(f.halo, self._owner)
@@ -65,13 +68,16 @@ class PupilResult:
         check(lib.swfs_pupil_write(self._p, enc(path), ctypes.byref(g), prov, n), "swfs_pupil_write")
 
 
-def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf", method="auto"):
+def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf", method="auto",
+                   keep_resmean=False):
     """Pupil field and NCP wavefront from a Halo (pupil.h; the defaults are those of
     `specklewfs pupil`). geom: a Geom (default halo.geom; needs WAVELEN, TELDIAM, OBSCUR,
     PIXSCALE, PUPDX, PUPN); mask: (pupn, pupn) transmission or None for the annulus;
     method 'auto' (the joint fit when the halo carries regression statistics, else the
     moments), 'fit' or 'moments'; for the moments: weight 'snr' (Wiener SNR^2/(SNR^2+k^2))
-    or 'none', source 'lf' (HALO_LF) or 'halo'."""
+    or 'none', source 'lf' (HALO_LF) or 'halo'. When the halo carries the AO residual's time
+    mean (HALO.fits RESMEAN, from `speckles` or a stream), it is taken out of the wavefront
+    unless keep_resmean (`pupil --keep-resmean`)."""
     if not isinstance(halo, Halo):
         raise TypeError(f"halo: expected a specklewfs.Halo, got {type(halo).__name__}")
     geom = geom if geom is not None else halo.geom
@@ -90,6 +96,7 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
         raise ValueError(f"weight must be 'snr' or 'none', source 'lf' or 'halo', method 'auto', 'fit' or "
                          f"'moments', got {e}") from None
     o.wiener_k, o.bias = float(wiener_k), float(bias)
+    o.keep_resmean = 1 if keep_resmean else 0
     ms = ms_s = None
     if mask is not None:
         mask = as_array(mask, "mask", np.float64, ndim=2)

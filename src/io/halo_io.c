@@ -58,11 +58,33 @@ int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, co
         if (a) rc = swfs_fits_out_real(o, real_exts[k].name, a, -64);
     }
     if (!rc && h->reg) rc = swfs_regress_write_ext(o, h->reg);
+    if (!rc && h->resmean) rc = swfs_fits_out_real(o, "RESMEAN", h->resmean, -64);
+    if (!rc && h->resmean) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "AO residual's time mean (telemetry)");
     if (rc) {
         swfs_fits_out_abort(o);
         return rc;
     }
     return swfs_fits_out_commit(o);
+}
+
+int swfs_resmean_read_ext(swfs_fits_in *f, const char *path, swfs_real **out)
+{
+    *out = NULL;
+    int rc = swfs_fits_in_move(f, "RESMEAN");
+    if (!rc) rc = swfs_fits_in_require_float(f, "the AO residual's time mean (RESMEAN)");
+    if (!rc) rc = swfs_fits_in_read_real_all(f, out);
+    if (!rc && ((*out)->nx != (*out)->ny || (*out)->nz != 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: extension RESMEAN is %zux%zux%zu; expected one PUPN x PUPN map [m]", path,
+                       (*out)->nx, (*out)->ny, (*out)->nz);
+    for (size_t k = 0; !rc && k < (*out)->nx * (*out)->ny; k++)
+        if (!isfinite((*out)->data[k]))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: RESMEAN sample %zu is %g; expected a finite wavefront [m]", path, k,
+                           (*out)->data[k]);
+    if (rc) {
+        swfs_real_free(*out);
+        *out = NULL;
+    }
+    return rc;
 }
 
 int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
@@ -105,6 +127,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
         if (!swfs_fits_in_key_double_opt(f, "MEDSNR", &v, &found) && found) h->median_snr = v;
     }
     if (!rc && swfs_fits_in_has_ext(f, "REGSTATE")) rc = swfs_regress_read_ext(f, path, h->nx, h->ny, &h->reg);
+    if (!rc && swfs_fits_in_has_ext(f, "RESMEAN")) rc = swfs_resmean_read_ext(f, path, &h->resmean);
     swfs_fits_in_close(f);
     if (rc) { swfs_halo_free(h); return rc; }
     *out = h;

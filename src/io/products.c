@@ -56,6 +56,8 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
         rc = swfs_fits_out_key_double(o, "FITDCHI2", f->delta_chi2, "(chi2(model) - chi2(free)) x noise scale");
     if (!rc && f && isfinite(f->delta_chi2_limit))
         rc = swfs_fits_out_key_double(o, "FITDCLIM", f->delta_chi2_limit, "the model is kept below this");
+    if (!rc) rc = swfs_fits_out_key_double(o, "RESMRMS", r->resmean_rms,
+                                           "[m] AO residual's time mean taken out of WFE");
     if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:Pupil-field-with-NCP1", NULL);
     if (!rc) rc = swfs_fits_out_real(o, "WFE", r->wfe, -64);
@@ -68,6 +70,9 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "Psi of the joint fit, frame of psi - <psi>", NULL);
     if (!rc && f) rc = swfs_fits_out_real(o, "GAIN_FIT", f->gain, -64);
     if (!rc && f) rc = swfs_fits_out_key_string(o, "COMMENT", "g of the joint fit (smooth log-g map)", NULL);
+    if (!rc && r->resmean) rc = swfs_fits_out_real(o, "RESMEAN", r->resmean, -64);
+    if (!rc && r->resmean)
+        rc = swfs_fits_out_key_string(o, "BUNIT", "m", "AO residual's time mean taken out (band-limited)");
     if (!rc && f && r->explained_map) rc = swfs_fits_out_real(o, "EXPLAINED", r->explained_map, -32);
     if (!rc && f && r->explained_map)
         rc = swfs_fits_out_key_string(o, "COMMENT", "self-check: science variance the speckles explain, per pixel", NULL);

@@ -165,6 +165,11 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
     if (!rc && swfs_team_writer(o->team)) {
         if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
+        /* the AO residual's time mean that speckles measured on the same frames goes with the halo */
+        if (!rc && swfs_fits_in_has_ext(fp, "RESMEAN")) rc = swfs_resmean_read_ext(fp, o->speckles, &r->halo->resmean);
+        if (!rc && r->halo->resmean && r->geom.pupn > 0 && r->halo->resmean->nx != (size_t)r->geom.pupn)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zux%zu but PUPN = %ld", o->speckles, r->halo->resmean->nx,
+                           r->halo->resmean->ny, r->geom.pupn);
         char nl[256];
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", r->noise.read_noise,
                  r->noise.gain);

@@ -36,6 +36,7 @@ typedef struct work {
     swfs_recon *rin;
     swfs_pipeline *p;
     swfs_cplx *halo;
+    swfs_real *resmean; /* the reconstructed residual's time mean (PUPN x PUPN) [m] */
     swfs_real *slopes;
     swfs_exposure *sched;
     size_t *cfirst, *cn;
@@ -49,6 +50,7 @@ static void work_free(work *w)
     swfs_recon_free(w->rin);
     swfs_pipeline_free(w->p);
     swfs_cplx_free(w->halo);
+    swfs_real_free(w->resmean);
     swfs_real_free(w->slopes);
 }
 
@@ -338,6 +340,33 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
     return rc;
 }
 
+/* The reconstructed residual's time mean over every frame written (a team's members add
+ * their sums first): the static aberration of the science frames that the telemetry measures
+ * (swfs_pipeline_mean_wavefront), written beside the speckles for `pupil` to take out. */
+static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+{
+    const size_t n = (size_t)w->g.pupn;
+    double *sum;
+    size_t ns, nexp;
+    swfs_pipeline_mean_state(w->p, &sum, &ns, &nexp);
+    if (swfs_team_active(o->team)) {
+        double cnt = (double)nexp;
+        int rc = o->team->sum(o->team->ctx, sum, ns);
+        if (!rc) rc = o->team->sum(o->team->ctx, &cnt, 1);
+        if (rc) return rc;
+        swfs_pipeline_mean_set_count(w->p, (size_t)llround(cnt));
+    }
+    if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    int rc = swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL);
+    if (rc) return rc;
+    const double *mask = swfs_pipeline_mask(w->p);
+    double s2 = 0.0, m = 0.0;
+    for (size_t k = 0; k < n * n; k++)
+        if (mask[k] > 0.0) { s2 += mask[k] * w->resmean->data[k] * w->resmean->data[k]; m += mask[k]; }
+    r->resmean_rms = m > 0.0 ? sqrt(s2 / m) : 0.0;
+    return SWFS_OK;
+}
+
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
  * the noise keywords, so it matches the speckle cube frame for frame, and brought into the
  * model's orientation when sync found the camera flipped or transposed (CAMORIEN). */
@@ -442,7 +471,11 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
         (o->lin.basis && (rc = linear_keys(f, &o->lin))) ||
         (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||
                               (rc = swfs_fits_out_key_double(f, "WFSRATE", r->wfs_hz, "[Hz]")) ||
-                              (rc = swfs_fits_out_key_long(f, "NSEGS", (long)r->nok, "contiguous segments (usable cubes)"))))) {
+                              (rc = swfs_fits_out_key_long(f, "NSEGS", (long)r->nok, "contiguous segments (usable cubes)")))) ||
+        (w->resmean && ((rc = swfs_fits_out_real(f, "RESMEAN", w->resmean, -64)) ||
+                        (rc = swfs_fits_out_key_string(f, "BUNIT", "m", "wavefront (OPD)")) ||
+                        (rc = swfs_fits_out_key_double(f, "RESMRMS", r->resmean_rms,
+                                                       "[m] rms of the residual's time mean (PTT removed)"))))) {
         swfs_fits_out_abort(f);
         return rc;
     }
@@ -477,6 +510,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
             rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
         if (!rc) rc = process_cubes(o, &w, r, 0, r->nout);
     }
+    if (!rc) rc = residual_mean(o, &w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
     if (!rc) {
         r->ncubes = w.t->ncubes;

@@ -87,7 +87,16 @@ static int update(void *ctx, const swfs_stream *s, int final)
             return rc;
         u->static_written = 1;
     }
-    if ((rc = u->merged ? swfs_estimate(acc, &u->so->noise, &u->so->est, &h) : swfs_stream_estimate(s, &h))) {
+    if (u->merged) {
+        rc = swfs_estimate(acc, &u->so->noise, &u->so->est, &h);
+        if (!rc && (rc = swfs_stream_attach_resmean(s, h))) {
+            swfs_halo_free(h);
+            h = NULL;
+        }
+    } else {
+        rc = swfs_stream_estimate(s, &h);
+    }
+    if (rc) {
         if (final) return rc;
         if (o->on_update) o->on_update(o->update_ctx, s, NULL, NULL, 0);
         return SWFS_OK;
@@ -316,6 +325,15 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
     sums[0] = (double)swfs_stream_camera_frames(*sp);
     sums[1] = swfs_stream_wfs_frames(*sp);
     if ((rc = t->sum(t->ctx, sums, 2))) return rc;
+    {
+        /* the reconstruction's time mean over every member's exposures (pipeline.h) */
+        double *msum, cnt;
+        size_t mn, mexp;
+        swfs_pipeline_mean_state(p, &msum, &mn, &mexp);
+        cnt = (double)mexp;
+        if ((rc = t->sum(t->ctx, msum, mn)) || (rc = t->sum(t->ctx, &cnt, 1))) return rc;
+        swfs_pipeline_mean_set_count(p, (size_t)llround(cnt));
+    }
     const swfs_accum *mine = swfs_stream_accum(*sp);
     if (t->rank == 0 && !(*merged = swfs_accum_create(mine->nx, mine->ny)))
         rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory for the merged accumulators");

@@ -488,6 +488,32 @@ void swfs_engine_reset(swfs_engine *e)
 int swfs_engine_nthreads(const swfs_engine *e) { return e->nthreads; }
 size_t swfs_engine_npin(const swfs_engine *e) { return e->npin; }
 
+int swfs_engine_wavefront(const swfs_engine *e, const double *v, double *out)
+{
+    double *z = malloc(e->nact * sizeof *z);
+    if (!z) return swfs_fail(SWFS_ERR_NOMEM, "engine: out of memory");
+    for (size_t k = 0; k < e->nslopes; k++)
+        if (!isfinite(v[k])) {
+            free(z);
+            return swfs_fail(SWFS_ERR_VALUE, "engine: telemetry value %zu is not finite", k);
+        }
+    for (size_t a = 0; a < e->nact; a++) {
+        const float *w = e->wf + a * e->nslopes;
+        double s = 0.0;
+        for (size_t k = 0; k < e->nslopes; k++) s += (double)w[k] * v[k];
+        z[a] = s;
+    }
+    const double m_per_rad = e->wavelen / (2.0 * M_PI);
+    memset(out, 0, e->npup * e->npup * sizeof *out);
+    for (size_t r = 0; r < e->npin; r++) {
+        double y = 0.0;
+        for (size_t k = e->rp[r]; k < e->rp[r + 1]; k++) y += (double)e->val[k] * z[e->col[k] / BLK];
+        out[e->pidx[r]] = m_per_rad * y;
+    }
+    free(z);
+    return SWFS_OK;
+}
+
 static int worker_init(const swfs_engine *e, worker *w)
 {
     const size_t np2 = e->npup * e->npup;

@@ -17,6 +17,7 @@ void swfs_halo_free(swfs_halo *h)
     swfs_real_free(h->var_sp); swfs_real_free(h->stab_err); swfs_real_free(h->circ);
     swfs_real_free(h->valid); swfs_real_free(h->nframes);
     swfs_regress_free(h->reg);
+    swfs_real_free(h->resmean);
     free(h);
 }
 

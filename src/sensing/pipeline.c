@@ -3,6 +3,7 @@
 #include "specklewfs/aperture.h"
 #include "specklewfs/status.h"
 #include "pipeline_internal.h"
+#include "specklewfs/pupil.h"
 
 #include <cblas.h>
 
@@ -37,6 +38,7 @@ void swfs_pipeline_free(swfs_pipeline *p)
     free(p->mask);
     free(p->xslopes);
     free(p->xsched);
+    free(p->macc);
     free(p);
 }
 
@@ -280,7 +282,59 @@ int swfs_pipeline_engine_(swfs_pipeline *p, const swfs_geom *g, size_t nrows, si
     swfs_engine_config ec = {ncols, nrows, p->info.npup, p->info.nfx, p->info.nfy, g->pixscale * g->pupdx / g->teldiam,
                              g->wavelen, W, T, p->mask, 0, p->opt.threads};
     if (!(p->engine = swfs_engine_create(&ec))) return swfs_fail_context(SWFS_ERR_NOMEM, "pipeline");
+    if (!(p->macc = calloc(ncols, sizeof *p->macc))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    p->mcols = ncols;
+    p->mexp = 0;
     return SWFS_OK;
+}
+
+/* Each exposure's weighted mean engine input into the running sum (the engine's weights:
+ * w_first on the first frame, w_last on the last, 1 in between; count 1: w_first). */
+static void mean_add(swfs_pipeline *p, const double *v, const swfs_exposure *sched, size_t nexp)
+{
+    const size_t nc = p->mcols;
+    for (size_t i = 0; i < nexp; i++) {
+        const swfs_exposure *x = sched + i;
+        double wsum = 0.0;
+        for (size_t f = 0; f < x->count; f++) wsum += f == 0 ? x->w_first : (f + 1 == x->count ? x->w_last : 1.0);
+        if (!(wsum > 0.0)) continue;
+        for (size_t f = 0; f < x->count; f++) {
+            const double w = (f == 0 ? x->w_first : (f + 1 == x->count ? x->w_last : 1.0)) / wsum;
+            const double *s = v + (x->first + f) * nc;
+            for (size_t k = 0; k < nc; k++) p->macc[k] += w * s[k];
+        }
+        p->mexp++;
+    }
+}
+
+void swfs_pipeline_mean_reset(swfs_pipeline *p)
+{
+    memset(p->macc, 0, p->mcols * sizeof *p->macc);
+    p->mexp = 0;
+}
+
+void swfs_pipeline_mean_state(swfs_pipeline *p, double **sum, size_t *n, size_t *nexp)
+{
+    *sum = p->macc;
+    *n = p->mcols;
+    *nexp = p->mexp;
+}
+
+void swfs_pipeline_mean_set_count(swfs_pipeline *p, size_t nexp) { p->mexp = nexp; }
+const double *swfs_pipeline_mask(const swfs_pipeline *p) { return p->mask; }
+
+int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp)
+{
+    const size_t n = p->info.npup;
+    if (nexp) *nexp = p->mexp;
+    if (!p->mexp) return swfs_fail(SWFS_ERR_VALUE, "pipeline: no exposure processed, so no time mean");
+    double *v = malloc(p->mcols * sizeof *v);
+    if (!v) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t k = 0; k < p->mcols; k++) v[k] = p->macc[k] / (double)p->mexp;
+    int rc = swfs_engine_wavefront(p->engine, v, out);
+    free(v);
+    if (!rc) swfs_wfe_remove_ptt(out, p->mask, n);
+    return rc;
 }
 
 int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *xy,
@@ -337,19 +391,30 @@ int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, c
                           swfs_complex *out)
 {
     if (p->opt.wfs_rate) return swfs_fail(SWFS_ERR_ARG, "pipeline: made for the WFS rate; use swfs_pipeline_process_wfs");
-    if (p->opt.tiptilt != SWFS_TT_EXPOSURE) return swfs_engine_process(p->engine, slopes, nwfs, sched, nexp, out);
+    if (p->opt.tiptilt != SWFS_TT_EXPOSURE) {
+        int rc = swfs_engine_process(p->engine, slopes, nwfs, sched, nexp, out);
+        if (!rc) mean_add(p, slopes, sched, nexp);
+        return rc;
+    }
     /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
     const size_t nx = swfs_speckles_expand_frames(sched, nexp);
     int rc = reserve(p, nx, nexp);
     if (!rc) rc = swfs_speckles_expand(slopes, p->info.nslopes, nwfs, p->Rtilt, sched, nexp, p->xslopes, p->xsched);
     if (!rc) rc = swfs_engine_process(p->engine, p->xslopes, nx, p->xsched, nexp, out);
+    if (!rc) mean_add(p, p->xslopes, p->xsched, nexp);
     return rc;
 }
 
 int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwfs, swfs_complex *out)
 {
     if (!p->opt.wfs_rate) return swfs_fail(SWFS_ERR_ARG, "pipeline: made for camera exposures; use swfs_pipeline_process");
-    return swfs_engine_process_wfs(p->engine, slopes, nwfs, out);
+    int rc = swfs_engine_process_wfs(p->engine, slopes, nwfs, out);
+    for (size_t f = 0; !rc && f < nwfs; f++) {
+        const double *s = slopes + f * p->mcols;
+        for (size_t k = 0; k < p->mcols; k++) p->macc[k] += s[k];
+        p->mexp++;
+    }
+    return rc;
 }
 
 int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)

@@ -17,6 +17,11 @@ struct swfs_pipeline {
     size_t xcap;  /* frames xslopes holds */
     swfs_exposure *xsched;
     size_t xscap; /* exposures xsched holds */
+    /* The time mean of the reconstruction (swfs_pipeline_mean_wavefront): the sum over the
+     * exposures processed of each exposure's weighted mean engine input (mcols values), and
+     * their count. */
+    double *macc;
+    size_t mcols, mexp;
 };
 
 int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *mask,

@@ -17,6 +17,7 @@ void swfs_pupil_options_default(swfs_pupil_options *o)
     o->source = SWFS_SOURCE_HALO_LF;
     o->method = SWFS_PUPIL_AUTO;
     swfs_jointfit_options_default(&o->fit);
+    o->keep_resmean = 0;
 }
 
 void swfs_pupil_result_free(swfs_pupil_result *r)
@@ -29,6 +30,7 @@ void swfs_pupil_result_free(swfs_pupil_result *r)
     swfs_real_free(r->mask);
     swfs_jointfit_result_free(r->fit);
     swfs_real_free(r->explained_map);
+    swfs_real_free(r->resmean);
     free(r);
 }
 
@@ -137,16 +139,34 @@ int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real 
     const size_t n = (size_t)g->pupn;
     if (mask && (mask->nx != n || mask->ny != n))
         return swfs_fail(SWFS_ERR_SHAPE, "pupil mask is %zux%zu but the geometry says PUPN = %zu", mask->nx, mask->ny, n);
-    if (o.method == SWFS_PUPIL_FIT) return pupil_fit(h, g, mask, &o, out);
-    if (o.method == SWFS_PUPIL_AUTO && h->reg) {
-        /* AUTO: the fit when the statistics allow one; too few frames or pixels for any
-         * regression (e.g. the first update of a live run) fall back to the moments. */
+    if (h->resmean && !o.keep_resmean && (h->resmean->nx != n || h->resmean->ny != n))
+        return swfs_fail(SWFS_ERR_SHAPE, "the halo's AO residual mean (RESMEAN) is %zux%zu but the geometry says "
+                         "PUPN = %zu", h->resmean->nx, h->resmean->ny, n);
+    if (o.method == SWFS_PUPIL_FIT) {
         rc = pupil_fit(h, g, mask, &o, out);
-        if (rc != SWFS_ERR_NUMERIC) return rc;
+    } else {
+        rc = SWFS_ERR_NUMERIC;
+        if (o.method == SWFS_PUPIL_AUTO && h->reg) {
+            /* AUTO: the fit when the statistics allow one; too few frames or pixels for any
+             * regression (e.g. the first update of a live run) fall back to the moments. */
+            rc = pupil_fit(h, g, mask, &o, out);
+            if (rc != SWFS_ERR_NUMERIC) goto done;
+        }
+        if (o.method != SWFS_PUPIL_AUTO && o.method != SWFS_PUPIL_MOMENTS)
+            return swfs_fail(SWFS_ERR_ARG, "pupil method %d: expected auto, fit or moments", o.method);
+        rc = pupil_moments(h, g, mask, &o, out);
     }
-    if (o.method != SWFS_PUPIL_AUTO && o.method != SWFS_PUPIL_MOMENTS)
-        return swfs_fail(SWFS_ERR_ARG, "pupil method %d: expected auto, fit or moments", o.method);
-    return pupil_moments(h, g, mask, &o, out);
+done:
+    /* WFE = the NCP alone: the residual's time mean that the telemetry measured goes out. */
+    if (!rc && h->resmean && !o.keep_resmean) {
+        rc = swfs_pupil_remove_resmean(*out, h->resmean, g, h->nx, h->ny);
+        if (!rc) rc = wfe_stats(*out, g->wavelen);
+        if (rc) {
+            swfs_pupil_result_free(*out);
+            *out = NULL;
+        }
+    }
+    return rc;
 }
 
 /* The per-pixel moments transformed (paper Sec. 4.6 with the weighting above). */

@@ -160,9 +160,30 @@ void swfs_stream_reset(swfs_stream *s)
     s->wfs = 0.0;
 }
 
+int swfs_stream_attach_resmean(const swfs_stream *s, swfs_halo *h)
+{
+    swfs_pipeline_info in;
+    swfs_pipeline_get_info(s->p, &in);
+    swfs_real *m = swfs_real_alloc(in.npup, in.npup, 1);
+    if (!m) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
+    int rc = swfs_pipeline_mean_wavefront(s->p, m->data, NULL);
+    if (rc) {
+        swfs_real_free(m);
+        return rc;
+    }
+    swfs_real_free(h->resmean);
+    h->resmean = m;
+    return SWFS_OK;
+}
+
 int swfs_stream_estimate(const swfs_stream *s, swfs_halo **out)
 {
-    return swfs_estimate(s->acc, &s->opt.noise, &s->opt.est, out);
+    int rc = swfs_estimate(s->acc, &s->opt.noise, &s->opt.est, out);
+    if (!rc && (rc = swfs_stream_attach_resmean(s, *out))) {
+        swfs_halo_free(*out);
+        *out = NULL;
+    }
+    return rc;
 }
 
 const swfs_accum *swfs_stream_accum(const swfs_stream *s) { return s->acc; }

@@ -226,14 +226,19 @@ static void ideal_exposure(const double *ph, const double *w, size_t n, const si
     }
 }
 
+/* A speckle cube; with resmean (the true residual's time mean over the same frames) also
+ * its RESMEAN extension, as `speckles` writes the reconstructed one. */
 static int write_cplx_cube(const char *path, const swfs_cplx *c, const swfs_geom *g, const char *const *prov, size_t nprov,
-                           const char *what)
+                           const char *what, const swfs_real *resmean, double resmean_rms)
 {
     swfs_fits_out *o = NULL;
     int rc = swfs_fits_out_create(&o, path);
     if (rc) return rc;
     if (!(rc = swfs_fits_out_set_stamp(o, g, prov, nprov)) && !(rc = swfs_fits_out_cplx(o, NULL, c, -32)))
         rc = swfs_fits_out_history(o, what);
+    if (!rc && resmean && !(rc = swfs_fits_out_real(o, "RESMEAN", resmean, -64)) &&
+        !(rc = swfs_fits_out_key_string(o, "BUNIT", "m", "true AO residual's time mean (simulation)")))
+        rc = swfs_fits_out_key_double(o, "RESMRMS", resmean_rms, "[m] rms of the residual's time mean (PTT removed)");
     if (rc) { swfs_fits_out_abort(o); return rc; }
     return swfs_fits_out_commit(o);
 }
@@ -697,13 +702,16 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_real_free(noisy);
     if (!rc) { snprintf(path, sizeof path, "%s/dark.fits", dir); rc = write_real(path, dark, &geom, prov, nprov, 0); }
     if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0); }
+    const swfs_real rmap = {np, np, 1, rmean};
     if (!rc) {
         snprintf(path, sizeof path, "%s/speckles_ideal.fits", dir);
-        rc = write_cplx_cube(path, spk, &geom, prov, nprov, "ideal speckles: true residual, no NCP, exposure-mean tip-tilt removed");
+        rc = write_cplx_cube(path, spk, &geom, prov, nprov, "ideal speckles: true residual, no NCP, exposure-mean tip-tilt removed",
+                             &rmap, sum->static_rms);
     }
     if (!rc) {
         snprintf(path, sizeof path, "%s/speckles_ideal_tt.fits", dir);
-        rc = write_cplx_cube(path, spktt, &geom, prov, nprov, "ideal speckles: true residual, no NCP, tip-tilt kept");
+        rc = write_cplx_cube(path, spktt, &geom, prov, nprov, "ideal speckles: true residual, no NCP, tip-tilt kept",
+                             &rmap, sum->static_rms);
     }
     if (!rc) {
         snprintf(path, sizeof path, "%s/truth.fits", dir);
