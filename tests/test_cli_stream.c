@@ -238,6 +238,18 @@ static void test_stream_and_merge(void **state)
     }
     print_message("stream vs speckles + estimate: max |HALO difference| %.3g of max %.3g\n", dmax, hmax);
     assert_true(dmax <= 1e-6 * hmax);
+    /* and the same AO residual's time mean over the same exposures (pipeline.h) */
+    assert_non_null(hs->resmean);
+    assert_non_null(hb->resmean);
+    assert_int_equal(hs->resmean->nx, hb->resmean->nx);
+    double rmax = 0;
+    dmax = 0;
+    for (size_t q = 0; q < hb->resmean->nx * hb->resmean->ny; q++) {
+        dmax = fmax(dmax, fabs(hs->resmean->data[q] - hb->resmean->data[q]));
+        rmax = fmax(rmax, fabs(hb->resmean->data[q]));
+    }
+    print_message("stream vs speckles + estimate: max |RESMEAN difference| %.3g of max %.3g m\n", dmax, rmax);
+    assert_true(rmax > 0 && dmax <= 1e-9 * rmax);
     swfs_halo_free(hs);
     swfs_halo_free(hb);
 

@@ -63,6 +63,36 @@ def test_pupil_of_a_known_field():
     assert np.std(amp) / np.mean(amp) < 0.1
 
 
+def test_residual_mean_is_taken_out(tmp_path):
+    """A halo that carries the AO residual's time mean (resmean): pupil_estimate takes it out
+    of the wavefront unless keep_resmean, and HALO.fits keeps it."""
+    w, mask = known_wavefront()
+    X, Y = grid(GEOM.pupn, GEOM.pupdx)
+    m = 30e-9 * np.cos(2 * np.pi * 2 * X / GEOM.teldiam + 0.4) * mask  # 2 cycles per D: seen by the window
+    field = mask * np.exp(2j * np.pi * (w + m) / GEOM.wavelen)
+    Psi = mft_forward(field, GEOM, 64, 64)
+    h = sw.Halo.from_arrays(Psi, geom=GEOM, resmean=m)
+    assert h.resmean is not None and h.resmean.shape == (32, 32)
+    r = sw.pupil_estimate(h, weight="none")
+    k = sw.pupil_estimate(h, weight="none", keep_resmean=True)
+    assert r.resmean is not None and k.resmean is None and k.resmean_rms == 0
+    e_out = sw.wfe_compare(r.wfe, w, mask)[0]
+    e_keep = sw.wfe_compare(k.wfe, w, mask)[0]
+    e_tot = sw.wfe_compare(k.wfe, w + m, mask)[0]
+    rm = sw.wfe_compare(m, np.zeros_like(m), mask)[0]
+    assert r.resmean_rms == pytest.approx(rm, rel=0.1)
+    assert e_keep == pytest.approx(rm, rel=0.1), (e_keep, rm)
+    assert e_out < 0.1 * e_keep and e_tot < 1e-3 * e_keep, (e_out, e_tot, e_keep)
+    np.testing.assert_allclose(r.wfe, k.wfe - r.resmean, rtol=0, atol=1e-15)  # the same fit, the mean taken out
+    # HALO.fits round trip (the halo needs STAB to be written)
+    h2 = sw.Halo.from_arrays(Psi, stab=Psi, stab_err=np.ones(Psi.shape), geom=GEOM, resmean=m)
+    h2.write(tmp_path / "h.fits")
+    back = sw.Halo.read(tmp_path / "h.fits")
+    np.testing.assert_array_equal(back.resmean, m)
+    with pytest.raises(ValueError):
+        sw.Halo.from_arrays(Psi, geom=GEOM, resmean=np.zeros((32, 30)))
+
+
 def test_pupil_weight_and_errors(tmp_path):
     w, mask = known_wavefront()
     Psi = mft_forward(mask * np.exp(2j * np.pi * w / GEOM.wavelen), GEOM, 64, 64)

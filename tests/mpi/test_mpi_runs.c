@@ -277,7 +277,8 @@ static void compare_products(const char *p1, const char *p2, const char *const *
 }
 
 static const char *halo_ext[] = {"HALO", "HALO_LF", "STAB", "GAIN", "GAIN_PIX", "VISIB", "SNR", "MEAN_I", "VAR_I",
-                                 "MEAN_SP", "VAR_SP", "STAB_ERR", "CIRC", "VALID", "NFRAMES", "REGSTATE"};
+                                 "MEAN_SP", "VAR_SP", "STAB_ERR", "CIRC", "VALID", "NFRAMES", "REGSTATE",
+                                 "RESMEAN"};
 
 static int setup(void **state)
 {
@@ -393,7 +394,8 @@ static void test_speckles_and_estimate_equal(void **state)
         snprintf(est, sizeof est, "est%d.fits", np);
         snprintf(args, sizeof args, "%s -o %s --match sci.fits %s", common, sp, sm);
         run_ok(np, args);
-        compare_products("sp1.fits", sp, prim, 1, 1e-12);
+        const char *sp_ext[] = {NULL, "RESMEAN"}; /* RESMEAN: the members' sums added (pipeline.h) */
+        compare_products("sp1.fits", sp, sp_ext, 2, 1e-12);
         compare_products("scim1.fits", sm, prim, 1, 0.0);
         /* estimate over MPI on the single-process speckles: only the reduction differs */
         snprintf(args, sizeof args, "estimate scim1.fits sp1.fits -o %s --frames-per-read 7", est);
