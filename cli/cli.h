@@ -128,6 +128,12 @@ int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, struct swfs
  * --wavelen, --teldiam, --obscur, --pixscale, --pupdx, --pupn into g (later ones win); the
  * run checks the values. 1 when it took argv[*i], 0 when not, -exit code after an error. */
 int cli_geom_option(const char *cmd, int argc, char **argv, int *i, struct swfs_geom *g);
+/* --band auto|none|R (pipeline.h options.band: 0, -1, R > 0 [lambda/D]); same returns. */
+int cli_band_option(const char *cmd, int argc, char **argv, int *i, double *band);
+#define CLI_BAND_HELP \
+    "  --band auto|none|R  the focal radius [lambda/D] the speckles are computed within, 0 beyond (no\n" \
+    "                      reference there): auto (default) the Shack-Hartmann's sampling band\n" \
+    "                      nsub/2, none for a linear model; none: everywhere (docs/telemetry.md)\n"
 #define CLI_GEOM_HELP \
     "  --geom FILE         geometry the files lack (no camera writes PUPDX, PUPN): a FITS header or\n" \
     "                      KEY = VALUE lines of WAVELEN [m], TELDIAM [m], OBSCUR, PIXSCALE [lambda/D\n" \

@@ -30,7 +30,7 @@ static const char *usage_text =
     "                        (e.g. a reduced science cube)\n"
     "  --recon, --actuators, -o, --pupil-out, --checkpoint, --every, --every-seconds,\n"
     "  --threads, --static, --static-out, --pupil, --tiptilt, --read-noise, --gain,\n"
-    "  --g-smooth, --max-frames, --valid   as for 'specklewfs stream'\n"
+    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'\n"
     "  --batch B             camera frames per batch (default 16; 'stream' with the same B\n"
     "                        gives the same result)\n"
     "  --max-wait T          longest wait [s] of a ready frame for its batch to fill (0.5)\n"
@@ -73,6 +73,8 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(CLI_LINEAR_HELP, stdout); return -1; }
         const int lk = cli_linear_option(cmd, argc, argv, &i, &o->run.lin);
         if (lk) { if (lk < 0) return -lk; continue; }
+        const int bk = cli_band_option(cmd, argc, argv, &i, &o->run.band);
+        if (bk) { if (bk < 0) return -bk; continue; }
         else if (!strcmp(a, "--wfs")) {
             if (*nwfs >= SWFS_FRAMESYNC_MAX_WFS) return cli_usage_error(cmd, "at most %d --wfs streams", SWFS_FRAMESYNC_MAX_WFS);
             str = &wfs[(*nwfs)++];

@@ -55,6 +55,7 @@ static const char *usage_text2 =
     "                      from the slopes outside D's column space: noise + aliasing)\n"
     "  --write-recon FILE  also write the reconstructor in use (e.g. for `specklewfs stream`)\n"
     CLI_GEOM_HELP
+    CLI_BAND_HELP
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"
     "                      slope of its exposure and keep the motion within it, as registered\n"
     "                      science frames have it (reduce re-centres, it cannot de-blur);\n"
@@ -102,6 +103,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     if (gk) return gk;
     const int lk = cli_linear_option(cmd, argc, argv, i, &o->lin);
     if (lk) return lk;
+    const int bk = cli_band_option(cmd, argc, argv, i, &o->pipe.band);
+    if (bk) return bk;
     if (cli_is_help(a)) {
         d->help = 1;
     } else if (!strcmp(a, "--recon")) {
@@ -237,6 +240,12 @@ int swfs_cmd_speckles(int argc, char **argv)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,
                 r.info.recon_modes, r.info.n_outside, o.out);
+    if (!rc && r.info.band > 0)
+        fprintf(stderr, "speckles: computed within %.3g lambda/D (%s), 0 in the %zu focal pixels beyond\n", r.info.band,
+                o.pipe.band > 0 ? "--band" : "the subapertures' sampling band nsub/2", r.info.band_out);
+    if (!rc)
+        fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
+                "out of the NCP)\n", r.resmean_rms * 1e9);
     free(min);
     free(mout);
     return rc;

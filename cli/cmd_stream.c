@@ -79,6 +79,7 @@ static const char *usage_mpi =
     "  --clock CLOCK.txt     camera clock offset, drift and pairing from 'sync --wfs-log'\n"
     "  --exptime T           camera exposure [s] (default: STAMPS' EXPTIME, else the frame period)\n"
     CLI_GEOM_HELP
+    CLI_BAND_HELP
     CLI_LINEAR_HELP
     "\n"
     "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
@@ -95,6 +96,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     if (gk) return gk;
     const int lk = cli_linear_option("stream", argc, argv, i, &o->lin);
     if (lk) return lk;
+    const int bk = cli_band_option("stream", argc, argv, i, &o->band);
+    if (bk) return bk;
     static const char *logs[SWFS_FRAMESYNC_MAX_WFS];
     if (!strcmp(a, "--wfs-log")) {
         const char *v = cli_next(argc, argv, i);

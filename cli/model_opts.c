@@ -47,6 +47,19 @@ int cli_dmfit_option(const char *cmd, int argc, char **argv, int *i, swfs_dmfit_
     return 1;
 }
 
+int cli_band_option(const char *cmd, int argc, char **argv, int *i, double *band)
+{
+    if (strcmp(argv[*i], "--band")) return 0;
+    const char *v = cli_next(argc, argv, i);
+    if (!v) return -cli_usage_error(cmd, "--band needs auto, none or a radius > 0 [lambda/D]");
+    if (!strcmp(v, "auto")) *band = 0.0;
+    else if (!strcmp(v, "none")) *band = -1.0;
+    else if (cli_parse_double(cmd, "--band", v, band)) return -CLI_USAGE;
+    else if (!(*band > 0.0) || !isfinite(*band))
+        return -cli_usage_error(cmd, "--band needs auto, none or a radius > 0 [lambda/D], got %s", v);
+    return 1;
+}
+
 int cli_geom_option(const char *cmd, int argc, char **argv, int *i, swfs_geom *g)
 {
     const char *a = argv[*i];

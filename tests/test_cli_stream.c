@@ -200,7 +200,7 @@ static void test_stream_and_merge(void **state)
     char out[16384];
     /* --tiptilt frame: the reconstructor projected, exactly what make_data computed. */
     const char *common = "--timing timing.txt --science sci.fits --slopes . --recon recon.fits --actuators act.fits "
-                         "--static none --tiptilt frame";
+                         "--static none --tiptilt frame --band none";
     char args[2048];
 
     /* One pass, 2 threads, updates every 16 frames, checkpoint. */
@@ -262,7 +262,7 @@ static void test_stream_and_merge(void **state)
 
     /* The two cubes separately (a night in chunks), merged. */
     const char *part = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --static none "
-                       "--tiptilt frame";
+                       "--tiptilt frame --band none";
     snprintf(args, sizeof args, "stream --timing timing0.txt %s -o h0.fits --checkpoint p0.fits", part);
     assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     snprintf(args, sizeof args, "stream --timing timing1.txt %s -o h1.fits --checkpoint p1.fits", part);
@@ -275,7 +275,8 @@ static void test_stream_and_merge(void **state)
     assert_accum_close(expect, m, 1e-9); /* same blocking as the direct computation */
 
     /* The same with the automatic static halo, shared through --static-out. */
-    const char *pa = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --tiptilt frame";
+    const char *pa = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --tiptilt frame "
+                     "--band none";
     snprintf(args, sizeof args, "stream --timing timing0.txt %s -o s0.fits --checkpoint q0.fits --static-out st.fits", pa);
     assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
     assert_non_null(strstr(out, "S^1/2"));

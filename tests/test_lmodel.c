@@ -203,6 +203,7 @@ static void test_linear_equals_shack_hartmann(void **state)
         swfs_pipeline_options_default(&o);
         o.recon = SWFS_RECON_GIVEN;
         o.tiptilt = modes[m];
+        o.band = 0.5 * NSUB; /* the Shack-Hartmann default, given to the linear models too */
         swfs_pipeline *sh = NULL, *lin = NULL, *fold = NULL;
         assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
         /* SWFS_TT_FRAME projects the mean slopes out of W: take the matrix the SH pipeline uses */
@@ -472,6 +473,7 @@ static void test_interaction_matrix(void **state)
     /* tip-tilt kept: in the exposure mode the Shack-Hartmann pipeline also takes the frames'
      * tilt from their mean slopes (pipeline.c), which a generic linear model does not have */
     o.tiptilt = SWFS_TT_KEEP;
+    o.band = 0.5 * NSUB; /* the Shack-Hartmann default, given to the linear model too */
     swfs_pipeline *sh = NULL, *lin = NULL;
     assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, NULL, f.slopes, f.nwfs, &o));
     const swfs_speckle_model *m = swfs_pipeline_model(sh);

@@ -61,6 +61,12 @@ typedef struct swfs_pipeline_options {
                                    their illumination; the telemetry may then hold only theirs
                                    (2 nvalid values: x, then y, in index order). Read at creation only */
     size_t valid_nsub;
+    double band;        /* [lambda/D] the focal radius inside which speckles are computed; the field
+                           beyond is set to 0, so the estimator takes no reference there. 0
+                           (default): the Shack-Hartmann's sampling band, nsub/2 (a spatial
+                           frequency beyond it reaches the slopes only as an alias, and the
+                           reconstruction's field there is not the residual's; docs/telemetry.md),
+                           none for a linear model; > 0: this radius; < 0: none */
 } swfs_pipeline_options;
 
 void swfs_pipeline_options_default(swfs_pipeline_options *o);
@@ -88,6 +94,8 @@ typedef struct swfs_pipeline_info {
     double resid_rms;    /* rms over the pupil of the training frames' wavefront, tip-tilt
                             removed [m] (NaN: no training frames) */
     size_t nsub, nvalid; /* Shack-Hartmann: subapertures across, and used (0 for a linear model) */
+    double band;         /* [lambda/D] the radius speckles are computed within (options.band); 0: none */
+    size_t band_out;     /* focal pixels beyond it, set to 0 in every field */
 } swfs_pipeline_info;
 
 /* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */

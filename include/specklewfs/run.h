@@ -204,6 +204,8 @@ typedef struct swfs_stream_run_options {
     const char *valid;        /* the Shack-Hartmann model's valid-subaperture map (swfs_valid_map_read),
                                  NULL = the illumination rule; the telemetry may then hold only the
                                  used subapertures' slopes (pipeline.h) */
+    double band;              /* the speckles' focal radius [lambda/D] (pipeline.h options.band; 0: the
+                                 Shack-Hartmann's nsub/2, none for a linear model; < 0: none) */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

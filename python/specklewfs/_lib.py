@@ -229,12 +229,12 @@ swfs_ts_summary = _s("swfs_ts_summary", TS_SUMMARY_FIELDS)
 swfs_pipeline_options = _s("swfs_pipeline_options", [("recon", c_int), ("rcond", c_dbl), ("max_modes", c_size),
                                                      ("slope_noise", c_dbl), ("vk_l0", c_dbl), ("tiptilt", c_int),
                                                      ("threads", c_int), ("wfs_rate", c_int), ("recon_scale", c_dbl),
-                                                     ("valid", c_ptr), ("valid_nsub", c_size)])
+                                                     ("valid", c_ptr), ("valid_nsub", c_size), ("band", c_dbl)])
 PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size), ("nfx", c_size), ("nfy", c_size),
                         ("recon_modes", c_size), ("recon_dof", c_dbl), ("noise_var", c_dbl), ("noise_given", c_int),
                         ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl),
                         ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl),
-                        ("nsub", c_size), ("nvalid", c_size)]
+                        ("nsub", c_size), ("nvalid", c_size), ("band", c_dbl), ("band_out", c_size)]
 swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
 swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
                                ("nexp", c_size), ("cube", c_size)])
@@ -392,6 +392,8 @@ _PROTOS = {
     "swfs_pipeline_process": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr, c_size, c_ptr]),
     "swfs_pipeline_process_wfs": (c_int, [c_ptr, P(c_dbl), c_size, c_ptr]),
     "swfs_pipeline_flat_halo": (c_int, [c_ptr, c_ptr]),
+    "swfs_pipeline_mean_wavefront": (c_int, [c_ptr, P(c_dbl), P(c_size)]),
+    "swfs_pipeline_mean_reset": (None, [c_ptr]),
     "swfs_pipeline_get_info": (None, [c_ptr, P(swfs_pipeline_info)]),
     "swfs_pipeline_recon": (P(swfs_recon), [c_ptr]),
     "swfs_pipeline_create_linear": (c_int, [P(c_ptr), P(swfs_geom), c_size, c_size, P(c_dbl), P(swfs_linear_input),

@@ -17,6 +17,18 @@ _RECON = {"vk": 0, "map": 1, "svd": 2, "given": 3}
 _TT = {"exposure": 0, "frame": 1, "keep": 2}
 
 
+def _band(band):
+    """pipeline.h options.band from 'auto', 'none' or a radius > 0 [lambda/D]."""
+    if isinstance(band, str):
+        if band not in ("auto", "none"):
+            raise ValueError(f"band: expected 'auto', 'none' or a radius > 0 [lambda/D], got {band!r}")
+        return 0.0 if band == "auto" else -1.0
+    b = float(band)
+    if not (b > 0 and np.isfinite(b)):
+        raise ValueError(f"band: expected 'auto', 'none' or a radius > 0 [lambda/D], got {band!r}")
+    return b
+
+
 class Pipeline:
     """The speckle pipeline (pipeline.h).
 
@@ -29,10 +41,14 @@ class Pipeline:
     (process_wfs; needs tiptilt 'frame' or 'keep'); valid: None or the AO system's
     (nsub, nsub) valid-subaperture map (nonzero = used, [b, a] = subaperture (a, b)): the
     subapertures used whatever their illumination, and nslopes may then be 2 nvalid (the
-    used subapertures' x slopes in index order, then their y slopes)."""
+    used subapertures' x slopes in index order, then their y slopes); band: 'auto' (the
+    speckles within the subapertures' sampling band nsub/2 lambda/D, 0 beyond; for a linear
+    model everywhere), 'none' (everywhere) or a radius [lambda/D] (pipeline.h).
+    mean_wavefront() is the reconstruction's time mean over the exposures processed (the AO
+    residual's, as the telemetry measures it) [m] on the pupil grid."""
 
     def __init__(self, geom, nfx, nfy, xy, nslopes, mask=None, recon="vk", training=None, rcond=5e-2, max_modes=0,
-                 slope_noise=0.0, vk_l0=10.0, tiptilt="exposure", threads=1, wfs_rate=False, valid=None):
+                 slope_noise=0.0, vk_l0=10.0, tiptilt="exposure", threads=1, wfs_rate=False, valid=None, band="auto"):
         geom = geom if isinstance(geom, Geom) else Geom(**geom)
         g = geom.to_c()
         xy = as_array(xy, "xy", np.float64, shape=(None, 2))
@@ -53,6 +69,7 @@ class Pipeline:
             raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
         o.rcond, o.max_modes, o.slope_noise, o.vk_l0 = float(rcond), int(max_modes), float(slope_noise), float(vk_l0)
         o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+        o.band = _band(band)
         vmap = None
         if valid is not None:
             v = np.asarray(valid)
@@ -75,7 +92,7 @@ class Pipeline:
 
     @classmethod
     def linear(cls, geom, nfx, nfy, basis, control=None, imat=None, scale=1.0, registration=None, mask=None,
-               training=None, recon="map", rcond=5e-2, tiptilt="exposure", threads=1, wfs_rate=False):
+               training=None, recon="map", rcond=5e-2, tiptilt="exposure", threads=1, wfs_rate=False, band="auto"):
         """The pipeline over the generic linear model (lmodel.h, docs/telemetry.md): per WFS
         frame the wavefront is scale * B (A v).
 
@@ -84,7 +101,8 @@ class Pipeline:
         flip=bool); control: (nk, nmeas) or None (the telemetry values are the coefficients);
         imat: (nmeas, nk) instead, inverted by the MAP reconstructor learned from training
         (ntrain, nmeas) ('map') or the truncated SVD ('svd', rcond); scale: metres of
-        wavefront per unit of basis x coefficient (cacao: 2e-6)."""
+        wavefront per unit of basis x coefficient (cacao: 2e-6); band: as for Pipeline
+        ('auto' = everywhere here: a linear model has no subapertures to derive a band from)."""
         geom = geom if isinstance(geom, Geom) else Geom(**geom)
         g = geom.to_c()
         b = as_array(basis, "basis", np.float64, ndim=(3,))
@@ -134,6 +152,7 @@ class Pipeline:
                 raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
             o.recon, o.rcond = _RECON[recon], float(rcond)
             o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+            o.band = _band(band)
             tr, ntr = None, 0
             if training is not None:
                 tr = as_array(training, "training", np.float64, shape=(None, nmeas))
@@ -158,7 +177,9 @@ class Pipeline:
         """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,
         noise_given, ntrain, n_outside, vk_l0 (the outer scale used by the vk reconstructor);
         for a linear model nbasis, basis_nnz, composed (basis and control folded into one
-        matrix) and resid_rms (the training frames' wavefront, tip-tilt removed [m])."""
+        matrix) and resid_rms (the training frames' wavefront, tip-tilt removed [m]); band (the
+        radius speckles are computed within [lambda/D], 0: everywhere) and band_out (focal
+        pixels beyond it)."""
         i = _lib.swfs_pipeline_info()
         lib.swfs_pipeline_get_info(self._p, ctypes.byref(i))
         return {k: getattr(i, k) for k, _t in _lib.PIPELINE_INFO_FIELDS}
@@ -198,6 +219,20 @@ class Pipeline:
         check(lib.swfs_pipeline_process_wfs(self._p, dptr(s), s.shape[0], out.ctypes.data),
               "swfs_pipeline_process_wfs")
         return out
+
+    def mean_wavefront(self):
+        """(wavefront, nexp): the reconstruction's time mean over the exposures processed so far
+        [m] on the (pupn, pupn) grid, piston, tip and tilt removed (pipeline.h
+        swfs_pipeline_mean_wavefront: the AO residual's time mean as the telemetry measures it)."""
+        n = self.geom.pupn
+        out = np.empty((n, n), np.float64)
+        nexp = ctypes.c_size_t()
+        check(lib.swfs_pipeline_mean_wavefront(self._p, dptr(out), ctypes.byref(nexp)), "swfs_pipeline_mean_wavefront")
+        return out, nexp.value
+
+    def mean_reset(self):
+        """Start the time mean anew."""
+        lib.swfs_pipeline_mean_reset(self._p)
 
     def flat_halo(self):
         """Psi_0: the referenced focal field of flat slopes (nfy, nfx)."""

@@ -17,7 +17,7 @@ def data():
     the pipeline's fields, and science frames |Psi + g psi|^2 with a known static halo."""
     rng = np.random.default_rng(11)
     xy = sw.actuators_hexapolar(GEOM.teldiam, 0.4, 0.2)
-    pipe = sw.Pipeline(GEOM, NF, NF, xy, NSLOPES, recon="svd")
+    pipe = sw.Pipeline(GEOM, NF, NF, xy, NSLOPES, recon="svd", band="none")  # fields everywhere
     sched, nwfs = sw.schedule(3.5, 0.3, 120)
     slopes = rng.normal(size=(nwfs, NSLOPES)) * 2e-7
     fields = pipe.process(slopes, sched)
@@ -46,8 +46,9 @@ def test_pipeline_matches_engine_pieces(data):
     """With tip-tilt kept, the pipeline is the engine over the model's reconstructor,
     interpolation and mask."""
     d = data
-    p = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    p = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
     info = p.info
+    assert info["band"] == 0 and info["band_out"] == 0
     assert info["nact"] == len(d["xy"]) and info["nslopes"] == NSLOPES and info["npup"] == 40
     assert 0 < info["recon_modes"] <= info["nact"]
     T, nout = sw.interp_ct_grid(d["xy"], 40, GEOM.pupdx, p.mask)
@@ -56,6 +57,35 @@ def test_pipeline_matches_engine_pieces(data):
     a = p.process(d["slopes"], d["sched"])
     b = e.process(d["slopes"], d["sched"])
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * np.abs(b).max())
+    # The default band: the same fields within nsub/2 lambda/D, 0 beyond.
+    pb = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    nsub = int(round(np.sqrt(NSLOPES / 2)))
+    assert pb.info["band"] == nsub / 2
+    yy, xx = np.indices((NF, NF))
+    out = np.hypot(xx - NF // 2, yy - NF // 2) * GEOM.pixscale > nsub / 2
+    assert pb.info["band_out"] == out.sum() > 0
+    c = pb.process(d["slopes"], d["sched"])
+    assert np.all(c[:, out] == 0)
+    np.testing.assert_allclose(c[:, ~out], b[:, ~out], rtol=0, atol=1e-6 * np.abs(b).max())
+    with pytest.raises(ValueError):
+        sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", band=-1)
+    # The time mean of what the pipeline reconstructed: T W s_bar over the exposures processed.
+    m, nexp = p.mean_wavefront()
+    assert nexp == len(d["sched"]) and m.shape == (40, 40)
+    sched = d["sched"]
+    sbar = np.zeros(NSLOPES)
+    for x in sched:
+        w = np.ones(x["count"])
+        w[0] = x["w_first"]
+        if x["count"] > 1:
+            w[-1] = x["w_last"]
+        sbar += (w[:, None] * d["slopes"][x["first"]:x["first"] + x["count"]]).sum(0) / w.sum() / len(sched)
+    ref, rms = sw.wfe_remove_ptt((T.to_dense() @ (p.recon.W @ sbar)).reshape(40, 40), p.mask)
+    inside = p.mask > 0
+    assert rms > 0 and np.abs(m[inside] - ref[inside]).max() < 1e-4 * rms  # single-precision engine
+    p.mean_reset()
+    with pytest.raises(sw.Error):
+        p.mean_wavefront()
     # The flat-slopes field is the unaberrated PSF, real and positive at the core.
     f = p.flat_halo()
     assert abs(f[NF // 2, NF // 2].imag) < 1e-9 * abs(f[NF // 2, NF // 2]) and f[NF // 2, NF // 2].real > 0
@@ -63,7 +93,7 @@ def test_pipeline_matches_engine_pieces(data):
     # WFS-rate fields need tiptilt 'frame' or 'keep'; the library says so.
     with pytest.raises(sw.Error, match="SWFS_TT_FRAME or SWFS_TT_KEEP"):
         sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", wfs_rate=True)
-    pw = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", wfs_rate=True)
+    pw = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", wfs_rate=True, band="none")
     w = pw.process_wfs(d["slopes"][:5])
     np.testing.assert_allclose(w, e.process_wfs(d["slopes"][:5]), atol=1e-6 * np.abs(w).max())
 
@@ -159,7 +189,7 @@ def test_linear_pipeline_equals_shack_hartmann(data):
     Shack-Hartmann pipeline's fields; the dense basis of the reconstructed wavefront per
     slope, with the slopes as coefficients, too; a units error is refused naming the size."""
     d = data
-    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep")
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
     from specklewfs._lib import lib
     from specklewfs.telemetry import Sparse
     T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()  # (pupn^2, nact)

@@ -467,6 +467,7 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
     if ((rc = swfs_fits_out_set_stamp(f, &w->g, prov, nprov)) || (rc = swfs_fits_out_cplx(f, NULL, w->halo, -32)) ||
         (rc = swfs_fits_out_key_double(f, "FRATIO", w->t->ratio, "<t_sci/t_wfs> from sync")) ||
         (rc = swfs_fits_out_key_double(f, "HSLAG", w->t->lag, "handshake lag [WFS frames] from sync")) ||
+        (rc = swfs_fits_out_key_double(f, "SPKBAND", r->info.band, "[lambda/D] speckles computed within (0: all)")) ||
         (!swfs_orient_is_identity(&w->t->fit) && (rc = speckles_orient_key(f, w))) ||
         (o->lin.basis && (rc = linear_keys(f, &o->lin))) ||
         (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||
@@ -517,7 +518,9 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         r->ratio = w.t->ratio;
         r->lag = w.t->lag;
         swfs_pipeline_get_info(w.p, &r->info);
-        char info[512];
+        char info[600], band[64];
+        if (r->info.band > 0) snprintf(band, sizeof band, "%.3g lambda/D", r->info.band);
+        else snprintf(band, sizeof band, "the whole window");
         const int tt = o->pipe.tiptilt;
         char model[160];
         if (o->lin.basis)
@@ -525,9 +528,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
                      o->lin.control ? "control matrix" : o->lin.imat ? "interaction matrix" : "modal coefficients");
         else snprintf(model, sizeof model, "%zu actuators", w.nact);
         snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %s, %zu telemetry values, %zu reconstructor "
-                 "modes, tip-tilt %s, static halo %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
+                 "modes, tip-tilt %s, static halo %s, speckles within %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
                  model, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
-                 "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble");
+                 "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble",
+                 band);
         const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);

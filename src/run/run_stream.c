@@ -185,6 +185,7 @@ static int setup_linear(const swfs_stream_run_options *o, const char *first_tel,
         po.recon = SWFS_RECON_MAP;
         po.tiptilt = o->tiptilt;
         po.threads = o->threads;
+        po.band = o->band;
         rc = swfs_linear_pipeline(p, &o->lin, &u->g, nfx, nfy, u->mask ? u->mask->data : NULL, tr ? tr->nx : 0,
                                   tr ? tr->data : NULL, tr ? tr->ny : 0, &po);
         if (rc) swfs_fail_context(rc, "with %s", tr ? first_tel : "the live telemetry");
@@ -237,6 +238,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         po.rcond = 0.0;
         po.tiptilt = o->tiptilt;
         po.threads = o->threads;
+        po.band = o->band;
         char model[8400];
         snprintf(model, sizeof model, "%s with %s", o->recon, o->actuators);
         rc = swfs_sh_pipeline(p, model, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact,

@@ -39,6 +39,7 @@ void swfs_pipeline_free(swfs_pipeline *p)
     free(p->xslopes);
     free(p->xsched);
     free(p->macc);
+    free(p->band_idx);
     free(p);
 }
 
@@ -262,7 +263,7 @@ int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0};
+    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0, 0.0, 0};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
@@ -286,6 +287,41 @@ int swfs_pipeline_engine_(swfs_pipeline *p, const swfs_geom *g, size_t nrows, si
     p->mcols = ncols;
     p->mexp = 0;
     return SWFS_OK;
+}
+
+int swfs_pipeline_band_(swfs_pipeline *p, const swfs_geom *g, size_t nsub)
+{
+    const double b = p->opt.band > 0.0 ? p->opt.band : (p->opt.band == 0.0 && nsub ? 0.5 * (double)nsub : 0.0);
+    if (!isfinite(b)) return swfs_fail(SWFS_ERR_ARG, "pipeline: speckle band %g lambda/D", p->opt.band);
+    p->info.band = b;
+    p->info.band_out = 0;
+    if (b <= 0.0) return SWFS_OK;
+    const size_t nfx = p->info.nfx, nfy = p->info.nfy;
+    size_t n = 0;
+    for (int pass = 0; pass < 2; pass++) {
+        n = 0;
+        for (size_t j = 0; j < nfy; j++)
+            for (size_t i = 0; i < nfx; i++) {
+                const double r = hypot((double)i - (double)(nfx / 2), (double)j - (double)(nfy / 2)) * g->pixscale;
+                if (r > b * (1.0 + 1e-12)) {
+                    if (pass) p->band_idx[n] = j * nfx + i;
+                    n++;
+                }
+            }
+        if (!pass && n && !(p->band_idx = malloc(n * sizeof *p->band_idx)))
+            return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+        if (!n) break;
+    }
+    p->info.band_out = n;
+    return SWFS_OK;
+}
+
+/* The fields beyond the band set to 0 (nf frames). */
+static void band_apply(const swfs_pipeline *p, swfs_complex *out, size_t nf)
+{
+    const size_t np = p->info.nfx * p->info.nfy;
+    for (size_t f = 0; f < nf; f++)
+        for (size_t k = 0; k < p->info.band_out; k++) out[f * np + p->band_idx[k]] = 0;
 }
 
 /* Each exposure's weighted mean engine input into the running sum (the engine's weights:
@@ -357,6 +393,7 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
     if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)))
         rc = swfs_pipeline_engine_(p, g, nact, nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W, p->model->T);
+    if (!rc) rc = swfs_pipeline_band_(p, g, p->model->wfs->nsub);
     p->opt.valid = NULL; /* the caller's map: read at creation only */
     if (rc) {
         swfs_pipeline_free(p);
@@ -394,6 +431,7 @@ int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, c
     if (p->opt.tiptilt != SWFS_TT_EXPOSURE) {
         int rc = swfs_engine_process(p->engine, slopes, nwfs, sched, nexp, out);
         if (!rc) mean_add(p, slopes, sched, nexp);
+        if (!rc) band_apply(p, out, nexp);
         return rc;
     }
     /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
@@ -402,6 +440,7 @@ int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, c
     if (!rc) rc = swfs_speckles_expand(slopes, p->info.nslopes, nwfs, p->Rtilt, sched, nexp, p->xslopes, p->xsched);
     if (!rc) rc = swfs_engine_process(p->engine, p->xslopes, nx, p->xsched, nexp, out);
     if (!rc) mean_add(p, p->xslopes, p->xsched, nexp);
+    if (!rc) band_apply(p, out, nexp);
     return rc;
 }
 
@@ -409,6 +448,7 @@ int swfs_pipeline_process_wfs(swfs_pipeline *p, const double *slopes, size_t nwf
 {
     if (!p->opt.wfs_rate) return swfs_fail(SWFS_ERR_ARG, "pipeline: made for camera exposures; use swfs_pipeline_process");
     int rc = swfs_engine_process_wfs(p->engine, slopes, nwfs, out);
+    if (!rc) band_apply(p, out, nwfs);
     for (size_t f = 0; !rc && f < nwfs; f++) {
         const double *s = slopes + f * p->mcols;
         for (size_t k = 0; k < p->mcols; k++) p->macc[k] += s[k];
@@ -423,6 +463,7 @@ int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
     if (!zero) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     int rc = swfs_engine_add_wfs(p->engine, zero, 1.0);
     if (!rc) rc = swfs_engine_end_exposure(p->engine, out);
+    if (!rc) band_apply(p, out, 1);
     free(zero);
     return rc;
 }

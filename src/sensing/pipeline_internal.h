@@ -22,7 +22,10 @@ struct swfs_pipeline {
      * their count. */
     double *macc;
     size_t mcols, mexp;
+    size_t *band_idx; /* the focal pixels beyond info.band (info.band_out of them), zeroed */
 };
+/* info.band and band_idx from opt.band and the subapertures across (0 for a linear model). */
+int swfs_pipeline_band_(swfs_pipeline *p, const swfs_geom *g, size_t nsub);
 
 int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *mask,
                          const swfs_pipeline_options *opt, const swfs_recon *recon, const double *training,

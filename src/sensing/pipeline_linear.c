@@ -254,6 +254,7 @@ static int build(swfs_pipeline *p, lin *l, const swfs_geom *g, const swfs_linear
     if (!rc) rc = check_residual(l, in, training, ntrain, p->mask, g->wavelen, &p->info);
     if (!rc) rc = choose_engine_form(l);
     if (!rc) rc = swfs_pipeline_engine_(p, g, l->nrows, l->ncols, l->W, l->T);
+    if (!rc) rc = swfs_pipeline_band_(p, g, 0);
     if (rc) return rc;
     p->info.nslopes = l->nmeas;
     p->info.nact = l->nrows;
