@@ -18,7 +18,9 @@
 
 static double complex truth(size_t i, size_t j) { return (1.0 + 0.1 * (double)i) * cexp(I * 0.3 * (double)(i + 2 * j)); }
 
-static void write_cubes(const char *sci, const char *sp, size_t nframes, int nan_pixels, int real_speckles)
+/* resmean: 0 none; 1 the speckles carry an AO residual mean (RESMEAN, PUPN x PUPN); 2 one with
+ * a NaN; 3 one of the wrong size. */
+static void write_cubes(const char *sci, const char *sp, size_t nframes, int nan_pixels, int real_speckles, int resmean)
 {
     swfs_rng r;
     swfs_rng_seed(&r, 42);
@@ -50,6 +52,14 @@ static void write_cubes(const char *sci, const char *sp, size_t nframes, int nan
         assert_ok(swfs_fits_out_cplx(o, NULL, c, -32));
     }
     assert_ok(swfs_fits_out_geom(o, &g0));
+    if (resmean) {
+        const size_t n = resmean == 3 ? 100 : 163;
+        swfs_real *m = swfs_real_alloc(n, n, 1);
+        for (size_t q = 0; q < n * n; q++) m->data[q] = 1e-8 * sin(0.01 * (double)q);
+        if (resmean == 2) m->data[5] = NAN;
+        assert_ok(swfs_fits_out_real(o, "RESMEAN", m, -64));
+        swfs_real_free(m);
+    }
     assert_ok(swfs_fits_out_commit(o));
     swfs_real_free(s);
     swfs_cplx_free(c);
@@ -63,7 +73,7 @@ static void test_estimate_recovers_halo(void **state)
     snprintf(sp, sizeof sp, "%s", test_path("e_sp.fits"));
     snprintf(out, sizeof out, "%s", test_path("e_halo.fits"));
     remove(out);
-    write_cubes(sci, sp, N, 1, 0);
+    write_cubes(sci, sp, N, 1, 0, 1);
     snprintf(args, sizeof args, "estimate %s %s -o %s", sci, sp, out);
     int rc = test_run_cli(NULL, args, text, sizeof text);
     print_message("%s", text);
@@ -85,6 +95,10 @@ static void test_estimate_recovers_halo(void **state)
     assert_close(h->nframes->data[3 * W + 4], N - (N + 6) / 7, 0);
     assert_int_equal(h->frames, N);
     for (size_t p = 0; p < W * H; p++) assert_close(h->gain->data[p], 2.0, 0.15);
+    /* the speckles' AO residual mean goes with the halo, value for value */
+    assert_non_null(h->resmean);
+    assert_int_equal(h->resmean->nx, 163);
+    for (size_t q = 0; q < 163 * 163; q++) assert_close(h->resmean->data[q], 1e-8 * sin(0.01 * (double)q), 0);
     swfs_halo_free(h);
     /* The read-noise flag overrides the header: a huge one makes g undefined everywhere. */
     snprintf(args, sizeof args, "estimate %s %s -o %s --read-noise 1000", sci, sp, out);
@@ -102,9 +116,28 @@ static void test_estimate_bad_inputs(void **state)
     snprintf(sp2, sizeof sp2, "%s", test_path("b_sp_short.fits"));
     snprintf(spr, sizeof spr, "%s", test_path("b_sp_real.fits"));
     snprintf(out, sizeof out, "%s", test_path("b_halo.fits"));
-    write_cubes(sci, sp, 60, 0, 0);
-    write_cubes(test_path("b_sci_short.fits"), sp2, 50, 0, 0);
-    write_cubes(test_path("b_sci_r.fits"), spr, 60, 0, 1);
+    write_cubes(sci, sp, 60, 0, 0, 0);
+    write_cubes(test_path("b_sci_short.fits"), sp2, 50, 0, 0, 0);
+    write_cubes(test_path("b_sci_r.fits"), spr, 60, 0, 1, 0);
+
+    /* An AO residual mean with a NaN, or of another size than PUPN: named, no output. */
+    char spn[1024], sps[1024];
+    snprintf(spn, sizeof spn, "%s", test_path("b_sp_resnan.fits"));
+    snprintf(sps, sizeof sps, "%s", test_path("b_sp_ressize.fits"));
+    write_cubes(test_path("b_sci_rn.fits"), spn, 60, 0, 0, 2);
+    write_cubes(test_path("b_sci_rs.fits"), sps, 60, 0, 0, 3);
+    remove(out);
+    snprintf(args, sizeof args, "estimate %s %s -o %s", sci, spn, out);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
+    print_message("%s", text);
+    assert_non_null(strstr(text, "b_sp_resnan.fits"));
+    assert_non_null(strstr(text, "RESMEAN sample 5 is nan"));
+    assert_false(test_file_exists(out));
+    snprintf(args, sizeof args, "estimate %s %s -o %s", sci, sps, out);
+    assert_int_equal(test_run_cli(NULL, args, text, sizeof text), 1);
+    print_message("%s", text);
+    assert_non_null(strstr(text, "RESMEAN is 100x100 but PUPN = 163"));
+    assert_false(test_file_exists(out));
 
     /* Frame counts differ: both files and both shapes are named. */
     remove(out);
