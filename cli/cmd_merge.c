@@ -66,7 +66,17 @@ int swfs_cmd_merge(int argc, char **argv)
     swfs_accum *acc = NULL;
     swfs_halo *halo = NULL;
     swfs_geom g;
+    swfs_real *resmean = NULL;
+    size_t rnexp = 0, rmissing = 0;
     if (swfs_accum_merge_files(inputs, nin, &acc, &g)) { cli_error(cmd); goto done; }
+    if (swfs_resmean_merge_files(inputs, nin, &resmean, &rnexp, &rmissing)) {
+        cli_error(cmd);
+        swfs_accum_free(acc);
+        goto done;
+    }
+    if (rmissing && rmissing < nin)
+        fprintf(stderr, "specklewfs %s: note: %zu of %zu checkpoints carry no AO residual mean (RESMEAN): the merged "
+                "products have none, and pupil keeps it in the wavefront\n", cmd, rmissing, nin);
     /* The halo and the checkpoint are renamed into place together (atomic.h). */
     swfs_outputs_begin();
     char cl[2048];
@@ -84,6 +94,7 @@ int swfs_cmd_merge(int argc, char **argv)
             eopt.g_smooth = g_smooth / g.pixscale;
         }
         if (swfs_estimate(acc, &noise, &eopt, &halo)) { cli_error(cmd); goto free_acc; }
+        if (resmean && !(halo->resmean = swfs_real_copy(resmean))) { cli_error(cmd); goto free_acc; }
         char nl[256];
         snprintf(nl, sizeof nl, "noise model: read noise %.6g counts, gain %.6g e-/count", noise.read_noise, noise.gain);
         const char *hprov[] = {cl, nl};
@@ -91,7 +102,7 @@ int swfs_cmd_merge(int argc, char **argv)
         printf("merge: %s: valid pixels %zu of %zu (%.1f %%), median SNR %.3g\n", halo_path, halo->n_valid, halo->npix,
                100.0 * halo->valid_fraction, halo->median_snr);
     }
-    if (swfs_accum_save(acc, out, &g, prov, 1) || swfs_outputs_end(1)) {
+    if (swfs_accum_save_resmean(acc, resmean, rnexp, out, &g, prov, 1) || swfs_outputs_end(1)) {
         cli_error(cmd);
         goto free_acc;
     }
@@ -102,6 +113,7 @@ free_acc:
     if (rc) swfs_outputs_end(0);
     swfs_halo_free(halo);
     swfs_accum_free(acc);
+    swfs_real_free(resmean);
 done:
     free(inputs);
     return rc;

@@ -273,6 +273,36 @@ static void test_stream_and_merge(void **state)
     swfs_accum *m = NULL;
     assert_ok(swfs_accum_load(in_dir("merged.fits"), &m, NULL));
     assert_accum_close(expect, m, 1e-9); /* same blocking as the direct computation */
+    /* The checkpoints carry the AO residual's mean, and the merge weighs them by their
+     * exposures: the merged halo's is the one-pass run's (halo.fits, the same frames). */
+    {
+        swfs_halo *hm = NULL, *h1 = NULL;
+        assert_ok(swfs_halo_read(in_dir("merged_halo.fits"), &hm, NULL));
+        assert_ok(swfs_halo_read(in_dir("halo.fits"), &h1, NULL));
+        assert_non_null(hm->resmean);
+        assert_non_null(h1->resmean);
+        double d = 0, mx = 0;
+        for (size_t q = 0; q < h1->resmean->nx * h1->resmean->ny; q++) {
+            d = fmax(d, fabs(hm->resmean->data[q] - h1->resmean->data[q]));
+            mx = fmax(mx, fabs(h1->resmean->data[q]));
+        }
+        print_message("merged checkpoints vs one pass: max |RESMEAN difference| %.3g of %.3g m\n", d, mx);
+        assert_true(mx > 0 && d <= 1e-12 * mx);
+        swfs_halo_free(hm);
+        swfs_halo_free(h1);
+        /* a checkpoint without it (an older one) leaves the merge without it, and says so */
+        swfs_accum *plain = NULL;
+        assert_ok(swfs_accum_load(in_dir("p0.fits"), &plain, NULL));
+        assert_ok(swfs_accum_save(plain, in_dir("p0_plain.fits"), NULL, NULL, 0));
+        swfs_accum_free(plain);
+        rc = test_run_cli(dir, "merge p1.fits p0_plain.fits -o merged2.fits --halo merged2_halo.fits --g-smooth 0", out,
+                          sizeof out);
+        assert_int_equal(rc, 0);
+        assert_non_null(strstr(out, "1 of 2 checkpoints carry no AO residual mean"));
+        assert_ok(swfs_halo_read(in_dir("merged2_halo.fits"), &hm, NULL));
+        assert_null(hm->resmean);
+        swfs_halo_free(hm);
+    }
 
     /* The same with the automatic static halo, shared through --static-out. */
     const char *pa = "--science sci.fits --slopes slopes.fits --recon recon.fits --actuators act.fits --tiptilt frame "

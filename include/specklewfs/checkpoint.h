@@ -31,6 +31,15 @@ SWFS_BEGIN_DECLS
 /* g (may be NULL): geometry to record; prov: provenance lines (HISTORY). */
 int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, const char *const *prov,
                     size_t nprov);
+/* The same, with the AO residual's time mean over the accumulated frames (resmean: PUPN x PUPN
+ * [m], HALO.fits RESMEAN; NULL: none) as the extension RESMEAN, nexp (key RESMNEXP) the
+ * exposures it averages, so that merged checkpoints keep it (swfs_resmean_merge_files). */
+int swfs_accum_save_resmean(const swfs_accum *a, const swfs_real *resmean, size_t nexp, const char *path,
+                            const swfs_geom *g, const char *const *prov, size_t nprov);
+/* The exposure-weighted mean of the checkpoints' RESMEAN (a linear reconstruction's mean over
+ * the union of their frames): *out (NULL when any checkpoint lacks one, for a mean over part
+ * of the frames is not the union's: *nmissing says how many), *nexp the exposures. */
+int swfs_resmean_merge_files(const char *const *paths, size_t n, swfs_real **out, size_t *nexp, size_t *nmissing);
 /* A new accumulator from a checkpoint; g (may be NULL) receives its geometry. */
 int swfs_accum_load(const char *path, swfs_accum **out, swfs_geom *g);
 

@@ -1,5 +1,6 @@
 /* Accumulator checkpoints: see include/specklewfs/checkpoint.h. */
 #include "specklewfs/checkpoint.h"
+#include "specklewfs/estimate.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -11,6 +12,12 @@ static const char *const field_names = "N MI MX MY MA CII CIX CIY CIA CXX CXY CX
 
 int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, const char *const *prov,
                     size_t nprov)
+{
+    return swfs_accum_save_resmean(a, NULL, 0, path, g, prov, nprov);
+}
+
+int swfs_accum_save_resmean(const swfs_accum *a, const swfs_real *resmean, size_t nexp, const char *path,
+                            const swfs_geom *g, const char *const *prov, size_t nprov)
 {
     if (!a || !path) return swfs_fail(SWFS_ERR_ARG, "checkpoint: missing accumulator or path");
     swfs_geom none;
@@ -26,11 +33,58 @@ int swfs_accum_save(const swfs_accum *a, const char *path, const swfs_geom *g, c
     if (!rc) rc = swfs_fits_out_key_long(o, "FRAMES", (long)a->frames, "frames offered");
     if (!rc) rc = swfs_fits_out_key_long(o, "SKIPPED", (long)a->skipped, "pixel-frames skipped (non-finite science)");
     if (!rc) rc = swfs_regress_write_ext(o, a->reg);
+    if (!rc && resmean && nexp) {
+        rc = swfs_fits_out_real(o, "RESMEAN", resmean, -64);
+        if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "AO residual's time mean (telemetry)");
+        if (!rc) rc = swfs_fits_out_key_long(o, "RESMNEXP", (long)nexp, "exposures it averages");
+    }
     if (rc) {
         swfs_fits_out_abort(o);
         return swfs_fail_context(rc, "%s", path);
     }
     return swfs_fits_out_commit(o);
+}
+
+int swfs_resmean_merge_files(const char *const *paths, size_t n, swfs_real **out, size_t *nexp, size_t *nmissing)
+{
+    *out = NULL;
+    *nexp = 0;
+    *nmissing = 0;
+    swfs_real *sum = NULL;
+    int rc = SWFS_OK;
+    for (size_t i = 0; i < n && !rc; i++) {
+        swfs_fits_in *f = NULL;
+        if ((rc = swfs_fits_in_open(&f, paths[i], NULL))) break;
+        if (!swfs_fits_in_has_ext(f, "RESMEAN")) {
+            (*nmissing)++;
+            swfs_fits_in_close(f);
+            continue;
+        }
+        swfs_real *m = NULL;
+        double k = 0.0;
+        int found = 0;
+        rc = swfs_resmean_read_ext(f, paths[i], &m);
+        if (!rc) rc = swfs_fits_in_key_double_opt(f, "RESMNEXP", &k, &found);
+        if (!rc && (!found || !(k >= 1.0) || k != floor(k)))
+            rc = swfs_fail(SWFS_ERR_FORMAT, "%s: RESMEAN without a whole number of exposures (RESMNEXP %g)", paths[i],
+                           found ? k : NAN);
+        if (!rc && sum && (m->nx != sum->nx || m->ny != sum->ny))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zux%zu but %s's is %zux%zu", paths[i], m->nx, m->ny,
+                           paths[0], sum->nx, sum->ny);
+        if (!rc && !sum && !(sum = swfs_real_alloc(m->nx, m->ny, 1))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        for (size_t q = 0; !rc && q < m->nx * m->ny; q++) sum->data[q] += k * m->data[q];
+        if (!rc) *nexp += (size_t)k;
+        swfs_real_free(m);
+        swfs_fits_in_close(f);
+    }
+    if (rc || *nmissing || !sum) {
+        swfs_real_free(sum);
+        *nexp = 0;
+        return rc;
+    }
+    for (size_t q = 0; q < sum->nx * sum->ny; q++) sum->data[q] /= (double)*nexp;
+    *out = sum;
+    return SWFS_OK;
 }
 
 #define REGSTATE_VERSION 1

@@ -112,7 +112,8 @@ static int update(void *ctx, const swfs_stream *s, int final)
         rc = swfs_pupil_estimate(h, &u->g, u->mask, &po, &pr);
         if (!rc) rc = swfs_pupil_write(pr, o->pupil_out, &u->g, u->prov, u->nprov);
     }
-    if (!rc && o->checkpoint) rc = swfs_accum_save(acc, o->checkpoint, &u->g, u->prov, u->nprov);
+    if (!rc && o->checkpoint)
+        rc = swfs_accum_save_resmean(acc, h->resmean, (size_t)acc->frames, o->checkpoint, &u->g, u->prov, u->nprov);
     int erc = swfs_outputs_end(rc == SWFS_OK);
     if (!rc) rc = erc;
     if (!rc) u->updated = 1;
