@@ -256,6 +256,12 @@ static void make_run(const char *dir, const char *which, run *r)
         write_map(o, "WFE", wfe, NPUP, NPUP);
         write_map(o, "AMPLITUDE", amp, NPUP, NPUP);
         write_map(o, "PUPIL", r->pupil, NPUP, NPUP);
+        if (strstr(which, "resmean")) { /* the AO residual's time mean pupil took out */
+            double rm[NPUP * NPUP];
+            for (int k = 0; k < NPUP * NPUP; k++) rm[k] = r->pupil[k] ? 5e-9 * sin(0.2 * k) : 0.0;
+            write_map(o, "RESMEAN", rm, NPUP, NPUP);
+            assert_ok(swfs_fits_out_key_double(o, "RESMRMS", 3.5e-9, "[m]"));
+        }
         assert_ok(swfs_fits_out_commit(o));
     }
     if (strstr(which, "coherence")) {
@@ -512,6 +518,29 @@ static void test_full_run(void **state)
     assert_false(test_file_exists(out));
 }
 
+/* A wavefront product from which pupil took the AO residual's time mean out: its own panel
+ * (five with the truth's two: three rows), named in the caption. */
+static void test_resmean_panel(void **state)
+{
+    (void)state;
+    if (!swfs_plot_available()) skip();
+    const char *dir = test_path("report_resmean");
+    run r;
+    make_run(dir, "truth pupil wavefront resmean", &r);
+    swfs_report_summary s;
+    assert_ok(swfs_report_run(dir, NULL, NULL, &s));
+    int found = 0;
+    for (size_t k = 0; k < s.nfigures; k++)
+        if (!strcmp(s.figures[k].file, "pupil.png")) {
+            found = 1;
+            assert_int_equal(s.figures[k].height, 3 * 880 / 2);
+        }
+    assert_true(found);
+    char *html = slurp(s.html);
+    assert_non_null(strstr(html, "time mean that the telemetry measured"));
+    free(html);
+}
+
 /* Only the raw cubes: moments computed from them, the pixel figure still drawn, notes
  * for everything else, and the pixel chosen by speckle power. */
 static void test_cubes_only(void **state)
@@ -721,6 +750,7 @@ int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_full_run),
+        cmocka_unit_test(test_resmean_panel),
         cmocka_unit_test(test_cubes_only),
         cmocka_unit_test(test_bad_inputs),
         cmocka_unit_test(test_png_complete),

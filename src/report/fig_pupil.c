@@ -15,6 +15,8 @@
 
 typedef struct pupil_maps {
     swfs_real *amp, *wfe, *pup, *ncp; /* AMPLITUDE, WFE, the pupil mask, the true NCP (any but wfe may be NULL) */
+    swfs_real *resm;                  /* RESMEAN: the AO residual's time mean taken out of WFE (may be NULL) */
+    double resm_rms;                  /* RESMRMS [m] */
     swfs_geom g;                      /* of wavefront.fits */
     double key_rms, key_pv, key_strehl;
     size_t nx, ny, n;
@@ -32,6 +34,7 @@ static void maps_free(pupil_maps *m)
     swfs_real_free(m->wfe);
     swfs_real_free(m->pup);
     swfs_real_free(m->ncp);
+    swfs_real_free(m->resm);
     free(m->w);
     free(m->mask);
     free(m->outline);
@@ -73,6 +76,9 @@ static int load(rep_ctx *c, pupil_maps *m, int *drawable)
     if (!rc) rc = rep_read_real_opt(f, "AMPLITUDE", &m->amp);
     if (!rc) rc = rep_read_real_opt(f, "WFE", &m->wfe);
     if (!rc) rc = rep_read_real_opt(f, "PUPIL", &m->pup);
+    if (!rc) rc = rep_read_real_opt(f, "RESMEAN", &m->resm);
+    m->resm_rms = NAN;
+    if (!rc && !(rc = swfs_fits_in_key_double_opt(f, "RESMRMS", &v, &found)) && found) m->resm_rms = v;
     if (!rc) rc = swfs_fits_in_geom(f, &m->g);
     if (!rc && !(rc = swfs_fits_in_key_double_opt(f, "WFERMS", &v, &found)) && found) m->key_rms = v;
     if (!rc && !(rc = swfs_fits_in_key_double_opt(f, "WFEPV", &v, &found)) && found) m->key_pv = v;
@@ -89,6 +95,11 @@ static int load(rep_ctx *c, pupil_maps *m, int *drawable)
     if (m->amp && (m->amp->nx != m->nx || m->amp->ny != m->ny))
         return swfs_fail(SWFS_ERR_SHAPE, "%s: AMPLITUDE is %zux%zu but WFE is %zux%zu", path, m->amp->nx, m->amp->ny,
                          m->nx, m->ny);
+    if (m->resm && (m->resm->nx != m->nx || m->resm->ny != m->ny)) {
+        rep_note(c, "RESMEAN is %zux%zu but WFE is %zux%zu: not drawn", m->resm->nx, m->resm->ny, m->nx, m->ny);
+        swfs_real_free(m->resm);
+        m->resm = NULL;
+    }
     if (!m->pup && c->has[P_PUPIL] && (rc = swfs_fits_read_real(c->path[P_PUPIL], NULL, &m->pup, NULL))) return rc;
     if (m->pup && (m->pup->nx != m->nx || m->pup->ny != m->ny)) {
         rep_note(c, "pupil mask is %zux%zu but WFE is %zux%zu: drawn without the pupil outline", m->pup->nx,
@@ -208,7 +219,15 @@ static int draw(rep_ctx *c, const pupil_maps *m, swfs_plot *p, double *z)
     s.zlabel = "wavefront error [nm]";
     s.cmap = SWFS_CMAP_DIVERGING;
     rep_apply_range(&s, &r);
-    if ((rc = wave_panel(p, panel++, &s, m, z)) || !m->ncp) return rc;
+    if ((rc = wave_panel(p, panel++, &s, m, z))) return rc;
+    if (m->resm) { /* on the WFE's scale: how much of the static aberration was the AO residual's */
+        char t_res[200];
+        snprintf(t_res, sizeof t_res, "AO residual's time mean taken out: %.1f nm rms", 1e9 * m->resm_rms);
+        for (size_t k = 0; k < n; k++) z[k] = m->mask[k] && isfinite(m->resm->data[k]) ? 1e9 * m->resm->data[k] : NAN;
+        s.title = t_res;
+        if ((rc = wave_panel(p, panel++, &s, m, z))) return rc;
+    }
+    if (!m->ncp) return rc;
     snprintf(t_ncp, sizeof t_ncp, "true NCP (simulation): %.1f nm rms", 1e9 * c->sum->ncp_rms);
     snprintf(t_err, sizeof t_err, "error WFE − NCP (piston, tip/tilt removed): %.1f nm rms", 1e9 * c->sum->err_rms);
     for (size_t k = 0; k < n; k++) z[k] = m->mask[k] && isfinite(m->ncp0[k]) ? 1e9 * m->ncp0[k] : NAN;
@@ -233,21 +252,26 @@ int rep_fig_pupil(rep_ctx *c)
     if (!rc) rc = load(c, &m, &drawable);
     if (!rc && drawable) rc = derive(c, &m);
     if (rc || !drawable || !swfs_plot_available()) goto done;
-    int npanel = (m.amp ? 1 : 0) + 1 + (m.ncp ? 2 : 0);
-    int rows = npanel > 2 ? 2 : 1, h = rows == 2 ? REP_H_GRID : REP_H_ROW2, cols = npanel > 1 ? 2 : 1;
+    int npanel = (m.amp ? 1 : 0) + 1 + (m.resm ? 1 : 0) + (m.ncp ? 2 : 0);
+    int rows = (npanel + 1) / 2, h = rows >= 2 ? REP_H_GRID * rows / 2 : REP_H_ROW2, cols = npanel > 1 ? 2 : 1;
     int w = cols == 2 ? REP_W_GRID : REP_W_PIXEL;
     if (!(z = malloc(m.n * sizeof *z))) {
         rc = swfs_fail(SWFS_ERR_NOMEM, "pupil figure: out of memory");
         goto done;
     }
     if ((rc = swfs_plot_create(&p, path, w, h, cols, rows)) || (rc = draw(c, &m, p, z))) goto done;
-    rc = rep_commit(c, &p, "pupil.png", w, h, "Pupil field and wavefront",
-                       m.ncp ? "Pupil amplitude and the estimated wavefront error (eq:NCP-WFE-estimate) in nm with the "
-                               "pupil outline; the true non-common-path aberration of the simulation (piston removed) "
-                               "and the error map (estimate minus truth, piston and tip/tilt removed, as the demo's "
-                               "table), all on one colour scale."
-                             : "Pupil amplitude and the estimated wavefront error (eq:NCP-WFE-estimate) in nm, piston "
-                               "removed, with the pupil outline.");
+    char cap[1200];
+    snprintf(cap, sizeof cap, "%s%s",
+             m.ncp ? "Pupil amplitude and the estimated wavefront error (eq:NCP-WFE-estimate) in nm with the pupil "
+                     "outline; the true non-common-path aberration of the simulation (piston removed) and the error "
+                     "map (estimate minus truth, piston and tip/tilt removed, as the demo's table), all on one colour "
+                     "scale."
+                   : "Pupil amplitude and the estimated wavefront error (eq:NCP-WFE-estimate) in nm, piston removed, "
+                     "with the pupil outline.",
+             m.resm ? " The AO residual's time mean that the telemetry measured, band-limited to the focal window, "
+                      "was taken out of the wavefront (its panel, on the same scale)."
+                    : "");
+    rc = rep_commit(c, &p, "pupil.png", w, h, "Pupil field and wavefront", cap);
 done:
     swfs_plot_abort(p);
     maps_free(&m);
