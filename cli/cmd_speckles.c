@@ -240,9 +240,6 @@ int swfs_cmd_speckles(int argc, char **argv)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,
                 r.info.recon_modes, r.info.n_outside, o.out);
-    if (!rc && r.info.band > 0)
-        fprintf(stderr, "speckles: computed within %.3g lambda/D (%s), 0 in the %zu focal pixels beyond\n", r.info.band,
-                o.pipe.band > 0 ? "--band" : "the subapertures' sampling band nsub/2", r.info.band_out);
     if (!rc)
         fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
                 "out of the NCP)\n", r.resmean_rms * 1e9);

@@ -186,6 +186,7 @@ static void on_update(void *ctx, const swfs_stream *s, const swfs_halo *h, const
         fprintf(stderr, "stream: %zu camera frames of all processes: valid %.1f %%, median SNR %.3g", cam,
                 100.0 * h->valid_fraction, h->median_snr);
     if (pr) fprintf(stderr, ", pupil WFE rms %.1f nm", 1e9 * pr->wfe_rms);
+    if (pr && pr->resmean) fprintf(stderr, " (AO residual mean %.1f nm out)", 1e9 * pr->resmean_rms);
     fputc('\n', stderr);
 }
 
@@ -207,6 +208,9 @@ int swfs_cmd_stream(int argc, char **argv)
     if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
     if (!cli_writer()) return CLI_OK;
     if (o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
+    if (r.info.band > 0)
+        fprintf(stderr, "stream: speckles computed within %.3g lambda/D, 0 in the %zu focal pixels beyond\n", r.info.band,
+                r.info.band_out);
     if (r.info.n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);
