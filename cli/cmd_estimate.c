@@ -76,6 +76,9 @@ static void print_summary(const swfs_estimate_run_options *o, const swfs_estimat
         printf("  median SNR        undefined: eq:SNR divides by the camera noise, and the noise model is zero "
                "(give --read-noise or --gain)\n");
     if (isfinite(r->circ_core)) printf("  circularity       mean |<psi^2>|/<|psi|^2> = %.3f inside 4 lambda/D\n", r->circ_core);
+    if (h->resmean)
+        printf("  AO residual mean  carried from the speckles (RESMEAN, %zux%zu): pupil takes it out of the NCP\n",
+               h->resmean->nx, h->resmean->ny);
     printf("  time              %.2f s\n", seconds);
     if (swfs_team_active(o->team)) printf("  processes         %d (frames split evenly, accumulators merged)\n", o->team->size);
 }
