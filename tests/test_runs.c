@@ -468,6 +468,91 @@ static void test_sync_cube_at_file_end(void **state)
     free(sr.t.cubes);
 }
 
+/* The rows sync makes of camera cube `cam` (its exposures used, and whether a row joined the
+ * file `joined_in`). */
+static size_t used_rows(const swfs_timing *t, const char *cam, const char *joined_in, int *joined)
+{
+    size_t used = 0;
+    *joined = 0;
+    for (size_t k = 0; k < t->ncubes; k++) {
+        const swfs_timing_cube *row = &t->cubes[k];
+        if (strcmp(row->camera, cam) || row->status != SWFS_CUBE_OK) continue;
+        used += row->nframes;
+        if (row->joined && strstr(row->slopes, joined_in)) *joined = 1;
+    }
+    return used;
+}
+
+/* Time-stamped telemetry files (names that differ in digits only, not consecutive numbers):
+ * cube 0 runs from the first file into the second, in which no cube starts (the handshake log
+ * does not name it); sync finds it among the folder's files named like the first, and the
+ * table is the numbered files' table. */
+static void test_sync_timestamped_files(void **state)
+{
+    (void)state;
+    char sub[1200], sci[1300], hs[1300], tim[1300];
+    snprintf(sub, sizeof sub, "%s/stamps", dir);
+    swfs_reduce_run_result rr;
+    make_data(sub, "wfs_file_frames=400", &rr);
+    snprintf(sci, sizeof sci, "%s/science.fits", sub);
+    snprintf(hs, sizeof hs, "%s/handshake.log", sub);
+    snprintf(tim, sizeof tim, "%s/timing.txt", sub);
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = sci;
+    so.handshake = hs;
+    so.out = tim;
+    so.params.ratio_min = 5;
+    so.params.ratio_max = 8;
+    swfs_sync_run_result a, b;
+    assert_ok(swfs_sync_run(&so, &a));
+    int ja, jb;
+    const size_t ua = used_rows(&a.t, "raw_000.fits", "slopes_001.fits", &ja);
+    assert_true(ja); /* the numbered neighbour */
+    /* the same files renamed by time stamps (slopes_k -> ..._0100SS with irregular seconds) */
+    const int sec[8] = {0, 7, 13, 21, 34, 40, 52, 59};
+    char from[1400], to[1900], stamp[8][64];
+    size_t nf = 0;
+    for (; nf < 8; nf++) {
+        snprintf(from, sizeof from, "%s/slopes_%03zu.fits", sub, nf);
+        snprintf(stamp[nf], sizeof stamp[nf], "slopes_20261126T0100%02d.fits", sec[nf]);
+        snprintf(to, sizeof to, "%s/%s", sub, stamp[nf]);
+        if (rename(from, to)) break;
+    }
+    assert_true(nf >= 3);
+    FILE *in = fopen(hs, "r");
+    snprintf(to, sizeof to, "%s/handshake_stamps.log", sub);
+    FILE *out = fopen(to, "w");
+    assert_non_null(in);
+    assert_non_null(out);
+    char line[2048];
+    int names_second = 0;
+    while (fgets(line, sizeof line, in)) {
+        char cam[256], sl[256];
+        long fr;
+        if (line[0] == '#' || sscanf(line, "%255s %255s %ld", cam, sl, &fr) != 3) {
+            fputs(line, out);
+            continue;
+        }
+        const size_t k = (size_t)atoi(sl + 7); /* slopes_NNN.fits */
+        names_second |= k == 1;
+        fprintf(out, "%s %s %ld\n", cam, stamp[k], fr);
+    }
+    fclose(in);
+    fclose(out);
+    assert_false(names_second); /* no cube starts in the second file */
+    so.handshake = to;
+    assert_ok(swfs_sync_run(&so, &b));
+    const size_t ub = used_rows(&b.t, "raw_000.fits", stamp[1], &jb);
+    printf("test_runs: cube 0 into an unnamed time-stamped file: %zu exposures used (%zu with numbered files)\n", ub,
+           ua);
+    assert_true(jb);
+    assert_int_equal(ub, ua);
+    assert_int_equal(b.t.ncubes, a.t.ncubes);
+    free(a.t.cubes);
+    free(b.t.cubes);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -477,6 +562,7 @@ int main(void)
         cmocka_unit_test(test_stream_equals_speckles),
         cmocka_unit_test(test_stream_batches),
         cmocka_unit_test(test_sync_cube_at_file_end),
+        cmocka_unit_test(test_sync_timestamped_files),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

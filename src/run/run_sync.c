@@ -11,6 +11,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <dirent.h>
 #include <unistd.h>
 
 void swfs_sync_run_options_default(swfs_sync_run_options *o)
@@ -138,16 +139,80 @@ static int numbered_neighbour(const char *name, int dir, char *out, size_t cap)
     return len > 0 && (size_t)len < cap;
 }
 
+/* Two file names that differ in digits only (the same length, the same other characters):
+ * the files of one logger, numbered or time-stamped (slopes_20261126T010000.fits). */
+static int same_pattern(const char *a, const char *b)
+{
+    if (strlen(a) != strlen(b)) return 0;
+    for (; *a; a++, b++) {
+        const int da = *a >= '0' && *a <= '9', db = *b >= '0' && *b <= '9';
+        if (da != db || (!da && *a != *b)) return 0;
+    }
+    return 1;
+}
+
+static int cmp_names(const void *a, const void *b) { return strcmp(*(char *const *)a, *(char *const *)b); }
+
+/* name's neighbour (dir -1 or +1) among the files of its folder that share its pattern, in the
+ * order of their names (for fixed-width numbers and time stamps, the order they were written):
+ * the file after slopes_20261126T010000.fits may be slopes_20261126T010640.fits. 1 with buf
+ * set (name's folder part + the neighbour's name), 0 if none. */
+static int listed_neighbour(const work *w, const char *name, int dir, char *buf, size_t cap)
+{
+    char path[8192], folder[8192];
+    if (swfs_telemetry_path(w->logdir, name, path, sizeof path)) return 0;
+    const char *base = strrchr(path, '/');
+    const size_t fl = base ? (size_t)(base - path) : 0;
+    snprintf(folder, sizeof folder, "%.*s", (int)(fl ? fl : 1), fl ? path : ".");
+    base = base ? base + 1 : path;
+    DIR *d = opendir(folder);
+    if (!d) return 0;
+    char **names = NULL;
+    size_t n = 0, capn = 0;
+    int ok = 1;
+    for (struct dirent *e; ok && (e = readdir(d));) {
+        if (!same_pattern(e->d_name, base)) continue;
+        if (n == capn) {
+            char **t = realloc(names, (capn ? 2 * capn : 16) * sizeof *t);
+            if (!t) { ok = 0; break; }
+            names = t;
+            capn = capn ? 2 * capn : 16;
+        }
+        if (!(names[n] = strdup(e->d_name))) { ok = 0; break; }
+        n++;
+    }
+    closedir(d);
+    int found = 0;
+    if (ok && n) {
+        qsort(names, n, sizeof *names, cmp_names);
+        for (size_t k = 0; k < n; k++) {
+            if (strcmp(names[k], base)) continue;
+            const size_t j = dir > 0 ? k + 1 : k - 1; /* k = 0, dir < 0: wraps to SIZE_MAX */
+            if (j < n) {
+                const char *slash = strrchr(name, '/');
+                const int len = snprintf(buf, cap, "%.*s%s", slash ? (int)(slash - name + 1) : 0, name, names[j]);
+                found = len > 0 && (size_t)len < cap;
+            }
+            break;
+        }
+    }
+    for (size_t k = 0; k < n; k++) free(names[k]);
+    free(names);
+    return found;
+}
+
 /* The telemetry file just before (dir -1) or after (+1) name: the numbered neighbour in the
- * same folder when it exists (slopes_004.fits -> slopes_005.fits), else the next or previous
- * one in the order the handshake log first names them; NULL if none. sync's check on the
- * data (split_cube) decides whether it really continues name. */
+ * same folder when it exists (slopes_004.fits -> slopes_005.fits), else the neighbour among
+ * the folder's files named like it (listed_neighbour: time-stamped names), else the next or
+ * previous one in the order the handshake log first names them; NULL if none. sync's check
+ * on the data (split_cube) decides whether it really continues name. */
 static const char *adjacent_file(const work *w, const char *name, int dir, char *buf, size_t cap)
 {
     char path[8192];
     if (numbered_neighbour(name, dir, buf, cap) && !swfs_telemetry_path(w->logdir, buf, path, sizeof path) &&
         access(path, R_OK) == 0)
         return buf;
+    if (listed_neighbour(w, name, dir, buf, cap)) return buf;
     const char *prev = NULL;
     int found = 0;
     for (size_t k = 0; k < w->nhs; k++) {
