@@ -431,29 +431,40 @@ static void test_rim_coverage(void **state)
     free(xy);
 }
 
+/* The small system simulated and reduced into dir/<name> with telemetry files of
+ * `file_frames` (make_data), and sync's options for it (paths kept in the caller's buffers). */
+typedef struct sync_case {
+    char sub[1200], sci[1300], hs[1300], tim[1300];
+    swfs_sync_run_options so;
+} sync_case;
+
+static void sync_case_make(sync_case *c, const char *name, const char *file_frames)
+{
+    snprintf(c->sub, sizeof c->sub, "%s/%s", dir, name);
+    swfs_reduce_run_result rr;
+    make_data(c->sub, file_frames, &rr);
+    snprintf(c->sci, sizeof c->sci, "%s/science.fits", c->sub);
+    snprintf(c->hs, sizeof c->hs, "%s/handshake.log", c->sub);
+    snprintf(c->tim, sizeof c->tim, "%s/timing.txt", c->sub);
+    swfs_sync_run_options_default(&c->so);
+    c->so.science = c->sci;
+    c->so.handshake = c->hs;
+    c->so.out = c->tim;
+    c->so.params.ratio_min = 5;
+    c->so.params.ratio_max = 8;
+}
+
 /* A cube that starts less than one exposure before the end of its telemetry file: no whole
  * exposure lies in the file the handshake log names, and all but the one across the boundary
  * lie in the next file, which continues it. */
 static void test_sync_cube_at_file_end(void **state)
 {
     (void)state;
-    char sub[1200], sci[1300], hs[1300], tim[1300];
-    snprintf(sub, sizeof sub, "%s/edge", dir);
     /* files of 843 WFS frames: cube 1 starts at WFS frame 839.2 (logged 842) */
-    swfs_reduce_run_result rr;
-    make_data(sub, "wfs_file_frames=843", &rr);
-    snprintf(sci, sizeof sci, "%s/science.fits", sub);
-    snprintf(hs, sizeof hs, "%s/handshake.log", sub);
-    snprintf(tim, sizeof tim, "%s/timing.txt", sub);
-    swfs_sync_run_options so;
-    swfs_sync_run_options_default(&so);
-    so.science = sci;
-    so.handshake = hs;
-    so.out = tim;
-    so.params.ratio_min = 5;
-    so.params.ratio_max = 8;
+    sync_case c;
+    sync_case_make(&c, "edge", "wfs_file_frames=843");
     swfs_sync_run_result sr;
-    assert_ok(swfs_sync_run(&so, &sr));
+    assert_ok(swfs_sync_run(&c.so, &sr));
     size_t in_own = 0, in_next = 0;
     for (size_t k = 0; k < sr.t.ncubes; k++) {
         const swfs_timing_cube *row = &sr.t.cubes[k];
@@ -490,22 +501,11 @@ static size_t used_rows(const swfs_timing *t, const char *cam, const char *joine
 static void test_sync_timestamped_files(void **state)
 {
     (void)state;
-    char sub[1200], sci[1300], hs[1300], tim[1300];
-    snprintf(sub, sizeof sub, "%s/stamps", dir);
-    swfs_reduce_run_result rr;
-    make_data(sub, "wfs_file_frames=400", &rr);
-    snprintf(sci, sizeof sci, "%s/science.fits", sub);
-    snprintf(hs, sizeof hs, "%s/handshake.log", sub);
-    snprintf(tim, sizeof tim, "%s/timing.txt", sub);
-    swfs_sync_run_options so;
-    swfs_sync_run_options_default(&so);
-    so.science = sci;
-    so.handshake = hs;
-    so.out = tim;
-    so.params.ratio_min = 5;
-    so.params.ratio_max = 8;
+    sync_case c;
+    sync_case_make(&c, "stamps", "wfs_file_frames=400");
+    const char *sub = c.sub, *hs = c.hs;
     swfs_sync_run_result a, b;
-    assert_ok(swfs_sync_run(&so, &a));
+    assert_ok(swfs_sync_run(&c.so, &a));
     int ja, jb;
     const size_t ua = used_rows(&a.t, "raw_000.fits", "slopes_001.fits", &ja);
     assert_true(ja); /* the numbered neighbour */
@@ -541,8 +541,8 @@ static void test_sync_timestamped_files(void **state)
     fclose(in);
     fclose(out);
     assert_false(names_second); /* no cube starts in the second file */
-    so.handshake = to;
-    assert_ok(swfs_sync_run(&so, &b));
+    c.so.handshake = to;
+    assert_ok(swfs_sync_run(&c.so, &b));
     const size_t ub = used_rows(&b.t, "raw_000.fits", stamp[1], &jb);
     printf("test_runs: cube 0 into an unnamed time-stamped file: %zu exposures used (%zu with numbered files)\n", ub,
            ua);
