@@ -151,6 +151,8 @@ void cli_linear_summary(const char *cmd, const struct swfs_linear_files *lf, con
 struct swfs_pipeline_options;
 void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, const char *path, const char *valid,
                        const struct swfs_pipeline_info *info);
+/* The focal radius the speckles were computed within, when there is one (given: --band). */
+void cli_band_summary(const char *cmd, const struct swfs_pipeline_info *in, int given);
 #define CLI_LINEAR_HELP \
     "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \
     "  --basis CUBE.fits   mode shapes or influence functions, one plane each: PUPN x PUPN on the\n" \

@@ -208,9 +208,7 @@ int swfs_cmd_stream(int argc, char **argv)
     if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
     if (!cli_writer()) return CLI_OK;
     if (o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
-    if (r.info.band > 0)
-        fprintf(stderr, "stream: speckles computed within %.3g lambda/D, 0 in the %zu focal pixels beyond\n", r.info.band,
-                r.info.band_out);
+    cli_band_summary(cmd, &r.info, o.band > 0);
     if (r.info.n_outside)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);

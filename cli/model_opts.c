@@ -124,9 +124,14 @@ void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const ch
     if (o->recon == SWFS_RECON_VK)
         fprintf(stderr, "%s: von Karman outer scale %.3g m (%s)\n", cmd, in->vk_l0,
                 o->vk_l0 > 0 ? "given" : "maximum likelihood from the slopes");
+    cli_band_summary(cmd, in, o->band > 0);
+}
+
+void cli_band_summary(const char *cmd, const swfs_pipeline_info *in, int given)
+{
     if (in->band > 0)
         fprintf(stderr, "%s: speckles computed within %.3g lambda/D (%s), 0 in the %zu focal pixels beyond\n", cmd,
-                in->band, o->band > 0 ? "--band" : "the subapertures' sampling band nsub/2", in->band_out);
+                in->band, given ? "--band" : "the subapertures' sampling band nsub/2", in->band_out);
 }
 
 void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs_pipeline_info *in)

@@ -287,7 +287,7 @@ static void test_mean_wavefront(void **state)
         swfs_linear_input in = {ns, T, f.rec->W, NULL, 1.0, NULL, 0};
         assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
         size_t nexp = 99;
-        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp), SWFS_ERR_VALUE);
+        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp, NULL), SWFS_ERR_VALUE);
         assert_int_equal(nexp, 0);
         double peak;
         field_difference(sh, lin, &f, &peak);
@@ -295,7 +295,7 @@ static void test_mean_wavefront(void **state)
         const double rms = swfs_wfe_remove_ptt(want, f.mask, NPUP);
         swfs_pipeline *both[2] = {sh, lin};
         for (int b = 0; b < 2; b++) {
-            assert_ok(swfs_pipeline_mean_wavefront(both[b], got, &nexp));
+            assert_ok(swfs_pipeline_mean_wavefront(both[b], got, &nexp, NULL));
             assert_int_equal(nexp, 10);
             double d = 0;
             for (size_t k = 0; k < ng; k++) {
@@ -308,7 +308,7 @@ static void test_mean_wavefront(void **state)
             assert_true(d / rms < 1e-4); /* single-precision engine */
         }
         swfs_pipeline_mean_reset(sh);
-        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp), SWFS_ERR_VALUE);
+        assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp, NULL), SWFS_ERR_VALUE);
         swfs_pipeline_free(sh);
         swfs_pipeline_free(lin);
     }

@@ -154,11 +154,11 @@ static void test_resmean(void **state)
      * the 9-cycle one does not. */
     double *both = malloc(NP * NP * sizeof *both);
     for (size_t q = 0; q < NP * NP; q++) both[q] = lo[q] + hi[q];
-    assert_ok(swfs_resmean_bandlimit(both, mask, NP, &g, 24, 24, out));
+    assert_ok(swfs_resmean_bandlimit(both, mask, NP, &g, 24, 24, out, NULL));
     const double rlo = swfs_wfe_remove_ptt(lo, mask, NP);
     double err, rhi;
     assert_ok(swfs_wfe_compare(out, lo, mask, NP, &err, NULL, NULL));
-    assert_ok(swfs_resmean_bandlimit(hi, mask, NP, &g, 24, 24, out));
+    assert_ok(swfs_resmean_bandlimit(hi, mask, NP, &g, 24, 24, out, NULL));
     rhi = swfs_wfe_remove_ptt(out, mask, NP);
     print_message("band limit: the in-band ripple back to %.2f of its %.1f nm rms, the out-of-band one at %.3f\n",
                   err / rlo, rlo * 1e9, rhi / rlo);

@@ -166,17 +166,15 @@ void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
  * time mean as the telemetry measures it [m], on the PUPN x PUPN grid, 0 outside the pupil,
  * piston, tip and tilt removed (the science frames are registered: a mean tilt is not in
  * them). The science camera sees it as a static aberration beside the NCP; `pupil`
- * subtracts it (pupil.h, docs/telemetry.md). nexp (may be NULL): the exposures averaged.
- * SWFS_ERR_VALUE before any exposure. */
-int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp);
+ * subtracts it (pupil.h, docs/telemetry.md). nexp, rms (may be NULL): the exposures averaged,
+ * and the map's rms in the pupil [m]. SWFS_ERR_VALUE before any exposure. */
+int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms);
 void swfs_pipeline_mean_reset(swfs_pipeline *p);
 /* The running sum itself (n values, owned by p, writable) and its exposure count, for
  * members of a team to add up (team.h sum); swfs_pipeline_mean_set_count then sets the
  * count that goes with a summed state. */
 void swfs_pipeline_mean_state(swfs_pipeline *p, double **sum, size_t *n, size_t *nexp);
 void swfs_pipeline_mean_set_count(swfs_pipeline *p, size_t nexp);
-/* The pupil transmission the pipeline uses (PUPN x PUPN). */
-const double *swfs_pipeline_mask(const swfs_pipeline *p);
 /* SWFS_TT_EXPOSURE: the Z-tilt of the model's wavefront per telemetry value, 2 rows (x, y)
  * of nslopes [rad per unit]; NULL in the other tip-tilt modes. */
 const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p);

@@ -106,9 +106,10 @@ double swfs_wfe_remove_ptt(double *w, const double *mask, size_t n);
  * is in the estimate, so it is band-limited to the window first: the spatial frequencies up to
  * floor(nfx/2) PIXSCALE (x) and floor(nfy/2) PIXSCALE (y) cycles per D, by FFT, as a
  * normalized convolution (the low-passed masked map over the low-passed mask) so the rim keeps
- * its level; piston, tip and tilt removed. out: n x n, 0 outside the mask. */
+ * its level; piston, tip and tilt removed. out: n x n, 0 outside the mask; rms (may be NULL):
+ * its rms in the mask [m]. */
 int swfs_resmean_bandlimit(const double *map, const double *mask, size_t n, const swfs_geom *g, size_t nfx,
-                           size_t nfy, double *out);
+                           size_t nfy, double *out, double *rms);
 /* That band-limited map subtracted from r->wfe and its phase from r->field, inside r->mask;
  * r->resmean and r->resmean_rms set (the caller recomputes the WFE statistics). */
 int swfs_pupil_remove_resmean(swfs_pupil_result *r, const swfs_real *resmean, const swfs_geom *g, size_t nfx,

@@ -17,6 +17,7 @@
 #include <stddef.h>
 
 #include "specklewfs/accum.h"
+#include "specklewfs/pipeline.h"
 #include "specklewfs/defs.h"
 
 SWFS_BEGIN_DECLS
@@ -65,6 +66,9 @@ int swfs_team_agree(const swfs_team *t, int status);
  * Without a team, out becomes a copy of mine. Transports swfs_accum_state_len(nx, ny)
  * doubles per member. */
 int swfs_team_merge_accum(const swfs_team *t, const swfs_accum *mine, swfs_accum *out);
+/* Every member's pipeline time mean (pipeline.h swfs_pipeline_mean_state) summed over the
+ * team, sums and exposure count, into every member's p; nothing without a team. */
+int swfs_team_sum_pipeline_mean(const swfs_team *t, swfs_pipeline *p);
 
 SWFS_END_DECLS
 

@@ -227,7 +227,7 @@ class Pipeline:
         n = self.geom.pupn
         out = np.empty((n, n), np.float64)
         nexp = ctypes.c_size_t()
-        check(lib.swfs_pipeline_mean_wavefront(self._p, dptr(out), ctypes.byref(nexp)), "swfs_pipeline_mean_wavefront")
+        check(lib.swfs_pipeline_mean_wavefront(self._p, dptr(out), ctypes.byref(nexp), None), "swfs_pipeline_mean_wavefront")
         return out, nexp.value
 
     def mean_reset(self):

@@ -346,25 +346,10 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
 static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn;
-    double *sum;
-    size_t ns, nexp;
-    swfs_pipeline_mean_state(w->p, &sum, &ns, &nexp);
-    if (swfs_team_active(o->team)) {
-        double cnt = (double)nexp;
-        int rc = o->team->sum(o->team->ctx, sum, ns);
-        if (!rc) rc = o->team->sum(o->team->ctx, &cnt, 1);
-        if (rc) return rc;
-        swfs_pipeline_mean_set_count(w->p, (size_t)llround(cnt));
-    }
-    if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    int rc = swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL);
+    int rc = swfs_team_sum_pipeline_mean(o->team, w->p);
     if (rc) return rc;
-    const double *mask = swfs_pipeline_mask(w->p);
-    double s2 = 0.0, m = 0.0;
-    for (size_t k = 0; k < n * n; k++)
-        if (mask[k] > 0.0) { s2 += mask[k] * w->resmean->data[k] * w->resmean->data[k]; m += mask[k]; }
-    r->resmean_rms = m > 0.0 ? sqrt(s2 / m) : 0.0;
-    return SWFS_OK;
+    if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    return swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
 }
 
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with

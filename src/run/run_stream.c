@@ -328,15 +328,7 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
     sums[0] = (double)swfs_stream_camera_frames(*sp);
     sums[1] = swfs_stream_wfs_frames(*sp);
     if ((rc = t->sum(t->ctx, sums, 2))) return rc;
-    {
-        /* the reconstruction's time mean over every member's exposures (pipeline.h) */
-        double *msum, cnt;
-        size_t mn, mexp;
-        swfs_pipeline_mean_state(p, &msum, &mn, &mexp);
-        cnt = (double)mexp;
-        if ((rc = t->sum(t->ctx, msum, mn)) || (rc = t->sum(t->ctx, &cnt, 1))) return rc;
-        swfs_pipeline_mean_set_count(p, (size_t)llround(cnt));
-    }
+    if ((rc = swfs_team_sum_pipeline_mean(t, p))) return rc; /* the time mean over every member's exposures */
     const swfs_accum *mine = swfs_stream_accum(*sp);
     if (t->rank == 0 && !(*merged = swfs_accum_create(mine->nx, mine->ny)))
         rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory for the merged accumulators");

@@ -2,6 +2,7 @@
 #include "specklewfs/team.h"
 #include "specklewfs/status.h"
 
+#include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
 
@@ -86,5 +87,18 @@ int swfs_team_merge_accum(const swfs_team *t, const swfs_accum *mine, swfs_accum
         }
     }
     free(state);
+    return rc;
+}
+
+int swfs_team_sum_pipeline_mean(const swfs_team *t, swfs_pipeline *p)
+{
+    if (!swfs_team_active(t)) return SWFS_OK;
+    double *sum, cnt;
+    size_t n, nexp;
+    swfs_pipeline_mean_state(p, &sum, &n, &nexp);
+    cnt = (double)nexp;
+    int rc = t->sum(t->ctx, sum, n);
+    if (!rc) rc = t->sum(t->ctx, &cnt, 1);
+    if (!rc) swfs_pipeline_mean_set_count(p, (size_t)llround(cnt));
     return rc;
 }

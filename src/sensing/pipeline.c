@@ -324,18 +324,24 @@ static void band_apply(const swfs_pipeline *p, swfs_complex *out, size_t nf)
         for (size_t k = 0; k < p->info.band_out; k++) out[f * np + p->band_idx[k]] = 0;
 }
 
-/* Each exposure's weighted mean engine input into the running sum (the engine's weights:
- * w_first on the first frame, w_last on the last, 1 in between; count 1: w_first). */
+/* The engine's weight of frame f of exposure x: w_first on the first, w_last on the last, 1 in
+ * between (count 1: w_first). */
+static double frame_weight(const swfs_exposure *x, size_t f)
+{
+    return f == 0 ? x->w_first : (f + 1 == x->count ? x->w_last : 1.0);
+}
+
+/* Each exposure's weighted mean engine input into the running sum. */
 static void mean_add(swfs_pipeline *p, const double *v, const swfs_exposure *sched, size_t nexp)
 {
     const size_t nc = p->mcols;
     for (size_t i = 0; i < nexp; i++) {
         const swfs_exposure *x = sched + i;
         double wsum = 0.0;
-        for (size_t f = 0; f < x->count; f++) wsum += f == 0 ? x->w_first : (f + 1 == x->count ? x->w_last : 1.0);
+        for (size_t f = 0; f < x->count; f++) wsum += frame_weight(x, f);
         if (!(wsum > 0.0)) continue;
         for (size_t f = 0; f < x->count; f++) {
-            const double w = (f == 0 ? x->w_first : (f + 1 == x->count ? x->w_last : 1.0)) / wsum;
+            const double w = frame_weight(x, f) / wsum;
             const double *s = v + (x->first + f) * nc;
             for (size_t k = 0; k < nc; k++) p->macc[k] += w * s[k];
         }
@@ -357,9 +363,8 @@ void swfs_pipeline_mean_state(swfs_pipeline *p, double **sum, size_t *n, size_t 
 }
 
 void swfs_pipeline_mean_set_count(swfs_pipeline *p, size_t nexp) { p->mexp = nexp; }
-const double *swfs_pipeline_mask(const swfs_pipeline *p) { return p->mask; }
 
-int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp)
+int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms)
 {
     const size_t n = p->info.npup;
     if (nexp) *nexp = p->mexp;
@@ -369,7 +374,10 @@ int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *ne
     for (size_t k = 0; k < p->mcols; k++) v[k] = p->macc[k] / (double)p->mexp;
     int rc = swfs_engine_wavefront(p->engine, v, out);
     free(v);
-    if (!rc) swfs_wfe_remove_ptt(out, p->mask, n);
+    if (!rc) {
+        const double r = swfs_wfe_remove_ptt(out, p->mask, n);
+        if (rms) *rms = r;
+    }
     return rc;
 }
 

@@ -51,7 +51,7 @@ static int lowpass2(double *a, double *b, size_t n, double pupdx, double fxmax, 
 }
 
 int swfs_resmean_bandlimit(const double *map, const double *mask, size_t n, const swfs_geom *g, size_t nfx,
-                           size_t nfy, double *out)
+                           size_t nfy, double *out, double *rms)
 {
     /* The window's pixel (i, j) sits at (i - floor(W/2)) PIXSCALE lambda/D: a ripple of f
      * cycles per D puts its speckles at +-f lambda/D, inside the window up to floor(W/2)
@@ -70,7 +70,10 @@ int swfs_resmean_bandlimit(const double *map, const double *mask, size_t n, cons
      * edge low-passes to one half there; the floor only guards the division). */
     for (size_t k = 0; !rc && k < n * n; k++) out[k] = mask[k] > 0.0 ? a[k] / fmax(b[k], 0.5) : 0.0;
     free(a);
-    if (!rc) swfs_wfe_remove_ptt(out, mask, n);
+    if (!rc) {
+        const double r = swfs_wfe_remove_ptt(out, mask, n);
+        if (rms) *rms = r;
+    }
     return rc;
 }
 
@@ -83,22 +86,20 @@ int swfs_pupil_remove_resmean(swfs_pupil_result *r, const swfs_real *resmean, co
                          resmean->ny, n);
     swfs_real *b = swfs_real_alloc(n, n, 1);
     if (!b) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    int rc = swfs_resmean_bandlimit(resmean->data, r->mask->data, n, g, nfx, nfy, b->data);
+    double rms = 0.0;
+    int rc = swfs_resmean_bandlimit(resmean->data, r->mask->data, n, g, nfx, nfy, b->data, &rms);
     if (rc) {
         swfs_real_free(b);
         return rc;
     }
     const double k = 2.0 * M_PI / g->wavelen;
-    double s2 = 0.0, wsum = 0.0;
     for (size_t q = 0; q < n * n; q++) {
         if (!(r->mask->data[q] > 0.0)) continue;
         r->wfe->data[q] -= b->data[q];
         r->field->data[q] *= cexp(-I * k * b->data[q]);
-        s2 += r->mask->data[q] * b->data[q] * b->data[q];
-        wsum += r->mask->data[q];
     }
     swfs_real_free(r->resmean);
     r->resmean = b;
-    r->resmean_rms = wsum > 0.0 ? sqrt(s2 / wsum) : 0.0;
+    r->resmean_rms = rms;
     return SWFS_OK;
 }

@@ -166,7 +166,7 @@ int swfs_stream_attach_resmean(const swfs_stream *s, swfs_halo *h)
     swfs_pipeline_get_info(s->p, &in);
     swfs_real *m = swfs_real_alloc(in.npup, in.npup, 1);
     if (!m) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
-    int rc = swfs_pipeline_mean_wavefront(s->p, m->data, NULL);
+    int rc = swfs_pipeline_mean_wavefront(s->p, m->data, NULL, NULL);
     if (rc) {
         swfs_real_free(m);
         return rc;
