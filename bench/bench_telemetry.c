@@ -6,8 +6,10 @@
  * estimate -> pupil) and, on the same reduced frames, with the simulator's ideal speckles
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
- *   ./build/bench/bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] [--tiptilt exposure|frame]
- *                                 [--kind slopes|modal] [--vk-l0 M]
+ *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
+ *
+ * --seeds N: seeds 1 .. N (default 2); --seed S: seed S alone; --only K: system K (0-based) alone.
  *
  * --vk-l0 M: the von Karman reconstructor's outer scale (default: the library's, 10 m) on every
  * system, to measure the constant over the whole matrix (docs/telemetry.md).
@@ -291,11 +293,12 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
 
 int main(int argc, char **argv)
 {
-    int quick = 0, seeds = 2, only = -1;
+    int quick = 0, seeds = 2, only = -1, seed1 = 1;
     const char *keep = NULL;
     for (int i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--quick")) quick = 1;
         else if (!strcmp(argv[i], "--seeds") && i + 1 < argc) seeds = atoi(argv[++i]);
+        else if (!strcmp(argv[i], "--seed") && i + 1 < argc) seed1 = seeds = atoi(argv[++i]);
         else if (!strcmp(argv[i], "--keep") && i + 1 < argc) keep = argv[++i];
         else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = atoi(argv[++i]);
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "frame")) tiptilt = SWFS_TT_FRAME, i++;
@@ -304,7 +307,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else {
-            fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N] [--keep DIR] [--only K] "
+            fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
                     "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]\n");
             return 2;
         }
@@ -331,7 +334,7 @@ int main(int argc, char **argv)
     int nrun = 0, nfail = 0, within = 0, within_k = 0;
     for (size_t k = 0; k < NSYS; k++) {
         if (only >= 0 && (size_t)only != k) continue;
-        for (int sd = 1; sd <= seeds; sd++) {
+        for (int sd = seed1; sd <= seeds; sd++) {
             const system_def *s = &systems[k];
             row r;
             memset(&r, 0, sizeof r);

@@ -95,6 +95,10 @@ int swfs_cmd_reduce(int argc, char **argv)
     if (rc == CLI_OK)
         fprintf(stderr, "reduce: %zu frames from %zu cubes, %zu bad pixels, background noise %.4g counts rms (%.4g after "
                 "registration) -> %s\n", r.nframes, o.nraw, r.nbad, sqrt(r.noise_var), sqrt(r.noise_fac * r.noise_var), o.out);
+    if (rc == CLI_OK && r.noise_var_measured < 0)
+        fprintf(stderr, "reduce: note: the background noise variance came out at %.4g counts^2, below 0: no read noise "
+                "above the photon noise the frames' counts predict (GAIN); 0 written (RDNOISE, NOISEVAR)\n",
+                r.noise_var_measured);
     if (rc == CLI_OK && r.stamped)
         fprintf(stderr, "reduce: milk time stamps of every frame in STAMPS: %llu camera frames dropped (counter jumps), "
                 "EXPTIME %s\n", (unsigned long long)r.dropped, r.exptime > 0 ? "from the raw header" : "absent");

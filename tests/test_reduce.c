@@ -2,11 +2,14 @@
  * correlation peak, bilinear registration undoing a known shift, noise variance. */
 #include "testutil.h"
 
+#include "specklewfs/fits.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/rng.h"
+#include "specklewfs/run.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -128,12 +131,62 @@ static void test_reduce_pipeline(void **state)
     free(dark); free(flat); free(raw); free(out);
 }
 
+/* A camera with no read noise: the background variance, measured as the out-of-band power
+ * less the photon part the counts and GAIN predict, comes out below 0 on frames without
+ * noise. reduce writes 0 (RDNOISE, NOISEVAR: a variance) and returns the measured value;
+ * the square root of the negative value used to leave RDNOISE without a value, which
+ * speckles then refused. */
+static void test_no_read_noise(void **state)
+{
+    (void)state;
+    const size_t n = NX * NY, nf = 12;
+    swfs_real *cube = swfs_real_alloc(NX, NY, nf);
+    assert_non_null(cube);
+    for (size_t f = 0; f < nf; f++)
+        for (size_t j = 0; j < NY; j++)
+            for (size_t i = 0; i < NX; i++)
+                cube->data[f * n + j * NX + i] = star((double)i, (double)j, 22.3 + 0.1 * (double)f, 21.6) + 50;
+    char raw[1100], out[1100];
+    snprintf(raw, sizeof raw, "%s", test_path("reduce_nonoise_raw.fits"));
+    snprintf(out, sizeof out, "%s", test_path("reduce_nonoise_sci.fits"));
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, raw));
+    assert_ok(swfs_fits_out_real(o, NULL, cube, -32));
+    assert_ok(swfs_fits_out_key_double(o, "GAIN", 2.0, "[e-/count]"));
+    assert_ok(swfs_fits_out_key_double(o, "PIXSCALE", 0.25, "[lambda/D] per focal pixel"));
+    assert_ok(swfs_fits_out_commit(o));
+    swfs_real_free(cube);
+
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    const char *raws[] = {raw};
+    ro.raw = raws;
+    ro.nraw = 1;
+    ro.out = out;
+    swfs_reduce_run_result rr;
+    assert_ok(swfs_reduce_run(&ro, &rr));
+    print_message("measured background variance %.4g counts^2, written %.4g\n", rr.noise_var_measured, rr.noise_var);
+    assert_true(rr.noise_var_measured < 0);
+    assert_true(rr.noise_var == 0.0);
+    swfs_fits_in *f = NULL;
+    assert_ok(swfs_fits_in_open(&f, out, NULL));
+    double v = -1;
+    int found = 0;
+    assert_ok(swfs_fits_in_key_double_opt(f, "RDNOISE", &v, &found));
+    assert_true(found && v == 0.0);
+    v = -1;
+    assert_ok(swfs_fits_in_key_double_opt(f, "NOISEVAR", &v, &found));
+    assert_true(found && v == 0.0);
+    swfs_fits_in_close(f);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_badpix_median),
         cmocka_unit_test(test_shift_roundtrip),
         cmocka_unit_test(test_reduce_pipeline),
+        cmocka_unit_test(test_no_read_noise),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -249,6 +249,9 @@ void swfs_reduce_run_options_default(swfs_reduce_run_options *o);
 typedef struct swfs_reduce_run_result {
     size_t nframes, nbad;
     double noise_var, noise_fac; /* raw background variance [counts^2] and the registration's factor */
+    double noise_var_measured; /* the estimate itself: it may come out below 0 when the frames have
+                                 no read noise to measure (the photon part's subtraction and the
+                                 estimate's scatter); noise_var and the keywords are then 0 */
     char missing[96];         /* geometry keywords the reduced cube still lacks ("" if none): the
                                  first raw cube's header and the given geometry had no value */
     int overridden;           /* keywords of the raw header the given geometry replaced */

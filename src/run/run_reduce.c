@@ -176,7 +176,9 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     if (!rc) {
         r->nframes = ntot;
         r->nbad = swfs_reduce_nbad(red);
-        r->noise_var = swfs_reduce_noise_var(red);
+        /* A variance: an estimate below 0 is one consistent with no read noise. */
+        r->noise_var_measured = swfs_reduce_noise_var(red);
+        r->noise_var = r->noise_var_measured < 0 ? 0.0 : r->noise_var_measured;
         r->noise_fac = swfs_reduce_noise_factor(red);
         swfs_science_meta m = {r->noise_var, r->noise_fac, gainv, o->nraw,   o->raw,
                                r->nbad,      p.do_register, cnt,   stamp, r->exptime};
