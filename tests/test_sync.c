@@ -156,6 +156,28 @@ static void test_continuation(void **state)
     assert_ok(swfs_sync_continuation_check(&part, &fit, &p, &cc));
     print_message("unrelated: offset %+.3f corr %.3f %.3f\n", cc.offset, cc.corr_x, cc.corr_y);
     assert_int_equal(cc.continues, 0);
+
+    /* A short part (SHORT exposures) whose camera y sees a weak tilt (the signal scaled by
+     * WEAK against the same centroid noise): that axis alone is below 5 sigma, both together
+     * above; it continues. The unrelated file stays refused. */
+    enum { SHORT = 16 };
+    const double WEAK = 0.11;
+    double tx2[SHORT], ty2[SHORT];
+    for (size_t j = 0; j < SHORT; j++) {
+        tx2[j] = tx[j0 + j];
+        ty2[j] = 26.0 + WEAK * 2e6 * bx[j0 + j] + 0.02 * swfs_rng_normal(&rng);
+    }
+    swfs_sync_cube shrt = {SHORT, tx2, ty2, mx + NWFS, my + NWFS, NWFS, sb + lag};
+    assert_ok(swfs_sync_continuation_check(&shrt, &fit, &p, &cc));
+    const double zs = sqrt(SHORT - 3.0), zx = atanh(cc.corr_x) * zs, zy = atanh(cc.corr_y) * zs;
+    print_message("short: offset %+.3f corr %.3f %.3f (%.1f and %.1f sigma)\n", cc.offset, cc.corr_x, cc.corr_y, zx, zy);
+    assert_true(fmin(zx, zy) < 5 && (zx + zy) / sqrt(2.0) > 5);
+    assert_int_equal(cc.continues, 1);
+    shrt.mx = mx + 2 * NWFS;
+    shrt.my = my + 2 * NWFS;
+    assert_ok(swfs_sync_continuation_check(&shrt, &fit, &p, &cc));
+    print_message("short, unrelated: offset %+.3f corr %.3f %.3f\n", cc.offset, cc.corr_x, cc.corr_y);
+    assert_int_equal(cc.continues, 0);
     free(mx); free(my);
 }
 

@@ -78,7 +78,8 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
  * alone over p's lag range at the fit's ratio and pairing; the part continues when its best
  * lag is the fit's to within half a WFS frame (files hold whole frames: a lost or repeated
  * frame moves it by one or more) and both correlations of the fit's pairing are positive and
- * significant at 5 sigma over the part's exposures (Fisher z: a short part cannot pass). */
+ * together significant at 5 sigma over the part's exposures ((z_x + z_y) / sqrt 2 of their
+ * Fisher z: a short part cannot pass). */
 typedef struct swfs_sync_continuation {
     int continues;
     double offset;          /* best lag - fit->lag [WFS frames] */
