@@ -8,7 +8,9 @@
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
+ *                                 [--recon vk|map|svd]
  *
+ * --recon: the speckle reconstructor on every system (default vk, the library's).
  * --seeds N: seeds 1 .. N (default 2); --seed S: seed S alone; --only K: system K (0-based) alone.
  *
  * --vk-l0 M: the von Karman reconstructor's outer scale (default: the library's, 10 m) on every
@@ -65,6 +67,7 @@ static const system_def systems[] = {
 static char dir[1024];
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
 static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
+static int recon = SWFS_RECON_VK;     /* --recon vk|map|svd: the speckle reconstructor */
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
@@ -268,6 +271,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.nmatch = 1;
     sp.pipe.tiptilt = tiptilt;
     if (vk_l0 >= 0.0) sp.pipe.vk_l0 = vk_l0;
+    sp.pipe.recon = recon;
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
     r->nexp = spr.nout;
@@ -306,9 +310,12 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "map")) recon = SWFS_RECON_MAP, i++;
+        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "svd")) recon = SWFS_RECON_SVD, i++;
+        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) i++;
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]\n");
+                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd]\n");
             return 2;
         }
     }
@@ -323,6 +330,7 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            modal ? ", modal telemetry (--basis)" : "");
+    if (recon != SWFS_RECON_VK) printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : "svd");
     if (vk_l0 >= 0.0) printf("von Karman outer scale of the reconstructor: %g m%s\n", vk_l0, vk_l0 == 0 ? " (fitted)" : "");
     printf("slopes / ideal: the default path (the AO residual's time mean that the speckles carry taken out of the\n"
            "wavefront: reconstructed from the slopes, the simulation's true one with the ideal speckles); keep: with\n"
