@@ -26,7 +26,10 @@ static const char *usage_text =
     "  HANDSHAKE.log    lines \"CAMERA_FILE SLOPES_FILE WFS_FRAME\" (docs/telemetry.md); slopes\n"
     "                   files are found relative to the log's folder\n"
     "  -o TIMING.txt    timing table: ratio +- error, lag, axis pairing, one line per cube\n"
-    "  --ratio-min/max  search range of <t_sci/t_wfs> (default 2 .. 12)\n"
+    "  --ratio-min/max  search range of <t_sci/t_wfs> (default 2 .. the handshake log's bound: a\n"
+    "                   cube ends before the next cube of its file starts; 12 when no two cubes\n"
+    "                   start in one file; from 0.1 when the bound is below 2). A fit whose\n"
+    "                   correlations are not significant over the search is refused\n"
     "  --lag-min/max    search range of the lag [WFS frames] (default -3 .. 12: the log is written\n"
     "                   after the camera starts). Keep it narrower than the period of a dominant\n"
     "                   vibration: a pure sinusoid makes the lag ambiguous by half periods\n"
@@ -122,6 +125,10 @@ int swfs_cmd_sync(int argc, char **argv)
                t->fit.corr_y);
         printf("sync: |corr| tx-mx %.3f tx-my %.3f ty-mx %.3f ty-my %.3f\n", t->fit.corr4[0], t->fit.corr4[1],
                t->fit.corr4[2], t->fit.corr4[3]);
+        printf("sync: ratios searched %g .. %g%s; the fit %.1f sigma over %.0f independent exposures (the search "
+               "needs %.1f)\n", r.ratio_min, r.ratio_max, r.ratio_auto ? (r.ratio_bound > 0 ? " (to the handshake "
+               "log's bound: a cube ends before the next one of its file starts)" : " (no two cubes start in one "
+               "telemetry file: no bound from the log)") : "", t->fit.z, t->fit.neff, t->fit.z_need);
         printf("sync: %zu of %zu exposures usable in %zu rows; %zu cube part%s continue%s in the next or previous "
                "telemetry file (checked on the data), %zu exposures straddle a file boundary -> %s\n", r.nexp_ok,
                r.nexp, r.nok, r.ncontinued, r.ncontinued == 1 ? "" : "s", r.ncontinued == 1 ? "s" : "",

@@ -553,10 +553,52 @@ static void test_sync_timestamped_files(void **state)
     free(b.t.cubes);
 }
 
+/* sync's ratio range from the handshake log (the default): up to the log's bound, a cube of
+ * 60 frames ending before the next cube of its telemetry file starts; the same fit as the
+ * explicit range 5-8, significant. A range without the true ratio is refused: no table. */
+static void test_sync_ratio_from_log(void **state)
+{
+    (void)state;
+    swfs_handshake *hs = NULL;
+    size_t nhs = 0;
+    assert_ok(swfs_handshake_read(p("handshake.log"), &hs, &nhs));
+    double bound = 0;
+    for (size_t k = 0; k + 1 < nhs; k++)
+        if (!strcmp(hs[k].slopes, hs[k + 1].slopes)) {
+            const double q = (double)(hs[k + 1].frame - hs[k].frame + 1) / 60.0;
+            if (bound == 0 || q < bound) bound = q;
+        }
+    free(hs);
+    assert_true(bound > 6.48);
+    swfs_sync_run_options so;
+    swfs_sync_run_options_default(&so);
+    so.science = p("science.fits");
+    so.handshake = p("handshake.log");
+    so.out = p("timing_auto.txt");
+    swfs_sync_run_result sr;
+    assert_ok(swfs_sync_run(&so, &sr));
+    printf("test_runs: ratios searched %g .. %g (log's bound %g), fit %.4f at %.1f sigma (needs %.1f)\n", sr.ratio_min,
+           sr.ratio_max, sr.ratio_bound, sr.t.ratio, sr.t.fit.z, sr.t.fit.z_need);
+    assert_int_equal(sr.ratio_auto, 1);
+    assert_close(sr.ratio_bound, bound, 1e-12);
+    assert_close(sr.ratio_max, bound, 1e-12);
+    assert_close(sr.ratio_min, 2, 0);
+    assert_true(fabs(sr.t.ratio - 6.48) <= 0.03);
+    assert_true(sr.t.fit.z > sr.t.fit.z_need && sr.t.fit.neff > 10 && sr.t.fit.neff <= 180);
+    free(sr.t.cubes);
+    so.params.ratio_max = 4;
+    so.out = p("timing_narrow.txt");
+    assert_int_equal(swfs_sync_run(&so, &sr), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "nowhere in the search"));
+    assert_false(test_file_exists(p("timing_narrow.txt")));
+    free(sr.t.cubes);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_sync_speckles_estimate),
+        cmocka_unit_test(test_sync_ratio_from_log),
         cmocka_unit_test(test_given_reconstructor),
         cmocka_unit_test(test_rim_coverage),
         cmocka_unit_test(test_stream_equals_speckles),

@@ -267,7 +267,13 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 
 typedef struct swfs_sync_run_options {
     const char *science, *handshake, *out;
-    swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default */
+    swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default; ratio from
+                                 ratio_min (2) to ratio_max = 0: the handshake log's bound (a cube
+                                 ends before the next one of its file starts), SWFS_SYNC_RATIO_MAX_FALLBACK
+                                 when no two cubes start in one file; the range starts at
+                                 SWFS_ENGINE_MIN_RATIO when the bound is below ratio_min. The fit
+                                 is refused (SWFS_ERR_VALUE, nothing written) when its correlations
+                                 are not significant over the search (sync.h z, z_need) */
     swfs_linear_files lin;    /* lin.basis: the telemetry is the linear model's (modal coefficients, any
                                  WFS signal with a control matrix): its tip-tilt is the Z-tilt of the
                                  model's wavefront (geometry from the science cube), not mean slopes */
@@ -285,6 +291,10 @@ typedef struct swfs_sync_run_result {
     size_t nok;               /* usable rows */
     size_t nexp, nexp_ok;     /* exposures in all, usable */
     size_t ncontinued;        /* cube parts found to continue in an adjacent telemetry file */
+    double ratio_min, ratio_max; /* the ratios searched */
+    double ratio_bound;       /* the handshake log's upper bound on the ratio (0: none: no two cubes
+                                 start in one telemetry file) */
+    int ratio_auto;           /* 1: ratio_max came from that bound (params.ratio_max <= 0, the default) */
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);

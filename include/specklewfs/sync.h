@@ -44,7 +44,8 @@ typedef struct swfs_sync_cube {
 } swfs_sync_cube;
 
 typedef struct swfs_sync_params {
-    double ratio_min, ratio_max; /* search range of <t_sci/t_wfs> (defaults 2, 12) */
+    double ratio_min, ratio_max; /* search range of <t_sci/t_wfs> (defaults 2, 12; swfs_sync_run
+                                    takes ratio_max = 0 as "from the handshake log") */
     double lag_min, lag_max;     /* search range of the lag [WFS frames] (-20, 20) */
     double ratio_step, lag_step; /* coarse grid (0.01, 0.5); refined 20x around the peak */
 } swfs_sync_params;
@@ -53,6 +54,8 @@ void swfs_sync_params_default(swfs_sync_params *p);
 /* The search ranges and steps: valid, and a coarse grid of at most SWFS_SYNC_MAX_GRID
  * (ratio, lag) points (SWFS_ERR_ARG naming the count otherwise). */
 #define SWFS_SYNC_MAX_GRID 1000000
+/* The ratio search's end when nothing bounds it (swfs_sync_run: no two cubes in one file). */
+#define SWFS_SYNC_RATIO_MAX_FALLBACK 12.0
 int swfs_sync_params_check(const swfs_sync_params *p);
 
 typedef struct swfs_sync_result {
@@ -64,6 +67,12 @@ typedef struct swfs_sync_result {
     double corr_x, corr_y;   /* correlations of the chosen pairing */
     double corr4[4];         /* |corr| of (tx, mx), (tx, my), (ty, mx), (ty, my) at the optimum */
     size_t ncubes_used;
+    double neff;             /* effective number of independent exposures (Bartlett, lag-1
+                                autocorrelations of the two series), mean of the two axes */
+    double z, z_need;        /* the pairing's correlations together in sigma ((z_x + z_y)/sqrt 2 of
+                                their Fisher z over neff), and what the search needs: the
+                                Bonferroni bound at 1 % over 2 pairings x the coarse grid's
+                                points. z < z_need: the fit may be any peak of the search */
 } swfs_sync_result;
 
 /* For each candidate (ratio, lag), exposures that would leave their telemetry file are

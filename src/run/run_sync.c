@@ -1,4 +1,5 @@
 /* sync: reduced science + handshake log -> the timing table (Sec. 4.2). See include/specklewfs/run.h. */
+#include "specklewfs/engine.h"
 #include "specklewfs/run.h"
 #include "run_internal.h"
 #include "specklewfs/fits.h"
@@ -21,6 +22,7 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o)
     swfs_linear_files_default(&o->lin);
     o->params.lag_min = -3;
     o->params.lag_max = 12;
+    o->params.ratio_max = 0; /* from the handshake log (ratio_bound) */
 }
 
 /* The mean x/y slopes of one telemetry file, loaded once however many cubes use it. */
@@ -41,6 +43,7 @@ typedef struct work {
     size_t *cube_file;
     long *cube_hs;
     char logdir[4096];
+    swfs_sync_params params;  /* o->params with the ratio range resolved (ratio_bound) */
 } work;
 
 static int load_file(work *w, const char *name, size_t *fi)
@@ -280,7 +283,7 @@ static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing
         swfs_sync_cube part = {j1 - j0, w->tr->x + c->first + j0, w->tr->y + c->first + j0, fb->mx, fb->my, fb->nwfs,
                                st + fit->lag};
         swfs_sync_continuation cc;
-        if ((rc = swfs_sync_continuation_check(&part, &fit->fit, &o->params, &cc))) return rc;
+        if ((rc = swfs_sync_continuation_check(&part, &fit->fit, &w->params, &cc))) return rc;
         if (!cc.continues) continue;
         r->ncontinued++;
         join[dir > 0] = cc;
@@ -311,6 +314,38 @@ static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing
     return rc;
 }
 
+/* The ratio's upper bound from the handshake log: a camera cube of N frames that starts at
+ * WFS frame h of a file, followed by the next cube at h' of the same file, lasts at most
+ * (h' - h + 1) / N WFS frames per camera frame (the lag is common to both, the logged frames
+ * are whole). The smallest over such pairs, or 0 when no two cubes share a file. */
+static double ratio_bound(const work *w, const swfs_timing *t)
+{
+    double b = 0;
+    for (size_t ci = 0; ci + 1 < t->ncubes; ci++) {
+        if (w->cube_file[ci] != w->cube_file[ci + 1] || w->cube_hs[ci + 1] <= w->cube_hs[ci] || !t->cubes[ci].nframes)
+            continue;
+        const double q = (double)(w->cube_hs[ci + 1] - w->cube_hs[ci] + 1) / (double)t->cubes[ci].nframes;
+        if (b == 0 || q < b) b = q;
+    }
+    return b;
+}
+
+/* ratio_max <= 0: the search's ratios end at ratio_bound (SWFS_SYNC_RATIO_MAX_FALLBACK when the
+ * log gives none), start at SWFS_ENGINE_MIN_RATIO when that is below ratio_min, and are cut to
+ * the largest grid params_check allows. */
+static void resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_result *r)
+{
+    swfs_sync_params *p = &w->params;
+    r->ratio_bound = ratio_bound(w, t);
+    if (p->ratio_max > 0) return;
+    r->ratio_auto = 1;
+    p->ratio_max = r->ratio_bound > 0 ? r->ratio_bound : SWFS_SYNC_RATIO_MAX_FALLBACK;
+    if (p->ratio_max < p->ratio_min) p->ratio_min = SWFS_ENGINE_MIN_RATIO;
+    const double nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
+    const double nr_max = floor((double)SWFS_SYNC_MAX_GRID / nl);
+    if (p->ratio_max > p->ratio_min + (nr_max - 1) * p->ratio_step) p->ratio_max = p->ratio_min + (nr_max - 1) * p->ratio_step;
+}
+
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -320,8 +355,11 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     w.o = o;
     swfs_timing *t = &r->t;
     swfs_paths *paths = NULL;
-    int rc = swfs_sync_params_check(&o->params);
+    w.params = o->params;
+    if (w.params.ratio_max <= 0) w.params.ratio_max = fmax(w.params.ratio_min, SWFS_SYNC_RATIO_MAX_FALLBACK); /* checked now, resolved below */
+    int rc = swfs_sync_params_check(&w.params);
     if (rc) return rc;
+    w.params.ratio_max = o->params.ratio_max;
     rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
     swfs_linear_paths(paths, &o->lin);
@@ -349,7 +387,23 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
     }
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
-    if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &o->params, &t->fit);
+    if (!rc) {
+        resolve_ratio_range(&w, t, r);
+        r->ratio_min = w.params.ratio_min;
+        r->ratio_max = w.params.ratio_max;
+        rc = swfs_sync_estimate(w.cubes, t->ncubes, &w.params, &t->fit);
+    }
+    if (!rc && !(t->fit.z >= t->fit.z_need)) {
+        const swfs_sync_result *f = &t->fit;
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: the camera's tip-tilt matches the telemetry's nowhere in the search: the "
+                       "best ratio %.4f WFS frames per camera frame, lag %.2f, has correlations %.3f and %.3f over %.0f "
+                       "independent exposures, %.1f sigma together, where a search of ratios %g to %g and lags %g to %g "
+                       "needs %.1f. Check that the cubes and the handshake log %s belong together, or narrow the "
+                       "search to the known ratio (--ratio-min/--ratio-max: the WFS rate over the camera's frame "
+                       "rate) and lag (--lag-min/--lag-max)", o->science, f->ratio, f->lag, f->corr_x, f->corr_y,
+                       f->neff, f->z, w.params.ratio_min, w.params.ratio_max, w.params.lag_min, w.params.lag_max,
+                       f->z_need, o->handshake);
+    }
     if (!rc) {
         t->ratio = t->fit.ratio;
         t->ratio_err = t->fit.ratio_err;

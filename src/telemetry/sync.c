@@ -89,34 +89,53 @@ typedef struct corr_acc {
     size_t nexp;
 } corr_acc;
 
+/* The exposures [*j0, *j1) of cube c that lie wholly inside its file at (ratio, lag); 0 when
+ * fewer than two do. */
+static int exposure_range(const swfs_sync_cube *c, double ratio, double lag, size_t *j0, size_t *j1)
+{
+    const double start = c->logged - lag;
+    double jlo = ceil(-start / ratio);
+    if (jlo < 0) jlo = 0;
+    double jhi = floor(((double)c->nwfs - start) / ratio) - 1; /* last j with end <= nwfs */
+    if (jhi > (double)c->nframes - 1) jhi = (double)c->nframes - 1;
+    if (jhi < jlo + 1) return 0;
+    *j0 = (size_t)jlo;
+    *j1 = (size_t)jhi + 1;
+    return 1;
+}
+
+/* Sums of the mean x and y slopes over the WFS-time interval [a, b) of cube ci's file. */
+static inline void box_sums(const prep_cube *pc, double a, double b, double *px, double *py)
+{
+    const swfs_sync_cube *c = pc->c;
+    double cbx = b >= (double)c->nwfs ? pc->Cx[c->nwfs] : cum_at(pc->Cx, c->mx, b);
+    double cby = b >= (double)c->nwfs ? pc->Cy[c->nwfs] : cum_at(pc->Cy, c->my, b);
+    *px = cbx - cum_at(pc->Cx, c->mx, a);
+    *py = cby - cum_at(pc->Cy, c->my, a);
+}
+
 static void score_cubes(const prep_cube *pc, size_t c0, size_t c1, double ratio, double lag, corr_acc *acc)
 {
     memset(acc, 0, sizeof *acc);
     for (size_t ci = c0; ci < c1; ci++) {
         const swfs_sync_cube *c = pc[ci].c;
-        double start = c->logged - lag;
-        /* Exposures inside the file for this candidate. */
-        double jlo = ceil(-start / ratio);
-        if (jlo < 0) jlo = 0;
-        double jhi = floor(((double)c->nwfs - start) / ratio) - 1; /* last j with end <= nwfs */
-        if (jhi > (double)c->nframes - 1) jhi = (double)c->nframes - 1;
-        if (jhi < jlo + 1) continue;
-        size_t j0 = (size_t)jlo, j1 = (size_t)jhi + 1, nj = j1 - j0;
+        const double start = c->logged - lag;
+        size_t j0, j1;
+        if (!exposure_range(c, ratio, lag, &j0, &j1)) continue;
+        const size_t nj = j1 - j0;
         /* Two passes: means, then co-moments. */
         double mtx = 0, mty = 0, mpx = 0, mpy = 0;
         for (size_t j = j0; j < j1; j++) {
-            double a = start + (double)j * ratio, b = a + ratio;
-            double cbx = b >= (double)c->nwfs ? pc[ci].Cx[c->nwfs] : cum_at(pc[ci].Cx, c->mx, b);
-            double cby = b >= (double)c->nwfs ? pc[ci].Cy[c->nwfs] : cum_at(pc[ci].Cy, c->my, b);
-            double px = cbx - cum_at(pc[ci].Cx, c->mx, a), py = cby - cum_at(pc[ci].Cy, c->my, a);
+            double a = start + (double)j * ratio, px, py;
+            box_sums(&pc[ci], a, a + ratio, &px, &py);
             mtx += c->tx[j]; mty += c->ty[j]; mpx += px; mpy += py;
         }
         mtx /= (double)nj; mty /= (double)nj; mpx /= (double)nj; mpy /= (double)nj;
         for (size_t j = j0; j < j1; j++) {
-            double a = start + (double)j * ratio, b = a + ratio;
-            double cbx = b >= (double)c->nwfs ? pc[ci].Cx[c->nwfs] : cum_at(pc[ci].Cx, c->mx, b);
-            double cby = b >= (double)c->nwfs ? pc[ci].Cy[c->nwfs] : cum_at(pc[ci].Cy, c->my, b);
-            double px = cbx - cum_at(pc[ci].Cx, c->mx, a) - mpx, py = cby - cum_at(pc[ci].Cy, c->my, a) - mpy;
+            double a = start + (double)j * ratio, px, py;
+            box_sums(&pc[ci], a, a + ratio, &px, &py);
+            px -= mpx;
+            py -= mpy;
             double tx = c->tx[j] - mtx, ty = c->ty[j] - mty;
             acc->s[0] += tx * px; acc->s[1] += tx * py; acc->s[2] += ty * px; acc->s[3] += ty * py;
             acc->vt[0] += tx * tx; acc->vt[1] += ty * ty;
@@ -124,6 +143,52 @@ static void score_cubes(const prep_cube *pc, size_t c0, size_t c1, double ratio,
         }
         acc->nexp += nj;
     }
+}
+
+/* Lag-1 autocorrelations (pooled over the cubes, each cube's mean removed) of the camera's
+ * tx, ty and of the exposures' mean x, y slopes at (ratio, lag): rho[0..3]. */
+static void lag1_cubes(const prep_cube *pc, size_t ncubes, double ratio, double lag, double rho[4])
+{
+    double s1[4] = {0}, s0[4] = {0};
+    for (size_t ci = 0; ci < ncubes; ci++) {
+        const swfs_sync_cube *c = pc[ci].c;
+        const double start = c->logged - lag;
+        size_t j0, j1;
+        if (!exposure_range(c, ratio, lag, &j0, &j1)) continue;
+        const size_t nj = j1 - j0;
+        double m[4] = {0}, prev[4] = {0};
+        for (size_t j = j0; j < j1; j++) {
+            double a = start + (double)j * ratio, px, py;
+            box_sums(&pc[ci], a, a + ratio, &px, &py);
+            m[0] += c->tx[j]; m[1] += c->ty[j]; m[2] += px; m[3] += py;
+        }
+        for (int k = 0; k < 4; k++) m[k] /= (double)nj;
+        for (size_t j = j0; j < j1; j++) {
+            double a = start + (double)j * ratio, v[4];
+            box_sums(&pc[ci], a, a + ratio, &v[2], &v[3]);
+            v[0] = c->tx[j];
+            v[1] = c->ty[j];
+            for (int k = 0; k < 4; k++) {
+                v[k] -= m[k];
+                s0[k] += v[k] * v[k];
+                if (j > j0) s1[k] += v[k] * prev[k];
+                prev[k] = v[k];
+            }
+        }
+    }
+    for (int k = 0; k < 4; k++) rho[k] = s0[k] > 0 ? s1[k] / s0[k] : 0.0;
+}
+
+/* The standard normal's upper quantile: z with P(Z > z) = p (bisection on erfc). */
+static double normal_upper_quantile(double p)
+{
+    double lo = 0, hi = 40;
+    for (int it = 0; it < 200; it++) {
+        double mid = 0.5 * (lo + hi);
+        if (0.5 * erfc(mid / sqrt(2.0)) > p) lo = mid;
+        else hi = mid;
+    }
+    return 0.5 * (lo + hi);
 }
 
 static void corr4(const corr_acc *a, double c[4])
@@ -231,6 +296,26 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
     r->sign_x = r->corr_x >= 0 ? 1 : -1;
     r->sign_y = r->corr_y >= 0 ? 1 : -1;
     for (int k = 0; k < 4; k++) r->corr4[k] = fabs(c[k]);
+    /* Significance: each pairing correlation's Fisher z over its effective number of
+     * exposures (Bartlett: n (1 - rho_t rho_p) / (1 + rho_t rho_p), rho the lag-1
+     * autocorrelations of the camera's and the slopes' series, their product taken >= 0),
+     * the two together (z_x + z_y) / sqrt 2, against the Bonferroni bound of the search:
+     * a 1 % false-alarm probability over 2 pairings x the coarse grid's points. */
+    {
+        double rho[4];
+        lag1_cubes(pc, ncubes, br, bl, rho);
+        const double n = (double)acc.nexp;
+        const double px = fmax(0.0, rho[0] * rho[swap ? 3 : 2]), py = fmax(0.0, rho[1] * rho[swap ? 2 : 3]);
+        const double nx = n * (1 - fmin(px, 0.999)) / (1 + fmin(px, 0.999)),
+                     ny = n * (1 - fmin(py, 0.999)) / (1 + fmin(py, 0.999));
+        const double zx = atanh(fmin(fabs(r->corr_x), 1 - 1e-12)) * sqrt(fmax(nx - 3, 0)),
+                     zy = atanh(fmin(fabs(r->corr_y), 1 - 1e-12)) * sqrt(fmax(ny - 3, 0));
+        const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step + 1e-9) + 1,
+                     nl = floor((p->lag_max - p->lag_min) / p->lag_step + 1e-9) + 1;
+        r->neff = 0.5 * (nx + ny);
+        r->z = (zx + zy) / sqrt(2.0);
+        r->z_need = normal_upper_quantile(0.01 / (2 * nr * nl));
+    }
     /* Uncertainty: scatter of per-cube ratio estimates at the common lag. */
     size_t nuse = 0;
     double s1 = 0, s2 = 0;
