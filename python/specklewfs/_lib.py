@@ -245,9 +245,54 @@ swfs_stream_options = _s("swfs_stream_options", [("static_mode", c_int), ("stati
 swfs_fits_shape = _s("swfs_fits_shape", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("is_complex", c_int),
                                          ("bitpix", c_int)])
 
-STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
-
 PROGRESS_FN = ctypes.CFUNCTYPE(None, c_ptr, c_str, c_size, c_size)
+
+# run.h, reduce.h, sync.h: the real-data path's file-level steps (realdata.py)
+swfs_linear_files = _s("swfs_linear_files", [("basis", c_str), ("control", c_str), ("imat", c_str),
+                                             ("reg", swfs_dm_registration), ("scale", c_dbl)])
+swfs_reduce_params = _s("swfs_reduce_params", [("hot_sigma", c_dbl), ("flat_min", c_dbl), ("flat_max", c_dbl),
+                                               ("gauss_sigma", c_dbl), ("do_register", c_int), ("bg_radius", c_dbl),
+                                               ("pixscale", c_dbl), ("gain", c_dbl)])
+swfs_reduce_run_options = _s("swfs_reduce_run_options", [
+    ("raw", P(c_str)), ("nraw", c_size), ("dark", c_str), ("flat", c_str), ("badpix", c_str), ("out", c_str),
+    ("params", swfs_reduce_params), ("sigma_given", c_int), ("noise_region", c_int), ("prov", P(c_str)),
+    ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("geom", swfs_geom)])
+REDUCE_RESULT_FIELDS = [("nframes", c_size), ("nbad", c_size), ("noise_var", c_dbl), ("noise_fac", c_dbl),
+                        ("noise_var_measured", c_dbl), ("missing", ctypes.c_char * 96), ("overridden", c_int),
+                        ("stamped", c_int), ("dropped", c_u64), ("exptime", c_dbl)]
+swfs_reduce_run_result = _s("swfs_reduce_run_result", REDUCE_RESULT_FIELDS)
+swfs_sync_params = _s("swfs_sync_params", [("ratio_min", c_dbl), ("ratio_max", c_dbl), ("lag_min", c_dbl),
+                                           ("lag_max", c_dbl), ("ratio_step", c_dbl), ("lag_step", c_dbl)])
+SYNC_RESULT_FIELDS = [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("swap", c_int), ("sign_x", c_int),
+                      ("sign_y", c_int), ("corr_x", c_dbl), ("corr_y", c_dbl), ("corr4", c_dbl * 4),
+                      ("ncubes_used", c_size), ("neff", c_dbl), ("z", c_dbl), ("z_need", c_dbl)]
+swfs_sync_result = _s("swfs_sync_result", SYNC_RESULT_FIELDS)
+swfs_timing = _s("swfs_timing", [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("fit", swfs_sync_result),
+                                 ("ncubes", c_size), ("cubes", c_ptr)])
+swfs_sync_run_options = _s("swfs_sync_run_options", [("science", c_str), ("handshake", c_str), ("out", c_str),
+                                                     ("params", swfs_sync_params), ("lin", swfs_linear_files)])
+SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("ncontinued", c_size),
+                   ("ratio_min", c_dbl), ("ratio_max", c_dbl), ("ratio_bound", c_dbl), ("ratio_auto", c_int)]
+swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
+swfs_speckles_run_options = _s("swfs_speckles_run_options", [
+    ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
+    ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
+    ("match_in", P(c_str)), ("match_out", P(c_str)), ("nmatch", c_size), ("prov", P(c_str)), ("nprov", c_size),
+    ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("batch", c_size), ("team", c_ptr), ("geom", swfs_geom),
+    ("lin", swfs_linear_files), ("valid", c_str)])
+SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
+                       ("wfs_hz", c_dbl)]
+swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [("info", swfs_pipeline_info),
+                                                                                  ("resmean_rms", c_dbl)])
+swfs_estimate_run_options = _s("swfs_estimate_run_options", [
+    ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
+    ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
+    ("progress_ctx", c_ptr), ("team", c_ptr)])
+swfs_estimate_run_result = _s("swfs_estimate_run_result", [("halo", P(swfs_halo)), ("geom", swfs_geom),
+                                                           ("noise", swfs_noise), ("circ_core", c_dbl),
+                                                           ("g_smooth_assumed", c_int)])
+
+STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
 SOURCE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, P(swfs_batch))
 UPDATE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, c_ptr, c_int)
 
@@ -447,6 +492,15 @@ _PROTOS = {
     "swfs_ts_params_from_config": (c_int, [c_ptr, P(swfs_ts_params)]),
     "swfs_ts_params_check": (c_int, [P(swfs_ts_params)]),
     "swfs_ts_run": (c_int, [P(swfs_ts_params), c_str, P(c_str), c_size, PROGRESS_FN, c_ptr, P(swfs_ts_summary)]),
+    # run.h: reduce, sync, speckles, estimate on files
+    "swfs_reduce_run_options_default": (None, [P(swfs_reduce_run_options)]),
+    "swfs_reduce_run": (c_int, [P(swfs_reduce_run_options), P(swfs_reduce_run_result)]),
+    "swfs_sync_run_options_default": (None, [P(swfs_sync_run_options)]),
+    "swfs_sync_run": (c_int, [P(swfs_sync_run_options), P(swfs_sync_run_result)]),
+    "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),
+    "swfs_speckles_run": (c_int, [P(swfs_speckles_run_options), P(swfs_speckles_run_result)]),
+    "swfs_estimate_run_options_default": (None, [P(swfs_estimate_run_options)]),
+    "swfs_estimate_run": (c_int, [P(swfs_estimate_run_options), P(swfs_estimate_run_result)]),
 }
 
 for _name, (_res, _args) in _PROTOS.items():

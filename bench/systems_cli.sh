@@ -1,0 +1,57 @@
+#!/bin/bash
+# Systems outside bench_telemetry's matrix through the command line with default options:
+# simulate mode=timeseries -> reduce -> sync -> speckles -> estimate -> pupil, and estimate +
+# pupil from the simulator's ideal speckles on the same reduced frames (docs/telemetry.md,
+# "Systems outside the matrix"). Prints one line per system: sync's ratio and lag (true lag
+# 2.59), the NCP errors [nm] from the slopes and the ideal speckles, and both with the AO
+# residual's time mean kept (pupil --keep-resmean).
+# usage: bash bench/systems_cli.sh <specklewfs> <scratch dir>
+set -u
+B=$1
+D=$2
+mkdir -p "$D"
+err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
+stop() { echo "$1: $2 failed: $(tail -1 "$3")"; }
+run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn
+    local n=$1 nsub=$2 rate=$3 ratio=$4 nl=$5 sp=$6 dr=$7 fr=$8 vib=$9 rn=${10} seed=${11} pupn=${12}
+    local d=$D/$n pitch modes pupdx t0
+    rm -rf "$d"
+    mkdir -p "$d"
+    pupdx=$(awk -v p="$pupn" 'BEGIN { printf "%.5f", 6.5 / p + 0.000005 }')
+    pitch=$(awk -v s="$nsub" 'BEGIN { printf "%.4f", 0.83 * 6.5 / s }')
+    modes=$(awk -v s="$nsub" 'BEGIN { printf "%d", 0.39 * s * s + 0.5 }')
+    t0=$(date +%s)
+    "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn="$pupn" pupdx="$pupdx" screen_n=2048 nsub="$nsub" \
+        act_pitch="$pitch" ao_modes="$modes" wfs_rate="$rate" frame_ratio="$ratio" nlayers="$nl" layer_frac="$fr" \
+        layer_speed="$sp" layer_dir="$dr" vib_amp="$vib" vib_freq=15 read_noise="$rn" ncubes=4 cube_frames=100 \
+        start_offset=300.41 wfs_file_frames=3000 seed="$seed" > "$d/sim.log" 2>&1 || { stop "$n" simulate "$d/sim.log"; return; }
+    "$B" reduce "$d"/sim/raw_00*.fits --dark "$d/sim/dark.fits" --flat "$d/sim/flat.fits" -o "$d/science.fits" \
+        2> "$d/reduce.log" || { stop "$n" reduce "$d/reduce.log"; return; }
+    "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" > "$d/sync.log" 2>&1 \
+        || { stop "$n" sync "$d/sync.log"; return; }
+    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
+        -o "$d/speckles.fits" --match "$d/science.fits" "$d/sci_m.fits" 2> "$d/speckles.log" \
+        || { stop "$n" speckles "$d/speckles.log"; return; }
+    "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$d/estimate.log" 2>&1 \
+        || { stop "$n" estimate "$d/estimate.log"; return; }
+    "$B" estimate "$d/science.fits" "$d/sim/speckles_ideal.fits" -o "$d/halo_i.fits" > "$d/estimate_i.log" 2>&1 \
+        || { stop "$n" "estimate (ideal)" "$d/estimate_i.log"; return; }
+    local h k
+    for h in halo halo_i; do
+        for k in "" --keep-resmean; do
+            "$B" pupil "$d/$h.fits" -o "$d/p_$h$k.fits" --truth "$d/sim/truth.fits" $k > "$d/p_$h$k.log" 2>&1 \
+                || { stop "$n" pupil "$d/p_$h$k.log"; return; }
+        done
+    done
+    echo "$n: sync ratio $(awk '/^ratio/ { print $2 }' "$d/timing.txt") lag $(awk '/^lag/ { print $2 }' "$d/timing.txt");" \
+        "NCP error: slopes $(err "$d/p_halo.log") ideal $(err "$d/p_halo_i.log"); mean kept: slopes" \
+        "$(err "$d/p_halo--keep-resmean.log") ideal $(err "$d/p_halo_i--keep-resmean.log"); $(( $(date +%s) - t0 )) s"
+}
+#   name          nsub rate ratio layers speeds   dirs        fractions    vib  rn seed pupn
+run sh8-noisy      8  400   3    1      10       45          1            0.2  30 1    100
+run sh20-fast     20 1200  12    1      40       120         1            0.3   8 1    100
+run sh12-short    12  600   2.5  1      12       200         1            0.0   0 1    100
+run sh32-2lay     32 1000   5    2      15,30    0,90        0.6,0.4      0.1   5 1    128
+run sh16-3lay     16  800   6    3      8,16,30  10,100,250  0.5,0.3,0.2  0.3  12 2    100
+run sh10-2khz     10 2000  20    1      20       300         1            0.4  10 3    100
+run sh14-mid      14  900   7    2      6,18     170,20      0.7,0.3      0.0  25 4    100

@@ -1,0 +1,139 @@
+"""The real-data path on files, as the command line runs it (run.h): reduce -> sync ->
+speckles -> estimate, then pupil_estimate(Halo.read(...)). Each step writes the same
+products as its command (docs/telemetry.md) and returns what the command prints, as a dict
+(estimate_files: the Halo). Errors raise specklewfs.Error with the library's message; a step
+that fails leaves no output file."""
+import ctypes
+import math
+
+from . import _lib
+from ._lib import lib, check, enc
+from .core import geom_arg
+from .estimate import Halo
+from .sim import _progress, _struct_dict
+from .stream import _RECON, _band
+
+
+def _paths(paths):
+    """(char **, n) of file names; the array keeps them alive."""
+    names = [enc(p) for p in paths]
+    return (ctypes.c_char_p * max(1, len(names)))(*names), len(names)
+
+
+def _opt(path):
+    return enc(path) if path is not None else None
+
+
+def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=False, progress=None,
+           provenance=()):
+    """Raw camera cubes (a path or a list, concatenated in that order) -> the reduced science
+    cube `out` (`specklewfs reduce`): dark, flat, bad pixels, registration, the noise
+    variance, TRACK. geom: a Geom/dict whose keywords fill or replace the raw header's.
+    Returns nframes, nbad, noise_var (written; 0 when the measured noise_var_measured came
+    out below 0), noise_fac, missing (geometry keywords still absent), stamped, dropped,
+    exptime."""
+    if isinstance(raw, (str, bytes)) or hasattr(raw, "__fspath__"):
+        raw = [raw]
+    o = _lib.swfs_reduce_run_options()
+    lib.swfs_reduce_run_options_default(ctypes.byref(o))
+    arr, n = _paths(raw)
+    o.raw, o.nraw = arr, n
+    o.dark, o.flat, o.badpix, o.out = _opt(dark), _opt(flat), _opt(badpix), enc(out)
+    o.noise_region = 1 if noise_region else 0
+    if geom is not None:
+        o.geom = geom_arg(geom)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    o.progress = _progress(progress)
+    r = _lib.swfs_reduce_run_result()
+    check(lib.swfs_reduce_run(ctypes.byref(o), ctypes.byref(r)), "swfs_reduce_run")
+    return _struct_dict(r)
+
+
+def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None):
+    """The timing table (`specklewfs sync`): the reduced science cube's TRACK against the
+    telemetry files the handshake log names. ratio: (min, max) WFS frames per camera frame,
+    None: from 2 to the handshake log's bound (a cube ends before the next cube of its file
+    starts); lag: (min, max) WFS frames, None: -3 .. 12. A fit that is not significant over
+    its search raises Error and writes nothing. Returns ratio, ratio_err, lag, the pairing
+    (swap, sign_x, sign_y, corr_x, corr_y), z and z_need [sigma], neff, the exposures (nexp,
+    nexp_ok), rows usable (nok), ncontinued and the ratios searched (ratio_min, ratio_max,
+    ratio_bound, ratio_auto)."""
+    o = _lib.swfs_sync_run_options()
+    lib.swfs_sync_run_options_default(ctypes.byref(o))
+    o.science, o.handshake, o.out = enc(science), enc(handshake), enc(out)
+    if ratio is not None:
+        o.params.ratio_min, o.params.ratio_max = float(ratio[0]), float(ratio[1])
+    if lag is not None:
+        o.params.lag_min, o.params.lag_max = float(lag[0]), float(lag[1])
+    if ratio_step is not None:
+        o.params.ratio_step = float(ratio_step)
+    if lag_step is not None:
+        o.params.lag_step = float(lag_step)
+    r = _lib.swfs_sync_run_result()
+    try:
+        check(lib.swfs_sync_run(ctypes.byref(o), ctypes.byref(r)), "swfs_sync_run")
+        f = r.t.fit
+        d = {k: getattr(f, k) for k in ("ratio", "ratio_err", "lag", "swap", "sign_x", "sign_y", "corr_x", "corr_y",
+                                        "neff", "z", "z_need")}
+        d.update({k: getattr(r, k) for k, _t in _lib.SYNC_RUN_FIELDS})
+        d["ratio_auto"] = bool(d["ratio_auto"])
+        return d
+    finally:
+        lib.swfs_free(r.t.cubes)
+
+
+def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto", valid=None, write_recon=None,
+             geom=None, progress=None, provenance=()):
+    """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
+    cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
+    science cubes reduced to the frames the speckle cube has (`--match`). recon: 'vk'
+    (default), 'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2
+    lambda/D), 'none' or a radius; valid: the AO system's subaperture map. Returns nout,
+    ncubes, nok, ratio, lag, wfs_hz, resmean_rms [m] and the pipeline's info (dict)."""
+    o = _lib.swfs_speckles_run_options()
+    lib.swfs_speckles_run_options_default(ctypes.byref(o))
+    o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
+    if recon in _RECON and recon != "given":
+        o.pipe.recon = _RECON[recon]
+    else:
+        o.pipe.recon, o.recon = _RECON["given"], enc(recon)
+    o.pipe.band = _band(band)
+    o.valid, o.write_recon = _opt(valid), _opt(write_recon)
+    match = list(match or ())
+    mi, n = _paths([a for a, _b in match])
+    mo, _n = _paths([b for _a, b in match])
+    o.match_in, o.match_out, o.nmatch = mi, mo, n
+    if geom is not None:
+        o.geom = geom_arg(geom)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    o.progress = _progress(progress)
+    r = _lib.swfs_speckles_run_result()
+    check(lib.swfs_speckles_run(ctypes.byref(o), ctypes.byref(r)), "swfs_speckles_run")
+    d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
+    d["resmean_rms"] = r.resmean_rms
+    d["info"] = _struct_dict(r.info)
+    return d
+
+
+def estimate_files(science, speckles, out, read_noise=None, gain=None, g_smooth_lod=None, progress=None,
+                   provenance=()):
+    """HALO.fits (`specklewfs estimate`) from a science cube and the speckle cube made for
+    it, frame for frame. read_noise [counts], gain [e-/count]: None takes RDNOISE and GAIN
+    from the science header; g_smooth_lod [lambda/D] None: the library's 2. Returns the Halo
+    (with the AO residual's time mean when the speckle cube has one)."""
+    o = _lib.swfs_estimate_run_options()
+    lib.swfs_estimate_run_options_default(ctypes.byref(o))
+    o.science, o.speckles, o.out = enc(science), enc(speckles), enc(out)
+    o.read_noise = math.nan if read_noise is None else float(read_noise)
+    o.gain = math.nan if gain is None else float(gain)
+    if g_smooth_lod is not None:
+        o.g_smooth_lod = float(g_smooth_lod)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    o.progress = _progress(progress)
+    r = _lib.swfs_estimate_run_result()
+    check(lib.swfs_estimate_run(ctypes.byref(o), ctypes.byref(r)), "swfs_estimate_run")
+    lib.swfs_halo_free(r.halo)
+    return Halo.read(out)

@@ -1,0 +1,72 @@
+"""The real-data path on files from Python (realdata.py): reduce -> sync -> speckles ->
+estimate_files -> pupil_estimate on a small AO time series, its products equal to the command
+line's on the same inputs, and its errors raised with nothing written."""
+import os
+import subprocess
+
+import numpy as np
+import pytest
+
+import specklewfs as sw
+
+from conftest import ROOT
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    d = tmp_path_factory.mktemp("realdata")
+    keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000)
+    sw.simulate_timeseries(str(d / "sim"), config=os.path.join(ROOT, "config", "mmt-clio.conf"), **keys)
+    return d
+
+
+def test_path_on_files_equals_the_cli(series, cli):
+    d, s = series, series / "sim"
+    raws = [str(s / f"raw_{k:03d}.fits") for k in range(3)]
+    r = sw.reduce(raws, str(d / "sci.fits"), dark=str(s / "dark.fits"), flat=str(s / "flat.fits"))
+    # mmt-clio.conf's camera: 19 counts of read noise, as the raw frames carry it.
+    assert r["nframes"] == 120 and r["missing"] == "" and 18 < r["noise_var_measured"] ** 0.5 < 20.5
+    t = sw.sync(str(d / "sci.fits"), str(s / "handshake.log"), str(d / "timing.txt"))
+    assert t["ratio_auto"] and t["ratio_bound"] > t["ratio"]
+    assert abs(t["ratio"] - 6.4811) < 0.01 and t["z"] > t["z_need"] and t["nexp_ok"] >= 118
+    sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
+                     match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
+    assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0
+    h = sw.estimate_files(str(d / "sci_m.fits"), str(d / "sp.fits"), str(d / "halo.fits"))
+    assert h.resmean is not None and h.frames == sp["nout"]
+    truth = sw.read_fits(str(s / "truth.fits"), "NCP")[0]
+    p = sw.pupil_estimate(h, sw.read_geom(str(d / "halo.fits")))
+    err = sw.wfe_compare(p.wfe, truth, p.mask)[0]
+    print(f"NCP error {err * 1e9:.1f} nm over {sp['nout']} exposures")
+    assert err < 40e-9
+    # The command line on the same inputs: the same products.
+    c = d / "cli"
+    c.mkdir()
+    run = lambda *a: subprocess.run([cli, *a], check=True, capture_output=True)  # noqa: E731
+    run("reduce", *raws, "--dark", str(s / "dark.fits"), "--flat", str(s / "flat.fits"), "-o", str(c / "sci.fits"))
+    run("sync", str(c / "sci.fits"), str(s / "handshake.log"), "-o", str(c / "timing.txt"))
+    run("speckles", str(c / "timing.txt"), "--science", str(c / "sci.fits"), "--actuators", str(s / "actuators.fits"),
+        "-o", str(c / "sp.fits"), "--match", str(c / "sci.fits"), str(c / "sci_m.fits"))
+    run("estimate", str(c / "sci_m.fits"), str(c / "sp.fits"), "-o", str(c / "halo.fits"))
+    for f, ext in [("sci.fits", None), ("sci_m.fits", None), ("sp.fits", None), ("sp.fits", "RESMEAN"),
+                   ("halo.fits", "HALO"), ("halo.fits", "GAIN")]:
+        np.testing.assert_array_equal(sw.read_fits(str(d / f), ext)[0], sw.read_fits(str(c / f), ext)[0],
+                                      err_msg=f"{f} {ext}")
+
+
+def test_errors_leave_nothing(series, tmp_path):
+    s = series / "sim"
+    with pytest.raises(sw.Error, match="nofile.fits"):
+        sw.reduce(str(tmp_path / "nofile.fits"), str(tmp_path / "sci.fits"))
+    assert not os.path.exists(tmp_path / "sci.fits")
+    sw.reduce([str(s / "raw_000.fits"), str(s / "raw_001.fits"), str(s / "raw_002.fits")], str(tmp_path / "sci.fits"),
+              dark=str(s / "dark.fits"), flat=str(s / "flat.fits"))
+    # A ratio range without the true ratio (6.48): refused, no table.
+    with pytest.raises(sw.Error, match="nowhere in the search"):
+        sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"), ratio=(2, 4))
+    assert not os.path.exists(tmp_path / "t.txt")
+    sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"))
+    with pytest.raises(sw.Error, match="noact.fits: cannot open"):
+        sw.speckles(str(tmp_path / "t.txt"), str(tmp_path / "sci.fits"), str(tmp_path / "noact.fits"),
+                    str(tmp_path / "sp.fits"))
+    assert not os.path.exists(tmp_path / "sp.fits")
