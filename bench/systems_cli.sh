@@ -4,7 +4,9 @@
 # pupil from the simulator's ideal speckles on the same reduced frames (docs/telemetry.md,
 # "Systems outside the matrix"). Prints one line per system: sync's ratio and lag (true lag
 # 2.59), the NCP errors [nm] from the slopes and the ideal speckles, and both with the AO
-# residual's time mean kept (pupil --keep-resmean).
+# residual's time mean kept (pupil --keep-resmean). The last four are one 16 x 16 system with
+# other timing: the handshake logged 20 WFS frames late (true lag 19.59), 12 cubes of 30
+# frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames.
 # usage: bash bench/systems_cli.sh <specklewfs> <scratch dir>
 set -u
 B=$1
@@ -12,8 +14,9 @@ D=$2
 mkdir -p "$D"
 err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
 stop() { echo "$1: $2 failed: $(tail -1 "$3")"; }
-run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn
+run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn [more simulate keys]
     local n=$1 nsub=$2 rate=$3 ratio=$4 nl=$5 sp=$6 dr=$7 fr=$8 vib=$9 rn=${10} seed=${11} pupn=${12}
+    shift 12
     local d=$D/$n pitch modes pupdx t0
     rm -rf "$d"
     mkdir -p "$d"
@@ -24,7 +27,7 @@ run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn
     "$B" simulate mode=timeseries --quiet -o "$d/sim" pupn="$pupn" pupdx="$pupdx" screen_n=2048 nsub="$nsub" \
         act_pitch="$pitch" ao_modes="$modes" wfs_rate="$rate" frame_ratio="$ratio" nlayers="$nl" layer_frac="$fr" \
         layer_speed="$sp" layer_dir="$dr" vib_amp="$vib" vib_freq=15 read_noise="$rn" ncubes=4 cube_frames=100 \
-        start_offset=300.41 wfs_file_frames=3000 seed="$seed" > "$d/sim.log" 2>&1 || { stop "$n" simulate "$d/sim.log"; return; }
+        start_offset=300.41 wfs_file_frames=3000 seed="$seed" "$@" > "$d/sim.log" 2>&1 || { stop "$n" simulate "$d/sim.log"; return; }
     "$B" reduce "$d"/sim/raw_00*.fits --dark "$d/sim/dark.fits" --flat "$d/sim/flat.fits" -o "$d/science.fits" \
         2> "$d/reduce.log" || { stop "$n" reduce "$d/reduce.log"; return; }
     "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" > "$d/sync.log" 2>&1 \
@@ -55,3 +58,8 @@ run sh32-2lay     32 1000   5    2      15,30    0,90        0.6,0.4      0.1   
 run sh16-3lay     16  800   6    3      8,16,30  10,100,250  0.5,0.3,0.2  0.3  12 2    100
 run sh10-2khz     10 2000  20    1      20       300         1            0.4  10 3    100
 run sh14-mid      14  900   7    2      6,18     170,20      0.7,0.3      0.0  25 4    100
+# timing variants of one 16 x 16 system (true lag 2.59 but for hslag20: 19.59)
+run t16-hslag20   16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=4 handshake_lag=20
+run t16-short     16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=12 cube_frames=30 cube_gap=50
+run t16-files600  16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=3 wfs_file_frames=600
+run t16-onecube   16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=1 cube_frames=300 wfs_file_frames=8000

@@ -129,6 +129,10 @@ int swfs_cmd_sync(int argc, char **argv)
                "needs %.1f)\n", r.ratio_min, r.ratio_max, r.ratio_auto ? (r.ratio_bound > 0 ? " (to the handshake "
                "log's bound: a cube ends before the next one of its file starts)" : " (no two cubes start in one "
                "telemetry file: no bound from the log)") : "", t->fit.z, t->fit.neff, t->fit.z_need);
+        if (t->fit.lag_moves)
+            printf("sync: the best lag lay at the edge of the lag window %g .. %g: the window moved %d time%s, to %g .. "
+                   "%g\n", p->lag_min, p->lag_max, t->fit.lag_moves, t->fit.lag_moves == 1 ? "" : "s", t->fit.lag_min,
+                   t->fit.lag_max);
         printf("sync: %zu of %zu exposures usable in %zu rows; %zu cube part%s continue%s in the next or previous "
                "telemetry file (checked on the data), %zu exposures straddle a file boundary -> %s\n", r.nexp_ok,
                r.nexp, r.nok, r.ncontinued, r.ncontinued == 1 ? "" : "s", r.ncontinued == 1 ? "s" : "",

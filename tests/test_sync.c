@@ -62,11 +62,12 @@ static void make_tiptilt(double *mx, double *my, size_t n, swfs_rng *rng)
     }
 }
 
-static void test_sync_recovers_ratio_and_lag(void **state)
+/* Six cubes in two telemetry files, the camera's axes swapped and x flipped, the handshake
+ * logged `lag` whole frames late; sync over ratios 5-8 and lags [lag_min, lag_max]. */
+static void recover(double lag, double lag_min, double lag_max, swfs_sync_result *r)
 {
-    (void)state;
     enum { NFILE = 2, NWFS = 2600, NCUBE = 6, NF = 100 };
-    const double ratio = 6.48, lag = 3.0;
+    const double ratio = 6.48;
     swfs_rng rng;
     swfs_rng_seed(&rng, 2024);
     double *mx = malloc(NFILE * NWFS * sizeof *mx), *my = malloc(NFILE * NWFS * sizeof *my);
@@ -91,21 +92,36 @@ static void test_sync_recovers_ratio_and_lag(void **state)
     swfs_sync_params p;
     swfs_sync_params_default(&p);
     p.ratio_min = 5; p.ratio_max = 8;
-    swfs_sync_result r;
-    assert_ok(swfs_sync_estimate(cubes, NCUBE, &p, &r));
-    print_message("ratio %.4f +- %.4f lag %.3f swap %d signs %d %d corr %.3f %.3f\n", r.ratio, r.ratio_err, r.lag,
-                  r.swap, r.sign_x, r.sign_y, r.corr_x, r.corr_y);
-    assert_close(r.ratio, ratio, 0.03);
-    assert_true(r.ratio_err > 0 && r.ratio_err < 0.03);
-    assert_close(r.lag, lag, 1.0);
-    assert_int_equal(r.swap, 1);
-    assert_int_equal(r.sign_x, -1);
-    assert_int_equal(r.sign_y, 1);
-    assert_true(r.corr_y > 0.9 && r.corr_x < -0.9);
-    assert_int_equal(r.ncubes_used, NCUBE);
+    p.lag_min = lag_min; p.lag_max = lag_max;
+    assert_ok(swfs_sync_estimate(cubes, NCUBE, &p, r));
+    print_message("lag %g in [%g, %g]: ratio %.4f +- %.4f lag %.3f (window %g .. %g, %d moves) swap %d signs %d %d "
+                  "corr %.3f %.3f, %.1f sigma (needs %.1f)\n", lag, lag_min, lag_max, r->ratio, r->ratio_err, r->lag,
+                  r->lag_min, r->lag_max, r->lag_moves, r->swap, r->sign_x, r->sign_y, r->corr_x, r->corr_y, r->z,
+                  r->z_need);
+    assert_close(r->ratio, ratio, 0.03);
+    assert_true(r->ratio_err > 0 && r->ratio_err < 0.03);
+    assert_close(r->lag, lag, 1.0);
+    assert_int_equal(r->swap, 1);
+    assert_int_equal(r->sign_x, -1);
+    assert_int_equal(r->sign_y, 1);
+    assert_true(r->corr_y > 0.9 && r->corr_x < -0.9);
+    assert_true(r->z > r->z_need);
+    assert_int_equal(r->ncubes_used, NCUBE);
     /* The estimated start of every cube is within a frame of the truth. */
-    for (int c = 0; c < NCUBE; c++) assert_close(cubes[c].logged - r.lag, truth_start[c], 1.0);
+    for (int c = 0; c < NCUBE; c++) assert_close(cubes[c].logged - r->lag, truth_start[c], 1.0);
     free(mx); free(my);
+}
+
+static void test_sync_recovers_ratio_and_lag(void **state)
+{
+    (void)state;
+    swfs_sync_result r;
+    recover(3.0, -20, 20, &r);
+    assert_int_equal(r.lag_moves, 0);
+    /* A handshake logged 25 frames late, beyond the window -3 .. 12: the peak at the window's
+     * edge moves it until the peak is inside. */
+    recover(25.0, -3, 12, &r);
+    assert_true(r.lag_moves >= 1 && r.lag_min < 25 && r.lag_max > 25);
 }
 
 /* A cube that crosses from one telemetry file into the next: its part in the next file is

@@ -73,6 +73,9 @@ typedef struct swfs_sync_result {
                                 their Fisher z over neff), and what the search needs: the
                                 Bonferroni bound at 1 % over 2 pairings x the coarse grid's
                                 points. z < z_need: the fit may be any peak of the search */
+    double lag_min, lag_max; /* the lag window searched last: p's, or moved (its width kept) to be
+                                centred on a peak that lay at its edge */
+    int lag_moves;           /* how many times it moved (each a search of the whole window) */
 } swfs_sync_result;
 
 /* For each candidate (ratio, lag), exposures that would leave their telemetry file are

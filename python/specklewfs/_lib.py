@@ -265,7 +265,8 @@ swfs_sync_params = _s("swfs_sync_params", [("ratio_min", c_dbl), ("ratio_max", c
                                            ("lag_max", c_dbl), ("ratio_step", c_dbl), ("lag_step", c_dbl)])
 SYNC_RESULT_FIELDS = [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("swap", c_int), ("sign_x", c_int),
                       ("sign_y", c_int), ("corr_x", c_dbl), ("corr_y", c_dbl), ("corr4", c_dbl * 4),
-                      ("ncubes_used", c_size), ("neff", c_dbl), ("z", c_dbl), ("z_need", c_dbl)]
+                      ("ncubes_used", c_size), ("neff", c_dbl), ("z", c_dbl), ("z_need", c_dbl),
+                      ("lag_min", c_dbl), ("lag_max", c_dbl), ("lag_moves", c_int)]
 swfs_sync_result = _s("swfs_sync_result", SYNC_RESULT_FIELDS)
 swfs_timing = _s("swfs_timing", [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("fit", swfs_sync_result),
                                  ("ncubes", c_size), ("cubes", c_ptr)])

@@ -55,7 +55,8 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
     telemetry files the handshake log names. ratio: (min, max) WFS frames per camera frame,
     None: from 2 to the handshake log's bound (a cube ends before the next cube of its file
     starts); lag: (min, max) WFS frames, None: -3 .. 12. A fit that is not significant over
-    its search raises Error and writes nothing. Returns ratio, ratio_err, lag, the pairing
+    its search raises Error and writes nothing; a best lag at the window's edge moves the
+    window (lag_min, lag_max: the last one; lag_moves). Returns ratio, ratio_err, lag, the pairing
     (swap, sign_x, sign_y, corr_x, corr_y), z and z_need [sigma], neff, the exposures (nexp,
     nexp_ok), rows usable (nok), ncontinued and the ratios searched (ratio_min, ratio_max,
     ratio_bound, ratio_auto)."""
@@ -75,7 +76,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         check(lib.swfs_sync_run(ctypes.byref(o), ctypes.byref(r)), "swfs_sync_run")
         f = r.t.fit
         d = {k: getattr(f, k) for k in ("ratio", "ratio_err", "lag", "swap", "sign_x", "sign_y", "corr_x", "corr_y",
-                                        "neff", "z", "z_need")}
+                                        "neff", "z", "z_need", "lag_min", "lag_max", "lag_moves")}
         d.update({k: getattr(r, k) for k, _t in _lib.SYNC_RUN_FIELDS})
         d["ratio_auto"] = bool(d["ratio_auto"])
         return d

@@ -392,6 +392,11 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         r->ratio_min = w.params.ratio_min;
         r->ratio_max = w.params.ratio_max;
         rc = swfs_sync_estimate(w.cubes, t->ncubes, &w.params, &t->fit);
+        /* The continuations search the window the fit ended in. */
+        if (!rc) {
+            w.params.lag_min = t->fit.lag_min;
+            w.params.lag_max = t->fit.lag_max;
+        }
     }
     if (!rc && !(t->fit.z >= t->fit.z_need)) {
         const swfs_sync_result *f = &t->fit;

@@ -275,6 +275,22 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
     double br = NAN, bl = NAN, bs = -1;
     grid(pc, 0, ncubes, p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step, &br, &bl, &bs);
     if (!(bs > 0)) { rc = swfs_fail(SWFS_ERR_NUMERIC, "sync: no overlap between the camera cubes and the telemetry anywhere in the search range"); goto done; }
+    /* A peak at the lag window's edge lies beyond it: the window (its width kept) moves to be
+     * centred there and is searched again, until the peak is inside (at most 16 moves). A
+     * handshake logged 20 frames late was otherwise fitted at the edge of -3..12 with a
+     * ratio off by 1 % that made up for it (docs/telemetry.md). */
+    double wl0 = p->lag_min, wl1 = p->lag_max;
+    for (int it = 0; it < 16 && wl1 > wl0; it++) {
+        const int lo = bl < wl0 + 0.5 * p->lag_step, hi = bl > wl1 - 0.5 * p->lag_step;
+        if (!lo && !hi) break;
+        const double half = floor(0.5 * (wl1 - wl0) / p->lag_step) * p->lag_step;
+        wl0 = bl - half;
+        wl1 = bl + half;
+        grid(pc, 0, ncubes, p->ratio_min, p->ratio_max, p->ratio_step, wl0, wl1, p->lag_step, &br, &bl, &bs);
+        r->lag_moves++;
+    }
+    r->lag_min = wl0;
+    r->lag_max = wl1;
     /* Refine twice, 10x finer each time, around the peak. */
     double dr = p->ratio_step, dl = p->lag_step;
     for (int it = 0; it < 2; it++) {
@@ -311,7 +327,8 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
         const double zx = atanh(fmin(fabs(r->corr_x), 1 - 1e-12)) * sqrt(fmax(nx - 3, 0)),
                      zy = atanh(fmin(fabs(r->corr_y), 1 - 1e-12)) * sqrt(fmax(ny - 3, 0));
         const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step + 1e-9) + 1,
-                     nl = floor((p->lag_max - p->lag_min) / p->lag_step + 1e-9) + 1;
+                     nl = floor((p->lag_max - p->lag_min) / p->lag_step + 1e-9) + 1 + (double)r->lag_moves *
+                          (floor((wl1 - wl0) / p->lag_step + 1e-9) + 1);
         r->neff = 0.5 * (nx + ny);
         r->z = (zx + zy) / sqrt(2.0);
         r->z_need = normal_upper_quantile(0.01 / (2 * nr * nl));
