@@ -28,7 +28,7 @@ run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn [more 
         act_pitch="$pitch" ao_modes="$modes" wfs_rate="$rate" frame_ratio="$ratio" nlayers="$nl" layer_frac="$fr" \
         layer_speed="$sp" layer_dir="$dr" vib_amp="$vib" vib_freq=15 read_noise="$rn" ncubes=4 cube_frames=100 \
         start_offset=300.41 wfs_file_frames=3000 seed="$seed" "$@" > "$d/sim.log" 2>&1 || { stop "$n" simulate "$d/sim.log"; return; }
-    "$B" reduce "$d"/sim/raw_00*.fits --dark "$d/sim/dark.fits" --flat "$d/sim/flat.fits" -o "$d/science.fits" \
+    "$B" reduce "$d"/sim/raw_[0-9]*.fits --dark "$d/sim/dark.fits" --flat "$d/sim/flat.fits" -o "$d/science.fits" \
         2> "$d/reduce.log" || { stop "$n" reduce "$d/reduce.log"; return; }
     "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" > "$d/sync.log" 2>&1 \
         || { stop "$n" sync "$d/sync.log"; return; }
