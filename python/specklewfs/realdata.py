@@ -24,6 +24,19 @@ def _opt(path):
     return enc(path) if path is not None else None
 
 
+def _run(function, o, result, geom=None, provenance=(), progress=None):
+    """run.h's `function` on options o (their geometry, provenance and progress filled in
+    here); its result struct, raising Error on failure."""
+    if geom is not None:
+        o.geom = geom_arg(geom)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    o.progress = _progress(progress)
+    r = result()
+    check(getattr(lib, function)(ctypes.byref(o), ctypes.byref(r)), function)
+    return r
+
+
 def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=False, progress=None,
            provenance=()):
     """Raw camera cubes (a path or a list, concatenated in that order) -> the reduced science
@@ -40,14 +53,7 @@ def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=
     o.raw, o.nraw = arr, n
     o.dark, o.flat, o.badpix, o.out = _opt(dark), _opt(flat), _opt(badpix), enc(out)
     o.noise_region = 1 if noise_region else 0
-    if geom is not None:
-        o.geom = geom_arg(geom)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    o.progress = _progress(progress)
-    r = _lib.swfs_reduce_run_result()
-    check(lib.swfs_reduce_run(ctypes.byref(o), ctypes.byref(r)), "swfs_reduce_run")
-    return _struct_dict(r)
+    return _struct_dict(_run("swfs_reduce_run", o, _lib.swfs_reduce_run_result, geom, provenance, progress))
 
 
 def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None):
@@ -105,13 +111,7 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     mi, n = _paths([a for a, _b in match])
     mo, _n = _paths([b for _a, b in match])
     o.match_in, o.match_out, o.nmatch = mi, mo, n
-    if geom is not None:
-        o.geom = geom_arg(geom)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    o.progress = _progress(progress)
-    r = _lib.swfs_speckles_run_result()
-    check(lib.swfs_speckles_run(ctypes.byref(o), ctypes.byref(r)), "swfs_speckles_run")
+    r = _run("swfs_speckles_run", o, _lib.swfs_speckles_run_result, geom, provenance, progress)
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"] = r.resmean_rms
     d["info"] = _struct_dict(r.info)
@@ -131,10 +131,6 @@ def estimate_files(science, speckles, out, read_noise=None, gain=None, g_smooth_
     o.gain = math.nan if gain is None else float(gain)
     if g_smooth_lod is not None:
         o.g_smooth_lod = float(g_smooth_lod)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    o.progress = _progress(progress)
-    r = _lib.swfs_estimate_run_result()
-    check(lib.swfs_estimate_run(ctypes.byref(o), ctypes.byref(r)), "swfs_estimate_run")
+    r = _run("swfs_estimate_run", o, _lib.swfs_estimate_run_result, None, provenance, progress)
     lib.swfs_halo_free(r.halo)
     return Halo.read(out)
