@@ -553,9 +553,10 @@ static void test_sync_timestamped_files(void **state)
     free(b.t.cubes);
 }
 
-/* sync's ratio range from the handshake log (the default): up to the log's bound, a cube of
- * 60 frames ending before the next cube of its telemetry file starts; the same fit as the
- * explicit range 5-8, significant. A range without the true ratio is refused: no table. */
+/* sync's ratio range by default: from 0.1 (a camera faster than the WFS) up to the handshake
+ * log's bound, a cube of 60 frames ending before the next cube of its telemetry file starts;
+ * the same fit as the explicit range 5-8, significant. A range without the true ratio is
+ * refused: no table. */
 static void test_sync_ratio_from_log(void **state)
 {
     (void)state;
@@ -582,10 +583,11 @@ static void test_sync_ratio_from_log(void **state)
     assert_int_equal(sr.ratio_auto, 1);
     assert_close(sr.ratio_bound, bound, 1e-12);
     assert_close(sr.ratio_max, bound, 1e-12);
-    assert_close(sr.ratio_min, 2, 0);
+    assert_close(sr.ratio_min, 0.1, 0);
     assert_true(fabs(sr.t.ratio - 6.48) <= 0.03);
     assert_true(sr.t.fit.z > sr.t.fit.z_need && sr.t.fit.neff > 10 && sr.t.fit.neff <= 180);
     free(sr.t.cubes);
+    so.params.ratio_min = 2;
     so.params.ratio_max = 4;
     so.out = p("timing_narrow.txt");
     assert_int_equal(swfs_sync_run(&so, &sr), SWFS_ERR_VALUE);

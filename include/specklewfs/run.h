@@ -268,10 +268,10 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 typedef struct swfs_sync_run_options {
     const char *science, *handshake, *out;
     swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default; ratio from
-                                 ratio_min (2) to ratio_max = 0: the handshake log's bound (a cube
-                                 ends before the next one of its file starts), SWFS_SYNC_RATIO_MAX_FALLBACK
-                                 when no two cubes start in one file; the range starts at
-                                 SWFS_ENGINE_MIN_RATIO when the bound is below ratio_min. The fit
+                                 ratio_min = SWFS_ENGINE_MIN_RATIO (0.1: a camera up to ten times
+                                 faster than the WFS) to ratio_max = 0: the handshake log's bound
+                                 (a cube ends before the next one of its file starts),
+                                 SWFS_SYNC_RATIO_MAX_FALLBACK when no two cubes start in one file. The fit
                                  is refused (SWFS_ERR_VALUE, nothing written) when its correlations
                                  are not significant over the search (sync.h z, z_need) */
     swfs_linear_files lin;    /* lin.basis: the telemetry is the linear model's (modal coefficients, any

@@ -59,7 +59,7 @@ def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=
 def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None):
     """The timing table (`specklewfs sync`): the reduced science cube's TRACK against the
     telemetry files the handshake log names. ratio: (min, max) WFS frames per camera frame,
-    None: from 2 to the handshake log's bound (a cube ends before the next cube of its file
+    None: from 0.1 to the handshake log's bound (a cube ends before the next cube of its file
     starts); lag: (min, max) WFS frames, None: -3 .. 12. A fit that is not significant over
     its search raises Error and writes nothing; a best lag at the window's edge moves the
     window (lag_min, lag_max: the last one; lag_moves). Returns ratio, ratio_err, lag, the pairing

@@ -22,6 +22,7 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o)
     swfs_linear_files_default(&o->lin);
     o->params.lag_min = -3;
     o->params.lag_max = 12;
+    o->params.ratio_min = SWFS_ENGINE_MIN_RATIO; /* a camera faster than the WFS included */
     o->params.ratio_max = 0; /* from the handshake log (ratio_bound) */
 }
 
@@ -331,8 +332,8 @@ static double ratio_bound(const work *w, const swfs_timing *t)
 }
 
 /* ratio_max <= 0: the search's ratios end at ratio_bound (SWFS_SYNC_RATIO_MAX_FALLBACK when the
- * log gives none), start at SWFS_ENGINE_MIN_RATIO when that is below ratio_min, and are cut to
- * the largest grid params_check allows. */
+ * log gives none; ratio_min comes down to SWFS_ENGINE_MIN_RATIO if the bound is below it) and
+ * are cut to the largest grid params_check allows. */
 static void resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_result *r)
 {
     swfs_sync_params *p = &w->params;
