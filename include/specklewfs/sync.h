@@ -60,7 +60,8 @@ int swfs_sync_params_check(const swfs_sync_params *p);
 
 typedef struct swfs_sync_result {
     double ratio, ratio_err; /* <t_sci/t_wfs> and its 1-sigma uncertainty (scatter of the
-                                per-cube estimates / sqrt(n); the refined step if n < 3) */
+                                per-cube estimates / sqrt(n); the coarse grid's ratio_step if
+                                fewer than 3 cubes have half their exposures in their file) */
     double lag;              /* [WFS frames] start = logged - lag */
     int swap;                /* 0: camera x <- slope x, y <- y; 1: x <- y, y <- x */
     int sign_x, sign_y;      /* +1 / -1 for the camera x and y axes */
