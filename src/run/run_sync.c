@@ -332,19 +332,24 @@ static double ratio_bound(const work *w, const swfs_timing *t)
 }
 
 /* ratio_max <= 0: the search's ratios end at ratio_bound (SWFS_SYNC_RATIO_MAX_FALLBACK when the
- * log gives none; ratio_min comes down to SWFS_ENGINE_MIN_RATIO if the bound is below it) and
- * are cut to the largest grid params_check allows. */
-static void resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_result *r)
+ * log gives none) and are cut to the largest grid params_check allows; a ratio_min above the
+ * bound is refused. */
+static int resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_result *r)
 {
     swfs_sync_params *p = &w->params;
     r->ratio_bound = ratio_bound(w, t);
-    if (p->ratio_max > 0) return;
+    if (p->ratio_max > 0) return SWFS_OK;
     r->ratio_auto = 1;
     p->ratio_max = r->ratio_bound > 0 ? r->ratio_bound : SWFS_SYNC_RATIO_MAX_FALLBACK;
-    if (p->ratio_max < p->ratio_min) p->ratio_min = SWFS_ENGINE_MIN_RATIO;
+    if (p->ratio_max < p->ratio_min)
+        return swfs_fail(SWFS_ERR_ARG, "%s: the handshake log bounds the ratio at %g WFS frames per camera frame (a "
+                         "camera cube ends before the next cube of its telemetry file starts), below the search's "
+                         "least ratio %g: give --ratio-max, or check the log", w->o->handshake, p->ratio_max,
+                         p->ratio_min);
     const double nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
     const double nr_max = floor((double)SWFS_SYNC_MAX_GRID / nl);
     if (p->ratio_max > p->ratio_min + (nr_max - 1) * p->ratio_step) p->ratio_max = p->ratio_min + (nr_max - 1) * p->ratio_step;
+    return SWFS_OK;
 }
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
@@ -389,10 +394,10 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     }
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
     if (!rc) {
-        resolve_ratio_range(&w, t, r);
+        rc = resolve_ratio_range(&w, t, r);
         r->ratio_min = w.params.ratio_min;
         r->ratio_max = w.params.ratio_max;
-        rc = swfs_sync_estimate(w.cubes, t->ncubes, &w.params, &t->fit);
+        if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &w.params, &t->fit);
         /* The continuations search the window the fit ended in. */
         if (!rc) {
             w.params.lag_min = t->fit.lag_min;

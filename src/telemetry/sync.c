@@ -104,7 +104,7 @@ static int exposure_range(const swfs_sync_cube *c, double ratio, double lag, siz
     return 1;
 }
 
-/* Sums of the mean x and y slopes over the WFS-time interval [a, b) of cube ci's file. */
+/* Sums of the mean x and y slopes over the WFS-time interval [a, b) of the cube's file. */
 static inline void box_sums(const prep_cube *pc, double a, double b, double *px, double *py)
 {
     const swfs_sync_cube *c = pc->c;
