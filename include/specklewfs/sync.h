@@ -57,6 +57,8 @@ void swfs_sync_params_default(swfs_sync_params *p);
 /* The ratio search's end when nothing bounds it (swfs_sync_run: no two cubes in one file). */
 #define SWFS_SYNC_RATIO_MAX_FALLBACK 12.0
 int swfs_sync_params_check(const swfs_sync_params *p);
+/* The coarse grid's ratio and lag counts, as the search visits them. */
+void swfs_sync_grid_size(const swfs_sync_params *p, double *nratios, double *nlags);
 
 typedef struct swfs_sync_result {
     double ratio, ratio_err; /* <t_sci/t_wfs> and its 1-sigma uncertainty (scatter of the

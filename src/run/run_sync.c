@@ -346,7 +346,8 @@ static int resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_resu
                          "camera cube ends before the next cube of its telemetry file starts), below the search's "
                          "least ratio %g: give --ratio-max, or check the log", w->o->handshake, p->ratio_max,
                          p->ratio_min);
-    const double nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
+    double nr, nl;
+    swfs_sync_grid_size(p, &nr, &nl);
     const double nr_max = floor((double)SWFS_SYNC_MAX_GRID / nl);
     if (p->ratio_max > p->ratio_min + (nr_max - 1) * p->ratio_step) p->ratio_max = p->ratio_min + (nr_max - 1) * p->ratio_step;
     return SWFS_OK;
@@ -361,11 +362,12 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     w.o = o;
     swfs_timing *t = &r->t;
     swfs_paths *paths = NULL;
+    /* The ranges checked now; a ratio_max from the log (<= 0) is resolved once the cubes are read. */
     w.params = o->params;
-    if (w.params.ratio_max <= 0) w.params.ratio_max = fmax(w.params.ratio_min, SWFS_SYNC_RATIO_MAX_FALLBACK); /* checked now, resolved below */
-    int rc = swfs_sync_params_check(&w.params);
+    swfs_sync_params chk = o->params;
+    if (chk.ratio_max <= 0) chk.ratio_max = fmax(chk.ratio_min, SWFS_SYNC_RATIO_MAX_FALLBACK);
+    int rc = swfs_sync_params_check(&chk);
     if (rc) return rc;
-    w.params.ratio_max = o->params.ratio_max;
     rc = swfs_paths_create(&paths);
     swfs_paths_input(paths, "science cube", o->science);
     swfs_linear_paths(paths, &o->lin);

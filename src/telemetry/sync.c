@@ -229,6 +229,18 @@ static void grid(const prep_cube *pc, size_t c0, size_t c1, double r0, double r1
     }
 }
 
+/* Points of a grid lo, lo + step, ... <= hi, as grid() visits them. */
+static double grid_points(double lo, double hi, double step)
+{
+    return floor((hi - lo) / step + 1e-9) + 1;
+}
+
+void swfs_sync_grid_size(const swfs_sync_params *p, double *nratios, double *nlags)
+{
+    *nratios = grid_points(p->ratio_min, p->ratio_max, p->ratio_step);
+    *nlags = grid_points(p->lag_min, p->lag_max, p->lag_step);
+}
+
 int swfs_sync_params_check(const swfs_sync_params *p)
 {
     if (!(p->ratio_min > 0 && p->ratio_max >= p->ratio_min && p->ratio_step > 0 && p->lag_max >= p->lag_min &&
@@ -236,8 +248,8 @@ int swfs_sync_params_check(const swfs_sync_params *p)
         return swfs_fail(SWFS_ERR_ARG, "sync: search range ratio [%g, %g] step %g, lag [%g, %g] step %g is invalid",
                          p->ratio_min, p->ratio_max, p->ratio_step, p->lag_min, p->lag_max, p->lag_step);
     /* The coarse grid is searched exhaustively: bound it (the default is 1,000 x 31). */
-    const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step) + 1,
-                 nl = floor((p->lag_max - p->lag_min) / p->lag_step) + 1;
+    double nr, nl;
+    swfs_sync_grid_size(p, &nr, &nl);
     if (!(nr * nl <= SWFS_SYNC_MAX_GRID))
         return swfs_fail(SWFS_ERR_ARG, "sync: the search grid has %.3g points (%.3g ratios x %.3g lags); at most %.0f: "
                          "use a larger --ratio-step / --lag-step or narrower ranges", nr * nl, nr, nl,
@@ -326,9 +338,9 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
                      ny = n * (1 - fmin(py, 0.999)) / (1 + fmin(py, 0.999));
         const double zx = atanh(fmin(fabs(r->corr_x), 1 - 1e-12)) * sqrt(fmax(nx - 3, 0)),
                      zy = atanh(fmin(fabs(r->corr_y), 1 - 1e-12)) * sqrt(fmax(ny - 3, 0));
-        const double nr = floor((p->ratio_max - p->ratio_min) / p->ratio_step + 1e-9) + 1,
-                     nl = floor((p->lag_max - p->lag_min) / p->lag_step + 1e-9) + 1 + (double)r->lag_moves *
-                          (floor((wl1 - wl0) / p->lag_step + 1e-9) + 1);
+        double nr, nl;
+        swfs_sync_grid_size(p, &nr, &nl);
+        nl += (double)r->lag_moves * grid_points(wl0, wl1, p->lag_step);
         r->neff = 0.5 * (nx + ny);
         r->z = (zx + zy) / sqrt(2.0);
         r->z_need = normal_upper_quantile(0.01 / (2 * nr * nl));
