@@ -8,9 +8,11 @@
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
- *                                 [--recon vk|map|svd]
+ *                                 [--recon vk|map|svd] [--truth]
  *
  * --recon: the speckle reconstructor on every system (default vk, the library's).
+ * --truth: the simulation also writes the true residual on the actuators and the modal export
+ * (export_truth=1 export_modal=1), for bench/recon_oracle.py on a --keep DIR.
  * --seeds N: seeds 1 .. N (default 2); --seed S: seed S alone; --only K: system K (0-based) alone.
  *
  * --vk-l0 M: the von Karman reconstructor's outer scale (default: the library's, 10 m) on every
@@ -72,6 +74,7 @@ static int recon = SWFS_RECON_VK;     /* --recon vk|map|svd: the speckle reconst
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
 static swfs_dm_registration modal_reg;
+static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
 static const char *pth(const char *name)
 {
@@ -124,6 +127,7 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     snprintf(kv[n++], 96, "start_offset=%.3f", 300.0 + 0.137 * seed + 0.5 * (seed % 2));
     snprintf(kv[n++], 96, "wfs_file_frames=4000");
     snprintf(kv[n++], 96, "seed=%u", seed);
+    if (truth) snprintf(kv[n++], 96, "export_truth=1");
     int rc = 0;
     for (int i = 0; i < n && !rc; i++) rc = swfs_config_set(c, kv[i]);
     swfs_ts_params tp;
@@ -134,7 +138,7 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     const char *prov[] = {"bench_telemetry"};
     if (!rc) rc = swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, sum);
     size_t nmodes;
-    if (!rc && modal) rc = swfs_ts_export_modal(&tp, dir, prov, 1, &modal_reg, &nmodes);
+    if (!rc && (modal || truth)) rc = swfs_ts_export_modal(&tp, dir, prov, 1, &modal_reg, &nmodes);
     return rc;
 }
 
@@ -305,6 +309,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--seed") && i + 1 < argc) seed1 = seeds = atoi(argv[++i]);
         else if (!strcmp(argv[i], "--keep") && i + 1 < argc) keep = argv[++i];
         else if (!strcmp(argv[i], "--only") && i + 1 < argc) only = atoi(argv[++i]);
+        else if (!strcmp(argv[i], "--truth")) truth = 1;
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "frame")) tiptilt = SWFS_TT_FRAME, i++;
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
@@ -315,7 +320,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) i++;
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd]\n");
+                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd] [--truth]\n");
             return 2;
         }
     }

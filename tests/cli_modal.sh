@@ -15,7 +15,7 @@
 cli_setup "$@"
 S="$D/sim"
 "$B" simulate mode=timeseries --quiet -o "$S" pupn=66 pupdx=0.1 screen_n=1024 ncubes=3 cube_frames=60 cube_gap=150 \
-    layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 seed=1 export_modal=1 > "$D/sim.log" 2>&1 \
+    layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 seed=1 export_modal=1 export_truth=1 > "$D/sim.log" 2>&1 \
     || { cat "$D/sim.log"; fail "simulate"; }
 reg=$(sed -n 's/.*--basis with \(.*\) --coef-scale.*/\1/p' "$D/sim.log")
 [ -n "$reg" ] || { cat "$D/sim.log"; fail "simulate printed no registration"; }
@@ -65,6 +65,16 @@ for e in "$modal" "$control"; do
     awk -v a="$e" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "NCP error $e nm against $native nm native"
 done
 awk -v a="$noflip" -v b="$native" 'BEGIN { exit !(a > 1.5 * b) }' || fail "unmirrored registration: $noflip nm"
+# export_truth=1: the true residual on the actuators (truewf_NNN.fits, the slopes' frames) as the
+# telemetry of the actuators' influence functions gives the ideal speckles' NCP error: nothing
+# between the actuators and the estimate loses what the ideal speckles have.
+sed "s#/slopes_#/truewf_#" "$D/timing.txt" > "$D/timing_truth.txt"
+truth=$(linear truth "$D/timing_truth.txt" --basis "$S/influence.fits" --coef-scale 1)
+"$B" estimate "$D/science.fits" "$S/speckles_ideal.fits" -o "$D/halo_ideal.fits" > /dev/null 2>&1 || fail "estimate (ideal)"
+"$B" pupil "$D/halo_ideal.fits" -o "$D/pupil_ideal.fits" --truth "$S/truth.fits" > "$D/pupil_ideal.log" || fail "pupil (ideal)"
+ideal=$(ncp_error "$D/pupil_ideal.log")
+echo "cli_modal: the true residual on the actuators $truth nm, the ideal speckles $ideal nm" >&2
+awk -v a="$truth" -v b="$ideal" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "truth on the actuators: $truth nm against $ideal nm"
 # the report draws the registration from the keys speckles recorded
 mkdir -p "$D/rep"
 cp "$D/sci_modal.fits" "$D/rep/science.fits"

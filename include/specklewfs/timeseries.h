@@ -98,6 +98,13 @@ typedef struct swfs_ts_params {
                                   dm_modes.fits, and as valid-only slopes, slopes_valid_NNN.fits with
                                   control.fits, influence.fits and valid.fits (swfs_ts_export_modal
                                   in run.h; `simulate` runs it) */
+    long export_truth;         /* 1: also truewf_NNN.fits beside slopes_NNN.fits, the same WFS frames:
+                                  the true residual wavefront each frame's slopes measured [m],
+                                  least-squares fitted on the actuators (NAXIS1 = nact, the order of
+                                  actuators.fits), and extension DM the commands the loop applied
+                                  in that frame [m of wavefront at the actuators: the residual is the
+                                  turbulence less their interpolation, so truth + DM is the open-loop
+                                  wavefront] (0) */
     /* milk logs (above) */
     long milk;                 /* 1: also write them (0) */
     double milk_epoch;         /* [s] Unix time of the start of WFS frame 0, whole seconds (1.7e9) */

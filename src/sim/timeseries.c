@@ -17,6 +17,7 @@
 #include "specklewfs/sync.h"
 #include "specklewfs/wfs.h"
 
+#include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -104,7 +105,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
-    L_("act_square", act_square); L_("export_modal", export_modal);
+    L_("act_square", act_square); L_("export_modal", export_modal); L_("export_truth", export_truth);
     L_("milk", milk); D_("milk_epoch", milk_epoch); D_("milk_jitter", milk_jitter); D_("milk_drift", milk_drift);
     D_("milk_offset", milk_offset); L_("milk_drop_wfs", milk_drop_wfs); L_("milk_drop_cam", milk_drop_cam);
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
@@ -175,6 +176,7 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (mrc) return mrc;
     if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
     if (p->export_modal & ~1L) return badv("export_modal", (double)p->export_modal, "must be 0 or 1");
+    if (p->export_truth & ~1L) return badv("export_truth", (double)p->export_truth, "must be 0 or 1");
     if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
         return badv("camera_swap", (double)(p->camera_swap + 10 * p->camera_flip_x + 100 * p->camera_flip_y),
                     "camera_swap, camera_flip_x and camera_flip_y must each be 0 or 1");
@@ -309,6 +311,8 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
         if (p->export_modal) swfs_paths_output(paths, "simulation output (export_modal)", path);
         snprintf(path, sizeof path, "%s/slopes_valid_%03zu.fits", dir, f);
         if (p->export_modal) swfs_paths_output(paths, "simulation output (export_modal)", path);
+        snprintf(path, sizeof path, "%s/truewf_%03zu.fits", dir, f);
+        if (p->export_truth) swfs_paths_output(paths, "simulation output (export_truth)", path);
     }
     static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits", "valid.fits"};
     for (size_t k = 0; p->export_modal && k < 4; k++) {
@@ -325,6 +329,49 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     for (size_t c = 0; c < ncub; c++) tstart[c] = cube_start(p, c);
     const int rc = swfs_ts_milk_outputs(p, dir, nwfs, tstart, paths);
     free(tstart);
+    return rc;
+}
+
+/* export_truth: truewf_NNN.fits, the true residual of every WFS frame least-squares fitted on
+ * the actuators through the DM's interpolation T over the illuminated samples (tb holds each
+ * frame's T^T r; the normal matrix T^T T gets a ridge of 1e-9 of its mean diagonal for
+ * actuators that reach no illuminated sample), and extension DM the commands of the frame. */
+static int write_truth(const char *dir, const swfs_sparse *T, const size_t *pin, size_t npin, size_t nact, size_t nwfs,
+                       size_t ffr, double rate, double *tb, const double *tdm, const char *const *prov, size_t nprov)
+{
+    double *N = calloc(nact * nact, sizeof *N);
+    if (!N) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t m = 0; m < npin; m++) {
+        const size_t g = pin[m];
+        for (size_t i = T->row_ptr[g]; i < T->row_ptr[g + 1]; i++)
+            for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) N[T->col[i] * nact + T->col[j]] += T->val[i] * T->val[j];
+    }
+    double tr = 0;
+    for (size_t a = 0; a < nact; a++) tr += N[a * nact + a];
+    for (size_t a = 0; a < nact; a++) N[a * nact + a] += 1e-9 * tr / (double)nact;
+    /* column-major nact x nwfs right sides: frame k's are contiguous */
+    lapack_int info = LAPACKE_dposv(LAPACK_COL_MAJOR, 'L', (lapack_int)nact, (lapack_int)nwfs, N, (lapack_int)nact, tb,
+                                    (lapack_int)nact);
+    free(N);
+    if (info) return swfs_fail(SWFS_ERR_NUMERIC, "export_truth: the actuators' normal matrix is not positive definite (LAPACK info %d)", (int)info);
+    char path[4200];
+    int rc = SWFS_OK;
+    for (size_t f = 0; f * ffr < nwfs && !rc; f++) {
+        const size_t n = nwfs - f * ffr < ffr ? nwfs - f * ffr : ffr;
+        swfs_real z = {nact, n, 1, tb + f * ffr * nact}, c = {nact, n, 1, (double *)tdm + f * ffr * nact};
+        snprintf(path, sizeof path, "%s/truewf_%03zu.fits", dir, f);
+        swfs_fits_out *o = NULL;
+        if ((rc = swfs_fits_out_create(&o, path))) break;
+        if ((rc = swfs_fits_out_set_stamp(o, NULL, prov, nprov)) || (rc = swfs_fits_out_real(o, NULL, &z, -32)) ||
+            (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "true residual wavefront fitted on the actuators")) ||
+            (rc = swfs_fits_out_key_double(o, "WFSRATE", rate, "[Hz]")) ||
+            (rc = swfs_fits_out_key_long(o, "FRAME0", (long)(f * ffr), "global WFS frame of row 0")) ||
+            (rc = swfs_fits_out_real(o, "DM", &c, -32)) ||
+            (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "loop's commands in the frame, wavefront at the actuators")))
+            swfs_fits_out_abort(o);
+        else
+            rc = swfs_fits_out_commit(o);
+    }
     return rc;
 }
 
@@ -346,7 +393,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
-    double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL;
+    double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL;
     /* Exposures open at once: two when an exposure spans at least a WFS frame; a camera
      * faster than the WFS has each frame in up to ceil(2 / ratio) + 1 exposures (engine.h). */
     const size_t nslot = p->frame_ratio >= 1.0 ? 2 : (size_t)ceil(2.0 / p->frame_ratio) + 1;
@@ -499,6 +546,11 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     size_t e_lo = 0, ninexp = 0;
     double sres2 = 0, sres2n = 0, stt2 = 0, sstrehl = 0;
     double *dact = malloc(nact * sizeof *dact);
+    if (p->export_truth) {
+        tb = calloc(nwfs * nact, sizeof *tb);
+        tdm = malloc(nwfs * nact * sizeof *tdm);
+        if (!tb || !tdm) { free(dact); dact = NULL; }
+    }
     if (!dact) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     for (size_t k = 0; k < nwfs; k++) {
         double t = (double)k / p->wfs_rate;
@@ -522,6 +574,14 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             mean += z;
         }
         mean /= (double)npin;
+        if (tb) { /* export_truth: the normal equations' right side of this frame, and the commands */
+            double *bk = tb + k * nact;
+            for (size_t m = 0; m < npin; m++) {
+                const size_t g = pin[m];
+                for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) bk[T->col[j]] += T->val[j] * res[g];
+            }
+            memcpy(tdm + k * nact, act, nact * sizeof *act);
+        }
         /* WFS: slopes with noise. */
         double *sk = slopes + k * ns;
         swfs_shwfs_measure(sh, res, sk);
@@ -685,6 +745,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         }
         rc = swfs_fits_out_commit(o);
     }
+    if (!rc && tb) rc = write_truth(dir, T, pin, npin, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
     if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
@@ -757,7 +818,7 @@ done:
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw);
+    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm);
     swfs_sparse_free(T);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);

@@ -1,0 +1,118 @@
+#!/usr/bin/env python3
+"""How far a better per-frame reconstructor could go, measured on one simulated data set
+(docs/telemetry.md, "The true residual as telemetry").
+
+    ./build/bench/bench_telemetry --only K --seed S --truth --keep DIR
+    PYTHONPATH=python SPECKLEWFS_LIB=build/libspecklewfs.so \\
+        python3 bench/recon_oracle.py DIR [--specklewfs build/specklewfs] [--ridge R] [--in-sample]
+
+On the kept data set (the simulation with export_truth=1 and export_modal=1, reduced and
+timed by bench_telemetry), each row below goes through the same speckles -> estimate ->
+pupil --truth as the default path, with the wavefront of every WFS frame given on the
+actuators as the telemetry of their influence functions (speckles --basis influence.fits,
+the Shack-Hartmann's band nsub/2):
+
+  vk       the default reconstructor's wavefront (W of speckles --write-recon times the
+           slopes): reproduces the default path;
+  truth    the true residual on the actuators (truewf_NNN.fits): what the representation,
+           the engine and the estimator keep of the ideal speckles;
+  learned  the least-squares linear map slopes -> true residual on the actuators, with a
+           ridge of R times the mean diagonal, trained on one half of the frames and
+           applied to the other (2-fold): the best per-frame linear reconstructor the
+           data set itself could teach;
+  --in-sample  trains and applies on the same frames, and adds the control row
+           "reversed": the same fit on the slopes time-reversed, which carry no
+           information about the frame (an in-sample fit that beats it is memorizing).
+
+Prints the NCP error [nm] of each row: the default (the residual's mean taken out) and with
+pupil --keep-resmean."""
+import argparse
+import glob
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import specklewfs.fits as F
+
+ap = argparse.ArgumentParser()
+ap.add_argument("dir")
+ap.add_argument("--specklewfs", default=os.path.join(os.path.dirname(__file__), "..", "build", "specklewfs"))
+ap.add_argument("--ridge", type=float, default=1e-6)
+ap.add_argument("--in-sample", action="store_true")
+a = ap.parse_args()
+D, EXE = a.dir, a.specklewfs
+
+
+def run(cmd):
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode:
+        sys.exit(f"recon_oracle: {' '.join(cmd)} failed:\n{r.stdout}{r.stderr}")
+    return r.stdout
+
+
+def series(pattern, ext=None):
+    files = sorted(glob.glob(os.path.join(D, pattern)))
+    if not files:
+        sys.exit(f"recon_oracle: {D}: no {pattern} (run bench_telemetry with --truth --keep {D})")
+    return np.concatenate([np.array(F.read_fits(f, ext)[0]) for f in files]), files
+
+
+S, sfiles = series("slopes_0*.fits")
+Z, _ = series("truewf_0*.fits")
+Z = Z - Z.mean(1, keepdims=True)  # piston: nothing sees it
+nfr = S.shape[0]
+ffr = F.read_fits(sfiles[0])[0].shape[0]
+keys = F.read_keys(sfiles[0], ["NSUB", "WFSRATE"])
+band, rate = int(keys["NSUB"]) / 2, keys["WFSRATE"]
+used = np.where(np.abs(S).sum(0) > 0)[0]
+X = S[:, used]
+print(f"{D}: {nfr} WFS frames, {len(used)} slopes, {Z.shape[1]} actuators, band {band:g} lambda/D")
+
+
+def ncp(prefix, Zhat):
+    """The NCP errors of the wavefronts Zhat (frames x actuators) through the linear model."""
+    for f in range(len(sfiles)):
+        F.write_fits(os.path.join(D, f"{prefix}_{f:03d}.fits"), Zhat[f * ffr:(f + 1) * ffr],
+                     keys={"FRAME0": f * ffr, "WFSRATE": rate})
+    t = open(os.path.join(D, "timing.txt")).read().replace("/slopes_", f"/{prefix}_")
+    open(os.path.join(D, f"timing_{prefix}.txt"), "w").write(t)
+    run([EXE, "speckles", f"{D}/timing_{prefix}.txt", "--science", f"{D}/science.fits", "--basis",
+         f"{D}/influence.fits", "--coef-scale", "1", "--band", f"{band:g}", "--match", f"{D}/science.fits",
+         f"{D}/sci_{prefix}.fits", "-o", f"{D}/spk_{prefix}.fits"])
+    run([EXE, "estimate", f"{D}/sci_{prefix}.fits", f"{D}/spk_{prefix}.fits", "-o", f"{D}/halo_{prefix}.fits"])
+    out = []
+    for keep in ([], ["--keep-resmean"]):
+        o = run([EXE, "pupil", f"{D}/halo_{prefix}.fits", "-o", f"{D}/pupil_{prefix}.fits", "--truth",
+                 f"{D}/truth.fits", *keep])
+        out.append(float(re.search(r"error ([0-9.]+) nm", o).group(1)))
+    return out
+
+
+def fit(Xt, Yt):
+    G = Xt.T @ Xt
+    G[np.diag_indices_from(G)] += a.ridge * np.trace(G) / len(G)
+    return np.linalg.solve(G, Xt.T @ Yt)
+
+
+def learned(X):
+    if a.in_sample:
+        return X @ fit(X, Z)
+    out = np.zeros_like(Z)
+    half = np.arange(nfr) < nfr // 2
+    for tr in (half, ~half):
+        out[~tr] = X[~tr] @ fit(X[tr], Z[tr])
+    return out
+
+
+run([EXE, "speckles", f"{D}/timing.txt", "--science", f"{D}/science.fits", "--actuators", f"{D}/actuators.fits",
+     "--write-recon", f"{D}/recon_vk.fits", "-o", f"{D}/spk_vk_native.fits"])
+W = np.array(F.read_fits(f"{D}/recon_vk.fits")[0])
+rows = [("vk", S @ W.T), ("truth", Z), ("learned", learned(X))]
+if a.in_sample:
+    rows.append(("reversed", learned(X[::-1].copy())))
+print(f"{'wavefront':10s} {'NCP [nm]':>9s} {'kept':>6s}")
+for name, Zhat in rows:
+    e = ncp(f"or_{name}", Zhat)
+    print(f"{name:10s} {e[0]:9.1f} {e[1]:6.1f}", flush=True)
