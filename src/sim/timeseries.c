@@ -6,6 +6,7 @@
 #include "ts_milk.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/array.h"
+#include "specklewfs/dmfit.h"
 #include "specklewfs/engine.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/interp.h"
@@ -17,7 +18,6 @@
 #include "specklewfs/sync.h"
 #include "specklewfs/wfs.h"
 
-#include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -332,33 +332,16 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     return rc;
 }
 
-/* export_truth: truewf_NNN.fits, the true residual of every WFS frame least-squares fitted on
- * the actuators through the DM's interpolation T over the illuminated samples (tb holds each
- * frame's T^T r; the normal matrix T^T T gets a ridge of 1e-9 of its mean diagonal for
- * actuators that reach no illuminated sample), and extension DM the commands of the frame. */
-static int write_truth(const char *dir, const swfs_sparse *T, const size_t *pin, size_t npin, size_t nact, size_t nwfs,
-                       size_t ffr, double rate, double *tb, const double *tdm, const char *const *prov, size_t nprov)
+/* export_truth: truewf_NNN.fits, per WFS frame the true residual fitted on the actuators
+ * (tz, nact per frame, from the DM fit plan) and extension DM the commands of the frame. */
+static int write_truth(const char *dir, size_t nact, size_t nwfs, size_t ffr, double rate, double *tz, const double *tdm,
+                       const char *const *prov, size_t nprov)
 {
-    double *N = calloc(nact * nact, sizeof *N);
-    if (!N) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t m = 0; m < npin; m++) {
-        const size_t g = pin[m];
-        for (size_t i = T->row_ptr[g]; i < T->row_ptr[g + 1]; i++)
-            for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) N[T->col[i] * nact + T->col[j]] += T->val[i] * T->val[j];
-    }
-    double tr = 0;
-    for (size_t a = 0; a < nact; a++) tr += N[a * nact + a];
-    for (size_t a = 0; a < nact; a++) N[a * nact + a] += 1e-9 * tr / (double)nact;
-    /* column-major nact x nwfs right sides: frame k's are contiguous */
-    lapack_int info = LAPACKE_dposv(LAPACK_COL_MAJOR, 'L', (lapack_int)nact, (lapack_int)nwfs, N, (lapack_int)nact, tb,
-                                    (lapack_int)nact);
-    free(N);
-    if (info) return swfs_fail(SWFS_ERR_NUMERIC, "export_truth: the actuators' normal matrix is not positive definite (LAPACK info %d)", (int)info);
     char path[4200];
     int rc = SWFS_OK;
     for (size_t f = 0; f * ffr < nwfs && !rc; f++) {
         const size_t n = nwfs - f * ffr < ffr ? nwfs - f * ffr : ffr;
-        swfs_real z = {nact, n, 1, tb + f * ffr * nact}, c = {nact, n, 1, (double *)tdm + f * ffr * nact};
+        swfs_real z = {nact, n, 1, tz + f * ffr * nact}, c = {nact, n, 1, (double *)tdm + f * ffr * nact};
         snprintf(path, sizeof path, "%s/truewf_%03zu.fits", dir, f);
         swfs_fits_out *o = NULL;
         if ((rc = swfs_fits_out_create(&o, path))) break;
@@ -400,6 +383,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     size_t xn[32] = {0}, xcap = 0;
     size_t *pin = NULL;
     swfs_sparse *T = NULL;
+    swfs_dmfit *tfit = NULL; /* export_truth */
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
     swfs_mft **mft = NULL;
@@ -547,7 +531,16 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     double sres2 = 0, sres2n = 0, stt2 = 0, sstrehl = 0;
     double *dact = malloc(nact * sizeof *dact);
     if (p->export_truth) {
-        tb = calloc(nwfs * nact, sizeof *tb);
+        /* the least-squares fit of the project's DM fit (dmfit.h) through the DM's own
+           interpolation, with a ridge of 1e-9 of the mean diagonal (not its 1e-3 default: this is
+           a representation of the truth, not a correction to apply) */
+        swfs_dmfit_options fo;
+        swfs_dmfit_options_default(&fo);
+        fo.influence = SWFS_INFLUENCE_CUBIC;
+        fo.reg = 1e-9;
+        const swfs_geom tg = {lam0, D, b->obscur, b->pixscale, dx, (long)np};
+        if ((rc = swfs_dmfit_create(&tfit, xy, nact, &tg, mask, &fo))) { free(dact); free(tstart); goto done; }
+        tb = malloc(nwfs * nact * sizeof *tb);
         tdm = malloc(nwfs * nact * sizeof *tdm);
         if (!tb || !tdm) { free(dact); dact = NULL; }
     }
@@ -574,12 +567,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             mean += z;
         }
         mean /= (double)npin;
-        if (tb) { /* export_truth: the normal equations' right side of this frame, and the commands */
-            double *bk = tb + k * nact;
-            for (size_t m = 0; m < npin; m++) {
-                const size_t g = pin[m];
-                for (size_t j = T->row_ptr[g]; j < T->row_ptr[g + 1]; j++) bk[T->col[j]] += T->val[j] * res[g];
-            }
+        if (tfit) { /* export_truth: the residual fitted on the actuators, and the commands */
+            if ((rc = swfs_dmfit_apply(tfit, res, tb + k * nact, NULL, NULL))) { free(tstart); free(dact); goto done; }
             memcpy(tdm + k * nact, act, nact * sizeof *act);
         }
         /* WFS: slopes with noise. */
@@ -745,7 +734,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         }
         rc = swfs_fits_out_commit(o);
     }
-    if (!rc && tb) rc = write_truth(dir, T, pin, npin, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
+    if (!rc && tb) rc = write_truth(dir, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
     if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
@@ -820,6 +809,7 @@ done:
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
     free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm);
     swfs_sparse_free(T);
+    swfs_dmfit_free(tfit);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
     swfs_real_free(clean); swfs_real_free(dark); swfs_real_free(flat);
