@@ -133,6 +133,10 @@ int swfs_cmd_sync(int argc, char **argv)
             printf("sync: the best lag lay at the edge of the lag window %g .. %g: the window moved %d time%s, to %g .. "
                    "%g\n", p->lag_min, p->lag_max, t->fit.lag_moves, t->fit.lag_moves == 1 ? "" : "s", t->fit.lag_min,
                    t->fit.lag_max);
+        if (r.refits)
+            printf("sync: refitted over the cubes joined across contiguous telemetry files (%d round%s): ratio %.4f "
+                   "(own files alone %.4f), lag %.2f (%.2f)\n", r.refits, r.refits == 1 ? "" : "s", t->ratio,
+                   r.ratio_first, t->lag, r.lag_first);
         printf("sync: %zu of %zu exposures usable in %zu rows; %zu cube part%s continue%s in the next or previous "
                "telemetry file (checked on the data), %zu exposures straddle a file boundary -> %s\n", r.nexp_ok,
                r.nexp, r.nok, r.ncontinued, r.ncontinued == 1 ? "" : "s", r.ncontinued == 1 ? "s" : "",

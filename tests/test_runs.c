@@ -596,6 +596,88 @@ static void test_sync_ratio_from_log(void **state)
     free(sr.t.cubes);
 }
 
+/* Telemetry files shorter than a camera cube (150 WFS frames against a cube's 389): each cube
+ * runs through three or four files and holds a part of 23 exposures at most in each. The
+ * chains of contiguous files are followed file by file, the fit made again over the cubes
+ * joined across them, and all but the exposures across a boundary (and parts too short to
+ * check) used; the rows of each file start where contiguity puts them. Three WFS frames lost
+ * at the end of one file stop the chains that cross it. */
+static void test_sync_files_shorter_than_cube(void **state)
+{
+    (void)state;
+    sync_case c;
+    sync_case_make(&c, "short", "wfs_file_frames=150");
+    swfs_sync_run_result sr;
+    assert_ok(swfs_sync_run(&c.so, &sr));
+    size_t maxfiles = 0, boundaries = 0;
+    for (size_t k = 0; k < sr.t.ncubes; k++) {
+        const swfs_timing_cube *row = &sr.t.cubes[k];
+        if (row->joined) assert_true(fabs(row->join_offset) < 0.5);
+        if (row->status != SWFS_CUBE_OK) boundaries++;
+    }
+    for (int cube = 0; cube < 3; cube++) {
+        char cam[32];
+        snprintf(cam, sizeof cam, "raw_%03d.fits", cube);
+        const char *files[16];
+        size_t nf = 0;
+        const swfs_timing_cube *prev = NULL;
+        for (size_t k = 0; k < sr.t.ncubes; k++) {
+            const swfs_timing_cube *row = &sr.t.cubes[k];
+            if (strcmp(row->camera, cam) || row->status != SWFS_CUBE_OK) continue;
+            /* Contiguity: a row's start is its predecessor's carried over that file's 150 frames. */
+            if (prev && strcmp(prev->slopes, row->slopes)) {
+                const double carried = prev->start + (double)(row->first - prev->first) * sr.t.ratio - 150;
+                assert_close(row->start, carried, 1e-9);
+            }
+            int seen = 0;
+            for (size_t q = 0; q < nf; q++) seen |= !strcmp(files[q], row->slopes);
+            if (!seen && nf < 16) files[nf++] = row->slopes;
+            prev = row;
+        }
+        if (nf > maxfiles) maxfiles = nf;
+    }
+    printf("test_runs: files of 150 WFS frames: ratio %.4f (own files alone %.4f) after %d refit%s, %zu of %zu "
+           "exposures in %zu rows, %zu parts continued, cubes over up to %zu files\n", sr.t.ratio, sr.ratio_first,
+           sr.refits, sr.refits == 1 ? "" : "s", sr.nexp_ok, sr.nexp, sr.nok, sr.ncontinued, maxfiles);
+    assert_true(fabs(sr.t.ratio - 6.48) <= 0.01);
+    assert_true(sr.refits >= 1);
+    assert_true(maxfiles >= 3);
+    assert_true(sr.ncontinued >= 6);
+    /* Each boundary a cube crosses costs the exposure across it, and the parts too short to
+       check: at least 90 % of the exposures are used. */
+    assert_true(sr.nexp_ok >= 162);
+    const size_t used = sr.nexp_ok;
+    free(sr.t.cubes);
+
+    /* Cube 1 runs from slopes_005 through slopes_006 and slopes_007 into slopes_008: cut three
+       frames off the end of slopes_006; its chain stops there, and no cube joins slopes_007 or
+       slopes_008 (no cube starts in them). */
+    char f6[1400], lost[1400];
+    snprintf(f6, sizeof f6, "%s/slopes_006.fits", c.sub);
+    snprintf(lost, sizeof lost, "%s/slopes_006.full", c.sub);
+    assert_ok(rename(f6, lost));
+    swfs_real *s6 = NULL;
+    assert_ok(swfs_fits_read_real(lost, NULL, &s6, NULL));
+    swfs_real cut = *s6;
+    cut.ny -= 3;
+    swfs_fits_out *fo = NULL;
+    assert_ok(swfs_fits_out_create(&fo, f6));
+    assert_ok(swfs_fits_out_real(fo, NULL, &cut, -32));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(s6);
+    assert_ok(swfs_sync_run(&c.so, &sr));
+    int crosses = 0;
+    for (size_t k = 0; k < sr.t.ncubes; k++)
+        if (sr.t.cubes[k].joined &&
+            (strstr(sr.t.cubes[k].slopes, "slopes_007.fits") || strstr(sr.t.cubes[k].slopes, "slopes_008.fits")))
+            crosses = 1;
+    printf("test_runs: 3 frames lost at the end of slopes_006: %zu of %zu exposures (%zu before)\n", sr.nexp_ok,
+           sr.nexp, used);
+    assert_false(crosses);
+    assert_true(sr.nexp_ok < used);
+    free(sr.t.cubes);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -607,6 +689,7 @@ int main(void)
         cmocka_unit_test(test_stream_batches),
         cmocka_unit_test(test_sync_cube_at_file_end),
         cmocka_unit_test(test_sync_timestamped_files),
+        cmocka_unit_test(test_sync_files_shorter_than_cube),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

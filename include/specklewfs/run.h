@@ -282,10 +282,13 @@ typedef struct swfs_sync_run_options {
 void swfs_sync_run_options_default(swfs_sync_run_options *o);
 
 /* r->t: the timing table written (the caller frees r->t.cubes, also on failure). A cube's
- * exposures that lie wholly in its telemetry file make one row; those of a cube that crosses
- * into the file before or after it in the handshake log make a row of that file when the data
- * show the two files contiguous there (swfs_sync_continuation_check); the rest are rows marked
- * straddles. SWFS_ERR_VALUE (after writing the table) when no exposure is usable. */
+ * exposures that lie wholly in its telemetry file make one row; a cube that crosses into the
+ * files before or after it (numbered, time-stamped or in the handshake log's order) makes a row
+ * of each such file, file by file outwards, while the data show the files contiguous there
+ * (swfs_sync_continuation_check); the rest are rows marked straddles. When any file continues
+ * another, the fit is made again over the cubes joined across those files, and the
+ * continuations are checked again at it (r->refits). SWFS_ERR_VALUE (after writing the table)
+ * when no exposure is usable. */
 typedef struct swfs_sync_run_result {
     swfs_timing t;
     size_t nok;               /* usable rows */
@@ -295,6 +298,9 @@ typedef struct swfs_sync_run_result {
     double ratio_bound;       /* the handshake log's upper bound on the ratio (0: none: no two cubes
                                  start in one telemetry file) */
     int ratio_auto;           /* 1: ratio_max came from that bound (params.ratio_max <= 0, the default) */
+    int refits;               /* times the fit was made again over cubes joined across contiguous files
+                                 (0: the table is the fit over each cube's own file) */
+    double ratio_first, lag_first; /* that first fit's ratio and lag */
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);

@@ -72,6 +72,8 @@ typedef struct swfs_sync_result {
     size_t ncubes_used;
     double neff;             /* effective number of independent exposures (Bartlett, lag-1
                                 autocorrelations of the two series), mean of the two axes */
+    size_t nexp;             /* the exposures the correlations are over (neff / nexp: their
+                                autocorrelations' toll, which the continuation check applies too) */
     double z, z_need;        /* the pairing's correlations together in sigma ((z_x + z_y)/sqrt 2 of
                                 their Fisher z over neff), and what the search needs: the
                                 Bonferroni bound at 1 % over 2 pairings x the coarse grid's
@@ -93,13 +95,15 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
  * alone over p's lag range at the fit's ratio and pairing; the part continues when its best
  * lag is the fit's to within half a WFS frame (files hold whole frames: a lost or repeated
  * frame moves it by one or more) and both correlations of the fit's pairing are positive and
- * together significant at 5 sigma over the part's exposures ((z_x + z_y) / sqrt 2 of their
- * Fisher z: a short part cannot pass). */
+ * together significant at 5 sigma over the part's effective number of exposures ((z_x + z_y) /
+ * sqrt 2 of their Fisher z over nexp x fit->neff / fit->nexp, the fit's share of independent
+ * exposures; all of them when the fit has no neff: a short part cannot pass). */
 typedef struct swfs_sync_continuation {
     int continues;
     double offset;          /* best lag - fit->lag [WFS frames] */
     double corr_x, corr_y;  /* the fit's pairing's correlations (signs applied) at the best lag */
     size_t nexp;            /* exposures of the part inside the file at the best lag */
+    int significant;        /* both correlations positive and together 5 sigma, whatever the offset */
 } swfs_sync_continuation;
 
 int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_result *fit, const swfs_sync_params *p,

@@ -265,7 +265,7 @@ swfs_sync_params = _s("swfs_sync_params", [("ratio_min", c_dbl), ("ratio_max", c
                                            ("lag_max", c_dbl), ("ratio_step", c_dbl), ("lag_step", c_dbl)])
 SYNC_RESULT_FIELDS = [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("swap", c_int), ("sign_x", c_int),
                       ("sign_y", c_int), ("corr_x", c_dbl), ("corr_y", c_dbl), ("corr4", c_dbl * 4),
-                      ("ncubes_used", c_size), ("neff", c_dbl), ("z", c_dbl), ("z_need", c_dbl),
+                      ("ncubes_used", c_size), ("neff", c_dbl), ("nexp", c_size), ("z", c_dbl), ("z_need", c_dbl),
                       ("lag_min", c_dbl), ("lag_max", c_dbl), ("lag_moves", c_int)]
 swfs_sync_result = _s("swfs_sync_result", SYNC_RESULT_FIELDS)
 swfs_timing = _s("swfs_timing", [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("fit", swfs_sync_result),
@@ -273,7 +273,8 @@ swfs_timing = _s("swfs_timing", [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag",
 swfs_sync_run_options = _s("swfs_sync_run_options", [("science", c_str), ("handshake", c_str), ("out", c_str),
                                                      ("params", swfs_sync_params), ("lin", swfs_linear_files)])
 SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("ncontinued", c_size),
-                   ("ratio_min", c_dbl), ("ratio_max", c_dbl), ("ratio_bound", c_dbl), ("ratio_auto", c_int)]
+                   ("ratio_min", c_dbl), ("ratio_max", c_dbl), ("ratio_bound", c_dbl), ("ratio_auto", c_int),
+                   ("refits", c_int), ("ratio_first", c_dbl), ("lag_first", c_dbl)]
 swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),

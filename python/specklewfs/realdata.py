@@ -65,7 +65,8 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
     window (lag_min, lag_max: the last one; lag_moves). Returns ratio, ratio_err, lag, the pairing
     (swap, sign_x, sign_y, corr_x, corr_y), z and z_need [sigma], neff, the exposures (nexp,
     nexp_ok), rows usable (nok), ncontinued and the ratios searched (ratio_min, ratio_max,
-    ratio_bound, ratio_auto)."""
+    ratio_bound, ratio_auto); refits: times the fit was made again over cubes joined across
+    contiguous telemetry files (ratio_first, lag_first: the fit over each cube's own file)."""
     o = _lib.swfs_sync_run_options()
     lib.swfs_sync_run_options_default(ctypes.byref(o))
     o.science, o.handshake, o.out = enc(science), enc(handshake), enc(out)

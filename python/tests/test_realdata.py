@@ -29,6 +29,10 @@ def test_path_on_files_equals_the_cli(series, cli):
     t = sw.sync(str(d / "sci.fits"), str(s / "handshake.log"), str(d / "timing.txt"))
     assert t["ratio_auto"] and t["ratio_bound"] > t["ratio"]
     assert abs(t["ratio"] - 6.4811) < 0.01 and t["z"] > t["z_need"] and t["nexp_ok"] >= 118
+    # The fit over each cube's own file, and the refit (if a cube crosses into a contiguous file).
+    assert 0 <= t["refits"] <= 3 and abs(t["ratio_first"] - t["ratio"]) < 0.05 and abs(t["lag_first"] - t["lag"]) < 2
+    assert t["refits"] > 0 or (t["ratio_first"], t["lag_first"]) == (t["ratio"], t["lag"])
+    assert t["refits"] == 0 or t["ncontinued"] > 0
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
                      match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
     assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0

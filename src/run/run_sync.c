@@ -38,8 +38,8 @@ typedef struct work {
     double *R;                /* the linear model's tilt rows (o->lin.basis), built at the first file */
     swfs_science_track *tr;
     swfs_handshake *hs;
-    size_t nhs, nfiles, nwfs_slopes;
-    slopes_file *files;
+    size_t nhs, nfiles, files_cap, nwfs_slopes;
+    slopes_file *files;       /* grows: the log's files and the neighbours the cubes reach */
     swfs_sync_cube *cubes;
     size_t *cube_file;
     long *cube_hs;
@@ -51,6 +51,14 @@ static int load_file(work *w, const char *name, size_t *fi)
 {
     for (*fi = 0; *fi < w->nfiles; (*fi)++)
         if (!strcmp(w->files[*fi].name, name)) return SWFS_OK;
+    if (w->nfiles == w->files_cap) {
+        const size_t cap = w->files_cap ? 2 * w->files_cap : 8;
+        slopes_file *f = realloc(w->files, cap * sizeof *f);
+        if (!f) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", name);
+        memset(f + w->files_cap, 0, (cap - w->files_cap) * sizeof *f);
+        w->files = f;
+        w->files_cap = cap;
+    }
     char path[8192];
     int rc = swfs_telemetry_path(w->logdir, name, path, sizeof path);
     swfs_real *s = NULL;
@@ -245,72 +253,231 @@ static int add_row(const work *w, const swfs_timing_cube *c, size_t j0, size_t j
     return table_path(w, name, row->slopes, sizeof row->slopes);
 }
 
-/* Cube ci at the fit's timing -> its rows: the exposures wholly inside its own telemetry file,
- * those wholly inside the file before or after it when sync's check on the data says that the
- * files are contiguous there (swfs_sync_continuation_check), and the rest marked straddles. */
-static int split_cube(const swfs_sync_run_options *o, work *w, const swfs_timing_cube *c, size_t ci, swfs_timing *t,
-                      swfs_sync_run_result *r)
+/* One cube's telemetry files at a fit's timing: segment k holds the exposures [j0, j1) that lie
+ * wholly in file fi, where the cube starts at s (WFS frames of fi); the segments are in time
+ * order and contiguous file to file, own the cube's own file (its handshake entry). cc: the
+ * check on the data that made a neighbour's segment part of the chain. */
+typedef struct chain_seg {
+    size_t fi, j0, j1;
+    double s;
+    swfs_sync_continuation cc;
+} chain_seg;
+
+typedef struct chain {
+    chain_seg *seg;
+    size_t nseg, own, cap;
+} chain;
+
+static int chain_push(chain *ch, const chain_seg *sg, int front)
 {
-    const swfs_timing *fit = t;
-    const slopes_file *fa = &w->files[w->cube_file[ci]];
+    if (ch->nseg == ch->cap) {
+        const size_t cap = ch->cap ? 2 * ch->cap : 4;
+        chain_seg *t = realloc(ch->seg, cap * sizeof *t);
+        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
+        ch->seg = t;
+        ch->cap = cap;
+    }
+    if (front) {
+        memmove(ch->seg + 1, ch->seg, ch->nseg * sizeof *ch->seg);
+        ch->seg[0] = *sg;
+        ch->own++;
+    } else {
+        ch->seg[ch->nseg] = *sg;
+    }
+    ch->nseg++;
+    return SWFS_OK;
+}
+
+/* Cube ci's chain at fit: its own file's exposures, then file by file outwards (adjacent_file)
+ * the neighbours' while swfs_sync_continuation_check finds the part significant and its best
+ * lag within tol(j) of the fit's, tol(j) = 0.5 + slack |j - j_own| WFS frames (j a part's
+ * middle exposure, j_own the own file's): slack = 0 is the check's own rule (files hold whole
+ * frames: a lost or repeated frame moves the lag by one or more); slack > 0 widens it by the
+ * drift an uncertain ratio makes over the exposures in between. */
+static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double slack, chain *ch)
+{
+    const swfs_sync_cube *c = &w->cubes[ci];
+    const size_t fa = w->cube_file[ci], n = c->nframes;
     const double R = fit->ratio, s = (double)w->cube_hs[ci] - fit->lag;
-    const size_t n = c->nframes;
-    size_t a0, a1, p0 = 0, p1 = 0, b0 = n, b1 = n;
-    inside(s, R, n, fa->nwfs, &a0, &a1);
-    r->nexp += n;
+    size_t a0, a1;
+    ch->nseg = ch->own = 0;
+    inside(s, R, n, w->files[fa].nwfs, &a0, &a1);
     if (a1 <= a0) { /* no whole exposure in its own file: the parts before and after meet at its edge */
-        const double e = s >= 0 ? floor(((double)fa->nwfs - s) / R) : ceil(-s / R);
+        const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
         a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
     }
-    const char *pname = NULL, *bname = NULL;
-    double ps = 0, bs = 0;
-    swfs_sync_continuation join[2];
-    char nbuf[2][SWFS_SYNC_NAME];
-    for (int dir = -1; dir <= 1; dir += 2) {
-        if (dir < 0 ? a0 == 0 : a1 == n) continue;
-        const char *name = adjacent_file(w, fa->name, dir, nbuf[dir > 0], sizeof nbuf[0]);
-        size_t fi;
-        int rc = name ? load_file(w, name, &fi) : SWFS_OK;
-        if (rc == SWFS_ERR_NOMEM) return rc;
-        if (rc || !name) continue; /* a neighbour that is not telemetry of this kind continues nothing */
-        const slopes_file *fb = &w->files[fi];
-        const double sb = dir < 0 ? s + (double)fb->nwfs : s - (double)fa->nwfs;
-        size_t j0, j1;
-        inside(sb, R, n, fb->nwfs, &j0, &j1);
-        if (dir < 0 && j1 > a0) j1 = a0;
-        if (dir > 0 && j0 < a1) j0 = a1;
-        if (j1 <= j0) continue;
-        const double st = sb + (double)j0 * R;
-        swfs_sync_cube part = {j1 - j0, w->tr->x + c->first + j0, w->tr->y + c->first + j0, fb->mx, fb->my, fb->nwfs,
-                               st + fit->lag};
-        swfs_sync_continuation cc;
-        if ((rc = swfs_sync_continuation_check(&part, &fit->fit, &w->params, &cc))) return rc;
-        if (!cc.continues) continue;
-        r->ncontinued++;
-        join[dir > 0] = cc;
-        if (dir < 0) p0 = j0, p1 = j1, pname = name, ps = st;
-        else b0 = j0, b1 = j1, bname = name, bs = st;
-    }
-    /* Rows in exposure order: [0, p0) straddles, [p0, p1) before, [p1, a0) straddles, [a0, a1)
-       its own file, [a1, b0) straddles, [b0, b1) after, [b1, n) straddles. */
-    const char *own = fa->name;
-    int rc = SWFS_OK;
-    const size_t cut[8] = {0, p0, p1, a0, a1, b0, b1, n}; /* 0 <= p0 <= p1 <= a0 <= a1 <= b0 <= b1 <= n */
-    for (int k = 0; k < 7 && !rc; k++) {
-        const size_t j0 = cut[k], j1 = cut[k + 1];
-        const int ok = k == 1 || k == 3 || k == 5;
-        const char *name = k == 1 ? pname : k == 5 ? bname : own;
-        const double st = k == 1 ? ps : k == 5 ? bs : s + (double)j0 * R;
-        if (ok && j1 > j0) r->nexp_ok += j1 - j0, r->nok++;
-        rc = add_row(w, c, j0, j1, name, st, ok ? SWFS_CUBE_OK : SWFS_CUBE_STRADDLES, t);
-        if (!rc && j1 > j0 && (k == 1 || k == 5)) {
-            const swfs_sync_continuation *cc = &join[k == 5];
-            swfs_timing_cube *row = &t->cubes[t->ncubes - 1];
-            row->joined = 1;
-            row->join_offset = cc->offset;
-            row->join_corr_x = cc->corr_x;
-            row->join_corr_y = cc->corr_y;
+    const chain_seg own = {fa, a0, a1, s, {0}};
+    int rc = chain_push(ch, &own, 0);
+    const double jown = 0.5 * (double)(a0 + a1);
+    for (int dir = -1; !rc && dir <= 1; dir += 2) {
+        size_t cur = fa, lo = a0, hi = a1;
+        double scur = s;
+        while (!rc && (dir < 0 ? lo > 0 : hi < n)) {
+            char nbuf[SWFS_SYNC_NAME], cname[SWFS_SYNC_NAME];
+            snprintf(cname, sizeof cname, "%s", w->files[cur].name);
+            const char *name = adjacent_file(w, cname, dir, nbuf, sizeof nbuf);
+            size_t fi;
+            rc = name ? load_file(w, name, &fi) : SWFS_OK;
+            if (rc == SWFS_ERR_NOMEM) break;
+            if (rc || !name) { rc = SWFS_OK; break; } /* a neighbour that is not telemetry of this kind continues nothing */
+            int seen = 0;
+            for (size_t k = 0; k < ch->nseg && !seen; k++) seen = ch->seg[k].fi == fi;
+            if (seen) break;
+            const double sb = dir < 0 ? scur + (double)w->files[fi].nwfs : scur - (double)w->files[cur].nwfs;
+            size_t j0, j1;
+            inside(sb, R, n, w->files[fi].nwfs, &j0, &j1);
+            if (dir < 0 && j1 > lo) j1 = lo;
+            if (dir > 0 && j0 < hi) j0 = hi;
+            if (j1 <= j0) break;
+            const double st = sb + (double)j0 * R;
+            const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
+                                         w->files[fi].nwfs, st + fit->lag};
+            chain_seg sg = {fi, j0, j1, sb, {0}};
+            if ((rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg.cc))) break;
+            const double tol = 0.5 + slack * fabs(0.5 * (double)(j0 + j1) - jown);
+            if (!sg.cc.significant || !(fabs(sg.cc.offset) < tol)) break;
+            if ((rc = chain_push(ch, &sg, dir < 0))) break;
+            cur = fi;
+            scur = sb;
+            if (dir < 0) lo = j0;
+            else hi = j1;
         }
+    }
+    return rc;
+}
+
+static int chains_equal(const chain *a, const chain *b, size_t nc)
+{
+    for (size_t ci = 0; ci < nc; ci++) {
+        if (a[ci].nseg != b[ci].nseg || a[ci].own != b[ci].own) return 0;
+        for (size_t k = 0; k < a[ci].nseg; k++)
+            if (a[ci].seg[k].fi != b[ci].seg[k].fi) return 0;
+    }
+    return 1;
+}
+
+static size_t chains_joined(const chain *ch, size_t nc)
+{
+    size_t m = 0;
+    for (size_t ci = 0; ci < nc; ci++) m += ch[ci].nseg - 1;
+    return m;
+}
+
+/* The fit again, each cube's chain of files joined end to end into one series (the files are
+ * contiguous there: build_chain), over the ratios within 5 coarse steps and the lags within 2
+ * WFS frames of fit0: a cube now lies in one series, so its whole length pins the ratio where
+ * its own file held a part of it. The detection's figures (the bound z_need of the full
+ * search, its lag window) stay fit0's. */
+static int refit_joined(work *w, const chain *ch, size_t nc, const swfs_sync_result *fit0, swfs_sync_result *out)
+{
+    swfs_sync_cube *jc = calloc(nc, sizeof *jc);
+    double **buf = calloc(nc, sizeof *buf);
+    int rc = jc && buf ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
+    for (size_t ci = 0; !rc && ci < nc; ci++) {
+        size_t ntot = 0, before = 0;
+        for (size_t k = 0; k < ch[ci].nseg; k++) {
+            if (k < ch[ci].own) before += w->files[ch[ci].seg[k].fi].nwfs;
+            ntot += w->files[ch[ci].seg[k].fi].nwfs;
+        }
+        if (!(buf[ci] = malloc(2 * ntot * sizeof **buf))) { rc = swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory"); break; }
+        size_t o = 0;
+        for (size_t k = 0; k < ch[ci].nseg; k++) {
+            const slopes_file *f = &w->files[ch[ci].seg[k].fi];
+            memcpy(buf[ci] + o, f->mx, f->nwfs * sizeof **buf);
+            memcpy(buf[ci] + ntot + o, f->my, f->nwfs * sizeof **buf);
+            o += f->nwfs;
+        }
+        jc[ci] = w->cubes[ci];
+        jc[ci].mx = buf[ci];
+        jc[ci].my = buf[ci] + ntot;
+        jc[ci].nwfs = ntot;
+        jc[ci].logged = (double)before + (double)w->cube_hs[ci];
+    }
+    if (!rc) {
+        swfs_sync_params p = w->params;
+        p.ratio_min = fmax(fit0->ratio - 5 * p.ratio_step, 0.5 * fit0->ratio);
+        p.ratio_max = fit0->ratio + 5 * p.ratio_step;
+        p.lag_min = fit0->lag - 2;
+        p.lag_max = fit0->lag + 2;
+        rc = swfs_sync_estimate(jc, nc, &p, out);
+    }
+    if (!rc) {
+        out->z_need = fit0->z_need;
+        out->lag_min = fit0->lag_min;
+        out->lag_max = fit0->lag_max;
+        out->lag_moves = fit0->lag_moves;
+    }
+    for (size_t ci = 0; buf && ci < nc; ci++) free(buf[ci]);
+    free(buf);
+    free(jc);
+    return rc;
+}
+
+/* The fit that decides the table. fit0 is the fit over the cubes' own files. A file shorter
+ * than a cube leaves each cube a short part there, and fit0's ratio is then only as good as
+ * those parts: its error, carried over the exposures to the next file, moved the lags of
+ * contiguous files by 0.54-0.67 WFS frames (docs/telemetry.md, t16-files600), and the
+ * half-frame rule refused them. So the chains are first built with the tolerance widened by
+ * 3 sigma of fit0's ratio drift, the fit is made again over the chains joined end to end
+ * (refit_joined), and the chains are built again at the refit by the strict rule; until they
+ * agree with the ones refitted (at most 3 rounds). Only the strict chains make rows. */
+static int settle_chains(work *w, size_t nc, swfs_sync_result *fit, chain *fin, swfs_sync_run_result *r)
+{
+    const swfs_sync_result fit0 = *fit;
+    chain *used = calloc(nc, sizeof *used);
+    int rc = used ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
+    for (size_t ci = 0; !rc && ci < nc; ci++) rc = build_chain(w, ci, &fit0, 3 * fit0.ratio_err, &used[ci]);
+    int settled = 0;
+    for (int round = 0; !rc && round < 3 && chains_joined(used, nc); round++) {
+        if ((rc = refit_joined(w, used, nc, &fit0, fit))) break;
+        r->refits++;
+        for (size_t ci = 0; !rc && ci < nc; ci++) rc = build_chain(w, ci, fit, 0, &fin[ci]);
+        if (rc || (settled = chains_equal(fin, used, nc))) break;
+        for (size_t ci = 0; ci < nc; ci++) { /* the strict chains are refitted next round */
+            const chain tmp = used[ci];
+            used[ci] = fin[ci];
+            fin[ci] = tmp;
+        }
+    }
+    if (!rc && !settled) {
+        if (!chains_joined(used, nc)) *fit = fit0; /* no file continues another: the own files' fit */
+        for (size_t ci = 0; !rc && ci < nc; ci++) rc = build_chain(w, ci, fit, 0, &fin[ci]);
+    }
+    for (size_t ci = 0; used && ci < nc; ci++) free(used[ci].seg);
+    free(used);
+    return rc;
+}
+
+/* Cube ci's rows from its chain, in exposure order: each segment a usable row of its file
+ * (joined to the cube when it is a neighbour's), the exposures between segments (they straddle
+ * a boundary) rows of the own file marked straddles. */
+static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch, double R, swfs_timing *t,
+                      swfs_sync_run_result *r)
+{
+    const chain_seg *own = &ch->seg[ch->own];
+    const char *oname = w->files[own->fi].name;
+    int rc = SWFS_OK;
+    size_t j = 0;
+    r->nexp += c->nframes;
+    for (size_t k = 0; k <= ch->nseg && !rc; k++) {
+        const size_t j0 = k < ch->nseg ? ch->seg[k].j0 : c->nframes;
+        if (j0 > j) rc = add_row(w, c, j, j0, oname, own->s + (double)j * R, SWFS_CUBE_STRADDLES, t);
+        if (k == ch->nseg || rc) break;
+        const chain_seg *sg = &ch->seg[k];
+        if (sg->j1 > sg->j0) {
+            r->nexp_ok += sg->j1 - sg->j0;
+            r->nok++;
+            rc = add_row(w, c, sg->j0, sg->j1, w->files[sg->fi].name, sg->s + (double)sg->j0 * R, SWFS_CUBE_OK, t);
+            if (!rc && k != ch->own) {
+                swfs_timing_cube *row = &t->cubes[t->ncubes - 1];
+                row->joined = 1;
+                row->join_offset = sg->cc.offset;
+                row->join_corr_x = sg->cc.corr_x;
+                row->join_corr_y = sg->cc.corr_y;
+                r->ncontinued++;
+            }
+        }
+        j = sg->j1 > j ? sg->j1 : j;
     }
     return rc;
 }
@@ -389,10 +556,9 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         t->ncubes = nc;
         t->cubes = calloc(nc, sizeof *t->cubes);
         w.cubes = calloc(nc, sizeof *w.cubes);
-        w.files = calloc(w.nhs + 3 * nc, sizeof *w.files); /* the log's files, and two neighbours a cube */
         w.cube_file = calloc(nc, sizeof *w.cube_file);
         w.cube_hs = calloc(nc, sizeof *w.cube_hs);
-        if (!t->cubes || !w.cubes || !w.files || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
+        if (!t->cubes || !w.cubes || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
     }
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
     if (!rc) {
@@ -417,20 +583,31 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
                        f->neff, f->z, w.params.ratio_min, w.params.ratio_max, w.params.lag_min, w.params.lag_max,
                        f->z_need, o->handshake);
     }
+    chain *ch = NULL;
+    const size_t nc = t->ncubes;
+    if (!rc) {
+        r->ratio_first = t->fit.ratio;
+        r->lag_first = t->fit.lag;
+        if (!(ch = calloc(nc, sizeof *ch))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
+        if (!rc) rc = settle_chains(&w, nc, &t->fit, ch, r);
+    }
     if (!rc) {
         t->ratio = t->fit.ratio;
         t->ratio_err = t->fit.ratio_err;
         t->lag = t->fit.lag;
-        /* Each cube becomes up to 7 rows (split_cube). */
+        /* A cube of s segments makes at most 2 s + 1 rows (chain_rows). */
+        size_t nrows = 0;
+        for (size_t ci = 0; ci < nc; ci++) nrows += 2 * ch[ci].nseg + 1;
         swfs_timing_cube *cubes = t->cubes;
-        const size_t nc = t->ncubes;
-        t->cubes = calloc(7 * nc, sizeof *t->cubes);
+        t->cubes = calloc(nrows, sizeof *t->cubes);
         t->ncubes = 0;
         if (!t->cubes) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
-        for (size_t ci = 0; !rc && ci < nc; ci++) rc = split_cube(o, &w, &cubes[ci], ci, t, r);
+        for (size_t ci = 0; !rc && ci < nc; ci++) rc = chain_rows(&w, &cubes[ci], &ch[ci], t->ratio, t, r);
         free(cubes);
         if (!rc) rc = swfs_timing_write(o->out, t);
     }
+    for (size_t ci = 0; ch && ci < nc; ci++) free(ch[ci].seg);
+    free(ch);
     if (!rc && !r->nok) rc = swfs_fail(SWFS_ERR_VALUE, "%s: no exposure lies inside a telemetry file", o->science);
     swfs_science_track_free(w.tr);
     free(w.hs);

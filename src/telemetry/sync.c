@@ -342,6 +342,7 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
         swfs_sync_grid_size(p, &nr, &nl);
         nl += (double)r->lag_moves * grid_points(wl0, wl1, p->lag_step);
         r->neff = 0.5 * (nx + ny);
+        r->nexp = acc.nexp;
         r->z = (zx + zy) / sqrt(2.0);
         r->z_need = normal_upper_quantile(0.01 / (2 * nr * nl));
     }
@@ -418,14 +419,18 @@ int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_res
     if (isfinite(best)) {
         out->nexp = paired_corr(&pc, fit, best, &out->corr_x, &out->corr_y);
         out->offset = best - fit->lag;
-        /* Fisher z of each correlation against 0 over the part's exposures, both positive and
+        /* Fisher z of each correlation against 0 over the part's effective number of exposures
+         * (its exposures at the fit's share of independent ones, as the fit's significance
+         * counts them: series correlated from exposure to exposure hold fewer independent
+         * exposures than they have, and Fisher's z assumes independent ones), both positive and
          * together 5 sigma: (z_x + z_y) / sqrt 2 is N(0, 1) for a file that does not continue
          * the cube. (Each axis alone at 5 sigma refused a 16-exposure part at offset -0.02
          * with correlations 0.99 / 0.87, 9.5 and 4.8 sigma: bench_telemetry sh24-base seed 6.) */
-        const double zs = sqrt(out->nexp > 3 ? (double)out->nexp - 3 : 0);
+        const double share = fit->nexp > 0 && fit->neff > 0 ? fmin(1.0, fit->neff / (double)fit->nexp) : 1.0,
+                     ne = share * (double)out->nexp, zs = sqrt(ne > 3 ? ne - 3 : 0);
         const double zx = atanh(fmin(out->corr_x, 1 - 1e-12)) * zs, zy = atanh(fmin(out->corr_y, 1 - 1e-12)) * zs;
-        const int sig = out->corr_x > 0 && out->corr_y > 0 && (zx + zy) / sqrt(2.0) > 5;
-        out->continues = sig && fabs(out->offset) < 0.5;
+        out->significant = out->corr_x > 0 && out->corr_y > 0 && (zx + zy) / sqrt(2.0) > 5;
+        out->continues = out->significant && fabs(out->offset) < 0.5;
     }
     free(pc.Cx);
     free(pc.Cy);
