@@ -6,7 +6,10 @@
 # 2.59), the NCP errors [nm] from the slopes and the ideal speckles, and both with the AO
 # residual's time mean kept (pupil --keep-resmean). The last four are one 16 x 16 system with
 # other timing: the handshake logged 20 WFS frames late (true lag 19.59), 12 cubes of 30
-# frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames.
+# frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames. The last
+# nine are the same system as it is (v16-base) and with one thing changed each: the loop's gain
+# and delay, the WFS's slope noise, a 20 % optical bandwidth, the camera's background, hot and
+# dead pixels, a square actuator grid.
 # usage: bash bench/systems_cli.sh <specklewfs> <scratch dir>
 set -u
 B=$1
@@ -63,3 +66,13 @@ run t16-hslag20   16 1000   9.7  1      14       200         1            0.4  1
 run t16-short     16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=12 cube_frames=30 cube_gap=50
 run t16-files600  16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=3 wfs_file_frames=600
 run t16-onecube   16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=1 cube_frames=300 wfs_file_frames=8000
+# loop, sensor, camera and DM variants of that system (4 cubes x 100 frames, files of 3000)
+run v16-base      16 1000   9.7  1      14       200         1            0.4  15 1    100
+run v16-gain0.2   16 1000   9.7  1      14       200         1            0.4  15 1    100 ao_gain=0.2
+run v16-g0.6d1    16 1000   9.7  1      14       200         1            0.4  15 1    100 ao_gain=0.6 ao_delay=1
+run v16-g0.3d3    16 1000   9.7  1      14       200         1            0.4  15 1    100 ao_gain=0.3 ao_delay=3
+run v16-slope3x   16 1000   9.7  1      14       200         1            0.4  15 1    100 slope_noise=1e-7
+run v16-band20    16 1000   9.7  1      14       200         1            0.4  15 1    100 bandwidth=0.2
+run v16-bg500     16 1000   9.7  1      14       200         1            0.4  15 1    100 background=500
+run v16-hotdead   16 1000   9.7  1      14       200         1            0.4  15 1    100 nhot=50 ndead=20
+run v16-actsq     16 1000   9.7  1      14       200         1            0.4  15 1    100 act_square=1
