@@ -440,7 +440,10 @@ static int settle_chains(work *w, size_t nc, swfs_sync_result *fit, chain *fin, 
         }
     }
     if (!rc && !settled) {
-        if (!chains_joined(used, nc)) *fit = fit0; /* no file continues another: the own files' fit */
+        if (!chains_joined(used, nc)) { /* no file continues another: the own files' fit */
+            *fit = fit0;
+            r->refits = 0;
+        }
         for (size_t ci = 0; !rc && ci < nc; ci++) rc = build_chain(w, ci, fit, 0, &fin[ci]);
     }
     for (size_t ci = 0; used && ci < nc; ci++) free(used[ci].seg);
