@@ -19,8 +19,11 @@ static const char *usage_text =
     "The star's track (TRACK extension written by `specklewfs reduce`) is cross-correlated\n"
     "with the mean x/y WFS slopes averaged over each exposure, over all four pairings of\n"
     "camera and slope axes, while the frame-rate ratio <t_sci/t_wfs> and the handshake lag\n"
-    "are varied. Cubes whose exposures leave the telemetry file the handshake names\n"
-    "(straddling a file boundary) are marked and not used by `specklewfs speckles`.\n"
+    "are varied. A cube that runs out of the telemetry file the handshake names is followed\n"
+    "file by file while the files continue each other (the camera's lag over the part, and\n"
+    "the telemetry's own frame-to-frame steps across the boundary), and the fit is made again\n"
+    "over the files so joined. Exposures across a boundary, or in a file that does not\n"
+    "continue, are marked straddles and not used by `specklewfs speckles`.\n"
     "\n"
     "  SCIENCE.fits     reduced science cube with TRACK and CUBEnnnn keywords\n"
     "  HANDSHAKE.log    lines \"CAMERA_FILE SLOPES_FILE WFS_FRAME\" (docs/telemetry.md); slopes\n"
@@ -144,9 +147,11 @@ int swfs_cmd_sync(int argc, char **argv)
     }
     for (size_t i = 0; t->cubes && i < t->ncubes; i++)
         if (t->cubes[i].joined)
-            printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f\n",
-                   t->cubes[i].camera, t->cubes[i].first, t->cubes[i].first + t->cubes[i].nframes - 1,
-                   t->cubes[i].slopes, t->cubes[i].join_offset, t->cubes[i].join_corr_x, t->cubes[i].join_corr_y);
+            printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f, "
+                   "telemetry across the boundary %s\n", t->cubes[i].camera, t->cubes[i].first,
+                   t->cubes[i].first + t->cubes[i].nframes - 1, t->cubes[i].slopes, t->cubes[i].join_offset,
+                   t->cubes[i].join_corr_x, t->cubes[i].join_corr_y,
+                   t->cubes[i].join_verdict > 0 ? "continuous" : "undecided");
     free(r.t.cubes);
     return rc ? cli_error(cmd) : CLI_OK;
 }

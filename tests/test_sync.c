@@ -258,12 +258,85 @@ static void test_files_and_errors(void **state)
     assert_non_null(strstr(swfs_last_error(), "overlap"));
 }
 
+/* The telemetry's own verdict on a file boundary (swfs_sync_boundary_check): a series of
+ * 512-value frames that changes slowly from frame to frame (an AR(1) process, rho = 0.995,
+ * as an AO loop's residual at a kHz, with white measurement noise a tenth of its step) cut
+ * into two files. Contiguous: +1; one frame lost, a frame repeated, a file from elsewhere:
+ * -1; a noise-dominated series, where a one-frame step is no smaller than a two-frame one:
+ * it cannot tell (0); two frames on a side: 0. */
+static void make_ar(double *v, size_t n, size_t nvals, double rho, double noise, swfs_rng *rng)
+{
+    double *x = calloc(nvals, sizeof *x);
+    for (size_t i = 0; i < nvals; i++) x[i] = swfs_rng_normal(rng);
+    for (size_t k = 0; k < n; k++)
+        for (size_t i = 0; i < nvals; i++) {
+            x[i] = rho * x[i] + sqrt(1 - rho * rho) * swfs_rng_normal(rng);
+            v[k * nvals + i] = x[i] + noise * swfs_rng_normal(rng);
+        }
+    free(x);
+}
+
+static void test_boundary(void **state)
+{
+    (void)state;
+    enum { NV = 512, N = 600, CUT = 300, K = SWFS_SYNC_EDGE_FRAMES };
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 5);
+    double *v = malloc((size_t)N * NV * sizeof *v), *u = malloc((size_t)N * NV * sizeof *u);
+    const double rho = 0.995, step = sqrt(2 * (1 - rho)); /* rms one-frame step per value */
+    make_ar(v, N, NV, rho, 0.1 * step, &rng);
+    make_ar(u, N, NV, rho, 0.1 * step, &rng);
+    const double *tail = v + (size_t)(CUT - K) * NV;
+    swfs_sync_boundary b;
+    assert_ok(swfs_sync_boundary_check(tail, K, v + (size_t)CUT * NV, K, NV, &b));
+    print_message("contiguous: q %.4g, one-frame steps up to %.4g, two-frame from %.4g: %+d\n", b.q, b.q1_max,
+                  b.q2_min, b.verdict);
+    assert_int_equal(b.verdict, 1);
+    assert_int_equal(b.n1, 2 * (K - 1));
+    assert_int_equal(b.n2, 2 * (K - 2));
+    assert_true(b.q < b.q2_min && b.q <= b.q1_max);
+    assert_ok(swfs_sync_boundary_check(tail, K, v + (size_t)(CUT + 1) * NV, K, NV, &b));
+    print_message("one frame lost: q %.4g: %+d\n", b.q, b.verdict);
+    assert_int_equal(b.verdict, -1);
+    assert_ok(swfs_sync_boundary_check(tail, K, v + (size_t)(CUT - 1) * NV, K, NV, &b));
+    assert_close(b.q, 0, 0);
+    assert_int_equal(b.verdict, -1); /* the last frame repeated */
+    assert_ok(swfs_sync_boundary_check(tail, K, u + (size_t)CUT * NV, K, NV, &b));
+    assert_int_equal(b.verdict, -1); /* a file from elsewhere */
+    /* Contiguous at every cut of the series but the edges: right or undecided. */
+    size_t yes = 0, no = 0, cuts = 0;
+    for (size_t c = K; c + K <= N; c += 3, cuts++) {
+        assert_ok(swfs_sync_boundary_check(v + (c - K) * NV, K, v + c * NV, K, NV, &b));
+        yes += b.verdict > 0;
+        no += b.verdict < 0;
+    }
+    print_message("contiguous at %zu cuts: %zu called contiguous, %zu not\n", cuts, yes, no);
+    assert_true(yes >= cuts * 9 / 10 && no <= cuts / 50);
+    /* White noise: a step over one frame is a step over two; it cannot tell. */
+    make_ar(u, N, NV, 0.0, 0.0, &rng);
+    yes = no = cuts = 0;
+    for (size_t c = K; c + K <= N; c += 3, cuts++) {
+        assert_ok(swfs_sync_boundary_check(u + (c - K) * NV, K, u + c * NV, K, NV, &b));
+        yes += b.verdict > 0;
+        no += b.verdict < 0;
+    }
+    print_message("white noise at %zu cuts: %zu called contiguous, %zu not\n", cuts, yes, no);
+    assert_int_equal(yes, 0);
+    assert_true(no <= cuts / 50);
+    assert_ok(swfs_sync_boundary_check(v + (size_t)(CUT - 2) * NV, 2, v + (size_t)CUT * NV, K, NV, &b));
+    assert_int_equal(b.verdict, 0);
+    assert_int_equal(swfs_sync_boundary_check(NULL, 0, v, K, NV, &b), SWFS_ERR_ARG);
+    free(v);
+    free(u);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_fractional_weights),
         cmocka_unit_test(test_sync_recovers_ratio_and_lag),
         cmocka_unit_test(test_continuation),
+        cmocka_unit_test(test_boundary),
         cmocka_unit_test(test_files_and_errors),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

@@ -285,7 +285,8 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o);
  * exposures that lie wholly in its telemetry file make one row; a cube that crosses into the
  * files before or after it (numbered, time-stamped or in the handshake log's order) makes a row
  * of each such file, file by file outwards, while the data show the files contiguous there
- * (swfs_sync_continuation_check); the rest are rows marked straddles. When any file continues
+ * (swfs_sync_continuation_check on the camera's lag, swfs_sync_boundary_check on the telemetry
+ * across the boundary); the rest are rows marked straddles. When any file continues
  * another, the fit is made again over the cubes joined across those files, and the
  * continuations are checked again at it (r->refits). SWFS_ERR_VALUE (after writing the table)
  * when no exposure is usable. */

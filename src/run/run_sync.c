@@ -45,6 +45,8 @@ typedef struct work {
     long *cube_hs;
     char logdir[4096];
     swfs_sync_params params;  /* o->params with the ratio range resolved (ratio_bound) */
+    struct boundary_memo { size_t a, b; swfs_sync_boundary bd; } *memo; /* checked boundaries, file a -> b */
+    size_t nmemo, memo_cap;
 } work;
 
 static int load_file(work *w, const char *name, size_t *fi)
@@ -253,6 +255,55 @@ static int add_row(const work *w, const swfs_timing_cube *c, size_t j0, size_t j
     return table_path(w, name, row->slopes, sizeof row->slopes);
 }
 
+/* The first (tail 0) or last (tail 1) SWFS_SYNC_EDGE_FRAMES frames of telemetry file fi, read
+ * again from its file: the edges are kept for no longer than one boundary check, as a night's
+ * files would not fit in memory. */
+static int read_edge(const work *w, size_t fi, int tail, double **buf, size_t *n)
+{
+    char path[8192];
+    swfs_fits_in *f = NULL;
+    const size_t nwfs = w->files[fi].nwfs, k = nwfs < SWFS_SYNC_EDGE_FRAMES ? nwfs : SWFS_SYNC_EDGE_FRAMES;
+    *buf = NULL;
+    *n = k;
+    int rc = swfs_telemetry_path(w->logdir, w->files[fi].name, path, sizeof path);
+    if (!rc) rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc && !(*buf = malloc(k * w->nwfs_slopes * sizeof **buf))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    if (!rc) rc = swfs_fits_in_read_rows(f, tail ? nwfs - k : 0, k, *buf);
+    swfs_fits_in_close(f);
+    if (rc) {
+        free(*buf);
+        *buf = NULL;
+    }
+    return rc;
+}
+
+/* The telemetry's own verdict on file a running on into file b (swfs_sync_boundary_check),
+ * checked once per pair. */
+static int boundary(work *w, size_t a, size_t b, swfs_sync_boundary *out)
+{
+    for (size_t k = 0; k < w->nmemo; k++)
+        if (w->memo[k].a == a && w->memo[k].b == b) {
+            *out = w->memo[k].bd;
+            return SWFS_OK;
+        }
+    if (w->nmemo == w->memo_cap) {
+        const size_t cap = w->memo_cap ? 2 * w->memo_cap : 8;
+        struct boundary_memo *m = realloc(w->memo, cap * sizeof *m);
+        if (!m) return swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
+        w->memo = m;
+        w->memo_cap = cap;
+    }
+    double *ta = NULL, *hb = NULL;
+    size_t na = 0, nb = 0;
+    int rc = read_edge(w, a, 1, &ta, &na);
+    if (!rc) rc = read_edge(w, b, 0, &hb, &nb);
+    if (!rc) rc = swfs_sync_boundary_check(ta, na, hb, nb, w->nwfs_slopes, out);
+    free(ta);
+    free(hb);
+    if (!rc) w->memo[w->nmemo++] = (struct boundary_memo){a, b, *out};
+    return rc;
+}
+
 /* One cube's telemetry files at a fit's timing: segment k holds the exposures [j0, j1) that lie
  * wholly in file fi, where the cube starts at s (WFS frames of fi); the segments are in time
  * order and contiguous file to file, own the cube's own file (its handshake entry). cc: the
@@ -261,6 +312,7 @@ typedef struct chain_seg {
     size_t fi, j0, j1;
     double s;
     swfs_sync_continuation cc;
+    int verdict; /* the telemetry's verdict on the boundary into this segment's file */
 } chain_seg;
 
 typedef struct chain {
@@ -289,11 +341,19 @@ static int chain_push(chain *ch, const chain_seg *sg, int front)
 }
 
 /* Cube ci's chain at fit: its own file's exposures, then file by file outwards (adjacent_file)
- * the neighbours' while swfs_sync_continuation_check finds the part significant and its best
- * lag within tol(j) of the fit's, tol(j) = 0.5 + slack |j - j_own| WFS frames (j a part's
- * middle exposure, j_own the own file's): slack = 0 is the check's own rule (files hold whole
- * frames: a lost or repeated frame moves the lag by one or more); slack > 0 widens it by the
- * drift an uncertain ratio makes over the exposures in between. */
+ * the neighbours' while the files continue each other. Two checks decide, one on the camera
+ * and one on the telemetry alone:
+ * - swfs_sync_continuation_check: the part's camera tip-tilt is significant against the file
+ *   and its best lag is within tol(j) of the fit's, tol(j) = 0.5 + slack |j - j_own| WFS
+ *   frames (j a part's middle exposure, j_own the own file's): slack = 0 is the check's own
+ *   rule (files hold whole frames: a lost or repeated frame moves the lag by one or more);
+ *   slack > 0 widens it by the drift an uncertain ratio makes over the exposures in between.
+ * - swfs_sync_boundary_check on the telemetry across the boundary. Where it says contiguous,
+ *   the part joins unless the camera contradicts it: a significant best lag max(1, tol) frames
+ *   or more from the fit's. A part of 25 exposures measures its lag to a few tenths of a frame
+ *   only (contiguous files were refused at -0.66 and -0.74: docs/telemetry.md, t16-f250), and
+ *   one of 5 exposures is not significant at all. Where the telemetry says not contiguous, the
+ *   part is refused; where it cannot tell, the camera's rule alone decides. */
 static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double slack, chain *ch)
 {
     const swfs_sync_cube *c = &w->cubes[ci];
@@ -306,7 +366,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
         const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
         a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
     }
-    const chain_seg own = {fa, a0, a1, s, {0}};
+    const chain_seg own = {fa, a0, a1, s, {0}, 0};
     int rc = chain_push(ch, &own, 0);
     const double jown = 0.5 * (double)(a0 + a1);
     for (int dir = -1; !rc && dir <= 1; dir += 2) {
@@ -332,10 +392,16 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
             const double st = sb + (double)j0 * R;
             const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
                                          w->files[fi].nwfs, st + fit->lag};
-            chain_seg sg = {fi, j0, j1, sb, {0}};
+            chain_seg sg = {fi, j0, j1, sb, {0}, 0};
             if ((rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg.cc))) break;
             const double tol = 0.5 + slack * fabs(0.5 * (double)(j0 + j1) - jown);
-            if (!sg.cc.significant || !(fabs(sg.cc.offset) < tol)) break;
+            swfs_sync_boundary bd;
+            if ((rc = boundary(w, dir < 0 ? fi : cur, dir < 0 ? cur : fi, &bd))) break;
+            sg.verdict = bd.verdict;
+            const double off = fabs(sg.cc.offset);
+            const int ok = bd.verdict > 0 ? !(sg.cc.significant && !(off < fmax(1.0, tol)))
+                                          : bd.verdict == 0 && sg.cc.significant && off < tol;
+            if (!ok) break;
             if ((rc = chain_push(ch, &sg, dir < 0))) break;
             cur = fi;
             scur = sb;
@@ -477,6 +543,7 @@ static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch,
                 row->join_offset = sg->cc.offset;
                 row->join_corr_x = sg->cc.corr_x;
                 row->join_corr_y = sg->cc.corr_y;
+                row->join_verdict = sg->verdict;
                 r->ncontinued++;
             }
         }
@@ -615,6 +682,6 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     swfs_science_track_free(w.tr);
     free(w.hs);
     for (size_t k = 0; w.files && k < w.nfiles; k++) { free(w.files[k].mx); free(w.files[k].my); }
-    free(w.files); free(w.cubes); free(w.cube_file); free(w.cube_hs); free(w.R);
+    free(w.files); free(w.cubes); free(w.cube_file); free(w.cube_hs); free(w.R); free(w.memo);
     return rc;
 }

@@ -437,6 +437,43 @@ int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_res
     return SWFS_OK;
 }
 
+/* Squared norms of the steps over lag frames inside n frames; their max or min into *ext. */
+static size_t step_extreme(const double *v, size_t n, size_t nvals, size_t lag, int want_max, double *ext)
+{
+    size_t m = 0;
+    for (size_t k = 0; k + lag < n; k++, m++) {
+        const double *a = v + k * nvals, *b = a + lag * nvals;
+        double q = 0;
+        for (size_t i = 0; i < nvals; i++) q += (b[i] - a[i]) * (b[i] - a[i]);
+        if (m == 0 || (want_max ? q > *ext : q < *ext)) *ext = q;
+    }
+    return m;
+}
+
+int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
+                             swfs_sync_boundary *out)
+{
+    memset(out, 0, sizeof *out);
+    if (!tail || !head || !ntail || !nhead || !nvals)
+        return swfs_fail(SWFS_ERR_ARG, "sync: boundary check without frames on both sides");
+    const double *a = tail + (ntail - 1) * nvals;
+    for (size_t i = 0; i < nvals; i++) out->q += (head[i] - a[i]) * (head[i] - a[i]);
+    double e1a = 0, e1b = 0, e2a = 0, e2b = 0;
+    const size_t n1a = step_extreme(tail, ntail, nvals, 1, 1, &e1a), n1b = step_extreme(head, nhead, nvals, 1, 1, &e1b);
+    const size_t n2a = step_extreme(tail, ntail, nvals, 2, 0, &e2a), n2b = step_extreme(head, nhead, nvals, 2, 0, &e2b);
+    out->n1 = n1a + n1b;
+    out->n2 = n2a + n2b;
+    if (!n1a || !n1b || !n2a || !n2b) return SWFS_OK; /* too few frames on a side: cannot tell */
+    out->q1_max = fmax(e1a, e1b);
+    out->q2_min = fmin(e2a, e2b);
+    const double q = out->q;
+    if (!isfinite(q) || !isfinite(out->q1_max) || !isfinite(out->q2_min)) return SWFS_OK;
+    if (q == 0) out->verdict = out->q1_max > 0 ? -1 : 0; /* a frame repeated, unless nothing moves */
+    else if (q < out->q2_min && q <= out->q1_max) out->verdict = 1;
+    else if (q > out->q1_max && q >= out->q2_min) out->verdict = -1;
+    return SWFS_OK;
+}
+
 /* ---- handshake log ----------------------------------------------------------- */
 
 static char *trim(char *s)
@@ -532,8 +569,9 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
         const swfs_timing_cube *c = t->cubes + i;
         if (c->joined)
             fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
-                    "frames, correlations %.3f %.3f\n", c->camera, c->first, c->first + c->nframes - 1, c->join_offset,
-                    c->join_corr_x, c->join_corr_y);
+                    "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
+                    c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y,
+                    c->join_verdict > 0 ? "continuous" : "undecided");
         fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
                 c->status == SWFS_CUBE_OK ? "ok" : "straddles");
     }
