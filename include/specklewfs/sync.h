@@ -117,7 +117,7 @@ int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_res
  * and not above every one-frame step; not contiguous (-1) when q is above every one-frame step
  * and not below every two-frame step, or zero (a repeated frame) where the steps are not;
  * otherwise the telemetry cannot tell (0: noise-dominated, or too few frames). Measured over
- * 11 simulated systems at every frame of their series (docs/telemetry.md): contiguous files
+ * 11 simulated systems, their series cut at every fifth frame (docs/telemetry.md): contiguous files
  * called not contiguous at most 0.6 % of the time, one lost frame called contiguous at most
  * 0.7 %; the rest of the calls right or undecided. tail: A's last ntail frames, head: B's
  * first nhead frames, nvals values each. */
