@@ -6,8 +6,10 @@ that fails leaves no output file."""
 import ctypes
 import math
 
+import numpy as np
+
 from . import _lib
-from ._lib import lib, check, enc
+from ._lib import lib, check, dptr, enc
 from .core import geom_arg
 from .estimate import Halo
 from .sim import _progress, _struct_dict
@@ -89,6 +91,23 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         return d
     finally:
         lib.swfs_free(r.t.cubes)
+
+
+def boundary_check(tail, head):
+    """Whether the telemetry in `head` (nhead, nvals) starts with the frame that follows the
+    last of `tail` (ntail, nvals): `sync`'s own check of two telemetry files (sync.h
+    swfs_sync_boundary_check; use the last and first SYNC_EDGE_FRAMES = 128 frames of two
+    files). The step across the boundary against the one- and two-frame steps beside it.
+    Returns verdict (+1 contiguous, -1 not, 0 the telemetry cannot tell), q, q1_max, q2_min,
+    n1, n2."""
+    t = np.ascontiguousarray(tail, dtype=np.float64)
+    h = np.ascontiguousarray(head, dtype=np.float64)
+    if t.ndim != 2 or h.ndim != 2 or t.shape[1] != h.shape[1] or not t.shape[0] or not h.shape[0]:
+        raise ValueError(f"tail {t.shape} and head {h.shape}: expected (nframes, nvals) arrays with the same nvals")
+    b = _lib.swfs_sync_boundary()
+    check(lib.swfs_sync_boundary_check(dptr(t), t.shape[0], dptr(h), h.shape[0], t.shape[1], ctypes.byref(b)),
+          "swfs_sync_boundary_check")
+    return {k: getattr(b, k) for k, _t in b._fields_}
 
 
 def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto", valid=None, write_recon=None,

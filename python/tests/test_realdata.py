@@ -74,3 +74,17 @@ def test_errors_leave_nothing(series, tmp_path):
         sw.speckles(str(tmp_path / "t.txt"), str(tmp_path / "sci.fits"), str(tmp_path / "noact.fits"),
                     str(tmp_path / "sp.fits"))
     assert not os.path.exists(tmp_path / "sp.fits")
+
+
+def test_boundary_check_on_telemetry(series):
+    """sync's own check of a file boundary, from Python: the simulated loop's slopes cut into
+    two files (contiguous), with a frame lost, with one repeated; and its errors."""
+    slopes = sw.read_fits(str(series / "sim" / "slopes_000.fits"))[0]
+    k, cut = sw.realdata._lib.SYNC_EDGE_FRAMES, 500
+    tail = slopes[cut - k:cut]
+    b = sw.boundary_check(tail, slopes[cut:cut + k])
+    assert b["verdict"] == 1 and b["q"] < b["q2_min"] and b["n1"] == 2 * (k - 1) and b["n2"] == 2 * (k - 2)
+    assert sw.boundary_check(tail, slopes[cut + 1:cut + 1 + k])["verdict"] == -1
+    assert sw.boundary_check(tail, slopes[cut - 1:cut - 1 + k])["verdict"] == -1
+    with pytest.raises(ValueError, match="same nvals"):
+        sw.boundary_check(tail, slopes[cut:cut + k, :10])
