@@ -78,19 +78,21 @@ static int setup(void **state)
     return 0;
 }
 
-/* speckles (the default pipeline, the science cube matched to OUT_sci) then estimate:
- * the CLI's documented path through the library. */
-static void speckles_estimate(const char *sp_out, const char *sci_out, const char *halo_out, const char *write_recon,
-                              swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
+/* speckles (the default pipeline, the science cube matched to sci_out) then estimate: the
+ * CLI's documented path through the library, on the timing table, science cube and actuators
+ * given (NULL: those of dir). */
+static void speckles_estimate_on(const char *timing, const char *science, const char *actuators, const char *sp_out,
+                                 const char *sci_out, const char *halo_out, const char *write_recon,
+                                 swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
 {
     swfs_speckles_run_options sp;
     swfs_speckles_run_options_default(&sp);
-    sp.timing = p("timing.txt");
-    sp.science = p("science.fits");
-    sp.actuators = p("actuators.fits");
+    sp.timing = timing ? timing : p("timing.txt");
+    sp.science = science ? science : p("science.fits");
+    sp.actuators = actuators ? actuators : p("actuators.fits");
     sp.out = sp_out;
     sp.write_recon = write_recon;
-    const char *min[] = {p("science.fits")}, *mout[] = {sci_out};
+    const char *min[] = {sp.science}, *mout[] = {sci_out};
     sp.match_in = min;
     sp.match_out = mout;
     sp.nmatch = 1;
@@ -101,6 +103,12 @@ static void speckles_estimate(const char *sp_out, const char *sci_out, const cha
     eo.speckles = sp_out;
     eo.out = halo_out;
     assert_ok(swfs_estimate_run(&eo, er));
+}
+
+static void speckles_estimate(const char *sp_out, const char *sci_out, const char *halo_out, const char *write_recon,
+                              swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
+{
+    speckles_estimate_on(NULL, NULL, NULL, sp_out, sci_out, halo_out, write_recon, spr, er);
 }
 
 static void test_sync_speckles_estimate(void **state)
@@ -620,25 +628,9 @@ static double ncp_error_in(const char *sub, size_t *nused)
     swfs_sync_run_result sr;
     assert_ok(swfs_sync_run(&so, &sr));
     free(sr.t.cubes);
-    swfs_speckles_run_options o;
-    swfs_speckles_run_options_default(&o);
-    o.timing = tim;
-    o.science = sci;
-    o.actuators = act;
-    o.out = sp;
-    const char *min[] = {sci}, *mout[] = {scm};
-    o.match_in = min;
-    o.match_out = mout;
-    o.nmatch = 1;
     swfs_speckles_run_result spr;
-    assert_ok(swfs_speckles_run(&o, &spr));
-    swfs_estimate_run_options eo;
-    swfs_estimate_run_options_default(&eo);
-    eo.science = scm;
-    eo.speckles = sp;
-    eo.out = halo;
     swfs_estimate_run_result er;
-    assert_ok(swfs_estimate_run(&eo, &er));
+    speckles_estimate_on(tim, sci, act, sp, scm, halo, NULL, &spr, &er);
     swfs_real *ncp = NULL;
     assert_ok(swfs_fits_read_real(truth, "NCP", &ncp, NULL));
     swfs_pupil_result *pf = NULL;
