@@ -107,7 +107,7 @@ def boundary_check(tail, head):
     b = _lib.swfs_sync_boundary()
     check(lib.swfs_sync_boundary_check(dptr(t), t.shape[0], dptr(h), h.shape[0], t.shape[1], ctypes.byref(b)),
           "swfs_sync_boundary_check")
-    return {k: getattr(b, k) for k, _t in b._fields_}
+    return _struct_dict(b)
 
 
 def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto", valid=None, write_recon=None,
