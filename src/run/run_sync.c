@@ -373,9 +373,8 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
         size_t cur = fa, lo = a0, hi = a1;
         double scur = s;
         while (!rc && (dir < 0 ? lo > 0 : hi < n)) {
-            char nbuf[SWFS_SYNC_NAME], cname[SWFS_SYNC_NAME];
-            snprintf(cname, sizeof cname, "%s", w->files[cur].name);
-            const char *name = adjacent_file(w, cname, dir, nbuf, sizeof nbuf);
+            char nbuf[SWFS_SYNC_NAME];
+            const char *name = adjacent_file(w, w->files[cur].name, dir, nbuf, sizeof nbuf);
             size_t fi;
             rc = name ? load_file(w, name, &fi) : SWFS_OK;
             if (rc == SWFS_ERR_NOMEM) break;
