@@ -23,7 +23,9 @@ static const char *usage_text =
     "file by file while the files continue each other (the camera's lag over the part, and\n"
     "the telemetry's own frame-to-frame steps across the boundary), and the fit is made again\n"
     "over the files so joined. Exposures across a boundary, or in a file that does not\n"
-    "continue, are marked straddles and not used by `specklewfs speckles`.\n"
+    "continue, are marked straddles and not used by `specklewfs speckles`. A cube whose\n"
+    "telemetry file cannot be read (missing, truncated, another shape) is left out with a\n"
+    "warning and marked missing; only when no file can be read does sync stop.\n"
     "\n"
     "  SCIENCE.fits     reduced science cube with TRACK and CUBEnnnn keywords\n"
     "  HANDSHAKE.log    lines \"CAMERA_FILE SLOPES_FILE WFS_FRAME\" (docs/telemetry.md); slopes\n"
@@ -143,7 +145,11 @@ int swfs_cmd_sync(int argc, char **argv)
         printf("sync: %zu of %zu exposures usable in %zu rows; %zu cube part%s continue%s in the next or previous "
                "telemetry file (checked on the data), %zu exposures straddle a file boundary -> %s\n", r.nexp_ok,
                r.nexp, r.nok, r.ncontinued, r.ncontinued == 1 ? "" : "s", r.ncontinued == 1 ? "s" : "",
-               r.nexp - r.nexp_ok, o.out);
+               r.nexp - r.nexp_ok - r.nexp_missing, o.out);
+        if (r.nmissing)
+            fprintf(stderr, "sync: warning: %zu cube%s (%zu exposures) left out, %s telemetry file cannot be read (rows "
+                    "marked missing); the first: %s\n", r.nmissing, r.nmissing == 1 ? "" : "s", r.nexp_missing,
+                    r.nmissing == 1 ? "its" : "their", r.missing_reason);
     }
     for (size_t i = 0; t->cubes && i < t->ncubes; i++)
         if (t->cubes[i].joined)

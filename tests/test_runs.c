@@ -502,6 +502,91 @@ static size_t used_rows(const swfs_timing *t, const char *cam, const char *joine
     return used;
 }
 
+/* A telemetry file the handshake log names that cannot be read (cut short, then gone): sync
+ * leaves the cubes that start in it out, as rows marked missing, fits the timing on the
+ * others and writes the table, which reads back with those rows; speckles skips them. With no
+ * readable file at all it stops with the first file's message and writes no table. */
+static void test_sync_unreadable_file(void **state)
+{
+    (void)state;
+    sync_case c;
+    sync_case_make(&c, "unreadable", "wfs_file_frames=1000");
+    swfs_sync_run_result a, b;
+    assert_ok(swfs_sync_run(&c.so, &a));
+    /* the file cube 2 starts in (its first row in the table: the own file's) */
+    char own[SWFS_SYNC_NAME] = "";
+    for (size_t k = 0; k < a.t.ncubes && !own[0]; k++)
+        if (!strcmp(a.t.cubes[k].camera, "raw_002.fits")) snprintf(own, sizeof own, "%s", a.t.cubes[k].slopes);
+    assert_true(own[0] != 0);
+    char keep[SWFS_SYNC_NAME + 8];
+    snprintf(keep, sizeof keep, "%s.keep", own);
+    assert_int_equal(rename(own, keep), 0);
+    FILE *in = fopen(keep, "rb"), *out = fopen(own, "wb");
+    assert_non_null(in);
+    assert_non_null(out);
+    char buf[4000];
+    assert_int_equal(fread(buf, 1, sizeof buf, in), sizeof buf);
+    fwrite(buf, 1, sizeof buf, out); /* the header and a little of the data */
+    fclose(in);
+    fclose(out);
+    assert_ok(swfs_sync_run(&c.so, &b));
+    printf("test_runs: cube 2's telemetry file cut short: %zu of %zu exposures usable (%zu with it), ratio %.4f "
+           "(%.4f), %zu cube left out: %s\n", b.nexp_ok, b.nexp, a.nexp_ok, b.t.ratio, a.t.ratio, b.nmissing,
+           b.missing_reason);
+    assert_int_equal(b.nmissing, 1);
+    assert_int_equal(b.nexp_missing, 60);
+    assert_non_null(strstr(b.missing_reason, strrchr(own, '/') + 1));
+    assert_int_equal(b.nexp, a.nexp);
+    int dummy;
+    assert_int_equal(used_rows(&b.t, "raw_002.fits", "", &dummy), 0);
+    for (int k = 0; k < 2; k++) { /* the other cubes as before, unless they ran into that file */
+        char cam[32];
+        snprintf(cam, sizeof cam, "raw_%03d.fits", k);
+        const size_t ua = used_rows(&a.t, cam, "", &dummy), ub = used_rows(&b.t, cam, "", &dummy);
+        assert_true(ub <= ua && ub > 0);
+    }
+    assert_true(fabs(b.t.ratio - 6.48) < 0.01);
+    swfs_timing *rt = NULL;
+    assert_ok(swfs_timing_read(c.tim, &rt));
+    size_t nmiss = 0;
+    for (size_t k = 0; k < rt->ncubes; k++)
+        if (rt->cubes[k].status == SWFS_CUBE_MISSING) {
+            nmiss++;
+            assert_string_equal(rt->cubes[k].camera, "raw_002.fits");
+            assert_int_equal(rt->cubes[k].nframes, 60);
+        }
+    assert_int_equal(nmiss, 1);
+    swfs_timing_free(rt);
+    /* speckles on that table: the usable rows' frames only */
+    swfs_speckles_run_result spr;
+    swfs_estimate_run_result er;
+    char spo[1300], scm[1300], hal[1300];
+    snprintf(spo, sizeof spo, "%s/speckles.fits", c.sub);
+    snprintf(scm, sizeof scm, "%s/sci_m.fits", c.sub);
+    snprintf(hal, sizeof hal, "%s/halo.fits", c.sub);
+    char act[1300];
+    snprintf(act, sizeof act, "%s/actuators.fits", c.sub);
+    speckles_estimate_on(c.tim, c.sci, act, spo, scm, hal, NULL, &spr, &er);
+    assert_int_equal(spr.nout, b.nexp_ok);
+    swfs_halo_free(er.halo);
+    /* no readable file: an error naming the first, and no table */
+    unlink(own);
+    for (int k = 0; k < 8; k++) {
+        char f[1400];
+        snprintf(f, sizeof f, "%s/slopes_%03d.fits", c.sub, k);
+        unlink(f);
+    }
+    unlink(c.tim);
+    swfs_sync_run_result z;
+    assert_int_equal(swfs_sync_run(&c.so, &z), SWFS_ERR_IO);
+    printf("test_runs: no telemetry file: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "no telemetry file of the 3 cubes can be read"));
+    assert_false(test_file_exists(c.tim));
+    free(z.t.cubes);
+    free(a.t.cubes);
+    free(b.t.cubes);
+}
+
 /* Time-stamped telemetry files (names that differ in digits only, not consecutive numbers):
  * cube 0 runs from the first file into the second, in which no cube starts (the handshake log
  * does not name it); sync finds it among the folder's files named like the first, and the
@@ -759,6 +844,7 @@ int main(void)
         cmocka_unit_test(test_sync_cube_at_file_end),
         cmocka_unit_test(test_sync_timestamped_files),
         cmocka_unit_test(test_sync_files_shorter_than_cube),
+        cmocka_unit_test(test_sync_unreadable_file),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -288,8 +288,11 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o);
  * (swfs_sync_continuation_check on the camera's lag, swfs_sync_boundary_check on the telemetry
  * across the boundary); the rest are rows marked straddles. When any file continues
  * another, the fit is made again over the cubes joined across those files, and the
- * continuations are checked again at it (r->refits). SWFS_ERR_VALUE (after writing the table)
- * when no exposure is usable. */
+ * continuations are checked again at it (r->refits). A cube whose telemetry file cannot be
+ * read (missing, truncated, NaN values, another shape) is left out of the fit and makes one
+ * row marked missing (r->nmissing, the first file's message in r->missing_reason); when no
+ * cube's file can be read, SWFS_ERR_IO with that message. SWFS_ERR_VALUE (after writing the
+ * table) when no exposure is usable. */
 typedef struct swfs_sync_run_result {
     swfs_timing t;
     size_t nok;               /* usable rows */
@@ -302,6 +305,8 @@ typedef struct swfs_sync_run_result {
     int refits;               /* times the fit was made again over cubes joined across contiguous files
                                  (0: the table is the fit over each cube's own file) */
     double ratio_first, lag_first; /* that first fit's ratio and lag */
+    size_t nmissing, nexp_missing; /* cubes (exposures) left out: their telemetry file cannot be read */
+    char missing_reason[1024]; /* the first such file's message */
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);

@@ -149,7 +149,11 @@ void swfs_slopes_mean_xy(const double *slopes, size_t nslopes, size_t nwfs, cons
 
 /* ---- timing table -------------------------------------------------------------- */
 
-enum { SWFS_CUBE_OK = 0, SWFS_CUBE_STRADDLES = 1 };
+/* A row's status: its exposures usable (ok), or left out: straddling a boundary of telemetry
+ * files that do not continue each other (straddles), or in a cube whose telemetry file the
+ * handshake log names but cannot be read (missing: absent, truncated, not telemetry of the
+ * others' kind). */
+enum { SWFS_CUBE_OK = 0, SWFS_CUBE_STRADDLES = 1, SWFS_CUBE_MISSING = 2 };
 
 typedef struct swfs_timing_cube {
     char camera[SWFS_SYNC_NAME];
@@ -189,8 +193,8 @@ void swfs_orient_describe(const swfs_sync_result *p, char *buf, size_t cap);
 void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t comps, const double *cam, double *model);
 
 /* Text:  "ratio R ERR" / "lag L" / "pairing SWAP SX SY CX CY" lines, then one
- * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok or
- * straddles); '#' comments. */
+ * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok, straddles
+ * or missing); '#' comments. */
 int swfs_timing_write(const char *path, const swfs_timing *t);
 int swfs_timing_read(const char *path, swfs_timing **out);
 void swfs_timing_free(swfs_timing *t);

@@ -277,7 +277,8 @@ swfs_sync_run_options = _s("swfs_sync_run_options", [("science", c_str), ("hands
                                                      ("params", swfs_sync_params), ("lin", swfs_linear_files)])
 SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("ncontinued", c_size),
                    ("ratio_min", c_dbl), ("ratio_max", c_dbl), ("ratio_bound", c_dbl), ("ratio_auto", c_int),
-                   ("refits", c_int), ("ratio_first", c_dbl), ("lag_first", c_dbl)]
+                   ("refits", c_int), ("ratio_first", c_dbl), ("lag_first", c_dbl), ("nmissing", c_size),
+                   ("nexp_missing", c_size), ("missing_reason", ctypes.c_char * 1024)]
 swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),

@@ -68,7 +68,10 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
     (swap, sign_x, sign_y, corr_x, corr_y), z and z_need [sigma], neff, the exposures (nexp,
     nexp_ok), rows usable (nok), ncontinued and the ratios searched (ratio_min, ratio_max,
     ratio_bound, ratio_auto); refits: times the fit was made again over cubes joined across
-    contiguous telemetry files (ratio_first, lag_first: the fit over each cube's own file)."""
+    contiguous telemetry files (ratio_first, lag_first: the fit over each cube's own file);
+    nmissing, nexp_missing: cubes (their exposures) left out because the telemetry file the
+    log names cannot be read (missing, truncated, another shape), missing_reason the first
+    such file's message. No readable telemetry file at all raises Error."""
     o = _lib.swfs_sync_run_options()
     lib.swfs_sync_run_options_default(ctypes.byref(o))
     o.science, o.handshake, o.out = enc(science), enc(handshake), enc(out)
@@ -88,6 +91,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
                                         "neff", "z", "z_need", "lag_min", "lag_max", "lag_moves")}
         d.update({k: getattr(r, k) for k, _t in _lib.SYNC_RUN_FIELDS})
         d["ratio_auto"] = bool(d["ratio_auto"])
+        d["missing_reason"] = d["missing_reason"].decode(errors="replace")
         return d
     finally:
         lib.swfs_free(r.t.cubes)

@@ -33,6 +33,7 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert 0 <= t["refits"] <= 3 and abs(t["ratio_first"] - t["ratio"]) < 0.05 and abs(t["lag_first"] - t["lag"]) < 2
     assert t["refits"] > 0 or (t["ratio_first"], t["lag_first"]) == (t["ratio"], t["lag"])
     assert t["refits"] == 0 or t["ncontinued"] > 0
+    assert t["nmissing"] == 0 and t["nexp_missing"] == 0 and t["missing_reason"] == ""
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
                      match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
     assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0
@@ -68,6 +69,25 @@ def test_errors_leave_nothing(series, tmp_path):
     # A ratio range without the true ratio (6.48): refused, no table.
     with pytest.raises(sw.Error, match="nowhere in the search"):
         sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"), ratio=(2, 4))
+    assert not os.path.exists(tmp_path / "t.txt")
+    # A log naming a telemetry file that is gone: its cube left out (rows marked missing);
+    # every file gone: refused, no table.
+    lines = (s / "handshake.log").read_text().splitlines()
+    cubes = [k for k, ln in enumerate(lines) if ln and not ln.startswith("#")]
+    gone = list(lines)
+    f = gone[cubes[-1]].split()
+    gone[cubes[-1]] = " ".join([f[0], "gone.fits", f[2]])
+    (s / "handshake_gone.log").write_text("\n".join(gone) + "\n")
+    t = sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake_gone.log"), str(tmp_path / "t.txt"))
+    assert t["nmissing"] == 1 and t["nexp_missing"] == 40 and "gone.fits: no such telemetry file" in t["missing_reason"]
+    assert t["nexp_ok"] <= 80 and " missing\n" in (tmp_path / "t.txt").read_text()
+    for k in cubes:
+        f = gone[k].split()
+        gone[k] = " ".join([f[0], "gone.fits", f[2]])
+    (s / "handshake_gone.log").write_text("\n".join(gone) + "\n")
+    os.remove(tmp_path / "t.txt")
+    with pytest.raises(sw.Error, match="no telemetry file of the 3 cubes can be read"):
+        sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake_gone.log"), str(tmp_path / "t.txt"))
     assert not os.path.exists(tmp_path / "t.txt")
     sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"))
     with pytest.raises(sw.Error, match="noact.fits: cannot open"):

@@ -7,6 +7,7 @@
 #include "specklewfs/science.h"
 #include "specklewfs/source.h"
 
+#include <errno.h>
 #include <limits.h>
 #include <math.h>
 #include <stdio.h>
@@ -32,6 +33,8 @@ typedef struct slopes_file {
     size_t nwfs;
     double *mx, *my;
 } slopes_file;
+
+#define NO_FILE ((size_t)-1) /* work.cube_file of a cube whose telemetry file cannot be read */
 
 typedef struct work {
     const swfs_sync_run_options *o;
@@ -64,6 +67,8 @@ static int load_file(work *w, const char *name, size_t *fi)
     char path[8192];
     int rc = swfs_telemetry_path(w->logdir, name, path, sizeof path);
     swfs_real *s = NULL;
+    if (!rc && access(path, F_OK) != 0)
+        rc = swfs_fail(SWFS_ERR_IO, "%s: no such telemetry file (%s)", path, strerror(errno));
     if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
     if (rc) return rc;
     const int lin = w->o->lin.basis != NULL;
@@ -91,24 +96,34 @@ static int load_file(work *w, const char *name, size_t *fi)
     return rc;
 }
 
-/* Cube ci: its handshake entry, its telemetry file's mean slopes, its timing-table row. */
-static int setup_cube(const swfs_sync_run_options *o, work *w, size_t ci, swfs_timing_cube *tc)
+/* Cube ci: its handshake entry, its telemetry file's mean slopes, its timing-table row. A
+ * telemetry file that cannot be read (missing, truncated, NaN values, another shape) leaves
+ * the cube out (NO_FILE; r->nmissing, the first reason in r->missing_reason): one bad file
+ * of a night does not stop the rest. */
+static int setup_cube(const swfs_sync_run_options *o, work *w, size_t ci, swfs_timing_cube *tc, swfs_sync_run_result *r)
 {
     const char *cam = w->tr->camera[ci];
     size_t h = w->nhs, fi;
     for (size_t k = 0; k < w->nhs; k++)
         if (!strcmp(w->hs[k].camera, cam)) { h = k; break; }
     if (h == w->nhs) return swfs_fail(SWFS_ERR_VALUE, "%s: the handshake log does not cover cube %zu (%s)", o->handshake, ci, cam);
-    int rc = load_file(w, w->hs[h].slopes, &fi);
-    if (rc) return rc;
     const size_t first = w->tr->first[ci], n = w->tr->n[ci];
-    w->cube_file[ci] = fi;
     w->cube_hs[ci] = w->hs[h].frame;
-    w->cubes[ci] = (swfs_sync_cube){n, w->tr->x + first, w->tr->y + first, w->files[fi].mx, w->files[fi].my,
-                                    w->files[fi].nwfs, (double)w->hs[h].frame};
     snprintf(tc->camera, sizeof tc->camera, "%s", cam);
+    snprintf(tc->slopes, sizeof tc->slopes, "%s", w->hs[h].slopes);
     tc->first = first;
     tc->nframes = n;
+    int rc = load_file(w, w->hs[h].slopes, &fi);
+    if (rc == SWFS_ERR_NOMEM) return rc;
+    if (rc) { /* a file missing, truncated or not telemetry of this kind: the cube is left out */
+        w->cube_file[ci] = NO_FILE;
+        if (!r->nmissing++) snprintf(r->missing_reason, sizeof r->missing_reason, "%s", swfs_last_error());
+        r->nexp_missing += n;
+        return SWFS_OK;
+    }
+    w->cube_file[ci] = fi;
+    w->cubes[ci] = (swfs_sync_cube){n, w->tr->x + first, w->tr->y + first, w->files[fi].mx, w->files[fi].my,
+                                    w->files[fi].nwfs, (double)w->hs[h].frame};
     return SWFS_OK;
 }
 
@@ -361,6 +376,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
     const double R = fit->ratio, s = (double)w->cube_hs[ci] - fit->lag;
     size_t a0, a1;
     ch->nseg = ch->own = 0;
+    if (fa == NO_FILE) return SWFS_OK; /* no telemetry: no segment */
     inside(s, R, n, w->files[fa].nwfs, &a0, &a1);
     if (a1 <= a0) { /* no whole exposure in its own file: the parts before and after meet at its edge */
         const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
@@ -424,7 +440,7 @@ static int chains_equal(const chain *a, const chain *b, size_t nc)
 static size_t chains_joined(const chain *ch, size_t nc)
 {
     size_t m = 0;
-    for (size_t ci = 0; ci < nc; ci++) m += ch[ci].nseg - 1;
+    for (size_t ci = 0; ci < nc; ci++) m += ch[ci].nseg ? ch[ci].nseg - 1 : 0;
     return m;
 }
 
@@ -437,26 +453,30 @@ static int refit_joined(work *w, const chain *ch, size_t nc, const swfs_sync_res
 {
     swfs_sync_cube *jc = calloc(nc, sizeof *jc);
     double **buf = calloc(nc, sizeof *buf);
+    size_t nj = 0; /* the cubes with telemetry */
     int rc = jc && buf ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
     for (size_t ci = 0; !rc && ci < nc; ci++) {
+        if (!ch[ci].nseg) continue;
         size_t ntot = 0, before = 0;
         for (size_t k = 0; k < ch[ci].nseg; k++) {
             if (k < ch[ci].own) before += w->files[ch[ci].seg[k].fi].nwfs;
             ntot += w->files[ch[ci].seg[k].fi].nwfs;
         }
-        if (!(buf[ci] = malloc(2 * ntot * sizeof **buf))) { rc = swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory"); break; }
+        double *b = buf[nj] = malloc(2 * ntot * sizeof **buf);
+        if (!b) { rc = swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory"); break; }
         size_t o = 0;
         for (size_t k = 0; k < ch[ci].nseg; k++) {
             const slopes_file *f = &w->files[ch[ci].seg[k].fi];
-            memcpy(buf[ci] + o, f->mx, f->nwfs * sizeof **buf);
-            memcpy(buf[ci] + ntot + o, f->my, f->nwfs * sizeof **buf);
+            memcpy(b + o, f->mx, f->nwfs * sizeof *b);
+            memcpy(b + ntot + o, f->my, f->nwfs * sizeof *b);
             o += f->nwfs;
         }
-        jc[ci] = w->cubes[ci];
-        jc[ci].mx = buf[ci];
-        jc[ci].my = buf[ci] + ntot;
-        jc[ci].nwfs = ntot;
-        jc[ci].logged = (double)before + (double)w->cube_hs[ci];
+        jc[nj] = w->cubes[ci];
+        jc[nj].mx = b;
+        jc[nj].my = b + ntot;
+        jc[nj].nwfs = ntot;
+        jc[nj].logged = (double)before + (double)w->cube_hs[ci];
+        nj++;
     }
     if (!rc) {
         swfs_sync_params p = w->params;
@@ -464,7 +484,7 @@ static int refit_joined(work *w, const chain *ch, size_t nc, const swfs_sync_res
         p.ratio_max = fit0->ratio + 5 * p.ratio_step;
         p.lag_min = fit0->lag - 2;
         p.lag_max = fit0->lag + 2;
-        rc = swfs_sync_estimate(jc, nc, &p, out);
+        rc = swfs_sync_estimate(jc, nj, &p, out);
     }
     if (!rc) {
         out->z_need = fit0->z_need;
@@ -522,11 +542,13 @@ static int settle_chains(work *w, size_t nc, swfs_sync_result *fit, chain *fin, 
 static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch, double R, swfs_timing *t,
                       swfs_sync_run_result *r)
 {
+    r->nexp += c->nframes;
+    if (!ch->nseg) /* its telemetry file cannot be read (setup_cube): one row, left out */
+        return add_row(w, c, 0, c->nframes, c->slopes, c->start, SWFS_CUBE_MISSING, t);
     const chain_seg *own = &ch->seg[ch->own];
     const char *oname = w->files[own->fi].name;
     int rc = SWFS_OK;
     size_t j = 0;
-    r->nexp += c->nframes;
     for (size_t k = 0; k <= ch->nseg && !rc; k++) {
         const size_t j0 = k < ch->nseg ? ch->seg[k].j0 : c->nframes;
         if (j0 > j) rc = add_row(w, c, j, j0, oname, own->s + (double)j * R, SWFS_CUBE_STRADDLES, t);
@@ -559,7 +581,8 @@ static double ratio_bound(const work *w, const swfs_timing *t)
 {
     double b = 0;
     for (size_t ci = 0; ci + 1 < t->ncubes; ci++) {
-        if (w->cube_file[ci] != w->cube_file[ci + 1] || w->cube_hs[ci + 1] <= w->cube_hs[ci] || !t->cubes[ci].nframes)
+        if (w->cube_file[ci] == NO_FILE || w->cube_file[ci] != w->cube_file[ci + 1] || w->cube_hs[ci + 1] <= w->cube_hs[ci] ||
+            !t->cubes[ci].nframes)
             continue;
         const double q = (double)(w->cube_hs[ci + 1] - w->cube_hs[ci] + 1) / (double)t->cubes[ci].nframes;
         if (b == 0 || q < b) b = q;
@@ -629,12 +652,20 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         w.cube_hs = calloc(nc, sizeof *w.cube_hs);
         if (!t->cubes || !w.cubes || !w.cube_file || !w.cube_hs) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
     }
-    for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci]);
+    for (size_t ci = 0; !rc && ci < t->ncubes; ci++) rc = setup_cube(o, &w, ci, &t->cubes[ci], r);
+    if (!rc && r->nmissing == t->ncubes)
+        rc = swfs_fail(SWFS_ERR_IO, "%s: no telemetry file of the %zu cube%s can be read; the first: %s", o->handshake,
+                       t->ncubes, t->ncubes == 1 ? "" : "s", r->missing_reason);
+    swfs_sync_cube *have = NULL; /* the cubes with telemetry, for the fit */
+    size_t nhave = 0;
+    if (!rc && !(have = malloc(t->ncubes * sizeof *have))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->science);
+    for (size_t ci = 0; !rc && ci < t->ncubes; ci++)
+        if (w.cube_file[ci] != NO_FILE) have[nhave++] = w.cubes[ci];
     if (!rc) {
         rc = resolve_ratio_range(&w, t, r);
         r->ratio_min = w.params.ratio_min;
         r->ratio_max = w.params.ratio_max;
-        if (!rc) rc = swfs_sync_estimate(w.cubes, t->ncubes, &w.params, &t->fit);
+        if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
         /* The continuations search the window the fit ended in. */
         if (!rc) {
             w.params.lag_min = t->fit.lag_min;
@@ -652,6 +683,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
                        f->neff, f->z, w.params.ratio_min, w.params.ratio_max, w.params.lag_min, w.params.lag_max,
                        f->z_need, o->handshake);
     }
+    free(have);
     chain *ch = NULL;
     const size_t nc = t->ncubes;
     if (!rc) {
@@ -664,6 +696,8 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         t->ratio = t->fit.ratio;
         t->ratio_err = t->fit.ratio_err;
         t->lag = t->fit.lag;
+        for (size_t ci = 0; ci < nc; ci++) /* the log's start of a cube left out, for its row */
+            if (w.cube_file[ci] == NO_FILE) t->cubes[ci].start = (double)w.cube_hs[ci] - t->lag;
         /* A cube of s segments makes at most 2 s + 1 rows (chain_rows). */
         size_t nrows = 0;
         for (size_t ci = 0; ci < nc; ci++) nrows += 2 * ch[ci].nseg + 1;

@@ -572,8 +572,11 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
                     "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
                     c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y,
                     c->join_verdict > 0 ? "continuous" : "undecided");
+        if (c->status == SWFS_CUBE_MISSING)
+            fprintf(f, "# %s frames %zu-%zu: the telemetry file cannot be read (sync's message says why)\n",
+                    c->camera, c->first, c->first + c->nframes - 1);
         fprintf(f, "cube %zu %s %zu %zu %s %.6f %s\n", i, c->camera, c->first, c->nframes, c->slopes, c->start,
-                c->status == SWFS_CUBE_OK ? "ok" : "straddles");
+                c->status == SWFS_CUBE_OK ? "ok" : c->status == SWFS_CUBE_MISSING ? "missing" : "straddles");
     }
     return swfs_atomic_commit(a);
 }
@@ -624,6 +627,7 @@ int swfs_timing_read(const char *path, swfs_timing **out)
             if (ok) {
                 if (!strcmp(status, "ok")) c->status = SWFS_CUBE_OK;
                 else if (!strcmp(status, "straddles")) c->status = SWFS_CUBE_STRADDLES;
+                else if (!strcmp(status, "missing")) c->status = SWFS_CUBE_MISSING;
                 else ok = 0;
             }
             if (ok) t->ncubes++;
