@@ -21,9 +21,10 @@ static const char *usage_text =
     "camera and slope axes, while the frame-rate ratio <t_sci/t_wfs> and the handshake lag\n"
     "are varied. A cube that runs out of the telemetry file the handshake names is followed\n"
     "file by file while the files continue each other (the camera's lag over the part, and\n"
-    "the telemetry's own frame-to-frame steps across the boundary), and the fit is made again\n"
-    "over the files so joined. Exposures across a boundary, or in a file that does not\n"
-    "continue, are marked straddles and not used by `specklewfs speckles`. A cube whose\n"
+    "the telemetry's own frame-to-frame steps across the boundary), or while both count the\n"
+    "frames lost or repeated between them; the fit is made again over the files so joined.\n"
+    "Exposures across a boundary, or in a file that does not continue, are marked\n"
+    "straddles and not used by `specklewfs speckles`. A cube whose\n"
     "telemetry file cannot be read (missing, truncated, another shape) is left out with a\n"
     "warning and marked missing; only when no file can be read does sync stop.\n"
     "\n"
@@ -151,13 +152,19 @@ int swfs_cmd_sync(int argc, char **argv)
                     "marked missing); the first: %s\n", r.nmissing, r.nmissing == 1 ? "" : "s", r.nexp_missing,
                     r.nmissing == 1 ? "its" : "their", r.missing_reason);
     }
-    for (size_t i = 0; t->cubes && i < t->ncubes; i++)
-        if (t->cubes[i].joined)
-            printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f, "
-                   "telemetry across the boundary %s\n", t->cubes[i].camera, t->cubes[i].first,
-                   t->cubes[i].first + t->cubes[i].nframes - 1, t->cubes[i].slopes, t->cubes[i].join_offset,
-                   t->cubes[i].join_corr_x, t->cubes[i].join_corr_y,
-                   t->cubes[i].join_verdict > 0 ? "continuous" : "undecided");
+    for (size_t i = 0; t->cubes && i < t->ncubes; i++) {
+        const swfs_timing_cube *c = &t->cubes[i];
+        if (!c->joined) continue;
+        char across[128];
+        if (c->join_lost)
+            snprintf(across, sizeof across, "not continuous: %ld WFS frame%s %s there (the camera's count)",
+                     labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated");
+        else
+            snprintf(across, sizeof across, "%s", c->join_verdict > 0 ? "continuous" : "undecided");
+        printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f, "
+               "telemetry across the boundary %s\n", c->camera, c->first, c->first + c->nframes - 1, c->slopes,
+               c->join_offset, c->join_corr_x, c->join_corr_y, across);
+    }
     free(r.t.cubes);
     return rc ? cli_error(cmd) : CLI_OK;
 }

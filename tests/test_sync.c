@@ -330,6 +330,72 @@ static void test_boundary(void **state)
     free(u);
 }
 
+/* The count of frames lost or repeated across a boundary against the telemetry
+ * (swfs_sync_boundary_gap), on the AR(1) series of test_boundary: k frames lost (k = 1..6)
+ * agree with k at nearly every cut, and a long gap (200 frames lost, another file) with no
+ * small count. The count itself is the camera's (to half a frame): k + 1 agrees with the
+ * telemetry of k lost more often as k grows (printed), and one lost is told from two. A
+ * repeated frame agrees with -1 only where B starts with A's last values; white noise agrees
+ * with no count (a step over k + 1 frames is one over many). */
+static void test_gap(void **state)
+{
+    (void)state;
+    enum { NV = 512, N = 1200, K = SWFS_SYNC_EDGE_FRAMES };
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 7);
+    double *v = malloc((size_t)N * NV * sizeof *v), *u = malloc((size_t)N * NV * sizeof *u);
+    const double rho = 0.995, step = sqrt(2 * (1 - rho));
+    make_ar(v, N, NV, rho, 0.1 * step, &rng);
+    make_ar(u, N, NV, rho, 0.1 * step, &rng);
+    swfs_sync_gap g;
+    for (long k = 1; k <= 6; k++) {
+        size_t agree = 0, wrong = 0, far = 0, other = 0, cuts = 0;
+        for (size_t c = K; c + (size_t)k + 200 + K <= N; c += 7, cuts++) {
+            const double *tail = v + (c - K) * NV, *head = v + (c + (size_t)k) * NV;
+            assert_ok(swfs_sync_boundary_gap(tail, K, head, K, NV, k, &g));
+            if (g.consistent) agree++;
+            assert_true(g.separable);
+            for (long d = -1; d <= 1; d += 2) { /* the neighbouring counts */
+                if (k + d < 1) continue;
+                assert_ok(swfs_sync_boundary_gap(tail, K, head, K, NV, k + d, &g));
+                if (g.consistent) wrong++;
+            }
+            assert_ok(swfs_sync_boundary_gap(tail, K, v + (c + 200) * NV, K, NV, k, &g));
+            if (g.consistent) far++;
+            assert_ok(swfs_sync_boundary_gap(tail, K, u + c * NV, K, NV, k, &g));
+            if (g.consistent) other++;
+        }
+        print_message("%ld frames lost at %zu cuts: the count agrees at %zu, k +- 1 at %zu, a gap of 200 at %zu, "
+                      "another file at %zu\n", k, cuts, agree, wrong, far, other);
+        assert_true(agree >= cuts * 9 / 10);
+        if (k == 1) assert_true(wrong <= cuts / 20);
+        assert_int_equal(far, 0);
+        assert_int_equal(other, 0);
+    }
+    /* one frame repeated: B's first frame is A's last */
+    const double *tail = v + (size_t)(300 - K) * NV;
+    assert_ok(swfs_sync_boundary_gap(tail, K, v + (size_t)299 * NV, K, NV, -1, &g));
+    assert_true(g.consistent);
+    assert_ok(swfs_sync_boundary_gap(tail, K, v + (size_t)298 * NV, K, NV, -2, &g));
+    assert_true(g.consistent);
+    assert_ok(swfs_sync_boundary_gap(tail, K, v + (size_t)299 * NV, K, NV, -2, &g));
+    assert_false(g.consistent);
+    assert_ok(swfs_sync_boundary_gap(tail, K, v + (size_t)301 * NV, K, NV, -1, &g));
+    assert_false(g.consistent);
+    /* white noise: no count */
+    make_ar(u, N, NV, 0.0, 0.0, &rng);
+    size_t agree = 0;
+    for (size_t c = K; c + 3 + K <= N; c += 7) {
+        assert_ok(swfs_sync_boundary_gap(u + (c - K) * NV, K, u + (c + 2) * NV, K, NV, 2, &g));
+        if (g.consistent) agree++;
+        assert_false(g.separable);
+    }
+    assert_int_equal(agree, 0);
+    assert_int_equal(swfs_sync_boundary_gap(tail, K, v, K, NV, 0, &g), SWFS_ERR_ARG);
+    free(v);
+    free(u);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -337,6 +403,7 @@ int main(void)
         cmocka_unit_test(test_sync_recovers_ratio_and_lag),
         cmocka_unit_test(test_continuation),
         cmocka_unit_test(test_boundary),
+        cmocka_unit_test(test_gap),
         cmocka_unit_test(test_files_and_errors),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

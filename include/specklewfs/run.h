@@ -286,7 +286,9 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o);
  * files before or after it (numbered, time-stamped or in the handshake log's order) makes a row
  * of each such file, file by file outwards, while the data show the files contiguous there
  * (swfs_sync_continuation_check on the camera's lag, swfs_sync_boundary_check on the telemetry
- * across the boundary); the rest are rows marked straddles. When any file continues
+ * across the boundary), or where frames were lost or repeated between them by a count the
+ * camera's lag and the telemetry both show (swfs_sync_boundary_gap; the row's join_lost);
+ * the rest are rows marked straddles. When any file continues
  * another, the fit is made again over the cubes joined across those files, and the
  * continuations are checked again at it (r->refits). A cube whose telemetry file cannot be
  * read (missing, truncated, NaN values, another shape) is left out of the fit and makes one

@@ -132,6 +132,29 @@ typedef struct swfs_sync_boundary {
 int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
                              swfs_sync_boundary *out);
 
+/* Whether the telemetry across a boundary the check above calls not contiguous is what `lost`
+ * WFS frames missing between A and B make (lost < 0: -lost frames repeated), the count the
+ * camera's lag gives (sync_run). Repeated: B's first -lost frames are A's last, value for value
+ * (and the telemetry moves). Lost: the step q across the boundary is a step over lost + 1
+ * frames, so it must lie among the steps over lost + 1 frames inside the edges (qk_min ..
+ * qk_max), and the data must tell such steps from a long gap at all: every one of them below
+ * every step over the longest lags each edge holds (its second half, qfar_min; separable).
+ * Without that (the residual decorrelates in fewer frames than lost + 1, or the steps are
+ * noise) a whole missing file could not be told from a few lost frames: a tip-tilt dominated
+ * by a periodic vibration matches the camera at the gap less whole periods (a test of 150
+ * frames lost at 527 Hz with 20 Hz vibration: the camera counted 4 frames repeated). */
+typedef struct swfs_sync_gap {
+    long lost;
+    int consistent;        /* the telemetry agrees with the count */
+    int separable;         /* (lost > 0) steps over lost + 1 frames all below the long-lag steps */
+    double q;              /* squared norm of the step across */
+    double qk_min, qk_max; /* the steps over lost + 1 frames beside the boundary */
+    double qfar_min;       /* the smallest step over the long lags */
+} swfs_sync_gap;
+
+int swfs_sync_boundary_gap(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
+                           long lost, swfs_sync_gap *out);
+
 /* Predicted exposure means of a per-WFS-frame series m (n frames) for exposures
  * [start + j ratio, start + (j+1) ratio), j < nexp: out[j] = (1/ratio) * integral of the
  * piecewise-constant m. Returns SWFS_ERR_VALUE if an exposure leaves [0, n). */
@@ -166,6 +189,8 @@ typedef struct swfs_timing_cube {
                          the handshake log names (sync's check; a comment of the table says so) */
     double join_offset, join_corr_x, join_corr_y; /* that check's figures (swfs_sync_continuation) */
     int join_verdict;  /* the telemetry's own verdict on the boundary crossed (swfs_sync_boundary) */
+    long join_lost;    /* WFS frames lost across it (< 0: repeated), counted by the camera where the
+                          telemetry says the files do not continue each other; 0: contiguous */
 } swfs_timing_cube;
 
 typedef struct swfs_timing {

@@ -270,6 +270,8 @@ SYNC_RESULT_FIELDS = [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("
 swfs_sync_result = _s("swfs_sync_result", SYNC_RESULT_FIELDS)
 swfs_sync_boundary = _s("swfs_sync_boundary", [("verdict", c_int), ("q", c_dbl), ("q1_max", c_dbl),
                                                ("q2_min", c_dbl), ("n1", c_size), ("n2", c_size)])
+swfs_sync_gap = _s("swfs_sync_gap", [("lost", c_long), ("consistent", c_int), ("separable", c_int), ("q", c_dbl),
+                                     ("qk_min", c_dbl), ("qk_max", c_dbl), ("qfar_min", c_dbl)])
 SYNC_EDGE_FRAMES = 128  # SWFS_SYNC_EDGE_FRAMES (sync.h)
 swfs_timing = _s("swfs_timing", [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("fit", swfs_sync_result),
                                  ("ncubes", c_size), ("cubes", c_ptr)])
@@ -504,6 +506,7 @@ _PROTOS = {
     "swfs_sync_run_options_default": (None, [P(swfs_sync_run_options)]),
     "swfs_sync_run": (c_int, [P(swfs_sync_run_options), P(swfs_sync_run_result)]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),
+    "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),
     "swfs_speckles_run": (c_int, [P(swfs_speckles_run_options), P(swfs_speckles_run_result)]),
     "swfs_estimate_run_options_default": (None, [P(swfs_estimate_run_options)]),

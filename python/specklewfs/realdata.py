@@ -97,6 +97,33 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
+def _edges(tail, head):
+    t = np.ascontiguousarray(tail, dtype=np.float64)
+    h = np.ascontiguousarray(head, dtype=np.float64)
+    if t.ndim != 2 or h.ndim != 2 or t.shape[1] != h.shape[1] or not t.shape[0] or not h.shape[0]:
+        raise ValueError(f"tail {t.shape} and head {h.shape}: expected (nframes, nvals) arrays with the same nvals")
+    return t, h
+
+
+def boundary_gap(tail, head, lost):
+    """Whether the telemetry across a boundary shows `lost` WFS frames missing between `tail`
+    and `head` (lost < 0: -lost frames repeated), the count `sync` takes from the camera where
+    boundary_check says not contiguous (sync.h swfs_sync_boundary_gap). Repeated: head starts
+    with tail's last -lost frames. Lost: the step across lies among the steps over lost + 1
+    frames beside it, and those are all below every step over the longest lags of each side
+    (separable: the data tell a few lost frames from a long gap). Returns lost, consistent,
+    separable, q, qk_min, qk_max, qfar_min."""
+    t, h = _edges(tail, head)
+    if int(lost) == 0:
+        raise ValueError("lost: a number of frames lost (> 0) or repeated (< 0), not 0")
+    g = _lib.swfs_sync_gap()
+    check(lib.swfs_sync_boundary_gap(dptr(t), t.shape[0], dptr(h), h.shape[0], t.shape[1], int(lost),
+                                     ctypes.byref(g)), "swfs_sync_boundary_gap")
+    d = _struct_dict(g)
+    d["consistent"], d["separable"] = bool(d["consistent"]), bool(d["separable"])
+    return d
+
+
 def boundary_check(tail, head):
     """Whether the telemetry in `head` (nhead, nvals) starts with the frame that follows the
     last of `tail` (ntail, nvals): `sync`'s own check of two telemetry files (sync.h
@@ -104,10 +131,7 @@ def boundary_check(tail, head):
     files). The step across the boundary against the one- and two-frame steps beside it.
     Returns verdict (+1 contiguous, -1 not, 0 the telemetry cannot tell), q, q1_max, q2_min,
     n1, n2."""
-    t = np.ascontiguousarray(tail, dtype=np.float64)
-    h = np.ascontiguousarray(head, dtype=np.float64)
-    if t.ndim != 2 or h.ndim != 2 or t.shape[1] != h.shape[1] or not t.shape[0] or not h.shape[0]:
-        raise ValueError(f"tail {t.shape} and head {h.shape}: expected (nframes, nvals) arrays with the same nvals")
+    t, h = _edges(tail, head)
     b = _lib.swfs_sync_boundary()
     check(lib.swfs_sync_boundary_check(dptr(t), t.shape[0], dptr(h), h.shape[0], t.shape[1], ctypes.byref(b)),
           "swfs_sync_boundary_check")

@@ -108,3 +108,11 @@ def test_boundary_check_on_telemetry(series):
     assert sw.boundary_check(tail, slopes[cut - 1:cut - 1 + k])["verdict"] == -1
     with pytest.raises(ValueError, match="same nvals"):
         sw.boundary_check(tail, slopes[cut:cut + k, :10])
+    # The count of frames lost or repeated that sync takes from the camera, against the telemetry.
+    g = sw.boundary_gap(tail, slopes[cut + 1:cut + 1 + k], 1)
+    assert g["separable"] and g["consistent"] and g["qk_min"] <= g["q"] <= g["qk_max"] < g["qfar_min"]
+    assert sw.boundary_gap(tail, slopes[cut - 1:cut - 1 + k], -1)["consistent"]
+    assert not sw.boundary_gap(tail, slopes[cut + 1:cut + 1 + k], -1)["consistent"]
+    assert not sw.boundary_gap(tail, slopes[cut + 300:cut + 300 + k], 1)["consistent"]  # a long gap
+    with pytest.raises(ValueError, match="not 0"):
+        sw.boundary_gap(tail, slopes[cut:cut + k], 0)

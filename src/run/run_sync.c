@@ -319,6 +319,23 @@ static int boundary(work *w, size_t a, size_t b, swfs_sync_boundary *out)
     return rc;
 }
 
+/* Whether `lost` WFS frames missing between files a and b (< 0: repeated) is what the telemetry
+ * across the boundary shows (swfs_sync_boundary_gap), read again from the files. */
+static int gap_agrees(const work *w, size_t a, size_t b, long lost, int *agrees)
+{
+    double *ta = NULL, *hb = NULL;
+    size_t na = 0, nb = 0;
+    swfs_sync_gap g;
+    *agrees = 0;
+    int rc = read_edge(w, a, 1, &ta, &na);
+    if (!rc) rc = read_edge(w, b, 0, &hb, &nb);
+    if (!rc) rc = swfs_sync_boundary_gap(ta, na, hb, nb, w->nwfs_slopes, lost, &g);
+    if (!rc) *agrees = g.consistent;
+    free(ta);
+    free(hb);
+    return rc;
+}
+
 /* One cube's telemetry files at a fit's timing: segment k holds the exposures [j0, j1) that lie
  * wholly in file fi, where the cube starts at s (WFS frames of fi); the segments are in time
  * order and contiguous file to file, own the cube's own file (its handshake entry). cc: the
@@ -328,6 +345,8 @@ typedef struct chain_seg {
     double s;
     swfs_sync_continuation cc;
     int verdict; /* the telemetry's verdict on the boundary into this segment's file */
+    long lost;   /* WFS frames lost across that boundary (< 0: repeated), the camera's count where
+                    the telemetry says the files do not continue each other; 0: contiguous */
 } chain_seg;
 
 typedef struct chain {
@@ -355,6 +374,26 @@ static int chain_push(chain *ch, const chain_seg *sg, int front)
     return SWFS_OK;
 }
 
+/* The part of cube c in file fi where it starts at sb there (WFS frames of fi): its exposures
+ * [j0, j1) inside fi beyond those already placed (dir < 0: before lo, dir > 0: from hi on) and
+ * the camera's check of them (swfs_sync_continuation_check). 0 when no exposure lies there. */
+static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, int dir, size_t lo, size_t hi,
+                      const swfs_sync_result *fit, chain_seg *sg, int *rc)
+{
+    const double R = fit->ratio;
+    size_t j0, j1;
+    inside(sb, R, c->nframes, w->files[fi].nwfs, &j0, &j1);
+    if (dir < 0 && j1 > lo) j1 = lo;
+    if (dir > 0 && j0 < hi) j0 = hi;
+    if (j1 <= j0) return 0;
+    const double st = sb + (double)j0 * R;
+    const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
+                                 w->files[fi].nwfs, st + fit->lag};
+    *sg = (chain_seg){fi, j0, j1, sb, {0}, 0, 0};
+    *rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg->cc);
+    return 1;
+}
+
 /* Cube ci's chain at fit: its own file's exposures, then file by file outwards (adjacent_file)
  * the neighbours' while the files continue each other. Two checks decide, one on the camera
  * and one on the telemetry alone:
@@ -368,7 +407,9 @@ static int chain_push(chain *ch, const chain_seg *sg, int front)
  *   or more from the fit's. A part of 25 exposures measures its lag to a few tenths of a frame
  *   only (contiguous files were refused at -0.66 and -0.74: docs/telemetry.md, t16-f250), and
  *   one of 5 exposures is not significant at all. Where the telemetry says not contiguous, the
- *   part is refused; where it cannot tell, the camera's rule alone decides. */
+ *   part is refused, unless frames were lost or repeated there by a count the camera and the
+ *   telemetry both show (below): then it is placed that many frames off. Where the telemetry
+ *   cannot tell, the camera's rule alone decides. */
 static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double slack, chain *ch)
 {
     const swfs_sync_cube *c = &w->cubes[ci];
@@ -382,7 +423,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
         const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
         a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
     }
-    const chain_seg own = {fa, a0, a1, s, {0}, 0};
+    const chain_seg own = {fa, a0, a1, s, {0}, 0, 0};
     int rc = chain_push(ch, &own, 0);
     const double jown = 0.5 * (double)(a0 + a1);
     for (int dir = -1; !rc && dir <= 1; dir += 2) {
@@ -399,29 +440,50 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
             for (size_t k = 0; k < ch->nseg && !seen; k++) seen = ch->seg[k].fi == fi;
             if (seen) break;
             const double sb = dir < 0 ? scur + (double)w->files[fi].nwfs : scur - (double)w->files[cur].nwfs;
-            size_t j0, j1;
-            inside(sb, R, n, w->files[fi].nwfs, &j0, &j1);
-            if (dir < 0 && j1 > lo) j1 = lo;
-            if (dir > 0 && j0 < hi) j0 = hi;
-            if (j1 <= j0) break;
-            const double st = sb + (double)j0 * R;
-            const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
-                                         w->files[fi].nwfs, st + fit->lag};
-            chain_seg sg = {fi, j0, j1, sb, {0}, 0};
-            if ((rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg.cc))) break;
-            const double tol = 0.5 + slack * fabs(0.5 * (double)(j0 + j1) - jown);
+            chain_seg sg;
+            if (!place_part(w, c, fi, sb, dir, lo, hi, fit, &sg, &rc) || rc) break;
+            const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown);
             swfs_sync_boundary bd;
             if ((rc = boundary(w, dir < 0 ? fi : cur, dir < 0 ? cur : fi, &bd))) break;
-            sg.verdict = bd.verdict;
             const double off = fabs(sg.cc.offset);
-            const int ok = bd.verdict > 0 ? !(sg.cc.significant && !(off < fmax(1.0, tol)))
-                                          : bd.verdict == 0 && sg.cc.significant && off < tol;
+            int ok = bd.verdict > 0 ? !(sg.cc.significant && !(off < fmax(1.0, tol)))
+                                    : bd.verdict == 0 && sg.cc.significant && off < tol;
+            if (bd.verdict < 0 && sg.cc.significant) {
+                /* Not contiguous: the camera counts the frames lost (or repeated) between the
+                 * files, a whole number k != 0 of WFS frames within tol of its lag offset, the
+                 * nearest first (k > 0: the part lies k frames later than contiguity puts it,
+                 * for dir < 0 earlier), and the telemetry across the boundary must show that
+                 * count too (gap_agrees: the camera alone mistakes a missing file for a few
+                 * frames where the tip-tilt is periodic). The part is placed again there and
+                 * joins when the camera then finds it in place. Where the telemetry cannot
+                 * tell (verdict 0) nothing is counted: a part of 25 exposures puts a contiguous
+                 * boundary 0.6-0.7 frames off, and the telemetry that leaves 0 and 1 lost
+                 * undecided cannot refuse the 1. */
+                const size_t ea = dir < 0 ? fi : cur, eb = dir < 0 ? cur : fi;
+                const double o = sg.cc.offset, k0 = nearbyint(o);
+                const chain_seg first = sg;
+                for (int t = 0; !ok && !rc && t <= 2 * (int)ceil(tol); t++) {
+                    /* candidates k0, k0 +- 1, ... in order of distance from o */
+                    const double k = k0 + ((t + 1) / 2) * (((t % 2) == 1) == (o >= k0) ? 1.0 : -1.0);
+                    const long lost = (long)(dir > 0 ? k : -k);
+                    int agrees = 0;
+                    if (k == 0 || !(fabs(o - k) < tol) || (double)w->files[ea].nwfs + (double)lost < 1) continue;
+                    if ((rc = gap_agrees(w, ea, eb, lost, &agrees)) || !agrees) continue;
+                    if (place_part(w, c, fi, sb - k, dir, lo, hi, fit, &sg, &rc) && !rc &&
+                        (ok = sg.cc.significant && fabs(sg.cc.offset) < tol))
+                        sg.lost = lost;
+                    else
+                        sg = first;
+                }
+                if (rc) break;
+            }
+            sg.verdict = bd.verdict;
             if (!ok) break;
             if ((rc = chain_push(ch, &sg, dir < 0))) break;
             cur = fi;
-            scur = sb;
-            if (dir < 0) lo = j0;
-            else hi = j1;
+            scur = sg.s;
+            if (dir < 0) lo = sg.j0;
+            else hi = sg.j1;
         }
     }
     return rc;
@@ -432,10 +494,14 @@ static int chains_equal(const chain *a, const chain *b, size_t nc)
     for (size_t ci = 0; ci < nc; ci++) {
         if (a[ci].nseg != b[ci].nseg || a[ci].own != b[ci].own) return 0;
         for (size_t k = 0; k < a[ci].nseg; k++)
-            if (a[ci].seg[k].fi != b[ci].seg[k].fi) return 0;
+            if (a[ci].seg[k].fi != b[ci].seg[k].fi || a[ci].seg[k].lost != b[ci].seg[k].lost) return 0;
     }
     return 1;
 }
+
+/* Frames lost (< 0: repeated) between segment k - 1 and segment k of a chain (k >= 1): each
+ * segment holds the count of its boundary toward the own file's. */
+static long seg_lost(const chain *ch, size_t k) { return k <= ch->own ? ch->seg[k - 1].lost : ch->seg[k].lost; }
 
 static size_t chains_joined(const chain *ch, size_t nc)
 {
@@ -457,9 +523,13 @@ static int refit_joined(work *w, const chain *ch, size_t nc, const swfs_sync_res
     int rc = jc && buf ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory");
     for (size_t ci = 0; !rc && ci < nc; ci++) {
         if (!ch[ci].nseg) continue;
+        /* File k starts at pos(k) of the series: the files before it and the frames lost
+         * between them (seg_lost; repeated frames overlap, lost ones are filled by a straight
+         * line from the last frame before to the first after). */
         size_t ntot = 0, before = 0;
         for (size_t k = 0; k < ch[ci].nseg; k++) {
-            if (k < ch[ci].own) before += w->files[ch[ci].seg[k].fi].nwfs;
+            ntot = (size_t)((long)ntot + (k ? seg_lost(&ch[ci], k) : 0));
+            if (k == ch[ci].own) before = ntot;
             ntot += w->files[ch[ci].seg[k].fi].nwfs;
         }
         double *b = buf[nj] = malloc(2 * ntot * sizeof **buf);
@@ -467,6 +537,13 @@ static int refit_joined(work *w, const chain *ch, size_t nc, const swfs_sync_res
         size_t o = 0;
         for (size_t k = 0; k < ch[ci].nseg; k++) {
             const slopes_file *f = &w->files[ch[ci].seg[k].fi];
+            const long gap = k ? seg_lost(&ch[ci], k) : 0;
+            for (long g = 1; g <= gap; g++, o++) {
+                const double t = (double)g / (double)(gap + 1);
+                b[o] = (1 - t) * b[o - 1] + t * f->mx[0];
+                b[ntot + o] = (1 - t) * b[ntot + o - 1] + t * f->my[0];
+            }
+            if (gap < 0) o -= (size_t)(-gap);
             memcpy(b + o, f->mx, f->nwfs * sizeof *b);
             memcpy(b + ntot + o, f->my, f->nwfs * sizeof *b);
             o += f->nwfs;
@@ -565,6 +642,7 @@ static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch,
                 row->join_corr_x = sg->cc.corr_x;
                 row->join_corr_y = sg->cc.corr_y;
                 row->join_verdict = sg->verdict;
+                row->join_lost = sg->lost;
                 r->ncontinued++;
             }
         }

@@ -474,6 +474,52 @@ int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *hea
     return SWFS_OK;
 }
 
+/* The extremes of the squared step norms over lags [l0, l1] inside n frames (none: *mn = INF). */
+static void step_range(const double *v, size_t n, size_t nvals, size_t l0, size_t l1, double *mn, double *mx)
+{
+    for (size_t lag = l0; lag <= l1 && lag < n; lag++)
+        for (size_t k = 0; k + lag < n; k++) {
+            const double *a = v + k * nvals, *b = a + lag * nvals;
+            double q = 0;
+            for (size_t i = 0; i < nvals; i++) q += (b[i] - a[i]) * (b[i] - a[i]);
+            *mn = fmin(*mn, q);
+            *mx = fmax(*mx, q);
+        }
+}
+
+int swfs_sync_boundary_gap(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
+                           long lost, swfs_sync_gap *out)
+{
+    memset(out, 0, sizeof *out);
+    out->lost = lost;
+    out->qk_min = out->qfar_min = INFINITY;
+    out->qk_max = -INFINITY;
+    if (!tail || !head || !ntail || !nhead || !nvals || !lost)
+        return swfs_fail(SWFS_ERR_ARG, "sync: gap check without frames on both sides or without frames lost");
+    const double *a = tail + (ntail - 1) * nvals;
+    for (size_t i = 0; i < nvals; i++) out->q += (head[i] - a[i]) * (head[i] - a[i]);
+    if (lost < 0) { /* repeated frames: B's first |lost| are A's last, value for value */
+        const size_t r = (size_t)(-lost);
+        if (r > ntail || r > nhead) return SWFS_OK;
+        double moves = 0;
+        step_extreme(tail, ntail, nvals, 1, 1, &moves);
+        out->consistent = moves > 0 && !memcmp(head, tail + (ntail - r) * nvals, r * nvals * sizeof *head);
+        return SWFS_OK;
+    }
+    const size_t L = (size_t)lost + 1;
+    /* Steps over L frames on both sides, and over the longest lags each side holds (its second
+     * half: lags n/2 .. n-1), which stand for a gap of many frames. */
+    step_range(tail, ntail, nvals, L, L, &out->qk_min, &out->qk_max);
+    step_range(head, nhead, nvals, L, L, &out->qk_min, &out->qk_max);
+    double unused = -INFINITY;
+    if (ntail / 2 > L) step_range(tail, ntail, nvals, ntail / 2, ntail - 1, &out->qfar_min, &unused);
+    if (nhead / 2 > L) step_range(head, nhead, nvals, nhead / 2, nhead - 1, &out->qfar_min, &unused);
+    const double q = out->q;
+    out->separable = isfinite(out->qk_max) && isfinite(out->qfar_min) && out->qk_max < out->qfar_min;
+    out->consistent = out->separable && isfinite(q) && q >= out->qk_min && q <= out->qk_max;
+    return SWFS_OK;
+}
+
 /* ---- handshake log ----------------------------------------------------------- */
 
 static char *trim(char *s)
@@ -567,7 +613,13 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
     fprintf(f, "# cube INDEX CAMERA_FILE FIRST_FRAME NFRAMES SLOPES_FILE START STATUS\n");
     for (size_t i = 0; i < t->ncubes; i++) {
         const swfs_timing_cube *c = t->cubes + i;
-        if (c->joined)
+        if (c->joined && c->join_lost)
+            fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file after %ld WFS frame%s %s "
+                    "at the boundary (the telemetry across it not continuous; the camera's count): lag offset %+.3f "
+                    "WFS frames there, correlations %.3f %.3f\n", c->camera, c->first, c->first + c->nframes - 1,
+                    labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated",
+                    c->join_offset, c->join_corr_x, c->join_corr_y);
+        else if (c->joined)
             fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
                     "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
                     c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y,
