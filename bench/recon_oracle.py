@@ -4,7 +4,7 @@
 
     ./build/bench/bench_telemetry --only K --seed S --truth --keep DIR
     PYTHONPATH=python SPECKLEWFS_LIB=build/libspecklewfs.so \\
-        python3 bench/recon_oracle.py DIR [--specklewfs build/specklewfs] [--ridge R] [--in-sample]
+        python3 bench/recon_oracle.py DIR [--specklewfs build/specklewfs] [--ridge R] [--in-sample] [--train DIR...]
 
 On the kept data set (the simulation with export_truth=1 and export_modal=1, reduced and
 timed by bench_telemetry), each row below goes through the same speckles -> estimate ->
@@ -23,6 +23,12 @@ the Shack-Hartmann's band nsub/2):
   --in-sample  trains and applies on the same frames, and adds the control row
            "reversed": the same fit on the slopes time-reversed, which carry no
            information about the frame (an in-sample fit that beats it is memorizing).
+  --train DIR...  adds the rows "sim" and "sim+dm": the same least-squares map learned on
+           other simulations kept by bench_telemetry --truth (other seeds, other systems of
+           the same Shack-Hartmann and actuator geometry), from the slopes alone and from
+           the slopes with the DM commands the loop applied (truewf_NNN.fits extension DM),
+           applied to this data set's frames: what a reconstructor learned from simulated
+           closed loops of this geometry would give.
 
 Prints the NCP error [nm] of each row: the default (the residual's mean taken out) and with
 pupil --keep-resmean."""
@@ -41,6 +47,7 @@ ap.add_argument("dir")
 ap.add_argument("--specklewfs", default=os.path.join(os.path.dirname(__file__), "..", "build", "specklewfs"))
 ap.add_argument("--ridge", type=float, default=1e-6)
 ap.add_argument("--in-sample", action="store_true")
+ap.add_argument("--train", nargs="+", default=[])
 a = ap.parse_args()
 D, EXE = a.dir, a.specklewfs
 
@@ -52,10 +59,11 @@ def run(cmd):
     return r.stdout
 
 
-def series(pattern, ext=None):
-    files = sorted(glob.glob(os.path.join(D, pattern)))
+def series(pattern, ext=None, d=None):
+    d = d or D
+    files = sorted(glob.glob(os.path.join(d, pattern)))
     if not files:
-        sys.exit(f"recon_oracle: {D}: no {pattern} (run bench_telemetry with --truth --keep {D})")
+        sys.exit(f"recon_oracle: {d}: no {pattern} (run bench_telemetry with --truth --keep {d})")
     return np.concatenate([np.array(F.read_fits(f, ext)[0]) for f in files]), files
 
 
@@ -112,7 +120,24 @@ W = np.array(F.read_fits(f"{D}/recon_vk.fits")[0])
 rows = [("vk", S @ W.T), ("truth", Z), ("learned", learned(X))]
 if a.in_sample:
     rows.append(("reversed", learned(X[::-1].copy())))
-print(f"{'wavefront':10s} {'NCP [nm]':>9s} {'kept':>6s}")
+if a.train:
+    DMc = series("truewf_0*.fits", "DM")[0]
+    St, Zt, Mt = [], [], []
+    for d in a.train:
+        St.append(series("slopes_0*.fits", d=d)[0][:, used])
+        z = series("truewf_0*.fits", d=d)[0]
+        Zt.append(z - z.mean(1, keepdims=True))
+        m = series("truewf_0*.fits", "DM", d=d)[0]
+        Mt.append(m - m.mean(1, keepdims=True))
+    St, Zt, Mt = np.concatenate(St), np.concatenate(Zt), np.concatenate(Mt)
+    if St.shape[1] != X.shape[1] or Zt.shape[1] != Z.shape[1]:
+        sys.exit(f"recon_oracle: --train data have {St.shape[1]} slopes and {Zt.shape[1]} actuators, this set "
+                 f"{X.shape[1]} and {Z.shape[1]}: train on the same geometry")
+    print(f"trained on {St.shape[0]} simulated WFS frames from {len(a.train)} data sets")
+    rows.append(("sim", X @ fit(St, Zt)))
+    Mc = DMc - DMc.mean(1, keepdims=True)
+    rows.append(("sim+dm", np.hstack([X, Mc]) @ fit(np.hstack([St, Mt]), Zt)))
+print(f"{'wavefront':10s} {'NCP [nm]':>9s} {'kept':>6s} {'per frame [nm]':>15s}")
 for name, Zhat in rows:
-    e = ncp(f"or_{name}", Zhat)
-    print(f"{name:10s} {e[0]:9.1f} {e[1]:6.1f}", flush=True)
+    e = ncp(f"or_{name.replace('+', '_')}", Zhat)
+    print(f"{name:10s} {e[0]:9.1f} {e[1]:6.1f} {1e9 * np.sqrt(((Zhat - Z) ** 2).mean()):15.1f}", flush=True)

@@ -742,6 +742,21 @@ static void test_sync_ratio_from_log(void **state)
 /* The documented path in folder sub with default options (sync over ratios 5-8 as the sync
  * cases, speckles with the science cube matched, estimate, the default pupil step): the NCP
  * error against sub/truth.fits [m], and the exposures used. */
+/* The telemetry file `path` moved to `keep`, and written again without its last ncut frames. */
+static void cut_file_end(const char *path, const char *keep, size_t ncut)
+{
+    assert_ok(rename(path, keep));
+    swfs_real *s = NULL;
+    assert_ok(swfs_fits_read_real(keep, NULL, &s, NULL));
+    swfs_real cut = *s;
+    cut.ny -= ncut;
+    swfs_fits_out *fo = NULL;
+    assert_ok(swfs_fits_out_create(&fo, path));
+    assert_ok(swfs_fits_out_real(fo, NULL, &cut, -32));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(s);
+}
+
 static double ncp_error_in(const char *sub, size_t *nused)
 {
     char sci[1300], hs[1300], tim[1300], act[1300], sp[1300], scm[1300], halo[1300], truth[1300];
@@ -851,16 +866,8 @@ static void test_sync_files_shorter_than_cube(void **state)
     for (;; nfiles++) {
         snprintf(fk, sizeof fk, "%s/slopes_%03zu.fits", c.sub, nfiles);
         snprintf(keep, sizeof keep, "%s/slopes_%03zu.whole", c.sub, nfiles);
-        swfs_real *sk = NULL;
-        if (access(fk, F_OK) || rename(fk, keep)) break;
-        assert_ok(swfs_fits_read_real(keep, NULL, &sk, NULL));
-        swfs_real shorter = *sk;
-        shorter.ny -= 1;
-        swfs_fits_out *fw = NULL;
-        assert_ok(swfs_fits_out_create(&fw, fk));
-        assert_ok(swfs_fits_out_real(fw, NULL, &shorter, -32));
-        assert_ok(swfs_fits_out_commit(fw));
-        swfs_real_free(sk);
+        if (access(fk, F_OK)) break;
+        cut_file_end(fk, keep, 1);
     }
     size_t n_drop = 0;
     const double e_drop = ncp_error_in(c.sub, &n_drop);
@@ -882,16 +889,7 @@ static void test_sync_files_shorter_than_cube(void **state)
     char f6[1400], lost[1400];
     snprintf(f6, sizeof f6, "%s/slopes_006.fits", c.sub);
     snprintf(lost, sizeof lost, "%s/slopes_006.full", c.sub);
-    assert_ok(rename(f6, lost));
-    swfs_real *s6 = NULL;
-    assert_ok(swfs_fits_read_real(lost, NULL, &s6, NULL));
-    swfs_real cut = *s6;
-    cut.ny -= 3;
-    swfs_fits_out *fo = NULL;
-    assert_ok(swfs_fits_out_create(&fo, f6));
-    assert_ok(swfs_fits_out_real(fo, NULL, &cut, -32));
-    assert_ok(swfs_fits_out_commit(fo));
-    swfs_real_free(s6);
+    cut_file_end(f6, lost, 3);
     assert_ok(swfs_sync_run(&c.so, &sr));
     /* The telemetry alone sees the frames lost: the step from slopes_006 to slopes_007 is one
        over four frames. */
