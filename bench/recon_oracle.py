@@ -29,6 +29,9 @@ the Shack-Hartmann's band nsub/2):
            the slopes with the DM commands the loop applied (truewf_NNN.fits extension DM),
            applied to this data set's frames: what a reconstructor learned from simulated
            closed loops of this geometry would give.
+  --rows R,R...  only these rows (e.g. vk,sim).
+  --write-sim-recon W.fits  writes the "sim" map as a reconstructor file (nslopes x nact,
+           m per rad; 0 for the slopes no subaperture sees) for `speckles --recon W.fits`.
 
 Prints the NCP error [nm] of each row: the default (the residual's mean taken out) and with
 pupil --keep-resmean."""
@@ -48,6 +51,8 @@ ap.add_argument("--specklewfs", default=os.path.join(os.path.dirname(__file__), 
 ap.add_argument("--ridge", type=float, default=1e-6)
 ap.add_argument("--in-sample", action="store_true")
 ap.add_argument("--train", nargs="+", default=[])
+ap.add_argument("--write-sim-recon")
+ap.add_argument("--rows", default="")
 a = ap.parse_args()
 D, EXE = a.dir, a.specklewfs
 
@@ -117,7 +122,10 @@ def learned(X):
 run([EXE, "speckles", f"{D}/timing.txt", "--science", f"{D}/science.fits", "--actuators", f"{D}/actuators.fits",
      "--write-recon", f"{D}/recon_vk.fits", "-o", f"{D}/spk_vk_native.fits"])
 W = np.array(F.read_fits(f"{D}/recon_vk.fits")[0])
-rows = [("vk", S @ W.T), ("truth", Z), ("learned", learned(X))]
+want = set(a.rows.split(",")) if a.rows else None
+rows = [("vk", S @ W.T), ("truth", Z)]
+if want is None or "learned" in want:
+    rows.append(("learned", learned(X)))
 if a.in_sample:
     rows.append(("reversed", learned(X[::-1].copy())))
 if a.train:
@@ -134,10 +142,19 @@ if a.train:
         sys.exit(f"recon_oracle: --train data have {St.shape[1]} slopes and {Zt.shape[1]} actuators, this set "
                  f"{X.shape[1]} and {Z.shape[1]}: train on the same geometry")
     print(f"trained on {St.shape[0]} simulated WFS frames from {len(a.train)} data sets")
-    rows.append(("sim", X @ fit(St, Zt)))
+    A = fit(St, Zt)
+    rows.append(("sim", X @ A))
+    if a.write_sim_recon:
+        Wsim = np.zeros((Z.shape[1], S.shape[1]))
+        Wsim[:, used] = A.T
+        F.write_fits(a.write_sim_recon, Wsim)
+        print(f"wrote {a.write_sim_recon}: the sim map as a reconstructor ({Wsim.shape[1]} slopes x {Wsim.shape[0]} "
+              f"actuators)")
     Mc = DMc - DMc.mean(1, keepdims=True)
     rows.append(("sim+dm", np.hstack([X, Mc]) @ fit(np.hstack([St, Mt]), Zt)))
 print(f"{'wavefront':10s} {'NCP [nm]':>9s} {'kept':>6s} {'per frame [nm]':>15s}")
 for name, Zhat in rows:
+    if want is not None and name not in want:
+        continue
     e = ncp(f"or_{name.replace('+', '_')}", Zhat)
     print(f"{name:10s} {e[0]:9.1f} {e[1]:6.1f} {1e9 * np.sqrt(((Zhat - Z) ** 2).mean()):15.1f}", flush=True)
