@@ -159,6 +159,27 @@ chk coh-pixel 2 "--pixel 100,3 is outside the 54x54 image" o.fits -- coherence s
 chk coh-nfit 2 "--nfit must be 1..1000" o.fits -- coherence spw.fits -o o.fits --nfit 0
 chk coh-unknown 2 "--bogus" o.fits -- coherence spw.fits -o o.fits --bogus
 
+# ---- learn (ts/ is a time series without the true residual)
+chk learn-no-truth 1 "ts/truewf_000.fits beside it" o.fits -- learn ts -o o.fits
+chk learn-not-sim 1 "run: no slopes_000.fits" o.fits -- learn run -o o.fits
+chk learn-ridge 2 "--ridge must be a finite fraction > 0, got 0" o.fits -- learn ts -o o.fits --ridge 0
+chk learn-no-dir 2 "needs at least one simulated data set" o.fits -- learn -o o.fits
+# two small loops with the true residual: learn writes the map and its held-out check; a truth
+# file cut short stops it with the file named and no map left
+for k in 1 2; do
+    "$B" simulate mode=timeseries $TS ncubes=2 cube_frames=40 cube_gap=40 seed=$k layer_speed=$((10 * k)),$((15 * k)) \
+        export_truth=1 --quiet -o lt$k > /dev/null 2>&1 || setup_fail "simulate export_truth=1"
+done
+if "$B" learn lt1 lt2 -o lw.fits > out.txt 2> err.txt && [ -s lw.fits ] && grep -q "learn: held out, all 2:" out.txt \
+    && grep -q "^  lt2 " out.txt; then
+    pass=$((pass + 1))
+else
+    echo "FAIL learn-ok: exit code, lw.fits or the held-out lines"; sed 's/^/    /' out.txt err.txt | head -8
+    nfail=$((nfail + 1))
+fi
+truncate -s 100000 lt2/truewf_000.fits
+chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
+
 # ---- merge
 chk merge-missing 1 "nofile.fits: cannot open" o.fits -- merge nofile.fits ck1.fits -o o.fits
 chk merge-truncated 1 "tck.fits: file is truncated" o.fits -- merge tck.fits ck1.fits -o o.fits

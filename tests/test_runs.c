@@ -32,24 +32,32 @@ static const char *p(const char *name)
     return buf[k];
 }
 
-/* The small system of tests/cli_telemetry.sh (3 cubes x 60 frames at 6.48 WFS frames per
- * camera frame, lag 3) simulated into the folder `where` with telemetry files of
- * `file_frames` WFS frames, then reduced to where/science.fits. */
-static void make_data(const char *where, const char *file_frames, swfs_reduce_run_result *rr)
+/* A time series of the small system (3 cubes x 60 frames) into the folder `where`, the keys
+ * kv on top of its base. */
+static void simulate_small(const char *where, const char *const *kv, size_t nkv)
 {
     mkdir(where, 0755);
     swfs_config *c = swfs_config_new();
-    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150",
-                        "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=1", file_frames};
-    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    const char *base[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150"};
+    for (size_t i = 0; i < sizeof base / sizeof base[0]; i++) assert_ok(swfs_config_set(c, base[i]));
+    for (size_t i = 0; i < nkv; i++) assert_ok(swfs_config_set(c, kv[i]));
     swfs_ts_params tp;
     swfs_ts_params_default(&tp);
     assert_ok(swfs_ts_params_from_config(c, &tp));
     assert_ok(swfs_ts_params_check(&tp));
     swfs_config_free(c);
-    swfs_ts_summary s;
+    swfs_ts_summary sm;
     const char *prov[] = {"test_runs"};
-    assert_ok(swfs_ts_run(&tp, where, prov, 1, NULL, NULL, &s));
+    assert_ok(swfs_ts_run(&tp, where, prov, 1, NULL, NULL, &sm));
+}
+
+/* The small system of tests/cli_telemetry.sh (3 cubes x 60 frames at 6.48 WFS frames per
+ * camera frame, lag 3) simulated into the folder `where` with telemetry files of
+ * `file_frames` WFS frames, then reduced to where/science.fits. */
+static void make_data(const char *where, const char *file_frames, swfs_reduce_run_result *rr)
+{
+    const char *kv[] = {"layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=1", file_frames};
+    simulate_small(where, kv, sizeof kv / sizeof kv[0]);
 
     char f[6][1300];
     const char *names[6] = {"raw_000.fits", "raw_001.fits", "raw_002.fits", "dark.fits", "flat.fits", "science.fits"};
@@ -932,6 +940,180 @@ static void test_sync_files_shorter_than_cube(void **state)
     free(sr.t.cubes);
 }
 
+/* A time series of the small system into `where` with the true residual beside the slopes
+ * (export_truth), at the conditions kv; no camera reduction. */
+static void simulate_truth(const char *where, const char *const *kv, size_t nkv)
+{
+    const char *all[8] = {"export_truth=1"};
+    assert_true(nkv < 8);
+    for (size_t i = 0; i < nkv; i++) all[1 + i] = kv[i];
+    simulate_small(where, all, nkv + 1);
+}
+
+/* rms over the frames of truth (piston removed) - W slopes, and of the truth. */
+static double recon_error(const swfs_recon *w, const char *where, double *truth_rms)
+{
+    char sp[1400], tp[1400];
+    snprintf(sp, sizeof sp, "%s/slopes_000.fits", where);
+    snprintf(tp, sizeof tp, "%s/truewf_000.fits", where);
+    swfs_real *s = NULL, *z = NULL;
+    assert_ok(swfs_fits_read_real(sp, NULL, &s, NULL));
+    assert_ok(swfs_fits_read_real(tp, NULL, &z, NULL));
+    assert_int_equal(s->nx, w->nslopes);
+    assert_int_equal(z->nx, w->nact);
+    double *zh = malloc(w->nact * sizeof *zh), e2 = 0, t2 = 0;
+    for (size_t f = 0; f < s->ny; f++) {
+        const double *zf = z->data + f * z->nx;
+        double m = 0;
+        for (size_t a = 0; a < w->nact; a++) m += zf[a];
+        m /= (double)w->nact;
+        swfs_recon_apply(w, s->data + f * s->nx, zh);
+        double mh = 0;
+        for (size_t a = 0; a < w->nact; a++) mh += zh[a];
+        mh /= (double)w->nact;
+        for (size_t a = 0; a < w->nact; a++) {
+            e2 += (zf[a] - m - zh[a] + mh) * (zf[a] - m - zh[a] + mh);
+            t2 += (zf[a] - m) * (zf[a] - m);
+        }
+    }
+    const double n = (double)(s->ny * w->nact);
+    *truth_rms = sqrt(t2 / n);
+    free(zh);
+    swfs_real_free(s);
+    swfs_real_free(z);
+    return sqrt(e2 / n);
+}
+
+/* learn: a reconstructor from three simulated closed loops of the test system's geometry
+ * under other winds, vibration and seeds. On a fourth simulation (the test data's conditions,
+ * another seed) it misses the true residual per frame by less than the default von Karman
+ * reconstructor does, and through the whole path on the test data it is no worse than the
+ * default. Bad input: a folder without truth, data of another geometry. */
+static void test_learn_reconstructor(void **state)
+{
+    (void)state;
+    const char *conds[3][3] = {{"layer_speed=8,12", "vib_amp=0", "seed=21"},
+                               {"layer_speed=20,25", "vib_amp=0.3", "seed=22"},
+                               {"layer_speed=45,55", "vib_amp=0.6", "seed=23"}};
+    const char *tdir[3] = {p("learn_a"), p("learn_b"), p("learn_c")};
+    for (int k = 0; k < 3; k++) simulate_truth(tdir[k], conds[k], 3);
+    const char *held[] = {"layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=9"};
+    const char *hdir = p("learn_held");
+    simulate_truth(hdir, held, 4);
+
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = tdir;
+    lo.ndirs = 3;
+    lo.out = p("recon_learned.fits");
+    double hratio[3];
+    lo.heldout_ratio = hratio;
+    swfs_learn_run_result lr;
+    assert_ok(swfs_learn_run(&lo, &lr));
+    printf("test_runs: learned from %zu frames (%zu files): %zu slopes (%zu with signal) -> %zu actuators, training misfit "
+           "%.1f of %.1f nm\n", lr.info.nframes, lr.nfiles, lr.nslopes, lr.info.nslopes_seen, lr.nact,
+           1e9 * lr.info.misfit_rms, 1e9 * lr.info.truth_rms);
+    assert_true(lr.info.misfit_rms < lr.info.truth_rms);
+    /* each loop left out in turn: the others' map misses it by more than the training misfit
+     * (other winds and vibration); the middle condition is covered by the two around it */
+    printf("test_runs: held out in turn: %.1f of %.1f nm; each set %.2f %.2f %.2f, the worst %zu at %.2f\n",
+           1e9 * lr.heldout_misfit_rms, 1e9 * lr.heldout_truth_rms, hratio[0], hratio[1], hratio[2],
+           lr.heldout_worst_set, lr.heldout_worst);
+    assert_int_equal(lr.nheldout, 3);
+    assert_true(lr.heldout_misfit_rms > lr.info.misfit_rms);
+    assert_true(hratio[1] < 1 && hratio[1] > lr.info.misfit_rms / lr.info.truth_rms);
+    assert_close(lr.heldout_worst, fmax(hratio[0], fmax(hratio[1], hratio[2])), 1e-12);
+    double hk = 0;
+    swfs_fits_in *fin = NULL;
+    assert_ok(swfs_fits_in_open(&fin, lo.out, NULL));
+    assert_ok(swfs_fits_in_key_double(fin, "LRNHMISF", &hk));
+    swfs_fits_in_close(fin);
+    assert_close(hk, lr.heldout_misfit_rms, 1e-6 * hk);
+
+    /* the default reconstructor of the test data (the same geometry) */
+    swfs_speckles_run_result spr;
+    swfs_estimate_run_result er;
+    speckles_estimate(p("speckles_lv.fits"), p("sci_lv.fits"), p("halo_lv.fits"), p("recon_vk.fits"), &spr, &er);
+    swfs_real *ncp = NULL;
+    assert_ok(swfs_fits_read_real(p("truth.fits"), "NCP", &ncp, NULL));
+    swfs_pupil_result *pf = NULL;
+    double e_vk = NAN, e_learn = NAN;
+    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
+    assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_vk, NULL, NULL));
+    swfs_pupil_result_free(pf);
+    swfs_halo_free(er.halo);
+
+    swfs_recon *wl = NULL, *wv = NULL;
+    assert_ok(swfs_recon_read(p("recon_learned.fits"), &wl));
+    assert_ok(swfs_recon_read(p("recon_vk.fits"), &wv));
+    double t_rms = 0;
+    const double err_l = recon_error(wl, hdir, &t_rms), err_v = recon_error(wv, hdir, &t_rms);
+    printf("test_runs: per frame on a held-out simulation: learned misses the residual by %.1f nm, vk by %.1f nm "
+           "(residual %.1f nm per actuator)\n", 1e9 * err_l, 1e9 * err_v, 1e9 * t_rms);
+    assert_true(err_l < 0.9 * err_v);
+    swfs_recon_free(wl);
+    swfs_recon_free(wv);
+
+    /* the whole path on the test data with the learned reconstructor */
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_options_default(&sp);
+    sp.timing = p("timing.txt");
+    sp.science = p("science.fits");
+    sp.actuators = p("actuators.fits");
+    sp.pipe.recon = SWFS_RECON_GIVEN;
+    sp.recon = p("recon_learned.fits");
+    sp.out = p("speckles_learned.fits");
+    const char *min[] = {sp.science}, *mout[] = {p("sci_learned.fits")};
+    sp.match_in = min;
+    sp.match_out = mout;
+    sp.nmatch = 1;
+    assert_ok(swfs_speckles_run(&sp, &spr));
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = mout[0];
+    eo.speckles = sp.out;
+    eo.out = p("halo_learned.fits");
+    assert_ok(swfs_estimate_run(&eo, &er));
+    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
+    assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_learn, NULL, NULL));
+    printf("test_runs: NCP error with the learned reconstructor %.1f nm, with the default %.1f nm\n", 1e9 * e_learn,
+           1e9 * e_vk);
+    assert_true(e_learn > 0 && e_learn < 1.05 * e_vk);
+    swfs_pupil_result_free(pf);
+    swfs_halo_free(er.halo);
+    swfs_real_free(ncp);
+
+    /* bad input: a folder of slopes without truth; data of another geometry */
+    const char *bad1[] = {p("runs_no_truth")};
+    mkdir(bad1[0], 0755);
+    char sp0[1400];
+    snprintf(sp0, sizeof sp0, "%s/slopes_000.fits", bad1[0]);
+    unlink(sp0);
+    swfs_real *s0 = NULL;
+    assert_ok(swfs_fits_read_real(p("slopes_000.fits"), NULL, &s0, NULL));
+    swfs_fits_out *fo = NULL;
+    assert_ok(swfs_fits_out_create(&fo, sp0));
+    assert_ok(swfs_fits_out_real(fo, NULL, s0, -32));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(s0);
+    lo.dirs = bad1;
+    lo.ndirs = 1;
+    lo.heldout_ratio = NULL;
+    lo.out = p("recon_bad.fits");
+    assert_int_equal(swfs_learn_run(&lo, &lr), SWFS_ERR_IO);
+    printf("test_runs: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "truewf_000.fits"));
+    const char *other[] = {tdir[0], p("learn_nsub8")};
+    const char *k8[] = {"nsub=8", "act_pitch=0.7", "seed=24"};
+    simulate_truth(other[1], k8, 3);
+    lo.dirs = other;
+    lo.ndirs = 2;
+    assert_int_equal(swfs_learn_run(&lo, &lr), SWFS_ERR_SHAPE);
+    printf("test_runs: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "one geometry"));
+    assert_false(test_file_exists(p("recon_bad.fits")));
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -945,6 +1127,7 @@ int main(void)
         cmocka_unit_test(test_sync_timestamped_files),
         cmocka_unit_test(test_sync_files_shorter_than_cube),
         cmocka_unit_test(test_sync_unreadable_file),
+        cmocka_unit_test(test_learn_reconstructor),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -338,6 +338,40 @@ typedef struct swfs_clock_run_result {
 
 int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 
+/* ---- learn: a reconstructor from simulated closed loops (wfs.h swfs_recon_learner) ------ */
+
+typedef struct swfs_learn_run_options {
+    const char *const *dirs;  /* folders of `simulate mode=timeseries export_truth=1` (or any
+                                 simulation writing the same files): slopes_NNN.fits with
+                                 truewf_NNN.fits, NNN from 000, the same geometry in all */
+    size_t ndirs;
+    double ridge;             /* SWFS_RECON_LEARN_RIDGE */
+    const char *out;          /* the reconstructor file (swfs_recon_write's layout; speckles --recon) */
+    int no_heldout;           /* 1: skip the held-out check (it reads every file twice) */
+    double *heldout_ratio;    /* optional, ndirs long (the caller's): each data set's held-out
+                                 rms misfit / rms truth, NaN where it was not checked */
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_learn_run_options;
+
+void swfs_learn_run_options_default(swfs_learn_run_options *o);
+
+typedef struct swfs_learn_run_result {
+    swfs_recon_learn_info info;
+    size_t nfiles, nslopes, nact;
+    /* The held-out check (more than one data set): each data set in turn left out, the map of
+     * the others' frames applied to its frames. rms misfit and rms truth over all the frames
+     * checked, the worst data set's misfit / truth and its index; NaN when none was checked
+     * (one data set, or too few frames without any one). */
+    size_t nheldout;
+    double heldout_misfit_rms, heldout_truth_rms, heldout_worst;
+    size_t heldout_worst_set;
+} swfs_learn_run_result;
+
+int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);
+
 SWFS_END_DECLS
 
 #endif

@@ -162,6 +162,40 @@ int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const do
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
                      swfs_recon **out);
 void swfs_recon_free(swfs_recon *r);
+
+/* A reconstructor learned from simulated closed loops of the system's geometry: the
+ * least-squares map from one frame's slopes to the true residual wavefront on the actuators
+ * (simulate mode=timeseries export_truth=1: slopes_NNN.fits and truewf_NNN.fits), piston
+ * removed, over all the frames added,
+ *   W = Z^T S (S^T S + lam I)^-1,  lam = ridge x the mean diagonal of S^T S,
+ * over the slopes with any signal (the others get 0). It is the per-frame conditional mean of
+ * the residual under the simulated loops' statistics: the closed loop's own residual spectrum
+ * and what the slopes' aliases do in it, which the von Karman prior of swfs_recon_vk does not
+ * know (docs/telemetry.md: trained on other systems of the same geometry it beat vk on every
+ * run of the matrix measured). The ridge only conditions the solve (1e-6 and 1e-4 gave the
+ * same NCP errors to 0.3 nm). Accumulate with add (frames x nslopes and frames x nact,
+ * row-major), then solve; nothing on the add path allocates. */
+typedef struct swfs_recon_learner swfs_recon_learner;
+typedef struct swfs_recon_learn_info {
+    size_t nframes;      /* frames learned from */
+    size_t nslopes_seen; /* slopes with signal (the map's columns) */
+    double truth_rms;    /* [m] rms of the truth per actuator, piston removed */
+    double misfit_rms;   /* [m] rms of truth - W s over the training frames */
+} swfs_recon_learn_info;
+#define SWFS_RECON_LEARN_RIDGE 1e-6
+int swfs_recon_learner_new(size_t nslopes, size_t nact, swfs_recon_learner **out);
+void swfs_recon_learner_free(swfs_recon_learner *l);
+int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes);
+size_t swfs_recon_learner_frames(const swfs_recon_learner *l);
+int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info);
+/* The held-out check: the map learned from the sums of `all` less those of `part` (the frames
+ * of one data set, added to a learner of their own), and its mean square misfit per actuator
+ * and frame on part's frames, with the mean square of part's truth (piston removed). Leave
+ * one data set out in turn to see whether the simulated conditions cover each other. */
+int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                               double *misfit2, double *truth2);
+void swfs_recon_learner_reset(swfs_recon_learner *l); /* no frames, the shapes kept */
+
 /* W <- W (I - M) with M the mean-slope (tip-tilt) projector over the valid subapertures:
  * the reconstructor then ignores tip-tilt exactly, so no separate removal step is needed. */
 int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid);

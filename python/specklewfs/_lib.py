@@ -282,6 +282,15 @@ SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("nco
                    ("refits", c_int), ("ratio_first", c_dbl), ("lag_first", c_dbl), ("nmissing", c_size),
                    ("nexp_missing", c_size), ("missing_reason", ctypes.c_char * 1024)]
 swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
+swfs_learn_run_options = _s("swfs_learn_run_options", [
+    ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("no_heldout", c_int),
+    ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
+swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
+                                                     ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
+swfs_learn_run_result = _s("swfs_learn_run_result", [
+    ("info", swfs_recon_learn_info), ("nfiles", c_size), ("nslopes", c_size), ("nact", c_size), ("nheldout", c_size),
+    ("heldout_misfit_rms", c_dbl), ("heldout_truth_rms", c_dbl), ("heldout_worst", c_dbl),
+    ("heldout_worst_set", c_size)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
@@ -505,6 +514,8 @@ _PROTOS = {
     "swfs_reduce_run": (c_int, [P(swfs_reduce_run_options), P(swfs_reduce_run_result)]),
     "swfs_sync_run_options_default": (None, [P(swfs_sync_run_options)]),
     "swfs_sync_run": (c_int, [P(swfs_sync_run_options), P(swfs_sync_run_result)]),
+    "swfs_learn_run_options_default": (None, [P(swfs_learn_run_options)]),
+    "swfs_learn_run": (c_int, [P(swfs_learn_run_options), P(swfs_learn_run_result)]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),

@@ -97,6 +97,38 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
+def learn(dirs, out, ridge=None, heldout=True, provenance=()):
+    """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
+    least-squares map from a frame's slopes to the true residual on the actuators over the
+    folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
+    truewf_NNN.fits, one geometry), written to `out` for speckles(..., recon=out). Returns
+    nframes, nfiles, nslopes, nslopes_seen, nact, truth_rms and misfit_rms [m], and with more
+    than one folder (heldout=True) the leave-one-folder-out check: nheldout,
+    heldout_misfit_rms, heldout_truth_rms [m], heldout_ratio (each folder's misfit / truth,
+    NaN where not checked; >= 1: a condition the others do not cover), heldout_worst and
+    heldout_worst_set (the worst folder's ratio and index)."""
+    if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
+        dirs = [dirs]
+    o = _lib.swfs_learn_run_options()
+    lib.swfs_learn_run_options_default(ctypes.byref(o))
+    arr, n = _paths(dirs)
+    o.dirs, o.ndirs, o.out = arr, n, enc(out)
+    if ridge is not None:
+        o.ridge = float(ridge)
+    o.no_heldout = 0 if heldout else 1
+    ratio = np.full(n, np.nan)
+    o.heldout_ratio = dptr(ratio)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    r = _lib.swfs_learn_run_result()
+    check(lib.swfs_learn_run(ctypes.byref(o), ctypes.byref(r)), "swfs_learn_run")
+    d = _struct_dict(r.info)
+    d.update(nfiles=r.nfiles, nslopes=r.nslopes, nact=r.nact, nheldout=r.nheldout,
+             heldout_misfit_rms=r.heldout_misfit_rms, heldout_truth_rms=r.heldout_truth_rms,
+             heldout_worst=r.heldout_worst, heldout_worst_set=r.heldout_worst_set, heldout_ratio=ratio)
+    return d
+
+
 def _edges(tail, head):
     t = np.ascontiguousarray(tail, dtype=np.float64)
     h = np.ascontiguousarray(head, dtype=np.float64)

@@ -116,3 +116,35 @@ def test_boundary_check_on_telemetry(series):
     assert not sw.boundary_gap(tail, slopes[cut + 300:cut + 300 + k], 1)["consistent"]  # a long gap
     with pytest.raises(ValueError, match="not 0"):
         sw.boundary_gap(tail, slopes[cut:cut + k], 0)
+
+
+def test_learn_reconstructor(series, tmp_path):
+    """`specklewfs learn` from Python: a reconstructor learned from two simulated closed loops
+    of the series' geometry (export_truth), used by speckles(recon=...); its errors."""
+    keys = dict(screen_n=512, ncubes=2, cube_frames=40, cube_gap=60, export_truth=1)
+    conf = os.path.join(ROOT, "config", "mmt-clio.conf")
+    dirs = []
+    for k, (speed, seed) in enumerate([("10,15", 31), ("35,45", 32)]):
+        d = tmp_path / f"train{k}"
+        sw.simulate_timeseries(str(d), config=conf, layer_speed=speed, seed=seed, **keys)
+        dirs.append(str(d))
+    r = sw.learn(dirs, str(tmp_path / "W.fits"))
+    assert r["nfiles"] == 2 and r["nact"] == 217 and r["nslopes"] == 288 and r["nslopes_seen"] == 224
+    assert r["nframes"] > 2 * r["nslopes_seen"] and 0 < r["misfit_rms"] < r["truth_rms"]
+    # each loop held out in turn: the other's map misses it by more than the training misfit
+    assert r["nheldout"] == 2 and r["heldout_ratio"].shape == (2,) and np.all(np.isfinite(r["heldout_ratio"]))
+    assert r["heldout_misfit_rms"] > r["misfit_rms"] and r["heldout_worst"] == r["heldout_ratio"].max()
+    assert r["heldout_ratio"].min() > r["misfit_rms"] / r["truth_rms"]
+    W = sw.read_fits(str(tmp_path / "W.fits"))[0]
+    assert W.shape == (217, 288) and (np.abs(W).sum(0) == 0).sum() == 288 - 224
+    d, s = series, series / "sim"
+    t = tmp_path / "timing.txt"
+    sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"),
+              flat=str(s / "flat.fits"))
+    sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(t))
+    sp = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "sp.fits"),
+                     recon=str(tmp_path / "W.fits"))
+    assert sp["nout"] >= 118
+    with pytest.raises(sw.Error, match="truewf_000.fits beside it"):
+        sw.learn(str(s), str(tmp_path / "W2.fits"))
+    assert not os.path.exists(tmp_path / "W2.fits")

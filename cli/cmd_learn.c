@@ -1,0 +1,85 @@
+/* specklewfs learn DIR... -o W.fits [--ridge R]: a reconstructor from simulated closed loops. */
+#include "cli.h"
+
+#include "specklewfs/run.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+
+static const char *usage_text =
+    "usage: specklewfs learn SIMDIR... -o W.fits [--ridge R]\n"
+    "\n"
+    "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
+    "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
+    "actuators, over every frame of the folders given (`specklewfs simulate mode=timeseries\n"
+    "export_truth=1 ...`: slopes_NNN.fits beside truewf_NNN.fits; any simulation writing\n"
+    "those files will do). Give it to `specklewfs speckles --recon W.fits`. Simulate the same\n"
+    "Shack-Hartmann and actuators as the data, under a spread of conditions (wind, seeing,\n"
+    "noise): trained on other systems of one geometry it beat the default von Karman\n"
+    "reconstructor on every run measured (docs/telemetry.md); trained on one condition alone\n"
+    "it can lose to it.\n"
+    "\n"
+    "  -o W.fits     the reconstructor (NAXIS1 = slopes, NAXIS2 = actuators, m/rad)\n"
+    "  --ridge R     ridge of the normal equations, a fraction of their mean diagonal\n"
+    "                (default 1e-6; it only conditions the solve)\n"
+    "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
+    "                turn and the map of the others is applied to its frames (their misfit\n"
+    "                against the training misfit says whether the conditions cover each\n"
+    "                other; it reads every file twice)\n";
+
+int swfs_cmd_learn(int argc, char **argv)
+{
+    const char *cmd = "learn";
+    swfs_learn_run_options o;
+    swfs_learn_run_options_default(&o);
+    const char **dirs = calloc((size_t)argc, sizeof *dirs);
+    size_t nd = 0;
+    if (!dirs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    const cli_opt opts[] = {
+        {"-o", CLI_STRING, &o.out, "a file name", 0},
+        {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
+        {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
+    int rc = cli_parse_args(&args, argc, argv);
+    if (rc) { free(dirs); return rc < 0 ? CLI_OK : rc; }
+    if (!nd) rc = cli_usage_error(cmd, "needs at least one simulated data set (a folder)");
+    else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
+    else if (!(o.ridge > 0) || !isfinite(o.ridge)) rc = cli_usage_error(cmd, "--ridge must be a finite fraction > 0, got %g", o.ridge);
+    if (rc) { free(dirs); return rc; }
+    o.dirs = dirs;
+    o.ndirs = nd;
+    o.prov = cli_provenance(argc, argv, &o.nprov);
+    o.progress = cli_writer() ? cli_stage_progress : NULL;
+    o.progress_ctx = "learn:";
+    double *ratio = calloc(nd, sizeof *ratio);
+    if (!ratio) { free(dirs); fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    o.heldout_ratio = ratio;
+    swfs_learn_run_result r;
+    if (swfs_learn_run(&o, &r)) { free(dirs); free(ratio); return cli_error(cmd); }
+    printf("learn: %zu WFS frames from %zu files in %zu data set%s: %zu slopes (%zu with signal) -> %zu actuators\n",
+           r.info.nframes, r.nfiles, nd, nd == 1 ? "" : "s", r.nslopes, r.info.nslopes_seen, r.nact);
+    printf("learn: the simulated residual %.1f nm rms per actuator; the map misses it by %.1f nm on the training "
+           "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
+    if (r.nheldout) {
+        printf("learn: each data set held out in turn, the map of the others applied to it (misfit / residual; "
+               "training %.2f):\n", r.info.misfit_rms / r.info.truth_rms);
+        for (size_t d = 0; d < nd; d++) {
+            if (isnan(ratio[d])) printf("  %-40s not checked (too few frames in the others)\n", dirs[d]);
+            else printf("  %-40s %.2f%s\n", dirs[d], ratio[d], ratio[d] >= 1 ? "  not covered: worse than no map" : "");
+        }
+        printf("learn: held out, all %zu: %.1f nm of %.1f (%.2f)\n", r.nheldout, 1e9 * r.heldout_misfit_rms,
+               1e9 * r.heldout_truth_rms, r.heldout_misfit_rms / r.heldout_truth_rms);
+        if (r.heldout_worst >= 1)
+            printf("learn: a data set at >= 1 is one the others do not cover: its conditions lie outside theirs, or "
+                   "they hold too few frames for %zu slopes (%.1f frames per slope in all; simulate more, or more "
+                   "conditions between)\n", r.info.nslopes_seen, (double)r.info.nframes / (double)r.info.nslopes_seen);
+    } else if (nd > 1 && !o.no_heldout) {
+        printf("learn: held-out check: no data set could be left out (too few frames in the others)\n");
+    }
+    free(dirs);
+    free(ratio);
+    return CLI_OK;
+}

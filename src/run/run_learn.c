@@ -1,0 +1,161 @@
+/* learn: a reconstructor from simulated closed loops (run.h swfs_learn_run, wfs.h
+ * swfs_recon_learner; docs/telemetry.md). */
+#include "specklewfs/run.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/outpaths.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+void swfs_learn_run_options_default(swfs_learn_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->ridge = SWFS_RECON_LEARN_RIDGE;
+}
+
+/* One pair of files: the slopes and the truth of the same frames, added to the learner (made
+ * at the first pair, from its shapes). */
+static int add_pair(const char *sp, const char *tp, swfs_recon_learner **l, swfs_learn_run_result *r)
+{
+    swfs_real *s = NULL, *z = NULL;
+    int rc = swfs_fits_read_real(sp, NULL, &s, NULL);
+    if (!rc) rc = swfs_fits_read_real(tp, NULL, &z, NULL);
+    if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s (%zux%zux%zu) and %s (%zux%zux%zu): expected NSLOPES (even) x N and NACT x N "
+                       "images of the same N frames", sp, s->nx, s->ny, s->nz, tp, z->nx, z->ny, z->nz);
+    if (!rc && *l && (s->nx != r->nslopes || z->nx != r->nact))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes and %zu actuators; the first data set has %zu and %zu: the "
+                       "training data must share one geometry", sp, s->nx, z->nx, r->nslopes, r->nact);
+    if (!rc && !*l) {
+        r->nslopes = s->nx;
+        r->nact = z->nx;
+        rc = swfs_recon_learner_new(s->nx, z->nx, l);
+    }
+    if (!rc && (rc = swfs_recon_learner_add(*l, s->data, z->data, s->ny)))
+        rc = swfs_fail_context(rc, "%s / %s", sp, tp);
+    swfs_real_free(s);
+    swfs_real_free(z);
+    return rc;
+}
+
+static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, const swfs_learn_run_result *r)
+{
+    swfs_real a = {w->nslopes, w->nact, 1, w->W};
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_create(&f, o->out);
+    if (rc) return rc;
+    rc = swfs_fits_out_real(f, NULL, &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m/rad", "actuator displacement per slope");
+    if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", 0, "learned, not an SVD");
+    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "learned", "least squares slopes -> simulated residual");
+    if (!rc) rc = swfs_fits_out_key_long(f, "LRNFRAME", (long)r->info.nframes, "WFS frames learned from");
+    if (!rc) rc = swfs_fits_out_key_long(f, "LRNSETS", (long)o->ndirs, "simulated data sets");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "[m] rms truth per actuator");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", r->info.misfit_rms, "[m] rms training misfit");
+    if (!rc && r->nheldout) {
+        rc = swfs_fits_out_key_long(f, "LRNHSETS", (long)r->nheldout, "data sets held out in turn");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNHMISF", r->heldout_misfit_rms, "[m] rms misfit, held out");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNHTRUT", r->heldout_truth_rms, "[m] rms truth, held out");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNHWRST", r->heldout_worst, "worst set's misfit / truth");
+    }
+    for (size_t d = 0; !rc && d < o->ndirs; d++) {
+        char h[4200];
+        snprintf(h, sizeof h, "learned from %.4000s", o->dirs[d]);
+        rc = swfs_fits_out_history(f, h);
+    }
+    if (!rc) rc = swfs_fits_out_history(f, "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
+    if (!rc) rc = swfs_fits_out_provenance(f, o->prov, o->nprov);
+    if (rc) { swfs_fits_out_abort(f); return rc; }
+    return swfs_fits_out_commit(f);
+}
+
+/* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
+ * counts them when given). */
+static int add_dir(const char *dir, swfs_recon_learner **l, swfs_learn_run_result *r, size_t *nfiles)
+{
+    size_t k = 0;
+    for (;; k++) {
+        char sp[4200], tp[4200];
+        snprintf(sp, sizeof sp, "%.4000s/slopes_%03zu.fits", dir, k);
+        snprintf(tp, sizeof tp, "%.4000s/truewf_%03zu.fits", dir, k);
+        if (access(sp, F_OK) != 0) break;
+        if (access(tp, F_OK) != 0)
+            return swfs_fail(SWFS_ERR_IO, "%s: no %s beside it: the training data need the true residual of every "
+                             "slopes file (simulate mode=timeseries export_truth=1)", sp, tp);
+        int rc = add_pair(sp, tp, l, r);
+        if (rc) return rc;
+        if (nfiles) (*nfiles)++;
+    }
+    if (k == 0)
+        return swfs_fail(SWFS_ERR_IO, "%s: no slopes_000.fits: expected a folder of `simulate mode=timeseries "
+                         "export_truth=1`", dir);
+    return SWFS_OK;
+}
+
+/* Leave one data set out in turn: each folder's frames read again into a learner of their
+ * own, the map of the others' sums checked on them. A folder whose removal leaves too few
+ * frames for a map is not checked. */
+static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
+{
+    swfs_recon_learner *part = NULL;
+    int rc = swfs_recon_learner_new(r->nslopes, r->nact, &part);
+    for (size_t d = 0; o->heldout_ratio && d < o->ndirs; d++) o->heldout_ratio[d] = NAN;
+    double m2 = 0, t2 = 0;
+    size_t nf = 0;
+    for (size_t d = 0; !rc && d < o->ndirs; d++) {
+        swfs_recon_learner_reset(part);
+        if ((rc = add_dir(o->dirs[d], &part, r, NULL))) break;
+        double md = 0, td = 0;
+        rc = swfs_recon_learner_heldout(all, part, o->ridge, &md, &td);
+        if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
+        if (rc == SWFS_ERR_VALUE) { rc = SWFS_OK; continue; } /* too few frames without it */
+        if (rc) break;
+        const size_t n = swfs_recon_learner_frames(part);
+        m2 += md * (double)n;
+        t2 += td * (double)n;
+        nf += n;
+        const double ratio = sqrt(md / td);
+        if (o->heldout_ratio) o->heldout_ratio[d] = ratio;
+        if (r->nheldout == 0 || ratio > r->heldout_worst) {
+            r->heldout_worst = ratio;
+            r->heldout_worst_set = d;
+        }
+        r->nheldout++;
+    }
+    if (!rc && nf) {
+        r->heldout_misfit_rms = sqrt(m2 / (double)nf);
+        r->heldout_truth_rms = sqrt(t2 / (double)nf);
+    }
+    swfs_recon_learner_free(part);
+    return rc;
+}
+
+int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
+    if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
+    swfs_paths *paths = NULL;
+    int rc = swfs_paths_create(&paths);
+    for (size_t d = 0; !rc && d < o->ndirs; d++)
+        rc = swfs_paths_input_or_dir(paths, "simulated data set", o->dirs[d]);
+    if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
+    swfs_paths_free(paths);
+    if (rc) return rc;
+    swfs_recon_learner *l = NULL;
+    for (size_t d = 0; !rc && d < o->ndirs; d++) {
+        rc = add_dir(o->dirs[d], &l, r, &r->nfiles);
+        if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
+    }
+    swfs_recon *w = NULL;
+    if (!rc) rc = swfs_recon_learner_solve(l, o->ridge, &w, &r->info);
+    if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
+    if (!rc) rc = write_recon(o, w, r);
+    swfs_recon_free(w);
+    swfs_recon_learner_free(l);
+    return rc;
+}

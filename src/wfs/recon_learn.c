@@ -1,0 +1,227 @@
+/* A reconstructor learned from simulated closed loops: the least-squares map from a frame's
+ * slopes to the true residual wavefront on the actuators (wfs.h swfs_recon_learner;
+ * docs/telemetry.md, "A reconstructor learned from simulated closed loops"). */
+#include "specklewfs/wfs.h"
+#include "specklewfs/status.h"
+
+#include <cblas.h>
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+struct swfs_recon_learner {
+    size_t nslopes, nact, nframes;
+    double *G; /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
+    double *H; /* nslopes x nact: sum of s z^T, z with its mean over the actuators removed */
+    double zz; /* sum of |z|^2 */
+    double *zc; /* one frame's z, piston removed */
+};
+
+int swfs_recon_learner_new(size_t nslopes, size_t nact, swfs_recon_learner **out)
+{
+    *out = NULL;
+    if (!nslopes || !nact) return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: %zu slopes, %zu actuators", nslopes, nact);
+    swfs_recon_learner *l = calloc(1, sizeof *l);
+    if (l) {
+        l->nslopes = nslopes;
+        l->nact = nact;
+        l->G = calloc(nslopes * nslopes, sizeof *l->G);
+        l->H = calloc(nslopes * nact, sizeof *l->H);
+        l->zc = malloc(nact * sizeof *l->zc);
+    }
+    if (!l || !l->G || !l->H || !l->zc) {
+        swfs_recon_learner_free(l);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes x %zu actuators", nslopes,
+                         nact);
+    }
+    *out = l;
+    return SWFS_OK;
+}
+
+void swfs_recon_learner_free(swfs_recon_learner *l)
+{
+    if (!l) return;
+    free(l->G);
+    free(l->H);
+    free(l->zc);
+    free(l);
+}
+
+size_t swfs_recon_learner_frames(const swfs_recon_learner *l) { return l->nframes; }
+
+int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
+{
+    const size_t ns = l->nslopes, na = l->nact;
+    for (size_t k = 0; k < nframes * ns; k++)
+        if (!isfinite(slopes[k]))
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: slope %zu of frame %zu is not finite", k % ns, k / ns);
+    for (size_t k = 0; k < nframes * na; k++)
+        if (!isfinite(truth[k]))
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: actuator %zu of frame %zu of the truth is not finite",
+                             k % na, k / na);
+    /* G += S^T S (one rank-k update), H += S^T Zc frame by frame (piston: nothing sees it). */
+    cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
+    for (size_t f = 0; f < nframes; f++) {
+        const double *z = truth + f * na;
+        double m = 0;
+        for (size_t a = 0; a < na; a++) m += z[a];
+        m /= (double)na;
+        for (size_t a = 0; a < na; a++) {
+            l->zc[a] = z[a] - m;
+            l->zz += l->zc[a] * l->zc[a];
+        }
+        cblas_dger(CblasRowMajor, (int)ns, (int)na, 1.0, slopes + f * ns, 1, l->zc, 1, l->H, (int)na);
+    }
+    l->nframes += nframes;
+    return SWFS_OK;
+}
+
+void swfs_recon_learner_reset(swfs_recon_learner *l)
+{
+    memset(l->G, 0, l->nslopes * l->nslopes * sizeof *l->G);
+    memset(l->H, 0, l->nslopes * l->nact * sizeof *l->H);
+    l->zz = 0;
+    l->nframes = 0;
+}
+
+/* G's element (a, b) of the sums l less m (m NULL: none); G holds the upper triangle. */
+static double gsum(const swfs_recon_learner *l, const swfs_recon_learner *m, size_t a, size_t b)
+{
+    const size_t i = a < b ? a : b, j = a < b ? b : a, ns = l->nslopes;
+    return l->G[i * ns + j] - (m ? m->G[i * ns + j] : 0.0);
+}
+
+/* The normal equations of the sums l less m solved over the slopes with signal in them:
+ * A = (G + lam I)^-1 H (nu x na) in *A, those slopes in idx (ns long), nu of them. */
+static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, double ridge, size_t *idx, size_t *nu_out,
+                      double **A_out, double *lam_out)
+{
+    *A_out = NULL;
+    const size_t ns = l->nslopes, na = l->nact, nf = l->nframes - (m ? m->nframes : 0);
+    if (!(ridge > 0) || !isfinite(ridge))
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: the ridge must be a finite fraction > 0, got %g", ridge);
+    /* The slopes seen: those with any signal over the frames (unilluminated ones are 0). */
+    size_t nu = 0;
+    double tr = 0;
+    for (size_t i = 0; i < ns; i++) {
+        const double d = gsum(l, m, i, i);
+        if (d > 1e-12 * l->G[i * ns + i] && d > 0) {
+            idx[nu++] = i;
+            tr += d;
+        }
+    }
+    if (nu == 0 || nf < 2 * nu)
+        return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: %zu frames for %zu slopes with signal; a map needs at "
+                         "least twice as many frames as slopes (more simulated frames, or more data sets)", nf, nu);
+    double *M = malloc(nu * nu * sizeof *M), *B = malloc(nu * na * sizeof *B);
+    if (!M || !B) {
+        free(M); free(B);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes", nu);
+    }
+    const double lam = ridge * tr / (double)nu;
+    for (size_t i = 0; i < nu; i++) {
+        for (size_t j = 0; j < nu; j++) M[i * nu + j] = gsum(l, m, idx[i], idx[j]);
+        M[i * nu + i] += lam;
+        for (size_t a = 0; a < na; a++) B[i * na + a] = l->H[idx[i] * na + a] - (m ? m->H[idx[i] * na + a] : 0.0);
+    }
+    lapack_int info = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)nu, (lapack_int)na, M, (lapack_int)nu, B,
+                                    (lapack_int)na);
+    free(M);
+    if (info != 0) {
+        free(B);
+        return swfs_fail(SWFS_ERR_NUMERIC, "reconstructor learning: the normal equations are not positive definite "
+                         "(LAPACK dposv info %d) with a ridge of %g", (int)info, ridge);
+    }
+    *nu_out = nu;
+    *A_out = B;
+    *lam_out = lam;
+    return SWFS_OK;
+}
+
+int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info)
+{
+    *out = NULL;
+    const size_t ns = l->nslopes, na = l->nact;
+    size_t *idx = malloc(ns * sizeof *idx), nu = 0;
+    swfs_recon *r = calloc(1, sizeof *r);
+    if (r) r->W = calloc(na * ns, sizeof *r->W);
+    if (!idx || !r || !r->W) {
+        free(idx);
+        swfs_recon_free(r);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    }
+    double *A = NULL, lam = 0;
+    int rc = solve_sums(l, NULL, ridge, idx, &nu, &A, &lam);
+    if (rc) {
+        free(idx);
+        swfs_recon_free(r);
+        return rc;
+    }
+    /* W = A^T on the seen slopes. */
+    for (size_t i = 0; i < nu; i++)
+        for (size_t a = 0; a < na; a++) r->W[a * ns + idx[i]] = A[i * na + a];
+    r->nact = na;
+    r->nslopes = ns;
+    r->nmodes = 0;
+    if (info) {
+        /* The training misfit: sum |z - W s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), and
+         * (G + lam) A = H makes tr(A^T G A) = tr(A^T H) - lam |A|^2. */
+        double cross = 0, aa = 0;
+        for (size_t i = 0; i < nu; i++)
+            for (size_t a = 0; a < na; a++) {
+                cross += A[i * na + a] * l->H[idx[i] * na + a];
+                aa += A[i * na + a] * A[i * na + a];
+            }
+        info->nframes = l->nframes;
+        info->nslopes_seen = nu;
+        info->truth_rms = sqrt(l->zz / (double)(l->nframes * na));
+        info->misfit_rms = sqrt(fmax(0.0, l->zz - cross - lam * aa) / (double)(l->nframes * na));
+    }
+    free(idx);
+    free(A);
+    *out = r;
+    return SWFS_OK;
+}
+
+int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                               double *misfit2, double *truth2)
+{
+    *misfit2 = *truth2 = NAN;
+    const size_t ns = all->nslopes, na = all->nact;
+    if (part->nslopes != ns || part->nact != na || part->nframes == 0 || part->nframes >= all->nframes)
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a held-out part of %zu frames (%zu slopes, %zu "
+                         "actuators) of sums over %zu frames (%zu, %zu)", part->nframes, part->nslopes, part->nact,
+                         all->nframes, ns, na);
+    size_t *idx = malloc(ns * sizeof *idx), nu = 0;
+    if (!idx) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    double *A = NULL, lam = 0;
+    int rc = solve_sums(all, part, ridge, idx, &nu, &A, &lam);
+    double *Gp = NULL, *C = NULL;
+    if (!rc) {
+        Gp = malloc(nu * nu * sizeof *Gp);
+        C = malloc(nu * na * sizeof *C);
+        if (!Gp || !C) rc = swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    }
+    if (!rc) {
+        /* On the part's frames: sum |z - A^T s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), its sums. */
+        for (size_t i = 0; i < nu; i++)
+            for (size_t j = 0; j < nu; j++) Gp[i * nu + j] = gsum(part, NULL, idx[i], idx[j]);
+        cblas_dsymm(CblasRowMajor, CblasLeft, CblasUpper, (int)nu, (int)na, 1.0, Gp, (int)nu, A, (int)na, 0.0, C,
+                    (int)na);
+        double cross = 0, quad = 0;
+        for (size_t i = 0; i < nu; i++)
+            for (size_t a = 0; a < na; a++) {
+                cross += A[i * na + a] * part->H[idx[i] * na + a];
+                quad += A[i * na + a] * C[i * na + a];
+            }
+        const double n = (double)(part->nframes * na);
+        *misfit2 = fmax(0.0, part->zz - 2 * cross + quad) / n;
+        *truth2 = part->zz / n;
+    }
+    free(idx);
+    free(A);
+    free(Gp);
+    free(C);
+    return rc;
+}

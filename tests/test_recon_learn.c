@@ -1,0 +1,152 @@
+/* The learned reconstructor's algebra (wfs.h swfs_recon_learner) on a synthetic linear
+ * problem z = W0 s + noise + piston, with one slope that never has signal: the map comes back
+ * (piston removed, the dead slope's column 0), the training misfit it reports is the misfit
+ * computed frame by frame, and the held-out check of one part equals the map learned on the
+ * other part alone applied to the held-out frames. Bad input: NaN, too few frames. */
+#include "testutil.h"
+
+#include "specklewfs/rng.h"
+#include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+#define NS 7   /* slopes; slope DEAD never has signal */
+#define NA 5   /* actuators */
+#define DEAD 3
+#define NOISE 0.05
+
+static double W0[NA][NS];
+
+/* n frames of slopes and truth (with a random piston per frame) from the stream rng. */
+static void make_frames(swfs_rng *r, size_t n, double *s, double *z)
+{
+    for (size_t f = 0; f < n; f++) {
+        double *sf = s + f * NS, *zf = z + f * NA;
+        for (size_t i = 0; i < NS; i++) sf[i] = i == DEAD ? 0.0 : swfs_rng_normal(r);
+        const double piston = 3 * swfs_rng_normal(r);
+        for (size_t a = 0; a < NA; a++) {
+            zf[a] = piston + NOISE * swfs_rng_normal(r);
+            for (size_t i = 0; i < NS; i++) zf[a] += W0[a][i] * sf[i];
+        }
+    }
+}
+
+/* Mean square per actuator and frame of (z - piston) - (W s - its piston) over n frames. */
+static double misfit2(const swfs_recon *w, const double *s, const double *z, size_t n)
+{
+    double e2 = 0;
+    for (size_t f = 0; f < n; f++) {
+        double zh[NA], mz = 0, mh = 0;
+        swfs_recon_apply(w, s + f * NS, zh);
+        for (size_t a = 0; a < NA; a++) {
+            mz += z[f * NA + a] / NA;
+            mh += zh[a] / NA;
+        }
+        for (size_t a = 0; a < NA; a++) {
+            const double d = (z[f * NA + a] - mz) - (zh[a] - mh);
+            e2 += d * d;
+        }
+    }
+    return e2 / (double)(n * NA);
+}
+
+static void test_learner(void **state)
+{
+    (void)state;
+    swfs_rng r;
+    swfs_rng_seed(&r, 7);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : swfs_rng_normal(&r);
+    const size_t na = 400, nb = 300;
+    double *s = malloc((na + nb) * NS * sizeof *s), *z = malloc((na + nb) * NA * sizeof *z);
+    make_frames(&r, na + nb, s, z);
+
+    swfs_recon_learner *all = NULL, *pa = NULL, *pb = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, &all));
+    assert_ok(swfs_recon_learner_new(NS, NA, &pa));
+    assert_ok(swfs_recon_learner_new(NS, NA, &pb));
+    /* the sums in two calls of different length, as files are read */
+    assert_ok(swfs_recon_learner_add(all, s, z, 123));
+    assert_ok(swfs_recon_learner_add(all, s + 123 * NS, z + 123 * NA, na + nb - 123));
+    assert_ok(swfs_recon_learner_add(pa, s, z, na));
+    assert_ok(swfs_recon_learner_add(pb, s + na * NS, z + na * NA, nb));
+    assert_int_equal(swfs_recon_learner_frames(all), na + nb);
+
+    swfs_recon *w = NULL;
+    swfs_recon_learn_info info;
+    assert_ok(swfs_recon_learner_solve(all, SWFS_RECON_LEARN_RIDGE, &w, &info));
+    assert_int_equal(info.nframes, na + nb);
+    assert_int_equal(info.nslopes_seen, NS - 1);
+    /* the map: W0 with the piston of each column taken out, 0 on the dead slope */
+    double worst = 0;
+    for (size_t i = 0; i < NS; i++) {
+        double m = 0;
+        for (size_t a = 0; a < NA; a++) m += W0[a][i] / NA;
+        for (size_t a = 0; a < NA; a++) {
+            const double e = fabs(w->W[a * NS + i] - (W0[a][i] - m));
+            if (i == DEAD) assert_true(w->W[a * NS + i] == 0.0);
+            worst = fmax(worst, e);
+        }
+    }
+    printf("test_recon_learn: map error %.4f (noise %.2f over %zu frames)\n", worst, NOISE, na + nb);
+    assert_true(worst < 0.02);
+    /* the reported training misfit is the one computed frame by frame, about the noise */
+    const double m_all = misfit2(w, s, z, na + nb);
+    assert_close(info.misfit_rms, sqrt(m_all), 1e-9);
+    assert_true(info.misfit_rms > 0.8 * NOISE * sqrt((NA - 1.0) / NA) && info.misfit_rms < NOISE);
+
+    /* held out: part b left out of all = the map of part a alone applied to b's frames */
+    double h2 = 0, t2 = 0;
+    assert_ok(swfs_recon_learner_heldout(all, pb, SWFS_RECON_LEARN_RIDGE, &h2, &t2));
+    swfs_recon *wa = NULL;
+    assert_ok(swfs_recon_learner_solve(pa, SWFS_RECON_LEARN_RIDGE, &wa, NULL));
+    const double direct = misfit2(wa, s + na * NS, z + na * NA, nb);
+    printf("test_recon_learn: held out %.6g, directly %.6g; training %.6g\n", h2, direct, m_all);
+    assert_close(h2 / direct, 1.0, 1e-8);
+    /* least squares: the map that learned b's frames misses them by no more than one that did not */
+    assert_true(misfit2(w, s + na * NS, z + na * NA, nb) <= h2 * (1 + 1e-9));
+    double tz = 0;
+    for (size_t f = na; f < na + nb; f++) {
+        double mz = 0;
+        for (size_t a = 0; a < NA; a++) mz += z[f * NA + a] / NA;
+        for (size_t a = 0; a < NA; a++) tz += (z[f * NA + a] - mz) * (z[f * NA + a] - mz);
+    }
+    assert_close(t2 / (tz / (double)(nb * NA)), 1.0, 1e-10);
+
+    /* a part that is the whole, or of another shape, is refused */
+    assert_int_equal(swfs_recon_learner_heldout(all, all, SWFS_RECON_LEARN_RIDGE, &h2, &t2), SWFS_ERR_ARG);
+    assert_true(isnan(h2));
+    /* too few frames for the slopes: a clear error, no map */
+    swfs_recon_learner_reset(pa);
+    assert_int_equal(swfs_recon_learner_frames(pa), 0);
+    assert_ok(swfs_recon_learner_add(pa, s, z, 5));
+    swfs_recon *wx = NULL;
+    assert_int_equal(swfs_recon_learner_solve(pa, SWFS_RECON_LEARN_RIDGE, &wx, NULL), SWFS_ERR_VALUE);
+    assert_null(wx);
+    printf("test_recon_learn: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "5 frames for 6 slopes"));
+    /* a NaN slope: refused, named, nothing added */
+    s[2 * NS + 4] = NAN;
+    assert_int_equal(swfs_recon_learner_add(pa, s, z, 3), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "slope 4 of frame 2"));
+    assert_int_equal(swfs_recon_learner_frames(pa), 5);
+    assert_int_equal(swfs_recon_learner_solve(pa, 0.0, &wx, NULL), SWFS_ERR_ARG);
+
+    swfs_recon_free(w);
+    swfs_recon_free(wa);
+    swfs_recon_learner_free(all);
+    swfs_recon_learner_free(pa);
+    swfs_recon_learner_free(pb);
+    free(s);
+    free(z);
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner)};
+    return cmocka_run_group_tests(tests, NULL, NULL);
+}
