@@ -9,19 +9,25 @@
 #include <stdlib.h>
 
 static const char *usage_text =
-    "usage: specklewfs learn SIMDIR... -o W.fits [--ridge R]\n"
+    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
     "actuators, over every frame of the folders given (`specklewfs simulate mode=timeseries\n"
     "export_truth=1 ...`: slopes_NNN.fits beside truewf_NNN.fits; any simulation writing\n"
-    "those files will do). Give it to `specklewfs speckles --recon W.fits`. Simulate the same\n"
-    "Shack-Hartmann and actuators as the data, under a spread of conditions (wind, seeing,\n"
-    "noise): trained on other systems of one geometry it beat the default von Karman\n"
-    "reconstructor on every run measured (docs/telemetry.md); trained on one condition alone\n"
-    "it can lose to it.\n"
+    "those files will do). Give it to `specklewfs speckles --recon W.fits`, or to the linear\n"
+    "model as `--basis B.fits --control W.fits`. Simulate the same WFS and actuators as the\n"
+    "data, under a spread of conditions (wind, seeing, noise) around the data's: trained on\n"
+    "other systems of one geometry it beat the default von Karman reconstructor on 22 of the\n"
+    "24 runs measured and lost by 0.1-0.2 nm on two (docs/telemetry.md); trained on one\n"
+    "condition alone it can lose to it.\n"
     "\n"
     "  -o W.fits     the reconstructor (NAXIS1 = slopes, NAXIS2 = actuators, m/rad)\n"
+    "  --modal       truewf_NNN.fits hold the residual's coefficients on a basis without\n"
+    "                piston (any AO system: modes, or any WFS signal in slopes_NNN.fits):\n"
+    "                learned as they are, and W.fits is a control matrix for speckles\n"
+    "                --basis B.fits --control W.fits (default: actuator values, whose mean\n"
+    "                is piston and is taken out)\n"
     "  --ridge R     ridge of the normal equations, a fraction of their mean diagonal\n"
     "                (default 1e-6; it only conditions the solve)\n"
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
@@ -41,6 +47,7 @@ int swfs_cmd_learn(int argc, char **argv)
         {"-o", CLI_STRING, &o.out, "a file name", 0},
         {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
+        {"--modal", CLI_SET, &o.modal, NULL, 1},
     };
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
     int rc = cli_parse_args(&args, argc, argv);
@@ -59,10 +66,15 @@ int swfs_cmd_learn(int argc, char **argv)
     o.heldout_ratio = ratio;
     swfs_learn_run_result r;
     if (swfs_learn_run(&o, &r)) { free(dirs); free(ratio); return cli_error(cmd); }
-    printf("learn: %zu WFS frames from %zu files in %zu data set%s: %zu slopes (%zu with signal) -> %zu actuators\n",
-           r.info.nframes, r.nfiles, nd, nd == 1 ? "" : "s", r.nslopes, r.info.nslopes_seen, r.nact);
-    printf("learn: the simulated residual %.1f nm rms per actuator; the map misses it by %.1f nm on the training "
-           "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
+    printf("learn: %zu WFS frames from %zu files in %zu data set%s: %zu slopes (%zu with signal) -> %zu %s\n",
+           r.info.nframes, r.nfiles, nd, nd == 1 ? "" : "s", r.nslopes, r.info.nslopes_seen, r.nact,
+           o.modal ? "coefficients" : "actuators");
+    if (o.modal)
+        printf("learn: the simulated coefficients %.4g rms; the map misses them by %.4g on the training frames -> %s "
+               "(a control matrix)\n", r.info.truth_rms, r.info.misfit_rms, o.out);
+    else
+        printf("learn: the simulated residual %.1f nm rms per actuator; the map misses it by %.1f nm on the training "
+               "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
     if (r.nheldout) {
         printf("learn: each data set held out in turn, the map of the others applied to it (misfit / residual; "
                "training %.2f):\n", r.info.misfit_rms / r.info.truth_rms);
@@ -70,8 +82,9 @@ int swfs_cmd_learn(int argc, char **argv)
             if (isnan(ratio[d])) printf("  %-40s not checked (too few frames in the others)\n", dirs[d]);
             else printf("  %-40s %.2f%s\n", dirs[d], ratio[d], ratio[d] >= 1 ? "  not covered: worse than no map" : "");
         }
-        printf("learn: held out, all %zu: %.1f nm of %.1f (%.2f)\n", r.nheldout, 1e9 * r.heldout_misfit_rms,
-               1e9 * r.heldout_truth_rms, r.heldout_misfit_rms / r.heldout_truth_rms);
+        const double u = o.modal ? 1 : 1e9;
+        printf("learn: held out, all %zu: %.4g%s of %.4g (%.2f)\n", r.nheldout, u * r.heldout_misfit_rms,
+               o.modal ? "" : " nm", u * r.heldout_truth_rms, r.heldout_misfit_rms / r.heldout_truth_rms);
         if (r.heldout_worst >= 1)
             printf("learn: a data set at >= 1 is one the others do not cover: its conditions lie outside theirs, or "
                    "they hold too few frames for %zu slopes (%.1f frames per slope in all; simulate more, or more "

@@ -66,9 +66,9 @@ static void test_learner(void **state)
     make_frames(&r, na + nb, s, z);
 
     swfs_recon_learner *all = NULL, *pa = NULL, *pb = NULL;
-    assert_ok(swfs_recon_learner_new(NS, NA, &all));
-    assert_ok(swfs_recon_learner_new(NS, NA, &pa));
-    assert_ok(swfs_recon_learner_new(NS, NA, &pb));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &all));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &pa));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &pb));
     /* the sums in two calls of different length, as files are read */
     assert_ok(swfs_recon_learner_add(all, s, z, 123));
     assert_ok(swfs_recon_learner_add(all, s + 123 * NS, z + 123 * NA, na + nb - 123));
@@ -145,8 +145,55 @@ static void test_learner(void **state)
     free(z);
 }
 
+/* Modal coefficients (remove_mean 0): the truth is taken as it is, so W0 comes back whole,
+ * its column means included, where the actuator learner takes them out. */
+static void test_learner_modal(void **state)
+{
+    (void)state;
+    swfs_rng r;
+    swfs_rng_seed(&r, 8);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : 1.0 + swfs_rng_normal(&r);
+    const size_t n = 500;
+    double *s = malloc(n * NS * sizeof *s), *z = malloc(n * NA * sizeof *z);
+    make_frames(&r, n, s, z);
+    /* no piston in modal coefficients: take out the one make_frames drew, keep the map's own mean */
+    for (size_t f = 0; f < n; f++) {
+        double zm = 0, wm = 0;
+        for (size_t a = 0; a < NA; a++) {
+            zm += z[f * NA + a] / NA;
+            for (size_t i = 0; i < NS; i++) wm += W0[a][i] * s[f * NS + i] / NA;
+        }
+        for (size_t a = 0; a < NA; a++) z[f * NA + a] += wm - zm;
+    }
+    swfs_recon_learner *lm = NULL, *la = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 0, &lm));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &la));
+    assert_ok(swfs_recon_learner_add(lm, s, z, n));
+    assert_ok(swfs_recon_learner_add(la, s, z, n));
+    swfs_recon *wm = NULL, *wa = NULL;
+    assert_ok(swfs_recon_learner_solve(lm, SWFS_RECON_LEARN_RIDGE, &wm, NULL));
+    assert_ok(swfs_recon_learner_solve(la, SWFS_RECON_LEARN_RIDGE, &wa, NULL));
+    double em = 0, colmean = 0;
+    for (size_t i = 0; i < NS; i++)
+        for (size_t a = 0; a < NA; a++) {
+            em = fmax(em, fabs(wm->W[a * NS + i] - W0[a][i]));
+            colmean = fmax(colmean, fabs(wa->W[a * NS + i] - wm->W[a * NS + i]));
+        }
+    printf("test_recon_learn: modal map error %.4f; the actuator learner differs by up to %.3f (the means)\n", em,
+           colmean);
+    assert_true(em < 0.05);
+    assert_true(colmean > 0.3);
+    swfs_recon_free(wm);
+    swfs_recon_free(wa);
+    swfs_recon_learner_free(lm);
+    swfs_recon_learner_free(la);
+    free(s);
+    free(z);
+}
+
 int main(void)
 {
-    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner)};
+    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_modal)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -347,6 +347,9 @@ typedef struct swfs_learn_run_options {
     size_t ndirs;
     double ridge;             /* SWFS_RECON_LEARN_RIDGE */
     const char *out;          /* the reconstructor file (swfs_recon_write's layout; speckles --recon) */
+    int modal;                /* 1: truewf_NNN.fits hold coefficients on a basis without piston
+                                 (any AO system's modes): learned as they are, for speckles
+                                 --basis B --control W; 0: actuator values, piston removed */
     int no_heldout;           /* 1: skip the held-out check (it reads every file twice) */
     double *heldout_ratio;    /* optional, ndirs long (the caller's): each data set's held-out
                                  rms misfit / rms truth, NaN where it was not checked */

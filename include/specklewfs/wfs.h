@@ -166,24 +166,27 @@ void swfs_recon_free(swfs_recon *r);
 /* A reconstructor learned from simulated closed loops of the system's geometry: the
  * least-squares map from one frame's slopes to the true residual wavefront on the actuators
  * (simulate mode=timeseries export_truth=1: slopes_NNN.fits and truewf_NNN.fits), piston
- * removed, over all the frames added,
+ * removed (remove_mean), over all the frames added,
  *   W = Z^T S (S^T S + lam I)^-1,  lam = ridge x the mean diagonal of S^T S,
  * over the slopes with any signal (the others get 0). It is the per-frame conditional mean of
  * the residual under the simulated loops' statistics: the closed loop's own residual spectrum
  * and what the slopes' aliases do in it, which the von Karman prior of swfs_recon_vk does not
- * know (docs/telemetry.md: trained on other systems of the same geometry it beat vk on every
- * run of the matrix measured). The ridge only conditions the solve (1e-6 and 1e-4 gave the
- * same NCP errors to 0.3 nm). Accumulate with add (frames x nslopes and frames x nact,
- * row-major), then solve; nothing on the add path allocates. */
+ * know (docs/telemetry.md: trained on other systems of the same geometry it beat vk on 22 of
+ * the matrix's 24 runs, and lost by 0.1-0.2 nm on the other two). The ridge only conditions
+ * the solve (1e-6 and 1e-4 gave the same NCP errors to 0.3 nm). Accumulate with add (frames
+ * x nslopes and frames x nact, row-major), then solve; nothing on the add path allocates. */
 typedef struct swfs_recon_learner swfs_recon_learner;
 typedef struct swfs_recon_learn_info {
     size_t nframes;      /* frames learned from */
     size_t nslopes_seen; /* slopes with signal (the map's columns) */
-    double truth_rms;    /* [m] rms of the truth per actuator, piston removed */
+    double truth_rms;    /* [m] rms of the truth per actuator, piston removed (remove_mean) */
     double misfit_rms;   /* [m] rms of truth - W s over the training frames */
 } swfs_recon_learn_info;
 #define SWFS_RECON_LEARN_RIDGE 1e-6
-int swfs_recon_learner_new(size_t nslopes, size_t nact, swfs_recon_learner **out);
+/* remove_mean: 1 when the truth holds actuator values (their mean is piston, which no WFS
+ * sees: taken out of every frame), 0 when it holds modal coefficients (no piston among them:
+ * learned as they are; the map is then a control matrix for speckles --basis --control). */
+int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out);
 void swfs_recon_learner_free(swfs_recon_learner *l);
 int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes);
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l);

@@ -283,7 +283,7 @@ SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("nco
                    ("nexp_missing", c_size), ("missing_reason", ctypes.c_char * 1024)]
 swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
 swfs_learn_run_options = _s("swfs_learn_run_options", [
-    ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("no_heldout", c_int),
+    ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])

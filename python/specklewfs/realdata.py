@@ -97,11 +97,14 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
-def learn(dirs, out, ridge=None, heldout=True, provenance=()):
+def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=()):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
-    truewf_NNN.fits, one geometry), written to `out` for speckles(..., recon=out). Returns
+    truewf_NNN.fits, one geometry), written to `out` for speckles(..., recon=out); with
+    modal=True the truth files hold coefficients on a basis without piston (any AO system)
+    and `out` is a control matrix for the linear model (Pipeline.linear(control=...),
+    `speckles --basis B --control out`). Returns
     nframes, nfiles, nslopes, nslopes_seen, nact, truth_rms and misfit_rms [m], and with more
     than one folder (heldout=True) the leave-one-folder-out check: nheldout,
     heldout_misfit_rms, heldout_truth_rms [m], heldout_ratio (each folder's misfit / truth,
@@ -116,6 +119,7 @@ def learn(dirs, out, ridge=None, heldout=True, provenance=()):
     if ridge is not None:
         o.ridge = float(ridge)
     o.no_heldout = 0 if heldout else 1
+    o.modal = 1 if modal else 0
     ratio = np.full(n, np.nan)
     o.heldout_ratio = dptr(ratio)
     prov, o.nprov = _lib.strings(provenance)

@@ -135,6 +135,11 @@ def test_learn_reconstructor(series, tmp_path):
     assert r["nheldout"] == 2 and r["heldout_ratio"].shape == (2,) and np.all(np.isfinite(r["heldout_ratio"]))
     assert r["heldout_misfit_rms"] > r["misfit_rms"] and r["heldout_worst"] == r["heldout_ratio"].max()
     assert r["heldout_ratio"].min() > r["misfit_rms"] / r["truth_rms"]
+    # the truth taken as modal coefficients (piston kept), no held-out check: a control matrix
+    rm = sw.learn(dirs, str(tmp_path / "Wm.fits"), modal=True, heldout=False)
+    assert rm["nheldout"] == 0 and np.isnan(rm["heldout_misfit_rms"]) and np.all(np.isnan(rm["heldout_ratio"]))
+    assert rm["truth_rms"] >= r["truth_rms"] and rm["nframes"] == r["nframes"]
+    assert sw.fits.read_keys(str(tmp_path / "Wm.fits"), ["LRNMODAL"])["LRNMODAL"] == 1
     W = sw.read_fits(str(tmp_path / "W.fits"))[0]
     assert W.shape == (217, 288) and (np.abs(W).sum(0) == 0).sum() == 288 - 224
     d, s = series, series / "sim"

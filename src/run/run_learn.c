@@ -18,7 +18,7 @@ void swfs_learn_run_options_default(swfs_learn_run_options *o)
 
 /* One pair of files: the slopes and the truth of the same frames, added to the learner (made
  * at the first pair, from its shapes). */
-static int add_pair(const char *sp, const char *tp, swfs_recon_learner **l, swfs_learn_run_result *r)
+static int add_pair(const char *sp, const char *tp, int modal, swfs_recon_learner **l, swfs_learn_run_result *r)
 {
     swfs_real *s = NULL, *z = NULL;
     int rc = swfs_fits_read_real(sp, NULL, &s, NULL);
@@ -32,7 +32,7 @@ static int add_pair(const char *sp, const char *tp, swfs_recon_learner **l, swfs
     if (!rc && !*l) {
         r->nslopes = s->nx;
         r->nact = z->nx;
-        rc = swfs_recon_learner_new(s->nx, z->nx, l);
+        rc = swfs_recon_learner_new(s->nx, z->nx, !modal, l);
     }
     if (!rc && (rc = swfs_recon_learner_add(*l, s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
@@ -48,13 +48,15 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
     int rc = swfs_fits_out_create(&f, o->out);
     if (rc) return rc;
     rc = swfs_fits_out_real(f, NULL, &a, -64);
-    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m/rad", "actuator displacement per slope");
+    if (!rc && !o->modal) rc = swfs_fits_out_key_string(f, "BUNIT", "m/rad", "actuator displacement per slope");
     if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", 0, "learned, not an SVD");
+    if (!rc) rc = swfs_fits_out_key_long(f, "LRNMODAL", o->modal ? 1 : 0, o->modal ? "truth: modal coefficients as given"
+                                                                                  : "truth: actuators, piston removed");
     if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "learned", "least squares slopes -> simulated residual");
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNFRAME", (long)r->info.nframes, "WFS frames learned from");
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNSETS", (long)o->ndirs, "simulated data sets");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
-    if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "[m] rms truth per actuator");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "rms truth per value [m, or the coefficients' unit]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", r->info.misfit_rms, "[m] rms training misfit");
     if (!rc && r->nheldout) {
         rc = swfs_fits_out_key_long(f, "LRNHSETS", (long)r->nheldout, "data sets held out in turn");
@@ -67,7 +69,10 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
         snprintf(h, sizeof h, "learned from %.4000s", o->dirs[d]);
         rc = swfs_fits_out_history(f, h);
     }
-    if (!rc) rc = swfs_fits_out_history(f, "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
+    if (!rc)
+        rc = swfs_fits_out_history(f, o->modal ? "specklewfs control matrix: coefficients = W v, NAXIS1 = telemetry values, "
+                                                 "NAXIS2 = basis functions (speckles --basis --control)"
+                                               : "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
     if (!rc) rc = swfs_fits_out_provenance(f, o->prov, o->nprov);
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
@@ -75,7 +80,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
 
 /* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
  * counts them when given). */
-static int add_dir(const char *dir, swfs_recon_learner **l, swfs_learn_run_result *r, size_t *nfiles)
+static int add_dir(const char *dir, int modal, swfs_recon_learner **l, swfs_learn_run_result *r, size_t *nfiles)
 {
     size_t k = 0;
     for (;; k++) {
@@ -86,7 +91,7 @@ static int add_dir(const char *dir, swfs_recon_learner **l, swfs_learn_run_resul
         if (access(tp, F_OK) != 0)
             return swfs_fail(SWFS_ERR_IO, "%s: no %s beside it: the training data need the true residual of every "
                              "slopes file (simulate mode=timeseries export_truth=1)", sp, tp);
-        int rc = add_pair(sp, tp, l, r);
+        int rc = add_pair(sp, tp, modal, l, r);
         if (rc) return rc;
         if (nfiles) (*nfiles)++;
     }
@@ -102,13 +107,13 @@ static int add_dir(const char *dir, swfs_recon_learner **l, swfs_learn_run_resul
 static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
 {
     swfs_recon_learner *part = NULL;
-    int rc = swfs_recon_learner_new(r->nslopes, r->nact, &part);
+    int rc = swfs_recon_learner_new(r->nslopes, r->nact, !o->modal, &part);
     for (size_t d = 0; o->heldout_ratio && d < o->ndirs; d++) o->heldout_ratio[d] = NAN;
     double m2 = 0, t2 = 0;
     size_t nf = 0;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         swfs_recon_learner_reset(part);
-        if ((rc = add_dir(o->dirs[d], &part, r, NULL))) break;
+        if ((rc = add_dir(o->dirs[d], o->modal, &part, r, NULL))) break;
         double md = 0, td = 0;
         rc = swfs_recon_learner_heldout(all, part, o->ridge, &md, &td);
         if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
@@ -148,7 +153,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        rc = add_dir(o->dirs[d], &l, r, &r->nfiles);
+        rc = add_dir(o->dirs[d], o->modal, &l, r, &r->nfiles);
         if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
     }
     swfs_recon *w = NULL;

@@ -13,12 +13,13 @@
 struct swfs_recon_learner {
     size_t nslopes, nact, nframes;
     double *G; /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
-    double *H; /* nslopes x nact: sum of s z^T, z with its mean over the actuators removed */
+    int remove_mean; /* 1: z's mean over its values is piston (actuator values) and comes out */
+    double *H; /* nslopes x nact: sum of s z^T, z with its mean removed when remove_mean */
     double zz; /* sum of |z|^2 */
     double *zc; /* one frame's z, piston removed */
 };
 
-int swfs_recon_learner_new(size_t nslopes, size_t nact, swfs_recon_learner **out)
+int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out)
 {
     *out = NULL;
     if (!nslopes || !nact) return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: %zu slopes, %zu actuators", nslopes, nact);
@@ -26,6 +27,7 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, swfs_recon_learner **out
     if (l) {
         l->nslopes = nslopes;
         l->nact = nact;
+        l->remove_mean = remove_mean != 0;
         l->G = calloc(nslopes * nslopes, sizeof *l->G);
         l->H = calloc(nslopes * nact, sizeof *l->H);
         l->zc = malloc(nact * sizeof *l->zc);
@@ -60,13 +62,16 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
         if (!isfinite(truth[k]))
             return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: actuator %zu of frame %zu of the truth is not finite",
                              k % na, k / na);
-    /* G += S^T S (one rank-k update), H += S^T Zc frame by frame (piston: nothing sees it). */
+    /* G += S^T S (one rank-k update), H += S^T Zc frame by frame (piston: nothing sees it;
+     * modal coefficients carry none and are taken as they are). */
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
     for (size_t f = 0; f < nframes; f++) {
         const double *z = truth + f * na;
         double m = 0;
-        for (size_t a = 0; a < na; a++) m += z[a];
-        m /= (double)na;
+        if (l->remove_mean) {
+            for (size_t a = 0; a < na; a++) m += z[a];
+            m /= (double)na;
+        }
         for (size_t a = 0; a < na; a++) {
             l->zc[a] = z[a] - m;
             l->zz += l->zc[a] * l->zc[a];
