@@ -51,6 +51,19 @@ static void simulate_small(const char *where, const char *const *kv, size_t nkv)
     assert_ok(swfs_ts_run(&tp, where, prov, 1, NULL, NULL, &sm));
 }
 
+/* speckles on the test data (timing.txt, science.fits, actuators.fits) with the reconstructor
+ * file `recon`, into `out`. */
+static void given_recon_options(swfs_speckles_run_options *sp, const char *recon, const char *out)
+{
+    swfs_speckles_run_options_default(sp);
+    sp->timing = p("timing.txt");
+    sp->science = p("science.fits");
+    sp->actuators = p("actuators.fits");
+    sp->pipe.recon = SWFS_RECON_GIVEN;
+    sp->recon = recon;
+    sp->out = out;
+}
+
 /* The small system of tests/cli_telemetry.sh (3 cubes x 60 frames at 6.48 WFS frames per
  * camera frame, lag 3) simulated into the folder `where` with telemetry files of
  * `file_frames` WFS frames, then reduced to where/science.fits. */
@@ -265,13 +278,7 @@ static void test_sync_speckles_estimate(void **state)
 
     /* Bad input: a reconstructor whose length does not match the slopes. */
     swfs_speckles_run_options sp;
-    swfs_speckles_run_options_default(&sp);
-    sp.timing = p("timing.txt");
-    sp.science = p("science.fits");
-    sp.actuators = p("actuators.fits");
-    sp.pipe.recon = SWFS_RECON_GIVEN;
-    sp.recon = p("actuators.fits");
-    sp.out = p("x.fits");
+    given_recon_options(&sp, p("actuators.fits"), p("x.fits"));
     assert_int_not_equal(swfs_speckles_run(&sp, &spr), 0);
     printf("test_runs: bad reconstructor: %s\n", swfs_last_error());
     assert_non_null(strstr(swfs_last_error(), "expects"));
@@ -1056,13 +1063,7 @@ static void test_learn_reconstructor(void **state)
 
     /* the whole path on the test data with the learned reconstructor */
     swfs_speckles_run_options sp;
-    swfs_speckles_run_options_default(&sp);
-    sp.timing = p("timing.txt");
-    sp.science = p("science.fits");
-    sp.actuators = p("actuators.fits");
-    sp.pipe.recon = SWFS_RECON_GIVEN;
-    sp.recon = p("recon_learned.fits");
-    sp.out = p("speckles_learned.fits");
+    given_recon_options(&sp, p("recon_learned.fits"), p("speckles_learned.fits"));
     const char *min[] = {sp.science}, *mout[] = {p("sci_learned.fits")};
     sp.match_in = min;
     sp.match_out = mout;
