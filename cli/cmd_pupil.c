@@ -1,4 +1,5 @@
-/* specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr] [--keep-resmean] */
+/* specklewfs pupil HALO.fits [HALO2.fits ...] -o PUPIL.fits [--pupil MASK.fits] [--bias B] [--weight none|snr]
+ * [--keep-resmean]: with more than one halo, the one whose speckles explain the most is used. */
 #include "cli.h"
 
 #include "specklewfs/estimate.h"
@@ -9,15 +10,21 @@
 
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 
 static const char *usage_text =
-    "usage: specklewfs pupil HALO.fits -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments]\n"
+    "usage: specklewfs pupil HALO.fits [HALO2.fits ...] -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments]\n"
     "                        [--bias B] [--weight none|snr] [--wiener-k K] [--source lf|halo]\n"
     "                        [--keep-resmean]\n"
     "\n"
     "The pupil field and the NCP wavefront (eq:Pupil-field-with-NCP1, eq:NCP-WFE-estimate) from the\n"
     "static halo, inside the pupil with piston removed.\n"
+    "\n"
+    "With more than one halo (halos of the same science frames from different speckles: the\n"
+    "default reconstructor and `speckles --recon learned.fits`, say), each is scored by the\n"
+    "self-check (the fraction of the science intensity's variance its speckles explain, over\n"
+    "the focal pixels solved in all of them), the table printed, and the best one used.\n"
     "\n"
     "  -o PUPIL.fits      output: FIELD (complex), WFE [m], SURFACE [m] (= WFE/2), AMPLITUDE, PUPIL;\n"
     "                     after a fit also HALO_FIT (complex Psi) and GAIN_FIT (g)\n"
@@ -80,6 +87,34 @@ static int special(void *vctx, int argc, char **argv, int *i)
     return 1;
 }
 
+/* The halos scored by the self-check (swfs_halo_choose); *best the one to use; line: what was
+ * chosen, for the output's provenance. */
+static int choose(const char *cmd, const char *const *ins, size_t nin, const char **best, char *line, size_t cap)
+{
+    swfs_halo **hs = calloc(nin, sizeof *hs);
+    double *ex = calloc(nin, sizeof *ex);
+    int rc = CLI_FAIL;
+    size_t b = 0, ncommon = 0;
+    if (!hs || !ex) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto out; }
+    for (size_t k = 0; k < nin; k++) {
+        swfs_geom gk;
+        if (swfs_halo_read(ins[k], &hs[k], &gk)) { cli_error(cmd); goto out; }
+    }
+    if (swfs_halo_choose((const swfs_halo *const *)hs, ins, nin, ex, &b, &ncommon)) { cli_error(cmd); goto out; }
+    printf("pupil: the speckles' self-check over the %zu focal pixels solved in all %zu halos (the fraction of the "
+           "science intensity's variance they explain):\n", ncommon, nin);
+    for (size_t k = 0; k < nin; k++)
+        printf("  %-40s %6.2f %%%s\n", ins[k], 100 * ex[k], k == b ? "  <- used" : "");
+    snprintf(line, cap, "chosen by the self-check among %zu halos: %.1000s (%.2f %% explained)", nin, ins[b], 100 * ex[b]);
+    *best = ins[b];
+    rc = CLI_OK;
+out:
+    for (size_t k = 0; hs && k < nin; k++) swfs_halo_free(hs[k]);
+    free(hs);
+    free(ex);
+    return rc;
+}
+
 int swfs_cmd_pupil(int argc, char **argv)
 {
     const char *cmd = "pupil";
@@ -91,11 +126,15 @@ int swfs_cmd_pupil(int argc, char **argv)
         {"-o", CLI_STRING, &out, "a file name", 0},         {"--pupil", CLI_STRING, &maskfile, "a file name", 0},
         {"--truth", CLI_STRING, &truthfile, "a file name", 0},  {"--keep-resmean", CLI_SET, &opt.keep_resmean, NULL, 1},
     };
-    const char **const pos[] = {&in};
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &pctx, NULL, NULL};
+    const char **ins = calloc((size_t)argc, sizeof *ins);
+    size_t nin = 0;
+    if (!ins) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, special, &pctx, ins, &nin};
     int prc = cli_parse_args(&args, argc, argv);
+    if (prc || !nin) free(ins);
     if (prc) return prc < 0 ? CLI_OK : prc;
-    if (!in) return cli_usage_error(cmd, "needs HALO.fits");
+    if (!nin) return cli_usage_error(cmd, "needs HALO.fits");
+    in = ins[0];
     if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
     if (pctx.moments_opt && opt.method == SWFS_PUPIL_FIT)
         return cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
@@ -103,17 +142,22 @@ int swfs_cmd_pupil(int argc, char **argv)
 
     swfs_paths *paths = NULL;
     swfs_paths_create(&paths);
-    swfs_paths_input(paths, "halo", in);
+    for (size_t k = 0; k < nin; k++) swfs_paths_input(paths, "halo", ins[k]);
     swfs_paths_input(paths, "--pupil mask", maskfile);
     swfs_paths_input(paths, "--truth", truthfile);
     swfs_paths_output(paths, "-o", out);
-    if (cli_paths_check(cmd, paths)) return CLI_FAIL;
+    if (cli_paths_check(cmd, paths)) { free(ins); return CLI_FAIL; }
 
     swfs_halo *h = NULL;
+    char chosen[1400] = "";
     swfs_real *mask = NULL, *truth = NULL;
     swfs_pupil_result *r = NULL;
     int rc = CLI_FAIL;
     swfs_geom g;
+    if (nin > 1) {
+        if (choose(cmd, ins, nin, &in, chosen, sizeof chosen)) goto done;
+        printf("pupil: %s\n", chosen);
+    }
     if (swfs_halo_read(in, &h, &g)) { cli_error(cmd); goto done; }
     if (swfs_geom_require(&g, in)) { cli_error(cmd); goto done; }
     if (maskfile) {
@@ -147,8 +191,8 @@ int swfs_cmd_pupil(int argc, char **argv)
     char tl[256];
     snprintf(tl, sizeof tl, "compared with %s: NCP error %.4g m rms (piston, tip, tilt removed)", truthfile ? truthfile : "",
              err);
-    const char *prov[] = {cl, tl};
-    if (swfs_pupil_write(r, out, &g, prov, truthfile ? 2 : 1)) { cli_error(cmd); goto done; }
+    const char *prov[] = {cl, chosen[0] ? chosen : tl, tl};
+    if (swfs_pupil_write(r, out, &g, prov, (size_t)((chosen[0] ? 2 : 1) + (truthfile ? 1 : 0)))) { cli_error(cmd); goto done; }
     printf("pupil: %s\n", out);
     if (r->method == SWFS_PUPIL_FIT) {
         const swfs_jointfit_result *f = r->fit;
@@ -196,6 +240,7 @@ int swfs_cmd_pupil(int argc, char **argv)
                "tilt removed)\n", truth_p * 1e9, truth_ptt * 1e9, err * 1e9);
     rc = CLI_OK;
 done:
+    free(ins);
     swfs_pupil_result_free(r);
     swfs_real_free(mask);
     swfs_real_free(truth);

@@ -180,6 +180,10 @@ fi
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
 
+# ---- pupil: halos of other frames to choose among
+chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits
+chk pupil-choose-missing 1 "nofile.fits" o.fits -- pupil run/halo.fits nofile.fits -o o.fits
+
 # ---- merge
 chk merge-missing 1 "nofile.fits: cannot open" o.fits -- merge nofile.fits ck1.fits -o o.fits
 chk merge-truncated 1 "tck.fits: file is truncated" o.fits -- merge tck.fits ck1.fits -o o.fits

@@ -52,6 +52,13 @@ grep -q "learn: held out, all 6:" recipe.log || { cat recipe.log; fail "learn pr
     -o spk_d.fits 2> speckles_d.log || fail "speckles (default)"
 "$B" estimate sci_d.fits spk_d.fits -o halo_d.fits > /dev/null 2>&1 || fail "estimate (default)"
 "$B" pupil halo_d.fits -o pupil_d.fits --truth obs/truth.fits > pupil_d.log || fail "pupil (default)"
+# the self-check chooses among the three halos of the same frames: it prints the table and
+# uses one of them, no worse than the best by more than 5 %
+"$B" pupil halo_d.fits halo_l.fits halo_c.fits -o pupil_ch.fits --truth obs/truth.fits > pupil_ch.log \
+    || { cat pupil_ch.log; fail "pupil with three halos"; }
+[ "$(grep -c '<- used' pupil_ch.log)" = 1 ] && grep -q "chosen by the self-check among 3 halos" pupil_ch.log \
+    || { cat pupil_ch.log; fail "pupil printed no choice"; }
+eh=$(ncp_error pupil_ch.log)
 el=$(ncp_error pupil_l.log)
 ed=$(ncp_error pupil_d.log)
 ec=$(ncp_error pupil_c.log)
@@ -59,6 +66,10 @@ echo "cli_learn: NCP error with the learned map $el nm (as a control matrix $ec 
 sed -n '/held out in turn/,$p' recipe.log | head -8
 awk -v l="$el" -v d="$ed" 'BEGIN { exit !(l > 0 && d > 0 && l < 1.05 * d && d < 40) }' \
     || fail "learned $el nm against the default $ed nm"
+echo "cli_learn: the self-check chose $(awk '/<- used/ { print $1 }' pupil_ch.log): $eh nm"
+awk -v h="$eh" -v a="$el" -v b="$ed" -v c="$ec" \
+    'BEGIN { m = a; if (b < m) m = b; if (c < m) m = c; exit !(h > 0 && h <= 1.05 * m) }' \
+    || fail "the halo chosen by the self-check: $eh nm, the three $el $ed $ec nm"
 awk -v l="$el" -v c="$ec" 'BEGIN { exit !(c > 0 && c < 1.1 * l && l < 1.1 * c) }' \
     || fail "the learned map as a control matrix $ec nm against $el nm as a reconstructor"
 echo "cli_learn: ok"

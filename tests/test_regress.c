@@ -3,6 +3,8 @@
 #include "testutil.h"
 
 #include "specklewfs/array.h"
+#include "specklewfs/estimate.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/regress.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
@@ -258,12 +260,78 @@ static void test_bad_input(void **state)
     free(s);
 }
 
+/* The self-check as a choice (pupil.h swfs_halo_choose): halos of the same science frames
+ * with the exact speckles and with speckles carrying an error; the exact ones explain the
+ * most and are chosen, the score equals the regression's own explained fraction when every
+ * pixel is solved, and the score falls as the speckles' error grows. Halos of other science
+ * frames and a halo without regression statistics are refused by name. */
+static void test_choose_speckles(void **state)
+{
+    (void)state;
+    synth *s = make_synth(9, 2.0), *other = make_synth(10, 2.0);
+    const double err[3] = {0.0, 0.1, 0.25};
+    swfs_regress *r[4];
+    swfs_halo h[4];
+    const swfs_halo *hp[4];
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 77);
+    static double complex psi[NP];
+    for (int c = 0; c < 3; c++) {
+        r[c] = swfs_regress_create(NX, NY);
+        for (size_t t = 0; t < NF; t++) {
+            for (size_t k = 0; k < NP; k++)
+                psi[k] = s->psi[t][k] + err[c] * (swfs_rng_normal(&rng) + I * swfs_rng_normal(&rng));
+            assert_ok(swfs_regress_add(r[c], s->science[t], (const double *)psi, NULL));
+        }
+    }
+    r[3] = swfs_regress_create(NX, NY);
+    add_range(r[3], other, 0, NF);
+    for (int c = 0; c < 4; c++) {
+        memset(&h[c], 0, sizeof h[c]);
+        h[c].reg = r[c];
+        hp[c] = &h[c];
+    }
+    const char *names[4] = {"exact", "err0.1", "err0.25", "other"};
+    double ex[4];
+    size_t best = 9, nc = 0;
+    assert_ok(swfs_halo_choose(hp, names, 3, ex, &best, &nc));
+    print_message("choose: explained %.4f %.4f %.4f over %zu pixels, best %zu\n", ex[0], ex[1], ex[2], nc, best);
+    assert_int_equal(best, 0);
+    assert_int_equal(nc, NP);
+    assert_true(ex[0] > ex[1] && ex[1] > ex[2] && ex[2] > 0);
+    swfs_regress_sol *so;
+    assert_ok(swfs_regress_solve(r[0], &so));
+    assert_close(ex[0], so->explained, 1e-9);
+    swfs_regress_sol_free(so);
+    /* the order of the candidates does not matter */
+    const swfs_halo *rev[3] = {hp[2], hp[1], hp[0]};
+    assert_ok(swfs_halo_choose(rev, NULL, 3, ex, &best, &nc));
+    assert_int_equal(best, 2);
+    /* other science frames */
+    const swfs_halo *mix[2] = {hp[0], hp[3]};
+    const char *mixn[2] = {names[0], names[3]};
+    assert_int_equal(swfs_halo_choose(mix, mixn, 2, ex, &best, &nc), SWFS_ERR_VALUE);
+    print_message("choose: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "other and exact: the science intensity's variance differs"));
+    assert_true(isnan(ex[0]));
+    /* no regression statistics */
+    swfs_halo bare;
+    memset(&bare, 0, sizeof bare);
+    const swfs_halo *nb[2] = {hp[0], &bare};
+    assert_int_equal(swfs_halo_choose(nb, NULL, 2, ex, &best, &nc), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "candidate 1: no regression statistics"));
+    for (int c = 0; c < 4; c++) swfs_regress_free(r[c]);
+    free(s);
+    free(other);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_merge_exact),
         cmocka_unit_test(test_recovers_model),
         cmocka_unit_test(test_bad_input),
+        cmocka_unit_test(test_choose_speckles),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

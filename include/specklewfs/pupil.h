@@ -77,6 +77,19 @@ void swfs_pupil_explained_rings(const swfs_real *map, double pixscale, double *o
 /* The rings out to the window's edge: ceil(nx PIXSCALE / 2). */
 size_t swfs_pupil_explained_nrings(const swfs_real *map, double pixscale);
 
+/* The self-check as a choice among candidate halos of the same science frames made from
+ * different computed speckles (another reconstructor, such as a learned one, or another
+ * tip-tilt treatment), each with its regression statistics (REGSTATE): per candidate the
+ * fraction of the science intensity's variance about its mean that the regression on its
+ * speckles explains, 1 - sum SSE / sum SST over the focal pixels solved in every candidate
+ * (explained[i]; so all are scored on one set of pixels), and the index of the largest
+ * (*best). *ncommon: those pixels. The science must be the same: the candidates' sum of SST
+ * over those pixels must agree to 1e-6 (SWFS_ERR_VALUE naming the two otherwise), as must the
+ * window; a halo without regression statistics is SWFS_ERR_VALUE. names: for messages (may be
+ * NULL). docs/telemetry.md, "The self-check as the choice". */
+int swfs_halo_choose(const swfs_halo *const *h, const char *const *names, size_t n, double *explained, size_t *best,
+                     size_t *ncommon);
+
 /* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE
  * naming `what`, the sample and the value otherwise). */
 int swfs_pupil_mask_check(const swfs_real *mask, const char *what);

@@ -362,6 +362,7 @@ _PROTOS = {
     "swfs_accum_merge_files": (c_int, [P(c_str), c_size, P(P(swfs_accum)), P(swfs_geom)]),
     # pupil.h
     "swfs_pupil_options_default": (None, [P(swfs_pupil_options)]),
+    "swfs_halo_choose": (c_int, [P(P(swfs_halo)), P(c_str), c_size, P(c_dbl), P(c_size), P(c_size)]),
     "swfs_pupil_estimate": (c_int, [P(swfs_halo), P(swfs_geom), P(swfs_real), P(swfs_pupil_options),
                                     P(P(swfs_pupil_result))]),
     "swfs_pupil_result_free": (None, [P(swfs_pupil_result)]),

@@ -106,3 +106,31 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     check(lib.swfs_pupil_estimate(halo._p, ctypes.byref(g), ms, ctypes.byref(o), ctypes.byref(out)),
           "swfs_pupil_estimate")
     return PupilResult(out, geom)
+
+
+def choose_halo(halos, names=None):
+    """The self-check as a choice (`specklewfs pupil A.fits B.fits ...`, pupil.h
+    swfs_halo_choose): halos of the same science frames from different computed speckles
+    (another reconstructor, a learned one, another tip-tilt treatment), each with regression
+    statistics. Returns (best, explained, ncommon): the index of the halo whose speckles
+    explain the largest fraction of the science intensity's variance, those fractions, and
+    the number of focal pixels (solved in every halo) they were taken over."""
+    halos = list(halos)
+    for k, h in enumerate(halos):
+        if not isinstance(h, Halo):
+            raise TypeError(f"halos[{k}]: expected a specklewfs.Halo, got {type(h).__name__}")
+    n = len(halos)
+    if n == 0:
+        raise ValueError("choose_halo: no halo")
+    arr = (ctypes.POINTER(_lib.swfs_halo) * n)(*[h._p for h in halos])
+    nm = None
+    if names is not None:
+        names = [enc(str(x)) for x in names]
+        if len(names) != n:
+            raise ValueError(f"names: {len(names)} for {n} halos")
+        nm = (ctypes.c_char_p * n)(*names)
+    ex = np.full(n, np.nan)
+    best, ncommon = ctypes.c_size_t(), ctypes.c_size_t()
+    check(lib.swfs_halo_choose(arr, nm, n, ex.ctypes.data_as(ctypes.POINTER(ctypes.c_double)), ctypes.byref(best),
+                               ctypes.byref(ncommon)), "swfs_halo_choose")
+    return best.value, ex, ncommon.value

@@ -206,3 +206,20 @@ def test_phase_shift_map():
     np.testing.assert_allclose(np.exp(1j * phase), np.exp(1j * np.angle(Psi)), atol=1e-12)
     truth = np.abs(Psi) ** 2
     assert np.all(np.isclose(hi, truth, rtol=1e-10) | np.isclose(lo, truth, rtol=1e-10))
+
+
+def test_choose_halo_by_the_self_check():
+    """choose_halo (`pupil A.fits B.fits`): halos of the same frames from the exact speckles
+    and from speckles with an error; the exact ones explain the most and are chosen; halos of
+    other frames are refused."""
+    Psi, psi, I = synth(3000, seed=4, noise=0.05)
+    rng = np.random.default_rng(5)
+    noisy = psi + 0.3 * (rng.normal(size=psi.shape) + 1j * rng.normal(size=psi.shape))
+    ha = sw.Accumulator(12, 10).add(I, psi).estimate()
+    hb = sw.Accumulator(12, 10).add(I, noisy).estimate()
+    best, ex, n = sw.choose_halo([hb, ha], names=["noisy", "exact"])
+    assert best == 1 and n == 120 and ex[1] > ex[0] > 0 and ex[1] > 0.9
+    _, _, I2 = synth(3000, seed=6, noise=0.05)
+    hc = sw.Accumulator(12, 10).add(I2, psi).estimate()
+    with pytest.raises(sw.Error, match="other and exact: the science intensity's variance differs"):
+        sw.choose_halo([ha, hc], names=["exact", "other"])
