@@ -314,6 +314,13 @@ static void test_choose_speckles(void **state)
     print_message("choose: %s\n", swfs_last_error());
     assert_non_null(strstr(swfs_last_error(), "other and exact: the science intensity's variance differs"));
     assert_true(isnan(ex[0]));
+    /* speckles of another tip-tilt treatment */
+    snprintf(h[0].tiptilt, sizeof h[0].tiptilt, "exposure");
+    snprintf(h[1].tiptilt, sizeof h[1].tiptilt, "keep");
+    assert_int_equal(swfs_halo_choose(hp, names, 2, ex, &best, &nc), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "err0.1: speckles made with --tiptilt keep where exact has exposure"));
+    h[1].tiptilt[0] = 0; /* not known: compared */
+    assert_ok(swfs_halo_choose(hp, names, 2, ex, &best, &nc));
     /* no regression statistics */
     swfs_halo bare;
     memset(&bare, 0, sizeof bare);

@@ -1079,6 +1079,11 @@ static void test_learn_reconstructor(void **state)
     assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_learn, NULL, NULL));
     printf("test_runs: NCP error with the learned reconstructor %.1f nm, with the default %.1f nm\n", 1e9 * e_learn,
            1e9 * e_vk);
+    assert_string_equal(er.halo->tiptilt, "exposure"); /* SPECKLES.fits TIPTILT carried into the halo */
+    swfs_halo *hl = NULL;
+    assert_ok(swfs_halo_read(p("halo_learned.fits"), &hl, NULL));
+    assert_string_equal(hl->tiptilt, "exposure"); /* and through HALO.fits */
+    swfs_halo_free(hl);
     assert_true(e_learn > 0 && e_learn < 1.05 * e_vk);
     swfs_pupil_result_free(pf);
     swfs_halo_free(er.halo);

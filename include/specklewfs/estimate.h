@@ -83,6 +83,8 @@ typedef struct swfs_halo {
     swfs_real *resmean;  /* PUPN x PUPN [m]: the AO residual's time mean over the same frames as the
                             telemetry measures it (SPECKLES.fits RESMEAN, pipeline.h), which `pupil`
                             subtracts; NULL when the speckles came without it (owned) */
+    char tiptilt[16];    /* the speckles' tip-tilt treatment ("exposure", "frame", "keep": SPECKLES.fits
+                            and HALO.fits TIPTILT, `speckles --tiptilt`); "" when not known */
 } swfs_halo;
 
 #define SWFS_G_SMOOTH_DEFAULT 8.0 /* pixels: 2 lambda/D at the paper's 0.25 lambda/D sampling */

@@ -74,6 +74,8 @@ typedef struct swfs_speckle_model {
  * the reconstructed tilt. The pipeline (pipeline.c) gives it W (I - M) + C G instead: the
  * mean slopes G out of the higher orders, and back as the plane they measure. */
 enum { SWFS_TT_EXPOSURE = 0, SWFS_TT_FRAME = 1, SWFS_TT_KEEP = 2 };
+/* "exposure", "frame", "keep" (the command line's spelling, SPECKLES.fits TIPTILT); "unknown" otherwise. */
+const char *swfs_tiptilt_name(int mode);
 
 /* W_ext: m->nact rows of m->nslopes + 2 (row-major) = [W - C R | C] from the model's
  * reconstructor m->recon (unprojected), interpolation and mask; xy the nact actuator

@@ -124,7 +124,7 @@ swfs_halo = _s("swfs_halo", [("nx", c_size), ("ny", c_size)] + [(n, P(swfs_cplx)
                + [(n, c_dbl) for n in ("valid_fraction", "median_snr", "radicand_min")]
                + [("frames", ctypes.c_ulonglong), ("skipped", ctypes.c_ulonglong), ("noise", swfs_noise),
                   ("g_smooth", c_dbl), ("n_g_fallback", c_size), ("n_var_below_noise", c_size),
-                  ("reg", c_ptr), ("resmean", P(swfs_real))])
+                  ("reg", c_ptr), ("resmean", P(swfs_real)), ("tiptilt", ctypes.c_char * 16)])
 swfs_estimate_options = _s("swfs_estimate_options", [("g_smooth", c_dbl)])
 ACC_NFIELDS = 15
 ACC_FIELDS = ["N", "MI", "MX", "MY", "MA", "CII", "CIX", "CIY", "CIA", "CXX", "CXY", "CXA", "CYY", "CYA", "CAA"]

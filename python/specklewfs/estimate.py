@@ -162,7 +162,8 @@ class Halo:
     absent: halo (Psi, eq:TheAnswer), halo_lf (eq:PSI-LowFreq), stab (<psi' I>), gain (g
     used), gain_pix (the paper's per-pixel g), visib, snr, mean_i, var_i, mean_sp, var_sp,
     stab_err, circ, valid, nframes; resmean ((pupn, pupn) [m]: the AO residual's time mean
-    that the speckles carried, HALO.fits RESMEAN). Maps of a computed or read halo are views of the
+    that the speckles carried, HALO.fits RESMEAN); tiptilt (the speckles' tip-tilt treatment,
+    HALO.fits TIPTILT, or None). Maps of a computed or read halo are views of the
     library's memory (no copies). Summary: npix, n_valid, valid_fraction, median_snr,
     frames, skipped, read_noise, gain_e (e-/count), g_smooth, ... and geom (read())."""
 
@@ -190,6 +191,7 @@ class Halo:
         self.read_noise = h.noise.read_noise
         self.gain_e = h.noise.gain
         self.resmean = _lib.real_view(h.resmean, owner) if h.resmean else None
+        self.tiptilt = h.tiptilt.decode() or None  # the speckles' --tiptilt (HALO.fits TIPTILT), None: not known
         self.geom = None
         return self
 

@@ -39,6 +39,7 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0
     h = sw.estimate_files(str(d / "sci_m.fits"), str(d / "sp.fits"), str(d / "halo.fits"))
     assert h.resmean is not None and h.frames == sp["nout"]
+    assert h.tiptilt == "exposure" and sw.Halo.read(str(d / "halo.fits")).tiptilt == "exposure"
     truth = sw.read_fits(str(s / "truth.fits"), "NCP")[0]
     p = sw.pupil_estimate(h, sw.read_geom(str(d / "halo.fits")))
     err = sw.wfe_compare(p.wfe, truth, p.mask)[0]

@@ -47,6 +47,7 @@ int swfs_halo_write(const swfs_halo *h, const char *path, const swfs_geom *g, co
     if (!rc) rc = swfs_fits_out_key_double(o, "GAIN", h->noise.gain, "[e-/count] 0 = no photon-noise term");
     if (!rc) rc = swfs_fits_out_key_double(o, "GSMOOTH", h->g_smooth, "[pixels] g regularization (0 = paper)");
     if (!rc) rc = swfs_fits_out_key_long(o, "NGFALLBK", (long)h->n_g_fallback, "pixels with local-median fallback g");
+    if (!rc && h->tiptilt[0]) rc = swfs_fits_out_key_string(o, "TIPTILT", h->tiptilt, "the speckles' tip-tilt treatment");
     if (!rc) rc = swfs_fits_out_cplx(o, "HALO", h->halo, -64);
     if (!rc) rc = swfs_fits_out_key_string(o, "EQUATION", "eq:TheAnswer", "Psi = <psi I>/(g Phi_sp)");
     if (!rc) rc = swfs_fits_out_cplx(o, "HALO_LF", h->halo_lf, -64);
@@ -125,6 +126,7 @@ int swfs_halo_read(const char *path, swfs_halo **out, swfs_geom *g)
         if (!swfs_fits_in_key_double_opt(f, "NFRAMES", &v, &found) && found) h->frames = (unsigned long long)v;
         if (!swfs_fits_in_key_double_opt(f, "VALIDFR", &v, &found) && found) h->valid_fraction = v;
         if (!swfs_fits_in_key_double_opt(f, "MEDSNR", &v, &found) && found) h->median_snr = v;
+        rc = swfs_fits_in_key_string_opt(f, "TIPTILT", h->tiptilt, sizeof h->tiptilt, &found);
     }
     if (!rc && swfs_fits_in_has_ext(f, "REGSTATE")) rc = swfs_regress_read_ext(f, path, h->nx, h->ny, &h->reg);
     if (!rc && swfs_fits_in_has_ext(f, "RESMEAN")) rc = swfs_resmean_read_ext(f, path, &h->resmean);

@@ -165,7 +165,11 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
     if (!rc && swfs_team_writer(o->team)) {
         if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
-        /* the AO residual's time mean that speckles measured on the same frames goes with the halo */
+        /* the speckles' tip-tilt treatment, and the AO residual's time mean that speckles
+         * measured on the same frames, go with the halo */
+        int tf = 0;
+        if (!rc && (rc = swfs_fits_in_key_string_opt(fp, "TIPTILT", r->halo->tiptilt, sizeof r->halo->tiptilt, &tf)))
+            swfs_fail_context(rc, "%s", o->speckles);
         if (!rc && swfs_fits_in_has_ext(fp, "RESMEAN")) rc = swfs_resmean_read_ext(fp, o->speckles, &r->halo->resmean);
         if (!rc && r->halo->resmean && r->geom.pupn > 0 && r->halo->resmean->nx != (size_t)r->geom.pupn)
             rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zux%zu but PUPN = %ld", o->speckles, r->halo->resmean->nx,

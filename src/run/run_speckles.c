@@ -453,6 +453,7 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
         (rc = swfs_fits_out_key_double(f, "FRATIO", w->t->ratio, "<t_sci/t_wfs> from sync")) ||
         (rc = swfs_fits_out_key_double(f, "HSLAG", w->t->lag, "handshake lag [WFS frames] from sync")) ||
         (rc = swfs_fits_out_key_double(f, "SPKBAND", r->info.band, "[lambda/D] speckles computed within (0: all)")) ||
+        (rc = swfs_fits_out_key_string(f, "TIPTILT", swfs_tiptilt_name(o->pipe.tiptilt), "--tiptilt: tip-tilt treatment")) ||
         (!swfs_orient_is_identity(&w->t->fit) && (rc = speckles_orient_key(f, w))) ||
         (o->lin.basis && (rc = linear_keys(f, &o->lin))) ||
         (o->pipe.wfs_rate && ((rc = swfs_fits_out_key_double(f, "FRAMEDT", 1 / r->wfs_hz, "[s] between frames (WFS rate)")) ||

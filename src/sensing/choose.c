@@ -7,6 +7,7 @@
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 
 static const char *nm(const char *const *names, size_t i, char *buf, size_t cap)
 {
@@ -28,6 +29,11 @@ int swfs_halo_choose(const swfs_halo *const *h, const char *const *names, size_t
         if (!h[i]->reg)
             return swfs_fail(SWFS_ERR_VALUE, "%s: no regression statistics (REGSTATE): the self-check needs the halo "
                              "of `estimate` (not a moments-only halo)", nm(names, i, b0, sizeof b0));
+        if (h[i]->tiptilt[0] && h[0]->tiptilt[0] && strcmp(h[i]->tiptilt, h[0]->tiptilt))
+            return swfs_fail(SWFS_ERR_VALUE, "%s: speckles made with --tiptilt %s where %s has %s: the self-check "
+                             "compares speckles of one tip-tilt treatment (with the image motion left in, the "
+                             "speckles explain the frames' motion, which says nothing of the halo's)",
+                             nm(names, i, b0, sizeof b0), h[i]->tiptilt, nm(names, 0, b1, sizeof b1), h[0]->tiptilt);
         if (h[i]->reg->nx != r0->nx || h[i]->reg->ny != r0->ny)
             return swfs_fail(SWFS_ERR_SHAPE, "%s: a %zux%zu window where %s has %zux%zu: candidates must be halos of "
                              "the same science frames", nm(names, i, b0, sizeof b0), h[i]->reg->nx, h[i]->reg->ny,

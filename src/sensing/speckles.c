@@ -279,3 +279,13 @@ int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, cons
     }
     return SWFS_OK;
 }
+
+const char *swfs_tiptilt_name(int mode)
+{
+    switch (mode) {
+    case SWFS_TT_EXPOSURE: return "exposure";
+    case SWFS_TT_FRAME: return "frame";
+    case SWFS_TT_KEEP: return "keep";
+    default: return "unknown";
+    }
+}
