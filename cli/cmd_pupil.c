@@ -135,9 +135,11 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (prc) return prc < 0 ? CLI_OK : prc;
     if (!nin) return cli_usage_error(cmd, "needs HALO.fits");
     in = ins[0];
-    if (!out) return cli_usage_error(cmd, "needs -o PUPIL.fits");
-    if (pctx.moments_opt && opt.method == SWFS_PUPIL_FIT)
-        return cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
+    int urc = CLI_OK;
+    if (!out) urc = cli_usage_error(cmd, "needs -o PUPIL.fits");
+    else if (pctx.moments_opt && opt.method == SWFS_PUPIL_FIT)
+        urc = cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
+    if (urc) { free(ins); return urc; }
     if (pctx.moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 
     swfs_paths *paths = NULL;
