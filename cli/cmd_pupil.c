@@ -6,6 +6,7 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
+#include "specklewfs/run.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -87,32 +88,21 @@ static int special(void *vctx, int argc, char **argv, int *i)
     return 1;
 }
 
-/* The halos scored by the self-check (swfs_halo_choose); *best the one to use; line: what was
- * chosen, for the output's provenance. */
+/* The halos scored by the self-check (swfs_halo_choose_files); *best the one to use; line:
+ * what was chosen, for the output's provenance. */
 static int choose(const char *cmd, const char *const *ins, size_t nin, const char **best, char *line, size_t cap)
 {
-    swfs_halo **hs = calloc(nin, sizeof *hs);
     double *ex = calloc(nin, sizeof *ex);
-    int rc = CLI_FAIL;
     size_t b = 0, ncommon = 0;
-    if (!hs || !ex) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); goto out; }
-    for (size_t k = 0; k < nin; k++) {
-        swfs_geom gk;
-        if (swfs_halo_read(ins[k], &hs[k], &gk)) { cli_error(cmd); goto out; }
-    }
-    if (swfs_halo_choose((const swfs_halo *const *)hs, ins, nin, ex, &b, &ncommon)) { cli_error(cmd); goto out; }
+    if (!ex) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    if (swfs_halo_choose_files(ins, nin, ex, &b, &ncommon)) { free(ex); return cli_error(cmd); }
     printf("pupil: the speckles' self-check over the %zu focal pixels solved in all %zu halos (the fraction of the "
            "science intensity's variance they explain):\n", ncommon, nin);
-    for (size_t k = 0; k < nin; k++)
-        printf("  %-40s %6.2f %%%s\n", ins[k], 100 * ex[k], k == b ? "  <- used" : "");
+    for (size_t k = 0; k < nin; k++) printf("  %-40s %6.2f %%%s\n", ins[k], 100 * ex[k], k == b ? "  <- used" : "");
     snprintf(line, cap, "chosen by the self-check among %zu halos: %.1000s (%.2f %% explained)", nin, ins[b], 100 * ex[b]);
     *best = ins[b];
-    rc = CLI_OK;
-out:
-    for (size_t k = 0; hs && k < nin; k++) swfs_halo_free(hs[k]);
-    free(hs);
     free(ex);
-    return rc;
+    return CLI_OK;
 }
 
 int swfs_cmd_pupil(int argc, char **argv)

@@ -338,6 +338,12 @@ typedef struct swfs_clock_run_result {
 
 int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 
+/* ---- pupil A.fits B.fits ...: the self-check as a choice among halo files ---------------- */
+
+/* The HALO.fits files read and scored by swfs_halo_choose (pupil.h): explained[n], the index
+ * of the best in *best, the focal pixels scored in *ncommon. Messages name the files. */
+int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon);
+
 /* ---- learn: a reconstructor from simulated closed loops (wfs.h swfs_recon_learner) ------ */
 
 typedef struct swfs_learn_run_options {

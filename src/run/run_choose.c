@@ -1,0 +1,21 @@
+/* pupil A.fits B.fits ...: halo files scored by the self-check (run.h swfs_halo_choose_files,
+ * pupil.h swfs_halo_choose; docs/telemetry.md, "The self-check as the choice"). */
+#include "specklewfs/run.h"
+#include "specklewfs/pupil.h"
+
+#include <stdlib.h>
+
+int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon)
+{
+    swfs_halo **hs = calloc(n ? n : 1, sizeof *hs);
+    if (!hs) return swfs_fail(SWFS_ERR_NOMEM, "choosing speckles: out of memory for %zu halos", n);
+    int rc = SWFS_OK;
+    for (size_t k = 0; !rc && k < n; k++) {
+        swfs_geom g;
+        rc = swfs_halo_read(paths[k], &hs[k], &g);
+    }
+    if (!rc) rc = swfs_halo_choose((const swfs_halo *const *)hs, paths, n, explained, best, ncommon);
+    for (size_t k = 0; k < n; k++) swfs_halo_free(hs[k]);
+    free(hs);
+    return rc;
+}
