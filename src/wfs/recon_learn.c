@@ -10,13 +10,18 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* Frames per block of the H update (the per-frame means of one block are kept). */
+#define LEARN_BLOCK 256
+
 struct swfs_recon_learner {
     size_t nslopes, nact, nframes;
-    double *G; /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
     int remove_mean; /* 1: z's mean over its values is piston (actuator values) and comes out */
-    double *H; /* nslopes x nact: sum of s z^T, z with its mean removed when remove_mean */
-    double zz; /* sum of |z|^2 */
-    double *zc; /* one frame's z, piston removed */
+    double *G;    /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
+    double *H;    /* nslopes x nact: sum of s z^T, z with its mean removed when remove_mean */
+    double zz;    /* sum of |z|^2, mean removed */
+    double *mean; /* LEARN_BLOCK frames' means of z */
+    double *v;    /* nslopes: S^T mean of a block */
+    double *ones; /* nact ones */
 };
 
 int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out)
@@ -30,9 +35,12 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_re
         l->remove_mean = remove_mean != 0;
         l->G = calloc(nslopes * nslopes, sizeof *l->G);
         l->H = calloc(nslopes * nact, sizeof *l->H);
-        l->zc = malloc(nact * sizeof *l->zc);
+        l->mean = malloc(LEARN_BLOCK * sizeof *l->mean);
+        l->v = malloc(nslopes * sizeof *l->v);
+        l->ones = malloc(nact * sizeof *l->ones);
+        for (size_t a = 0; l->ones && a < nact; a++) l->ones[a] = 1.0;
     }
-    if (!l || !l->G || !l->H || !l->zc) {
+    if (!l || !l->G || !l->H || !l->mean || !l->v || !l->ones) {
         swfs_recon_learner_free(l);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes x %zu actuators", nslopes,
                          nact);
@@ -46,7 +54,9 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
     if (!l) return;
     free(l->G);
     free(l->H);
-    free(l->zc);
+    free(l->mean);
+    free(l->v);
+    free(l->ones);
     free(l);
 }
 
@@ -62,21 +72,29 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
         if (!isfinite(truth[k]))
             return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: actuator %zu of frame %zu of the truth is not finite",
                              k % na, k / na);
-    /* G += S^T S (one rank-k update), H += S^T Zc frame by frame (piston: nothing sees it;
-     * modal coefficients carry none and are taken as they are). */
+    /* G += S^T S (one rank-k update). H += S^T Zc with Zc = Z - m 1^T (m the frames' means:
+     * piston, which nothing sees; modal coefficients carry none and are taken as they are),
+     * block by block: S^T Z by one GEMM, less (S^T m) 1^T. */
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
-    for (size_t f = 0; f < nframes; f++) {
-        const double *z = truth + f * na;
-        double m = 0;
+    for (size_t f0 = 0; f0 < nframes; f0 += LEARN_BLOCK) {
+        const size_t nb = nframes - f0 < LEARN_BLOCK ? nframes - f0 : LEARN_BLOCK;
+        const double *S = slopes + f0 * ns, *Z = truth + f0 * na;
+        for (size_t f = 0; f < nb; f++) {
+            const double *z = Z + f * na;
+            double m = 0;
+            if (l->remove_mean) {
+                for (size_t a = 0; a < na; a++) m += z[a];
+                m /= (double)na;
+            }
+            l->mean[f] = m;
+            for (size_t a = 0; a < na; a++) l->zz += (z[a] - m) * (z[a] - m);
+        }
+        cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0, S, (int)ns, Z, (int)na, 1.0,
+                    l->H, (int)na);
         if (l->remove_mean) {
-            for (size_t a = 0; a < na; a++) m += z[a];
-            m /= (double)na;
+            cblas_dgemv(CblasRowMajor, CblasTrans, (int)nb, (int)ns, 1.0, S, (int)ns, l->mean, 1, 0.0, l->v, 1);
+            cblas_dger(CblasRowMajor, (int)ns, (int)na, -1.0, l->v, 1, l->ones, 1, l->H, (int)na);
         }
-        for (size_t a = 0; a < na; a++) {
-            l->zc[a] = z[a] - m;
-            l->zz += l->zc[a] * l->zc[a];
-        }
-        cblas_dger(CblasRowMajor, (int)ns, (int)na, 1.0, slopes + f * ns, 1, l->zc, 1, l->H, (int)na);
     }
     l->nframes += nframes;
     return SWFS_OK;
