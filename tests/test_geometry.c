@@ -11,6 +11,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
+#include "specklewfs/wfs.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -178,6 +179,84 @@ static void test_bad_geometry_files(void **state)
 
 /* A line longer than the readers' buffer is refused, naming the line: read in pieces, the
  * tail of a long comment would be taken for a setting of its own. */
+/* One time series into sub, with extra config settings. */
+static int ts_into(const char *sub, const char *const *extra, size_t nextra)
+{
+    swfs_config *c = swfs_config_new();
+    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=1", "cube_frames=40", "cube_gap=50",
+                        "start_offset=60.3", "layer_speed=30,40", "seed=3", "ao_modes=40"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    for (size_t i = 0; i < nextra; i++) assert_ok(swfs_config_set(c, extra[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    int rc = swfs_ts_params_from_config(c, &tp);
+    swfs_config_free(c);
+    if (!rc) rc = swfs_ts_params_check(&tp);
+    mkdir(p(sub), 0755);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_geometry"};
+    return rc ? rc : swfs_ts_run(&tp, p(sub), prov, 1, NULL, NULL, &s);
+}
+
+/* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
+ * given back as a file, makes the same loop (slopes and true residual equal to the last bit);
+ * positions the interpolation cannot use are refused, naming the file. */
+static void test_actuators_given(void **state)
+{
+    (void)state;
+    const char *sq[] = {"act_pitch=0.5", "export_truth=1"};
+    assert_ok(ts_into("dm_built", sq, 2));
+    char given[1400];
+    snprintf(given, sizeof given, "actuators=%s", p("dm_built/actuators.fits"));
+    const char *fromfile[] = {given, "export_truth=1"};
+    assert_ok(ts_into("dm_given", fromfile, 2));
+    const char *cmp[] = {"slopes_000.fits", "truewf_000.fits", "actuators.fits"};
+    for (size_t k = 0; k < 3; k++) {
+        char a[64], b[64];
+        snprintf(a, sizeof a, "dm_built/%s", cmp[k]);
+        snprintf(b, sizeof b, "dm_given/%s", cmp[k]);
+        swfs_real *x = NULL, *y = NULL;
+        assert_ok(swfs_fits_read_real(p(a), NULL, &x, NULL));
+        assert_ok(swfs_fits_read_real(p(b), NULL, &y, NULL));
+        assert_int_equal(x->nx * x->ny * x->nz, y->nx * y->ny * y->nz);
+        double d = 0, m = 0;
+        for (size_t i = 0; i < x->nx * x->ny * x->nz; i++) {
+            d = fmax(d, fabs(x->data[i] - y->data[i]));
+            m = fmax(m, fabs(x->data[i]));
+        }
+        print_message("%s: max |given - built| %g of %g\n", cmp[k], d, m);
+        assert_true(m > 0);
+        assert_true(d == 0.0);
+        swfs_real_free(x);
+        swfs_real_free(y);
+    }
+    /* bad layouts */
+    double xy[2 * 40];
+    size_t n = 0;
+    for (int j = 0; j < 6; j++)
+        for (int i = 0; i < 6; i++, n++) { xy[2 * n] = (i - 2.5) * 0.7; xy[2 * n + 1] = (j - 2.5) * 0.7; }
+    xy[2] = xy[0]; /* actuator 1 on actuator 0 */
+    xy[3] = xy[1];
+    assert_ok(swfs_actuators_write(xy, n, p("dup.fits")));
+    for (size_t k = 0; k < 2 * n; k++) xy[k] *= 100.0; /* centimetres */
+    assert_ok(swfs_actuators_write(xy + 4, n - 2, p("cm.fits")));
+    assert_ok(swfs_actuators_write(xy + 4, 3, p("three.fits")));
+    const struct { const char *file, *phrase; } bad[] = {
+        {"dup.fits", "actuators 0 and 1 are at the same place"},
+        {"cm.fits", "expected positions in metres"},
+        {"three.fits", "3 actuators; the simulated DM needs at least 4"},
+        {"nofile.fits", "nofile.fits"},
+    };
+    for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+        snprintf(given, sizeof given, "actuators=%s", p(bad[k].file));
+        const char *kv[] = {given};
+        assert_int_not_equal(ts_into("dm_bad", kv, 1), SWFS_OK);
+        print_message("%s: %s\n", bad[k].file, swfs_last_error());
+        assert_non_null(strstr(swfs_last_error(), bad[k].phrase));
+        if (strcmp(bad[k].file, "nofile.fits")) assert_non_null(strstr(swfs_last_error(), p(bad[k].file)));
+    }
+}
+
 static void test_long_lines(void **state)
 {
     (void)state;
@@ -219,6 +298,7 @@ int main(void)
         cmocka_unit_test(test_geometry_given),
         cmocka_unit_test(test_bad_geometry_files),
         cmocka_unit_test(test_long_lines),
+        cmocka_unit_test(test_actuators_given),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

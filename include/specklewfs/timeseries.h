@@ -114,6 +114,10 @@ typedef struct swfs_ts_params {
     long milk_drop_wfs, milk_drop_cam; /* frames dropped from each stream (5, 3) */
     long milk_file_frames;     /* WFS frames per file (400) */
     long milk_cam_file_frames; /* camera frames per file (40) */
+    char actuators[1024];      /* the DM's actuator positions from a file in the layout of actuators.fits
+                                  (NAXIS1 = 2: x, y; NAXIS2 = nact [m]), e.g. an AO system's own, so
+                                  that `learn` can be taught on its DM; "" (default): built from
+                                  act_pitch and act_square */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

@@ -111,9 +111,34 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
 #undef D_
 #undef L_
+    const char *act = NULL;
+    if ((rc = swfs_config_string(c, "actuators", p->actuators, &act))) return rc;
+    if (strlen(act) >= sizeof p->actuators)
+        return swfs_fail(SWFS_ERR_VALUE, "setting actuators: a path of %zu characters; at most %zu", strlen(act),
+                         sizeof p->actuators - 1);
+    if (act != p->actuators) snprintf(p->actuators, sizeof p->actuators, "%s", act);
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
+    return SWFS_OK;
+}
+
+/* Actuator positions from a file: enough of them to span the pupil, none at the same place
+ * (the interpolation's triangulation needs distinct points, and the pupil inside their hull). */
+static int check_given_actuators(const char *path, const double *xy, size_t nact, double D)
+{
+    if (nact < 4) return swfs_fail(SWFS_ERR_VALUE, "%s: %zu actuators; the simulated DM needs at least 4", path, nact);
+    double rmax = 0;
+    for (size_t a = 0; a < nact; a++) {
+        rmax = fmax(rmax, hypot(xy[2 * a], xy[2 * a + 1]));
+        for (size_t b = 0; b < a; b++)
+            if (hypot(xy[2 * a] - xy[2 * b], xy[2 * a + 1] - xy[2 * b + 1]) < 1e-6 * D)
+                return swfs_fail(SWFS_ERR_VALUE, "%s: actuators %zu and %zu are at the same place (%g, %g) m", path, b, a,
+                                 xy[2 * a], xy[2 * a + 1]);
+    }
+    if (rmax < 0.4 * D || rmax > 2.0 * D)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: the actuators reach %g m from the centre, the pupil %g m; expected positions "
+                         "in metres on the pupil, centred on it", path, rmax, D / 2);
     return SWFS_OK;
 }
 
@@ -300,6 +325,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     free(sched);
     nwfs += (size_t)p->handshake_lag + 10;
     const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
+    if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
@@ -431,8 +457,12 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     /* DM, WFS, the loop's reconstructor. */
     size_t nact = 0;
-    if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
-                            : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
+    if (p->actuators[0]) {
+        /* A DM given by its positions: the same loop, interpolation and modal filter. */
+        if ((rc = swfs_actuators_read(p->actuators, &xy, &nact))) goto done;
+        if ((rc = check_given_actuators(p->actuators, xy, nact, D))) goto done;
+    } else if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
+                                   : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
         goto done;
     if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
     if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
