@@ -52,9 +52,9 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     }
     printf("simulate (timeseries): %zu WFS frames at %.0f Hz, %ld cubes x %ld frames at <t_sci/t_wfs> = %.4f, "
            "handshake lag %ld\n", s.nwfs, p.wfs_rate, p.ncubes, p.cube_frames, p.frame_ratio, p.handshake_lag);
-    printf("  AO: %zu actuators%s%s%s, %zu valid subapertures, %zu modes, gain %.2f, delay %ld\n", s.nact,
-           p.actuators[0] ? " (from " : "", p.actuators, p.actuators[0] ? ")" : "", s.nvalid, s.ao_modes, p.ao_gain,
-           p.ao_delay);
+    printf("  AO: %zu actuators%s%s%s, %zu valid subapertures, %zu modes%s%s%s, gain %.2f, delay %ld\n", s.nact,
+           p.actuators[0] ? " (from " : "", p.actuators, p.actuators[0] ? ")" : "", s.nvalid, s.ao_modes,
+           p.ao_recon[0] ? " (the reconstructor " : "", p.ao_recon, p.ao_recon[0] ? ")" : "", p.ao_gain, p.ao_delay);
     printf("  residual %.1f nm rms (%.1f nm without tip-tilt), residual tip-tilt %.3f lambda/D rms, Strehl %.3f\n",
            1e9 * s.residual_rms, 1e9 * s.residual_rms_nott, s.tt_rms, s.strehl);
     printf("  time-mean residual (static, not in the speckles) %.1f nm rms\n", 1e9 * s.static_rms);

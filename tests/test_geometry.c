@@ -200,7 +200,8 @@ static int ts_into(const char *sub, const char *const *extra, size_t nextra)
 
 /* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
  * given back as a file, makes the same loop (slopes and true residual equal to the last bit);
- * positions the interpolation cannot use are refused, naming the file. */
+ * so does the loop's reconstructor given (ao_recon = FILE); positions the interpolation
+ * cannot use and a reconstructor of another shape are refused, naming the file. */
 static void test_actuators_given(void **state)
 {
     (void)state;
@@ -230,6 +231,33 @@ static void test_actuators_given(void **state)
         swfs_real_free(x);
         swfs_real_free(y);
     }
+    /* The loop's reconstructor given (ao_recon): the built run's recon_ao.fits (40 modes) makes
+     * its loop again although ao_modes asks for 20; of another DM's shape it is refused. */
+    char rec[1400];
+    snprintf(rec, sizeof rec, "ao_recon=%s", p("dm_built/recon_ao.fits"));
+    const char *withrec[] = {"act_pitch=0.5", "export_truth=1", "ao_modes=20", rec};
+    assert_ok(ts_into("rec_given", withrec, 4));
+    const char *fewer[] = {"act_pitch=0.5", "ao_modes=20"};
+    assert_ok(ts_into("rec_20", fewer, 2));
+    swfs_real *x = NULL, *y = NULL, *z = NULL;
+    assert_ok(swfs_fits_read_real(p("dm_built/slopes_000.fits"), NULL, &x, NULL));
+    assert_ok(swfs_fits_read_real(p("rec_given/slopes_000.fits"), NULL, &y, NULL));
+    assert_ok(swfs_fits_read_real(p("rec_20/slopes_000.fits"), NULL, &z, NULL));
+    double dg = 0, d20 = 0;
+    for (size_t i = 0; i < x->nx * x->ny; i++) {
+        dg = fmax(dg, fabs(x->data[i] - y->data[i]));
+        d20 = fmax(d20, fabs(x->data[i] - z->data[i]));
+    }
+    print_message("ao_recon: slopes differ from the 40-mode loop by %g (20 modes: %g)\n", dg, d20);
+    assert_true(dg == 0.0 && d20 > 0.0);
+    swfs_real_free(x);
+    swfs_real_free(y);
+    swfs_real_free(z);
+    snprintf(rec, sizeof rec, "ao_recon=%s", p("dm_built/recon_ao.fits"));
+    const char *otherdm[] = {"act_pitch=0.7", rec};
+    assert_int_not_equal(ts_into("rec_bad", otherdm, 2), SWFS_OK);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "the loop's reconstructor is 288 slopes x 169 actuators"));
     /* bad layouts */
     double xy[2 * 40];
     size_t n = 0;

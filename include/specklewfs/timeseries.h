@@ -118,6 +118,9 @@ typedef struct swfs_ts_params {
                                   (NAXIS1 = 2: x, y; NAXIS2 = nact [m]), e.g. an AO system's own, so
                                   that `learn` can be taught on its DM; "" (default): built from
                                   act_pitch and act_square */
+    char ao_recon[1024];       /* the loop's reconstructor from a file (recon_ao.fits layout: NAXIS1 = slopes,
+                                  NAXIS2 = actuators [m/rad]), e.g. the AO system's own control matrix in
+                                  this convention; "" (default): the ao_modes lowest-energy DM modes */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

@@ -18,6 +18,7 @@
 #include "specklewfs/sync.h"
 #include "specklewfs/wfs.h"
 
+#include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -111,6 +112,12 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
 #undef D_
 #undef L_
+    const char *aor = NULL;
+    if ((rc = swfs_config_string(c, "ao_recon", p->ao_recon, &aor))) return rc;
+    if (strlen(aor) >= sizeof p->ao_recon)
+        return swfs_fail(SWFS_ERR_VALUE, "setting ao_recon: a path of %zu characters; at most %zu", strlen(aor),
+                         sizeof p->ao_recon - 1);
+    if (aor != p->ao_recon) snprintf(p->ao_recon, sizeof p->ao_recon, "%s", aor);
     const char *act = NULL;
     if ((rc = swfs_config_string(c, "actuators", p->actuators, &act))) return rc;
     if (strlen(act) >= sizeof p->actuators)
@@ -121,6 +128,33 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
     return SWFS_OK;
+}
+
+/* The loop's reconstructor from a file: its shape must be the simulated Shack-Hartmann's
+ * slopes by the DM's actuators; the modes it keeps are its numerical rank. */
+static int check_given_recon(const char *path, swfs_recon *r, size_t nslopes, size_t nact)
+{
+    if (r->nslopes != nslopes || r->nact != nact)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the simulated "
+                         "Shack-Hartmann gives %zu slopes and the DM has %zu actuators (recon_ao.fits layout: NAXIS1 = "
+                         "slopes, NAXIS2 = actuators [m/rad])", path, r->nslopes, r->nact, nslopes, nact);
+    const size_t k = nact < nslopes ? nact : nslopes;
+    double *a = malloc(nact * nslopes * sizeof *a), *sv = malloc(k * sizeof *sv);
+    int rc = SWFS_OK;
+    if (!a || !sv) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    if (!rc) {
+        memcpy(a, r->W, nact * nslopes * sizeof *a);
+        lapack_int info = LAPACKE_dgesdd(LAPACK_ROW_MAJOR, 'N', (lapack_int)nact, (lapack_int)nslopes, a,
+                                         (lapack_int)nslopes, sv, NULL, (lapack_int)k, NULL, (lapack_int)nslopes);
+        if (info) rc = swfs_fail(SWFS_ERR_NUMERIC, "%s: SVD of the loop's reconstructor failed (%d)", path, (int)info);
+    }
+    size_t rank = 0;
+    for (size_t i = 0; !rc && i < k; i++) rank += sv[i] > 1e-9 * sv[0];
+    if (!rc && rank == 0) rc = swfs_fail(SWFS_ERR_VALUE, "%s: the loop's reconstructor is zero", path);
+    r->nmodes = rank;
+    free(a);
+    free(sv);
+    return rc;
 }
 
 /* Actuator positions from a file: enough of them to span the pupil, none at the same place
@@ -326,6 +360,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     nwfs += (size_t)p->handshake_lag + 10;
     const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
     if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
+    if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
@@ -467,7 +502,11 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
     if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
-    {
+    if (p->ao_recon[0]) {
+        /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
+        if ((rc = swfs_recon_read(p->ao_recon, &rao))) goto done;
+        if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
+    } else {
         /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1). */
         double *modes = NULL;
         if ((rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
