@@ -6,7 +6,8 @@
 # 25/30 m/s, vibration 0.3, two seeds each, the simulator's default loop: gain 0.4, delay 2),
 # then each observation (one layer at 14 m/s, vibration 0.4, as v16-base) through the default
 # path, the path with `speckles --recon learned.fits`, and the ideal speckles, with the loop's
-# gain and delay, the slope noise or the wind changed in the observation only.
+# gain and delay, the slope noise or the wind changed in the observation only. Last, the 60-mode
+# loop with a map taught on loops given its own reconstructor (simulate ao_recon=).
 # Prints one line per observation: NCP error [nm] default / learned / ideal and the ratios.
 # usage: bash bench/learned_loops.sh <specklewfs> <scratch dir>     (about 12 minutes)
 set -u
@@ -30,6 +31,7 @@ for wind in 5,8 12,18 25,30; do
     done
 done
 "$B" learn "$D"/train/* -o "$D/learned.fits" > "$D/learn.log" || { cat "$D/learn.log"; exit 1; }
+LEARNED=$D/learned.fits
 grep "held out, all" "$D/learn.log"
 printf "%-14s | %7s %7s %7s | %6s %6s\n" observation default learned ideal "x def" "x lrn"
 obs() { # name [simulate keys]
@@ -47,7 +49,7 @@ obs() { # name [simulate keys]
     local r
     for r in default learned; do
         local extra=()
-        [ "$r" = learned ] && extra=(--recon "$D/learned.fits")
+        [ "$r" = learned ] && extra=(--recon "$LEARNED")
         "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" "${extra[@]}" \
             -o "$d/spk_$r.fits" --match "$d/science.fits" "$d/sci_$r.fits" 2> "$d/speckles_$r.log" \
             || { echo "$name: speckles ($r) failed"; return; }
@@ -72,3 +74,17 @@ obs slope3x slope_noise=1e-7
 obs modes60 ao_modes=60
 obs wind40 layer_speed=40
 obs seed2 seed=2
+# The 60-mode loop again, with the map taught on loops that run the observed system's own
+# reconstructor (simulate ao_recon=...: what a user gives from the AO system's control matrix).
+for wind in 5,8 12,18 25,30; do
+    for seed in 11 12; do
+        t="$D/train60/wind${wind/,/-}-seed$seed"
+        [ -f "$t/truewf_000.fits" ] && continue
+        # shellcheck disable=SC2086
+        "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
+            vib_amp=0.3 seed=$seed export_truth=1 ao_recon="$D/modes60/sim/recon_ao.fits" --quiet -o "$t" \
+            > "$D/train.log" 2>&1 || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
+    done
+done
+"$B" learn "$D"/train60/* -o "$D/learned60.fits" > "$D/learn60.log" || { cat "$D/learn60.log"; exit 1; }
+LEARNED=$D/learned60.fits obs modes60-own ao_modes=60
