@@ -75,6 +75,18 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->ndead = 5;
 }
 
+/* A file name setting into dst[cap] (kept when the key is absent). */
+static int config_path(swfs_config *c, const char *key, char *dst, size_t cap)
+{
+    const char *v = NULL;
+    int rc = swfs_config_string(c, key, dst, &v);
+    if (rc) return rc;
+    if (strlen(v) >= cap)
+        return swfs_fail(SWFS_ERR_VALUE, "setting %s: a path of %zu characters; at most %zu", key, strlen(v), cap - 1);
+    if (v != dst) snprintf(dst, cap, "%s", v);
+    return SWFS_OK;
+}
+
 int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 {
     int rc;
@@ -112,18 +124,8 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
 #undef D_
 #undef L_
-    const char *aor = NULL;
-    if ((rc = swfs_config_string(c, "ao_recon", p->ao_recon, &aor))) return rc;
-    if (strlen(aor) >= sizeof p->ao_recon)
-        return swfs_fail(SWFS_ERR_VALUE, "setting ao_recon: a path of %zu characters; at most %zu", strlen(aor),
-                         sizeof p->ao_recon - 1);
-    if (aor != p->ao_recon) snprintf(p->ao_recon, sizeof p->ao_recon, "%s", aor);
-    const char *act = NULL;
-    if ((rc = swfs_config_string(c, "actuators", p->actuators, &act))) return rc;
-    if (strlen(act) >= sizeof p->actuators)
-        return swfs_fail(SWFS_ERR_VALUE, "setting actuators: a path of %zu characters; at most %zu", strlen(act),
-                         sizeof p->actuators - 1);
-    if (act != p->actuators) snprintf(p->actuators, sizeof p->actuators, "%s", act);
+    if ((rc = config_path(c, "ao_recon", p->ao_recon, sizeof p->ao_recon))) return rc;
+    if ((rc = config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
