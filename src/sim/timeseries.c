@@ -455,6 +455,14 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_real *clean = NULL, *dark = NULL, *flat = NULL;
     swfs_cplx *spk = NULL, *spktt = NULL;
     swfs_handshake *hs = NULL;
+    size_t nact = 0;
+
+    /* The files the run is given, read before any work: the DM's positions, the loop's
+     * reconstructor (its shape is checked against the Shack-Hartmann below). */
+    if (p->actuators[0] && ((rc = swfs_actuators_read(p->actuators, &xy, &nact)) ||
+                            (rc = check_given_actuators(p->actuators, xy, nact, D))))
+        goto done;
+    if (p->ao_recon[0] && (rc = swfs_recon_read(p->ao_recon, &rao))) goto done;
 
     /* Pupil, NCP. */
     mask = malloc(ng * sizeof *mask);
@@ -493,20 +501,15 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     }
 
     /* DM, WFS, the loop's reconstructor. */
-    size_t nact = 0;
-    if (p->actuators[0]) {
-        /* A DM given by its positions: the same loop, interpolation and modal filter. */
-        if ((rc = swfs_actuators_read(p->actuators, &xy, &nact))) goto done;
-        if ((rc = check_given_actuators(p->actuators, xy, nact, D))) goto done;
-    } else if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
-                                   : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
+    /* A DM given by its positions (read above) has the same loop, interpolation and modal filter. */
+    if (!p->actuators[0] && (rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
+                                                : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
         goto done;
     if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
     if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
-        if ((rc = swfs_recon_read(p->ao_recon, &rao))) goto done;
         if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
     } else {
         /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1). */
