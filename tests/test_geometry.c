@@ -195,7 +195,11 @@ static int ts_into(const char *sub, const char *const *extra, size_t nextra)
     mkdir(p(sub), 0755);
     swfs_ts_summary s;
     const char *prov[] = {"test_geometry"};
-    return rc ? rc : swfs_ts_run(&tp, p(sub), prov, 1, NULL, NULL, &s);
+    if (!rc) rc = swfs_ts_run(&tp, p(sub), prov, 1, NULL, NULL, &s);
+    swfs_dm_registration reg;
+    size_t nmodes;
+    if (!rc && tp.export_modal) rc = swfs_ts_export_modal(&tp, p(sub), prov, 1, &reg, &nmodes);
+    return rc;
 }
 
 /* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
@@ -285,6 +289,56 @@ static void test_actuators_given(void **state)
     }
 }
 
+/* The AO system's valid-subaperture map given (valid = FILE): the simulated Shack-Hartmann
+ * uses those subapertures (4 of the half-lit rule's left out: their slopes are 0 in every
+ * frame, and valid.fits is the map given); a map of another size is refused naming it. */
+static void test_valid_given(void **state)
+{
+    (void)state;
+    const char *src[] = {"export_modal=1"};
+    assert_ok(ts_into("valid_src", src, 1));
+    swfs_real *v = NULL;
+    assert_ok(swfs_fits_read_real(p("valid_src/valid.fits"), NULL, &v, NULL));
+    const size_t nsa = v->nx * v->ny;
+    size_t dropped[4], nd = 0;
+    for (size_t a = 0; a < nsa && nd < 4; a++)
+        if (v->data[a] != 0) { v->data[a] = 0; dropped[nd++] = a; }
+    assert_int_equal(nd, 4);
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, p("fewer_valid.fits")));
+    assert_ok(swfs_fits_out_real(o, NULL, v, 8));
+    assert_ok(swfs_fits_out_commit(o));
+    char kv[1400];
+    snprintf(kv, sizeof kv, "valid=%s", p("fewer_valid.fits"));
+    const char *given[] = {"export_modal=1", kv};
+    assert_ok(ts_into("valid_given", given, 2));
+    swfs_real *w = NULL, *s0 = NULL, *s1 = NULL;
+    assert_ok(swfs_fits_read_real(p("valid_given/valid.fits"), NULL, &w, NULL));
+    for (size_t a = 0; a < nsa; a++) assert_true((w->data[a] != 0) == (v->data[a] != 0));
+    assert_ok(swfs_fits_read_real(p("valid_src/slopes_000.fits"), NULL, &s0, NULL));
+    assert_ok(swfs_fits_read_real(p("valid_given/slopes_000.fits"), NULL, &s1, NULL));
+    assert_int_equal(s0->nx, 2 * nsa);
+    for (size_t k = 0; k < nd; k++) {
+        double m0 = 0, m1 = 0;
+        for (size_t f = 0; f < s0->ny; f++)
+            for (size_t axis = 0; axis < 2; axis++) {
+                m0 = fmax(m0, fabs(s0->data[f * s0->nx + axis * nsa + dropped[k]]));
+                m1 = fmax(m1, fabs(s1->data[f * s1->nx + axis * nsa + dropped[k]]));
+            }
+        print_message("subaperture %zu: max |slope| %g with the rule, %g left out by the map\n", dropped[k], m0, m1);
+        assert_true(m0 > 0 && m1 == 0);
+    }
+    swfs_real_free(w);
+    swfs_real_free(s0);
+    swfs_real_free(s1);
+    swfs_real_free(v);
+    snprintf(kv, sizeof kv, "valid=%s", p("fewer_valid.fits"));
+    const char *other[] = {"nsub=10", kv};
+    assert_int_not_equal(ts_into("valid_bad", other, 2), SWFS_OK);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "fewer_valid.fits: a valid-subaperture map of 12 x 12, but nsub = 10"));
+}
+
 static void test_long_lines(void **state)
 {
     (void)state;
@@ -327,6 +381,7 @@ int main(void)
         cmocka_unit_test(test_bad_geometry_files),
         cmocka_unit_test(test_long_lines),
         cmocka_unit_test(test_actuators_given),
+        cmocka_unit_test(test_valid_given),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -366,7 +366,9 @@ static void test_valid_map(void **state)
                                        m < 3 ? NULL : f.slopes, m < 3 ? 0 : f.nwfs, &o));
         o.valid = valid;
         o.valid_nsub = NSUB;
-        assert_ok(swfs_pipeline_create(&nv_p, &f.g, NF, NF, f.xy, f.nact, f.mask, nn, m < 3 ? &rn : NULL,
+        /* m = 1: the full-layout reconstructor given with the valid-only slopes (a map `learn` made
+         * on full-layout simulated slopes), the same as its used columns */
+        assert_ok(swfs_pipeline_create(&nv_p, &f.g, NF, NF, f.xy, f.nact, f.mask, nn, m < 3 ? (m == 1 ? f.rec : &rn) : NULL,
                                        m < 3 ? NULL : ns, m < 3 ? 0 : f.nwfs, &o));
         swfs_pipeline_info info;
         swfs_pipeline_get_info(nv_p, &info);

@@ -121,6 +121,9 @@ typedef struct swfs_ts_params {
     char ao_recon[1024];       /* the loop's reconstructor from a file (recon_ao.fits layout: NAXIS1 = slopes,
                                   NAXIS2 = actuators [m/rad]), e.g. the AO system's own control matrix in
                                   this convention; "" (default): the ao_modes lowest-energy DM modes */
+    char valid[1024];          /* the AO system's valid-subaperture map (nsub x nsub, nonzero = used, as
+                                  `speckles --valid` takes): the simulated Shack-Hartmann uses those
+                                  subapertures; "" (default): those at least half lit */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

@@ -222,7 +222,7 @@ swfs_ts_params = _s("swfs_ts_params", [
     ("camera_flip_y", c_long), ("act_square", c_long), ("export_modal", c_long), ("export_truth", c_long), ("milk", c_long), ("milk_epoch", c_dbl),
     ("milk_jitter", c_dbl), ("milk_drift", c_dbl), ("milk_offset", c_dbl), ("milk_drop_wfs", c_long),
     ("milk_drop_cam", c_long), ("milk_file_frames", c_long), ("milk_cam_file_frames", c_long),
-    ("actuators", ctypes.c_char * 1024), ("ao_recon", ctypes.c_char * 1024)])
+    ("actuators", ctypes.c_char * 1024), ("ao_recon", ctypes.c_char * 1024), ("valid", ctypes.c_char * 1024)])
 TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("ao_modes", c_size),
                      ("residual_rms", c_dbl), ("residual_rms_nott", c_dbl), ("tt_rms", c_dbl), ("strehl", c_dbl),
                      ("static_rms", c_dbl), ("ncp_rms", c_dbl), ("seconds", c_dbl)]

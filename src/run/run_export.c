@@ -57,11 +57,13 @@ static int load_slopes(const char *dir, exp_work *w)
 
 /* Q ((nact-1) x nslopes): the coefficients of the DM's modes 1.. (piston dropped) of the
  * default speckle reconstructor's wavefront, V^-1 W without V^-1's first row. */
-static int modal_reconstructor(const swfs_geom *g, exp_work *w)
+static int modal_reconstructor(const swfs_geom *g, exp_work *w, const unsigned char *valid, size_t valid_nsub)
 {
     swfs_pipeline_options o;
     swfs_pipeline_options_default(&o);
     o.tiptilt = SWFS_TT_KEEP;
+    o.valid = valid; /* the simulation's own map (timeseries valid = FILE), or NULL: the half-lit rule */
+    o.valid_nsub = valid_nsub;
     int rc = swfs_pipeline_create(&w->p, g, 8, 8, w->xy, w->nact, NULL, w->nslopes, NULL, w->train, w->ntrain, &o);
     if (rc) return rc;
     const swfs_speckle_model *m = swfs_pipeline_model(w->p);
@@ -236,7 +238,11 @@ int swfs_ts_export_modal(const struct swfs_ts_params *p, const char *dir, const 
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     int rc = swfs_actuators_read(path, &w.xy, &w.nact);
     if (!rc) rc = load_slopes(dir, &w);
-    if (!rc) rc = modal_reconstructor(&g, &w);
+    unsigned char *vmap = NULL;
+    size_t vn = 0, nv = 0;
+    if (!rc && p->valid[0]) rc = swfs_valid_map_read(p->valid, &vmap, &vn, &nv);
+    if (!rc) rc = modal_reconstructor(&g, &w, vmap, vn);
+    free(vmap);
     /* A registration a real DM could have: a quarter of the actuator pitch per grid step (half
      * the pitch resampled the highest modes too coarsely: on 24 x 24 the joint fit then landed
      * at 29.3 nm instead of 10.9, docs/telemetry.md), the grid's

@@ -183,17 +183,23 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     size_t nsub = 0, *cols = NULL;
     int rc = slopes_layout(o, nslopes, &nsub, &cols);
     if (rc) return rc;
-    if (recon && recon->nslopes != nslopes) {
+    const size_t nfull = 2 * nsub * nsub;
+    /* A given reconstructor takes the telemetry's layout, or the full one when the telemetry
+     * holds the used subapertures only (e.g. `learn` on simulated full-layout slopes). */
+    const int recon_full = recon && cols && recon->nslopes == nfull;
+    if (recon && recon->nslopes != nslopes && !recon_full) {
         free(cols);
+        if (cols)
+            return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame but the reconstructor expects %zu (expected %zu, the "
+                             "used subapertures', or %zu, the full layout's)", nslopes, recon->nslopes, nslopes, nfull);
         return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame but the reconstructor expects %zu", nslopes,
                          recon->nslopes);
     }
-    const size_t nfull = 2 * nsub * nsub;
     double *train_full = NULL;
     swfs_recon rfull;
     if (cols && training && !(training = train_full = expand_cols(training, ntrain, nslopes, cols, nfull)))
         rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory for %zu training frames", ntrain);
-    if (!rc && cols && recon) {
+    if (!rc && cols && recon && !recon_full) {
         rfull = *recon;
         rfull.nslopes = nfull;
         rfull.sv = NULL;
@@ -208,7 +214,7 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
         rc = swfs_speckle_model_create_valid(&p->model, xy, nact, p->mask, (size_t)g->pupn, g->pupdx, g->teldiam, nsub,
                                              o->valid, o->recon == SWFS_RECON_GIVEN ? recon : NULL, o->rcond,
                                              o->max_modes, project);
-    if (cols && recon) free(rfull.W);
+    if (cols && recon && !recon_full) free(rfull.W);
     if (!rc && o->recon == SWFS_RECON_GIVEN) rc = check_given(p, o->recon_scale);
     const double nv = o->slope_noise * o->slope_noise;
     if (!rc && o->recon == SWFS_RECON_MAP) rc = swfs_speckle_model_set_map(p->model, training, ntrain, nv, project);

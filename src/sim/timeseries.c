@@ -126,6 +126,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 #undef L_
     if ((rc = config_path(c, "ao_recon", p->ao_recon, sizeof p->ao_recon))) return rc;
     if ((rc = config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
+    if ((rc = config_path(c, "valid", p->valid, sizeof p->valid))) return rc;
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
@@ -363,6 +364,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
     if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
     if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
+    if (p->valid[0]) swfs_paths_input(paths, "valid-subaperture map", p->valid);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
@@ -455,6 +457,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_real *clean = NULL, *dark = NULL, *flat = NULL;
     swfs_cplx *spk = NULL, *spktt = NULL;
     swfs_handshake *hs = NULL;
+    unsigned char *vmap = NULL;
     size_t nact = 0;
 
     /* The files the run is given, read before any work: the DM's positions, the loop's
@@ -463,6 +466,15 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
                             (rc = check_given_actuators(p->actuators, xy, nact, D))))
         goto done;
     if (p->ao_recon[0] && (rc = swfs_recon_read(p->ao_recon, &rao))) goto done;
+    if (p->valid[0]) {
+        size_t vn = 0, nv = 0;
+        if ((rc = swfs_valid_map_read(p->valid, &vmap, &vn, &nv))) goto done;
+        if (vn != (size_t)p->nsub) {
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: a valid-subaperture map of %zu x %zu, but nsub = %ld", p->valid, vn, vn,
+                           p->nsub);
+            goto done;
+        }
+    }
 
     /* Pupil, NCP. */
     mask = malloc(ng * sizeof *mask);
@@ -506,7 +518,11 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
                                                 : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
         goto done;
     if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
-    if ((rc = swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) goto done;
+    if ((rc = vmap ? swfs_shwfs_create_valid(&sh, (size_t)p->nsub, D, mask, np, dx, vmap)
+                   : swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) {
+        if (vmap) swfs_fail_context(rc, "%s", p->valid);
+        goto done;
+    }
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
@@ -886,6 +902,7 @@ done:
     swfs_dmfit_free(tfit);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
+    free(vmap);
     swfs_real_free(clean); swfs_real_free(dark); swfs_real_free(flat);
     swfs_cplx_free(spk); swfs_cplx_free(spktt);
     return rc;
