@@ -202,6 +202,14 @@ static int ts_into(const char *sub, const char *const *extra, size_t nextra)
     return rc;
 }
 
+/* A time series that must be refused, with phrase in the message. */
+static void refused(const char *sub, const char *const *extra, size_t nextra, const char *phrase)
+{
+    assert_int_not_equal(ts_into(sub, extra, nextra), SWFS_OK);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), phrase));
+}
+
 /* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
  * given back as a file, makes the same loop (slopes and true residual equal to the last bit);
  * so does the loop's reconstructor given (ao_recon = FILE); positions the interpolation
@@ -259,9 +267,7 @@ static void test_actuators_given(void **state)
     swfs_real_free(z);
     snprintf(rec, sizeof rec, "ao_recon=%s", p("dm_built/recon_ao.fits"));
     const char *otherdm[] = {"act_pitch=0.7", rec};
-    assert_int_not_equal(ts_into("rec_bad", otherdm, 2), SWFS_OK);
-    print_message("%s\n", swfs_last_error());
-    assert_non_null(strstr(swfs_last_error(), "the loop's reconstructor is 288 slopes x 169 actuators"));
+    refused("rec_bad", otherdm, 2, "the loop's reconstructor is 288 slopes x 169 actuators");
     /* bad layouts */
     double xy[2 * 40];
     size_t n = 0;
@@ -282,9 +288,7 @@ static void test_actuators_given(void **state)
     for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
         snprintf(given, sizeof given, "actuators=%s", p(bad[k].file));
         const char *kv[] = {given};
-        assert_int_not_equal(ts_into("dm_bad", kv, 1), SWFS_OK);
-        print_message("%s: %s\n", bad[k].file, swfs_last_error());
-        assert_non_null(strstr(swfs_last_error(), bad[k].phrase));
+        refused("dm_bad", kv, 1, bad[k].phrase);
         if (strcmp(bad[k].file, "nofile.fits")) assert_non_null(strstr(swfs_last_error(), p(bad[k].file)));
     }
 }
@@ -334,9 +338,7 @@ static void test_valid_given(void **state)
     swfs_real_free(v);
     snprintf(kv, sizeof kv, "valid=%s", p("fewer_valid.fits"));
     const char *other[] = {"nsub=10", kv};
-    assert_int_not_equal(ts_into("valid_bad", other, 2), SWFS_OK);
-    print_message("%s\n", swfs_last_error());
-    assert_non_null(strstr(swfs_last_error(), "fewer_valid.fits: a valid-subaperture map of 12 x 12, but nsub = 10"));
+    refused("valid_bad", other, 2, "fewer_valid.fits: a valid-subaperture map of 12 x 12, but nsub = 10");
 }
 
 static void test_long_lines(void **state)
