@@ -1,5 +1,6 @@
 # docs/telemetry.md's recipe for a reconstructor learned from simulated closed loops, run as
-# written there on a small system (my.conf: the 12 x 12 Shack-Hartmann of 217 actuators on a
+# written there (the training loops on the observation's actuators.fits and valid.fits) on a
+# small system (my.conf: the 12 x 12 Shack-Hartmann of 217 actuators on a
 # 66-sample pupil, 3 cubes of 60 camera frames): six simulated loops -> learn -> speckles
 # --recon on an observation between the training loops' winds (15/22 m/s, its own seed),
 # then estimate and pupil --truth. The learned map must come out no worse than the default
@@ -28,6 +29,7 @@ CONF
     -o science.fits 2> reduce.log || fail "reduce"
 "$B" sync science.fits obs/handshake.log -o timing.txt --ratio-min 5 --ratio-max 8 > sync.log || fail "sync"
 cp obs/actuators.fits actuators.fits
+cp obs/valid.fits valid.fits
 # the recipe, with `specklewfs` the binary under test
 recipe=$(sed -n '/<!-- learn-recipe:start -->/,/<!-- learn-recipe:end -->/p' \
     "$(dirname "$0")/../docs/telemetry.md" | sed '1,2d;$d' | sed '$d')
