@@ -33,11 +33,9 @@ int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out)
 
 int cli_parse_tiptilt(const char *cmd, const char *v, int *mode)
 {
-    if (v && !strcmp(v, "exposure")) *mode = SWFS_TT_EXPOSURE;
-    else if (v && !strcmp(v, "frame")) *mode = SWFS_TT_FRAME;
-    else if (v && !strcmp(v, "keep")) *mode = SWFS_TT_KEEP;
-    else return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
-    return 0;
+    for (int m = SWFS_TT_EXPOSURE; v && m <= SWFS_TT_KEEP; m++) /* the library's spelling (TIPTILT) */
+        if (!strcmp(v, swfs_tiptilt_name(m))) { *mode = m; return 0; }
+    return cli_usage_error(cmd, "--tiptilt needs exposure, frame or keep");
 }
 
 int cli_is_help(const char *a) { return !strcmp(a, "-h") || !strcmp(a, "--help"); }

@@ -88,14 +88,15 @@ static int special(void *vctx, int argc, char **argv, int *i)
     return 1;
 }
 
-/* The halos scored by the self-check (swfs_halo_choose_files); *best the one to use; line:
- * what was chosen, for the output's provenance. */
-static int choose(const char *cmd, const char *const *ins, size_t nin, const char **best, char *line, size_t cap)
+/* The halos scored by the self-check (swfs_halo_choose_files); *best the one to use, *h and
+ * *g its halo and geometry; line: what was chosen, for the output's provenance. */
+static int choose(const char *cmd, const char *const *ins, size_t nin, const char **best, swfs_halo **h,
+                  swfs_geom *g, char *line, size_t cap)
 {
     double *ex = calloc(nin, sizeof *ex);
     size_t b = 0, ncommon = 0;
     if (!ex) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    if (swfs_halo_choose_files(ins, nin, ex, &b, &ncommon)) { free(ex); return cli_error(cmd); }
+    if (swfs_halo_choose_files(ins, nin, ex, &b, &ncommon, h, g)) { free(ex); return cli_error(cmd); }
     printf("pupil: the speckles' self-check over the %zu focal pixels solved in all %zu halos (the fraction of the "
            "science intensity's variance they explain):\n", ncommon, nin);
     for (size_t k = 0; k < nin; k++) printf("  %-40s %6.2f %%%s\n", ins[k], 100 * ex[k], k == b ? "  <- used" : "");
@@ -147,10 +148,9 @@ int swfs_cmd_pupil(int argc, char **argv)
     int rc = CLI_FAIL;
     swfs_geom g;
     if (nin > 1) {
-        if (choose(cmd, ins, nin, &in, chosen, sizeof chosen)) goto done;
+        if (choose(cmd, ins, nin, &in, &h, &g, chosen, sizeof chosen)) goto done;
         printf("pupil: %s\n", chosen);
-    }
-    if (swfs_halo_read(in, &h, &g)) { cli_error(cmd); goto done; }
+    } else if (swfs_halo_read(in, &h, &g)) { cli_error(cmd); goto done; }
     if (swfs_geom_require(&g, in)) { cli_error(cmd); goto done; }
     if (maskfile) {
         if (swfs_fits_read_real(maskfile, NULL, &mask, NULL)) { cli_error(cmd); goto done; }

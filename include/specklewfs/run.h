@@ -341,8 +341,11 @@ int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 /* ---- pupil A.fits B.fits ...: the self-check as a choice among halo files ---------------- */
 
 /* The HALO.fits files read and scored by swfs_halo_choose (pupil.h): explained[n], the index
- * of the best in *best, the focal pixels scored in *ncommon. Messages name the files. */
-int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon);
+ * of the best in *best, the focal pixels scored in *ncommon; when chosen is given, the best
+ * halo (the caller frees it) and, when geom is given, its file's geometry. Messages name the
+ * files. */
+int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon,
+                           swfs_halo **chosen, swfs_geom *geom);
 
 /* ---- learn: a reconstructor from simulated closed loops (wfs.h swfs_recon_learner) ------ */
 

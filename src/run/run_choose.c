@@ -5,17 +5,22 @@
 
 #include <stdlib.h>
 
-int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon)
+int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon,
+                           swfs_halo **chosen, swfs_geom *geom)
 {
+    if (chosen) *chosen = NULL;
     swfs_halo **hs = calloc(n ? n : 1, sizeof *hs);
-    if (!hs) return swfs_fail(SWFS_ERR_NOMEM, "choosing speckles: out of memory for %zu halos", n);
-    int rc = SWFS_OK;
-    for (size_t k = 0; !rc && k < n; k++) {
-        swfs_geom g;
-        rc = swfs_halo_read(paths[k], &hs[k], &g);
-    }
+    swfs_geom *gs = calloc(n ? n : 1, sizeof *gs);
+    int rc = hs && gs ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "choosing speckles: out of memory for %zu halos", n);
+    for (size_t k = 0; !rc && k < n; k++) rc = swfs_halo_read(paths[k], &hs[k], &gs[k]);
     if (!rc) rc = swfs_halo_choose((const swfs_halo *const *)hs, paths, n, explained, best, ncommon);
-    for (size_t k = 0; k < n; k++) swfs_halo_free(hs[k]);
+    if (!rc && chosen) { /* the caller keeps the chosen halo, read once */
+        *chosen = hs[*best];
+        if (geom) *geom = gs[*best];
+        hs[*best] = NULL;
+    }
+    for (size_t k = 0; hs && k < n; k++) swfs_halo_free(hs[k]);
     free(hs);
+    free(gs);
     return rc;
 }
