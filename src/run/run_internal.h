@@ -47,6 +47,13 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
 int swfs_frame_recentre_shifts(const char *tdir, const swfs_timing *t, const char *science, const swfs_geom *g,
                                double *dx, double *dy);
 
+/* The speckles' tip-tilt treatment against the science frames' registration (science.h
+ * REGISTER, of the open cube fs at path): speckles that keep the image motion (--tiptilt
+ * keep) describe frames that kept it; on frames re-centred on their peak (reduce's default)
+ * their halo's NCP fails by an order of magnitude (docs/telemetry.md), so that pairing is
+ * SWFS_ERR_VALUE naming the file. speckles and stream check it. */
+int swfs_science_tiptilt_check(swfs_fits_in *fs, const char *path, int tiptilt);
+
 /* The linear model's files as inputs of a command's path check (outpaths.h). */
 struct swfs_paths;
 void swfs_linear_paths(struct swfs_paths *p, const swfs_linear_files *lf);

@@ -81,3 +81,15 @@ int swfs_frame_recentre_shifts(const char *tdir, const swfs_timing *t, const cha
     swfs_science_track_free(tr);
     return rc;
 }
+
+int swfs_science_tiptilt_check(swfs_fits_in *fs, const char *path, int tiptilt)
+{
+    long reg = 0;
+    int found = 0;
+    int rc = swfs_fits_in_key_long_opt(fs, "REGISTER", 0, 1, &reg, &found);
+    if (!rc && found && reg == 1 && tiptilt == SWFS_TT_KEEP)
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep makes "
+                       "speckles that keep the image motion; expected frames from 'reduce --no-register', or "
+                       "--tiptilt exposure", path);
+    return rc;
+}

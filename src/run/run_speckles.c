@@ -63,15 +63,7 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     if (!rc) rc = swfs_fits_in_geom(fs, &w->g);
     if (!rc) swfs_geom_overlay(&w->g, &o->geom);
     if (!rc) rc = swfs_geom_require(&w->g, o->science);
-    /* Speckles that keep the image motion describe frames that kept it: on frames re-centred
-     * on their peak (reduce's default) their halo's NCP fails by an order of magnitude. */
-    long reg = 0;
-    int regf = 0;
-    if (!rc) rc = swfs_fits_in_key_long_opt(fs, "REGISTER", 0, 1, &reg, &regf);
-    if (!rc && regf && reg == 1 && o->pipe.tiptilt == SWFS_TT_KEEP)
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep makes "
-                       "speckles that keep the image motion; expected frames from 'reduce --no-register', or "
-                       "--tiptilt exposure", o->science);
+    if (!rc) rc = swfs_science_tiptilt_check(fs, o->science, o->pipe.tiptilt);
     if (!rc) {
         const swfs_fits_shape *ss = swfs_fits_in_shape(fs);
         w->nfx = ss->nx;

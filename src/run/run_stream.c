@@ -207,6 +207,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     int rc = swfs_fits_in_open(&fs, o->science, NULL);
     if (!rc) rc = swfs_fits_in_geom(fs, &u->g);
     if (!rc) swfs_geom_overlay(&u->g, &o->geom);
+    if (!rc) rc = swfs_science_tiptilt_check(fs, o->science, o->tiptilt);
     if (!rc) {
         *nfx = swfs_fits_in_shape(fs)->nx;
         *nfy = swfs_fits_in_shape(fs)->ny;
