@@ -179,6 +179,25 @@ static int check_given_actuators(const char *path, const double *xy, size_t nact
     return SWFS_OK;
 }
 
+/* The files the run is given, read before any work: the DM's positions (*xy, *nact), the
+ * loop's reconstructor (*rao; its shape is checked against the Shack-Hartmann later) and the
+ * valid-subaperture map (*vmap); each left NULL when not given. */
+static int read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
+                      unsigned char **vmap)
+{
+    int rc = SWFS_OK;
+    if (p->actuators[0] && ((rc = swfs_actuators_read(p->actuators, xy, nact)) ||
+                            (rc = check_given_actuators(p->actuators, *xy, *nact, D))))
+        return rc;
+    if (p->ao_recon[0] && (rc = swfs_recon_read(p->ao_recon, rao))) return rc;
+    size_t vn = 0, nv = 0;
+    if (p->valid[0] && (rc = swfs_valid_map_read(p->valid, vmap, &vn, &nv))) return rc;
+    if (p->valid[0] && vn != (size_t)p->nsub)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: a valid-subaperture map of %zu x %zu, but nsub = %ld", p->valid, vn, vn,
+                         p->nsub);
+    return SWFS_OK;
+}
+
 static int badv(const char *key, double v, const char *what)
 {
     return swfs_fail(SWFS_ERR_VALUE, "time-series parameter %s=%g: %s", key, v, what);
@@ -459,22 +478,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_handshake *hs = NULL;
     unsigned char *vmap = NULL;
     size_t nact = 0;
-
-    /* The files the run is given, read before any work: the DM's positions, the loop's
-     * reconstructor (its shape is checked against the Shack-Hartmann below). */
-    if (p->actuators[0] && ((rc = swfs_actuators_read(p->actuators, &xy, &nact)) ||
-                            (rc = check_given_actuators(p->actuators, xy, nact, D))))
-        goto done;
-    if (p->ao_recon[0] && (rc = swfs_recon_read(p->ao_recon, &rao))) goto done;
-    if (p->valid[0]) {
-        size_t vn = 0, nv = 0;
-        if ((rc = swfs_valid_map_read(p->valid, &vmap, &vn, &nv))) goto done;
-        if (vn != (size_t)p->nsub) {
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: a valid-subaperture map of %zu x %zu, but nsub = %ld", p->valid, vn, vn,
-                           p->nsub);
-            goto done;
-        }
-    }
+    if ((rc = read_given(p, D, &xy, &nact, &rao, &vmap))) goto done;
 
     /* Pupil, NCP. */
     mask = malloc(ng * sizeof *mask);
