@@ -7,9 +7,12 @@
 # then each observation (one layer at 14 m/s, vibration 0.4, as v16-base) through the default
 # path, the path with `speckles --recon learned.fits`, and the ideal speckles, with the loop's
 # gain and delay, the slope noise or the wind changed in the observation only. Last, the 60-mode
-# loop with a map taught on loops given its own reconstructor (simulate ao_recon=).
+# loop with a map taught on loops given its own reconstructor (simulate ao_recon=), and a
+# telescope pupil unlike the simulated annulus (obscuration 0.3, four vanes of 0.3 m) with the
+# map taught on the annulus and on loops given that pupil (simulate pupil_mask=). Every step
+# is given the observation's pupil.fits (on the annulus rows the mask it would build itself).
 # Prints one line per observation: NCP error [nm] default / learned / ideal and the ratios.
-# usage: bash bench/learned_loops.sh <specklewfs> <scratch dir>     (about 12 minutes)
+# usage: bash bench/learned_loops.sh <specklewfs> <scratch dir>     (about 16 minutes)
 set -u
 B=$1
 D=$2
@@ -51,6 +54,7 @@ obs() { # name [simulate keys]
         local extra=()
         [ "$r" = learned ] && extra=(--recon "$LEARNED")
         "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" "${extra[@]}" \
+            --pupil "$d/sim/pupil.fits" \
             -o "$d/spk_$r.fits" --match "$d/science.fits" "$d/sci_$r.fits" 2> "$d/speckles_$r.log" \
             || { echo "$name: speckles ($r) failed"; return; }
         "$B" estimate "$d/sci_$r.fits" "$d/spk_$r.fits" -o "$d/halo_$r.fits" > /dev/null 2>&1 \
@@ -59,7 +63,8 @@ obs() { # name [simulate keys]
     "$B" estimate "$d/science.fits" "$d/sim/speckles_ideal.fits" -o "$d/halo_ideal.fits" > /dev/null 2>&1 \
         || { echo "$name: estimate (ideal) failed"; return; }
     for r in default learned ideal; do
-        "$B" pupil "$d/halo_$r.fits" -o "$d/pupil_$r.fits" --truth "$d/sim/truth.fits" > "$d/pupil_$r.log" 2>&1 \
+        "$B" pupil "$d/halo_$r.fits" -o "$d/pupil_$r.fits" --truth "$d/sim/truth.fits" --pupil "$d/sim/pupil.fits" \
+            > "$d/pupil_$r.log" 2>&1 \
             || { echo "$name: pupil ($r) failed"; return; }
     done
     awk -v n="$name" -v a="$(err "$d/pupil_default.log")" -v b="$(err "$d/pupil_learned.log")" \
@@ -88,3 +93,20 @@ for wind in 5,8 12,18 25,30; do
 done
 "$B" learn "$D"/train60/* -o "$D/learned60.fits" > "$D/learn60.log" || { cat "$D/learn60.log"; exit 1; }
 LEARNED=$D/learned60.fits obs modes60-own ao_modes=60
+# A pupil unlike the annulus the maps above were taught on, then a map taught on loops given it.
+VANES="obscur=0.3 nspiders=4 spider_width=0.3"
+# shellcheck disable=SC2086
+LEARNED=$D/learned.fits obs vanes $VANES
+for wind in 5,8 12,18 25,30; do
+    for seed in 11 12; do
+        t="$D/trainvanes/wind${wind/,/-}-seed$seed"
+        [ -f "$t/truewf_000.fits" ] && continue
+        # shellcheck disable=SC2086
+        "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
+            vib_amp=0.3 seed=$seed export_truth=1 pupil_mask="$D/vanes/sim/pupil.fits" --quiet -o "$t" \
+            > "$D/train.log" 2>&1 || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
+    done
+done
+"$B" learn "$D"/trainvanes/* -o "$D/learnedvanes.fits" > "$D/learnvanes.log" || { cat "$D/learnvanes.log"; exit 1; }
+# shellcheck disable=SC2086
+LEARNED=$D/learnedvanes.fits obs vanes-own $VANES

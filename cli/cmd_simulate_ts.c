@@ -55,6 +55,8 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     printf("  AO: %zu actuators%s%s%s, %zu valid subapertures, %zu modes%s%s%s, gain %.2f, delay %ld\n", s.nact,
            p.actuators[0] ? " (from " : "", p.actuators, p.actuators[0] ? ")" : "", s.nvalid, s.ao_modes,
            p.ao_recon[0] ? " (the reconstructor " : "", p.ao_recon, p.ao_recon[0] ? ")" : "", p.ao_gain, p.ao_delay);
+    if (p.base.pupil_mask[0])
+        printf("  pupil from %s (pupil.fits: give it to speckles --pupil)\n", p.base.pupil_mask);
     printf("  residual %.1f nm rms (%.1f nm without tip-tilt), residual tip-tilt %.3f lambda/D rms, Strehl %.3f\n",
            1e9 * s.residual_rms, 1e9 * s.residual_rms_nott, s.tt_rms, s.strehl);
     printf("  time-mean residual (static, not in the speckles) %.1f nm rms\n", 1e9 * s.static_rms);

@@ -30,6 +30,7 @@ CONF
 "$B" sync science.fits obs/handshake.log -o timing.txt --ratio-min 5 --ratio-max 8 > sync.log || fail "sync"
 cp obs/actuators.fits actuators.fits
 cp obs/valid.fits valid.fits
+cp obs/pupil.fits pupil.fits
 # the recipe, with `specklewfs` the binary under test
 recipe=$(sed -n '/<!-- learn-recipe:start -->/,/<!-- learn-recipe:end -->/p' \
     "$(dirname "$0")/../docs/telemetry.md" | sed '1,2d;$d' | sed '$d')

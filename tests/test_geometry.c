@@ -210,6 +210,24 @@ static void refused(const char *sub, const char *const *extra, size_t nextra, co
     assert_non_null(strstr(swfs_last_error(), phrase));
 }
 
+/* Largest |a - b| over two files' data (same size asserted), and the largest |a|. */
+static double file_diff(const char *a, const char *b, double *amax)
+{
+    swfs_real *x = NULL, *y = NULL;
+    assert_ok(swfs_fits_read_real(p(a), NULL, &x, NULL));
+    assert_ok(swfs_fits_read_real(p(b), NULL, &y, NULL));
+    assert_int_equal(x->nx * x->ny * x->nz, y->nx * y->ny * y->nz);
+    double d = 0, m = 0;
+    for (size_t i = 0; i < x->nx * x->ny * x->nz; i++) {
+        d = fmax(d, fabs(x->data[i] - y->data[i]));
+        m = fmax(m, fabs(x->data[i]));
+    }
+    swfs_real_free(x);
+    swfs_real_free(y);
+    if (amax) *amax = m;
+    return d;
+}
+
 /* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
  * given back as a file, makes the same loop (slopes and true residual equal to the last bit);
  * so does the loop's reconstructor given (ao_recon = FILE); positions the interpolation
@@ -228,20 +246,9 @@ static void test_actuators_given(void **state)
         char a[64], b[64];
         snprintf(a, sizeof a, "dm_built/%s", cmp[k]);
         snprintf(b, sizeof b, "dm_given/%s", cmp[k]);
-        swfs_real *x = NULL, *y = NULL;
-        assert_ok(swfs_fits_read_real(p(a), NULL, &x, NULL));
-        assert_ok(swfs_fits_read_real(p(b), NULL, &y, NULL));
-        assert_int_equal(x->nx * x->ny * x->nz, y->nx * y->ny * y->nz);
-        double d = 0, m = 0;
-        for (size_t i = 0; i < x->nx * x->ny * x->nz; i++) {
-            d = fmax(d, fabs(x->data[i] - y->data[i]));
-            m = fmax(m, fabs(x->data[i]));
-        }
+        double m = 0, d = file_diff(a, b, &m);
         print_message("%s: max |given - built| %g of %g\n", cmp[k], d, m);
-        assert_true(m > 0);
-        assert_true(d == 0.0);
-        swfs_real_free(x);
-        swfs_real_free(y);
+        assert_true(m > 0 && d == 0.0);
     }
     /* The loop's reconstructor given (ao_recon): the built run's recon_ao.fits (40 modes) makes
      * its loop again although ao_modes asks for 20; of another DM's shape it is refused. */
@@ -341,6 +348,68 @@ static void test_valid_given(void **state)
     refused("valid_bad", other, 2, "fewer_valid.fits: a valid-subaperture map of 12 x 12, but nsub = 10");
 }
 
+/* The telescope pupil given (pupil_mask = FILE): the spidered pupil a run built, given back
+ * as a file without the spider keys, makes the same run to the bit (pupil.fits, slopes, true
+ * residual, science frames), and the spiders change the slopes; masks of another size, with
+ * values outside 0..1 or light beyond teldiam are refused naming the file. */
+static void test_pupil_given(void **state)
+{
+    (void)state;
+    const char *spiders[] = {"nspiders=4", "spider_width=0.3", "export_truth=1"};
+    assert_ok(ts_into("pup_built", spiders, 3));
+    const char *plain[] = {"export_truth=1"};
+    assert_ok(ts_into("pup_plain", plain, 1));
+    char kv[1400];
+    snprintf(kv, sizeof kv, "pupil_mask=%s", p("pup_built/pupil.fits"));
+    const char *given[] = {kv, "export_truth=1"};
+    assert_ok(ts_into("pup_given", given, 2));
+    const char *cmp[] = {"pupil.fits", "slopes_000.fits", "truewf_000.fits", "raw_000.fits"};
+    for (size_t k = 0; k < 4; k++) {
+        char a[64], b[64];
+        snprintf(a, sizeof a, "pup_built/%s", cmp[k]);
+        snprintf(b, sizeof b, "pup_given/%s", cmp[k]);
+        double m = 0, d = file_diff(a, b, &m);
+        print_message("%s: max |given - built| %g of %g\n", cmp[k], d, m);
+        assert_true(m > 0 && d == 0.0);
+    }
+    double m = 0, d = file_diff("pup_built/slopes_000.fits", "pup_plain/slopes_000.fits", &m);
+    print_message("slopes: spiders against none differ by %g of %g\n", d, m);
+    assert_true(d > 1e-3 * m);
+    double dp = file_diff("pup_built/pupil.fits", "pup_plain/pupil.fits", NULL);
+    assert_true(dp == 1.0);
+
+    /* bad masks */
+    swfs_real *pm = NULL;
+    assert_ok(swfs_fits_read_real(p("pup_built/pupil.fits"), NULL, &pm, NULL));
+    const size_t n = pm->nx;
+    struct { const char *file, *phrase; } bad[] = {
+        {"pm_small.fits", "pupil mask is 60x60x1 but the pupil grid is pupn x pupn = 66x66"},
+        {"pm_over.fits", "outside 0 .. 1"},
+        {"pm_wide.fits", "the telescope (teldiam = 6.5 m) reaches 3.25 m"},
+        {"pm_none.fits", "pm_none.fits"},
+    };
+    swfs_real small = {60, 60, 1, pm->data};
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, p(bad[0].file)));
+    assert_ok(swfs_fits_out_real(o, NULL, &small, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    pm->data[n * n / 2 + n / 2] = 1.5;
+    assert_ok(swfs_fits_out_create(&o, p(bad[1].file)));
+    assert_ok(swfs_fits_out_real(o, NULL, pm, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    for (size_t i = 0; i < n * n; i++) pm->data[i] = 1.0; /* the whole grid: 6.6 m across */
+    assert_ok(swfs_fits_out_create(&o, p(bad[2].file)));
+    assert_ok(swfs_fits_out_real(o, NULL, pm, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    swfs_real_free(pm);
+    for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+        snprintf(kv, sizeof kv, "pupil_mask=%s", p(bad[k].file));
+        const char *one[] = {kv};
+        refused("pup_bad", one, 1, bad[k].phrase);
+        assert_non_null(strstr(swfs_last_error(), p(bad[k].file)));
+    }
+}
+
 static void test_long_lines(void **state)
 {
     (void)state;
@@ -384,6 +453,7 @@ int main(void)
         cmocka_unit_test(test_long_lines),
         cmocka_unit_test(test_actuators_given),
         cmocka_unit_test(test_valid_given),
+        cmocka_unit_test(test_pupil_given),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -71,6 +71,8 @@ typedef struct swfs_sim_params {
                                                      convention, rho = 2r/D) */
     size_t ncp_nzernike;       /* number of triples */
     char ncp_map[1024];        /* FITS map [m], pupn x pupn, added; "" = none */
+    char pupil_mask[1024];     /* FITS transmission (0..1), pupn x pupn, in place of the
+                                  annulus of teldiam, obscur and the spiders; "" = none */
     /* run */
     uint64_t seed;             /* 1 */
     int threads;               /* worker threads; 0 = number of online CPUs */
@@ -126,6 +128,10 @@ void swfs_sim_result_free(swfs_sim_result *r);
 /* The NCP map of p on the pupil grid [m] (piston removed over mask, 0 outside); rms and pv
  * may be NULL. */
 int swfs_sim_ncp_map(const swfs_sim_params *p, const double *mask, double *ncp, double *rms, double *pv);
+/* The telescope pupil of p on its grid (pupn x pupn transmissions, row-major): the file
+ * pupil_mask when given (its shape, values 0..1 and light within teldiam checked, the file
+ * named in every refusal), else the annulus of teldiam and obscur with the spiders. */
+int swfs_sim_pupil(const swfs_sim_params *p, double *mask);
 /* The AO residual model of p (screen spectrum, lag, pupil diameter and obscuration):
  * expected piston-removed pupil rms [m] of the residual for a kernel sigma [m] (sigma = 0:
  * a perfect but late correction, the lag-error floor), and the sigma giving a target. */

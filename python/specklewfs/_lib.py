@@ -198,7 +198,7 @@ swfs_sim_params = _s("swfs_sim_params", [
     ("nfy", c_long), ("pixscale", c_dbl), ("total_counts", c_dbl), ("read_noise", c_dbl), ("gain", c_dbl),
     ("ncp_trefoil", c_dbl), ("ncp_gauss_depth", c_dbl), ("ncp_gauss_radius", c_dbl), ("ncp_gauss_x", c_dbl),
     ("ncp_gauss_y", c_dbl), ("ncp_zernike", c_dbl * (3 * SIM_MAX_ZERNIKE)), ("ncp_nzernike", c_size),
-    ("ncp_map", ctypes.c_char * 1024), ("seed", c_u64), ("threads", c_int)])
+    ("ncp_map", ctypes.c_char * 1024), ("pupil_mask", ctypes.c_char * 1024), ("seed", c_u64), ("threads", c_int)])
 SIM_RESULT_SCALARS = ["counts_scale", "field_scale", "residual_rms", "expected_rms", "lag_floor_rms",
                       "kernel_sigma", "strehl", "strehl_ao", "window_fraction", "ncp_rms", "ncp_pv", "seconds"]
 swfs_sim_result = _s("swfs_sim_result", [

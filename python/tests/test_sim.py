@@ -265,3 +265,36 @@ def test_timeseries_dm_from_a_file(tmp_path):
     assert sl.shape == sl0.shape and not np.array_equal(sl, sl0)
     with pytest.raises(sw.Error, match="nofile.fits"):
         sw.simulate_timeseries(str(tmp_path / "bad"), config=conf, actuators=str(tmp_path / "nofile.fits"), **keys)
+
+
+def test_pupil_mask_from_a_file(tmp_path):
+    """pupil_mask = FILE: the simulators take a telescope pupil from a file. The spidered
+    annulus the keys describe, given back as a file, makes the same frames to the bit; a
+    hexagonal pupil (which no key describes) is the one the frames saw, and the file's
+    problems are refused naming it."""
+    keys = dict(SMALL, nscreens=1, screen_n=256)
+    s0 = sw.simulate(**dict(keys, nspiders=3, spider_width=0.1))
+    sw.write_fits(str(tmp_path / "spiders.fits"), s0.pupil)
+    s1 = sw.simulate(pupil_mask=str(tmp_path / "spiders.fits"), **keys)
+    np.testing.assert_array_equal(s1.pupil, s0.pupil)
+    np.testing.assert_array_equal(s1.science, s0.science)
+    assert sw.sim_params(pupil_mask=str(tmp_path / "spiders.fits"))["pupil_mask"] == str(tmp_path / "spiders.fits")
+    # A hexagon of flat-to-flat 2.2 m inside the 2.5 m telescope.
+    n, dx = keys["pupn"], sw.sim_params(**keys)["pupdx"]
+    c = (np.arange(n) - (n - 1) / 2) * dx
+    x, y = np.meshgrid(c, c)
+    hexa = np.ones((n, n))
+    for a in np.deg2rad([0, 60, 120]):
+        hexa *= np.abs(x * np.cos(a) + y * np.sin(a)) <= 1.1
+    sw.write_fits(str(tmp_path / "hex.fits"), hexa)
+    s2 = sw.simulate(pupil_mask=str(tmp_path / "hex.fits"), **keys)
+    np.testing.assert_array_equal(s2.pupil, hexa)
+    assert np.all(s2.ncp[hexa == 0] == 0) and np.any(s2.ncp[hexa > 0] != 0)
+    # The fields are normalized by the pupil's own sum (sim.h field_scale).
+    assert s2.field_scale == pytest.approx(hexa.sum(), rel=1e-12)
+    with pytest.raises(sw.Error, match="wide.fits.*reaches 1.25 m"):
+        sw.write_fits(str(tmp_path / "wide.fits"), np.ones((n, n)))
+        sw.simulate(pupil_mask=str(tmp_path / "wide.fits"), **keys)
+    with pytest.raises(sw.Error, match="small.fits: pupil mask is 32x32x1"):
+        sw.write_fits(str(tmp_path / "small.fits"), np.ones((32, 32)))
+        sw.simulate(pupil_mask=str(tmp_path / "small.fits"), **keys)

@@ -104,7 +104,7 @@ int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r
         goto done;
     }
     /* The simulator's pupil and its NCP without any correction (the user's map included). */
-    if ((rc = swfs_aperture_make(mask, np, b->pupdx, b->teldiam, b->obscur, b->nspiders, b->spider_width))) goto done;
+    if ((rc = swfs_sim_pupil(b, mask))) goto done;
     if ((rc = swfs_sim_ncp_map(b, mask, ncp0, NULL, NULL))) goto done;
     if (b->ncp_map[0]) {
         swfs_real *u = NULL;

@@ -203,8 +203,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
     }
 
     /* The pupil and the initial NCP exactly as the simulator makes them. */
-    if ((rc = swfs_aperture_make(r->pupil->data, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width)))
-        goto done;
+    if ((rc = swfs_sim_pupil(p, r->pupil->data))) goto done;
     if ((rc = swfs_sim_ncp_map(p, r->pupil->data, ncp0, NULL, NULL))) goto done;
 
     /* The DM. */

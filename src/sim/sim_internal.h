@@ -9,5 +9,7 @@
 swfs_ao_model *swfs_ao_model_create_with(const swfs_sim_params *p, swfs_screen_gen *gen);
 /* Lag vector [m] of p. */
 void swfs_sim_lag_vector(const swfs_sim_params *p, double *sx, double *sy);
+/* A file name setting into dst[cap] (kept when the key is absent; refused when too long). */
+int swfs_sim_config_path(swfs_config *c, const char *key, char *dst, size_t cap);
 
 #endif

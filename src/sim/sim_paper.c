@@ -9,9 +9,11 @@
  * result does not depend on the number of threads. */
 #include "sim_internal.h"
 #include "specklewfs/aperture.h"
+#include "specklewfs/fits.h"
 #include "specklewfs/kernels.h"
 #include "specklewfs/mft.h"
 #include "specklewfs/parallel.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
 
@@ -21,6 +23,32 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+
+int swfs_sim_pupil(const swfs_sim_params *p, double *mask)
+{
+    const size_t np = (size_t)p->pupn;
+    if (!p->pupil_mask[0]) return swfs_aperture_make(mask, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width);
+    swfs_real *m = NULL;
+    int rc = swfs_fits_read_real(p->pupil_mask, NULL, &m, NULL);
+    if (rc) return swfs_fail_context(rc, "pupil mask");
+    if (m->nx != np || m->ny != np || m->nz != 1)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but the pupil grid is pupn x pupn = %zux%zu",
+                       p->pupil_mask, m->nx, m->ny, m->nz, np, np);
+    if (!rc) rc = swfs_pupil_mask_check(m, p->pupil_mask);
+    /* The Shack-Hartmann's subapertures, the DM and the focal scale (lambda/D) all span teldiam:
+     * light beyond it would fall outside every subaperture. */
+    const double c = 0.5 * (double)(np - 1), rmax = 0.5 * p->teldiam + 0.5 * p->pupdx;
+    for (size_t q = 0; !rc && q < np * np; q++) {
+        const double r = hypot((double)(q % np) - c, (double)(q / np) - c) * p->pupdx;
+        if (m->data[q] > 0 && r > rmax)
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: pupil mask transmits %g at sample (%zu, %zu), %g m from the centre; the "
+                           "telescope (teldiam = %g m) reaches %g m", p->pupil_mask, m->data[q], q % np, q / np, r,
+                           p->teldiam, 0.5 * p->teldiam);
+    }
+    if (!rc) memcpy(mask, m->data, np * np * sizeof *mask);
+    swfs_real_free(m);
+    return rc;
+}
 
 int swfs_sim_ncp_map(const swfs_sim_params *p, const double *mask, double *ncp, double *rms, double *pv)
 {
@@ -305,7 +333,7 @@ static int pupil_and_ncp(const swfs_sim_params *p, const double *ncp, swfs_sim_r
                          float complex *ncpph, double *ssum_out)
 {
     const size_t np = (size_t)p->pupn;
-    int rc = swfs_aperture_make(r->pupil->data, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width);
+    int rc = swfs_sim_pupil(p, r->pupil->data);
     if (rc) return rc;
     if (ncp) {
         if ((rc = ncp_override(ncp, r->pupil->data, np * np, r->ncp->data, &r->ncp_rms, &r->ncp_pv))) return rc;

@@ -1,5 +1,6 @@
 /* Parameters of the Sec. 3 simulation: defaults (the paper's values), config keys,
  * checks and provenance text. Keys are documented in config/paper-sec3.conf. */
+#include "sim_internal.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
 
@@ -57,6 +58,18 @@ static int get_int(swfs_config *c, const char *key, int *v)
     return SWFS_OK;
 }
 
+/* A file name setting into dst[cap] (kept when the key is absent). */
+int swfs_sim_config_path(swfs_config *c, const char *key, char *dst, size_t cap)
+{
+    const char *v = NULL;
+    int rc = swfs_config_string(c, key, dst, &v);
+    if (rc) return rc;
+    if (strlen(v) >= cap)
+        return swfs_fail(SWFS_ERR_VALUE, "setting %s: a path of %zu characters; at most %zu", key, strlen(v), cap - 1);
+    if (v != dst) snprintf(dst, cap, "%s", v);
+    return SWFS_OK;
+}
+
 int swfs_sim_params_from_config(swfs_config *c, swfs_sim_params *p)
 {
     int rc;
@@ -108,12 +121,8 @@ int swfs_sim_params_from_config(swfs_config *c, swfs_sim_params *p)
             return swfs_fail(SWFS_ERR_VALUE, "setting ncp_zernike: expected triples 'n m coefficient', got %zu numbers", k);
         p->ncp_nzernike = k / 3;
     }
-    const char *map = NULL;
-    if ((rc = swfs_config_string(c, "ncp_map", p->ncp_map, &map))) return rc;
-    if (map != p->ncp_map) {
-        if (strlen(map) >= sizeof p->ncp_map) return swfs_fail(SWFS_ERR_VALUE, "setting ncp_map: path too long");
-        strcpy(p->ncp_map, map);
-    }
+    if ((rc = swfs_sim_config_path(c, "ncp_map", p->ncp_map, sizeof p->ncp_map))) return rc;
+    if ((rc = swfs_sim_config_path(c, "pupil_mask", p->pupil_mask, sizeof p->pupil_mask))) return rc;
     long seed = (long)(p->seed & 0x7fffffffffffffffULL);
     if ((rc = get_long(c, "seed", &seed))) return rc;
     if (seed < 0) return swfs_fail(SWFS_ERR_VALUE, "setting seed=%ld: must be >= 0", seed);
@@ -221,6 +230,7 @@ size_t swfs_sim_params_format(const swfs_sim_params *p, char *buf, size_t cap)
         len = append(buf, cap, len, "\n");
     }
     if (p->ncp_map[0]) len = append(buf, cap, len, "ncp_map=%s\n", p->ncp_map);
+    if (p->pupil_mask[0]) len = append(buf, cap, len, "pupil_mask=%s\n", p->pupil_mask);
     len = append(buf, cap, len, "seed=%llu\nthreads=%d\n", (unsigned long long)p->seed, p->threads);
     return len;
 }

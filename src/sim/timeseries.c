@@ -4,6 +4,7 @@
 #include "specklewfs/outpaths.h"
 #include "specklewfs/timeseries.h"
 #include "ts_milk.h"
+#include "sim_internal.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/array.h"
 #include "specklewfs/dmfit.h"
@@ -75,18 +76,6 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->ndead = 5;
 }
 
-/* A file name setting into dst[cap] (kept when the key is absent). */
-static int config_path(swfs_config *c, const char *key, char *dst, size_t cap)
-{
-    const char *v = NULL;
-    int rc = swfs_config_string(c, key, dst, &v);
-    if (rc) return rc;
-    if (strlen(v) >= cap)
-        return swfs_fail(SWFS_ERR_VALUE, "setting %s: a path of %zu characters; at most %zu", key, strlen(v), cap - 1);
-    if (v != dst) snprintf(dst, cap, "%s", v);
-    return SWFS_OK;
-}
-
 int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 {
     int rc;
@@ -124,9 +113,9 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
 #undef D_
 #undef L_
-    if ((rc = config_path(c, "ao_recon", p->ao_recon, sizeof p->ao_recon))) return rc;
-    if ((rc = config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
-    if ((rc = config_path(c, "valid", p->valid, sizeof p->valid))) return rc;
+    if ((rc = swfs_sim_config_path(c, "ao_recon", p->ao_recon, sizeof p->ao_recon))) return rc;
+    if ((rc = swfs_sim_config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
+    if ((rc = swfs_sim_config_path(c, "valid", p->valid, sizeof p->valid))) return rc;
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
@@ -484,7 +473,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     mask = malloc(ng * sizeof *mask);
     ncp = malloc(ng * sizeof *ncp);
     if (!mask || !ncp) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
-    if ((rc = swfs_aperture_make(mask, np, dx, D, b->obscur, b->nspiders, b->spider_width))) goto done;
+    if ((rc = swfs_sim_pupil(b, mask))) goto done;
     if ((rc = swfs_sim_ncp_map(b, mask, ncp, &sum->ncp_rms, NULL))) goto done;
     size_t npin = 0;
     double S = 0;
@@ -832,6 +821,10 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
+    snprintf(path, sizeof path, "%s/pupil.fits", dir);
+    if ((rc = write_real(path, &(swfs_real){np, np, 1, mask}, &geom, prov, nprov, 0))) {
+        swfs_real_free(noisy); free(tstart); goto done;
+    }
     snprintf(path, sizeof path, "%s/recon_ao.fits", dir);
     if ((rc = swfs_recon_write(rao, path))) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/handshake.log", dir);
