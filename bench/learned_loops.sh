@@ -12,7 +12,7 @@
 # map taught on the annulus and on loops given that pupil (simulate pupil_mask=). Every step
 # is given the observation's pupil.fits (on the annulus rows the mask it would build itself).
 # Prints one line per observation: NCP error [nm] default / learned / ideal and the ratios.
-# usage: bash bench/learned_loops.sh <specklewfs> <scratch dir>     (about 16 minutes)
+# usage: bash bench/learned_loops.sh <specklewfs> <scratch dir>     (about 17 minutes)
 set -u
 B=$1
 D=$2
