@@ -20,22 +20,26 @@ mkdir -p "$D"
 err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
 BASE="pupn=100 pupdx=0.06501 screen_n=2048 nsub=16 act_pitch=0.3372 ao_modes=100 wfs_rate=1000 frame_ratio=9.7
       vib_freq=15 read_noise=15 ncubes=4 cube_frames=100 start_offset=300.41 wfs_file_frames=3000"
-# the training loops (kept when present)
-n=0
-for wind in 5,8 12,18 25,30; do
-    for seed in 11 12; do
-        t="$D/train/wind${wind/,/-}-seed$seed"
-        n=$((n + 1))
-        [ -f "$t/truewf_000.fits" ] && continue
-        # shellcheck disable=SC2086
-        "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
-            vib_amp=0.3 seed=$seed export_truth=1 --quiet -o "$t" > "$D/train.log" 2>&1 \
-            || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
+# train NAME [simulate keys]: the recipe's six loops in $D/NAME (kept when present) with the
+# keys added, and the map learned on them, $D/learned-NAME.fits
+train() {
+    local name=$1 wind seed t
+    shift
+    for wind in 5,8 12,18 25,30; do
+        for seed in 11 12; do
+            t="$D/$name/wind${wind/,/-}-seed$seed"
+            [ -f "$t/truewf_000.fits" ] && continue
+            # shellcheck disable=SC2086
+            "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
+                vib_amp=0.3 seed=$seed export_truth=1 "$@" --quiet -o "$t" > "$D/train.log" 2>&1 \
+                || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
+        done
     done
-done
-"$B" learn "$D"/train/* -o "$D/learned.fits" > "$D/learn.log" || { cat "$D/learn.log"; exit 1; }
-LEARNED=$D/learned.fits
-grep "held out, all" "$D/learn.log"
+    "$B" learn "$D/$name"/* -o "$D/learned-$name.fits" > "$D/learn-$name.log" || { cat "$D/learn-$name.log"; exit 1; }
+}
+train train
+LEARNED=$D/learned-train.fits
+grep "held out, all" "$D/learn-train.log"
 printf "%-14s | %7s %7s %7s | %6s %6s\n" observation default learned ideal "x def" "x lrn"
 obs() { # name [simulate keys]
     local name=$1 d="$D/$1"
@@ -81,32 +85,12 @@ obs wind40 layer_speed=40
 obs seed2 seed=2
 # The 60-mode loop again, with the map taught on loops that run the observed system's own
 # reconstructor (simulate ao_recon=...: what a user gives from the AO system's control matrix).
-for wind in 5,8 12,18 25,30; do
-    for seed in 11 12; do
-        t="$D/train60/wind${wind/,/-}-seed$seed"
-        [ -f "$t/truewf_000.fits" ] && continue
-        # shellcheck disable=SC2086
-        "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
-            vib_amp=0.3 seed=$seed export_truth=1 ao_recon="$D/modes60/sim/recon_ao.fits" --quiet -o "$t" \
-            > "$D/train.log" 2>&1 || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
-    done
-done
-"$B" learn "$D"/train60/* -o "$D/learned60.fits" > "$D/learn60.log" || { cat "$D/learn60.log"; exit 1; }
-LEARNED=$D/learned60.fits obs modes60-own ao_modes=60
+train train60 ao_recon="$D/modes60/sim/recon_ao.fits"
+LEARNED=$D/learned-train60.fits obs modes60-own ao_modes=60
 # A pupil unlike the annulus the maps above were taught on, then a map taught on loops given it.
 VANES="obscur=0.3 nspiders=4 spider_width=0.3"
 # shellcheck disable=SC2086
-LEARNED=$D/learned.fits obs vanes $VANES
-for wind in 5,8 12,18 25,30; do
-    for seed in 11 12; do
-        t="$D/trainvanes/wind${wind/,/-}-seed$seed"
-        [ -f "$t/truewf_000.fits" ] && continue
-        # shellcheck disable=SC2086
-        "$B" simulate mode=timeseries $BASE nlayers=2 layer_frac=0.6,0.4 layer_speed=$wind layer_dir=30,160 \
-            vib_amp=0.3 seed=$seed export_truth=1 pupil_mask="$D/vanes/sim/pupil.fits" --quiet -o "$t" \
-            > "$D/train.log" 2>&1 || { echo "simulate $t failed: $(tail -1 "$D/train.log")"; exit 1; }
-    done
-done
-"$B" learn "$D"/trainvanes/* -o "$D/learnedvanes.fits" > "$D/learnvanes.log" || { cat "$D/learnvanes.log"; exit 1; }
+LEARNED=$D/learned-train.fits obs vanes $VANES
+train trainvanes pupil_mask="$D/vanes/sim/pupil.fits"
 # shellcheck disable=SC2086
-LEARNED=$D/learnedvanes.fits obs vanes-own $VANES
+LEARNED=$D/learned-trainvanes.fits obs vanes-own $VANES

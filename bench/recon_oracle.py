@@ -29,6 +29,10 @@ the Shack-Hartmann's band nsub/2):
            the slopes with the DM commands the loop applied (truewf_NNN.fits extension DM),
            applied to this data set's frames: what a reconstructor learned from simulated
            closed loops of this geometry would give.
+  --lags L,L...  with --train: the "sim" map's input is the slopes of frames t + L for
+           every L given (0 is frame t itself; clamped at each data set's ends), stacked:
+           a space-time map from a few neighbouring frames' slopes, learned on the
+           simulations (frozen flow moves the screen by L v / rate between them).
   --rows R,R...  only these rows (e.g. vk,sim).
   --write-sim-recon W.fits  writes the "sim" map as a reconstructor file (nslopes x nact,
            m per rad; 0 for the slopes no subaperture sees) for `speckles --recon W.fits`.
@@ -53,6 +57,7 @@ ap.add_argument("--in-sample", action="store_true")
 ap.add_argument("--train", nargs="+", default=[])
 ap.add_argument("--write-sim-recon")
 ap.add_argument("--rows", default="")
+ap.add_argument("--lags", default="0")
 a = ap.parse_args()
 D, EXE = a.dir, a.specklewfs
 
@@ -103,6 +108,15 @@ def ncp(prefix, Zhat):
     return out
 
 
+LAGS = [int(v) for v in a.lags.split(",")]
+
+
+def stack(X):
+    """The slopes of frames t + L for every L of --lags side by side (one data set's frames)."""
+    t = np.arange(X.shape[0])
+    return np.hstack([X[np.clip(t + L, 0, X.shape[0] - 1)] for L in LAGS])
+
+
 def fit(Xt, Yt):
     G = Xt.T @ Xt
     G[np.diag_indices_from(G)] += a.ridge * np.trace(G) / len(G)
@@ -132,18 +146,20 @@ if a.train:
     DMc = series("truewf_0*.fits", "DM")[0]
     St, Zt, Mt = [], [], []
     for d in a.train:
-        St.append(series("slopes_0*.fits", d=d)[0][:, used])
+        St.append(stack(series("slopes_0*.fits", d=d)[0][:, used]))
         z = series("truewf_0*.fits", d=d)[0]
         Zt.append(z - z.mean(1, keepdims=True))
         m = series("truewf_0*.fits", "DM", d=d)[0]
         Mt.append(m - m.mean(1, keepdims=True))
     St, Zt, Mt = np.concatenate(St), np.concatenate(Zt), np.concatenate(Mt)
-    if St.shape[1] != X.shape[1] or Zt.shape[1] != Z.shape[1]:
+    if St.shape[1] != len(LAGS) * X.shape[1] or Zt.shape[1] != Z.shape[1]:
         sys.exit(f"recon_oracle: --train data have {St.shape[1]} slopes and {Zt.shape[1]} actuators, this set "
                  f"{X.shape[1]} and {Z.shape[1]}: train on the same geometry")
-    print(f"trained on {St.shape[0]} simulated WFS frames from {len(a.train)} data sets")
+    print(f"trained on {St.shape[0]} simulated WFS frames from {len(a.train)} data sets, lags {LAGS}")
     A = fit(St, Zt)
-    rows.append(("sim", X @ A))
+    rows.append(("sim", stack(X) @ A))
+    if a.write_sim_recon and LAGS != [0]:
+        sys.exit("recon_oracle: --write-sim-recon writes a per-frame map; it cannot hold --lags")
     if a.write_sim_recon:
         Wsim = np.zeros((Z.shape[1], S.shape[1]))
         Wsim[:, used] = A.T
@@ -151,7 +167,7 @@ if a.train:
         print(f"wrote {a.write_sim_recon}: the sim map as a reconstructor ({Wsim.shape[1]} slopes x {Wsim.shape[0]} "
               f"actuators)")
     Mc = DMc - DMc.mean(1, keepdims=True)
-    rows.append(("sim+dm", np.hstack([X, Mc]) @ fit(np.hstack([St, Mt]), Zt)))
+    rows.append(("sim+dm", np.hstack([stack(X), Mc]) @ fit(np.hstack([St, Mt]), Zt)))
 print(f"{'wavefront':10s} {'NCP [nm]':>9s} {'kept':>6s} {'per frame [nm]':>15s}")
 for name, Zhat in rows:
     if want is not None and name not in want:

@@ -228,6 +228,19 @@ static double file_diff(const char *a, const char *b, double *amax)
     return d;
 }
 
+/* The files names[0..n) of two runs' folders hold the same nonzero data, to the bit. */
+static void same_files(const char *built, const char *given, const char *const *names, size_t n)
+{
+    for (size_t k = 0; k < n; k++) {
+        char a[128], b[128];
+        snprintf(a, sizeof a, "%s/%s", built, names[k]);
+        snprintf(b, sizeof b, "%s/%s", given, names[k]);
+        double m = 0, d = file_diff(a, b, &m);
+        print_message("%s: max |given - built| %g of %g\n", names[k], d, m);
+        assert_true(m > 0 && d == 0.0);
+    }
+}
+
 /* The DM given by its actuator positions (actuators = FILE): the hexapolar rings a run built,
  * given back as a file, makes the same loop (slopes and true residual equal to the last bit);
  * so does the loop's reconstructor given (ao_recon = FILE); positions the interpolation
@@ -242,14 +255,7 @@ static void test_actuators_given(void **state)
     const char *fromfile[] = {given, "export_truth=1"};
     assert_ok(ts_into("dm_given", fromfile, 2));
     const char *cmp[] = {"slopes_000.fits", "truewf_000.fits", "actuators.fits"};
-    for (size_t k = 0; k < 3; k++) {
-        char a[64], b[64];
-        snprintf(a, sizeof a, "dm_built/%s", cmp[k]);
-        snprintf(b, sizeof b, "dm_given/%s", cmp[k]);
-        double m = 0, d = file_diff(a, b, &m);
-        print_message("%s: max |given - built| %g of %g\n", cmp[k], d, m);
-        assert_true(m > 0 && d == 0.0);
-    }
+    same_files("dm_built", "dm_given", cmp, 3);
     /* The loop's reconstructor given (ao_recon): the built run's recon_ao.fits (40 modes) makes
      * its loop again although ao_modes asks for 20; of another DM's shape it is refused. */
     char rec[1400];
@@ -364,14 +370,7 @@ static void test_pupil_given(void **state)
     const char *given[] = {kv, "export_truth=1"};
     assert_ok(ts_into("pup_given", given, 2));
     const char *cmp[] = {"pupil.fits", "slopes_000.fits", "truewf_000.fits", "raw_000.fits"};
-    for (size_t k = 0; k < 4; k++) {
-        char a[64], b[64];
-        snprintf(a, sizeof a, "pup_built/%s", cmp[k]);
-        snprintf(b, sizeof b, "pup_given/%s", cmp[k]);
-        double m = 0, d = file_diff(a, b, &m);
-        print_message("%s: max |given - built| %g of %g\n", cmp[k], d, m);
-        assert_true(m > 0 && d == 0.0);
-    }
+    same_files("pup_built", "pup_given", cmp, 4);
     double m = 0, d = file_diff("pup_built/slopes_000.fits", "pup_plain/slopes_000.fits", &m);
     print_message("slopes: spiders against none differ by %g of %g\n", d, m);
     assert_true(d > 1e-3 * m);
