@@ -182,6 +182,12 @@ fi
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
 
+# ---- wind
+chk wind-no-teldiam 2 "needs --teldiam D > 0" o.fits -- wind ts/slopes_000.fits
+chk wind-missing 1 "nofile.fits" o.fits -- wind nofile.fits --teldiam 6.5
+chk wind-other-width 1 "expected 288 slopes x WFS frames as in ts/slopes_000.fits" o.fits -- wind ts/slopes_000.fits ts/actuators.fits --teldiam 6.5
+chk wind-bad-valid 1 "sh.fits" o.fits -- wind ts/slopes_000.fits --teldiam 6.5 --valid sh.fits
+
 # ---- pupil: halos of other frames to choose among
 chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits
 chk pupil-choose-missing 1 "nofile.fits" o.fits -- pupil run/halo.fits nofile.fits -o o.fits

@@ -26,6 +26,7 @@
 #include "specklewfs/pupil.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/status.h"
+#include "specklewfs/wind.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/sync.h"
 #include "specklewfs/team.h"
@@ -383,6 +384,25 @@ typedef struct swfs_learn_run_result {
 } swfs_learn_run_result;
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);
+
+/* ---- wind: the dominant layer's wind from telemetry files (wind.h) ------------------------ */
+
+typedef struct swfs_wind_run_options {
+    const char *const *files; /* consecutive telemetry files of one series (slopes x WFS frames) */
+    size_t nfiles;
+    const char *valid;        /* valid-subaperture map (swfs_valid_map_read), or NULL */
+    long nsub;                /* subapertures across; 0: the files' NSUB, else the map's size */
+    double teldiam;           /* [m] the pupil the nsub subapertures span (pitch = teldiam / nsub) */
+    double rate;              /* [Hz] 0: the files' WFSRATE */
+} swfs_wind_run_options;
+
+typedef struct swfs_wind_run_result {
+    swfs_wind_estimate est;
+    size_t nframes, nsub;
+    double pitch, rate;
+} swfs_wind_run_result;
+
+int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
 
 SWFS_END_DECLS
 

@@ -190,6 +190,12 @@ swfs_coherence = _s("swfs_coherence", [("nx", c_size), ("ny", c_size), ("nframes
                                        ("n_tau0_beyond", c_size)])
 swfs_screen_params = _s("swfs_screen_params", [("n", c_size), ("dx", c_dbl), ("r0", c_dbl), ("L0", c_dbl),
                                                ("subharmonics", c_int)])
+WIND_MAXLAGS = 32
+swfs_wind_lag = _s("swfs_wind_lag", [("lag", c_size), ("dx", c_dbl), ("dy", c_dbl), ("corr", c_dbl), ("inside", c_int),
+                                     ("used", c_int)])
+swfs_wind_estimate = _s("swfs_wind_estimate", [
+    ("found", c_int), ("vx", c_dbl), ("vy", c_dbl), ("speed", c_dbl), ("direction", c_dbl), ("nused", c_size),
+    ("nlags", c_size), ("lag", swfs_wind_lag * WIND_MAXLAGS), ("nvalid", c_size), ("radius", c_size)])
 SIM_MAX_ZERNIKE = 64
 swfs_sim_params = _s("swfs_sim_params", [
     ("screen", swfs_screen_params), ("nscreens", c_int), ("teldiam", c_dbl), ("pupn", c_long), ("pupdx", c_dbl),
@@ -403,6 +409,8 @@ _PROTOS = {
     "swfs_interaction_matrix": (c_int, [P(swfs_shwfs), P(swfs_sparse), P(P(c_dbl))]),
     "swfs_dm_modes": (c_int, [P(swfs_sparse), P(c_dbl), c_size, P(P(c_dbl))]),
     "swfs_slopes_remove_tiptilt": (None, [P(c_dbl), c_size, P(ctypes.c_ubyte)]),
+    "swfs_wind_from_slopes": (c_int, [P(c_dbl), c_size, c_size, c_size, P(ctypes.c_ubyte), c_dbl, c_dbl,
+                                      P(swfs_wind_estimate)]),
     "swfs_recon_svd": (c_int, [P(c_dbl), c_size, c_size, c_dbl, c_size, P(P(swfs_recon))]),
     "swfs_recon_map": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_dbl, P(P(swfs_recon))]),
     "swfs_recon_vk": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_dbl, P(c_dbl), c_size, c_dbl,

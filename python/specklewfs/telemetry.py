@@ -186,6 +186,24 @@ def slopes_noise_var(D, slopes):
     return v.value
 
 
+def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
+    """The dominant frozen-flow layer's wind from the slopes (wind.h): slopes (nframes,
+    2 nsub^2) or, with valid (nsub, nsub), the valid subapertures' only; pitch [m] the
+    subaperture size, rate [Hz]. A dict: found, vx, vy, speed [m/s], direction [deg, toward
+    which the pattern moves, counter-clockwise from +x], and lags: one dict per lag examined
+    (lag, dx, dy [subapertures], corr, inside, used)."""
+    s = as_array(slopes, "slopes", np.float64, ndim=2)
+    v = None if valid is None else as_array(valid, "valid", np.uint8, shape=(nsub, nsub))
+    e = _lib.swfs_wind_estimate()
+    check(lib.swfs_wind_from_slopes(dptr(s), s.shape[0], s.shape[1], int(nsub),
+                                    None if v is None else v.ctypes.data_as(P(ctypes.c_ubyte)), float(pitch),
+                                    float(rate), ctypes.byref(e)), "swfs_wind_from_slopes")
+    lags = [dict(lag=L.lag, dx=L.dx, dy=L.dy, corr=L.corr, inside=bool(L.inside), used=bool(L.used))
+            for L in e.lag[:e.nlags]]
+    return dict(found=bool(e.found), vx=e.vx, vy=e.vy, speed=e.speed, direction=e.direction, nused=e.nused,
+                nvalid=e.nvalid, radius=e.radius, lags=lags)
+
+
 def vk_covariance(xy, L0):
     """Normalized von Karman covariance of the actuators (nact, nact)."""
     xy = as_array(xy, "xy", np.float64, shape=(None, 2))

@@ -1,4 +1,7 @@
 """WFS model, reconstructors, interpolation, the speckle model, the engine, the MFT."""
+import os
+import re
+
 import numpy as np
 import pytest
 
@@ -229,3 +232,27 @@ def test_square_actuators_and_geometry_file(tmp_path):
     f.write_text("WAVELEN = 3.8\n")
     with pytest.raises(sw.Error, match="WAVELEN"):
         sw.read_geom_file(str(f))
+
+
+def test_wind_from_slopes(cli, tmp_path):
+    """The dominant layer's wind from a closed loop's slopes, in Python and through
+    `specklewfs wind`: the same numbers, the layer's speed within 10 % and its direction
+    within 5 deg; bad input refused."""
+    import subprocess
+    out = str(tmp_path / "ts")
+    sw.simulate_timeseries(out, pupn=66, pupdx=0.1, screen_n=1024, ncubes=2, cube_frames=100, cube_gap=100,
+                           nlayers=1, layer_frac=1, layer_speed=15, layer_dir=120, seed=6)
+    s, _ = sw.read_fits(os.path.join(out, "slopes_000.fits"))
+    e = sw.wind_from_slopes(s, 12, 6.5 / 12, 527)
+    assert e["found"] and e["nused"] >= 2 and sum(L["used"] for L in e["lags"]) == e["nused"]
+    assert abs(e["speed"] / 15 - 1) < 0.1 and abs(e["direction"] - 120) < 5
+    assert e["vx"] < 0 < e["vy"]
+    r = subprocess.run([cli, "wind", os.path.join(out, "slopes_000.fits"), "--teldiam", "6.5"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    m = re.search(r"wind: ([0-9.]+) m/s toward ([0-9.]+) deg", r.stdout)
+    assert m and float(m.group(1)) == round(e["speed"], 2) and float(m.group(2)) == round(e["direction"], 1)
+    with pytest.raises(sw.Error, match="30 WFS frames"):
+        sw.wind_from_slopes(s[:30], 12, 6.5 / 12, 527)
+    r = subprocess.run([cli, "wind", os.path.join(out, "slopes_000.fits")], capture_output=True, text=True)
+    assert r.returncode != 0 and "--teldiam" in r.stderr

@@ -1,0 +1,76 @@
+/* specklewfs wind SLOPES.fits... --teldiam D: the dominant frozen-flow layer's wind. */
+#include "cli.h"
+
+#include "specklewfs/run.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+
+static const char *usage_text =
+    "usage: specklewfs wind SLOPES.fits... --teldiam D [--valid MAP.fits] [--nsub N] [--wfs-hz HZ]\n"
+    "\n"
+    "The wind of the dominant frozen-flow layer from the Shack-Hartmann slopes alone (closed\n"
+    "loop is fine: the residual of a linear loop moves with the layer). For lags of 1, 2, 4, ...\n"
+    "WFS frames the slopes of every pair of subapertures are correlated (one DGEMM per lag),\n"
+    "binned by the pair's displacement on the grid, and the peak of that map is tracked from the\n"
+    "first lag it lies a subaperture out until the layer decorrelates or leaves the map; the\n"
+    "velocity is the least-squares fit over the lags tracked (include/specklewfs/wind.h). Use\n"
+    "it to set the wind of the simulations `learn` is taught on (docs/telemetry.md).\n"
+    "\n"
+    "  SLOPES.fits...  consecutive telemetry files of one series (slopes x WFS frames: all\n"
+    "                  subapertures' x slopes then y, or with --valid the valid ones' only)\n"
+    "  --teldiam D     [m] the pupil the subapertures span: pitch = D / nsub\n"
+    "  --valid MAP     the AO system's valid-subaperture map (nsub x nsub, nonzero = used;\n"
+    "                  default: the subapertures whose slopes are not all 0)\n"
+    "  --nsub N        subapertures across (default: the files' NSUB, or the map's size)\n"
+    "  --wfs-hz HZ     WFS frame rate (default: the files' WFSRATE)\n"
+    "Prints every lag's peak displacement and correlation, then the speed [m/s] and the\n"
+    "direction [deg, counter-clockwise from the grid's +x, toward which the layer moves: the\n"
+    "time-series simulator's layer_dir]. Exit 0 also when no lag resolves a displacement (a\n"
+    "layer too slow for the series, or no frozen flow): it says so.\n";
+
+int swfs_cmd_wind(int argc, char **argv)
+{
+    const char *cmd = "wind";
+    swfs_wind_run_options o = {0};
+    const char **files = calloc((size_t)argc, sizeof *files);
+    size_t nf = 0;
+    if (!files) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    const cli_opt opts[] = {
+        {"--teldiam", CLI_DOUBLE, &o.teldiam, NULL, 0},
+        {"--valid", CLI_STRING, &o.valid, "a file name", 0},
+        {"--nsub", CLI_LONG, &o.nsub, NULL, 0},
+        {"--wfs-hz", CLI_DOUBLE, &o.rate, NULL, 0},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, files, &nf};
+    int rc = cli_parse_args(&args, argc, argv);
+    if (rc) { free(files); return rc < 0 ? CLI_OK : rc; }
+    if (!nf) rc = cli_usage_error(cmd, "needs at least one telemetry file");
+    else if (!(o.teldiam > 0) || !isfinite(o.teldiam)) rc = cli_usage_error(cmd, "needs --teldiam D > 0 [m]");
+    else if (o.nsub < 0) rc = cli_usage_error(cmd, "--nsub must be > 0, got %ld", o.nsub);
+    else if (o.rate < 0 || !isfinite(o.rate)) rc = cli_usage_error(cmd, "--wfs-hz must be > 0, got %g", o.rate);
+    if (rc) { free(files); return rc; }
+    o.files = files;
+    o.nfiles = nf;
+    swfs_wind_run_result r;
+    if (swfs_wind_run(&o, &r)) { free(files); return cli_error(cmd); }
+    const swfs_wind_estimate *e = &r.est;
+    printf("wind: %zu WFS frames at %g Hz, %zu x %zu subapertures of %.4g m (%zu used), map +-%zu subapertures\n",
+           r.nframes, r.rate, r.nsub, r.nsub, r.pitch, e->nvalid, e->radius);
+    printf("  lag [frames]  peak shift x, y [subapertures]  correlation\n");
+    for (size_t k = 0; k < e->nlags; k++) {
+        const swfs_wind_lag *L = &e->lag[k];
+        printf("  %12zu  %+13.2f %+7.2f          %.3f%s\n", L->lag, L->dx, L->dy, L->corr,
+               L->used ? "  <- tracked" : L->inside ? "" : "  (at the map's edge)");
+    }
+    if (e->found)
+        printf("wind: %.2f m/s toward %.1f deg (vx %+.2f, vy %+.2f m/s), from %zu lags\n", e->speed, e->direction,
+               e->vx, e->vy, e->nused);
+    else
+        printf("wind: no displacement of a subaperture or more tracked over two lags (a layer too slow for %zu "
+               "frames, or no frozen flow)\n", r.nframes);
+    free(files);
+    return CLI_OK;
+}

@@ -1,0 +1,75 @@
+/* The wind of the dominant frozen-flow layer, from the Shack-Hartmann slopes alone.
+ *
+ * A layer carried by the wind at v moves its phase pattern by v tau in tau seconds. The AO
+ * residual of a linear loop is a time-invariant filter of that pattern (plus the loop's
+ * spatial filter and noise), so the residual slopes move with it too: the slopes of
+ * subaperture p at frame t correlate best with those of the subaperture displaced by
+ * v tau / pitch at frame t + tau. For lags tau = 1, 2, 4, ... frames (up to a quarter of the
+ * series): one DGEMM gives the lagged covariance of every pair of valid subapertures (x and
+ * y slopes summed, each frame's mean x/y slope and each subaperture's mean taken out), the
+ * pairs are binned by their grid displacement (within +-(nsub/2 - 1) subapertures) and
+ * normalized by their zero-lag standard deviations, and the peak of that correlation map,
+ * refined by a parabola through its neighbours on each axis, is the displacement at that lag.
+ *
+ * Which lags count: the displacement is resolved once it reaches one subaperture (shorter
+ * lags see the correlation's width, not its shift). From the first lag whose peak lies at
+ * least one subaperture out and inside the map, each longer lag is kept while the highest
+ * bin within half the predicted displacement of v tau (v the least-squares fit through the
+ * origin of the lags kept so far) is a local maximum inside the map (so that another
+ * layer's peak elsewhere in the map does not take over the track); the first lag that does
+ * not stops the tracking (the layer has decorrelated or left the map), and so does a lag
+ * whose predicted displacement would leave the map less its outer ring (the peak needs its
+ * neighbours, and enough overlapping pairs, to be placed). v is the fit over
+ * the lags kept, so the longest lag dominates: its sub-subaperture error divided by many
+ * subapertures of displacement. With two layers the tracked one is the layer whose
+ * pattern dominates the slopes at the lags that resolve it.
+ *
+ * Directions are the subaperture grid's: +x along increasing subaperture column, +y along
+ * increasing row (the pupil grid's, docs/conventions.md), the direction in degrees
+ * counter-clockwise from +x toward which the pattern moves (the time-series simulator's
+ * layer_dir). Measured over the issue-12 matrix in docs/telemetry.md. */
+#ifndef SWFS_WIND_H
+#define SWFS_WIND_H
+
+#include "specklewfs/defs.h"
+
+#include <stddef.h>
+
+SWFS_BEGIN_DECLS
+
+#define SWFS_WIND_MAXLAGS 32
+
+typedef struct swfs_wind_lag {
+    size_t lag;       /* [WFS frames] */
+    double dx, dy;    /* peak displacement [subapertures] */
+    double corr;      /* normalized correlation at the peak */
+    int inside;       /* the peak lies inside the map (not on its edge) */
+    int used;         /* kept for the fit */
+} swfs_wind_lag;
+
+typedef struct swfs_wind_estimate {
+    int found;                      /* 1: a displacement tracked over two lags or more */
+    double vx, vy;                  /* [m/s] */
+    double speed;                   /* [m/s] */
+    double direction;               /* [deg] in [0, 360), toward which the pattern moves */
+    size_t nused;                   /* lags used in the fit */
+    size_t nlags;                   /* lags examined (lag[0..nlags)) */
+    swfs_wind_lag lag[SWFS_WIND_MAXLAGS];
+    size_t nvalid;                  /* subapertures used */
+    size_t radius;                  /* the correlation map's half width [subapertures] */
+} swfs_wind_estimate;
+
+/* slopes: nframes rows of nslopes, either the full layout (2 nsub^2: x of every subaperture
+ * row-major, then y) or, with valid given, the valid subapertures' only (2 nvalid, in the
+ * map's row-major order). valid: nsub x nsub (nonzero = used), or NULL: the subapertures
+ * whose slopes are not all 0. pitch: the subaperture size on the pupil [m]; rate: WFS
+ * frames per second. Refused: fewer than 64 frames, nsub < 4, a non-finite slope (frame and
+ * index named), fewer than 8 valid subapertures. found = 0 (not an error) when fewer than
+ * two lags track a displacement: a layer too slow for the series, or no frozen flow (one
+ * lag alone, which white noise can give, does not show a steady motion). */
+int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                          const unsigned char *valid, double pitch, double rate, swfs_wind_estimate *out);
+
+SWFS_END_DECLS
+
+#endif

@@ -1,0 +1,171 @@
+/* The dominant layer's wind from the slopes (wind.h): closed-loop time series of one
+ * frozen-flow layer at two winds give the layer's speed within 10 % and its direction
+ * within 5 deg; a second layer of less power leaves the dominant one's; the valid-only
+ * layout gives the full layout's answer; white-noise slopes track nothing; bad input is
+ * refused by name (too few frames, a non-finite slope, another width). */
+#include "testutil.h"
+
+#include "specklewfs/config.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/run.h"
+#include "specklewfs/status.h"
+#include "specklewfs/timeseries.h"
+#include "specklewfs/wind.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+static char dir[1024];
+
+static const char *p(const char *name)
+{
+    static char buf[8][1200];
+    static int k;
+    k = (k + 1) % 8;
+    snprintf(buf[k], sizeof buf[k], "%s/%s", dir, name);
+    return buf[k];
+}
+
+static int setup(void **state)
+{
+    (void)state;
+    snprintf(dir, sizeof dir, "%s", test_path("wind"));
+    mkdir(dir, 0755);
+    return 0;
+}
+
+/* A closed-loop time series (12 x 12 at 527 Hz on a 6.5 m pupil) into dir/sub. */
+static void series(const char *sub, const char *const *extra, size_t nextra)
+{
+    swfs_config *c = swfs_config_new();
+    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=100", "cube_gap=100",
+                        "seed=4"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    for (size_t i = 0; i < nextra; i++) assert_ok(swfs_config_set(c, extra[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    swfs_config_free(c);
+    assert_ok(swfs_ts_params_check(&tp));
+    mkdir(p(sub), 0755);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_wind"};
+    assert_ok(swfs_ts_run(&tp, p(sub), prov, 1, NULL, NULL, &s));
+}
+
+static void wind_of(const char *sub, swfs_wind_run_result *r)
+{
+    char f[1300];
+    snprintf(f, sizeof f, "%s/slopes_000.fits", p(sub));
+    const char *files[] = {f};
+    swfs_wind_run_options o = {files, 1, NULL, 0, 6.5, 0};
+    assert_ok(swfs_wind_run(&o, r));
+    print_message("%s: %zu frames, %.2f m/s toward %.1f deg from %zu lags\n", sub, r->nframes, r->est.speed,
+                  r->est.direction, r->est.nused);
+}
+
+static double angle_diff(double a, double b)
+{
+    double d = fmod(a - b + 540.0, 360.0) - 180.0;
+    return fabs(d);
+}
+
+static void test_wind_of_simulated_loops(void **state)
+{
+    (void)state;
+    const struct { const char *sub, *keys[4]; double speed, dir; } cases[] = {
+        {"one30", {"nlayers=1", "layer_frac=1", "layer_speed=10", "layer_dir=30"}, 10, 30},
+        {"one200", {"nlayers=1", "layer_frac=1", "layer_speed=20", "layer_dir=200"}, 20, 200},
+        /* a second, weaker layer (30 % of the turbulence) across the first */
+        {"two", {"nlayers=2", "layer_frac=0.7,0.3", "layer_speed=12,6", "layer_dir=300,45"}, 12, 300},
+    };
+    for (size_t k = 0; k < sizeof cases / sizeof cases[0]; k++) {
+        series(cases[k].sub, cases[k].keys, 4);
+        swfs_wind_run_result r;
+        wind_of(cases[k].sub, &r);
+        assert_true(r.est.found);
+        assert_true(r.est.nused >= 2);
+        assert_true(fabs(r.est.speed / cases[k].speed - 1) < 0.10);
+        assert_true(angle_diff(r.est.direction, cases[k].dir) < 5.0);
+        assert_int_equal(r.nsub, 12);
+        assert_true(fabs(r.rate - 527) < 1e-9 && fabs(r.pitch - 6.5 / 12) < 1e-12);
+    }
+}
+
+/* The valid subapertures' slopes alone, with the map, give the same answer to the bit. */
+static void test_wind_valid_only(void **state)
+{
+    (void)state;
+    swfs_real *s = NULL;
+    assert_ok(swfs_fits_read_real(p("one30/slopes_000.fits"), NULL, &s, NULL));
+    const size_t ns = s->nx, T = s->ny, n2 = ns / 2, nsub = 12;
+    unsigned char valid[144];
+    size_t nv = 0;
+    for (size_t a = 0; a < n2; a++) {
+        int seen = 0;
+        for (size_t t = 0; t < T && !seen; t++) seen = s->data[t * ns + a] != 0;
+        valid[a] = (unsigned char)seen;
+        nv += (size_t)seen;
+    }
+    double *c = malloc(T * 2 * nv * sizeof *c);
+    for (size_t t = 0; t < T; t++)
+        for (size_t a = 0, k = 0; a < n2; a++)
+            if (valid[a]) {
+                c[t * 2 * nv + k] = s->data[t * ns + a];
+                c[t * 2 * nv + nv + k] = s->data[t * ns + n2 + a];
+                k++;
+            }
+    swfs_wind_estimate full, compact;
+    assert_ok(swfs_wind_from_slopes(s->data, T, ns, nsub, NULL, 6.5 / 12, 527, &full));
+    assert_ok(swfs_wind_from_slopes(c, T, 2 * nv, nsub, valid, 6.5 / 12, 527, &compact));
+    print_message("full %.6f m/s %.4f deg, valid-only %.6f m/s %.4f deg (%zu of %zu subapertures)\n", full.speed,
+                  full.direction, compact.speed, compact.direction, nv, n2);
+    assert_true(full.found && compact.found);
+    assert_true(full.speed == compact.speed && full.direction == compact.direction);
+    assert_int_equal(full.nvalid, nv);
+    free(c);
+    swfs_real_free(s);
+}
+
+static void test_wind_noise_and_refusals(void **state)
+{
+    (void)state;
+    const size_t nsub = 12, ns = 2 * nsub * nsub, T = 2000;
+    double *s = malloc(T * ns * sizeof *s);
+    swfs_rng rng;
+    swfs_rng_seed2(&rng, 5, 0);
+    for (size_t i = 0; i < T * ns; i++) s[i] = swfs_rng_normal(&rng);
+    swfs_wind_estimate e;
+    assert_ok(swfs_wind_from_slopes(s, T, ns, nsub, NULL, 0.5, 500, &e));
+    print_message("white noise: found %d, %zu lags tracked of %zu\n", e.found, e.nused, e.nlags);
+    assert_false(e.found);
+    assert_int_equal(swfs_wind_from_slopes(s, 40, ns, nsub, NULL, 0.5, 500, &e), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "40 WFS frames; the displacement needs at least 64"));
+    assert_int_equal(swfs_wind_from_slopes(s, T, ns - 2, nsub, NULL, 0.5, 500, &e), SWFS_ERR_SHAPE);
+    assert_non_null(strstr(swfs_last_error(), "286 slopes per frame; expected 2 nsub^2 = 288"));
+    s[70 * ns + 3] = NAN;
+    assert_int_equal(swfs_wind_from_slopes(s, T, ns, nsub, NULL, 0.5, 500, &e), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "slope 3 of WFS frame 70 is not finite"));
+    free(s);
+    /* through the run layer: a file named, its WFSRATE missing */
+    const char *files[] = {p("one30/actuators.fits")};
+    swfs_wind_run_options o = {files, 1, NULL, 12, 6.5, 0};
+    swfs_wind_run_result r;
+    assert_int_not_equal(swfs_wind_run(&o, &r), SWFS_OK);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "actuators.fits"));
+}
+
+int main(void)
+{
+    const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_wind_of_simulated_loops),
+        cmocka_unit_test(test_wind_valid_only),
+        cmocka_unit_test(test_wind_noise_and_refusals),
+    };
+    return cmocka_run_group_tests(tests, setup, NULL);
+}
