@@ -104,8 +104,8 @@ static void work_free(wind_work *w)
 int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
                           const unsigned char *valid, double pitch, double rate, swfs_wind_estimate *out)
 {
+    if (!slopes || !out) return swfs_fail(SWFS_ERR_ARG, "wind: no slopes or no result");
     memset(out, 0, sizeof *out);
-    if (!slopes || !out) return swfs_fail(SWFS_ERR_ARG, "wind: no slopes");
     if (nsub < 4) return swfs_fail(SWFS_ERR_VALUE, "wind: %zu x %zu subapertures; need at least 4 x 4", nsub, nsub);
     if (nframes < 64)
         return swfs_fail(SWFS_ERR_VALUE, "wind: %zu WFS frames; the displacement needs at least 64", nframes);
