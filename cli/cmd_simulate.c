@@ -121,6 +121,7 @@ int swfs_cmd_simulate(int argc, char **argv)
     swfs_paths *paths = NULL;
     swfs_paths_create(&paths);
     swfs_paths_input(paths, "config file", cfgfile);
+    if (p.pupil_mask[0]) swfs_paths_input(paths, "pupil mask", p.pupil_mask);
     cli_paths_outputs_in(paths, outdir, products, 4);
     if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 

@@ -94,6 +94,8 @@ chk ts-inf 1 "vib_amp=inf: must be finite" o/raw_000.fits -- simulate mode=times
 chk ts-neg-ratio 1 "frame_ratio=-6" o/raw_000.fits -- simulate mode=timeseries $TS frame_ratio=-6 -o o --quiet
 chk ts-unknown-key 1 "'foo'" o/raw_000.fits -- simulate mode=timeseries $TS foo=1 -o o --quiet
 chk ts-unwritable 1 "notfits.fits/x" $UW/raw_000.fits -- simulate mode=timeseries $TS -o $UW --quiet
+chk ts-pupil-onto-itself 1 "refusing to overwrite an input" ts/raw_009.fits -- simulate mode=timeseries $TS pupil_mask=ts/pupil.fits -o ts --quiet
+chk sim-pupil-onto-itself 1 "refusing to overwrite an input" run/raw_009.fits -- simulate $SMALL pupil_mask=run/pupil.fits -o run --quiet
 
 # ---- reduce
 chk reduce-missing 1 "nofile.fits: cannot open" o.fits -- reduce nofile.fits -o o.fits

@@ -93,6 +93,10 @@ int swfs_halo_choose(const swfs_halo *const *h, const char *const *names, size_t
 /* A pupil mask read from a file: transmissions in 0 .. 1, not all 0 (SWFS_ERR_VALUE
  * naming `what`, the sample and the value otherwise). */
 int swfs_pupil_mask_check(const swfs_real *mask, const char *what);
+/* A pupil mask file (its PUPIL extension when it has one, e.g. a simulation's truth.fits, else
+ * its first image): n x n transmissions checked by swfs_pupil_mask_check, the file named in
+ * every refusal. *out is the caller's. */
+int swfs_pupil_mask_read(const char *path, size_t n, swfs_real **out);
 
 /* mask: PUPN x PUPN transmission, or NULL to build the annulus from TELDIAM/OBSCUR. */
 int swfs_pupil_estimate(const swfs_halo *h, const swfs_geom *g, const swfs_real *mask,

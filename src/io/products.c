@@ -83,6 +83,25 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     return swfs_fits_out_commit(o);
 }
 
+int swfs_pupil_mask_read(const char *path, size_t n, swfs_real **out)
+{
+    *out = NULL;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc && swfs_fits_in_has_ext(f, "PUPIL")) rc = swfs_fits_in_move(f, "PUPIL");
+    if (!rc) rc = swfs_fits_in_read_real_all(f, out);
+    swfs_fits_in_close(f);
+    if (!rc && ((*out)->nx != n || (*out)->ny != n || (*out)->nz != 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but the pupil grid is pupn x pupn = %zux%zu", path,
+                       (*out)->nx, (*out)->ny, (*out)->nz, n, n);
+    if (!rc) rc = swfs_pupil_mask_check(*out, path);
+    if (rc) {
+        swfs_real_free(*out);
+        *out = NULL;
+    }
+    return rc;
+}
+
 int swfs_recon_write(const swfs_recon *r, const char *path)
 {
     swfs_real a = {r->nslopes, r->nact, 1, r->W};

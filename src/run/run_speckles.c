@@ -77,11 +77,8 @@ static int load_inputs(const swfs_speckles_run_options *o, work *w)
     if (rc || !o->mask) return rc;
     const size_t npup = (size_t)w->g.pupn;
     swfs_real *pm = NULL;
-    if ((rc = swfs_fits_read_real(o->mask, NULL, &pm, NULL))) return rc;
-    if (pm->nx != npup || pm->ny != npup || pm->nz != 1)
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zu but PUPN = %zu", o->mask, pm->nx, pm->ny, npup);
-    else rc = swfs_pupil_mask_check(pm, o->mask);
-    if (!rc && !(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
+    if ((rc = swfs_pupil_mask_read(o->mask, npup, &pm))) return rc;
+    if (!(w->mask = malloc(npup * npup * sizeof *w->mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->timing);
     if (!rc) memcpy(w->mask, pm->data, npup * npup * sizeof *w->mask);
     swfs_real_free(pm);
     return rc;

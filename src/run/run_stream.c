@@ -30,17 +30,7 @@ void swfs_stream_run_options_default(swfs_stream_run_options *o)
 static int load_mask(const char *path, const swfs_geom *g, swfs_real **out)
 {
     *out = NULL;
-    if (!path) return SWFS_OK;
-    swfs_fits_in *f = NULL;
-    int rc = swfs_fits_in_open(&f, path, NULL);
-    if (!rc && swfs_fits_in_has_ext(f, "PUPIL")) rc = swfs_fits_in_move(f, "PUPIL");
-    if (!rc) rc = swfs_fits_in_read_real_all(f, out);
-    swfs_fits_in_close(f);
-    if (rc) return rc;
-    if ((*out)->nx != (size_t)g->pupn || (*out)->ny != (size_t)g->pupn || (*out)->nz != 1)
-        return swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but PUPN = %ld", path, (*out)->nx, (*out)->ny,
-                         (*out)->nz, g->pupn);
-    return swfs_pupil_mask_check(*out, path);
+    return path ? swfs_pupil_mask_read(path, (size_t)g->pupn, out) : SWFS_OK;
 }
 
 static int write_static(const char *path, const swfs_complex *stat, size_t nfx, size_t nfy, const swfs_geom *g,

@@ -29,12 +29,8 @@ int swfs_sim_pupil(const swfs_sim_params *p, double *mask)
     const size_t np = (size_t)p->pupn;
     if (!p->pupil_mask[0]) return swfs_aperture_make(mask, np, p->pupdx, p->teldiam, p->obscur, p->nspiders, p->spider_width);
     swfs_real *m = NULL;
-    int rc = swfs_fits_read_real(p->pupil_mask, NULL, &m, NULL);
+    int rc = swfs_pupil_mask_read(p->pupil_mask, np, &m);
     if (rc) return swfs_fail_context(rc, "pupil mask");
-    if (m->nx != np || m->ny != np || m->nz != 1)
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: pupil mask is %zux%zux%zu but the pupil grid is pupn x pupn = %zux%zu",
-                       p->pupil_mask, m->nx, m->ny, m->nz, np, np);
-    if (!rc) rc = swfs_pupil_mask_check(m, p->pupil_mask);
     /* The Shack-Hartmann's subapertures, the DM and the focal scale (lambda/D) all span teldiam:
      * light beyond it would fall outside every subaperture. */
     const double c = 0.5 * (double)(np - 1), rmax = 0.5 * p->teldiam + 0.5 * p->pupdx;

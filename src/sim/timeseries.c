@@ -356,7 +356,7 @@ static double cube_start(const swfs_ts_params *p, size_t c)
 
 int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
 {
-    static const char *fixed[] = {"actuators.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
+    static const char *fixed[] = {"actuators.fits", "pupil.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
                                   "speckles_ideal.fits", "speckles_ideal_tt.fits", "truth.fits", "truth_timing.txt"};
     char path[8192];
     const size_t ncub = (size_t)p->ncubes, nf = (size_t)p->cube_frames;
@@ -373,6 +373,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
     if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
     if (p->valid[0]) swfs_paths_input(paths, "valid-subaperture map", p->valid);
+    if (p->base.pupil_mask[0]) swfs_paths_input(paths, "pupil mask", p->base.pupil_mask);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
