@@ -2,14 +2,16 @@
  * dominant frozen-flow layer (include/specklewfs/wind.h). */
 #include "specklewfs/fits.h"
 #include "specklewfs/run.h"
+#include "specklewfs/source.h"
 #include "specklewfs/wfs.h"
 
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
-/* The files' slopes one after the other (the same width in all), NSUB and WFSRATE of the
- * first that has them (*nsub, *rate: 0 when none). */
+/* The files' slopes one after the other (swfs_telemetry_read: the values checked, the file
+ * named; the same width in all), NSUB and WFSRATE of the first that has them (*nsub, *rate: 0
+ * when none). */
 static int read_series(const swfs_wind_run_options *o, double **out, size_t *nframes, size_t *nslopes, long *nsub,
                        double *rate)
 {
@@ -19,29 +21,30 @@ static int read_series(const swfs_wind_run_options *o, double **out, size_t *nfr
     *nsub = 0;
     *rate = 0;
     for (size_t k = 0; k < o->nfiles && !rc; k++) {
-        swfs_fits_in *f = NULL;
+        swfs_real *s = NULL;
         double wr = 0;
-        long ns = 0;
-        int has_rate = 0, has_nsub = 0;
-        if ((rc = swfs_fits_in_open(&f, o->files[k], NULL))) break;
-        rc = swfs_fits_in_key_double_opt(f, "WFSRATE", &wr, &has_rate);
-        if (!rc) rc = swfs_fits_in_key_long_opt(f, "NSUB", 1, 100000, &ns, &has_nsub);
-        const swfs_fits_shape *sh = swfs_fits_in_shape(f);
-        if (!rc && (sh->nz != 1 || (w && sh->nx != w)))
+        if ((rc = swfs_telemetry_read(o->files[k], 0, &s, &wr))) break;
+        if (w && s->nx != w)
             rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes x WFS frames as in %s",
-                           o->files[k], sh->nx, sh->ny, sh->nz, w ? w : sh->nx, o->files[0]);
+                           o->files[k], s->nx, s->ny, s->nz, w, o->files[0]);
         double *grown = NULL;
-        if (!rc && !(grown = realloc(all, (n + sh->ny) * sh->nx * sizeof *all)))
-            rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for %zu WFS frames", o->files[k], n + sh->ny);
+        if (!rc && !(grown = realloc(all, (n + s->ny) * s->nx * sizeof *all)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for %zu WFS frames", o->files[k], n + s->ny);
         if (grown) all = grown;
-        if (!rc) rc = swfs_fits_in_read_rows(f, 0, sh->ny, all + n * sh->nx);
         if (!rc) {
-            w = sh->nx;
-            n += sh->ny;
-            if (has_rate && !*rate) *rate = wr;
-            if (has_nsub && !*nsub) *nsub = ns;
+            memcpy(all + n * s->nx, s->data, s->nx * s->ny * sizeof *all);
+            w = s->nx;
+            n += s->ny;
+            if (!*rate) *rate = wr;
         }
-        swfs_fits_in_close(f);
+        swfs_real_free(s);
+        if (!rc && !*nsub) { /* NSUB, when the file has it */
+            swfs_fits_in *f = NULL;
+            int found = 0;
+            rc = swfs_fits_in_open(&f, o->files[k], NULL);
+            if (!rc) rc = swfs_fits_in_key_long_opt(f, "NSUB", 1, 100000, nsub, &found);
+            swfs_fits_in_close(f);
+        }
     }
     if (rc) { free(all); return rc; }
     *out = all;

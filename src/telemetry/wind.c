@@ -13,8 +13,7 @@ typedef struct {
     double *x, *y;         /* T x nv, means taken out */
     double *c;             /* nv x nv lagged covariance */
     int *bin;              /* nv x nv: the pair's bin, -1 outside the map */
-    double *num, *den;     /* nb x nb */
-    size_t *cnt;
+    double *num, *den;     /* nb x nb; den 0: no pair of subapertures in that bin */
 } wind_work;
 
 /* Each frame's mean x / y slope (tip-tilt) and each subaperture's mean out of the copies. */
@@ -44,8 +43,9 @@ static double vertex(double l, double c, double r)
 }
 
 /* The correlation map at one lag and its peak into *L: the highest bin, or while tracking
- * (tol > 0) the highest within tol subapertures of the predicted (px, py), which must then
- * be a local maximum (another layer's peak elsewhere in the map is not this one's). */
+ * (tol > 0) the highest within tol subapertures of the predicted (px, py); inside when it is
+ * a local maximum off the map's edge (while tracking, another layer's peak elsewhere in the
+ * map is not this one's). */
 static void lag_map(wind_work *w, size_t tau, double px, double py, double tol, swfs_wind_lag *L)
 {
     const size_t nv = w->nv, n = w->T - tau, nb = w->nb;
@@ -59,7 +59,7 @@ static void lag_map(wind_work *w, size_t tau, double px, double py, double tol, 
     const double R = (double)w->R;
     size_t best = SIZE_MAX;
     for (size_t b = 0; b < nb * nb; b++) {
-        if (!w->cnt[b] || !(w->den[b] > 0)) continue;
+        if (!(w->den[b] > 0)) continue;
         w->num[b] /= w->den[b];
         if (tol > 0 && hypot((double)(b % nb) - R - px, (double)(b / nb) - R - py) > tol) continue;
         if (best == SIZE_MAX || w->num[b] > w->num[best]) best = b;
@@ -75,7 +75,7 @@ static void lag_map(wind_work *w, size_t tau, double px, double py, double tol, 
     if (i == 0 || j == 0 || i + 1 == nb || j + 1 == nb) return;
     const size_t nbh[4] = {best - 1, best + 1, best - nb, best + nb};
     for (int k = 0; k < 4; k++)
-        if (!w->cnt[nbh[k]] || !(w->den[nbh[k]] > 0) || (tol > 0 && w->num[nbh[k]] > w->num[best])) return;
+        if (!(w->den[nbh[k]] > 0) || w->num[nbh[k]] > w->num[best]) return;
     L->inside = 1;
     L->dx += vertex(w->num[best - 1], w->num[best], w->num[best + 1]);
     L->dy += vertex(w->num[best - nb], w->num[best], w->num[best + nb]);
@@ -98,7 +98,7 @@ static void fit_velocity(const swfs_wind_estimate *e, double *ux, double *uy)
 
 static void work_free(wind_work *w)
 {
-    free(w->x); free(w->y); free(w->c); free(w->bin); free(w->num); free(w->den); free(w->cnt);
+    free(w->x); free(w->y); free(w->c); free(w->bin); free(w->num); free(w->den);
 }
 
 int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
@@ -155,8 +155,7 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
     w.bin = malloc(nv * nv * sizeof *w.bin);
     w.num = malloc(w.nb * w.nb * sizeof *w.num);
     w.den = calloc(w.nb * w.nb, sizeof *w.den);
-    w.cnt = calloc(w.nb * w.nb, sizeof *w.cnt);
-    if (!w.x || !w.y || !w.c || !w.bin || !w.num || !w.den || !w.cnt) {
+    if (!w.x || !w.y || !w.c || !w.bin || !w.num || !w.den) {
         free(col);
         work_free(&w);
         return swfs_fail(SWFS_ERR_NOMEM, "wind: out of memory for %zu frames of %zu subapertures", nframes, nv);
@@ -184,7 +183,6 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
             if (labs(a) <= R && labs(b) <= R) {
                 bi = (int)((size_t)(b + R) * w.nb + (size_t)(a + R));
                 w.den[bi] += sd[p] * sd[q];
-                w.cnt[bi]++;
             }
             w.bin[p * nv + q] = bi;
         }
@@ -196,10 +194,9 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
     for (size_t tau = 1; tau <= nframes / 4 && out->nlags < SWFS_WIND_MAXLAGS; tau *= 2) {
         /* Tracking stops where the predicted peak would leave the inner map: its neighbours
          * and enough overlapping pairs are needed to place it. */
-        if (out->nused && (fabs(ux * (double)tau) > (double)(w.R - 1) || fabs(uy * (double)tau) > (double)(w.R - 1)))
-            break;
-        swfs_wind_lag *L = &out->lag[out->nlags++];
         const double px = ux * (double)tau, py = uy * (double)tau;
+        if (out->nused && (fabs(px) > (double)(w.R - 1) || fabs(py) > (double)(w.R - 1))) break;
+        swfs_wind_lag *L = &out->lag[out->nlags++];
         lag_map(&w, tau, px, py, out->nused ? 0.5 * hypot(px, py) : 0.0, L);
         if (!L->inside) {
             if (out->nused) break;
