@@ -221,7 +221,7 @@ int main(int argc, char **argv)
         size_t nact = 0;
         if (swfs_actuators_hexapolar(d->diam, pitch, 0.5 * pitch, &xy, &nact)) die("actuators");
         const size_t nslopes = 2 * d->nsub * d->nsub;
-        swfs_recon rec = {nact, nslopes, malloc(nact * nslopes * sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
+        swfs_recon rec = {.nact = nact, .nslopes = nslopes, .W = malloc(nact * nslopes * sizeof(double))};
         if (!rec.W) die("memory");
         swfs_rng r;
         swfs_rng_seed(&r, 42);

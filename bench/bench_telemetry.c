@@ -8,8 +8,10 @@
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
- *                                 [--recon vk|map|svd] [--truth]
+ *                                 [--recon vk|map|svd] [--truth] [--print-keys]
  *
+ * --print-keys (with --only K, --seed S): prints system K's simulator keys, one per line, and
+ * exits (bench/spacetime.sh simulates training loops of the system with them).
  * --recon: the speckle reconstructor on every system (default vk, the library's).
  * --truth: the simulation also writes the true residual on the actuators and the modal export
  * (export_truth=1 export_modal=1), for bench/recon_oracle.py on a --keep DIR.
@@ -91,10 +93,10 @@ static int die(const char *what)
     return 1;
 }
 
-static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum)
+/* The simulator's keys of system s and seed (at most 24): what simulate() runs and what
+ * --print-keys prints for `specklewfs simulate mode=timeseries`. */
+static int system_keys(const system_def *s, unsigned seed, int quick, char kv[24][96])
 {
-    swfs_config *c = swfs_config_new();
-    char kv[24][96];
     int n = 0;
     /* One pupil grid for every system: 100 samples of 6.5 cm (>= 4 per subaperture at 24 x 24). */
     snprintf(kv[n++], 96, "pupn=100");
@@ -128,6 +130,14 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     snprintf(kv[n++], 96, "wfs_file_frames=4000");
     snprintf(kv[n++], 96, "seed=%u", seed);
     if (truth) snprintf(kv[n++], 96, "export_truth=1");
+    return n;
+}
+
+static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum)
+{
+    swfs_config *c = swfs_config_new();
+    char kv[24][96];
+    const int n = system_keys(s, seed, quick, kv);
     int rc = 0;
     for (int i = 0; i < n && !rc; i++) rc = swfs_config_set(c, kv[i]);
     swfs_ts_params tp;
@@ -301,7 +311,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
 
 int main(int argc, char **argv)
 {
-    int quick = 0, seeds = 2, only = -1, seed1 = 1;
+    int quick = 0, seeds = 2, only = -1, seed1 = 1, print_keys = 0;
     const char *keep = NULL;
     for (int i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--quick")) quick = 1;
@@ -318,11 +328,23 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "map")) recon = SWFS_RECON_MAP, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "svd")) recon = SWFS_RECON_SVD, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) i++;
+        else if (!strcmp(argv[i], "--print-keys")) print_keys = 1;
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd] [--truth]\n");
+                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd] [--truth] "
+                    "[--print-keys]\n");
             return 2;
         }
+    }
+    if (print_keys) { /* --only K --seed S: the keys, one per line, for specklewfs simulate */
+        if (only < 0 || (size_t)only >= NSYS) {
+            fprintf(stderr, "bench_telemetry: --print-keys needs --only K (0..%zu)\n", (size_t)NSYS - 1);
+            return 2;
+        }
+        char kv[24][96];
+        const int n = system_keys(&systems[only], (unsigned)seed1, quick, kv);
+        for (int i = 0; i < n; i++) printf("%s\n", kv[i]);
+        return 0;
     }
     swfs_blas_set_threads(1);
     if (keep) {

@@ -9,7 +9,7 @@
 #include <stdlib.h>
 
 static const char *usage_text =
-    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout]\n"
+    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--lags L,L,...]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
@@ -37,7 +37,16 @@ static const char *usage_text =
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
     "                turn and the map of the others is applied to its frames (their misfit\n"
     "                against the training misfit says whether the conditions cover each\n"
-    "                other; it reads every file twice)\n";
+    "                other; it reads every file twice)\n"
+    "  --lags L,...  a space-time map: the input of frame t is the slopes of frames t + L for\n"
+    "                every L given (WFS frames, one of them 0, at most 16; clamped at each\n"
+    "                file's ends), and W.fits a cube of one map per lag (NLAGS, LAGk) that\n"
+    "                `speckles --recon` applies the same way. Frames far enough apart for the\n"
+    "                wind to move the screen by a fraction of a subaperture (e.g. 0,-25,25,\n"
+    "                -50,50 at 500 Hz and 5 m/s) tell an alias from the frequency it hides.\n"
+    "                It pays only when the simulated loops hold the observation's own wind\n"
+    "                and whole profile; trained at another wind it can be far worse than the\n"
+    "                default (docs/telemetry.md, \"A space-time learned map\")\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -47,8 +56,11 @@ int swfs_cmd_learn(int argc, char **argv)
     const char **dirs = calloc((size_t)argc, sizeof *dirs);
     size_t nd = 0;
     if (!dirs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    const char *lags = NULL;
+    long lagv[SWFS_RECON_MAXLAGS];
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o.out, "a file name", 0},
+        {"--lags", CLI_STRING, &lags, "a list of WFS-frame lags (e.g. 0,-25,25)", 0},
         {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},
@@ -59,7 +71,9 @@ int swfs_cmd_learn(int argc, char **argv)
     if (!nd) rc = cli_usage_error(cmd, "needs at least one simulated data set (a folder)");
     else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
     else if (!(o.ridge > 0) || !isfinite(o.ridge)) rc = cli_usage_error(cmd, "--ridge must be a finite fraction > 0, got %g", o.ridge);
+    if (!rc && lags && swfs_lags_parse(lags, lagv, &o.nlags, "--lags")) rc = cli_error(cmd);
     if (rc) { free(dirs); return rc; }
+    o.lags = lagv;
     o.dirs = dirs;
     o.ndirs = nd;
     o.prov = cli_provenance(argc, argv, &o.nprov);
@@ -70,9 +84,14 @@ int swfs_cmd_learn(int argc, char **argv)
     o.heldout_ratio = ratio;
     swfs_learn_run_result r;
     if (swfs_learn_run(&o, &r)) { free(dirs); free(ratio); return cli_error(cmd); }
-    printf("learn: %zu WFS frames from %zu files in %zu data set%s: %zu slopes (%zu with signal) -> %zu %s\n",
-           r.info.nframes, r.nfiles, nd, nd == 1 ? "" : "s", r.nslopes, r.info.nslopes_seen, r.nact,
-           o.modal ? "coefficients" : "actuators");
+    printf("learn: %zu WFS frames from %zu files in %zu data set%s: %zu slopes", r.info.nframes, r.nfiles, nd,
+           nd == 1 ? "" : "s", r.nslopes);
+    if (o.nlags > 1) {
+        printf(" x %zu lags (", o.nlags);
+        for (size_t k = 0; k < o.nlags; k++) printf("%s%ld", k ? "," : "", lagv[k]);
+        printf(")");
+    }
+    printf(" (%zu with signal) -> %zu %s\n", r.info.nslopes_seen, r.nact, o.modal ? "coefficients" : "actuators");
     if (o.modal)
         printf("learn: the simulated coefficients %.4g rms; the map misses them by %.4g on the training frames -> %s "
                "(a control matrix)\n", r.info.truth_rms, r.info.misfit_rms, o.out);

@@ -109,15 +109,20 @@ int cli_linear_option(const char *cmd, int argc, char **argv, int *i, swfs_linea
 void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const char *path, const char *valid,
                        const swfs_pipeline_info *in)
 {
+    const size_t ns = in->nslopes / (in->nlags ? in->nlags : 1); /* per frame */
     if (in->nsub)
         fprintf(stderr, "%s: Shack-Hartmann %zu x %zu, %zu subapertures used (%s%s), %zu slopes per frame%s\n", cmd,
                 in->nsub, in->nsub, in->nvalid, valid ? "the map " : ">= 50 % illuminated", valid ? valid : "",
-                in->nslopes, in->nslopes == 2 * in->nvalid && in->nvalid < in->nsub * in->nsub ? " (the used ones')" : "");
+                ns, ns == 2 * in->nvalid && in->nvalid < in->nsub * in->nsub ? " (the used ones')" : "");
     if (o->recon == SWFS_RECON_MAP || o->recon == SWFS_RECON_VK)
         fprintf(stderr, "%s: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, %.1f "
                 "effective\n", cmd, o->recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", in->ntrain,
                 sqrt(in->noise_var), in->noise_given ? "given" : "estimated", in->recon_modes, in->recon_dof);
-    if (o->recon == SWFS_RECON_GIVEN)
+    if (o->recon == SWFS_RECON_GIVEN && in->nlags)
+        fprintf(stderr, "%s: given space-time reconstructor %s: %zu slopes x %zu lags x %zu actuators, scale %g, gain "
+                "%.3g of the lags' sum on the model's interaction matrix (1: a reconstructor of it)\n", cmd, path, ns,
+                in->nlags, in->nact, o->recon_scale, in->recon_gain);
+    else if (o->recon == SWFS_RECON_GIVEN)
         fprintf(stderr, "%s: given reconstructor %s: %zu slopes x %zu actuators, scale %g, gain %.3g on the model's "
                 "interaction matrix (1: a reconstructor of it)\n", cmd, path, in->nslopes, in->nact, o->recon_scale,
                 in->recon_gain);

@@ -181,6 +181,19 @@ else
     echo "FAIL learn-ok: exit code, lw.fits or the held-out lines"; sed 's/^/    /' out.txt err.txt | head -8
     nfail=$((nfail + 1))
 fi
+# a space-time map (--lags): written as a cube with its lags; no AO loop's reconstructor
+if "$B" learn lt1 lt2 -o lw3.fits --lags 0,-3,3 --no-heldout > out.txt 2> err.txt && [ -s lw3.fits ] \
+    && grep -q "288 slopes x 3 lags (0,-3,3)" out.txt; then
+    pass=$((pass + 1))
+else
+    echo "FAIL learn-lags-ok: exit code, lw3.fits or the lags line"; sed 's/^/    /' out.txt err.txt | head -8
+    nfail=$((nfail + 1))
+fi
+chk learn-lags-no-zero 1 "--lags: no lag 0" o.fits -- learn lt1 -o o.fits --lags 3,6
+chk learn-lags-text 1 "\"0,a\" is not a list of whole WFS frames" o.fits -- learn lt1 -o o.fits --lags 0,a
+chk learn-lags-modal 1 "a modal control matrix (--modal) acts on one frame" o.fits -- learn lt1 -o o.fits --lags 0,2 --modal
+chk sim-spacetime-aorecon 1 "lw3.fits: a space-time reconstructor (3 lags) is no AO loop's" lt3/slopes_000.fits -- simulate mode=timeseries \
+    $TS ncubes=2 cube_frames=40 cube_gap=40 ao_recon=lw3.fits -o lt3 --quiet
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
 

@@ -86,7 +86,7 @@ static double test_err(const setup *s, const swfs_recon *W, const double *zt, co
 /* The error of reconstructing nothing (the signal) and of the best SVD cut tried. */
 static double zero_err(const setup *s, const double *zt, const double *st, size_t ntest)
 {
-    swfs_recon zero = {s->nact, s->nslopes, calloc(s->nact * s->nslopes, sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
+    swfs_recon zero = {.nact = s->nact, .nslopes = s->nslopes, .W = calloc(s->nact * s->nslopes, sizeof(double))};
     double e = test_err(s, &zero, zt, st, ntest);
     free(zero.W);
     return e;

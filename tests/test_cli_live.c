@@ -76,7 +76,7 @@ static void make_data(void)
     double *xy = NULL;
     size_t nact = 0;
     assert_ok(swfs_actuators_hexapolar(DIAM, 1.2, 0.6, &xy, &nact));
-    swfs_recon rec = {nact, NSL, malloc(nact * NSL * sizeof(double)), 0, NULL, 0, 0, 0, 0, 0};
+    swfs_recon rec = {.nact = nact, .nslopes = NSL, .W = malloc(nact * NSL * sizeof(double))};
     assert_non_null(rec.W);
     /* slopes of a physical size (~0.3 rad of phase per subaperture; their mean, the tilt, a
      * fraction of lambda/D: the exposure tip-tilt model takes it as the image's motion) and a

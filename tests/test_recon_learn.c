@@ -192,8 +192,39 @@ static void test_learner_modal(void **state)
     free(z);
 }
 
+/* A space-time reconstructor's input: the lags parsed and checked, the slopes of frames
+ * t + lags stacked with the frame indices clamped at the data's ends. */
+static void test_lags(void **state)
+{
+    (void)state;
+    long lags[SWFS_RECON_MAXLAGS];
+    size_t n = 0;
+    assert_ok(swfs_lags_parse("0,-2,3", lags, &n, "test"));
+    assert_int_equal(n, 3);
+    assert_true(lags[0] == 0 && lags[1] == -2 && lags[2] == 3);
+    const char *bad[] = {"", "2,5", "0,4,4", "0,x", "0,,1", "0,1,2,3,4,5,6,7,8,9,10,11,12,13,14,15,16", "0,200000"};
+    const char *why[] = {"no lags", "no lag 0", "twice", "not a list", "not a list", "more than 16", "within"};
+    for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+        assert_int_not_equal(swfs_lags_parse(bad[k], lags, &n, "test"), 0);
+        printf("test_recon_learn: \"%s\": %s\n", bad[k], swfs_last_error());
+        assert_non_null(strstr(swfs_last_error(), why[k]));
+    }
+    /* 5 frames of 2 slopes, frame f = (10 f, 10 f + 1) */
+    double s[10], out[5 * 3 * 2];
+    for (int f = 0; f < 5; f++) { s[2 * f] = 10 * f; s[2 * f + 1] = 10 * f + 1; }
+    const long lg[3] = {0, -2, 3};
+    swfs_slopes_stack(s, 5, 2, lg, 3, 1, 3, out); /* frames 1, 2, 3 */
+    const int want[3][3] = {{1, 0, 4}, {2, 0, 4}, {3, 1, 4}}; /* frame index per lag, clamped to 0..4 */
+    for (int t = 0; t < 3; t++)
+        for (int k = 0; k < 3; k++) {
+            assert_true(out[(t * 3 + k) * 2] == 10.0 * want[t][k]);
+            assert_true(out[(t * 3 + k) * 2 + 1] == 10.0 * want[t][k] + 1);
+        }
+}
+
 int main(void)
 {
-    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_modal)};
+    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_modal),
+                                       cmocka_unit_test(test_lags)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

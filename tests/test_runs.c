@@ -966,15 +966,17 @@ static double recon_error(const swfs_recon *w, const char *where, double *truth_
     swfs_real *s = NULL, *z = NULL;
     assert_ok(swfs_fits_read_real(sp, NULL, &s, NULL));
     assert_ok(swfs_fits_read_real(tp, NULL, &z, NULL));
-    assert_int_equal(s->nx, w->nslopes);
+    const size_t nl = w->nlags ? w->nlags : 1;
+    assert_int_equal(s->nx * nl, w->nslopes);
     assert_int_equal(z->nx, w->nact);
-    double *zh = malloc(w->nact * sizeof *zh), e2 = 0, t2 = 0;
+    double *zh = malloc(w->nact * sizeof *zh), *st = malloc(w->nslopes * sizeof *st), e2 = 0, t2 = 0;
     for (size_t f = 0; f < s->ny; f++) {
         const double *zf = z->data + f * z->nx;
         double m = 0;
         for (size_t a = 0; a < w->nact; a++) m += zf[a];
         m /= (double)w->nact;
-        swfs_recon_apply(w, s->data + f * s->nx, zh);
+        swfs_slopes_stack(s->data, s->ny, s->nx, w->nlags ? w->lags : (const long[]){0}, nl, f, 1, st);
+        swfs_recon_apply(w, st, zh);
         double mh = 0;
         for (size_t a = 0; a < w->nact; a++) mh += zh[a];
         mh /= (double)w->nact;
@@ -986,6 +988,7 @@ static double recon_error(const swfs_recon *w, const char *where, double *truth_
     const double n = (double)(s->ny * w->nact);
     *truth_rms = sqrt(t2 / n);
     free(zh);
+    free(st);
     swfs_real_free(s);
     swfs_real_free(z);
     return sqrt(e2 / n);
@@ -1120,6 +1123,189 @@ static void test_learn_reconstructor(void **state)
     assert_false(test_file_exists(p("recon_bad.fits")));
 }
 
+/* The speckle cube of `path` (every frame) and its RESMEAN. */
+static swfs_cplx *read_speckles(const char *path, swfs_real **resmean)
+{
+    swfs_cplx *c = NULL;
+    assert_ok(swfs_fits_read_cplx(path, NULL, &c, NULL));
+    assert_ok(swfs_fits_read_real(path, "RESMEAN", resmean, NULL));
+    return c;
+}
+
+/* A space-time reconstructor (learn --lags; a cube of one map per lag given to speckles).
+ * A cube whose lag-0 plane is the default's map and whose other planes are 0 gives the
+ * default's speckles and residual mean (the stacking, the margins and the tip-tilt treatment
+ * of the lag blocks leave a per-frame map alone); learned with lags, the map fits its
+ * training frames better than the per-frame one (a least squares with more inputs), and the
+ * whole path runs with it. Refused: a stream or an AO loop given one, a cube without its
+ * lags, lags without 0, lags with a modal map. */
+static void test_spacetime_reconstructor(void **state)
+{
+    (void)state;
+    swfs_speckles_run_result spr;
+    swfs_estimate_run_result er;
+    speckles_estimate(p("speckles_st.fits"), p("sci_st.fits"), p("halo_st.fits"), p("recon_st_vk.fits"), &spr, &er);
+    swfs_halo_free(er.halo);
+    assert_int_equal(spr.info.nlags, 0);
+    swfs_recon *w = NULL, *back = NULL;
+    assert_ok(swfs_recon_read(p("recon_st_vk.fits"), &w));
+    const size_t ns = w->nslopes, na = w->nact;
+    swfs_recon st = {.nact = na, .nslopes = 3 * ns, .W = calloc(3 * ns * na, sizeof(double)), .nlags = 3,
+                     .lags = {40, 0, -40}};
+    for (size_t a = 0; a < na; a++) memcpy(st.W + a * st.nslopes + ns, w->W + a * ns, ns * sizeof(double));
+    assert_ok(swfs_recon_write(&st, p("recon_st3.fits")));
+    assert_ok(swfs_recon_read(p("recon_st3.fits"), &back));
+    assert_int_equal(back->nlags, 3);
+    assert_int_equal(back->nslopes, 3 * ns);
+    assert_true(back->lags[0] == 40 && back->lags[1] == 0 && back->lags[2] == -40);
+    assert_memory_equal(back->W, st.W, 3 * ns * na * sizeof(double));
+    swfs_recon_free(back);
+
+    const char *files[2] = {"recon_st_vk.fits", "recon_st3.fits"}, *outs[2] = {"speckles_g1.fits", "speckles_g3.fits"};
+    for (int k = 0; k < 2; k++) {
+        swfs_speckles_run_options sp;
+        given_recon_options(&sp, p(files[k]), p(outs[k]));
+        assert_ok(swfs_speckles_run(&sp, &spr));
+        assert_int_equal(spr.info.nlags, k ? 3 : 0);
+        assert_int_equal(spr.info.nslopes, k ? 3 * ns : ns);
+    }
+    swfs_real *m1 = NULL, *m3 = NULL;
+    swfs_cplx *c1 = read_speckles(p(outs[0]), &m1), *c3 = read_speckles(p(outs[1]), &m3);
+    assert_int_equal(c1->nz, c3->nz);
+    double d = 0, peak = 0, dm = 0, mp = 0;
+    for (size_t i = 0; i < c1->nx * c1->ny * c1->nz; i++) {
+        peak = fmax(peak, cabs(c1->data[i]));
+        d = fmax(d, cabs(c1->data[i] - c3->data[i]));
+    }
+    for (size_t i = 0; i < m1->nx * m1->ny; i++) {
+        mp = fmax(mp, fabs(m1->data[i]));
+        dm = fmax(dm, fabs(m1->data[i] - m3->data[i]));
+    }
+    printf("test_runs: space-time cube [0, W, 0] against W: max |d psi| / peak %.2g, max |d RESMEAN| / peak %.2g\n",
+           d / peak, dm / mp);
+    assert_true(d <= 1e-5 * peak && dm <= 1e-9 * mp); /* the cube is single precision */
+    swfs_cplx_free(c1);
+    swfs_cplx_free(c3);
+    swfs_real_free(m1);
+    swfs_real_free(m3);
+    free(st.W);
+    swfs_recon_free(w);
+
+    /* Learned with lags on loops of other winds (those of test_learn_reconstructor): the
+     * held-out check sees the lags carry over worse than the per-frame map. */
+    const char *tdir[3] = {p("learn_a"), p("learn_b"), p("learn_c")};
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = tdir;
+    lo.ndirs = 3;
+    lo.out = p("recon_l1.fits");
+    swfs_learn_run_result l1, l3;
+    assert_ok(swfs_learn_run(&lo, &l1));
+    const long lags[3] = {0, -4, 4};
+    lo.lags = lags;
+    lo.nlags = 3;
+    lo.out = p("recon_l3.fits");
+    assert_ok(swfs_learn_run(&lo, &l3));
+    printf("test_runs: other winds, per frame: misfit %.1f, held out %.1f of %.1f nm; lags 0,-4,4: %.1f, held out "
+           "%.1f nm\n", 1e9 * l1.info.misfit_rms, 1e9 * l1.heldout_misfit_rms, 1e9 * l1.info.truth_rms,
+           1e9 * l3.info.misfit_rms, 1e9 * l3.heldout_misfit_rms);
+    assert_int_equal(l3.nslopes, l1.nslopes);
+    assert_true(l3.info.nslopes_seen == 3 * l1.info.nslopes_seen);
+    assert_true(l3.info.misfit_rms < 0.99 * l1.info.misfit_rms); /* more inputs, the same frames */
+    assert_int_equal(l3.nheldout, 3);
+    assert_true(l3.heldout_misfit_rms > l1.heldout_misfit_rms && l3.heldout_worst >= 1);
+
+    /* Learned on loops of the test data's own conditions (other seeds): on a held-out loop of
+     * them the space-time map misses the residual by less than the per-frame one. */
+    const char *same[3] = {p("learn_s1"), p("learn_s2"), p("learn_s3")};
+    for (int k = 0; k < 3; k++) {
+        char seed[32];
+        snprintf(seed, sizeof seed, "seed=%d", 31 + k);
+        const char *kv[] = {"layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", seed};
+        simulate_truth(same[k], kv, 4);
+    }
+    lo.dirs = same;
+    lo.no_heldout = 1;
+    lo.nlags = 0;
+    lo.out = p("recon_s1.fits");
+    assert_ok(swfs_learn_run(&lo, &l1));
+    lo.nlags = 3;
+    lo.out = p("recon_s3.fits");
+    assert_ok(swfs_learn_run(&lo, &l3));
+    swfs_recon *wl = NULL, *wp = NULL;
+    assert_ok(swfs_recon_read(p("recon_s3.fits"), &wl));
+    assert_ok(swfs_recon_read(p("recon_s1.fits"), &wp));
+    assert_int_equal(wl->nlags, 3);
+    double t_rms = 0;
+    const double e3 = recon_error(wl, p("learn_held"), &t_rms), e1 = recon_error(wp, p("learn_held"), &t_rms);
+    printf("test_runs: the data's own conditions, on a held-out loop per frame: space-time %.1f nm, per frame %.1f nm "
+           "(residual %.1f nm)\n", 1e9 * e3, 1e9 * e1, 1e9 * t_rms);
+    assert_true(e3 < 0.97 * e1);
+    swfs_recon_free(wl);
+    swfs_recon_free(wp);
+
+    /* the whole path with each */
+    double e_path[2];
+    const char *maps[2] = {"recon_s1.fits", "recon_s3.fits"};
+    swfs_real *ncp = NULL;
+    assert_ok(swfs_fits_read_real(p("truth.fits"), "NCP", &ncp, NULL));
+    for (int k = 0; k < 2; k++) {
+        swfs_speckles_run_options sp;
+        given_recon_options(&sp, p(maps[k]), p("speckles_lrn.fits"));
+        const char *min[] = {sp.science}, *mout[] = {p("sci_lrn.fits")};
+        sp.match_in = min;
+        sp.match_out = mout;
+        sp.nmatch = 1;
+        assert_ok(swfs_speckles_run(&sp, &spr));
+        swfs_estimate_run_options eo;
+        swfs_estimate_run_options_default(&eo);
+        eo.science = mout[0];
+        eo.speckles = sp.out;
+        eo.out = p("halo_lrn.fits");
+        assert_ok(swfs_estimate_run(&eo, &er));
+        swfs_pupil_result *pf = NULL;
+        assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
+        assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_path[k], NULL, NULL));
+        swfs_pupil_result_free(pf);
+        swfs_halo_free(er.halo);
+    }
+    printf("test_runs: NCP error, maps learned at the data's conditions: per frame %.1f nm, space-time %.1f nm\n",
+           1e9 * e_path[0], 1e9 * e_path[1]);
+    assert_true(e_path[1] > 0 && e_path[1] < 1.1 * e_path[0]);
+    swfs_real_free(ncp);
+
+    /* refused */
+    swfs_stream_run_options so;
+    swfs_stream_run_options_default(&so);
+    so.timing = p("timing.txt");
+    so.science = p("science.fits");
+    so.recon = p("recon_st3.fits");
+    so.actuators = p("actuators.fits");
+    so.out = p("halo_stream_st.fits");
+    swfs_stream_run_result sr;
+    assert_refused(swfs_stream_run_files(&so, &sr), "stream, space-time", "space-time", so.out);
+    swfs_real *cube = NULL;
+    assert_ok(swfs_fits_read_real(p("recon_st3.fits"), NULL, &cube, NULL));
+    swfs_fits_out *fo = NULL;
+    assert_ok(swfs_fits_out_create(&fo, p("recon_nolags.fits")));
+    assert_ok(swfs_fits_out_real(fo, NULL, cube, -64));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(cube);
+    assert_int_equal(swfs_recon_read(p("recon_nolags.fits"), &w), SWFS_ERR_FORMAT);
+    printf("test_runs: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "NLAGS"));
+    const long nozero[2] = {5, 10};
+    lo.dirs = tdir;
+    lo.lags = nozero;
+    lo.nlags = 2;
+    lo.out = p("recon_bad_lags.fits");
+    assert_refused(swfs_learn_run(&lo, &l3), "learn, no lag 0", "no lag 0", lo.out);
+    lo.lags = lags;
+    lo.nlags = 3;
+    lo.modal = 1;
+    assert_refused(swfs_learn_run(&lo, &l3), "learn, lags and modal", "--modal", lo.out);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1134,6 +1320,7 @@ int main(void)
         cmocka_unit_test(test_sync_files_shorter_than_cube),
         cmocka_unit_test(test_sync_unreadable_file),
         cmocka_unit_test(test_learn_reconstructor),
+        cmocka_unit_test(test_spacetime_reconstructor),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -96,6 +96,8 @@ typedef struct swfs_pipeline_info {
     size_t nsub, nvalid; /* Shack-Hartmann: subapertures across, and used (0 for a linear model) */
     double band;         /* [lambda/D] the radius speckles are computed within (options.band); 0: none */
     size_t band_out;     /* focal pixels beyond it, set to 0 in every field */
+    size_t nlags;        /* a space-time reconstructor's lags (0: one frame's slopes); nslopes is
+                            then the stacked input's width (swfs_slopes_stack) */
 } swfs_pipeline_info;
 
 /* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */
@@ -129,7 +131,9 @@ typedef struct swfs_linear_input {
  * focal window (the science frames); xy: nact actuator positions (x, y) [m]; mask: PUPN^2
  * pupil transmission, or NULL for the annulus of TELDIAM/OBSCUR; nslopes: 2 nsub^2 (x then
  * y slopes of a square Shack-Hartmann); recon: the reconstructor for SWFS_RECON_GIVEN
- * (nact x nslopes, z_act [m] = W s [rad]), else NULL; training: ntrain consecutive WFS
+ * (nact x nslopes, z_act [m] = W s [rad]; a space-time one, recon->nlags > 1, nact x nslopes
+ * nlags: its lag-0 block takes the tip-tilt treatment, the others' mean slopes are projected
+ * out, and its gain is that of the blocks' sum), else NULL; training: ntrain consecutive WFS
  * frames of nslopes for SWFS_RECON_VK/MAP (NULL otherwise). Copies what it keeps. */
 int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *geom, size_t nfx, size_t nfy, const double *xy,
                          size_t nact, const double *mask, size_t nslopes, const swfs_recon *recon,
@@ -148,7 +152,10 @@ int swfs_pipeline_create_linear(swfs_pipeline **out, const swfs_geom *geom, size
 /* The nexp camera exposures sched[0..nexp) over slopes (nwfs frames of nslopes, the
  * exposures' indices into them): out = nexp core-referenced focal fields nfx x nfy
  * (eq:downsampledHalo), before the static halo is subtracted. Work space grows to the
- * largest batch seen and is then reused: nothing is allocated in the steady state. */
+ * largest batch seen and is then reused: nothing is allocated in the steady state.
+ * With a space-time reconstructor (recon->nlags > 1) each frame is the stacked slopes of
+ * frames t + lags[k] (swfs_slopes_stack; info.nslopes values): the caller, who holds the
+ * telemetry around the batch, stacks them. */
 int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, const swfs_exposure *sched, size_t nexp,
                           swfs_complex *out);
 /* One focal field per WFS frame (the WFS-rate speckles `coherence` needs). */

@@ -367,13 +367,18 @@ typedef struct swfs_learn_run_options {
     size_t nprov;
     swfs_progress_fn progress;
     void *progress_ctx;
+    const long *lags;         /* NULL, or nlags lags [WFS frames] (one of them 0): a space-time
+                                 map from the slopes of frames t + lags[k] of each file, clamped
+                                 at its ends (swfs_slopes_stack), written as a cube (wfs.h
+                                 swfs_recon_write); not with modal */
+    size_t nlags;
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
 
 typedef struct swfs_learn_run_result {
     swfs_recon_learn_info info;
-    size_t nfiles, nslopes, nact;
+    size_t nfiles, nslopes, nact; /* nslopes: per frame (a space-time map's input is nlags times that) */
     /* The held-out check (more than one data set): each data set in turn left out, the map of
      * the others' frames applied to its frames. rms misfit and rms truth over all the frames
      * checked, the worst data set's misfit / truth and its index; NaN when none was checked

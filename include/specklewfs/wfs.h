@@ -85,9 +85,15 @@ void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *
 
 /* ---- reconstructor ---------------------------------------------------- */
 
+/* A space-time reconstructor: frame t's wavefront from the slopes of frames t + lags[k]
+ * (docs/telemetry.md, "A space-time learned map"). At most this many lags. */
+#define SWFS_RECON_MAXLAGS 16
+
 typedef struct swfs_recon {
     size_t nact, nslopes;
-    double *W;      /* nact x nslopes, row-major [m/rad] */
+    double *W;      /* nact x nslopes, row-major [m/rad]; a space-time one's nslopes is the
+                       per-frame slopes times nlags, frame t + lags[k]'s in columns
+                       [k ns, (k + 1) ns) (swfs_slopes_stack's layout) */
     size_t nmodes;  /* modes kept */
     double *sv;     /* all singular values of D, descending (min(nact, nslopes)); NULL if loaded */
     size_t nsv;
@@ -95,7 +101,22 @@ typedef struct swfs_recon {
     double dof;       /* swfs_recon_map: sum of the modal Wiener factors (effective modes) */
     double l0;          /* swfs_recon_vk: the outer scale used [m] (fitted when asked for 0) */
     double prior_scale; /* swfs_recon_vk: the prior's scale c [m^2] */
+    size_t nlags;       /* 0: one frame's slopes (every reconstructor but a space-time one);
+                           else the lags [WFS frames] of the stacked input, one of them 0 */
+    long lags[SWFS_RECON_MAXLAGS];
 } swfs_recon;
+
+/* The lags of a space-time reconstructor: "0,-25,25" -> lags (at most SWFS_RECON_MAXLAGS,
+ * distinct, one of them 0, each within +-100000 WFS frames). `what` names the source in the
+ * message. */
+int swfs_lags_parse(const char *text, long *lags, size_t *nlags, const char *what);
+/* The same checks on lags already parsed (a file's keywords). */
+int swfs_lags_check(const long *lags, size_t nlags, const char *what);
+/* out (count x nslopes nlags, row-major) = the slopes of frames first + t + lags[k] of
+ * s (nframes x nslopes) for t < count, each frame index clamped into [0, nframes): the
+ * space-time reconstructor's input. The frames beyond a data set's ends repeat its edge. */
+void swfs_slopes_stack(const double *s, size_t nframes, size_t nslopes, const long *lags, size_t nlags, size_t first,
+                       size_t count, double *out);
 
 /* Truncated pseudo-inverse of D (nslopes x nact) by LAPACKE SVD: keep mode i when
  * sv[i] > rcond * sv[0] and i < max_modes (0 = no count limit). This is the "better
@@ -209,8 +230,14 @@ int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid);
 int swfs_recon_tilt_as_mean_slopes(swfs_recon *r, const unsigned char *valid, const double *xy);
 /* z = W s. */
 void swfs_recon_apply(const swfs_recon *r, const double *slopes, double *z);
-/* FITS: NAXIS1 = nslopes, NAXIS2 = nact, BUNIT m/rad. */
+/* FITS: NAXIS1 = nslopes, NAXIS2 = nact, BUNIT m/rad. A space-time reconstructor is a cube:
+ * NAXIS1 = the per-frame slopes, NAXIS2 = nact, NAXIS3 = nlags, plane k the map of the
+ * slopes of frame t + LAGk (keywords NLAGS, LAG1 .. LAGn). */
 int swfs_recon_write(const swfs_recon *r, const char *path);
+/* The same image (and NLAGS, LAGk) as the current HDU of a file being written (fits.h), for a
+ * writer that adds keywords of its own. */
+struct swfs_fits_out;
+int swfs_recon_write_hdu(struct swfs_fits_out *f, const swfs_recon *r);
 int swfs_recon_read(const char *path, swfs_recon **out);
 /* Actuators: NAXIS1 = 2 (x, y), NAXIS2 = nact [m]. */
 int swfs_actuators_write(const double *xy, size_t nact, const char *path);

@@ -97,7 +97,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
-def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=()):
+def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -109,7 +109,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=()):
     than one folder (heldout=True) the leave-one-folder-out check: nheldout,
     heldout_misfit_rms, heldout_truth_rms [m], heldout_ratio (each folder's misfit / truth,
     NaN where not checked; >= 1: a condition the others do not cover), heldout_worst and
-    heldout_worst_set (the worst folder's ratio and index)."""
+    heldout_worst_set (the worst folder's ratio and index). lags (WFS frames, one of them 0,
+    e.g. (0, -25, 25)): a space-time map from the slopes of frames t + lag, written as a cube
+    of one map per lag that speckles(..., recon=out) applies the same way (`learn --lags`);
+    it pays only when the folders hold the observation's own wind and profile."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -124,6 +127,9 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=()):
     o.heldout_ratio = dptr(ratio)
     prov, o.nprov = _lib.strings(provenance)
     o.prov = prov
+    if lags is not None:
+        lagv = (ctypes.c_long * max(len(lags), 1))(*[int(v) for v in lags])
+        o.lags, o.nlags = ctypes.cast(lagv, ctypes.POINTER(ctypes.c_long)), len(lags)
     r = _lib.swfs_learn_run_result()
     check(lib.swfs_learn_run(ctypes.byref(o), ctypes.byref(r)), "swfs_learn_run")
     d = _struct_dict(r.info)

@@ -151,6 +151,19 @@ def test_learn_reconstructor(series, tmp_path):
     sp = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "sp.fits"),
                      recon=str(tmp_path / "W.fits"))
     assert sp["nout"] >= 118
+    # a space-time map: the slopes of frames t, t - 3 and t + 3; a cube of one map per lag that
+    # fits its training frames better than the per-frame map, and that speckles applies
+    rl = sw.learn(dirs, str(tmp_path / "Wl.fits"), lags=(0, -3, 3), heldout=False)
+    assert rl["nslopes"] == 288 and rl["nslopes_seen"] == 3 * 224 and rl["misfit_rms"] < 0.99 * r["misfit_rms"]
+    Wl = sw.read_fits(str(tmp_path / "Wl.fits"))[0]
+    keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["NLAGS", "LAG1", "LAG2", "LAG3"])
+    assert Wl.shape == (3, 217, 288) and [keys[k] for k in ("NLAGS", "LAG1", "LAG2", "LAG3")] == [3, 0, -3, 3]
+    spl = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "spl.fits"),
+                      recon=str(tmp_path / "Wl.fits"))
+    assert spl["nout"] == sp["nout"] and spl["info"]["nlags"] == 3 and spl["info"]["nslopes"] == 3 * 288
+    with pytest.raises(sw.Error, match="no lag 0"):
+        sw.learn(dirs, str(tmp_path / "W3.fits"), lags=(2, 4))
+    assert not os.path.exists(tmp_path / "W3.fits")
     with pytest.raises(sw.Error, match="truewf_000.fits beside it"):
         sw.learn(str(s), str(tmp_path / "W2.fits"))
     assert not os.path.exists(tmp_path / "W2.fits")

@@ -102,18 +102,69 @@ int swfs_pupil_mask_read(const char *path, size_t n, swfs_real **out)
     return rc;
 }
 
+/* The lag keywords of a space-time reconstructor (NLAGS, LAG1 .. LAGn). */
+static int lag_keys(swfs_fits_out *o, const swfs_recon *r)
+{
+    int rc = swfs_fits_out_key_long(o, "NLAGS", (long)r->nlags, "space-time: planes = slopes of frame t + LAGk");
+    for (size_t k = 0; !rc && k < r->nlags; k++) {
+        char key[32];
+        snprintf(key, sizeof key, "LAG%zu", k + 1);
+        rc = swfs_fits_out_key_long(o, key, r->lags[k], "[WFS frames] plane's frame offset");
+    }
+    return rc;
+}
+
+int swfs_recon_write_hdu(swfs_fits_out *o, const swfs_recon *r)
+{
+    const size_t nl = r->nlags ? r->nlags : 1, ns = r->nslopes / nl;
+    double *cube = NULL;
+    if (r->nlags) { /* W (nact x ns nl, lag blocks) -> planes of ns x nact */
+        if (!(cube = malloc(r->nslopes * r->nact * sizeof *cube)))
+            return swfs_fail(SWFS_ERR_NOMEM, "reconstructor: out of memory");
+        for (size_t k = 0; k < nl; k++)
+            for (size_t a = 0; a < r->nact; a++)
+                memcpy(cube + (k * r->nact + a) * ns, r->W + a * r->nslopes + k * ns, ns * sizeof *cube);
+    }
+    swfs_real a = {ns, r->nact, nl, cube ? cube : r->W};
+    int rc = swfs_fits_out_real(o, NULL, &a, -64);
+    if (!rc && r->nlags) rc = lag_keys(o, r);
+    free(cube);
+    return rc;
+}
+
 int swfs_recon_write(const swfs_recon *r, const char *path)
 {
-    swfs_real a = {r->nslopes, r->nact, 1, r->W};
     swfs_fits_out *o = NULL;
     int rc = swfs_fits_out_create(&o, path);
-    if (rc) return rc;
-    rc = swfs_fits_out_real(o, NULL, &a, -64);
+    if (!rc) rc = swfs_recon_write_hdu(o, r);
     if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m/rad", "actuator displacement per slope");
     if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)r->nmodes, "SVD modes kept");
     if (!rc) rc = swfs_fits_out_history(o, "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
     if (rc) { swfs_fits_out_abort(o); return rc; }
     return swfs_fits_out_commit(o);
+}
+
+/* A cube's lags from its keywords (nz planes). */
+static int read_lags(const char *path, size_t nz, swfs_recon *r)
+{
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    long n = 0;
+    int found = 0;
+    if (!rc) rc = swfs_fits_in_key_long_opt(f, "NLAGS", 1, SWFS_RECON_MAXLAGS, &n, &found);
+    if (!rc && (!found || (size_t)n != nz))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: a space-time reconstructor of %zu planes needs NLAGS = %zu and LAG1 .. LAG%zu "
+                       "(found %s)", path, nz, nz, nz, found ? "another NLAGS" : "no NLAGS");
+    for (long k = 0; !rc && k < n; k++) {
+        char key[32];
+        snprintf(key, sizeof key, "LAG%ld", k + 1);
+        rc = swfs_fits_in_key_long_opt(f, key, -100000, 100000, &r->lags[k], &found);
+        if (!rc && !found) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: NLAGS = %ld but no %s", path, n, key);
+    }
+    swfs_fits_in_close(f);
+    if (!rc) rc = swfs_lags_check(r->lags, nz, path);
+    if (!rc) r->nlags = nz;
+    return rc;
 }
 
 int swfs_recon_read(const char *path, swfs_recon **out)
@@ -122,25 +173,34 @@ int swfs_recon_read(const char *path, swfs_recon **out)
     swfs_real *a = NULL;
     int rc = swfs_fits_read_real(path, NULL, &a, NULL);
     if (rc) return rc;
-    if (a->nz != 1 || a->nx < 2 || a->nx % 2) {
+    if (a->nz < 1 || a->nz > SWFS_RECON_MAXLAGS || a->nx < 2 || a->nx % 2) {
         size_t nx = a->nx, ny = a->ny, nz = a->nz;
         swfs_real_free(a);
-        return swfs_fail(SWFS_ERR_FORMAT, "%s: a reconstructor is a 2-D image of nslopes (even: x then y slopes) x nact, "
-                         "got %zux%zux%zu", path, nx, ny, nz);
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: a reconstructor is an image of nslopes (even: x then y slopes) x nact, or "
+                         "a space-time one's cube of them (at most %d lags), got %zux%zux%zu", path, SWFS_RECON_MAXLAGS,
+                         nx, ny, nz);
     }
+    const size_t ns = a->nx, na = a->ny, nl = a->nz;
     swfs_recon *r = calloc(1, sizeof *r);
-    if (r) r->W = malloc(a->nx * a->ny * sizeof *r->W);
+    if (r) r->W = malloc(ns * na * nl * sizeof *r->W);
     if (!r || !r->W) { swfs_real_free(a); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path); }
-    r->nslopes = a->nx; r->nact = a->ny;
-    for (size_t i = 0; i < a->nx * a->ny; i++) {
+    r->nslopes = ns * nl; r->nact = na;
+    for (size_t i = 0; i < ns * na * nl; i++) {
         if (!isfinite(a->data[i])) {
             swfs_real_free(a); swfs_recon_free(r);
             return swfs_fail(SWFS_ERR_VALUE, "%s: reconstructor entry %zu is not finite", path, i);
         }
-        r->W[i] = a->data[i];
     }
+    /* planes of ns x nact -> W (nact x ns nl, lag blocks) */
+    for (size_t k = 0; k < nl; k++)
+        for (size_t j = 0; j < na; j++)
+            memcpy(r->W + j * r->nslopes + k * ns, a->data + (k * na + j) * ns, ns * sizeof *r->W);
     r->nmodes = 0;
     swfs_real_free(a);
+    if (nl > 1 && (rc = read_lags(path, nl, r))) {
+        swfs_recon_free(r);
+        return rc;
+    }
     *out = r;
     return SWFS_OK;
 }

@@ -17,10 +17,15 @@ void swfs_learn_run_options_default(swfs_learn_run_options *o)
 }
 
 /* One pair of files: the slopes and the truth of the same frames, added to the learner (made
- * at the first pair, from its shapes). */
-static int add_pair(const char *sp, const char *tp, int modal, swfs_recon_learner **l, swfs_learn_run_result *r)
+ * at the first pair, from its shapes); with lags, each frame's input is the slopes of frames
+ * t + lags stacked, clamped at the file's ends (swfs_slopes_stack). */
+static int add_pair(const swfs_learn_run_options *o, const char *sp, const char *tp, swfs_recon_learner **l,
+                    swfs_learn_run_result *r)
 {
+    const int modal = o->modal;
+    const size_t nl = o->nlags > 1 ? o->nlags : 1;
     swfs_real *s = NULL, *z = NULL;
+    double *st = NULL;
     int rc = swfs_fits_read_real(sp, NULL, &s, NULL);
     if (!rc) rc = swfs_fits_read_real(tp, NULL, &z, NULL);
     if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
@@ -32,10 +37,16 @@ static int add_pair(const char *sp, const char *tp, int modal, swfs_recon_learne
     if (!rc && !*l) {
         r->nslopes = s->nx;
         r->nact = z->nx;
-        rc = swfs_recon_learner_new(s->nx, z->nx, !modal, l);
+        rc = swfs_recon_learner_new(s->nx * nl, z->nx, !modal, l);
     }
-    if (!rc && (rc = swfs_recon_learner_add(*l, s->data, z->data, s->ny)))
+    if (!rc && nl > 1) {
+        if (!(st = malloc(s->ny * s->nx * nl * sizeof *st)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for %zu frames of %zu lags", sp, s->ny, nl);
+        else swfs_slopes_stack(s->data, s->ny, s->nx, o->lags, nl, 0, s->ny, st);
+    }
+    if (!rc && (rc = swfs_recon_learner_add(*l, st ? st : s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
+    free(st);
     swfs_real_free(s);
     swfs_real_free(z);
     return rc;
@@ -43,11 +54,10 @@ static int add_pair(const char *sp, const char *tp, int modal, swfs_recon_learne
 
 static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, const swfs_learn_run_result *r)
 {
-    swfs_real a = {w->nslopes, w->nact, 1, w->W};
     swfs_fits_out *f = NULL;
     int rc = swfs_fits_out_create(&f, o->out);
     if (rc) return rc;
-    rc = swfs_fits_out_real(f, NULL, &a, -64);
+    rc = swfs_recon_write_hdu(f, w);
     if (!rc && !o->modal) rc = swfs_fits_out_key_string(f, "BUNIT", "m/rad", "actuator displacement per slope");
     if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", 0, "learned, not an SVD");
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNMODAL", o->modal ? 1 : 0, o->modal ? "truth: modal coefficients as given"
@@ -80,7 +90,8 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
 
 /* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
  * counts them when given). */
-static int add_dir(const char *dir, int modal, swfs_recon_learner **l, swfs_learn_run_result *r, size_t *nfiles)
+static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_learner **l, swfs_learn_run_result *r,
+                   size_t *nfiles)
 {
     size_t k = 0;
     for (;; k++) {
@@ -91,7 +102,7 @@ static int add_dir(const char *dir, int modal, swfs_recon_learner **l, swfs_lear
         if (access(tp, F_OK) != 0)
             return swfs_fail(SWFS_ERR_IO, "%s: no %s beside it: the training data need the true residual of every "
                              "slopes file (simulate mode=timeseries export_truth=1)", sp, tp);
-        int rc = add_pair(sp, tp, modal, l, r);
+        int rc = add_pair(o, sp, tp, l, r);
         if (rc) return rc;
         if (nfiles) (*nfiles)++;
     }
@@ -107,13 +118,14 @@ static int add_dir(const char *dir, int modal, swfs_recon_learner **l, swfs_lear
 static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
 {
     swfs_recon_learner *part = NULL;
-    int rc = swfs_recon_learner_new(r->nslopes, r->nact, !o->modal, &part);
+    const size_t nl = o->nlags > 1 ? o->nlags : 1;
+    int rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &part);
     for (size_t d = 0; o->heldout_ratio && d < o->ndirs; d++) o->heldout_ratio[d] = NAN;
     double m2 = 0, t2 = 0;
     size_t nf = 0;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         swfs_recon_learner_reset(part);
-        if ((rc = add_dir(o->dirs[d], o->modal, &part, r, NULL))) break;
+        if ((rc = add_dir(o, o->dirs[d], &part, r, NULL))) break;
         double md = 0, td = 0;
         rc = swfs_recon_learner_heldout(all, part, o->ridge, &md, &td);
         if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
@@ -144,8 +156,15 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
     if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
+    if (o->nlags && (!o->lags || o->nlags > SWFS_RECON_MAXLAGS))
+        return swfs_fail(SWFS_ERR_ARG, "learn: %zu lags (at most %d)", o->nlags, SWFS_RECON_MAXLAGS);
+    int rc = o->nlags ? swfs_lags_check(o->lags, o->nlags, "learn: --lags") : SWFS_OK;
+    if (!rc && o->nlags > 1 && o->modal)
+        rc = swfs_fail(SWFS_ERR_ARG, "learn: --lags makes a space-time map for the Shack-Hartmann model (speckles "
+                       "--recon); a modal control matrix (--modal) acts on one frame");
+    if (rc) return rc;
     swfs_paths *paths = NULL;
-    int rc = swfs_paths_create(&paths);
+    rc = swfs_paths_create(&paths);
     for (size_t d = 0; !rc && d < o->ndirs; d++)
         rc = swfs_paths_input_or_dir(paths, "simulated data set", o->dirs[d]);
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
@@ -153,11 +172,15 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        rc = add_dir(o->dirs[d], o->modal, &l, r, &r->nfiles);
+        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles);
         if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
     }
     swfs_recon *w = NULL;
     if (!rc) rc = swfs_recon_learner_solve(l, o->ridge, &w, &r->info);
+    if (!rc && o->nlags > 1) {
+        w->nlags = o->nlags;
+        memcpy(w->lags, o->lags, o->nlags * sizeof *o->lags);
+    }
     if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
     if (!rc) rc = write_recon(o, w, r);
     swfs_recon_free(w);

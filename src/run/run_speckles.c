@@ -38,6 +38,8 @@ typedef struct work {
     swfs_cplx *halo;
     swfs_real *resmean; /* the reconstructed residual's time mean (PUPN x PUPN) [m] */
     swfs_real *slopes;
+    double *stack;      /* a space-time reconstructor's stacked input for one piece */
+    size_t stack_cap;   /* frames it holds */
     swfs_exposure *sched;
     size_t *cfirst, *cn;
     char tdir[4096], path[8192], loaded[8192];
@@ -52,6 +54,7 @@ static void work_free(work *w)
     swfs_cplx_free(w->halo);
     swfs_real_free(w->resmean);
     swfs_real_free(w->slopes);
+    free(w->stack);
 }
 
 /* Science geometry and window, the actuators, the pupil mask. */
@@ -222,9 +225,10 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (o->pipe.recon == SWFS_RECON_GIVEN) {
         if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
         if ((rc = swfs_recon_read(o->recon, &w->rin))) return rc;
-        if (w->rin->nslopes != w->nslopes)
+        const size_t nl = w->rin->nlags ? w->rin->nlags : 1;
+        if (w->rin->nslopes / nl != w->nslopes)
             return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
-                             w->nslopes, o->recon, w->rin->nslopes);
+                             w->nslopes, o->recon, w->rin->nslopes / nl);
     }
     if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
@@ -266,6 +270,23 @@ static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const s
     return o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
 }
 
+/* A space-time reconstructor's input for the n frames from k0 of the file in memory: the
+ * slopes of frames t + lags stacked, clamped at the file's ends (wfs.h swfs_slopes_stack).
+ * The buffer grows to the largest piece, once. */
+static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
+{
+    const size_t nl = w->rin->nlags, width = w->nslopes * nl;
+    if (n > w->stack_cap) {
+        double *t = realloc(w->stack, n * width * sizeof *t);
+        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zu lags", n, nl);
+        w->stack = t;
+        w->stack_cap = n;
+    }
+    swfs_slopes_stack(w->slopes->data, w->slopes->ny, w->nslopes, w->rin->lags, nl, k0, n, w->stack);
+    *sp = w->stack;
+    return SWFS_OK;
+}
+
 /* The output frames [first, first + count) (all of them alone; a member's share in a team)
  * through the pipeline, into w->halo, whose frame 0 is output frame `first`. A cube goes in
  * pieces of `batch` frames from its start (a share starts on a piece): a piece from camera
@@ -295,6 +316,7 @@ static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs
                 return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
                                  tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
             const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
+            if (w->rin && w->rin->nlags > 1 && (rc = stack_piece(w, (size_t)k0, need, &sp))) return rc;
             swfs_complex *dst = swfs_cplx_frame(w->halo, c0 + a - first);
             rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, n, dst)
                                   : swfs_pipeline_process(w->p, sp, need, w->sched, n, dst);
@@ -510,7 +532,11 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         if (o->lin.basis)
             snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis, o->lin.scale,
                      o->lin.control ? "control matrix" : o->lin.imat ? "interaction matrix" : "modal coefficients");
-        else snprintf(model, sizeof model, "%zu actuators", w.nact);
+        else if (r->info.nlags) {
+            int n = snprintf(model, sizeof model, "%zu actuators, space-time reconstructor of lags", w.nact);
+            for (size_t k = 0; k < w.rin->nlags && n > 0 && (size_t)n < sizeof model; k++)
+                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.rin->lags[k]);
+        } else snprintf(model, sizeof model, "%zu actuators", w.nact);
         snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %s, %zu telemetry values, %zu reconstructor "
                  "modes, tip-tilt %s, static halo %s, speckles within %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
                  model, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?

@@ -207,6 +207,10 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc && o->lin.basis) return setup_linear(o, first_tel, u, p, *nfx, *nfy, r);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
+    if (!rc && rec->nlags > 1)
+        rc = swfs_fail(SWFS_ERR_ARG, "%s: a space-time reconstructor (%zu lags) needs the slopes of later WFS frames, "
+                       "which a stream has not yet seen; use it with `speckles`, or give the stream a per-frame one",
+                       o->recon, rec->nlags);
     /* The reconstructor's width against the telemetry now, not after the first frames:
      * a wrong --recon is named as such. */
     if (!rc && first_tel[0]) {

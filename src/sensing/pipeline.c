@@ -162,15 +162,76 @@ static double *expand_cols(const double *a, size_t rows, size_t nc, const size_t
     return b;
 }
 
-/* In place: rows x (nfull + extra) -> rows x (nc + extra), keeping cols and the extra columns. */
-static void compress_cols(double *a, size_t rows, size_t nfull, size_t extra, size_t nc, const size_t *cols)
+/* In place: rows x (nb blocks of nfull + extra) -> rows x (nb blocks of nc + extra), each
+ * block keeping cols (nb > 1: a space-time reconstructor's lag blocks). */
+static void compress_blocks(double *a, size_t rows, size_t nfull, size_t nb, size_t extra, size_t nc, const size_t *cols)
 {
     for (size_t r = 0; r < rows; r++) {
-        const double *src = a + r * (nfull + extra);
-        double *dst = a + r * (nc + extra);
-        for (size_t k = 0; k < nc; k++) dst[k] = src[cols[k]]; /* cols ascending: dst never overtakes src */
-        for (size_t e = 0; e < extra; e++) dst[nc + e] = src[nfull + e];
+        const double *src = a + r * (nb * nfull + extra);
+        double *dst = a + r * (nb * nc + extra);
+        for (size_t b = 0; b < nb; b++)
+            for (size_t k = 0; k < nc; k++) dst[b * nc + k] = src[b * nfull + cols[k]];
+        for (size_t e = 0; e < extra; e++) dst[nb * nc + e] = src[nb * nfull + e];
     }
+}
+
+/* A space-time reconstructor's lag blocks summed: its response to a static wavefront, a
+ * per-frame reconstructor (nact x ns) that the model, the gain check and the layout take. */
+static int sum_blocks(const swfs_recon *st, swfs_recon *sum)
+{
+    const size_t nl = st->nlags, ns = st->nslopes / nl;
+    *sum = *st;
+    sum->nslopes = ns;
+    sum->nlags = 0;
+    sum->sv = NULL;
+    if (!(sum->W = calloc(st->nact * ns, sizeof *sum->W))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t a = 0; a < st->nact; a++)
+        for (size_t k = 0; k < nl; k++)
+            for (size_t i = 0; i < ns; i++) sum->W[a * ns + i] += st->W[a * st->nslopes + k * ns + i];
+    return SWFS_OK;
+}
+
+/* The space-time reconstructor st (its blocks in the telemetry's layout: cols, or the full
+ * one) as the model's, in the full layout (nfull per block), times scale, with the tip-tilt
+ * treatment acting on the lag-0 block as on a per-frame reconstructor (exposure: the tilt is
+ * that block's mean slopes; frame: the mean slopes out of it) and the other blocks' mean
+ * slopes projected out (the frame's tilt is its own slopes'). */
+static int spacetime_model(swfs_pipeline *p, const swfs_recon *st, const size_t *cols, size_t nfull, const double *xy)
+{
+    swfs_recon *r = p->model->recon;
+    const size_t nl = st->nlags, ns = st->nslopes / nl, na = st->nact, w = nl * nfull;
+    const int full = !cols || ns == nfull;
+    double *W = calloc(na * w, sizeof *W);
+    swfs_recon blk = *r;
+    blk.nslopes = nfull;
+    blk.nlags = 0;
+    blk.W = malloc(na * nfull * sizeof *blk.W);
+    int rc = W && blk.W ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t k = 0; !rc && k < nl; k++) {
+        for (size_t a = 0; a < na; a++) {
+            const double *src = st->W + a * st->nslopes + k * ns;
+            double *dst = blk.W + a * nfull;
+            if (full) memcpy(dst, src, nfull * sizeof *dst);
+            else {
+                memset(dst, 0, nfull * sizeof *dst);
+                for (size_t i = 0; i < ns; i++) dst[cols[i]] = src[i];
+            }
+            for (size_t i = 0; i < nfull; i++) dst[i] *= p->opt.recon_scale;
+        }
+        if (p->opt.tiptilt == SWFS_TT_EXPOSURE && st->lags[k] == 0)
+            rc = swfs_recon_tilt_as_mean_slopes(&blk, p->model->wfs->valid, xy);
+        else if (p->opt.tiptilt != SWFS_TT_KEEP)
+            rc = swfs_recon_project_tiptilt(&blk, p->model->wfs->valid);
+        for (size_t a = 0; !rc && a < na; a++) memcpy(W + a * w + k * nfull, blk.W + a * nfull, nfull * sizeof *W);
+    }
+    free(blk.W);
+    if (rc) { free(W); return rc; }
+    free(r->W);
+    r->W = W;
+    r->nslopes = w;
+    r->nlags = nl;
+    memcpy(r->lags, st->lags, sizeof r->lags);
+    return SWFS_OK;
 }
 
 /* The model and its reconstructor: given, SVD, or learned from the training slopes; built in
@@ -184,11 +245,18 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     int rc = slopes_layout(o, nslopes, &nsub, &cols);
     if (rc) return rc;
     const size_t nfull = 2 * nsub * nsub;
+    /* A space-time reconstructor: the model, its layout and its gain from the sum of its lag
+     * blocks; its blocks replace the model's reconstructor below. */
+    const swfs_recon *st = recon && recon->nlags > 1 ? recon : NULL;
+    swfs_recon rsum = {0};
+    if (st && (rc = sum_blocks(st, &rsum))) { free(cols); return rc; }
+    if (st) recon = &rsum;
     /* A given reconstructor takes the telemetry's layout, or the full one when the telemetry
      * holds the used subapertures only (e.g. `learn` on simulated full-layout slopes). */
     const int recon_full = recon && cols && recon->nslopes == nfull;
     if (recon && recon->nslopes != nslopes && !recon_full) {
         free(cols);
+        free(rsum.W);
         if (cols)
             return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame but the reconstructor expects %zu (expected %zu, the "
                              "used subapertures', or %zu, the full layout's)", nslopes, recon->nslopes, nslopes, nfull);
@@ -227,8 +295,10 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
      * 217 modes the speckles from the slopes gave 21.6 nm against 16.9 with this (ideal 10.8);
      * nothing moved by more than 0.1 nm over bench_telemetry's 24 runs (docs/telemetry.md).
      * Idempotent, so a reconstructor written by --write-recon and given back is unchanged. */
-    if (!rc && o->tiptilt == SWFS_TT_EXPOSURE)
+    if (!rc && st) rc = spacetime_model(p, st, cols && !recon_full ? cols : NULL, nfull, xy);
+    else if (!rc && o->tiptilt == SWFS_TT_EXPOSURE)
         rc = swfs_recon_tilt_as_mean_slopes(p->model->recon, p->model->wfs->valid, xy);
+    free(rsum.W);
     if (!rc && o->tiptilt == SWFS_TT_EXPOSURE) rc = swfs_speckles_recon_tilt(p->model, xy, &p->W_ext, &p->Rtilt);
     if (!rc) {
         swfs_pipeline_info *in = &p->info;
@@ -242,14 +312,16 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
         in->nsub = nsub;
         in->nvalid = p->model->wfs->nvalid;
     }
+    const size_t nl = st ? st->nlags : 1;
     if (!rc && cols) {
         /* The reconstructor (and what --write-recon saves) in the telemetry's own layout. */
         swfs_recon *r = p->model->recon;
-        compress_cols(r->W, nact, nfull, 0, nslopes, cols);
-        r->nslopes = nslopes;
-        if (p->W_ext) compress_cols(p->W_ext, nact, nfull, 2, nslopes, cols);
-        if (p->Rtilt) compress_cols(p->Rtilt, 2, nfull, 0, nslopes, cols);
+        compress_blocks(r->W, nact, nfull, nl, 0, nslopes, cols);
+        r->nslopes = nslopes * nl;
+        if (p->W_ext) compress_blocks(p->W_ext, nact, nfull, nl, 2, nslopes, cols);
+        if (p->Rtilt) compress_blocks(p->Rtilt, 2, nfull, nl, 0, nslopes, cols);
     }
+    if (!rc) p->info.nlags = st ? nl : 0;
     free(cols);
     return rc;
 }
@@ -269,7 +341,7 @@ int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0, 0.0, 0};
+    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0, 0.0, 0, 0};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
@@ -405,8 +477,11 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     p->info.nact = nact;
     p->info.nslopes = nslopes;
     const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
-    if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)))
-        rc = swfs_pipeline_engine_(p, g, nact, nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W, p->model->T);
+    if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain))) {
+        p->info.nslopes = p->model->recon->nslopes; /* a space-time reconstructor's stacked input */
+        rc = swfs_pipeline_engine_(p, g, nact, p->info.nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W,
+                                   p->model->T);
+    }
     if (!rc) rc = swfs_pipeline_band_(p, g, p->model->wfs->nsub);
     p->opt.valid = NULL; /* the caller's map: read at creation only */
     if (rc) {

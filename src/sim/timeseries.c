@@ -179,6 +179,9 @@ static int read_given(const swfs_ts_params *p, double D, double **xy, size_t *na
                             (rc = check_given_actuators(p->actuators, *xy, *nact, D))))
         return rc;
     if (p->ao_recon[0] && (rc = swfs_recon_read(p->ao_recon, rao))) return rc;
+    if (p->ao_recon[0] && (*rao)->nlags > 1)
+        return swfs_fail(SWFS_ERR_ARG, "%s: a space-time reconstructor (%zu lags) is no AO loop's: ao_recon takes the "
+                         "matrix the loop applies to one frame's slopes", p->ao_recon, (*rao)->nlags);
     size_t vn = 0, nv = 0;
     if (p->valid[0] && (rc = swfs_valid_map_read(p->valid, vmap, &vn, &nv))) return rc;
     if (p->valid[0] && vn != (size_t)p->nsub)
