@@ -42,11 +42,13 @@ static const char *usage_text =
     "                every L given (WFS frames, one of them 0, at most 16; clamped at each\n"
     "                file's ends), and W.fits a cube of one map per lag (NLAGS, LAGk) that\n"
     "                `speckles --recon` applies the same way. Frames far enough apart for the\n"
-    "                wind to move the screen by a fraction of a subaperture (e.g. 0,-25,25,\n"
-    "                -50,50 at 500 Hz and 5 m/s) tell an alias from the frequency it hides.\n"
-    "                It pays only when the simulated loops hold the observation's own wind\n"
-    "                and whole profile; trained at another wind it can be far worse than the\n"
-    "                default (docs/telemetry.md, \"A space-time learned map\")\n";
+    "                wind to move the screen by a fraction of a subaperture tell an alias from\n"
+    "                the frequency it hides: 0,+-L,+-2L with L = round(D/nsub rate / (2 v))\n"
+    "                frames (half a subaperture; v from `specklewfs wind`) is the rule measured\n"
+    "                (bench/spacetime.sh). It pays only when the simulated loops hold the\n"
+    "                observation's own wind and whole profile; trained at another wind it can\n"
+    "                be far worse than the default (docs/telemetry.md, \"A space-time learned\n"
+    "                map\")\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -98,6 +100,13 @@ int swfs_cmd_learn(int argc, char **argv)
     else
         printf("learn: the simulated residual %.1f nm rms per actuator; the map misses it by %.1f nm on the training "
                "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
+    if (o.nlags > 1 && r.nwind)
+        printf("learn: the training loops' slopes move (%.4f, %.4f) subapertures per WFS frame (%zu of %zu data sets; "
+               "the farthest %.4f from that): speckles compares it with the observation's\n", r.wind_vx, r.wind_vy,
+               r.nwind, nd, r.wind_spread);
+    else if (o.nlags > 1)
+        printf("learn: no wind found in the training loops' slopes (full layout needed): speckles cannot check the "
+               "observation's against it\n");
     if (r.nheldout) {
         printf("learn: each data set held out in turn, the map of the others applied to it (misfit / residual; "
                "training %.2f):\n", r.info.misfit_rms / r.info.truth_rms);

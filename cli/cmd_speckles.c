@@ -243,6 +243,19 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!rc)
         fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
                 "out of the NCP)\n", r.resmean_rms * 1e9);
+    if (!rc && r.info.nlags && !isnan(r.st_train_vx) && r.st_found) {
+        fprintf(stderr, "speckles: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
+                "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", r.st_train_vx,
+                r.st_train_vy, r.st_obs_vx, r.st_obs_vy, r.st_mismatch);
+        if (r.st_mismatch > SWFS_SPACETIME_MISMATCH_WARN)
+            fprintf(stderr, "speckles: warning: the map was taught at another wind than this telemetry's (more than %.2f "
+                    "subaperture apart at its largest lag): a space-time map taught at the wrong wind can be far worse "
+                    "than the default; simulate the loops at the wind `specklewfs wind` gives (docs/telemetry.md)\n",
+                    SWFS_SPACETIME_MISMATCH_WARN);
+    } else if (!rc && r.info.nlags) {
+        fprintf(stderr, "speckles: space-time map: %s; its wind cannot be checked against this telemetry's\n",
+                isnan(r.st_train_vx) ? "no training wind in its file (LRNVX, LRNVY)" : "no wind found in the telemetry");
+    }
     free(min);
     free(mout);
     return rc;

@@ -1168,6 +1168,7 @@ static void test_spacetime_reconstructor(void **state)
         assert_ok(swfs_speckles_run(&sp, &spr));
         assert_int_equal(spr.info.nlags, k ? 3 : 0);
         assert_int_equal(spr.info.nslopes, k ? 3 * ns : ns);
+        assert_false(spr.st_found); /* no training wind in a hand-made cube */
     }
     swfs_real *m1 = NULL, *m3 = NULL;
     swfs_cplx *c1 = read_speckles(p(outs[0]), &m1), *c3 = read_speckles(p(outs[1]), &m3);
@@ -1214,6 +1215,11 @@ static void test_spacetime_reconstructor(void **state)
     assert_true(l3.info.misfit_rms < 0.99 * l1.info.misfit_rms); /* more inputs, the same frames */
     assert_int_equal(l3.nheldout, 3);
     assert_true(l3.heldout_misfit_rms > l1.heldout_misfit_rms && l3.heldout_worst >= 1);
+    const double spread_other = l3.wind_spread;
+    printf("test_runs: other winds: %zu training winds, the farthest %.4f subapertures per frame from their mean\n",
+           l3.nwind, spread_other);
+    assert_int_equal(l3.nwind, 3);
+    assert_int_equal(l1.nwind, 0); /* per frame: not measured */
 
     /* Learned on loops of the test data's own conditions (other seeds): on a held-out loop of
      * them the space-time map misses the residual by less than the per-frame one. */
@@ -1232,6 +1238,10 @@ static void test_spacetime_reconstructor(void **state)
     lo.nlags = 3;
     lo.out = p("recon_s3.fits");
     assert_ok(swfs_learn_run(&lo, &l3));
+    printf("test_runs: the data's conditions: %zu training winds (%.4f, %.4f), the farthest %.4f from their mean\n",
+           l3.nwind, l3.wind_vx, l3.wind_vy, l3.wind_spread);
+    assert_int_equal(l3.nwind, 3);
+    assert_true(l3.wind_spread < 0.25 * spread_other);
     swfs_recon *wl = NULL, *wp = NULL;
     assert_ok(swfs_recon_read(p("recon_s3.fits"), &wl));
     assert_ok(swfs_recon_read(p("recon_s1.fits"), &wp));
@@ -1257,6 +1267,12 @@ static void test_spacetime_reconstructor(void **state)
         sp.match_out = mout;
         sp.nmatch = 1;
         assert_ok(swfs_speckles_run(&sp, &spr));
+        if (k) { /* the map's training wind against the test data's own, at the largest lag */
+            printf("test_runs: space-time map: trained at (%.4f, %.4f), the data at (%.4f, %.4f) subapertures per frame: "
+                   "%.3f subapertures apart at lag 4\n", spr.st_train_vx, spr.st_train_vy, spr.st_obs_vx, spr.st_obs_vy,
+                   spr.st_mismatch);
+            assert_true(spr.st_found && spr.st_mismatch < SWFS_SPACETIME_MISMATCH_WARN);
+        }
         swfs_estimate_run_options eo;
         swfs_estimate_run_options_default(&eo);
         eo.science = mout[0];

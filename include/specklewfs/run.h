@@ -160,7 +160,21 @@ typedef struct swfs_speckles_run_result {
     swfs_pipeline_info info;
     double resmean_rms;       /* [m] the reconstructed residual's time mean over the frames written
                                  (SPECKLES.fits RESMEAN, swfs_pipeline_mean_wavefront), rms in the pupil */
+    /* A space-time reconstructor (info.nlags > 0) whose file holds its training loops' wind
+     * (learn --lags: LRNVX, LRNVY): that wind and the observation's, from the first telemetry
+     * file's slopes, in subapertures per WFS frame (st_found: both known), and st_mismatch =
+     * |v_obs - v_train| x the largest |lag| [subapertures]: how far apart the pattern the map
+     * was taught and the observed one have moved by the farthest frame it reads (NaN when
+     * unknown). docs/telemetry.md measures what a mismatch costs. */
+    int st_found;
+    double st_train_vx, st_train_vy, st_obs_vx, st_obs_vy, st_mismatch;
 } swfs_speckles_run_result;
+
+/* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
+ * `speckles` warns: a quarter subaperture at the largest lag (docs/telemetry.md: on the
+ * slowest system measured the map beat the per-frame one up to about 0.15 and lost to the
+ * default at 0.5). */
+#define SWFS_SPACETIME_MISMATCH_WARN 0.25
 
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);
 
@@ -386,6 +400,12 @@ typedef struct swfs_learn_run_result {
     size_t nheldout;
     double heldout_misfit_rms, heldout_truth_rms, heldout_worst;
     size_t heldout_worst_set;
+    /* With lags: the wind of the training loops' slopes (wind.h, in subapertures per WFS
+     * frame: no pitch or rate needed), the mean over the data sets whose first file shows
+     * one (nwind of them), and the largest distance of one from that mean; written into the
+     * map (LRNWINDN, LRNVX, LRNVY, LRNVSPRD) for speckles to compare with the observation's. */
+    size_t nwind;
+    double wind_vx, wind_vy, wind_spread;
 } swfs_learn_run_result;
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);

@@ -112,7 +112,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     heldout_worst_set (the worst folder's ratio and index). lags (WFS frames, one of them 0,
     e.g. (0, -25, 25)): a space-time map from the slopes of frames t + lag, written as a cube
     of one map per lag that speckles(..., recon=out) applies the same way (`learn --lags`);
-    it pays only when the folders hold the observation's own wind and profile."""
+    it pays only when the folders hold the observation's own wind and profile. With lags it
+    also returns nwind, wind_v (the training loops' mean wind [subapertures per WFS frame])
+    and wind_spread; speckles() then returns st_mismatch, its distance from the
+    observation's at the largest lag [subapertures] (st_found, st_train_v, st_obs_v)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -135,7 +138,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     d = _struct_dict(r.info)
     d.update(nfiles=r.nfiles, nslopes=r.nslopes, nact=r.nact, nheldout=r.nheldout,
              heldout_misfit_rms=r.heldout_misfit_rms, heldout_truth_rms=r.heldout_truth_rms,
-             heldout_worst=r.heldout_worst, heldout_worst_set=r.heldout_worst_set, heldout_ratio=ratio)
+             heldout_worst=r.heldout_worst, heldout_worst_set=r.heldout_worst_set, heldout_ratio=ratio,
+             nwind=r.nwind, wind_v=(r.wind_vx, r.wind_vy), wind_spread=r.wind_spread)
     return d
 
 
@@ -205,6 +209,8 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"] = r.resmean_rms
     d["info"] = _struct_dict(r.info)
+    d.update(st_found=bool(r.st_found), st_train_v=(r.st_train_vx, r.st_train_vy), st_obs_v=(r.st_obs_vx, r.st_obs_vy),
+             st_mismatch=r.st_mismatch)
     return d
 
 

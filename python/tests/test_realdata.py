@@ -161,6 +161,11 @@ def test_learn_reconstructor(series, tmp_path):
     spl = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "spl.fits"),
                       recon=str(tmp_path / "Wl.fits"))
     assert spl["nout"] == sp["nout"] and spl["info"]["nlags"] == 3 and spl["info"]["nslopes"] == 3 * 288
+    # the training loops' wind (two winds: 10 and 35 m/s) in subapertures per frame, for the check in speckles
+    assert rl["nwind"] == 2 and rl["wind_spread"] > 0 and np.hypot(*rl["wind_v"]) > 0
+    keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["LRNVX", "LRNVY"])
+    assert np.allclose((keys["LRNVX"], keys["LRNVY"]), rl["wind_v"])
+    assert np.allclose(spl["st_train_v"], rl["wind_v"]) and (spl["st_found"] or np.isnan(spl["st_mismatch"]))
     with pytest.raises(sw.Error, match="no lag 0"):
         sw.learn(dirs, str(tmp_path / "W3.fits"), lags=(2, 4))
     assert not os.path.exists(tmp_path / "W3.fits")

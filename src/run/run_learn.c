@@ -3,6 +3,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/wind.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -16,11 +17,21 @@ void swfs_learn_run_options_default(swfs_learn_run_options *o)
     o->ridge = SWFS_RECON_LEARN_RIDGE;
 }
 
+/* The wind of a training file's slopes in subapertures per WFS frame (pitch and rate 1);
+ * not found (w->found = 0) for a layout that is not the full one, which needs its map. */
+static void training_file_wind(const swfs_real *s, swfs_wind_estimate *w)
+{
+    const size_t nsub = (size_t)llround(sqrt((double)s->nx / 2));
+    w->found = 0;
+    if (2 * nsub * nsub == s->nx && swfs_wind_from_slopes(s->data, s->ny, s->nx, nsub, NULL, 1.0, 1.0, w))
+        w->found = 0; /* a series too short or too coarse for a wind: none */
+}
+
 /* One pair of files: the slopes and the truth of the same frames, added to the learner (made
  * at the first pair, from its shapes); with lags, each frame's input is the slopes of frames
  * t + lags stacked, clamped at the file's ends (swfs_slopes_stack). */
 static int add_pair(const swfs_learn_run_options *o, const char *sp, const char *tp, swfs_recon_learner **l,
-                    swfs_learn_run_result *r)
+                    swfs_learn_run_result *r, swfs_wind_estimate *wind)
 {
     const int modal = o->modal;
     const size_t nl = o->nlags > 1 ? o->nlags : 1;
@@ -46,6 +57,7 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     }
     if (!rc && (rc = swfs_recon_learner_add(*l, st ? st : s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
+    if (!rc && nl > 1 && wind) training_file_wind(s, wind);
     free(st);
     swfs_real_free(s);
     swfs_real_free(z);
@@ -68,6 +80,12 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "rms truth per value [m, or the coefficients' unit]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", r->info.misfit_rms, "[m] rms training misfit");
+    if (!rc && r->nwind) {
+        rc = swfs_fits_out_key_long(f, "LRNWINDN", (long)r->nwind, "training sets whose slopes show a wind");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNVX", r->wind_vx, "[subap/frame] their mean wind, x");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNVY", r->wind_vy, "[subap/frame] their mean wind, y");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNVSPRD", r->wind_spread, "[subap/frame] largest from the mean");
+    }
     if (!rc && r->nheldout) {
         rc = swfs_fits_out_key_long(f, "LRNHSETS", (long)r->nheldout, "data sets held out in turn");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHMISF", r->heldout_misfit_rms, "[m] rms misfit, held out");
@@ -91,7 +109,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
 /* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
  * counts them when given). */
 static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_learner **l, swfs_learn_run_result *r,
-                   size_t *nfiles)
+                   size_t *nfiles, swfs_wind_estimate *wind)
 {
     size_t k = 0;
     for (;; k++) {
@@ -102,8 +120,11 @@ static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_
         if (access(tp, F_OK) != 0)
             return swfs_fail(SWFS_ERR_IO, "%s: no %s beside it: the training data need the true residual of every "
                              "slopes file (simulate mode=timeseries export_truth=1)", sp, tp);
-        int rc = add_pair(o, sp, tp, l, r);
+        swfs_wind_estimate we;
+        we.found = 0;
+        int rc = add_pair(o, sp, tp, l, r, k == 0 && wind ? &we : NULL);
         if (rc) return rc;
+        if (k == 0 && wind) *wind = we;
         if (nfiles) (*nfiles)++;
     }
     if (k == 0)
@@ -125,7 +146,7 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     size_t nf = 0;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         swfs_recon_learner_reset(part);
-        if ((rc = add_dir(o, o->dirs[d], &part, r, NULL))) break;
+        if ((rc = add_dir(o, o->dirs[d], &part, r, NULL, NULL))) break;
         double md = 0, td = 0;
         rc = swfs_recon_learner_heldout(all, part, o->ridge, &md, &td);
         if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
@@ -151,10 +172,26 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     return rc;
 }
 
+/* The mean of the nwind training winds v (x, y pairs) and the largest distance from it. */
+static void training_wind(const double *v, swfs_learn_run_result *r)
+{
+    r->wind_vx = r->wind_vy = r->wind_spread = NAN;
+    if (!r->nwind) return;
+    double mx = 0, my = 0, sp = 0;
+    for (size_t k = 0; k < r->nwind; k++) { mx += v[2 * k]; my += v[2 * k + 1]; }
+    mx /= (double)r->nwind;
+    my /= (double)r->nwind;
+    for (size_t k = 0; k < r->nwind; k++) sp = fmax(sp, hypot(v[2 * k] - mx, v[2 * k + 1] - my));
+    r->wind_vx = mx;
+    r->wind_vy = my;
+    r->wind_spread = sp;
+}
+
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
+    r->wind_vx = r->wind_vy = r->wind_spread = NAN;
     if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
     if (o->nlags && (!o->lags || o->nlags > SWFS_RECON_MAXLAGS))
         return swfs_fail(SWFS_ERR_ARG, "learn: %zu lags (at most %d)", o->nlags, SWFS_RECON_MAXLAGS);
@@ -171,10 +208,21 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     swfs_paths_free(paths);
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
+    double *wv = o->nlags > 1 ? calloc(2 * o->ndirs, sizeof *wv) : NULL;
+    if (o->nlags > 1 && !wv) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles);
+        swfs_wind_estimate we;
+        we.found = 0;
+        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, wv ? &we : NULL);
+        if (!rc && we.found) {
+            wv[2 * r->nwind] = we.vx;
+            wv[2 * r->nwind + 1] = we.vy;
+            r->nwind++;
+        }
         if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
     }
+    training_wind(wv, r);
+    free(wv);
     swfs_recon *w = NULL;
     if (!rc) rc = swfs_recon_learner_solve(l, o->ridge, &w, &r->info);
     if (!rc && o->nlags > 1) {

@@ -1,5 +1,6 @@
 /* speckles: timing table + telemetry -> the speckle cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
+#include "specklewfs/wind.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
@@ -287,6 +288,45 @@ static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
     return SWFS_OK;
 }
 
+/* A space-time reconstructor taught by learn --lags carries its training loops' wind
+ * (LRNVX, LRNVY [subapertures per WFS frame]); the observation's, from the first usable
+ * cube's telemetry file, and their distance at the largest lag go into r (run.h). Unknown
+ * (no keys, no wind found) is no error: the map is applied either way. */
+static int spacetime_wind(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+{
+    r->st_found = 0;
+    r->st_train_vx = r->st_train_vy = r->st_obs_vx = r->st_obs_vy = r->st_mismatch = NAN;
+    if (!w->rin || w->rin->nlags < 2) return SWFS_OK;
+    swfs_fits_in *f = NULL;
+    int fx = 0, fy = 0;
+    int rc = swfs_fits_in_open(&f, o->recon, NULL);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVX", &r->st_train_vx, &fx);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVY", &r->st_train_vy, &fy);
+    swfs_fits_in_close(f);
+    if (rc || !fx || !fy) return rc;
+    const swfs_timing_cube *tc = NULL;
+    for (size_t c = 0; c < w->t->ncubes && !tc; c++)
+        if (w->t->cubes[c].status == SWFS_CUBE_OK) tc = w->t->cubes + c;
+    if (!tc || (rc = load_cube_slopes(o, w, tc, r->wfs_hz))) return rc;
+    swfs_pipeline_info in;
+    swfs_pipeline_get_info(w->p, &in);
+    unsigned char *map = NULL;
+    size_t mn = 0, mv = 0;
+    if (o->valid && w->nslopes != 2 * in.nsub * in.nsub && (rc = swfs_valid_map_read(o->valid, &map, &mn, &mv)))
+        return rc;
+    swfs_wind_estimate e;
+    if (swfs_wind_from_slopes(w->slopes->data, w->slopes->ny, w->nslopes, in.nsub, map, 1.0, 1.0, &e)) e.found = 0;
+    free(map);
+    if (!e.found) return SWFS_OK;
+    long lmax = 0;
+    for (size_t k = 0; k < w->rin->nlags; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
+    r->st_found = 1;
+    r->st_obs_vx = e.vx;
+    r->st_obs_vy = e.vy;
+    r->st_mismatch = hypot(e.vx - r->st_train_vx, e.vy - r->st_train_vy) * (double)lmax;
+    return SWFS_OK;
+}
+
 /* The output frames [first, first + count) (all of them alone; a member's share in a team)
  * through the pipeline, into w->halo, whose frame 0 is output frame `first`. A cube goes in
  * pieces of `batch` frames from its start (a share starts on a piece): a piece from camera
@@ -509,6 +549,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (!rc) rc = plan_cubes(o, &w, r);
     if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
+    if (!rc) rc = spacetime_wind(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     if (team) {
         rc = process_team(o, &w, r, rc);
