@@ -11,7 +11,9 @@
 #      subaperture in L1 frames and one in L2 (L1 = round(d rate / (2 v)), d = 6.5 m / nsub:
 #      derived from the measured wind, not chosen per system);
 #   5. speckles --recon, estimate, pupil --truth with each map.
-# Prints one row per observation. Data sets are kept in WORK and reused when present. About
+# Prints one row per observation, with speckles' two checks of the space-time map against
+# the observation (run.h): the winds' distance at the largest lag [subapertures] and whether
+# the slopes' correlation at a lag lies beyond three spreads of the loops' ("warn"). Data sets are kept in WORK and reused when present. About
 # 25 minutes on 2 cores for the default five observations.
 #
 # usage: bash bench/spacetime.sh BUILD_DIR WORK_DIR [K:S ...]   (default 1:1 3:1 4:1 6:1 10:2)
@@ -35,8 +37,8 @@ path() {
     err "$d/pupil_$1.log"
 }
 
-printf "%-11s %4s %4s | %6s %6s | %-16s %-12s | %8s %8s | %6s %6s %6s\n" system seed nsub default ideal \
-    "wind [m/s, deg]" lags "learned" "space-t." "x def" "x lrn" "x st"
+printf "%-11s %4s %4s | %6s %6s | %-16s %-16s | %8s %8s | %6s %6s %6s | %5s %4s\n" system seed nsub default ideal \
+    "wind [m/s, deg]" lags "learned" "space-t." "x def" "x lrn" "x st" "wind" corr
 for ks in $OBS; do
     k=${ks%:*}
     s=${ks#*:}
@@ -67,10 +69,15 @@ for ks in $OBS; do
         "$X" simulate mode=timeseries $keys nlayers=1 layer_frac=1 layer_speed="$v" layer_dir="${w#*,}" seed="$t" \
             export_truth=1 -o "$td" --quiet > /dev/null
     done
-    "$X" learn "${train[@]}" -o "$d/learned.fits" --no-heldout > "$d/learn.log"
-    "$X" learn "${train[@]}" -o "$d/spacetime.fits" --lags "$lags" --no-heldout > "$d/learn_st.log"
+    "$X" learn "${train[@]}" -o "$d/learned.fits" --no-heldout > "$d/learn.log" 2>&1
+    "$X" learn "${train[@]}" -o "$d/spacetime.fits" --lags "$lags" --no-heldout > "$d/learn_st.log" 2>&1
     lrn=$(path learned "$d" "$d/learned.fits")
     st=$(path spacetime "$d" "$d/spacetime.fits")
+    # speckles' checks of the map against the observation: the winds' distance at the largest
+    # lag [subapertures], and whether the slopes' correlation at a lag is beyond 3 spreads
+    mis=$(awk '/subapertures apart at the largest lag/ { print $(NF - 6) }' "$d/speckles_spacetime.log")
+    cw=$(grep -q "correlate at" "$d/speckles_spacetime.log" && echo warn || echo ok)
     awk -v n="$name" -v s="$s" -v g="$nsub" -v d="$def" -v i="$ideal" -v w="$w" -v l="$lags" -v a="$lrn" -v t="$st" \
-        'BEGIN { printf "%-11s %4s %4s | %6s %6s | %-16s %-12s | %8s %8s | %6.2f %6.2f %6.2f\n", n, s, g, d, i, w, l, a, t, d / i, a / i, t / i }' 
+        -v m="$mis" -v c="$cw" 'BEGIN { printf "%-11s %4s %4s | %6s %6s | %-16s %-16s | %8s %8s | %6.2f %6.2f %6.2f | %5s %4s\n",
+        n, s, g, d, i, w, l, a, t, d / i, a / i, t / i, m, c }' 
 done

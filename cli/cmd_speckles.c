@@ -256,6 +256,26 @@ int swfs_cmd_speckles(int argc, char **argv)
         fprintf(stderr, "speckles: space-time map: %s; its wind cannot be checked against this telemetry's\n",
                 isnan(r.st_train_vx) ? "no training wind in its file (LRNVX, LRNVY)" : "no wind found in the telemetry");
     }
+    if (!rc && r.info.nlags && r.st_corr_worst < SWFS_RECON_MAXLAGS) {
+        const size_t k = r.st_corr_worst;
+        const long *lags = r.st_lags;
+        fprintf(stderr, "speckles: space-time map: the slopes' correlation, this telemetry's against the training "
+                "loops' (mean +- the farthest loop's distance), at");
+        for (size_t j = 0; j < r.info.nlags; j++) {
+            int seen = lags[j] == 0;
+            for (size_t i = 0; i < j && !seen; i++) seen = labs(lags[i]) == labs(lags[j]);
+            if (!seen)
+                fprintf(stderr, " %ld frames %.3f / %.3f +- %.3f;", labs(lags[j]), r.st_corr_obs[j], r.st_corr_train[j],
+                        r.st_corr_spread[j]);
+        }
+        fprintf(stderr, "\n");
+        if (r.st_corr_excess > 0)
+            fprintf(stderr, "speckles: warning: %ld frames apart this telemetry's slopes correlate at %.3f where the "
+                    "training loops' did at %.3f +- %.3f (more than three times that apart): a layer or a speed the loops "
+                    "lack; a space-time map taught without the observation's whole profile can be worse than the "
+                    "default (docs/telemetry.md)\n", labs(lags[k]), r.st_corr_obs[k], r.st_corr_train[k],
+                    r.st_corr_spread[k]);
+    }
     free(min);
     free(mout);
     return rc;

@@ -1272,6 +1272,10 @@ static void test_spacetime_reconstructor(void **state)
                    "%.3f subapertures apart at lag 4\n", spr.st_train_vx, spr.st_train_vy, spr.st_obs_vx, spr.st_obs_vy,
                    spr.st_mismatch);
             assert_true(spr.st_found && spr.st_mismatch < SWFS_SPACETIME_MISMATCH_WARN);
+            printf("test_runs: its slopes' correlation at lag 4: the data %.3f, the loops %.3f +- %.3f\n",
+                   spr.st_corr_obs[1], spr.st_corr_train[1], spr.st_corr_spread[1]);
+            assert_true(spr.st_corr_worst == 1 || spr.st_corr_worst == 2);
+            assert_false(spr.st_corr_excess > 0);
         }
         swfs_estimate_run_options eo;
         swfs_estimate_run_options_default(&eo);
@@ -1289,6 +1293,20 @@ static void test_spacetime_reconstructor(void **state)
            1e9 * e_path[0], 1e9 * e_path[1]);
     assert_true(e_path[1] > 0 && e_path[1] < 1.1 * e_path[0]);
     swfs_real_free(ncp);
+
+    /* Learned on one loop of faster winds (45 and 55 m/s): speckles sees both the wind and the
+     * slopes' correlation apart from the data's. */
+    lo.dirs = tdir + 2;
+    lo.ndirs = 1;
+    lo.out = p("recon_fast3.fits");
+    assert_ok(swfs_learn_run(&lo, &l3));
+    swfs_speckles_run_options spf;
+    given_recon_options(&spf, p("recon_fast3.fits"), p("speckles_fast3.fits"));
+    assert_ok(swfs_speckles_run(&spf, &spr));
+    printf("test_runs: a map of faster winds: %.3f subapertures apart at lag 4; slopes' correlation at lag 4 the data "
+           "%.3f, the loop %.3f\n", spr.st_mismatch, spr.st_corr_obs[1], spr.st_corr_train[1]);
+    assert_true(spr.st_found && spr.st_mismatch > 0.15); /* 0.001 for the loops of its own conditions */
+    assert_true(spr.st_corr_excess > 0 && spr.st_corr_obs[1] > spr.st_corr_train[1]);
 
     /* refused */
     swfs_stream_run_options so;

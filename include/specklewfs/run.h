@@ -168,6 +168,16 @@ typedef struct swfs_speckles_run_result {
      * unknown). docs/telemetry.md measures what a mismatch costs. */
     int st_found;
     double st_train_vx, st_train_vy, st_obs_vx, st_obs_vy, st_mismatch;
+    /* And the slopes' temporal correlation at the map's lags (wfs.h
+     * swfs_slopes_lag_correlation): the training loops' (LRNCORk) with their spread over the
+     * loops (LRNCSPk), the first telemetry file's, and the lag where the two differ most
+     * beyond three times that spread (st_corr_worst, a LAGk index; st_corr_excess =
+     * |obs - train| - 3 spread there, > 0: a layer or a speed the loops lack). NaN /
+     * SIZE_MAX when the file holds none. */
+    double st_corr_train[SWFS_RECON_MAXLAGS], st_corr_spread[SWFS_RECON_MAXLAGS], st_corr_obs[SWFS_RECON_MAXLAGS];
+    double st_corr_excess;
+    size_t st_corr_worst;
+    long st_lags[SWFS_RECON_MAXLAGS]; /* the map's lags (info.nlags of them) */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
@@ -406,6 +416,10 @@ typedef struct swfs_learn_run_result {
      * map (LRNWINDN, LRNVX, LRNVY, LRNVSPRD) for speckles to compare with the observation's. */
     size_t nwind;
     double wind_vx, wind_vy, wind_spread;
+    /* With lags: the training slopes' temporal correlation at each lag (wfs.h
+     * swfs_slopes_lag_correlation on each data set's first file), its mean over the data sets
+     * and the largest distance of one from it; written as LRNCORk, LRNCSPk (k as LAGk). */
+    double corr[SWFS_RECON_MAXLAGS], corr_spread[SWFS_RECON_MAXLAGS];
 } swfs_learn_run_result;
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);

@@ -117,6 +117,13 @@ int swfs_lags_check(const long *lags, size_t nlags, const char *what);
  * space-time reconstructor's input. The frames beyond a data set's ends repeat its edge. */
 void swfs_slopes_stack(const double *s, size_t nframes, size_t nslopes, const long *lags, size_t nlags, size_t first,
                        size_t count, double *out);
+/* The slopes' temporal correlation at each lag: r[k] = <s(t) . s(t + |lags[k]|)> / <|s(t)|^2>
+ * over the slopes with any signal (x in the first half of a frame, y in the second), each
+ * frame's mean x and y slopes and each slope's time mean taken out (1 at lag 0; NaN for a lag
+ * beyond the series). It is what a space-time map learned on simulated loops assumes of the
+ * observation: a layer the loops lack, or another speed, changes it (docs/telemetry.md). */
+int swfs_slopes_lag_correlation(const double *s, size_t nframes, size_t nslopes, const long *lags, size_t nlags,
+                                double *r);
 
 /* Truncated pseudo-inverse of D (nslopes x nact) by LAPACKE SVD: keep mode i when
  * sv[i] > rcond * sv[0] and i < max_modes (0 = no count limit). This is the "better

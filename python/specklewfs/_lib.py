@@ -299,7 +299,8 @@ swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslo
 swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("info", swfs_recon_learn_info), ("nfiles", c_size), ("nslopes", c_size), ("nact", c_size), ("nheldout", c_size),
     ("heldout_misfit_rms", c_dbl), ("heldout_truth_rms", c_dbl), ("heldout_worst", c_dbl),
-    ("heldout_worst_set", c_size), ("nwind", c_size), ("wind_vx", c_dbl), ("wind_vy", c_dbl), ("wind_spread", c_dbl)])
+    ("heldout_worst_set", c_size), ("nwind", c_size), ("wind_vx", c_dbl), ("wind_vy", c_dbl), ("wind_spread", c_dbl),
+    ("corr", c_dbl * 16), ("corr_spread", c_dbl * 16)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
@@ -310,7 +311,9 @@ SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("
                        ("wfs_hz", c_dbl)]
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
     ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
-    ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl)])
+    ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl),
+    ("st_corr_train", c_dbl * 16), ("st_corr_spread", c_dbl * 16), ("st_corr_obs", c_dbl * 16),
+    ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * 16)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

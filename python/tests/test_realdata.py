@@ -166,6 +166,9 @@ def test_learn_reconstructor(series, tmp_path):
     keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["LRNVX", "LRNVY"])
     assert np.allclose((keys["LRNVX"], keys["LRNVY"]), rl["wind_v"])
     assert np.allclose(spl["st_train_v"], rl["wind_v"]) and (spl["st_found"] or np.isnan(spl["st_mismatch"]))
+    # and the slopes' correlation at each lag (1 at lag 0), the loops' mean against the data's
+    assert rl["corr"].shape == (3,) and rl["corr"][0] == pytest.approx(1.0) and np.all(rl["corr"][1:] < 1)
+    assert np.allclose(spl["st_corr_train"], rl["corr"]) and spl["st_corr_obs"][0] == pytest.approx(1.0)
     with pytest.raises(sw.Error, match="no lag 0"):
         sw.learn(dirs, str(tmp_path / "W3.fits"), lags=(2, 4))
     assert not os.path.exists(tmp_path / "W3.fits")

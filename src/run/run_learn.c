@@ -27,11 +27,18 @@ static void training_file_wind(const swfs_real *s, swfs_wind_estimate *w)
         w->found = 0; /* a series too short or too coarse for a wind: none */
 }
 
+/* What a training data set's first file says of the loops' time behaviour, for speckles to
+ * compare with the observation's: its wind and its slopes' correlation at the lags. */
+typedef struct set_stats {
+    swfs_wind_estimate wind;
+    double corr[SWFS_RECON_MAXLAGS];
+} set_stats;
+
 /* One pair of files: the slopes and the truth of the same frames, added to the learner (made
  * at the first pair, from its shapes); with lags, each frame's input is the slopes of frames
  * t + lags stacked, clamped at the file's ends (swfs_slopes_stack). */
 static int add_pair(const swfs_learn_run_options *o, const char *sp, const char *tp, swfs_recon_learner **l,
-                    swfs_learn_run_result *r, swfs_wind_estimate *wind)
+                    swfs_learn_run_result *r, set_stats *stats)
 {
     const int modal = o->modal;
     const size_t nl = o->nlags > 1 ? o->nlags : 1;
@@ -57,7 +64,8 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     }
     if (!rc && (rc = swfs_recon_learner_add(*l, st ? st : s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
-    if (!rc && nl > 1 && wind) training_file_wind(s, wind);
+    if (!rc && nl > 1 && stats) training_file_wind(s, &stats->wind);
+    if (!rc && nl > 1 && stats) rc = swfs_slopes_lag_correlation(s->data, s->ny, s->nx, o->lags, nl, stats->corr);
     free(st);
     swfs_real_free(s);
     swfs_real_free(z);
@@ -80,6 +88,13 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "rms truth per value [m, or the coefficients' unit]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", r->info.misfit_rms, "[m] rms training misfit");
+    for (size_t k = 0; !rc && o->nlags > 1 && k < o->nlags; k++) {
+        char key[32];
+        snprintf(key, sizeof key, "LRNCOR%zu", k + 1);
+        rc = swfs_fits_out_key_double(f, key, r->corr[k], "training slopes' correlation at LAGk");
+        snprintf(key, sizeof key, "LRNCSP%zu", k + 1);
+        if (!rc) rc = swfs_fits_out_key_double(f, key, r->corr_spread[k], "largest set's distance from it");
+    }
     if (!rc && r->nwind) {
         rc = swfs_fits_out_key_long(f, "LRNWINDN", (long)r->nwind, "training sets whose slopes show a wind");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVX", r->wind_vx, "[subap/frame] their mean wind, x");
@@ -109,7 +124,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
 /* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
  * counts them when given). */
 static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_learner **l, swfs_learn_run_result *r,
-                   size_t *nfiles, swfs_wind_estimate *wind)
+                   size_t *nfiles, set_stats *st)
 {
     size_t k = 0;
     for (;; k++) {
@@ -120,11 +135,8 @@ static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_
         if (access(tp, F_OK) != 0)
             return swfs_fail(SWFS_ERR_IO, "%s: no %s beside it: the training data need the true residual of every "
                              "slopes file (simulate mode=timeseries export_truth=1)", sp, tp);
-        swfs_wind_estimate we;
-        we.found = 0;
-        int rc = add_pair(o, sp, tp, l, r, k == 0 && wind ? &we : NULL);
+        int rc = add_pair(o, sp, tp, l, r, k == 0 ? st : NULL);
         if (rc) return rc;
-        if (k == 0 && wind) *wind = we;
         if (nfiles) (*nfiles)++;
     }
     if (k == 0)
@@ -172,19 +184,29 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     return rc;
 }
 
-/* The mean of the nwind training winds v (x, y pairs) and the largest distance from it. */
-static void training_wind(const double *v, swfs_learn_run_result *r)
+/* The data sets' winds (those found: nwind) and slope correlations: their means and the
+ * largest distance of one from them. */
+static void training_stats(const set_stats *st, const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
-    r->wind_vx = r->wind_vy = r->wind_spread = NAN;
-    if (!r->nwind) return;
     double mx = 0, my = 0, sp = 0;
-    for (size_t k = 0; k < r->nwind; k++) { mx += v[2 * k]; my += v[2 * k + 1]; }
-    mx /= (double)r->nwind;
-    my /= (double)r->nwind;
-    for (size_t k = 0; k < r->nwind; k++) sp = fmax(sp, hypot(v[2 * k] - mx, v[2 * k + 1] - my));
-    r->wind_vx = mx;
-    r->wind_vy = my;
-    r->wind_spread = sp;
+    for (size_t d = 0; d < o->ndirs; d++)
+        if (st[d].wind.found) { mx += st[d].wind.vx; my += st[d].wind.vy; r->nwind++; }
+    if (r->nwind) {
+        mx /= (double)r->nwind;
+        my /= (double)r->nwind;
+        for (size_t d = 0; d < o->ndirs; d++)
+            if (st[d].wind.found) sp = fmax(sp, hypot(st[d].wind.vx - mx, st[d].wind.vy - my));
+        r->wind_vx = mx;
+        r->wind_vy = my;
+        r->wind_spread = sp;
+    }
+    for (size_t k = 0; k < o->nlags; k++) {
+        double m = 0, dev = 0;
+        for (size_t d = 0; d < o->ndirs; d++) m += st[d].corr[k] / (double)o->ndirs;
+        for (size_t d = 0; d < o->ndirs; d++) dev = fmax(dev, fabs(st[d].corr[k] - m));
+        r->corr[k] = m;
+        r->corr_spread[k] = dev;
+    }
 }
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
@@ -192,6 +214,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
     r->wind_vx = r->wind_vy = r->wind_spread = NAN;
+    for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->corr[k] = r->corr_spread[k] = NAN;
     if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
     if (o->nlags && (!o->lags || o->nlags > SWFS_RECON_MAXLAGS))
         return swfs_fail(SWFS_ERR_ARG, "learn: %zu lags (at most %d)", o->nlags, SWFS_RECON_MAXLAGS);
@@ -208,21 +231,14 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     swfs_paths_free(paths);
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
-    double *wv = o->nlags > 1 ? calloc(2 * o->ndirs, sizeof *wv) : NULL;
-    if (o->nlags > 1 && !wv) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+    set_stats *sets = o->nlags > 1 ? calloc(o->ndirs, sizeof *sets) : NULL;
+    if (o->nlags > 1 && !sets) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        swfs_wind_estimate we;
-        we.found = 0;
-        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, wv ? &we : NULL);
-        if (!rc && we.found) {
-            wv[2 * r->nwind] = we.vx;
-            wv[2 * r->nwind + 1] = we.vy;
-            r->nwind++;
-        }
+        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, sets ? sets + d : NULL);
         if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
     }
-    training_wind(wv, r);
-    free(wv);
+    if (!rc && sets) training_stats(sets, o, r);
+    free(sets);
     swfs_recon *w = NULL;
     if (!rc) rc = swfs_recon_learner_solve(l, o->ridge, &w, &r->info);
     if (!rc && o->nlags > 1) {

@@ -10,6 +10,7 @@
 #include "run_internal.h"
 
 #include <limits.h>
+#include <stdint.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -288,26 +289,52 @@ static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
     return SWFS_OK;
 }
 
-/* A space-time reconstructor taught by learn --lags carries its training loops' wind
- * (LRNVX, LRNVY [subapertures per WFS frame]); the observation's, from the first usable
- * cube's telemetry file, and their distance at the largest lag go into r (run.h). Unknown
- * (no keys, no wind found) is no error: the map is applied either way. */
-static int spacetime_wind(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+/* A space-time reconstructor taught by learn --lags carries what its training loops' slopes
+ * did in time: their wind (LRNVX, LRNVY [subapertures per WFS frame]) and their correlation
+ * at each lag (LRNCORk, LRNCSPk). The same from the first usable cube's telemetry file, and
+ * how far apart they are, go into r (run.h). Unknown (no keys, no wind found) is no error:
+ * the map is applied either way. */
+static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     r->st_found = 0;
-    r->st_train_vx = r->st_train_vy = r->st_obs_vx = r->st_obs_vy = r->st_mismatch = NAN;
+    r->st_train_vx = r->st_train_vy = r->st_obs_vx = r->st_obs_vy = r->st_mismatch = r->st_corr_excess = NAN;
+    r->st_corr_worst = SIZE_MAX;
+    for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->st_corr_train[k] = r->st_corr_spread[k] = r->st_corr_obs[k] = NAN;
     if (!w->rin || w->rin->nlags < 2) return SWFS_OK;
+    const size_t nl = w->rin->nlags;
+    memcpy(r->st_lags, w->rin->lags, sizeof r->st_lags);
     swfs_fits_in *f = NULL;
-    int fx = 0, fy = 0;
+    int fx = 0, fy = 0, fc = 1;
     int rc = swfs_fits_in_open(&f, o->recon, NULL);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVX", &r->st_train_vx, &fx);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVY", &r->st_train_vy, &fy);
+    for (size_t k = 0; !rc && k < nl && fc; k++) {
+        char key[32];
+        int f1 = 0, f2 = 0;
+        snprintf(key, sizeof key, "LRNCOR%zu", k + 1);
+        rc = swfs_fits_in_key_double_opt(f, key, &r->st_corr_train[k], &f1);
+        snprintf(key, sizeof key, "LRNCSP%zu", k + 1);
+        if (!rc) rc = swfs_fits_in_key_double_opt(f, key, &r->st_corr_spread[k], &f2);
+        fc = f1 && f2;
+    }
     swfs_fits_in_close(f);
-    if (rc || !fx || !fy) return rc;
+    if (!fx || !fy) r->st_train_vx = r->st_train_vy = NAN;
+    if (rc || (!(fx && fy) && !fc)) return rc;
     const swfs_timing_cube *tc = NULL;
     for (size_t c = 0; c < w->t->ncubes && !tc; c++)
         if (w->t->cubes[c].status == SWFS_CUBE_OK) tc = w->t->cubes + c;
     if (!tc || (rc = load_cube_slopes(o, w, tc, r->wfs_hz))) return rc;
+    const double *s = w->slopes->data;
+    const size_t nf = w->slopes->ny;
+    if (fc && !(rc = swfs_slopes_lag_correlation(s, nf, w->nslopes, w->rin->lags, nl, r->st_corr_obs)))
+        for (size_t k = 0; k < nl; k++) {
+            const double x = fabs(r->st_corr_obs[k] - r->st_corr_train[k]) - 3.0 * r->st_corr_spread[k];
+            if (isfinite(x) && w->rin->lags[k] && (r->st_corr_worst == SIZE_MAX || x > r->st_corr_excess)) {
+                r->st_corr_excess = x;
+                r->st_corr_worst = k;
+            }
+        }
+    if (rc || !(fx && fy)) return rc;
     swfs_pipeline_info in;
     swfs_pipeline_get_info(w->p, &in);
     unsigned char *map = NULL;
@@ -315,11 +342,11 @@ static int spacetime_wind(const swfs_speckles_run_options *o, work *w, swfs_spec
     if (o->valid && w->nslopes != 2 * in.nsub * in.nsub && (rc = swfs_valid_map_read(o->valid, &map, &mn, &mv)))
         return rc;
     swfs_wind_estimate e;
-    if (swfs_wind_from_slopes(w->slopes->data, w->slopes->ny, w->nslopes, in.nsub, map, 1.0, 1.0, &e)) e.found = 0;
+    if (swfs_wind_from_slopes(s, nf, w->nslopes, in.nsub, map, 1.0, 1.0, &e)) e.found = 0;
     free(map);
     if (!e.found) return SWFS_OK;
     long lmax = 0;
-    for (size_t k = 0; k < w->rin->nlags; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
+    for (size_t k = 0; k < nl; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
     r->st_found = 1;
     r->st_obs_vx = e.vx;
     r->st_obs_vy = e.vy;
@@ -549,7 +576,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (!rc) rc = plan_cubes(o, &w, r);
     if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
-    if (!rc) rc = spacetime_wind(o, &w, r);
+    if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     if (team) {
         rc = process_team(o, &w, r, rc);

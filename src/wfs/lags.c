@@ -4,6 +4,7 @@
 #include "specklewfs/status.h"
 
 #include <errno.h>
+#include <math.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -57,4 +58,56 @@ void swfs_slopes_stack(const double *s, size_t nframes, size_t nslopes, const lo
             f = f < 0 ? 0 : (f > last ? last : f);
             memcpy(out + (t * nlags + k) * nslopes, s + (size_t)f * nslopes, nslopes * sizeof *out);
         }
+}
+
+int swfs_slopes_lag_correlation(const double *s, size_t nframes, size_t nslopes, const long *lags, size_t nlags,
+                                double *r)
+{
+    const size_t h = nslopes / 2;
+    if (nslopes % 2 || !nframes) return swfs_fail(SWFS_ERR_SHAPE, "lag correlation: %zu frames of %zu slopes", nframes, nslopes);
+    size_t *used = malloc(nslopes * sizeof *used), nu[2] = {0, 0};
+    double *c = malloc(nframes * nslopes * sizeof *c), *mean = calloc(nslopes, sizeof *mean);
+    if (!used || !c || !mean) {
+        free(used); free(c); free(mean);
+        return swfs_fail(SWFS_ERR_NOMEM, "lag correlation: out of memory for %zu frames", nframes);
+    }
+    size_t nc = 0;
+    for (int axis = 0; axis < 2; axis++)
+        for (size_t i = (size_t)axis * h; i < (size_t)(axis + 1) * h; i++) {
+            int any = 0;
+            for (size_t t = 0; t < nframes && !any; t++) any = s[t * nslopes + i] != 0.0;
+            if (any) { used[nc++] = i; nu[axis]++; }
+        }
+    /* the used slopes, each frame's mean x and y out, then each slope's time mean */
+    for (size_t t = 0; t < nframes; t++) {
+        double *ct = c + t * nc;
+        for (size_t k = 0; k < nc; k++) ct[k] = s[t * nslopes + used[k]];
+        for (int axis = 0; axis < 2; axis++) {
+            const size_t k0 = axis ? nu[0] : 0, k1 = axis ? nc : nu[0];
+            double m = 0;
+            for (size_t k = k0; k < k1; k++) m += ct[k];
+            m = k1 > k0 ? m / (double)(k1 - k0) : 0.0;
+            for (size_t k = k0; k < k1; k++) ct[k] -= m;
+        }
+        for (size_t k = 0; k < nc; k++) mean[k] += ct[k] / (double)nframes;
+    }
+    double v = 0;
+    for (size_t t = 0; t < nframes; t++)
+        for (size_t k = 0; k < nc; k++) {
+            c[t * nc + k] -= mean[k];
+            v += c[t * nc + k] * c[t * nc + k];
+        }
+    v /= (double)nframes;
+    for (size_t j = 0; j < nlags; j++) {
+        const size_t L = (size_t)labs(lags[j]);
+        if (L >= nframes || !(v > 0)) { r[j] = NAN; continue; }
+        double a = 0;
+        for (size_t t = 0; t + L < nframes; t++)
+            for (size_t k = 0; k < nc; k++) a += c[t * nc + k] * c[(t + L) * nc + k];
+        r[j] = a / (double)(nframes - L) / v;
+    }
+    free(used);
+    free(c);
+    free(mean);
+    return SWFS_OK;
 }
