@@ -102,6 +102,22 @@ static int setup(void **state)
 /* speckles (the default pipeline, the science cube matched to sci_out) then estimate: the
  * CLI's documented path through the library, on the timing table, science cube and actuators
  * given (NULL: those of dir). */
+static void speckles_estimate_with(swfs_speckles_run_options *sp, const char *sci_out, const char *halo_out,
+                                   swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
+{
+    const char *min[] = {sp->science}, *mout[] = {sci_out};
+    sp->match_in = min;
+    sp->match_out = mout;
+    sp->nmatch = 1;
+    assert_ok(swfs_speckles_run(sp, spr));
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = sci_out;
+    eo.speckles = sp->out;
+    eo.out = halo_out;
+    assert_ok(swfs_estimate_run(&eo, er));
+}
+
 static void speckles_estimate_on(const char *timing, const char *science, const char *actuators, const char *sp_out,
                                  const char *sci_out, const char *halo_out, const char *write_recon,
                                  swfs_speckles_run_result *spr, swfs_estimate_run_result *er)
@@ -113,17 +129,7 @@ static void speckles_estimate_on(const char *timing, const char *science, const 
     sp.actuators = actuators ? actuators : p("actuators.fits");
     sp.out = sp_out;
     sp.write_recon = write_recon;
-    const char *min[] = {sp.science}, *mout[] = {sci_out};
-    sp.match_in = min;
-    sp.match_out = mout;
-    sp.nmatch = 1;
-    assert_ok(swfs_speckles_run(&sp, spr));
-    swfs_estimate_run_options eo;
-    swfs_estimate_run_options_default(&eo);
-    eo.science = sci_out;
-    eo.speckles = sp_out;
-    eo.out = halo_out;
-    assert_ok(swfs_estimate_run(&eo, er));
+    speckles_estimate_with(&sp, sci_out, halo_out, spr, er);
 }
 
 static void speckles_estimate(const char *sp_out, const char *sci_out, const char *halo_out, const char *write_recon,
@@ -285,6 +291,18 @@ static void test_sync_speckles_estimate(void **state)
     assert_false(test_file_exists(p("x.fits")));
 }
 
+/* stream on the test data (timing.txt, science.fits, actuators.fits) with the reconstructor
+ * file `recon`, into `out`. */
+static void stream_file_options(swfs_stream_run_options *so, const char *recon, const char *out)
+{
+    swfs_stream_run_options_default(so);
+    so->timing = p("timing.txt");
+    so->science = p("science.fits");
+    so->recon = recon;
+    so->actuators = p("actuators.fits");
+    so->out = out;
+}
+
 /* stream (file source -> pipeline -> stream) = speckles + estimate with the same reconstructor. */
 static void test_stream_equals_speckles(void **state)
 {
@@ -294,12 +312,7 @@ static void test_stream_equals_speckles(void **state)
     speckles_estimate(p("speckles_s.fits"), p("sci_s.fits"), p("halo_s.fits"), p("recon.fits"), &spr, &er);
 
     swfs_stream_run_options so;
-    swfs_stream_run_options_default(&so);
-    so.timing = p("timing.txt");
-    so.science = p("science.fits");
-    so.recon = p("recon.fits");
-    so.actuators = p("actuators.fits");
-    so.out = p("halo_stream.fits");
+    stream_file_options(&so, p("recon.fits"), p("halo_stream.fits"));
     so.batch = 17;
     so.stream.static_mode = SWFS_STATIC_NONE; /* the data-set mean is removed exactly either way */
     swfs_stream_run_result sr;
@@ -994,6 +1007,27 @@ static double recon_error(const swfs_recon *w, const char *where, double *truth_
     return sqrt(e2 / n);
 }
 
+/* speckles with the reconstructor file `recon` (in dir), the science cube matched, then
+ * estimate and pupil: the NCP error against ncp [m]. Files speckles_TAG, sci_TAG, halo_TAG;
+ * er->halo is the caller's. */
+static double given_path_error(const char *recon, const char *tag, const swfs_real *ncp, swfs_speckles_run_result *spr,
+                               swfs_estimate_run_result *er)
+{
+    char f[3][64];
+    snprintf(f[0], sizeof f[0], "speckles_%s.fits", tag);
+    snprintf(f[1], sizeof f[1], "sci_%s.fits", tag);
+    snprintf(f[2], sizeof f[2], "halo_%s.fits", tag);
+    swfs_speckles_run_options sp;
+    given_recon_options(&sp, p(recon), p(f[0]));
+    speckles_estimate_with(&sp, p(f[1]), p(f[2]), spr, er);
+    swfs_pupil_result *pf = NULL;
+    double e = NAN;
+    assert_ok(swfs_pupil_estimate(er->halo, &er->geom, NULL, NULL, &pf));
+    assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e, NULL, NULL));
+    swfs_pupil_result_free(pf);
+    return e;
+}
+
 /* learn: a reconstructor from three simulated closed loops of the test system's geometry
  * under other winds, vibration and seeds. On a fourth simulation (the test data's conditions,
  * another seed) it misses the true residual per frame by less than the default von Karman
@@ -1065,21 +1099,7 @@ static void test_learn_reconstructor(void **state)
     swfs_recon_free(wv);
 
     /* the whole path on the test data with the learned reconstructor */
-    swfs_speckles_run_options sp;
-    given_recon_options(&sp, p("recon_learned.fits"), p("speckles_learned.fits"));
-    const char *min[] = {sp.science}, *mout[] = {p("sci_learned.fits")};
-    sp.match_in = min;
-    sp.match_out = mout;
-    sp.nmatch = 1;
-    assert_ok(swfs_speckles_run(&sp, &spr));
-    swfs_estimate_run_options eo;
-    swfs_estimate_run_options_default(&eo);
-    eo.science = mout[0];
-    eo.speckles = sp.out;
-    eo.out = p("halo_learned.fits");
-    assert_ok(swfs_estimate_run(&eo, &er));
-    assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
-    assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_learn, NULL, NULL));
+    e_learn = given_path_error("recon_learned.fits", "learned", ncp, &spr, &er);
     printf("test_runs: NCP error with the learned reconstructor %.1f nm, with the default %.1f nm\n", 1e9 * e_learn,
            1e9 * e_vk);
     assert_string_equal(er.halo->tiptilt, "exposure"); /* SPECKLES.fits TIPTILT carried into the halo */
@@ -1088,7 +1108,6 @@ static void test_learn_reconstructor(void **state)
     assert_string_equal(hl->tiptilt, "exposure"); /* and through HALO.fits */
     swfs_halo_free(hl);
     assert_true(e_learn > 0 && e_learn < 1.05 * e_vk);
-    swfs_pupil_result_free(pf);
     swfs_halo_free(er.halo);
     swfs_real_free(ncp);
 
@@ -1260,13 +1279,8 @@ static void test_spacetime_reconstructor(void **state)
     swfs_real *ncp = NULL;
     assert_ok(swfs_fits_read_real(p("truth.fits"), "NCP", &ncp, NULL));
     for (int k = 0; k < 2; k++) {
-        swfs_speckles_run_options sp;
-        given_recon_options(&sp, p(maps[k]), p("speckles_lrn.fits"));
-        const char *min[] = {sp.science}, *mout[] = {p("sci_lrn.fits")};
-        sp.match_in = min;
-        sp.match_out = mout;
-        sp.nmatch = 1;
-        assert_ok(swfs_speckles_run(&sp, &spr));
+        e_path[k] = given_path_error(maps[k], "lrn", ncp, &spr, &er);
+        swfs_halo_free(er.halo);
         if (k) { /* the map's training wind against the test data's own, at the largest lag */
             printf("test_runs: space-time map: trained at (%.4f, %.4f), the data at (%.4f, %.4f) subapertures per frame: "
                    "%.3f subapertures apart at lag 4\n", spr.st_train_vx, spr.st_train_vy, spr.st_obs_vx, spr.st_obs_vy,
@@ -1277,17 +1291,6 @@ static void test_spacetime_reconstructor(void **state)
             assert_true(spr.st_corr_worst == 1 || spr.st_corr_worst == 2);
             assert_false(spr.st_corr_excess > 0);
         }
-        swfs_estimate_run_options eo;
-        swfs_estimate_run_options_default(&eo);
-        eo.science = mout[0];
-        eo.speckles = sp.out;
-        eo.out = p("halo_lrn.fits");
-        assert_ok(swfs_estimate_run(&eo, &er));
-        swfs_pupil_result *pf = NULL;
-        assert_ok(swfs_pupil_estimate(er.halo, &er.geom, NULL, NULL, &pf));
-        assert_ok(swfs_wfe_compare(pf->wfe->data, ncp->data, pf->mask->data, ncp->nx, &e_path[k], NULL, NULL));
-        swfs_pupil_result_free(pf);
-        swfs_halo_free(er.halo);
     }
     printf("test_runs: NCP error, maps learned at the data's conditions: per frame %.1f nm, space-time %.1f nm\n",
            1e9 * e_path[0], 1e9 * e_path[1]);
@@ -1310,12 +1313,7 @@ static void test_spacetime_reconstructor(void **state)
 
     /* refused */
     swfs_stream_run_options so;
-    swfs_stream_run_options_default(&so);
-    so.timing = p("timing.txt");
-    so.science = p("science.fits");
-    so.recon = p("recon_st3.fits");
-    so.actuators = p("actuators.fits");
-    so.out = p("halo_stream_st.fits");
+    stream_file_options(&so, p("recon_st3.fits"), p("halo_stream_st.fits"));
     swfs_stream_run_result sr;
     assert_refused(swfs_stream_run_files(&so, &sr), "stream, space-time", "space-time", so.out);
     swfs_real *cube = NULL;
