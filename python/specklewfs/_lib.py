@@ -161,9 +161,11 @@ swfs_linear_input = _s("swfs_linear_input", [("nmeas", c_size), ("basis", P(swfs
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
+RECON_MAXLAGS = 16  # SWFS_RECON_MAXLAGS (wfs.h): a space-time reconstructor's lags at most
 swfs_recon = _s("swfs_recon", [("nact", c_size), ("nslopes", c_size), ("W", P(c_dbl)), ("nmodes", c_size),
                                ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl),
-                               ("l0", c_dbl), ("prior_scale", c_dbl)])
+                               ("l0", c_dbl), ("prior_scale", c_dbl), ("nlags", c_size),
+                               ("lags", ctypes.c_long * RECON_MAXLAGS)])
 swfs_speckle_model = _s("swfs_speckle_model", [("npup", c_size), ("nact", c_size), ("nslopes", c_size),
                                                ("pupdx", c_dbl), ("mask", P(c_dbl)), ("T", P(swfs_sparse)),
                                                ("wfs", P(swfs_shwfs)), ("recon", P(swfs_recon)),
@@ -300,7 +302,7 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("info", swfs_recon_learn_info), ("nfiles", c_size), ("nslopes", c_size), ("nact", c_size), ("nheldout", c_size),
     ("heldout_misfit_rms", c_dbl), ("heldout_truth_rms", c_dbl), ("heldout_worst", c_dbl),
     ("heldout_worst_set", c_size), ("nwind", c_size), ("wind_vx", c_dbl), ("wind_vy", c_dbl), ("wind_spread", c_dbl),
-    ("corr", c_dbl * 16), ("corr_spread", c_dbl * 16)])
+    ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
@@ -312,8 +314,9 @@ SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
     ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
     ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl),
-    ("st_corr_train", c_dbl * 16), ("st_corr_spread", c_dbl * 16), ("st_corr_obs", c_dbl * 16),
-    ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * 16)])
+    ("st_corr_train", c_dbl * RECON_MAXLAGS), ("st_corr_spread", c_dbl * RECON_MAXLAGS),
+    ("st_corr_obs", c_dbl * RECON_MAXLAGS),
+    ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
