@@ -11,6 +11,7 @@
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -158,7 +159,7 @@ static int read_lags(const char *path, size_t nz, swfs_recon *r)
     for (long k = 0; !rc && k < n; k++) {
         char key[32];
         snprintf(key, sizeof key, "LAG%ld", k + 1);
-        rc = swfs_fits_in_key_long_opt(f, key, -100000, 100000, &r->lags[k], &found);
+        rc = swfs_fits_in_key_long_opt(f, key, LONG_MIN, LONG_MAX, &r->lags[k], &found); /* checked below */
         if (!rc && !found) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: NLAGS = %ld but no %s", path, n, key);
     }
     swfs_fits_in_close(f);

@@ -163,7 +163,9 @@ static double *expand_cols(const double *a, size_t rows, size_t nc, const size_t
 }
 
 /* In place: rows x (nb blocks of nfull + extra) -> rows x (nb blocks of nc + extra), each
- * block keeping cols (nb > 1: a space-time reconstructor's lag blocks). */
+ * block keeping cols (nb > 1: a space-time reconstructor's lag blocks). cols ascending and
+ * nc <= nfull: every write lands at or before the value it copies, before any value still
+ * to be read. */
 static void compress_blocks(double *a, size_t rows, size_t nfull, size_t nb, size_t extra, size_t nc, const size_t *cols)
 {
     for (size_t r = 0; r < rows; r++) {
