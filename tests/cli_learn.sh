@@ -9,7 +9,9 @@
 # set the two are alike through the whole path; the gain is in docs/telemetry.md's matrix),
 # and learn must print the held-out check for every folder (measured 0.72-0.75, training
 # 0.61). The same map given to the linear model as a control matrix over the influence
-# functions gives the same NCP error within 10 % (measured 22.9 nm).
+# functions gives the same NCP error within 10 % (measured 22.9 nm). A space-time map of the
+# same loops (learn --lags) goes through speckles, which prints its two checks against the
+# observation (the winds, the slopes' correlation at the lags).
 # usage: bash cli_learn.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
@@ -77,4 +79,16 @@ awk -v h="$eh" -v a="$el" -v b="$ed" -v c="$ec" \
     || fail "the halo chosen by the self-check: $eh nm, the three $el $ed $ec nm"
 awk -v l="$el" -v c="$ec" 'BEGIN { exit !(c > 0 && c < 1.1 * l && l < 1.1 * c) }' \
     || fail "the learned map as a control matrix $ec nm against $el nm as a reconstructor"
+# a space-time map of the same loops (their second layers drawn from a spread, not the
+# observation's): learn records the loops' wind and slopes' correlation, and speckles prints
+# both checks against the observation's telemetry
+"$B" learn train/* -o lagged.fits --lags 0,-4,4 --no-heldout > learn_lags.log 2>&1 || { cat learn_lags.log; fail "learn --lags"; }
+grep -q "x 3 lags (0,-4,4)" learn_lags.log || { cat learn_lags.log; fail "learn --lags printed no lags"; }
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --recon lagged.fits \
+    -o spk_st.fits 2> speckles_st.log || { cat speckles_st.log; fail "speckles with a space-time map"; }
+grep -q "given space-time reconstructor lagged.fits: 288 slopes x 3 lags" speckles_st.log \
+    && grep -q "space-time map: the slopes' correlation, this telemetry's against the training loops'" speckles_st.log \
+    && grep -Eq "space-time map: (its training loops' slopes move|no training wind|no wind found)" speckles_st.log \
+    || { cat speckles_st.log; fail "speckles printed no check of the space-time map"; }
+grep "space-time map" speckles_st.log | cut -c1-160
 echo "cli_learn: ok"
