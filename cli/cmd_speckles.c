@@ -243,39 +243,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!rc)
         fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
                 "out of the NCP)\n", r.resmean_rms * 1e9);
-    if (!rc && r.info.nlags && !isnan(r.st_train_vx) && r.st_found) {
-        fprintf(stderr, "speckles: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
-                "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", r.st_train_vx,
-                r.st_train_vy, r.st_obs_vx, r.st_obs_vy, r.st_mismatch);
-        if (r.st_mismatch > SWFS_SPACETIME_MISMATCH_WARN)
-            fprintf(stderr, "speckles: warning: the map was taught at another wind than this telemetry's (more than %.2f "
-                    "subaperture apart at its largest lag): a space-time map taught at the wrong wind can be far worse "
-                    "than the default; simulate the loops at the wind `specklewfs wind` gives (docs/telemetry.md)\n",
-                    SWFS_SPACETIME_MISMATCH_WARN);
-    } else if (!rc && r.info.nlags) {
-        fprintf(stderr, "speckles: space-time map: %s; its wind cannot be checked against this telemetry's\n",
-                isnan(r.st_train_vx) ? "no training wind in its file (LRNVX, LRNVY)" : "no wind found in the telemetry");
-    }
-    if (!rc && r.info.nlags && r.st_corr_worst < SWFS_RECON_MAXLAGS) {
-        const size_t k = r.st_corr_worst;
-        const long *lags = r.st_lags;
-        fprintf(stderr, "speckles: space-time map: the slopes' correlation, this telemetry's against the training "
-                "loops' (mean +- the farthest loop's distance), at");
-        for (size_t j = 0; j < r.info.nlags; j++) {
-            int seen = lags[j] == 0;
-            for (size_t i = 0; i < j && !seen; i++) seen = labs(lags[i]) == labs(lags[j]);
-            if (!seen)
-                fprintf(stderr, " %ld frames %.3f / %.3f +- %.3f;", labs(lags[j]), r.st_corr_obs[j], r.st_corr_train[j],
-                        r.st_corr_spread[j]);
-        }
-        fprintf(stderr, "\n");
-        if (r.st_corr_excess > 0)
-            fprintf(stderr, "speckles: warning: %ld frames apart this telemetry's slopes correlate at %.3f where the "
-                    "training loops' did at %.3f +- %.3f (more than three times that apart): a layer or a speed the loops "
-                    "lack; a space-time map taught without the observation's whole profile can be worse than the "
-                    "default (docs/telemetry.md)\n", labs(lags[k]), r.st_corr_obs[k], r.st_corr_train[k],
-                    r.st_corr_spread[k]);
-    }
+    if (!rc) cli_spacetime_summary(cmd, &r);
     free(min);
     free(mout);
     return rc;
