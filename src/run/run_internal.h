@@ -6,6 +6,7 @@
 
 #include "specklewfs/live.h"
 #include "specklewfs/run.h"
+#include "specklewfs/wind.h"
 
 /* The caller's provenance lines followed by `extra` (a new array the caller frees; the
  * strings are not copied). NULL when out of memory. */
@@ -37,6 +38,15 @@ int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r);
 int swfs_stream_run_milk(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 
 int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r);
+
+/* What a telemetry series does in time, for a space-time map's checks (learn records it of
+ * its training loops, speckles measures it on the observation). wind (may be NULL): its wind
+ * in subapertures per WFS frame (wind.h with pitch and rate 1: nothing the files lack);
+ * found = 0 when none is tracked, or when the slopes are the used subapertures' only and no
+ * map says which. corr (may be NULL): the slopes' correlation at each lag
+ * (swfs_slopes_lag_correlation). */
+int swfs_spacetime_stats_(const double *s, size_t nframes, size_t nslopes, size_t nsub, const unsigned char *valid,
+                          const long *lags, size_t nlags, swfs_wind_estimate *wind, double *corr);
 
 /* --tiptilt frame (speckles.h): the speckles lose every WFS frame's mean-slope tilt, while
  * reduce centred every science frame on its peak, which follows the Z-tilt and the NCP's own

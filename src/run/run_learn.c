@@ -3,7 +3,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
-#include "specklewfs/wind.h"
+#include "run_internal.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -15,16 +15,6 @@ void swfs_learn_run_options_default(swfs_learn_run_options *o)
 {
     memset(o, 0, sizeof *o);
     o->ridge = SWFS_RECON_LEARN_RIDGE;
-}
-
-/* The wind of a training file's slopes in subapertures per WFS frame (pitch and rate 1);
- * not found (w->found = 0) for a layout that is not the full one, which needs its map. */
-static void training_file_wind(const swfs_real *s, swfs_wind_estimate *w)
-{
-    const size_t nsub = (size_t)llround(sqrt((double)s->nx / 2));
-    w->found = 0;
-    if (2 * nsub * nsub == s->nx && swfs_wind_from_slopes(s->data, s->ny, s->nx, nsub, NULL, 1.0, 1.0, w))
-        w->found = 0; /* a series too short or too coarse for a wind: none */
 }
 
 /* What a training data set's first file says of the loops' time behaviour, for speckles to
@@ -64,8 +54,9 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     }
     if (!rc && (rc = swfs_recon_learner_add(*l, st ? st : s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
-    if (!rc && nl > 1 && stats) training_file_wind(s, &stats->wind);
-    if (!rc && nl > 1 && stats) rc = swfs_slopes_lag_correlation(s->data, s->ny, s->nx, o->lags, nl, stats->corr);
+    if (!rc && nl > 1 && stats) /* the full layout's nsub; other layouts give no wind (no map here) */
+        rc = swfs_spacetime_stats_(s->data, s->ny, s->nx, (size_t)llround(sqrt((double)s->nx / 2)), NULL, o->lags, nl,
+                                   &stats->wind, stats->corr);
     free(st);
     swfs_real_free(s);
     swfs_real_free(z);

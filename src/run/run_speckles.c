@@ -1,6 +1,5 @@
 /* speckles: timing table + telemetry -> the speckle cube. See include/specklewfs/run.h. */
 #include "specklewfs/run.h"
-#include "specklewfs/wind.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
@@ -324,27 +323,26 @@ static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_spe
     for (size_t c = 0; c < w->t->ncubes && !tc; c++)
         if (w->t->cubes[c].status == SWFS_CUBE_OK) tc = w->t->cubes + c;
     if (!tc || (rc = load_cube_slopes(o, w, tc, r->wfs_hz))) return rc;
-    const double *s = w->slopes->data;
-    const size_t nf = w->slopes->ny;
-    if (fc && !(rc = swfs_slopes_lag_correlation(s, nf, w->nslopes, w->rin->lags, nl, r->st_corr_obs)))
-        for (size_t k = 0; k < nl; k++) {
-            const double x = fabs(r->st_corr_obs[k] - r->st_corr_train[k]) - 3.0 * r->st_corr_spread[k];
-            if (isfinite(x) && w->rin->lags[k] && (r->st_corr_worst == SIZE_MAX || x > r->st_corr_excess)) {
-                r->st_corr_excess = x;
-                r->st_corr_worst = k;
-            }
-        }
-    if (rc || !(fx && fy)) return rc;
     swfs_pipeline_info in;
     swfs_pipeline_get_info(w->p, &in);
     unsigned char *map = NULL;
     size_t mn = 0, mv = 0;
-    if (o->valid && w->nslopes != 2 * in.nsub * in.nsub && (rc = swfs_valid_map_read(o->valid, &map, &mn, &mv)))
+    if (fx && fy && o->valid && w->nslopes != 2 * in.nsub * in.nsub &&
+        (rc = swfs_valid_map_read(o->valid, &map, &mn, &mv)))
         return rc;
     swfs_wind_estimate e;
-    if (swfs_wind_from_slopes(s, nf, w->nslopes, in.nsub, map, 1.0, 1.0, &e)) e.found = 0;
+    e.found = 0;
+    rc = swfs_spacetime_stats_(w->slopes->data, w->slopes->ny, w->nslopes, in.nsub, map, w->rin->lags, nl,
+                               fx && fy ? &e : NULL, fc ? r->st_corr_obs : NULL);
     free(map);
-    if (!e.found) return SWFS_OK;
+    for (size_t k = 0; !rc && fc && k < nl; k++) {
+        const double x = fabs(r->st_corr_obs[k] - r->st_corr_train[k]) - 3.0 * r->st_corr_spread[k];
+        if (isfinite(x) && w->rin->lags[k] && (r->st_corr_worst == SIZE_MAX || x > r->st_corr_excess)) {
+            r->st_corr_excess = x;
+            r->st_corr_worst = k;
+        }
+    }
+    if (rc || !e.found) return rc;
     long lmax = 0;
     for (size_t k = 0; k < nl; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
     r->st_found = 1;

@@ -4,6 +4,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/source.h"
 #include "specklewfs/wfs.h"
+#include "run_internal.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -88,4 +89,16 @@ int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r)
     free(s);
     free(vmap);
     return rc;
+}
+
+int swfs_spacetime_stats_(const double *s, size_t nframes, size_t nslopes, size_t nsub, const unsigned char *valid,
+                          const long *lags, size_t nlags, swfs_wind_estimate *wind, double *corr)
+{
+    if (wind) {
+        wind->found = 0;
+        /* a series too short or too coarse for a wind has none: not an error here */
+        if ((valid || nslopes == 2 * nsub * nsub) && swfs_wind_from_slopes(s, nframes, nslopes, nsub, valid, 1.0, 1.0, wind))
+            wind->found = 0;
+    }
+    return corr ? swfs_slopes_lag_correlation(s, nframes, nslopes, lags, nlags, corr) : SWFS_OK;
 }
