@@ -17,7 +17,7 @@ set -u
 B=$1
 D=$2
 mkdir -p "$D"
-err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
+. "$(dirname "$0")/../tests/lib_cli.sh"  # ncp_error
 BASE="pupn=100 pupdx=0.06501 screen_n=2048 nsub=16 act_pitch=0.3372 ao_modes=100 wfs_rate=1000 frame_ratio=9.7
       vib_freq=15 read_noise=15 ncubes=4 cube_frames=100 start_offset=300.41 wfs_file_frames=3000"
 # train NAME [simulate keys]: the recipe's six loops in $D/NAME (kept when present) with the
@@ -71,8 +71,8 @@ obs() { # name [simulate keys]
             > "$d/pupil_$r.log" 2>&1 \
             || { echo "$name: pupil ($r) failed"; return; }
     done
-    awk -v n="$name" -v a="$(err "$d/pupil_default.log")" -v b="$(err "$d/pupil_learned.log")" \
-        -v c="$(err "$d/pupil_ideal.log")" \
+    awk -v n="$name" -v a="$(ncp_error "$d/pupil_default.log")" -v b="$(ncp_error "$d/pupil_learned.log")" \
+        -v c="$(ncp_error "$d/pupil_ideal.log")" \
         'BEGIN { printf "%-14s | %7.1f %7.1f %7.1f | %6.2f %6.2f\n", n, a, b, c, a / c, b / c }'
 }
 obs v16-base

@@ -18,17 +18,12 @@ X="$B/specklewfs"
 mkdir -p "$W"
 nsys=12
 
+. "$(dirname "$0")/lib_bench.sh"
 # sim K S: bench_telemetry's system K, seed S, kept with the true residual.
-sim() {
-    local d="$W/k$1s$2"
-    [ -f "$d/truewf_000.fits" ] && [ -f "$d/run.log" ] && return 0
-    "$BT" --only "$1" --seed "$2" --truth --keep "$d" > "$d.log" 2>&1 || { echo "bench_telemetry --only $1 --seed $2 failed: $d.log" >&2; exit 1; }
-    mv "$d.log" "$d/run.log"
-}
-# row K S: the table row of system K, seed S (name seed nsub ... | slopes ideal x | ...).
-row() { grep -E "^[a-z0-9-]+ +$2 +[0-9]+ " "$W/k$1s$2/run.log" | head -1; }
+sim() { keep_obs "$BT" "$W/k$1s$2" "$1" "$2"; }
+# row K S: the table row of system K, seed S.
+row() { obs_row "$W/k$1s$2" "$2"; }
 nsub_of() { row "$1" "$2" | awk '{ print $3 }'; }
-err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
 
 for k in $(seq 0 $((nsys - 1))); do
     for s in 11 12 $SEEDS; do sim "$k" "$s"; done
@@ -55,7 +50,7 @@ for k in $(seq 0 $((nsys - 1))); do
         name=$(echo "$r" | awk '{ print $1 }')
         def=$(echo "$r" | awk -F'|' '{ split($2, a, " "); print a[1] }')
         ideal=$(echo "$r" | awk -F'|' '{ split($2, a, " "); print a[2] }')
-        lrn=$(err "$d/pupil_learned.log")
+        lrn=$(ncp_error "$d/pupil_learned.log")
         echo "$name $s $g $def $lrn $ideal" >> "$W/table.txt"
         awk -v n="$name" -v s="$s" -v g="$g" -v d="$def" -v l="$lrn" -v i="$ideal" \
             'BEGIN { printf "%-11s %4s %4s | %7.1f %7.1f %7.1f | %6.2f %6.2f\n", n, s, g, d, l, i, d / i, l / i }'

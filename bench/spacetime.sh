@@ -31,7 +31,7 @@ OBS=${*:-0:1 1:1 2:1 3:1 4:1 5:1 6:1 7:1 8:1 9:1 10:1 11:1}
 BT="$B/bench/bench_telemetry"
 X="$B/specklewfs"
 mkdir -p "$W"
-err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
+. "$(dirname "$0")/lib_bench.sh"
 
 # path NAME OBSDIR MAP: speckles with the map, estimate, pupil --truth; prints the NCP error.
 path() {
@@ -40,7 +40,7 @@ path() {
         -o "$d/spk_$1.fits" --match "$d/science.fits" "$d/sci_$1.fits" 2> "$d/speckles_$1.log"
     "$X" estimate "$d/sci_$1.fits" "$d/spk_$1.fits" -o "$d/halo_$1.fits" > /dev/null 2>&1
     "$X" pupil "$d/halo_$1.fits" -o "$d/pupil_$1.fits" --truth "$d/truth.fits" > "$d/pupil_$1.log"
-    err "$d/pupil_$1.log"
+    ncp_error "$d/pupil_$1.log"
 }
 
 printf "%-11s %4s %4s | %6s %6s | %-16s %-16s | %7s %7s | %5s %4s | %7s %-10s | %5s %5s %5s\n" system seed nsub \
@@ -49,11 +49,8 @@ for ks in $OBS; do
     k=${ks%:*}
     s=${ks#*:}
     d="$W/k${k}s$s"
-    if [ ! -f "$d/run.log" ]; then
-        "$BT" --only "$k" --seed "$s" --truth --keep "$d" > "$d.log" 2>&1 || { echo "bench_telemetry --only $k --seed $s failed: $d.log" >&2; exit 1; }
-        mv "$d.log" "$d/run.log"
-    fi
-    row=$(grep -E "^[a-z0-9-]+ +$s +[0-9]+ " "$d/run.log" | head -1)
+    keep_obs "$BT" "$d" "$k" "$s"
+    row=$(obs_row "$d" "$s")
     name=$(echo "$row" | awk '{ print $1 }')
     nsub=$(echo "$row" | awk '{ print $3 }')
     def=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[1] }')

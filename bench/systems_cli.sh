@@ -15,7 +15,7 @@ set -u
 B=$1
 D=$2
 mkdir -p "$D"
-err() { awk '/versus truth/ { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1"; }
+. "$(dirname "$0")/../tests/lib_cli.sh"  # ncp_error
 stop() { echo "$1: $2 failed: $(tail -1 "$3")"; }
 run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn [more simulate keys]
     local n=$1 nsub=$2 rate=$3 ratio=$4 nl=$5 sp=$6 dr=$7 fr=$8 vib=$9 rn=${10} seed=${11} pupn=${12}
@@ -50,8 +50,8 @@ run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn [more 
         done
     done
     echo "$n: sync ratio $(awk '/^ratio/ { print $2 }' "$d/timing.txt") lag $(awk '/^lag/ { print $2 }' "$d/timing.txt");" \
-        "NCP error: slopes $(err "$d/p_halo.log") ideal $(err "$d/p_halo_i.log"); mean kept: slopes" \
-        "$(err "$d/p_halo--keep-resmean.log") ideal $(err "$d/p_halo_i--keep-resmean.log"); $(( $(date +%s) - t0 )) s"
+        "NCP error: slopes $(ncp_error "$d/p_halo.log") ideal $(ncp_error "$d/p_halo_i.log"); mean kept: slopes" \
+        "$(ncp_error "$d/p_halo--keep-resmean.log") ideal $(ncp_error "$d/p_halo_i--keep-resmean.log"); $(( $(date +%s) - t0 )) s"
 }
 #   name          nsub rate ratio layers speeds   dirs        fractions    vib  rn seed pupn
 run sh8-noisy      8  400   3    1      10       45          1            0.2  30 1    100

@@ -2,7 +2,7 @@
 # The wind from the slopes (`specklewfs wind`) over bench_telemetry's matrix of systems
 # (docs/telemetry.md, "The wind from the slopes"): each system's telemetry kept by
 # bench_telemetry --keep, its dominant layer's wind estimated from the slopes alone, against
-# the layers the simulation had (the matrix's definitions, bench/bench_telemetry.c).
+# the layers the simulation had (bench_telemetry --print-keys).
 # Prints one row per system: the true layers, the estimate, the lags tracked, and the speed and
 # direction errors against the nearest layer in direction.
 # usage: bash bench/wind_matrix.sh BUILD_DIR WORK_DIR [SEED (default 1)]     (about 5 minutes)
@@ -11,19 +11,20 @@ B=$1
 W=$2
 SEED=${3:-1}
 mkdir -p "$W"
-# name : speed,direction of each layer (from bench_telemetry.c's systems[])
-LAYERS=("sh12-mmt:10,0 15,110" "sh12-slow:5,30" "sh12-fast:20,250 25,340" "sh12-mid:18,135" "sh16-issue:14,200"
-        "sh16-calm:8,45 12,300" "sh16-windy:25,90" "sh16-shear:5,10 22,190" "sh24-base:10,60"
-        "sh24-noisy:15,170 20,260" "sh24-still:5,315" "sh24-jet:12,20 25,220")
+BT="$B/bench/bench_telemetry"
+nsys=12
 printf "%-11s %4s | %-22s | %-26s | %-18s | %6s %6s\n" system seed "layers [m/s toward deg]" estimate "lags" "speed" "dir"
-for k in "${!LAYERS[@]}"; do
-    name=${LAYERS[$k]%%:*}
-    layers=${LAYERS[$k]#*:}
+for k in $(seq 0 $((nsys - 1))); do
     d="$W/k${k}s$SEED"
     if [ ! -f "$d/slopes_000.fits" ]; then
-        "$B/bench/bench_telemetry" --only "$k" --seed "$SEED" --keep "$d" > "$d.log" 2>&1 \
+        "$BT" --only "$k" --seed "$SEED" --keep "$d" > "$d.log" 2>&1 \
             || { echo "bench_telemetry --only $k failed: $d.log" >&2; exit 1; }
     fi
+    # the system's name from its table row, its layers from the keys it was simulated with
+    name=$(grep -E "^[a-z0-9-]+ +$SEED +[0-9]+ " "$d.log" | head -1 | awk '{ print $1 }')
+    layers=$("$BT" --only "$k" --seed "$SEED" --print-keys | awk -F= '
+        $1 == "layer_speed" { ns = split($2, sp, ",") } $1 == "layer_dir" { split($2, di, ",") }
+        END { for (i = 1; i <= ns; i++) printf "%s%s,%s", (i > 1 ? " " : ""), sp[i], di[i] }')
     "$B/specklewfs" wind "$d"/slopes_0*.fits --teldiam 6.5 > "$d/wind.log"
     est=$(awk '/ m\/s toward / { print $2, $5 }' "$d/wind.log")
     lags=$(awk '/<- tracked/ { printf "%s%s", s, $1; s = "," }' "$d/wind.log")
