@@ -26,7 +26,7 @@ for k in $(seq 0 $((nsys - 1))); do
         $1 == "layer_speed" { ns = split($2, sp, ",") } $1 == "layer_dir" { split($2, di, ",") }
         END { for (i = 1; i <= ns; i++) printf "%s%s,%s", (i > 1 ? " " : ""), sp[i], di[i] }')
     "$B/specklewfs" wind "$d"/slopes_0*.fits --teldiam 6.5 > "$d/wind.log"
-    est=$(awk '/ m\/s toward / { print $2, $5 }' "$d/wind.log")
+    est=$(awk '/^wind: .* m\/s toward / { print $2, $5 }' "$d/wind.log")
     lags=$(awk '/<- tracked/ { printf "%s%s", s, $1; s = "," }' "$d/wind.log")
     if [ -z "$est" ]; then
         printf "%-11s %4s | %-22s | %-26s | %-18s |\n" "$name" "$SEED" "$layers" "not found" ""

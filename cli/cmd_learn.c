@@ -102,9 +102,13 @@ int swfs_cmd_learn(int argc, char **argv)
                "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
     if (o.nlags > 1 && r.nwind)
         printf("learn: the training loops' slopes move (%.4f, %.4f) subapertures per WFS frame (%zu of %zu data sets; "
-               "the farthest %.4f from that): speckles compares it with the observation's\n", r.wind_vx, r.wind_vy,
+               "the farthest %.4f from that; the tracked layers), and their layers:\n", r.wind_vx, r.wind_vy,
                r.nwind, nd, r.wind_spread);
-    else if (o.nlags > 1)
+    for (size_t k = 0; o.nlags > 1 && k < r.nwlayers; k++)
+        printf("learn: layer %zu of the training loops' slopes: (%.4f, %.4f) subapertures per WFS frame, in %zu data "
+               "set%s (the farthest %.4f from that)\n", k + 1, r.wlayer_vx[k], r.wlayer_vy[k], r.wlayer_n[k],
+               r.wlayer_n[k] == 1 ? "" : "s", r.wlayer_spread[k]);
+    if (o.nlags > 1 && !r.nwind)
         printf("learn: no wind found in the training loops' slopes (full layout needed): speckles cannot check the "
                "observation's against it\n");
     if (r.nheldout) {

@@ -1,4 +1,4 @@
-/* specklewfs wind SLOPES.fits... --teldiam D: the dominant frozen-flow layer's wind. */
+/* specklewfs wind SLOPES.fits... --teldiam D: the frozen-flow layers' winds, the dominant one tracked. */
 #include "cli.h"
 
 #include "specklewfs/run.h"
@@ -11,7 +11,7 @@
 static const char *usage_text =
     "usage: specklewfs wind SLOPES.fits... --teldiam D [--valid MAP.fits] [--nsub N] [--wfs-hz HZ]\n"
     "\n"
-    "The wind of the dominant frozen-flow layer from the Shack-Hartmann slopes alone (closed\n"
+    "The winds of the frozen-flow layers from the Shack-Hartmann slopes alone (closed\n"
     "loop is fine: the residual of a linear loop moves with the layer). For lags of 1, 2, 4, ...\n"
     "WFS frames the slopes of every pair of subapertures are correlated (one DGEMM per lag),\n"
     "binned by the pair's displacement on the grid, and the peak of that map is tracked from the\n"
@@ -29,7 +29,11 @@ static const char *usage_text =
     "Prints every lag's peak displacement and correlation, then the speed [m/s] and the\n"
     "direction [deg, counter-clockwise from the grid's +x, toward which the layer moves: the\n"
     "time-series simulator's layer_dir]. Exit 0 also when no lag resolves a displacement (a\n"
-    "layer too slow for the series, or no frozen flow): it says so.\n";
+    "layer too slow for the series, or no frozen flow): it says so.\n"
+    "Then further layers: the maps over the whole grid at lags of 1, 2, 3, 4, 6, 8, ... frames\n"
+    "are summed along every candidate velocity's track (the tracked layer's left out); a track\n"
+    "that stands more than twice the expected noise maximum out of the candidates' scatter is\n"
+    "a layer (\"layer N: ... m/s toward ... deg\"), and the search repeats without it.\n";
 
 int swfs_cmd_wind(int argc, char **argv)
 {
@@ -65,10 +69,21 @@ int swfs_cmd_wind(int argc, char **argv)
         printf("  %12zu  %+13.2f %+7.2f          %.3f%s\n", L->lag, L->dx, L->dy, L->corr,
                L->used ? "  <- tracked" : L->inside ? "" : "  (at the map's edge)");
     }
-    if (e->found)
+    if (e->found) {
         printf("wind: %.2f m/s toward %.1f deg (vx %+.2f, vy %+.2f m/s), from %zu lags\n", e->speed, e->direction,
                e->vx, e->vy, e->nused);
-    else
+        printf("layers: the maps (+-%zu subapertures) stacked along each candidate track over %zu lags; a layer stands "
+               "%.1f robust sd or more out\n", r.nsub - 1, e->nstack, e->threshold);
+        for (size_t k = 0; k < e->nlayers; k++) {
+            const swfs_wind_layer *L = &e->layer[k];
+            printf("layer %zu: %.2f m/s toward %.1f deg, correlation %.3f along %zu lags, %.1f sd%s\n", k + 1, L->speed,
+                   L->direction, L->corr, L->nlags, L->signif, k ? "" : " (the tracked layer)");
+        }
+        if (isfinite(e->next_signif))
+            printf("layers: %zu found; the best other track stands %.1f sd out\n", e->nlayers, e->next_signif);
+        else
+            printf("layers: %zu found\n", e->nlayers);
+    } else
         printf("wind: no displacement of a subaperture or more tracked over two lags (a layer too slow for %zu "
                "frames, or no frozen flow)\n", r.nframes);
     free(files);

@@ -154,13 +154,21 @@ void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r)
 {
     if (r->info.nlags && !isnan(r->st_train_vx) && r->st_found) {
-        fprintf(stderr, "%s: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
-                "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd, r->st_train_vx,
-                r->st_train_vy, r->st_obs_vx, r->st_obs_vy, r->st_mismatch);
+        if (r->st_train_nlayers)
+            fprintf(stderr, "%s: space-time map: this telemetry's slopes show %zu frozen-flow layer%s, its training "
+                    "loops' %zu; the layer here farthest from the loops' nearest moves (%.4f, %.4f) subapertures per WFS "
+                    "frame, that one (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd, r->st_obs_nlayers,
+                    r->st_obs_nlayers == 1 ? "" : "s", r->st_train_nlayers, r->st_obs_vx, r->st_obs_vy, r->st_train_vx,
+                    r->st_train_vy, r->st_mismatch);
+        else
+            fprintf(stderr, "%s: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
+                    "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd,
+                    r->st_train_vx, r->st_train_vy, r->st_obs_vx, r->st_obs_vy, r->st_mismatch);
         if (r->st_mismatch > SWFS_SPACETIME_MISMATCH_WARN)
-            fprintf(stderr, "%s: warning: the map was taught at another wind than this telemetry's (more than %.2f "
+            fprintf(stderr, "%s: warning: the map was taught at another wind than this telemetry's (%s more than %.2f "
                     "subaperture apart at its largest lag): a space-time map taught at the wrong wind can be far worse "
-                    "than the default; simulate the loops at the wind `specklewfs wind` gives (docs/telemetry.md)\n", cmd,
+                    "than the default; simulate the loops with the layers `specklewfs wind` gives (docs/telemetry.md)\n",
+                    cmd, r->st_train_nlayers ? "a layer here and every layer of its loops" : "the two",
                     SWFS_SPACETIME_MISMATCH_WARN);
     } else if (r->info.nlags) {
         fprintf(stderr, "%s: space-time map: %s; its wind cannot be checked against this telemetry's\n", cmd,

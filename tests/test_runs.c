@@ -1283,9 +1283,12 @@ static void test_spacetime_reconstructor(void **state)
         swfs_halo_free(er.halo);
         if (k) { /* the map's training wind against the test data's own, at the largest lag */
             printf("test_runs: space-time map: trained at (%.4f, %.4f), the data at (%.4f, %.4f) subapertures per frame: "
-                   "%.3f subapertures apart at lag 4\n", spr.st_train_vx, spr.st_train_vy, spr.st_obs_vx, spr.st_obs_vy,
-                   spr.st_mismatch);
+                   "%.3f subapertures apart at lag 4 (layers: the data %zu, the loops %zu)\n", spr.st_train_vx,
+                   spr.st_train_vy, spr.st_obs_vx, spr.st_obs_vy, spr.st_mismatch, spr.st_obs_nlayers,
+                   spr.st_train_nlayers);
             assert_true(spr.st_found && spr.st_mismatch < SWFS_SPACETIME_MISMATCH_WARN);
+            assert_int_equal(spr.st_train_nlayers, l3.nwlayers);
+            assert_true(spr.st_obs_nlayers >= 1 && l3.nwlayers >= 1);
             printf("test_runs: its slopes' correlation at lag 4: the data %.3f, the loops %.3f +- %.3f\n",
                    spr.st_corr_obs[1], spr.st_corr_train[1], spr.st_corr_spread[1]);
             assert_true(spr.st_corr_worst == 1 || spr.st_corr_worst == 2);

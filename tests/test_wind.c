@@ -1,8 +1,9 @@
-/* The dominant layer's wind from the slopes (wind.h): closed-loop time series of one
+/* The winds of the frozen-flow layers from the slopes (wind.h): closed-loop time series of one
  * frozen-flow layer at two winds give the layer's speed within 10 % and its direction
- * within 5 deg; a second layer of less power leaves the dominant one's; the valid-only
- * layout gives the full layout's answer; white-noise slopes track nothing; bad input is
- * refused by name (too few frames, a non-finite slope, another width). */
+ * within 5 deg, and no second layer; a second layer of less power leaves the dominant one's
+ * and is found by the stacking, within 10 % and 5 deg; the valid-only layout gives the full
+ * layout's answer; white-noise slopes track nothing; bad input is refused by name (too few
+ * frames, a non-finite slope, another width). */
 #include "testutil.h"
 
 #include "specklewfs/config.h"
@@ -66,6 +67,10 @@ static void wind_of(const char *sub, swfs_wind_run_result *r)
     assert_ok(swfs_wind_run(&o, r));
     print_message("%s: %zu frames, %.2f m/s toward %.1f deg from %zu lags\n", sub, r->nframes, r->est.speed,
                   r->est.direction, r->est.nused);
+    for (size_t k = 0; k < r->est.nlayers; k++)
+        print_message("  layer %zu: %.2f m/s toward %.1f deg, %.1f sd (threshold %.1f)\n", k + 1, r->est.layer[k].speed,
+                      r->est.layer[k].direction, r->est.layer[k].signif, r->est.threshold);
+    print_message("  best other track %.1f sd\n", r->est.next_signif);
 }
 
 static double angle_diff(double a, double b)
@@ -77,11 +82,11 @@ static double angle_diff(double a, double b)
 static void test_wind_of_simulated_loops(void **state)
 {
     (void)state;
-    const struct { const char *sub, *keys[4]; double speed, dir; } cases[] = {
-        {"one30", {"nlayers=1", "layer_frac=1", "layer_speed=10", "layer_dir=30"}, 10, 30},
-        {"one200", {"nlayers=1", "layer_frac=1", "layer_speed=20", "layer_dir=200"}, 20, 200},
+    const struct { const char *sub, *keys[4]; double speed, dir; size_t nlayers; double speed2, dir2; } cases[] = {
+        {"one30", {"nlayers=1", "layer_frac=1", "layer_speed=10", "layer_dir=30"}, 10, 30, 1, 0, 0},
+        {"one200", {"nlayers=1", "layer_frac=1", "layer_speed=20", "layer_dir=200"}, 20, 200, 1, 0, 0},
         /* a second, weaker layer (30 % of the turbulence) across the first */
-        {"two", {"nlayers=2", "layer_frac=0.7,0.3", "layer_speed=12,6", "layer_dir=300,45"}, 12, 300},
+        {"two", {"nlayers=2", "layer_frac=0.7,0.3", "layer_speed=12,6", "layer_dir=300,45"}, 12, 300, 2, 6, 45},
     };
     for (size_t k = 0; k < sizeof cases / sizeof cases[0]; k++) {
         series(cases[k].sub, cases[k].keys, 4);
@@ -93,6 +98,17 @@ static void test_wind_of_simulated_loops(void **state)
         assert_true(angle_diff(r.est.direction, cases[k].dir) < 5.0);
         assert_int_equal(r.nsub, 12);
         assert_true(fabs(r.rate - 527) < 1e-9 && fabs(r.pitch - 6.5 / 12) < 1e-12);
+        /* the layers: the tracked one first, to the bit; a second only where there is one */
+        assert_int_equal(r.est.nlayers, cases[k].nlayers);
+        assert_true(r.est.layer[0].speed == r.est.speed && r.est.layer[0].direction == r.est.direction);
+        assert_true(r.est.layer[0].signif >= r.est.threshold);
+        if (cases[k].nlayers == 2) {
+            assert_true(fabs(r.est.layer[1].speed / cases[k].speed2 - 1) < 0.10);
+            assert_true(angle_diff(r.est.layer[1].direction, cases[k].dir2) < 5.0);
+            assert_true(r.est.layer[1].signif >= r.est.threshold);
+        }
+        assert_true(r.est.next_signif < r.est.threshold);
+        assert_true(r.est.threshold > 6 && r.est.threshold < 8); /* 2 sqrt(2 ln bins), 12 x 12 */
     }
 }
 
@@ -126,6 +142,8 @@ static void test_wind_valid_only(void **state)
                   full.direction, compact.speed, compact.direction, nv, n2);
     assert_true(full.found && compact.found);
     assert_true(full.speed == compact.speed && full.direction == compact.direction);
+    assert_int_equal(full.nlayers, compact.nlayers);
+    assert_true(full.next_signif == compact.next_signif);
     assert_int_equal(full.nvalid, nv);
     free(c);
     swfs_real_free(s);
@@ -143,6 +161,7 @@ static void test_wind_noise_and_refusals(void **state)
     assert_ok(swfs_wind_from_slopes(s, T, ns, nsub, NULL, 0.5, 500, &e));
     print_message("white noise: found %d, %zu lags tracked of %zu\n", e.found, e.nused, e.nlags);
     assert_false(e.found);
+    assert_int_equal(e.nlayers, 0);
     assert_int_equal(swfs_wind_from_slopes(s, 40, ns, nsub, NULL, 0.5, 500, &e), SWFS_ERR_VALUE);
     assert_non_null(strstr(swfs_last_error(), "40 WFS frames; the displacement needs at least 64"));
     assert_int_equal(swfs_wind_from_slopes(s, T, ns - 2, nsub, NULL, 0.5, 500, &e), SWFS_ERR_SHAPE);

@@ -160,14 +160,18 @@ typedef struct swfs_speckles_run_result {
     swfs_pipeline_info info;
     double resmean_rms;       /* [m] the reconstructed residual's time mean over the frames written
                                  (SPECKLES.fits RESMEAN, swfs_pipeline_mean_wavefront), rms in the pupil */
-    /* A space-time reconstructor (info.nlags > 0) whose file holds its training loops' wind
-     * (learn --lags: LRNVX, LRNVY): that wind and the observation's, from the first telemetry
-     * file's slopes, in subapertures per WFS frame (st_found: both known), and st_mismatch =
-     * |v_obs - v_train| x the largest |lag| [subapertures]: how far apart the pattern the map
-     * was taught and the observed one have moved by the farthest frame it reads (NaN when
-     * unknown). docs/telemetry.md measures what a mismatch costs. */
+    /* A space-time reconstructor (info.nlags > 0) whose file holds its training loops' winds
+     * (learn --lags: the layers LRNNLAY, LRNLkX, LRNLkY; a file without them: the mean wind
+     * LRNVX, LRNVY as one layer) against the layers of the first telemetry file's slopes
+     * (wind.h), in subapertures per WFS frame (st_found: both known). Each observed layer is
+     * matched to the nearest training layer; st_mismatch = the largest such distance x the
+     * largest |lag| [subapertures]: how far apart the pattern the map was taught and the
+     * observed one have moved by the farthest frame it reads (NaN when unknown), and
+     * st_obs_v*, st_train_v* that pair. st_obs_nlayers, st_train_nlayers: the layers each
+     * side has. docs/telemetry.md measures what a mismatch costs. */
     int st_found;
     double st_train_vx, st_train_vy, st_obs_vx, st_obs_vy, st_mismatch;
+    size_t st_obs_nlayers, st_train_nlayers;
     /* And the slopes' temporal correlation at the map's lags (wfs.h
      * swfs_slopes_lag_correlation): the training loops' (LRNCORk) with their spread over the
      * loops (LRNCSPk), the first telemetry file's, and the lag where the two differ most
@@ -400,6 +404,8 @@ typedef struct swfs_learn_run_options {
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
 
+#define SWFS_LEARN_MAXWLAYERS 8
+
 typedef struct swfs_learn_run_result {
     swfs_recon_learn_info info;
     size_t nfiles, nslopes, nact; /* nslopes: per frame (a space-time map's input is nlags times that) */
@@ -416,6 +422,15 @@ typedef struct swfs_learn_run_result {
      * map (LRNWINDN, LRNVX, LRNVY, LRNVSPRD) for speckles to compare with the observation's. */
     size_t nwind;
     double wind_vx, wind_vy, wind_spread;
+    /* With lags: every frozen-flow layer the data sets' slopes show (wind.h: the tracked one
+     * and those the stacking finds), grouped over the sets where two lie within
+     * SWFS_SPACETIME_MISMATCH_WARN subaperture of each other at the largest lag: each group's
+     * mean velocity [subapertures per WFS frame], the data sets holding it, and the farthest
+     * member's distance from that mean; written as LRNNLAY, LRNLkX, LRNLkY, LRNLkN, LRNLkS
+     * (k = 1 ... LRNNLAY) for speckles to match the observation's layers against. */
+    size_t nwlayers;
+    double wlayer_vx[SWFS_LEARN_MAXWLAYERS], wlayer_vy[SWFS_LEARN_MAXWLAYERS], wlayer_spread[SWFS_LEARN_MAXWLAYERS];
+    size_t wlayer_n[SWFS_LEARN_MAXWLAYERS];
     /* With lags: the training slopes' temporal correlation at each lag (wfs.h
      * swfs_slopes_lag_correlation on each data set's first file), its mean over the data sets
      * and the largest distance of one from it; written as LRNCORk, LRNCSPk (k as LAGk). */

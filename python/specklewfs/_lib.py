@@ -162,6 +162,7 @@ swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
 RECON_MAXLAGS = 16  # SWFS_RECON_MAXLAGS (wfs.h): a space-time reconstructor's lags at most
+LEARN_MAXWLAYERS = 8  # SWFS_LEARN_MAXWLAYERS (run.h): the training loops' layer groups at most
 swfs_recon = _s("swfs_recon", [("nact", c_size), ("nslopes", c_size), ("W", P(c_dbl)), ("nmodes", c_size),
                                ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl),
                                ("l0", c_dbl), ("prior_scale", c_dbl), ("nlags", c_size),
@@ -193,11 +194,16 @@ swfs_coherence = _s("swfs_coherence", [("nx", c_size), ("ny", c_size), ("nframes
 swfs_screen_params = _s("swfs_screen_params", [("n", c_size), ("dx", c_dbl), ("r0", c_dbl), ("L0", c_dbl),
                                                ("subharmonics", c_int)])
 WIND_MAXLAGS = 32
+WIND_MAXLAYERS = 4
+swfs_wind_layer = _s("swfs_wind_layer", [("vx", c_dbl), ("vy", c_dbl), ("speed", c_dbl), ("direction", c_dbl),
+                                         ("corr", c_dbl), ("signif", c_dbl), ("nlags", c_size)])
 swfs_wind_lag = _s("swfs_wind_lag", [("lag", c_size), ("dx", c_dbl), ("dy", c_dbl), ("corr", c_dbl), ("inside", c_int),
                                      ("used", c_int)])
 swfs_wind_estimate = _s("swfs_wind_estimate", [
     ("found", c_int), ("vx", c_dbl), ("vy", c_dbl), ("speed", c_dbl), ("direction", c_dbl), ("nused", c_size),
-    ("nlags", c_size), ("lag", swfs_wind_lag * WIND_MAXLAGS), ("nvalid", c_size), ("radius", c_size)])
+    ("nlags", c_size), ("lag", swfs_wind_lag * WIND_MAXLAGS), ("nvalid", c_size), ("radius", c_size),
+    ("nlayers", c_size), ("layer", swfs_wind_layer * WIND_MAXLAYERS), ("threshold", c_dbl), ("next_signif", c_dbl),
+    ("nstack", c_size)])
 SIM_MAX_ZERNIKE = 64
 swfs_sim_params = _s("swfs_sim_params", [
     ("screen", swfs_screen_params), ("nscreens", c_int), ("teldiam", c_dbl), ("pupn", c_long), ("pupdx", c_dbl),
@@ -302,6 +308,8 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("info", swfs_recon_learn_info), ("nfiles", c_size), ("nslopes", c_size), ("nact", c_size), ("nheldout", c_size),
     ("heldout_misfit_rms", c_dbl), ("heldout_truth_rms", c_dbl), ("heldout_worst", c_dbl),
     ("heldout_worst_set", c_size), ("nwind", c_size), ("wind_vx", c_dbl), ("wind_vy", c_dbl), ("wind_spread", c_dbl),
+    ("nwlayers", c_size), ("wlayer_vx", c_dbl * LEARN_MAXWLAYERS), ("wlayer_vy", c_dbl * LEARN_MAXWLAYERS),
+    ("wlayer_spread", c_dbl * LEARN_MAXWLAYERS), ("wlayer_n", c_size * LEARN_MAXWLAYERS),
     ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
@@ -314,6 +322,7 @@ SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
     ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
     ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl),
+    ("st_obs_nlayers", c_size), ("st_train_nlayers", c_size),
     ("st_corr_train", c_dbl * RECON_MAXLAGS), ("st_corr_spread", c_dbl * RECON_MAXLAGS),
     ("st_corr_obs", c_dbl * RECON_MAXLAGS),
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS)])

@@ -114,8 +114,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     of one map per lag that speckles(..., recon=out) applies the same way (`learn --lags`);
     it pays only when the folders hold the observation's own wind and profile. With lags it
     also returns nwind, wind_v (the training loops' mean wind [subapertures per WFS frame])
-    and wind_spread; speckles() then returns st_mismatch, its distance from the
-    observation's at the largest lag [subapertures] (st_found, st_train_v, st_obs_v), and the
+    and wind_spread, and wind_layers: the loops' frozen-flow layers grouped over the folders
+    (dicts of v, nsets, spread); speckles() then returns st_mismatch, the largest distance of
+    an observed layer from the nearest taught one at the largest lag [subapertures]
+    (st_found, st_train_v, st_obs_v that pair; st_obs_nlayers, st_train_nlayers), and the
     slopes' correlation at the lags: corr / corr_spread here (the loops'), st_corr_train,
     st_corr_spread, st_corr_obs and st_corr_excess (> 0: beyond three spreads) there."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
@@ -141,7 +143,9 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     d.update(nfiles=r.nfiles, nslopes=r.nslopes, nact=r.nact, nheldout=r.nheldout,
              heldout_misfit_rms=r.heldout_misfit_rms, heldout_truth_rms=r.heldout_truth_rms,
              heldout_worst=r.heldout_worst, heldout_worst_set=r.heldout_worst_set, heldout_ratio=ratio,
-             nwind=r.nwind, wind_v=(r.wind_vx, r.wind_vy), wind_spread=r.wind_spread)
+             nwind=r.nwind, wind_v=(r.wind_vx, r.wind_vy), wind_spread=r.wind_spread,
+             wind_layers=[dict(v=(r.wlayer_vx[k], r.wlayer_vy[k]), nsets=r.wlayer_n[k], spread=r.wlayer_spread[k])
+                          for k in range(r.nwlayers)])
     if lags is not None:
         d.update(corr=np.array(r.corr[:len(lags)]), corr_spread=np.array(r.corr_spread[:len(lags)]))
     return d
@@ -215,7 +219,8 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     d["info"] = _struct_dict(r.info)
     nl = r.info.nlags
     d.update(st_found=bool(r.st_found), st_train_v=(r.st_train_vx, r.st_train_vy), st_obs_v=(r.st_obs_vx, r.st_obs_vy),
-             st_mismatch=r.st_mismatch, st_corr_train=np.array(r.st_corr_train[:nl]),
+             st_mismatch=r.st_mismatch, st_obs_nlayers=r.st_obs_nlayers, st_train_nlayers=r.st_train_nlayers,
+             st_corr_train=np.array(r.st_corr_train[:nl]),
              st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
              st_corr_excess=r.st_corr_excess)
     return d

@@ -187,11 +187,15 @@ def slopes_noise_var(D, slopes):
 
 
 def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
-    """The dominant frozen-flow layer's wind from the slopes (wind.h): slopes (nframes,
+    """The frozen-flow layers' winds from the slopes, the dominant one tracked (wind.h): slopes (nframes,
     2 nsub^2) or, with valid (nsub, nsub), the valid subapertures' only; pitch [m] the
     subaperture size, rate [Hz]. A dict: found, vx, vy, speed [m/s], direction [deg, toward
-    which the pattern moves, counter-clockwise from +x], and lags: one dict per lag examined
-    (lag, dx, dy [subapertures], corr, inside, used)."""
+    which the pattern moves, counter-clockwise from +x], lags: one dict per lag examined
+    (lag, dx, dy [subapertures], corr, inside, used), and layers: every layer found, the
+    tracked one first, then those the stacking of the maps found (wind.h), each a dict of vx,
+    vy, speed, direction, corr (the mean correlation along its track), signif (robust standard
+    deviations above the candidates' median) and nlags; threshold: the significance a layer
+    needs; next_signif: the best track not taken (NaN when none was scored)."""
     s = as_array(slopes, "slopes", np.float64, ndim=2)
     v = None if valid is None else as_array(valid, "valid", np.uint8, shape=(nsub, nsub))
     e = _lib.swfs_wind_estimate()
@@ -200,8 +204,11 @@ def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
                                     float(rate), ctypes.byref(e)), "swfs_wind_from_slopes")
     lags = [dict(lag=L.lag, dx=L.dx, dy=L.dy, corr=L.corr, inside=bool(L.inside), used=bool(L.used))
             for L in e.lag[:e.nlags]]
+    layers = [dict(vx=L.vx, vy=L.vy, speed=L.speed, direction=L.direction, corr=L.corr, signif=L.signif,
+                   nlags=L.nlags) for L in e.layer[:e.nlayers]]
     return dict(found=bool(e.found), vx=e.vx, vy=e.vy, speed=e.speed, direction=e.direction, nused=e.nused,
-                nvalid=e.nvalid, radius=e.radius, lags=lags)
+                nvalid=e.nvalid, radius=e.radius, lags=lags, layers=layers, threshold=e.threshold,
+                next_signif=e.next_signif, nstack=e.nstack)
 
 
 def vk_covariance(xy, L0):

@@ -165,7 +165,18 @@ def test_learn_reconstructor(series, tmp_path):
     assert rl["nwind"] == 2 and rl["wind_spread"] > 0 and np.hypot(*rl["wind_v"]) > 0
     keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["LRNVX", "LRNVY"])
     assert np.allclose((keys["LRNVX"], keys["LRNVY"]), rl["wind_v"])
-    assert np.allclose(spl["st_train_v"], rl["wind_v"]) and (spl["st_found"] or np.isnan(spl["st_mismatch"]))
+    # its layers grouped over the two folders (10 and 35 m/s: two groups, a folder each), in the
+    # map's keys; speckles matches the data's layers against them
+    lay = rl["wind_layers"]
+    assert len(lay) >= 2 and sum(L["nsets"] for L in lay) >= 2
+    keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["LRNNLAY", "LRNL1X", "LRNL1Y", "LRNL1N"])
+    assert keys["LRNNLAY"] == len(lay) and np.allclose((keys["LRNL1X"], keys["LRNL1Y"]), lay[0]["v"])
+    assert keys["LRNL1N"] == lay[0]["nsets"]
+    if spl["st_found"]:
+        assert spl["st_train_nlayers"] == len(lay) and spl["st_obs_nlayers"] >= 1
+        assert any(np.allclose(spl["st_train_v"], L["v"]) for L in lay)
+    else:
+        assert np.isnan(spl["st_mismatch"])
     # and the slopes' correlation at each lag (1 at lag 0), the loops' mean against the data's
     assert rl["corr"].shape == (3,) and rl["corr"][0] == pytest.approx(1.0) and np.all(rl["corr"][1:] < 1)
     assert np.allclose(spl["st_corr_train"], rl["corr"]) and spl["st_corr_obs"][0] == pytest.approx(1.0)

@@ -237,7 +237,8 @@ def test_square_actuators_and_geometry_file(tmp_path):
 def test_wind_from_slopes(cli, tmp_path):
     """The dominant layer's wind from a closed loop's slopes, in Python and through
     `specklewfs wind`: the same numbers, the layer's speed within 10 % and its direction
-    within 5 deg; bad input refused."""
+    within 5 deg, and no second layer; with two layers both found within 10 % and 5 deg;
+    bad input refused."""
     import subprocess
     out = str(tmp_path / "ts")
     sw.simulate_timeseries(out, pupn=66, pupdx=0.1, screen_n=1024, ncubes=2, cube_frames=100, cube_gap=100,
@@ -252,6 +253,24 @@ def test_wind_from_slopes(cli, tmp_path):
     assert r.returncode == 0, r.stderr
     m = re.search(r"wind: ([0-9.]+) m/s toward ([0-9.]+) deg", r.stdout)
     assert m and float(m.group(1)) == round(e["speed"], 2) and float(m.group(2)) == round(e["direction"], 1)
+    # one layer: the stacking finds no other
+    assert len(e["layers"]) == 1 and e["layers"][0]["speed"] == e["speed"]
+    assert e["next_signif"] < e["threshold"] < e["layers"][0]["signif"]
+    assert re.search(r"^layers: 1 found", r.stdout, re.M)
+    # two layers of equal share: the second found by the stacking, in Python and printed
+    out2 = str(tmp_path / "ts2")
+    sw.simulate_timeseries(out2, pupn=66, pupdx=0.1, screen_n=1024, ncubes=2, cube_frames=100, cube_gap=100,
+                           nlayers=2, layer_frac="0.5,0.5", layer_speed="15,7", layer_dir="120,330", seed=6)
+    s2, _ = sw.read_fits(os.path.join(out2, "slopes_000.fits"))
+    e2 = sw.wind_from_slopes(s2, 12, 6.5 / 12, 527)
+    assert len(e2["layers"]) == 2, e2["layers"]
+    found = sorted((L["speed"], L["direction"]) for L in e2["layers"])
+    assert abs(found[0][0] / 7 - 1) < 0.1 and abs(found[0][1] - 330) < 5
+    assert abs(found[1][0] / 15 - 1) < 0.1 and abs(found[1][1] - 120) < 5
+    r = subprocess.run([cli, "wind", os.path.join(out2, "slopes_000.fits"), "--teldiam", "6.5"], capture_output=True,
+                       text=True)
+    m = re.search(r"^layer 2: ([0-9.]+) m/s toward ([0-9.]+) deg", r.stdout, re.M)
+    assert m and float(m.group(1)) == round(e2["layers"][1]["speed"], 2), r.stdout
     with pytest.raises(sw.Error, match="30 WFS frames"):
         sw.wind_from_slopes(s[:30], 12, 6.5 / 12, 527)
     r = subprocess.run([cli, "wind", os.path.join(out, "slopes_000.fits")], capture_output=True, text=True)

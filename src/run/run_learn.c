@@ -91,6 +91,18 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVX", r->wind_vx, "[subap/frame] their mean wind, x");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVY", r->wind_vy, "[subap/frame] their mean wind, y");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVSPRD", r->wind_spread, "[subap/frame] largest from the mean");
+        if (!rc) rc = swfs_fits_out_key_long(f, "LRNNLAY", (long)r->nwlayers, "frozen-flow layers in their slopes");
+    }
+    for (size_t k = 0; !rc && k < r->nwlayers; k++) {
+        char key[4][16];
+        snprintf(key[0], sizeof key[0], "LRNL%zuX", k + 1);
+        snprintf(key[1], sizeof key[1], "LRNL%zuY", k + 1);
+        snprintf(key[2], sizeof key[2], "LRNL%zuN", k + 1);
+        snprintf(key[3], sizeof key[3], "LRNL%zuS", k + 1);
+        rc = swfs_fits_out_key_double(f, key[0], r->wlayer_vx[k], "[subap/frame] layer k's mean wind, x");
+        if (!rc) rc = swfs_fits_out_key_double(f, key[1], r->wlayer_vy[k], "[subap/frame] layer k's mean wind, y");
+        if (!rc) rc = swfs_fits_out_key_long(f, key[2], (long)r->wlayer_n[k], "training sets that show it");
+        if (!rc) rc = swfs_fits_out_key_double(f, key[3], r->wlayer_spread[k], "[subap/frame] largest from the mean");
     }
     if (!rc && r->nheldout) {
         rc = swfs_fits_out_key_long(f, "LRNHSETS", (long)r->nheldout, "data sets held out in turn");
@@ -190,6 +202,33 @@ static void training_stats(const set_stats *st, const swfs_learn_run_options *o,
         r->wind_vx = mx;
         r->wind_vy = my;
         r->wind_spread = sp;
+    }
+    /* every set's layers, grouped: one within SWFS_SPACETIME_MISMATCH_WARN subaperture at the
+     * largest lag of a group's mean joins it (the first such), others start a group */
+    long lmax = 0;
+    for (size_t k = 0; k < o->nlags; k++) lmax = labs(o->lags[k]) > lmax ? labs(o->lags[k]) : lmax;
+    const double tol = SWFS_SPACETIME_MISMATCH_WARN / (double)(lmax ? lmax : 1);
+    double sx[SWFS_LEARN_MAXWLAYERS] = {0}, sy[SWFS_LEARN_MAXWLAYERS] = {0};
+    for (size_t d = 0; d < o->ndirs; d++)
+        for (size_t j = 0; st[d].wind.found && j < st[d].wind.nlayers; j++) {
+            const swfs_wind_layer *L = &st[d].wind.layer[j];
+            size_t g = 0;
+            while (g < r->nwlayers && hypot(L->vx - r->wlayer_vx[g], L->vy - r->wlayer_vy[g]) > tol) g++;
+            if (g == SWFS_LEARN_MAXWLAYERS) continue;
+            if (g == r->nwlayers) r->nwlayers++;
+            sx[g] += L->vx;
+            sy[g] += L->vy;
+            r->wlayer_n[g]++;
+            r->wlayer_vx[g] = sx[g] / (double)r->wlayer_n[g];
+            r->wlayer_vy[g] = sy[g] / (double)r->wlayer_n[g];
+        }
+    for (size_t g = 0; g < r->nwlayers; g++) {
+        r->wlayer_spread[g] = 0;
+        for (size_t d = 0; d < o->ndirs; d++)
+            for (size_t j = 0; st[d].wind.found && j < st[d].wind.nlayers; j++) {
+                const double dist = hypot(st[d].wind.layer[j].vx - r->wlayer_vx[g], st[d].wind.layer[j].vy - r->wlayer_vy[g]);
+                if (dist <= tol) r->wlayer_spread[g] = fmax(r->wlayer_spread[g], dist);
+            }
     }
     for (size_t k = 0; k < o->nlags; k++) {
         double m = 0, dev = 0;

@@ -289,10 +289,11 @@ static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
 }
 
 /* A space-time reconstructor taught by learn --lags carries what its training loops' slopes
- * did in time: their wind (LRNVX, LRNVY [subapertures per WFS frame]) and their correlation
- * at each lag (LRNCORk, LRNCSPk). The same from the first usable cube's telemetry file, and
- * how far apart they are, go into r (run.h). Unknown (no keys, no wind found) is no error:
- * the map is applied either way. */
+ * did in time: their layers' winds (LRNNLAY, LRNLkX, LRNLkY; before those, the mean wind
+ * LRNVX, LRNVY [subapertures per WFS frame]) and their correlation at each lag (LRNCORk,
+ * LRNCSPk). The same from the first usable cube's telemetry file, and how far apart they
+ * are, go into r (run.h). Unknown (no keys, no wind found) is no error: the map is applied
+ * either way. */
 static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     r->st_found = 0;
@@ -303,10 +304,20 @@ static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_spe
     const size_t nl = w->rin->nlags;
     memcpy(r->st_lags, w->rin->lags, sizeof r->st_lags);
     swfs_fits_in *f = NULL;
-    int fx = 0, fy = 0, fc = 1;
+    int fx = 0, fy = 0, fc = 1, fl = 0;
+    long nlay = 0;
+    double lx[SWFS_LEARN_MAXWLAYERS], ly[SWFS_LEARN_MAXWLAYERS];
     int rc = swfs_fits_in_open(&f, o->recon, NULL);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVX", &r->st_train_vx, &fx);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVY", &r->st_train_vy, &fy);
+    if (!rc) rc = swfs_fits_in_key_long_opt(f, "LRNNLAY", 0, SWFS_LEARN_MAXWLAYERS, &nlay, &fl);
+    for (long k = 0; !rc && k < nlay; k++) {
+        char kx[32], ky[32];
+        snprintf(kx, sizeof kx, "LRNL%ldX", k + 1);
+        snprintf(ky, sizeof ky, "LRNL%ldY", k + 1);
+        rc = swfs_fits_in_key_double(f, kx, &lx[k]);
+        if (!rc) rc = swfs_fits_in_key_double(f, ky, &ly[k]);
+    }
     for (size_t k = 0; !rc && k < nl && fc; k++) {
         char key[32];
         int f1 = 0, f2 = 0;
@@ -345,10 +356,32 @@ static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_spe
     if (rc || !e.found) return rc;
     long lmax = 0;
     for (size_t k = 0; k < nl; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
+    if (!nlay) { /* a map from before the layers: its mean wind against the tracked layer */
+        lx[0] = r->st_train_vx;
+        ly[0] = r->st_train_vy;
+        nlay = 1;
+        e.nlayers = 1;
+        e.layer[0].vx = e.vx;
+        e.layer[0].vy = e.vy;
+    }
     r->st_found = 1;
-    r->st_obs_vx = e.vx;
-    r->st_obs_vy = e.vy;
-    r->st_mismatch = hypot(e.vx - r->st_train_vx, e.vy - r->st_train_vy) * (double)lmax;
+    r->st_obs_nlayers = e.nlayers;
+    r->st_train_nlayers = fl ? (size_t)nlay : 0;
+    r->st_mismatch = -1;
+    for (size_t j = 0; j < e.nlayers; j++) { /* each observed layer against the nearest taught */
+        size_t best = 0;
+        for (long k = 1; k < nlay; k++)
+            if (hypot(e.layer[j].vx - lx[k], e.layer[j].vy - ly[k]) < hypot(e.layer[j].vx - lx[best], e.layer[j].vy - ly[best]))
+                best = (size_t)k;
+        const double d = hypot(e.layer[j].vx - lx[best], e.layer[j].vy - ly[best]) * (double)lmax;
+        if (d > r->st_mismatch) {
+            r->st_mismatch = d;
+            r->st_obs_vx = e.layer[j].vx;
+            r->st_obs_vy = e.layer[j].vy;
+            r->st_train_vx = lx[best];
+            r->st_train_vy = ly[best];
+        }
+    }
     return SWFS_OK;
 }
 

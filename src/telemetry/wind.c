@@ -1,7 +1,9 @@
 /* The dominant layer's wind from the slopes: lagged covariances by DGEMM, binned by the
- * subapertures' displacement, peak tracked over doubling lags (include/specklewfs/wind.h). */
+ * subapertures' displacement, peak tracked over doubling lags; further layers by stacking the
+ * same maps (wind_stack.c; include/specklewfs/wind.h). */
 #include "specklewfs/wind.h"
 #include "specklewfs/status.h"
+#include "wind_internal.h"
 
 #include <cblas.h>
 #include <math.h>
@@ -9,11 +11,15 @@
 #include <string.h>
 
 typedef struct {
-    size_t nv, T, R, nb;   /* valid subapertures, frames, map half width, bins per side */
+    size_t nv, T, R, nb;   /* valid subapertures, frames; the tracker's map: +-R, nb bins per side */
     double *x, *y;         /* T x nv, means taken out */
     double *c;             /* nv x nv lagged covariance */
-    int *bin;              /* nv x nv: the pair's bin, -1 outside the map */
-    double *num, *den;     /* nb x nb; den 0: no pair of subapertures in that bin */
+    int *bin;              /* nv x nv: the pair's bin on the whole grid's map */
+    double *den;           /* whole grid's bins: the pairs' zero-lag deviations' products summed */
+    size_t *count;         /* whole grid's bins: pairs */
+    double *maps;          /* one whole-grid map per lag of m.lag, made when first asked for */
+    unsigned char made[SWFS_WIND_MAXMAPS];
+    swfs_wind_maps_ m;     /* the whole grid's maps (wind_internal.h) */
 } wind_work;
 
 /* Each frame's mean x / y slope (tip-tilt) and each subaperture's mean out of the copies. */
@@ -42,43 +48,56 @@ static double vertex(double l, double c, double r)
     return o < -0.5 ? -0.5 : o > 0.5 ? 0.5 : o;
 }
 
-/* The correlation map at one lag and its peak into *L: the highest bin, or while tracking
- * (tol > 0) the highest within tol subapertures of the predicted (px, py); inside when it is
- * a local maximum off the map's edge (while tracking, another layer's peak elsewhere in the
- * map is not this one's). */
-static void lag_map(wind_work *w, size_t tau, double px, double py, double tol, swfs_wind_lag *L)
+/* The whole grid's correlation map at lag m.lag[l] (made once: two DGEMMs, the pairs binned
+ * by displacement and normalized; NAN in a bin of no pair). */
+static const double *lag_map(wind_work *w, size_t l)
 {
-    const size_t nv = w->nv, n = w->T - tau, nb = w->nb;
+    const size_t nv = w->nv, n = w->T - w->m.lag[l], nbb = w->m.nb * w->m.nb;
+    double *map = w->maps + l * nbb;
+    if (w->made[l]) return map;
+    const size_t tau = w->m.lag[l];
     cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)n, 1.0, w->x, (int)nv,
                 w->x + tau * nv, (int)nv, 0.0, w->c, (int)nv);
     cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)n, 1.0, w->y, (int)nv,
                 w->y + tau * nv, (int)nv, 1.0, w->c, (int)nv);
-    memset(w->num, 0, nb * nb * sizeof *w->num);
-    for (size_t k = 0; k < nv * nv; k++)
-        if (w->bin[k] >= 0) w->num[w->bin[k]] += w->c[k];
+    memset(map, 0, nbb * sizeof *map);
+    for (size_t k = 0; k < nv * nv; k++) map[w->bin[k]] += w->c[k];
+    for (size_t b = 0; b < nbb; b++) map[b] = w->den[b] > 0 ? map[b] / w->den[b] : NAN;
+    w->made[l] = 1;
+    return map;
+}
+
+/* The tracker's peak at lag m.lag[l] into *L, on the map's inner +-R: the highest bin, or
+ * while tracking (tol > 0) the highest within tol subapertures of the predicted (px, py);
+ * inside when it is a local maximum off that window's edge (while tracking, another layer's
+ * peak elsewhere in the map is not this one's). */
+static void track_lag(wind_work *w, size_t l, double px, double py, double tol, swfs_wind_lag *L)
+{
+    const double *map = lag_map(w, l);
+    const size_t nb = w->nb, nbb = w->m.nb, off = w->m.R - w->R;
     const double R = (double)w->R;
-    size_t best = SIZE_MAX;
-    for (size_t b = 0; b < nb * nb; b++) {
-        if (!(w->den[b] > 0)) continue;
-        w->num[b] /= w->den[b];
-        if (tol > 0 && hypot((double)(b % nb) - R - px, (double)(b / nb) - R - py) > tol) continue;
-        if (best == SIZE_MAX || w->num[b] > w->num[best]) best = b;
-    }
-    L->lag = tau;
+    size_t best = SIZE_MAX, bi = 0, bj = 0;
+    for (size_t j = 0; j < nb; j++)
+        for (size_t i = 0; i < nb; i++) {
+            const size_t b = (j + off) * nbb + i + off;
+            if (isnan(map[b])) continue;
+            if (tol > 0 && hypot((double)i - R - px, (double)j - R - py) > tol) continue;
+            if (best == SIZE_MAX || map[b] > map[best]) { best = b; bi = i; bj = j; }
+        }
+    L->lag = w->m.lag[l];
     L->inside = 0;
     L->dx = L->dy = NAN;
-    L->corr = best == SIZE_MAX ? NAN : w->num[best];
+    L->corr = best == SIZE_MAX ? NAN : map[best];
     if (best == SIZE_MAX) return;
-    const size_t i = best % nb, j = best / nb;
-    L->dx = (double)i - (double)w->R;
-    L->dy = (double)j - (double)w->R;
-    if (i == 0 || j == 0 || i + 1 == nb || j + 1 == nb) return;
-    const size_t nbh[4] = {best - 1, best + 1, best - nb, best + nb};
+    L->dx = (double)bi - R;
+    L->dy = (double)bj - R;
+    if (bi == 0 || bj == 0 || bi + 1 == nb || bj + 1 == nb) return;
+    const size_t nbh[4] = {best - 1, best + 1, best - nbb, best + nbb};
     for (int k = 0; k < 4; k++)
-        if (!(w->den[nbh[k]] > 0) || w->num[nbh[k]] > w->num[best]) return;
+        if (isnan(map[nbh[k]]) || map[nbh[k]] > map[best]) return;
     L->inside = 1;
-    L->dx += vertex(w->num[best - 1], w->num[best], w->num[best + 1]);
-    L->dy += vertex(w->num[best - nb], w->num[best], w->num[best + nb]);
+    L->dx += vertex(map[best - 1], map[best], map[best + 1]);
+    L->dy += vertex(map[best - nbb], map[best], map[best + nbb]);
 }
 
 /* The least-squares velocity through the origin [subapertures per frame] of the lags used. */
@@ -98,7 +117,7 @@ static void fit_velocity(const swfs_wind_estimate *e, double *ux, double *uy)
 
 static void work_free(wind_work *w)
 {
-    free(w->x); free(w->y); free(w->c); free(w->bin); free(w->num); free(w->den);
+    free(w->x); free(w->y); free(w->c); free(w->bin); free(w->den); free(w->count); free(w->maps);
 }
 
 int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
@@ -149,17 +168,29 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
     w.T = nframes;
     w.R = nsub / 2 - 1;
     w.nb = 2 * w.R + 1;
+    w.m.nsub = nsub;
+    w.m.R = nsub - 1;
+    w.m.nb = 2 * w.m.R + 1;
+    /* the lags: 2^k and 3 x 2^k up to a quarter of the series (wind_internal.h) */
+    for (size_t p2 = 1; p2 <= nframes / 4 && w.m.nmaps < SWFS_WIND_MAXMAPS; p2 *= 2) {
+        w.m.lag[w.m.nmaps++] = p2;
+        if (p2 > 1 && 3 * p2 / 2 <= nframes / 4 && w.m.nmaps < SWFS_WIND_MAXMAPS) w.m.lag[w.m.nmaps++] = 3 * p2 / 2;
+    }
+    const size_t nbb = w.m.nb * w.m.nb;
     w.x = malloc(nframes * nv * sizeof *w.x);
     w.y = malloc(nframes * nv * sizeof *w.y);
     w.c = malloc(nv * nv * sizeof *w.c);
     w.bin = malloc(nv * nv * sizeof *w.bin);
-    w.num = malloc(w.nb * w.nb * sizeof *w.num);
-    w.den = calloc(w.nb * w.nb, sizeof *w.den);
-    if (!w.x || !w.y || !w.c || !w.bin || !w.num || !w.den) {
+    w.den = calloc(nbb, sizeof *w.den);
+    w.count = calloc(nbb, sizeof *w.count);
+    w.maps = malloc((w.m.nmaps ? w.m.nmaps : 1) * nbb * sizeof *w.maps);
+    if (!w.x || !w.y || !w.c || !w.bin || !w.den || !w.count || !w.maps) {
         free(col);
         work_free(&w);
         return swfs_fail(SWFS_ERR_NOMEM, "wind: out of memory for %zu frames of %zu subapertures", nframes, nv);
     }
+    w.m.map = w.maps;
+    w.m.count = w.count;
     for (size_t t = 0; t < nframes; t++)
         for (size_t p = 0; p < nv; p++) {
             w.x[t * nv + p] = slopes[t * nslopes + col[p]];
@@ -174,30 +205,30 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         for (size_t t = 0; t < nframes; t++) s += w.x[t * nv + p] * w.x[t * nv + p] + w.y[t * nv + p] * w.y[t * nv + p];
         sd[p] = sqrt(s);
     }
-    const long R = (long)w.R;
+    const long R = (long)w.m.R;
     for (size_t p = 0; p < nv; p++)
         for (size_t q = 0; q < nv; q++) {
             const size_t sp = pos[p], sq = pos[q];
             const long a = (long)(sq % nsub) - (long)(sp % nsub), b = (long)(sq / nsub) - (long)(sp / nsub);
-            int bi = -1;
-            if (labs(a) <= R && labs(b) <= R) {
-                bi = (int)((size_t)(b + R) * w.nb + (size_t)(a + R));
-                w.den[bi] += sd[p] * sd[q];
-            }
-            w.bin[p * nv + q] = bi;
+            const size_t bi = (size_t)(b + R) * w.m.nb + (size_t)(a + R);
+            w.den[bi] += sd[p] * sd[q];
+            w.count[bi]++;
+            w.bin[p * nv + q] = (int)bi;
         }
     free(col);
     out->nvalid = nv;
     out->radius = w.R;
     /* Doubling lags; tracking from the first resolved displacement (wind.h). */
     double ux = 0, uy = 0;
-    for (size_t tau = 1; tau <= nframes / 4 && out->nlags < SWFS_WIND_MAXLAGS; tau *= 2) {
+    for (size_t l = 0; l < w.m.nmaps && out->nlags < SWFS_WIND_MAXLAGS; l++) {
+        const size_t tau = w.m.lag[l];
+        if (tau & (tau - 1)) continue; /* the tracker takes the powers of two */
         /* Tracking stops where the predicted peak would leave the inner map: its neighbours
          * and enough overlapping pairs are needed to place it. */
         const double px = ux * (double)tau, py = uy * (double)tau;
         if (out->nused && (fabs(px) > (double)(w.R - 1) || fabs(py) > (double)(w.R - 1))) break;
         swfs_wind_lag *L = &out->lag[out->nlags++];
-        lag_map(&w, tau, px, py, out->nused ? 0.5 * hypot(px, py) : 0.0, L);
+        track_lag(&w, l, px, py, out->nused ? 0.5 * hypot(px, py) : 0.0, L);
         if (!L->inside) {
             if (out->nused) break;
             continue;
@@ -208,13 +239,17 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         out->nused++;
         fit_velocity(out, &ux, &uy);
     }
+    int rc = SWFS_OK;
+    if (out->nused >= 2) {
+        out->found = 1;
+        out->vx = ux * pitch * rate;
+        out->vy = uy * pitch * rate;
+        out->speed = hypot(out->vx, out->vy);
+        double dir = atan2(out->vy, out->vx) * 180.0 / M_PI;
+        out->direction = dir < 0 ? dir + 360.0 : dir;
+        for (size_t l = 0; l < w.m.nmaps; l++) lag_map(&w, l); /* every lag, for the stacking */
+        rc = swfs_wind_stack_layers_(&w.m, pitch, rate, out);
+    }
     work_free(&w);
-    if (out->nused < 2) return SWFS_OK; /* one lag alone does not show a steady motion */
-    out->found = 1;
-    out->vx = ux * pitch * rate;
-    out->vy = uy * pitch * rate;
-    out->speed = hypot(out->vx, out->vy);
-    double dir = atan2(out->vy, out->vx) * 180.0 / M_PI;
-    out->direction = dir < 0 ? dir + 360.0 : dir;
-    return SWFS_OK;
+    return rc;
 }

@@ -1,0 +1,26 @@
+/* Shared between wind.c (the lagged correlation maps, the tracked layer) and wind_stack.c
+ * (further layers by stacking the maps along candidate tracks); include/specklewfs/wind.h. */
+#ifndef SWFS_WIND_INTERNAL_H
+#define SWFS_WIND_INTERNAL_H
+
+#include "specklewfs/wind.h"
+
+#include <stddef.h>
+
+/* The lags whose maps are made: 2^k and 3 x 2^k frames up to a quarter of the series (the
+ * tracker takes the powers of two, the stacking every one). */
+#define SWFS_WIND_MAXMAPS 48
+
+typedef struct {
+    size_t nsub;           /* subapertures across */
+    size_t R, nb;          /* the whole grid's displacements: +-R = nsub - 1, nb = 2 R + 1 bins per side */
+    size_t nmaps;          /* maps made */
+    size_t lag[SWFS_WIND_MAXMAPS];
+    const double *map;     /* nmaps x nb x nb normalized correlations; NAN in a bin of no pair */
+    const size_t *count;   /* nb x nb: pairs of subapertures per bin */
+} swfs_wind_maps_;
+
+/* The further layers into e->layer[1..] (e->layer[0] and e->found set by the tracker; wind.h). */
+int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate, swfs_wind_estimate *e);
+
+#endif
