@@ -194,4 +194,8 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
                     "default (docs/telemetry.md)\n", cmd, labs(lags[k]), r->st_corr_obs[k], r->st_corr_train[k],
                     r->st_corr_spread[k]);
     }
+    if (r->info.nlags && (r->st_edges_joined || r->st_edges_clamped))
+        fprintf(stderr, "%s: space-time map: its lags run on into the neighbour telemetry file across %zu file "
+                "boundar%s the telemetry shows contiguous; clamped at %zu it does not\n", cmd, r->st_edges_joined,
+                r->st_edges_joined == 1 ? "y" : "ies", r->st_edges_clamped);
 }

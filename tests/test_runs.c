@@ -1288,6 +1288,10 @@ static void test_spacetime_reconstructor(void **state)
                    spr.st_train_nlayers);
             assert_true(spr.st_found && spr.st_mismatch < SWFS_SPACETIME_MISMATCH_WARN);
             assert_int_equal(spr.st_train_nlayers, l3.nwlayers);
+            /* its lags run on across the test data's file boundaries, which continue each other */
+            printf("test_runs: the lags across %zu file boundaries, clamped at %zu\n", spr.st_edges_joined,
+                   spr.st_edges_clamped);
+            assert_true(spr.st_edges_joined >= 1 && spr.st_edges_clamped == 0);
             assert_true(spr.st_obs_nlayers >= 1 && l3.nwlayers >= 1);
             printf("test_runs: its slopes' correlation at lag 4: the data %.3f, the loops %.3f +- %.3f\n",
                    spr.st_corr_obs[1], spr.st_corr_train[1], spr.st_corr_spread[1]);

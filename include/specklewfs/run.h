@@ -182,6 +182,11 @@ typedef struct swfs_speckles_run_result {
     double st_corr_excess;
     size_t st_corr_worst;
     long st_lags[SWFS_RECON_MAXLAGS]; /* the map's lags (info.nlags of them) */
+    /* Its lags run on into the neighbour telemetry files: the file boundaries (of the files
+     * this process read) across which the telemetry showed the files contiguous and the
+     * stacking went on, and those it clamped at (a neighbour the check calls not contiguous
+     * or cannot tell); a file without a neighbour counts in neither. */
+    size_t st_edges_joined, st_edges_clamped;
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which

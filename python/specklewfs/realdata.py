@@ -222,7 +222,8 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
              st_mismatch=r.st_mismatch, st_obs_nlayers=r.st_obs_nlayers, st_train_nlayers=r.st_train_nlayers,
              st_corr_train=np.array(r.st_corr_train[:nl]),
              st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
-             st_corr_excess=r.st_corr_excess)
+             st_corr_excess=r.st_corr_excess, st_edges_joined=r.st_edges_joined,
+             st_edges_clamped=r.st_edges_clamped)
     return d
 
 

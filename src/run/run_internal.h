@@ -39,6 +39,31 @@ int swfs_stream_run_milk(const swfs_stream_run_options *o, swfs_stream_run_resul
 
 int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hooks *hk, swfs_stream_run_result *r);
 
+/* The telemetry file just before (step -1) or after (+1) name (relative to dir, as a timing
+ * table or handshake log names it): the numbered neighbour when it exists (slopes_004.fits ->
+ * slopes_005.fits, the same width), else the neighbour among the folder's files named like it
+ * (the same length, differing in digits only: time stamps) in the order of their names. 1 with
+ * buf set (name's folder part + the neighbour's name), 0 if none. Whether it continues name
+ * is the data's to say (sync.h swfs_sync_boundary_check). */
+int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, char *buf, size_t cap);
+
+/* A space-time reconstructor's input stacked across telemetry files: the file in memory with
+ * up to `margin` (its largest |lag|) frames of the file before it prepended and of the file
+ * after it appended, each only where the telemetry says the two continue each other
+ * (swfs_sync_boundary_check on their edges: contiguous; a file without a neighbour, or one the
+ * check calls not contiguous or cannot tell, leaves that side to the clamping of
+ * swfs_slopes_stack). ext holds pre + ny + post frames; joined / clamped count the boundaries
+ * so decided over the calls. A neighbour of another width or with a non-finite slope is an
+ * error naming it. */
+typedef struct swfs_lag_edges_ {
+    double *ext;
+    size_t cap, pre, post, ny;
+    size_t joined, clamped;
+} swfs_lag_edges_;
+int swfs_lag_edges_load_(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, const char *name,
+                         const swfs_real *s, size_t margin);
+void swfs_lag_edges_free_(swfs_lag_edges_ *e);
+
 /* What a telemetry series does in time, for a space-time map's checks (learn records it of
  * its training loops, speckles measures it on the observation). wind (may be NULL): its wind
  * in subapertures per WFS frame (wind.h with pitch and rate 1: nothing the files lack);

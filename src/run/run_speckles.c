@@ -41,9 +41,10 @@ typedef struct work {
     swfs_real *slopes;
     double *stack;      /* a space-time reconstructor's stacked input for one piece */
     size_t stack_cap;   /* frames it holds */
+    swfs_lag_edges_ edges; /* the file in memory with its contiguous neighbours' edge frames */
     swfs_exposure *sched;
     size_t *cfirst, *cn;
-    char tdir[4096], path[8192], loaded[8192];
+    char tdir[4096], path[8192], loaded[8192], edges_for[8192];
 } work;
 
 static void work_free(work *w)
@@ -56,6 +57,7 @@ static void work_free(work *w)
     swfs_real_free(w->resmean);
     swfs_real_free(w->slopes);
     free(w->stack);
+    swfs_lag_edges_free_(&w->edges);
 }
 
 /* Science geometry and window, the actuators, the pupil mask. */
@@ -261,19 +263,29 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
 static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const swfs_timing_cube *tc, double wfs_hz)
 {
     int rc = swfs_telemetry_path(w->tdir, tc->slopes, w->path, sizeof w->path);
-    if (rc || !strcmp(w->loaded, w->path)) return rc;
-    swfs_real_free(w->slopes);
-    w->slopes = NULL;
-    w->loaded[0] = 0;
-    double r;
-    if ((rc = swfs_telemetry_read(w->path, w->nslopes, &w->slopes, &r))) return rc;
-    snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
-    return o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
+    if (!rc && strcmp(w->loaded, w->path)) {
+        swfs_real_free(w->slopes);
+        w->slopes = NULL;
+        w->loaded[0] = w->edges_for[0] = 0;
+        double r;
+        if ((rc = swfs_telemetry_read(w->path, w->nslopes, &w->slopes, &r))) return rc;
+        snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
+        rc = o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
+    }
+    if (!rc && w->rin && w->rin->nlags > 1 && strcmp(w->edges_for, w->path)) {
+        /* the lags run on into contiguous neighbour files */
+        long lmax = 0;
+        for (size_t k = 0; k < w->rin->nlags; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
+        rc = swfs_lag_edges_load_(&w->edges, w->tdir, w->t, tc->slopes, w->slopes, (size_t)lmax);
+        if (!rc) snprintf(w->edges_for, sizeof w->edges_for, "%s", w->path);
+    }
+    return rc;
 }
 
 /* A space-time reconstructor's input for the n frames from k0 of the file in memory: the
- * slopes of frames t + lags stacked, clamped at the file's ends (wfs.h swfs_slopes_stack).
- * The buffer grows to the largest piece, once. */
+ * slopes of frames t + lags stacked, running on into the neighbour files the telemetry shows
+ * contiguous (swfs_lag_edges_) and clamped at the ends beyond (wfs.h swfs_slopes_stack). The
+ * buffer grows to the largest piece, once. */
 static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
 {
     const size_t nl = w->rin->nlags, width = w->nslopes * nl;
@@ -283,7 +295,8 @@ static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
         w->stack = t;
         w->stack_cap = n;
     }
-    swfs_slopes_stack(w->slopes->data, w->slopes->ny, w->nslopes, w->rin->lags, nl, k0, n, w->stack);
+    const swfs_lag_edges_ *e = &w->edges;
+    swfs_slopes_stack(e->ext, e->pre + e->ny + e->post, w->nslopes, w->rin->lags, nl, e->pre + k0, n, w->stack);
     *sp = w->stack;
     return SWFS_OK;
 }
@@ -616,6 +629,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
             rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
         if (!rc) rc = process_cubes(o, &w, r, 0, r->nout);
     }
+    r->st_edges_joined = w.edges.joined;
+    r->st_edges_clamped = w.edges.clamped;
     if (!rc) rc = residual_mean(o, &w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
     if (!rc) {

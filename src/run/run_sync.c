@@ -149,99 +149,14 @@ static void inside(double s, double ratio, size_t n, size_t nwfs, size_t *j0, si
     *j1 = hi > lo ? (size_t)hi : *j0;
 }
 
-/* The name with its last run of digits (in the base name) moved by dir, keeping its width:
- * slopes_009.fits -> slopes_010.fits; 0 when there is none or it would go below zero. */
-static int numbered_neighbour(const char *name, int dir, char *out, size_t cap)
-{
-    const char *base = strrchr(name, '/');
-    base = base ? base + 1 : name;
-    const char *end = NULL;
-    for (const char *q = base; *q; q++)
-        if (*q >= '0' && *q <= '9' && !(q[1] >= '0' && q[1] <= '9')) end = q + 1;
-    if (!end) return 0;
-    const char *beg = end;
-    while (beg > base && beg[-1] >= '0' && beg[-1] <= '9') beg--;
-    if (end - beg > 18) return 0;
-    long long v = strtoll(beg, NULL, 10) + dir;
-    if (v < 0) return 0;
-    int len = snprintf(out, cap, "%.*s%0*lld%s", (int)(beg - name), name, (int)(end - beg), v, end);
-    return len > 0 && (size_t)len < cap;
-}
-
-/* Two file names that differ in digits only (the same length, the same other characters):
- * the files of one logger, numbered or time-stamped (slopes_20261126T010000.fits). */
-static int same_pattern(const char *a, const char *b)
-{
-    if (strlen(a) != strlen(b)) return 0;
-    for (; *a; a++, b++) {
-        const int da = *a >= '0' && *a <= '9', db = *b >= '0' && *b <= '9';
-        if (da != db || (!da && *a != *b)) return 0;
-    }
-    return 1;
-}
-
-static int cmp_names(const void *a, const void *b) { return strcmp(*(char *const *)a, *(char *const *)b); }
-
-/* name's neighbour (dir -1 or +1) among the files of its folder that share its pattern, in the
- * order of their names (for fixed-width numbers and time stamps, the order they were written):
- * the file after slopes_20261126T010000.fits may be slopes_20261126T010640.fits. 1 with buf
- * set (name's folder part + the neighbour's name), 0 if none. */
-static int listed_neighbour(const work *w, const char *name, int dir, char *buf, size_t cap)
-{
-    char path[8192], folder[8192];
-    if (swfs_telemetry_path(w->logdir, name, path, sizeof path)) return 0;
-    const char *base = strrchr(path, '/');
-    const size_t fl = base ? (size_t)(base - path) : 0;
-    snprintf(folder, sizeof folder, "%.*s", (int)(fl ? fl : 1), fl ? path : ".");
-    base = base ? base + 1 : path;
-    DIR *d = opendir(folder);
-    if (!d) return 0;
-    char **names = NULL;
-    size_t n = 0, capn = 0;
-    int ok = 1;
-    for (struct dirent *e; ok && (e = readdir(d));) {
-        if (!same_pattern(e->d_name, base)) continue;
-        if (n == capn) {
-            char **t = realloc(names, (capn ? 2 * capn : 16) * sizeof *t);
-            if (!t) { ok = 0; break; }
-            names = t;
-            capn = capn ? 2 * capn : 16;
-        }
-        if (!(names[n] = strdup(e->d_name))) { ok = 0; break; }
-        n++;
-    }
-    closedir(d);
-    int found = 0;
-    if (ok && n) {
-        qsort(names, n, sizeof *names, cmp_names);
-        for (size_t k = 0; k < n; k++) {
-            if (strcmp(names[k], base)) continue;
-            const size_t j = dir > 0 ? k + 1 : k - 1; /* k = 0, dir < 0: wraps to SIZE_MAX */
-            if (j < n) {
-                const char *slash = strrchr(name, '/');
-                const int len = snprintf(buf, cap, "%.*s%s", slash ? (int)(slash - name + 1) : 0, name, names[j]);
-                found = len > 0 && (size_t)len < cap;
-            }
-            break;
-        }
-    }
-    for (size_t k = 0; k < n; k++) free(names[k]);
-    free(names);
-    return found;
-}
-
 /* The telemetry file just before (dir -1) or after (+1) name: the numbered neighbour in the
  * same folder when it exists (slopes_004.fits -> slopes_005.fits), else the neighbour among
- * the folder's files named like it (listed_neighbour: time-stamped names), else the next or
+ * the folder's files named like it (time-stamped names; swfs_telemetry_neighbour_), else the next or
  * previous one in the order the handshake log first names them; NULL if none. sync's check
  * on the data (split_cube) decides whether it really continues name. */
 static const char *adjacent_file(const work *w, const char *name, int dir, char *buf, size_t cap)
 {
-    char path[8192];
-    if (numbered_neighbour(name, dir, buf, cap) && !swfs_telemetry_path(w->logdir, buf, path, sizeof path) &&
-        access(path, R_OK) == 0)
-        return buf;
-    if (listed_neighbour(w, name, dir, buf, cap)) return buf;
+    if (swfs_telemetry_neighbour_(w->logdir, name, dir, buf, cap)) return buf;
     const char *prev = NULL;
     int found = 0;
     for (size_t k = 0; k < w->nhs; k++) {
