@@ -94,7 +94,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
         if (!rc) rc = swfs_fits_out_key_long(f, "LRNNLAY", (long)r->nwlayers, "frozen-flow layers in their slopes");
     }
     for (size_t k = 0; !rc && k < r->nwlayers; k++) {
-        char key[4][16];
+        char key[4][32];
         snprintf(key[0], sizeof key[0], "LRNL%zuX", k + 1);
         snprintf(key[1], sizeof key[1], "LRNL%zuY", k + 1);
         snprintf(key[2], sizeof key[2], "LRNL%zuN", k + 1);
