@@ -198,4 +198,7 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
         fprintf(stderr, "%s: space-time map: its lags run on into the neighbour telemetry file across %zu file "
                 "boundar%s the telemetry shows contiguous; clamped at %zu it does not\n", cmd, r->st_edges_joined,
                 r->st_edges_joined == 1 ? "y" : "ies", r->st_edges_clamped);
+    if (r->info.nlags && r->st_edges_unreadable)
+        fprintf(stderr, "%s: space-time map: clamped at %zu file boundar%s whose neighbour file could not be read (%s)\n",
+                cmd, r->st_edges_unreadable, r->st_edges_unreadable == 1 ? "y" : "ies", r->st_edges_why);
 }

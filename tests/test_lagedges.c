@@ -2,7 +2,7 @@
  * cut into two numbered files that continue each other is stacked as the whole series would
  * be, across the boundary, from either file; where frames were lost between them the
  * telemetry's own check says so and that side is left to the clamping; a neighbour of another
- * width is refused by name. */
+ * width or cut short leaves that side clamped too, its reason kept with the file named. */
 #include "testutil.h"
 
 #include "../src/run/run_internal.h"
@@ -101,15 +101,29 @@ static void test_lag_edges(void **state)
     swfs_slopes_stack(l.ext, l.pre + l.ny + l.post, NS, lags, 3, 290, 10, got); /* clamped to frame 299 */
     for (size_t k = 0; k < NS; k++) assert_true(got[(9 * 3 + 2) * NS + k] == whole[299 * NS + k]);
 
-    /* a neighbour of another width: refused, named */
+    /* a neighbour of another width, then one cut short: that side clamps, the reason kept with
+     * the file named; the file's own frames stay as they are */
     write_part(wide, "slopes_000.fits", 0, 300, NS);
     write_part(wide, "slopes_001.fits", 300, NT, NS + 2);
     swfs_lag_edges_ w = {0};
     swfs_real *w0 = read_part(wide, "slopes_000.fits");
-    assert_int_equal(swfs_lag_edges_load_(&w, wide, &t, "slopes_000.fits", w0, 15), SWFS_ERR_SHAPE);
-    printf("test_lagedges: %s\n", swfs_last_error());
-    assert_non_null(strstr(swfs_last_error(), "lagedges_wide/slopes_001.fits"));
-    assert_non_null(strstr(swfs_last_error(), "expected 8 slopes"));
+    assert_ok(swfs_lag_edges_load_(&w, wide, &t, "slopes_000.fits", w0, 15));
+    printf("test_lagedges: a neighbour of another width: %zu unreadable (%s)\n", w.unreadable, w.why);
+    assert_int_equal(w.unreadable, 1);
+    assert_int_equal(w.post, 0);
+    assert_int_equal(w.joined, 0);
+    assert_non_null(strstr(w.why, "lagedges_wide/slopes_001.fits"));
+    assert_non_null(strstr(w.why, "expected 8 slopes"));
+    assert_memory_equal(w.ext, w0->data, 300 * NS * sizeof(double));
+    char cut[1200];
+    snprintf(cut, sizeof cut, "%s/slopes_001.fits", wide);
+    write_part(wide, "slopes_001.fits", 300, NT, NS);
+    assert_int_equal(truncate(cut, 4000), 0); /* the header and part of the data */
+    assert_ok(swfs_lag_edges_load_(&w, wide, &t, "slopes_000.fits", w0, 15));
+    printf("test_lagedges: a neighbour cut short: %zu unreadable (%s)\n", w.unreadable, w.why);
+    assert_int_equal(w.unreadable, 2);
+    assert_int_equal(w.post, 0);
+    assert_non_null(strstr(w.why, "slopes_001.fits"));
 
     swfs_lag_edges_free_(&e);
     swfs_lag_edges_free_(&l);

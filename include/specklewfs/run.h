@@ -185,8 +185,11 @@ typedef struct swfs_speckles_run_result {
     /* Its lags run on into the neighbour telemetry files: the file boundaries (of the files
      * this process read) across which the telemetry showed the files contiguous and the
      * stacking went on, and those it clamped at (a neighbour the check calls not contiguous
-     * or cannot tell); a file without a neighbour counts in neither. */
-    size_t st_edges_joined, st_edges_clamped;
+     * or cannot tell); a file without a neighbour counts in neither. Neighbours that could not
+     * be read (another width, a non-finite slope, a truncated file) leave that side clamped
+     * too: st_edges_unreadable of them, the last one's reason in st_edges_why. */
+    size_t st_edges_joined, st_edges_clamped, st_edges_unreadable;
+    char st_edges_why[512];
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which

@@ -326,7 +326,8 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_train", c_dbl * RECON_MAXLAGS), ("st_corr_spread", c_dbl * RECON_MAXLAGS),
     ("st_corr_obs", c_dbl * RECON_MAXLAGS),
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
-    ("st_edges_joined", c_size), ("st_edges_clamped", c_size)])
+    ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
+    ("st_edges_why", ctypes.c_char * 512)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

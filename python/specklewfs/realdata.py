@@ -223,7 +223,8 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
              st_corr_train=np.array(r.st_corr_train[:nl]),
              st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
              st_corr_excess=r.st_corr_excess, st_edges_joined=r.st_edges_joined,
-             st_edges_clamped=r.st_edges_clamped)
+             st_edges_clamped=r.st_edges_clamped, st_edges_unreadable=r.st_edges_unreadable,
+             st_edges_why=r.st_edges_why.decode(errors="replace"))
     return d
 
 

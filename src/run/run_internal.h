@@ -53,12 +53,14 @@ int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, char 
  * (swfs_sync_boundary_check on their edges: contiguous; a file without a neighbour, or one the
  * check calls not contiguous or cannot tell, leaves that side to the clamping of
  * swfs_slopes_stack). ext holds pre + ny + post frames; joined / clamped count the boundaries
- * so decided over the calls. A neighbour of another width or with a non-finite slope is an
- * error naming it. */
+ * so decided over the calls. A neighbour that cannot be read (another width, a non-finite
+ * slope, a truncated file) leaves that side clamped too, counted in unreadable, the last
+ * reason in why: the run's own cubes do not need it. */
 typedef struct swfs_lag_edges_ {
     double *ext;
     size_t cap, pre, post, ny;
-    size_t joined, clamped;
+    size_t joined, clamped, unreadable;
+    char why[512];
 } swfs_lag_edges_;
 int swfs_lag_edges_load_(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, const char *name,
                          const swfs_real *s, size_t margin);

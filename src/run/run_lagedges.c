@@ -1,6 +1,7 @@
 /* A space-time reconstructor's lags across telemetry files: the file in memory extended by
  * its neighbours' edge frames where the telemetry shows the files continue each other
- * (run_internal.h swfs_lag_edges_). */
+ * (run_internal.h swfs_lag_edges_). A neighbour that cannot be read leaves that side clamped:
+ * this run's own cubes do not need it. */
 #include "specklewfs/fits.h"
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
@@ -75,7 +76,12 @@ static int side(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, cons
     const size_t ns = s->nx, want = margin > SWFS_SYNC_EDGE_FRAMES ? margin : SWFS_SYNC_EDGE_FRAMES;
     double *edge = NULL;
     size_t got = 0;
-    if (!rc) rc = read_frames(path, ns, step < 0, want, &edge, &got);
+    if (!rc && read_frames(path, ns, step < 0, want, &edge, &got)) {
+        /* a neighbour this run does not need cannot stop it: that side clamps, and says why */
+        e->unreadable++;
+        snprintf(e->why, sizeof e->why, "%s", swfs_last_error());
+        return SWFS_OK;
+    }
     if (rc || !got) return rc;
     /* the telemetry's own verdict across the boundary (sync.h), on the edges either side */
     const size_t own = s->ny < SWFS_SYNC_EDGE_FRAMES ? s->ny : SWFS_SYNC_EDGE_FRAMES;

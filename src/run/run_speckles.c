@@ -631,6 +631,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     }
     r->st_edges_joined = w.edges.joined;
     r->st_edges_clamped = w.edges.clamped;
+    r->st_edges_unreadable = w.edges.unreadable;
+    snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w.edges.why);
     if (!rc) rc = residual_mean(o, &w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
     if (!rc) {
