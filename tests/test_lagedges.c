@@ -49,6 +49,17 @@ static swfs_real *read_part(const char *dir, const char *name)
     return s;
 }
 
+/* dir/slopes_000.fits (frames 0..299) and dir/slopes_001.fits (frames from next0 on, of
+ * width ns1); the edges of the first loaded into *e with a margin of 15; *s0 its frames. */
+static void pair_case(const char *dir, size_t next0, size_t ns1, swfs_lag_edges_ *e, swfs_real **s0)
+{
+    static const swfs_timing none = {0};
+    write_part(dir, "slopes_000.fits", 0, 300, NS);
+    write_part(dir, "slopes_001.fits", next0, NT, ns1);
+    *s0 = read_part(dir, "slopes_000.fits");
+    assert_ok(swfs_lag_edges_load_(e, dir, &none, "slopes_000.fits", *s0, 15));
+}
+
 static void test_lag_edges(void **state)
 {
     (void)state;
@@ -89,11 +100,9 @@ static void test_lag_edges(void **state)
     printf("test_lagedges: contiguous files: %zu boundaries joined, the stacked input as the whole series'\n", e.joined);
 
     /* ten frames lost between the files: the telemetry says they do not continue each other */
-    write_part(lost, "slopes_000.fits", 0, 300, NS);
-    write_part(lost, "slopes_001.fits", 310, NT, NS);
     swfs_lag_edges_ l = {0};
-    swfs_real *l0 = read_part(lost, "slopes_000.fits");
-    assert_ok(swfs_lag_edges_load_(&l, lost, &t, "slopes_000.fits", l0, 15));
+    swfs_real *l0 = NULL;
+    pair_case(lost, 310, NS, &l, &l0);
     printf("test_lagedges: ten frames lost between the files: %zu joined, %zu clamped\n", l.joined, l.clamped);
     assert_int_equal(l.post, 0);
     assert_int_equal(l.joined, 0);
@@ -103,11 +112,9 @@ static void test_lag_edges(void **state)
 
     /* a neighbour of another width, then one cut short: that side clamps, the reason kept with
      * the file named; the file's own frames stay as they are */
-    write_part(wide, "slopes_000.fits", 0, 300, NS);
-    write_part(wide, "slopes_001.fits", 300, NT, NS + 2);
     swfs_lag_edges_ w = {0};
-    swfs_real *w0 = read_part(wide, "slopes_000.fits");
-    assert_ok(swfs_lag_edges_load_(&w, wide, &t, "slopes_000.fits", w0, 15));
+    swfs_real *w0 = NULL;
+    pair_case(wide, 300, NS + 2, &w, &w0);
     printf("test_lagedges: a neighbour of another width: %zu unreadable (%s)\n", w.unreadable, w.why);
     assert_int_equal(w.unreadable, 1);
     assert_int_equal(w.post, 0);
