@@ -39,8 +39,7 @@ static void centre(double *a, size_t T, size_t nv)
     }
 }
 
-/* Parabola through three samples: the vertex's offset from the middle one, in [-0.5, 0.5]. */
-static double vertex(double l, double c, double r)
+double swfs_wind_vertex_(double l, double c, double r)
 {
     const double d = l - 2 * c + r;
     if (!(d < 0)) return 0;
@@ -96,8 +95,8 @@ static void track_lag(wind_work *w, size_t l, double px, double py, double tol, 
     for (int k = 0; k < 4; k++)
         if (isnan(map[nbh[k]]) || map[nbh[k]] > map[best]) return;
     L->inside = 1;
-    L->dx += vertex(map[best - 1], map[best], map[best + 1]);
-    L->dy += vertex(map[best - nbb], map[best], map[best + nbb]);
+    L->dx += swfs_wind_vertex_(map[best - 1], map[best], map[best + 1]);
+    L->dy += swfs_wind_vertex_(map[best - nbb], map[best], map[best + nbb]);
 }
 
 /* The least-squares velocity through the origin [subapertures per frame] of the lags used. */

@@ -20,6 +20,10 @@ typedef struct {
     const size_t *count;   /* nb x nb: pairs of subapertures per bin */
 } swfs_wind_maps_;
 
+/* Parabola through three samples: the vertex's offset from the middle one, in [-0.5, 0.5]
+ * (0 where they do not bend down). The tracker's and the stacking's peaks alike. */
+double swfs_wind_vertex_(double l, double c, double r);
+
 /* The further layers into e->layer[1..] (e->layer[0] and e->found set by the tracker; wind.h). */
 int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate, swfs_wind_estimate *e);
 

@@ -71,15 +71,6 @@ static double score(const stack_ctx *s, double ux, double uy, size_t *nl, double
     return n >= 2 ? sum / sqrt((double)n) : NAN;
 }
 
-/* Parabola through three samples: the vertex's offset from the middle one, in [-0.5, 0.5]. */
-static double vertex(double l, double c, double r)
-{
-    const double d = l - 2 * c + r;
-    if (!(d < 0)) return 0;
-    const double o = 0.5 * (l - r) / d;
-    return o < -0.5 ? -0.5 : o > 0.5 ? 0.5 : o;
-}
-
 /* The track's velocity to a fraction of a bin, as the tracker places its own: on each lag
  * that counts, the highest bin within one of the predicted u tau, when it is a local
  * maximum, refined by a parabola on each axis; the least-squares velocity through the origin
@@ -109,8 +100,8 @@ static void polish(const stack_ctx *s, double *ux, double *uy)
         int peak = 1;
         for (int k = 0; k < 4 && peak; k++) peak = m->count[nbh[k]] >= s->minc && !(map[nbh[k]] > map[b]);
         if (!peak) continue;
-        const double dx = (double)bi + vertex(map[b - 1], map[b], map[b + 1]);
-        const double dy = (double)bj + vertex(map[b - m->nb], map[b], map[b + m->nb]);
+        const double dx = (double)bi + swfs_wind_vertex_(map[b - 1], map[b], map[b + 1]);
+        const double dy = (double)bj + swfs_wind_vertex_(map[b - m->nb], map[b], map[b + m->nb]);
         stt += tau * tau;
         sx += tau * dx;
         sy += tau * dy;
