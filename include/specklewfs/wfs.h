@@ -112,6 +112,8 @@ typedef struct swfs_recon {
 int swfs_lags_parse(const char *text, long *lags, size_t *nlags, const char *what);
 /* The same checks on lags already parsed (a file's keywords). */
 int swfs_lags_check(const long *lags, size_t nlags, const char *what);
+/* The largest |lag| [WFS frames]: how far the stacked input reaches (0 for none). */
+long swfs_lags_max_abs(const long *lags, size_t nlags);
 /* out (count x nslopes nlags, row-major) = the slopes of frames first + t + lags[k] of
  * s (nframes x nslopes) for t < count, each frame index clamped into [0, nframes): the
  * space-time reconstructor's input. The frames beyond a data set's ends repeat its edge. */

@@ -205,8 +205,7 @@ static void training_stats(const set_stats *st, const swfs_learn_run_options *o,
     }
     /* every set's layers, grouped: one within SWFS_SPACETIME_MISMATCH_WARN subaperture at the
      * largest lag of a group's mean joins it (the first such), others start a group */
-    long lmax = 0;
-    for (size_t k = 0; k < o->nlags; k++) lmax = labs(o->lags[k]) > lmax ? labs(o->lags[k]) : lmax;
+    const long lmax = swfs_lags_max_abs(o->lags, o->nlags);
     const double tol = SWFS_SPACETIME_MISMATCH_WARN / (double)(lmax ? lmax : 1);
     double sx[SWFS_LEARN_MAXWLAYERS] = {0}, sy[SWFS_LEARN_MAXWLAYERS] = {0};
     for (size_t d = 0; d < o->ndirs; d++)

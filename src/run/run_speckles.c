@@ -274,9 +274,8 @@ static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const s
     }
     if (!rc && w->rin && w->rin->nlags > 1 && strcmp(w->edges_for, w->path)) {
         /* the lags run on into contiguous neighbour files */
-        long lmax = 0;
-        for (size_t k = 0; k < w->rin->nlags; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
-        rc = swfs_lag_edges_load_(&w->edges, w->tdir, w->t, tc->slopes, w->slopes, (size_t)lmax);
+        rc = swfs_lag_edges_load_(&w->edges, w->tdir, w->t, tc->slopes, w->slopes,
+                                  (size_t)swfs_lags_max_abs(w->rin->lags, w->rin->nlags));
         if (!rc) snprintf(w->edges_for, sizeof w->edges_for, "%s", w->path);
     }
     return rc;
@@ -367,8 +366,7 @@ static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_spe
         }
     }
     if (rc || !e.found) return rc;
-    long lmax = 0;
-    for (size_t k = 0; k < nl; k++) lmax = labs(w->rin->lags[k]) > lmax ? labs(w->rin->lags[k]) : lmax;
+    const long lmax = swfs_lags_max_abs(w->rin->lags, nl);
     if (!nlay) { /* a map from before the layers: its mean wind against the tracked layer */
         lx[0] = r->st_train_vx;
         ly[0] = r->st_train_vy;

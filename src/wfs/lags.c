@@ -28,6 +28,13 @@ int swfs_lags_check(const long *lags, size_t nlags, const char *what)
     return SWFS_OK;
 }
 
+long swfs_lags_max_abs(const long *lags, size_t nlags)
+{
+    long m = 0;
+    for (size_t k = 0; k < nlags; k++) m = labs(lags[k]) > m ? labs(lags[k]) : m;
+    return m;
+}
+
 int swfs_lags_parse(const char *text, long *lags, size_t *nlags, const char *what)
 {
     *nlags = 0;
