@@ -42,10 +42,13 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
 /* The telemetry file just before (step -1) or after (+1) name (relative to dir, as a timing
  * table or handshake log names it): the numbered neighbour when it exists (slopes_004.fits ->
  * slopes_005.fits, the same width), else the neighbour among the folder's files named like it
- * (the same length, differing in digits only: time stamps) in the order of their names. 1 with
- * buf set (name's folder part + the neighbour's name), 0 if none. Whether it continues name
- * is the data's to say (sync.h swfs_sync_boundary_check). */
-int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, char *buf, size_t cap);
+ * (the same length, differing in digits only: time stamps) in the order of their names, else
+ * the one before or after it in the order a list first names them: the n names at order,
+ * order + stride, ... (a name field of an array of structs: the handshake log's or the timing
+ * table's rows; order NULL: none). 1 with buf set, 0 if none. Whether it continues name is
+ * the data's to say (sync.h swfs_sync_boundary_check). */
+int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, const char *order, size_t stride, size_t n,
+                              char *buf, size_t cap);
 
 /* A space-time reconstructor's input stacked across telemetry files: the file in memory with
  * up to `margin` (its largest |lag|) frames of the file before it prepended and of the file

@@ -43,26 +43,6 @@ static int read_frames(const char *path, size_t nslopes, int tail, size_t n, dou
     return SWFS_OK;
 }
 
-/* The neighbour (step -1 / +1) of name: the logger's series (swfs_telemetry_neighbour_), else
- * the table's own order of its files. 1 with buf set. */
-static int neighbour(const char *tdir, const swfs_timing *t, const char *name, int step, char *buf, size_t cap)
-{
-    if (swfs_telemetry_neighbour_(tdir, name, step, buf, cap)) return 1;
-    const char *prev = NULL;
-    int found = 0;
-    for (size_t c = 0; c < t->ncubes; c++) {
-        const char *f = t->cubes[c].slopes;
-        if (prev && !strcmp(prev, f)) continue;
-        if (found) return snprintf(buf, cap, "%s", f) < (int)cap;
-        if (!strcmp(f, name)) {
-            found = 1;
-            if (step < 0) return prev && snprintf(buf, cap, "%s", prev) < (int)cap;
-        }
-        prev = f;
-    }
-    return 0;
-}
-
 /* One side: the neighbour's `margin` frames next to the file in memory, when the telemetry
  * says the two continue each other; *n 0 otherwise (*joined says which). */
 static int side(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, const char *name, const swfs_real *s,
@@ -71,7 +51,10 @@ static int side(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, cons
     char nb[SWFS_SYNC_NAME], path[8192];
     *frames = NULL;
     *n = 0;
-    if (!neighbour(tdir, t, name, step, nb, sizeof nb)) return SWFS_OK;
+    /* the logger's series, else the timing table's own order of its files */
+    if (!swfs_telemetry_neighbour_(tdir, name, step, t->ncubes ? t->cubes[0].slopes : NULL, sizeof *t->cubes,
+                                   t->ncubes, nb, sizeof nb))
+        return SWFS_OK;
     int rc = swfs_telemetry_path(tdir, nb, path, sizeof path);
     const size_t ns = s->nx, want = margin > SWFS_SYNC_EDGE_FRAMES ? margin : SWFS_SYNC_EDGE_FRAMES;
     double *edge = NULL;

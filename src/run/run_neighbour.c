@@ -91,11 +91,35 @@ static int listed_neighbour(const char *logdir, const char *name, int dir, char 
     return found;
 }
 
-int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, char *buf, size_t cap)
+/* The n names at order, order + stride, ... (a field of an array of structs) */
+static const char *nth(const char *order, size_t stride, size_t k) { return order + k * stride; }
+
+/* name's neighbour in the order the names first appear in that list (repeats skipped). */
+static int ordered_neighbour(const char *order, size_t stride, size_t n, const char *name, int step, char *buf,
+                             size_t cap)
+{
+    const char *prev = NULL, *hit = NULL;
+    int found = 0;
+    for (size_t k = 0; k < n && !hit; k++) {
+        const char *f = nth(order, stride, k);
+        int seen = 0;
+        for (size_t q = 0; q < k && !seen; q++) seen = !strcmp(nth(order, stride, q), f);
+        if (seen) continue;
+        if (found) hit = step > 0 ? f : prev;
+        else if (!strcmp(f, name)) found = 1;
+        else prev = f;
+    }
+    if (!hit && found && step < 0) hit = prev;
+    return hit && snprintf(buf, cap, "%s", hit) < (int)cap;
+}
+
+int swfs_telemetry_neighbour_(const char *dir, const char *name, int step, const char *order, size_t stride, size_t n,
+                              char *buf, size_t cap)
 {
     char path[8192];
     if (numbered_neighbour(name, step, buf, cap) && !swfs_telemetry_path(dir, buf, path, sizeof path) &&
         access(path, R_OK) == 0)
         return 1;
-    return listed_neighbour(dir, name, step, buf, cap);
+    if (listed_neighbour(dir, name, step, buf, cap)) return 1;
+    return order && ordered_neighbour(order, stride, n, name, step, buf, cap);
 }

@@ -156,19 +156,8 @@ static void inside(double s, double ratio, size_t n, size_t nwfs, size_t *j0, si
  * on the data (split_cube) decides whether it really continues name. */
 static const char *adjacent_file(const work *w, const char *name, int dir, char *buf, size_t cap)
 {
-    if (swfs_telemetry_neighbour_(w->logdir, name, dir, buf, cap)) return buf;
-    const char *prev = NULL;
-    int found = 0;
-    for (size_t k = 0; k < w->nhs; k++) {
-        const char *f = w->hs[k].slopes;
-        int seen = 0;
-        for (size_t q = 0; q < k && !seen; q++) seen = !strcmp(w->hs[q].slopes, f);
-        if (seen) continue;
-        if (found) return dir > 0 ? f : prev;
-        if (!strcmp(f, name)) found = 1;
-        else prev = f;
-    }
-    return found && dir < 0 ? prev : NULL;
+    return swfs_telemetry_neighbour_(w->logdir, name, dir, w->nhs ? w->hs[0].slopes : NULL, sizeof *w->hs, w->nhs, buf,
+                                     cap) ? buf : NULL;
 }
 
 /* One row of the table: exposures [j0, j1) of the cube, starting at s in the file name. */
