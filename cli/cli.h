@@ -156,6 +156,8 @@ void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, c
 /* The focal radius the speckles were computed within, when there is one (given: --band). */
 void cli_band_summary(const char *cmd, const struct swfs_pipeline_info *in, int given);
 struct swfs_speckles_run_result;
+/* A space-time reconstructor's checks against the observation (run.h st_*), with their warnings
+ * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
 #define CLI_LINEAR_HELP \
     "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \

@@ -1,0 +1,61 @@
+/* What `speckles` prints of a space-time reconstructor against the observation (cli.h). */
+#include "cli.h"
+#include "specklewfs/run.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+
+/* A space-time reconstructor's two checks against the observation (run.h st_*): the winds'
+ * distance at the largest lag and the slopes' correlation at the lags, each with its warning. */
+void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r)
+{
+    if (r->info.nlags && !isnan(r->st_train_vx) && r->st_found) {
+        if (r->st_train_nlayers)
+            fprintf(stderr, "%s: space-time map: this telemetry's slopes show %zu frozen-flow layer%s, its training "
+                    "loops' %zu; the layer here farthest from the loops' nearest moves (%.4f, %.4f) subapertures per WFS "
+                    "frame, that one (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd, r->st_obs_nlayers,
+                    r->st_obs_nlayers == 1 ? "" : "s", r->st_train_nlayers, r->st_obs_vx, r->st_obs_vy, r->st_train_vx,
+                    r->st_train_vy, r->st_mismatch);
+        else
+            fprintf(stderr, "%s: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
+                    "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd,
+                    r->st_train_vx, r->st_train_vy, r->st_obs_vx, r->st_obs_vy, r->st_mismatch);
+        if (r->st_mismatch > SWFS_SPACETIME_MISMATCH_WARN)
+            fprintf(stderr, "%s: warning: the map was taught at another wind than this telemetry's (%s more than %.2f "
+                    "subaperture apart at its largest lag): a space-time map taught at the wrong wind can be far worse "
+                    "than the default; simulate the loops with the layers `specklewfs wind` gives (docs/telemetry.md)\n",
+                    cmd, r->st_train_nlayers ? "a layer here and every layer of its loops" : "the two",
+                    SWFS_SPACETIME_MISMATCH_WARN);
+    } else if (r->info.nlags) {
+        fprintf(stderr, "%s: space-time map: %s; its wind cannot be checked against this telemetry's\n", cmd,
+                isnan(r->st_train_vx) ? "no training wind in its file (LRNVX, LRNVY)" : "no wind found in the telemetry");
+    }
+    if (r->info.nlags && r->st_corr_worst < SWFS_RECON_MAXLAGS) {
+        const size_t k = r->st_corr_worst;
+        const long *lags = r->st_lags;
+        fprintf(stderr, "%s: space-time map: the slopes' correlation, this telemetry's against the training "
+                "loops' (mean +- the farthest loop's distance), at", cmd);
+        for (size_t j = 0; j < r->info.nlags; j++) {
+            int seen = lags[j] == 0;
+            for (size_t i = 0; i < j && !seen; i++) seen = labs(lags[i]) == labs(lags[j]);
+            if (!seen)
+                fprintf(stderr, " %ld frames %.3f / %.3f +- %.3f;", labs(lags[j]), r->st_corr_obs[j], r->st_corr_train[j],
+                        r->st_corr_spread[j]);
+        }
+        fprintf(stderr, "\n");
+        if (r->st_corr_excess > 0)
+            fprintf(stderr, "%s: warning: %ld frames apart this telemetry's slopes correlate at %.3f where the "
+                    "training loops' did at %.3f +- %.3f (more than three times that apart): a layer or a speed the loops "
+                    "lack; a space-time map taught without the observation's whole profile can be worse than the "
+                    "default (docs/telemetry.md)\n", cmd, labs(lags[k]), r->st_corr_obs[k], r->st_corr_train[k],
+                    r->st_corr_spread[k]);
+    }
+    if (r->info.nlags && (r->st_edges_joined || r->st_edges_clamped))
+        fprintf(stderr, "%s: space-time map: its lags run on into the neighbour telemetry file across %zu file "
+                "boundar%s the telemetry shows contiguous; clamped at %zu it does not\n", cmd, r->st_edges_joined,
+                r->st_edges_joined == 1 ? "y" : "ies", r->st_edges_clamped);
+    if (r->info.nlags && r->st_edges_unreadable)
+        fprintf(stderr, "%s: space-time map: clamped at %zu file boundar%s whose neighbour file could not be read (%s)\n",
+                cmd, r->st_edges_unreadable, r->st_edges_unreadable == 1 ? "y" : "ies", r->st_edges_why);
+}
