@@ -28,6 +28,7 @@ int swfs_cmd_replay(int argc, char **argv);
 int swfs_cmd_liveloop(int argc, char **argv);
 int swfs_cmd_learn(int argc, char **argv);
 int swfs_cmd_wind(int argc, char **argv);
+int swfs_cmd_teach(int argc, char **argv);
 /* The closed-loop table (cli/cmd_correct.c), also printed by `demo`. */
 struct swfs_loop_result;
 void cli_print_loop_table(const struct swfs_loop_result *r);
@@ -64,6 +65,11 @@ void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
 int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */
 int cli_make_dir(const char *cmd, const char *path);
+/* The time-series simulator's parameters from CONFIG (NULL: none) with the key=value
+ * overrides applied after it, checked (unused keys refused); prints and returns non-zero on
+ * failure. */
+struct swfs_ts_params;
+int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p);
 /* A command's files, checked before any work (specklewfs/outpaths.h): the paths' status,
  * printed as the command's error (CLI_FAIL) when it is a failure; frees p. */
 struct swfs_paths;

@@ -99,25 +99,17 @@ int swfs_cmd_liveloop(int argc, char **argv)
     const char *cmd = "liveloop", *cfgfile = NULL;
     swfs_live_loop_options o;
     swfs_live_loop_options_default(&o);
-    swfs_config *cfg = swfs_config_new(), *file = NULL;
+    swfs_config *cfg = swfs_config_new();
     if (!cfg) return cli_error(cmd);
     int rc = parse(argc, argv, cfg, &o, &cfgfile);
     if (rc) {
         swfs_config_free(cfg);
         return rc < 0 ? CLI_OK : rc;
     }
-    if (cfgfile) { /* the file first, then the key=value overrides */
-        if (!(file = swfs_config_new()) || swfs_config_load(file, cfgfile)) rc = cli_error(cmd);
-        for (size_t k = 0; !rc && k < swfs_config_count(cfg); k++)
-            if (swfs_config_set_kv(file, swfs_config_key(cfg, k), swfs_config_value(cfg, k))) rc = cli_error(cmd);
-    }
-    swfs_config *use = file ? file : cfg;
-    if (!rc && (swfs_ts_params_from_config(use, &o.sim) || swfs_config_check_unused(use) || swfs_ts_params_check(&o.sim)))
-        rc = cli_error(cmd);
+    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim);
     if (!rc) rc = cli_make_dir(cmd, o.dir);
     if (rc) {
         swfs_config_free(cfg);
-        swfs_config_free(file);
         return rc;
     }
     o.prov = cli_provenance(argc, argv, &o.nprov);
@@ -132,7 +124,6 @@ int swfs_cmd_liveloop(int argc, char **argv)
     swfs_live_loop_result r;
     rc = swfs_live_loop_run(&o, &r);
     swfs_config_free(cfg);
-    swfs_config_free(file);
     if (rc) return cli_error(cmd);
     printf("liveloop: %s: %zu corrections through streams (gain %.2f, %s influence, replay x%.3g, batch %zu) in %.1f s\n",
            o.dir, r.nstates - 1, o.gain, o.dmfit.influence == SWFS_INFLUENCE_CUBIC ? "cubic" : "Gaussian", o.speed,

@@ -2,7 +2,9 @@
  * output folders and paths (cli.h). */
 #include "cli.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/config.h"
 #include "specklewfs/status.h"
+#include "specklewfs/timeseries.h"
 
 #include <errno.h>
 #include <stdarg.h>
@@ -126,4 +128,20 @@ const char *const *cli_provenance(int argc, char **argv, size_t *n)
     cli_command_line(argc, argv, line, sizeof line);
     *n = 1;
     return lines;
+}
+
+int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p)
+{
+    swfs_config *file = NULL;
+    int rc = 0;
+    if (cfgfile) { /* the file first, then the key=value overrides */
+        if (!(file = swfs_config_new()) || swfs_config_load(file, cfgfile)) rc = cli_error(cmd);
+        for (size_t k = 0; !rc && k < swfs_config_count(over); k++)
+            if (swfs_config_set_kv(file, swfs_config_key(over, k), swfs_config_value(over, k))) rc = cli_error(cmd);
+    }
+    swfs_config *use = file ? file : over;
+    if (!rc && (swfs_ts_params_from_config(use, p) || swfs_config_check_unused(use) || swfs_ts_params_check(p)))
+        rc = cli_error(cmd);
+    swfs_config_free(file);
+    return rc;
 }

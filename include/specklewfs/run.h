@@ -26,6 +26,7 @@
 #include "specklewfs/pupil.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/status.h"
+#include "specklewfs/timeseries.h"
 #include "specklewfs/wind.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/sync.h"
@@ -197,6 +198,13 @@ typedef struct swfs_speckles_run_result {
  * slowest system measured the map beat the per-frame one up to about 0.15 and lost to the
  * default at 0.5). */
 #define SWFS_SPACETIME_MISMATCH_WARN 0.25
+
+/* Which of the two checks warn on r (0: neither, or no space-time map): the winds beyond
+ * SWFS_SPACETIME_MISMATCH_WARN at the largest lag, the slopes' correlation beyond three of
+ * the training loops' spreads at a lag (st_corr_excess > 0). */
+#define SWFS_SPACETIME_WARN_WIND 1
+#define SWFS_SPACETIME_WARN_CORR 2
+int swfs_spacetime_warns(const swfs_speckles_run_result *r);
 
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);
 
@@ -465,6 +473,56 @@ typedef struct swfs_wind_run_result {
 } swfs_wind_run_result;
 
 int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
+
+/* ---- teach: a learned map for one observation from simulated loops of your system ------- */
+
+/* The rule docs/telemetry.md measured over the matrix ("The rule with the layers `wind`
+ * finds"), as one run: the layers `wind` finds in the observation's slopes; nloops simulated
+ * closed loops of the described system (sim: its telescope, WFS, DM, loop, vibration, noise
+ * and camera timing) with those layers, the first's share of the turbulence spread over
+ * 0.3-0.7 across the loops when there are more (wind does not measure the shares); the
+ * space-time map with lags 0, +-L1, +-2 L1, L1 = round(pitch rate / (2 v)) frames, v the
+ * fastest layer found (half a subaperture); its two checks against the observation
+ * (swfs_spacetime_warns). Where neither warns it is the map; otherwise the per-frame map of
+ * the same loops (more than one layer found), or of nloops further loops of the measured
+ * layer (a share of 0.5-0.8) and a second drawn at random (8-30 m/s, any direction). */
+typedef struct swfs_teach_run_options {
+    swfs_ts_params sim;         /* your system (`simulate mode=timeseries` keys); its layers, seed and
+                                   exports are set per loop */
+    const char *const *files;   /* the observation's telemetry: consecutive files of one series,
+                                   2 nsub^2 slopes per WFS frame (the simulator's layout) */
+    size_t nfiles;
+    const char *out;            /* the chosen map (speckles --recon) */
+    const char *work;           /* an existing folder: the loops (loop_NN/, mixed_NN/) and the maps
+                                   tried (spacetime.fits, perframe.fits), kept for reuse by learn */
+    size_t nloops;              /* loops per set (12; at least 2) */
+    uint64_t seed;              /* loop k's seed is seed + k (101); the random second layers' too */
+    const char *const *prov;
+    size_t nprov;
+    swfs_progress_fn progress;
+    void *progress_ctx;
+} swfs_teach_run_options;
+
+void swfs_teach_run_options_default(swfs_teach_run_options *o);
+
+#define SWFS_TEACH_SPACETIME 0     /* the space-time map: neither check warned */
+#define SWFS_TEACH_PERFRAME 1      /* the per-frame map of the same loops */
+#define SWFS_TEACH_PERFRAME_MIXED 2 /* the per-frame map of the measured layer and random seconds */
+
+typedef struct swfs_teach_run_result {
+    swfs_wind_run_result wind;  /* the observation's layers (wind.est.layer[]) */
+    size_t nlayers;             /* layers the loops were given (the first SWFS_TS_MAX_LAYERS found) */
+    long lags[5];               /* 0, -L1, L1, -2 L1, 2 L1 */
+    size_t nlags;
+    size_t nloops;              /* loops simulated in all */
+    double st_misfit_rms, st_truth_rms; /* the space-time map's training misfit and truth [m] */
+    swfs_speckles_run_result check; /* its checks on the observation's first file (st_*; info.nlags) */
+    int warns;                  /* swfs_spacetime_warns(&check) */
+    int chosen;                 /* SWFS_TEACH_* */
+    double seconds;
+} swfs_teach_run_result;
+
+int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);
 
 SWFS_END_DECLS
 

@@ -328,6 +328,17 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512)])
+swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
+                                                   ("pitch", c_dbl), ("rate", c_dbl)])
+swfs_teach_run_options = _s("swfs_teach_run_options", [
+    ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
+    ("nloops", c_size), ("seed", c_u64), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
+    ("progress_ctx", c_ptr)])
+TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
+swfs_teach_run_result = _s("swfs_teach_run_result", [
+    ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
+    ("nloops", c_size), ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
+    ("warns", c_int), ("chosen", c_int), ("seconds", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
@@ -546,6 +557,9 @@ _PROTOS = {
     "swfs_sync_run": (c_int, [P(swfs_sync_run_options), P(swfs_sync_run_result)]),
     "swfs_learn_run_options_default": (None, [P(swfs_learn_run_options)]),
     "swfs_learn_run": (c_int, [P(swfs_learn_run_options), P(swfs_learn_run_result)]),
+    "swfs_teach_run_options_default": (None, [P(swfs_teach_run_options)]),
+    "swfs_teach_run": (c_int, [P(swfs_teach_run_options), P(swfs_teach_run_result)]),
+    "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),

@@ -5,6 +5,7 @@ products as its command (docs/telemetry.md) and returns what the command prints,
 that fails leaves no output file."""
 import ctypes
 import math
+import os
 
 import numpy as np
 
@@ -119,7 +120,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     an observed layer from the nearest taught one at the largest lag [subapertures]
     (st_found, st_train_v, st_obs_v that pair; st_obs_nlayers, st_train_nlayers), and the
     slopes' correlation at the lags: corr / corr_spread here (the loops'), st_corr_train,
-    st_corr_spread, st_corr_obs and st_corr_excess (> 0: beyond three spreads) there."""
+    st_corr_spread, st_corr_obs and st_corr_excess (> 0: beyond three spreads) there, and
+    st_warn_wind, st_warn_corr: whether each check warns (swfs_spacetime_warns)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -192,6 +194,60 @@ def boundary_check(tail, head):
     return _struct_dict(b)
 
 
+def _st_checks(r):
+    """A space-time map's checks against the observation (run.h st_*) as a dict; st_warn_wind
+    and st_warn_corr: whether each warns (swfs_spacetime_warns)."""
+    nl = r.info.nlags
+    w = lib.swfs_spacetime_warns(ctypes.byref(r))
+    return dict(st_found=bool(r.st_found), st_train_v=(r.st_train_vx, r.st_train_vy), st_obs_v=(r.st_obs_vx, r.st_obs_vy),
+                st_mismatch=r.st_mismatch, st_obs_nlayers=r.st_obs_nlayers, st_train_nlayers=r.st_train_nlayers,
+                st_corr_train=np.array(r.st_corr_train[:nl]),
+                st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
+                st_corr_excess=r.st_corr_excess, st_edges_joined=r.st_edges_joined,
+                st_edges_clamped=r.st_edges_clamped, st_edges_unreadable=r.st_edges_unreadable,
+                st_edges_why=r.st_edges_why.decode(errors="replace"), st_warn_wind=bool(w & 1),
+                st_warn_corr=bool(w & 2))
+
+
+def teach(files, out, work, config=None, loops=12, seed=101, progress=None, provenance=(), **params):
+    """A learned map for one observation from simulated closed loops of your system at the
+    winds its slopes show (`specklewfs teach`, run.h swfs_teach_run): files, the observation's
+    consecutive telemetry files (2 nsub^2 slopes per WFS frame); config and params, the system
+    in `simulate mode=timeseries` keys (its nsub, wfs_rate and teldiam the observation's; the
+    layers and seeds are set per loop); work, a folder (created if needed) for the loops and
+    the maps tried; out, the chosen map for speckles(..., recon=out). Returns the layers found
+    (wind: as wind_from_slopes' layers), lags, nloops, the space-time map's training misfit
+    and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
+    "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
+    "perframe_mixed" (loops of the measured layer and random second layers)."""
+    from .sim import _checked_params
+    if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
+        files = [files]
+    params = dict(params)
+    params.setdefault("mode", "timeseries")
+    o = _lib.swfs_teach_run_options()
+    lib.swfs_teach_run_options_default(ctypes.byref(o))
+    o.sim = _checked_params("ts", config, params)
+    arr, n = _paths(files)
+    os.makedirs(work, exist_ok=True)
+    o.files, o.nfiles, o.out, o.work = arr, n, enc(out), enc(work)
+    o.nloops, o.seed = int(loops), int(seed)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    cb = _progress(progress)
+    o.progress = cb
+    r = _lib.swfs_teach_run_result()
+    check(lib.swfs_teach_run(ctypes.byref(o), ctypes.byref(r)), "swfs_teach_run")
+    e = r.wind.est
+    layers = [dict(vx=L.vx, vy=L.vy, speed=L.speed, direction=L.direction, corr=L.corr, signif=L.signif,
+                   nlags=L.nlags) for L in e.layer[:e.nlayers]]
+    d = dict(layers=layers, nlayers_given=r.nlayers, nframes=r.wind.nframes, nsub=r.wind.nsub, pitch=r.wind.pitch,
+             rate=r.wind.rate, lags=list(r.lags[:r.nlags]), nloops=r.nloops, st_misfit_rms=r.st_misfit_rms,
+             st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds)
+    d.update(_st_checks(r.check))
+    return d
+
+
 def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=()):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
@@ -217,14 +273,7 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"] = r.resmean_rms
     d["info"] = _struct_dict(r.info)
-    nl = r.info.nlags
-    d.update(st_found=bool(r.st_found), st_train_v=(r.st_train_vx, r.st_train_vy), st_obs_v=(r.st_obs_vx, r.st_obs_vy),
-             st_mismatch=r.st_mismatch, st_obs_nlayers=r.st_obs_nlayers, st_train_nlayers=r.st_train_nlayers,
-             st_corr_train=np.array(r.st_corr_train[:nl]),
-             st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
-             st_corr_excess=r.st_corr_excess, st_edges_joined=r.st_edges_joined,
-             st_edges_clamped=r.st_edges_clamped, st_edges_unreadable=r.st_edges_unreadable,
-             st_edges_why=r.st_edges_why.decode(errors="replace"))
+    d.update(_st_checks(r))
     return d
 
 

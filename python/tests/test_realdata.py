@@ -186,3 +186,36 @@ def test_learn_reconstructor(series, tmp_path):
     with pytest.raises(sw.Error, match="truewf_000.fits beside it"):
         sw.learn(str(s), str(tmp_path / "W2.fits"))
     assert not os.path.exists(tmp_path / "W2.fits")
+
+
+def test_teach(series, tmp_path):
+    """`specklewfs teach` from Python: the series' layers, loops of its own system at them, the
+    space-time map and its checks, and the choice; the chosen map goes through speckles."""
+    conf = os.path.join(ROOT, "config", "mmt-clio.conf")
+    keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000)
+    s = series / "sim"
+    files = sorted(str(p) for p in s.glob("slopes_0*.fits"))
+    out = tmp_path / "T.fits"
+    r = sw.teach(files, str(out), str(tmp_path / "work"), config=conf, loops=4, **keys)
+    assert 1 <= len(r["layers"]) <= 4 and r["nlayers_given"] == min(len(r["layers"]), 3) and r["nsub"] == 12
+    vmax = max(L["speed"] for L in r["layers"][:r["nlayers_given"]])
+    l1 = max(1, round(r["pitch"] * r["rate"] / (2 * vmax)))
+    assert r["lags"] == [0, -l1, l1, -2 * l1, 2 * l1]
+    assert r["chosen"] in ("spacetime", "perframe", "perframe_mixed") and 0 < r["st_misfit_rms"] < r["st_truth_rms"]
+    warned = r["st_warn_wind"] or r["st_warn_corr"]
+    assert warned == (r["chosen"] != "spacetime")
+    assert r["nloops"] == (8 if r["chosen"] == "perframe_mixed" else 4)
+    assert r["st_corr_obs"].shape == (5,) and r["st_corr_obs"][0] == pytest.approx(1.0)
+    nl = sw.fits.read_keys(str(tmp_path / "work" / "spacetime.fits"), ["NLAGS"])["NLAGS"]
+    assert nl == 5 and os.path.exists(out)
+    t = tmp_path / "timing.txt"
+    sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"),
+              flat=str(s / "flat.fits"))
+    sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(t))
+    sp = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "sp.fits"),
+                     recon=str(out))
+    assert sp["nout"] >= 118 and sp["info"]["nlags"] == (5 if r["chosen"] == "spacetime" else 0)
+    # a system of another geometry than the telemetry's is refused, naming the file; no map left
+    with pytest.raises(sw.Error, match="slopes_000.fits: 288 slopes per WFS frame; the system's 16 x 16"):
+        sw.teach(files, str(tmp_path / "bad.fits"), str(tmp_path / "badw"), config=conf, loops=2, nsub=16, **keys)
+    assert not os.path.exists(tmp_path / "bad.fits")

@@ -78,6 +78,15 @@ void swfs_lag_edges_free_(swfs_lag_edges_ *e);
 int swfs_spacetime_stats_(const double *s, size_t nframes, size_t nslopes, size_t nsub, const unsigned char *valid,
                           const long *lags, size_t nlags, swfs_wind_estimate *wind, double *corr);
 
+/* A space-time reconstructor's checks (run.h swfs_speckles_run_result st_*): the keys `learn
+ * --lags` wrote into the file recon (its training loops' layers and slopes' correlation at
+ * the nl lags) against the same measured on the observation's slopes s (nframes x nslopes;
+ * the Shack-Hartmann's nsub across; valid: its map when the slopes are the used
+ * subapertures' only). The st_* fields are reset first; recon NULL or nl < 2: only that; s
+ * NULL: the file's keys only. A file or series without them is no error. */
+int swfs_spacetime_check_(const char *recon, const long *lags, size_t nl, const double *s, size_t nframes,
+                          size_t nslopes, size_t nsub, const char *valid, swfs_speckles_run_result *r);
+
 /* --tiptilt frame (speckles.h): the speckles lose every WFS frame's mean-slope tilt, while
  * reduce centred every science frame on its peak, which follows the Z-tilt and the NCP's own
  * tilt. (dx[k], dy[k]) [camera pixels] for the usable cubes' frames k of the timing table t

@@ -300,100 +300,20 @@ static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
     return SWFS_OK;
 }
 
-/* A space-time reconstructor taught by learn --lags carries what its training loops' slopes
- * did in time: their layers' winds (LRNNLAY, LRNLkX, LRNLkY; before those, the mean wind
- * LRNVX, LRNVY [subapertures per WFS frame]) and their correlation at each lag (LRNCORk,
- * LRNCSPk). The same from the first usable cube's telemetry file, and how far apart they
- * are, go into r (run.h). Unknown (no keys, no wind found) is no error: the map is applied
- * either way. */
+/* A space-time reconstructor's checks against the observation (run_stcheck.c): the first
+ * usable cube's telemetry file against what the map's file says of its training loops. */
 static int spacetime_check(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
-    r->st_found = 0;
-    r->st_train_vx = r->st_train_vy = r->st_obs_vx = r->st_obs_vy = r->st_mismatch = r->st_corr_excess = NAN;
-    r->st_corr_worst = SIZE_MAX;
-    for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->st_corr_train[k] = r->st_corr_spread[k] = r->st_corr_obs[k] = NAN;
-    if (!w->rin || w->rin->nlags < 2) return SWFS_OK;
-    const size_t nl = w->rin->nlags;
-    memcpy(r->st_lags, w->rin->lags, sizeof r->st_lags);
-    swfs_fits_in *f = NULL;
-    int fx = 0, fy = 0, fc = 1, fl = 0;
-    long nlay = 0;
-    double lx[SWFS_LEARN_MAXWLAYERS], ly[SWFS_LEARN_MAXWLAYERS];
-    int rc = swfs_fits_in_open(&f, o->recon, NULL);
-    if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVX", &r->st_train_vx, &fx);
-    if (!rc) rc = swfs_fits_in_key_double_opt(f, "LRNVY", &r->st_train_vy, &fy);
-    if (!rc) rc = swfs_fits_in_key_long_opt(f, "LRNNLAY", 0, SWFS_LEARN_MAXWLAYERS, &nlay, &fl);
-    for (long k = 0; !rc && k < nlay; k++) {
-        char kx[32], ky[32];
-        snprintf(kx, sizeof kx, "LRNL%ldX", k + 1);
-        snprintf(ky, sizeof ky, "LRNL%ldY", k + 1);
-        rc = swfs_fits_in_key_double(f, kx, &lx[k]);
-        if (!rc) rc = swfs_fits_in_key_double(f, ky, &ly[k]);
-    }
-    for (size_t k = 0; !rc && k < nl && fc; k++) {
-        char key[32];
-        int f1 = 0, f2 = 0;
-        snprintf(key, sizeof key, "LRNCOR%zu", k + 1);
-        rc = swfs_fits_in_key_double_opt(f, key, &r->st_corr_train[k], &f1);
-        snprintf(key, sizeof key, "LRNCSP%zu", k + 1);
-        if (!rc) rc = swfs_fits_in_key_double_opt(f, key, &r->st_corr_spread[k], &f2);
-        fc = f1 && f2;
-    }
-    swfs_fits_in_close(f);
-    if (!fx || !fy) r->st_train_vx = r->st_train_vy = NAN;
-    if (rc || (!(fx && fy) && !fc)) return rc;
+    if (!w->rin || w->rin->nlags < 2) return swfs_spacetime_check_(NULL, NULL, 0, NULL, 0, 0, 0, NULL, r);
     const swfs_timing_cube *tc = NULL;
     for (size_t c = 0; c < w->t->ncubes && !tc; c++)
         if (w->t->cubes[c].status == SWFS_CUBE_OK) tc = w->t->cubes + c;
-    if (!tc || (rc = load_cube_slopes(o, w, tc, r->wfs_hz))) return rc;
+    int rc = tc ? load_cube_slopes(o, w, tc, r->wfs_hz) : SWFS_OK;
+    if (rc) return rc;
     swfs_pipeline_info in;
     swfs_pipeline_get_info(w->p, &in);
-    unsigned char *map = NULL;
-    size_t mn = 0, mv = 0;
-    if (fx && fy && o->valid && w->nslopes != 2 * in.nsub * in.nsub &&
-        (rc = swfs_valid_map_read(o->valid, &map, &mn, &mv)))
-        return rc;
-    swfs_wind_estimate e;
-    e.found = 0;
-    rc = swfs_spacetime_stats_(w->slopes->data, w->slopes->ny, w->nslopes, in.nsub, map, w->rin->lags, nl,
-                               fx && fy ? &e : NULL, fc ? r->st_corr_obs : NULL);
-    free(map);
-    for (size_t k = 0; !rc && fc && k < nl; k++) {
-        const double x = fabs(r->st_corr_obs[k] - r->st_corr_train[k]) - 3.0 * r->st_corr_spread[k];
-        if (isfinite(x) && w->rin->lags[k] && (r->st_corr_worst == SIZE_MAX || x > r->st_corr_excess)) {
-            r->st_corr_excess = x;
-            r->st_corr_worst = k;
-        }
-    }
-    if (rc || !e.found) return rc;
-    const long lmax = swfs_lags_max_abs(w->rin->lags, nl);
-    if (!nlay) { /* a map from before the layers: its mean wind against the tracked layer */
-        lx[0] = r->st_train_vx;
-        ly[0] = r->st_train_vy;
-        nlay = 1;
-        e.nlayers = 1;
-        e.layer[0].vx = e.vx;
-        e.layer[0].vy = e.vy;
-    }
-    r->st_found = 1;
-    r->st_obs_nlayers = e.nlayers;
-    r->st_train_nlayers = fl ? (size_t)nlay : 0;
-    r->st_mismatch = -1;
-    for (size_t j = 0; j < e.nlayers; j++) { /* each observed layer against the nearest taught */
-        size_t best = 0;
-        for (long k = 1; k < nlay; k++)
-            if (hypot(e.layer[j].vx - lx[k], e.layer[j].vy - ly[k]) < hypot(e.layer[j].vx - lx[best], e.layer[j].vy - ly[best]))
-                best = (size_t)k;
-        const double d = hypot(e.layer[j].vx - lx[best], e.layer[j].vy - ly[best]) * (double)lmax;
-        if (d > r->st_mismatch) {
-            r->st_mismatch = d;
-            r->st_obs_vx = e.layer[j].vx;
-            r->st_obs_vy = e.layer[j].vy;
-            r->st_train_vx = lx[best];
-            r->st_train_vy = ly[best];
-        }
-    }
-    return SWFS_OK;
+    return swfs_spacetime_check_(o->recon, w->rin->lags, w->rin->nlags, tc ? w->slopes->data : NULL,
+                                 tc ? w->slopes->ny : 0, w->nslopes, in.nsub, o->valid, r);
 }
 
 /* The output frames [first, first + count) (all of them alone; a member's share in a team)

@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# `specklewfs teach` over bench_telemetry's matrix (docs/telemetry.md, "teach: the rule in one
+# command"): for each observation K:S (system K, seed S), kept with its truth
+# (bench_telemetry --only K --seed S --truth --keep), the system's description
+# (bench_telemetry --print-keys without its layers and seed: the DM, loop, vibration, noise
+# and camera timing a user describes) given to teach with the observation's slopes; the map
+# it chooses through speckles --recon, estimate and pupil --truth. Prints one row per
+# observation: the default path's and the ideal speckles' NCP errors (from the kept run), the
+# layers teach found, its lags and choice, the NCP error with its map and the ratios. Data
+# sets are kept in WORK and reused when present (the loops are not: teach simulates them
+# again into WORK/kKsS/teach). About 1-2 minutes per 12 x 12 observation, 3-6 per 24 x 24, on
+# 2 cores.
+#
+# usage: bash bench/teach.sh BUILD_DIR WORK_DIR [K:S ...]   (default: every system, seed 1)
+set -euo pipefail
+B=$1
+W=$2
+shift 2
+OBS=${*:-0:1 1:1 2:1 3:1 4:1 5:1 6:1 7:1 8:1 9:1 10:1 11:1}
+BT="$B/bench/bench_telemetry"
+X="$B/specklewfs"
+mkdir -p "$W"
+. "$(dirname "$0")/lib_bench.sh"
+
+printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
+    "layers found [m/s toward deg]" lags chosen teach "[s]" "x def" "x tch"
+for ks in $OBS; do
+    k=${ks%:*}
+    s=${ks#*:}
+    d="$W/k${k}s$s"
+    keep_obs "$BT" "$d" "$k" "$s"
+    row=$(obs_row "$d" "$s")
+    name=$(echo "$row" | awk '{ print $1 }')
+    nsub=$(echo "$row" | awk '{ print $3 }')
+    def=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[1] }')
+    ideal=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[2] }')
+    "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' > "$d/system.conf"
+    "$X" teach "$d"/slopes_0*.fits --system "$d/system.conf" -o "$d/taught.fits" --work "$d/teach" > "$d/teach.log" 2> "$d/teach.err" \
+        || { echo "$name $s: teach failed ($d/teach.err)" >&2; continue; }
+    "$X" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/actuators.fits" --recon "$d/taught.fits" \
+        -o "$d/spk_taught.fits" --match "$d/science.fits" "$d/sci_taught.fits" 2> "$d/speckles_taught.log"
+    "$X" estimate "$d/sci_taught.fits" "$d/spk_taught.fits" -o "$d/halo_taught.fits" > /dev/null 2>&1
+    "$X" pupil "$d/halo_taught.fits" -o "$d/pupil_taught.fits" --truth "$d/truth.fits" > "$d/pupil_taught.log"
+    t=$(ncp_error "$d/pupil_taught.log")
+    layers=$(awk '/^teach:   layer [0-9]+: / { printf "%s%s toward %s", n++ ? "; " : "", $4, $7 }' "$d/teach.log")
+    lags=$(awk '/ loops simulated; lags / { for (i = 1; i <= NF; i++) if ($i == "lags") print $(i + 1) }' "$d/teach.log")
+    ch=$(awk '/^teach: chose the / { print $4 }' "$d/teach.log")
+    sec=$(awk '/^teach: chose the / { for (i = 1; i <= NF; i++) if ($i == "s;") print substr($(i - 1), 2) }' "$d/teach.log")
+    printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5.2f %5.2f\n" "$name" "$s" "$nsub" "$def" "$ideal" \
+        "$layers" "$lags" "$ch" "$t" "$sec" "$(echo "$def $ideal" | awk '{ print $1 / $2 }')" \
+        "$(echo "$t $ideal" | awk '{ print $1 / $2 }')"
+done
+echo "chosen: space-time = the lags' map (neither check warned); per-frame = a per-frame map (teach.log says which loops)"

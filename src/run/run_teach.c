@@ -1,0 +1,205 @@
+/* teach: a learned map for one observation from simulated closed loops of the described
+ * system at the layers its slopes show, chosen by the space-time map's checks (run.h). */
+#include "specklewfs/atomic.h"
+#include "specklewfs/parallel.h"
+#include "specklewfs/rng.h"
+#include "specklewfs/run.h"
+#include "specklewfs/source.h"
+#include "specklewfs/wfs.h"
+#include "run_internal.h"
+
+#include <errno.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+void swfs_teach_run_options_default(swfs_teach_run_options *o)
+{
+    memset(o, 0, sizeof *o);
+    swfs_ts_params_default(&o->sim);
+    o->nloops = 12;
+    o->seed = 101;
+}
+
+static void stage(const swfs_teach_run_options *o, const char *what, size_t done, size_t total)
+{
+    if (o->progress) o->progress(o->progress_ctx, what, done, total);
+}
+
+/* One loop into work/name_NN: the system with these layers and this seed, the truth exported. */
+static int simulate_loop(const swfs_teach_run_options *o, const char *name, size_t k, uint64_t seed, int nl,
+                         const double *frac, const double *speed, const double *dir, char *path, size_t cap)
+{
+    swfs_ts_params p = o->sim;
+    p.nlayers = nl;
+    for (int j = 0; j < nl; j++) {
+        p.layer_frac[j] = frac[j];
+        p.layer_speed[j] = speed[j];
+        p.layer_dir[j] = dir[j];
+    }
+    p.base.seed = seed;
+    p.export_truth = 1;
+    p.export_modal = 0;
+    p.milk = 0;
+    if (snprintf(path, cap, "%s/%s_%02zu", o->work, name, k) >= (int)cap)
+        return swfs_fail(SWFS_ERR_ARG, "teach: %s: the folder's name is too long", o->work);
+    if (mkdir(path, 0777) && errno != EEXIST)
+        return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", path, strerror(errno));
+    int rc = swfs_ts_params_check(&p);
+    swfs_ts_summary sum;
+    swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
+    if (!rc) rc = swfs_ts_run(&p, path, o->prov, o->nprov, NULL, NULL, &sum);
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", path);
+    return SWFS_OK;
+}
+
+static int learn(const swfs_teach_run_options *o, char (*dirs)[4200], size_t n, const long *lags, size_t nlags,
+                 const char *out, swfs_learn_run_result *lr)
+{
+    const char *d[64];
+    for (size_t k = 0; k < n; k++) d[k] = dirs[k];
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = d;
+    lo.ndirs = n;
+    lo.out = out;
+    lo.no_heldout = 1;
+    lo.lags = nlags > 1 ? lags : NULL;
+    lo.nlags = nlags > 1 ? nlags : 0;
+    lo.prov = o->prov;
+    lo.nprov = o->nprov;
+    const int rc = swfs_learn_run(&lo, lr);
+    return rc ? swfs_fail_context(rc, "teach: the %s map of %zu loops (--loops, or longer loops: ncubes)",
+                                  nlags > 1 ? "space-time" : "per-frame", n) : SWFS_OK;
+}
+
+/* The chosen map's bytes onto o->out (atomic.h: the whole file or none). */
+static int copy_file(const char *from, const char *to)
+{
+    FILE *in = fopen(from, "rb");
+    if (!in) return swfs_fail(SWFS_ERR_IO, "teach: cannot read %s: %s", from, strerror(errno));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, to, 1);
+    char buf[65536];
+    size_t n;
+    while (!rc && (n = fread(buf, 1, sizeof buf, in)) > 0)
+        if (fwrite(buf, 1, n, swfs_atomic_stream(a)) != n) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot write %s", to);
+    if (!rc && ferror(in)) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot read %s", from);
+    fclose(in);
+    if (rc) { swfs_atomic_abort(a); return rc; }
+    return swfs_atomic_commit(a);
+}
+
+static int check_options(const swfs_teach_run_options *o)
+{
+    if (!o->nfiles || !o->files) return swfs_fail(SWFS_ERR_ARG, "teach: no telemetry files of the observation");
+    if (!o->out || !o->work) return swfs_fail(SWFS_ERR_ARG, "teach: no output map or no work folder");
+    if (o->nloops < 2 || o->nloops > 64) return swfs_fail(SWFS_ERR_VALUE, "teach: %zu loops; expected 2 to 64", o->nloops);
+    return swfs_ts_params_check(&o->sim);
+}
+
+int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
+{
+    memset(r, 0, sizeof *r);
+    const double t0 = swfs_wall_seconds();
+    int rc = check_options(o);
+    if (rc) return rc;
+    const swfs_ts_params *sp = &o->sim;
+    const char *valid = sp->valid[0] ? sp->valid : NULL;
+    /* The observation: its first file for the checks, its geometry and rate against the system's. */
+    swfs_real *obs = NULL;
+    double orate = 0;
+    if ((rc = swfs_telemetry_read(o->files[0], 0, &obs, &orate))) return rc;
+    const size_t nsub = (size_t)sp->nsub;
+    if (obs->nx != 2 * nsub * nsub)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
+                       "(nsub) writes 2 nsub^2 = %zu", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub);
+    else if (orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
+        rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
+                       orate, sp->wfs_rate);
+    /* 1. the layers */
+    stage(o, "the observation's layers (wind)", 0, 1);
+    swfs_wind_run_options wo = {o->files, o->nfiles, valid, sp->nsub, sp->base.teldiam, sp->wfs_rate};
+    if (!rc) rc = swfs_wind_run(&wo, &r->wind);
+    const swfs_wind_estimate *e = &r->wind.est;
+    if (!rc && !e->found)
+        rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
+                       "the loops cannot be given its winds; use the default reconstructor",
+                       o->nfiles == 1 ? o->files[0] : "the telemetry files");
+    if (rc) { swfs_real_free(obs); return rc; }
+    const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
+    r->nlayers = (size_t)nl;
+    double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], frac[SWFS_TS_MAX_LAYERS], vmax = 0;
+    for (int j = 0; j < nl; j++) {
+        speed[j] = e->layer[j].speed;
+        dir[j] = e->layer[j].direction;
+        vmax = fmax(vmax, speed[j]);
+    }
+    /* the lags: the fastest layer moves half a subaperture in L1 frames */
+    long l1 = lround(r->wind.pitch * r->wind.rate / (2.0 * vmax));
+    if (l1 < 1) l1 = 1;
+    const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
+    memcpy(r->lags, lags, sizeof lags);
+    r->nlags = 5;
+    /* 2. the loops */
+    char(*dirs)[4200] = calloc(o->nloops, sizeof *dirs);
+    if (!dirs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
+    for (size_t k = 0; !rc && k < o->nloops; k++) {
+        stage(o, "simulating the loops", k, o->nloops);
+        const double f1 = nl > 1 ? 0.3 + 0.4 * (double)k / (double)(o->nloops - 1) : 1.0;
+        frac[0] = f1;
+        for (int j = 1; j < nl; j++) frac[j] = (1.0 - f1) / (double)(nl - 1);
+        rc = simulate_loop(o, "loop", k, o->seed + k, nl, frac, speed, dir, dirs[k], sizeof dirs[k]);
+        r->nloops += !rc;
+    }
+    /* 3. the space-time map and its checks */
+    char st[4200], pf[4200];
+    snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
+    snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
+    swfs_learn_run_result lr;
+    if (!rc) {
+        stage(o, "learning the space-time map", 0, 1);
+        rc = learn(o, dirs, o->nloops, lags, 5, st, &lr);
+    }
+    if (!rc) {
+        r->st_misfit_rms = lr.info.misfit_rms;
+        r->st_truth_rms = lr.info.truth_rms;
+        r->check.info.nlags = 5;
+        rc = swfs_spacetime_check_(st, lags, 5, obs->data, obs->ny, obs->nx, nsub, valid, &r->check);
+    }
+    swfs_real_free(obs);
+    if (!rc) r->warns = swfs_spacetime_warns(&r->check);
+    /* 4. where it warns, the per-frame map */
+    const char *chosen = st;
+    size_t nset = o->nloops;
+    if (!rc && r->warns && nl == 1) {
+        r->chosen = SWFS_TEACH_PERFRAME_MIXED;
+        nset = 0;
+        for (size_t k = 0; !rc && k < o->nloops; k++) {
+            stage(o, "simulating loops of a random second layer", k, o->nloops);
+            swfs_rng g;
+            swfs_rng_seed2(&g, o->seed, 1000 + k);
+            const double fr[2] = {0.5 + 0.3 * swfs_rng_uniform(&g), 0};
+            const double f2[2] = {fr[0], 1.0 - fr[0]};
+            const double v2[2] = {speed[0], 8.0 + 22.0 * swfs_rng_uniform(&g)};
+            const double d2[2] = {dir[0], 360.0 * swfs_rng_uniform(&g)};
+            rc = simulate_loop(o, "mixed", k, o->seed + o->nloops + k, 2, f2, v2, d2, dirs[k], sizeof dirs[k]);
+            r->nloops += !rc;
+            nset += !rc;
+        }
+    } else if (!rc && r->warns) {
+        r->chosen = SWFS_TEACH_PERFRAME;
+    }
+    if (!rc && r->warns) {
+        stage(o, "learning the per-frame map", 0, 1);
+        rc = learn(o, dirs, nset, NULL, 0, pf, &lr);
+        chosen = pf;
+    }
+    free(dirs);
+    if (!rc) rc = copy_file(chosen, o->out);
+    r->seconds = swfs_wall_seconds() - t0;
+    return rc;
+}
