@@ -7,8 +7,8 @@
 # it chooses through speckles --recon, estimate and pupil --truth. Prints one row per
 # observation: the default path's and the ideal speckles' NCP errors (from the kept run), the
 # layers teach found, its lags and choice, the NCP error with its map and the ratios. Data
-# sets are kept in WORK and reused when present (the loops are not: teach simulates them
-# again into WORK/kKsS/teach). About 1-2 minutes per 12 x 12 observation, 3-6 per 24 x 24, on
+# sets are kept in WORK and reused when present; the loops teach simulates into WORK/kKsS/teach
+# are removed after the row (the maps it tried stay). About 1-2 minutes per 12 x 12 observation, 3-6 per 24 x 24, on
 # 2 cores.
 #
 # usage: bash bench/teach.sh BUILD_DIR WORK_DIR [K:S ...]   (default: every system, seed 1)
@@ -42,6 +42,7 @@ for ks in $OBS; do
     "$X" estimate "$d/sci_taught.fits" "$d/spk_taught.fits" -o "$d/halo_taught.fits" > /dev/null 2>&1
     "$X" pupil "$d/halo_taught.fits" -o "$d/pupil_taught.fits" --truth "$d/truth.fits" > "$d/pupil_taught.log"
     t=$(ncp_error "$d/pupil_taught.log")
+    rm -rf "$d"/teach/loop_* "$d"/teach/mixed_*
     layers=$(awk '/^teach:   layer [0-9]+: / { printf "%s%s toward %s", n++ ? "; " : "", $4, $7 }' "$d/teach.log")
     lags=$(awk '/ loops simulated; lags / { for (i = 1; i <= NF; i++) if ($i == "lags") print $(i + 1) }' "$d/teach.log")
     ch=$(awk '/^teach: chose the / { print $4 }' "$d/teach.log")

@@ -31,7 +31,7 @@ static const char *usage_text =
     "  4. where a check warns, the per-frame map: of the same loops when more than one layer\n"
     "     was found, else of N more loops of the measured layer and a random second layer.\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
-    "simulation as long as CONFIG's cubes.\n"
+    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time).\n"
     "\n"
     "  SLOPES.fits   the observation's telemetry, consecutive files of one series (2 nsub^2\n"
     "                slopes per WFS frame, as the simulator writes them)\n"

@@ -488,7 +488,9 @@ int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
  * layer (a share of 0.5-0.8) and a second drawn at random (8-30 m/s, any direction). */
 typedef struct swfs_teach_run_options {
     swfs_ts_params sim;         /* your system (`simulate mode=timeseries` keys); its layers, seed and
-                                   exports are set per loop */
+                                   exports are set per loop; the loops run sim.base.threads at a
+                                   time (0: one per core), each loop then on one thread: the
+                                   same loops, to the bit, however many run at once */
     const char *const *files;   /* the observation's telemetry: consecutive files of one series,
                                    2 nsub^2 slopes per WFS frame (the simulator's layout) */
     size_t nfiles;

@@ -28,39 +28,86 @@ static void stage(const swfs_teach_run_options *o, const char *what, size_t done
     if (o->progress) o->progress(o->progress_ctx, what, done, total);
 }
 
-/* One loop into work/name_NN: the system with these layers and this seed, the truth exported. */
-static int simulate_loop(const swfs_teach_run_options *o, const char *name, size_t k, uint64_t seed, int nl,
-                         const double *frac, const double *speed, const double *dir, char *path, size_t cap)
+/* One loop: work/name_NN, the system with these layers and this seed, the truth exported. */
+typedef struct loop_job {
+    char name[8];
+    size_t k;
+    uint64_t seed;
+    int nl;
+    double frac[SWFS_TS_MAX_LAYERS], speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS];
+    char path[4200];
+    int rc;
+    char why[1024];      /* the failure's message (a worker's own thread holds it) */
+} loop_job;
+
+typedef struct loops_ctx {
+    const swfs_teach_run_options *o;
+    loop_job *jobs;
+    int inner;           /* each simulation's own threads */
+    const char *stage;
+    size_t njobs;
+} loops_ctx;
+
+static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads)
 {
     swfs_ts_params p = o->sim;
-    p.nlayers = nl;
-    for (int j = 0; j < nl; j++) {
-        p.layer_frac[j] = frac[j];
-        p.layer_speed[j] = speed[j];
-        p.layer_dir[j] = dir[j];
+    p.nlayers = j->nl;
+    for (int l = 0; l < j->nl; l++) {
+        p.layer_frac[l] = j->frac[l];
+        p.layer_speed[l] = j->speed[l];
+        p.layer_dir[l] = j->dir[l];
     }
-    p.base.seed = seed;
+    p.base.seed = j->seed;
+    p.base.threads = threads;
     p.export_truth = 1;
     p.export_modal = 0;
     p.milk = 0;
-    if (snprintf(path, cap, "%s/%s_%02zu", o->work, name, k) >= (int)cap)
+    if (snprintf(j->path, sizeof j->path, "%.4000s/%s_%02zu", o->work, j->name, j->k) >= (int)sizeof j->path)
         return swfs_fail(SWFS_ERR_ARG, "teach: %s: the folder's name is too long", o->work);
-    if (mkdir(path, 0777) && errno != EEXIST)
-        return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", path, strerror(errno));
+    if (mkdir(j->path, 0777) && errno != EEXIST)
+        return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", j->path, strerror(errno));
     int rc = swfs_ts_params_check(&p);
     swfs_ts_summary sum;
     swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
-    if (!rc) rc = swfs_ts_run(&p, path, o->prov, o->nprov, NULL, NULL, &sum);
+    if (!rc) rc = swfs_ts_run(&p, j->path, o->prov, o->nprov, NULL, NULL, &sum);
     const int erc = swfs_outputs_end(rc == SWFS_OK);
-    if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", path);
+    if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", j->path);
     return SWFS_OK;
 }
 
-static int learn(const swfs_teach_run_options *o, char (*dirs)[4200], size_t n, const long *lags, size_t nlags,
+/* Workers over the loops (parallel.h: worker 0 is the caller's thread, which reports). */
+static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
+{
+    loops_ctx *c = ctx;
+    for (size_t i = begin; i < end; i++) {
+        loop_job *j = c->jobs + i;
+        j->rc = simulate_loop(c->o, j, c->inner);
+        if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
+        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, i + 1, c->njobs);
+    }
+}
+
+/* The jobs' loops, as many at once as the simulator's threads allow (sim.base.threads; each
+ * loop's own simulation then single-threaded): every loop is the same whatever runs beside
+ * it. The first failure's message, with its loop named. */
+static int simulate_loops(const swfs_teach_run_options *o, loop_job *jobs, size_t n, const char *stage, size_t *nrun)
+{
+    const int nt = swfs_parallel_threads(o->sim.base.threads, n);
+    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, stage, n};
+    if (o->progress) o->progress(o->progress_ctx, stage, 0, n);
+    swfs_parallel_for(nt, n, 1, loops_worker, &c);
+    for (size_t i = 0; i < n; i++) {
+        if (jobs[i].rc) return swfs_fail(jobs[i].rc, "%s", jobs[i].why);
+        ++*nrun;
+    }
+    return SWFS_OK;
+}
+
+static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n, const long *lags, size_t nlags,
                  const char *out, swfs_learn_run_result *lr)
 {
     const char *d[64];
-    for (size_t k = 0; k < n; k++) d[k] = dirs[k];
+    for (size_t k = 0; k < n; k++) d[k] = jobs[k].path;
     swfs_learn_run_options lo;
     swfs_learn_run_options_default(&lo);
     lo.dirs = d;
@@ -132,7 +179,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (rc) { swfs_real_free(obs); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = (size_t)nl;
-    double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], frac[SWFS_TS_MAX_LAYERS], vmax = 0;
+    double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
     for (int j = 0; j < nl; j++) {
         speed[j] = e->layer[j].speed;
         dir[j] = e->layer[j].direction;
@@ -145,16 +192,22 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     memcpy(r->lags, lags, sizeof lags);
     r->nlags = 5;
     /* 2. the loops */
-    char(*dirs)[4200] = calloc(o->nloops, sizeof *dirs);
-    if (!dirs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
-    for (size_t k = 0; !rc && k < o->nloops; k++) {
-        stage(o, "simulating the loops", k, o->nloops);
-        const double f1 = nl > 1 ? 0.3 + 0.4 * (double)k / (double)(o->nloops - 1) : 1.0;
-        frac[0] = f1;
-        for (int j = 1; j < nl; j++) frac[j] = (1.0 - f1) / (double)(nl - 1);
-        rc = simulate_loop(o, "loop", k, o->seed + k, nl, frac, speed, dir, dirs[k], sizeof dirs[k]);
-        r->nloops += !rc;
+    loop_job *jobs = calloc(o->nloops, sizeof *jobs);
+    if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
+    for (size_t k = 0; k < o->nloops; k++) {
+        loop_job *j = jobs + k;
+        snprintf(j->name, sizeof j->name, "loop");
+        j->k = k;
+        j->seed = o->seed + k;
+        j->nl = nl;
+        j->frac[0] = nl > 1 ? 0.3 + 0.4 * (double)k / (double)(o->nloops - 1) : 1.0;
+        for (int l = 0; l < nl; l++) {
+            if (l) j->frac[l] = (1.0 - j->frac[0]) / (double)(nl - 1);
+            j->speed[l] = speed[l];
+            j->dir[l] = dir[l];
+        }
     }
+    rc = simulate_loops(o, jobs, o->nloops, "simulating the loops", &r->nloops);
     /* 3. the space-time map and its checks */
     char st[4200], pf[4200];
     snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
@@ -162,7 +215,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     swfs_learn_run_result lr;
     if (!rc) {
         stage(o, "learning the space-time map", 0, 1);
-        rc = learn(o, dirs, o->nloops, lags, 5, st, &lr);
+        rc = learn(o, jobs, o->nloops, lags, 5, st, &lr);
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
@@ -172,33 +225,33 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     swfs_real_free(obs);
     if (!rc) r->warns = swfs_spacetime_warns(&r->check);
-    /* 4. where it warns, the per-frame map */
+    /* 4. where it warns, the per-frame map: of the same loops, or with one layer found, of
+     * loops of that layer and a second drawn at random */
     const char *chosen = st;
-    size_t nset = o->nloops;
     if (!rc && r->warns && nl == 1) {
         r->chosen = SWFS_TEACH_PERFRAME_MIXED;
-        nset = 0;
-        for (size_t k = 0; !rc && k < o->nloops; k++) {
-            stage(o, "simulating loops of a random second layer", k, o->nloops);
+        for (size_t k = 0; k < o->nloops; k++) {
+            loop_job *j = jobs + k;
             swfs_rng g;
             swfs_rng_seed2(&g, o->seed, 1000 + k);
-            const double fr[2] = {0.5 + 0.3 * swfs_rng_uniform(&g), 0};
-            const double f2[2] = {fr[0], 1.0 - fr[0]};
-            const double v2[2] = {speed[0], 8.0 + 22.0 * swfs_rng_uniform(&g)};
-            const double d2[2] = {dir[0], 360.0 * swfs_rng_uniform(&g)};
-            rc = simulate_loop(o, "mixed", k, o->seed + o->nloops + k, 2, f2, v2, d2, dirs[k], sizeof dirs[k]);
-            r->nloops += !rc;
-            nset += !rc;
+            snprintf(j->name, sizeof j->name, "mixed");
+            j->seed = o->seed + o->nloops + k;
+            j->nl = 2;
+            j->frac[0] = 0.5 + 0.3 * swfs_rng_uniform(&g);
+            j->frac[1] = 1.0 - j->frac[0];
+            j->speed[1] = 8.0 + 22.0 * swfs_rng_uniform(&g);
+            j->dir[1] = 360.0 * swfs_rng_uniform(&g);
         }
+        rc = simulate_loops(o, jobs, o->nloops, "simulating loops of a random second layer", &r->nloops);
     } else if (!rc && r->warns) {
         r->chosen = SWFS_TEACH_PERFRAME;
     }
     if (!rc && r->warns) {
         stage(o, "learning the per-frame map", 0, 1);
-        rc = learn(o, dirs, nset, NULL, 0, pf, &lr);
+        rc = learn(o, jobs, o->nloops, NULL, 0, pf, &lr);
         chosen = pf;
     }
-    free(dirs);
+    free(jobs);
     if (!rc) rc = copy_file(chosen, o->out);
     r->seconds = swfs_wall_seconds() - t0;
     return rc;
