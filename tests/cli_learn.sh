@@ -111,6 +111,21 @@ head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "te
 et=$(ncp_error pupil_t.log)
 echo "cli_learn: teach: NCP error $et nm with the taught map, $ed nm with the default reconstructor"
 awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taught $et nm against the default $ed nm"
+# the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
+# system's valid map: the same layers and loops, so the same map; speckles --valid applies it
+# to that telemetry (the timing table's rows renamed to those files) to the same NCP error
+"$B" teach obs/slopes_valid_000.fits --system my.conf vib_amp=0.3 valid=valid.fits -o taught_v.fits --work taught_v \
+    --loops 6 > teach_v.log 2>&1 || { cat teach_v.log; fail "teach on valid-only slopes"; }
+grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
+sed 's/slopes_0/slopes_valid_0/' timing.txt > obs/timing_v.txt
+"$B" speckles obs/timing_v.txt --science science.fits --actuators actuators.fits --valid valid.fits --recon taught_v.fits \
+    --match science.fits sci_tv.fits -o spk_tv.fits 2> speckles_tv.log || { cat speckles_tv.log; fail "speckles (valid-only, taught)"; }
+grep -q "224 slopes x 5 lags" speckles_tv.log || { cat speckles_tv.log; fail "speckles did not narrow the taught map"; }
+"$B" estimate sci_tv.fits spk_tv.fits -o halo_tv.fits > /dev/null 2>&1 || fail "estimate (valid-only, taught)"
+"$B" pupil halo_tv.fits -o pupil_tv.fits --truth obs/truth.fits > pupil_tv.log || fail "pupil (valid-only, taught)"
+etv=$(ncp_error pupil_tv.log)
+echo "cli_learn: teach on the used subapertures' slopes: $etv nm (the full layout's $et nm)"
+awk -v a="$etv" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) }' || fail "valid-only teach $etv nm against $et nm"
 # the loops described with ten times the slope noise: the correlation check warns, and with one
 # layer found teach falls back to the per-frame map of the layer and random seconds
 "$B" simulate my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=5 -o obs1 --quiet > /dev/null 2>&1 \

@@ -492,7 +492,10 @@ typedef struct swfs_teach_run_options {
                                    time (0: one per core), each loop then on one thread: the
                                    same loops, to the bit, however many run at once */
     const char *const *files;   /* the observation's telemetry: consecutive files of one series,
-                                   2 nsub^2 slopes per WFS frame (the simulator's layout) */
+                                   2 nsub^2 slopes per WFS frame (the simulator's layout), or with
+                                   the system's valid map (sim.valid) the used subapertures' only
+                                   (x then y); the map is learned in the full layout, which
+                                   speckles --valid applies to either */
     size_t nfiles;
     const char *out;            /* the chosen map (speckles --recon) */
     const char *work;           /* an existing folder: the loops (loop_NN/, mixed_NN/) and the maps

@@ -228,8 +228,10 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (o->pipe.recon == SWFS_RECON_GIVEN) {
         if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
         if ((rc = swfs_recon_read(o->recon, &w->rin))) return rc;
+        /* (with a valid map the telemetry may hold the used subapertures only and the
+         * reconstructor the full layout: the pipeline checks that case) */
         const size_t nl = w->rin->nlags ? w->rin->nlags : 1;
-        if (w->rin->nslopes / nl != w->nslopes)
+        if (w->rin->nslopes / nl != w->nslopes && !o->valid)
             return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
                              w->nslopes, o->recon, w->rin->nslopes / nl);
     }

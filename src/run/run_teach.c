@@ -161,9 +161,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     double orate = 0;
     if ((rc = swfs_telemetry_read(o->files[0], 0, &obs, &orate))) return rc;
     const size_t nsub = (size_t)sp->nsub;
-    if (obs->nx != 2 * nsub * nsub)
+    size_t vn = 0, nv = 0;
+    unsigned char *vmap = NULL;
+    if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
+    free(vmap);
+    if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
-                       "(nsub) writes 2 nsub^2 = %zu", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub);
+                       "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
+                       valid ? ", and its valid map's used subapertures give twice their count" : "");
     else if (orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
                        orate, sp->wfs_rate);
