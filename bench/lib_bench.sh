@@ -14,3 +14,30 @@ keep_obs() {
 # obs_row DIR S: the table row of the observation kept in DIR, seed S
 # (name seed nsub ... | slopes ideal x | ...).
 obs_row() { grep -E "^[a-z0-9-]+ +$2 +[0-9]+ " "$1/run.log" | head -1; }
+# obs_setup BENCH_TELEMETRY WORK K:S: the observation K:S kept in WORK/kKsS (keep_obs) and its
+# row's fields: sets k, s, d (the folder), name, nsub, def (the default path's NCP error [nm])
+# and ideal (the ideal speckles').
+obs_setup() {
+    k=${3%:*}
+    s=${3#*:}
+    d="$2/k${k}s$s"
+    keep_obs "$1" "$d" "$k" "$s"
+    local row
+    row=$(obs_row "$d" "$s")
+    name=$(echo "$row" | awk '{ print $1 }')
+    nsub=$(echo "$row" | awk '{ print $3 }')
+    def=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[1] }')
+    ideal=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[2] }')
+}
+# bench_args BUILD_DIR WORK_DIR [K:S ...]: a matrix script's arguments: sets B, W (created), OBS
+# (the observations K:S given; default every system, seed 1), BT (bench_telemetry) and X
+# (specklewfs).
+bench_args() {
+    B=$1
+    W=$2
+    shift 2
+    OBS=${*:-0:1 1:1 2:1 3:1 4:1 5:1 6:1 7:1 8:1 9:1 10:1 11:1}
+    BT="$B/bench/bench_telemetry"
+    X="$B/specklewfs"
+    mkdir -p "$W"
+}

@@ -28,14 +28,8 @@
 #
 # usage: bash bench/spacetime.sh BUILD_DIR WORK_DIR [K:S ...]   (default: every system, seed 1)
 set -euo pipefail
-B=$1
-W=$2
-shift 2
-OBS=${*:-0:1 1:1 2:1 3:1 4:1 5:1 6:1 7:1 8:1 9:1 10:1 11:1}
-BT="$B/bench/bench_telemetry"
-X="$B/specklewfs"
-mkdir -p "$W"
 . "$(dirname "$0")/lib_bench.sh"
+bench_args "$@"
 
 # path NAME OBSDIR MAP: speckles with the map, estimate, pupil --truth; prints the NCP error.
 path() {
@@ -50,15 +44,7 @@ path() {
 printf "%-11s %4s %4s | %6s %6s | %-16s %-16s %-16s | %7s %7s | %5s %4s | %7s %-11s | %5s %5s %5s\n" system seed nsub \
     default ideal "wind [m/s, deg]" "layer 2" lags learned space-t wind corr chosen "" "x def" "x st" "x ch"
 for ks in $OBS; do
-    k=${ks%:*}
-    s=${ks#*:}
-    d="$W/k${k}s$s"
-    keep_obs "$BT" "$d" "$k" "$s"
-    row=$(obs_row "$d" "$s")
-    name=$(echo "$row" | awk '{ print $1 }')
-    nsub=$(echo "$row" | awk '{ print $3 }')
-    def=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[1] }')
-    ideal=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[2] }')
+    obs_setup "$BT" "$W" "$ks"
     keys=$("$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_speed=' -e '^layer_dir=' -e '^seed=' -e '^nlayers=' \
         -e '^layer_frac=')
     rate=$(echo "$keys" | awk -F= '$1 == "wfs_rate" { print $2 }')

@@ -13,27 +13,13 @@
 #
 # usage: bash bench/teach.sh BUILD_DIR WORK_DIR [K:S ...]   (default: every system, seed 1)
 set -euo pipefail
-B=$1
-W=$2
-shift 2
-OBS=${*:-0:1 1:1 2:1 3:1 4:1 5:1 6:1 7:1 8:1 9:1 10:1 11:1}
-BT="$B/bench/bench_telemetry"
-X="$B/specklewfs"
-mkdir -p "$W"
 . "$(dirname "$0")/lib_bench.sh"
+bench_args "$@"
 
 printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
     "layers found [m/s toward deg]" lags chosen teach "[s]" "x def" "x tch"
 for ks in $OBS; do
-    k=${ks%:*}
-    s=${ks#*:}
-    d="$W/k${k}s$s"
-    keep_obs "$BT" "$d" "$k" "$s"
-    row=$(obs_row "$d" "$s")
-    name=$(echo "$row" | awk '{ print $1 }')
-    nsub=$(echo "$row" | awk '{ print $3 }')
-    def=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[1] }')
-    ideal=$(echo "$row" | awk -F'|' '{ split($2, a, " "); print a[2] }')
+    obs_setup "$BT" "$W" "$ks"
     "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' > "$d/system.conf"
     "$X" teach "$d"/slopes_0*.fits --system "$d/system.conf" -o "$d/taught.fits" --work "$d/teach" > "$d/teach.log" 2> "$d/teach.err" \
         || { echo "$name $s: teach failed ($d/teach.err)" >&2; continue; }
