@@ -1,4 +1,4 @@
-/* specklewfs teach SLOPES.fits... --system CONFIG -o W.fits --work DIR: a learned map for one
+/* specklewfs teach SLOPES.fits... --system CONFIG -o W.fits [--work DIR]: a learned map for one
  * observation from simulated loops of the described system at the layers its slopes show
  * (run.h swfs_teach_run). */
 #include "cli.h"
@@ -13,7 +13,7 @@
 #include <string.h>
 
 static const char *usage_text =
-    "usage: specklewfs teach SLOPES.fits... [--system CONFIG] [key=value ...] -o W.fits --work DIR\n"
+    "usage: specklewfs teach SLOPES.fits... [--system CONFIG] [key=value ...] -o W.fits [--work DIR]\n"
     "                        [--loops N] [--seed S]\n"
     "\n"
     "A reconstructor for this observation, learned from simulated closed loops of your system\n"
@@ -41,7 +41,8 @@ static const char *usage_text =
     "                observation's; the layers and the seed are teach's to set\n"
     "  -o W.fits     the chosen map\n"
     "  --work DIR    folder for the loops (loop_NN/, mixed_NN/) and both maps tried\n"
-    "                (spacetime.fits, perframe.fits); created if missing\n"
+    "                (spacetime.fits, perframe.fits); created if missing (default: W.teach\n"
+    "                beside W.fits, its name without .fits)\n"
     "  --loops N     loops per set (default 12)\n"
     "  --seed S      loop k's seed is S + k (default 101)\n";
 
@@ -76,7 +77,6 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
     }
     if (!*nf) return cli_usage_error(cmd, "needs the observation's telemetry files (SLOPES.fits...)");
     if (!o->out) return cli_usage_error(cmd, "needs -o W.fits");
-    if (!o->work) return cli_usage_error(cmd, "needs --work DIR (the loops and the maps tried go there)");
     if (loops < 2 || loops > 64) return cli_usage_error(cmd, "--loops must be 2..64, got %ld", loops);
     if (seed < 0) return cli_usage_error(cmd, "--seed must be >= 0, got %ld", seed);
     o->nloops = (size_t)loops;
@@ -108,6 +108,13 @@ int swfs_cmd_teach(int argc, char **argv)
     int rc = parse(argc, argv, cfg, &o, files, &nf, &cfgfile);
     if (!rc) rc = swfs_config_set_kv(cfg, "mode", "timeseries") ? cli_error(cmd) : 0;
     if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim);
+    char work[4200];
+    if (!rc && !o.work) { /* W.teach beside W.fits */
+        const size_t n = strlen(o.out), cut = n > 5 && !strcmp(o.out + n - 5, ".fits") ? n - 5 : n;
+        if (cut > 4000) rc = cli_usage_error(cmd, "-o %s: the name is too long for its work folder; give --work", o.out);
+        else snprintf(work, sizeof work, "%.*s.teach", (int)cut, o.out);
+        o.work = work;
+    }
     if (!rc) rc = cli_make_dir(cmd, o.work);
     swfs_config_free(cfg);
     if (rc) {

@@ -93,17 +93,18 @@ grep -q "given space-time reconstructor lagged.fits: 288 slopes x 3 lags" speckl
     || { cat speckles_st.log; fail "speckles printed no check of the space-time map"; }
 grep "space-time map" speckles_st.log | cut -c1-160
 # teach: the same rule in one command (wind -> loops at the layers found -> the space-time map
-# and its checks -> the choice). Its two layers must be the observation's (15 and 22 m/s), its
+# and its checks -> the choice; the loops in taught.teach, the default work folder). Its two layers must be the observation's (15 and 22 m/s), its
 # map the space-time one (neither check warns on loops of the same system), and through the
 # whole path no worse than the default reconstructor by more than 10 %.
-"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --work taught --loops 6 > teach.log 2>&1 \
+"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --loops 6 > teach.log 2>&1 \
     || { cat teach.log; fail "teach"; }
 grep -q "2 frozen-flow layers" teach.log && grep -q "chose the space-time map (neither check warned)" teach.log \
     || { cat teach.log; fail "teach: two layers and the space-time map expected"; }
 awk '/^teach:   layer [12]: / { v[++n] = $4 } END { exit !(n == 2 && ((v[1] > 13.5 && v[1] < 16.5 && v[2] > 19.8 && v[2] < 24.2) ||
     (v[2] > 13.5 && v[2] < 16.5 && v[1] > 19.8 && v[1] < 24.2))) }' teach.log || { cat teach.log; fail "teach: the layers"; }
 head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "teach: taught.fits is no 5-lag cube"
-[ "$(ls -d taught/loop_*/ | wc -l)" = 6 ] && [ -s taught/spacetime.fits ] || fail "teach: the loops or the map tried"
+[ "$(ls -d taught.teach/loop_*/ | wc -l)" = 6 ] && [ -s taught.teach/spacetime.fits ] \
+    || fail "teach: the loops or the map tried (in the default work folder taught.teach)"
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
     sci_t.fits -o spk_t.fits 2> speckles_t.log || { cat speckles_t.log; fail "speckles with the taught map"; }
 "$B" estimate sci_t.fits spk_t.fits -o halo_t.fits > /dev/null 2>&1 || fail "estimate (taught)"

@@ -209,13 +209,14 @@ def _st_checks(r):
                 st_warn_corr=bool(w & 2))
 
 
-def teach(files, out, work, config=None, loops=12, seed=101, progress=None, provenance=(), **params):
+def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None, provenance=(), **params):
     """A learned map for one observation from simulated closed loops of your system at the
     winds its slopes show (`specklewfs teach`, run.h swfs_teach_run): files, the observation's
     consecutive telemetry files (2 nsub^2 slopes per WFS frame); config and params, the system
     in `simulate mode=timeseries` keys (its nsub, wfs_rate and teldiam the observation's; the
     layers and seeds are set per loop); work, a folder (created if needed) for the loops and
-    the maps tried; out, the chosen map for speckles(..., recon=out). Returns the layers found
+    the maps tried (default: out's name without .fits, plus .teach); out, the chosen map for
+    speckles(..., recon=out). Returns the layers found
     (wind: as wind_from_slopes' layers), lags, nloops, the space-time map's training misfit
     and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
     "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
@@ -229,6 +230,9 @@ def teach(files, out, work, config=None, loops=12, seed=101, progress=None, prov
     lib.swfs_teach_run_options_default(ctypes.byref(o))
     o.sim = _checked_params("ts", config, params)
     arr, n = _paths(files)
+    if work is None:
+        w = os.fspath(out)
+        work = (w[:-5] if w.endswith(".fits") else w) + ".teach"
     os.makedirs(work, exist_ok=True)
     o.files, o.nfiles, o.out, o.work = arr, n, enc(out), enc(work)
     o.nloops, o.seed = int(loops), int(seed)
