@@ -96,14 +96,14 @@ grep "space-time map" speckles_st.log | cut -c1-160
 # and its checks -> the choice; the loops in taught.teach, the default work folder). Its two layers must be the observation's (15 and 22 m/s), its
 # map the space-time one (neither check warns on loops of the same system), and through the
 # whole path no worse than the default reconstructor by more than 10 %.
-"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --loops 6 > teach.log 2>&1 \
+"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --loops 4 > teach.log 2>&1 \
     || { cat teach.log; fail "teach"; }
 grep -q "2 frozen-flow layers" teach.log && grep -q "chose the space-time map (neither check warned)" teach.log \
     || { cat teach.log; fail "teach: two layers and the space-time map expected"; }
 awk '/^teach:   layer [12]: / { v[++n] = $4 } END { exit !(n == 2 && ((v[1] > 13.5 && v[1] < 16.5 && v[2] > 19.8 && v[2] < 24.2) ||
     (v[2] > 13.5 && v[2] < 16.5 && v[1] > 19.8 && v[1] < 24.2))) }' teach.log || { cat teach.log; fail "teach: the layers"; }
 head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "teach: taught.fits is no 5-lag cube"
-[ "$(ls -d taught.teach/loop_*/ | wc -l)" = 6 ] && [ -s taught.teach/spacetime.fits ] \
+[ "$(ls -d taught.teach/loop_*/ | wc -l)" = 4 ] && [ -s taught.teach/spacetime.fits ] \
     || fail "teach: the loops or the map tried (in the default work folder taught.teach)"
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
     sci_t.fits -o spk_t.fits 2> speckles_t.log || { cat speckles_t.log; fail "speckles with the taught map"; }
@@ -116,7 +116,7 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
 # system's valid map: the same layers and loops, so the same map; speckles --valid applies it
 # to that telemetry (the timing table's rows renamed to those files) to the same NCP error
 "$B" teach obs/slopes_valid_000.fits --system my.conf vib_amp=0.3 valid=valid.fits -o taught_v.fits --work taught_v \
-    --loops 6 > teach_v.log 2>&1 || { cat teach_v.log; fail "teach on valid-only slopes"; }
+    --loops 4 > teach_v.log 2>&1 || { cat teach_v.log; fail "teach on valid-only slopes"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
 sed 's/slopes_0/slopes_valid_0/' timing.txt > obs/timing_v.txt
 "$B" speckles obs/timing_v.txt --science science.fits --actuators actuators.fits --valid valid.fits --recon taught_v.fits \
@@ -131,13 +131,13 @@ awk -v a="$etv" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) 
 # layer found teach falls back to the per-frame map of the layer and random seconds
 "$B" simulate my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=5 -o obs1 --quiet > /dev/null 2>&1 \
     || fail "simulate the one-layer observation"
-"$B" teach obs1/slopes_0*.fits --system my.conf slope_noise=3e-7 -o taught1.fits --work taught1 --loops 3 > teach1.log 2>&1 \
+"$B" teach obs1/slopes_0*.fits --system my.conf slope_noise=3e-7 -o taught1.fits --work taught1 --loops 2 > teach1.log 2>&1 \
     || { cat teach1.log; fail "teach (one layer)"; }
 grep -q "warning: .* frames apart this telemetry's slopes correlate" teach1.log \
     && grep -q "chose the per-frame map of the measured layer and random second layers" teach1.log \
     || { cat teach1.log; fail "teach: the correlation check should warn and the per-frame map be chosen"; }
 head -c 8640 taught1.fits | grep -aq "NLAGS" && fail "teach: the per-frame map should hold no lags"
-[ "$(ls -d taught1/mixed_*/ | wc -l)" = 3 ] || fail "teach: three loops of a random second layer expected"
+[ "$(ls -d taught1/mixed_*/ | wc -l)" = 2 ] || fail "teach: two loops of a random second layer expected"
 cmp -s taught1.fits taught1/perframe.fits || fail "teach: the chosen map is not the per-frame map tried"
 # a system of another geometry than the telemetry's: refused, naming the file; no map left
 "$B" teach obs1/slopes_000.fits --system my.conf nsub=16 -o bad.fits --work badw --loops 2 > bad.log 2>&1 \
