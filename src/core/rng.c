@@ -1,3 +1,4 @@
+#define _DEFAULT_SOURCE /* lgamma_r: lgamma() writes the global signgam, a race between the simulators' threads */
 #include "specklewfs/rng.h"
 
 #include <math.h>
@@ -78,6 +79,7 @@ static double poisson_ptrs(swfs_rng *r, double mu)
     const double a = -0.059 + 0.02483 * b;
     const double invalpha = 1.1239 + 1.1328 / (b - 3.4);
     const double vr = 0.9277 - 3.6224 / (b - 2.0);
+    int sign;
     for (;;) {
         double U = swfs_rng_uniform(r) - 0.5;
         double V = swfs_rng_uniform(r);
@@ -85,7 +87,7 @@ static double poisson_ptrs(swfs_rng *r, double mu)
         double k = floor((2.0 * a / us + b) * U + mu + 0.43);
         if (us >= 0.07 && V <= vr) return k;
         if (k < 0.0 || (us < 0.013 && V > us)) continue;
-        if (log(V) + log(invalpha) - log(a / (us * us) + b) <= -mu + k * loglam - lgamma(k + 1.0))
+        if (log(V) + log(invalpha) - log(a / (us * us) + b) <= -mu + k * loglam - lgamma_r(k + 1.0, &sign))
             return k;
     }
 }

@@ -11,10 +11,16 @@
 #include <limits.h>
 #include <zlib.h>
 #include <math.h>
+#include <pthread.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+
+/* CFITSIO stamps DATE and the CHECKSUM card's comment with the time from gmtime(), whose
+ * result is one static buffer: files written by several threads at once (teach's loops)
+ * take this lock around those calls. */
+static pthread_mutex_t cfitsio_clock = PTHREAD_MUTEX_INITIALIZER;
 
 /* Turn a CFITSIO status into our status with a message naming the file and action. */
 static int fits_fail(int code, int fstatus, const char *path, const char *action)
@@ -953,10 +959,12 @@ int swfs_fits_out_commit(swfs_fits_out *o)
      * refuse an HDU whose data or header changed since. */
     int nhdu = 0;
     fits_get_num_hdus(o->fp, &nhdu, &st);
+    pthread_mutex_lock(&cfitsio_clock);
     for (int k = 1; k <= nhdu && !st; k++) {
         fits_movabs_hdu(o->fp, k, NULL, &st);
         fits_write_chksum(o->fp, &st);
     }
+    pthread_mutex_unlock(&cfitsio_clock);
     if (st) {
         int rc = fits_fail(SWFS_ERR_IO, st, o->path, "finishing output file");
         swfs_fits_out_abort(o);
@@ -1128,7 +1136,9 @@ int swfs_fits_out_provenance(swfs_fits_out *o, const char *const *lines, size_t 
 {
     int st = 0, rc = swfs_fits_out_key_string(o, "SWFSVER", SWFS_VERSION, "specklewfs version");
     if (rc) return rc;
+    pthread_mutex_lock(&cfitsio_clock);
     fits_write_date(o->fp, &st);
+    pthread_mutex_unlock(&cfitsio_clock);
     if (st) return fits_fail(SWFS_ERR_IO, st, o->path, "writing DATE");
     for (size_t i = 0; i < nlines && !rc; i++) rc = swfs_fits_out_history(o, lines[i]);
     return rc;

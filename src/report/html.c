@@ -1,5 +1,6 @@
 /* The HTML of a report: a growing string, the key-number and TSV tables, the notes, and
  * the page written through io's atomic text writer. */
+#define _POSIX_C_SOURCE 200809L /* gmtime_r */
 #include "report_internal.h"
 
 #include "specklewfs/status.h"
@@ -183,7 +184,8 @@ int rep_write_page(const char *out_dir, const char *title, const char *run_dir, 
     if (body->len) rep_printf(&b, "%s", body->s);
     time_t now = time(NULL);
     char date[64];
-    strftime(date, sizeof date, "%Y-%m-%d %H:%M:%S UTC", gmtime(&now));
+    struct tm tm;
+    strftime(date, sizeof date, "%Y-%m-%d %H:%M:%S UTC", gmtime_r(&now, &tm));
     rep_printf(&b, "<hr><p><small>Products read from <code>");
     rep_text(&b, run_dir);
     rep_printf(&b, "</code> on %s by specklewfs %s.</small></p>\n</body>\n</html>\n", date, SWFS_VERSION);
