@@ -10,6 +10,7 @@
 
 #include <errno.h>
 #include <math.h>
+#include <stdatomic.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -46,6 +47,7 @@ typedef struct loops_ctx {
     int inner;           /* each simulation's own threads */
     const char *stage;
     size_t njobs;
+    atomic_size_t done;  /* loops finished, over the workers */
 } loops_ctx;
 
 static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads)
@@ -75,7 +77,8 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     return SWFS_OK;
 }
 
-/* Workers over the loops (parallel.h: worker 0 is the caller's thread, which reports). */
+/* Workers over the loops (parallel.h: worker 0 is the caller's thread, which reports the
+ * loops finished by all of them). */
 static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
 {
     loops_ctx *c = ctx;
@@ -83,7 +86,8 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
         loop_job *j = c->jobs + i;
         j->rc = simulate_loop(c->o, j, c->inner);
         if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
-        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, i + 1, c->njobs);
+        const size_t done = atomic_fetch_add(&c->done, 1) + 1;
+        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, done, c->njobs);
     }
 }
 
@@ -93,7 +97,7 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
 static int simulate_loops(const swfs_teach_run_options *o, loop_job *jobs, size_t n, const char *stage, size_t *nrun)
 {
     const int nt = swfs_parallel_threads(o->sim.base.threads, n);
-    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, stage, n};
+    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, stage, n, 0};
     if (o->progress) o->progress(o->progress_ctx, stage, 0, n);
     swfs_parallel_for(nt, n, 1, loops_worker, &c);
     for (size_t i = 0; i < n; i++) {
