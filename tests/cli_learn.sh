@@ -103,6 +103,7 @@ grep -q "2 frozen-flow layers" teach.log && grep -q "chose the space-time map (n
 awk '/^teach:   layer [12]: / { v[++n] = $4 } END { exit !(n == 2 && ((v[1] > 13.5 && v[1] < 16.5 && v[2] > 19.8 && v[2] < 24.2) ||
     (v[2] > 13.5 && v[2] < 16.5 && v[1] > 19.8 && v[1] < 24.2))) }' teach.log || { cat teach.log; fail "teach: the layers"; }
 head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "teach: taught.fits is no 5-lag cube"
+head -c 8640 taught.fits | grep -aq "TEACHSEL= 'spacetime'" || fail "teach: the map's header should say it was chosen as such"
 [ "$(ls -d taught.teach/loop_*/ | wc -l)" = 4 ] && [ -s taught.teach/spacetime.fits ] \
     || fail "teach: the loops or the map tried (in the default work folder taught.teach)"
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
@@ -138,7 +139,8 @@ grep -q "warning: .* frames apart this telemetry's slopes correlate" teach1.log 
     || { cat teach1.log; fail "teach: the correlation check should warn and the per-frame map be chosen"; }
 head -c 8640 taught1.fits | grep -aq "NLAGS" && fail "teach: the per-frame map should hold no lags"
 [ "$(ls -d taught1/mixed_*/ | wc -l)" = 2 ] || fail "teach: two loops of a random second layer expected"
-cmp -s taught1.fits taught1/perframe.fits || fail "teach: the chosen map is not the per-frame map tried"
+head -c 8640 taught1.fits | grep -aq "TEACHSEL= 'perframe_mixed'" && head -c 8640 taught1.fits | grep -aq "TEACHWRN=  *2 " \
+    || fail "teach: the map's header should say the per-frame map of random seconds, the correlation check warning"
 # a system of another geometry than the telemetry's: refused, naming the file; no map left
 "$B" teach obs1/slopes_000.fits --system my.conf nsub=16 -o bad.fits --work badw --loops 2 > bad.log 2>&1 \
     && fail "teach accepted a 16 x 16 system for 12 x 12 telemetry"

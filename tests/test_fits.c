@@ -80,6 +80,26 @@ static void test_real_and_complex_round_trip(void **state)
     assert_int_equal(swfs_fits_in_move(f, "NOPE"), SWFS_ERR_FORMAT);
     assert_non_null(strstr(swfs_last_error(), "NOPE"));
     swfs_fits_in_close(f);
+    /* A copy of every HDU with a key added to the primary one: the data and the old keys as
+     * they were, the checksums written anew (the reader verifies them), nothing at the copy's
+     * name until commit. */
+    const char *cp = test_path("rt_copy.fits");
+    remove(cp);
+    assert_ok(swfs_fits_out_copy(&o, path, cp));
+    assert_ok(swfs_fits_out_key_string(o, "ADDED", "yes", "a key of the copy"));
+    assert_false(test_file_exists(cp));
+    assert_ok(swfs_fits_out_commit(o));
+    assert_ok(swfs_fits_read_cplx(cp, "C64", &c2, NULL));
+    for (size_t k = 0; k < swfs_cplx_size(c); k++) assert_true(c2->data[k] == c->data[k]);
+    swfs_cplx_free(c2);
+    assert_ok(swfs_fits_in_open(&f, cp, NULL));
+    char added[16];
+    found = 0;
+    assert_ok(swfs_fits_in_key_string_opt(f, "ADDED", added, sizeof added, &found));
+    assert_true(found);
+    assert_string_equal(added, "yes");
+    swfs_fits_in_close(f);
+    assert_int_equal(swfs_fits_out_copy(&o, test_path("no_such.fits"), cp), SWFS_ERR_IO);
     swfs_real_free(r);
     swfs_cplx_free(c);
 }

@@ -84,6 +84,9 @@ typedef struct swfs_fits_out swfs_fits_out;
 /* Create the part file of `path` (atomic.h); nothing appears at `path` until
  * swfs_fits_out_commit(). The output checks of outpaths.h apply to `path`. */
 int swfs_fits_out_create(swfs_fits_out **out, const char *path);
+/* The same, started as a copy of every HDU of the file `from` (opened as swfs_fits_in_open
+ * opens it), the primary HDU current: keys written next go there, and commit writes the checksums anew. */
+int swfs_fits_out_copy(swfs_fits_out **out, const char *from, const char *path);
 /* Write DATASUM/CHECKSUM on every HDU, close, fsync, rename to the final path (or keep it
  * for the group's commit, atomic.h), free. On failure the partial file is removed. */
 int swfs_fits_out_commit(swfs_fits_out *o);

@@ -497,7 +497,9 @@ typedef struct swfs_teach_run_options {
                                    (x then y); the map is learned in the full layout, which
                                    speckles --valid applies to either */
     size_t nfiles;
-    const char *out;            /* the chosen map (speckles --recon) */
+    const char *out;            /* the chosen map (speckles --recon), with TEACHSEL (spacetime,
+                                   perframe, perframe_mixed), TEACHLOO, TEACHLAY, TEACHWRN,
+                                   TEACHMIS, TEACHCEX: the choice, loops, layers and checks */
     const char *work;           /* an existing folder: the loops (loop_NN/, mixed_NN/) and the maps
                                    tried (spacetime.fits, perframe.fits), kept for reuse by learn */
     size_t nloops;              /* loops per set (12; at least 2) */

@@ -941,6 +941,26 @@ int swfs_fits_out_create(swfs_fits_out **out, const char *path)
     return SWFS_OK;
 }
 
+int swfs_fits_out_copy(swfs_fits_out **out, const char *from, const char *path)
+{
+    swfs_fits_in *in = NULL;
+    int rc = swfs_fits_in_open(&in, from, NULL); /* checks it and its checksums */
+    swfs_fits_out *o = NULL;
+    if (!rc) rc = swfs_fits_out_create(&o, path);
+    int st = 0, nhdu = 0;
+    if (!rc) {
+        fits_copy_file(in->fp, o->fp, 1, 1, 1, &st);
+        fits_get_num_hdus(o->fp, &nhdu, &st);
+        fits_movabs_hdu(o->fp, 1, NULL, &st);
+        if (st) rc = fits_fail(SWFS_ERR_IO, st, path, "copying the HDUs of another file");
+    }
+    swfs_fits_in_close(in);
+    if (rc) { swfs_fits_out_abort(o); return rc; }
+    o->nhdu = nhdu;
+    *out = o;
+    return SWFS_OK;
+}
+
 void swfs_fits_out_abort(swfs_fits_out *o)
 {
     if (!o) return;

@@ -1,6 +1,7 @@
 /* teach: a learned map for one observation from simulated closed loops of the described
  * system at the layers its slopes show, chosen by the space-time map's checks (run.h). */
 #include "specklewfs/atomic.h"
+#include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/run.h"
@@ -127,21 +128,21 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
                                   nlags > 1 ? "space-time" : "per-frame", n) : SWFS_OK;
 }
 
-/* The chosen map's bytes onto o->out (atomic.h: the whole file or none). */
-static int copy_file(const char *from, const char *to)
+/* The chosen map onto o->out (atomic.h: the whole file or none), with what chose it. */
+static const char *const chosen_names[] = {"spacetime", "perframe", "perframe_mixed"};
+
+static int write_chosen(const char *from, const swfs_teach_run_options *o, const swfs_teach_run_result *r)
 {
-    FILE *in = fopen(from, "rb");
-    if (!in) return swfs_fail(SWFS_ERR_IO, "teach: cannot read %s: %s", from, strerror(errno));
-    swfs_atomic *a = NULL;
-    int rc = swfs_atomic_begin(&a, to, 1);
-    char buf[65536];
-    size_t n;
-    while (!rc && (n = fread(buf, 1, sizeof buf, in)) > 0)
-        if (fwrite(buf, 1, n, swfs_atomic_stream(a)) != n) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot write %s", to);
-    if (!rc && ferror(in)) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot read %s", from);
-    fclose(in);
-    if (rc) { swfs_atomic_abort(a); return rc; }
-    return swfs_atomic_commit(a);
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_copy(&f, from, o->out);
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", chosen_names[r->chosen], "teach chose: spacetime, perframe(_mixed)");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLOO", (long)r->nloops, "teach: loops simulated");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLAY", (long)r->nlayers, "teach: layers found and given to the loops");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHWRN", r->warns, "teach: checks warned (1 wind, 2 corr.)");
+    if (!rc) rc = swfs_fits_out_key_double(f, "TEACHMIS", r->check.st_mismatch, "[subap] layers apart at the largest lag");
+    if (!rc) rc = swfs_fits_out_key_double(f, "TEACHCEX", r->check.st_corr_excess, "correlation beyond 3 spreads (> 0 warns)");
+    if (rc) { swfs_fits_out_abort(f); return rc; }
+    return swfs_fits_out_commit(f);
 }
 
 static int check_options(const swfs_teach_run_options *o)
@@ -261,7 +262,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         chosen = pf;
     }
     free(jobs);
-    if (!rc) rc = copy_file(chosen, o->out);
+    if (!rc) rc = write_chosen(chosen, o, r);
     r->seconds = swfs_wall_seconds() - t0;
     return rc;
 }
