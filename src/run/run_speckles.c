@@ -228,12 +228,17 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (o->pipe.recon == SWFS_RECON_GIVEN) {
         if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
         if ((rc = swfs_recon_read(o->recon, &w->rin))) return rc;
-        /* (with a valid map the telemetry may hold the used subapertures only and the
-         * reconstructor the full layout: the pipeline checks that case) */
-        const size_t nl = w->rin->nlags ? w->rin->nlags : 1;
-        if (w->rin->nslopes / nl != w->nslopes && !o->valid)
-            return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu", w->path,
-                             w->nslopes, o->recon, w->rin->nslopes / nl);
+        /* With a valid map the telemetry may hold the used subapertures only and the
+         * reconstructor the full layout of the map's nsub (e.g. learned on simulations). */
+        const size_t nl = w->rin->nlags ? w->rin->nlags : 1, per = w->rin->nslopes / nl;
+        size_t vn = 0, vv = 0;
+        unsigned char *vm = NULL;
+        if (per != w->nslopes && o->valid && (rc = swfs_valid_map_read(o->valid, &vm, &vn, &vv))) return rc;
+        free(vm);
+        if (per != w->nslopes && !(o->valid && per == 2 * vn * vn))
+            return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame but the reconstructor %s expects %zu%s", w->path,
+                             w->nslopes, o->recon, per, o->valid ? " (nor is it the full layout of the valid map's "
+                                                                   "subapertures)" : "");
     }
     if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
