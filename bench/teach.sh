@@ -18,6 +18,7 @@ bench_args "$@"
 
 printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
     "layers found [m/s toward deg]" lags chosen teach "[s]" "x def" "x tch"
+sums=
 for ks in $OBS; do
     obs_setup "$BT" "$W" "$ks"
     "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' > "$d/system.conf"
@@ -36,5 +37,11 @@ for ks in $OBS; do
     printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5.2f %5.2f\n" "$name" "$s" "$nsub" "$def" "$ideal" \
         "$layers" "$lags" "$ch" "$t" "$sec" "$(echo "$def $ideal" | awk '{ print $1 / $2 }')" \
         "$(echo "$t $ideal" | awk '{ print $1 / $2 }')"
+    sums="$sums $def $ideal $t"
 done
 echo "chosen: space-time = the lags' map (neither check warned); per-frame = a per-frame map (teach.log says which loops)"
+# the target's terms: runs within 1.3x of the ideal speckles, the mean and worst ratio
+echo "${sums:-}" | awk '{ for (i = 1; i + 2 <= NF; i += 3) { n++; rd = $i / $(i + 1); rt = $(i + 2) / $(i + 1);
+    kd += rd <= 1.3; kt += rt <= 1.3; md += rd; mt += rt; if (rt > wt) wt = rt; if (rd > wd) wd = rd } }
+    END { if (n) printf "%d runs; within 1.3x of the ideal speckles: teach %d (mean %.2f, worst %.2f), the default path %d " \
+        "(mean %.2f, worst %.2f)\n", n, kt, mt / n, wt, kd, md / n, wd }' 
