@@ -122,6 +122,7 @@ int swfs_cmd_simulate(int argc, char **argv)
     swfs_paths_create(&paths);
     swfs_paths_input(paths, "config file", cfgfile);
     if (p.pupil_mask[0]) swfs_paths_input(paths, "pupil mask", p.pupil_mask);
+    if (p.ncp_map[0]) swfs_paths_input(paths, "NCP map", p.ncp_map);
     cli_paths_outputs_in(paths, outdir, products, 4);
     if (cli_paths_check(cmd, paths)) return CLI_FAIL;
 

@@ -96,6 +96,9 @@ chk ts-unknown-key 1 "'foo'" o/raw_000.fits -- simulate mode=timeseries $TS foo=
 chk ts-unwritable 1 "notfits.fits/x" $UW/raw_000.fits -- simulate mode=timeseries $TS -o $UW --quiet
 chk ts-pupil-onto-itself 1 "refusing to overwrite an input" ts/raw_009.fits -- simulate mode=timeseries $TS pupil_mask=ts/pupil.fits -o ts --quiet
 chk sim-pupil-onto-itself 1 "refusing to overwrite an input" run/raw_009.fits -- simulate $SMALL pupil_mask=run/pupil.fits -o run --quiet
+chk sim-ncp-missing 1 "NCP map: nope.fits" o/science.fits -- simulate $SMALL ncp_map=nope.fits -o o --quiet
+chk ts-ncp-missing 1 "NCP map: nope.fits" o/raw_000.fits -- simulate mode=timeseries $TS ncp_map=nope.fits -o o --quiet
+chk ts-ncp-onto-itself 1 "refusing to overwrite an input" ts/raw_009.fits -- simulate mode=timeseries $TS ncp_map=ts/truth.fits -o ts --quiet
 
 # ---- reduce
 chk reduce-missing 1 "nofile.fits: cannot open" o.fits -- reduce nofile.fits -o o.fits

@@ -377,6 +377,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
     if (p->valid[0]) swfs_paths_input(paths, "valid-subaperture map", p->valid);
     if (p->base.pupil_mask[0]) swfs_paths_input(paths, "pupil mask", p->base.pupil_mask);
+    if (p->base.ncp_map[0]) swfs_paths_input(paths, "NCP map", p->base.ncp_map);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
