@@ -10,6 +10,7 @@
  * distance at the largest lag and the slopes' correlation at the lags, each with its warning. */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r)
 {
+    const int warns = swfs_spacetime_warns(r);
     if (r->info.nlags && !isnan(r->st_train_vx) && r->st_found) {
         if (r->st_train_nlayers)
             fprintf(stderr, "%s: space-time map: this telemetry's slopes show %zu frozen-flow layer%s, its training "
@@ -21,7 +22,7 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
             fprintf(stderr, "%s: space-time map: its training loops' slopes move (%.4f, %.4f) subapertures per WFS "
                     "frame, this telemetry's (%.4f, %.4f): %.2f subapertures apart at the largest lag\n", cmd,
                     r->st_train_vx, r->st_train_vy, r->st_obs_vx, r->st_obs_vy, r->st_mismatch);
-        if (swfs_spacetime_warns(r) & SWFS_SPACETIME_WARN_WIND)
+        if (warns & SWFS_SPACETIME_WARN_WIND)
             fprintf(stderr, "%s: warning: the map was taught at another wind than this telemetry's (%s more than %.2f "
                     "subaperture apart at its largest lag): a space-time map taught at the wrong wind can be far worse "
                     "than the default; simulate the loops with the layers `specklewfs wind` gives (docs/telemetry.md)\n",
@@ -44,7 +45,7 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
                         r->st_corr_spread[j]);
         }
         fprintf(stderr, "\n");
-        if (swfs_spacetime_warns(r) & SWFS_SPACETIME_WARN_CORR)
+        if (warns & SWFS_SPACETIME_WARN_CORR)
             fprintf(stderr, "%s: warning: %ld frames apart this telemetry's slopes correlate at %.3f where the "
                     "training loops' did at %.3f +- %.3f (more than three times that apart): a layer or a speed the loops "
                     "lack, or a system simulated otherwise (noise, loop gain); a space-time map taught without the observation's whole profile can be worse than the "

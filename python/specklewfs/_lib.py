@@ -335,6 +335,7 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("nloops", c_size), ("seed", c_u64), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
     ("progress_ctx", c_ptr)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
+SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
     ("nloops", c_size), ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),

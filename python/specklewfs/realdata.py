@@ -205,8 +205,8 @@ def _st_checks(r):
                 st_corr_spread=np.array(r.st_corr_spread[:nl]), st_corr_obs=np.array(r.st_corr_obs[:nl]),
                 st_corr_excess=r.st_corr_excess, st_edges_joined=r.st_edges_joined,
                 st_edges_clamped=r.st_edges_clamped, st_edges_unreadable=r.st_edges_unreadable,
-                st_edges_why=r.st_edges_why.decode(errors="replace"), st_warn_wind=bool(w & 1),
-                st_warn_corr=bool(w & 2))
+                st_edges_why=r.st_edges_why.decode(errors="replace"), st_warn_wind=bool(w & _lib.SPACETIME_WARN_WIND),
+                st_warn_corr=bool(w & _lib.SPACETIME_WARN_CORR))
 
 
 def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None, provenance=(), **params):

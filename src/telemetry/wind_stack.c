@@ -165,12 +165,8 @@ int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate,
             nc++;
         }
     const double u1x = e->vx / (pitch * rate), u1y = e->vy / (pitch * rate);
-    e->nlayers = 1; /* the tracked layer, its standing filled in by the first pass */
-    set_layer(&e->layer[0], u1x, u1y, pitch, rate, NAN, NAN, 0);
-    e->layer[0].vx = e->vx; /* the tracker's fit, to the bit */
-    e->layer[0].vy = e->vy;
-    e->layer[0].speed = e->speed;
-    e->layer[0].direction = e->direction;
+    e->nlayers = 1; /* the tracked layer as the tracker fitted it; its standing from the first pass */
+    e->layer[0] = (swfs_wind_layer){e->vx, e->vy, e->speed, e->direction, NAN, NAN, 0};
     e->next_signif = NAN;
     for (int first = 1; e->nlayers < SWFS_WIND_MAXLAYERS; first = 0) {
         size_t nv = 0, best = SIZE_MAX;
