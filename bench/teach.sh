@@ -11,9 +11,15 @@
 # are removed after the row (the maps it tried stay). About 1-2 minutes per 12 x 12 observation, 3-6 per 24 x 24, on
 # 2 cores.
 #
-# usage: bash bench/teach.sh BUILD_DIR WORK_DIR [K:S ...]   (default: every system, seed 1)
+# With --modes-from-slopes (after WORK_DIR) the description has no ao_modes: teach takes the
+# loops' modal filter from the slopes (docs/telemetry.md); its files are then named *_auto.
+#
+# usage: bash bench/teach.sh BUILD_DIR WORK_DIR [--modes-from-slopes] [K:S ...]
+#        (default: every system, seed 1)
 set -euo pipefail
 . "$(dirname "$0")/lib_bench.sh"
+auto=
+if [ "${3:-}" = --modes-from-slopes ]; then auto=_auto; set -- "$1" "$2" "${@:4}"; fi
 bench_args "$@"
 
 printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
@@ -21,19 +27,22 @@ printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" sys
 sums=
 for ks in $OBS; do
     obs_setup "$BT" "$W" "$ks"
-    "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' > "$d/system.conf"
-    "$X" teach "$d"/slopes_0*.fits --system "$d/system.conf" -o "$d/taught.fits" --work "$d/teach" > "$d/teach.log" 2> "$d/teach.err" \
-        || { echo "$name $s: teach failed ($d/teach.err)" >&2; continue; }
-    "$X" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/actuators.fits" --recon "$d/taught.fits" \
-        -o "$d/spk_taught.fits" --match "$d/science.fits" "$d/sci_taught.fits" 2> "$d/speckles_taught.log"
-    "$X" estimate "$d/sci_taught.fits" "$d/spk_taught.fits" -o "$d/halo_taught.fits" > /dev/null 2>&1
-    "$X" pupil "$d/halo_taught.fits" -o "$d/pupil_taught.fits" --truth "$d/truth.fits" > "$d/pupil_taught.log"
-    t=$(ncp_error "$d/pupil_taught.log")
-    rm -rf "$d"/teach/loop_* "$d"/teach/mixed_*
-    layers=$(awk '/^teach:   layer [0-9]+: / { printf "%s%s toward %s", n++ ? "; " : "", $4, $7 }' "$d/teach.log")
-    lags=$(awk '/ loops simulated; lags / { for (i = 1; i <= NF; i++) if ($i == "lags") print $(i + 1) }' "$d/teach.log")
-    ch=$(awk '/^teach: chose the / { print $4 }' "$d/teach.log")
-    sec=$(awk '/^teach: chose the / { for (i = 1; i <= NF; i++) if ($i == "s;") print substr($(i - 1), 2) }' "$d/teach.log")
+    "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' \
+        ${auto:+-e '^ao_modes='} > "$d/system$auto.conf"
+    tl="$d/teach$auto.log"
+    "$X" teach "$d"/slopes_0*.fits --system "$d/system$auto.conf" -o "$d/taught$auto.fits" --work "$d/teach$auto" \
+        > "$tl" 2> "$d/teach$auto.err" || { echo "$name $s: teach failed ($d/teach$auto.err)" >&2; continue; }
+    "$X" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/actuators.fits" --recon "$d/taught$auto.fits" \
+        -o "$d/spk_taught$auto.fits" --match "$d/science.fits" "$d/sci_taught$auto.fits" 2> "$d/speckles_taught$auto.log"
+    "$X" estimate "$d/sci_taught$auto.fits" "$d/spk_taught$auto.fits" -o "$d/halo_taught$auto.fits" > /dev/null 2>&1
+    "$X" pupil "$d/halo_taught$auto.fits" -o "$d/pupil_taught$auto.fits" --truth "$d/truth.fits" > "$d/pupil_taught$auto.log"
+    t=$(ncp_error "$d/pupil_taught$auto.log")
+    rm -rf "$d"/teach$auto/loop_* "$d"/teach$auto/mixed_* "$d"/teach$auto/modes_*
+    layers=$(awk '/^teach:   layer [0-9]+: / { printf "%s%s toward %s", n++ ? "; " : "", $4, $7 }' "$tl")
+    lags=$(awk '/ loops simulated; lags / { for (i = 1; i <= NF; i++) if ($i == "lags") print $(i + 1) }' "$tl")
+    ch=$(awk '/^teach: chose the / { print $4 }' "$tl")
+    sec=$(awk '/^teach: chose the / { for (i = 1; i <= NF; i++) if ($i == "s;") print substr($(i - 1), 2) }' "$tl")
+    [ -n "$auto" ] && awk '/modal filter from the slopes/ { sub(/^teach: /, ""); print "    " $0 }' "$tl"
     printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5.2f %5.2f\n" "$name" "$s" "$nsub" "$def" "$ideal" \
         "$layers" "$lags" "$ch" "$t" "$sec" "$(echo "$def $ideal" | awk '{ print $1 / $2 }')" \
         "$(echo "$t $ideal" | awk '{ print $1 / $2 }')"

@@ -69,7 +69,8 @@ int cli_make_dir(const char *cmd, const char *path);
  * overrides applied after it, checked (unused keys refused); prints and returns non-zero on
  * failure. */
 struct swfs_ts_params;
-int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p);
+int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p,
+                  int *filter_given);
 /* A command's files, checked before any work (specklewfs/outpaths.h): the paths' status,
  * printed as the command's error (CLI_FAIL) when it is a failure; frees p. */
 struct swfs_paths;

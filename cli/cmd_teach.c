@@ -24,7 +24,9 @@ static const char *usage_text =
     "  2. N loops of the system (`simulate mode=timeseries` with CONFIG and key=value: your\n"
     "     telescope, WFS, DM, loop, vibration, noise and camera timing) with those layers, the\n"
     "     first one's share of the turbulence spread over 0.3-0.7 across the loops when there\n"
-    "     are more (the slopes do not tell the shares);\n"
+    "     are more (the slopes do not tell the shares). Without ao_modes (or ao_recon) the\n"
+    "     loops' modal filter comes from the slopes: the knee of their variances along the DM\n"
+    "     modes, matched by up to four calibration loops (modes_NN/; TEACHMOD, TEACHKNE);\n"
     "  3. the space-time map (`learn --lags 0,-L,L,-2L,2L`, L the frames in which the fastest\n"
     "     layer moves half a subaperture) and its two checks against the observation (as\n"
     "     `speckles` prints them);\n"
@@ -108,7 +110,9 @@ int swfs_cmd_teach(int argc, char **argv)
     }
     int rc = parse(argc, argv, cfg, &o, files, &nf, &cfgfile);
     if (!rc) rc = swfs_config_set_kv(cfg, "mode", "timeseries") ? cli_error(cmd) : 0;
-    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim);
+    int filter_given = 0;
+    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given);
+    o.modes_from_slopes = !filter_given;
     char work[4200];
     if (!rc && !o.work) { /* W.teach beside W.fits */
         const size_t n = strlen(o.out), cut = n > 5 && !strcmp(o.out + n - 5, ".fits") ? n - 5 : n;
@@ -137,6 +141,14 @@ int swfs_cmd_teach(int argc, char **argv)
     for (size_t k = 0; k < e->nlayers; k++)
         printf("teach:   layer %zu: %.2f m/s toward %.1f deg%s\n", k + 1, e->layer[k].speed, e->layer[k].direction,
                k < r.nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
+    if (o.modes_from_slopes) {
+        printf("teach: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
+               "loops (ao_modes -> knee):", r.knee_obs);
+        for (size_t k = 0; k < r.ncal; k++) printf("%s %zu -> %zu", k ? "," : "", r.cal_modes[k], r.cal_knee[k]);
+        printf("; ao_modes = %zu\n", r.ao_modes);
+    } else if (r.ao_modes) {
+        printf("teach: the loops' modal filter: ao_modes = %zu, as given\n", r.ao_modes);
+    }
     printf("teach: %zu loops simulated; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual "
            "by %.1f of %.1f nm on their frames\n", r.nloops, r.lags[0], r.lags[1], r.lags[2], r.lags[3], r.lags[4],
            1e9 * r.st_misfit_rms, 1e9 * r.st_truth_rms);

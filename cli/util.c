@@ -130,7 +130,8 @@ const char *const *cli_provenance(int argc, char **argv, size_t *n)
     return lines;
 }
 
-int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p)
+int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p,
+                  int *filter_given)
 {
     swfs_config *file = NULL;
     int rc = 0;
@@ -140,6 +141,7 @@ int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over
             if (swfs_config_set_kv(file, swfs_config_key(over, k), swfs_config_value(over, k))) rc = cli_error(cmd);
     }
     swfs_config *use = file ? file : over;
+    if (!rc && filter_given) *filter_given = swfs_config_has(use, "ao_modes") || swfs_config_has(use, "ao_recon");
     if (!rc && (swfs_ts_params_from_config(use, p) || swfs_config_check_unused(use) || swfs_ts_params_check(p)))
         rc = cli_error(cmd);
     swfs_config_free(file);

@@ -106,6 +106,12 @@ head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "te
 head -c 8640 taught.fits | grep -aq "TEACHSEL= 'spacetime'" || fail "teach: the map's header should say it was chosen as such"
 [ "$(ls -d taught.teach/loop_*/ | wc -l)" = 4 ] && [ -s taught.teach/spacetime.fits ] \
     || fail "teach: the loops or the map tried (in the default work folder taught.teach)"
+# my.conf gives no ao_modes: the loops' modal filter from the slopes, the observation's loop
+# controlling the simulator's 56 modes (within 3), its calibration loops kept in modes_NN/
+awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_modes" && $(i + 1) == "=") k = $(i + 2) + 0 }
+    END { exit !(k >= 53 && k <= 59) }' teach.log || { cat teach.log; fail "teach: the modal filter from the slopes (56)"; }
+head -c 11520 taught.fits | grep -aq "TEACHMSR= 'slopes" && [ -d taught.teach/modes_00 ] \
+    || fail "teach: TEACHMSR = 'slopes' and a calibration loop expected"
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
     sci_t.fits -o spk_t.fits 2> speckles_t.log || { cat speckles_t.log; fail "speckles with the taught map"; }
 "$B" estimate sci_t.fits spk_t.fits -o halo_t.fits > /dev/null 2>&1 || fail "estimate (taught)"
@@ -129,8 +135,9 @@ etv=$(ncp_error pupil_tv.log)
 echo "cli_learn: teach on the used subapertures' slopes: $etv nm (the full layout's $et nm)"
 awk -v a="$etv" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) }' || fail "valid-only teach $etv nm against $et nm"
 # the loops described with ten times the slope noise: the correlation check warns, and with one
-# layer found teach falls back to the per-frame map of the layer and random seconds
-"$B" simulate my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=5 -o obs1 --quiet > /dev/null 2>&1 \
+# layer found teach falls back to the per-frame map of the layer and random seconds. The
+# observation's loop controls 36 modes, which teach finds from its slopes (within 15 %).
+"$B" simulate my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=5 ao_modes=36 -o obs1 --quiet > /dev/null 2>&1 \
     || fail "simulate the one-layer observation"
 "$B" teach obs1/slopes_0*.fits --system my.conf slope_noise=3e-7 -o taught1.fits --work taught1 --loops 2 > teach1.log 2>&1 \
     || { cat teach1.log; fail "teach (one layer)"; }
@@ -139,6 +146,13 @@ grep -q "warning: .* frames apart this telemetry's slopes correlate" teach1.log 
     || { cat teach1.log; fail "teach: the correlation check should warn and the per-frame map be chosen"; }
 head -c 8640 taught1.fits | grep -aq "NLAGS" && fail "teach: the per-frame map should hold no lags"
 [ "$(ls -d taught1/mixed_*/ | wc -l)" = 2 ] || fail "teach: two loops of a random second layer expected"
+awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_modes" && $(i + 1) == "=") k = $(i + 2) + 0 }
+    END { exit !(k >= 31 && k <= 41) }' teach1.log || { cat teach1.log; fail "teach: the modal filter from the slopes (36)"; }
+# given ao_modes: used as given, no calibration loop
+"$B" teach obs1/slopes_0*.fits --system my.conf ao_modes=36 -o taught2.fits --work taught2 --loops 2 > teach2.log 2>&1 \
+    || { cat teach2.log; fail "teach (ao_modes given)"; }
+grep -q "modal filter: ao_modes = 36, as given" teach2.log && [ ! -d taught2/modes_00 ] \
+    && head -c 11520 taught2.fits | grep -aq "TEACHMSR= 'given" || { cat teach2.log; fail "teach: ao_modes as given"; }
 head -c 8640 taught1.fits | grep -aq "TEACHSEL= 'perframe_mixed'" && head -c 8640 taught1.fits | grep -aq "TEACHWRN=  *2 " \
     || fail "teach: the map's header should say the per-frame map of random seconds, the correlation check warning"
 # a system of another geometry than the telemetry's: refused, naming the file; no map left

@@ -3,12 +3,15 @@
  * within 5 deg, and no second layer; a second layer of less power leaves the dominant one's
  * and is found by the stacking, within 10 % and 5 deg; the valid-only layout gives the full
  * layout's answer; white-noise slopes track nothing; bad input is refused by name (too few
- * frames, a non-finite slope, another width). */
+ * frames, a non-finite slope, another width). The loop's modal filter as its slopes show it
+ * (timeseries.h swfs_ts_mode_variance, swfs_mode_knee): a profile of two power laws gives its
+ * break exactly; loops controlling 30 and 60 modes give knees near 30 and 60. */
 #include "testutil.h"
 
 #include "specklewfs/config.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/rng.h"
+#include "specklewfs/source.h"
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
@@ -179,12 +182,55 @@ static void test_wind_noise_and_refusals(void **state)
     assert_non_null(strstr(swfs_last_error(), "actuators.fits"));
 }
 
+static void test_mode_knee(void **state)
+{
+    (void)state;
+    /* two power laws meeting at mode 37 of 120 (rising, then falling): the break exactly */
+    double v[120];
+    for (size_t j = 0; j < 120; j++) v[j] = j < 37 ? pow((double)(j + 1), 1.5) : pow(37.0, 1.5) * pow((double)(j + 1) / 37.0, -0.4);
+    assert_int_equal(swfs_mode_knee(v, 120), 37);
+    assert_int_equal(swfs_mode_knee(v, 5), 0);
+    /* loops controlling 30 and 60 of their DM's modes (one 12 m/s layer): each knee within
+     * 15 % of the modes controlled */
+    const size_t K[2] = {30, 60};
+    for (int i = 0; i < 2; i++) {
+        char modes[32], sub[32], f[1300];
+        snprintf(modes, sizeof modes, "ao_modes=%zu", K[i]);
+        snprintf(sub, sizeof sub, "modes%zu", K[i]);
+        const char *extra[] = {"nlayers=1", "layer_speed=12", "layer_frac=1", modes};
+        series(sub, extra, 4);
+        snprintf(f, sizeof f, "%s/slopes_000.fits", p(sub));
+        swfs_real *s = NULL;
+        assert_ok(swfs_telemetry_read(f, 0, &s, NULL));
+        swfs_config *c = swfs_config_new();
+        assert_ok(swfs_config_set(c, "pupn=66"));
+        assert_ok(swfs_config_set(c, "pupdx=0.1"));
+        assert_ok(swfs_config_set(c, "screen_n=1024"));
+        swfs_ts_params tp;
+        swfs_ts_params_default(&tp);
+        assert_ok(swfs_ts_params_from_config(c, &tp));
+        swfs_config_free(c);
+        double *var = NULL;
+        size_t n = 0;
+        assert_ok(swfs_ts_mode_variance(&tp, s->data, s->ny, &var, &n));
+        const size_t knee = swfs_mode_knee(var, n);
+        print_message("ao_modes %zu: knee at mode %zu of %zu\n", K[i], knee, n);
+        assert_true(n > 100 && fabs((double)knee - (double)K[i]) <= 0.15 * (double)K[i]);
+        for (size_t j = 0; j < n; j++) assert_true(isfinite(var[j]) && var[j] >= 0);
+        free(var);
+        /* too few frames: refused */
+        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, 1, &var, &n), SWFS_ERR_ARG);
+        swfs_real_free(s);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_wind_of_simulated_loops),
         cmocka_unit_test(test_wind_valid_only),
         cmocka_unit_test(test_wind_noise_and_refusals),
+        cmocka_unit_test(test_mode_knee),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

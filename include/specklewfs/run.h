@@ -504,6 +504,11 @@ typedef struct swfs_teach_run_options {
                                    tried (spacetime.fits, perframe.fits), kept for reuse by learn */
     size_t nloops;              /* loops per set (12; at least 2) */
     uint64_t seed;              /* loop k's seed is seed + k (101); the random second layers' too */
+    int modes_from_slopes;      /* 1: the loops' modal filter (sim.ao_modes) from the observation
+                                   (the knee of its slopes' mode variances, swfs_ts_mode_variance,
+                                   calibrated by simulated loops: ao_modes = K where a loop of K
+                                   modes shows the observation's knee); for a description without
+                                   ao_modes. Not with sim.ao_recon (0) */
     const char *const *prov;
     size_t nprov;
     swfs_progress_fn progress;
@@ -526,6 +531,10 @@ typedef struct swfs_teach_run_result {
     swfs_speckles_run_result check; /* its checks on the observation's first file (st_*; info.nlags) */
     int warns;                  /* swfs_spacetime_warns(&check) */
     int chosen;                 /* SWFS_TEACH_* */
+    size_t ao_modes;            /* the modal filter the loops were given (sim.ao_modes, or from the slopes) */
+    size_t knee_obs;            /* modes_from_slopes: the observation's knee (swfs_mode_knee) */
+    size_t ncal;                /* the calibration loops simulated (modes_NN/) */
+    size_t cal_modes[4], cal_knee[4]; /* each one's ao_modes and knee */
     double seconds;
 } swfs_teach_run_result;
 

@@ -153,6 +153,19 @@ typedef swfs_progress_fn swfs_ts_progress_fn;
 struct swfs_paths;
 int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_paths *paths);
 
+/* The loop's controlled modes as its residual slopes show them (`teach`). The slopes'
+ * variance along each DM mode's slope pattern: the system's modes after piston (the
+ * lowest-energy modes its loop filters with, ao_modes) through its interaction matrix,
+ * orthonormalized in that order (QR), so that mode j counts only what the lower modes do not
+ * explain. slopes: nframes x 2 nsub^2 in the full layout (unused subapertures 0); var:
+ * nmodes values (malloc'd; nmodes = min(nact - 1, slopes)). The loop attenuates the modes it
+ * controls: var rises over them and falls from about the last one on (docs/telemetry.md). */
+int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, double **var,
+                          size_t *nmodes);
+/* The knee of such a profile: the K (3 .. n - 3) that best splits log var_j against log j
+ * into two least-squares lines, modes 1..K and K+1..n. 0 when n < 6 or out of memory. */
+size_t swfs_mode_knee(const double *var, size_t n);
+
 /* Simulate and write DIR (must exist). */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);

@@ -332,14 +332,15 @@ swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), 
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
-    ("nloops", c_size), ("seed", c_u64), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
-    ("progress_ctx", c_ptr)])
+    ("nloops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("prov", P(c_str)), ("nprov", c_size),
+    ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
     ("nloops", c_size), ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
-    ("warns", c_int), ("chosen", c_int), ("seconds", c_dbl)])
+    ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
+    ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

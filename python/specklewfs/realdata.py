@@ -220,7 +220,10 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     (wind: as wind_from_slopes' layers), lags, nloops, the space-time map's training misfit
     and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
     "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
-    "perframe_mixed" (loops of the measured layer and random second layers)."""
+    "perframe_mixed" (loops of the measured layer and random second layers). Without ao_modes
+    (and ao_recon) in config or params the loops' modal filter comes from the slopes
+    (modes_from_slopes: the knee of their DM-mode variances, knee_obs, matched by calibration
+    loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used."""
     from .sim import _checked_params
     if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
         files = [files]
@@ -229,6 +232,11 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     o = _lib.swfs_teach_run_options()
     lib.swfs_teach_run_options_default(ctypes.byref(o))
     o.sim = _checked_params("ts", config, params)
+    given = {k.strip() for k in params}
+    if config is not None:
+        with open(config) as f:
+            given |= {ln.split("#", 1)[0].split("=", 1)[0].strip() for ln in f if "=" in ln.split("#", 1)[0]}
+    o.modes_from_slopes = int(not ({"ao_modes", "ao_recon"} & given))
     arr, n = _paths(files)
     if work is None:
         w = os.fspath(out)
@@ -247,7 +255,9 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
                    nlags=L.nlags) for L in e.layer[:e.nlayers]]
     d = dict(layers=layers, nlayers_given=r.nlayers, nframes=r.wind.nframes, nsub=r.wind.nsub, pitch=r.wind.pitch,
              rate=r.wind.rate, lags=list(r.lags[:r.nlags]), nloops=r.nloops, st_misfit_rms=r.st_misfit_rms,
-             st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds)
+             st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds,
+             ao_modes=r.ao_modes, modes_from_slopes=bool(o.modes_from_slopes), knee_obs=r.knee_obs,
+             calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)])
     d.update(_st_checks(r.check))
     return d
 

@@ -208,8 +208,11 @@ def test_teach(series, tmp_path):
     assert r["st_corr_obs"].shape == (5,) and r["st_corr_obs"][0] == pytest.approx(1.0)
     nl = sw.fits.read_keys(str(tmp_path / "work" / "spacetime.fits"), ["NLAGS"])["NLAGS"]
     assert nl == 5 and os.path.exists(out)
-    hk = sw.fits.read_keys(str(out), ["TEACHSEL", "TEACHLOO", "TEACHWRN"])
+    hk = sw.fits.read_keys(str(out), ["TEACHSEL", "TEACHLOO", "TEACHWRN", "TEACHMOD", "TEACHMSR"])
     assert hk["TEACHSEL"] == r["chosen"] and hk["TEACHLOO"] == r["nloops"]
+    # mmt-clio.conf gives ao_modes = 56: used as given, no calibration loop
+    assert r["ao_modes"] == 56 and not r["modes_from_slopes"] and r["calibration"] == []
+    assert hk["TEACHMOD"] == 56 and hk["TEACHMSR"] == "given"
     assert hk["TEACHWRN"] == int(r["st_warn_wind"]) + 2 * int(r["st_warn_corr"])
     t = tmp_path / "timing.txt"
     sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"),

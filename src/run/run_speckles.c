@@ -207,10 +207,14 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
     unsigned char *map = NULL;
     size_t nvalid = 0;
     int rc = valid ? swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid) : SWFS_OK;
+    if (rc) return swfs_fail_context(rc, "the valid-subaperture map %s", valid);
     if (map) o.valid = map;
-    if (!rc) rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
+    rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
     free(map);
-    if (rc && valid) swfs_fail_context(rc, "the valid-subaperture map %s", valid);
+    /* The pipeline's own failure (a reconstructor's or a valid map's width against the
+     * telemetry) names its cause; the context names the inputs it was built from, blaming none. */
+    if (rc && valid) return swfs_fail_context(rc, "%s%sthe valid-subaperture map %s", model ? model : "",
+                                              model ? " and " : "", valid);
     if (rc) return model ? swfs_fail_context(rc, "%s", model) : rc;
     swfs_pipeline_info in;
     swfs_pipeline_get_info(*p, &in);

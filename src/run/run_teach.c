@@ -141,6 +141,11 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHWRN", r->warns, "teach: checks warned (1 wind, 2 corr.)");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHMIS", r->check.st_mismatch, "[subap] layers apart at the largest lag");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHCEX", r->check.st_corr_excess, "correlation beyond 3 spreads (> 0 warns)");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHMOD", (long)r->ao_modes, "teach: the loops' controlled modes (ao_modes)");
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHMSR", o->sim.ao_recon[0] ? "ao_recon" : o->modes_from_slopes ?
+                                           "slopes" : "given", "the modal filter: ao_modes given, from the slopes' knee, or ao_recon");
+    if (!rc && o->modes_from_slopes)
+        rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
 }
@@ -150,7 +155,69 @@ static int check_options(const swfs_teach_run_options *o)
     if (!o->nfiles || !o->files) return swfs_fail(SWFS_ERR_ARG, "teach: no telemetry files of the observation");
     if (!o->out || !o->work) return swfs_fail(SWFS_ERR_ARG, "teach: no output map or no work folder");
     if (o->nloops < 2 || o->nloops > 64) return swfs_fail(SWFS_ERR_VALUE, "teach: %zu loops; expected 2 to 64", o->nloops);
+    if (o->modes_from_slopes && o->sim.ao_recon[0])
+        return swfs_fail(SWFS_ERR_ARG, "teach: the modal filter from the slopes, but the loop's reconstructor %s is "
+                         "given (ao_recon): one or the other", o->sim.ao_recon);
     return swfs_ts_params_check(&o->sim);
+}
+
+/* The knee of the mode variances of slopes (frames x 2 nsub^2, the full layout). */
+static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const char *what, size_t *knee)
+{
+    double *v = NULL;
+    size_t n = 0;
+    int rc = swfs_ts_mode_variance(p, s, nf, &v, &n);
+    if (rc) return swfs_fail_context(rc, "teach: the mode variances of %s", what);
+    *knee = swfs_mode_knee(v, n);
+    free(v);
+    if (!*knee) return swfs_fail(SWFS_ERR_NUMERIC, "teach: %s: %zu DM modes after piston, too few for the knee of "
+                                 "their variances (at least 6); give ao_modes", what, n);
+    return SWFS_OK;
+}
+
+/* The loops' modal filter from the observation (modes_from_slopes): the knee of its slopes'
+ * mode variances sits below the last controlled mode by how much the loop still attenuates
+ * the modes near it, which the system's own loops show. So: simulate a loop of K modes (K
+ * first the knee), and take K times the observation's knee over the loop's until the loop
+ * shows the observation's knee, K repeats, or four loops ran (then the K whose knee came
+ * closest). tmpl: the loop's layers. */
+static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t nf, const loop_job *tmpl,
+                             swfs_teach_run_result *r)
+{
+    int rc = knee_of(&o->sim, s, nf, o->files[0], &r->knee_obs);
+    long K = (long)r->knee_obs, best = K;
+    size_t bdist = (size_t)-1;
+    for (size_t it = 0; !rc && it < 4; it++) {
+        stage(o, "the loop's modal filter (calibration loops)", it, 4);
+        loop_job j = *tmpl;
+        snprintf(j.name, sizeof j.name, "modes");
+        j.k = it;
+        j.seed = o->seed;
+        o->sim.ao_modes = K;
+        swfs_real *ls = NULL;
+        char f[4300];
+        size_t knee = 0;
+        if (!(rc = simulate_loop(o, &j, o->sim.base.threads))) {
+            snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls->data, ls->ny, f, &knee);
+            swfs_real_free(ls);
+        }
+        if (rc) break;
+        r->cal_modes[it] = (size_t)K;
+        r->cal_knee[it] = knee;
+        r->ncal = it + 1;
+        const size_t dist = knee > r->knee_obs ? knee - r->knee_obs : r->knee_obs - knee;
+        if (dist < bdist) { bdist = dist; best = K; }
+        if (!dist) break;
+        long next = lround((double)K * (double)r->knee_obs / (double)knee);
+        if (next < 1) next = 1;
+        int seen = 0;
+        for (size_t i = 0; i <= it; i++) seen |= (long)r->cal_modes[i] == next;
+        if (seen) break;
+        K = next;
+    }
+    o->sim.ao_modes = best;
+    return rc;
 }
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
@@ -169,7 +236,6 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     size_t vn = 0, nv = 0;
     unsigned char *vmap = NULL;
     if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
-    free(vmap);
     if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
@@ -186,7 +252,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
                        "the loops cannot be given its winds; use the default reconstructor",
                        o->nfiles == 1 ? o->files[0] : "the telemetry files");
-    if (rc) { swfs_real_free(obs); return rc; }
+    if (rc) { swfs_real_free(obs); free(vmap); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = (size_t)nl;
     double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
@@ -201,7 +267,30 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
     r->nlags = 5;
-    /* 2. the loops */
+    /* 2. the loops' modal filter: given, or from the observation's slopes (full layout) */
+    swfs_teach_run_options oo = *o;
+    if (o->modes_from_slopes) {
+        loop_job tmpl = {.nl = nl};
+        for (int l = 0; l < nl; l++) {
+            tmpl.frac[l] = 1.0 / nl; /* the middle of the loops' spread of shares */
+            tmpl.speed[l] = speed[l];
+            tmpl.dir[l] = dir[l];
+        }
+        const size_t nfull = 2 * nsub * nsub;
+        double *full = obs->nx == nfull ? obs->data : calloc(obs->ny * nfull, sizeof *full);
+        if (!full) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+        for (size_t t = 0; !rc && full != obs->data && t < obs->ny; t++)
+            for (size_t a = 0, k = 0; a < 2; a++)
+                for (size_t i = 0; i < nsub * nsub; i++)
+                    if (vmap[i]) full[t * nfull + a * nsub * nsub + i] = obs->data[t * obs->nx + k++];
+        if (!rc) rc = modes_from_slopes(&oo, full, obs->ny, &tmpl, r);
+        if (full != obs->data) free(full);
+    }
+    free(vmap);
+    o = &oo;
+    r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
+    if (rc) { swfs_real_free(obs); return rc; }
+    /* 3. the loops */
     loop_job *jobs = calloc(o->nloops, sizeof *jobs);
     if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     for (size_t k = 0; k < o->nloops; k++) {
@@ -218,7 +307,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         }
     }
     rc = simulate_loops(o, jobs, o->nloops, "simulating the loops", &r->nloops);
-    /* 3. the space-time map and its checks */
+    /* 4. the space-time map and its checks */
     char st[4200], pf[4200];
     snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
     snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
@@ -235,7 +324,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     swfs_real_free(obs);
     if (!rc) r->warns = swfs_spacetime_warns(&r->check);
-    /* 4. where it warns, the per-frame map: of the same loops, or with one layer found, of
+    /* 5. where it warns, the per-frame map: of the same loops, or with one layer found, of
      * loops of that layer and a second drawn at random */
     const char *chosen = st;
     if (!rc && r->warns && nl == 1) {

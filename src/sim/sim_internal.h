@@ -4,6 +4,8 @@
 
 #include "specklewfs/screen.h"
 #include "specklewfs/sim.h"
+#include "specklewfs/timeseries.h"
+#include "specklewfs/wfs.h"
 
 /* AO residual model on the grid of gen (uses its amplitude table). */
 swfs_ao_model *swfs_ao_model_create_with(const swfs_sim_params *p, swfs_screen_gen *gen);
@@ -11,5 +13,15 @@ swfs_ao_model *swfs_ao_model_create_with(const swfs_sim_params *p, swfs_screen_g
 void swfs_sim_lag_vector(const swfs_sim_params *p, double *sx, double *sy);
 /* A file name setting into dst[cap] (kept when the key is absent; refused when too long). */
 int swfs_sim_config_path(swfs_config *c, const char *key, char *dst, size_t cap);
+
+/* The time series' given files (timeseries.h: actuators, ao_recon, valid), each NULL / 0
+ * when not given. */
+int swfs_ts_read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
+                       unsigned char **vmap);
+/* The loop's DM and WFS on the pupil mask: the actuators given (given_xy, copied) or built
+ * from act_pitch / act_square, their interpolation T and the Shack-Hartmann (vmap: its
+ * used subapertures, or NULL). */
+int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const double *given_xy, size_t given_nact,
+                       const unsigned char *vmap, double **xy, size_t *nact, swfs_sparse **T, swfs_shwfs **sh);
 
 #endif

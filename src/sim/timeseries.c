@@ -171,8 +171,8 @@ static int check_given_actuators(const char *path, const double *xy, size_t nact
 /* The files the run is given, read before any work: the DM's positions (*xy, *nact), the
  * loop's reconstructor (*rao; its shape is checked against the Shack-Hartmann later) and the
  * valid-subaperture map (*vmap); each left NULL when not given. */
-static int read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
-                      unsigned char **vmap)
+int swfs_ts_read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
+                       unsigned char **vmap)
 {
     int rc = SWFS_OK;
     if (p->actuators[0] && ((rc = swfs_actuators_read(p->actuators, xy, nact)) ||
@@ -472,7 +472,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_handshake *hs = NULL;
     unsigned char *vmap = NULL;
     size_t nact = 0;
-    if ((rc = read_given(p, D, &xy, &nact, &rao, &vmap))) goto done;
+    if ((rc = swfs_ts_read_given(p, D, &xy, &nact, &rao, &vmap))) goto done;
 
     /* Pupil, NCP. */
     mask = malloc(ng * sizeof *mask);
@@ -512,14 +512,12 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     /* DM, WFS, the loop's reconstructor. */
     /* A DM given by its positions (read above) has the same loop, interpolation and modal filter. */
-    if (!p->actuators[0] && (rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, &xy, &nact)
-                                                : swfs_actuators_hexapolar(D, p->act_pitch, dx, &xy, &nact)))
-        goto done;
-    if ((rc = swfs_interp_ct_grid(xy, nact, np, dx, mask, &T, NULL))) goto done;
-    if ((rc = vmap ? swfs_shwfs_create_valid(&sh, (size_t)p->nsub, D, mask, np, dx, vmap)
-                   : swfs_shwfs_create(&sh, (size_t)p->nsub, D, mask, np, dx, 0.5))) {
-        if (vmap) swfs_fail_context(rc, "%s", p->valid);
-        goto done;
+    {
+        double *given = xy;
+        xy = NULL;
+        rc = swfs_ts_loop_model(p, mask, given, nact, vmap, &xy, &nact, &T, &sh);
+        free(given);
+        if (rc) goto done;
     }
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (p->ao_recon[0]) {

@@ -1,0 +1,137 @@
+/* The loop's controlled modes as residual slopes show them (timeseries.h): the slopes'
+ * variance along the DM modes' slope patterns, and the profile's knee. `teach` uses it to
+ * give its loops the observation's modal filter when the system's description has none. */
+#include "specklewfs/status.h"
+#include "specklewfs/interp.h"
+#include "specklewfs/timeseries.h"
+#include "specklewfs/wfs.h"
+#include "sim_internal.h"
+
+#include <cblas.h>
+#include <lapacke.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const double *given_xy, size_t given_nact,
+                       const unsigned char *vmap, double **xy, size_t *nact, swfs_sparse **T, swfs_shwfs **sh)
+{
+    const swfs_sim_params *b = &p->base;
+    const size_t np = (size_t)b->pupn;
+    const double D = b->teldiam, dx = b->pupdx;
+    int rc = SWFS_OK;
+    *xy = NULL;
+    *T = NULL;
+    *sh = NULL;
+    if (given_xy) {
+        if (!(*xy = malloc(2 * given_nact * sizeof **xy))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        memcpy(*xy, given_xy, 2 * given_nact * sizeof **xy);
+        *nact = given_nact;
+    } else if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, xy, nact)
+                                   : swfs_actuators_hexapolar(D, p->act_pitch, dx, xy, nact)))
+        return rc;
+    if (!rc) rc = swfs_interp_ct_grid(*xy, *nact, np, dx, mask, T, NULL);
+    if (!rc && (rc = vmap ? swfs_shwfs_create_valid(sh, (size_t)p->nsub, D, mask, np, dx, vmap)
+                          : swfs_shwfs_create(sh, (size_t)p->nsub, D, mask, np, dx, 0.5)))
+        if (vmap) swfs_fail_context(rc, "%s", p->valid);
+    if (rc) {
+        free(*xy);
+        swfs_sparse_free(*T);
+        *xy = NULL;
+        *T = NULL;
+    }
+    return rc;
+}
+
+int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, double **var,
+                          size_t *nmodes)
+{
+    *var = NULL;
+    *nmodes = 0;
+    const size_t np = (size_t)p->base.pupn;
+    if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
+    double *mask = malloc(np * np * sizeof *mask), *gxy = NULL, *xy = NULL, *Dm = NULL, *modes = NULL;
+    double *A = NULL, *tau = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL;
+    swfs_sparse *T = NULL;
+    swfs_shwfs *sh = NULL;
+    swfs_recon *rao = NULL;
+    unsigned char *vmap = NULL;
+    size_t gn = 0, nact = 0;
+    int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &gxy, &gn, &rao, &vmap);
+    if (!rc) rc = swfs_ts_loop_model(p, mask, gxy, gn, vmap, &xy, &nact, &T, &sh);
+    if (!rc) rc = swfs_interaction_matrix(sh, T, &Dm);
+    if (!rc) rc = swfs_dm_modes(T, mask, np, &modes);
+    if (rc) goto done;
+    /* The modes after piston through D (ns x m), orthonormalized in their order (QR): column
+     * j is the part of mode j's slope pattern that the lower modes do not explain. */
+    const size_t ns = sh->nslopes, m0 = nact - 1, m = m0 < ns ? m0 : ns;
+    A = malloc(ns * m * sizeof *A);
+    tau = malloc(m * sizeof *tau);
+    mean = calloc(ns, sizeof *mean);
+    const size_t B = 256; /* frames per block */
+    blk = malloc(B * ns * sizeof *blk);
+    q = malloc(B * m * sizeof *q);
+    v = calloc(m, sizeof *v);
+    if (!A || !tau || !mean || !blk || !q || !v) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)ns, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
+                (int)nact, 0.0, A, (int)m);
+    lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)ns, (lapack_int)m, A, (lapack_int)m, tau);
+    if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)ns, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
+    if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
+    for (size_t t = 0; t < nframes; t++)
+        for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
+    for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
+    for (size_t t0 = 0; t0 < nframes; t0 += B) {
+        const size_t nb = nframes - t0 < B ? nframes - t0 : B;
+        for (size_t t = 0; t < nb; t++)
+            for (size_t i = 0; i < ns; i++) blk[t * ns + i] = slopes[(t0 + t) * ns + i] - mean[i];
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nb, (int)m, (int)ns, 1.0, blk, (int)ns, A, (int)m,
+                    0.0, q, (int)m);
+        for (size_t t = 0; t < nb; t++)
+            for (size_t j = 0; j < m; j++) v[j] += q[t * m + j] * q[t * m + j];
+    }
+    for (size_t j = 0; j < m; j++) v[j] /= (double)(nframes - 1);
+    *var = v;
+    *nmodes = m;
+    v = NULL;
+done:
+    free(mask); free(gxy); free(xy); free(Dm); free(modes); free(A); free(tau); free(mean); free(blk); free(q); free(v);
+    free(vmap);
+    swfs_sparse_free(T);
+    swfs_shwfs_free(sh);
+    swfs_recon_free(rao);
+    return rc;
+}
+
+size_t swfs_mode_knee(const double *var, size_t n)
+{
+    /* Two least-squares lines in (log j, log var_j), modes 1..K and K+1..n, each at least 3
+     * modes: the K of the smallest total squared misfit, from running sums. */
+    if (n < 6) return 0;
+    double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
+    double *cs = malloc(5 * (n + 1) * sizeof *cs);
+    if (!cs) return 0;
+    memset(cs, 0, 5 * sizeof *cs);
+    for (size_t j = 0; j < n; j++) {
+        const double x = log((double)(j + 1)), y = log(fmax(var[j], 1e-300));
+        sx += x; sy += y; sxx += x * x; sxy += x * y; syy += y * y;
+        double *c = cs + 5 * (j + 1);
+        c[0] = sx; c[1] = sy; c[2] = sxx; c[3] = sxy; c[4] = syy;
+    }
+    size_t best = 0;
+    double bsse = INFINITY;
+    for (size_t K = 3; K + 3 <= n; K++) {
+        double sse = 0;
+        for (int part = 0; part < 2; part++) {
+            const double *a = cs + 5 * (part ? K : 0), *b = cs + 5 * (part ? n : K);
+            const double N = (double)(part ? n - K : K), X = b[0] - a[0], Y = b[1] - a[1], XX = b[2] - a[2],
+                         XY = b[3] - a[3], YY = b[4] - a[4];
+            const double vx = XX - X * X / N, cxy = XY - X * Y / N, vy = YY - Y * Y / N;
+            sse += vx > 0 ? vy - cxy * cxy / vx : vy;
+        }
+        if (sse < bsse) { bsse = sse; best = K; }
+    }
+    free(cs);
+    return best;
+}
