@@ -175,12 +175,13 @@ static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const ch
     return SWFS_OK;
 }
 
-/* The loops' modal filter from the observation (modes_from_slopes): the knee of its slopes'
- * mode variances sits below the last controlled mode by how much the loop still attenuates
- * the modes near it, which the system's own loops show. So: simulate a loop of K modes (K
- * first the knee), and take K times the observation's knee over the loop's until the loop
- * shows the observation's knee, K repeats, or four loops ran (then the K whose knee came
- * closest). tmpl: the loop's layers. */
+/* The loops' modal filter from the observation (modes_from_slopes). The knee of its slopes'
+ * mode variances can sit off the last controlled mode (the loop attenuating the modes near it
+ * only partly, aliases); the system's own loop shows by how much. So: simulate a loop of K
+ * modes (K first the knee), and take K times the observation's knee over the loop's until the
+ * loop shows the observation's knee, K repeats, or four loops ran (then the K whose knee came
+ * closest). On every system measured the first loop confirmed the knee (docs/telemetry.md).
+ * tmpl: the loop's layers. */
 static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t nf, const loop_job *tmpl,
                              swfs_teach_run_result *r)
 {
@@ -272,7 +273,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (o->modes_from_slopes) {
         loop_job tmpl = {.nl = nl};
         for (int l = 0; l < nl; l++) {
-            tmpl.frac[l] = 1.0 / nl; /* the middle of the loops' spread of shares */
+            tmpl.frac[l] = 1.0 / nl; /* equal shares: the middle of the loops' spread for two layers */
             tmpl.speed[l] = speed[l];
             tmpl.dir[l] = dir[l];
         }
