@@ -112,6 +112,11 @@ awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_mo
     END { exit !(k >= 53 && k <= 59) }' teach.log || { cat teach.log; fail "teach: the modal filter from the slopes (56)"; }
 head -c 11520 taught.fits | grep -aq "TEACHMSR= 'slopes" && [ -d taught.teach/modes_00 ] \
     || fail "teach: TEACHMSR = 'slopes' and a calibration loop expected"
+# the profiles it read the filter from: modes.tsv (a row per mode after piston, the observation
+# and the calibration loop) and modes.png
+head -1 taught.teach/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]$" \
+    && [ "$(grep -vc '^#' taught.teach/modes.tsv)" -gt 150 ] && [ -s taught.teach/modes.png ] \
+    || { head -3 taught.teach/modes.tsv; fail "teach: modes.tsv / modes.png"; }
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
     sci_t.fits -o spk_t.fits 2> speckles_t.log || { cat speckles_t.log; fail "speckles with the taught map"; }
 "$B" estimate sci_t.fits spk_t.fits -o halo_t.fits > /dev/null 2>&1 || fail "estimate (taught)"

@@ -212,14 +212,17 @@ static void test_mode_knee(void **state)
         swfs_config_free(c);
         double *var = NULL;
         size_t n = 0;
-        assert_ok(swfs_ts_mode_variance(&tp, s->data, s->ny, &var, &n));
+        assert_ok(swfs_ts_mode_variance(&tp, s->data, s->ny, s->nx, &var, &n));
         const size_t knee = swfs_mode_knee(var, n);
         print_message("ao_modes %zu: knee at mode %zu of %zu\n", K[i], knee, n);
         assert_true(n > 100 && fabs((double)knee - (double)K[i]) <= 0.15 * (double)K[i]);
         for (size_t j = 0; j < n; j++) assert_true(isfinite(var[j]) && var[j] >= 0);
         free(var);
         /* too few frames: refused */
-        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, 1, &var, &n), SWFS_ERR_ARG);
+        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, 1, s->nx, &var, &n), SWFS_ERR_ARG);
+        /* another width: refused, naming what was expected */
+        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, s->ny / 2, s->nx * 2, &var, &n), SWFS_ERR_SHAPE);
+        assert_non_null(strstr(swfs_last_error(), "2 nsub^2 = 288"));
         swfs_real_free(s);
     }
 }

@@ -112,6 +112,13 @@ typedef struct swfs_report_summary {
 int swfs_report_run(const char *run_dir, const char *out_dir, const swfs_report_options *opt,
                     swfs_report_summary *summary);
 
+/* modes.png at `png`: ncurves (1 to 6) mode-variance profiles (timeseries.h
+ * swfs_ts_mode_variance; var[c] of n[c] modes) on log-log axes, each knee[c] (0: none)
+ * dashed, label[c] in the legend (`teach`: the observation and its calibration loops).
+ * Needs swfs_plot_available(). */
+int swfs_fig_modes(const char *png, const double *const *var, const size_t *n, const size_t *knee,
+                   const char *const *label, size_t ncurves);
+
 /* The range named `name` in a summary, or NULL. */
 const swfs_report_range *swfs_report_find_range(const swfs_report_summary *s, const char *name);
 

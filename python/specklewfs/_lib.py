@@ -552,6 +552,8 @@ _PROTOS = {
     "swfs_ts_params_from_config": (c_int, [c_ptr, P(swfs_ts_params)]),
     "swfs_ts_params_check": (c_int, [P(swfs_ts_params)]),
     "swfs_ts_run": (c_int, [P(swfs_ts_params), c_str, P(c_str), c_size, PROGRESS_FN, c_ptr, P(swfs_ts_summary)]),
+    "swfs_ts_mode_variance": (c_int, [P(swfs_ts_params), P(c_dbl), c_size, c_size, P(P(c_dbl)), P(c_size)]),
+    "swfs_mode_knee": (c_size, [P(c_dbl), c_size]),
     # run.h: reduce, sync, speckles, estimate on files
     "swfs_reduce_run_options_default": (None, [P(swfs_reduce_run_options)]),
     "swfs_reduce_run": (c_int, [P(swfs_reduce_run_options), P(swfs_reduce_run_result)]),

@@ -178,6 +178,25 @@ def ncp_map(config=None, mask=None, **params):
     return out, rms.value, pv.value
 
 
+def mode_variance(slopes, config=None, **params):
+    """The loop's controlled modes as its residual slopes show them (timeseries.h
+    swfs_ts_mode_variance, swfs_mode_knee): slopes (nframes, 2 nsub^2) in the full layout of
+    the system described by config and params (`simulate mode=timeseries` keys: its pupil,
+    DM and Shack-Hartmann). Returns (var, knee): the slopes' variance along each DM mode after
+    piston, less what the lower modes explain [rad^2], and the knee of that profile (the
+    loop's modal filter, as `teach` reads it)."""
+    params = dict(params)
+    params.setdefault("mode", "timeseries")
+    p = _checked_params("ts", config, params)
+    s = as_array(slopes, "slopes", np.float64, ndim=2)
+    out = ctypes.POINTER(ctypes.c_double)()
+    n = ctypes.c_size_t()
+    check(lib.swfs_ts_mode_variance(ctypes.byref(p), dptr(s), s.shape[0], s.shape[1], ctypes.byref(out), ctypes.byref(n)),
+          "swfs_ts_mode_variance")
+    var = _lib.take_buffer(ctypes.cast(out, ctypes.c_void_p).value, (n.value,), np.float64)
+    return var, int(lib.swfs_mode_knee(dptr(var), var.shape[0]))
+
+
 def simulate_timeseries(directory, config=None, progress=None, provenance=(), **params):
     """The AO time series of the real-data path (timeseries.h), written to directory
     (created if needed): telemetry, raw camera cubes, calibrations, truth. params: the

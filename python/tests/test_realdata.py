@@ -225,3 +225,17 @@ def test_teach(series, tmp_path):
     with pytest.raises(sw.Error, match="slopes_000.fits: 288 slopes per WFS frame; the system's 16 x 16"):
         sw.teach(files, str(tmp_path / "bad.fits"), str(tmp_path / "badw"), config=conf, loops=2, nsub=16, **keys)
     assert not os.path.exists(tmp_path / "bad.fits")
+
+
+def test_mode_variance(series):
+    """The loop's modal filter as its slopes show it (timeseries.h swfs_ts_mode_variance,
+    swfs_mode_knee): the series' loop controls mmt-clio.conf's 56 modes; its profile's knee
+    is there (within 15 %), the variances are finite, and another width is refused by name."""
+    conf = os.path.join(ROOT, "config", "mmt-clio.conf")
+    keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000)
+    s, _ = sw.read_fits(str(series / "sim" / "slopes_000.fits"))
+    var, knee = sw.mode_variance(s, config=conf, **keys)
+    assert var.ndim == 1 and var.shape[0] > 150 and np.all(np.isfinite(var)) and np.all(var >= 0)
+    assert abs(knee - 56) <= 0.15 * 56
+    with pytest.raises(sw.Error, match="2 nsub\\^2 = 288"):
+        sw.mode_variance(s[:, :200], config=conf, **keys)

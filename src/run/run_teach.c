@@ -3,9 +3,12 @@
 #include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
+#include "specklewfs/plot.h"
+#include "specklewfs/report.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/run.h"
 #include "specklewfs/source.h"
+#include "specklewfs/table.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
@@ -161,18 +164,49 @@ static int check_options(const swfs_teach_run_options *o)
     return swfs_ts_params_check(&o->sim);
 }
 
-/* The knee of the mode variances of slopes (frames x 2 nsub^2, the full layout). */
-static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const char *what, size_t *knee)
+/* The mode variances of slopes (frames x 2 nsub^2, the full layout: the observation's widths
+ * were checked, a loop writes that layout) and their knee. */
+static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const char *what, double **v, size_t *n,
+                   size_t *knee)
 {
-    double *v = NULL;
-    size_t n = 0;
-    int rc = swfs_ts_mode_variance(p, s, nf, &v, &n);
+    int rc = swfs_ts_mode_variance(p, s, nf, 2 * (size_t)p->nsub * (size_t)p->nsub, v, n);
     if (rc) return swfs_fail_context(rc, "teach: the mode variances of %s", what);
-    *knee = swfs_mode_knee(v, n);
-    free(v);
+    *knee = swfs_mode_knee(*v, *n);
     if (!*knee) return swfs_fail(SWFS_ERR_NUMERIC, "teach: %s: %zu DM modes after piston, too few for the knee of "
-                                 "their variances (at least 6); give ao_modes", what, n);
+                                 "their variances (at least 6); give ao_modes", what, *n);
     return SWFS_OK;
+}
+
+/* work/modes.tsv (mode, the observation's variance, each calibration loop's) and, where
+ * PLplot is, work/modes.png: what the modal filter was read from. */
+static int write_profiles(const char *work, double *const *v, const size_t *n, const size_t *knee,
+                          const size_t *modes, size_t nc)
+{
+    char path[4200], lab[5][40];
+    const char *labels[5];
+    size_t len = 0, cap = 64 + 32 * nc + n[0] * (24 + 16 * nc); /* "%.6e" is at most 13 characters */
+    char *buf = malloc(cap);
+    if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+    len += (size_t)snprintf(buf + len, cap - len, "# mode\tobservation");
+    for (size_t c = 1; c < nc; c++) len += (size_t)snprintf(buf + len, cap - len, "\tloop_%zu", modes[c]);
+    len += (size_t)snprintf(buf + len, cap - len, "\n");
+    for (size_t j = 0; j < n[0]; j++) {
+        len += (size_t)snprintf(buf + len, cap - len, "%zu", j + 1);
+        for (size_t c = 0; c < nc; c++)
+            len += (size_t)snprintf(buf + len, cap - len, j < n[c] ? "\t%.6e" : "\tnan", j < n[c] ? v[c][j] : 0.0);
+        len += (size_t)snprintf(buf + len, cap - len, "\n");
+    }
+    snprintf(path, sizeof path, "%.4000s/modes.tsv", work);
+    int rc = len < cap ? swfs_text_write(path, buf, len) : swfs_fail(SWFS_ERR_INTERNAL, "teach: modes.tsv overflow");
+    free(buf);
+    if (rc || !swfs_plot_available()) return rc;
+    for (size_t c = 0; c < nc; c++) {
+        if (c) snprintf(lab[c], sizeof lab[c], "loop of %zu modes", modes[c]);
+        else snprintf(lab[c], sizeof lab[c], "observation");
+        labels[c] = lab[c];
+    }
+    snprintf(path, sizeof path, "%.4000s/modes.png", work);
+    return swfs_fig_modes(path, (const double *const *)v, n, knee, labels, nc);
 }
 
 /* The loops' modal filter from the observation (modes_from_slopes). The knee of its slopes'
@@ -185,7 +219,10 @@ static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const ch
 static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t nf, const loop_job *tmpl,
                              swfs_teach_run_result *r)
 {
-    int rc = knee_of(&o->sim, s, nf, o->files[0], &r->knee_obs);
+    double *v[5] = {NULL};
+    size_t nv[5] = {0}, kn[5] = {0}, km[5] = {0}, nc = 1;
+    int rc = knee_of(&o->sim, s, nf, o->files[0], &v[0], &nv[0], &r->knee_obs);
+    kn[0] = r->knee_obs;
     long K = (long)r->knee_obs, best = K;
     size_t bdist = (size_t)-1;
     for (size_t it = 0; !rc && it < 4; it++) {
@@ -200,10 +237,12 @@ static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t 
         size_t knee = 0;
         if (!(rc = simulate_loop(o, &j, o->sim.base.threads))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls->data, ls->ny, f, &knee);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls->data, ls->ny, f, &v[nc], &nv[nc], &knee);
             swfs_real_free(ls);
         }
         if (rc) break;
+        kn[nc] = knee;
+        km[nc++] = (size_t)K;
         r->cal_modes[it] = (size_t)K;
         r->cal_knee[it] = knee;
         r->ncal = it + 1;
@@ -218,6 +257,8 @@ static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t 
         K = next;
     }
     o->sim.ao_modes = best;
+    if (!rc) rc = write_profiles(o->work, v, nv, kn, km, nc);
+    for (size_t c = 0; c < 5; c++) free(v[c]);
     return rc;
 }
 

@@ -43,8 +43,8 @@ int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const double
     return rc;
 }
 
-int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, double **var,
-                          size_t *nmodes)
+int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
+                          double **var, size_t *nmodes)
 {
     *var = NULL;
     *nmodes = 0;
@@ -66,6 +66,11 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     /* The modes after piston through D (ns x m), orthonormalized in their order (QR): column
      * j is the part of mode j's slope pattern that the lower modes do not explain. */
     const size_t ns = sh->nslopes, m0 = nact - 1, m = m0 < ns ? m0 : ns;
+    if (nslopes != ns) {
+        rc = swfs_fail(SWFS_ERR_SHAPE, "mode variance: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
+                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0)", nslopes, p->nsub, p->nsub, ns);
+        goto done;
+    }
     A = malloc(ns * m * sizeof *A);
     tau = malloc(m * sizeof *tau);
     mean = calloc(ns, sizeof *mean);
