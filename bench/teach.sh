@@ -13,13 +13,17 @@
 #
 # With --modes-from-slopes (after WORK_DIR) the description has no ao_modes: teach takes the
 # loops' modal filter from the slopes (docs/telemetry.md); its files are then named *_auto.
+# With --from-files there is no description: teach takes the system from the observation's
+# files (--science science.fits --actuators actuators.fits, as speckles has them), the rest
+# the simulator's defaults; its files are named *_ff.
 #
-# usage: bash bench/teach.sh BUILD_DIR WORK_DIR [--modes-from-slopes] [K:S ...]
+# usage: bash bench/teach.sh BUILD_DIR WORK_DIR [--modes-from-slopes | --from-files] [K:S ...]
 #        (default: every system, seed 1)
 set -euo pipefail
 . "$(dirname "$0")/lib_bench.sh"
 auto=
 if [ "${3:-}" = --modes-from-slopes ]; then auto=_auto; set -- "$1" "$2" "${@:4}"; fi
+if [ "${3:-}" = --from-files ]; then auto=_ff; set -- "$1" "$2" "${@:4}"; fi
 bench_args "$@"
 
 printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
@@ -30,7 +34,9 @@ for ks in $OBS; do
     "$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_' -e '^seed=' -e '^nlayers=' \
         ${auto:+-e '^ao_modes='} > "$d/system$auto.conf"
     tl="$d/teach$auto.log"
-    "$X" teach "$d"/slopes_0*.fits --system "$d/system$auto.conf" -o "$d/taught$auto.fits" --work "$d/teach$auto" \
+    sys=(--system "$d/system$auto.conf")
+    [ "$auto" = _ff ] && sys=(--science "$d/science.fits" --actuators "$d/actuators.fits")
+    "$X" teach "$d"/slopes_0*.fits "${sys[@]}" -o "$d/taught$auto.fits" --work "$d/teach$auto" \
         > "$tl" 2> "$d/teach$auto.err" || { echo "$name $s: teach failed ($d/teach$auto.err)" >&2; continue; }
     "$X" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/actuators.fits" --recon "$d/taught$auto.fits" \
         -o "$d/spk_taught$auto.fits" --match "$d/science.fits" "$d/sci_taught$auto.fits" 2> "$d/speckles_taught$auto.log"

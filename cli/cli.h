@@ -70,7 +70,7 @@ int cli_make_dir(const char *cmd, const char *path);
  * failure. */
 struct swfs_ts_params;
 int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p,
-                  int *filter_given);
+                  int *filter_given, int (*describe)(struct swfs_config *, void *), void *ctx);
 /* A command's files, checked before any work (specklewfs/outpaths.h): the paths' status,
  * printed as the command's error (CLI_FAIL) when it is a failure; frees p. */
 struct swfs_paths;

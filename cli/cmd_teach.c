@@ -13,8 +13,9 @@
 #include <string.h>
 
 static const char *usage_text =
-    "usage: specklewfs teach SLOPES.fits... [--system CONFIG] [key=value ...] -o W.fits [--work DIR]\n"
-    "                        [--loops N] [--seed S]\n"
+    "usage: specklewfs teach SLOPES.fits... --science SCI.fits --actuators ACT.fits [--pupil P.fits]\n"
+    "                        [--valid V.fits] [key=value ...] -o W.fits [--work DIR] [--loops N] [--seed S]\n"
+    "       specklewfs teach SLOPES.fits... --system CONFIG [key=value ...] -o W.fits ...\n"
     "\n"
     "A reconstructor for this observation, learned from simulated closed loops of your system\n"
     "at the winds its own slopes show: the rule docs/telemetry.md measured over the matrix of\n"
@@ -38,6 +39,13 @@ static const char *usage_text =
     "  SLOPES.fits   the observation's telemetry, consecutive files of one series (2 nsub^2\n"
     "                slopes per WFS frame, as the simulator writes them; or, with the system's\n"
     "                valid=MAP, the used subapertures' only: give speckles the same --valid)\n"
+    "  --science SCI.fits --actuators ACT.fits [--pupil P.fits] [--valid V.fits]\n"
+    "                the system from the observation's own files, the ones `speckles` takes:\n"
+    "                the science cube's geometry, the DM's positions, the telescope's pupil,\n"
+    "                the valid subapertures; nsub, wfs_rate and the loops' length from the\n"
+    "                first telemetry file; the loop's gain and delay, r0, slope noise and\n"
+    "                vibration the simulator's (key=value to set them); the modal filter\n"
+    "                from the slopes (docs/telemetry.md); keys of --system or key=value win\n"
     "  --system CONFIG, key=value   the system, in `simulate mode=timeseries` keys (config/\n"
     "                mmt-clio.conf documents them); nsub, wfs_rate and teldiam must be the\n"
     "                observation's; the layers and the seed are teach's to set\n"
@@ -49,8 +57,19 @@ static const char *usage_text =
     "  --loops N     loops per set (default 12)\n"
     "  --seed S      loop k's seed is S + k (default 101)\n";
 
+typedef struct from_files {
+    const char *science, *actuators, *pupil, *valid, *telemetry;
+} from_files;
+
+/* The keys the observation's files give, where the user's description has none. */
+static int describe(swfs_config *c, void *ctx)
+{
+    const from_files *f = ctx;
+    return swfs_teach_describe(c, f->science, f->actuators, f->pupil, f->valid, f->telemetry);
+}
+
 static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options *o, const char **files, size_t *nf,
-                 const char **cfgfile)
+                 const char **cfgfile, from_files *ff)
 {
     const char *cmd = "teach";
     long loops = (long)o->nloops, seed = (long)o->seed;
@@ -58,10 +77,15 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         long *lv = NULL;
         if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
-        else if (!strcmp(a, "-o") || !strcmp(a, "--work") || !strcmp(a, "--system")) {
+        else if (!strcmp(a, "-o") || !strcmp(a, "--work") || !strcmp(a, "--system") || !strcmp(a, "--science") ||
+                 !strcmp(a, "--actuators") || !strcmp(a, "--pupil") || !strcmp(a, "--valid")) {
             if (!v) return cli_usage_error(cmd, "%s needs a %s", a, strcmp(a, "--work") ? "file name" : "folder");
             if (!strcmp(a, "-o")) o->out = v;
             else if (!strcmp(a, "--work")) o->work = v;
+            else if (!strcmp(a, "--science")) ff->science = v;
+            else if (!strcmp(a, "--actuators")) ff->actuators = v;
+            else if (!strcmp(a, "--pupil")) ff->pupil = v;
+            else if (!strcmp(a, "--valid")) ff->valid = v;
             else *cfgfile = v;
             i++;
             continue;
@@ -80,6 +104,14 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
     }
     if (!*nf) return cli_usage_error(cmd, "needs the observation's telemetry files (SLOPES.fits...)");
     if (!o->out) return cli_usage_error(cmd, "needs -o W.fits");
+    if (!ff->science != !ff->actuators)
+        return cli_usage_error(cmd, "the system from the observation's files needs both --science and --actuators");
+    if ((ff->pupil || ff->valid) && !ff->science)
+        return cli_usage_error(cmd, "--pupil and --valid describe the system with --science and --actuators "
+                               "(with --system, give pupil_mask= and valid=)");
+    if (!ff->science && !*cfgfile && !swfs_config_count(cfg))
+        return cli_usage_error(cmd, "needs the system: --science SCI.fits --actuators ACT.fits (from the "
+                               "observation's files), or --system CONFIG / key=value");
     if (loops < 2 || loops > 64) return cli_usage_error(cmd, "--loops must be 2..64, got %ld", loops);
     if (seed < 0) return cli_usage_error(cmd, "--seed must be >= 0, got %ld", seed);
     o->nloops = (size_t)loops;
@@ -108,10 +140,12 @@ int swfs_cmd_teach(int argc, char **argv)
         fprintf(stderr, "specklewfs %s: out of memory\n", cmd);
         return CLI_FAIL;
     }
-    int rc = parse(argc, argv, cfg, &o, files, &nf, &cfgfile);
+    from_files ff = {0};
+    int rc = parse(argc, argv, cfg, &o, files, &nf, &cfgfile, &ff);
     if (!rc) rc = swfs_config_set_kv(cfg, "mode", "timeseries") ? cli_error(cmd) : 0;
+    ff.telemetry = files[0];
     int filter_given = 0;
-    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given);
+    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given, ff.science ? describe : NULL, &ff);
     o.modes_from_slopes = !filter_given;
     char work[4200];
     if (!rc && !o.work) { /* W.teach beside W.fits */

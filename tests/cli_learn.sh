@@ -124,6 +124,26 @@ head -1 taught.teach/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]$" \
 et=$(ncp_error pupil_t.log)
 echo "cli_learn: teach: NCP error $et nm with the taught map, $ed nm with the default reconstructor"
 awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taught $et nm against the default $ed nm"
+# no description at all: the system from the observation's own files (the science cube's
+# geometry, the DM, the pupil), the rest the simulator's defaults; the same layers and filter,
+# and through the whole path within 1 nm of the described teach
+"$B" teach obs/slopes_0*.fits --science science.fits --actuators actuators.fits --pupil pupil.fits -o taught_f.fits \
+    --work taught_f --loops 4 > teach_f.log 2>&1 || { cat teach_f.log; fail "teach from the observation's files"; }
+grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
+    || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught_f.fits --match science.fits \
+    sci_tf.fits -o spk_tf.fits 2> speckles_tf.log || { cat speckles_tf.log; fail "speckles with the map from files"; }
+"$B" estimate sci_tf.fits spk_tf.fits -o halo_tf.fits > /dev/null 2>&1 || fail "estimate (teach from files)"
+"$B" pupil halo_tf.fits -o pupil_tf.fits --truth obs/truth.fits > pupil_tf.log || fail "pupil (teach from files)"
+etf=$(ncp_error pupil_tf.log)
+echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm; default $ed nm)"
+awk -v a="$etf" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 1 && b - a < 1) }' || fail "teach from files $etf nm against $et nm"
+# the system from files needs both files; without any system teach says what it needs
+"$B" teach obs/slopes_000.fits --science science.fits -o bad.fits > bad.log 2>&1 && fail "teach without --actuators"
+grep -q "needs both --science and --actuators" bad.log || { cat bad.log; fail "teach: --science alone"; }
+"$B" teach obs/slopes_000.fits -o bad.fits > bad.log 2>&1 && fail "teach without a system"
+grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || { cat bad.log; fail "teach: no system"; }
+[ -e bad.fits ] && fail "teach left a map after a usage error"
 # the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
 # system's valid map: the same layers and loops, so the same map; speckles --valid applies it
 # to that telemetry (the timing table's rows renamed to those files) to the same NCP error

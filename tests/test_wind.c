@@ -197,8 +197,9 @@ static void test_mode_knee(void **state)
         char modes[32], sub[32], f[1300];
         snprintf(modes, sizeof modes, "ao_modes=%zu", K[i]);
         snprintf(sub, sizeof sub, "modes%zu", K[i]);
-        const char *extra[] = {"nlayers=1", "layer_speed=12", "layer_frac=1", modes};
-        series(sub, extra, 4);
+        const char *extra[] = {"nlayers=1", "layer_speed=12", "layer_frac=1", modes, "cube_frames=20", "cube_gap=700",
+                               "nfx=16", "nfy=16"};
+        series(sub, extra, 8);
         snprintf(f, sizeof f, "%s/slopes_000.fits", p(sub));
         swfs_real *s = NULL;
         assert_ok(swfs_telemetry_read(f, 0, &s, NULL));

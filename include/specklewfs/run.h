@@ -540,6 +540,26 @@ typedef struct swfs_teach_run_result {
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);
 
+/* The system a teach simulates, described by the observation's own files, the ones
+ * `speckles` takes, as `simulate mode=timeseries` keys set into c (keys already in c are
+ * kept: the caller's own description wins):
+ *   science    the reduced science cube: its geometry (pupn, pupdx = screen_dx, teldiam,
+ *              wavelen, pixscale, obscur);
+ *   actuators  the DM's positions (actuators=);
+ *   pupil      the telescope's pupil mask, or NULL (pupil_mask=);
+ *   valid      the valid-subaperture map, or NULL (valid=; nsub is its size);
+ *   telemetry  the observation's first telemetry file: nsub (2 nsub^2 slopes, without a
+ *              valid map), wfs_rate (WFSRATE) and the loops' length (wfs_file_frames and
+ *              one short cube at each end, frame_ratio 1, a 16 x 16 focal window: the loops'
+ *              camera is not used).
+ * The rest stays the simulator's: loop gain and delay, r0, slope noise, vibration, whose
+ * effect on teach's map docs/telemetry.md measured; the modal filter comes from the slopes
+ * (modes_from_slopes) unless c gives ao_modes or ao_recon. The files are named in any
+ * failure (a science cube without its geometry, telemetry without WFSRATE or of a width
+ * that is no square Shack-Hartmann's). */
+int swfs_teach_describe(swfs_config *c, const char *science, const char *actuators, const char *pupil,
+                        const char *valid, const char *telemetry);
+
 SWFS_END_DECLS
 
 #endif

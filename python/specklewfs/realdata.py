@@ -209,7 +209,8 @@ def _st_checks(r):
                 st_warn_corr=bool(w & _lib.SPACETIME_WARN_CORR))
 
 
-def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None, provenance=(), **params):
+def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None, provenance=(), science=None,
+          actuators=None, pupil=None, valid=None, **params):
     """A learned map for one observation from simulated closed loops of your system at the
     winds its slopes show (`specklewfs teach`, run.h swfs_teach_run): files, the observation's
     consecutive telemetry files (2 nsub^2 slopes per WFS frame); config and params, the system
@@ -220,7 +221,11 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     (wind: as wind_from_slopes' layers), lags, nloops, the space-time map's training misfit
     and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
     "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
-    "perframe_mixed" (loops of the measured layer and random second layers). Without ao_modes
+    "perframe_mixed" (loops of the measured layer and random second layers). With science and
+    actuators (and pupil, valid) the system comes from the observation's own files, the ones
+    speckles() takes (run.h swfs_teach_describe: their geometry, DM, pupil and valid map;
+    nsub, wfs_rate and the loops' length from the first telemetry file); config and params
+    may still set any key, and win. Without ao_modes
     (and ao_recon) in config or params the loops' modal filter comes from the slopes
     (modes_from_slopes: the knee of their DM-mode variances, knee_obs, matched by calibration
     loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used."""
@@ -231,7 +236,18 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     params.setdefault("mode", "timeseries")
     o = _lib.swfs_teach_run_options()
     lib.swfs_teach_run_options_default(ctypes.byref(o))
-    o.sim = _checked_params("ts", config, params)
+    if (science is None) != (actuators is None):
+        raise ValueError("teach: the system from the observation's files needs both science and actuators")
+    if (pupil is not None or valid is not None) and science is None:
+        raise ValueError("teach: pupil and valid describe the system with science and actuators "
+                         "(otherwise give pupil_mask= and valid= as params)")
+    describe = None
+    if science is not None:
+        def describe(c):
+            check(lib.swfs_teach_describe(c, enc(science), enc(actuators), enc(pupil) if pupil is not None else None,
+                                          enc(valid) if valid is not None else None, enc(files[0])),
+                  "swfs_teach_describe")
+    o.sim = _checked_params("ts", config, params, describe)
     given = {k.strip() for k in params}
     if config is not None:
         with open(config) as f:

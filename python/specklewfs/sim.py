@@ -59,10 +59,12 @@ def sim_params(config=None, **params):
     return _struct_dict(p)
 
 
-def _checked_params(kind, config, params):
+def _checked_params(kind, config, params, describe=None):
     """swfs_<kind>_params from the defaults, the config and the keyword overrides, read and
-    checked by the library (kind: "sim" or "ts")."""
+    checked by the library (kind: "sim" or "ts"); describe(c), if given, adds keys first."""
     c, owner = _config(config, params)
+    if describe is not None:
+        describe(c)
     p = getattr(_lib, "swfs_%s_params" % kind)()
     getattr(lib, "swfs_%s_params_default" % kind)(ctypes.byref(p))
     for name, args in (("swfs_%s_params_from_config" % kind, (c, ctypes.byref(p))),

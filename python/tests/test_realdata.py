@@ -239,3 +239,24 @@ def test_mode_variance(series):
     assert abs(knee - 56) <= 0.15 * 56
     with pytest.raises(sw.Error, match="2 nsub\\^2 = 288"):
         sw.mode_variance(s[:, :200], config=conf, **keys)
+
+
+def test_teach_from_files(series, tmp_path):
+    """teach with no description: the system from the observation's own files (the science
+    cube's geometry, the DM's positions; nsub, rate and length from the telemetry), the modal
+    filter from the slopes (the series' loop controls 56 modes)."""
+    s = series / "sim"
+    files = sorted(str(p) for p in s.glob("slopes_0*.fits"))
+    sci = str(tmp_path / "sci.fits")
+    sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], sci, dark=str(s / "dark.fits"),
+              flat=str(s / "flat.fits"))
+    out = tmp_path / "F.fits"
+    r = sw.teach(files, str(out), str(tmp_path / "work"), loops=3, science=sci, actuators=str(s / "actuators.fits"))
+    assert r["modes_from_slopes"] and abs(r["ao_modes"] - 56) <= 0.15 * 56 and r["knee_obs"] > 0
+    assert 1 <= len(r["calibration"]) <= 4 and r["calibration"][0][0] == r["knee_obs"]
+    assert r["nsub"] == 12 and r["chosen"] in ("spacetime", "perframe", "perframe_mixed")
+    hk = sw.fits.read_keys(str(out), ["TEACHMOD", "TEACHMSR"])
+    assert hk["TEACHMOD"] == r["ao_modes"] and hk["TEACHMSR"] == "slopes"
+    assert os.path.exists(tmp_path / "work" / "modes.tsv")
+    with pytest.raises(ValueError, match="needs both science and actuators"):
+        sw.teach(files, str(tmp_path / "G.fits"), str(tmp_path / "w2"), science=sci)

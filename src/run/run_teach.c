@@ -13,6 +13,7 @@
 #include "run_internal.h"
 
 #include <errno.h>
+#include <stdarg.h>
 #include <math.h>
 #include <stdatomic.h>
 #include <stdio.h>
@@ -127,7 +128,7 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
     lo.prov = o->prov;
     lo.nprov = o->nprov;
     const int rc = swfs_learn_run(&lo, lr);
-    return rc ? swfs_fail_context(rc, "teach: the %s map of %zu loops (--loops, or longer loops: ncubes)",
+    return rc ? swfs_fail_context(rc, "teach: the %s map of %zu loops (more loops: --loops; or longer ones: ncubes, cube_gap)",
                                   nlags > 1 ? "space-time" : "per-frame", n) : SWFS_OK;
 }
 
@@ -260,6 +261,76 @@ static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t 
     if (!rc) rc = write_profiles(o->work, v, nv, kn, km, nc);
     for (size_t c = 0; c < 5; c++) free(v[c]);
     return rc;
+}
+
+/* One key into c unless it is there (teach_describe). */
+static int put(swfs_config *c, const char *key, const char *fmt, ...)
+{
+    if (swfs_config_has(c, key)) return SWFS_OK;
+    char v[4200];
+    va_list ap;
+    va_start(ap, fmt);
+    vsnprintf(v, sizeof v, fmt, ap);
+    va_end(ap);
+    return swfs_config_set_kv(c, key, v);
+}
+
+int swfs_teach_describe(swfs_config *c, const char *science, const char *actuators, const char *pupil,
+                        const char *valid, const char *telemetry)
+{
+    if (!c || !science || !actuators || !telemetry)
+        return swfs_fail(SWFS_ERR_ARG, "teach: the system from files needs the science cube, the actuators and the "
+                         "telemetry");
+    swfs_geom g;
+    int rc = swfs_geom_read_file(science, &g);
+    if (!rc) rc = swfs_geom_require(&g, science);
+    if (rc) return rc;
+    swfs_real *t = NULL;
+    double rate = 0;
+    if ((rc = swfs_telemetry_read(telemetry, 0, &t, &rate))) return rc;
+    const size_t nframes = t->ny, width = t->nx;
+    swfs_real_free(t);
+    if (!(rate > 0))
+        return swfs_fail(SWFS_ERR_FORMAT, "teach: %s: no WFSRATE keyword; the loops need the WFS frame rate "
+                         "(give wfs_rate=)", telemetry);
+    size_t nsub = 0, nv = 0;
+    if (valid) {
+        unsigned char *vm = NULL;
+        if ((rc = swfs_valid_map_read(valid, &vm, &nsub, &nv))) return rc;
+        free(vm);
+    } else {
+        nsub = (size_t)llround(sqrt((double)width / 2.0));
+        if (2 * nsub * nsub != width)
+            return swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame is not 2 nsub^2 (a square "
+                             "Shack-Hartmann's x then y slopes); slopes of the used subapertures need their valid map",
+                             telemetry, width);
+    }
+    size_t sn = 1024;
+    while (sn < 2 * (size_t)g.pupn) sn *= 2;
+    /* the loops: as long as the observation's file, its camera one short cube at each end */
+    const long gap = (long)nframes > 700 ? (long)nframes - 360 : 340;
+    if (!rc) rc = put(c, "pupn", "%ld", g.pupn);
+    if (!rc) rc = put(c, "pupdx", "%.17g", g.pupdx);
+    if (!rc) rc = put(c, "screen_dx", "%.17g", g.pupdx);
+    if (!rc) rc = put(c, "screen_n", "%zu", sn);
+    if (!rc) rc = put(c, "teldiam", "%.17g", g.teldiam);
+    if (!rc) rc = put(c, "wavelen", "%.17g", g.wavelen);
+    if (!rc) rc = put(c, "pixscale", "%.17g", g.pixscale);
+    if (!rc && isfinite(g.obscur)) rc = put(c, "obscur", "%.17g", g.obscur);
+    if (!rc) rc = put(c, "actuators", "%s", actuators);
+    if (!rc && pupil) rc = put(c, "pupil_mask", "%s", pupil);
+    if (!rc && valid) rc = put(c, "valid", "%s", valid);
+    if (!rc) rc = put(c, "nsub", "%zu", nsub);
+    if (!rc) rc = put(c, "wfs_rate", "%.17g", rate);
+    if (!rc) rc = put(c, "wfs_file_frames", "%zu", nframes > 700 ? nframes : 700);
+    if (!rc) rc = put(c, "frame_ratio", "1");
+    if (!rc) rc = put(c, "ncubes", "2");
+    if (!rc) rc = put(c, "cube_frames", "20");
+    if (!rc) rc = put(c, "cube_gap", "%ld", gap);
+    if (!rc) rc = put(c, "start_offset", "300.5");
+    if (!rc) rc = put(c, "nfx", "16");
+    if (!rc) rc = put(c, "nfy", "16");
+    return rc ? swfs_fail_context(rc, "teach: the system from %s, %s and %s", science, actuators, telemetry) : rc;
 }
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
