@@ -117,11 +117,18 @@ head -c 11520 taught.fits | grep -aq "TEACHMSR= 'slopes" && [ -d taught.teach/mo
 head -1 taught.teach/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]$" \
     && [ "$(grep -vc '^#' taught.teach/modes.tsv)" -gt 150 ] && [ -s taught.teach/modes.png ] \
     || { head -3 taught.teach/modes.tsv; fail "teach: modes.tsv / modes.png"; }
-"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught.fits --match science.fits \
-    sci_t.fits -o spk_t.fits 2> speckles_t.log || { cat speckles_t.log; fail "speckles with the taught map"; }
-"$B" estimate sci_t.fits spk_t.fits -o halo_t.fits > /dev/null 2>&1 || fail "estimate (taught)"
-"$B" pupil halo_t.fits -o pupil_t.fits --truth obs/truth.fits > pupil_t.log || fail "pupil (taught)"
-et=$(ncp_error pupil_t.log)
+# ncp_with MAP TAG TIMING [speckles options]: the whole path with a taught map (speckles --recon
+# MAP, estimate, pupil --truth; files *_TAG), the NCP error [nm] on stdout
+ncp_with() {
+    local map=$1 tag=$2 timing=$3
+    shift 3
+    "$B" speckles "$timing" --science science.fits --actuators actuators.fits --recon "$map" "$@" --match science.fits \
+        "sci_$tag.fits" -o "spk_$tag.fits" 2> "speckles_$tag.log" || { cat "speckles_$tag.log" >&2; fail "speckles ($map)"; }
+    "$B" estimate "sci_$tag.fits" "spk_$tag.fits" -o "halo_$tag.fits" > /dev/null 2>&1 || fail "estimate ($map)"
+    "$B" pupil "halo_$tag.fits" -o "pupil_$tag.fits" --truth obs/truth.fits > "pupil_$tag.log" || fail "pupil ($map)"
+    ncp_error "pupil_$tag.log"
+}
+et=$(ncp_with taught.fits t timing.txt)
 echo "cli_learn: teach: NCP error $et nm with the taught map, $ed nm with the default reconstructor"
 awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taught $et nm against the default $ed nm"
 # no description at all: the system from the observation's own files (the science cube's
@@ -131,11 +138,7 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
     --work taught_f --loops 4 > teach_f.log 2>&1 || { cat teach_f.log; fail "teach from the observation's files"; }
 grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
     || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
-"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon taught_f.fits --match science.fits \
-    sci_tf.fits -o spk_tf.fits 2> speckles_tf.log || { cat speckles_tf.log; fail "speckles with the map from files"; }
-"$B" estimate sci_tf.fits spk_tf.fits -o halo_tf.fits > /dev/null 2>&1 || fail "estimate (teach from files)"
-"$B" pupil halo_tf.fits -o pupil_tf.fits --truth obs/truth.fits > pupil_tf.log || fail "pupil (teach from files)"
-etf=$(ncp_error pupil_tf.log)
+etf=$(ncp_with taught_f.fits tf timing.txt)
 echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm; default $ed nm)"
 awk -v a="$etf" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 1 && b - a < 1) }' || fail "teach from files $etf nm against $et nm"
 # the system from files needs both files; without any system teach says what it needs
@@ -151,12 +154,8 @@ grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || {
     --loops 4 > teach_v.log 2>&1 || { cat teach_v.log; fail "teach on valid-only slopes"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
 sed 's/slopes_0/slopes_valid_0/' timing.txt > obs/timing_v.txt
-"$B" speckles obs/timing_v.txt --science science.fits --actuators actuators.fits --valid valid.fits --recon taught_v.fits \
-    --match science.fits sci_tv.fits -o spk_tv.fits 2> speckles_tv.log || { cat speckles_tv.log; fail "speckles (valid-only, taught)"; }
+etv=$(ncp_with taught_v.fits tv obs/timing_v.txt --valid valid.fits)
 grep -q "224 slopes x 5 lags" speckles_tv.log || { cat speckles_tv.log; fail "speckles did not narrow the taught map"; }
-"$B" estimate sci_tv.fits spk_tv.fits -o halo_tv.fits > /dev/null 2>&1 || fail "estimate (valid-only, taught)"
-"$B" pupil halo_tv.fits -o pupil_tv.fits --truth obs/truth.fits > pupil_tv.log || fail "pupil (valid-only, taught)"
-etv=$(ncp_error pupil_tv.log)
 echo "cli_learn: teach on the used subapertures' slopes: $etv nm (the full layout's $et nm)"
 awk -v a="$etv" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) }' || fail "valid-only teach $etv nm against $et nm"
 # the loops described with ten times the slope noise: the correlation check warns, and with one
