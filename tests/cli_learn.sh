@@ -148,16 +148,19 @@ grep -q "needs both --science and --actuators" bad.log || { cat bad.log; fail "t
 grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || { cat bad.log; fail "teach: no system"; }
 [ -e bad.fits ] && fail "teach left a map after a usage error"
 # the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
-# system's valid map: the same layers and loops, so the same map; speckles --valid applies it
-# to that telemetry (the timing table's rows renamed to those files) to the same NCP error
-"$B" teach obs/slopes_valid_000.fits --system my.conf vib_amp=0.3 valid=valid.fits -o taught_v.fits --work taught_v \
-    --loops 4 > teach_v.log 2>&1 || { cat teach_v.log; fail "teach on valid-only slopes"; }
+# system's valid map (from the files, as above, with --valid): the same layers, filter and
+# loops, so the same map; speckles --valid applies it to that telemetry (the timing table's
+# rows renamed to those files) to the same NCP error
+"$B" teach obs/slopes_valid_000.fits --science science.fits --actuators actuators.fits --pupil pupil.fits \
+    --valid valid.fits -o taught_v.fits --work taught_v --loops 4 > teach_v.log 2>&1 \
+    || { cat teach_v.log; fail "teach on valid-only slopes"; }
+grep -q "ao_modes = 5[3-9]$" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the modal filter expected"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
 sed 's/slopes_0/slopes_valid_0/' timing.txt > obs/timing_v.txt
 etv=$(ncp_with taught_v.fits tv obs/timing_v.txt --valid valid.fits)
 grep -q "224 slopes x 5 lags" speckles_tv.log || { cat speckles_tv.log; fail "speckles did not narrow the taught map"; }
-echo "cli_learn: teach on the used subapertures' slopes: $etv nm (the full layout's $et nm)"
-awk -v a="$etv" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) }' || fail "valid-only teach $etv nm against $et nm"
+echo "cli_learn: teach on the used subapertures' slopes: $etv nm (the full layout's $etf nm)"
+awk -v a="$etv" -v b="$etf" 'BEGIN { exit !(a > 0 && a - b < 0.2 && b - a < 0.2) }' || fail "valid-only teach $etv nm against $etf nm"
 # the loops described with ten times the slope noise: the correlation check warns, and with one
 # layer found teach falls back to the per-frame map of the layer and random seconds. The
 # observation's loop controls 36 modes, which teach finds from its slopes (within 15 %).
