@@ -241,18 +241,16 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     if (pupil is not None or valid is not None) and science is None:
         raise ValueError("teach: pupil and valid describe the system with science and actuators "
                          "(otherwise give pupil_mask= and valid= as params)")
-    describe = None
-    if science is not None:
-        def describe(c):
+    filter_given = []
+
+    def describe(c):  # on the config of config and params, as the command does (cli_ts_params)
+        filter_given.append(lib.swfs_config_has(c, b"ao_modes") or lib.swfs_config_has(c, b"ao_recon"))
+        if science is not None:
             check(lib.swfs_teach_describe(c, enc(science), enc(actuators), enc(pupil) if pupil is not None else None,
                                           enc(valid) if valid is not None else None, enc(files[0])),
                   "swfs_teach_describe")
     o.sim = _checked_params("ts", config, params, describe)
-    given = {k.strip() for k in params}
-    if config is not None:
-        with open(config) as f:
-            given |= {ln.split("#", 1)[0].split("=", 1)[0].strip() for ln in f if "=" in ln.split("#", 1)[0]}
-    o.modes_from_slopes = int(not ({"ao_modes", "ao_recon"} & given))
+    o.modes_from_slopes = int(not filter_given[0])
     arr, n = _paths(files)
     if work is None:
         w = os.fspath(out)

@@ -165,12 +165,11 @@ static int check_options(const swfs_teach_run_options *o)
     return swfs_ts_params_check(&o->sim);
 }
 
-/* The mode variances of slopes (frames x 2 nsub^2, the full layout: the observation's widths
- * were checked, a loop writes that layout) and their knee. */
-static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const char *what, double **v, size_t *n,
-                   size_t *knee)
+/* The mode variances of the slopes s (nf frames of ns: the full layout, or the used
+ * subapertures' with the system's valid map) and their knee. */
+static int knee_of(const swfs_ts_params *p, const swfs_real *s, const char *what, double **v, size_t *n, size_t *knee)
 {
-    int rc = swfs_ts_mode_variance(p, s, nf, 2 * (size_t)p->nsub * (size_t)p->nsub, v, n);
+    int rc = swfs_ts_mode_variance(p, s->data, s->ny, s->nx, v, n);
     if (rc) return swfs_fail_context(rc, "teach: the mode variances of %s", what);
     *knee = swfs_mode_knee(*v, *n);
     if (!*knee) return swfs_fail(SWFS_ERR_NUMERIC, "teach: %s: %zu DM modes after piston, too few for the knee of "
@@ -180,9 +179,14 @@ static int knee_of(const swfs_ts_params *p, const double *s, size_t nf, const ch
 
 /* work/modes.tsv (mode, the observation's variance, each calibration loop's) and, where
  * PLplot is, work/modes.png: what the modal filter was read from. */
-static int write_profiles(const char *work, double *const *v, const size_t *n, const size_t *knee,
-                          const size_t *modes, size_t nc)
+static int write_profiles(const char *work, double *const *v, const size_t *n, const swfs_teach_run_result *r)
 {
+    const size_t nc = 1 + r->ncal;
+    size_t knee[5] = {r->knee_obs}, modes[5] = {0};
+    for (size_t c = 1; c < nc; c++) {
+        knee[c] = r->cal_knee[c - 1];
+        modes[c] = r->cal_modes[c - 1];
+    }
     char path[4200], lab[5][40];
     const char *labels[5];
     size_t len = 0, cap = 64 + 32 * nc + n[0] * (24 + 16 * nc); /* "%.6e" is at most 13 characters */
@@ -217,13 +221,12 @@ static int write_profiles(const char *work, double *const *v, const size_t *n, c
  * loop shows the observation's knee, K repeats, or four loops ran (then the K whose knee came
  * closest). On every system measured the first loop confirmed the knee (docs/telemetry.md).
  * tmpl: the loop's layers. */
-static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t nf, const loop_job *tmpl,
+static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, const loop_job *tmpl,
                              swfs_teach_run_result *r)
 {
-    double *v[5] = {NULL};
-    size_t nv[5] = {0}, kn[5] = {0}, km[5] = {0}, nc = 1;
-    int rc = knee_of(&o->sim, s, nf, o->files[0], &v[0], &nv[0], &r->knee_obs);
-    kn[0] = r->knee_obs;
+    double *v[5] = {NULL}; /* the observation's profile, then each calibration loop's */
+    size_t nv[5] = {0};
+    int rc = knee_of(&o->sim, s, o->files[0], &v[0], &nv[0], &r->knee_obs);
     long K = (long)r->knee_obs, best = K;
     size_t bdist = (size_t)-1;
     for (size_t it = 0; !rc && it < 4; it++) {
@@ -238,12 +241,10 @@ static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t 
         size_t knee = 0;
         if (!(rc = simulate_loop(o, &j, o->sim.base.threads))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls->data, ls->ny, f, &v[nc], &nv[nc], &knee);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[it + 1], &nv[it + 1], &knee);
             swfs_real_free(ls);
         }
         if (rc) break;
-        kn[nc] = knee;
-        km[nc++] = (size_t)K;
         r->cal_modes[it] = (size_t)K;
         r->cal_knee[it] = knee;
         r->ncal = it + 1;
@@ -258,7 +259,7 @@ static int modes_from_slopes(swfs_teach_run_options *o, const double *s, size_t 
         K = next;
     }
     o->sim.ao_modes = best;
-    if (!rc) rc = write_profiles(o->work, v, nv, kn, km, nc);
+    if (!rc) rc = write_profiles(o->work, v, nv, r);
     for (size_t c = 0; c < 5; c++) free(v[c]);
     return rc;
 }
@@ -285,12 +286,17 @@ int swfs_teach_describe(swfs_config *c, const char *science, const char *actuato
     int rc = swfs_geom_read_file(science, &g);
     if (!rc) rc = swfs_geom_require(&g, science);
     if (rc) return rc;
-    swfs_real *t = NULL;
+    /* the telemetry's header: its shape and rate (its values are read, and checked, by teach) */
+    swfs_fits_in *t = NULL;
     double rate = 0;
-    if ((rc = swfs_telemetry_read(telemetry, 0, &t, &rate))) return rc;
-    const size_t nframes = t->ny, width = t->nx;
-    swfs_real_free(t);
-    if (!(rate > 0))
+    int found = 0;
+    if ((rc = swfs_fits_in_open(&t, telemetry, NULL))) return rc;
+    const swfs_fits_shape *sh = swfs_fits_in_shape(t);
+    const size_t nframes = sh->ny, width = sh->nx;
+    rc = swfs_fits_in_key_double_opt(t, "WFSRATE", &rate, &found);
+    swfs_fits_in_close(t);
+    if (rc) return rc;
+    if (!found || !(rate > 0) || !isfinite(rate))
         return swfs_fail(SWFS_ERR_FORMAT, "teach: %s: no WFSRATE keyword; the loops need the WFS frame rate "
                          "(give wfs_rate=)", telemetry);
     size_t nsub = 0, nv = 0;
@@ -349,6 +355,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     size_t vn = 0, nv = 0;
     unsigned char *vmap = NULL;
     if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
+    free(vmap);
     if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
@@ -365,7 +372,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
                        "the loops cannot be given its winds; use the default reconstructor",
                        o->nfiles == 1 ? o->files[0] : "the telemetry files");
-    if (rc) { swfs_real_free(obs); free(vmap); return rc; }
+    if (rc) { swfs_real_free(obs); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = (size_t)nl;
     double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
@@ -380,7 +387,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
     r->nlags = 5;
-    /* 2. the loops' modal filter: given, or from the observation's slopes (full layout) */
+    /* 2. the loops' modal filter: given, or from the observation's slopes */
     swfs_teach_run_options oo = *o;
     if (o->modes_from_slopes) {
         loop_job tmpl = {.nl = nl};
@@ -389,17 +396,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             tmpl.speed[l] = speed[l];
             tmpl.dir[l] = dir[l];
         }
-        const size_t nfull = 2 * nsub * nsub;
-        double *full = obs->nx == nfull ? obs->data : calloc(obs->ny * nfull, sizeof *full);
-        if (!full) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-        for (size_t t = 0; !rc && full != obs->data && t < obs->ny; t++)
-            for (size_t a = 0, k = 0; a < 2; a++)
-                for (size_t i = 0; i < nsub * nsub; i++)
-                    if (vmap[i]) full[t * nfull + a * nsub * nsub + i] = obs->data[t * obs->nx + k++];
-        if (!rc) rc = modes_from_slopes(&oo, full, obs->ny, &tmpl, r);
-        if (full != obs->data) free(full);
+        rc = modes_from_slopes(&oo, obs, &tmpl, r);
     }
-    free(vmap);
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { swfs_real_free(obs); return rc; }

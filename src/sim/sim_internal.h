@@ -18,10 +18,10 @@ int swfs_sim_config_path(swfs_config *c, const char *key, char *dst, size_t cap)
  * when not given. */
 int swfs_ts_read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
                        unsigned char **vmap);
-/* The loop's DM and WFS on the pupil mask: the actuators given (given_xy, copied) or built
- * from act_pitch / act_square, their interpolation T and the Shack-Hartmann (vmap: its
- * used subapertures, or NULL). */
-int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const double *given_xy, size_t given_nact,
-                       const unsigned char *vmap, double **xy, size_t *nact, swfs_sparse **T, swfs_shwfs **sh);
+/* The loop's DM and WFS on the pupil mask: the actuators *xy (*nact of them) as given, or,
+ * when *xy is NULL, built from act_pitch / act_square into it (the caller frees it either
+ * way); their interpolation T and the Shack-Hartmann (vmap: its used subapertures, or NULL). */
+int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsigned char *vmap, double **xy,
+                       size_t *nact, swfs_sparse **T, swfs_shwfs **sh);
 
 #endif

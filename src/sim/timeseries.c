@@ -512,13 +512,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
 
     /* DM, WFS, the loop's reconstructor. */
     /* A DM given by its positions (read above) has the same loop, interpolation and modal filter. */
-    {
-        double *given = xy;
-        xy = NULL;
-        rc = swfs_ts_loop_model(p, mask, given, nact, vmap, &xy, &nact, &T, &sh);
-        free(given);
-        if (rc) goto done;
-    }
+    if ((rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */

@@ -13,31 +13,23 @@
 #include <stdlib.h>
 #include <string.h>
 
-int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const double *given_xy, size_t given_nact,
-                       const unsigned char *vmap, double **xy, size_t *nact, swfs_sparse **T, swfs_shwfs **sh)
+int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsigned char *vmap, double **xy,
+                       size_t *nact, swfs_sparse **T, swfs_shwfs **sh)
 {
     const swfs_sim_params *b = &p->base;
     const size_t np = (size_t)b->pupn;
     const double D = b->teldiam, dx = b->pupdx;
-    int rc = SWFS_OK;
-    *xy = NULL;
     *T = NULL;
     *sh = NULL;
-    if (given_xy) {
-        if (!(*xy = malloc(2 * given_nact * sizeof **xy))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-        memcpy(*xy, given_xy, 2 * given_nact * sizeof **xy);
-        *nact = given_nact;
-    } else if ((rc = p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, xy, nact)
-                                   : swfs_actuators_hexapolar(D, p->act_pitch, dx, xy, nact)))
-        return rc;
+    int rc = *xy ? SWFS_OK
+                 : p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, xy, nact)
+                                 : swfs_actuators_hexapolar(D, p->act_pitch, dx, xy, nact);
     if (!rc) rc = swfs_interp_ct_grid(*xy, *nact, np, dx, mask, T, NULL);
     if (!rc && (rc = vmap ? swfs_shwfs_create_valid(sh, (size_t)p->nsub, D, mask, np, dx, vmap)
                           : swfs_shwfs_create(sh, (size_t)p->nsub, D, mask, np, dx, 0.5)))
         if (vmap) swfs_fail_context(rc, "%s", p->valid);
     if (rc) {
-        free(*xy);
         swfs_sparse_free(*T);
-        *xy = NULL;
         *T = NULL;
     }
     return rc;
@@ -50,40 +42,47 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     *nmodes = 0;
     const size_t np = (size_t)p->base.pupn;
     if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
-    double *mask = malloc(np * np * sizeof *mask), *gxy = NULL, *xy = NULL, *Dm = NULL, *modes = NULL;
+    double *mask = malloc(np * np * sizeof *mask), *xy = NULL, *Dm = NULL, *modes = NULL;
     double *A = NULL, *tau = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
     unsigned char *vmap = NULL;
-    size_t gn = 0, nact = 0;
+    size_t nact = 0;
     int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &gxy, &gn, &rao, &vmap);
-    if (!rc) rc = swfs_ts_loop_model(p, mask, gxy, gn, vmap, &xy, &nact, &T, &sh);
+    if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &xy, &nact, &rao, &vmap);
+    if (!rc) rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh);
     if (!rc) rc = swfs_interaction_matrix(sh, T, &Dm);
     if (!rc) rc = swfs_dm_modes(T, mask, np, &modes);
     if (rc) goto done;
     /* The modes after piston through D (ns x m), orthonormalized in their order (QR): column
      * j is the part of mode j's slope pattern that the lower modes do not explain. */
-    const size_t ns = sh->nslopes, m0 = nact - 1, m = m0 < ns ? m0 : ns;
-    if (nslopes != ns) {
+    const size_t nfull = sh->nslopes, nsa = nfull / 2, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
+    if (nslopes != nfull && nslopes != 2 * sh->nvalid) {
         rc = swfs_fail(SWFS_ERR_SHAPE, "mode variance: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
-                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0)", nslopes, p->nsub, p->nsub, ns);
+                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0) or 2 x %zu (its used "
+                       "subapertures')", nslopes, p->nsub, p->nsub, nfull, sh->nvalid);
         goto done;
     }
-    A = malloc(ns * m * sizeof *A);
+    const size_t ns = nslopes;
+    A = malloc(nfull * m * sizeof *A);
     tau = malloc(m * sizeof *tau);
-    mean = calloc(ns, sizeof *mean);
+    mean = calloc(nfull, sizeof *mean);
     const size_t B = 256; /* frames per block */
-    blk = malloc(B * ns * sizeof *blk);
+    blk = malloc(B * nfull * sizeof *blk);
     q = malloc(B * m * sizeof *q);
     v = calloc(m, sizeof *v);
     if (!A || !tau || !mean || !blk || !q || !v) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)ns, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
                 (int)nact, 0.0, A, (int)m);
-    lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)ns, (lapack_int)m, A, (lapack_int)m, tau);
-    if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)ns, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
+    lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, A, (lapack_int)m, tau);
+    if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
     if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
+    /* Slopes of the used subapertures only: the rows of those slopes (x then y, row-major),
+     * moved up in place; an unused subaperture's rows of D, and so of the basis, are 0. */
+    if (ns != nfull)
+        for (size_t r = 0, k = 0; r < nfull; r++)
+            if (sh->valid[r % nsa] && k++ != r) memcpy(A + (k - 1) * m, A + r * m, m * sizeof *A);
     for (size_t t = 0; t < nframes; t++)
         for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
     for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
@@ -101,7 +100,7 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     *nmodes = m;
     v = NULL;
 done:
-    free(mask); free(gxy); free(xy); free(Dm); free(modes); free(A); free(tau); free(mean); free(blk); free(q); free(v);
+    free(mask); free(xy); free(Dm); free(modes); free(A); free(tau); free(mean); free(blk); free(q); free(v);
     free(vmap);
     swfs_sparse_free(T);
     swfs_shwfs_free(sh);
