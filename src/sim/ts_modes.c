@@ -57,11 +57,10 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     if (rc) goto done;
     /* The modes after piston through D (ns x m), orthonormalized in their order (QR): column
      * j is the part of mode j's slope pattern that the lower modes do not explain. */
-    const size_t nfull = sh->nslopes, nsa = nfull / 2, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
-    if (nslopes != nfull && nslopes != 2 * sh->nvalid) {
+    const size_t nfull = sh->nslopes, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
+    if (nslopes != nfull) {
         rc = swfs_fail(SWFS_ERR_SHAPE, "mode variance: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
-                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0) or 2 x %zu (its used "
-                       "subapertures')", nslopes, p->nsub, p->nsub, nfull, sh->nvalid);
+                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0)", nslopes, p->nsub, p->nsub, nfull);
         goto done;
     }
     const size_t ns = nslopes;
@@ -78,11 +77,6 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, A, (lapack_int)m, tau);
     if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
     if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
-    /* Slopes of the used subapertures only: the rows of those slopes (x then y, row-major),
-     * moved up in place; an unused subaperture's rows of D, and so of the basis, are 0. */
-    if (ns != nfull)
-        for (size_t r = 0, k = 0; r < nfull; r++)
-            if (sh->valid[r % nsa] && k++ != r) memcpy(A + (k - 1) * m, A + r * m, m * sizeof *A);
     for (size_t t = 0; t < nframes; t++)
         for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
     for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
