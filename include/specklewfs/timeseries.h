@@ -157,8 +157,9 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_pa
  * variance along each DM mode's slope pattern: the system's modes after piston (the
  * lowest-energy modes its loop filters with, ao_modes) through its interaction matrix,
  * orthonormalized in that order (QR), so that mode j counts only what the lower modes do not
- * explain. slopes: nframes x nslopes, the full layout (nslopes = 2 nsub^2, unused
- * subapertures 0); another width is SWFS_ERR_SHAPE. var: nmodes values (malloc'd; nmodes = min(nact - 1,
+ * explain. slopes: nframes x nslopes, the full layout (2 nsub^2, unused subapertures 0) or
+ * the used subapertures' only (x then y, row-major; the valid map p->valid, else the
+ * simulator's), with the same variances; another width is SWFS_ERR_SHAPE. var: nmodes values (malloc'd; nmodes = min(nact - 1,
  * 2 nsub^2)). The loop attenuates the modes it
  * controls: var rises over them and falls from about the last one on (docs/telemetry.md). */
 int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,

@@ -182,8 +182,9 @@ def ncp_map(config=None, mask=None, **params):
 
 def mode_variance(slopes, config=None, **params):
     """The loop's controlled modes as its residual slopes show them (timeseries.h
-    swfs_ts_mode_variance, swfs_mode_knee): slopes (nframes, 2 nsub^2) in the full layout of
-    the system described by config and params (`simulate mode=timeseries` keys: its pupil,
+    swfs_ts_mode_variance, swfs_mode_knee): slopes (nframes, 2 nsub^2) in the full layout,
+    or its used subapertures' only (the valid map valid=, else the simulator's), of the system
+    described by config and params (`simulate mode=timeseries` keys: its pupil,
     DM and Shack-Hartmann). Returns (var, knee): the slopes' variance along each DM mode after
     piston, less what the lower modes explain [rad^2], and the knee of that profile (the
     loop's modal filter, as `teach` reads it)."""

@@ -165,7 +165,8 @@ static int check_options(const swfs_teach_run_options *o)
     return swfs_ts_params_check(&o->sim);
 }
 
-/* The mode variances of the slopes s (frames x 2 nsub^2, the full layout) and their knee. */
+/* The mode variances of the slopes s (nf frames of ns: the full layout, or the used
+ * subapertures' with the system's valid map) and their knee. */
 static int knee_of(const swfs_ts_params *p, const swfs_real *s, const char *what, double **v, size_t *n, size_t *knee)
 {
     int rc = swfs_ts_mode_variance(p, s->data, s->ny, s->nx, v, n);
@@ -354,6 +355,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     size_t vn = 0, nv = 0;
     unsigned char *vmap = NULL;
     if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
+    free(vmap);
     if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
@@ -370,7 +372,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
                        "the loops cannot be given its winds; use the default reconstructor",
                        o->nfiles == 1 ? o->files[0] : "the telemetry files");
-    if (rc) { swfs_real_free(obs); free(vmap); return rc; }
+    if (rc) { swfs_real_free(obs); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = (size_t)nl;
     double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
@@ -394,18 +396,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             tmpl.speed[l] = speed[l];
             tmpl.dir[l] = dir[l];
         }
-        /* valid-only telemetry in the full layout, as the loops write it */
-        const size_t nfull = 2 * nsub * nsub;
-        swfs_real *full = obs->nx == nfull ? obs : swfs_real_alloc(nfull, obs->ny, 1);
-        if (!full) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-        for (size_t t = 0; !rc && full != obs && t < obs->ny; t++)
-            for (size_t a = 0, k = 0; a < 2; a++)
-                for (size_t i = 0; i < nsub * nsub; i++)
-                    full->data[t * nfull + a * nsub * nsub + i] = vmap[i] ? obs->data[t * obs->nx + k++] : 0.0;
-        if (!rc) rc = modes_from_slopes(&oo, full, &tmpl, r);
-        if (full != obs) swfs_real_free(full);
+        rc = modes_from_slopes(&oo, obs, &tmpl, r);
     }
-    free(vmap);
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { swfs_real_free(obs); return rc; }

@@ -55,12 +55,14 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     if (!rc) rc = swfs_interaction_matrix(sh, T, &Dm);
     if (!rc) rc = swfs_dm_modes(T, mask, np, &modes);
     if (rc) goto done;
-    /* The modes after piston through D (ns x m), orthonormalized in their order (QR): column
-     * j is the part of mode j's slope pattern that the lower modes do not explain. */
-    const size_t nfull = sh->nslopes, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
-    if (nslopes != nfull) {
+    /* The modes after piston through D (2 nsub^2 x m, the full layout), orthonormalized in
+     * their order (QR): column j is the part of mode j's slope pattern that the lower modes
+     * do not explain. */
+    const size_t nfull = sh->nslopes, nsa = nfull / 2, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
+    if (nslopes != nfull && nslopes != 2 * sh->nvalid) {
         rc = swfs_fail(SWFS_ERR_SHAPE, "mode variance: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
-                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0)", nslopes, p->nsub, p->nsub, nfull);
+                       "has 2 nsub^2 = %zu (the full layout, unused subapertures 0) or 2 x %zu (its used "
+                       "subapertures')", nslopes, p->nsub, p->nsub, nfull, sh->nvalid);
         goto done;
     }
     const size_t ns = nslopes;
@@ -72,11 +74,17 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     q = malloc(B * m * sizeof *q);
     v = calloc(m, sizeof *v);
     if (!A || !tau || !mean || !blk || !q || !v) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
-    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)ns, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nfull, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
                 (int)nact, 0.0, A, (int)m);
     lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, A, (lapack_int)m, tau);
     if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
     if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
+    /* Slopes of the used subapertures only: the basis's rows of those slopes (x then y,
+     * row-major), moved up in place. The same as the full layout with the unused
+     * subapertures' slopes 0, which meet only the rows dropped here. */
+    if (ns != nfull)
+        for (size_t r = 0, k = 0; r < nfull; r++)
+            if (sh->valid[r % nsa] && k++ != r) memcpy(A + (k - 1) * m, A + r * m, m * sizeof *A);
     for (size_t t = 0; t < nframes; t++)
         for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
     for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
