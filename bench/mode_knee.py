@@ -2,7 +2,8 @@
 """The loop's modal filter as its residual slopes show it, over systems (docs/telemetry.md,
 "What the description must get right"): for each variant of one small closed loop (the
 modes it controls, wind, layers, slope noise, loop gain and delay, vibration, r0, a square
-DM grid, 16 x 16 subapertures) a simulated time series, and the knee of its slopes'
+DM grid, 16 x 16 subapertures, a valid map without the pupil's edge ring) a simulated time
+series, and the knee of its slopes'
 variances along the DM modes (swfs_ts_mode_variance, swfs_mode_knee) against the modes the
 loop controlled. About 3 minutes on 2 cores; the series are kept in DIR and reused.
 
@@ -21,7 +22,19 @@ CASES = [dict(ao_modes=k) for k in (20, 36, 56, 80, 120)] + [
     dict(layer_speed=5), dict(layer_speed=30),
     dict(nlayers=2, layer_frac="0.6,0.4", layer_speed="8,25", layer_dir="30,200"),
     dict(slope_noise=3e-7), dict(slope_noise=1e-6), dict(ao_gain=0.15), dict(ao_gain=0.7), dict(ao_delay=4),
-    dict(vib_amp=0.5), dict(r0=0.08), dict(act_square=1), dict(nsub=16, ao_modes=100), dict(nsub=16, ao_modes=150)]
+    dict(vib_amp=0.5), dict(r0=0.08), dict(act_square=1), dict(nsub=16, ao_modes=100), dict(nsub=16, ao_modes=150),
+    dict(valid="ring"), dict(nsub=16, ao_modes=100, valid="ring")]
+
+
+def ring_map(slopes, path):
+    """The subapertures full-layout slopes use, less those with an unused neighbour (the
+    pupil's edge ring), as a valid map file."""
+    n = int(round((slopes.shape[1] / 2) ** 0.5))
+    used = np.any(slopes != 0, axis=0)[: n * n].reshape(n, n)
+    pad = np.pad(used, 1)
+    inner = used & pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
+    sw.write_fits(path, inner.astype(np.float64))
+    return int(used.sum()), int(inner.sum())
 
 
 def main(work):
@@ -31,6 +44,13 @@ def main(work):
     for i, c in enumerate(CASES):
         kw = dict(BASE, **c)
         d = os.path.join(work, f"v{i:02d}")
+        if c.get("valid") == "ring":  # from the same geometry's series without a valid map
+            j = next(j for j, o in enumerate(CASES) if "valid" not in o and o.get("nsub") == c.get("nsub"))
+            s0, _ = sw.read_fits(os.path.join(work, f"v{j:02d}", "slopes_000.fits"))
+            os.makedirs(d, exist_ok=True)
+            kw["valid"] = os.path.abspath(os.path.join(d, "ring.fits"))
+            nu, ni = ring_map(np.array(s0), kw["valid"])
+            c = dict(c, valid=f"{ni} of {nu} subapertures")
         if not os.path.exists(os.path.join(d, "slopes_000.fits")):
             os.makedirs(d, exist_ok=True)
             sw.simulate_timeseries(d, **kw)

@@ -5,7 +5,9 @@
  * layout's answer; white-noise slopes track nothing; bad input is refused by name (too few
  * frames, a non-finite slope, another width). The loop's modal filter as its slopes show it
  * (timeseries.h swfs_ts_mode_variance, swfs_mode_knee): a profile of two power laws gives its
- * break exactly; loops controlling 30 and 60 modes give knees near 30 and 60. */
+ * break exactly, also with modes of no variance left out; loops controlling 30 and 60 modes
+ * give knees near 30 and 60, and so does the 60-mode loop with a valid map that leaves out the
+ * pupil's edge ring (its modes beyond the interaction matrix's rank without a variance). */
 #include "testutil.h"
 
 #include "specklewfs/config.h"
@@ -182,48 +184,109 @@ static void test_wind_noise_and_refusals(void **state)
     assert_non_null(strstr(swfs_last_error(), "actuators.fits"));
 }
 
+/* The configuration of the series test_mode_knee simulates (the system's geometry). */
+static void knee_params(swfs_ts_params *tp, const char *valid)
+{
+    swfs_config *c = swfs_config_new();
+    assert_ok(swfs_config_set(c, "pupn=66"));
+    assert_ok(swfs_config_set(c, "pupdx=0.1"));
+    assert_ok(swfs_config_set(c, "screen_n=1024"));
+    if (valid) {
+        char kv[1400];
+        snprintf(kv, sizeof kv, "valid=%s", valid);
+        assert_ok(swfs_config_set(c, kv));
+    }
+    swfs_ts_params_default(tp);
+    assert_ok(swfs_ts_params_from_config(c, tp));
+    swfs_config_free(c);
+}
+
+/* The used subapertures of full-layout slopes s, less those with a neighbour unused (the
+ * pupil's edge ring), as a valid map file. Returns how many are left. */
+static size_t write_inner_map(const swfs_real *s, const char *path)
+{
+    const size_t nsa = s->nx / 2, n = (size_t)llround(sqrt((double)nsa));
+    unsigned char used[400] = {0};
+    assert_true(nsa <= 400 && n * n == nsa);
+    for (size_t a = 0; a < nsa; a++)
+        for (size_t t = 0; t < s->ny && !used[a]; t++) used[a] = s->data[t * s->nx + a] != 0;
+    swfs_real *v = swfs_real_alloc(n, n, 1);
+    assert_non_null(v);
+    size_t left = 0;
+    for (size_t y = 0; y < n; y++)
+        for (size_t x = 0; x < n; x++) {
+            const size_t a = y * n + x;
+            const int inner = used[a] && x > 0 && y > 0 && x + 1 < n && y + 1 < n && used[a - 1] && used[a + 1] &&
+                              used[a - n] && used[a + n];
+            v->data[a] = inner;
+            left += (size_t)inner;
+        }
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_real(o, NULL, v, 8));
+    assert_ok(swfs_fits_out_commit(o));
+    swfs_real_free(v);
+    return left;
+}
+
 static void test_mode_knee(void **state)
 {
     (void)state;
-    /* two power laws meeting at mode 37 of 120 (rising, then falling): the break exactly */
+    /* two power laws meeting at mode 37 of 120 (rising, then falling): the break exactly; and
+     * so with modes of no variance (NaN) among them */
     double v[120];
     for (size_t j = 0; j < 120; j++) v[j] = j < 37 ? pow((double)(j + 1), 1.5) : pow(37.0, 1.5) * pow((double)(j + 1) / 37.0, -0.4);
     assert_int_equal(swfs_mode_knee(v, 120), 37);
     assert_int_equal(swfs_mode_knee(v, 5), 0);
+    v[10] = v[36] = NAN;
+    for (size_t j = 90; j < 120; j++) v[j] = NAN;
+    assert_int_equal(swfs_mode_knee(v, 120), 36); /* the last mode with a variance before the break */
     /* loops controlling 30 and 60 of their DM's modes (one 12 m/s layer): each knee within
-     * 15 % of the modes controlled */
-    const size_t K[2] = {30, 60};
-    for (int i = 0; i < 2; i++) {
-        char modes[32], sub[32], f[1300];
+     * 15 % of the modes controlled. Then the 60-mode loop with a valid map that leaves out the
+     * pupil's edge ring: fewer slopes than DM modes, so the modes beyond the rank of its
+     * interaction matrix have no variance (NaN), and the knee is still the filter. */
+    const size_t K[3] = {30, 60, 60};
+    char ring[1300] = "";
+    size_t nring = 0;
+    for (int i = 0; i < 3; i++) {
+        char modes[32], sub[32], f[1300], vkey[1400];
         snprintf(modes, sizeof modes, "ao_modes=%zu", K[i]);
-        snprintf(sub, sizeof sub, "modes%zu", K[i]);
+        snprintf(sub, sizeof sub, "modes%zu%s", K[i], i == 2 ? "_ring" : "");
+        snprintf(vkey, sizeof vkey, "valid=%s", ring);
         const char *extra[] = {"nlayers=1", "layer_speed=12", "layer_frac=1", modes, "cube_frames=20", "cube_gap=700",
-                               "nfx=16", "nfy=16"};
-        series(sub, extra, 8);
+                               "nfx=16", "nfy=16", vkey};
+        series(sub, extra, i == 2 ? 9 : 8);
         snprintf(f, sizeof f, "%s/slopes_000.fits", p(sub));
         swfs_real *s = NULL;
         assert_ok(swfs_telemetry_read(f, 0, &s, NULL));
-        swfs_config *c = swfs_config_new();
-        assert_ok(swfs_config_set(c, "pupn=66"));
-        assert_ok(swfs_config_set(c, "pupdx=0.1"));
-        assert_ok(swfs_config_set(c, "screen_n=1024"));
         swfs_ts_params tp;
-        swfs_ts_params_default(&tp);
-        assert_ok(swfs_ts_params_from_config(c, &tp));
-        swfs_config_free(c);
+        knee_params(&tp, i == 2 ? ring : NULL);
         double *var = NULL;
-        size_t n = 0;
+        size_t n = 0, nnan = 0;
         assert_ok(swfs_ts_mode_variance(&tp, s->data, s->ny, s->nx, &var, &n));
         const size_t knee = swfs_mode_knee(var, n);
-        print_message("ao_modes %zu: knee at mode %zu of %zu\n", K[i], knee, n);
+        for (size_t j = 0; j < n; j++) {
+            nnan += (size_t)isnan(var[j]);
+            assert_true(isnan(var[j]) || (isfinite(var[j]) && var[j] >= 0));
+        }
+        print_message("ao_modes %zu%s: knee at mode %zu of %zu (%zu without a variance)\n", K[i],
+                      i == 2 ? " (edge ring left out)" : "", knee, n, nnan);
         assert_true(n > 100 && fabs((double)knee - (double)K[i]) <= 0.15 * (double)K[i]);
-        for (size_t j = 0; j < n; j++) assert_true(isfinite(var[j]) && var[j] >= 0);
+        if (i < 2) assert_int_equal(nnan, 0);
+        else assert_true(nnan >= n - 2 * nring && nnan < n / 2); /* at least those beyond 2 nvalid slopes */
         free(var);
-        /* too few frames: refused */
-        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, 1, s->nx, &var, &n), SWFS_ERR_ARG);
-        /* another width: refused, naming what was expected */
-        assert_int_equal(swfs_ts_mode_variance(&tp, s->data, s->ny / 2, s->nx * 2, &var, &n), SWFS_ERR_SHAPE);
-        assert_non_null(strstr(swfs_last_error(), "2 nsub^2 = 288"));
+        if (i == 1) {
+            snprintf(ring, sizeof ring, "%s", p("ring_valid.fits"));
+            nring = write_inner_map(s, ring);
+            assert_true(nring > 50 && 2 * nring < n);
+        }
+        if (i == 0) {
+            /* too few frames: refused */
+            assert_int_equal(swfs_ts_mode_variance(&tp, s->data, 1, s->nx, &var, &n), SWFS_ERR_ARG);
+            /* another width: refused, naming what was expected */
+            assert_int_equal(swfs_ts_mode_variance(&tp, s->data, s->ny / 2, s->nx * 2, &var, &n), SWFS_ERR_SHAPE);
+            assert_non_null(strstr(swfs_last_error(), "2 nsub^2 = 288"));
+        }
         swfs_real_free(s);
     }
 }

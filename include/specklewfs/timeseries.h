@@ -159,13 +159,16 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_pa
  * orthonormalized in that order (QR), so that mode j counts only what the lower modes do not
  * explain. slopes: nframes x nslopes, the full layout (2 nsub^2, unused subapertures 0) or
  * the used subapertures' only (x then y, row-major; the valid map p->valid, else the
- * simulator's), with the same variances; another width is SWFS_ERR_SHAPE. var: nmodes values (malloc'd; nmodes = min(nact - 1,
- * 2 nsub^2)). The loop attenuates the modes it
- * controls: var rises over them and falls from about the last one on (docs/telemetry.md). */
+ * simulator's), with the same variances; another width is SWFS_ERR_SHAPE. var: nmodes
+ * values (malloc'd; nmodes = min(nact - 1, 2 nsub^2)); NaN for a mode whose slope pattern the
+ * lower modes' explain (no direction of its own: e.g. beyond the rank of a valid map's
+ * interaction matrix). The loop attenuates the modes it controls: var rises over them and
+ * falls from about the last one on (docs/telemetry.md). */
 int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
                           double **var, size_t *nmodes);
-/* The knee of such a profile: the K (3 .. n - 3) that best splits log var_j against log j
- * into two least-squares lines, modes 1..K and K+1..n. 0 when n < 6 or out of memory. */
+/* The knee of such a profile: the mode K that best splits log var_j against log j into two
+ * least-squares lines, modes 1..K and K+1..n, each of at least 3 modes with a variance (NaN
+ * ones left out). 0 when fewer than 6 have one, or out of memory. */
 size_t swfs_mode_knee(const double *var, size_t n);
 
 /* Simulate and write DIR (must exist). */

@@ -186,8 +186,9 @@ def mode_variance(slopes, config=None, **params):
     or its used subapertures' only (the valid map valid=, else the simulator's), of the system
     described by config and params (`simulate mode=timeseries` keys: its pupil,
     DM and Shack-Hartmann). Returns (var, knee): the slopes' variance along each DM mode after
-    piston, less what the lower modes explain [rad^2], and the knee of that profile (the
-    loop's modal filter, as `teach` reads it)."""
+    piston, less what the lower modes explain [rad^2] (NaN for a mode the lower ones' patterns
+    explain, e.g. beyond the rank of a valid map's interaction matrix), and the knee of that
+    profile (the loop's modal filter, as `teach` reads it)."""
     params = dict(params)
     params.setdefault("mode", "timeseries")
     p = _checked_params("ts", config, params)

@@ -8,6 +8,7 @@
 #include "sim_internal.h"
 
 #include <cblas.h>
+#include <float.h>
 #include <lapacke.h>
 #include <math.h>
 #include <stdlib.h>
@@ -43,7 +44,7 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     const size_t np = (size_t)p->base.pupn;
     if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
     double *mask = malloc(np * np * sizeof *mask), *xy = NULL, *Dm = NULL, *modes = NULL;
-    double *A = NULL, *tau = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL;
+    double *A = NULL, *tau = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL, *cn = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
@@ -73,10 +74,19 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     blk = malloc(B * nfull * sizeof *blk);
     q = malloc(B * m * sizeof *q);
     v = calloc(m, sizeof *v);
-    if (!A || !tau || !mean || !blk || !q || !v) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    cn = calloc(m, sizeof *cn);
+    if (!A || !tau || !mean || !blk || !q || !v || !cn) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nfull, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
                 (int)nact, 0.0, A, (int)m);
+    for (size_t r = 0; r < nfull; r++)
+        for (size_t j = 0; j < m; j++) cn[j] += A[r * m + j] * A[r * m + j];
     lapack_int info = LAPACKE_dgeqrf(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, A, (lapack_int)m, tau);
+    /* A mode whose pattern the lower ones' explain to working precision (|R_jj| at most
+     * sqrt(eps) of its norm; more modes than the used subapertures' slopes, or patterns a
+     * valid map leaves dependent) has no direction of its own: NaN, not the variance along
+     * the arbitrary column QR completes it with. Measured: such columns at 1e-13 or less,
+     * every other at 6e-4 or more (docs/telemetry.md). cn[j]: its squared norm, then that flag. */
+    for (size_t j = 0; j < m; j++) cn[j] = fabs(A[j * m + j]) <= sqrt(DBL_EPSILON) * sqrt(cn[j]);
     if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
     if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
     /* Slopes of the used subapertures only: the basis's rows of those slopes (x then y,
@@ -97,13 +107,13 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
         for (size_t t = 0; t < nb; t++)
             for (size_t j = 0; j < m; j++) v[j] += q[t * m + j] * q[t * m + j];
     }
-    for (size_t j = 0; j < m; j++) v[j] /= (double)(nframes - 1);
+    for (size_t j = 0; j < m; j++) v[j] = cn[j] ? NAN : v[j] / (double)(nframes - 1);
     *var = v;
     *nmodes = m;
     v = NULL;
 done:
     free(mask); free(xy); free(Dm); free(modes); free(A); free(tau); free(mean); free(blk); free(q); free(v);
-    free(vmap);
+    free(vmap); free(cn);
     swfs_sparse_free(T);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
@@ -113,31 +123,36 @@ done:
 size_t swfs_mode_knee(const double *var, size_t n)
 {
     /* Two least-squares lines in (log j, log var_j), modes 1..K and K+1..n, each at least 3
-     * modes: the K of the smallest total squared misfit, from running sums. */
-    if (n < 6) return 0;
+     * modes: the K of the smallest total squared misfit, from running sums. Modes without a
+     * variance (NaN: no direction of their own) are left out. */
     double sx = 0, sy = 0, sxx = 0, sxy = 0, syy = 0;
     double *cs = malloc(5 * (n + 1) * sizeof *cs);
-    if (!cs) return 0;
+    size_t *idx = malloc((n + 1) * sizeof *idx);
+    if (!cs || !idx) { free(cs); free(idx); return 0; }
     memset(cs, 0, 5 * sizeof *cs);
+    size_t nf = 0; /* the modes with a variance; idx[i]: the i-th one's mode number */
     for (size_t j = 0; j < n; j++) {
+        if (isnan(var[j])) continue;
         const double x = log((double)(j + 1)), y = log(fmax(var[j], 1e-300));
         sx += x; sy += y; sxx += x * x; sxy += x * y; syy += y * y;
-        double *c = cs + 5 * (j + 1);
+        double *c = cs + 5 * ++nf;
         c[0] = sx; c[1] = sy; c[2] = sxx; c[3] = sxy; c[4] = syy;
+        idx[nf] = j + 1;
     }
     size_t best = 0;
     double bsse = INFINITY;
-    for (size_t K = 3; K + 3 <= n; K++) {
+    for (size_t K = 3; K + 3 <= nf; K++) {
         double sse = 0;
         for (int part = 0; part < 2; part++) {
-            const double *a = cs + 5 * (part ? K : 0), *b = cs + 5 * (part ? n : K);
-            const double N = (double)(part ? n - K : K), X = b[0] - a[0], Y = b[1] - a[1], XX = b[2] - a[2],
+            const double *a = cs + 5 * (part ? K : 0), *b = cs + 5 * (part ? nf : K);
+            const double N = (double)(part ? nf - K : K), X = b[0] - a[0], Y = b[1] - a[1], XX = b[2] - a[2],
                          XY = b[3] - a[3], YY = b[4] - a[4];
             const double vx = XX - X * X / N, cxy = XY - X * Y / N, vy = YY - Y * Y / N;
             sse += vx > 0 ? vy - cxy * cxy / vx : vy;
         }
-        if (sse < bsse) { bsse = sse; best = K; }
+        if (sse < bsse) { bsse = sse; best = idx[K]; }
     }
     free(cs);
+    free(idx);
     return best;
 }
