@@ -1,5 +1,6 @@
 /* DM offsets (dmfit.h, `specklewfs dmoffsets`): exact recovery of a surface the DM can
- * make, the Zernike modal filter, coverage and bad-input errors. */
+ * make, the Zernike modal filter, coverage (and the rim continued within one pitch, as
+ * export_truth fits it) and bad-input errors. */
 #include "testutil.h"
 
 #include "specklewfs/aperture.h"
@@ -185,7 +186,42 @@ static void test_not_covering(void **state)
     assert_int_equal(swfs_dmfit_create(&f, xy, nact, &g, NULL, NULL), SWFS_ERR_VALUE);
     assert_null(f);
     assert_non_null(strstr(swfs_last_error(), "do not cover the pupil"));
+    /* with the rim continued (export_truth's fit) a DM that far short is still refused */
+    swfs_dmfit_options o;
+    swfs_dmfit_options_default(&o);
+    o.rim = 1;
+    assert_int_equal(swfs_dmfit_create(&f, xy, nact, &g, NULL, &o), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "by more than one actuator pitch"));
     free(xy);
+    /* A DM whose hull misses the pupil's rim by less than its pitch (0.6 m; its outer ring at
+     * r = 3 m, the pupil's rim at 3.15 m): refused by default; with the rim continued, a surface the DM makes is
+     * fitted back exactly over the whole pupil, its rim included. */
+    assert_ok(swfs_actuators_hexapolar(5.8, 0.6, 0.0, &xy, &nact));
+    assert_int_equal(swfs_dmfit_create(&f, xy, nact, &g, NULL, NULL), SWFS_ERR_VALUE);
+    o.influence = SWFS_INFLUENCE_CUBIC;
+    o.reg = 0.0;
+    assert_ok(swfs_dmfit_create(&f, xy, nact, &g, NULL, &o));
+    double *mask = calloc(NP * NP, sizeof *mask), *c = calloc(nact, sizeof *c), *c2 = calloc(nact, sizeof *c2);
+    double *s = calloc(NP * NP, sizeof *s), *s2 = calloc(NP * NP, sizeof *s2), *d = calloc(NP * NP, sizeof *d);
+    assert_ok(swfs_aperture_make(mask, NP, DX, DIAM, 0.1, 0, 0.0));
+    swfs_rng r;
+    swfs_rng_seed(&r, 11);
+    for (size_t a = 0; a < nact; a++) c[a] = 50e-9 * swfs_rng_normal(&r);
+    swfs_dmfit_surface(f, c, s);
+    size_t rim = 0;
+    for (size_t k = 0; k < NP * NP; k++) {
+        const double x = ((double)(k % NP) - 0.5 * (NP - 1)) * DX, y = ((double)(k / NP) - 0.5 * (NP - 1)) * DX;
+        rim += mask[k] > 0 && hypot(x, y) > 3.0;
+    }
+    swfs_dmfit_stats st;
+    assert_ok(swfs_dmfit_apply(f, s, c2, s2, &st));
+    for (size_t k = 0; k < NP * NP; k++) d[k] = s2[k] - s[k];
+    print_message("rim continued: %zu pupil samples beyond r = 3 m; surface %.3g nm rms, fit residual %.3g nm\n", rim,
+                  1e9 * rms(s, mask), 1e9 * rms(d, mask));
+    assert_true(rim > 20 && rms(s, mask) > 10e-9 && rms(d, mask) < 1e-3 * rms(s, mask));
+    free(mask); free(c); free(c2); free(s); free(s2); free(d);
+    free(xy);
+    swfs_dmfit_free(f);
 }
 
 /* ---- CLI -------------------------------------------------------------- */

@@ -48,6 +48,11 @@ typedef struct swfs_dmfit_options {
     size_t modes;    /* 0: fit the full target; K: its projection on Noll Zernikes 1..K */
     double reg;      /* Tikhonov mu (relative to the mean diagonal), default 1e-3 */
     double rcond;    /* eigenvalue cut relative to the largest, default 1e-9 */
+    int rim;         /* 0 (default): pupil samples outside the actuators' convex hull are refused
+                        (a DM cannot correct there); 1: within one actuator pitch of it they take
+                        the nearest inside sample's row, as the speckle model does
+                        (swfs_interp_extend_rim), so a fit represents what that model reads back
+                        (the time-series simulator's export_truth); farther is still refused */
 } swfs_dmfit_options;
 
 void swfs_dmfit_options_default(swfs_dmfit_options *o);

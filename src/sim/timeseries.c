@@ -618,6 +618,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         swfs_dmfit_options_default(&fo);
         fo.influence = SWFS_INFLUENCE_CUBIC;
         fo.reg = 1e-9;
+        fo.rim = 1; /* a rim the actuators' hull misses continued as the speckle model reads it */
         const swfs_geom tg = {lam0, D, b->obscur, b->pixscale, dx, (long)np};
         if ((rc = swfs_dmfit_create(&tfit, xy, nact, &tg, mask, &fo))) { free(dact); free(tstart); goto done; }
         tb = malloc(nwfs * nact * sizeof *tb);

@@ -36,6 +36,7 @@ void swfs_dmfit_options_default(swfs_dmfit_options *o)
     o->modes = 0;
     o->reg = 1e-3;
     o->rcond = 1e-9;
+    o->rim = 0;
 }
 
 void swfs_dmfit_free(swfs_dmfit *f)
@@ -215,16 +216,22 @@ int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swf
         rc = swfs_fail_context(rc, "DM fit: actuator triangulation");
         goto done;
     }
-    if (nout > 0) {
+    size_t nfar = nout;
+    if (nout > 0 && o.rim) {
+        size_t next = 0;
+        if ((rc = swfs_interp_extend_rim(&T, np, g->pupdx, f->mask, swfs_points_pitch(xy, nact), &next, &nfar)))
+            goto done;
+    }
+    if (nfar > 0) {
         double rmax = 0.0, pr = 0.0;
         const double c = 0.5 * (double)(np - 1);
         for (size_t a = 0; a < nact; a++) rmax = fmax(rmax, hypot(xy[2 * a], xy[2 * a + 1]));
         for (size_t k = 0; k < f->npix; k++)
             pr = fmax(pr, hypot(((double)(f->pix[k] % np) - c) * g->pupdx, ((double)(f->pix[k] / np) - c) * g->pupdx));
         rc = swfs_fail(SWFS_ERR_VALUE,
-                       "the actuators do not cover the pupil: %zu of %zu pupil samples lie outside their convex hull "
+                       "the actuators do not cover the pupil: %zu of %zu pupil samples lie outside their convex hull%s "
                        "(actuators reach r = %.3g m from the centre, the pupil reaches %.3g m)",
-                       nout, f->npix, rmax, pr);
+                       nfar, f->npix, o.rim ? " by more than one actuator pitch" : "", rmax, pr);
         goto done;
     }
     f->pitch = o.pitch > 0 ? o.pitch : median_nn(xy, nact);
