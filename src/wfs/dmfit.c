@@ -67,32 +67,6 @@ const swfs_sparse *swfs_dmfit_influence(const swfs_dmfit *f) { return f->A; }
 const double *swfs_dmfit_mask(const swfs_dmfit *f) { return f->mask; }
 const swfs_dmfit_options *swfs_dmfit_opts(const swfs_dmfit *f) { return &f->opt; }
 
-/* Median nearest-neighbour distance [m]. */
-static double median_nn(const double *xy, size_t n)
-{
-    double *d = malloc(n * sizeof *d);
-    if (!d) return NAN;
-    for (size_t i = 0; i < n; i++) {
-        double best = INFINITY;
-        for (size_t j = 0; j < n; j++) {
-            if (j == i) continue;
-            const double r = hypot(xy[2 * j] - xy[2 * i], xy[2 * j + 1] - xy[2 * i + 1]);
-            if (r < best) best = r;
-        }
-        d[i] = best;
-    }
-    /* insertion sort: n is a few hundred */
-    for (size_t i = 1; i < n; i++) {
-        const double v = d[i];
-        size_t j = i;
-        while (j > 0 && d[j - 1] > v) { d[j] = d[j - 1]; j--; }
-        d[j] = v;
-    }
-    const double m = n % 2 ? d[n / 2] : 0.5 * (d[n / 2 - 1] + d[n / 2]);
-    free(d);
-    return m;
-}
-
 /* Gaussian influence matrix: f_a(x) = coupling^(r^2/pitch^2), cut below 1e-5. */
 static int gauss_influence(swfs_dmfit *f, double pupdx, swfs_sparse **out)
 {
@@ -234,7 +208,7 @@ int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swf
                        nfar, f->npix, o.rim ? " by more than one actuator pitch" : "", rmax, pr);
         goto done;
     }
-    f->pitch = o.pitch > 0 ? o.pitch : median_nn(xy, nact);
+    f->pitch = o.pitch > 0 ? o.pitch : swfs_points_pitch(xy, nact);
     if (!(f->pitch > 0)) { rc = swfs_fail(SWFS_ERR_VALUE, "DM fit: actuators coincide (pitch %g m)", f->pitch); goto done; }
     if (o.influence == SWFS_INFLUENCE_CUBIC) {
         f->A = T;
