@@ -320,7 +320,7 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
-    ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
+    ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("wavelen", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
     ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl),
     ("st_obs_nlayers", c_size), ("st_train_nlayers", c_size),
     ("st_corr_train", c_dbl * RECON_MAXLAGS), ("st_corr_spread", c_dbl * RECON_MAXLAGS),

@@ -266,3 +266,44 @@ def test_teach_from_files(series, tmp_path):
     assert os.path.exists(tmp_path / "work" / "modes.tsv")
     with pytest.raises(ValueError, match="needs both science and actuators"):
         sw.teach(files, str(tmp_path / "G.fits"), str(tmp_path / "w2"), science=sci)
+
+
+def test_speckles_warns_of_a_mean_residual_no_loop_has(series, tmp_path):
+    """A given reconstructor that amplifies a slope pattern the model's D does not make keeps
+    its gain on D (the gain check passes) but makes the reconstructed residual's time mean
+    larger than the wavelength, which no closed loop's is: speckles() says so (RuntimeWarning,
+    resmean_rms > wavelen); the default reconstructor's mean on the same data stays far below."""
+    s = series / "sim"
+    sci, timing = str(tmp_path / "sci.fits"), str(tmp_path / "timing.txt")
+    sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], sci, dark=str(s / "dark.fits"),
+              flat=str(s / "flat.fits"))
+    sw.sync(sci, str(s / "handshake.log"), timing)
+    act = str(s / "actuators.fits")
+    w0 = str(tmp_path / "vk.fits")
+    sp = sw.speckles(timing, sci, act, str(tmp_path / "sp0.fits"), write_recon=w0)
+    assert 0 < sp["resmean_rms"] < 0.1 * sp["wavelen"]
+    W = np.array(sw.read_fits(w0)[0])
+    xy = np.array(sw.read_fits(act)[0])
+    _, g = sw.read_fits(sci)
+    mask = sw.aperture(g.pupn, g.pupdx, g.teldiam, g.obscur)
+    D = sw.SpeckleModel(xy, mask, g.pupdx, g.teldiam, 12).interaction_matrix()
+    assert D.shape == (W.shape[1], W.shape[0])
+    # a slope pattern of the used subapertures orthogonal to everything D makes
+    rows = np.flatnonzero(np.linalg.norm(D, axis=1) > 0)
+    U, S, _ = np.linalg.svd(D[rows], full_matrices=True)
+    assert np.sum(S > 1e-10 * S[0]) < rows.size
+    v = np.zeros(D.shape[0])
+    v[rows] = U[:, -1]
+    assert np.abs(v @ D).max() < 1e-10 * np.abs(D).max()
+    slopes = np.concatenate([np.array(sw.read_fits(str(f))[0]) for f in sorted(s.glob("slopes_0*.fits"))])
+    c = abs(v @ slopes.mean(axis=0))
+    u = np.random.default_rng(3).standard_normal(W.shape[0])
+    Wb = W + (1e-3 / c) * np.outer(u, v)  # about 1 mm of mean residual on the actuators
+    wb = str(tmp_path / "amplifies.fits")
+    sw.write_fits(wb, Wb)
+    with pytest.warns(RuntimeWarning, match="more than the wavelength"):
+        bad = sw.speckles(timing, sci, act, str(tmp_path / "sp1.fits"), recon=wb)
+    assert bad["resmean_rms"] > bad["wavelen"] > 0
+    assert 0.5 <= bad["info"]["recon_gain"] <= 2
+    print(f"default mean {sp['resmean_rms'] * 1e9:.1f} nm, amplifying map {bad['resmean_rms'] * 1e9:.0f} nm, "
+          f"wavelength {bad['wavelen'] * 1e9:.0f} nm, gain {bad['info']['recon_gain']:.3f}")

@@ -409,6 +409,7 @@ static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speck
     int rc = swfs_team_sum_pipeline_mean(o->team, w->p);
     if (rc) return rc;
     if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    r->wavelen = w->g.wavelen;
     return swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
 }
 
