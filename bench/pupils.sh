@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Pupils and DMs the matrix (bench_telemetry) does not have (docs/telemetry.md, "Fewer slopes
-# than DM modes"): the test system (12 x 12 on a 66-sample pupil, 3 cubes of 60 camera
-# frames, `simulate mode=timeseries`) with a valid map that leaves out the pupil's edge ring,
+# than DM modes"): the test system (config/small-loop.conf: 12 x 12 on a 66-sample pupil, 3
+# cubes of 60 camera frames) with a valid map that leaves out the pupil's edge ring,
 # central obstructions of 0.25 and 0.3, four spiders, a square DM grid, and a square grid with
 # a 0.3 obstruction. For each: the ideal speckles' NCP error, the default path's
 # (reduce -> sync -> speckles -> estimate -> pupil --truth, default options; --valid with the
@@ -64,16 +64,7 @@ for v in "${VARIANTS[@]}"; do
     IFS=: read -r name seed keys <<< "$v"
     d="$W/$name"
     mkdir -p "$d"
-    cat > "$d/my.conf" <<'CONF'
-mode = timeseries
-pupn = 66
-pupdx = 0.1
-screen_n = 1024
-ncubes = 3
-cube_frames = 60
-cube_gap = 150
-jitter_amp = 0.15
-CONF
+    cp "$ROOT/config/small-loop.conf" "$d/my.conf"
     valid=()
     if [ "$name" = ring ]; then
         [ -f "$d/plain/slopes_000.fits" ] || "$X" simulate "$d/my.conf" $keys seed="$seed" -o "$d/plain" --quiet > /dev/null

@@ -16,16 +16,7 @@
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
 cd "$D" || fail "cd $D"
-cat > my.conf <<'CONF'
-mode = timeseries
-pupn = 66
-pupdx = 0.1
-screen_n = 1024
-ncubes = 3
-cube_frames = 60
-cube_gap = 150
-jitter_amp = 0.15
-CONF
+cp "$(dirname "$0")/../config/small-loop.conf" my.conf || fail "config/small-loop.conf"
 # the observation: two layers at 15 / 22 m/s, its own seed
 "$B" simulate my.conf layer_speed=15,22 vib_amp=0.3 seed=9 export_modal=1 -o obs --quiet > /dev/null 2>&1 || fail "simulate obs"
 "$B" reduce obs/raw_000.fits obs/raw_001.fits obs/raw_002.fits --dark obs/dark.fits --flat obs/flat.fits \
