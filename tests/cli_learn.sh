@@ -5,11 +5,11 @@
 # 12 x 12 Shack-Hartmann of 217 actuators on a 66-sample pupil, 3 cubes of 60 camera frames):
 # six simulated loops -> learn -> speckles --recon on an observation of its own seed (15/22
 # m/s), then estimate and pupil --truth. The learned map must come out no worse than the
-# default reconstructor on that observation (measured 22.9 nm against 23.3: on so small a data
+# default reconstructor on that observation (measured 23.3 nm against 23.3: on so small a data
 # set the two are alike through the whole path; the gain is in docs/telemetry.md's matrix),
-# and learn must print the held-out check for every folder (measured 0.72-0.75, training
-# 0.61). The same map given to the linear model as a control matrix over the influence
-# functions gives the same NCP error within 10 % (measured 22.9 nm). A space-time map of the
+# and learn must print the held-out check for every folder (measured 0.65-0.67, training
+# 0.55). The same map given to the linear model as a control matrix over the influence
+# functions gives the same NCP error within 10 % (measured 23.4 nm). A space-time map of the
 # same loops (learn --lags) goes through speckles, which prints its two checks against the
 # observation (the winds, the slopes' correlation at the lags).
 # usage: bash cli_learn.sh <specklewfs> <scratch dir>
