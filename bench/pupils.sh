@@ -30,19 +30,11 @@ VARIANTS=(
 )
 
 # ring_map SLOPES OUT: the subapertures full-layout slopes use, less those with an unused
-# neighbour (the pupil's edge ring), as a valid map
+# neighbour (the pupil's edge ring), as a valid map (bench/mode_knee.py's ring_map)
 ring_map() {
-    PYTHONPATH="$ROOT/python" SPECKLEWFS_LIB="$LIB" "${PYTHON:-python3}" - "$1" "$2" <<'PY'
-import sys
-import numpy as np
-import specklewfs as sw
-s, _ = sw.read_fits(sys.argv[1])
-n = int(round((s.shape[1] / 2) ** 0.5))
-used = np.any(s != 0, axis=0)[: n * n].reshape(n, n)
-pad = np.pad(used, 1)
-inner = used & pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
-sw.write_fits(sys.argv[2], inner.astype(np.float64))
-PY
+    PYTHONPATH="$ROOT/python:$ROOT/bench" SPECKLEWFS_LIB="$LIB" "${PYTHON:-python3}" -c \
+        'import sys, numpy as np, specklewfs as sw, mode_knee; mode_knee.ring_map(np.array(sw.read_fits(sys.argv[1])[0]), sys.argv[2])' \
+        "$1" "$2"
 }
 
 # path DIR TAG [speckles options]: the whole path from DIR's science.fits and timing.txt, the

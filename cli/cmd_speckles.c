@@ -243,7 +243,7 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!rc)
         fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
                 "out of the NCP)\n", r.resmean_rms * 1e9);
-    if (!rc && r.resmean_rms > r.wavelen)
+    if (!rc && swfs_speckles_resmean_warns(&r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r.wavelen * 1e9);
     if (!rc) cli_spacetime_summary(cmd, &r);

@@ -161,10 +161,7 @@ typedef struct swfs_speckles_run_result {
     swfs_pipeline_info info;
     double resmean_rms;       /* [m] the reconstructed residual's time mean over the frames written
                                  (SPECKLES.fits RESMEAN, swfs_pipeline_mean_wavefront), rms in the pupil */
-    double wavelen;           /* [m] the science cube's wavelength. A closed loop holds its measured
-                                 residual's mean near its reference: resmean_rms beyond one wave is no
-                                 loop's, but a reconstructor that amplifies slope patterns D does not
-                                 make (which its gain on D does not show); the command warns */
+    double wavelen;           /* [m] the science cube's wavelength (swfs_speckles_resmean_warns) */
     /* A space-time reconstructor (info.nlags > 0) whose file holds its training loops' winds
      * (learn --lags: the layers LRNNLAY, LRNLkX, LRNLkY; a file without them: the mean wind
      * LRNVX, LRNVY as one layer) against the layers of the first telemetry file's slopes
@@ -209,6 +206,12 @@ typedef struct swfs_speckles_run_result {
 #define SWFS_SPACETIME_WARN_WIND 1
 #define SWFS_SPACETIME_WARN_CORR 2
 int swfs_spacetime_warns(const swfs_speckles_run_result *r);
+
+/* 1 when r's reconstructed residual mean is beyond one wave (resmean_rms > wavelen). A
+ * closed loop holds its measured residual's mean near its reference, so that is no loop's,
+ * but a reconstructor that amplifies slope patterns D does not make, which its gain on D
+ * does not show (docs/telemetry.md); the command and Python warn. */
+int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r);
 
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);
 

@@ -285,7 +285,8 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     (default), 'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2
     lambda/D), 'none' or a radius; valid: the AO system's subaperture map. Returns nout,
     ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m] and the pipeline's info
-    (dict). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h: no closed loop's)."""
+    (dict). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
+    swfs_speckles_resmean_warns: no closed loop's)."""
     o = _lib.swfs_speckles_run_options()
     lib.swfs_speckles_run_options_default(ctypes.byref(o))
     o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
@@ -302,7 +303,7 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
     r = _run("swfs_speckles_run", o, _lib.swfs_speckles_run_result, geom, provenance, progress)
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
-    if r.resmean_rms > r.wavelen:
+    if lib.swfs_speckles_resmean_warns(ctypes.byref(r)):
         warnings.warn(f"speckles: the AO residual's time mean is {r.resmean_rms * 1e9:.0f} nm rms, more than the "
                       f"wavelength ({r.wavelen * 1e9:.0f} nm), which no closed loop's is: the reconstructor amplifies "
                       "slope patterns the model's D does not make", RuntimeWarning, stacklevel=2)

@@ -530,6 +530,8 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
     return swfs_fits_out_commit(f);
 }
 
+int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->resmean_rms > r->wavelen; }
+
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);

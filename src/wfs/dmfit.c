@@ -190,11 +190,11 @@ int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swf
         rc = swfs_fail_context(rc, "DM fit: actuator triangulation");
         goto done;
     }
+    const double spacing = swfs_points_pitch(xy, nact); /* the actuators' median nearest-neighbour distance */
     size_t nfar = nout;
     if (nout > 0 && o.rim) {
         size_t next = 0;
-        if ((rc = swfs_interp_extend_rim(&T, np, g->pupdx, f->mask, swfs_points_pitch(xy, nact), &next, &nfar)))
-            goto done;
+        if ((rc = swfs_interp_extend_rim(&T, np, g->pupdx, f->mask, spacing, &next, &nfar))) goto done;
     }
     if (nfar > 0) {
         double rmax = 0.0, pr = 0.0;
@@ -208,7 +208,7 @@ int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swf
                        nfar, f->npix, o.rim ? " by more than one actuator pitch" : "", rmax, pr);
         goto done;
     }
-    f->pitch = o.pitch > 0 ? o.pitch : swfs_points_pitch(xy, nact);
+    f->pitch = o.pitch > 0 ? o.pitch : spacing;
     if (!(f->pitch > 0)) { rc = swfs_fail(SWFS_ERR_VALUE, "DM fit: actuators coincide (pitch %g m)", f->pitch); goto done; }
     if (o.influence == SWFS_INFLUENCE_CUBIC) {
         f->A = T;
