@@ -8,11 +8,12 @@
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
- *                                 [--recon vk|map|svd] [--truth] [--print-keys]
+ *                                 [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *
  * --print-keys (with --only K, --seed S): prints system K's simulator keys, one per line, and
  * exits (bench/spacetime.sh simulates training loops of the system with them).
- * --recon: the speckle reconstructor on every system (default vk, the library's).
+ * --recon: the speckle reconstructor on every system (default teach, the library's: a map taught
+ * for each observation from its own files, in DIR/speckles.teach; vk the default before it).
  * --truth: the simulation also writes the true residual on the actuators and the modal export
  * (export_truth=1 export_modal=1), for bench/recon_oracle.py on a --keep DIR.
  * --seeds N: seeds 1 .. N (default 2); --seed S: seed S alone; --only K: system K (0-based) alone.
@@ -71,7 +72,7 @@ static const system_def systems[] = {
 static char dir[1024];
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
 static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
-static int recon = SWFS_RECON_VK;     /* --recon vk|map|svd: the speckle reconstructor */
+static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle reconstructor */
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
@@ -327,11 +328,12 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "map")) recon = SWFS_RECON_MAP, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "svd")) recon = SWFS_RECON_SVD, i++;
-        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) i++;
+        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) recon = SWFS_RECON_VK, i++;
+        else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "teach")) i++;
         else if (!strcmp(argv[i], "--print-keys")) print_keys = 1;
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--print-keys]\n");
             return 2;
         }
@@ -357,7 +359,8 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            modal ? ", modal telemetry (--basis)" : "");
-    if (recon != SWFS_RECON_VK) printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : "svd");
+    if (recon != SWFS_RECON_TEACH)
+        printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : recon == SWFS_RECON_SVD ? "svd" : "vk");
     if (vk_l0 >= 0.0) printf("von Karman outer scale of the reconstructor: %g m%s\n", vk_l0, vk_l0 == 0 ? " (fitted)" : "");
     printf("slopes / ideal: the default path (the AO residual's time mean that the speckles carry taken out of the\n"
            "wavefront: reconstructed from the slopes, the simulation's true one with the ideal speckles); keep: with\n"

@@ -3,11 +3,13 @@
 . "$(dirname "${BASH_SOURCE[0]}")/../tests/lib_cli.sh"
 
 # keep_obs BENCH_TELEMETRY DIR K S: bench_telemetry's system K, seed S, kept in DIR with the
-# true residual (--truth --keep) and its table in DIR/run.log; reused when present.
+# true residual (--truth --keep) and its table in DIR/run.log; reused when present. Its
+# slopes path runs the von Karman map (--recon vk, speckles' default until 2026-11-28): the
+# scripts compare their maps with it.
 keep_obs() {
     local d=$2
     [ -f "$d/truewf_000.fits" ] && [ -f "$d/run.log" ] && return 0
-    "$1" --only "$3" --seed "$4" --truth --keep "$d" > "$d.log" 2>&1 \
+    "$1" --only "$3" --seed "$4" --truth --keep "$d" --recon vk > "$d.log" 2>&1 \
         || { echo "bench_telemetry --only $3 --seed $4 failed: $d.log" >&2; exit 1; }
     mv "$d.log" "$d/run.log"
 }
@@ -15,8 +17,8 @@ keep_obs() {
 # (name seed nsub ... | slopes ideal x | ...).
 obs_row() { grep -E "^[a-z0-9-]+ +$2 +[0-9]+ " "$1/run.log" | head -1; }
 # obs_setup BENCH_TELEMETRY WORK K:S: the observation K:S kept in WORK/kKsS (keep_obs) and its
-# row's fields: sets k, s, d (the folder), name, nsub, def (the default path's NCP error [nm])
-# and ideal (the ideal speckles').
+# row's fields: sets k, s, d (the folder), name, nsub, def (the NCP error [nm] of the path
+# with the von Karman map, the default before teach) and ideal (the ideal speckles').
 obs_setup() {
     k=${3%:*}
     s=${3#*:}

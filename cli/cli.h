@@ -5,6 +5,7 @@
 #define SWFS_CLI_H
 
 #include <stddef.h>
+#include <stdio.h>
 
 int swfs_cmd_estimate(int argc, char **argv);
 int swfs_cmd_pupil(int argc, char **argv);
@@ -166,6 +167,12 @@ struct swfs_speckles_run_result;
 /* A space-time reconstructor's checks against the observation (run.h st_*), with their warnings
  * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
+struct swfs_teach_run_result;
+/* What teach found and chose (`teach`, and `speckles` teaching its default map), each line
+ * starting with "cmd:"; out is the map, work its folder; checks: also the chosen map's
+ * checks against the observation (speckles prints its own). */
+void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
+                       const char *out, const char *work, int checks);
 #define CLI_LINEAR_HELP \
     "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \
     "  --basis CUBE.fits   mode shapes or influence functions, one plane each: PUPN x PUPN on the\n" \

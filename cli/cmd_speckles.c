@@ -5,6 +5,7 @@
 #include "cli.h"
 
 #include "specklewfs/run.h"
+#include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/team.h"
 
@@ -15,7 +16,8 @@
 
 static const char *usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
-    "                           [--recon W.fits | --recon vk|map|svd] [--rcond R] [--modes K] [--slope-noise RAD]\n"
+    "                           [--recon teach|vk|map|svd | --recon W.fits] [--teach-work DIR] [--rcond R]\n"
+    "                           [--modes K] [--slope-noise RAD]\n"
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
@@ -34,12 +36,21 @@ static const char *usage_text =
     "                      OBSCUR, PIXSCALE, PUPDX, PUPN and the focal window size\n"
     "  --actuators FILE    actuator positions, 2 x nact [m]\n"
     "  -o SPECKLES.fits    complex cube, one frame per science frame of the usable cubes\n"
+    "  --recon teach       (default) a map taught for this observation, as `specklewfs teach\n"
+    "                      SLOPES... --science --actuators [--pupil --valid]` makes it: closed\n"
+    "                      loops of the system its files describe, at the winds its slopes show,\n"
+    "                      with the modal filter its slopes show (docs/telemetry.md: within 1.3x\n"
+    "                      of the ideal speckles on 45 of 48 matrix runs, vk on 23). Minutes per\n"
+    "                      observation; the loops and the map (taught.fits: --recon taught.fits\n"
+    "                      uses it again) in --teach-work DIR (default: beside -o, its name with\n"
+    "                      .teach); --teach-loops N (12), --teach-seed S (101). Where teach cannot\n"
+    "                      (no frozen-flow layer in the slopes, ...) it says why and uses vk\n"
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators): the residual\n"
     "                      wavefront [m of OPD, not DM surface] at the actuators = W slopes [rad];\n"
     "                      its gain on the model's D must be 0.5..2 (--recon-scale S multiplies it:\n"
     "                      -2 for a matrix to DM commands, a correction of the surface); or built\n"
     "                      here from the Shack-Hartmann interaction matrix D = U S V^T:\n"
-    "  --recon vk          (default) MAP, von Karman prior C of the actuators (--vk-l0 M: 10;\n"
+    "  --recon vk          MAP, von Karman prior C of the actuators (--vk-l0 M: 10;\n"
     "                      0: the outer scale, the prior's scale and the slope noise fitted to\n"
     "                      the slopes by maximum likelihood)\n"
     "                      scaled to the slopes: W = C D^T (D C D^T + sigma^2 I)^-1\n"
@@ -110,7 +121,8 @@ static int special(void *ctx, int argc, char **argv, int *i)
     } else if (!strcmp(a, "--recon")) {
         if (cli_take_string(cmd, argc, argv, i, "a file name", &v)) return -CLI_USAGE;
         o->recon = NULL;
-        if (!strcmp(v, "map")) o->pipe.recon = SWFS_RECON_MAP;
+        if (!strcmp(v, "teach")) o->pipe.recon = SWFS_RECON_TEACH;
+        else if (!strcmp(v, "map")) o->pipe.recon = SWFS_RECON_MAP;
         else if (!strcmp(v, "vk")) o->pipe.recon = SWFS_RECON_VK;
         else if (!strcmp(v, "svd")) o->pipe.recon = SWFS_RECON_SVD;
         else { o->pipe.recon = SWFS_RECON_GIVEN; o->recon = v; }
@@ -143,7 +155,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
 {
     const char *cmd = "speckles";
     double slope_noise = 0;
-    long threads = 1, batch = (long)o->batch;
+    long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed;
     spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
@@ -154,7 +166,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--recon-scale", CLI_DOUBLE, &o->pipe.recon_scale, NULL, 0},
         {"--slope-noise", CLI_DOUBLE, &slope_noise, NULL, 0}, {"--threads", CLI_LONG, &threads, NULL, 0},
         {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
-        {"--batch", CLI_LONG, &batch, NULL, 0},
+        {"--batch", CLI_LONG, &batch, NULL, 0},       {"--teach-work", CLI_STRING, &o->teach_work, "a folder", 0},
+        {"--teach-loops", CLI_LONG, &tloops, NULL, 0}, {"--teach-seed", CLI_LONG, &tseed, NULL, 0},
     };
     const char **const pos[] = {&o->timing};
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
@@ -190,6 +203,14 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
     if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
     o->batch = (size_t)batch;
+    if (tloops < 2 || tloops > 64) return cli_usage_error(cmd, "--teach-loops must be 2..64, got %ld", tloops);
+    if (tseed < 0) return cli_usage_error(cmd, "--teach-seed must be >= 0, got %ld", tseed);
+    if ((o->teach_work || tloops != (long)o->teach_loops || tseed != (long)o->teach_seed) &&
+        (o->pipe.recon != SWFS_RECON_TEACH || o->lin.basis))
+        return cli_usage_error(cmd, "--teach-work, --teach-loops and --teach-seed go with --recon teach (the default "
+                               "with --actuators)");
+    o->teach_loops = (size_t)tloops;
+    o->teach_seed = (uint64_t)tseed;
     if (o->pipe.wfs_rate) {
         /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
          * of the speckles, not of the image motion, is what is measured. */
@@ -228,14 +249,31 @@ int swfs_cmd_speckles(int argc, char **argv)
     o.progress = cli_writer() ? cli_stage_progress : NULL;
     o.progress_ctx = "speckles:";
     swfs_speckles_run_result r;
+    swfs_teach_run_result tr;
+    o.teach = &tr;
     rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
     if (!cli_writer()) {
         free(min);
         free(mout);
         return rc;
     }
+    /* the reconstructor in use: the taught map, or vk where teach could not */
+    swfs_pipeline_options used = o.pipe;
+    const char *used_file = o.recon;
+    if (!o.lin.basis && o.pipe.recon == SWFS_RECON_TEACH) {
+        used.recon = r.taught ? SWFS_RECON_GIVEN : SWFS_RECON_VK;
+        used_file = r.taught ? r.teach_map : NULL;
+        if (!rc && r.taught) {
+            char work[4200];
+            swfs_path_dir(r.teach_map, work, sizeof work);
+            cli_teach_summary(stderr, cmd, &tr, 1, r.teach_map, work, 0);
+        } else if (r.teach_fallback[0]) {
+            fprintf(stderr, "specklewfs %s: warning: no map could be taught for this observation (%s); the von Karman "
+                    "map (--recon vk) instead\n", cmd, r.teach_fallback);
+        }
+    }
     if (!rc && o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
-    else if (!rc) cli_recon_summary(cmd, &o.pipe, o.recon, o.valid, &r.info);
+    else if (!rc) cli_recon_summary(cmd, &used, used_file, o.valid, &r.info);
     if (!rc)
         fprintf(stderr, "speckles: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples outside "
                 "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,

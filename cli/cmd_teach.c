@@ -119,13 +119,6 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
     return 0;
 }
 
-static const char *chosen_name(int c)
-{
-    return c == SWFS_TEACH_SPACETIME    ? "the space-time map (neither check warned)"
-           : c == SWFS_TEACH_PERFRAME   ? "the per-frame map of the same loops (a check warned)"
-                                        : "the per-frame map of the measured layer and random second layers (a check warned)";
-}
-
 int swfs_cmd_teach(int argc, char **argv)
 {
     const char *cmd = "teach", *cfgfile = NULL;
@@ -169,25 +162,6 @@ int swfs_cmd_teach(int argc, char **argv)
     rc = swfs_teach_run(&o, &r);
     free(files);
     if (rc) return cli_error(cmd);
-    const swfs_wind_estimate *e = &r.wind.est;
-    printf("teach: %zu WFS frames of %zu x %zu subapertures at %.6g Hz; %zu frozen-flow layer%s:\n", r.wind.nframes,
-           r.wind.nsub, r.wind.nsub, r.wind.rate, e->nlayers, e->nlayers == 1 ? "" : "s");
-    for (size_t k = 0; k < e->nlayers; k++)
-        printf("teach:   layer %zu: %.2f m/s toward %.1f deg%s\n", k + 1, e->layer[k].speed, e->layer[k].direction,
-               k < r.nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
-    if (o.modes_from_slopes) {
-        printf("teach: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
-               "loops (ao_modes -> knee):", r.knee_obs);
-        for (size_t k = 0; k < r.ncal; k++) printf("%s %zu -> %zu", k ? "," : "", r.cal_modes[k], r.cal_knee[k]);
-        printf("; ao_modes = %zu\n", r.ao_modes);
-    } else if (r.ao_modes) {
-        printf("teach: the loops' modal filter: ao_modes = %zu, as given\n", r.ao_modes);
-    }
-    printf("teach: %zu loops simulated; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual "
-           "by %.1f of %.1f nm on their frames\n", r.nloops, r.lags[0], r.lags[1], r.lags[2], r.lags[3], r.lags[4],
-           1e9 * r.st_misfit_rms, 1e9 * r.st_truth_rms);
-    cli_spacetime_summary(cmd, &r.check);
-    printf("teach: chose %s -> %s (%.0f s; the loops and maps in %s)\n", chosen_name(r.chosen), o.out, r.seconds,
-           o.work);
+    cli_teach_summary(stdout, cmd, &r, o.modes_from_slopes, o.out, o.work, 1);
     return CLI_OK;
 }

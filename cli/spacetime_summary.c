@@ -60,3 +60,35 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
         fprintf(stderr, "%s: space-time map: clamped at %zu file boundar%s whose neighbour file could not be read (%s)\n",
                 cmd, r->st_edges_unreadable, r->st_edges_unreadable == 1 ? "y" : "ies", r->st_edges_why);
 }
+
+static const char *chosen_name(int c)
+{
+    return c == SWFS_TEACH_SPACETIME    ? "the space-time map (neither check warned)"
+           : c == SWFS_TEACH_PERFRAME   ? "the per-frame map of the same loops (a check warned)"
+                                        : "the per-frame map of the measured layer and random second layers (a check warned)";
+}
+
+void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
+                       const char *out, const char *work, int checks)
+{
+    const swfs_wind_estimate *e = &r->wind.est;
+    fprintf(f, "%s: %zu WFS frames of %zu x %zu subapertures at %.6g Hz; %zu frozen-flow layer%s:\n", cmd,
+            r->wind.nframes, r->wind.nsub, r->wind.nsub, r->wind.rate, e->nlayers, e->nlayers == 1 ? "" : "s");
+    for (size_t k = 0; k < e->nlayers; k++)
+        fprintf(f, "%s:   layer %zu: %.2f m/s toward %.1f deg%s\n", cmd, k + 1, e->layer[k].speed, e->layer[k].direction,
+                k < r->nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
+    if (modes_from_slopes) {
+        fprintf(f, "%s: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
+                "loops (ao_modes -> knee):", cmd, r->knee_obs);
+        for (size_t k = 0; k < r->ncal; k++) fprintf(f, "%s %zu -> %zu", k ? "," : "", r->cal_modes[k], r->cal_knee[k]);
+        fprintf(f, "; ao_modes = %zu\n", r->ao_modes);
+    } else if (r->ao_modes) {
+        fprintf(f, "%s: the loops' modal filter: ao_modes = %zu, as given\n", cmd, r->ao_modes);
+    }
+    fprintf(f, "%s: %zu loops simulated; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' "
+            "residual by %.1f of %.1f nm on their frames\n", cmd, r->nloops, r->lags[0], r->lags[1], r->lags[2],
+            r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms, 1e9 * r->st_truth_rms);
+    if (checks) cli_spacetime_summary(cmd, &r->check);
+    fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, chosen_name(r->chosen), out, r->seconds,
+            work);
+}

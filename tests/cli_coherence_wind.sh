@@ -28,7 +28,7 @@ ratio=6.48
 } > "$D/sim/timing.txt"
 need=$(awk -v s="$start" -v r="$ratio" 'BEGIN { e = s - int(s) + 150 * r; n = int(e); if (n < e) n++; print n }')
 
-"$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" --wfs-rate \
+"$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" --wfs-rate --recon vk \
     -o "$D/sp_wfs.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles --wfs-rate"; }
 grep -q "$need WFS frames from 1 of 1 timing-table rows" "$D/speckles.log" || { cat "$D/speckles.log"; fail "expected $need WFS frames"; }
 "$B" coherence "$D/sp_wfs.fits" -o "$D/coh.fits" --wind 10 --diam 6.5 > "$D/coh.log" 2>&1 \
@@ -48,7 +48,7 @@ snr=$(awk '/median SNR factor/ {print $4; exit}' "$D/coh.log")
 awk -v s="$snr" 'BEGIN { exit !(s > 0.5 && s <= 1) }' || fail "median SNR factor $snr not in (0.5, 1]"
 
 # With --mean cube (one cube: the same static halo) the cube must be identical.
-"$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" --wfs-rate \
+"$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" --wfs-rate --recon vk \
     --mean cube -o "$D/sp_wfs_c.fits" 2> /dev/null || fail "speckles --wfs-rate --mean cube"
 "$B" coherence "$D/sp_wfs_c.fits" -o "$D/coh_c.fits" > "$D/coh_c.log" 2>&1 || fail "coherence (--mean cube)"
 w2=$(awk '/apparent wind/ { for (i = 1; i <= NF; i++) if ($i == "toward") print $(i + 1) }' "$D/coh_c.log")
@@ -72,6 +72,6 @@ expect_error "goes with --wfs-rate" "$B" speckles "$D/sim/timing.txt" --science 
     --actuators "$D/sim/actuators.fits" --wfs-hz 500 -o "$D/x.fits"
 # The camera-rate cube has no FRAMEDT: coherence refuses it by name.
 "$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" --actuators "$D/sim/actuators.fits" \
-    -o "$D/sp_cam.fits" 2> /dev/null || fail "speckles (camera rate)"
+    --recon vk -o "$D/sp_cam.fits" 2> /dev/null || fail "speckles (camera rate)"
 expect_error "FRAMEDT" "$B" coherence "$D/sp_cam.fits" -o "$D/x.fits"
 echo "cli_coherence_wind: ok (apparent wind toward $wdir deg, layer $DIR deg; median SNR factor $snr)"

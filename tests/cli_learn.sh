@@ -45,9 +45,10 @@ grep -q "learn: held out, all 6:" recipe.log || { cat recipe.log; fail "learn pr
     --match science.fits sci_c.fits -o spk_c.fits 2> speckles_c.log || { cat speckles_c.log; fail "speckles --control"; }
 "$B" estimate sci_c.fits spk_c.fits -o halo_c.fits > /dev/null 2>&1 || fail "estimate (control)"
 "$B" pupil halo_c.fits -o pupil_c.fits --truth obs/truth.fits > pupil_c.log || fail "pupil (control)"
-# the default path on the same observation
-"$B" speckles timing.txt --science science.fits --actuators actuators.fits --match science.fits sci_d.fits \
-    -o spk_d.fits 2> speckles_d.log || fail "speckles (default)"
+# the von Karman map on the same observation (--recon vk, the default before --recon teach;
+# "default" in the messages below)
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon vk --match science.fits sci_d.fits \
+    -o spk_d.fits 2> speckles_d.log || fail "speckles (vk)"
 "$B" estimate sci_d.fits spk_d.fits -o halo_d.fits > /dev/null 2>&1 || fail "estimate (default)"
 "$B" pupil halo_d.fits -o pupil_d.fits --truth obs/truth.fits > pupil_d.log || fail "pupil (default)"
 # the self-check chooses among the three halos of the same frames: it prints the table and
@@ -60,7 +61,7 @@ eh=$(ncp_error pupil_ch.log)
 el=$(ncp_error pupil_l.log)
 ed=$(ncp_error pupil_d.log)
 ec=$(ncp_error pupil_c.log)
-echo "cli_learn: NCP error with the learned map $el nm (as a control matrix $ec nm), with the default reconstructor $ed nm"
+echo "cli_learn: NCP error with the learned map $el nm (as a control matrix $ec nm), with the von Karman map (vk) $ed nm"
 sed -n '/held out in turn/,$p' recipe.log | head -8
 awk -v l="$el" -v d="$ed" 'BEGIN { exit !(l > 0 && d > 0 && l < 1.05 * d && d < 40) }' \
     || fail "learned $el nm against the default $ed nm"
@@ -120,7 +121,7 @@ ncp_with() {
     ncp_error "pupil_$tag.log"
 }
 et=$(ncp_with taught.fits t timing.txt)
-echo "cli_learn: teach: NCP error $et nm with the taught map, $ed nm with the default reconstructor"
+echo "cli_learn: teach: NCP error $et nm with the taught map, $ed nm with vk"
 awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taught $et nm against the default $ed nm"
 # no description at all: the system from the observation's own files (the science cube's
 # geometry, the DM, the pupil), the rest the simulator's defaults; the same layers and filter,
@@ -130,8 +131,24 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
 grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
     || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
 etf=$(ncp_with taught_f.fits tf timing.txt)
-echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm; default $ed nm)"
+echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm; vk $ed nm)"
 awk -v a="$etf" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 1 && b - a < 1) }' || fail "teach from files $etf nm against $et nm"
+# speckles' default (--recon teach) is that teach run inside speckles on the same files (the
+# timing table's telemetry, --science, --actuators, --pupil): with the same loops
+# (--teach-loops 4) the same map, in spk_dt.teach/ beside its output, and the same NCP error
+# as the map of the command above given with --recon and the same --pupil
+etfp=$(ncp_with taught_f.fits tfp timing.txt --pupil pupil.fits)
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+    --match science.fits sci_dt.fits -o spk_dt.fits 2> speckles_dt.log || { cat speckles_dt.log; fail "speckles (default)"; }
+grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt.log \
+    && grep -q "given space-time reconstructor spk_dt.teach/taught.fits: 288 slopes x 5 lags" speckles_dt.log \
+    && grep -q "ao_modes = 5[3-9]$" speckles_dt.log && [ "$(ls -d spk_dt.teach/loop_*/ | wc -l)" = 4 ] \
+    || { cat speckles_dt.log; fail "speckles (default): the taught map and its loops in spk_dt.teach"; }
+"$B" estimate sci_dt.fits spk_dt.fits -o halo_dt.fits > /dev/null 2>&1 || fail "estimate (default)"
+"$B" pupil halo_dt.fits -o pupil_dt.fits --truth obs/truth.fits > pupil_dt.log || fail "pupil (default)"
+edt=$(ncp_error pupil_dt.log)
+echo "cli_learn: speckles' default (teach inside speckles): $edt nm; teach's map given: $etfp nm"
+[ -n "$edt" ] && [ "$edt" = "$etfp" ] || fail "speckles' default $edt nm against teach's map $etfp nm"
 # the system from files needs both files; without any system teach says what it needs
 "$B" teach obs/slopes_000.fits --science science.fits -o bad.fits > bad.log 2>&1 && fail "teach without --actuators"
 grep -q "needs both --science and --actuators" bad.log || { cat bad.log; fail "teach: --science alone"; }

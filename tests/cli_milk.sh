@@ -30,7 +30,7 @@ z=$(ls "$D"/sim/milk/wfs/*.fits | sed -n 2p)
     2> "$D/reduce.log" || fail "reduce"
 "$B" sync "$D/science.fits" "$D/sim/handshake.log" -o "$D/timing.txt" --ratio-min 5 --ratio-max 8 > "$D/sync.log" \
     || { cat "$D/sync.log"; fail "sync"; }
-"$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" \
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" --recon vk \
     --write-recon "$D/recon.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
 stream_pupil() { # stream_pupil <name> <stream args...>: prints the NCP error
     local n=$1; shift

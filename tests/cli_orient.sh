@@ -9,6 +9,7 @@
 # usage: bash cli_orient.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
+SPK_RECON=(--recon vk) # the von Karman map: this test is not about the reconstructor
 run() { # run <name> <expected pairing: swap sx sy> [simulate keys...]: prints the NCP error
     local n=$1 want=$2; shift 2
     local d="$D/$n"
@@ -37,7 +38,7 @@ expect_error "speckles --match" "$B" estimate "$D/flipx/science.fits" "$D/flipx/
 [ ! -e "$D/x.fits" ] || fail "estimate left an output after refusing"
 # stream takes the reduced cube the timing table refers to, not a turned copy.
 "$B" speckles "$D/flipx/timing.txt" --science "$D/flipx/science.fits" --actuators "$D/flipx/sim/actuators.fits" \
-    -o "$D/flipx/sp2.fits" --write-recon "$D/flipx/recon.fits" 2> /dev/null || fail "speckles --write-recon"
+    --recon vk -o "$D/flipx/sp2.fits" --write-recon "$D/flipx/recon.fits" 2> /dev/null || fail "speckles --write-recon"
 expect_error "already turned" "$B" stream --timing "$D/flipx/timing.txt" --science "$D/flipx/sci_m.fits" \
     --recon "$D/flipx/recon.fits" --actuators "$D/flipx/sim/actuators.fits" -o "$D/x.fits"
 # stream on the camera's frames turns them as it reads them: the same halo as speckles + estimate.

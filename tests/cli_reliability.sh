@@ -53,7 +53,7 @@ TS="pupn=66 pupdx=0.1 screen_n=256 wfs_file_frames=1000"
 "$B" reduce ts/raw_000.fits ts/raw_001.fits --dark ts/dark.fits --flat ts/flat.fits -o sci.fits > /dev/null 2>&1 \
     || setup_fail "reduce"
 "$B" sync sci.fits ts/handshake.log -o timing.txt --ratio-min 5 --ratio-max 8 > /dev/null 2>&1 || setup_fail "sync"
-"$B" speckles timing.txt --science sci.fits --actuators ts/actuators.fits -o spw.fits --wfs-rate > /dev/null 2>&1 \
+"$B" speckles timing.txt --science sci.fits --actuators ts/actuators.fits -o spw.fits --wfs-rate --recon vk > /dev/null 2>&1 \
     || setup_fail "speckles"
 STREAM="--timing timing.txt --science sci.fits --slopes ts --recon ts/recon_ao.fits --actuators ts/actuators.fits"
 "$B" stream $STREAM -o sh.fits --checkpoint ck1.fits --max-frames 20 > /dev/null 2>&1 || setup_fail "stream"

@@ -1,23 +1,35 @@
 # The slopes path on two systems of other geometries than the shipped 12 x 12, with default
-# options everywhere (reduce -> sync -> speckles -> estimate -> pupil), as bench_telemetry's
-# matrix runs them (docs/telemetry.md, "Over many systems"), on short data sets
-# (3 cubes x 60 frames; bench_telemetry --quick, seed 1):
+# options everywhere (reduce -> sync -> speckles -> estimate -> pupil; speckles' default: a
+# map taught for the observation), as bench_telemetry's matrix runs them (docs/telemetry.md,
+# "Over many systems"), on short data sets (3 cubes x 60 frames; bench_telemetry --quick,
+# seed 1):
 #   sh16-issue: 16 x 16 Shack-Hartmann at 1 kHz, 9.7 WFS frames per camera frame, 14 m/s wind
 #               at 200 deg, 0.4 lambda/D 12 Hz vibration, read noise 15 counts
-#               (measured: NCP error 20.0 nm from the slopes, 14.5 nm from the ideal speckles);
+#               (measured: NCP error 15.1 nm from the slopes, 14.7 nm from the ideal speckles;
+#               with --recon vk 20.0 nm);
 #   sh24-base:  24 x 24 at 1 kHz, 6 frames per camera frame, 10 m/s at 60 deg, 0.1 lambda/D,
-#               read noise 10 (measured: 30.6 nm, 24.6 nm ideal).
+#               read noise 10 (measured: 28.9 nm, 24.8 nm ideal; vk 30.6 nm).
 # Asserts sync's ratio within 0.005 of the truth and its lag within 0.2 WFS frames (the
 # cubes start at a fraction 0.637 of a WFS frame: true lag 3 - 0.637), and the NCP error
-# from the slopes below 2.5x the full-size table's ideal-speckle error on that system, within
-# 1.6x the ideal speckles' with the AO residual's time mean kept in both, and no worse with
-# the mean taken out than kept (lib_cli.sh resmean_bounds). The other seed of sh24-base (start fraction 0.274) is
-# a known failure of the joint fit on so few frames (docs/telemetry.md): it must either
-# meet the same bounds or say that the fit took no step (pupil's warning), never pass a
-# flat start off as an estimate.
+# from the slopes within 1.3x the ideal speckles' (the issue's target), below 2.5x the
+# full-size table's ideal-speckle error on that system, within 1.6x the ideal speckles' with
+# the AO residual's time mean kept in both, and no worse with the mean taken out than kept
+# (lib_cli.sh resmean_bounds).
+# Under the sanitizers (SWFS_TEST_SANITIZED, tests/CMakeLists.txt) teach's loops would take
+# minutes, so there the von Karman map (--recon vk) runs with the same bounds but the 1.3x
+# (measured 20.0 and 30.6 nm), and the other seed of sh24-base (start fraction 0.274), a
+# known failure of the joint fit on so few frames with vk (docs/telemetry.md): it must
+# either meet the same bounds or say that the fit took no step (pupil's warning), never pass
+# a flat start off as an estimate. (With the taught map it met them: 28.8 nm, ideal 26.5.)
+# cli_learn.sh runs the taught default under the sanitizers.
 # usage: bash cli_systems.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
+taught=1
+if [ -n "${SWFS_TEST_SANITIZED:-}" ]; then
+    taught=
+    SPK_RECON=(--recon vk)
+fi
 
 run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM SEED START
     local n=$1-s${10} nsub=$2 ratio=$3 d="$D/$1-s${10}" lagt
@@ -43,6 +55,10 @@ run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM 
     k=$(keep_errors "$d")
     echo "cli_systems: $n: sync ratio $r lag $l; NCP error $e nm from the slopes, $i nm from the ideal speckles;" \
         "residual mean kept: $k" >&2
+    if [ -n "$taught" ]; then
+        grep -q "^speckles: chose the space-time map" "$d/speckles.log" || { cat "$d/speckles.log"; fail "$n: no taught map"; }
+        awk -v e="$e" -v i="$i" 'BEGIN { exit !(e > 0 && e <= 1.3 * i) }' || fail "$n: NCP error $e nm, ideal $i nm: 1.3x"
+    fi
     if awk -v e="$e" -v m="$9" 'BEGIN { exit !(e > 0 && e <= m) }' && (resmean_bounds "$n" "$e" "$i" $k 1.6); then
         return
     fi
@@ -55,5 +71,5 @@ run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM 
 # the bounds: 2.5 x the full-size table's ideal-speckle error (10.4 and 13.2 nm)
 run_system sh16-issue 16 9.7 14 200 0.4 12 15 26 1 300.637
 run_system sh24-base 24 6.0 10 60 0.1 15 10 33 1 300.637
-run_system sh24-base 24 6.0 10 60 0.1 15 10 33 2 300.274
+[ -n "$taught" ] || run_system sh24-base 24 6.0 10 60 0.1 15 10 33 2 300.274
 echo "cli_systems: ok"

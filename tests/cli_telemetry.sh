@@ -57,13 +57,13 @@ grep -q "^[^#].* $sim_abs/slopes_000.fits" "$D/logs/abs.log" || fail "the absolu
     || fail "absolute handshake paths: another timing"
 
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles.fits" \
-    --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
+    --recon vk --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles"; }
 grep -q "179 frames from 4 of 5 timing-table rows" "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles frame count"; }
 "$B" estimate "$D/sci_m.fits" "$D/speckles.fits" -o "$D/halo.fits" > "$D/estimate.log" || fail "estimate on the matched cubes"
 "$B" pupil "$D/halo.fits" -o "$D/pupil.fits" --source halo --truth "$D/sim/truth.fits" > "$D/pupil.log" || fail "pupil"
 cat "$D/pupil.log"
 # NCP error (piston, tip, tilt removed) against the 90.7 nm injected without tip/tilt:
-# measured 35.6 nm with the default speckles --recon vk (41.8 nm before the cube crossing into
+# measured 35.6 nm with speckles --recon vk (the default before --recon teach) (41.8 nm before the cube crossing into
 # slopes_001 was used; seed 1; reduce's RDNOISE is the registered frames' read noise). Seed 5
 # puts a bad pixel by the core, whose 3x3-median error inflates the out-of-band noise
 # estimate (docs/telemetry.md, open problems).
@@ -75,7 +75,7 @@ awk -v e="$err" 'BEGIN { exit !(e > 0 && e < 50) }' || fail "NCP error $err nm, 
 # nm against 23.5 nm with the exposure-mean treatment (seed 1); before the re-centring the
 # per-frame path broke down (310 nm).
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" --actuators "$D/sim/actuators.fits" -o "$D/speckles_f.fits" \
-    --tiptilt frame --match "$D/science.fits" "$D/sci_f.fits" 2> "$D/speckles_f.log" \
+    --recon vk --tiptilt frame --match "$D/science.fits" "$D/sci_f.fits" 2> "$D/speckles_f.log" \
     || { cat "$D/speckles_f.log"; fail "speckles --tiptilt frame"; }
 "$B" estimate "$D/sci_f.fits" "$D/speckles_f.fits" -o "$D/halo_f.fits" > "$D/estimate_f.log" || fail "estimate (frame)"
 "$B" pupil "$D/halo_f.fits" -o "$D/pupil_f.fits" --truth "$D/sim/truth.fits" > "$D/pupil_f.log" || fail "pupil (frame)"

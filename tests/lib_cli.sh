@@ -28,9 +28,12 @@ reduce_sync() { # reduce_sync <run dir> <sync args...>: raw_000..002 -> science.
 # left in the wavefront) into pupil_k.log / pupil_ik.log: keep_errors <run dir> prints those
 # two errors, slopes then ideal.
 keep_errors() { echo "$(ncp_error "$1/pupil_k.log") $(ncp_error "$1/pupil_ik.log")"; }
+# SPK_RECON: speckles' reconstructor options (an array; empty: the default, a map taught for the
+# observation); the tests that are not about the reconstructor set (--recon vk).
+SPK_RECON=()
 speckles_pupil() { # speckles_pupil <run dir>: speckles --match, estimate, pupil --truth; prints the NCP error
     local d=$1
-    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" \
+    "$B" speckles "$d/timing.txt" --science "$d/science.fits" --actuators "$d/sim/actuators.fits" "${SPK_RECON[@]}" \
         -o "$d/speckles.fits" --match "$d/science.fits" "$d/sci_m.fits" 2> "$d/speckles.log" \
         || { cat "$d/speckles.log"; fail "$d: speckles"; }
     "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$d/estimate.log" 2>&1 || fail "$d: estimate"

@@ -100,6 +100,7 @@ static int speckles(const char *science, const swfs_geom *given)
     sp.science = science;
     sp.actuators = p("actuators.fits");
     sp.out = p("speckles.fits");
+    sp.pipe.recon = SWFS_RECON_VK; /* the geometry's path, not the taught default's */
     if (given) sp.geom = *given;
     swfs_speckles_run_result spr;
     return swfs_speckles_run(&sp, &spr);

@@ -120,6 +120,18 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
 
 /* ---- speckles: timing table + telemetry -> the speckle cube ---------------------- */
 
+/* speckles' default reconstructor choice (pipe.recon; the run layer's own, next to
+ * pipeline.h's SWFS_RECON_*): a map taught for the observation, as `teach` from its own files
+ * (swfs_teach_run with swfs_teach_describe: the science cube's geometry, the actuators, the
+ * pupil mask, the valid map, the timing table's telemetry files), then applied as
+ * SWFS_RECON_GIVEN. Where teach cannot (no frozen-flow layer in the slopes, too few DM modes,
+ * a rate the files lack, ...) the run says why (teach_fallback) and uses SWFS_RECON_VK. The
+ * linear model (lin.basis) has its own reconstructor and ignores it. docs/telemetry.md, "The
+ * default reconstructor": within 1.3x of the ideal speckles on 45 of the matrix's 48 runs,
+ * where SWFS_RECON_VK was on 23. */
+#define SWFS_RECON_TEACH 4
+struct swfs_teach_run_result;
+
 typedef struct swfs_speckles_run_options {
     const char *timing;       /* timing table (sync); relative telemetry names are taken from its folder */
     const char *science;      /* reduced science cube: geometry keywords and the focal window */
@@ -150,6 +162,13 @@ typedef struct swfs_speckles_run_options {
     const char *valid;        /* the Shack-Hartmann model's valid-subaperture map (swfs_valid_map_read),
                                  NULL = the illumination rule; the telemetry may then hold only the
                                  used subapertures' slopes (pipeline.h) */
+    /* SWFS_RECON_TEACH (the default): */
+    const char *teach_work;   /* folder for teach's loops and maps, created if missing (NULL: beside
+                                 out, its name without .fits and with .teach); the map is
+                                 taught.fits in it, for --recon in later runs */
+    size_t teach_loops;       /* loops per set (12) */
+    uint64_t teach_seed;      /* loop k's seed is teach_seed + k (101) */
+    struct swfs_teach_run_result *teach; /* teach's own result (layers, filter, choice), or NULL */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -162,6 +181,10 @@ typedef struct swfs_speckles_run_result {
     double resmean_rms;       /* [m] the reconstructed residual's time mean over the frames written
                                  (SPECKLES.fits RESMEAN, swfs_pipeline_mean_wavefront), rms in the pupil */
     double wavelen;           /* [m] the science cube's wavelength (swfs_speckles_resmean_warns) */
+    int taught;               /* SWFS_RECON_TEACH: 1 when the map was taught (teach_map); 0 when teach
+                                 could not, and teach_fallback says why (SWFS_RECON_VK was used) */
+    char teach_map[4200];
+    char teach_fallback[1024];
     /* A space-time reconstructor (info.nlags > 0) whose file holds its training loops' winds
      * (learn --lags: the layers LRNNLAY, LRNLkX, LRNLkY; a file without them: the mean wind
      * LRNVX, LRNVY as one layer) against the layers of the first telemetry file's slopes

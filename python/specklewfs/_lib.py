@@ -316,11 +316,14 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
     ("match_in", P(c_str)), ("match_out", P(c_str)), ("nmatch", c_size), ("prov", P(c_str)), ("nprov", c_size),
     ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("batch", c_size), ("team", c_ptr), ("geom", swfs_geom),
-    ("lin", swfs_linear_files), ("valid", c_str)])
+    ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_seed", c_u64),
+    ("teach", c_ptr)])
+RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
-    ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("wavelen", c_dbl), ("st_found", c_int), ("st_train_vx", c_dbl),
+    ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("wavelen", c_dbl), ("taught", c_int),
+    ("teach_map", ctypes.c_char * 4200), ("teach_fallback", ctypes.c_char * 1024), ("st_found", c_int), ("st_train_vx", c_dbl),
     ("st_train_vy", c_dbl), ("st_obs_vx", c_dbl), ("st_obs_vy", c_dbl), ("st_mismatch", c_dbl),
     ("st_obs_nlayers", c_size), ("st_train_nlayers", c_size),
     ("st_corr_train", c_dbl * RECON_MAXLAGS), ("st_corr_spread", c_dbl * RECON_MAXLAGS),

@@ -265,35 +265,49 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     o.progress = cb
     r = _lib.swfs_teach_run_result()
     check(lib.swfs_teach_run(ctypes.byref(o), ctypes.byref(r)), "swfs_teach_run")
+    return _teach_dict(r, bool(o.modes_from_slopes))
+
+
+def _teach_dict(r, modes_from_slopes):
     e = r.wind.est
     layers = [dict(vx=L.vx, vy=L.vy, speed=L.speed, direction=L.direction, corr=L.corr, signif=L.signif,
                    nlags=L.nlags) for L in e.layer[:e.nlayers]]
     d = dict(layers=layers, nlayers_given=r.nlayers, nframes=r.wind.nframes, nsub=r.wind.nsub, pitch=r.wind.pitch,
              rate=r.wind.rate, lags=list(r.lags[:r.nlags]), nloops=r.nloops, st_misfit_rms=r.st_misfit_rms,
              st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds,
-             ao_modes=r.ao_modes, modes_from_slopes=bool(o.modes_from_slopes), knee_obs=r.knee_obs,
+             ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)])
     d.update(_st_checks(r.check))
     return d
 
 
-def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto", valid=None, write_recon=None,
-             geom=None, progress=None, provenance=()):
+def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
+             geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=12, teach_seed=101):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
-    science cubes reduced to the frames the speckle cube has (`--match`). recon: 'vk'
-    (default), 'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2
-    lambda/D), 'none' or a radius; valid: the AO system's subaperture map. Returns nout,
-    ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m] and the pipeline's info
-    (dict). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
+    science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
+    (default: a map taught for this observation from its own files, as teach(..., science=,
+    actuators=) makes it, in teach_work (default: out's name without .fits, plus .teach) as
+    taught.fits; where teach cannot, a RuntimeWarning says why and 'vk' is used), 'vk',
+    'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2 lambda/D),
+    'none' or a radius; valid: the AO system's subaperture map; pupil: the pupil mask. Returns
+    nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], the pipeline's info
+    (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
+    teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's)."""
     o = _lib.swfs_speckles_run_options()
     lib.swfs_speckles_run_options_default(ctypes.byref(o))
     o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
-    if recon in _RECON and recon != "given":
+    tr = _lib.swfs_teach_run_result()
+    if recon == "teach":
+        o.pipe.recon = _lib.RECON_TEACH
+        o.teach_work, o.teach_loops, o.teach_seed = _opt(teach_work), int(teach_loops), int(teach_seed)
+        o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
+    elif recon in _RECON and recon != "given":
         o.pipe.recon = _RECON[recon]
     else:
         o.pipe.recon, o.recon = _RECON["given"], enc(recon)
+    o.mask = _opt(pupil)
     o.pipe.band = _band(band)
     o.valid, o.write_recon = _opt(valid), _opt(write_recon)
     match = list(match or ())
@@ -309,6 +323,15 @@ def speckles(timing, science, actuators, out, match=(), recon="vk", band="auto",
                       "slope patterns the model's D does not make", RuntimeWarning, stacklevel=2)
     d["info"] = _struct_dict(r.info)
     d.update(_st_checks(r))
+    if recon == "teach":
+        d["taught"] = bool(r.taught)
+        if r.taught:
+            d["teach_map"] = r.teach_map.decode()
+            d["teach"] = _teach_dict(tr, True)
+        else:
+            d["teach_fallback"] = r.teach_fallback.decode()
+            warnings.warn(f"speckles: no map could be taught for this observation ({d['teach_fallback']}); the von "
+                          "Karman map (recon='vk') instead", RuntimeWarning, stacklevel=2)
     return d
 
 

@@ -37,6 +37,11 @@ def test_path_on_files_equals_the_cli(series, cli):
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
                      match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
     assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0
+    # the default reconstructor: a map taught for this observation from its own files, in
+    # sp.teach/ beside the output (the loops' layers those the slopes show)
+    assert sp["taught"] and sp["teach_map"] == str(d / "sp.teach" / "taught.fits") and os.path.exists(sp["teach_map"])
+    assert sp["teach"]["nloops"] >= 12 and sp["teach"]["modes_from_slopes"] and sp["teach"]["layers"]
+    assert sp["info"]["nlags"] == (5 if sp["teach"]["chosen"] == "spacetime" else 0)
     h = sw.estimate_files(str(d / "sci_m.fits"), str(d / "sp.fits"), str(d / "halo.fits"))
     assert h.resmean is not None and h.frames == sp["nout"]
     assert h.tiptilt == "exposure" and sw.Halo.read(str(d / "halo.fits")).tiptilt == "exposure"
@@ -280,7 +285,7 @@ def test_speckles_warns_of_a_mean_residual_no_loop_has(series, tmp_path):
     sw.sync(sci, str(s / "handshake.log"), timing)
     act = str(s / "actuators.fits")
     w0 = str(tmp_path / "vk.fits")
-    sp = sw.speckles(timing, sci, act, str(tmp_path / "sp0.fits"), write_recon=w0)
+    sp = sw.speckles(timing, sci, act, str(tmp_path / "sp0.fits"), write_recon=w0, recon="vk")
     assert 0 < sp["resmean_rms"] < 0.1 * sp["wavelen"]
     W = np.array(sw.read_fits(w0)[0])
     xy = np.array(sw.read_fits(act)[0])
@@ -307,3 +312,33 @@ def test_speckles_warns_of_a_mean_residual_no_loop_has(series, tmp_path):
     assert 0.5 <= bad["info"]["recon_gain"] <= 2
     print(f"default mean {sp['resmean_rms'] * 1e9:.1f} nm, amplifying map {bad['resmean_rms'] * 1e9:.0f} nm, "
           f"wavelength {bad['wavelen'] * 1e9:.0f} nm, gain {bad['info']['recon_gain']:.3f}")
+
+
+def test_speckles_falls_back_where_no_map_can_be_taught(series, tmp_path):
+    """Slopes whose frames are shuffled in time show no frozen-flow layer, so speckles' default
+    (a map taught for the observation) cannot teach one: speckles() says why (RuntimeWarning,
+    taught False, teach_fallback) and uses the von Karman map: the same speckles as
+    recon='vk'."""
+    s = series / "sim"
+    sci, timing = str(tmp_path / "sci.fits"), str(tmp_path / "timing.txt")
+    sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], sci, dark=str(s / "dark.fits"),
+              flat=str(s / "flat.fits"))
+    sw.sync(sci, str(s / "handshake.log"), timing)
+    sh = tmp_path / "shuffled"
+    sh.mkdir()
+    rng = np.random.default_rng(3)
+    for f in sorted(s.glob("slopes_0*.fits")):
+        data = np.array(sw.read_fits(str(f))[0])
+        rate = sw.fits.read_keys(str(f), ["WFSRATE"])["WFSRATE"]
+        sw.write_fits(str(sh / f.name), data[rng.permutation(data.shape[0])], keys={"WFSRATE": rate})
+    text = open(timing).read()
+    assert str(s) in text
+    with open(tmp_path / "timing_sh.txt", "w") as t:
+        t.write(text.replace(str(s), str(sh)))
+    act = str(s / "actuators.fits")
+    with pytest.warns(RuntimeWarning, match="no map could be taught for this observation .*frozen-flow layer"):
+        sp = sw.speckles(str(tmp_path / "timing_sh.txt"), sci, act, str(tmp_path / "sp.fits"))
+    assert not sp["taught"] and "frozen-flow layer" in sp["teach_fallback"] and "teach" not in sp
+    vk = sw.speckles(str(tmp_path / "timing_sh.txt"), sci, act, str(tmp_path / "sp_vk.fits"), recon="vk")
+    assert vk["nout"] == sp["nout"] and "taught" not in vk
+    np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "sp.fits"))[0], sw.read_fits(str(tmp_path / "sp_vk.fits"))[0])

@@ -111,4 +111,17 @@ void swfs_linear_paths(struct swfs_paths *p, const swfs_linear_files *lf);
 void swfs_stream_paths_inputs(struct swfs_paths *p, const swfs_stream_run_options *o);
 void swfs_stream_paths_outputs(struct swfs_paths *p, const swfs_stream_run_options *o);
 
+/* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid
+ * with what the caller gives, required): the keys it and the other files give, into c. */
+int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *g, const char *actuators, const char *pupil,
+                              const char *valid, const char *telemetry);
+
+/* speckles' taught reconstructor (SWFS_RECON_TEACH, run_speckles_teach.c): teach from the
+ * timing table t's telemetry files (in tdir) and the run's own files, g the science cube's
+ * geometry. SWFS_OK with r->taught = 1 and map = the taught file; or SWFS_OK with r->taught
+ * = 0 and r->teach_fallback saying why teach could not (the caller uses the von Karman map);
+ * an error only for a team's failure to agree. */
+int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                         const swfs_geom *g, char *map, size_t cap, swfs_speckles_run_result *r);
+
 #endif

@@ -185,6 +185,7 @@ int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r
             sp.actuators = act;
             sp.out = path;
             sp.write_recon = recon;
+            sp.pipe.recon = SWFS_RECON_VK; /* the live stream applies a per-frame map (a taught one may have lags) */
             sp.prov = o->prov;
             sp.nprov = o->nprov;
             swfs_speckles_run_result spr;

@@ -23,6 +23,9 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     swfs_linear_files_default(&o->lin);
     o->mean_mode = SWFS_MEAN_ENSEMBLE;
     o->batch = 128;
+    o->pipe.recon = SWFS_RECON_TEACH;
+    o->teach_loops = 12;
+    o->teach_seed = 101;
 }
 
 static size_t piece(const swfs_speckles_run_options *o) { return o->batch ? o->batch : 128; }
@@ -546,11 +549,24 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);
     int rc = load_inputs(o, &w);
     if (!rc) rc = check_paths(o, &w);
+    if (!rc) rc = plan_cubes(o, &w, r);
+    if (!rc) rc = peek_telemetry(o, &w, r);
+    /* The default: a map taught for this observation (run_speckles_teach.c), before the
+     * products' group (teach's own files are in place as it writes them). */
+    swfs_speckles_run_options oo = *o;
+    char map[4200] = "";
+    if (o->pipe.recon == SWFS_RECON_TEACH) {
+        oo.pipe.recon = SWFS_RECON_VK;
+        if (!rc && !o->lin.basis) rc = swfs_speckles_teach_(o, w.t, w.tdir, &w.g, map, sizeof map, r);
+        if (!rc && r->taught) {
+            oo.pipe.recon = SWFS_RECON_GIVEN;
+            oo.recon = map;
+        }
+    }
+    o = &oo;
     /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */
     int group = !rc;
     if (group) swfs_outputs_begin();
-    if (!rc) rc = plan_cubes(o, &w, r);
-    if (!rc) rc = peek_telemetry(o, &w, r);
     if (!rc) rc = build_pipeline(o, &w);
     if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);

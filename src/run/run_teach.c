@@ -55,6 +55,23 @@ typedef struct loops_ctx {
     atomic_size_t done;  /* loops finished, over the workers */
 } loops_ctx;
 
+/* A loop's folder from an earlier teach in the same work folder (`speckles` teaches into
+ * OUT.teach each run) may hold more slopes / truewf files than this loop writes, and learn
+ * reads every pair it finds: the old ones go first. */
+static int clear_loop(const char *path)
+{
+    for (size_t k = 0;; k++) {
+        int any = 0;
+        for (int t = 0; t < 2; t++) {
+            char f[4300];
+            snprintf(f, sizeof f, "%s/%s_%03zu.fits", path, t ? "truewf" : "slopes", k);
+            if (!remove(f)) any = 1;
+            else if (errno != ENOENT) return swfs_fail(SWFS_ERR_IO, "teach: cannot remove %s: %s", f, strerror(errno));
+        }
+        if (!any) return SWFS_OK;
+    }
+}
+
 static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads)
 {
     swfs_ts_params p = o->sim;
@@ -74,6 +91,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     if (mkdir(j->path, 0777) && errno != EEXIST)
         return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", j->path, strerror(errno));
     int rc = swfs_ts_params_check(&p);
+    if (!rc) rc = clear_loop(j->path);
     swfs_ts_summary sum;
     swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
     if (!rc) rc = swfs_ts_run(&p, j->path, o->prov, o->nprov, NULL, NULL, &sum);
@@ -285,7 +303,15 @@ int swfs_teach_describe(swfs_config *c, const char *science, const char *actuato
     swfs_geom g;
     int rc = swfs_geom_read_file(science, &g);
     if (!rc) rc = swfs_geom_require(&g, science);
-    if (rc) return rc;
+    if (!rc) rc = swfs_teach_describe_geom_(c, &g, actuators, pupil, valid, telemetry);
+    return rc ? swfs_fail_context(rc, "teach: the system from %s, %s and %s", science, actuators, telemetry) : rc;
+}
+
+int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *actuators, const char *pupil,
+                              const char *valid, const char *telemetry)
+{
+    const swfs_geom g = *gp;
+    int rc;
     /* the telemetry's header: its shape and rate (its values are read, and checked, by teach) */
     swfs_fits_in *t = NULL;
     double rate = 0;
@@ -336,7 +362,7 @@ int swfs_teach_describe(swfs_config *c, const char *science, const char *actuato
     if (!rc) rc = put(c, "start_offset", "300.5");
     if (!rc) rc = put(c, "nfx", "16");
     if (!rc) rc = put(c, "nfy", "16");
-    return rc ? swfs_fail_context(rc, "teach: the system from %s, %s and %s", science, actuators, telemetry) : rc;
+    return rc;
 }
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
@@ -370,7 +396,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const swfs_wind_estimate *e = &r->wind.est;
     if (!rc && !e->found)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
-                       "the loops cannot be given its winds; use the default reconstructor",
+                       "the loops cannot be given its winds; use the von Karman map (speckles --recon vk)",
                        o->nfiles == 1 ? o->files[0] : "the telemetry files");
     if (rc) { swfs_real_free(obs); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);

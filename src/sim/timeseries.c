@@ -227,7 +227,9 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     }
     if (!(p->wfs_rate > 0)) return badv("wfs_rate", p->wfs_rate, "must be > 0");
     if (p->nsub < 2 || b->teldiam / (double)p->nsub < 2 * b->pupdx) return badv("nsub", (double)p->nsub, "subapertures must span >= 2 pupil samples");
-    if (!(p->act_pitch > 2 * b->pupdx)) return badv("act_pitch", p->act_pitch, "must exceed 2 pupil samples");
+    /* the pitch makes the DM's grid; a DM from a file (actuators=) has its own */
+    if (!p->actuators[0] && !(p->act_pitch > 2 * b->pupdx))
+        return badv("act_pitch", p->act_pitch, "must exceed 2 pupil samples");
     if (!(p->ao_gain >= 0 && p->ao_gain < 2)) return badv("ao_gain", p->ao_gain, "must be in [0, 2)");
     if (p->ao_delay < 1 || p->ao_delay > 8) return badv("ao_delay", (double)p->ao_delay, "must be 1..8 frames");
     if (p->ao_modes < 1) return badv("ao_modes", (double)p->ao_modes, "must be >= 1");

@@ -379,8 +379,10 @@ static void test_stream_max_frames(void **state)
 static void test_speckles_and_estimate_equal(void **state)
 {
     (void)state;
-    /* The default reconstructor (von Karman MAP learned from the telemetry): every rank
-     * builds the same one. */
+    /* The default reconstructor: a map taught for the observation (speckles --recon teach).
+     * These random slopes show no frozen-flow layer, so member 0's teach cannot, and every
+     * rank falls back to the von Karman MAP learned from the telemetry (run_speckles_teach.c:
+     * member 0 decides, the others follow): every rank builds the same one. */
     const char *common = "speckles timing.txt --science sci.fits --actuators act.fits --batch 8";
     char args[2048];
     snprintf(args, sizeof args, "%s -o sp1.fits --match sci.fits scim1.fits", common);

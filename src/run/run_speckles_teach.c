@@ -1,0 +1,123 @@
+/* speckles' default reconstructor: a map taught for the observation from its own files
+ * (run.h SWFS_RECON_TEACH; docs/telemetry.md, "The default reconstructor"). */
+#include "specklewfs/config.h"
+#include "specklewfs/run.h"
+#include "specklewfs/source.h"
+#include "specklewfs/status.h"
+#include "specklewfs/team.h"
+#include "run_internal.h"
+
+#include <errno.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+
+/* The telemetry files the timing table names, each once, in the table's order (the series'
+ * order: sync writes the rows in camera time). */
+static int table_files(const swfs_timing *t, const char *tdir, char **names, size_t *n)
+{
+    *n = 0;
+    for (size_t c = 0; c < t->ncubes; c++) {
+        char path[8192];
+        int rc = swfs_telemetry_path(tdir, t->cubes[c].slopes, path, sizeof path);
+        if (rc) return rc;
+        if (*n && !strcmp(names[*n - 1], path)) continue;
+        if (!(names[*n] = strdup(path))) return swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
+        ++*n;
+    }
+    return SWFS_OK;
+}
+
+/* The work folder: o->teach_work, or out without .fits and with .teach. */
+static int work_folder(const swfs_speckles_run_options *o, char *work, size_t cap)
+{
+    const char *w = o->teach_work;
+    if (w) {
+        if (snprintf(work, cap, "%s", w) >= (int)cap)
+            return swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", w);
+    } else {
+        const size_t n = strlen(o->out), cut = n > 5 && !strcmp(o->out + n - 5, ".fits") ? n - 5 : n;
+        if (cut + 7 > cap || cut > 4000)
+            return swfs_fail(SWFS_ERR_ARG, "speckles: %s: the name is too long for the teach folder beside it; give "
+                             "its folder", o->out);
+        snprintf(work, cap, "%.*s.teach", (int)cut, o->out);
+    }
+    if (mkdir(work, 0777) && errno != EEXIST)
+        return swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
+    return SWFS_OK;
+}
+
+/* Teach as `teach --science --actuators [--pupil] [--valid]` does, into map. */
+static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
+                 char *map, size_t cap, struct swfs_teach_run_result *tr)
+{
+    char work[4200];
+    char **names = calloc(t->ncubes ? t->ncubes : 1, sizeof *names);
+    size_t n = 0;
+    swfs_config *c = swfs_config_new();
+    int rc = names && c ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
+    if (!rc) rc = table_files(t, tdir, names, &n);
+    if (!rc && !n) rc = swfs_fail(SWFS_ERR_VALUE, "%s: names no telemetry file", o->timing);
+    if (!rc) rc = work_folder(o, work, sizeof work);
+    if (!rc && snprintf(map, cap, "%s/taught.fits", work) >= (int)cap)
+        rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", work);
+    /* the rate the run uses where the telemetry has none (--wfs-hz) */
+    if (!rc && o->wfs_hz > 0) {
+        char v[64];
+        snprintf(v, sizeof v, "%.17g", o->wfs_hz);
+        rc = swfs_config_set_kv(c, "wfs_rate", v);
+    }
+    if (!rc) rc = swfs_config_set_kv(c, "mode", "timeseries");
+    if (!rc) rc = swfs_teach_describe_geom_(c, g, o->actuators, o->mask, o->valid, names[0]);
+    swfs_teach_run_options to;
+    swfs_teach_run_options_default(&to);
+    if (!rc) rc = swfs_ts_params_from_config(c, &to.sim);
+    if (!rc) rc = swfs_ts_params_check(&to.sim);
+    if (!rc) {
+        to.files = (const char *const *)names;
+        to.nfiles = n;
+        to.out = map;
+        to.work = work;
+        if (o->teach_loops) to.nloops = o->teach_loops;
+        if (o->teach_seed) to.seed = o->teach_seed;
+        to.modes_from_slopes = 1;
+        to.prov = o->prov;
+        to.nprov = o->nprov;
+        to.progress = o->progress;
+        to.progress_ctx = o->progress_ctx;
+        rc = swfs_teach_run(&to, tr);
+    }
+    swfs_config_free(c);
+    for (size_t k = 0; names && k < n; k++) free(names[k]);
+    free(names);
+    return rc;
+}
+
+int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                         const swfs_geom *g, char *map, size_t cap, swfs_speckles_run_result *r)
+{
+    swfs_teach_run_result own, *tr = o->teach ? o->teach : &own;
+    int taught = 0, rc = SWFS_OK;
+    r->teach_fallback[0] = 0;
+    map[0] = 0;
+    /* a team: member 0 teaches, the others wait for its map (teach is the same to the bit
+     * wherever it runs, but one folder holds it) */
+    if (swfs_team_writer(o->team)) {
+        taught = !teach(o, t, tdir, g, map, cap, tr);
+        if (!taught)
+            snprintf(r->teach_fallback, sizeof r->teach_fallback, "%s", swfs_last_error());
+    } else {
+        memset(tr, 0, sizeof *tr);
+    }
+    if (swfs_team_active(o->team)) {
+        rc = swfs_team_agree(o->team, SWFS_OK);
+        if (!rc) rc = o->team->bcast(o->team->ctx, &taught, sizeof taught, 0);
+        if (!rc) rc = o->team->bcast(o->team->ctx, map, cap, 0);
+        if (!rc && !taught && !swfs_team_writer(o->team))
+            snprintf(r->teach_fallback, sizeof r->teach_fallback, "member 0 could not teach (its output says why)");
+    }
+    r->taught = taught;
+    if (taught) snprintf(r->teach_map, sizeof r->teach_map, "%s", map);
+    return rc;
+}
