@@ -2,8 +2,8 @@
 # The matrix of bench_telemetry with a reconstructor learned from simulated closed loops
 # (`specklewfs learn`), leave one system out: for each system and test seed, the map is
 # learned on the OTHER systems of the same Shack-Hartmann geometry (their seeds 11 and 12),
-# then the default path runs with `speckles --recon W.fits` on the test seed's data.
-# Prints, per run, the default path's NCP error (von Karman), the learned one's, and the
+# then the path runs with `speckles --recon W.fits` on the test seed's data.
+# Prints, per run, the von Karman map's NCP error (--recon vk, the default before 2026-11-28), the learned one's, and the
 # ideal speckles', and their ratios (docs/telemetry.md, "A reconstructor learned from
 # simulated closed loops"). About 23 minutes on 2 cores; data sets are kept in WORK and
 # reused when present.
@@ -29,7 +29,7 @@ for k in $(seq 0 $((nsys - 1))); do
     for s in 11 12 $SEEDS; do sim "$k" "$s"; done
 done
 
-printf "%-11s %4s %4s | %7s %7s %7s | %6s %6s\n" system seed nsub default learned ideal "x def" "x lrn"
+printf "%-11s %4s %4s | %7s %7s %7s | %6s %6s\n" system seed nsub vk learned ideal "x vk" "x lrn"
 rm -f "$W/table.txt"
 for k in $(seq 0 $((nsys - 1))); do
     g=$(nsub_of "$k" 11)
@@ -57,4 +57,4 @@ for k in $(seq 0 $((nsys - 1))); do
     done
 done
 awk '{ sd += $4; sl += $5; n++; if ($4 <= 1.3 * $6) id++; if ($5 <= 1.3 * $6) il++; xd += $4 / $6; xl += $5 / $6 }
-     END { printf "runs %d: sum of NCP errors, default %.1f nm, learned %.1f nm; mean ratio to the ideal speckles %.2f / %.2f; within 1.3x: default %d, learned %d\n", n, sd, sl, xd / n, xl / n, id, il }' "$W/table.txt"
+     END { printf "runs %d: sum of NCP errors, vk %.1f nm, learned %.1f nm; mean ratio to the ideal speckles %.2f / %.2f; within 1.3x: vk %d, learned %d\n", n, sd, sl, xd / n, xl / n, id, il }' "$W/table.txt"

@@ -2,8 +2,8 @@
 # The space-time learned map (`specklewfs learn --lags`) from the data alone, over bench_telemetry's
 # matrix (docs/telemetry.md, "A space-time learned map"), and the choice its checks make. For
 # each observation K:S (system K, seed S):
-#   1. bench_telemetry --only K --seed S --truth --keep: the observation, with the default
-#      path's and the ideal speckles' NCP errors;
+#   1. bench_telemetry --only K --seed S --truth --keep: the observation, with the von Karman
+#      map's path (--recon vk) and the ideal speckles' NCP errors;
 #   2. `specklewfs wind` on its slopes: the tracked layer's speed v and direction, and the
 #      further layers its stacking finds ("layer N:");
 #   3. twelve simulated loops of the system (its keys from bench_telemetry --print-keys: the
@@ -42,7 +42,7 @@ path() {
 }
 
 printf "%-11s %4s %4s | %6s %6s | %-16s %-16s %-16s | %7s %7s | %5s %4s | %7s %-11s | %5s %5s %5s\n" system seed nsub \
-    default ideal "wind [m/s, deg]" "layer 2" lags learned space-t wind corr chosen "" "x def" "x st" "x ch"
+    vk ideal "wind [m/s, deg]" "layer 2" lags learned space-t wind corr chosen "" "x vk" "x st" "x ch"
 for ks in $OBS; do
     obs_setup "$BT" "$W" "$ks"
     keys=$("$BT" --only "$k" --seed "$s" --print-keys | grep -v -e '^layer_speed=' -e '^layer_dir=' -e '^seed=' -e '^nlayers=' \

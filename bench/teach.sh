@@ -5,7 +5,7 @@
 # (bench_telemetry --print-keys without its layers and seed: the DM, loop, vibration, noise
 # and camera timing a user describes) given to teach with the observation's slopes; the map
 # it chooses through speckles --recon, estimate and pupil --truth. Prints one row per
-# observation: the default path's and the ideal speckles' NCP errors (from the kept run), the
+# observation: the von Karman map's path (--recon vk, the default before 2026-11-28) and the ideal speckles' NCP errors (from the kept run), the
 # layers teach found, its lags and choice, the NCP error with its map and the ratios. Data
 # sets are kept in WORK and reused when present; the loops teach simulates into WORK/kKsS/teach
 # are removed after the row (the maps it tried stay). About 1-2 minutes per 12 x 12 observation, 3-6 per 24 x 24, on
@@ -26,7 +26,7 @@ if [ "${3:-}" = --modes-from-slopes ]; then auto=_auto; set -- "$1" "$2" "${@:4}
 if [ "${3:-}" = --from-files ]; then auto=_ff; set -- "$1" "$2" "${@:4}"; fi
 bench_args "$@"
 
-printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub default ideal \
+printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub vk ideal \
     "layers found [m/s toward deg]" lags chosen teach "[s]" "x def" "x tch"
 sums=
 for ks in $OBS; do
@@ -58,5 +58,5 @@ echo "chosen: space-time = the lags' map (neither check warned); per-frame = a p
 # the target's terms: runs within 1.3x of the ideal speckles, the mean and worst ratio
 echo "${sums:-}" | awk '{ for (i = 1; i + 2 <= NF; i += 3) { n++; rd = $i / $(i + 1); rt = $(i + 2) / $(i + 1);
     kd += rd <= 1.3; kt += rt <= 1.3; md += rd; mt += rt; if (rt > wt) wt = rt; if (rd > wd) wd = rd } }
-    END { if (n) printf "%d runs; within 1.3x of the ideal speckles: teach %d (mean %.2f, worst %.2f), the default path %d " \
+    END { if (n) printf "%d runs; within 1.3x of the ideal speckles: teach %d (mean %.2f, worst %.2f), vk %d " \
         "(mean %.2f, worst %.2f)\n", n, kt, mt / n, wt, kd, md / n, wd }' 

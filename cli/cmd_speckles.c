@@ -43,7 +43,8 @@ static const char *usage_text =
     "                      of the ideal speckles on 45 of 48 matrix runs, vk on 23). Minutes per\n"
     "                      observation; the loops and the map (taught.fits: --recon taught.fits\n"
     "                      uses it again) in --teach-work DIR (default: beside -o, its name with\n"
-    "                      .teach); --teach-loops N (12), --teach-seed S (101). Where teach cannot\n"
+    "                      .teach; the loops' folders removed unless --teach-keep-loops);\n"
+    "                      --teach-loops N (12), --teach-seed S (101). Where teach cannot\n"
     "                      (no frozen-flow layer in the slopes, ...) it says why and uses vk\n"
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators): the residual\n"
     "                      wavefront [m of OPD, not DM surface] at the actuators = W slopes [rad];\n"
@@ -168,6 +169,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
         {"--batch", CLI_LONG, &batch, NULL, 0},       {"--teach-work", CLI_STRING, &o->teach_work, "a folder", 0},
         {"--teach-loops", CLI_LONG, &tloops, NULL, 0}, {"--teach-seed", CLI_LONG, &tseed, NULL, 0},
+        {"--teach-keep-loops", CLI_SET, &o->teach_keep_loops, NULL, 1},
     };
     const char **const pos[] = {&o->timing};
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
@@ -205,10 +207,10 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     o->batch = (size_t)batch;
     if (tloops < 2 || tloops > 64) return cli_usage_error(cmd, "--teach-loops must be 2..64, got %ld", tloops);
     if (tseed < 0) return cli_usage_error(cmd, "--teach-seed must be >= 0, got %ld", tseed);
-    if ((o->teach_work || tloops != (long)o->teach_loops || tseed != (long)o->teach_seed) &&
+    if ((o->teach_work || tloops != (long)o->teach_loops || tseed != (long)o->teach_seed || o->teach_keep_loops) &&
         (o->pipe.recon != SWFS_RECON_TEACH || o->lin.basis))
-        return cli_usage_error(cmd, "--teach-work, --teach-loops and --teach-seed go with --recon teach (the default "
-                               "with --actuators)");
+        return cli_usage_error(cmd, "--teach-work, --teach-loops, --teach-seed and --teach-keep-loops go with --recon "
+                               "teach (the default with --actuators)");
     o->teach_loops = (size_t)tloops;
     o->teach_seed = (uint64_t)tseed;
     if (o->pipe.wfs_rate) {

@@ -168,6 +168,9 @@ typedef struct swfs_speckles_run_options {
                                  taught.fits in it, for --recon in later runs */
     size_t teach_loops;       /* loops per set (12) */
     uint64_t teach_seed;      /* loop k's seed is teach_seed + k (101) */
+    int teach_keep_loops;     /* 1: keep the loops' folders (0: removed once the map is taught, the
+                                 maps, modes.tsv and modes.png kept: 0.2-0.4 GB per observation
+                                 on the matrix's 16 x 16 and 24 x 24 systems otherwise) */
     struct swfs_teach_run_result *teach; /* teach's own result (layers, filter, choice), or NULL */
 } swfs_speckles_run_options;
 

@@ -282,13 +282,15 @@ def _teach_dict(r, modes_from_slopes):
 
 
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
-             geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=12, teach_seed=101):
+             geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=12, teach_seed=101,
+             teach_keep_loops=False):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
     (default: a map taught for this observation from its own files, as teach(..., science=,
     actuators=) makes it, in teach_work (default: out's name without .fits, plus .teach) as
-    taught.fits; where teach cannot, a RuntimeWarning says why and 'vk' is used), 'vk',
+    taught.fits, its loops' folders removed unless teach_keep_loops; where teach cannot, a
+    RuntimeWarning says why and 'vk' is used), 'vk',
     'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2 lambda/D),
     'none' or a radius; valid: the AO system's subaperture map; pupil: the pupil mask. Returns
     nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], the pipeline's info
@@ -302,6 +304,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach_work, o.teach_loops, o.teach_seed = _opt(teach_work), int(teach_loops), int(teach_seed)
+        o.teach_keep_loops = int(bool(teach_keep_loops))
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
     elif recon in _RECON and recon != "given":
         o.pipe.recon = _RECON[recon]

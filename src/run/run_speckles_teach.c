@@ -7,11 +7,13 @@
 #include "specklewfs/team.h"
 #include "run_internal.h"
 
+#include <dirent.h>
 #include <errno.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 /* The telemetry files the timing table names, each once, in the table's order (the series'
  * order: sync writes the rows in camera time). */
@@ -46,6 +48,30 @@ static int work_folder(const swfs_speckles_run_options *o, char *work, size_t ca
     if (mkdir(work, 0777) && errno != EEXIST)
         return swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
     return SWFS_OK;
+}
+
+/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN: the simulator's files,
+ * no subfolders), removed once the map is taught; what cannot be removed is left as it is
+ * (the map is taught: it only costs space). */
+static void drop_loops(const char *work, const struct swfs_teach_run_result *tr, size_t nloops)
+{
+    static const char *const kinds[] = {"loop", "mixed", "modes"};
+    for (int t = 0; t < 3; t++) {
+        const size_t n = t == 2 ? tr->ncal : nloops;
+        for (size_t k = 0; k < n; k++) {
+            char d[4300], f[4600];
+            snprintf(d, sizeof d, "%s/%s_%02zu", work, kinds[t], k);
+            DIR *dir = opendir(d);
+            if (!dir) continue;
+            for (struct dirent *e; (e = readdir(dir));) {
+                if (!strcmp(e->d_name, ".") || !strcmp(e->d_name, "..")) continue;
+                snprintf(f, sizeof f, "%s/%s", d, e->d_name);
+                (void)remove(f);
+            }
+            closedir(dir);
+            (void)rmdir(d);
+        }
+    }
 }
 
 /* Teach as `teach --science --actuators [--pupil] [--valid]` does, into map. */
@@ -88,6 +114,7 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.progress_ctx = o->progress_ctx;
         rc = swfs_teach_run(&to, tr);
     }
+    if (!rc && !o->teach_keep_loops) drop_loops(work, tr, to.nloops);
     swfs_config_free(c);
     for (size_t k = 0; names && k < n; k++) free(names[k]);
     free(names);
