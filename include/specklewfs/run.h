@@ -127,8 +127,8 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
  * SWFS_RECON_GIVEN. Where teach cannot (no frozen-flow layer in the slopes, too few DM modes,
  * a rate the files lack, ...) the run says why (teach_fallback) and uses SWFS_RECON_VK. The
  * linear model (lin.basis) has its own reconstructor and ignores it. docs/telemetry.md, "The
- * default reconstructor": within 1.3x of the ideal speckles on 45 of the matrix's 48 runs,
- * where SWFS_RECON_VK was on 23. */
+ * default path: a map taught for each observation": within 1.3x of the ideal speckles on 45
+ * of the matrix's 48 runs (bench_telemetry, seeds 1-4), where SWFS_RECON_VK was on 23. */
 #define SWFS_RECON_TEACH 4
 struct swfs_teach_run_result;
 

@@ -1,5 +1,6 @@
 /* speckles' default reconstructor: a map taught for the observation from its own files
- * (run.h SWFS_RECON_TEACH; docs/telemetry.md, "The default reconstructor"). */
+ * (run.h SWFS_RECON_TEACH; docs/telemetry.md, "The default path: a map taught for each
+ * observation"). */
 #include "specklewfs/config.h"
 #include "specklewfs/run.h"
 #include "specklewfs/source.h"
