@@ -168,6 +168,12 @@ struct swfs_speckles_run_result;
  * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
 struct swfs_teach_run_result;
+struct swfs_speckles_run_options;
+/* What a successful `speckles` run prints: the reconstructor in use (for the taught default
+ * what teach found and chose, or why it could not), the frames written, the residual's mean
+ * and its warning, a space-time map's checks (spacetime_summary.c). */
+void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_options *o,
+                          const struct swfs_speckles_run_result *r, const struct swfs_teach_run_result *tr);
 /* What teach found and chose (`teach`, and `speckles` teaching its default map), each line
  * starting with "cmd:"; out is the map, work its folder; checks: also the chosen map's
  * checks against the observation (speckles prints its own). */

@@ -5,7 +5,6 @@
 #include "cli.h"
 
 #include "specklewfs/run.h"
-#include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/team.h"
 
@@ -259,34 +258,7 @@ int swfs_cmd_speckles(int argc, char **argv)
         free(mout);
         return rc;
     }
-    /* the reconstructor in use: the taught map, or vk where teach could not */
-    swfs_pipeline_options used = o.pipe;
-    const char *used_file = o.recon;
-    if (!o.lin.basis && o.pipe.recon == SWFS_RECON_TEACH) {
-        used.recon = r.taught ? SWFS_RECON_GIVEN : SWFS_RECON_VK;
-        used_file = r.taught ? r.teach_map : NULL;
-        if (!rc && r.taught) {
-            char work[4200];
-            swfs_path_dir(r.teach_map, work, sizeof work);
-            cli_teach_summary(stderr, cmd, &tr, 1, r.teach_map, work, 0);
-        } else if (r.teach_fallback[0]) {
-            fprintf(stderr, "specklewfs %s: warning: no map could be taught for this observation (%s); the von Karman "
-                    "map (--recon vk) instead\n", cmd, r.teach_fallback);
-        }
-    }
-    if (!rc && o.lin.basis) cli_linear_summary(cmd, &o.lin, &r.info);
-    else if (!rc) cli_recon_summary(cmd, &used, used_file, o.valid, &r.info);
-    if (!rc)
-        fprintf(stderr, "speckles: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples outside "
-                "the actuator hull, extrapolated) -> %s\n", r.nout, o.pipe.wfs_rate ? "WFS " : "", r.nok, r.ncubes,
-                r.info.recon_modes, r.info.n_outside, o.out);
-    if (!rc)
-        fprintf(stderr, "speckles: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it "
-                "out of the NCP)\n", r.resmean_rms * 1e9);
-    if (!rc && swfs_speckles_resmean_warns(&r))
-        fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
-                "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r.wavelen * 1e9);
-    if (!rc) cli_spacetime_summary(cmd, &r);
+    if (!rc) cli_speckles_summary(cmd, &o, &r, &tr);
     free(min);
     free(mout);
     return rc;

@@ -1,6 +1,8 @@
-/* What `speckles` prints of a space-time reconstructor against the observation (cli.h). */
+/* What `speckles` prints after its run, a space-time reconstructor's checks against the
+ * observation among it, and what `teach` prints (cli.h). */
 #include "cli.h"
 #include "specklewfs/run.h"
+#include "specklewfs/source.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -91,4 +93,35 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     if (checks) cli_spacetime_summary(cmd, &r->check);
     fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, chosen_name(r->chosen), out, r->seconds,
             work);
+}
+
+void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_options *o,
+                          const struct swfs_speckles_run_result *r, const struct swfs_teach_run_result *tr)
+{
+    /* the reconstructor in use: the taught map, or vk where teach could not */
+    swfs_pipeline_options used = o->pipe;
+    const char *used_file = o->recon;
+    if (!o->lin.basis && o->pipe.recon == SWFS_RECON_TEACH) {
+        used.recon = r->taught ? SWFS_RECON_GIVEN : SWFS_RECON_VK;
+        used_file = r->taught ? r->teach_map : NULL;
+        if (r->taught) {
+            char work[4200];
+            swfs_path_dir(r->teach_map, work, sizeof work);
+            cli_teach_summary(stderr, cmd, tr, 1, r->teach_map, work, 0);
+        } else {
+            fprintf(stderr, "specklewfs %s: warning: no map could be taught for this observation (%s); the von Karman "
+                    "map (--recon vk) instead\n", cmd, r->teach_fallback);
+        }
+    }
+    if (o->lin.basis) cli_linear_summary(cmd, &o->lin, &r->info);
+    else cli_recon_summary(cmd, &used, used_file, o->valid, &r->info);
+    fprintf(stderr, "%s: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples "
+            "outside the actuator hull, extrapolated) -> %s\n", cmd, r->nout, o->pipe.wfs_rate ? "WFS " : "", r->nok,
+            r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
+    fprintf(stderr, "%s: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it out of the "
+            "NCP)\n", cmd, r->resmean_rms * 1e9);
+    if (swfs_speckles_resmean_warns(r))
+        fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
+                "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
+    cli_spacetime_summary(cmd, r);
 }
