@@ -131,6 +131,19 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
 grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
     || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
 etf=$(ncp_with taught_f.fits tf timing.txt)
+# a second teach in the same work folder (as speckles' default does on every run), one loop
+# folder holding a slopes / truewf pair beyond this loop's own (as a longer earlier loop would
+# leave it; learn reads every pair): teach clears it first, so the map learns from the same
+# frames, its training misfit printed the same
+cp taught_f/loop_00/slopes_000.fits taught_f/loop_00/slopes_001.fits
+cp taught_f/loop_00/truewf_000.fits taught_f/loop_00/truewf_001.fits
+"$B" teach obs/slopes_0*.fits --science science.fits --actuators actuators.fits --pupil pupil.fits -o taught_f2.fits \
+    --work taught_f --loops 4 > teach_f2.log 2>&1 || { cat teach_f2.log; fail "teach again in the same work folder"; }
+[ ! -e taught_f/loop_00/slopes_001.fits ] && [ ! -e taught_f/loop_00/truewf_001.fits ] \
+    || fail "teach left a stale slopes / truewf pair in a loop folder it used again"
+m1=$(grep -o "misses the loops' residual by .* nm" teach_f.log)
+m2=$(grep -o "misses the loops' residual by .* nm" teach_f2.log)
+[ -n "$m1" ] && [ "$m1" = "$m2" ] || fail "teach in a used work folder: '$m2' against '$m1'"
 echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm; vk $ed nm)"
 awk -v a="$etf" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 1 && b - a < 1) }' || fail "teach from files $etf nm against $et nm"
 # speckles' default (--recon teach) is that teach run inside speckles on the same files (the
