@@ -142,9 +142,7 @@ int swfs_cmd_teach(int argc, char **argv)
     o.modes_from_slopes = !filter_given;
     char work[4200];
     if (!rc && !o.work) { /* W.teach beside W.fits */
-        const size_t n = strlen(o.out), cut = n > 5 && !strcmp(o.out + n - 5, ".fits") ? n - 5 : n;
-        if (cut > 4000) rc = cli_usage_error(cmd, "-o %s: the name is too long for its work folder; give --work", o.out);
-        else snprintf(work, sizeof work, "%.*s.teach", (int)cut, o.out);
+        rc = swfs_teach_work_default(o.out, work, sizeof work) ? cli_usage_error(cmd, "%s (--work)", swfs_last_error()) : 0;
         o.work = work;
     }
     if (!rc) rc = cli_make_dir(cmd, o.work);

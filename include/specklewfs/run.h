@@ -573,6 +573,11 @@ typedef struct swfs_teach_run_result {
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);
 
+/* The default work folder of a teach whose map (or whose speckles' cube) is out: beside it,
+ * its name without .fits and with .teach (`teach -o W.fits`: W.teach; `speckles -o S.fits`:
+ * S.teach). Fails, naming out, when the name does not fit in cap. */
+int swfs_teach_work_default(const char *out, char *work, size_t cap);
+
 /* The system a teach simulates, described by the observation's own files, the ones
  * `speckles` takes, as `simulate mode=timeseries` keys set into c (keys already in c are
  * kept: the caller's own description wins):

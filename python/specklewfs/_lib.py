@@ -568,6 +568,7 @@ _PROTOS = {
     "swfs_teach_run_options_default": (None, [P(swfs_teach_run_options)]),
     "swfs_teach_run": (c_int, [P(swfs_teach_run_options), P(swfs_teach_run_result)]),
     "swfs_teach_describe": (c_int, [c_ptr, c_str, c_str, c_str, c_str, c_str]),
+    "swfs_teach_work_default": (c_int, [c_str, ctypes.c_char_p, c_size]),
     "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_resmean_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),

@@ -253,9 +253,10 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     o.sim = _checked_params("ts", config, params, describe)
     o.modes_from_slopes = int(not filter_given[0])
     arr, n = _paths(files)
-    if work is None:
-        w = os.fspath(out)
-        work = (w[:-5] if w.endswith(".fits") else w) + ".teach"
+    if work is None:  # beside out (run.h swfs_teach_work_default)
+        buf = ctypes.create_string_buffer(4200)
+        check(lib.swfs_teach_work_default(enc(out), buf, len(buf)), "swfs_teach_work_default")
+        work = buf.value.decode()
     os.makedirs(work, exist_ok=True)
     o.files, o.nfiles, o.out, o.work = arr, n, enc(out), enc(work)
     o.nloops, o.seed = int(loops), int(seed)

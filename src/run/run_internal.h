@@ -118,10 +118,10 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *g, const char *ac
 
 /* speckles' taught reconstructor (SWFS_RECON_TEACH, run_speckles_teach.c): teach from the
  * timing table t's telemetry files (in tdir) and the run's own files, g the science cube's
- * geometry. SWFS_OK with r->taught = 1 and map = the taught file; or SWFS_OK with r->taught
- * = 0 and r->teach_fallback saying why teach could not (the caller uses the von Karman map);
- * an error only for a team's failure to agree. */
+ * geometry. SWFS_OK with r->taught = 1 and r->teach_map the taught file; or SWFS_OK with
+ * r->taught = 0 and r->teach_fallback saying why teach could not (the caller uses the von
+ * Karman map); an error only for a team's failure to agree. */
 int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                         const swfs_geom *g, char *map, size_t cap, swfs_speckles_run_result *r);
+                         const swfs_geom *g, swfs_speckles_run_result *r);
 
 #endif

@@ -554,13 +554,12 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     /* The default: a map taught for this observation (run_speckles_teach.c), before the
      * products' group (teach's own files are in place as it writes them). */
     swfs_speckles_run_options oo = *o;
-    char map[4200] = "";
     if (o->pipe.recon == SWFS_RECON_TEACH) {
         oo.pipe.recon = SWFS_RECON_VK;
-        if (!rc && !o->lin.basis) rc = swfs_speckles_teach_(o, w.t, w.tdir, &w.g, map, sizeof map, r);
+        if (!rc && !o->lin.basis) rc = swfs_speckles_teach_(o, w.t, w.tdir, &w.g, r);
         if (!rc && r->taught) {
             oo.pipe.recon = SWFS_RECON_GIVEN;
-            oo.recon = map;
+            oo.recon = r->teach_map;
         }
     }
     o = &oo;

@@ -32,23 +32,16 @@ static int table_files(const swfs_timing *t, const char *tdir, char **names, siz
     return SWFS_OK;
 }
 
-/* The work folder: o->teach_work, or out without .fits and with .teach. */
+/* The work folder: o->teach_work, or beside out (swfs_teach_work_default); created. */
 static int work_folder(const swfs_speckles_run_options *o, char *work, size_t cap)
 {
-    const char *w = o->teach_work;
-    if (w) {
-        if (snprintf(work, cap, "%s", w) >= (int)cap)
-            return swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", w);
-    } else {
-        const size_t n = strlen(o->out), cut = n > 5 && !strcmp(o->out + n - 5, ".fits") ? n - 5 : n;
-        if (cut + 7 > cap || cut > 4000)
-            return swfs_fail(SWFS_ERR_ARG, "speckles: %s: the name is too long for the teach folder beside it; give "
-                             "its folder", o->out);
-        snprintf(work, cap, "%.*s.teach", (int)cut, o->out);
-    }
-    if (mkdir(work, 0777) && errno != EEXIST)
-        return swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
-    return SWFS_OK;
+    int rc = o->teach_work ? (snprintf(work, cap, "%s", o->teach_work) >= (int)cap
+                                  ? swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", o->teach_work)
+                                  : SWFS_OK)
+                           : swfs_teach_work_default(o->out, work, cap);
+    if (!rc && mkdir(work, 0777) && errno != EEXIST)
+        rc = swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
+    return rc;
 }
 
 /* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN: the simulator's files,
@@ -106,8 +99,8 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.nfiles = n;
         to.out = map;
         to.work = work;
-        if (o->teach_loops) to.nloops = o->teach_loops;
-        if (o->teach_seed) to.seed = o->teach_seed;
+        to.nloops = o->teach_loops;
+        to.seed = o->teach_seed;
         to.modes_from_slopes = 1;
         to.prov = o->prov;
         to.nprov = o->nprov;
@@ -123,9 +116,11 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
 }
 
 int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                         const swfs_geom *g, char *map, size_t cap, swfs_speckles_run_result *r)
+                         const swfs_geom *g, swfs_speckles_run_result *r)
 {
     swfs_teach_run_result own, *tr = o->teach ? o->teach : &own;
+    char *map = r->teach_map;
+    const size_t cap = sizeof r->teach_map;
     int taught = 0, rc = SWFS_OK;
     r->teach_fallback[0] = 0;
     map[0] = 0;
@@ -146,6 +141,6 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
             snprintf(r->teach_fallback, sizeof r->teach_fallback, "member 0 could not teach (its output says why)");
     }
     r->taught = taught;
-    if (taught) snprintf(r->teach_map, sizeof r->teach_map, "%s", map);
+    if (!taught) map[0] = 0;
     return rc;
 }

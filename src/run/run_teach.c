@@ -365,6 +365,16 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *a
     return rc;
 }
 
+int swfs_teach_work_default(const char *out, char *work, size_t cap)
+{
+    const size_t n = strlen(out), cut = n > 5 && !strcmp(out + n - 5, ".fits") ? n - 5 : n;
+    if (cut > 4000 || cut + sizeof ".teach" > cap)
+        return swfs_fail(SWFS_ERR_ARG, "the teach folder beside %.200s%s: the name is too long (%zu characters); give "
+                         "its folder", out, n > 200 ? "..." : "", n);
+    snprintf(work, cap, "%.*s.teach", (int)cut, out);
+    return SWFS_OK;
+}
+
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
 {
     memset(r, 0, sizeof *r);
