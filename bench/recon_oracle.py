@@ -12,8 +12,8 @@ pupil --truth as the default path, with the wavefront of every WFS frame given o
 actuators as the telemetry of their influence functions (speckles --basis influence.fits,
 the Shack-Hartmann's band nsub/2):
 
-  vk       the default reconstructor's wavefront (W of speckles --write-recon times the
-           slopes): reproduces the default path;
+  vk       the von Karman reconstructor's wavefront (W of speckles --recon vk --write-recon times the
+           slopes): the path of `--recon vk`;
   truth    the true residual on the actuators (truewf_NNN.fits): what the representation,
            the engine and the estimator keep of the ideal speckles;
   learned  the least-squares linear map slopes -> true residual on the actuators, with a
@@ -134,7 +134,7 @@ def learned(X):
 
 
 run([EXE, "speckles", f"{D}/timing.txt", "--science", f"{D}/science.fits", "--actuators", f"{D}/actuators.fits",
-     "--write-recon", f"{D}/recon_vk.fits", "-o", f"{D}/spk_vk_native.fits"])
+     "--recon", "vk", "--write-recon", f"{D}/recon_vk.fits", "-o", f"{D}/spk_vk_native.fits"])
 W = np.array(F.read_fits(f"{D}/recon_vk.fits")[0])
 want = set(a.rows.split(",")) if a.rows else None
 rows = [("vk", S @ W.T), ("truth", Z)]
