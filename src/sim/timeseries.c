@@ -268,7 +268,7 @@ static inline double screen_at(const double *s, size_t n, double u, double v)
     size_t i0 = (size_t)u, j0 = (size_t)v;
     if (i0 >= n) i0 = n - 1;
     if (j0 >= n) j0 = n - 1;
-    size_t i1 = (i0 + 1) % n, j1 = (j0 + 1) % n;
+    size_t i1 = i0 + 1 == n ? 0 : i0 + 1, j1 = j0 + 1 == n ? 0 : j0 + 1;
     double a = u - (double)i0, b = v - (double)j0;
     return (1 - b) * ((1 - a) * s[j0 * n + i0] + a * s[j0 * n + i1]) + b * ((1 - a) * s[j1 * n + i0] + a * s[j1 * n + i1]);
 }
@@ -641,15 +641,20 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         jx = jrho * jx + jsig * swfs_rng_normal(&nrng);
         jy = jrho * jy + jsig * swfs_rng_normal(&nrng);
         double tvx = th * cos(va) + jx, tvy = th * sin(va) + jy;
+        /* each layer's shift of this frame [samples], once per frame (not per sample) */
+        double lsx[SWFS_TS_MAX_LAYERS], lsy[SWFS_TS_MAX_LAYERS];
+        for (int l = 0; l < p->nlayers; l++) {
+            double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
+            lsx[l] = sh_ * cos(ang);
+            lsy[l] = sh_ * sin(ang);
+        }
         double mean = 0;
         for (size_t m = 0; m < npin; m++) {
             size_t g = pin[m];
             double z = tvx * xs[g] + tvy * ys[g] - dmz[g];
-            for (int l = 0; l < p->nlayers; l++) {
-                double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
-                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, (double)(g % np) - sh_ * cos(ang),
-                               (double)(g / np) - sh_ * sin(ang));
-            }
+            const double gx = (double)(g % np), gy = (double)(g / np);
+            for (int l = 0; l < p->nlayers; l++)
+                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, gx - lsx[l], gy - lsy[l]);
             res[g] = z;
             mean += z;
         }
