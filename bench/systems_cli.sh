@@ -4,10 +4,10 @@
 # pupil from the simulator's ideal speckles on the same reduced frames (docs/telemetry.md,
 # "Systems outside the matrix"). Prints one line per system: sync's ratio and lag (true lag
 # 2.59), the NCP errors [nm] from the slopes and the ideal speckles, and both with the AO
-# residual's time mean kept (pupil --keep-resmean). The last four are one 16 x 16 system with
-# other timing: the handshake logged 20 WFS frames late (true lag 19.59), 12 cubes of 30
-# frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames. The last
-# nine are the same system as it is (v16-base) and with one thing changed each: the loop's gain
+# residual's time mean kept (pupil --keep-resmean). After the first seven, four are one 16 x 16
+# system with other timing: the handshake logged 20 WFS frames late (true lag 19.59), 12 cubes
+# of 30 frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames;
+# then four systems in telemetry files of 600-1500 frames (x*). The last nine are the same system as it is (v16-base) and with one thing changed each: the loop's gain
 # and delay, the WFS's slope noise, a 20 % optical bandwidth, the camera's background, hot and
 # dead pixels, a square actuator grid.
 # usage: bash bench/systems_cli.sh <specklewfs> <scratch dir>
@@ -66,6 +66,12 @@ run t16-hslag20   16 1000   9.7  1      14       200         1            0.4  1
 run t16-short     16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=12 cube_frames=30 cube_gap=50
 run t16-files600  16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=3 wfs_file_frames=600
 run t16-onecube   16 1000   9.7  1      14       200         1            0.4  15 1    100 ncubes=1 cube_frames=300 wfs_file_frames=8000
+# systems of the matrix's kind in telemetry files too short for teach's loops as they are
+# described (docs/telemetry.md, "Loops long enough for the map")
+run x12-f600      12  527   6.48 2      10,15    0,110       0.6,0.4      0.5  19 1    100 wfs_file_frames=600
+run x16-f800      16  700   4.2  2      5,22     10,190      0.6,0.4      0.0  10 2    100 wfs_file_frames=800
+run x20-f1500     20 1200   8    1      18       75          1            0.3  12 3    100 wfs_file_frames=1500
+run x24-f1000     24 1000   6    1      10       60          1            0.1  15 1    100 wfs_file_frames=1000
 # loop, sensor, camera and DM variants of that system (4 cubes x 100 frames, files of 3000)
 run v16-base      16 1000   9.7  1      14       200         1            0.4  15 1    100
 run v16-gain0.2   16 1000   9.7  1      14       200         1            0.4  15 1    100 ao_gain=0.2

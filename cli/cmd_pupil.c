@@ -3,8 +3,6 @@
 #include "cli.h"
 
 #include "specklewfs/estimate.h"
-#include "specklewfs/fits.h"
-#include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
@@ -88,24 +86,6 @@ static int special(void *vctx, int argc, char **argv, int *i)
     return 1;
 }
 
-/* The halos scored by the self-check (swfs_halo_choose_files); *best the one to use, *h and
- * *g its halo and geometry; line: what was chosen, for the output's provenance. */
-static int choose(const char *cmd, const char *const *ins, size_t nin, const char **best, swfs_halo **h,
-                  swfs_geom *g, char *line, size_t cap)
-{
-    double *ex = calloc(nin, sizeof *ex);
-    size_t b = 0, ncommon = 0;
-    if (!ex) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    if (swfs_halo_choose_files(ins, nin, ex, &b, &ncommon, h, g)) { free(ex); return cli_error(cmd); }
-    printf("pupil: the speckles' self-check over the %zu focal pixels solved in all %zu halos (the fraction of the "
-           "science intensity's variance they explain):\n", ncommon, nin);
-    for (size_t k = 0; k < nin; k++) printf("  %-40s %6.2f %%%s\n", ins[k], 100 * ex[k], k == b ? "  <- used" : "");
-    snprintf(line, cap, "chosen by the self-check among %zu halos: %.1000s (%.2f %% explained)", nin, ins[b], 100 * ex[b]);
-    *best = ins[b];
-    free(ex);
-    return CLI_OK;
-}
-
 int swfs_cmd_pupil(int argc, char **argv)
 {
     const char *cmd = "pupil";
@@ -133,58 +113,35 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (urc) { free(ins); return urc; }
     if (pctx.moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 
-    swfs_paths *paths = NULL;
-    swfs_paths_create(&paths);
-    for (size_t k = 0; k < nin; k++) swfs_paths_input(paths, "halo", ins[k]);
-    swfs_paths_input(paths, "--pupil mask", maskfile);
-    swfs_paths_input(paths, "--truth", truthfile);
-    swfs_paths_output(paths, "-o", out);
-    if (cli_paths_check(cmd, paths)) { free(ins); return CLI_FAIL; }
-
-    swfs_halo *h = NULL;
-    char chosen[1400] = "";
-    swfs_real *mask = NULL, *truth = NULL;
-    swfs_pupil_result *r = NULL;
-    int rc = CLI_FAIL;
-    swfs_geom g;
-    if (nin > 1) {
-        if (choose(cmd, ins, nin, &in, &h, &g, chosen, sizeof chosen)) goto done;
-        printf("pupil: %s\n", chosen);
-    } else if (swfs_halo_read(in, &h, &g)) { cli_error(cmd); goto done; }
-    if (swfs_geom_require(&g, in)) { cli_error(cmd); goto done; }
-    if (maskfile) {
-        if (swfs_fits_read_real(maskfile, NULL, &mask, NULL)) { cli_error(cmd); goto done; }
-        if (mask->nz != 1 || mask->nx != (size_t)g.pupn || mask->ny != (size_t)g.pupn) {
-            fprintf(stderr, "specklewfs %s: %s: mask is %zux%zux%zu but %s says PUPN = %ld (expected a %ldx%ld image)\n",
-                    cmd, maskfile, mask->nx, mask->ny, mask->nz, in, g.pupn, g.pupn, g.pupn);
-            goto done;
-        }
-        if (swfs_pupil_mask_check(mask, maskfile)) { cli_error(cmd); goto done; }
-    }
-    if (swfs_pupil_estimate(h, &g, mask, &opt, &r)) {
-        fprintf(stderr, "specklewfs %s: %s: %s\n", cmd, in, swfs_last_error());
-        goto done;
-    }
-    double err = NAN, truth_p = NAN, truth_ptt = NAN;
-    if (truthfile) {
-        if (swfs_fits_read_real(truthfile, "NCP", &truth, NULL)) { cli_error(cmd); goto done; }
-        if (truth->nx != (size_t)g.pupn || truth->ny != (size_t)g.pupn || truth->nz != 1) {
-            fprintf(stderr, "specklewfs %s: %s: NCP is %zux%zux%zu but %s says PUPN = %ld\n", cmd, truthfile, truth->nx,
-                    truth->ny, truth->nz, in, g.pupn);
-            goto done;
-        }
-        if (swfs_wfe_compare(r->wfe->data, truth->data, r->mask->data, (size_t)g.pupn, &err, &truth_p, &truth_ptt)) {
-            cli_error(cmd);
-            goto done;
-        }
-    }
     char cl[2048];
     cli_command_line(argc, argv, cl, sizeof cl);
-    char tl[256];
-    snprintf(tl, sizeof tl, "compared with %s: NCP error %.4g m rms (piston, tip, tilt removed)", truthfile ? truthfile : "",
-             err);
-    const char *prov[] = {cl, chosen[0] ? chosen : tl, tl};
-    if (swfs_pupil_write(r, out, &g, prov, (size_t)((chosen[0] ? 2 : 1) + (truthfile ? 1 : 0)))) { cli_error(cmd); goto done; }
+    const char *prov[] = {cl};
+    swfs_pupil_run_options o;
+    swfs_pupil_run_options_default(&o);
+    o.halos = ins;
+    o.nhalo = nin;
+    o.out = out;
+    o.mask = maskfile;
+    o.truth = truthfile;
+    o.pupil = opt;
+    o.prov = prov;
+    o.nprov = 1;
+    swfs_pupil_run_result res;
+    if (swfs_pupil_run(&o, &res)) {
+        free(ins);
+        return cli_error(cmd);
+    }
+    const swfs_pupil_result *r = res.pupil;
+    const swfs_geom g = res.geom;
+    if (nin > 1) {
+        printf("pupil: the speckles' self-check over the %zu focal pixels solved in all %zu halos (the fraction of the "
+               "science intensity's variance they explain):\n", res.ncommon, nin);
+        for (size_t k = 0; k < nin; k++)
+            printf("  %-40s %6.2f %%%s\n", ins[k], 100 * res.explained[k], k == res.chosen ? "  <- used" : "");
+        printf("pupil: chosen by the self-check among %zu halos: %s (%.2f %% explained)\n", nin, ins[res.chosen],
+               100 * res.explained[res.chosen]);
+    }
+    in = ins[res.chosen];
     printf("pupil: %s\n", out);
     if (r->method == SWFS_PUPIL_FIT) {
         const swfs_jointfit_result *f = r->fit;
@@ -222,20 +179,15 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (r->resmean)
         printf("  AO residual mean  %.1f nm rms taken out (the telemetry's time mean over the same frames, as the "
                "window sees it; RESMEAN): WFE is the NCP alone\n", r->resmean_rms * 1e9);
-    else if (h->resmean)
+    else if (res.halo->resmean)
         printf("  AO residual mean  kept (--keep-resmean): WFE is the whole static aberration the camera saw\n");
     printf("  WFE               %.1f nm rms, %.1f nm peak to valley (piston removed)\n", r->wfe_rms * 1e9, r->wfe_pv * 1e9);
     printf("  surface           %.1f nm rms\n", 0.5 * r->wfe_rms * 1e9);
     printf("  Strehl (Marechal) %.3f at %.3g um\n", r->strehl, g.wavelen * 1e6);
     if (truthfile)
         printf("  versus truth      injected %.1f nm rms (%.1f nm without tip/tilt); error %.1f nm rms (piston, tip, "
-               "tilt removed)\n", truth_p * 1e9, truth_ptt * 1e9, err * 1e9);
-    rc = CLI_OK;
-done:
+               "tilt removed)\n", res.truth_rms * 1e9, res.truth_rms_ptt * 1e9, res.err * 1e9);
     free(ins);
-    swfs_pupil_result_free(r);
-    swfs_real_free(mask);
-    swfs_real_free(truth);
-    swfs_halo_free(h);
-    return rc;
+    swfs_pupil_run_result_free(&res);
+    return CLI_OK;
 }

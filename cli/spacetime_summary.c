@@ -87,9 +87,13 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     } else if (r->ao_modes) {
         fprintf(f, "%s: the loops' modal filter: ao_modes = %zu, as given\n", cmd, r->ao_modes);
     }
-    fprintf(f, "%s: %zu loops simulated; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' "
-            "residual by %.1f of %.1f nm on their frames\n", cmd, r->nloops, r->lags[0], r->lags[1], r->lags[2],
-            r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms, 1e9 * r->st_truth_rms);
+    fprintf(f, "%s: %zu loops simulated", cmd, r->nloops);
+    if (r->loop_frames > r->loop_frames_described)
+        fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,
+                r->loop_frames_described, r->map_inputs);
+    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual by %.1f of %.1f "
+            "nm on their frames\n", r->lags[0], r->lags[1], r->lags[2], r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms,
+            1e9 * r->st_truth_rms);
     if (checks) cli_spacetime_summary(cmd, &r->check);
     fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, chosen_name(r->chosen), out, r->seconds,
             work);

@@ -94,6 +94,10 @@ grep -q "2 frozen-flow layers" teach.log && grep -q "chose the space-time map (n
     || { cat teach.log; fail "teach: two layers and the space-time map expected"; }
 awk '/^teach:   layer [12]: / { v[++n] = $4 } END { exit !(n == 2 && ((v[1] > 13.5 && v[1] < 16.5 && v[2] > 19.8 && v[2] < 24.2) ||
     (v[2] > 13.5 && v[2] < 16.5 && v[1] > 19.8 && v[1] < 24.2))) }' teach.log || { cat teach.log; fail "teach: the layers"; }
+# the observation's file holds ~1780 frames: four loops that long would give the map (5 lags x
+# 224 slopes = 1120 inputs) 6.4 frames per input; teach lengthens them to 10 (4 x 2800 frames)
+grep -q "^teach: 4 loops simulated of 2800 WFS frames (lengthened from 17[0-9][0-9]: the map's 1120 inputs need 10 frames each)" \
+    teach.log || { grep "loops simulated" teach.log; fail "teach: loops of 10 frames per map input expected"; }
 head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "teach: taught.fits is no 5-lag cube"
 head -c 8640 taught.fits | grep -aq "TEACHSEL= 'spacetime'" || fail "teach: the map's header should say it was chosen as such"
 [ "$(ls -d taught.teach/loop_*/ | wc -l)" = 4 ] && [ -s taught.teach/spacetime.fits ] \

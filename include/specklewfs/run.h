@@ -425,6 +425,39 @@ int swfs_clock_run(const swfs_clock_run_options *o, swfs_clock_run_result *r);
 int swfs_halo_choose_files(const char *const *paths, size_t n, double *explained, size_t *best, size_t *ncommon,
                            swfs_halo **chosen, swfs_geom *geom);
 
+/* ---- pupil: HALO.fits -> PUPIL.fits ------------------------------------------------- */
+
+typedef struct swfs_pupil_run_options {
+    const char *const *halos; /* HALO.fits; with more than one (halos of the same frames from
+                                 different speckles) the self-check chooses the halo used */
+    size_t nhalo;
+    const char *out;          /* PUPIL.fits (swfs_pupil_write) */
+    const char *mask;         /* pupil mask file (swfs_pupil_mask_read); NULL: the annulus of the
+                                 halo's geometry */
+    const char *truth;        /* a simulation's truth file: its NCP compared with the WFE (NULL: none) */
+    swfs_pupil_options pupil; /* swfs_pupil_options_default */
+    const char *const *prov;
+    size_t nprov;
+} swfs_pupil_run_options;
+
+void swfs_pupil_run_options_default(swfs_pupil_run_options *o);
+
+typedef struct swfs_pupil_run_result {
+    swfs_pupil_result *pupil; /* the estimate written */
+    swfs_halo *halo;          /* the halo it was made from */
+    swfs_geom geom;           /* that halo's geometry */
+    size_t chosen;            /* its index in halos */
+    double *explained;        /* with nhalo > 1: each halo's self-check score (nhalo); else NULL */
+    size_t ncommon;           /* with nhalo > 1: the focal pixels scored */
+    double err, truth_rms, truth_rms_ptt; /* with truth: swfs_wfe_compare's three [m]; else NaN */
+} swfs_pupil_run_result;
+
+/* The pupil step as `specklewfs pupil` runs it: the halo read (or chosen), its geometry
+ * required, the mask read, the estimate, the truth compared, PUPIL.fits written (its
+ * provenance: prov, what was chosen, the truth's comparison). Nothing is written on failure. */
+int swfs_pupil_run(const swfs_pupil_run_options *o, swfs_pupil_run_result *r);
+void swfs_pupil_run_result_free(swfs_pupil_run_result *r);
+
 /* ---- learn: a reconstructor from simulated closed loops (wfs.h swfs_recon_learner) ------ */
 
 typedef struct swfs_learn_run_options {
@@ -560,6 +593,10 @@ typedef struct swfs_teach_run_result {
     long lags[5];               /* 0, -L1, L1, -2 L1, 2 L1 */
     size_t nlags;
     size_t nloops;              /* loops simulated in all */
+    size_t map_inputs;          /* the space-time map's inputs: 5 lags x the slopes the observation uses */
+    size_t loop_frames;         /* WFS frames of each loop: the description's (loop_frames_described),
+                                   lengthened where fewer than 10 map_inputs frames in all */
+    size_t loop_frames_described;
     double st_misfit_rms, st_truth_rms; /* the space-time map's training misfit and truth [m] */
     swfs_speckles_run_result check; /* its checks on the observation's first file (st_*; info.nlags) */
     int warns;                  /* swfs_spacetime_warns(&check) */

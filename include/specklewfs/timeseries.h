@@ -148,6 +148,10 @@ typedef struct swfs_ts_summary {
 /* The progress callback of status.h, under the name this module had first. */
 typedef swfs_progress_fn swfs_ts_progress_fn;
 
+/* The WFS frames swfs_ts_run simulates for p: up to the last exposure's last frame, plus the
+ * handshake lag and 10 (0: out of memory). */
+size_t swfs_ts_nframes(const swfs_ts_params *p);
+
 /* Every file swfs_ts_run writes into dir, as outputs of `paths` (outpaths.h): the
  * command checks them before simulating. Returns the paths' status. */
 struct swfs_paths;

@@ -10,7 +10,7 @@ from ._lib import Error, LIBRARY_PATH
 from .core import Geom, set_blas_threads, blas_threads, aperture, zernike, wfe_compare, wfe_remove_ptt
 from .fits import read_fits, write_fits, fits_info, read_keys, read_geom, read_geom_file
 from .estimate import Accumulator, Halo, ACC_FIELDS, HALO_EXTS, G_SMOOTH_DEFAULT, phase_shift_map
-from .pupil import PupilResult, pupil_estimate, choose_halo
+from .pupil import PupilResult, pupil_estimate, pupil_files, choose_halo
 from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_square, actuators_read, actuators_write,
                         ShackHartmann,
                         dm_modes, slopes_remove_tiptilt, wind_from_slopes, slopes_noise_var, vk_covariance, Recon, SpeckleModel,

@@ -341,7 +341,8 @@ TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
-    ("nloops", c_size), ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
+    ("nloops", c_size), ("map_inputs", c_size), ("loop_frames", c_size), ("loop_frames_described", c_size),
+    ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
     ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
     ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
@@ -352,6 +353,12 @@ swfs_estimate_run_result = _s("swfs_estimate_run_result", [("halo", P(swfs_halo)
                                                            ("noise", swfs_noise), ("circ_core", c_dbl),
                                                            ("g_smooth_assumed", c_int)])
 
+swfs_pupil_run_options = _s("swfs_pupil_run_options", [
+    ("halos", P(c_str)), ("nhalo", c_size), ("out", c_str), ("mask", c_str), ("truth", c_str),
+    ("pupil", swfs_pupil_options), ("prov", P(c_str)), ("nprov", c_size)])
+swfs_pupil_run_result = _s("swfs_pupil_run_result", [
+    ("pupil", P(swfs_pupil_result)), ("halo", P(swfs_halo)), ("geom", swfs_geom), ("chosen", c_size),
+    ("explained", P(c_dbl)), ("ncommon", c_size), ("err", c_dbl), ("truth_rms", c_dbl), ("truth_rms_ptt", c_dbl)])
 STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
 SOURCE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, P(swfs_batch))
 UPDATE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, c_ptr, c_int)
@@ -413,6 +420,9 @@ _PROTOS = {
     "swfs_pupil_explained_rings": (None, [P(swfs_real), c_dbl, P(c_dbl), c_size]),
     "swfs_pupil_explained_nrings": (c_size, [P(swfs_real), c_dbl]),
     "swfs_pupil_write": (c_int, [P(swfs_pupil_result), c_str, P(swfs_geom), P(c_str), c_size]),
+    "swfs_pupil_run_options_default": (None, [P(swfs_pupil_run_options)]),
+    "swfs_pupil_run": (c_int, [P(swfs_pupil_run_options), P(swfs_pupil_run_result)]),
+    "swfs_pupil_run_result_free": (None, [P(swfs_pupil_run_result)]),
     "swfs_wfe_compare": (c_int, [P(c_dbl), P(c_dbl), P(c_dbl), c_size, P(c_dbl), P(c_dbl), P(c_dbl)]),
     "swfs_wfe_remove_ptt": (c_dbl, [P(c_dbl), P(c_dbl), c_size]),
     # aperture.h

@@ -86,17 +86,7 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     if isinstance(geom, dict):
         geom = Geom(**geom)
     g = geom.to_c()
-    o = _lib.swfs_pupil_options()
-    lib.swfs_pupil_options_default(ctypes.byref(o))
-    try:
-        o.weight = _WEIGHTS[weight]
-        o.source = _SOURCES[source]
-        o.method = _METHODS[method]
-    except KeyError as e:
-        raise ValueError(f"weight must be 'snr' or 'none', source 'lf' or 'halo', method 'auto', 'fit' or "
-                         f"'moments', got {e}") from None
-    o.wiener_k, o.bias = float(wiener_k), float(bias)
-    o.keep_resmean = 1 if keep_resmean else 0
+    o = _options(weight, wiener_k, bias, source, method, keep_resmean)
     ms = ms_s = None
     if mask is not None:
         mask = as_array(mask, "mask", np.float64, ndim=2)
@@ -106,6 +96,58 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     check(lib.swfs_pupil_estimate(halo._p, ctypes.byref(g), ms, ctypes.byref(o), ctypes.byref(out)),
           "swfs_pupil_estimate")
     return PupilResult(out, geom)
+
+
+def _options(weight, wiener_k, bias, source, method, keep_resmean, o=None):
+    """pupil.h's swfs_pupil_options from the keyword arguments (o: fill this one)."""
+    if o is None:
+        o = _lib.swfs_pupil_options()
+        lib.swfs_pupil_options_default(ctypes.byref(o))
+    try:
+        o.weight = _WEIGHTS[weight]
+        o.source = _SOURCES[source]
+        o.method = _METHODS[method]
+    except KeyError as e:
+        raise ValueError(f"weight must be 'snr' or 'none', source 'lf' or 'halo', method 'auto', 'fit' or "
+                         f"'moments', got {e}") from None
+    o.wiener_k, o.bias = float(wiener_k), float(bias)
+    o.keep_resmean = 1 if keep_resmean else 0
+    return o
+
+
+def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf",
+                method="auto", keep_resmean=False, provenance=()):
+    """`specklewfs pupil` on files (run.h swfs_pupil_run): HALO.fits (a path, or several
+    halos of the same frames, of which the self-check chooses one) -> PUPIL.fits `out`.
+    mask: a pupil mask file (its PUPIL extension when it has one) or None for the annulus;
+    truth: a simulation's truth file whose NCP the wavefront is compared with; the other
+    options as pupil_estimate's. Returns a dict: pupil (the PupilResult written), halo (the
+    path of the halo used), chosen (its index), explained (each halo's self-check score, with
+    more than one) and ncommon, err, truth_rms, truth_rms_ptt [m] (swfs_wfe_compare's; NaN
+    without truth). Nothing is written on failure."""
+    if isinstance(halos, (str, bytes)) or hasattr(halos, "__fspath__"):
+        halos = [halos]
+    halos = [str(h) for h in halos]
+    o = _lib.swfs_pupil_run_options()
+    lib.swfs_pupil_run_options_default(ctypes.byref(o))
+    _options(weight, wiener_k, bias, source, method, keep_resmean, o.pupil)
+    names, o.nhalo = _lib.strings(halos)
+    o.halos, o.out = names, enc(out)
+    o.mask = enc(mask) if mask is not None else None
+    o.truth = enc(truth) if truth is not None else None
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    r = _lib.swfs_pupil_run_result()
+    check(lib.swfs_pupil_run(ctypes.byref(o), ctypes.byref(r)), "swfs_pupil_run")
+    try:
+        res = {"halo": halos[r.chosen], "chosen": int(r.chosen), "ncommon": int(r.ncommon),
+               "explained": [r.explained[k] for k in range(len(halos))] if r.explained else None,
+               "err": r.err, "truth_rms": r.truth_rms, "truth_rms_ptt": r.truth_rms_ptt}
+        res["pupil"] = PupilResult(r.pupil, Geom.from_c(r.geom))
+        r.pupil = None  # the PupilResult owns it now
+    finally:
+        lib.swfs_pupil_run_result_free(ctypes.byref(r))
+    return res
 
 
 def choose_halo(halos, names=None):

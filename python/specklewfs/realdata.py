@@ -219,7 +219,9 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     layers and seeds are set per loop); work, a folder (created if needed) for the loops and
     the maps tried (default: out's name without .fits, plus .teach); out, the chosen map for
     speckles(..., recon=out). Returns the layers found
-    (wind: as wind_from_slopes' layers), lags, nloops, the space-time map's training misfit
+    (wind: as wind_from_slopes' layers), lags, nloops, loop_frames (each loop's WFS frames:
+    loop_frames_described, lengthened where the loops hold fewer than 10 frames per input of
+    the map, map_inputs), the space-time map's training misfit
     and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
     "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
     "perframe_mixed" (loops of the measured layer and random second layers). With science and
@@ -274,7 +276,8 @@ def _teach_dict(r, modes_from_slopes):
     layers = [dict(vx=L.vx, vy=L.vy, speed=L.speed, direction=L.direction, corr=L.corr, signif=L.signif,
                    nlags=L.nlags) for L in e.layer[:e.nlayers]]
     d = dict(layers=layers, nlayers_given=r.nlayers, nframes=r.wind.nframes, nsub=r.wind.nsub, pitch=r.wind.pitch,
-             rate=r.wind.rate, lags=list(r.lags[:r.nlags]), nloops=r.nloops, st_misfit_rms=r.st_misfit_rms,
+             rate=r.wind.rate, lags=list(r.lags[:r.nlags]), nloops=r.nloops, map_inputs=r.map_inputs,
+             loop_frames=r.loop_frames, loop_frames_described=r.loop_frames_described, st_misfit_rms=r.st_misfit_rms,
              st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds,
              ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)])

@@ -59,10 +59,20 @@ def test_path_on_files_equals_the_cli(series, cli):
     run("speckles", str(c / "timing.txt"), "--science", str(c / "sci.fits"), "--actuators", str(s / "actuators.fits"),
         "-o", str(c / "sp.fits"), "--match", str(c / "sci.fits"), str(c / "sci_m.fits"))
     run("estimate", str(c / "sci_m.fits"), str(c / "sp.fits"), "-o", str(c / "halo.fits"))
+    out = run("pupil", str(c / "halo.fits"), "-o", str(c / "pupil.fits"), "--truth", str(s / "truth.fits")).stdout
+    # the pupil step on files from Python (run.h swfs_pupil_run, as the command line runs it)
+    pf = sw.pupil_files(str(d / "halo.fits"), str(d / "pupil.fits"), truth=str(s / "truth.fits"))
+    assert pf["halo"] == str(d / "halo.fits") and pf["explained"] is None and pf["err"] == err
+    assert f"error {pf['err'] * 1e9:.1f} nm rms".encode() in out
+    np.testing.assert_array_equal(pf["pupil"].wfe, p.wfe)
     for f, ext in [("sci.fits", None), ("sci_m.fits", None), ("sp.fits", None), ("sp.fits", "RESMEAN"),
-                   ("halo.fits", "HALO"), ("halo.fits", "GAIN")]:
+                   ("halo.fits", "HALO"), ("halo.fits", "GAIN"), ("pupil.fits", "WFE"), ("pupil.fits", "FIELD")]:
         np.testing.assert_array_equal(sw.read_fits(str(d / f), ext)[0], sw.read_fits(str(c / f), ext)[0],
                                       err_msg=f"{f} {ext}")
+    # a mask of another grid: refused by name, nothing written
+    with pytest.raises(sw.Error, match="dark.fits: pupil mask is"):
+        sw.pupil_files(str(d / "halo.fits"), str(d / "p2.fits"), mask=str(s / "dark.fits"))
+    assert not os.path.exists(d / "p2.fits")
 
 
 def test_errors_leave_nothing(series, tmp_path):
@@ -266,6 +276,10 @@ def test_teach_from_files(series, tmp_path):
     assert r["modes_from_slopes"] and abs(r["ao_modes"] - 56) <= 0.15 * 56 and r["knee_obs"] > 0
     assert 1 <= len(r["calibration"]) <= 4 and r["calibration"][0][0] == r["knee_obs"]
     assert r["nsub"] == 12 and r["chosen"] in ("spacetime", "perframe", "perframe_mixed")
+    # three loops as long as the series' file would hold fewer than 10 frames per input of
+    # the map (5 lags x the 224 slopes used): lengthened to hold them
+    assert r["map_inputs"] == 5 * 224 and r["loop_frames_described"] < 10 * r["map_inputs"] / 3
+    assert r["loop_frames"] >= 10 * r["map_inputs"] / 3 > r["loop_frames"] - 3
     hk = sw.fits.read_keys(str(out), ["TEACHMOD", "TEACHMSR"])
     assert hk["TEACHMOD"] == r["ao_modes"] and hk["TEACHMSR"] == "slopes"
     assert os.path.exists(tmp_path / "work" / "modes.tsv")

@@ -437,7 +437,28 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { swfs_real_free(obs); return rc; }
-    /* 3. the loops */
+    /* 3. the loops. Enough frames for the map: a least-squares map of p inputs learned from
+     * n frames misses frames it was not learned on by sqrt(1 + p / (n - p - 1)) times its
+     * noise (the excess of ordinary least squares over the best linear map); n >= 10 p keeps
+     * that under 6 %. p: the lags times the slopes the observation uses. Loops shorter than
+     * that (short telemetry files: the description makes each loop as long as one) start
+     * their cubes later, the camera's frames being the same, and stay one file. */
+    size_t used = 0;
+    for (size_t i = 0; i < obs->nx; i++)
+        for (size_t f = 0; f < obs->ny; f++)
+            if (obs->data[f * obs->nx + i] != 0.0) { used++; break; }
+    r->map_inputs = 5 * used;
+    r->loop_frames = swfs_ts_nframes(&oo.sim);
+    if (!r->loop_frames) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
+    r->loop_frames_described = r->loop_frames;
+    const size_t need = (10 * r->map_inputs + o->nloops - 1) / o->nloops;
+    if (r->loop_frames < need) {
+        oo.sim.start_offset += (double)(need - r->loop_frames);
+        r->loop_frames = swfs_ts_nframes(&oo.sim);
+        /* each loop one file still, as the description has it */
+        if (oo.sim.wfs_file_frames > 0 && (size_t)oo.sim.wfs_file_frames < r->loop_frames)
+            oo.sim.wfs_file_frames = (long)r->loop_frames;
+    }
     loop_job *jobs = calloc(o->nloops, sizeof *jobs);
     if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     for (size_t k = 0; k < o->nloops; k++) {

@@ -359,21 +359,28 @@ static double cube_start(const swfs_ts_params *p, size_t c)
     return p->start_offset + (double)c * ((double)p->cube_frames * p->frame_ratio + p->cube_gap);
 }
 
-int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
+size_t swfs_ts_nframes(const swfs_ts_params *p)
 {
-    static const char *fixed[] = {"actuators.fits", "pupil.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
-                                  "speckles_ideal.fits", "speckles_ideal_tt.fits", "truth.fits", "truth_timing.txt"};
-    char path[8192];
     const size_t ncub = (size_t)p->ncubes, nf = (size_t)p->cube_frames;
     size_t nwfs = 0;
-    swfs_exposure *sched = malloc(nf * sizeof *sched);
-    if (!sched) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    swfs_exposure *sched = malloc((nf ? nf : 1) * sizeof *sched);
+    if (!sched) return 0;
     for (size_t c = 0; c < ncub; c++) {
         size_t need = swfs_engine_schedule(p->frame_ratio, cube_start(p, c), nf, sched);
         if (need > nwfs) nwfs = need;
     }
     free(sched);
-    nwfs += (size_t)p->handshake_lag + 10;
+    return nwfs + (size_t)p->handshake_lag + 10;
+}
+
+int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
+{
+    static const char *fixed[] = {"actuators.fits", "pupil.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
+                                  "speckles_ideal.fits", "speckles_ideal_tt.fits", "truth.fits", "truth_timing.txt"};
+    char path[8192];
+    const size_t ncub = (size_t)p->ncubes;
+    const size_t nwfs = swfs_ts_nframes(p);
+    if (!nwfs) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
     if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
     if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
