@@ -1,6 +1,5 @@
 /* pupil: HALO.fits (or several, the self-check choosing) -> PUPIL.fits (run.h swfs_pupil_run;
  * the command line's `specklewfs pupil` and Python's pupil_files). */
-#include "run_internal.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
@@ -89,7 +88,9 @@ int swfs_pupil_run(const swfs_pupil_run_options *o, swfs_pupil_run_result *r)
         if (!rc) rc = swfs_pupil_write(r->pupil, o->out, &r->geom, prov, k);
     }
     free(prov);
-    if (rc) swfs_pupil_run_result_free(r);
-    if (rc) r->err = r->truth_rms = r->truth_rms_ptt = NAN;
+    if (rc) {
+        swfs_pupil_run_result_free(r);
+        r->err = r->truth_rms = r->truth_rms_ptt = NAN;
+    }
     return rc;
 }
