@@ -27,7 +27,7 @@ if [ "${3:-}" = --from-files ]; then auto=_ff; set -- "$1" "$2" "${@:4}"; fi
 bench_args "$@"
 
 printf "%-11s %4s %4s | %6s %6s | %-36s | %-16s %-10s | %6s %6s | %5s %5s\n" system seed nsub vk ideal \
-    "layers found [m/s toward deg]" lags chosen teach "[s]" "x def" "x tch"
+    "layers found [m/s toward deg]" lags chosen teach "[s]" "x vk" "x tch"
 sums=
 for ks in $OBS; do
     obs_setup "$BT" "$W" "$ks"

@@ -440,14 +440,11 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* 3. the loops. Enough frames for the map: a least-squares map of p inputs learned from
      * n frames misses frames it was not learned on by sqrt(1 + p / (n - p - 1)) times its
      * noise (the excess of ordinary least squares over the best linear map); n >= 10 p keeps
-     * that under 6 %. p: the lags times the slopes the observation uses. Loops shorter than
-     * that (short telemetry files: the description makes each loop as long as one) start
-     * their cubes later, the camera's frames being the same, and stay one file. */
-    size_t used = 0;
-    for (size_t i = 0; i < obs->nx; i++)
-        for (size_t f = 0; f < obs->ny; f++)
-            if (obs->data[f * obs->nx + i] != 0.0) { used++; break; }
-    r->map_inputs = 5 * used;
+     * that under 6 %. p: the lags times the slopes the observation uses (x and y of the
+     * subapertures `wind` found with signal). Loops shorter than that (short telemetry files:
+     * the description makes each loop as long as one) start their cubes later, the camera's
+     * frames being the same, and stay one file. */
+    r->map_inputs = r->nlags * 2 * e->nvalid;
     r->loop_frames = swfs_ts_nframes(&oo.sim);
     if (!r->loop_frames) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     r->loop_frames_described = r->loop_frames;
