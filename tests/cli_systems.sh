@@ -8,7 +8,7 @@
 #               (measured: NCP error 15.1 nm from the slopes, 14.7 nm from the ideal speckles;
 #               with --recon vk 20.0 nm);
 #   sh24-base:  24 x 24 at 1 kHz, 6 frames per camera frame, 10 m/s at 60 deg, 0.1 lambda/D,
-#               read noise 10 (measured: 25.6 nm, 24.8 nm ideal; vk 30.6 nm; 28.9 nm before
+#               read noise 10 (measured: 25.7 nm, 24.8 nm ideal; vk 30.6 nm; 28.9 nm before
 #               teach's loops held 10 frames per input of its map).
 # Asserts sync's ratio within 0.005 of the truth and its lag within 0.2 WFS frames (the
 # cubes start at a fraction 0.637 of a WFS frame: true lag 3 - 0.637), and the NCP error
