@@ -75,23 +75,7 @@ void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
 
 int cli_make_dir(const char *cmd, const char *path)
 {
-    char tmp[4096];
-    if (strlen(path) >= sizeof tmp) return cli_usage_error(cmd, "output folder name too long");
-    strcpy(tmp, path);
-    for (char *p = tmp + 1; *p; p++) {
-        if (*p == '/') {
-            *p = '\0';
-            if (mkdir(tmp, 0777) != 0 && errno != EEXIST) goto fail;
-            *p = '/';
-        }
-    }
-    if (mkdir(tmp, 0777) != 0 && errno != EEXIST) goto fail;
-    struct stat sb;
-    if (stat(tmp, &sb) != 0 || !S_ISDIR(sb.st_mode)) goto fail;
-    return 0;
-fail:
-    fprintf(stderr, "specklewfs %s: cannot create output folder %s: %s\n", cmd, path, strerror(errno));
-    return CLI_FAIL;
+    return swfs_make_dirs(path) ? cli_error(cmd) : 0;
 }
 
 int cli_paths_check(const char *cmd, swfs_paths *p)

@@ -47,6 +47,10 @@ int swfs_input_check(const char *path, const char *what);
  * than read the rest of the line as a line of its own (a long comment's tail as a setting). */
 int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, int *rc);
 
+/* An output folder and its parents made where missing (mkdir -p); SWFS_ERR_IO naming the
+ * folder and the system's reason when it cannot be made or is not a folder. */
+int swfs_make_dirs(const char *path);
+
 SWFS_END_DECLS
 
 #endif

@@ -19,11 +19,13 @@
 #include <stdint.h>
 
 #include "specklewfs/clocksync.h"
+#include "specklewfs/closed_loop.h"
 #include "specklewfs/estimate.h"
 #include "specklewfs/lmodel.h"
 #include "specklewfs/milksource.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/pupil.h"
+#include "specklewfs/recovery.h"
 #include "specklewfs/reduce.h"
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
@@ -634,6 +636,50 @@ int swfs_teach_work_default(const char *out, char *work, size_t cap);
  * that is no square Shack-Hartmann's). */
 int swfs_teach_describe(swfs_config *c, const char *science, const char *actuators, const char *pupil,
                         const char *valid, const char *telemetry);
+
+/* ---- demo: the paper's Sec. 3 simulation end to end ---------------------------------- */
+
+typedef struct swfs_demo_run_options {
+    const char *outdir;       /* the demo folder: sigma<level>/ (simulate's four files, halo.fits,
+                                 wavefront.fits), recovery.tsv, loop/ and report/ */
+    swfs_sim_params sim;      /* the simulation (swfs_sim_params_default or a config file) */
+    const double *levels;     /* camera background noise levels [counts], nlevels of them */
+    size_t nlevels;
+    swfs_loop_params loop;    /* the closed loop that follows (swfs_loop_params_default);
+                                 loop.iterations = 0: none */
+    int report;               /* 1: one page of figures, OUTDIR/report/index.html */
+    const char *config;       /* the config file sim came from (NULL: none): refused as an output */
+    const char *const *prov;  /* provenance lines of every product */
+    size_t nprov;
+    swfs_progress_fn progress; /* stages "simulate" (0 of 1 before it starts), "simulate screens",
+                                  "simulate frames", "noise levels" (k of nlevels done, before
+                                  each level and after the last), "closed loop" (0 before it starts,
+                                  then each row) */
+    void *progress_ctx;
+} swfs_demo_run_options;
+
+/* The defaults of `specklewfs demo`: folder "demo-out", the paper's simulation, levels
+ * 0, 10, 100, 1000 counts, the loop's defaults, the report. */
+void swfs_demo_run_options_default(swfs_demo_run_options *o);
+
+typedef struct swfs_demo_run_result {
+    swfs_sim_result *sim;     /* the noise-free simulation every level was made from */
+    size_t nlevels;
+    swfs_recovery *levels;    /* one recovery per noise level (recovery.h), as in recovery.tsv */
+    double *level_seconds;    /* wall time of each level */
+    swfs_loop_result *loop;   /* the closed loop (NULL with loop.iterations = 0) */
+    double ncp_rms_ptt;       /* [m] the injected NCP with piston, tip and tilt removed */
+    double sim_seconds, seconds; /* the simulation's and the whole run's wall time */
+    char html[4096];          /* the report's index.html ("" without it) */
+} swfs_demo_run_result;
+
+/* `specklewfs demo`: the folders made and every product checked against the config file
+ * and each other, the simulation, each noise level's recovery (swfs_recovery_run, seed
+ * sim.seed * 1000003 + level), recovery.tsv, the closed loop (swfs_closed_loop_run with the
+ * simulation as its first row, swfs_closed_loop_write into loop/), all renamed into place
+ * together (atomic.h: a failure leaves none under its final name), then the figures. */
+int swfs_demo_run(const swfs_demo_run_options *o, swfs_demo_run_result *r);
+void swfs_demo_run_result_free(swfs_demo_run_result *r);
 
 SWFS_END_DECLS
 

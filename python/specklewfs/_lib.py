@@ -359,6 +359,33 @@ swfs_pupil_run_options = _s("swfs_pupil_run_options", [
 swfs_pupil_run_result = _s("swfs_pupil_run_result", [
     ("pupil", P(swfs_pupil_result)), ("halo", P(swfs_halo)), ("geom", swfs_geom), ("chosen", c_size),
     ("explained", P(c_dbl)), ("ncommon", c_size), ("err", c_dbl), ("truth_rms", c_dbl), ("truth_rms_ptt", c_dbl)])
+swfs_dmfit_options = _s("swfs_dmfit_options", [
+    ("influence", c_int), ("coupling", c_dbl), ("pitch", c_dbl), ("modes", c_size), ("reg", c_dbl), ("rcond", c_dbl),
+    ("rim", c_int)])
+DMFIT_STATS_FIELDS = ["target_rms", "modal_rms", "filtered_rms", "fit_rms", "fiterr_rms", "unfit_rms", "cmd_rms",
+                      "cmd_min", "cmd_max"]
+swfs_dmfit_stats = _s("swfs_dmfit_stats", [(n, c_dbl) for n in DMFIT_STATS_FIELDS])
+swfs_loop_params = _s("swfs_loop_params", [
+    ("iterations", c_size), ("gain", c_dbl), ("sigma", c_dbl), ("act_pitch", c_dbl), ("act_xy", P(c_dbl)),
+    ("nact", c_size), ("act_name", c_str), ("fit", swfs_dmfit_options), ("pupil", swfs_pupil_options),
+    ("annulus_in", c_dbl), ("annulus_out", c_dbl)])
+LOOP_ITER_FIELDS = ["resid_rms", "resid_rms_ptt", "strehl", "strehl_ao", "strehl_marechal", "contrast", "contrast_ao",
+                    "contrast_ncp", "est_rms", "est_err", "median_snr"]
+swfs_loop_iter = _s("swfs_loop_iter", [(n, c_dbl) for n in LOOP_ITER_FIELDS]
+                    + [("fit", swfs_dmfit_stats), ("seconds", c_dbl)])
+swfs_loop_result = _s("swfs_loop_result", [
+    ("params", swfs_loop_params), ("sim", swfs_sim_params), ("geom", swfs_geom), ("nrows", c_size), ("nact", c_size),
+    ("pitch", c_dbl), ("rows", P(swfs_loop_iter)), ("residual", P(swfs_real)), ("estimate", P(swfs_real)),
+    ("dm_surface", P(swfs_real)), ("commands", P(swfs_real)), ("actuators", P(swfs_real)), ("pupil", P(swfs_real)),
+    ("seconds", c_dbl)])
+swfs_demo_run_options = _s("swfs_demo_run_options", [
+    ("outdir", c_str), ("sim", swfs_sim_params), ("levels", P(c_dbl)), ("nlevels", c_size),
+    ("loop", swfs_loop_params), ("report", c_int), ("config", c_str), ("prov", P(c_str)), ("nprov", c_size),
+    ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
+swfs_demo_run_result = _s("swfs_demo_run_result", [
+    ("sim", P(swfs_sim_result)), ("nlevels", c_size), ("levels", P(swfs_recovery)), ("level_seconds", P(c_dbl)),
+    ("loop", P(swfs_loop_result)), ("ncp_rms_ptt", c_dbl), ("sim_seconds", c_dbl), ("seconds", c_dbl),
+    ("html", ctypes.c_char * 4096)])
 STRUCTS = [v for v in list(globals().values()) if isinstance(v, type) and issubclass(v, Struct) and v._cname_]
 SOURCE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, P(swfs_batch))
 UPDATE_FN = ctypes.CFUNCTYPE(c_int, c_ptr, c_ptr, c_int)
@@ -423,6 +450,9 @@ _PROTOS = {
     "swfs_pupil_run_options_default": (None, [P(swfs_pupil_run_options)]),
     "swfs_pupil_run": (c_int, [P(swfs_pupil_run_options), P(swfs_pupil_run_result)]),
     "swfs_pupil_run_result_free": (None, [P(swfs_pupil_run_result)]),
+    "swfs_demo_run_options_default": (None, [P(swfs_demo_run_options)]),
+    "swfs_demo_run": (c_int, [P(swfs_demo_run_options), P(swfs_demo_run_result)]),
+    "swfs_demo_run_result_free": (None, [P(swfs_demo_run_result)]),
     "swfs_wfe_compare": (c_int, [P(c_dbl), P(c_dbl), P(c_dbl), c_size, P(c_dbl), P(c_dbl), P(c_dbl)]),
     "swfs_wfe_remove_ptt": (c_dbl, [P(c_dbl), P(c_dbl), c_size]),
     # aperture.h

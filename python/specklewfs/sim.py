@@ -166,6 +166,65 @@ def simulate(config=None, progress=None, ncp=None, **params):
     return SimResult(out)
 
 
+def demo(directory="demo-out", config=None, levels=(0, 10, 100, 1000), report=True, loop_iterations=None,
+         loop_gain=None, loop_sigma=None, progress=None, provenance=(), **params):
+    """`specklewfs demo` (run.h swfs_demo_run): the paper's Sec. 3 simulation (config and
+    params as simulate()'s), each camera noise level in `levels` [counts] recovered into
+    DIR/sigma<level>/ and DIR/recovery.tsv, then the closed loop (loop_iterations, default 5,
+    0 for none; loop_gain 0.8; loop_sigma 100 counts) into DIR/loop/, then the figures
+    (DIR/report/index.html) unless report is False. All products are renamed into place
+    together: a failure leaves none. progress: callable(stage, done, total).
+    Returns a dict: sim (the SimResult), recovery (one dict per level as
+    SimResult.recovery's, with its seconds), loop (one dict per row of the loop table:
+    resid_rms, resid_rms_ptt, strehl, ..., est_err, fit_rms, unfit_rms, seconds; [] without
+    the loop), ncp_rms_ptt [m], sim_seconds, seconds, html ("" without the report)."""
+    o = _lib.swfs_demo_run_options()
+    lib.swfs_demo_run_options_default(ctypes.byref(o))
+    o.sim = _params(config, params)
+    lv = np.ascontiguousarray(np.atleast_1d(np.asarray(levels, dtype=np.float64)))
+    if lv.ndim != 1 or lv.size == 0:
+        raise ValueError("levels: expected a list of camera noise levels [counts], got %r" % (levels,))
+    o.levels, o.nlevels = dptr(lv), lv.size
+    o.outdir = enc(str(directory))
+    o.report = 1 if report else 0
+    if config is not None:
+        o.config = enc(str(config))
+    if loop_iterations is not None:
+        o.loop.iterations = int(loop_iterations)
+    if loop_gain is not None:
+        o.loop.gain = float(loop_gain)
+    if loop_sigma is not None:
+        o.loop.sigma = float(loop_sigma)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    cb = _progress(progress)
+    o.progress = cb
+    r = _lib.swfs_demo_run_result()
+    check(lib.swfs_demo_run(ctypes.byref(o), ctypes.byref(r)), "swfs_demo_run")
+    try:
+        rec = []
+        for k in range(r.nlevels):
+            d = {n: getattr(r.levels[k], n) for n in _lib.RECOVERY_FIELDS}
+            d["seconds"] = r.level_seconds[k]
+            rec.append(d)
+        loop = []
+        if r.loop:
+            lr = r.loop.contents
+            for k in range(lr.nrows):
+                it = lr.rows[k]
+                d = {n: getattr(it, n) for n in _lib.LOOP_ITER_FIELDS}
+                d["fit_rms"], d["unfit_rms"] = it.fit.fit_rms, it.fit.unfit_rms
+                d["seconds"] = it.seconds
+                loop.append(d)
+        res = {"recovery": rec, "loop": loop, "ncp_rms_ptt": r.ncp_rms_ptt, "sim_seconds": r.sim_seconds,
+               "seconds": r.seconds, "html": r.html.decode()}
+        res["sim"] = SimResult(r.sim)
+        r.sim = None  # the SimResult owns it now
+    finally:
+        lib.swfs_demo_run_result_free(ctypes.byref(r))
+    return res
+
+
 def ncp_map(config=None, mask=None, **params):
     """The NCP map [m] the parameters describe, on the pupil grid, and its rms and pv."""
     from .core import aperture

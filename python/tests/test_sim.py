@@ -70,6 +70,43 @@ def test_demo_table_equals_python_recovery(paper_sim, cli, tmp_path):
     assert rows[0][6] == "15.6" and float(rows[0][7]) < 9.0
 
 
+def test_demo_through_python_equals_the_cli(small_sim, cli, tmp_path):
+    """demo() is `specklewfs demo` (run.h swfs_demo_run): the same products to the bit, its
+    rows SimResult.recovery's, the loop's rows those of loop.tsv; a bad level, or an output
+    of the loop that could not be written, is refused before the simulation, with no
+    product written."""
+    kv = ["%s=%s" % (k, v) for k, v in SMALL.items()]
+    subprocess.run([cli, "demo", "-o", str(tmp_path / "cli"), "--levels", "0,100", "--loop-iterations", "1",
+                    "--no-report"] + kv, check=True, capture_output=True)
+    seen = []
+    r = sw.demo(tmp_path / "py", levels=(0, 100), loop_iterations=1, report=False,
+                progress=lambda stage, done, total: seen.append((stage, done, total)), **SMALL)
+    assert [x["sigma"] for x in r["recovery"]] == [0, 100] and r["html"] == ""
+    for row in r["recovery"]:
+        want = small_sim.recovery(row["sigma"])
+        assert {k: row[k] for k in want} == want
+    for f in ("sigma0/halo.fits", "sigma100/wavefront.fits", "sigma100/science.fits", "loop/loop.fits"):
+        a, b = sw.read_fits(str(tmp_path / "cli" / f))[0], sw.read_fits(str(tmp_path / "py" / f))[0]
+        if f.startswith("loop"):  # its last column is the wall time of each row
+            a, b = a[:, :-1], b[:, :-1]
+        assert np.array_equal(a, b, equal_nan=True), f
+    assert np.array_equal(r["sim"].science, small_sim.science)
+    tsv = np.loadtxt(tmp_path / "py" / "loop" / "loop.tsv")
+    assert len(r["loop"]) == 2 == tsv.shape[0]
+    assert np.allclose([x["resid_rms"] * 1e9 for x in r["loop"]], tsv[:, 1], rtol=1e-5)
+    assert ("simulate", 0, 1) in seen and ("noise levels", 2, 2) in seen and ("closed loop", 2, 2) in seen
+    assert r["ncp_rms_ptt"] > 0 and r["seconds"] >= r["sim_seconds"] > 0
+    with pytest.raises(sw.Error, match="noise level 2 is -1 counts"):
+        sw.demo(tmp_path / "bad", levels=(0, -1), **SMALL)
+    assert not os.path.exists(tmp_path / "bad")
+    # The loop's table cannot be written (a folder in its place): no level's products either.
+    os.makedirs(tmp_path / "fail" / "loop" / "loop.tsv")
+    with pytest.raises(sw.Error, match="loop.tsv .output.: is a folder"):
+        sw.demo(tmp_path / "fail", levels=(0,), loop_iterations=1, report=False, **SMALL)
+    assert not os.path.exists(tmp_path / "fail" / "sigma0" / "halo.fits")
+    assert not os.path.exists(tmp_path / "fail" / "recovery.tsv")
+
+
 def test_small_simulation(small_sim, tmp_path):
     s = small_sim
     assert s.science.shape == (s.nframes, 32, 32) and s.pupil.shape == (64, 64) and s.halo_true.shape == (32, 32)

@@ -209,3 +209,24 @@ int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, i
     }
     return 1;
 }
+
+int swfs_make_dirs(const char *path)
+{
+    char tmp[4096];
+    if (!path || !*path) return swfs_fail(SWFS_ERR_ARG, "an output folder needs a name");
+    if (strlen(path) >= sizeof tmp) return swfs_fail(SWFS_ERR_ARG, "output folder name too long: %.200s...", path);
+    strcpy(tmp, path);
+    for (char *p = tmp + 1; *p; p++) {
+        if (*p != '/') continue;
+        *p = '\0';
+        if (mkdir(tmp, 0777) != 0 && errno != EEXIST)
+            return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s (making %s): %s", path, tmp, strerror(errno));
+        *p = '/';
+    }
+    if (mkdir(tmp, 0777) != 0 && errno != EEXIST)
+        return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s: %s", path, strerror(errno));
+    struct stat sb;
+    if (stat(tmp, &sb) != 0) return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s: %s", path, strerror(errno));
+    if (!S_ISDIR(sb.st_mode)) return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s: a file of that name exists", path);
+    return SWFS_OK;
+}
