@@ -96,8 +96,12 @@ static void sleep_s(double t)
     nanosleep(&ts, NULL);
 }
 
-/* Open the reader's stream and check its frame size; SWFS_ERR_IO while it does not exist. */
-static int reader_open(reader *rd)
+/* Open the reader's stream and check its frame size; SWFS_ERR_IO while it does not exist.
+ * claim: take one of its semaphores now (a reopen in the reader's thread). The first open
+ * claims later, when the readers start (swfs_shm_source_create): a writer waiting for a
+ * reader (`replay --wait-reader`) must not start before the data start, or the frames it
+ * publishes in between would be skipped without a count. */
+static int reader_open(reader *rd, int claim)
 {
     swfs_shm *m = NULL;
     int rc = swfs_shm_open(&m, rd->src->o.dir, rd->name);
@@ -131,7 +135,7 @@ static int reader_open(reader *rd)
         rd->fm = f;
         rd->bufcap = depth;
     }
-    if ((rc = swfs_shm_claim(m))) {
+    if (claim && (rc = swfs_shm_claim(m))) {
         swfs_shm_close(m, 0);
         return rc;
     }
@@ -165,7 +169,7 @@ static void *reader_main(void *arg)
     double gone_since = -1, last_check = swfs_wall_seconds();
     while (!quitting(s)) {
         if (!rd->shm) {
-            int rc = reader_open(rd);
+            int rc = reader_open(rd, 1);
             if (rc == SWFS_OK) {
                 /* A restarted writer counts from 0: read what its stream still holds. */
                 swfs_shm_set_last(rd->shm, 0);
@@ -281,7 +285,7 @@ int swfs_shm_source_open(swfs_shm_source **out, const swfs_shm_source_options *o
     const double t0 = swfs_wall_seconds();
     for (size_t i = 0; i < s->nr && !rc; i++) {
         for (;;) {
-            rc = reader_open(&s->r[i]);
+            rc = reader_open(&s->r[i], 0);
             if (rc != SWFS_ERR_IO || swfs_wall_seconds() - t0 > o->timeout) break;
             if (o->stop && *o->stop) break;
             sleep_s(o->poll);
@@ -327,6 +331,7 @@ int swfs_shm_source_open(swfs_shm_source **out, const swfs_shm_source_options *o
     s->prev_stamps = rc ? NULL : malloc(s->batch_cap * sizeof *s->prev_stamps);
     s->scratch = rc ? NULL : malloc(maxv * sizeof *s->scratch);
     if (!rc && (!s->prev_stamps || !s->scratch)) rc = swfs_fail(SWFS_ERR_NOMEM, "shm source: out of memory");
+    for (size_t i = 0; i < s->nr && !rc; i++) rc = swfs_shm_claim(s->r[i].shm);
     for (size_t i = 0; i < s->nr && !rc; i++) {
         /* The data start now: frames after the counter at this moment count. */
         const uint64_t c0 = swfs_shm_counter(s->r[i].shm);
