@@ -12,9 +12,8 @@ import numpy as np
 
 from . import _lib
 from ._lib import lib, check, dptr, enc
-from .core import geom_arg
 from .estimate import Halo
-from .sim import _progress, _struct_dict
+from .sim import _run, _struct_dict
 from .stream import _RECON, _band
 
 
@@ -26,19 +25,6 @@ def _paths(paths):
 
 def _opt(path):
     return enc(path) if path is not None else None
-
-
-def _run(function, o, result, geom=None, provenance=(), progress=None):
-    """run.h's `function` on options o (their geometry, provenance and progress filled in
-    here); its result struct, raising Error on failure."""
-    if geom is not None:
-        o.geom = geom_arg(geom)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    o.progress = _progress(progress)
-    r = result()
-    check(getattr(lib, function)(ctypes.byref(o), ctypes.byref(r)), function)
-    return r
 
 
 def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=False, progress=None,
@@ -262,12 +248,7 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
     os.makedirs(work, exist_ok=True)
     o.files, o.nfiles, o.out, o.work = arr, n, enc(out), enc(work)
     o.nloops, o.seed = int(loops), int(seed)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    cb = _progress(progress)
-    o.progress = cb
-    r = _lib.swfs_teach_run_result()
-    check(lib.swfs_teach_run(ctypes.byref(o), ctypes.byref(r)), "swfs_teach_run")
+    r = _run("swfs_teach_run", o, _lib.swfs_teach_run_result, None, provenance, progress)
     return _teach_dict(r, bool(o.modes_from_slopes))
 
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from . import _lib
 from ._lib import lib, check, check_ptr, as_array, dptr, enc
-from .core import Geom
+from .core import Geom, geom_arg
 
 P = ctypes.POINTER
 
@@ -35,6 +35,19 @@ def _progress(progress):
     def cb(ctx, stage, done, total):
         progress(stage.decode() if stage else "", int(done), int(total))
     return _lib.PROGRESS_FN(cb)
+
+
+def _run(function, o, result, geom=None, provenance=(), progress=None):
+    """run.h's `function` on options o (their geometry, provenance and progress filled in
+    here); its result struct, raising Error on failure."""
+    if geom is not None:
+        o.geom = geom_arg(geom)
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    o.progress = _progress(progress)
+    r = result()
+    check(getattr(lib, function)(ctypes.byref(o), ctypes.byref(r)), function)
+    return r
 
 
 def _struct_dict(s):
@@ -195,12 +208,7 @@ def demo(directory="demo-out", config=None, levels=(0, 10, 100, 1000), report=Tr
         o.loop.gain = float(loop_gain)
     if loop_sigma is not None:
         o.loop.sigma = float(loop_sigma)
-    prov, o.nprov = _lib.strings(provenance)
-    o.prov = prov
-    cb = _progress(progress)
-    o.progress = cb
-    r = _lib.swfs_demo_run_result()
-    check(lib.swfs_demo_run(ctypes.byref(o), ctypes.byref(r)), "swfs_demo_run")
+    r = _run("swfs_demo_run", o, _lib.swfs_demo_run_result, None, provenance, progress)
     try:
         rec = []
         for k in range(r.nlevels):
