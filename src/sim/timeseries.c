@@ -359,18 +359,31 @@ static double cube_start(const swfs_ts_params *p, size_t c)
     return p->start_offset + (double)c * ((double)p->cube_frames * p->frame_ratio + p->cube_gap);
 }
 
-size_t swfs_ts_nframes(const swfs_ts_params *p)
+/* The camera's schedule (eq:downsampledHalo's exposures): cube c starts at tstart[c] (global
+ * WFS frames); its exposures into sched + c * cube_frames, or all into the one cube's worth
+ * sched holds when all = 0. The WFS frames the simulation runs: the last exposure's end, the
+ * handshake's lag and 10 more. */
+static size_t ts_schedule(const swfs_ts_params *p, swfs_exposure *sched, int all, double *tstart)
 {
     const size_t ncub = (size_t)p->ncubes, nf = (size_t)p->cube_frames;
     size_t nwfs = 0;
-    swfs_exposure *sched = malloc((nf ? nf : 1) * sizeof *sched);
-    if (!sched) return 0;
     for (size_t c = 0; c < ncub; c++) {
-        size_t need = swfs_engine_schedule(p->frame_ratio, cube_start(p, c), nf, sched);
+        const double t = cube_start(p, c);
+        if (tstart) tstart[c] = t;
+        const size_t need = swfs_engine_schedule(p->frame_ratio, t, nf, sched + (all ? c * nf : 0));
         if (need > nwfs) nwfs = need;
     }
-    free(sched);
     return nwfs + (size_t)p->handshake_lag + 10;
+}
+
+size_t swfs_ts_nframes(const swfs_ts_params *p)
+{
+    const size_t nf = (size_t)p->cube_frames;
+    swfs_exposure *sched = malloc((nf ? nf : 1) * sizeof *sched);
+    if (!sched) return 0;
+    const size_t nwfs = ts_schedule(p, sched, 0, NULL);
+    free(sched);
+    return nwfs;
 }
 
 int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
@@ -545,13 +558,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     hs = calloc(ncub, sizeof *hs);
     double *tstart = malloc(ncub * sizeof *tstart);
     if (!sched || !hs || !tstart) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
-    size_t nwfs = 0;
-    for (size_t c = 0; c < ncub; c++) {
-        tstart[c] = cube_start(p, c);
-        size_t need = swfs_engine_schedule(p->frame_ratio, tstart[c], nf, sched + c * nf);
-        if (need > nwfs) nwfs = need;
-    }
-    nwfs += (size_t)p->handshake_lag + 10;
+    const size_t nwfs = ts_schedule(p, sched, 1, tstart);
     sum->nwfs = nwfs;
     const size_t ffr = p->wfs_file_frames > 0 ? (size_t)p->wfs_file_frames : nwfs;
     for (size_t c = 0; c < ncub; c++) {
