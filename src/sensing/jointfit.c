@@ -41,6 +41,30 @@ void swfs_jointfit_result_free(swfs_jointfit_result *r)
 }
 
 /* 4x4 symmetric matrix entry (i, j) from the upper-triangle planes of the regression. */
+/* Symmetric positive definite n x n systems, kept row-major in their upper triangle: the
+ * same memory is the column-major lower triangle, so LAPACK works on it in place. (The
+ * row-major LAPACKE wrappers transpose a copy in and out on every call: with np ~ 600 that
+ * was a fifth of a `pupil` run under the sanitizers, and the copies' page faults more.)
+ * Each returns LAPACK's info (0: done). */
+static int potrf(double *A, size_t n)
+{
+    return (int)LAPACKE_dpotrf_work(LAPACK_COL_MAJOR, 'L', (lapack_int)n, A, (lapack_int)n);
+}
+static int potri(double *A, size_t n)
+{
+    return (int)LAPACKE_dpotri_work(LAPACK_COL_MAJOR, 'L', (lapack_int)n, A, (lapack_int)n);
+}
+/* b <- A^-1 b with A factored by potrf. */
+static void potrs(const double *A, size_t n, double *b)
+{
+    LAPACKE_dpotrs_work(LAPACK_COL_MAJOR, 'L', (lapack_int)n, 1, A, (lapack_int)n, b, (lapack_int)n);
+}
+/* b <- A^-1 b, A factored in place. */
+static int posv(double *A, size_t n, double *b)
+{
+    return (int)LAPACKE_dposv_work(LAPACK_COL_MAJOR, 'L', (lapack_int)n, 1, A, (lapack_int)n, b, (lapack_int)n);
+}
+
 static inline size_t tri(size_t i, size_t j)
 {
     if (i > j) { size_t t = i; i = j; j = t; }
@@ -268,7 +292,7 @@ static int newton_evidence(fit *ft, int update, double *dl)
     const size_t nb = ft->nb, np = ft->np;
     *dl = 0.0;
     assemble(ft, 0.0);
-    if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
+    if (potrf(ft->A, np) != 0) return 0;
     prior_terms(ft, ft->x, &(double){0}, &(double){0}); /* Rx at x */
     for (size_t i = 0; i < np; i++) ft->step[i] = -ft->grad[i];
     for (size_t i = 0; i < nb; i++) {
@@ -276,11 +300,11 @@ static int newton_evidence(fit *ft, int update, double *dl)
         ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
     }
     for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
-    LAPACKE_dpotrs(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
+    potrs(ft->A, np, ft->step);
     for (size_t i = 0; i < np; i++) ft->xt[i] = ft->x[i] + ft->step[i];
     if (ft->xt[np - 1] < 0.0) ft->xt[np - 1] = 0.0; /* kappa >= 0 */
     if (!update) return 1;
-    if (LAPACKE_dpotri(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, ft->A, (lapack_int)np) != 0) return 0;
+    if (potri(ft->A, np) != 0) return 0;
     double tra = 0.0, trp = 0.0;
     for (size_t i = 0; i < nb; i++)
         for (size_t j = 0; j < nb; j++) {
@@ -350,8 +374,8 @@ static int load_pixels(fit *ft, const swfs_regress_sol *s)
             for (size_t j = 0; j < 4; j++) F[4 * i + j] = Fi[4 * i + j] = s->info->data[tri(i, j) * nf + k];
         }
         if (!(F[0] > 0.0) || !isfinite(F[0])) continue;
-        if (LAPACKE_dpotrf(LAPACK_ROW_MAJOR, 'U', 4, Fi, 4) != 0) continue;
-        if (LAPACKE_dpotri(LAPACK_ROW_MAJOR, 'U', 4, Fi, 4) != 0) continue;
+        if (potrf(Fi, 4) != 0) continue;
+        if (potri(Fi, 4) != 0) continue;
         /* covariance of theta_hat = F^-1; marginal information of c = (cov_cc)^-1 */
         const double c22 = Fi[10], c23 = Fi[11], c33 = Fi[15], det = c22 * c33 - c23 * c23;
         if (!(det > 0.0) || !(Fi[5] > 0.0)) continue;
@@ -424,7 +448,7 @@ static int lm_step(fit *ft, double *mu, double *cur, double *chi2)
             ft->step[nb + i] -= ft->lam_phi * ft->Rx[nb + i];
         }
         for (size_t m = 1; m < ft->nl; m++) ft->step[2 * nb + m] -= ft->beta_prec * ft->x[2 * nb + m];
-        int prc = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)np, 1, ft->A, (lapack_int)np, ft->step, 1);
+        int prc = posv(ft->A, np, ft->step);
         if (prc != 0) {
             *mu = *mu > 0.0 ? *mu * 10.0 : 1e-6;
             continue;
