@@ -213,11 +213,10 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     o->teach_loops = (size_t)tloops;
     o->teach_seed = (uint64_t)tseed;
     if (o->pipe.wfs_rate) {
-        /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence
-         * of the speckles, not of the image motion, is what is measured. */
+        /* The run removes the tip-tilt per WFS frame there (run.h); asked for by name, the
+         * exposure mean is refused. */
         if (tt_given && o->pipe.tiptilt == SWFS_TT_EXPOSURE) return cli_usage_error(cmd, "--wfs-rate removes the tip-tilt per WFS frame (or --tiptilt keep); --tiptilt exposure does not apply");
         if (o->nmatch) return cli_usage_error(cmd, "--match pairs camera frames; it does not apply with --wfs-rate");
-        if (!tt_given) o->pipe.tiptilt = SWFS_TT_FRAME;
     } else if (o->wfs_hz > 0) return cli_usage_error(cmd, "--wfs-hz goes with --wfs-rate");
     o->pipe.rcond = rcond;
     o->pipe.max_modes = (size_t)modes;

@@ -142,7 +142,9 @@ typedef struct swfs_speckles_run_options {
     const char *recon;        /* reconstructor file for SWFS_RECON_GIVEN (nslopes x nact image) */
     const char *mask;         /* pupil mask PUPN x PUPN, NULL = annulus */
     const char *write_recon;  /* also write the reconstructor in use, NULL = no */
-    swfs_pipeline_options pipe;
+    swfs_pipeline_options pipe; /* with pipe.wfs_rate, tiptilt SWFS_TT_EXPOSURE (the default) is
+                                   SWFS_TT_FRAME: at the WFS rate there is no exposure to take a
+                                   mean tip-tilt over */
     int mean_mode;            /* SWFS_MEAN_ENSEMBLE (default) or SWFS_MEAN_CUBE (speckles.h) */
     double wfs_hz;            /* pipe.wfs_rate: WFS rate [Hz] when the telemetry has no WFSRATE */
     const char *const *match_in, *const *match_out; /* nmatch pairs: OUT = the usable frames of IN */

@@ -14,7 +14,7 @@ from . import _lib
 from ._lib import lib, check, dptr, enc
 from .estimate import Halo
 from .sim import _run, _struct_dict
-from .stream import _RECON, _band
+from .stream import _RECON, _TT, _band
 
 
 def _paths(paths):
@@ -268,7 +268,7 @@ def _teach_dict(r, modes_from_slopes):
 
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=12, teach_seed=101,
-             teach_keep_loops=False):
+             teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -281,7 +281,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
-    swfs_speckles_resmean_warns: no closed loop's)."""
+    swfs_speckles_resmean_warns: no closed loop's). tiptilt: None (the default: 'exposure',
+    or at the WFS rate 'frame'), 'exposure', 'frame' or 'keep'. wfs_rate: one speckle field
+    per WFS frame instead of per exposure (`--wfs-rate`, for coherence(); FRAMEDT = 1/rate;
+    wfs_hz [Hz] where the telemetry has no WFSRATE); it takes no match and no 'exposure'."""
     o = _lib.swfs_speckles_run_options()
     lib.swfs_speckles_run_options_default(ctypes.byref(o))
     o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
@@ -297,6 +300,19 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         o.pipe.recon, o.recon = _RECON["given"], enc(recon)
     o.mask = _opt(pupil)
     o.pipe.band = _band(band)
+    if tiptilt is not None:
+        if tiptilt not in _TT:
+            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+        if wfs_rate and tiptilt == "exposure":
+            raise ValueError("wfs_rate removes the tip-tilt per WFS frame (or tiptilt='keep'); 'exposure' does not apply")
+        o.pipe.tiptilt = _TT[tiptilt]
+    if wfs_rate and match:
+        raise ValueError("match pairs camera frames; it does not apply with wfs_rate")
+    if wfs_hz is not None and not wfs_rate:
+        raise ValueError("wfs_hz goes with wfs_rate")
+    o.pipe.wfs_rate = int(bool(wfs_rate))
+    if wfs_hz is not None:
+        o.wfs_hz = float(wfs_hz)
     o.valid, o.write_recon = _opt(valid), _opt(write_recon)
     match = list(match or ())
     mi, n = _paths([a for a, _b in match])

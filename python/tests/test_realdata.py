@@ -75,6 +75,31 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert not os.path.exists(d / "p2.fits")
 
 
+def test_wfs_rate_speckles_equal_the_cli(series, cli, tmp_path):
+    """speckles(wfs_rate=True) is `speckles --wfs-rate`: one field per WFS frame, the tip-tilt
+    removed per frame by default (the run's rule, run.h), FRAMEDT = 1/WFSRATE; the same cube
+    to the bit. The exposure mean asked for by name, or match, is refused."""
+    s = series / "sim"
+    raws = [str(s / f"raw_{k:03d}.fits") for k in range(3)]
+    sw.reduce(raws, str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"), flat=str(s / "flat.fits"))
+    sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "timing.txt"))
+    args = (str(tmp_path / "timing.txt"), str(tmp_path / "sci.fits"), str(s / "actuators.fits"))
+    r = sw.speckles(*args, str(tmp_path / "wr.fits"), recon="vk", wfs_rate=True)
+    subprocess.run([cli, "speckles", args[0], "--science", args[1], "--actuators", args[2], "--recon", "vk",
+                    "--wfs-rate", "-o", str(tmp_path / "wr_cli.fits")], check=True, capture_output=True)
+    a, b = sw.read_fits(str(tmp_path / "wr.fits"))[0], sw.read_fits(str(tmp_path / "wr_cli.fits"))[0]
+    assert a.shape[0] == r["nout"] and r["nout"] > 6 * 118
+    np.testing.assert_array_equal(a, b)
+    k = sw.read_keys(str(tmp_path / "wr.fits"), ["TIPTILT", "FRAMEDT"])
+    assert k["TIPTILT"].strip() == "frame" and abs(float(k["FRAMEDT"]) * r["wfs_hz"] - 1) < 1e-12
+    with pytest.raises(ValueError, match="'exposure' does not apply"):
+        sw.speckles(*args, str(tmp_path / "x.fits"), recon="vk", wfs_rate=True, tiptilt="exposure")
+    with pytest.raises(ValueError, match="does not apply with wfs_rate"):
+        sw.speckles(*args, str(tmp_path / "x.fits"), recon="vk", wfs_rate=True,
+                    match=[(args[1], str(tmp_path / "m.fits"))])
+    assert not os.path.exists(tmp_path / "x.fits")
+
+
 def test_errors_leave_nothing(series, tmp_path):
     s = series / "sim"
     with pytest.raises(sw.Error, match="nofile.fits"):

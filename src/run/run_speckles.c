@@ -538,6 +538,15 @@ int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->r
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
+    /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence of
+     * the speckles, not of the image motion, is what is measured; the default becomes the
+     * tip-tilt removed per WFS frame. */
+    swfs_speckles_run_options at_rate;
+    if (o->pipe.wfs_rate && o->pipe.tiptilt == SWFS_TT_EXPOSURE) {
+        at_rate = *o;
+        at_rate.pipe.tiptilt = SWFS_TT_FRAME;
+        o = &at_rate;
+    }
     if (!o->timing || !o->science || !(o->actuators || o->lin.basis) || !o->out)
         return swfs_fail(SWFS_ERR_ARG, "speckles: needs a timing table, a science cube, actuators (or a basis) and an "
                          "output");
