@@ -26,6 +26,7 @@ struct swfs_dmfit {
     unsigned char *active; /* nact: 1 when the influence reaches the pupil */
     /* work space */
     double *b, *a, *proj, *modal, *surf; /* nact, K, K, npup^2, npup^2 */
+    double *pv;                          /* npix (with the modal filter) */
 };
 
 void swfs_dmfit_options_default(swfs_dmfit_options *o)
@@ -52,6 +53,7 @@ void swfs_dmfit_free(swfs_dmfit *f)
     free(f->b);
     free(f->a);
     free(f->proj);
+    free(f->pv);
     free(f->active);
     free(f->modal);
     free(f->surf);
@@ -248,8 +250,9 @@ int swfs_dmfit_create(swfs_dmfit **out, const double *xy, size_t nact, const swf
         f->Z = malloc(f->npix * K * sizeof *f->Z);
         f->a = calloc(K, sizeof *f->a);
         f->proj = calloc(K, sizeof *f->proj);
+        f->pv = calloc(f->npix, sizeof *f->pv);
         double *zg = calloc(K * K, sizeof *zg);
-        if (!f->Z || !f->a || !f->proj || !zg) { free(zg); rc = swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for %zu modes", K); goto done; }
+        if (!f->Z || !f->a || !f->proj || !f->pv || !zg) { free(zg); rc = swfs_fail(SWFS_ERR_NOMEM, "DM fit: out of memory for %zu modes", K); goto done; }
         for (size_t j = 0; j < K; j++) {
             int zn, zm;
             if ((rc = swfs_zernike_noll((int)j + 1, &zn, &zm))) { free(zg); goto done; }
@@ -313,17 +316,14 @@ int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *f
     /* Modal projection (least squares over the pupil). */
     const double *t = target;
     if (K > 0) {
-        double *proj = f->proj;
-        for (size_t j = 0; j < K; j++) proj[j] = 0.0;
-        for (size_t k = 0; k < f->npix; k++) {
-            const double w = f->mask[f->pix[k]] * target[f->pix[k]];
-            const double *z = f->Z + k * K;
-            for (size_t j = 0; j < K; j++) proj[j] += w * z[j];
-        }
-        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)K, (int)K, 1.0, f->zpinv, (int)K, proj, 1, 0.0, f->a, 1);
+        /* proj = Z^T W t, a = (Z^T W Z)^+ proj, modal = Z a on the pupil's samples */
+        const int np = (int)f->npix, k2 = (int)K;
+        for (size_t k = 0; k < f->npix; k++) f->pv[k] = f->mask[f->pix[k]] * target[f->pix[k]];
+        cblas_dgemv(CblasRowMajor, CblasTrans, np, k2, 1.0, f->Z, k2, f->pv, 1, 0.0, f->proj, 1);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, k2, k2, 1.0, f->zpinv, k2, f->proj, 1, 0.0, f->a, 1);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, np, k2, 1.0, f->Z, k2, f->a, 1, 0.0, f->pv, 1);
         memset(f->modal, 0, f->npup * f->npup * sizeof *f->modal);
-        for (size_t k = 0; k < f->npix; k++)
-            f->modal[f->pix[k]] = cblas_ddot((int)K, f->Z + k * K, 1, f->a, 1);
+        for (size_t k = 0; k < f->npix; k++) f->modal[f->pix[k]] = f->pv[k];
         t = f->modal;
     }
     /* b = A^T W t, cmd = P b. */
