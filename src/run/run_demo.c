@@ -3,6 +3,7 @@
  * draw the page. */
 #include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/parallel.h"
 #include "specklewfs/report.h"
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
@@ -12,7 +13,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <time.h>
 
 static const double default_levels[] = {0, 10, 100, 1000};
 
@@ -37,13 +37,6 @@ void swfs_demo_run_result_free(swfs_demo_run_result *r)
     memset(r, 0, sizeof *r);
 }
 
-static double now(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
-}
-
 /* A stage of the simulation or of the loop passed on under the demo's own name. */
 typedef struct relay {
     const swfs_demo_run_options *o;
@@ -64,6 +57,18 @@ static void stage(const swfs_demo_run_options *o, const char *name, size_t done,
     if (o->progress) o->progress(o->progress_ctx, name, done, total);
 }
 
+/* Folder dir made and its products (names, n) added as outputs. */
+static int outputs_in(swfs_paths *paths, const char *dir, const char *const *names, size_t n)
+{
+    char path[8192];
+    int rc = swfs_make_dirs(dir);
+    for (size_t i = 0; !rc && i < n; i++) {
+        snprintf(path, sizeof path, "%s/%s", dir, names[i]);
+        rc = swfs_paths_output(paths, "output", path);
+    }
+    return rc;
+}
+
 /* Every folder made and every product checked (against the config file and each other)
  * before the simulation. */
 static int prepare(const swfs_demo_run_options *o)
@@ -71,30 +76,19 @@ static int prepare(const swfs_demo_run_options *o)
     static const char *const level_products[] = {"science.fits", "speckles.fits", "truth.fits",
                                                  "pupil.fits",   "halo.fits",     "wavefront.fits"};
     static const char *const loop_products[] = {"loop.tsv", "loop.fits"};
-    char dir[4096], path[8192];
+    static const char *const table[] = {"recovery.tsv"};
+    char dir[4096];
     swfs_paths *paths = NULL;
-    int rc = swfs_make_dirs(o->outdir);
-    if (!rc) rc = swfs_paths_create(&paths);
+    int rc = swfs_paths_create(&paths);
     if (!rc) rc = swfs_paths_input(paths, "config file", o->config);
+    if (!rc) rc = outputs_in(paths, o->outdir, table, 1);
     for (size_t k = 0; !rc && k < o->nlevels; k++) {
         snprintf(dir, sizeof dir, "%s/sigma%g", o->outdir, o->levels[k]);
-        rc = swfs_make_dirs(dir);
-        for (size_t i = 0; !rc && i < sizeof level_products / sizeof *level_products; i++) {
-            snprintf(path, sizeof path, "%s/%s", dir, level_products[i]);
-            rc = swfs_paths_output(paths, "output", path);
-        }
+        rc = outputs_in(paths, dir, level_products, sizeof level_products / sizeof *level_products);
     }
     if (!rc && o->loop.iterations > 0) {
         snprintf(dir, sizeof dir, "%s/loop", o->outdir);
-        rc = swfs_make_dirs(dir);
-        for (size_t i = 0; !rc && i < sizeof loop_products / sizeof *loop_products; i++) {
-            snprintf(path, sizeof path, "%s/%s", dir, loop_products[i]);
-            rc = swfs_paths_output(paths, "output", path);
-        }
-    }
-    if (!rc) {
-        snprintf(path, sizeof path, "%s/recovery.tsv", o->outdir);
-        rc = swfs_paths_output(paths, "output", path);
+        rc = outputs_in(paths, dir, loop_products, sizeof loop_products / sizeof *loop_products);
     }
     swfs_paths_free(paths);
     return rc;
@@ -106,11 +100,11 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
     const swfs_sim_params *p = &o->sim;
     char dir[4096], noise_line[160];
     relay rl = {o, "simulate"};
-    double t0 = now();
+    double t0 = swfs_wall_seconds();
     stage(o, "simulate", 0, 1);
     int rc = swfs_sim_paper_run(p, o->progress ? relay_progress : NULL, &rl, &r->sim);
     if (rc) return rc;
-    r->sim_seconds = now() - t0;
+    r->sim_seconds = swfs_wall_seconds() - t0;
     rc = swfs_wfe_compare(r->sim->ncp->data, r->sim->ncp->data, r->sim->pupil->data, (size_t)r->sim->geom.pupn, NULL,
                           NULL, &r->ncp_rms_ptt);
     const size_t np = o->nprov + 1;
@@ -125,10 +119,10 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
         snprintf(noise_line, sizeof noise_line, "demo noise level: read noise %g counts, gain %g e-/count",
                  o->levels[k], p->gain);
         prov[o->nprov] = noise_line;
-        const double t1 = now();
+        const double t1 = swfs_wall_seconds();
         rc = swfs_recovery_run(r->sim, o->levels[k], p->seed * 1000003ULL + (uint64_t)o->levels[k], dir, prov, np,
                                &r->levels[k]);
-        r->level_seconds[k] = now() - t1;
+        r->level_seconds[k] = swfs_wall_seconds() - t1;
         r->nlevels = k + 1;
     }
     if (!rc) stage(o, "noise levels", o->nlevels, o->nlevels);
@@ -158,7 +152,7 @@ int swfs_demo_run(const swfs_demo_run_options *o, swfs_demo_run_result *r)
         if (!(o->levels[k] >= 0) || !isfinite(o->levels[k]))
             return swfs_fail(SWFS_ERR_ARG, "demo: noise level %zu is %g counts; expected a finite value >= 0", k + 1,
                              o->levels[k]);
-    const double t0 = now();
+    const double t0 = swfs_wall_seconds();
     int rc = prepare(o);
     if (rc) return rc;
     /* The products of all levels and of the loop are renamed into place together when all
@@ -174,7 +168,7 @@ int swfs_demo_run(const swfs_demo_run_options *o, swfs_demo_run_result *r)
         if (!rc) snprintf(r->html, sizeof r->html, "%s", rs->html);
         free(rs);
     }
-    r->seconds = now() - t0;
+    r->seconds = swfs_wall_seconds() - t0;
     if (rc) {
         const int keep = rc;
         swfs_demo_run_result_free(r);
