@@ -8,52 +8,11 @@
 #include "specklewfs/status.h"
 
 #include <math.h>
+#include <limits.h>
 #include <signal.h>
 #include <stdio.h>
 #include <string.h>
 
-static const char *usage_text =
-    "usage: specklewfs live --wfs NAME [--wfs NAME ...] --camera NAME --geom GEOM.fits\n"
-    "                       --recon RECON.fits --actuators ACT.fits -o HALO.fits [options]\n"
-    "\n"
-    "The NCP estimate beside a running AO system: WFS slopes and camera frames from\n"
-    "ImageStreamIO 2.00 shared-memory streams (milk/cacao), the WFS frames mapped onto each\n"
-    "camera exposure by their time stamps, the path of 'specklewfs stream', HALO.fits (and\n"
-    "PUPIL.fits, the checkpoint) rewritten every K frames or T seconds, optionally DM offsets\n"
-    "written to a stream. SIGINT/SIGTERM (or --idle-exit, --max-frames) end the run cleanly\n"
-    "with the final products and checkpoint. Design and protocol: docs/live.md.\n"
-    "\n"
-    "  --wfs NAME            WFS stream (slopes, x then y); repeat to concatenate several\n"
-    "  --camera NAME         camera stream (reduced frames of the geometry's size)\n"
-    "  --shm-dir DIR         stream folder (default $MILK_SHM_DIR, /milk/shm, /dev/shm, /tmp)\n"
-    "  --geom FILE           FITS with the geometry keywords, the frame size and RDNOISE/GAIN\n"
-    "                        (e.g. a reduced science cube)\n"
-    "  --recon, --actuators, -o, --pupil-out, --checkpoint, --every, --every-seconds,\n"
-    "  --threads, --static, --static-out, --pupil, --tiptilt, --read-noise, --gain,\n"
-    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'\n"
-    "  --batch B             camera frames per batch (default 16; 'stream' with the same B\n"
-    "                        gives the same result)\n"
-    "  --max-wait T          longest wait [s] of a ready frame for its batch to fill (0.5)\n"
-    "  --exptime T           camera exposure [s] (default: the camera's frame period)\n"
-    "  --timeout T           longest wait [s] for a missing or vanished stream (10)\n"
-    "  --idle-exit T         end when no frame arrived for T seconds (default: never)\n"
-    "  --poll T              semaphore wait and stream check period [s] (0.02)\n"
-    "  --dm-out NAME         write DM offsets (metres of surface per actuator, to add to the\n"
-    "                        DM) to this stream after every update, added to what it holds;\n"
-    "                        needs --pupil-out\n"
-    "  --dm-file FILE        also the total offsets as OFFSETS.fits ('dmoffsets' layout)\n"
-    "  --dm-gain G           fraction of the measured correction applied per update (0.5)\n"
-    "  --dm-max-step M       largest change of one actuator per update [m] (default: none)\n"
-    "  --dm-max-rms R        largest rms of the total offsets [m] (default: none)\n"
-    "  --dm-scale S          stream units per metre (1; 1e6 for micrometres)\n"
-    "  --dm-settle T         skip exposures that begin within T s of a DM write (0.1)\n"
-    "  --dm-keep             keep accumulating across DM updates (default: start anew)\n"
-    "  --dm-final            also correct at the end of the data (default: only at updates)\n"
-    "  --dm-tiptilt          correct tip and tilt too (default: piston, tip and tilt are removed\n"
-    "                        from the WFE first: registered frames do not see them)\n"
-    "  --pupil-source halo_lf|halo   the pupil product from HALO_LF (default, as 'pupil') or\n"
-    "                        HALO (better on closed-loop AO telemetry: docs/telemetry.md)\n"
-    "  --influence, --coupling, --pitch, --modes, --reg   the fit, as 'specklewfs dmoffsets'\n";
 
 static volatile sig_atomic_t stop_flag = 0;
 static void on_signal(int sig)
@@ -70,7 +29,7 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         const char *a = argv[i], **str = NULL;
         long *lv = NULL;
         double *dv = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(CLI_LINEAR_HELP, stdout); return -1; }
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { cli_help_live(); return -1; }
         const int lk = cli_linear_option(cmd, argc, argv, &i, &o->run.lin);
         if (lk) { if (lk < 0) return -lk; continue; }
         const int bk = cli_band_option(cmd, argc, argv, &i, &o->run.band);
@@ -148,31 +107,18 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
             return CLI_USAGE;
         }
     }
-    if (!*nwfs || !o->src.camera || !o->run.science || !((o->run.recon && o->run.actuators) || o->run.lin.basis) ||
-        !o->run.out)
-        return cli_usage_error(cmd, "needs --wfs, --camera, --geom, --recon and --actuators (or --basis) and -o");
-    if (o->run.lin.basis && (o->run.recon || o->run.valid))
-        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon or --valid");
-    if (o->dm_out && !o->run.actuators) return cli_usage_error(cmd, "--dm-out fits the offsets onto --actuators");
-    if (o->dm_out && !o->run.pupil_out) return cli_usage_error(cmd, "--dm-out needs --pupil-out (the WFE it corrects)");
-    if (every < 0 || max_frames < 0) return cli_usage_error(cmd, "--every and --max-frames must be >= 0");
-    if (threads < 1 || threads > 64) return cli_usage_error(cmd, "--threads must be 1..64, got %ld", threads);
-    if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
-    const double *nonneg[] = {&o->run.stream.every_seconds, &o->src.sync.max_wait, &o->src.sync.exptime, &o->src.timeout,
-                              &o->src.idle, &o->dm_max_step, &o->dm_max_rms, &o->dm_settle, &o->run.g_smooth_lod};
-    for (size_t k = 0; k < sizeof nonneg / sizeof nonneg[0]; k++)
-        if (!(*nonneg[k] >= 0)) return cli_usage_error(cmd, "time, size and step options must be >= 0, got %g", *nonneg[k]);
-    if (!(o->src.poll > 0) || !(o->dm_gain > 0) || o->dm_scale == 0)
-        return cli_usage_error(cmd, "--poll and --dm-gain must be > 0 and --dm-scale non-zero");
-    if (!(o->dmfit.coupling > 0 && o->dmfit.coupling < 1) || !(o->dmfit.reg >= 0))
-        return cli_usage_error(cmd, "--coupling must be in (0, 1) and --reg >= 0");
+    /* Signs here; the library checks the rest (live.h swfs_live_options_check). */
+    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1)
+        return cli_usage_error(cmd, "--every and --max-frames must be >= 0, --threads and --batch >= 1");
     o->run.stream.every = (size_t)every;
     o->run.stream.max_frames = (size_t)max_frames;
-    o->run.threads = (int)threads;
+    o->run.threads = threads > INT_MAX ? INT_MAX : (int)threads;
     o->src.sync.batch = (size_t)batch;
     o->run.stream.static_mode = !strcmp(stat, "auto") ? SWFS_STATIC_AUTO : (!strcmp(stat, "none") ? SWFS_STATIC_NONE : SWFS_STATIC_GIVEN);
     o->run.static_file = o->run.stream.static_mode == SWFS_STATIC_GIVEN ? stat : NULL;
-    return 0;
+    o->src.wfs = wfs;
+    o->src.nwfs = *nwfs;
+    return cli_check(cmd, swfs_live_options_check(o));
 }
 
 static void on_update(void *ctx, const swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pr, int final)
@@ -200,8 +146,6 @@ int swfs_cmd_live(int argc, char **argv)
     int prc = parse(argc, argv, &o, wfs, &nwfs);
     if (prc < 0) return CLI_OK;
     if (prc) return prc;
-    o.src.wfs = wfs;
-    o.src.nwfs = nwfs;
     o.src.stop = &stop_flag;
     o.run.prov = cli_provenance(argc, argv, &o.run.nprov);
     o.run.on_update = on_update;

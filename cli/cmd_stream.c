@@ -8,84 +8,12 @@
 #include "specklewfs/status.h"
 #include "specklewfs/team.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 
-static const char *usage_text =
-    "usage: specklewfs stream --timing TIMING.txt --science SCIENCE.fits [--slopes DIR|FILE]\n"
-    "                         | --wfs-log DIR|FILE [--wfs-log ...] [--clock CLOCK.txt] [--exptime T]\n"
-    "                         --recon RECON.fits --actuators ACT.fits -o HALO.fits\n"
-    "                         [--pupil-out PUPIL.fits] [--every K] [--every-seconds T]\n"
-    "                         [--threads N] [--checkpoint FILE] [--static auto|none|HALO0.fits]\n"
-    "                         [--static-out FILE] [--pupil MASK.fits] [--tiptilt exposure|frame|keep]\n"
-    "                         [--batch B]\n"
-    "                         [--max-frames N]\n"
-    "                         [--read-noise SIGMA] [--gain G] [--g-smooth L]\n"
-    "\n"
-    "The whole real-time path in one pass (Codona & Kenworthy 2013, Sec. 4): WFS slopes ->\n"
-    "reconstructed wavefront -> pupil field summed over each camera exposure -> focal field\n"
-    "(one MFT per camera frame), core-phase referenced (eq:downsampledHalo), minus a static\n"
-    "halo (eq:computedSpeckleField) -> per-pixel accumulators against the camera frames.\n"
-    "HALO.fits is rewritten (atomically) every K camera frames and/or T seconds and at the\n"
-    "end; progress, valid fraction and median SNR go to stderr. Memory does not grow with\n"
-    "the number of frames (one telemetry file and one batch are held at a time).\n"
-    "\n"
-    "  --timing TIMING.txt   ratio and per-cube exposure starts from 'specklewfs sync'; cubes\n"
-    "                        marked 'straddles' are skipped\n"
-    "  --science FILE        reduced science cube ('specklewfs reduce'): frames, geometry\n"
-    "                        keywords, RDNOISE / GAIN\n"
-    "  --slopes DIR|FILE     folder holding the telemetry files the timing table names, or\n"
-    "                        one telemetry file used for every cube (default: the timing\n"
-    "                        table's folder; absolute names in the table are used as they are)\n"
-    "  --recon, --actuators  reconstructor (nact x nslopes [m/rad]) and actuator positions\n"
-    "  -o HALO.fits          the estimate (extensions as 'specklewfs estimate')\n"
-    "  --pupil-out FILE      also the pupil field / NCP map at every update ('specklewfs pupil')\n"
-    "  --pupil-method M      fit (the default when possible) or moments, as 'pupil --method'\n"
-    "  --every K             update after every K camera frames (default: only at the end)\n"
-    "  --every-seconds T     update when T seconds have passed since the last one\n"
-    "  --threads N           engine workers (default 2)\n"
-    "  --checkpoint FILE     save the accumulators at every update ('specklewfs merge')\n"
-    "  --static auto         (default) the paper's choice: S^1/2 Psi_0, the unaberrated halo\n"
-    "                        scaled by the mean core amplitude of the first batch, fixed\n"
-    "                        from then on; none: no subtraction; or a complex image file\n"
-    "                        (e.g. the HALO extension of an earlier run). A constant offset\n"
-    "                        does not bias the estimate: the accumulators remove the\n"
-    "                        data-set mean of psi exactly (eq:zeroMean) -- but runs whose\n"
-    "                        checkpoints will be merged must share it: save it from the\n"
-    "                        first with --static-out and give it to the others\n"
-    "  --static-out FILE     write the static halo used (complex image)\n"
-    "  --pupil MASK.fits     pupil transmission (PUPN x PUPN; default: annulus from TELDIAM,\n"
-    "                        OBSCUR)\n"
-    "  --tiptilt MODE        as in 'specklewfs speckles': exposure (default) removes from every\n"
-    "                        WFS frame the weighted mean x/y slope of its exposure and keeps\n"
-    "                        the motion within it, as registered science frames have it;\n"
-    "                        frame removes every frame's own mean slopes (the paper's Sec.\n"
-    "                        4.4); keep removes nothing (pair with reduce --no-register)\n"
-    "  --keep-tiptilt        same as --tiptilt keep\n"
-    "  --batch B             camera frames per batch (default 128)\n"
-    "  --max-frames N        stop after N camera frames\n"
-    "  --read-noise, --gain  noise model for the estimate (default: science header)\n";
-static const char *usage_mpi =
-    "  --valid MAP.fits      the valid-subaperture map the reconstructor was made with\n"
-    "                        ('speckles --valid'): slopes of the used subapertures only\n"
-    "  --g-smooth L          scale-factor regularization [lambda/D] as in 'specklewfs estimate'\n"
-    "                        (default 2; 0 = the paper's per-pixel g)\n"
-    "  --wfs-log DIR|FILE    instead of --timing: a WFS milk log (folder of NAME_hh:mm:ss.s.fits[.fz]\n"
-    "                        + .txt, or one file); several are concatenated into one slope vector.\n"
-    "                        The science cube's STAMPS (reduce of camera logs) place every exposure\n"
-    "                        [stamp - T, stamp] on the WFS frames (docs/telemetry.md)\n"
-    "  --clock CLOCK.txt     camera clock offset, drift and pairing from 'sync --wfs-log'\n"
-    "  --exptime T           camera exposure [s] (default: STAMPS' EXPTIME, else the frame period)\n"
-    CLI_GEOM_HELP
-    CLI_BAND_HELP
-    CLI_LINEAR_HELP
-    "\n"
-    "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
-    "boundaries) and rank 0 writes the products once, at the end, from the merged\n"
-    "accumulators: the single-process products. --every/--every-seconds do not apply.\n"
-    "See docs/cluster.md.\n";
 
 /* The tip-tilt options; anything else left over is an unknown argument. */
 static int special(void *ctx, int argc, char **argv, int *i)
@@ -135,37 +63,23 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0}, {"--valid", CLI_STRING, &o->valid, v, 0},
     };
     for (int i = 1; i < argc; i++)
-        if (cli_is_help(argv[i])) { /* the usage is two strings */
-            fputs(usage_text, stdout);
-            fputs(usage_mpi, stdout);
+        if (cli_is_help(argv[i])) {
+            cli_help_stream();
             return -1;
         }
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), NULL, 0, special, o, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
-    if ((!o->timing == !o->nwfs_logs) || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
-        return cli_usage_error(cmd, "needs --timing or --wfs-log (one of them), --science, --recon and --actuators (or "
-                               "--basis) and -o");
-    if (o->lin.basis && (o->recon || o->actuators || o->valid))
-        return cli_usage_error(cmd, "--basis (the linear model) takes no --recon, --actuators or --valid");
-    if ((o->clock || o->exptime != 0) && !o->nwfs_logs) return cli_usage_error(cmd, "--clock and --exptime go with --wfs-log");
-    if (!(o->exptime >= 0)) return cli_usage_error(cmd, "--exptime must be >= 0 s, got %g", o->exptime);
-    if (every < 0) return cli_usage_error(cmd, "--every must be >= 0, got %ld", every);
-    if (o->stream.every_seconds < 0) return cli_usage_error(cmd, "--every-seconds must be >= 0, got %g", o->stream.every_seconds);
-    if (threads < 1 || threads > SWFS_ENGINE_MAX_THREADS)
-        return cli_usage_error(cmd, "--threads must be 1..%d, got %ld", SWFS_ENGINE_MAX_THREADS, threads);
-    if (batch < 1 || batch > 100000) return cli_usage_error(cmd, "--batch must be 1..100000, got %ld", batch);
-    if (max_frames < 0) return cli_usage_error(cmd, "--max-frames must be >= 0");
-    if (!isnan(o->read_noise) && o->read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0");
-    if (!isnan(o->gain) && o->gain < 0) return cli_usage_error(cmd, "--gain must be >= 0");
-    if (!(o->g_smooth_lod >= 0)) return cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", o->g_smooth_lod);
+    /* Signs here; the library checks the rest (run.h swfs_stream_run_options_check). */
+    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1)
+        return cli_usage_error(cmd, "--every and --max-frames must be >= 0, --threads and --batch >= 1");
     o->stream.every = (size_t)every;
     o->stream.max_frames = (size_t)max_frames;
-    o->threads = (int)threads;
+    o->threads = threads > INT_MAX ? INT_MAX : (int)threads;
     o->batch = (size_t)batch;
     o->stream.static_mode = !strcmp(stat, "auto") ? SWFS_STATIC_AUTO : (!strcmp(stat, "none") ? SWFS_STATIC_NONE : SWFS_STATIC_GIVEN);
     o->static_file = o->stream.static_mode == SWFS_STATIC_GIVEN ? stat : NULL;
-    return 0;
+    return cli_check(cmd, swfs_stream_run_options_check(o));
 }
 
 /* One line per product update on stderr. */

@@ -37,6 +37,11 @@ int cli_usage_error(const char *cmd, const char *fmt, ...)
     return CLI_USAGE;
 }
 
+int cli_check(const char *cmd, int rc)
+{
+    return rc ? cli_usage_error(cmd, "%s", swfs_last_error()) : 0;
+}
+
 void cli_command_line(int argc, char **argv, char *buf, size_t cap)
 {
     size_t len = 0;

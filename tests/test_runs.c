@@ -1347,6 +1347,76 @@ static void test_spacetime_reconstructor(void **state)
     assert_refused(swfs_learn_run(&lo, &l3), "learn, lags and modal", "--modal", lo.out);
 }
 
+/* The options checks every caller of the runs gets (run.h, live.h), before any file is
+ * opened: each value out of range or option out of place is refused with the message the
+ * command line prints, and the run writes nothing; the defaults with their inputs pass. */
+static void test_options_checks(void **state)
+{
+    (void)state;
+    swfs_speckles_run_options sp;
+    swfs_speckles_run_result spr;
+    static const char *pattern[] = {
+        "--teach-loops must be 2..64, got 1", "--batch must be 1..100000, got 200000", "--threads must be 1..64, got 0",
+        "--rcond and --modes go with --recon svd", "--rcond must be in [0, 1), got 1", "--slope-noise goes with --recon vk",
+        "--recon-scale goes with --recon W.fits", "--teach-work, --teach-loops", "--wfs-hz goes with --wfs-rate",
+        "--match pairs camera frames", "--vk-l0 must be an outer scale", "takes no --actuators",
+        "needs TIMING.txt",
+    };
+    const size_t npat = sizeof pattern / sizeof pattern[0];
+    const char *min[1] = {"in.fits"}, *mout[1] = {"out_match.fits"};
+    for (size_t k = 0; k <= npat; k++) {
+        swfs_speckles_run_options_default(&sp);
+        sp.timing = p("checks_timing.txt");
+        sp.science = p("checks_science.fits");
+        sp.actuators = p("checks_act.fits");
+        sp.out = p("checks_speckles.fits");
+        switch (k) {
+        case 0: sp.teach_loops = 1; break;
+        case 1: sp.batch = 200000; break;
+        case 2: sp.pipe.threads = 0; break;
+        case 3: sp.pipe.recon = SWFS_RECON_VK; sp.pipe.max_modes = 20; break;
+        case 4: sp.pipe.recon = SWFS_RECON_SVD; sp.pipe.rcond = 1; break;
+        case 5: sp.pipe.slope_noise = 0.1; break;
+        case 6: sp.pipe.recon_scale = -2; break;
+        case 7: sp.pipe.recon = SWFS_RECON_MAP; sp.teach_seed = 7; break;
+        case 8: sp.wfs_hz = 1000; break;
+        case 9: sp.pipe.wfs_rate = 1; sp.match_in = min; sp.match_out = mout; sp.nmatch = 1; break;
+        case 10: sp.pipe.recon = SWFS_RECON_VK; sp.pipe.vk_l0 = NAN; break;
+        case 11: sp.lin.basis = p("checks_basis.fits"); break;
+        case 12: sp.out = NULL; break;
+        default: break; /* the defaults */
+        }
+        if (k == npat) {
+            assert_int_equal(swfs_speckles_run_options_check(&sp), 0);
+            continue;
+        }
+        assert_refused(swfs_speckles_run(&sp, &spr), "speckles options", pattern[k], p("checks_speckles.fits"));
+    }
+
+    swfs_stream_run_options so;
+    swfs_stream_run_result sr;
+    for (int k = 0; k <= 5; k++) {
+        swfs_stream_run_options_default(&so);
+        so.timing = p("checks_timing.txt");
+        so.science = p("checks_science.fits");
+        so.recon = p("checks_recon.fits");
+        so.actuators = p("checks_act.fits");
+        so.out = p("checks_halo.fits");
+        static const char *spat[] = {"--batch must be 1..100000, got 0", "--read-noise must be >= 0", "--clock and --exptime go with --wfs-log",
+                                     "--g-smooth must be >= 0", "--static FILE: no file given"};
+        switch (k) {
+        case 0: so.batch = 0; break;
+        case 1: so.read_noise = -1; break;
+        case 2: so.exptime = 0.01; break;
+        case 3: so.g_smooth_lod = INFINITY; break;
+        case 4: so.stream.static_mode = SWFS_STATIC_GIVEN; break;
+        default: break;
+        }
+        if (k == 5) assert_int_equal(swfs_stream_run_options_check(&so), 0);
+        else assert_refused(swfs_stream_run_files(&so, &sr), "stream options", spat[k], so.out);
+    }
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -1362,6 +1432,7 @@ int main(void)
         cmocka_unit_test(test_sync_unreadable_file),
         cmocka_unit_test(test_learn_reconstructor),
         cmocka_unit_test(test_spacetime_reconstructor),
+        cmocka_unit_test(test_options_checks),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

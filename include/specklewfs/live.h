@@ -64,6 +64,12 @@ typedef struct swfs_live_options {
 
 void swfs_live_options_default(swfs_live_options *o);
 
+/* Whether o's options fit together and lie in range (run.h swfs_stream_run_options_check's
+ * ranges for o->run, and the streams', the source's times, the DM offsets' gain, limits,
+ * scale and fit); swfs_live_run calls it first. SWFS_ERR_ARG and a message that names the
+ * option as `specklewfs live` spells it. */
+int swfs_live_options_check(const swfs_live_options *o);
+
 typedef struct swfs_live_result {
     swfs_stream_run_result run;     /* frames, rate, noise model, pipeline */
     swfs_shm_source_stats src;      /* drops, restarts, skipped exposures, lag */

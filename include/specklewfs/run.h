@@ -243,6 +243,16 @@ int swfs_spacetime_warns(const swfs_speckles_run_result *r);
  * does not show (docs/telemetry.md); the command and Python warn. */
 int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r);
 
+/* Whether o's options fit together and lie in range (SWFS_ERR_ARG and the message
+ * otherwise), before any file is opened; swfs_speckles_run calls it first. The messages name
+ * the options as the command line spells them (Python's keywords are those names with '_'):
+ * --teach-loops 2..64, --batch up to 100000 (0: 128), --threads 1..SWFS_ENGINE_MAX_THREADS,
+ * --rcond/--modes (a value other than the default's) only with SWFS_RECON_SVD, --slope-noise
+ * only with vk or map, --recon-scale only with a given map, the teach options only with
+ * SWFS_RECON_TEACH and no basis, --wfs-hz and no --match only with wfs_rate, the basis
+ * without actuators, a given map, write_recon or valid. */
+int swfs_speckles_run_options_check(const swfs_speckles_run_options *o);
+
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r);
 
 /* ---- stream: the whole real-time path from files ---------------------------------- */
@@ -302,6 +312,13 @@ typedef struct swfs_stream_run_result {
     int stamped;              /* 1: a run over milk logs; stamps holds its counts */
     swfs_milk_source_stats stamps;
 } swfs_stream_run_result;
+
+/* The same for a stream run from files (swfs_stream_run_files calls it first): the timing
+ * table or milk logs (one of them), the science cube, recon and actuators or a basis, out;
+ * --clock and --exptime only with milk logs; --batch 1..100000, --threads
+ * 1..SWFS_ENGINE_MAX_THREADS, read_noise and gain NaN or >= 0, g_smooth_lod and every_seconds
+ * >= 0, the pupil method and source, static_file with SWFS_STATIC_GIVEN. */
+int swfs_stream_run_options_check(const swfs_stream_run_options *o);
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r);
 

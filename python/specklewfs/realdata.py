@@ -289,10 +289,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     lib.swfs_speckles_run_options_default(ctypes.byref(o))
     o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
     tr = _lib.swfs_teach_run_result()
+    # The teach options go to the library whatever recon is: its check (run.h
+    # swfs_speckles_run_options_check) refuses them with another reconstructor.
+    o.teach_work, o.teach_loops, o.teach_seed = _opt(teach_work), int(teach_loops), int(teach_seed)
+    o.teach_keep_loops = int(bool(teach_keep_loops))
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
-        o.teach_work, o.teach_loops, o.teach_seed = _opt(teach_work), int(teach_loops), int(teach_seed)
-        o.teach_keep_loops = int(bool(teach_keep_loops))
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
     elif recon in _RECON and recon != "given":
         o.pipe.recon = _RECON[recon]

@@ -135,6 +135,17 @@ def test_errors_leave_nothing(series, tmp_path):
         sw.speckles(str(tmp_path / "t.txt"), str(tmp_path / "sci.fits"), str(tmp_path / "noact.fits"),
                     str(tmp_path / "sp.fits"))
     assert not os.path.exists(tmp_path / "sp.fits")
+    # Options out of range get the command line's message from the library's check (run.h
+    # swfs_speckles_run_options_check), before any file is opened.
+    for kw, msg in [({"teach_loops": 1}, "--teach-loops must be 2..64, got 1"),
+                    ({"recon": "vk", "teach_seed": 7}, "--teach-work, --teach-loops, --teach-seed"),
+                    ({"wfs_hz": 1000.0, "wfs_rate": True, "match": [("a.fits", "b.fits")]}, "does not apply")]:
+        with pytest.raises((sw.Error, ValueError), match=msg) as e:
+            sw.speckles(str(tmp_path / "t.txt"), str(tmp_path / "sci.fits"), str(s / "actuators.fits"),
+                        str(tmp_path / "sp.fits"), **kw)
+        if "teach" in msg:
+            assert e.value.status_name == "SWFS_ERR_ARG"
+    assert not os.path.exists(tmp_path / "sp.fits")
 
 
 def test_boundary_check_on_telemetry(series):

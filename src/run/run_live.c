@@ -184,13 +184,8 @@ static int live_after(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_
 int swfs_live_run(const swfs_live_options *o, swfs_live_result *r)
 {
     memset(r, 0, sizeof *r);
-    if (o->dm_out && !o->run.pupil_out)
-        return swfs_fail(SWFS_ERR_ARG, "live: DM offsets need the pupil product (a PUPIL.fits path)");
-    if (o->dm_out && (!(o->dm_gain > 0) || !(o->dm_max_step >= 0) || !(o->dm_max_rms >= 0) || !isfinite(o->dm_scale) ||
-                      o->dm_scale == 0 || !(o->dm_settle >= 0)))
-        return swfs_fail(SWFS_ERR_ARG, "live: DM gain %g, max step %g, max rms %g, scale %g, settle %g (expected > 0, >= 0, "
-                         ">= 0, finite non-zero, >= 0)", o->dm_gain, o->dm_max_step, o->dm_max_rms, o->dm_scale,
-                         o->dm_settle);
+    const int crc = swfs_live_options_check(o);
+    if (crc) return crc;
     live_ctx l;
     memset(&l, 0, sizeof l);
     l.o = o;

@@ -538,6 +538,8 @@ int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->r
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
+    const int crc = swfs_speckles_run_options_check(o);
+    if (crc) return crc;
     /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence of
      * the speckles, not of the image motion, is what is measured; the default becomes the
      * tip-tilt removed per WFS frame. */
@@ -547,12 +549,6 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         at_rate.pipe.tiptilt = SWFS_TT_FRAME;
         o = &at_rate;
     }
-    if (!o->timing || !o->science || !(o->actuators || o->lin.basis) || !o->out)
-        return swfs_fail(SWFS_ERR_ARG, "speckles: needs a timing table, a science cube, actuators (or a basis) and an "
-                         "output");
-    if (o->actuators && o->lin.basis)
-        return swfs_fail(SWFS_ERR_ARG, "speckles: actuators (the Shack-Hartmann model) or a basis (the linear model), not "
-                         "both");
     work w;
     memset(&w, 0, sizeof w);
     swfs_path_dir(o->timing, w.tdir, sizeof w.tdir);

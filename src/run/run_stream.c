@@ -341,6 +341,11 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
 
 int swfs_stream_run_files(const swfs_stream_run_options *o, swfs_stream_run_result *r)
 {
+    const int crc = swfs_stream_run_options_check(o);
+    if (crc) {
+        memset(r, 0, sizeof *r);
+        return crc;
+    }
     if (o->nwfs_logs) return swfs_stream_run_milk(o, r);
     return swfs_stream_run_hooked(o, NULL, r);
 }
