@@ -142,7 +142,13 @@ chk sync-unknown 2 "--bogus" o.txt -- sync sci.fits $H -o o.txt --bogus
 mkdir -p nsub && /usr/bin/python3 "$FITSHDR" ts/slopes_000.fits nsub/slopes_000.fits NSUB=16
 sed "s#[^ ]*/ts/slopes_000.fits#$PWD/nsub/slopes_000.fits#" timing.txt > nsub/timing.txt
 chk speckles-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- speckles timing.txt --science sci.fits --actuators ts/actuators.fits --tiptilt keep -o o.fits
+rm -rf o.teach
 chk speckles-nsub 1 "nsub/slopes_000.fits: NSUB = 16 subapertures across, but the slopes' width (and the valid map, if given) make a 12 x 12" o.fits -- speckles nsub/timing.txt --science sci.fits --actuators ts/actuators.fits -o o.fits
+# refused before teach (the default reconstructor) simulated any loop
+if grep -q "simulating the loops" err.txt || [ -e o.teach ]; then
+    echo "FAIL speckles-nsub: teach ran before the NSUB check"
+    nfail=$((nfail + 1))
+fi
 chk stream-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --keep-tiptilt -o o.fits
 chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
 

@@ -29,15 +29,8 @@
 #define NPUP 24
 #define NF 14
 
-/* The teams tried: 2 and 3 processes; under AddressSanitizer 3 only (its shares are the
- * uneven ones). There every rank runs with LeakSanitizer's full unwinder (tests/mpi/
- * CMakeLists.txt), which made this the slowest test of the suite; the teams of 2 run in
- * the Release build. */
-#if defined(__SANITIZE_ADDRESS__)
-#define NP_FIRST 3
-#else
+/* The teams tried: 2 and 3 processes (3: uneven shares), in every build. */
 #define NP_FIRST 2
-#endif
 #define NSUB 4
 #define NSL (2 * NSUB * NSUB)
 #define RATIO 3.37
