@@ -196,7 +196,7 @@ def _st_checks(r):
                 st_warn_corr=bool(w & _lib.SPACETIME_WARN_CORR))
 
 
-def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None, provenance=(), science=None,
+def teach(files, out, work=None, config=None, loops=None, seed=None, progress=None, provenance=(), science=None,
           actuators=None, pupil=None, valid=None, **params):
     """A learned map for one observation from simulated closed loops of your system at the
     winds its slopes show (`specklewfs teach`, run.h swfs_teach_run): files, the observation's
@@ -247,7 +247,10 @@ def teach(files, out, work=None, config=None, loops=12, seed=101, progress=None,
         work = buf.value.decode()
     os.makedirs(work, exist_ok=True)
     o.files, o.nfiles, o.out, o.work = arr, n, enc(out), enc(work)
-    o.nloops, o.seed = int(loops), int(seed)
+    if loops is not None:  # None: the library's defaults (swfs_teach_run_options_default)
+        o.nloops = int(loops)
+    if seed is not None:
+        o.seed = int(seed)
     r = _run("swfs_teach_run", o, _lib.swfs_teach_run_result, None, provenance, progress)
     return _teach_dict(r, bool(o.modes_from_slopes))
 
@@ -267,7 +270,7 @@ def _teach_dict(r, modes_from_slopes):
 
 
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
-             geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=12, teach_seed=101,
+             geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
@@ -291,7 +294,11 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     tr = _lib.swfs_teach_run_result()
     # The teach options go to the library whatever recon is: its check (run.h
     # swfs_speckles_run_options_check) refuses them with another reconstructor.
-    o.teach_work, o.teach_loops, o.teach_seed = _opt(teach_work), int(teach_loops), int(teach_seed)
+    o.teach_work = _opt(teach_work)
+    if teach_loops is not None:  # None: the library's default (swfs_speckles_run_options_default)
+        o.teach_loops = int(teach_loops)
+    if teach_seed is not None:
+        o.teach_seed = int(teach_seed)
     o.teach_keep_loops = int(bool(teach_keep_loops))
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
