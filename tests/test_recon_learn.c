@@ -222,9 +222,76 @@ static void test_lags(void **state)
         }
 }
 
+/* swfs_recon_learner_add_lagged gives the sums of the stacked input (swfs_slopes_stack, then
+ * add): the same map and training misfit to rounding, for lags in any order, a lag set that
+ * repeats lag differences (0,-3,3,-6,6), files shorter than the lags' span (every frame
+ * clamped) and several files into one learner. */
+static void test_learner_lagged(void **state)
+{
+    (void)state;
+    enum { S0 = 6, NT = 4 };
+    const long sets[4][5] = {{0, -2, 3}, {0, -3, 3, -6, 6}, {5, 0}, {0, -3, 3}};
+    const size_t nls[4] = {3, 5, 2, 3};
+    const size_t lens[4][2] = {{300, 77}, {400, 13}, {250, 250}, {5, 60}};
+    swfs_rng r;
+    swfs_rng_seed(&r, 21);
+    for (int k = 0; k < 4; k++) {
+        const size_t nl = nls[k], ns = S0 * nl;
+        swfs_recon_learner *ls = NULL, *ll = NULL;
+        assert_ok(swfs_recon_learner_new(ns, NT, 1, &ls));
+        assert_ok(swfs_recon_learner_new(ns, NT, 1, &ll));
+        for (int file = 0; file < 2; file++) {
+            const size_t n = lens[k][file];
+            double *s = malloc(n * S0 * sizeof *s), *z = malloc(n * NT * sizeof *z), *st = malloc(n * ns * sizeof *st);
+            /* slopes correlated in time (a random walk pulled back), truth linear in them */
+            for (size_t i = 0; i < S0; i++) s[i] = swfs_rng_normal(&r);
+            for (size_t f = 1; f < n; f++)
+                for (size_t i = 0; i < S0; i++) s[f * S0 + i] = 0.9 * s[(f - 1) * S0 + i] + swfs_rng_normal(&r);
+            for (size_t f = 0; f < n; f++)
+                for (size_t a = 0; a < NT; a++) {
+                    double v = 0.1 * swfs_rng_normal(&r);
+                    for (size_t i = 0; i < S0; i++) v += ((double)((a + 1) * (i + 2) % 5) - 2.0) * s[f * S0 + i];
+                    z[f * NT + a] = v;
+                }
+            swfs_slopes_stack(s, n, S0, sets[k], nl, 0, n, st);
+            assert_ok(swfs_recon_learner_add(ls, st, z, n));
+            assert_ok(swfs_recon_learner_add_lagged(ll, s, S0, z, n, sets[k], nl));
+            free(s);
+            free(z);
+            free(st);
+        }
+        assert_int_equal(swfs_recon_learner_frames(ls), swfs_recon_learner_frames(ll));
+        swfs_recon *ws = NULL, *wl = NULL;
+        swfs_recon_learn_info is, il;
+        assert_ok(swfs_recon_learner_solve(ls, SWFS_RECON_LEARN_RIDGE, &ws, &is));
+        assert_ok(swfs_recon_learner_solve(ll, SWFS_RECON_LEARN_RIDGE, &wl, &il));
+        double dmax = 0, wmax = 0;
+        for (size_t q = 0; q < ns * NT; q++) {
+            dmax = fmax(dmax, fabs(ws->W[q] - wl->W[q]));
+            wmax = fmax(wmax, fabs(ws->W[q]));
+        }
+        printf("test_recon_learn: %zu lags: stacked and lagged sums give maps %.2e apart (largest entry %.3g), misfit "
+               "%.6g / %.6g\n", nl, dmax, wmax, is.misfit_rms, il.misfit_rms);
+        assert_true(dmax <= 1e-8 * wmax);
+        assert_true(fabs(is.misfit_rms - il.misfit_rms) <= 1e-8 * is.misfit_rms);
+        assert_int_equal(is.nslopes_seen, il.nslopes_seen);
+        swfs_recon_free(ws);
+        swfs_recon_free(wl);
+        swfs_recon_learner_free(ls);
+        swfs_recon_learner_free(ll);
+    }
+    /* a width that is not the learner's */
+    swfs_recon_learner *l = NULL;
+    double s1[2 * S0] = {0}, z1[2 * NT] = {0};
+    assert_ok(swfs_recon_learner_new(S0 * 3, NT, 1, &l));
+    assert_int_not_equal(swfs_recon_learner_add_lagged(l, s1, S0, z1, 2, sets[2], 2), 0);
+    assert_non_null(strstr(swfs_last_error(), "the learner takes 18 inputs"));
+    swfs_recon_learner_free(l);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_modal),
-                                       cmocka_unit_test(test_lags)};
+                                       cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

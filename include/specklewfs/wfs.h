@@ -204,7 +204,8 @@ void swfs_recon_free(swfs_recon *r);
  * know (docs/telemetry.md: trained on other systems of the same geometry it beat vk on 22 of
  * the matrix's 24 runs, and lost by 0.1-0.2 nm on the other two). The ridge only conditions
  * the solve (1e-6 and 1e-4 gave the same NCP errors to 0.3 nm). Accumulate with add (frames
- * x nslopes and frames x nact, row-major), then solve; nothing on the add path allocates. */
+ * x nslopes and frames x nact, row-major), then solve; nothing on add's path allocates
+ * (add_lagged's: once per file). */
 typedef struct swfs_recon_learner swfs_recon_learner;
 typedef struct swfs_recon_learn_info {
     size_t nframes;      /* frames learned from */
@@ -219,6 +220,14 @@ typedef struct swfs_recon_learn_info {
 int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out);
 void swfs_recon_learner_free(swfs_recon_learner *l);
 int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes);
+/* The same sums for a space-time learner (nslopes = ns0 x nl) from one file's slopes s
+ * (n x ns0) and truth, as if s were stacked at the lags (swfs_slopes_stack, clamped at the
+ * file's ends) and given to add, at a fraction of the work: the inner frames' products of
+ * the file with itself at each distinct lag difference, shared by the lag pairs at that
+ * difference, and the clamped frames stacked. It allocates its scratch (a block of stacked
+ * frames, two ns0 x ns0 matrices) once per call. */
+int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t ns0, const double *truth, size_t n,
+                                  const long *lags, size_t nl);
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l);
 int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info);
 /* The held-out check: the map learned from the sums of `all` less those of `part` (the frames

@@ -26,14 +26,14 @@ typedef struct set_stats {
 
 /* One pair of files: the slopes and the truth of the same frames, added to the learner (made
  * at the first pair, from its shapes); with lags, each frame's input is the slopes of frames
- * t + lags stacked, clamped at the file's ends (swfs_slopes_stack). */
+ * t + lags stacked, clamped at the file's ends (swfs_slopes_stack), which
+ * swfs_recon_learner_add_lagged sums without stacking the file. */
 static int add_pair(const swfs_learn_run_options *o, const char *sp, const char *tp, swfs_recon_learner **l,
                     swfs_learn_run_result *r, set_stats *stats)
 {
     const int modal = o->modal;
     const size_t nl = o->nlags > 1 ? o->nlags : 1;
     swfs_real *s = NULL, *z = NULL;
-    double *st = NULL;
     int rc = swfs_fits_read_real(sp, NULL, &s, NULL);
     if (!rc) rc = swfs_fits_read_real(tp, NULL, &z, NULL);
     if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
@@ -47,17 +47,12 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
         r->nact = z->nx;
         rc = swfs_recon_learner_new(s->nx * nl, z->nx, !modal, l);
     }
-    if (!rc && nl > 1) {
-        if (!(st = malloc(s->ny * s->nx * nl * sizeof *st)))
-            rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory for %zu frames of %zu lags", sp, s->ny, nl);
-        else swfs_slopes_stack(s->data, s->ny, s->nx, o->lags, nl, 0, s->ny, st);
-    }
-    if (!rc && (rc = swfs_recon_learner_add(*l, st ? st : s->data, z->data, s->ny)))
+    if (!rc && (rc = nl > 1 ? swfs_recon_learner_add_lagged(*l, s->data, s->nx, z->data, s->ny, o->lags, nl)
+                            : swfs_recon_learner_add(*l, s->data, z->data, s->ny)))
         rc = swfs_fail_context(rc, "%s / %s", sp, tp);
     if (!rc && nl > 1 && stats) /* the full layout's nsub; other layouts give no wind (no map here) */
         rc = swfs_spacetime_stats_(s->data, s->ny, s->nx, (size_t)llround(sqrt((double)s->nx / 2)), NULL, o->lags, nl,
                                    &stats->wind, stats->corr);
-    free(st);
     swfs_real_free(s);
     swfs_real_free(z);
     return rc;

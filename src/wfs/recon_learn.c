@@ -6,6 +6,7 @@
 
 #include <cblas.h>
 #include <lapacke.h>
+#include <limits.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -62,9 +63,8 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
 
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l) { return l->nframes; }
 
-int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
+static int check_finite(const double *slopes, size_t ns, const double *truth, size_t na, size_t nframes)
 {
-    const size_t ns = l->nslopes, na = l->nact;
     for (size_t k = 0; k < nframes * ns; k++)
         if (!isfinite(slopes[k]))
             return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: slope %zu of frame %zu is not finite", k % ns, k / ns);
@@ -72,31 +72,143 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
         if (!isfinite(truth[k]))
             return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: actuator %zu of frame %zu of the truth is not finite",
                              k % na, k / na);
-    /* G += S^T S (one rank-k update). H += S^T Zc with Zc = Z - m 1^T (m the frames' means:
-     * piston, which nothing sees; modal coefficients carry none and are taken as they are),
-     * block by block: S^T Z by one GEMM, less (S^T m) 1^T. */
+    return SWFS_OK;
+}
+
+/* H += S^T Zc for one block of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs), with
+ * Zc = Z - m 1^T (m the frames' means: piston, which nothing sees; modal coefficients carry
+ * none and are taken as they are): S^T Z by one GEMM, less (S^T m) 1^T; and zz. */
+static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb)
+{
+    const size_t ns = l->nslopes, na = l->nact;
+    for (size_t f = 0; f < nb; f++) {
+        const double *z = Z + f * na;
+        double m = 0;
+        if (l->remove_mean) {
+            for (size_t a = 0; a < na; a++) m += z[a];
+            m /= (double)na;
+        }
+        l->mean[f] = m;
+        for (size_t a = 0; a < na; a++) l->zz += (z[a] - m) * (z[a] - m);
+    }
+    cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0, S, (int)ns, Z, (int)na, 1.0,
+                l->H, (int)na);
+    if (l->remove_mean) {
+        cblas_dgemv(CblasRowMajor, CblasTrans, (int)nb, (int)ns, 1.0, S, (int)ns, l->mean, 1, 0.0, l->v, 1);
+        cblas_dger(CblasRowMajor, (int)ns, (int)na, -1.0, l->v, 1, l->ones, 1, l->H, (int)na);
+    }
+}
+
+int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
+{
+    const size_t ns = l->nslopes, na = l->nact;
+    int rc = check_finite(slopes, ns, truth, na, nframes);
+    if (rc) return rc;
+    /* G += S^T S (one rank-k update); H block by block. */
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
     for (size_t f0 = 0; f0 < nframes; f0 += LEARN_BLOCK) {
         const size_t nb = nframes - f0 < LEARN_BLOCK ? nframes - f0 : LEARN_BLOCK;
-        const double *S = slopes + f0 * ns, *Z = truth + f0 * na;
-        for (size_t f = 0; f < nb; f++) {
-            const double *z = Z + f * na;
-            double m = 0;
-            if (l->remove_mean) {
-                for (size_t a = 0; a < na; a++) m += z[a];
-                m /= (double)na;
-            }
-            l->mean[f] = m;
-            for (size_t a = 0; a < na; a++) l->zz += (z[a] - m) * (z[a] - m);
-        }
-        cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0, S, (int)ns, Z, (int)na, 1.0,
-                    l->H, (int)na);
-        if (l->remove_mean) {
-            cblas_dgemv(CblasRowMajor, CblasTrans, (int)nb, (int)ns, 1.0, S, (int)ns, l->mean, 1, 0.0, l->v, 1);
-            cblas_dger(CblasRowMajor, (int)ns, (int)na, -1.0, l->v, 1, l->ones, 1, l->H, (int)na);
-        }
+        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb);
     }
     l->nframes += nframes;
+    return SWFS_OK;
+}
+
+/* C += alpha S[a..a+m)^T S[a+d..a+d+m) (ns0 x ns0, row-major), S: frames x ns0. */
+static void lag_product(const double *S, size_t ns0, size_t a, size_t d, size_t m, double alpha, double *C)
+{
+    if (!m) return;
+    cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns0, (int)ns0, (int)m, alpha, S + a * ns0, (int)ns0,
+                S + (a + d) * ns0, (int)ns0, 1.0, C, (int)ns0);
+}
+
+int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t ns0, const double *truth, size_t n,
+                                  const long *lags, size_t nl)
+{
+    const size_t ns = l->nslopes, na = l->nact;
+    if (!nl || nl > SWFS_RECON_MAXLAGS || ns0 * nl != ns)
+        return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: %zu slopes x %zu lags, but the learner takes %zu inputs",
+                         ns0, nl, ns);
+    int rc = check_finite(s, ns0, truth, na, n);
+    if (rc || !n) return rc;
+    long lmin = 0, lmax = 0;
+    for (size_t k = 0; k < nl; k++) {
+        lmin = lags[k] < lmin ? lags[k] : lmin;
+        lmax = lags[k] > lmax ? lags[k] : lmax;
+    }
+    /* The frames t whose every lag falls inside the file: [ta, tb]; the others are clamped. */
+    const long ta = -lmin, tb = (long)n - 1 - lmax;
+    const size_t nedge = ta <= tb ? n - (size_t)(tb - ta + 1) : n;
+    const size_t rows = nedge > LEARN_BLOCK ? nedge : LEARN_BLOCK;
+    double *X = malloc(rows * ns * sizeof *X), *Q = malloc(ns0 * ns0 * sizeof *Q), *T = malloc(ns0 * ns0 * sizeof *T);
+    if (!X || !Q || !T) {
+        free(X); free(Q); free(T);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu lags of %zu slopes", nl, ns0);
+    }
+    /* H and zz from the stacked input, a block at a time. */
+    for (size_t f0 = 0; f0 < n; f0 += LEARN_BLOCK) {
+        const size_t nb = n - f0 < LEARN_BLOCK ? n - f0 : LEARN_BLOCK;
+        swfs_slopes_stack(s, n, ns0, lags, nl, f0, nb, X);
+        add_cross(l, X, truth + f0 * na, nb);
+    }
+    /* G: block (i, j) of the inner frames is sum_t s(t + L_i) s(t + L_j)^T, a product of the
+     * file with itself d = |L_j - L_i| frames apart, over a range that depends on i only by a
+     * shift. One GEMM per distinct d over a reference range (the pairs' smallest leading
+     * lag), and for each pair the frames its own range adds and leaves out at the ends: about
+     * (distinct d) / (nl (nl + 1) / 2) of the stacked DSYRK's work. */
+    if (ta <= tb) {
+        const size_t m = (size_t)(tb - ta + 1);
+        int done[SWFS_RECON_MAXLAGS * SWFS_RECON_MAXLAGS] = {0};
+        for (size_t i = 0; i < nl; i++)
+            for (size_t j = i; j < nl; j++) {
+                const long d = lags[j] - lags[i], ad = d < 0 ? -d : d;
+                if (done[i * nl + j]) continue;
+                /* the reference: the smallest leading lag among the pairs at this distance */
+                long lref = LONG_MAX;
+                for (size_t i2 = 0; i2 < nl; i2++)
+                    for (size_t j2 = i2; j2 < nl; j2++) {
+                        const long d2 = lags[j2] - lags[i2];
+                        if ((d2 < 0 ? -d2 : d2) != ad) continue;
+                        const long lead = d2 >= 0 ? lags[i2] : lags[j2];
+                        lref = lead < lref ? lead : lref;
+                    }
+                memset(Q, 0, ns0 * ns0 * sizeof *Q);
+                lag_product(s, ns0, (size_t)(ta + lref), (size_t)ad, m, 1.0, Q);
+                for (size_t i2 = 0; i2 < nl; i2++)
+                    for (size_t j2 = i2; j2 < nl; j2++) {
+                        const long d2 = lags[j2] - lags[i2];
+                        if ((d2 < 0 ? -d2 : d2) != ad) continue;
+                        done[i2 * nl + j2] = 1;
+                        const long lead = d2 >= 0 ? lags[i2] : lags[j2];
+                        const size_t sh = (size_t)(lead - lref);
+                        memcpy(T, Q, ns0 * ns0 * sizeof *T);
+                        /* the range [ta + lead, tb + lead] = the reference's less its first
+                         * sh frames, plus sh frames beyond its end */
+                        lag_product(s, ns0, (size_t)(ta + lref), (size_t)ad, sh, -1.0, T);
+                        lag_product(s, ns0, (size_t)(tb + lref + 1), (size_t)ad, sh, 1.0, T);
+                        /* T[r][c] = sum s(u)_r s(u + ad)_c, u = t + lead: rows at the leading
+                         * lag's slopes. G's block (i2, j2) has rows at lag i2's. */
+                        const int flip = d2 < 0;
+                        for (size_t r = 0; r < ns0; r++) {
+                            double *g = l->G + (i2 * ns0 + r) * ns + j2 * ns0;
+                            for (size_t c = i2 == j2 ? r : 0; c < ns0; c++) g[c] += flip ? T[c * ns0 + r] : T[r * ns0 + c];
+                        }
+                    }
+            }
+    }
+    /* The clamped frames, stacked, by one rank-k update. */
+    size_t k = 0;
+    for (size_t t = 0; t < n; t++) {
+        if (ta <= tb && (long)t >= ta && (long)t <= tb) continue;
+        swfs_slopes_stack(s, n, ns0, lags, nl, t, 1, X + k * ns);
+        k++;
+    }
+    if (k)
+        cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)k, 1.0, X, (int)ns, 1.0, l->G, (int)ns);
+    l->nframes += n;
+    free(X);
+    free(Q);
+    free(T);
     return SWFS_OK;
 }
 
