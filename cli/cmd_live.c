@@ -13,7 +13,6 @@
 #include <stdio.h>
 #include <string.h>
 
-
 static volatile sig_atomic_t stop_flag = 0;
 static void on_signal(int sig)
 {

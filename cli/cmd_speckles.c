@@ -13,7 +13,6 @@
 #include <stdlib.h>
 #include <string.h>
 
-
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
 typedef struct spk_args {
     swfs_speckles_run_options *o;

@@ -14,7 +14,6 @@
 #include <stdlib.h>
 #include <string.h>
 
-
 /* The tip-tilt options; anything else left over is an unknown argument. */
 static int special(void *ctx, int argc, char **argv, int *i)
 {

@@ -177,22 +177,6 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     if (rc) return rc;
     w->nslopes = w->slopes->nx;
     snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
-    /* The file's NSUB against the Shack-Hartmann its width (or the valid map) makes, before
-     * teach's loops spend minutes on telemetry the pipeline then refuses (swfs_sh_pipeline
-     * checks it again on the model it builds). */
-    if (!o->lin.basis) {
-        size_t nsub = 0, nvalid = 0;
-        if (o->valid) {
-            unsigned char *map = NULL;
-            rc = swfs_valid_map_read(o->valid, &map, &nsub, &nvalid);
-            free(map);
-            if (rc) return swfs_fail_context(rc, "the valid-subaperture map %s", o->valid);
-        } else {
-            const size_t n = (size_t)llround(sqrt((double)w->nslopes / 2));
-            if (2 * n * n == w->nslopes) nsub = n;
-        }
-        if (nsub && (rc = swfs_telemetry_check_nsub(w->path, nsub))) return rc;
-    }
     if (!o->pipe.wfs_rate) return SWFS_OK;
     r->wfs_hz = o->wfs_hz > 0 ? o->wfs_hz : rate;
     if (!(r->wfs_hz > 0))
@@ -249,7 +233,6 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     if (o->lin.basis) return build_linear(o, w);
     int rc = SWFS_OK;
     if (o->pipe.recon == SWFS_RECON_GIVEN) {
-        if (!o->recon) return swfs_fail(SWFS_ERR_ARG, "speckles: a given reconstructor needs its file");
         if ((rc = swfs_recon_read(o->recon, &w->rin))) return rc;
         /* With a valid map the telemetry may hold the used subapertures only and the
          * reconstructor the full layout of the map's nsub (e.g. learned on simulations). */

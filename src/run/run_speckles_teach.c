@@ -32,14 +32,17 @@ static int table_files(const swfs_timing *t, const char *tdir, char **names, siz
     return SWFS_OK;
 }
 
-/* The work folder: o->teach_work, or beside out (swfs_teach_work_default); created. */
-static int work_folder(const swfs_speckles_run_options *o, char *work, size_t cap)
+/* The work folder: o->teach_work, or beside out (swfs_teach_work_default); created (*made = 1
+ * when this call made it). */
+static int work_folder(const swfs_speckles_run_options *o, char *work, size_t cap, int *made)
 {
+    *made = 0;
     int rc = o->teach_work ? (snprintf(work, cap, "%s", o->teach_work) >= (int)cap
                                   ? swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", o->teach_work)
                                   : SWFS_OK)
                            : swfs_teach_work_default(o->out, work, cap);
-    if (!rc && mkdir(work, 0777) && errno != EEXIST)
+    if (!rc && !mkdir(work, 0777)) *made = 1;
+    else if (!rc && errno != EEXIST)
         rc = swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
     return rc;
 }
@@ -73,13 +76,14 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
                  char *map, size_t cap, struct swfs_teach_run_result *tr)
 {
     char work[4200];
+    int made = 0;
     char **names = calloc(t->ncubes ? t->ncubes : 1, sizeof *names);
     size_t n = 0;
     swfs_config *c = swfs_config_new();
     int rc = names && c ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
     if (!rc) rc = table_files(t, tdir, names, &n);
     if (!rc && !n) rc = swfs_fail(SWFS_ERR_VALUE, "%s: names no telemetry file", o->timing);
-    if (!rc) rc = work_folder(o, work, sizeof work);
+    if (!rc) rc = work_folder(o, work, sizeof work, &made);
     if (!rc && snprintf(map, cap, "%s/taught.fits", work) >= (int)cap)
         rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", work);
     /* the rate the run uses where the telemetry has none (--wfs-hz) */
@@ -109,6 +113,7 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         rc = swfs_teach_run(&to, tr);
     }
     if (!rc && !o->teach_keep_loops) drop_loops(work, tr, to.nloops);
+    if (rc && made) (void)rmdir(work); /* refused before any loop: the folder this run made, empty */
     swfs_config_free(c);
     for (size_t k = 0; names && k < n; k++) free(names[k]);
     free(names);

@@ -396,7 +396,10 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
                        valid ? ", and its valid map's used subapertures give twice their count" : "");
-    else if (orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
+    /* the file's own NSUB, as speckles and stream check it on their model: refused here,
+     * before the loops (which would take minutes for telemetry the pipeline then refuses) */
+    else rc = swfs_telemetry_check_nsub(o->files[0], nsub);
+    if (!rc && orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
                        orate, sp->wfs_rate);
     /* 1. the layers */

@@ -13,6 +13,7 @@
 
 /* Frames per block of the H update (the per-frame means of one block are kept). */
 #define LEARN_BLOCK 256
+#define MIN2(a, b) ((a) < (b) ? (a) : (b))
 
 struct swfs_recon_learner {
     size_t nslopes, nact, nframes;
@@ -161,34 +162,31 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
         int done[SWFS_RECON_MAXLAGS * SWFS_RECON_MAXLAGS] = {0};
         for (size_t i = 0; i < nl; i++)
             for (size_t j = i; j < nl; j++) {
-                const long d = lags[j] - lags[i], ad = d < 0 ? -d : d;
                 if (done[i * nl + j]) continue;
-                /* the reference: the smallest leading lag among the pairs at this distance */
+                const long ad = labs(lags[j] - lags[i]);
+                /* the pairs at this distance; a pair's range starts at its smaller lag (the
+                 * leading one), the reference at the smallest of those */
                 long lref = LONG_MAX;
                 for (size_t i2 = 0; i2 < nl; i2++)
-                    for (size_t j2 = i2; j2 < nl; j2++) {
-                        const long d2 = lags[j2] - lags[i2];
-                        if ((d2 < 0 ? -d2 : d2) != ad) continue;
-                        const long lead = d2 >= 0 ? lags[i2] : lags[j2];
-                        lref = lead < lref ? lead : lref;
-                    }
+                    for (size_t j2 = i2; j2 < nl; j2++)
+                        if (labs(lags[j2] - lags[i2]) == ad && MIN2(lags[i2], lags[j2]) < lref)
+                            lref = MIN2(lags[i2], lags[j2]);
                 memset(Q, 0, ns0 * ns0 * sizeof *Q);
                 lag_product(s, ns0, (size_t)(ta + lref), (size_t)ad, m, 1.0, Q);
                 for (size_t i2 = 0; i2 < nl; i2++)
                     for (size_t j2 = i2; j2 < nl; j2++) {
-                        const long d2 = lags[j2] - lags[i2];
-                        if ((d2 < 0 ? -d2 : d2) != ad) continue;
+                        if (labs(lags[j2] - lags[i2]) != ad) continue;
                         done[i2 * nl + j2] = 1;
-                        const long lead = d2 >= 0 ? lags[i2] : lags[j2];
-                        const size_t sh = (size_t)(lead - lref);
+                        const size_t sh = (size_t)(MIN2(lags[i2], lags[j2]) - lref);
                         memcpy(T, Q, ns0 * ns0 * sizeof *T);
                         /* the range [ta + lead, tb + lead] = the reference's less its first
                          * sh frames, plus sh frames beyond its end */
                         lag_product(s, ns0, (size_t)(ta + lref), (size_t)ad, sh, -1.0, T);
                         lag_product(s, ns0, (size_t)(tb + lref + 1), (size_t)ad, sh, 1.0, T);
                         /* T[r][c] = sum s(u)_r s(u + ad)_c, u = t + lead: rows at the leading
-                         * lag's slopes. G's block (i2, j2) has rows at lag i2's. */
-                        const int flip = d2 < 0;
+                         * lag's slopes; G's block (i2, j2) has rows at lag i2's (transposed
+                         * when lag j2 leads). */
+                        const int flip = lags[j2] < lags[i2];
                         for (size_t r = 0; r < ns0; r++) {
                             double *g = l->G + (i2 * ns0 + r) * ns + j2 * ns0;
                             for (size_t c = i2 == j2 ? r : 0; c < ns0; c++) g[c] += flip ? T[c * ns0 + r] : T[r * ns0 + c];
