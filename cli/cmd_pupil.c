@@ -160,10 +160,11 @@ int swfs_cmd_pupil(int argc, char **argv)
             printf(" (median pixel; EXPLAINED)\n");
         }
         if (isfinite(f->delta_chi2))
-            printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one; limit %.0f)\n",
+            printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one%s; limit %.0f)\n",
                    f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"
                                                           : "modelled as |Psi|^2 + kappa g^2 Phi_sp",
-                   f->delta_chi2, f->delta_chi2_limit);
+                   f->delta_chi2, f->model_stopped ? " where its fit stopped, out of the limit's reach" : "",
+                   f->delta_chi2_limit);
         if (f->iterations == 0)
             fprintf(stderr, "specklewfs pupil: warning: the joint fit took no step from its flat start (its normal "
                     "equations were not positive definite there): the WFE of %s is the start, not an estimate; "

@@ -115,6 +115,7 @@ static void test_paper_case(void **state)
         /* the intercept model passes its likelihood-ratio test on the simulator's data */
         assert_int_equal(j->intercept, SWFS_JF_INTERCEPT_MODEL);
         assert_true(j->delta_chi2 > 0.0 && j->delta_chi2 <= j->delta_chi2_limit);
+        assert_int_equal(j->model_stopped, 0); /* a kept model's fit ran its course */
         assert_true(j->iterations >= 1 && j->iterations < 40);
         assert_int_equal(j->npix, nf);
         swfs_jointfit_result_free(j);
@@ -275,7 +276,9 @@ static void test_noise_scale_counts_information(void **state)
 /* Light the computed speckles do not model: a uniform background (thermal sky, stray light)
  * of half the mean intensity over the outer window. The intercept model cannot explain it; the
  * likelihood-ratio test must reject it and the free intercept keep the NCP error near the
- * clean value, where the forced model is worse. */
+ * clean value, where the forced model is worse. The model's fit inside the test stops once the
+ * limit is out of its reach: the kept result is the free intercept's fit to the bit, and the
+ * forced model's fit, run to its end, is rejected by the same test. */
 static void test_incoherent_background(void **state)
 {
     (void)state;
@@ -301,8 +304,10 @@ static void test_incoherent_background(void **state)
     swfs_jointfit_options o;
     swfs_jointfit_options_default(&o);
     o.intercept = SWFS_JF_INTERCEPT_MODEL;
-    swfs_jointfit_result *forced;
+    swfs_jointfit_result *forced, *free_only;
     assert_ok(swfs_jointfit(sol, &sim->geom, sim->pupil, &o, &forced));
+    o.intercept = SWFS_JF_INTERCEPT_FREE;
+    assert_ok(swfs_jointfit(sol, &sim->geom, sim->pupil, &o, &free_only));
     const double e_clean = ncp_error(clean), e = ncp_error(j), e_forced = ncp_error(forced);
     print_message("background %.3g counts: NCP %.2f nm (auto: %s intercept, delta chi2 %.0f > %.0f), forced model "
                   "%.2f nm, clean %.2f nm\n", bg, e * 1e9, j->intercept == SWFS_JF_INTERCEPT_FREE ? "free" : "model",
@@ -311,6 +316,14 @@ static void test_incoherent_background(void **state)
     assert_true(j->delta_chi2 > j->delta_chi2_limit);
     assert_true(e <= e_clean + 1.5e-9);
     assert_true(e < e_forced);
+    const double converged = free_only->noise_scale * (forced->chi2 - free_only->chi2);
+    print_message("the model's fit stopped: %d (%d iterations to the end of the forced one); delta chi2 %.0f where it "
+                  "stopped, %.0f converged\n", j->model_stopped, forced->iterations, j->delta_chi2, converged);
+    assert_int_equal(j->model_stopped, 1);
+    assert_true(converged > j->delta_chi2_limit && converged <= j->delta_chi2);
+    assert_memory_equal(j->wfe->data, free_only->wfe->data, j->wfe->nx * j->wfe->ny * sizeof *j->wfe->data);
+    assert_true(j->chi2 == free_only->chi2 && j->iterations == free_only->iterations);
+    swfs_jointfit_result_free(free_only);
     swfs_jointfit_result_free(forced);
     swfs_jointfit_result_free(j);
     swfs_jointfit_result_free(clean);

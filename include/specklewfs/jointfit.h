@@ -100,6 +100,10 @@ typedef struct swfs_jointfit_result {
     double delta_chi2_limit; /* AUTO: the test's rejection threshold; NaN otherwise */
     double noise_scale;    /* beta: the data's weight by the evidence, (rows - gamma) / chi2;
                               1 = the statistics' own errors; 1 with fixed prior weights */
+    int model_stopped;     /* AUTO: 1 if the intercept model's fit was stopped once its chi2
+                              could no longer come within the limit in the iterations left
+                              (delta_chi2 is then where it stopped, above its converged value,
+                              and the free intercept is kept); 0 otherwise */
 } swfs_jointfit_result;
 
 /* sol: swfs_regress_solve over the focal window of the geometry g (PIXSCALE, PUPDX, TELDIAM,

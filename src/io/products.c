@@ -57,6 +57,9 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
         rc = swfs_fits_out_key_double(o, "FITDCHI2", f->delta_chi2, "(chi2(model) - chi2(free)) x noise scale");
     if (!rc && f && isfinite(f->delta_chi2_limit))
         rc = swfs_fits_out_key_double(o, "FITDCLIM", f->delta_chi2_limit, "the model is kept below this");
+    if (!rc && f && isfinite(f->delta_chi2))
+        rc = swfs_fits_out_key_long(o, "FITDCSTP", (long)f->model_stopped,
+                                    "1: model's fit stopped once out of the limit's reach");
     if (!rc) rc = swfs_fits_out_key_double(o, "RESMRMS", r->resmean_rms,
                                            "[m] AO residual's time mean taken out of WFE");
     if (!rc) rc = swfs_fits_out_cplx(o, "FIELD", r->field, -64);

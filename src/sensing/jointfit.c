@@ -92,6 +92,10 @@ typedef struct fit {
     double noise_scale;     /* the data's weight by the evidence: (ndata - gamma) / chi2 */
     double ndata;           /* data rows: 4 (intercept modelled) or 3 (free) per pixel used */
     int iters;
+    /* AUTO's intercept-model fit: the chi2 above which the test rejects it (the free fit's
+     * chi2 + limit / its beta; +inf otherwise), and 1 once the fit stopped on that ground */
+    double chi2_reject;
+    int rejected;
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
     float *ytf, *hf;        /* single-precision copy of the scaled Jacobian, field block of H */
@@ -478,7 +482,9 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
 {
     const int evid = ft->o->lambda_phi <= 0.0 || ft->o->lambda_alpha <= 0.0;
     double mu = 1e-3, cur = total_cost(ft, ft->x, chi2), dl = 0.0;
+    double drops[3] = {0, 0, 0}; /* the last iterations' falls of chi2 (or of the cost) */
     for (int it = 0; it < maxit; it++) {
+        const double chi2_at = *chi2;
         if (!built) build_normal(ft, ft->x);
         built = 0;
         /* MacKay's rule for the data's own weight: beta = (rows - well-determined
@@ -540,12 +546,26 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
         cur = ok ? c : before;
         if (ft->stage == 1) ft->iters++;
         if (!ok || (before - c < ft->o->tol && dl < 0.05)) break;
+        /* A rejected intercept model (AUTO): the model's chi2 must fall below chi2_reject to be
+         * kept. Once it is further above it than twice the largest fall of the last three
+         * iterations for every iteration left could take it, the test's outcome within
+         * max_iter is settled and the rest of the fit (up to max_iter iterations of a model
+         * that does not fit, the slowest part of a `pupil` run) would be thrown away. */
+        drops[it % 3] = fmax(chi2_at - *chi2, ok ? before - c : 0.0);
+        if (ft->stage == 1 && it >= 2 && isfinite(ft->chi2_reject)) {
+            const double fall = fmax(drops[0], fmax(drops[1], drops[2]));
+            if (*chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {
+                ft->rejected = 1;
+                break;
+            }
+        }
     }
     return cur;
 }
 
+/* chi2_reject: the intercept model's rejection level in chi2 (AUTO's second fit), or +inf. */
 static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask_in,
-                        const swfs_jointfit_options *opt, swfs_jointfit_result **out)
+                        const swfs_jointfit_options *opt, double chi2_reject, swfs_jointfit_result **out)
 {
     *out = NULL;
     struct timespec t0, t1;
@@ -569,6 +589,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     fit ft;
     memset(&ft, 0, sizeof ft);
     ft.noise_scale = 1.0;
+    ft.chi2_reject = chi2_reject;
     if (!res) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     res->mask = mask_in ? swfs_real_copy(mask_in) : swfs_real_alloc(n, n, 1);
     if (!res->mask) { rc = SWFS_ERR_NOMEM; goto done; }
@@ -689,6 +710,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     res->nparams = np;
     res->iterations = ft.iters;
     res->evaluations = ft.evals;
+    res->model_stopped = ft.rejected;
 done:
     fit_free(&ft);
     if (rc) { swfs_jointfit_result_free(res); return rc; }
@@ -714,7 +736,7 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     if (o.intercept != SWFS_JF_INTERCEPT_AUTO) {
         if (o.intercept != SWFS_JF_INTERCEPT_MODEL && o.intercept != SWFS_JF_INTERCEPT_FREE)
             return swfs_fail(SWFS_ERR_ARG, "joint fit: intercept %d: expected model, free or auto", o.intercept);
-        int rc = jointfit_one(sol, geo, mask, &o, out);
+        int rc = jointfit_one(sol, geo, mask, &o, INFINITY, out);
         if (!rc) {
             (*out)->intercept = o.intercept;
             (*out)->delta_chi2 = (*out)->delta_chi2_limit = NAN;
@@ -723,7 +745,7 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     }
     swfs_jointfit_result *rf = NULL, *rm = NULL;
     o.intercept = SWFS_JF_INTERCEPT_FREE;
-    int rc = jointfit_one(sol, geo, mask, &o, &rf);
+    int rc = jointfit_one(sol, geo, mask, &o, INFINITY, &rf);
     if (rc) return rc;
     o.intercept = SWFS_JF_INTERCEPT_MODEL;
     const double dof = (double)rf->npix - 1.0;
@@ -732,12 +754,14 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     /* In units of the free fit's calibrated noise (its evidence data weight beta): frames that
      * are not independent inflate both chi-squares by 1/beta, and the test must not read
      * that as light the model cannot explain. */
-    if (!jointfit_one(sol, geo, mask, &o, &rm)) delta = rf->noise_scale * (rm->chi2 - rf->chi2);
+    const double reject = rf->chi2 + limit / (rf->noise_scale > 0.0 ? rf->noise_scale : 1.0);
+    if (!jointfit_one(sol, geo, mask, &o, reject, &rm)) delta = rf->noise_scale * (rm->chi2 - rf->chi2);
     swfs_jointfit_result *keep = rf, *drop = rm;
     if (rm && delta <= limit) { keep = rm; drop = rf; }
     keep->intercept = keep == rm ? SWFS_JF_INTERCEPT_MODEL : SWFS_JF_INTERCEPT_FREE;
     keep->delta_chi2 = delta;
     keep->delta_chi2_limit = limit;
+    keep->model_stopped = rm ? rm->model_stopped : 0;
     keep->seconds = rf->seconds + (rm ? rm->seconds : 0.0);
     swfs_jointfit_result_free(drop);
     *out = keep;
