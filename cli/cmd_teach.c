@@ -11,6 +11,8 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
 static const char *usage_text =
     "usage: specklewfs teach SLOPES.fits... --science SCI.fits --actuators ACT.fits [--pupil P.fits]\n"
@@ -145,6 +147,8 @@ int swfs_cmd_teach(int argc, char **argv)
         rc = swfs_teach_work_default(o.out, work, sizeof work) ? cli_usage_error(cmd, "%s (--work)", swfs_last_error()) : 0;
         o.work = work;
     }
+    struct stat st;
+    const int made = !rc && stat(o.work, &st) != 0; /* the folder is this run's to remove if teach refuses */
     if (!rc) rc = cli_make_dir(cmd, o.work);
     swfs_config_free(cfg);
     if (rc) {
@@ -159,7 +163,11 @@ int swfs_cmd_teach(int argc, char **argv)
     swfs_teach_run_result r;
     rc = swfs_teach_run(&o, &r);
     free(files);
-    if (rc) return cli_error(cmd);
+    if (rc) {
+        rc = cli_error(cmd);
+        if (made) (void)rmdir(o.work); /* only if teach left it empty (refused before its loops) */
+        return rc;
+    }
     cli_teach_summary(stdout, cmd, &r, o.modes_from_slopes, o.out, o.work, 1);
     return CLI_OK;
 }

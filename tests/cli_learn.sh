@@ -214,4 +214,5 @@ head -c 8640 taught1.fits | grep -aq "TEACHSEL= 'perframe_mixed'" && head -c 864
     && fail "teach accepted a 16 x 16 system for 12 x 12 telemetry"
 grep -q "obs1/slopes_000.fits: 288 slopes per WFS frame; the system's 16 x 16" bad.log || { cat bad.log; fail "teach: the message"; }
 [ -e bad.fits ] && fail "teach left a map after failing"
+[ -e badw ] && fail "teach left the work folder it made (empty) after refusing its input"
 echo "cli_learn: ok"
