@@ -21,6 +21,9 @@ swfs_sparse *swfs_sparse_alloc(size_t nrows, size_t ncols, size_t nnz);
 void swfs_sparse_free(swfs_sparse *s);
 /* y = S x  (x: ncols, y: nrows). */
 void swfs_sparse_apply(const swfs_sparse *s, const double *x, double *y);
+/* y[r] = (S x)[r] for the nr rows listed in rows only (the other entries of y untouched): the
+ * DM surface on the pupil's samples alone, for instance. */
+void swfs_sparse_apply_rows(const swfs_sparse *s, const double *x, const size_t *rows, size_t nr, double *y);
 /* Y = S X for m column vectors stored row-major (X: ncols x m, Y: nrows x m). */
 void swfs_sparse_apply_multi(const swfs_sparse *s, const double *X, double *Y, size_t m);
 

@@ -648,7 +648,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     if (!dact) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     for (size_t k = 0; k < nwfs; k++) {
         double t = (double)k / p->wfs_rate;
-        swfs_sparse_apply(T, act, dmz);
+        swfs_sparse_apply_rows(T, act, pin, npin, dmz); /* the surface where the residual is read */
         double th = vib * sin(2 * M_PI * p->vib_freq * t);
         /* Broadband jitter: AR(1) low-pass white noise per axis (breaks the half-period
          * ambiguity a pure sinusoid leaves in the synchronization). */

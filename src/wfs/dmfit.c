@@ -286,9 +286,9 @@ done:
 
 void swfs_dmfit_surface(const swfs_dmfit *f, const double *cmd, double *surface)
 {
-    swfs_sparse_apply(f->A, cmd, surface);
-    for (size_t s = 0; s < f->npup * f->npup; s++)
-        if (!(f->mask[s] > 0)) surface[s] = 0.0;
+    /* on the pupil's samples only (pix: mask > 0), 0 elsewhere */
+    memset(surface, 0, f->npup * f->npup * sizeof *surface);
+    swfs_sparse_apply_rows(f->A, cmd, f->pix, f->npix, surface);
 }
 
 /* Mask-weighted rms with the weighted mean removed, over the plan's pupil samples of
