@@ -3,12 +3,15 @@
 # "release": the two systems with teach's loops, the Python package's), then every test of
 # the suite under AddressSanitizer + UndefinedBehaviorSanitizer (Python's aside: a sanitized
 # library cannot be loaded into Debian's python3). Used by the README's test command and by
-# CI. The whole suite in the Release build: `cd build && ctest -j2`.
+# CI. The Release pass builds only what its tests run (the command and the library, with
+# -Werror); the sanitizer pass builds every target (tests, benchmarks, fuzz corpus runners),
+# also with -Werror. The whole suite in the Release build: `cmake --build build -j2 && cd build
+# && ctest -j2`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 jobs=$(nproc)
 cmake -S . -B build -DCMAKE_BUILD_TYPE=Release -DSWFS_WERROR=ON >/dev/null
-cmake --build build -j"$jobs"
+cmake --build build -j"$jobs" --target specklewfs-cli specklewfs
 (cd build && ctest --output-on-failure -j"$jobs" -L release)
 cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSWFS_WERROR=ON -DSWFS_SANITIZE=ON -DSWFS_NATIVE=OFF >/dev/null
 cmake --build build-asan -j"$jobs"
