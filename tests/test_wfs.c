@@ -203,6 +203,29 @@ static void test_shwfs_and_reconstructor(void **state)
     swfs_sparse_apply(T, act, z2);
     assert_true(rms_diff(z2, NULL, mask, ng) < 1e-3 * rms_diff(z, NULL, mask, ng));
 
+    /* The surface on the pupil's samples only (swfs_sparse_apply_rows): the same values to the
+     * bit there, every other entry left as it was. */
+    size_t *rows = malloc(ng * sizeof *rows), nrows = 0;
+    double *z3 = malloc(ng * sizeof *z3);
+    assert_non_null(rows);
+    assert_non_null(z3);
+    for (size_t g = 0; g < ng; g++) {
+        if (mask[g] > 0) rows[nrows++] = g;
+        z3[g] = -7.0;
+    }
+    swfs_sparse_apply_rows(T, act, rows, nrows, z3);
+    for (size_t g = 0, k = 0; g < ng; g++) {
+        if (k < nrows && rows[k] == g) {
+            assert_memory_equal(&z3[g], &z2[g], sizeof z3[g]);
+            k++;
+        } else {
+            assert_true(z3[g] == -7.0);
+        }
+    }
+    assert_true(nrows > 0 && nrows < ng);
+    free(rows);
+    free(z3);
+
     /* Mode-count cut. */
     swfs_recon *r56 = NULL;
     assert_ok(swfs_recon_svd(Dm, w->nslopes, nact, 0.0, 56, &r56));
