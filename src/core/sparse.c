@@ -24,23 +24,22 @@ void swfs_sparse_free(swfs_sparse *s)
     free(s);
 }
 
+/* (S x)[r] */
+static inline double row_dot(const swfs_sparse *s, size_t r, const double *x)
+{
+    double acc = 0.0;
+    for (size_t k = s->row_ptr[r]; k < s->row_ptr[r + 1]; k++) acc += s->val[k] * x[s->col[k]];
+    return acc;
+}
+
 void swfs_sparse_apply(const swfs_sparse *s, const double *x, double *y)
 {
-    for (size_t r = 0; r < s->nrows; r++) {
-        double acc = 0.0;
-        for (size_t k = s->row_ptr[r]; k < s->row_ptr[r + 1]; k++) acc += s->val[k] * x[s->col[k]];
-        y[r] = acc;
-    }
+    for (size_t r = 0; r < s->nrows; r++) y[r] = row_dot(s, r, x);
 }
 
 void swfs_sparse_apply_rows(const swfs_sparse *s, const double *x, const size_t *rows, size_t nr, double *y)
 {
-    for (size_t i = 0; i < nr; i++) {
-        const size_t r = rows[i];
-        double acc = 0.0;
-        for (size_t k = s->row_ptr[r]; k < s->row_ptr[r + 1]; k++) acc += s->val[k] * x[s->col[k]];
-        y[r] = acc;
-    }
+    for (size_t i = 0; i < nr; i++) y[rows[i]] = row_dot(s, rows[i], x);
 }
 
 void swfs_sparse_apply_multi(const swfs_sparse *s, const double *X, double *Y, size_t m)

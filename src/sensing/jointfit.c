@@ -551,10 +551,10 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
          * iterations for every iteration left could take it, the test's outcome within
          * max_iter is settled and the rest of the fit (up to max_iter iterations of a model
          * that does not fit, the slowest part of a `pupil` run) would be thrown away. */
-        drops[it % 3] = fmax(chi2_at - *chi2, ok ? before - c : 0.0);
-        if (ft->stage == 1 && it >= 2 && isfinite(ft->chi2_reject)) {
+        if (ft->stage == 1 && isfinite(ft->chi2_reject)) {
+            drops[it % 3] = fmax(chi2_at - *chi2, ok ? before - c : 0.0);
             const double fall = fmax(drops[0], fmax(drops[1], drops[2]));
-            if (*chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {
+            if (it >= 2 && *chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {
                 ft->rejected = 1;
                 break;
             }
@@ -754,7 +754,7 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     /* In units of the free fit's calibrated noise (its evidence data weight beta): frames that
      * are not independent inflate both chi-squares by 1/beta, and the test must not read
      * that as light the model cannot explain. */
-    const double reject = rf->chi2 + limit / (rf->noise_scale > 0.0 ? rf->noise_scale : 1.0);
+    const double reject = rf->chi2 + limit / rf->noise_scale; /* beta >= SWFS_JF_NOISE_SCALE_MIN */
     if (!jointfit_one(sol, geo, mask, &o, reject, &rm)) delta = rf->noise_scale * (rm->chi2 - rf->chi2);
     swfs_jointfit_result *keep = rf, *drop = rm;
     if (rm && delta <= limit) { keep = rm; drop = rf; }
