@@ -150,7 +150,9 @@ int cli_band_option(const char *cmd, int argc, char **argv, int *i, double *band
 #define CLI_BAND_HELP \
     "  --band auto|none|R  the focal radius [lambda/D] the speckles are computed within, 0 beyond (no\n" \
     "                      reference there): auto (default) the Shack-Hartmann's sampling band\n" \
-    "                      nsub/2, none for a linear model; none: everywhere (docs/telemetry.md)\n"
+    "                      nsub/2; for a map with output points of its own (teach's: OUTXY)\n" \
+    "                      their band D / (2 pitch); none for a linear model; none: everywhere\n" \
+    "                      (docs/telemetry.md)\n"
 #define CLI_GEOM_HELP \
     "  --geom FILE         geometry the files lack (no camera writes PUPDX, PUPN): a FITS header or\n" \
     "                      KEY = VALUE lines of WAVELEN [m], TELDIAM [m], OBSCUR, PIXSCALE [lambda/D\n" \

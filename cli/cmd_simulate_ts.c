@@ -66,8 +66,10 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
                "--dm-pitch %.6g --dm-offset %g,%g --dm-rot %g --dm-flip --coef-scale 2e-6\n", nmodes, reg.pitch, reg.x0,
                reg.y0, reg.rot * 180 / M_PI);
     if (p.export_truth)
-        printf("  truth per WFS frame (truewf_NNN.fits): the true residual least-squares fitted on the actuators "
-               "[m], extension DM the loop's commands\n");
+        printf("  truth per WFS frame (truewf_NNN.fits): the true residual least-squares fitted on %s [m], "
+               "extension DM the loop's commands%s\n",
+               p.truth_actuators[0] ? "truth_actuators' points" : "the actuators",
+               p.truth_actuators[0] ? ", extension OUTXY the points" : "");
     if (p.milk)
         printf("  milk logs in %s/milk/{wfs,cam}: stamp jitter %.3g s, camera clock drift %.3g and offset %.3g s, %ld "
                "WFS and %ld camera frames dropped (milk/truth.txt)\n", outdir, p.milk_jitter, p.milk_drift,

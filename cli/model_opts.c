@@ -119,12 +119,14 @@ void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const ch
                 "effective\n", cmd, o->recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", in->ntrain,
                 sqrt(in->noise_var), in->noise_given ? "given" : "estimated", in->recon_modes, in->recon_dof);
     if (o->recon == SWFS_RECON_GIVEN && in->nlags)
-        fprintf(stderr, "%s: given space-time reconstructor %s: %zu slopes x %zu lags x %zu actuators, scale %g, gain "
+        fprintf(stderr, "%s: given space-time reconstructor %s: %zu slopes x %zu lags x %zu %s, scale %g, gain "
                 "%.3g of the lags' sum on the model's interaction matrix (1: a reconstructor of it)\n", cmd, path, ns,
-                in->nlags, in->nact, o->recon_scale, in->recon_gain);
+                in->nlags, in->nact, in->out_pitch > 0 ? "output points of its own" : "actuators", o->recon_scale,
+                in->recon_gain);
     else if (o->recon == SWFS_RECON_GIVEN)
-        fprintf(stderr, "%s: given reconstructor %s: %zu slopes x %zu actuators, scale %g, gain %.3g on the model's "
-                "interaction matrix (1: a reconstructor of it)\n", cmd, path, in->nslopes, in->nact, o->recon_scale,
+        fprintf(stderr, "%s: given reconstructor %s: %zu slopes x %zu %s, scale %g, gain %.3g on the model's "
+                "interaction matrix (1: a reconstructor of it)\n", cmd, path, in->nslopes, in->nact,
+                in->out_pitch > 0 ? "output points of its own" : "actuators", o->recon_scale,
                 in->recon_gain);
     if (o->recon == SWFS_RECON_VK)
         fprintf(stderr, "%s: von Karman outer scale %.3g m (%s)\n", cmd, in->vk_l0,
@@ -134,9 +136,12 @@ void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const ch
 
 void cli_band_summary(const char *cmd, const swfs_pipeline_info *in, int given)
 {
+    const char *why = given ? "--band"
+                      : in->out_pitch > 0 ? "the sampling band D / (2 pitch) of the map's output points"
+                                          : "the subapertures' sampling band nsub/2";
     if (in->band > 0)
         fprintf(stderr, "%s: speckles computed within %.3g lambda/D (%s), 0 in the %zu focal pixels beyond\n", cmd,
-                in->band, given ? "--band" : "the subapertures' sampling band nsub/2", in->band_out);
+                in->band, why, in->band_out);
 }
 
 void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs_pipeline_info *in)

@@ -87,6 +87,12 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     } else if (r->ao_modes) {
         fprintf(f, "%s: the loops' modal filter: ao_modes = %zu, as given\n", cmd, r->ao_modes);
     }
+    if (r->out_points && r->dm_pitch > 0)
+        fprintf(f, "%s: the map's output points: %zu on a hexapolar grid of pitch %.4g m (the DM's %.4g m)\n", cmd,
+                r->out_points, r->out_pitch, r->dm_pitch);
+    else if (r->out_points)
+        fprintf(f, "%s: the map's output points: %zu, as given (truth_actuators; pitch %.4g m)\n", cmd, r->out_points,
+                r->out_pitch);
     fprintf(f, "%s: %zu loops simulated", cmd, r->nloops);
     if (r->loop_frames > r->loop_frames_described)
         fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,

@@ -91,6 +91,26 @@ static void known_surface(int influence)
             checked++;
         }
     assert_true(checked > nact / 2);
+    /* The two-step fit of three targets at once (the surface, twice it, a random one) gives
+     * swfs_dmfit_apply's commands to rounding */
+    double *b = calloc(3 * nact, sizeof *b), *cm = calloc(3 * nact, sizeof *cm), *c3 = calloc(nact, sizeof *c3);
+    for (size_t k = 0; k < NP * NP; k++) d[k] = 40e-9 * swfs_rng_normal(&r);
+    for (size_t k = 0; k < NP * NP; k++) s2[k] = 2 * s[k];
+    const double *tg[3] = {s, s2, d};
+    for (size_t t = 0; t < 3; t++) assert_ok(swfs_dmfit_rhs(f, tg[t], b + t * nact));
+    swfs_dmfit_solve_many(f, b, 3, cm);
+    for (size_t t = 0; t < 3; t++) {
+        assert_ok(swfs_dmfit_apply(f, tg[t], c3, NULL, NULL));
+        double m = 0;
+        for (size_t a = 0; a < nact; a++) m = fmax(m, fabs(c3[a]));
+        assert_true(m > 1e-9);
+        for (size_t a = 0; a < nact; a++) assert_close(cm[t * nact + a], c3[a], 1e-9 * m);
+    }
+    d[(NP / 2) * NP + NP / 2 + NP / 4] = NAN; /* a target not finite in the pupil is refused */
+    assert_int_equal(swfs_dmfit_rhs(f, d, b), SWFS_ERR_VALUE);
+    free(b);
+    free(cm);
+    free(c3);
     free(colsum);
     free(c);
     free(c2);

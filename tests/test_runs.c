@@ -8,6 +8,7 @@
 #include "specklewfs/accum.h"
 #include "specklewfs/config.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/interp.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/run.h"
 #include "specklewfs/source.h"
@@ -1144,6 +1145,122 @@ static void test_learn_reconstructor(void **state)
     assert_false(test_file_exists(p("recon_bad.fits")));
 }
 
+/* A map with output points of its own (simulate's truth_actuators, teach's grid finer than the
+ * DM): learn gives the map the points the loops' truth was fitted on (OUTXY), the pipeline
+ * builds its model on them in place of the DM's actuators given, computes the speckles within
+ * their sampling band D / (2 pitch) by default, and --write-recon keeps them. Refused: the
+ * points without export_truth, training sets on different points, an OUTXY of another size. */
+static void test_learn_output_points(void **state)
+{
+    (void)state;
+    swfs_recon *dm = NULL;
+    double *axy = NULL, *gxy = NULL;
+    size_t na = 0, ng = 0;
+    assert_ok(swfs_actuators_read(p("actuators.fits"), &axy, &na));
+    const double dm_pitch = swfs_points_pitch(axy, na);
+    assert_ok(swfs_actuators_hexapolar(6.5, 0.5 * dm_pitch, 0.1, &gxy, &ng));
+    assert_true(ng > 3 * na);
+    assert_ok(swfs_actuators_write(gxy, ng, p("grid_fine.fits")));
+    char key[1400];
+    snprintf(key, sizeof key, "truth_actuators=%s", p("grid_fine.fits"));
+    const char *ka[] = {"layer_speed=8,12", "seed=31", key}, *kb[] = {"layer_speed=20,25", "seed=32", key};
+    const char *dirs[] = {p("learn_fa"), p("learn_fb")};
+    simulate_truth(dirs[0], ka, 3);
+    simulate_truth(dirs[1], kb, 3);
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = dirs;
+    lo.ndirs = 2;
+    lo.no_heldout = 1;
+    lo.out = p("recon_fine.fits");
+    swfs_learn_run_result lr;
+    assert_ok(swfs_learn_run(&lo, &lr));
+    assert_int_equal(lr.nact, ng);
+    assert_ok(swfs_recon_read(lo.out, &dm));
+    assert_int_equal(dm->nact, ng);
+    assert_non_null(dm->oxy);
+    assert_memory_equal(dm->oxy, gxy, 2 * ng * sizeof *gxy);
+    swfs_recon_free(dm);
+    dm = NULL;
+
+    /* the whole path: the model on the map's points, the band theirs, the points kept */
+    swfs_speckles_run_options sp;
+    given_recon_options(&sp, p("recon_fine.fits"), p("speckles_fine.fits"));
+    sp.write_recon = p("recon_fine_w.fits");
+    swfs_speckles_run_result spr;
+    swfs_estimate_run_result er;
+    speckles_estimate_with(&sp, p("sci_fine.fits"), p("halo_fine.fits"), &spr, &er);
+    printf("test_runs: a map on %zu points of pitch %.3f m (the DM: %zu of %.3f m): speckles within %.2f lambda/D\n",
+           spr.info.nact, spr.info.out_pitch, na, dm_pitch, spr.info.band);
+    assert_int_equal(spr.info.nact, ng);
+    assert_close(spr.info.out_pitch, swfs_points_pitch(gxy, ng), 1e-12);
+    assert_close(spr.info.band, er.geom.teldiam / (2 * spr.info.out_pitch), 1e-9);
+    assert_true(spr.info.band > 0.5 * (double)spr.info.nsub);
+    assert_true(spr.nout > 170); /* of 180: every exposure the timing table keeps */
+    swfs_halo_free(er.halo);
+    assert_ok(swfs_recon_read(sp.write_recon, &dm));
+    assert_non_null(dm->oxy);
+    assert_memory_equal(dm->oxy, gxy, 2 * ng * sizeof *gxy);
+    swfs_recon_free(dm);
+    dm = NULL;
+
+    /* refused: truth_actuators without export_truth */
+    swfs_config *c = swfs_config_new();
+    assert_ok(swfs_config_set(c, key));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    swfs_config_free(c);
+    assert_refused(swfs_ts_params_check(&tp), "truth_actuators without export_truth", "needs export_truth=1", p("never.fits"));
+    /* refused: one set on the DM's actuators (another count); one on as many other points
+     * (learn_fb's files, its truth's OUTXY mirrored) */
+    const char *mixed[] = {dirs[0], p("learn_a")};
+    lo.dirs = mixed;
+    lo.out = p("recon_mixed.fits");
+    assert_refused(swfs_learn_run(&lo, &lr), "learn, sets on the DM's actuators and a grid", "one geometry", lo.out);
+    char from[1400], to[1400];
+    mkdir(p("learn_fc"), 0755);
+    for (int t = 0; t < 2; t++) {
+        snprintf(from, sizeof from, "%s/%s_000.fits", dirs[1], t ? "truewf" : "slopes");
+        snprintf(to, sizeof to, "%s/%s_000.fits", p("learn_fc"), t ? "truewf" : "slopes");
+        swfs_real *a = NULL;
+        assert_ok(swfs_fits_read_real(from, NULL, &a, NULL));
+        swfs_fits_out *f = NULL;
+        assert_ok(swfs_fits_out_create(&f, to));
+        assert_ok(swfs_fits_out_real(f, NULL, a, -32));
+        for (size_t i = 0; t && i < ng; i++) gxy[2 * i] = -gxy[2 * i];
+        if (t) assert_ok(swfs_fits_out_real(f, "OUTXY", &(swfs_real){2, ng, 1, gxy}, -64));
+        for (size_t i = 0; t && i < ng; i++) gxy[2 * i] = -gxy[2 * i];
+        assert_ok(swfs_fits_out_commit(f));
+        swfs_real_free(a);
+    }
+    const char *moved[] = {dirs[0], p("learn_fc")};
+    lo.dirs = moved;
+    assert_refused(swfs_learn_run(&lo, &lr), "learn, sets on other points", "one geometry", lo.out);
+    assert_non_null(strstr(swfs_last_error(), "on other points (OUTXY) than"));
+    /* refused: a map whose OUTXY has another count than its outputs */
+    assert_ok(swfs_recon_read(p("recon_vk.fits"), &dm));
+    dm->oxy = malloc(2 * dm->nact * sizeof *dm->oxy);
+    memcpy(dm->oxy, gxy, 2 * dm->nact * sizeof *dm->oxy);
+    assert_ok(swfs_recon_write(dm, p("recon_badxy.fits")));
+    swfs_recon_free(dm);
+    swfs_real *w = NULL;
+    assert_ok(swfs_fits_read_real(p("recon_badxy.fits"), NULL, &w, NULL));
+    swfs_fits_out *fo = NULL;
+    assert_ok(swfs_fits_out_create(&fo, p("recon_badxy.fits")));
+    assert_ok(swfs_fits_out_real(fo, NULL, w, -64));
+    assert_ok(swfs_fits_out_real(fo, "OUTXY", &(swfs_real){2, 5, 1, gxy}, -64));
+    assert_ok(swfs_fits_out_commit(fo));
+    swfs_real_free(w);
+    dm = NULL;
+    assert_int_equal(swfs_recon_read(p("recon_badxy.fits"), &dm), SWFS_ERR_SHAPE);
+    printf("test_runs: %s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "OUTXY is 2 x 5 x 1"));
+    assert_null(dm);
+    free(axy);
+    free(gxy);
+}
+
 /* The speckle cube of `path` (every frame) and its RESMEAN. */
 static swfs_cplx *read_speckles(const char *path, swfs_real **resmean)
 {
@@ -1431,6 +1548,7 @@ int main(void)
         cmocka_unit_test(test_sync_files_shorter_than_cube),
         cmocka_unit_test(test_sync_unreadable_file),
         cmocka_unit_test(test_learn_reconstructor),
+        cmocka_unit_test(test_learn_output_points),
         cmocka_unit_test(test_spacetime_reconstructor),
         cmocka_unit_test(test_options_checks),
     };

@@ -81,6 +81,14 @@ void swfs_dmfit_free(swfs_dmfit *f);
  * outside the pupil). st may be NULL. Uses the plan's work space: not thread-safe on
  * one plan. */
 int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *fitted, swfs_dmfit_stats *st);
+/* The fit in two halves, for many targets at once (a plan without a modal restriction):
+ * rhs writes b = A^T W t of one target (nact values; it only reads the plan); solve_many
+ * turns n of them (n x nact, row-major) into their commands with one GEMM (cmd, n x nact,
+ * not overlapping b). The commands equal swfs_dmfit_apply's to rounding (the GEMM sums in
+ * another order than the GEMV): a GEMM reads the nact x nact solve once per block of
+ * targets where the GEMV reads it once per target. */
+int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b);
+void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd);
 /* surface = sum_a cmd_a f_a on the grid (0 outside the pupil). */
 void swfs_dmfit_surface(const swfs_dmfit *f, const double *cmd, double *surface);
 

@@ -66,7 +66,9 @@ typedef struct swfs_pipeline_options {
                            (default): the Shack-Hartmann's sampling band, nsub/2 (a spatial
                            frequency beyond it reaches the slopes only as an alias, and the
                            reconstruction's field there is not the residual's; docs/telemetry.md),
-                           none for a linear model; > 0: this radius; < 0: none */
+                           none for a linear model, and for a given map with its own output
+                           points (swfs_recon oxy) their sampling band D / (2 pitch): such a map
+                           was taught the residual out to there; > 0: this radius; < 0: none */
 } swfs_pipeline_options;
 
 void swfs_pipeline_options_default(swfs_pipeline_options *o);
@@ -98,6 +100,9 @@ typedef struct swfs_pipeline_info {
     size_t band_out;     /* focal pixels beyond it, set to 0 in every field */
     size_t nlags;        /* a space-time reconstructor's lags (0: one frame's slopes); nslopes is
                             then the stacked input's width (swfs_slopes_stack) */
+    double out_pitch;    /* [m] a given map's own output points (swfs_recon oxy, e.g. teach's grid
+                            finer than the DM): their pitch, and the default band is their sampling
+                            band D / (2 out_pitch); 0: the outputs are the actuators given */
 } swfs_pipeline_info;
 
 /* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */

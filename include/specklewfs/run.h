@@ -627,6 +627,10 @@ typedef struct swfs_teach_run_result {
     size_t ncal;                /* the calibration loops simulated (modes_NN/) */
     size_t cal_modes[4], cal_knee[4]; /* each one's ao_modes and knee */
     double seconds;
+    size_t out_points;          /* the map's output points: a hexapolar grid of out_pitch (outgrid.fits) */
+    double dm_pitch, out_pitch; /* [m] the DM's pitch and the grid's (each the median nearest-neighbour
+                                   distance of its points): the grid is laid out at half the DM's
+                                   pitch, at least two pupil samples (docs/telemetry.md) */
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

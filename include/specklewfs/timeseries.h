@@ -124,6 +124,11 @@ typedef struct swfs_ts_params {
     char valid[1024];          /* the AO system's valid-subaperture map (nsub x nsub, nonzero = used, as
                                   `speckles --valid` takes): the simulated Shack-Hartmann uses those
                                   subapertures; "" (default): those at least half lit */
+    char truth_actuators[1024]; /* export_truth's points (actuators.fits layout): the true residual is
+                                  fitted there instead of on the DM's actuators, e.g. teach's grid finer
+                                  than the DM's (docs/telemetry.md); truewf_NNN.fits then carry them as
+                                  extension OUTXY and `learn` gives its map those output points;
+                                  "" (default): the DM's actuators */
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);

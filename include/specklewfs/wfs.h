@@ -104,6 +104,10 @@ typedef struct swfs_recon {
     size_t nlags;       /* 0: one frame's slopes (every reconstructor but a space-time one);
                            else the lags [WFS frames] of the stacked input, one of them 0 */
     long lags[SWFS_RECON_MAXLAGS];
+    double *oxy;        /* NULL: the outputs are the DM's actuators (the positions speckles is given);
+                           else the map's own output points (nact x 2: x, y [m], pupil frame), e.g.
+                           teach's grid finer than the DM's (docs/telemetry.md): speckles interpolates
+                           the wavefront from them. File: extension OUTXY (NAXIS1 = 2, NAXIS2 = nact) */
 } swfs_recon;
 
 /* The lags of a space-time reconstructor: "0,-25,25" -> lags (at most SWFS_RECON_MAXLAGS,
@@ -256,7 +260,16 @@ int swfs_recon_write(const swfs_recon *r, const char *path);
  * writer that adds keywords of its own. */
 struct swfs_fits_out;
 int swfs_recon_write_hdu(struct swfs_fits_out *f, const swfs_recon *r);
+/* A map's own output points (r->oxy) as extension OUTXY (NAXIS1 = 2, NAXIS2 = nact [m]),
+ * written after the primary HDU's keywords; nothing when r->oxy is NULL. */
+int swfs_recon_write_outxy(struct swfs_fits_out *f, const swfs_recon *r);
+/* The map and, when the file has extension OUTXY, its output points (r->oxy; checked to be
+ * nact finite (x, y) pairs). */
 int swfs_recon_read(const char *path, swfs_recon **out);
+/* Extension OUTXY of `path` (NAXIS1 = 2, NAXIS2 = n finite (x, y) [m]) into *xy (malloc'd),
+ * or *xy = NULL when the file has none: a map's output points, or those truewf_NNN.fits were
+ * fitted on (simulate's truth_actuators). */
+int swfs_outxy_read(const char *path, size_t n, double **xy);
 /* Actuators: NAXIS1 = 2 (x, y), NAXIS2 = nact [m]. */
 int swfs_actuators_write(const double *xy, size_t nact, const char *path);
 int swfs_actuators_read(const char *path, double **xy, size_t *nact);

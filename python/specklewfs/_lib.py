@@ -166,7 +166,7 @@ LEARN_MAXWLAYERS = 8  # SWFS_LEARN_MAXWLAYERS (run.h): the training loops' layer
 swfs_recon = _s("swfs_recon", [("nact", c_size), ("nslopes", c_size), ("W", P(c_dbl)), ("nmodes", c_size),
                                ("sv", P(c_dbl)), ("nsv", c_size), ("noise_var", c_dbl), ("dof", c_dbl),
                                ("l0", c_dbl), ("prior_scale", c_dbl), ("nlags", c_size),
-                               ("lags", ctypes.c_long * RECON_MAXLAGS)])
+                               ("lags", ctypes.c_long * RECON_MAXLAGS), ("oxy", P(c_dbl))])
 swfs_speckle_model = _s("swfs_speckle_model", [("npup", c_size), ("nact", c_size), ("nslopes", c_size),
                                                ("pupdx", c_dbl), ("mask", P(c_dbl)), ("T", P(swfs_sparse)),
                                                ("wfs", P(swfs_shwfs)), ("recon", P(swfs_recon)),
@@ -236,7 +236,8 @@ swfs_ts_params = _s("swfs_ts_params", [
     ("camera_flip_y", c_long), ("act_square", c_long), ("export_modal", c_long), ("export_truth", c_long), ("milk", c_long), ("milk_epoch", c_dbl),
     ("milk_jitter", c_dbl), ("milk_drift", c_dbl), ("milk_offset", c_dbl), ("milk_drop_wfs", c_long),
     ("milk_drop_cam", c_long), ("milk_file_frames", c_long), ("milk_cam_file_frames", c_long),
-    ("actuators", ctypes.c_char * 1024), ("ao_recon", ctypes.c_char * 1024), ("valid", ctypes.c_char * 1024)])
+    ("actuators", ctypes.c_char * 1024), ("ao_recon", ctypes.c_char * 1024), ("valid", ctypes.c_char * 1024),
+    ("truth_actuators", ctypes.c_char * 1024)])
 TS_SUMMARY_FIELDS = [("nwfs", c_size), ("nact", c_size), ("nvalid", c_size), ("ao_modes", c_size),
                      ("residual_rms", c_dbl), ("residual_rms_nott", c_dbl), ("tt_rms", c_dbl), ("strehl", c_dbl),
                      ("static_rms", c_dbl), ("ncp_rms", c_dbl), ("seconds", c_dbl)]
@@ -250,7 +251,7 @@ PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size),
                         ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl),
                         ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl),
                         ("nsub", c_size), ("nvalid", c_size), ("band", c_dbl), ("band_out", c_size),
-                        ("nlags", c_size)]
+                        ("nlags", c_size), ("out_pitch", c_dbl)]
 swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
 swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
                                ("nexp", c_size), ("cube", c_size)])
@@ -344,7 +345,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("nloops", c_size), ("map_inputs", c_size), ("loop_frames", c_size), ("loop_frames_described", c_size),
     ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
     ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
-    ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl)])
+    ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl), ("out_points", c_size),
+    ("dm_pitch", c_dbl), ("out_pitch", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

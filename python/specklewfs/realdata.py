@@ -217,7 +217,10 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     may still set any key, and win. Without ao_modes
     (and ao_recon) in config or params the loops' modal filter comes from the slopes
     (modes_from_slopes: the knee of their DM-mode variances, knee_obs, matched by calibration
-    loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used."""
+    loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used. The map
+    writes the wavefront on out_points points of its own (a hexapolar grid of out_pitch [m],
+    half the DM's dm_pitch, at least two pupil samples; extension OUTXY of out), which
+    speckles() interpolates in place of the DM's actuators."""
     from .sim import _checked_params
     if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
         files = [files]
@@ -264,7 +267,8 @@ def _teach_dict(r, modes_from_slopes):
              loop_frames=r.loop_frames, loop_frames_described=r.loop_frames_described, st_misfit_rms=r.st_misfit_rms,
              st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds,
              ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
-             calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)])
+             calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)],
+             out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch)
     d.update(_st_checks(r.check))
     return d
 

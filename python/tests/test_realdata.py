@@ -265,6 +265,13 @@ def test_teach(series, tmp_path):
     assert r["ao_modes"] == 56 and not r["modes_from_slopes"] and r["calibration"] == []
     assert hk["TEACHMOD"] == 56 and hk["TEACHMSR"] == "given"
     assert hk["TEACHWRN"] == int(r["st_warn_wind"]) + 2 * int(r["st_warn_corr"])
+    # the map's output points: a grid of half the DM's pitch (its nearest-neighbour median
+    # within 5 % of the layout's), written to the work folder and carried by the map (OUTXY)
+    assert r["dm_pitch"] > 0 and abs(r["out_pitch"] / (0.5 * r["dm_pitch"]) - 1) < 0.05
+    grid, _ = sw.read_fits(str(tmp_path / "work" / "outgrid.fits"))
+    oxy, _ = sw.read_fits(str(out), ext="OUTXY")
+    assert grid.shape == (r["out_points"], 2) and np.array_equal(oxy, grid) and r["out_points"] > 3 * 217
+    assert sw.fits.read_keys(str(out), ["TEACHNOP"])["TEACHNOP"] == r["out_points"]
     t = tmp_path / "timing.txt"
     sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"),
               flat=str(s / "flat.fits"))
@@ -272,6 +279,9 @@ def test_teach(series, tmp_path):
     sp = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "sp.fits"),
                      recon=str(out))
     assert sp["nout"] >= 118 and sp["info"]["nlags"] == (5 if r["chosen"] == "spacetime" else 0)
+    # speckles builds its model on the map's points and computes them within their band
+    assert sp["info"]["nact"] == r["out_points"] and sp["info"]["out_pitch"] == pytest.approx(r["out_pitch"], rel=1e-12)
+    assert sp["info"]["band"] == pytest.approx(6.5 / (2 * r["out_pitch"]), rel=1e-9)
     # a system of another geometry than the telemetry's is refused, naming the file; no map left
     with pytest.raises(sw.Error, match="slopes_000.fits: 288 slopes per WFS frame; the system's 16 x 16"):
         sw.teach(files, str(tmp_path / "bad.fits"), str(tmp_path / "badw"), config=conf, loops=2, nsub=16, **keys)

@@ -136,6 +136,36 @@ int swfs_recon_write_hdu(swfs_fits_out *o, const swfs_recon *r)
     return rc;
 }
 
+int swfs_recon_write_outxy(swfs_fits_out *o, const swfs_recon *r)
+{
+    if (!r->oxy) return SWFS_OK;
+    swfs_real a = {2, r->nact, 1, r->oxy};
+    int rc = swfs_fits_out_real(o, "OUTXY", &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "the map's output points (x, y), pupil frame");
+    return rc;
+}
+
+int swfs_outxy_read(const char *path, size_t n, double **xy)
+{
+    *xy = NULL;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    const int has = rc ? 0 : swfs_fits_in_has_ext(f, "OUTXY");
+    swfs_fits_in_close(f);
+    if (rc || !has) return rc;
+    swfs_real *a = NULL;
+    if ((rc = swfs_fits_read_real(path, "OUTXY", &a, NULL))) return rc;
+    if (a->nx != 2 || a->ny != n || a->nz != 1)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: extension OUTXY is %zu x %zu x %zu; expected 2 x %zu (the %zu output points "
+                       "of the primary image, x and y [m])", path, a->nx, a->ny, a->nz, n, n);
+    for (size_t i = 0; !rc && i < 2 * n; i++)
+        if (!isfinite(a->data[i])) rc = swfs_fail(SWFS_ERR_VALUE, "%s: OUTXY entry %zu is not finite", path, i);
+    if (!rc && !(*xy = malloc(2 * n * sizeof **xy))) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    if (!rc) memcpy(*xy, a->data, 2 * n * sizeof **xy);
+    swfs_real_free(a);
+    return rc;
+}
+
 int swfs_recon_write(const swfs_recon *r, const char *path)
 {
     swfs_fits_out *o = NULL;
@@ -144,6 +174,7 @@ int swfs_recon_write(const swfs_recon *r, const char *path)
     if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m/rad", "actuator displacement per slope");
     if (!rc) rc = swfs_fits_out_key_long(o, "NMODES", (long)r->nmodes, "SVD modes kept");
     if (!rc) rc = swfs_fits_out_history(o, "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
+    if (!rc) rc = swfs_recon_write_outxy(o, r);
     if (rc) { swfs_fits_out_abort(o); return rc; }
     return swfs_fits_out_commit(o);
 }
@@ -201,7 +232,7 @@ int swfs_recon_read(const char *path, swfs_recon **out)
             memcpy(r->W + j * r->nslopes + k * ns, a->data + (k * na + j) * ns, ns * sizeof *r->W);
     r->nmodes = 0;
     swfs_real_free(a);
-    if (nl > 1 && (rc = read_lags(path, nl, r))) {
+    if ((nl > 1 && (rc = read_lags(path, nl, r))) || (rc = swfs_outxy_read(path, r->nact, &r->oxy))) {
         swfs_recon_free(r);
         return rc;
     }

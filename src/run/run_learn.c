@@ -115,6 +115,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
                                                  "NAXIS2 = basis functions (speckles --basis --control)"
                                                : "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
     if (!rc) rc = swfs_fits_out_provenance(f, o->prov, o->nprov);
+    if (!rc) rc = swfs_recon_write_outxy(f, w);
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
 }
@@ -233,6 +234,34 @@ static void training_stats(const set_stats *st, const swfs_learn_run_options *o,
     }
 }
 
+/* The points the truth was fitted on (truewf's OUTXY, simulate's truth_actuators), the same in
+ * every data set, become the map's output points (*xy); none: the DM's actuators (NULL). */
+static int truth_points(const swfs_learn_run_options *o, size_t nact, double **xy)
+{
+    *xy = NULL;
+    int rc = SWFS_OK;
+    for (size_t d = 0; !rc && d < o->ndirs; d++) {
+        char tp[4200];
+        snprintf(tp, sizeof tp, "%.4000s/truewf_000.fits", o->dirs[d]);
+        double *p = NULL;
+        if ((rc = swfs_outxy_read(tp, nact, &p))) break;
+        if (d == 0) *xy = p;
+        else if (p && *xy && memcmp(p, *xy, 2 * nact * sizeof *p))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: its truth is on other points (OUTXY) than %s/truewf_000.fits': the "
+                           "training data must share one geometry", tp, o->dirs[0]);
+        else if (!p != !*xy)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: its truth is on %s, %s/truewf_000.fits' on %s: the training data must "
+                           "share one geometry", tp, p ? "points of its own (OUTXY)" : "the DM's actuators", o->dirs[0],
+                           *xy ? "points of its own (OUTXY)" : "the DM's actuators");
+        if (d > 0) free(p);
+    }
+    if (!rc && *xy && o->modal)
+        rc = swfs_fail(SWFS_ERR_ARG, "learn: --modal learns modal coefficients, but the truth of %s is on points "
+                       "(extension OUTXY)", o->dirs[0]);
+    if (rc) { free(*xy); *xy = NULL; }
+    return rc;
+}
+
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -269,6 +298,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         w->nlags = o->nlags;
         memcpy(w->lags, o->lags, o->nlags * sizeof *o->lags);
     }
+    if (!rc) rc = truth_points(o, r->nact, &w->oxy);
     if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
     if (!rc) rc = write_recon(o, w, r);
     swfs_recon_free(w);

@@ -2,6 +2,7 @@
  * system at the layers its slopes show, chosen by the space-time map's checks (run.h). */
 #include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/interp.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/plot.h"
 #include "specklewfs/report.h"
@@ -168,6 +169,9 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
                                            "slopes" : "given", "the modal filter: ao_modes given, from the slopes' knee, or ao_recon");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHNOP", (long)r->out_points, "teach: the map's output points (OUTXY)");
+    if (!rc) rc = swfs_fits_out_key_double(f, "TEACHOPI", r->out_pitch, "[m] their pitch");
+    if (!rc && r->dm_pitch > 0) rc = swfs_fits_out_key_double(f, "TEACHDMP", r->dm_pitch, "[m] the DM's pitch");
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
 }
@@ -365,6 +369,54 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *a
     return rc;
 }
 
+/* The map's output points: a hexapolar grid of half the DM's pitch (at least two pupil
+ * samples), written to WORK/outgrid.fits and given to the loops as the points their truth is
+ * fitted on (truth_actuators). Frozen flow carries the residual the DM cannot hold, the
+ * fitting error beyond its cutoff, across the subapertures between the map's lags, so the
+ * lagged slopes tell part of it; on the DM's own actuators the map could not write it. The
+ * grid's cutoff is twice the DM's: with the residual's spectrum beyond the DM's cutoff
+ * falling as f^-11/3, the octave it adds holds 1 - 2^-5/3 = 69 % of the fitting error's
+ * variance (docs/telemetry.md, "A map finer than the DM"). */
+static int output_grid(swfs_teach_run_options *o, swfs_teach_run_result *r)
+{
+    swfs_ts_params *sp = &o->sim;
+    double *xy = NULL;
+    size_t n = 0;
+    int rc = SWFS_OK;
+    if (sp->truth_actuators[0]) { /* the caller's own points (truth_actuators=FILE) */
+        if (!(rc = swfs_actuators_read(sp->truth_actuators, &xy, &n))) r->out_pitch = swfs_points_pitch(xy, n);
+        free(xy);
+        r->out_points = rc ? 0 : n;
+        return rc;
+    }
+    const double D = sp->base.teldiam, dx = sp->base.pupdx;
+    /* the DM's positions: the file's, or the loops' own layout */
+    rc = sp->actuators[0] ? swfs_actuators_read(sp->actuators, &xy, &n)
+         : sp->act_square ? swfs_actuators_square(D, sp->act_pitch, dx, &xy, &n)
+                          : swfs_actuators_hexapolar(D, sp->act_pitch, dx, &xy, &n);
+    if (rc) return rc;
+    r->dm_pitch = swfs_points_pitch(xy, n);
+    free(xy);
+    xy = NULL;
+    const double pitch = fmax(0.5 * r->dm_pitch, 2.0 * dx);
+    if (!(pitch > 0.0 && isfinite(pitch)))
+        return swfs_fail(SWFS_ERR_VALUE, "teach: the DM's pitch %g m gives no output grid", r->dm_pitch);
+    char path[sizeof sp->truth_actuators];
+    if (snprintf(path, sizeof path, "%.1000s/outgrid.fits", o->work) >= (int)sizeof path || strlen(o->work) > 1000)
+        return swfs_fail(SWFS_ERR_ARG, "teach: %.200s: the folder's name is too long for the output grid's file "
+                         "(at most 1000 characters)", o->work);
+    if ((rc = swfs_actuators_hexapolar(D, pitch, dx, &xy, &n))) return rc;
+    r->out_pitch = swfs_points_pitch(xy, n);
+    swfs_outputs_begin();
+    rc = swfs_actuators_write(xy, n, path);
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    free(xy);
+    if (rc || erc) return rc ? rc : erc;
+    r->out_points = n;
+    memcpy(sp->truth_actuators, path, sizeof path);
+    return SWFS_OK;
+}
+
 int swfs_teach_work_default(const char *out, char *work, size_t cap)
 {
     const size_t n = strlen(out), cut = n > 5 && !strcmp(out + n - 5, ".fits") ? n - 5 : n;
@@ -459,6 +511,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         if (oo.sim.wfs_file_frames > 0 && (size_t)oo.sim.wfs_file_frames < r->loop_frames)
             oo.sim.wfs_file_frames = (long)r->loop_frames;
     }
+    if ((rc = output_grid(&oo, r))) { swfs_real_free(obs); return rc; }
     loop_job *jobs = calloc(o->nloops, sizeof *jobs);
     if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     for (size_t k = 0; k < o->nloops; k++) {

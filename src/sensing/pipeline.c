@@ -1,6 +1,7 @@
 /* The speckle pipeline: see include/specklewfs/pipeline.h. */
 #include "specklewfs/pipeline.h"
 #include "specklewfs/aperture.h"
+#include "specklewfs/interp.h"
 #include "specklewfs/status.h"
 #include "pipeline_internal.h"
 #include "specklewfs/pupil.h"
@@ -343,7 +344,7 @@ int swfs_pipeline_begin_(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!p) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     p->opt = *opt;
     const size_t npup = (size_t)g->pupn;
-    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0, 0.0, 0, 0};
+    p->info = (swfs_pipeline_info){0, 0, npup, nfx, nfy, 0, 0.0, 0.0, 0, 0, 0, 0.0, NAN, 0, 0, 0, NAN, 0, 0, 0.0, 0, 0, 0.0};
     p->mask = malloc(npup * npup * sizeof *p->mask);
     if (!p->mask) { swfs_pipeline_free(p); return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory"); }
     if (mask) memcpy(p->mask, mask, npup * npup * sizeof *p->mask);
@@ -371,7 +372,8 @@ int swfs_pipeline_engine_(swfs_pipeline *p, const swfs_geom *g, size_t nrows, si
 
 int swfs_pipeline_band_(swfs_pipeline *p, const swfs_geom *g, size_t nsub)
 {
-    const double b = p->opt.band > 0.0 ? p->opt.band : (p->opt.band == 0.0 && nsub ? 0.5 * (double)nsub : 0.0);
+    const double dflt = p->info.out_pitch > 0.0 ? g->teldiam / (2.0 * p->info.out_pitch) : 0.5 * (double)nsub;
+    const double b = p->opt.band > 0.0 ? p->opt.band : (p->opt.band == 0.0 && nsub ? dflt : 0.0);
     if (!isfinite(b)) return swfs_fail(SWFS_ERR_ARG, "pipeline: speckle band %g lambda/D", p->opt.band);
     p->info.band = b;
     p->info.band_out = 0;
@@ -473,13 +475,29 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     }
     if (!nact || !nslopes)
         return swfs_fail(SWFS_ERR_SHAPE, "pipeline: no actuators (%zu) or slopes (%zu)", nact, nslopes);
+    /* A given map with output points of its own writes the wavefront there, not on the DM's
+     * actuators: the model is built on its points. */
+    const int own = opt->recon == SWFS_RECON_GIVEN && recon && recon->oxy;
+    if (own) {
+        xy = recon->oxy;
+        nact = recon->nact;
+    }
     swfs_pipeline *p;
     int rc = swfs_pipeline_begin_(&p, g, nfx, nfy, mask, opt, recon, training, ntrain, 1);
     if (rc) return rc;
+    if (own) p->info.out_pitch = swfs_points_pitch(xy, nact);
     p->info.nact = nact;
     p->info.nslopes = nslopes;
     const int xt = opt->tiptilt == SWFS_TT_EXPOSURE;
-    if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain))) {
+    if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)) && own) {
+        /* the model's map keeps its points (what --write-recon saves) */
+        swfs_recon *mr = p->model->recon;
+        if (!mr->oxy && !(mr->oxy = malloc(2 * nact * sizeof *mr->oxy)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+        else
+            memcpy(mr->oxy, xy, 2 * nact * sizeof *mr->oxy);
+    }
+    if (!rc) {
         p->info.nslopes = p->model->recon->nslopes; /* a space-time reconstructor's stacked input */
         rc = swfs_pipeline_engine_(p, g, nact, p->info.nslopes + (xt ? 2 : 0), xt ? p->W_ext : p->model->recon->W,
                                    p->model->T);

@@ -116,6 +116,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     if ((rc = swfs_sim_config_path(c, "ao_recon", p->ao_recon, sizeof p->ao_recon))) return rc;
     if ((rc = swfs_sim_config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
     if ((rc = swfs_sim_config_path(c, "valid", p->valid, sizeof p->valid))) return rc;
+    if ((rc = swfs_sim_config_path(c, "truth_actuators", p->truth_actuators, sizeof p->truth_actuators))) return rc;
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
@@ -252,6 +253,9 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
     if (p->export_modal & ~1L) return badv("export_modal", (double)p->export_modal, "must be 0 or 1");
     if (p->export_truth & ~1L) return badv("export_truth", (double)p->export_truth, "must be 0 or 1");
+    if (p->truth_actuators[0] && !p->export_truth)
+        return swfs_fail(SWFS_ERR_ARG, "time-series parameter truth_actuators=%s: the points export_truth fits the "
+                         "truth on; it needs export_truth=1", p->truth_actuators);
     if ((p->camera_swap | p->camera_flip_x | p->camera_flip_y) & ~1L)
         return badv("camera_swap", (double)(p->camera_swap + 10 * p->camera_flip_x + 100 * p->camera_flip_y),
                     "camera_swap, camera_flip_x and camera_flip_y must each be 0 or 1");
@@ -398,6 +402,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     if (p->actuators[0]) swfs_paths_input(paths, "actuators", p->actuators);
     if (p->ao_recon[0]) swfs_paths_input(paths, "the loop's reconstructor (ao_recon)", p->ao_recon);
     if (p->valid[0]) swfs_paths_input(paths, "valid-subaperture map", p->valid);
+    if (p->truth_actuators[0]) swfs_paths_input(paths, "the truth's points (truth_actuators)", p->truth_actuators);
     if (p->base.pupil_mask[0]) swfs_paths_input(paths, "pupil mask", p->base.pupil_mask);
     if (p->base.ncp_map[0]) swfs_paths_input(paths, "NCP map", p->base.ncp_map);
     for (size_t k = 0; k < sizeof fixed / sizeof fixed[0]; k++) {
@@ -432,16 +437,33 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     return rc;
 }
 
+/* export_truth: the frames' right-hand sides in tb (nwfs x ntr) replaced by their fits, a
+ * block of frames per GEMM (dmfit.h swfs_dmfit_solve_many). */
+static int solve_truth(const swfs_dmfit *f, double *tb, size_t nwfs, size_t ntr)
+{
+    const size_t blk = 256;
+    double *b = malloc(blk * ntr * sizeof *b);
+    if (!b) return swfs_fail(SWFS_ERR_NOMEM, "out of memory for the truth's fit");
+    for (size_t k = 0; k < nwfs; k += blk) {
+        const size_t n = nwfs - k < blk ? nwfs - k : blk;
+        memcpy(b, tb + k * ntr, n * ntr * sizeof *b);
+        swfs_dmfit_solve_many(f, b, n, tb + k * ntr);
+    }
+    free(b);
+    return SWFS_OK;
+}
+
 /* export_truth: truewf_NNN.fits, per WFS frame the true residual fitted on the actuators
- * (tz, nact per frame, from the DM fit plan) and extension DM the commands of the frame. */
-static int write_truth(const char *dir, size_t nact, size_t nwfs, size_t ffr, double rate, double *tz, const double *tdm,
-                       const char *const *prov, size_t nprov)
+ * (tz, ntr per frame, from the DM fit plan; on truth_actuators' points txy when given, then
+ * also extension OUTXY) and extension DM the commands of the frame (nact). */
+static int write_truth(const char *dir, size_t ntr, const double *txy, size_t nact, size_t nwfs, size_t ffr,
+                       double rate, double *tz, const double *tdm, const char *const *prov, size_t nprov)
 {
     char path[4200];
     int rc = SWFS_OK;
     for (size_t f = 0; f * ffr < nwfs && !rc; f++) {
         const size_t n = nwfs - f * ffr < ffr ? nwfs - f * ffr : ffr;
-        swfs_real z = {nact, n, 1, tz + f * ffr * nact}, c = {nact, n, 1, (double *)tdm + f * ffr * nact};
+        swfs_real z = {ntr, n, 1, tz + f * ffr * ntr}, c = {nact, n, 1, (double *)tdm + f * ffr * nact};
         snprintf(path, sizeof path, "%s/truewf_%03zu.fits", dir, f);
         swfs_fits_out *o = NULL;
         if ((rc = swfs_fits_out_create(&o, path))) break;
@@ -450,7 +472,9 @@ static int write_truth(const char *dir, size_t nact, size_t nwfs, size_t ffr, do
             (rc = swfs_fits_out_key_double(o, "WFSRATE", rate, "[Hz]")) ||
             (rc = swfs_fits_out_key_long(o, "FRAME0", (long)(f * ffr), "global WFS frame of row 0")) ||
             (rc = swfs_fits_out_real(o, "DM", &c, -32)) ||
-            (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "loop's commands in the frame, wavefront at the actuators")))
+            (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "loop's commands in the frame, wavefront at the actuators")) ||
+            (txy && (rc = swfs_fits_out_real(o, "OUTXY", &(swfs_real){2, ntr, 1, (double *)txy}, -64))) ||
+            (txy && (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "the truth's points (x, y), pupil frame"))))
             swfs_fits_out_abort(o);
         else
             rc = swfs_fits_out_commit(o);
@@ -484,6 +508,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     size_t *pin = NULL;
     swfs_sparse *T = NULL;
     swfs_dmfit *tfit = NULL; /* export_truth */
+    double *txy = NULL;      /* export_truth's own points (truth_actuators) */
+    size_t ntr = 0;          /* export_truth's points */
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
     swfs_mft **mft = NULL;
@@ -640,8 +666,12 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         fo.influence = SWFS_INFLUENCE_CUBIC;
         fo.rim = 1; /* a rim the actuators' hull misses continued as the speckle model reads it */
         const swfs_geom tg = {lam0, D, b->obscur, b->pixscale, dx, (long)np};
-        if ((rc = swfs_dmfit_create(&tfit, xy, nact, &tg, mask, &fo))) { free(dact); free(tstart); goto done; }
-        tb = malloc(nwfs * nact * sizeof *tb);
+        ntr = nact;
+        if (p->truth_actuators[0] && (rc = swfs_actuators_read(p->truth_actuators, &txy, &ntr))) {
+            free(dact); free(tstart); goto done;
+        }
+        if ((rc = swfs_dmfit_create(&tfit, txy ? txy : xy, ntr, &tg, mask, &fo))) { free(dact); free(tstart); goto done; }
+        tb = malloc(nwfs * ntr * sizeof *tb);
         tdm = malloc(nwfs * nact * sizeof *tdm);
         if (!tb || !tdm) { free(dact); dact = NULL; }
     }
@@ -673,8 +703,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             mean += z;
         }
         mean /= (double)npin;
-        if (tfit) { /* export_truth: the residual fitted on the actuators, and the commands */
-            if ((rc = swfs_dmfit_apply(tfit, res, tb + k * nact, NULL, NULL))) { free(tstart); free(dact); goto done; }
+        if (tfit) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
+            if ((rc = swfs_dmfit_rhs(tfit, res, tb + k * ntr))) { free(tstart); free(dact); goto done; }
             memcpy(tdm + k * nact, act, nact * sizeof *act);
         }
         /* WFS: slopes with noise. */
@@ -840,7 +870,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         }
         rc = swfs_fits_out_commit(o);
     }
-    if (!rc && tb) rc = write_truth(dir, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
+    if (!rc && tb) rc = solve_truth(tfit, tb, nwfs, ntr);
+    if (!rc && tb) rc = write_truth(dir, ntr, txy, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
     if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
@@ -920,6 +951,7 @@ done:
     free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm);
     swfs_sparse_free(T);
     swfs_dmfit_free(tfit);
+    free(txy);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
     free(vmap);

@@ -307,6 +307,29 @@ static double rms_diff(const swfs_dmfit *f, const double *u, const double *v)
     return var > 0 ? sqrt(var) : 0.0;
 }
 
+int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b)
+{
+    if (f->opt.modes > 0)
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: the two-step fit takes a plan without a modal restriction (modes %zu)",
+                         f->opt.modes);
+    const swfs_sparse *A = f->A;
+    memset(b, 0, f->nact * sizeof *b);
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        if (!isfinite(target[s]))
+            return swfs_fail(SWFS_ERR_VALUE, "DM fit: the target surface is not finite at pupil sample %zu", s);
+        const double wt = f->mask[s] * target[s];
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) b[A->col[e]] += wt * A->val[e];
+    }
+    return SWFS_OK;
+}
+
+void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd)
+{
+    const int na = (int)f->nact;
+    if (n) cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)n, na, na, 1.0, b, na, f->pinv, na, 0.0, cmd, na);
+}
+
 int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *fitted, swfs_dmfit_stats *st)
 {
     const size_t nact = f->nact, K = f->opt.modes;

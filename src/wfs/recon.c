@@ -17,6 +17,7 @@ void swfs_recon_free(swfs_recon *r)
     if (!r) return;
     free(r->W);
     free(r->sv);
+    free(r->oxy);
     free(r);
 }
 
