@@ -36,7 +36,10 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert t["nmissing"] == 0 and t["nexp_missing"] == 0 and t["missing_reason"] == ""
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
                      match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
-    assert sp["nout"] == t["nexp_ok"] and sp["info"]["band"] == 6 and sp["resmean_rms"] > 0
+    assert sp["nout"] == t["nexp_ok"] and sp["resmean_rms"] > 0
+    # the taught map writes on its own grid (half the DM's pitch): the speckles within its band
+    assert sp["info"]["out_pitch"] == pytest.approx(sp["teach"]["out_pitch"], rel=1e-12)
+    assert sp["info"]["band"] == pytest.approx(6.5 / (2 * sp["info"]["out_pitch"]), rel=1e-9) and sp["info"]["band"] > 6
     # the default reconstructor: a map taught for this observation from its own files, in
     # sp.teach/ beside the output (the loops' layers those the slopes show)
     assert sp["taught"] and sp["teach_map"] == str(d / "sp.teach" / "taught.fits") and os.path.exists(sp["teach_map"])
