@@ -132,6 +132,9 @@ typedef struct swfs_ts_params {
 } swfs_ts_params;
 
 void swfs_ts_params_default(swfs_ts_params *p);
+/* The DM's positions the simulator lays out when no actuators file is given: act_pitch,
+ * square (act_square) or hexapolar, over teldiam (*xy: 2 nact doubles, free()). */
+int swfs_ts_dm_layout(const swfs_ts_params *p, double **xy, size_t *nact);
 /* The shared keys via swfs_sim_params_from_config, then the time-series keys. */
 int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p);
 int swfs_ts_params_check(const swfs_ts_params *p);

@@ -391,9 +391,7 @@ static int output_grid(swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     const double D = sp->base.teldiam, dx = sp->base.pupdx;
     /* the DM's positions: the file's, or the loops' own layout */
-    rc = sp->actuators[0] ? swfs_actuators_read(sp->actuators, &xy, &n)
-         : sp->act_square ? swfs_actuators_square(D, sp->act_pitch, dx, &xy, &n)
-                          : swfs_actuators_hexapolar(D, sp->act_pitch, dx, &xy, &n);
+    rc = sp->actuators[0] ? swfs_actuators_read(sp->actuators, &xy, &n) : swfs_ts_dm_layout(sp, &xy, &n);
     if (rc) return rc;
     r->dm_pitch = swfs_points_pitch(xy, n);
     free(xy);

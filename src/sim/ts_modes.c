@@ -14,6 +14,13 @@
 #include <stdlib.h>
 #include <string.h>
 
+int swfs_ts_dm_layout(const swfs_ts_params *p, double **xy, size_t *nact)
+{
+    const double D = p->base.teldiam, dx = p->base.pupdx;
+    return p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, xy, nact)
+                         : swfs_actuators_hexapolar(D, p->act_pitch, dx, xy, nact);
+}
+
 int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsigned char *vmap, double **xy,
                        size_t *nact, swfs_sparse **T, swfs_shwfs **sh)
 {
@@ -22,9 +29,7 @@ int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsign
     const double D = b->teldiam, dx = b->pupdx;
     *T = NULL;
     *sh = NULL;
-    int rc = *xy ? SWFS_OK
-                 : p->act_square ? swfs_actuators_square(D, p->act_pitch, dx, xy, nact)
-                                 : swfs_actuators_hexapolar(D, p->act_pitch, dx, xy, nact);
+    int rc = *xy ? SWFS_OK : swfs_ts_dm_layout(p, xy, nact);
     if (!rc) rc = swfs_interp_ct_grid(*xy, *nact, np, dx, mask, T, NULL);
     if (!rc && (rc = vmap ? swfs_shwfs_create_valid(sh, (size_t)p->nsub, D, mask, np, dx, vmap)
                           : swfs_shwfs_create(sh, (size_t)p->nsub, D, mask, np, dx, 0.5)))

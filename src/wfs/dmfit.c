@@ -307,21 +307,35 @@ static double rms_diff(const swfs_dmfit *f, const double *u, const double *v)
     return var > 0 ? sqrt(var) : 0.0;
 }
 
+/* b = A^T W t over the pupil's samples (nact values). */
+static void rhs_of(const swfs_dmfit *f, const double *t, double *b)
+{
+    const swfs_sparse *A = f->A;
+    memset(b, 0, f->nact * sizeof *b);
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double wt = f->mask[s] * t[s];
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) b[A->col[e]] += wt * A->val[e];
+    }
+}
+
+/* The target finite on the pupil's samples. */
+static int check_target(const swfs_dmfit *f, const double *target)
+{
+    for (size_t k = 0; k < f->npix; k++)
+        if (!isfinite(target[f->pix[k]]))
+            return swfs_fail(SWFS_ERR_VALUE, "DM fit: the target surface is not finite at pupil sample %zu", f->pix[k]);
+    return SWFS_OK;
+}
+
 int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b)
 {
     if (f->opt.modes > 0)
         return swfs_fail(SWFS_ERR_ARG, "DM fit: the two-step fit takes a plan without a modal restriction (modes %zu)",
                          f->opt.modes);
-    const swfs_sparse *A = f->A;
-    memset(b, 0, f->nact * sizeof *b);
-    for (size_t k = 0; k < f->npix; k++) {
-        const size_t s = f->pix[k];
-        if (!isfinite(target[s]))
-            return swfs_fail(SWFS_ERR_VALUE, "DM fit: the target surface is not finite at pupil sample %zu", s);
-        const double wt = f->mask[s] * target[s];
-        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) b[A->col[e]] += wt * A->val[e];
-    }
-    return SWFS_OK;
+    const int rc = check_target(f, target);
+    if (!rc) rhs_of(f, target, b);
+    return rc;
 }
 
 void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd)
@@ -333,9 +347,8 @@ void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, doubl
 int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *fitted, swfs_dmfit_stats *st)
 {
     const size_t nact = f->nact, K = f->opt.modes;
-    for (size_t k = 0; k < f->npix; k++)
-        if (!isfinite(target[f->pix[k]]))
-            return swfs_fail(SWFS_ERR_VALUE, "DM fit: the target surface is not finite at pupil sample %zu", f->pix[k]);
+    const int crc = check_target(f, target);
+    if (crc) return crc;
     /* Modal projection (least squares over the pupil). */
     const double *t = target;
     if (K > 0) {
@@ -350,13 +363,7 @@ int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *f
         t = f->modal;
     }
     /* b = A^T W t, cmd = P b. */
-    const swfs_sparse *A = f->A;
-    for (size_t a = 0; a < nact; a++) f->b[a] = 0.0;
-    for (size_t k = 0; k < f->npix; k++) {
-        const size_t s = f->pix[k];
-        const double wt = f->mask[s] * t[s];
-        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) f->b[A->col[e]] += wt * A->val[e];
-    }
+    rhs_of(f, t, f->b);
     cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nact, (int)nact, 1.0, f->pinv, (int)nact, f->b, 1, 0.0, cmd, 1);
     if (fitted || st) {
         double *surf = fitted ? fitted : f->surf;
