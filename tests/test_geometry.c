@@ -181,18 +181,36 @@ static void test_bad_geometry_files(void **state)
 /* A line longer than the readers' buffer is refused, naming the line: read in pieces, the
  * tail of a long comment would be taken for a setting of its own. */
 /* One time series into sub, with extra config settings. */
-static int ts_into(const char *sub, const char *const *extra, size_t nextra)
+/* The time-series parameters of ts_into's runs with the extra keys. */
+static int ts_params(const char *const *extra, size_t nextra, swfs_ts_params *tp)
 {
     swfs_config *c = swfs_config_new();
     const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=1", "cube_frames=40", "cube_gap=50",
                         "start_offset=60.3", "layer_speed=30,40", "seed=3", "ao_modes=40"};
     for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
     for (size_t i = 0; i < nextra; i++) assert_ok(swfs_config_set(c, extra[i]));
-    swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    int rc = swfs_ts_params_from_config(c, &tp);
+    swfs_ts_params_default(tp);
+    int rc = swfs_ts_params_from_config(c, tp);
     swfs_config_free(c);
-    if (!rc) rc = swfs_ts_params_check(&tp);
+    return rc ? rc : swfs_ts_params_check(tp);
+}
+
+/* A short time series into dir/sub with the extra keys, with the shared plans sh (or none). */
+static int ts_into_shared(const char *sub, const char *const *extra, size_t nextra, const swfs_ts_shared *sh)
+{
+    swfs_ts_params tp;
+    int rc = ts_params(extra, nextra, &tp);
+    mkdir(p(sub), 0755);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_geometry"};
+    if (!rc) rc = swfs_ts_run_shared(&tp, sh, p(sub), prov, 1, NULL, NULL, &s);
+    return rc;
+}
+
+static int ts_into(const char *sub, const char *const *extra, size_t nextra)
+{
+    swfs_ts_params tp;
+    int rc = ts_params(extra, nextra, &tp);
     mkdir(p(sub), 0755);
     swfs_ts_summary s;
     const char *prov[] = {"test_geometry"};
@@ -305,6 +323,51 @@ static void test_actuators_given(void **state)
         refused("dm_bad", kv, 1, bad[k].phrase);
         if (strcmp(bad[k].file, "nofile.fits")) assert_non_null(strstr(swfs_last_error(), p(bad[k].file)));
     }
+}
+
+/* Plans shared by many runs of one system (swfs_ts_shared, as teach's loops share them): the
+ * runs write the same files, to the bit, as runs that build their own (another seed and
+ * other layers too); a run of another DM, of other truth points, or needing the truth's plan
+ * the shared plans lack is refused. */
+static void test_shared_plans(void **state)
+{
+    (void)state;
+    double *gxy = NULL;
+    size_t ng = 0;
+    assert_ok(swfs_actuators_hexapolar(6.5, 0.3, 0.1, &gxy, &ng));
+    assert_ok(swfs_actuators_write(gxy, ng, p("grid.fits")));
+    free(gxy);
+    char tk[1400];
+    snprintf(tk, sizeof tk, "truth_actuators=%s", p("grid.fits"));
+    const char *sys[] = {"act_pitch=0.5", "export_truth=1", tk};
+    swfs_ts_params tp;
+    assert_ok(ts_params(sys, 3, &tp));
+    swfs_ts_shared *sh = NULL;
+    assert_ok(swfs_ts_shared_create(&tp, &sh));
+    const char *other[] = {"act_pitch=0.5", "export_truth=1", tk, "seed=8", "layer_speed=12,25", "ao_modes=30"};
+    assert_ok(ts_into_shared("sh_own", sys, 3, NULL));
+    assert_ok(ts_into_shared("sh_shared", sys, 3, sh));
+    assert_ok(ts_into_shared("sh_own8", other, 6, NULL));
+    assert_ok(ts_into_shared("sh_shared8", other, 6, sh));
+    const char *cmp[] = {"slopes_000.fits", "truewf_000.fits"};
+    same_files("sh_own", "sh_shared", cmp, 2);
+    same_files("sh_own8", "sh_shared8", cmp, 2);
+    swfs_real *o = NULL;
+    assert_ok(swfs_fits_read_real(p("sh_shared/truewf_000.fits"), "OUTXY", &o, NULL));
+    assert_int_equal(o->ny, ng);
+    swfs_real_free(o);
+    const char *dm[] = {"act_pitch=0.6", "export_truth=1", tk};
+    assert_int_equal(ts_into_shared("sh_bad", dm, 3, sh), SWFS_ERR_ARG);
+    assert_non_null(strstr(swfs_last_error(), "made for another system"));
+    const char *pts[] = {"act_pitch=0.5", "export_truth=1"};
+    assert_int_equal(ts_into_shared("sh_bad", pts, 2, sh), SWFS_ERR_ARG);
+    swfs_ts_shared_free(sh);
+    const char *notruth[] = {"act_pitch=0.5"};
+    assert_ok(ts_params(notruth, 1, &tp));
+    assert_ok(swfs_ts_shared_create(&tp, &sh));
+    assert_ok(ts_into_shared("sh_nt", notruth, 1, sh));
+    assert_int_equal(ts_into_shared("sh_bad", pts, 2, sh), SWFS_ERR_ARG);
+    swfs_ts_shared_free(sh);
 }
 
 /* The AO system's valid-subaperture map given (valid = FILE): the simulated Shack-Hartmann
@@ -452,6 +515,7 @@ int main(void)
         cmocka_unit_test(test_bad_geometry_files),
         cmocka_unit_test(test_long_lines),
         cmocka_unit_test(test_actuators_given),
+        cmocka_unit_test(test_shared_plans),
         cmocka_unit_test(test_valid_given),
         cmocka_unit_test(test_pupil_given),
     };

@@ -94,9 +94,15 @@ static void test_learner(void **state)
     }
     printf("test_recon_learn: map error %.4f (noise %.2f over %zu frames)\n", worst, NOISE, na + nb);
     assert_true(worst < 0.02);
-    /* the reported training misfit is the one computed frame by frame, about the noise */
-    const double m_all = misfit2(w, s, z, na + nb);
-    assert_close(info.misfit_rms, sqrt(m_all), 1e-9);
+    /* the reported training misfit is the one computed frame by frame, about the noise. The
+     * sums give it as the truth's power less the map's cross term with the truth, summed in
+     * single precision (wfs.h): their rounding, below 1e-5 of the truth's power, is what may
+     * separate the two (here the misfit is 2 % of the truth's rms, so 1e-5 of the truth's
+     * power is 2 % of the misfit's) */
+    const double m_all = misfit2(w, s, z, na + nb), rnd = 1e-5 * info.truth_rms * info.truth_rms;
+    printf("test_recon_learn: training misfit %.8g from the sums, %.8g frame by frame (truth %.4g rms)\n",
+           info.misfit_rms, sqrt(m_all), info.truth_rms);
+    assert_true(fabs(info.misfit_rms * info.misfit_rms - m_all) <= rnd);
     assert_true(info.misfit_rms > 0.8 * NOISE * sqrt((NA - 1.0) / NA) && info.misfit_rms < NOISE);
 
     /* held out: part b left out of all = the map of part a alone applied to b's frames */
@@ -106,9 +112,11 @@ static void test_learner(void **state)
     assert_ok(swfs_recon_learner_solve(pa, SWFS_RECON_LEARN_RIDGE, &wa, NULL));
     const double direct = misfit2(wa, s + na * NS, z + na * NA, nb);
     printf("test_recon_learn: held out %.6g, directly %.6g; training %.6g\n", h2, direct, m_all);
-    assert_close(h2 / direct, 1.0, 1e-8);
-    /* least squares: the map that learned b's frames misses them by no more than one that did not */
-    assert_true(misfit2(w, s + na * NS, z + na * NA, nb) <= h2 * (1 + 1e-9));
+    assert_true(fabs(h2 - direct) <= rnd && fabs(h2 - direct) < 0.2 * direct);
+    /* least squares: the map that learned b's frames misses them by no more than one that did
+     * not (beyond the cross term's rounding) */
+    assert_true(misfit2(w, s + na * NS, z + na * NA, nb) <= direct * (1 + 1e-9));
+    assert_true(misfit2(w, s + na * NS, z + na * NA, nb) <= h2 + rnd);
     double tz = 0;
     for (size_t f = na; f < na + nb; f++) {
         double mz = 0;

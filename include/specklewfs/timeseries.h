@@ -187,6 +187,21 @@ size_t swfs_mode_knee(const double *var, size_t n);
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
 
+/* What swfs_ts_run builds from the system alone, made once for many runs of one system (as
+ * teach's loops are: they differ in seeds, layers, lengths and ao_modes): the DM's modes
+ * (unless ao_recon gives the loop) and, with export_truth, the truth's fit plan on its points
+ * (an eigen-decomposition of as many points squared, the largest set-up cost of a run on a
+ * fine truth_actuators grid). Read only by the runs, so runs on several threads may share
+ * one. */
+typedef struct swfs_ts_shared swfs_ts_shared;
+int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out);
+void swfs_ts_shared_free(swfs_ts_shared *s);
+/* swfs_ts_run with the shared plans s (NULL: its own): the same files, bit for bit. A run
+ * whose pupil, DM positions or truth's points differ from those s was made for, or that needs
+ * what s lacks (the modes; the truth's plan with export_truth), is SWFS_ERR_ARG. */
+int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *s, const char *dir, const char *const *prov,
+                       size_t nprov, swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
+
 SWFS_END_DECLS
 
 #endif

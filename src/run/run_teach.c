@@ -51,6 +51,7 @@ typedef struct loops_ctx {
     const swfs_teach_run_options *o;
     loop_job *jobs;
     int inner;           /* each simulation's own threads */
+    const swfs_ts_shared *shared; /* the plans every loop's system shares, or NULL */
     const char *stage;
     size_t njobs;
     atomic_size_t done;  /* loops finished, over the workers */
@@ -73,7 +74,7 @@ static int clear_loop(const char *path)
     }
 }
 
-static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads)
+static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads, const swfs_ts_shared *shared)
 {
     swfs_ts_params p = o->sim;
     p.nlayers = j->nl;
@@ -95,7 +96,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     if (!rc) rc = clear_loop(j->path);
     swfs_ts_summary sum;
     swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
-    if (!rc) rc = swfs_ts_run(&p, j->path, o->prov, o->nprov, NULL, NULL, &sum);
+    if (!rc) rc = swfs_ts_run_shared(&p, shared, j->path, o->prov, o->nprov, NULL, NULL, &sum);
     const int erc = swfs_outputs_end(rc == SWFS_OK);
     if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", j->path);
     return SWFS_OK;
@@ -108,7 +109,7 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
     loops_ctx *c = ctx;
     for (size_t i = begin; i < end; i++) {
         loop_job *j = c->jobs + i;
-        j->rc = simulate_loop(c->o, j, c->inner);
+        j->rc = simulate_loop(c->o, j, c->inner, c->shared);
         if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
         const size_t done = atomic_fetch_add(&c->done, 1) + 1;
         if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, done, c->njobs);
@@ -118,10 +119,11 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
 /* The jobs' loops, as many at once as the simulator's threads allow (sim.base.threads; each
  * loop's own simulation then single-threaded): every loop is the same whatever runs beside
  * it. The first failure's message, with its loop named. */
-static int simulate_loops(const swfs_teach_run_options *o, loop_job *jobs, size_t n, const char *stage, size_t *nrun)
+static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared *shared, loop_job *jobs, size_t n,
+                          const char *stage, size_t *nrun)
 {
     const int nt = swfs_parallel_threads(o->sim.base.threads, n);
-    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, stage, n, 0};
+    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, shared, stage, n, 0};
     if (o->progress) o->progress(o->progress_ctx, stage, 0, n);
     swfs_parallel_for(nt, n, 1, loops_worker, &c);
     for (size_t i = 0; i < n; i++) {
@@ -261,7 +263,7 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
         swfs_real *ls = NULL;
         char f[4300];
         size_t knee = 0;
-        if (!(rc = simulate_loop(o, &j, o->sim.base.threads))) {
+        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
             if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[it + 1], &nv[it + 1], &knee);
             swfs_real_free(ls);
@@ -525,7 +527,13 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             j->dir[l] = dir[l];
         }
     }
-    rc = simulate_loops(o, jobs, o->nloops, "simulating the loops", &r->nloops);
+    /* what every loop's run would build again from the system alone (the DM's modes, the
+     * truth's fit plan on the grid: an eigen-decomposition of its points squared), once */
+    swfs_ts_shared *shared = NULL;
+    swfs_ts_params sys = oo.sim;
+    sys.export_truth = 1;
+    rc = swfs_ts_shared_create(&sys, &shared);
+    if (!rc) rc = simulate_loops(o, shared, jobs, o->nloops, "simulating the loops", &r->nloops);
     /* 4. the space-time map and its checks */
     char st[4200], pf[4200];
     snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
@@ -560,7 +568,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             j->speed[1] = 8.0 + 22.0 * swfs_rng_uniform(&g);
             j->dir[1] = 360.0 * swfs_rng_uniform(&g);
         }
-        rc = simulate_loops(o, jobs, o->nloops, "simulating loops of a random second layer", &r->nloops);
+        rc = simulate_loops(o, shared, jobs, o->nloops, "simulating loops of a random second layer", &r->nloops);
     } else if (!rc && r->warns) {
         r->chosen = SWFS_TEACH_PERFRAME;
     }
@@ -570,6 +578,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         chosen = pf;
     }
     free(jobs);
+    swfs_ts_shared_free(shared);
     if (!rc) rc = write_chosen(chosen, o, r);
     r->seconds = swfs_wall_seconds() - t0;
     return rc;

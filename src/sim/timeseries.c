@@ -482,8 +482,114 @@ static int write_truth(const char *dir, size_t ntr, const double *txy, size_t na
     return rc;
 }
 
+/* export_truth's plan: the least-squares fit of the project's DM fit (dmfit.h) through the
+ * DM's own interpolation, with its default ridge (1e-3 of the mean diagonal). Directions of
+ * the actuators the pupil barely sees (under a central obstruction, outside the rim) carry
+ * less than that share of an actuator's pupil energy, so the ridge leaves the wavefront on
+ * the pupil as it is and keeps them from taking values no slope can predict: with a ridge
+ * of 1e-9, 120 um rms at the central actuator under a 0.3 obstruction, where the median
+ * actuator's is 1 um, and teach's map 3.25x the ideal speckles on that system
+ * (docs/telemetry.md). On truth_actuators' points (*txy, *ntr) when given, else on the
+ * DM's (xy, nact; *txy NULL). */
+static int truth_plan(const swfs_ts_params *p, const double *mask, const double *xy, size_t nact, swfs_dmfit **tfit,
+                      double **txy, size_t *ntr)
+{
+    const swfs_sim_params *b = &p->base;
+    swfs_dmfit_options fo;
+    swfs_dmfit_options_default(&fo);
+    fo.influence = SWFS_INFLUENCE_CUBIC;
+    fo.rim = 1; /* a rim the actuators' hull misses continued as the speckle model reads it */
+    const swfs_geom tg = {b->wavelen, b->teldiam, b->obscur, b->pixscale, b->pupdx, b->pupn};
+    *ntr = nact;
+    int rc = p->truth_actuators[0] ? swfs_actuators_read(p->truth_actuators, txy, ntr) : SWFS_OK;
+    if (!rc) rc = swfs_dmfit_create(tfit, *txy ? *txy : xy, *ntr, &tg, mask, &fo);
+    return rc;
+}
+
+/* What a run builds from the system alone (swfs_ts_shared_create). */
+struct swfs_ts_shared {
+    size_t ng, nact;
+    double *mask, *xy; /* the pupil (pupn^2) and the DM's positions (2 nact) it was made for */
+    double *modes;     /* the DM's modes (swfs_dm_modes), NULL with ao_recon */
+    swfs_dmfit *tfit;  /* export_truth's plan, NULL without export_truth */
+    double *txy;       /* its points when truth_actuators gives them */
+    size_t ntr;
+};
+
+void swfs_ts_shared_free(swfs_ts_shared *s)
+{
+    if (!s) return;
+    free(s->mask);
+    free(s->xy);
+    free(s->modes);
+    swfs_dmfit_free(s->tfit);
+    free(s->txy);
+    free(s);
+}
+
+int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
+{
+    *out = NULL;
+    int rc = swfs_ts_params_check(p);
+    if (rc) return rc;
+    const size_t np = (size_t)p->base.pupn;
+    swfs_ts_shared *s = calloc(1, sizeof *s);
+    swfs_recon *rao = NULL;
+    unsigned char *vmap = NULL;
+    swfs_sparse *T = NULL;
+    swfs_shwfs *sh = NULL;
+    if (s) s->mask = malloc(np * np * sizeof *s->mask);
+    if (!s || !s->mask) {
+        swfs_ts_shared_free(s);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    s->ng = np * np;
+    rc = swfs_sim_pupil(&p->base, s->mask);
+    if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &s->xy, &s->nact, &rao, &vmap);
+    if (!rc) rc = swfs_ts_loop_model(p, s->mask, vmap, &s->xy, &s->nact, &T, &sh);
+    if (!rc && !p->ao_recon[0]) rc = swfs_dm_modes(T, s->mask, np, &s->modes);
+    if (!rc && p->export_truth) rc = truth_plan(p, s->mask, s->xy, s->nact, &s->tfit, &s->txy, &s->ntr);
+    swfs_recon_free(rao);
+    free(vmap);
+    swfs_sparse_free(T);
+    swfs_shwfs_free(sh);
+    if (rc) {
+        swfs_ts_shared_free(s);
+        return rc;
+    }
+    *out = s;
+    return SWFS_OK;
+}
+
+/* The shared plans s made for this run's system: its pupil and DM, its modes (unless
+ * ao_recon gives the loop) and its truth's plan (with export_truth), on the same points. */
+static int shared_fits(const swfs_ts_shared *s, const swfs_ts_params *p, const double *mask, const double *xy,
+                       size_t nact)
+{
+    int ok = s->ng == (size_t)p->base.pupn * (size_t)p->base.pupn && !memcmp(s->mask, mask, s->ng * sizeof *mask) &&
+             s->nact == nact && !memcmp(s->xy, xy, 2 * nact * sizeof *xy) && (p->ao_recon[0] || s->modes) &&
+             (!p->export_truth || s->tfit);
+    if (ok && p->export_truth) {
+        double *txy = NULL;
+        size_t ntr = nact;
+        const int rc = p->truth_actuators[0] ? swfs_actuators_read(p->truth_actuators, &txy, &ntr) : SWFS_OK;
+        if (rc) return rc;
+        ok = ntr == s->ntr && (txy ? s->txy && !memcmp(txy, s->txy, 2 * ntr * sizeof *txy) : !s->txy);
+        free(txy);
+    }
+    return ok ? SWFS_OK : swfs_fail(SWFS_ERR_ARG, "time-series run: the shared plans were made for another system "
+                                    "(pupil, DM, modes or the truth's points)");
+}
+
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
+{
+    return swfs_ts_run_shared(p, NULL, dir, prov, nprov, progress, ctx, sum);
+}
+
+int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, const char *dir,
+                       const char *const *prov, size_t nprov, swfs_ts_progress_fn progress, void *ctx,
+                       swfs_ts_summary *sum)
 {
     memset(sum, 0, sizeof *sum);
     int rc = swfs_ts_params_check(p);
@@ -509,6 +615,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     swfs_sparse *T = NULL;
     swfs_dmfit *tfit = NULL; /* export_truth */
     double *txy = NULL;      /* export_truth's own points (truth_actuators) */
+    const double *txy_out = NULL; /* those the truth files carry: txy or the shared plans' */
     size_t ntr = 0;          /* export_truth's points */
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
@@ -561,6 +668,7 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     /* DM, WFS, the loop's reconstructor. */
     /* A DM given by its positions (read above) has the same loop, interpolation and modal filter. */
     if ((rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh))) goto done;
+    if (shared && (rc = shared_fits(shared, p, mask, xy, nact))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
@@ -568,9 +676,9 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     } else {
         /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1). */
         double *modes = NULL;
-        if ((rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
+        if (!shared && (rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
         size_t K = (size_t)p->ao_modes < nact - 1 ? (size_t)p->ao_modes : nact - 1;
-        rc = swfs_recon_modal(Dm, sh->nslopes, nact, modes, 1, K, &rao);
+        rc = swfs_recon_modal(Dm, sh->nslopes, nact, shared ? shared->modes : modes, 1, K, &rao);
         free(modes);
         if (rc) goto done;
     }
@@ -652,25 +760,18 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     size_t e_lo = 0, ninexp = 0;
     double sres2 = 0, sres2n = 0, stt2 = 0, sstrehl = 0;
     double *dact = malloc(nact * sizeof *dact);
+    const swfs_dmfit *tplan = NULL; /* export_truth's plan: the shared one, or tfit */
     if (p->export_truth) {
-        /* the least-squares fit of the project's DM fit (dmfit.h) through the DM's own
-           interpolation, with its default ridge (1e-3 of the mean diagonal). Directions of the
-           actuators the pupil barely sees (under a central obstruction, outside the rim) carry
-           less than that share of an actuator's pupil energy, so the ridge leaves the wavefront
-           on the pupil as it is and keeps them from taking values no slope can predict: with a
-           ridge of 1e-9, 120 um rms at the central actuator under a 0.3 obstruction, where the
-           median actuator's is 1 um, and teach's map 3.25x the ideal speckles on that system
-           (docs/telemetry.md) */
-        swfs_dmfit_options fo;
-        swfs_dmfit_options_default(&fo);
-        fo.influence = SWFS_INFLUENCE_CUBIC;
-        fo.rim = 1; /* a rim the actuators' hull misses continued as the speckle model reads it */
-        const swfs_geom tg = {lam0, D, b->obscur, b->pixscale, dx, (long)np};
-        ntr = nact;
-        if (p->truth_actuators[0] && (rc = swfs_actuators_read(p->truth_actuators, &txy, &ntr))) {
+        if (shared) {
+            tplan = shared->tfit;
+            ntr = shared->ntr;
+            txy_out = shared->txy;
+        } else if ((rc = truth_plan(p, mask, xy, nact, &tfit, &txy, &ntr))) {
             free(dact); free(tstart); goto done;
+        } else {
+            tplan = tfit;
+            txy_out = txy;
         }
-        if ((rc = swfs_dmfit_create(&tfit, txy ? txy : xy, ntr, &tg, mask, &fo))) { free(dact); free(tstart); goto done; }
         tb = malloc(nwfs * ntr * sizeof *tb);
         tdm = malloc(nwfs * nact * sizeof *tdm);
         if (!tb || !tdm) { free(dact); dact = NULL; }
@@ -703,8 +804,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
             mean += z;
         }
         mean /= (double)npin;
-        if (tfit) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
-            if ((rc = swfs_dmfit_rhs(tfit, res, tb + k * ntr))) { free(tstart); free(dact); goto done; }
+        if (tplan) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
+            if ((rc = swfs_dmfit_rhs(tplan, res, tb + k * ntr))) { free(tstart); free(dact); goto done; }
             memcpy(tdm + k * nact, act, nact * sizeof *act);
         }
         /* WFS: slopes with noise. */
@@ -870,8 +971,8 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
         }
         rc = swfs_fits_out_commit(o);
     }
-    if (!rc && tb) rc = solve_truth(tfit, tb, nwfs, ntr);
-    if (!rc && tb) rc = write_truth(dir, ntr, txy, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
+    if (!rc && tb) rc = solve_truth(tplan, tb, nwfs, ntr);
+    if (!rc && tb) rc = write_truth(dir, ntr, txy_out, nact, nwfs, ffr, p->wfs_rate, tb, tdm, prov, nprov);
     if (rc) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }

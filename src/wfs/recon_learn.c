@@ -21,9 +21,9 @@ struct swfs_recon_learner {
     double *G;    /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
     double *H;    /* nslopes x nact: sum of s z^T, z with its mean removed when remove_mean */
     double zz;    /* sum of |z|^2, mean removed */
-    double *mean; /* LEARN_BLOCK frames' means of z */
-    double *v;    /* nslopes: S^T mean of a block */
-    double *ones; /* nact ones */
+    float *Sf;    /* LEARN_BLOCK x nslopes: a block of inputs in single precision */
+    float *Zf;    /* LEARN_BLOCK x nact: its truth, mean removed */
+    float *Hf;    /* nslopes x nact: one add call's S^T Zc, summed in single precision */
 };
 
 int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out)
@@ -37,12 +37,11 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_re
         l->remove_mean = remove_mean != 0;
         l->G = calloc(nslopes * nslopes, sizeof *l->G);
         l->H = calloc(nslopes * nact, sizeof *l->H);
-        l->mean = malloc(LEARN_BLOCK * sizeof *l->mean);
-        l->v = malloc(nslopes * sizeof *l->v);
-        l->ones = malloc(nact * sizeof *l->ones);
-        for (size_t a = 0; l->ones && a < nact; a++) l->ones[a] = 1.0;
+        l->Sf = malloc(LEARN_BLOCK * nslopes * sizeof *l->Sf);
+        l->Zf = malloc(LEARN_BLOCK * nact * sizeof *l->Zf);
+        l->Hf = malloc(nslopes * nact * sizeof *l->Hf);
     }
-    if (!l || !l->G || !l->H || !l->mean || !l->v || !l->ones) {
+    if (!l || !l->G || !l->H || !l->Sf || !l->Zf || !l->Hf) {
         swfs_recon_learner_free(l);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes x %zu actuators", nslopes,
                          nact);
@@ -56,9 +55,9 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
     if (!l) return;
     free(l->G);
     free(l->H);
-    free(l->mean);
-    free(l->v);
-    free(l->ones);
+    free(l->Sf);
+    free(l->Zf);
+    free(l->Hf);
     free(l);
 }
 
@@ -76,28 +75,42 @@ static int check_finite(const double *slopes, size_t ns, const double *truth, si
     return SWFS_OK;
 }
 
-/* H += S^T Zc for one block of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs), with
- * Zc = Z - m 1^T (m the frames' means: piston, which nothing sees; modal coefficients carry
- * none and are taken as they are): S^T Z by one GEMM, less (S^T m) 1^T; and zz. */
-static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb)
+/* Hf (+)= S^T Zc for one block of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs;
+ * first: Hf starts from it), with Zc = Z - m 1^T (m the frames' means: piston, which nothing
+ * sees; modal coefficients carry none and are taken as they are), by one SGEMM; and zz (in
+ * double). Single precision: the cross product only scales the map linearly (no inverse
+ * amplifies its rounding, as (G + lam)^-1 would G's, which stays double), and its relative
+ * rounding over an add call's frames, about sqrt(frames) 2^-24 < 1e-5, is far below the
+ * statistical error of a map of 10 frames per input (about 1 / sqrt(10)); the sums over add
+ * calls are double (flush_cross). SGEMM takes half DGEMM's time: the cross product is the
+ * largest product of a map of many outputs (teach's grid; docs/telemetry.md). */
+static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb, int first)
 {
     const size_t ns = l->nslopes, na = l->nact;
     for (size_t f = 0; f < nb; f++) {
         const double *z = Z + f * na;
+        float *zf = l->Zf + f * na;
         double m = 0;
         if (l->remove_mean) {
             for (size_t a = 0; a < na; a++) m += z[a];
             m /= (double)na;
         }
-        l->mean[f] = m;
-        for (size_t a = 0; a < na; a++) l->zz += (z[a] - m) * (z[a] - m);
+        for (size_t a = 0; a < na; a++) {
+            const double c = z[a] - m;
+            l->zz += c * c;
+            zf[a] = (float)c;
+        }
     }
-    cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0, S, (int)ns, Z, (int)na, 1.0,
-                l->H, (int)na);
-    if (l->remove_mean) {
-        cblas_dgemv(CblasRowMajor, CblasTrans, (int)nb, (int)ns, 1.0, S, (int)ns, l->mean, 1, 0.0, l->v, 1);
-        cblas_dger(CblasRowMajor, (int)ns, (int)na, -1.0, l->v, 1, l->ones, 1, l->H, (int)na);
-    }
+    for (size_t k = 0; k < nb * ns; k++) l->Sf[k] = (float)S[k];
+    cblas_sgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0f, l->Sf, (int)ns, l->Zf, (int)na,
+                first ? 0.0f : 1.0f, l->Hf, (int)na);
+}
+
+/* H += Hf: an add call's cross product into the double sums. */
+static void flush_cross(swfs_recon_learner *l)
+{
+    const size_t n = l->nslopes * l->nact;
+    for (size_t k = 0; k < n; k++) l->H[k] += (double)l->Hf[k];
 }
 
 int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
@@ -109,8 +122,9 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
     for (size_t f0 = 0; f0 < nframes; f0 += LEARN_BLOCK) {
         const size_t nb = nframes - f0 < LEARN_BLOCK ? nframes - f0 : LEARN_BLOCK;
-        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb);
+        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb, f0 == 0);
     }
+    if (nframes) flush_cross(l);
     l->nframes += nframes;
     return SWFS_OK;
 }
@@ -150,8 +164,9 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
     for (size_t f0 = 0; f0 < n; f0 += LEARN_BLOCK) {
         const size_t nb = n - f0 < LEARN_BLOCK ? n - f0 : LEARN_BLOCK;
         swfs_slopes_stack(s, n, ns0, lags, nl, f0, nb, X);
-        add_cross(l, X, truth + f0 * na, nb);
+        add_cross(l, X, truth + f0 * na, nb, f0 == 0);
     }
+    flush_cross(l);
     /* G: block (i, j) of the inner frames is sum_t s(t + L_i) s(t + L_j)^T, a product of the
      * file with itself d = |L_j - L_i| frames apart, over a range that depends on i only by a
      * shift. One GEMM per distinct d over a reference range (the pairs' smallest leading
