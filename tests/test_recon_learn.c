@@ -153,6 +153,53 @@ static void test_learner(void **state)
     free(z);
 }
 
+/* The cross product is summed in single precision over at most 4096 frames, then in double
+ * (wfs.h): 20000 frames in one call (79 blocks, its float sums flushed five times) give the
+ * map the same frames give in calls of 100 frames (flushed every call), within the
+ * rounding's 1e-5, and the training misfit within 1e-5 of the truth's power; both maps are
+ * W0 to the noise. */
+static void test_learner_long_call(void **state)
+{
+    (void)state;
+    swfs_rng r;
+    swfs_rng_seed(&r, 11);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : swfs_rng_normal(&r);
+    const size_t n = 20000;
+    double *s = malloc(n * NS * sizeof *s), *z = malloc(n * NA * sizeof *z);
+    assert_non_null(s);
+    assert_non_null(z);
+    make_frames(&r, n, s, z);
+    swfs_recon_learner *one = NULL, *many = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &one));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &many));
+    assert_ok(swfs_recon_learner_add(one, s, z, n));
+    for (size_t f = 0; f < n; f += 100) assert_ok(swfs_recon_learner_add(many, s + f * NS, z + f * NA, 100));
+    swfs_recon *w1 = NULL, *w2 = NULL;
+    swfs_recon_learn_info i1, i2;
+    assert_ok(swfs_recon_learner_solve(one, SWFS_RECON_LEARN_RIDGE, &w1, &i1));
+    assert_ok(swfs_recon_learner_solve(many, SWFS_RECON_LEARN_RIDGE, &w2, &i2));
+    double d = 0, wmax = 0, e = 0;
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) {
+            double m = 0;
+            for (size_t b = 0; b < NA; b++) m += W0[b][i] / NA;
+            d = fmax(d, fabs(w1->W[a * NS + i] - w2->W[a * NS + i]));
+            wmax = fmax(wmax, fabs(w1->W[a * NS + i]));
+            e = fmax(e, fabs(w1->W[a * NS + i] - (W0[a][i] - m)));
+        }
+    printf("test_recon_learn: 20000 frames in one call and in calls of 100: maps %.2e apart (largest entry %.3g), "
+           "%.4f from W0; misfit %.8g / %.8g\n", d, wmax, e, i1.misfit_rms, i2.misfit_rms);
+    assert_true(d <= 1e-5 * wmax && e < 0.01);
+    assert_true(fabs(i1.misfit_rms * i1.misfit_rms - i2.misfit_rms * i2.misfit_rms) <= 1e-5 * i1.truth_rms * i1.truth_rms);
+    swfs_recon_free(w1);
+    swfs_recon_free(w2);
+    swfs_recon_learner_free(one);
+    swfs_recon_learner_free(many);
+    free(s);
+    free(z);
+}
+
 /* Modal coefficients (remove_mean 0): the truth is taken as it is, so W0 comes back whole,
  * its column means included, where the actuator learner takes them out. */
 static void test_learner_modal(void **state)
@@ -299,7 +346,8 @@ static void test_learner_lagged(void **state)
 
 int main(void)
 {
-    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_modal),
+    const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
+                                       cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

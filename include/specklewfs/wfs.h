@@ -209,9 +209,9 @@ void swfs_recon_free(swfs_recon *r);
  * the matrix's 24 runs, and lost by 0.1-0.2 nm on the other two). The ridge only conditions
  * the solve (1e-6 and 1e-4 gave the same NCP errors to 0.3 nm). Accumulate with add (frames
  * x nslopes and frames x nact, row-major), then solve; nothing on add's path allocates
- * (add_lagged's: once per file). The cross product S^T Z is summed in single precision within
- * one add call (SGEMM: half DGEMM's time; a relative rounding below 1e-5, which scales the
- * map linearly) and in double across calls; S^T S stays double, since its inverse with so
+ * (add_lagged's: once per file). The cross product S^T Z is summed in single precision over at
+ * most 4096 frames (SGEMM: half DGEMM's time; a relative rounding of about 4e-6, which scales
+ * the map linearly) and in double beyond; S^T S stays double, since its inverse with so
  * small a ridge would amplify single precision's rounding. The misfits the sums give (the
  * training misfit, the held-out check) are the truth's power less a cross term: good to
  * about 1e-5 of the truth's power. */

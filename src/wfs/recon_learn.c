@@ -11,8 +11,10 @@
 #include <stdlib.h>
 #include <string.h>
 
-/* Frames per block of the H update (the per-frame means of one block are kept). */
+/* Frames per block of the H update; blocks summed in single precision before they go into
+ * the double sums (add_cross). */
 #define LEARN_BLOCK 256
+#define LEARN_FLUSH 16
 #define MIN2(a, b) ((a) < (b) ? (a) : (b))
 
 struct swfs_recon_learner {
@@ -75,16 +77,16 @@ static int check_finite(const double *slopes, size_t ns, const double *truth, si
     return SWFS_OK;
 }
 
-/* Hf (+)= S^T Zc for one block of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs;
- * first: Hf starts from it), with Zc = Z - m 1^T (m the frames' means: piston, which nothing
- * sees; modal coefficients carry none and are taken as they are), by one SGEMM; and zz (in
- * double). Single precision: the cross product only scales the map linearly (no inverse
- * amplifies its rounding, as (G + lam)^-1 would G's, which stays double), and its relative
- * rounding over an add call's frames, about sqrt(frames) 2^-24 < 1e-5, is far below the
- * statistical error of a map of 10 frames per input (about 1 / sqrt(10)); the sums over add
- * calls are double (flush_cross). SGEMM takes half DGEMM's time: the cross product is the
- * largest product of a map of many outputs (teach's grid; docs/telemetry.md). */
-static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb, int first)
+/* H += S^T Zc for block blk of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs), with
+ * Zc = Z - m 1^T (m the frames' means: piston, which nothing sees; modal coefficients carry
+ * none and are taken as they are), by one SGEMM into Hf, which goes into H after every
+ * LEARN_FLUSH blocks and after an add call's last (last); and zz (in double). Single
+ * precision: the cross product only scales the map linearly (no inverse amplifies its
+ * rounding, as (G + lam)^-1 would G's, which stays double), and its relative rounding over at
+ * most 4096 frames, about sqrt(4096) 2^-24 = 4e-6, is far below the statistical error of a
+ * map of 10 frames per input (about 1 / sqrt(10)). SGEMM takes half DGEMM's time: the cross
+ * product is the largest product of a map of many outputs (teach's grid; docs/telemetry.md). */
+static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb, size_t blk, int last)
 {
     const size_t ns = l->nslopes, na = l->nact;
     for (size_t f = 0; f < nb; f++) {
@@ -103,14 +105,9 @@ static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, s
     }
     for (size_t k = 0; k < nb * ns; k++) l->Sf[k] = (float)S[k];
     cblas_sgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0f, l->Sf, (int)ns, l->Zf, (int)na,
-                first ? 0.0f : 1.0f, l->Hf, (int)na);
-}
-
-/* H += Hf: an add call's cross product into the double sums. */
-static void flush_cross(swfs_recon_learner *l)
-{
-    const size_t n = l->nslopes * l->nact;
-    for (size_t k = 0; k < n; k++) l->H[k] += (double)l->Hf[k];
+                blk % LEARN_FLUSH ? 1.0f : 0.0f, l->Hf, (int)na);
+    if (last || blk % LEARN_FLUSH == LEARN_FLUSH - 1)
+        for (size_t i = 0; i < ns * na; i++) l->H[i] += (double)l->Hf[i];
 }
 
 int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
@@ -122,9 +119,8 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
     cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
     for (size_t f0 = 0; f0 < nframes; f0 += LEARN_BLOCK) {
         const size_t nb = nframes - f0 < LEARN_BLOCK ? nframes - f0 : LEARN_BLOCK;
-        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb, f0 == 0);
+        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb, f0 / LEARN_BLOCK, f0 + nb == nframes);
     }
-    if (nframes) flush_cross(l);
     l->nframes += nframes;
     return SWFS_OK;
 }
@@ -164,9 +160,8 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
     for (size_t f0 = 0; f0 < n; f0 += LEARN_BLOCK) {
         const size_t nb = n - f0 < LEARN_BLOCK ? n - f0 : LEARN_BLOCK;
         swfs_slopes_stack(s, n, ns0, lags, nl, f0, nb, X);
-        add_cross(l, X, truth + f0 * na, nb, f0 == 0);
+        add_cross(l, X, truth + f0 * na, nb, f0 / LEARN_BLOCK, f0 + nb == n);
     }
-    flush_cross(l);
     /* G: block (i, j) of the inner frames is sum_t s(t + L_i) s(t + L_j)^T, a product of the
      * file with itself d = |L_j - L_i| frames apart, over a range that depends on i only by a
      * shift. One GEMM per distinct d over a reference range (the pairs' smallest leading
