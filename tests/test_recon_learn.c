@@ -21,6 +21,14 @@
 
 static double W0[NA][NS];
 
+/* W0 drawn from seed's stream r (the dead slope's column 0); r goes on to the frames. */
+static void draw_map(swfs_rng *r, uint64_t seed)
+{
+    swfs_rng_seed(r, seed);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : swfs_rng_normal(r);
+}
+
 /* n frames of slopes and truth (with a random piston per frame) from the stream rng. */
 static void make_frames(swfs_rng *r, size_t n, double *s, double *z)
 {
@@ -58,9 +66,7 @@ static void test_learner(void **state)
 {
     (void)state;
     swfs_rng r;
-    swfs_rng_seed(&r, 7);
-    for (size_t a = 0; a < NA; a++)
-        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : swfs_rng_normal(&r);
+    draw_map(&r, 7);
     const size_t na = 400, nb = 300;
     double *s = malloc((na + nb) * NS * sizeof *s), *z = malloc((na + nb) * NA * sizeof *z);
     make_frames(&r, na + nb, s, z);
@@ -162,9 +168,7 @@ static void test_learner_long_call(void **state)
 {
     (void)state;
     swfs_rng r;
-    swfs_rng_seed(&r, 11);
-    for (size_t a = 0; a < NA; a++)
-        for (size_t i = 0; i < NS; i++) W0[a][i] = i == DEAD ? 0.0 : swfs_rng_normal(&r);
+    draw_map(&r, 11);
     const size_t n = 20000;
     double *s = malloc(n * NS * sizeof *s), *z = malloc(n * NA * sizeof *z);
     assert_non_null(s);
