@@ -265,6 +265,10 @@ int swfs_recon_write(const swfs_recon *r, const char *path);
  * writer that adds keywords of its own. */
 struct swfs_fits_out;
 int swfs_recon_write_hdu(struct swfs_fits_out *f, const swfs_recon *r);
+/* Extension OUTXY: n points (NAXIS1 = 2: x, y; NAXIS2 = n [m], float64), BUNIT and `what`
+ * as its comment; written after the previous HDU's keywords. The layout swfs_outxy_read reads
+ * (a map's output points, the points truewf_NNN.fits were fitted on). */
+int swfs_outxy_write(struct swfs_fits_out *f, const double *xy, size_t n, const char *what);
 /* A map's own output points (r->oxy) as extension OUTXY (NAXIS1 = 2, NAXIS2 = nact [m]),
  * written after the primary HDU's keywords; nothing when r->oxy is NULL. */
 int swfs_recon_write_outxy(struct swfs_fits_out *f, const swfs_recon *r);

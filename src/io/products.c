@@ -136,25 +136,31 @@ int swfs_recon_write_hdu(swfs_fits_out *o, const swfs_recon *r)
     return rc;
 }
 
+int swfs_outxy_write(swfs_fits_out *o, const double *xy, size_t n, const char *what)
+{
+    int rc = swfs_fits_out_real(o, "OUTXY", &(swfs_real){2, n, 1, (double *)xy}, -64);
+    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", what);
+    return rc;
+}
+
 int swfs_recon_write_outxy(swfs_fits_out *o, const swfs_recon *r)
 {
-    if (!r->oxy) return SWFS_OK;
-    swfs_real a = {2, r->nact, 1, r->oxy};
-    int rc = swfs_fits_out_real(o, "OUTXY", &a, -64);
-    if (!rc) rc = swfs_fits_out_key_string(o, "BUNIT", "m", "the map's output points (x, y), pupil frame");
-    return rc;
+    return r->oxy ? swfs_outxy_write(o, r->oxy, r->nact, "the map's output points (x, y), pupil frame") : SWFS_OK;
 }
 
 int swfs_outxy_read(const char *path, size_t n, double **xy)
 {
     *xy = NULL;
     swfs_fits_in *f = NULL;
-    int rc = swfs_fits_in_open(&f, path, NULL);
-    const int has = rc ? 0 : swfs_fits_in_has_ext(f, "OUTXY");
-    swfs_fits_in_close(f);
-    if (rc || !has) return rc;
     swfs_real *a = NULL;
-    if ((rc = swfs_fits_read_real(path, "OUTXY", &a, NULL))) return rc;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (rc || !swfs_fits_in_has_ext(f, "OUTXY")) {
+        swfs_fits_in_close(f);
+        return rc;
+    }
+    if (!(rc = swfs_fits_in_move(f, "OUTXY"))) rc = swfs_fits_in_read_real_all(f, &a);
+    swfs_fits_in_close(f);
+    if (rc) return rc;
     if (a->nx != 2 || a->ny != n || a->nz != 1)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: extension OUTXY is %zu x %zu x %zu; expected 2 x %zu (the %zu output points "
                        "of the primary image, x and y [m])", path, a->nx, a->ny, a->nz, n, n);

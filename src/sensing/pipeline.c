@@ -492,10 +492,9 @@ int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, si
     if (!(rc = build_model(p, g, xy, nact, nslopes, recon, training, ntrain)) && own) {
         /* the model's map keeps its points (what --write-recon saves) */
         swfs_recon *mr = p->model->recon;
-        if (!mr->oxy && !(mr->oxy = malloc(2 * nact * sizeof *mr->oxy)))
-            rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-        else
-            memcpy(mr->oxy, xy, 2 * nact * sizeof *mr->oxy);
+        free(mr->oxy);
+        if (!(mr->oxy = malloc(2 * nact * sizeof *mr->oxy))) rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+        else memcpy(mr->oxy, xy, 2 * nact * sizeof *mr->oxy);
     }
     if (!rc) {
         p->info.nslopes = p->model->recon->nslopes; /* a space-time reconstructor's stacked input */

@@ -473,8 +473,7 @@ static int write_truth(const char *dir, size_t ntr, const double *txy, size_t na
             (rc = swfs_fits_out_key_long(o, "FRAME0", (long)(f * ffr), "global WFS frame of row 0")) ||
             (rc = swfs_fits_out_real(o, "DM", &c, -32)) ||
             (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "loop's commands in the frame, wavefront at the actuators")) ||
-            (txy && (rc = swfs_fits_out_real(o, "OUTXY", &(swfs_real){2, ntr, 1, (double *)txy}, -64))) ||
-            (txy && (rc = swfs_fits_out_key_string(o, "BUNIT", "m", "the truth's points (x, y), pupil frame"))))
+            (txy && (rc = swfs_outxy_write(o, txy, ntr, "the truth's points (x, y), pupil frame"))))
             swfs_fits_out_abort(o);
         else
             rc = swfs_fits_out_commit(o);
