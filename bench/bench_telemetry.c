@@ -9,7 +9,11 @@
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
  *                                 [--recon teach|vk|map|svd] [--truth] [--print-keys]
+ *                                 [--set key=value ...]
  *
+ * --set key=value (up to 8): simulator keys added to every observation after the system's own
+ * (slope_noise, r0, ao_gain, ...: what the matrix holds fixed and teach is not told);
+ * docs/telemetry.md, "The loops' slope noise from the slopes".
  * --print-keys (with --only K, --seed S): prints system K's simulator keys, one per line, and
  * exits (bench/spacetime.sh simulates training loops of the system with them).
  * --recon: the speckle reconstructor on every system (default teach, the library's: a map taught
@@ -70,6 +74,10 @@ static const system_def systems[] = {
 #define NSYS (sizeof systems / sizeof systems[0])
 
 static char dir[1024];
+/* --set key=value (repeatable): simulator keys added to every observation after the
+ * system's own (the loop's r0, slope noise, gain, ... that teach does not get told) */
+static const char *extra_keys[8];
+static int nextra;
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
 static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
 static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle reconstructor */
@@ -141,6 +149,7 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     const int n = system_keys(s, seed, quick, kv);
     int rc = 0;
     for (int i = 0; i < n && !rc; i++) rc = swfs_config_set(c, kv[i]);
+    for (int i = 0; i < nextra && !rc; i++) rc = swfs_config_set(c, extra_keys[i]);
     swfs_ts_params tp;
     swfs_ts_params_default(&tp);
     if (!rc) rc = swfs_ts_params_from_config(c, &tp);
@@ -331,10 +340,12 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) recon = SWFS_RECON_VK, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "teach")) i++;
         else if (!strcmp(argv[i], "--print-keys")) print_keys = 1;
+        else if (!strcmp(argv[i], "--set") && i + 1 < argc && nextra < 8 && strchr(argv[i + 1], '='))
+            extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
                     "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
-                    "[--print-keys]\n");
+                    "[--print-keys] [--set key=value ...]\n");
             return 2;
         }
     }
@@ -346,6 +357,7 @@ int main(int argc, char **argv)
         char kv[24][96];
         const int n = system_keys(&systems[only], (unsigned)seed1, quick, kv);
         for (int i = 0; i < n; i++) printf("%s\n", kv[i]);
+        for (int i = 0; i < nextra; i++) printf("%s\n", extra_keys[i]);
         return 0;
     }
     swfs_blas_set_threads(1);

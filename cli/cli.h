@@ -75,10 +75,11 @@ int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 int cli_make_dir(const char *cmd, const char *path);
 /* The time-series simulator's parameters from CONFIG (NULL: none) with the key=value
  * overrides applied after it, checked (unused keys refused); prints and returns non-zero on
- * failure. */
+ * failure. filter_given, noise_given (or NULL): 1 where the keys give the modal filter
+ * (ao_modes, ao_recon) or slope_noise, before describe adds the rest. */
 struct swfs_ts_params;
 int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p,
-                  int *filter_given, int (*describe)(struct swfs_config *, void *), void *ctx);
+                  int *filter_given, int *noise_given, int (*describe)(struct swfs_config *, void *), void *ctx);
 /* A command's files, checked before any work (specklewfs/outpaths.h): the paths' status,
  * printed as the command's error (CLI_FAIL) when it is a failure; frees p. */
 struct swfs_paths;

@@ -106,7 +106,7 @@ int swfs_cmd_liveloop(int argc, char **argv)
         swfs_config_free(cfg);
         return rc < 0 ? CLI_OK : rc;
     }
-    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, NULL, NULL, NULL);
+    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, NULL, NULL, NULL, NULL);
     if (!rc) rc = cli_make_dir(cmd, o.dir);
     if (rc) {
         swfs_config_free(cfg);

@@ -21,15 +21,17 @@ static const char *usage_text =
     "\n"
     "A reconstructor for this observation, learned from simulated closed loops of your system\n"
     "at the winds its own slopes show: the rule docs/telemetry.md measured over the matrix of\n"
-    "systems (within 1.3x of the ideal speckles' NCP error on 22 of 24 runs, where the default\n"
-    "reconstructor was on 11). In one run:\n"
+    "systems (within 1.3x of the ideal speckles' NCP error on 47 of 48 runs, where the von\n"
+    "Karman reconstructor was on 11 of 24). In one run:\n"
     "  1. the frozen-flow layers of the observation's slopes (as `specklewfs wind`);\n"
     "  2. N loops of the system (`simulate mode=timeseries` with CONFIG and key=value: your\n"
     "     telescope, WFS, DM, loop, vibration, noise and camera timing) with those layers, the\n"
     "     first one's share of the turbulence spread over 0.3-0.7 across the loops when there\n"
     "     are more (the slopes do not tell the shares). Without ao_modes (or ao_recon) the\n"
     "     loops' modal filter comes from the slopes: the knee of their variances along the DM\n"
-    "     modes, matched by up to four calibration loops (modes_NN/; TEACHMOD, TEACHKNE);\n"
+    "     modes, matched by up to four calibration loops (modes_NN/; TEACHMOD, TEACHKNE).\n"
+    "     Without slope_noise the loops' slope noise is the observation's white slope noise,\n"
+    "     measured from its slopes' curl (TEACHNOI; TEACHSNO the loops');\n"
     "  3. the space-time map (`learn --lags 0,-L,L,-2L,2L`, L the frames in which the fastest\n"
     "     layer moves half a subaperture) and its two checks against the observation (as\n"
     "     `speckles` prints them). The map writes the wavefront on a grid of half the DM's\n"
@@ -49,9 +51,10 @@ static const char *usage_text =
     "                the system from the observation's own files, the ones `speckles` takes:\n"
     "                the science cube's geometry, the DM's positions, the telescope's pupil,\n"
     "                the valid subapertures; nsub, wfs_rate and the loops' length from the\n"
-    "                first telemetry file; the loop's gain and delay, r0, slope noise and\n"
-    "                vibration the simulator's (key=value to set them); the modal filter\n"
-    "                from the slopes (docs/telemetry.md); keys of --system or key=value win\n"
+    "                first telemetry file; the loop's gain and delay, r0 and vibration the\n"
+    "                simulator's (key=value to set them); the modal filter and the slope\n"
+    "                noise from the slopes (docs/telemetry.md); keys of --system or\n"
+    "                key=value win\n"
     "  --system CONFIG, key=value   the system, in `simulate mode=timeseries` keys (config/\n"
     "                mmt-clio.conf documents them); nsub, wfs_rate and teldiam must be the\n"
     "                observation's; the layers and the seed are teach's to set\n"
@@ -143,9 +146,10 @@ int swfs_cmd_teach(int argc, char **argv)
     int rc = parse(argc, argv, cfg, &o, files, &nf, &cfgfile, &ff);
     if (!rc) rc = swfs_config_set_kv(cfg, "mode", "timeseries") ? cli_error(cmd) : 0;
     ff.telemetry = files[0];
-    int filter_given = 0;
-    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given, ff.science ? describe : NULL, &ff);
+    int filter_given = 0, noise_given = 0;
+    if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given, &noise_given, ff.science ? describe : NULL, &ff);
     o.modes_from_slopes = !filter_given;
+    o.noise_from_slopes = !noise_given;
     char work[4200];
     if (!rc && !o.work) { /* W.teach beside W.fits */
         rc = swfs_teach_work_default(o.out, work, sizeof work) ? cli_usage_error(cmd, "%s (--work)", swfs_last_error()) : 0;

@@ -120,7 +120,7 @@ const char *const *cli_provenance(int argc, char **argv, size_t *n)
 }
 
 int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over, struct swfs_ts_params *p,
-                  int *filter_given, int (*describe)(struct swfs_config *, void *), void *ctx)
+                  int *filter_given, int *noise_given, int (*describe)(struct swfs_config *, void *), void *ctx)
 {
     swfs_config *file = NULL;
     int rc = 0;
@@ -131,6 +131,7 @@ int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over
     }
     swfs_config *use = file ? file : over;
     if (!rc && filter_given) *filter_given = swfs_config_has(use, "ao_modes") || swfs_config_has(use, "ao_recon");
+    if (!rc && noise_given) *noise_given = swfs_config_has(use, "slope_noise");
     if (!rc && describe && describe(use, ctx)) rc = cli_error(cmd); /* adds only the keys not given */
     if (!rc && (swfs_ts_params_from_config(use, p) || swfs_config_check_unused(use) || swfs_ts_params_check(p)))
         rc = cli_error(cmd);

@@ -134,6 +134,12 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
     --work taught_f --loops 4 > teach_f.log 2>&1 || { cat teach_f.log; fail "teach from the observation's files"; }
 grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
     || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
+# the loops' slope noise is the observation's white slope noise, measured from its slopes (the
+# simulator's 3e-8 rad rms; measured 3.0e-8), in the map's header too
+awk '/the slopes. white noise/ { for (i = 1; i <= NF; i++) if ($i == "noise") v = $(i + 1) + 0 }
+    END { exit !(v > 2.7e-8 && v < 3.3e-8) }' teach_f.log && grep -q "the loops' slope_noise [0-9.e-]* rad, the same$" teach_f.log \
+    || { grep "white noise" teach_f.log; fail "teach: the white slope noise (3e-8) expected"; }
+head -c 14400 taught_f.fits | grep -aq "TEACHNOI=" || fail "teach: TEACHNOI expected in the map's header"
 etf=$(ncp_with taught_f.fits tf timing.txt)
 # a second teach in the same work folder (as speckles' default does on every run), one loop
 # folder holding a slopes / truewf pair beyond this loop's own (as a longer earlier loop would
@@ -183,6 +189,8 @@ grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || {
     || { cat teach_v.log; fail "teach on valid-only slopes"; }
 grep -q "ao_modes = 5[3-9]$" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the modal filter expected"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
+[ "$(grep "white noise" teach_v.log)" = "$(grep "white noise" teach_f.log)" ] \
+    || { grep "white noise" teach_v.log teach_f.log; fail "teach (valid-only): another white slope noise than the full layout's"; }
 sed 's/slopes_0/slopes_valid_0/' timing.txt > obs/timing_v.txt
 etv=$(ncp_with taught_v.fits tv obs/timing_v.txt --valid valid.fits)
 grep -q "224 slopes x 5 lags" speckles_tv.log || { cat speckles_tv.log; fail "speckles did not narrow the taught map"; }
@@ -199,6 +207,7 @@ grep -q "warning: .* frames apart this telemetry's slopes correlate" teach1.log 
     && grep -q "chose the per-frame map of the measured layer and random second layers" teach1.log \
     || { cat teach1.log; fail "teach: the correlation check should warn and the per-frame map be chosen"; }
 head -c 8640 taught1.fits | grep -aq "NLAGS" && fail "teach: the per-frame map should hold no lags"
+grep -q "the loops' slope_noise 3e-07 rad, as given$" teach1.log || { grep "white noise" teach1.log; fail "teach: slope_noise as given"; }
 [ "$(ls -d taught1/mixed_*/ | wc -l)" = 2 ] || fail "teach: two loops of a random second layer expected"
 awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_modes" && $(i + 1) == "=") k = $(i + 2) + 0 }
     END { exit !(k >= 31 && k <= 41) }' teach1.log || { cat teach1.log; fail "teach: the modal filter from the slopes (36)"; }

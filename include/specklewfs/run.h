@@ -596,6 +596,10 @@ typedef struct swfs_teach_run_options {
                                    calibrated by simulated loops: ao_modes = K where a loop of K
                                    modes shows the observation's knee); for a description without
                                    ao_modes. Not with sim.ao_recon (0) */
+    int noise_from_slopes;      /* 1: the loops' slope noise (sim.slope_noise) is the observation's
+                                   white slope noise (noise_rms); for a description without
+                                   slope_noise (docs/telemetry.md, "The loops' slope noise from
+                                   the slopes") */
     const char *const *prov;
     size_t nprov;
     swfs_progress_fn progress;
@@ -631,6 +635,11 @@ typedef struct swfs_teach_run_result {
     double dm_pitch, out_pitch; /* [m] the DM's pitch and the grid's (each the median nearest-neighbour
                                    distance of its points): the grid is laid out at half the DM's
                                    pitch, at least two pupil samples (docs/telemetry.md) */
+    double noise_rms;           /* [rad] the observation's white slope noise (swfs_slopes_white_noise
+                                   of its first file), measured with or without noise_from_slopes */
+    size_t noise_cells;         /* the 2 x 2 cells of used subapertures it was measured over */
+    double slope_noise;         /* [rad] the loops' slope noise: noise_rms (noise_from_slopes) or
+                                   the description's */
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);
@@ -652,9 +661,10 @@ int swfs_teach_work_default(const char *out, char *work, size_t cap);
  *              valid map), wfs_rate (WFSRATE) and the loops' length (wfs_file_frames and
  *              one short cube at each end, frame_ratio 1, a 16 x 16 focal window: the loops'
  *              camera is not used).
- * The rest stays the simulator's: loop gain and delay, r0, slope noise, vibration, whose
- * effect on teach's map docs/telemetry.md measured; the modal filter comes from the slopes
- * (modes_from_slopes) unless c gives ao_modes or ao_recon. The files are named in any
+ * The rest stays the simulator's: loop gain and delay, r0, vibration, whose effect on
+ * teach's map docs/telemetry.md measured; the modal filter comes from the slopes
+ * (modes_from_slopes) unless c gives ao_modes or ao_recon, and so does the slope noise
+ * (noise_from_slopes) unless c gives slope_noise. The files are named in any
  * failure (a science cube without its geometry, telemetry without WFSRATE or of a width
  * that is no square Shack-Hartmann's). */
 int swfs_teach_describe(swfs_config *c, const char *science, const char *actuators, const char *pupil,

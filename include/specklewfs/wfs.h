@@ -191,6 +191,17 @@ int swfs_vk_fit_slopes(const double *D, size_t nslopes, size_t nact, const doubl
  * tau = 1, 2, (2 d(1) - d(2)) / 2, the median over the modes. */
 int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const double *slopes, size_t nframes,
                           double *noise_var);
+/* The white measurement noise of a Shack-Hartmann's slopes, from the slopes alone: the
+ * circulation of the slopes over every 2 x 2 cell of used subapertures (which a wavefront
+ * hardly makes and the loop never feeds back), its temporal structure function over lags of
+ * 1, 2 and 3 WFS frames extrapolated to 0 by a quadratic in the lag squared
+ * (src/wfs/slope_noise.c): noise is new every frame, the turbulence's share changes smoothly. slopes: nframes >= 16 consecutive
+ * frames of 2 nsub^2 (x then y, row-major nsub x nsub); valid: nsub^2 flags of the used
+ * subapertures, or NULL (those whose slopes vary). *var: the variance per slope [rad^2] (0
+ * where the extrapolation leaves none); *ncells (or NULL): the cells it was measured over.
+ * Not finite slopes, or no cell of four used subapertures, are refused. */
+int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
+                            double *var, size_t *ncells);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
  * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,

@@ -13,7 +13,8 @@ from .estimate import Accumulator, Halo, ACC_FIELDS, HALO_EXTS, G_SMOOTH_DEFAULT
 from .pupil import PupilResult, pupil_estimate, pupil_files, choose_halo
 from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_square, actuators_read, actuators_write,
                         ShackHartmann,
-                        dm_modes, slopes_remove_tiptilt, wind_from_slopes, slopes_noise_var, vk_covariance, Recon, SpeckleModel,
+                        dm_modes, slopes_remove_tiptilt, wind_from_slopes, slopes_noise_var, slopes_white_noise,
+                        vk_covariance, Recon, SpeckleModel,
                         schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,
                         bandwidth_radius)

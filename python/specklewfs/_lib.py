@@ -336,8 +336,8 @@ swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), 
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
-    ("nloops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("prov", P(c_str)), ("nprov", c_size),
-    ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
+    ("nloops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
+    ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_teach_run_result = _s("swfs_teach_run_result", [
@@ -346,7 +346,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("st_misfit_rms", c_dbl), ("st_truth_rms", c_dbl), ("check", swfs_speckles_run_result),
     ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
     ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl), ("out_points", c_size),
-    ("dm_pitch", c_dbl), ("out_pitch", c_dbl)])
+    ("dm_pitch", c_dbl), ("out_pitch", c_dbl), ("noise_rms", c_dbl), ("noise_cells", c_size),
+    ("slope_noise", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
@@ -496,6 +497,7 @@ _PROTOS = {
                               P(P(swfs_recon))]),
     "swfs_vk_covariance": (c_int, [P(c_dbl), c_size, c_dbl, P(c_dbl)]),
     "swfs_slopes_noise_var": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, P(c_dbl)]),
+    "swfs_slopes_white_noise": (c_int, [P(c_dbl), c_size, c_size, P(ctypes.c_ubyte), P(c_dbl), P(c_size)]),
     "swfs_recon_modal": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_size, P(P(swfs_recon))]),
     "swfs_recon_free": (None, [P(swfs_recon)]),
     "swfs_recon_project_tiptilt": (c_int, [P(swfs_recon), P(ctypes.c_ubyte)]),

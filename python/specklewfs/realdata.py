@@ -217,7 +217,10 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     may still set any key, and win. Without ao_modes
     (and ao_recon) in config or params the loops' modal filter comes from the slopes
     (modes_from_slopes: the knee of their DM-mode variances, knee_obs, matched by calibration
-    loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used. The map
+    loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used. Without
+    slope_noise the loops' slope noise is the observation's white slope noise (noise_rms [rad],
+    measured either way over noise_cells cells, as telemetry.slopes_white_noise measures it);
+    slope_noise says what the loops used. The map
     writes the wavefront on out_points points of its own (a hexapolar grid of out_pitch [m],
     half the DM's dm_pitch, at least two pupil samples; extension OUTXY of out), which
     speckles() interpolates in place of the DM's actuators."""
@@ -233,16 +236,18 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     if (pupil is not None or valid is not None) and science is None:
         raise ValueError("teach: pupil and valid describe the system with science and actuators "
                          "(otherwise give pupil_mask= and valid= as params)")
-    filter_given = []
+    filter_given, noise_given = [], []
 
     def describe(c):  # on the config of config and params, as the command does (cli_ts_params)
         filter_given.append(lib.swfs_config_has(c, b"ao_modes") or lib.swfs_config_has(c, b"ao_recon"))
+        noise_given.append(lib.swfs_config_has(c, b"slope_noise"))
         if science is not None:
             check(lib.swfs_teach_describe(c, enc(science), enc(actuators), enc(pupil) if pupil is not None else None,
                                           enc(valid) if valid is not None else None, enc(files[0])),
                   "swfs_teach_describe")
     o.sim = _checked_params("ts", config, params, describe)
     o.modes_from_slopes = int(not filter_given[0])
+    o.noise_from_slopes = int(not noise_given[0])
     arr, n = _paths(files)
     if work is None:  # beside out (run.h swfs_teach_work_default)
         buf = ctypes.create_string_buffer(4200)
@@ -268,7 +273,8 @@ def _teach_dict(r, modes_from_slopes):
              st_truth_rms=r.st_truth_rms, chosen=_lib.TEACH_CHOSEN[r.chosen], seconds=r.seconds,
              ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)],
-             out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch)
+             out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch, noise_rms=r.noise_rms,
+             noise_cells=r.noise_cells, slope_noise=r.slope_noise)
     d.update(_st_checks(r.check))
     return d
 

@@ -186,6 +186,24 @@ def slopes_noise_var(D, slopes):
     return v.value
 
 
+def slopes_white_noise(slopes, nsub, valid=None):
+    """The white measurement noise of Shack-Hartmann slopes from the slopes alone (wfs.h
+    swfs_slopes_white_noise: their curl over 2 x 2 cells of used subapertures, its temporal
+    structure function extrapolated to lag 0): slopes (nframes >= 16, 2 nsub^2), valid (nsub^2
+    flags, or None: the subapertures whose slopes vary). Returns (variance per slope [rad^2],
+    cells used)."""
+    s = as_array(slopes, "slopes", np.float64, shape=(None, 2 * nsub * nsub))
+    v = None
+    if valid is not None:
+        v = np.ascontiguousarray(np.asarray(valid, dtype=bool).reshape(-1), dtype=np.uint8)
+        if v.size != nsub * nsub:
+            raise ValueError("slopes_white_noise: valid has %d flags, expected nsub^2 = %d" % (v.size, nsub * nsub))
+    var, nc = ctypes.c_double(), ctypes.c_size_t()
+    check(lib.swfs_slopes_white_noise(dptr(s), s.shape[0], nsub, v.ctypes.data_as(_u8) if v is not None else None,
+                                      ctypes.byref(var), ctypes.byref(nc)), "swfs_slopes_white_noise")
+    return var.value, nc.value
+
+
 def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
     """The frozen-flow layers' winds from the slopes, the dominant one tracked (wind.h): slopes (nframes,
     2 nsub^2) or, with valid (nsub, nsub), the valid subapertures' only; pitch [m] the

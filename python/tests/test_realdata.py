@@ -268,6 +268,10 @@ def test_teach(series, tmp_path):
     assert r["ao_modes"] == 56 and not r["modes_from_slopes"] and r["calibration"] == []
     assert hk["TEACHMOD"] == 56 and hk["TEACHMSR"] == "given"
     assert hk["TEACHWRN"] == int(r["st_warn_wind"]) + 2 * int(r["st_warn_corr"])
+    # mmt-clio.conf gives slope_noise = 3e-8: used as given; the series' own, measured from its
+    # slopes, is that (its simulation's) within 10 %
+    assert r["slope_noise"] == 3e-8 and abs(r["noise_rms"] / 3e-8 - 1) < 0.1 and r["noise_cells"] > 60
+    assert sw.fits.read_keys(str(out), ["TEACHSNO"])["TEACHSNO"] == pytest.approx(3e-8, rel=1e-12)
     # the map's output points: a grid of half the DM's pitch (its nearest-neighbour median
     # within 5 % of the layout's), written to the work folder and carried by the map (OUTXY)
     assert r["dm_pitch"] > 0 and abs(r["out_pitch"] / (0.5 * r["dm_pitch"]) - 1) < 0.05
@@ -331,6 +335,16 @@ def test_teach_from_files(series, tmp_path):
     assert r["loop_frames"] >= 10 * r["map_inputs"] / 3 > r["loop_frames"] - 3
     hk = sw.fits.read_keys(str(out), ["TEACHMOD", "TEACHMSR"])
     assert hk["TEACHMOD"] == r["ao_modes"] and hk["TEACHMSR"] == "slopes"
+    # no slope_noise given: the loops' is the series' white slope noise, measured from its first
+    # file's slopes (telemetry.slopes_white_noise), the simulation's 3e-8 within 10 %
+    s0, _ = sw.read_fits(files[0])
+    var, nc = sw.slopes_white_noise(s0, 12)
+    assert r["slope_noise"] == r["noise_rms"] and r["noise_rms"] == pytest.approx(np.sqrt(var), rel=1e-12)
+    assert nc == r["noise_cells"] and abs(r["noise_rms"] / 3e-8 - 1) < 0.1
+    assert sw.fits.read_keys(str(out), ["TEACHNOI"])["TEACHNOI"] == pytest.approx(r["noise_rms"], rel=1e-12)
+    with pytest.raises(sw.Error, match="not finite"):
+        bad = np.array(s0[:100]); bad[5, 3] = np.nan
+        sw.slopes_white_noise(bad, 12)
     assert os.path.exists(tmp_path / "work" / "modes.tsv")
     with pytest.raises(ValueError, match="needs both science and actuators"):
         sw.teach(files, str(tmp_path / "G.fits"), str(tmp_path / "w2"), science=sci)

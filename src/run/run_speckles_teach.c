@@ -106,6 +106,7 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.nloops = o->teach_loops;
         to.seed = o->teach_seed;
         to.modes_from_slopes = 1;
+        to.noise_from_slopes = 1;
         to.prov = o->prov;
         to.nprov = o->nprov;
         to.progress = o->progress;

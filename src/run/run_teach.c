@@ -171,6 +171,8 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
                                            "slopes" : "given", "the modal filter: ao_modes given, from the slopes' knee, or ao_recon");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
+    if (!rc) rc = swfs_fits_out_key_double(f, "TEACHNOI", r->noise_rms, "[rad] the observation's white slope noise");
+    if (!rc) rc = swfs_fits_out_key_double(f, "TEACHSNO", r->slope_noise, "[rad] the loops' slope_noise");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHNOP", (long)r->out_points, "teach: the map's output points (OUTXY)");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHOPI", r->out_pitch, "[m] their pitch");
     if (!rc && r->dm_pitch > 0) rc = swfs_fits_out_key_double(f, "TEACHDMP", r->dm_pitch, "[m] the DM's pitch");
@@ -286,6 +288,41 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     if (!rc) rc = write_profiles(o->work, v, nv, r);
     for (size_t c = 0; c < 5; c++) free(v[c]);
     return rc;
+}
+
+/* The observation's white slope noise (swfs_slopes_white_noise) over the frames of its first
+ * file, s: the full layout, or the used subapertures' (the system's valid map p->valid; the
+ * caller checked the width) put back into it. */
+static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *what, swfs_teach_run_result *r)
+{
+    const size_t nsub = (size_t)p->nsub, n2 = nsub * nsub, nf = s->ny;
+    unsigned char *vm = NULL;
+    size_t vn = 0, nv = 0;
+    int rc = p->valid[0] ? swfs_valid_map_read(p->valid, &vm, &vn, &nv) : SWFS_OK;
+    if (!rc && vm && vn != nsub) rc = swfs_fail(SWFS_ERR_SHAPE, "teach: the valid map %s is %zu x %zu, the system %zu x %zu",
+                                                p->valid, vn, vn, nsub, nsub);
+    double *full = NULL;
+    const double *use = s->data;
+    if (!rc && s->nx != 2 * n2) { /* the used subapertures' slopes, x then y */
+        if (!vm || s->nx != 2 * nv)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame, neither 2 nsub^2 = %zu nor the valid "
+                           "map's 2 x %zu", what, s->nx, 2 * n2, nv);
+        else if (!(full = calloc(nf * 2 * n2, sizeof *full))) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+        for (size_t t = 0; !rc && t < nf; t++)
+            for (size_t k = 0, u = 0; k < n2; k++) {
+                if (!vm[k]) continue;
+                full[t * 2 * n2 + k] = s->data[t * s->nx + u];
+                full[t * 2 * n2 + n2 + k] = s->data[t * s->nx + nv + u];
+                u++;
+            }
+        use = full;
+    }
+    double var = 0;
+    if (!rc) rc = swfs_slopes_white_noise(use, nf, nsub, vm, &var, &r->noise_cells);
+    r->noise_rms = sqrt(var);
+    free(full);
+    free(vm);
+    return rc ? swfs_fail_context(rc, "teach: the white slope noise of %s", what) : SWFS_OK;
 }
 
 /* One key into c unless it is there (teach_describe). */
@@ -478,8 +515,13 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
     r->nlags = 5;
-    /* 2. the loops' modal filter: given, or from the observation's slopes */
+    /* 2. the loops' slope noise and modal filter: given, or from the observation's slopes.
+     * Loops of less noise than the observation's give a map that amplifies its noise
+     * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
     swfs_teach_run_options oo = *o;
+    if ((rc = noise_of(&o->sim, obs, o->files[0], r))) { swfs_real_free(obs); return rc; }
+    if (o->noise_from_slopes) oo.sim.slope_noise = r->noise_rms;
+    r->slope_noise = oo.sim.slope_noise;
     if (o->modes_from_slopes) {
         loop_job tmpl = {.nl = nl};
         for (int l = 0; l < nl; l++) {

@@ -1,0 +1,87 @@
+/* The white measurement noise of a Shack-Hartmann's slopes, from the slopes alone (wfs.h
+ * swfs_slopes_white_noise; docs/telemetry.md, "The loops' slope noise").
+ *
+ * Over each 2 x 2 cell of used subapertures the circulation of the slopes,
+ *   c = (sx[i+1][j] + sx[i+1][j+1] - sx[i][j] - sx[i][j+1])
+ *     - (sy[i][j+1] + sy[i+1][j+1] - sy[i][j] - sy[i+1][j]),
+ * is a sum of eight slopes with signs +-1: white noise of variance s^2 per slope gives it the
+ * variance 8 s^2. A wavefront's gradient gives it almost none: what remains is the part of the
+ * residual the subapertures average unevenly (aliasing), which no DM makes, so the loop never
+ * feeds it (nor the noise in it) back. That part moves with the wind and changes smoothly from
+ * one WFS frame to the next; the noise is new every frame. The temporal structure function
+ * d(k) = <(c(t + k) - c(t))^2> is therefore 16 s^2 + f(k), f(k) = 2 (C(0) - C(k)) of the
+ * pattern's autocovariance C, which is even and smooth in k: f = a k^2 + b k^4 + ... A
+ * quadratic in k^2 through d(1), d(2), d(3) (k^2 = 1, 4, 9) extrapolated to k = 0,
+ *   16 s^2 = 1.5 d(1) - 0.6 d(2) + 0.1 d(3),
+ * is exact to the k^6 term. (A straight line through d(1), d(2), as the mode statistics of
+ * swfs_slopes_noise_var take it, is short by 2 a: on the matrix's telemetry it found 20-45 %
+ * of the noise variance; docs/telemetry.md, "The loops' slope noise".) */
+#include "specklewfs/wfs.h"
+#include "specklewfs/status.h"
+
+#include <math.h>
+#include <stdlib.h>
+
+int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
+                            double *var, size_t *ncells)
+{
+    *var = 0;
+    if (ncells) *ncells = 0;
+    if (nsub < 2) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu x %zu subapertures, at least 2 x 2", nsub, nsub);
+    if (nframes < 16) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu WFS frames, at least 16", nframes);
+    const size_t n2 = nsub * nsub, ns = 2 * n2;
+    for (size_t i = 0; i < nframes * ns; i++)
+        if (!isfinite(slopes[i]))
+            return swfs_fail(SWFS_ERR_VALUE, "slope noise: slope %zu of WFS frame %zu is not finite", i % ns, i / ns);
+    unsigned char *use = malloc(n2);
+    if (!use) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    /* the used subapertures: the map's, else those whose slopes vary over the frames */
+    for (size_t k = 0; k < n2; k++) {
+        if (valid) { use[k] = valid[k] != 0; continue; }
+        use[k] = 0;
+        for (size_t t = 1; t < nframes && !use[k]; t++)
+            use[k] = slopes[t * ns + k] != slopes[k] || slopes[t * ns + n2 + k] != slopes[n2 + k];
+    }
+    size_t nc = 0;
+    for (size_t i = 0; i + 1 < nsub; i++)
+        for (size_t j = 0; j + 1 < nsub; j++)
+            nc += use[i * nsub + j] && use[i * nsub + j + 1] && use[(i + 1) * nsub + j] && use[(i + 1) * nsub + j + 1];
+    if (!nc) {
+        free(use);
+        return swfs_fail(SWFS_ERR_VALUE, "slope noise: no 2 x 2 cell of used subapertures among the %zu x %zu", nsub, nsub);
+    }
+    size_t *cell = malloc(nc * sizeof *cell);
+    double *c = malloc(nframes * nc * sizeof *c);
+    if (!cell || !c) {
+        free(use); free(cell); free(c);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    nc = 0;
+    for (size_t i = 0; i + 1 < nsub; i++)
+        for (size_t j = 0; j + 1 < nsub; j++) {
+            const size_t a = i * nsub + j;
+            if (use[a] && use[a + 1] && use[a + nsub] && use[a + nsub + 1]) cell[nc++] = a;
+        }
+    for (size_t t = 0; t < nframes; t++) {
+        const double *sx = slopes + t * ns, *sy = sx + n2;
+        for (size_t q = 0; q < nc; q++) {
+            const size_t a = cell[q], b = a + 1, u = a + nsub, v = a + nsub + 1; /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
+            c[t * nc + q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
+        }
+    }
+    double d[4] = {0};
+    for (size_t k = 1; k <= 3; k++) {
+        double s = 0;
+        for (size_t t = 0; t + k < nframes; t++)
+            for (size_t q = 0; q < nc; q++) {
+                const double e = c[(t + k) * nc + q] - c[t * nc + q];
+                s += e * e;
+            }
+        d[k] = s / (double)((nframes - k) * nc);
+    }
+    const double v0 = (1.5 * d[1] - 0.6 * d[2] + 0.1 * d[3]) / 16.0;
+    *var = v0 > 0 ? v0 : 0;
+    if (ncells) *ncells = nc;
+    free(use); free(cell); free(c);
+    return SWFS_OK;
+}
