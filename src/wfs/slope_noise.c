@@ -50,10 +50,11 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
         free(use);
         return swfs_fail(SWFS_ERR_VALUE, "slope noise: no 2 x 2 cell of used subapertures among the %zu x %zu", nsub, nsub);
     }
+    /* the curl of the last four frames (a ring), each frame's differences summed as it comes */
     size_t *cell = malloc(nc * sizeof *cell);
-    double *c = malloc(nframes * nc * sizeof *c);
-    if (!cell || !c) {
-        free(use); free(cell); free(c);
+    double *ring = malloc(4 * nc * sizeof *ring);
+    if (!cell || !ring) {
+        free(use); free(cell); free(ring);
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     nc = 0;
@@ -62,26 +63,25 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
             const size_t a = i * nsub + j;
             if (use[a] && use[a + 1] && use[a + nsub] && use[a + nsub + 1]) cell[nc++] = a;
         }
+    double d[4] = {0};
     for (size_t t = 0; t < nframes; t++) {
         const double *sx = slopes + t * ns, *sy = sx + n2;
+        double *c = ring + (t % 4) * nc;
         for (size_t q = 0; q < nc; q++) {
             const size_t a = cell[q], b = a + 1, u = a + nsub, v = a + nsub + 1; /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
-            c[t * nc + q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
+            c[q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
+        }
+        for (size_t k = 1; k <= 3 && k <= t; k++) {
+            const double *p = ring + ((t - k) % 4) * nc;
+            double sum = 0;
+            for (size_t q = 0; q < nc; q++) sum += (c[q] - p[q]) * (c[q] - p[q]);
+            d[k] += sum;
         }
     }
-    double d[4] = {0};
-    for (size_t k = 1; k <= 3; k++) {
-        double s = 0;
-        for (size_t t = 0; t + k < nframes; t++)
-            for (size_t q = 0; q < nc; q++) {
-                const double e = c[(t + k) * nc + q] - c[t * nc + q];
-                s += e * e;
-            }
-        d[k] = s / (double)((nframes - k) * nc);
-    }
+    for (size_t k = 1; k <= 3; k++) d[k] /= (double)((nframes - k) * nc);
     const double v0 = (1.5 * d[1] - 0.6 * d[2] + 0.1 * d[3]) / 16.0;
     *var = v0 > 0 ? v0 : 0;
     if (ncells) *ncells = nc;
-    free(use); free(cell); free(c);
+    free(use); free(cell); free(ring);
     return SWFS_OK;
 }
