@@ -80,8 +80,8 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
         fprintf(f, "%s:   layer %zu: %.2f m/s toward %.1f deg%s\n", cmd, k + 1, e->layer[k].speed, e->layer[k].direction,
                 k < r->nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
     fprintf(f, "%s: the slopes' white noise %.3g rad rms per slope (the lag-0 excess of their curl over %zu cells of "
-            "2 x 2 subapertures); the loops' slope_noise %.3g rad%s\n", cmd, r->noise_rms, r->noise_cells, r->slope_noise,
-            r->slope_noise == r->noise_rms ? ", the same" : ", as given");
+            "2 x 2 subapertures; %.1f %% of the slopes' variance); the loops' slope_noise %.3g rad%s\n", cmd, r->noise_rms,
+            r->noise_cells, 100 * r->noise_share, r->slope_noise, r->slope_noise == r->noise_rms ? ", the same" : ", as given");
     if (modes_from_slopes) {
         fprintf(f, "%s: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
                 "loops (ao_modes -> knee):", cmd, r->knee_obs);

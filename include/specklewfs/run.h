@@ -638,6 +638,9 @@ typedef struct swfs_teach_run_result {
     double noise_rms;           /* [rad] the observation's white slope noise (swfs_slopes_white_noise
                                    of its first file), measured with or without noise_from_slopes */
     size_t noise_cells;         /* the 2 x 2 cells of used subapertures it was measured over */
+    double noise_share;         /* noise_rms^2 over the slopes' variance per used slope (each slope's
+                                   time mean and each frame's mean x / y slope removed): where it
+                                   is about a third no map here holds (docs/telemetry.md) */
     double slope_noise;         /* [rad] the loops' slope noise: noise_rms (noise_from_slopes) or
                                    the description's */
 } swfs_teach_run_result;

@@ -219,8 +219,8 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     (modes_from_slopes: the knee of their DM-mode variances, knee_obs, matched by calibration
     loops, calibration = [(ao_modes, knee), ...]); ao_modes says what the loops used. Without
     slope_noise the loops' slope noise is the observation's white slope noise (noise_rms [rad],
-    measured either way over noise_cells cells, as telemetry.slopes_white_noise measures it);
-    slope_noise says what the loops used. The map
+    measured either way over noise_cells cells, as telemetry.slopes_white_noise measures it;
+    noise_share its share of the slopes' variance); slope_noise says what the loops used. The map
     writes the wavefront on out_points points of its own (a hexapolar grid of out_pitch [m],
     half the DM's dm_pitch, at least two pupil samples; extension OUTXY of out), which
     speckles() interpolates in place of the DM's actuators."""
@@ -274,7 +274,7 @@ def _teach_dict(r, modes_from_slopes):
              ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)],
              out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch, noise_rms=r.noise_rms,
-             noise_cells=r.noise_cells, slope_noise=r.slope_noise)
+             noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise)
     d.update(_st_checks(r.check))
     return d
 

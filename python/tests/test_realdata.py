@@ -341,6 +341,8 @@ def test_teach_from_files(series, tmp_path):
     var, nc = sw.slopes_white_noise(s0, 12)
     assert r["slope_noise"] == r["noise_rms"] and r["noise_rms"] == pytest.approx(np.sqrt(var), rel=1e-12)
     assert nc == r["noise_cells"] and abs(r["noise_rms"] / 3e-8 - 1) < 0.1
+    # its share of the slopes' variance (tip-tilt removed): about 1 % on the matrix's noise
+    assert 0.001 < r["noise_share"] < 0.05
     assert sw.fits.read_keys(str(out), ["TEACHNOI"])["TEACHNOI"] == pytest.approx(r["noise_rms"], rel=1e-12)
     with pytest.raises(sw.Error, match="not finite"):
         bad = np.array(s0[:100]); bad[5, 3] = np.nan

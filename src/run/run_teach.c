@@ -320,6 +320,38 @@ static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *wha
     double var = 0;
     if (!rc) rc = swfs_slopes_white_noise(use, nf, nsub, vm, &var, &r->noise_cells);
     r->noise_rms = sqrt(var);
+    /* its share of the slopes' variance per used slope: each slope's time mean and each
+     * frame's mean x and y slope (tip-tilt: vibration, not noise) removed; the used
+     * subapertures the valid map's, else those whose slopes vary (as the estimate takes them) */
+    double *m = rc ? NULL : calloc(2 * n2, sizeof *m);
+    unsigned char *u = rc ? NULL : malloc(n2);
+    if (!rc && (!m || !u)) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+    if (!rc) {
+        size_t nu = 0;
+        for (size_t k = 0; k < n2; k++) {
+            u[k] = vm ? vm[k] != 0 : 0;
+            for (size_t t = 1; !vm && t < nf && !u[k]; t++)
+                u[k] = use[t * 2 * n2 + k] != use[k] || use[t * 2 * n2 + n2 + k] != use[n2 + k];
+            nu += u[k];
+        }
+        for (size_t t = 0; t < nf; t++)
+            for (size_t i = 0; i < 2 * n2; i++) m[i] += use[t * 2 * n2 + i] / (double)nf;
+        double ss = 0;
+        for (size_t t = 0; t < nf && nu; t++)
+            for (size_t ax = 0; ax < 2; ax++) {
+                const double *x = use + t * 2 * n2 + ax * n2, *mx = m + ax * n2;
+                double mean = 0, sq = 0;
+                for (size_t k = 0; k < n2; k++)
+                    if (u[k]) {
+                        mean += x[k] - mx[k];
+                        sq += (x[k] - mx[k]) * (x[k] - mx[k]);
+                    }
+                ss += sq - mean * mean / (double)nu;
+            }
+        r->noise_share = ss > 0 ? var / (ss / (double)(nf * 2 * nu)) : 0;
+    }
+    free(m);
+    free(u);
     free(full);
     free(vm);
     return rc ? swfs_fail_context(rc, "teach: the white slope noise of %s", what) : SWFS_OK;
