@@ -198,10 +198,12 @@ int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const do
  * (src/wfs/slope_noise.c): noise is new every frame, the turbulence's share changes smoothly. slopes: nframes >= 16 consecutive
  * frames of 2 nsub^2 (x then y, row-major nsub x nsub); valid: nsub^2 flags of the used
  * subapertures, or NULL (those whose slopes vary). *var: the variance per slope [rad^2] (0
- * where the extrapolation leaves none); *ncells (or NULL): the cells it was measured over.
+ * where the extrapolation leaves none); *ncells (or NULL): the cells it was measured over;
+ * *slope_var (or NULL): the slopes' own variance per used slope [rad^2], each slope's time
+ * mean and each frame's mean x and y slope (tip-tilt) removed, what *var is a share of.
  * Not finite slopes, or no cell of four used subapertures, are refused. */
 int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
-                            double *var, size_t *ncells);
+                            double *var, size_t *ncells, double *slope_var);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
  * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,

@@ -290,17 +290,16 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     return rc;
 }
 
-/* The observation's white slope noise (swfs_slopes_white_noise) over the frames of its first
- * file, s: the full layout, or the used subapertures' (the system's valid map p->valid; the
- * caller checked the width) put back into it. */
-static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *what, swfs_teach_run_result *r)
+/* The observation's white slope noise and its share of the slopes' variance
+ * (swfs_slopes_white_noise) over the frames of its first file, s: the full layout, or the used
+ * subapertures' (the system's valid map vm, nsub x nsub with nv used; the caller checked the
+ * width) put back into it. */
+static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *what, const unsigned char *vm,
+                    size_t vn, size_t nv, swfs_teach_run_result *r)
 {
     const size_t nsub = (size_t)p->nsub, n2 = nsub * nsub, nf = s->ny;
-    unsigned char *vm = NULL;
-    size_t vn = 0, nv = 0;
-    int rc = p->valid[0] ? swfs_valid_map_read(p->valid, &vm, &vn, &nv) : SWFS_OK;
-    if (!rc && vm && vn != nsub) rc = swfs_fail(SWFS_ERR_SHAPE, "teach: the valid map %s is %zu x %zu, the system %zu x %zu",
-                                                p->valid, vn, vn, nsub, nsub);
+    int rc = vm && vn != nsub ? swfs_fail(SWFS_ERR_SHAPE, "teach: the valid map %s is %zu x %zu, the system %zu x %zu",
+                                          p->valid, vn, vn, nsub, nsub) : SWFS_OK;
     double *full = NULL;
     const double *use = s->data;
     if (!rc && s->nx != 2 * n2) { /* the used subapertures' slopes, x then y */
@@ -317,43 +316,11 @@ static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *wha
             }
         use = full;
     }
-    double var = 0;
-    if (!rc) rc = swfs_slopes_white_noise(use, nf, nsub, vm, &var, &r->noise_cells);
+    double var = 0, svar = 0;
+    if (!rc) rc = swfs_slopes_white_noise(use, nf, nsub, vm, &var, &r->noise_cells, &svar);
     r->noise_rms = sqrt(var);
-    /* its share of the slopes' variance per used slope: each slope's time mean and each
-     * frame's mean x and y slope (tip-tilt: vibration, not noise) removed; the used
-     * subapertures the valid map's, else those whose slopes vary (as the estimate takes them) */
-    double *m = rc ? NULL : calloc(2 * n2, sizeof *m);
-    unsigned char *u = rc ? NULL : malloc(n2);
-    if (!rc && (!m || !u)) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-    if (!rc) {
-        size_t nu = 0;
-        for (size_t k = 0; k < n2; k++) {
-            u[k] = vm ? vm[k] != 0 : 0;
-            for (size_t t = 1; !vm && t < nf && !u[k]; t++)
-                u[k] = use[t * 2 * n2 + k] != use[k] || use[t * 2 * n2 + n2 + k] != use[n2 + k];
-            nu += u[k];
-        }
-        for (size_t t = 0; t < nf; t++)
-            for (size_t i = 0; i < 2 * n2; i++) m[i] += use[t * 2 * n2 + i] / (double)nf;
-        double ss = 0;
-        for (size_t t = 0; t < nf && nu; t++)
-            for (size_t ax = 0; ax < 2; ax++) {
-                const double *x = use + t * 2 * n2 + ax * n2, *mx = m + ax * n2;
-                double mean = 0, sq = 0;
-                for (size_t k = 0; k < n2; k++)
-                    if (u[k]) {
-                        mean += x[k] - mx[k];
-                        sq += (x[k] - mx[k]) * (x[k] - mx[k]);
-                    }
-                ss += sq - mean * mean / (double)nu;
-            }
-        r->noise_share = ss > 0 ? var / (ss / (double)(nf * 2 * nu)) : 0;
-    }
-    free(m);
-    free(u);
+    r->noise_share = svar > 0 ? var / svar : 0;
     free(full);
-    free(vm);
     return rc ? swfs_fail_context(rc, "teach: the white slope noise of %s", what) : SWFS_OK;
 }
 
@@ -512,7 +479,6 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     size_t vn = 0, nv = 0;
     unsigned char *vmap = NULL;
     if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
-    free(vmap);
     if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
@@ -523,6 +489,9 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (!rc && orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
                        orate, sp->wfs_rate);
+    /* its white slope noise (given to the loops below, without slope_noise) */
+    if (!rc) rc = noise_of(sp, obs, o->files[0], vmap, vn, nv, r);
+    free(vmap);
     /* 1. the layers */
     stage(o, "the observation's layers (wind)", 0, 1);
     swfs_wind_run_options wo = {o->files, o->nfiles, valid, sp->nsub, sp->base.teldiam, sp->wfs_rate};
@@ -551,7 +520,6 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * Loops of less noise than the observation's give a map that amplifies its noise
      * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
     swfs_teach_run_options oo = *o;
-    if ((rc = noise_of(&o->sim, obs, o->files[0], r))) { swfs_real_free(obs); return rc; }
     if (o->noise_from_slopes) oo.sim.slope_noise = r->noise_rms;
     r->slope_noise = oo.sim.slope_noise;
     if (o->modes_from_slopes) {

@@ -23,10 +23,11 @@
 #include <stdlib.h>
 
 int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
-                            double *var, size_t *ncells)
+                            double *var, size_t *ncells, double *slope_var)
 {
     *var = 0;
     if (ncells) *ncells = 0;
+    if (slope_var) *slope_var = 0;
     if (nsub < 2) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu x %zu subapertures, at least 2 x 2", nsub, nsub);
     if (nframes < 16) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu WFS frames, at least 16", nframes);
     const size_t n2 = nsub * nsub, ns = 2 * n2;
@@ -52,9 +53,9 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
     }
     /* the curl of the last four frames (a ring), each frame's differences summed as it comes */
     size_t *cell = malloc(nc * sizeof *cell);
-    double *ring = malloc(4 * nc * sizeof *ring);
-    if (!cell || !ring) {
-        free(use); free(cell); free(ring);
+    double *ring = malloc(4 * nc * sizeof *ring), *acc = calloc(2 * ns, sizeof *acc); /* slope_var's sums */
+    if (!cell || !ring || !acc) {
+        free(use); free(cell); free(ring); free(acc);
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     nc = 0;
@@ -71,6 +72,21 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
             const size_t a = cell[q], b = a + 1, u = a + nsub, v = a + nsub + 1; /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
             c[q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
         }
+        /* the frame's slopes less its mean x and y slope over the used subapertures (tip-tilt),
+         * summed per slope with their squares: each slope's time mean comes off at the end */
+        for (size_t ax = 0; ax < 2; ax++) {
+            const double *x = ax ? sy : sx;
+            double mean = 0;
+            size_t nu = 0;
+            for (size_t k = 0; k < n2; k++)
+                if (use[k]) { mean += x[k]; nu++; }
+            mean /= (double)nu;
+            for (size_t k = 0; k < n2; k++)
+                if (use[k]) {
+                    acc[ax * n2 + k] += x[k] - mean;
+                    acc[ns + ax * n2 + k] += (x[k] - mean) * (x[k] - mean);
+                }
+        }
         for (size_t k = 1; k <= 3 && k <= t; k++) {
             const double *p = ring + ((t - k) % 4) * nc;
             double sum = 0;
@@ -82,6 +98,13 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
     const double v0 = (1.5 * d[1] - 0.6 * d[2] + 0.1 * d[3]) / 16.0;
     *var = v0 > 0 ? v0 : 0;
     if (ncells) *ncells = nc;
-    free(use); free(cell); free(ring);
+    if (slope_var) {
+        double ss = 0;
+        size_t nu = 0;
+        for (size_t k = 0; k < n2; k++) nu += use[k];
+        for (size_t i = 0; i < ns; i++) ss += acc[ns + i] - acc[i] * acc[i] / (double)nframes;
+        *slope_var = ss > 0 ? ss / (double)(nframes * 2 * nu) : 0;
+    }
+    free(use); free(cell); free(ring); free(acc);
     return SWFS_OK;
 }
