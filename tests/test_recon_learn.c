@@ -159,6 +159,106 @@ static void test_learner(void **state)
     free(z);
 }
 
+/* The sums hold only the slopes that ever carried signal (wfs.h): a slope 0 in the first file
+ * and live in the second (the sums grow), the files in either order, give the same map; the
+ * held-out check of the first file (no signal in that slope) against the whole is the map
+ * of the second file alone on the first's frames; a space-time learner grows the same way;
+ * a part with signal where the whole has none is refused. */
+#define GROW 5
+static void test_learner_grows(void **state)
+{
+    (void)state;
+    swfs_rng r;
+    draw_map(&r, 11);
+    const size_t n1 = 300, n2 = 400;
+    double *s = malloc((n1 + n2) * NS * sizeof *s), *z = malloc((n1 + n2) * NA * sizeof *z);
+    make_frames(&r, n1 + n2, s, z);
+    for (size_t f = 0; f < n1; f++) { /* GROW silent in file 1: its truth without that slope */
+        for (size_t a = 0; a < NA; a++) z[f * NA + a] -= W0[a][GROW] * s[f * NS + GROW];
+        s[f * NS + GROW] = 0.0;
+    }
+    const double *s2 = s + n1 * NS, *z2 = z + n1 * NA;
+    swfs_recon_learner *l12 = NULL, *l21 = NULL, *p1 = NULL, *p2 = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &l12));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &l21));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &p1));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &p2));
+    assert_ok(swfs_recon_learner_add(l12, s, z, n1));
+    assert_ok(swfs_recon_learner_add(l12, s2, z2, n2));
+    assert_ok(swfs_recon_learner_add(l21, s2, z2, n2));
+    assert_ok(swfs_recon_learner_add(l21, s, z, n1));
+    assert_ok(swfs_recon_learner_add(p1, s, z, n1));
+    assert_ok(swfs_recon_learner_add(p2, s2, z2, n2));
+    swfs_recon *w12 = NULL, *w21 = NULL, *w2 = NULL;
+    swfs_recon_learn_info i12, i21;
+    assert_ok(swfs_recon_learner_solve(l12, SWFS_RECON_LEARN_RIDGE, &w12, &i12));
+    assert_ok(swfs_recon_learner_solve(l21, SWFS_RECON_LEARN_RIDGE, &w21, &i21));
+    assert_ok(swfs_recon_learner_solve(p2, SWFS_RECON_LEARN_RIDGE, &w2, NULL));
+    assert_int_equal(i12.nslopes_seen, NS - 1);
+    double d = 0, wm = 0, g = 0;
+    for (size_t q = 0; q < NA * NS; q++) {
+        d = fmax(d, fabs(w12->W[q] - w21->W[q]));
+        wm = fmax(wm, fabs(w12->W[q]));
+    }
+    for (size_t a = 0; a < NA; a++) g += W0[a][GROW] / NA;
+    printf("test_recon_learn: a slope live from the second file on: maps of either order %.2e apart (largest %.3g); "
+           "its column %.4f for %.4f\n", d, wm, w12->W[GROW], W0[0][GROW] - g);
+    assert_true(d <= 1e-10 * wm);
+    assert_close(i12.misfit_rms, i21.misfit_rms, 1e-8);
+    assert_true(fabs(w12->W[GROW] - (W0[0][GROW] - g)) < 0.02);
+    /* held out: file 1 (GROW silent) from the whole, and file 2 (GROW live) */
+    double h2 = 0, t2 = 0;
+    assert_ok(swfs_recon_learner_heldout(l12, p1, SWFS_RECON_LEARN_RIDGE, &h2, &t2));
+    const double direct = misfit2(w2, s, z, n1);
+    printf("test_recon_learn: file 1 held out %.6g, directly %.6g\n", h2, direct);
+    assert_true(fabs(h2 - direct) <= 1e-5 * i12.truth_rms * i12.truth_rms);
+    assert_ok(swfs_recon_learner_heldout(l21, p2, SWFS_RECON_LEARN_RIDGE, &h2, &t2));
+    assert_true(h2 > 0 && isfinite(h2));
+    /* a part with signal in a slope the whole never saw */
+    assert_int_equal(swfs_recon_learner_heldout(p1, p2, SWFS_RECON_LEARN_RIDGE, &h2, &t2), SWFS_ERR_ARG);
+    /* the space-time learner: stacked sums and lagged sums of the two files agree */
+    const long lags[3] = {0, -2, 2};
+    swfs_recon_learner *ls = NULL, *ll = NULL;
+    assert_ok(swfs_recon_learner_new(3 * NS, NA, 1, &ls));
+    assert_ok(swfs_recon_learner_new(3 * NS, NA, 1, &ll));
+    double *st = malloc(n2 * 3 * NS * sizeof *st);
+    const double *fs[2] = {s, s2}, *fz[2] = {z, z2};
+    const size_t fn[2] = {n1, n2};
+    for (int k = 0; k < 2; k++) {
+        swfs_slopes_stack(fs[k], fn[k], NS, lags, 3, 0, fn[k], st);
+        assert_ok(swfs_recon_learner_add(ls, st, fz[k], fn[k]));
+        assert_ok(swfs_recon_learner_add_lagged(ll, fs[k], NS, fz[k], fn[k], lags, 3));
+    }
+    swfs_recon *ws = NULL, *wl = NULL;
+    assert_ok(swfs_recon_learner_solve(ls, SWFS_RECON_LEARN_RIDGE, &ws, NULL));
+    assert_ok(swfs_recon_learner_solve(ll, SWFS_RECON_LEARN_RIDGE, &wl, NULL));
+    d = wm = 0;
+    for (size_t q = 0; q < NA * 3 * NS; q++) {
+        d = fmax(d, fabs(ws->W[q] - wl->W[q]));
+        wm = fmax(wm, fabs(ws->W[q]));
+    }
+    printf("test_recon_learn: 3 lags, a slope live from the second file on: stacked and lagged %.2e apart\n", d);
+    assert_true(d <= 1e-8 * wm);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t k = 0; k < 3; k++) assert_true(wl->W[a * 3 * NS + k * NS + DEAD] == 0.0);
+    /* another lag count after the first file's: refused */
+    assert_int_equal(swfs_recon_learner_add(ll, s2, z2, 10), SWFS_ERR_SHAPE);
+    free(st);
+    swfs_recon_free(ws);
+    swfs_recon_free(wl);
+    swfs_recon_learner_free(ls);
+    swfs_recon_learner_free(ll);
+    swfs_recon_free(w12);
+    swfs_recon_free(w21);
+    swfs_recon_free(w2);
+    swfs_recon_learner_free(l12);
+    swfs_recon_learner_free(l21);
+    swfs_recon_learner_free(p1);
+    swfs_recon_learner_free(p2);
+    free(s);
+    free(z);
+}
+
 /* The cross product is summed in single precision over at most 4096 frames, then in double
  * (wfs.h): 20000 frames in one call (79 blocks, its float sums flushed five times) give the
  * map the same frames give in calls of 100 frames (flushed every call), within the
@@ -351,6 +451,7 @@ static void test_learner_lagged(void **state)
 int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
+                                       cmocka_unit_test(test_learner_grows),
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged)};
     return cmocka_run_group_tests(tests, NULL, NULL);

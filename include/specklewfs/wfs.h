@@ -227,7 +227,11 @@ void swfs_recon_free(swfs_recon *r);
  * the map linearly) and in double beyond; S^T S stays double, since its inverse with so
  * small a ridge would amplify single precision's rounding. The misfits the sums give (the
  * training misfit, the held-out check) are the truth's power less a cross term: good to
- * about 1e-5 of the truth's power. */
+ * about 1e-5 of the truth's power. The sums hold only the slopes that carried signal in some
+ * frame added (unilluminated subapertures' slopes are exactly 0, and so are their rows of
+ * S^T S and S^T Z): every product runs over those, about 0.6 of the full layout's work for
+ * S^T S (a 24 x 24 Shack-Hartmann uses 444 of its 576 subapertures); a slope that comes alive
+ * in a later file grows the sums (its entries over the earlier frames 0). */
 typedef struct swfs_recon_learner swfs_recon_learner;
 typedef struct swfs_recon_learn_info {
     size_t nframes;      /* frames learned from */

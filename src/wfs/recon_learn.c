@@ -7,6 +7,7 @@
 #include <cblas.h>
 #include <lapacke.h>
 #include <limits.h>
+#include <stdint.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -20,12 +21,19 @@
 struct swfs_recon_learner {
     size_t nslopes, nact, nframes;
     int remove_mean; /* 1: z's mean over its values is piston (actuator values) and comes out */
-    double *G;    /* nslopes x nslopes: sum of s s^T (upper triangle, row-major) */
-    double *H;    /* nslopes x nact: sum of s z^T, z with its mean removed when remove_mean */
+    /* The sums hold only the inputs that ever carried signal (unilluminated subapertures'
+     * slopes are exactly 0 in every frame: their rows of G and H would be 0): of the base
+     * slopes (a frame's, ns0 = nslopes / nl), the nu0 in used0, at each of the nl lags; input
+     * (k, used0[u]) at k nu0 + u of the sums ("compressed"). Set by the first add, grown when
+     * a later one shows signal in another slope. */
+    size_t ns0, nl, nu0, nc; /* nc = nu0 nl */
+    size_t *used0;
+    double *G;    /* nc x nc: sum of s s^T (upper triangle, row-major) */
+    double *H;    /* nc x nact: sum of s z^T, z with its mean removed when remove_mean */
     double zz;    /* sum of |z|^2, mean removed */
-    float *Sf;    /* LEARN_BLOCK x nslopes: a block of inputs in single precision */
+    float *Sf;    /* LEARN_BLOCK x nc: a block of inputs in single precision */
     float *Zf;    /* LEARN_BLOCK x nact: its truth, mean removed */
-    float *Hf;    /* nslopes x nact: one add call's S^T Zc, summed in single precision */
+    float *Hf;    /* nc x nact: one add call's S^T Zc, summed in single precision */
 };
 
 int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out)
@@ -37,13 +45,9 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_re
         l->nslopes = nslopes;
         l->nact = nact;
         l->remove_mean = remove_mean != 0;
-        l->G = calloc(nslopes * nslopes, sizeof *l->G);
-        l->H = calloc(nslopes * nact, sizeof *l->H);
-        l->Sf = malloc(LEARN_BLOCK * nslopes * sizeof *l->Sf);
         l->Zf = malloc(LEARN_BLOCK * nact * sizeof *l->Zf);
-        l->Hf = malloc(nslopes * nact * sizeof *l->Hf);
     }
-    if (!l || !l->G || !l->H || !l->Sf || !l->Zf || !l->Hf) {
+    if (!l || !l->Zf) {
         swfs_recon_learner_free(l);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes x %zu actuators", nslopes,
                          nact);
@@ -55,6 +59,7 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_re
 void swfs_recon_learner_free(swfs_recon_learner *l)
 {
     if (!l) return;
+    free(l->used0);
     free(l->G);
     free(l->H);
     free(l->Sf);
@@ -64,6 +69,78 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
 }
 
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l) { return l->nframes; }
+
+/* Compressed input i's index in the full layout (slopes_stack's: lag-major). */
+static size_t full_of(const swfs_recon_learner *l, size_t i) { return i / l->nu0 * l->ns0 + l->used0[i % l->nu0]; }
+
+/* The sums' layout for a file of n frames of ns0 slopes at nl lags: the first call sets the
+ * base shape, every call adds the slopes with signal in its file (moving the sums' entries to
+ * their places among the new ones, which are 0 over the frames already added). */
+static int layout(swfs_recon_learner *l, const double *s, size_t n, size_t ns0, size_t nl)
+{
+    if (l->ns0 && (l->ns0 != ns0 || l->nl != nl))
+        return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: %zu slopes x %zu lags after %zu x %zu", ns0, nl, l->ns0,
+                         l->nl);
+    unsigned char *sig = calloc(ns0, 1);
+    if (!sig) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    for (size_t u = 0; u < l->nu0; u++) sig[l->used0[u]] = 1;
+    size_t nu0 = l->nu0;
+    for (size_t t = 0; t < n; t++) {
+        const double *f = s + t * ns0;
+        for (size_t c = 0; c < ns0; c++)
+            if (!sig[c] && f[c] != 0) {
+                sig[c] = 1;
+                nu0++;
+            }
+    }
+    if (l->ns0 && nu0 == l->nu0) {
+        free(sig);
+        return SWFS_OK;
+    }
+    const size_t nc = nu0 * nl, na = l->nact;
+    size_t *used0 = malloc((nu0 ? nu0 : 1) * sizeof *used0), *to = malloc((l->nc ? l->nc : 1) * sizeof *to);
+    double *G = calloc(nc * nc + 1, sizeof *G), *H = calloc(nc * na + 1, sizeof *H);
+    float *Sf = malloc((LEARN_BLOCK * nc + 1) * sizeof *Sf), *Hf = malloc((nc * na + 1) * sizeof *Hf);
+    if (!used0 || !to || !G || !H || !Sf || !Hf) {
+        free(sig); free(used0); free(to); free(G); free(H); free(Sf); free(Hf);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu inputs x %zu outputs", nc, na);
+    }
+    for (size_t c = 0, u = 0; c < ns0; c++)
+        if (sig[c]) used0[u++] = c;
+    /* the old inputs' new places: the union is sorted, so the order (and the upper triangle) holds */
+    for (size_t k = 0, o = 0; k < l->nl; k++)
+        for (size_t u = 0, v = 0; u < l->nu0; u++, o++) {
+            while (used0[v] != l->used0[u]) v++;
+            to[o] = k * nu0 + v;
+        }
+    for (size_t i = 0; i < l->nc; i++) {
+        for (size_t j = i; j < l->nc; j++) G[to[i] * nc + to[j]] = l->G[i * l->nc + j];
+        memcpy(H + to[i] * na, l->H + i * na, na * sizeof *H);
+    }
+    free(sig); free(to);
+    free(l->used0); free(l->G); free(l->H); free(l->Sf); free(l->Hf);
+    l->used0 = used0;
+    l->G = G;
+    l->H = H;
+    l->Sf = Sf;
+    l->Hf = Hf;
+    l->ns0 = ns0;
+    l->nl = nl;
+    l->nu0 = nu0;
+    l->nc = nc;
+    return SWFS_OK;
+}
+
+/* The file's used slopes (n x nu0), in *out (malloc'd). */
+static int compress(const swfs_recon_learner *l, const double *s, size_t n, double **out)
+{
+    double *c = malloc((n * l->nu0 + 1) * sizeof *c);
+    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu frames", n);
+    for (size_t t = 0; t < n; t++)
+        for (size_t u = 0; u < l->nu0; u++) c[t * l->nu0 + u] = s[t * l->ns0 + l->used0[u]];
+    *out = c;
+    return SWFS_OK;
+}
 
 static int check_finite(const double *slopes, size_t ns, const double *truth, size_t na, size_t nframes)
 {
@@ -77,7 +154,7 @@ static int check_finite(const double *slopes, size_t ns, const double *truth, si
     return SWFS_OK;
 }
 
-/* H += S^T Zc for block blk of at most LEARN_BLOCK frames (S: nb x nslopes, the inputs), with
+/* H += S^T Zc for block blk of at most LEARN_BLOCK frames (S: nb x nc, the used inputs), with
  * Zc = Z - m 1^T (m the frames' means: piston, which nothing sees; modal coefficients carry
  * none and are taken as they are), by one SGEMM into Hf, which goes into H after every
  * LEARN_FLUSH blocks and after an add call's last (last); and zz (in double). Single
@@ -88,7 +165,7 @@ static int check_finite(const double *slopes, size_t ns, const double *truth, si
  * product is the largest product of a map of many outputs (teach's grid; docs/telemetry.md). */
 static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, size_t nb, size_t blk, int last)
 {
-    const size_t ns = l->nslopes, na = l->nact;
+    const size_t ns = l->nc, na = l->nact;
     for (size_t f = 0; f < nb; f++) {
         const double *z = Z + f * na;
         float *zf = l->Zf + f * na;
@@ -103,6 +180,7 @@ static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, s
             zf[a] = (float)c;
         }
     }
+    if (!ns) return; /* no slope with signal yet: the truth's power only */
     for (size_t k = 0; k < nb * ns; k++) l->Sf[k] = (float)S[k];
     cblas_sgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)ns, (int)na, (int)nb, 1.0f, l->Sf, (int)ns, l->Zf, (int)na,
                 blk % LEARN_FLUSH ? 1.0f : 0.0f, l->Hf, (int)na);
@@ -112,15 +190,20 @@ static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, s
 
 int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const double *truth, size_t nframes)
 {
-    const size_t ns = l->nslopes, na = l->nact;
-    int rc = check_finite(slopes, ns, truth, na, nframes);
+    const size_t na = l->nact;
+    int rc = check_finite(slopes, l->nslopes, truth, na, nframes);
+    if (!rc) rc = layout(l, slopes, nframes, l->nslopes, 1);
+    double *S = NULL;
+    if (!rc) rc = compress(l, slopes, nframes, &S);
     if (rc) return rc;
     /* G += S^T S (one rank-k update); H block by block. */
-    cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, slopes, (int)ns, 1.0, l->G, (int)ns);
+    const size_t ns = l->nc;
+    if (ns) cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)nframes, 1.0, S, (int)ns, 1.0, l->G, (int)ns);
     for (size_t f0 = 0; f0 < nframes; f0 += LEARN_BLOCK) {
         const size_t nb = nframes - f0 < LEARN_BLOCK ? nframes - f0 : LEARN_BLOCK;
-        add_cross(l, slopes + f0 * ns, truth + f0 * na, nb, f0 / LEARN_BLOCK, f0 + nb == nframes);
+        add_cross(l, S + f0 * ns, truth + f0 * na, nb, f0 / LEARN_BLOCK, f0 + nb == nframes);
     }
+    free(S);
     l->nframes += nframes;
     return SWFS_OK;
 }
@@ -133,15 +216,19 @@ static void lag_product(const double *S, size_t ns0, size_t a, size_t d, size_t 
                 S + (a + d) * ns0, (int)ns0, 1.0, C, (int)ns0);
 }
 
-int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t ns0, const double *truth, size_t n,
-                                  const long *lags, size_t nl)
+int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *sfull, size_t nsfull, const double *truth,
+                                  size_t n, const long *lags, size_t nl)
 {
-    const size_t ns = l->nslopes, na = l->nact;
-    if (!nl || nl > SWFS_RECON_MAXLAGS || ns0 * nl != ns)
+    const size_t na = l->nact;
+    if (!nl || nl > SWFS_RECON_MAXLAGS || nsfull * nl != l->nslopes)
         return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: %zu slopes x %zu lags, but the learner takes %zu inputs",
-                         ns0, nl, ns);
-    int rc = check_finite(s, ns0, truth, na, n);
+                         nsfull, nl, l->nslopes);
+    int rc = check_finite(sfull, nsfull, truth, na, n);
     if (rc || !n) return rc;
+    /* the file's used slopes: every product below over them only */
+    double *s = NULL;
+    if ((rc = layout(l, sfull, n, nsfull, nl)) || (rc = compress(l, sfull, n, &s))) return rc;
+    const size_t ns0 = l->nu0, ns = l->nc;
     long lmin = 0, lmax = 0;
     for (size_t k = 0; k < nl; k++) {
         lmin = lags[k] < lmin ? lags[k] : lmin;
@@ -151,9 +238,10 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
     const long ta = -lmin, tb = (long)n - 1 - lmax;
     const size_t nedge = ta <= tb ? n - (size_t)(tb - ta + 1) : n;
     const size_t rows = nedge > LEARN_BLOCK ? nedge : LEARN_BLOCK;
-    double *X = malloc(rows * ns * sizeof *X), *Q = malloc(ns0 * ns0 * sizeof *Q), *T = malloc(ns0 * ns0 * sizeof *T);
+    double *X = malloc((rows * ns + 1) * sizeof *X), *Q = malloc((ns0 * ns0 + 1) * sizeof *Q),
+           *T = malloc((ns0 * ns0 + 1) * sizeof *T);
     if (!X || !Q || !T) {
-        free(X); free(Q); free(T);
+        free(s); free(X); free(Q); free(T);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu lags of %zu slopes", nl, ns0);
     }
     /* H and zz from the stacked input, a block at a time. */
@@ -167,7 +255,7 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
      * shift. One GEMM per distinct d over a reference range (the pairs' smallest leading
      * lag), and for each pair the frames its own range adds and leaves out at the ends: about
      * (distinct d) / (nl (nl + 1) / 2) of the stacked DSYRK's work. */
-    if (ta <= tb) {
+    if (ta <= tb && ns0) {
         const size_t m = (size_t)(tb - ta + 1);
         int done[SWFS_RECON_MAXLAGS * SWFS_RECON_MAXLAGS] = {0};
         for (size_t i = 0; i < nl; i++)
@@ -211,9 +299,10 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
         swfs_slopes_stack(s, n, ns0, lags, nl, t, 1, X + k * ns);
         k++;
     }
-    if (k)
+    if (k && ns)
         cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)ns, (int)k, 1.0, X, (int)ns, 1.0, l->G, (int)ns);
     l->nframes += n;
+    free(s);
     free(X);
     free(Q);
     free(T);
@@ -222,33 +311,65 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
 
 void swfs_recon_learner_reset(swfs_recon_learner *l)
 {
-    memset(l->G, 0, l->nslopes * l->nslopes * sizeof *l->G);
-    memset(l->H, 0, l->nslopes * l->nact * sizeof *l->H);
+    if (l->G) memset(l->G, 0, l->nc * l->nc * sizeof *l->G);
+    if (l->H) memset(l->H, 0, l->nc * l->nact * sizeof *l->H);
     l->zz = 0;
     l->nframes = 0;
 }
 
-/* G's element (a, b) of the sums l less m (m NULL: none); G holds the upper triangle. */
-static double gsum(const swfs_recon_learner *l, const swfs_recon_learner *m, size_t a, size_t b)
+/* Where each of l's inputs sits among m's (SIZE_MAX: not there, so 0 in m's sums), for the
+ * sums of l less m; NULL when m is NULL. m must be a part of l's frames: an input with signal
+ * in m has it in l. */
+static int positions(const swfs_recon_learner *l, const swfs_recon_learner *m, size_t **out)
 {
-    const size_t i = a < b ? a : b, j = a < b ? b : a, ns = l->nslopes;
-    return l->G[i * ns + j] - (m ? m->G[i * ns + j] : 0.0);
+    *out = NULL;
+    if (!m) return SWFS_OK;
+    if (m->ns0 && (m->ns0 != l->ns0 || m->nl != l->nl))
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a held-out part of %zu slopes x %zu lags, sums of %zu x %zu",
+                         m->ns0, m->nl, l->ns0, l->nl);
+    size_t *pos = malloc((l->nc + 1) * sizeof *pos);
+    if (!pos) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    size_t v = 0;
+    for (size_t u = 0; u < l->nu0; u++) {
+        const int in = v < m->nu0 && m->used0[v] == l->used0[u];
+        for (size_t k = 0; k < l->nl; k++) pos[k * l->nu0 + u] = in ? k * m->nu0 + v : SIZE_MAX;
+        v += in ? 1u : 0u;
+    }
+    if (v != m->nu0) {
+        free(pos);
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: the held-out part has signal in slopes the whole has not");
+    }
+    *out = pos;
+    return SWFS_OK;
 }
 
-/* The normal equations of the sums l less m solved over the slopes with signal in them:
- * A = (G + lam I)^-1 H (nu x na) in *A, those slopes in idx (ns long), nu of them. */
-static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, double ridge, size_t *idx, size_t *nu_out,
-                      double **A_out, double *lam_out)
+/* G's element (a, b) of the sums l less m (m NULL: none; mp: positions); upper triangle. */
+static double gsum(const swfs_recon_learner *l, const swfs_recon_learner *m, const size_t *mp, size_t a, size_t b)
+{
+    const size_t i = a < b ? a : b, j = a < b ? b : a;
+    double g = l->G[i * l->nc + j];
+    if (m && mp[i] != SIZE_MAX && mp[j] != SIZE_MAX) {
+        const size_t p = mp[i] < mp[j] ? mp[i] : mp[j], q = mp[i] < mp[j] ? mp[j] : mp[i];
+        g -= m->G[p * m->nc + q];
+    }
+    return g;
+}
+
+/* The normal equations of the sums l less m solved over the inputs with signal in them:
+ * A = (G + lam I)^-1 H (nu x na) in *A, those inputs (l's compressed indices) in idx (l->nc
+ * long), nu of them. */
+static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, const size_t *mp, double ridge,
+                      size_t *idx, size_t *nu_out, double **A_out, double *lam_out)
 {
     *A_out = NULL;
-    const size_t ns = l->nslopes, na = l->nact, nf = l->nframes - (m ? m->nframes : 0);
+    const size_t ns = l->nc, na = l->nact, nf = l->nframes - (m ? m->nframes : 0);
     if (!(ridge > 0) || !isfinite(ridge))
         return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: the ridge must be a finite fraction > 0, got %g", ridge);
     /* The slopes seen: those with any signal over the frames (unilluminated ones are 0). */
     size_t nu = 0;
     double tr = 0;
     for (size_t i = 0; i < ns; i++) {
-        const double d = gsum(l, m, i, i);
+        const double d = gsum(l, m, mp, i, i);
         if (d > 1e-12 * l->G[i * ns + i] && d > 0) {
             idx[nu++] = i;
             tr += d;
@@ -264,9 +385,11 @@ static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, 
     }
     const double lam = ridge * tr / (double)nu;
     for (size_t i = 0; i < nu; i++) {
-        for (size_t j = 0; j < nu; j++) M[i * nu + j] = gsum(l, m, idx[i], idx[j]);
+        for (size_t j = 0; j < nu; j++) M[i * nu + j] = gsum(l, m, mp, idx[i], idx[j]);
         M[i * nu + i] += lam;
-        for (size_t a = 0; a < na; a++) B[i * na + a] = l->H[idx[i] * na + a] - (m ? m->H[idx[i] * na + a] : 0.0);
+        const size_t p = m ? mp[idx[i]] : SIZE_MAX;
+        for (size_t a = 0; a < na; a++)
+            B[i * na + a] = l->H[idx[i] * na + a] - (p != SIZE_MAX ? m->H[p * na + a] : 0.0);
     }
     lapack_int info = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)nu, (lapack_int)na, M, (lapack_int)nu, B,
                                     (lapack_int)na);
@@ -286,7 +409,7 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
 {
     *out = NULL;
     const size_t ns = l->nslopes, na = l->nact;
-    size_t *idx = malloc(ns * sizeof *idx), nu = 0;
+    size_t *idx = malloc((l->nc + 1) * sizeof *idx), nu = 0;
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = calloc(na * ns, sizeof *r->W);
     if (!idx || !r || !r->W) {
@@ -295,15 +418,17 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
     }
     double *A = NULL, lam = 0;
-    int rc = solve_sums(l, NULL, ridge, idx, &nu, &A, &lam);
+    int rc = solve_sums(l, NULL, NULL, ridge, idx, &nu, &A, &lam);
     if (rc) {
         free(idx);
         swfs_recon_free(r);
         return rc;
     }
-    /* W = A^T on the seen slopes. */
-    for (size_t i = 0; i < nu; i++)
-        for (size_t a = 0; a < na; a++) r->W[a * ns + idx[i]] = A[i * na + a];
+    /* W = A^T on the seen slopes, in the full layout. */
+    for (size_t i = 0; i < nu; i++) {
+        const size_t c = full_of(l, idx[i]);
+        for (size_t a = 0; a < na; a++) r->W[a * ns + c] = A[i * na + a];
+    }
     r->nact = na;
     r->nslopes = ns;
     r->nmodes = 0;
@@ -336,10 +461,16 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
         return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a held-out part of %zu frames (%zu slopes, %zu "
                          "actuators) of sums over %zu frames (%zu, %zu)", part->nframes, part->nslopes, part->nact,
                          all->nframes, ns, na);
-    size_t *idx = malloc(ns * sizeof *idx), nu = 0;
-    if (!idx) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    size_t *mp = NULL;
+    int rc = positions(all, part, &mp);
+    if (rc) return rc;
+    size_t *idx = malloc((all->nc + 1) * sizeof *idx), nu = 0;
+    if (!idx) {
+        free(mp);
+        return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    }
     double *A = NULL, lam = 0;
-    int rc = solve_sums(all, part, ridge, idx, &nu, &A, &lam);
+    rc = solve_sums(all, part, mp, ridge, idx, &nu, &A, &lam);
     double *Gp = NULL, *C = NULL;
     if (!rc) {
         Gp = malloc(nu * nu * sizeof *Gp);
@@ -349,19 +480,25 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
     if (!rc) {
         /* On the part's frames: sum |z - A^T s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), its sums. */
         for (size_t i = 0; i < nu; i++)
-            for (size_t j = 0; j < nu; j++) Gp[i * nu + j] = gsum(part, NULL, idx[i], idx[j]);
+            for (size_t j = 0; j < nu; j++) {
+                const size_t p = mp[idx[i]], q = mp[idx[j]];
+                Gp[i * nu + j] = p == SIZE_MAX || q == SIZE_MAX ? 0.0 : part->G[MIN2(p, q) * part->nc + (p < q ? q : p)];
+            }
         cblas_dsymm(CblasRowMajor, CblasLeft, CblasUpper, (int)nu, (int)na, 1.0, Gp, (int)nu, A, (int)na, 0.0, C,
                     (int)na);
         double cross = 0, quad = 0;
-        for (size_t i = 0; i < nu; i++)
+        for (size_t i = 0; i < nu; i++) {
+            const size_t p = mp[idx[i]];
             for (size_t a = 0; a < na; a++) {
-                cross += A[i * na + a] * part->H[idx[i] * na + a];
+                cross += p == SIZE_MAX ? 0.0 : A[i * na + a] * part->H[p * na + a];
                 quad += A[i * na + a] * C[i * na + a];
             }
+        }
         const double n = (double)(part->nframes * na);
         *misfit2 = fmax(0.0, part->zz - 2 * cross + quad) / n;
         *truth2 = part->zz / n;
     }
+    free(mp);
     free(idx);
     free(A);
     free(Gp);
