@@ -221,9 +221,9 @@ void swfs_recon_free(swfs_recon *r);
  * know (docs/telemetry.md: trained on other systems of the same geometry it beat vk on 22 of
  * the matrix's 24 runs, and lost by 0.1-0.2 nm on the other two). The ridge only conditions
  * the solve (1e-6 and 1e-4 gave the same NCP errors to 0.3 nm). Accumulate with add (frames
- * x nslopes and frames x nact, row-major), then solve; nothing on add's path allocates
- * (add_lagged's: once per file). The cross product S^T Z is summed in single precision over at
- * most 4096 frames (SGEMM: half DGEMM's time; a relative rounding of about 4e-6, which scales
+ * x nslopes and frames x nact, row-major), then solve; add and add_lagged allocate their
+ * scratch once per call (a file's frames: its used slopes, add_lagged's stacked block). The
+ * cross product S^T Z is summed in single precision over at most 4096 frames (SGEMM: half DGEMM's time; a relative rounding of about 4e-6, which scales
  * the map linearly) and in double beyond; S^T S stays double, since its inverse with so
  * small a ridge would amplify single precision's rounding. The misfits the sums give (the
  * training misfit, the held-out check) are the truth's power less a cross term: good to
@@ -250,8 +250,8 @@ int swfs_recon_learner_add(swfs_recon_learner *l, const double *slopes, const do
  * (n x ns0) and truth, as if s were stacked at the lags (swfs_slopes_stack, clamped at the
  * file's ends) and given to add, at a fraction of the work: the inner frames' products of
  * the file with itself at each distinct lag difference, shared by the lag pairs at that
- * difference, and the clamped frames stacked. It allocates its scratch (a block of stacked
- * frames, two ns0 x ns0 matrices) once per call. */
+ * difference, and the clamped frames stacked. It allocates its scratch (the file's used
+ * slopes, a block of them stacked, two products of them with themselves) once per call. */
 int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t ns0, const double *truth, size_t n,
                                   const long *lags, size_t nl);
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l);
