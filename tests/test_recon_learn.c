@@ -62,14 +62,24 @@ static double misfit2(const swfs_recon *w, const double *s, const double *z, siz
     return e2 / (double)(n * NA);
 }
 
+/* The synthetic problem of seed: W0 and n frames of slopes and truth (malloc'd). */
+static void draw_problem(uint64_t seed, size_t n, double **s, double **z)
+{
+    swfs_rng r;
+    draw_map(&r, seed);
+    *s = malloc(n * NS * sizeof **s);
+    *z = malloc(n * NA * sizeof **z);
+    assert_non_null(*s);
+    assert_non_null(*z);
+    make_frames(&r, n, *s, *z);
+}
+
 static void test_learner(void **state)
 {
     (void)state;
-    swfs_rng r;
-    draw_map(&r, 7);
     const size_t na = 400, nb = 300;
-    double *s = malloc((na + nb) * NS * sizeof *s), *z = malloc((na + nb) * NA * sizeof *z);
-    make_frames(&r, na + nb, s, z);
+    double *s = NULL, *z = NULL;
+    draw_problem(7, na + nb, &s, &z);
 
     swfs_recon_learner *all = NULL, *pa = NULL, *pb = NULL;
     assert_ok(swfs_recon_learner_new(NS, NA, 1, &all));
@@ -168,11 +178,9 @@ static void test_learner(void **state)
 static void test_learner_grows(void **state)
 {
     (void)state;
-    swfs_rng r;
-    draw_map(&r, 11);
     const size_t n1 = 300, n2 = 400;
-    double *s = malloc((n1 + n2) * NS * sizeof *s), *z = malloc((n1 + n2) * NA * sizeof *z);
-    make_frames(&r, n1 + n2, s, z);
+    double *s = NULL, *z = NULL;
+    draw_problem(11, n1 + n2, &s, &z);
     for (size_t f = 0; f < n1; f++) { /* GROW silent in file 1: its truth without that slope */
         for (size_t a = 0; a < NA; a++) z[f * NA + a] -= W0[a][GROW] * s[f * NS + GROW];
         s[f * NS + GROW] = 0.0;
@@ -267,13 +275,9 @@ static void test_learner_grows(void **state)
 static void test_learner_long_call(void **state)
 {
     (void)state;
-    swfs_rng r;
-    draw_map(&r, 11);
     const size_t n = 20000;
-    double *s = malloc(n * NS * sizeof *s), *z = malloc(n * NA * sizeof *z);
-    assert_non_null(s);
-    assert_non_null(z);
-    make_frames(&r, n, s, z);
+    double *s = NULL, *z = NULL;
+    draw_problem(11, n, &s, &z);
     swfs_recon_learner *one = NULL, *many = NULL;
     assert_ok(swfs_recon_learner_new(NS, NA, 1, &one));
     assert_ok(swfs_recon_learner_new(NS, NA, 1, &many));
