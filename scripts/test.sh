@@ -16,6 +16,7 @@ cmake --build build -j"$jobs" --target specklewfs-cli specklewfs
 cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSWFS_WERROR=ON -DSWFS_SANITIZE=ON -DSWFS_NATIVE=OFF >/dev/null
 cmake --build build-asan -j"$jobs"
 # one test more than cores: the sanitizer pass's tests are mostly single-threaded, with serial
-# phases (process start-up, file I/O) that leave a core idle (2 cores: 374 s at -j2, 345 s at
-# -j3, 344 s at -j4)
+# phases (process start-up, file I/O) that leave a core idle (2 cores, back to back: 374 s at
+# -j2, 345 s at -j3, 344 s at -j4; a fresh clone's run at -j3 379 s, on a machine whose build
+# steps took a fifth longer than the run before it at -j2, 375 s)
 (cd build-asan && ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 ctest --output-on-failure -j"$((jobs + 1))")
