@@ -251,6 +251,24 @@ static void test_learner_grows(void **state)
         for (size_t k = 0; k < 3; k++) assert_true(wl->W[a * 3 * NS + k * NS + DEAD] == 0.0);
     /* another lag count after the first file's: refused */
     assert_int_equal(swfs_recon_learner_add(ll, s2, z2, 10), SWFS_ERR_SHAPE);
+    /* a first file without any signal: empty sums, no map ("0 slopes with signal"); the
+     * next file's slopes grow them from nothing to the map of that file alone */
+    double *s0 = calloc(n1 * NS, sizeof *s0);
+    swfs_recon_learner *le = NULL;
+    swfs_recon *we = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &le));
+    assert_ok(swfs_recon_learner_add(le, s0, z, n1));
+    assert_int_equal(swfs_recon_learner_solve(le, SWFS_RECON_LEARN_RIDGE, &we, NULL), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "for 0 slopes with signal"));
+    assert_ok(swfs_recon_learner_add(le, s2, z2, n2));
+    assert_ok(swfs_recon_learner_solve(le, SWFS_RECON_LEARN_RIDGE, &we, NULL));
+    d = 0;
+    for (size_t q = 0; q < NA * NS; q++) d = fmax(d, fabs(we->W[q] - w2->W[q]));
+    printf("test_recon_learn: sums grown from an empty first file: the second file's map to %.2e\n", d);
+    assert_true(d <= 1e-10 * wm);
+    swfs_recon_free(we);
+    swfs_recon_learner_free(le);
+    free(s0);
     free(st);
     swfs_recon_free(ws);
     swfs_recon_free(wl);
