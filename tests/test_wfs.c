@@ -297,7 +297,7 @@ static void test_white_noise(void **state)
     const double srms = sqrt(sig2 / (double)(nf * 2 * w->nvalid)); /* the pattern's slopes, rms */
     double var = -1;
     size_t nc = 0;
-    assert_ok(swfs_slopes_white_noise(clean, nf, nsub, NULL, &var, &nc, NULL));
+    assert_ok(swfs_slopes_white_noise(clean, nf, ns, nsub, NULL, &var, &nc, NULL));
     assert_true(nc > 60 && nc < 121);
     print_message("white noise: pattern slopes %.3g rad rms; without noise %.3g\n", srms, sqrt(var));
     assert_true(sqrt(var) < 0.02 * srms);
@@ -305,21 +305,35 @@ static void test_white_noise(void **state)
     for (int c = 0; c < 3; c++) {
         for (size_t i = 0; i < nf * ns; i++)
             s[i] = clean[i] + (w->valid[i % (ns / 2)] ? sig[c] * srms * swfs_rng_normal(&rng) : 0.0);
-        assert_ok(swfs_slopes_white_noise(s, nf, nsub, NULL, &var, NULL, NULL));
+        assert_ok(swfs_slopes_white_noise(s, nf, ns, nsub, NULL, &var, NULL, NULL));
         double var2 = -1;
-        assert_ok(swfs_slopes_white_noise(s, nf, nsub, w->valid, &var2, NULL, NULL));
+        assert_ok(swfs_slopes_white_noise(s, nf, ns, nsub, w->valid, &var2, NULL, NULL));
         print_message("white noise: %.3g rad rms added, %.3g estimated\n", sig[c] * srms, sqrt(var));
         assert_close(sqrt(var), sig[c] * srms, 0.1 * sig[c] * srms);
         assert_close(var2, var, 1e-12 * var);
+        /* the used subapertures' slopes only (x then y), with the map: the same */
+        const size_t nv = w->nvalid, n2 = ns / 2;
+        double *cs = malloc(nf * 2 * nv * sizeof *cs), var3 = -1;
+        assert_non_null(cs);
+        for (size_t t = 0; t < nf; t++)
+            for (size_t k = 0, u = 0; k < n2; k++)
+                if (w->valid[k]) {
+                    cs[t * 2 * nv + u] = s[t * ns + k];
+                    cs[t * 2 * nv + nv + u++] = s[t * ns + n2 + k];
+                }
+        assert_ok(swfs_slopes_white_noise(cs, nf, 2 * nv, nsub, w->valid, &var3, NULL, NULL));
+        assert_close(var3, var2, 1e-12 * var2);
+        assert_int_equal(swfs_slopes_white_noise(cs, nf, 2 * nv, nsub, NULL, &var3, NULL, NULL), SWFS_ERR_SHAPE);
+        free(cs);
     }
     /* refused: too few frames, fewer than 2 x 2 subapertures, a NaN, no cell of four used ones */
-    assert_int_equal(swfs_slopes_white_noise(s, 15, nsub, NULL, &var, NULL, NULL), SWFS_ERR_ARG);
-    assert_int_equal(swfs_slopes_white_noise(s, nf, 1, NULL, &var, NULL, NULL), SWFS_ERR_ARG);
+    assert_int_equal(swfs_slopes_white_noise(s, 15, ns, nsub, NULL, &var, NULL, NULL), SWFS_ERR_ARG);
+    assert_int_equal(swfs_slopes_white_noise(s, nf, ns, 1, NULL, &var, NULL, NULL), SWFS_ERR_ARG);
     unsigned char none[144] = {0};
-    assert_int_equal(swfs_slopes_white_noise(s, nf, nsub, none, &var, NULL, NULL), SWFS_ERR_VALUE);
+    assert_int_equal(swfs_slopes_white_noise(s, nf, ns, nsub, none, &var, NULL, NULL), SWFS_ERR_VALUE);
     assert_non_null(strstr(swfs_last_error(), "no 2 x 2 cell"));
     s[7 * ns + 20] = NAN;
-    assert_int_equal(swfs_slopes_white_noise(s, nf, nsub, NULL, &var, NULL, NULL), SWFS_ERR_VALUE);
+    assert_int_equal(swfs_slopes_white_noise(s, nf, ns, nsub, NULL, &var, NULL, NULL), SWFS_ERR_VALUE);
     assert_non_null(strstr(swfs_last_error(), "slope 20 of WFS frame 7 is not finite"));
     free(z); free(clean); free(s); free(mask);
     swfs_shwfs_free(w);

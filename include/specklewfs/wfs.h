@@ -195,15 +195,17 @@ int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const do
  * circulation of the slopes over every 2 x 2 cell of used subapertures (which a wavefront
  * hardly makes and the loop never feeds back), its temporal structure function over lags of
  * 1, 2 and 3 WFS frames extrapolated to 0 by a quadratic in the lag squared
- * (src/wfs/slope_noise.c): noise is new every frame, the turbulence's share changes smoothly. slopes: nframes >= 16 consecutive
- * frames of 2 nsub^2 (x then y, row-major nsub x nsub); valid: nsub^2 flags of the used
- * subapertures, or NULL (those whose slopes vary). *var: the variance per slope [rad^2] (0
+ * (src/wfs/slope_noise.c): noise is new every frame, the turbulence's share changes smoothly.
+ * slopes: nframes >= 16 consecutive frames of nslopes, the full layout (2 nsub^2: x then y,
+ * row-major nsub x nsub) or, with valid given, the valid subapertures' only (2 nvalid, in
+ * the map's order), as swfs_wind_from_slopes takes them; another width is SWFS_ERR_SHAPE.
+ * valid: nsub^2 flags of the used subapertures, or NULL (those whose slopes vary). *var: the variance per slope [rad^2] (0
  * where the extrapolation leaves none); *ncells (or NULL): the cells it was measured over;
  * *slope_var (or NULL): the slopes' own variance per used slope [rad^2], each slope's time
  * mean and each frame's mean x and y slope (tip-tilt) removed, what *var is a share of.
  * Not finite slopes, or no cell of four used subapertures, are refused. */
-int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
-                            double *var, size_t *ncells, double *slope_var);
+int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                            const unsigned char *valid, double *var, size_t *ncells, double *slope_var);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
  * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,

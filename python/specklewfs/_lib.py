@@ -497,7 +497,7 @@ _PROTOS = {
                               P(P(swfs_recon))]),
     "swfs_vk_covariance": (c_int, [P(c_dbl), c_size, c_dbl, P(c_dbl)]),
     "swfs_slopes_noise_var": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, P(c_dbl)]),
-    "swfs_slopes_white_noise": (c_int, [P(c_dbl), c_size, c_size, P(ctypes.c_ubyte), P(c_dbl), P(c_size), P(c_dbl)]),
+    "swfs_slopes_white_noise": (c_int, [P(c_dbl), c_size, c_size, c_size, P(ctypes.c_ubyte), P(c_dbl), P(c_size), P(c_dbl)]),
     "swfs_recon_modal": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_size, P(P(swfs_recon))]),
     "swfs_recon_free": (None, [P(swfs_recon)]),
     "swfs_recon_project_tiptilt": (c_int, [P(swfs_recon), P(ctypes.c_ubyte)]),

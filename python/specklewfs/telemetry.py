@@ -199,7 +199,7 @@ def slopes_white_noise(slopes, nsub, valid=None):
         if v.size != nsub * nsub:
             raise ValueError("slopes_white_noise: valid has %d flags, expected nsub^2 = %d" % (v.size, nsub * nsub))
     var, nc = ctypes.c_double(), ctypes.c_size_t()
-    check(lib.swfs_slopes_white_noise(dptr(s), s.shape[0], nsub, v.ctypes.data_as(_u8) if v is not None else None,
+    check(lib.swfs_slopes_white_noise(dptr(s), s.shape[0], s.shape[1], nsub, v.ctypes.data_as(_u8) if v is not None else None,
                                       ctypes.byref(var), ctypes.byref(nc), None), "swfs_slopes_white_noise")
     return var.value, nc.value
 

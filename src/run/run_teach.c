@@ -292,35 +292,17 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
 
 /* The observation's white slope noise and its share of the slopes' variance
  * (swfs_slopes_white_noise) over the frames of its first file, s: the full layout, or the used
- * subapertures' (the system's valid map vm, nsub x nsub with nv used; the caller checked the
- * width) put back into it. */
+ * subapertures' with the system's valid map vm (nsub x nsub; the caller checked the width). */
 static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *what, const unsigned char *vm,
-                    size_t vn, size_t nv, swfs_teach_run_result *r)
+                    size_t vn, swfs_teach_run_result *r)
 {
-    const size_t nsub = (size_t)p->nsub, n2 = nsub * nsub, nf = s->ny;
+    const size_t nsub = (size_t)p->nsub;
     int rc = vm && vn != nsub ? swfs_fail(SWFS_ERR_SHAPE, "teach: the valid map %s is %zu x %zu, the system %zu x %zu",
                                           p->valid, vn, vn, nsub, nsub) : SWFS_OK;
-    double *full = NULL;
-    const double *use = s->data;
-    if (!rc && s->nx != 2 * n2) { /* the used subapertures' slopes, x then y */
-        if (!vm || s->nx != 2 * nv)
-            rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame, neither 2 nsub^2 = %zu nor the valid "
-                           "map's 2 x %zu", what, s->nx, 2 * n2, nv);
-        else if (!(full = calloc(nf * 2 * n2, sizeof *full))) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-        for (size_t t = 0; !rc && t < nf; t++)
-            for (size_t k = 0, u = 0; k < n2; k++) {
-                if (!vm[k]) continue;
-                full[t * 2 * n2 + k] = s->data[t * s->nx + u];
-                full[t * 2 * n2 + n2 + k] = s->data[t * s->nx + nv + u];
-                u++;
-            }
-        use = full;
-    }
     double var = 0, svar = 0;
-    if (!rc) rc = swfs_slopes_white_noise(use, nf, nsub, vm, &var, &r->noise_cells, &svar);
+    if (!rc) rc = swfs_slopes_white_noise(s->data, s->ny, s->nx, nsub, vm, &var, &r->noise_cells, &svar);
     r->noise_rms = sqrt(var);
     r->noise_share = svar > 0 ? var / svar : 0;
-    free(full);
     return rc ? swfs_fail_context(rc, "teach: the white slope noise of %s", what) : SWFS_OK;
 }
 
@@ -490,7 +472,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
                        orate, sp->wfs_rate);
     /* its white slope noise (given to the loops below, without slope_noise) */
-    if (!rc) rc = noise_of(sp, obs, o->files[0], vmap, vn, nv, r);
+    if (!rc) rc = noise_of(sp, obs, o->files[0], vmap, vn, r);
     free(vmap);
     /* 1. the layers */
     stage(o, "the observation's layers (wind)", 0, 1);

@@ -20,56 +20,63 @@
 #include "specklewfs/status.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdlib.h>
 
-int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, const unsigned char *valid,
-                            double *var, size_t *ncells, double *slope_var)
+int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                            const unsigned char *valid, double *var, size_t *ncells, double *slope_var)
 {
     *var = 0;
     if (ncells) *ncells = 0;
     if (slope_var) *slope_var = 0;
     if (nsub < 2) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu x %zu subapertures, at least 2 x 2", nsub, nsub);
     if (nframes < 16) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu WFS frames, at least 16", nframes);
-    const size_t n2 = nsub * nsub, ns = 2 * n2;
-    for (size_t i = 0; i < nframes * ns; i++)
+    const size_t n2 = nsub * nsub, h = nslopes / 2;
+    size_t nmap = 0;
+    for (size_t k = 0; valid && k < n2; k++) nmap += valid[k] != 0;
+    const int compact = valid && nslopes == 2 * nmap;
+    if (!compact && nslopes != 2 * n2)
+        return swfs_fail(SWFS_ERR_SHAPE, "slope noise: %zu slopes per frame; expected 2 nsub^2 = %zu%s", nslopes, 2 * n2,
+                         valid ? " or twice the valid subapertures" : "");
+    for (size_t i = 0; i < nframes * nslopes; i++)
         if (!isfinite(slopes[i]))
-            return swfs_fail(SWFS_ERR_VALUE, "slope noise: slope %zu of WFS frame %zu is not finite", i % ns, i / ns);
-    unsigned char *use = malloc(n2);
-    if (!use) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    /* the used subapertures: the map's, else those whose slopes vary over the frames */
-    for (size_t k = 0; k < n2; k++) {
-        if (valid) { use[k] = valid[k] != 0; continue; }
-        use[k] = 0;
-        for (size_t t = 1; t < nframes && !use[k]; t++)
-            use[k] = slopes[t * ns + k] != slopes[k] || slopes[t * ns + n2 + k] != slopes[n2 + k];
-    }
-    size_t nc = 0;
-    for (size_t i = 0; i + 1 < nsub; i++)
-        for (size_t j = 0; j + 1 < nsub; j++)
-            nc += use[i * nsub + j] && use[i * nsub + j + 1] && use[(i + 1) * nsub + j] && use[(i + 1) * nsub + j + 1];
-    if (!nc) {
-        free(use);
-        return swfs_fail(SWFS_ERR_VALUE, "slope noise: no 2 x 2 cell of used subapertures among the %zu x %zu", nsub, nsub);
-    }
-    /* the curl of the last four frames (a ring), each frame's differences summed as it comes */
-    size_t *cell = malloc(nc * sizeof *cell);
-    double *ring = malloc(4 * nc * sizeof *ring), *acc = calloc(2 * ns, sizeof *acc); /* slope_var's sums */
-    if (!cell || !ring || !acc) {
-        free(use); free(cell); free(ring); free(acc);
+            return swfs_fail(SWFS_ERR_VALUE, "slope noise: slope %zu of WFS frame %zu is not finite", i % nslopes,
+                             i / nslopes);
+    /* each subaperture's x slope's place in a row (its y slope h further), or SIZE_MAX
+     * unused: the map's, else those whose slopes vary over the frames; the 2 x 2 cells of used
+     * subapertures by their first (lowest) one */
+    size_t *xc = malloc(2 * n2 * sizeof *xc), *cell = xc + n2, nc = 0;
+    double *ring = malloc(4 * n2 * sizeof *ring), *acc = calloc(4 * n2, sizeof *acc); /* slope_var's sums */
+    if (!xc || !ring || !acc) {
+        free(xc); free(ring); free(acc);
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
-    nc = 0;
+    for (size_t k = 0, u = 0; k < n2; k++) {
+        int used = valid ? valid[k] != 0 : 0;
+        for (size_t t = 1; !valid && t < nframes && !used; t++)
+            used = slopes[t * nslopes + k] != slopes[k] || slopes[t * nslopes + h + k] != slopes[h + k];
+        xc[k] = used ? (compact ? u : k) : SIZE_MAX;
+        u += valid && valid[k];
+    }
     for (size_t i = 0; i + 1 < nsub; i++)
         for (size_t j = 0; j + 1 < nsub; j++) {
             const size_t a = i * nsub + j;
-            if (use[a] && use[a + 1] && use[a + nsub] && use[a + nsub + 1]) cell[nc++] = a;
+            if (xc[a] != SIZE_MAX && xc[a + 1] != SIZE_MAX && xc[a + nsub] != SIZE_MAX && xc[a + nsub + 1] != SIZE_MAX)
+                cell[nc++] = a;
         }
+    if (!nc) {
+        free(xc); free(ring); free(acc);
+        return swfs_fail(SWFS_ERR_VALUE, "slope noise: no 2 x 2 cell of used subapertures among the %zu x %zu", nsub, nsub);
+    }
+    /* the curl of the last four frames (a ring), each frame's differences summed as it comes */
     double d[4] = {0};
+    size_t nu = 0;
+    for (size_t k = 0; k < n2; k++) nu += xc[k] != SIZE_MAX;
     for (size_t t = 0; t < nframes; t++) {
-        const double *sx = slopes + t * ns, *sy = sx + n2;
+        const double *sx = slopes + t * nslopes, *sy = sx + h;
         double *c = ring + (t % 4) * nc;
-        for (size_t q = 0; q < nc; q++) {
-            const size_t a = cell[q], b = a + 1, u = a + nsub, v = a + nsub + 1; /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
+        for (size_t q = 0; q < nc; q++) { /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
+            const size_t a = xc[cell[q]], b = xc[cell[q] + 1], u = xc[cell[q] + nsub], v = xc[cell[q] + nsub + 1];
             c[q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
         }
         /* the frame's slopes less its mean x and y slope over the used subapertures (tip-tilt),
@@ -77,14 +84,14 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
         for (size_t ax = 0; ax < 2; ax++) {
             const double *x = ax ? sy : sx;
             double mean = 0;
-            size_t nu = 0;
             for (size_t k = 0; k < n2; k++)
-                if (use[k]) { mean += x[k]; nu++; }
+                if (xc[k] != SIZE_MAX) mean += x[xc[k]];
             mean /= (double)nu;
             for (size_t k = 0; k < n2; k++)
-                if (use[k]) {
-                    acc[ax * n2 + k] += x[k] - mean;
-                    acc[ns + ax * n2 + k] += (x[k] - mean) * (x[k] - mean);
+                if (xc[k] != SIZE_MAX) {
+                    const double e = x[xc[k]] - mean;
+                    acc[ax * n2 + k] += e;
+                    acc[2 * n2 + ax * n2 + k] += e * e;
                 }
         }
         for (size_t k = 1; k <= 3 && k <= t; k++) {
@@ -100,11 +107,9 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nsub, c
     if (ncells) *ncells = nc;
     if (slope_var) {
         double ss = 0;
-        size_t nu = 0;
-        for (size_t k = 0; k < n2; k++) nu += use[k];
-        for (size_t i = 0; i < ns; i++) ss += acc[ns + i] - acc[i] * acc[i] / (double)nframes;
+        for (size_t i = 0; i < 2 * n2; i++) ss += acc[2 * n2 + i] - acc[i] * acc[i] / (double)nframes;
         *slope_var = ss > 0 ? ss / (double)(nframes * 2 * nu) : 0;
     }
-    free(use); free(cell); free(ring); free(acc);
+    free(xc); free(ring); free(acc);
     return SWFS_OK;
 }
