@@ -88,6 +88,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--batch", CLI_LONG, &batch, NULL, 0},       {"--teach-work", CLI_STRING, &o->teach_work, "a folder", 0},
         {"--teach-loops", CLI_LONG, &tloops, NULL, 0}, {"--teach-seed", CLI_LONG, &tseed, NULL, 0},
         {"--teach-keep-loops", CLI_SET, &o->teach_keep_loops, NULL, 1},
+        {"--teach-again", CLI_SET, &o->teach_again, NULL, 1},
     };
     const char **const pos[] = {&o->timing};
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};

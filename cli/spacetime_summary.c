@@ -117,7 +117,11 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
     if (!o->lin.basis && o->pipe.recon == SWFS_RECON_TEACH) {
         used.recon = r->taught ? SWFS_RECON_GIVEN : SWFS_RECON_VK;
         used_file = r->taught ? r->teach_map : NULL;
-        if (r->taught) {
+        if (r->taught && r->teach_reused) {
+            fprintf(stderr, "%s: reused %s, taught by an earlier run for the same telemetry, system files and teach "
+                    "options (TEACHFPR = '%s'; %zu loops): %s (--teach-again teaches anew)\n", cmd, r->teach_map,
+                    r->teach_fingerprint, tr->nloops, chosen_name(tr->chosen));
+        } else if (r->taught) {
             char work[4200];
             swfs_path_dir(r->teach_map, work, sizeof work);
             cli_teach_summary(stderr, cmd, tr, 1, r->teach_map, work, 0);

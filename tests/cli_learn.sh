@@ -176,6 +176,46 @@ grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.te
 edt=$(ncp_error pupil_dt.log)
 echo "cli_learn: speckles' default (teach inside speckles): $edt nm; teach's map given: $etfp nm"
 [ -n "$edt" ] && [ "$edt" = "$etfp" ] || fail "speckles' default $edt nm against teach's map $etfp nm"
+# dt_again TAG [options]: speckles' default as above, into another output, in the same teach
+# folder (the NCP error on stdout)
+dt_again() {
+    local tag=$1
+    shift
+    "$B" speckles "$@" --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+        --teach-work spk_dt.teach --match science.fits "sci_$tag.fits" -o "spk_$tag.fits" 2> "speckles_$tag.log" \
+        || { cat "speckles_$tag.log" >&2; fail "speckles ($tag)"; }
+    "$B" estimate "sci_$tag.fits" "spk_$tag.fits" -o "halo_$tag.fits" > /dev/null 2>&1 || fail "estimate ($tag)"
+    "$B" pupil "halo_$tag.fits" -o "pupil_$tag.fits" --truth obs/truth.fits > "pupil_$tag.log" || fail "pupil ($tag)"
+    ncp_error "pupil_$tag.log"
+}
+# a later run on the same inputs reuses that map at once (its TEACHFPR: the telemetry's and
+# the system files' contents, the description and teach's options are this run's), to the
+# same NCP error; --teach-again teaches anew (the same map: teach is deterministic); a
+# telemetry file that differs by one header card (CHECKSUM renamed, which the reader then
+# does not verify; the slopes the same) is another input, and teach runs again
+fpr=$(head -c 20000 spk_dt.teach/taught.fits | grep -ao "TEACHFPR= '[0-9a-f]*'" | cut -d"'" -f2)
+[ "${#fpr}" = 16 ] || fail "speckles' taught map carries no TEACHFPR"
+e2=$(dt_again dt2 timing.txt)
+grep -q "^speckles: reused spk_dt.teach/taught.fits, taught by an earlier run for the same telemetry, system files and teach options (TEACHFPR = '$fpr'; 4 loops): the space-time map" \
+    speckles_dt2.log && ! grep -q "simulating the loops" speckles_dt2.log \
+    || { cat speckles_dt2.log; fail "speckles on the same inputs: the taught map should be reused"; }
+[ "$e2" = "$edt" ] || fail "the reused map: $e2 nm against $edt nm"
+e3=$(dt_again dt3 timing.txt --teach-again)
+grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt3.log \
+    && ! grep -q "reused" speckles_dt3.log || { cat speckles_dt3.log; fail "--teach-again: teach expected"; }
+[ "$e3" = "$edt" ] || fail "--teach-again: $e3 nm against $edt nm"
+mkdir -p edited
+LC_ALL=C sed 's/CHECKSUM=/CHECKSUX=/' obs/slopes_000.fits > edited/slopes_000.fits
+cmp -s obs/slopes_000.fits edited/slopes_000.fits && fail "the edited telemetry file is the same"
+sed "s|[^ ]*/slopes_000.fits|$PWD/edited/slopes_000.fits|" timing.txt > edited/timing.txt
+grep -q "edited/slopes_000.fits" edited/timing.txt || fail "the timing table names no slopes_000.fits"
+e4=$(dt_again dt4 edited/timing.txt)
+grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt4.log \
+    && ! grep -q "reused" speckles_dt4.log || { cat speckles_dt4.log; fail "another telemetry file: teach expected"; }
+[ "$(head -c 20000 spk_dt.teach/taught.fits | grep -ao "TEACHFPR= '[0-9a-f]*'" | cut -d"'" -f2)" != "$fpr" ] \
+    || fail "another telemetry file, the same TEACHFPR"
+[ "$e4" = "$edt" ] || fail "the edited header changed the NCP error: $e4 nm against $edt nm"
+echo "cli_learn: speckles' default again on the same inputs: reused the map ($e2 nm); --teach-again $e3 nm; edited telemetry header: taught anew, $e4 nm"
 # the system from files needs both files; without any system teach says what it needs
 "$B" teach obs/slopes_000.fits --science science.fits -o bad.fits > bad.log 2>&1 && fail "teach without --actuators"
 grep -q "needs both --science and --actuators" bad.log || { cat bad.log; fail "teach: --science alone"; }

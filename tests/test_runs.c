@@ -1477,7 +1477,7 @@ static void test_options_checks(void **state)
         "--rcond and --modes go with --recon svd", "--rcond must be in [0, 1), got 1", "--slope-noise goes with --recon vk",
         "--recon-scale goes with --recon W.fits", "--teach-work, --teach-loops", "--wfs-hz goes with --wfs-rate",
         "--match pairs camera frames", "--vk-l0 must be an outer scale", "takes no --actuators",
-        "needs TIMING.txt",
+        "needs TIMING.txt", "--teach-again go with --recon teach", "teach_again must be 0 or 1, got 2",
     };
     const size_t npat = sizeof pattern / sizeof pattern[0];
     const char *min[1] = {"in.fits"}, *mout[1] = {"out_match.fits"};
@@ -1501,6 +1501,8 @@ static void test_options_checks(void **state)
         case 10: sp.pipe.recon = SWFS_RECON_VK; sp.pipe.vk_l0 = NAN; break;
         case 11: sp.lin.basis = p("checks_basis.fits"); break;
         case 12: sp.out = NULL; break;
+        case 13: sp.pipe.recon = SWFS_RECON_VK; sp.teach_again = 1; break;
+        case 14: sp.teach_again = 2; break;
         default: break; /* the defaults */
         }
         if (k == npat) {

@@ -176,6 +176,11 @@ typedef struct swfs_speckles_run_options {
                                  maps, modes.tsv and modes.png kept: 0.2-0.4 GB per observation
                                  on the matrix's 16 x 16 and 24 x 24 systems otherwise) */
     struct swfs_teach_run_result *teach; /* teach's own result (layers, filter, choice), or NULL */
+    int teach_again;          /* 1: teach even when the work folder's taught.fits was taught for the
+                                 same inputs (0: reused then: its TEACHFPR, the fingerprint of the
+                                 telemetry's and the system files' contents, the description teach
+                                 is given, the loops, the seed, SWFS_VERSION and SWFS_TEACH_RULE,
+                                 is this run's; teach_keep_loops teaches too, to keep the loops) */
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -222,6 +227,10 @@ typedef struct swfs_speckles_run_result {
      * too: st_edges_unreadable of them, the last one's reason in st_edges_why. */
     size_t st_edges_joined, st_edges_clamped, st_edges_unreadable;
     char st_edges_why[512];
+    int teach_reused;         /* taught = 1 by reusing teach_map, taught earlier for the same inputs
+                                 (teach_again 0): the teach result then holds only chosen and
+                                 nloops, from its TEACHSEL and TEACHLOO */
+    char teach_fingerprint[17]; /* SWFS_RECON_TEACH: the inputs' fingerprint (TEACHFPR), hex */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
@@ -604,7 +613,14 @@ typedef struct swfs_teach_run_options {
     size_t nprov;
     swfs_progress_fn progress;
     void *progress_ctx;
+    const char *fingerprint;    /* NULL, or written into out as TEACHFPR: what the map was taught
+                                   for (speckles' default reuses a map whose TEACHFPR is its own) */
 } swfs_teach_run_options;
+
+/* The version of teach's rule, hashed into speckles' fingerprint of a taught map's inputs
+ * (TEACHFPR): a change to what teach makes of the same inputs (its loops, lags, choice, the
+ * learner) bumps it, so that maps taught before are taught again rather than reused. */
+#define SWFS_TEACH_RULE "teach rule 2026-11-29"
 
 void swfs_teach_run_options_default(swfs_teach_run_options *o);
 

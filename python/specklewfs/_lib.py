@@ -318,7 +318,7 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("match_in", P(c_str)), ("match_out", P(c_str)), ("nmatch", c_size), ("prov", P(c_str)), ("nprov", c_size),
     ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("batch", c_size), ("team", c_ptr), ("geom", swfs_geom),
     ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_seed", c_u64),
-    ("teach_keep_loops", c_int), ("teach", c_ptr)])
+    ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
@@ -331,13 +331,14 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_obs", c_dbl * RECON_MAXLAGS),
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
-    ("st_edges_why", ctypes.c_char * 512)])
+    ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
     ("nloops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
-    ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr)])
+    ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
+    ("fingerprint", c_str)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_teach_run_result = _s("swfs_teach_run_result", [

@@ -281,14 +281,16 @@ def _teach_dict(r, modes_from_slopes):
 
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
-             teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None):
+             teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
     (default: a map taught for this observation from its own files, as teach(..., science=,
     actuators=) makes it, in teach_work (default: out's name without .fits, plus .teach) as
-    taught.fits, its loops' folders removed unless teach_keep_loops; where teach cannot, a
-    RuntimeWarning says why and 'vk' is used), 'vk',
+    taught.fits, its loops' folders removed unless teach_keep_loops; a taught.fits there that
+    was taught for the same telemetry, system files and teach options (its TEACHFPR) is reused
+    at once unless teach_again, and then teach_reused is True and teach holds only chosen and
+    nloops; where teach cannot, a RuntimeWarning says why and 'vk' is used), 'vk',
     'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2 lambda/D),
     'none' or a radius; valid: the AO system's subaperture map; pupil: the pupil mask. Returns
     nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], the pipeline's info
@@ -310,6 +312,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     if teach_seed is not None:
         o.teach_seed = int(teach_seed)
     o.teach_keep_loops = int(bool(teach_keep_loops))
+    o.teach_again = int(bool(teach_again))
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
@@ -350,7 +353,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         d["taught"] = bool(r.taught)
         if r.taught:
             d["teach_map"] = r.teach_map.decode()
-            d["teach"] = _teach_dict(tr, True)
+            d["teach_reused"] = bool(r.teach_reused)
+            d["teach_fingerprint"] = r.teach_fingerprint.decode()
+            d["teach"] = ({"chosen": _lib.TEACH_CHOSEN.get(tr.chosen, str(tr.chosen)), "nloops": tr.nloops}
+                          if r.teach_reused else _teach_dict(tr, True))
         else:
             d["teach_fallback"] = r.teach_fallback.decode()
             warnings.warn(f"speckles: no map could be taught for this observation ({d['teach_fallback']}); the von "

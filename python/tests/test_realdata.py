@@ -45,6 +45,7 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert sp["taught"] and sp["teach_map"] == str(d / "sp.teach" / "taught.fits") and os.path.exists(sp["teach_map"])
     assert sp["teach"]["nloops"] >= 12 and sp["teach"]["modes_from_slopes"] and sp["teach"]["layers"]
     assert sp["info"]["nlags"] == (5 if sp["teach"]["chosen"] == "spacetime" else 0)
+    assert not sp["teach_reused"] and len(sp["teach_fingerprint"]) == 16
     h = sw.estimate_files(str(d / "sci_m.fits"), str(d / "sp.fits"), str(d / "halo.fits"))
     assert h.resmean is not None and h.frames == sp["nout"]
     assert h.tiptilt == "exposure" and sw.Halo.read(str(d / "halo.fits")).tiptilt == "exposure"
@@ -59,8 +60,13 @@ def test_path_on_files_equals_the_cli(series, cli):
     run = lambda *a: subprocess.run([cli, *a], check=True, capture_output=True)  # noqa: E731
     run("reduce", *raws, "--dark", str(s / "dark.fits"), "--flat", str(s / "flat.fits"), "-o", str(c / "sci.fits"))
     run("sync", str(c / "sci.fits"), str(s / "handshake.log"), "-o", str(c / "timing.txt"))
-    run("speckles", str(c / "timing.txt"), "--science", str(c / "sci.fits"), "--actuators", str(s / "actuators.fits"),
-        "-o", str(c / "sp.fits"), "--match", str(c / "sci.fits"), str(c / "sci_m.fits"))
+    # the command line's speckles in Python's teach folder: the same telemetry, system files and
+    # teach options (its own copies of the reduced cubes), so the map taught above is reused
+    spc = run("speckles", str(c / "timing.txt"), "--science", str(c / "sci.fits"), "--actuators",
+              str(s / "actuators.fits"), "-o", str(c / "sp.fits"), "--match", str(c / "sci.fits"), str(c / "sci_m.fits"),
+              "--teach-work", str(d / "sp.teach")).stderr.decode()
+    assert f"speckles: reused {d / 'sp.teach' / 'taught.fits'}, taught by an earlier run" in spc, spc
+    assert f"TEACHFPR = '{sp['teach_fingerprint']}'" in spc, spc
     run("estimate", str(c / "sci_m.fits"), str(c / "sp.fits"), "-o", str(c / "halo.fits"))
     out = run("pupil", str(c / "halo.fits"), "-o", str(c / "pupil.fits"), "--truth", str(s / "truth.fits")).stdout
     # the pupil step on files from Python (run.h swfs_pupil_run, as the command line runs it)

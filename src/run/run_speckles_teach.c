@@ -2,14 +2,17 @@
  * (run.h SWFS_RECON_TEACH; docs/telemetry.md, "The default path: a map taught for each
  * observation"). */
 #include "specklewfs/config.h"
+#include "specklewfs/fits.h"
 #include "specklewfs/run.h"
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/team.h"
+#include "specklewfs/version.h"
 #include "run_internal.h"
 
 #include <dirent.h>
 #include <errno.h>
+#include <inttypes.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -71,10 +74,101 @@ static void drop_loops(const char *work, const struct swfs_teach_run_result *tr,
     }
 }
 
-/* Teach as `teach --science --actuators [--pupil] [--valid]` does, into map. */
-static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
-                 char *map, size_t cap, struct swfs_teach_run_result *tr)
+/* The fingerprint of what a taught map depends on (TEACHFPR): FNV-1a (64 bits) over the
+ * library's version and teach's rule (SWFS_TEACH_RULE), the description teach is given (c's
+ * keys and values, in order), the loops and the seed, and the contents of the telemetry files
+ * and of the system's files (actuators, pupil, valid map). Each text item is hashed with its
+ * NUL and each file after a label and with its length, so that no item runs into the next. */
+static uint64_t fnv(uint64_t h, const void *p, size_t n)
 {
+    const unsigned char *b = p;
+    for (size_t i = 0; i < n; i++) h = (h ^ b[i]) * 0x100000001b3ULL;
+    return h;
+}
+
+static uint64_t fnv_text(uint64_t h, const char *s)
+{
+    return fnv(h, s, strlen(s) + 1); /* with its NUL: the end of the item */
+}
+
+static int fnv_file(uint64_t *h, const char *label, const char *path)
+{
+    FILE *f = fopen(path, "rb");
+    if (!f) return swfs_fail(SWFS_ERR_IO, "speckles: cannot read %s (%s) for teach's fingerprint: %s", path, label,
+                             strerror(errno));
+    unsigned char *buf = malloc(1u << 20);
+    if (!buf) {
+        fclose(f);
+        return swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
+    }
+    uint64_t x = fnv_text(*h, label), len = 0;
+    for (size_t k; (k = fread(buf, 1, 1u << 20, f)) > 0;) {
+        x = fnv(x, buf, k);
+        len += k;
+    }
+    const int bad = ferror(f);
+    free(buf);
+    fclose(f);
+    if (bad) return swfs_fail(SWFS_ERR_IO, "speckles: error reading %s (%s) for teach's fingerprint", path, label);
+    *h = fnv(x, &len, sizeof len);
+    return SWFS_OK;
+}
+
+static int fingerprint(const swfs_speckles_run_options *o, const swfs_config *c, char *const *names, size_t n,
+                       char out[17])
+{
+    uint64_t h = 0xcbf29ce484222325ULL;
+    h = fnv_text(fnv_text(h, "specklewfs " SWFS_VERSION), SWFS_TEACH_RULE);
+    for (size_t k = 0; k < swfs_config_count(c); k++)
+        h = fnv_text(fnv_text(h, swfs_config_key(c, k)), swfs_config_value(c, k));
+    char v[64];
+    snprintf(v, sizeof v, "loops %zu seed %" PRIu64, o->teach_loops, o->teach_seed);
+    h = fnv_text(h, v);
+    int rc = SWFS_OK;
+    for (size_t k = 0; !rc && k < n; k++) rc = fnv_file(&h, "telemetry", names[k]);
+    if (!rc) rc = fnv_file(&h, "actuators", o->actuators);
+    if (!rc && o->mask) rc = fnv_file(&h, "pupil", o->mask);
+    if (!rc && o->valid) rc = fnv_file(&h, "valid", o->valid);
+    if (!rc) snprintf(out, 17, "%016" PRIx64, h);
+    return rc;
+}
+
+/* map taught for these inputs (its TEACHFPR is fpr): 1, with its choice and loops in tr; 0
+ * when there is no such file, or it cannot be read, or it was taught for other inputs. */
+static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_result *tr)
+{
+    struct stat st;
+    if (stat(map, &st)) return 0;
+    swfs_fits_in *f = NULL;
+    if (swfs_fits_in_open(&f, map, NULL)) {
+        swfs_clear_error();
+        return 0;
+    }
+    char v[80] = "", sel[80] = "";
+    int found = 0, fsel = 0, floops = 0;
+    long loops = 0;
+    int rc = swfs_fits_in_key_string_opt(f, "TEACHFPR", v, sizeof v, &found);
+    if (!rc && found && !strcmp(v, fpr)) {
+        rc = swfs_fits_in_key_string_opt(f, "TEACHSEL", sel, sizeof sel, &fsel);
+        if (!rc) rc = swfs_fits_in_key_long_opt(f, "TEACHLOO", 0, 1L << 20, &loops, &floops);
+    }
+    swfs_fits_in_close(f);
+    if (rc) swfs_clear_error();
+    if (rc || !found || strcmp(v, fpr) || !fsel || !floops) return 0;
+    memset(tr, 0, sizeof *tr);
+    tr->chosen = !strcmp(sel, "spacetime") ? SWFS_TEACH_SPACETIME
+                 : !strcmp(sel, "perframe") ? SWFS_TEACH_PERFRAME : SWFS_TEACH_PERFRAME_MIXED;
+    tr->nloops = (size_t)loops;
+    return 1;
+}
+
+/* Teach as `teach --science --actuators [--pupil] [--valid]` does, into map; or reuse the map
+ * there when it was taught for the same inputs (*reused = 1). fpr: their fingerprint. */
+static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
+                 char *map, size_t cap, struct swfs_teach_run_result *tr, char fpr[17], int *reused)
+{
+    *reused = 0;
+    fpr[0] = 0;
     char work[4200];
     int made = 0;
     char **names = calloc(t->ncubes ? t->ncubes : 1, sizeof *names);
@@ -94,6 +188,11 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
     }
     if (!rc) rc = swfs_config_set_kv(c, "mode", "timeseries");
     if (!rc) rc = swfs_teach_describe_geom_(c, g, o->actuators, o->mask, o->valid, names[0]);
+    if (!rc) rc = fingerprint(o, c, names, n, fpr);
+    if (!rc && !o->teach_again && !o->teach_keep_loops && taught_for(map, fpr, tr)) {
+        *reused = 1;
+        goto done;
+    }
     swfs_teach_run_options to;
     swfs_teach_run_options_default(&to);
     if (!rc) rc = swfs_ts_params_from_config(c, &to.sim);
@@ -111,10 +210,12 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.nprov = o->nprov;
         to.progress = o->progress;
         to.progress_ctx = o->progress_ctx;
+        to.fingerprint = fpr;
         rc = swfs_teach_run(&to, tr);
     }
     if (!rc && !o->teach_keep_loops) drop_loops(work, tr, to.nloops);
     if (rc && made) (void)rmdir(work); /* refused before any loop: the folder this run made, empty */
+done:
     swfs_config_free(c);
     for (size_t k = 0; names && k < n; k++) free(names[k]);
     free(names);
@@ -132,8 +233,10 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
     map[0] = 0;
     /* a team: member 0 teaches, the others wait for its map (teach is the same to the bit
      * wherever it runs, but one folder holds it) */
+    r->teach_reused = 0;
+    r->teach_fingerprint[0] = 0;
     if (swfs_team_writer(o->team)) {
-        taught = !teach(o, t, tdir, g, map, cap, tr);
+        taught = !teach(o, t, tdir, g, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
         if (!taught)
             snprintf(r->teach_fallback, sizeof r->teach_fallback, "%s", swfs_last_error());
     } else {

@@ -176,6 +176,8 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHNOP", (long)r->out_points, "teach: the map's output points (OUTXY)");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHOPI", r->out_pitch, "[m] their pitch");
     if (!rc && r->dm_pitch > 0) rc = swfs_fits_out_key_double(f, "TEACHDMP", r->dm_pitch, "[m] the DM's pitch");
+    if (!rc && o->fingerprint)
+        rc = swfs_fits_out_key_string(f, "TEACHFPR", o->fingerprint, "the inputs taught for (speckles reuses)");
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
 }
