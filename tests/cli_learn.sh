@@ -193,7 +193,8 @@ dt_again() {
 # same NCP error; --teach-again teaches anew (the same map: teach is deterministic); a
 # telemetry file that differs by one header card (CHECKSUM renamed, which the reader then
 # does not verify; the slopes the same) is another input, and teach runs again
-fpr=$(head -c 20000 spk_dt.teach/taught.fits | grep -ao "TEACHFPR= '[0-9a-f]*'" | cut -d"'" -f2)
+fpr_of() { head -c 20000 "$1" | grep -ao "TEACHFPR= '[0-9a-f]*'" | cut -d"'" -f2; }
+fpr=$(fpr_of spk_dt.teach/taught.fits)
 [ "${#fpr}" = 16 ] || fail "speckles' taught map carries no TEACHFPR"
 e2=$(dt_again dt2 timing.txt)
 grep -q "^speckles: reused spk_dt.teach/taught.fits, taught by an earlier run for the same telemetry, system files and teach options (TEACHFPR = '$fpr'; 4 loops): the space-time map" \
@@ -212,7 +213,7 @@ grep -q "edited/slopes_000.fits" edited/timing.txt || fail "the timing table nam
 e4=$(dt_again dt4 edited/timing.txt)
 grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt4.log \
     && ! grep -q "reused" speckles_dt4.log || { cat speckles_dt4.log; fail "another telemetry file: teach expected"; }
-[ "$(head -c 20000 spk_dt.teach/taught.fits | grep -ao "TEACHFPR= '[0-9a-f]*'" | cut -d"'" -f2)" != "$fpr" ] \
+[ "$(fpr_of spk_dt.teach/taught.fits)" != "$fpr" ] \
     || fail "another telemetry file, the same TEACHFPR"
 [ "$e4" = "$edt" ] || fail "the edited header changed the NCP error: $e4 nm against $edt nm"
 echo "cli_learn: speckles' default again on the same inputs: reused the map ($e2 nm); --teach-again $e3 nm; edited telemetry header: taught anew, $e4 nm"

@@ -355,7 +355,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
             d["teach_map"] = r.teach_map.decode()
             d["teach_reused"] = bool(r.teach_reused)
             d["teach_fingerprint"] = r.teach_fingerprint.decode()
-            d["teach"] = ({"chosen": _lib.TEACH_CHOSEN.get(tr.chosen, str(tr.chosen)), "nloops": tr.nloops}
+            d["teach"] = ({"chosen": _lib.TEACH_CHOSEN[tr.chosen], "nloops": tr.nloops}
                           if r.teach_reused else _teach_dict(tr, True))
         else:
             d["teach_fallback"] = r.teach_fallback.decode()

@@ -137,8 +137,6 @@ static int fingerprint(const swfs_speckles_run_options *o, const swfs_config *c,
  * when there is no such file, or it cannot be read, or it was taught for other inputs. */
 static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_result *tr)
 {
-    struct stat st;
-    if (stat(map, &st)) return 0;
     swfs_fits_in *f = NULL;
     if (swfs_fits_in_open(&f, map, NULL)) {
         swfs_clear_error();
@@ -154,10 +152,12 @@ static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_re
     }
     swfs_fits_in_close(f);
     if (rc) swfs_clear_error();
-    if (rc || !found || strcmp(v, fpr) || !fsel || !floops) return 0;
+    int chosen = -1;
+    for (int k = 0; k < 3 && fsel; k++)
+        if (!strcmp(sel, swfs_teach_chosen_names_[k])) chosen = k;
+    if (rc || !found || strcmp(v, fpr) || chosen < 0 || !floops) return 0;
     memset(tr, 0, sizeof *tr);
-    tr->chosen = !strcmp(sel, "spacetime") ? SWFS_TEACH_SPACETIME
-                 : !strcmp(sel, "perframe") ? SWFS_TEACH_PERFRAME : SWFS_TEACH_PERFRAME_MIXED;
+    tr->chosen = chosen;
     tr->nloops = (size_t)loops;
     return 1;
 }

@@ -154,13 +154,13 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
 }
 
 /* The chosen map onto o->out (atomic.h: the whole file or none), with what chose it. */
-static const char *const chosen_names[] = {"spacetime", "perframe", "perframe_mixed"};
+const char *const swfs_teach_chosen_names_[3] = {"spacetime", "perframe", "perframe_mixed"};
 
 static int write_chosen(const char *from, const swfs_teach_run_options *o, const swfs_teach_run_result *r)
 {
     swfs_fits_out *f = NULL;
     int rc = swfs_fits_out_copy(&f, from, o->out);
-    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", chosen_names[r->chosen], "teach chose: spacetime, perframe(_mixed)");
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime, perframe(_mixed)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLOO", (long)r->nloops, "teach: loops simulated");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLAY", (long)r->nlayers, "teach: layers found and given to the loops");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHWRN", r->warns, "teach: checks warned (1 wind, 2 corr.)");
