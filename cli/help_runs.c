@@ -122,8 +122,14 @@ static const char *stream_usage_text =
     "  --slopes DIR|FILE     folder holding the telemetry files the timing table names, or\n"
     "                        one telemetry file used for every cube (default: the timing\n"
     "                        table's folder; absolute names in the table are used as they are)\n"
-    "  --recon, --actuators  reconstructor (nact x nslopes [m/rad]) and actuator positions\n"
+    "  --recon, --actuators  reconstructor (nact x nslopes [m/rad]) and actuator positions;\n"
+    "                        a space-time map (learn --lags; speckles' taught.fits) gets each\n"
+    "                        frame's slopes stacked with those at its lags, across the\n"
+    "                        telemetry files that continue each other, as in 'speckles'\n"
     "  -o HALO.fits          the estimate (extensions as 'specklewfs estimate')\n"
+    ;
+
+static const char *stream_usage_text2 =
     "  --pupil-out FILE      also the pupil field / NCP map at every update ('specklewfs pupil')\n"
     "  --pupil-method M      fit (the default when possible) or moments, as 'pupil --method'\n"
     "  --every K             update after every K camera frames (default: only at the end)\n"
@@ -174,6 +180,7 @@ static const char *stream_usage_mpi =
 void cli_help_stream(void)
 {
     fputs(stream_usage_text, stdout);
+    fputs(stream_usage_text2, stdout);
     fputs(stream_usage_mpi, stdout);
 }
 
@@ -195,7 +202,8 @@ static const char *live_usage_text =
     "                        (e.g. a reduced science cube)\n"
     "  --recon, --actuators, -o, --pupil-out, --checkpoint, --every, --every-seconds,\n"
     "  --threads, --static, --static-out, --pupil, --tiptilt, --read-noise, --gain,\n"
-    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'\n"
+    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'; --recon a\n"
+    "                        per-frame map (a space-time one reads frames not yet arrived)\n"
     "  --batch B             camera frames per batch (default 16; 'stream' with the same B\n"
     "                        gives the same result)\n"
     "  --max-wait T          longest wait [s] of a ready frame for its batch to fill (0.5)\n"

@@ -176,6 +176,16 @@ grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.te
 edt=$(ncp_error pupil_dt.log)
 echo "cli_learn: speckles' default (teach inside speckles): $edt nm; teach's map given: $etfp nm"
 [ -n "$edt" ] && [ "$edt" = "$etfp" ] || fail "speckles' default $edt nm against teach's map $etfp nm"
+# stream takes that space-time map too (each batch's slopes stacked at its lags): the same NCP
+# error through stream's own estimate, in batches of 7 camera frames
+"$B" stream --timing timing.txt --science science.fits --recon spk_dt.teach/taught.fits --actuators actuators.fits \
+    --pupil pupil.fits --batch 7 -o halo_stst.fits > stream_st.log 2>&1 || { cat stream_st.log; fail "stream with the taught map"; }
+grep -q "^stream: space-time reconstructor of 5 lags (0,-6,6,-12,12 WFS frames)" stream_st.log \
+    || { cat stream_st.log; fail "stream: the space-time map's lags expected"; }
+"$B" pupil halo_stst.fits -o pupil_stst.fits --truth obs/truth.fits > pupil_stst.log || fail "pupil (stream)"
+est=$(ncp_error pupil_stst.log)
+echo "cli_learn: stream with speckles' taught map: $est nm"
+[ "$est" = "$edt" ] || fail "stream with the taught map $est nm against speckles' $edt nm"
 # dt_again TAG [options]: speckles' default as above, into another output, in the same teach
 # folder (the NCP error on stdout)
 dt_again() {

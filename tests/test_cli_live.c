@@ -84,6 +84,13 @@ static void make_data(void)
     const double s1 = 0.3 * LAMBDA / (2 * M_PI) / (DIAM / NSUB);
     for (size_t k = 0; k < nact * NSL; k++) rec.W[k] = LAMBDA / (2 * M_PI) * 0.3 * swfs_rng_normal(&r) / s1;
     assert_ok(swfs_recon_write(&rec, in_dir("recon.fits")));
+    /* the same map as a space-time one of lags 0 and 3 (zero at 3), which a live stream refuses */
+    swfs_recon st = {.nact = nact, .nslopes = 2 * NSL, .W = calloc(2 * nact * NSL, sizeof(double)), .nlags = 2,
+                     .lags = {0, 3}};
+    assert_non_null(st.W);
+    for (size_t a = 0; a < nact; a++) memcpy(st.W + a * 2 * NSL, rec.W + a * NSL, NSL * sizeof(double));
+    assert_ok(swfs_recon_write(&st, in_dir("recon_st.fits")));
+    free(st.W);
     assert_ok(swfs_actuators_write(xy, nact, in_dir("act.fits")));
     swfs_real *sl = swfs_real_alloc(NSL, NWFS, 1);
     assert_non_null(sl);
@@ -526,6 +533,15 @@ static void test_signal_and_errors(void **state)
     assert_non_null(strstr(out, "complex float32"));
     swfs_shm_close(w, 1);
     swfs_shm_close(c, 1);
+    /* A space-time reconstructor: the later frames it reads have not arrived (refused before
+     * any stream is looked for). */
+    char sargs[4400];
+    snprintf(sargs, sizeof sargs, "live --shm-dir %s --wfs bw --camera bc --geom sci.fits --recon recon_st.fits "
+             "--actuators act.fits --timeout 1 -o halo_bad.fits", shm);
+    assert_int_equal(test_run_cli(dir, sargs, out, sizeof out), 1);
+    print_message("%s", out);
+    assert_non_null(strstr(out, "recon_st.fits: a space-time reconstructor (2 lags)"));
+    assert_non_null(strstr(out, "which a live stream has not yet seen"));
     /* A stream that never appears. */
     assert_int_equal(test_run_cli(dir, args, out, sizeof out), 1);
     print_message("%s", out);

@@ -320,6 +320,12 @@ typedef struct swfs_stream_run_result {
     swfs_pipeline_info info;
     int stamped;              /* 1: a run over milk logs; stamps holds its counts */
     swfs_milk_source_stats stamps;
+    /* a space-time reconstructor (info.nlags > 1): its lags, and the telemetry file
+     * boundaries its lags ran on across (joined), were clamped at, or whose neighbour could
+     * not be read (the last reason in st_edges_why); a team member counts its own share's */
+    long st_lags[SWFS_RECON_MAXLAGS];
+    size_t st_edges_joined, st_edges_clamped, st_edges_unreadable;
+    char st_edges_why[512];
 } swfs_stream_run_result;
 
 /* The same for a stream run from files (swfs_stream_run_files calls it first): the timing

@@ -6,6 +6,7 @@
 
 #include <stddef.h>
 
+#include "specklewfs/array.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/sync.h"
 
@@ -34,6 +35,18 @@ int swfs_file_source_set_range(swfs_file_source *s, size_t first, size_t count);
  * check it (present, not truncated, nslopes x WFS frames covering the frames' exposures)
  * without reading the data: a share's bad file is found before any work. */
 int swfs_file_source_check(const swfs_file_source *s);
+/* Where the last batch's slopes came from: the telemetry file in memory (nslopes x WFS frames,
+ * valid until the next batch), its path, the timing table's name for it and the folder
+ * that name was joined to (NULL when one file serves every cube), and the batch's first WFS
+ * frame in it (b->slopes = tel->data + base nslopes). A space-time reconstructor's caller
+ * stacks the lags from it (pipeline.h swfs_pipeline_process). SWFS_ERR_ARG before the first
+ * batch. */
+typedef struct swfs_file_source_pos {
+    const swfs_real *tel;
+    const char *path, *dir, *name;
+    size_t base;
+} swfs_file_source_pos;
+int swfs_file_source_last(const swfs_file_source *s, swfs_file_source_pos *pos);
 /* WFSRATE [Hz] of the last telemetry file read that had one (0 if none had). */
 double swfs_file_source_wfs_rate(const swfs_file_source *s);
 

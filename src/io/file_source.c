@@ -26,6 +26,8 @@ struct swfs_file_source {
     size_t nx, ny;
     int limited;           /* swfs_file_source_set_range: serve `left` more frames */
     size_t left;
+    size_t last_base, last_cube; /* the last batch: its first WFS frame in tel, its cube */
+    int served;                  /* a batch has been served */
 };
 
 void swfs_path_dir(const char *path, char *dir, size_t cap)
@@ -280,8 +282,24 @@ int swfs_file_source_next(void *ctx, swfs_batch *b)
     b->science = s->science;
     b->nexp = n;
     b->cube = s->cube;
+    s->last_base = base;
+    s->last_cube = s->cube;
+    s->served = 1;
     s->j += n;
     if (s->limited) s->left -= n;
+    return SWFS_OK;
+}
+
+int swfs_file_source_last(const swfs_file_source *s, swfs_file_source_pos *pos)
+{
+    memset(pos, 0, sizeof *pos);
+    if (!s->served || !s->tel)
+        return swfs_fail(SWFS_ERR_ARG, "file source: no batch has been served yet");
+    pos->tel = s->tel;
+    pos->path = s->loaded;
+    pos->dir = s->slopes_is_dir ? s->slopes_arg : NULL;
+    pos->name = s->timing->cubes[s->last_cube].slopes;
+    pos->base = s->last_base;
     return SWFS_OK;
 }
 

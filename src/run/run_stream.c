@@ -60,7 +60,56 @@ typedef struct run_ctx {
     const swfs_run_hooks *hk;
     swfs_stream *stream;
     int updated;              /* products of an update are in place */
+    size_t nlags;             /* a space-time reconstructor's lags (0: per frame) */
+    long lags[SWFS_RECON_MAXLAGS];
 } run_ctx;
+
+/* The file source's batches for a space-time reconstructor: each WFS frame's slopes stacked
+ * with those of frames t + lags (swfs_slopes_stack), running on into the neighbour files the
+ * telemetry shows contiguous and clamped beyond (swfs_lag_edges_), as `speckles` stacks
+ * them. Per frame reconstructors get the source's batches as they are. The buffer grows to
+ * the largest batch once; the edges are read once per telemetry file. */
+typedef struct stacked_src {
+    swfs_file_source *src;
+    const swfs_timing *t;
+    size_t nlags, nslopes;
+    const long *lags;
+    swfs_lag_edges_ edges;
+    char *edges_for;          /* the telemetry file the edges are of ("" none) */
+    double *buf;
+    size_t cap;               /* WFS frames buf holds */
+} stacked_src;
+
+static int stacked_next(void *ctx, swfs_batch *b)
+{
+    stacked_src *st = ctx;
+    int rc = swfs_file_source_next(st->src, b);
+    if (rc || !b->nexp || st->nlags < 2) return rc;
+    swfs_file_source_pos pos;
+    if ((rc = swfs_file_source_last(st->src, &pos))) return rc;
+    if (strcmp(st->edges_for, pos.path)) {
+        /* one file for every cube (stream --slopes FILE) has no neighbours: clamped */
+        const size_t margin = pos.dir ? (size_t)swfs_lags_max_abs(st->lags, st->nlags) : 0;
+        if ((rc = swfs_lag_edges_load_(&st->edges, pos.dir ? pos.dir : ".", st->t, pos.name, pos.tel, margin)))
+            return rc;
+        char *f = strdup(pos.path);
+        if (!f) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
+        free(st->edges_for);
+        st->edges_for = f;
+    }
+    if (b->nwfs > st->cap) {
+        double *g = realloc(st->buf, b->nwfs * st->nslopes * st->nlags * sizeof *g);
+        if (!g) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory for %zu WFS frames of %zu lags", b->nwfs,
+                                 st->nlags);
+        st->buf = g;
+        st->cap = b->nwfs;
+    }
+    const swfs_lag_edges_ *e = &st->edges;
+    swfs_slopes_stack(e->ext, e->pre + e->ny + e->post, st->nslopes, st->lags, st->nlags, e->pre + pos.base, b->nwfs,
+                      st->buf);
+    b->slopes = st->buf;
+    return SWFS_OK;
+}
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
  * (too few frames yet) is not an error: the next update tries again. */
@@ -207,23 +256,38 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc && o->lin.basis) return setup_linear(o, first_tel, u, p, *nfx, *nfy, r);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
-    if (!rc && rec->nlags > 1)
+    /* A space-time reconstructor reads the slopes of later WFS frames: a stream from files
+     * has them (the file in memory and its neighbours, stacked per batch by stacked_next); a
+     * live stream has not yet seen them. */
+    if (!rc && rec->nlags > 1 && !first_tel[0])
         rc = swfs_fail(SWFS_ERR_ARG, "%s: a space-time reconstructor (%zu lags) needs the slopes of later WFS frames, "
-                       "which a stream has not yet seen; use it with `speckles`, or give the stream a per-frame one",
-                       o->recon, rec->nlags);
+                       "%s; give it a per-frame one (`learn` without --lags), or use the space-time "
+                       "one with `speckles`, or `stream --timing` on the telemetry files", o->recon, rec->nlags,
+                       u->hk && u->hk->offline ? "which a stream of WFS logs (--wfs-log) does not stack"
+                                               : "which a live stream has not yet seen");
+    const size_t nl = !rc && rec->nlags > 1 ? rec->nlags : 1, per = rc ? 0 : rec->nslopes / nl;
+    if (!rc && nl > 1) {
+        u->nlags = nl;
+        memcpy(u->lags, rec->lags, sizeof u->lags);
+    }
     /* The reconstructor's width against the telemetry now, not after the first frames:
      * a wrong --recon is named as such. */
     if (!rc && first_tel[0]) {
         swfs_fits_in *ft = NULL;
         rc = swfs_fits_in_open(&ft, first_tel, NULL);
-        if (!rc && swfs_fits_in_shape(ft)->nx != rec->nslopes)
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the reconstructor takes %zu slopes per WFS frame but the telemetry %s "
-                           "has %zu; --recon needs the reconstructor (nslopes x nact image)", o->recon, rec->nslopes,
-                           first_tel, swfs_fits_in_shape(ft)->nx);
+        if (!rc && swfs_fits_in_shape(ft)->nx != per)
+            rc = nl > 1 ? swfs_fail(SWFS_ERR_SHAPE, "%s: the space-time reconstructor takes %zu slopes per WFS frame "
+                                    "(%zu lags of %zu) but the telemetry %s has %zu; --recon needs the reconstructor "
+                                    "in the telemetry's layout (`speckles --write-recon` writes it so)", o->recon,
+                                    per, nl, per, first_tel, swfs_fits_in_shape(ft)->nx)
+                        : swfs_fail(SWFS_ERR_SHAPE, "%s: the reconstructor takes %zu slopes per WFS frame but the "
+                                    "telemetry %s has %zu; --recon needs the reconstructor (nslopes x nact image)",
+                                    o->recon, rec->nslopes, first_tel, swfs_fits_in_shape(ft)->nx);
         swfs_fits_in_close(ft);
     }
     if (!rc) rc = swfs_actuators_read(o->actuators, &act, &nact);
-    if (!rc && rec->nact != nact)
+    /* (a map with output points of its own, OUTXY, writes the wavefront there: pipeline.h) */
+    if (!rc && !rec->oxy && rec->nact != nact)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s has %zu actuators but the reconstructor %s has %zu rows", o->actuators, nact,
                        o->recon, rec->nact);
     if (!rc) rc = load_mask(o->mask, &u->g, &u->mask);
@@ -238,7 +302,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         char model[8400];
         snprintf(model, sizeof model, "%s with %s", o->recon, o->actuators);
         rc = swfs_sh_pipeline(p, model, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact,
-                              u->mask ? u->mask->data : NULL, rec->nslopes, rec, NULL, 0, &po);
+                              u->mask ? u->mask->data : NULL, per, rec, NULL, 0, &po);
         if (!rc) swfs_pipeline_get_info(*p, &r->info);
     }
     swfs_recon_free(rec);
@@ -268,11 +332,11 @@ static int plan_share(const swfs_stream_run_options *o, const swfs_file_source *
 
 /* Member 0's first batch (the data set's first) through the stream: the automatic static
  * halo, as the single-process run makes it. */
-static int first_batch(swfs_stream *s, swfs_file_source *src)
+static int first_batch(swfs_stream *s, stacked_src *src)
 {
     swfs_batch b;
     memset(&b, 0, sizeof b);
-    int rc = swfs_file_source_next(src, &b);
+    int rc = stacked_next(src, &b);
     if (!rc && !b.nexp) rc = swfs_fail(SWFS_ERR_INTERNAL, "stream: the first member's share is empty");
     if (!rc && (rc = swfs_stream_push(s, &b))) swfs_fail_context(rc, "batch of cube %zu", b.cube);
     return rc;
@@ -282,7 +346,7 @@ static int first_batch(swfs_stream *s, swfs_file_source *src)
  * halo, the share through the stream, then the union of the accumulators to member 0, who
  * writes the products. Every member reaches every agreement. */
 static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline *p, swfs_file_source *src,
-                    swfs_stream_options *so, size_t nf2, swfs_stream **sp, swfs_accum **merged,
+                    stacked_src *ss, swfs_stream_options *so, size_t nf2, swfs_stream **sp, swfs_accum **merged,
                     swfs_stream_run_result *r, int rc)
 {
     const swfs_team *t = o->team;
@@ -298,7 +362,7 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
     double scale = NAN, sums[2] = {0, 0};
     if (!rc && autostat && !(stat = malloc(nf2 * sizeof *stat))) rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
     if (!rc && (t->rank == 0 || !autostat)) rc = swfs_stream_create(sp, p, so);
-    if (!rc && autostat && t->rank == 0 && !(rc = first_batch(*sp, src))) {
+    if (!rc && autostat && t->rank == 0 && !(rc = first_batch(*sp, ss))) {
         memcpy(stat, swfs_stream_static(*sp), nf2 * sizeof *stat);
         scale = swfs_stream_static_scale(*sp);
     }
@@ -317,7 +381,7 @@ static int run_team(const swfs_stream_run_options *o, run_ctx *u, swfs_pipeline 
     if (rc) return rc;
     /* The share through the stream; a failure (a truncated telemetry file) stops every
      * member at the agreement that follows. */
-    if (count > swfs_stream_camera_frames(*sp)) rc = swfs_stream_run(*sp, swfs_file_source_next, src, NULL, NULL);
+    if (count > swfs_stream_camera_frames(*sp)) rc = swfs_stream_run(*sp, stacked_next, ss, NULL, NULL);
     rc = swfs_team_agree(t, rc);
     if (rc) return rc;
     sums[0] = (double)swfs_stream_camera_frames(*sp);
@@ -380,7 +444,11 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     if (hk) first_tel[0] = 0;
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
     if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info) : SWFS_OK;
-    else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes, r->info.nslopes, o->batch);
+    else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes,
+                                             r->info.nslopes / (u.nlags ? u.nlags : 1), o->batch);
+    stacked_src ss = {.src = src, .t = src ? swfs_file_source_timing(src) : NULL, .nlags = u.nlags,
+                      .nslopes = r->info.nslopes / (u.nlags ? u.nlags : 1), .lags = u.lags, .edges_for = strdup("")};
+    if (!rc && !ss.edges_for) rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
     swfs_stream_options so = o->stream;
     u.so = &so;
     so.noise = r->noise;
@@ -405,7 +473,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     if (!rc && !(u.prov = swfs_prov_plus(o->prov, o->nprov, nl))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     u.nprov = o->nprov + 1;
     if (team) {
-        rc = run_team(o, &u, p, src, &so, nfx * nfy, &s, &merged, r, rc);
+        rc = run_team(o, &u, p, src, &ss, &so, nfx * nfy, &s, &merged, r, rc);
     } else {
         if (!rc) rc = swfs_stream_create(&s, p, &so);
         u.stream = s;
@@ -414,7 +482,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
             u.static_written = 1;
         }
         if (!rc) rc = hk ? swfs_stream_run(s, hk->source, hk->source_ctx, update, &u)
-                         : swfs_stream_run(s, swfs_file_source_next, src, update, &u);
+                         : swfs_stream_run(s, stacked_next, &ss, update, &u);
         if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
             rc = hk ? swfs_fail(SWFS_ERR_VALUE, "no complete camera exposure arrived")
                     : swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
@@ -437,6 +505,13 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
         r->seconds = swfs_stream_seconds(s);
         r->static_scale = swfs_stream_static_scale(s);
     }
+    if (u.nlags) {
+        memcpy(r->st_lags, u.lags, sizeof r->st_lags);
+        r->st_edges_joined = ss.edges.joined;
+        r->st_edges_clamped = ss.edges.clamped;
+        r->st_edges_unreadable = ss.edges.unreadable;
+        snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", ss.edges.why);
+    }
     if (src) {
         r->wfs_rate = swfs_file_source_wfs_rate(src);
         r->ratio = swfs_file_source_timing(src)->ratio;
@@ -446,6 +521,9 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     swfs_stream_free(s);
     swfs_pipeline_free(p);
     swfs_file_source_close(src);
+    swfs_lag_edges_free_(&ss.edges);
+    free(ss.edges_for);
+    free(ss.buf);
     swfs_cplx_free(stat_c);
     swfs_real_free(u.mask);
     free(u.prov);
