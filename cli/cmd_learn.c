@@ -10,6 +10,7 @@
 
 static const char *usage_text =
     "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--lags L,L,...]\n"
+    "                        [--perframe-out W1.fits]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
@@ -52,7 +53,10 @@ static const char *usage_text =
     "                (bench/spacetime.sh). It pays only when the simulated loops hold the\n"
     "                observation's own wind and whole profile; trained at another wind it can\n"
     "                be far worse than the default (docs/telemetry.md, \"A space-time learned\n"
-    "                map\")\n";
+    "                map\")\n"
+    "  --perframe-out W1.fits  with --lags, also the per-frame map of the same frames (the\n"
+    "                lag-0 block of the same sums solved alone, no second pass): for\n"
+    "                `specklewfs live`, which takes one frame's slopes\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -70,6 +74,7 @@ int swfs_cmd_learn(int argc, char **argv)
         {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},
+        {"--perframe-out", CLI_STRING, &o.perframe_out, "a file name", 0},
     };
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
     int rc = cli_parse_args(&args, argc, argv);
@@ -78,6 +83,8 @@ int swfs_cmd_learn(int argc, char **argv)
     else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
     else if (!(o.ridge > 0) || !isfinite(o.ridge)) rc = cli_usage_error(cmd, "--ridge must be a finite fraction > 0, got %g", o.ridge);
     if (!rc && lags && swfs_lags_parse(lags, lagv, &o.nlags, "--lags")) rc = cli_error(cmd);
+    if (!rc && o.perframe_out && o.nlags < 2)
+        rc = cli_usage_error(cmd, "--perframe-out goes with --lags (without them the map is per frame already)");
     if (rc) { free(dirs); return rc; }
     o.lags = lagv;
     o.dirs = dirs;
@@ -104,6 +111,9 @@ int swfs_cmd_learn(int argc, char **argv)
     else
         printf("learn: the simulated residual %.1f nm rms per actuator; the map misses it by %.1f nm on the training "
                "frames -> %s\n", 1e9 * r.info.truth_rms, 1e9 * r.info.misfit_rms, o.out);
+    if (o.perframe_out && o.nlags > 1)
+        printf("learn: the per-frame map of the same frames (the lag-0 block) misses the residual by %.1f nm -> %s\n",
+               1e9 * r.perframe_info.misfit_rms, o.perframe_out);
     if (o.nlags > 1 && r.nwind)
         printf("learn: the training loops' slopes move (%.4f, %.4f) subapertures per WFS frame (%zu of %zu data sets; "
                "the farthest %.4f from that; the tracked layers), and their layers:\n", r.wind_vx, r.wind_vy,

@@ -186,6 +186,16 @@ grep -q "^stream: space-time reconstructor of 5 lags (0,-6,6,-12,12 WFS frames)"
 est=$(ncp_error pupil_stst.log)
 echo "cli_learn: stream with speckles' taught map: $est nm"
 [ "$est" = "$edt" ] || fail "stream with the taught map $est nm against speckles' $edt nm"
+# beside it the per-frame map of the same loops (the lag-0 block of the same sums), for live:
+# one frame's slopes in, within 10 % of the space-time map through the whole path
+[ -s spk_dt.teach/perframe.fits ] && ! head -c 8640 spk_dt.teach/perframe.fits | grep -aq "NLAGS" \
+    || fail "speckles' teach folder: a per-frame map perframe.fits expected"
+"$B" stream --timing timing.txt --science science.fits --recon spk_dt.teach/perframe.fits --actuators actuators.fits \
+    --pupil pupil.fits -o halo_stpf.fits > stream_pf.log 2>&1 || { cat stream_pf.log; fail "stream with perframe.fits"; }
+"$B" pupil halo_stpf.fits -o pupil_stpf.fits --truth obs/truth.fits > pupil_stpf.log || fail "pupil (perframe.fits)"
+epf=$(ncp_error pupil_stpf.log)
+echo "cli_learn: stream with the taught per-frame map: $epf nm (space-time $edt nm)"
+awk -v a="$epf" -v b="$edt" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "the per-frame map $epf nm against $edt nm"
 # dt_again TAG [options]: speckles' default as above, into another output, in the same teach
 # folder (the NCP error on stdout)
 dt_again() {

@@ -406,7 +406,9 @@ static void test_lags(void **state)
 /* swfs_recon_learner_add_lagged gives the sums of the stacked input (swfs_slopes_stack, then
  * add): the same map and training misfit to rounding, for lags in any order, a lag set that
  * repeats lag differences (0,-3,3,-6,6), files shorter than the lags' span (every frame
- * clamped) and several files into one learner. */
+ * clamped) and several files into one learner. Its lag-0 block alone
+ * (swfs_recon_learner_solve_lag) is the per-frame map of a learner given the frames
+ * unstacked. */
 static void test_learner_lagged(void **state)
 {
     (void)state;
@@ -418,9 +420,10 @@ static void test_learner_lagged(void **state)
     swfs_rng_seed(&r, 21);
     for (int k = 0; k < 4; k++) {
         const size_t nl = nls[k], ns = S0 * nl;
-        swfs_recon_learner *ls = NULL, *ll = NULL;
+        swfs_recon_learner *ls = NULL, *ll = NULL, *l1 = NULL;
         assert_ok(swfs_recon_learner_new(ns, NT, 1, &ls));
         assert_ok(swfs_recon_learner_new(ns, NT, 1, &ll));
+        assert_ok(swfs_recon_learner_new(S0, NT, 1, &l1));
         for (int file = 0; file < 2; file++) {
             const size_t n = lens[k][file];
             double *s = malloc(n * S0 * sizeof *s), *z = malloc(n * NT * sizeof *z), *st = malloc(n * ns * sizeof *st);
@@ -437,6 +440,7 @@ static void test_learner_lagged(void **state)
             swfs_slopes_stack(s, n, S0, sets[k], nl, 0, n, st);
             assert_ok(swfs_recon_learner_add(ls, st, z, n));
             assert_ok(swfs_recon_learner_add_lagged(ll, s, S0, z, n, sets[k], nl));
+            assert_ok(swfs_recon_learner_add(l1, s, z, n));
             free(s);
             free(z);
             free(st);
@@ -456,10 +460,35 @@ static void test_learner_lagged(void **state)
         assert_true(dmax <= 1e-8 * wmax);
         assert_true(fabs(is.misfit_rms - il.misfit_rms) <= 1e-8 * is.misfit_rms);
         assert_int_equal(is.nslopes_seen, il.nslopes_seen);
+        /* the lag-0 block alone against the per-frame learner */
+        size_t k0 = 0;
+        while (sets[k][k0] != 0) k0++;
+        swfs_recon *w0 = NULL, *w1 = NULL;
+        swfs_recon_learn_info i0, i1;
+        assert_ok(swfs_recon_learner_solve_lag(ll, k0, SWFS_RECON_LEARN_RIDGE, &w0, &i0));
+        assert_ok(swfs_recon_learner_solve(l1, SWFS_RECON_LEARN_RIDGE, &w1, &i1));
+        assert_int_equal(w0->nslopes, S0);
+        assert_int_equal(w0->nact, NT);
+        double d0 = 0, w1max = 0;
+        for (size_t q = 0; q < S0 * NT; q++) {
+            d0 = fmax(d0, fabs(w0->W[q] - w1->W[q]));
+            w1max = fmax(w1max, fabs(w1->W[q]));
+        }
+        printf("test_recon_learn: %zu lags: the lag-0 block's map %.2e from the per-frame learner's (largest entry "
+               "%.3g), misfit %.6g / %.6g (all lags %.6g)\n", nl, d0, w1max, i0.misfit_rms, i1.misfit_rms, il.misfit_rms);
+        assert_true(d0 <= 1e-8 * w1max);
+        assert_true(fabs(i0.misfit_rms - i1.misfit_rms) <= 1e-8 * i1.misfit_rms);
+        assert_int_equal(i0.nslopes_seen, i1.nslopes_seen);
+        assert_int_equal(i0.nframes, i1.nframes);
+        swfs_recon_free(w0);
+        swfs_recon_free(w1);
+        assert_int_not_equal(swfs_recon_learner_solve_lag(ll, nl, SWFS_RECON_LEARN_RIDGE, &w0, NULL), 0);
+        assert_null(w0);
         swfs_recon_free(ws);
         swfs_recon_free(wl);
         swfs_recon_learner_free(ls);
         swfs_recon_learner_free(ll);
+        swfs_recon_learner_free(l1);
     }
     /* a width that is not the learner's */
     swfs_recon_learner *l = NULL;

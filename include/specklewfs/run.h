@@ -518,6 +518,10 @@ typedef struct swfs_learn_run_options {
                                  at its ends (swfs_slopes_stack), written as a cube (wfs.h
                                  swfs_recon_write); not with modal */
     size_t nlags;
+    const char *perframe_out; /* with lags, or NULL: also the per-frame map of the same frames
+                                 (the lag-0 block of the same sums solved alone,
+                                 swfs_recon_learner_solve_lag) into this file, for runs that
+                                 take one frame's slopes (live); both files or neither */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
@@ -553,6 +557,7 @@ typedef struct swfs_learn_run_result {
      * swfs_slopes_lag_correlation on each data set's first file), its mean over the data sets
      * and the largest distance of one from it; written as LRNCORk, LRNCSPk (k as LAGk). */
     double corr[SWFS_RECON_MAXLAGS], corr_spread[SWFS_RECON_MAXLAGS];
+    swfs_recon_learn_info perframe_info; /* with perframe_out: that map's fit (else zero) */
 } swfs_learn_run_result;
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);
@@ -625,8 +630,9 @@ typedef struct swfs_teach_run_options {
 
 /* The version of teach's rule, hashed into speckles' fingerprint of a taught map's inputs
  * (TEACHFPR): a change to what teach makes of the same inputs (its loops, lags, choice, the
- * learner) bumps it, so that maps taught before are taught again rather than reused. */
-#define SWFS_TEACH_RULE "teach rule 2026-11-29"
+ * learner) bumps it, so that maps taught before are taught again rather than reused
+ * (2026-11-29b: the per-frame map of the same loops, perframe.fits, beside every map). */
+#define SWFS_TEACH_RULE "teach rule 2026-11-29b"
 
 void swfs_teach_run_options_default(swfs_teach_run_options *o);
 

@@ -258,6 +258,13 @@ int swfs_recon_learner_add_lagged(swfs_recon_learner *l, const double *s, size_t
                                   const long *lags, size_t nl);
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l);
 int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info);
+/* The map of lag block k alone (the lags' order of add_lagged; one frame's slopes in, nact
+ * out), from the same sums: with the block of lag 0 the per-frame map of the same frames, as a
+ * learner given the frames unstacked would solve it (lag 0 is never clamped: the block's
+ * sums are that learner's, to the single-precision rounding of S^T Z's summation order), and
+ * its ridge on that block's own mean diagonal. info: that map's training misfit. */
+int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double ridge, swfs_recon **out,
+                                 swfs_recon_learn_info *info);
 /* The held-out check: the map learned from the sums of `all` less those of `part` (the frames
  * of one data set, added to a learner of their own), and its mean square misfit per actuator
  * and frame on part's frames, with the mean square of part's truth (piston removed). Leave

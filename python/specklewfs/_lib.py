@@ -302,7 +302,7 @@ swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RU
 swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
-    ("lags", P(ctypes.c_long)), ("nlags", c_size)])
+    ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [
@@ -311,7 +311,8 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("heldout_worst_set", c_size), ("nwind", c_size), ("wind_vx", c_dbl), ("wind_vy", c_dbl), ("wind_spread", c_dbl),
     ("nwlayers", c_size), ("wlayer_vx", c_dbl * LEARN_MAXWLAYERS), ("wlayer_vy", c_dbl * LEARN_MAXWLAYERS),
     ("wlayer_spread", c_dbl * LEARN_MAXWLAYERS), ("wlayer_n", c_size * LEARN_MAXWLAYERS),
-    ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS)])
+    ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS),
+    ("perframe_info", swfs_recon_learn_info)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),

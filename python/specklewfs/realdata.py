@@ -85,7 +85,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
-def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None):
+def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -108,7 +108,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     (st_found, st_train_v, st_obs_v that pair; st_obs_nlayers, st_train_nlayers), and the
     slopes' correlation at the lags: corr / corr_spread here (the loops'), st_corr_train,
     st_corr_spread, st_corr_obs and st_corr_excess (> 0: beyond three spreads) there, and
-    st_warn_wind, st_warn_corr: whether each check warns (swfs_spacetime_warns)."""
+    st_warn_wind, st_warn_corr: whether each check warns (swfs_spacetime_warns).
+    perframe_out (with lags): also the per-frame map of the same frames, the lag-0 block of the
+    same sums solved alone, for runs that take one frame's slopes (live); its fit is returned
+    as perframe (nframes, nslopes_seen, truth_rms, misfit_rms)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -126,6 +129,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     if lags is not None:
         lagv = (ctypes.c_long * max(len(lags), 1))(*[int(v) for v in lags])
         o.lags, o.nlags = ctypes.cast(lagv, ctypes.POINTER(ctypes.c_long)), len(lags)
+    if perframe_out is not None:
+        o.perframe_out = enc(perframe_out)
     r = _lib.swfs_learn_run_result()
     check(lib.swfs_learn_run(ctypes.byref(o), ctypes.byref(r)), "swfs_learn_run")
     d = _struct_dict(r.info)
@@ -137,6 +142,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
                           for k in range(r.nwlayers)])
     if lags is not None:
         d.update(corr=np.array(r.corr[:len(lags)]), corr_spread=np.array(r.corr_spread[:len(lags)]))
+    if perframe_out is not None and lags is not None and len(lags) > 1:
+        d.update(perframe=_struct_dict(r.perframe_info))
     return d
 
 

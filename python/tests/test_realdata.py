@@ -214,8 +214,13 @@ def test_learn_reconstructor(series, tmp_path):
     assert sp["nout"] >= 118
     # a space-time map: the slopes of frames t, t - 3 and t + 3; a cube of one map per lag that
     # fits its training frames better than the per-frame map, and that speckles applies
-    rl = sw.learn(dirs, str(tmp_path / "Wl.fits"), lags=(0, -3, 3), heldout=False)
+    rl = sw.learn(dirs, str(tmp_path / "Wl.fits"), lags=(0, -3, 3), heldout=False, perframe_out=str(tmp_path / "W1.fits"))
     assert rl["nslopes"] == 288 and rl["nslopes_seen"] == 3 * 224 and rl["misfit_rms"] < 0.99 * r["misfit_rms"]
+    # with it, from the lag-0 block of the same sums, the per-frame map of the same frames: learn's
+    W1 = sw.read_fits(str(tmp_path / "W1.fits"))[0]
+    assert W1.shape == W.shape and np.abs(W1 - W).max() <= 1e-5 * np.abs(W).max()
+    assert rl["perframe"]["misfit_rms"] == pytest.approx(r["misfit_rms"], rel=1e-6)
+    assert rl["perframe"]["nslopes_seen"] == 224 and rl["perframe"]["nframes"] == r["nframes"]
     Wl = sw.read_fits(str(tmp_path / "Wl.fits"))[0]
     keys = sw.fits.read_keys(str(tmp_path / "Wl.fits"), ["NLAGS", "LAG1", "LAG2", "LAG3"])
     assert Wl.shape == (3, 217, 288) and [keys[k] for k in ("NLAGS", "LAG1", "LAG2", "LAG3")] == [3, 0, -3, 3]

@@ -58,10 +58,15 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     return rc;
 }
 
-static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, const swfs_learn_run_result *r)
+/* The map w into path: the space-time (or per-frame) map learned, or (lag0) the lag-0 block of
+ * a space-time learn's sums alone, the per-frame map of the same frames, whose file carries
+ * that map's own fit and none of the lags' keys. */
+static int write_recon(const swfs_learn_run_options *o, const char *path, const swfs_recon *w,
+                       const swfs_learn_run_result *r, int lag0)
 {
     swfs_fits_out *f = NULL;
-    int rc = swfs_fits_out_create(&f, o->out);
+    const swfs_recon_learn_info *in = lag0 ? &r->perframe_info : &r->info;
+    int rc = swfs_fits_out_create(&f, path);
     if (rc) return rc;
     rc = swfs_recon_write_hdu(f, w);
     if (!rc && !o->modal) rc = swfs_fits_out_key_string(f, "BUNIT", "m/rad", "actuator displacement per slope");
@@ -69,26 +74,29 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNMODAL", o->modal ? 1 : 0, o->modal ? "truth: modal coefficients as given"
                                                                                   : "truth: actuators, piston removed");
     if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "learned", "least squares slopes -> simulated residual");
-    if (!rc) rc = swfs_fits_out_key_long(f, "LRNFRAME", (long)r->info.nframes, "WFS frames learned from");
+    if (!rc) rc = swfs_fits_out_key_long(f, "LRNFRAME", (long)in->nframes, "WFS frames learned from");
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNSETS", (long)o->ndirs, "simulated data sets");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
-    if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", r->info.truth_rms, "rms truth per value [m, or the coefficients' unit]");
-    if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", r->info.misfit_rms, "[m] rms training misfit");
-    for (size_t k = 0; !rc && o->nlags > 1 && k < o->nlags; k++) {
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", in->truth_rms, "rms truth per value [m, or the coefficients' unit]");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", in->misfit_rms, "[m] rms training misfit");
+    if (!rc && lag0)
+        rc = swfs_fits_out_history(f, "the per-frame map of the same frames: the lag-0 block of a space-time learn's "
+                                   "sums solved alone (swfs_recon_learner_solve_lag)");
+    for (size_t k = 0; !rc && !lag0 && o->nlags > 1 && k < o->nlags; k++) {
         char key[32];
         snprintf(key, sizeof key, "LRNCOR%zu", k + 1);
         rc = swfs_fits_out_key_double(f, key, r->corr[k], "training slopes' correlation at LAGk");
         snprintf(key, sizeof key, "LRNCSP%zu", k + 1);
         if (!rc) rc = swfs_fits_out_key_double(f, key, r->corr_spread[k], "largest set's distance from it");
     }
-    if (!rc && r->nwind) {
+    if (!rc && !lag0 && r->nwind) {
         rc = swfs_fits_out_key_long(f, "LRNWINDN", (long)r->nwind, "training sets whose slopes show a wind");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVX", r->wind_vx, "[subap/frame] their mean wind, x");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVY", r->wind_vy, "[subap/frame] their mean wind, y");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNVSPRD", r->wind_spread, "[subap/frame] largest from the mean");
         if (!rc) rc = swfs_fits_out_key_long(f, "LRNNLAY", (long)r->nwlayers, "frozen-flow layers in their slopes");
     }
-    for (size_t k = 0; !rc && k < r->nwlayers; k++) {
+    for (size_t k = 0; !rc && !lag0 && k < r->nwlayers; k++) {
         char key[4][32];
         snprintf(key[0], sizeof key[0], "LRNL%zuX", k + 1);
         snprintf(key[1], sizeof key[1], "LRNL%zuY", k + 1);
@@ -99,7 +107,7 @@ static int write_recon(const swfs_learn_run_options *o, const swfs_recon *w, con
         if (!rc) rc = swfs_fits_out_key_long(f, key[2], (long)r->wlayer_n[k], "training sets that show it");
         if (!rc) rc = swfs_fits_out_key_double(f, key[3], r->wlayer_spread[k], "[subap/frame] largest from the mean");
     }
-    if (!rc && r->nheldout) {
+    if (!rc && !lag0 && r->nheldout) {
         rc = swfs_fits_out_key_long(f, "LRNHSETS", (long)r->nheldout, "data sets held out in turn");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHMISF", r->heldout_misfit_rms, "[m] rms misfit, held out");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHTRUT", r->heldout_truth_rms, "[m] rms truth, held out");
@@ -281,6 +289,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     for (size_t d = 0; !rc && d < o->ndirs; d++)
         rc = swfs_paths_input_or_dir(paths, "simulated data set", o->dirs[d]);
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
+    if (!rc && o->perframe_out && o->nlags > 1) rc = swfs_paths_output(paths, "output per-frame reconstructor", o->perframe_out);
     swfs_paths_free(paths);
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
@@ -299,8 +308,22 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         memcpy(w->lags, o->lags, o->nlags * sizeof *o->lags);
     }
     if (!rc) rc = truth_points(o, r->nact, &w->oxy);
+    /* with lags, the per-frame map of the same frames from the lag-0 block of the same sums */
+    swfs_recon *w0 = NULL;
+    size_t k0 = 0;
+    while (o->nlags > 1 && k0 + 1 < o->nlags && o->lags[k0] != 0) k0++;
+    if (!rc && o->perframe_out && o->nlags > 1) rc = swfs_recon_learner_solve_lag(l, k0, o->ridge, &w0, &r->perframe_info);
+    if (!rc && w0 && w->oxy) {
+        if (!(w0->oxy = malloc(2 * w->nact * sizeof *w0->oxy))) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+        else memcpy(w0->oxy, w->oxy, 2 * w->nact * sizeof *w0->oxy);
+    }
     if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
-    if (!rc) rc = write_recon(o, w, r);
+    if (!rc && w0) rc = write_recon(o, o->perframe_out, w0, r, 1);
+    if (!rc) {
+        rc = write_recon(o, o->out, w, r, 0);
+        if (rc && w0) unlink(o->perframe_out); /* both maps or neither */
+    }
+    swfs_recon_free(w0);
     swfs_recon_free(w);
     swfs_recon_learner_free(l);
     return rc;

@@ -134,7 +134,7 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
 }
 
 static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n, const long *lags, size_t nlags,
-                 const char *out, swfs_learn_run_result *lr)
+                 const char *out, const char *perframe_out, swfs_learn_run_result *lr)
 {
     const char *d[64];
     for (size_t k = 0; k < n; k++) d[k] = jobs[k].path;
@@ -146,6 +146,7 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
     lo.no_heldout = 1;
     lo.lags = nlags > 1 ? lags : NULL;
     lo.nlags = nlags > 1 ? nlags : 0;
+    lo.perframe_out = perframe_out;
     lo.prov = o->prov;
     lo.nprov = o->nprov;
     const int rc = swfs_learn_run(&lo, lr);
@@ -567,7 +568,9 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     swfs_learn_run_result lr;
     if (!rc) {
         stage(o, "learning the space-time map", 0, 1);
-        rc = learn(o, jobs, o->nloops, lags, 5, st, &lr);
+        /* with the per-frame map of the same loops from the same sums (perframe.fits: what a
+         * run taking one frame's slopes, live, is given) */
+        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, &lr);
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
@@ -598,11 +601,11 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     } else if (!rc && r->warns) {
         r->chosen = SWFS_TEACH_PERFRAME;
     }
-    if (!rc && r->warns) {
+    if (!rc && r->chosen == SWFS_TEACH_PERFRAME_MIXED) { /* other loops: their own map */
         stage(o, "learning the per-frame map", 0, 1);
-        rc = learn(o, jobs, o->nloops, NULL, 0, pf, &lr);
-        chosen = pf;
+        rc = learn(o, jobs, o->nloops, NULL, 0, pf, NULL, &lr);
     }
+    if (!rc && r->warns) chosen = pf; /* of the same loops: learned with the space-time map */
     free(jobs);
     swfs_ts_shared_free(shared);
     if (!rc) rc = write_chosen(chosen, o, r);

@@ -359,7 +359,7 @@ static double gsum(const swfs_recon_learner *l, const swfs_recon_learner *m, con
  * A = (G + lam I)^-1 H (nu x na) in *A, those inputs (l's compressed indices) in idx (l->nc
  * long), nu of them. */
 static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, const size_t *mp, double ridge,
-                      size_t *idx, size_t *nu_out, double **A_out, double *lam_out)
+                      size_t block, size_t *idx, size_t *nu_out, double **A_out, double *lam_out)
 {
     *A_out = NULL;
     const size_t ns = l->nc, na = l->nact, nf = l->nframes - (m ? m->nframes : 0);
@@ -369,6 +369,7 @@ static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, 
     size_t nu = 0;
     double tr = 0;
     for (size_t i = 0; i < ns; i++) {
+        if (block != SIZE_MAX && i / l->nu0 != block) continue; /* one lag block's inputs alone */
         const double d = gsum(l, m, mp, i, i);
         if (d > 1e-12 * l->G[i * ns + i] && d > 0) {
             idx[nu++] = i;
@@ -405,10 +406,13 @@ static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, 
     return SWFS_OK;
 }
 
-int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info)
+/* The map of all inputs (block SIZE_MAX) or of lag block `block` alone, in the full layout of
+ * those inputs (a block's map takes one frame's slopes). */
+static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, swfs_recon **out,
+                       swfs_recon_learn_info *info)
 {
     *out = NULL;
-    const size_t ns = l->nslopes, na = l->nact;
+    const size_t ns = block == SIZE_MAX ? l->nslopes : l->ns0, na = l->nact;
     size_t *idx = malloc((l->nc + 1) * sizeof *idx), nu = 0;
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = calloc(na * ns, sizeof *r->W);
@@ -418,7 +422,7 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
     }
     double *A = NULL, lam = 0;
-    int rc = solve_sums(l, NULL, NULL, ridge, idx, &nu, &A, &lam);
+    int rc = solve_sums(l, NULL, NULL, ridge, block, idx, &nu, &A, &lam);
     if (rc) {
         free(idx);
         swfs_recon_free(r);
@@ -426,7 +430,7 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
     }
     /* W = A^T on the seen slopes, in the full layout. */
     for (size_t i = 0; i < nu; i++) {
-        const size_t c = full_of(l, idx[i]);
+        const size_t c = block == SIZE_MAX ? full_of(l, idx[i]) : l->used0[idx[i] % l->nu0];
         for (size_t a = 0; a < na; a++) r->W[a * ns + c] = A[i * na + a];
     }
     r->nact = na;
@@ -452,6 +456,20 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
     return SWFS_OK;
 }
 
+int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info)
+{
+    return solve_block(l, SIZE_MAX, ridge, out, info);
+}
+
+int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double ridge, swfs_recon **out,
+                                 swfs_recon_learn_info *info)
+{
+    *out = NULL;
+    if (!l->nc || k >= l->nl)
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: lag block %zu of %zu (no frames added?)", k, l->nl);
+    return solve_block(l, k, ridge, out, info);
+}
+
 int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                double *misfit2, double *truth2)
 {
@@ -470,7 +488,7 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
     }
     double *A = NULL, lam = 0;
-    rc = solve_sums(all, part, mp, ridge, idx, &nu, &A, &lam);
+    rc = solve_sums(all, part, mp, ridge, SIZE_MAX, idx, &nu, &A, &lam);
     double *Gp = NULL, *C = NULL;
     if (!rc) {
         Gp = malloc(nu * nu * sizeof *Gp);
