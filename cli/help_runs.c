@@ -126,6 +126,7 @@ static const char *stream_usage_text =
     "                        a space-time map (learn --lags; speckles' taught.fits) gets each\n"
     "                        frame's slopes stacked with those at its lags, across the\n"
     "                        telemetry files that continue each other, as in 'speckles'\n"
+    "                        (with --wfs-log: within the logs' segments, as 'live')\n"
     "  -o HALO.fits          the estimate (extensions as 'specklewfs estimate')\n"
     ;
 
@@ -202,8 +203,9 @@ static const char *live_usage_text =
     "                        (e.g. a reduced science cube)\n"
     "  --recon, --actuators, -o, --pupil-out, --checkpoint, --every, --every-seconds,\n"
     "  --threads, --static, --static-out, --pupil, --tiptilt, --read-noise, --gain,\n"
-    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'; --recon a\n"
-    "                        per-frame map (a space-time one reads frames not yet arrived)\n"
+    "  --g-smooth, --max-frames, --valid, --band   as for 'specklewfs stream'; with a\n"
+    "                        space-time --recon (speckles' taught.fits) a batch waits for the\n"
+    "                        WFS frames of its largest lag\n"
     "  --batch B             camera frames per batch (default 16; 'stream' with the same B\n"
     "                        gives the same result)\n"
     "  --max-wait T          longest wait [s] of a ready frame for its batch to fill (0.5)\n"

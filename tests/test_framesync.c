@@ -338,11 +338,79 @@ static void test_bad_args(void **state)
     swfs_framesync_free(f);
 }
 
+/* A space-time reconstructor's lags (0, -2, 3): every row of a batch stacked with the rows 2
+ * before and 3 after, clamped to the segment's first and last frames, a missing frame
+ * replaced by the row's own values; a batch waits until the frame 3 rows after its last is in
+ * (unless flushed). WFS frame k (1 kHz) holds (k, 100 + k); frame 30 never arrives. */
+static void test_lags(void **state)
+{
+    (void)state;
+    enum { NV = 2, NL = 3, NK = 60 };
+    const long lags[NL] = {0, -2, 3};
+    swfs_framesync *f = NULL;
+    const size_t nv[1] = {NV};
+    swfs_framesync_options o;
+    swfs_framesync_options_default(&o);
+    o.batch = 4;
+    o.max_wait = 1e30;
+    o.lags = lags;
+    o.nlags = NL;
+    assert_ok(swfs_framesync_create(&f, 1, nv, NF2, &o));
+    double v[NV], fr[NF2] = {0};
+    swfs_batch b;
+    size_t batches = 0, rows = 0;
+    for (int pass = 0; pass < 2; pass++)
+        for (uint64_t k = pass ? NK : 1; k <= NK; k++) {
+            const int flush = pass == 1;
+            if (!flush) {
+                v[0] = (double)k;
+                v[1] = 100.0 + (double)k;
+                if (k != 30) assert_ok(swfs_framesync_add_wfs(f, 0, k, t_origin + (int64_t)k * 1000000, v, 0.0));
+                if (k % 4 == 0) assert_ok(swfs_framesync_add_camera(f, k / 4, t_origin + (int64_t)k * 1000000, fr, 0.0));
+            }
+            for (;;) {
+                assert_ok(swfs_framesync_next(f, 0.0, flush, &b));
+                if (!b.nexp) break;
+                batches++;
+                int64_t last = 0;
+                for (size_t r = 0; r < b.nwfs; r++) {
+                    const double *row = b.slopes + r * NV * NL;
+                    const int64_t g = (int64_t)llround(row[0]);
+                    if (g == 0) continue; /* a row no exposure uses (the missing frame's) */
+                    last = g;
+                    for (size_t l = 0; l < NL; l++) {
+                        int64_t t = g + lags[l];
+                        t = t < 1 ? 1 : t > NK ? NK : t;
+                        if (t == 30) t = g; /* never arrived: the row's own */
+                        assert_close(row[l * NV], (double)t, 0);
+                        assert_close(row[l * NV + 1], 100.0 + (double)t, 0);
+                    }
+                    rows++;
+                }
+                /* not out before the frame its last row needs at lag 3 (unless flushed) */
+                if (!flush) assert_true((int64_t)k >= last + 3);
+            }
+        }
+    swfs_framesync_stats st;
+    swfs_framesync_get_stats(f, &st);
+    print_message("framesync with lags 0,-2,3: %zu batches, %zu rows checked, %llu exposures used, %llu incomplete\n",
+                  batches, rows, (unsigned long long)st.used, (unsigned long long)st.incomplete);
+    assert_true(batches >= 3 && rows > 40 && st.incomplete >= 1 && st.used + st.incomplete + st.no_wfs == NK / 4);
+    swfs_framesync_free(f);
+    /* lags without a 0 are refused */
+    const long bad[2] = {1, 2};
+    o.lags = bad;
+    o.nlags = 2;
+    assert_int_not_equal(swfs_framesync_create(&f, 1, nv, NF2, &o), 0);
+    assert_null(f);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_regular),  cmocka_unit_test(test_jitter),      cmocka_unit_test(test_drops),
         cmocka_unit_test(test_restart),  cmocka_unit_test(test_two_streams), cmocka_unit_test(test_bad_args),
+        cmocka_unit_test(test_lags),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

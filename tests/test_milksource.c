@@ -109,7 +109,7 @@ static void test_batches(void **state)
     c.drift = DRIFT;
     c.fit.sign_x = c.fit.sign_y = 1;
     const char *logs[] = {da, db};
-    swfs_milk_source_options o = {logs, 2, sci, &c, 0, 5, 4, 4, 4};
+    swfs_milk_source_options o = {logs, 2, sci, &c, 0, 5, 4, 4, 4, NULL, 0};
     swfs_milk_source *s = NULL;
     assert_ok(swfs_milk_source_open(&s, &o));
     size_t seen = 0, checked = 0;

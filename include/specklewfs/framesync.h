@@ -36,6 +36,15 @@
  * frames interleaved, so `live` fed by `replay --wfs-log` gives `stream --wfs-log`'s
  * results exactly.
  *
+ * Lags. With a space-time reconstructor's lags (options lags, nlags > 1) each row of a
+ * batch's slopes is the frame's values stacked with those of the frames at the lags
+ * (swfs_slopes_stack's layout: nlags blocks of the WFS streams' values), as the file source's
+ * run stacks them from the telemetry files: a batch waits until every WFS stream has
+ * delivered the frame of its last row plus the largest lag (the delay: that lag's frames), or
+ * until its segment has ended, or a flush; a lag beyond the segment's frames is clamped to
+ * its first or last (as at a telemetry file's ends), and a frame of the window that did not
+ * arrive whole and finite (or left the history) is replaced by the row's own values.
+ *
  * Nothing is allocated per frame after create (the batch work space grows to the
  * largest batch seen, as the pipeline's does). One thread at a time. */
 #ifndef SWFS_FRAMESYNC_H
@@ -57,6 +66,9 @@ typedef struct swfs_framesync_options {
     double clock_memory;   /* [frames] memory of the clock fits (4096) */
     size_t wfs_history;    /* WFS frames kept (0: 8192, at most 256 MB) */
     size_t camera_queue;   /* camera frames waiting for their WFS frames (0: 4 batches + 64, at most 256 MB) */
+    const long *lags;      /* a space-time reconstructor's lags [WFS frames] (nlags of them, one 0;
+                              copied), or NULL: see "Lags" above */
+    size_t nlags;
 } swfs_framesync_options;
 
 void swfs_framesync_options_default(swfs_framesync_options *o);
@@ -103,7 +115,7 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
 /* The camera stamps [ns] of the frames of the last batch (its nexp values). */
 const int64_t *swfs_framesync_batch_stamps(const swfs_framesync *f);
 void swfs_framesync_get_stats(const swfs_framesync *f, swfs_framesync_stats *s);
-size_t swfs_framesync_nslopes(const swfs_framesync *f);
+size_t swfs_framesync_nslopes(const swfs_framesync *f); /* values per WFS frame (before stacking) */
 
 SWFS_END_DECLS
 

@@ -32,6 +32,9 @@ typedef struct swfs_milk_source_options {
     size_t nslopes;           /* values per WFS frame over the logs the reconstructor expects (0: any) */
     size_t nfx, nfy;          /* expected camera frame size (0: any) */
     size_t batch;             /* camera frames per batch */
+    const long *lags;         /* a space-time reconstructor's lags (nlags), or NULL: the batches'
+                                 rows stacked at them (framesync.h, "Lags") */
+    size_t nlags;
 } swfs_milk_source_options;
 
 typedef struct swfs_milk_source swfs_milk_source;

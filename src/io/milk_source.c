@@ -137,6 +137,8 @@ int swfs_milk_source_open(swfs_milk_source **out, const swfs_milk_source_options
         fo.batch = o->batch;
         fo.max_wait = 1e30; /* offline: batches close when full, at a gap or at the end */
         fo.exptime = s->st.exptime * (1.0 + drift);
+        fo.lags = o->lags;
+        fo.nlags = o->nlags;
         rc = swfs_framesync_create(&s->fs, o->nwfs, nv, s->nf2, &fo);
     }
     if (!rc && !(s->wbuf = malloc(maxv * sizeof *s->wbuf))) rc = swfs_fail(SWFS_ERR_NOMEM, "milk source: out of memory");

@@ -22,7 +22,8 @@ const char **swfs_prov_plus(const char *const *prov, size_t nprov, const char *e
 typedef struct swfs_run_hooks {
     swfs_source_fn source;
     void *source_ctx;
-    int (*prepare)(void *ctx, const swfs_pipeline_info *info);
+    int (*prepare)(void *ctx, const swfs_pipeline_info *info, const long *lags); /* lags: info.nlags of a
+                                                                            space-time map's (NULL: per frame) */
     int (*after)(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
     void *ctx;
     int offline;  /* 1: files as the source (milk logs): a failed run removes the products it

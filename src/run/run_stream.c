@@ -257,14 +257,8 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
     if (!rc && o->lin.basis) return setup_linear(o, first_tel, u, p, *nfx, *nfy, r);
     if (!rc) rc = swfs_recon_read(o->recon, &rec);
     /* A space-time reconstructor reads the slopes of later WFS frames: a stream from files
-     * has them (the file in memory and its neighbours, stacked per batch by stacked_next); a
-     * live stream has not yet seen them. */
-    if (!rc && rec->nlags > 1 && !first_tel[0])
-        rc = swfs_fail(SWFS_ERR_ARG, "%s: a space-time reconstructor (%zu lags) needs the slopes of later WFS frames, "
-                       "%s; give it a per-frame one (`learn` without --lags), or use the space-time "
-                       "one with `speckles`, or `stream --timing` on the telemetry files", o->recon, rec->nlags,
-                       u->hk && u->hk->offline ? "which a stream of WFS logs (--wfs-log) does not stack"
-                                               : "which a live stream has not yet seen");
+     * has them (the file in memory and its neighbours, stacked per batch by stacked_next);
+     * a live or milk-log source stacks them as its frames arrive (framesync.h, "Lags"). */
     const size_t nl = !rc && rec->nlags > 1 ? rec->nlags : 1, per = rc ? 0 : rec->nslopes / nl;
     if (!rc && nl > 1) {
         u->nlags = nl;
@@ -443,7 +437,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     int rc = hk ? SWFS_OK : check_paths(o, first_tel, sizeof first_tel);
     if (hk) first_tel[0] = 0;
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
-    if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info) : SWFS_OK;
+    if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info, u.nlags ? u.lags : NULL) : SWFS_OK;
     else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes,
                                              r->info.nslopes / (u.nlags ? u.nlags : 1), o->batch);
     stacked_src ss = {.src = src, .t = src ? swfs_file_source_timing(src) : NULL, .nlags = u.nlags,

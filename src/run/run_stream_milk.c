@@ -23,12 +23,14 @@ static int milk_next(void *ctx, swfs_batch *b)
 }
 
 /* The pipeline is built: open the logs with the sizes it needs. */
-static int milk_prepare(void *ctx, const swfs_pipeline_info *info)
+static int milk_prepare(void *ctx, const swfs_pipeline_info *info, const long *lags)
 {
     milk_ctx *m = ctx;
     const swfs_stream_run_options *o = m->o;
+    const size_t nl = lags && info->nlags > 1 ? info->nlags : 1; /* a space-time map: the batches stack */
     const swfs_milk_source_options so = {o->wfs_logs, o->nwfs_logs, o->science, m->have_clock ? &m->clock : NULL,
-                                         o->exptime, info->nslopes, info->nfx, info->nfy, o->batch};
+                                         o->exptime, info->nslopes / nl, info->nfx, info->nfy, o->batch,
+                                         nl > 1 ? lags : NULL, nl > 1 ? nl : 0};
     return swfs_milk_source_open(&m->src, &so);
 }
 

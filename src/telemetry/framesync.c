@@ -1,6 +1,7 @@
 /* Timestamped frames -> stream batches: see include/specklewfs/framesync.h. */
 #include "specklewfs/framesync.h"
 #include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
 
 #include <math.h>
 #include <stdlib.h>
@@ -147,6 +148,12 @@ struct swfs_framesync {
     uint64_t *bcnt;                 /* camera counters of the batch's frames */
     fclock bck;                     /* the camera clock right after the batch's last frame */
     swfs_framesync_stats st;
+    /* a space-time reconstructor's lags: the batch's rows stacked at them (header, "Lags") */
+    size_t nl;
+    long lags[SWFS_RECON_MAXLAGS], lmax;
+    double *stk;
+    size_t stkcap;                  /* rows stk holds */
+    int pending;                    /* the batch is closed, waiting for its lag frames */
 };
 
 void swfs_framesync_options_default(swfs_framesync_options *o)
@@ -172,6 +179,7 @@ void swfs_framesync_free(swfs_framesync *f)
     free(f->sched);
     free(f->stamps);
     free(f->bcnt);
+    free(f->stk);
     free(f);
 }
 
@@ -190,9 +198,23 @@ int swfs_framesync_create(swfs_framesync **out, size_t nwfs, const size_t *nvals
         return swfs_fail(SWFS_ERR_ARG, "framesync: frame size %zu, batch %zu, max_wait %g, exptime %g, clock memory %g "
                          "(expected > 0, > 0, >= 0, >= 0, >= 1)", nf2, o->batch, o->max_wait, o->exptime,
                          o->clock_memory);
+    if (o->nlags > 1) {
+        const int lrc = o->lags && o->nlags <= SWFS_RECON_MAXLAGS ? swfs_lags_check(o->lags, o->nlags, "framesync: lags")
+                                                                  : swfs_fail(SWFS_ERR_ARG, "framesync: %zu lags (at most "
+                                                                              "%d)", o->nlags, SWFS_RECON_MAXLAGS);
+        if (lrc) return lrc;
+    }
     swfs_framesync *f = calloc(1, sizeof *f);
     if (!f) return swfs_fail(SWFS_ERR_NOMEM, "framesync: out of memory");
     f->o = *o;
+    f->o.lags = NULL;
+    if (o->nlags > 1) {
+        f->nl = o->nlags;
+        for (size_t k = 0; k < f->nl; k++) {
+            f->lags[k] = o->lags[k];
+            if (labs(o->lags[k]) > f->lmax) f->lmax = labs(o->lags[k]);
+        }
+    }
     f->nw = nwfs;
     for (size_t i = 0; i < nwfs; i++) {
         if (!nvals[i]) {
@@ -454,10 +476,57 @@ static void refine(swfs_framesync *f)
     }
 }
 
+/* The batch's segment, or NULL when it has left the ring. */
+static const wseg *batch_seg(const swfs_framesync *f)
+{
+    for (int k = 0; k < NSEG; k++)
+        if (f->seg[k].id == f->bseg_w && f->seg[k].beta > 0) return &f->seg[k];
+    return NULL;
+}
+
+/* Lags: whether the frames of the batch's last row plus the largest lag are in from every
+ * WFS stream, or its segment has ended (flush: the data have). */
+static int lags_ready(const swfs_framesync *f, int flush)
+{
+    if (flush || f->cur < 0 || f->seg[f->cur].id != f->bseg_w) return 1;
+    for (size_t i = 0; i < f->nw; i++)
+        if (f->last_g[i] < f->gend + f->lmax) return 0;
+    return 1;
+}
+
+/* Lags: the batch's rows stacked (header, "Lags"). */
+static int stack_rows(swfs_framesync *f)
+{
+    const size_t ns = f->ns, w = ns * f->nl;
+    if (f->nwfs > f->stkcap) {
+        double *t = realloc(f->stk, f->nwfs * w * sizeof *t);
+        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "framesync: out of memory for %zu WFS frames of %zu lags", f->nwfs, f->nl);
+        f->stk = t;
+        f->stkcap = f->nwfs;
+    }
+    const wseg *s = batch_seg(f);
+    int64_t lo = s ? s->g_first : f->g0, hi = s ? s->g_last : f->gend;
+    for (size_t i = 1; i < f->nw; i++)
+        if (f->last_g[i] < hi) hi = f->last_g[i];
+    if (hi < f->gend) hi = f->gend;
+    if (lo < f->last_g[0] - (int64_t)f->hist + 1) lo = f->last_g[0] - (int64_t)f->hist + 1;
+    for (size_t r = 0; r < f->nwfs; r++) {
+        const int64_t g = f->g0 + (int64_t)r;
+        const double *own = f->slopes + r * ns;
+        for (size_t k = 0; k < f->nl; k++) {
+            int64_t t = g + f->lags[k];
+            t = t < lo ? lo : t > hi ? hi : t;
+            const double *src = frame_ok(f, t) ? f->vals + (size_t)slot_of(f, t) * ns : own;
+            memcpy(f->stk + r * w + k * ns, src, ns * sizeof *src);
+        }
+    }
+    return SWFS_OK;
+}
+
 static void emit(swfs_framesync *f, swfs_batch *b)
 {
     refine(f);
-    b->slopes = f->slopes;
+    b->slopes = f->nl ? f->stk : f->slopes;
     b->nwfs = f->nwfs;
     b->sched = f->sched;
     b->science = f->science;
@@ -474,6 +543,19 @@ static void pop(swfs_framesync *f)
     f->qlen--;
 }
 
+/* The batch out now, or (lags) once its lag frames are in: pending until then. */
+static int close_batch(swfs_framesync *f, int flush, swfs_batch *b)
+{
+    if (f->nl && !lags_ready(f, flush)) {
+        f->pending = 1;
+        return SWFS_OK;
+    }
+    f->pending = 0;
+    const int rc = f->nl ? stack_rows(f) : SWFS_OK;
+    if (!rc) emit(f, b);
+    return rc;
+}
+
 int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
 {
     memset(b, 0, sizeof *b);
@@ -482,6 +564,7 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
         f->bn = 0;
         f->nwfs = 0;
     }
+    if (f->pending) return close_batch(f, flush, b);
     const double cam_period = f->o.exptime > 0 ? f->o.exptime : clock_beta(&f->cc);
     while (f->qlen) {
         camslot *q = &f->q[f->qhead];
@@ -520,10 +603,8 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
             continue;
         }
         /* A complete exposure: close the batch first if it does not continue it. */
-        if (f->bn && (q->seg != f->bseg_c || q->cnt != f->blast + 1 || s->id != f->bseg_w || ga < f->g0)) {
-            emit(f, b);
-            return SWFS_OK;
-        }
+        if (f->bn && (q->seg != f->bseg_c || q->cnt != f->blast + 1 || s->id != f->bseg_w || ga < f->g0))
+            return close_batch(f, flush, b);
         if (!f->bn) {
             f->g0 = ga;
             f->gend = ga - 1;
@@ -552,12 +633,9 @@ int swfs_framesync_next(swfs_framesync *f, double now, int flush, swfs_batch *b)
         f->bck = q->ck;
         f->bn++;
         pop(f);
-        if (f->bn == f->o.batch) {
-            emit(f, b);
-            return SWFS_OK;
-        }
+        if (f->bn == f->o.batch) return close_batch(f, flush, b);
     }
-    if (f->bn && (flush || now - f->boldest >= f->o.max_wait)) emit(f, b);
+    if (f->bn && (flush || now - f->boldest >= f->o.max_wait)) return close_batch(f, flush, b);
     return SWFS_OK;
 }
 
