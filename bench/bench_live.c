@@ -20,7 +20,9 @@
  *
  * Run:  ./build/bench/bench_live                (about 50 s: 10 s per run)
  *       ./build/bench/bench_live --seconds T    (per run)
- *       ./build/bench/bench_live --depth N      (rolling-buffer streams of N frames; default 2-D) */
+ *       ./build/bench/bench_live --depth N      (rolling-buffer streams of N frames; default 2-D)
+ *       ./build/bench/bench_live --lags 0,-6,6,-12,12   (a space-time map of those lags, as teach's:
+ *                                        each batch's rows stacked, waiting for the largest lag) */
 #include "specklewfs/aperture.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
@@ -99,6 +101,12 @@ static void *writer_main(void *arg)
     return NULL;
 }
 
+/* [rad] a slope of 0.3 rad of phase across one subaperture */
+static double slope_scale(const system_def *d) { return 0.3 * d->wavelen / (2.0 * M_PI) / (d->diam / (double)d->nsub); }
+
+static const long *g_lags; /* --lags (NULL: per frame) */
+static size_t g_nlags;
+
 static void run_case(const system_def *d, swfs_pipeline *p, size_t nslopes, size_t nact, size_t batch, double seconds,
                      size_t depth, const char *dir)
 {
@@ -119,7 +127,11 @@ static void run_case(const system_def *d, swfs_pipeline *p, size_t nslopes, size
     if (!w.slopes || !w.science) die("memory");
     swfs_rng r;
     swfs_rng_seed(&r, 11);
-    for (size_t q = 0; q < w.K * nslopes; q++) w.slopes[q] = 0.3 * swfs_rng_normal(&r);
+    /* slopes of a physical size: about 0.3 rad of phase across a subaperture (the tip-tilt
+     * model puts their mean back as the plane it measures; slopes of 0.3 rad of wavefront
+     * tilt made phases of 1e6 rad, whose sines glibc reduces the slow way) */
+    const double s1 = slope_scale(d);
+    for (size_t q = 0; q < w.K * nslopes; q++) w.slopes[q] = s1 * swfs_rng_normal(&r);
     for (size_t q = 0; q < 4 * d->nf * d->nf; q++) w.science[q] = 100.0 + 10.0 * swfs_rng_uniform(&r);
     swfs_shm_shape ws = {SWFS_SHM_F32, nslopes, 1, depth > 1 ? depth : 1, depth > 1, 0};
     swfs_shm_shape cs = {SWFS_SHM_F32, d->nf, d->nf, depth > 1 ? depth : 1, depth > 1, 0};
@@ -136,6 +148,8 @@ static void run_case(const system_def *d, swfs_pipeline *p, size_t nslopes, size
     so.nfx = so.nfy = d->nf;
     so.sync.batch = batch;
     so.sync.max_wait = 0.5;
+    so.sync.lags = g_lags;
+    so.sync.nlags = g_nlags;
     so.stop = &stop;
     swfs_shm_source *src = NULL;
     if (swfs_shm_source_open(&src, &so)) die("shm source");
@@ -181,8 +195,13 @@ int main(int argc, char **argv)
     for (int i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--seconds") && i + 1 < argc) seconds = atof(argv[++i]);
         else if (!strcmp(argv[i], "--depth") && i + 1 < argc) depth = (size_t)atol(argv[++i]);
-        else {
-            fprintf(stderr, "usage: bench_live [--seconds T] [--depth N]\n");
+        else if (!strcmp(argv[i], "--lags") && i + 1 < argc) {
+            static long lv[SWFS_RECON_MAXLAGS];
+            if (swfs_lags_parse(argv[++i], lv, &g_nlags, "--lags")) die("--lags");
+            g_lags = g_nlags > 1 ? lv : NULL;
+            if (g_nlags < 2) g_nlags = 0;
+        } else {
+            fprintf(stderr, "usage: bench_live [--seconds T] [--depth N] [--lags L,L,...]\n");
             return 2;
         }
     }
@@ -199,7 +218,9 @@ int main(int argc, char **argv)
         {"MMT-like", 12, 163, 60, 6.5, 0.1, 1.6e-6, 0.25, 6.48, 527.0, 9.5},
         {"ExAO-like", 45, 256, 128, 8.0, 0.14, 1.6e-6, 0.5, 20.0, 2000.0, 25.0},
     };
-    printf("streams in %s (%s), %.0f s per run, 2 engine threads\n", d0, depth > 1 ? "rolling buffers" : "2-D", seconds);
+    printf("streams in %s (%s), %.0f s per run, 2 engine threads", d0, depth > 1 ? "rolling buffers" : "2-D", seconds);
+    for (size_t k = 0; k < g_nlags; k++) printf("%s%ld", k ? "," : "; a space-time map of lags ", g_lags[k]);
+    printf("\n");
     printf("%-9s %5s %8s %9s %9s %9s %13s %8s %10s %7s %8s %8s %8s %8s   %s\n", "system", "batch", "WFS Hz", "cam sent",
            "received", "used", "drop wfs/cam", "skipped", "capacity", "x real", "per CPU", "lag med", "lag 99%", "lag max",
            "writer late max [ms]");
@@ -225,8 +246,21 @@ int main(int argc, char **argv)
         if (!rec.W) die("memory");
         swfs_rng r;
         swfs_rng_seed(&r, 42);
-        const double scale = d->wavelen / (2.0 * M_PI) / sqrt((double)nslopes);
+        const double scale = 0.3 * d->wavelen / (2.0 * M_PI) / sqrt((double)nslopes) / slope_scale(d); /* ~0.3 rad */
         for (size_t k = 0; k < nact * nslopes; k++) rec.W[k] = scale * swfs_rng_normal(&r);
+        if (g_nlags > 1) { /* a space-time map: the same map at lag 0, a third of it at the others */
+            const size_t nl = g_nlags, w = nl * nslopes;
+            double *st = malloc(nact * w * sizeof *st);
+            if (!st) die("memory");
+            for (size_t a = 0; a < nact; a++)
+                for (size_t q = 0; q < w; q++)
+                    st[a * w + q] = (g_lags[q / nslopes] == 0 ? 1.0 : 0.3) * rec.W[a * nslopes + q % nslopes];
+            free(rec.W);
+            rec.W = st;
+            rec.nslopes = w;
+            rec.nlags = nl;
+            memcpy(rec.lags, g_lags, nl * sizeof *g_lags);
+        }
         swfs_pipeline_options po;
         swfs_pipeline_options_default(&po);
         po.recon = SWFS_RECON_GIVEN;
