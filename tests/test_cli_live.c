@@ -313,6 +313,28 @@ static void test_equal_to_stream(void **state)
     assert_true(d <= 1e-8 * peak && dp > 1e-3 * peak);
 }
 
+/* stream --wfs-log on the simulation's milk logs into halo_stream_milk<tag>.fits, and live fed
+ * by replay --wfs-log of the same logs into halo_live_milk<tag>.fits, with the map options
+ * `model`; live's log in out. */
+static void milk_stream_and_live(const char *model, const char *tag, double exptime, char *out, size_t cap)
+{
+    char args[4096];
+    snprintf(args, sizeof args, "stream --wfs-log sim/milk/wfs --science sci.fits %s -o halo_stream_milk%s.fits", model,
+             tag);
+    assert_int_equal(test_run_cli(dir, args, out, cap), 0);
+    snprintf(args, sizeof args, "live --shm-dir %s --wfs w --camera c --geom sci.fits %s --exptime %.17g --max-wait 60 "
+             "--idle-exit 0.5 -o halo_live_milk%s.fits", shm, model, exptime, tag);
+    const pid_t pid = spawn_cli(args, "live.log");
+    snprintf(args, sizeof args, "replay --shm-dir %s --wfs-name w --camera-name c --wfs-log sim/milk/wfs --science "
+             "sci.fits --speed 3 --depth 64 --wait-reader 30 --remove", shm);
+    const int rrc = test_run_cli(dir, args, out, cap);
+    print_message("%s", out);
+    assert_int_equal(rrc, 0);
+    assert_int_equal(wait_cli(pid), 0);
+    slurp("live.log", out, cap);
+    print_message("%s", out);
+}
+
 /* Logged telemetry: the time-series simulation's milk logs (3 us stamp jitter, a camera clock
  * that drifts, dropped frames, several files per stream) at the data's 527 Hz, published by
  * `replay --wfs-log` with their own stamps: live's halo equals `stream --wfs-log`'s on the
@@ -322,7 +344,6 @@ static void test_equal_to_stream_milk(void **state)
     (void)state;
     setup_dirs();
     char out[16384];
-    int rrc;
     assert_int_equal(test_run_cli(dir, "simulate mode=timeseries --quiet -o sim pupn=66 pupdx=0.1 screen_n=1024 "
                                        "ncubes=2 cube_frames=40 cube_gap=100 seed=2 milk=1 milk_file_frames=400",
                                   out, sizeof out), 0);
@@ -336,21 +357,8 @@ static void test_equal_to_stream_milk(void **state)
     assert_true(n == 80 - 3 && exptime > 0); /* 3 camera frames lost in the log */
     free(cnt);
     free(st);
-    const char *model = "--recon sim/recon_ao.fits --actuators sim/actuators.fits --batch 8";
-    char args[4096];
-    snprintf(args, sizeof args, "stream --wfs-log sim/milk/wfs --science sci.fits %s -o halo_stream_milk.fits", model);
-    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
-    snprintf(args, sizeof args, "live --shm-dir %s --wfs w --camera c --geom sci.fits %s --exptime %.17g --max-wait 60 "
-             "--idle-exit 0.5 -o halo_live_milk.fits", shm, model, exptime);
-    const pid_t pid = spawn_cli(args, "live.log");
-    snprintf(args, sizeof args, "replay --shm-dir %s --wfs-name w --camera-name c --wfs-log sim/milk/wfs --science "
-             "sci.fits --speed 3 --depth 64 --wait-reader 30 --remove", shm);
-    rrc = test_run_cli(dir, args, out, sizeof out);
-    print_message("%s", out);
-    assert_int_equal(rrc, 0);
-    assert_int_equal(wait_cli(pid), 0);
-    slurp("live.log", out, sizeof out);
-    print_message("%s", out);
+    milk_stream_and_live("--recon sim/recon_ao.fits --actuators sim/actuators.fits --batch 8", "", exptime, out,
+                         sizeof out);
     assert_non_null(strstr(out, "(5 dropped, 0 restarts) and 77 camera frames (3 dropped, 0 restarts)"));
     double peak, d = halo_diff("halo_stream_milk.fits", "halo_live_milk.fits", &peak);
     print_message("live vs stream --wfs-log on the same milk logs, 527 Hz: max |HALO difference| %.3g of the peak\n",
@@ -370,16 +378,8 @@ static void test_equal_to_stream_milk(void **state)
     assert_ok(swfs_recon_write(&stm, in_dir("recon_st_milk.fits")));
     free(stm.W);
     swfs_recon_free(w);
-    const char *stmodel = "--recon recon_st_milk.fits --actuators sim/actuators.fits --batch 8";
-    snprintf(args, sizeof args, "stream --wfs-log sim/milk/wfs --science sci.fits %s -o halo_stream_milk_st.fits", stmodel);
-    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
-    snprintf(args, sizeof args, "live --shm-dir %s --wfs w --camera c --geom sci.fits %s --exptime %.17g --max-wait 60 "
-             "--idle-exit 0.5 -o halo_live_milk_st.fits", shm, stmodel, exptime);
-    const pid_t pid2 = spawn_cli(args, "live.log");
-    snprintf(args, sizeof args, "replay --shm-dir %s --wfs-name w --camera-name c --wfs-log sim/milk/wfs --science "
-             "sci.fits --speed 3 --depth 64 --wait-reader 30 --remove", shm);
-    assert_int_equal(test_run_cli(dir, args, out, sizeof out), 0);
-    assert_int_equal(wait_cli(pid2), 0);
+    milk_stream_and_live("--recon recon_st_milk.fits --actuators sim/actuators.fits --batch 8", "_st", exptime, out,
+                         sizeof out);
     d = halo_diff("halo_stream_milk_st.fits", "halo_live_milk_st.fits", &peak);
     const double dp = halo_diff("halo_stream_milk.fits", "halo_stream_milk_st.fits", &peak);
     print_message("live vs stream --wfs-log, space-time map: max |HALO difference| %.3g of the peak (the per-frame "

@@ -305,6 +305,21 @@ static void stream_file_options(swfs_stream_run_options *so, const char *recon, 
     so->out = out;
 }
 
+/* The stream's halo file against speckles + estimate's halo: max |dPsi| / the peak of ref
+ * (pixels finite in both). *out: the stream's halo (caller frees). */
+static double stream_halo_diff(const char *path, const swfs_halo *ref, swfs_halo **out)
+{
+    assert_ok(swfs_halo_read(path, out, NULL));
+    const swfs_halo *hs = *out;
+    double peak = 0, d = 0;
+    for (size_t k = 0; k < hs->halo->nx * hs->halo->ny; k++) {
+        peak = fmax(peak, cabs(ref->halo->data[k]));
+        if (isfinite(creal(hs->halo->data[k])) && isfinite(creal(ref->halo->data[k])))
+            d = fmax(d, cabs(hs->halo->data[k] - ref->halo->data[k]));
+    }
+    return d / peak;
+}
+
 /* stream (file source -> pipeline -> stream) = speckles + estimate with the same reconstructor. */
 static void test_stream_equals_speckles(void **state)
 {
@@ -321,16 +336,10 @@ static void test_stream_equals_speckles(void **state)
     assert_ok(swfs_stream_run_files(&so, &sr));
     assert_int_equal(sr.camera_frames, 179);
     swfs_halo *hs = NULL;
-    assert_ok(swfs_halo_read(p("halo_stream.fits"), &hs, NULL));
-    double peak = 0, d = 0;
-    for (size_t k = 0; k < hs->halo->nx * hs->halo->ny; k++) {
-        peak = fmax(peak, cabs(er.halo->halo->data[k]));
-        if (isfinite(creal(hs->halo->data[k])) && isfinite(creal(er.halo->halo->data[k])))
-            d = fmax(d, cabs(hs->halo->data[k] - er.halo->halo->data[k]));
-    }
-    printf("test_runs: stream vs speckles + estimate: max |dPsi| / peak = %.2g\n", d / peak);
+    const double d = stream_halo_diff(p("halo_stream.fits"), er.halo, &hs);
+    printf("test_runs: stream vs speckles + estimate: max |dPsi| / peak = %.2g\n", d);
     /* The speckle cube is stored in single precision; the stream keeps double. */
-    assert_true(d / peak < 1e-4);
+    assert_true(d < 1e-4);
     /* The regression statistics travel with both halos, and the joint fit agrees. */
     assert_true(hs->reg && er.halo->reg);
     assert_int_equal(hs->reg->frames, er.halo->reg->frames);
@@ -1455,15 +1464,9 @@ static void test_spacetime_reconstructor(void **state)
            sr.st_edges_joined, spr.st_edges_joined, sr.st_edges_clamped);
     assert_true(sr.st_edges_joined >= 1 && sr.st_edges_joined == spr.st_edges_joined && sr.st_edges_clamped == 0);
     swfs_halo *hst = NULL;
-    assert_ok(swfs_halo_read(p("halo_stream_st.fits"), &hst, NULL));
-    double pk = 0, dd = 0;
-    for (size_t k = 0; k < hst->halo->nx * hst->halo->ny; k++) {
-        pk = fmax(pk, cabs(er.halo->halo->data[k]));
-        if (isfinite(creal(hst->halo->data[k])) && isfinite(creal(er.halo->halo->data[k])))
-            dd = fmax(dd, cabs(hst->halo->data[k] - er.halo->halo->data[k]));
-    }
-    printf("test_runs: stream vs speckles + estimate, space-time map: max |dPsi| / peak = %.2g\n", dd / pk);
-    assert_true(dd / pk < 1e-4); /* the speckle cube is stored in single precision; the stream keeps double */
+    const double dd = stream_halo_diff(p("halo_stream_st.fits"), er.halo, &hst);
+    printf("test_runs: stream vs speckles + estimate, space-time map: max |dPsi| / peak = %.2g\n", dd);
+    assert_true(dd < 1e-4); /* the speckle cube is stored in single precision; the stream keeps double */
     swfs_halo_free(hst);
     swfs_halo_free(er.halo);
     swfs_real *cube = NULL;
