@@ -161,6 +161,14 @@ static void make_data(void)
     swfs_recon *rec = NULL;
     assert_ok(swfs_recon_svd(D, NSL, nact, 5e-2, 0, &rec));
     assert_ok(swfs_recon_write(rec, in_dir("recon.fits")));
+    /* the same map as a space-time one of lags 0, -2 and 3 (a third of it at each other lag) */
+    swfs_recon st = {.nact = rec->nact, .nslopes = 3 * NSL, .W = calloc(3 * NSL * rec->nact, sizeof(double)), .nlags = 3,
+                     .lags = {0, -2, 3}};
+    assert_non_null(st.W);
+    for (size_t a = 0; a < rec->nact; a++)
+        for (size_t i = 0; i < 3 * (size_t)NSL; i++) st.W[a * 3 * NSL + i] = (i < NSL ? 1.0 : 0.3) * rec->W[a * NSL + i % NSL];
+    assert_ok(swfs_recon_write(&st, in_dir("recon_st.fits")));
+    free(st.W);
     swfs_recon_free(rec);
     write_slopes("slopes_a.fits", nwfs_a, D, nact, &r);
     write_slopes("slopes_b.fits", nwfs_b, D, nact, &r);
@@ -359,6 +367,15 @@ static void test_stream_equal(void **state)
         swfs_accum_free(a);
         swfs_accum_free(b);
     }
+    /* a space-time map: each member stacks its batches' lags from the files, across the
+     * telemetry files' boundary, as the single process does */
+    const char *st = "stream --timing timing.txt --science sci.fits --recon recon_st.fits --actuators act.fits "
+                     "--threads 1 --batch 8 --pupil-method moments";
+    snprintf(args, sizeof args, "%s -o halo_st1.fits", st);
+    run_ok(0, args);
+    snprintf(args, sizeof args, "%s -o halo_st2.fits", st);
+    run_ok(2, args);
+    compare_products("halo_st1.fits", "halo_st2.fits", halo_ext, sizeof halo_ext / sizeof halo_ext[0], 1e-12);
 }
 
 /* --max-frames: the first N frames of the data set, whatever the number of ranks. */
