@@ -106,8 +106,21 @@ static void known_surface(int influence)
         assert_true(m > 1e-9);
         for (size_t a = 0; a < nact; a++) assert_close(cm[t * nact + a], c3[a], 1e-9 * m);
     }
+    /* the three at once (rhs_many, rows of 4 on the plan's samples): the same sums, bit for bit */
+    const size_t npx = swfs_dmfit_npix(f), *px = swfs_dmfit_pix(f);
+    double *R = calloc(npx * 4, sizeof *R), *bt = calloc(nact * 3, sizeof *bt);
+    for (size_t k = 0; k < npx; k++)
+        for (size_t t = 0; t < 3; t++) R[k * 4 + t] = tg[t][px[k]];
+    assert_ok(swfs_dmfit_rhs_many(f, R, 4, 3, bt));
+    for (size_t t = 0; t < 3; t++)
+        for (size_t a = 0; a < nact; a++) assert_true(bt[a * 3 + t] == b[t * nact + a]);
     d[(NP / 2) * NP + NP / 2 + NP / 4] = NAN; /* a target not finite in the pupil is refused */
     assert_int_equal(swfs_dmfit_rhs(f, d, b), SWFS_ERR_VALUE);
+    for (size_t k = 0; k < npx; k++) R[k * 4 + 2] = d[px[k]];
+    assert_int_equal(swfs_dmfit_rhs_many(f, R, 4, 3, bt), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "target 2 of 3 is not finite"));
+    free(R);
+    free(bt);
     free(b);
     free(cm);
     free(c3);

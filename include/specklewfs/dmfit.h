@@ -88,6 +88,15 @@ int swfs_dmfit_apply(swfs_dmfit *f, const double *target, double *cmd, double *f
  * another order than the GEMV): a GEMM reads the nact x nact solve once per block of
  * targets where the GEMV reads it once per target. */
 int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b);
+/* rhs for n targets at once, vectorized over them: R holds the targets on the plan's pupil
+ * samples, sample-major (R[k ld + j]: target j < n <= ld at sample swfs_dmfit_pix(f)[k]); bt
+ * (nact x n, row-major: bt[a n + j]) receives their right-hand sides. Each value is summed in
+ * the order swfs_dmfit_rhs sums it. A non-finite value is refused, naming its target and
+ * sample. */
+int swfs_dmfit_rhs_many(const swfs_dmfit *f, const double *R, size_t ld, size_t n, double *bt);
+/* The pupil samples a plan reads (mask > 0), npix of them, as indices into PUPN x PUPN. */
+size_t swfs_dmfit_npix(const swfs_dmfit *f);
+const size_t *swfs_dmfit_pix(const swfs_dmfit *f);
 void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd);
 /* surface = sum_a cmd_a f_a on the grid (0 outside the pupil). */
 void swfs_dmfit_surface(const swfs_dmfit *f, const double *cmd, double *surface);

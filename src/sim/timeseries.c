@@ -437,6 +437,19 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
     return rc;
 }
 
+/* export_truth: the frames' residuals gathered on the fit plan's pupil samples TRUTH_BLK at a
+ * time (R: npix x TRUTH_BLK, sample-major) and turned into their right-hand sides by one pass
+ * vectorized over the block (dmfit.h swfs_dmfit_rhs_many; the sums of swfs_dmfit_rhs, in its
+ * order), written as n rows of tb. bt: ntr x TRUTH_BLK scratch. */
+#define TRUTH_BLK 32
+static int truth_rhs_block(const swfs_dmfit *f, const double *R, size_t n, double *bt, double *rows, size_t ntr)
+{
+    const int rc = swfs_dmfit_rhs_many(f, R, TRUTH_BLK, n, bt);
+    for (size_t j = 0; !rc && j < n; j++)
+        for (size_t a = 0; a < ntr; a++) rows[j * ntr + a] = bt[a * n + j];
+    return rc;
+}
+
 /* export_truth: the frames' right-hand sides in tb (nwfs x ntr) replaced by their fits, a
  * block of frames per GEMM (dmfit.h swfs_dmfit_solve_many). */
 static int solve_truth(const swfs_dmfit *f, double *tb, size_t nwfs, size_t ntr)
@@ -605,7 +618,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
-    double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL;
+    double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL, *tR = NULL, *tbt = NULL;
     /* Exposures open at once: two when an exposure spans at least a WFS frame; a camera
      * faster than the WFS has each frame in up to ceil(2 / ratio) + 1 exposures (engine.h). */
     const size_t nslot = p->frame_ratio >= 1.0 ? 2 : (size_t)ceil(2.0 / p->frame_ratio) + 1;
@@ -773,7 +786,9 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         }
         tb = malloc(nwfs * ntr * sizeof *tb);
         tdm = malloc(nwfs * nact * sizeof *tdm);
-        if (!tb || !tdm) { free(dact); dact = NULL; }
+        tR = malloc(swfs_dmfit_npix(tplan) * TRUTH_BLK * sizeof *tR);
+        tbt = malloc(ntr * TRUTH_BLK * sizeof *tbt);
+        if (!tb || !tdm || !tR || !tbt) { free(dact); dact = NULL; }
     }
     if (!dact) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     for (size_t k = 0; k < nwfs; k++) {
@@ -804,7 +819,13 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         }
         mean /= (double)npin;
         if (tplan) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
-            if ((rc = swfs_dmfit_rhs(tplan, res, tb + k * ntr))) { free(tstart); free(dact); goto done; }
+            const size_t jj = k % TRUTH_BLK, npx = swfs_dmfit_npix(tplan);
+            const size_t *px = swfs_dmfit_pix(tplan);
+            for (size_t q = 0; q < npx; q++) tR[q * TRUTH_BLK + jj] = res[px[q]];
+            if ((jj + 1 == TRUTH_BLK || k + 1 == nwfs) &&
+                (rc = truth_rhs_block(tplan, tR, jj + 1, tbt, tb + (k - jj) * ntr, ntr))) {
+                free(tstart); free(dact); goto done;
+            }
             memcpy(tdm + k * nact, act, nact * sizeof *act);
         }
         /* WFS: slopes with noise. */
@@ -1048,7 +1069,7 @@ done:
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm);
+    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
     swfs_dmfit_free(tfit);
     free(txy);

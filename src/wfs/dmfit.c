@@ -65,6 +65,8 @@ const double *swfs_dmfit_xy(const swfs_dmfit *f) { return f->xy; }
 size_t swfs_dmfit_nact(const swfs_dmfit *f) { return f->nact; }
 double swfs_dmfit_pitch(const swfs_dmfit *f) { return f->pitch; }
 size_t swfs_dmfit_active(const swfs_dmfit *f) { return f->nactive; }
+size_t swfs_dmfit_npix(const swfs_dmfit *f) { return f->npix; }
+const size_t *swfs_dmfit_pix(const swfs_dmfit *f) { return f->pix; }
 const swfs_sparse *swfs_dmfit_influence(const swfs_dmfit *f) { return f->A; }
 const double *swfs_dmfit_mask(const swfs_dmfit *f) { return f->mask; }
 const swfs_dmfit_options *swfs_dmfit_opts(const swfs_dmfit *f) { return &f->opt; }
@@ -336,6 +338,31 @@ int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b)
     const int rc = check_target(f, target);
     if (!rc) rhs_of(f, target, b);
     return rc;
+}
+
+int swfs_dmfit_rhs_many(const swfs_dmfit *f, const double *R, size_t ld, size_t n, double *bt)
+{
+    if (f->opt.modes > 0)
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: the two-step fit takes a plan without a modal restriction (modes %zu)",
+                         f->opt.modes);
+    if (n > ld) return swfs_fail(SWFS_ERR_ARG, "DM fit: %zu targets in rows of %zu", n, ld);
+    for (size_t k = 0; k < f->npix; k++)
+        for (size_t j = 0; j < n; j++)
+            if (!isfinite(R[k * ld + j]))
+                return swfs_fail(SWFS_ERR_VALUE, "DM fit: target %zu of %zu is not finite at pupil sample %zu", j, n,
+                                 f->pix[k]);
+    const swfs_sparse *A = f->A;
+    memset(bt, 0, f->nact * n * sizeof *bt);
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double w = f->mask[s], *r = R + k * ld;
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) {
+            double *o = bt + A->col[e] * n;
+            const double v = A->val[e];
+            for (size_t j = 0; j < n; j++) o[j] += (w * r[j]) * v; /* rhs_of's (mask t) val, per target */
+        }
+    }
+    return SWFS_OK;
 }
 
 void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd)
