@@ -306,6 +306,8 @@ static void test_equal_to_stream(void **state)
     live_common = common;
     assert_int_equal(rrc, 0);
     assert_int_equal(number_after(out, "halo_live_st.fits: "), 2 * NCAM);
+    assert_non_null(strstr(out, "space-time reconstructor of 3 lags (0,-2,3 WFS frames): each batch waited for the WFS "
+                                "frames 3 after its last"));
     d = halo_diff("halo_stream_st.fits", "halo_live_st.fits", &peak);
     const double dp = halo_diff("halo_stream.fits", "halo_stream_st.fits", &peak);
     print_message("live vs stream, space-time map: max |HALO difference| %.3g of the peak (the per-frame map's halo "
