@@ -177,6 +177,12 @@ struct swfs_speckles_run_result;
 /* A space-time reconstructor's checks against the observation (run.h st_*), with their warnings
  * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
+/* Where a space-time map's lags ran on across telemetry files and were clamped (speckles,
+ * stream). */
+void cli_spacetime_edges(const char *cmd, size_t joined, size_t clamped, size_t unreadable, const char *why);
+/* "cmd: space-time reconstructor of N lags (l1,l2,... WFS frames)" on stderr, without the line's
+ * end (stream and live go on with what they did with them); returns the largest |lag|. */
+long cli_spacetime_lags(const char *cmd, const long *lags, size_t n);
 struct swfs_teach_run_result;
 struct swfs_speckles_run_options;
 /* What a successful `speckles` run prints: the reconstructor in use (for the taught default

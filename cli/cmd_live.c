@@ -11,7 +11,6 @@
 #include <limits.h>
 #include <signal.h>
 #include <stdio.h>
-#include <stdlib.h>
 #include <string.h>
 
 static volatile sig_atomic_t stop_flag = 0;
@@ -167,13 +166,8 @@ int swfs_cmd_live(int argc, char **argv)
                 (unsigned long long)y->overrun);
     if (rc) return cli_error(cmd);
     if (r.run.info.nlags > 1) {
-        long lmax = 0;
-        fprintf(stderr, "live: space-time reconstructor of %zu lags (", r.run.info.nlags);
-        for (size_t k = 0; k < r.run.info.nlags; k++) {
-            fprintf(stderr, "%s%ld", k ? "," : "", r.run.st_lags[k]);
-            if (labs(r.run.st_lags[k]) > lmax) lmax = labs(r.run.st_lags[k]);
-        }
-        fprintf(stderr, " WFS frames): each batch waited for the WFS frames %ld after its last\n", lmax);
+        const long lmax = cli_spacetime_lags(cmd, r.run.st_lags, r.run.info.nlags);
+        fprintf(stderr, ": each batch waited for the WFS frames %ld after its last\n", lmax);
     }
     printf("live: %s: %llu camera frames used in %llu batches, %.0f WFS frames; %.2f s of data; WFS %.1f Hz, camera %.2f Hz",
            o.run.out, (unsigned long long)y->used, (unsigned long long)y->batches, r.run.wfs_frames, r.src.seconds,

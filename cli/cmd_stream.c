@@ -126,14 +126,9 @@ int swfs_cmd_stream(int argc, char **argv)
         fprintf(stderr, "specklewfs %s: warning: %zu illuminated pupil samples lie outside the actuators' hull (phase 0 "
                 "there)\n", cmd, r.info.n_outside);
     if (r.info.nlags > 1) {
-        fprintf(stderr, "stream: space-time reconstructor of %zu lags (", r.info.nlags);
-        for (size_t k = 0; k < r.info.nlags; k++) fprintf(stderr, "%s%ld", k ? "," : "", r.st_lags[k]);
-        fprintf(stderr, " WFS frames): each frame's slopes stacked with those at the lags, run on into the neighbour "
-                "telemetry file across %zu file boundar%s the telemetry shows contiguous, clamped at %zu it does not",
-                r.st_edges_joined, r.st_edges_joined == 1 ? "y" : "ies", r.st_edges_clamped);
-        if (r.st_edges_unreadable)
-            fprintf(stderr, " and at %zu whose neighbour could not be read (%s)", r.st_edges_unreadable, r.st_edges_why);
-        fprintf(stderr, "\n");
+        cli_spacetime_lags(cmd, r.st_lags, r.info.nlags);
+        fprintf(stderr, ": each frame's slopes stacked with those at the lags\n");
+        cli_spacetime_edges(cmd, r.st_edges_joined, r.st_edges_clamped, r.st_edges_unreadable, r.st_edges_why);
     }
     if (isfinite(r.static_scale))
         fprintf(stderr, "stream: static halo S^1/2 Psi_0 with S^1/2 = %.4g (per unit exposure weight %.4g)\n",

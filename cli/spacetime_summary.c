@@ -54,13 +54,31 @@ void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_resul
                     "default (docs/telemetry.md)\n", cmd, labs(lags[k]), r->st_corr_obs[k], r->st_corr_train[k],
                     r->st_corr_spread[k]);
     }
-    if (r->info.nlags && (r->st_edges_joined || r->st_edges_clamped))
+    if (r->info.nlags)
+        cli_spacetime_edges(cmd, r->st_edges_joined, r->st_edges_clamped, r->st_edges_unreadable, r->st_edges_why);
+}
+
+void cli_spacetime_edges(const char *cmd, size_t joined, size_t clamped, size_t unreadable, const char *why)
+{
+    if (joined || clamped)
         fprintf(stderr, "%s: space-time map: its lags run on into the neighbour telemetry file across %zu file "
-                "boundar%s the telemetry shows contiguous; clamped at %zu it does not\n", cmd, r->st_edges_joined,
-                r->st_edges_joined == 1 ? "y" : "ies", r->st_edges_clamped);
-    if (r->info.nlags && r->st_edges_unreadable)
+                "boundar%s the telemetry shows contiguous; clamped at %zu it does not\n", cmd, joined,
+                joined == 1 ? "y" : "ies", clamped);
+    if (unreadable)
         fprintf(stderr, "%s: space-time map: clamped at %zu file boundar%s whose neighbour file could not be read (%s)\n",
-                cmd, r->st_edges_unreadable, r->st_edges_unreadable == 1 ? "y" : "ies", r->st_edges_why);
+                cmd, unreadable, unreadable == 1 ? "y" : "ies", why);
+}
+
+long cli_spacetime_lags(const char *cmd, const long *lags, size_t n)
+{
+    long lmax = 0;
+    fprintf(stderr, "%s: space-time reconstructor of %zu lags (", cmd, n);
+    for (size_t k = 0; k < n; k++) {
+        fprintf(stderr, "%s%ld", k ? "," : "", lags[k]);
+        if (labs(lags[k]) > lmax) lmax = labs(lags[k]);
+    }
+    fprintf(stderr, " WFS frames)");
+    return lmax;
 }
 
 static const char *chosen_name(int c)

@@ -22,8 +22,8 @@ const char **swfs_prov_plus(const char *const *prov, size_t nprov, const char *e
 typedef struct swfs_run_hooks {
     swfs_source_fn source;
     void *source_ctx;
-    int (*prepare)(void *ctx, const swfs_pipeline_info *info, const long *lags); /* lags: info.nlags of a
-                                                                            space-time map's (NULL: per frame) */
+    int (*prepare)(void *ctx, const swfs_pipeline_info *info, const long *lags); /* lags: a space-time map's
+                                                                            info.nlags; NULL: per frame */
     int (*after)(void *ctx, swfs_stream *s, const swfs_halo *h, const swfs_pupil_result *pupil, int final);
     void *ctx;
     int offline;  /* 1: files as the source (milk logs): a failed run removes the products it
@@ -69,6 +69,25 @@ typedef struct swfs_lag_edges_ {
 int swfs_lag_edges_load_(swfs_lag_edges_ *e, const char *tdir, const swfs_timing *t, const char *name,
                          const swfs_real *s, size_t margin);
 void swfs_lag_edges_free_(swfs_lag_edges_ *e);
+
+/* A space-time reconstructor's input, piece by piece of a telemetry file (speckles and
+ * stream): the file's edges (swfs_lag_edges_) loaded when the file changes, the piece's frames
+ * stacked at the lags (wfs.h swfs_slopes_stack) into a buffer that grows to the largest piece
+ * once. */
+typedef struct swfs_lag_stacker_ {
+    swfs_lag_edges_ edges;
+    char edges_for[8192];   /* the telemetry file the edges are of ("" none) */
+    double *buf;
+    size_t cap;             /* frames buf holds */
+} swfs_lag_stacker_;
+/* Frames [k0, k0 + n) of the telemetry file `path` (s: its frames, nslopes x WFS frames;
+ * name: the timing table's name for it in tdir, where its neighbours are looked up; tdir
+ * NULL: none, clamped at its ends) stacked at the nl lags, in *out (valid until the next
+ * call). */
+int swfs_lag_stacker_rows_(swfs_lag_stacker_ *st, const char *tdir, const swfs_timing *t, const char *name,
+                           const char *path, const swfs_real *s, const long *lags, size_t nl, size_t k0, size_t n,
+                           const double **out);
+void swfs_lag_stacker_free_(swfs_lag_stacker_ *st);
 
 /* What a telemetry series does in time, for a space-time map's checks (learn records it of
  * its training loops, speckles measures it on the observation). wind (may be NULL): its wind

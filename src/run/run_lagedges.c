@@ -119,3 +119,35 @@ void swfs_lag_edges_free_(swfs_lag_edges_ *e)
     free(e->ext);
     memset(e, 0, sizeof *e);
 }
+
+int swfs_lag_stacker_rows_(swfs_lag_stacker_ *st, const char *tdir, const swfs_timing *t, const char *name,
+                           const char *path, const swfs_real *s, const long *lags, size_t nl, size_t k0, size_t n,
+                           const double **out)
+{
+    int rc = SWFS_OK;
+    if (strcmp(st->edges_for, path)) {
+        st->edges_for[0] = 0;
+        const size_t margin = tdir ? (size_t)swfs_lags_max_abs(lags, nl) : 0;
+        if ((rc = swfs_lag_edges_load_(&st->edges, tdir ? tdir : ".", t, name, s, margin))) return rc;
+        if (snprintf(st->edges_for, sizeof st->edges_for, "%s", path) >= (int)sizeof st->edges_for)
+            return swfs_fail(SWFS_ERR_ARG, "telemetry path %s is too long", path);
+    }
+    const size_t width = s->nx * nl;
+    if (n > st->cap) {
+        double *g = realloc(st->buf, n * width * sizeof *g);
+        if (!g) return swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zu lags", n, nl);
+        st->buf = g;
+        st->cap = n;
+    }
+    const swfs_lag_edges_ *e = &st->edges;
+    swfs_slopes_stack(e->ext, e->pre + e->ny + e->post, s->nx, lags, nl, e->pre + k0, n, st->buf);
+    *out = st->buf;
+    return SWFS_OK;
+}
+
+void swfs_lag_stacker_free_(swfs_lag_stacker_ *st)
+{
+    swfs_lag_edges_free_(&st->edges);
+    free(st->buf);
+    memset(st, 0, sizeof *st);
+}

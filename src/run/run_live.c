@@ -46,10 +46,9 @@ static int live_prepare(void *ctx, const swfs_pipeline_info *info, const long *l
     live_ctx *l = ctx;
     swfs_shm_source_options so = l->o->src;
     /* a space-time map: the streams give one frame's slopes, the batches stack them */
-    const size_t nl = lags && info->nlags > 1 ? info->nlags : 1;
-    so.nslopes = info->nslopes / nl;
-    so.sync.lags = nl > 1 ? lags : NULL;
-    so.sync.nlags = nl > 1 ? nl : 0;
+    so.nslopes = info->nslopes / (lags ? info->nlags : 1);
+    so.sync.lags = lags;
+    so.sync.nlags = lags ? info->nlags : 0;
     so.nfx = info->nfx;
     so.nfy = info->nfy;
     return swfs_shm_source_open(&l->src, &so);

@@ -42,12 +42,10 @@ typedef struct work {
     swfs_cplx *halo;
     swfs_real *resmean; /* the reconstructed residual's time mean (PUPN x PUPN) [m] */
     swfs_real *slopes;
-    double *stack;      /* a space-time reconstructor's stacked input for one piece */
-    size_t stack_cap;   /* frames it holds */
-    swfs_lag_edges_ edges; /* the file in memory with its contiguous neighbours' edge frames */
+    swfs_lag_stacker_ stk; /* a space-time reconstructor's input, piece by piece of the file in memory */
     swfs_exposure *sched;
     size_t *cfirst, *cn;
-    char tdir[4096], path[8192], loaded[8192], edges_for[8192];
+    char tdir[4096], path[8192], loaded[8192];
 } work;
 
 static void work_free(work *w)
@@ -59,8 +57,7 @@ static void work_free(work *w)
     swfs_cplx_free(w->halo);
     swfs_real_free(w->resmean);
     swfs_real_free(w->slopes);
-    free(w->stack);
-    swfs_lag_edges_free_(&w->edges);
+    swfs_lag_stacker_free_(&w->stk);
 }
 
 /* Science geometry and window, the actuators, the pupil mask. */
@@ -279,38 +276,13 @@ static int load_cube_slopes(const swfs_speckles_run_options *o, work *w, const s
     if (!rc && strcmp(w->loaded, w->path)) {
         swfs_real_free(w->slopes);
         w->slopes = NULL;
-        w->loaded[0] = w->edges_for[0] = 0;
+        w->loaded[0] = 0;
         double r;
         if ((rc = swfs_telemetry_read(w->path, w->nslopes, &w->slopes, &r))) return rc;
         snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
         rc = o->pipe.wfs_rate ? check_rate(w->path, r, wfs_hz) : SWFS_OK;
     }
-    if (!rc && w->rin && w->rin->nlags > 1 && strcmp(w->edges_for, w->path)) {
-        /* the lags run on into contiguous neighbour files */
-        rc = swfs_lag_edges_load_(&w->edges, w->tdir, w->t, tc->slopes, w->slopes,
-                                  (size_t)swfs_lags_max_abs(w->rin->lags, w->rin->nlags));
-        if (!rc) snprintf(w->edges_for, sizeof w->edges_for, "%s", w->path);
-    }
     return rc;
-}
-
-/* A space-time reconstructor's input for the n frames from k0 of the file in memory: the
- * slopes of frames t + lags stacked, running on into the neighbour files the telemetry shows
- * contiguous (swfs_lag_edges_) and clamped at the ends beyond (wfs.h swfs_slopes_stack). The
- * buffer grows to the largest piece, once. */
-static int stack_piece(work *w, size_t k0, size_t n, const double **sp)
-{
-    const size_t nl = w->rin->nlags, width = w->nslopes * nl;
-    if (n > w->stack_cap) {
-        double *t = realloc(w->stack, n * width * sizeof *t);
-        if (!t) return swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zu lags", n, nl);
-        w->stack = t;
-        w->stack_cap = n;
-    }
-    const swfs_lag_edges_ *e = &w->edges;
-    swfs_slopes_stack(e->ext, e->pre + e->ny + e->post, w->nslopes, w->rin->lags, nl, e->pre + k0, n, w->stack);
-    *sp = w->stack;
-    return SWFS_OK;
 }
 
 /* A space-time reconstructor's checks against the observation (run_stcheck.c): the first
@@ -358,7 +330,11 @@ static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs
                 return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
                                  tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
             const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
-            if (w->rin && w->rin->nlags > 1 && (rc = stack_piece(w, (size_t)k0, need, &sp))) return rc;
+            /* a space-time reconstructor: the lags run on into contiguous neighbour files */
+            if (w->rin && w->rin->nlags > 1 &&
+                (rc = swfs_lag_stacker_rows_(&w->stk, w->tdir, t, tc->slopes, w->path, w->slopes, w->rin->lags,
+                                             w->rin->nlags, (size_t)k0, need, &sp)))
+                return rc;
             swfs_complex *dst = swfs_cplx_frame(w->halo, c0 + a - first);
             rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, n, dst)
                                   : swfs_pipeline_process(w->p, sp, need, w->sched, n, dst);
@@ -580,10 +556,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
             rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
         if (!rc) rc = process_cubes(o, &w, r, 0, r->nout);
     }
-    r->st_edges_joined = w.edges.joined;
-    r->st_edges_clamped = w.edges.clamped;
-    r->st_edges_unreadable = w.edges.unreadable;
-    snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w.edges.why);
+    r->st_edges_joined = w.stk.edges.joined;
+    r->st_edges_clamped = w.stk.edges.clamped;
+    r->st_edges_unreadable = w.stk.edges.unreadable;
+    snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w.stk.edges.why);
     if (!rc) rc = residual_mean(o, &w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
     if (!rc) {

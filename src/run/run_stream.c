@@ -65,19 +65,16 @@ typedef struct run_ctx {
 } run_ctx;
 
 /* The file source's batches for a space-time reconstructor: each WFS frame's slopes stacked
- * with those of frames t + lags (swfs_slopes_stack), running on into the neighbour files the
- * telemetry shows contiguous and clamped beyond (swfs_lag_edges_), as `speckles` stacks
- * them. Per frame reconstructors get the source's batches as they are. The buffer grows to
- * the largest batch once; the edges are read once per telemetry file. */
+ * with those of frames t + lags, as `speckles` stacks them (swfs_lag_stacker_: across the
+ * neighbour files the telemetry shows contiguous, clamped beyond; one file for every cube,
+ * stream --slopes FILE, has no neighbours). Per-frame reconstructors get the source's
+ * batches as they are. */
 typedef struct stacked_src {
     swfs_file_source *src;
     const swfs_timing *t;
-    size_t nlags, nslopes;
+    size_t nlags;
     const long *lags;
-    swfs_lag_edges_ edges;
-    char *edges_for;          /* the telemetry file the edges are of ("" none) */
-    double *buf;
-    size_t cap;               /* WFS frames buf holds */
+    swfs_lag_stacker_ stk;
 } stacked_src;
 
 static int stacked_next(void *ctx, swfs_batch *b)
@@ -86,29 +83,10 @@ static int stacked_next(void *ctx, swfs_batch *b)
     int rc = swfs_file_source_next(st->src, b);
     if (rc || !b->nexp || st->nlags < 2) return rc;
     swfs_file_source_pos pos;
-    if ((rc = swfs_file_source_last(st->src, &pos))) return rc;
-    if (strcmp(st->edges_for, pos.path)) {
-        /* one file for every cube (stream --slopes FILE) has no neighbours: clamped */
-        const size_t margin = pos.dir ? (size_t)swfs_lags_max_abs(st->lags, st->nlags) : 0;
-        if ((rc = swfs_lag_edges_load_(&st->edges, pos.dir ? pos.dir : ".", st->t, pos.name, pos.tel, margin)))
-            return rc;
-        char *f = strdup(pos.path);
-        if (!f) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
-        free(st->edges_for);
-        st->edges_for = f;
-    }
-    if (b->nwfs > st->cap) {
-        double *g = realloc(st->buf, b->nwfs * st->nslopes * st->nlags * sizeof *g);
-        if (!g) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory for %zu WFS frames of %zu lags", b->nwfs,
-                                 st->nlags);
-        st->buf = g;
-        st->cap = b->nwfs;
-    }
-    const swfs_lag_edges_ *e = &st->edges;
-    swfs_slopes_stack(e->ext, e->pre + e->ny + e->post, st->nslopes, st->lags, st->nlags, e->pre + pos.base, b->nwfs,
-                      st->buf);
-    b->slopes = st->buf;
-    return SWFS_OK;
+    if (!(rc = swfs_file_source_last(st->src, &pos)))
+        rc = swfs_lag_stacker_rows_(&st->stk, pos.dir, st->t, pos.name, pos.path, pos.tel, st->lags, st->nlags, pos.base,
+                                    b->nwfs, &b->slopes);
+    return rc;
 }
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
@@ -440,9 +418,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info, u.nlags ? u.lags : NULL) : SWFS_OK;
     else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes,
                                              r->info.nslopes / (u.nlags ? u.nlags : 1), o->batch);
-    stacked_src ss = {.src = src, .t = src ? swfs_file_source_timing(src) : NULL, .nlags = u.nlags,
-                      .nslopes = r->info.nslopes / (u.nlags ? u.nlags : 1), .lags = u.lags, .edges_for = strdup("")};
-    if (!rc && !ss.edges_for) rc = swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
+    stacked_src ss = {.src = src, .t = src ? swfs_file_source_timing(src) : NULL, .nlags = u.nlags, .lags = u.lags};
     swfs_stream_options so = o->stream;
     u.so = &so;
     so.noise = r->noise;
@@ -501,10 +477,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     }
     if (u.nlags) {
         memcpy(r->st_lags, u.lags, sizeof r->st_lags);
-        r->st_edges_joined = ss.edges.joined;
-        r->st_edges_clamped = ss.edges.clamped;
-        r->st_edges_unreadable = ss.edges.unreadable;
-        snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", ss.edges.why);
+        r->st_edges_joined = ss.stk.edges.joined;
+        r->st_edges_clamped = ss.stk.edges.clamped;
+        r->st_edges_unreadable = ss.stk.edges.unreadable;
+        snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", ss.stk.edges.why);
     }
     if (src) {
         r->wfs_rate = swfs_file_source_wfs_rate(src);
@@ -515,9 +491,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     swfs_stream_free(s);
     swfs_pipeline_free(p);
     swfs_file_source_close(src);
-    swfs_lag_edges_free_(&ss.edges);
-    free(ss.edges_for);
-    free(ss.buf);
+    swfs_lag_stacker_free_(&ss.stk);
     swfs_cplx_free(stat_c);
     swfs_real_free(u.mask);
     free(u.prov);

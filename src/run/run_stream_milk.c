@@ -27,10 +27,10 @@ static int milk_prepare(void *ctx, const swfs_pipeline_info *info, const long *l
 {
     milk_ctx *m = ctx;
     const swfs_stream_run_options *o = m->o;
-    const size_t nl = lags && info->nlags > 1 ? info->nlags : 1; /* a space-time map: the batches stack */
+    /* a space-time map (lags): the logs give one frame's slopes, the batches stack them */
     const swfs_milk_source_options so = {o->wfs_logs, o->nwfs_logs, o->science, m->have_clock ? &m->clock : NULL,
-                                         o->exptime, info->nslopes / nl, info->nfx, info->nfy, o->batch,
-                                         nl > 1 ? lags : NULL, nl > 1 ? nl : 0};
+                                         o->exptime, info->nslopes / (lags ? info->nlags : 1), info->nfx, info->nfy,
+                                         o->batch, lags, lags ? info->nlags : 0};
     return swfs_milk_source_open(&m->src, &so);
 }
 
