@@ -183,6 +183,11 @@ void cli_spacetime_edges(const char *cmd, size_t joined, size_t clamped, size_t 
 /* "cmd: space-time reconstructor of N lags (l1,l2,... WFS frames)" on stderr, without the line's
  * end (stream and live go on with what they did with them); returns the largest |lag|. */
 long cli_spacetime_lags(const char *cmd, const long *lags, size_t n);
+struct swfs_learn_run_result;
+/* "cmd learning curve: ..." on f: the map's held-out misfit at the curve's two points,
+ * its excess over unlimited frames and the frames for 10 % (or why there is no curve);
+ * u, unit: the misfit's scale and unit. */
+void cli_curve_line(FILE *f, const char *cmd, const struct swfs_learn_run_result *r, double u, const char *unit);
 struct swfs_teach_run_result;
 struct swfs_speckles_run_options;
 /* What a successful `speckles` run prints: the reconstructor in use (for the taught default

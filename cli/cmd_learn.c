@@ -10,7 +10,7 @@
 
 static const char *usage_text =
     "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--lags L,L,...]\n"
-    "                        [--perframe-out W1.fits]\n"
+    "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
@@ -56,7 +56,11 @@ static const char *usage_text =
     "                map\")\n"
     "  --perframe-out W1.fits  with --lags, also the per-frame map of the same frames (the\n"
     "                lag-0 block of the same sums solved alone, no second pass): for\n"
-    "                `specklewfs live`, which takes one frame's slopes\n";
+    "                `specklewfs live`, which takes one frame's slopes\n"
+    "  --curve       the learning curve (4+ folders): maps of half and of three quarters of\n"
+    "                the folders checked on the rest; how far the map is from one of\n"
+    "                unlimited frames, and the frames for 10 % (LRNCEXC, LRNCFRM);\n"
+    "                --curve-radius R0,R1: over the output points (OUTXY) at R0..R1 m only\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -66,7 +70,7 @@ int swfs_cmd_learn(int argc, char **argv)
     const char **dirs = calloc((size_t)argc, sizeof *dirs);
     size_t nd = 0;
     if (!dirs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    const char *lags = NULL;
+    const char *lags = NULL, *cradius = NULL;
     long lagv[SWFS_RECON_MAXLAGS];
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o.out, "a file name", 0},
@@ -75,6 +79,8 @@ int swfs_cmd_learn(int argc, char **argv)
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},
         {"--perframe-out", CLI_STRING, &o.perframe_out, "a file name", 0},
+        {"--curve", CLI_SET, &o.curve, NULL, 1},
+        {"--curve-radius", CLI_STRING, &cradius, "radii R0,R1 [m]", 0},
     };
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
     int rc = cli_parse_args(&args, argc, argv);
@@ -83,6 +89,15 @@ int swfs_cmd_learn(int argc, char **argv)
     else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
     else if (!(o.ridge > 0) || !isfinite(o.ridge)) rc = cli_usage_error(cmd, "--ridge must be a finite fraction > 0, got %g", o.ridge);
     if (!rc && lags && swfs_lags_parse(lags, lagv, &o.nlags, "--lags")) rc = cli_error(cmd);
+    if (!rc && cradius) {
+        char end = 0;
+        if (sscanf(cradius, "%lf,%lf%c", &o.curve_radius[0], &o.curve_radius[1], &end) != 2 ||
+            !(o.curve_radius[0] >= 0) || !(o.curve_radius[1] > o.curve_radius[0]) || !isfinite(o.curve_radius[1]))
+            rc = cli_usage_error(cmd, "--curve-radius takes R0,R1 [m], 0 <= R0 < R1 (the pupil's annulus), got '%s'",
+                                 cradius);
+        else if (!o.curve)
+            rc = cli_usage_error(cmd, "--curve-radius goes with --curve");
+    }
     if (!rc && o.perframe_out && o.nlags < 2)
         rc = cli_usage_error(cmd, "--perframe-out goes with --lags (without them the map is per frame already)");
     if (rc) { free(dirs); return rc; }
@@ -125,6 +140,7 @@ int swfs_cmd_learn(int argc, char **argv)
     if (o.nlags > 1 && !r.nwind)
         printf("learn: no wind found in the training loops' slopes (full layout needed): speckles cannot check the "
                "observation's against it\n");
+    if (o.curve) cli_curve_line(stdout, "learn:", &r, o.modal ? 1 : 1e9, o.modal ? "" : " nm");
     if (r.nheldout) {
         printf("learn: each data set held out in turn, the map of the others applied to it (misfit / residual; "
                "training %.2f):\n", r.info.misfit_rms / r.info.truth_rms);

@@ -74,7 +74,8 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
 {
     const char *cmd = "speckles";
     double slope_noise = 0;
-    long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed;
+    long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed,
+         tmax = (long)o->teach_max_loops;
     spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
@@ -87,6 +88,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--wfs-hz", CLI_DOUBLE, &o->wfs_hz, NULL, 0}, {"--wfs-rate", CLI_SET, &o->pipe.wfs_rate, NULL, 1},
         {"--batch", CLI_LONG, &batch, NULL, 0},       {"--teach-work", CLI_STRING, &o->teach_work, "a folder", 0},
         {"--teach-loops", CLI_LONG, &tloops, NULL, 0}, {"--teach-seed", CLI_LONG, &tseed, NULL, 0},
+        {"--teach-max-loops", CLI_LONG, &tmax, NULL, 0},
         {"--teach-keep-loops", CLI_SET, &o->teach_keep_loops, NULL, 1},
         {"--teach-again", CLI_SET, &o->teach_again, NULL, 1},
     };
@@ -101,13 +103,14 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     /* Signs and the one check that depends on what was typed; the library checks the rest
      * (run.h swfs_speckles_run_options_check), with the same messages for every caller. */
     if (d.rcond_given && o->pipe.recon != SWFS_RECON_SVD) return cli_usage_error(cmd, "--rcond and --modes go with --recon svd");
-    if (d.modes < 0 || threads < 1 || batch < 1 || tloops < 0 || tseed < 0)
+    if (d.modes < 0 || threads < 1 || batch < 1 || tloops < 0 || tseed < 0 || tmax < 0)
         return cli_usage_error(cmd, "--modes must be >= 0, --threads, --batch and --teach-loops >= 1, --teach-seed >= 0");
     if (o->pipe.wfs_rate && d.tt_given && o->pipe.tiptilt == SWFS_TT_EXPOSURE) /* asked for by name: refused */
         return cli_usage_error(cmd, "--wfs-rate removes the tip-tilt per WFS frame (or --tiptilt keep); --tiptilt exposure "
                                "does not apply");
     o->batch = (size_t)batch;
     o->teach_loops = (size_t)tloops;
+    o->teach_max_loops = (size_t)tmax;
     o->teach_seed = (uint64_t)tseed;
     o->pipe.rcond = d.rcond;
     o->pipe.max_modes = (size_t)d.modes;

@@ -17,6 +17,7 @@
 static const char *usage_text =
     "usage: specklewfs teach SLOPES.fits... --science SCI.fits --actuators ACT.fits [--pupil P.fits]\n"
     "                        [--valid V.fits] [key=value ...] -o W.fits [--work DIR] [--loops N] [--seed S]\n"
+    "                        [--max-loops M]\n"
     "       specklewfs teach SLOPES.fits... --system CONFIG [key=value ...] -o W.fits ...\n"
     "\n"
     "A reconstructor for this observation, learned from simulated closed loops of your system\n"
@@ -33,7 +34,8 @@ static const char *usage_text =
     "     Without slope_noise the loops' slope noise is the observation's white slope noise,\n"
     "     measured from its slopes' curl (TEACHNOI; TEACHSNO the loops');\n"
     "  3. the space-time map (`learn --lags 0,-L,L,-2L,2L`, L the frames in which the fastest\n"
-    "     layer moves half a subaperture) and its two checks against the observation (as\n"
+    "     layer moves half a subaperture; more loops where its `learn --curve` asks) and\n"
+    "     its two checks against the observation (as\n"
     "     `speckles` prints them). The map writes the wavefront on a grid of half the DM's\n"
     "     pitch (at least two pupil samples; DIR/outgrid.fits, W.fits' extension OUTXY): the\n"
     "     loops' truth is fitted there, so the lagged slopes also tell the residual the DM\n"
@@ -42,7 +44,9 @@ static const char *usage_text =
     "  4. where a check warns, the per-frame map: of the same loops when more than one layer\n"
     "     was found, else of N more loops of the measured layer and a random second layer.\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
-    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time).\n"
+    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time).\n";
+
+static const char *usage_opts =
     "\n"
     "  SLOPES.fits   the observation's telemetry, consecutive files of one series (2 nsub^2\n"
     "                slopes per WFS frame, as the simulator writes them; or, with the system's\n"
@@ -64,6 +68,8 @@ static const char *usage_text =
     "                and both maps tried (spacetime.fits, perframe.fits); created if missing (default: W.teach\n"
     "                beside W.fits, its name without .fits)\n"
     "  --loops N     loops per set (default 12)\n"
+    "  --max-loops M loops at most where the learning curve asks for more than N\n"
+    "                (default 4 N, at most 64: the cost of the first N four times over)\n"
     "  --seed S      loop k's seed is S + k (default 101)\n";
 
 typedef struct from_files {
@@ -81,11 +87,11 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
                  const char **cfgfile, from_files *ff)
 {
     const char *cmd = "teach";
-    long loops = (long)o->nloops, seed = (long)o->seed;
+    long loops = (long)o->nloops, seed = (long)o->seed, maxl = -1;
     for (int i = 1; i < argc; i++) {
         const char *a = argv[i], *v = i + 1 < argc ? argv[i + 1] : NULL;
         long *lv = NULL;
-        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); return -1; }
+        if (!strcmp(a, "-h") || !strcmp(a, "--help")) { fputs(usage_text, stdout); fputs(usage_opts, stdout); return -1; }
         else if (!strcmp(a, "-o") || !strcmp(a, "--work") || !strcmp(a, "--system") || !strcmp(a, "--science") ||
                  !strcmp(a, "--actuators") || !strcmp(a, "--pupil") || !strcmp(a, "--valid")) {
             if (!v) return cli_usage_error(cmd, "%s needs a %s", a, strcmp(a, "--work") ? "file name" : "folder");
@@ -99,6 +105,7 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
             i++;
             continue;
         } else if (!strcmp(a, "--loops")) lv = &loops;
+        else if (!strcmp(a, "--max-loops")) lv = &maxl;
         else if (!strcmp(a, "--seed")) lv = &seed;
         else if (a[0] == '-' && a[1]) return cli_usage_error(cmd, "unknown option '%s'", a);
         else if (strchr(a, '=')) {
@@ -123,7 +130,11 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
                                "observation's files), or --system CONFIG / key=value");
     if (loops < 2 || loops > 64) return cli_usage_error(cmd, "--loops must be 2..64, got %ld", loops);
     if (seed < 0) return cli_usage_error(cmd, "--seed must be >= 0, got %ld", seed);
+    if (maxl >= 0 && maxl && (maxl < loops || maxl > 64))
+        return cli_usage_error(cmd, "--max-loops must be --loops (%ld) to 64 (0: 4 times --loops, at most 64), got %ld",
+                               loops, maxl);
     o->nloops = (size_t)loops;
+    o->max_loops = maxl > 0 ? (size_t)maxl : 0;
     o->seed = (uint64_t)seed;
     return 0;
 }

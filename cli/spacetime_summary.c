@@ -121,6 +121,15 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual by %.1f of %.1f "
             "nm on their frames\n", r->lags[0], r->lags[1], r->lags[2], r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms,
             1e9 * r->st_truth_rms);
+    if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
+        fprintf(f, "%s: over the first loops, ", cmd);
+        cli_curve_line(f, "the space-time map's", &r->curve_first, 1e9, " nm");
+        fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
+        cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
+    } else {
+        fprintf(f, "%s: ", cmd);
+        cli_curve_line(f, "the space-time map's", &r->curve, 1e9, " nm");
+    }
     if (checks) cli_spacetime_summary(cmd, &r->check);
     fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, chosen_name(r->chosen), out, r->seconds,
             work);
@@ -159,4 +168,24 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
     cli_spacetime_summary(cmd, r);
+}
+
+void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, double u, const char *unit)
+{
+    if (!r->curve_n[0]) {
+        fprintf(f, "%s learning curve: not measured (it takes at least 4 data sets, each part large enough for a map "
+               "without it)\n", cmd);
+        return;
+    }
+    fprintf(f, "%s learning curve: held-out misfit %.4g%s from %zu frames, %.4g%s from %zu (scaled best: %.4g%s, "
+            "%.4g%s; over %zu outputs); ", cmd, u * sqrt(r->curve_m2[0]), unit, r->curve_n[0], u * sqrt(r->curve_m2[1]),
+            unit, r->curve_n[1], u * sqrt(r->curve_s2[0]), unit, u * sqrt(r->curve_s2[1]), unit, r->curve_outputs);
+    if (!(r->curve_b > 0))
+        fprintf(f, "no fall with more frames: the %zu frames are enough\n", r->info.nframes);
+    else if (isinf(r->curve_excess))
+        fprintf(f, "steeper than a + b/n: more frames would still help (no bound)\n");
+    else
+        fprintf(f, "the map of all %zu is %.1f %% above unlimited frames' (%.4g%s) in misfit^2; %zu frames would bring it "
+               "to %.0f %%\n", r->info.nframes, 100 * r->curve_excess, u * sqrt(r->curve_a), unit, r->curve_frames,
+               100 * SWFS_LEARN_CURVE_EXCESS);
 }

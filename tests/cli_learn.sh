@@ -88,7 +88,7 @@ grep "space-time map" speckles_st.log | cut -c1-160
 # and its checks -> the choice; the loops in taught.teach, the default work folder). Its two layers must be the observation's (15 and 22 m/s), its
 # map the space-time one (neither check warns on loops of the same system), and through the
 # whole path no worse than the default reconstructor by more than 10 %.
-"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --loops 4 > teach.log 2>&1 \
+"$B" teach obs/slopes_0*.fits --system my.conf vib_amp=0.3 -o taught.fits --loops 4 --max-loops 4 > teach.log 2>&1 \
     || { cat teach.log; fail "teach"; }
 grep -q "2 frozen-flow layers" teach.log && grep -q "chose the space-time map (neither check warned)" teach.log \
     || { cat teach.log; fail "teach: two layers and the space-time map expected"; }
@@ -98,6 +98,10 @@ awk '/^teach:   layer [12]: / { v[++n] = $4 } END { exit !(n == 2 && ((v[1] > 13
 # 224 slopes = 1120 inputs) 6.4 frames per input; teach lengthens them to 10 (4 x 2800 frames)
 grep -q "^teach: 4 loops simulated of 2800 WFS frames (lengthened from 17[0-9][0-9]: the map's 1120 inputs need 10 frames each)" \
     teach.log || { grep "loops simulated" teach.log; fail "teach: loops of 10 frames per map input expected"; }
+# the map's learning curve over the 4 loops, on the grid's points in the pupil (--max-loops 4:
+# no more loops, whatever it asks; python/tests/test_realdata.py lets teach add them)
+grep -q "^teach: the space-time map's learning curve: held-out misfit [0-9.]* nm from 5600 frames, [0-9.]* nm from 8400 (scaled best: .*; over [0-9]* outputs); " \
+    teach.log || { grep "learning curve" teach.log; fail "teach: the learning curve's line expected"; }
 head -c 8640 taught.fits | grep -aq "NLAGS   =                    5" || fail "teach: taught.fits is no 5-lag cube"
 head -c 8640 taught.fits | grep -aq "TEACHSEL= 'spacetime'" || fail "teach: the map's header should say it was chosen as such"
 [ "$(ls -d taught.teach/loop_*/ | wc -l)" = 4 ] && [ -s taught.teach/spacetime.fits ] \
@@ -131,7 +135,7 @@ awk -v t="$et" -v d="$ed" 'BEGIN { exit !(t > 0 && t < 1.1 * d) }' || fail "taug
 # geometry, the DM, the pupil), the rest the simulator's defaults; the same layers and filter,
 # and through the whole path within 1 nm of the described teach
 "$B" teach obs/slopes_0*.fits --science science.fits --actuators actuators.fits --pupil pupil.fits -o taught_f.fits \
-    --work taught_f --loops 4 > teach_f.log 2>&1 || { cat teach_f.log; fail "teach from the observation's files"; }
+    --work taught_f --loops 4 --max-loops 4 > teach_f.log 2>&1 || { cat teach_f.log; fail "teach from the observation's files"; }
 grep -q "2 frozen-flow layers" teach_f.log && grep -q "ao_modes = 5[3-9]$" teach_f.log \
     || { cat teach_f.log; fail "teach from files: two layers and the modal filter expected"; }
 # the loops' slope noise is the observation's white slope noise, measured from its slopes (the
@@ -150,7 +154,7 @@ etf=$(ncp_with taught_f.fits tf timing.txt)
 cp taught_f/loop_00/slopes_000.fits taught_f/loop_00/slopes_001.fits
 cp taught_f/loop_00/truewf_000.fits taught_f/loop_00/truewf_001.fits
 "$B" teach obs/slopes_0*.fits --science science.fits --actuators actuators.fits --pupil pupil.fits -o taught_f2.fits \
-    --work taught_f --loops 4 > teach_f2.log 2>&1 || { cat teach_f2.log; fail "teach again in the same work folder"; }
+    --work taught_f --loops 4 --max-loops 4 > teach_f2.log 2>&1 || { cat teach_f2.log; fail "teach again in the same work folder"; }
 [ ! -e taught_f/loop_00/slopes_001.fits ] && [ ! -e taught_f/loop_00/truewf_001.fits ] \
     || fail "teach left a stale slopes / truewf pair in a loop folder it used again"
 m1=$(grep -o "misses the loops' residual by .* nm" teach_f.log)
@@ -160,11 +164,11 @@ echo "cli_learn: teach from the observation's files: $etf nm (described: $et nm;
 awk -v a="$etf" -v b="$et" 'BEGIN { exit !(a > 0 && a - b < 1 && b - a < 1) }' || fail "teach from files $etf nm against $et nm"
 # speckles' default (--recon teach) is that teach run inside speckles on the same files (the
 # timing table's telemetry, --science, --actuators, --pupil): with the same loops
-# (--teach-loops 4) the same map, in spk_dt.teach/ beside its output (the loops' folders
+# (--teach-loops 4 --teach-max-loops 4) the same map, in spk_dt.teach/ beside its output (the loops' folders
 # removed, the maps and the modes' profile kept), and the same NCP error
 # as the map of the command above given with --recon and the same --pupil
 etfp=$(ncp_with taught_f.fits tfp timing.txt --pupil pupil.fits)
-"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 --teach-max-loops 4 \
     --match science.fits sci_dt.fits -o spk_dt.fits 2> speckles_dt.log || { cat speckles_dt.log; fail "speckles (default)"; }
 grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt.log \
     && grep -q "given space-time reconstructor spk_dt.teach/taught.fits: 288 slopes x 5 lags" speckles_dt.log \
@@ -201,7 +205,7 @@ awk -v a="$epf" -v b="$edt" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "th
 dt_again() {
     local tag=$1
     shift
-    "$B" speckles "$@" --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+    "$B" speckles "$@" --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 --teach-max-loops 4 \
         --teach-work spk_dt.teach --match science.fits "sci_$tag.fits" -o "spk_$tag.fits" 2> "speckles_$tag.log" \
         || { cat "speckles_$tag.log" >&2; fail "speckles ($tag)"; }
     "$B" estimate "sci_$tag.fits" "spk_$tag.fits" -o "halo_$tag.fits" > /dev/null 2>&1 || fail "estimate ($tag)"
@@ -248,7 +252,7 @@ grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || {
 # loops, so the same map; speckles --valid applies it to that telemetry (the timing table's
 # rows renamed to those files) to the same NCP error
 "$B" teach obs/slopes_valid_000.fits --science science.fits --actuators actuators.fits --pupil pupil.fits \
-    --valid valid.fits -o taught_v.fits --work taught_v --loops 4 > teach_v.log 2>&1 \
+    --valid valid.fits -o taught_v.fits --work taught_v --loops 4 --max-loops 4 > teach_v.log 2>&1 \
     || { cat teach_v.log; fail "teach on valid-only slopes"; }
 grep -q "ao_modes = 5[3-9]$" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the modal filter expected"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }

@@ -32,6 +32,9 @@
 systems_setup() { # systems_setup <specklewfs> <scratch dir>
     cli_setup "$@"
     taught=1
+    # teach's first 12 loops only: the loops its learning curve would add (up to 48) take
+    # minutes on sh24-base; bench/systems_cli.sh and bench_telemetry measure the default's
+    SPK_RECON=(--teach-max-loops 12)
     if [ -n "${SWFS_TEST_SANITIZED:-}" ]; then
         taught=
         SPK_RECON=(--recon vk)

@@ -1505,6 +1505,7 @@ static void test_options_checks(void **state)
         "--recon-scale goes with --recon W.fits", "--teach-work, --teach-loops", "--wfs-hz goes with --wfs-rate",
         "--match pairs camera frames", "--vk-l0 must be an outer scale", "takes no --actuators",
         "needs TIMING.txt", "--teach-again go with --recon teach", "teach_again must be 0 or 1, got 2",
+        "--teach-max-loops must be --teach-loops (12) to 64", "--teach-max-loops, --teach-seed",
     };
     const size_t npat = sizeof pattern / sizeof pattern[0];
     const char *min[1] = {"in.fits"}, *mout[1] = {"out_match.fits"};
@@ -1530,6 +1531,8 @@ static void test_options_checks(void **state)
         case 12: sp.out = NULL; break;
         case 13: sp.pipe.recon = SWFS_RECON_VK; sp.teach_again = 1; break;
         case 14: sp.teach_again = 2; break;
+        case 15: sp.teach_max_loops = 8; break;
+        case 16: sp.pipe.recon = SWFS_RECON_VK; sp.teach_max_loops = 24; break;
         default: break; /* the defaults */
         }
         if (k == npat) {

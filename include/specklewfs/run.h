@@ -171,6 +171,8 @@ typedef struct swfs_speckles_run_options {
                                  out, its name without .fits and with .teach); the map is
                                  taught.fits in it, for --recon in later runs */
     size_t teach_loops;       /* loops per set (12) */
+    size_t teach_max_loops;   /* the space-time map's loops at most (teach's max_loops; 0: 4
+                                 teach_loops, at most 64) */
     uint64_t teach_seed;      /* loop k's seed is teach_seed + k (101) */
     int teach_keep_loops;     /* 1: keep the loops' folders (0: removed once the map is taught, the
                                  maps, modes.tsv and modes.png kept: 0.2-0.4 GB per observation
@@ -522,6 +524,11 @@ typedef struct swfs_learn_run_options {
                                  (the lag-0 block of the same sums solved alone,
                                  swfs_recon_learner_solve_lag) into this file, for runs that
                                  take one frame's slopes (live); both files or neither */
+    int curve;                /* 1 (with at least 4 data sets): the learning curve (below) */
+    double curve_radius[2];   /* [m] the curve over the outputs (OUTXY points) at radii from
+                                 curve_radius[0] to [1] only: the pupil's annulus, the points
+                                 whose wavefront makes the speckles (the truth beyond it is the
+                                 fit's extrapolation); {0, 0}: all outputs */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
@@ -558,7 +565,30 @@ typedef struct swfs_learn_run_result {
      * and the largest distance of one from it; written as LRNCORk, LRNCSPk (k as LAGk). */
     double corr[SWFS_RECON_MAXLAGS], corr_spread[SWFS_RECON_MAXLAGS];
     swfs_recon_learn_info perframe_info; /* with perframe_out: that map's fit (else zero) */
+    /* With curve: the map's held-out misfit against the frames it is learned from. The data
+     * sets dealt into 4 parts (set d to part d mod 4); a map of 2 parts checked on the other 2
+     * (both ways) and of 3 on the fourth (each in turn) give the mean square misfit per output
+     * and frame m2[0] at curve_n[0] training frames (about N/2) and m2[1] at curve_n[1]
+     * (3N/4) (s2[0], s2[1]: the same with each check's map output scaled by the factor that
+     * fits best, wfs.h swfs_recon_learner_heldout_on: what a scale fitted downstream, the
+     * estimator's g, leaves; reported, not used). m2(n) = a + b / n through them (the form of
+     * a least-squares map's held-out misfit, b = a p for p independent frames' inputs; frames
+     * correlated in time raise b):
+     * curve_excess = b / (a N), the excess of the map of all N frames over a map of unlimited
+     * frames, as a fraction of a; curve_frames = b / (SWFS_LEARN_CURVE_EXCESS a), the frames
+     * that bring it to that fraction (0 when the misfit does not fall: b <= 0). NaN / 0 when
+     * not checked (fewer than 4 data sets, or a part too small for a map). */
+    size_t curve_n[2];
+    double curve_m2[2], curve_s2[2], curve_a, curve_b, curve_excess;
+    size_t curve_frames;
+    size_t curve_outputs;     /* the outputs it was measured on (curve_radius) */
 } swfs_learn_run_result;
+
+/* The excess of a learned map's held-out misfit over unlimited data that is enough: 10 % of
+ * its variance (ordinary least squares on p independent inputs reaches it at n = 10 p frames,
+ * teach's floor on its loops; docs/telemetry.md, "Loops as long as the map's learning curve
+ * asks"). */
+#define SWFS_LEARN_CURVE_EXCESS 0.1
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);
 
@@ -610,6 +640,11 @@ typedef struct swfs_teach_run_options {
     const char *work;           /* an existing folder: the loops (loop_NN/, mixed_NN/) and the maps
                                    tried (spacetime.fits, perframe.fits), kept for reuse by learn */
     size_t nloops;              /* loops per set (12; at least 2) */
+    size_t max_loops;           /* the space-time map's loops at most (0: 4 nloops, at most 64; else
+                                   nloops to 64): more loops than nloops where the map's learning
+                                   curve asks for them (swfs_learn_run_result.curve_frames), a
+                                   budget of at most 4 times the first loops' simulation by
+                                   default; nloops: never more */
     uint64_t seed;              /* loop k's seed is seed + k (101); the random second layers' too */
     int modes_from_slopes;      /* 1: the loops' modal filter (sim.ao_modes) from the observation
                                    (the knee of its slopes' mode variances, swfs_ts_mode_variance,
@@ -631,8 +666,8 @@ typedef struct swfs_teach_run_options {
 /* The version of teach's rule, hashed into speckles' fingerprint of a taught map's inputs
  * (TEACHFPR): a change to what teach makes of the same inputs (its loops, lags, choice, the
  * learner) bumps it, so that maps taught before are taught again rather than reused
- * (2026-11-29b: the per-frame map of the same loops, perframe.fits, beside every map). */
-#define SWFS_TEACH_RULE "teach rule 2026-11-29b"
+ * (2026-12-01: more loops where the space-time map's learning curve asks for them). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-01"
 
 void swfs_teach_run_options_default(swfs_teach_run_options *o);
 
@@ -671,6 +706,12 @@ typedef struct swfs_teach_run_result {
                                    is about a third no map here holds (docs/telemetry.md) */
     double slope_noise;         /* [rad] the loops' slope noise: noise_rms (noise_from_slopes) or
                                    the description's */
+    /* The space-time map's learning curve (run.h swfs_learn_run_result.curve_*) over the nloops
+     * first loops (curve_first) and over all the space-time loops (curve, st_loops of them:
+     * more than nloops when the first curve asked for more frames than they hold, up to
+     * max_loops). curve_n[0] == 0: not measured. */
+    size_t st_loops;
+    swfs_learn_run_result curve_first, curve;
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

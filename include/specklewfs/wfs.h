@@ -271,7 +271,18 @@ int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double r
  * one data set out in turn to see whether the simulated conditions cover each other. */
 int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                double *misfit2, double *truth2);
+/* The same over the outputs a with keep[a] (NULL: all), and scaled2 (or NULL): the misfit of
+ * the map's output scaled by the one factor that fits part's truth best over them, |z|^2 -
+ * (z.Ws)^2 / |Ws|^2 per output and frame: 1 - rho^2 of the truth's power, rho the correlation
+ * of map and truth, which a scale fitted downstream (the estimator's g) leaves; never above
+ * truth2. */
+int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                                  const unsigned char *keep, double *misfit2, double *truth2, double *scaled2);
 void swfs_recon_learner_reset(swfs_recon_learner *l); /* no frames, the shapes kept */
+/* dst += src: the sums of both sets of frames, as if src's had been added to dst (the inputs
+ * with signal the union of both; the same inputs, lags and outputs). For learning curves: a
+ * map from some parts' frames checked on the others' (swfs_recon_learner_heldout). */
+int swfs_recon_learner_merge(swfs_recon_learner *dst, const swfs_recon_learner *src);
 
 /* W <- W (I - M) with M the mean-slope (tip-tilt) projector over the valid subapertures:
  * the reconstructor then ignores tip-tilt exactly, so no separate removal step is needed. */

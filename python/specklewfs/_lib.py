@@ -302,7 +302,8 @@ swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RU
 swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
-    ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str)])
+    ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str), ("curve", c_int),
+    ("curve_radius", c_dbl * 2)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [
@@ -312,13 +313,16 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("nwlayers", c_size), ("wlayer_vx", c_dbl * LEARN_MAXWLAYERS), ("wlayer_vy", c_dbl * LEARN_MAXWLAYERS),
     ("wlayer_spread", c_dbl * LEARN_MAXWLAYERS), ("wlayer_n", c_size * LEARN_MAXWLAYERS),
     ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS),
-    ("perframe_info", swfs_recon_learn_info)])
+    ("perframe_info", swfs_recon_learn_info), ("curve_n", c_size * 2), ("curve_m2", c_dbl * 2), ("curve_s2", c_dbl * 2),
+    ("curve_a", c_dbl),
+    ("curve_b", c_dbl), ("curve_excess", c_dbl), ("curve_frames", c_size), ("curve_outputs", c_size)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
     ("match_in", P(c_str)), ("match_out", P(c_str)), ("nmatch", c_size), ("prov", P(c_str)), ("nprov", c_size),
     ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("batch", c_size), ("team", c_ptr), ("geom", swfs_geom),
-    ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_seed", c_u64),
+    ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_max_loops", c_size),
+    ("teach_seed", c_u64),
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
@@ -337,7 +341,7 @@ swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), 
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
-    ("nloops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
+    ("nloops", c_size), ("max_loops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
     ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("fingerprint", c_str)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
@@ -349,7 +353,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
     ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl), ("out_points", c_size),
     ("dm_pitch", c_dbl), ("out_pitch", c_dbl), ("noise_rms", c_dbl), ("noise_cells", c_size),
-    ("noise_share", c_dbl), ("slope_noise", c_dbl)])
+    ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("curve_first", swfs_learn_run_result),
+    ("curve", swfs_learn_run_result)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

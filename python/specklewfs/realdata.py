@@ -85,7 +85,8 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
-def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None):
+def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
+          curve_radius=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -111,7 +112,14 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     st_warn_wind, st_warn_corr: whether each check warns (swfs_spacetime_warns).
     perframe_out (with lags): also the per-frame map of the same frames, the lag-0 block of the
     same sums solved alone, for runs that take one frame's slopes (live); its fit is returned
-    as perframe (nframes, nslopes_seen, truth_rms, misfit_rms)."""
+    as perframe (nframes, nslopes_seen, truth_rms, misfit_rms). curve=True (at least 4
+    folders): the map's learning curve (`learn --curve`), returned as curve: n (the training
+    frames of its two points, about N/2 and 3N/4), misfit_rms (the held-out misfit there [m]),
+    a and b (misfit^2 = a + b / n), excess (b / (a N): the map of all N frames over one of
+    unlimited frames) and frames (the frames for an excess of 0.1; 0: the misfit does not
+    fall; None: no bound), nframes, outputs (those it was measured on: curve_radius=(r0, r1)
+    [m] keeps the output points at those radii, the pupil's annulus); None where it could not
+    be measured."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -131,6 +139,9 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
         o.lags, o.nlags = ctypes.cast(lagv, ctypes.POINTER(ctypes.c_long)), len(lags)
     if perframe_out is not None:
         o.perframe_out = enc(perframe_out)
+    o.curve = int(bool(curve))
+    if curve_radius is not None:
+        o.curve_radius[0], o.curve_radius[1] = float(curve_radius[0]), float(curve_radius[1])
     r = _lib.swfs_learn_run_result()
     check(lib.swfs_learn_run(ctypes.byref(o), ctypes.byref(r)), "swfs_learn_run")
     d = _struct_dict(r.info)
@@ -144,7 +155,19 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
         d.update(corr=np.array(r.corr[:len(lags)]), corr_spread=np.array(r.corr_spread[:len(lags)]))
     if perframe_out is not None and lags is not None and len(lags) > 1:
         d.update(perframe=_struct_dict(r.perframe_info))
+    if curve:
+        d.update(curve=_curve_dict(r))
     return d
+
+
+def _curve_dict(r):
+    """A learn result's learning curve (run.h swfs_learn_run_result.curve_*), None if not measured."""
+    if not r.curve_n[0]:
+        return None
+    return dict(n=(r.curve_n[0], r.curve_n[1]), misfit_rms=(math.sqrt(r.curve_m2[0]), math.sqrt(r.curve_m2[1])),
+                a=r.curve_a, b=r.curve_b, excess=r.curve_excess,
+                frames=None if r.curve_frames == ctypes.c_size_t(-1).value else r.curve_frames,
+                nframes=r.info.nframes, outputs=r.curve_outputs)
 
 
 def _edges(tail, head):
@@ -204,7 +227,7 @@ def _st_checks(r):
 
 
 def teach(files, out, work=None, config=None, loops=None, seed=None, progress=None, provenance=(), science=None,
-          actuators=None, pupil=None, valid=None, **params):
+          actuators=None, pupil=None, valid=None, max_loops=None, **params):
     """A learned map for one observation from simulated closed loops of your system at the
     winds its slopes show (`specklewfs teach`, run.h swfs_teach_run): files, the observation's
     consecutive telemetry files (2 nsub^2 slopes per WFS frame); config and params, the system
@@ -230,7 +253,11 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     noise_share its share of the slopes' variance); slope_noise says what the loops used. The map
     writes the wavefront on out_points points of its own (a hexapolar grid of out_pitch [m],
     half the DM's dm_pitch, at least two pupil samples; extension OUTXY of out), which
-    speckles() interpolates in place of the DM's actuators."""
+    speckles() interpolates in place of the DM's actuators. The space-time map's learning curve
+    (learn(..., curve=True)) over the first loops is curve_first; where it asks for more frames
+    than they hold, more loops are simulated, up to max_loops (default 4 loops, at most 64;
+    loops: never more),
+    st_loops of them in all, and curve is the curve over them all."""
     from .sim import _checked_params
     if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
         files = [files]
@@ -266,6 +293,8 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
         o.nloops = int(loops)
     if seed is not None:
         o.seed = int(seed)
+    if max_loops is not None:
+        o.max_loops = int(max_loops)
     r = _run("swfs_teach_run", o, _lib.swfs_teach_run_result, None, provenance, progress)
     return _teach_dict(r, bool(o.modes_from_slopes))
 
@@ -281,14 +310,16 @@ def _teach_dict(r, modes_from_slopes):
              ao_modes=r.ao_modes, modes_from_slopes=modes_from_slopes, knee_obs=r.knee_obs,
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)],
              out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch, noise_rms=r.noise_rms,
-             noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise)
+             noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise,
+             st_loops=r.st_loops, curve_first=_curve_dict(r.curve_first), curve=_curve_dict(r.curve))
     d.update(_st_checks(r.check))
     return d
 
 
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
-             teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False):
+             teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
+             teach_max_loops=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -318,6 +349,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         o.teach_loops = int(teach_loops)
     if teach_seed is not None:
         o.teach_seed = int(teach_seed)
+    if teach_max_loops is not None:  # None: 4 teach_loops (at most 64) where the learning curve asks
+        o.teach_max_loops = int(teach_max_loops)
     o.teach_keep_loops = int(bool(teach_keep_loops))
     o.teach_again = int(bool(teach_again))
     if recon == "teach":

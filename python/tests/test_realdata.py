@@ -1,6 +1,7 @@
 """The real-data path on files from Python (realdata.py): reduce -> sync -> speckles ->
 estimate_files -> pupil_estimate on a small AO time series, its products equal to the command
 line's on the same inputs, and its errors raised with nothing written."""
+import math
 import os
 import subprocess
 
@@ -34,8 +35,10 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert t["refits"] > 0 or (t["ratio_first"], t["lag_first"]) == (t["ratio"], t["lag"])
     assert t["refits"] == 0 or t["ncontinued"] > 0
     assert t["nmissing"] == 0 and t["nexp_missing"] == 0 and t["missing_reason"] == ""
+    # (teach_max_loops=12: the first 12 loops only, for the suite's time; the learning curve's
+    # own choice of more is measured by the benchmarks)
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
-                     match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))])
+                     match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))], teach_max_loops=12)
     assert sp["nout"] == t["nexp_ok"] and sp["resmean_rms"] > 0
     # the taught map writes on its own grid (half the DM's pitch): the speckles within its band
     assert sp["info"]["out_pitch"] == pytest.approx(sp["teach"]["out_pitch"], rel=1e-12)
@@ -44,6 +47,12 @@ def test_path_on_files_equals_the_cli(series, cli):
     # sp.teach/ beside the output (the loops' layers those the slopes show)
     assert sp["taught"] and sp["teach_map"] == str(d / "sp.teach" / "taught.fits") and os.path.exists(sp["teach_map"])
     assert sp["teach"]["nloops"] >= 12 and sp["teach"]["modes_from_slopes"] and sp["teach"]["layers"]
+    # the space-time map's learning curve over the pupil's points, measured on its 12 loops
+    cv = sp["teach"]["curve"]
+    assert sp["teach"]["st_loops"] == 12 and cv is not None and cv == sp["teach"]["curve_first"]
+    assert cv["n"][0] < cv["n"][1] < cv["nframes"] and all(m > 0 for m in cv["misfit_rms"])
+    assert cv["b"] <= 0 or cv["a"] <= 0 or cv["excess"] == pytest.approx(cv["b"] / (cv["a"] * cv["nframes"]))
+    assert 0 < cv["outputs"] < sp["teach"]["out_points"]  # the pupil's points of the grid
     assert sp["info"]["nlags"] == (5 if sp["teach"]["chosen"] == "spacetime" else 0)
     assert not sp["teach_reused"] and len(sp["teach_fingerprint"]) == 16
     h = sw.estimate_files(str(d / "sci_m.fits"), str(d / "sp.fits"), str(d / "halo.fits"))
@@ -64,7 +73,7 @@ def test_path_on_files_equals_the_cli(series, cli):
     # teach options (its own copies of the reduced cubes), so the map taught above is reused
     spc = run("speckles", str(c / "timing.txt"), "--science", str(c / "sci.fits"), "--actuators",
               str(s / "actuators.fits"), "-o", str(c / "sp.fits"), "--match", str(c / "sci.fits"), str(c / "sci_m.fits"),
-              "--teach-work", str(d / "sp.teach")).stderr.decode()
+              "--teach-work", str(d / "sp.teach"), "--teach-max-loops", "12").stderr.decode()
     assert f"speckles: reused {d / 'sp.teach' / 'taught.fits'}, taught by an earlier run" in spc, spc
     assert f"TEACHFPR = '{sp['teach_fingerprint']}'" in spc, spc
     run("estimate", str(c / "sci_m.fits"), str(c / "sp.fits"), "-o", str(c / "halo.fits"))
@@ -262,7 +271,7 @@ def test_teach(series, tmp_path):
     s = series / "sim"
     files = sorted(str(p) for p in s.glob("slopes_0*.fits"))
     out = tmp_path / "T.fits"
-    r = sw.teach(files, str(out), str(tmp_path / "work"), config=conf, loops=4, **keys)
+    r = sw.teach(files, str(out), str(tmp_path / "work"), config=conf, loops=4, max_loops=6, **keys)
     assert 1 <= len(r["layers"]) <= 4 and r["nlayers_given"] == min(len(r["layers"]), 3) and r["nsub"] == 12
     vmax = max(L["speed"] for L in r["layers"][:r["nlayers_given"]])
     l1 = max(1, round(r["pitch"] * r["rate"] / (2 * vmax)))
@@ -270,7 +279,20 @@ def test_teach(series, tmp_path):
     assert r["chosen"] in ("spacetime", "perframe", "perframe_mixed") and 0 < r["st_misfit_rms"] < r["st_truth_rms"]
     warned = r["st_warn_wind"] or r["st_warn_corr"]
     assert warned == (r["chosen"] != "spacetime")
-    assert r["nloops"] == (8 if r["chosen"] == "perframe_mixed" else 4)
+    # the space-time map's learning curve over the first 4 loops, on the grid's points in the
+    # pupil; where it asks for more frames than they hold, more loops (here at most 6: the
+    # suite's time), as many as it asks for, and the curve again over them all
+    cf, per = r["curve_first"], r["curve_first"]["nframes"] / 4
+    assert 0 < cf["outputs"] < r["out_points"] and cf["n"][0] < cf["n"][1] < cf["nframes"]
+    if cf["frames"] is None or cf["frames"] > cf["nframes"]:
+        want = 6 if cf["frames"] is None else min(6, math.ceil(cf["frames"] / per))
+        assert r["st_loops"] == want > 4 and r["curve"]["nframes"] == pytest.approx(want * per)
+    else:
+        assert r["st_loops"] == 4 and r["curve"] == cf
+    print(f"teach: learning curve over 4 loops: excess {cf['excess']:.3f}, {cf['frames']} frames asked; "
+          f"{r['st_loops']} loops")
+    assert sw.fits.read_keys(str(out), ["TEACHSTL"])["TEACHSTL"] == r["st_loops"]
+    assert r["nloops"] == r["st_loops"] + (4 if r["chosen"] == "perframe_mixed" else 0)
     assert r["st_corr_obs"].shape == (5,) and r["st_corr_obs"][0] == pytest.approx(1.0)
     nl = sw.fits.read_keys(str(tmp_path / "work" / "spacetime.fits"), ["NLAGS"])["NLAGS"]
     assert nl == 5 and os.path.exists(out)
@@ -338,6 +360,8 @@ def test_teach_from_files(series, tmp_path):
               flat=str(s / "flat.fits"))
     out = tmp_path / "F.fits"
     r = sw.teach(files, str(out), str(tmp_path / "work"), loops=3, science=sci, actuators=str(s / "actuators.fits"))
+    # three loops: too few parts for a learning curve (4), so no more loops whatever the budget
+    assert r["curve_first"] is None and r["curve"] is None and r["st_loops"] == 3
     assert r["modes_from_slopes"] and abs(r["ao_modes"] - 56) <= 0.15 * 56 and r["knee_obs"] > 0
     assert 1 <= len(r["calibration"]) <= 4 and r["calibration"][0][0] == r["knee_obs"]
     assert r["nsub"] == 12 and r["chosen"] in ("spacetime", "perframe", "perframe_mixed")

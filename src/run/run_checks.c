@@ -50,12 +50,15 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     if (p->threads < 1 || p->threads > SWFS_ENGINE_MAX_THREADS)
         FAIL("--threads must be 1..%d, got %d", SWFS_ENGINE_MAX_THREADS, p->threads);
     if (o->batch > BATCH_MAX) FAIL("--batch must be 1..%d, got %zu", BATCH_MAX, o->batch);
-    if ((o->teach_work || o->teach_loops != d.teach_loops || o->teach_seed != d.teach_seed || o->teach_keep_loops ||
-         o->teach_again) && (recon != SWFS_RECON_TEACH || basis))
-        FAIL("--teach-work, --teach-loops, --teach-seed, --teach-keep-loops and --teach-again go with --recon teach (the "
-             "default with --actuators)");
+    if ((o->teach_work || o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops ||
+         o->teach_seed != d.teach_seed || o->teach_keep_loops || o->teach_again) && (recon != SWFS_RECON_TEACH || basis))
+        FAIL("--teach-work, --teach-loops, --teach-max-loops, --teach-seed, --teach-keep-loops and --teach-again go with "
+             "--recon teach (the default with --actuators)");
     if (o->teach_again & ~1) FAIL("teach_again must be 0 or 1, got %d", o->teach_again);
     if (o->teach_loops < 2 || o->teach_loops > 64) FAIL("--teach-loops must be 2..64, got %zu", o->teach_loops);
+    if (o->teach_max_loops && (o->teach_max_loops < o->teach_loops || o->teach_max_loops > 64))
+        FAIL("--teach-max-loops must be --teach-loops (%zu) to 64 (0: 4 times --teach-loops, at most 64), got %zu",
+             o->teach_loops, o->teach_max_loops);
     if (o->teach_seed > (uint64_t)INT64_MAX) FAIL("--teach-seed must be >= 0 and below 2^63");
     if (!(o->wfs_hz >= 0) || !isfinite(o->wfs_hz)) FAIL("--wfs-hz must be a rate > 0 [Hz], got %g", o->wfs_hz);
     if (p->wfs_rate && o->nmatch) FAIL("--match pairs camera frames; it does not apply with --wfs-rate");

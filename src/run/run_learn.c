@@ -5,7 +5,9 @@
 #include "specklewfs/outpaths.h"
 #include "run_internal.h"
 
+#include <limits.h>
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -39,7 +41,7 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s (%zux%zux%zu) and %s (%zux%zux%zu): expected NSLOPES (even) x N and NACT x N "
                        "images of the same N frames", sp, s->nx, s->ny, s->nz, tp, z->nx, z->ny, z->nz);
-    if (!rc && *l && (s->nx != r->nslopes || z->nx != r->nact))
+    if (!rc && r->nslopes && (s->nx != r->nslopes || z->nx != r->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes and %zu actuators; the first data set has %zu and %zu: the "
                        "training data must share one geometry", sp, s->nx, z->nx, r->nslopes, r->nact);
     if (!rc && !*l) {
@@ -112,6 +114,16 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHMISF", r->heldout_misfit_rms, "[m] rms misfit, held out");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHTRUT", r->heldout_truth_rms, "[m] rms truth, held out");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHWRST", r->heldout_worst, "worst set's misfit / truth");
+    }
+    if (!rc && !lag0 && r->curve_n[0]) {
+        rc = swfs_fits_out_key_long(f, "LRNCN1", (long)r->curve_n[0], "learning curve: frames of a half map");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNCM1", sqrt(r->curve_m2[0]), "[m] its rms misfit, held out");
+        if (!rc) rc = swfs_fits_out_key_long(f, "LRNCN2", (long)r->curve_n[1], "frames of a three-quarter map");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNCM2", sqrt(r->curve_m2[1]), "[m] its rms misfit, held out");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNCEXC", isfinite(r->curve_excess) ? r->curve_excess : -1.0,
+                                                  "misfit^2 excess at LRNFRAME, b/(aN) (-1: unbounded)");
+        if (!rc) rc = swfs_fits_out_key_long(f, "LRNCFRM", r->curve_frames > (size_t)LONG_MAX ? -1 : (long)r->curve_frames,
+                                             "frames for an excess of 0.1 (0 flat, -1 unbounded)");
     }
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         char h[4200];
@@ -189,6 +201,67 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     }
     swfs_recon_learner_free(part);
     return rc;
+}
+
+/* The learning curve (run.h swfs_learn_run_result.curve_*) from the sums of the four parts q
+ * and of all their frames: each check's misfit weighted by the frames it is checked on. */
+static int learning_curve(const swfs_learn_run_options *o, const swfs_recon_learner *all,
+                          swfs_recon_learner *const q[4], const unsigned char *keep, swfs_learn_run_result *r)
+{
+    const size_t N = swfs_recon_learner_frames(all), nl = o->nlags > 1 ? o->nlags : 1;
+    swfs_recon_learner *h = NULL;
+    int rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &h);
+    double m2[2] = {0, 0}, s2[2] = {0, 0}, nt[2] = {0, 0}, ne[2] = {0, 0};
+    for (size_t c = 0; !rc && c < 6; c++) {
+        /* checks 0, 1: parts {0, 2} then {1, 3} held out (a half map); 2-5: part c - 2 */
+        const int half = c < 2;
+        swfs_recon_learner_reset(h);
+        if (half) {
+            rc = swfs_recon_learner_merge(h, q[c]);
+            if (!rc) rc = swfs_recon_learner_merge(h, q[c + 2]);
+        } else {
+            rc = swfs_recon_learner_merge(h, q[c - 2]);
+        }
+        if (rc) break;
+        const size_t n = swfs_recon_learner_frames(h);
+        double md = 0, td = 0, sd = 0;
+        rc = swfs_recon_learner_heldout_on(all, h, o->ridge, keep, &md, &td, &sd);
+        if (o->progress) o->progress(o->progress_ctx, "learning curve", c + 1, 6);
+        if (rc == SWFS_ERR_VALUE) { /* a part too small for a map without it: no curve */
+            swfs_recon_learner_free(h);
+            swfs_clear_error();
+            return SWFS_OK;
+        }
+        if (rc) break;
+        const int k = half ? 0 : 1;
+        m2[k] += md * (double)n;
+        s2[k] += sd * (double)n;
+        nt[k] += (double)(N - n) * (double)n;
+        ne[k] += (double)n;
+    }
+    swfs_recon_learner_free(h);
+    if (rc) return rc;
+    for (int k = 0; k < 2; k++) {
+        r->curve_m2[k] = m2[k] / ne[k];
+        r->curve_s2[k] = s2[k] / ne[k];
+        r->curve_n[k] = (size_t)llround(nt[k] / ne[k]);
+    }
+    const double n0 = (double)r->curve_n[0], n1 = (double)r->curve_n[1];
+    if (!(n1 > n0)) return SWFS_OK;
+    r->curve_b = (r->curve_m2[0] - r->curve_m2[1]) / (1.0 / n0 - 1.0 / n1);
+    r->curve_a = r->curve_m2[1] - r->curve_b / n1;
+    if (r->curve_b <= 0) {
+        r->curve_excess = 0;
+        r->curve_frames = 0;
+    } else if (r->curve_a > 0) {
+        r->curve_excess = r->curve_b / (r->curve_a * (double)N);
+        const double need = ceil(r->curve_b / (SWFS_LEARN_CURVE_EXCESS * r->curve_a));
+        r->curve_frames = need < 1e15 ? (size_t)need : SIZE_MAX;
+    } else { /* steeper than any a + b / n with a > 0: more frames without a bound */
+        r->curve_excess = INFINITY;
+        r->curve_frames = SIZE_MAX;
+    }
+    return SWFS_OK;
 }
 
 /* The data sets' winds (those found: nwind) and slope correlations: their means and the
@@ -274,6 +347,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
+    r->curve_m2[0] = r->curve_m2[1] = r->curve_s2[0] = r->curve_s2[1] = r->curve_a = r->curve_b = r->curve_excess = NAN;
     r->wind_vx = r->wind_vy = r->wind_spread = NAN;
     for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->corr[k] = r->corr_spread[k] = NAN;
     if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
@@ -295,10 +369,37 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     swfs_recon_learner *l = NULL;
     set_stats *sets = o->nlags > 1 ? calloc(o->ndirs, sizeof *sets) : NULL;
     if (o->nlags > 1 && !sets) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+    /* with the curve, the sets dealt into four parts' sums, then merged */
+    const int curve = o->curve && o->ndirs >= 4;
+    swfs_recon_learner *q[4] = {NULL, NULL, NULL, NULL};
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, sets ? sets + d : NULL);
+        rc = add_dir(o, o->dirs[d], curve ? &q[d % 4] : &l, r, &r->nfiles, sets ? sets + d : NULL);
         if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
     }
+    if (!rc && curve) {
+        rc = swfs_recon_learner_new(r->nslopes * (o->nlags > 1 ? o->nlags : 1), r->nact, !o->modal, &l);
+        for (int k = 0; !rc && k < 4; k++) rc = swfs_recon_learner_merge(l, q[k]);
+        /* the outputs the curve is measured on: OUTXY's points within the annulus */
+        double *xy = NULL;
+        unsigned char *keep = NULL;
+        if (!rc && o->curve_radius[1] > 0 && !(rc = truth_points(o, r->nact, &xy)) && xy) {
+            if (!(keep = malloc(r->nact))) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+            for (size_t a = 0; keep && a < r->nact; a++) {
+                const double rad = hypot(xy[2 * a], xy[2 * a + 1]);
+                keep[a] = rad >= o->curve_radius[0] && rad <= o->curve_radius[1];
+                r->curve_outputs += keep[a];
+            }
+        } else {
+            r->curve_outputs = r->nact;
+        }
+        if (!rc && keep && !r->curve_outputs)
+            rc = swfs_fail(SWFS_ERR_VALUE, "learn: no output point within %g to %g m of the centre for the learning "
+                           "curve (%zu points, OUTXY)", o->curve_radius[0], o->curve_radius[1], r->nact);
+        if (!rc) rc = learning_curve(o, l, q, keep, r);
+        free(xy);
+        free(keep);
+    }
+    for (int k = 0; k < 4; k++) swfs_recon_learner_free(q[k]);
     if (!rc && sets) training_stats(sets, o, r);
     free(sets);
     swfs_recon *w = NULL;

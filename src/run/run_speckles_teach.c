@@ -57,7 +57,7 @@ static void drop_loops(const char *work, const struct swfs_teach_run_result *tr,
 {
     static const char *const kinds[] = {"loop", "mixed", "modes"};
     for (int t = 0; t < 3; t++) {
-        const size_t n = t == 2 ? tr->ncal : nloops;
+        const size_t n = t == 2 ? tr->ncal : t == 0 && tr->st_loops > nloops ? tr->st_loops : nloops;
         for (size_t k = 0; k < n; k++) {
             char d[4300], f[4600];
             snprintf(d, sizeof d, "%s/%s_%02zu", work, kinds[t], k);
@@ -122,7 +122,7 @@ static int fingerprint(const swfs_speckles_run_options *o, const swfs_config *c,
     for (size_t k = 0; k < swfs_config_count(c); k++)
         h = fnv_text(fnv_text(h, swfs_config_key(c, k)), swfs_config_value(c, k));
     char v[64];
-    snprintf(v, sizeof v, "loops %zu seed %" PRIu64, o->teach_loops, o->teach_seed);
+    snprintf(v, sizeof v, "loops %zu to %zu seed %" PRIu64, o->teach_loops, o->teach_max_loops, o->teach_seed);
     h = fnv_text(h, v);
     int rc = SWFS_OK;
     for (size_t k = 0; !rc && k < n; k++) rc = fnv_file(&h, "telemetry", names[k]);
@@ -203,6 +203,7 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.out = map;
         to.work = work;
         to.nloops = o->teach_loops;
+        to.max_loops = o->teach_max_loops;
         to.seed = o->teach_seed;
         to.modes_from_slopes = 1;
         to.noise_from_slopes = 1;

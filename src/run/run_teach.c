@@ -133,8 +133,25 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
     return SWFS_OK;
 }
 
+/* Loop k of the space-time set: the layers found, the first one's share 0.3 + 0.4 u (u in
+ * [0, 1]; the others share the rest), seed o->seed + k. */
+static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, double u, int nl, const double *speed,
+                      const double *dir)
+{
+    snprintf(j->name, sizeof j->name, "loop");
+    j->k = k;
+    j->seed = o->seed + k;
+    j->nl = nl;
+    j->frac[0] = nl > 1 ? 0.3 + 0.4 * u : 1.0;
+    for (int l = 0; l < nl; l++) {
+        if (l) j->frac[l] = (1.0 - j->frac[0]) / (double)(nl - 1);
+        j->speed[l] = speed[l];
+        j->dir[l] = dir[l];
+    }
+}
+
 static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n, const long *lags, size_t nlags,
-                 const char *out, const char *perframe_out, swfs_learn_run_result *lr)
+                 const char *out, const char *perframe_out, int curve, swfs_learn_run_result *lr)
 {
     const char *d[64];
     for (size_t k = 0; k < n; k++) d[k] = jobs[k].path;
@@ -147,6 +164,10 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
     lo.lags = nlags > 1 ? lags : NULL;
     lo.nlags = nlags > 1 ? nlags : 0;
     lo.perframe_out = perframe_out;
+    lo.curve = curve;
+    /* the curve over the points in the pupil (the truth outside it is the fit's extrapolation) */
+    lo.curve_radius[0] = 0.5 * o->sim.base.obscur * o->sim.base.teldiam;
+    lo.curve_radius[1] = 0.5 * o->sim.base.teldiam;
     lo.prov = o->prov;
     lo.nprov = o->nprov;
     const int rc = swfs_learn_run(&lo, lr);
@@ -164,6 +185,13 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime, perframe(_mixed)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLOO", (long)r->nloops, "teach: loops simulated");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLAY", (long)r->nlayers, "teach: layers found and given to the loops");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHSTL", (long)r->st_loops, "teach: the space-time map's loops");
+    if (!rc && r->curve_first.curve_n[0])
+        rc = swfs_fits_out_key_double(f, "TEACHLC1", isfinite(r->curve_first.curve_excess) ? r->curve_first.curve_excess
+                                      : -1.0, "learning curve excess, first loops (-1: unbounded)");
+    if (!rc && r->curve.curve_n[0])
+        rc = swfs_fits_out_key_double(f, "TEACHLCE", isfinite(r->curve.curve_excess) ? r->curve.curve_excess : -1.0,
+                                      "learning curve excess, all loops (-1: unbounded)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHWRN", r->warns, "teach: checks warned (1 wind, 2 corr.)");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHMIS", r->check.st_mismatch, "[subap] layers apart at the largest lag");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHCEX", r->check.st_corr_excess, "correlation beyond 3 spreads (> 0 warns)");
@@ -188,6 +216,9 @@ static int check_options(const swfs_teach_run_options *o)
     if (!o->nfiles || !o->files) return swfs_fail(SWFS_ERR_ARG, "teach: no telemetry files of the observation");
     if (!o->out || !o->work) return swfs_fail(SWFS_ERR_ARG, "teach: no output map or no work folder");
     if (o->nloops < 2 || o->nloops > 64) return swfs_fail(SWFS_ERR_VALUE, "teach: %zu loops; expected 2 to 64", o->nloops);
+    if (o->max_loops && (o->max_loops < o->nloops || o->max_loops > 64))
+        return swfs_fail(SWFS_ERR_VALUE, "teach: at most %zu loops for %zu first ones; expected %zu to 64 (0: 4 times "
+                         "the first, at most 64)", o->max_loops, o->nloops, o->nloops);
     if (o->modes_from_slopes && o->sim.ao_recon[0])
         return swfs_fail(SWFS_ERR_ARG, "teach: the modal filter from the slopes, but the loop's reconstructor %s is "
                          "given (ao_recon): one or the other", o->sim.ao_recon);
@@ -539,21 +570,11 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             oo.sim.wfs_file_frames = (long)r->loop_frames;
     }
     if ((rc = output_grid(&oo, r))) { swfs_real_free(obs); return rc; }
-    loop_job *jobs = calloc(o->nloops, sizeof *jobs);
+    const size_t max_loops = o->max_loops ? o->max_loops : 4 * o->nloops < 64 ? 4 * o->nloops : 64;
+    loop_job *jobs = calloc(max_loops, sizeof *jobs);
     if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
-    for (size_t k = 0; k < o->nloops; k++) {
-        loop_job *j = jobs + k;
-        snprintf(j->name, sizeof j->name, "loop");
-        j->k = k;
-        j->seed = o->seed + k;
-        j->nl = nl;
-        j->frac[0] = nl > 1 ? 0.3 + 0.4 * (double)k / (double)(o->nloops - 1) : 1.0;
-        for (int l = 0; l < nl; l++) {
-            if (l) j->frac[l] = (1.0 - j->frac[0]) / (double)(nl - 1);
-            j->speed[l] = speed[l];
-            j->dir[l] = dir[l];
-        }
-    }
+    for (size_t k = 0; k < o->nloops; k++)
+        loop_init(jobs + k, o, k, (double)k / (double)(o->nloops - 1), nl, speed, dir);
     /* what every loop's run would build again from the system alone (the DM's modes, the
      * truth's fit plan on the grid: an eigen-decomposition of its points squared), once */
     swfs_ts_shared *shared = NULL;
@@ -566,11 +587,34 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
     snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
     swfs_learn_run_result lr;
+    r->st_loops = o->nloops;
     if (!rc) {
         stage(o, "learning the space-time map", 0, 1);
         /* with the per-frame map of the same loops from the same sums (perframe.fits: what a
-         * run taking one frame's slopes, live, is given) */
-        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, &lr);
+         * run taking one frame's slopes, live, is given), and its learning curve */
+        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, 1, &lr);
+        r->curve_first = r->curve = lr;
+    }
+    /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
+     * bring the map's excess over unlimited frames to SWFS_LEARN_CURVE_EXCESS (at most
+     * max_loops: by default 4 times the first loops' cost), their layer shares spread over the first loops' range; then the map again.
+     * Frames correlated in time count for less than independent ones, which the 10 frames per
+     * input above assume: the curve measures what they are worth (docs/telemetry.md, "Loops
+     * as the map's learning curve asks"). */
+    if (!rc && lr.curve_frames > lr.info.nframes && max_loops > o->nloops) {
+        const double per = (double)lr.info.nframes / (double)o->nloops;
+        const double want = ceil((double)lr.curve_frames / per);
+        const size_t n = want < (double)max_loops ? (size_t)want : max_loops;
+        for (size_t k = o->nloops; k < n; k++)
+            loop_init(jobs + k, o, k, ((double)(k - o->nloops) + 0.5) / (double)(n - o->nloops), nl, speed, dir);
+        rc = simulate_loops(o, shared, jobs + o->nloops, n - o->nloops, "simulating more loops (learning curve)",
+                            &r->nloops);
+        r->st_loops = n;
+        if (!rc) {
+            stage(o, "learning the space-time map again", 0, 1);
+            rc = learn(o, jobs, n, lags, 5, st, pf, 1, &lr);
+            r->curve = lr;
+        }
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
@@ -590,7 +634,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             swfs_rng g;
             swfs_rng_seed2(&g, o->seed, 1000 + k);
             snprintf(j->name, sizeof j->name, "mixed");
-            j->seed = o->seed + o->nloops + k;
+            j->seed = o->seed + r->st_loops + k;
             j->nl = 2;
             j->frac[0] = 0.5 + 0.3 * swfs_rng_uniform(&g);
             j->frac[1] = 1.0 - j->frac[0];
@@ -603,7 +647,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     if (!rc && r->chosen == SWFS_TEACH_PERFRAME_MIXED) { /* other loops: their own map */
         stage(o, "learning the per-frame map", 0, 1);
-        rc = learn(o, jobs, o->nloops, NULL, 0, pf, NULL, &lr);
+        rc = learn(o, jobs, o->nloops, NULL, 0, pf, NULL, 0, &lr);
     }
     if (!rc && r->warns) chosen = pf; /* of the same loops: learned with the space-time map */
     free(jobs);

@@ -31,6 +31,7 @@ struct swfs_recon_learner {
     double *G;    /* nc x nc: sum of s s^T (upper triangle, row-major) */
     double *H;    /* nc x nact: sum of s z^T, z with its mean removed when remove_mean */
     double zz;    /* sum of |z|^2, mean removed */
+    double *zza;  /* nact: each output's share of zz */
     float *Sf;    /* LEARN_BLOCK x nc: a block of inputs in single precision */
     float *Zf;    /* LEARN_BLOCK x nact: its truth, mean removed */
     float *Hf;    /* nc x nact: one add call's S^T Zc, summed in single precision */
@@ -46,8 +47,9 @@ int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_re
         l->nact = nact;
         l->remove_mean = remove_mean != 0;
         l->Zf = malloc(LEARN_BLOCK * nact * sizeof *l->Zf);
+        l->zza = calloc(nact, sizeof *l->zza);
     }
-    if (!l || !l->Zf) {
+    if (!l || !l->Zf || !l->zza) {
         swfs_recon_learner_free(l);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for %zu slopes x %zu actuators", nslopes,
                          nact);
@@ -65,6 +67,7 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
     free(l->Sf);
     free(l->Zf);
     free(l->Hf);
+    free(l->zza);
     free(l);
 }
 
@@ -76,6 +79,8 @@ static size_t full_of(const swfs_recon_learner *l, size_t i) { return i / l->nu0
 /* The sums' layout for a file of n frames of ns0 slopes at nl lags: the first call sets the
  * base shape, every call adds the slopes with signal in its file (moving the sums' entries to
  * their places among the new ones, which are 0 over the frames already added). */
+static int grow(swfs_recon_learner *l, unsigned char *sig, size_t nu0, size_t ns0, size_t nl);
+
 static int layout(swfs_recon_learner *l, const double *s, size_t n, size_t ns0, size_t nl)
 {
     if (l->ns0 && (l->ns0 != ns0 || l->nl != nl))
@@ -93,6 +98,13 @@ static int layout(swfs_recon_learner *l, const double *s, size_t n, size_t ns0, 
                 nu0++;
             }
     }
+    return grow(l, sig, nu0, ns0, nl);
+}
+
+/* The sums grown to the nu0 base slopes marked in sig (ns0 long, a superset of l's; freed
+ * here), the old entries moved to their places. */
+static int grow(swfs_recon_learner *l, unsigned char *sig, size_t nu0, size_t ns0, size_t nl)
+{
     if (l->ns0 && nu0 == l->nu0) {
         free(sig);
         return SWFS_OK;
@@ -177,6 +189,7 @@ static void add_cross(swfs_recon_learner *l, const double *S, const double *Z, s
         for (size_t a = 0; a < na; a++) {
             const double c = z[a] - m;
             l->zz += c * c;
+            l->zza[a] += c * c;
             zf[a] = (float)c;
         }
     }
@@ -314,7 +327,49 @@ void swfs_recon_learner_reset(swfs_recon_learner *l)
     if (l->G) memset(l->G, 0, l->nc * l->nc * sizeof *l->G);
     if (l->H) memset(l->H, 0, l->nc * l->nact * sizeof *l->H);
     l->zz = 0;
+    memset(l->zza, 0, l->nact * sizeof *l->zza);
     l->nframes = 0;
+}
+
+static int positions(const swfs_recon_learner *l, const swfs_recon_learner *m, size_t **out);
+
+int swfs_recon_learner_merge(swfs_recon_learner *dst, const swfs_recon_learner *src)
+{
+    if (dst->nslopes != src->nslopes || dst->nact != src->nact || dst->remove_mean != src->remove_mean)
+        return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: sums of %zu inputs x %zu outputs merged into %zu x %zu",
+                         src->nslopes, src->nact, dst->nslopes, dst->nact);
+    for (size_t a = 0; a < dst->nact; a++) dst->zza[a] += src->zza[a];
+    if (!src->ns0) { /* no frames with any slope yet: the truth's power alone */
+        dst->zz += src->zz;
+        dst->nframes += src->nframes;
+        return SWFS_OK;
+    }
+    if (dst->ns0 && (dst->ns0 != src->ns0 || dst->nl != src->nl))
+        return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: %zu slopes x %zu lags merged into %zu x %zu", src->ns0,
+                         src->nl, dst->ns0, dst->nl);
+    unsigned char *sig = calloc(src->ns0, 1);
+    if (!sig) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
+    size_t nu0 = 0;
+    for (size_t u = 0; u < dst->nu0; u++) sig[dst->used0[u]] = 1;
+    for (size_t u = 0; u < src->nu0; u++) sig[src->used0[u]] = 1;
+    for (size_t c = 0; c < src->ns0; c++) nu0 += sig[c];
+    int rc = grow(dst, sig, nu0, src->ns0, src->nl);
+    size_t *mp = NULL;
+    if (!rc) rc = positions(dst, src, &mp);
+    if (rc) return rc;
+    /* the union is sorted, so i <= j maps to p <= q: upper triangle onto upper triangle */
+    const size_t nc = dst->nc, na = dst->nact;
+    for (size_t i = 0; i < nc; i++) {
+        const size_t p = mp[i];
+        if (p == SIZE_MAX) continue;
+        for (size_t j = i; j < nc; j++)
+            if (mp[j] != SIZE_MAX) dst->G[i * nc + j] += src->G[p * src->nc + mp[j]];
+        for (size_t a = 0; a < na; a++) dst->H[i * na + a] += src->H[p * na + a];
+    }
+    dst->zz += src->zz;
+    dst->nframes += src->nframes;
+    free(mp);
+    return SWFS_OK;
 }
 
 /* Where each of l's inputs sits among m's (SIZE_MAX: not there, so 0 in m's sums), for the
@@ -473,7 +528,14 @@ int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double r
 int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                double *misfit2, double *truth2)
 {
+    return swfs_recon_learner_heldout_on(all, part, ridge, NULL, misfit2, truth2, NULL);
+}
+
+int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                                  const unsigned char *keep, double *misfit2, double *truth2, double *scaled2)
+{
     *misfit2 = *truth2 = NAN;
+    if (scaled2) *scaled2 = NAN;
     const size_t ns = all->nslopes, na = all->nact;
     if (part->nslopes != ns || part->nact != na || part->nframes == 0 || part->nframes >= all->nframes)
         return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a held-out part of %zu frames (%zu slopes, %zu "
@@ -504,17 +566,26 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
             }
         cblas_dsymm(CblasRowMajor, CblasLeft, CblasUpper, (int)nu, (int)na, 1.0, Gp, (int)nu, A, (int)na, 0.0, C,
                     (int)na);
-        double cross = 0, quad = 0;
+        double cross = 0, quad = 0, zz = 0;
+        size_t nk = 0;
+        for (size_t a = 0; a < na; a++)
+            if (!keep || keep[a]) {
+                zz += part->zza[a];
+                nk++;
+            }
         for (size_t i = 0; i < nu; i++) {
             const size_t p = mp[idx[i]];
             for (size_t a = 0; a < na; a++) {
+                if (keep && !keep[a]) continue;
                 cross += p == SIZE_MAX ? 0.0 : A[i * na + a] * part->H[p * na + a];
                 quad += A[i * na + a] * C[i * na + a];
             }
         }
-        const double n = (double)(part->nframes * na);
-        *misfit2 = fmax(0.0, part->zz - 2 * cross + quad) / n;
-        *truth2 = part->zz / n;
+        const double n = (double)(part->nframes * (nk ? nk : 1));
+        *misfit2 = fmax(0.0, zz - 2 * cross + quad) / n;
+        *truth2 = zz / n;
+        /* scaled by the best single factor k = cross / quad: zz - cross^2 / quad */
+        if (scaled2) *scaled2 = quad > 0 ? fmax(0.0, zz - cross * cross / quad) / n : *truth2;
     }
     free(mp);
     free(idx);
