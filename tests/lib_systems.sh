@@ -21,8 +21,8 @@
 # (measured 20.0 nm on sh16-issue), and in place of sh24-base's seed 1 (the same code as
 # sh16-issue's, 80-90 s under the sanitizers) its seed 2 (start fraction 0.274), a known
 # failure of the joint fit on so few frames with vk (docs/telemetry.md): it must either
-# meet the same bounds or say that the fit took no step (pupil's warning), never pass a
-# flat start off as an estimate.
+# meet the same bounds or say that the fit took no step or ran away (pupil's warnings), never
+# pass a flat start or a runaway off as an estimate.
 # (With the taught map it met them: 28.8 nm, ideal 26.5.) cli_learn.sh runs the taught
 # default under the sanitizers.
 # Sourced by cli_systems_sh16.sh and cli_systems_sh24.sh, one system each (two ctest tests,
@@ -72,9 +72,12 @@ run_system() { # run_system NAME NSUB RATIO SPEED DIR VIB VIBFREQ RDNOISE MAXNM 
     if awk -v e="$e" -v m="$9" 'BEGIN { exit !(e > 0 && e <= m) }' && (resmean_bounds "$n" "$e" "$i" $k 1.6); then
         return
     fi
-    # outside the bounds: only a fit that says it took no step is accepted
+    # outside the bounds: only a fit that says it took no step, or that it ran away (a WFE of
+    # more than half the wavelength: on AVX-512 kernels the same data's fit takes steps, to
+    # 4165 nm), is accepted
     "$B" pupil "$d/halo.fits" -o "$d/pupil2.fits" > /dev/null 2> "$d/pupil2.err" || fail "$n: pupil"
-    grep -q "warning: the joint fit took no step" "$d/pupil2.err" && grep -q "FITITER = 0" "$d/pupil2.err" \
-        || fail "$n: NCP error $e nm (ideal $i nm, bound 1.6x and $9 nm) and no warning"
+    { grep -q "warning: the joint fit took no step" "$d/pupil2.err" && grep -q "FITITER = 0" "$d/pupil2.err"; } \
+        || grep -q "is more than half the wavelength .*the fit ran away from its start and this is not an estimate" \
+            "$d/pupil2.err" || fail "$n: NCP error $e nm (ideal $i nm, bound 1.6x and $9 nm) and no warning"
     echo "cli_systems: $n: outside the bounds, and pupil says why: $(cat "$d/pupil2.err")" >&2
 }

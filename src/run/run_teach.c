@@ -597,10 +597,10 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
      * bring the map's excess over unlimited frames to SWFS_LEARN_CURVE_EXCESS (at most
-     * max_loops: by default 4 times the first loops' cost), their layer shares spread over the first loops' range; then the map again.
-     * Frames correlated in time count for less than independent ones, which the 10 frames per
-     * input above assume: the curve measures what they are worth (docs/telemetry.md, "Loops
-     * as the map's learning curve asks"). */
+     * max_loops: by default 4 times the first loops' cost), their layer shares spread over
+     * the first loops' range; then the map again. Frames correlated in time count for less
+     * than the independent ones the 10 frames per input above assume: the curve measures what
+     * they are worth (docs/telemetry.md, "Loops as the map's learning curve asks"). */
     if (!rc && lr.curve_frames > lr.info.nframes && max_loops > o->nloops) {
         const double per = (double)lr.info.nframes / (double)o->nloops;
         const double want = ceil((double)lr.curve_frames / per);
