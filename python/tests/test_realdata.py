@@ -156,7 +156,7 @@ def test_errors_leave_nothing(series, tmp_path):
     # Options out of range get the command line's message from the library's check (run.h
     # swfs_speckles_run_options_check), before any file is opened.
     for kw, msg in [({"teach_loops": 1}, "--teach-loops must be 2..64, got 1"),
-                    ({"recon": "vk", "teach_seed": 7}, "--teach-work, --teach-loops, --teach-seed"),
+                    ({"recon": "vk", "teach_seed": 7}, "--teach-work, --teach-loops, --teach-max-loops, --teach-seed"),
                     ({"recon": "vk", "teach_again": True}, "--teach-keep-loops and --teach-again go with --recon teach"),
                     ({"wfs_hz": 1000.0, "wfs_rate": True, "match": [("a.fits", "b.fits")]}, "does not apply")]:
         with pytest.raises((sw.Error, ValueError), match=msg) as e:
