@@ -126,6 +126,9 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
         cli_curve_line(f, "the space-time map's", &r->curve_first, 1e9, " nm");
         fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
         cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
+    } else if (r->max_loops <= r->st_loops) {
+        fprintf(f, "%s: the space-time map's learning curve: not measured (at most %zu loops: no more to add)\n", cmd,
+                r->max_loops);
     } else {
         fprintf(f, "%s: ", cmd);
         cli_curve_line(f, "the space-time map's", &r->curve, 1e9, " nm");

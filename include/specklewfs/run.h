@@ -711,6 +711,8 @@ typedef struct swfs_teach_run_result {
      * more than nloops when the first curve asked for more frames than they hold, up to
      * max_loops). curve_n[0] == 0: not measured. */
     size_t st_loops;
+    size_t max_loops;           /* the budget in effect (max_loops, or its default); the curve is
+                                   measured only where it exceeds nloops */
     swfs_learn_run_result curve_first, curve;
 } swfs_teach_run_result;
 

@@ -353,7 +353,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("warns", c_int), ("chosen", c_int), ("ao_modes", c_size), ("knee_obs", c_size), ("ncal", c_size),
     ("cal_modes", c_size * 4), ("cal_knee", c_size * 4), ("seconds", c_dbl), ("out_points", c_size),
     ("dm_pitch", c_dbl), ("out_pitch", c_dbl), ("noise_rms", c_dbl), ("noise_cells", c_size),
-    ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("curve_first", swfs_learn_run_result),
+    ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("max_loops", c_size),
+    ("curve_first", swfs_learn_run_result),
     ("curve", swfs_learn_run_result)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),

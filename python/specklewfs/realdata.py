@@ -257,7 +257,8 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     (learn(..., curve=True)) over the first loops is curve_first; where it asks for more frames
     than they hold, more loops are simulated, up to max_loops (default 4 loops, at most 64;
     loops: never more),
-    st_loops of them in all, and curve is the curve over them all."""
+    st_loops of them in all, and curve is the curve over them all. The curve is measured only
+    where more loops may follow (max_loops, the budget in effect, above loops)."""
     from .sim import _checked_params
     if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
         files = [files]
@@ -311,7 +312,8 @@ def _teach_dict(r, modes_from_slopes):
              calibration=[(r.cal_modes[k], r.cal_knee[k]) for k in range(r.ncal)],
              out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch, noise_rms=r.noise_rms,
              noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise,
-             st_loops=r.st_loops, curve_first=_curve_dict(r.curve_first), curve=_curve_dict(r.curve))
+             st_loops=r.st_loops, max_loops=r.max_loops, curve_first=_curve_dict(r.curve_first),
+             curve=_curve_dict(r.curve))
     d.update(_st_checks(r.check))
     return d
 

@@ -588,11 +588,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
     swfs_learn_run_result lr;
     r->st_loops = o->nloops;
+    r->max_loops = max_loops;
     if (!rc) {
         stage(o, "learning the space-time map", 0, 1);
         /* with the per-frame map of the same loops from the same sums (perframe.fits: what a
-         * run taking one frame's slopes, live, is given), and its learning curve */
-        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, 1, &lr);
+         * run taking one frame's slopes, live, is given), and its learning curve where more
+         * loops may follow (six more solves of the map's normal equations: minutes for a
+         * 24 x 24's 4440 inputs, not spent when max_loops allows no more) */
+        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
