@@ -185,10 +185,7 @@ int swfs_cmd_pupil(int argc, char **argv)
     printf("  WFE               %.1f nm rms, %.1f nm peak to valley (piston removed)\n", r->wfe_rms * 1e9, r->wfe_pv * 1e9);
     printf("  surface           %.1f nm rms\n", 0.5 * r->wfe_rms * 1e9);
     printf("  Strehl (Marechal) %.3f at %.3g um\n", r->strehl, g.wavelen * 1e6);
-    /* A phase of more than pi rad rms is no one wavefront the focal plane can tell (2 pi
-     * ambiguities everywhere), and it would have left the images no core: a fit that ran away
-     * from its start, not an estimate. */
-    if (r->wfe_rms > 0.5 * g.wavelen)
+    if (res.ran_away)
         fprintf(stderr, "specklewfs pupil: warning: the WFE of %s, %.1f nm rms, is more than half the wavelength "
                 "(%.1f nm): a phase of %.1f rad rms, which no image with a core comes from; the fit ran away from its "
                 "start and this is not an estimate; more frames, or --method moments, may do\n", out,

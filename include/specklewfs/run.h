@@ -488,6 +488,9 @@ typedef struct swfs_pupil_run_result {
     double *explained;        /* with nhalo > 1: each halo's self-check score (nhalo); else NULL */
     size_t ncommon;           /* with nhalo > 1: the focal pixels scored */
     double err, truth_rms, truth_rms_ptt; /* with truth: swfs_wfe_compare's three [m]; else NaN */
+    int ran_away;             /* 1: the WFE exceeds half the wavelength (a phase above pi rad rms,
+                                 which no image with a core comes from): the fit ran away from
+                                 its start, and the map is no estimate */
 } swfs_pupil_run_result;
 
 /* The pupil step as `specklewfs pupil` runs it: the halo read (or chosen), its geometry

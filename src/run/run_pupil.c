@@ -87,6 +87,7 @@ int swfs_pupil_run(const swfs_pupil_run_options *o, swfs_pupil_run_result *r)
         if (prov && tl[0]) prov[k++] = tl;
         if (!rc) rc = swfs_pupil_write(r->pupil, o->out, &r->geom, prov, k);
     }
+    if (!rc) r->ran_away = r->pupil->wfe_rms > 0.5 * r->geom.wavelen;
     free(prov);
     if (rc) {
         swfs_pupil_run_result_free(r);
