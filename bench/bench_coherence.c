@@ -18,6 +18,7 @@ static double now(void)
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
      * (parallel.h). */
     swfs_blas_set_threads(1);

@@ -178,6 +178,7 @@ static run_result run(const ao_system *s, int nthreads, int per_wfs, double seco
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
      * (parallel.h). */
     swfs_blas_set_threads(1);

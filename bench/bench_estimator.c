@@ -73,6 +73,7 @@ static int joint_error(const swfs_sim_result *sim, const swfs_real *noisy, const
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     /* As the command line: the library parallelizes over frames, BLAS stays single-threaded
      * (parallel.h). */
     swfs_blas_set_threads(1);

@@ -189,6 +189,7 @@ static void run_case(const system_def *d, swfs_pipeline *p, size_t nslopes, size
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     swfs_blas_set_threads(1);
     double seconds = 10.0;
     size_t depth = 0;

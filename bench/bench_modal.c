@@ -99,6 +99,7 @@ static double run(const sys_def *d, int factored, int threads, double seconds, d
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     swfs_blas_set_threads(1); /* as the command line: the engine parallelizes over frames */
     const int quick = argc > 1 && !strcmp(argv[1], "--quick");
     if (argc > 1 && !quick) {

@@ -321,6 +321,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
 
 int main(int argc, char **argv)
 {
+    swfs_blas_reexec(argv); /* the CPU's own BLAS kernels (parallel.h) */
     int quick = 0, seeds = 2, only = -1, seed1 = 1, print_keys = 0;
     const char *keep = NULL;
     for (int i = 1; i < argc; i++) {

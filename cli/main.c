@@ -46,6 +46,9 @@ static void usage(FILE *out)
 
 int main(int argc, char **argv)
 {
+    /* OpenBLAS's generic kernels on a CPU newer than it knows: run again with the CPU's own
+     * (parallel.h; a no-op when OpenBLAS knew the CPU or OPENBLAS_CORETYPE is set) */
+    swfs_blas_reexec(argv);
     /* The library runs its own workers over frames; BLAS inside them stays single-threaded
      * (parallel.h). */
     swfs_blas_set_threads(1);
@@ -59,6 +62,16 @@ int main(int argc, char **argv)
     }
     if (!strcmp(argv[1], "--version")) {
         printf("specklewfs %s\n", SWFS_VERSION);
+        swfs_blas_kernel_info k;
+        swfs_blas_kernel(&k);
+        if (k.fallback[0])
+            printf("BLAS: OpenBLAS %s kernels (OPENBLAS_CORETYPE=%s, set by specklewfs: OpenBLAS chose %s for this CPU)\n",
+                   k.core, k.core, k.fallback);
+        else if (k.better[0])
+            printf("BLAS: OpenBLAS %s kernels; this CPU runs %s's (set OPENBLAS_CORETYPE=%s)\n", k.core, k.better,
+                   k.better);
+        else
+            printf("BLAS: OpenBLAS %s kernels\n", k.core);
         return CLI_OK;
     }
     for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)

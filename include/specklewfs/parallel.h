@@ -33,6 +33,30 @@ void swfs_sleep_until(double mono);
 void swfs_blas_set_threads(int n);
 int swfs_blas_threads(void);
 
+/* OpenBLAS picks its kernels when it is loaded, from the CPU's model number. A CPU newer
+ * than the OpenBLAS build gets its generic fallback: Debian 12's OpenBLAS 0.3.21 runs its
+ * SSE3 "Prescott" kernels on a Xeon of model 207, which has AVX-512, and the GEMMs of teach,
+ * learn and pupil's joint fit then take 2-3 times as long (docs/ARCHITECTURE.md, "BLAS
+ * kernels"). OPENBLAS_CORETYPE, read when OpenBLAS is loaded, names the kernels instead.
+ * swfs_blas_kernel fills `core` with the kernels in use ("Prescott", "SkylakeX", ...;
+ * "unknown" without OpenBLAS's corename) and `better` with the kernels this CPU can run
+ * when those in use are older than AVX2 on a CPU with AVX2 and FMA ("SkylakeX" with
+ * AVX-512 F/CD/BW/DQ/VL, else "Haswell"), else "". `fallback` is the core OpenBLAS chose by
+ * itself when swfs_blas_reexec switched it (else ""). */
+typedef struct swfs_blas_kernel {
+    char core[32];
+    char better[16];
+    char fallback[32];
+} swfs_blas_kernel_info;
+void swfs_blas_kernel(swfs_blas_kernel_info *k);
+/* For programs (the command line, the benchmarks; call it first in main): when the kernels
+ * are older than the CPU and OPENBLAS_CORETYPE is not set, sets it to `better` and runs the
+ * program again from its start (execv of /proc/self/exe with the same argv), so OpenBLAS
+ * loads the right kernels. Returns only when nothing was done (0) or the execv failed (-1:
+ * the program goes on with the old kernels). A library cannot do this for its caller:
+ * Python's package warns instead (python/specklewfs/_lib.py). */
+int swfs_blas_reexec(char *const argv[]);
+
 SWFS_END_DECLS
 
 #endif

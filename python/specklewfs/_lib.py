@@ -114,6 +114,8 @@ swfs_real = _s("swfs_real", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("d
 swfs_cplx = _s("swfs_cplx", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("data", c_ptr)])
 swfs_geom = _s("swfs_geom", [("wavelen", c_dbl), ("teldiam", c_dbl), ("obscur", c_dbl), ("pixscale", c_dbl),
                              ("pupdx", c_dbl), ("pupn", c_long)])
+swfs_blas_kernel_info = _s("swfs_blas_kernel_info", [("core", ctypes.c_char * 32), ("better", ctypes.c_char * 16),
+                                                    ("fallback", ctypes.c_char * 32)])
 swfs_noise = _s("swfs_noise", [("read_noise", c_dbl), ("gain", c_dbl)])
 HALO_REAL = ["gain", "gain_pix", "visib", "snr", "mean_i", "var_i", "mean_sp", "var_sp", "stab_err", "circ",
              "valid", "nframes"]
@@ -418,6 +420,7 @@ _PROTOS = {
     # parallel.h
     "swfs_blas_set_threads": (None, [c_int]),
     "swfs_blas_threads": (c_int, []),
+    "swfs_blas_kernel": (None, [P(swfs_blas_kernel_info)]),
     # geom.h
     "swfs_geom_init": (None, [P(swfs_geom)]),
     "swfs_geom_require": (c_int, [P(swfs_geom), c_str]),

@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import _lib
-from ._lib import lib, check, as_array, dptr
+from ._lib import lib, check, as_array, dptr, swfs_blas_kernel_info
 
 
 @dataclass
@@ -62,6 +62,18 @@ def set_blas_threads(n):
 
 def blas_threads():
     return int(lib.swfs_blas_threads())
+
+
+def blas_kernel():
+    """OpenBLAS's kernels in this process (parallel.h, swfs_blas_kernel): a dict with 'core'
+    (the kernels in use, e.g. 'SkylakeX'), 'better' (the kernels this CPU runs when OpenBLAS
+    fell back to older ones than AVX2 on a CPU with AVX2 and FMA, else '') and 'fallback'
+    (the core OpenBLAS chose by itself when the command line switched it, else ''). A
+    'better' means OpenBLAS did not know this CPU: set OPENBLAS_CORETYPE to it before
+    starting Python (the GEMMs of teach, learn and pupil run 2-3 times as fast)."""
+    k = swfs_blas_kernel_info()
+    lib.swfs_blas_kernel(ctypes.byref(k))
+    return {"core": k.core.decode(), "better": k.better.decode(), "fallback": k.fallback.decode()}
 
 
 def aperture(n, dx, diam, obscur=0.0, nspiders=0, spider_width=0.0):

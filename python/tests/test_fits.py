@@ -59,6 +59,47 @@ def test_blas_threads():
         sw.set_blas_threads(1)
 
 
+def _cpu_flags():
+    try:
+        with open("/proc/cpuinfo") as f:
+            return next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:
+        return []
+
+
+def test_blas_kernel():
+    # OpenBLAS told to run its pre-AVX2 kernels (as it falls back for a CPU it does not know):
+    # on a CPU with AVX2 and FMA the package names the CPU's own and warns once at import, and
+    # with those named no warning; on another CPU there is nothing better to name.
+    k = sw.blas_kernel()
+    assert k["core"] and set(k) == {"core", "better", "fallback"}
+    flags = _cpu_flags()
+    modern = "avx2" in flags and "fma" in flags
+    code = "import specklewfs as s; print(s.blas_kernel()['core'], s.blas_kernel()['better'] or '-')"
+    env = dict(os.environ, SPECKLEWFS_LIB=sw.LIBRARY_PATH, OPENBLAS_CORETYPE="Prescott")
+    r = subprocess.run([sys.executable, "-W", "always", "-c", code], env=env, capture_output=True, text=True,
+                       cwd=os.path.join(ROOT, "python"), check=True)
+    core, better = r.stdout.split()
+    assert core == "Prescott"
+    if not modern:
+        assert better == "-" and "RuntimeWarning" not in r.stderr
+        return
+    assert better in ("Haswell", "SkylakeX")
+    assert better == ("SkylakeX" if "avx512f" in flags and "avx512vl" in flags else "Haswell")
+    # the warning is not given when OPENBLAS_CORETYPE is set (here: the user asked for Prescott)
+    assert "RuntimeWarning" not in r.stderr
+    env = dict(env, OPENBLAS_CORETYPE=better)
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       cwd=os.path.join(ROOT, "python"), check=True)
+    assert r.stdout.split() == [better, "-"]
+    # left to itself: a warning naming OPENBLAS_CORETYPE exactly when OpenBLAS fell back
+    env = {k: v for k, v in env.items() if k != "OPENBLAS_CORETYPE"}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       cwd=os.path.join(ROOT, "python"), check=True)
+    core, better = r.stdout.split()
+    assert (f"set OPENBLAS_CORETYPE={better} before starting Python" in r.stderr) == (better != "-")
+
+
 def test_library_is_found_from_the_environment_and_errors_are_clear():
     env = dict(os.environ, SPECKLEWFS_LIB="/nonexistent/libspecklewfs.so")
     r = subprocess.run([sys.executable, "-c", "import specklewfs"], env=env, capture_output=True, text=True,

@@ -12,7 +12,8 @@ from specklewfs import _lib
 from conftest import ROOT
 
 HEADERS = ["accum", "checkpoint", "coherence", "engine", "estimate", "fits", "geom", "pupil", "recovery", "sim",
-           "sparse", "speckles", "timeseries", "wfs", "array", "pipeline", "stream", "lmodel", "reduce", "sync", "run"]
+           "sparse", "speckles", "timeseries", "wfs", "array", "pipeline", "stream", "lmodel", "reduce", "sync", "run",
+           "parallel"]
 
 
 def test_struct_layout(tmp_path):

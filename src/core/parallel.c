@@ -5,7 +5,10 @@
 #include "specklewfs/status.h"
 
 #include <pthread.h>
+#include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
+#include <strings.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -66,6 +69,46 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
 
 void swfs_blas_set_threads(int n) { openblas_set_num_threads(n < 1 ? 1 : n); }
 int swfs_blas_threads(void) { return openblas_get_num_threads(); }
+
+/* OpenBLAS's x86 kernels that use AVX2 and FMA (a name not here is older, or not x86) */
+static int blas_core_modern(const char *core)
+{
+    static const char *const modern[] = {"Haswell", "Zen", "SkylakeX", "Cooperlake", "SapphireRapids"};
+    for (size_t i = 0; i < sizeof modern / sizeof modern[0]; i++)
+        if (!strcasecmp(core, modern[i])) return 1;
+    return 0;
+}
+
+void swfs_blas_kernel(swfs_blas_kernel_info *k)
+{
+    memset(k, 0, sizeof *k);
+    const char *core = openblas_get_corename();
+    snprintf(k->core, sizeof k->core, "%s", core && *core ? core : "unknown");
+    const char *fb = getenv("SWFS_BLAS_FALLBACK");
+    if (fb) snprintf(k->fallback, sizeof k->fallback, "%s", fb);
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    if (!core || blas_core_modern(core)) return;
+    __builtin_cpu_init();
+    if (!(__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))) return;
+    const int avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512cd") &&
+                       __builtin_cpu_supports("avx512bw") && __builtin_cpu_supports("avx512dq") &&
+                       __builtin_cpu_supports("avx512vl");
+    snprintf(k->better, sizeof k->better, "%s", avx512 ? "SkylakeX" : "Haswell");
+#endif
+}
+
+int swfs_blas_reexec(char *const argv[])
+{
+    if (getenv("OPENBLAS_CORETYPE")) return 0; /* chosen by the user, or by the run before this */
+    swfs_blas_kernel_info k;
+    swfs_blas_kernel(&k);
+    if (!k.better[0] || !argv || !argv[0]) return 0;
+    if (setenv("OPENBLAS_CORETYPE", k.better, 1) || setenv("SWFS_BLAS_FALLBACK", k.core, 1)) return -1;
+    execv("/proc/self/exe", argv);
+    unsetenv("OPENBLAS_CORETYPE"); /* no /proc: go on with the kernels loaded */
+    unsetenv("SWFS_BLAS_FALLBACK");
+    return -1;
+}
 
 double swfs_wall_seconds(void)
 {
