@@ -264,16 +264,32 @@ int swfs_ts_params_check(const swfs_ts_params *p)
 }
 
 /* Bilinear sample of a periodic n x n screen at (u, v) in samples. */
-static inline double screen_at(const double *s, size_t n, double u, double v)
+/* A layer's shift for one frame, split once into whole samples (ox, oy in [0, n)) and the
+ * bilinear weights' fractions (ax, ay): the same for every pupil sample, whose own position
+ * is whole samples, so the per-sample work is two wrapped additions and four loads. */
+typedef struct { size_t ox, oy; double ax, ay; } screen_shift;
+
+static screen_shift screen_shift_of(size_t n, double u, double v)
 {
-    double nn = (double)n;
+    const double nn = (double)n;
     u -= nn * floor(u / nn);
     v -= nn * floor(v / nn);
-    size_t i0 = (size_t)u, j0 = (size_t)v;
-    if (i0 >= n) i0 = n - 1;
-    if (j0 >= n) j0 = n - 1;
-    size_t i1 = i0 + 1 == n ? 0 : i0 + 1, j1 = j0 + 1 == n ? 0 : j0 + 1;
-    double a = u - (double)i0, b = v - (double)j0;
+    screen_shift h = {(size_t)u, (size_t)v, 0, 0};
+    if (h.ox >= n) h.ox = n - 1;
+    if (h.oy >= n) h.oy = n - 1;
+    h.ax = u - (double)h.ox;
+    h.ay = v - (double)h.oy;
+    return h;
+}
+
+/* the periodic screen s (n x n) at whole sample (gx, gy) (each in [0, n)) moved by h */
+static inline double screen_at(const double *s, size_t n, size_t gx, size_t gy, const screen_shift *h)
+{
+    size_t i0 = gx + h->ox, j0 = gy + h->oy;
+    if (i0 >= n) i0 -= n;
+    if (j0 >= n) j0 -= n;
+    const size_t i1 = i0 + 1 == n ? 0 : i0 + 1, j1 = j0 + 1 == n ? 0 : j0 + 1;
+    const double a = h->ax, b = h->ay;
     return (1 - b) * ((1 - a) * s[j0 * n + i0] + a * s[j0 * n + i1]) + b * ((1 - a) * s[j1 * n + i0] + a * s[j1 * n + i1]);
 }
 
@@ -618,6 +634,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
+    size_t *pgx = NULL, *pgy = NULL;
     double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL, *tR = NULL, *tbt = NULL;
     /* Exposures open at once: two when an exposure spans at least a WFS frame; a camera
      * faster than the WFS has each frame in up to ceil(2 / ratio) + 1 exposures (engine.h). */
@@ -661,6 +678,14 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             ys[k] = ((double)q - 0.5 * (double)(np - 1)) * dx;
             if (mask[k] > 0) { pin[npin++] = k; S += mask[k]; sxx += xs[k] * xs[k]; syy += ys[k] * ys[k]; }
         }
+    /* the pupil samples' whole positions on the periodic screens */
+    pgx = malloc((npin ? npin : 1) * sizeof *pgx);
+    pgy = malloc((npin ? npin : 1) * sizeof *pgy);
+    if (!pgx || !pgy) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    for (size_t m = 0; m < npin; m++) {
+        pgx[m] = (pin[m] % np) % nsn;
+        pgy[m] = (pin[m] / np) % nsn;
+    }
 
     /* Frozen-flow layers: periodic von Karman screens, scaled to their share of r0^{-5/3}. */
     screens = malloc((size_t)p->nlayers * nsn * nsn * sizeof *screens);
@@ -801,19 +826,17 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         jy = jrho * jy + jsig * swfs_rng_normal(&nrng);
         double tvx = th * cos(va) + jx, tvy = th * sin(va) + jy;
         /* each layer's shift of this frame [samples], once per frame (not per sample) */
-        double lsx[SWFS_TS_MAX_LAYERS], lsy[SWFS_TS_MAX_LAYERS];
+        screen_shift lsh[SWFS_TS_MAX_LAYERS];
         for (int l = 0; l < p->nlayers; l++) {
             double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
-            lsx[l] = sh_ * cos(ang);
-            lsy[l] = sh_ * sin(ang);
+            lsh[l] = screen_shift_of(nsn, -sh_ * cos(ang), -sh_ * sin(ang));
         }
         double mean = 0;
         for (size_t m = 0; m < npin; m++) {
             size_t g = pin[m];
             double z = tvx * xs[g] + tvy * ys[g] - dmz[g];
-            const double gx = (double)(g % np), gy = (double)(g / np);
             for (int l = 0; l < p->nlayers; l++)
-                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, gx - lsx[l], gy - lsy[l]);
+                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, pgx[m], pgy[m], lsh + l);
             res[g] = z;
             mean += z;
         }
@@ -1068,7 +1091,7 @@ done:
         for (size_t l = 0; l < nlam; l++) swfs_mft_free(mft[l]);
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
-    free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
+    free(phi); free(iacc); free(absq); free(xs); free(ys); free(pgx); free(pgy); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
     free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
     swfs_dmfit_free(tfit);
