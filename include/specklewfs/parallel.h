@@ -54,7 +54,7 @@ void swfs_blas_kernel(swfs_blas_kernel_info *k);
  * program again from its start (execv of /proc/self/exe with the same argv), so OpenBLAS
  * loads the right kernels. Returns only when nothing was done (0) or the execv failed (-1:
  * the program goes on with the old kernels). A library cannot do this for its caller:
- * Python's package warns instead (python/specklewfs/_lib.py). */
+ * Python's package warns at import instead (python/specklewfs/__init__.py). */
 int swfs_blas_reexec(char *const argv[]);
 
 SWFS_END_DECLS

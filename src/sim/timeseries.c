@@ -263,7 +263,6 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     return SWFS_OK;
 }
 
-/* Bilinear sample of a periodic n x n screen at (u, v) in samples. */
 /* A layer's shift for one frame, split once into whole samples (ox, oy in [0, n)) and the
  * bilinear weights' fractions (ax, ay): the same for every pupil sample, whose own position
  * is whole samples, so the per-sample work is two wrapped additions and four loads. */
@@ -1091,8 +1090,8 @@ done:
         for (size_t l = 0; l < nlam; l++) swfs_mft_free(mft[l]);
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
-    free(phi); free(iacc); free(absq); free(xs); free(ys); free(pgx); free(pgy); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
+    free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
+    free(pgx); free(pgy); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
     swfs_dmfit_free(tfit);
     free(txy);
