@@ -1,7 +1,7 @@
 /* Speckle coherence: FFT along time against direct sums for a WFS-rate cube.
  * usage: bench_coherence [NFRAMES [NPIX]]   (default 650 frames of 60 x 60) */
-#include "specklewfs/parallel.h"
 #include "specklewfs/coherence.h"
+#include "specklewfs/parallel.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
 

@@ -14,11 +14,11 @@
  *
  * Run:  ./build/bench/bench_engine            (about a minute)
  *       ./build/bench/bench_engine --quick    (shorter timings, memory to 10^4 frames) */
-#include "specklewfs/parallel.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/engine.h"
 #include "specklewfs/interp.h"
+#include "specklewfs/parallel.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/sparse.h"
 #include "specklewfs/status.h"

@@ -15,9 +15,9 @@
  *
  * Run:  ./build/bench/bench_estimator              (3 seeds x 4 levels, about a minute)
  *       ./build/bench/bench_estimator SEEDS SIGMA... (e.g. "1 100 1000": seed 1 only) */
-#include "specklewfs/parallel.h"
 #include "specklewfs/accum.h"
 #include "specklewfs/jointfit.h"
+#include "specklewfs/parallel.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/recovery.h"
 #include "specklewfs/regress.h"
