@@ -10,5 +10,7 @@ if [ ! -f "$build/CMakeCache.txt" ]; then
   cmake -S . -B "$build" -DCMAKE_BUILD_TYPE=Release -DSWFS_WERROR=ON >/dev/null
 fi
 cmake --build "$build" -j"$(nproc)" --target specklewfs specklewfs-cli
+. scripts/blas-env.sh
+blas_env "$build/specklewfs"
 SPECKLEWFS_LIB="$PWD/$build/libspecklewfs.so" SPECKLEWFS_CLI="$PWD/$build/specklewfs" PYTHONDONTWRITEBYTECODE=1 \
   exec /usr/bin/python3 -m pytest -q -p no:cacheprovider python/tests "$@"

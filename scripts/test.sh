@@ -12,16 +12,8 @@ cd "$(dirname "$0")/.."
 jobs=$(nproc)
 cmake -S . -B build -DCMAKE_BUILD_TYPE=Release -DSWFS_WERROR=ON >/dev/null
 cmake --build build -j"$jobs" --target specklewfs-cli specklewfs
-# OpenBLAS's own kernels for this CPU when OpenBLAS does not know its model (parallel.h,
-# swfs_blas_kernel): the command line switches itself, the unit tests and Python's load the
-# library without that switch, so they get the kernels it chose (3x on a Xeon of model 207)
-if [ -z "${OPENBLAS_CORETYPE:-}" ]; then
-    core=$(./build/specklewfs --version | sed -n 's/.*(OPENBLAS_CORETYPE=\([A-Za-z0-9]*\), set by specklewfs.*/\1/p')
-    if [ -n "$core" ]; then
-        export OPENBLAS_CORETYPE=$core
-        echo "test.sh: OPENBLAS_CORETYPE=$core (OpenBLAS does not know this CPU)"
-    fi
-fi
+. scripts/blas-env.sh
+blas_env ./build/specklewfs
 (cd build && ctest --output-on-failure -j"$jobs" -L release)
 cmake -S . -B build-asan -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSWFS_WERROR=ON -DSWFS_SANITIZE=ON -DSWFS_NATIVE=OFF >/dev/null
 cmake --build build-asan -j"$jobs"

@@ -17,6 +17,8 @@ cmake -S . -B "$dir" -DCMAKE_BUILD_TYPE=RelWithDebInfo -DSWFS_NATIVE=OFF -DSWFS_
     -DCMAKE_C_FLAGS="-fsanitize=thread -fno-omit-frame-pointer" -DCMAKE_EXE_LINKER_FLAGS="-fsanitize=thread" \
     -DCMAKE_SHARED_LINKER_FLAGS="-fsanitize=thread" -DSWFS_TEST_TIMEOUT_SCALE=5 >/dev/null
 cmake --build "$dir" -j"$jobs"
+. scripts/blas-env.sh
+blas_env "$dir/specklewfs"
 tests='^(test_engine|test_team|test_shm|test_kernels|test_cli_stream|test_cli_live|test_closed_loop|test_geometry'
 tests+='|test_endtoend|test_reliability|test_sim|test_runs|cli_pipeline|cli_fastcam|cli_coherence_wind)$'
 (cd "$dir" && OPENBLAS_NUM_THREADS=1 TSAN_OPTIONS="halt_on_error=0 second_deadlock_stack=1" \
