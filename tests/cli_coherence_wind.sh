@@ -60,6 +60,8 @@ sed "s/ $start ok/ 500.4 ok/" "$D/sim/timing.txt" > "$D/sim/late.txt"
 expect_error "needs WFS frames" "$B" speckles "$D/sim/late.txt" --science "$D/sim/raw_000.fits" \
     --actuators "$D/sim/actuators.fits" --wfs-rate -o "$D/x.fits"
 [ ! -e "$D/x.fits" ] || fail "a failed run left $D/x.fits"
+# refused before speckles' default teaches a map for it (checked from the files' headers first)
+[ ! -e "$D/x.teach" ] || fail "speckles taught a map ($D/x.teach) for a timing table it then refused"
 # The exposure-mean tip-tilt has no meaning at the WFS rate; --match pairs camera frames.
 expect_error "tiptilt exposure" "$B" speckles "$D/sim/timing.txt" --science "$D/sim/raw_000.fits" \
     --actuators "$D/sim/actuators.fits" --wfs-rate --tiptilt exposure -o "$D/x.fits"

@@ -94,6 +94,11 @@ int swfs_dmfit_rhs(const swfs_dmfit *f, const double *target, double *b);
  * the order swfs_dmfit_rhs sums it. A non-finite value is refused, naming its target and
  * sample. */
 int swfs_dmfit_rhs_many(const swfs_dmfit *f, const double *R, size_t ld, size_t n, double *bt);
+/* The right-hand sides of surfaces that are linear in commands c: for the surface T c (T:
+ * PUPN^2 x nc, sparse; only its rows at the plan's samples are read), rhs(T c) = G c with G =
+ * A^T W T (nact x nc, row-major, allocated into *G). A loop whose residual is turbulence
+ * minus a DM surface T c then takes the fit's right-hand sides as rhs(turbulence) - G c. */
+int swfs_dmfit_rhs_matrix(const swfs_dmfit *f, const swfs_sparse *T, double **G);
 /* The pupil samples a plan reads (mask > 0), npix of them, as indices into PUPN x PUPN. */
 size_t swfs_dmfit_npix(const swfs_dmfit *f);
 const size_t *swfs_dmfit_pix(const swfs_dmfit *f);

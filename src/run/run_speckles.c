@@ -141,6 +141,16 @@ static int plan_cubes(const swfs_speckles_run_options *o, work *w, swfs_speckles
             return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu starts at WFS frame %g with ratio %g; expected a start >= 0 "
                              "and a ratio >= %g WFS frames per camera frame", o->timing, c, tc->start, t->ratio,
                              SWFS_ENGINE_MIN_RATIO);
+        /* the cube's telemetry file holds those frames (its header read): checked here, before
+         * anything is taught or built for the run, as process_cubes checks each piece */
+        char path[4200];
+        size_t nfr = 0;
+        int rc = swfs_telemetry_path(w->tdir, tc->slopes, path, sizeof path);
+        if (!rc) rc = swfs_telemetry_check(path, 0, &nfr);
+        if (rc) return rc;
+        if ((size_t)floor(tc->start) + need > nfr)
+            return swfs_fail(SWFS_ERR_VALUE, "%s: cube %zu needs WFS frames %.2f..%.2f but %s has %zu", o->timing, c,
+                             tc->start, tc->start + (double)tc->nframes * t->ratio, path, nfr);
         w->cfirst[r->nok] = r->nout;
         w->cn[r->nok] = o->pipe.wfs_rate ? need : tc->nframes;
         r->nout += w->cn[r->nok];

@@ -13,6 +13,7 @@
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
+#include <dirent.h>
 #include <errno.h>
 #include <stdarg.h>
 #include <math.h>
@@ -59,19 +60,25 @@ typedef struct loops_ctx {
 
 /* A loop's folder from an earlier teach in the same work folder (`speckles` teaches into
  * OUT.teach each run) may hold more slopes / truewf files than this loop writes, and learn
- * reads every pair it finds: the old ones go first. */
+ * reads every pair it finds: every slopes_NNN.fits and truewf_NNN.fits goes first, whatever
+ * its number (a gap in the numbers included). A folder that does not exist yet holds none. */
 static int clear_loop(const char *path)
 {
-    for (size_t k = 0;; k++) {
-        int any = 0;
-        for (int t = 0; t < 2; t++) {
-            char f[4300];
-            snprintf(f, sizeof f, "%s/%s_%03zu.fits", path, t ? "truewf" : "slopes", k);
-            if (!remove(f)) any = 1;
-            else if (errno != ENOENT) return swfs_fail(SWFS_ERR_IO, "teach: cannot remove %s: %s", f, strerror(errno));
-        }
-        if (!any) return SWFS_OK;
+    DIR *d = opendir(path);
+    if (!d) return errno == ENOENT ? SWFS_OK : swfs_fail(SWFS_ERR_IO, "teach: cannot read %s: %s", path, strerror(errno));
+    int rc = SWFS_OK;
+    for (struct dirent *e; !rc && (e = readdir(d));) {
+        unsigned k = 0;
+        char tail[8] = "";
+        if ((sscanf(e->d_name, "slopes_%3u%7s", &k, tail) != 2 && sscanf(e->d_name, "truewf_%3u%7s", &k, tail) != 2) ||
+            strcmp(tail, ".fits") || strlen(e->d_name) != 15)
+            continue;
+        char f[4400];
+        snprintf(f, sizeof f, "%s/%s", path, e->d_name);
+        if (remove(f) && errno != ENOENT) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot remove %s: %s", f, strerror(errno));
     }
+    closedir(d);
+    return rc;
 }
 
 static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads, const swfs_ts_shared *shared)

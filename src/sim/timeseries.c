@@ -19,6 +19,7 @@
 #include "specklewfs/sync.h"
 #include "specklewfs/wfs.h"
 
+#include <cblas.h>
 #include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
@@ -608,6 +609,28 @@ static int shared_fits(const swfs_ts_shared *s, const swfs_ts_params *p, const d
                                     "(pupil, DM, modes or the truth's points)");
 }
 
+/* T with its rows outside the pupil (mask <= 0) emptied: the DM surface where the loop reads
+ * its residual, so that the slopes and the truth's right-hand sides can be taken from the
+ * commands through S T and A^T W T (the same sums as on the surface itself). */
+static swfs_sparse *pupil_rows(const swfs_sparse *T, const double *mask)
+{
+    size_t nnz = 0;
+    for (size_t r = 0; r < T->nrows; r++)
+        if (mask[r] > 0) nnz += T->row_ptr[r + 1] - T->row_ptr[r];
+    swfs_sparse *P = swfs_sparse_alloc(T->nrows, T->ncols, nnz);
+    if (!P) return NULL;
+    size_t e = 0;
+    for (size_t r = 0; r < T->nrows; r++) {
+        if (mask[r] > 0)
+            for (size_t q = T->row_ptr[r]; q < T->row_ptr[r + 1]; q++, e++) {
+                P->col[e] = T->col[q];
+                P->val[e] = T->val[q];
+            }
+        P->row_ptr[r + 1] = e;
+    }
+    return P;
+}
+
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
 {
@@ -635,6 +658,8 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
     size_t *pgx = NULL, *pgy = NULL;
     double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL, *tR = NULL, *tbt = NULL;
+    double *Dp = NULL, *tG = NULL; /* S Tp (the slopes of the DM's surface), A^T W Tp (export_truth) */
+    swfs_sparse *Tp = NULL;        /* T on the pupil's samples (pupil_rows) */
     /* Exposures open at once: two when an exposure spans at least a WFS frame; a camera
      * faster than the WFS has each frame in up to ceil(2 / ratio) + 1 exposures (engine.h). */
     const size_t nslot = p->frame_ratio >= 1.0 ? 2 : (size_t)ceil(2.0 / p->frame_ratio) + 1;
@@ -706,6 +731,12 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     if ((rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh))) goto done;
     if (shared && (rc = shared_fits(shared, p, mask, xy, nact))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
+    if (!(Tp = pupil_rows(T, mask))) { rc = SWFS_ERR_NOMEM; goto done; }
+    /* The slopes of the DM's surface by S Tp a (dense, ns x nact) where that costs no more
+     * than the surface itself (nnz of Tp): the loop then builds the surface only for the
+     * frames the camera sees. Either way the same sums to rounding. */
+    const int lin = sh->nslopes * nact <= Tp->nnz;
+    if (lin && (rc = swfs_interaction_matrix(sh, Tp, &Dp))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
         if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
@@ -813,11 +844,21 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         tR = malloc(swfs_dmfit_npix(tplan) * TRUTH_BLK * sizeof *tR);
         tbt = malloc(ntr * TRUTH_BLK * sizeof *tbt);
         if (!tb || !tdm || !tR || !tbt) { free(dact); dact = NULL; }
+        else if (lin && (rc = swfs_dmfit_rhs_matrix(tplan, Tp, &tG))) { free(dact); free(tstart); goto done; }
     }
     if (!dact) { free(tstart); rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    /* Each frame's residual is turbulence + tip-tilt - the DM's surface T a. The slopes and the
+     * truth's right-hand sides are linear in it: with lin they are taken from the turbulence
+     * and the commands (S Tp a, A^T W Tp a: one small GEMV per frame, one GEMM per block of
+     * frames), and the surface itself is made only for the frames the camera sees. */
     for (size_t k = 0; k < nwfs; k++) {
         double t = (double)k / p->wfs_rate;
-        swfs_sparse_apply_rows(T, act, pin, npin, dmz); /* the surface where the residual is read */
+        /* Camera: exposures containing frame k (at most nslot, consecutive). */
+        while (e_lo < nexp && sched[e_lo].first + sched[e_lo].count <= k) e_lo++;
+        int any = 0;
+        for (size_t e = e_lo; e < nexp && e < e_lo + nslot; e++)
+            if (sched[e].first <= k && k < sched[e].first + sched[e].count) any = 1;
+        if (any || !lin) swfs_sparse_apply_rows(Tp, act, pin, npin, dmz); /* the surface where the residual is read */
         double th = vib * sin(2 * M_PI * p->vib_freq * t);
         /* Broadband jitter: AR(1) low-pass white noise per axis (breaks the half-period
          * ambiguity a pure sinusoid leaves in the synchronization). */
@@ -830,29 +871,32 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
             lsh[l] = screen_shift_of(nsn, -sh_ * cos(ang), -sh_ * sin(ang));
         }
-        double mean = 0;
-        for (size_t m = 0; m < npin; m++) {
+        for (size_t m = 0; m < npin; m++) { /* turbulence and tip-tilt (with lin: res before the DM) */
             size_t g = pin[m];
-            double z = tvx * xs[g] + tvy * ys[g] - dmz[g];
+            double z = tvx * xs[g] + tvy * ys[g] - (lin ? 0.0 : dmz[g]);
             for (int l = 0; l < p->nlayers; l++)
                 z += screen_at(screens + (size_t)l * nsn * nsn, nsn, pgx[m], pgy[m], lsh + l);
             res[g] = z;
-            mean += z;
         }
-        mean /= (double)npin;
         if (tplan) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
             const size_t jj = k % TRUTH_BLK, npx = swfs_dmfit_npix(tplan);
             const size_t *px = swfs_dmfit_pix(tplan);
             for (size_t q = 0; q < npx; q++) tR[q * TRUTH_BLK + jj] = res[px[q]];
-            if ((jj + 1 == TRUTH_BLK || k + 1 == nwfs) &&
-                (rc = truth_rhs_block(tplan, tR, jj + 1, tbt, tb + (k - jj) * ntr, ntr))) {
-                free(tstart); free(dact); goto done;
-            }
             memcpy(tdm + k * nact, act, nact * sizeof *act);
+            if (jj + 1 == TRUTH_BLK || k + 1 == nwfs) {
+                if ((rc = truth_rhs_block(tplan, tR, jj + 1, tbt, tb + (k - jj) * ntr, ntr))) {
+                    free(tstart); free(dact); goto done;
+                }
+                /* minus the DM surfaces' right-hand sides, A^T W Tp a, for the block's frames */
+                if (lin)
+                    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)(jj + 1), (int)ntr, (int)nact, -1.0,
+                                tdm + (k - jj) * nact, (int)nact, tG, (int)nact, 1.0, tb + (k - jj) * ntr, (int)ntr);
+            }
         }
-        /* WFS: slopes with noise. */
+        /* WFS: slopes with noise (of the turbulence, minus those of the DM's surface). */
         double *sk = slopes + k * ns;
         swfs_shwfs_measure(sh, res, sk);
+        if (lin) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)ns, (int)nact, -1.0, Dp, (int)nact, act, 1, 1.0, sk, 1);
         for (size_t i = 0; i < ns; i++)
             if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
         /* Controller. */
@@ -860,12 +904,15 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             swfs_recon_apply(rao, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
             for (size_t a = 0; a < nact; a++) act[a] += p->ao_gain * dact[a];
         }
-        /* Camera: exposures containing frame k (at most nslot, consecutive). */
-        while (e_lo < nexp && sched[e_lo].first + sched[e_lo].count <= k) e_lo++;
-        int any = 0;
-        for (size_t e = e_lo; e < nexp && e < e_lo + nslot; e++)
-            if (sched[e].first <= k && k < sched[e].first + sched[e].count) any = 1;
         if (!any) continue;
+        /* The residual (with lin: minus the DM's surface of this frame's commands, made above). */
+        double mean = 0;
+        for (size_t m = 0; m < npin; m++) {
+            const size_t g = pin[m];
+            if (lin) res[g] -= dmz[g];
+            mean += res[g];
+        }
+        mean /= (double)npin;
         /* Statistics and the tip-tilt-free residual. */
         double v2 = 0, cx = 0, cy = 0;
         for (size_t m = 0; m < npin; m++) {
@@ -1093,6 +1140,8 @@ done:
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
     free(pgx); free(pgy); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
+    swfs_sparse_free(Tp);
+    free(Dp); free(tG);
     swfs_dmfit_free(tfit);
     free(txy);
     swfs_shwfs_free(sh);

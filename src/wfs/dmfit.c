@@ -365,6 +365,32 @@ int swfs_dmfit_rhs_many(const swfs_dmfit *f, const double *R, size_t ld, size_t 
     return SWFS_OK;
 }
 
+int swfs_dmfit_rhs_matrix(const swfs_dmfit *f, const swfs_sparse *T, double **G)
+{
+    *G = NULL;
+    if (f->opt.modes > 0)
+        return swfs_fail(SWFS_ERR_ARG, "DM fit: the two-step fit takes a plan without a modal restriction (modes %zu)",
+                         f->opt.modes);
+    if (T->nrows != f->npup * f->npup)
+        return swfs_fail(SWFS_ERR_SHAPE, "DM fit: surfaces of %zu samples, the plan's pupil has %zu", T->nrows,
+                         f->npup * f->npup);
+    const size_t nc = T->ncols;
+    double *g = calloc(f->nact * (nc ? nc : 1), sizeof *g);
+    if (!g) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    const swfs_sparse *A = f->A;
+    for (size_t k = 0; k < f->npix; k++) {
+        const size_t s = f->pix[k];
+        const double w = f->mask[s];
+        for (size_t e = A->row_ptr[s]; e < A->row_ptr[s + 1]; e++) {
+            double *ga = g + A->col[e] * nc;
+            const double v = w * A->val[e];
+            for (size_t q = T->row_ptr[s]; q < T->row_ptr[s + 1]; q++) ga[T->col[q]] += v * T->val[q];
+        }
+    }
+    *G = g;
+    return SWFS_OK;
+}
+
 void swfs_dmfit_solve_many(const swfs_dmfit *f, const double *b, size_t n, double *cmd)
 {
     const int na = (int)f->nact;
