@@ -282,15 +282,33 @@ static screen_shift screen_shift_of(size_t n, double u, double v)
     return h;
 }
 
-/* the periodic screen s (n x n) at whole sample (gx, gy) (each in [0, n)) moved by h */
-static inline double screen_at(const double *s, size_t n, size_t gx, size_t gy, const screen_shift *h)
+/* out[t] += the periodic screen s (n x n) moved by h at whole samples (gx + t, gy), t < len
+ * (gx, gy in [0, n)): a run of pupil samples along a row of the grid. The screen's two rows
+ * are read contiguously up to the column where the run wraps, so the loop vectorizes. */
+static void screen_add_run(const double *s, size_t n, size_t gx, size_t gy, size_t len, const screen_shift *h,
+                           double *out)
 {
-    size_t i0 = gx + h->ox, j0 = gy + h->oy;
-    if (i0 >= n) i0 -= n;
+    size_t i = gx + h->ox, j0 = gy + h->oy;
+    if (i >= n) i -= n;
     if (j0 >= n) j0 -= n;
-    const size_t i1 = i0 + 1 == n ? 0 : i0 + 1, j1 = j0 + 1 == n ? 0 : j0 + 1;
+    const size_t j1 = j0 + 1 == n ? 0 : j0 + 1;
     const double a = h->ax, b = h->ay;
-    return (1 - b) * ((1 - a) * s[j0 * n + i0] + a * s[j0 * n + i1]) + b * ((1 - a) * s[j1 * n + i0] + a * s[j1 * n + i1]);
+    const double *r0 = s + j0 * n, *r1 = s + j1 * n;
+    for (size_t t = 0; t < len;) {
+        size_t span = n - 1 - i; /* columns i .. n - 2 have their right neighbour in the row */
+        if (span > len - t) span = len - t;
+        double *o = out + t;
+        const double *p0 = r0 + i, *p1 = r1 + i;
+        for (size_t q = 0; q < span; q++)
+            o[q] += (1 - b) * ((1 - a) * p0[q] + a * p0[q + 1]) + b * ((1 - a) * p1[q] + a * p1[q + 1]);
+        t += span;
+        i += span;
+        if (t < len) { /* column n - 1, whose right neighbour is column 0 */
+            out[t] += (1 - b) * ((1 - a) * r0[n - 1] + a * r0[0]) + b * ((1 - a) * r1[n - 1] + a * r1[0]);
+            t++;
+            i = 0;
+        }
+    }
 }
 
 static void core_reference(double complex *h, size_t nfx, size_t nfy)
@@ -656,7 +674,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
-    size_t *pgx = NULL, *pgy = NULL;
+    size_t *pgx = NULL, *pgy = NULL, *rstart = NULL, *rlen = NULL;
     double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL, *tR = NULL, *tbt = NULL;
     double *Dp = NULL, *tG = NULL; /* S Tp (the slopes of the DM's surface), A^T W Tp (export_truth) */
     swfs_sparse *Tp = NULL;        /* T on the pupil's samples (pupil_rows) */
@@ -710,6 +728,20 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         pgx[m] = (pin[m] % np) % nsn;
         pgy[m] = (pin[m] / np) % nsn;
     }
+    /* the pupil samples as runs along the grid's rows (consecutive in pin, in the grid and on
+     * the screens), each starting at pin[rstart[r]], rlen[r] long */
+    rstart = malloc((npin ? npin : 1) * sizeof *rstart);
+    rlen = malloc((npin ? npin : 1) * sizeof *rlen);
+    if (!rstart || !rlen) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    size_t nrun = 0;
+    for (size_t m = 0; m < npin; m++) {
+        if (nrun && pin[m] == pin[m - 1] + 1 && pgy[m] == pgy[m - 1] && pgx[m] == pgx[m - 1] + 1) {
+            rlen[nrun - 1]++;
+        } else {
+            rstart[nrun] = m;
+            rlen[nrun++] = 1;
+        }
+    }
 
     /* Frozen-flow layers: periodic von Karman screens, scaled to their share of r0^{-5/3}. */
     screens = malloc((size_t)p->nlayers * nsn * nsn * sizeof *screens);
@@ -732,10 +764,11 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     if (shared && (rc = shared_fits(shared, p, mask, xy, nact))) goto done;
     if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
     if (!(Tp = pupil_rows(T, mask))) { rc = SWFS_ERR_NOMEM; goto done; }
-    /* The slopes of the DM's surface by S Tp a (dense, ns x nact) where that costs no more
-     * than the surface itself (nnz of Tp): the loop then builds the surface only for the
-     * frames the camera sees. Either way the same sums to rounding. */
-    const int lin = sh->nslopes * nact <= Tp->nnz;
+    /* The slopes of the DM's surface by S Tp a (dense, ns x nact) where that reads no more
+     * memory than the surface itself (Tp's nonzeros: a value, a column index and the gathered
+     * command each, 3 words against the dense product's 1 per element): the loop then builds
+     * the surface only for the frames the camera sees. Either way the same sums to rounding. */
+    const int lin = sh->nslopes * nact <= 3 * Tp->nnz;
     if (lin && (rc = swfs_interaction_matrix(sh, Tp, &Dp))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
@@ -871,13 +904,15 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             double ang = p->layer_dir[l] * M_PI / 180, sh_ = p->layer_speed[l] * t / dx;
             lsh[l] = screen_shift_of(nsn, -sh_ * cos(ang), -sh_ * sin(ang));
         }
-        for (size_t m = 0; m < npin; m++) { /* turbulence and tip-tilt (with lin: res before the DM) */
+        for (size_t m = 0; m < npin; m++) { /* tip-tilt and turbulence (with lin: res before the DM) */
             size_t g = pin[m];
-            double z = tvx * xs[g] + tvy * ys[g] - (lin ? 0.0 : dmz[g]);
-            for (int l = 0; l < p->nlayers; l++)
-                z += screen_at(screens + (size_t)l * nsn * nsn, nsn, pgx[m], pgy[m], lsh + l);
-            res[g] = z;
+            res[g] = tvx * xs[g] + tvy * ys[g] - (lin ? 0.0 : dmz[g]);
         }
+        for (int l = 0; l < p->nlayers; l++)
+            for (size_t r = 0; r < nrun; r++) {
+                const size_t m = rstart[r];
+                screen_add_run(screens + (size_t)l * nsn * nsn, nsn, pgx[m], pgy[m], rlen[r], lsh + l, res + pin[m]);
+            }
         if (tplan) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
             const size_t jj = k % TRUTH_BLK, npx = swfs_dmfit_npix(tplan);
             const size_t *px = swfs_dmfit_pix(tplan);
@@ -1138,7 +1173,7 @@ done:
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(pgx); free(pgy); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
+    free(pgx); free(pgy); free(rstart); free(rlen); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
     swfs_sparse_free(Tp);
     free(Dp); free(tG);
