@@ -560,6 +560,9 @@ struct swfs_ts_shared {
     swfs_dmfit *tfit;  /* export_truth's plan, NULL without export_truth */
     double *txy;       /* its points when truth_actuators gives them */
     size_t ntr;
+    double *Dm;        /* the loop's interaction matrix (ns x nact), NULL with ao_recon */
+    size_t ns, raoK;   /* its slopes; the modes the loop's reconstructor rao keeps */
+    swfs_recon *rao;   /* the loop's modal reconstructor at ao_modes (raoK), NULL with ao_recon */
 };
 
 void swfs_ts_shared_free(swfs_ts_shared *s)
@@ -568,6 +571,8 @@ void swfs_ts_shared_free(swfs_ts_shared *s)
     free(s->mask);
     free(s->xy);
     free(s->modes);
+    free(s->Dm);
+    swfs_recon_free(s->rao);
     swfs_dmfit_free(s->tfit);
     free(s->txy);
     free(s);
@@ -594,6 +599,12 @@ int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &s->xy, &s->nact, &rao, &vmap);
     if (!rc) rc = swfs_ts_loop_model(p, s->mask, vmap, &s->xy, &s->nact, &T, &sh);
     if (!rc && !p->ao_recon[0]) rc = swfs_dm_modes(T, s->mask, np, &s->modes);
+    if (!rc && !p->ao_recon[0]) { /* the loop's reconstructor, for the runs at the same ao_modes */
+        s->ns = sh->nslopes;
+        s->raoK = (size_t)p->ao_modes < s->nact - 1 ? (size_t)p->ao_modes : s->nact - 1;
+        rc = swfs_interaction_matrix(sh, T, &s->Dm);
+        if (!rc) rc = swfs_recon_modal(s->Dm, s->ns, s->nact, s->modes, 1, s->raoK, &s->rao);
+    }
     if (!rc && p->export_truth) rc = truth_plan(p, s->mask, s->xy, s->nact, &s->tfit, &s->txy, &s->ntr);
     swfs_recon_free(rao);
     free(vmap);
@@ -690,6 +701,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     size_t ntr = 0;          /* export_truth's points */
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
+    const swfs_recon *rao_shared = NULL; /* the shared plans' reconstructor, when this run's is the same */
     swfs_mft **mft = NULL;
     double complex *fld = NULL, *efoc = NULL, *eid = NULL, *eidtt = NULL, *cpin = NULL;
     swfs_exposure *sched = NULL;
@@ -774,17 +786,25 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
         if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
     } else {
-        /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1). */
-        double *modes = NULL;
-        if (!shared && (rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
+        /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1); the
+         * shared plans' reconstructor when it was made from the same interaction matrix and K
+         * (teach's loops: one SVD for all of them). */
         size_t K = (size_t)p->ao_modes < nact - 1 ? (size_t)p->ao_modes : nact - 1;
-        rc = swfs_recon_modal(Dm, sh->nslopes, nact, shared ? shared->modes : modes, 1, K, &rao);
-        free(modes);
-        if (rc) goto done;
+        if (shared && shared->rao && shared->raoK == K && shared->ns == sh->nslopes &&
+            !memcmp(shared->Dm, Dm, sh->nslopes * nact * sizeof *Dm)) {
+            rao_shared = shared->rao;
+        } else {
+            double *modes = NULL;
+            if (!shared && (rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
+            rc = swfs_recon_modal(Dm, sh->nslopes, nact, shared ? shared->modes : modes, 1, K, &rao);
+            free(modes);
+            if (rc) goto done;
+        }
     }
+    const swfs_recon *ra = rao_shared ? rao_shared : rao; /* the loop's reconstructor */
     sum->nact = nact;
     sum->nvalid = sh->nvalid;
-    sum->ao_modes = rao->nmodes;
+    sum->ao_modes = ra->nmodes;
     const size_t ns = sh->nslopes;
 
     /* Camera schedule: cube c starts at t_c (global WFS frames). */
@@ -936,7 +956,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
         /* Controller. */
         if (k + 1 >= (size_t)p->ao_delay) {
-            swfs_recon_apply(rao, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
+            swfs_recon_apply(ra, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
             for (size_t a = 0; a < nact; a++) act[a] += p->ao_gain * dact[a];
         }
         if (!any) continue;
@@ -1105,7 +1125,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         swfs_real_free(noisy); free(tstart); goto done;
     }
     snprintf(path, sizeof path, "%s/recon_ao.fits", dir);
-    if ((rc = swfs_recon_write(rao, path))) { swfs_real_free(noisy); free(tstart); goto done; }
+    if ((rc = swfs_recon_write(ra, path))) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/handshake.log", dir);
     if ((rc = swfs_handshake_write(path, hs, ncub))) { swfs_real_free(noisy); free(tstart); goto done; }
     for (size_t c = 0; c < ncub && rc == SWFS_OK; c++) {
