@@ -207,7 +207,14 @@ int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const do
 int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
                             const unsigned char *valid, double *var, size_t *ncells, double *slope_var);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
- * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter. */
+ * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter.
+ * swfs_recon_modal_factors gives its two factors instead: *VK (nact x K, row-major) and *P
+ * (K x nslopes, its nmodes and singular values), W = VK P; applying them costs K (nact +
+ * nslopes) per frame against W's nact nslopes. */
+int swfs_recon_modal_factors(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
+                             double **VK, swfs_recon **P);
+/* W = VK P as a reconstructor (P's nmodes and singular values; nact rows). */
+int swfs_recon_modal_compose(const double *VK, const swfs_recon *P, size_t nact, swfs_recon **out);
 int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
                      swfs_recon **out);
 void swfs_recon_free(swfs_recon *r);

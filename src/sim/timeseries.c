@@ -563,6 +563,8 @@ struct swfs_ts_shared {
     double *Dm;        /* the loop's interaction matrix (ns x nact), NULL with ao_recon */
     size_t ns, raoK;   /* its slopes; the modes the loop's reconstructor rao keeps */
     swfs_recon *rao;   /* the loop's modal reconstructor at ao_modes (raoK), NULL with ao_recon */
+    double *raoV;      /* its factors, rao = raoV raoP (swfs_recon_modal_factors) */
+    swfs_recon *raoP;
 };
 
 void swfs_ts_shared_free(swfs_ts_shared *s)
@@ -573,6 +575,8 @@ void swfs_ts_shared_free(swfs_ts_shared *s)
     free(s->modes);
     free(s->Dm);
     swfs_recon_free(s->rao);
+    free(s->raoV);
+    swfs_recon_free(s->raoP);
     swfs_dmfit_free(s->tfit);
     free(s->txy);
     free(s);
@@ -603,7 +607,8 @@ int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
         s->ns = sh->nslopes;
         s->raoK = (size_t)p->ao_modes < s->nact - 1 ? (size_t)p->ao_modes : s->nact - 1;
         rc = swfs_interaction_matrix(sh, T, &s->Dm);
-        if (!rc) rc = swfs_recon_modal(s->Dm, s->ns, s->nact, s->modes, 1, s->raoK, &s->rao);
+        if (!rc) rc = swfs_recon_modal_factors(s->Dm, s->ns, s->nact, s->modes, 1, s->raoK, &s->raoV, &s->raoP);
+        if (!rc) rc = swfs_recon_modal_compose(s->raoV, s->raoP, s->nact, &s->rao);
     }
     if (!rc && p->export_truth) rc = truth_plan(p, s->mask, s->xy, s->nact, &s->tfit, &s->txy, &s->ntr);
     swfs_recon_free(rao);
@@ -702,6 +707,9 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
     const swfs_recon *rao_shared = NULL; /* the shared plans' reconstructor, when this run's is the same */
+    double *raoV_own = NULL;     /* the modal reconstructor's factors (rao = V P), this run's own */
+    swfs_recon *raoP_own = NULL;
+    double *fk = NULL;           /* their product's middle vector (K) */
     swfs_mft **mft = NULL;
     double complex *fld = NULL, *efoc = NULL, *eid = NULL, *eidtt = NULL, *cpin = NULL;
     swfs_exposure *sched = NULL;
@@ -796,12 +804,22 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         } else {
             double *modes = NULL;
             if (!shared && (rc = swfs_dm_modes(T, mask, np, &modes))) goto done;
-            rc = swfs_recon_modal(Dm, sh->nslopes, nact, shared ? shared->modes : modes, 1, K, &rao);
+            rc = swfs_recon_modal_factors(Dm, sh->nslopes, nact, shared ? shared->modes : modes, 1, K, &raoV_own,
+                                          &raoP_own);
             free(modes);
+            if (!rc) rc = swfs_recon_modal_compose(raoV_own, raoP_own, nact, &rao);
             if (rc) goto done;
         }
     }
     const swfs_recon *ra = rao_shared ? rao_shared : rao; /* the loop's reconstructor */
+    /* applied as its two factors where they cost less per frame than W (K (nact + ns) against
+     * nact ns: the modal filter keeps fewer modes than half the smaller side), the same to
+     * rounding */
+    const double *raoV = rao_shared ? shared->raoV : raoV_own;
+    const swfs_recon *raoP = rao_shared ? shared->raoP : raoP_own;
+    const size_t rK = raoP ? raoP->nact : 0;
+    if (raoP && rK * (nact + sh->nslopes) >= nact * sh->nslopes) raoP = NULL;
+    if (raoP && !(fk = malloc(rK * sizeof *fk))) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     sum->nact = nact;
     sum->nvalid = sh->nvalid;
     sum->ao_modes = ra->nmodes;
@@ -956,7 +974,13 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
         /* Controller. */
         if (k + 1 >= (size_t)p->ao_delay) {
-            swfs_recon_apply(ra, slopes + (k + 1 - (size_t)p->ao_delay) * ns, dact);
+            const double *sd = slopes + (k + 1 - (size_t)p->ao_delay) * ns;
+            if (raoP) {
+                swfs_recon_apply(raoP, sd, fk);
+                cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nact, (int)rK, 1.0, raoV, (int)rK, fk, 1, 0.0, dact, 1);
+            } else {
+                swfs_recon_apply(ra, sd, dact);
+            }
             for (size_t a = 0; a < nact; a++) act[a] += p->ao_gain * dact[a];
         }
         if (!any) continue;
@@ -1201,6 +1225,9 @@ done:
     free(txy);
     swfs_shwfs_free(sh);
     swfs_recon_free(rao);
+    free(raoV_own);
+    swfs_recon_free(raoP_own);
+    free(fk);
     free(vmap);
     swfs_real_free(clean); swfs_real_free(dark); swfs_real_free(flat);
     swfs_cplx_free(spk); swfs_cplx_free(spktt);

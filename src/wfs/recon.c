@@ -236,10 +236,11 @@ int swfs_recon_map(const double *D, size_t nslopes, size_t nact, const double *s
     return SWFS_OK;
 }
 
-int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
-                     swfs_recon **out)
+int swfs_recon_modal_factors(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
+                             double **VKo, swfs_recon **P)
 {
-    *out = NULL;
+    *VKo = NULL;
+    *P = NULL;
     if (K == 0 || first + K > nact)
         return swfs_fail(SWFS_ERR_ARG, "modal reconstructor: modes %zu..%zu of %zu", first, first + K, nact);
     double *VK = malloc(nact * K * sizeof *VK), *DV = malloc(nslopes * K * sizeof *DV);
@@ -248,22 +249,41 @@ int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double 
         for (size_t k = 0; k < K; k++) VK[a * K + k] = modes[a * nact + first + k];
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nslopes, (int)K, (int)nact, 1.0, D, (int)nact, VK,
                 (int)K, 0.0, DV, (int)K);
-    swfs_recon *rk = NULL;
-    int rc = swfs_recon_svd(DV, nslopes, K, 1e-6, 0, &rk);
+    int rc = swfs_recon_svd(DV, nslopes, K, 1e-6, 0, P);
     free(DV);
     if (rc) { free(VK); return rc; }
+    *VKo = VK;
+    return SWFS_OK;
+}
+
+int swfs_recon_modal_compose(const double *VK, const swfs_recon *P, size_t nact, swfs_recon **out)
+{
+    *out = NULL;
+    const size_t K = P->nact, nslopes = P->nslopes;
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = malloc(nact * nslopes * sizeof *r->W);
-    if (!r || !r->W) { free(VK); swfs_recon_free(rk); swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
-    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nact, (int)nslopes, (int)K, 1.0, VK, (int)K, rk->W,
+    if (r && P->sv) r->sv = malloc(P->nsv * sizeof *r->sv);
+    if (!r || !r->W || (P->sv && !r->sv)) { swfs_recon_free(r); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nact, (int)nslopes, (int)K, 1.0, VK, (int)K, P->W,
                 (int)nslopes, 0.0, r->W, (int)nslopes);
-    r->nact = nact; r->nslopes = nslopes; r->nmodes = rk->nmodes;
-    r->sv = rk->sv; r->nsv = rk->nsv;
-    rk->sv = NULL;
-    swfs_recon_free(rk);
-    free(VK);
+    r->nact = nact; r->nslopes = nslopes; r->nmodes = P->nmodes;
+    if (P->sv) memcpy(r->sv, P->sv, P->nsv * sizeof *r->sv);
+    r->nsv = P->nsv;
     *out = r;
     return SWFS_OK;
+}
+
+int swfs_recon_modal(const double *D, size_t nslopes, size_t nact, const double *modes, size_t first, size_t K,
+                     swfs_recon **out)
+{
+    *out = NULL;
+    double *VK = NULL;
+    swfs_recon *P = NULL;
+    int rc = swfs_recon_modal_factors(D, nslopes, nact, modes, first, K, &VK, &P);
+    if (!rc) rc = swfs_recon_modal_compose(VK, P, nact, out);
+    free(VK);
+    swfs_recon_free(P);
+    return rc;
 }
 
 int swfs_recon_project_tiptilt(swfs_recon *r, const unsigned char *valid)
