@@ -690,7 +690,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
 
     double *mask = NULL, *ncp = NULL, *screens = NULL, *xy = NULL, *Dm = NULL, *act = NULL, *dmz = NULL, *res = NULL;
     double *resn = NULL, *slopes = NULL, *phi = NULL, *iacc = NULL, *absq = NULL, *xs = NULL, *ys = NULL;
-    size_t *pgx = NULL, *pgy = NULL, *rstart = NULL, *rlen = NULL;
+    size_t *rstart = NULL, *rlen = NULL;
     double *sbuf = NULL, *rmean = NULL, *xph = NULL, *xw = NULL, *tb = NULL, *tdm = NULL, *tR = NULL, *tbt = NULL;
     double *Dp = NULL, *tG = NULL; /* S Tp (the slopes of the DM's surface), A^T W Tp (export_truth) */
     swfs_sparse *Tp = NULL;        /* T on the pupil's samples (pupil_rows) */
@@ -740,22 +740,15 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             ys[k] = ((double)q - 0.5 * (double)(np - 1)) * dx;
             if (mask[k] > 0) { pin[npin++] = k; S += mask[k]; sxx += xs[k] * xs[k]; syy += ys[k] * ys[k]; }
         }
-    /* the pupil samples' whole positions on the periodic screens */
-    pgx = malloc((npin ? npin : 1) * sizeof *pgx);
-    pgy = malloc((npin ? npin : 1) * sizeof *pgy);
-    if (!pgx || !pgy) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
-    for (size_t m = 0; m < npin; m++) {
-        pgx[m] = (pin[m] % np) % nsn;
-        pgy[m] = (pin[m] / np) % nsn;
-    }
     /* the pupil samples as runs along the grid's rows (consecutive in pin, in the grid and on
-     * the screens), each starting at pin[rstart[r]], rlen[r] long */
+     * the periodic screens, where sample g sits at whole samples ((g % np) % nsn, (g / np) %
+     * nsn)), each starting at pin[rstart[r]], rlen[r] long */
     rstart = malloc((npin ? npin : 1) * sizeof *rstart);
     rlen = malloc((npin ? npin : 1) * sizeof *rlen);
     if (!rstart || !rlen) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     size_t nrun = 0;
     for (size_t m = 0; m < npin; m++) {
-        if (nrun && pin[m] == pin[m - 1] + 1 && pgy[m] == pgy[m - 1] && pgx[m] == pgx[m - 1] + 1) {
+        if (nrun && pin[m] == pin[m - 1] + 1 && pin[m] / np == pin[m - 1] / np && (pin[m] % np) % nsn != 0) {
             rlen[nrun - 1]++;
         } else {
             rstart[nrun] = m;
@@ -948,8 +941,9 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         }
         for (int l = 0; l < p->nlayers; l++)
             for (size_t r = 0; r < nrun; r++) {
-                const size_t m = rstart[r];
-                screen_add_run(screens + (size_t)l * nsn * nsn, nsn, pgx[m], pgy[m], rlen[r], lsh + l, res + pin[m]);
+                const size_t g = pin[rstart[r]];
+                screen_add_run(screens + (size_t)l * nsn * nsn, nsn, (g % np) % nsn, (g / np) % nsn, rlen[r], lsh + l,
+                               res + g);
             }
         if (tplan) { /* export_truth: the fit's right-hand side (solved after the loop), and the commands */
             const size_t jj = k % TRUTH_BLK, npx = swfs_dmfit_npix(tplan);
@@ -1217,7 +1211,7 @@ done:
     free(mft);
     free(mask); free(ncp); free(screens); free(xy); free(Dm); free(act); free(dmz); free(res); free(resn); free(slopes);
     free(phi); free(iacc); free(absq); free(xs); free(ys); free(sbuf); free(pin); free(fld); free(efoc); free(eid);
-    free(pgx); free(pgy); free(rstart); free(rlen); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
+    free(rstart); free(rlen); free(eidtt); free(cpin); free(sched); free(hs); free(rmean); free(xph); free(xw); free(tb); free(tdm); free(tR); free(tbt);
     swfs_sparse_free(T);
     swfs_sparse_free(Tp);
     free(Dp); free(tG);
