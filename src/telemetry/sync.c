@@ -5,6 +5,7 @@
 #include "specklewfs/outpaths.h"
 #include "specklewfs/status.h"
 
+#include <cblas.h>
 #include <errno.h>
 #include <math.h>
 #include <stdio.h>
@@ -487,6 +488,29 @@ static void step_range(const double *v, size_t n, size_t nvals, size_t l0, size_
         }
 }
 
+/* The smallest squared step norm over lags n/2 .. n-1 inside n frames (none: *mn unchanged).
+ * Those steps pair frame k of the first m = n - n/2 with frame n/2 + j, j >= k, of the last m:
+ * |a|^2 + |b|^2 - 2 a.b, the products by one GEMM of the two blocks (m^2 nvals, the check's
+ * whole cost; a step over half an edge is far larger than the rounding of that difference). */
+static int step_far_min(const double *v, size_t n, size_t nvals, double *mn)
+{
+    const size_t h = n / 2, m = n - h;
+    double *G = malloc(m * m * sizeof *G), *nrm = malloc(n * sizeof *nrm);
+    if (!G || !nrm) {
+        free(G);
+        free(nrm);
+        return swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory for a gap check of %zu frames", n);
+    }
+    for (size_t k = 0; k < n; k++) nrm[k] = cblas_ddot((int)nvals, v + k * nvals, 1, v + k * nvals, 1);
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)m, (int)m, (int)nvals, 1.0, v, (int)nvals,
+                v + h * nvals, (int)nvals, 0.0, G, (int)m);
+    for (size_t k = 0; k < m; k++)
+        for (size_t j = k; j < m; j++) *mn = fmin(*mn, fmax(nrm[k] + nrm[h + j] - 2.0 * G[k * m + j], 0.0));
+    free(G);
+    free(nrm);
+    return SWFS_OK;
+}
+
 int swfs_sync_boundary_gap(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
                            long lost, swfs_sync_gap *out)
 {
@@ -511,9 +535,10 @@ int swfs_sync_boundary_gap(const double *tail, size_t ntail, const double *head,
      * half: lags n/2 .. n-1), which stand for a gap of many frames. */
     step_range(tail, ntail, nvals, L, L, &out->qk_min, &out->qk_max);
     step_range(head, nhead, nvals, L, L, &out->qk_min, &out->qk_max);
-    double unused = -INFINITY;
-    if (ntail / 2 > L) step_range(tail, ntail, nvals, ntail / 2, ntail - 1, &out->qfar_min, &unused);
-    if (nhead / 2 > L) step_range(head, nhead, nvals, nhead / 2, nhead - 1, &out->qfar_min, &unused);
+    int rc = SWFS_OK;
+    if (ntail / 2 > L) rc = step_far_min(tail, ntail, nvals, &out->qfar_min);
+    if (!rc && nhead / 2 > L) rc = step_far_min(head, nhead, nvals, &out->qfar_min);
+    if (rc) return rc;
     const double q = out->q;
     out->separable = isfinite(out->qk_max) && isfinite(out->qfar_min) && out->qk_max < out->qfar_min;
     out->consistent = out->separable && isfinite(q) && q >= out->qk_min && q <= out->qk_max;
