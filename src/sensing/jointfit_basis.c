@@ -21,72 +21,102 @@ static double bspline3(double t)
 void jf_basis_free(jf_basis *b)
 {
     if (!b) return;
-    free(b->b1); free(b->lo); free(b->len); free(b->idx); free(b->ja); free(b->jb);
+    free(b->b1); free(b->lo); free(b->len); free(b->near); free(b->pw); free(b->idx); free(b->ja); free(b->jb);
     swfs_free(b->R); swfs_free(b->axa); swfs_free(b->ayb); free(b->off); swfs_free(b->xa);
     free(b);
 }
 
 /* Roughness penalty R = sum over stencils s placed on the pupil (all samples inside) of
  * (sum_t w_t B(s_t)) (sum_t w_t B(s_t))^T. Gradient: first differences along x and y;
- * curvature (thin plate): second differences xx, yy and twice the squared mixed one. */
-typedef struct stencil {
-    int np;
-    int dp[4], dq[4];
-    double w[4];
-} stencil;
+ * curvature (thin plate): second differences xx, yy and twice the squared mixed one. Every
+ * stencil is a product of a 1-D stencil along x and one along y, and so is its response to a
+ * tensor-product function B_a(p) B_c(q): u_a(p) v_c(q), u and v the 1-D stencils applied to
+ * the 1-D functions. Row q's share of R is then S_q (x) v(q) v(q)^T, with S_q the sum of
+ * u(p) u(p)^T over the row's samples whose stencil lies inside the pupil: a few 1-D products
+ * per sample, where the 2-D outer product per sample would be hundreds. */
+typedef struct stencil1 {
+    int n;
+    int d[3];
+    double w[3];
+} stencil1;
 
-static void add_stencil(jf_basis *b, const double *mask, const stencil *st)
+/* The 1-D stencil s applied to the functions meeting it at sample p: their list into fl,
+ * values into fv; the count returned. */
+static size_t stencil_row(const jf_basis *b, const stencil1 *s, size_t p, int dmin, int dmax, size_t *fl, double *fv)
+{
+    size_t k = 0;
+    for (size_t a = 0; a < b->na; a++) {
+        if (b->lo[a] > p + (size_t)dmax || b->lo[a] + b->len[a] + (size_t)(-dmin) <= p) continue;
+        double v = 0.0;
+        for (int t = 0; t < s->n; t++) v += s->w[t] * b->b1[a * b->n + p + (size_t)s->d[t]];
+        fl[k] = a;
+        fv[k++] = v;
+    }
+    return k;
+}
+
+static void stencil_extent(const stencil1 *s, int *mn, int *mx)
+{
+    *mn = *mx = 0;
+    for (int t = 0; t < s->n; t++) {
+        if (s->d[t] < *mn) *mn = s->d[t];
+        if (s->d[t] > *mx) *mx = s->d[t];
+    }
+}
+
+static void add_stencil(jf_basis *b, const double *mask, const stencil1 *sx, const stencil1 *sy)
 {
     const size_t n = b->n, na = b->na, nb = b->nb;
-    size_t jl[128];
-    double dv[128];
-    int pmin = 0, pmax = 0, qmin = 0, qmax = 0;
-    for (int t = 0; t < st->np; t++) {
-        if (st->dp[t] < pmin) pmin = st->dp[t];
-        if (st->dp[t] > pmax) pmax = st->dp[t];
-        if (st->dq[t] < qmin) qmin = st->dq[t];
-        if (st->dq[t] > qmax) qmax = st->dq[t];
-    }
-    for (size_t q = (size_t)-qmin; q + (size_t)qmax < n; q++)
+    size_t *cl = b->near, *al = b->near + na;
+    double *S = b->pw, *vc = S + na * na, *ua = vc + na;
+    int pmin, pmax, qmin, qmax;
+    stencil_extent(sx, &pmin, &pmax);
+    stencil_extent(sy, &qmin, &qmax);
+    for (size_t q = (size_t)-qmin; q + (size_t)qmax < n; q++) {
+        const size_t ncl = stencil_row(b, sy, q, qmin, qmax, cl, vc);
+        memset(S, 0, na * na * sizeof *S);
+        size_t amin = na, amax = 0;
         for (size_t p = (size_t)-pmin; p + (size_t)pmax < n; p++) {
             int inside = 1;
-            for (int t = 0; t < st->np && inside; t++)
-                inside = mask[(q + (size_t)st->dq[t]) * n + p + (size_t)st->dp[t]] > 0.0;
+            for (int j = 0; j < sy->n && inside; j++)
+                for (int i = 0; i < sx->n && inside; i++)
+                    inside = mask[(q + (size_t)sy->d[j]) * n + p + (size_t)sx->d[i]] > 0.0;
             if (!inside) continue;
-            size_t m = 0;
-            for (size_t a = 0; a < na; a++) {
-                if (b->lo[a] > p + (size_t)pmax || b->lo[a] + b->len[a] + (size_t)(-pmin) <= p) continue;
-                for (size_t c = 0; c < na; c++) {
-                    if (b->lo[c] > q + (size_t)qmax || b->lo[c] + b->len[c] + (size_t)(-qmin) <= q) continue;
-                    const long j = b->idx[c * na + a];
-                    if (j < 0 || m >= 128) continue;
-                    double d = 0.0;
-                    for (int t = 0; t < st->np; t++)
-                        d += st->w[t] * b->b1[a * n + p + (size_t)st->dp[t]] * b->b1[c * n + q + (size_t)st->dq[t]];
-                    if (d == 0.0) continue;
-                    jl[m] = (size_t)j;
-                    dv[m++] = d;
+            const size_t nal = stencil_row(b, sx, p, pmin, pmax, al, ua);
+            for (size_t i = 0; i < nal; i++)
+                for (size_t k = 0; k < nal; k++) S[al[i] * na + al[k]] += ua[i] * ua[k];
+            if (nal && al[0] < amin) amin = al[0];
+            if (nal && al[nal - 1] + 1 > amax) amax = al[nal - 1] + 1;
+        }
+        for (size_t a = amin; a < amax; a++)
+            for (size_t a2 = amin; a2 < amax; a2++) {
+                const double sv = S[a * na + a2];
+                if (sv == 0.0) continue;
+                for (size_t i = 0; i < ncl; i++) {
+                    const long j = b->idx[cl[i] * na + a];
+                    if (j < 0) continue;
+                    for (size_t k = 0; k < ncl; k++) {
+                        const long j2 = b->idx[cl[k] * na + a2];
+                        if (j2 >= 0) b->R[(size_t)j * nb + (size_t)j2] += sv * vc[i] * vc[k];
+                    }
                 }
             }
-            for (size_t u = 0; u < m; u++)
-                for (size_t v = 0; v < m; v++) b->R[jl[u] * nb + jl[v]] += dv[u] * dv[v];
-        }
+    }
 }
 
 void jf_basis_penalty(jf_basis *b, const double *mask, int curvature)
 {
     memset(b->R, 0, b->nb * b->nb * sizeof *b->R);
+    const stencil1 one = {1, {0}, {1}}, d1 = {2, {0, 1}, {-1, 1}}, d2 = {3, {-1, 0, 1}, {1, -2, 1}};
     if (!curvature) {
-        const stencil dx = {2, {0, 1}, {0, 0}, {-1, 1}}, dy = {2, {0, 0}, {0, 1}, {-1, 1}};
-        add_stencil(b, mask, &dx);
-        add_stencil(b, mask, &dy);
+        add_stencil(b, mask, &d1, &one); /* d/dx */
+        add_stencil(b, mask, &one, &d1); /* d/dy */
     } else {
         const double r2 = sqrt(2.0);
-        const stencil dxx = {3, {-1, 0, 1}, {0, 0, 0}, {1, -2, 1}}, dyy = {3, {0, 0, 0}, {-1, 0, 1}, {1, -2, 1}};
-        const stencil dxy = {4, {0, 1, 0, 1}, {0, 0, 1, 1}, {r2, -r2, -r2, r2}};
-        add_stencil(b, mask, &dxx);
-        add_stencil(b, mask, &dyy);
-        add_stencil(b, mask, &dxy);
+        const stencil1 d1r2 = {2, {0, 1}, {-r2, r2}};
+        add_stencil(b, mask, &d2, &one);  /* d2/dx2 */
+        add_stencil(b, mask, &one, &d2);  /* d2/dy2 */
+        add_stencil(b, mask, &d1, &d1r2); /* sqrt 2 d2/dxdy */
     }
 }
 
@@ -102,11 +132,13 @@ jf_basis *jf_basis_create(const double *mask, size_t n, double diam_samples, siz
     b->b1 = calloc(na * n, sizeof *b->b1);
     b->lo = calloc(na, sizeof *b->lo);
     b->len = calloc(na, sizeof *b->len);
+    b->near = calloc(2 * na, sizeof *b->near);
+    b->pw = calloc(na * na + 2 * na, sizeof *b->pw);
     b->idx = malloc(na * na * sizeof *b->idx);
     b->ja = calloc(na * na, sizeof *b->ja);
     b->jb = calloc(na * na, sizeof *b->jb);
     b->off = calloc(na + 1, sizeof *b->off);
-    if (!b->b1 || !b->lo || !b->len || !b->idx || !b->ja || !b->jb || !b->off) goto nomem;
+    if (!b->b1 || !b->lo || !b->len || !b->near || !b->pw || !b->idx || !b->ja || !b->jb || !b->off) goto nomem;
     /* Function a is centred at -D/2 + (a - 1) h (pupil sample coordinates, centre of the
      * grid at (n - 1)/2): the functions a = 0 .. nint + 2 are all that touch [-D/2, D/2]. */
     const double cp = 0.5 * (double)(n - 1);

@@ -15,6 +15,8 @@ typedef struct jf_basis {
     double h;            /* knot spacing [pupil samples] */
     double *b1;          /* na x n: 1-D B-spline values on the pupil samples (x and y alike) */
     size_t *lo, *len;    /* support of each 1-D function: samples [lo, lo + len) */
+    size_t *near;        /* 2 na work: the 1-D functions a stencil at a sample meets (penalty) */
+    double *pw;          /* na^2 + 2 na work: a row's 1-D sums and stencil values (penalty) */
     size_t nb;           /* 2-D functions kept (support meets the pupil) */
     long *idx;           /* na x na (b * na + a, a along x): index of (a, b) or -1 */
     size_t *ja, *jb;     /* per kept function: its a and b */
