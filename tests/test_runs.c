@@ -33,23 +33,34 @@ static const char *p(const char *name)
     return buf[k];
 }
 
-/* A time series of the small system (3 cubes x 60 frames) into the folder `where`, the keys
- * kv on top of its base. */
-static void simulate_small(const char *where, const char *const *kv, size_t nkv)
+/* The small system's parameters (3 cubes x 60 frames), the keys kv on top of its base. */
+static void small_params(const char *const *kv, size_t nkv, swfs_ts_params *tp)
 {
-    mkdir(where, 0755);
     swfs_config *c = swfs_config_new();
     const char *base[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=3", "cube_frames=60", "cube_gap=150"};
     for (size_t i = 0; i < sizeof base / sizeof base[0]; i++) assert_ok(swfs_config_set(c, base[i]));
     for (size_t i = 0; i < nkv; i++) assert_ok(swfs_config_set(c, kv[i]));
-    swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    assert_ok(swfs_ts_params_from_config(c, &tp));
-    assert_ok(swfs_ts_params_check(&tp));
+    swfs_ts_params_default(tp);
+    assert_ok(swfs_ts_params_from_config(c, tp));
+    assert_ok(swfs_ts_params_check(tp));
     swfs_config_free(c);
+}
+
+static void run_small(const char *where, const swfs_ts_params *tp)
+{
+    mkdir(where, 0755);
     swfs_ts_summary sm;
     const char *prov[] = {"test_runs"};
-    assert_ok(swfs_ts_run(&tp, where, prov, 1, NULL, NULL, &sm));
+    assert_ok(swfs_ts_run(tp, where, prov, 1, NULL, NULL, &sm));
+}
+
+/* A time series of the small system (3 cubes x 60 frames) into the folder `where`, the keys
+ * kv on top of its base. */
+static void simulate_small(const char *where, const char *const *kv, size_t nkv)
+{
+    swfs_ts_params tp;
+    small_params(kv, nkv, &tp);
+    run_small(where, &tp);
 }
 
 /* speckles on the test data (timing.txt, science.fits, actuators.fits) with the reconstructor
@@ -973,13 +984,27 @@ static void test_sync_files_shorter_than_cube(void **state)
 }
 
 /* A time series of the small system into `where` with the true residual beside the slopes
- * (export_truth), at the conditions kv; no camera reduction. */
+ * (export_truth), at the conditions kv; no camera reduction. Its camera is not used, so it
+ * integrates two cubes of 20 frames at one WFS frame each, as teach's loops do, placed so that
+ * the run holds the same WFS frames as the small system's camera would make it run: the same
+ * slopes and truth (the camera draws its noise from a stream of its own). */
 static void simulate_truth(const char *where, const char *const *kv, size_t nkv)
 {
     const char *all[8] = {"export_truth=1"};
     assert_true(nkv < 8);
     for (size_t i = 0; i < nkv; i++) all[1 + i] = kv[i];
-    simulate_small(where, all, nkv + 1);
+    swfs_ts_params tp;
+    small_params(all, nkv + 1, &tp);
+    const size_t nwfs = swfs_ts_nframes(&tp);
+    tp.frame_ratio = 1;
+    tp.ncubes = 2;
+    tp.cube_frames = 20;
+    tp.cube_gap = 0;
+    const size_t light = swfs_ts_nframes(&tp);
+    assert_true(light > 0 && light <= nwfs);
+    tp.cube_gap = (double)(nwfs - light);
+    assert_int_equal(swfs_ts_nframes(&tp), nwfs);
+    run_small(where, &tp);
 }
 
 /* rms over the frames of truth (piston removed) - W slopes, and of the truth. */
