@@ -9,7 +9,7 @@
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
  *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
  *                                 [--recon teach|vk|map|svd] [--truth] [--print-keys]
- *                                 [--set key=value ...]
+ *                                 [--band B|wfs] [--set key=value ...]
  *
  * --set key=value (up to 8): simulator keys added to every observation after the system's own
  * (slope_noise, r0, ao_gain, ...: what the matrix holds fixed and teach is not told);
@@ -21,6 +21,10 @@
  * --truth: the simulation also writes the true residual on the actuators and the modal export
  * (export_truth=1 export_modal=1), for bench/recon_oracle.py on a --keep DIR.
  * --seeds N: seeds 1 .. N (default 2); --seed S: seed S alone; --only K: system K (0-based) alone.
+ *
+ * --band B: the speckles' band [lambda/D] on every system; --band wfs: each system's subaperture
+ * band nsub / 2 (what the Shack-Hartmann kind takes by default; for --kind modal, the band a user
+ * would give a modal system whose WFS is that Shack-Hartmann: docs/telemetry.md).
  *
  * --vk-l0 M: the von Karman reconstructor's outer scale (default: the library's, 10 m) on every
  * system, to measure the constant over the whole matrix (docs/telemetry.md).
@@ -79,6 +83,8 @@ static char dir[1024];
 static const char *extra_keys[8];
 static int nextra;
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
+static double band = 0.0;            /* --band B: the speckles' band [lambda/D] (0: the default); --band wfs: each
+                                        system's subaperture band nsub / 2 (stored as -2) */
 static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
 static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle reconstructor */
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
@@ -295,6 +301,8 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.nmatch = 1;
     sp.pipe.tiptilt = tiptilt;
     if (vk_l0 >= 0.0) sp.pipe.vk_l0 = vk_l0;
+    if (band > 0.0) sp.pipe.band = band;
+    if (band == -2.0) sp.pipe.band = 0.5 * s->nsub;
     sp.pipe.recon = recon;
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
@@ -336,6 +344,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--band") && i + 1 < argc) band = strcmp(argv[i + 1], "wfs") ? atof(argv[i + 1]) : -2.0, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "map")) recon = SWFS_RECON_MAP, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "svd")) recon = SWFS_RECON_SVD, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) recon = SWFS_RECON_VK, i++;
@@ -346,7 +355,7 @@ int main(int argc, char **argv)
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
                     "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
-                    "[--print-keys] [--set key=value ...]\n");
+                    "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
     }
@@ -374,6 +383,8 @@ int main(int argc, char **argv)
            modal ? ", modal telemetry (--basis)" : "");
     if (recon != SWFS_RECON_TEACH)
         printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : recon == SWFS_RECON_SVD ? "svd" : "vk");
+    if (band > 0.0) printf("speckles within %g lambda/D on every system\n", band);
+    if (band == -2.0) printf("speckles within each system's subaperture band, nsub / 2\n");
     if (vk_l0 >= 0.0) printf("von Karman outer scale of the reconstructor: %g m%s\n", vk_l0, vk_l0 == 0 ? " (fitted)" : "");
     printf("slopes / ideal: the default path (the AO residual's time mean that the speckles carry taken out of the\n"
            "wavefront: reconstructed from the slopes, the simulation's true one with the ideal speckles); keep: with\n"
