@@ -98,6 +98,8 @@ typedef struct fit {
     int rejected;
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
+    double *lw;             /* nl + 3 nf + nl nf: a GEMV's result; per pixel sqrt Q_gg, Q_g kappa, e_g;
+                               the Legendre rows scaled by sqrt Q_gg */
     float *ytf, *hf;        /* single-precision copy of the scaled Jacobian, field block of H */
     int evals;
 } fit;
@@ -110,7 +112,7 @@ static void fit_free(fit *ft)
     swfs_free(ft->chat); swfs_free(ft->konst); free(ft->use);
     swfs_free(ft->x); swfs_free(ft->xt); swfs_free(ft->z); swfs_free(ft->Z); swfs_free(ft->W); swfs_free(ft->psi);
     swfs_free(ft->g); swfs_free(ft->yt); swfs_free(ft->H); swfs_free(ft->A); swfs_free(ft->grad);
-    swfs_free(ft->step); swfs_free(ft->et); swfs_free(ft->C); swfs_free(ft->Rx);
+    swfs_free(ft->step); swfs_free(ft->et); swfs_free(ft->C); swfs_free(ft->Rx); swfs_free(ft->lw);
     swfs_free(ft->ytf); swfs_free(ft->hf);
 }
 
@@ -172,6 +174,7 @@ static void build_normal(fit *ft, const double *x)
     memset(Hc, 0, np * np * sizeof *Hc);
     memset(ft->grad, 0, np * sizeof *ft->grad);
     double *Rk = ft->C + 2 * nf * nc; /* 3 per pixel: the 2x2 Cholesky factor of Q_psi,psi */
+    double *qgg = ft->lw + nl, *qgk = qgg + nf, *eg = qgk + nf, *ls = eg + nf; /* lw's first nl: a GEMV's result */
     for (size_t k = 0; k < nf; k++) {
         double Q[4][4] = {{0}}, e[4] = {0};
         if (ft->use[k]) {
@@ -223,15 +226,26 @@ static void build_normal(fit *ft, const double *x)
                 const double L = ft->leg[m * nf + k];
                 ft->C[(2 * k) * nc + m] = Q[0][2] * L;
                 ft->C[(2 * k + 1) * nc + m] = Q[1][2] * L;
-                ft->grad[nz + m] += e[2] * L;
-                for (size_t m2 = m; m2 < nl; m2++) Hc[(nz + m) * np + nz + m2] += Q[2][2] * L * ft->leg[m2 * nf + k];
-                Hc[(nz + m) * np + nz + nl] += Q[2][3] * L;
             }
             ft->C[(2 * k) * nc + nl] = Q[0][3];
             ft->C[(2 * k + 1) * nc + nl] = Q[1][3];
+            qgg[k] = sqrt(fmax(Q[2][2], 0.0)); /* Q is an information matrix's congruence: Q_gg >= 0 */
+            qgk[k] = Q[2][3];
+            eg[k] = e[2];
             ft->grad[nz + nl] += e[3];
             Hc[(nz + nl) * np + nz + nl] += Q[3][3];
         }
+    }
+    if (ft->stage == 1) {
+        /* the log g block over the pixels: sum_k Q_gg L_k L_k^T (one rank-nf update of the
+         * Legendre rows scaled by sqrt Q_gg), its coupling to kappa and its gradient */
+        for (size_t m = 0; m < nl; m++)
+            for (size_t k = 0; k < nf; k++) ls[m * nf + k] = ft->leg[m * nf + k] * qgg[k];
+        cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nl, (int)nf, 1.0, ls, (int)nf, 0.0,
+                    Hc + nz * np + nz, (int)np);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nl, (int)nf, 1.0, ft->leg, (int)nf, qgk, 1, 0.0, ft->lw, 1);
+        for (size_t m = 0; m < nl; m++) Hc[(nz + m) * np + nz + nl] = ft->lw[m];
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nl, (int)nf, 1.0, ft->leg, (int)nf, eg, 1, 0.0, ft->grad + nz, 1);
     }
     const int nfd = (int)(2 * nf);
     /* gradient of the field block: Y^T e */
@@ -640,11 +654,12 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     ft.et = swfs_malloc(2 * nf * sizeof *ft.et);
     ft.C = swfs_calloc(2 * nf * nc + 3 * nf, sizeof *ft.C);
     ft.Rx = swfs_malloc(2 * nb * sizeof *ft.Rx);
+    ft.lw = swfs_malloc(((3 + ft.nl) * nf + ft.nl) * sizeof *ft.lw);
     ft.ytf = swfs_malloc(2 * nb * 2 * nf * sizeof *ft.ytf);
     ft.hf = swfs_malloc(4 * nb * nb * sizeof *ft.hf);
     if (!ft.mft || !ft.leg || !ft.F || !ft.f || !ft.phi || !ft.mc || !ft.chat || !ft.konst || !ft.use || !ft.x ||
         !ft.xt || !ft.z || !ft.Z || !ft.W || !ft.psi || !ft.g || !ft.yt || !ft.H || !ft.A || !ft.grad || !ft.step ||
-        !ft.et || !ft.C || !ft.Rx || !ft.ytf || !ft.hf) {
+        !ft.et || !ft.C || !ft.Rx || !ft.lw || !ft.ytf || !ft.hf) {
         rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory (joint fit, %zu parameters)", np);
         goto done;
     }
