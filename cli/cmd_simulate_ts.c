@@ -52,6 +52,8 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     }
     printf("simulate (timeseries): %zu WFS frames at %.0f Hz, %ld cubes x %ld frames at <t_sci/t_wfs> = %.4f, "
            "handshake lag %ld\n", s.nwfs, p.wfs_rate, p.ncubes, p.cube_frames, p.frame_ratio, p.handshake_lag);
+    if (p.camera_light)
+        printf("  camera_light=1: the WFS frames of the camera keys as given, the camera integrating the cubes above\n");
     printf("  AO: %zu actuators%s%s%s, %zu valid subapertures, %zu modes%s%s%s, gain %.2f, delay %ld\n", s.nact,
            p.actuators[0] ? " (from " : "", p.actuators, p.actuators[0] ? ")" : "", s.nvalid, s.ao_modes,
            p.ao_recon[0] ? " (the reconstructor " : "", p.ao_recon, p.ao_recon[0] ? ")" : "", p.ao_gain, p.ao_delay);

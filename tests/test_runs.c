@@ -985,25 +985,19 @@ static void test_sync_files_shorter_than_cube(void **state)
 
 /* A time series of the small system into `where` with the true residual beside the slopes
  * (export_truth), at the conditions kv; no camera reduction. Its camera is not used, so it
- * integrates two cubes of 20 frames at one WFS frame each, as teach's loops do, placed so that
- * the run holds the same WFS frames as the small system's camera would make it run: the same
- * slopes and truth (the camera draws its noise from a stream of its own). */
+ * runs camera_light: the same WFS frames as the small system's camera keys make it run. */
 static void simulate_truth(const char *where, const char *const *kv, size_t nkv)
 {
     const char *all[8] = {"export_truth=1"};
-    assert_true(nkv < 8);
+    assert_true(nkv < 7);
     for (size_t i = 0; i < nkv; i++) all[1 + i] = kv[i];
-    swfs_ts_params tp;
-    small_params(all, nkv + 1, &tp);
-    const size_t nwfs = swfs_ts_nframes(&tp);
-    tp.frame_ratio = 1;
-    tp.ncubes = 2;
-    tp.cube_frames = 20;
-    tp.cube_gap = 0;
-    const size_t light = swfs_ts_nframes(&tp);
-    assert_true(light > 0 && light <= nwfs);
-    tp.cube_gap = (double)(nwfs - light);
-    assert_int_equal(swfs_ts_nframes(&tp), nwfs);
+    swfs_ts_params tp, heavy;
+    small_params(all, nkv + 1, &heavy);
+    all[nkv + 1] = "camera_light=1";
+    small_params(all, nkv + 2, &tp);
+    assert_int_equal(tp.ncubes, 2);
+    assert_int_equal(tp.cube_frames, 20);
+    assert_int_equal(swfs_ts_nframes(&tp), swfs_ts_nframes(&heavy));
     run_small(where, &tp);
 }
 

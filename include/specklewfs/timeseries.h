@@ -105,6 +105,12 @@ typedef struct swfs_ts_params {
                                   in that frame [m of wavefront at the actuators: the residual is the
                                   turbulence less their interpolation, so truth + DM is the open-loop
                                   wavefront] (0) */
+    long camera_light;         /* 1: the camera integrates two cubes of 20 frames at one WFS frame
+                                  each, placed so that the run holds the WFS frames the camera keys
+                                  as given would make it run: training loops whose camera is not
+                                  used (export_truth) get the same slopes and truth for a fraction
+                                  of the time; the camera draws its noise from a stream of its own.
+                                  swfs_ts_params_from_config applies it (swfs_ts_camera_light) (0) */
     /* milk logs (above) */
     long milk;                 /* 1: also write them (0) */
     double milk_epoch;         /* [s] Unix time of the start of WFS frame 0, whole seconds (1.7e9) */
@@ -159,6 +165,11 @@ typedef swfs_progress_fn swfs_ts_progress_fn;
 /* The WFS frames swfs_ts_run simulates for p: up to the last exposure's last frame, plus the
  * handshake lag and 10 (0: out of memory). */
 size_t swfs_ts_nframes(const swfs_ts_params *p);
+
+/* camera_light: the camera keys replaced by two cubes of 20 frames at one WFS frame each, with
+ * the gap between them set so that swfs_ts_nframes is unchanged; kept as they are where they
+ * already need fewer frames. */
+void swfs_ts_camera_light(swfs_ts_params *p);
 
 /* Every file swfs_ts_run writes into dir, as outputs of `paths` (outpaths.h): the
  * command checks them before simulating. Returns the paths' status. */

@@ -109,6 +109,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
     L_("act_square", act_square); L_("export_modal", export_modal); L_("export_truth", export_truth);
+    L_("camera_light", camera_light);
     L_("milk", milk); D_("milk_epoch", milk_epoch); D_("milk_jitter", milk_jitter); D_("milk_drift", milk_drift);
     D_("milk_offset", milk_offset); L_("milk_drop_wfs", milk_drop_wfs); L_("milk_drop_cam", milk_drop_cam);
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
@@ -121,6 +122,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
+    if (p->camera_light) swfs_ts_camera_light(p);
     return SWFS_OK;
 }
 
@@ -422,6 +424,23 @@ size_t swfs_ts_nframes(const swfs_ts_params *p)
     const size_t nwfs = ts_schedule(p, sched, 0, NULL);
     free(sched);
     return nwfs;
+}
+
+void swfs_ts_camera_light(swfs_ts_params *p)
+{
+    /* keys swfs_ts_params_check refuses are left for it to name */
+    if (p->ncubes < 1 || p->cube_frames < 1 || !(p->frame_ratio > 0) || !(p->cube_gap >= 0) || !(p->start_offset >= 0))
+        return;
+    const size_t nwfs = swfs_ts_nframes(p);
+    swfs_ts_params l = *p;
+    l.frame_ratio = 1;
+    l.ncubes = 2;
+    l.cube_frames = 20;
+    l.cube_gap = 0;
+    const size_t light = swfs_ts_nframes(&l);
+    if (!nwfs || !light || light > nwfs) return;
+    l.cube_gap = (double)(nwfs - light);
+    if (swfs_ts_nframes(&l) == nwfs) *p = l;
 }
 
 int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
