@@ -1001,6 +1001,35 @@ static void simulate_truth(const char *where, const char *const *kv, size_t nkv)
     run_small(where, &tp);
 }
 
+/* camera_light: the test data's own conditions run camera-light (simulate_truth) give its
+ * slopes value for value, every file, though the camera integrated 40 frames instead of 180. */
+static void test_camera_light_same_slopes(void **state)
+{
+    (void)state;
+    const char *kv[] = {"layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=1", "wfs_file_frames=1000"};
+    const char *where = p("light");
+    simulate_truth(where, kv, sizeof kv / sizeof kv[0]);
+    size_t nfiles = 0;
+    for (int k = 0;; k++, nfiles++) {
+        char a[1400], b[1400];
+        snprintf(a, sizeof a, "%s/slopes_%03d.fits", dir, k);
+        snprintf(b, sizeof b, "%s/slopes_%03d.fits", where, k);
+        if (access(a, F_OK)) {
+            assert_true(access(b, F_OK) != 0); /* no file more than the test data has */
+            break;
+        }
+        swfs_real *sa = NULL, *sb = NULL;
+        assert_ok(swfs_fits_read_real(a, NULL, &sa, NULL));
+        assert_ok(swfs_fits_read_real(b, NULL, &sb, NULL));
+        assert_int_equal(sa->nx, sb->nx);
+        assert_int_equal(sa->ny, sb->ny);
+        assert_memory_equal(sa->data, sb->data, sa->nx * sa->ny * sizeof *sa->data);
+        swfs_real_free(sa);
+        swfs_real_free(sb);
+    }
+    assert_true(nfiles >= 2);
+}
+
 /* rms over the frames of truth (piston removed) - W slopes, and of the truth. */
 static double recon_error(const swfs_recon *w, const char *where, double *truth_rms)
 {
@@ -1598,6 +1627,7 @@ int main(void)
         cmocka_unit_test(test_sync_timestamped_files),
         cmocka_unit_test(test_sync_files_shorter_than_cube),
         cmocka_unit_test(test_sync_unreadable_file),
+        cmocka_unit_test(test_camera_light_same_slopes),
         cmocka_unit_test(test_learn_reconstructor),
         cmocka_unit_test(test_learn_output_points),
         cmocka_unit_test(test_spacetime_reconstructor),
