@@ -543,6 +543,9 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * Loops of less noise than the observation's give a map that amplifies its noise
      * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
     swfs_teach_run_options oo = *o;
+    /* no loop's camera is used: a described camera (cubes of many frames) integrates two short
+     * cubes over the same WFS frames instead, the same slopes (timeseries.h camera_light) */
+    swfs_ts_camera_light(&oo.sim);
     if (o->noise_from_slopes) oo.sim.slope_noise = r->noise_rms;
     r->slope_noise = oo.sim.slope_noise;
     if (o->modes_from_slopes) {
