@@ -505,7 +505,11 @@ static int step_far_min(const double *v, size_t n, size_t nvals, double *mn)
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, (int)m, (int)m, (int)nvals, 1.0, v, (int)nvals,
                 v + h * nvals, (int)nvals, 0.0, G, (int)m);
     for (size_t k = 0; k < m; k++)
-        for (size_t j = k; j < m; j++) *mn = fmin(*mn, fmax(nrm[k] + nrm[h + j] - 2.0 * G[k * m + j], 0.0));
+        for (size_t j = k; j < m; j++) {
+            double q = nrm[k] + nrm[h + j] - 2.0 * G[k * m + j];
+            if (q < 0.0) q = 0.0; /* rounding; a NaN stays one, which fmin passes over as the loop did */
+            *mn = fmin(*mn, q);
+        }
     free(G);
     free(nrm);
     return SWFS_OK;
