@@ -29,6 +29,7 @@ int swfs_cmd_replay(int argc, char **argv);
 int swfs_cmd_liveloop(int argc, char **argv);
 int swfs_cmd_learn(int argc, char **argv);
 int swfs_cmd_wind(int argc, char **argv);
+int swfs_cmd_modal_slopes(int argc, char **argv);
 int swfs_cmd_teach(int argc, char **argv);
 /* The closed-loop table (cli/cmd_correct.c), also printed by `demo`. */
 struct swfs_loop_result;

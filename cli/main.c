@@ -27,6 +27,7 @@ static const struct command commands[] = {
     {"speckles", swfs_cmd_speckles, "speckle cube from WFS slopes matching the science frames (Sec. 4.4)"},
     {"learn", swfs_cmd_learn, "a reconstructor learned from simulated closed loops (for speckles --recon)"},
     {"wind", swfs_cmd_wind, "the frozen-flow layers' winds from the slopes"},
+    {"modal-slopes", swfs_cmd_modal_slopes, "a modal system's coefficients back to its Shack-Hartmann's slopes (CM+ c)"},
     {"teach", swfs_cmd_teach, "a learned map for one observation from simulated loops of your system at its winds"},
     {"dmoffsets", swfs_cmd_dmoffsets, "deformable-mirror offsets (metres per actuator) that cancel a PUPIL.fits WFE"},
     {"correct", swfs_cmd_correct, "closed-loop NCP correction in simulation: measure, fit DM offsets, apply, repeat"},

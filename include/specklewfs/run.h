@@ -89,7 +89,8 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
  * default speckle reconstructor's wavefront, in um of DM surface on unit-rms modes, as
  * cacao's modevalWFS) and dm_modes.fits (the mode cube on a DM grid of a quarter of the actuator
  * pitch, offset, turned by 10 degrees and mirrored on the pupil; the registration in its
- * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg). */
+ * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg), and modal_cm.fits (the modal
+ * control matrix from the valid slopes to those coefficients, for swfs_modal_slopes_run). */
 struct swfs_ts_params;
 int swfs_ts_export_modal(const struct swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                          swfs_dm_registration *reg, size_t *nmodes);
@@ -613,6 +614,32 @@ typedef struct swfs_wind_run_result {
 } swfs_wind_run_result;
 
 int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
+
+/* ---- modal-slopes: a modal system's coefficients back to its Shack-Hartmann's slopes ------ */
+
+/* A modal system logs coefficients c = CM s of its WFS's slopes s (cacao's modevalWFS through
+ * CMmodesWFS). Where that WFS is a Shack-Hartmann and CM is known, s' = CM+ c (the minimum-norm
+ * slopes that give c: s projected onto CM's row space) is telemetry the Shack-Hartmann path
+ * takes, its default teach included (docs/telemetry.md, "The modal input kind"). CM+ by an SVD,
+ * its rank the numerical one (singular values above max(rows, cols) x DBL_EPSILON of the
+ * largest); each file by one GEMM. Each input file is written under its own name into outdir
+ * (not the input's folder), with BUNIT 'rad' and the input's WFSRATE and FRAME0; all files or
+ * none (one swfs_outputs group, atomic.h). */
+typedef struct swfs_modal_slopes_options {
+    const char *const *files; /* modal coefficient files: coefficients x WFS frames */
+    size_t nfiles;
+    const char *cm;           /* the modal control matrix: NAXIS1 = slopes, NAXIS2 = coefficients */
+    const char *outdir;       /* an existing folder other than the inputs' */
+} swfs_modal_slopes_options;
+
+typedef struct swfs_modal_slopes_result {
+    size_t ncoef, nslopes, rank, nframes;
+    double cond;              /* largest / smallest singular value kept */
+    double resid;             /* rms of c - CM s' over rms of c: what CM cannot have made (0 up to
+                                 rounding where its rank is its number of coefficients) */
+} swfs_modal_slopes_result;
+
+int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r);
 
 /* ---- teach: a learned map for one observation from simulated loops of your system ------- */
 

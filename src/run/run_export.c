@@ -184,8 +184,10 @@ static int write_modal(const char *dir, exp_work *w, const char *const *prov, si
 
 /* control.fits (the default speckle reconstructor on the valid slopes: NAXIS1 = 2 nvalid,
  * NAXIS2 = nact), influence.fits (each actuator's influence on the pupil grid, the
- * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact) and valid.fits (the
- * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used). */
+ * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact), valid.fits (the
+ * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used) and modal_cm.fits
+ * (the modal control matrix that made modal_NNN.fits from the valid slopes: NAXIS1 = 2 nvalid,
+ * NAXIS2 = the modes; `modal-slopes` takes it). */
 static int write_control(const char *dir, exp_work *w, const char *const *prov, size_t nprov)
 {
     const swfs_speckle_model *m = swfs_pipeline_model(w->p);
@@ -209,11 +211,22 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
         e[a] = 0;
         memcpy(F->data + a * ng, z, ng * sizeof *z);
     }
+    /* modal_cm.fits: the modal control matrix, valid slopes -> modal_NNN's coefficients (um):
+     * Q's valid columns scaled as write_modal scales the coefficients (cacao's CMmodesWFS) */
+    swfs_real *M = rc ? NULL : swfs_real_alloc(2 * nv, w->nk, 1);
+    if (!rc && !M) rc = swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
+    for (size_t k = 0; !rc && k < w->nk; k++)
+        for (size_t a = 0, j = 0; a < n2; a++)
+            if (wfs->valid[a]) {
+                const double f = w->rms[k] / 2 * 1e6;
+                M->data[k * 2 * nv + j] = f * w->Q[k * ns + a];
+                M->data[k * 2 * nv + nv + j++] = f * w->Q[k * ns + n2 + a];
+            }
     char path[4200];
-    const swfs_real *arr[3] = {C, F, V};
-    const char *names[3] = {"control.fits", "influence.fits", "valid.fits"};
-    const char *units[3] = {"m/rad", "m/m", ""};
-    for (int k = 0; k < 3 && !rc; k++) {
+    const swfs_real *arr[4] = {C, F, V, M};
+    const char *names[4] = {"control.fits", "influence.fits", "valid.fits", "modal_cm.fits"};
+    const char *units[4] = {"m/rad", "m/m", "", "um/rad"};
+    for (int k = 0; k < 4 && !rc; k++) {
         swfs_fits_out *o = NULL;
         snprintf(path, sizeof path, "%s/%s", dir, names[k]);
         if ((rc = swfs_fits_out_create(&o, path))) break;
@@ -223,7 +236,7 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
             swfs_fits_out_abort(o);
         else rc = swfs_fits_out_commit(o);
     }
-    swfs_real_free(C); swfs_real_free(F); swfs_real_free(V); free(e); free(z);
+    swfs_real_free(C); swfs_real_free(F); swfs_real_free(V); swfs_real_free(M); free(e); free(z);
     return rc;
 }
 

@@ -2,7 +2,8 @@
  * of HDUs; each image of the same shape with every value equal, compared as doubles, NaN equal
  * to NaN; each table of the same shape with the same bytes in its rows), whatever their
  * headers say otherwise (dates, file names). Exit 1 with the first difference on stderr, 2 on
- * a usage or read error. For the tests that check that two runs made the same product. */
+ * a usage or read error. For the tests that check that two runs made the same product.
+ * fitsdiff --rms A B: prints rms(A - B) / rms(A) over the first HDUs' images (of one shape). */
 #include <fitsio.h>
 #include <math.h>
 #include <stdio.h>
@@ -11,10 +12,47 @@
 
 static int same(double a, double b) { return a == b || (isnan(a) && isnan(b)); }
 
+/* --rms: rms(A - B) / rms(A) of the first HDUs' images, on stdout */
+static int rms_ratio(const char *a, const char *b)
+{
+    fitsfile *f[2] = {NULL, NULL};
+    int st = 0, naxis[2] = {0, 0};
+    long n[2][9] = {{0}};
+    double *v[2] = {NULL, NULL};
+    long total = 1;
+    for (int i = 0; i < 2 && !st; i++) {
+        fits_open_image(&f[i], i ? b : a, READONLY, &st);
+        fits_get_img_param(f[i], 9, &(int){0}, &naxis[i], n[i], &st);
+    }
+    if (!st && (naxis[0] != naxis[1] || memcmp(n[0], n[1], sizeof n[0]))) {
+        fprintf(stderr, "fitsdiff: %s and %s: images of another shape\n", a, b);
+        st = -1;
+    }
+    for (int k = 0; !st && k < naxis[0]; k++) total *= n[0][k];
+    for (int i = 0; i < 2 && !st; i++) {
+        if (!(v[i] = malloc((size_t)total * sizeof(double)))) st = MEMORY_ALLOCATION;
+        else fits_read_img(f[i], TDOUBLE, 1, total, NULL, v[i], &(int){0}, &st);
+    }
+    double d2 = 0, a2 = 0;
+    for (long j = 0; !st && j < total; j++) {
+        d2 += (v[0][j] - v[1][j]) * (v[0][j] - v[1][j]);
+        a2 += v[0][j] * v[0][j];
+    }
+    if (!st) printf("%.6g\n", a2 > 0 ? sqrt(d2 / a2) : 0.0);
+    else if (st > 0) fits_report_error(stderr, st);
+    for (int i = 0; i < 2; i++) {
+        free(v[i]);
+        int s2 = 0;
+        if (f[i]) fits_close_file(f[i], &s2);
+    }
+    return st ? 2 : 0;
+}
+
 int main(int argc, char **argv)
 {
+    if (argc == 4 && !strcmp(argv[1], "--rms")) return rms_ratio(argv[2], argv[3]);
     if (argc != 3) {
-        fprintf(stderr, "usage: fitsdiff A B\n");
+        fprintf(stderr, "usage: fitsdiff A B | fitsdiff --rms A B\n");
         return 2;
     }
     fitsfile *f[2] = {NULL, NULL};

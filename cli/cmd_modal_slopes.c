@@ -1,0 +1,59 @@
+/* specklewfs modal-slopes MODAL.fits... --cm CM.fits -o DIR: a modal system's coefficients back
+ * to its Shack-Hartmann's slopes (run.h swfs_modal_slopes_run). */
+#include "cli.h"
+
+#include "specklewfs/run.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+
+static const char *usage_text =
+    "usage: specklewfs modal-slopes MODAL.fits... --cm CM.fits -o DIR\n"
+    "\n"
+    "A modal AO system logs per WFS frame the coefficients c = CM s of its WFS's slopes s\n"
+    "(cacao's modevalWFS through CMmodesWFS). Where that WFS is a Shack-Hartmann and CM is known,\n"
+    "this writes s' = CM+ c, the slopes projected onto CM's row space (the minimum-norm slopes\n"
+    "that give c), as telemetry the Shack-Hartmann path takes: sync, then speckles with\n"
+    "--actuators, --valid and --pupil, whose default teaches a map for the observation\n"
+    "(docs/telemetry.md, \"The modal input kind\"). The linear model (speckles --basis) takes the\n"
+    "coefficients themselves but cannot teach.\n"
+    "\n"
+    "  MODAL.fits...  coefficient files (coefficients x WFS frames)\n"
+    "  --cm CM.fits   the modal control matrix: NAXIS1 = the slopes (x of the valid\n"
+    "                 subapertures, then y, as --valid orders them), NAXIS2 = the coefficients,\n"
+    "                 in the files' units per radian (simulate export_modal=1: modal_cm.fits)\n"
+    "  -o DIR         an existing folder, not the inputs': each file under its own name, with\n"
+    "                 BUNIT 'rad' and the input's WFSRATE and FRAME0; all files or none\n"
+    "Prints CM's rank and condition, the frames written, and the share of the coefficients CM\n"
+    "cannot have made (0 where its rank is its number of coefficients).\n";
+
+int swfs_cmd_modal_slopes(int argc, char **argv)
+{
+    const char *cmd = "modal-slopes";
+    swfs_modal_slopes_options o = {0};
+    const char **files = calloc((size_t)argc, sizeof *files);
+    size_t nf = 0;
+    if (!files) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    const cli_opt opts[] = {
+        {"--cm", CLI_STRING, &o.cm, "a file name", 0},
+        {"-o", CLI_STRING, &o.outdir, "a folder", 0},
+    };
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, files, &nf};
+    int rc = cli_parse_args(&args, argc, argv);
+    if (rc) { free(files); return rc < 0 ? CLI_OK : rc; }
+    if (!nf) rc = cli_usage_error(cmd, "needs at least one coefficient file");
+    else if (!o.cm) rc = cli_usage_error(cmd, "needs --cm CM.fits (the modal control matrix)");
+    else if (!o.outdir) rc = cli_usage_error(cmd, "needs -o DIR (an existing folder)");
+    if (rc) { free(files); return rc; }
+    o.files = files;
+    o.nfiles = nf;
+    swfs_modal_slopes_result r;
+    rc = swfs_modal_slopes_run(&o, &r);
+    free(files);
+    if (rc) return cli_error(cmd);
+    printf("modal-slopes: %zu coefficients -> %zu slopes through the pseudo-inverse of %s (rank %zu, condition %.3g)\n",
+           r.ncoef, r.nslopes, o.cm, r.rank, r.cond);
+    printf("modal-slopes: %zu WFS frames in %zu files -> %s/; the coefficients CM cannot have made: %.2g of their rms\n",
+           r.nframes, nf, o.outdir, r.resid);
+    return CLI_OK;
+}

@@ -1,0 +1,121 @@
+/* modal-slopes: a modal system's coefficients turned back into its Shack-Hartmann's slopes,
+ * s' = CM+ c (run.h swfs_modal_slopes_run; docs/telemetry.md, "The modal input kind"). */
+#include "specklewfs/run.h"
+#include "specklewfs/atomic.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/source.h"
+#include "specklewfs/status.h"
+#include "specklewfs/wfs.h"
+
+#include <cblas.h>
+#include <float.h>
+#include <limits.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* The input's FRAME0 (absent: none written). */
+static int frame0_of(const char *path, long *frame0, int *found)
+{
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_long_opt(f, "FRAME0", 0, LONG_MAX, frame0, found);
+    swfs_fits_in_close(f);
+    return rc;
+}
+
+int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r)
+{
+    memset(r, 0, sizeof *r);
+    if (!o->nfiles || !o->cm || !o->outdir)
+        return swfs_fail(SWFS_ERR_ARG, "modal-slopes: needs coefficient files, the control matrix and an output folder");
+    char od[PATH_MAX], id[PATH_MAX], dir[4200];
+    if (!realpath(o->outdir, od))
+        return swfs_fail(SWFS_ERR_IO, "modal-slopes: %s: not an existing folder", o->outdir);
+    for (size_t k = 0; k < o->nfiles; k++) {
+        swfs_path_dir(o->files[k], dir, sizeof dir);
+        if (realpath(dir, id) && !strcmp(id, od))
+            return swfs_fail(SWFS_ERR_ARG, "modal-slopes: %s is in the output folder %s: the slopes are written under "
+                             "the inputs' names, so the output folder must be another", o->files[k], o->outdir);
+    }
+    swfs_real *cm = NULL;
+    int rc = swfs_fits_read_real(o->cm, NULL, &cm, NULL);
+    if (!rc && (cm->nz != 1 || cm->nx < 1 || cm->ny < 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the control matrix is %zux%zux%zu; expected slopes x coefficients (2-D)",
+                       o->cm, cm->nx, cm->ny, cm->nz);
+    for (size_t i = 0; !rc && i < cm->nx * cm->ny; i++)
+        if (!isfinite(cm->data[i]))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (coefficient %zu, slope %zu) is not finite", o->cm, i,
+                           i / cm->nx, i % cm->nx);
+    swfs_recon *pinv = NULL;
+    if (!rc) {
+        r->ncoef = cm->ny;
+        r->nslopes = cm->nx;
+        /* CM+ (slopes x coefficients): swfs_recon_svd inverts a matrix of rows x columns */
+        const double tol = (double)(cm->nx > cm->ny ? cm->nx : cm->ny) * DBL_EPSILON;
+        if ((rc = swfs_recon_svd(cm->data, cm->ny, cm->nx, tol, 0, &pinv)))
+            rc = swfs_fail_context(rc, "%s", o->cm);
+    }
+    if (!rc) {
+        r->rank = pinv->nmodes;
+        r->cond = pinv->sv[0] / pinv->sv[pinv->nmodes - 1];
+    }
+    double rss = 0, css = 0;
+    swfs_outputs_begin(); /* all files or none */
+    for (size_t k = 0; !rc && k < o->nfiles; k++) {
+        swfs_real *c = NULL, *s = NULL;
+        double rate = 0;
+        long frame0 = 0;
+        int has0 = 0;
+        rc = swfs_telemetry_read(o->files[k], 0, &c, &rate);
+        if (!rc && c->nx != r->ncoef)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu coefficients per WFS frame; %s maps %zu slopes to %zu", o->files[k],
+                           c->nx, o->cm, r->nslopes, r->ncoef);
+        for (size_t i = 0; !rc && i < c->nx * c->ny; i++)
+            if (!isfinite(c->data[i]))
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame %zu, coefficient %zu is not finite", o->files[k], i / c->nx,
+                               i % c->nx);
+        if (!rc) rc = frame0_of(o->files[k], &frame0, &has0);
+        if (!rc && !(s = swfs_real_alloc(r->nslopes, c->ny, 1))) rc = swfs_fail(SWFS_ERR_NOMEM, "modal-slopes: out of memory");
+        double *back = NULL;
+        if (!rc && !(back = malloc(c->nx * c->ny * sizeof *back))) rc = swfs_fail(SWFS_ERR_NOMEM, "modal-slopes: out of memory");
+        if (!rc) {
+            const int nf = (int)c->ny, nc = (int)r->ncoef, ns = (int)r->nslopes;
+            /* s' = c CM+^T per frame (rows), and c again from it, c CM+^T CM^T */
+            cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, nf, ns, nc, 1.0, c->data, nc, pinv->W, nc, 0.0, s->data, ns);
+            cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasTrans, nf, nc, ns, 1.0, s->data, ns, cm->data, ns, 0.0, back, nc);
+            for (size_t i = 0; i < c->nx * c->ny; i++) {
+                rss += (c->data[i] - back[i]) * (c->data[i] - back[i]);
+                css += c->data[i] * c->data[i];
+            }
+            r->nframes += c->ny;
+        }
+        free(back);
+        if (!rc) {
+            const char *base = strrchr(o->files[k], '/');
+            char path[8400];
+            snprintf(path, sizeof path, "%s/%s", o->outdir, base ? base + 1 : o->files[k]);
+            swfs_fits_out *f = NULL;
+            if (!(rc = swfs_fits_out_create(&f, path))) {
+                char hist[8400];
+                snprintf(hist, sizeof hist, "specklewfs modal-slopes: %s through the pseudo-inverse of %s", o->files[k], o->cm);
+                const char *prov[] = {hist};
+                if ((rc = swfs_fits_out_set_stamp(f, NULL, prov, 1)) || (rc = swfs_fits_out_real(f, NULL, s, -32)) ||
+                    (rc = swfs_fits_out_key_string(f, "BUNIT", "rad", "slopes: the modal coefficients through CM+")) ||
+                    (rate > 0 && (rc = swfs_fits_out_key_double(f, "WFSRATE", rate, "[Hz]"))) ||
+                    (has0 && (rc = swfs_fits_out_key_long(f, "FRAME0", frame0, "global WFS frame of row 0"))))
+                    swfs_fits_out_abort(f);
+                else rc = swfs_fits_out_commit(f);
+            }
+        }
+        swfs_real_free(c);
+        swfs_real_free(s);
+    }
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (!rc) rc = erc;
+    r->resid = css > 0 ? sqrt(rss / css) : 0;
+    swfs_recon_free(pinv);
+    swfs_real_free(cm);
+    return rc;
+}
