@@ -100,6 +100,9 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     fprintf(f, "%s: the slopes' white noise %.3g rad rms per slope (the lag-0 excess of their curl over %zu cells of "
             "2 x 2 subapertures; %.1f %% of the slopes' variance); the loops' slope_noise %.3g rad%s\n", cmd, r->noise_rms,
             r->noise_cells, 100 * r->noise_share, r->slope_noise, r->slope_noise == r->noise_rms ? ", the same" : ", as given");
+    if (r->project_slopes)
+        fprintf(f, "%s: the slopes are modal-slopes' projection (MODALCM): the loops' slopes learned on the same "
+                "projection, rank %zu of %zu\n", cmd, r->project_rank, r->project_slopes);
     if (modes_from_slopes) {
         fprintf(f, "%s: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
                 "loops (ao_modes -> knee):", cmd, r->knee_obs);

@@ -62,7 +62,8 @@ awk -v a="$svalid" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fa
 # valid-only slopes again (CM's 216 modes span 216 of the 224 slope directions: the slopes'
 # projection, within 15 % of them in rms; measured 8 %), and the Shack-Hartmann path with the
 # valid map takes them, its default teaching a map from them (four loops here, for the suite's
-# time): within 10 % of the native NCP error. (vk is no choice there: the projection leaves no
+# time; their slopes projected as the telemetry was, which modal-slopes' MODALCM key tells
+# teach): within 10 % of the native NCP error. (vk is no choice there: the projection leaves no
 # slope outside the modes' span, from which vk estimates the noise, and its map without noise
 # gave 297 nm.)
 mkdir -p "$D/unproj"
@@ -77,6 +78,8 @@ sed "s#$S/slopes_valid_#$D/unproj/modal_#" "$D/timing_valid.txt" > "$D/timing_un
 unproj=$(linear unproj "$D/timing_unproj.txt" --actuators "$S/actuators.fits" --valid "$S/valid.fits" \
     --pupil "$S/pupil.fits" --teach-loops 4 --teach-max-loops 4)
 grep -q "chose the .* map" "$D/speckles_unproj.log" || { cat "$D/speckles_unproj.log"; fail "modal-slopes: no taught map"; }
+grep -q "modal-slopes' projection (MODALCM): the loops' slopes learned on the same projection, rank 216 of 224" \
+    "$D/speckles_unproj.log" || { cat "$D/speckles_unproj.log"; fail "modal-slopes: teach should project its loops' slopes"; }
 echo "cli_modal: modal-slopes: the slopes within $rel of their rms; NCP error $unproj nm (native $native nm)" >&2
 awk -v a="$unproj" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "modal-slopes: $unproj nm against $native nm"
 # refused: a control matrix of another shape (control.fits maps 224 slopes to 217 actuators),

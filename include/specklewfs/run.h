@@ -533,6 +533,10 @@ typedef struct swfs_learn_run_options {
                                  curve_radius[0] to [1] only: the pupil's annulus, the points
                                  whose wavefront makes the speckles (the truth beyond it is the
                                  fit's extrapolation); {0, 0}: all outputs */
+    const double *project;    /* NULL, or nproject x nproject (symmetric): each file's slopes s
+                                 (rows) taken as s P, the projection the telemetry the map is for
+                                 went through (teach on modal-slopes' output: P = CM+ CM) */
+    size_t nproject;
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
@@ -744,6 +748,9 @@ typedef struct swfs_teach_run_result {
     size_t max_loops;           /* the budget in effect (max_loops, or its default); the curve is
                                    measured only where it exceeds nloops */
     swfs_learn_run_result curve_first, curve;
+    size_t project_rank;        /* the telemetry is modal-slopes' projection (its MODALCM key): the
+                                   loops' slopes projected the same way, P = CM+ CM of this rank */
+    size_t project_slopes;      /* over this many slopes; 0: no projection */
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

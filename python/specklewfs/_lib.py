@@ -306,7 +306,7 @@ swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str), ("curve", c_int),
-    ("curve_radius", c_dbl * 2)])
+    ("curve_radius", c_dbl * 2), ("project", P(c_dbl)), ("nproject", c_size)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [
@@ -358,7 +358,7 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("dm_pitch", c_dbl), ("out_pitch", c_dbl), ("noise_rms", c_dbl), ("noise_cells", c_size),
     ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("max_loops", c_size),
     ("curve_first", swfs_learn_run_result),
-    ("curve", swfs_learn_run_result)])
+    ("curve", swfs_learn_run_result), ("project_rank", c_size), ("project_slopes", c_size)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

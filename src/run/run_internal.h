@@ -148,4 +148,8 @@ extern const char *const swfs_teach_chosen_names_[3];
 int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                          const swfs_geom *g, swfs_speckles_run_result *r);
 
+/* run_modal_slopes.c: P = CM+ CM (ns x ns, malloc'd), the projection modal-slopes' output went
+ * through, from the control matrix file; *rank: CM's numerical rank. */
+int swfs_modal_projector_(const char *cm_path, double **P, size_t *ns, size_t *rank);
+
 #endif

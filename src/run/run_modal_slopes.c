@@ -6,6 +6,7 @@
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
+#include "run_internal.h"
 
 #include <cblas.h>
 #include <float.h>
@@ -25,6 +26,45 @@ static int frame0_of(const char *path, long *frame0, int *found)
     return rc;
 }
 
+/* CM (coefficients x slopes, from its file, checked) and its pseudo-inverse at the numerical
+ * rank (singular values above max(rows, cols) x DBL_EPSILON of the largest). */
+static int cm_pinv(const char *path, swfs_real **cm, swfs_recon **pinv)
+{
+    *pinv = NULL;
+    int rc = swfs_fits_read_real(path, NULL, cm, NULL);
+    if (!rc && ((*cm)->nz != 1 || (*cm)->nx < 1 || (*cm)->ny < 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the control matrix is %zux%zux%zu; expected slopes x coefficients (2-D)",
+                       path, (*cm)->nx, (*cm)->ny, (*cm)->nz);
+    for (size_t i = 0; !rc && i < (*cm)->nx * (*cm)->ny; i++)
+        if (!isfinite((*cm)->data[i]))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (coefficient %zu, slope %zu) is not finite", path, i,
+                           i / (*cm)->nx, i % (*cm)->nx);
+    if (!rc) {
+        /* CM+ (slopes x coefficients): swfs_recon_svd inverts a matrix of rows x columns */
+        const double tol = (double)((*cm)->nx > (*cm)->ny ? (*cm)->nx : (*cm)->ny) * DBL_EPSILON;
+        if ((rc = swfs_recon_svd((*cm)->data, (*cm)->ny, (*cm)->nx, tol, 0, pinv))) rc = swfs_fail_context(rc, "%s", path);
+    }
+    return rc;
+}
+
+int swfs_modal_projector_(const char *cm_path, double **P, size_t *ns, size_t *rank)
+{
+    *P = NULL;
+    swfs_real *cm = NULL;
+    swfs_recon *pinv = NULL;
+    int rc = cm_pinv(cm_path, &cm, &pinv);
+    if (!rc && !(*P = malloc(cm->nx * cm->nx * sizeof **P))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) { /* P = CM+ CM (slopes x slopes) */
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)cm->nx, (int)cm->nx, (int)cm->ny, 1.0, pinv->W,
+                    (int)cm->ny, cm->data, (int)cm->nx, 0.0, *P, (int)cm->nx);
+        *ns = cm->nx;
+        *rank = pinv->nmodes;
+    }
+    swfs_recon_free(pinv);
+    swfs_real_free(cm);
+    return rc;
+}
+
 int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -40,23 +80,14 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
                              "the inputs' names, so the output folder must be another", o->files[k], o->outdir);
     }
     swfs_real *cm = NULL;
-    int rc = swfs_fits_read_real(o->cm, NULL, &cm, NULL);
-    if (!rc && (cm->nz != 1 || cm->nx < 1 || cm->ny < 1))
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the control matrix is %zux%zux%zu; expected slopes x coefficients (2-D)",
-                       o->cm, cm->nx, cm->ny, cm->nz);
-    for (size_t i = 0; !rc && i < cm->nx * cm->ny; i++)
-        if (!isfinite(cm->data[i]))
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (coefficient %zu, slope %zu) is not finite", o->cm, i,
-                           i / cm->nx, i % cm->nx);
     swfs_recon *pinv = NULL;
+    int rc = cm_pinv(o->cm, &cm, &pinv);
     if (!rc) {
         r->ncoef = cm->ny;
         r->nslopes = cm->nx;
-        /* CM+ (slopes x coefficients): swfs_recon_svd inverts a matrix of rows x columns */
-        const double tol = (double)(cm->nx > cm->ny ? cm->nx : cm->ny) * DBL_EPSILON;
-        if ((rc = swfs_recon_svd(cm->data, cm->ny, cm->nx, tol, 0, &pinv)))
-            rc = swfs_fail_context(rc, "%s", o->cm);
     }
+    char cmabs[PATH_MAX];
+    if (!rc && !realpath(o->cm, cmabs)) snprintf(cmabs, sizeof cmabs, "%s", o->cm);
     if (!rc) {
         r->rank = pinv->nmodes;
         r->cond = pinv->sv[0] / pinv->sv[pinv->nmodes - 1];
@@ -104,7 +135,8 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
                 if ((rc = swfs_fits_out_set_stamp(f, NULL, prov, 1)) || (rc = swfs_fits_out_real(f, NULL, s, -32)) ||
                     (rc = swfs_fits_out_key_string(f, "BUNIT", "rad", "slopes: the modal coefficients through CM+")) ||
                     (rate > 0 && (rc = swfs_fits_out_key_double(f, "WFSRATE", rate, "[Hz]"))) ||
-                    (has0 && (rc = swfs_fits_out_key_long(f, "FRAME0", frame0, "global WFS frame of row 0"))))
+                    (has0 && (rc = swfs_fits_out_key_long(f, "FRAME0", frame0, "global WFS frame of row 0"))) ||
+                    (rc = swfs_fits_out_key_string(f, "MODALCM", cmabs, "CM these slopes were projected through (teach)")))
                     swfs_fits_out_abort(f);
                 else rc = swfs_fits_out_commit(f);
             }

@@ -157,8 +157,16 @@ static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, do
     }
 }
 
-static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n, const long *lags, size_t nlags,
-                 const char *out, const char *perframe_out, int curve, swfs_learn_run_result *lr)
+/* The projection the observation's slopes went through (modal-slopes' MODALCM), applied to the
+ * loops' slopes as they are learned: P (ns x ns) or NULL. */
+typedef struct projection {
+    double *P;
+    size_t n;
+} projection;
+
+static int learn(const swfs_teach_run_options *o, const projection *pj, const loop_job *jobs, size_t n,
+                 const long *lags, size_t nlags, const char *out, const char *perframe_out, int curve,
+                 swfs_learn_run_result *lr)
 {
     const char *d[64];
     for (size_t k = 0; k < n; k++) d[k] = jobs[k].path;
@@ -177,6 +185,8 @@ static int learn(const swfs_teach_run_options *o, const loop_job *jobs, size_t n
     lo.curve_radius[1] = 0.5 * o->sim.base.teldiam;
     lo.prov = o->prov;
     lo.nprov = o->nprov;
+    lo.project = pj->P;
+    lo.nproject = pj->n;
     const int rc = swfs_learn_run(&lo, lr);
     return rc ? swfs_fail_context(rc, "teach: the %s map of %zu loops (more loops: --loops; or longer ones: ncubes, cube_gap)",
                                   nlags > 1 ? "space-time" : "per-frame", n) : SWFS_OK;
@@ -498,10 +508,30 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     swfs_real *obs = NULL;
     double orate = 0;
     if ((rc = swfs_telemetry_read(o->files[0], 0, &obs, &orate))) return rc;
+    /* slopes modal-slopes made from modal coefficients (MODALCM: the control matrix) lie in
+     * CM's row space; the loops' slopes are learned on the same projection */
+    projection pj = {NULL, 0};
+    {
+        char cmp[4096];
+        int found = 0;
+        swfs_fits_in *f = NULL;
+        rc = swfs_fits_in_open(&f, o->files[0], NULL);
+        if (!rc) rc = swfs_fits_in_key_string_opt(f, "MODALCM", cmp, sizeof cmp, &found);
+        swfs_fits_in_close(f);
+        if (!rc && found) {
+            if ((rc = swfs_modal_projector_(cmp, &pj.P, &pj.n, &r->project_rank)))
+                rc = swfs_fail_context(rc, "teach: %s was made by modal-slopes through %s (MODALCM)", o->files[0], cmp);
+            else if (pj.n != obs->nx)
+                rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per frame, but its MODALCM %s acts on %zu", o->files[0],
+                               obs->nx, cmp, pj.n);
+            r->project_slopes = pj.n;
+        }
+        if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
+    }
     const size_t nsub = (size_t)sp->nsub;
     size_t vn = 0, nv = 0;
     unsigned char *vmap = NULL;
-    if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { swfs_real_free(obs); return rc; }
+    if (valid && (rc = swfs_valid_map_read(valid, &vmap, &vn, &nv))) { free(pj.P); swfs_real_free(obs); return rc; }
     if (obs->nx != 2 * nsub * nsub && !(valid && obs->nx == 2 * nv))
         rc = swfs_fail(SWFS_ERR_SHAPE, "teach: %s: %zu slopes per WFS frame; the system's %zu x %zu Shack-Hartmann "
                        "(nsub) writes 2 nsub^2 = %zu%s", o->files[0], obs->nx, nsub, nsub, 2 * nsub * nsub,
@@ -509,6 +539,30 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* the file's own NSUB, as speckles and stream check it on their model: refused here,
      * before the loops (which would take minutes for telemetry the pipeline then refuses) */
     else rc = swfs_telemetry_check_nsub(o->files[0], nsub);
+    /* the loops write every subaperture's slopes (x of the nsub^2, then y); a projection of the
+     * used ones' (valid-only telemetry) acts on those places, the others set to 0 as the
+     * telemetry has none */
+    if (!rc && pj.P && valid && pj.n == 2 * nv && 2 * nsub * nsub != pj.n) {
+        const size_t n2 = nsub * nsub, nf = 2 * n2;
+        size_t *at = malloc(pj.n * sizeof *at);
+        double *F = calloc(nf * nf, sizeof *F);
+        if (!at || !F) rc = swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+        for (size_t a = 0, j = 0; !rc && a < n2 && j < nv; a++)
+            if (vmap[a]) {
+                at[j] = a;
+                at[nv + j++] = n2 + a;
+            }
+        for (size_t i = 0; !rc && i < pj.n; i++)
+            for (size_t j = 0; j < pj.n; j++) F[at[i] * nf + at[j]] = pj.P[i * pj.n + j];
+        free(at);
+        if (!rc) {
+            free(pj.P);
+            pj.P = F;
+            pj.n = nf;
+        } else {
+            free(F);
+        }
+    }
     if (!rc && orate > 0 && fabs(orate - sp->wfs_rate) > 1e-6 * sp->wfs_rate)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: WFSRATE %g Hz, but the system runs at wfs_rate = %g Hz", o->files[0],
                        orate, sp->wfs_rate);
@@ -524,7 +578,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
                        "the loops cannot be given its winds; use the von Karman map (speckles --recon vk)",
                        o->nfiles == 1 ? o->files[0] : "the telemetry files");
-    if (rc) { swfs_real_free(obs); return rc; }
+    if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
     const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = (size_t)nl;
     double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
@@ -559,7 +613,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
-    if (rc) { swfs_real_free(obs); return rc; }
+    if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
     /* 3. the loops. Enough frames for the map: a least-squares map of p inputs learned from
      * n frames misses frames it was not learned on by sqrt(1 + p / (n - p - 1)) times its
      * noise (the excess of ordinary least squares over the best linear map); n >= 10 p keeps
@@ -569,7 +623,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * frames being the same, and stay one file. */
     r->map_inputs = r->nlags * 2 * e->nvalid;
     r->loop_frames = swfs_ts_nframes(&oo.sim);
-    if (!r->loop_frames) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
+    if (!r->loop_frames) { free(pj.P); swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     r->loop_frames_described = r->loop_frames;
     const size_t need = (10 * r->map_inputs + o->nloops - 1) / o->nloops;
     if (r->loop_frames < need) {
@@ -579,10 +633,10 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         if (oo.sim.wfs_file_frames > 0 && (size_t)oo.sim.wfs_file_frames < r->loop_frames)
             oo.sim.wfs_file_frames = (long)r->loop_frames;
     }
-    if ((rc = output_grid(&oo, r))) { swfs_real_free(obs); return rc; }
+    if ((rc = output_grid(&oo, r))) { free(pj.P); swfs_real_free(obs); return rc; }
     const size_t max_loops = o->max_loops ? o->max_loops : 4 * o->nloops < 64 ? 4 * o->nloops : 64;
     loop_job *jobs = calloc(max_loops, sizeof *jobs);
-    if (!jobs) { swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
+    if (!jobs) { free(pj.P); swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
     for (size_t k = 0; k < o->nloops; k++)
         loop_init(jobs + k, o, k, (double)k / (double)(o->nloops - 1), nl, speed, dir);
     /* what every loop's run would build again from the system alone (the DM's modes, the
@@ -605,7 +659,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
          * run taking one frame's slopes, live, is given), and its learning curve where more
          * loops may follow (six more solves of the map's normal equations: minutes for a
          * 24 x 24's 4440 inputs, not spent when max_loops allows no more) */
-        rc = learn(o, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
+        rc = learn(o, &pj, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
@@ -625,7 +679,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         r->st_loops = n;
         if (!rc) {
             stage(o, "learning the space-time map again", 0, 1);
-            rc = learn(o, jobs, n, lags, 5, st, pf, 1, &lr);
+            rc = learn(o, &pj, jobs, n, lags, 5, st, pf, 1, &lr);
             r->curve = lr;
         }
     }
@@ -660,10 +714,11 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     if (!rc && r->chosen == SWFS_TEACH_PERFRAME_MIXED) { /* other loops: their own map */
         stage(o, "learning the per-frame map", 0, 1);
-        rc = learn(o, jobs, o->nloops, NULL, 0, pf, NULL, 0, &lr);
+        rc = learn(o, &pj, jobs, o->nloops, NULL, 0, pf, NULL, 0, &lr);
     }
     if (!rc && r->warns) chosen = pf; /* of the same loops: learned with the space-time map */
     free(jobs);
+    free(pj.P);
     swfs_ts_shared_free(shared);
     if (!rc) rc = write_chosen(chosen, o, r);
     r->seconds = swfs_wall_seconds() - t0;
