@@ -21,7 +21,7 @@ static const char *usage_text =
     "  MODAL.fits...  coefficient files (coefficients x WFS frames)\n"
     "  --cm CM.fits   the modal control matrix: NAXIS1 = the slopes (x of the valid\n"
     "                 subapertures, then y, as --valid orders them), NAXIS2 = the coefficients,\n"
-    "                 in the files' units per radian (simulate export_modal=1: modal_cm.fits)\n"
+    "                 in the files' units per radian (simulate export_modal=1: cm_modes.fits)\n"
     "  -o DIR         an existing folder, not the inputs': each file under its own name, with\n"
     "                 BUNIT 'rad' and the input's WFSRATE and FRAME0; all files or none\n"
     "Prints CM's rank and condition, the frames written, and the share of the coefficients CM\n"

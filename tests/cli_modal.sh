@@ -67,7 +67,7 @@ awk -v a="$svalid" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fa
 # slope outside the modes' span, from which vk estimates the noise, and its map without noise
 # gave 297 nm.)
 mkdir -p "$D/unproj"
-"$B" modal-slopes "$S"/modal_0*.fits --cm "$S/modal_cm.fits" -o "$D/unproj" > "$D/modal_slopes.log" 2>&1 \
+"$B" modal-slopes "$S"/modal_0*.fits --cm "$S/cm_modes.fits" -o "$D/unproj" > "$D/modal_slopes.log" 2>&1 \
     || { cat "$D/modal_slopes.log"; fail "modal-slopes"; }
 grep -q "216 coefficients -> 224 slopes .* (rank 216," "$D/modal_slopes.log" || { cat "$D/modal_slopes.log"; fail "modal-slopes: rank"; }
 grep -Eq "cannot have made: [0-9.]+e-(0[7-9]|1[0-9]) of their rms" "$D/modal_slopes.log" \
@@ -89,7 +89,7 @@ mkdir -p "$D/unproj2"
 grep -q "modal_000.fits: 216 coefficients per WFS frame; .*control.fits maps 224 slopes to 217" "$D/ms_bad.log" \
     || { cat "$D/ms_bad.log"; fail "modal-slopes: the message"; }
 [ -z "$(ls "$D/unproj2")" ] || fail "modal-slopes left files after refusing"
-"$B" modal-slopes "$S/modal_000.fits" --cm "$S/modal_cm.fits" -o "$S" > "$D/ms_bad.log" 2>&1 && fail "modal-slopes into the inputs' folder"
+"$B" modal-slopes "$S/modal_000.fits" --cm "$S/cm_modes.fits" -o "$S" > "$D/ms_bad.log" 2>&1 && fail "modal-slopes into the inputs' folder"
 grep -q "is in the output folder" "$D/ms_bad.log" || { cat "$D/ms_bad.log"; fail "modal-slopes: same folder"; }
 noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "$reg" | sed 's/--dm-flip//') \
     --coef-scale 2e-6)

@@ -89,7 +89,7 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
  * default speckle reconstructor's wavefront, in um of DM surface on unit-rms modes, as
  * cacao's modevalWFS) and dm_modes.fits (the mode cube on a DM grid of a quarter of the actuator
  * pitch, offset, turned by 10 degrees and mirrored on the pupil; the registration in its
- * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg), and modal_cm.fits (the modal
+ * keys DMPITCH, DMOFFX, DMOFFY, DMROT, DMFLIPX and in *reg), and cm_modes.fits (the modal
  * control matrix from the valid slopes to those coefficients, for swfs_modal_slopes_run). */
 struct swfs_ts_params;
 int swfs_ts_export_modal(const struct swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,

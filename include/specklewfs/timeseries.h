@@ -97,7 +97,7 @@ typedef struct swfs_ts_params {
     long export_modal;         /* 1: also the telemetry in cacao's modal form, modal_NNN.fits and
                                   dm_modes.fits, and as valid-only slopes, slopes_valid_NNN.fits with
                                   control.fits, influence.fits and valid.fits, and the modal control
-                                  matrix modal_cm.fits (swfs_ts_export_modal
+                                  matrix cm_modes.fits (swfs_ts_export_modal
                                   in run.h; `simulate` runs it) */
     long export_truth;         /* 1: also truewf_NNN.fits beside slopes_NNN.fits, the same WFS frames:
                                   the true residual wavefront each frame's slopes measured [m],

@@ -20,7 +20,7 @@ from .coherence import (Coherence, coherence, default_lags, read_coherence_input
                         bandwidth_radius)
 from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, mode_variance, demo
 from .stream import Pipeline, Stream
-from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, speckles, estimate_files
+from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
 
 try:
     from ._config import VERSION as __version__

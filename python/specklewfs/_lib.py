@@ -349,6 +349,10 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("fingerprint", c_str)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
+swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
+    ("files", P(c_str)), ("nfiles", c_size), ("cm", c_str), ("outdir", c_str)])
+swfs_modal_slopes_result = _s("swfs_modal_slopes_result", [
+    ("ncoef", c_size), ("nslopes", c_size), ("rank", c_size), ("nframes", c_size), ("cond", c_dbl), ("resid", c_dbl)])
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
     ("nloops", c_size), ("map_inputs", c_size), ("loop_frames", c_size), ("loop_frames_described", c_size),
@@ -624,6 +628,7 @@ _PROTOS = {
     "swfs_learn_run": (c_int, [P(swfs_learn_run_options), P(swfs_learn_run_result)]),
     "swfs_teach_run_options_default": (None, [P(swfs_teach_run_options)]),
     "swfs_teach_run": (c_int, [P(swfs_teach_run_options), P(swfs_teach_run_result)]),
+    "swfs_modal_slopes_run": (c_int, [P(swfs_modal_slopes_options), P(swfs_modal_slopes_result)]),
     "swfs_teach_describe": (c_int, [c_ptr, c_str, c_str, c_str, c_str, c_str]),
     "swfs_teach_work_default": (c_int, [c_str, ctypes.c_char_p, c_size]),
     "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),

@@ -226,6 +226,23 @@ def _st_checks(r):
                 st_warn_corr=bool(w & _lib.SPACETIME_WARN_CORR))
 
 
+def modal_slopes(files, cm, outdir):
+    """A modal system's coefficient files back to its Shack-Hartmann's slopes
+    (`specklewfs modal-slopes`): s' = CM+ c through the pseudo-inverse of the modal control
+    matrix `cm` (NAXIS1 the slopes, NAXIS2 the coefficients), each file under its own name in
+    the existing folder `outdir` (not the inputs'), all or none; the slopes then take the
+    Shack-Hartmann path (speckles with actuators, valid and pupil; its teach projects its loops'
+    slopes the same way). Returns ncoef, nslopes, rank, nframes, cond and resid (the share of
+    the coefficients CM cannot have made)."""
+    if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
+        files = [files]
+    arr, n = _paths(files)
+    o = _lib.swfs_modal_slopes_options(arr, n, enc(cm), enc(outdir))
+    r = _lib.swfs_modal_slopes_result()
+    check(lib.swfs_modal_slopes_run(ctypes.byref(o), ctypes.byref(r)), "modal_slopes")
+    return _struct_dict(r)
+
+
 def teach(files, out, work=None, config=None, loops=None, seed=None, progress=None, provenance=(), science=None,
           actuators=None, pupil=None, valid=None, max_loops=None, **params):
     """A learned map for one observation from simulated closed loops of your system at the

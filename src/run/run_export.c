@@ -185,7 +185,7 @@ static int write_modal(const char *dir, exp_work *w, const char *const *prov, si
 /* control.fits (the default speckle reconstructor on the valid slopes: NAXIS1 = 2 nvalid,
  * NAXIS2 = nact), influence.fits (each actuator's influence on the pupil grid, the
  * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact), valid.fits (the
- * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used) and modal_cm.fits
+ * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used) and cm_modes.fits
  * (the modal control matrix that made modal_NNN.fits from the valid slopes: NAXIS1 = 2 nvalid,
  * NAXIS2 = the modes; `modal-slopes` takes it). */
 static int write_control(const char *dir, exp_work *w, const char *const *prov, size_t nprov)
@@ -211,7 +211,7 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
         e[a] = 0;
         memcpy(F->data + a * ng, z, ng * sizeof *z);
     }
-    /* modal_cm.fits: the modal control matrix, valid slopes -> modal_NNN's coefficients (um):
+    /* cm_modes.fits: the modal control matrix, valid slopes -> modal_NNN's coefficients (um):
      * Q's valid columns scaled as write_modal scales the coefficients (cacao's CMmodesWFS) */
     swfs_real *M = rc ? NULL : swfs_real_alloc(2 * nv, w->nk, 1);
     if (!rc && !M) rc = swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
@@ -224,7 +224,7 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
             }
     char path[4200];
     const swfs_real *arr[4] = {C, F, V, M};
-    const char *names[4] = {"control.fits", "influence.fits", "valid.fits", "modal_cm.fits"};
+    const char *names[4] = {"control.fits", "influence.fits", "valid.fits", "cm_modes.fits"};
     const char *units[4] = {"m/rad", "m/m", "", "um/rad"};
     for (int k = 0; k < 4 && !rc; k++) {
         swfs_fits_out *o = NULL;

@@ -472,7 +472,7 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
         snprintf(path, sizeof path, "%s/truewf_%03zu.fits", dir, f);
         if (p->export_truth) swfs_paths_output(paths, "simulation output (export_truth)", path);
     }
-    static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits", "valid.fits", "modal_cm.fits"};
+    static const char *modal_files[] = {"dm_modes.fits", "control.fits", "influence.fits", "valid.fits", "cm_modes.fits"};
     for (size_t k = 0; p->export_modal && k < sizeof modal_files / sizeof modal_files[0]; k++) {
         snprintf(path, sizeof path, "%s/%s", dir, modal_files[k]);
         swfs_paths_output(paths, "simulation output (export_modal)", path);
