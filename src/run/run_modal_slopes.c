@@ -78,6 +78,13 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
         if (realpath(dir, id) && !strcmp(id, od))
             return swfs_fail(SWFS_ERR_ARG, "modal-slopes: %s is in the output folder %s: the slopes are written under "
                              "the inputs' names, so the output folder must be another", o->files[k], o->outdir);
+        const char *bk = strrchr(o->files[k], '/');
+        for (size_t j = 0; j < k; j++) {
+            const char *bj = strrchr(o->files[j], '/');
+            if (!strcmp(bk ? bk + 1 : o->files[k], bj ? bj + 1 : o->files[j]))
+                return swfs_fail(SWFS_ERR_ARG, "modal-slopes: %s and %s have one name, which the output folder holds "
+                                 "once", o->files[j], o->files[k]);
+        }
     }
     swfs_real *cm = NULL;
     swfs_recon *pinv = NULL;

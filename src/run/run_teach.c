@@ -542,7 +542,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* the loops write every subaperture's slopes (x of the nsub^2, then y); a projection of the
      * used ones' (valid-only telemetry) acts on those places, the others set to 0 as the
      * telemetry has none */
-    if (!rc && pj.P && valid && pj.n == 2 * nv && 2 * nsub * nsub != pj.n) {
+    if (!rc && pj.P && valid && vn == nsub && pj.n == 2 * nv && 2 * nsub * nsub != pj.n) {
         const size_t n2 = nsub * nsub, nf = 2 * n2;
         size_t *at = malloc(pj.n * sizeof *at);
         double *F = calloc(nf * nf, sizeof *F);
