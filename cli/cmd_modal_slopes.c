@@ -23,7 +23,9 @@ static const char *usage_text =
     "                 subapertures, then y, as --valid orders them), NAXIS2 = the coefficients,\n"
     "                 in the files' units per radian (simulate export_modal=1: cm_modes.fits)\n"
     "  -o DIR         an existing folder, not the inputs': each file under its own name, with\n"
-    "                 BUNIT 'rad' and the input's WFSRATE and FRAME0; all files or none\n"
+    "                 BUNIT 'rad' and the input's WFSRATE and FRAME0, and a copy of CM.fits,\n"
+    "                 which their MODALCM key names (teach then learns its loops' slopes on the\n"
+    "                 same projection); all files or none\n"
     "Prints CM's rank and condition, the frames written, and the share of the coefficients CM\n"
     "cannot have made (0 where its rank is its number of coefficients).\n";
 

@@ -627,8 +627,9 @@ int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
  * takes, its default teach included (docs/telemetry.md, "The modal input kind"). CM+ by an SVD,
  * its rank the numerical one (singular values above max(rows, cols) x DBL_EPSILON of the
  * largest); each file by one GEMM. Each input file is written under its own name into outdir
- * (not the input's folder), with BUNIT 'rad' and the input's WFSRATE and FRAME0; all files or
- * none (one swfs_outputs group, atomic.h). */
+ * (not the input's folder), with BUNIT 'rad' and the input's WFSRATE and FRAME0, and CM is
+ * copied beside them under its own name, which their MODALCM key gives (teach learns its loops'
+ * slopes on the same projection); all files or none (one swfs_outputs group, atomic.h). */
 typedef struct swfs_modal_slopes_options {
     const char *const *files; /* modal coefficient files: coefficients x WFS frames */
     size_t nfiles;

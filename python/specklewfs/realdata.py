@@ -230,7 +230,8 @@ def modal_slopes(files, cm, outdir):
     """A modal system's coefficient files back to its Shack-Hartmann's slopes
     (`specklewfs modal-slopes`): s' = CM+ c through the pseudo-inverse of the modal control
     matrix `cm` (NAXIS1 the slopes, NAXIS2 the coefficients), each file under its own name in
-    the existing folder `outdir` (not the inputs'), all or none; the slopes then take the
+    the existing folder `outdir` (not the inputs') with a copy of `cm` that their MODALCM key
+    names, all or none; the slopes then take the
     Shack-Hartmann path (speckles with actuators, valid and pupil; its teach projects its loops'
     slopes the same way). Returns ncoef, nslopes, rank, nframes, cond and resid (the share of
     the coefficients CM cannot have made)."""

@@ -78,7 +78,10 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
         if (realpath(dir, id) && !strcmp(id, od))
             return swfs_fail(SWFS_ERR_ARG, "modal-slopes: %s is in the output folder %s: the slopes are written under "
                              "the inputs' names, so the output folder must be another", o->files[k], o->outdir);
-        const char *bk = strrchr(o->files[k], '/');
+        const char *bk = strrchr(o->files[k], '/'), *bc = strrchr(o->cm, '/');
+        if (!strcmp(bk ? bk + 1 : o->files[k], bc ? bc + 1 : o->cm))
+            return swfs_fail(SWFS_ERR_ARG, "modal-slopes: %s has the name of the control matrix %s, whose copy the "
+                             "output folder holds beside the slopes", o->files[k], o->cm);
         for (size_t j = 0; j < k; j++) {
             const char *bj = strrchr(o->files[j], '/');
             if (!strcmp(bk ? bk + 1 : o->files[k], bj ? bj + 1 : o->files[j]))
@@ -93,14 +96,29 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
         r->ncoef = cm->ny;
         r->nslopes = cm->nx;
     }
-    char cmabs[PATH_MAX];
-    if (!rc && !realpath(o->cm, cmabs)) snprintf(cmabs, sizeof cmabs, "%s", o->cm);
+    /* the control matrix copied beside the slopes, which name it (MODALCM, relative to their
+     * folder): teach finds it wherever the folder goes */
+    const char *cmbase = strrchr(o->cm, '/') ? strrchr(o->cm, '/') + 1 : o->cm;
     if (!rc) {
         r->rank = pinv->nmodes;
         r->cond = pinv->sv[0] / pinv->sv[pinv->nmodes - 1];
     }
     double rss = 0, css = 0;
     swfs_outputs_begin(); /* all files or none */
+    if (!rc) {
+        char path[8400];
+        snprintf(path, sizeof path, "%s/%s", o->outdir, cmbase);
+        swfs_fits_out *f = NULL;
+        char hist[4200];
+        snprintf(hist, sizeof hist, "specklewfs modal-slopes: a copy of %s", o->cm);
+        const char *prov[] = {hist};
+        if (!(rc = swfs_fits_out_create(&f, path))) {
+            if ((rc = swfs_fits_out_set_stamp(f, NULL, prov, 1)) || (rc = swfs_fits_out_real(f, NULL, cm, -64)) ||
+                (rc = swfs_fits_out_key_string(f, "BUNIT", "coefficient/rad", "the modal control matrix: slopes -> coefficients")))
+                swfs_fits_out_abort(f);
+            else rc = swfs_fits_out_commit(f);
+        }
+    }
     for (size_t k = 0; !rc && k < o->nfiles; k++) {
         swfs_real *c = NULL, *s = NULL;
         double rate = 0;
@@ -143,7 +161,7 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
                     (rc = swfs_fits_out_key_string(f, "BUNIT", "rad", "slopes: the modal coefficients through CM+")) ||
                     (rate > 0 && (rc = swfs_fits_out_key_double(f, "WFSRATE", rate, "[Hz]"))) ||
                     (has0 && (rc = swfs_fits_out_key_long(f, "FRAME0", frame0, "global WFS frame of row 0"))) ||
-                    (rc = swfs_fits_out_key_string(f, "MODALCM", cmabs, "CM these slopes were projected through (teach)")))
+                    (rc = swfs_fits_out_key_string(f, "MODALCM", cmbase, "CM these slopes came through, in their folder")))
                     swfs_fits_out_abort(f);
                 else rc = swfs_fits_out_commit(f);
             }

@@ -516,8 +516,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         int found = 0;
         swfs_fits_in *f = NULL;
         rc = swfs_fits_in_open(&f, o->files[0], NULL);
-        if (!rc) rc = swfs_fits_in_key_string_opt(f, "MODALCM", cmp, sizeof cmp, &found);
+        char name[4096];
+        if (!rc) rc = swfs_fits_in_key_string_opt(f, "MODALCM", name, sizeof name, &found);
         swfs_fits_in_close(f);
+        if (!rc && found) { /* a name relative to the telemetry file's folder, as modal-slopes writes it */
+            char dir[4096];
+            swfs_path_dir(o->files[0], dir, sizeof dir);
+            rc = swfs_telemetry_path(dir, name, cmp, sizeof cmp);
+        }
         if (!rc && found) {
             if ((rc = swfs_modal_projector_(cmp, &pj.P, &pj.n, &r->project_rank)))
                 rc = swfs_fail_context(rc, "teach: %s was made by modal-slopes through %s (MODALCM)", o->files[0], cmp);
