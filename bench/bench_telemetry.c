@@ -83,8 +83,8 @@ static char dir[1024];
 static const char *extra_keys[8];
 static int nextra;
 static int tiptilt = SWFS_TT_EXPOSURE; /* --tiptilt: the speckles' tip-tilt treatment (speckles.h) */
-static double band = 0.0;            /* --band B: the speckles' band [lambda/D] (0: the default); --band wfs: each
-                                        system's subaperture band nsub / 2 (stored as -2) */
+static double band = 0.0;            /* --band B: the speckles' band [lambda/D] (0: the default) */
+static int band_wfs;                  /* --band wfs: each system's subaperture band nsub / 2 */
 static double vk_l0 = -1.0;           /* --vk-l0: the reconstructor's outer scale [m] (< 0: the default) */
 static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle reconstructor */
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
@@ -302,7 +302,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.pipe.tiptilt = tiptilt;
     if (vk_l0 >= 0.0) sp.pipe.vk_l0 = vk_l0;
     if (band > 0.0) sp.pipe.band = band;
-    if (band == -2.0) sp.pipe.band = 0.5 * s->nsub;
+    if (band_wfs) sp.pipe.band = 0.5 * s->nsub;
     sp.pipe.recon = recon;
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
@@ -344,7 +344,8 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
-        else if (!strcmp(argv[i], "--band") && i + 1 < argc) band = strcmp(argv[i + 1], "wfs") ? atof(argv[i + 1]) : -2.0, i++;
+        else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
+        else if (!strcmp(argv[i], "--band") && i + 1 < argc) band = atof(argv[++i]);
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "map")) recon = SWFS_RECON_MAP, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "svd")) recon = SWFS_RECON_SVD, i++;
         else if (!strcmp(argv[i], "--recon") && i + 1 < argc && !strcmp(argv[i + 1], "vk")) recon = SWFS_RECON_VK, i++;
@@ -384,7 +385,7 @@ int main(int argc, char **argv)
     if (recon != SWFS_RECON_TEACH)
         printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : recon == SWFS_RECON_SVD ? "svd" : "vk");
     if (band > 0.0) printf("speckles within %g lambda/D on every system\n", band);
-    if (band == -2.0) printf("speckles within each system's subaperture band, nsub / 2\n");
+    if (band_wfs) printf("speckles within each system's subaperture band, nsub / 2\n");
     if (vk_l0 >= 0.0) printf("von Karman outer scale of the reconstructor: %g m%s\n", vk_l0, vk_l0 == 0 ? " (fitted)" : "");
     printf("slopes / ideal: the default path (the AO residual's time mean that the speckles carry taken out of the\n"
            "wavefront: reconstructed from the slopes, the simulation's true one with the ideal speckles); keep: with\n"

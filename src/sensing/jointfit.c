@@ -98,8 +98,8 @@ typedef struct fit {
     int rejected;
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
-    double *lw;             /* nl + 3 nf + nl nf: a GEMV's result; per pixel sqrt Q_gg, Q_g kappa, e_g;
-                               the Legendre rows scaled by sqrt Q_gg */
+    double *lw;             /* 3 nf + nl nf: per pixel sqrt Q_gg, Q_g kappa, e_g; the Legendre rows
+                               scaled by sqrt Q_gg */
     float *ytf, *hf;        /* single-precision copy of the scaled Jacobian, field block of H */
     int evals;
 } fit;
@@ -174,7 +174,7 @@ static void build_normal(fit *ft, const double *x)
     memset(Hc, 0, np * np * sizeof *Hc);
     memset(ft->grad, 0, np * sizeof *ft->grad);
     double *Rk = ft->C + 2 * nf * nc; /* 3 per pixel: the 2x2 Cholesky factor of Q_psi,psi */
-    double *qgg = ft->lw + nl, *qgk = qgg + nf, *eg = qgk + nf, *ls = eg + nf; /* lw's first nl: a GEMV's result */
+    double *qgg = ft->lw, *qgk = qgg + nf, *eg = qgk + nf, *ls = eg + nf;
     for (size_t k = 0; k < nf; k++) {
         double Q[4][4] = {{0}}, e[4] = {0};
         if (ft->use[k]) {
@@ -243,8 +243,8 @@ static void build_normal(fit *ft, const double *x)
             for (size_t k = 0; k < nf; k++) ls[m * nf + k] = ft->leg[m * nf + k] * qgg[k];
         cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nl, (int)nf, 1.0, ls, (int)nf, 0.0,
                     Hc + nz * np + nz, (int)np);
-        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nl, (int)nf, 1.0, ft->leg, (int)nf, qgk, 1, 0.0, ft->lw, 1);
-        for (size_t m = 0; m < nl; m++) Hc[(nz + m) * np + nz + nl] = ft->lw[m];
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nl, (int)nf, 1.0, ft->leg, (int)nf, qgk, 1, 0.0,
+                    Hc + nz * np + nz + nl, (int)np); /* the kappa column of the log g rows */
         cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nl, (int)nf, 1.0, ft->leg, (int)nf, eg, 1, 0.0, ft->grad + nz, 1);
     }
     const int nfd = (int)(2 * nf);
@@ -654,7 +654,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     ft.et = swfs_malloc(2 * nf * sizeof *ft.et);
     ft.C = swfs_calloc(2 * nf * nc + 3 * nf, sizeof *ft.C);
     ft.Rx = swfs_malloc(2 * nb * sizeof *ft.Rx);
-    ft.lw = swfs_malloc(((3 + ft.nl) * nf + ft.nl) * sizeof *ft.lw);
+    ft.lw = swfs_malloc((3 + ft.nl) * nf * sizeof *ft.lw);
     ft.ytf = swfs_malloc(2 * nb * 2 * nf * sizeof *ft.ytf);
     ft.hf = swfs_malloc(4 * nb * nb * sizeof *ft.hf);
     if (!ft.mft || !ft.leg || !ft.F || !ft.f || !ft.phi || !ft.mc || !ft.chat || !ft.konst || !ft.use || !ft.x ||

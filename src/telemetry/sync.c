@@ -475,17 +475,16 @@ int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *hea
     return SWFS_OK;
 }
 
-/* The extremes of the squared step norms over lags [l0, l1] inside n frames (none: *mn = INF). */
-static void step_range(const double *v, size_t n, size_t nvals, size_t l0, size_t l1, double *mn, double *mx)
+/* The extremes of the squared step norms over `lag` frames inside n frames (none: unchanged). */
+static void step_range(const double *v, size_t n, size_t nvals, size_t lag, double *mn, double *mx)
 {
-    for (size_t lag = l0; lag <= l1 && lag < n; lag++)
-        for (size_t k = 0; k + lag < n; k++) {
-            const double *a = v + k * nvals, *b = a + lag * nvals;
-            double q = 0;
-            for (size_t i = 0; i < nvals; i++) q += (b[i] - a[i]) * (b[i] - a[i]);
-            *mn = fmin(*mn, q);
-            *mx = fmax(*mx, q);
-        }
+    for (size_t k = 0; k + lag < n; k++) {
+        const double *a = v + k * nvals, *b = a + lag * nvals;
+        double q = 0;
+        for (size_t i = 0; i < nvals; i++) q += (b[i] - a[i]) * (b[i] - a[i]);
+        *mn = fmin(*mn, q);
+        *mx = fmax(*mx, q);
+    }
 }
 
 /* The smallest squared step norm over lags n/2 .. n-1 inside n frames (none: *mn unchanged).
@@ -537,8 +536,8 @@ int swfs_sync_boundary_gap(const double *tail, size_t ntail, const double *head,
     const size_t L = (size_t)lost + 1;
     /* Steps over L frames on both sides, and over the longest lags each side holds (its second
      * half: lags n/2 .. n-1), which stand for a gap of many frames. */
-    step_range(tail, ntail, nvals, L, L, &out->qk_min, &out->qk_max);
-    step_range(head, nhead, nvals, L, L, &out->qk_min, &out->qk_max);
+    step_range(tail, ntail, nvals, L, &out->qk_min, &out->qk_max);
+    step_range(head, nhead, nvals, L, &out->qk_min, &out->qk_max);
     int rc = SWFS_OK;
     if (ntail / 2 > L) rc = step_far_min(tail, ntail, nvals, &out->qfar_min);
     if (!rc && nhead / 2 > L) rc = step_far_min(head, nhead, nvals, &out->qfar_min);
