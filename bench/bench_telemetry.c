@@ -7,8 +7,8 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M]
- *                                 [--recon teach|vk|map|svd] [--truth] [--print-keys]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm]
+ *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
  * --set key=value (up to 8): simulator keys added to every observation after the system's own
@@ -32,6 +32,10 @@
  * --kind modal: each system's telemetry exported as cacao's modal coefficients on a DM grid
  * that is offset, turned and mirrored (simulate export_modal=1), timed by sync and turned into
  * speckles through the linear model: the non-Shack-Hartmann input kind over the same matrix.
+ * --kind modal-cm: the same modal coefficients with their control matrix (the export's
+ * cm_modes.fits), turned back into valid-only slopes by modal-slopes (into DIR/ms, which names
+ * the matrix: MODALCM), then sync and the Shack-Hartmann default with the export's valid map:
+ * what a modal system whose WFS is a Shack-Hartmann of known control matrix gets.
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -90,6 +94,7 @@ static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle r
 /* --kind modal: the same telemetry as cacao's modal coefficients on a registered DM grid
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
+static int modal_cm; /* --kind modal-cm: the modal coefficients back to slopes by modal-slopes */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
@@ -209,10 +214,11 @@ typedef struct row {
     size_t nvalid, nact, nexp;
 } row;
 
-/* handshake_modal.log: the handshake log naming the modal files of the same WFS frames. */
-static int modal_handshake(void)
+/* A handshake log (handshake_modal.log, handshake_ms.log) naming prefix_NNN.fits for the
+ * slopes_NNN.fits of the same WFS frames. */
+static int modal_handshake(const char *prefix, const char *name)
 {
-    FILE *in = fopen(pth("handshake.log"), "r"), *out = in ? fopen(pth("handshake_modal.log"), "w") : NULL;
+    FILE *in = fopen(pth("handshake.log"), "r"), *out = in ? fopen(pth(name), "w") : NULL;
     if (!in || !out) {
         if (in) fclose(in);
         return 1;
@@ -222,13 +228,43 @@ static int modal_handshake(void)
         char *m = strstr(line, "slopes_");
         if (m) {
             fwrite(line, 1, (size_t)(m - line), out);
-            fprintf(out, "modal_%s", m + 7);
+            fprintf(out, "%s%s", prefix, m + 7);
         } else {
             fputs(line, out);
         }
     }
     fclose(in);
     return fclose(out) != 0;
+}
+
+/* --kind modal-cm: every modal_NNN.fits the export wrote, through modal-slopes with the
+ * export's control matrix into DIR/ms (emptied first), and handshake_ms.log naming them. */
+static int modal_cm_slopes(void)
+{
+    char *files[256];
+    size_t n = 0;
+    char name[32];
+    for (; n < 256; n++) {
+        snprintf(name, sizeof name, "modal_%03zu.fits", n);
+        if (access(pth(name), R_OK)) break;
+        files[n] = strdup(pth(name));
+    }
+    if (!n) return swfs_fail(SWFS_ERR_IO, "no modal_000.fits in %s", dir);
+    mkdir(pth("ms"), 0755);
+    for (size_t k = 0; k < n; k++) {
+        snprintf(name, sizeof name, "ms/modal_%03zu.fits", k);
+        unlink(pth(name));
+    }
+    unlink(pth("ms/cm_modes.fits"));
+    swfs_modal_slopes_options mo = {(const char *const *)files, n, pth("cm_modes.fits"), pth("ms")};
+    swfs_modal_slopes_result mr;
+    int rc = swfs_modal_slopes_run(&mo, &mr);
+    for (size_t k = 0; k < n; k++) free(files[k]);
+    if (!rc) {
+        printf("  (modal-slopes: %zu coefficients -> %zu slopes, rank %zu, %zu files)\n", mr.ncoef, mr.nslopes, mr.rank, n);
+        rc = modal_handshake("ms/modal_", "handshake_ms.log") ? swfs_fail(SWFS_ERR_IO, "handshake_ms.log") : SWFS_OK;
+    }
+    return rc;
 }
 
 static void modal_files(swfs_linear_files *lf)
@@ -271,8 +307,11 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_sync_run_options_default(&so);
     so.science = pth("science.fits");
     so.handshake = pth("handshake.log");
-    if (modal) {
-        if (modal_handshake()) return die("handshake_modal.log");
+    if (modal_cm) {
+        if (modal_cm_slopes()) return die("modal-slopes");
+        so.handshake = pth("handshake_ms.log");
+    } else if (modal) {
+        if (modal_handshake("modal_", "handshake_modal.log")) return die("handshake_modal.log");
         so.handshake = pth("handshake_modal.log");
         modal_files(&so.lin);
     }
@@ -290,7 +329,9 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.timing = pth("timing.txt");
     sp.science = pth("science.fits");
     sp.actuators = pth("actuators.fits");
-    if (modal) {
+    if (modal_cm) {
+        sp.valid = pth("valid.fits");
+    } else if (modal) {
         sp.actuators = NULL;
         modal_files(&sp.lin);
     }
@@ -342,6 +383,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "frame")) tiptilt = SWFS_TT_FRAME, i++;
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal-cm")) modal = modal_cm = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
@@ -355,7 +397,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -381,6 +423,7 @@ int main(int argc, char **argv)
     }
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
+           modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :
            modal ? ", modal telemetry (--basis)" : "");
     if (recon != SWFS_RECON_TEACH)
         printf("speckle reconstructor: %s\n", recon == SWFS_RECON_MAP ? "map" : recon == SWFS_RECON_SVD ? "svd" : "vk");

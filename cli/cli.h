@@ -170,8 +170,9 @@ void cli_linear_summary(const char *cmd, const struct swfs_linear_files *lf, con
 /* The Shack-Hartmann model: its subapertures (valid: the map's file or NULL) and what the
  * reconstructor learned or was given. */
 struct swfs_pipeline_options;
+/* noise_how: how the vk / MAP slope noise was found (NULL: "given" or "estimated") */
 void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, const char *path, const char *valid,
-                       const struct swfs_pipeline_info *info);
+                       const struct swfs_pipeline_info *info, const char *noise_how);
 /* The focal radius the speckles were computed within, when there is one (given: --band). */
 void cli_band_summary(const char *cmd, const struct swfs_pipeline_info *in, int given);
 struct swfs_speckles_run_result;

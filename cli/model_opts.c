@@ -107,7 +107,7 @@ int cli_linear_option(const char *cmd, int argc, char **argv, int *i, swfs_linea
 }
 
 void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const char *path, const char *valid,
-                       const swfs_pipeline_info *in)
+                       const swfs_pipeline_info *in, const char *noise_how)
 {
     const size_t ns = in->nslopes / (in->nlags ? in->nlags : 1); /* per frame */
     if (in->nsub)
@@ -117,7 +117,7 @@ void cli_recon_summary(const char *cmd, const swfs_pipeline_options *o, const ch
     if (o->recon == SWFS_RECON_MAP || o->recon == SWFS_RECON_VK)
         fprintf(stderr, "%s: %s reconstructor from %zu WFS frames: slope noise %.3g rad rms (%s), %zu modes, %.1f "
                 "effective\n", cmd, o->recon == SWFS_RECON_MAP ? "MAP" : "vk (von Karman prior)", in->ntrain,
-                sqrt(in->noise_var), in->noise_given ? "given" : "estimated", in->recon_modes, in->recon_dof);
+                sqrt(in->noise_var), noise_how ? noise_how : in->noise_given ? "given" : "estimated", in->recon_modes, in->recon_dof);
     if (o->recon == SWFS_RECON_GIVEN && in->nlags)
         fprintf(stderr, "%s: given space-time reconstructor %s: %zu slopes x %zu lags x %zu %s, scale %g, gain "
                 "%.3g of the lags' sum on the model's interaction matrix (1: a reconstructor of it)\n", cmd, path, ns,

@@ -164,7 +164,9 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
         }
     }
     if (o->lin.basis) cli_linear_summary(cmd, &o->lin, &r->info);
-    else cli_recon_summary(cmd, &used, used_file, o->valid, &r->info);
+    else cli_recon_summary(cmd, &used, used_file, o->valid, &r->info,
+                           r->curl_noise > 0 ? "the slopes' curl power: modal-slopes' projection (MODALCM) leaves no "
+                                               "slope outside the modes to estimate it from" : NULL);
     fprintf(stderr, "%s: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples "
             "outside the actuator hull, extrapolated) -> %s\n", cmd, r->nout, o->pipe.wfs_rate ? "WFS " : "", r->nok,
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);

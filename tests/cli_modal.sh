@@ -87,6 +87,14 @@ grep -q "modal-slopes' projection (MODALCM): the loops' slopes learned on the sa
     "$D/speckles_unproj.log" || { cat "$D/speckles_unproj.log"; fail "modal-slopes: teach should project its loops' slopes"; }
 echo "cli_modal: modal-slopes: the slopes within $rel of their rms; NCP error $unproj nm (native $native nm)" >&2
 awk -v a="$unproj" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "modal-slopes: $unproj nm against $native nm"
+# --recon vk on those slopes: their effective noise (white and aliasing) from their curl's power
+# (the slopes outside the modes, from which vk estimates it on slopes of its own, are gone),
+# not a map without noise (297 nm before)
+unvk=$(linear unvk "$D/timing_unproj.txt" --actuators "$S/actuators.fits" --valid "$S/valid.fits" --recon vk)
+grep -q "slope noise [0-9.e-]* rad rms (the slopes' curl power: modal-slopes' projection" "$D/speckles_unvk.log" \
+    || { cat "$D/speckles_unvk.log"; fail "modal-slopes + vk: the noise should come from the curl"; }
+echo "cli_modal: modal-slopes + vk: NCP error $unvk nm (vk on the valid slopes: $valid nm)" >&2
+awk -v a="$unvk" -v b="$valid" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "modal-slopes + vk: $unvk nm against $valid nm"
 # refused: a control matrix of another shape (control.fits maps 224 slopes to 217 actuators),
 # and the inputs' own folder as the output; nothing written
 mkdir -p "$D/unproj2"

@@ -301,6 +301,13 @@ static void test_white_noise(void **state)
     assert_true(nc > 60 && nc < 121);
     print_message("white noise: pattern slopes %.3g rad rms; without noise %.3g\n", srms, sqrt(var));
     assert_true(sqrt(var) < 0.02 * srms);
+    /* the curl's whole power (swfs_slopes_curl_noise): the aliased part of the pattern, which
+     * the white estimate leaves out, and the same white estimate */
+    double white0 = -1, total0 = -1;
+    assert_ok(swfs_slopes_curl_noise(clean, nf, ns, nsub, NULL, &white0, &total0));
+    print_message("curl power without noise: %.3g rad rms per slope (white %.3g)\n", sqrt(total0), sqrt(white0));
+    assert_true(white0 == var);
+    assert_true(sqrt(total0) > 0.1 * srms && total0 < srms * srms);
     const double sig[3] = {0.05, 0.3, 2.0};
     for (int c = 0; c < 3; c++) {
         for (size_t i = 0; i < nf * ns; i++)
@@ -311,6 +318,13 @@ static void test_white_noise(void **state)
         print_message("white noise: %.3g rad rms added, %.3g estimated\n", sig[c] * srms, sqrt(var));
         assert_close(sqrt(var), sig[c] * srms, 0.1 * sig[c] * srms);
         assert_close(var2, var, 1e-12 * var);
+        /* the curl's power: the pattern's plus the noise's (independent of it) */
+        double white = -1, total = -1;
+        assert_ok(swfs_slopes_curl_noise(s, nf, ns, nsub, NULL, &white, &total));
+        const double want = total0 + sig[c] * srms * sig[c] * srms;
+        print_message("curl power: %.3g rad rms per slope, pattern's and noise's %.3g\n", sqrt(total), sqrt(want));
+        assert_true(white == var);
+        assert_close(total, want, 0.1 * want);
         /* the used subapertures' slopes only (x then y), with the map: the same */
         const size_t nv = w->nvalid, n2 = ns / 2;
         double *cs = malloc(nf * 2 * nv * sizeof *cs), var3 = -1;

@@ -234,6 +234,10 @@ typedef struct swfs_speckles_run_result {
                                  (teach_again 0): the teach result then holds only chosen and
                                  nloops, from its TEACHSEL and TEACHLOO */
     char teach_fingerprint[17]; /* SWFS_RECON_TEACH: the inputs' fingerprint (TEACHFPR), hex */
+    double curl_noise;        /* [rad] vk / MAP on slopes modal-slopes made (MODALCM): the effective
+                                 slope noise taken from their curl (swfs_slopes_curl_noise, total)
+                                 and used, since the projection leaves no slope outside the modes
+                                 to estimate it from; 0 otherwise (also when slope_noise was given) */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which

@@ -206,6 +206,15 @@ int swfs_slopes_noise_var(const double *D, size_t nslopes, size_t nact, const do
  * Not finite slopes, or no cell of four used subapertures, are refused. */
 int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
                             const unsigned char *valid, double *var, size_t *ncells, double *slope_var);
+/* The same cells' curl, both ways: *white as swfs_slopes_white_noise's *var, and *total its
+ * whole variance over the frames (each cell's time mean removed) over 8 [rad^2 per slope]:
+ * white noise and the part of the residual the subapertures average unevenly (aliasing)
+ * together, the power a gradient model cannot make. On a Shack-Hartmann's own slopes it is
+ * what the vk and MAP maps' noise estimate finds outside the model's span (swfs_recon_map;
+ * docs/telemetry.md: 1.73e-7 against 1.85e-7 rad on cli_modal's data), and unlike that it
+ * survives a projection onto a modal control matrix's rows (modal-slopes: 1.70e-7). */
+int swfs_slopes_curl_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                           const unsigned char *valid, double *white, double *total);
 /* Modal reconstructor: W = V_K pinv(D V_K) over modes first..first+K-1 of the nact x nact
  * basis `modes` (swfs_dm_modes; first = 1 skips piston): the AO loop's modal filter.
  * swfs_recon_modal_factors gives its two factors instead: *VK (nact x K, row-major) and *P

@@ -14,6 +14,7 @@ from .pupil import PupilResult, pupil_estimate, pupil_files, choose_halo
 from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_square, actuators_read, actuators_write,
                         ShackHartmann,
                         dm_modes, slopes_remove_tiptilt, wind_from_slopes, slopes_noise_var, slopes_white_noise,
+                        slopes_curl_noise,
                         vk_covariance, Recon, SpeckleModel,
                         schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,

@@ -339,7 +339,8 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_obs", c_dbl * RECON_MAXLAGS),
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
-    ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17)])
+    ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
+    ("curl_noise", c_dbl)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
@@ -515,6 +516,7 @@ _PROTOS = {
     "swfs_vk_covariance": (c_int, [P(c_dbl), c_size, c_dbl, P(c_dbl)]),
     "swfs_slopes_noise_var": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, P(c_dbl)]),
     "swfs_slopes_white_noise": (c_int, [P(c_dbl), c_size, c_size, c_size, P(ctypes.c_ubyte), P(c_dbl), P(c_size), P(c_dbl)]),
+    "swfs_slopes_curl_noise": (c_int, [P(c_dbl), c_size, c_size, c_size, P(ctypes.c_ubyte), P(c_dbl), P(c_dbl)]),
     "swfs_recon_modal": (c_int, [P(c_dbl), c_size, c_size, P(c_dbl), c_size, c_size, P(P(swfs_recon))]),
     "swfs_recon_free": (None, [P(swfs_recon)]),
     "swfs_recon_project_tiptilt": (c_int, [P(swfs_recon), P(ctypes.c_ubyte)]),

@@ -351,7 +351,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     nloops; where teach cannot, a RuntimeWarning says why and 'vk' is used), 'vk',
     'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2 lambda/D),
     'none' or a radius; valid: the AO system's subaperture map; pupil: the pupil mask. Returns
-    nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], the pipeline's info
+    nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], curl_noise [rad] (vk / map on
+    slopes modal-slopes made: the slope noise from their curl, else 0), the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's). tiptilt: None (the default: 'exposure',
@@ -403,6 +404,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     r = _run("swfs_speckles_run", o, _lib.swfs_speckles_run_result, geom, provenance, progress)
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
+    d["curl_noise"] = r.curl_noise
     if lib.swfs_speckles_resmean_warns(ctypes.byref(r)):
         warnings.warn(f"speckles: the AO residual's time mean is {r.resmean_rms * 1e9:.0f} nm rms, more than the "
                       f"wavelength ({r.wavelen * 1e9:.0f} nm), which no closed loop's is: the reconstructor amplifies "

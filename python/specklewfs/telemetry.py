@@ -204,6 +204,24 @@ def slopes_white_noise(slopes, nsub, valid=None):
     return var.value, nc.value
 
 
+def slopes_curl_noise(slopes, nsub, valid=None):
+    """The same cells' curl both ways (wfs.h swfs_slopes_curl_noise): returns (white, total)
+    [rad^2 per slope], white as slopes_white_noise's variance, total the curl's whole variance
+    over 8: white noise and the aliasing a gradient model cannot make, the effective noise of
+    the vk and MAP maps (speckles takes it on slopes modal-slopes made). slopes: (nframes >= 16,
+    2 nsub^2) or, with valid, the used subapertures' only (nframes, 2 nvalid)."""
+    s = as_array(slopes, "slopes", np.float64, shape=(None, None))
+    v = None
+    if valid is not None:
+        v = np.ascontiguousarray(np.asarray(valid, dtype=bool).reshape(-1), dtype=np.uint8)
+        if v.size != nsub * nsub:
+            raise ValueError("slopes_curl_noise: valid has %d flags, expected nsub^2 = %d" % (v.size, nsub * nsub))
+    white, total = ctypes.c_double(), ctypes.c_double()
+    check(lib.swfs_slopes_curl_noise(dptr(s), s.shape[0], s.shape[1], nsub, v.ctypes.data_as(_u8) if v is not None else None,
+                                     ctypes.byref(white), ctypes.byref(total)), "swfs_slopes_curl_noise")
+    return white.value, total.value
+
+
 def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
     """The frozen-flow layers' winds from the slopes, the dominant one tracked (wind.h): slopes (nframes,
     2 nsub^2) or, with valid (nsub, nsub), the valid subapertures' only; pitch [m] the

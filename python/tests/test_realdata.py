@@ -375,6 +375,10 @@ def test_teach_from_files(series, tmp_path):
     var, nc = sw.slopes_white_noise(s0, 12)
     assert r["slope_noise"] == r["noise_rms"] and r["noise_rms"] == pytest.approx(np.sqrt(var), rel=1e-12)
     assert nc == r["noise_cells"] and abs(r["noise_rms"] / 3e-8 - 1) < 0.1
+    # the curl's whole power: the same white part, and above it the aliasing (the slopes'
+    # effective noise), below the slopes' own variance
+    white, total = sw.slopes_curl_noise(s0, 12)
+    assert white == var and var < total < r["noise_rms"] ** 2 / r["noise_share"]
     # its share of the slopes' variance (tip-tilt removed): about 1 % on the matrix's noise
     assert 0.001 < r["noise_share"] < 0.05
     assert sw.fits.read_keys(str(out), ["TEACHNOI"])["TEACHNOI"] == pytest.approx(r["noise_rms"], rel=1e-12)

@@ -362,6 +362,14 @@ def test_modal_slopes(tmp_path, cli):
         assert k["FRAME0"] == sw.read_keys(f, ["FRAME0"])["FRAME0"]
     # the control matrix copied beside the slopes, under the name their MODALCM gives
     np.testing.assert_array_equal(sw.read_fits(str(out / "cm_modes.fits"))[0], sw.read_fits(str(d / "cm_modes.fits"))[0])
+    # the projection keeps the slopes' curl power (what speckles' vk then takes as their noise,
+    # the power outside the modes being gone): within 10 % of the valid slopes' own
+    vm = sw.read_fits(str(d / "valid.fits"))[0]
+    nsub = vm.shape[0]
+    name = os.path.basename(modal[0])
+    tp = sw.slopes_curl_noise(sw.read_fits(str(out / name))[0], nsub, vm)[1]
+    tv = sw.slopes_curl_noise(sw.read_fits(str(d / name.replace("modal_", "slopes_valid_")))[0], nsub, vm)[1]
+    assert tv > 0 and abs(tp / tv - 1) < 0.1
     bad = tmp_path / "bad"
     bad.mkdir()
     with pytest.raises(sw.Error, match="coefficients per WFS frame; .*control.fits maps"):

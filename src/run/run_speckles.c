@@ -37,6 +37,7 @@ typedef struct work {
     size_t nfx, nfy, nsci, nslopes, maxn;
     double *xy, *mask, *train;
     size_t nact, ntrain;
+    double curl_noise; /* [rad] the slope noise from the curl (projected_noise), or 0 */
     swfs_recon *rin;
     swfs_pipeline *p;
     swfs_cplx *halo;
@@ -235,6 +236,34 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
     return rc;
 }
 
+/* Slopes modal-slopes made (their first file names the control matrix: MODALCM) lie in the
+ * span of its modes: the vk and MAP maps' noise estimate, the slopes' power outside the
+ * model's span (white noise and aliasing: the "effective" noise), finds next to nothing there
+ * (on cli_modal's data a map without noise, 297 nm). The same power is their curl's, which the
+ * projection keeps (swfs_slopes_curl_noise, total), over the training frames; *rms stays 0
+ * for any other telemetry. */
+static int projected_noise(const swfs_speckles_run_options *o, work *w, double *rms)
+{
+    *rms = 0;
+    swfs_fits_in *f = NULL;
+    char name[4096];
+    int found = 0, rc = swfs_fits_in_open(&f, w->path, NULL);
+    if (!rc) rc = swfs_fits_in_key_string_opt(f, "MODALCM", name, sizeof name, &found);
+    swfs_fits_in_close(f);
+    if (rc || !found) return rc;
+    unsigned char *vm = NULL;
+    size_t nsub = 0, nv = 0;
+    if (o->valid) rc = swfs_valid_map_read(o->valid, &vm, &nsub, &nv);
+    else nsub = (size_t)llround(sqrt(0.5 * (double)w->nslopes));
+    double var = 0, white = 0;
+    if (!rc && (o->valid ? w->nslopes == 2 * nv : w->nslopes == 2 * nsub * nsub))
+        rc = swfs_slopes_curl_noise(w->train, w->ntrain, w->nslopes, nsub, vm, &white, &var);
+    free(vm);
+    if (rc) return swfs_fail_context(rc, "%s: the white noise of slopes made by modal-slopes (MODALCM = '%s')", w->path, name);
+    *rms = w->curl_noise = sqrt(var);
+    return SWFS_OK;
+}
+
 static int build_pipeline(const swfs_speckles_run_options *o, work *w)
 {
     if (o->lin.basis) return build_linear(o, w);
@@ -253,12 +282,15 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
                              w->nslopes, o->recon, per, o->valid ? " (nor is it the full layout of the valid map's "
                                                                    "subapertures)" : "");
     }
-    if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP)
+    swfs_pipeline_options po = o->pipe;
+    if (o->pipe.recon == SWFS_RECON_VK || o->pipe.recon == SWFS_RECON_MAP) {
         rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
+        if (!rc && !(po.slope_noise > 0)) rc = projected_noise(o, w, &po.slope_noise);
+    }
     char model[8400];
     snprintf(model, sizeof model, "%s with %s", o->actuators, w->path);
     if (!rc) rc = swfs_sh_pipeline(&w->p, model, o->valid, w->path, &w->g, w->nfx, w->nfy, w->xy, w->nact, w->mask,
-                                   w->nslopes, w->rin, w->train, w->ntrain, &o->pipe);
+                                   w->nslopes, w->rin, w->train, w->ntrain, &po);
     if (rc) return rc;
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);
@@ -577,6 +609,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         r->ratio = w.t->ratio;
         r->lag = w.t->lag;
         swfs_pipeline_get_info(w.p, &r->info);
+        r->curl_noise = w.curl_noise;
         char info[600], band[64];
         if (r->info.band > 0) snprintf(band, sizeof band, "%.3g lambda/D", r->info.band);
         else snprintf(band, sizeof band, "the whole window");

@@ -23,10 +23,11 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
-                            const unsigned char *valid, double *var, size_t *ncells, double *slope_var)
+static int curl_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub, const unsigned char *valid,
+                      double *var, size_t *ncells, double *slope_var, double *curl_var)
 {
     *var = 0;
+    if (curl_var) *curl_var = 0;
     if (ncells) *ncells = 0;
     if (slope_var) *slope_var = 0;
     if (nsub < 2) return swfs_fail(SWFS_ERR_ARG, "slope noise: %zu x %zu subapertures, at least 2 x 2", nsub, nsub);
@@ -46,7 +47,8 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes
      * unused: the map's, else those whose slopes vary over the frames; the 2 x 2 cells of used
      * subapertures by their first (lowest) one */
     size_t *xc = malloc(2 * n2 * sizeof *xc), *cell = xc + n2, nc = 0;
-    double *ring = malloc(4 * n2 * sizeof *ring), *acc = calloc(4 * n2, sizeof *acc); /* slope_var's sums */
+    double *ring = malloc(4 * n2 * sizeof *ring), *acc = calloc(6 * n2, sizeof *acc); /* slope_var's sums, then
+                                                                                      the curl's (curl_var) */
     if (!xc || !ring || !acc) {
         free(xc); free(ring); free(acc);
         return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
@@ -78,6 +80,8 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes
         for (size_t q = 0; q < nc; q++) { /* (i,j) (i,j+1) (i+1,j) (i+1,j+1) */
             const size_t a = xc[cell[q]], b = xc[cell[q] + 1], u = xc[cell[q] + nsub], v = xc[cell[q] + nsub + 1];
             c[q] = (sx[u] + sx[v] - sx[a] - sx[b]) - (sy[b] + sy[v] - sy[a] - sy[u]);
+            acc[4 * n2 + q] += c[q];
+            acc[5 * n2 + q] += c[q] * c[q];
         }
         /* the frame's slopes less its mean x and y slope over the used subapertures (tip-tilt),
          * summed per slope with their squares: each slope's time mean comes off at the end */
@@ -110,6 +114,23 @@ int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes
         for (size_t i = 0; i < 2 * n2; i++) ss += acc[2 * n2 + i] - acc[i] * acc[i] / (double)nframes;
         *slope_var = ss > 0 ? ss / (double)(nframes * 2 * nu) : 0;
     }
+    if (curl_var) {
+        double cs = 0;
+        for (size_t q = 0; q < nc; q++) cs += acc[5 * n2 + q] - acc[4 * n2 + q] * acc[4 * n2 + q] / (double)nframes;
+        *curl_var = cs > 0 ? cs / (double)(nframes * nc) / 8.0 : 0;
+    }
     free(xc); free(ring); free(acc);
     return SWFS_OK;
+}
+
+int swfs_slopes_white_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                            const unsigned char *valid, double *var, size_t *ncells, double *slope_var)
+{
+    return curl_noise(slopes, nframes, nslopes, nsub, valid, var, ncells, slope_var, NULL);
+}
+
+int swfs_slopes_curl_noise(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
+                           const unsigned char *valid, double *white, double *total)
+{
+    return curl_noise(slopes, nframes, nslopes, nsub, valid, white, NULL, NULL, total);
 }
