@@ -108,6 +108,9 @@ noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "
     --coef-scale 2e-6)
 echo "cli_modal: NCP error native $native nm, modal $modal nm, control $control nm; modal unmirrored $noflip nm" >&2
 grep -q "216 basis functions.*from the DM grid" "$D/speckles_modal.log" || { cat "$D/speckles_modal.log"; fail "modal summary"; }
+# modal coefficients as given: the summary points to modal-slopes (no such note with a control matrix)
+grep -q "note: no map is taught for a linear model.*modal-slopes" "$D/speckles_modal.log" || fail "modal: the note"
+! grep -q "note: no map is taught" "$D/speckles_control.log" || fail "control: a note for modal coefficients"
 for e in "$modal" "$control"; do
     awk -v a="$e" -v b="$native" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "NCP error $e nm against $native nm native"
 done

@@ -259,7 +259,7 @@ static int projected_noise(const swfs_speckles_run_options *o, work *w, double *
     if (!rc && (o->valid ? w->nslopes == 2 * nv : w->nslopes == 2 * nsub * nsub))
         rc = swfs_slopes_curl_noise(w->train, w->ntrain, w->nslopes, nsub, vm, &white, &var);
     free(vm);
-    if (rc) return swfs_fail_context(rc, "%s: the white noise of slopes made by modal-slopes (MODALCM = '%s')", w->path, name);
+    if (rc) return swfs_fail_context(rc, "%s: the curl power of slopes made by modal-slopes (MODALCM = '%s')", w->path, name);
     *rms = w->curl_noise = sqrt(var);
     return SWFS_OK;
 }
