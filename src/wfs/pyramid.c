@@ -1,0 +1,303 @@
+/* The modulated pyramid wavefront sensor (pyramid.h): one forward FFT of the padded pupil
+ * field per frame, one inverse FFT per modulation point (single precision: the signals are
+ * differences of binned intensities of order 1e-3 of them, far above float's rounding), the
+ * four pupil images binned on the Shack-Hartmann's subaperture grid. */
+#include "specklewfs/pyramid.h"
+#include "specklewfs/wfs.h"
+#include "specklewfs/status.h"
+#include "../core/planner.h"
+
+#include <complex.h>
+#include <fftw3.h>
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+struct swfs_pyramid_work {
+    fftwf_complex *field, *ehat, *work; /* N x N: the padded pupil field, its transform, one point's */
+    fftwf_complex *masks;               /* nmod x N x N: the pyramid moved to each modulation point */
+    float *inten;                       /* N x N: the modulation-averaged intensity */
+    fftwf_plan fwd, bwd;
+    long *sub;                          /* npup^2: the used subaperture (its index among them) of each
+                                           pupil sample, -1 elsewhere */
+    size_t off;                         /* the pupil's first row and column in the padded grid */
+    size_t img[4][2];                   /* images A, B, C, D: first column and row */
+    double *counts;                     /* 4 x nvalid */
+    double *ref;                        /* nslopes: the flat wavefront's signals */
+    size_t *vidx;                       /* nvalid: each used subaperture's index a + b nsub */
+    double *mask;                       /* npup^2: the pupil's transmission */
+};
+
+size_t swfs_pyramid_nmod_default(double mod)
+{
+    if (!(mod > 0)) return 1;
+    size_t n = 4 * (size_t)ceil(2.0 * 2.0 * M_PI * mod / 4.0);
+    return n < 4 ? 4 : n;
+}
+
+/* The smallest multiple of 4 >= n whose factors are 2, 3, 5 and 7 (FFTW's fast sizes). */
+static size_t fast_size(size_t n)
+{
+    for (size_t m = (n + 3) / 4 * 4;; m += 4) {
+        size_t r = m;
+        const size_t f[4] = {2, 3, 5, 7};
+        for (int i = 0; i < 4; i++)
+            while (r % f[i] == 0) r /= f[i];
+        if (r == 1) return m;
+    }
+}
+
+void swfs_pyramid_free(swfs_pyramid *p)
+{
+    if (!p) return;
+    swfs_pyramid_work *w = p->w;
+    if (w) {
+        swfs_planner_lock();
+        if (w->fwd) fftwf_destroy_plan(w->fwd);
+        if (w->bwd) fftwf_destroy_plan(w->bwd);
+        swfs_planner_unlock();
+        fftwf_free(w->field); fftwf_free(w->ehat); fftwf_free(w->work); fftwf_free(w->masks); fftwf_free(w->inten);
+        free(w->sub); free(w->counts); free(w->ref); free(w->vidx); free(w->mask);
+        free(w);
+    }
+    free(p->valid);
+    free(p);
+}
+
+/* The four images' binned intensities into w->counts (4 x nvalid), from w->inten. */
+static void bin_images(const swfs_pyramid *p)
+{
+    swfs_pyramid_work *w = p->w;
+    const size_t n = p->npup, N = p->nfft, nv = p->nvalid;
+    memset(w->counts, 0, 4 * nv * sizeof *w->counts);
+    for (int j = 0; j < 4; j++) {
+        double *c = w->counts + (size_t)j * nv;
+        for (size_t q = 0; q < n; q++) {
+            const float *row = w->inten + (w->img[j][1] + q) * N + w->img[j][0];
+            const long *s = w->sub + q * n;
+            for (size_t i = 0; i < n; i++)
+                if (s[i] >= 0) c[s[i]] += row[i];
+        }
+    }
+}
+
+/* The signals of w->counts (after the noise, if any), less ref when ref is given. */
+static void signals_of(const swfs_pyramid *p, const double *ref, double *out)
+{
+    const swfs_pyramid_work *w = p->w;
+    const size_t nv = p->nvalid, n2 = p->nsub * p->nsub;
+    const double *A = w->counts, *B = A + nv, *C = B + nv, *D = C + nv;
+    double tot = 0;
+    for (size_t v = 0; v < nv; v++) tot += A[v] + B[v] + C[v] + D[v];
+    const double inv = tot > 0 ? (double)nv / tot : 0.0;
+    memset(out, 0, 2 * n2 * sizeof *out);
+    for (size_t v = 0; v < nv; v++) {
+        const size_t k = w->vidx[v];
+        out[k] = (A[v] + D[v] - B[v] - C[v]) * inv - (ref ? ref[k] : 0.0);
+        out[n2 + k] = (A[v] + B[v] - C[v] - D[v]) * inv - (ref ? ref[n2 + k] : 0.0);
+    }
+}
+
+/* The modulation-averaged intensity of the displacement z (NULL: flat) into w->inten. */
+static void intensity(swfs_pyramid *p, const double *z)
+{
+    swfs_pyramid_work *w = p->w;
+    const size_t n = p->npup, N = p->nfft, NN = N * N;
+    const double k = 2.0 * M_PI / p->wavelen;
+    for (size_t q = 0; q < n; q++) {
+        fftwf_complex *row = w->field + (w->off + q) * N + w->off;
+        for (size_t i = 0; i < n; i++) {
+            const double a = w->mask[q * n + i];
+            if (a > 0) {
+                const double ph = z ? k * z[q * n + i] : 0.0;
+                row[i] = CMPLXF((float)(a * cos(ph)), (float)(a * sin(ph)));
+            } else {
+                row[i] = 0.0f;
+            }
+        }
+    }
+    fftwf_execute(w->fwd);
+    memset(w->inten, 0, NN * sizeof *w->inten);
+    const float scale = 1.0f / ((float)p->nmod * (float)NN * (float)NN);
+    for (size_t m = 0; m < p->nmod; m++) {
+        const fftwf_complex *mk = w->masks + m * NN;
+        for (size_t e = 0; e < NN; e++) w->work[e] = w->ehat[e] * mk[e];
+        fftwf_execute(w->bwd);
+        for (size_t e = 0; e < NN; e++) {
+            const float re = crealf(w->work[e]), im = cimagf(w->work[e]);
+            w->inten[e] += scale * (re * re + im * im);
+        }
+    }
+}
+
+int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const double *mask, size_t npup, double pupdx,
+                        const unsigned char *valid, double wavelen, double mod, size_t nmod)
+{
+    *out = NULL;
+    if (!(wavelen > 0) || !isfinite(wavelen))
+        return swfs_fail(SWFS_ERR_ARG, "pyramid: sensing wavelength %g m, expected > 0", wavelen);
+    if (!(mod >= 0) || !isfinite(mod))
+        return swfs_fail(SWFS_ERR_ARG, "pyramid: modulation radius %g lambda/D, expected >= 0", mod);
+    /* the geometry and the used subapertures as the Shack-Hartmann's (its checks, its rule) */
+    swfs_shwfs *sh = NULL;
+    int rc = valid ? swfs_shwfs_create_valid(&sh, nsub, diam, mask, npup, pupdx, valid)
+                   : swfs_shwfs_create(&sh, nsub, diam, mask, npup, pupdx, 0.5);
+    if (rc) return swfs_fail_context(rc, "pyramid");
+    swfs_pyramid *p = calloc(1, sizeof *p);
+    if (!p) { swfs_shwfs_free(sh); return swfs_fail(SWFS_ERR_NOMEM, "out of memory"); }
+    p->nsub = nsub;
+    p->nslopes = 2 * nsub * nsub;
+    p->npup = npup;
+    p->pupdx = pupdx;
+    p->diam = diam;
+    p->wavelen = wavelen;
+    p->mod = mod;
+    p->nmod = nmod ? nmod : swfs_pyramid_nmod_default(mod);
+    p->valid = sh->valid;
+    p->nvalid = sh->nvalid;
+    sh->valid = NULL;
+    swfs_shwfs_free(sh);
+    size_t N = fast_size(2 * npup + 8);
+    const double dN = ceil(2.0 * diam / pupdx);
+    if ((double)N < dN) N = fast_size((size_t)dN);
+    p->nfft = N;
+    p->sampling = (double)N * pupdx / diam;
+    if (mod * p->sampling > 0.25 * (double)N) {
+        const double lim = 0.25 * (double)N / p->sampling;
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_ARG, "pyramid: modulation radius %g lambda/D beyond a quarter of the focal window "
+                         "(%g lambda/D)", mod, lim);
+    }
+    if (!p->nvalid) {
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_VALUE, "pyramid: no subaperture used");
+    }
+    swfs_pyramid_work *w = calloc(1, sizeof *w);
+    p->w = w;
+    const size_t NN = N * N, nv = p->nvalid, n2 = nsub * nsub;
+    if (w) {
+        w->field = fftwf_alloc_complex(NN);
+        w->ehat = fftwf_alloc_complex(NN);
+        w->work = fftwf_alloc_complex(NN);
+        w->masks = fftwf_alloc_complex(p->nmod * NN);
+        w->inten = fftwf_alloc_real(NN);
+        w->sub = malloc(npup * npup * sizeof *w->sub);
+        w->counts = malloc(4 * nv * sizeof *w->counts);
+        w->ref = calloc(2 * n2, sizeof *w->ref);
+        w->vidx = malloc(nv * sizeof *w->vidx);
+        w->mask = malloc(npup * npup * sizeof *w->mask);
+    }
+    if (!w || !w->field || !w->ehat || !w->work || !w->masks || !w->inten || !w->sub || !w->counts || !w->ref ||
+        !w->vidx || !w->mask) {
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_NOMEM, "pyramid: out of memory for %zu x %zu transforms and %zu modulation points",
+                         N, N, p->nmod);
+    }
+    memset(w->field, 0, NN * sizeof *w->field);
+    memcpy(w->mask, mask, npup * npup * sizeof *mask);
+    swfs_planner_lock();
+    w->fwd = fftwf_plan_dft_2d((int)N, (int)N, w->field, w->ehat, FFTW_FORWARD, FFTW_ESTIMATE);
+    w->bwd = fftwf_plan_dft_2d((int)N, (int)N, w->work, w->work, FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_unlock();
+    if (!w->fwd || !w->bwd) {
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_NUMERIC, "pyramid: FFTW could not plan %zu x %zu transforms", N, N);
+    }
+    /* each used subaperture's index among them; each pupil sample's subaperture by its centre */
+    long *vi = malloc(n2 * sizeof *vi);
+    if (!vi) {
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t k = 0, v = 0; k < n2; k++) {
+        vi[k] = p->valid[k] ? (long)v : -1;
+        if (p->valid[k]) w->vidx[v++] = k;
+    }
+    const double c0 = 0.5 * (double)(npup - 1);
+    for (size_t q = 0; q < npup; q++)
+        for (size_t i = 0; i < npup; i++) {
+            const double x = ((double)i - c0) * pupdx, y = ((double)q - c0) * pupdx;
+            const double ux = (x + 0.5 * diam) / diam * (double)nsub, uy = (y + 0.5 * diam) / diam * (double)nsub;
+            long s = -1;
+            if (ux >= 0 && ux < (double)nsub && uy >= 0 && uy < (double)nsub)
+                s = vi[(size_t)floor(uy) * nsub + (size_t)floor(ux)];
+            w->sub[q * npup + i] = s;
+        }
+    free(vi);
+    /* The facets' tilt a = N/4 samples puts facet u >= 0's image a to the left of the pupil's
+     * place (the inverse transform of exp(2 pi i a u / N) E^ is E(x + a)), u < 0's a to the
+     * right; the same in y. */
+    const size_t a = N / 4;
+    w->off = (N - npup) / 2;
+    const size_t lo = w->off - a, hi = w->off + a;
+    const size_t pos[4][2] = {{lo, lo}, {hi, lo}, {hi, hi}, {lo, hi}}; /* A, B, C, D */
+    memcpy(w->img, pos, sizeof pos);
+    /* the masks: the pyramid moved to minus each modulation point (angles offset by half a
+     * step, so that no point sits on a ridge and the path is the same seen by each facet) */
+    const double r = mod * p->sampling;
+    for (size_t m = 0; m < p->nmod; m++) {
+        const double th = 2.0 * M_PI * ((double)m + 0.5) / (double)p->nmod;
+        const double dx = mod > 0 ? r * cos(th) : 0.0, dy = mod > 0 ? r * sin(th) : 0.0;
+        fftwf_complex *mk = w->masks + m * NN;
+        for (size_t iv = 0; iv < N; iv++) {
+            const double v = (double)(iv < N / 2 ? (long)iv : (long)iv - (long)N);
+            for (size_t iu = 0; iu < N; iu++) {
+                const double u = (double)(iu < N / 2 ? (long)iu : (long)iu - (long)N);
+                const double ph = 0.5 * M_PI * (fabs(u + dx) + fabs(v + dy));
+                mk[iv * N + iu] = CMPLXF((float)cos(ph), (float)sin(ph));
+            }
+        }
+    }
+    /* the reference: a flat wavefront's signals */
+    intensity(p, NULL);
+    bin_images(p);
+    signals_of(p, NULL, w->ref);
+    *out = p;
+    return SWFS_OK;
+}
+
+void swfs_pyramid_measure(swfs_pyramid *p, const double *z, double photons, swfs_rng *rng, double *signals)
+{
+    swfs_pyramid_work *w = p->w;
+    intensity(p, z);
+    bin_images(p);
+    if (photons > 0 && rng) {
+        const size_t nv = p->nvalid;
+        double tot = 0;
+        for (size_t e = 0; e < 4 * nv; e++) tot += w->counts[e];
+        const double s = tot > 0 ? photons * (double)nv / tot : 0.0;
+        for (size_t e = 0; e < 4 * nv; e++) {
+            const double c = s * w->counts[e];
+            w->counts[e] = c + (c > 0 ? sqrt(c) * swfs_rng_normal(rng) : 0.0);
+        }
+    }
+    signals_of(p, w->ref, signals);
+}
+
+int swfs_pyramid_interaction(swfs_pyramid *p, const swfs_sparse *T, double amp, double **D)
+{
+    *D = NULL;
+    const size_t ng = p->npup * p->npup, ns = p->nslopes, na = T->ncols;
+    if (T->nrows != ng)
+        return swfs_fail(SWFS_ERR_SHAPE, "pyramid: the DM's interpolation has %zu rows, the pupil grid %zu samples",
+                         T->nrows, ng);
+    if (!(amp > 0) || !isfinite(amp)) return swfs_fail(SWFS_ERR_ARG, "pyramid: push-pull amplitude %g m", amp);
+    double *d = malloc(ns * na * sizeof *d), *e = calloc(na, sizeof *e), *z = malloc(ng * sizeof *z);
+    double *sp = malloc(2 * ns * sizeof *sp), *sm = sp ? sp + ns : NULL;
+    if (!d || !e || !z || !sp) {
+        free(d); free(e); free(z); free(sp);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t a = 0; a < na; a++) {
+        e[a] = amp;
+        swfs_sparse_apply(T, e, z);
+        e[a] = 0;
+        swfs_pyramid_measure(p, z, 0, NULL, sp);
+        for (size_t g = 0; g < ng; g++) z[g] = -z[g];
+        swfs_pyramid_measure(p, z, 0, NULL, sm);
+        for (size_t i = 0; i < ns; i++) d[i * na + a] = (sp[i] - sm[i]) / (2.0 * amp);
+    }
+    free(e); free(z); free(sp);
+    *D = d;
+    return SWFS_OK;
+}
