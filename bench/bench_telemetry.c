@@ -7,7 +7,7 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|pyramid]
  *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
@@ -36,6 +36,11 @@
  * cm_modes.fits), turned back into valid-only slopes by modal-slopes (into DIR/ms, which names
  * the matrix: MODALCM), then sync and the Shack-Hartmann default with the export's valid map:
  * what a modal system whose WFS is a Shack-Hartmann of known control matrix gets.
+ * --kind pyramid: each system sensed by a modulated pyramid instead (simulate wfs=pyramid, 3
+ * lambda/D, the sensing wavelength 0.85, 1.25 or 1.65 um by the system's place in the matrix,
+ * the simulator's 1000 photons per subaperture and frame), its signals through the linear
+ * model with the run's influence functions and interaction matrix (--basis influence.fits
+ * --imat imat_ao.fits: the MAP reconstructor from the telemetry), sync included.
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -95,6 +100,7 @@ static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle r
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
 static int modal_cm; /* --kind modal-cm: the modal coefficients back to slopes by modal-slopes */
+static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
@@ -150,6 +156,11 @@ static int system_keys(const system_def *s, unsigned seed, int quick, char kv[24
     snprintf(kv[n++], 96, "wfs_file_frames=4000");
     snprintf(kv[n++], 96, "seed=%u", seed);
     if (truth) snprintf(kv[n++], 96, "export_truth=1");
+    if (pyramid) {
+        static const double lw[3] = {0.85e-6, 1.25e-6, 1.65e-6};
+        snprintf(kv[n++], 96, "wfs=pyramid");
+        snprintf(kv[n++], 96, "wfs_wavelen=%g", lw[(size_t)(s - systems) % 3]);
+    }
     return n;
 }
 
@@ -267,6 +278,13 @@ static int modal_cm_slopes(void)
     return rc;
 }
 
+static void pyramid_files(swfs_linear_files *lf)
+{
+    swfs_linear_files_default(lf);
+    lf->basis = pth("influence.fits");
+    lf->imat = pth("imat_ao.fits");
+}
+
 static void modal_files(swfs_linear_files *lf)
 {
     swfs_linear_files_default(lf);
@@ -307,7 +325,9 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_sync_run_options_default(&so);
     so.science = pth("science.fits");
     so.handshake = pth("handshake.log");
-    if (modal_cm) {
+    if (pyramid) {
+        pyramid_files(&so.lin);
+    } else if (modal_cm) {
         if (modal_cm_slopes()) return die("modal-slopes");
         so.handshake = pth("handshake_ms.log");
     } else if (modal) {
@@ -329,7 +349,10 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     sp.timing = pth("timing.txt");
     sp.science = pth("science.fits");
     sp.actuators = pth("actuators.fits");
-    if (modal_cm) {
+    if (pyramid) {
+        sp.actuators = NULL;
+        pyramid_files(&sp.lin);
+    } else if (modal_cm) {
         sp.valid = pth("valid.fits");
     } else if (modal) {
         sp.actuators = NULL;
@@ -384,6 +407,7 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal-cm")) modal = modal_cm = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid")) pyramid = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
@@ -397,7 +421,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|pyramid] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -423,6 +447,7 @@ int main(int argc, char **argv)
     }
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
+           pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits)" :
            modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :
            modal ? ", modal telemetry (--basis)" : "");
     if (recon != SWFS_RECON_TEACH)

@@ -65,6 +65,11 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
 /* A telemetry file's NSUB keyword, when it has one, against the model's nsub
  * (SWFS_ERR_VALUE naming the file and both values). */
 int swfs_telemetry_check_nsub(const char *path, size_t nsub);
+/* Telemetry a Shack-Hartmann model may take: a file whose WFSTYPE names another sensor (a
+ * pyramid's signals, `simulate wfs=pyramid`: WFSTYPE = 'PYRAMID') is SWFS_ERR_FORMAT, naming
+ * it and the linear model that does describe it (--basis with --imat or --control); no
+ * WFSTYPE, or 'SH', passes. The same for the file's name in what. */
+int swfs_telemetry_check_sh(const char *path, const char *what);
 /* The same checks without reading the data: *nframes (may be NULL) receives the WFS frames. */
 int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);
 /* Telemetry values: finite and at most SWFS_TELEMETRY_MAX in magnitude in any unit (FLT_MAX

@@ -68,7 +68,15 @@ typedef struct swfs_ts_params {
     double ao_gain;            /* 0.4 */
     long ao_delay;             /* [frames] 1 or 2 (2) */
     long ao_modes;             /* K modes kept by the modal filter (56) */
-    double slope_noise;        /* [rad] rms per slope (3e-8) */
+    double slope_noise;        /* [rad] rms per slope (3e-8; the Shack-Hartmann's) */
+    /* wfs=pyramid: a modulated pyramid (pyramid.h) on the Shack-Hartmann's subaperture grid
+       senses instead; its signals are the telemetry (slopes_NNN.fits, the same layout) */
+    long wfs_pyramid;          /* 1: the key wfs=pyramid; 0: wfs=sh (default) */
+    double pyr_mod;            /* [lambda_wfs/D] modulation radius (3) */
+    long pyr_nmod;             /* modulation points (0: pyramid.h's rule, two per lambda/D of circle) */
+    double wfs_wavelen;        /* [m] the sensing wavelength (0: wavelen) */
+    double pyr_photons;        /* photons per used subaperture per WFS frame, Poisson noise (1000; 0:
+                                  noiseless) */
     /* tip-tilt vibration added upstream of the loop */
     double vib_amp;            /* [lambda/D at wavelen] amplitude (0.5) */
     double vib_freq;           /* [Hz] 20 */

@@ -70,6 +70,22 @@ int swfs_telemetry_check_nsub(const char *path, size_t nsub)
     return rc;
 }
 
+int swfs_telemetry_check_sh(const char *path, const char *what)
+{
+    swfs_fits_in *f = NULL;
+    int found = 0;
+    char type[72] = "";
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &found);
+    swfs_fits_in_close(f);
+    if (!rc && found && strcmp(type, "SH"))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: WFSTYPE = '%s': not a Shack-Hartmann's slopes, which %s models; a "
+                       "pyramid's (or any sensor's) signals go through the linear model: --basis INFLUENCE.fits with "
+                       "--imat D.fits (the interaction matrix) or --control C.fits (docs/telemetry.md, \"A pyramid "
+                       "wavefront sensor\")", path, type, what);
+    return rc;
+}
+
 int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, double *rate)
 {
     *out = NULL;

@@ -182,6 +182,7 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
         }
     double rate = 0;
     if (!rc) rc = swfs_telemetry_read(w->path, 0, &w->slopes, &rate);
+    if (!rc && !o->lin.basis) rc = swfs_telemetry_check_sh(w->path, "speckles' default model (--actuators)");
     if (rc) return rc;
     w->nslopes = w->slopes->nx;
     snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
@@ -217,8 +218,9 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
     swfs_pipeline_options o = *po;
     unsigned char *map = NULL;
     size_t nvalid = 0;
-    int rc = valid ? swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid) : SWFS_OK;
-    if (rc) return swfs_fail_context(rc, "the valid-subaperture map %s", valid);
+    int rc = telemetry && telemetry[0] ? swfs_telemetry_check_sh(telemetry, "the Shack-Hartmann model") : SWFS_OK;
+    if (!rc && valid) rc = swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid);
+    if (rc) return valid && !map ? swfs_fail_context(rc, "the valid-subaperture map %s", valid) : rc;
     if (map) o.valid = map;
     rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
     free(map);

@@ -507,6 +507,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* The observation: its first file for the checks, its geometry and rate against the system's. */
     swfs_real *obs = NULL;
     double orate = 0;
+    if ((rc = swfs_telemetry_check_sh(o->files[0], "teach (its loops simulate a Shack-Hartmann)"))) return rc;
     if ((rc = swfs_telemetry_read(o->files[0], 0, &obs, &orate))) return rc;
     /* slopes modal-slopes made from modal coefficients (MODALCM: the control matrix) lie in
      * CM's row space; the loops' slopes are learned on the same projection */

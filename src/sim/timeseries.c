@@ -13,6 +13,7 @@
 #include "specklewfs/interp.h"
 #include "specklewfs/kernels.h"
 #include "specklewfs/mft.h"
+#include "specklewfs/pyramid.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/screen.h"
 #include "specklewfs/status.h"
@@ -47,6 +48,8 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->ao_delay = 2;
     p->ao_modes = 56;
     p->slope_noise = 3e-8;
+    p->pyr_mod = 3;
+    p->pyr_photons = 1000;
     p->vib_amp = 0.5;
     p->vib_freq = 20;
     p->vib_angle = 30;
@@ -110,6 +113,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
     L_("act_square", act_square); L_("export_modal", export_modal); L_("export_truth", export_truth);
     L_("camera_light", camera_light);
+    D_("pyr_mod", pyr_mod); L_("pyr_nmod", pyr_nmod); D_("wfs_wavelen", wfs_wavelen); D_("pyr_photons", pyr_photons);
     L_("milk", milk); D_("milk_epoch", milk_epoch); D_("milk_jitter", milk_jitter); D_("milk_drift", milk_drift);
     D_("milk_offset", milk_offset); L_("milk_drop_wfs", milk_drop_wfs); L_("milk_drop_cam", milk_drop_cam);
     L_("milk_file_frames", milk_file_frames); L_("milk_cam_file_frames", milk_cam_file_frames);
@@ -119,6 +123,11 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     if ((rc = swfs_sim_config_path(c, "actuators", p->actuators, sizeof p->actuators))) return rc;
     if ((rc = swfs_sim_config_path(c, "valid", p->valid, sizeof p->valid))) return rc;
     if ((rc = swfs_sim_config_path(c, "truth_actuators", p->truth_actuators, sizeof p->truth_actuators))) return rc;
+    const char *wfs = NULL;
+    if ((rc = swfs_config_string(c, "wfs", p->wfs_pyramid ? "pyramid" : "sh", &wfs))) return rc;
+    if (strcmp(wfs, "sh") && strcmp(wfs, "pyramid"))
+        return swfs_fail(SWFS_ERR_VALUE, "setting wfs=%s: expected sh (a Shack-Hartmann) or pyramid", wfs);
+    p->wfs_pyramid = !strcmp(wfs, "pyramid");
     /* mode=timeseries selects this simulator; it is not a parameter of it. */
     const char *mode = NULL;
     if ((rc = swfs_config_string(c, "mode", "timeseries", &mode))) return rc;
@@ -223,7 +232,8 @@ int swfs_ts_params_check(const swfs_ts_params *p)
             {"wfs_rate", p->wfs_rate},       {"act_pitch", p->act_pitch},     {"slope_noise", p->slope_noise},
             {"vib_amp", p->vib_amp},         {"vib_freq", p->vib_freq},       {"jitter_amp", p->jitter_amp},
             {"jitter_freq", p->jitter_freq}, {"frame_ratio", p->frame_ratio}, {"cube_gap", p->cube_gap},
-            {"start_offset", p->start_offset}, {"background", p->background}, {"flat_rms", p->flat_rms}};
+            {"start_offset", p->start_offset}, {"background", p->background}, {"flat_rms", p->flat_rms},
+            {"pyr_mod", p->pyr_mod},         {"wfs_wavelen", p->wfs_wavelen}, {"pyr_photons", p->pyr_photons}};
         for (size_t k = 0; k < sizeof fin / sizeof fin[0]; k++)
             if (!isfinite(fin[k].v)) return badv(fin[k].key, fin[k].v, "must be finite");
         for (int l = 0; l < p->nlayers; l++)
@@ -238,6 +248,15 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (p->ao_delay < 1 || p->ao_delay > 8) return badv("ao_delay", (double)p->ao_delay, "must be 1..8 frames");
     if (p->ao_modes < 1) return badv("ao_modes", (double)p->ao_modes, "must be >= 1");
     if (!(p->slope_noise >= 0)) return badv("slope_noise", p->slope_noise, "must be >= 0");
+    if (p->wfs_pyramid & ~1L) return badv("wfs_pyramid", (double)p->wfs_pyramid, "must be 0 or 1");
+    if (!(p->pyr_mod >= 0)) return badv("pyr_mod", p->pyr_mod, "must be >= 0 lambda/D");
+    if (p->pyr_nmod < 0 || p->pyr_nmod > 4096) return badv("pyr_nmod", (double)p->pyr_nmod, "must be 0 (the rule) .. 4096");
+    if (!(p->wfs_wavelen >= 0)) return badv("wfs_wavelen", p->wfs_wavelen, "must be >= 0 (0: wavelen)");
+    if (!(p->pyr_photons >= 0)) return badv("pyr_photons", p->pyr_photons, "must be >= 0 (0: noiseless)");
+    if (p->wfs_pyramid && p->export_modal)
+        return swfs_fail(SWFS_ERR_ARG, "time-series parameters wfs=pyramid and export_modal=1: the export's modal "
+                         "coefficients are a Shack-Hartmann's reconstruction; a pyramid run writes its own linear-model "
+                         "files (influence.fits, imat_ao.fits, recon_ao.fits: docs/telemetry.md)");
     if (!(p->vib_amp >= 0) || !(p->vib_freq >= 0)) return badv("vib_amp", p->vib_amp, "vibration must be >= 0");
     if (!(p->jitter_amp >= 0) || !(p->jitter_freq > 0)) return badv("jitter_amp", p->jitter_amp, "jitter must be >= 0 with jitter_freq > 0");
     if (!(p->frame_ratio >= SWFS_ENGINE_MIN_RATIO))
@@ -462,6 +481,11 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *pa
         snprintf(path, sizeof path, "%s/%s", dir, fixed[k]);
         swfs_paths_output(paths, "simulation output", path);
     }
+    static const char *pyr[] = {"influence.fits", "imat_ao.fits"};
+    for (size_t k = 0; p->wfs_pyramid && k < 2; k++) {
+        snprintf(path, sizeof path, "%s/%s", dir, pyr[k]);
+        swfs_paths_output(paths, "simulation output", path);
+    }
     for (size_t f = 0; f * ffr < nwfs; f++) {
         snprintf(path, sizeof path, "%s/slopes_%03zu.fits", dir, f);
         swfs_paths_output(paths, "simulation output", path);
@@ -684,6 +708,42 @@ static swfs_sparse *pupil_rows(const swfs_sparse *T, const double *mask)
     return P;
 }
 
+/* wfs=pyramid: the linear model's files of the run (docs/telemetry.md, "Any AO system"):
+ * influence.fits, each actuator's surface on the pupil grid (PUPN x PUPN x nact, the columns
+ * of T: `speckles --basis`), and imat_ao.fits, the loop's interaction matrix (NAXIS1 = nact,
+ * NAXIS2 = the signals: `--imat`); recon_ao.fits is the loop's control matrix (`--control`). */
+static int write_pyramid_model(const char *dir, const swfs_sparse *T, size_t np, const double *Dm, size_t ns,
+                               size_t nact, const swfs_geom *geom, const char *const *prov, size_t nprov)
+{
+    const size_t ng = np * np;
+    swfs_real *F = swfs_real_alloc(np, np, nact);
+    double *e = calloc(nact, sizeof *e);
+    int rc = F && e ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t a = 0; !rc && a < nact; a++) {
+        e[a] = 1;
+        swfs_sparse_apply(T, e, F->data + a * ng);
+        e[a] = 0;
+    }
+    char path[4200];
+    const swfs_real Dr = {nact, ns, 1, (double *)Dm};
+    const swfs_real *arr[2] = {F, &Dr};
+    const char *names[2] = {"influence.fits", "imat_ao.fits"}, *units[2] = {"m/m", "1/m"};
+    for (int k = 0; k < 2 && !rc; k++) {
+        swfs_fits_out *o = NULL;
+        snprintf(path, sizeof path, "%s/%s", dir, names[k]);
+        if ((rc = swfs_fits_out_create(&o, path))) break;
+        if ((rc = swfs_fits_out_set_stamp(o, k ? NULL : geom, prov, nprov)) ||
+            (rc = swfs_fits_out_real(o, NULL, arr[k], k ? -64 : -32)) ||
+            (rc = swfs_fits_out_key_string(o, "BUNIT", units[k], k ? "pyramid signal per m of actuator wavefront"
+                                                                      : "wavefront per unit actuator value")))
+            swfs_fits_out_abort(o);
+        else rc = swfs_fits_out_commit(o);
+    }
+    swfs_real_free(F);
+    free(e);
+    return rc;
+}
+
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
 {
@@ -724,6 +784,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     const double *txy_out = NULL; /* those the truth files carry: txy or the shared plans' */
     size_t ntr = 0;          /* export_truth's points */
     swfs_shwfs *sh = NULL;
+    swfs_pyramid *pyr = NULL; /* wfs=pyramid: the sensor (sh then gives its subapertures) */
     swfs_recon *rao = NULL;
     const swfs_recon *rao_shared = NULL; /* the shared plans' reconstructor, when this run's is the same */
     double *raoV_own = NULL;     /* the modal reconstructor's factors (rao = V P), this run's own */
@@ -794,13 +855,24 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     /* A DM given by its positions (read above) has the same loop, interpolation and modal filter. */
     if ((rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh))) goto done;
     if (shared && (rc = shared_fits(shared, p, mask, xy, nact))) goto done;
-    if ((rc = swfs_interaction_matrix(sh, T, &Dm))) goto done;
+    if (p->wfs_pyramid) {
+        /* the pyramid on the Shack-Hartmann's subapertures; its interaction matrix by
+         * push-pull of each actuator by a hundredth of its wavelength */
+        const double lw = p->wfs_wavelen > 0 ? p->wfs_wavelen : lam0;
+        if ((rc = swfs_pyramid_create(&pyr, (size_t)p->nsub, D, mask, np, dx, sh->valid, lw, p->pyr_mod,
+                                      (size_t)p->pyr_nmod)))
+            goto done;
+        if (progress) progress(ctx, "pyramid interaction matrix", 0, nact);
+        if ((rc = swfs_pyramid_interaction(pyr, T, lw / 100, &Dm))) goto done;
+    } else if ((rc = swfs_interaction_matrix(sh, T, &Dm))) {
+        goto done;
+    }
     if (!(Tp = pupil_rows(T, mask))) { rc = SWFS_ERR_NOMEM; goto done; }
     /* The slopes of the DM's surface by S Tp a (dense, ns x nact) where that reads no more
      * memory than the surface itself (Tp's nonzeros: a value, a column index and the gathered
      * command each, 3 words against the dense product's 1 per element): the loop then builds
      * the surface only for the frames the camera sees. Either way the same sums to rounding. */
-    const int lin = sh->nslopes * nact <= 3 * Tp->nnz;
+    const int lin = !pyr && sh->nslopes * nact <= 3 * Tp->nnz; /* a pyramid is not linear */
     if (lin && (rc = swfs_interaction_matrix(sh, Tp, &Dp))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
@@ -981,10 +1053,14 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         }
         /* WFS: slopes with noise (of the turbulence, minus those of the DM's surface). */
         double *sk = slopes + k * ns;
-        swfs_shwfs_measure(sh, res, sk);
-        if (lin) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)ns, (int)nact, -1.0, Dp, (int)nact, act, 1, 1.0, sk, 1);
-        for (size_t i = 0; i < ns; i++)
-            if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
+        if (pyr) {
+            swfs_pyramid_measure(pyr, res, p->pyr_photons, &nrng, sk);
+        } else {
+            swfs_shwfs_measure(sh, res, sk);
+            if (lin) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)ns, (int)nact, -1.0, Dp, (int)nact, act, 1, 1.0, sk, 1);
+            for (size_t i = 0; i < ns; i++)
+                if (sh->valid[i % (ns / 2)]) sk[i] += p->slope_noise * swfs_rng_normal(&nrng);
+        }
         /* Controller. */
         if (k + 1 >= (size_t)p->ao_delay) {
             const double *sd = slopes + (k + 1 - (size_t)p->ao_delay) * ns;
@@ -1143,7 +1219,12 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         swfs_fits_out *o = NULL;
         if ((rc = swfs_fits_out_create(&o, path))) break;
         if ((rc = swfs_fits_out_set_stamp(o, NULL, prov, nprov)) || (rc = swfs_fits_out_real(o, NULL, &sa, -32)) ||
-            (rc = swfs_fits_out_key_string(o, "BUNIT", "rad", "wavefront tilt: x slopes then y slopes")) ||
+            (pyr ? (rc = swfs_fits_out_key_string(o, "BUNIT", "", "pyramid signals: x then y, normalized")) ||
+                       (rc = swfs_fits_out_key_string(o, "WFSTYPE", "PYRAMID", "modulated pyramid (pyramid.h)")) ||
+                       (rc = swfs_fits_out_key_double(o, "PYRMOD", p->pyr_mod, "[lambda/D] modulation radius")) ||
+                       (rc = swfs_fits_out_key_long(o, "PYRNMOD", (long)pyr->nmod, "modulation points")) ||
+                       (rc = swfs_fits_out_key_double(o, "WFSLAM", pyr->wavelen, "[m] sensing wavelength"))
+                 : (rc = swfs_fits_out_key_string(o, "BUNIT", "rad", "wavefront tilt: x slopes then y slopes"))) ||
             (rc = swfs_fits_out_key_double(o, "WFSRATE", p->wfs_rate, "[Hz]")) ||
             (rc = swfs_fits_out_key_long(o, "NSUB", p->nsub, "subapertures across")) ||
             (rc = swfs_fits_out_key_long(o, "FRAME0", (long)(f * ffr), "global WFS frame of row 0"))) {
@@ -1163,6 +1244,9 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     }
     snprintf(path, sizeof path, "%s/recon_ao.fits", dir);
     if ((rc = swfs_recon_write(ra, path))) { swfs_real_free(noisy); free(tstart); goto done; }
+    if (pyr && (rc = write_pyramid_model(dir, T, np, Dm, ns, nact, &geom, prov, nprov))) {
+        swfs_real_free(noisy); free(tstart); goto done;
+    }
     snprintf(path, sizeof path, "%s/handshake.log", dir);
     if ((rc = swfs_handshake_write(path, hs, ncub))) { swfs_real_free(noisy); free(tstart); goto done; }
     for (size_t c = 0; c < ncub && rc == SWFS_OK; c++) {
@@ -1237,6 +1321,7 @@ done:
     swfs_dmfit_free(tfit);
     free(txy);
     swfs_shwfs_free(sh);
+    swfs_pyramid_free(pyr);
     swfs_recon_free(rao);
     free(raoV_own);
     swfs_recon_free(raoP_own);
