@@ -27,6 +27,28 @@ def _opt(path):
     return enc(path) if path is not None else None
 
 
+_LINEAR_KEYS = {"basis", "control", "imat", "scale", "dm_pitch", "dm_offset", "dm_rot", "dm_flip"}
+
+
+def _linear(lf, linear):
+    """The linear model (`--basis` and its options; run.h swfs_linear_files) from a dict:
+    basis (required), control or imat, scale (`--coef-scale`, 1), and the DM grid's
+    registration dm_pitch [m], dm_offset (x, y) [m], dm_rot [deg], dm_flip (bool)."""
+    if linear is None:
+        return
+    unknown = set(linear) - _LINEAR_KEYS
+    if unknown or "basis" not in linear:
+        raise ValueError(f"linear: expected basis and any of {sorted(_LINEAR_KEYS - {'basis'})}, got {sorted(linear)}")
+    lib.swfs_linear_files_default(ctypes.byref(lf))
+    lf.basis, lf.control, lf.imat = _opt(linear["basis"]), _opt(linear.get("control")), _opt(linear.get("imat"))
+    lf.scale = float(linear.get("scale", 1.0))
+    if linear.get("dm_pitch"):
+        lf.reg.pitch = float(linear["dm_pitch"])
+        lf.reg.x0, lf.reg.y0 = (float(v) for v in linear.get("dm_offset", (0.0, 0.0)))
+        lf.reg.rot = math.radians(float(linear.get("dm_rot", 0.0)))
+        lf.reg.flip_x = int(bool(linear.get("dm_flip", False)))
+
+
 def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=False, progress=None,
            provenance=()):
     """Raw camera cubes (a path or a list, concatenated in that order) -> the reduced science
@@ -46,7 +68,7 @@ def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=
     return _struct_dict(_run("swfs_reduce_run", o, _lib.swfs_reduce_run_result, geom, provenance, progress))
 
 
-def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None):
+def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None, linear=None):
     """The timing table (`specklewfs sync`): the reduced science cube's TRACK against the
     telemetry files the handshake log names. ratio: (min, max) WFS frames per camera frame,
     None: from 0.1 to the handshake log's bound (a cube ends before the next cube of its file
@@ -59,10 +81,13 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
     contiguous telemetry files (ratio_first, lag_first: the fit over each cube's own file);
     nmissing, nexp_missing: cubes (their exposures) left out because the telemetry file the
     log names cannot be read (missing, truncated, another shape), missing_reason the first
-    such file's message. No readable telemetry file at all raises Error."""
+    such file's message. No readable telemetry file at all raises Error. linear: the telemetry
+    is the linear model's (a dict as speckles() takes): the tip-tilt correlated with the star's
+    track is then the Z-tilt of its wavefront."""
     o = _lib.swfs_sync_run_options()
     lib.swfs_sync_run_options_default(ctypes.byref(o))
     o.science, o.handshake, o.out = enc(science), enc(handshake), enc(out)
+    _linear(o.lin, linear)
     if ratio is not None:
         o.params.ratio_min, o.params.ratio_max = float(ratio[0]), float(ratio[1])
     if lag is not None:
@@ -339,7 +364,7 @@ def _teach_dict(r, modes_from_slopes):
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
-             teach_max_loops=None):
+             teach_max_loops=None, linear=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -358,10 +383,20 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     swfs_speckles_resmean_warns: no closed loop's). tiptilt: None (the default: 'exposure',
     or at the WFS rate 'frame'), 'exposure', 'frame' or 'keep'. wfs_rate: one speckle field
     per WFS frame instead of per exposure (`--wfs-rate`, for coherence(); FRAMEDT = 1/rate;
-    wfs_hz [Hz] where the telemetry has no WFSRATE); it takes no match and no 'exposure'."""
+    wfs_hz [Hz] where the telemetry has no WFSRATE); it takes no match and no 'exposure'.
+    linear: any AO system's telemetry through the generic linear model instead of the
+    Shack-Hartmann's (`--basis`; actuators then None): a dict of basis (the cube of basis
+    functions), control (telemetry -> coefficients) or imat (the interaction matrix, inverted by
+    the MAP reconstructor from the telemetry), scale (`--coef-scale`) and for a basis on the
+    DM's grid dm_pitch [m], dm_offset (x, y) [m], dm_rot [deg], dm_flip; e.g. a pyramid's
+    signals with simulate wfs=pyramid's influence.fits and imat_ao.fits. No map is taught for
+    a linear model (recon applies to the Shack-Hartmann's)."""
+    if (linear is None) == (actuators is None):
+        raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
     lib.swfs_speckles_run_options_default(ctypes.byref(o))
-    o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), enc(actuators), enc(out)
+    o.timing, o.science, o.actuators, o.out = enc(timing), enc(science), _opt(actuators), enc(out)
+    _linear(o.lin, linear)
     tr = _lib.swfs_teach_run_result()
     # The teach options go to the library whatever recon is: its check (run.h
     # swfs_speckles_run_options_check) refuses them with another reconstructor.
@@ -411,7 +446,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
                       "slope patterns the model's D does not make", RuntimeWarning, stacklevel=2)
     d["info"] = _struct_dict(r.info)
     d.update(_st_checks(r))
-    if recon == "teach":
+    if recon == "teach" and linear is None:
         d["taught"] = bool(r.taught)
         if r.taught:
             d["teach_map"] = r.teach_map.decode()

@@ -375,3 +375,34 @@ def test_modal_slopes(tmp_path, cli):
     with pytest.raises(sw.Error, match="coefficients per WFS frame; .*control.fits maps"):
         sw.modal_slopes(modal, str(d / "control.fits"), str(bad))
     assert not list(bad.iterdir())
+
+
+def test_pyramid_timeseries(tmp_path):
+    """simulate_timeseries(wfs='pyramid'): a modulated pyramid senses; its signals are the
+    telemetry (the Shack-Hartmann's layout, WFSTYPE 'PYRAMID'), the run writes its linear
+    model (influence.fits, imat_ao.fits); sync and speckles take them through the linear model
+    (linear=dict(basis=, imat=)), and the Shack-Hartmann model refuses them naming why."""
+    d = tmp_path / "sim"
+    r = sw.simulate_timeseries(str(d), pupn=66, pupdx=0.1, screen_n=512, ncubes=2, cube_frames=30, cube_gap=20,
+                               start_offset=50.4, wfs="pyramid", wfs_wavelen=1.6e-6, pyr_mod=2)
+    k = sw.read_keys(str(d / "slopes_000.fits"), ["WFSTYPE", "PYRMOD", "PYRNMOD", "WFSLAM", "NSUB"])
+    assert k["WFSTYPE"] == "PYRAMID" and k["PYRMOD"] == 2 and k["PYRNMOD"] == 28 and k["WFSLAM"] == 1.6e-6
+    s = sw.read_fits(str(d / "slopes_000.fits"))[0]
+    D = sw.read_fits(str(d / "imat_ao.fits"))[0]
+    F = sw.read_fits(str(d / "influence.fits"))[0]
+    assert s.shape[1] == 2 * k["NSUB"] ** 2 and D.shape == (s.shape[1], r["nact"]) and F.shape[0] == r["nact"]
+    # unused subapertures report 0; the used ones respond to the actuators
+    used = np.abs(D).sum(axis=1) > 0
+    assert used.sum() == 2 * r["nvalid"] and np.all(s[:, ~used] == 0)
+    sci, timing = str(tmp_path / "sci.fits"), str(tmp_path / "timing.txt")
+    sw.reduce([str(d / f"raw_{c:03d}.fits") for c in range(2)], sci, dark=str(d / "dark.fits"), flat=str(d / "flat.fits"))
+    lin = dict(basis=str(d / "influence.fits"), imat=str(d / "imat_ao.fits"))
+    t = sw.sync(sci, str(d / "handshake.log"), timing, linear=lin)
+    assert abs(t["ratio"] - 6.48) < 0.02
+    sp = sw.speckles(timing, sci, None, str(tmp_path / "sp.fits"), linear=lin)
+    assert sp["nout"] == 60 and sp["info"]["nbasis"] == r["nact"] and "taught" not in sp
+    with pytest.raises(sw.Error, match="WFSTYPE = 'PYRAMID': not a Shack-Hartmann's slopes"):
+        sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp2.fits"), recon="vk")
+    assert not os.path.exists(tmp_path / "sp2.fits")
+    with pytest.raises(ValueError, match="not both"):
+        sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp3.fits"), linear=lin)
