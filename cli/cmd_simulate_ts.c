@@ -57,6 +57,11 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     printf("  AO: %zu actuators%s%s%s, %zu valid subapertures, %zu modes%s%s%s, gain %.2f, delay %ld\n", s.nact,
            p.actuators[0] ? " (from " : "", p.actuators, p.actuators[0] ? ")" : "", s.nvalid, s.ao_modes,
            p.ao_recon[0] ? " (the reconstructor " : "", p.ao_recon, p.ao_recon[0] ? ")" : "", p.ao_gain, p.ao_delay);
+    if (p.wfs_pyramid)
+        printf("  WFS: a pyramid modulated at %g lambda/D (%s points), sensing at %.3g um, %g photons per subaperture "
+               "and frame; its signals are the telemetry: speckles --basis %s/influence.fits --imat %s/imat_ao.fits "
+               "(or --control %s/recon_ao.fits, the loop's own)\n", p.pyr_mod, p.pyr_nmod ? "given" : "the rule's",
+               1e6 * (p.wfs_wavelen > 0 ? p.wfs_wavelen : p.base.wavelen), p.pyr_photons, outdir, outdir, outdir);
     if (p.base.pupil_mask[0])
         printf("  pupil from %s (pupil.fits: give it to speckles --pupil)\n", p.base.pupil_mask);
     printf("  residual %.1f nm rms (%.1f nm without tip-tilt), residual tip-tilt %.3f lambda/D rms, Strehl %.3f\n",

@@ -14,6 +14,8 @@ S="$D/sim"
     layer_speed=30,40 vib_amp=0.6 jitter_amp=0.15 seed=1 wfs=pyramid wfs_wavelen=1.6e-6 > "$D/sim.log" 2>&1 \
     || { cat "$D/sim.log"; fail "simulate wfs=pyramid"; }
 for f in influence.fits imat_ao.fits recon_ao.fits slopes_000.fits; do [ -f "$S/$f" ] || fail "no $f"; done
+grep -q "WFS: a pyramid modulated at 3 lambda/D (the rule's points), sensing at 1.6 um" "$D/sim.log" \
+    || { cat "$D/sim.log"; fail "simulate: the pyramid's summary"; }
 head -c 8640 "$S/slopes_000.fits" | grep -aq "WFSTYPE = 'PYRAMID *'" || fail "slopes_000.fits: no WFSTYPE"
 head -c 8640 "$S/slopes_000.fits" | grep -aq "PYRNMOD =  *40 " || fail "slopes_000.fits: PYRNMOD (3 lambda/D: 40 points)"
 reduce_sync "$D" --ratio-min 5 --ratio-max 8
