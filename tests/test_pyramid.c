@@ -5,7 +5,9 @@
  * interaction matrix predicting small signals, and bad parameters refused. */
 #include "testutil.h"
 
+#include "specklewfs/fits.h"
 #include "specklewfs/interp.h"
+#include "specklewfs/source.h"
 #include "specklewfs/pyramid.h"
 #include "specklewfs/rng.h"
 #include "specklewfs/status.h"
@@ -270,6 +272,27 @@ static void test_interaction(void **state)
     swfs_pyramid_free(p);
 }
 
+/* swfs_telemetry_check_sh: telemetry that names a pyramid is kept from the Shack-Hartmann
+ * model; none, or a Shack-Hartmann's name in any spelling, passes. */
+static void test_check_sh(void **state)
+{
+    (void)state;
+    const char *types[5] = {NULL, "SH", "Shack-Hartmann", "PYRAMID", "curvature"};
+    const int want[5] = {SWFS_OK, SWFS_OK, SWFS_OK, SWFS_ERR_FORMAT, SWFS_ERR_FORMAT};
+    double v[8] = {0};
+    const swfs_real a = {4, 2, 1, v};
+    for (int k = 0; k < 5; k++) {
+        const char *path = test_path("pyr_check_sh.fits");
+        swfs_fits_out *o = NULL;
+        assert_ok(swfs_fits_out_create(&o, path));
+        assert_ok(swfs_fits_out_real(o, NULL, &a, -32));
+        if (types[k]) assert_ok(swfs_fits_out_key_string(o, "WFSTYPE", types[k], NULL));
+        assert_ok(swfs_fits_out_commit(o));
+        assert_int_equal(swfs_telemetry_check_sh(path, "the model"), want[k]);
+        if (want[k]) assert_non_null(strstr(swfs_last_error(), "not a Shack-Hartmann's slopes, which the model models"));
+    }
+}
+
 static void test_refused(void **state)
 {
     (void)state;
@@ -293,7 +316,7 @@ int main(void)
         cmocka_unit_test(test_geometry_and_flat),  cmocka_unit_test(test_tilt_sign_and_linearity),
         cmocka_unit_test(test_optical_gain),       cmocka_unit_test(test_modulation_points),
         cmocka_unit_test(test_photon_noise),       cmocka_unit_test(test_interaction),
-        cmocka_unit_test(test_refused),
+        cmocka_unit_test(test_check_sh),           cmocka_unit_test(test_refused),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -67,8 +67,9 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
 int swfs_telemetry_check_nsub(const char *path, size_t nsub);
 /* Telemetry a Shack-Hartmann model may take: a file whose WFSTYPE names another sensor (a
  * pyramid's signals, `simulate wfs=pyramid`: WFSTYPE = 'PYRAMID') is SWFS_ERR_FORMAT, naming
- * it and the linear model that does describe it (--basis with --imat or --control); no
- * WFSTYPE, or 'SH', passes. The same for the file's name in what. */
+ * it, `what` (the model refusing it) and the linear model that does describe it (--basis with
+ * --imat or --control); no WFSTYPE, or one naming a Shack-Hartmann ("SH...", "...HARTMANN...",
+ * any case), passes. */
 int swfs_telemetry_check_sh(const char *path, const char *what);
 /* The same checks without reading the data: *nframes (may be NULL) receives the WFS frames. */
 int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);

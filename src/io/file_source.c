@@ -3,6 +3,7 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/status.h"
 
+#include <ctype.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdio.h>
@@ -78,7 +79,12 @@ int swfs_telemetry_check_sh(const char *path, const char *what)
     int rc = swfs_fits_in_open(&f, path, NULL);
     if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &found);
     swfs_fits_in_close(f);
-    if (!rc && found && strcmp(type, "SH"))
+    /* a Shack-Hartmann by name: "SH..." or "...HARTMANN..." in any case */
+    char up[72];
+    size_t n = 0;
+    for (; type[n] && n + 1 < sizeof up; n++) up[n] = (char)toupper((unsigned char)type[n]);
+    up[n] = 0;
+    if (!rc && found && strncmp(up, "SH", 2) && !strstr(up, "HARTMANN"))
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: WFSTYPE = '%s': not a Shack-Hartmann's slopes, which %s models; a "
                        "pyramid's (or any sensor's) signals go through the linear model: --basis INFLUENCE.fits with "
                        "--imat D.fits (the interaction matrix) or --control C.fits (docs/telemetry.md, \"A pyramid "
