@@ -20,18 +20,6 @@
 enum { NPUP = 66, NSUB = 12 };
 static const double DIAM = 6.5, LAM = 0.85e-6;
 
-static double *make_mask(size_t n, double dx, double diam, double obs)
-{
-    double *m = malloc(n * n * sizeof *m);
-    for (size_t q = 0; q < n; q++)
-        for (size_t p = 0; p < n; p++) {
-            double x = ((double)p - 0.5 * (double)(n - 1)) * dx, y = ((double)q - 0.5 * (double)(n - 1)) * dx;
-            double r = sqrt(x * x + y * y);
-            m[q * n + p] = (r <= 0.5 * diam && r >= 0.5 * obs * diam) ? 1.0 : 0.0;
-        }
-    return m;
-}
-
 /* A random wavefront of rms `rms` [m] on the grid: a sum of cosines of spatial frequencies
  * k0 .. k1 cycles per D with a Kolmogorov-like amplitude. */
 static void random_wavefront(double *z, size_t n, double dx, double rms, const double *mask, unsigned seed, double k0,
@@ -72,7 +60,7 @@ static void test_geometry_and_flat(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1);
     swfs_pyramid *p = NULL;
     assert_ok(swfs_pyramid_create(&p, NSUB, DIAM, mask, NPUP, dx, NULL, LAM, 3.0, 0));
     swfs_shwfs *sh = NULL;
@@ -106,7 +94,7 @@ static void test_tilt_sign_and_linearity(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1), *z = malloc(NPUP * NPUP * sizeof *z);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1), *z = malloc(NPUP * NPUP * sizeof *z);
     swfs_pyramid *p = NULL;
     assert_ok(swfs_pyramid_create(&p, NSUB, DIAM, mask, NPUP, dx, NULL, LAM, 3.0, 0));
     const size_t n2 = NSUB * NSUB;
@@ -149,7 +137,7 @@ static void test_optical_gain(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1);
     const size_t ng = NPUP * NPUP;
     double *probe = malloc(ng * sizeof *probe), *res = malloc(ng * sizeof *res), *z = malloc(ng * sizeof *z);
     swfs_pyramid *p = NULL;
@@ -183,7 +171,7 @@ static void test_modulation_points(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1), *z = malloc(NPUP * NPUP * sizeof *z);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1), *z = malloc(NPUP * NPUP * sizeof *z);
     random_wavefront(z, NPUP, dx, 0.1 * LAM, mask, 3, 0.3, 8);
     const double mods[2] = {3.0, 5.0};
     for (int c = 0; c < 2; c++) {
@@ -209,7 +197,7 @@ static void test_photon_noise(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1), *z = calloc(NPUP * NPUP, sizeof *z);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1), *z = calloc(NPUP * NPUP, sizeof *z);
     swfs_pyramid *p = NULL;
     assert_ok(swfs_pyramid_create(&p, NSUB, DIAM, mask, NPUP, dx, NULL, LAM, 3.0, 0));
     swfs_rng rng;
@@ -236,7 +224,7 @@ static void test_interaction(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1);
     double *xy = NULL;
     size_t nact = 0, outside = 0;
     assert_ok(swfs_actuators_hexapolar(DIAM, DIAM / 12.0, 0.5 * DIAM / 12.0, &xy, &nact));
@@ -297,7 +285,7 @@ static void test_refused(void **state)
 {
     (void)state;
     const double dx = DIAM / 64.0;
-    double *mask = make_mask(NPUP, dx, DIAM, 0.1);
+    double *mask = test_annulus(NPUP, dx, DIAM, 0.1);
     swfs_pyramid *p = NULL;
     assert_int_equal(swfs_pyramid_create(&p, NSUB, DIAM, mask, NPUP, dx, NULL, 0.0, 3.0, 0), SWFS_ERR_ARG);
     assert_non_null(strstr(swfs_last_error(), "sensing wavelength"));

@@ -108,18 +108,6 @@ static void test_interp_outside_and_bad(void **state)
 }
 
 /* Circular pupil with a central obstruction on the DESIGN.md grid. */
-static double *make_mask(size_t n, double dx, double diam, double obs)
-{
-    double *m = malloc(n * n * sizeof *m);
-    for (size_t q = 0; q < n; q++)
-        for (size_t p = 0; p < n; p++) {
-            double x = ((double)p - 0.5 * (double)(n - 1)) * dx, y = ((double)q - 0.5 * (double)(n - 1)) * dx;
-            double r = sqrt(x * x + y * y);
-            m[q * n + p] = (r <= 0.5 * diam && r >= 0.5 * obs * diam) ? 1.0 : 0.0;
-        }
-    return m;
-}
-
 /* Piston-removed rms of a - b over the mask. */
 static double rms_diff(const double *a, const double *b, const double *mask, size_t n)
 {
@@ -135,7 +123,7 @@ static void test_shwfs_and_reconstructor(void **state)
     const double D = 6.5;
     const size_t npup = 66, nsub = 12;
     const double dx = D / 64.0;
-    double *mask = make_mask(npup, dx, D, 0.1);
+    double *mask = test_annulus(npup, dx, D, 0.1);
     swfs_shwfs *w = NULL;
     assert_ok(swfs_shwfs_create(&w, nsub, D, mask, npup, dx, 0.5));
     assert_int_equal(w->nslopes, 288);
@@ -266,7 +254,7 @@ static void test_white_noise(void **state)
     (void)state;
     const double D = 6.5, dx = D / 64.0, d = D / 12.0;
     const size_t npup = 66, nsub = 12, nf = 200, ns = 2 * nsub * nsub, NC = 24;
-    double *mask = make_mask(npup, dx, D, 0.1);
+    double *mask = test_annulus(npup, dx, D, 0.1);
     swfs_shwfs *w = NULL;
     assert_ok(swfs_shwfs_create(&w, nsub, D, mask, npup, dx, 0.5));
     double kx[NC], ky[NC], amp[NC], ph[NC];

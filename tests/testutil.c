@@ -4,6 +4,7 @@
 
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -52,4 +53,16 @@ int test_run_cli(const char *dir, const char *args, char *out, size_t cap)
     while (len + 1 < cap && fgets(out + len, (int)(cap - len), p)) len = strlen(out);
     int st = pclose(p);
     return WIFEXITED(st) ? WEXITSTATUS(st) : -1;
+}
+
+double *test_annulus(size_t n, double dx, double diam, double obs)
+{
+    double *m = malloc(n * n * sizeof *m);
+    for (size_t q = 0; m && q < n; q++)
+        for (size_t p = 0; p < n; p++) {
+            double x = ((double)p - 0.5 * (double)(n - 1)) * dx, y = ((double)q - 0.5 * (double)(n - 1)) * dx;
+            double r = sqrt(x * x + y * y);
+            m[q * n + p] = (r <= 0.5 * diam && r >= 0.5 * obs * diam) ? 1.0 : 0.0;
+        }
+    return m;
 }

@@ -17,6 +17,9 @@ void test_assert_ok(int rc, const char *expr, const char *file, int line);
 #define assert_close(a, b, tol) test_assert_close((a), (b), (tol), #a, __FILE__, __LINE__)
 void test_assert_close(double a, double b, double tol, const char *expr, const char *file, int line);
 int test_file_exists(const char *path);
+/* An annular pupil on the n x n grid of spacing dx [m]: 1 where obs diam / 2 <= r <= diam / 2
+ * (r from the grid's centre), else 0 (malloc'd; the caller frees). */
+double *test_annulus(size_t n, double dx, double diam, double obs);
 /* Run `specklewfs ARGS` (in folder dir unless NULL), capture stdout + stderr into out;
  * return the exit status (-1 if it did not exit normally). */
 int test_run_cli(const char *dir, const char *args, char *out, size_t cap);

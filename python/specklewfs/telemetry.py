@@ -186,6 +186,16 @@ def slopes_noise_var(D, slopes):
     return v.value
 
 
+def _valid_flags(valid, nsub, name):
+    """A valid-subaperture map as nsub^2 uint8 flags (None stays None)."""
+    if valid is None:
+        return None
+    v = np.ascontiguousarray(np.asarray(valid, dtype=bool).reshape(-1), dtype=np.uint8)
+    if v.size != nsub * nsub:
+        raise ValueError("%s: valid has %d flags, expected nsub^2 = %d" % (name, v.size, nsub * nsub))
+    return v
+
+
 def slopes_white_noise(slopes, nsub, valid=None):
     """The white measurement noise of Shack-Hartmann slopes from the slopes alone (wfs.h
     swfs_slopes_white_noise: their curl over 2 x 2 cells of used subapertures, its temporal
@@ -193,11 +203,7 @@ def slopes_white_noise(slopes, nsub, valid=None):
     flags, or None: the subapertures whose slopes vary). Returns (variance per slope [rad^2],
     cells used)."""
     s = as_array(slopes, "slopes", np.float64, shape=(None, 2 * nsub * nsub))
-    v = None
-    if valid is not None:
-        v = np.ascontiguousarray(np.asarray(valid, dtype=bool).reshape(-1), dtype=np.uint8)
-        if v.size != nsub * nsub:
-            raise ValueError("slopes_white_noise: valid has %d flags, expected nsub^2 = %d" % (v.size, nsub * nsub))
+    v = _valid_flags(valid, nsub, "slopes_white_noise")
     var, nc = ctypes.c_double(), ctypes.c_size_t()
     check(lib.swfs_slopes_white_noise(dptr(s), s.shape[0], s.shape[1], nsub, v.ctypes.data_as(_u8) if v is not None else None,
                                       ctypes.byref(var), ctypes.byref(nc), None), "swfs_slopes_white_noise")
@@ -211,11 +217,7 @@ def slopes_curl_noise(slopes, nsub, valid=None):
     the vk and MAP maps (speckles takes it on slopes modal-slopes made). slopes: (nframes >= 16,
     2 nsub^2) or, with valid, the used subapertures' only (nframes, 2 nvalid)."""
     s = as_array(slopes, "slopes", np.float64, shape=(None, None))
-    v = None
-    if valid is not None:
-        v = np.ascontiguousarray(np.asarray(valid, dtype=bool).reshape(-1), dtype=np.uint8)
-        if v.size != nsub * nsub:
-            raise ValueError("slopes_curl_noise: valid has %d flags, expected nsub^2 = %d" % (v.size, nsub * nsub))
+    v = _valid_flags(valid, nsub, "slopes_curl_noise")
     white, total = ctypes.c_double(), ctypes.c_double()
     check(lib.swfs_slopes_curl_noise(dptr(s), s.shape[0], s.shape[1], nsub, v.ctypes.data_as(_u8) if v is not None else None,
                                      ctypes.byref(white), ctypes.byref(total)), "swfs_slopes_curl_noise")
