@@ -219,8 +219,9 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
     unsigned char *map = NULL;
     size_t nvalid = 0;
     int rc = telemetry && telemetry[0] ? swfs_telemetry_check_sh(telemetry, "the Shack-Hartmann model") : SWFS_OK;
-    if (!rc && valid) rc = swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid);
-    if (rc) return valid && !map ? swfs_fail_context(rc, "the valid-subaperture map %s", valid) : rc;
+    if (rc) return rc;
+    if (valid && (rc = swfs_valid_map_read(valid, &map, &o.valid_nsub, &nvalid)))
+        return swfs_fail_context(rc, "the valid-subaperture map %s", valid);
     if (map) o.valid = map;
     rc = swfs_pipeline_create(p, g, nfx, nfy, xy, nact, mask, nslopes, recon, train, ntrain, &o);
     free(map);

@@ -864,6 +864,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
             goto done;
         if (progress) progress(ctx, "pyramid interaction matrix", 0, nact);
         if ((rc = swfs_pyramid_interaction(pyr, T, lw / 100, &Dm))) goto done;
+        if (progress) progress(ctx, "pyramid interaction matrix", nact, nact);
     } else if ((rc = swfs_interaction_matrix(sh, T, &Dm))) {
         goto done;
     }
