@@ -163,15 +163,18 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
                     "map (--recon vk) instead\n", cmd, r->teach_fallback);
         }
     }
-    if (o->lin.basis) cli_linear_summary(cmd, &o->lin, &r->info);
-    if (o->lin.basis && !o->lin.control && !o->lin.imat && o->pipe.recon == SWFS_RECON_TEACH)
-        fprintf(stderr, "%s: note: no map is taught for a linear model (the coefficients are the wavefront as given); "
-                "if the WFS is a Shack-Hartmann whose modal control matrix you have, `specklewfs modal-slopes` turns "
-                "the coefficients back into its slopes, for which the default teaches one (docs/telemetry.md, \"The "
-                "modal input kind\")\n", cmd);
-    else cli_recon_summary(cmd, &used, used_file, o->valid, &r->info,
-                           r->curl_noise > 0 ? "the slopes' curl power: modal-slopes' projection (MODALCM) leaves no "
-                                               "slope outside the modes to estimate it from" : NULL);
+    if (!o->lin.basis) {
+        cli_recon_summary(cmd, &used, used_file, o->valid, &r->info,
+                          r->curl_noise > 0 ? "the slopes' curl power: modal-slopes' projection (MODALCM) leaves no "
+                                              "slope outside the modes to estimate it from" : NULL);
+    } else {
+        cli_linear_summary(cmd, &o->lin, &r->info);
+        if (!o->lin.control && !o->lin.imat && o->pipe.recon == SWFS_RECON_TEACH)
+            fprintf(stderr, "%s: note: no map is taught for a linear model (the coefficients are the wavefront as "
+                    "given); if the WFS is a Shack-Hartmann whose modal control matrix you have, `specklewfs "
+                    "modal-slopes` turns the coefficients back into its slopes, for which the default teaches one "
+                    "(docs/telemetry.md, \"The modal input kind\")\n", cmd);
+    }
     fprintf(stderr, "%s: %zu %sframes from %zu of %zu timing-table rows (%zu reconstructor modes, %zu pupil samples "
             "outside the actuator hull, extrapolated) -> %s\n", cmd, r->nout, o->pipe.wfs_rate ? "WFS " : "", r->nok,
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
