@@ -15,6 +15,7 @@
 #include "specklewfs/stream.h"
 #include "specklewfs/timeseries.h"
 
+#include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -480,6 +481,53 @@ static void test_given_reconstructor(void **state)
         printf("test_runs: given reconstructor %s x %g: gain %.3f\n", files[k], scale[k], spr.info.recon_gain);
         assert_true(spr.info.recon_gain > 0.9 && spr.info.recon_gain < 1.1);
     }
+}
+
+/* A zonal loop (ao_rcond): its reconstructor, written as recon_ao.fits, is a truncated
+ * pseudo-inverse: W's singular values are 1 / s_i of the interaction matrix's kept modes, so
+ * their spread is at most 1 / ao_rcond and, the cut falling between two of D's, close to it;
+ * it keeps more modes than the default filter (56) and fewer than the actuators; the loop
+ * closes (tip-tilt held as the modal loop holds it). ao_rcond with ao_recon, or >= 1, is
+ * refused. */
+static void test_zonal_loop(void **state)
+{
+    (void)state;
+    const char *kv[] = {"ao_rcond=0.05"};
+    swfs_ts_params tp;
+    small_params(kv, 1, &tp);
+    swfs_ts_summary zs, ms;
+    const char *prov[] = {"test_runs"};
+    mkdir(p("zonal"), 0755);
+    assert_ok(swfs_ts_run(&tp, p("zonal"), prov, 1, NULL, NULL, &zs));
+    small_params(NULL, 0, &tp);
+    tp.ncubes = 1; /* the modal loop's tip-tilt only */
+    mkdir(p("modal_tt"), 0755);
+    assert_ok(swfs_ts_run(&tp, p("modal_tt"), prov, 1, NULL, NULL, &ms));
+    swfs_recon *r = NULL;
+    assert_ok(swfs_recon_read(p("zonal/recon_ao.fits"), &r));
+    const size_t k = r->nact < r->nslopes ? r->nact : r->nslopes;
+    double *sv = malloc(k * sizeof *sv);
+    assert_non_null(sv);
+    assert_int_equal(LAPACKE_dgesdd(LAPACK_ROW_MAJOR, 'N', (lapack_int)r->nact, (lapack_int)r->nslopes, r->W,
+                                    (lapack_int)r->nslopes, sv, NULL, (lapack_int)k, NULL, (lapack_int)r->nslopes), 0);
+    size_t rank = 0;
+    while (rank < k && sv[rank] > 1e-9 * sv[0]) rank++;
+    const double spread = sv[0] / sv[rank - 1];
+    printf("test_runs: zonal loop: %zu modes of %zu actuators (reported %zu), spread of W's singular values %.2f; "
+           "tip-tilt %.3f lambda/D (modal loop %.3f), residual %.1f nm without tip-tilt\n", rank, r->nact,
+           zs.ao_modes, spread, zs.tt_rms, ms.tt_rms, zs.residual_rms_nott * 1e9);
+    assert_int_equal(rank, zs.ao_modes);
+    assert_true(rank > 56 && rank < r->nact - 1);
+    assert_true(spread <= 1 / 0.05 * (1 + 1e-9) && spread > 0.8 / 0.05);
+    assert_true(zs.tt_rms < 1.3 * ms.tt_rms);
+    free(sv);
+    swfs_recon_free(r);
+    small_params(kv, 1, &tp);
+    snprintf(tp.ao_recon, sizeof tp.ao_recon, "%s", p("zonal/recon_ao.fits"));
+    assert_refused(swfs_ts_params_check(&tp), "ao_rcond and ao_recon", "ao_rcond=0.05 and ao_recon=", p("zonal/none"));
+    small_params(NULL, 0, &tp);
+    tp.ao_rcond = 1;
+    assert_refused(swfs_ts_params_check(&tp), "ao_rcond 1", "ao_rcond=1: must be in [0, 1)", p("zonal/none"));
 }
 
 /* Actuators that do not cover the pupil rim: the outer ring of the simulated DM left out of
@@ -1620,6 +1668,7 @@ int main(void)
         cmocka_unit_test(test_sync_speckles_estimate),
         cmocka_unit_test(test_sync_ratio_from_log),
         cmocka_unit_test(test_given_reconstructor),
+        cmocka_unit_test(test_zonal_loop),
         cmocka_unit_test(test_rim_coverage),
         cmocka_unit_test(test_stream_equals_speckles),
         cmocka_unit_test(test_stream_batches),

@@ -68,6 +68,11 @@ typedef struct swfs_ts_params {
     double ao_gain;            /* 0.4 */
     long ao_delay;             /* [frames] 1 or 2 (2) */
     long ao_modes;             /* K modes kept by the modal filter (56) */
+    double ao_rcond;           /* > 0: the loop reconstructs with the truncated SVD pseudo-inverse of its
+                                  interaction matrix, keeping the modes whose singular value exceeds
+                                  ao_rcond times the largest (a zonal loop: its modes the interaction
+                                  matrix's, not the DM's lowest-energy ones; ao_modes unused); 0
+                                  (default): the ao_modes modal filter */
     double slope_noise;        /* [rad] rms per slope (3e-8; the Shack-Hartmann's) */
     /* wfs=pyramid: a modulated pyramid (pyramid.h) on the Shack-Hartmann's subaperture grid
        senses instead; its signals are the telemetry (slopes_NNN.fits, the same layout) */

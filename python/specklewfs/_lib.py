@@ -230,7 +230,7 @@ swfs_ts_params = _s("swfs_ts_params", [
     ("base", swfs_sim_params), ("nlayers", c_int), ("layer_frac", c_dbl * TS_MAX_LAYERS),
     ("layer_speed", c_dbl * TS_MAX_LAYERS), ("layer_dir", c_dbl * TS_MAX_LAYERS), ("wfs_rate", c_dbl),
     ("nsub", c_long), ("act_pitch", c_dbl), ("ao_gain", c_dbl), ("ao_delay", c_long), ("ao_modes", c_long),
-    ("slope_noise", c_dbl), ("wfs_pyramid", c_long), ("pyr_mod", c_dbl), ("pyr_nmod", c_long), ("wfs_wavelen", c_dbl),
+    ("ao_rcond", c_dbl), ("slope_noise", c_dbl), ("wfs_pyramid", c_long), ("pyr_mod", c_dbl), ("pyr_nmod", c_long), ("wfs_wavelen", c_dbl),
     ("pyr_photons", c_dbl), ("vib_amp", c_dbl), ("vib_freq", c_dbl), ("vib_angle", c_dbl), ("jitter_amp", c_dbl),
     ("jitter_freq", c_dbl), ("frame_ratio", c_dbl), ("ncubes", c_long), ("cube_frames", c_long),
     ("cube_gap", c_dbl), ("start_offset", c_dbl), ("handshake_lag", c_long), ("wfs_file_frames", c_long),

@@ -213,8 +213,9 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHMIS", r->check.st_mismatch, "[subap] layers apart at the largest lag");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHCEX", r->check.st_corr_excess, "correlation beyond 3 spreads (> 0 warns)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHMOD", (long)r->ao_modes, "teach: the loops' controlled modes (ao_modes)");
-    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHMSR", o->sim.ao_recon[0] ? "ao_recon" : o->modes_from_slopes ?
-                                           "slopes" : "given", "the modal filter: ao_modes given, from the slopes' knee, or ao_recon");
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHMSR", o->sim.ao_recon[0] ? "ao_recon" : o->sim.ao_rcond > 0 ? "ao_rcond" :
+                                           o->modes_from_slopes ? "slopes" : "given",
+                                           "the filter: ao_modes given, the slopes' knee, ao_recon, ao_rcond");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHNOI", r->noise_rms, "[rad] the observation's white slope noise");
@@ -619,7 +620,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         rc = modes_from_slopes(&oo, obs, &tmpl, r);
     }
     o = &oo;
-    r->ao_modes = o->sim.ao_recon[0] ? 0 : (size_t)o->sim.ao_modes;
+    r->ao_modes = o->sim.ao_recon[0] || o->sim.ao_rcond > 0 ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
     /* 3. the loops. Enough frames for the map: a least-squares map of p inputs learned from
      * n frames misses frames it was not learned on by sqrt(1 + p / (n - p - 1)) times its

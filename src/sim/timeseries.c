@@ -103,7 +103,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 #define D_(key, f) if ((rc = swfs_config_double(c, key, p->f, &p->f))) return rc
 #define L_(key, f) if ((rc = swfs_config_long(c, key, p->f, &p->f))) return rc
     D_("wfs_rate", wfs_rate); L_("nsub", nsub); D_("act_pitch", act_pitch); D_("ao_gain", ao_gain);
-    L_("ao_delay", ao_delay); L_("ao_modes", ao_modes); D_("slope_noise", slope_noise);
+    L_("ao_delay", ao_delay); L_("ao_modes", ao_modes); D_("ao_rcond", ao_rcond); D_("slope_noise", slope_noise);
     D_("vib_amp", vib_amp); D_("vib_freq", vib_freq); D_("vib_angle", vib_angle);
     D_("jitter_amp", jitter_amp); D_("jitter_freq", jitter_freq);
     D_("frame_ratio", frame_ratio); L_("ncubes", ncubes); L_("cube_frames", cube_frames); D_("cube_gap", cube_gap);
@@ -247,6 +247,11 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     if (!(p->ao_gain >= 0 && p->ao_gain < 2)) return badv("ao_gain", p->ao_gain, "must be in [0, 2)");
     if (p->ao_delay < 1 || p->ao_delay > 8) return badv("ao_delay", (double)p->ao_delay, "must be 1..8 frames");
     if (p->ao_modes < 1) return badv("ao_modes", (double)p->ao_modes, "must be >= 1");
+    if (!(p->ao_rcond >= 0 && p->ao_rcond < 1)) return badv("ao_rcond", p->ao_rcond, "must be in [0, 1) (0: the ao_modes filter)");
+    if (p->ao_rcond > 0 && p->ao_recon[0])
+        return swfs_fail(SWFS_ERR_ARG, "time-series parameters ao_rcond=%g and ao_recon=%s: the loop's reconstructor is "
+                         "either the file's or the truncated pseudo-inverse of its interaction matrix, not both",
+                         p->ao_rcond, p->ao_recon);
     if (!(p->slope_noise >= 0)) return badv("slope_noise", p->slope_noise, "must be >= 0");
     if (p->wfs_pyramid & ~1L) return badv("wfs_pyramid", (double)p->wfs_pyramid, "must be 0 or 1");
     if (!(p->pyr_mod >= 0)) return badv("pyr_mod", p->pyr_mod, "must be >= 0 lambda/D");
@@ -646,7 +651,7 @@ int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &s->xy, &s->nact, &rao, &vmap);
     if (!rc) rc = swfs_ts_loop_model(p, s->mask, vmap, &s->xy, &s->nact, &T, &sh);
     if (!rc && !p->ao_recon[0]) rc = swfs_dm_modes(T, s->mask, np, &s->modes);
-    if (!rc && !p->ao_recon[0]) { /* the loop's reconstructor, for the runs at the same ao_modes */
+    if (!rc && !p->ao_recon[0] && !(p->ao_rcond > 0)) { /* the loop's reconstructor, for the runs at the same ao_modes */
         s->ns = sh->nslopes;
         s->raoK = (size_t)p->ao_modes < s->nact - 1 ? (size_t)p->ao_modes : s->nact - 1;
         rc = swfs_interaction_matrix(sh, T, &s->Dm);
@@ -878,6 +883,10 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
         if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
+    } else if (p->ao_rcond > 0) {
+        /* A zonal loop: the pseudo-inverse of its own interaction matrix, the modes of small
+         * singular value (piston, waffle, what the sensor barely sees) left out. */
+        if ((rc = swfs_recon_svd(Dm, sh->nslopes, nact, p->ao_rcond, 0, &rao))) goto done;
     } else {
         /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1); the
          * shared plans' reconstructor when it was made from the same interaction matrix and K
