@@ -80,7 +80,7 @@ for v in "${VARIANTS[@]}"; do
         --pupil "$d/obs/pupil.fits" "${valid[@]}" -o "$d/taught.fits" --work "$d/teach" > "$d/teach.log" 2>&1 \
         || { echo "$name: teach failed ($d/teach.log)" >&2; continue; }
     t=$(path "$d" taught --recon "$d/taught.fits" "${valid[@]}")
-    rm -rf "$d"/teach/loop_* "$d"/teach/mixed_* "$d"/teach/modes_*
+    rm -rf "$d"/teach/loop_* "$d"/teach/mixed_* "$d"/teach/modes_* "$d"/teach/zonal_*
     k=$(awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_modes" && $(i + 1) == "=") print $(i + 2) }' "$d/teach.log")
     ch=$(awk '/^teach: chose the / { print $4 }' "$d/teach.log")
     sec=$(awk '/^teach: chose the / { for (i = 1; i <= NF; i++) if ($i == "s;") print substr($(i - 1), 2) }' "$d/teach.log")

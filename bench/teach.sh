@@ -43,7 +43,7 @@ for ks in $OBS; do
     "$X" estimate "$d/sci_taught$auto.fits" "$d/spk_taught$auto.fits" -o "$d/halo_taught$auto.fits" > /dev/null 2>&1
     "$X" pupil "$d/halo_taught$auto.fits" -o "$d/pupil_taught$auto.fits" --truth "$d/truth.fits" > "$d/pupil_taught$auto.log"
     t=$(ncp_error "$d/pupil_taught$auto.log")
-    rm -rf "$d"/teach$auto/loop_* "$d"/teach$auto/mixed_* "$d"/teach$auto/modes_*
+    rm -rf "$d"/teach$auto/loop_* "$d"/teach$auto/mixed_* "$d"/teach$auto/modes_* "$d"/teach$auto/zonal_*
     layers=$(awk '/^teach:   layer [0-9]+: / { printf "%s%s toward %s", n++ ? "; " : "", $4, $7 }' "$tl")
     lags=$(awk '/ loops simulated; lags / { for (i = 1; i <= NF; i++) if ($i == "lags") print $(i + 1) }' "$tl")
     ch=$(awk '/^teach: chose the / { print $4 }' "$tl")

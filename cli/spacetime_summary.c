@@ -107,7 +107,11 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
         fprintf(f, "%s: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
                 "loops (ao_modes -> knee):", cmd, r->knee_obs);
         for (size_t k = 0; k < r->ncal; k++) fprintf(f, "%s %zu -> %zu", k ? "," : "", r->cal_modes[k], r->cal_knee[k]);
-        fprintf(f, "; ao_modes = %zu\n", r->ao_modes);
+        fprintf(f, "; profile misfit (rms log10) %.3f, zonal loops (ao_rcond:", r->misfit_modal);
+        for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++)
+            fprintf(f, "%s %g %.3f", z ? "," : "", swfs_teach_zonal_rcond[z], r->zonal_misfit[z]);
+        if (r->zonal) fprintf(f, "); the loops are zonal, ao_rcond = %g\n", r->zonal_rcond);
+        else fprintf(f, "); ao_modes = %zu\n", r->ao_modes);
     } else if (r->ao_modes) {
         fprintf(f, "%s: the loops' modal filter: ao_modes = %zu, as given\n", cmd, r->ao_modes);
     }

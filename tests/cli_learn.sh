@@ -132,6 +132,17 @@ awk '/modal filter from the slopes/ { for (i = 1; i <= NF; i++) if ($i == "ao_mo
     END { exit !(k >= 31 && k <= 41) }' teach1.log || { cat teach1.log; fail "teach: the modal filter from the slopes (36)"; }
 head -c 8640 taught1.fits | grep -aq "TEACHSEL= 'perframe_mixed'" && head -c 8640 taught1.fits | grep -aq "TEACHWRN=  *2 " \
     || fail "teach: the map's header should say the per-frame map of random seconds, the correlation check warning"
+grep -q "the loops are zonal" teach1.log && { cat teach1.log; fail "teach: a modal loop taken for a zonal one"; }
+# a zonal loop (ao_rcond: the truncated pseudo-inverse of the interaction matrix, every mode the
+# sensor sees controlled) has no knee; teach's zonal calibration loops match its mode variances
+# and the loops are zonal at the observation's cut or a neighbour (measured: 0.05 for 0.05)
+"$B" simulate my.conf layer_speed=15,22 seed=9 ao_rcond=0.05 -o obsz --quiet > /dev/null 2>&1 || fail "simulate the zonal loop"
+"$B" teach obsz/slopes_0*.fits --system my.conf -o taughtz.fits --work taughtz --loops 2 > teachz.log 2>&1 \
+    || { cat teachz.log; fail "teach (zonal loop)"; }
+grep -q "the loops are zonal, ao_rcond = 0.0[357]$" teachz.log && [ -d taughtz/zonal_05 ] \
+    && head -c 11520 taughtz.fits | grep -aq "TEACHMSR= 'zonal" && head -c 11520 taughtz.fits | grep -aq "TEACHRCO=" \
+    || { cat teachz.log; fail "teach: a zonal loop at the observation's cut (0.05) or a neighbour expected"; }
+echo "cli_learn: zonal loop: $(grep -o 'zonal loops (ao_rcond:.*' teachz.log)"
 # a system of another geometry than the telemetry's: refused, naming the file; no map left
 "$B" teach obs1/slopes_000.fits --system my.conf nsub=16 -o bad.fits --work badw --loops 2 > bad.log 2>&1 \
     && fail "teach accepted a 16 x 16 system for 12 x 12 telemetry"

@@ -22,7 +22,7 @@ FITSDIFF=$(dirname "$B")/tests/fitsdiff
 grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.teach/taught.fits" speckles_dt.log \
     && grep -q "given space-time reconstructor spk_dt.teach/taught.fits: 288 slopes x 5 lags" speckles_dt.log \
     && grep -q "ao_modes = 5[3-9]$" speckles_dt.log && [ -s spk_dt.teach/spacetime.fits ] \
-    && [ -s spk_dt.teach/modes.tsv ] && ! ls -d spk_dt.teach/loop_* spk_dt.teach/modes_* > /dev/null 2>&1 \
+    && [ -s spk_dt.teach/modes.tsv ] && ! ls -d spk_dt.teach/loop_* spk_dt.teach/modes_* spk_dt.teach/zonal_* > /dev/null 2>&1 \
     || { cat speckles_dt.log; fail "speckles (default): the taught map in spk_dt.teach, its loops removed"; }
 "$B" estimate sci_dt.fits spk_dt.fits -o halo_dt.fits > /dev/null 2>&1 || fail "estimate (default)"
 "$B" pupil halo_dt.fits -o pupil_dt.fits --truth obs/truth.fits > pupil_dt.log || fail "pupil (default)"

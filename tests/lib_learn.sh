@@ -47,11 +47,11 @@ teach_files() {
     head -c 14400 taught_f.fits | grep -aq "TEACHNOI=" || fail "teach: TEACHNOI expected in the map's header"
     # the modal filter from the slopes (the observation's loop controls the simulator's 56
     # modes; within 3 above), its calibration loops kept in modes_NN/, and the profiles it was
-    # read from: modes.tsv (a row per mode after piston, the observation and the calibration
-    # loop) and modes.png
+    # read from: modes.tsv (a row per mode after piston, the observation, the calibration loop
+    # and the closest zonal loop) and modes.png
     head -c 11520 taught_f.fits | grep -aq "TEACHMSR= 'slopes" && [ -d taught_f/modes_00 ] \
         || fail "teach: TEACHMSR = 'slopes' and a calibration loop expected"
-    head -1 taught_f/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]$" \
+    head -1 taught_f/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]	zonal_0\.[0-9]*$" \
         && [ "$(grep -vc '^#' taught_f/modes.tsv)" -gt 150 ] && [ -s taught_f/modes.png ] \
         || { head -3 taught_f/modes.tsv; fail "teach: modes.tsv / modes.png"; }
     etf=$(ncp_with taught_f.fits tf timing.txt)

@@ -705,8 +705,16 @@ typedef struct swfs_teach_run_options {
 /* The version of teach's rule, hashed into speckles' fingerprint of a taught map's inputs
  * (TEACHFPR): a change to what teach makes of the same inputs (its loops, lags, choice, the
  * learner) bumps it, so that maps taught before are taught again rather than reused
- * (2026-12-01: more loops where the space-time map's learning curve asks for them). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-01"
+ * (2026-12-01: more loops where the space-time map's learning curve asks for them;
+ * 2026-12-02: a zonal calibration loop beside the modal ones). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-02"
+
+/* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
+ * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
+ * to 2 apart (docs/telemetry.md, "A zonal loop": the taught maps' NCP error over observations
+ * of cuts on and between them). */
+#define SWFS_TEACH_NZONAL 6
+extern const double swfs_teach_zonal_rcond[SWFS_TEACH_NZONAL];
 
 void swfs_teach_run_options_default(swfs_teach_run_options *o);
 
@@ -756,6 +764,16 @@ typedef struct swfs_teach_run_result {
     size_t project_rank;        /* the telemetry is modal-slopes' projection (its MODALCM key): the
                                    loops' slopes projected the same way, P = CM+ CM of this rank */
     size_t project_slopes;      /* over this many slopes; 0: no projection */
+    /* modes_from_slopes: the zonal calibration loops (zonal_NN/, one per swfs_teach_zonal_rcond):
+     * each one's profile misfit (the rms of log10 of the loop's mode variances over the
+     * observation's), the closest one's cut, knee and misfit, the modal loop's misfit (the
+     * calibration loop whose knee came closest), and whether the loops are zonal
+     * (misfit_zonal < misfit_modal: ao_rcond = zonal_rcond, ao_modes then 0) */
+    double zonal_misfit[SWFS_TEACH_NZONAL];
+    double zonal_rcond;
+    size_t zonal_knee;
+    double misfit_modal, misfit_zonal;
+    int zonal;
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

@@ -362,6 +362,8 @@ def test_teach_from_files(series, tmp_path):
     assert r["curve_first"] is None and r["curve"] is None and r["st_loops"] == 3
     assert r["modes_from_slopes"] and abs(r["ao_modes"] - 56) <= 0.15 * 56 and r["knee_obs"] > 0
     assert 1 <= len(r["calibration"]) <= 4 and r["calibration"][0][0] == r["knee_obs"]
+    # the modal loop's profile is the closer: the zonal loops' (one per cut) further off
+    assert not r["zonal"] and len(r["misfit_zonal"]) == 6 and r["misfit_modal"] < min(r["misfit_zonal"])
     assert r["nsub"] == 12 and r["chosen"] in ("spacetime", "perframe", "perframe_mixed")
     # three loops as long as the series' file would hold fewer than 10 frames per input of
     # the map (5 lags x the 224 slopes used): lengthened to hold them

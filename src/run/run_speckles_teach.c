@@ -50,14 +50,15 @@ static int work_folder(const swfs_speckles_run_options *o, char *work, size_t ca
     return rc;
 }
 
-/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN: the simulator's files,
- * no subfolders), removed once the map is taught; what cannot be removed is left as it is
- * (the map is taught: it only costs space). */
+/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN, zonal_NN: the
+ * simulator's files, no subfolders), removed once the map is taught; what cannot be removed
+ * is left as it is (the map is taught: it only costs space). */
 static void drop_loops(const char *work, const struct swfs_teach_run_result *tr, size_t nloops)
 {
-    static const char *const kinds[] = {"loop", "mixed", "modes"};
-    for (int t = 0; t < 3; t++) {
-        const size_t n = t == 2 ? tr->ncal : t == 0 && tr->st_loops > nloops ? tr->st_loops : nloops;
+    static const char *const kinds[] = {"loop", "mixed", "modes", "zonal"};
+    for (int t = 0; t < 4; t++) {
+        const size_t n = t == 3 ? (tr->ncal ? SWFS_TEACH_NZONAL : 0)
+                         : t == 2 ? tr->ncal : t == 0 && tr->st_loops > nloops ? tr->st_loops : nloops;
         for (size_t k = 0; k < n; k++) {
             char d[4300], f[4600];
             snprintf(d, sizeof d, "%s/%s_%02zu", work, kinds[t], k);
