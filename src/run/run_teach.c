@@ -319,9 +319,9 @@ const double swfs_teach_zonal_rcond[SWFS_TEACH_NZONAL] = {0.02, 0.03, 0.05, 0.07
  * highest modes only (265 to 323 of 330 kept on a 16 x 16 system from 0.2 to 0.02). The lower
  * half differs between loops by their seeds and layers, and the level of the whole profile
  * by the layers' shares and speeds, which the slopes tell only roughly: on one observation
- * the loops' layers off by a factor of 2 in level moved the rms without the mean from 0.10
- * to 0.30 for every cut alike, and left the closest cut where it was with it
- * (docs/telemetry.md, "A zonal loop"). */
+ * loops of one layer instead of its two raised every cut's profile by 0.3 in log10, the
+ * plain rms then 0.30-0.33 for every cut from 0.02 to 0.07 (no choice left), the rms about
+ * the mean still least at 0.05-0.07 (docs/telemetry.md, "A zonal loop"). */
 static double profile_misfit(const double *a, size_t na, const double *b, size_t nb)
 {
     double s = 0, s2 = 0;
