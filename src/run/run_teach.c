@@ -81,7 +81,11 @@ static int clear_loop(const char *path)
     return rc;
 }
 
-static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads, const swfs_ts_shared *shared)
+/* One loop of the description at job j's layers and seed into work/NAME_NN; truth: with the
+ * true residual (export_truth: the maps' training target), which the calibration loops, read
+ * for their slopes only, go without (the slopes are the same either way). */
+static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads, const swfs_ts_shared *shared,
+                         int truth)
 {
     swfs_ts_params p = o->sim;
     p.nlayers = j->nl;
@@ -92,7 +96,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     }
     p.base.seed = j->seed;
     p.base.threads = threads;
-    p.export_truth = 1;
+    p.export_truth = truth;
     p.export_modal = 0;
     p.milk = 0;
     if (snprintf(j->path, sizeof j->path, "%.4000s/%s_%02zu", o->work, j->name, j->k) >= (int)sizeof j->path)
@@ -116,7 +120,7 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
     loops_ctx *c = ctx;
     for (size_t i = begin; i < end; i++) {
         loop_job *j = c->jobs + i;
-        j->rc = simulate_loop(c->o, j, c->inner, c->shared);
+        j->rc = simulate_loop(c->o, j, c->inner, c->shared, 1);
         if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
         const size_t done = atomic_fetch_add(&c->done, 1) + 1;
         if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, done, c->njobs);
@@ -368,7 +372,7 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
         swfs_real *ls = NULL;
         char f[4300];
         size_t knee = 0;
-        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL))) {
+        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
             if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[it + 1], &nv[it + 1], &knee);
             swfs_real_free(ls);
@@ -401,7 +405,7 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
         swfs_real *ls = NULL;
         char f[4300];
         size_t knee = 0;
-        rc = simulate_loop(o, &j, o->sim.base.threads, NULL);
+        rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
         if (!rc) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
             if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[5 + z], &nv[5 + z], &knee);
