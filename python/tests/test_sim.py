@@ -145,6 +145,17 @@ def test_simulation_parameters_errors():
     assert p["nfx"] == 40 and p["ncp_nzernike"] == 1 and p["ncp_zernike"][:3] == [2.0, 0.0, 20e-9]
 
 
+def test_zonal_loop_parameter(tmp_path):
+    """ao_rcond (a zonal loop) read by the library into the ctypes mirror at its place: the
+    fields after it keep their defaults; out of range refused before anything is written."""
+    from specklewfs.sim import _checked_params
+    p = _checked_params("ts", None, dict(mode="timeseries", ao_rcond=0.05))
+    assert p.ao_rcond == 0.05 and p.ao_modes == 56 and p.slope_noise == pytest.approx(3e-8) and p.pyr_mod == 3
+    with pytest.raises(sw.Error, match=r"ao_rcond=1.5: must be in \[0, 1\)"):
+        sw.simulate_timeseries(str(tmp_path / "z"), ao_rcond=1.5)
+    assert not (tmp_path / "z").exists() or not os.listdir(tmp_path / "z")
+
+
 def test_progress_callback():
     seen = []
     sw.simulate(progress=lambda stage, done, total: seen.append((stage, done, total)),
