@@ -368,6 +368,17 @@ static void test_shared_plans(void **state)
     assert_ok(ts_into_shared("sh_nt", notruth, 1, sh));
     assert_int_equal(ts_into_shared("sh_bad", pts, 2, sh), SWFS_ERR_ARG);
     swfs_ts_shared_free(sh);
+    /* a zonal loop's plans (ao_rcond): its reconstructor made once, the same slopes as a run's
+     * own; a modal run with them makes its own, as without them */
+    const char *zonal[] = {"act_pitch=0.5", "ao_rcond=0.05"};
+    assert_ok(ts_params(zonal, 2, &tp));
+    assert_ok(swfs_ts_shared_create(&tp, &sh));
+    assert_ok(ts_into_shared("shz_own", zonal, 2, NULL));
+    assert_ok(ts_into_shared("shz_shared", zonal, 2, sh));
+    assert_ok(ts_into_shared("shz_modal", notruth, 1, sh));
+    same_files("shz_own", "shz_shared", cmp, 1);
+    same_files("sh_nt", "shz_modal", cmp, 1);
+    swfs_ts_shared_free(sh);
 }
 
 /* The AO system's valid-subaperture map given (valid = FILE): the simulated Shack-Hartmann

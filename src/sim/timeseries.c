@@ -609,9 +609,11 @@ struct swfs_ts_shared {
     double *txy;       /* its points when truth_actuators gives them */
     size_t ntr;
     double *Dm;        /* the loop's interaction matrix (ns x nact), NULL with ao_recon */
-    size_t ns, raoK;   /* its slopes; the modes the loop's reconstructor rao keeps */
-    swfs_recon *rao;   /* the loop's modal reconstructor at ao_modes (raoK), NULL with ao_recon */
-    double *raoV;      /* its factors, rao = raoV raoP (swfs_recon_modal_factors) */
+    size_t ns, raoK;   /* its slopes; the modes the loop's modal reconstructor rao keeps (0: zonal) */
+    double rcond;      /* > 0: rao is the zonal one at this ao_rcond */
+    swfs_recon *rao;   /* the loop's reconstructor: modal at ao_modes (raoK) or zonal at ao_rcond
+                          (rcond), NULL with ao_recon */
+    double *raoV;      /* a modal one's factors, rao = raoV raoP (swfs_recon_modal_factors) */
     swfs_recon *raoP;
 };
 
@@ -651,12 +653,17 @@ int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &s->xy, &s->nact, &rao, &vmap);
     if (!rc) rc = swfs_ts_loop_model(p, s->mask, vmap, &s->xy, &s->nact, &T, &sh);
     if (!rc && !p->ao_recon[0]) rc = swfs_dm_modes(T, s->mask, np, &s->modes);
-    if (!rc && !p->ao_recon[0] && !(p->ao_rcond > 0)) { /* the loop's reconstructor, for the runs at the same ao_modes */
+    if (!rc && !p->ao_recon[0]) { /* the loop's reconstructor, for the runs of the same filter */
         s->ns = sh->nslopes;
-        s->raoK = (size_t)p->ao_modes < s->nact - 1 ? (size_t)p->ao_modes : s->nact - 1;
         rc = swfs_interaction_matrix(sh, T, &s->Dm);
-        if (!rc) rc = swfs_recon_modal_factors(s->Dm, s->ns, s->nact, s->modes, 1, s->raoK, &s->raoV, &s->raoP);
-        if (!rc) rc = swfs_recon_modal_compose(s->raoV, s->raoP, s->nact, &s->rao);
+        if (!rc && p->ao_rcond > 0) {
+            s->rcond = p->ao_rcond;
+            rc = swfs_recon_svd(s->Dm, s->ns, s->nact, p->ao_rcond, 0, &s->rao);
+        } else if (!rc) {
+            s->raoK = (size_t)p->ao_modes < s->nact - 1 ? (size_t)p->ao_modes : s->nact - 1;
+            rc = swfs_recon_modal_factors(s->Dm, s->ns, s->nact, s->modes, 1, s->raoK, &s->raoV, &s->raoP);
+            if (!rc) rc = swfs_recon_modal_compose(s->raoV, s->raoP, s->nact, &s->rao);
+        }
     }
     if (!rc && p->export_truth) rc = truth_plan(p, s->mask, s->xy, s->nact, &s->tfit, &s->txy, &s->ntr);
     swfs_recon_free(rao);
@@ -669,6 +676,14 @@ int swfs_ts_shared_create(const swfs_ts_params *p, swfs_ts_shared **out)
     }
     *out = s;
     return SWFS_OK;
+}
+
+/* The shared plans' loop reconstructor is this run's: made from the same interaction matrix
+ * (ns x nact) with the same filter (K modes, or the zonal cut rcond). */
+static int shared_rao_fits(const swfs_ts_shared *s, const double *Dm, size_t ns, size_t nact, size_t K, double rcond)
+{
+    return s && s->rao && s->raoK == K && s->rcond == rcond && s->ns == ns &&
+           !memcmp(s->Dm, Dm, ns * nact * sizeof *Dm);
 }
 
 /* The shared plans s made for this run's system: its pupil and DM, its modes (unless
@@ -885,15 +900,16 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
     } else if (p->ao_rcond > 0) {
         /* A zonal loop: the pseudo-inverse of its own interaction matrix, the modes of small
-         * singular value (piston, waffle, what the sensor barely sees) left out. */
-        if ((rc = swfs_recon_svd(Dm, sh->nslopes, nact, p->ao_rcond, 0, &rao))) goto done;
+         * singular value (piston, waffle, what the sensor barely sees) left out; the shared
+         * plans' when made from the same matrix and cut (teach's loops: one SVD for all). */
+        if (shared_rao_fits(shared, Dm, sh->nslopes, nact, 0, p->ao_rcond)) rao_shared = shared->rao;
+        else if ((rc = swfs_recon_svd(Dm, sh->nslopes, nact, p->ao_rcond, 0, &rao))) goto done;
     } else {
         /* The loop's modal filter: the K lowest-energy DM modes after piston (Sec. 4.1); the
          * shared plans' reconstructor when it was made from the same interaction matrix and K
          * (teach's loops: one SVD for all of them). */
         size_t K = (size_t)p->ao_modes < nact - 1 ? (size_t)p->ao_modes : nact - 1;
-        if (shared && shared->rao && shared->raoK == K && shared->ns == sh->nslopes &&
-            !memcmp(shared->Dm, Dm, sh->nslopes * nact * sizeof *Dm)) {
+        if (shared_rao_fits(shared, Dm, sh->nslopes, nact, K, 0)) {
             rao_shared = shared->rao;
         } else {
             double *modes = NULL;
