@@ -197,11 +197,13 @@ struct swfs_speckles_run_options;
  * and its warning, a space-time map's checks (spacetime_summary.c). */
 void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_options *o,
                           const struct swfs_speckles_run_result *r, const struct swfs_teach_run_result *tr);
-/* What teach found and chose (`teach`, and `speckles` teaching its default map), each line
- * starting with "cmd:"; out is the map, work its folder; checks: also the chosen map's
+/* What teach found and chose (`teach`, and `speckles` teaching its default map; teach_summary.c),
+ * each line starting with "cmd:"; out is the map, work its folder; checks: also the chosen map's
  * checks against the observation (speckles prints its own). */
 void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
                        const char *out, const char *work, int checks);
+/* The map teach chose (SWFS_TEACH_*), in words with why (teach_summary.c). */
+const char *cli_teach_chosen(int chosen);
 #define CLI_LINEAR_HELP \
     "Any AO system (the generic linear model, docs/telemetry.md): instead of --actuators,\n" \
     "  --basis CUBE.fits   mode shapes or influence functions, one plane each: PUPN x PUPN on the\n" \

@@ -766,13 +766,13 @@ typedef struct swfs_teach_run_result {
     size_t project_slopes;      /* over this many slopes; 0: no projection */
     /* modes_from_slopes: the zonal calibration loops (zonal_NN/, one per swfs_teach_zonal_rcond):
      * each one's profile misfit (the rms of log10 of the loop's mode variances over the
-     * observation's), the closest one's cut, knee and misfit, the modal loop's misfit (the
+     * observation's, about its mean), the closest one (its index), the modal loop's misfit (the
      * calibration loop whose knee came closest), and whether the loops are zonal
-     * (misfit_zonal < misfit_modal: ao_rcond = zonal_rcond, ao_modes then 0) */
+     * (zonal_misfit[zonal_best] < misfit_modal: ao_rcond = swfs_teach_zonal_rcond[zonal_best],
+     * ao_modes then 0) */
     double zonal_misfit[SWFS_TEACH_NZONAL];
-    double zonal_rcond;
-    size_t zonal_knee;
-    double misfit_modal, misfit_zonal;
+    size_t zonal_best;
+    double misfit_modal;
     int zonal;
 } swfs_teach_run_result;
 

@@ -365,8 +365,7 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("max_loops", c_size),
     ("curve_first", swfs_learn_run_result),
     ("curve", swfs_learn_run_result), ("project_rank", c_size), ("project_slopes", c_size),
-    ("zonal_misfit", c_dbl * 6), ("zonal_rcond", c_dbl), ("zonal_knee", c_size), ("misfit_modal", c_dbl),
-    ("misfit_zonal", c_dbl), ("zonal", c_int)])
+    ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

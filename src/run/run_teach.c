@@ -220,10 +220,11 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc) rc = swfs_fits_out_key_string(f, "TEACHMSR", o->sim.ao_recon[0] ? "ao_recon" : r->zonal ? "zonal" :
                                            o->sim.ao_rcond > 0 ? "ao_rcond" : o->modes_from_slopes ? "slopes" : "given",
                                            "filter: ao_modes given, knee, ao_recon, zonal, ao_rcond");
-    if (!rc && r->zonal) rc = swfs_fits_out_key_double(f, "TEACHRCO", r->zonal_rcond, "the zonal loops' ao_rcond");
-    if (!rc && o->modes_from_slopes && isfinite(r->misfit_modal) && isfinite(r->misfit_zonal) &&
+    const double zmf = r->zonal_misfit[r->zonal_best];
+    if (!rc && r->zonal) rc = swfs_fits_out_key_double(f, "TEACHRCO", o->sim.ao_rcond, "the zonal loops' ao_rcond");
+    if (!rc && o->modes_from_slopes && isfinite(r->misfit_modal) && isfinite(zmf) &&
         !(rc = swfs_fits_out_key_double(f, "TEACHMMF", r->misfit_modal, "modal loop's profile misfit (rms log10)")))
-        rc = swfs_fits_out_key_double(f, "TEACHZMF", r->misfit_zonal, "zonal loop's profile misfit (rms log10)");
+        rc = swfs_fits_out_key_double(f, "TEACHZMF", zmf, "zonal loop's profile misfit (rms log10)");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHNOI", r->noise_rms, "[rad] the observation's white slope noise");
@@ -266,52 +267,46 @@ static int knee_of(const swfs_ts_params *p, const swfs_real *s, const char *what
     return SWFS_OK;
 }
 
-/* work/modes.tsv (mode, the observation's variance, each calibration loop's) and, where
- * PLplot is, work/modes.png: what the modal filter was read from. */
-static int write_profiles(const char *work, double *const *v, const size_t *n, const swfs_teach_run_result *r)
+/* A mode-variance profile written to modes.tsv and modes.png: its values, knee (0: none),
+ * column name and legend. */
+typedef struct profile {
+    const double *v;
+    size_t n, knee;
+    char col[32], label[48];
+} profile;
+
+/* work/modes.tsv (mode, then each profile's variance: the observation's, each calibration
+ * loop's) and, where PLplot is, work/modes.png: what the loops' filter was read from. */
+static int write_profiles(const char *work, const profile *p, size_t nc)
 {
-    const size_t nc = 1 + r->ncal + (n[5] > 0); /* the zonal loop's profile (v[5]) last */
-    const double *vc[6];
-    size_t knee[6] = {r->knee_obs}, modes[6] = {0}, nn[6];
-    for (size_t c = 0; c < nc; c++) {
-        const size_t i = c && c == 1 + r->ncal ? 5 : c;
-        vc[c] = v[i];
-        nn[c] = n[i];
-        if (c && i != 5) {
-            knee[c] = r->cal_knee[c - 1];
-            modes[c] = r->cal_modes[c - 1];
-        } else if (c) {
-            knee[c] = r->zonal_knee;
-        }
-    }
-    char path[4200], lab[6][48];
-    const char *labels[6];
-    size_t len = 0, cap = 64 + 32 * nc + n[0] * (24 + 16 * nc); /* "%.6e" is at most 13 characters */
+    char path[4200];
+    size_t len = 0, cap = 64 + 40 * nc + p[0].n * (24 + 16 * nc); /* "%.6e" is at most 13 characters */
     char *buf = malloc(cap);
     if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-    len += (size_t)snprintf(buf + len, cap - len, "# mode\tobservation");
-    for (size_t c = 1; c < nc; c++)
-        len += modes[c] ? (size_t)snprintf(buf + len, cap - len, "\tloop_%zu", modes[c])
-                        : (size_t)snprintf(buf + len, cap - len, "\tzonal_%g", r->zonal_rcond);
+    len += (size_t)snprintf(buf + len, cap - len, "# mode");
+    for (size_t c = 0; c < nc; c++) len += (size_t)snprintf(buf + len, cap - len, "\t%s", p[c].col);
     len += (size_t)snprintf(buf + len, cap - len, "\n");
-    for (size_t j = 0; j < nn[0]; j++) {
+    for (size_t j = 0; j < p[0].n; j++) {
         len += (size_t)snprintf(buf + len, cap - len, "%zu", j + 1);
         for (size_t c = 0; c < nc; c++)
-            len += (size_t)snprintf(buf + len, cap - len, j < nn[c] ? "\t%.6e" : "\tnan", j < nn[c] ? vc[c][j] : 0.0);
+            len += (size_t)snprintf(buf + len, cap - len, j < p[c].n ? "\t%.6e" : "\tnan", j < p[c].n ? p[c].v[j] : 0.0);
         len += (size_t)snprintf(buf + len, cap - len, "\n");
     }
     snprintf(path, sizeof path, "%.4000s/modes.tsv", work);
     int rc = len < cap ? swfs_text_write(path, buf, len) : swfs_fail(SWFS_ERR_INTERNAL, "teach: modes.tsv overflow");
     free(buf);
     if (rc || !swfs_plot_available()) return rc;
-    for (size_t c = 0; c < nc; c++) {
-        if (c && modes[c]) snprintf(lab[c], sizeof lab[c], "loop of %zu modes", modes[c]);
-        else if (c) snprintf(lab[c], sizeof lab[c], "zonal loop (ao_rcond %g)", r->zonal_rcond);
-        else snprintf(lab[c], sizeof lab[c], "observation");
-        labels[c] = lab[c];
+    const double *v[6];
+    const char *labels[6];
+    size_t n[6], knee[6];
+    for (size_t c = 0; c < nc && c < 6; c++) {
+        v[c] = p[c].v;
+        n[c] = p[c].n;
+        knee[c] = p[c].knee;
+        labels[c] = p[c].label;
     }
     snprintf(path, sizeof path, "%.4000s/modes.png", work);
-    return swfs_fig_modes(path, vc, nn, knee, labels, nc);
+    return swfs_fig_modes(path, v, n, knee, labels, nc < 6 ? nc : 6);
 }
 
 const double swfs_teach_zonal_rcond[SWFS_TEACH_NZONAL] = {0.02, 0.03, 0.05, 0.07, 0.1, 0.2};
@@ -342,6 +337,26 @@ static double profile_misfit(const double *a, size_t na, const double *b, size_t
     return sqrt(var > 0 ? var : 0);
 }
 
+/* One calibration loop of the description as o->sim has it now (work/NAME_NN, read for its
+ * slopes only): its slopes' mode variances and their knee. */
+static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
+                            double **v, size_t *n, size_t *knee)
+{
+    loop_job j = *tmpl;
+    snprintf(j.name, sizeof j.name, "%s", name);
+    j.k = k;
+    j.seed = o->seed;
+    swfs_real *ls = NULL;
+    char f[4300];
+    int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    if (!rc) {
+        snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
+        if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, v, n, knee);
+        swfs_real_free(ls);
+    }
+    return rc;
+}
+
 /* The loops' modal filter from the observation (modes_from_slopes). The knee of its slopes'
  * mode variances can sit off the last controlled mode (the loop attenuating the modes near it
  * only partly, aliases); the system's own loop shows by how much. So: simulate a loop of K
@@ -358,26 +373,15 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
 {
     double *v[5 + SWFS_TEACH_NZONAL] = {NULL}; /* the observation's profile, each modal calibration loop's,
                                                   each zonal loop's */
-    size_t nv[5 + SWFS_TEACH_NZONAL] = {0}, bi = 0, bz = 0;
+    size_t nv[5 + SWFS_TEACH_NZONAL] = {0}, zknee[SWFS_TEACH_NZONAL] = {0}, bi = 0;
     int rc = knee_of(&o->sim, s, o->files[0], &v[0], &nv[0], &r->knee_obs);
     long K = (long)r->knee_obs, best = K;
     size_t bdist = (size_t)-1;
     for (size_t it = 0; !rc && it < 4; it++) {
         stage(o, "the loop's modal filter (calibration loops)", it, 4);
-        loop_job j = *tmpl;
-        snprintf(j.name, sizeof j.name, "modes");
-        j.k = it;
-        j.seed = o->seed;
         o->sim.ao_modes = K;
-        swfs_real *ls = NULL;
-        char f[4300];
         size_t knee = 0;
-        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
-            snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[it + 1], &nv[it + 1], &knee);
-            swfs_real_free(ls);
-        }
-        if (rc) break;
+        if ((rc = calibration_loop(o, tmpl, "modes", it, &v[it + 1], &nv[it + 1], &knee))) break;
         r->cal_modes[it] = (size_t)K;
         r->cal_knee[it] = knee;
         r->ncal = it + 1;
@@ -393,42 +397,28 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     }
     o->sim.ao_modes = best;
     if (!rc) r->misfit_modal = profile_misfit(v[bi], nv[bi], v[0], nv[0]);
-    const swfs_ts_params modal = o->sim;
-    r->misfit_zonal = INFINITY;
     for (size_t z = 0; !rc && z < SWFS_TEACH_NZONAL; z++) { /* the zonal loops */
         stage(o, "the loop's filter (zonal loops)", z, SWFS_TEACH_NZONAL);
-        loop_job j = *tmpl;
-        snprintf(j.name, sizeof j.name, "zonal");
-        j.k = z;
-        j.seed = o->seed;
         o->sim.ao_rcond = swfs_teach_zonal_rcond[z];
-        swfs_real *ls = NULL;
-        char f[4300];
-        size_t knee = 0;
-        rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
-        if (!rc) {
-            snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, &v[5 + z], &nv[5 + z], &knee);
-            swfs_real_free(ls);
-        }
-        if (rc) break;
+        if ((rc = calibration_loop(o, tmpl, "zonal", z, &v[5 + z], &nv[5 + z], &zknee[z]))) break;
         r->zonal_misfit[z] = profile_misfit(v[5 + z], nv[5 + z], v[0], nv[0]);
-        if (r->zonal_misfit[z] < r->misfit_zonal) {
-            r->misfit_zonal = r->zonal_misfit[z];
-            r->zonal_rcond = swfs_teach_zonal_rcond[z];
-            r->zonal_knee = knee;
-            bz = 5 + z;
+        if (r->zonal_misfit[z] < r->zonal_misfit[r->zonal_best]) r->zonal_best = z;
+    }
+    const size_t zb = r->zonal_best;
+    r->zonal = !rc && r->zonal_misfit[zb] < r->misfit_modal;
+    o->sim.ao_rcond = r->zonal ? swfs_teach_zonal_rcond[zb] : 0;
+    if (!rc) { /* the table and plot: the observation, the modal loops, the closest zonal one */
+        profile p[6] = {{v[0], nv[0], r->knee_obs, "observation", "observation"}};
+        for (size_t c = 0; c < r->ncal; c++) {
+            p[c + 1] = (profile){v[c + 1], nv[c + 1], r->cal_knee[c], "", ""};
+            snprintf(p[c + 1].col, sizeof p[c + 1].col, "loop_%zu", r->cal_modes[c]);
+            snprintf(p[c + 1].label, sizeof p[c + 1].label, "loop of %zu modes", r->cal_modes[c]);
         }
-    }
-    o->sim = modal;
-    if (!rc && r->misfit_zonal < r->misfit_modal) {
-        r->zonal = 1;
-        o->sim.ao_rcond = r->zonal_rcond;
-    }
-    if (!rc) { /* the plot and table: the observation, the modal loops, the closest zonal one */
-        double *pv[6] = {v[0], v[1], v[2], v[3], v[4], bz ? v[bz] : NULL};
-        size_t pn[6] = {nv[0], nv[1], nv[2], nv[3], nv[4], bz ? nv[bz] : 0};
-        rc = write_profiles(o->work, pv, pn, r);
+        profile *pz = &p[1 + r->ncal];
+        *pz = (profile){v[5 + zb], nv[5 + zb], zknee[zb], "", ""};
+        snprintf(pz->col, sizeof pz->col, "zonal_%g", swfs_teach_zonal_rcond[zb]);
+        snprintf(pz->label, sizeof pz->label, "zonal loop (ao_rcond %g)", swfs_teach_zonal_rcond[zb]);
+        rc = write_profiles(o->work, p, r->ncal + 2);
     }
     for (size_t c = 0; c < 5 + SWFS_TEACH_NZONAL; c++) free(v[c]);
     return rc;

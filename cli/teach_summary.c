@@ -1,0 +1,70 @@
+/* What `teach` prints, and `speckles` where it teaches its default map: the layers, noise and
+ * filter teach found, its loops, the map's learning curve and the choice (cli.h). */
+#include "cli.h"
+#include "specklewfs/run.h"
+
+#include <stdio.h>
+
+const char *cli_teach_chosen(int c)
+{
+    return c == SWFS_TEACH_SPACETIME    ? "the space-time map (neither check warned)"
+           : c == SWFS_TEACH_PERFRAME   ? "the per-frame map of the same loops (a check warned)"
+                                        : "the per-frame map of the measured layer and random second layers (a check warned)";
+}
+
+void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
+                       const char *out, const char *work, int checks)
+{
+    const swfs_wind_estimate *e = &r->wind.est;
+    fprintf(f, "%s: %zu WFS frames of %zu x %zu subapertures at %.6g Hz; %zu frozen-flow layer%s:\n", cmd,
+            r->wind.nframes, r->wind.nsub, r->wind.nsub, r->wind.rate, e->nlayers, e->nlayers == 1 ? "" : "s");
+    for (size_t k = 0; k < e->nlayers; k++)
+        fprintf(f, "%s:   layer %zu: %.2f m/s toward %.1f deg%s\n", cmd, k + 1, e->layer[k].speed, e->layer[k].direction,
+                k < r->nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
+    fprintf(f, "%s: the slopes' white noise %.3g rad rms per slope (the lag-0 excess of their curl over %zu cells of "
+            "2 x 2 subapertures; %.1f %% of the slopes' variance); the loops' slope_noise %.3g rad%s\n", cmd, r->noise_rms,
+            r->noise_cells, 100 * r->noise_share, r->slope_noise, r->slope_noise == r->noise_rms ? ", the same" : ", as given");
+    if (r->project_slopes)
+        fprintf(f, "%s: the slopes are modal-slopes' projection (MODALCM): the loops' slopes learned on the same "
+                "projection, rank %zu of %zu\n", cmd, r->project_rank, r->project_slopes);
+    if (modes_from_slopes) {
+        fprintf(f, "%s: the loop's modal filter from the slopes: their mode variances' knee at mode %zu; calibration "
+                "loops (ao_modes -> knee):", cmd, r->knee_obs);
+        for (size_t k = 0; k < r->ncal; k++) fprintf(f, "%s %zu -> %zu", k ? "," : "", r->cal_modes[k], r->cal_knee[k]);
+        fprintf(f, "; profile misfit (rms log10) %.3f, zonal loops (ao_rcond:", r->misfit_modal);
+        for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++)
+            fprintf(f, "%s %g %.3f", z ? "," : "", swfs_teach_zonal_rcond[z], r->zonal_misfit[z]);
+        if (r->zonal) fprintf(f, "); the loops are zonal, ao_rcond = %g\n", swfs_teach_zonal_rcond[r->zonal_best]);
+        else fprintf(f, "); ao_modes = %zu\n", r->ao_modes);
+    } else if (r->ao_modes) {
+        fprintf(f, "%s: the loops' modal filter: ao_modes = %zu, as given\n", cmd, r->ao_modes);
+    }
+    if (r->out_points && r->dm_pitch > 0)
+        fprintf(f, "%s: the map's output points: %zu on a hexapolar grid of pitch %.4g m (the DM's %.4g m)\n", cmd,
+                r->out_points, r->out_pitch, r->dm_pitch);
+    else if (r->out_points)
+        fprintf(f, "%s: the map's output points: %zu, as given (truth_actuators; pitch %.4g m)\n", cmd, r->out_points,
+                r->out_pitch);
+    fprintf(f, "%s: %zu loops simulated", cmd, r->nloops);
+    if (r->loop_frames > r->loop_frames_described)
+        fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,
+                r->loop_frames_described, r->map_inputs);
+    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual by %.1f of %.1f "
+            "nm on their frames\n", r->lags[0], r->lags[1], r->lags[2], r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms,
+            1e9 * r->st_truth_rms);
+    if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
+        fprintf(f, "%s: over the first loops, ", cmd);
+        cli_curve_line(f, "the space-time map's", &r->curve_first, 1e9, " nm");
+        fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
+        cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
+    } else if (r->max_loops <= r->st_loops) {
+        fprintf(f, "%s: the space-time map's learning curve: not measured (at most %zu loops: no more to add)\n", cmd,
+                r->max_loops);
+    } else {
+        fprintf(f, "%s: ", cmd);
+        cli_curve_line(f, "the space-time map's", &r->curve, 1e9, " nm");
+    }
+    if (checks) cli_spacetime_summary(cmd, &r->check);
+    fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, cli_teach_chosen(r->chosen), out, r->seconds,
+            work);
+}
