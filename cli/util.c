@@ -130,8 +130,7 @@ int cli_ts_params(const char *cmd, const char *cfgfile, struct swfs_config *over
             if (swfs_config_set_kv(file, swfs_config_key(over, k), swfs_config_value(over, k))) rc = cli_error(cmd);
     }
     swfs_config *use = file ? file : over;
-    if (!rc && filter_given) *filter_given = swfs_config_has(use, "ao_modes") || swfs_config_has(use, "ao_recon") ||
-                                          swfs_config_has(use, "ao_rcond");
+    if (!rc && filter_given) *filter_given = swfs_ts_config_gives_filter(use);
     if (!rc && noise_given) *noise_given = swfs_config_has(use, "slope_noise");
     if (!rc && describe && describe(use, ctx)) rc = cli_error(cmd); /* adds only the keys not given */
     if (!rc && (swfs_ts_params_from_config(use, p) || swfs_config_check_unused(use) || swfs_ts_params_check(p)))

@@ -157,6 +157,9 @@ void swfs_ts_params_default(swfs_ts_params *p);
 int swfs_ts_dm_layout(const swfs_ts_params *p, double **xy, size_t *nact);
 /* The shared keys via swfs_sim_params_from_config, then the time-series keys. */
 int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p);
+/* Whether the configuration gives the loop's filter (ao_modes, ao_recon or ao_rcond): `teach`
+ * takes it from the observation's slopes otherwise. */
+int swfs_ts_config_gives_filter(const swfs_config *c);
 int swfs_ts_params_check(const swfs_ts_params *p);
 
 typedef struct swfs_ts_summary {

@@ -438,6 +438,7 @@ _PROTOS = {
     "swfs_config_load": (c_int, [c_ptr, c_str]),
     "swfs_config_set_kv": (c_int, [c_ptr, c_str, c_str]),
     "swfs_config_has": (c_int, [c_ptr, c_str]),
+    "swfs_ts_config_gives_filter": (c_int, [c_ptr]),
     "swfs_config_check_unused": (c_int, [c_ptr]),
     # accum.h
     "swfs_accum_create": (P(swfs_accum), [c_size, c_size]),

@@ -317,8 +317,7 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     filter_given, noise_given = [], []
 
     def describe(c):  # on the config of config and params, as the command does (cli_ts_params)
-        filter_given.append(lib.swfs_config_has(c, b"ao_modes") or lib.swfs_config_has(c, b"ao_recon")
-                            or lib.swfs_config_has(c, b"ao_rcond"))
+        filter_given.append(bool(lib.swfs_ts_config_gives_filter(c)))
         noise_given.append(lib.swfs_config_has(c, b"slope_noise"))
         if science is not None:
             check(lib.swfs_teach_describe(c, enc(science), enc(actuators), enc(pupil) if pupil is not None else None,

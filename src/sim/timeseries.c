@@ -80,6 +80,11 @@ void swfs_ts_params_default(swfs_ts_params *p)
     p->ndead = 5;
 }
 
+int swfs_ts_config_gives_filter(const swfs_config *c)
+{
+    return swfs_config_has(c, "ao_modes") || swfs_config_has(c, "ao_recon") || swfs_config_has(c, "ao_rcond");
+}
+
 int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 {
     int rc;
