@@ -45,6 +45,11 @@ static const char *usage_text =
     "     truth_actuators=FILE gives other points);\n"
     "  4. where a check warns, the per-frame map: of the same loops when more than one layer\n"
     "     was found, else of N more loops of the measured layer and a random second layer.\n"
+    "Where `wind` tracks no frozen-flow layer (slopes mostly noise, turbulence that does not\n"
+    "flow): the speed whose one-layer calibration loops (speed_NN/) match the slopes' time\n"
+    "correlation (TEACHPSP), loops of two layers near it in any direction (prior_NN/; more\n"
+    "where the map's learning curve asks), and their per-frame map (TEACHSEL\n"
+    "'perframe_prior').\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
     "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time).\n";
 

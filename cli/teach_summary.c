@@ -9,7 +9,9 @@ const char *cli_teach_chosen(int c)
 {
     return c == SWFS_TEACH_SPACETIME    ? "the space-time map (neither check warned)"
            : c == SWFS_TEACH_PERFRAME   ? "the per-frame map of the same loops (a check warned)"
-                                        : "the per-frame map of the measured layer and random second layers (a check warned)";
+           : c == SWFS_TEACH_PERFRAME_PRIOR
+               ? "the per-frame map of loops at the slopes' speed (no frozen-flow layer to give them)"
+               : "the per-frame map of the measured layer and random second layers (a check warned)";
 }
 
 void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
@@ -18,6 +20,16 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     const swfs_wind_estimate *e = &r->wind.est;
     fprintf(f, "%s: %zu WFS frames of %zu x %zu subapertures at %.6g Hz; %zu frozen-flow layer%s:\n", cmd,
             r->wind.nframes, r->wind.nsub, r->wind.nsub, r->wind.rate, e->nlayers, e->nlayers == 1 ? "" : "s");
+    if (r->chosen == SWFS_TEACH_PERFRAME_PRIOR) {
+        fprintf(f, "%s:   none tracked: the slopes' time correlation at lags", cmd);
+        for (size_t k = 0; k < r->ntcorr; k++) fprintf(f, "%s %ld", k ? "," : "", r->tcorr_lags[k]);
+        fprintf(f, " frames:");
+        for (size_t k = 0; k < r->ntcorr; k++) fprintf(f, "%s %.3f", k ? "," : "", r->tcorr[k]);
+        fprintf(f, "; speed calibration loops (m/s -> rms misfit):");
+        for (size_t k = 0; k < r->nspeed; k++) fprintf(f, "%s %g -> %.3f", k ? "," : "", r->speed_cal[k], r->speed_misfit[k]);
+        fprintf(f, "; the loops get two layers within a factor 1.41 of %.1f m/s in any direction, and the per-frame "
+                "map is learned from them\n", r->prior_speed);
+    }
     for (size_t k = 0; k < e->nlayers; k++)
         fprintf(f, "%s:   layer %zu: %.2f m/s toward %.1f deg%s\n", cmd, k + 1, e->layer[k].speed, e->layer[k].direction,
                 k < r->nlayers ? "" : " (beyond the simulator's layers: not given to the loops)");
@@ -49,21 +61,25 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     if (r->loop_frames > r->loop_frames_described)
         fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,
                 r->loop_frames_described, r->map_inputs);
-    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual by %.1f of %.1f "
-            "nm on their frames\n", r->lags[0], r->lags[1], r->lags[2], r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms,
-            1e9 * r->st_truth_rms);
+    const int prior = r->chosen == SWFS_TEACH_PERFRAME_PRIOR;
+    const char *map = prior ? "the per-frame map" : "the space-time map", *maps = prior ? "the per-frame map's"
+                                                                                       : "the space-time map's";
+    if (prior) fprintf(f, "; %s misses", map);
+    else fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; %s misses", r->lags[0], r->lags[1], r->lags[2], r->lags[3],
+                 r->lags[4], map);
+    fprintf(f, " the loops' residual by %.1f of %.1f nm on their frames\n", 1e9 * r->st_misfit_rms, 1e9 * r->st_truth_rms);
     if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
         fprintf(f, "%s: over the first loops, ", cmd);
-        cli_curve_line(f, "the space-time map's", &r->curve_first, 1e9, " nm");
+        cli_curve_line(f, maps, &r->curve_first, 1e9, " nm");
         fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
         cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
     } else if (r->max_loops <= r->st_loops) {
-        fprintf(f, "%s: the space-time map's learning curve: not measured (at most %zu loops: no more to add)\n", cmd,
-                r->max_loops);
+        fprintf(f, "%s: %s learning curve: not measured (at most %zu loops: no more to add)\n", cmd, maps, r->max_loops);
     } else {
         fprintf(f, "%s: ", cmd);
-        cli_curve_line(f, "the space-time map's", &r->curve, 1e9, " nm");
+        cli_curve_line(f, maps, &r->curve, 1e9, " nm");
     }
+    if (prior) checks = 0; /* they compare the space-time map's layers with the slopes' */
     if (checks) cli_spacetime_summary(cmd, &r->check);
     fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, cli_teach_chosen(r->chosen), out, r->seconds,
             work);

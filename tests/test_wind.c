@@ -7,7 +7,8 @@
  * (timeseries.h swfs_ts_mode_variance, swfs_mode_knee): a profile of two power laws gives its
  * break exactly, also with modes of no variance left out; loops controlling 30 and 60 modes
  * give knees near 30 and 60, and so does the 60-mode loop with a valid map that leaves out the
- * pupil's edge ring (its modes beyond the interaction matrix's rank without a variance). */
+ * pupil's edge ring (its modes beyond the interaction matrix's rank without a variance). The
+ * slopes' time correlation along the upper half of the modes (swfs_ts_mode_timecorr). */
 #include "testutil.h"
 
 #include "specklewfs/config.h"
@@ -291,6 +292,57 @@ static void test_mode_knee(void **state)
     }
 }
 
+/* The slopes' time correlation along the upper half of the DM modes (swfs_ts_mode_timecorr,
+ * teach's speed where no layer is tracked): a slower layer's slopes stay correlated longer at
+ * every lag; white-noise slopes are uncorrelated; white slopes each held for 8 frames give
+ * (8 - lag) / 8; a lag beyond the frames and another width are refused. */
+static void test_mode_timecorr(void **state)
+{
+    (void)state;
+    const long lags[5] = {1, 2, 4, 8, 16};
+    double rho[2][5];
+    const char *speed[2] = {"layer_speed=5", "layer_speed=20"};
+    swfs_ts_params tp;
+    knee_params(&tp, NULL);
+    swfs_real *s = NULL;
+    for (int i = 0; i < 2; i++) {
+        char sub[32], f[1300];
+        snprintf(sub, sizeof sub, "timecorr%d", i);
+        const char *extra[] = {"nlayers=1", speed[i], "layer_frac=1", "cube_frames=20", "cube_gap=700", "nfx=16", "nfy=16"};
+        series(sub, extra, 7);
+        snprintf(f, sizeof f, "%s/slopes_000.fits", p(sub));
+        swfs_real_free(s);
+        s = NULL;
+        assert_ok(swfs_telemetry_read(f, 0, &s, NULL));
+        assert_ok(swfs_ts_mode_timecorr(&tp, s->data, s->ny, s->nx, lags, 5, rho[i]));
+        print_message("%s: %zu frames, rho %.3f %.3f %.3f %.3f %.3f\n", speed[i], s->ny, rho[i][0], rho[i][1], rho[i][2],
+                      rho[i][3], rho[i][4]);
+    }
+    for (int k = 0; k < 5; k++) assert_true(rho[1][k] < rho[0][k] && rho[0][k] <= 1.0);
+    assert_true(rho[0][0] > 0.8 && rho[1][4] < 0.5);
+    /* white slopes, then the same held for 8 frames each */
+    const size_t nf = s->ny, ns = s->nx;
+    swfs_rng g;
+    swfs_rng_seed(&g, 11);
+    for (size_t t = 0; t < nf; t++)
+        for (size_t i = 0; i < ns; i++) s->data[t * ns + i] = swfs_rng_normal(&g);
+    double w[5], h[5];
+    assert_ok(swfs_ts_mode_timecorr(&tp, s->data, nf, ns, lags, 5, w));
+    for (size_t t = 0; t < nf; t++)
+        if (t % 8) memcpy(s->data + t * ns, s->data + (t - t % 8) * ns, ns * sizeof *s->data);
+    assert_ok(swfs_ts_mode_timecorr(&tp, s->data, nf, ns, lags, 5, h));
+    print_message("white: %.3f %.3f %.3f %.3f %.3f; held 8 frames: %.3f %.3f %.3f %.3f %.3f\n", w[0], w[1], w[2], w[3],
+                  w[4], h[0], h[1], h[2], h[3], h[4]);
+    for (int k = 0; k < 5; k++) {
+        assert_true(fabs(w[k]) < 0.02);
+        assert_true(fabs(h[k] - (lags[k] < 8 ? (8.0 - (double)lags[k]) / 8.0 : 0.0)) < 0.03);
+    }
+    const long far[1] = {(long)nf};
+    assert_int_equal(swfs_ts_mode_timecorr(&tp, s->data, nf, ns, far, 1, w), SWFS_ERR_ARG);
+    assert_int_equal(swfs_ts_mode_timecorr(&tp, s->data, nf / 2, ns * 2, lags, 5, w), SWFS_ERR_SHAPE);
+    swfs_real_free(s);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -298,6 +350,7 @@ int main(void)
         cmocka_unit_test(test_wind_valid_only),
         cmocka_unit_test(test_wind_noise_and_refusals),
         cmocka_unit_test(test_mode_knee),
+        cmocka_unit_test(test_mode_timecorr),
     };
     return cmocka_run_group_tests(tests, setup, NULL);
 }

@@ -721,6 +721,16 @@ void swfs_teach_run_options_default(swfs_teach_run_options *o);
 #define SWFS_TEACH_SPACETIME 0     /* the space-time map: neither check warned */
 #define SWFS_TEACH_PERFRAME 1      /* the per-frame map of the same loops */
 #define SWFS_TEACH_PERFRAME_MIXED 2 /* the per-frame map of the measured layer and random seconds */
+#define SWFS_TEACH_PERFRAME_PRIOR 3 /* the per-frame map of loops at a speed from the slopes'
+                                       time correlation: `wind` tracked no frozen-flow layer */
+/* Where `wind` tracks no layer: the speed of the loops' layers from the slopes' time
+ * correlation at lags 1, 2, 4, ... frames (at most SWFS_TEACH_NTCORR, each under a quarter of
+ * the frames), matched by calibration loops of one layer at speeds a factor 2 apart from 4 to
+ * 32 m/s, extended by factors of 2 (1-64 m/s) while the closest is at an end, then a parabola
+ * in log speed through the closest and its neighbours (docs/telemetry.md, "Slopes without a
+ * frozen-flow layer"). At most SWFS_TEACH_NSPEED calibration loops. */
+#define SWFS_TEACH_NTCORR 8
+#define SWFS_TEACH_NSPEED 8
 
 typedef struct swfs_teach_run_result {
     swfs_wind_run_result wind;  /* the observation's layers (wind.est.layer[]) */
@@ -774,6 +784,18 @@ typedef struct swfs_teach_run_result {
     size_t zonal_best;
     double misfit_modal;
     int zonal;
+    /* chosen == SWFS_TEACH_PERFRAME_PRIOR (no layer tracked): the observation's slopes' time
+     * correlation along the upper half of the DM modes (tcorr at tcorr_lags, ntcorr of them;
+     * timeseries.h swfs_ts_mode_timecorr), the speed calibration loops (speed_NN/, nspeed: each
+     * one's speed [m/s] and misfit, the rms of its correlation less the observation's), and the
+     * speed the loops' layers were given (prior_speed: each loop's two layers within a factor
+     * sqrt 2 of it, any direction). The per-frame map's loops: st_loops, its learning curve
+     * curve_first / curve, its training misfit st_misfit_rms of st_truth_rms. */
+    double tcorr[SWFS_TEACH_NTCORR];
+    long tcorr_lags[SWFS_TEACH_NTCORR];
+    size_t ntcorr, nspeed;
+    double speed_cal[SWFS_TEACH_NSPEED], speed_misfit[SWFS_TEACH_NSPEED];
+    double prior_speed;
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

@@ -206,6 +206,16 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_pa
  * falls from about the last one on (docs/telemetry.md). */
 int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
                           double **var, size_t *nmodes);
+/* The slopes' time correlation along the same modes (`teach`, where the slopes show no
+ * frozen-flow layer: the speed of its loops' layers): the coefficients along the upper half
+ * of the modes (each slope's time mean removed; the modes without a direction left out), and
+ * rho[k] their lag-lags[k] products over their lag-0 ones, summed over those modes, per frame
+ * pair. The upper half: modes many and independent, decorrelating as a layer moves across a
+ * fraction of a subaperture, and clear of the tip-tilt and its DM-fitted ripple that vibration
+ * drives (measured: docs/telemetry.md, "Slopes without a frozen-flow layer"). lags: 1 to
+ * nframes - 1. */
+int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
+                          const long *lags, size_t nlags, double *rho);
 /* The knee of such a profile: the mode K that best splits log var_j against log j into two
  * least-squares lines, modes 1..K and K+1..n, each of at least 3 modes with a variance (NaN
  * ones left out). 0 when fewer than 6 have one, or out of memory. */

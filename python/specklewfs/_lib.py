@@ -349,7 +349,7 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("nloops", c_size), ("max_loops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
     ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("fingerprint", c_str)])
-TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed"}
+TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed", 3: "perframe_prior"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
     ("files", P(c_str)), ("nfiles", c_size), ("cm", c_str), ("outdir", c_str)])
@@ -365,7 +365,9 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("max_loops", c_size),
     ("curve_first", swfs_learn_run_result),
     ("curve", swfs_learn_run_result), ("project_rank", c_size), ("project_slopes", c_size),
-    ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int)])
+    ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int),
+    ("tcorr", c_dbl * 8), ("tcorr_lags", ctypes.c_long * 8), ("ntcorr", c_size), ("nspeed", c_size),
+    ("speed_cal", c_dbl * 8), ("speed_misfit", c_dbl * 8), ("prior_speed", c_dbl)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

@@ -5,6 +5,8 @@ import math
 import os
 import subprocess
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -433,31 +435,55 @@ def test_speckles_warns_of_a_mean_residual_no_loop_has(series, tmp_path):
           f"wavelength {bad['wavelen'] * 1e9:.0f} nm, gain {bad['info']['recon_gain']:.3f}")
 
 
-def test_speckles_falls_back_where_no_map_can_be_taught(series, tmp_path):
-    """Slopes whose frames are shuffled in time show no frozen-flow layer, so speckles' default
-    (a map taught for the observation) cannot teach one: speckles() says why (RuntimeWarning,
-    taught False, teach_fallback) and uses the von Karman map: the same speckles as
-    recon='vk'."""
+def _series_copy(series, tmp_path, name, change):
+    """The CI series' reduced cubes and timing, its slopes rewritten by change(data, rate) ->
+    (data, keys) into tmp_path/name: (timing, science, actuators)."""
     s = series / "sim"
     sci, timing = str(tmp_path / "sci.fits"), str(tmp_path / "timing.txt")
     sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], sci, dark=str(s / "dark.fits"),
               flat=str(s / "flat.fits"))
     sw.sync(sci, str(s / "handshake.log"), timing)
-    sh = tmp_path / "shuffled"
+    sh = tmp_path / name
     sh.mkdir()
-    rng = np.random.default_rng(3)
     for f in sorted(s.glob("slopes_0*.fits")):
         data = np.array(sw.read_fits(str(f))[0])
         rate = sw.fits.read_keys(str(f), ["WFSRATE"])["WFSRATE"]
-        sw.write_fits(str(sh / f.name), data[rng.permutation(data.shape[0])], keys={"WFSRATE": rate})
+        data, keys = change(data, rate)
+        sw.write_fits(str(sh / f.name), data, keys=keys)
     text = open(timing).read()
     assert str(s) in text
-    with open(tmp_path / "timing_sh.txt", "w") as t:
+    with open(tmp_path / f"timing_{name}.txt", "w") as t:
         t.write(text.replace(str(s), str(sh)))
-    act = str(s / "actuators.fits")
-    with pytest.warns(RuntimeWarning, match="no map could be taught for this observation .*frozen-flow layer"):
-        sp = sw.speckles(str(tmp_path / "timing_sh.txt"), sci, act, str(tmp_path / "sp.fits"))
-    assert not sp["taught"] and "frozen-flow layer" in sp["teach_fallback"] and "teach" not in sp
-    vk = sw.speckles(str(tmp_path / "timing_sh.txt"), sci, act, str(tmp_path / "sp_vk.fits"), recon="vk")
+    return str(tmp_path / f"timing_{name}.txt"), sci, str(s / "actuators.fits")
+
+
+def test_speckles_teaches_from_the_prior_without_a_frozen_flow_layer(series, tmp_path):
+    """Slopes whose frames are shuffled in time show no frozen-flow layer: speckles' default
+    teaches its map from loops at the speed the slopes' time correlation gives and takes their
+    per-frame map (chosen "perframe_prior", no layer given), without a warning; the map's
+    header says so. Shuffled frames decorrelate at once, so the speed is the calibration
+    loops' fastest (64 m/s, where the grid stops), well above any frozen-flow series'."""
+    rng = np.random.default_rng(3)
+    timing, sci, act = _series_copy(series, tmp_path, "shuffled",
+                                    lambda d, rate: (d[rng.permutation(d.shape[0])], {"WFSRATE": rate}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        sp = sw.speckles(timing, sci, act, str(tmp_path / "sp.fits"), teach_loops=4)
+    assert sp["taught"] and sp["teach"]["chosen"] == "perframe_prior" and sp["teach"]["nloops"] >= 4
+    keys = sw.fits.read_keys(sp["teach_map"], ["TEACHSEL", "TEACHLAY", "TEACHLOO", "TEACHPSP"])
+    assert keys["TEACHSEL"] == "perframe_prior" and keys["TEACHLAY"] == 0 and keys["TEACHLOO"] == sp["teach"]["nloops"]
+    assert keys["TEACHPSP"] > 32
+
+
+def test_speckles_falls_back_where_no_map_can_be_taught(series, tmp_path):
+    """Slopes whose files carry no WFS frame rate (no WFSRATE) give teach no rate for its loops,
+    so speckles' default (a map taught for the observation) cannot teach one: speckles() says
+    why (RuntimeWarning, taught False, teach_fallback) and uses the von Karman map: the same
+    speckles as recon='vk'."""
+    timing, sci, act = _series_copy(series, tmp_path, "norate", lambda d, rate: (d, None))
+    with pytest.warns(RuntimeWarning, match="no map could be taught for this observation .*WFSRATE"):
+        sp = sw.speckles(timing, sci, act, str(tmp_path / "sp.fits"))
+    assert not sp["taught"] and "WFSRATE" in sp["teach_fallback"] and "teach" not in sp
+    vk = sw.speckles(timing, sci, act, str(tmp_path / "sp_vk.fits"), recon="vk")
     assert vk["nout"] == sp["nout"] and "taught" not in vk
     np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "sp.fits"))[0], sw.read_fits(str(tmp_path / "sp_vk.fits"))[0])

@@ -50,15 +50,15 @@ static int work_folder(const swfs_speckles_run_options *o, char *work, size_t ca
     return rc;
 }
 
-/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN, zonal_NN: the
+/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN, zonal_NN, prior_NN, speed_NN: the
  * simulator's files, no subfolders), removed once the map is taught; what cannot be removed
  * is left as it is (the map is taught: it only costs space). */
 static void drop_loops(const char *work, const struct swfs_teach_run_result *tr, size_t nloops)
 {
-    static const char *const kinds[] = {"loop", "mixed", "modes", "zonal"};
-    for (int t = 0; t < 4; t++) {
-        const size_t n = t == 3 ? (tr->ncal ? SWFS_TEACH_NZONAL : 0)
-                         : t == 2 ? tr->ncal : t == 0 && tr->st_loops > nloops ? tr->st_loops : nloops;
+    static const char *const kinds[] = {"loop", "mixed", "modes", "zonal", "prior", "speed"};
+    for (int t = 0; t < 6; t++) {
+        const size_t n = t == 5 ? tr->nspeed : t == 3 ? (tr->ncal ? SWFS_TEACH_NZONAL : 0)
+                         : t == 2 ? tr->ncal : (t == 0 || t == 4) && tr->st_loops > nloops ? tr->st_loops : nloops;
         for (size_t k = 0; k < n; k++) {
             char d[4300], f[4600];
             snprintf(d, sizeof d, "%s/%s_%02zu", work, kinds[t], k);
@@ -154,7 +154,7 @@ static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_re
     swfs_fits_in_close(f);
     if (rc) swfs_clear_error();
     int chosen = -1;
-    for (int k = 0; k < 3 && fsel; k++)
+    for (int k = 0; k < 4 && fsel; k++)
         if (!strcmp(sel, swfs_teach_chosen_names_[k])) chosen = k;
     if (rc || !found || strcmp(v, fpr) || chosen < 0 || !floops) return 0;
     memset(tr, 0, sizeof *tr);

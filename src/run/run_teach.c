@@ -161,6 +161,24 @@ static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, do
     }
 }
 
+/* Loop k where no layer was tracked: two layers, the first one's share 0.3-0.7, each at a
+ * speed within a factor sqrt 2 of v (log-uniform) in any direction, seed o->seed + k. */
+static void prior_init(loop_job *j, const swfs_teach_run_options *o, size_t k, double v)
+{
+    swfs_rng g;
+    swfs_rng_seed2(&g, o->seed, 2000 + k);
+    snprintf(j->name, sizeof j->name, "prior");
+    j->k = k;
+    j->seed = o->seed + k;
+    j->nl = 2;
+    j->frac[0] = 0.3 + 0.4 * swfs_rng_uniform(&g);
+    j->frac[1] = 1.0 - j->frac[0];
+    for (int l = 0; l < 2; l++) {
+        j->speed[l] = v * pow(2.0, swfs_rng_uniform(&g) - 0.5);
+        j->dir[l] = 360.0 * swfs_rng_uniform(&g);
+    }
+}
+
 /* The projection the observation's slopes went through (modal-slopes' MODALCM), applied to the
  * loops' slopes as they are learned: P (ns x ns) or NULL. */
 typedef struct projection {
@@ -197,16 +215,16 @@ static int learn(const swfs_teach_run_options *o, const projection *pj, const lo
 }
 
 /* The chosen map onto o->out (atomic.h: the whole file or none), with what chose it. */
-const char *const swfs_teach_chosen_names_[3] = {"spacetime", "perframe", "perframe_mixed"};
+const char *const swfs_teach_chosen_names_[4] = {"spacetime", "perframe", "perframe_mixed", "perframe_prior"};
 
 static int write_chosen(const char *from, const swfs_teach_run_options *o, const swfs_teach_run_result *r)
 {
     swfs_fits_out *f = NULL;
     int rc = swfs_fits_out_copy(&f, from, o->out);
-    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime, perframe(_mixed)");
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime, perframe(_mixed, _prior)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLOO", (long)r->nloops, "teach: loops simulated");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLAY", (long)r->nlayers, "teach: layers found and given to the loops");
-    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHSTL", (long)r->st_loops, "teach: the space-time map's loops");
+    if (!rc) rc = swfs_fits_out_key_long(f, "TEACHSTL", (long)r->st_loops, "teach: the chosen kind of map's loops");
     if (!rc && r->curve_first.curve_n[0])
         rc = swfs_fits_out_key_double(f, "TEACHLC1", isfinite(r->curve_first.curve_excess) ? r->curve_first.curve_excess
                                       : -1.0, "learning curve excess, first loops (-1: unbounded)");
@@ -227,6 +245,8 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
         rc = swfs_fits_out_key_double(f, "TEACHZMF", zmf, "zonal loop's profile misfit (rms log10)");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
+    if (!rc && r->chosen == SWFS_TEACH_PERFRAME_PRIOR)
+        rc = swfs_fits_out_key_double(f, "TEACHPSP", r->prior_speed, "[m/s] loops' speed from the slopes' time corr.");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHNOI", r->noise_rms, "[rad] the observation's white slope noise");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHSNO", r->slope_noise, "[rad] the loops' slope_noise");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHNOP", (long)r->out_points, "teach: the map's output points (OUTXY)");
@@ -422,6 +442,92 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     }
     for (size_t c = 0; c < 5 + SWFS_TEACH_NZONAL; c++) free(v[c]);
     return rc;
+}
+
+/* The slopes' time correlation along the upper half of the system's DM modes
+ * (swfs_ts_mode_timecorr) at lags 1, 2, 4, ... under a quarter of the frames (at most
+ * SWFS_TEACH_NTCORR). */
+static int time_corr(const swfs_ts_params *p, const swfs_real *s, const char *what, double *rho, long *lag, size_t *nl)
+{
+    *nl = 0;
+    for (long L = 1; *nl < SWFS_TEACH_NTCORR && (size_t)(4 * L) < s->ny; L *= 2) lag[(*nl)++] = L;
+    const int rc = *nl ? swfs_ts_mode_timecorr(p, s->data, s->ny, s->nx, lag, *nl, rho) : SWFS_OK;
+    return rc ? swfs_fail_context(rc, "teach: the time correlation of %s", what) : SWFS_OK;
+}
+
+/* The rms of a loop's time correlation (a) less the observation's (b), over the lags both have. */
+static double tcorr_misfit(const double *a, size_t na, const double *b, size_t nb)
+{
+    const size_t n = na < nb ? na : nb;
+    double s = 0;
+    for (size_t k = 0; k < n; k++) s += (a[k] - b[k]) * (a[k] - b[k]);
+    return n ? sqrt(s / (double)n) : INFINITY;
+}
+
+/* No layer tracked: the speed of the loops' layers from the slopes' time correlation
+ * (run.h SWFS_TEACH_NTCORR): calibration loops of one layer (toward 0 deg: the correlation
+ * along the upper half of the modes is that of slopes along and across the motion together)
+ * at 4, 8, 16, 32 m/s, of the same seed, one more a factor 2 beyond the end (1-64 m/s) while
+ * the closest is there, then the vertex of a parabola in log2 speed through the closest and
+ * its two neighbours, kept between them (docs/telemetry.md, "Slopes without a frozen-flow
+ * layer": within 15 % of the layer's speed on the matrix's six one-layer systems). */
+static int speed_from_corr(const swfs_teach_run_options *o, const swfs_real *obs, swfs_teach_run_result *r)
+{
+    int rc = time_corr(&o->sim, obs, o->files[0], r->tcorr, r->tcorr_lags, &r->ntcorr);
+    if (!rc && r->ntcorr < 2)
+        rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: %zu WFS frames, too few for the slopes' time correlation (at least 9)",
+                       o->files[0], obs->ny);
+    double v[SWFS_TEACH_NSPEED], m[SWFS_TEACH_NSPEED]; /* sorted by speed */
+    size_t n = 0;
+    double next[4] = {4, 8, 16, 32};
+    size_t nnext = 4;
+    while (!rc && nnext && n < SWFS_TEACH_NSPEED) {
+        const double sp = next[--nnext];
+        stage(o, "the loops' speed (calibration loops)", r->nspeed, 4);
+        loop_job j = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
+        snprintf(j.name, sizeof j.name, "speed");
+        j.k = r->nspeed;
+        j.seed = o->seed;
+        char f[4300];
+        swfs_real *ls = NULL;
+        double rho[SWFS_TEACH_NTCORR];
+        long lag[SWFS_TEACH_NTCORR];
+        size_t nl = 0;
+        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
+            snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
+            swfs_real_free(ls);
+        }
+        if (rc) break;
+        const double mis = tcorr_misfit(rho, nl, r->tcorr, r->ntcorr);
+        r->speed_cal[r->nspeed] = sp;
+        r->speed_misfit[r->nspeed++] = mis;
+        size_t at = n;
+        while (at && v[at - 1] > sp) at--;
+        memmove(v + at + 1, v + at, (n - at) * sizeof *v);
+        memmove(m + at + 1, m + at, (n - at) * sizeof *m);
+        v[at] = sp;
+        m[at] = mis;
+        n++;
+        if (nnext) continue;
+        size_t b = 0;
+        for (size_t k = 1; k < n; k++) if (m[k] < m[b]) b = k;
+        if (b == 0 && v[0] / 2 >= 1.0) next[nnext++] = v[0] / 2;
+        else if (b == n - 1 && v[n - 1] * 2 <= 64.0) next[nnext++] = v[n - 1] * 2;
+    }
+    if (rc) return rc;
+    size_t b = 0;
+    for (size_t k = 1; k < n; k++) if (m[k] < m[b]) b = k;
+    r->prior_speed = v[b];
+    if (b > 0 && b + 1 < n) { /* equal steps in log2 speed: the vertex of the parabola through three */
+        const double den = m[b - 1] - 2 * m[b] + m[b + 1];
+        if (den > 0) {
+            double d = 0.5 * (m[b - 1] - m[b + 1]) / den;
+            d = d < -1 ? -1 : d > 1 ? 1 : d;
+            r->prior_speed = v[b] * pow(2.0, d);
+        }
+    }
+    return SWFS_OK;
 }
 
 /* The observation's white slope noise and its share of the slopes' variance
@@ -664,17 +770,25 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     swfs_wind_run_options wo = {o->files, o->nfiles, valid, sp->nsub, sp->base.teldiam, sp->wfs_rate};
     if (!rc) rc = swfs_wind_run(&wo, &r->wind);
     const swfs_wind_estimate *e = &r->wind.est;
-    if (!rc && !e->found)
-        rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` tracks no frozen-flow layer in the observation's slopes, so "
-                       "the loops cannot be given its winds; use the von Karman map (speckles --recon vk)",
-                       o->nfiles == 1 ? o->files[0] : "the telemetry files");
+    if (!rc && !e->found && e->nvalid < 8)
+        rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: `wind` found %zu subapertures with signal in the observation's slopes "
+                       "(at least 8 expected); use the von Karman map (speckles --recon vk)",
+                       o->nfiles == 1 ? o->files[0] : "the telemetry files", e->nvalid);
     if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
-    const int nl = (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
-    r->nlayers = (size_t)nl;
+    /* no frozen-flow layer tracked (slopes mostly noise, or turbulence that does not flow):
+     * the loops at a speed their slopes' time correlation gives instead, in any direction, and
+     * the per-frame map of them, which needs no wind for its lags (docs/telemetry.md, "Slopes
+     * without a frozen-flow layer") */
+    const int prior = !e->found;
+    const int nl = prior ? 2 : (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
+    r->nlayers = prior ? 0 : (size_t)nl;
     double speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS], vmax = 0;
     for (int j = 0; j < nl; j++) {
-        speed[j] = e->layer[j].speed;
-        dir[j] = e->layer[j].direction;
+        /* the filter's calibration loops (before the speed; their profile's level aside, which
+         * the speed sets, they depend on it little): two layers, the middle of the speed
+         * loops' 4-32 m/s, apart */
+        speed[j] = prior ? sqrt(4.0 * 32.0) : e->layer[j].speed;
+        dir[j] = prior ? 90.0 * j : e->layer[j].direction;
         vmax = fmax(vmax, speed[j]);
     }
     /* the lags: the fastest layer moves half a subaperture in L1 frames */
@@ -682,7 +796,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (l1 < 1) l1 = 1;
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
-    r->nlags = 5;
+    r->nlags = prior ? 1 : 5;
+    if (prior) memset(r->lags, 0, sizeof r->lags);
     /* 2. the loops' slope noise and modal filter: given, or from the observation's slopes.
      * Loops of less noise than the observation's give a map that amplifies its noise
      * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
@@ -701,6 +816,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         }
         rc = modes_from_slopes(&oo, obs, &tmpl, r);
     }
+    if (!rc && prior) rc = speed_from_corr(&oo, obs, r);
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] || o->sim.ao_rcond > 0 ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
@@ -727,29 +843,35 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const size_t max_loops = o->max_loops ? o->max_loops : 4 * o->nloops < 64 ? 4 * o->nloops : 64;
     loop_job *jobs = calloc(max_loops, sizeof *jobs);
     if (!jobs) { free(pj.P); swfs_real_free(obs); return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory"); }
-    for (size_t k = 0; k < o->nloops; k++)
-        loop_init(jobs + k, o, k, (double)k / (double)(o->nloops - 1), nl, speed, dir);
+    for (size_t k = 0; k < o->nloops; k++) {
+        if (prior) prior_init(jobs + k, o, k, r->prior_speed);
+        else loop_init(jobs + k, o, k, (double)k / (double)(o->nloops - 1), nl, speed, dir);
+    }
+    char st[4200], pf[4200];
+    snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
+    snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
+    swfs_learn_run_result lr;
     /* what every loop's run would build again from the system alone (the DM's modes, the
      * truth's fit plan on the grid: an eigen-decomposition of its points squared), once */
     swfs_ts_shared *shared = NULL;
     swfs_ts_params sys = oo.sim;
     sys.export_truth = 1;
     rc = swfs_ts_shared_create(&sys, &shared);
-    if (!rc) rc = simulate_loops(o, shared, jobs, o->nloops, "simulating the loops", &r->nloops);
-    /* 4. the space-time map and its checks */
-    char st[4200], pf[4200];
-    snprintf(st, sizeof st, "%.4000s/spacetime.fits", o->work);
-    snprintf(pf, sizeof pf, "%.4000s/perframe.fits", o->work);
-    swfs_learn_run_result lr;
+    /* 4. the space-time map (with the per-frame map of the same loops from the same sums:
+     * perframe.fits, what a run taking one frame's slopes, live, is given) and its learning
+     * curve where more loops may follow (six more solves of the map's normal equations:
+     * minutes for a 24 x 24's 4440 inputs, not spent when max_loops allows no more); where no
+     * layer was tracked, the per-frame map alone and its curve */
+    const long *ml = prior ? NULL : lags;
+    const size_t mnl = prior ? 0 : 5;
+    const char *map = prior ? pf : st, *pfo = prior ? NULL : pf;
+    if (!rc) rc = simulate_loops(o, shared, jobs, o->nloops, prior ? "simulating loops at the slopes' speed"
+                                 : "simulating the loops", &r->nloops);
     r->st_loops = o->nloops;
     r->max_loops = max_loops;
     if (!rc) {
-        stage(o, "learning the space-time map", 0, 1);
-        /* with the per-frame map of the same loops from the same sums (perframe.fits: what a
-         * run taking one frame's slopes, live, is given), and its learning curve where more
-         * loops may follow (six more solves of the map's normal equations: minutes for a
-         * 24 x 24's 4440 inputs, not spent when max_loops allows no more) */
-        rc = learn(o, &pj, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
+        stage(o, prior ? "learning the per-frame map" : "learning the space-time map", 0, 1);
+        rc = learn(o, &pj, jobs, o->nloops, ml, mnl, map, pfo, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
@@ -762,16 +884,32 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         const double per = (double)lr.info.nframes / (double)o->nloops;
         const double want = ceil((double)lr.curve_frames / per);
         const size_t n = want < (double)max_loops ? (size_t)want : max_loops;
-        for (size_t k = o->nloops; k < n; k++)
-            loop_init(jobs + k, o, k, ((double)(k - o->nloops) + 0.5) / (double)(n - o->nloops), nl, speed, dir);
+        for (size_t k = o->nloops; k < n; k++) {
+            if (prior) prior_init(jobs + k, o, k, r->prior_speed);
+            else loop_init(jobs + k, o, k, ((double)(k - o->nloops) + 0.5) / (double)(n - o->nloops), nl, speed, dir);
+        }
         rc = simulate_loops(o, shared, jobs + o->nloops, n - o->nloops, "simulating more loops (learning curve)",
                             &r->nloops);
         r->st_loops = n;
         if (!rc) {
-            stage(o, "learning the space-time map again", 0, 1);
-            rc = learn(o, &pj, jobs, n, lags, 5, st, pf, 1, &lr);
+            stage(o, prior ? "learning the per-frame map again" : "learning the space-time map again", 0, 1);
+            rc = learn(o, &pj, jobs, n, ml, mnl, map, pfo, 1, &lr);
             r->curve = lr;
         }
+    }
+    if (prior) { /* no checks: they compare the space-time map's layers with the slopes' */
+        r->chosen = SWFS_TEACH_PERFRAME_PRIOR;
+        if (!rc) {
+            r->st_misfit_rms = lr.info.misfit_rms;
+            r->st_truth_rms = lr.info.truth_rms;
+        }
+        free(jobs);
+        free(pj.P);
+        swfs_real_free(obs);
+        swfs_ts_shared_free(shared);
+        if (!rc) rc = write_chosen(pf, o, r);
+        r->seconds = swfs_wall_seconds() - t0;
+        return rc;
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;

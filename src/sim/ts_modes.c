@@ -41,19 +41,23 @@ int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsign
     return rc;
 }
 
-int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
-                          double **var, size_t *nmodes)
+/* The DM modes after piston through the system's interaction matrix, orthonormalized in
+ * their order (QR), as rows of the slopes given (ns: the full layout 2 nsub^2, or the used
+ * subapertures' 2 nvalid): *A (ns x *m, malloc'd), *dep (m flags, malloc'd: 1 where the
+ * mode's pattern has no direction of its own). */
+static int mode_basis(const swfs_ts_params *p, size_t ns, const char *what, double **Aout, size_t *mout,
+                      unsigned char **dep)
 {
-    *var = NULL;
-    *nmodes = 0;
+    *Aout = NULL;
+    *dep = NULL;
+    *mout = 0;
     const size_t np = (size_t)p->base.pupn;
-    if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
-    double *mask = malloc(np * np * sizeof *mask), *xy = NULL, *Dm = NULL, *modes = NULL;
-    double *A = NULL, *tau = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL, *cn = NULL;
+    double *mask = malloc(np * np * sizeof *mask), *xy = NULL, *Dm = NULL, *modes = NULL, *A = NULL, *tau = NULL;
+    double *cn = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
     swfs_recon *rao = NULL;
-    unsigned char *vmap = NULL;
+    unsigned char *vmap = NULL, *flag = NULL;
     size_t nact = 0;
     int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &xy, &nact, &rao, &vmap);
@@ -65,22 +69,17 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
      * their order (QR): column j is the part of mode j's slope pattern that the lower modes
      * do not explain. */
     const size_t nfull = sh->nslopes, nsa = nfull / 2, m0 = nact - 1, m = m0 < nfull ? m0 : nfull;
-    if (nslopes != nfull && nslopes != 2 * sh->nvalid) {
-        rc = swfs_fail(SWFS_ERR_SHAPE, "mode variance: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
+    if (ns != nfull && ns != 2 * sh->nvalid) {
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame, but the system's %ld x %ld Shack-Hartmann "
                        "has 2 nsub^2 = %zu (the full layout, unused subapertures 0) or 2 x %zu (its used "
-                       "subapertures')", nslopes, p->nsub, p->nsub, nfull, sh->nvalid);
+                       "subapertures')", what, ns, p->nsub, p->nsub, nfull, sh->nvalid);
         goto done;
     }
-    const size_t ns = nslopes;
     A = malloc(nfull * m * sizeof *A);
     tau = malloc(m * sizeof *tau);
-    mean = calloc(nfull, sizeof *mean);
-    const size_t B = 256; /* frames per block */
-    blk = malloc(B * nfull * sizeof *blk);
-    q = malloc(B * m * sizeof *q);
-    v = calloc(m, sizeof *v);
     cn = calloc(m, sizeof *cn);
-    if (!A || !tau || !mean || !blk || !q || !v || !cn) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
+    flag = calloc(m, 1);
+    if (!A || !tau || !cn || !flag) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nfull, (int)m, (int)nact, 1.0, Dm, (int)nact, modes + 1,
                 (int)nact, 0.0, A, (int)m);
     for (size_t r = 0; r < nfull; r++)
@@ -90,16 +89,40 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
      * sqrt(eps) of its norm; more modes than the used subapertures' slopes, or patterns a
      * valid map leaves dependent) has no direction of its own: NaN, not the variance along
      * the arbitrary column QR completes it with. Measured: such columns at 1e-13 or less,
-     * every other at 6e-4 or more (docs/telemetry.md). cn[j]: its squared norm, then that flag. */
-    for (size_t j = 0; j < m; j++) cn[j] = fabs(A[j * m + j]) <= sqrt(DBL_EPSILON) * sqrt(cn[j]);
+     * every other at 6e-4 or more (docs/telemetry.md). */
+    for (size_t j = 0; j < m; j++) flag[j] = fabs(A[j * m + j]) <= sqrt(DBL_EPSILON) * sqrt(cn[j]);
     if (!info) info = LAPACKE_dorgqr(LAPACK_ROW_MAJOR, (lapack_int)nfull, (lapack_int)m, (lapack_int)m, A, (lapack_int)m, tau);
-    if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "mode variance: QR of the modes' slope patterns failed (%d)", (int)info); goto done; }
+    if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "%s: QR of the modes' slope patterns failed (%d)", what, (int)info); goto done; }
     /* Slopes of the used subapertures only: the basis's rows of those slopes (x then y,
      * row-major), moved up in place. The same as the full layout with the unused
      * subapertures' slopes 0, which meet only the rows dropped here. */
     if (ns != nfull)
         for (size_t r = 0, k = 0; r < nfull; r++)
             if (sh->valid[r % nsa] && k++ != r) memcpy(A + (k - 1) * m, A + r * m, m * sizeof *A);
+    *Aout = A;
+    *dep = flag;
+    *mout = m;
+    A = NULL;
+    flag = NULL;
+done:
+    free(mask); free(xy); free(Dm); free(modes); free(A); free(tau); free(cn); free(flag);
+    free(vmap);
+    swfs_sparse_free(T);
+    swfs_shwfs_free(sh);
+    swfs_recon_free(rao);
+    return rc;
+}
+
+/* The slopes' coefficients along the basis (nframes x m, malloc'd), each slope's time mean
+ * removed: blocks of 256 frames through one GEMM each. */
+static int mode_coefficients(const double *slopes, size_t nframes, size_t ns, const double *A, size_t m, double **qout)
+{
+    const size_t B = 256;
+    double *mean = calloc(ns, sizeof *mean), *blk = malloc(B * ns * sizeof *blk), *q = malloc(nframes * m * sizeof *q);
+    if (!mean || !blk || !q) {
+        free(mean); free(blk); free(q);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
     for (size_t t = 0; t < nframes; t++)
         for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
     for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
@@ -108,20 +131,64 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
         for (size_t t = 0; t < nb; t++)
             for (size_t i = 0; i < ns; i++) blk[t * ns + i] = slopes[(t0 + t) * ns + i] - mean[i];
         cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nb, (int)m, (int)ns, 1.0, blk, (int)ns, A, (int)m,
-                    0.0, q, (int)m);
-        for (size_t t = 0; t < nb; t++)
-            for (size_t j = 0; j < m; j++) v[j] += q[t * m + j] * q[t * m + j];
+                    0.0, q + t0 * m, (int)m);
     }
-    for (size_t j = 0; j < m; j++) v[j] = cn[j] ? NAN : v[j] / (double)(nframes - 1);
-    *var = v;
-    *nmodes = m;
-    v = NULL;
-done:
-    free(mask); free(xy); free(Dm); free(modes); free(A); free(tau); free(mean); free(blk); free(q); free(v);
-    free(vmap); free(cn);
-    swfs_sparse_free(T);
-    swfs_shwfs_free(sh);
-    swfs_recon_free(rao);
+    free(mean);
+    free(blk);
+    *qout = q;
+    return SWFS_OK;
+}
+
+int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
+                          double **var, size_t *nmodes)
+{
+    *var = NULL;
+    *nmodes = 0;
+    if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
+    double *A = NULL, *q = NULL, *v = NULL;
+    unsigned char *dep = NULL;
+    size_t m = 0;
+    int rc = mode_basis(p, nslopes, "mode variance", &A, &m, &dep);
+    if (!rc) rc = mode_coefficients(slopes, nframes, nslopes, A, m, &q);
+    if (!rc && !(v = calloc(m, sizeof *v))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) {
+        for (size_t t = 0; t < nframes; t++)
+            for (size_t j = 0; j < m; j++) v[j] += q[t * m + j] * q[t * m + j];
+        for (size_t j = 0; j < m; j++) v[j] = dep[j] ? NAN : v[j] / (double)(nframes - 1);
+        *var = v;
+        *nmodes = m;
+        v = NULL;
+    }
+    free(A); free(q); free(v); free(dep);
+    return rc;
+}
+
+int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
+                          const long *lags, size_t nlags, double *rho)
+{
+    for (size_t k = 0; k < nlags; k++)
+        if (lags[k] < 1 || (size_t)lags[k] >= nframes)
+            return swfs_fail(SWFS_ERR_ARG, "mode time correlation: lag %ld of %zu frames (1 to frames - 1)", lags[k],
+                             nframes);
+    double *A = NULL, *q = NULL;
+    unsigned char *dep = NULL;
+    size_t m = 0;
+    int rc = mode_basis(p, nslopes, "mode time correlation", &A, &m, &dep);
+    if (!rc) rc = mode_coefficients(slopes, nframes, nslopes, A, m, &q);
+    if (!rc) {
+        double c0 = 0;
+        for (size_t t = 0; t < nframes; t++)
+            for (size_t j = m / 2; j < m; j++) c0 += dep[j] ? 0 : q[t * m + j] * q[t * m + j];
+        c0 /= (double)nframes;
+        for (size_t k = 0; k < nlags; k++) {
+            const size_t L = (size_t)lags[k];
+            double s = 0;
+            for (size_t t = 0; t + L < nframes; t++)
+                for (size_t j = m / 2; j < m; j++) s += dep[j] ? 0 : q[t * m + j] * q[(t + L) * m + j];
+            rho[k] = c0 > 0 ? s / (double)(nframes - L) / c0 : NAN;
+        }
+    }
+    free(A); free(q); free(dep);
     return rc;
 }
 

@@ -400,13 +400,15 @@ static void test_speckles_and_estimate_equal(void **state)
 {
     (void)state;
     /* The default reconstructor: a map taught for the observation (speckles --recon teach).
-     * These random slopes show no frozen-flow layer, so member 0's teach cannot, and every
-     * rank falls back to the von Karman MAP learned from the telemetry (run_speckles_teach.c:
-     * member 0 decides, the others follow): every rank builds the same one. */
+     * These random slopes show no frozen-flow layer, so member 0 teaches from loops at the
+     * speed of their time correlation (run_speckles_teach.c: member 0 teaches, the others take
+     * its map). */
     const char *common = "speckles timing.txt --science sci.fits --actuators act.fits --batch 8";
     char args[2048];
+    static char out[65536];
     snprintf(args, sizeof args, "%s -o sp1.fits --match sci.fits scim1.fits", common);
-    run_ok(0, args);
+    assert_int_equal(run(0, args, out, sizeof out), 0);
+    assert_non_null(strstr(out, "the per-frame map of loops at the slopes' speed"));
     run_ok(0, "estimate scim1.fits sp1.fits -o est1.fits");
     const char *prim[] = {NULL};
     for (int np = NP_FIRST; np <= 3; np++) {
@@ -424,6 +426,33 @@ static void test_speckles_and_estimate_equal(void **state)
         run_ok(np, args);
         compare_products("est1.fits", est, halo_ext, sizeof halo_ext / sizeof halo_ext[0], 1e-12);
     }
+    /* Where member 0 cannot teach (telemetry without WFSRATE: no rate for the loops) every
+     * rank falls back to the von Karman MAP learned from the telemetry, as one process does:
+     * member 0 decides, the others follow, and every rank builds the same map. */
+    char cmd[4096];
+    snprintf(cmd, sizeof cmd, "cd '%s' && mkdir -p norate && cp timing.txt sci.fits act.fits norate/", dir);
+    assert_int_equal(system(cmd), 0);
+    const char *names[] = {"slopes_a.fits", "slopes_b.fits"};
+    for (int k = 0; k < 2; k++) {
+        swfs_real *sl = NULL;
+        swfs_fits_out *o = NULL;
+        char to[64];
+        snprintf(to, sizeof to, "norate/%s", names[k]);
+        assert_ok(swfs_fits_read_real(in_dir(names[k]), NULL, &sl, NULL));
+        assert_ok(swfs_fits_out_create(&o, in_dir(to)));
+        assert_ok(swfs_fits_out_real(o, NULL, sl, -64));
+        assert_ok(swfs_fits_out_commit(o));
+        swfs_real_free(sl);
+    }
+    const char *nr = "speckles norate/timing.txt --science norate/sci.fits --actuators norate/act.fits --batch 8";
+    snprintf(args, sizeof args, "%s -o norate/sp0.fits", nr);
+    assert_int_equal(run(0, args, out, sizeof out), 0);
+    assert_non_null(strstr(out, "no map could be taught"));
+    assert_non_null(strstr(out, "WFSRATE"));
+    snprintf(args, sizeof args, "%s -o norate/sp2.fits", nr);
+    assert_int_equal(run(2, args, out, sizeof out), 0);
+    assert_non_null(strstr(out, "no map could be taught"));
+    compare_products("norate/sp0.fits", "norate/sp2.fits", (const char *[]){NULL, "RESMEAN"}, 2, 1e-12);
     /* at the WFS rate, cut inside cubes too */
     run_ok(0, "speckles timing.txt --science sci.fits --actuators act.fits --recon recon.fits --wfs-rate --batch 16 "
            "-o w1.fits");
