@@ -13,6 +13,7 @@
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
+#include <cblas.h>
 #include <dirent.h>
 #include <errno.h>
 #include <stdarg.h>
@@ -444,6 +445,22 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     return rc;
 }
 
+/* A loop's slopes (full layout) as modal-slopes' projection P (symmetric) left the
+ * observation's: s P, one GEMM; nothing without a projection. */
+static int project_slopes(const projection *pj, swfs_real *s)
+{
+    if (!pj->P) return SWFS_OK;
+    if (s->nx != pj->n)
+        return swfs_fail(SWFS_ERR_SHAPE, "teach: a loop's %zu slopes per frame; the projection acts on %zu", s->nx, pj->n);
+    double *t = malloc(s->nx * s->ny * sizeof *t);
+    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)s->ny, (int)s->nx, (int)s->nx, 1.0, s->data, (int)s->nx,
+                pj->P, (int)s->nx, 0.0, t, (int)s->nx);
+    memcpy(s->data, t, s->nx * s->ny * sizeof *t);
+    free(t);
+    return SWFS_OK;
+}
+
 /* The slopes' time correlation along the upper half of the system's DM modes
  * (swfs_ts_mode_timecorr) at lags 1, 2, 4, ... under a quarter of the frames (at most
  * SWFS_TEACH_NTCORR). */
@@ -471,7 +488,8 @@ static double tcorr_misfit(const double *a, size_t na, const double *b, size_t n
  * the closest is there, then the vertex of a parabola in log2 speed through the closest and
  * its two neighbours, kept between them (docs/telemetry.md, "Slopes without a frozen-flow
  * layer": within 15 % of the layer's speed on the matrix's six one-layer systems). */
-static int speed_from_corr(const swfs_teach_run_options *o, const swfs_real *obs, swfs_teach_run_result *r)
+static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj, const swfs_real *obs,
+                           swfs_teach_run_result *r)
 {
     int rc = time_corr(&o->sim, obs, o->files[0], r->tcorr, r->tcorr_lags, &r->ntcorr);
     if (!rc && r->ntcorr < 2)
@@ -495,7 +513,8 @@ static int speed_from_corr(const swfs_teach_run_options *o, const swfs_real *obs
         size_t nl = 0;
         if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = project_slopes(pj, ls);
+            if (!rc) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
             swfs_real_free(ls);
         }
         if (rc) break;
@@ -816,7 +835,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         }
         rc = modes_from_slopes(&oo, obs, &tmpl, r);
     }
-    if (!rc && prior) rc = speed_from_corr(&oo, obs, r);
+    if (!rc && prior) rc = speed_from_corr(&oo, &pj, obs, r);
     o = &oo;
     r->ao_modes = o->sim.ao_recon[0] || o->sim.ao_rcond > 0 ? 0 : (size_t)o->sim.ao_modes;
     if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
