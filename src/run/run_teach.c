@@ -469,7 +469,12 @@ static int time_corr(const swfs_ts_params *p, const swfs_real *s, const char *wh
     *nl = 0;
     for (long L = 1; *nl < SWFS_TEACH_NTCORR && (size_t)(4 * L) < s->ny; L *= 2) lag[(*nl)++] = L;
     const int rc = *nl ? swfs_ts_mode_timecorr(p, s->data, s->ny, s->nx, lag, *nl, rho) : SWFS_OK;
-    return rc ? swfs_fail_context(rc, "teach: the time correlation of %s", what) : SWFS_OK;
+    if (rc) return swfs_fail_context(rc, "teach: the time correlation of %s", what);
+    for (size_t k = 0; k < *nl; k++)
+        if (!isfinite(rho[k]))
+            return swfs_fail(SWFS_ERR_VALUE, "teach: %s: the slopes do not vary along the upper half of the DM modes "
+                             "(no time correlation to match)", what);
+    return SWFS_OK;
 }
 
 /* The rms of a loop's time correlation (a) less the observation's (b), over the lags both have. */

@@ -113,30 +113,28 @@ done:
     return rc;
 }
 
-/* The slopes' coefficients along the basis (nframes x m, malloc'd), each slope's time mean
- * removed: blocks of 256 frames through one GEMM each. */
-static int mode_coefficients(const double *slopes, size_t nframes, size_t ns, const double *A, size_t m, double **qout)
+/* Each slope's time mean (ns values, malloc'd). */
+static double *slope_means(const double *slopes, size_t nframes, size_t ns)
 {
-    const size_t B = 256;
-    double *mean = calloc(ns, sizeof *mean), *blk = malloc(B * ns * sizeof *blk), *q = malloc(nframes * m * sizeof *q);
-    if (!mean || !blk || !q) {
-        free(mean); free(blk); free(q);
-        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    }
+    double *mean = calloc(ns, sizeof *mean);
+    if (!mean) return NULL;
     for (size_t t = 0; t < nframes; t++)
         for (size_t i = 0; i < ns; i++) mean[i] += slopes[t * ns + i];
     for (size_t i = 0; i < ns; i++) mean[i] /= (double)nframes;
-    for (size_t t0 = 0; t0 < nframes; t0 += B) {
-        const size_t nb = nframes - t0 < B ? nframes - t0 : B;
-        for (size_t t = 0; t < nb; t++)
-            for (size_t i = 0; i < ns; i++) blk[t * ns + i] = slopes[(t0 + t) * ns + i] - mean[i];
-        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nb, (int)m, (int)ns, 1.0, blk, (int)ns, A, (int)m,
-                    0.0, q + t0 * m, (int)m);
-    }
-    free(mean);
-    free(blk);
-    *qout = q;
-    return SWFS_OK;
+    return mean;
+}
+
+#define MODE_BLOCK 256 /* frames per GEMM */
+
+/* The coefficients along the basis of frames t0 .. t0 + nb (nb <= MODE_BLOCK), each slope's
+ * time mean removed: q (nb x m); blk, MODE_BLOCK x ns of scratch. */
+static void mode_block(const double *slopes, const double *mean, size_t t0, size_t nb, size_t ns, const double *A,
+                       size_t m, double *blk, double *q)
+{
+    for (size_t t = 0; t < nb; t++)
+        for (size_t i = 0; i < ns; i++) blk[t * ns + i] = slopes[(t0 + t) * ns + i] - mean[i];
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nb, (int)m, (int)ns, 1.0, blk, (int)ns, A, (int)m, 0.0, q,
+                (int)m);
 }
 
 int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
@@ -145,21 +143,26 @@ int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t 
     *var = NULL;
     *nmodes = 0;
     if (nframes < 2) return swfs_fail(SWFS_ERR_ARG, "mode variance: %zu frames (at least 2)", nframes);
-    double *A = NULL, *q = NULL, *v = NULL;
+    double *A = NULL, *mean = NULL, *blk = NULL, *q = NULL, *v = NULL;
     unsigned char *dep = NULL;
     size_t m = 0;
     int rc = mode_basis(p, nslopes, "mode variance", &A, &m, &dep);
-    if (!rc) rc = mode_coefficients(slopes, nframes, nslopes, A, m, &q);
-    if (!rc && !(v = calloc(m, sizeof *v))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc) {
-        for (size_t t = 0; t < nframes; t++)
+    if (!rc && (!(mean = slope_means(slopes, nframes, nslopes)) || !(blk = malloc(MODE_BLOCK * nslopes * sizeof *blk)) ||
+                !(q = malloc(MODE_BLOCK * m * sizeof *q)) || !(v = calloc(m, sizeof *v))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t t0 = 0; !rc && t0 < nframes; t0 += MODE_BLOCK) {
+        const size_t nb = nframes - t0 < MODE_BLOCK ? nframes - t0 : MODE_BLOCK;
+        mode_block(slopes, mean, t0, nb, nslopes, A, m, blk, q);
+        for (size_t t = 0; t < nb; t++)
             for (size_t j = 0; j < m; j++) v[j] += q[t * m + j] * q[t * m + j];
+    }
+    if (!rc) {
         for (size_t j = 0; j < m; j++) v[j] = dep[j] ? NAN : v[j] / (double)(nframes - 1);
         *var = v;
         *nmodes = m;
         v = NULL;
     }
-    free(A); free(q); free(v); free(dep);
+    free(A); free(mean); free(blk); free(q); free(v); free(dep);
     return rc;
 }
 
@@ -173,8 +176,14 @@ int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t 
     double *A = NULL, *q = NULL;
     unsigned char *dep = NULL;
     size_t m = 0;
+    double *mean = NULL, *blk = NULL;
     int rc = mode_basis(p, nslopes, "mode time correlation", &A, &m, &dep);
-    if (!rc) rc = mode_coefficients(slopes, nframes, nslopes, A, m, &q);
+    if (!rc && (!(mean = slope_means(slopes, nframes, nslopes)) || !(blk = malloc(MODE_BLOCK * nslopes * sizeof *blk)) ||
+                !(q = malloc(nframes * m * sizeof *q))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t t0 = 0; !rc && t0 < nframes; t0 += MODE_BLOCK) /* every frame's coefficients: the lags pair them */
+        mode_block(slopes, mean, t0, nframes - t0 < MODE_BLOCK ? nframes - t0 : MODE_BLOCK, nslopes, A, m, blk,
+                   q + t0 * m);
     if (!rc) {
         double c0 = 0;
         for (size_t t = 0; t < nframes; t++)
@@ -188,7 +197,7 @@ int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t 
             rho[k] = c0 > 0 ? s / (double)(nframes - L) / c0 : NAN;
         }
     }
-    free(A); free(q); free(dep);
+    free(A); free(q); free(dep); free(mean); free(blk);
     return rc;
 }
 
