@@ -50,9 +50,9 @@ static int work_folder(const swfs_speckles_run_options *o, char *work, size_t ca
     return rc;
 }
 
-/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN, zonal_NN, prior_NN, speed_NN: the
- * simulator's files, no subfolders), removed once the map is taught; what cannot be removed
- * is left as it is (the map is taught: it only costs space). */
+/* The loops' folders teach made in work (loop_NN, mixed_NN, modes_NN, zonal_NN, prior_NN,
+ * speed_NN: the simulator's files, no subfolders), removed once the map is taught; what cannot
+ * be removed is left as it is (the map is taught: it only costs space). */
 static void drop_loops(const char *work, const struct swfs_teach_run_result *tr, size_t nloops)
 {
     static const char *const kinds[] = {"loop", "mixed", "modes", "zonal", "prior", "speed"};
