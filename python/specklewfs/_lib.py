@@ -627,6 +627,8 @@ _PROTOS = {
     "swfs_ts_run": (c_int, [P(swfs_ts_params), c_str, P(c_str), c_size, PROGRESS_FN, c_ptr, P(swfs_ts_summary)]),
     "swfs_ts_mode_variance": (c_int, [P(swfs_ts_params), P(c_dbl), c_size, c_size, P(P(c_dbl)), P(c_size)]),
     "swfs_mode_knee": (c_size, [P(c_dbl), c_size]),
+    "swfs_ts_mode_timecorr": (c_int, [P(swfs_ts_params), P(c_dbl), c_size, c_size, P(ctypes.c_long), c_size,
+                                      P(c_dbl)]),
     # run.h: reduce, sync, speckles, estimate on files
     "swfs_reduce_run_options_default": (None, [P(swfs_reduce_run_options)]),
     "swfs_reduce_run": (c_int, [P(swfs_reduce_run_options), P(swfs_reduce_run_result)]),

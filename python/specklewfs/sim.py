@@ -268,6 +268,24 @@ def mode_variance(slopes, config=None, **params):
     return var, int(lib.swfs_mode_knee(dptr(var), var.shape[0]))
 
 
+def mode_timecorr(slopes, lags, config=None, **params):
+    """The slopes' time correlation along the upper half of the system's DM modes (timeseries.h
+    swfs_ts_mode_timecorr; what `teach` matches its speed calibration loops to where `wind`
+    tracks no layer): slopes as mode_variance() takes them, lags (each 1 to nframes - 1).
+    Returns rho, one per lag: the coefficients' lag products over their lag-0 ones, summed
+    over those modes, per frame pair."""
+    params = dict(params)
+    params.setdefault("mode", "timeseries")
+    p = _checked_params("ts", config, params)
+    s = as_array(slopes, "slopes", np.float64, ndim=2)
+    lv = np.ascontiguousarray(np.asarray(lags, dtype=np.int64).ravel())
+    rho = np.empty(lv.size)
+    check(lib.swfs_ts_mode_timecorr(ctypes.byref(p), dptr(s), s.shape[0], s.shape[1],
+                                    lv.ctypes.data_as(ctypes.POINTER(ctypes.c_long)), lv.size, dptr(rho)),
+          "swfs_ts_mode_timecorr")
+    return rho
+
+
 def simulate_timeseries(directory, config=None, progress=None, provenance=(), **params):
     """The AO time series of the real-data path (timeseries.h), written to directory
     (created if needed): telemetry, raw camera cubes, calibrations, truth. params: the

@@ -332,7 +332,8 @@ def test_teach(series, tmp_path):
 def test_mode_variance(series):
     """The loop's modal filter as its slopes show it (timeseries.h swfs_ts_mode_variance,
     swfs_mode_knee): the series' loop controls mmt-clio.conf's 56 modes; its profile's knee
-    is there (within 15 %), the variances are finite, and another width is refused by name."""
+    is there (within 15 %), the variances are finite, and another width is refused by name;
+    and the slopes' time correlation along the upper modes (swfs_ts_mode_timecorr)."""
     conf = os.path.join(ROOT, "config", "mmt-clio.conf")
     keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000)
     s, _ = sw.read_fits(str(series / "sim" / "slopes_000.fits"))
@@ -347,6 +348,18 @@ def test_mode_variance(series):
     assert 0 < used.size < s.shape[1]
     var_v, knee_v = sw.mode_variance(np.ascontiguousarray(s[:, used]), config=conf, **keys)
     assert knee_v == knee and np.allclose(var_v, var, rtol=1e-9, atol=0)
+    # the time correlation along the upper modes (teach's speed where no layer is tracked):
+    # within [-1, 1], falling with the lag at first; the same from the used subapertures'
+    # slopes; the frames in random order lose it (|rho| < 0.05); a lag beyond the frames refused
+    rho = sw.mode_timecorr(s, [1, 2, 4, 8], config=conf, **keys)
+    assert np.all(np.abs(rho) <= 1) and rho[0] > rho[1] > rho[2] and rho[0] > 0.5
+    assert np.allclose(sw.mode_timecorr(np.ascontiguousarray(s[:, used]), [1, 2, 4, 8], config=conf, **keys), rho,
+                       rtol=1e-9, atol=1e-12)
+    shuffled = s[np.random.default_rng(5).permutation(s.shape[0])]
+    assert np.all(np.abs(sw.mode_timecorr(shuffled, [1, 2, 4, 8], config=conf, **keys)) < 0.05)
+    with pytest.raises(sw.Error, match="lag"):
+        sw.mode_timecorr(s, [s.shape[0]], config=conf, **keys)
+    print(f"mode time correlation at 1, 2, 4, 8 frames: {np.round(rho, 3)}")
 
 
 def test_teach_from_files(series, tmp_path):

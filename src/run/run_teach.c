@@ -506,7 +506,7 @@ static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj
     size_t nnext = 4;
     while (!rc && nnext && n < SWFS_TEACH_NSPEED) {
         const double sp = next[--nnext];
-        stage(o, "the loops' speed (calibration loops)", r->nspeed, 4);
+        stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed < 4 ? 4 : r->nspeed + 1);
         loop_job j = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
         snprintf(j.name, sizeof j.name, "speed");
         j.k = r->nspeed;
