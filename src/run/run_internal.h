@@ -151,5 +151,9 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
 /* run_modal_slopes.c: P = CM+ CM (ns x ns, malloc'd), the projection modal-slopes' output went
  * through, from the control matrix file; *rank: CM's numerical rank. */
 int swfs_modal_projector_(const char *cm_path, double **P, size_t *ns, size_t *rank);
+/* Slopes s (frames x n) as that projection leaves them: s P (P symmetric), in place, one GEMM;
+ * another width is SWFS_ERR_SHAPE, naming what. learn applies it to its data sets, teach to
+ * its speed calibration loops. */
+int swfs_modal_project_(const double *P, size_t n, swfs_real *s, const char *what);
 
 #endif

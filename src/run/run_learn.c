@@ -5,7 +5,6 @@
 #include "specklewfs/outpaths.h"
 #include "run_internal.h"
 
-#include <cblas.h>
 #include <limits.h>
 #include <math.h>
 #include <stdint.h>
@@ -42,19 +41,8 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s (%zux%zux%zu) and %s (%zux%zux%zu): expected NSLOPES (even) x N and NACT x N "
                        "images of the same N frames", sp, s->nx, s->ny, s->nz, tp, z->nx, z->ny, z->nz);
-    if (!rc && o->project && s->nx != o->nproject)
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame; the projection the map is for acts on %zu", sp, s->nx,
-                       o->nproject);
-    if (!rc && o->project) { /* s P, P symmetric: the slopes as the telemetry's own projection left them */
-        double *t = malloc(s->nx * s->ny * sizeof *t);
-        if (!t) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
-        else {
-            cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)s->ny, (int)s->nx, (int)s->nx, 1.0, s->data,
-                        (int)s->nx, o->project, (int)s->nx, 0.0, t, (int)s->nx);
-            memcpy(s->data, t, s->nx * s->ny * sizeof *t);
-            free(t);
-        }
-    }
+    /* the slopes as the telemetry's own projection left them */
+    if (!rc && o->project) rc = swfs_modal_project_(o->project, o->nproject, s, sp);
     if (!rc && r->nslopes && (s->nx != r->nslopes || z->nx != r->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes and %zu actuators; the first data set has %zu and %zu: the "
                        "training data must share one geometry", sp, s->nx, z->nx, r->nslopes, r->nact);

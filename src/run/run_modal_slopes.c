@@ -65,6 +65,20 @@ int swfs_modal_projector_(const char *cm_path, double **P, size_t *ns, size_t *r
     return rc;
 }
 
+int swfs_modal_project_(const double *P, size_t n, swfs_real *s, const char *what)
+{
+    if (s->nx != n)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu slopes per frame; the projection the map is for acts on %zu", what, s->nx,
+                         n);
+    double *t = malloc(s->nx * s->ny * sizeof *t);
+    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)s->ny, (int)s->nx, (int)s->nx, 1.0, s->data, (int)s->nx,
+                P, (int)s->nx, 0.0, t, (int)s->nx);
+    memcpy(s->data, t, s->nx * s->ny * sizeof *t);
+    free(t);
+    return SWFS_OK;
+}
+
 int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r)
 {
     memset(r, 0, sizeof *r);

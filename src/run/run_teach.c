@@ -13,7 +13,6 @@
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
-#include <cblas.h>
 #include <dirent.h>
 #include <errno.h>
 #include <stdarg.h>
@@ -445,22 +444,6 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     return rc;
 }
 
-/* A loop's slopes (full layout) as modal-slopes' projection P (symmetric) left the
- * observation's: s P, one GEMM; nothing without a projection. */
-static int project_slopes(const projection *pj, swfs_real *s)
-{
-    if (!pj->P) return SWFS_OK;
-    if (s->nx != pj->n)
-        return swfs_fail(SWFS_ERR_SHAPE, "teach: a loop's %zu slopes per frame; the projection acts on %zu", s->nx, pj->n);
-    double *t = malloc(s->nx * s->ny * sizeof *t);
-    if (!t) return swfs_fail(SWFS_ERR_NOMEM, "teach: out of memory");
-    cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)s->ny, (int)s->nx, (int)s->nx, 1.0, s->data, (int)s->nx,
-                pj->P, (int)s->nx, 0.0, t, (int)s->nx);
-    memcpy(s->data, t, s->nx * s->ny * sizeof *t);
-    free(t);
-    return SWFS_OK;
-}
-
 /* The slopes' time correlation along the upper half of the system's DM modes
  * (swfs_ts_mode_timecorr) at lags 1, 2, 4, ... under a quarter of the frames (at most
  * SWFS_TEACH_NTCORR). */
@@ -518,7 +501,7 @@ static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj
         size_t nl = 0;
         if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
             snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = project_slopes(pj, ls);
+            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL)) && pj->P) rc = swfs_modal_project_(pj->P, pj->n, ls, f);
             if (!rc) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
             swfs_real_free(ls);
         }
