@@ -357,23 +357,39 @@ static double profile_misfit(const double *a, size_t na, const double *b, size_t
     return sqrt(var > 0 ? var : 0);
 }
 
-/* One calibration loop of the description as o->sim has it now (work/NAME_NN, read for its
- * slopes only): its slopes' mode variances and their knee. */
-static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
-                            double **v, size_t *n, size_t *knee)
+/* One calibration loop of the description as o->sim has it now (work/NAME_NN, tmpl's layers,
+ * teach's seed; read for its slopes only, projected as the observation's were): its first
+ * telemetry file's slopes, f its path. */
+static int calibration_slopes(const swfs_teach_run_options *o, const projection *pj, const loop_job *tmpl,
+                              const char *name, size_t k, swfs_real **ls, char *f, size_t cap)
 {
     loop_job j = *tmpl;
     snprintf(j.name, sizeof j.name, "%s", name);
     j.k = k;
     j.seed = o->seed;
-    swfs_real *ls = NULL;
-    char f[4300];
+    *ls = NULL;
     int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
     if (!rc) {
-        snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-        if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL))) rc = knee_of(&o->sim, ls, f, v, n, knee);
-        swfs_real_free(ls);
+        snprintf(f, cap, "%s/slopes_000.fits", j.path);
+        rc = swfs_telemetry_read(f, 0, ls, NULL);
     }
+    if (!rc && pj && pj->P) rc = swfs_modal_project_(pj->P, pj->n, *ls, f);
+    if (rc) {
+        swfs_real_free(*ls);
+        *ls = NULL;
+    }
+    return rc;
+}
+
+/* A calibration loop's mode variances and their knee (calibration_slopes). */
+static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
+                            double **v, size_t *n, size_t *knee)
+{
+    swfs_real *ls = NULL;
+    char f[4300];
+    int rc = calibration_slopes(o, NULL, tmpl, name, k, &ls, f, sizeof f);
+    if (!rc) rc = knee_of(&o->sim, ls, f, v, n, knee);
+    swfs_real_free(ls);
     return rc;
 }
 
@@ -469,13 +485,53 @@ static double tcorr_misfit(const double *a, size_t na, const double *b, size_t n
     return n ? sqrt(s / (double)n) : INFINITY;
 }
 
+/* The speed calibration loops' first speeds [m/s], a factor 2 apart. */
+static const double speed_grid[4] = {4, 8, 16, 32};
+
+/* One speed calibration loop (speed_NN/: one layer at sp toward 0 deg) and its slopes' misfit
+ * to the observation's time correlation, appended to r->speed_cal, r->speed_misfit. */
+static int speed_loop(const swfs_teach_run_options *o, const projection *pj, double sp, swfs_teach_run_result *r)
+{
+    stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed < 4 ? 4 : r->nspeed + 1);
+    const loop_job j = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
+    swfs_real *ls = NULL;
+    char f[4300];
+    double rho[SWFS_TEACH_NTCORR];
+    long lag[SWFS_TEACH_NTCORR];
+    size_t nl = 0;
+    int rc = calibration_slopes(o, pj, &j, "speed", r->nspeed, &ls, f, sizeof f);
+    if (!rc) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
+    swfs_real_free(ls);
+    if (rc) return rc;
+    r->speed_cal[r->nspeed] = sp;
+    r->speed_misfit[r->nspeed++] = tcorr_misfit(rho, nl, r->tcorr, r->ntcorr);
+    return SWFS_OK;
+}
+
+/* The speed loop of speed v, or r->nspeed. */
+static size_t speed_at(const swfs_teach_run_result *r, double v)
+{
+    size_t k = 0;
+    while (k < r->nspeed && r->speed_cal[k] != v) k++;
+    return k;
+}
+
+/* The closest speed loop so far. */
+static size_t speed_best(const swfs_teach_run_result *r)
+{
+    size_t b = 0;
+    for (size_t k = 1; k < r->nspeed; k++)
+        if (r->speed_misfit[k] < r->speed_misfit[b]) b = k;
+    return b;
+}
+
 /* No layer tracked: the speed of the loops' layers from the slopes' time correlation
  * (run.h SWFS_TEACH_NTCORR): calibration loops of one layer (toward 0 deg: the correlation
  * along the upper half of the modes is that of slopes along and across the motion together)
- * at 4, 8, 16, 32 m/s, of the same seed, one more a factor 2 beyond the end (1-64 m/s) while
- * the closest is there, then the vertex of a parabola in log2 speed through the closest and
- * its two neighbours, kept between them (docs/telemetry.md, "Slopes without a frozen-flow
- * layer": within 15 % of the layer's speed on the matrix's six one-layer systems). */
+ * at speed_grid, of the same seed, one more a factor 2 beyond the end (1-64 m/s) while the
+ * closest is there, then the vertex of a parabola in log2 speed through the closest and its
+ * two neighbours, kept between them (docs/telemetry.md, "Slopes without a frozen-flow layer":
+ * within 15 % of the layer's speed on the matrix's six one-layer systems). */
 static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj, const swfs_real *obs,
                            swfs_teach_run_result *r)
 {
@@ -483,55 +539,27 @@ static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj
     if (!rc && r->ntcorr < 2)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: %zu WFS frames, too few for the slopes' time correlation (at least 9)",
                        o->files[0], obs->ny);
-    double v[SWFS_TEACH_NSPEED], m[SWFS_TEACH_NSPEED]; /* sorted by speed */
-    size_t n = 0;
-    double next[4] = {4, 8, 16, 32};
-    size_t nnext = 4;
-    while (!rc && nnext && n < SWFS_TEACH_NSPEED) {
-        const double sp = next[--nnext];
-        stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed < 4 ? 4 : r->nspeed + 1);
-        loop_job j = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
-        snprintf(j.name, sizeof j.name, "speed");
-        j.k = r->nspeed;
-        j.seed = o->seed;
-        char f[4300];
-        swfs_real *ls = NULL;
-        double rho[SWFS_TEACH_NTCORR];
-        long lag[SWFS_TEACH_NTCORR];
-        size_t nl = 0;
-        if (!(rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0))) {
-            snprintf(f, sizeof f, "%s/slopes_000.fits", j.path);
-            if (!(rc = swfs_telemetry_read(f, 0, &ls, NULL)) && pj->P) rc = swfs_modal_project_(pj->P, pj->n, ls, f);
-            if (!rc) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
-            swfs_real_free(ls);
+    for (size_t i = 4; !rc && i-- > 0;) rc = speed_loop(o, pj, speed_grid[i], r);
+    while (!rc && r->nspeed < SWFS_TEACH_NSPEED) {
+        double lo = r->speed_cal[0], hi = lo;
+        for (size_t k = 1; k < r->nspeed; k++) {
+            lo = fmin(lo, r->speed_cal[k]);
+            hi = fmax(hi, r->speed_cal[k]);
         }
-        if (rc) break;
-        const double mis = tcorr_misfit(rho, nl, r->tcorr, r->ntcorr);
-        r->speed_cal[r->nspeed] = sp;
-        r->speed_misfit[r->nspeed++] = mis;
-        size_t at = n;
-        while (at && v[at - 1] > sp) at--;
-        memmove(v + at + 1, v + at, (n - at) * sizeof *v);
-        memmove(m + at + 1, m + at, (n - at) * sizeof *m);
-        v[at] = sp;
-        m[at] = mis;
-        n++;
-        if (nnext) continue;
-        size_t b = 0;
-        for (size_t k = 1; k < n; k++) if (m[k] < m[b]) b = k;
-        if (b == 0 && v[0] / 2 >= 1.0) next[nnext++] = v[0] / 2;
-        else if (b == n - 1 && v[n - 1] * 2 <= 64.0) next[nnext++] = v[n - 1] * 2;
+        const double vb = r->speed_cal[speed_best(r)];
+        if (vb == lo && lo / 2 >= 1.0) rc = speed_loop(o, pj, lo / 2, r);
+        else if (vb == hi && hi * 2 <= 64.0) rc = speed_loop(o, pj, hi * 2, r);
+        else break;
     }
     if (rc) return rc;
-    size_t b = 0;
-    for (size_t k = 1; k < n; k++) if (m[k] < m[b]) b = k;
-    r->prior_speed = v[b];
-    if (b > 0 && b + 1 < n) { /* equal steps in log2 speed: the vertex of the parabola through three */
-        const double den = m[b - 1] - 2 * m[b] + m[b + 1];
+    const size_t b = speed_best(r), l = speed_at(r, r->speed_cal[b] / 2), h = speed_at(r, r->speed_cal[b] * 2);
+    r->prior_speed = r->speed_cal[b];
+    if (l < r->nspeed && h < r->nspeed) { /* equal steps in log2 speed: the vertex of the parabola through three */
+        const double *m = r->speed_misfit, den = m[l] - 2 * m[b] + m[h];
         if (den > 0) {
-            double d = 0.5 * (m[b - 1] - m[b + 1]) / den;
+            double d = 0.5 * (m[l] - m[h]) / den;
             d = d < -1 ? -1 : d > 1 ? 1 : d;
-            r->prior_speed = v[b] * pow(2.0, d);
+            r->prior_speed *= pow(2.0, d);
         }
     }
     return SWFS_OK;
@@ -794,7 +822,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         /* the filter's calibration loops (before the speed; their profile's level aside, which
          * the speed sets, they depend on it little): two layers, the middle of the speed
          * loops' 4-32 m/s, apart */
-        speed[j] = prior ? sqrt(4.0 * 32.0) : e->layer[j].speed;
+        speed[j] = prior ? sqrt(speed_grid[0] * speed_grid[3]) : e->layer[j].speed;
         dir[j] = prior ? 90.0 * j : e->layer[j].direction;
         vmax = fmax(vmax, speed[j]);
     }
@@ -904,31 +932,20 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             r->curve = lr;
         }
     }
-    if (prior) { /* no checks: they compare the space-time map's layers with the slopes' */
-        r->chosen = SWFS_TEACH_PERFRAME_PRIOR;
-        if (!rc) {
-            r->st_misfit_rms = lr.info.misfit_rms;
-            r->st_truth_rms = lr.info.truth_rms;
-        }
-        free(jobs);
-        free(pj.P);
-        swfs_real_free(obs);
-        swfs_ts_shared_free(shared);
-        if (!rc) rc = write_chosen(pf, o, r);
-        r->seconds = swfs_wall_seconds() - t0;
-        return rc;
-    }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
         r->st_truth_rms = lr.info.truth_rms;
+    }
+    if (!rc && !prior) { /* none where no layer was tracked: they compare the loops' layers with the slopes' */
         r->check.info.nlags = 5;
         rc = swfs_spacetime_check_(st, lags, 5, obs->data, obs->ny, obs->nx, nsub, valid, &r->check);
     }
     swfs_real_free(obs);
-    if (!rc) r->warns = swfs_spacetime_warns(&r->check);
+    if (!rc && !prior) r->warns = swfs_spacetime_warns(&r->check);
     /* 5. where it warns, the per-frame map: of the same loops, or with one layer found, of
      * loops of that layer and a second drawn at random */
-    const char *chosen = st;
+    const char *chosen = prior ? pf : st;
+    if (prior) r->chosen = SWFS_TEACH_PERFRAME_PRIOR;
     if (!rc && r->warns && nl == 1) {
         r->chosen = SWFS_TEACH_PERFRAME_MIXED;
         for (size_t k = 0; k < o->nloops; k++) {
