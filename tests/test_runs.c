@@ -530,6 +530,48 @@ static void test_zonal_loop(void **state)
     assert_refused(swfs_ts_params_check(&tp), "ao_rcond 1", "ao_rcond=1: must be in [0, 1)", p("zonal/none"));
 }
 
+/* A DM of Gaussian influence functions (dm_coupling, interp.h swfs_influence_gauss_grid): the
+ * loop closes on it as on the interpolated surface (its tip-tilt as well held, its residual
+ * within 1.6x), the key reaches the loop (another residual, other slopes), out of range is
+ * refused. */
+static void test_gauss_dm_loop(void **state)
+{
+    (void)state;
+    swfs_ts_params tp;
+    swfs_ts_summary gs, cs;
+    const char *prov[] = {"test_runs"};
+    const char *kv[] = {"dm_coupling=0.15"};
+    small_params(kv, 1, &tp);
+    tp.ncubes = 1;
+    mkdir(p("gauss_dm"), 0755);
+    assert_ok(swfs_ts_run(&tp, p("gauss_dm"), prov, 1, NULL, NULL, &gs));
+    small_params(NULL, 0, &tp);
+    tp.ncubes = 1;
+    mkdir(p("ct_dm"), 0755);
+    assert_ok(swfs_ts_run(&tp, p("ct_dm"), prov, 1, NULL, NULL, &cs));
+    printf("test_runs: Gaussian DM (coupling 0.15): residual %.1f nm without tip-tilt, tip-tilt %.3f lambda/D; "
+           "interpolated surface %.1f nm, %.3f\n", gs.residual_rms_nott * 1e9, gs.tt_rms, cs.residual_rms_nott * 1e9,
+           cs.tt_rms);
+    assert_true(gs.residual_rms_nott < 1.6 * cs.residual_rms_nott && gs.residual_rms_nott > 0.8 * cs.residual_rms_nott);
+    assert_true(fabs(gs.residual_rms_nott / cs.residual_rms_nott - 1) > 1e-3);
+    assert_true(gs.tt_rms < 1.2 * cs.tt_rms);
+    swfs_real *a = NULL, *b = NULL;
+    assert_ok(swfs_telemetry_read(p("gauss_dm/slopes_000.fits"), 0, &a, NULL));
+    assert_ok(swfs_telemetry_read(p("ct_dm/slopes_000.fits"), 0, &b, NULL));
+    assert_int_equal(a->nx * a->ny, b->nx * b->ny);
+    double d = 0, s = 0;
+    for (size_t k = 0; k < a->nx * a->ny; k++) {
+        d += (a->data[k] - b->data[k]) * (a->data[k] - b->data[k]);
+        s += b->data[k] * b->data[k];
+    }
+    assert_true(d > 0.01 * s);
+    swfs_real_free(a);
+    swfs_real_free(b);
+    small_params(NULL, 0, &tp);
+    tp.dm_coupling = 1;
+    assert_refused(swfs_ts_params_check(&tp), "dm_coupling 1", "dm_coupling=1: must be in [0, 1)", p("gauss_dm/none"));
+}
+
 /* Actuators that do not cover the pupil rim: the outer ring of the simulated DM left out of
  * the actuator file given to speckles (a rim gap of ~0.1 m, a quarter of the pitch) is
  * extrapolated and the NCP comes out close to the full layout's; two rings left out (a gap
@@ -1669,6 +1711,7 @@ int main(void)
         cmocka_unit_test(test_sync_ratio_from_log),
         cmocka_unit_test(test_given_reconstructor),
         cmocka_unit_test(test_zonal_loop),
+        cmocka_unit_test(test_gauss_dm_loop),
         cmocka_unit_test(test_rim_coverage),
         cmocka_unit_test(test_stream_equals_speckles),
         cmocka_unit_test(test_stream_batches),

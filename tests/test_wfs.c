@@ -107,6 +107,51 @@ static void test_interp_outside_and_bad(void **state)
     assert_int_not_equal(swfs_interp_ct_points(pts, 2, qx, qy, 2, &T, NULL), 0);
 }
 
+/* Gaussian influence functions: at an actuator's own sample the row holds 1 for it, the
+ * coupling c for its four neighbours one pitch away, c^2 for the four diagonal ones, nothing
+ * from the next ring (c^4 under the 1e-3 cut at c = 0.15); the pitch is the actuators' own;
+ * samples outside the mask get empty rows; bad couplings are refused. */
+static void test_influence_gauss(void **state)
+{
+    (void)state;
+    enum { NA = 7, NPUP = 33 };
+    const double d = 0.2, dx = 0.05, c = 0.15;
+    double pts[2 * NA * NA], mask[NPUP * NPUP];
+    for (int j = 0; j < NA; j++)
+        for (int i = 0; i < NA; i++) {
+            pts[2 * (j * NA + i)] = (i - NA / 2) * d;
+            pts[2 * (j * NA + i) + 1] = (j - NA / 2) * d;
+        }
+    for (int k = 0; k < NPUP * NPUP; k++) mask[k] = k % NPUP == 0 ? 0 : 1; /* the first column dark */
+    swfs_sparse *T = NULL;
+    assert_ok(swfs_influence_gauss_grid(pts, NA * NA, NPUP, dx, mask, c, &T));
+    assert_int_equal(T->nrows, NPUP * NPUP);
+    assert_int_equal(T->ncols, NA * NA);
+    const size_t centre = (NPUP / 2) * NPUP + NPUP / 2, act = (NA / 2) * NA + NA / 2; /* both at (0, 0) */
+    assert_int_equal(T->row_ptr[centre + 1] - T->row_ptr[centre], 9);
+    double w1 = 0, wn = 0, wd = 0;
+    for (size_t q = T->row_ptr[centre]; q < T->row_ptr[centre + 1]; q++) {
+        const long di = labs((long)(T->col[q] % NA) - NA / 2), dj = labs((long)(T->col[q] / NA) - NA / 2);
+        if (T->col[q] == act) w1 = T->val[q];
+        else if (di + dj == 1) wn += T->val[q];
+        else if (di == 1 && dj == 1) wd += T->val[q];
+        else fail_msg("actuator %zu beyond the diagonal neighbours in the centre's row", T->col[q]);
+    }
+    assert_true(fabs(w1 - 1) < 1e-12);
+    assert_true(fabs(wn - 4 * c) < 1e-12);
+    assert_true(fabs(wd - 4 * c * c) < 1e-12);
+    for (size_t r = 0; r < NPUP; r++) /* the dark column's rows */
+        assert_int_equal(T->row_ptr[r * NPUP + 1] - T->row_ptr[r * NPUP], 0);
+    swfs_sparse_free(T);
+    T = NULL;
+    const double bad[] = {0, 1, -0.1, NAN};
+    for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+        assert_int_not_equal(swfs_influence_gauss_grid(pts, NA * NA, NPUP, dx, mask, bad[k], &T), 0);
+        assert_null(T);
+    }
+    assert_int_not_equal(swfs_influence_gauss_grid(pts, 1, NPUP, dx, mask, c, &T), 0);
+}
+
 /* Circular pupil with a central obstruction on the DESIGN.md grid. */
 /* Piston-removed rms of a - b over the mask. */
 static double rms_diff(const double *a, const double *b, const double *mask, size_t n)
@@ -346,6 +391,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_interp_exact_quadratics),
         cmocka_unit_test(test_interp_outside_and_bad),
+        cmocka_unit_test(test_influence_gauss),
         cmocka_unit_test(test_shwfs_and_reconstructor),
         cmocka_unit_test(test_white_noise),
     };

@@ -37,6 +37,14 @@ int swfs_interp_ct_grid(const double *pts, size_t npts, size_t npup, double pupd
  * filled; *n_far: samples farther than reach, left empty. T is replaced. */
 int swfs_interp_extend_rim(swfs_sparse **T, size_t npup, double pupdx, const double *mask, double reach,
                            size_t *n_extrap, size_t *n_far);
+/* A DM of Gaussian influence functions on the same grid: row k holds exp(-ln(1/c) r^2 / d^2)
+ * of each actuator within reach of sample k, r its distance, d the actuators' pitch
+ * (swfs_points_pitch) and c the coupling (0 < c < 1: the surface one actuator's command makes
+ * at its neighbour; weights under 1e-3 left out). Unlike swfs_interp_ct_grid the surface does
+ * not pass through the commands: a command moves its neighbours too, as a continuous
+ * facesheet's actuators do. mask as above. */
+int swfs_influence_gauss_grid(const double *pts, size_t npts, size_t npup, double pupdx, const double *mask,
+                              double coupling, swfs_sparse **out);
 /* The median distance from each point to its nearest neighbour (the actuator pitch). */
 double swfs_points_pitch(const double *pts, size_t npts);
 

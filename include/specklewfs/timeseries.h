@@ -107,6 +107,11 @@ typedef struct swfs_ts_params {
     long camera_swap, camera_flip_x, camera_flip_y;
     long act_square;           /* the DM's actuators on a square grid of pitch act_pitch clipped to
                                   a circle (1), or hexapolar rings (0, default) */
+    double dm_coupling;        /* 0 < c < 1: the DM's surface from Gaussian influence functions of
+                                  coupling c (a command's surface at the neighbouring actuator, a
+                                  fraction of its own; interp.h swfs_influence_gauss_grid), as a
+                                  continuous facesheet's; 0 (default): the Clough-Tocher surface
+                                  through the commands (the paper's interpolation) */
     long export_modal;         /* 1: also the telemetry in cacao's modal form, modal_NNN.fits and
                                   dm_modes.fits, and as valid-only slopes, slopes_valid_NNN.fits with
                                   control.fits, influence.fits and valid.fits, and the modal control
@@ -117,8 +122,9 @@ typedef struct swfs_ts_params {
                                   least-squares fitted on the actuators (NAXIS1 = nact, the order of
                                   actuators.fits), and extension DM the commands the loop applied
                                   in that frame [m of wavefront at the actuators: the residual is the
-                                  turbulence less their interpolation, so truth + DM is the open-loop
-                                  wavefront] (0) */
+                                  turbulence less the DM's surface from them (their interpolation,
+                                  or the influence functions with dm_coupling), so truth + that
+                                  surface is the open-loop wavefront] (0) */
     long camera_light;         /* 1: the camera integrates two cubes of 20 frames at one WFS frame
                                   each, placed so that the run holds the WFS frames the camera keys
                                   as given would make it run: training loops whose camera is not

@@ -236,7 +236,7 @@ swfs_ts_params = _s("swfs_ts_params", [
     ("cube_gap", c_dbl), ("start_offset", c_dbl), ("handshake_lag", c_long), ("wfs_file_frames", c_long),
     ("bandwidth", c_dbl), ("nlambda", c_long), ("background", c_dbl), ("dark_level", c_dbl), ("flat_rms", c_dbl),
     ("nhot", c_long), ("ndead", c_long), ("camera_swap", c_long), ("camera_flip_x", c_long),
-    ("camera_flip_y", c_long), ("act_square", c_long), ("export_modal", c_long), ("export_truth", c_long),
+    ("camera_flip_y", c_long), ("act_square", c_long), ("dm_coupling", c_dbl), ("export_modal", c_long), ("export_truth", c_long),
     ("camera_light", c_long), ("milk", c_long), ("milk_epoch", c_dbl),
     ("milk_jitter", c_dbl), ("milk_drift", c_dbl), ("milk_offset", c_dbl), ("milk_drop_wfs", c_long),
     ("milk_drop_cam", c_long), ("milk_file_frames", c_long), ("milk_cam_file_frames", c_long),

@@ -156,6 +156,18 @@ def test_zonal_loop_parameter(tmp_path):
     assert not (tmp_path / "z").exists() or not os.listdir(tmp_path / "z")
 
 
+def test_dm_coupling_parameter(tmp_path):
+    """dm_coupling (Gaussian influence functions) read into the mirror at its place, the fields
+    after it at their defaults; out of range refused before anything is written."""
+    from specklewfs.sim import _checked_params
+    p = _checked_params("ts", None, dict(mode="timeseries", dm_coupling=0.15))
+    assert p.dm_coupling == 0.15 and p.act_square == 0 and p.export_modal == 0 and p.milk_file_frames == 400
+    assert _checked_params("ts", None, dict(mode="timeseries")).dm_coupling == 0
+    with pytest.raises(sw.Error, match=r"dm_coupling=1: must be in \[0, 1\)"):
+        sw.simulate_timeseries(str(tmp_path / "g"), dm_coupling=1)
+    assert not (tmp_path / "g").exists() or not os.listdir(tmp_path / "g")
+
+
 def test_progress_callback():
     seen = []
     sw.simulate(progress=lambda stage, done, total: seen.append((stage, done, total)),

@@ -116,7 +116,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     D_("bandwidth", bandwidth); L_("nlambda", nlambda); D_("background", background); D_("dark_level", dark_level);
     D_("flat_rms", flat_rms); L_("nhot", nhot); L_("ndead", ndead);
     L_("camera_swap", camera_swap); L_("camera_flip_x", camera_flip_x); L_("camera_flip_y", camera_flip_y);
-    L_("act_square", act_square); L_("export_modal", export_modal); L_("export_truth", export_truth);
+    L_("act_square", act_square); D_("dm_coupling", dm_coupling); L_("export_modal", export_modal); L_("export_truth", export_truth);
     L_("camera_light", camera_light);
     D_("pyr_mod", pyr_mod); L_("pyr_nmod", pyr_nmod); D_("wfs_wavelen", wfs_wavelen); D_("pyr_photons", pyr_photons);
     L_("milk", milk); D_("milk_epoch", milk_epoch); D_("milk_jitter", milk_jitter); D_("milk_drift", milk_drift);
@@ -283,6 +283,9 @@ int swfs_ts_params_check(const swfs_ts_params *p)
     const int mrc = swfs_ts_milk_check(p);
     if (mrc) return mrc;
     if (p->act_square & ~1L) return badv("act_square", (double)p->act_square, "must be 0 or 1");
+    if (!(p->dm_coupling >= 0 && p->dm_coupling < 1))
+        return badv("dm_coupling", p->dm_coupling, "must be in [0, 1): 0 the interpolated surface, else the Gaussian "
+                    "influence functions' coupling at the neighbouring actuator (0.1-0.3 for most DMs)");
     if (p->export_modal & ~1L) return badv("export_modal", (double)p->export_modal, "must be 0 or 1");
     if (p->export_truth & ~1L) return badv("export_truth", (double)p->export_truth, "must be 0 or 1");
     if (p->truth_actuators[0] && !p->export_truth)

@@ -30,7 +30,8 @@ int swfs_ts_loop_model(const swfs_ts_params *p, const double *mask, const unsign
     *T = NULL;
     *sh = NULL;
     int rc = *xy ? SWFS_OK : swfs_ts_dm_layout(p, xy, nact);
-    if (!rc) rc = swfs_interp_ct_grid(*xy, *nact, np, dx, mask, T, NULL);
+    if (!rc) rc = p->dm_coupling > 0 ? swfs_influence_gauss_grid(*xy, *nact, np, dx, mask, p->dm_coupling, T)
+                                     : swfs_interp_ct_grid(*xy, *nact, np, dx, mask, T, NULL);
     if (!rc && (rc = vmap ? swfs_shwfs_create_valid(sh, (size_t)p->nsub, D, mask, np, dx, vmap)
                           : swfs_shwfs_create(sh, (size_t)p->nsub, D, mask, np, dx, 0.5)))
         if (vmap) swfs_fail_context(rc, "%s", p->valid);
