@@ -16,7 +16,7 @@
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
 typedef struct spk_args {
     swfs_speckles_run_options *o;
-    const char **min, **mout;
+    const char **min, **mout, **tkeys; /* --match pairs; --teach-set keys */
     double rcond;
     long modes;
     int rcond_given, tt_given;
@@ -59,6 +59,9 @@ static int special(void *ctx, int argc, char **argv, int *i)
         if (!v || (strcmp(v, "ensemble") && strcmp(v, "cube"))) return -cli_usage_error(cmd, "--mean needs ensemble or cube");
         o->mean_mode = strcmp(v, "cube") ? SWFS_MEAN_ENSEMBLE : SWFS_MEAN_CUBE;
         ++*i;
+    } else if (!strcmp(a, "--teach-set")) {
+        if (cli_take_string(cmd, argc, argv, i, "key=value", &v)) return -CLI_USAGE;
+        d->tkeys[o->nteach_keys++] = v;
     } else if (!strcmp(a, "--match")) {
         if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
         d->min[o->nmatch] = argv[*i + 1];
@@ -70,13 +73,14 @@ static int special(void *ctx, int argc, char **argv, int *i)
     return 1;
 }
 
-static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char **min, const char **mout)
+static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char **min, const char **mout,
+                 const char **tkeys)
 {
     const char *cmd = "speckles";
     double slope_noise = 0;
     long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed,
          tmax = (long)o->teach_max_loops;
-    spk_args d = {o, min, mout, o->pipe.rcond, 0, 0, 0, 0};
+    spk_args d = {o, min, mout, tkeys, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
@@ -118,6 +122,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     o->pipe.threads = threads > INT_MAX ? INT_MAX : (int)threads;
     o->match_in = min;
     o->match_out = mout;
+    o->teach_keys = tkeys;
     return cli_check(cmd, swfs_speckles_run_options_check(o));
 }
 
@@ -126,17 +131,24 @@ int swfs_cmd_speckles(int argc, char **argv)
     const char *cmd = "speckles";
     swfs_speckles_run_options o;
     swfs_speckles_run_options_default(&o);
-    const char **min = calloc((size_t)argc, sizeof *min), **mout = calloc((size_t)argc, sizeof *mout);
-    if (!min || !mout) { free(min); free(mout); fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    int rc = parse(argc, argv, &o, min, mout);
+    const char **min = calloc((size_t)argc, sizeof *min), **mout = calloc((size_t)argc, sizeof *mout),
+               **tkeys = calloc((size_t)argc, sizeof *tkeys);
+    if (!min || !mout || !tkeys) {
+        free(min); free(mout); free(tkeys);
+        fprintf(stderr, "specklewfs %s: out of memory\n", cmd);
+        return CLI_FAIL;
+    }
+    int rc = parse(argc, argv, &o, min, mout, tkeys);
     if (rc) {
         free(min);
         free(mout);
+        free(tkeys);
         return rc < 0 ? CLI_OK : rc;
     }
     if (cli_team_join(cmd, &o.team)) {
         free(min);
         free(mout);
+        free(tkeys);
         return CLI_FAIL;
     }
     o.prov = cli_provenance(argc, argv, &o.nprov);
@@ -149,10 +161,12 @@ int swfs_cmd_speckles(int argc, char **argv)
     if (!cli_writer()) {
         free(min);
         free(mout);
+        free(tkeys);
         return rc;
     }
     if (!rc) cli_speckles_summary(cmd, &o, &r, &tr);
     free(min);
     free(mout);
+    free(tkeys);
     return rc;
 }

@@ -7,7 +7,7 @@
 static const char *speckles_usage_text =
     "usage: specklewfs speckles TIMING.txt --science SCIENCE.fits --actuators ACT.fits -o SPECKLES.fits\n"
     "                           [--recon teach|vk|map|svd | --recon W.fits] [--teach-work DIR] [--rcond R]\n"
-    "                           [--modes K] [--slope-noise RAD]\n"
+    "                           [--teach-set KEY=VALUE]... [--modes K] [--slope-noise RAD]\n"
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
@@ -39,9 +39,17 @@ static const char *speckles_usage_text =
     "                      curve asks (teach --max-loops). A later run whose\n"
     "                      telemetry, system files and teach options are the same (to the byte)\n"
     "                      reuses that map at once (its TEACHFPR; --teach-again teaches anew).\n"
+    "                      --teach-set KEY=VALUE (repeatable): what the files do not say of\n"
+    "                      the system, in simulate's keys (e.g. dm_coupling=0.15 for a DM of\n"
+    "                      Gaussian influence functions, ao_gain, ao_delay), as `teach\n"
+    "                      key=value`.\n"
     "                      Slopes without a frozen-flow layer are taught from loops at\n"
     "                      the speed of their time correlation; where teach cannot (no\n"
     "                      WFSRATE, too few DM modes, ...) it says why and uses vk\n"
+    ;
+
+/* (split: ISO C's string literals are at most 4095 characters) */
+static const char *speckles_usage_recon =
     "  --recon W.fits      reconstructor (NAXIS1 = slopes, NAXIS2 = actuators): the residual\n"
     "                      wavefront [m of OPD, not DM surface] at the actuators = W slopes [rad];\n"
     "                      its gain on the model's D must be 0.5..2 (--recon-scale S multiplies it:\n"
@@ -95,6 +103,7 @@ static const char *speckles_usage_text2 =
 void cli_help_speckles(void)
 {
     fputs(speckles_usage_text, stdout);
+    fputs(speckles_usage_recon, stdout);
     fputs(speckles_usage_text2, stdout);
     fputs(CLI_LINEAR_HELP, stdout);
 }

@@ -97,7 +97,13 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
         } else if (r->taught) {
             char work[4200];
             swfs_path_dir(r->teach_map, work, sizeof work);
-            cli_teach_summary(stderr, cmd, tr, 1, r->teach_map, work, 0);
+            if (o->nteach_keys) {
+                fprintf(stderr, "%s: the loops' system as its files describe it, with", cmd);
+                for (size_t k = 0; k < o->nteach_keys; k++) fprintf(stderr, "%s %s", k ? "," : "", o->teach_keys[k]);
+                fprintf(stderr, " (--teach-set)\n");
+            }
+            /* the filter from the slopes unless --teach-set gave one (then no knee was sought) */
+            cli_teach_summary(stderr, cmd, tr, tr->knee_obs > 0, r->teach_map, work, 0);
         } else {
             fprintf(stderr, "specklewfs %s: warning: no map could be taught for this observation (%s); the von Karman "
                     "map (--recon vk) instead\n", cmd, r->teach_fallback);

@@ -86,6 +86,26 @@ grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.te
 [ "$(fpr_of spk_dt.teach/taught.fits)" != "$fpr" ] \
     || fail "another telemetry file, the same TEACHFPR"
 echo "cli_teach: speckles' default again on the same inputs: reused the map; --teach-again and an edited telemetry header: taught anew; the same speckles"
+# --teach-set: what the files do not say of the system, in simulate's keys (here the DM's
+# Gaussian influence functions, which the observation's own DM does not have): part of the
+# fingerprint (taught anew, not reused), said in the summary, and reaching the loops (other
+# speckles than the default's); an unknown key, a value out of range and one without '=' are
+# refused before anything is read, naming it, and nothing is written
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+    --teach-max-loops 4 --teach-work spk_dt.teach --teach-set dm_coupling=0.15 --match science.fits sci_dm.fits \
+    -o spk_dm.fits 2> speckles_dm.log || { cat speckles_dm.log; fail "speckles --teach-set dm_coupling=0.15"; }
+grep -q "^speckles: the loops' system as its files describe it, with dm_coupling=0.15 (--teach-set)" speckles_dm.log \
+    && grep -q "^speckles: chose the .* -> spk_dt.teach/taught.fits" speckles_dm.log && ! grep -q "reused" speckles_dm.log \
+    || { cat speckles_dm.log; fail "--teach-set: taught anew with the key, said so"; }
+"$FITSDIFF" spk_dt.fits spk_dm.fits 2> /dev/null && fail "--teach-set dm_coupling=0.15: the default's speckles (the key did not reach the loops)"
+for bad in "bogus_key=1:unknown setting 'bogus_key'" "dm_coupling=1:dm_coupling=1: must be in \[0, 1)" \
+           "dm_coupling:takes key=value"; do
+    "$B" speckles timing.txt --science science.fits --actuators actuators.fits --teach-set "${bad%%:*}" -o spk_bad.fits \
+        2> speckles_bad.log && fail "--teach-set ${bad%%:*} accepted"
+    grep -q -- "--teach-set.*${bad#*:}" speckles_bad.log || { cat speckles_bad.log; fail "--teach-set ${bad%%:*}: the message"; }
+    [ ! -e spk_bad.fits ] || fail "--teach-set ${bad%%:*} refused, but spk_bad.fits written"
+done
+echo "cli_teach: --teach-set dm_coupling=0.15: taught anew, other speckles; bad keys refused by name"
 # the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
 # system's valid map (from the files, as above, with --valid): the same layers, filter and
 # loops as speckles' teach above, so the same map (the same training misfit and white slope

@@ -1642,9 +1642,13 @@ static void test_options_checks(void **state)
         "--rcond and --modes go with --recon svd", "--rcond must be in [0, 1), got 1", "--slope-noise goes with --recon vk",
         "--recon-scale goes with --recon W.fits", "--teach-work, --teach-loops", "--wfs-hz goes with --wfs-rate",
         "--match pairs camera frames", "--vk-l0 must be an outer scale", "takes no --actuators",
-        "needs TIMING.txt", "--teach-again go with --recon teach", "teach_again must be 0 or 1, got 2",
+        "needs TIMING.txt", "--teach-again and --teach-set go with --recon teach", "teach_again must be 0 or 1, got 2",
         "--teach-max-loops must be --teach-loops (12) to 64", "--teach-max-loops, --teach-seed",
+        "--teach-set go with --recon teach", "--teach-set: unknown setting 'bogus_key'", "--teach-set takes key=value",
+        "--teach-set: time-series parameter dm_coupling=1.5: must be in [0, 1)",
     };
+    const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},
+               *tk_range[1] = {"dm_coupling=1.5"};
     const size_t npat = sizeof pattern / sizeof pattern[0];
     const char *min[1] = {"in.fits"}, *mout[1] = {"out_match.fits"};
     for (size_t k = 0; k <= npat; k++) {
@@ -1671,7 +1675,11 @@ static void test_options_checks(void **state)
         case 14: sp.teach_again = 2; break;
         case 15: sp.teach_max_loops = 8; break;
         case 16: sp.pipe.recon = SWFS_RECON_VK; sp.teach_max_loops = 24; break;
-        default: break; /* the defaults */
+        case 17: sp.pipe.recon = SWFS_RECON_VK; sp.teach_keys = tk_ok; sp.nteach_keys = 1; break;
+        case 18: sp.teach_keys = tk_bogus; sp.nteach_keys = 1; break;
+        case 19: sp.teach_keys = tk_noeq; sp.nteach_keys = 1; break;
+        case 20: sp.teach_keys = tk_range; sp.nteach_keys = 1; break;
+        default: sp.teach_keys = tk_ok; sp.nteach_keys = 1; break; /* the defaults, and a key teach takes */
         }
         if (k == npat) {
             assert_int_equal(swfs_speckles_run_options_check(&sp), 0);

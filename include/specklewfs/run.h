@@ -184,6 +184,13 @@ typedef struct swfs_speckles_run_options {
                                  telemetry's and the system files' contents, the description teach
                                  is given, the loops, the seed, SWFS_VERSION and SWFS_TEACH_RULE,
                                  is this run's; teach_keep_loops teaches too, to keep the loops) */
+    const char *const *teach_keys; /* nteach_keys "key=value": what the files do not say of the
+                                 system teach's loops simulate, in `simulate mode=timeseries` keys
+                                 (e.g. dm_coupling, ao_gain, ao_delay, r0; as `teach`'s key=value:
+                                 they win over the files' description, a filter or slope_noise
+                                 given is not taken from the slopes, the layers and the seed are
+                                 teach's); part of the fingerprint */
+    size_t nteach_keys;
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);

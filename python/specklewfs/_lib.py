@@ -327,7 +327,8 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("batch", c_size), ("team", c_ptr), ("geom", swfs_geom),
     ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_max_loops", c_size),
     ("teach_seed", c_u64),
-    ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int)])
+    ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
+    ("nteach_keys", c_size)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]

@@ -13,7 +13,7 @@ import numpy as np
 from . import _lib
 from ._lib import lib, check, dptr, enc
 from .estimate import Halo
-from .sim import _run, _struct_dict
+from .sim import _cfg_value, _run, _struct_dict
 from .stream import _RECON, _TT, _band
 
 
@@ -374,7 +374,7 @@ def _teach_dict(r, modes_from_slopes):
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
-             teach_max_loops=None, linear=None):
+             teach_max_loops=None, linear=None, teach_keys=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -400,7 +400,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     the MAP reconstructor from the telemetry), scale (`--coef-scale`) and for a basis on the
     DM's grid dm_pitch [m], dm_offset (x, y) [m], dm_rot [deg], dm_flip; e.g. a pyramid's
     signals with simulate wfs=pyramid's influence.fits and imat_ao.fits. No map is taught for
-    a linear model (recon applies to the Shack-Hartmann's)."""
+    a linear model (recon applies to the Shack-Hartmann's). teach_keys: what the files do not
+    say of the system teach's loops simulate, a dict in `simulate mode=timeseries` keys (e.g.
+    dict(dm_coupling=0.15) for a DM of Gaussian influence functions; `--teach-set`), as
+    teach(**params): they win over the files' description and are part of the fingerprint."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -419,6 +422,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         o.teach_max_loops = int(teach_max_loops)
     o.teach_keep_loops = int(bool(teach_keep_loops))
     o.teach_again = int(bool(teach_again))
+    tkeys = [f"{k}={_cfg_value(v)}" for k, v in (teach_keys or {}).items()]
+    o.teach_keys, o.nteach_keys = _lib.strings(tkeys)  # kept alive by o until the run returns
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)

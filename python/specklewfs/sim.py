@@ -12,19 +12,21 @@ from .core import Geom, geom_arg
 P = ctypes.POINTER
 
 
+def _cfg_value(v):
+    """A config value as text: numbers, strings, or sequences written comma-separated."""
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return ", ".join(repr(float(x)) if not isinstance(x, str) else x for x in np.ravel(v).tolist())
+    return repr(v) if isinstance(v, float) else str(v)
+
+
 def _config(config, params):
-    """A swfs_config from a config file and key=value overrides (values: numbers, strings,
-    or sequences written comma-separated)."""
+    """A swfs_config from a config file and key=value overrides (_cfg_value)."""
     c = check_ptr(lib.swfs_config_new(), "swfs_config_new")
     owner = _lib.Owner(c, lib.swfs_config_free)
     if config is not None:
         check(lib.swfs_config_load(c, enc(config)), "swfs_config_load")
     for k, v in params.items():
-        if isinstance(v, (list, tuple, np.ndarray)):
-            v = ", ".join(repr(float(x)) if not isinstance(x, str) else x for x in np.ravel(v).tolist())
-        elif isinstance(v, float):
-            v = repr(v)
-        check(lib.swfs_config_set_kv(c, str(k).encode(), str(v).encode()), "swfs_config_set_kv")
+        check(lib.swfs_config_set_kv(c, str(k).encode(), _cfg_value(v).encode()), "swfs_config_set_kv")
     return c, owner
 
 

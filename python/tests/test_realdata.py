@@ -155,7 +155,10 @@ def test_errors_leave_nothing(series, tmp_path):
     # swfs_speckles_run_options_check), before any file is opened.
     for kw, msg in [({"teach_loops": 1}, "--teach-loops must be 2..64, got 1"),
                     ({"recon": "vk", "teach_seed": 7}, "--teach-work, --teach-loops, --teach-max-loops, --teach-seed"),
-                    ({"recon": "vk", "teach_again": True}, "--teach-keep-loops and --teach-again go with --recon teach"),
+                    ({"recon": "vk", "teach_again": True}, "--teach-again and --teach-set go with --recon teach"),
+                    ({"recon": "vk", "teach_keys": {"dm_coupling": 0.15}}, "--teach-set go with --recon teach"),
+                    ({"teach_keys": {"bogus_key": 1}}, "--teach-set: unknown setting 'bogus_key'"),
+                    ({"teach_keys": {"dm_coupling": 1.5}}, r"dm_coupling=1.5: must be in \[0, 1\)"),
                     ({"wfs_hz": 1000.0, "wfs_rate": True, "match": [("a.fits", "b.fits")]}, "does not apply")]:
         with pytest.raises((sw.Error, ValueError), match=msg) as e:
             sw.speckles(str(tmp_path / "t.txt"), str(tmp_path / "sci.fits"), str(s / "actuators.fits"),
