@@ -118,6 +118,49 @@ static void test_wind_of_simulated_loops(void **state)
     }
 }
 
+/* Two layers of similar speeds in other directions (8 and 12 m/s toward 45 and 300 deg, 0.6 and
+ * 0.4 of the turbulence) under a zonal loop on a 16 x 16 at 600 Hz: at 32 frames the map has
+ * one peak between the two layers, at 64 none inside the window the prediction allows; the
+ * tracker tries the next lag (128) before it gives up, and finds the 12 m/s layer there, the
+ * stacking the 8 m/s one. Before, a lag lost after the first kept one ended the track and no
+ * layer was found. */
+static void test_wind_two_layers_merged(void **state)
+{
+    (void)state;
+    swfs_config *c = swfs_config_new();
+    const char *kv[] = {"pupn=100", "pupdx=0.065", "screen_n=1024", "nsub=16", "act_pitch=0.3372", "wfs_rate=600",
+                        "frame_ratio=5", "nlayers=2", "layer_frac=0.6,0.4", "layer_speed=8,12", "layer_dir=45,300",
+                        "vib_amp=0.2", "vib_freq=25", "read_noise=5", "ncubes=6", "cube_frames=100",
+                        "start_offset=300.274", "seed=2", "ao_rcond=0.05", "camera_light=1"};
+    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
+    swfs_ts_params tp;
+    swfs_ts_params_default(&tp);
+    assert_ok(swfs_ts_params_from_config(c, &tp));
+    swfs_config_free(c);
+    assert_ok(swfs_ts_params_check(&tp));
+    mkdir(p("merged"), 0755);
+    swfs_ts_summary s;
+    const char *prov[] = {"test_wind"};
+    assert_ok(swfs_ts_run(&tp, p("merged"), prov, 1, NULL, NULL, &s));
+    swfs_wind_run_result r;
+    wind_of("merged", &r);
+    assert_true(r.est.found);
+    assert_int_equal(r.est.nlayers, 2);
+    const double sp[2] = {12, 8}, dr[2] = {300, 45};
+    for (int k = 0; k < 2; k++) {
+        assert_true(fabs(r.est.layer[k].speed / sp[k] - 1) < 0.05);
+        assert_true(angle_diff(r.est.layer[k].direction, dr[k]) < 5.0);
+    }
+    /* the track: a lag lost between the first kept one and the second */
+    size_t first = SIZE_MAX, second = SIZE_MAX;
+    for (size_t k = 0; k < r.est.nlags; k++)
+        if (r.est.lag[k].used) {
+            if (first == SIZE_MAX) first = k;
+            else if (second == SIZE_MAX) second = k;
+        }
+    assert_true(first != SIZE_MAX && second != SIZE_MAX && second > first + 1);
+}
+
 /* The valid subapertures' slopes alone, with the map, give the same answer to the bit. */
 static void test_wind_valid_only(void **state)
 {
@@ -348,6 +391,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_wind_of_simulated_loops),
         cmocka_unit_test(test_wind_valid_only),
+        cmocka_unit_test(test_wind_two_layers_merged),
         cmocka_unit_test(test_wind_noise_and_refusals),
         cmocka_unit_test(test_mode_knee),
         cmocka_unit_test(test_mode_timecorr),

@@ -228,12 +228,20 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         if (out->nused && (fabs(px) > (double)(w.R - 1) || fabs(py) > (double)(w.R - 1))) break;
         swfs_wind_lag *L = &out->lag[out->nlags++];
         track_lag(&w, l, px, py, out->nused ? 0.5 * hypot(px, py) : 0.0, L);
+        /* A lag whose peak is lost (not a maximum off the window's edge, or the vertex moved
+         * out of the window) ends the tracking once two lags give the velocity; with one, the
+         * next lag is tried from the same prediction: two layers of similar speeds in other
+         * directions make one peak between them at the short lags, which the longer ones part
+         * (docs/telemetry.md, "The wind from the slopes"). */
         if (!L->inside) {
-            if (out->nused) break;
+            if (out->nused >= 2) break;
             continue;
         }
         if (!out->nused && hypot(L->dx, L->dy) < 1) continue;
-        if (out->nused && hypot(L->dx - px, L->dy - py) > 0.5 * hypot(px, py)) break; /* the vertex moved out */
+        if (out->nused && hypot(L->dx - px, L->dy - py) > 0.5 * hypot(px, py)) {
+            if (out->nused >= 2) break; /* the vertex moved out */
+            continue;
+        }
         L->used = 1;
         out->nused++;
         fit_velocity(out, &ux, &uy);
