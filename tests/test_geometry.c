@@ -51,14 +51,10 @@ static int setup(void **state)
     (void)state;
     snprintf(dir, sizeof dir, "%s", test_path("geometry"));
     mkdir(dir, 0755);
-    swfs_config *c = swfs_config_new();
     const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=40", "cube_gap=150",
                         "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=2"};
-    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
     swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    assert_ok(swfs_ts_params_from_config(c, &tp));
-    swfs_config_free(c);
+    test_ts_params(kv, sizeof kv / sizeof kv[0], &tp);
     swfs_ts_summary s;
     const char *prov[] = {"test_geometry"};
     assert_ok(swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, &s));

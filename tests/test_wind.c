@@ -45,23 +45,26 @@ static int setup(void **state)
     return 0;
 }
 
-/* A closed-loop time series (12 x 12 at 527 Hz on a 6.5 m pupil) into dir/sub. */
-static void series(const char *sub, const char *const *extra, size_t nextra)
+/* A closed-loop time series of the simulator's defaults and the n settings kv into dir/sub. */
+static void series_of(const char *sub, const char *const *kv, size_t n)
 {
-    swfs_config *c = swfs_config_new();
-    const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=100", "cube_gap=100",
-                        "seed=4"};
-    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
-    for (size_t i = 0; i < nextra; i++) assert_ok(swfs_config_set(c, extra[i]));
     swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    assert_ok(swfs_ts_params_from_config(c, &tp));
-    swfs_config_free(c);
-    assert_ok(swfs_ts_params_check(&tp));
+    test_ts_params(kv, n, &tp);
     mkdir(p(sub), 0755);
     swfs_ts_summary s;
     const char *prov[] = {"test_wind"};
     assert_ok(swfs_ts_run(&tp, p(sub), prov, 1, NULL, NULL, &s));
+}
+
+/* A closed-loop time series (12 x 12 at 527 Hz on a 6.5 m pupil) into dir/sub. */
+static void series(const char *sub, const char *const *extra, size_t nextra)
+{
+    const char *kv[16] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=100", "cube_gap=100",
+                          "seed=4"};
+    size_t n = 7;
+    assert_true(nextra <= 16 - n);
+    for (size_t i = 0; i < nextra; i++) kv[n++] = extra[i];
+    series_of(sub, kv, n);
 }
 
 static void wind_of(const char *sub, swfs_wind_run_result *r)
@@ -127,21 +130,11 @@ static void test_wind_of_simulated_loops(void **state)
 static void test_wind_two_layers_merged(void **state)
 {
     (void)state;
-    swfs_config *c = swfs_config_new();
     const char *kv[] = {"pupn=100", "pupdx=0.065", "screen_n=1024", "nsub=16", "act_pitch=0.3372", "wfs_rate=600",
                         "frame_ratio=5", "nlayers=2", "layer_frac=0.6,0.4", "layer_speed=8,12", "layer_dir=45,300",
                         "vib_amp=0.2", "vib_freq=25", "read_noise=5", "ncubes=6", "cube_frames=100",
                         "start_offset=300.274", "seed=2", "ao_rcond=0.05", "camera_light=1"};
-    for (size_t i = 0; i < sizeof kv / sizeof kv[0]; i++) assert_ok(swfs_config_set(c, kv[i]));
-    swfs_ts_params tp;
-    swfs_ts_params_default(&tp);
-    assert_ok(swfs_ts_params_from_config(c, &tp));
-    swfs_config_free(c);
-    assert_ok(swfs_ts_params_check(&tp));
-    mkdir(p("merged"), 0755);
-    swfs_ts_summary s;
-    const char *prov[] = {"test_wind"};
-    assert_ok(swfs_ts_run(&tp, p("merged"), prov, 1, NULL, NULL, &s));
+    series_of("merged", kv, sizeof kv / sizeof kv[0]);
     swfs_wind_run_result r;
     wind_of("merged", &r);
     assert_true(r.est.found);
