@@ -131,42 +131,22 @@ int swfs_cmd_speckles(int argc, char **argv)
     const char *cmd = "speckles";
     swfs_speckles_run_options o;
     swfs_speckles_run_options_default(&o);
-    const char **min = calloc((size_t)argc, sizeof *min), **mout = calloc((size_t)argc, sizeof *mout),
-               **tkeys = calloc((size_t)argc, sizeof *tkeys);
-    if (!min || !mout || !tkeys) {
-        free(min); free(mout); free(tkeys);
-        fprintf(stderr, "specklewfs %s: out of memory\n", cmd);
-        return CLI_FAIL;
+    /* --match's IN and OUT names and --teach-set's keys: at most argc of each, in one block */
+    const char **names = calloc(3 * (size_t)argc, sizeof *names);
+    if (!names) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
+    int rc = parse(argc, argv, &o, names, names + argc, names + 2 * argc);
+    if (rc) rc = rc < 0 ? CLI_OK : rc;
+    else if (cli_team_join(cmd, &o.team)) rc = CLI_FAIL;
+    else {
+        o.prov = cli_provenance(argc, argv, &o.nprov);
+        o.progress = cli_writer() ? cli_stage_progress : NULL;
+        o.progress_ctx = "speckles:";
+        swfs_speckles_run_result r;
+        swfs_teach_run_result tr;
+        o.teach = &tr;
+        rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
+        if (!rc && cli_writer()) cli_speckles_summary(cmd, &o, &r, &tr);
     }
-    int rc = parse(argc, argv, &o, min, mout, tkeys);
-    if (rc) {
-        free(min);
-        free(mout);
-        free(tkeys);
-        return rc < 0 ? CLI_OK : rc;
-    }
-    if (cli_team_join(cmd, &o.team)) {
-        free(min);
-        free(mout);
-        free(tkeys);
-        return CLI_FAIL;
-    }
-    o.prov = cli_provenance(argc, argv, &o.nprov);
-    o.progress = cli_writer() ? cli_stage_progress : NULL;
-    o.progress_ctx = "speckles:";
-    swfs_speckles_run_result r;
-    swfs_teach_run_result tr;
-    o.teach = &tr;
-    rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
-    if (!cli_writer()) {
-        free(min);
-        free(mout);
-        free(tkeys);
-        return rc;
-    }
-    if (!rc) cli_speckles_summary(cmd, &o, &r, &tr);
-    free(min);
-    free(mout);
-    free(tkeys);
+    free(names);
     return rc;
 }

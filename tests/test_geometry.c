@@ -54,7 +54,7 @@ static int setup(void **state)
     const char *kv[] = {"pupn=66", "pupdx=0.1", "screen_n=1024", "ncubes=2", "cube_frames=40", "cube_gap=150",
                         "layer_speed=30,40", "vib_amp=0.6", "jitter_amp=0.15", "seed=2"};
     swfs_ts_params tp;
-    test_ts_params(kv, sizeof kv / sizeof kv[0], &tp);
+    assert_ok(swfs_ts_params_from_keys(kv, sizeof kv / sizeof kv[0], &tp));
     swfs_ts_summary s;
     const char *prov[] = {"test_geometry"};
     assert_ok(swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, &s));

@@ -49,7 +49,7 @@ static int setup(void **state)
 static void series_of(const char *sub, const char *const *kv, size_t n)
 {
     swfs_ts_params tp;
-    test_ts_params(kv, n, &tp);
+    assert_ok(swfs_ts_params_from_keys(kv, n, &tp));
     mkdir(p(sub), 0755);
     swfs_ts_summary s;
     const char *prov[] = {"test_wind"};

@@ -1,8 +1,6 @@
 #include "testutil.h"
 
-#include "specklewfs/config.h"
 #include "specklewfs/status.h"
-#include "specklewfs/timeseries.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -69,13 +67,3 @@ double *test_annulus(size_t n, double dx, double diam, double obs)
     return m;
 }
 
-void test_ts_params(const char *const *kv, size_t n, struct swfs_ts_params *tp)
-{
-    swfs_config *c = swfs_config_new();
-    assert_non_null(c);
-    for (size_t i = 0; i < n; i++) assert_ok(swfs_config_set(c, kv[i]));
-    swfs_ts_params_default(tp);
-    assert_ok(swfs_ts_params_from_config(c, tp));
-    swfs_config_free(c);
-    assert_ok(swfs_ts_params_check(tp));
-}

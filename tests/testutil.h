@@ -23,9 +23,5 @@ double *test_annulus(size_t n, double dx, double diam, double obs);
 /* Run `specklewfs ARGS` (in folder dir unless NULL), capture stdout + stderr into out;
  * return the exit status (-1 if it did not exit normally). */
 int test_run_cli(const char *dir, const char *args, char *out, size_t cap);
-/* The time-series simulator's parameters: the defaults with the n key=value settings kv, read
- * and checked (the test fails otherwise). */
-struct swfs_ts_params;
-void test_ts_params(const char *const *kv, size_t n, struct swfs_ts_params *tp);
 
 #endif

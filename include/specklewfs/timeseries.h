@@ -167,6 +167,9 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p);
  * takes it from the observation's slopes otherwise. */
 int swfs_ts_config_gives_filter(const swfs_config *c);
 int swfs_ts_params_check(const swfs_ts_params *p);
+/* The defaults with n "key=value" settings (`simulate mode=timeseries` keys), read and checked:
+ * an unknown key, a value that does not parse and one out of range are refused by name. */
+int swfs_ts_params_from_keys(const char *const *kv, size_t n, swfs_ts_params *p);
 
 typedef struct swfs_ts_summary {
     size_t nwfs;               /* WFS frames simulated */

@@ -2,7 +2,6 @@
  * checks every caller gets (the command line, Python, an application), with the messages
  * the command line prints. See include/specklewfs/run.h and live.h. */
 #include "specklewfs/run.h"
-#include "specklewfs/config.h"
 #include "specklewfs/timeseries.h"
 #include "specklewfs/live.h"
 #include "specklewfs/engine.h"
@@ -20,25 +19,6 @@
 /* The ranges of the batch size, shared by the runs (frames per call; 100000 is far beyond
  * any camera's frames per update and keeps a call's buffers within memory). */
 #define BATCH_MAX 100000
-
-/* speckles' --teach-set keys: known `simulate mode=timeseries` keys with values in range, on
- * the simulator's default system (what teach's loops take from the files then replaces its
- * geometry). Refused here, before anything is read, rather than taken for a reason teach could
- * not teach (which falls back to the von Karman map). */
-static int teach_keys_check(const char *const *keys, size_t n)
-{
-    swfs_config *c = swfs_config_new();
-    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    swfs_ts_params p;
-    swfs_ts_params_default(&p);
-    int rc = swfs_config_set_kv(c, "mode", "timeseries");
-    for (size_t k = 0; !rc && k < n; k++) rc = swfs_config_set(c, keys[k]);
-    if (!rc) rc = swfs_ts_params_from_config(c, &p);
-    if (!rc) rc = swfs_config_check_unused(c);
-    if (!rc) rc = swfs_ts_params_check(&p);
-    swfs_config_free(c);
-    return rc ? swfs_fail_context(rc, "--teach-set") : SWFS_OK;
-}
 
 int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
 {
@@ -81,9 +61,13 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
         if (!o->teach_keys || !o->teach_keys[k] || !strchr(o->teach_keys[k], '=') || o->teach_keys[k][0] == '=')
             FAIL("--teach-set takes key=value (simulate mode=timeseries keys), got '%s'",
                  o->teach_keys && o->teach_keys[k] ? o->teach_keys[k] : "(null)");
+    /* known keys with values in range, on the simulator's default system (the files' description
+     * then replaces its geometry): refused here, before anything is read, rather than taken for a
+     * reason teach could not teach (which falls back to the von Karman map) */
     if (o->nteach_keys) {
-        const int rc = teach_keys_check(o->teach_keys, o->nteach_keys);
-        if (rc) return rc;
+        swfs_ts_params tp;
+        const int rc = swfs_ts_params_from_keys(o->teach_keys, o->nteach_keys, &tp);
+        if (rc) return swfs_fail_context(rc, "--teach-set");
     }
     if (o->teach_again & ~1) FAIL("teach_again must be 0 or 1, got %d", o->teach_again);
     if (o->teach_loops < 2 || o->teach_loops > 64) FAIL("--teach-loops must be 2..64, got %zu", o->teach_loops);

@@ -188,10 +188,9 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         rc = swfs_config_set_kv(c, "wfs_rate", v);
     }
     if (!rc) rc = swfs_config_set_kv(c, "mode", "timeseries");
-    /* what the user says of the system (--teach-set): first, so that the files' description
-     * adds only the keys not given, as `teach key=value` */
-    for (size_t k = 0; !rc && k < o->nteach_keys; k++)
-        if ((rc = swfs_config_set(c, o->teach_keys[k]))) swfs_fail_context(rc, "speckles --teach-set %s", o->teach_keys[k]);
+    /* what the user says of the system (--teach-set, checked with the options): first, so that
+     * the files' description adds only the keys not given, as `teach key=value` */
+    for (size_t k = 0; !rc && k < o->nteach_keys; k++) rc = swfs_config_set(c, o->teach_keys[k]);
     const int filter_given = !rc && swfs_ts_config_gives_filter(c), noise_given = !rc && swfs_config_has(c, "slope_noise");
     if (!rc) rc = swfs_teach_describe_geom_(c, g, o->actuators, o->mask, o->valid, names[0]);
     if (!rc) rc = fingerprint(o, c, names, n, fpr);
@@ -202,7 +201,6 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
     swfs_teach_run_options to;
     swfs_teach_run_options_default(&to);
     if (!rc) rc = swfs_ts_params_from_config(c, &to.sim);
-    if (!rc && (rc = swfs_config_check_unused(c))) swfs_fail_context(rc, "speckles --teach-set");
     if (!rc) rc = swfs_ts_params_check(&to.sim);
     if (!rc) {
         to.files = (const char *const *)names;

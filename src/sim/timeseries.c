@@ -213,6 +213,19 @@ static int badv(const char *key, double v, const char *what)
     return swfs_fail(SWFS_ERR_VALUE, "time-series parameter %s=%g: %s", key, v, what);
 }
 
+int swfs_ts_params_from_keys(const char *const *kv, size_t n, swfs_ts_params *p)
+{
+    swfs_ts_params_default(p);
+    swfs_config *c = swfs_config_new();
+    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    int rc = swfs_config_set_kv(c, "mode", "timeseries");
+    for (size_t k = 0; !rc && k < n; k++) rc = swfs_config_set(c, kv[k]);
+    if (!rc) rc = swfs_ts_params_from_config(c, p);
+    if (!rc) rc = swfs_config_check_unused(c);
+    swfs_config_free(c);
+    return rc ? rc : swfs_ts_params_check(p);
+}
+
 int swfs_ts_params_check(const swfs_ts_params *p)
 {
     const swfs_sim_params *b = &p->base;
