@@ -9,17 +9,22 @@
 # of 30 frames, telemetry files of 600 frames (shorter than a cube), one cube of 300 frames;
 # then four systems in telemetry files of 600-1500 frames (x*). The last nine are the same system as it is (v16-base) and with one thing changed each: the loop's gain
 # and delay, the WFS's slope noise, a 20 % optical bandwidth, the camera's background, hot and
-# dead pixels, a square actuator grid.
-# usage: bash bench/systems_cli.sh <specklewfs> <scratch dir>
+# dead pixels, a square actuator grid; then a zonal controller (ao_rcond) and a DM of Gaussian
+# influence functions (dm_coupling), which teach is not told. Last, a 22 x 22 system of three
+# layers at 1.5 kHz, a geometry nothing else here has.
+# usage: bash bench/systems_cli.sh <specklewfs> <scratch dir> [NAME-REGEX]
+#   NAME-REGEX   only the systems whose names match it (grep -E), e.g. 'v16-(zonal|dmgauss)'
 set -u
 B=$1
 D=$2
+ONLY=${3:-}
 mkdir -p "$D"
 . "$(dirname "$0")/../tests/lib_cli.sh"  # ncp_error
 stop() { echo "$1: $2 failed: $(tail -1 "$3")"; }
 run() { # name nsub rate ratio nlayers speeds dirs fracs vib rn seed pupn [more simulate keys]
     local n=$1 nsub=$2 rate=$3 ratio=$4 nl=$5 sp=$6 dr=$7 fr=$8 vib=$9 rn=${10} seed=${11} pupn=${12}
     shift 12
+    if [ -n "$ONLY" ] && ! grep -Eq -- "$ONLY" <<< "$n"; then return; fi
     local d=$D/$n pitch modes pupdx t0
     rm -rf "$d"
     mkdir -p "$d"
@@ -82,3 +87,9 @@ run v16-band20    16 1000   9.7  1      14       200         1            0.4  1
 run v16-bg500     16 1000   9.7  1      14       200         1            0.4  15 1    100 background=500
 run v16-hotdead   16 1000   9.7  1      14       200         1            0.4  15 1    100 nhot=50 ndead=20
 run v16-actsq     16 1000   9.7  1      14       200         1            0.4  15 1    100 act_square=1
+# a zonal controller (every mode but the sensor's weakest controlled) and a DM of Gaussian
+# influence functions (coupling 0.2 at the next actuator): neither said to teach
+run v16-zonal     16 1000   9.7  1      14       200         1            0.4  15 1    100 ao_rcond=0.05
+run v16-dmgauss   16 1000   9.7  1      14       200         1            0.4  15 1    100 dm_coupling=0.2
+# a geometry of its own: 22 x 22 at 1.5 kHz, 8.5 WFS frames per exposure, three layers
+run sh22-3lay     22 1500   8.5  3      25,12,6  300,40,160  0.4,0.4,0.2  0.25 12 5    100

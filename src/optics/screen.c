@@ -21,11 +21,18 @@ static double psd_constant(void)
 
 static double inv_L0_sq(double L0) { return (L0 > 0 && isfinite(L0)) ? 1.0 / (L0 * L0) : 0.0; }
 
+/* The PSD at f given c = psd_constant() r0^{-5/3} and q = 1/L0^2: swfs_vonkarman_psd's value
+ * to the bit, for loops over many frequencies that compute c and q once. */
+static double psd_at(double f, double c, double q)
+{
+    const double f2 = f * f + q;
+    if (!(f2 > 0)) return 0.0;
+    return c * pow(f2, -11.0 / 6.0);
+}
+
 double swfs_vonkarman_psd(double f, double r0, double L0)
 {
-    const double f2 = f * f + inv_L0_sq(L0);
-    if (!(f2 > 0)) return 0.0;
-    return psd_constant() * pow(r0, -5.0 / 3.0) * pow(f2, -11.0 / 6.0);
+    return psd_at(f, psd_constant() * pow(r0, -5.0 / 3.0), inv_L0_sq(L0));
 }
 
 double swfs_vonkarman_structure(double r, double r0, double L0)
@@ -97,14 +104,18 @@ static void amp_rows(void *ctx, size_t b, size_t e, int worker)
     swfs_screen_gen *g = ctx;
     const size_t n = g->p.n;
     const double df = 1.0 / ((double)n * g->p.dx), scale = SWFS_SCREEN_LAMBDA_REF / (2.0 * M_PI);
+    const double c = psd_constant() * pow(g->p.r0, -5.0 / 3.0), q = inv_L0_sq(g->p.L0);
     (void)worker;
     for (size_t ky = b; ky < e; ky++) {
         const double fy = (double)swfs_fft_freq_index(ky, n) * df;
-        for (size_t kx = 0; kx < n; kx++) {
+        /* the PSD is even in fx: columns kx and n - kx (frequencies +-kx df) take one value */
+        for (size_t kx = 0; kx <= n / 2; kx++) {
             const double fx = (double)swfs_fft_freq_index(kx, n) * df;
             const double f = hypot(fx, fy);
             /* f = 0 is the piston: no physical meaning, and infinite for Kolmogorov. */
-            g->amp[ky * n + kx] = f > 0 ? sqrt(2.0 * swfs_vonkarman_psd(f, g->p.r0, g->p.L0)) * df * scale : 0.0;
+            const double a = f > 0 ? sqrt(2.0 * psd_at(f, c, q)) * df * scale : 0.0;
+            g->amp[ky * n + kx] = a;
+            if (kx > 0 && n - kx > n / 2) g->amp[ky * n + (n - kx)] = a;
         }
     }
 }
