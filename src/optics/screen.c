@@ -21,7 +21,10 @@ static double psd_constant(void)
 
 static double inv_L0_sq(double L0) { return (L0 > 0 && isfinite(L0)) ? 1.0 / (L0 * L0) : 0.0; }
 
-/* The PSD at f given c = psd_constant() r0^{-5/3} and q = 1/L0^2: swfs_vonkarman_psd's value
+/* The PSD's scale at Fried parameter r0: psd_constant() r0^{-5/3}. */
+static double psd_scale(double r0) { return psd_constant() * pow(r0, -5.0 / 3.0); }
+
+/* The PSD at f given c = psd_scale(r0) and q = 1/L0^2: swfs_vonkarman_psd's value
  * to the bit, for loops over many frequencies that compute c and q once. */
 static double psd_at(double f, double c, double q)
 {
@@ -32,7 +35,7 @@ static double psd_at(double f, double c, double q)
 
 double swfs_vonkarman_psd(double f, double r0, double L0)
 {
-    return psd_at(f, psd_constant() * pow(r0, -5.0 / 3.0), inv_L0_sq(L0));
+    return psd_at(f, psd_scale(r0), inv_L0_sq(L0));
 }
 
 double swfs_vonkarman_structure(double r, double r0, double L0)
@@ -44,7 +47,7 @@ double swfs_vonkarman_structure(double r, double r0, double L0)
      *   F(s) = 6 s^{1/6} + (6/5) q s^{-5/6}
      * (for Kolmogorov it is 3 pi^2 r^2 c flo^{1/3}: 1 % of D at flo r = 1e-6, so it matters).
      * Above fhi the tail ~ f^{-8/3} is added analytically with J0 averaged to zero. */
-    const double c = psd_constant() * pow(r0, -5.0 / 3.0), q = inv_L0_sq(L0);
+    const double c = psd_scale(r0), q = inv_L0_sq(L0);
     const double flo = 1e-6 / r, fhi = 1e5 / r;
     const int n = 20000; /* even */
     const double a = log(flo), h = (log(fhi) - a) / n;
@@ -104,7 +107,7 @@ static void amp_rows(void *ctx, size_t b, size_t e, int worker)
     swfs_screen_gen *g = ctx;
     const size_t n = g->p.n;
     const double df = 1.0 / ((double)n * g->p.dx), scale = SWFS_SCREEN_LAMBDA_REF / (2.0 * M_PI);
-    const double c = psd_constant() * pow(g->p.r0, -5.0 / 3.0), q = inv_L0_sq(g->p.L0);
+    const double c = psd_scale(g->p.r0), q = inv_L0_sq(g->p.L0);
     (void)worker;
     for (size_t ky = b; ky < e; ky++) {
         const double fy = (double)swfs_fft_freq_index(ky, n) * df;
