@@ -106,7 +106,7 @@ static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for -
 
 static const char *pth(const char *name)
 {
-    static char buf[32][1200];
+    static char buf[32][sizeof dir + 256]; /* the folder and a file name of its names (the longest 191) */
     static int k;
     k = (k + 1) % 32;
     snprintf(buf[k], sizeof buf[k], "%s/%s", dir, name);

@@ -108,9 +108,11 @@ done
 echo "cli_teach: --teach-set dm_coupling=0.15: taught anew, other speckles; bad keys refused by name"
 # the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
 # system's valid map (from the files, as above, with --valid): the same layers, filter and
-# loops as speckles' teach above, so the same map (the same training misfit and white slope
-# noise printed); speckles --valid applies it to that telemetry (the timing table's rows
-# renamed to those files) to the same NCP error. Its work folder holds a loop folder with a
+# loops as speckles' teach above, so the same map (the same calibration loops' profile misfits,
+# training misfit and white slope noise printed); speckles --valid applies it to that telemetry
+# (the timing table's rows renamed to those files) to the same NCP error. It runs one loop at a
+# time (threads=1), speckles' teach as many at once as there are cores (the calibration loops
+# too): a loop is the same whatever runs beside it. Its work folder holds a loop folder with a
 # slopes / truewf pair beyond this loop's own (as a longer earlier loop would leave it; learn
 # reads every pair; speckles' default teaches into the same OUT.teach every run): teach clears
 # it first, or the map would learn from other frames.
@@ -118,13 +120,13 @@ mkdir -p taught_v/loop_00
 cp obs/slopes_000.fits taught_v/loop_00/slopes_001.fits
 cp obs/slopes_000.fits taught_v/loop_00/truewf_001.fits
 "$B" teach obs/slopes_valid_000.fits --science science.fits --actuators actuators.fits --pupil pupil.fits \
-    --valid valid.fits -o taught_v.fits --work taught_v --loops 4 --max-loops 4 > teach_v.log 2>&1 \
+    --valid valid.fits -o taught_v.fits --work taught_v --loops 4 --max-loops 4 threads=1 > teach_v.log 2>&1 \
     || { cat teach_v.log; fail "teach on valid-only slopes"; }
 [ ! -e taught_v/loop_00/slopes_001.fits ] && [ ! -e taught_v/loop_00/truewf_001.fits ] \
     || fail "teach left a stale slopes / truewf pair in a loop folder it used again"
 grep -q "ao_modes = 5[3-9]$" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the modal filter expected"; }
 grep -q "chose the space-time map" teach_v.log || { cat teach_v.log; fail "teach (valid-only): the space-time map expected"; }
-for what in "misses the loops' residual by .* nm" "white noise .*"; do
+for what in "calibration loops (ao_modes -> knee): .*" "misses the loops' residual by .* nm" "white noise .*"; do
     a=$(grep -o "$what" teach_v.log)
     b=$(grep -o "$what" speckles_dt.log)
     [ -n "$a" ] && [ "$a" = "$b" ] || fail "teach (valid-only) against speckles' teach: '$a' against '$b'"

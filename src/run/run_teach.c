@@ -43,6 +43,7 @@ typedef struct loop_job {
     uint64_t seed;
     int nl;
     double frac[SWFS_TS_MAX_LAYERS], speed[SWFS_TS_MAX_LAYERS], dir[SWFS_TS_MAX_LAYERS];
+    double rcond;        /* > 0: a zonal loop at this cut (simulate's ao_rcond); 0: the description's */
     char path[4200];
     int rc;
     char why[1024];      /* the failure's message (a worker's own thread holds it) */
@@ -56,6 +57,7 @@ typedef struct loops_ctx {
     const char *stage;
     size_t njobs;
     atomic_size_t done;  /* loops finished, over the workers */
+    int truth;           /* simulate_loop's truth */
 } loops_ctx;
 
 /* A loop's folder from an earlier teach in the same work folder (`speckles` teaches into
@@ -94,6 +96,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
         p.layer_speed[l] = j->speed[l];
         p.layer_dir[l] = j->dir[l];
     }
+    if (j->rcond > 0) p.ao_rcond = j->rcond;
     p.base.seed = j->seed;
     p.base.threads = threads;
     p.export_truth = truth;
@@ -120,7 +123,7 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
     loops_ctx *c = ctx;
     for (size_t i = begin; i < end; i++) {
         loop_job *j = c->jobs + i;
-        j->rc = simulate_loop(c->o, j, c->inner, c->shared, 1);
+        j->rc = simulate_loop(c->o, j, c->inner, c->shared, c->truth);
         if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
         const size_t done = atomic_fetch_add(&c->done, 1) + 1;
         if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, done, c->njobs);
@@ -131,10 +134,10 @@ static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
  * loop's own simulation then single-threaded): every loop is the same whatever runs beside
  * it. The first failure's message, with its loop named. */
 static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared *shared, loop_job *jobs, size_t n,
-                          const char *stage, size_t *nrun)
+                          const char *stage, size_t *nrun, int truth)
 {
     const int nt = swfs_parallel_threads(o->sim.base.threads, n);
-    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, shared, stage, n, 0};
+    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, shared, stage, n, 0, truth};
     if (o->progress) o->progress(o->progress_ctx, stage, 0, n);
     swfs_parallel_for(nt, n, 1, loops_worker, &c);
     for (size_t i = 0; i < n; i++) {
@@ -357,22 +360,23 @@ static double profile_misfit(const double *a, size_t na, const double *b, size_t
     return sqrt(var > 0 ? var : 0);
 }
 
-/* One calibration loop of the description as o->sim has it now (work/NAME_NN, tmpl's layers,
- * teach's seed; read for its slopes only, projected as the observation's were): its first
- * telemetry file's slopes, f its path. */
-static int calibration_slopes(const swfs_teach_run_options *o, const projection *pj, const loop_job *tmpl,
-                              const char *name, size_t k, swfs_real **ls, char *f, size_t cap)
+/* A calibration loop's job: tmpl's layers (and zonal cut), work/NAME_NN, teach's seed. */
+static void calibration_job(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
+                            loop_job *j)
 {
-    loop_job j = *tmpl;
-    snprintf(j.name, sizeof j.name, "%s", name);
-    j.k = k;
-    j.seed = o->seed;
+    *j = *tmpl;
+    snprintf(j->name, sizeof j->name, "%s", name);
+    j->k = k;
+    j->seed = o->seed;
+}
+
+/* The slopes of a calibration loop simulated (calibration_job), projected as the
+ * observation's were; f their file's path. */
+static int calibration_read(const loop_job *j, const projection *pj, swfs_real **ls, char *f, size_t cap)
+{
     *ls = NULL;
-    int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
-    if (!rc) {
-        snprintf(f, cap, "%s/slopes_000.fits", j.path);
-        rc = swfs_telemetry_read(f, 0, ls, NULL);
-    }
+    snprintf(f, cap, "%s/slopes_000.fits", j->path);
+    int rc = swfs_telemetry_read(f, 0, ls, NULL);
     if (!rc && pj && pj->P) rc = swfs_modal_project_(pj->P, pj->n, *ls, f);
     if (rc) {
         swfs_real_free(*ls);
@@ -381,13 +385,28 @@ static int calibration_slopes(const swfs_teach_run_options *o, const projection 
     return rc;
 }
 
-/* A calibration loop's mode variances and their knee (calibration_slopes). */
+/* Calibration loops that do not wait for each other's results (the zonal cuts, the first
+ * speeds): simulated as the space-time set's loops are, as many at once as the simulator's
+ * threads allow (simulate_loops; a loop is the same whatever runs beside it: the files of a
+ * small-loop.conf simulation at threads=1 and threads=2 equal by tests/tools/fitsdiff), read
+ * afterwards in their order. */
+static int calibration_batch(const swfs_teach_run_options *o, loop_job *jobs, size_t n, const char *what)
+{
+    size_t nrun = 0;
+    return simulate_loops(o, NULL, jobs, n, what, &nrun, 0);
+}
+
+/* One calibration loop of the description as o->sim has it now (work/NAME_NN, tmpl's layers,
+ * teach's seed; read for its slopes only): their mode variances and knee. */
 static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
                             double **v, size_t *n, size_t *knee)
 {
+    loop_job j;
+    calibration_job(o, tmpl, name, k, &j);
     swfs_real *ls = NULL;
     char f[4300];
-    int rc = calibration_slopes(o, NULL, tmpl, name, k, &ls, f, sizeof f);
+    int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    if (!rc) rc = calibration_read(&j, NULL, &ls, f, sizeof f);
     if (!rc) rc = knee_of(&o->sim, ls, f, v, n, knee);
     swfs_real_free(ls);
     return rc;
@@ -433,10 +452,19 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     }
     o->sim.ao_modes = best;
     if (!rc) r->misfit_modal = profile_misfit(v[bi], nv[bi], v[0], nv[0]);
-    for (size_t z = 0; !rc && z < SWFS_TEACH_NZONAL; z++) { /* the zonal loops */
-        stage(o, "the loop's filter (zonal loops)", z, SWFS_TEACH_NZONAL);
-        o->sim.ao_rcond = swfs_teach_zonal_rcond[z];
-        if ((rc = calibration_loop(o, tmpl, "zonal", z, &v[5 + z], &nv[5 + z], &zknee[z]))) break;
+    loop_job zj[SWFS_TEACH_NZONAL]; /* the zonal loops, one per cut, at once (calibration_batch) */
+    for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++) {
+        calibration_job(o, tmpl, "zonal", z, &zj[z]);
+        zj[z].rcond = swfs_teach_zonal_rcond[z];
+    }
+    if (!rc) rc = calibration_batch(o, zj, SWFS_TEACH_NZONAL, "the loop's filter (zonal loops)");
+    for (size_t z = 0; !rc && z < SWFS_TEACH_NZONAL; z++) {
+        swfs_real *ls = NULL;
+        char f[4300];
+        rc = calibration_read(&zj[z], NULL, &ls, f, sizeof f);
+        if (!rc) rc = knee_of(&o->sim, ls, f, &v[5 + z], &nv[5 + z], &zknee[z]);
+        swfs_real_free(ls);
+        if (rc) break;
         r->zonal_misfit[z] = profile_misfit(v[5 + z], nv[5 + z], v[0], nv[0]);
         if (r->zonal_misfit[z] < r->zonal_misfit[r->zonal_best]) r->zonal_best = z;
     }
@@ -488,24 +516,41 @@ static double tcorr_misfit(const double *a, size_t na, const double *b, size_t n
 /* The speed calibration loops' first speeds [m/s], a factor 2 apart. */
 static const double speed_grid[4] = {4, 8, 16, 32};
 
-/* One speed calibration loop (speed_NN/: one layer at sp toward 0 deg) and its slopes' misfit
- * to the observation's time correlation, appended to r->speed_cal, r->speed_misfit. */
-static int speed_loop(const swfs_teach_run_options *o, const projection *pj, double sp, swfs_teach_run_result *r)
+/* A speed calibration loop's job: speed_NN/ (NN = r->nspeed + i), one layer at sp toward 0 deg. */
+static void speed_job(const swfs_teach_run_options *o, const swfs_teach_run_result *r, size_t i, double sp,
+                      loop_job *j)
 {
-    stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed < 4 ? 4 : r->nspeed + 1);
-    const loop_job j = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
+    const loop_job t = {.nl = 1, .frac = {1.0}, .speed = {sp}, .dir = {0.0}};
+    calibration_job(o, &t, "speed", r->nspeed + i, j);
+}
+
+/* A speed loop simulated (speed_job): its slopes' misfit to the observation's time
+ * correlation, appended to r->speed_cal, r->speed_misfit. */
+static int speed_result(const swfs_teach_run_options *o, const projection *pj, const loop_job *j,
+                        swfs_teach_run_result *r)
+{
     swfs_real *ls = NULL;
     char f[4300];
     double rho[SWFS_TEACH_NTCORR];
     long lag[SWFS_TEACH_NTCORR];
     size_t nl = 0;
-    int rc = calibration_slopes(o, pj, &j, "speed", r->nspeed, &ls, f, sizeof f);
+    int rc = calibration_read(j, pj, &ls, f, sizeof f);
     if (!rc) rc = time_corr(&o->sim, ls, f, rho, lag, &nl);
     swfs_real_free(ls);
     if (rc) return rc;
-    r->speed_cal[r->nspeed] = sp;
+    r->speed_cal[r->nspeed] = j->speed[0];
     r->speed_misfit[r->nspeed++] = tcorr_misfit(rho, nl, r->tcorr, r->ntcorr);
     return SWFS_OK;
+}
+
+/* One speed calibration loop more, at sp (speed_job, speed_result). */
+static int speed_loop(const swfs_teach_run_options *o, const projection *pj, double sp, swfs_teach_run_result *r)
+{
+    stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed + 1);
+    loop_job j;
+    speed_job(o, r, 0, sp, &j);
+    const int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    return rc ? rc : speed_result(o, pj, &j, r);
 }
 
 /* The speed loop of speed v, or r->nspeed. */
@@ -539,7 +584,10 @@ static int speed_from_corr(const swfs_teach_run_options *o, const projection *pj
     if (!rc && r->ntcorr < 2)
         rc = swfs_fail(SWFS_ERR_VALUE, "teach: %s: %zu WFS frames, too few for the slopes' time correlation (at least 9)",
                        o->files[0], obs->ny);
-    for (size_t i = 4; !rc && i-- > 0;) rc = speed_loop(o, pj, speed_grid[i], r);
+    loop_job sj[4]; /* the grid's loops, from the fastest, at once (calibration_batch) */
+    for (size_t i = 0; i < 4; i++) speed_job(o, r, i, speed_grid[3 - i], &sj[i]);
+    if (!rc) rc = calibration_batch(o, sj, 4, "the loops' speed (calibration loops)");
+    for (size_t i = 0; !rc && i < 4; i++) rc = speed_result(o, pj, &sj[i], r);
     while (!rc && r->nspeed < SWFS_TEACH_NSPEED) {
         double lo = r->speed_cal[0], hi = lo;
         for (size_t k = 1; k < r->nspeed; k++) {
@@ -901,7 +949,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     const size_t mnl = prior ? 0 : 5;
     const char *map = prior ? pf : st, *pfo = prior ? NULL : pf;
     if (!rc) rc = simulate_loops(o, shared, jobs, o->nloops, prior ? "simulating loops at the slopes' speed"
-                                 : "simulating the loops", &r->nloops);
+                                 : "simulating the loops", &r->nloops, 1);
     r->st_loops = o->nloops;
     r->max_loops = max_loops;
     if (!rc) {
@@ -924,7 +972,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             else loop_init(jobs + k, o, k, ((double)(k - o->nloops) + 0.5) / (double)(n - o->nloops), nl, speed, dir);
         }
         rc = simulate_loops(o, shared, jobs + o->nloops, n - o->nloops, "simulating more loops (learning curve)",
-                            &r->nloops);
+                            &r->nloops, 1);
         r->st_loops = n;
         if (!rc) {
             stage(o, prior ? "learning the per-frame map again" : "learning the space-time map again", 0, 1);
@@ -960,7 +1008,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             j->speed[1] = 8.0 + 22.0 * swfs_rng_uniform(&g);
             j->dir[1] = 360.0 * swfs_rng_uniform(&g);
         }
-        rc = simulate_loops(o, shared, jobs, o->nloops, "simulating loops of a random second layer", &r->nloops);
+        rc = simulate_loops(o, shared, jobs, o->nloops, "simulating loops of a random second layer", &r->nloops, 1);
     } else if (!rc && r->warns) {
         r->chosen = SWFS_TEACH_PERFRAME;
     }
