@@ -51,7 +51,9 @@ static const char *usage_text =
     "where the map's learning curve asks), and their per-frame map (TEACHSEL\n"
     "'perframe_prior').\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
-    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time).\n";
+    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time;\n"
+    "the calibration loops too where none waits for another's result: the zonal cuts, the\n"
+    "first four speeds).\n";
 
 static const char *usage_opts =
     "\n"
