@@ -52,8 +52,8 @@ static const char *usage_text =
     "'perframe_prior').\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
     "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time;\n"
-    "the calibration loops too where none waits for another's result: the zonal cuts, the\n"
-    "first four speeds).\n";
+    "the calibration loops too where none waits for another's result: the first modal loop\n"
+    "and the zonal cuts, the first four speeds).\n";
 
 static const char *usage_opts =
     "\n"

@@ -385,8 +385,8 @@ static int calibration_read(const loop_job *j, const projection *pj, swfs_real *
     return rc;
 }
 
-/* Calibration loops that do not wait for each other's results (the zonal cuts, the first
- * speeds): simulated as the space-time set's loops are, as many at once as the simulator's
+/* Calibration loops that do not wait for each other's results (the first modal loop and the
+ * zonal cuts, the first speeds): simulated as the space-time set's loops are, as many at once as the simulator's
  * threads allow (simulate_loops; a loop is the same whatever runs beside it: the files of a
  * small-loop.conf simulation at threads=1 and threads=2 equal by tests/tools/fitsdiff), read
  * afterwards in their order. */
@@ -396,6 +396,17 @@ static int calibration_batch(const swfs_teach_run_options *o, loop_job *jobs, si
     return simulate_loops(o, NULL, jobs, n, what, &nrun, 0);
 }
 
+/* A calibration loop simulated (calibration_job): its slopes' mode variances and knee. */
+static int calibration_knee(const swfs_teach_run_options *o, const loop_job *j, double **v, size_t *n, size_t *knee)
+{
+    swfs_real *ls = NULL;
+    char f[4300];
+    int rc = calibration_read(j, NULL, &ls, f, sizeof f);
+    if (!rc) rc = knee_of(&o->sim, ls, f, v, n, knee);
+    swfs_real_free(ls);
+    return rc;
+}
+
 /* One calibration loop of the description as o->sim has it now (work/NAME_NN, tmpl's layers,
  * teach's seed; read for its slopes only): their mode variances and knee. */
 static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
@@ -403,13 +414,8 @@ static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmp
 {
     loop_job j;
     calibration_job(o, tmpl, name, k, &j);
-    swfs_real *ls = NULL;
-    char f[4300];
-    int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
-    if (!rc) rc = calibration_read(&j, NULL, &ls, f, sizeof f);
-    if (!rc) rc = knee_of(&o->sim, ls, f, v, n, knee);
-    swfs_real_free(ls);
-    return rc;
+    const int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    return rc ? rc : calibration_knee(o, &j, v, n, knee);
 }
 
 /* The loops' modal filter from the observation (modes_from_slopes). The knee of its slopes'
@@ -432,11 +438,24 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     int rc = knee_of(&o->sim, s, o->files[0], &v[0], &nv[0], &r->knee_obs);
     long K = (long)r->knee_obs, best = K;
     size_t bdist = (size_t)-1;
+    /* The first modal loop (K the knee) and the zonal loops, one per cut, at once
+     * (calibration_batch): a zonal loop does not read ao_modes (the cut's pseudo-inverse of
+     * the interaction matrix is its reconstructor; its files the same at any ao_modes). */
+    loop_job bj[1 + SWFS_TEACH_NZONAL];
+    calibration_job(o, tmpl, "modes", 0, &bj[0]);
+    for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++) {
+        calibration_job(o, tmpl, "zonal", z, &bj[1 + z]);
+        bj[1 + z].rcond = swfs_teach_zonal_rcond[z];
+    }
+    o->sim.ao_modes = K;
+    if (!rc) rc = calibration_batch(o, bj, 1 + SWFS_TEACH_NZONAL, "the loop's filter (calibration loops)");
     for (size_t it = 0; !rc && it < 4; it++) {
         stage(o, "the loop's modal filter (calibration loops)", it, 4);
         o->sim.ao_modes = K;
         size_t knee = 0;
-        if ((rc = calibration_loop(o, tmpl, "modes", it, &v[it + 1], &nv[it + 1], &knee))) break;
+        rc = it ? calibration_loop(o, tmpl, "modes", it, &v[it + 1], &nv[it + 1], &knee)
+                : calibration_knee(o, &bj[0], &v[1], &nv[1], &knee);
+        if (rc) break;
         r->cal_modes[it] = (size_t)K;
         r->cal_knee[it] = knee;
         r->ncal = it + 1;
@@ -452,19 +471,8 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     }
     o->sim.ao_modes = best;
     if (!rc) r->misfit_modal = profile_misfit(v[bi], nv[bi], v[0], nv[0]);
-    loop_job zj[SWFS_TEACH_NZONAL]; /* the zonal loops, one per cut, at once (calibration_batch) */
-    for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++) {
-        calibration_job(o, tmpl, "zonal", z, &zj[z]);
-        zj[z].rcond = swfs_teach_zonal_rcond[z];
-    }
-    if (!rc) rc = calibration_batch(o, zj, SWFS_TEACH_NZONAL, "the loop's filter (zonal loops)");
     for (size_t z = 0; !rc && z < SWFS_TEACH_NZONAL; z++) {
-        swfs_real *ls = NULL;
-        char f[4300];
-        rc = calibration_read(&zj[z], NULL, &ls, f, sizeof f);
-        if (!rc) rc = knee_of(&o->sim, ls, f, &v[5 + z], &nv[5 + z], &zknee[z]);
-        swfs_real_free(ls);
-        if (rc) break;
+        if ((rc = calibration_knee(o, &bj[1 + z], &v[5 + z], &nv[5 + z], &zknee[z]))) break;
         r->zonal_misfit[z] = profile_misfit(v[5 + z], nv[5 + z], v[0], nv[0]);
         if (r->zonal_misfit[z] < r->zonal_misfit[r->zonal_best]) r->zonal_best = z;
     }
