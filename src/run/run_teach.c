@@ -386,10 +386,10 @@ static int calibration_read(const loop_job *j, const projection *pj, swfs_real *
 }
 
 /* Calibration loops that do not wait for each other's results (the first modal loop and the
- * zonal cuts, the first speeds): simulated as the space-time set's loops are, as many at once as the simulator's
- * threads allow (simulate_loops; a loop is the same whatever runs beside it: the files of a
- * small-loop.conf simulation at threads=1 and threads=2 equal by tests/tools/fitsdiff), read
- * afterwards in their order. */
+ * zonal cuts, the first speeds): simulated as the space-time set's loops are, as many at once
+ * as the simulator's threads allow (simulate_loops; a loop is the same whatever runs beside
+ * it: the files of a small-loop.conf simulation at threads=1 and threads=2 equal by
+ * tests/tools/fitsdiff), read afterwards in their order. */
 static int calibration_batch(const swfs_teach_run_options *o, loop_job *jobs, size_t n, const char *what)
 {
     size_t nrun = 0;
