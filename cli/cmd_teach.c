@@ -50,10 +50,9 @@ static const char *usage_text =
     "correlation (TEACHPSP), loops of two layers near it in any direction (prior_NN/; more\n"
     "where the map's learning curve asks), and their per-frame map (TEACHSEL\n"
     "'perframe_prior').\n"
-    "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop is a\n"
-    "simulation as long as CONFIG's cubes, one per core at a time (threads=N: N at a time;\n"
-    "the calibration loops too where none waits for another's result: the first modal loop\n"
-    "and the zonal cuts, the first four speeds).\n";
+    "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop (and\n"
+    "each calibration loop that waits for no other's result) is a simulation as long as\n"
+    "CONFIG's cubes, one per core at a time (threads=N: N at a time).\n";
 
 static const char *usage_opts =
     "\n"

@@ -407,14 +407,15 @@ static int calibration_knee(const swfs_teach_run_options *o, const loop_job *j, 
     return rc;
 }
 
-/* One calibration loop of the description as o->sim has it now (work/NAME_NN, tmpl's layers,
- * teach's seed; read for its slopes only): their mode variances and knee. */
-static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, const char *name, size_t k,
-                            double **v, size_t *n, size_t *knee)
+/* One modal calibration loop of the description as o->sim has it now (work/modes_NN, tmpl's
+ * layers, teach's seed; read for its slopes only): their mode variances and knee. A batch of
+ * one (the simulator's threads inside the loop). */
+static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmpl, size_t k, double **v, size_t *n,
+                            size_t *knee)
 {
     loop_job j;
-    calibration_job(o, tmpl, name, k, &j);
-    const int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    calibration_job(o, tmpl, "modes", k, &j);
+    const int rc = calibration_batch(o, &j, 1, "the loop's modal filter (calibration loops)");
     return rc ? rc : calibration_knee(o, &j, v, n, knee);
 }
 
@@ -450,10 +451,9 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
     o->sim.ao_modes = K;
     if (!rc) rc = calibration_batch(o, bj, 1 + SWFS_TEACH_NZONAL, "the loop's filter (calibration loops)");
     for (size_t it = 0; !rc && it < 4; it++) {
-        stage(o, "the loop's modal filter (calibration loops)", it, 4);
         o->sim.ao_modes = K;
         size_t knee = 0;
-        rc = it ? calibration_loop(o, tmpl, "modes", it, &v[it + 1], &nv[it + 1], &knee)
+        rc = it ? calibration_loop(o, tmpl, it, &v[it + 1], &nv[it + 1], &knee)
                 : calibration_knee(o, &bj[0], &v[1], &nv[1], &knee);
         if (rc) break;
         r->cal_modes[it] = (size_t)K;
@@ -551,13 +551,12 @@ static int speed_result(const swfs_teach_run_options *o, const projection *pj, c
     return SWFS_OK;
 }
 
-/* One speed calibration loop more, at sp (speed_job, speed_result). */
+/* One speed calibration loop more, at sp (speed_job, a batch of one, speed_result). */
 static int speed_loop(const swfs_teach_run_options *o, const projection *pj, double sp, swfs_teach_run_result *r)
 {
-    stage(o, "the loops' speed (calibration loops)", r->nspeed, r->nspeed + 1);
     loop_job j;
     speed_job(o, r, 0, sp, &j);
-    const int rc = simulate_loop(o, &j, o->sim.base.threads, NULL, 0);
+    const int rc = calibration_batch(o, &j, 1, "the loops' speed (calibration loops)");
     return rc ? rc : speed_result(o, pj, &j, r);
 }
 
