@@ -10,7 +10,7 @@
 
 static const char *usage_text =
     "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--lags L,L,...]\n"
-    "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]]\n"
+    "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]] [--threads N]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
@@ -40,9 +40,8 @@ static const char *usage_text =
     "  --ridge R     ridge of the normal equations, a fraction of their mean diagonal\n"
     "                (default 1e-6; it only conditions the solve)\n"
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
-    "                turn and the map of the others is applied to its frames (their misfit\n"
-    "                against the training misfit says whether the conditions cover each\n"
-    "                other; it reads every file twice)\n"
+    "                turn and the map of the others applied to its frames (against the\n"
+    "                training misfit: do the conditions cover each other? every file read twice)\n"
     "  --lags L,...  a space-time map: the input of frame t is the slopes of frames t + L for\n"
     "                every L given (WFS frames, one of them 0, at most 16; clamped at each\n"
     "                file's ends), and W.fits a cube of one map per lag (NLAGS, LAGk) that\n"
@@ -60,7 +59,8 @@ static const char *usage_text =
     "  --curve       the learning curve (4+ folders): maps of half and of three quarters of\n"
     "                the folders checked on the rest; how far the map is from one of\n"
     "                unlimited frames, and the frames for 10 % (LRNCEXC, LRNCFRM);\n"
-    "                --curve-radius R0,R1: over the output points (OUTXY) at R0..R1 m only\n";
+    "                --curve-radius R0,R1: over the output points (OUTXY) at R0..R1 m only;\n"
+    "                --threads N: its sums and checks N at once (0: the CPUs; same map)\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -71,7 +71,7 @@ int swfs_cmd_learn(int argc, char **argv)
     size_t nd = 0;
     if (!dirs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
     const char *lags = NULL, *cradius = NULL;
-    long lagv[SWFS_RECON_MAXLAGS];
+    long lagv[SWFS_RECON_MAXLAGS], threads = 0;
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o.out, "a file name", 0},
         {"--lags", CLI_STRING, &lags, "a list of WFS-frame lags (e.g. 0,-25,25)", 0},
@@ -81,6 +81,7 @@ int swfs_cmd_learn(int argc, char **argv)
         {"--perframe-out", CLI_STRING, &o.perframe_out, "a file name", 0},
         {"--curve", CLI_SET, &o.curve, NULL, 1},
         {"--curve-radius", CLI_STRING, &cradius, "radii R0,R1 [m]", 0},
+        {"--threads", CLI_LONG, &threads, NULL, 0},
     };
     const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
     int rc = cli_parse_args(&args, argc, argv);
@@ -88,6 +89,7 @@ int swfs_cmd_learn(int argc, char **argv)
     if (!nd) rc = cli_usage_error(cmd, "needs at least one simulated data set (a folder)");
     else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
     else if (!(o.ridge > 0) || !isfinite(o.ridge)) rc = cli_usage_error(cmd, "--ridge must be a finite fraction > 0, got %g", o.ridge);
+    else if (threads < 0 || threads > 4096) rc = cli_usage_error(cmd, "--threads must be 1 to 4096 (0: the CPUs), got %ld", threads);
     if (!rc && lags && swfs_lags_parse(lags, lagv, &o.nlags, "--lags")) rc = cli_error(cmd);
     if (!rc && cradius) {
         char end = 0;
@@ -102,6 +104,7 @@ int swfs_cmd_learn(int argc, char **argv)
         rc = cli_usage_error(cmd, "--perframe-out goes with --lags (without them the map is per frame already)");
     if (rc) { free(dirs); return rc; }
     o.lags = lagv;
+    o.threads = (int)threads;
     o.dirs = dirs;
     o.ndirs = nd;
     o.prov = cli_provenance(argc, argv, &o.nprov);

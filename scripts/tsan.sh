@@ -20,6 +20,7 @@ cmake --build "$dir" -j"$jobs"
 . scripts/blas-env.sh
 blas_env "$dir/specklewfs"
 tests='^(test_engine|test_team|test_shm|test_kernels|test_cli_stream|test_cli_live|test_closed_loop|test_geometry'
-tests+='|test_endtoend|test_reliability|test_sim|test_runs|cli_pipeline|cli_fastcam|cli_coherence_wind)$'
+tests+='|test_endtoend|test_reliability|test_sim|test_runs|test_recon_learn|test_wfs|cli_pipeline|cli_fastcam'
+tests+='|cli_coherence_wind)$'
 (cd "$dir" && OPENBLAS_NUM_THREADS=1 TSAN_OPTIONS="halt_on_error=0 second_deadlock_stack=1" \
     ctest --output-on-failure -j"$jobs" -R "$tests")

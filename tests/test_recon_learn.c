@@ -583,7 +583,9 @@ static void test_learner_merge(void **state)
  * N/2 and 3N/4 that is a + b / n with a = 1.00 and b = 44.1 (p = 40, N = 1200), so b / a
  * about 44 and 10 b / a = 441 frames for an excess of 0.1. The same frames each held for
  * HOLD frames (the same slopes and noise: frames correlated in time) are worth 1 / HOLD of
- * theirs: b / a several times larger, and more frames asked for than N. */
+ * theirs: b / a several times larger, and more frames asked for than N. The data sets' sums
+ * and the curve's checks run several at once (o.threads 0: the CPUs) and one at a time
+ * (o.threads 1) to the same curve and map, bit for bit. */
 #define CP 40
 #define CA 50
 #define NDIR 8
@@ -604,7 +606,7 @@ static void write_set(const char *dir, const double *s, const double *z, size_t 
     }
 }
 
-static void curve_of(int hold, swfs_learn_run_result *r)
+static void curve_of(int hold, int threads, swfs_learn_run_result *r)
 {
     static double M[CA][CP];
     swfs_rng g;
@@ -644,8 +646,9 @@ static void curve_of(int hold, swfs_learn_run_result *r)
     o.modal = 1; /* the truth as given (no piston to remove) */
     o.no_heldout = 1;
     o.curve = 1;
+    o.threads = threads;
     char out[64];
-    snprintf(out, sizeof out, "curve_h%d.fits", hold);
+    snprintf(out, sizeof out, "curve_h%d_t%d.fits", hold, threads);
     o.out = test_path(out);
     assert_ok(swfs_learn_run(&o, r));
     for (int d = 0; d < NDIR; d++) free((void *)dirs[d]);
@@ -656,9 +659,21 @@ static void curve_of(int hold, swfs_learn_run_result *r)
 static void test_learning_curve(void **state)
 {
     (void)state;
-    swfs_learn_run_result r1, r4;
-    curve_of(1, &r1);
-    curve_of(HOLD, &r4);
+    swfs_learn_run_result r1, r4, r4s;
+    curve_of(1, 0, &r1);
+    curve_of(HOLD, 0, &r4);
+    /* the parts' sums and the six checks one at a time: the same curve and map, to the bit */
+    curve_of(HOLD, 1, &r4s);
+    assert_true(r4s.curve_m2[0] == r4.curve_m2[0] && r4s.curve_m2[1] == r4.curve_m2[1]);
+    assert_true(r4s.curve_a == r4.curve_a && r4s.curve_b == r4.curve_b && r4s.curve_frames == r4.curve_frames);
+    assert_true(r4s.info.misfit_rms == r4.info.misfit_rms && r4s.info.nframes == r4.info.nframes);
+    swfs_real *w0 = NULL, *w1 = NULL;
+    assert_ok(swfs_fits_read_real(test_path("curve_h4_t0.fits"), NULL, &w0, NULL));
+    assert_ok(swfs_fits_read_real(test_path("curve_h4_t1.fits"), NULL, &w1, NULL));
+    assert_int_equal(w0->nx * w0->ny * w0->nz, w1->nx * w1->ny * w1->nz);
+    assert_memory_equal(w0->data, w1->data, w0->nx * w0->ny * w0->nz * sizeof *w0->data);
+    swfs_real_free(w0);
+    swfs_real_free(w1);
     for (int k = 0; k < 2; k++) {
         const swfs_learn_run_result *r = k ? &r4 : &r1;
         printf("test_recon_learn: learning curve, frames held %d: misfit^2 %.4f at %zu, %.4f at %zu frames; a %.4f, "
@@ -679,7 +694,7 @@ static void test_learning_curve(void **state)
     /* the map's header carries it */
     swfs_fits_in *f = NULL;
     double v = 0;
-    assert_ok(swfs_fits_in_open(&f, test_path("curve_h4.fits"), NULL));
+    assert_ok(swfs_fits_in_open(&f, test_path("curve_h4_t0.fits"), NULL));
     assert_ok(swfs_fits_in_key_double(f, "LRNCEXC", &v));
     assert_close(v, r4.curve_excess, 1e-6 * r4.curve_excess);
     swfs_fits_in_close(f);

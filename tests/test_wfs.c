@@ -1,6 +1,6 @@
 /* WFS model: Clough-Tocher interpolation exactness, Shack-Hartmann slopes, SVD
  * reconstructor recovering known low-order modes, tip-tilt projection, FITS files, the white
- * slope noise from the slopes. */
+ * slope noise from the slopes, the DM modes of one system and of another. */
 #include "testutil.h"
 
 #include "specklewfs/interp.h"
@@ -386,6 +386,65 @@ static void test_white_noise(void **state)
     swfs_shwfs_free(w);
 }
 
+/* The DM's modes of one system, of another (its pupil one column darker), then of the first
+ * again: swfs_dm_modes keeps the last system's result for the next call on the same inputs,
+ * and must give each system its own modes, M-orthonormal. */
+static void dm_system(size_t dark, double *mask, swfs_sparse **T)
+{
+    enum { NA = 9, NPUP = 41 };
+    const double d = 0.1, dx = 0.025;
+    double pts[2 * NA * NA];
+    for (int j = 0; j < NA; j++)
+        for (int i = 0; i < NA; i++) {
+            pts[2 * (j * NA + i)] = (i - NA / 2) * d;
+            pts[2 * (j * NA + i) + 1] = (j - NA / 2) * d;
+        }
+    for (size_t k = 0; k < NPUP * NPUP; k++) {
+        const double x = ((double)(k % NPUP) - NPUP / 2) * dx, y = ((double)(k / NPUP) - NPUP / 2) * dx;
+        mask[k] = hypot(x, y) <= 0.4 && k % NPUP >= dark ? 1 : 0;
+    }
+    assert_ok(swfs_interp_ct_grid(pts, NA * NA, NPUP, dx, mask, T, NULL));
+}
+
+static void test_dm_modes_per_system(void **state)
+{
+    (void)state;
+    enum { NPUP = 41, NA2 = 81 };
+    static double ma[NPUP * NPUP], mb[NPUP * NPUP];
+    swfs_sparse *Ta = NULL, *Tb = NULL;
+    dm_system(0, ma, &Ta);
+    dm_system(12, mb, &Tb);
+    double *a1 = NULL, *b1 = NULL, *a2 = NULL, *b2 = NULL;
+    assert_ok(swfs_dm_modes(Ta, ma, NPUP, &a1));
+    assert_ok(swfs_dm_modes(Tb, mb, NPUP, &b1));
+    assert_ok(swfs_dm_modes(Ta, ma, NPUP, &a2));
+    assert_ok(swfs_dm_modes(Tb, mb, NPUP, &b2));
+    assert_memory_equal(a1, a2, NA2 * NA2 * sizeof *a1);
+    assert_memory_equal(b1, b2, NA2 * NA2 * sizeof *b1);
+    assert_true(a1 != a2 && b1 != b2); /* each call its own copy, the caller's to free */
+    /* M-orthonormal: each mode's surface T v has unit mean square sum over the pupil */
+    double *const m[2] = {a1, b1}, *const mk[2] = {ma, mb};
+    const swfs_sparse *const T[2] = {Ta, Tb};
+    for (int s = 0; s < 2; s++)
+        for (size_t k = 0; k < 12; k++) {
+            double ss = 0;
+            for (size_t g = 0; g < NPUP * NPUP; g++) {
+                if (!(mk[s][g] > 0)) continue;
+                double z = 0;
+                for (size_t q = T[s]->row_ptr[g]; q < T[s]->row_ptr[g + 1]; q++) z += T[s]->val[q] * m[s][T[s]->col[q] * NA2 + k];
+                ss += z * z;
+            }
+            assert_true(fabs(ss - 1) < 1e-6);
+        }
+    /* the darker pupil's modes are its own: its focus-like modes differ from the first system's */
+    double diff = 0;
+    for (size_t k = 0; k < NA2 * NA2; k++) diff = fmax(diff, fabs(fabs(a1[k]) - fabs(b1[k])));
+    assert_true(diff > 1e-3);
+    free(a1); free(b1); free(a2); free(b2);
+    swfs_sparse_free(Ta);
+    swfs_sparse_free(Tb);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -394,6 +453,7 @@ int main(void)
         cmocka_unit_test(test_influence_gauss),
         cmocka_unit_test(test_shwfs_and_reconstructor),
         cmocka_unit_test(test_white_noise),
+        cmocka_unit_test(test_dm_modes_per_system),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

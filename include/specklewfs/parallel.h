@@ -25,6 +25,10 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
  * application's to choose. Its workers run best with a single-threaded BLAS (a threaded
  * BLAS inside every small GEMM only adds contention); the command line sets 1 at start.
  * These set and read OpenBLAS's thread count for applications that want the same. */
+/* The bytes of memory the system can give without swapping: /proc/meminfo's MemAvailable
+ * (the free memory and the page cache it can drop), else the free pages; -1 if neither is
+ * known. For runs that choose how many large solves to hold at once. */
+double swfs_mem_available(void);
 /* Seconds on the monotonic clock since an arbitrary epoch (for rates and timings). */
 double swfs_wall_seconds(void);
 /* Sleep until swfs_wall_seconds() reaches mono (at once if it has; signals do not cut it short). */

@@ -548,6 +548,9 @@ typedef struct swfs_learn_run_options {
                                  (rows) taken as s P, the projection the telemetry the map is for
                                  went through (teach on modal-slopes' output: P = CM+ CM) */
     size_t nproject;
+    int threads;              /* the data sets' sums and the learning curve's checks: at most
+                                 this many at once (<= 0: the online CPUs); the same map and
+                                 curve at any count */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);

@@ -111,7 +111,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
 
 
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
-          curve_radius=None):
+          curve_radius=None, threads=0):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -144,7 +144,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     unlimited frames) and frames (the frames for an excess of 0.1; 0: the misfit does not
     fall; None: no bound), nframes, outputs (those it was measured on: curve_radius=(r0, r1)
     [m] keeps the output points at those radii, the pupil's annulus); None where it could not
-    be measured."""
+    be measured. threads: with curve, the folders' sums and the curve's checks that many at
+    once (0: the CPUs; the same map at any count)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -165,6 +166,7 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     if perframe_out is not None:
         o.perframe_out = enc(perframe_out)
     o.curve = int(bool(curve))
+    o.threads = int(threads)
     if curve_radius is not None:
         o.curve_radius[0], o.curve_radius[1] = float(curve_radius[0]), float(curve_radius[1])
     r = _lib.swfs_learn_run_result()

@@ -67,6 +67,19 @@ int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn,
     return SWFS_OK;
 }
 
+double swfs_mem_available(void)
+{
+    FILE *f = fopen("/proc/meminfo", "r");
+    char line[256];
+    double kb = -1;
+    while (f && fgets(line, sizeof line, f))
+        if (sscanf(line, "MemAvailable: %lf kB", &kb) == 1) break;
+    if (f) fclose(f);
+    if (kb >= 0) return 1024.0 * kb;
+    const long pages = sysconf(_SC_AVPHYS_PAGES), psize = sysconf(_SC_PAGESIZE);
+    return pages > 0 && psize > 0 ? (double)pages * (double)psize : -1.0;
+}
+
 void swfs_blas_set_threads(int n) { openblas_set_num_threads(n < 1 ? 1 : n); }
 int swfs_blas_threads(void) { return openblas_get_num_threads(); }
 

@@ -3,10 +3,12 @@
 #include "specklewfs/run.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/parallel.h"
 #include "run_internal.h"
 
 #include <limits.h>
 #include <math.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -166,6 +168,56 @@ static int add_dir(const swfs_learn_run_options *o, const char *dir, swfs_recon_
     return SWFS_OK;
 }
 
+/* The data sets dealt into the four parts' sums of the learning curve: set d into part d % 4,
+ * each part's sets in their order. The first set is read first (its shapes make every part's
+ * learner); then the four parts at once, as many as o->threads allow (each part's sums are
+ * the same whatever runs beside them: its own learner, its sets in order, BLAS inside
+ * single-threaded). */
+typedef struct parts_ctx {
+    const swfs_learn_run_options *o;
+    swfs_recon_learner *const *q;
+    const swfs_learn_run_result *r; /* nslopes, nact: read only (every part's learner made) */
+    set_stats *sets;
+    size_t nfiles[4];
+    int rc[4];
+    char why[4][1024];
+    atomic_size_t done;
+    size_t shown; /* the last count worker 0 reported */
+} parts_ctx;
+
+static void parts_worker(void *ctx, size_t begin, size_t end, int worker)
+{
+    parts_ctx *c = ctx;
+    swfs_learn_run_result r = *c->r;
+    for (size_t k = begin; k < end; k++) {
+        swfs_recon_learner *l = c->q[k];
+        for (size_t d = k ? k : 4; !c->rc[k] && d < c->o->ndirs; d += 4) {
+            c->rc[k] = add_dir(c->o, c->o->dirs[d], &l, &r, &c->nfiles[k], c->sets ? c->sets + d : NULL);
+            const size_t done = atomic_fetch_add(&c->done, 1) + 1;
+            if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, "read", c->shown = done, c->o->ndirs);
+        }
+        if (c->rc[k]) snprintf(c->why[k], sizeof c->why[k], "%s", swfs_last_error());
+    }
+}
+
+static int add_parts(const swfs_learn_run_options *o, swfs_recon_learner *q[4], swfs_learn_run_result *r,
+                     set_stats *sets)
+{
+    const size_t nl = o->nlags > 1 ? o->nlags : 1;
+    int rc = add_dir(o, o->dirs[0], &q[0], r, &r->nfiles, sets);
+    for (int k = 1; !rc && k < 4; k++) rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &q[k]);
+    if (rc) return rc;
+    parts_ctx c = {.o = o, .q = q, .r = r, .sets = sets, .done = 1, .shown = 1};
+    if (o->progress) o->progress(o->progress_ctx, "read", 1, o->ndirs);
+    swfs_parallel_for(swfs_parallel_threads(o->threads, 4), 4, 1, parts_worker, &c);
+    for (int k = 0; k < 4; k++) {
+        if (c.rc[k]) return swfs_fail(c.rc[k], "%s", c.why[k]);
+        r->nfiles += c.nfiles[k];
+    }
+    if (o->progress && c.shown != o->ndirs) o->progress(o->progress_ctx, "read", o->ndirs, o->ndirs);
+    return SWFS_OK;
+}
+
 /* Leave one data set out in turn: each folder's frames read again into a learner of their
  * own, the map of the others' sums checked on them. A folder whose removal leaves too few
  * frames for a map is not checked. */
@@ -205,44 +257,85 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     return rc;
 }
 
+/* One check of the learning curve: c = 0, 1 hold parts {0, 2} then {1, 3} out (a half map);
+ * c = 2..5 part c - 2 (a three-quarter map). */
+typedef struct curve_check {
+    double md, td, sd; /* the held-out part's misfit, truth and scaled misfit (mean squares) */
+    size_t n;          /* its frames */
+    int rc;
+    char why[1024];
+} curve_check;
+
+typedef struct curve_ctx {
+    const swfs_learn_run_options *o;
+    const swfs_recon_learner *all;
+    swfs_recon_learner *const *q;
+    const unsigned char *keep;
+    size_t nin, nact; /* the learners' inputs and outputs */
+    curve_check ck[6];
+    atomic_size_t done;
+    size_t shown; /* the last count worker 0 reported */
+} curve_ctx;
+
+static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
+{
+    curve_ctx *c = ctx;
+    swfs_recon_learner *h = NULL;
+    int rc = swfs_recon_learner_new(c->nin, c->nact, !c->o->modal, &h);
+    for (size_t k = begin; k < end; k++) {
+        curve_check *ck = c->ck + k;
+        if (!rc) {
+            swfs_recon_learner_reset(h);
+            rc = swfs_recon_learner_merge(h, c->q[k < 2 ? k : k - 2]);
+            if (!rc && k < 2) rc = swfs_recon_learner_merge(h, c->q[k + 2]);
+            ck->n = rc ? 0 : swfs_recon_learner_frames(h);
+            if (!rc) rc = swfs_recon_learner_heldout_on(c->all, h, c->o->ridge, c->keep, &ck->md, &ck->td, &ck->sd);
+        }
+        ck->rc = rc;
+        if (rc) snprintf(ck->why, sizeof ck->why, "%s", swfs_last_error());
+        rc = rc == SWFS_ERR_VALUE ? SWFS_OK : rc; /* a part too small: the next check may still run */
+        const size_t done = atomic_fetch_add(&c->done, 1) + 1;
+        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, "learning curve", c->shown = done, 6);
+    }
+    swfs_recon_learner_free(h);
+}
+
+/* The bytes one check holds at once: its learner's sums (G, H) and the solve's normal
+ * matrices, right-hand sides and products (solve_sums, swfs_recon_learner_heldout_on). */
+static double curve_check_bytes(size_t nin, size_t nact)
+{
+    const double ni = (double)nin, na = (double)nact;
+    return 8.0 * (3.0 * ni * ni + 3.0 * ni * na);
+}
+
 /* The learning curve (run.h swfs_learn_run_result.curve_*) from the sums of the four parts q
- * and of all their frames: each check's misfit weighted by the frames it is checked on. */
+ * and of all their frames: each check's misfit weighted by the frames it is checked on. The
+ * six checks are independent solves of the same size (each its own learner; BLAS inside
+ * single-threaded): as many at once as o->threads and the free memory allow, the same sums
+ * whatever ran beside them, added up in the checks' order. */
 static int learning_curve(const swfs_learn_run_options *o, const swfs_recon_learner *all,
                           swfs_recon_learner *const q[4], const unsigned char *keep, swfs_learn_run_result *r)
 {
     const size_t N = swfs_recon_learner_frames(all), nl = o->nlags > 1 ? o->nlags : 1;
-    swfs_recon_learner *h = NULL;
-    int rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &h);
+    curve_ctx c = {.o = o, .all = all, .q = q, .keep = keep, .nin = r->nslopes * nl, .nact = r->nact};
+    const double avail = swfs_mem_available(), fit = avail > 0 ? avail / curve_check_bytes(c.nin, c.nact) : 6.0;
+    const size_t cap = fit >= 6.0 ? 6 : fit >= 1.0 ? (size_t)fit : 1;
+    swfs_parallel_for(swfs_parallel_threads(o->threads, cap), 6, 1, curve_worker, &c);
+    if (o->progress && c.shown != 6) o->progress(o->progress_ctx, "learning curve", 6, 6);
     double m2[2] = {0, 0}, s2[2] = {0, 0}, nt[2] = {0, 0}, ne[2] = {0, 0};
-    for (size_t c = 0; !rc && c < 6; c++) {
-        /* checks 0, 1: parts {0, 2} then {1, 3} held out (a half map); 2-5: part c - 2 */
-        const int half = c < 2;
-        swfs_recon_learner_reset(h);
-        if (half) {
-            rc = swfs_recon_learner_merge(h, q[c]);
-            if (!rc) rc = swfs_recon_learner_merge(h, q[c + 2]);
-        } else {
-            rc = swfs_recon_learner_merge(h, q[c - 2]);
-        }
-        if (rc) break;
-        const size_t n = swfs_recon_learner_frames(h);
-        double md = 0, td = 0, sd = 0;
-        rc = swfs_recon_learner_heldout_on(all, h, o->ridge, keep, &md, &td, &sd);
-        if (o->progress) o->progress(o->progress_ctx, "learning curve", c + 1, 6);
-        if (rc == SWFS_ERR_VALUE) { /* a part too small for a map without it: no curve */
-            swfs_recon_learner_free(h);
+    for (size_t k = 0; k < 6; k++) {
+        const curve_check *ck = c.ck + k;
+        if (ck->rc == SWFS_ERR_VALUE) { /* a part too small for a map without it: no curve */
             swfs_clear_error();
             return SWFS_OK;
         }
-        if (rc) break;
-        const int k = half ? 0 : 1;
-        m2[k] += md * (double)n;
-        s2[k] += sd * (double)n;
-        nt[k] += (double)(N - n) * (double)n;
-        ne[k] += (double)n;
+        if (ck->rc) return swfs_fail(ck->rc, "%s", ck->why);
+        const int h = k < 2 ? 0 : 1;
+        m2[h] += ck->md * (double)ck->n;
+        s2[h] += ck->sd * (double)ck->n;
+        nt[h] += (double)(N - ck->n) * (double)ck->n;
+        ne[h] += (double)ck->n;
     }
-    swfs_recon_learner_free(h);
-    if (rc) return rc;
     for (int k = 0; k < 2; k++) {
         r->curve_m2[k] = m2[k] / ne[k];
         r->curve_s2[k] = s2[k] / ne[k];
@@ -374,9 +467,13 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     /* with the curve, the sets dealt into four parts' sums, then merged */
     const int curve = o->curve && o->ndirs >= 4;
     swfs_recon_learner *q[4] = {NULL, NULL, NULL, NULL};
-    for (size_t d = 0; !rc && d < o->ndirs; d++) {
-        rc = add_dir(o, o->dirs[d], curve ? &q[d % 4] : &l, r, &r->nfiles, sets ? sets + d : NULL);
-        if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
+    if (curve) {
+        if (!rc) rc = add_parts(o, q, r, sets);
+    } else {
+        for (size_t d = 0; !rc && d < o->ndirs; d++) {
+            rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, sets ? sets + d : NULL);
+            if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
+        }
     }
     if (!rc && curve) {
         rc = swfs_recon_learner_new(r->nslopes * (o->nlags > 1 ? o->nlags : 1), r->nact, !o->modal, &l);

@@ -212,6 +212,7 @@ static int learn(const swfs_teach_run_options *o, const projection *pj, const lo
     lo.nprov = o->nprov;
     lo.project = pj->P;
     lo.nproject = pj->n;
+    lo.threads = o->sim.base.threads;
     const int rc = swfs_learn_run(&lo, lr);
     return rc ? swfs_fail_context(rc, "teach: the %s map of %zu loops (more loops: --loops; or longer ones: ncubes, cube_gap)",
                                   nlags > 1 ? "space-time" : "per-frame", n) : SWFS_OK;

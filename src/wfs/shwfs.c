@@ -7,6 +7,7 @@
 #include <lapacke.h>
 
 #include <math.h>
+#include <pthread.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -264,11 +265,61 @@ void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *
     }
 }
 
-int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double **modes)
+/* The last system's DM modes, for the next call on the same interpolation and mask: teach
+ * asks for one system's modes about twenty times (each calibration loop's mode profile, each
+ * batch of loops; 20 on a 16 x 16 system), and LAPACK's generalized eigensolver is O(nact^3)
+ * with a large constant (its QR iteration: 0.08 s at 331 actuators, 4.6 s at 1261). A call
+ * whose inputs equal the kept ones bit for bit gets a copy of the kept result, which is what
+ * the same routine on the same inputs returns; the lock also makes concurrent callers for one
+ * system (teach's loops at once) wait for the first one's result instead of each solving it. */
+static struct {
+    pthread_mutex_t lock;
+    swfs_sparse *T;
+    double *mask, *modes;
+    size_t npup;
+} dm_memo = {PTHREAD_MUTEX_INITIALIZER, NULL, NULL, NULL, 0};
+
+static int dm_memo_matches(const swfs_sparse *T, const double *mask, size_t npup)
+{
+    const swfs_sparse *K = dm_memo.T;
+    const size_t ng = npup * npup;
+    return K && dm_memo.npup == npup && K->nrows == T->nrows && K->ncols == T->ncols && K->nnz == T->nnz &&
+           !memcmp(K->row_ptr, T->row_ptr, (T->nrows + 1) * sizeof *T->row_ptr) &&
+           !memcmp(K->col, T->col, T->nnz * sizeof *T->col) && !memcmp(K->val, T->val, T->nnz * sizeof *T->val) &&
+           !memcmp(dm_memo.mask, mask, ng * sizeof *mask);
+}
+
+/* Keeps a copy of the inputs and of the result (a failed copy keeps nothing: the next call
+ * solves again). */
+static void dm_memo_keep(const swfs_sparse *T, const double *mask, size_t npup, const double *modes)
+{
+    const size_t ng = npup * npup, nact = T->ncols;
+    swfs_sparse_free(dm_memo.T);
+    free(dm_memo.mask);
+    free(dm_memo.modes);
+    dm_memo.T = swfs_sparse_alloc(T->nrows, T->ncols, T->nnz);
+    dm_memo.mask = malloc(ng * sizeof *mask);
+    dm_memo.modes = malloc(nact * nact * sizeof *modes);
+    dm_memo.npup = npup;
+    if (!dm_memo.T || !dm_memo.mask || !dm_memo.modes) {
+        swfs_sparse_free(dm_memo.T);
+        free(dm_memo.mask);
+        free(dm_memo.modes);
+        dm_memo.T = NULL;
+        dm_memo.mask = dm_memo.modes = NULL;
+        return;
+    }
+    memcpy(dm_memo.T->row_ptr, T->row_ptr, (T->nrows + 1) * sizeof *T->row_ptr);
+    memcpy(dm_memo.T->col, T->col, T->nnz * sizeof *T->col);
+    memcpy(dm_memo.T->val, T->val, T->nnz * sizeof *T->val);
+    memcpy(dm_memo.mask, mask, ng * sizeof *mask);
+    memcpy(dm_memo.modes, modes, nact * nact * sizeof *modes);
+}
+
+static int dm_modes_solve(const swfs_sparse *T, const double *mask, size_t npup, double **modes)
 {
     *modes = NULL;
-    size_t nact = T->ncols, ng = npup * npup;
-    if (T->nrows != ng) return swfs_fail(SWFS_ERR_SHAPE, "DM modes: interpolation has %zu rows, grid %zu", T->nrows, ng);
+    size_t nact = T->ncols;
     double *B = calloc(nact * nact, sizeof *B), *M = calloc(nact * nact, sizeof *M), *w = malloc(nact * sizeof *w);
     double *row = calloc(nact, sizeof *row);
     size_t *idx = malloc(nact * sizeof *idx);
@@ -313,4 +364,22 @@ int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double 
     if (info != 0) { free(B); return swfs_fail(SWFS_ERR_NUMERIC, "DM modes: generalized eigenproblem failed (%d)", (int)info); }
     *modes = B; /* eigenvectors in the columns, ascending eigenvalues */
     return SWFS_OK;
+}
+
+int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double **modes)
+{
+    *modes = NULL;
+    if (T->nrows != npup * npup)
+        return swfs_fail(SWFS_ERR_SHAPE, "DM modes: interpolation has %zu rows, grid %zu", T->nrows, npup * npup);
+    const size_t nact = T->ncols;
+    pthread_mutex_lock(&dm_memo.lock);
+    int rc = SWFS_OK;
+    if (dm_memo_matches(T, mask, npup)) {
+        if ((*modes = malloc(nact * nact * sizeof **modes))) memcpy(*modes, dm_memo.modes, nact * nact * sizeof **modes);
+        else rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    } else if (!(rc = dm_modes_solve(T, mask, npup, modes))) {
+        dm_memo_keep(T, mask, npup, *modes);
+    }
+    pthread_mutex_unlock(&dm_memo.lock);
+    return rc;
 }
