@@ -115,6 +115,9 @@ grep -q "needs both --science and --actuators" bad.log || { cat bad.log; fail "t
 "$B" teach obs/slopes_000.fits -o bad.fits > bad.log 2>&1 && fail "teach without a system"
 grep -q "needs the system: --science SCI.fits --actuators ACT.fits" bad.log || { cat bad.log; fail "teach: no system"; }
 [ -e bad.fits ] && fail "teach left a map after a usage error"
+"$B" learn obs -o bad.fits --curve --threads -1 > bad.log 2>&1 && fail "learn --threads -1 accepted"
+grep -q -- "--threads must be 0 (the CPUs) to 4096, got -1" bad.log || { cat bad.log; fail "learn: --threads -1"; }
+[ -e bad.fits ] && fail "learn left a map after a usage error"
 # the loops described with ten times the slope noise: the correlation check warns, and with one
 # layer found teach falls back to the per-frame map of the layer and random seconds. The
 # observation's loop controls 36 modes, which teach finds from its slopes (within 15 %).
