@@ -20,11 +20,6 @@ int swfs_parallel_threads(int requested, size_t max_useful);
  * chunks run on the caller's thread, so this always completes; returns SWFS_OK. */
 int swfs_parallel_for(int nthreads, size_t n, size_t chunk, swfs_parallel_fn fn, void *ctx);
 
-/* The library parallelizes over frames with its own workers (engine, simulators) and
- * never changes BLAS's thread count itself: that is process-wide state, the
- * application's to choose. Its workers run best with a single-threaded BLAS (a threaded
- * BLAS inside every small GEMM only adds contention); the command line sets 1 at start.
- * These set and read OpenBLAS's thread count for applications that want the same. */
 /* The bytes of memory the system can give without swapping: /proc/meminfo's MemAvailable
  * (the free memory and the page cache it can drop), else the free pages; -1 if neither is
  * known. For runs that choose how many large solves to hold at once. */
@@ -34,6 +29,11 @@ double swfs_wall_seconds(void);
 /* Sleep until swfs_wall_seconds() reaches mono (at once if it has; signals do not cut it short). */
 void swfs_sleep_until(double mono);
 
+/* The library parallelizes over frames with its own workers (engine, simulators) and
+ * never changes BLAS's thread count itself: that is process-wide state, the
+ * application's to choose. Its workers run best with a single-threaded BLAS (a threaded
+ * BLAS inside every small GEMM only adds contention); the command line sets 1 at start.
+ * These set and read OpenBLAS's thread count for applications that want the same. */
 void swfs_blas_set_threads(int n);
 int swfs_blas_threads(void);
 
