@@ -275,15 +275,14 @@ void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *
 static struct {
     pthread_mutex_t lock;
     swfs_sparse *T;
-    double *mask, *modes;
-    size_t npup;
-} dm_memo = {PTHREAD_MUTEX_INITIALIZER, NULL, NULL, NULL, 0};
+    double *mask, *modes; /* mask: T's rows long (npup^2, checked by the caller) */
+} dm_memo = {PTHREAD_MUTEX_INITIALIZER, NULL, NULL, NULL};
 
-static int dm_memo_matches(const swfs_sparse *T, const double *mask, size_t npup)
+static int dm_memo_matches(const swfs_sparse *T, const double *mask)
 {
     const swfs_sparse *K = dm_memo.T;
-    const size_t ng = npup * npup;
-    return K && dm_memo.npup == npup && K->nrows == T->nrows && K->ncols == T->ncols && K->nnz == T->nnz &&
+    const size_t ng = T->nrows;
+    return K && K->nrows == T->nrows && K->ncols == T->ncols && K->nnz == T->nnz &&
            !memcmp(K->row_ptr, T->row_ptr, (T->nrows + 1) * sizeof *T->row_ptr) &&
            !memcmp(K->col, T->col, T->nnz * sizeof *T->col) && !memcmp(K->val, T->val, T->nnz * sizeof *T->val) &&
            !memcmp(dm_memo.mask, mask, ng * sizeof *mask);
@@ -291,16 +290,15 @@ static int dm_memo_matches(const swfs_sparse *T, const double *mask, size_t npup
 
 /* Keeps a copy of the inputs and of the result (a failed copy keeps nothing: the next call
  * solves again). */
-static void dm_memo_keep(const swfs_sparse *T, const double *mask, size_t npup, const double *modes)
+static void dm_memo_keep(const swfs_sparse *T, const double *mask, const double *modes)
 {
-    const size_t ng = npup * npup, nact = T->ncols;
+    const size_t ng = T->nrows, nact = T->ncols;
     swfs_sparse_free(dm_memo.T);
     free(dm_memo.mask);
     free(dm_memo.modes);
     dm_memo.T = swfs_sparse_alloc(T->nrows, T->ncols, T->nnz);
     dm_memo.mask = malloc(ng * sizeof *mask);
     dm_memo.modes = malloc(nact * nact * sizeof *modes);
-    dm_memo.npup = npup;
     if (!dm_memo.T || !dm_memo.mask || !dm_memo.modes) {
         swfs_sparse_free(dm_memo.T);
         free(dm_memo.mask);
@@ -374,11 +372,11 @@ int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double 
     const size_t nact = T->ncols;
     pthread_mutex_lock(&dm_memo.lock);
     int rc = SWFS_OK;
-    if (dm_memo_matches(T, mask, npup)) {
+    if (dm_memo_matches(T, mask)) {
         if ((*modes = malloc(nact * nact * sizeof **modes))) memcpy(*modes, dm_memo.modes, nact * nact * sizeof **modes);
         else rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     } else if (!(rc = dm_modes_solve(T, mask, npup, modes))) {
-        dm_memo_keep(T, mask, npup, *modes);
+        dm_memo_keep(T, mask, *modes);
     }
     pthread_mutex_unlock(&dm_memo.lock);
     return rc;
