@@ -50,7 +50,7 @@ static double rms_without_ptt(const double *v, const double *pupil)
     double A[3][3] = {{0}}, b[3] = {0};
     for (int q = 0; q < NPUP; q++)
         for (int p = 0; p < NPUP; p++) {
-            if (!pupil[q * NPUP + p]) continue;
+            if (pupil[q * NPUP + p] == 0.0) continue;
             double f[3] = {1.0, p, q};
             for (int i = 0; i < 3; i++) {
                 b[i] += f[i] * v[q * NPUP + p];
@@ -71,7 +71,7 @@ static double rms_without_ptt(const double *v, const double *pupil)
     int cnt = 0;
     for (int q = 0; q < NPUP; q++)
         for (int p = 0; p < NPUP; p++)
-            if (pupil[q * NPUP + p]) {
+            if (pupil[q * NPUP + p] != 0.0) {
                 s2 += pow(v[q * NPUP + p] - coef[0] - coef[1] * p - coef[2] * q, 2);
                 cnt++;
             }
@@ -120,19 +120,19 @@ static void make_run(const char *dir, const char *which, run *r)
             double x = pupx(p), y = pupx(q), rr = hypot(x, y) / (0.5 * DIAM);
             int k = q * NPUP + p;
             r->pupil[k] = rr <= 1.0 && rr >= 0.1;
-            r->ncp[k] = r->pupil[k] ? 60e-9 * pow(rr, 3) * cos(3 * atan2(y, x)) -
+            r->ncp[k] = r->pupil[k] != 0.0 ? 60e-9 * pow(rr, 3) * cos(3 * atan2(y, x)) -
                                           80e-9 * exp(-(pow(x - 1.0, 2) + pow(y + 0.8, 2)) / (2 * 0.5 * 0.5))
                                     : 0.0;
             /* A pattern plus a tilt: the recovery error removes piston and tip/tilt (the demo's). */
-            r->err[k] = r->pupil[k] ? 10e-9 * cos(2 * M_PI * x / 2.0) + 4e-9 * y : 0.0;
-            if (r->pupil[k]) {
+            r->err[k] = r->pupil[k] != 0.0 ? 10e-9 * cos(2 * M_PI * x / 2.0) + 4e-9 * y : 0.0;
+            if (r->pupil[k] != 0.0) {
                 s1 += r->err[k];
                 cnt++;
             }
         }
     double mean_err = s1 / cnt, m_ncp = 0;
     for (int k = 0; k < NPUP * NPUP; k++)
-        if (r->pupil[k]) {
+        if (r->pupil[k] != 0.0) {
             s2 += pow(r->err[k] - mean_err, 2);
             m_ncp += r->ncp[k] / cnt;
         }
@@ -140,7 +140,7 @@ static void make_run(const char *dir, const char *which, run *r)
     r->err_rms = rms_without_ptt(r->err, r->pupil);
     double t2 = 0;
     for (int k = 0; k < NPUP * NPUP; k++)
-        if (r->pupil[k]) t2 += pow(r->ncp[k] - m_ncp, 2);
+        if (r->pupil[k] != 0.0) t2 += pow(r->ncp[k] - m_ncp, 2);
     r->ncp_rms = sqrt(t2 / cnt);
 
     /* Static halo: the MFT of the aberrated pupil (DESIGN.md sign), peak |Psi|^2 = 1e5. */
@@ -150,7 +150,7 @@ static void make_run(const char *dir, const char *which, run *r)
             for (int q = 0; q < NPUP; q++)
                 for (int p = 0; p < NPUP; p++) {
                     int k = q * NPUP + p;
-                    if (!r->pupil[k]) continue;
+                    if (r->pupil[k] == 0.0) continue;
                     double ph = 2 * M_PI * r->ncp[k] / LAMBDA -
                                 2 * M_PI * (theta(i, NX) * pupx(p) + theta(j, NY) * pupx(q)) / DIAM;
                     s += cexp(I * ph);
@@ -250,7 +250,7 @@ static void make_run(const char *dir, const char *which, run *r)
         assert_ok(swfs_fits_out_geom(o, &g));
         double wfe[NPUP * NPUP], amp[NPUP * NPUP];
         for (int k = 0; k < NPUP * NPUP; k++) {
-            wfe[k] = r->pupil[k] ? r->ncp[k] + r->err[k] + 3e-9 : 0.0; /* + a piston */
+            wfe[k] = r->pupil[k] != 0.0 ? r->ncp[k] + r->err[k] + 3e-9 : 0.0; /* + a piston */
             amp[k] = r->pupil[k] * (1.0 + 0.1 * swfs_rng_uniform(&rng));
         }
         write_map(o, "WFE", wfe, NPUP, NPUP);
@@ -258,7 +258,7 @@ static void make_run(const char *dir, const char *which, run *r)
         write_map(o, "PUPIL", r->pupil, NPUP, NPUP);
         if (strstr(which, "resmean")) { /* the AO residual's time mean pupil took out */
             double rm[NPUP * NPUP];
-            for (int k = 0; k < NPUP * NPUP; k++) rm[k] = r->pupil[k] ? 5e-9 * sin(0.2 * k) : 0.0;
+            for (int k = 0; k < NPUP * NPUP; k++) rm[k] = r->pupil[k] != 0.0 ? 5e-9 * sin(0.2 * k) : 0.0;
             write_map(o, "RESMEAN", rm, NPUP, NPUP);
             assert_ok(swfs_fits_out_key_double(o, "RESMRMS", 3.5e-9, "[m]"));
         }
@@ -457,7 +457,7 @@ static void test_full_run(void **state)
     double mw = 0, mn = 0;
     int cnt = 0;
     for (int k = 0; k < NPUP * NPUP; k++)
-        if (R.pupil[k]) mw += R.ncp[k] + R.err[k], mn += R.ncp[k], cnt++;
+        if (R.pupil[k] != 0.0) mw += R.ncp[k] + R.err[k], mn += R.ncp[k], cnt++;
     mw /= cnt, mn /= cnt;
     for (int k = 0; k < NPUP * NPUP; k++) {
         aw[k] = fabs(1e9 * (R.ncp[k] + R.err[k] - mw));
@@ -483,7 +483,7 @@ static void test_full_run(void **state)
     assert_close(s.ncp_rms, R.ncp_rms, 1e-12);
     double wrms = 0;
     for (int k = 0; k < NPUP * NPUP; k++)
-        if (R.pupil[k]) wrms += pow(R.ncp[k] + R.err[k] - mw, 2);
+        if (R.pupil[k] != 0.0) wrms += pow(R.ncp[k] + R.err[k] - mw, 2);
     wrms = sqrt(wrms / cnt);
     assert_close(s.wfe_rms, wrms, 1e-12);
     assert_close(s.strehl, exp(-pow(2 * M_PI * wrms / LAMBDA, 2)), 1e-12);

@@ -43,7 +43,7 @@ static void check_split(const size_t *len, size_t nseg, size_t grain, int size)
         /* balance: a share differs from total/size by less than two batches (one at each
          * end), or by less than a segment when cuts fall between segments only */
         const double ideal = (double)total / size, slack = 2.0 * (double)(grain > maxlen ? maxlen : (grain ? grain : 1));
-        if (!(r == 0 && n > ideal)) assert_true(fabs((double)n - ideal) <= slack + 1.0);
+        if (!(r == 0 && (double)n > ideal)) assert_true(fabs((double)n - ideal) <= slack + 1.0);
     }
     assert_int_equal(next, total);
 }

@@ -452,7 +452,7 @@ int swfs_plot_legend(swfs_plot *p, const swfs_plot_legend_entry *e, size_t n)
     for (size_t i = 0; i < n; i++) {
         opt[i] = e[i].is_marker ? PL_LEGEND_SYMBOL : PL_LEGEND_LINE;
         tcol[i] = SWFS_COLOR_BLACK;
-        lcol[i] = scol[i] = bcol[i] = e[i].color;
+        lcol[i] = scol[i] = bcol[i] = (PLINT)e[i].color;
         lsty[i] = e[i].style ? (PLINT)e[i].style : 1;
         lw[i] = 2.0;
         ssc[i] = 0.6;

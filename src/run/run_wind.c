@@ -36,7 +36,7 @@ static int read_series(const swfs_wind_run_options *o, double **out, size_t *nfr
             memcpy(all + n * s->nx, s->data, s->nx * s->ny * sizeof *all);
             w = s->nx;
             n += s->ny;
-            if (!*rate) *rate = wr;
+            if (*rate == 0.0) *rate = wr;
         }
         swfs_real_free(s);
         if (!rc && !*nsub) { /* NSUB, when the file has it */

@@ -13,6 +13,18 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* re + i im, exactly (C11 6.2.5: a complex is an array of its two real parts). glibc's
+ * CMPLXF exists only for GCC (it needs __builtin_complex), not for clang, which the
+ * fuzzing and sanitizer builds may use. */
+static inline float complex cplxf(float re, float im)
+{
+    float complex z;
+    float *p = (float *)&z;
+    p[0] = re;
+    p[1] = im;
+    return z;
+}
+
 struct swfs_pyramid_work {
     fftwf_complex *field, *ehat, *work; /* N x N: the padded pupil field, its transform, one point's */
     fftwf_complex *masks;               /* nmod x N x N: the pyramid moved to each modulation point */
@@ -110,7 +122,7 @@ static void intensity(swfs_pyramid *p, const double *z)
             const double a = w->mask[q * n + i];
             if (a > 0) {
                 const double ph = z ? k * z[q * n + i] : 0.0;
-                row[i] = CMPLXF((float)(a * cos(ph)), (float)(a * sin(ph)));
+                row[i] = cplxf((float)(a * cos(ph)), (float)(a * sin(ph)));
             } else {
                 row[i] = 0.0f;
             }
@@ -244,7 +256,7 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
             for (size_t iu = 0; iu < N; iu++) {
                 const double u = (double)(iu < N / 2 ? (long)iu : (long)iu - (long)N);
                 const double ph = 0.5 * M_PI * (fabs(u + dx) + fabs(v + dy));
-                mk[iv * N + iu] = CMPLXF((float)cos(ph), (float)sin(ph));
+                mk[iv * N + iu] = cplxf((float)cos(ph), (float)sin(ph));
             }
         }
     }
