@@ -185,23 +185,31 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
 }
 
 /* The NCP error of the default pupil step on a halo file (err[0]), and with the AO
- * residual's time mean kept in the wavefront (--keep-resmean, err[1]); resm: the rms of the
- * band-limited mean taken out. */
+ * residual's time mean kept in the wavefront (what --keep-resmean gives from the same fit:
+ * WFE + the mean taken out, err[1]); resm: the rms of the band-limited mean taken out. */
 static int ncp_error(const char *halo_path, const swfs_real *ncp, double err[2], double *resm)
 {
     swfs_halo *h = NULL;
     swfs_geom g;
     int rc = swfs_halo_read(halo_path, &h, &g);
-    for (int keep = 0; keep < 2 && !rc; keep++) {
-        swfs_pupil_options po;
-        swfs_pupil_options_default(&po);
-        po.keep_resmean = keep;
-        swfs_pupil_result *pr = NULL;
-        rc = swfs_pupil_estimate(h, &g, NULL, &po, &pr);
-        if (!rc) rc = swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, &err[keep], NULL, NULL);
-        if (!rc && !keep) *resm = pr->resmean_rms;
-        swfs_pupil_result_free(pr);
+    swfs_pupil_options po;
+    swfs_pupil_options_default(&po);
+    swfs_pupil_result *pr = NULL;
+    if (!rc) rc = swfs_pupil_estimate(h, &g, NULL, &po, &pr);
+    if (!rc) rc = swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, &err[0], NULL, NULL);
+    if (!rc) {
+        *resm = pr->resmean_rms;
+        err[1] = err[0];
     }
+    if (!rc && pr->resmean) {
+        const size_t np = ncp->nx * ncp->ny;
+        double *kept = malloc(np * sizeof *kept);
+        if (!kept) rc = SWFS_ERR_NOMEM;
+        for (size_t q = 0; kept && q < np; q++) kept[q] = pr->wfe->data[q] + pr->resmean->data[q];
+        if (!rc) rc = swfs_wfe_compare(kept, ncp->data, pr->mask->data, ncp->nx, &err[1], NULL, NULL);
+        free(kept);
+    }
+    swfs_pupil_result_free(pr);
     swfs_halo_free(h);
     return rc;
 }

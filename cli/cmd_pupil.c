@@ -45,7 +45,9 @@ static const char *usage_text =
     "                     what the focal window sees of it is taken out of WFE and FIELD, so WFE is the\n"
     "                     NCP alone; PUPIL.fits then has the map taken out (RESMEAN, RESMRMS)\n"
     "  --truth TRUTH.fits compare with a simulation's injected NCP (extension NCP [m]): prints the\n"
-    "                     error rms with piston and tip/tilt removed, and records it (NCPERR)\n";
+    "                     error rms with piston and tip/tilt removed, and records it (NCPERR); where\n"
+    "                     the AO residual's mean was taken out, also the error with it kept in WFE\n"
+    "                     (the one --keep-resmean gives), from the same fit\n";
 
 /* The options checked as they come: --method, and the moments' --bias, --wiener-k, --weight,
  * --source (which imply the moments). */
@@ -193,6 +195,9 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (truthfile)
         printf("  versus truth      injected %.1f nm rms (%.1f nm without tip/tilt); error %.1f nm rms (piston, tip, "
                "tilt removed)\n", res.truth_rms * 1e9, res.truth_rms_ptt * 1e9, res.err * 1e9);
+    if (truthfile && r->resmean)
+        printf("  mean kept         error %.1f nm rms with the AO residual mean left in WFE (what --keep-resmean "
+               "gives from the same fit)\n", res.err_kept * 1e9);
     free(ins);
     swfs_pupil_run_result_free(&res);
     return CLI_OK;

@@ -24,10 +24,17 @@ reduce_sync() { # reduce_sync <run dir> <sync args...>: raw_000..002 -> science.
     "$B" sync "$d/science.fits" "$d/sim/handshake.log" -o "$d/timing.txt" "$@" > "$d/sync.log" \
         || { cat "$d/sync.log"; fail "$d: sync"; }
 }
-# speckles_pupil and ideal_pupil also run 'pupil --keep-resmean' (the AO residual's time mean
-# left in the wavefront) into pupil_k.log / pupil_ik.log: keep_errors <run dir> prints those
-# two errors, slopes then ideal.
-keep_errors() { echo "$(ncp_error "$1/pupil_k.log") $(ncp_error "$1/pupil_ik.log")"; }
+# ncp_error_kept <pupil log>: the NCP error [nm] with the AO residual's time mean left in the
+# wavefront, which 'pupil --truth' prints beside ncp_error's when it took a mean (RESMEAN) out,
+# from the same fit ('pupil --keep-resmean' gives it; cli_modal.sh checks the two agree); where
+# none was taken out, ncp_error's. keep_errors <run dir> prints it for speckles_pupil's and
+# ideal_pupil's runs, slopes then ideal.
+ncp_error_kept() {
+    local k
+    k=$(awk '/^  mean kept / { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$1")
+    if [ -n "$k" ]; then echo "$k"; else ncp_error "$1"; fi
+}
+keep_errors() { echo "$(ncp_error_kept "$1/pupil.log") $(ncp_error_kept "$1/pupil_i.log")"; }
 # SPK_RECON: speckles' reconstructor options (an array; empty: the default, a map taught for the
 # observation); the tests that are not about the reconstructor set (--recon vk).
 SPK_RECON=()
@@ -38,8 +45,6 @@ speckles_pupil() { # speckles_pupil <run dir>: speckles --match, estimate, pupil
         || { cat "$d/speckles.log"; fail "$d: speckles"; }
     "$B" estimate "$d/sci_m.fits" "$d/speckles.fits" -o "$d/halo.fits" > "$d/estimate.log" 2>&1 || fail "$d: estimate"
     "$B" pupil "$d/halo.fits" -o "$d/pupil.fits" --truth "$d/sim/truth.fits" > "$d/pupil.log" || fail "$d: pupil"
-    "$B" pupil "$d/halo.fits" -o "$d/pupil_k.fits" --truth "$d/sim/truth.fits" --keep-resmean > "$d/pupil_k.log" \
-        || fail "$d: pupil --keep-resmean"
     ncp_error "$d/pupil.log"
 }
 ideal_pupil() { # ideal_pupil <run dir>: the same from the simulator's ideal speckles
@@ -47,8 +52,6 @@ ideal_pupil() { # ideal_pupil <run dir>: the same from the simulator's ideal spe
     "$B" estimate "$d/science.fits" "$d/sim/speckles_ideal.fits" -o "$d/halo_i.fits" > "$d/estimate_i.log" 2>&1 \
         || fail "$d: estimate (ideal)"
     "$B" pupil "$d/halo_i.fits" -o "$d/pupil_i.fits" --truth "$d/sim/truth.fits" > "$d/pupil_i.log" || fail "$d: pupil"
-    "$B" pupil "$d/halo_i.fits" -o "$d/pupil_ik.fits" --truth "$d/sim/truth.fits" --keep-resmean > "$d/pupil_ik.log" \
-        || fail "$d: pupil --keep-resmean (ideal)"
     ncp_error "$d/pupil_i.log"
 }
 # resmean_bounds <name> <slopes> <ideal> <slopes kept> <ideal kept> <factor>: the speckles from

@@ -503,6 +503,10 @@ typedef struct swfs_pupil_run_result {
     int ran_away;             /* 1: the WFE exceeds half the wavelength (a phase above pi rad rms,
                                  which no image with a core comes from): the fit ran away from
                                  its start, and the map is no estimate */
+    double err_kept;          /* with truth: the error with the AO residual's time mean left in
+                                 WFE [m], what `--keep-resmean` gives from the same fit (WFE +
+                                 the RESMEAN taken out, piston, tip and tilt removed; err where
+                                 none was taken out); else NaN */
 } swfs_pupil_run_result;
 
 /* The pupil step as `specklewfs pupil` runs it: the halo read (or chosen), its geometry

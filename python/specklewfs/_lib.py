@@ -383,7 +383,7 @@ swfs_pupil_run_options = _s("swfs_pupil_run_options", [
 swfs_pupil_run_result = _s("swfs_pupil_run_result", [
     ("pupil", P(swfs_pupil_result)), ("halo", P(swfs_halo)), ("geom", swfs_geom), ("chosen", c_size),
     ("explained", P(c_dbl)), ("ncommon", c_size), ("err", c_dbl), ("truth_rms", c_dbl), ("truth_rms_ptt", c_dbl),
-    ("ran_away", c_int)])
+    ("ran_away", c_int), ("err_kept", c_dbl)])
 swfs_dmfit_options = _s("swfs_dmfit_options", [
     ("influence", c_int), ("coupling", c_dbl), ("pitch", c_dbl), ("modes", c_size), ("reg", c_dbl), ("rcond", c_dbl),
     ("rim", c_int)])

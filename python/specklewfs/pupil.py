@@ -124,8 +124,10 @@ def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, b
     options as pupil_estimate's. Returns a dict: pupil (the PupilResult written), halo (the
     path of the halo used), chosen (its index), explained (each halo's self-check score, with
     more than one) and ncommon, err, truth_rms, truth_rms_ptt [m] (swfs_wfe_compare's; NaN
-    without truth), ran_away (the WFE above half the wavelength: the fit ran away from its
-    start, no estimate; the command line warns). Nothing is written on failure."""
+    without truth), err_kept [m] (with truth: the error with the AO residual's time mean
+    left in, what keep_resmean=True gives from the same fit; err where none was taken out),
+    ran_away (the WFE above half the wavelength: the fit ran away from its start,
+    no estimate; the command line warns). Nothing is written on failure."""
     if isinstance(halos, (str, bytes)) or hasattr(halos, "__fspath__"):
         halos = [halos]
     halos = [str(h) for h in halos]
@@ -144,7 +146,7 @@ def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, b
         res = {"halo": halos[r.chosen], "chosen": int(r.chosen), "ncommon": int(r.ncommon),
                "explained": [r.explained[k] for k in range(len(halos))] if r.explained else None,
                "err": r.err, "truth_rms": r.truth_rms, "truth_rms_ptt": r.truth_rms_ptt,
-               "ran_away": bool(r.ran_away)}
+               "err_kept": r.err_kept, "ran_away": bool(r.ran_away)}
         res["pupil"] = PupilResult(r.pupil, Geom.from_c(r.geom))
         r.pupil = None  # the PupilResult owns it now
     finally:

@@ -80,6 +80,8 @@ def test_path_on_files_equals_the_cli(series, cli):
     pf = sw.pupil_files(str(d / "halo.fits"), str(d / "pupil.fits"), truth=str(s / "truth.fits"))
     assert pf["halo"] == str(d / "halo.fits") and pf["explained"] is None and pf["err"] == err
     assert f"error {pf['err'] * 1e9:.1f} nm rms".encode() in out
+    # the error with the AO residual's time mean left in (the halo's RESMEAN), from the same fit
+    assert pf["err_kept"] > 0 and f"error {pf['err_kept'] * 1e9:.1f} nm rms with the AO residual mean".encode() in out
     np.testing.assert_array_equal(pf["pupil"].wfe, p.wfe)
     for f, ext in [("sci.fits", None), ("sci_m.fits", None), ("sp.fits", None), ("sp.fits", "RESMEAN"),
                    ("halo.fits", "HALO"), ("halo.fits", "GAIN"), ("pupil.fits", "WFE"), ("pupil.fits", "FIELD")]:
