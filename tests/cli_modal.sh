@@ -26,8 +26,9 @@ native=$(speckles_pupil "$D")
 # the wavefront (the halo's RESMEAN put back): what --keep-resmean gives from the same fit
 "$B" pupil "$D/halo.fits" -o "$D/pupil_k.fits" --truth "$S/truth.fits" --keep-resmean > "$D/pupil_k.log" \
     || fail "pupil --keep-resmean"
-kept=$(awk '/^  mean kept / { for (i = 1; i <= NF; i++) if ($i == "error") print $(i + 1) }' "$D/pupil.log")
-[ -n "$kept" ] && [ "$kept" = "$(ncp_error "$D/pupil_k.log")" ] && ! grep -q "^  mean kept" "$D/pupil_k.log" \
+kept=$(ncp_error_kept "$D/pupil.log")
+grep -q "^  mean kept" "$D/pupil.log" && [ -n "$kept" ] && [ "$kept" = "$(ncp_error "$D/pupil_k.log")" ] \
+    && ! grep -q "^  mean kept" "$D/pupil_k.log" \
     || { cat "$D/pupil.log" "$D/pupil_k.log"; fail "the mean-kept error $kept nm against --keep-resmean's"; }
 # The modal telemetry times itself: sync correlates the star's track with the Z-tilt of the
 # model's wavefront (the handshake log names the modal files).
