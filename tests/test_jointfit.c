@@ -59,8 +59,8 @@ static swfs_real *noisy_science(double sigma)
     return noisy;
 }
 
-/* Streaming statistics over the cube, then the joint fit. */
-static swfs_jointfit_result *fit(const swfs_real *science, const swfs_cplx *speckles)
+/* Streaming statistics over the cube. */
+static swfs_regress_sol *solve(const swfs_real *science, const swfs_cplx *speckles)
 {
     const size_t np = science->nx * science->ny;
     swfs_regress *r = swfs_regress_create(science->nx, science->ny);
@@ -69,11 +69,46 @@ static swfs_jointfit_result *fit(const swfs_real *science, const swfs_cplx *spec
         assert_ok(swfs_regress_add(r, science->data + t * np, (const double *)(speckles->data + t * np), NULL));
     swfs_regress_sol *s;
     assert_ok(swfs_regress_solve(r, &s));
+    swfs_regress_free(r);
+    return s;
+}
+
+/* Streaming statistics over the cube, then the joint fit. */
+static swfs_jointfit_result *fit(const swfs_real *science, const swfs_cplx *speckles)
+{
+    swfs_regress_sol *s = solve(science, speckles);
     swfs_jointfit_result *j;
     assert_ok(swfs_jointfit(s, &sim->geom, sim->pupil, NULL, &j));
     swfs_regress_sol_free(s);
-    swfs_regress_free(r);
     return j;
+}
+
+/* AUTO's two fits run at once (threads 2: the model fit waits for the free fit's level where
+ * its early stop needs it) and one after the other (threads 1): the same result to the bit.
+ * Returns the fit's intercept and whether the model's fit was stopped. */
+static void auto_threads_same(const swfs_regress_sol *s, int *intercept, int *stopped)
+{
+    swfs_jointfit_options o;
+    swfs_jointfit_options_default(&o);
+    swfs_jointfit_result *j[2];
+    for (int k = 0; k < 2; k++) {
+        o.threads = 1 + k;
+        assert_ok(swfs_jointfit(s, &sim->geom, sim->pupil, &o, &j[k]));
+    }
+    const size_t nw = j[0]->wfe->nx * j[0]->wfe->ny, nh = j[0]->halo->nx * j[0]->halo->ny;
+    assert_memory_equal(j[0]->wfe->data, j[1]->wfe->data, nw * sizeof *j[0]->wfe->data);
+    assert_memory_equal(j[0]->field->data, j[1]->field->data, nw * sizeof *j[0]->field->data);
+    assert_memory_equal(j[0]->halo->data, j[1]->halo->data, nh * sizeof *j[0]->halo->data);
+    assert_memory_equal(j[0]->gain->data, j[1]->gain->data, nh * sizeof *j[0]->gain->data);
+    assert_true(j[0]->chi2 == j[1]->chi2 && j[0]->kappa == j[1]->kappa && j[0]->noise_scale == j[1]->noise_scale);
+    assert_true(j[0]->delta_chi2 == j[1]->delta_chi2 && j[0]->delta_chi2_limit == j[1]->delta_chi2_limit);
+    assert_int_equal(j[0]->intercept, j[1]->intercept);
+    assert_int_equal(j[0]->model_stopped, j[1]->model_stopped);
+    assert_int_equal(j[0]->iterations, j[1]->iterations);
+    *intercept = j[0]->intercept;
+    *stopped = j[0]->model_stopped;
+    swfs_jointfit_result_free(j[0]);
+    swfs_jointfit_result_free(j[1]);
 }
 
 static double ncp_error(const swfs_jointfit_result *j)
@@ -285,6 +320,8 @@ static void test_incoherent_background(void **state)
     swfs_real *noisy = noisy_science(0.0);
     const size_t nx = noisy->nx, ny = noisy->ny, nf = nx * ny, nt = noisy->nz;
     swfs_jointfit_result *clean = fit(noisy, sim->speckles);
+    swfs_real *noisy_clean = swfs_real_copy(noisy);
+    assert_non_null(noisy_clean);
     double outer = 0.0;
     size_t nout = 0;
     for (size_t t = 0; t < nt; t++)
@@ -323,6 +360,18 @@ static void test_incoherent_background(void **state)
     assert_true(converged > j->delta_chi2_limit && converged <= j->delta_chi2);
     assert_memory_equal(j->wfe->data, free_only->wfe->data, j->wfe->nx * j->wfe->ny * sizeof *j->wfe->data);
     assert_true(j->chi2 == free_only->chi2 && j->iterations == free_only->iterations);
+    /* AUTO's two fits at once and one after the other: with the background (the model's fit
+     * stopped on the free fit's level) and without it (the model kept) */
+    int icpt, stopped;
+    auto_threads_same(sol, &icpt, &stopped);
+    assert_true(icpt == SWFS_JF_INTERCEPT_FREE && stopped == 1);
+    swfs_regress_sol *sol_clean = solve(noisy_clean, sim->speckles);
+    auto_threads_same(sol_clean, &icpt, &stopped);
+    print_message("without the background, AUTO kept the %s intercept (model's fit stopped: %d)\n",
+                  icpt == SWFS_JF_INTERCEPT_FREE ? "free" : "model", stopped);
+    assert_true(icpt == SWFS_JF_INTERCEPT_MODEL && stopped == 0);
+    swfs_regress_sol_free(sol_clean);
+    swfs_real_free(noisy_clean);
     swfs_jointfit_result_free(free_only);
     swfs_jointfit_result_free(forced);
     swfs_jointfit_result_free(j);

@@ -70,6 +70,10 @@ typedef struct swfs_jointfit_options {
                               SWFS_JF_INTERCEPT_AUTO (default): both, and the model is kept unless
                               a likelihood-ratio test rejects it (chi-square difference above
                               npix - 1 + SWFS_JF_INTERCEPT_Z sqrt(2 (npix - 1))) */
+    int threads;           /* AUTO: with 2 or more, the two fits run at once (the model fit waits
+                              for the free fit's chi-square only where its early stop needs it:
+                              the same result as one after the other); <= 0 (default): the
+                              online CPUs; 1: one after the other */
 } swfs_jointfit_options;
 
 void swfs_jointfit_options_default(swfs_jointfit_options *o);

@@ -3,11 +3,14 @@
 #include "jointfit_basis.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/mft.h"
+#include "specklewfs/parallel.h"
 #include "specklewfs/status.h"
 
 #include <cblas.h>
 #include <lapacke.h>
 #include <math.h>
+#include <pthread.h>
+#include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
@@ -27,6 +30,7 @@ void swfs_jointfit_options_default(swfs_jointfit_options *o)
     o->alpha_ratio_max = 1000.0;
     o->prior = SWFS_JF_PRIOR_CURVATURE;
     o->intercept = SWFS_JF_INTERCEPT_AUTO;
+    o->threads = 0;
 }
 
 void swfs_jointfit_result_free(swfs_jointfit_result *r)
@@ -71,6 +75,16 @@ static inline size_t tri(size_t i, size_t j)
     return i * 4 - i * (i + 1) / 2 + j;
 }
 
+/* AUTO's two fits at once: the free fit's thread posts the model fit's rejection level here
+ * when it ends (ok 0: it failed, and the model fit stops), the model fit waits for it where
+ * its early stop first needs it. */
+typedef struct reject_gate {
+    pthread_mutex_t mu;
+    pthread_cond_t cv;
+    int posted, ok;
+    double chi2_reject;
+} reject_gate;
+
 typedef struct fit {
     const swfs_jointfit_options *o;
     size_t n, nfx, nfy, nf, nb, nl, np;
@@ -96,6 +110,9 @@ typedef struct fit {
      * chi2 + limit / its beta; +inf otherwise), and 1 once the fit stopped on that ground */
     double chi2_reject;
     int rejected;
+    reject_gate *gate;      /* with the free fit running beside this one: chi2_reject comes
+                               from here (NULL once read, and for every other fit) */
+    int cancelled;          /* 1: the free fit beside it failed; this fit's result is unused */
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
     double *lw;             /* 3 nf + nl nf: per pixel sqrt Q_gg, Q_g kappa, e_g; the Legendre rows
@@ -565,9 +582,20 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
          * iterations for every iteration left could take it, the test's outcome within
          * max_iter is settled and the rest of the fit (up to max_iter iterations of a model
          * that does not fit, the slowest part of a `pupil` run) would be thrown away. */
-        if (ft->stage == 1 && isfinite(ft->chi2_reject)) {
+        if (ft->stage == 1 && (ft->gate || isfinite(ft->chi2_reject))) {
             drops[it % 3] = fmax(chi2_at - *chi2, ok ? before - c : 0.0);
             const double fall = fmax(drops[0], fmax(drops[1], drops[2]));
+            if (it >= 2 && ft->gate) { /* the free fit's level, once it has one */
+                reject_gate *gt = ft->gate;
+                pthread_mutex_lock(&gt->mu);
+                while (!gt->posted) pthread_cond_wait(&gt->cv, &gt->mu);
+                ft->chi2_reject = gt->ok ? gt->chi2_reject : NAN;
+                ft->cancelled = !gt->ok;
+                pthread_mutex_unlock(&gt->mu);
+                ft->gate = NULL;
+                if (ft->cancelled) break;
+                if (!isfinite(ft->chi2_reject)) continue; /* no level: the fit runs on, as without one */
+            }
             if (it >= 2 && *chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {
                 ft->rejected = 1;
                 break;
@@ -579,7 +607,8 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
 
 /* chi2_reject: the intercept model's rejection level in chi2 (AUTO's second fit), or +inf. */
 static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_real *mask_in,
-                        const swfs_jointfit_options *opt, double chi2_reject, swfs_jointfit_result **out)
+                        const swfs_jointfit_options *opt, double chi2_reject, reject_gate *gate,
+                        swfs_jointfit_result **out)
 {
     *out = NULL;
     struct timespec t0, t1;
@@ -604,6 +633,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     memset(&ft, 0, sizeof ft);
     ft.noise_scale = 1.0;
     ft.chi2_reject = chi2_reject;
+    ft.gate = gate;
     if (!res) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     res->mask = mask_in ? swfs_real_copy(mask_in) : swfs_real_alloc(n, n, 1);
     if (!res->mask) { rc = SWFS_ERR_NOMEM; goto done; }
@@ -735,6 +765,49 @@ done:
     return SWFS_OK;
 }
 
+/* AUTO's likelihood-ratio test (below): the rejection threshold of the chi-square difference
+ * for npix pixels, and the model fit's chi2 beyond which the test rejects it. In units of the
+ * free fit's calibrated noise (its evidence data weight beta): frames that are not
+ * independent inflate both chi-squares by 1/beta, and the test must not read that as light
+ * the model cannot explain. */
+static double model_limit(size_t npix)
+{
+    const double dof = (double)npix - 1.0;
+    return dof + SWFS_JF_INTERCEPT_Z * sqrt(2.0 * (dof > 1.0 ? dof : 1.0));
+}
+
+static double model_reject(const swfs_jointfit_result *rf)
+{
+    return rf->chi2 + model_limit(rf->npix) / rf->noise_scale; /* beta >= SWFS_JF_NOISE_SCALE_MIN */
+}
+
+/* AUTO's free fit on a thread of its own: its result, and the model fit's level posted. */
+typedef struct free_job {
+    const swfs_regress_sol *sol;
+    const swfs_geom *geo;
+    const swfs_real *mask;
+    const swfs_jointfit_options *o;
+    reject_gate *gate;
+    swfs_jointfit_result *res;
+    int rc;
+    char why[1024];
+} free_job;
+
+static void *free_worker(void *arg)
+{
+    free_job *j = arg;
+    j->rc = jointfit_one(j->sol, j->geo, j->mask, j->o, INFINITY, NULL, &j->res);
+    if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
+    reject_gate *g = j->gate;
+    pthread_mutex_lock(&g->mu);
+    g->ok = !j->rc;
+    if (!j->rc) g->chi2_reject = model_reject(j->res);
+    g->posted = 1;
+    pthread_cond_broadcast(&g->cv);
+    pthread_mutex_unlock(&g->mu);
+    return NULL;
+}
+
 /* SWFS_JF_INTERCEPT_AUTO: both fits, and a likelihood-ratio test of the intercept model. With a
  * free intercept per pixel the data term is the profile chi-square over a; the model adds one
  * constraint per pixel (less kappa), so when the model is right the difference of the two
@@ -751,7 +824,7 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
     if (o.intercept != SWFS_JF_INTERCEPT_AUTO) {
         if (o.intercept != SWFS_JF_INTERCEPT_MODEL && o.intercept != SWFS_JF_INTERCEPT_FREE)
             return swfs_fail(SWFS_ERR_ARG, "joint fit: intercept %d: expected model, free or auto", o.intercept);
-        int rc = jointfit_one(sol, geo, mask, &o, INFINITY, out);
+        int rc = jointfit_one(sol, geo, mask, &o, INFINITY, NULL, out);
         if (!rc) {
             (*out)->intercept = o.intercept;
             (*out)->delta_chi2 = (*out)->delta_chi2_limit = NAN;
@@ -759,25 +832,48 @@ int swfs_jointfit(const swfs_regress_sol *sol, const swfs_geom *geo, const swfs_
         return rc;
     }
     swfs_jointfit_result *rf = NULL, *rm = NULL;
-    o.intercept = SWFS_JF_INTERCEPT_FREE;
-    int rc = jointfit_one(sol, geo, mask, &o, INFINITY, &rf);
-    if (rc) return rc;
-    o.intercept = SWFS_JF_INTERCEPT_MODEL;
-    const double dof = (double)rf->npix - 1.0;
-    const double limit = dof + SWFS_JF_INTERCEPT_Z * sqrt(2.0 * (dof > 1.0 ? dof : 1.0));
-    double delta = NAN;
-    /* In units of the free fit's calibrated noise (its evidence data weight beta): frames that
-     * are not independent inflate both chi-squares by 1/beta, and the test must not read
-     * that as light the model cannot explain. */
-    const double reject = rf->chi2 + limit / rf->noise_scale; /* beta >= SWFS_JF_NOISE_SCALE_MIN */
-    if (!jointfit_one(sol, geo, mask, &o, reject, &rm)) delta = rf->noise_scale * (rm->chi2 - rf->chi2);
+    swfs_jointfit_options of = o, om = o;
+    of.intercept = SWFS_JF_INTERCEPT_FREE;
+    om.intercept = SWFS_JF_INTERCEPT_MODEL;
+    const double t0 = swfs_wall_seconds();
+    /* With two threads the two fits run at once: the model fit waits for the free fit's
+     * level only where its early stop first asks for it (its third iteration), so its
+     * steps, and the result, are those of the fits one after the other. */
+    reject_gate gate = {.posted = 0};
+    free_job fj = {sol, geo, mask, &of, &gate, NULL, 0, ""};
+    pthread_t th;
+    int concurrent = 0;
+    if (swfs_parallel_threads(o.threads, 2) >= 2 && pthread_mutex_init(&gate.mu, NULL) == 0) {
+        if (pthread_cond_init(&gate.cv, NULL) == 0) {
+            concurrent = pthread_create(&th, NULL, free_worker, &fj) == 0;
+            if (!concurrent) pthread_cond_destroy(&gate.cv);
+        }
+        if (!concurrent) pthread_mutex_destroy(&gate.mu);
+    }
+    int rc;
+    if (concurrent) {
+        jointfit_one(sol, geo, mask, &om, INFINITY, &gate, &rm); /* a failure leaves rm NULL, as below */
+        pthread_join(th, NULL);
+        pthread_cond_destroy(&gate.cv);
+        pthread_mutex_destroy(&gate.mu);
+        rf = fj.res;
+        if (fj.rc) {
+            swfs_jointfit_result_free(rm);
+            return swfs_fail(fj.rc, "%s", fj.why);
+        }
+    } else {
+        if ((rc = jointfit_one(sol, geo, mask, &of, INFINITY, NULL, &rf))) return rc;
+        jointfit_one(sol, geo, mask, &om, model_reject(rf), NULL, &rm);
+    }
+    const double limit = model_limit(rf->npix);
+    const double delta = rm ? rf->noise_scale * (rm->chi2 - rf->chi2) : NAN;
     swfs_jointfit_result *keep = rf, *drop = rm;
     if (rm && delta <= limit) { keep = rm; drop = rf; }
     keep->intercept = keep == rm ? SWFS_JF_INTERCEPT_MODEL : SWFS_JF_INTERCEPT_FREE;
     keep->delta_chi2 = delta;
     keep->delta_chi2_limit = limit;
     keep->model_stopped = rm ? rm->model_stopped : 0;
-    keep->seconds = rf->seconds + (rm ? rm->seconds : 0.0);
+    keep->seconds = swfs_wall_seconds() - t0;
     swfs_jointfit_result_free(drop);
     *out = keep;
     return SWFS_OK;
