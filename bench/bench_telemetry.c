@@ -197,18 +197,8 @@ static int ncp_error(const char *halo_path, const swfs_real *ncp, double err[2],
     swfs_pupil_result *pr = NULL;
     if (!rc) rc = swfs_pupil_estimate(h, &g, NULL, &po, &pr);
     if (!rc) rc = swfs_wfe_compare(pr->wfe->data, ncp->data, pr->mask->data, ncp->nx, &err[0], NULL, NULL);
-    if (!rc) {
-        *resm = pr->resmean_rms;
-        err[1] = err[0];
-    }
-    if (!rc && pr->resmean) {
-        const size_t np = ncp->nx * ncp->ny;
-        double *kept = malloc(np * sizeof *kept);
-        if (!kept) rc = SWFS_ERR_NOMEM;
-        for (size_t q = 0; kept && q < np; q++) kept[q] = pr->wfe->data[q] + pr->resmean->data[q];
-        if (!rc) rc = swfs_wfe_compare(kept, ncp->data, pr->mask->data, ncp->nx, &err[1], NULL, NULL);
-        free(kept);
-    }
+    if (!rc) rc = swfs_pupil_compare_kept(pr, ncp->data, &err[1]);
+    if (!rc) *resm = pr->resmean_rms;
     swfs_pupil_result_free(pr);
     swfs_halo_free(h);
     return rc;

@@ -131,6 +131,10 @@ int swfs_resmean_bandlimit(const double *map, const double *mask, size_t n, cons
  * r->resmean and r->resmean_rms set (the caller recomputes the WFE statistics). */
 int swfs_pupil_remove_resmean(swfs_pupil_result *r, const swfs_real *resmean, const swfs_geom *g, size_t nfx,
                               size_t nfy);
+/* swfs_wfe_compare of r->wfe with the mean that swfs_pupil_remove_resmean took out put back
+ * (what keep_resmean gives from the same fit; r->wfe itself where none was taken out):
+ * err_rms [m], against truth (n x n, n = r->wfe's side). */
+int swfs_pupil_compare_kept(const swfs_pupil_result *r, const double *truth, double *err_rms);
 
 SWFS_END_DECLS
 

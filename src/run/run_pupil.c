@@ -37,17 +37,8 @@ static int compare_truth(const char *path, const swfs_pupil_result *p, const swf
                        g->pupn);
     if (!rc) rc = swfs_wfe_compare(p->wfe->data, t->data, p->mask->data, (size_t)g->pupn, &r->err, &r->truth_rms,
                                    &r->truth_rms_ptt);
-    /* the residual's mean put back: what --keep-resmean's run of the same fit compares (the
-     * error itself where none was taken out) */
-    if (!rc) r->err_kept = r->err;
-    if (!rc && p->resmean) {
-        const size_t np = (size_t)g->pupn * (size_t)g->pupn;
-        double *kept = malloc(np * sizeof *kept);
-        if (!kept) rc = swfs_fail(SWFS_ERR_NOMEM, "pupil: out of memory");
-        for (size_t q = 0; kept && q < np; q++) kept[q] = p->wfe->data[q] + p->resmean->data[q];
-        if (!rc) rc = swfs_wfe_compare(kept, t->data, p->mask->data, (size_t)g->pupn, &r->err_kept, NULL, NULL);
-        free(kept);
-    }
+    /* the residual's mean put back: what --keep-resmean's run of the same fit compares */
+    if (!rc) rc = swfs_pupil_compare_kept(p, t->data, &r->err_kept);
     swfs_real_free(t);
     return rc;
 }

@@ -112,7 +112,6 @@ typedef struct fit {
     int rejected;
     reject_gate *gate;      /* with the free fit running beside this one: chi2_reject comes
                                from here (NULL once read, and for every other fit) */
-    int cancelled;          /* 1: the free fit beside it failed; this fit's result is unused */
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
     double *lw;             /* 3 nf + nl nf: per pixel sqrt Q_gg, Q_g kappa, e_g; the Legendre rows
@@ -589,11 +588,11 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
                 reject_gate *gt = ft->gate;
                 pthread_mutex_lock(&gt->mu);
                 while (!gt->posted) pthread_cond_wait(&gt->cv, &gt->mu);
-                ft->chi2_reject = gt->ok ? gt->chi2_reject : NAN;
-                ft->cancelled = !gt->ok;
+                const int free_ok = gt->ok; /* 0: the free fit failed; this fit's result is unused */
+                ft->chi2_reject = free_ok ? gt->chi2_reject : NAN;
                 pthread_mutex_unlock(&gt->mu);
                 ft->gate = NULL;
-                if (ft->cancelled) break;
+                if (!free_ok) break;
                 if (!isfinite(ft->chi2_reject)) continue; /* no level: the fit runs on, as without one */
             }
             if (it >= 2 && *chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {

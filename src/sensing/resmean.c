@@ -103,3 +103,15 @@ int swfs_pupil_remove_resmean(swfs_pupil_result *r, const swfs_real *resmean, co
     r->resmean_rms = rms;
     return SWFS_OK;
 }
+
+int swfs_pupil_compare_kept(const swfs_pupil_result *r, const double *truth, double *err_rms)
+{
+    const size_t n = r->wfe->nx, np = n * n;
+    if (!r->resmean) return swfs_wfe_compare(r->wfe->data, truth, r->mask->data, n, err_rms, NULL, NULL);
+    double *kept = malloc(np * sizeof *kept);
+    if (!kept) return swfs_fail(SWFS_ERR_NOMEM, "pupil: out of memory");
+    for (size_t q = 0; q < np; q++) kept[q] = r->wfe->data[q] + r->resmean->data[q];
+    const int rc = swfs_wfe_compare(kept, truth, r->mask->data, n, err_rms, NULL, NULL);
+    free(kept);
+    return rc;
+}
