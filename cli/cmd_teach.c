@@ -48,8 +48,8 @@ static const char *usage_text =
     "Where `wind` tracks no frozen-flow layer (slopes mostly noise, turbulence that does not\n"
     "flow): the speed whose one-layer calibration loops (speed_NN/) match the slopes' time\n"
     "correlation (TEACHPSP), loops of two layers near it in any direction (prior_NN/; more\n"
-    "where the map's learning curve asks), and their per-frame map (TEACHSEL\n"
-    "'perframe_prior').\n"
+    "where the map's learning curve asks), and their space-time map at lags of 1 and 2 frames\n"
+    "(TEACHSEL 'spacetime_prior').\n"
     "Give W.fits to `specklewfs speckles --recon W.fits`. It takes minutes: each loop (and\n"
     "each calibration loop that waits for no other's result) is a simulation as long as\n"
     "CONFIG's cubes, one per core at a time (threads=N: N at a time).\n";

@@ -9,6 +9,8 @@ const char *cli_teach_chosen(int c)
 {
     return c == SWFS_TEACH_SPACETIME    ? "the space-time map (neither check warned)"
            : c == SWFS_TEACH_PERFRAME   ? "the per-frame map of the same loops (a check warned)"
+           : c == SWFS_TEACH_SPACETIME_PRIOR
+               ? "the space-time map of loops at the slopes' speed (no frozen-flow layer to give them)"
            : c == SWFS_TEACH_PERFRAME_PRIOR
                ? "the per-frame map of loops at the slopes' speed (no frozen-flow layer to give them)"
                : "the per-frame map of the measured layer and random second layers (a check warned)";
@@ -20,15 +22,15 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     const swfs_wind_estimate *e = &r->wind.est;
     fprintf(f, "%s: %zu WFS frames of %zu x %zu subapertures at %.6g Hz; %zu frozen-flow layer%s:\n", cmd,
             r->wind.nframes, r->wind.nsub, r->wind.nsub, r->wind.rate, e->nlayers, e->nlayers == 1 ? "" : "s");
-    if (r->chosen == SWFS_TEACH_PERFRAME_PRIOR) {
+    if (r->chosen == SWFS_TEACH_SPACETIME_PRIOR) {
         fprintf(f, "%s:   none tracked: the slopes' time correlation at lags", cmd);
         for (size_t k = 0; k < r->ntcorr; k++) fprintf(f, "%s %ld", k ? "," : "", r->tcorr_lags[k]);
         fprintf(f, " frames:");
         for (size_t k = 0; k < r->ntcorr; k++) fprintf(f, "%s %.3f", k ? "," : "", r->tcorr[k]);
         fprintf(f, "; speed calibration loops (m/s -> rms misfit):");
         for (size_t k = 0; k < r->nspeed; k++) fprintf(f, "%s %g -> %.3f", k ? "," : "", r->speed_cal[k], r->speed_misfit[k]);
-        fprintf(f, "; the loops get two layers within a factor 1.41 of %.1f m/s in any direction, and the per-frame "
-                "map is learned from them\n", r->prior_speed);
+        fprintf(f, "; the loops get two layers within a factor 1.41 of %.1f m/s in any direction, and the space-time "
+                "map at lags of 1 and 2 frames is learned from them\n", r->prior_speed);
     }
     for (size_t k = 0; k < e->nlayers; k++)
         fprintf(f, "%s:   layer %zu: %.2f m/s toward %.1f deg%s\n", cmd, k + 1, e->layer[k].speed, e->layer[k].direction,
@@ -61,12 +63,9 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     if (r->loop_frames > r->loop_frames_described)
         fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,
                 r->loop_frames_described, r->map_inputs);
-    const int prior = r->chosen == SWFS_TEACH_PERFRAME_PRIOR;
-    const char *map = prior ? "the per-frame map" : "the space-time map", *maps = prior ? "the per-frame map's"
-                                                                                       : "the space-time map's";
-    if (prior) fprintf(f, "; %s misses", map);
-    else fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; %s misses", r->lags[0], r->lags[1], r->lags[2], r->lags[3],
-                 r->lags[4], map);
+    const char *map = "the space-time map", *maps = "the space-time map's";
+    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; %s misses", r->lags[0], r->lags[1], r->lags[2], r->lags[3],
+            r->lags[4], map);
     fprintf(f, " the loops' residual by %.1f of %.1f nm on their frames\n", 1e9 * r->st_misfit_rms, 1e9 * r->st_truth_rms);
     if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
         fprintf(f, "%s: over the first loops, ", cmd);
@@ -79,7 +78,7 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
         fprintf(f, "%s: ", cmd);
         cli_curve_line(f, maps, &r->curve, 1e9, " nm");
     }
-    if (prior) checks = 0; /* they compare the space-time map's layers with the slopes' */
+    if (r->chosen == SWFS_TEACH_SPACETIME_PRIOR) checks = 0; /* they compare the loops' layers with the slopes' */
     if (checks) cli_spacetime_summary(cmd, &r->check);
     fprintf(f, "%s: chose %s -> %s (%.0f s; the loops and maps in %s)\n", cmd, cli_teach_chosen(r->chosen), out, r->seconds,
             work);

@@ -720,8 +720,9 @@ typedef struct swfs_teach_run_options {
  * (TEACHFPR): a change to what teach makes of the same inputs (its loops, lags, choice, the
  * learner) bumps it, so that maps taught before are taught again rather than reused
  * (2026-12-01: more loops where the space-time map's learning curve asks for them;
- * 2026-12-02: a zonal calibration loop beside the modal ones). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-02"
+ * 2026-12-02: a zonal calibration loop beside the modal ones; 2026-12-03: where no layer is
+ * tracked, the space-time map at lags of 1 and 2 frames instead of the per-frame map). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-03"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
@@ -736,7 +737,11 @@ void swfs_teach_run_options_default(swfs_teach_run_options *o);
 #define SWFS_TEACH_PERFRAME 1      /* the per-frame map of the same loops */
 #define SWFS_TEACH_PERFRAME_MIXED 2 /* the per-frame map of the measured layer and random seconds */
 #define SWFS_TEACH_PERFRAME_PRIOR 3 /* the per-frame map of loops at a speed from the slopes'
-                                       time correlation: `wind` tracked no frozen-flow layer */
+                                       time correlation, as teach chose where `wind` tracked no
+                                       layer until 2026-12-03 (a map's TEACHSEL; no longer chosen) */
+#define SWFS_TEACH_SPACETIME_PRIOR 4 /* `wind` tracked no frozen-flow layer: the space-time map at
+                                        lags 0, -1, 1, -2, 2 frames of loops at a speed from the
+                                        slopes' time correlation */
 /* Where `wind` tracks no layer: the speed of the loops' layers from the slopes' time
  * correlation at lags 1, 2, 4, ... frames (at most SWFS_TEACH_NTCORR, each under a quarter of
  * the frames), matched by calibration loops of one layer at speeds a factor 2 apart from 4 to
@@ -749,7 +754,7 @@ void swfs_teach_run_options_default(swfs_teach_run_options *o);
 typedef struct swfs_teach_run_result {
     swfs_wind_run_result wind;  /* the observation's layers (wind.est.layer[]) */
     size_t nlayers;             /* layers the loops were given (the first SWFS_TS_MAX_LAYERS found) */
-    long lags[5];               /* 0, -L1, L1, -2 L1, 2 L1 */
+    long lags[5];               /* 0, -L1, L1, -2 L1, 2 L1 (L1 = 1 where no layer was tracked) */
     size_t nlags;
     size_t nloops;              /* loops simulated in all */
     size_t map_inputs;          /* the space-time map's inputs: 5 lags x the slopes the observation uses */
@@ -798,12 +803,12 @@ typedef struct swfs_teach_run_result {
     size_t zonal_best;
     double misfit_modal;
     int zonal;
-    /* chosen == SWFS_TEACH_PERFRAME_PRIOR (no layer tracked): the observation's slopes' time
+    /* chosen == SWFS_TEACH_SPACETIME_PRIOR (no layer tracked): the observation's slopes' time
      * correlation along the upper half of the DM modes (tcorr at tcorr_lags, ntcorr of them;
      * timeseries.h swfs_ts_mode_timecorr), the speed calibration loops (speed_NN/, nspeed: each
      * one's speed [m/s] and misfit, the rms of its correlation less the observation's), and the
      * speed the loops' layers were given (prior_speed: each loop's two layers within a factor
-     * sqrt 2 of it, any direction). The per-frame map's loops: st_loops, its learning curve
+     * sqrt 2 of it, any direction). Their map's loops: st_loops, its learning curve
      * curve_first / curve, its training misfit st_misfit_rms of st_truth_rms. */
     double tcorr[SWFS_TEACH_NTCORR];
     long tcorr_lags[SWFS_TEACH_NTCORR];

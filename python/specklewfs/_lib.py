@@ -351,7 +351,7 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("nloops", c_size), ("max_loops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
     ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("fingerprint", c_str)])
-TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed", 3: "perframe_prior"}
+TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed", 3: "perframe_prior", 4: "spacetime_prior"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
     ("files", P(c_str)), ("nfiles", c_size), ("cm", c_str), ("outdir", c_str)])

@@ -285,12 +285,12 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     the map, map_inputs), the space-time map's training misfit
     and truth [m], its checks on the observation (the st_* of speckles()), and chosen:
     "spacetime" (neither check warned), "perframe" (the same loops' per-frame map) or
-    "perframe_mixed" (loops of the measured layer and random second layers) or "perframe_prior"
+    "perframe_mixed" (loops of the measured layer and random second layers) or "spacetime_prior"
     (no frozen-flow layer tracked: the slopes' time correlation, tcorr at tcorr_lags, matched
     by calibration loops of one layer, speed_calibration = [(speed, misfit), ...], gives
     prior_speed [m/s]; loops of two layers within a factor sqrt 2 of it in any direction;
-    lags [0], no checks). With science and
-    actuators (and pupil, valid) the system comes from the observation's own files, the ones
+    lags [0, -1, 1, -2, 2], no checks; "perframe_prior" in maps taught before 2026-12-03). With
+    science and actuators (and pupil, valid) the system comes from the observation's own files, the ones
     speckles() takes (run.h swfs_teach_describe: their geometry, DM, pupil and valid map;
     nsub, wfs_rate and the loops' length from the first telemetry file); config and params
     may still set any key, and win. Without ao_modes
@@ -365,7 +365,8 @@ def _teach_dict(r, modes_from_slopes):
              noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise,
              st_loops=r.st_loops, max_loops=r.max_loops, curve_first=_curve_dict(r.curve_first),
              curve=_curve_dict(r.curve))
-    if d["chosen"] == "perframe_prior":  # no layer tracked: the speed from the slopes' time correlation
+    # no layer tracked: the speed from the slopes' time correlation
+    if d["chosen"] in ("spacetime_prior", "perframe_prior"):
         d.update(tcorr_lags=list(r.tcorr_lags[:r.ntcorr]), tcorr=list(r.tcorr[:r.ntcorr]),
                  speed_calibration=[(r.speed_cal[k], r.speed_misfit[k]) for k in range(r.nspeed)],
                  prior_speed=r.prior_speed)

@@ -136,9 +136,10 @@ void swfs_stream_paths_outputs(struct swfs_paths *p, const swfs_stream_run_optio
 int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *g, const char *actuators, const char *pupil,
                               const char *valid, const char *telemetry);
 
-/* TEACHSEL of a taught map: the names of SWFS_TEACH_SPACETIME, _PERFRAME, _PERFRAME_MIXED, _PRIOR
- * (run_teach.c writes them, run_speckles_teach.c reads them back when it reuses a map). */
-extern const char *const swfs_teach_chosen_names_[4];
+/* TEACHSEL of a taught map: the names of SWFS_TEACH_SPACETIME, _PERFRAME, _PERFRAME_MIXED,
+ * _PERFRAME_PRIOR (maps taught before 2026-12-03), _SPACETIME_PRIOR (run_teach.c writes them,
+ * run_speckles_teach.c reads them back when it reuses a map). */
+extern const char *const swfs_teach_chosen_names_[5];
 
 /* speckles' taught reconstructor (SWFS_RECON_TEACH, run_speckles_teach.c): teach from the
  * timing table t's telemetry files (in tdir) and the run's own files, g the science cube's

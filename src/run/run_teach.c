@@ -219,13 +219,14 @@ static int learn(const swfs_teach_run_options *o, const projection *pj, const lo
 }
 
 /* The chosen map onto o->out (atomic.h: the whole file or none), with what chose it. */
-const char *const swfs_teach_chosen_names_[4] = {"spacetime", "perframe", "perframe_mixed", "perframe_prior"};
+const char *const swfs_teach_chosen_names_[5] = {"spacetime", "perframe", "perframe_mixed", "perframe_prior",
+                                                  "spacetime_prior"};
 
 static int write_chosen(const char *from, const swfs_teach_run_options *o, const swfs_teach_run_result *r)
 {
     swfs_fits_out *f = NULL;
     int rc = swfs_fits_out_copy(&f, from, o->out);
-    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime, perframe(_mixed, _prior)");
+    if (!rc) rc = swfs_fits_out_key_string(f, "TEACHSEL", swfs_teach_chosen_names_[r->chosen], "teach chose: spacetime(_prior), perframe(_mixed)");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLOO", (long)r->nloops, "teach: loops simulated");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHLAY", (long)r->nlayers, "teach: layers found and given to the loops");
     if (!rc) rc = swfs_fits_out_key_long(f, "TEACHSTL", (long)r->st_loops, "teach: the chosen kind of map's loops");
@@ -249,7 +250,7 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
         rc = swfs_fits_out_key_double(f, "TEACHZMF", zmf, "zonal loop's profile misfit (rms log10)");
     if (!rc && o->modes_from_slopes)
         rc = swfs_fits_out_key_long(f, "TEACHKNE", (long)r->knee_obs, "the observation's mode-variance knee");
-    if (!rc && r->chosen == SWFS_TEACH_PERFRAME_PRIOR)
+    if (!rc && r->chosen == SWFS_TEACH_SPACETIME_PRIOR)
         rc = swfs_fits_out_key_double(f, "TEACHPSP", r->prior_speed, "[m/s] loops' speed from the slopes' time corr.");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHNOI", r->noise_rms, "[rad] the observation's white slope noise");
     if (!rc) rc = swfs_fits_out_key_double(f, "TEACHSNO", r->slope_noise, "[rad] the loops' slope_noise");
@@ -868,8 +869,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (rc) { free(pj.P); swfs_real_free(obs); return rc; }
     /* no frozen-flow layer tracked (slopes mostly noise, or turbulence that does not flow):
      * the loops at a speed their slopes' time correlation gives instead, in any direction, and
-     * the per-frame map of them, which needs no wind for its lags (docs/telemetry.md, "Slopes
-     * without a frozen-flow layer") */
+     * the space-time map of them at the loop's own time scale, lags of 1 and 2 frames, which
+     * need no wind (docs/telemetry.md, "Slopes without a frozen-flow layer") */
     const int prior = !e->found;
     const int nl = prior ? 2 : (int)(e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS);
     r->nlayers = prior ? 0 : (size_t)nl;
@@ -885,10 +886,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* the lags: the fastest layer moves half a subaperture in L1 frames */
     long l1 = lround(r->wind.pitch * r->wind.rate / (2.0 * vmax));
     if (l1 < 1) l1 = 1;
+    /* without a layer, the frames next to each one: the closed loop's residual stays correlated
+     * over its integrator's few frames, its sensor's noise does not, so they average the noise
+     * and show the DM's response to the slopes just before (docs/telemetry.md, "Slopes without a
+     * frozen-flow layer": on noise-dominated slopes the per-frame map was worse than von Karman's) */
+    if (prior) l1 = 1;
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
-    r->nlags = prior ? 1 : 5;
-    if (prior) memset(r->lags, 0, sizeof r->lags);
+    r->nlags = 5;
     /* 2. the loops' slope noise and modal filter: given, or from the observation's slopes.
      * Loops of less noise than the observation's give a map that amplifies its noise
      * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
@@ -952,17 +957,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * perframe.fits, what a run taking one frame's slopes, live, is given) and its learning
      * curve where more loops may follow (six more solves of the map's normal equations:
      * minutes for a 24 x 24's 4440 inputs, not spent when max_loops allows no more); where no
-     * layer was tracked, the per-frame map alone and its curve */
-    const long *ml = prior ? NULL : lags;
-    const size_t mnl = prior ? 0 : 5;
-    const char *map = prior ? pf : st, *pfo = prior ? NULL : pf;
+     * layer was tracked the same, at lags of 1 and 2 frames */
     if (!rc) rc = simulate_loops(o, shared, jobs, o->nloops, prior ? "simulating loops at the slopes' speed"
                                  : "simulating the loops", &r->nloops, 1);
     r->st_loops = o->nloops;
     r->max_loops = max_loops;
     if (!rc) {
-        stage(o, prior ? "learning the per-frame map" : "learning the space-time map", 0, 1);
-        rc = learn(o, &pj, jobs, o->nloops, ml, mnl, map, pfo, max_loops > o->nloops, &lr);
+        stage(o, "learning the space-time map", 0, 1);
+        rc = learn(o, &pj, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
@@ -983,8 +985,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
                             &r->nloops, 1);
         r->st_loops = n;
         if (!rc) {
-            stage(o, prior ? "learning the per-frame map again" : "learning the space-time map again", 0, 1);
-            rc = learn(o, &pj, jobs, n, ml, mnl, map, pfo, 1, &lr);
+            stage(o, "learning the space-time map again", 0, 1);
+            rc = learn(o, &pj, jobs, n, lags, 5, st, pf, 1, &lr);
             r->curve = lr;
         }
     }
@@ -1000,8 +1002,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (!rc && !prior) r->warns = swfs_spacetime_warns(&r->check);
     /* 5. where it warns, the per-frame map: of the same loops, or with one layer found, of
      * loops of that layer and a second drawn at random */
-    const char *chosen = prior ? pf : st;
-    if (prior) r->chosen = SWFS_TEACH_PERFRAME_PRIOR;
+    const char *chosen = st;
+    if (prior) r->chosen = SWFS_TEACH_SPACETIME_PRIOR;
     if (!rc && r->warns && nl == 1) {
         r->chosen = SWFS_TEACH_PERFRAME_MIXED;
         for (size_t k = 0; k < o->nloops; k++) {

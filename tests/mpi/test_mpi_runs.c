@@ -408,7 +408,7 @@ static void test_speckles_and_estimate_equal(void **state)
     static char out[65536];
     snprintf(args, sizeof args, "%s -o sp1.fits --match sci.fits scim1.fits", common);
     assert_int_equal(run(0, args, out, sizeof out), 0);
-    assert_non_null(strstr(out, "the per-frame map of loops at the slopes' speed"));
+    assert_non_null(strstr(out, "the space-time map of loops at the slopes' speed"));
     run_ok(0, "estimate scim1.fits sp1.fits -o est1.fits");
     const char *prim[] = {NULL};
     for (int np = NP_FIRST; np <= 3; np++) {
