@@ -883,14 +883,13 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         dir[j] = prior ? 90.0 * j : e->layer[j].direction;
         vmax = fmax(vmax, speed[j]);
     }
-    /* the lags: the fastest layer moves half a subaperture in L1 frames */
-    long l1 = lround(r->wind.pitch * r->wind.rate / (2.0 * vmax));
+    /* the lags: the fastest layer moves half a subaperture in L1 frames. Without a layer, the
+     * frames next to each one: the closed loop's residual stays correlated over its integrator's
+     * few frames, its sensor's noise does not, so they average the noise and show the DM's
+     * response to the slopes just before (docs/telemetry.md, "Slopes without a frozen-flow
+     * layer": on noise-dominated slopes the per-frame map was worse than von Karman's) */
+    long l1 = prior ? 1 : lround(r->wind.pitch * r->wind.rate / (2.0 * vmax));
     if (l1 < 1) l1 = 1;
-    /* without a layer, the frames next to each one: the closed loop's residual stays correlated
-     * over its integrator's few frames, its sensor's noise does not, so they average the noise
-     * and show the DM's response to the slopes just before (docs/telemetry.md, "Slopes without a
-     * frozen-flow layer": on noise-dominated slopes the per-frame map was worse than von Karman's) */
-    if (prior) l1 = 1;
     const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(r->lags, lags, sizeof lags);
     r->nlags = 5;
