@@ -63,10 +63,10 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     if (r->loop_frames > r->loop_frames_described)
         fprintf(f, " of %zu WFS frames (lengthened from %zu: the map's %zu inputs need 10 frames each)", r->loop_frames,
                 r->loop_frames_described, r->map_inputs);
-    const char *map = "the space-time map", *maps = "the space-time map's";
-    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; %s misses", r->lags[0], r->lags[1], r->lags[2], r->lags[3],
-            r->lags[4], map);
-    fprintf(f, " the loops' residual by %.1f of %.1f nm on their frames\n", 1e9 * r->st_misfit_rms, 1e9 * r->st_truth_rms);
+    const char *maps = "the space-time map's";
+    fprintf(f, "; lags %ld,%ld,%ld,%ld,%ld WFS frames; the space-time map misses the loops' residual by %.1f of %.1f nm "
+            "on their frames\n", r->lags[0], r->lags[1], r->lags[2], r->lags[3], r->lags[4], 1e9 * r->st_misfit_rms,
+            1e9 * r->st_truth_rms);
     if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
         fprintf(f, "%s: over the first loops, ", cmd);
         cli_curve_line(f, maps, &r->curve_first, 1e9, " nm");

@@ -592,8 +592,7 @@ static double run_stage(fit *ft, int maxit, int built, double *chi2)
                 ft->chi2_reject = free_ok ? gt->chi2_reject : NAN;
                 pthread_mutex_unlock(&gt->mu);
                 ft->gate = NULL;
-                if (!free_ok) break;
-                if (!isfinite(ft->chi2_reject)) continue; /* no level: the fit runs on, as without one */
+                if (!free_ok) break; /* with no finite level the test below never stops the fit */
             }
             if (it >= 2 && *chi2 - ft->chi2_reject > 2.0 * fall * (double)(maxit - it - 1)) {
                 ft->rejected = 1;
