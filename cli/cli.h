@@ -49,10 +49,12 @@ int cli_usage_error(const char *cmd, const char *fmt, ...)
 /* A library options check (run.h *_options_check): 0 when rc is 0, else its message printed as
  * a usage error (CLI_USAGE). */
 int cli_check(const char *cmd, int rc);
-/* The usage texts of speckles, stream and live (help_runs.c), printed to stdout. */
+/* The usage texts of speckles, stream and live (help_runs.c), and of teach (help_teach.c),
+ * printed to stdout. */
 void cli_help_speckles(void);
 void cli_help_stream(void);
 void cli_help_live(void);
+void cli_help_teach(void);
 /* Strict number parsing for option values; on failure prints and returns non-zero. */
 int cli_parse_double(const char *cmd, const char *opt, const char *s, double *out);
 int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out);
