@@ -41,7 +41,9 @@ est=$(ncp_error pupil_stst.log)
 echo "cli_teach: stream with speckles' taught map: $est nm"
 [ "$est" = "$edt" ] || fail "stream with the taught map $est nm against speckles' $edt nm"
 # beside it the per-frame map of the same loops (the lag-0 block of the same sums), for live:
-# one frame's slopes in, within 10 % of the space-time map through the whole path
+# one frame's slopes in, within 15 % of the space-time map through the whole path (measured
+# 23.2 nm against 20.7; 24.2 against 22.3 before the loops' speeds were spread, 2026-12-03,
+# which took the space-time map further below it)
 [ -s spk_dt.teach/perframe.fits ] && ! head -c 8640 spk_dt.teach/perframe.fits | grep -aq "NLAGS" \
     || fail "speckles' teach folder: a per-frame map perframe.fits expected"
 "$B" stream --timing timing.txt --science science.fits --recon spk_dt.teach/perframe.fits --actuators actuators.fits \
@@ -49,7 +51,7 @@ echo "cli_teach: stream with speckles' taught map: $est nm"
 "$B" pupil halo_stpf.fits -o pupil_stpf.fits --truth obs/truth.fits > pupil_stpf.log || fail "pupil (perframe.fits)"
 epf=$(ncp_error pupil_stpf.log)
 echo "cli_teach: stream with the taught per-frame map: $epf nm (space-time $edt nm)"
-awk -v a="$epf" -v b="$edt" 'BEGIN { exit !(a > 0 && a < 1.1 * b) }' || fail "the per-frame map $epf nm against $edt nm"
+awk -v a="$epf" -v b="$edt" 'BEGIN { exit !(a > 0 && a < 1.15 * b) }' || fail "the per-frame map $epf nm against $edt nm"
 # dt_again TAG [options]: speckles' default as above, into another output, in the same teach
 # folder; its speckles must be spk_dt.fits's, value for value (so the same NCP error)
 dt_again() {

@@ -147,8 +147,11 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
     return SWFS_OK;
 }
 
-/* Loop k of the space-time set: the layers found, the first one's share 0.3 + 0.4 u (u in
- * [0, 1]; the others share the rest), seed o->seed + k. */
+/* Loop k of the space-time set: the layers found, each at a speed within a factor sqrt 2 of
+ * the one found (log-uniform, drawn for the loop: a map learned from loops of the one speed
+ * fits that speed's frames too closely, docs/telemetry.md "Loops at speeds about the
+ * layers'"), the first one's share 0.3 + 0.4 u (u in [0, 1]; the others share the rest),
+ * seed o->seed + k. */
 static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, double u, int nl, const double *speed,
                       const double *dir)
 {
@@ -157,9 +160,11 @@ static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, do
     j->seed = o->seed + k;
     j->nl = nl;
     j->frac[0] = nl > 1 ? 0.3 + 0.4 * u : 1.0;
+    swfs_rng g;
+    swfs_rng_seed2(&g, o->seed, 3000 + k);
     for (int l = 0; l < nl; l++) {
         if (l) j->frac[l] = (1.0 - j->frac[0]) / (double)(nl - 1);
-        j->speed[l] = speed[l];
+        j->speed[l] = speed[l] * pow(2.0, swfs_rng_uniform(&g) - 0.5);
         j->dir[l] = dir[l];
     }
 }
