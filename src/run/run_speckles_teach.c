@@ -154,7 +154,7 @@ static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_re
     swfs_fits_in_close(f);
     if (rc) swfs_clear_error();
     int chosen = -1;
-    for (int k = 0; k < 5 && fsel; k++)
+    for (int k = 0; k < (int)(sizeof swfs_teach_chosen_names_ / sizeof *swfs_teach_chosen_names_) && fsel; k++)
         if (!strcmp(sel, swfs_teach_chosen_names_[k])) chosen = k;
     if (rc || !found || strcmp(v, fpr) || chosen < 0 || !floops) return 0;
     memset(tr, 0, sizeof *tr);

@@ -147,11 +147,17 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
     return SWFS_OK;
 }
 
-/* Loop k of the space-time set: the layers found, each at a speed within a factor sqrt 2 of
- * the one found (log-uniform, drawn for the loop: a map learned from loops of the one speed
- * fits that speed's frames too closely, docs/telemetry.md "Loops at speeds about the
- * layers'"), the first one's share 0.3 + 0.4 u (u in [0, 1]; the others share the rest),
- * seed o->seed + k. */
+/* A loop layer's speed about v: within a factor sqrt 2 of it, log-uniform (one draw of g). The
+ * loops of both paths take their speeds so: a map learned from loops of one speed fits that
+ * speed's frames too closely (docs/telemetry.md, "Loops at speeds about the layers'"). */
+static double speed_about(double v, swfs_rng *g)
+{
+    return v * pow(2.0, swfs_rng_uniform(g) - 0.5);
+}
+
+/* Loop k of the space-time set: the layers found, each at a speed about the one found
+ * (speed_about, drawn for the loop), the first one's share 0.3 + 0.4 u (u in [0, 1]; the
+ * others share the rest), seed o->seed + k. */
 static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, double u, int nl, const double *speed,
                       const double *dir)
 {
@@ -164,13 +170,13 @@ static void loop_init(loop_job *j, const swfs_teach_run_options *o, size_t k, do
     swfs_rng_seed2(&g, o->seed, 3000 + k);
     for (int l = 0; l < nl; l++) {
         if (l) j->frac[l] = (1.0 - j->frac[0]) / (double)(nl - 1);
-        j->speed[l] = speed[l] * pow(2.0, swfs_rng_uniform(&g) - 0.5);
+        j->speed[l] = speed_about(speed[l], &g);
         j->dir[l] = dir[l];
     }
 }
 
 /* Loop k where no layer was tracked: two layers, the first one's share 0.3-0.7, each at a
- * speed within a factor sqrt 2 of v (log-uniform) in any direction, seed o->seed + k. */
+ * speed about v (speed_about) in any direction, seed o->seed + k. */
 static void prior_init(loop_job *j, const swfs_teach_run_options *o, size_t k, double v)
 {
     swfs_rng g;
@@ -182,7 +188,7 @@ static void prior_init(loop_job *j, const swfs_teach_run_options *o, size_t k, d
     j->frac[0] = 0.3 + 0.4 * swfs_rng_uniform(&g);
     j->frac[1] = 1.0 - j->frac[0];
     for (int l = 0; l < 2; l++) {
-        j->speed[l] = v * pow(2.0, swfs_rng_uniform(&g) - 0.5);
+        j->speed[l] = speed_about(v, &g);
         j->dir[l] = 360.0 * swfs_rng_uniform(&g);
     }
 }
