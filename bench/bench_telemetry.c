@@ -7,7 +7,7 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|pyramid]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid]
  *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
@@ -36,6 +36,9 @@
  * cm_modes.fits), turned back into valid-only slopes by modal-slopes (into DIR/ms, which names
  * the matrix: MODALCM), then sync and the Shack-Hartmann default with the export's valid map:
  * what a modal system whose WFS is a Shack-Hartmann of known control matrix gets.
+ * --kind modal-rm: the same with the modal response matrix instead of the control matrix (the
+ * export's rm_modes.fits, modal-slopes --imat): what such a system gets when it has the
+ * calibration's response matrix but not the control matrix its loop made from it.
  * --kind pyramid: each system sensed by a modulated pyramid instead (simulate wfs=pyramid, 3
  * lambda/D, the sensing wavelength 0.85, 1.25 or 1.65 um by the system's place in the matrix,
  * the simulator's 1000 photons per subaperture and frame), its signals through the linear
@@ -100,6 +103,7 @@ static int recon = SWFS_RECON_TEACH;  /* --recon teach|vk|map|svd: the speckle r
  * (simulate export_modal=1), through sync and speckles with the linear model (--basis) */
 static int modal;
 static int modal_cm; /* --kind modal-cm: the modal coefficients back to slopes by modal-slopes */
+static int modal_rm; /* --kind modal-rm: the same through the modal response matrix (--imat) */
 static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
@@ -265,7 +269,10 @@ static int modal_cm_slopes(void)
         unlink(pth(name));
     }
     unlink(pth("ms/cm_modes.fits"));
-    swfs_modal_slopes_options mo = {(const char *const *)files, n, pth("cm_modes.fits"), pth("ms")};
+    unlink(pth("ms/pinv_rm_modes.fits"));
+    swfs_modal_slopes_options mo = {(const char *const *)files, n, NULL, pth("ms"), NULL};
+    if (modal_rm) mo.imat = pth("rm_modes.fits");
+    else mo.cm = pth("cm_modes.fits");
     swfs_modal_slopes_result mr;
     int rc = swfs_modal_slopes_run(&mo, &mr);
     for (size_t k = 0; k < n; k++) free(files[k]);
@@ -405,6 +412,8 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--tiptilt") && i + 1 < argc && !strcmp(argv[i + 1], "exposure")) i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal")) modal = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal-cm")) modal = modal_cm = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal-rm"))
+            modal = modal_cm = modal_rm = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid")) pyramid = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
@@ -419,7 +428,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|pyramid] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -446,6 +455,7 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits)" :
+           modal_rm ? ", modal telemetry with its response matrix (modal-slopes --imat, --valid)" :
            modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :
            modal ? ", modal telemetry (--basis)" : "");
     if (recon != SWFS_RECON_TEACH)

@@ -71,7 +71,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     if (p.export_modal)
         printf("  modal telemetry: %zu modes in um of DM surface (modal_NNN.fits) on dm_modes.fits: --basis with "
                "--dm-pitch %.6g --dm-offset %g,%g --dm-rot %g --dm-flip --coef-scale 2e-6; its control matrix "
-               "cm_modes.fits (modal-slopes --cm)\n", nmodes, reg.pitch, reg.x0,
+               "cm_modes.fits (modal-slopes --cm), its response matrix rm_modes.fits (modal-slopes --imat)\n", nmodes, reg.pitch, reg.x0,
                reg.y0, reg.rot * 180 / M_PI);
     if (p.export_truth)
         printf("  truth per WFS frame (truewf_NNN.fits): the true residual least-squares fitted on %s [m], "

@@ -110,6 +110,28 @@ mkdir -p "$D/unproj2"
 grep -q "modal_000.fits: 216 coefficients per WFS frame; .*control.fits maps 224 slopes to 217" "$D/ms_bad.log" \
     || { cat "$D/ms_bad.log"; fail "modal-slopes: the message"; }
 [ -z "$(ls "$D/unproj2")" ] || fail "modal-slopes left files after refusing"
+"$B" modal-slopes "$S/modal_000.fits" --cm "$S/cm_modes.fits" --imat "$S/rm_modes.fits" -o "$D/unproj2" > "$D/ms_bad.log" 2>&1 \
+    && fail "modal-slopes: --cm and --imat"
+grep -q "takes --cm or --imat, not both" "$D/ms_bad.log" || { cat "$D/ms_bad.log"; fail "modal-slopes: --cm and --imat message"; }
+[ -z "$(ls "$D/unproj2")" ] || fail "modal-slopes left files after refusing"
+# through the modal response matrix (--imat): its pseudo-inverse is the control matrix taken,
+# written beside the slopes and named by them; s' = RM c. The export's coefficients come
+# through a von Karman MAP, which shrinks the modes RM's pseudo-inverse does not: the slopes
+# are then further from the true ones than through the CM's pseudo-inverse, and modal-slopes
+# says so from the coefficients' white noise per mode (docs/telemetry.md;
+# the exact case, a least-squares CM, is python/tests/test_sim.py's test_modal_slopes)
+mkdir -p "$D/viaim"
+"$B" modal-slopes "$S"/modal_0*.fits --imat "$S/rm_modes.fits" -o "$D/viaim" > "$D/ms_imat.log" 2>&1 \
+    || { cat "$D/ms_imat.log"; fail "modal-slopes --imat"; }
+grep -q "216 coefficients -> 224 slopes through the response matrix .* (rank 216," "$D/ms_imat.log" \
+    || { cat "$D/ms_imat.log"; fail "modal-slopes --imat: rank"; }
+head -c 8640 "$D/viaim/modal_000.fits" | grep -aq "MODALCM = 'pinv_rm_modes.fits'" || fail "modal-slopes --imat: MODALCM"
+grep -q "warning: the coefficients' white noise is not what a least-squares control matrix of .*rm_modes.fits gives" \
+    "$D/ms_imat.log" || { cat "$D/ms_imat.log"; fail "modal-slopes --imat: the MAP's coefficients should be flagged"; }
+[ -f "$D/viaim/pinv_rm_modes.fits" ] || fail "modal-slopes --imat: no pinv_rm_modes.fits"
+relim=$("$(dirname "$B")/tests/fitsdiff" --rms "$S/slopes_valid_000.fits" "$D/viaim/modal_000.fits")
+echo "cli_modal: modal-slopes --imat: the slopes within $relim of their rms (through the CM: $rel)" >&2
+awk -v r="$relim" -v c="$rel" 'BEGIN { exit !(r > c && r < 1) }' || fail "modal-slopes --imat: the slopes differ by $relim of their rms"
 "$B" modal-slopes "$S/modal_000.fits" --cm "$S/cm_modes.fits" -o "$S" > "$D/ms_bad.log" 2>&1 && fail "modal-slopes into the inputs' folder"
 grep -q "is in the output folder" "$D/ms_bad.log" || { cat "$D/ms_bad.log"; fail "modal-slopes: same folder"; }
 noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "$reg" | sed 's/--dm-flip//') \

@@ -653,6 +653,11 @@ typedef struct swfs_modal_slopes_options {
     size_t nfiles;
     const char *cm;           /* the modal control matrix: NAXIS1 = slopes, NAXIS2 = coefficients */
     const char *outdir;       /* an existing folder other than the inputs' */
+    const char *imat;         /* instead of cm: the modal response matrix RM (NAXIS1 = coefficients,
+                                 NAXIS2 = slopes: each mode's slopes per unit coefficient); then
+                                 s' = RM c and the copy beside the slopes is RM+ (pinv_NAME), the
+                                 control matrix of least squares (docs/telemetry.md, "Modal
+                                 coefficients with their response matrix") */
 } swfs_modal_slopes_options;
 
 typedef struct swfs_modal_slopes_result {
@@ -660,7 +665,19 @@ typedef struct swfs_modal_slopes_result {
     double cond;              /* largest / smallest singular value kept */
     double resid;             /* rms of c - CM s' over rms of c: what CM cannot have made (0 up to
                                  rounding where its rank is its number of coefficients) */
+    double lsq_ratio;         /* --imat: the coefficients' white noise over what a least-squares CM
+                                 of RM gives them, the poorly sensed half of the modes against the
+                                 well-sensed half, by medians (1 for a least-squares CM; 0: none in
+                                 the poorly sensed half; NAN: fewer than 64 frames or 8
+                                 coefficients, or cm given) */
+    int lsq_warns;            /* lsq_ratio outside [SWFS_MODAL_LSQ_RATIO_MIN, its inverse]: the
+                                 system's CM does not invert RM on its modes (it regularizes them),
+                                 s' = RM c is not the slopes' projection: use --cm */
 } swfs_modal_slopes_result;
+
+/* A factor 2 either way: the check's convention, not a tuned value (least-squares coefficients
+ * give 0.98-1.03, a von Karman MAP's below 0.2 or negative; docs/telemetry.md). */
+#define SWFS_MODAL_LSQ_RATIO_MIN 0.5
 
 int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r);
 

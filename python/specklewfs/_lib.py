@@ -354,9 +354,10 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed", 3: "perframe_prior", 4: "spacetime_prior"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
-    ("files", P(c_str)), ("nfiles", c_size), ("cm", c_str), ("outdir", c_str)])
+    ("files", P(c_str)), ("nfiles", c_size), ("cm", c_str), ("outdir", c_str), ("imat", c_str)])
 swfs_modal_slopes_result = _s("swfs_modal_slopes_result", [
-    ("ncoef", c_size), ("nslopes", c_size), ("rank", c_size), ("nframes", c_size), ("cond", c_dbl), ("resid", c_dbl)])
+    ("ncoef", c_size), ("nslopes", c_size), ("rank", c_size), ("nframes", c_size), ("cond", c_dbl), ("resid", c_dbl),
+    ("lsq_ratio", c_dbl), ("lsq_warns", c_int)])
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
     ("nloops", c_size), ("map_inputs", c_size), ("loop_frames", c_size), ("loop_frames_described", c_size),

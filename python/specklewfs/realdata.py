@@ -253,19 +253,26 @@ def _st_checks(r):
                 st_warn_corr=bool(w & _lib.SPACETIME_WARN_CORR))
 
 
-def modal_slopes(files, cm, outdir):
+def modal_slopes(files, cm=None, outdir=None, imat=None):
     """A modal system's coefficient files back to its Shack-Hartmann's slopes
     (`specklewfs modal-slopes`): s' = CM+ c through the pseudo-inverse of the modal control
-    matrix `cm` (NAXIS1 the slopes, NAXIS2 the coefficients), each file under its own name in
-    the existing folder `outdir` (not the inputs') with a copy of `cm` that their MODALCM key
-    names, all or none; the slopes then take the
+    matrix `cm` (NAXIS1 the slopes, NAXIS2 the coefficients), or, given `imat` instead, the
+    modal response matrix RM (NAXIS1 the coefficients, NAXIS2 the slopes), s' = RM c with RM's
+    pseudo-inverse taken as the control matrix (written as pinv_NAME); each file under its own
+    name in the existing folder `outdir` (not the inputs') with the control matrix that their
+    MODALCM key names, all or none; the slopes then take the
     Shack-Hartmann path (speckles with actuators, valid and pupil; its teach projects its loops'
     slopes the same way). Returns ncoef, nslopes, rank, nframes, cond and resid (the share of
     the coefficients CM cannot have made)."""
     if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
         files = [files]
+    if outdir is None:
+        raise ValueError("modal_slopes: needs outdir, an existing folder")
+    if (cm is None) == (imat is None):
+        raise ValueError("modal_slopes: give cm (the modal control matrix) or imat (the modal response matrix), one of them")
     arr, n = _paths(files)
-    o = _lib.swfs_modal_slopes_options(arr, n, enc(cm), enc(outdir))
+    o = _lib.swfs_modal_slopes_options(arr, n, enc(cm) if cm is not None else None, enc(outdir),
+                                       enc(imat) if imat is not None else None)
     r = _lib.swfs_modal_slopes_result()
     check(lib.swfs_modal_slopes_run(ctypes.byref(o), ctypes.byref(r)), "modal_slopes")
     return _struct_dict(r)

@@ -365,7 +365,8 @@ def test_modal_slopes(tmp_path, cli):
     pseudo-inverse of its modal control matrix are its valid-only slopes projected onto CM's row
     space (within 15 % of them in rms), each file under its own name with MODALCM naming the
     control matrix's copy beside them; a control matrix of another shape raises, nothing
-    written."""
+    written. Through the modal response matrix instead (imat=): exact for coefficients made by
+    its least-squares control matrix."""
     d = tmp_path / "sim"
     subprocess.run([cli, "simulate", "mode=timeseries", "--quiet", "-o", str(d), "screen_n=512", "ncubes=2",
                     "cube_frames=30", "cube_gap=20", "start_offset=50.4", "wfs_file_frames=300", "export_modal=1",
@@ -398,6 +399,46 @@ def test_modal_slopes(tmp_path, cli):
     with pytest.raises(sw.Error, match="coefficients per WFS frame; .*control.fits maps"):
         sw.modal_slopes(modal, str(d / "control.fits"), str(bad))
     assert not list(bad.iterdir())
+    # the modal response matrix (rm_modes.fits: each mode's valid slopes per um): the export's
+    # (von Karman MAP) control matrix inverts it on the well-sensed modes, shrunk as a MAP
+    # shrinks them (its units and sign: the first 30 modes' gains 0.75-1.01, measured 0.77-0.98,
+    # the first 10's mean within 10 % of 1, measured 0.94); coefficients made through its least-squares control matrix come back
+    # through --imat as the slopes projected onto its modes (as through --cm with that matrix,
+    # whose pinv_ copy MODALCM names)
+    rm = sw.read_fits(str(d / "rm_modes.fits"))[0]
+    cmv = sw.read_fits(str(d / "cm_modes.fits"))[0]
+    assert rm.shape == (cmv.shape[1], cmv.shape[0])
+    gains = np.diag(cmv @ rm)
+    assert np.all((gains[:30] > 0.75) & (gains[:30] < 1.01)) and abs(gains[:10].mean() - 1) < 0.1
+    cls = np.linalg.pinv(rm)
+    lsq = tmp_path / "lsq"
+    lsq.mkdir()
+    made = []
+    for f in modal:
+        v = sw.read_fits(str(d / os.path.basename(f).replace("modal_", "slopes_valid_")))[0]
+        made.append(str(lsq / os.path.basename(f)))
+        sw.write_fits(made[-1], v @ cls.T, keys={"FRAME0": int(sw.read_keys(f, ["FRAME0"])["FRAME0"])})
+    viaim = tmp_path / "viaim"
+    viaim.mkdir()
+    r = sw.modal_slopes(made, outdir=str(viaim), imat=str(d / "rm_modes.fits"))
+    assert r["rank"] == r["ncoef"] == rm.shape[1] and r["resid"] < 1e-6
+    # their white noise is what a least-squares CM gives every mode (measured 1.01); the
+    # export's own coefficients, a MAP's, are flagged (measured 0.011)
+    assert 0.8 < r["lsq_ratio"] < 1.25 and not r["lsq_warns"]
+    own = tmp_path / "own"
+    own.mkdir()
+    r = sw.modal_slopes(modal, outdir=str(own), imat=str(d / "rm_modes.fits"))
+    assert r["lsq_ratio"] < 0.5 and r["lsq_warns"]
+    np.testing.assert_allclose(sw.read_fits(str(viaim / "pinv_rm_modes.fits"))[0], cls, rtol=0, atol=1e-6 * np.abs(cls).max())
+    P = rm @ cls
+    for f in made:
+        name = os.path.basename(f)
+        s = sw.read_fits(str(viaim / name))[0]
+        v = sw.read_fits(str(d / name.replace("modal_", "slopes_valid_")))[0]
+        assert sw.read_keys(str(viaim / name), ["MODALCM"])["MODALCM"] == "pinv_rm_modes.fits"
+        assert np.sqrt(np.mean((s - v @ P.T) ** 2) / np.mean(v ** 2)) < 1e-5
+    with pytest.raises(ValueError, match="one of them"):
+        sw.modal_slopes(modal, str(d / "cm_modes.fits"), str(bad), imat=str(d / "rm_modes.fits"))
 
 
 def test_pyramid_timeseries(tmp_path):

@@ -187,7 +187,9 @@ static int write_modal(const char *dir, exp_work *w, const char *const *prov, si
  * Clough-Tocher interpolation of a unit value: PUPN x PUPN x nact), valid.fits (the
  * valid-subaperture map of the slopes_valid files, nsub x nsub, 1 = used) and cm_modes.fits
  * (the modal control matrix that made modal_NNN.fits from the valid slopes: NAXIS1 = 2 nvalid,
- * NAXIS2 = the modes; `modal-slopes` takes it). */
+ * NAXIS2 = the modes; `modal-slopes --cm` takes it) and rm_modes.fits (the modal response
+ * matrix: each mode's valid slopes per um of coefficient, what poking the modes on the DM and
+ * reading the WFS gives, NAXIS1 = the modes, NAXIS2 = 2 nvalid; `modal-slopes --imat`). */
 static int write_control(const char *dir, exp_work *w, const char *const *prov, size_t nprov)
 {
     const swfs_speckle_model *m = swfs_pipeline_model(w->p);
@@ -222,11 +224,32 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
                 M->data[k * 2 * nv + j] = f * w->Q[k * ns + a];
                 M->data[k * 2 * nv + nv + j++] = f * w->Q[k * ns + n2 + a];
             }
+    /* rm_modes.fits: D (S T: the model's slopes of each actuator's influence) times each mode's
+     * actuator vector at a coefficient of 1 um (2 um of wavefront over the mode's rms) */
+    double *D = NULL;
+    swfs_real *R = rc ? NULL : swfs_real_alloc(w->nk, 2 * nv, 1);
+    if (!rc && !R) rc = swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
+    if (!rc) rc = swfs_interaction_matrix(wfs, m->T, &D);
+    for (size_t a = 0, j = 0; !rc && a < n2; a++)
+        if (wfs->valid[a]) {
+            for (size_t k = 0; k < w->nk; k++) {
+                double sx = 0, sy = 0;
+                for (size_t q = 0; q < na; q++) {
+                    sx += D[a * na + q] * w->modes[q * na + k + 1];
+                    sy += D[(n2 + a) * na + q] * w->modes[q * na + k + 1];
+                }
+                const double f = w->rms[k] > 0 ? 2e-6 / w->rms[k] : 0; /* a mode off the grid: no coefficient */
+                R->data[j * w->nk + k] = sx * f;
+                R->data[(nv + j) * w->nk + k] = sy * f;
+            }
+            j++;
+        }
+    free(D);
     char path[4200];
-    const swfs_real *arr[4] = {C, F, V, M};
-    const char *names[4] = {"control.fits", "influence.fits", "valid.fits", "cm_modes.fits"};
-    const char *units[4] = {"m/rad", "m/m", "", "um/rad"};
-    for (int k = 0; k < 4 && !rc; k++) {
+    const swfs_real *arr[5] = {C, F, V, M, R};
+    const char *names[5] = {"control.fits", "influence.fits", "valid.fits", "cm_modes.fits", "rm_modes.fits"};
+    const char *units[5] = {"m/rad", "m/m", "", "um/rad", "rad/um"};
+    for (int k = 0; k < 5 && !rc; k++) {
         swfs_fits_out *o = NULL;
         snprintf(path, sizeof path, "%s/%s", dir, names[k]);
         if ((rc = swfs_fits_out_create(&o, path))) break;
@@ -236,7 +259,7 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
             swfs_fits_out_abort(o);
         else rc = swfs_fits_out_commit(o);
     }
-    swfs_real_free(C); swfs_real_free(F); swfs_real_free(V); swfs_real_free(M); free(e); free(z);
+    swfs_real_free(C); swfs_real_free(F); swfs_real_free(V); swfs_real_free(M); swfs_real_free(R); free(e); free(z);
     return rc;
 }
 
