@@ -109,6 +109,12 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
                     "map (--recon vk) instead\n", cmd, r->teach_fallback);
         }
     }
+    if (r->modal_regularized)
+        fprintf(stderr, "specklewfs %s: warning: these slopes came through modal-slopes --imat from coefficients whose "
+                "white noise is not what a least-squares control matrix gives them (MODALLSQ %.3g; 1 for one): the "
+                "system's control matrix regularizes its modes, so the slopes are not its WFS's and no map fits them; give "
+                "modal-slopes the system's control matrix (--cm), or take the coefficients through the linear model "
+                "(--basis)\n", cmd, isfinite(r->modal_lsq) ? r->modal_lsq : INFINITY);
     if (!o->lin.basis) {
         cli_recon_summary(cmd, &used, used_file, o->valid, &r->info,
                           r->curl_noise > 0 ? "the slopes' curl power: modal-slopes' projection (MODALCM) leaves no "

@@ -132,6 +132,14 @@ grep -q "warning: the coefficients' white noise is not what a least-squares cont
 relim=$("$(dirname "$B")/tests/fitsdiff" --rms "$S/slopes_valid_000.fits" "$D/viaim/modal_000.fits")
 echo "cli_modal: modal-slopes --imat: the slopes within $relim of their rms (through the CM: $rel)" >&2
 awk -v r="$relim" -v c="$rel" 'BEGIN { exit !(r > c && r < 1) }' || fail "modal-slopes --imat: the slopes differ by $relim of their rms"
+# the slopes carry the check's verdict (MODALLSQ, MODALRGW), and speckles repeats the warning
+head -c 8640 "$D/viaim/modal_000.fits" | grep -aq "MODALRGW=  *1 " || fail "modal-slopes --imat: MODALRGW"
+sed "s#$S/slopes_valid_#$D/viaim/modal_#" "$D/timing_valid.txt" > "$D/timing_viaim.txt"
+"$B" speckles "$D/timing_viaim.txt" --science "$D/science.fits" --actuators "$S/actuators.fits" --valid "$S/valid.fits" \
+    --recon vk -o "$D/sp_viaim.fits" 2> "$D/speckles_viaim.log" || { cat "$D/speckles_viaim.log"; fail "speckles on --imat's slopes"; }
+grep -q "warning: these slopes came through modal-slopes --imat from coefficients whose white noise" "$D/speckles_viaim.log" \
+    || { cat "$D/speckles_viaim.log"; fail "speckles: no warning on --imat's slopes of a regularizing CM"; }
+! grep -q "warning: these slopes came through modal-slopes --imat" "$D/speckles_unvk.log" || fail "speckles: warned on --cm's slopes"
 "$B" modal-slopes "$S/modal_000.fits" --cm "$S/cm_modes.fits" -o "$S" > "$D/ms_bad.log" 2>&1 && fail "modal-slopes into the inputs' folder"
 grep -q "is in the output folder" "$D/ms_bad.log" || { cat "$D/ms_bad.log"; fail "modal-slopes: same folder"; }
 noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "$reg" | sed 's/--dm-flip//') \

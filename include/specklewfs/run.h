@@ -245,6 +245,10 @@ typedef struct swfs_speckles_run_result {
                                  slope noise taken from their curl (swfs_slopes_curl_noise, total)
                                  and used, since the projection leaves no slope outside the modes
                                  to estimate it from; 0 otherwise (also when slope_noise was given) */
+    int modal_regularized;    /* the telemetry came through modal-slopes --imat from coefficients its
+                                 check found regularized (MODALRGW = 1): RM c is not the slopes'
+                                 projection, and neither teach's map nor vk fits them */
+    double modal_lsq;         /* that check's ratio (MODALLSQ), NAN where the files carry none */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
@@ -647,7 +651,10 @@ int swfs_wind_run(const swfs_wind_run_options *o, swfs_wind_run_result *r);
  * largest); each file by one GEMM. Each input file is written under its own name into outdir
  * (not the input's folder), with BUNIT 'rad' and the input's WFSRATE and FRAME0, and CM is
  * copied beside them under its own name, which their MODALCM key gives (teach learns its loops'
- * slopes on the same projection); all files or none (one swfs_outputs group, atomic.h). */
+ * slopes on the same projection); all files or none (one swfs_outputs group, atomic.h). With
+ * imat, a first pass over the files checks how the coefficients were made (lsq_ratio below), and
+ * the slopes carry the verdict: MODALLSQ (the ratio, where finite) and MODALRGW (1: it warned),
+ * which speckles reports (swfs_speckles_run_result.modal_regularized). */
 typedef struct swfs_modal_slopes_options {
     const char *const *files; /* modal coefficient files: coefficients x WFS frames */
     size_t nfiles;

@@ -343,7 +343,7 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
-    ("curl_noise", c_dbl)])
+    ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

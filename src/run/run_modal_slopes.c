@@ -187,6 +187,20 @@ static double lsq_ratio(const lsq_sums *q, const swfs_real *cm, double *work)
     return mu <= 0 ? 0.0 : ml <= 0 ? INFINITY : mu / ml;
 }
 
+/* One coefficient file, its width ncoef and its values finite (src: the matrix, nslopes its
+ * slopes, for the message). */
+static int read_coefs(const char *path, size_t ncoef, const char *src, size_t nslopes, swfs_real **c, double *rate)
+{
+    int rc = swfs_telemetry_read(path, 0, c, rate);
+    if (!rc && (*c)->nx != ncoef)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu coefficients per WFS frame; %s maps %zu slopes to %zu", path, (*c)->nx, src,
+                       nslopes, ncoef);
+    for (size_t i = 0; !rc && i < (*c)->nx * (*c)->ny; i++)
+        if (!isfinite((*c)->data[i]))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame %zu, coefficient %zu is not finite", path, i / (*c)->nx, i % (*c)->nx);
+    return rc;
+}
+
 int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -236,6 +250,17 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
         (!(q.ac = calloc(r->ncoef * LSQ_LAGS, sizeof *q.ac)) || !(q.n = calloc(LSQ_LAGS, sizeof *q.n)) ||
          !(qwork = malloc(4 * r->ncoef * sizeof *qwork))))
         rc = swfs_fail(SWFS_ERR_NOMEM, "modal-slopes: out of memory");
+    /* --imat: the check first (a pass over the files), so that the slopes carry its verdict */
+    for (size_t k = 0; !rc && o->imat && k < o->nfiles; k++) {
+        swfs_real *c = NULL;
+        double rate = 0;
+        if (!(rc = read_coefs(o->files[k], r->ncoef, src, r->nslopes, &c, &rate))) lsq_add(&q, c, qwork);
+        swfs_real_free(c);
+    }
+    if (!rc && o->imat) {
+        r->lsq_ratio = lsq_ratio(&q, cm, qwork);
+        r->lsq_warns = r->lsq_ratio < SWFS_MODAL_LSQ_RATIO_MIN || r->lsq_ratio > 1 / SWFS_MODAL_LSQ_RATIO_MIN;
+    }
     swfs_outputs_begin(); /* all files or none */
     if (!rc) {
         char path[8400];
@@ -256,14 +281,7 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
         double rate = 0;
         long frame0 = 0;
         int has0 = 0;
-        rc = swfs_telemetry_read(o->files[k], 0, &c, &rate);
-        if (!rc && c->nx != r->ncoef)
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu coefficients per WFS frame; %s maps %zu slopes to %zu", o->files[k],
-                           c->nx, src, r->nslopes, r->ncoef);
-        for (size_t i = 0; !rc && i < c->nx * c->ny; i++)
-            if (!isfinite(c->data[i]))
-                rc = swfs_fail(SWFS_ERR_VALUE, "%s: frame %zu, coefficient %zu is not finite", o->files[k], i / c->nx,
-                               i % c->nx);
+        rc = read_coefs(o->files[k], r->ncoef, src, r->nslopes, &c, &rate);
         if (!rc) rc = frame0_of(o->files[k], &frame0, &has0);
         if (!rc && !(s = swfs_real_alloc(r->nslopes, c->ny, 1))) rc = swfs_fail(SWFS_ERR_NOMEM, "modal-slopes: out of memory");
         double *back = NULL;
@@ -278,7 +296,6 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
                 css += c->data[i] * c->data[i];
             }
             r->nframes += c->ny;
-            if (o->imat) lsq_add(&q, c, qwork);
         }
         free(back);
         if (!rc) {
@@ -295,7 +312,11 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
                     (rc = swfs_fits_out_key_string(f, "BUNIT", "rad", "slopes: the modal coefficients through CM+")) ||
                     (rate > 0 && (rc = swfs_fits_out_key_double(f, "WFSRATE", rate, "[Hz]"))) ||
                     (has0 && (rc = swfs_fits_out_key_long(f, "FRAME0", frame0, "global WFS frame of row 0"))) ||
-                    (rc = swfs_fits_out_key_string(f, "MODALCM", cmbase, "CM these slopes came through, in their folder")))
+                    (rc = swfs_fits_out_key_string(f, "MODALCM", cmbase, "CM these slopes came through, in their folder")) ||
+                    (isfinite(r->lsq_ratio) &&
+                     (rc = swfs_fits_out_key_double(f, "MODALLSQ", r->lsq_ratio, "coefficients' white noise / least squares'"))) ||
+                    (o->imat && !isnan(r->lsq_ratio) &&
+                     (rc = swfs_fits_out_key_long(f, "MODALRGW", r->lsq_warns, "1: CM regularizes; RM c not the slopes"))))
                     swfs_fits_out_abort(f);
                 else rc = swfs_fits_out_commit(f);
             }
@@ -306,10 +327,6 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
     const int erc = swfs_outputs_end(rc == SWFS_OK);
     if (!rc) rc = erc;
     r->resid = css > 0 ? sqrt(rss / css) : 0;
-    if (!rc && o->imat) {
-        r->lsq_ratio = lsq_ratio(&q, cm, qwork);
-        r->lsq_warns = r->lsq_ratio < SWFS_MODAL_LSQ_RATIO_MIN || r->lsq_ratio > 1 / SWFS_MODAL_LSQ_RATIO_MIN;
-    }
     free(q.ac);
     free(q.n);
     free(qwork);

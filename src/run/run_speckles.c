@@ -186,6 +186,20 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     if (rc) return rc;
     w->nslopes = w->slopes->nx;
     snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
+    /* slopes modal-slopes --imat made: its check of how the coefficients were made */
+    r->modal_lsq = NAN;
+    if (!o->lin.basis) {
+        swfs_fits_in *f = NULL;
+        long rgw = 0;
+        int found = 0, lfound = 0;
+        rc = swfs_fits_in_open(&f, w->path, NULL);
+        if (!rc) rc = swfs_fits_in_key_long_opt(f, "MODALRGW", 0, 1, &rgw, &found);
+        if (!rc) rc = swfs_fits_in_key_double_opt(f, "MODALLSQ", &r->modal_lsq, &lfound);
+        swfs_fits_in_close(f);
+        if (rc) return rc;
+        if (!lfound) r->modal_lsq = NAN;
+        r->modal_regularized = found && rgw == 1;
+    }
     if (!o->pipe.wfs_rate) return SWFS_OK;
     r->wfs_hz = o->wfs_hz > 0 ? o->wfs_hz : rate;
     if (!(r->wfs_hz > 0))
@@ -558,6 +572,7 @@ int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->r
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
+    r->modal_lsq = NAN;
     const int crc = swfs_speckles_run_options_check(o);
     if (crc) return crc;
     /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence of
