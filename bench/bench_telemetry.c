@@ -7,7 +7,7 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn]
  *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
@@ -44,6 +44,9 @@
  * the simulator's 1000 photons per subaperture and frame), its signals through the linear
  * model with the run's influence functions and interaction matrix (--basis influence.fits
  * --imat imat_ao.fits: the MAP reconstructor from the telemetry), sync included.
+ * --kind pyramid-learn: the same observations through a per-frame map learned (learn, its
+ * default miss of the residual's time mean included) from 4 loops of the same system at other
+ * seeds, as --control: what a pyramid system's user gets from simulations of it.
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -105,6 +108,7 @@ static int modal;
 static int modal_cm; /* --kind modal-cm: the modal coefficients back to slopes by modal-slopes */
 static int modal_rm; /* --kind modal-rm: the same through the modal response matrix (--imat) */
 static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
+static int pyr_learn; /* --kind pyramid-learn: the same through a map learned from loops of the system (--control) */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
@@ -168,7 +172,9 @@ static int system_keys(const system_def *s, unsigned seed, int quick, char kv[24
     return n;
 }
 
-static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum)
+/* The run of system s into into (NULL: the bench's folder; a training loop for --kind
+ * pyramid-learn: export_truth=1 and no export). */
+static int simulate_into(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum, const char *into)
 {
     swfs_config *c = swfs_config_new();
     char kv[24][96];
@@ -176,15 +182,53 @@ static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summa
     int rc = 0;
     for (int i = 0; i < n && !rc; i++) rc = swfs_config_set(c, kv[i]);
     for (int i = 0; i < nextra && !rc; i++) rc = swfs_config_set(c, extra_keys[i]);
+    if (!rc && into) rc = swfs_config_set(c, "export_truth=1");
     swfs_ts_params tp;
     swfs_ts_params_default(&tp);
     if (!rc) rc = swfs_ts_params_from_config(c, &tp);
     if (!rc) rc = swfs_ts_params_check(&tp);
     swfs_config_free(c);
     const char *prov[] = {"bench_telemetry"};
-    if (!rc) rc = swfs_ts_run(&tp, dir, prov, 1, NULL, NULL, sum);
+    if (!rc) rc = swfs_ts_run(&tp, into ? into : dir, prov, 1, NULL, NULL, sum);
     size_t nmodes;
-    if (!rc && (modal || truth)) rc = swfs_ts_export_modal(&tp, dir, prov, 1, &modal_reg, &nmodes);
+    if (!rc && !into && (modal || truth)) rc = swfs_ts_export_modal(&tp, dir, prov, 1, &modal_reg, &nmodes);
+    return rc;
+}
+
+static int simulate(const system_def *s, unsigned seed, int quick, swfs_ts_summary *sum)
+{
+    return simulate_into(s, seed, quick, sum, NULL);
+}
+
+/* --kind pyramid-learn: PYR_LEARN_LOOPS loops of the same system (seeds 1000 s + k: other
+ * turbulence and noise, as a user simulates their described system), their per-frame map
+ * learned with its miss of the residual's time mean (learn's default) into DIR/W.fits. */
+#define PYR_LEARN_LOOPS 4
+static int pyramid_learn(const system_def *s, unsigned seed, int quick)
+{
+    char tdir[PYR_LEARN_LOOPS][sizeof dir + 32];
+    const char *dirs[PYR_LEARN_LOOPS];
+    int rc = 0;
+    for (int k = 0; k < PYR_LEARN_LOOPS && !rc; k++) {
+        snprintf(tdir[k], sizeof tdir[k], "%s/train_%d", dir, k);
+        dirs[k] = tdir[k];
+        mkdir(tdir[k], 0755);
+        swfs_ts_summary ts;
+        rc = simulate_into(s, 1000 * seed + (unsigned)k, quick, &ts, tdir[k]);
+    }
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = dirs;
+    lo.ndirs = PYR_LEARN_LOOPS;
+    lo.out = pth("W.fits");
+    lo.no_heldout = 1;
+    lo.mean_miss = 1;
+    swfs_learn_run_result lr;
+    if (!rc) rc = swfs_learn_run(&lo, &lr);
+    if (!rc)
+        printf("  (learned from %d loops: misfit %.1f of %.1f nm; the mean's miss %.1f nm per loop, held out %.2f: %s)\n",
+               PYR_LEARN_LOOPS, 1e9 * lr.info.misfit_rms, 1e9 * lr.info.truth_rms, 1e9 * lr.meanmiss_set_rms,
+               lr.meanmiss_heldout, lr.meanmiss_kept ? "kept" : "not kept");
     return rc;
 }
 
@@ -357,6 +401,11 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     if (pyramid) {
         sp.actuators = NULL;
         pyramid_files(&sp.lin);
+        if (pyr_learn) {
+            if (pyramid_learn(s, seed, quick)) return die("learn (pyramid loops)");
+            sp.lin.imat = NULL;
+            sp.lin.control = pth("W.fits");
+        }
     } else if (modal_cm) {
         sp.valid = pth("valid.fits");
     } else if (modal) {
@@ -415,6 +464,8 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "modal-rm"))
             modal = modal_cm = modal_rm = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid")) pyramid = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-learn"))
+            pyramid = pyr_learn = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
@@ -428,7 +479,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -454,6 +505,7 @@ int main(int argc, char **argv)
     }
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
+           pyr_learn ? ", a modulated pyramid's signals (--basis influence.fits --control W.fits, learned from 4 loops)" :
            pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits)" :
            modal_rm ? ", modal telemetry with its response matrix (modal-slopes --imat, --valid)" :
            modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :

@@ -9,7 +9,8 @@
 #include <stdlib.h>
 
 static const char *usage_text =
-    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--lags L,L,...]\n"
+    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--no-mean-miss]\n"
+    "                        [--lags L,L,...]\n"
     "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]] [--threads N]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
@@ -39,9 +40,14 @@ static const char *usage_text =
     "                is piston and is taken out)\n"
     "  --ridge R     ridge of the normal equations, a fraction of their mean diagonal\n"
     "                (default 1e-6; it only conditions the solve)\n"
+    "  --no-mean-miss  no MEANMISS: the map's miss of the residual's time mean where the\n"
+    "                folders share it (a pyramid's), which speckles adds to RESMEAN\n"
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
     "                turn and the map of the others applied to its frames (against the\n"
     "                training misfit: do the conditions cover each other? every file read twice)\n"
+    ;
+/* the options from --lags on (one string literal would pass the length C99 guarantees) */
+static const char *usage_lags =
     "  --lags L,...  a space-time map: the input of frame t is the slopes of frames t + L for\n"
     "                every L given (WFS frames, one of them 0, at most 16; clamped at each\n"
     "                file's ends), and W.fits a cube of one map per lag (NLAGS, LAGk) that\n"
@@ -72,18 +78,22 @@ int swfs_cmd_learn(int argc, char **argv)
     if (!dirs) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
     const char *lags = NULL, *cradius = NULL;
     long lagv[SWFS_RECON_MAXLAGS], threads = 0;
+    int no_mean_miss = 0;
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o.out, "a file name", 0},
         {"--lags", CLI_STRING, &lags, "a list of WFS-frame lags (e.g. 0,-25,25)", 0},
         {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
+        {"--no-mean-miss", CLI_SET, &no_mean_miss, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},
         {"--perframe-out", CLI_STRING, &o.perframe_out, "a file name", 0},
         {"--curve", CLI_SET, &o.curve, NULL, 1},
         {"--curve-radius", CLI_STRING, &cradius, "radii R0,R1 [m]", 0},
         {"--threads", CLI_LONG, &threads, NULL, 0},
     };
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
+    static char usage[8192];
+    snprintf(usage, sizeof usage, "%s%s", usage_text, usage_lags);
+    const cli_args args = {cmd, usage, opts, CLI_NOPTS(opts), NULL, 0, NULL, NULL, dirs, &nd};
     int rc = cli_parse_args(&args, argc, argv);
     if (rc) { free(dirs); return rc < 0 ? CLI_OK : rc; }
     if (!nd) rc = cli_usage_error(cmd, "needs at least one simulated data set (a folder)");
@@ -105,6 +115,7 @@ int swfs_cmd_learn(int argc, char **argv)
     if (rc) { free(dirs); return rc; }
     o.lags = lagv;
     o.threads = (int)threads;
+    o.mean_miss = !no_mean_miss;
     o.dirs = dirs;
     o.ndirs = nd;
     o.prov = cli_provenance(argc, argv, &o.nprov);
@@ -160,6 +171,17 @@ int swfs_cmd_learn(int argc, char **argv)
                    "conditions between)\n", r.info.nslopes_seen, (double)r.info.nframes / (double)r.info.nslopes_seen);
     } else if (nd > 1 && !o.no_heldout) {
         printf("learn: held-out check: no data set could be left out (too few frames in the others)\n");
+    }
+    if (isfinite(r.meanmiss_heldout)) {
+        const double u = o.modal ? 1.0 : 1e9;
+        printf("learn: the map's miss of the residual's time mean: %.4g%s rms per data set; the others' mean predicts "
+               "each set's to %.2f of its own square (held out)", u * r.meanmiss_set_rms, o.modal ? "" : " nm",
+               r.meanmiss_heldout);
+        if (r.meanmiss_kept)
+            printf(": the sensor's, the same in every loop; their mean (%.4g%s rms) -> %s, extension MEANMISS, which "
+                   "speckles adds to the residual's mean\n", u * r.meanmiss_rms, o.modal ? "" : " nm", o.out);
+        else
+            printf(": each loop's own; none written\n");
     }
     free(dirs);
     free(ratio);

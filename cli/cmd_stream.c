@@ -130,6 +130,9 @@ int swfs_cmd_stream(int argc, char **argv)
         fprintf(stderr, ": each frame's slopes stacked with those at the lags\n");
         cli_spacetime_edges(cmd, r.st_edges_joined, r.st_edges_clamped, r.st_edges_unreadable, r.st_edges_why);
     }
+    if (r.meanmiss_rms > 0)
+        fprintf(stderr, "stream: the map's own miss of the AO residual's mean, %.1f nm rms, added to it (MEANMISS, "
+                "learn)\n", 1e9 * r.meanmiss_rms);
     if (isfinite(r.static_scale))
         fprintf(stderr, "stream: static halo S^1/2 Psi_0 with S^1/2 = %.4g (per unit exposure weight %.4g)\n",
                 r.static_scale, r.static_scale / r.ratio);

@@ -132,6 +132,9 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
     fprintf(stderr, "%s: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it out of the "
             "NCP)\n", cmd, r->resmean_rms * 1e9);
+    if (r->meanmiss_rms > 0)
+        fprintf(stderr, "%s: with the map's own miss of it added, %.1f nm rms (MEANMISS: the mean's miss its training "
+                "loops shared, learn)\n", cmd, r->meanmiss_rms * 1e9);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);

@@ -181,6 +181,10 @@ void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
  * subtracts it (pupil.h, docs/telemetry.md). nexp, rms (may be NULL): the exposures averaged,
  * and the map's rms in the pupil [m]. SWFS_ERR_VALUE before any exposure. */
 int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms);
+/* A map [m] (PUPN x PUPN, kept inside the pupil) that swfs_pipeline_mean_wavefront adds to the
+ * reconstructed mean before piston, tip and tilt come out: a learned map's own miss of the
+ * residual's time mean (learn's MEANMISS, docs/telemetry.md). NULL: none (the default). */
+int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map);
 void swfs_pipeline_mean_reset(swfs_pipeline *p);
 /* The running sum itself (n values, owned by p, writable) and its exposure count, for
  * members of a team to add up (team.h sum); swfs_pipeline_mean_set_count then sets the
@@ -193,6 +197,8 @@ const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p);
 /* The Shack-Hartmann model's reconstructor and model (NULL for a linear model). */
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p);
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p);
+/* The pupil mask the pipeline was made with (PUPN^2; the annulus where none was given). */
+const double *swfs_pipeline_mask(const swfs_pipeline *p);
 const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p);
 
 SWFS_END_DECLS

@@ -249,6 +249,10 @@ typedef struct swfs_speckles_run_result {
                                  check found regularized (MODALRGW = 1): RM c is not the slopes'
                                  projection, and neither teach's map nor vk fits them */
     double modal_lsq;         /* that check's ratio (MODALLSQ), NAN where the files carry none */
+    double meanmiss_rms;      /* [m] the map's miss of the residual's time mean (learn's MEANMISS:
+                                 a --recon or --control map learned from loops whose misses agree),
+                                 added to RESMEAN, its rms in the pupil (piston, tip, tilt removed);
+                                 0: the map carries none */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
@@ -344,6 +348,7 @@ typedef struct swfs_stream_run_result {
     long st_lags[SWFS_RECON_MAXLAGS];
     size_t st_edges_joined, st_edges_clamped, st_edges_unreadable;
     char st_edges_why[512];
+    double meanmiss_rms;      /* [m] a learned map's MEANMISS added to RESMEAN (as speckles'); 0: none */
 } swfs_stream_run_result;
 
 /* The same for a stream run from files (swfs_stream_run_files calls it first): the timing
@@ -559,6 +564,9 @@ typedef struct swfs_learn_run_options {
     int threads;              /* the data sets' sums and the learning curve's checks: at most
                                  this many at once (<= 0: the online CPUs); the same map and
                                  curve at any count */
+    int mean_miss;            /* 1: the map's miss of the residual's time mean (below), written
+                                 as the map's extension MEANMISS where it is systematic; the
+                                 learn command's default, not teach's */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
@@ -612,6 +620,18 @@ typedef struct swfs_learn_run_result {
     double curve_m2[2], curve_s2[2], curve_a, curve_b, curve_excess;
     size_t curve_frames;
     size_t curve_outputs;     /* the outputs it was measured on (curve_radius) */
+    /* With mean_miss (at least 2 data sets): each data set's miss of the residual's time mean,
+     * its true residual's mean over its frames less the map applied to its mean slopes (piston
+     * removed from both unless modal). A sensor whose mean signal is not linear in the
+     * residual's mean (a pyramid under the loop's residual: docs/telemetry.md) leaves a miss
+     * that is the same from set to set; a linear one leaves each set its own. The check: each
+     * set's miss against the mean of the others' (held out), over the sum of the misses'
+     * squares: meanmiss_heldout < 1 means the others' mean predicts a set's miss, and their
+     * mean over all sets (meanmiss_rms its rms) is written as MEANMISS, which speckles adds to
+     * the residual's reconstructed mean (RESMEAN); otherwise none is written. NaN / 0 when not
+     * checked. */
+    double meanmiss_heldout, meanmiss_rms, meanmiss_set_rms; /* meanmiss_set_rms: the sets' own, rms */
+    int meanmiss_kept;
 } swfs_learn_run_result;
 
 /* The excess of a learned map's held-out misfit over unlimited data that is enough: 10 % of

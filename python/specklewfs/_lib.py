@@ -308,7 +308,7 @@ swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str), ("curve", c_int),
-    ("curve_radius", c_dbl * 2), ("project", P(c_dbl)), ("nproject", c_size), ("threads", c_int)])
+    ("curve_radius", c_dbl * 2), ("project", P(c_dbl)), ("nproject", c_size), ("threads", c_int), ("mean_miss", c_int)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [
@@ -320,7 +320,8 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("corr", c_dbl * RECON_MAXLAGS), ("corr_spread", c_dbl * RECON_MAXLAGS),
     ("perframe_info", swfs_recon_learn_info), ("curve_n", c_size * 2), ("curve_m2", c_dbl * 2), ("curve_s2", c_dbl * 2),
     ("curve_a", c_dbl),
-    ("curve_b", c_dbl), ("curve_excess", c_dbl), ("curve_frames", c_size), ("curve_outputs", c_size)])
+    ("curve_b", c_dbl), ("curve_excess", c_dbl), ("curve_frames", c_size), ("curve_outputs", c_size),
+    ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl), ("meanmiss_set_rms", c_dbl), ("meanmiss_kept", c_int)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),
@@ -343,7 +344,7 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
-    ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl)])
+    ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_rms", c_dbl)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

@@ -111,7 +111,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
 
 
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
-          curve_radius=None, threads=0):
+          curve_radius=None, threads=0, mean_miss=True):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -145,7 +145,12 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     fall; None: no bound), nframes, outputs (those it was measured on: curve_radius=(r0, r1)
     [m] keeps the output points at those radii, the pupil's annulus); None where it could not
     be measured. threads: with curve, the folders' sums and the curve's checks that many at
-    once (0: the CPUs; the same map at any count)."""
+    once (0: the CPUs; the same map at any count). mean_miss (with more than one folder, as
+    `learn` without --no-mean-miss): the map's miss of the residual's time mean per folder,
+    checked held out (meanmiss_heldout < 1: the others' mean predicts each one's, the sensor's
+    own miss) and then written as out's extension MEANMISS, which speckles() adds to RESMEAN
+    (its meanmiss_rms); returned as meanmiss (heldout, rms, set_rms, kept), None when not
+    checked."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -167,6 +172,7 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
         o.perframe_out = enc(perframe_out)
     o.curve = int(bool(curve))
     o.threads = int(threads)
+    o.mean_miss = int(bool(mean_miss))
     if curve_radius is not None:
         o.curve_radius[0], o.curve_radius[1] = float(curve_radius[0]), float(curve_radius[1])
     r = _lib.swfs_learn_run_result()
@@ -184,6 +190,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
         d.update(perframe=_struct_dict(r.perframe_info))
     if curve:
         d.update(curve=_curve_dict(r))
+    d.update(meanmiss=None if math.isnan(r.meanmiss_heldout) else
+             dict(heldout=r.meanmiss_heldout, rms=r.meanmiss_rms, set_rms=r.meanmiss_set_rms, kept=bool(r.meanmiss_kept)))
     return d
 
 
@@ -397,7 +405,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     'map', 'svd' or a reconstructor file; band: 'auto' (the subapertures' nsub/2 lambda/D),
     'none' or a radius; valid: the AO system's subaperture map; pupil: the pupil mask. Returns
     nout, ncubes, nok, ratio, lag, wfs_hz, resmean_rms and wavelen [m], curl_noise [rad] (vk / map on
-    slopes modal-slopes made: the slope noise from their curl, else 0), the pipeline's info
+    slopes modal-slopes made: the slope noise from their curl, else 0), meanmiss_rms [m] (a
+    learned map's MEANMISS added to the residual's mean, else 0), modal_regularized and
+    modal_lsq (slopes modal_slopes(..., imat=) made from coefficients its check flagged: also a
+    RuntimeWarning), the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's). tiptilt: None (the default: 'exposure',
@@ -465,6 +476,13 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
     d["curl_noise"] = r.curl_noise
+    d["meanmiss_rms"] = r.meanmiss_rms
+    d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
+    if r.modal_regularized:
+        warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "
+                      f"noise is not a least-squares control matrix's (MODALLSQ {r.modal_lsq:.3g}): no map fits them; "
+                      "give modal_slopes the system's control matrix (cm=), or use the linear model", RuntimeWarning,
+                      stacklevel=2)
     if lib.swfs_speckles_resmean_warns(ctypes.byref(r)):
         warnings.warn(f"speckles: the AO residual's time mean is {r.resmean_rms * 1e9:.0f} nm rms, more than the "
                       f"wavelength ({r.wavelen * 1e9:.0f} nm), which no closed loop's is: the reconstructor amplifies "

@@ -210,8 +210,9 @@ def test_learn_reconstructor(series, tmp_path):
     assert r["heldout_misfit_rms"] > r["misfit_rms"] and r["heldout_worst"] == r["heldout_ratio"].max()
     assert r["heldout_ratio"].min() > r["misfit_rms"] / r["truth_rms"]
     # the truth taken as modal coefficients (piston kept), no held-out check: a control matrix
-    rm = sw.learn(dirs, str(tmp_path / "Wm.fits"), modal=True, heldout=False)
+    rm = sw.learn(dirs, str(tmp_path / "Wm.fits"), modal=True, heldout=False, mean_miss=False)
     assert rm["nheldout"] == 0 and np.isnan(rm["heldout_misfit_rms"]) and np.all(np.isnan(rm["heldout_ratio"]))
+    assert rm["meanmiss"] is None  # not asked for
     assert rm["truth_rms"] >= r["truth_rms"] and rm["nframes"] == r["nframes"]
     assert sw.fits.read_keys(str(tmp_path / "Wm.fits"), ["LRNMODAL"])["LRNMODAL"] == 1
     W = sw.read_fits(str(tmp_path / "W.fits"))[0]
@@ -224,6 +225,34 @@ def test_learn_reconstructor(series, tmp_path):
     sp = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "sp.fits"),
                      recon=str(tmp_path / "W.fits"))
     assert sp["nout"] >= 118
+    # the map's miss of the residual's time mean: checked over the two loops (each against the
+    # other's), written as MEANMISS only where the other's predicts it
+    mm = r["meanmiss"]
+    assert mm is not None and np.isfinite(mm["heldout"]) and mm["set_rms"] > 0
+    try:
+        sw.read_fits(str(tmp_path / "W.fits"), "MEANMISS")
+        has = True
+    except sw.Error:
+        has = False
+    assert has == mm["kept"] == (mm["heldout"] < 1) and (sp["meanmiss_rms"] > 0) == has
+    # a map carrying one (a focus of 30 nm peak on the actuators): speckles adds it, through the
+    # model's interpolation, to the residual's mean (RESMEAN), and says how much
+    xy = sw.read_fits(str(s / "actuators.fits"))[0]  # (nact, 2): x, y per actuator
+    rr = np.hypot(xy[:, 0], xy[:, 1]) / np.hypot(xy[:, 0], xy[:, 1]).max()
+    c = 30e-9 * (2 * rr ** 2 - 1)
+    sw.write_fits(str(tmp_path / "Wmm.fits"), {"W": W, "MEANMISS": (c - c.mean())[None, :]})
+    spm = sw.speckles(str(t), str(tmp_path / "sci.fits"), str(s / "actuators.fits"), str(tmp_path / "spm.fits"),
+                      recon=str(tmp_path / "Wmm.fits"))
+    base = sw.read_fits(str(tmp_path / ("sp.fits" if not has else "spm.fits")), "RESMEAN")[0]
+    diff = sw.read_fits(str(tmp_path / "spm.fits"), "RESMEAN")[0] - sw.read_fits(str(tmp_path / "sp.fits"), "RESMEAN")[0]
+    inside = base != 0
+    if not has:
+        assert 5e-9 < spm["meanmiss_rms"] < 30e-9
+        assert np.sqrt(np.mean(diff[inside] ** 2)) == pytest.approx(spm["meanmiss_rms"], rel=1e-3)
+        n = diff.shape[0]
+        yy, xx = (np.mgrid[:n, :n] - (n - 1) / 2)
+        focus = (xx ** 2 + yy ** 2)[inside]
+        assert np.corrcoef(diff[inside], focus)[0, 1] > 0.99
     # a space-time map: the slopes of frames t, t - 3 and t + 3; a cube of one map per lag that
     # fits its training frames better than the per-frame map, and that speckles applies
     rl = sw.learn(dirs, str(tmp_path / "Wl.fits"), lags=(0, -3, 3), heldout=False, perframe_out=str(tmp_path / "W1.fits"))

@@ -465,6 +465,20 @@ def test_pyramid_timeseries(tmp_path):
     assert abs(t["ratio"] - 6.48) < 0.02
     sp = sw.speckles(timing, sci, None, str(tmp_path / "sp.fits"), linear=lin)
     assert sp["nout"] == 60 and sp["info"]["nbasis"] == r["nact"] and "taught" not in sp
+    # a control matrix carrying a miss of the residual's mean (learn's MEANMISS, here a tilt-free
+    # pattern of 20 nm on the actuators: astigmatism): speckles adds it through the basis
+    xy = sw.read_fits(str(d / "actuators.fits"))[0]
+    c = 20e-9 * (xy[:, 0] ** 2 - xy[:, 1] ** 2) / np.max(xy[:, 0] ** 2 + xy[:, 1] ** 2)
+    C = sw.read_fits(str(d / "recon_ao.fits"))[0]
+    sw.write_fits(str(tmp_path / "Cmm.fits"), {"C": C, "MEANMISS": c[None, :]})
+    a0 = sw.speckles(timing, sci, None, str(tmp_path / "a0.fits"), linear=dict(basis=lin["basis"], control=str(d / "recon_ao.fits")))
+    a1 = sw.speckles(timing, sci, None, str(tmp_path / "a1.fits"), linear=dict(basis=lin["basis"], control=str(tmp_path / "Cmm.fits")))
+    assert a0["meanmiss_rms"] == 0 and 2e-9 < a1["meanmiss_rms"] < 20e-9
+    diff = sw.read_fits(str(tmp_path / "a1.fits"), "RESMEAN")[0] - sw.read_fits(str(tmp_path / "a0.fits"), "RESMEAN")[0]
+    F2 = np.tensordot(c, F, axes=(0, 0))  # the pattern through the influence functions
+    inside = diff != 0
+    assert np.sqrt(np.mean(diff[inside] ** 2)) == pytest.approx(a1["meanmiss_rms"], rel=1e-3)
+    assert np.corrcoef(diff[inside], F2[inside])[0, 1] > 0.99
     with pytest.raises(sw.Error, match="WFSTYPE = 'PYRAMID': not a Shack-Hartmann's slopes"):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp2.fits"), recon="vk")
     assert not os.path.exists(tmp_path / "sp2.fits")

@@ -157,4 +157,19 @@ int swfs_modal_projector_(const char *cm_path, double **P, size_t *ns, size_t *r
  * its speed calibration loops. */
 int swfs_modal_project_(const double *P, size_t n, swfs_real *s, const char *what);
 
+/* run_linear.c: the wavefront [m] on the PUPN x PUPN grid of lf's basis at the coefficients
+ * coef (nk of them, the basis's count; scaled by lf->scale), 0 outside the illuminated samples
+ * (mask, or NULL: g's annulus): what speckles adds to the residual's mean from a learned
+ * control matrix's MEANMISS. */
+int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *coef,
+                           size_t nk, double *out);
+/* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,
+ * or with lin->basis a --control matrix; NULL: none) has the extension MEANMISS (learn's, one
+ * value per output), its wavefront on the pupil grid (the Shack-Hartmann model's interpolation
+ * of the map's outputs, or the linear model's basis) becomes p's mean offset
+ * (swfs_pipeline_set_mean_offset); *rms its rms in the pupil, piston, tip and tilt removed (0:
+ * none). speckles and stream call it on the pipeline they built. */
+int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
+                          double *rms);
+
 #endif

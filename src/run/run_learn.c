@@ -68,7 +68,7 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
  * a space-time learn's sums alone, the per-frame map of the same frames, whose file carries
  * that map's own fit and none of the lags' keys. */
 static int write_recon(const swfs_learn_run_options *o, const char *path, const swfs_recon *w,
-                       const swfs_learn_run_result *r, int lag0)
+                       const swfs_learn_run_result *r, int lag0, const double *meanmiss)
 {
     swfs_fits_out *f = NULL;
     const swfs_recon_learn_info *in = lag0 ? &r->perframe_info : &r->info;
@@ -129,6 +129,12 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
         if (!rc) rc = swfs_fits_out_key_long(f, "LRNCFRM", r->curve_frames > (size_t)LONG_MAX ? -1 : (long)r->curve_frames,
                                              "frames for an excess of 0.1 (0 flat, -1 unbounded)");
     }
+    if (!rc && !lag0 && isfinite(r->meanmiss_heldout)) {
+        rc = swfs_fits_out_key_double(f, "LRNMMHO", r->meanmiss_heldout, "mean's miss, held out / its own (<1: kept)");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNMMSET", r->meanmiss_set_rms, "rms of the sets' mean's misses");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNMMRMS", r->meanmiss_kept ? r->meanmiss_rms : 0.0,
+                                              "rms of MEANMISS (0: none written)");
+    }
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         char h[4200];
         snprintf(h, sizeof h, "learned from %.4000s", o->dirs[d]);
@@ -140,6 +146,12 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
                                                : "specklewfs reconstructor: z_act = W s, NAXIS1 = slopes, NAXIS2 = actuators");
     if (!rc) rc = swfs_fits_out_provenance(f, o->prov, o->nprov);
     if (!rc) rc = swfs_recon_write_outxy(f, w);
+    if (!rc && !lag0 && meanmiss) { /* the miss of the residual's mean, per output: speckles adds it to RESMEAN */
+        swfs_real m = {w->nact, 1, 1, (double *)meanmiss};
+        rc = swfs_fits_out_real(f, "MEANMISS", &m, -64);
+        if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", o->modal ? "" : "m", "the map's miss of the residual's "
+                                               "time mean, per output");
+    }
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
 }
@@ -438,12 +450,86 @@ static int truth_points(const swfs_learn_run_options *o, size_t nact, double **x
     return rc;
 }
 
+/* The map's miss of the residual's time mean (swfs_learn_run_result.meanmiss_*): each data
+ * set's mean slopes (as the map takes them: projected) and mean truth, summed over its files;
+ * the miss is the truth's mean less the map applied to the slopes' mean at every lag (the
+ * stacked mean input), piston removed unless modal. *off: their mean over the sets where the
+ * held-out check keeps it, else NULL. */
+static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_learn_run_result *r, double **off)
+{
+    *off = NULL;
+    const size_t ns = r->nslopes, na = r->nact, nd = o->ndirs, nl = o->nlags > 1 ? o->nlags : 1;
+    double *ms = malloc(ns * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
+    int rc = ms && mt && miss ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+    for (size_t d = 0; !rc && d < nd; d++) {
+        memset(ms, 0, ns * sizeof *ms);
+        memset(mt, 0, na * sizeof *mt);
+        size_t nf = 0;
+        for (size_t k = 0; !rc; k++) {
+            char sp[4200], tp[4200];
+            snprintf(sp, sizeof sp, "%.4000s/slopes_%03zu.fits", o->dirs[d], k);
+            snprintf(tp, sizeof tp, "%.4000s/truewf_%03zu.fits", o->dirs[d], k);
+            if (access(sp, F_OK) != 0) break;
+            swfs_real *s = NULL, *z = NULL;
+            rc = swfs_fits_read_real(sp, NULL, &s, NULL);
+            if (!rc) rc = swfs_fits_read_real(tp, NULL, &z, NULL);
+            if (!rc && (s->nx != ns || z->nx != na || s->ny != z->ny))
+                rc = swfs_fail(SWFS_ERR_SHAPE, "%s / %s: changed since they were learned from", sp, tp);
+            if (!rc && o->project) rc = swfs_modal_project_(o->project, o->nproject, s, sp);
+            for (size_t t = 0; !rc && t < s->ny; t++) {
+                for (size_t i = 0; i < ns; i++) ms[i] += s->data[t * ns + i];
+                for (size_t a = 0; a < na; a++) mt[a] += z->data[t * na + a];
+            }
+            if (!rc) nf += s->ny;
+            swfs_real_free(s);
+            swfs_real_free(z);
+        }
+        if (rc || !nf) continue;
+        double *m = miss + d * na, pm = 0;
+        for (size_t a = 0; a < na; a++) {
+            double y = 0;
+            for (size_t k = 0; k < nl; k++) {
+                const double *row = w->W + a * ns * nl + k * ns;
+                for (size_t i = 0; i < ns; i++) y += row[i] * ms[i];
+            }
+            m[a] = (mt[a] - y) / (double)nf;
+            pm += m[a] / (double)na;
+        }
+        for (size_t a = 0; !o->modal && a < na; a++) m[a] -= pm;
+    }
+    double eho = 0, e0 = 0;
+    for (size_t a = 0; !rc && a < na; a++) {
+        double sum = 0;
+        for (size_t d = 0; d < nd; d++) sum += miss[d * na + a];
+        mt[a] = sum / (double)nd;
+        for (size_t d = 0; d < nd; d++) {
+            const double x = miss[d * na + a], others = (sum - x) / (double)(nd - 1);
+            eho += (x - others) * (x - others);
+            e0 += x * x;
+        }
+    }
+    if (!rc && e0 > 0) {
+        double ss = 0;
+        for (size_t a = 0; a < na; a++) ss += mt[a] * mt[a];
+        r->meanmiss_heldout = eho / e0;
+        r->meanmiss_set_rms = sqrt(e0 / (double)(nd * na));
+        r->meanmiss_rms = sqrt(ss / (double)na);
+        r->meanmiss_kept = r->meanmiss_heldout < 1;
+        if (r->meanmiss_kept) { *off = mt; mt = NULL; }
+    }
+    free(ms);
+    free(mt);
+    free(miss);
+    return rc;
+}
+
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
     r->curve_m2[0] = r->curve_m2[1] = r->curve_s2[0] = r->curve_s2[1] = r->curve_a = r->curve_b = r->curve_excess = NAN;
     r->wind_vx = r->wind_vy = r->wind_spread = NAN;
+    r->meanmiss_heldout = r->meanmiss_rms = r->meanmiss_set_rms = NAN;
     for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->corr[k] = r->corr_spread[k] = NAN;
     if (!o->ndirs || !o->dirs || !o->out) return swfs_fail(SWFS_ERR_ARG, "learn: needs simulated data sets and an output");
     if (o->nlags && (!o->lags || o->nlags > SWFS_RECON_MAXLAGS))
@@ -518,11 +604,14 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         else memcpy(w0->oxy, w->oxy, 2 * w->nact * sizeof *w0->oxy);
     }
     if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
-    if (!rc && w0) rc = write_recon(o, o->perframe_out, w0, r, 1);
+    double *meanmiss = NULL;
+    if (!rc && o->mean_miss && o->ndirs > 1) rc = mean_miss(o, w, r, &meanmiss);
+    if (!rc && w0) rc = write_recon(o, o->perframe_out, w0, r, 1, NULL);
     if (!rc) {
-        rc = write_recon(o, o->out, w, r, 0);
+        rc = write_recon(o, o->out, w, r, 0, meanmiss);
         if (rc && w0) unlink(o->perframe_out); /* both maps or neither */
     }
+    free(meanmiss);
     swfs_recon_free(w0);
     swfs_recon_free(w);
     swfs_recon_learner_free(l);

@@ -3,6 +3,8 @@
 #include "specklewfs/aperture.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/pupil.h"
+#include "specklewfs/sparse.h"
 #include "run_internal.h"
 
 #include <math.h>
@@ -75,6 +77,77 @@ static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const dou
         for (size_t k = 0; k < c->nz; k++) (*shapes)[q * c->nz + k] = c->data[k * gn + q];
     swfs_real_free(c);
     return rc;
+}
+
+int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *coef,
+                           size_t nk, double *out)
+{
+    const size_t np = (size_t)g->pupn;
+    double *annulus = NULL;
+    int rc = SWFS_OK;
+    if (!mask) {
+        if (!(annulus = malloc(np * np * sizeof *annulus))) return swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory");
+        if ((rc = swfs_aperture_make(annulus, np, g->pupdx, g->teldiam, g->obscur, 0, 0))) { free(annulus); return rc; }
+        mask = annulus;
+    }
+    swfs_sparse *B = NULL;
+    double *shapes = NULL, *u = NULL;
+    size_t n = 0;
+    rc = load_basis(lf, g, mask, &B, &shapes, &n);
+    if (!rc && n != nk)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions, but %zu values to put on them", lf->basis, n, nk);
+    if (!rc && shapes) { /* on the DM grid: the grid values, then their interpolation */
+        const size_t gn = B->ncols;
+        if (!(u = calloc(gn, sizeof *u))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory");
+        for (size_t q = 0; !rc && q < gn; q++)
+            for (size_t k = 0; k < nk; k++) u[q] += shapes[q * nk + k] * coef[k];
+    }
+    if (!rc) {
+        swfs_sparse_apply(B, shapes ? u : coef, out);
+        for (size_t i = 0; i < np * np; i++) out[i] *= lf->scale;
+    }
+    free(u);
+    free(shapes);
+    swfs_sparse_free(B);
+    free(annulus);
+    return rc;
+}
+
+int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
+                          double *rms)
+{
+    *rms = 0;
+    if (!path) return SWFS_OK;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    const int has = !rc && swfs_fits_in_has_ext(f, "MEANMISS");
+    swfs_fits_in_close(f);
+    if (rc || !has) return rc;
+    const size_t n = (size_t)g->pupn;
+    swfs_real *m = NULL;
+    double *map = calloc(n * n, sizeof *map);
+    if (!map) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    rc = swfs_fits_read_real(path, "MEANMISS", &m, NULL);
+    const size_t nk = rc ? 0 : m->nx * m->ny * m->nz;
+    for (size_t k = 0; !rc && k < nk; k++)
+        if (!isfinite(m->data[k])) rc = swfs_fail(SWFS_ERR_VALUE, "%s: MEANMISS value %zu is not finite", path, k);
+    const double *mask = swfs_pipeline_mask(p);
+    if (!rc && lin && lin->basis) {
+        rc = swfs_linear_wavefront_(lin, g, mask, m->data, nk, map);
+    } else if (!rc) {
+        const swfs_speckle_model *mod = swfs_pipeline_model(p);
+        if (!mod || mod->T->ncols != nk)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: MEANMISS holds %zu values, but the map's model has %zu outputs", path, nk,
+                           mod ? mod->T->ncols : 0);
+        else
+            swfs_sparse_apply(mod->T, m->data, map);
+    }
+    if (!rc) rc = swfs_pipeline_set_mean_offset(p, map);
+    if (!rc) *rms = swfs_wfe_remove_ptt(map, mask, n);
+    swfs_real_free(m);
+    free(map);
+    if (rc) return swfs_fail_context(rc, "the residual mean's miss that %s was learned with", path);
+    return SWFS_OK;
 }
 
 int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,

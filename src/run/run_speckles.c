@@ -607,6 +607,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     int group = !rc;
     if (group) swfs_outputs_begin();
     if (!rc) rc = build_pipeline(o, &w);
+    /* a learned map's own miss of the residual's mean (learn's MEANMISS), added to RESMEAN */
+    if (!rc)
+        rc = swfs_meanmiss_attach_(w.p, o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL,
+                                   &o->lin, &w.g, &r->meanmiss_rms);
     if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     if (team) {

@@ -208,6 +208,7 @@ static int setup_linear(const swfs_stream_run_options *o, const char *first_tel,
                                   tr ? tr->data : NULL, tr ? tr->ny : 0, &po);
         if (rc) swfs_fail_context(rc, "with %s", tr ? first_tel : "the live telemetry");
         else swfs_pipeline_get_info(*p, &r->info);
+        if (!rc) rc = swfs_meanmiss_attach_(*p, o->lin.control, &o->lin, &u->g, &r->meanmiss_rms);
     }
     swfs_real_free(tr);
     return rc;
@@ -276,6 +277,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         rc = swfs_sh_pipeline(p, model, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact,
                               u->mask ? u->mask->data : NULL, per, rec, NULL, 0, &po);
         if (!rc) swfs_pipeline_get_info(*p, &r->info);
+        if (!rc) rc = swfs_meanmiss_attach_(*p, o->recon, NULL, &u->g, &r->meanmiss_rms);
     }
     swfs_recon_free(rec);
     free(act);

@@ -40,6 +40,7 @@ void swfs_pipeline_free(swfs_pipeline *p)
     free(p->xslopes);
     free(p->xsched);
     free(p->macc);
+    free(p->moff);
     free(p->band_idx);
     free(p);
 }
@@ -456,11 +457,28 @@ int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *ne
     for (size_t k = 0; k < p->mcols; k++) v[k] = p->macc[k] / (double)p->mexp;
     int rc = swfs_engine_wavefront(p->engine, v, out);
     free(v);
+    for (size_t i = 0; !rc && p->moff && i < n * n; i++) out[i] += p->moff[i];
     if (!rc) {
         const double r = swfs_wfe_remove_ptt(out, p->mask, n);
         if (rms) *rms = r;
     }
     return rc;
+}
+
+int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map)
+{
+    const size_t n = p->info.npup;
+    if (!map) {
+        free(p->moff);
+        p->moff = NULL;
+        return SWFS_OK;
+    }
+    if (!p->moff && !(p->moff = malloc(n * n * sizeof *p->moff))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t i = 0; i < n * n; i++) {
+        if (!isfinite(map[i])) return swfs_fail(SWFS_ERR_VALUE, "pipeline: mean offset sample %zu is not finite", i);
+        p->moff[i] = p->mask[i] > 0 ? map[i] : 0.0;
+    }
+    return SWFS_OK;
 }
 
 int swfs_pipeline_create(swfs_pipeline **out, const swfs_geom *g, size_t nfx, size_t nfy, const double *xy,
@@ -579,5 +597,6 @@ int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info) { *info = p->info; }
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model ? p->model->recon : NULL; }
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p) { return p->model; }
+const double *swfs_pipeline_mask(const swfs_pipeline *p) { return p->mask; }
 const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p) { return p->Rtilt; }
 const swfs_pipeline_options *swfs_pipeline_opts(const swfs_pipeline *p) { return &p->opt; }

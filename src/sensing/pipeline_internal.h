@@ -22,6 +22,7 @@ struct swfs_pipeline {
      * their count. */
     double *macc;
     size_t mcols, mexp;
+    double *moff; /* npup^2 or NULL: added to that mean (swfs_pipeline_set_mean_offset) */
     size_t *band_idx; /* the focal pixels beyond info.band (info.band_out of them), zeroed */
 };
 /* info.band and band_idx from opt.band and the subapertures across (0 for a linear model). */
