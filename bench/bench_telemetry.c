@@ -7,7 +7,7 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn|pyramid-miss]
  *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
@@ -47,6 +47,8 @@
  * --kind pyramid-learn: the same observations through a per-frame map learned (learn, its
  * default miss of the residual's time mean included) from 4 loops of the same system at other
  * seeds, as --control: what a pyramid system's user gets from simulations of it.
+ * --kind pyramid-miss: --kind pyramid's --imat path with the same 4 loops as --mean-loop: the
+ * miss of the residual's time mean by the observation's own reconstruction, from the loops.
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -109,6 +111,7 @@ static int modal_cm; /* --kind modal-cm: the modal coefficients back to slopes b
 static int modal_rm; /* --kind modal-rm: the same through the modal response matrix (--imat) */
 static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
 static int pyr_learn; /* --kind pyramid-learn: the same through a map learned from loops of the system (--control) */
+static int pyr_miss;  /* --kind pyramid-miss: --imat, with the mean's miss from loops of the system (--mean-loop) */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
@@ -216,6 +219,7 @@ static int pyramid_learn(const system_def *s, unsigned seed, int quick)
         swfs_ts_summary ts;
         rc = simulate_into(s, 1000 * seed + (unsigned)k, quick, &ts, tdir[k]);
     }
+    if (rc || pyr_miss) return rc; /* --kind pyramid-miss: the loops themselves, no map */
     swfs_learn_run_options lo;
     swfs_learn_run_options_default(&lo);
     lo.dirs = dirs;
@@ -401,10 +405,22 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     if (pyramid) {
         sp.actuators = NULL;
         pyramid_files(&sp.lin);
-        if (pyr_learn) {
+        if (pyr_learn || pyr_miss) {
             if (pyramid_learn(s, seed, quick)) return die("learn (pyramid loops)");
+        }
+        if (pyr_learn) {
             sp.lin.imat = NULL;
             sp.lin.control = pth("W.fits");
+        }
+        static char loopdir[PYR_LEARN_LOOPS][sizeof dir + 32];
+        static const char *loops[PYR_LEARN_LOOPS];
+        for (int k = 0; pyr_miss && k < PYR_LEARN_LOOPS; k++) {
+            snprintf(loopdir[k], sizeof loopdir[k], "%s/train_%d", dir, k);
+            loops[k] = loopdir[k];
+        }
+        if (pyr_miss) {
+            sp.mean_loops = loops;
+            sp.nmean_loops = PYR_LEARN_LOOPS;
         }
     } else if (modal_cm) {
         sp.valid = pth("valid.fits");
@@ -466,6 +482,8 @@ int main(int argc, char **argv)
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid")) pyramid = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-learn"))
             pyramid = pyr_learn = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-miss"))
+            pyramid = pyr_miss = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
@@ -479,7 +497,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn|pyramid-miss] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -506,6 +524,7 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            pyr_learn ? ", a modulated pyramid's signals (--basis influence.fits --control W.fits, learned from 4 loops)" :
+           pyr_miss ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop x 4)" :
            pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits)" :
            modal_rm ? ", modal telemetry with its response matrix (modal-slopes --imat, --valid)" :
            modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :

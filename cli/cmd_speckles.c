@@ -16,7 +16,7 @@
 /* Options into o; returns -1 after --help, CLI_USAGE on a bad option, 0 otherwise. */
 typedef struct spk_args {
     swfs_speckles_run_options *o;
-    const char **min, **mout, **tkeys; /* --match pairs; --teach-set keys */
+    const char **min, **mout, **tkeys, **mloops; /* --match pairs; --teach-set keys; --mean-loop folders */
     double rcond;
     long modes;
     int rcond_given, tt_given;
@@ -62,6 +62,9 @@ static int special(void *ctx, int argc, char **argv, int *i)
     } else if (!strcmp(a, "--teach-set")) {
         if (cli_take_string(cmd, argc, argv, i, "key=value", &v)) return -CLI_USAGE;
         d->tkeys[o->nteach_keys++] = v;
+    } else if (!strcmp(a, "--mean-loop")) {
+        if (cli_take_string(cmd, argc, argv, i, "a folder", &v)) return -CLI_USAGE;
+        d->mloops[o->nmean_loops++] = v;
     } else if (!strcmp(a, "--match")) {
         if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
         d->min[o->nmatch] = argv[*i + 1];
@@ -74,13 +77,13 @@ static int special(void *ctx, int argc, char **argv, int *i)
 }
 
 static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char **min, const char **mout,
-                 const char **tkeys)
+                 const char **tkeys, const char **mloops)
 {
     const char *cmd = "speckles";
     double slope_noise = 0;
     long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed,
          tmax = (long)o->teach_max_loops;
-    spk_args d = {o, min, mout, tkeys, o->pipe.rcond, 0, 0, 0, 0};
+    spk_args d = {o, min, mout, tkeys, mloops, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o->out, fn, 0},           {"--science", CLI_STRING, &o->science, fn, 0},
@@ -123,6 +126,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     o->match_in = min;
     o->match_out = mout;
     o->teach_keys = tkeys;
+    o->mean_loops = mloops;
     return cli_check(cmd, swfs_speckles_run_options_check(o));
 }
 
@@ -131,10 +135,11 @@ int swfs_cmd_speckles(int argc, char **argv)
     const char *cmd = "speckles";
     swfs_speckles_run_options o;
     swfs_speckles_run_options_default(&o);
-    /* --match's IN and OUT names and --teach-set's keys: at most argc of each, in one block */
-    const char **names = calloc(3 * (size_t)argc, sizeof *names);
+    /* --match's IN and OUT names, --teach-set's keys and --mean-loop's folders: at most argc of
+     * each, in one block */
+    const char **names = calloc(4 * (size_t)argc, sizeof *names);
     if (!names) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
-    int rc = parse(argc, argv, &o, names, names + argc, names + 2 * argc);
+    int rc = parse(argc, argv, &o, names, names + argc, names + 2 * argc, names + 3 * (size_t)argc);
     if (rc) rc = rc < 0 ? CLI_OK : rc;
     else if (cli_team_join(cmd, &o.team)) rc = CLI_FAIL;
     else {

@@ -132,9 +132,13 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
     fprintf(stderr, "%s: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it out of the "
             "NCP)\n", cmd, r->resmean_rms * 1e9);
+    if (o->nmean_loops && isfinite(r->meanmiss_heldout))
+        fprintf(stderr, "%s: this reconstruction's miss of it in %zu simulated loops (--mean-loop): held out, the others' "
+                "mean leaves %.2f of each loop's own square: %s\n", cmd, o->nmean_loops, r->meanmiss_heldout,
+                r->meanmiss_heldout < 1 ? "shared, their mean added" : "each loop's own, nothing added");
     if (r->meanmiss_rms > 0)
-        fprintf(stderr, "%s: with the map's own miss of it added, %.1f nm rms (MEANMISS: the mean's miss its training "
-                "loops shared, learn)\n", cmd, r->meanmiss_rms * 1e9);
+        fprintf(stderr, "%s: with the %s miss of it added, %.1f nm rms\n", cmd,
+                o->nmean_loops ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", r->meanmiss_rms * 1e9);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);

@@ -185,6 +185,11 @@ int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *ne
  * reconstructed mean before piston, tip and tilt come out: a learned map's own miss of the
  * residual's time mean (learn's MEANMISS, docs/telemetry.md). NULL: none (the default). */
 int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map);
+/* The wavefront [m] (PUPN x PUPN, piston, tip and tilt removed; no mean offset) that the
+ * pipeline reconstructs from a mean of n telemetry values per WFS frame, as
+ * swfs_pipeline_mean_wavefront does from the exposures' (other data's mean: a simulated
+ * loop's). */
+int swfs_pipeline_wavefront_of_mean(const swfs_pipeline *p, const double *mean, size_t n, double *out);
 void swfs_pipeline_mean_reset(swfs_pipeline *p);
 /* The running sum itself (n values, owned by p, writable) and its exposure count, for
  * members of a team to add up (team.h sum); swfs_pipeline_mean_set_count then sets the

@@ -191,6 +191,15 @@ typedef struct swfs_speckles_run_options {
                                  given is not taken from the slopes, the layers and the seed are
                                  teach's); part of the fingerprint */
     size_t nteach_keys;
+    const char *const *mean_loops; /* folders of simulated closed loops of the same system
+                                 (`simulate mode=timeseries`: slopes_NNN.fits and truth.fits'
+                                 RESMEAN), nmean_loops of them (at least 2): the miss of the
+                                 residual's time mean by this run's own reconstruction, each
+                                 loop's true mean less the pipeline's reconstruction of its mean
+                                 telemetry, checked held out as learn's MEANMISS and, where the
+                                 others' mean predicts each loop's, added to RESMEAN (then it
+                                 takes the place of a map's MEANMISS); docs/telemetry.md */
+    size_t nmean_loops;
 } swfs_speckles_run_options;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
@@ -249,6 +258,7 @@ typedef struct swfs_speckles_run_result {
                                  check found regularized (MODALRGW = 1): RM c is not the slopes'
                                  projection, and neither teach's map nor vk fits them */
     double modal_lsq;         /* that check's ratio (MODALLSQ), NAN where the files carry none */
+    double meanmiss_heldout;  /* mean_loops: the held-out check's ratio (< 1: added); NAN otherwise */
     double meanmiss_rms;      /* [m] the map's miss of the residual's time mean (learn's MEANMISS:
                                  a --recon or --control map learned from loops whose misses agree),
                                  added to RESMEAN, its rms in the pupil (piston, tip, tilt removed);

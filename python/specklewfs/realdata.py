@@ -392,7 +392,7 @@ def _teach_dict(r, modes_from_slopes):
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
-             teach_max_loops=None, linear=None, teach_keys=None):
+             teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -424,7 +424,11 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     a linear model (recon applies to the Shack-Hartmann's). teach_keys: what the files do not
     say of the system teach's loops simulate, a dict in `simulate mode=timeseries` keys (e.g.
     dict(dm_coupling=0.15) for a DM of Gaussian influence functions; `--teach-set`), as
-    teach(**params): they win over the files' description and are part of the fingerprint."""
+    teach(**params): they win over the files' description and are part of the fingerprint.
+    mean_loops: folders of simulated loops of the same system (`simulate_timeseries`, at least
+    2; `--mean-loop`): this run's own reconstruction's miss of the residual's time mean in
+    them, checked held out (meanmiss_heldout < 1: shared by the loops) and then added to RESMEAN
+    (meanmiss_rms)."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -445,6 +449,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     o.teach_again = int(bool(teach_again))
     tkeys = [f"{k}={_cfg_value(v)}" for k, v in (teach_keys or {}).items()]
     o.teach_keys, o.nteach_keys = _lib.strings(tkeys)  # kept alive by o until the run returns
+    mloops = [os.fspath(m) for m in (mean_loops or ())]
+    o.mean_loops, o.nmean_loops = _lib.strings(mloops)
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
@@ -476,7 +482,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d = {k: getattr(r, k) for k, _t in _lib.SPECKLES_RUN_FIELDS}
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
     d["curl_noise"] = r.curl_noise
-    d["meanmiss_rms"] = r.meanmiss_rms
+    d["meanmiss_rms"], d["meanmiss_heldout"] = r.meanmiss_rms, r.meanmiss_heldout
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

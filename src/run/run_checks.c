@@ -52,6 +52,10 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     if (p->threads < 1 || p->threads > SWFS_ENGINE_MAX_THREADS)
         FAIL("--threads must be 1..%d, got %d", SWFS_ENGINE_MAX_THREADS, p->threads);
     if (o->batch > BATCH_MAX) FAIL("--batch must be 1..%d, got %zu", BATCH_MAX, o->batch);
+    if (o->nmean_loops == 1 || (o->nmean_loops && !o->mean_loops))
+        FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
+             "others'), got %zu", o->nmean_loops);
+    if (o->nmean_loops && p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
     if ((o->teach_work || o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops ||
          o->teach_seed != d.teach_seed || o->teach_keep_loops || o->teach_again || o->nteach_keys) &&
         (recon != SWFS_RECON_TEACH || basis))

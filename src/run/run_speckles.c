@@ -14,6 +14,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <unistd.h>
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
 {
@@ -440,6 +441,85 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
 /* The reconstructed residual's time mean over every frame written (a team's members add
  * their sums first): the static aberration of the science frames that the telemetry measures
  * (swfs_pipeline_mean_wavefront), written beside the speckles for `pupil` to take out. */
+/* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
+ * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
+ * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
+ * slopes_NNN.fits), piston, tip and tilt removed from both; held out as learn's MEANMISS
+ * (the others' mean against each loop's, over the pupil's samples), and their mean the
+ * pipeline's mean offset where it predicts (ratio < 1). */
+static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
+{
+    const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;
+    const double *mask = swfs_pipeline_mask(w->p);
+    double *miss = calloc(nl * n * n, sizeof *miss), *rec = malloc(n * n * sizeof *rec), *ms = malloc(ns * sizeof *ms);
+    int rc = miss && rec && ms ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && nl < 2)
+        rc = swfs_fail(SWFS_ERR_ARG, "speckles: the residual mean's miss needs at least 2 simulated loops (each is "
+                       "checked against the others'), got %zu", nl);
+    for (size_t d = 0; !rc && d < nl; d++) {
+        char path[4200];
+        size_t nf = 0;
+        memset(ms, 0, ns * sizeof *ms);
+        for (size_t k = 0; !rc; k++) {
+            snprintf(path, sizeof path, "%.4000s/slopes_%03zu.fits", o->mean_loops[d], k);
+            if (access(path, F_OK) != 0) break;
+            swfs_real *s = NULL;
+            if ((rc = swfs_telemetry_read(path, ns, &s, NULL))) {
+                rc = swfs_fail_context(rc, "the loop %s (its telemetry is the observation's kind: %zu values per frame)",
+                                       o->mean_loops[d], ns);
+                break;
+            }
+            for (size_t t = 0; t < s->ny; t++)
+                for (size_t i = 0; i < ns; i++) ms[i] += s->data[t * ns + i];
+            nf += s->ny;
+            swfs_real_free(s);
+        }
+        if (!rc && !nf) rc = swfs_fail(SWFS_ERR_IO, "%s: no slopes_000.fits: expected a folder of `simulate mode=timeseries`",
+                                       o->mean_loops[d]);
+        for (size_t i = 0; !rc && i < ns; i++) ms[i] /= (double)nf;
+        if (!rc) rc = swfs_pipeline_wavefront_of_mean(w->p, ms, ns, rec);
+        swfs_real *t = NULL;
+        snprintf(path, sizeof path, "%.4000s/truth.fits", o->mean_loops[d]);
+        if (!rc) rc = swfs_fits_read_real(path, "RESMEAN", &t, NULL);
+        if (!rc && (t->nx != n || t->ny != n || t->nz != 1))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zux%zux%zu; the observation's pupil grid is %zu x %zu", path,
+                           t->nx, t->ny, t->nz, n, n);
+        if (!rc) {
+            double *m = miss + d * n * n;
+            memcpy(m, t->data, n * n * sizeof *m);
+            swfs_wfe_remove_ptt(m, mask, n);
+            for (size_t i = 0; i < n * n; i++) m[i] = mask[i] > 0 ? m[i] - rec[i] : 0.0;
+        }
+        swfs_real_free(t);
+    }
+    double eho = 0, e0 = 0;
+    for (size_t i = 0; !rc && i < n * n; i++) {
+        if (!(mask[i] > 0)) { rec[i] = 0; continue; }
+        double sum = 0;
+        for (size_t d = 0; d < nl; d++) sum += miss[d * n * n + i];
+        rec[i] = sum / (double)nl;
+        for (size_t d = 0; d < nl; d++) {
+            const double x = miss[d * n * n + i], others = (sum - x) / (double)(nl - 1);
+            eho += (x - others) * (x - others);
+            e0 += x * x;
+        }
+    }
+    if (!rc && e0 > 0) {
+        r->meanmiss_heldout = eho / e0;
+        if (r->meanmiss_heldout < 1) {
+            rc = swfs_pipeline_set_mean_offset(w->p, rec);
+            if (!rc) r->meanmiss_rms = swfs_wfe_remove_ptt(rec, mask, n);
+        } else {
+            rc = swfs_pipeline_set_mean_offset(w->p, NULL);
+            r->meanmiss_rms = 0;
+        }
+    }
+    free(miss);
+    free(rec);
+    free(ms);
+    return rc;
+}
+
 static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn;
@@ -572,7 +652,7 @@ int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->r
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
-    r->modal_lsq = NAN;
+    r->modal_lsq = r->meanmiss_heldout = NAN;
     const int crc = swfs_speckles_run_options_check(o);
     if (crc) return crc;
     /* At the WFS rate there is no exposure to take a mean tip-tilt over: the coherence of
@@ -611,6 +691,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (!rc)
         rc = swfs_meanmiss_attach_(w.p, o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL,
                                    &o->lin, &w.g, &r->meanmiss_rms);
+    if (!rc && o->nmean_loops) rc = meanmiss_from_loops(o, &w, r);
     if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     if (team) {

@@ -465,6 +465,22 @@ int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *ne
     return rc;
 }
 
+int swfs_pipeline_wavefront_of_mean(const swfs_pipeline *p, const double *mean, size_t n, double *out)
+{
+    const size_t np = p->info.npup, nc = p->mcols;
+    /* the engine's input for a mean: the mean itself, at every lag of a space-time map, and 0
+     * for the exposure-relative tilt columns (their mean over an exposure is 0) */
+    if (!n || !(nc == n || nc == n + 2 || (nc > n && nc % n == 0)))
+        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: a mean of %zu telemetry values, but the engine takes %zu", n, nc);
+    double *v = calloc(nc, sizeof *v);
+    if (!v) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+    for (size_t k = 0; k < nc; k++) v[k] = nc == n + 2 ? (k < n ? mean[k] : 0.0) : mean[k % n];
+    int rc = swfs_engine_wavefront(p->engine, v, out);
+    free(v);
+    if (!rc) swfs_wfe_remove_ptt(out, p->mask, np);
+    return rc;
+}
+
 int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map)
 {
     const size_t n = p->info.npup;
