@@ -450,6 +450,25 @@ static int truth_points(const swfs_learn_run_options *o, size_t nact, double **x
     return rc;
 }
 
+double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, double *mean, double *own)
+{
+    double eho = 0, e0 = 0;
+    for (size_t i = 0; i < n; i++) {
+        mean[i] = 0;
+        if (mask && !(mask[i] > 0)) continue;
+        double sum = 0;
+        for (size_t d = 0; d < nsets; d++) sum += x[d * n + i];
+        mean[i] = sum / (double)nsets;
+        for (size_t d = 0; d < nsets; d++) {
+            const double v = x[d * n + i], others = (sum - v) / (double)(nsets - 1);
+            eho += (v - others) * (v - others);
+            e0 += v * v;
+        }
+    }
+    if (own) *own = e0;
+    return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
+}
+
 /* The map's miss of the residual's time mean (swfs_learn_run_result.meanmiss_*): each data
  * set's mean slopes (as the map takes them: projected) and mean truth, summed over its files;
  * the miss is the truth's mean less the map applied to the slopes' mean at every lag (the
@@ -497,21 +516,12 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
         }
         for (size_t a = 0; !o->modal && a < na; a++) m[a] -= pm;
     }
-    double eho = 0, e0 = 0;
-    for (size_t a = 0; !rc && a < na; a++) {
-        double sum = 0;
-        for (size_t d = 0; d < nd; d++) sum += miss[d * na + a];
-        mt[a] = sum / (double)nd;
-        for (size_t d = 0; d < nd; d++) {
-            const double x = miss[d * na + a], others = (sum - x) / (double)(nd - 1);
-            eho += (x - others) * (x - others);
-            e0 += x * x;
-        }
-    }
-    if (!rc && e0 > 0) {
+    double e0 = 0;
+    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nd, na, NULL, mt, &e0);
+    if (!rc && isfinite(ratio)) {
         double ss = 0;
         for (size_t a = 0; a < na; a++) ss += mt[a] * mt[a];
-        r->meanmiss_heldout = eho / e0;
+        r->meanmiss_heldout = ratio;
         r->meanmiss_set_rms = sqrt(e0 / (double)(nd * na));
         r->meanmiss_rms = sqrt(ss / (double)na);
         r->meanmiss_kept = r->meanmiss_heldout < 1;

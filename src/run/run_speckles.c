@@ -492,20 +492,9 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
         }
         swfs_real_free(t);
     }
-    double eho = 0, e0 = 0;
-    for (size_t i = 0; !rc && i < n * n; i++) {
-        if (!(mask[i] > 0)) { rec[i] = 0; continue; }
-        double sum = 0;
-        for (size_t d = 0; d < nl; d++) sum += miss[d * n * n + i];
-        rec[i] = sum / (double)nl;
-        for (size_t d = 0; d < nl; d++) {
-            const double x = miss[d * n * n + i], others = (sum - x) / (double)(nl - 1);
-            eho += (x - others) * (x - others);
-            e0 += x * x;
-        }
-    }
-    if (!rc && e0 > 0) {
-        r->meanmiss_heldout = eho / e0;
+    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nl, n * n, mask, rec, NULL);
+    if (!rc && isfinite(ratio)) {
+        r->meanmiss_heldout = ratio;
         if (r->meanmiss_heldout < 1) {
             rc = swfs_pipeline_set_mean_offset(w->p, rec);
             if (!rc) r->meanmiss_rms = swfs_wfe_remove_ptt(rec, mask, n);
