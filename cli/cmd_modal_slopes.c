@@ -4,6 +4,7 @@
 
 #include "specklewfs/run.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 
@@ -75,7 +76,7 @@ int swfs_cmd_modal_slopes(int argc, char **argv)
     if (o.imat && r.lsq_ratio == 0)
         printf("modal-slopes: the coefficients carry no white noise in the modes a least-squares CM of the response "
                "matrix makes the noisiest\n");
-    else if (o.imat && r.lsq_ratio == r.lsq_ratio)
+    else if (o.imat && !isnan(r.lsq_ratio))
         printf("modal-slopes: the coefficients' white noise, poorly sensed modes against well-sensed ones, over what a "
                "least-squares CM of the response matrix gives: %.3g (1 for such a CM)\n", r.lsq_ratio);
     else if (o.imat)

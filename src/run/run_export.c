@@ -9,6 +9,7 @@
 #include "specklewfs/timeseries.h"
 #include "specklewfs/wfs.h"
 
+#include <cblas.h>
 #include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
@@ -226,25 +227,24 @@ static int write_control(const char *dir, exp_work *w, const char *const *prov, 
             }
     /* rm_modes.fits: D (S T: the model's slopes of each actuator's influence) times each mode's
      * actuator vector at a coefficient of 1 um (2 um of wavefront over the mode's rms) */
-    double *D = NULL;
+    double *D = NULL, *DV = NULL;
     swfs_real *R = rc ? NULL : swfs_real_alloc(w->nk, 2 * nv, 1);
-    if (!rc && !R) rc = swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
+    if (!rc && (!R || !(DV = malloc(ns * na * sizeof *DV)))) rc = swfs_fail(SWFS_ERR_NOMEM, "export: out of memory");
     if (!rc) rc = swfs_interaction_matrix(wfs, m->T, &D);
+    if (!rc) /* D V: every slope's response to every mode (column k + 1: mode k of the export) */
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)ns, (int)na, (int)na, 1.0, D, (int)na, w->modes,
+                    (int)na, 0.0, DV, (int)na);
     for (size_t a = 0, j = 0; !rc && a < n2; a++)
         if (wfs->valid[a]) {
             for (size_t k = 0; k < w->nk; k++) {
-                double sx = 0, sy = 0;
-                for (size_t q = 0; q < na; q++) {
-                    sx += D[a * na + q] * w->modes[q * na + k + 1];
-                    sy += D[(n2 + a) * na + q] * w->modes[q * na + k + 1];
-                }
                 const double f = w->rms[k] > 0 ? 2e-6 / w->rms[k] : 0; /* a mode off the grid: no coefficient */
-                R->data[j * w->nk + k] = sx * f;
-                R->data[(nv + j) * w->nk + k] = sy * f;
+                R->data[j * w->nk + k] = DV[a * na + k + 1] * f;
+                R->data[(nv + j) * w->nk + k] = DV[(n2 + a) * na + k + 1] * f;
             }
             j++;
         }
     free(D);
+    free(DV);
     char path[4200];
     const swfs_real *arr[5] = {C, F, V, M, R};
     const char *names[5] = {"control.fits", "influence.fits", "valid.fits", "cm_modes.fits", "rm_modes.fits"};

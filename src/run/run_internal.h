@@ -166,8 +166,8 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
 
 /* run_linear.c: the wavefront [m] on the PUPN x PUPN grid of lf's basis at the coefficients
  * coef (nk of them, the basis's count; scaled by lf->scale), 0 outside the illuminated samples
- * (mask, or NULL: g's annulus): what speckles adds to the residual's mean from a learned
- * control matrix's MEANMISS. */
+ * of mask (the pipeline's, swfs_pipeline_mask): what speckles adds to the residual's mean from
+ * a learned control matrix's MEANMISS. */
 int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *coef,
                            size_t nk, double *out);
 /* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,

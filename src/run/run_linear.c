@@ -83,17 +83,10 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
                            size_t nk, double *out)
 {
     const size_t np = (size_t)g->pupn;
-    double *annulus = NULL;
-    int rc = SWFS_OK;
-    if (!mask) {
-        if (!(annulus = malloc(np * np * sizeof *annulus))) return swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory");
-        if ((rc = swfs_aperture_make(annulus, np, g->pupdx, g->teldiam, g->obscur, 0, 0))) { free(annulus); return rc; }
-        mask = annulus;
-    }
     swfs_sparse *B = NULL;
     double *shapes = NULL, *u = NULL;
     size_t n = 0;
-    rc = load_basis(lf, g, mask, &B, &shapes, &n);
+    int rc = load_basis(lf, g, mask, &B, &shapes, &n);
     if (!rc && n != nk)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions, but %zu values to put on them", lf->basis, n, nk);
     if (!rc && shapes) { /* on the DM grid: the grid values, then their interpolation */
@@ -109,7 +102,6 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
     free(u);
     free(shapes);
     swfs_sparse_free(B);
-    free(annulus);
     return rc;
 }
 

@@ -187,8 +187,8 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     if (rc) return rc;
     w->nslopes = w->slopes->nx;
     snprintf(w->loaded, sizeof w->loaded, "%s", w->path);
-    /* slopes modal-slopes --imat made: its check of how the coefficients were made */
-    r->modal_lsq = NAN;
+    /* slopes modal-slopes --imat made: its check of how the coefficients were made (modal_lsq
+     * NAN from the run's start where they carry none) */
     if (!o->lin.basis) {
         swfs_fits_in *f = NULL;
         long rgw = 0;
@@ -438,9 +438,6 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
     return rc;
 }
 
-/* The reconstructed residual's time mean over every frame written (a team's members add
- * their sums first): the static aberration of the science frames that the telemetry measures
- * (swfs_pipeline_mean_wavefront), written beside the speckles for `pupil` to take out. */
 /* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
  * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
  * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
@@ -452,10 +449,7 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
     const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;
     const double *mask = swfs_pipeline_mask(w->p);
     double *miss = calloc(nl * n * n, sizeof *miss), *rec = malloc(n * n * sizeof *rec), *ms = malloc(ns * sizeof *ms);
-    int rc = miss && rec && ms ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc && nl < 2)
-        rc = swfs_fail(SWFS_ERR_ARG, "speckles: the residual mean's miss needs at least 2 simulated loops (each is "
-                       "checked against the others'), got %zu", nl);
+    int rc = miss && rec && ms ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory"); /* nl >= 2: the options' check */
     for (size_t d = 0; !rc && d < nl; d++) {
         char path[4200];
         size_t nf = 0;
@@ -509,6 +503,9 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
     return rc;
 }
 
+/* The reconstructed residual's time mean over every frame written (a team's members add
+ * their sums first): the static aberration of the science frames that the telemetry measures
+ * (swfs_pipeline_mean_wavefront), written beside the speckles for `pupil` to take out. */
 static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn;
