@@ -11,7 +11,7 @@ static const char *speckles_usage_text =
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
-    "                           [--mean-loop DIR]...\n"
+    "                           [--mean-loop DIR... | --mean-loop teach]\n"
     "       specklewfs speckles TIMING.txt --science SCIENCE.fits --basis CUBE.fits [--control C.fits | --imat D.fits]\n"
     "                           [--dm-pitch M --dm-offset X,Y --dm-rot DEG --dm-flip] [--coef-scale S] -o SPECKLES.fits\n"
     "\n"
@@ -100,18 +100,28 @@ static const char *speckles_usage_text2 =
     "                      FRATIO (camera exposure = FRATIO x FRAMEDT), NSEGS (cubes). --match and\n"
     "                      --tiptilt exposure do not apply\n"
     "  --wfs-hz HZ         WFS frame rate [Hz] when the slopes files have no WFSRATE keyword\n"
+    ;
+
+static const char *speckles_usage_mean =
     "  --mean-loop DIR     (repeatable, at least 2) simulated closed loops of the same system\n"
     "                      (`simulate mode=timeseries`: slopes_NNN.fits of this telemetry's kind,\n"
     "                      truth.fits): this run's reconstruction's miss of the residual's time\n"
     "                      mean in each, checked against the others'; where they share it (a\n"
     "                      pyramid's, at the pupil's rim) their mean is added to RESMEAN.\n"
-    "                      A map made by `learn` may carry its own (MEANMISS), added likewise\n";
+    "                      A map made by `learn` may carry its own (MEANMISS), added likewise\n"
+    "  --mean-loop teach   the same from loops speckles simulates of the system the files\n"
+    "                      describe (the sensor from WFSTYPE, PYRMOD, WFSLAM; the noise, layers\n"
+    "                      and modal filter from the telemetry; the DM's pitch from --basis;\n"
+    "                      --teach-set KEY=VALUE for the rest), --mean-teach-loops N (4) of\n"
+    "                      them, in --teach-work (OUT.teach) and reused while the description\n"
+    "                      is the same (--teach-again: anew)\n";
 
 void cli_help_speckles(void)
 {
     fputs(speckles_usage_text, stdout);
     fputs(speckles_usage_recon, stdout);
     fputs(speckles_usage_text2, stdout);
+    fputs(speckles_usage_mean, stdout);
     fputs(CLI_LINEAR_HELP, stdout);
 }
 

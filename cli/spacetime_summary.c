@@ -132,13 +132,28 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
     fprintf(stderr, "%s: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it out of the "
             "NCP)\n", cmd, r->resmean_rms * 1e9);
-    if (o->nmean_loops && isfinite(r->meanmiss_heldout))
+    const size_t nml = o->mean_teach ? o->mean_teach_loops : o->nmean_loops;
+    if (o->mean_teach && r->mean_teach.done) {
+        const swfs_mean_teach_result *m = &r->mean_teach;
+        fprintf(stderr, "%s: --mean-loop teach: %zu loops of %zu WFS frames %s (%s, %.0f s): a %s", cmd, m->nloops,
+                m->loop_frames, m->reused ? "reused, made for the same description" : "simulated", m->work, m->seconds,
+                m->pyramid ? "pyramid" : "Shack-Hartmann");
+        if (isfinite(m->photons)) fprintf(stderr, ", %.0f photons per subaperture and frame (its noise %.3g)", m->photons,
+                                          m->noise_rms);
+        if (isfinite(m->slope_noise)) fprintf(stderr, ", slope noise %.3g rad", m->slope_noise);
+        if (m->knee) fprintf(stderr, ", %zu modes controlled (the knee)", m->knee);
+        for (size_t l = 0; l < m->nlayers; l++)
+            fprintf(stderr, "%s %.1f m/s toward %.0f deg", l ? "," : ", layers", m->speed[l], m->direction[l]);
+        if (m->act_pitch > 0) fprintf(stderr, ", DM pitch %.4g m (the basis)", m->act_pitch);
+        fprintf(stderr, "; the rest as given or the simulator's defaults (mean_loops.conf)\n");
+    }
+    if (nml && isfinite(r->meanmiss_heldout))
         fprintf(stderr, "%s: this reconstruction's miss of it in %zu simulated loops (--mean-loop): held out, the others' "
-                "mean leaves %.2f of each loop's own square: %s\n", cmd, o->nmean_loops, r->meanmiss_heldout,
+                "mean leaves %.2f of each loop's own square: %s\n", cmd, nml, r->meanmiss_heldout,
                 r->meanmiss_heldout < 1 ? "shared, their mean added" : "each loop's own, nothing added");
     if (r->meanmiss_rms > 0)
         fprintf(stderr, "%s: with the %s miss of it added, %.1f nm rms\n", cmd,
-                o->nmean_loops ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", r->meanmiss_rms * 1e9);
+                nml ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", r->meanmiss_rms * 1e9);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);

@@ -1640,13 +1640,16 @@ static void test_options_checks(void **state)
     static const char *pattern[] = {
         "--teach-loops must be 2..64, got 1", "--batch must be 1..100000, got 200000", "--threads must be 1..64, got 0",
         "--rcond and --modes go with --recon svd", "--rcond must be in [0, 1), got 1", "--slope-noise goes with --recon vk",
-        "--recon-scale goes with --recon W.fits", "--teach-work, --teach-loops", "--wfs-hz goes with --wfs-rate",
+        "--recon-scale goes with --recon W.fits", "--teach-work, --teach-seed, --teach-again", "--wfs-hz goes with --wfs-rate",
         "--match pairs camera frames", "--vk-l0 must be an outer scale", "takes no --actuators",
         "needs TIMING.txt", "--teach-again and --teach-set go with --recon teach", "teach_again must be 0 or 1, got 2",
-        "--teach-max-loops must be --teach-loops (12) to 64", "--teach-max-loops, --teach-seed",
+        "--teach-max-loops must be --teach-loops (12) to 64", "--teach-max-loops and --teach-keep-loops go with",
         "--teach-set go with --recon teach", "--teach-set: unknown setting 'bogus_key'", "--teach-set takes key=value",
         "--teach-set: time-series parameter dm_coupling=1.5: must be in [0, 1)",
+        "--mean-loop teach goes with the linear model", "--mean-teach-loops must be 2..16",
+        "--mean-loop takes loops' folders or teach, not both",
     };
+    const char *two[2] = {"loop_a", "loop_b"};
     const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},
                *tk_range[1] = {"dm_coupling=1.5"};
     const size_t npat = sizeof pattern / sizeof pattern[0];
@@ -1679,6 +1682,15 @@ static void test_options_checks(void **state)
         case 18: sp.teach_keys = tk_bogus; sp.nteach_keys = 1; break;
         case 19: sp.teach_keys = tk_noeq; sp.nteach_keys = 1; break;
         case 20: sp.teach_keys = tk_range; sp.nteach_keys = 1; break;
+        case 21: sp.mean_teach = 1; break;
+        case 22: sp.actuators = NULL; sp.lin.basis = p("checks_basis.fits"); sp.mean_teach = 1; sp.mean_teach_loops = 1; break;
+        case 23:
+            sp.actuators = NULL;
+            sp.lin.basis = p("checks_basis.fits");
+            sp.mean_teach = 1;
+            sp.mean_loops = two;
+            sp.nmean_loops = 2;
+            break;
         default: sp.teach_keys = tk_ok; sp.nteach_keys = 1; break; /* the defaults, and a key teach takes */
         }
         if (k == npat) {

@@ -200,7 +200,38 @@ typedef struct swfs_speckles_run_options {
                                  others' mean predicts each loop's, added to RESMEAN (then it
                                  takes the place of a map's MEANMISS); docs/telemetry.md */
     size_t nmean_loops;
+    int mean_teach;           /* 1 (--mean-loop teach): the mean loops simulated by speckles itself,
+                                 mean_teach_loops of them (4; 2..SWFS_MEAN_TEACH_MAX), of the system
+                                 the observation's files describe (swfs_mean_teach_result below),
+                                 in the teach folder (teach_work) as mean_NN, seeds teach_seed + k,
+                                 and reused while their fingerprint is this run's (teach_again:
+                                 anew); with the linear model (lin.basis), not with mean_loops */
+    size_t mean_teach_loops;
 } swfs_speckles_run_options;
+
+#define SWFS_MEAN_TEACH_MAX 16
+
+/* What `speckles --mean-loop teach` read from the observation's files for the loops it
+ * simulates (docs/telemetry.md, "The mean's miss from loops speckles simulates"); each item
+ * the user gives (teach_keys) is taken as given and marked 0 / NAN here. */
+typedef struct swfs_mean_teach_result {
+    int done, reused;         /* the loops made (or reused: their fingerprint is this run's) */
+    size_t nloops, loop_frames;
+    int pyramid;              /* the loops sense with a pyramid (WFSTYPE, or wfs= given) */
+    double noise_rms;         /* the telemetry's white noise per value (its curl, wfs.h) */
+    double photons;           /* pyramid: photons per subaperture and frame, 1 / noise_rms^2; NAN: given */
+    double slope_noise;       /* Shack-Hartmann: [rad] the loops' slope noise; NAN: given */
+    size_t knee;              /* the loops' modal filter (ao_modes): the knee of the telemetry's
+                                 variances along the DM's modes through the sensor's own
+                                 interaction matrix; 0: a filter given */
+    size_t nlayers;           /* the layers `wind` tracked in the telemetry (0: given) */
+    double speed[SWFS_WIND_MAXLAYERS], direction[SWFS_WIND_MAXLAYERS]; /* [m/s], [deg] */
+    double act_pitch;         /* [m] the DM's pitch from the basis (its registration's pitch on a
+                                 DM grid; the median spacing of its functions' centroids on the
+                                 pupil grid); 0: given */
+    double seconds;
+    char work[4200];          /* the folder holding mean_NN and mean_loops.conf (their description) */
+} swfs_mean_teach_result;
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o);
 
@@ -259,6 +290,7 @@ typedef struct swfs_speckles_run_result {
                                  projection, and neither teach's map nor vk fits them */
     double modal_lsq;         /* that check's ratio (MODALLSQ), NAN where the files carry none */
     double meanmiss_heldout;  /* mean_loops: the held-out check's ratio (< 1: added); NAN otherwise */
+    swfs_mean_teach_result mean_teach; /* mean_teach: the loops' description from the files */
     double meanmiss_rms;      /* [m] the map's miss of the residual's time mean (learn's MEANMISS:
                                  a --recon or --control map learned from loops whose misses agree),
                                  added to RESMEAN, its rms in the pupil (piston, tip, tilt removed);

@@ -211,7 +211,8 @@ int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, struct swfs_pa
  * simulator's), with the same variances; another width is SWFS_ERR_SHAPE. var: nmodes
  * values (malloc'd; nmodes = min(nact - 1, 2 nsub^2)); NaN for a mode whose slope pattern the
  * lower modes' explain (no direction of its own: e.g. beyond the rank of a valid map's
- * interaction matrix). The loop attenuates the modes it controls: var rises over them and
+ * interaction matrix). A pyramid's signals (p->wfs_pyramid) along its own interaction
+ * matrix's patterns (pyramid.h, as the loop calibrates it). The loop attenuates the modes it controls: var rises over them and
  * falls from about the last one on (docs/telemetry.md). */
 int swfs_ts_mode_variance(const swfs_ts_params *p, const double *slopes, size_t nframes, size_t nslopes,
                           double **var, size_t *nmodes);

@@ -330,8 +330,15 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("lin", swfs_linear_files), ("valid", c_str), ("teach_work", c_str), ("teach_loops", c_size), ("teach_max_loops", c_size),
     ("teach_seed", c_u64),
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
-    ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size)])
+    ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int),
+    ("mean_teach_loops", c_size)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
+MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
+swfs_mean_teach_result = _s("swfs_mean_teach_result", [
+    ("done", c_int), ("reused", c_int), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),
+    ("noise_rms", c_dbl), ("photons", c_dbl), ("slope_noise", c_dbl), ("knee", c_size), ("nlayers", c_size),
+    ("speed", c_dbl * WIND_MAXLAYERS), ("direction", c_dbl * WIND_MAXLAYERS), ("act_pitch", c_dbl),
+    ("seconds", c_dbl), ("work", ctypes.c_char * 4200)])
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
@@ -344,7 +351,8 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_corr_excess", c_dbl), ("st_corr_worst", c_size), ("st_lags", ctypes.c_long * RECON_MAXLAGS),
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
-    ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl)])
+    ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl),
+    ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

@@ -392,7 +392,7 @@ def _teach_dict(r, modes_from_slopes):
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
-             teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None):
+             teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None, mean_teach_loops=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -428,7 +428,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     mean_loops: folders of simulated loops of the same system (`simulate_timeseries`, at least
     2; `--mean-loop`): this run's own reconstruction's miss of the residual's time mean in
     them, checked held out (meanmiss_heldout < 1: shared by the loops) and then added to RESMEAN
-    (meanmiss_rms)."""
+    (meanmiss_rms). mean_loops='teach' (`--mean-loop teach`, with linear): speckles simulates
+    mean_teach_loops (4) such loops itself, of the system the files describe (the sensor from the
+    telemetry's header, its noise, layers and modal filter from the telemetry, the DM's pitch
+    from the basis; teach_keys for the rest), in teach_work and reused while that description
+    is the same (teach_again: anew); returned as mean_teach (a dict: what was read, the loops'
+    folder), None otherwise."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -449,6 +454,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     o.teach_again = int(bool(teach_again))
     tkeys = [f"{k}={_cfg_value(v)}" for k, v in (teach_keys or {}).items()]
     o.teach_keys, o.nteach_keys = _lib.strings(tkeys)  # kept alive by o until the run returns
+    if isinstance(mean_loops, str) and mean_loops == "teach":
+        o.mean_teach, mean_loops = 1, None
+    elif isinstance(mean_loops, (str, bytes, os.PathLike)):
+        raise ValueError("speckles: mean_loops takes a list of folders or 'teach'")
+    if mean_teach_loops is not None:  # None: the library's default (4)
+        o.mean_teach_loops = int(mean_teach_loops)
     mloops = [os.fspath(m) for m in (mean_loops or ())]
     o.mean_loops, o.nmean_loops = _lib.strings(mloops)
     if recon == "teach":
@@ -483,6 +494,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
     d["curl_noise"] = r.curl_noise
     d["meanmiss_rms"], d["meanmiss_heldout"] = r.meanmiss_rms, r.meanmiss_heldout
+    m = r.mean_teach
+    d["mean_teach"] = None if not m.done else dict(
+        reused=bool(m.reused), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
+        noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
+        layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch, seconds=m.seconds,
+        work=m.work.decode())
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

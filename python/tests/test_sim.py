@@ -495,6 +495,28 @@ def test_pyramid_timeseries(tmp_path):
     with pytest.raises(sw.Error, match="needs at least 2 simulated loops"):
         sw.speckles(timing, sci, None, str(tmp_path / "m2.fits"), linear=lin, mean_loops=[str(d)])
     assert not os.path.exists(tmp_path / "m2.fits")
+    # mean_loops='teach': loops speckles simulates itself (two, for the time) of the system the
+    # files describe: the pyramid's keys from the header, its photons from the signals' white
+    # noise (the simulator's 1000), the DM's pitch from the basis's centroids (0.45 m, hexapolar),
+    # the filter's knee through the pyramid's own interaction matrix (56 modes), the layers from
+    # `wind`; a second run with the same description reuses them, to the same result
+    tw = str(tmp_path / "tw")
+    t1 = sw.speckles(timing, sci, None, str(tmp_path / "t1.fits"), linear=lin, mean_loops="teach", mean_teach_loops=2,
+                     teach_work=tw)
+    mt = t1["mean_teach"]
+    assert mt["pyramid"] and not mt["reused"] and mt["nloops"] == 2 and mt["loop_frames"] >= 1000
+    assert 700 < mt["photons"] < 1400 and mt["act_pitch"] == pytest.approx(0.45, rel=0.02)
+    assert abs(mt["knee"] - 56) <= 3 and len(mt["layers"]) >= 1 and np.isfinite(t1["meanmiss_heldout"])
+    assert sp["mean_teach"] is None and os.path.isfile(os.path.join(tw, "mean_loops.conf"))
+    t2 = sw.speckles(timing, sci, None, str(tmp_path / "t2.fits"), linear=lin, mean_loops="teach", mean_teach_loops=2,
+                     teach_work=tw)
+    assert t2["mean_teach"]["reused"] and t2["meanmiss_heldout"] == t1["meanmiss_heldout"]
+    assert t2["meanmiss_rms"] == t1["meanmiss_rms"]
+    with pytest.raises(sw.Error, match="--mean-loop teach goes with the linear model"):
+        sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "t3.fits"), mean_loops="teach")
+    with pytest.raises(sw.Error, match="--mean-teach-loops must be 2"):
+        sw.speckles(timing, sci, None, str(tmp_path / "t3.fits"), linear=lin, mean_loops="teach", mean_teach_loops=1)
+    assert not os.path.exists(tmp_path / "t3.fits")
     with pytest.raises(sw.Error, match="WFSTYPE = 'PYRAMID': not a Shack-Hartmann's slopes"):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp2.fits"), recon="vk")
     assert not os.path.exists(tmp_path / "sp2.fits")

@@ -9,6 +9,7 @@
 #include "specklewfs/speckles.h"
 #include "specklewfs/stream.h"
 #include "specklewfs/status.h"
+#include "specklewfs/team.h"
 
 #include <math.h>
 #include <stdint.h>
@@ -56,11 +57,25 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
         FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
              "others'), got %zu", o->nmean_loops);
     if (o->nmean_loops && p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
-    if ((o->teach_work || o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops ||
-         o->teach_seed != d.teach_seed || o->teach_keep_loops || o->teach_again || o->nteach_keys) &&
-        (recon != SWFS_RECON_TEACH || basis))
-        FAIL("--teach-work, --teach-loops, --teach-max-loops, --teach-seed, --teach-keep-loops, --teach-again and "
-             "--teach-set go with --recon teach (the default with --actuators)");
+    const int taught = recon == SWFS_RECON_TEACH && !basis;
+    if ((o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops || o->teach_keep_loops) && !taught)
+        FAIL("--teach-loops, --teach-max-loops and --teach-keep-loops go with --recon teach (the default with "
+             "--actuators)");
+    if ((o->teach_work || o->teach_seed != d.teach_seed || o->teach_again || o->nteach_keys) && !taught &&
+        !o->mean_teach)
+        FAIL("--teach-work, --teach-seed, --teach-again and --teach-set go with --recon teach (the default with "
+             "--actuators) or --mean-loop teach");
+    if (o->mean_teach) {
+        if (!basis)
+            FAIL("--mean-loop teach goes with the linear model (--basis); with --actuators the default teaches its map "
+                 "from loops of the system already");
+        if (o->nmean_loops) FAIL("--mean-loop takes loops' folders or teach, not both");
+        if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
+            FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
+                 SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
+        if (p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
+        if (o->team && o->team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
+    }
     for (size_t k = 0; k < o->nteach_keys; k++)
         if (!o->teach_keys || !o->teach_keys[k] || !strchr(o->teach_keys[k], '=') || o->teach_keys[k][0] == '=')
             FAIL("--teach-set takes key=value (simulate mode=timeseries keys), got '%s'",

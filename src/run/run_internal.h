@@ -131,6 +131,31 @@ void swfs_linear_paths(struct swfs_paths *p, const swfs_linear_files *lf);
 void swfs_stream_paths_inputs(struct swfs_paths *p, const swfs_stream_run_options *o);
 void swfs_stream_paths_outputs(struct swfs_paths *p, const swfs_stream_run_options *o);
 
+/* One key into c unless it is there (printf's format for its value): what the files say of a
+ * system adds only the keys the user did not give. */
+int swfs_config_put_(swfs_config *c, const char *key, const char *fmt, ...);
+
+/* The telemetry files the timing table names, each once, in the table's order (names: at
+ * least t->ncubes slots; each strdup'd). */
+int swfs_speckles_table_files_(const swfs_timing *t, const char *tdir, char **names, size_t *n);
+/* speckles' teach folder: o->teach_work, or beside o->out (swfs_teach_work_default); created
+ * (*made = 1 when this call made it). */
+int swfs_speckles_work_folder_(const swfs_speckles_run_options *o, char *work, size_t cap, int *made);
+/* FNV-1a (64 bits) of a text with its NUL, and of a file's contents after its label and with
+ * its length (speckles' fingerprints of what teach's products depend on). */
+uint64_t swfs_fnv_text_(uint64_t h, const char *s);
+int swfs_fnv_file_(uint64_t *h, const char *label, const char *path);
+
+/* n loops of o->sim as described (its layers), seeds o->seed + k, into o->work/NAME_NN (NAME
+ * at most 7 characters), as many at once as its threads allow; what: the progress's stage. */
+int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t n, const char *what);
+
+/* speckles --mean-loop teach (run_mean_teach.c): the loops of the system the observation's
+ * files describe, simulated (or reused) into r->work/mean_NN; dirs[k] their folders
+ * (o->mean_teach_loops of them). nslopes: the telemetry's values per frame. */
+int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400]);
+
 /* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid
  * with what the caller gives, required): the keys it and the other files give, into c. */
 int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *g, const char *actuators, const char *pupil,

@@ -27,6 +27,7 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     o->pipe.recon = SWFS_RECON_TEACH;
     o->teach_loops = 12;
     o->teach_seed = 101;
+    o->mean_teach_loops = 4;
 }
 
 static size_t piece(const swfs_speckles_run_options *o) { return o->batch ? o->batch : 128; }
@@ -444,6 +445,23 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
  * slopes_NNN.fits), piston, tip and tilt removed from both; held out as learn's MEANMISS
  * (the others' mean against each loop's, over the pupil's samples), and their mean the
  * pipeline's mean offset where it predicts (ratio < 1). */
+/* A simulated loop's first WFS frame in an exposure (its truth_timing.txt: the earliest cube's
+ * start), 0 without the file: the frames before it (the loop closing from a flat DM) are not in
+ * its truth's mean, nor then in its telemetry's. */
+static size_t loop_first_frame(const char *dir)
+{
+    char path[4300], line[512];
+    snprintf(path, sizeof path, "%.4000s/truth_timing.txt", dir);
+    FILE *f = fopen(path, "r");
+    if (!f) return 0;
+    double first = INFINITY, v = 0;
+    unsigned c = 0;
+    while (fgets(line, sizeof line, f))
+        if (line[0] != '#' && sscanf(line, "%u %lf", &c, &v) == 2 && v >= 0 && v < first) first = v;
+    fclose(f);
+    return isfinite(first) ? (size_t)floor(first) : 0;
+}
+
 static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;
@@ -452,7 +470,8 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
     int rc = miss && rec && ms ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory"); /* nl >= 2: the options' check */
     for (size_t d = 0; !rc && d < nl; d++) {
         char path[4200];
-        size_t nf = 0;
+        size_t nf = 0, at = 0;
+        const size_t first = loop_first_frame(o->mean_loops[d]);
         memset(ms, 0, ns * sizeof *ms);
         for (size_t k = 0; !rc; k++) {
             snprintf(path, sizeof path, "%.4000s/slopes_%03zu.fits", o->mean_loops[d], k);
@@ -463,13 +482,14 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
                                        o->mean_loops[d], ns);
                 break;
             }
-            for (size_t t = 0; t < s->ny; t++)
+            for (size_t t = at < first ? first - at : 0; t < s->ny; t++, nf++)
                 for (size_t i = 0; i < ns; i++) ms[i] += s->data[t * ns + i];
-            nf += s->ny;
+            at += s->ny;
             swfs_real_free(s);
         }
-        if (!rc && !nf) rc = swfs_fail(SWFS_ERR_IO, "%s: no slopes_000.fits: expected a folder of `simulate mode=timeseries`",
-                                       o->mean_loops[d]);
+        if (!rc && !nf) rc = swfs_fail(SWFS_ERR_IO, "%s: %s: expected a folder of `simulate mode=timeseries`",
+                                       o->mean_loops[d], at ? "no telemetry frame after its first exposure's start"
+                                                            : "no slopes_000.fits");
         for (size_t i = 0; !rc && i < ns; i++) ms[i] /= (double)nf;
         if (!rc) rc = swfs_pipeline_wavefront_of_mean(w->p, ms, ns, rec);
         swfs_real *t = NULL;
@@ -668,6 +688,17 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
             oo.recon = r->teach_map;
         }
     }
+    /* --mean-loop teach: the loops of the system the files describe, simulated (or reused) as
+     * the mean loops (run_mean_teach.c) */
+    const char *mt_ptr[SWFS_MEAN_TEACH_MAX];
+    char (*dirs)[4400] = o->mean_teach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
+    if (!rc && o->mean_teach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && o->mean_teach) {
+        rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs);
+        for (size_t k = 0; !rc && k < o->mean_teach_loops; k++) mt_ptr[k] = dirs[k];
+        oo.mean_loops = mt_ptr;
+        oo.nmean_loops = o->mean_teach_loops;
+    }
     o = &oo;
     /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */
     int group = !rc;
@@ -746,5 +777,6 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);
     work_free(&w);
+    free(dirs);
     return rc;
 }

@@ -21,7 +21,7 @@
 
 /* The telemetry files the timing table names, each once, in the table's order (the series'
  * order: sync writes the rows in camera time). */
-static int table_files(const swfs_timing *t, const char *tdir, char **names, size_t *n)
+int swfs_speckles_table_files_(const swfs_timing *t, const char *tdir, char **names, size_t *n)
 {
     *n = 0;
     for (size_t c = 0; c < t->ncubes; c++) {
@@ -37,7 +37,7 @@ static int table_files(const swfs_timing *t, const char *tdir, char **names, siz
 
 /* The work folder: o->teach_work, or beside out (swfs_teach_work_default); created (*made = 1
  * when this call made it). */
-static int work_folder(const swfs_speckles_run_options *o, char *work, size_t cap, int *made)
+int swfs_speckles_work_folder_(const swfs_speckles_run_options *o, char *work, size_t cap, int *made)
 {
     *made = 0;
     int rc = o->teach_work ? (snprintf(work, cap, "%s", o->teach_work) >= (int)cap
@@ -87,12 +87,12 @@ static uint64_t fnv(uint64_t h, const void *p, size_t n)
     return h;
 }
 
-static uint64_t fnv_text(uint64_t h, const char *s)
+uint64_t swfs_fnv_text_(uint64_t h, const char *s)
 {
     return fnv(h, s, strlen(s) + 1); /* with its NUL: the end of the item */
 }
 
-static int fnv_file(uint64_t *h, const char *label, const char *path)
+int swfs_fnv_file_(uint64_t *h, const char *label, const char *path)
 {
     FILE *f = fopen(path, "rb");
     if (!f) return swfs_fail(SWFS_ERR_IO, "speckles: cannot read %s (%s) for teach's fingerprint: %s", path, label,
@@ -102,7 +102,7 @@ static int fnv_file(uint64_t *h, const char *label, const char *path)
         fclose(f);
         return swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
     }
-    uint64_t x = fnv_text(*h, label), len = 0;
+    uint64_t x = swfs_fnv_text_(*h, label), len = 0;
     for (size_t k; (k = fread(buf, 1, 1u << 20, f)) > 0;) {
         x = fnv(x, buf, k);
         len += k;
@@ -119,17 +119,17 @@ static int fingerprint(const swfs_speckles_run_options *o, const swfs_config *c,
                        char out[17])
 {
     uint64_t h = 0xcbf29ce484222325ULL;
-    h = fnv_text(fnv_text(h, "specklewfs " SWFS_VERSION), SWFS_TEACH_RULE);
+    h = swfs_fnv_text_(swfs_fnv_text_(h, "specklewfs " SWFS_VERSION), SWFS_TEACH_RULE);
     for (size_t k = 0; k < swfs_config_count(c); k++)
-        h = fnv_text(fnv_text(h, swfs_config_key(c, k)), swfs_config_value(c, k));
+        h = swfs_fnv_text_(swfs_fnv_text_(h, swfs_config_key(c, k)), swfs_config_value(c, k));
     char v[64];
     snprintf(v, sizeof v, "loops %zu to %zu seed %" PRIu64, o->teach_loops, o->teach_max_loops, o->teach_seed);
-    h = fnv_text(h, v);
+    h = swfs_fnv_text_(h, v);
     int rc = SWFS_OK;
-    for (size_t k = 0; !rc && k < n; k++) rc = fnv_file(&h, "telemetry", names[k]);
-    if (!rc) rc = fnv_file(&h, "actuators", o->actuators);
-    if (!rc && o->mask) rc = fnv_file(&h, "pupil", o->mask);
-    if (!rc && o->valid) rc = fnv_file(&h, "valid", o->valid);
+    for (size_t k = 0; !rc && k < n; k++) rc = swfs_fnv_file_(&h, "telemetry", names[k]);
+    if (!rc) rc = swfs_fnv_file_(&h, "actuators", o->actuators);
+    if (!rc && o->mask) rc = swfs_fnv_file_(&h, "pupil", o->mask);
+    if (!rc && o->valid) rc = swfs_fnv_file_(&h, "valid", o->valid);
     if (!rc) snprintf(out, 17, "%016" PRIx64, h);
     return rc;
 }
@@ -176,9 +176,9 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
     size_t n = 0;
     swfs_config *c = swfs_config_new();
     int rc = names && c ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "speckles: out of memory");
-    if (!rc) rc = table_files(t, tdir, names, &n);
+    if (!rc) rc = swfs_speckles_table_files_(t, tdir, names, &n);
     if (!rc && !n) rc = swfs_fail(SWFS_ERR_VALUE, "%s: names no telemetry file", o->timing);
-    if (!rc) rc = work_folder(o, work, sizeof work, &made);
+    if (!rc) rc = swfs_speckles_work_folder_(o, work, sizeof work, &made);
     if (!rc && snprintf(map, cap, "%s/taught.fits", work) >= (int)cap)
         rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", work);
     /* the rate the run uses where the telemetry has none (--wfs-hz) */

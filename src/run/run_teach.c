@@ -150,6 +150,28 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
 /* A loop layer's speed about v: within a factor sqrt 2 of it, log-uniform (one draw of g). The
  * loops of both paths take their speeds so: a map learned from loops of one speed fits that
  * speed's frames too closely (docs/telemetry.md, "Loops at speeds about the layers'"). */
+int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t n, const char *what)
+{
+    loop_job *jobs = calloc(n ? n : 1, sizeof *jobs);
+    if (!jobs) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; k < n; k++) {
+        loop_job *j = jobs + k;
+        snprintf(j->name, sizeof j->name, "%s", name);
+        j->k = k;
+        j->seed = o->seed + k;
+        j->nl = o->sim.nlayers;
+        for (int l = 0; l < j->nl; l++) {
+            j->frac[l] = o->sim.layer_frac[l];
+            j->speed[l] = o->sim.layer_speed[l];
+            j->dir[l] = o->sim.layer_dir[l];
+        }
+    }
+    size_t nrun = 0;
+    const int rc = simulate_loops(o, NULL, jobs, n, what, &nrun, 0);
+    free(jobs);
+    return rc;
+}
+
 static double speed_about(double v, swfs_rng *g)
 {
     return v * pow(2.0, swfs_rng_uniform(g) - 0.5);
@@ -649,8 +671,7 @@ static int noise_of(const swfs_ts_params *p, const swfs_real *s, const char *wha
     return rc ? swfs_fail_context(rc, "teach: the white slope noise of %s", what) : SWFS_OK;
 }
 
-/* One key into c unless it is there (teach_describe). */
-static int put(swfs_config *c, const char *key, const char *fmt, ...)
+int swfs_config_put_(swfs_config *c, const char *key, const char *fmt, ...)
 {
     if (swfs_config_has(c, key)) return SWFS_OK;
     char v[4200];
@@ -708,27 +729,27 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *a
     while (sn < 2 * (size_t)g.pupn) sn *= 2;
     /* the loops: as long as the observation's file, its camera one short cube at each end */
     const long gap = (long)nframes > 700 ? (long)nframes - 360 : 340;
-    if (!rc) rc = put(c, "pupn", "%ld", g.pupn);
-    if (!rc) rc = put(c, "pupdx", "%.17g", g.pupdx);
-    if (!rc) rc = put(c, "screen_dx", "%.17g", g.pupdx);
-    if (!rc) rc = put(c, "screen_n", "%zu", sn);
-    if (!rc) rc = put(c, "teldiam", "%.17g", g.teldiam);
-    if (!rc) rc = put(c, "wavelen", "%.17g", g.wavelen);
-    if (!rc) rc = put(c, "pixscale", "%.17g", g.pixscale);
-    if (!rc && isfinite(g.obscur)) rc = put(c, "obscur", "%.17g", g.obscur);
-    if (!rc) rc = put(c, "actuators", "%s", actuators);
-    if (!rc && pupil) rc = put(c, "pupil_mask", "%s", pupil);
-    if (!rc && valid) rc = put(c, "valid", "%s", valid);
-    if (!rc) rc = put(c, "nsub", "%zu", nsub);
-    if (!rc) rc = put(c, "wfs_rate", "%.17g", rate);
-    if (!rc) rc = put(c, "wfs_file_frames", "%zu", nframes > 700 ? nframes : 700);
-    if (!rc) rc = put(c, "frame_ratio", "1");
-    if (!rc) rc = put(c, "ncubes", "2");
-    if (!rc) rc = put(c, "cube_frames", "20");
-    if (!rc) rc = put(c, "cube_gap", "%ld", gap);
-    if (!rc) rc = put(c, "start_offset", "300.5");
-    if (!rc) rc = put(c, "nfx", "16");
-    if (!rc) rc = put(c, "nfy", "16");
+    if (!rc) rc = swfs_config_put_(c, "pupn", "%ld", g.pupn);
+    if (!rc) rc = swfs_config_put_(c, "pupdx", "%.17g", g.pupdx);
+    if (!rc) rc = swfs_config_put_(c, "screen_dx", "%.17g", g.pupdx);
+    if (!rc) rc = swfs_config_put_(c, "screen_n", "%zu", sn);
+    if (!rc) rc = swfs_config_put_(c, "teldiam", "%.17g", g.teldiam);
+    if (!rc) rc = swfs_config_put_(c, "wavelen", "%.17g", g.wavelen);
+    if (!rc) rc = swfs_config_put_(c, "pixscale", "%.17g", g.pixscale);
+    if (!rc && isfinite(g.obscur)) rc = swfs_config_put_(c, "obscur", "%.17g", g.obscur);
+    if (!rc && actuators) rc = swfs_config_put_(c, "actuators", "%s", actuators); /* else act_pitch, from the caller */
+    if (!rc && pupil) rc = swfs_config_put_(c, "pupil_mask", "%s", pupil);
+    if (!rc && valid) rc = swfs_config_put_(c, "valid", "%s", valid);
+    if (!rc) rc = swfs_config_put_(c, "nsub", "%zu", nsub);
+    if (!rc) rc = swfs_config_put_(c, "wfs_rate", "%.17g", rate);
+    if (!rc) rc = swfs_config_put_(c, "wfs_file_frames", "%zu", nframes > 700 ? nframes : 700);
+    if (!rc) rc = swfs_config_put_(c, "frame_ratio", "1");
+    if (!rc) rc = swfs_config_put_(c, "ncubes", "2");
+    if (!rc) rc = swfs_config_put_(c, "cube_frames", "20");
+    if (!rc) rc = swfs_config_put_(c, "cube_gap", "%ld", gap);
+    if (!rc) rc = swfs_config_put_(c, "start_offset", "300.5");
+    if (!rc) rc = swfs_config_put_(c, "nfx", "16");
+    if (!rc) rc = swfs_config_put_(c, "nfy", "16");
     return rc;
 }
 

@@ -3,6 +3,7 @@
  * give its loops the observation's modal filter when the system's description has none. */
 #include "specklewfs/status.h"
 #include "specklewfs/interp.h"
+#include "specklewfs/pyramid.h"
 #include "specklewfs/timeseries.h"
 #include "specklewfs/wfs.h"
 #include "sim_internal.h"
@@ -63,7 +64,18 @@ static int mode_basis(const swfs_ts_params *p, size_t ns, const char *what, doub
     int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &xy, &nact, &rao, &vmap);
     if (!rc) rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh);
-    if (!rc) rc = swfs_interaction_matrix(sh, T, &Dm);
+    if (!rc && p->wfs_pyramid) {
+        /* a pyramid's signals: its interaction matrix as the loop's own (push-pull of each
+         * actuator by a hundredth of the sensing wavelength, on the Shack-Hartmann's layout) */
+        const double lw = p->wfs_wavelen > 0 ? p->wfs_wavelen : p->base.wavelen;
+        swfs_pyramid *pyr = NULL;
+        rc = swfs_pyramid_create(&pyr, (size_t)p->nsub, p->base.teldiam, mask, np, p->base.pupdx, sh->valid, lw,
+                                 p->pyr_mod, (size_t)p->pyr_nmod);
+        if (!rc) rc = swfs_pyramid_interaction(pyr, T, lw / 100, &Dm);
+        swfs_pyramid_free(pyr);
+    } else if (!rc) {
+        rc = swfs_interaction_matrix(sh, T, &Dm);
+    }
     if (!rc) rc = swfs_dm_modes(T, mask, np, &modes);
     if (rc) goto done;
     /* The modes after piston through D (2 nsub^2 x m, the full layout), orthonormalized in

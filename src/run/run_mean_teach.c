@@ -1,0 +1,403 @@
+/* speckles --mean-loop teach: the loops whose residual means speckles' --mean-loop compares
+ * with this run's reconstruction of them, simulated by speckles itself from what the
+ * observation's files say of the system (run.h swfs_mean_teach_result; docs/telemetry.md,
+ * "The mean's miss from loops speckles simulates"). The pyramid's miss of the residual's time
+ * mean is mostly the sensor's response under any residual of the loop's statistics (a pattern
+ * at the pupil's rim, the same in every loop of the system), so loops of the described system
+ * give it without the observation's own truth. */
+#include "specklewfs/config.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/interp.h"
+#include "specklewfs/parallel.h"
+#include "specklewfs/run.h"
+#include "specklewfs/source.h"
+#include "specklewfs/status.h"
+#include "specklewfs/table.h"
+#include "specklewfs/timeseries.h"
+#include "specklewfs/version.h"
+#include "specklewfs/wfs.h"
+#include "run_internal.h"
+
+#include <ctype.h>
+#include <errno.h>
+#include <inttypes.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+/* What the description's rule is: part of the loops' fingerprint (a change of it makes them
+ * anew). */
+#define MEAN_TEACH_RULE "mean-teach 1: sensor keys, noise, wind layers, knee, DM pitch from the files"
+
+/* The sensor from the telemetry's header, into c unless given: WFSTYPE (a pyramid where it
+ * names one, a Shack-Hartmann where it names that), PYRMOD, PYRNMOD and WFSLAM for a
+ * pyramid. *pyr: the loops sense with a pyramid. */
+static int sensor_keys(const char *path, swfs_config *c, int *pyr)
+{
+    swfs_fits_in *f = NULL;
+    char type[72] = "", up[72];
+    int ft = 0, fm = 0, fn = 0, fl = 0;
+    double mod = 0, lam = 0;
+    long nmod = 0;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &ft);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "PYRMOD", &mod, &fm);
+    if (!rc) rc = swfs_fits_in_key_long_opt(f, "PYRNMOD", 0, 4096, &nmod, &fn);
+    if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSLAM", &lam, &fl);
+    swfs_fits_in_close(f);
+    if (rc) return rc;
+    size_t n = 0;
+    for (; type[n] && n + 1 < sizeof up; n++) up[n] = (char)toupper((unsigned char)type[n]);
+    up[n] = 0;
+    if (!swfs_config_has(c, "wfs")) {
+        const int is_pyr = ft && strstr(up, "PYR") != NULL, is_sh = ft && (!strncmp(up, "SH", 2) || strstr(up, "HARTMANN"));
+        if (!is_pyr && !is_sh)
+            return swfs_fail(SWFS_ERR_FORMAT, "%s: %s%s%s: the loops need the sensor; give it (--teach-set wfs=pyramid or "
+                             "wfs=sh)", path, ft ? "WFSTYPE = '" : "no WFSTYPE keyword", ft ? type : "", ft ? "'" : "");
+        rc = swfs_config_set_kv(c, "wfs", is_pyr ? "pyramid" : "sh");
+    }
+    const char *wfs = NULL;
+    if (!rc) rc = swfs_config_string(c, "wfs", "sh", &wfs);
+    if (rc) return rc;
+    *pyr = !strcmp(wfs, "pyramid");
+    if (!*pyr) return SWFS_OK;
+    if (!swfs_config_has(c, "pyr_mod") && !fm)
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: no PYRMOD keyword: the loops' pyramid needs its modulation radius "
+                         "(give --teach-set pyr_mod=R, in lambda/D at the sensing wavelength)", path);
+    if (!swfs_config_has(c, "wfs_wavelen") && !(fl && lam > 0))
+        return swfs_fail(SWFS_ERR_FORMAT, "%s: no WFSLAM keyword: the loops' pyramid needs its sensing wavelength "
+                         "(give --teach-set wfs_wavelen=M, in metres)", path);
+    rc = swfs_config_put_(c, "pyr_mod", "%.17g", mod);
+    if (!rc && fn) rc = swfs_config_put_(c, "pyr_nmod", "%ld", nmod);
+    if (!rc) rc = swfs_config_put_(c, "wfs_wavelen", "%.17g", lam);
+    return rc;
+}
+
+/* A layout's actuators at pitch p (hexapolar or square, as the simulator lays them out). */
+static int layout_count(int square, double p, const swfs_geom *g, size_t *n, double *nn)
+{
+    double *xy = NULL;
+    const int rc = square ? swfs_actuators_square(g->teldiam, p, g->pupdx, &xy, n)
+                          : swfs_actuators_hexapolar(g->teldiam, p, g->pupdx, &xy, n);
+    if (nn) *nn = rc ? 0 : swfs_points_pitch(xy, *n);
+    free(xy);
+    return rc;
+}
+
+/* The DM's pitch from the linear model's basis (act_pitch, unless the DM is given): the
+ * registration's pitch for a basis on the DM's grid (a square grid). On the pupil grid: the
+ * median distance m between the centroids (of their positive part) of the functions within 0.7
+ * of the pupil's radius (an actuator beyond the edge has its centroid pulled inward), the
+ * pitch of a hexapolar and of a square layout whose own median distance is m, and then within
+ * 10 % of it the pitch whose layout has the count nearest the functions' (the simulator's
+ * layouts: exact where the DM is one of them), the layout of the nearer count. A basis whose
+ * count neither comes within a quarter of (modes, not influence functions) is refused. */
+static int dm_pitch(const swfs_speckles_run_options *o, const swfs_geom *g, swfs_config *c, double *pitch)
+{
+    *pitch = 0;
+    if (swfs_config_has(c, "actuators") || swfs_config_has(c, "act_pitch")) return SWFS_OK;
+    if (o->lin.reg.pitch > 0) {
+        *pitch = o->lin.reg.pitch;
+        int rc = swfs_config_put_(c, "act_pitch", "%.17g", *pitch);
+        return rc ? rc : swfs_config_put_(c, "act_square", "1");
+    }
+    swfs_real *b = NULL;
+    int rc = swfs_fits_read_real(o->lin.basis, NULL, &b, NULL);
+    if (rc) return rc;
+    const size_t n = (size_t)g->pupn, nk = b->nz;
+    if (b->nx != n || b->ny != n) {
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the basis is %zu x %zu, not the pupil grid's %zu x %zu: the loops' DM needs "
+                       "its pitch (--dm-pitch for a basis on the DM's grid, or --teach-set act_pitch=M)", o->lin.basis,
+                       b->nx, b->ny, n, n);
+        swfs_real_free(b);
+        return rc;
+    }
+    double *xy = malloc(2 * (nk ? nk : 1) * sizeof *xy), *in = malloc(2 * (nk ? nk : 1) * sizeof *in), m = 0;
+    size_t k2 = 0, ki = 0;
+    if (!xy || !in) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    const double c0 = 0.5 * (double)(n - 1), dx = g->pupdx, R = 0.5 * g->teldiam;
+    for (size_t k = 0; !rc && k < nk; k++) {
+        const double *v = b->data + k * n * n;
+        double sw = 0, sx = 0, sy = 0;
+        for (size_t j = 0; j < n; j++)
+            for (size_t i = 0; i < n; i++) {
+                const double w = v[j * n + i] > 0 ? v[j * n + i] : 0;
+                sw += w;
+                sx += w * ((double)i - c0) * dx;
+                sy += w * ((double)j - c0) * dx;
+            }
+        if (sw > 0) {
+            xy[2 * k2] = sx / sw;
+            xy[2 * k2 + 1] = sy / sw;
+            k2++;
+        }
+    }
+    swfs_real_free(b);
+    /* the inner functions' own median distance (among themselves: their neighbours are inner
+     * too but for the ring at 0.7 R, which the median leaves aside) */
+    for (size_t k = 0; !rc && k < k2; k++)
+        if (hypot(xy[2 * k], xy[2 * k + 1]) < 0.7 * R) {
+            in[2 * ki] = xy[2 * k];
+            in[2 * ki + 1] = xy[2 * k + 1];
+            ki++;
+        }
+    if (!rc && k2 < 2) rc = swfs_fail(SWFS_ERR_VALUE, "%s: %zu functions with a positive part: no DM pitch from them "
+                                      "(give --teach-set act_pitch=M)", o->lin.basis, k2);
+    if (!rc) m = ki >= 8 ? swfs_points_pitch(in, ki) : swfs_points_pitch(xy, k2);
+    free(xy);
+    free(in);
+    if (!rc && !(m > 0 && isfinite(m))) rc = swfs_fail(SWFS_ERR_VALUE, "%s: no DM pitch from its functions' centroids "
+                                                       "(give --teach-set act_pitch=M)", o->lin.basis);
+    double best = INFINITY, bp = 0;
+    int bsq = 0;
+    size_t bn = 0, near[2] = {0, 0};
+    for (int sq = 0; !rc && sq < 2; sq++) {
+        /* the layout's pitch of median distance m (its points along a ring sit closer than
+         * its pitch, or farther) */
+        double p = m, q = 0;
+        size_t cnt = 0;
+        for (int it = 0; it < 8 && !rc; it++) {
+            rc = layout_count(sq, p, g, &cnt, &q);
+            if (rc || !(q > 0) || fabs(q - m) <= 1e-4 * m) break;
+            p *= m / q;
+        }
+        /* within 10 % of it, the count nearest the functions' (ties: the pitch nearer p) */
+        double lbest = INFINITY;
+        for (int s = -100; !rc && s <= 100; s++) {
+            const double ps = p * (1.0 + 0.001 * s);
+            if ((rc = layout_count(sq, ps, g, &cnt, NULL))) break;
+            const double d = fabs((double)cnt - (double)nk) + 1e-3 * fabs((double)s);
+            if (d < lbest) { lbest = d; near[sq] = cnt; }
+            if (d < best) { best = d; bp = ps; bsq = sq; bn = cnt; }
+        }
+    }
+    if (rc) return rc;
+    if (fabs((double)bn - (double)nk) > 0.25 * (double)nk)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: %zu functions, their centroids %.4g m apart, but a DM of about that pitch "
+                         "has at most %zu (hexapolar) or %zu (square) actuators near that: not one DM's influence "
+                         "functions? Give the loops' DM (--teach-set act_pitch=M or actuators=FILE)", o->lin.basis, nk, m,
+                         near[0], near[1]);
+    *pitch = bp;
+    rc = swfs_config_put_(c, "act_pitch", "%.17g", *pitch);
+    if (!rc && bsq) rc = swfs_config_put_(c, "act_square", "1");
+    return rc;
+}
+
+/* The layers `wind` tracks in the telemetry (nlayers, layer_speed, layer_dir, equal shares),
+ * unless given. */
+static int layers(char *const *names, size_t n, const swfs_geom *g, size_t nsub, double rate, swfs_config *c,
+                  swfs_mean_teach_result *r)
+{
+    if (swfs_config_has(c, "nlayers") || swfs_config_has(c, "layer_speed")) return SWFS_OK;
+    swfs_wind_run_options wo = {(const char *const *)names, n, NULL, (long)nsub, g->teldiam, rate};
+    swfs_wind_run_result wr;
+    int rc = swfs_wind_run(&wo, &wr);
+    if (rc) return swfs_fail_context(rc, "the loops' layers from the telemetry (wind)");
+    const swfs_wind_estimate *e = &wr.est;
+    if (!e->found || !e->nlayers)
+        return swfs_fail(SWFS_ERR_VALUE, "%s: `wind` tracked no frozen-flow layer in the telemetry (%zu subapertures with "
+                         "signal): give the loops' layers (--teach-set nlayers=N layer_speed=V,... layer_dir=DEG,...)",
+                         names[0], e->nvalid);
+    const size_t nl = e->nlayers < SWFS_TS_MAX_LAYERS ? e->nlayers : SWFS_TS_MAX_LAYERS;
+    char sp[256] = "", dir[256] = "", fr[256] = "";
+    size_t a = 0, b = 0, d = 0;
+    for (size_t l = 0; l < nl; l++) {
+        r->speed[l] = e->layer[l].speed;
+        r->direction[l] = e->layer[l].direction;
+        a += (size_t)snprintf(sp + a, sizeof sp - a, "%s%.6g", l ? "," : "", r->speed[l]);
+        b += (size_t)snprintf(dir + b, sizeof dir - b, "%s%.6g", l ? "," : "", r->direction[l]);
+        d += (size_t)snprintf(fr + d, sizeof fr - d, "%s%.6g", l ? "," : "", 1.0 / (double)nl);
+    }
+    r->nlayers = nl;
+    rc = swfs_config_put_(c, "nlayers", "%zu", nl);
+    if (!rc) rc = swfs_config_put_(c, "layer_speed", "%s", sp);
+    if (!rc) rc = swfs_config_put_(c, "layer_dir", "%s", dir);
+    if (!rc) rc = swfs_config_put_(c, "layer_frac", "%s", fr);
+    return rc;
+}
+
+/* The sensor's white noise (the telemetry's curl, wfs.h) as the loops' noise: a pyramid's
+ * photons per subaperture and frame, 1 / var (its signals' noise with N photons is 1 / sqrt N:
+ * the four images' Poisson counts over their sum), or a Shack-Hartmann's slope noise, unless
+ * given; then the loops' modal filter (ao_modes) from the knee of the telemetry's variances
+ * along the DM's modes through the loops' own sensor, unless a filter is given. */
+static int noise_and_knee(const char *path, const swfs_real *s, size_t nsub, int pyr, swfs_config *c,
+                          swfs_mean_teach_result *r)
+{
+    double var = 0;
+    int rc = swfs_slopes_white_noise(s->data, s->ny, s->nx, nsub, NULL, &var, NULL, NULL);
+    if (rc) return swfs_fail_context(rc, "the white noise of %s", path);
+    r->noise_rms = sqrt(var);
+    r->photons = r->slope_noise = NAN;
+    if (pyr && !swfs_config_has(c, "pyr_photons")) {
+        if (!(var > 0)) return swfs_fail(SWFS_ERR_VALUE, "%s: no white noise in the pyramid's signals: the loops' photons "
+                                         "cannot come from it (give --teach-set pyr_photons=N)", path);
+        r->photons = 1.0 / var;
+        rc = swfs_config_put_(c, "pyr_photons", "%.6g", r->photons);
+    } else if (!pyr && !swfs_config_has(c, "slope_noise")) {
+        r->slope_noise = r->noise_rms;
+        rc = swfs_config_put_(c, "slope_noise", "%.6g", r->slope_noise);
+    }
+    if (rc || swfs_ts_config_gives_filter(c)) return rc;
+    /* the description so far, read as the loops will be (a copy: reading marks keys used) */
+    swfs_config *cc = swfs_config_new();
+    swfs_ts_params p;
+    double *v = NULL;
+    size_t nv = 0;
+    rc = cc ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; !rc && k < swfs_config_count(c); k++) rc = swfs_config_set_kv(cc, swfs_config_key(c, k), swfs_config_value(c, k));
+    if (!rc) swfs_ts_params_default(&p);
+    if (!rc) rc = swfs_ts_params_from_config(cc, &p);
+    if (!rc) rc = swfs_ts_mode_variance(&p, s->data, s->ny, s->nx, &v, &nv);
+    if (!rc) r->knee = swfs_mode_knee(v, nv);
+    if (!rc && !r->knee)
+        rc = swfs_fail(SWFS_ERR_NUMERIC, "%s: %zu DM modes after piston, too few for the knee of their variances (at least "
+                       "6); give the loops' filter (--teach-set ao_modes=K)", path, nv);
+    if (!rc) rc = swfs_config_put_(c, "ao_modes", "%zu", r->knee);
+    free(v);
+    swfs_config_free(cc);
+    return rc ? swfs_fail_context(rc, "the loops' modal filter from %s", path) : SWFS_OK;
+}
+
+/* The description's text (mean_loops.conf): the fingerprint first, then key = value. */
+static int write_description(const char *path, const swfs_config *c, const char *fpr)
+{
+    size_t cap = 256;
+    for (size_t k = 0; k < swfs_config_count(c); k++) cap += strlen(swfs_config_key(c, k)) + strlen(swfs_config_value(c, k)) + 8;
+    char *buf = malloc(cap);
+    if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    size_t len = (size_t)snprintf(buf, cap, "# fingerprint %s\n# the loops of speckles --mean-loop teach (simulate "
+                                  "mode=timeseries keys; seeds in the fingerprint)\n", fpr);
+    for (size_t k = 0; k < swfs_config_count(c) && len < cap; k++)
+        len += (size_t)snprintf(buf + len, cap - len, "%s = %s\n", swfs_config_key(c, k), swfs_config_value(c, k));
+    const int rc = len < cap ? swfs_text_write(path, buf, len) : swfs_fail(SWFS_ERR_INTERNAL, "mean_loops.conf overflow");
+    free(buf);
+    return rc;
+}
+
+/* 1 when path's first line is the fingerprint fpr and every loop's truth.fits is there. */
+static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_t n)
+{
+    FILE *f = fopen(path, "r");
+    if (!f) return 0;
+    char line[128] = "", want[64];
+    const int ok = fgets(line, sizeof line, f) != NULL;
+    fclose(f);
+    snprintf(want, sizeof want, "# fingerprint %s\n", fpr);
+    if (!ok || strcmp(line, want)) return 0;
+    for (size_t k = 0; k < n; k++) {
+        char t[4500];
+        snprintf(t, sizeof t, "%s/truth.fits", dirs[k]);
+        if (access(t, R_OK)) return 0;
+    }
+    return 1;
+}
+
+/* The description's fingerprint: the library's version and the rule, its keys and values in
+ * order, the loops and their seed, and the contents of the files it names. */
+static int fingerprint(const swfs_config *c, size_t nloops, uint64_t seed, char out[17])
+{
+    uint64_t h = 0xcbf29ce484222325ULL;
+    h = swfs_fnv_text_(swfs_fnv_text_(h, "specklewfs " SWFS_VERSION), MEAN_TEACH_RULE);
+    for (size_t k = 0; k < swfs_config_count(c); k++)
+        h = swfs_fnv_text_(swfs_fnv_text_(h, swfs_config_key(c, k)), swfs_config_value(c, k));
+    char v[64];
+    snprintf(v, sizeof v, "loops %zu seed %" PRIu64, nloops, seed);
+    h = swfs_fnv_text_(h, v);
+    static const char *const files[] = {"actuators", "pupil_mask", "valid"};
+    int rc = SWFS_OK;
+    for (size_t k = 0; !rc && k < sizeof files / sizeof *files; k++)
+        if (swfs_config_has(c, files[k])) {
+            const char *p = NULL;
+            for (size_t i = 0; i < swfs_config_count(c); i++)
+                if (!strcmp(swfs_config_key(c, i), files[k])) p = swfs_config_value(c, i);
+            if (p) rc = swfs_fnv_file_(&h, files[k], p);
+        }
+    if (!rc) snprintf(out, 17, "%016" PRIx64, h);
+    return rc;
+}
+
+int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
+{
+    memset(r, 0, sizeof *r);
+    r->photons = r->slope_noise = NAN;
+    const double t0 = swfs_wall_seconds();
+    const size_t nl = o->mean_teach_loops;
+    char **names = calloc(t->ncubes ? t->ncubes : 1, sizeof *names);
+    size_t n = 0, total = 0;
+    int made = 0;
+    swfs_config *c = swfs_config_new();
+    swfs_real *obs = NULL;
+    double rate = 0;
+    int rc = names && c ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) rc = swfs_speckles_table_files_(t, tdir, names, &n);
+    if (!rc && !n) rc = swfs_fail(SWFS_ERR_VALUE, "%s: names no telemetry file", o->timing);
+    if (!rc) rc = swfs_speckles_work_folder_(o, r->work, sizeof r->work, &made);
+    /* the observation's length: the loops as long (their camera over all of it but the loop's
+     * first 300 frames), at least 1000 frames */
+    for (size_t k = 0; !rc && k < n; k++) {
+        swfs_fits_in *f = NULL;
+        if (!(rc = swfs_fits_in_open(&f, names[k], NULL))) total += swfs_fits_in_shape(f)->ny;
+        swfs_fits_in_close(f);
+    }
+    if (!rc) rc = swfs_telemetry_read(names[0], nslopes, &obs, &rate);
+    if (!rc && o->wfs_hz > 0) rate = o->wfs_hz;
+    if (!rc && !(rate > 0))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: no WFSRATE keyword: the loops need the WFS frame rate (give --wfs-hz)", names[0]);
+    if (!rc) rc = swfs_config_set_kv(c, "mode", "timeseries");
+    for (size_t k = 0; !rc && k < o->nteach_keys; k++) rc = swfs_config_set(c, o->teach_keys[k]);
+    const size_t loop_frames = total > 1000 ? total : 1000;
+    if (!rc) rc = swfs_config_put_(c, "wfs_rate", "%.17g", rate);
+    if (!rc) rc = swfs_config_put_(c, "frame_ratio", "10");
+    if (!rc) rc = swfs_config_put_(c, "ncubes", "1");
+    if (!rc) rc = swfs_config_put_(c, "cube_frames", "%zu", (loop_frames - 300) / 10);
+    if (!rc) rc = swfs_config_put_(c, "cube_gap", "0");
+    if (!rc) rc = swfs_config_put_(c, "wfs_file_frames", "%zu", loop_frames + 20);
+    int pyr = 0;
+    if (!rc) rc = sensor_keys(names[0], c, &pyr);
+    r->pyramid = pyr;
+    if (!rc) rc = swfs_teach_describe_geom_(c, g, NULL, o->mask, NULL, names[0]);
+    if (!rc) rc = dm_pitch(o, g, c, &r->act_pitch);
+    const size_t nsub = (size_t)llround(sqrt((double)nslopes / 2.0));
+    if (!rc) rc = layers(names, n, g, nsub, rate, c, r);
+    if (!rc) rc = noise_and_knee(names[0], obs, nsub, pyr, c, r);
+    swfs_real_free(obs);
+    char fpr[17] = "", conf[4500];
+    snprintf(conf, sizeof conf, "%s/mean_loops.conf", r->work);
+    if (!rc) rc = fingerprint(c, nl, o->teach_seed, fpr);
+    for (size_t k = 0; !rc && k < nl; k++)
+        if (snprintf(dirs[k], sizeof dirs[k], "%.4000s/mean_%02zu", r->work, k) >= (int)sizeof dirs[k])
+            rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", r->work);
+    r->nloops = nl;
+    if (!rc && !o->teach_again && made_for(conf, fpr, dirs, nl)) {
+        r->reused = r->done = 1;
+    } else if (!rc) {
+        swfs_teach_run_options to;
+        swfs_teach_run_options_default(&to);
+        (void)remove(conf); /* the loops below are not those it describes */
+        rc = swfs_ts_params_from_config(c, &to.sim);
+        if (!rc) rc = swfs_ts_params_check(&to.sim);
+        if (!rc) {
+            to.work = r->work;
+            to.seed = o->teach_seed;
+            to.prov = o->prov;
+            to.nprov = o->nprov;
+            to.progress = o->progress;
+            to.progress_ctx = o->progress_ctx;
+            rc = swfs_teach_loops_(&to, "mean", nl, "simulating the loops of the residual's mean (--mean-loop teach)");
+        }
+        if (!rc) rc = write_description(conf, c, fpr);
+        r->done = !rc;
+    }
+    if (!rc) r->loop_frames = loop_frames;
+    if (rc && made) (void)rmdir(r->work);
+    swfs_config_free(c);
+    for (size_t k = 0; names && k < n; k++) free(names[k]);
+    free(names);
+    r->seconds = swfs_wall_seconds() - t0;
+    return rc ? swfs_fail_context(rc, "speckles --mean-loop teach") : SWFS_OK;
+}
