@@ -7,7 +7,7 @@
  * (the true residual wavefront); the table gives both NCP errors and their ratio.
  *
  *   ./build/bench/bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K]
- *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn|pyramid-miss|pyramid-teach]
+ *                                 [--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-imat|pyramid-learn|pyramid-miss]
  *                                 [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] [--print-keys]
  *                                 [--band B|wfs] [--set key=value ...]
  *
@@ -49,8 +49,9 @@
  * seeds, as --control: what a pyramid system's user gets from simulations of it.
  * --kind pyramid-miss: --kind pyramid's --imat path with the same 4 loops as --mean-loop: the
  * miss of the residual's time mean by the observation's own reconstruction, from the loops.
- * --kind pyramid-teach: the same with --mean-loop teach: the loops speckles simulates itself of
- * the system the observation's files describe (no key of the bench's own given to them).
+ * --kind pyramid is speckles' default for a pyramid's telemetry: with --mean-loop teach, the
+ * loops speckles simulates itself of the system the observation's files describe (no key of
+ * the bench's own given to them); --kind pyramid-imat: --mean-loop none (the --imat path alone).
  *
  * --quick: 3 cubes of 60 frames instead of 6 of 100 (a smoke run). Nothing here is tuned:
  * every system runs with the same options; only the simulated system changes. */
@@ -114,7 +115,7 @@ static int modal_rm; /* --kind modal-rm: the same through the modal response mat
 static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
 static int pyr_learn; /* --kind pyramid-learn: the same through a map learned from loops of the system (--control) */
 static int pyr_miss;  /* --kind pyramid-miss: --imat, with the mean's miss from loops of the system (--mean-loop) */
-static int pyr_teach; /* --kind pyramid-teach: --imat, with --mean-loop teach (loops of the files' description) */
+static int pyr_imat;  /* --kind pyramid-imat: --imat alone, --mean-loop none (the default's loops left out) */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
 
@@ -421,7 +422,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
             snprintf(loopdir[k], sizeof loopdir[k], "%s/train_%d", dir, k);
             loops[k] = loopdir[k];
         }
-        sp.mean_teach = pyr_teach;
+        if (pyr_imat || pyr_learn) sp.mean_teach = 0; /* learn's map carries its own miss (MEANMISS) */
         if (pyr_miss) {
             sp.mean_loops = loops;
             sp.nmean_loops = PYR_LEARN_LOOPS;
@@ -488,8 +489,8 @@ int main(int argc, char **argv)
             pyramid = pyr_learn = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-miss"))
             pyramid = pyr_miss = 1, i++;
-        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-teach"))
-            pyramid = pyr_teach = 1, i++;
+        else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "pyramid-imat"))
+            pyramid = pyr_imat = 1, i++;
         else if (!strcmp(argv[i], "--kind") && i + 1 < argc && !strcmp(argv[i + 1], "slopes")) i++;
         else if (!strcmp(argv[i], "--vk-l0") && i + 1 < argc) vk_l0 = atof(argv[++i]);
         else if (!strcmp(argv[i], "--band") && i + 1 < argc && !strcmp(argv[i + 1], "wfs")) band_wfs = 1, i++;
@@ -503,7 +504,7 @@ int main(int argc, char **argv)
             extra_keys[nextra++] = argv[++i];
         else {
             fprintf(stderr, "usage: bench_telemetry [--quick] [--seeds N | --seed S] [--keep DIR] [--only K] "
-                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-learn|pyramid-miss|pyramid-teach] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
+                    "[--tiptilt exposure|frame] [--kind slopes|modal|modal-cm|modal-rm|pyramid|pyramid-imat|pyramid-learn|pyramid-miss] [--vk-l0 M] [--recon teach|vk|map|svd] [--truth] "
                     "[--band B|wfs] [--print-keys] [--set key=value ...]\n");
             return 2;
         }
@@ -531,8 +532,8 @@ int main(int argc, char **argv)
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            pyr_learn ? ", a modulated pyramid's signals (--basis influence.fits --control W.fits, learned from 4 loops)" :
            pyr_miss ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop x 4)" :
-           pyr_teach ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop teach)" :
-           pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits)" :
+           pyr_imat ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop none)" :
+           pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits; the default's --mean-loop teach)" :
            modal_rm ? ", modal telemetry with its response matrix (modal-slopes --imat, --valid)" :
            modal_cm ? ", modal telemetry with its control matrix (modal-slopes, --valid)" :
            modal ? ", modal telemetry (--basis)" : "");

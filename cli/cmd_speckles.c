@@ -63,8 +63,9 @@ static int special(void *ctx, int argc, char **argv, int *i)
         if (cli_take_string(cmd, argc, argv, i, "key=value", &v)) return -CLI_USAGE;
         d->tkeys[o->nteach_keys++] = v;
     } else if (!strcmp(a, "--mean-loop")) {
-        if (cli_take_string(cmd, argc, argv, i, "a folder (or teach)", &v)) return -CLI_USAGE;
+        if (cli_take_string(cmd, argc, argv, i, "a folder (or teach, none)", &v)) return -CLI_USAGE;
         if (!strcmp(v, "teach")) o->mean_teach = 1; /* loops speckles simulates itself */
+        else if (!strcmp(v, "none")) o->mean_teach = 0; /* not even a pyramid's default */
         else d->mloops[o->nmean_loops++] = v;
     } else if (!strcmp(a, "--match")) {
         if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");

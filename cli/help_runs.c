@@ -11,7 +11,7 @@ static const char *speckles_usage_text =
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
-    "                           [--mean-loop DIR... | --mean-loop teach]\n"
+    "                           [--mean-loop DIR... | teach | none]\n"
     "       specklewfs speckles TIMING.txt --science SCIENCE.fits --basis CUBE.fits [--control C.fits | --imat D.fits]\n"
     "                           [--dm-pitch M --dm-offset X,Y --dm-rot DEG --dm-flip] [--coef-scale S] -o SPECKLES.fits\n"
     "\n"
@@ -114,7 +114,10 @@ static const char *speckles_usage_mean =
     "                      and modal filter from the telemetry; the DM's pitch from --basis;\n"
     "                      --teach-set KEY=VALUE for the rest), --mean-teach-loops N (4) of\n"
     "                      them, in --teach-work (OUT.teach) and reused while the description\n"
-    "                      is the same (--teach-again: anew)\n";
+    "                      is the same (--teach-again: anew). The default for a pyramid's\n"
+    "                      telemetry (WFSTYPE) with --basis: where the files do not describe\n"
+    "                      the loops, a note says why and the run goes on without them\n"
+    "  --mean-loop none    no loops, not even a pyramid's default\n";
 
 void cli_help_speckles(void)
 {

@@ -132,10 +132,14 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             r->ncubes, r->info.recon_modes, r->info.n_outside, o->out);
     fprintf(stderr, "%s: the AO residual's time mean over these frames %.1f nm rms (RESMEAN; pupil takes it out of the "
             "NCP)\n", cmd, r->resmean_rms * 1e9);
-    const size_t nml = o->mean_teach ? o->mean_teach_loops : o->nmean_loops;
-    if (o->mean_teach && r->mean_teach.done) {
-        const swfs_mean_teach_result *m = &r->mean_teach;
-        fprintf(stderr, "%s: --mean-loop teach: %zu loops of %zu WFS frames %s (%s, %.0f s): a %s", cmd, m->nloops,
+    const swfs_mean_teach_result *m = &r->mean_teach;
+    const size_t nml = m->done ? m->nloops : o->nmean_loops;
+    if (m->fallback[0])
+        fprintf(stderr, "%s: note: a pyramid's telemetry, but no loops of the system for the residual mean's miss "
+                "(--mean-loop teach, the default for it): %s; the mean as the reconstruction gives it\n", cmd, m->fallback);
+    if (m->done) {
+        fprintf(stderr, "%s: --mean-loop teach%s: %zu loops of %zu WFS frames %s (%s, %.0f s): a %s", cmd,
+                m->automatic ? " (the default for a pyramid's telemetry; --mean-loop none: without)" : "", m->nloops,
                 m->loop_frames, m->reused ? "reused, made for the same description" : "simulated", m->work, m->seconds,
                 m->pyramid ? "pyramid" : "Shack-Hartmann");
         if (isfinite(m->photons)) fprintf(stderr, ", %.0f photons per subaperture and frame (its noise %.3g)", m->photons,

@@ -4,9 +4,10 @@
 # sync times the science frames from the signals (ratio and lag as from true timing), and the
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
-# series), `stream` the same within 5 % (measured equal); `--mean-loop teach` reads the system
-# from the files (photons, knee, DM pitch asserted) for the loops it simulates, reuses them on a
-# second run, and stays within 2x (measured 24.4 -> 19.6 nm). The Shack-Hartmann model refuses the
+# series, --mean-loop none), `stream` the same within 5 % (measured equal); by default speckles
+# reads the system from the files (photons, knee, DM pitch asserted) for loops it simulates of
+# it (--mean-loop teach), reuses them on a second run, and stays within 2x (measured 24.4 ->
+# 19.6 nm). The Shack-Hartmann model refuses the
 # signals (speckles --actuators, teach) naming the file and what describes them; export_modal
 # and an unknown wfs are refused.
 # usage: bash cli_pyramid.sh <specklewfs> <scratch dir>
@@ -26,8 +27,9 @@ reduce_sync "$D" --ratio-min 5 --ratio-max 8
 ratio=$(awk '$1 == "ratio" { print $2 }' "$D/timing.txt")
 awk -v r="$ratio" 'BEGIN { exit !(r > 6.47 && r < 6.49) }' || fail "sync on the pyramid's signals: ratio $ratio (true 6.48)"
 pyr=(--basis "$S/influence.fits" --imat "$S/imat_ao.fits")
-"$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" -o "$D/speckles.fits" \
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop none -o "$D/speckles.fits" \
     --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles --imat"; }
+grep -q -- "--mean-loop teach" "$D/speckles.log" && { cat "$D/speckles.log"; fail "--mean-loop none made loops"; }
 grep -q "interaction matrix, MAP reconstructor" "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles: the model"; }
 "$B" estimate "$D/sci_m.fits" "$D/speckles.fits" -o "$D/halo.fits" > "$D/estimate.log" 2>&1 || fail "estimate"
 "$B" pupil "$D/halo.fits" -o "$D/pupil.fits" --truth "$S/truth.fits" > "$D/pupil.log" || fail "pupil"
@@ -43,13 +45,15 @@ awk -v e="$e" -v i="$i" 'BEGIN { exit !(e > 0 && i > 0 && e < 2 * i) }' || fail 
 es=$(ncp_error "$D/stream_pupil.log")
 echo "cli_pyramid: stream --basis --imat: NCP error $es nm" >&2
 awk -v a="$es" -v b="$e" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' || fail "stream: $es nm against $e nm"
-# --mean-loop teach: loops of the system the files describe (2, for the time), simulated by
-# speckles: the pyramid from WFSTYPE/PYRMOD/WFSLAM, photons from the signals' noise (true 1000),
-# the DM's pitch from the basis (0.45 m), the knee (56 modes); the second run reuses them
-mt=(--mean-loop teach --mean-teach-loops 2 --teach-work "$D/tw")
+# the default for a pyramid's telemetry, --mean-loop teach: loops of the system the files
+# describe (2, for the time), simulated by speckles: the pyramid from WFSTYPE/PYRMOD/WFSLAM,
+# photons from the signals' noise (true 1000), the DM's pitch from the basis (0.45 m), the knee
+# (56 modes); the second run (asked for by name) reuses them
+mt=(--mean-teach-loops 2 --teach-work "$D/tw")
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" -o "$D/speckles_mt.fits" \
     --match "$D/science.fits" "$D/sci_mt.fits" 2> "$D/speckles_mt.log" || { cat "$D/speckles_mt.log"; fail "--mean-loop teach"; }
-line=$(grep -- "--mean-loop teach: 2 loops" "$D/speckles_mt.log") || { cat "$D/speckles_mt.log"; fail "no description line"; }
+line=$(grep -- "--mean-loop teach (the default for a pyramid's telemetry; --mean-loop none: without): 2 loops" \
+    "$D/speckles_mt.log") || { cat "$D/speckles_mt.log"; fail "no description line"; }
 ph=$(sed -n 's/.*pyramid, \([0-9]*\) photons per subaperture.*/\1/p' <<< "$line")
 kn=$(sed -n 's/.* \([0-9]*\) modes controlled.*/\1/p' <<< "$line")
 pt=$(sed -n 's/.*DM pitch \([0-9.]*\) m.*/\1/p' <<< "$line")
@@ -57,7 +61,7 @@ echo "cli_pyramid: --mean-loop teach: $ph photons, knee $kn, pitch $pt m" >&2
 awk -v p="$ph" -v k="$kn" -v t="$pt" 'BEGIN { exit !(p > 700 && p < 1400 && k >= 53 && k <= 59 && t > 0.44 && t < 0.46) }' \
     || { echo "$line"; fail "the description read from the files"; }
 grep -q "simulated loops (--mean-loop): held out" "$D/speckles_mt.log" || { cat "$D/speckles_mt.log"; fail "no held-out line"; }
-"$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" -o "$D/speckles_mt2.fits" \
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" --mean-loop teach -o "$D/speckles_mt2.fits" \
     2> "$D/speckles_mt2.log" || { cat "$D/speckles_mt2.log"; fail "--mean-loop teach, again"; }
 grep -q -- "--mean-loop teach: 2 loops .* reused" "$D/speckles_mt2.log" || { cat "$D/speckles_mt2.log"; fail "not reused"; }
 "$B" estimate "$D/sci_mt.fits" "$D/speckles_mt.fits" -o "$D/halo_mt.fits" > "$D/estimate_mt.log" 2>&1 || fail "estimate (mt)"

@@ -200,22 +200,32 @@ typedef struct swfs_speckles_run_options {
                                  others' mean predicts each loop's, added to RESMEAN (then it
                                  takes the place of a map's MEANMISS); docs/telemetry.md */
     size_t nmean_loops;
-    int mean_teach;           /* 1 (--mean-loop teach): the mean loops simulated by speckles itself,
-                                 mean_teach_loops of them (4; 2..SWFS_MEAN_TEACH_MAX), of the system
-                                 the observation's files describe (swfs_mean_teach_result below),
-                                 in the teach folder (teach_work) as mean_NN, seeds teach_seed + k,
-                                 and reused while their fingerprint is this run's (teach_again:
-                                 anew); with the linear model (lin.basis), not with mean_loops */
+    int mean_teach;           /* the mean loops simulated by speckles itself, mean_teach_loops of them
+                                 (4; 2..SWFS_MEAN_TEACH_MAX), of the system the observation's files
+                                 describe (swfs_mean_teach_result below), in the teach folder
+                                 (teach_work) as mean_NN, seeds teach_seed + k, and reused while
+                                 their fingerprint is this run's (teach_again: anew).
+                                 SWFS_MEAN_TEACH_AUTO (the default): for a pyramid's telemetry
+                                 (WFSTYPE) through the linear model, without mean_loops, at camera
+                                 exposures and alone (not in a team); where the files do not
+                                 describe the loops, without them and saying why (fallback).
+                                 1 (--mean-loop teach): with the linear model, whatever the sensor,
+                                 failing where the files do not describe the loops; not with
+                                 mean_loops. 0 (--mean-loop none): never */
     size_t mean_teach_loops;
 } swfs_speckles_run_options;
 
 #define SWFS_MEAN_TEACH_MAX 16
+#define SWFS_MEAN_TEACH_AUTO (-1)
 
 /* What `speckles --mean-loop teach` read from the observation's files for the loops it
  * simulates (docs/telemetry.md, "The mean's miss from loops speckles simulates"); each item
  * the user gives (teach_keys) is taken as given and marked 0 / NAN here. */
 typedef struct swfs_mean_teach_result {
     int done, reused;         /* the loops made (or reused: their fingerprint is this run's) */
+    int automatic;            /* SWFS_MEAN_TEACH_AUTO chose them (a pyramid's telemetry) */
+    char fallback[1024];      /* SWFS_MEAN_TEACH_AUTO on a pyramid's telemetry: why there are no
+                                 loops (the files do not describe them, a team), "" otherwise */
     size_t nloops, loop_frames;
     int pyramid;              /* the loops sense with a pyramid (WFSTYPE, or wfs= given) */
     double noise_rms;         /* the telemetry's white noise per value (its curl, wfs.h) */

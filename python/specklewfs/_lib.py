@@ -335,7 +335,7 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
 swfs_mean_teach_result = _s("swfs_mean_teach_result", [
-    ("done", c_int), ("reused", c_int), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),
+    ("done", c_int), ("reused", c_int), ("automatic", c_int), ("fallback", ctypes.c_char * 1024), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),
     ("noise_rms", c_dbl), ("photons", c_dbl), ("slope_noise", c_dbl), ("knee", c_size), ("nlayers", c_size),
     ("speed", c_dbl * WIND_MAXLAYERS), ("direction", c_dbl * WIND_MAXLAYERS), ("act_pitch", c_dbl),
     ("seconds", c_dbl), ("work", ctypes.c_char * 4200)])

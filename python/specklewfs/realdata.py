@@ -433,7 +433,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     telemetry's header, its noise, layers and modal filter from the telemetry, the DM's pitch
     from the basis; teach_keys for the rest), in teach_work and reused while that description
     is the same (teach_again: anew); returned as mean_teach (a dict: what was read, the loops'
-    folder), None otherwise."""
+    folder; automatic when the default chose them, fallback why it could not), None otherwise.
+    The default (mean_loops=None) does so for a pyramid's telemetry (WFSTYPE) through linear,
+    and where the files do not describe the loops goes on without them, warning why;
+    mean_loops='none': never."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -454,10 +457,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     o.teach_again = int(bool(teach_again))
     tkeys = [f"{k}={_cfg_value(v)}" for k, v in (teach_keys or {}).items()]
     o.teach_keys, o.nteach_keys = _lib.strings(tkeys)  # kept alive by o until the run returns
-    if isinstance(mean_loops, str) and mean_loops == "teach":
-        o.mean_teach, mean_loops = 1, None
+    if isinstance(mean_loops, str) and mean_loops in ("teach", "none"):
+        o.mean_teach, mean_loops = int(mean_loops == "teach"), None
     elif isinstance(mean_loops, (str, bytes, os.PathLike)):
-        raise ValueError("speckles: mean_loops takes a list of folders or 'teach'")
+        raise ValueError("speckles: mean_loops takes a list of folders, 'teach' or 'none'")
     if mean_teach_loops is not None:  # None: the library's default (4)
         o.mean_teach_loops = int(mean_teach_loops)
     mloops = [os.fspath(m) for m in (mean_loops or ())]
@@ -495,8 +498,11 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d["curl_noise"] = r.curl_noise
     d["meanmiss_rms"], d["meanmiss_heldout"] = r.meanmiss_rms, r.meanmiss_heldout
     m = r.mean_teach
+    if m.fallback:
+        warnings.warn("speckles: a pyramid's telemetry, but no loops of the system for the residual mean's miss: "
+                      f"{m.fallback.decode()}", RuntimeWarning, stacklevel=2)
     d["mean_teach"] = None if not m.done else dict(
-        reused=bool(m.reused), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
+        reused=bool(m.reused), automatic=bool(m.automatic), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
         noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
         layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch, seconds=m.seconds,
         work=m.work.decode())

@@ -463,7 +463,7 @@ def test_pyramid_timeseries(tmp_path):
     lin = dict(basis=str(d / "influence.fits"), imat=str(d / "imat_ao.fits"))
     t = sw.sync(sci, str(d / "handshake.log"), timing, linear=lin)
     assert abs(t["ratio"] - 6.48) < 0.02
-    sp = sw.speckles(timing, sci, None, str(tmp_path / "sp.fits"), linear=lin)
+    sp = sw.speckles(timing, sci, None, str(tmp_path / "sp.fits"), linear=lin, mean_loops="none")
     assert sp["nout"] == 60 and sp["info"]["nbasis"] == r["nact"] and "taught" not in sp
     # a control matrix carrying a miss of the residual's mean (learn's MEANMISS, here a tilt-free
     # pattern of 20 nm on the actuators: astigmatism): speckles adds it through the basis
@@ -471,8 +471,10 @@ def test_pyramid_timeseries(tmp_path):
     c = 20e-9 * (xy[:, 0] ** 2 - xy[:, 1] ** 2) / np.max(xy[:, 0] ** 2 + xy[:, 1] ** 2)
     C = sw.read_fits(str(d / "recon_ao.fits"))[0]
     sw.write_fits(str(tmp_path / "Cmm.fits"), {"C": C, "MEANMISS": c[None, :]})
-    a0 = sw.speckles(timing, sci, None, str(tmp_path / "a0.fits"), linear=dict(basis=lin["basis"], control=str(d / "recon_ao.fits")))
-    a1 = sw.speckles(timing, sci, None, str(tmp_path / "a1.fits"), linear=dict(basis=lin["basis"], control=str(tmp_path / "Cmm.fits")))
+    a0 = sw.speckles(timing, sci, None, str(tmp_path / "a0.fits"), linear=dict(basis=lin["basis"], control=str(d / "recon_ao.fits")),
+                     mean_loops="none")
+    a1 = sw.speckles(timing, sci, None, str(tmp_path / "a1.fits"), linear=dict(basis=lin["basis"], control=str(tmp_path / "Cmm.fits")),
+                     mean_loops="none")
     assert a0["meanmiss_rms"] == 0 and 2e-9 < a1["meanmiss_rms"] < 20e-9
     diff = sw.read_fits(str(tmp_path / "a1.fits"), "RESMEAN")[0] - sw.read_fits(str(tmp_path / "a0.fits"), "RESMEAN")[0]
     F2 = np.tensordot(c, F, axes=(0, 0))  # the pattern through the influence functions
@@ -495,23 +497,30 @@ def test_pyramid_timeseries(tmp_path):
     with pytest.raises(sw.Error, match="needs at least 2 simulated loops"):
         sw.speckles(timing, sci, None, str(tmp_path / "m2.fits"), linear=lin, mean_loops=[str(d)])
     assert not os.path.exists(tmp_path / "m2.fits")
-    # mean_loops='teach': loops speckles simulates itself (two, for the time) of the system the
-    # files describe: the pyramid's keys from the header, its photons from the signals' white
-    # noise (the simulator's 1000), the DM's pitch from the basis's centroids (0.45 m, hexapolar),
-    # the filter's knee through the pyramid's own interaction matrix (56 modes), the layers from
-    # `wind`; a second run with the same description reuses them, to the same result
+    # the default for a pyramid's telemetry (mean_loops='teach' by name): loops speckles simulates
+    # itself (two, for the time) of the system the files describe: the pyramid's keys from the
+    # header, its photons from the signals' white noise (the simulator's 1000), the DM's pitch
+    # from the basis's centroids (0.45 m, hexapolar), the filter's knee through the pyramid's own
+    # interaction matrix (56 modes), the layers from `wind`; a second run with the same
+    # description reuses them, to the same result
     tw = str(tmp_path / "tw")
-    t1 = sw.speckles(timing, sci, None, str(tmp_path / "t1.fits"), linear=lin, mean_loops="teach", mean_teach_loops=2,
-                     teach_work=tw)
+    t1 = sw.speckles(timing, sci, None, str(tmp_path / "t1.fits"), linear=lin, mean_teach_loops=2, teach_work=tw)
     mt = t1["mean_teach"]
-    assert mt["pyramid"] and not mt["reused"] and mt["nloops"] == 2 and mt["loop_frames"] >= 1000
+    assert mt["pyramid"] and mt["automatic"] and not mt["reused"] and mt["nloops"] == 2 and mt["loop_frames"] >= 1000
     assert 700 < mt["photons"] < 1400 and mt["act_pitch"] == pytest.approx(0.45, rel=0.02)
     assert abs(mt["knee"] - 56) <= 3 and len(mt["layers"]) >= 1 and np.isfinite(t1["meanmiss_heldout"])
     assert sp["mean_teach"] is None and os.path.isfile(os.path.join(tw, "mean_loops.conf"))
     t2 = sw.speckles(timing, sci, None, str(tmp_path / "t2.fits"), linear=lin, mean_loops="teach", mean_teach_loops=2,
                      teach_work=tw)
-    assert t2["mean_teach"]["reused"] and t2["meanmiss_heldout"] == t1["meanmiss_heldout"]
+    assert t2["mean_teach"]["reused"] and not t2["mean_teach"]["automatic"]
+    assert t2["meanmiss_heldout"] == t1["meanmiss_heldout"]
     assert t2["meanmiss_rms"] == t1["meanmiss_rms"]
+    # where the loops cannot be made (here their folder: under a file), the default goes on
+    # without them, saying why
+    (tmp_path / "afile").write_text("x")
+    with pytest.warns(RuntimeWarning, match="no loops of the system .*cannot create the teach folder"):
+        t4 = sw.speckles(timing, sci, None, str(tmp_path / "t4.fits"), linear=lin, teach_work=str(tmp_path / "afile" / "tw"))
+    assert t4["mean_teach"] is None and np.isnan(t4["meanmiss_heldout"]) and os.path.isfile(tmp_path / "t4.fits")
     with pytest.raises(sw.Error, match="--mean-loop teach goes with the linear model"):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "t3.fits"), mean_loops="teach")
     with pytest.raises(sw.Error, match="--mean-teach-loops must be 2"):

@@ -87,8 +87,9 @@ int swfs_telemetry_check_sh(const char *path, const char *what)
     if (!rc && found && strncmp(up, "SH", 2) && !strstr(up, "HARTMANN"))
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: WFSTYPE = '%s': not a Shack-Hartmann's slopes, which %s models; a "
                        "pyramid's (or any sensor's) signals go through the linear model: --basis INFLUENCE.fits with "
-                       "--imat D.fits (the interaction matrix) or --control C.fits, and with simulated loops of the "
-                       "system speckles' --mean-loop DIR... (docs/telemetry.md, \"A pyramid wavefront sensor\")", path,
+                       "--imat D.fits (the interaction matrix) or --control C.fits, with which speckles simulates loops of "
+                       "the system for the residual mean's miss (--mean-loop teach, its default for a pyramid; "
+                       "docs/telemetry.md, \"A pyramid wavefront sensor\")", path,
                        type, what);
     return rc;
 }

@@ -62,17 +62,19 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
         FAIL("--teach-loops, --teach-max-loops and --teach-keep-loops go with --recon teach (the default with "
              "--actuators)");
     if ((o->teach_work || o->teach_seed != d.teach_seed || o->teach_again || o->nteach_keys) && !taught &&
-        !o->mean_teach)
+        !(basis && o->mean_teach))
         FAIL("--teach-work, --teach-seed, --teach-again and --teach-set go with --recon teach (the default with "
              "--actuators) or --mean-loop teach");
-    if (o->mean_teach) {
+    if (o->mean_teach != 0 && o->mean_teach != 1 && o->mean_teach != SWFS_MEAN_TEACH_AUTO)
+        FAIL("mean_teach must be 0, 1 or SWFS_MEAN_TEACH_AUTO (-1), got %d", o->mean_teach);
+    if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
+        FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
+             SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
+    if (o->mean_teach == 1) {
         if (!basis)
             FAIL("--mean-loop teach goes with the linear model (--basis); with --actuators the default teaches its map "
                  "from loops of the system already");
         if (o->nmean_loops) FAIL("--mean-loop takes loops' folders or teach, not both");
-        if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
-            FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
-                 SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
         if (p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
         if (o->team && o->team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
     }

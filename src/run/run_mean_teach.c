@@ -13,6 +13,7 @@
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/table.h"
+#include "specklewfs/team.h"
 #include "specklewfs/timeseries.h"
 #include "specklewfs/version.h"
 #include "specklewfs/wfs.h"
@@ -320,11 +321,9 @@ static int fingerprint(const swfs_config *c, size_t nloops, uint64_t seed, char 
     return rc;
 }
 
-int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
+static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
+                      size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
 {
-    memset(r, 0, sizeof *r);
-    r->photons = r->slope_noise = NAN;
     const double t0 = swfs_wall_seconds();
     const size_t nl = o->mean_teach_loops;
     char **names = calloc(t->ncubes ? t->ncubes : 1, sizeof *names);
@@ -400,4 +399,49 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
     free(names);
     r->seconds = swfs_wall_seconds() - t0;
     return rc ? swfs_fail_context(rc, "speckles --mean-loop teach") : SWFS_OK;
+}
+
+/* 1 when the loops' sensor is a pyramid: given (--teach-set wfs=pyramid), else the first
+ * telemetry file's WFSTYPE names one. */
+static int pyramid_telemetry(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir)
+{
+    for (size_t k = 0; k < o->nteach_keys; k++)
+        if (!strncmp(o->teach_keys[k], "wfs=", 4)) return !strcmp(o->teach_keys[k] + 4, "pyramid");
+    char path[8192], type[72] = "";
+    int found = 0;
+    swfs_fits_in *f = NULL;
+    if (!t->ncubes || swfs_telemetry_path(tdir, t->cubes[0].slopes, path, sizeof path) ||
+        swfs_fits_in_open(&f, path, NULL)) {
+        swfs_clear_error();
+        return 0;
+    }
+    const int rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &found);
+    swfs_fits_in_close(f);
+    if (rc) swfs_clear_error();
+    for (char *q = type; *q; q++) *q = (char)toupper((unsigned char)*q);
+    return !rc && found && strstr(type, "PYR") != NULL;
+}
+
+int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
+{
+    memset(r, 0, sizeof *r);
+    r->photons = r->slope_noise = NAN;
+    if (o->mean_teach != SWFS_MEAN_TEACH_AUTO) return mean_teach(o, t, tdir, g, nslopes, r, dirs);
+    /* the default: a pyramid's telemetry only; where the loops cannot be made, without them,
+     * saying why */
+    if (!pyramid_telemetry(o, t, tdir)) return SWFS_OK;
+    r->automatic = 1;
+    if (o->team && o->team->size > 1) {
+        snprintf(r->fallback, sizeof r->fallback, "speckles in a team of %d runs without them (each member would "
+                 "simulate them); --mean-loop DIR... with loops simulated once", o->team->size);
+        return SWFS_OK;
+    }
+    const int rc = mean_teach(o, t, tdir, g, nslopes, r, dirs);
+    if (rc) {
+        snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());
+        swfs_clear_error();
+        r->done = 0;
+    }
+    return SWFS_OK;
 }

@@ -28,6 +28,7 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     o->teach_loops = 12;
     o->teach_seed = 101;
     o->mean_teach_loops = 4;
+    o->mean_teach = SWFS_MEAN_TEACH_AUTO;
 }
 
 static size_t piece(const swfs_speckles_run_options *o) { return o->batch ? o->batch : 128; }
@@ -691,11 +692,13 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     /* --mean-loop teach: the loops of the system the files describe, simulated (or reused) as
      * the mean loops (run_mean_teach.c) */
     const char *mt_ptr[SWFS_MEAN_TEACH_MAX];
-    char (*dirs)[4400] = o->mean_teach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
-    if (!rc && o->mean_teach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc && o->mean_teach) {
-        rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs);
-        for (size_t k = 0; !rc && k < o->mean_teach_loops; k++) mt_ptr[k] = dirs[k];
+    const int mteach = o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO && o->lin.basis && !o->nmean_loops &&
+                                              !o->pipe.wfs_rate);
+    char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
+    if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && mteach) rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs);
+    if (!rc && r->mean_teach.done) {
+        for (size_t k = 0; k < o->mean_teach_loops; k++) mt_ptr[k] = dirs[k];
         oo.mean_loops = mt_ptr;
         oo.nmean_loops = o->mean_teach_loops;
     }
