@@ -440,12 +440,6 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
     return rc;
 }
 
-/* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
- * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
- * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
- * slopes_NNN.fits), piston, tip and tilt removed from both; held out as learn's MEANMISS
- * (the others' mean against each loop's, over the pupil's samples), and their mean the
- * pipeline's mean offset where it predicts (ratio < 1). */
 /* A simulated loop's first WFS frame in an exposure (its truth_timing.txt: the earliest cube's
  * start), 0 without the file: the frames before it (the loop closing from a flat DM) are not in
  * its truth's mean, nor then in its telemetry's. */
@@ -463,6 +457,12 @@ static size_t loop_first_frame(const char *dir)
     return isfinite(first) ? (size_t)floor(first) : 0;
 }
 
+/* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
+ * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
+ * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
+ * slopes_NNN.fits frame from the first exposure's start on, loop_first_frame), piston, tip and tilt removed from both; held out as learn's MEANMISS
+ * (the others' mean against each loop's, over the pupil's samples), and their mean the
+ * pipeline's mean offset where it predicts (ratio < 1). */
 static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;

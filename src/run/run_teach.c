@@ -147,9 +147,7 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
     return SWFS_OK;
 }
 
-/* A loop layer's speed about v: within a factor sqrt 2 of it, log-uniform (one draw of g). The
- * loops of both paths take their speeds so: a map learned from loops of one speed fits that
- * speed's frames too closely (docs/telemetry.md, "Loops at speeds about the layers'"). */
+/* run_internal.h: n loops of the description as it is (speckles --mean-loop teach). */
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t n, const char *what)
 {
     loop_job *jobs = calloc(n ? n : 1, sizeof *jobs);
@@ -172,6 +170,9 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
     return rc;
 }
 
+/* A loop layer's speed about v: within a factor sqrt 2 of it, log-uniform (one draw of g). The
+ * loops of both paths take their speeds so: a map learned from loops of one speed fits that
+ * speed's frames too closely (docs/telemetry.md, "Loops at speeds about the layers'"). */
 static double speed_about(double v, swfs_rng *g)
 {
     return v * pow(2.0, swfs_rng_uniform(g) - 0.5);
