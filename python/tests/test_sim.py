@@ -484,7 +484,8 @@ def test_pyramid_timeseries(tmp_path):
     # the miss of the observation's own reconstruction from simulated loops (mean_loops): here
     # the run itself twice, so the loops agree (held out 0) and the miss added is its own: the
     # mean taken out comes nearer the true one (truth.fits RESMEAN, over the camera's frames:
-    # measured 11.0 nm off against 27.7 without; the loop's mean is over all its frames)
+    # measured 6.7 nm off against 27.7 without, the loop's telemetry averaged from its first
+    # exposure's start as its truth is; 11.0 over all its frames, the loop's closing included)
     m1 = sw.speckles(timing, sci, None, str(tmp_path / "m1.fits"), linear=lin, mean_loops=[str(d), str(d)])
     assert m1["meanmiss_heldout"] == pytest.approx(0, abs=1e-12) and m1["meanmiss_rms"] > 0 and np.isnan(sp["meanmiss_heldout"])
     true = sw.read_fits(str(d / "truth.fits"), "RESMEAN")[0]
