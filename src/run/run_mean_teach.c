@@ -405,8 +405,18 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
  * telemetry file's WFSTYPE names one. */
 static int pyramid_telemetry(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir)
 {
-    for (size_t k = 0; k < o->nteach_keys; k++)
-        if (!strncmp(o->teach_keys[k], "wfs=", 4)) return !strcmp(o->teach_keys[k] + 4, "pyramid");
+    /* the last wfs= given wins, as in the loops' description (the config's set) */
+    swfs_config *c = swfs_config_new();
+    int given = 0, pyr = 0;
+    for (size_t k = 0; c && k < o->nteach_keys; k++)
+        if (swfs_config_set(c, o->teach_keys[k])) swfs_clear_error();
+    if (c && swfs_config_has(c, "wfs")) {
+        const char *v = NULL;
+        given = !swfs_config_string(c, "wfs", "sh", &v);
+        pyr = given && !strcmp(v, "pyramid");
+    }
+    swfs_config_free(c);
+    if (given) return pyr;
     char path[8192], type[72] = "";
     int found = 0;
     swfs_fits_in *f = NULL;
