@@ -65,6 +65,11 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
 /* A telemetry file's NSUB keyword, when it has one, against the model's nsub
  * (SWFS_ERR_VALUE naming the file and both values). */
 int swfs_telemetry_check_nsub(const char *path, size_t nsub);
+/* The sensor a telemetry file's WFSTYPE names: SWFS_WFS_SH ("SH...", "...HARTMANN...", any
+ * case), SWFS_WFS_PYRAMID ("...PYR..."), SWFS_WFS_OTHER (another name) or SWFS_WFS_UNNAMED (no
+ * keyword); type (cap bytes, may be NULL): the keyword's text as written. */
+enum { SWFS_WFS_UNNAMED = 0, SWFS_WFS_SH, SWFS_WFS_PYRAMID, SWFS_WFS_OTHER };
+int swfs_telemetry_sensor(const char *path, int *kind, char *type, size_t cap);
 /* Telemetry a Shack-Hartmann model may take: a file whose WFSTYPE names another sensor (a
  * pyramid's signals, `simulate wfs=pyramid`: WFSTYPE = 'PYRAMID') is SWFS_ERR_FORMAT, naming
  * it, `what` (the model refusing it) and the linear model that does describe it (--basis with

@@ -71,26 +71,35 @@ int swfs_telemetry_check_nsub(const char *path, size_t nsub)
     return rc;
 }
 
-int swfs_telemetry_check_sh(const char *path, const char *what)
+int swfs_telemetry_sensor(const char *path, int *kind, char *type, size_t cap)
 {
     swfs_fits_in *f = NULL;
     int found = 0;
-    char type[72] = "";
+    char t[72] = "", up[72];
     int rc = swfs_fits_in_open(&f, path, NULL);
-    if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &found);
+    if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", t, sizeof t, &found);
     swfs_fits_in_close(f);
-    /* a Shack-Hartmann by name: "SH..." or "...HARTMANN..." in any case */
-    char up[72];
     size_t n = 0;
-    for (; type[n] && n + 1 < sizeof up; n++) up[n] = (char)toupper((unsigned char)type[n]);
+    for (; t[n] && n + 1 < sizeof up; n++) up[n] = (char)toupper((unsigned char)t[n]);
     up[n] = 0;
-    if (!rc && found && strncmp(up, "SH", 2) && !strstr(up, "HARTMANN"))
+    *kind = rc || !found ? SWFS_WFS_UNNAMED
+            : !strncmp(up, "SH", 2) || strstr(up, "HARTMANN") ? SWFS_WFS_SH
+            : strstr(up, "PYR") ? SWFS_WFS_PYRAMID : SWFS_WFS_OTHER;
+    if (type && cap) snprintf(type, cap, "%s", t);
+    return rc;
+}
+
+int swfs_telemetry_check_sh(const char *path, const char *what)
+{
+    int kind = 0;
+    char type[72];
+    int rc = swfs_telemetry_sensor(path, &kind, type, sizeof type);
+    if (!rc && kind != SWFS_WFS_UNNAMED && kind != SWFS_WFS_SH)
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: WFSTYPE = '%s': not a Shack-Hartmann's slopes, which %s models; a "
                        "pyramid's (or any sensor's) signals go through the linear model: --basis INFLUENCE.fits with "
                        "--imat D.fits (the interaction matrix) or --control C.fits, with which speckles simulates loops of "
                        "the system for the residual mean's miss (--mean-loop teach, its default for a pyramid; "
-                       "docs/telemetry.md, \"A pyramid wavefront sensor\")", path,
-                       type, what);
+                       "docs/telemetry.md, \"A pyramid wavefront sensor\")", path, type, what);
     return rc;
 }
 

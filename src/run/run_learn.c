@@ -6,6 +6,7 @@
 #include "specklewfs/parallel.h"
 #include "run_internal.h"
 
+#include <cblas.h>
 #include <limits.h>
 #include <math.h>
 #include <stdatomic.h>
@@ -478,7 +479,7 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
 {
     *off = NULL;
     const size_t ns = r->nslopes, na = r->nact, nd = o->ndirs, nl = o->nlags > 1 ? o->nlags : 1;
-    double *ms = malloc(ns * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
+    double *ms = malloc(ns * nl * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
     int rc = ms && mt && miss ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     for (size_t d = 0; !rc && d < nd; d++) {
         memset(ms, 0, ns * sizeof *ms);
@@ -504,14 +505,13 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
             swfs_real_free(z);
         }
         if (rc || !nf) continue;
+        /* the stacked input: the mean at every lag; m = (truth's sum - W input) / nf */
+        for (size_t k = 1; k < nl; k++) memcpy(ms + k * ns, ms, ns * sizeof *ms);
         double *m = miss + d * na, pm = 0;
+        memcpy(m, mt, na * sizeof *m);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)na, (int)(ns * nl), -1.0, w->W, (int)(ns * nl), ms, 1, 1.0, m, 1);
         for (size_t a = 0; a < na; a++) {
-            double y = 0;
-            for (size_t k = 0; k < nl; k++) {
-                const double *row = w->W + a * ns * nl + k * ns;
-                for (size_t i = 0; i < ns; i++) y += row[i] * ms[i];
-            }
-            m[a] = (mt[a] - y) / (double)nf;
+            m[a] /= (double)nf;
             pm += m[a] / (double)na;
         }
         for (size_t a = 0; !o->modal && a < na; a++) m[a] -= pm;

@@ -19,7 +19,6 @@
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
-#include <ctype.h>
 #include <errno.h>
 #include <inttypes.h>
 #include <math.h>
@@ -39,26 +38,23 @@
 static int sensor_keys(const char *path, swfs_config *c, int *pyr)
 {
     swfs_fits_in *f = NULL;
-    char type[72] = "", up[72];
-    int ft = 0, fm = 0, fn = 0, fl = 0;
+    char type[72] = "";
+    int kind = 0, fm = 0, fn = 0, fl = 0;
     double mod = 0, lam = 0;
     long nmod = 0;
-    int rc = swfs_fits_in_open(&f, path, NULL);
-    if (!rc) rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &ft);
+    int rc = swfs_telemetry_sensor(path, &kind, type, sizeof type);
+    if (!rc) rc = swfs_fits_in_open(&f, path, NULL);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "PYRMOD", &mod, &fm);
     if (!rc) rc = swfs_fits_in_key_long_opt(f, "PYRNMOD", 0, 4096, &nmod, &fn);
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSLAM", &lam, &fl);
     swfs_fits_in_close(f);
     if (rc) return rc;
-    size_t n = 0;
-    for (; type[n] && n + 1 < sizeof up; n++) up[n] = (char)toupper((unsigned char)type[n]);
-    up[n] = 0;
     if (!swfs_config_has(c, "wfs")) {
-        const int is_pyr = ft && strstr(up, "PYR") != NULL, is_sh = ft && (!strncmp(up, "SH", 2) || strstr(up, "HARTMANN"));
-        if (!is_pyr && !is_sh)
+        if (kind != SWFS_WFS_PYRAMID && kind != SWFS_WFS_SH)
             return swfs_fail(SWFS_ERR_FORMAT, "%s: %s%s%s: the loops need the sensor; give it (--teach-set wfs=pyramid or "
-                             "wfs=sh)", path, ft ? "WFSTYPE = '" : "no WFSTYPE keyword", ft ? type : "", ft ? "'" : "");
-        rc = swfs_config_set_kv(c, "wfs", is_pyr ? "pyramid" : "sh");
+                             "wfs=sh)", path, kind ? "WFSTYPE = '" : "no WFSTYPE keyword", kind ? type : "",
+                             kind ? "'" : "");
+        rc = swfs_config_set_kv(c, "wfs", kind == SWFS_WFS_PYRAMID ? "pyramid" : "sh");
     }
     const char *wfs = NULL;
     if (!rc) rc = swfs_config_string(c, "wfs", "sh", &wfs);
@@ -308,15 +304,12 @@ static int fingerprint(const swfs_config *c, size_t nloops, uint64_t seed, char 
     char v[64];
     snprintf(v, sizeof v, "loops %zu seed %" PRIu64, nloops, seed);
     h = swfs_fnv_text_(h, v);
-    static const char *const files[] = {"actuators", "pupil_mask", "valid"};
     int rc = SWFS_OK;
-    for (size_t k = 0; !rc && k < sizeof files / sizeof *files; k++)
-        if (swfs_config_has(c, files[k])) {
-            const char *p = NULL;
-            for (size_t i = 0; i < swfs_config_count(c); i++)
-                if (!strcmp(swfs_config_key(c, i), files[k])) p = swfs_config_value(c, i);
-            if (p) rc = swfs_fnv_file_(&h, files[k], p);
-        }
+    for (size_t i = 0; !rc && i < swfs_config_count(c); i++) {
+        const char *k = swfs_config_key(c, i);
+        if (!strcmp(k, "actuators") || !strcmp(k, "pupil_mask") || !strcmp(k, "valid"))
+            rc = swfs_fnv_file_(&h, k, swfs_config_value(c, i));
+    }
     if (!rc) snprintf(out, 17, "%016" PRIx64, h);
     return rc;
 }
@@ -417,19 +410,14 @@ static int pyramid_telemetry(const swfs_speckles_run_options *o, const swfs_timi
     }
     swfs_config_free(c);
     if (given) return pyr;
-    char path[8192], type[72] = "";
-    int found = 0;
-    swfs_fits_in *f = NULL;
+    char path[8192];
+    int kind = 0;
     if (!t->ncubes || swfs_telemetry_path(tdir, t->cubes[0].slopes, path, sizeof path) ||
-        swfs_fits_in_open(&f, path, NULL)) {
-        swfs_clear_error();
+        swfs_telemetry_sensor(path, &kind, NULL, 0)) {
+        swfs_clear_error(); /* the run itself names what it cannot read */
         return 0;
     }
-    const int rc = swfs_fits_in_key_string_opt(f, "WFSTYPE", type, sizeof type, &found);
-    swfs_fits_in_close(f);
-    if (rc) swfs_clear_error();
-    for (char *q = type; *q; q++) *q = (char)toupper((unsigned char)*q);
-    return !rc && found && strstr(type, "PYR") != NULL;
+    return kind == SWFS_WFS_PYRAMID;
 }
 
 int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,

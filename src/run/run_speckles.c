@@ -460,9 +460,10 @@ static size_t loop_first_frame(const char *dir)
 /* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
  * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
  * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
- * slopes_NNN.fits frame from the first exposure's start on, loop_first_frame), piston, tip and tilt removed from both; held out as learn's MEANMISS
- * (the others' mean against each loop's, over the pupil's samples), and their mean the
- * pipeline's mean offset where it predicts (ratio < 1). */
+ * slopes_NNN.fits frame from the first exposure's start on, loop_first_frame), piston, tip and
+ * tilt removed from both; held out as learn's MEANMISS (the others' mean against each loop's,
+ * over the pupil's samples), and their mean the pipeline's mean offset where it predicts
+ * (ratio < 1). */
 static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
 {
     const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;
