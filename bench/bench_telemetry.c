@@ -446,6 +446,11 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
     r->nexp = spr.nout;
+    const swfs_mean_teach_result *mt = &spr.mean_teach;
+    if (mt->done)
+        fprintf(stderr, "  %s s%d: the mean's loops: %zu of %zu frames, r0 %.4g m (%zu pairs for its fit; their power %.3f "
+                "of the telemetry's), %.0f s; held out %.2f\n", s->name, seed, mt->nloops, mt->loop_frames, mt->r0,
+                mt->r0_pairs, mt->power_ratio, mt->seconds, spr.meanmiss_heldout);
 
     if (estimate(pth("science_m.fits"), pth("speckles.fits"), pth("halo.fits"))) return die("estimate (slopes)");
     if (estimate(pth("science.fits"), pth("speckles_ideal.fits"), pth("halo_ideal.fits"))) return die("estimate (ideal)");

@@ -149,6 +149,11 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
         for (size_t l = 0; l < m->nlayers; l++)
             fprintf(stderr, "%s %.1f m/s toward %.0f deg", l ? "," : ", layers", m->speed[l], m->direction[l]);
         if (m->act_pitch > 0) fprintf(stderr, ", DM pitch %.4g m (the basis)", m->act_pitch);
+        if (m->r0_pairs)
+            fprintf(stderr, ", r0 %.4g m fitted to the telemetry's residual power (%zu pair%s of loops; the kept pair's "
+                    "%.2f of it)", m->r0, m->r0_pairs, m->r0_pairs > 1 ? "s" : "", m->power_ratio);
+        else if (m->r0 > 0)
+            fprintf(stderr, ", r0 %.4g m (%s)", m->r0, m->reused ? "mean_loops.conf" : "given");
         fprintf(stderr, "; the rest as given or the simulator's defaults (mean_loops.conf)\n");
     }
     if (nml && isfinite(r->meanmiss_heldout))

@@ -5,7 +5,7 @@
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
 # series, --mean-loop none), `stream` the same within 5 % (measured equal); by default speckles
-# reads the system from the files (photons, knee, DM pitch asserted) for loops it simulates of
+# reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it simulates of
 # it (--mean-loop teach), reuses them on a second run, and stays within 2x (measured 24.4 ->
 # 19.6 nm). The Shack-Hartmann model refuses the
 # signals (speckles --actuators, teach) naming the file and what describes them; export_modal
@@ -57,13 +57,15 @@ line=$(grep -- "--mean-loop teach (the default for a pyramid's telemetry; --mean
 ph=$(sed -n 's/.*pyramid, \([0-9]*\) photons per subaperture.*/\1/p' <<< "$line")
 kn=$(sed -n 's/.* \([0-9]*\) modes controlled.*/\1/p' <<< "$line")
 pt=$(sed -n 's/.*DM pitch \([0-9.]*\) m.*/\1/p' <<< "$line")
-echo "cli_pyramid: --mean-loop teach: $ph photons, knee $kn, pitch $pt m" >&2
-awk -v p="$ph" -v k="$kn" -v t="$pt" 'BEGIN { exit !(p > 700 && p < 1400 && k >= 53 && k <= 59 && t > 0.44 && t < 0.46) }' \
-    || { echo "$line"; fail "the description read from the files"; }
+r0=$(sed -n "s/.*, r0 \([0-9.]*\) m fitted to the telemetry's residual power.*/\1/p" <<< "$line")
+echo "cli_pyramid: --mean-loop teach: $ph photons, knee $kn, pitch $pt m, r0 $r0 m" >&2
+awk -v p="$ph" -v k="$kn" -v t="$pt" -v r="$r0" 'BEGIN { exit !(p > 700 && p < 1400 && k >= 53 && k <= 59 && t > 0.44 &&
+    t < 0.46 && r > 0.135 && r < 0.165) }' || { echo "$line"; fail "the description read from the files (r0: simulated 0.15)"; }
 grep -q "simulated loops (--mean-loop): held out" "$D/speckles_mt.log" || { cat "$D/speckles_mt.log"; fail "no held-out line"; }
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" --mean-loop teach -o "$D/speckles_mt2.fits" \
     2> "$D/speckles_mt2.log" || { cat "$D/speckles_mt2.log"; fail "--mean-loop teach, again"; }
-grep -q -- "--mean-loop teach: 2 loops .* reused" "$D/speckles_mt2.log" || { cat "$D/speckles_mt2.log"; fail "not reused"; }
+grep -q -- "--mean-loop teach: 2 loops .* reused.*, r0 $r0 m (mean_loops.conf)" "$D/speckles_mt2.log" \
+    || { cat "$D/speckles_mt2.log"; fail "not reused, or not its r0"; }
 "$B" estimate "$D/sci_mt.fits" "$D/speckles_mt.fits" -o "$D/halo_mt.fits" > "$D/estimate_mt.log" 2>&1 || fail "estimate (mt)"
 "$B" pupil "$D/halo_mt.fits" -o "$D/pupil_mt.fits" --truth "$S/truth.fits" > "$D/pupil_mt.log" || fail "pupil (mt)"
 em=$(ncp_error "$D/pupil_mt.log")

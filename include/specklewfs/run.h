@@ -239,6 +239,14 @@ typedef struct swfs_mean_teach_result {
     double act_pitch;         /* [m] the DM's pitch from the basis (its registration's pitch on a
                                  DM grid; the median spacing of its functions' centroids on the
                                  pupil grid); 0: given */
+    double r0;                /* [m] the loops' r0: fitted so that the first two loops' signals
+                                 carry the telemetry's residual power (r0_pairs > 0), or given /
+                                 the simulator's default (r0_pairs 0) */
+    size_t r0_pairs;          /* pairs of loops simulated for the fit (the last pair kept as loops
+                                 0 and 1); 0: r0 given (--teach-set r0=) */
+    double power, power_ratio; /* the telemetry's residual power per value (each value's variance,
+                                 tip-tilt and white noise removed: swfs_slopes_white_noise), and
+                                 the kept pair's over it */
     double seconds;
     char work[4200];          /* the folder holding mean_NN and mean_loops.conf (their description) */
 } swfs_mean_teach_result;

@@ -338,6 +338,7 @@ swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("done", c_int), ("reused", c_int), ("automatic", c_int), ("fallback", ctypes.c_char * 1024), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),
     ("noise_rms", c_dbl), ("photons", c_dbl), ("slope_noise", c_dbl), ("knee", c_size), ("nlayers", c_size),
     ("speed", c_dbl * WIND_MAXLAYERS), ("direction", c_dbl * WIND_MAXLAYERS), ("act_pitch", c_dbl),
+    ("r0", c_dbl), ("r0_pairs", c_size), ("power", c_dbl), ("power_ratio", c_dbl),
     ("seconds", c_dbl), ("work", ctypes.c_char * 4200)])
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]

@@ -504,8 +504,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d["mean_teach"] = None if not m.done else dict(
         reused=bool(m.reused), automatic=bool(m.automatic), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
         noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
-        layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch, seconds=m.seconds,
-        work=m.work.decode())
+        layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch,
+        r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, seconds=m.seconds, work=m.work.decode())
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

@@ -511,11 +511,32 @@ def test_pyramid_timeseries(tmp_path):
     assert 700 < mt["photons"] < 1400 and mt["act_pitch"] == pytest.approx(0.45, rel=0.02)
     assert abs(mt["knee"] - 56) <= 3 and len(mt["layers"]) >= 1 and np.isfinite(t1["meanmiss_heldout"])
     assert sp["mean_teach"] is None and os.path.isfile(os.path.join(tw, "mean_loops.conf"))
+    # their r0 fitted to the signals' residual power: the simulator's 0.15 here, so the first
+    # pair's power is the telemetry's and the fit stops there
+    assert mt["r0_pairs"] == 1 and mt["r0"] == 0.15 and 0.8 < mt["power_ratio"] < 1.25 and mt["power"] > 0
     t2 = sw.speckles(timing, sci, None, str(tmp_path / "t2.fits"), linear=lin, mean_loops="teach", mean_teach_loops=2,
                      teach_work=tw)
     assert t2["mean_teach"]["reused"] and not t2["mean_teach"]["automatic"]
     assert t2["meanmiss_heldout"] == t1["meanmiss_heldout"]
     assert t2["meanmiss_rms"] == t1["meanmiss_rms"]
+    assert t2["mean_teach"]["r0"] == 0.15 and t2["mean_teach"]["r0_pairs"] == 0  # mean_loops.conf's
+    # a system observed at another r0 (0.09 m): the fit finds it from the signals in more pairs
+    # (measured 0.0974 m in 3 pairs, the kept pair's power 0.99 of the telemetry's: the loops'
+    # residual matches the observation's, their other keys the files' description); given, r0 is
+    # taken as it is
+    d9 = tmp_path / "sim9"
+    sw.simulate_timeseries(str(d9), pupn=66, pupdx=0.1, screen_n=512, ncubes=2, cube_frames=30, cube_gap=20,
+                           start_offset=50.4, wfs="pyramid", wfs_wavelen=1.6e-6, pyr_mod=2, r0=0.09)
+    sci9, timing9 = str(tmp_path / "sci9.fits"), str(tmp_path / "timing9.txt")
+    sw.reduce([str(d9 / f"raw_{c:03d}.fits") for c in range(2)], sci9, dark=str(d9 / "dark.fits"), flat=str(d9 / "flat.fits"))
+    lin9 = dict(basis=str(d9 / "influence.fits"), imat=str(d9 / "imat_ao.fits"))
+    sw.sync(sci9, str(d9 / "handshake.log"), timing9, linear=lin9)
+    m9 = sw.speckles(timing9, sci9, None, str(tmp_path / "t9.fits"), linear=lin9, mean_teach_loops=2,
+                     teach_work=str(tmp_path / "tw9"))["mean_teach"]
+    assert m9["r0_pairs"] >= 2 and m9["r0"] == pytest.approx(0.09, rel=0.1) and 0.8 < m9["power_ratio"] < 1.25
+    g9 = sw.speckles(timing9, sci9, None, str(tmp_path / "g9.fits"), linear=lin9, mean_teach_loops=2,
+                     teach_work=str(tmp_path / "tw9g"), teach_keys=dict(r0=0.12))["mean_teach"]
+    assert g9["r0_pairs"] == 0 and g9["r0"] == 0.12 and np.isnan(g9["power_ratio"])
     # where the loops cannot be made (here their folder: under a file), the default goes on
     # without them, saying why
     (tmp_path / "afile").write_text("x")

@@ -146,9 +146,14 @@ int swfs_speckles_work_folder_(const swfs_speckles_run_options *o, char *work, s
 uint64_t swfs_fnv_text_(uint64_t h, const char *s);
 int swfs_fnv_file_(uint64_t *h, const char *label, const char *path);
 
-/* n loops of o->sim as described (its layers), seeds o->seed + k, into o->work/NAME_NN (NAME
- * at most 7 characters), as many at once as its threads allow; what: the progress's stage. */
-int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t n, const char *what);
+/* A simulated loop's first WFS frame in an exposure (DIR/truth_timing.txt: the earliest cube's
+ * start), 0 without the file: the frames before it (the loop closing from a flat DM) are not in
+ * its truth's mean, nor then in its telemetry's. */
+size_t swfs_loop_first_frame_(const char *dir);
+/* Loops k = first..first+n-1 of o->sim as described (its layers), seeds o->seed + k, into
+ * o->work/NAME_NN (NAME at most 7 characters), as many at once as its threads allow; what: the
+ * progress's stage. */
+int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what);
 
 /* speckles --mean-loop teach (run_mean_teach.c): the loops of the system the observation's
  * files describe, simulated (or reused) into r->work/mean_NN; dirs[k] their folders

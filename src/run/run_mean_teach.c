@@ -30,7 +30,14 @@
 
 /* What the description's rule is: part of the loops' fingerprint (a change of it makes them
  * anew). */
-#define MEAN_TEACH_RULE "mean-teach 1: sensor keys, noise, wind layers, knee, DM pitch from the files"
+#define MEAN_TEACH_RULE "mean-teach 2: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power"
+
+/* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one
+ * more at the last prediction, unchecked), and the step below which the fit stops whatever the
+ * power's scatter: 5 % of r0 moves the pyramid's NCP error by about 0.4 nm on the matrix
+ * (docs/telemetry.md, "The loops' r0 from the signals' power"). */
+#define R0_PAIRS 3
+#define R0_STEP 0.05
 
 /* The sensor from the telemetry's header, into c unless given: WFSTYPE (a pyramid where it
  * names one, a Shack-Hartmann where it names that), PYRMOD, PYRNMOD and WFSLAM for a
@@ -259,6 +266,76 @@ static int noise_and_knee(const char *path, const swfs_real *s, size_t nsub, int
     return rc ? swfs_fail_context(rc, "the loops' modal filter from %s", path) : SWFS_OK;
 }
 
+/* The residual's power per value in frames first.. of s: each value's variance over them, its
+ * time mean and each frame's tip-tilt taken out, less the white noise (swfs_slopes_white_noise:
+ * the vibration a real telescope adds to the tilt, which the loops do not simulate, left out). */
+static int residual_power(const char *path, const swfs_real *s, size_t first, size_t nsub, double *pw)
+{
+    double white = 0, var = 0;
+    if (s->ny < first + 16)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu frames, %zu after the loop's first exposure: too few for its power (16)",
+                         path, s->ny, s->ny > first ? s->ny - first : 0);
+    const int rc = swfs_slopes_white_noise(s->data + first * s->nx, s->ny - first, s->nx, nsub, NULL, &white, NULL, &var);
+    if (rc) return swfs_fail_context(rc, "the residual power of %s", path);
+    *pw = var - white;
+    if (!(*pw > 0))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: no residual power above the white noise (variance %.3g, white %.3g per value): "
+                         "the loops' r0 cannot be fitted to it (give --teach-set r0=R)", path, var, white);
+    return SWFS_OK;
+}
+
+/* The power of loop k (work/mean_KK/slopes_000.fits, from its first exposure on). */
+static int loop_power(const char *work, size_t k, size_t nslopes, size_t nsub, double *pw)
+{
+    char dir[4300], path[4400];
+    snprintf(dir, sizeof dir, "%.4000s/mean_%02zu", work, k);
+    snprintf(path, sizeof path, "%s/slopes_000.fits", dir);
+    swfs_real *s = NULL;
+    int rc = swfs_telemetry_read(path, nslopes, &s, NULL);
+    if (!rc) rc = residual_power(path, s, swfs_loop_first_frame_(dir), nsub, pw);
+    swfs_real_free(s);
+    return rc;
+}
+
+/* The loops, r0 fitted unless given: the residual's rms scales as r0^(-5/6) (fitting and servo
+ * lag both), so its power as r0^(-5/3) for a linear sensor; a pyramid's optical gain falls as
+ * the residual grows, so its power grows more slowly, and the slope in log-log is taken from
+ * the pairs simulated (a secant) once there are two. A pair of loops (0 and 1) at r0; their
+ * mean power against the telemetry's gives the next r0; the fit stops where that step is
+ * within the pairs' scatter (the two loops' powers' ratio, as one loop's scatter, the
+ * observation's and the pair mean's combined) or under R0_STEP; after R0_PAIRS a last pair at
+ * the prediction. Then loops 2.. at the pair's r0. */
+static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size_t nl, size_t nslopes, size_t nsub,
+                        swfs_mean_teach_result *r)
+{
+    const char *what = "simulating the loops of the residual's mean (--mean-loop teach)";
+    double r0 = to->sim.base.screen.r0, lr[R0_PAIRS + 1], lv[R0_PAIRS + 1];
+    int rc = SWFS_OK;
+    r->power = pobs;
+    for (size_t p = 0; !given && !rc; p++) {
+        to->sim.base.screen.r0 = r0;
+        double pa = 0, pb = 0;
+        rc = swfs_teach_loops_(to, "mean", 0, 2, "fitting the loops' r0 to the telemetry's residual power (a pair of loops)");
+        if (!rc) rc = loop_power(to->work, 0, nslopes, nsub, &pa);
+        if (!rc) rc = loop_power(to->work, 1, nslopes, nsub, &pb);
+        if (rc) break;
+        r->r0_pairs = p + 1;
+        r->power_ratio = 0.5 * (pa + pb) / pobs;
+        if (p == R0_PAIRS) break; /* the last prediction's pair, kept unchecked */
+        lr[p] = log(r0);
+        lv[p] = log(0.5 * (pa + pb));
+        double b = p ? (lv[p] - lv[p - 1]) / (lr[p] - lr[p - 1]) : -5.0 / 3.0;
+        if (!(b < -0.1) || !isfinite(b)) b = -5.0 / 3.0; /* the pairs' scatter hid the slope */
+        const double step = (log(pobs) - lv[p]) / b, scatter = fabs(log(pa / pb)) * sqrt(0.75) / fabs(b);
+        if (fabs(step) < fmax(log1p(R0_STEP), scatter)) break;
+        r0 = exp(lr[p] + step);
+    }
+    r->r0 = r0;
+    const size_t first = given ? 0 : 2;
+    if (!rc && nl > first) rc = swfs_teach_loops_(to, "mean", first, nl - first, what);
+    return rc;
+}
+
 /* The description's text (mean_loops.conf): the fingerprint first, then key = value. */
 static int write_description(const char *path, const swfs_config *c, const char *fpr)
 {
@@ -275,16 +352,19 @@ static int write_description(const char *path, const swfs_config *c, const char 
     return rc;
 }
 
-/* 1 when path's first line is the fingerprint fpr and every loop's truth.fits is there. */
-static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_t n)
+/* 1 when path's first line is the fingerprint fpr and every loop's truth.fits is there; then
+ * the loops' r0 as the description wrote it (r->r0; r0_pairs 0: not fitted by this run). */
+static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_t n, swfs_mean_teach_result *r)
 {
     FILE *f = fopen(path, "r");
     if (!f) return 0;
-    char line[128] = "", want[64];
-    const int ok = fgets(line, sizeof line, f) != NULL;
-    fclose(f);
+    char line[4500] = "", want[64];
+    int ok = fgets(line, sizeof line, f) != NULL;
     snprintf(want, sizeof want, "# fingerprint %s\n", fpr);
-    if (!ok || strcmp(line, want)) return 0;
+    ok = ok && !strcmp(line, want);
+    while (ok && fgets(line, sizeof line, f)) (void)sscanf(line, "r0 = %lf", &r->r0);
+    fclose(f);
+    if (!ok) return 0;
     for (size_t k = 0; k < n; k++) {
         char t[4500];
         snprintf(t, sizeof t, "%s/truth.fits", dirs[k]);
@@ -357,6 +437,9 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     const size_t nsub = (size_t)llround(sqrt((double)nslopes / 2.0));
     if (!rc) rc = layers(names, n, g, nsub, rate, c, r);
     if (!rc) rc = noise_and_knee(names[0], obs, nsub, pyr, c, r);
+    const int r0_given = swfs_config_has(c, "r0");
+    double pobs = NAN;
+    if (!rc && !r0_given) rc = residual_power(names[0], obs, 0, nsub, &pobs);
     swfs_real_free(obs);
     char fpr[17] = "", conf[4500];
     snprintf(conf, sizeof conf, "%s/mean_loops.conf", r->work);
@@ -365,8 +448,9 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
         if (snprintf(dirs[k], sizeof dirs[k], "%.4000s/mean_%02zu", r->work, k) >= (int)sizeof dirs[k])
             rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", r->work);
     r->nloops = nl;
-    if (!rc && !o->teach_again && made_for(conf, fpr, dirs, nl)) {
+    if (!rc && !o->teach_again && made_for(conf, fpr, dirs, nl, r)) {
         r->reused = r->done = 1;
+        r->power = pobs;
     } else if (!rc) {
         swfs_teach_run_options to;
         swfs_teach_run_options_default(&to);
@@ -380,8 +464,9 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
             to.nprov = o->nprov;
             to.progress = o->progress;
             to.progress_ctx = o->progress_ctx;
-            rc = swfs_teach_loops_(&to, "mean", nl, "simulating the loops of the residual's mean (--mean-loop teach)");
+            rc = loops_fitted(&to, r0_given, pobs, nl, nslopes, nsub, r);
         }
+        if (!rc) rc = swfs_config_put_(c, "r0", "%.6g", r->r0);
         if (!rc) rc = write_description(conf, c, fpr);
         r->done = !rc;
     }
@@ -424,7 +509,7 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
                               const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
 {
     memset(r, 0, sizeof *r);
-    r->photons = r->slope_noise = NAN;
+    r->photons = r->slope_noise = r->power = r->power_ratio = NAN;
     if (o->mean_teach != SWFS_MEAN_TEACH_AUTO) return mean_teach(o, t, tdir, g, nslopes, r, dirs);
     /* the default: a pyramid's telemetry only; where the loops cannot be made, without them,
      * saying why */

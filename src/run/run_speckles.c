@@ -440,10 +440,8 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
     return rc;
 }
 
-/* A simulated loop's first WFS frame in an exposure (its truth_timing.txt: the earliest cube's
- * start), 0 without the file: the frames before it (the loop closing from a flat DM) are not in
- * its truth's mean, nor then in its telemetry's. */
-static size_t loop_first_frame(const char *dir)
+/* run_internal.h: a simulated loop's first WFS frame in an exposure. */
+size_t swfs_loop_first_frame_(const char *dir)
 {
     char path[4300], line[512];
     snprintf(path, sizeof path, "%.4000s/truth_timing.txt", dir);
@@ -460,7 +458,7 @@ static size_t loop_first_frame(const char *dir)
 /* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
  * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
  * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
- * slopes_NNN.fits frame from the first exposure's start on, loop_first_frame), piston, tip and
+ * slopes_NNN.fits frame from the first exposure's start on, swfs_loop_first_frame_), piston, tip and
  * tilt removed from both; held out as learn's MEANMISS (the others' mean against each loop's,
  * over the pupil's samples), and their mean the pipeline's mean offset where it predicts
  * (ratio < 1). */
@@ -473,7 +471,7 @@ static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs
     for (size_t d = 0; !rc && d < nl; d++) {
         char path[4200];
         size_t nf = 0, at = 0;
-        const size_t first = loop_first_frame(o->mean_loops[d]);
+        const size_t first = swfs_loop_first_frame_(o->mean_loops[d]);
         memset(ms, 0, ns * sizeof *ms);
         for (size_t k = 0; !rc; k++) {
             snprintf(path, sizeof path, "%.4000s/slopes_%03zu.fits", o->mean_loops[d], k);

@@ -147,16 +147,17 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
     return SWFS_OK;
 }
 
-/* run_internal.h: n loops of the description as it is (speckles --mean-loop teach). */
-int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t n, const char *what)
+/* run_internal.h: loops first..first+n-1 of the description as it is (speckles --mean-loop
+ * teach). */
+int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what)
 {
     loop_job *jobs = calloc(n ? n : 1, sizeof *jobs);
     if (!jobs) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t k = 0; k < n; k++) {
         loop_job *j = jobs + k;
         snprintf(j->name, sizeof j->name, "%s", name);
-        j->k = k;
-        j->seed = o->seed + k;
+        j->k = first + k;
+        j->seed = o->seed + first + k;
         j->nl = o->sim.nlayers;
         for (int l = 0; l < j->nl; l++) {
             j->frac[l] = o->sim.layer_frac[l];
