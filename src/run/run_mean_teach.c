@@ -34,8 +34,9 @@
 
 /* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one
  * more at the last prediction, unchecked), and the step below which the fit stops whatever the
- * power's scatter: 5 % of r0 moves the pyramid's NCP error by about 0.4 nm on the matrix
- * (docs/telemetry.md, "The loops' r0 from the signals' power"). */
+ * power's scatter: loops at r0 50 % and 32 % off cost a 12 x 12 pyramid's NCP error 3.8 and
+ * 4.0 nm, so 5 % about 0.5 nm, within the seeds' scatter (docs/telemetry.md, "The loops' r0
+ * fitted to the signals' power"). */
 #define R0_PAIRS 3
 #define R0_STEP 0.05
 
@@ -328,7 +329,8 @@ static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size
         if (!(b < -0.1) || !isfinite(b)) b = -5.0 / 3.0; /* the pairs' scatter hid the slope */
         const double step = (log(pobs) - lv[p]) / b, scatter = fabs(log(pa / pb)) * sqrt(0.75) / fabs(b);
         if (fabs(step) < fmax(log1p(R0_STEP), scatter)) break;
-        r0 = exp(lr[p] + step);
+        r0 = exp(lr[p] + fmax(-M_LN2, fmin(M_LN2, step))); /* a factor 2 a pair at most: a secant
+                                                              through two pairs' scatter can throw far */
     }
     r->r0 = r0;
     const size_t first = given ? 0 : 2;
