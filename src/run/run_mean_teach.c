@@ -268,8 +268,9 @@ static int noise_and_knee(const char *path, const swfs_real *s, size_t nsub, int
 }
 
 /* The residual's power per value in frames first.. of s: each value's variance over them, its
- * time mean and each frame's tip-tilt taken out, less the white noise (swfs_slopes_white_noise:
- * the vibration a real telescope adds to the tilt, which the loops do not simulate, left out). */
+ * time mean and each frame's tip-tilt taken out (where a telescope's vibration sits, which the
+ * loops do not simulate), less the white noise (swfs_slopes_white_noise's slope_var less its
+ * var: the loops' noise is the telemetry's already). */
 static int residual_power(const char *path, const swfs_real *s, size_t first, size_t nsub, double *pw)
 {
     double white = 0, var = 0;
@@ -303,9 +304,9 @@ static int loop_power(const char *work, size_t k, size_t nslopes, size_t nsub, d
  * the residual grows, so its power grows more slowly, and the slope in log-log is taken from
  * the pairs simulated (a secant) once there are two. A pair of loops (0 and 1) at r0; their
  * mean power against the telemetry's gives the next r0; the fit stops where that step is
- * within the pairs' scatter (the two loops' powers' ratio, as one loop's scatter, the
- * observation's and the pair mean's combined) or under R0_STEP; after R0_PAIRS a last pair at
- * the prediction. Then loops 2.. at the pair's r0. */
+ * within the scatter (the pair's two powers' ratio gives one loop's; the observation's and the
+ * pair mean's combined are sqrt(3/4) of that ratio's log) or under R0_STEP; after R0_PAIRS a
+ * last pair at the prediction. Then loops 2.. at the kept pair's r0. */
 static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size_t nl, size_t nslopes, size_t nsub,
                         swfs_mean_teach_result *r)
 {
