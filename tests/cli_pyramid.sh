@@ -5,11 +5,11 @@
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
 # series, --mean-loop none), `stream` the same within 5 % (measured equal); by default speckles
-# reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it simulates of
-# it (--mean-loop teach), reuses them on a second run, and stays within 2x (measured 24.4 ->
-# 19.6 nm). The Shack-Hartmann model refuses the
-# signals (speckles --actuators, teach) naming the file and what describes them; export_modal
-# and an unknown wfs are refused.
+# reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it
+# simulates of it (--mean-loop teach), reuses them on a second run, and stays within 2x
+# (measured 24.4 -> 19.6 nm). The Shack-Hartmann model refuses the signals (speckles
+# --actuators, teach) naming the file and what describes them; export_modal and an unknown wfs
+# are refused.
 # usage: bash cli_pyramid.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"

@@ -228,12 +228,14 @@ static int layers(char *const *names, size_t n, const swfs_geom *g, size_t nsub,
  * photons per subaperture and frame, 1 / var (its signals' noise with N photons is 1 / sqrt N:
  * the four images' Poisson counts over their sum), or a Shack-Hartmann's slope noise, unless
  * given; then the loops' modal filter (ao_modes) from the knee of the telemetry's variances
- * along the DM's modes through the loops' own sensor, unless a filter is given. */
+ * along the DM's modes through the loops' own sensor, unless a filter is given. *white,
+ * *slope_var: the same call's white and whole variance per value (residual_power's). */
 static int noise_and_knee(const char *path, const swfs_real *s, size_t nsub, int pyr, swfs_config *c,
-                          swfs_mean_teach_result *r)
+                          swfs_mean_teach_result *r, double *white, double *slope_var)
 {
     double var = 0;
-    int rc = swfs_slopes_white_noise(s->data, s->ny, s->nx, nsub, NULL, &var, NULL, NULL);
+    int rc = swfs_slopes_white_noise(s->data, s->ny, s->nx, nsub, NULL, &var, NULL, slope_var);
+    *white = var;
     if (rc) return swfs_fail_context(rc, "the white noise of %s", path);
     r->noise_rms = sqrt(var);
     r->photons = r->slope_noise = NAN;
@@ -267,10 +269,20 @@ static int noise_and_knee(const char *path, const swfs_real *s, size_t nsub, int
     return rc ? swfs_fail_context(rc, "the loops' modal filter from %s", path) : SWFS_OK;
 }
 
-/* The residual's power per value in frames first.. of s: each value's variance over them, its
- * time mean and each frame's tip-tilt taken out (where a telescope's vibration sits, which the
- * loops do not simulate), less the white noise (swfs_slopes_white_noise's slope_var less its
- * var: the loops' noise is the telemetry's already). */
+/* The residual's power per value: each value's variance over the frames, its time mean and
+ * each frame's tip-tilt taken out (where a telescope's vibration sits, which the loops do not
+ * simulate), less the white noise (swfs_slopes_white_noise's slope_var less its var: the loops'
+ * noise is the telemetry's already). */
+static int power_above_noise(const char *path, double var, double white, double *pw)
+{
+    *pw = var - white;
+    if (!(*pw > 0))
+        return swfs_fail(SWFS_ERR_VALUE, "%s: no residual power above the white noise (variance %.3g, white %.3g per value): "
+                         "the loops' r0 cannot be fitted to it (give --teach-set r0=R)", path, var, white);
+    return SWFS_OK;
+}
+
+/* The residual's power (power_above_noise) in frames first.. of s. */
 static int residual_power(const char *path, const swfs_real *s, size_t first, size_t nsub, double *pw)
 {
     double white = 0, var = 0;
@@ -278,12 +290,7 @@ static int residual_power(const char *path, const swfs_real *s, size_t first, si
         return swfs_fail(SWFS_ERR_SHAPE, "%s: %zu frames, %zu after the loop's first exposure: too few for its power (16)",
                          path, s->ny, s->ny > first ? s->ny - first : 0);
     const int rc = swfs_slopes_white_noise(s->data + first * s->nx, s->ny - first, s->nx, nsub, NULL, &white, NULL, &var);
-    if (rc) return swfs_fail_context(rc, "the residual power of %s", path);
-    *pw = var - white;
-    if (!(*pw > 0))
-        return swfs_fail(SWFS_ERR_VALUE, "%s: no residual power above the white noise (variance %.3g, white %.3g per value): "
-                         "the loops' r0 cannot be fitted to it (give --teach-set r0=R)", path, var, white);
-    return SWFS_OK;
+    return rc ? swfs_fail_context(rc, "the residual power of %s", path) : power_above_noise(path, var, white, pw);
 }
 
 /* The power of loop k (work/mean_KK/slopes_000.fits, from its first exposure on). */
@@ -311,9 +318,8 @@ static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size
                         swfs_mean_teach_result *r)
 {
     const char *what = "simulating the loops of the residual's mean (--mean-loop teach)";
-    double r0 = to->sim.base.screen.r0, lr[R0_PAIRS + 1], lv[R0_PAIRS + 1];
+    double r0 = to->sim.base.screen.r0, lr = 0, lv = 0; /* the previous pair's log r0 and log power */
     int rc = SWFS_OK;
-    r->power = pobs;
     for (size_t p = 0; !given && !rc; p++) {
         to->sim.base.screen.r0 = r0;
         double pa = 0, pb = 0;
@@ -324,14 +330,15 @@ static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size
         r->r0_pairs = p + 1;
         r->power_ratio = 0.5 * (pa + pb) / pobs;
         if (p == R0_PAIRS) break; /* the last prediction's pair, kept unchecked */
-        lr[p] = log(r0);
-        lv[p] = log(0.5 * (pa + pb));
-        double b = p ? (lv[p] - lv[p - 1]) / (lr[p] - lr[p - 1]) : -5.0 / 3.0;
+        const double lr1 = log(r0), lv1 = log(0.5 * (pa + pb));
+        double b = p ? (lv1 - lv) / (lr1 - lr) : -5.0 / 3.0;
         if (!(b < -0.1) || !isfinite(b)) b = -5.0 / 3.0; /* the pairs' scatter hid the slope */
-        const double step = (log(pobs) - lv[p]) / b, scatter = fabs(log(pa / pb)) * sqrt(0.75) / fabs(b);
+        const double step = (log(pobs) - lv1) / b, scatter = fabs(log(pa / pb)) * sqrt(0.75) / fabs(b);
         if (fabs(step) < fmax(log1p(R0_STEP), scatter)) break;
-        r0 = exp(lr[p] + fmax(-M_LN2, fmin(M_LN2, step))); /* a factor 2 a pair at most: a secant
-                                                              through two pairs' scatter can throw far */
+        lr = lr1;
+        lv = lv1;
+        r0 = exp(lr1 + fmax(-M_LN2, fmin(M_LN2, step))); /* a factor 2 a pair at most: a secant
+                                                           through two pairs' scatter can throw far */
     }
     r->r0 = r0;
     const size_t first = given ? 0 : 2;
@@ -439,10 +446,10 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     if (!rc) rc = dm_pitch(o, g, c, &r->act_pitch);
     const size_t nsub = (size_t)llround(sqrt((double)nslopes / 2.0));
     if (!rc) rc = layers(names, n, g, nsub, rate, c, r);
-    if (!rc) rc = noise_and_knee(names[0], obs, nsub, pyr, c, r);
+    double white = 0, svar = 0;
+    if (!rc) rc = noise_and_knee(names[0], obs, nsub, pyr, c, r, &white, &svar);
     const int r0_given = swfs_config_has(c, "r0");
-    double pobs = NAN;
-    if (!rc && !r0_given) rc = residual_power(names[0], obs, 0, nsub, &pobs);
+    if (!rc && !r0_given) rc = power_above_noise(names[0], svar, white, &r->power);
     swfs_real_free(obs);
     char fpr[17] = "", conf[4500];
     snprintf(conf, sizeof conf, "%s/mean_loops.conf", r->work);
@@ -453,7 +460,6 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     r->nloops = nl;
     if (!rc && !o->teach_again && made_for(conf, fpr, dirs, nl, r)) {
         r->reused = r->done = 1;
-        r->power = pobs;
     } else if (!rc) {
         swfs_teach_run_options to;
         swfs_teach_run_options_default(&to);
@@ -467,7 +473,7 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
             to.nprov = o->nprov;
             to.progress = o->progress;
             to.progress_ctx = o->progress_ctx;
-            rc = loops_fitted(&to, r0_given, pobs, nl, nslopes, nsub, r);
+            rc = loops_fitted(&to, r0_given, r->power, nl, nslopes, nsub, r);
         }
         if (!rc) rc = swfs_config_put_(c, "r0", "%.6g", r->r0);
         if (!rc) rc = write_description(conf, c, fpr);
