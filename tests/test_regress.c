@@ -226,6 +226,61 @@ static void test_recovers_model(void **state)
     free(s);
 }
 
+/* The information of a pixel seen in few frames (regress.h): with s^2 estimated on nu = n - 4
+ * degrees of freedom, (theta_hat - theta)^T (G / s^2) (theta_hat - theta) has the mean
+ * 4 nu / (nu - 2), not 4; the information the solution gives, G / s^2 (nu - 2) / nu, has
+ * the mean 4 (Hotelling's T^2, Gaussian noise). 2000 pixels of 12 frames (nu = 8: 5.33
+ * without the factor); and a pixel of 6 frames or fewer is not solved. */
+static void test_few_frames_information(void **state)
+{
+    (void)state;
+    enum { FX = 50, FY = 40, FP = FX * FY, FN = 12 };
+    double *sci = malloc(FP * sizeof *sci);
+    double complex *psi = malloc(FN * FP * sizeof *psi), *Psi = malloc(FP * sizeof *Psi);
+    double *g = malloc(FP * sizeof *g);
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 77);
+    for (size_t k = 0; k < FP; k++) {
+        Psi[k] = 3.0 * swfs_rng_normal(&rng) + 3.0 * I * swfs_rng_normal(&rng);
+        g[k] = 5.0 * (1.0 + 0.2 * swfs_rng_normal(&rng));
+    }
+    swfs_regress *r = swfs_regress_create(FX, FY);
+    for (size_t t = 0; t < FN; t++) {
+        for (size_t k = 0; k < FP; k++) {
+            const double complex ps = 0.4 + 0.1 * I + 0.5 * (swfs_rng_normal(&rng) + I * swfs_rng_normal(&rng));
+            const double complex e = Psi[k] + g[k] * ps;
+            psi[t * FP + k] = ps;
+            sci[k] = creal(e * conj(e)) + 4.0 * swfs_rng_normal(&rng);
+            if (k == 0 && t >= 6) sci[k] = NAN; /* pixel 0: 6 frames, not solved */
+        }
+        assert_ok(swfs_regress_add(r, sci, (const double *)(psi + t * FP), NULL));
+    }
+    swfs_regress_sol *so;
+    assert_ok(swfs_regress_solve(r, &so));
+    assert_true(so->valid->data[0] == 0.0);
+    double sum = 0.0;
+    size_t m = 0;
+    for (size_t k = 1; k < FP; k++) {
+        if (!(so->valid->data[k] > 0.5)) continue;
+        const double complex Psi1 = Psi[k] + g[k] * so->centre->data[k], c = g[k] * Psi1;
+        const double want[4] = {creal(Psi1 * conj(Psi1)), g[k] * g[k], creal(c), cimag(c)};
+        double d[4], q = 0.0;
+        for (int i = 0; i < 4; i++) d[i] = so->theta->data[(size_t)i * FP + k] - want[i];
+        for (int i = 0; i < 4; i++)
+            for (int j = 0; j < 4; j++) q += d[i] * so->info->data[tri((size_t)i, (size_t)j) * FP + k] * d[j];
+        sum += q;
+        m++;
+    }
+    const double mean = sum / (double)m;
+    print_message("few frames: %zu pixels of %d frames (nu = %d): mean (theta_hat - theta)^T F (...) = %.3f "
+                  "(4 expected; %.2f without the t factor)\n", m, FN, FN - 4, mean, 4.0 * (FN - 4) / (FN - 6.0));
+    assert_int_equal(m, FP - 1);
+    assert_true(fabs(mean - 4.0) < 0.5);
+    swfs_regress_sol_free(so);
+    swfs_regress_free(r);
+    free(sci); free(psi); free(Psi); free(g);
+}
+
 static void test_bad_input(void **state)
 {
     (void)state;
@@ -337,6 +392,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_merge_exact),
         cmocka_unit_test(test_recovers_model),
+        cmocka_unit_test(test_few_frames_information),
         cmocka_unit_test(test_bad_input),
         cmocka_unit_test(test_choose_speckles),
     };

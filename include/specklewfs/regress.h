@@ -21,8 +21,12 @@
  *
  * The solution (swfs_regress_solve) is expressed in the frame centred on the sample mean
  * of psi, which is the paper's psi' = psi - <psi> (eq:zeroMean): theta = (a, b, Re c, Im c),
- * s^2 = (yy - theta^T h) / (n - 4), information F = G / s^2, f = h / s^2 (so that
- * theta^T F theta - 2 theta^T f is, up to a constant, the chi-square of a model theta).
+ * s^2 = (yy - theta^T h) / nu with nu = n - 4, information F = G / s^2 (nu - 2) / nu,
+ * f = h / s^2 (nu - 2) / nu (so that theta^T F theta - 2 theta^T f is, up to a constant, the
+ * chi-square of a model theta): (nu - 2) / nu makes F the inverse of the covariance of the
+ * Student t that theta follows with s^2 estimated, so a pixel seen in few frames does not
+ * carry the information of a noise estimate it does not have; pixels with n <= 6 are not
+ * solved.
  *
  * Non-finite science values skip that pixel-frame (counted); non-finite psi is an error
  * (the accumulator is left unchanged). */
@@ -94,7 +98,7 @@ typedef struct swfs_regress_sol {
     swfs_real *s2;      /* residual variance per unit weight */
     swfs_real *phi_sp;  /* weighted mean of |psi - <psi>|^2 (Phi_sp of eq:betterMean) */
     swfs_cplx *centre;  /* <psi>, the frame of theta */
-    swfs_real *valid;   /* 1 where solved (n > 4, G positive definite, s^2 > 0) */
+    swfs_real *valid;   /* 1 where solved (n > 6, G positive definite, s^2 > 0) */
     size_t n_valid;
     /* The self-check of the computed speckles: the fraction of the science intensity's
      * variance about its mean that the regression on them explains, 1 - SSE / SST, summed
