@@ -181,6 +181,11 @@ struct swfs_speckles_run_result;
 /* A space-time reconstructor's checks against the observation (run.h st_*), with their warnings
  * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
+/* The residual mean's miss added to RESMEAN: nloops simulated loops' (--mean-loop; heldout
+ * their check's ratio) or, with none, a map's own MEANMISS; rms [m] (0: nothing added). */
+void cli_meanmiss_summary(const char *cmd, size_t nloops, double heldout, double rms);
+/* --mean-loop folders a stream or live run takes at most */
+#define CLI_MAX_MEAN_LOOPS 64
 /* Where a space-time map's lags ran on across telemetry files and were clamped (speckles,
  * stream). */
 void cli_spacetime_edges(const char *cmd, size_t joined, size_t clamped, size_t unreadable, const char *why);

@@ -72,6 +72,14 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         else if (!strcmp(a, "--coupling")) dv = &o->dmfit.coupling;
         else if (!strcmp(a, "--pitch")) dv = &o->dmfit.pitch;
         else if (!strcmp(a, "--reg")) dv = &o->dmfit.reg;
+        else if (!strcmp(a, "--mean-loop")) {
+            static const char *loops[CLI_MAX_MEAN_LOOPS];
+            if (i + 1 >= argc) return cli_usage_error(cmd, "--mean-loop needs a folder of a simulated loop");
+            if (o->run.nmean_loops == CLI_MAX_MEAN_LOOPS) return cli_usage_error(cmd, "at most %d --mean-loop", CLI_MAX_MEAN_LOOPS);
+            loops[o->run.nmean_loops++] = argv[++i];
+            o->run.mean_loops = loops;
+            continue;
+        }
         else if (!strcmp(a, "--dm-keep")) { o->dm_keep = 1; continue; }
         else if (!strcmp(a, "--dm-final")) { o->dm_final = 1; continue; }
         else if (!strcmp(a, "--dm-tiptilt")) { o->dm_tiptilt = 1; continue; }
@@ -169,6 +177,7 @@ int swfs_cmd_live(int argc, char **argv)
         const long lmax = cli_spacetime_lags(cmd, r.run.st_lags, r.run.info.nlags);
         fprintf(stderr, ": each batch waited for the WFS frames %ld after its last\n", lmax);
     }
+    cli_meanmiss_summary(cmd, o.run.nmean_loops, r.run.meanmiss_heldout, r.run.meanmiss_rms);
     printf("live: %s: %llu camera frames used in %llu batches, %.0f WFS frames; %.2f s of data; WFS %.1f Hz, camera %.2f Hz",
            o.run.out, (unsigned long long)y->used, (unsigned long long)y->batches, r.run.wfs_frames, r.src.seconds,
            y->wfs_period > 0 ? 1.0 / y->wfs_period : 0.0, y->camera_period > 0 ? 1.0 / y->camera_period : 0.0);

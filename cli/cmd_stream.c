@@ -32,6 +32,13 @@ static int special(void *ctx, int argc, char **argv, int *i)
         if (o->nwfs_logs == SWFS_FRAMESYNC_MAX_WFS) return -cli_usage_error("stream", "at most %d --wfs-log", SWFS_FRAMESYNC_MAX_WFS);
         logs[o->nwfs_logs++] = v;
         o->wfs_logs = logs;
+    } else if (!strcmp(a, "--mean-loop")) {
+        static const char *loops[CLI_MAX_MEAN_LOOPS];
+        const char *v = cli_next(argc, argv, i);
+        if (!v) return -cli_usage_error("stream", "--mean-loop needs a folder of a simulated loop");
+        if (o->nmean_loops == CLI_MAX_MEAN_LOOPS) return -cli_usage_error("stream", "at most %d --mean-loop", CLI_MAX_MEAN_LOOPS);
+        loops[o->nmean_loops++] = v;
+        o->mean_loops = loops;
     } else if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
     else if (!strcmp(a, "--pupil-method")) {
@@ -130,9 +137,7 @@ int swfs_cmd_stream(int argc, char **argv)
         fprintf(stderr, ": each frame's slopes stacked with those at the lags\n");
         cli_spacetime_edges(cmd, r.st_edges_joined, r.st_edges_clamped, r.st_edges_unreadable, r.st_edges_why);
     }
-    if (r.meanmiss_rms > 0)
-        fprintf(stderr, "stream: the map's own miss of the AO residual's mean, %.1f nm rms, added to it (MEANMISS, "
-                "learn)\n", 1e9 * r.meanmiss_rms);
+    cli_meanmiss_summary(cmd, o.nmean_loops, r.meanmiss_heldout, r.meanmiss_rms);
     if (isfinite(r.static_scale))
         fprintf(stderr, "stream: static halo S^1/2 Psi_0 with S^1/2 = %.4g (per unit exposure weight %.4g)\n",
                 r.static_scale, r.static_scale / r.ratio);

@@ -156,13 +156,7 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             fprintf(stderr, ", r0 %.4g m (%s)", m->r0, m->reused ? "mean_loops.conf" : "given");
         fprintf(stderr, "; the rest as given or the simulator's defaults (mean_loops.conf)\n");
     }
-    if (nml && isfinite(r->meanmiss_heldout))
-        fprintf(stderr, "%s: this reconstruction's miss of it in %zu simulated loops (--mean-loop): held out, the others' "
-                "mean leaves %.2f of each loop's own square: %s\n", cmd, nml, r->meanmiss_heldout,
-                r->meanmiss_heldout < 1 ? "shared, their mean added" : "each loop's own, nothing added");
-    if (r->meanmiss_rms > 0)
-        fprintf(stderr, "%s: with the %s miss of it added, %.1f nm rms\n", cmd,
-                nml ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", r->meanmiss_rms * 1e9);
+    cli_meanmiss_summary(cmd, nml, r->meanmiss_heldout, r->meanmiss_rms);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
@@ -187,4 +181,15 @@ void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, do
         fprintf(f, "the map of all %zu is %.1f %% above unlimited frames' (%.4g%s) in misfit^2; %zu frames would bring it "
                "to %.0f %%\n", r->info.nframes, 100 * r->curve_excess, u * sqrt(r->curve_a), unit, r->curve_frames,
                100 * SWFS_LEARN_CURVE_EXCESS);
+}
+
+void cli_meanmiss_summary(const char *cmd, size_t nloops, double heldout, double rms)
+{
+    if (nloops && isfinite(heldout))
+        fprintf(stderr, "%s: this reconstruction's miss of the AO residual's mean in %zu simulated loops (--mean-loop): "
+                "held out, the others' mean leaves %.2f of each loop's own square: %s\n", cmd, nloops, heldout,
+                heldout < 1 ? "shared, their mean added" : "each loop's own, nothing added");
+    if (rms > 0)
+        fprintf(stderr, "%s: with the %s miss of it added, %.1f nm rms\n", cmd,
+                nloops ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", rms * 1e9);
 }

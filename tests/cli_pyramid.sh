@@ -4,7 +4,8 @@
 # sync times the science frames from the signals (ratio and lag as from true timing), and the
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
-# series, --mean-loop none), `stream` the same within 5 % (measured equal); by default speckles
+# series, --mean-loop none), `stream` the same within 5 % (measured equal; with the loops speckles
+# simulated, --mean-loop DIR, equal to speckles' with them); by default speckles
 # reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it
 # simulates of it (--mean-loop teach), reuses them on a second run, and stays within 2x
 # (measured 24.4 -> 19.6 nm). The Shack-Hartmann model refuses the signals (speckles
@@ -71,6 +72,22 @@ grep -q -- "--mean-loop teach: 2 loops .* reused.*, r0 $r0 m (mean_loops.conf)" 
 em=$(ncp_error "$D/pupil_mt.log")
 echo "cli_pyramid: --mean-loop teach: NCP error $em nm" >&2
 awk -v e="$em" -v i="$i" 'BEGIN { exit !(e > 0 && e < 2 * i) }' || fail "--mean-loop teach: NCP error $em nm against the ideal $i nm"
+# stream takes the loops speckles simulated (--mean-loop DIR, twice): the same miss added, the
+# same NCP error within 5 %; one loop alone is refused before any file is read
+"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop "$D/tw/mean_00" \
+    --mean-loop "$D/tw/mean_01" -o "$D/stream_mt.fits" > "$D/stream_mt.log" 2>&1 \
+    || { cat "$D/stream_mt.log"; fail "stream --mean-loop"; }
+grep -q "stream: this reconstruction's miss of the AO residual's mean in 2 simulated loops (--mean-loop): held out" \
+    "$D/stream_mt.log" || { cat "$D/stream_mt.log"; fail "stream: no held-out line"; }
+"$B" pupil "$D/stream_mt.fits" -o "$D/stream_mt_pupil.fits" --truth "$S/truth.fits" > "$D/stream_mt_pupil.log" \
+    || fail "pupil (stream --mean-loop)"
+esm=$(ncp_error "$D/stream_mt_pupil.log")
+echo "cli_pyramid: stream --mean-loop (speckles' loops): NCP error $esm nm (speckles $em nm)" >&2
+awk -v a="$esm" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
+    || fail "stream --mean-loop: $esm nm against speckles' $em nm"
+expect_error "mean-loop: the residual mean's miss needs at least 2 simulated loops" "$B" stream --timing "$D/timing.txt" \
+    --science "$D/science.fits" "${pyr[@]}" --mean-loop "$D/tw/mean_00" -o "$D/stream_x.fits"
+[ ! -e "$D/stream_x.fits" ] || fail "stream left an output after refusing"
 expect_error "mean-loop takes loops' folders or teach, not both" "$B" speckles "$D/timing.txt" --science \
     "$D/science.fits" "${pyr[@]}" --mean-loop teach --mean-loop "$S" --mean-loop "$S" -o "$D/mt3.fits"
 [ ! -e "$D/mt3.fits" ] || fail "speckles left an output after refusing"

@@ -216,6 +216,17 @@ typedef struct swfs_speckles_run_options {
 } swfs_speckles_run_options;
 
 #define SWFS_MEAN_TEACH_MAX 16
+
+/* The miss of the AO residual's time mean by p's own reconstruction, from simulated closed
+ * loops of the same system (`speckles`/`stream`/`live --mean-loop DIR...`: folders of
+ * `simulate mode=timeseries`, slopes_NNN.fits of the observation's telemetry kind and
+ * truth.fits' RESMEAN; at least 2, e.g. the mean_NN that `speckles --mean-loop teach` left in
+ * its teach folder): each loop's true mean less p's reconstruction of its mean telemetry,
+ * checked held out as learn's MEANMISS (each against the others' mean) and, where the others'
+ * mean predicts each loop's (*heldout < 1), their mean set as p's mean offset
+ * (swfs_pipeline_set_mean_offset; *rms its rms in the pupil, piston, tip and tilt removed),
+ * else none (*rms 0). heldout, rms may be NULL. docs/telemetry.md. */
+int swfs_pipeline_mean_loops(swfs_pipeline *p, const char *const *loops, size_t nloops, double *heldout, double *rms);
 #define SWFS_MEAN_TEACH_AUTO (-1)
 
 /* What `speckles --mean-loop teach` read from the observation's files for the loops it
@@ -389,6 +400,11 @@ typedef struct swfs_stream_run_options {
                                  used subapertures' slopes (pipeline.h) */
     double band;              /* the speckles' focal radius [lambda/D] (pipeline.h options.band; 0: the
                                  Shack-Hartmann's nsub/2, none for a linear model; < 0: none) */
+    const char *const *mean_loops; /* folders of simulated loops of the same system, nmean_loops of
+                                 them (0, or at least 2): their miss of the residual's time mean
+                                 by this run's reconstruction, added to RESMEAN where they share it
+                                 (swfs_pipeline_mean_loops; as speckles' mean_loops) */
+    size_t nmean_loops;
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);
@@ -408,7 +424,9 @@ typedef struct swfs_stream_run_result {
     long st_lags[SWFS_RECON_MAXLAGS];
     size_t st_edges_joined, st_edges_clamped, st_edges_unreadable;
     char st_edges_why[512];
-    double meanmiss_rms;      /* [m] a learned map's MEANMISS added to RESMEAN (as speckles'); 0: none */
+    double meanmiss_rms;      /* [m] a learned map's MEANMISS, or the mean loops' shared miss, added
+                                 to RESMEAN (as speckles'); 0: none */
+    double meanmiss_heldout;  /* mean_loops: the held-out check's ratio (< 1: added); NAN otherwise */
 } swfs_stream_run_result;
 
 /* The same for a stream run from files (swfs_stream_run_files calls it first): the timing

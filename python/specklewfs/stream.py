@@ -3,6 +3,7 @@ science frames) and the stream (stream.h: batches of slopes and camera frames ->
 accumulators -> the static-halo estimate, updated as the data arrive), with a Python
 source callback."""
 import ctypes
+import os
 
 import numpy as np
 
@@ -233,6 +234,21 @@ class Pipeline:
     def mean_reset(self):
         """Start the time mean anew."""
         lib.swfs_pipeline_mean_reset(self._p)
+
+    def mean_loops(self, dirs):
+        """The miss of the AO residual's time mean by this pipeline's reconstruction, from
+        simulated closed loops of the same system (`--mean-loop DIR...`; run.h
+        swfs_pipeline_mean_loops): dirs, at least 2 folders of `simulate_timeseries` (the
+        telemetry of this pipeline's kind, truth.fits' RESMEAN), e.g. the mean_NN that
+        `speckles(..., mean_loops='teach')` left in its teach folder. Where the others' mean
+        predicts each loop's miss (held out below 1) their mean is added to mean_wavefront()
+        from then on. Returns dict(heldout=ratio, rms=[m] of what was added, 0 if nothing)."""
+        names = [os.fspath(d) for d in dirs]
+        arr, n = _lib.strings(names)
+        held, rms = ctypes.c_double(), ctypes.c_double()
+        check(lib.swfs_pipeline_mean_loops(self._p, arr, n, ctypes.byref(held), ctypes.byref(rms)),
+              "swfs_pipeline_mean_loops")
+        return {"heldout": held.value, "rms": rms.value}
 
     def flat_halo(self):
         """Psi_0: the referenced focal field of flat slopes (nfy, nfx)."""

@@ -498,6 +498,15 @@ def test_pyramid_timeseries(tmp_path):
     with pytest.raises(sw.Error, match="needs at least 2 simulated loops"):
         sw.speckles(timing, sci, None, str(tmp_path / "m2.fits"), linear=lin, mean_loops=[str(d)])
     assert not os.path.exists(tmp_path / "m2.fits")
+    # the same on a Pipeline of one's own (a stream's: `stream --mean-loop`): the loops' shared
+    # miss becomes its mean offset; one loop is refused
+    g = sw.read_geom(sci)
+    sci_shape = sw.fits_info(sci)
+    pl = sw.Pipeline.linear(g, sci_shape["nx"], sci_shape["ny"], F, imat=D, training=s)
+    ml = pl.mean_loops([str(d), str(d)])
+    assert ml["heldout"] == pytest.approx(0, abs=1e-12) and ml["rms"] > 0
+    with pytest.raises(sw.Error, match="at least 2 folders"):
+        pl.mean_loops([str(d)])
     # the default for a pyramid's telemetry (mean_loops='teach' by name): loops speckles simulates
     # itself (two, for the time) of the system the files describe: the pyramid's keys from the
     # header, its photons from the signals' white noise (the simulator's 1000), the DM's pitch

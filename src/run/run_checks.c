@@ -127,6 +127,11 @@ static int stream_ranges(const swfs_stream_run_options *o)
         o->stream.static_mode != SWFS_STATIC_GIVEN)
         FAIL("--static: unknown mode %d (expected auto, none or a file)", o->stream.static_mode);
     if (o->stream.static_mode == SWFS_STATIC_GIVEN && !o->static_file) FAIL("--static FILE: no file given");
+    if (o->nmean_loops == 1 || (o->nmean_loops && !o->mean_loops))
+        FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
+             "others'), got %zu", o->nmean_loops);
+    for (size_t k = 0; k < o->nmean_loops; k++)
+        if (!o->mean_loops[k]) FAIL("--mean-loop %zu: no folder given", k + 1);
     return SWFS_OK;
 }
 

@@ -14,7 +14,6 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <unistd.h>
 
 void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
 {
@@ -440,89 +439,6 @@ static int process_team(const swfs_speckles_run_options *o, work *w, const swfs_
     return rc;
 }
 
-/* run_internal.h: a simulated loop's first WFS frame in an exposure. */
-size_t swfs_loop_first_frame_(const char *dir)
-{
-    char path[4300], line[512];
-    snprintf(path, sizeof path, "%.4000s/truth_timing.txt", dir);
-    FILE *f = fopen(path, "r");
-    if (!f) return 0;
-    double first = INFINITY, v = 0;
-    unsigned c = 0;
-    while (fgets(line, sizeof line, f))
-        if (line[0] != '#' && sscanf(line, "%u %lf", &c, &v) == 2 && v >= 0 && v < first) first = v;
-    fclose(f);
-    return isfinite(first) ? (size_t)floor(first) : 0;
-}
-
-/* mean_loops: the miss of the residual's time mean by this run's own reconstruction, from
- * simulated loops of the system (run.h swfs_speckles_run_options.mean_loops): each loop's true
- * mean (truth.fits RESMEAN) less the pipeline's reconstruction of its mean telemetry (every
- * slopes_NNN.fits frame from the first exposure's start on, swfs_loop_first_frame_), piston, tip and
- * tilt removed from both; held out as learn's MEANMISS (the others' mean against each loop's,
- * over the pupil's samples), and their mean the pipeline's mean offset where it predicts
- * (ratio < 1). */
-static int meanmiss_from_loops(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r)
-{
-    const size_t n = (size_t)w->g.pupn, nl = o->nmean_loops, ns = w->nslopes;
-    const double *mask = swfs_pipeline_mask(w->p);
-    double *miss = calloc(nl * n * n, sizeof *miss), *rec = malloc(n * n * sizeof *rec), *ms = malloc(ns * sizeof *ms);
-    int rc = miss && rec && ms ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory"); /* nl >= 2: the options' check */
-    for (size_t d = 0; !rc && d < nl; d++) {
-        char path[4200];
-        size_t nf = 0, at = 0;
-        const size_t first = swfs_loop_first_frame_(o->mean_loops[d]);
-        memset(ms, 0, ns * sizeof *ms);
-        for (size_t k = 0; !rc; k++) {
-            snprintf(path, sizeof path, "%.4000s/slopes_%03zu.fits", o->mean_loops[d], k);
-            if (access(path, F_OK) != 0) break;
-            swfs_real *s = NULL;
-            if ((rc = swfs_telemetry_read(path, ns, &s, NULL))) {
-                rc = swfs_fail_context(rc, "the loop %s (its telemetry is the observation's kind: %zu values per frame)",
-                                       o->mean_loops[d], ns);
-                break;
-            }
-            for (size_t t = at < first ? first - at : 0; t < s->ny; t++, nf++)
-                for (size_t i = 0; i < ns; i++) ms[i] += s->data[t * ns + i];
-            at += s->ny;
-            swfs_real_free(s);
-        }
-        if (!rc && !nf) rc = swfs_fail(SWFS_ERR_IO, "%s: %s: expected a folder of `simulate mode=timeseries`",
-                                       o->mean_loops[d], at ? "no telemetry frame after its first exposure's start"
-                                                            : "no slopes_000.fits");
-        for (size_t i = 0; !rc && i < ns; i++) ms[i] /= (double)nf;
-        if (!rc) rc = swfs_pipeline_wavefront_of_mean(w->p, ms, ns, rec);
-        swfs_real *t = NULL;
-        snprintf(path, sizeof path, "%.4000s/truth.fits", o->mean_loops[d]);
-        if (!rc) rc = swfs_fits_read_real(path, "RESMEAN", &t, NULL);
-        if (!rc && (t->nx != n || t->ny != n || t->nz != 1))
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zux%zux%zu; the observation's pupil grid is %zu x %zu", path,
-                           t->nx, t->ny, t->nz, n, n);
-        if (!rc) {
-            double *m = miss + d * n * n;
-            memcpy(m, t->data, n * n * sizeof *m);
-            swfs_wfe_remove_ptt(m, mask, n);
-            for (size_t i = 0; i < n * n; i++) m[i] = mask[i] > 0 ? m[i] - rec[i] : 0.0;
-        }
-        swfs_real_free(t);
-    }
-    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nl, n * n, mask, rec, NULL);
-    if (!rc && isfinite(ratio)) {
-        r->meanmiss_heldout = ratio;
-        if (r->meanmiss_heldout < 1) {
-            rc = swfs_pipeline_set_mean_offset(w->p, rec);
-            if (!rc) r->meanmiss_rms = swfs_wfe_remove_ptt(rec, mask, n);
-        } else {
-            rc = swfs_pipeline_set_mean_offset(w->p, NULL);
-            r->meanmiss_rms = 0;
-        }
-    }
-    free(miss);
-    free(rec);
-    free(ms);
-    return rc;
-}
-
 /* The reconstructed residual's time mean over every frame written (a team's members add
  * their sums first): the static aberration of the science frames that the telemetry measures
  * (swfs_pipeline_mean_wavefront), written beside the speckles for `pupil` to take out. */
@@ -710,7 +626,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (!rc)
         rc = swfs_meanmiss_attach_(w.p, o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL,
                                    &o->lin, &w.g, &r->meanmiss_rms);
-    if (!rc && o->nmean_loops) rc = meanmiss_from_loops(o, &w, r);
+    if (!rc && o->nmean_loops)
+        rc = swfs_pipeline_mean_loops(w.p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
     if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     if (team) {

@@ -392,6 +392,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
 {
     memset(r, 0, sizeof *r);
     r->static_scale = NAN;
+    r->meanmiss_heldout = NAN;
     if (hk && !hk->source) hk = NULL;
     if ((!o->timing && !hk) || !o->science || !((o->recon && o->actuators) || o->lin.basis) || !o->out)
         return swfs_fail(SWFS_ERR_ARG, "stream: needs a timing table, a science cube, a reconstructor and actuators (or "
@@ -417,6 +418,9 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     int rc = hk ? SWFS_OK : check_paths(o, first_tel, sizeof first_tel);
     if (hk) first_tel[0] = 0;
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
+    /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles */
+    if (!rc && o->nmean_loops)
+        rc = swfs_pipeline_mean_loops(p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
     if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info, u.nlags ? u.lags : NULL) : SWFS_OK;
     else if (!rc) rc = swfs_file_source_open(&src, o->timing, o->science, o->slopes,
                                              r->info.nslopes / (u.nlags ? u.nlags : 1), o->batch);
