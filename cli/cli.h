@@ -178,12 +178,16 @@ void cli_recon_summary(const char *cmd, const struct swfs_pipeline_options *o, c
 /* The focal radius the speckles were computed within, when there is one (given: --band). */
 void cli_band_summary(const char *cmd, const struct swfs_pipeline_info *in, int given);
 struct swfs_speckles_run_result;
+struct swfs_mean_teach_result;
 /* A space-time reconstructor's checks against the observation (run.h st_*), with their warnings
  * (spacetime_summary.c). */
 void cli_spacetime_summary(const char *cmd, const struct swfs_speckles_run_result *r);
 /* The residual mean's miss added to RESMEAN: nloops simulated loops' (--mean-loop; heldout
  * their check's ratio) or, with none, a map's own MEANMISS; rms [m] (0: nothing added). */
 void cli_meanmiss_summary(const char *cmd, size_t nloops, double heldout, double rms);
+/* The loops `--mean-loop teach` (a pyramid's default) simulated or reused: their description
+ * from the files, or why there are none. */
+void cli_mean_teach_summary(const char *cmd, const struct swfs_mean_teach_result *m);
 /* --mean-loop folders a stream or live run takes at most */
 #define CLI_MAX_MEAN_LOOPS 64
 /* Where a space-time map's lags ran on across telemetry files and were clamped (speckles,

@@ -75,6 +75,8 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         else if (!strcmp(a, "--mean-loop")) {
             static const char *loops[CLI_MAX_MEAN_LOOPS];
             if (i + 1 >= argc) return cli_usage_error(cmd, "--mean-loop needs a folder of a simulated loop");
+            if (!strcmp(argv[i + 1], "none")) { o->run.mean_teach = 0; ++i; continue; }
+            if (!strcmp(argv[i + 1], "teach")) { o->run.mean_teach = 1; ++i; continue; } /* refused: no files */
             if (o->run.nmean_loops == CLI_MAX_MEAN_LOOPS) return cli_usage_error(cmd, "at most %d --mean-loop", CLI_MAX_MEAN_LOOPS);
             loops[o->run.nmean_loops++] = argv[++i];
             o->run.mean_loops = loops;

@@ -35,11 +35,14 @@ static int special(void *ctx, int argc, char **argv, int *i)
     } else if (!strcmp(a, "--mean-loop")) {
         static const char *loops[CLI_MAX_MEAN_LOOPS];
         const char *v = cli_next(argc, argv, i);
-        if (!v) return -cli_usage_error("stream", "--mean-loop needs a folder of a simulated loop");
+        if (!v) return -cli_usage_error("stream", "--mean-loop needs a folder of a simulated loop, teach or none");
+        if (!strcmp(v, "teach")) { o->mean_teach = 1; return 1; } /* loops stream simulates itself */
+        if (!strcmp(v, "none")) { o->mean_teach = 0; return 1; }  /* not even a pyramid's default */
         if (o->nmean_loops == CLI_MAX_MEAN_LOOPS) return -cli_usage_error("stream", "at most %d --mean-loop", CLI_MAX_MEAN_LOOPS);
         loops[o->nmean_loops++] = v;
         o->mean_loops = loops;
-    } else if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
+    } else if (!strcmp(a, "--teach-again")) o->teach_again = 1;
+    else if (!strcmp(a, "--keep-tiptilt")) o->tiptilt = SWFS_TT_KEEP;
     else if (!strcmp(a, "--tiptilt")) { if (cli_parse_tiptilt("stream", cli_next(argc, argv, i), &o->tiptilt)) return -CLI_USAGE; }
     else if (!strcmp(a, "--pupil-method")) {
         if (cli_parse_choice("stream", a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
@@ -53,7 +56,7 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
 {
     const char *cmd = "stream";
     const char *stat = "auto";
-    long every = 0, threads = o->threads, batch = (long)o->batch, max_frames = 0;
+    long every = 0, threads = o->threads, batch = (long)o->batch, max_frames = 0, mloops = (long)o->mean_teach_loops;
     const char *v = "a value";
     const cli_opt opts[] = {
         {"--timing", CLI_STRING, &o->timing, v, 0},       {"--science", CLI_STRING, &o->science, v, 0},
@@ -67,6 +70,7 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--read-noise", CLI_DOUBLE, &o->read_noise, NULL, 0}, {"--gain", CLI_DOUBLE, &o->gain, NULL, 0},
         {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0}, {"--clock", CLI_STRING, &o->clock, v, 0},
         {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0}, {"--valid", CLI_STRING, &o->valid, v, 0},
+        {"--teach-work", CLI_STRING, &o->teach_work, v, 0}, {"--mean-teach-loops", CLI_LONG, &mloops, NULL, 0},
     };
     for (int i = 1; i < argc; i++)
         if (cli_is_help(argv[i])) {
@@ -77,8 +81,10 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
     /* Signs here; the library checks the rest (run.h swfs_stream_run_options_check). */
-    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1)
-        return cli_usage_error(cmd, "--every and --max-frames must be >= 0, --threads and --batch >= 1");
+    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1 || mloops < 0)
+        return cli_usage_error(cmd, "--every, --max-frames and --mean-teach-loops must be >= 0, --threads and --batch "
+                               ">= 1");
+    o->mean_teach_loops = (size_t)mloops;
     o->stream.every = (size_t)every;
     o->stream.max_frames = (size_t)max_frames;
     o->threads = threads > INT_MAX ? INT_MAX : (int)threads;
@@ -137,7 +143,9 @@ int swfs_cmd_stream(int argc, char **argv)
         fprintf(stderr, ": each frame's slopes stacked with those at the lags\n");
         cli_spacetime_edges(cmd, r.st_edges_joined, r.st_edges_clamped, r.st_edges_unreadable, r.st_edges_why);
     }
-    cli_meanmiss_summary(cmd, o.nmean_loops, r.meanmiss_heldout, r.meanmiss_rms);
+    cli_mean_teach_summary(cmd, &r.mean_teach);
+    cli_meanmiss_summary(cmd, r.mean_teach.done ? r.mean_teach.nloops : o.nmean_loops, r.meanmiss_heldout,
+                         r.meanmiss_rms);
     if (isfinite(r.static_scale))
         fprintf(stderr, "stream: static halo S^1/2 Psi_0 with S^1/2 = %.4g (per unit exposure weight %.4g)\n",
                 r.static_scale, r.static_scale / r.ratio);

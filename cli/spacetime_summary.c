@@ -134,6 +134,16 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             "NCP)\n", cmd, r->resmean_rms * 1e9);
     const swfs_mean_teach_result *m = &r->mean_teach;
     const size_t nml = m->done ? m->nloops : o->nmean_loops;
+    cli_mean_teach_summary(cmd, m);
+    cli_meanmiss_summary(cmd, nml, r->meanmiss_heldout, r->meanmiss_rms);
+    if (swfs_speckles_resmean_warns(r))
+        fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
+                "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
+    cli_spacetime_summary(cmd, r);
+}
+
+void cli_mean_teach_summary(const char *cmd, const swfs_mean_teach_result *m)
+{
     if (m->fallback[0])
         fprintf(stderr, "%s: note: a pyramid's telemetry, but no loops of the system for the residual mean's miss "
                 "(--mean-loop teach, the default for it): %s; the mean as the reconstruction gives it\n", cmd, m->fallback);
@@ -156,11 +166,6 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             fprintf(stderr, ", r0 %.4g m (%s)", m->r0, m->reused ? "mean_loops.conf" : "given");
         fprintf(stderr, "; the rest as given or the simulator's defaults (mean_loops.conf)\n");
     }
-    cli_meanmiss_summary(cmd, nml, r->meanmiss_heldout, r->meanmiss_rms);
-    if (swfs_speckles_resmean_warns(r))
-        fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
-                "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
-    cli_spacetime_summary(cmd, r);
 }
 
 void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, double u, const char *unit)

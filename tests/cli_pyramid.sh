@@ -5,7 +5,8 @@
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
 # series, --mean-loop none), `stream` the same within 5 % (measured equal; with the loops speckles
-# simulated, --mean-loop DIR, equal to speckles' with them); by default speckles
+# simulated, --mean-loop DIR, or by its own default reusing them, equal to speckles' with them);
+# by default speckles
 # reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it
 # simulates of it (--mean-loop teach), reuses them on a second run, and stays within 2x
 # (measured 24.4 -> 19.6 nm). The Shack-Hartmann model refuses the signals (speckles
@@ -39,8 +40,9 @@ i=$(ideal_pupil "$D")
 echo "cli_pyramid: ratio $ratio; NCP error $e nm through --basis --imat, ideal speckles $i nm" >&2
 awk -v e="$e" -v i="$i" 'BEGIN { exit !(e > 0 && i > 0 && e < 2 * i) }' || fail "NCP error $e nm against the ideal $i nm"
 # stream runs the same model on the same frames: the same NCP error within 5 %
-"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" -o "$D/stream_halo.fits" \
-    > "$D/stream.log" 2>&1 || { cat "$D/stream.log"; fail "stream --basis --imat"; }
+"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop none \
+    -o "$D/stream_halo.fits" > "$D/stream.log" 2>&1 || { cat "$D/stream.log"; fail "stream --basis --imat"; }
+grep -q -- "--mean-loop teach" "$D/stream.log" && { cat "$D/stream.log"; fail "stream --mean-loop none made loops"; }
 "$B" pupil "$D/stream_halo.fits" -o "$D/stream_pupil.fits" --truth "$S/truth.fits" > "$D/stream_pupil.log" \
     || fail "pupil (stream)"
 es=$(ncp_error "$D/stream_pupil.log")
@@ -85,6 +87,20 @@ esm=$(ncp_error "$D/stream_mt_pupil.log")
 echo "cli_pyramid: stream --mean-loop (speckles' loops): NCP error $esm nm (speckles $em nm)" >&2
 awk -v a="$esm" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
     || fail "stream --mean-loop: $esm nm against speckles' $em nm"
+# stream's default for a pyramid's telemetry is speckles': the same description, so the loops
+# speckles made are reused (their folder and count given), to the same result
+"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" -o "$D/stream_dt.fits" \
+    > "$D/stream_dt.log" 2>&1 || { cat "$D/stream_dt.log"; fail "stream (the pyramid's default)"; }
+grep -q -- "stream: --mean-loop teach (the default for a pyramid's telemetry; --mean-loop none: without): 2 loops .* reused" \
+    "$D/stream_dt.log" || { cat "$D/stream_dt.log"; fail "stream: the loops not reused"; }
+"$B" pupil "$D/stream_dt.fits" -o "$D/stream_dt_pupil.fits" --truth "$S/truth.fits" > "$D/stream_dt_pupil.log" \
+    || fail "pupil (stream's default)"
+esd=$(ncp_error "$D/stream_dt_pupil.log")
+echo "cli_pyramid: stream's default (the loops reused): NCP error $esd nm" >&2
+awk -v a="$esd" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
+    || fail "stream's default: $esd nm against speckles' $em nm"
+expect_error "mean-loop teach describes the system from recorded files" "$B" live --wfs w --camera c \
+    --geom "$D/science.fits" "${pyr[@]}" --mean-loop teach -o "$D/live_x.fits"
 expect_error "mean-loop: the residual mean's miss needs at least 2 simulated loops" "$B" stream --timing "$D/timing.txt" \
     --science "$D/science.fits" "${pyr[@]}" --mean-loop "$D/tw/mean_00" -o "$D/stream_x.fits"
 [ ! -e "$D/stream_x.fits" ] || fail "stream left an output after refusing"

@@ -405,6 +405,16 @@ typedef struct swfs_stream_run_options {
                                  by this run's reconstruction, added to RESMEAN where they share it
                                  (swfs_pipeline_mean_loops; as speckles' mean_loops) */
     size_t nmean_loops;
+    int mean_teach;           /* as speckles' mean_teach, for a run from files with a timing table
+                                 (--timing): SWFS_MEAN_TEACH_AUTO (default) simulates, for a
+                                 pyramid's telemetry through the linear model and without
+                                 mean_loops, mean_teach_loops loops of the system the files describe
+                                 in teach_work (NULL: OUT.teach), reused while their description is
+                                 the same (teach_again: anew), and takes their miss; 1: whatever
+                                 the sensor; 0: never. A live or milk-log run never simulates them */
+    size_t mean_teach_loops;  /* 4; 2..SWFS_MEAN_TEACH_MAX */
+    const char *teach_work;
+    int teach_again;
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);
@@ -427,6 +437,7 @@ typedef struct swfs_stream_run_result {
     double meanmiss_rms;      /* [m] a learned map's MEANMISS, or the mean loops' shared miss, added
                                  to RESMEAN (as speckles'); 0: none */
     double meanmiss_heldout;  /* mean_loops: the held-out check's ratio (< 1: added); NAN otherwise */
+    swfs_mean_teach_result mean_teach; /* mean_teach: the loops' description from the files */
 } swfs_stream_run_result;
 
 /* The same for a stream run from files (swfs_stream_run_files calls it first): the timing

@@ -132,6 +132,22 @@ static int stream_ranges(const swfs_stream_run_options *o)
              "others'), got %zu", o->nmean_loops);
     for (size_t k = 0; k < o->nmean_loops; k++)
         if (!o->mean_loops[k]) FAIL("--mean-loop %zu: no folder given", k + 1);
+    if (o->mean_teach != 0 && o->mean_teach != 1 && o->mean_teach != SWFS_MEAN_TEACH_AUTO)
+        FAIL("mean_teach must be 0, 1 or SWFS_MEAN_TEACH_AUTO (-1), got %d", o->mean_teach);
+    if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
+        FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
+             SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
+    if (o->mean_teach == 1) {
+        if (!o->lin.basis)
+            FAIL("--mean-loop teach goes with the linear model (--basis); with --recon and --actuators give the map "
+                 "speckles taught from loops of the system");
+        if (o->nmean_loops) FAIL("--mean-loop takes loops' folders or teach, not both");
+        if (!o->timing) FAIL("--mean-loop teach describes the system from the files of a timing table (--timing)");
+        if (o->team && o->team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
+    }
+    if ((o->teach_work || o->teach_again) && o->mean_teach == 0)
+        FAIL("--teach-work and --teach-again go with the loops stream simulates (--mean-loop teach, a pyramid's "
+             "default)");
     return SWFS_OK;
 }
 
@@ -153,6 +169,9 @@ int swfs_stream_run_options_check(const swfs_stream_run_options *o)
 int swfs_live_options_check(const swfs_live_options *o)
 {
     const swfs_stream_run_options *r = &o->run;
+    if (r->mean_teach == 1 || r->teach_work || r->teach_again)
+        FAIL("--mean-loop teach describes the system from recorded files; a live run takes the loops speckles or "
+             "stream made (--mean-loop DIR --mean-loop DIR ...)");
     if (!o->src.nwfs || !o->src.camera || !r->science || !((r->recon && r->actuators) || r->lin.basis) || !r->out)
         FAIL("needs --wfs, --camera, --geom, --recon and --actuators (or --basis) and -o");
     if (r->lin.basis && (r->recon || r->valid)) FAIL("--basis (the linear model) takes no --recon or --valid");

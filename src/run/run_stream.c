@@ -11,6 +11,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o)
@@ -24,6 +25,39 @@ void swfs_stream_run_options_default(swfs_stream_run_options *o)
     o->read_noise = o->gain = NAN;
     o->g_smooth_lod = 2.0;
     swfs_stream_options_default(&o->stream);
+    o->mean_teach = SWFS_MEAN_TEACH_AUTO;
+    o->mean_teach_loops = 4;
+}
+
+/* --mean-loop teach (and a pyramid's default), as speckles': the loops of the system the
+ * files describe, simulated or reused by run_mean_teach.c with the run's files (its timing
+ * table, their folder or --slopes DIR, the geometry, the linear model); dirs their folders. */
+static int stream_mean_teach(const swfs_stream_run_options *o, const swfs_geom *g, size_t nslopes,
+                             swfs_stream_run_result *r, char (*dirs)[4400])
+{
+    swfs_speckles_run_options so;
+    swfs_speckles_run_options_default(&so);
+    so.timing = o->timing;
+    so.science = o->science;
+    so.out = o->out;
+    so.lin = o->lin;
+    so.mask = o->mask;
+    so.mean_teach = o->mean_teach;
+    so.mean_teach_loops = o->mean_teach_loops;
+    so.teach_work = o->teach_work;
+    so.teach_again = o->teach_again;
+    so.prov = o->prov;
+    so.nprov = o->nprov;
+    so.team = o->team;
+    char tdir[4096];
+    struct stat st;
+    if (o->slopes && !stat(o->slopes, &st) && S_ISDIR(st.st_mode)) snprintf(tdir, sizeof tdir, "%s", o->slopes);
+    else swfs_path_dir(o->timing, tdir, sizeof tdir);
+    swfs_timing *t = NULL;
+    int rc = swfs_timing_read(o->timing, &t);
+    if (!rc) rc = swfs_speckles_mean_teach_(&so, t, tdir, g, nslopes, &r->mean_teach, dirs);
+    swfs_timing_free(t);
+    return rc;
 }
 
 /* Pupil mask: a file (its PUPIL extension if it has one) or the annulus of the geometry. */
@@ -418,7 +452,19 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     int rc = hk ? SWFS_OK : check_paths(o, first_tel, sizeof first_tel);
     if (hk) first_tel[0] = 0;
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
-    /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles */
+    /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles;
+     * from files with a timing table the loops may be simulated here, as speckles does */
+    const int mteach = !hk && o->timing && (o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO &&
+                                                                   o->lin.basis && !o->nmean_loops));
+    char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
+    if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && mteach) rc = stream_mean_teach(o, &u.g, r->info.nslopes / (u.nlags ? u.nlags : 1), r, dirs);
+    if (!rc && mteach && r->mean_teach.done) {
+        const char *mt[SWFS_MEAN_TEACH_MAX];
+        for (size_t k = 0; k < o->mean_teach_loops; k++) mt[k] = dirs[k];
+        rc = swfs_pipeline_mean_loops(p, mt, o->mean_teach_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
+    }
+    free(dirs);
     if (!rc && o->nmean_loops)
         rc = swfs_pipeline_mean_loops(p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
     if (!rc && hk) rc = hk->prepare ? hk->prepare(hk->ctx, &r->info, u.nlags ? u.lags : NULL) : SWFS_OK;
