@@ -76,29 +76,28 @@ echo "cli_pyramid: --mean-loop teach: NCP error $em nm" >&2
 awk -v e="$em" -v i="$i" 'BEGIN { exit !(e > 0 && e < 2 * i) }' || fail "--mean-loop teach: NCP error $em nm against the ideal $i nm"
 # stream takes the loops speckles simulated (--mean-loop DIR, twice): the same miss added, the
 # same NCP error within 5 %; one loop alone is refused before any file is read
-"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop "$D/tw/mean_00" \
-    --mean-loop "$D/tw/mean_01" -o "$D/stream_mt.fits" > "$D/stream_mt.log" 2>&1 \
-    || { cat "$D/stream_mt.log"; fail "stream --mean-loop"; }
-grep -q "stream: this reconstruction's miss of the AO residual's mean in 2 simulated loops (--mean-loop): held out" \
-    "$D/stream_mt.log" || { cat "$D/stream_mt.log"; fail "stream: no held-out line"; }
-"$B" pupil "$D/stream_mt.fits" -o "$D/stream_mt_pupil.fits" --truth "$S/truth.fits" > "$D/stream_mt_pupil.log" \
-    || fail "pupil (stream --mean-loop)"
-esm=$(ncp_error "$D/stream_mt_pupil.log")
-echo "cli_pyramid: stream --mean-loop (speckles' loops): NCP error $esm nm (speckles $em nm)" >&2
-awk -v a="$esm" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
-    || fail "stream --mean-loop: $esm nm against speckles' $em nm"
+# stream_as_speckles TAG LINE [stream options]: stream with the options, its log holding LINE,
+# the pupil's NCP error within 5 % of speckles' with the loops ($em)
+stream_as_speckles() {
+    local tag=$1 line=$2
+    shift 2
+    "$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "$@" -o "$D/$tag.fits" \
+        > "$D/$tag.log" 2>&1 || { cat "$D/$tag.log"; fail "stream $*"; }
+    grep -q -- "$line" "$D/$tag.log" || { cat "$D/$tag.log"; fail "stream $*: no line '$line'"; }
+    "$B" pupil "$D/$tag.fits" -o "$D/${tag}_pupil.fits" --truth "$S/truth.fits" > "$D/${tag}_pupil.log" \
+        || fail "pupil (stream $*)"
+    local e
+    e=$(ncp_error "$D/${tag}_pupil.log")
+    echo "cli_pyramid: stream $*: NCP error $e nm (speckles with the loops $em nm)" >&2
+    awk -v a="$e" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
+        || fail "stream $*: $e nm against speckles' $em nm"
+}
+stream_as_speckles stream_mt "stream: this reconstruction's miss of the AO residual's mean in 2 simulated loops (--mean-loop): held out" \
+    --mean-loop "$D/tw/mean_00" --mean-loop "$D/tw/mean_01"
 # stream's default for a pyramid's telemetry is speckles': the same description, so the loops
 # speckles made are reused (their folder and count given), to the same result
-"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" "${mt[@]}" -o "$D/stream_dt.fits" \
-    > "$D/stream_dt.log" 2>&1 || { cat "$D/stream_dt.log"; fail "stream (the pyramid's default)"; }
-grep -q -- "stream: --mean-loop teach (the default for a pyramid's telemetry; --mean-loop none: without): 2 loops .* reused" \
-    "$D/stream_dt.log" || { cat "$D/stream_dt.log"; fail "stream: the loops not reused"; }
-"$B" pupil "$D/stream_dt.fits" -o "$D/stream_dt_pupil.fits" --truth "$S/truth.fits" > "$D/stream_dt_pupil.log" \
-    || fail "pupil (stream's default)"
-esd=$(ncp_error "$D/stream_dt_pupil.log")
-echo "cli_pyramid: stream's default (the loops reused): NCP error $esd nm" >&2
-awk -v a="$esd" -v b="$em" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > b / 1.05) }' \
-    || fail "stream's default: $esd nm against speckles' $em nm"
+stream_as_speckles stream_dt "stream: --mean-loop teach (the default for a pyramid's telemetry; --mean-loop none: without): 2 loops .* reused" \
+    "${mt[@]}"
 expect_error "mean-loop teach describes the system from recorded files" "$B" live --wfs w --camera c \
     --geom "$D/science.fits" "${pyr[@]}" --mean-loop teach -o "$D/live_x.fits"
 expect_error "mean-loop: the residual mean's miss needs at least 2 simulated loops" "$B" stream --timing "$D/timing.txt" \

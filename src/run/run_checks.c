@@ -21,6 +21,30 @@
  * any camera's frames per update and keeps a call's buffers within memory). */
 #define BATCH_MAX 100000
 
+/* The mean loops' options that speckles and stream share: folders (at least 2) or the loops the
+ * run simulates (mean_teach: 0, 1 or AUTO; mean_teach_loops of them; with the linear model,
+ * not with folders, not in a team); what --mean-loop teach goes with otherwise is the caller's. */
+static int mean_loop_checks(const char *const *loops, size_t nloops, int mean_teach, size_t mean_teach_loops,
+                            int basis, const char *basis_why, const swfs_team *team)
+{
+    if (nloops == 1 || (nloops && !loops))
+        FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
+             "others'), got %zu", nloops);
+    for (size_t k = 0; k < nloops; k++)
+        if (!loops[k]) FAIL("--mean-loop %zu: no folder given", k + 1);
+    if (mean_teach != 0 && mean_teach != 1 && mean_teach != SWFS_MEAN_TEACH_AUTO)
+        FAIL("mean_teach must be 0, 1 or SWFS_MEAN_TEACH_AUTO (-1), got %d", mean_teach);
+    if (mean_teach_loops < 2 || mean_teach_loops > SWFS_MEAN_TEACH_MAX)
+        FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
+             SWFS_MEAN_TEACH_MAX, mean_teach_loops);
+    if (mean_teach == 1) {
+        if (!basis) FAIL("--mean-loop teach goes with the linear model (--basis); %s", basis_why);
+        if (nloops) FAIL("--mean-loop takes loops' folders or teach, not both");
+        if (team && team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
+    }
+    return SWFS_OK;
+}
+
 int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
 {
     swfs_speckles_run_options d;
@@ -53,10 +77,11 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     if (p->threads < 1 || p->threads > SWFS_ENGINE_MAX_THREADS)
         FAIL("--threads must be 1..%d, got %d", SWFS_ENGINE_MAX_THREADS, p->threads);
     if (o->batch > BATCH_MAX) FAIL("--batch must be 1..%d, got %zu", BATCH_MAX, o->batch);
-    if (o->nmean_loops == 1 || (o->nmean_loops && !o->mean_loops))
-        FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
-             "others'), got %zu", o->nmean_loops);
-    if (o->nmean_loops && p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
+    const int mrc = mean_loop_checks(o->mean_loops, o->nmean_loops, o->mean_teach, o->mean_teach_loops, basis,
+                                     "with --actuators the default teaches its map from loops of the system already",
+                                     o->team);
+    if (mrc) return mrc;
+    if ((o->nmean_loops || o->mean_teach == 1) && p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
     const int taught = recon == SWFS_RECON_TEACH && !basis;
     if ((o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops || o->teach_keep_loops) && !taught)
         FAIL("--teach-loops, --teach-max-loops and --teach-keep-loops go with --recon teach (the default with "
@@ -65,19 +90,6 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
         !(basis && o->mean_teach))
         FAIL("--teach-work, --teach-seed, --teach-again and --teach-set go with --recon teach (the default with "
              "--actuators) or --mean-loop teach");
-    if (o->mean_teach != 0 && o->mean_teach != 1 && o->mean_teach != SWFS_MEAN_TEACH_AUTO)
-        FAIL("mean_teach must be 0, 1 or SWFS_MEAN_TEACH_AUTO (-1), got %d", o->mean_teach);
-    if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
-        FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
-             SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
-    if (o->mean_teach == 1) {
-        if (!basis)
-            FAIL("--mean-loop teach goes with the linear model (--basis); with --actuators the default teaches its map "
-                 "from loops of the system already");
-        if (o->nmean_loops) FAIL("--mean-loop takes loops' folders or teach, not both");
-        if (p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
-        if (o->team && o->team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
-    }
     for (size_t k = 0; k < o->nteach_keys; k++)
         if (!o->teach_keys || !o->teach_keys[k] || !strchr(o->teach_keys[k], '=') || o->teach_keys[k][0] == '=')
             FAIL("--teach-set takes key=value (simulate mode=timeseries keys), got '%s'",
@@ -127,24 +139,12 @@ static int stream_ranges(const swfs_stream_run_options *o)
         o->stream.static_mode != SWFS_STATIC_GIVEN)
         FAIL("--static: unknown mode %d (expected auto, none or a file)", o->stream.static_mode);
     if (o->stream.static_mode == SWFS_STATIC_GIVEN && !o->static_file) FAIL("--static FILE: no file given");
-    if (o->nmean_loops == 1 || (o->nmean_loops && !o->mean_loops))
-        FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
-             "others'), got %zu", o->nmean_loops);
-    for (size_t k = 0; k < o->nmean_loops; k++)
-        if (!o->mean_loops[k]) FAIL("--mean-loop %zu: no folder given", k + 1);
-    if (o->mean_teach != 0 && o->mean_teach != 1 && o->mean_teach != SWFS_MEAN_TEACH_AUTO)
-        FAIL("mean_teach must be 0, 1 or SWFS_MEAN_TEACH_AUTO (-1), got %d", o->mean_teach);
-    if (o->mean_teach_loops < 2 || o->mean_teach_loops > SWFS_MEAN_TEACH_MAX)
-        FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
-             SWFS_MEAN_TEACH_MAX, o->mean_teach_loops);
-    if (o->mean_teach == 1) {
-        if (!o->lin.basis)
-            FAIL("--mean-loop teach goes with the linear model (--basis); with --recon and --actuators give the map "
-                 "speckles taught from loops of the system");
-        if (o->nmean_loops) FAIL("--mean-loop takes loops' folders or teach, not both");
-        if (!o->timing) FAIL("--mean-loop teach describes the system from the files of a timing table (--timing)");
-        if (o->team && o->team->size > 1) FAIL("--mean-loop teach runs in one process, not in a team");
-    }
+    const int mrc = mean_loop_checks(o->mean_loops, o->nmean_loops, o->mean_teach, o->mean_teach_loops,
+                                     o->lin.basis != NULL, "with --recon and --actuators give the map speckles "
+                                     "taught from loops of the system", o->team);
+    if (mrc) return mrc;
+    if (o->mean_teach == 1 && !o->timing)
+        FAIL("--mean-loop teach describes the system from the files of a timing table (--timing)");
     if ((o->teach_work || o->teach_again) && o->mean_teach == 0)
         FAIL("--teach-work and --teach-again go with the loops stream simulates (--mean-loop teach, a pyramid's "
              "default)");
