@@ -93,8 +93,8 @@ int swfs_regress_import(swfs_regress *r, const double *state);
 typedef struct swfs_regress_sol {
     size_t nx, ny;
     swfs_real *theta;   /* nx x ny x 4: a, b, Re c, Im c */
-    swfs_real *info;    /* nx x ny x 10: F = G / s^2, upper triangle row by row */
-    swfs_real *rhs;     /* nx x ny x 4: f = h / s^2 */
+    swfs_real *info;    /* nx x ny x 10: F = G / s^2 (nu - 2) / nu, upper triangle row by row */
+    swfs_real *rhs;     /* nx x ny x 4: f = h / s^2 (nu - 2) / nu */
     swfs_real *s2;      /* residual variance per unit weight */
     swfs_real *phi_sp;  /* weighted mean of |psi - <psi>|^2 (Phi_sp of eq:betterMean) */
     swfs_cplx *centre;  /* <psi>, the frame of theta */
