@@ -9,7 +9,8 @@
 #include <stdlib.h>
 
 static const char *usage_text =
-    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--no-heldout] [--no-mean-miss]\n"
+    "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--prior W0.fits] [--no-heldout]\n"
+    "                        [--no-mean-miss]\n"
     "                        [--lags L,L,...]\n"
     "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]] [--threads N]\n"
     "\n"
@@ -40,6 +41,11 @@ static const char *usage_text =
     "                is piston and is taken out)\n"
     "  --ridge R     ridge of the normal equations, a fraction of their mean diagonal\n"
     "                (default 1e-6; it only conditions the solve)\n"
+    "  --prior W0.fits  the map shrinks toward W0 (the same slopes and outputs; e.g. the MAP\n"
+    "                `speckles --basis B --imat D --write-recon W0.fits` wrote): the frames move\n"
+    "                it from W0 as far as the ridge lets them, so give --ridge a weight (0.1:\n"
+    "                a tenth of the slopes' mean power per frame); for loops too few for a\n"
+    "                map of their own (not with --lags)\n"
     "  --no-mean-miss  no MEANMISS: the map's miss of the residual's time mean where the\n"
     "                folders share it (a pyramid's), which speckles adds to RESMEAN\n"
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
@@ -83,6 +89,7 @@ int swfs_cmd_learn(int argc, char **argv)
         {"-o", CLI_STRING, &o.out, "a file name", 0},
         {"--lags", CLI_STRING, &lags, "a list of WFS-frame lags (e.g. 0,-25,25)", 0},
         {"--ridge", CLI_DOUBLE, &o.ridge, NULL, 0},
+        {"--prior", CLI_STRING, &o.prior, "a map file", 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
         {"--no-mean-miss", CLI_SET, &no_mean_miss, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},

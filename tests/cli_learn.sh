@@ -62,12 +62,31 @@ awk -v h="$eh" -v a="$el" -v b="$ed" -v c="$ec" \
     || fail "the halo chosen by the self-check: $eh nm, the three $el $ed $ec nm"
 awk -v l="$el" -v c="$ec" 'BEGIN { exit !(c > 0 && c < 1.1 * l && l < 1.1 * c) }' \
     || fail "the learned map as a control matrix $ec nm against $el nm as a reconstructor"
+# a prior map (learn --prior): the von Karman map speckles wrote, the loops' map shrunk toward
+# it with a ridge that leaves it nothing to move: the von Karman map's NCP error again (0.3 nm);
+# a space-time map as the prior is refused (below), no map left
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon vk -o spk_d2.fits \
+    --write-recon vk.fits 2> /dev/null || fail "speckles --recon vk --write-recon"
+"$B" learn train/* -o prior.fits --prior vk.fits --ridge 1e9 --no-heldout --no-mean-miss > learn_prior.log 2>&1 \
+    || { cat learn_prior.log; fail "learn --prior"; }
+head -c 8640 prior.fits | grep -aq "LRNPRIOR= 'vk.fits *'" || fail "prior.fits: no LRNPRIOR"
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --recon prior.fits --match science.fits \
+    sci_p.fits -o spk_p.fits 2> speckles_p.log || { cat speckles_p.log; fail "speckles with the prior's map"; }
+"$B" estimate sci_p.fits spk_p.fits -o halo_p.fits > /dev/null 2>&1 || fail "estimate (prior)"
+"$B" pupil halo_p.fits -o pupil_p.fits --truth obs/truth.fits > pupil_p.log || fail "pupil (prior)"
+ep=$(ncp_error pupil_p.log)
+echo "cli_learn: learn --prior vk.fits --ridge 1e9: NCP error $ep nm (vk $ed nm)"
+awk -v p="$ep" -v d="$ed" 'BEGIN { exit !(p > 0 && p < d + 0.3 && p > d - 0.3) }' || fail "--prior at 1e9: $ep nm, vk $ed nm"
 # a space-time map of the same loops (their second layers drawn from a spread, not the
 # observation's): learn records the loops' layers and slopes' correlation, and speckles prints
 # both checks against the observation's telemetry, whose two layers (15 and 22 m/s) `wind`
 # finds
 "$B" learn train/* -o lagged.fits --lags 0,-4,4 --no-heldout > learn_lags.log 2>&1 || { cat learn_lags.log; fail "learn --lags"; }
 grep -q "x 3 lags (0,-4,4)" learn_lags.log || { cat learn_lags.log; fail "learn --lags printed no lags"; }
+# a space-time map is no prior
+"$B" learn train/* -o bad.fits --prior lagged.fits --ridge 1 --no-heldout > bad.log 2>&1 && fail "a space-time prior accepted"
+grep -q "lagged.fits: a space-time map (NLAGS 3); --prior takes a per-frame map" bad.log || { cat bad.log; fail "learn: the prior's message"; }
+[ -e bad.fits ] && fail "learn left a map after a refused prior"
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --recon lagged.fits \
     -o spk_st.fits 2> speckles_st.log || { cat speckles_st.log; fail "speckles with a space-time map"; }
 grep -q "given space-time reconstructor lagged.fits: 288 slopes x 3 lags" speckles_st.log \

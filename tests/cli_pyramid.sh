@@ -4,7 +4,8 @@
 # sync times the science frames from the signals (ratio and lag as from true timing), and the
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
 # the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
-# series, --mean-loop none), `stream` the same within 5 % (measured equal; with the loops speckles
+# series, --mean-loop none; the MAP it writes, --write-recon, given back as --control gives the
+# same error), `stream` the same within 5 % (measured equal; with the loops speckles
 # simulated, --mean-loop DIR, or by its own default reusing them, equal to speckles' with them);
 # by default speckles
 # reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it
@@ -30,7 +31,9 @@ ratio=$(awk '$1 == "ratio" { print $2 }' "$D/timing.txt")
 awk -v r="$ratio" 'BEGIN { exit !(r > 6.47 && r < 6.49) }' || fail "sync on the pyramid's signals: ratio $ratio (true 6.48)"
 pyr=(--basis "$S/influence.fits" --imat "$S/imat_ao.fits")
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop none -o "$D/speckles.fits" \
-    --match "$D/science.fits" "$D/sci_m.fits" 2> "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles --imat"; }
+    --match "$D/science.fits" "$D/sci_m.fits" --write-recon "$D/map.fits" 2> "$D/speckles.log" \
+    || { cat "$D/speckles.log"; fail "speckles --imat"; }
+head -c 8640 "$D/map.fits" | grep -aq "RECON   = 'MAP *'" || fail "map.fits: RECON is not 'MAP'"
 grep -q -- "--mean-loop teach" "$D/speckles.log" && { cat "$D/speckles.log"; fail "--mean-loop none made loops"; }
 grep -q "interaction matrix, MAP reconstructor" "$D/speckles.log" || { cat "$D/speckles.log"; fail "speckles: the model"; }
 "$B" estimate "$D/sci_m.fits" "$D/speckles.fits" -o "$D/halo.fits" > "$D/estimate.log" 2>&1 || fail "estimate"
@@ -39,6 +42,13 @@ e=$(ncp_error "$D/pupil.log")
 i=$(ideal_pupil "$D")
 echo "cli_pyramid: ratio $ratio; NCP error $e nm through --basis --imat, ideal speckles $i nm" >&2
 awk -v e="$e" -v i="$i" 'BEGIN { exit !(e > 0 && i > 0 && e < 2 * i) }' || fail "NCP error $e nm against the ideal $i nm"
+# the MAP speckles wrote (--write-recon) given back as the control matrix: the same speckles
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --control "$D/map.fits" \
+    --mean-loop none -o "$D/speckles_c.fits" 2> "$D/speckles_c.log" || { cat "$D/speckles_c.log"; fail "speckles --control"; }
+"$B" estimate "$D/sci_m.fits" "$D/speckles_c.fits" -o "$D/halo_c.fits" > "$D/estimate_c.log" 2>&1 || fail "estimate (c)"
+"$B" pupil "$D/halo_c.fits" -o "$D/pupil_c.fits" --truth "$S/truth.fits" > "$D/pupil_c.log" || fail "pupil (c)"
+ec=$(ncp_error "$D/pupil_c.log")
+[ "$ec" = "$e" ] || fail "speckles --control with the written MAP: $ec nm, --imat $e nm"
 # stream runs the same model on the same frames: the same NCP error within 5 %
 "$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop none \
     -o "$D/stream_halo.fits" > "$D/stream.log" 2>&1 || { cat "$D/stream.log"; fail "stream --basis --imat"; }

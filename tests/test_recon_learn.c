@@ -2,7 +2,8 @@
  * problem z = W0 s + noise + piston, with one slope that never has signal: the map comes back
  * (piston removed, the dead slope's column 0), the training misfit it reports is the misfit
  * computed frame by frame, and the held-out check of one part equals the map learned on the
- * other part alone applied to the held-out frames. Bad input: NaN, too few frames. */
+ * other part alone applied to the held-out frames; with a prior map, the ridge toward it.
+ * Bad input: NaN, too few frames. */
 #include "testutil.h"
 
 #include "specklewfs/fits.h"
@@ -168,6 +169,85 @@ static void test_learner(void **state)
     swfs_recon_learner_free(all);
     swfs_recon_learner_free(pa);
     swfs_recon_learner_free(pb);
+    free(s);
+    free(z);
+}
+
+/* A prior map (swfs_recon_learner_set_prior): from 30 frames, the map with a ridge toward a
+ * prior P (W0 perturbed) is the minimum of sum |z - W s|^2 + lam |W - P|^2 (its gradient 0,
+ * checked from the frames), a vanishing ridge gives the map without a prior, a huge one P (the
+ * piston of each column out; the dead slope's column P's), the training misfit reported is the
+ * one computed frame by frame; a prior of other shapes is refused. */
+static void test_learner_prior(void **state)
+{
+    (void)state;
+    const size_t n = 30;
+    double *s = NULL, *z = NULL;
+    draw_problem(11, n, &s, &z);
+    swfs_rng r;
+    swfs_rng_seed(&r, 99);
+    swfs_recon P = {.nact = NA, .nslopes = NS};
+    P.W = malloc(NA * NS * sizeof *P.W);
+    assert_non_null(P.W);
+    for (size_t a = 0; a < NA; a++)
+        for (size_t i = 0; i < NS; i++) P.W[a * NS + i] = W0[a][i] + 0.3 * swfs_rng_normal(&r);
+    swfs_recon_learner *l = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &l));
+    assert_ok(swfs_recon_learner_add(l, s, z, n));
+    swfs_recon *w_none = NULL, *w_tiny = NULL, *w_huge = NULL, *w = NULL;
+    assert_ok(swfs_recon_learner_solve(l, 1e-12, &w_none, NULL));
+    assert_ok(swfs_recon_learner_set_prior(l, &P));
+    assert_ok(swfs_recon_learner_solve(l, 1e-12, &w_tiny, NULL));
+    assert_ok(swfs_recon_learner_solve(l, 1e8, &w_huge, NULL));
+    const double ridge = 0.5;
+    swfs_recon_learn_info info;
+    assert_ok(swfs_recon_learner_solve(l, ridge, &w, &info));
+    double d_tiny = 0, d_huge = 0, g_worst = 0, g_scale = 0;
+    /* lam: ridge x the mean diagonal of S^T S over the slopes with signal */
+    double tr = 0;
+    for (size_t f = 0; f < n; f++)
+        for (size_t i = 0; i < NS; i++) tr += s[f * NS + i] * s[f * NS + i];
+    const double lam = ridge * tr / (NS - 1);
+    for (size_t i = 0; i < NS; i++) {
+        double pm = 0;
+        for (size_t a = 0; a < NA; a++) pm += P.W[a * NS + i] / NA;
+        for (size_t a = 0; a < NA; a++) {
+            if (i != DEAD) d_tiny = fmax(d_tiny, fabs(w_tiny->W[a * NS + i] - w_none->W[a * NS + i]));
+            d_huge = fmax(d_huge, fabs(w_huge->W[a * NS + i] - (P.W[a * NS + i] - pm)));
+            if (i == DEAD) { /* no signal: the prior's column */
+                assert_close(w->W[a * NS + i], P.W[a * NS + i] - pm, 1e-12);
+                continue;
+            }
+            /* the gradient: -sum_f (zc - W s)_a s_i + lam (W - Pc)_ai */
+            double g = lam * (w->W[a * NS + i] - (P.W[a * NS + i] - pm));
+            for (size_t f = 0; f < n; f++) {
+                double zm = 0, wsa = 0;
+                for (size_t b = 0; b < NA; b++) zm += z[f * NA + b] / NA;
+                for (size_t j = 0; j < NS; j++) wsa += w->W[a * NS + j] * s[f * NS + j];
+                g -= (z[f * NA + a] - zm - wsa) * s[f * NS + i];
+            }
+            g_worst = fmax(g_worst, fabs(g));
+            g_scale = fmax(g_scale, lam * fabs(w->W[a * NS + i]));
+        }
+    }
+    const double m2 = misfit2(w, s, z, n);
+    printf("test_recon_learn: prior: tiny ridge %.2g from no prior, huge %.2g from the prior; gradient %.2g of %.2g; "
+           "misfit %.6g from the sums, %.6g by frame\n", d_tiny, d_huge, g_worst, g_scale, info.misfit_rms, sqrt(m2));
+    assert_true(d_tiny < 1e-6);
+    assert_true(d_huge < 1e-6);
+    assert_true(g_worst < 1e-4 * g_scale); /* the truth's sums are single precision (wfs.h) */
+    assert_true(fabs(info.misfit_rms * info.misfit_rms - m2) <= 1e-5 * info.truth_rms * info.truth_rms);
+    /* the map between the two: nearer the prior than the least squares is, and fits worse */
+    assert_true(m2 > misfit2(w_none, s, z, n));
+    P.nslopes = NS - 1;
+    assert_int_equal(swfs_recon_learner_set_prior(l, &P), SWFS_ERR_SHAPE);
+    assert_non_null(strstr(swfs_last_error(), "prior map of 5 outputs x 6 inputs"));
+    swfs_recon_free(w_none);
+    swfs_recon_free(w_tiny);
+    swfs_recon_free(w_huge);
+    swfs_recon_free(w);
+    swfs_recon_learner_free(l);
+    free(P.W);
     free(s);
     free(z);
 }
@@ -717,6 +797,7 @@ static void test_learning_curve(void **state)
 int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
+                                       cmocka_unit_test(test_learner_prior),
                                        cmocka_unit_test(test_learner_grows),
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),

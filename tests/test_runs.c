@@ -1648,6 +1648,7 @@ static void test_options_checks(void **state)
         "--teach-set: time-series parameter dm_coupling=1.5: must be in [0, 1)",
         "--mean-loop teach goes with the linear model", "--mean-teach-loops must be 2..16",
         "--mean-loop takes loops' folders or teach, not both",
+        "without either the telemetry are the coefficients and there is no map",
     };
     const char *two[2] = {"loop_a", "loop_b"};
     const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},
@@ -1691,6 +1692,7 @@ static void test_options_checks(void **state)
             sp.mean_loops = two;
             sp.nmean_loops = 2;
             break;
+        case 24: sp.actuators = NULL; sp.lin.basis = p("checks_basis.fits"); sp.write_recon = p("checks_w.fits"); break;
         default: sp.teach_keys = tk_ok; sp.nteach_keys = 1; break; /* the defaults, and a key teach takes */
         }
         if (k == npat) {

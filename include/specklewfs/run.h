@@ -656,6 +656,12 @@ typedef struct swfs_learn_run_options {
     int mean_miss;            /* 1: the map's miss of the residual's time mean (below), written
                                  as the map's extension MEANMISS where it is systematic; the
                                  learn command's default, not teach's */
+    const char *prior;        /* NULL, or a map file (swfs_recon_read's: NAXIS1 = the slopes, NAXIS2
+                                 = the outputs, per frame) the learned map shrinks toward
+                                 (swfs_recon_learner_set_prior): the frames move it as far as
+                                 the ridge lets them, so give a ridge that counts (e.g. 0.1);
+                                 for a map made another way (speckles --write-recon: a linear
+                                 model's MAP) corrected by a few loops. Not with lags */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);

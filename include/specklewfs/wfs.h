@@ -294,7 +294,17 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
  * truth2. */
 int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                   const unsigned char *keep, double *misfit2, double *truth2, double *scaled2);
-void swfs_recon_learner_reset(swfs_recon_learner *l); /* no frames, the shapes kept */
+void swfs_recon_learner_reset(swfs_recon_learner *l); /* no frames, the shapes kept (and the prior) */
+/* A prior map w0 (nact x nslopes, the learner's shapes; NULL: none) that every later solve
+ * shrinks toward: W = argmin sum |z - W s|^2 + lam |W - W0|^2, (G + lam I) A = H + lam A0,
+ * lam = ridge x the mean diagonal of S^T S as before; the inputs without signal keep the
+ * prior's columns. With remove_mean, each input's mean over the outputs (piston) comes out of
+ * the copy kept. The ridge then says how far the frames may move the map from the prior: a
+ * small one (the default 1e-6) leaves the least-squares map, a large one the prior. For a map
+ * made some other way (the MAP of an interaction matrix) corrected by loops too few for a map
+ * of their own. The held-out checks of the learner's sums use it too; a held-out part's own
+ * learner needs none. */
+int swfs_recon_learner_set_prior(swfs_recon_learner *l, const swfs_recon *w0);
 /* dst += src: the sums of both sets of frames, as if src's had been added to dst (the inputs
  * with signal the union of both; the same inputs, lags and outputs). For learning curves: a
  * map from some parts' frames checked on the others' (swfs_recon_learner_heldout). */

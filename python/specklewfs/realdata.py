@@ -111,7 +111,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
 
 
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
-          curve_radius=None, threads=0, mean_miss=True):
+          curve_radius=None, threads=0, mean_miss=True, prior=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -150,7 +150,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     checked held out (meanmiss_heldout < 1: the others' mean predicts each one's, the sensor's
     own miss) and then written as out's extension MEANMISS, which speckles() adds to RESMEAN
     (its meanmiss_rms); returned as meanmiss (heldout, rms, set_rms, kept), None when not
-    checked."""
+    checked. prior (a map file of the same slopes and outputs, e.g. what speckles(...,
+    write_recon=) wrote for the linear model's MAP; `learn --prior`): the map shrinks toward
+    it, as far from it as the ridge lets the frames move it (give a ridge of weight, e.g. 0.1;
+    not with lags)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -173,6 +176,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     o.curve = int(bool(curve))
     o.threads = int(threads)
     o.mean_miss = int(bool(mean_miss))
+    if prior is not None:
+        o.prior = enc(prior)
     if curve_radius is not None:
         o.curve_radius[0], o.curve_radius[1] = float(curve_radius[0]), float(curve_radius[1])
     r = _lib.swfs_learn_run_result()
@@ -421,7 +426,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     the MAP reconstructor from the telemetry), scale (`--coef-scale`) and for a basis on the
     DM's grid dm_pitch [m], dm_offset (x, y) [m], dm_rot [deg], dm_flip; e.g. a pyramid's
     signals with simulate wfs=pyramid's influence.fits and imat_ao.fits. No map is taught for
-    a linear model (recon applies to the Shack-Hartmann's). teach_keys: what the files do not
+    a linear model (recon applies to the Shack-Hartmann's); write_recon then writes its map to
+    the coefficients (imat's MAP, or the control matrix), which control= takes back. teach_keys: what the files do not
     say of the system teach's loops simulate, a dict in `simulate mode=timeseries` keys (e.g.
     dict(dm_coupling=0.15) for a DM of Gaussian influence functions; `--teach-set`), as
     teach(**params): they win over the files' description and are part of the fingerprint.

@@ -217,6 +217,13 @@ def test_learn_reconstructor(series, tmp_path):
     assert sw.fits.read_keys(str(tmp_path / "Wm.fits"), ["LRNMODAL"])["LRNMODAL"] == 1
     W = sw.read_fits(str(tmp_path / "W.fits"))[0]
     assert W.shape == (217, 288) and (np.abs(W).sum(0) == 0).sum() == 288 - 224
+    # a prior map (learn --prior): the learned map itself, with a ridge that leaves the frames nothing
+    # to move, comes back; a misfit no better than the least squares' own
+    rp = sw.learn(dirs, str(tmp_path / "Wp.fits"), prior=str(tmp_path / "W.fits"), ridge=1e9, heldout=False,
+                  mean_miss=False)
+    Wp = sw.read_fits(str(tmp_path / "Wp.fits"))[0]
+    assert np.abs(Wp - W).max() < 1e-6 * np.abs(W).max() and rp["misfit_rms"] >= r["misfit_rms"] * (1 - 1e-6)
+    assert sw.fits.read_keys(str(tmp_path / "Wp.fits"), ["LRNPRIOR"])["LRNPRIOR"] == "W.fits"
     d, s = series, series / "sim"
     t = tmp_path / "timing.txt"
     sw.reduce([str(s / f"raw_{k:03d}.fits") for k in range(3)], str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"),

@@ -53,9 +53,12 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     const int recon = p->recon, basis = o->lin.basis != NULL;
     if (!o->timing || !o->science || !(o->actuators || basis) || !o->out)
         FAIL("needs TIMING.txt, --science, --actuators (or --basis) and -o");
-    if (basis && (o->actuators || recon == SWFS_RECON_GIVEN || o->write_recon || o->valid))
-        FAIL("--basis (the linear model) takes no --actuators, --recon W.fits, --write-recon or --valid (its control or "
-             "interaction matrix takes the telemetry as it is)");
+    if (basis && (o->actuators || recon == SWFS_RECON_GIVEN || o->valid))
+        FAIL("--basis (the linear model) takes no --actuators, --recon W.fits or --valid (its control or interaction "
+             "matrix takes the telemetry as it is)");
+    if (basis && o->write_recon && !o->lin.control && !o->lin.imat)
+        FAIL("--write-recon with --basis writes the map from the telemetry to the basis coefficients (the MAP of "
+             "--imat, or --control's); without either the telemetry are the coefficients and there is no map");
     if (!basis && (o->lin.control || o->lin.imat || o->lin.reg.pitch > 0 || o->lin.scale != 1))
         FAIL("--control, --imat, --dm-* and --coef-scale go with --basis");
     if (recon != SWFS_RECON_TEACH && recon != SWFS_RECON_VK && recon != SWFS_RECON_MAP && recon != SWFS_RECON_SVD &&

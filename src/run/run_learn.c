@@ -84,6 +84,8 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNFRAME", (long)in->nframes, "WFS frames learned from");
     if (!rc) rc = swfs_fits_out_key_long(f, "LRNSETS", (long)o->ndirs, "simulated data sets");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNRIDGE", o->ridge, "ridge [mean diagonal of S^T S]");
+    if (!rc && o->prior) rc = swfs_fits_out_key_string(f, "LRNPRIOR", strrchr(o->prior, '/') ? strrchr(o->prior, '/') + 1
+                                                          : o->prior, "the map shrunk toward");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNTRUTH", in->truth_rms, "rms truth per value [m, or the coefficients' unit]");
     if (!rc) rc = swfs_fits_out_key_double(f, "LRNMISF", in->misfit_rms, "[m] rms training misfit");
     if (!rc && lag0)
@@ -234,6 +236,21 @@ static int add_parts(const swfs_learn_run_options *o, swfs_recon_learner *q[4], 
 /* Leave one data set out in turn: each folder's frames read again into a learner of their
  * own, the map of the others' sums checked on them. A folder whose removal leaves too few
  * frames for a map is not checked. */
+/* --prior: the map read and set on the learner of all the frames (its shapes checked). */
+static int set_prior(const swfs_learn_run_options *o, swfs_recon_learner *l)
+{
+    if (!o->prior) return SWFS_OK;
+    swfs_recon *w0 = NULL;
+    int rc = swfs_recon_read(o->prior, &w0);
+    if (!rc && w0->nlags)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: a space-time map (NLAGS %zu); --prior takes a per-frame map", o->prior,
+                       w0->nlags);
+    if (!rc) rc = swfs_recon_learner_set_prior(l, w0);
+    swfs_recon_free(w0);
+    return rc ? swfs_fail_context(rc, "learn: the prior map %s (expected NAXIS1 = the data sets' slopes, NAXIS2 = their "
+                                  "truth's values)", o->prior) : SWFS_OK;
+}
+
 static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
 {
     swfs_recon_learner *part = NULL;
@@ -548,9 +565,12 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (!rc && o->nlags > 1 && o->modal)
         rc = swfs_fail(SWFS_ERR_ARG, "learn: --lags makes a space-time map for the Shack-Hartmann model (speckles "
                        "--recon); a modal control matrix (--modal) acts on one frame");
+    if (!rc && o->prior && o->nlags > 1)
+        rc = swfs_fail(SWFS_ERR_ARG, "learn: --prior is a per-frame map; a space-time learn (--lags) takes none");
     if (rc) return rc;
     swfs_paths *paths = NULL;
     rc = swfs_paths_create(&paths);
+    if (!rc && o->prior) rc = swfs_paths_input(paths, "prior map (--prior)", o->prior);
     for (size_t d = 0; !rc && d < o->ndirs; d++)
         rc = swfs_paths_input_or_dir(paths, "simulated data set", o->dirs[d]);
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
@@ -570,10 +590,12 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
             rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, sets ? sets + d : NULL);
             if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
         }
+        if (!rc) rc = set_prior(o, l);
     }
     if (!rc && curve) {
         rc = swfs_recon_learner_new(r->nslopes * (o->nlags > 1 ? o->nlags : 1), r->nact, !o->modal, &l);
         for (int k = 0; !rc && k < 4; k++) rc = swfs_recon_learner_merge(l, q[k]);
+        if (!rc) rc = set_prior(o, l);
         /* the outputs the curve is measured on: OUTXY's points within the annulus */
         double *xy = NULL;
         unsigned char *keep = NULL;

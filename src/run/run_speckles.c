@@ -210,20 +210,43 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     return check_rate(w->path, rate, r->wfs_hz);
 }
 
+/* --write-recon: the Shack-Hartmann model's reconstructor, or a linear model's map to its
+ * coefficients (what --control reads back). */
+static int write_map(const swfs_speckles_run_options *o, const swfs_pipeline *p)
+{
+    const swfs_recon *r = swfs_pipeline_recon(p);
+    if (r) return swfs_recon_write(r, o->write_recon);
+    if (!(r = swfs_pipeline_linear_map(p)))
+        return swfs_fail(SWFS_ERR_ARG, "speckles: no map from the telemetry to write (--write-recon %s)", o->write_recon);
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_create(&f, o->write_recon);
+    if (rc) return rc;
+    rc = swfs_recon_write_hdu(f, r);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
+    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", o->lin.control ? "control" : "MAP",
+                                           o->lin.control ? "the control matrix given" : "of the interaction matrix");
+    if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", (long)r->nmodes, "modes of the interaction matrix (0: given)");
+    if (!rc) rc = swfs_fits_out_history(f, "specklewfs linear model's map: coefficients = W values, NAXIS1 = telemetry "
+                                        "values, NAXIS2 = basis functions (speckles --basis B --control this)");
+    if (rc) {
+        swfs_fits_out_abort(f);
+        return rc;
+    }
+    return swfs_fits_out_commit(f);
+}
+
 /* The generic linear model: every usable cube's telemetry trains the interaction matrix's
  * MAP reconstructor and the check of the residual's size. */
 static int build_linear(const swfs_speckles_run_options *o, work *w)
 {
-    if (o->write_recon)
-        return swfs_fail(SWFS_ERR_ARG, "speckles: --write-recon writes the Shack-Hartmann model's reconstructor; the "
-                         "linear model of %s is its files", o->lin.basis);
     int rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_linear_pipeline(&w->p, &o->lin, &w->g, w->nfx, w->nfy, w->mask, w->nslopes, w->train, w->ntrain,
                                        &o->pipe);
     if (rc) return swfs_fail_context(rc, "with %s", w->path);
     free(w->train);
     w->train = NULL;
-    return SWFS_OK;
+    if (o->write_recon && !swfs_team_active(o->team)) rc = write_map(o, w->p);
+    return rc;
 }
 
 int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, const char *telemetry, const swfs_geom *g,
@@ -326,7 +349,7 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     free(w->train);
     w->train = NULL;
     /* (a team writes it with the other products, once every member has succeeded) */
-    if (o->write_recon && !swfs_team_active(o->team)) rc = swfs_recon_write(swfs_pipeline_recon(w->p), o->write_recon);
+    if (o->write_recon && !swfs_team_active(o->team)) rc = write_map(o, w->p);
     return rc;
 }
 
@@ -672,7 +695,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
-        if (!rc && writer && team && o->write_recon) rc = swfs_recon_write(swfs_pipeline_recon(w.p), o->write_recon);
+        if (!rc && writer && team && o->write_recon) rc = write_map(o, w.p);
         /* --tiptilt frame: the matched copies re-centred on the slopes' tilt (run_internal.h) */
         double *shx = NULL, *shy = NULL;
         const int recentre = writer && o->nmatch && o->pipe.tiptilt == SWFS_TT_FRAME && !o->pipe.wfs_rate &&

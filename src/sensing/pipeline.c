@@ -33,6 +33,7 @@ void swfs_pipeline_free(swfs_pipeline *p)
 {
     if (!p) return;
     swfs_speckle_model_free(p->model);
+    swfs_recon_free(p->lin_map);
     swfs_engine_free(p->engine);
     free(p->W_ext);
     free(p->Rtilt);
@@ -612,6 +613,7 @@ int swfs_pipeline_flat_halo(swfs_pipeline *p, swfs_complex *out)
 
 void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info) { *info = p->info; }
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p) { return p->model ? p->model->recon : NULL; }
+const swfs_recon *swfs_pipeline_linear_map(const swfs_pipeline *p) { return p->lin_map; }
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p) { return p->model; }
 const double *swfs_pipeline_mask(const swfs_pipeline *p) { return p->mask; }
 const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p) { return p->Rtilt; }

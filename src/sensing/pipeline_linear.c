@@ -56,7 +56,7 @@ static int check_input(const swfs_linear_input *in, size_t ng)
 
 /* A = scale x (the control matrix | the identity | a reconstructor of the interaction matrix). */
 static int build_control(lin *l, const swfs_linear_input *in, const double *training, size_t ntrain,
-                         const swfs_pipeline_options *o, swfs_pipeline_info *info)
+                         const swfs_pipeline_options *o, swfs_pipeline_info *info, swfs_recon **map)
 {
     const size_t nk = nfunctions(in), nm = l->nmeas;
     if (nk > SIZE_MAX / sizeof(double) / nm || !(l->A = calloc(nk * nm, sizeof *l->A)))
@@ -68,6 +68,16 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
                                  k / nm, k % nm, in->control[k]);
             l->A[k] = in->scale * in->control[k];
         }
+        swfs_recon *r = calloc(1, sizeof *r);
+        if (r && !(r->W = malloc(nk * nm * sizeof *r->W))) {
+            free(r);
+            r = NULL;
+        }
+        if (!r) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
+        memcpy(r->W, in->control, nk * nm * sizeof *r->W);
+        r->nact = nk;
+        r->nslopes = nm;
+        *map = r;
     } else if (!in->imat) {
         for (size_t k = 0; k < nk; k++) l->A[k * nm + k] = in->scale;
     } else {
@@ -85,7 +95,7 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
         info->noise_var = r->noise_var;
         info->noise_given = o->slope_noise > 0;
         info->ntrain = o->recon == SWFS_RECON_SVD ? 0 : ntrain;
-        swfs_recon_free(r);
+        *map = r;
     }
     if (!in->shapes) return SWFS_OK;
     /* the factored basis: the functions' values at the basis' nq points times A */
@@ -248,7 +258,7 @@ static int build(swfs_pipeline *p, lin *l, const swfs_geom *g, const swfs_linear
     for (size_t r = 0; r < l->ng; r++) l->npin += p->mask[r] > 0;
     if (!(l->f = malloc(2 * l->ng * sizeof *l->f))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     int rc = swfs_ztilt_functionals(p->mask, np, g->pupdx, l->f);
-    if (!rc) rc = build_control(l, in, training, ntrain, &p->opt, &p->info);
+    if (!rc) rc = build_control(l, in, training, ntrain, &p->opt, &p->info, &p->lin_map);
     if (!rc) rc = extend_basis(l, in->basis, p->mask, np, g->pupdx);
     if (!rc) rc = tilt_rows(l, p->opt.tiptilt);
     if (!rc) rc = check_residual(l, in, training, ntrain, p->mask, g->wavelen, &p->info);

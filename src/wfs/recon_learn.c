@@ -35,6 +35,7 @@ struct swfs_recon_learner {
     float *Sf;    /* LEARN_BLOCK x nc: a block of inputs in single precision */
     float *Zf;    /* LEARN_BLOCK x nact: its truth, mean removed */
     float *Hf;    /* nc x nact: one add call's S^T Zc, summed in single precision */
+    double *W0;   /* nact x nslopes or NULL: the prior map the solves shrink toward (set_prior) */
 };
 
 int swfs_recon_learner_new(size_t nslopes, size_t nact, int remove_mean, swfs_recon_learner **out)
@@ -68,7 +69,40 @@ void swfs_recon_learner_free(swfs_recon_learner *l)
     free(l->Zf);
     free(l->Hf);
     free(l->zza);
+    free(l->W0);
     free(l);
+}
+
+int swfs_recon_learner_set_prior(swfs_recon_learner *l, const swfs_recon *w0)
+{
+    if (!w0) {
+        free(l->W0);
+        l->W0 = NULL;
+        return SWFS_OK;
+    }
+    if (w0->nact != l->nact || w0->nslopes != l->nslopes)
+        return swfs_fail(SWFS_ERR_SHAPE, "reconstructor learning: a prior map of %zu outputs x %zu inputs for sums of %zu x "
+                         "%zu", w0->nact, w0->nslopes, l->nact, l->nslopes);
+    const size_t na = l->nact, ns = l->nslopes;
+    double *W = malloc(na * ns * sizeof *W);
+    if (!W) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for the prior map");
+    for (size_t k = 0; k < na * ns; k++)
+        if (!isfinite(w0->W[k])) {
+            free(W);
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: the prior map's element (%zu, %zu) is %g; expected "
+                             "finite", k / ns, k % ns, w0->W[k]);
+        }
+    memcpy(W, w0->W, na * ns * sizeof *W);
+    /* the truth's piston is out of every frame (remove_mean): out of the prior's outputs too */
+    for (size_t c = 0; l->remove_mean && c < ns; c++) {
+        double m = 0;
+        for (size_t a = 0; a < na; a++) m += W[a * ns + c];
+        m /= (double)na;
+        for (size_t a = 0; a < na; a++) W[a * ns + c] -= m;
+    }
+    free(l->W0);
+    l->W0 = W;
+    return SWFS_OK;
 }
 
 size_t swfs_recon_learner_frames(const swfs_recon_learner *l) { return l->nframes; }
@@ -446,6 +480,8 @@ static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, 
         const size_t p = m ? mp[idx[i]] : SIZE_MAX;
         for (size_t a = 0; a < na; a++)
             B[i * na + a] = l->H[idx[i] * na + a] - (p != SIZE_MAX ? m->H[p * na + a] : 0.0);
+        if (l->W0) /* (G + lam I) A = H + lam A0: the ridge toward the prior map */
+            for (size_t a = 0; a < na; a++) B[i * na + a] += lam * l->W0[a * l->nslopes + full_of(l, idx[i])];
     }
     lapack_int info = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)nu, (lapack_int)na, M, (lapack_int)nu, B,
                                     (lapack_int)na);
@@ -483,7 +519,11 @@ static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, 
         swfs_recon_free(r);
         return rc;
     }
-    /* W = A^T on the seen slopes, in the full layout. */
+    /* W = A^T on the seen slopes, in the full layout; the others the prior's, where one is set. */
+    for (size_t c = 0; l->W0 && c < ns; c++) {
+        const size_t c0 = block == SIZE_MAX ? c : block * l->ns0 + c;
+        for (size_t a = 0; a < na; a++) r->W[a * ns + c] = l->W0[a * l->nslopes + c0];
+    }
     for (size_t i = 0; i < nu; i++) {
         const size_t c = block == SIZE_MAX ? full_of(l, idx[i]) : l->used0[idx[i] % l->nu0];
         for (size_t a = 0; a < na; a++) r->W[a * ns + c] = A[i * na + a];
@@ -493,12 +533,12 @@ static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, 
     r->nmodes = 0;
     if (info) {
         /* The training misfit: sum |z - W s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), and
-         * (G + lam) A = H makes tr(A^T G A) = tr(A^T H) - lam |A|^2. */
+         * (G + lam) A = H + lam A0 makes tr(A^T G A) = tr(A^T H) - lam (|A|^2 - A.A0). */
         double cross = 0, aa = 0;
         for (size_t i = 0; i < nu; i++)
             for (size_t a = 0; a < na; a++) {
                 cross += A[i * na + a] * l->H[idx[i] * na + a];
-                aa += A[i * na + a] * A[i * na + a];
+                aa += A[i * na + a] * (A[i * na + a] - (l->W0 ? l->W0[a * l->nslopes + full_of(l, idx[i])] : 0.0));
             }
         info->nframes = l->nframes;
         info->nslopes_seen = nu;
