@@ -72,7 +72,7 @@ static const char *speckles_usage_text2 =
     "  --slope-noise RAD   effective slope noise rms [rad] for --recon vk|map (default: estimated\n"
     "                      from the slopes outside D's column space: noise + aliasing)\n"
     "  --write-recon FILE  also write the reconstructor in use (e.g. for `specklewfs stream`;\n"
-    "                      with --basis the map to its coefficients, for --control)\n"
+    "                      with --basis --imat the map to its coefficients, for --control)\n"
     CLI_GEOM_HELP
     CLI_BAND_HELP
     "  --tiptilt MODE      exposure (default): remove from every WFS frame the weighted mean x/y\n"

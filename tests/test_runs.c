@@ -1648,7 +1648,7 @@ static void test_options_checks(void **state)
         "--teach-set: time-series parameter dm_coupling=1.5: must be in [0, 1)",
         "--mean-loop teach goes with the linear model", "--mean-teach-loops must be 2..16",
         "--mean-loop takes loops' folders or teach, not both",
-        "without either the telemetry are the coefficients and there is no map",
+        "a --control map is its own file, and without either there is no map",
     };
     const char *two[2] = {"loop_a", "loop_b"};
     const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},

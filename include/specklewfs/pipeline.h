@@ -202,10 +202,10 @@ const double *swfs_pipeline_tilt_rows(const swfs_pipeline *p);
 /* The Shack-Hartmann model's reconstructor and model (NULL for a linear model). */
 const swfs_recon *swfs_pipeline_recon(const swfs_pipeline *p);
 /* A linear model's map from a frame's telemetry values to its basis coefficients, before
- * the model's scale (nact = the coefficients, nslopes = the values): the control matrix
- * given, or the MAP reconstructor of the interaction matrix made from the telemetry; the
- * form `--control` reads. NULL for the Shack-Hartmann model and where the telemetry are the
- * coefficients themselves. */
+ * the model's scale (nact = the coefficients, nslopes = the values): the MAP (or SVD)
+ * reconstructor of the interaction matrix made from the telemetry, in the form `--control`
+ * reads. NULL for the Shack-Hartmann model, a control matrix given (the map is its file) and
+ * where the telemetry are the coefficients themselves. */
 const swfs_recon *swfs_pipeline_linear_map(const swfs_pipeline *p);
 const swfs_speckle_model *swfs_pipeline_model(const swfs_pipeline *p);
 /* The pupil mask the pipeline was made with (PUPN^2; the annulus where none was given). */

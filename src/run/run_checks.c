@@ -56,9 +56,9 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     if (basis && (o->actuators || recon == SWFS_RECON_GIVEN || o->valid))
         FAIL("--basis (the linear model) takes no --actuators, --recon W.fits or --valid (its control or interaction "
              "matrix takes the telemetry as it is)");
-    if (basis && o->write_recon && !o->lin.control && !o->lin.imat)
-        FAIL("--write-recon with --basis writes the map from the telemetry to the basis coefficients (the MAP of "
-             "--imat, or --control's); without either the telemetry are the coefficients and there is no map");
+    if (basis && o->write_recon && !o->lin.imat)
+        FAIL("--write-recon with --basis writes the reconstructor made from --imat (the map from the telemetry to the "
+             "basis coefficients); a --control map is its own file, and without either there is no map");
     if (!basis && (o->lin.control || o->lin.imat || o->lin.reg.pitch > 0 || o->lin.scale != 1))
         FAIL("--control, --imat, --dm-* and --coef-scale go with --basis");
     if (recon != SWFS_RECON_TEACH && recon != SWFS_RECON_VK && recon != SWFS_RECON_MAP && recon != SWFS_RECON_SVD &&

@@ -233,9 +233,6 @@ static int add_parts(const swfs_learn_run_options *o, swfs_recon_learner *q[4], 
     return SWFS_OK;
 }
 
-/* Leave one data set out in turn: each folder's frames read again into a learner of their
- * own, the map of the others' sums checked on them. A folder whose removal leaves too few
- * frames for a map is not checked. */
 /* --prior: the map read and set on the learner of all the frames (its shapes checked). */
 static int set_prior(const swfs_learn_run_options *o, swfs_recon_learner *l)
 {
@@ -251,6 +248,9 @@ static int set_prior(const swfs_learn_run_options *o, swfs_recon_learner *l)
                                   "truth's values)", o->prior) : SWFS_OK;
 }
 
+/* Leave one data set out in turn: each folder's frames read again into a learner of their
+ * own, the map of the others' sums checked on them. A folder whose removal leaves too few
+ * frames for a map is not checked. */
 static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
 {
     swfs_recon_learner *part = NULL;

@@ -210,8 +210,8 @@ static int peek_telemetry(const swfs_speckles_run_options *o, work *w, swfs_spec
     return check_rate(w->path, rate, r->wfs_hz);
 }
 
-/* --write-recon: the Shack-Hartmann model's reconstructor, or a linear model's map to its
- * coefficients (what --control reads back). */
+/* --write-recon: the Shack-Hartmann model's reconstructor, or the linear model's reconstructor
+ * of its interaction matrix, the map to its coefficients (what --control reads back). */
 static int write_map(const swfs_speckles_run_options *o, const swfs_pipeline *p)
 {
     const swfs_recon *r = swfs_pipeline_recon(p);
@@ -223,9 +223,9 @@ static int write_map(const swfs_speckles_run_options *o, const swfs_pipeline *p)
     if (rc) return rc;
     rc = swfs_recon_write_hdu(f, r);
     if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
-    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", o->lin.control ? "control" : "MAP",
-                                           o->lin.control ? "the control matrix given" : "of the interaction matrix");
-    if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", (long)r->nmodes, "modes of the interaction matrix (0: given)");
+    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", o->pipe.recon == SWFS_RECON_SVD ? "SVD" : "MAP",
+                                           "of the interaction matrix (--imat)");
+    if (!rc) rc = swfs_fits_out_key_long(f, "NMODES", (long)r->nmodes, "modes of the interaction matrix");
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs linear model's map: coefficients = W values, NAXIS1 = telemetry "
                                         "values, NAXIS2 = basis functions (speckles --basis B --control this)");
     if (rc) {

@@ -9,7 +9,7 @@ struct swfs_pipeline {
     swfs_pipeline_options opt;
     swfs_pipeline_info info;
     swfs_speckle_model *model; /* the Shack-Hartmann model (NULL for a linear one) */
-    swfs_recon *lin_map;       /* a linear model's map to its coefficients (control or MAP), unscaled */
+    swfs_recon *lin_map;       /* a linear model's reconstructor of its interaction matrix, unscaled */
     double *W_ext, *Rtilt; /* SWFS_TT_EXPOSURE: [W - C R | C] and the tilt rows R (speckles.h) */
     double *mask;
     swfs_engine *engine;

@@ -68,16 +68,6 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
                                  k / nm, k % nm, in->control[k]);
             l->A[k] = in->scale * in->control[k];
         }
-        swfs_recon *r = calloc(1, sizeof *r);
-        if (r && !(r->W = malloc(nk * nm * sizeof *r->W))) {
-            free(r);
-            r = NULL;
-        }
-        if (!r) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-        memcpy(r->W, in->control, nk * nm * sizeof *r->W);
-        r->nact = nk;
-        r->nslopes = nm;
-        *map = r;
     } else if (!in->imat) {
         for (size_t k = 0; k < nk; k++) l->A[k * nm + k] = in->scale;
     } else {
