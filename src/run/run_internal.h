@@ -156,10 +156,12 @@ size_t swfs_loop_first_frame_(const char *dir);
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what);
 
 /* speckles --mean-loop teach (run_mean_teach.c): the loops of the system the observation's
- * files describe, simulated (or reused) into r->work/mean_NN; dirs[k] their folders
- * (o->mean_teach_loops of them). nslopes: the telemetry's values per frame. */
+ * files describe, simulated (or reused) into r->work/mean_NN; dirs[k] their folders and, where
+ * r->done, loops[k] pointing at them (r->nloops of them, SWFS_MEAN_TEACH_MAX long): what
+ * swfs_pipeline_mean_loops takes. nslopes: the telemetry's values per frame. */
 int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400]);
+                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400],
+                              const char **loops);
 
 /* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid
  * with what the caller gives, required): the keys it and the other files give, into c. */

@@ -514,8 +514,9 @@ static int pyramid_telemetry(const swfs_speckles_run_options *o, const swfs_timi
     return kind == SWFS_WFS_PYRAMID;
 }
 
-int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
+/* The default's choice and its fallback; swfs_speckles_mean_teach_ adds the folders' pointers. */
+static int mean_teach_auto(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                           const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400])
 {
     memset(r, 0, sizeof *r);
     r->photons = r->slope_noise = r->power = r->power_ratio = NAN;
@@ -536,4 +537,13 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
         r->done = 0;
     }
     return SWFS_OK;
+}
+
+int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                              const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400],
+                              const char **loops)
+{
+    const int rc = mean_teach_auto(o, t, tdir, g, nslopes, r, dirs);
+    for (size_t k = 0; !rc && r->done && k < r->nloops; k++) loops[k] = dirs[k];
+    return rc;
 }

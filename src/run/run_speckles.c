@@ -634,11 +634,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
                                               !o->pipe.wfs_rate);
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc && mteach) rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs);
+    if (!rc && mteach) rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs, mt_ptr);
     if (!rc && r->mean_teach.done) {
-        for (size_t k = 0; k < o->mean_teach_loops; k++) mt_ptr[k] = dirs[k];
         oo.mean_loops = mt_ptr;
-        oo.nmean_loops = o->mean_teach_loops;
+        oo.nmean_loops = r->mean_teach.nloops;
     }
     o = &oo;
     /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */

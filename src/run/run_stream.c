@@ -33,7 +33,7 @@ void swfs_stream_run_options_default(swfs_stream_run_options *o)
  * files describe, simulated or reused by run_mean_teach.c with the run's files (its timing
  * table, their folder or --slopes DIR, the geometry, the linear model); dirs their folders. */
 static int stream_mean_teach(const swfs_stream_run_options *o, const swfs_geom *g, size_t nslopes,
-                             swfs_stream_run_result *r, char (*dirs)[4400])
+                             swfs_stream_run_result *r, char (*dirs)[4400], const char **loops)
 {
     swfs_speckles_run_options so;
     swfs_speckles_run_options_default(&so);
@@ -55,7 +55,7 @@ static int stream_mean_teach(const swfs_stream_run_options *o, const swfs_geom *
     else swfs_path_dir(o->timing, tdir, sizeof tdir);
     swfs_timing *t = NULL;
     int rc = swfs_timing_read(o->timing, &t);
-    if (!rc) rc = swfs_speckles_mean_teach_(&so, t, tdir, g, nslopes, &r->mean_teach, dirs);
+    if (!rc) rc = swfs_speckles_mean_teach_(&so, t, tdir, g, nslopes, &r->mean_teach, dirs, loops);
     swfs_timing_free(t);
     return rc;
 }
@@ -458,12 +458,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
                                                                    o->lin.basis && !o->nmean_loops));
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc && mteach) rc = stream_mean_teach(o, &u.g, r->info.nslopes / (u.nlags ? u.nlags : 1), r, dirs);
-    if (!rc && mteach && r->mean_teach.done) {
-        const char *mt[SWFS_MEAN_TEACH_MAX];
-        for (size_t k = 0; k < o->mean_teach_loops; k++) mt[k] = dirs[k];
-        rc = swfs_pipeline_mean_loops(p, mt, o->mean_teach_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
-    }
+    const char *mt[SWFS_MEAN_TEACH_MAX];
+    if (!rc && mteach) rc = stream_mean_teach(o, &u.g, r->info.nslopes / (u.nlags ? u.nlags : 1), r, dirs, mt);
+    if (!rc && mteach && r->mean_teach.done)
+        rc = swfs_pipeline_mean_loops(p, mt, r->mean_teach.nloops, &r->meanmiss_heldout, &r->meanmiss_rms);
     free(dirs);
     if (!rc && o->nmean_loops)
         rc = swfs_pipeline_mean_loops(p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
