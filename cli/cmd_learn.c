@@ -12,7 +12,7 @@ static const char *usage_text =
     "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--prior W0.fits] [--no-heldout]\n"
     "                        [--no-mean-miss]\n"
     "                        [--lags L,L,...]\n"
-    "                        [--perframe-out W1.fits] [--curve [--curve-radius R0,R1]] [--threads N]\n"
+    "                        [--perframe-out W1.fits] [--curve] [--curve-radius R0,R1] [--threads N]\n"
     "\n"
     "A reconstructor learned from simulated closed loops of your system's geometry: the\n"
     "least-squares map from one WFS frame's slopes to the true residual wavefront on the\n"
@@ -71,8 +71,11 @@ static const char *usage_lags =
     "  --curve       the learning curve (4+ folders): maps of half and of three quarters of\n"
     "                the folders checked on the rest; how far the map is from one of\n"
     "                unlimited frames, and the frames for 10 % (LRNCEXC, LRNCFRM);\n"
-    "                --curve-radius R0,R1: over the output points (OUTXY) at R0..R1 m only;\n"
-    "                --threads N: its sums and checks N at once (0: the CPUs; same map)\n";
+    "                --threads N: its sums and checks N at once (0: the CPUs; same map)\n"
+    "  --curve-radius R0,R1  the checks (the curve and the held-out check) over the outputs at\n"
+    "                R0..R1 m from the centre only, e.g. the pupil's annulus (the truth beyond\n"
+    "                it, on a DM's outer actuators, is the fit's extrapolation): the truth's\n"
+    "                points (OUTXY), else the first folder's actuators.fits\n";
 
 int swfs_cmd_learn(int argc, char **argv)
 {
@@ -114,8 +117,9 @@ int swfs_cmd_learn(int argc, char **argv)
             !(o.curve_radius[0] >= 0) || !(o.curve_radius[1] > o.curve_radius[0]) || !isfinite(o.curve_radius[1]))
             rc = cli_usage_error(cmd, "--curve-radius takes R0,R1 [m], 0 <= R0 < R1 (the pupil's annulus), got '%s'",
                                  cradius);
-        else if (!o.curve)
-            rc = cli_usage_error(cmd, "--curve-radius goes with --curve");
+        else if (!o.curve && (o.no_heldout || nd < 2))
+            rc = cli_usage_error(cmd, "--curve-radius is where the checks are measured: it goes with --curve or "
+                                 "with the held-out check (two or more folders, without --no-heldout)");
     }
     if (!rc && o.perframe_out && o.nlags < 2)
         rc = cli_usage_error(cmd, "--perframe-out goes with --lags (without them the map is per frame already)");
@@ -170,8 +174,10 @@ int swfs_cmd_learn(int argc, char **argv)
             else printf("  %-40s %.2f%s\n", dirs[d], ratio[d], ratio[d] >= 1 ? "  not covered: worse than no map" : "");
         }
         const double u = o.modal ? 1 : 1e9;
-        printf("learn: held out, all %zu: %.4g%s of %.4g (%.2f)\n", r.nheldout, u * r.heldout_misfit_rms,
-               o.modal ? "" : " nm", u * r.heldout_truth_rms, r.heldout_misfit_rms / r.heldout_truth_rms);
+        printf("learn: held out, all %zu: %.4g%s of %.4g (%.2f; each check's map scaled best: %.2f) over %zu of %zu "
+               "outputs%s\n", r.nheldout, u * r.heldout_misfit_rms, o.modal ? "" : " nm", u * r.heldout_truth_rms,
+               r.heldout_misfit_rms / r.heldout_truth_rms, r.heldout_scaled_rms / r.heldout_truth_rms,
+               r.heldout_outputs, r.nact, r.heldout_outputs < r.nact ? " (--curve-radius)" : "");
         if (r.heldout_worst >= 1)
             printf("learn: a data set at >= 1 is one the others do not cover: its conditions lie outside theirs, or "
                    "they hold too few frames for %zu slopes (%.1f frames per slope in all; simulate more, or more "

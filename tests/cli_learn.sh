@@ -27,6 +27,23 @@ eval "$recipe" > recipe.log 2>&1 || { cat recipe.log; fail "the recipe failed"; 
 [ "$(ls -d train/*/ | wc -l)" = 6 ] || fail "the recipe should simulate six loops"
 grep -q "learn: held out, all 6:" recipe.log || { cat recipe.log; fail "learn printed no held-out check"; }
 [ "$(grep -c '^  train/' recipe.log)" = 6 ] || { cat recipe.log; fail "learn should list the six folders"; }
+# the held-out check over the pupil's annulus (--curve-radius; a truth on the DM's actuators, so
+# their positions from actuators.fits): fewer outputs, and a smaller misfit / truth than over
+# all of them, whose actuators beyond the pupil carry the truth fit's extrapolation
+"$B" learn train/* -o ann.fits --curve-radius 0.325,3.25 --no-mean-miss > learn_ann.log 2>&1 \
+    || { cat learn_ann.log; fail "learn --curve-radius (held out)"; }
+ra=$(sed -n 's/^learn: held out, all 6: [^(]*(\([0-9.]*\);.* over \([0-9]*\) of \([0-9]*\) outputs$/\1 \2 \3/p' recipe.log)
+rp=$(sed -n 's/^learn: held out, all 6: [^(]*(\([0-9.]*\);.* over \([0-9]*\) of \([0-9]*\) outputs (--curve-radius)$/\1 \2 \3/p' learn_ann.log)
+set -- $ra $rp
+[ $# = 6 ] || { grep "held out, all" recipe.log learn_ann.log; fail "learn: the held-out lines' outputs"; }
+awk -v a="$1" -v na="$2" -v p="$4" -v np="$5" -v n="$6" 'BEGIN { exit !(na == n && np < n && np > 0 && p < a) }' \
+    || fail "learn: held out over the pupil's annulus $4 ($5 of $6 outputs) against $1 over all ($2)"
+echo "cli_learn: held out over the pupil's $5 of $6 actuators: $4 of the truth (all of them: $1)"
+"$B" learn train/* -o bad.fits --curve-radius 5,6 > bad.log 2>&1 && fail "an annulus holding no actuator accepted"
+grep -q "no output within 5 to 6 m of the centre" bad.log || { cat bad.log; fail "learn: the empty annulus's message"; }
+[ -e bad.fits ] && fail "learn left a map after an empty annulus"
+"$B" learn "$(ls -d train/*/ | head -1)" -o bad.fits --curve-radius 0.3,3 > bad.log 2>&1 && fail "--curve-radius with one folder accepted"
+grep -q -- "--curve-radius is where the checks are measured" bad.log || { cat bad.log; fail "learn: --curve-radius alone"; }
 "$B" estimate science_m.fits speckles.fits -o halo_l.fits > /dev/null 2>&1 || fail "estimate (learned)"
 "$B" pupil halo_l.fits -o pupil_l.fits --truth obs/truth.fits > pupil_l.log || fail "pupil (learned)"
 # the same map as the linear model's control matrix over the actuators' influence functions

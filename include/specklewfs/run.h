@@ -642,10 +642,12 @@ typedef struct swfs_learn_run_options {
                                  swfs_recon_learner_solve_lag) into this file, for runs that
                                  take one frame's slopes (live); both files or neither */
     int curve;                /* 1 (with at least 4 data sets): the learning curve (below) */
-    double curve_radius[2];   /* [m] the curve over the outputs (OUTXY points) at radii from
-                                 curve_radius[0] to [1] only: the pupil's annulus, the points
+    double curve_radius[2];   /* [m] the curve and the held-out check over the outputs at radii
+                                 from curve_radius[0] to [1] only: the pupil's annulus, the points
                                  whose wavefront makes the speckles (the truth beyond it is the
-                                 fit's extrapolation); {0, 0}: all outputs */
+                                 fit's extrapolation); the outputs' positions: the truth's own
+                                 points (OUTXY), else the first folder's actuators.fits (one per
+                                 output; not with modal); {0, 0}: all outputs */
     const double *project;    /* NULL, or nproject x nproject (symmetric): each file's slopes s
                                  (rows) taken as s P, the projection the telemetry the map is for
                                  went through (teach on modal-slopes' output: P = CM+ CM) */
@@ -727,6 +729,13 @@ typedef struct swfs_learn_run_result {
      * checked. */
     double meanmiss_heldout, meanmiss_rms, meanmiss_set_rms; /* meanmiss_set_rms: the sets' own, rms */
     int meanmiss_kept;
+    /* The held-out check's outputs: those within curve_radius (the pupil's annulus: a truth on
+     * the DM's actuators has many beyond it, where the truth is the fit's extrapolation), all
+     * without it; heldout_scaled_rms the held-out misfit with each check's map output scaled
+     * by the one factor that fits the held-out truth best over them (what the estimator's g
+     * leaves; wfs.h swfs_recon_learner_heldout_on). */
+    size_t heldout_outputs;
+    double heldout_scaled_rms;
 } swfs_learn_run_result;
 
 /* The excess of a learned map's held-out misfit over unlimited data that is enough: 10 % of

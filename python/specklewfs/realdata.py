@@ -123,7 +123,9 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     than one folder (heldout=True) the leave-one-folder-out check: nheldout,
     heldout_misfit_rms, heldout_truth_rms [m], heldout_ratio (each folder's misfit / truth,
     NaN where not checked; >= 1: a condition the others do not cover), heldout_worst and
-    heldout_worst_set (the worst folder's ratio and index). lags (WFS frames, one of them 0,
+    heldout_worst_set (the worst folder's ratio and index), heldout_outputs (the outputs it was
+    measured on: all, or those curve_radius keeps) and heldout_scaled_rms (the misfit with each
+    check's map scaled by the one factor that fits best: what the estimator's g leaves). lags (WFS frames, one of them 0,
     e.g. (0, -25, 25)): a space-time map from the slopes of frames t + lag, written as a cube
     of one map per lag that speckles(..., recon=out) applies the same way (`learn --lags`);
     it pays only when the folders hold the observation's own wind and profile. With lags it
@@ -142,9 +144,10 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     frames of its two points, about N/2 and 3N/4), misfit_rms (the held-out misfit there [m]),
     a and b (misfit^2 = a + b / n), excess (b / (a N): the map of all N frames over one of
     unlimited frames) and frames (the frames for an excess of 0.1; 0: the misfit does not
-    fall; None: no bound), nframes, outputs (those it was measured on: curve_radius=(r0, r1)
-    [m] keeps the output points at those radii, the pupil's annulus); None where it could not
-    be measured. threads: with curve, the folders' sums and the curve's checks that many at
+    fall; None: no bound), nframes, outputs (those it was measured on); None where it could not
+    be measured. curve_radius=(r0, r1) [m]: both checks, the curve and the held-out one, over
+    the outputs at those radii only, the pupil's annulus (their positions: the truth's points,
+    OUTXY, else the first folder's actuators.fits; not with modal). threads: with curve, the folders' sums and the curve's checks that many at
     once (0: the CPUs; the same map at any count). mean_miss (with more than one folder, as
     `learn` without --no-mean-miss): the map's miss of the residual's time mean per folder,
     checked held out (meanmiss_heldout < 1: the others' mean predicts each one's, the sensor's
@@ -186,6 +189,7 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     d.update(nfiles=r.nfiles, nslopes=r.nslopes, nact=r.nact, nheldout=r.nheldout,
              heldout_misfit_rms=r.heldout_misfit_rms, heldout_truth_rms=r.heldout_truth_rms,
              heldout_worst=r.heldout_worst, heldout_worst_set=r.heldout_worst_set, heldout_ratio=ratio,
+             heldout_outputs=r.heldout_outputs, heldout_scaled_rms=r.heldout_scaled_rms,
              nwind=r.nwind, wind_v=(r.wind_vx, r.wind_vy), wind_spread=r.wind_spread,
              wind_layers=[dict(v=(r.wlayer_vx[k], r.wlayer_vy[k]), nsets=r.wlayer_n[k], spread=r.wlayer_spread[k])
                           for k in range(r.nwlayers)])

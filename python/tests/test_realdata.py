@@ -209,6 +209,13 @@ def test_learn_reconstructor(series, tmp_path):
     assert r["nheldout"] == 2 and r["heldout_ratio"].shape == (2,) and np.all(np.isfinite(r["heldout_ratio"]))
     assert r["heldout_misfit_rms"] > r["misfit_rms"] and r["heldout_worst"] == r["heldout_ratio"].max()
     assert r["heldout_ratio"].min() > r["misfit_rms"] / r["truth_rms"]
+    assert r["heldout_outputs"] == 217 and r["heldout_scaled_rms"] <= r["heldout_misfit_rms"]
+    # the held-out check over the pupil's annulus (the actuators' positions from actuators.fits):
+    # fewer outputs, the same map; the annulus's truth is not the all-actuator one
+    ra = sw.learn(dirs, str(tmp_path / "Wa.fits"), curve_radius=(0.325, 3.25), mean_miss=False)
+    assert 0 < ra["heldout_outputs"] < 217 and ra["heldout_truth_rms"] != r["heldout_truth_rms"]
+    assert np.array_equal(sw.read_fits(str(tmp_path / "Wa.fits"))[0], sw.read_fits(str(tmp_path / "W.fits"))[0])
+    assert sw.fits.read_keys(str(tmp_path / "Wa.fits"), ["LRNHOUT"])["LRNHOUT"] == ra["heldout_outputs"]
     # the truth taken as modal coefficients (piston kept), no held-out check: a control matrix
     rm = sw.learn(dirs, str(tmp_path / "Wm.fits"), modal=True, heldout=False, mean_miss=False)
     assert rm["nheldout"] == 0 and np.isnan(rm["heldout_misfit_rms"]) and np.all(np.isnan(rm["heldout_ratio"]))

@@ -121,6 +121,8 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHMISF", r->heldout_misfit_rms, "[m] rms misfit, held out");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHTRUT", r->heldout_truth_rms, "[m] rms truth, held out");
         if (!rc) rc = swfs_fits_out_key_double(f, "LRNHWRST", r->heldout_worst, "worst set's misfit / truth");
+        if (!rc) rc = swfs_fits_out_key_long(f, "LRNHOUT", (long)r->heldout_outputs, "outputs checked (--curve-radius)");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LRNHSCAL", r->heldout_scaled_rms, "[m] held out, map scaled best");
     }
     if (!rc && !lag0 && r->curve_n[0]) {
         rc = swfs_fits_out_key_long(f, "LRNCN1", (long)r->curve_n[0], "learning curve: frames of a half map");
@@ -251,25 +253,27 @@ static int set_prior(const swfs_learn_run_options *o, swfs_recon_learner *l)
 /* Leave one data set out in turn: each folder's frames read again into a learner of their
  * own, the map of the others' sums checked on them. A folder whose removal leaves too few
  * frames for a map is not checked. */
-static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, swfs_learn_run_result *r)
+static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *all, const unsigned char *keep,
+                   swfs_learn_run_result *r)
 {
     swfs_recon_learner *part = NULL;
     const size_t nl = o->nlags > 1 ? o->nlags : 1;
     int rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &part);
     for (size_t d = 0; o->heldout_ratio && d < o->ndirs; d++) o->heldout_ratio[d] = NAN;
-    double m2 = 0, t2 = 0;
+    double m2 = 0, t2 = 0, s2 = 0;
     size_t nf = 0;
     for (size_t d = 0; !rc && d < o->ndirs; d++) {
         swfs_recon_learner_reset(part);
         if ((rc = add_dir(o, o->dirs[d], &part, r, NULL, NULL))) break;
-        double md = 0, td = 0;
-        rc = swfs_recon_learner_heldout(all, part, o->ridge, &md, &td);
+        double md = 0, td = 0, sd = 0;
+        rc = swfs_recon_learner_heldout_on(all, part, o->ridge, keep, &md, &td, &sd);
         if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
         if (rc == SWFS_ERR_VALUE) { rc = SWFS_OK; continue; } /* too few frames without it */
         if (rc) break;
         const size_t n = swfs_recon_learner_frames(part);
         m2 += md * (double)n;
         t2 += td * (double)n;
+        s2 += sd * (double)n;
         nf += n;
         const double ratio = sqrt(md / td);
         if (o->heldout_ratio) o->heldout_ratio[d] = ratio;
@@ -282,6 +286,7 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
     if (!rc && nf) {
         r->heldout_misfit_rms = sqrt(m2 / (double)nf);
         r->heldout_truth_rms = sqrt(t2 / (double)nf);
+        r->heldout_scaled_rms = sqrt(s2 / (double)nf);
     }
     swfs_recon_learner_free(part);
     return rc;
@@ -468,6 +473,57 @@ static int truth_points(const swfs_learn_run_options *o, size_t nact, double **x
     return rc;
 }
 
+/* The outputs' positions [m] on the pupil for the checks' annulus: the truth's own points
+ * (OUTXY), else the DM's actuators of the first folder (actuators.fits, one per output). */
+static int output_positions(const swfs_learn_run_options *o, size_t nact, double **xy)
+{
+    int rc = truth_points(o, nact, xy);
+    if (rc || *xy) return rc;
+    if (o->modal)
+        return swfs_fail(SWFS_ERR_ARG, "learn: the checks' annulus (--curve-radius) needs the outputs' positions, "
+                         "but --modal's outputs are coefficients of a basis");
+    char ap[4200];
+    snprintf(ap, sizeof ap, "%.4000s/actuators.fits", o->dirs[0]);
+    size_t n = 0;
+    rc = swfs_actuators_read(ap, xy, &n);
+    if (!rc && n != nact) {
+        free(*xy);
+        *xy = NULL;
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu actuators, but the truth (truewf_000.fits) has %zu values per frame: "
+                       "the checks' annulus (--curve-radius) needs one position per output", ap, n, nact);
+    }
+    return rc ? swfs_fail_context(rc, "learn: the outputs' positions for --curve-radius") : SWFS_OK;
+}
+
+/* keep[a] for the outputs within curve_radius (NULL: no annulus given, all), counted in
+ * curve_outputs and heldout_outputs. */
+static int check_outputs(const swfs_learn_run_options *o, swfs_learn_run_result *r, unsigned char **keep)
+{
+    *keep = NULL;
+    r->curve_outputs = r->heldout_outputs = r->nact;
+    if (!(o->curve_radius[1] > 0)) return SWFS_OK;
+    double *xy = NULL;
+    int rc = output_positions(o, r->nact, &xy);
+    if (!rc && !(*keep = malloc(r->nact ? r->nact : 1))) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+    size_t n = 0;
+    for (size_t a = 0; !rc && a < r->nact; a++) {
+        const double rad = hypot(xy[2 * a], xy[2 * a + 1]);
+        (*keep)[a] = rad >= o->curve_radius[0] && rad <= o->curve_radius[1];
+        n += (*keep)[a];
+    }
+    if (!rc && !n)
+        rc = swfs_fail(SWFS_ERR_VALUE, "learn: no output within %g to %g m of the centre for the checks "
+                       "(--curve-radius; %zu outputs)", o->curve_radius[0], o->curve_radius[1], r->nact);
+    free(xy);
+    if (rc) {
+        free(*keep);
+        *keep = NULL;
+        return rc;
+    }
+    r->curve_outputs = r->heldout_outputs = n;
+    return SWFS_OK;
+}
+
 double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, double *mean, double *own)
 {
     double eho = 0, e0 = 0;
@@ -553,7 +609,7 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
 {
     memset(r, 0, sizeof *r);
-    r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = NAN;
+    r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = r->heldout_scaled_rms = NAN;
     r->curve_m2[0] = r->curve_m2[1] = r->curve_s2[0] = r->curve_s2[1] = r->curve_a = r->curve_b = r->curve_excess = NAN;
     r->wind_vx = r->wind_vy = r->wind_spread = NAN;
     r->meanmiss_heldout = r->meanmiss_rms = r->meanmiss_set_rms = NAN;
@@ -592,29 +648,14 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         }
         if (!rc) rc = set_prior(o, l);
     }
+    /* the outputs the checks (curve and held out) are measured on: those within the annulus */
+    unsigned char *keep = NULL;
+    if (!rc) rc = check_outputs(o, r, &keep);
     if (!rc && curve) {
         rc = swfs_recon_learner_new(r->nslopes * (o->nlags > 1 ? o->nlags : 1), r->nact, !o->modal, &l);
         for (int k = 0; !rc && k < 4; k++) rc = swfs_recon_learner_merge(l, q[k]);
         if (!rc) rc = set_prior(o, l);
-        /* the outputs the curve is measured on: OUTXY's points within the annulus */
-        double *xy = NULL;
-        unsigned char *keep = NULL;
-        if (!rc && o->curve_radius[1] > 0 && !(rc = truth_points(o, r->nact, &xy)) && xy) {
-            if (!(keep = malloc(r->nact))) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
-            for (size_t a = 0; keep && a < r->nact; a++) {
-                const double rad = hypot(xy[2 * a], xy[2 * a + 1]);
-                keep[a] = rad >= o->curve_radius[0] && rad <= o->curve_radius[1];
-                r->curve_outputs += keep[a];
-            }
-        } else {
-            r->curve_outputs = r->nact;
-        }
-        if (!rc && keep && !r->curve_outputs)
-            rc = swfs_fail(SWFS_ERR_VALUE, "learn: no output point within %g to %g m of the centre for the learning "
-                           "curve (%zu points, OUTXY)", o->curve_radius[0], o->curve_radius[1], r->nact);
         if (!rc) rc = learning_curve(o, l, q, keep, r);
-        free(xy);
-        free(keep);
     }
     for (int k = 0; k < 4; k++) swfs_recon_learner_free(q[k]);
     if (!rc && sets) training_stats(sets, o, r);
@@ -635,7 +676,8 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         if (!(w0->oxy = malloc(2 * w->nact * sizeof *w0->oxy))) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
         else memcpy(w0->oxy, w->oxy, 2 * w->nact * sizeof *w0->oxy);
     }
-    if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, r);
+    if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, keep, r);
+    free(keep);
     double *meanmiss = NULL;
     if (!rc && o->mean_miss && o->ndirs > 1) rc = mean_miss(o, w, r, &meanmiss);
     if (!rc && w0) rc = write_recon(o, o->perframe_out, w0, r, 1, NULL);
