@@ -501,6 +501,20 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_real *ncp = NULL;
     swfs_geom g;
     if (swfs_fits_read_real(pth("truth.fits"), "NCP", &ncp, &g)) return die("truth.fits");
+    /* speckles' loops' map (the pyramid default): both halos it scored, and what they give */
+    const swfs_loops_map_result *lm = &spr.loops_map;
+    if (lm->fallback[0]) fprintf(stderr, "  %s s%d: --loops-map: not tried: %s\n", s->name, seed, lm->fallback);
+    if (lm->tried) {
+        char h[2][4300];
+        double ea[2], eb[2], ra, rb;
+        snprintf(h[0], sizeof h[0], "%.4200s/halo_imat.fits", lm->work);
+        snprintf(h[1], sizeof h[1], "%.4200s/halo_loops.fits", lm->work);
+        if (ncp_error(h[0], ncp, ea, &ra) || ncp_error(h[1], ncp, eb, &rb)) return die("pupil (the loops' map's halos)");
+        printf("  (--loops-map: explained %.2f %% (--imat) / %.2f %% (the loops' map; DM carried within %.3f; its miss "
+               "held out %.2f%s): %s; NCP %.1f / %.1f nm, kept %.1f / %.1f)\n", 100 * lm->explained[0],
+               100 * lm->explained[1], lm->carry_resid, lm->meanmiss_heldout, lm->mean_from_imat ? ", the --imat mean" : "",
+               lm->chosen ? "the loops' map" : "--imat", 1e9 * ea[0], 1e9 * eb[0], 1e9 * ea[1], 1e9 * eb[1]);
+    }
     double e1[2], e2[2];
     rc = ncp_error(pth("halo.fits"), ncp, e1, &r->resm_slopes);
     if (!rc) rc = ncp_error(pth("halo_ideal.fits"), ncp, e2, &r->resm_ideal);

@@ -67,6 +67,12 @@ static int special(void *ctx, int argc, char **argv, int *i)
         if (!strcmp(v, "teach")) o->mean_teach = 1; /* loops speckles simulates itself */
         else if (!strcmp(v, "none")) o->mean_teach = 0; /* not even a pyramid's default */
         else d->mloops[o->nmean_loops++] = v;
+    } else if (!strcmp(a, "--loops-map")) {
+        if (cli_take_string(cmd, argc, argv, i, "auto, choose or none", &v)) return -CLI_USAGE;
+        if (!strcmp(v, "auto")) o->loops_map = SWFS_LOOPS_MAP_AUTO;
+        else if (!strcmp(v, "choose")) o->loops_map = 1;
+        else if (!strcmp(v, "none")) o->loops_map = 0;
+        else return -cli_usage_error(cmd, "--loops-map takes auto, choose or none, got '%s'", v);
     } else if (!strcmp(a, "--match")) {
         if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
         d->min[o->nmatch] = argv[*i + 1];

@@ -11,7 +11,7 @@ static const char *speckles_usage_text =
     "                           [--vk-l0 M] [--write-recon W.fits] [--tiptilt exposure|frame|keep]\n"
     "                           [--mean ensemble|cube] [--wfs-rate [--wfs-hz HZ]]\n"
     "                           [--match IN.fits OUT.fits]... [--pupil MASK.fits] [--threads N] [--batch B]\n"
-    "                           [--mean-loop DIR... | teach | none]\n"
+    "                           [--mean-loop DIR... | teach | none] [--loops-map auto|choose|none]\n"
     "       specklewfs speckles TIMING.txt --science SCIENCE.fits --basis CUBE.fits [--control C.fits | --imat D.fits]\n"
     "                           [--dm-pitch M --dm-offset X,Y --dm-rot DEG --dm-flip] [--coef-scale S] -o SPECKLES.fits\n"
     "\n"
@@ -118,7 +118,15 @@ static const char *speckles_usage_mean =
     "                      is the same (--teach-again: anew). The default for a pyramid's\n"
     "                      telemetry (WFSTYPE) with --basis: where the files do not describe\n"
     "                      the loops, a note says why and the run goes on without them\n"
-    "  --mean-loop none    no loops, not even a pyramid's default\n";
+    "  --mean-loop none    no loops, not even a pyramid's default\n"
+    "  --loops-map auto|choose|none  with --imat and mean loops: also the map learned\n"
+    "                      from the loops (their truewf_NNN.fits, carried from their DM,\n"
+    "                      influence.fits, onto --basis), its speckles with the loops' miss\n"
+    "                      of the mean; both estimated on the science frames and the set\n"
+    "                      whose speckles explain more of them written (the self-check of\n"
+    "                      `pupil A.fits B.fits`); files in the teach folder. auto (default):\n"
+    "                      where the loops are speckles' own default (a pyramid's); choose:\n"
+    "                      with any mean loops; none: the interaction matrix's alone\n";
 
 void cli_help_speckles(void)
 {

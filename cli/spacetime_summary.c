@@ -136,6 +136,23 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
     const size_t nml = m->done ? m->nloops : o->nmean_loops;
     cli_mean_teach_summary(cmd, m);
     cli_meanmiss_summary(cmd, nml, r->meanmiss_heldout, r->meanmiss_rms);
+    const swfs_loops_map_result *lm = &r->loops_map;
+    if (lm->fallback[0])
+        fprintf(stderr, "%s: note: no map from the loops to choose against the interaction matrix's (--loops-map): %s; "
+                "its speckles as written\n", cmd, lm->fallback);
+    char mmw[160] = "";
+    if (isfinite(lm->meanmiss_heldout))
+        snprintf(mmw, sizeof mmw, "(each loop's by the map of the others, held out %.2f: %s)", lm->meanmiss_heldout,
+                 lm->mean_from_imat ? "not shared; the interaction matrix's corrected mean instead"
+                                    : lm->meanmiss_rms > 0 ? "added" : "none added");
+    if (lm->tried)
+        fprintf(stderr, "%s: --loops-map: a map learned from the %zu loops' %zu frames for %zu inputs (misfit %.1f of "
+                "%.1f nm per output; their DM on the basis within %.2g), its miss of the mean %s: "
+                "the self-check over %zu pixels, the interaction matrix's %.2f %% explained, the loops' map's %.2f %% -> "
+                "%s (%.0f s; %s)\n", cmd, nml, lm->nframes, lm->inputs, 1e9 * lm->misfit_rms, 1e9 * lm->truth_rms,
+                lm->carry_resid, mmw,
+                lm->ncommon, 100 * lm->explained[0], 100 * lm->explained[1],
+                lm->chosen ? "the loops' map's speckles written" : "the interaction matrix's kept", lm->seconds, lm->map);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);

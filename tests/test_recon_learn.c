@@ -178,6 +178,60 @@ static void test_learner(void **state)
  * checked from the frames), a vanishing ridge gives the map without a prior, a huge one P (the
  * piston of each column out; the dead slope's column P's), the training misfit reported is the
  * one computed frame by frame; a prior of other shapes is refused. */
+/* The map of the sums less a part's (leave-one-out: learn's held-out miss of the mean) is the
+ * map of the other frames alone, with a prior too. */
+static void test_learner_solve_without(void **state)
+{
+    (void)state;
+    const size_t na_ = 40, nb = 25;
+    double *s = NULL, *z = NULL;
+    draw_problem(23, na_ + nb, &s, &z);
+    swfs_recon_learner *all = NULL, *part = NULL, *rest = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &all));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &part));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &rest));
+    assert_ok(swfs_recon_learner_add(all, s, z, na_ + nb));
+    assert_ok(swfs_recon_learner_add(rest, s, z, na_));
+    assert_ok(swfs_recon_learner_add(part, s + na_ * NS, z + na_ * NA, nb));
+    swfs_recon P = {.nact = NA, .nslopes = NS};
+    P.W = malloc(NA * NS * sizeof *P.W);
+    assert_non_null(P.W);
+    for (size_t k = 0; k < NA * NS; k++) P.W[k] = 0.01 * (double)(k % 7) - 0.02;
+    for (int prior = 0; prior < 2; prior++) {
+        if (prior) {
+            assert_ok(swfs_recon_learner_set_prior(all, &P));
+            assert_ok(swfs_recon_learner_set_prior(rest, &P));
+        }
+        const double ridge = prior ? 0.3 : 1e-6;
+        swfs_recon *w1 = NULL, *w2 = NULL, *wall = NULL;
+        assert_ok(swfs_recon_learner_solve(rest, ridge, &w1, NULL));
+        assert_ok(swfs_recon_learner_solve_without(all, part, ridge, &w2));
+        assert_ok(swfs_recon_learner_solve(all, ridge, &wall, NULL));
+        double d = 0, dall = 0, mx = 0;
+        for (size_t k = 0; k < NA * NS; k++) {
+            d = fmax(d, fabs(w1->W[k] - w2->W[k]));
+            dall = fmax(dall, fabs(w1->W[k] - wall->W[k]));
+            mx = fmax(mx, fabs(w1->W[k]));
+        }
+        printf("test_recon_learn: without a part (prior %d): %.3g of %.3g from the rest's map, %.3g from all's\n", prior,
+               d, mx, dall);
+        assert_true(mx > 0 && d < 1e-5 * mx); /* the other frames' map (the sums' rounding apart) */
+        assert_true(dall > 1e-3 * mx);        /* not the map of all of them */
+        swfs_recon_free(w1);
+        swfs_recon_free(w2);
+        swfs_recon_free(wall);
+    }
+    swfs_recon *bad = NULL;
+    assert_int_equal(swfs_recon_learner_solve_without(part, all, 1e-6, &bad), SWFS_ERR_ARG); /* more left out than held */
+    assert_null(bad);
+    free(P.W);
+    swfs_recon_learner_free(all);
+    swfs_recon_learner_free(part);
+    swfs_recon_learner_free(rest);
+    free(s);
+    free(z);
+}
+
 static void test_learner_prior(void **state)
 {
     (void)state;
@@ -798,6 +852,7 @@ int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
                                        cmocka_unit_test(test_learner_prior),
+                                       cmocka_unit_test(test_learner_solve_without),
                                        cmocka_unit_test(test_learner_grows),
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),

@@ -1649,6 +1649,8 @@ static void test_options_checks(void **state)
         "--mean-loop teach goes with the linear model", "--mean-teach-loops must be 2..16",
         "--mean-loop takes loops' folders or teach, not both",
         "a --control map is its own file, and without either there is no map",
+        "loops_map must be 0, 1 or SWFS_LOOPS_MAP_AUTO (-1), got 3",
+        "--loops-map choose goes with the linear model's --imat (the map it is chosen against) and mean loops",
     };
     const char *two[2] = {"loop_a", "loop_b"};
     const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},
@@ -1693,6 +1695,15 @@ static void test_options_checks(void **state)
             sp.nmean_loops = 2;
             break;
         case 24: sp.actuators = NULL; sp.lin.basis = p("checks_basis.fits"); sp.write_recon = p("checks_w.fits"); break;
+        case 25: sp.loops_map = 3; break;
+        case 26: /* loops but no interaction matrix to choose against */
+            sp.actuators = NULL;
+            sp.lin.basis = p("checks_basis.fits");
+            sp.lin.control = p("checks_recon.fits");
+            sp.mean_loops = two;
+            sp.nmean_loops = 2;
+            sp.loops_map = 1;
+            break;
         default: sp.teach_keys = tk_ok; sp.nteach_keys = 1; break; /* the defaults, and a key teach takes */
         }
         if (k == npat) {

@@ -213,7 +213,51 @@ typedef struct swfs_speckles_run_options {
                                  failing where the files do not describe the loops; not with
                                  mean_loops. 0 (--mean-loop none): never */
     size_t mean_teach_loops;
+    int loops_map;            /* with the linear model's --imat and mean loops (simulated or given:
+                                 their truewf_NNN.fits and influence.fits needed), also the map
+                                 learned from the loops, carried onto the basis, and the self-check's
+                                 choice between the two sets of speckles (swfs_loops_map_result).
+                                 SWFS_LOOPS_MAP_AUTO: where the mean loops are speckles' own
+                                 default (a pyramid's telemetry); 1: with any mean loops; 0: never */
+    const char *resmean_from; /* NULL, or a SPECKLES.fits of the same frames whose residual mean
+                                 (RESMEAN) this run writes instead of its own reconstruction's
+                                 (loops_map: the interaction matrix's, corrected by the loops'
+                                 shared miss, where the loops' map's miss is not shared) */
 } swfs_speckles_run_options;
+
+#define SWFS_LOOPS_MAP_AUTO (-1)
+
+/* speckles' second map, learned from the mean loops (run_loops_map.c; docs/telemetry.md, "The
+ * loops' own map, chosen by the self-check"): the loops' telemetry to their true residual on
+ * their DM's functions (learn), carried onto the observation's basis (least squares over the
+ * pupil of the loops' influence functions, loops[0]/influence.fits), applied to the
+ * observation with its own miss of the residual's mean (each loop's by the map of the others,
+ * where the loops share it: MEANMISS carried onto the basis); both speckle
+ * sets estimated on the same science frames and the one whose speckles explain more of them
+ * (swfs_halo_choose_files) written to the output (and --write-recon's map with it). */
+typedef struct swfs_loops_map_result {
+    int tried;                /* both sets scored */
+    int chosen;               /* 1: the loops' map's speckles written; 0: the interaction matrix's */
+    double explained[2];      /* the self-check's score: the interaction matrix's, the loops' map's */
+    size_t ncommon;           /* focal pixels scored */
+    size_t nframes, inputs;   /* the loops' frames learned from, the map's inputs (telemetry values
+                                 with signal): tried only where nframes >= inputs /
+                                 SWFS_LEARN_CURVE_EXCESS (teach's floor) */
+    double misfit_rms, truth_rms; /* [m] learn's training misfit and truth per output */
+    double carry_resid;       /* the loops' DM functions on the basis: rms residual / rms (LOOPFIT) */
+    double meanmiss_heldout;  /* the loops' map's miss of the mean, each loop's by the map of the
+                                 others (learn's mean_miss_heldout), checked held out (< 1: added) */
+    double meanmiss_rms;      /* [m] that miss as added to RESMEAN, its rms in the pupil (piston,
+                                 tip, tilt removed; 0: none added) */
+    int mean_from_imat;       /* 1: the loops' map's miss is not shared (held out >= 1) while the
+                                 interaction matrix's is: its speckles carry the interaction
+                                 matrix's corrected mean (resmean_from) */
+    double seconds;
+    char work[4200];          /* its files: loops_learned.fits, loops_map.fits, halo_imat.fits,
+                                 halo_loops.fits */
+    char map[4400];           /* the loops' map on the basis (a --control matrix) */
+    char fallback[1024];      /* why it was not tried ("" otherwise): the --imat speckles stay */
+} swfs_loops_map_result;
 
 #define SWFS_MEAN_TEACH_MAX 16
 
@@ -324,6 +368,7 @@ typedef struct swfs_speckles_run_result {
                                  a --recon or --control map learned from loops whose misses agree),
                                  added to RESMEAN, its rms in the pupil (piston, tip, tilt removed);
                                  0: the map carries none */
+    swfs_loops_map_result loops_map; /* loops_map: the second map and the choice */
 } swfs_speckles_run_result;
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
@@ -664,6 +709,10 @@ typedef struct swfs_learn_run_options {
                                  the ridge lets them, so give a ridge that counts (e.g. 0.1);
                                  for a map made another way (speckles --write-recon: a linear
                                  model's MAP) corrected by a few loops. Not with lags */
+    int mean_miss_heldout;    /* with mean_miss: each data set's miss taken with the map of the
+                                 other sets (their sums, the set's left out), not the map of all:
+                                 a map learned from few sets fits their means in-sample, and its
+                                 miss there is smaller than on new frames (speckles' loops_map) */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);

@@ -279,6 +279,10 @@ int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_rec
  * learner given the frames unstacked would solve it (lag 0 is never clamped: the block's
  * sums are that learner's, to the single-precision rounding of S^T Z's summation order), and
  * its ridge on that block's own mean diagonal. info: that map's training misfit. */
+/* The map of all's sums less part's (part: the sums of some of all's frames, e.g. one data
+ * set's): what the other frames alone learn, without reading them again (leave-one-out). */
+int swfs_recon_learner_solve_without(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                                     swfs_recon **out);
 int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double ridge, swfs_recon **out,
                                  swfs_recon_learn_info *info);
 /* The held-out check: the map learned from the sums of `all` less those of `part` (the frames

@@ -309,7 +309,7 @@ swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str), ("curve", c_int),
     ("curve_radius", c_dbl * 2), ("project", P(c_dbl)), ("nproject", c_size), ("threads", c_int), ("mean_miss", c_int),
-    ("prior", c_str)])
+    ("prior", c_str), ("mean_miss_heldout", c_int)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [
@@ -333,9 +333,14 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("teach_seed", c_u64),
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
     ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int),
-    ("mean_teach_loops", c_size)])
+    ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
+swfs_loops_map_result = _s("swfs_loops_map_result", [
+    ("tried", c_int), ("chosen", c_int), ("explained", c_dbl * 2), ("ncommon", c_size), ("nframes", c_size),
+    ("inputs", c_size), ("misfit_rms", c_dbl), ("truth_rms", c_dbl), ("carry_resid", c_dbl),
+    ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl), ("mean_from_imat", c_int), ("seconds", c_dbl),
+    ("work", ctypes.c_char * 4200), ("map", ctypes.c_char * 4400), ("fallback", ctypes.c_char * 1024)])
 swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("done", c_int), ("reused", c_int), ("automatic", c_int), ("fallback", ctypes.c_char * 1024), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),
     ("noise_rms", c_dbl), ("photons", c_dbl), ("slope_noise", c_dbl), ("knee", c_size), ("nlayers", c_size),
@@ -355,7 +360,7 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
     ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl),
-    ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl)])
+    ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl), ("loops_map", swfs_loops_map_result)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

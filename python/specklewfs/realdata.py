@@ -401,7 +401,8 @@ def _teach_dict(r, modes_from_slopes):
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
-             teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None, mean_teach_loops=None):
+             teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None, mean_teach_loops=None,
+             loops_map="auto"):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -446,7 +447,14 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     folder; automatic when the default chose them, fallback why it could not), None otherwise.
     The default (mean_loops=None) does so for a pyramid's telemetry (WFSTYPE) through linear,
     and where the files do not describe the loops goes on without them, warning why;
-    mean_loops='none': never."""
+    mean_loops='none': never. loops_map ('auto', 'choose' or 'none'; `--loops-map`): with
+    linear's interaction matrix (imat) and mean loops, also the map learned from the loops
+    (their truth, carried from their DM onto the basis) and the self-check's choice between the
+    two speckle sets on the science frames; 'auto' where the loops are the default's own (a
+    pyramid's), 'choose' with any mean loops. Returned as loops_map (a dict: chosen, explained
+    (the interaction matrix's, the loops' map's), map, work, meanmiss_heldout, mean_from_imat,
+    carry_resid, nframes, inputs) when tried, else None and loops_map_fallback says why (too
+    few frames in the loops for a map of their own, ...)."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -475,6 +483,9 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         o.mean_teach_loops = int(mean_teach_loops)
     mloops = [os.fspath(m) for m in (mean_loops or ())]
     o.mean_loops, o.nmean_loops = _lib.strings(mloops)
+    if loops_map not in ("auto", "choose", "none"):
+        raise ValueError(f"speckles: loops_map takes 'auto', 'choose' or 'none', got {loops_map!r}")
+    o.loops_map = {"auto": -1, "choose": 1, "none": 0}[loops_map]
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
@@ -516,6 +527,13 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
         layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch,
         r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, seconds=m.seconds, work=m.work.decode())
+    lm = r.loops_map
+    d["loops_map_fallback"] = lm.fallback.decode()
+    d["loops_map"] = None if not lm.tried else dict(
+        chosen=bool(lm.chosen), explained=(lm.explained[0], lm.explained[1]), ncommon=lm.ncommon, nframes=lm.nframes,
+        inputs=lm.inputs, misfit_rms=lm.misfit_rms, truth_rms=lm.truth_rms, carry_resid=lm.carry_resid,
+        meanmiss_heldout=lm.meanmiss_heldout, meanmiss_rms=lm.meanmiss_rms, mean_from_imat=bool(lm.mean_from_imat),
+        seconds=lm.seconds, work=lm.work.decode(), map=lm.map.decode())
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

@@ -529,6 +529,20 @@ def test_pyramid_timeseries(tmp_path):
     assert t2["meanmiss_heldout"] == t1["meanmiss_heldout"]
     assert t2["meanmiss_rms"] == t1["meanmiss_rms"]
     assert t2["mean_teach"]["r0"] == 0.15 and t2["mean_teach"]["r0_pairs"] == 0  # mean_loops.conf's
+    # the loops' own map (loops_map='auto'): two loops hold fewer than 10 frames per input, so it
+    # is not tried and says why; asked for with three folders (the second loop twice, for the
+    # time) it is learned, carried onto the basis, scored and the better set written
+    assert t1["loops_map"] is None and "fewer than the" in t1["loops_map_fallback"]
+    lm3 = [os.path.join(tw, "mean_00"), os.path.join(tw, "mean_01"), os.path.join(tw, "mean_01")]
+    t5 = sw.speckles(timing, sci, None, str(tmp_path / "t5.fits"), linear=lin, mean_loops=lm3, loops_map="choose",
+                     teach_work=str(tmp_path / "tw5"))
+    L = t5["loops_map"]
+    assert L is not None and L["inputs"] == 2 * r["nvalid"] and L["nframes"] >= 10 * L["inputs"]
+    assert L["chosen"] == (L["explained"][1] > L["explained"][0]) and L["carry_resid"] < 0.2
+    C5 = sw.read_fits(L["map"])[0]
+    assert C5.shape == (r["nact"], s.shape[1]) and os.path.isfile(os.path.join(L["work"], "halo_loops.fits"))
+    with pytest.raises(ValueError, match="loops_map takes"):
+        sw.speckles(timing, sci, None, str(tmp_path / "t6.fits"), linear=lin, loops_map="yes")
     # a system observed at another r0 (0.09 m): the fit finds it from the signals in more pairs
     # (measured 0.0974 m in 3 pairs, the kept pair's power 0.99 of the telemetry's: the loops'
     # residual matches the observation's, their other keys the files' description); given, r0 is

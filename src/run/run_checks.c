@@ -85,6 +85,11 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
                                      o->team);
     if (mrc) return mrc;
     if ((o->nmean_loops || o->mean_teach == 1) && p->wfs_rate) FAIL("--mean-loop goes with camera exposures, not --wfs-rate");
+    if (o->loops_map != 0 && o->loops_map != 1 && o->loops_map != SWFS_LOOPS_MAP_AUTO)
+        FAIL("loops_map must be 0, 1 or SWFS_LOOPS_MAP_AUTO (-1), got %d", o->loops_map);
+    if (o->loops_map == 1 && !(basis && o->lin.imat && (o->nmean_loops || o->mean_teach == 1)))
+        FAIL("--loops-map choose goes with the linear model's --imat (the map it is chosen against) and mean loops "
+             "(--mean-loop DIR... or teach)");
     const int taught = recon == SWFS_RECON_TEACH && !basis;
     if ((o->teach_loops != d.teach_loops || o->teach_max_loops != d.teach_max_loops || o->teach_keep_loops) && !taught)
         FAIL("--teach-loops, --teach-max-loops and --teach-keep-loops go with --recon teach (the default with "

@@ -151,8 +151,8 @@ int swfs_fnv_file_(uint64_t *h, const char *label, const char *path);
  * its truth's mean, nor then in its telemetry's. */
 size_t swfs_loop_first_frame_(const char *dir);
 /* Loops k = first..first+n-1 of o->sim as described (its layers), seeds o->seed + k, into
- * o->work/NAME_NN (NAME at most 7 characters), as many at once as its threads allow; what: the
- * progress's stage. */
+ * o->work/NAME_NN (NAME at most 7 characters), as many at once as its threads allow, with the
+ * true residual (truewf_NNN.fits) where o->sim.export_truth; what: the progress's stage. */
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what);
 
 /* speckles --mean-loop teach (run_mean_teach.c): the loops of the system the observation's
@@ -162,6 +162,13 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
 int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                               const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400],
                               const char **loops);
+
+/* run_loops_map.c: the loops' own map and the self-check's choice (run.h loops_map), after o's
+ * run wrote o->out from the interaction matrix with the mean loops o->mean_loops (its miss
+ * held out: imat_heldout); g, mask: the run's geometry and pupil (swfs_pipeline_mask). Always
+ * SWFS_OK: where it cannot, r->fallback says why and o->out stays. */
+int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                             double imat_heldout, swfs_loops_map_result *r);
 
 /* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid
  * with what the caller gives, required): the keys it and the other files give, into c. */
@@ -202,6 +209,16 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
  * a learned control matrix's MEANMISS. */
 int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *coef,
                            size_t nk, double *out);
+/* run_linear.c: the coefficients on lf's basis of m wavefronts given on the PUPN x PUPN grid
+ * (wf: npup^2 x m, row-major: sample i's values in row i) by least squares over the
+ * illuminated samples of mask: c = (A^T A + mu I)^-1 A^T w, A = scale x the basis there, mu =
+ * SWFS_LINEAR_FIT_RIDGE x the mean diagonal of A^T A (a basis function that barely touches the
+ * pupil is kept from running away, as the DM fit's default, dmfit.h). coef: nk x m row-major
+ * (*nk the basis's count; the caller frees); *resid (may be NULL): the rms of A c - w over
+ * the rms of w there. */
+#define SWFS_LINEAR_FIT_RIDGE 1e-3
+int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *wf, size_t m,
+                     double **coef, size_t *nk, double *resid);
 /* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,
  * or with lin->basis a --control matrix; NULL: none) has the extension MEANMISS (learn's, one
  * value per output), its wavefront on the pupil grid (the Shack-Hartmann model's interpolation

@@ -548,13 +548,25 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
  * the miss is the truth's mean less the map applied to the slopes' mean at every lag (the
  * stacked mean input), piston removed unless modal. *off: their mean over the sets where the
  * held-out check keeps it, else NULL. */
-static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_learn_run_result *r, double **off)
+static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const swfs_recon_learner *all,
+                     swfs_learn_run_result *r, double **off)
 {
     *off = NULL;
     const size_t ns = r->nslopes, na = r->nact, nd = o->ndirs, nl = o->nlags > 1 ? o->nlags : 1;
     double *ms = malloc(ns * nl * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
     int rc = ms && mt && miss ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
+    /* mean_miss_heldout: each set's miss by the map of the others (its sums left out) */
+    swfs_recon_learner *part = NULL;
+    if (!rc && o->mean_miss_heldout) rc = swfs_recon_learner_new(ns * nl, na, !o->modal, &part);
     for (size_t d = 0; !rc && d < nd; d++) {
+        swfs_recon *wd = NULL;
+        if (part) {
+            swfs_recon_learner_reset(part);
+            rc = add_dir(o, o->dirs[d], &part, r, NULL, NULL);
+            if (!rc) rc = swfs_recon_learner_solve_without(all, part, o->ridge, &wd);
+            if (rc) break;
+        }
+        const swfs_recon *wm = wd ? wd : w;
         memset(ms, 0, ns * sizeof *ms);
         memset(mt, 0, na * sizeof *mt);
         size_t nf = 0;
@@ -577,12 +589,16 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
             swfs_real_free(s);
             swfs_real_free(z);
         }
-        if (rc || !nf) continue;
+        if (rc || !nf) {
+            swfs_recon_free(wd);
+            continue;
+        }
         /* the stacked input: the mean at every lag; m = (truth's sum - W input) / nf */
         for (size_t k = 1; k < nl; k++) memcpy(ms + k * ns, ms, ns * sizeof *ms);
         double *m = miss + d * na, pm = 0;
         memcpy(m, mt, na * sizeof *m);
-        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)na, (int)(ns * nl), -1.0, w->W, (int)(ns * nl), ms, 1, 1.0, m, 1);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)na, (int)(ns * nl), -1.0, wm->W, (int)(ns * nl), ms, 1, 1.0, m, 1);
+        swfs_recon_free(wd);
         for (size_t a = 0; a < na; a++) {
             m[a] /= (double)nf;
             pm += m[a] / (double)na;
@@ -600,6 +616,7 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, swfs_
         r->meanmiss_kept = r->meanmiss_heldout < 1;
         if (r->meanmiss_kept) { *off = mt; mt = NULL; }
     }
+    swfs_recon_learner_free(part);
     free(ms);
     free(mt);
     free(miss);
@@ -679,7 +696,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (!rc && o->ndirs > 1 && !o->no_heldout) rc = heldout(o, l, keep, r);
     free(keep);
     double *meanmiss = NULL;
-    if (!rc && o->mean_miss && o->ndirs > 1) rc = mean_miss(o, w, r, &meanmiss);
+    if (!rc && o->mean_miss && o->ndirs > 1) rc = mean_miss(o, w, l, r, &meanmiss);
     if (!rc && w0) rc = write_recon(o, o->perframe_out, w0, r, 1, NULL);
     if (!rc) {
         rc = write_recon(o, o->out, w, r, 0, meanmiss);

@@ -7,6 +7,8 @@
 #include "specklewfs/sparse.h"
 #include "run_internal.h"
 
+#include <cblas.h>
+#include <lapacke.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -100,6 +102,73 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
         for (size_t i = 0; i < np * np; i++) out[i] *= lf->scale;
     }
     free(u);
+    free(shapes);
+    swfs_sparse_free(B);
+    return rc;
+}
+
+int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *wf, size_t m,
+                     double **coef, size_t *nk, double *resid)
+{
+    *coef = NULL;
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    swfs_sparse *B = NULL;
+    double *shapes = NULL, *full = NULL, *A = NULL, *G = NULL, *R = NULL, *E = NULL;
+    size_t k = 0, nil = 0;
+    int rc = load_basis(lf, g, mask, &B, &shapes, &k);
+    *nk = k;
+    /* the basis on the pupil grid, dense (n2 x k): the grid's interpolation times the grid
+     * values, or the pupil-grid basis applied to the identity */
+    double *eye = NULL;
+    if (!rc && !shapes && !(eye = calloc(k * k, sizeof *eye))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
+    for (size_t j = 0; eye && j < k; j++) eye[j * k + j] = 1.0;
+    if (!rc && !(full = malloc(n2 * k * sizeof *full))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
+    if (!rc) swfs_sparse_apply_multi(B, shapes ? shapes : eye, full, k);
+    free(eye);
+    for (size_t i = 0; !rc && i < n2; i++) nil += mask[i] > 0;
+    if (!rc && !nil) rc = swfs_fail(SWFS_ERR_VALUE, "linear fit: no illuminated pupil sample");
+    if (!rc && (!(A = malloc(nil * k * sizeof *A)) || !(E = malloc(nil * m * sizeof *E)) ||
+                !(G = calloc(k * k, sizeof *G)) || !(R = calloc(k * m, sizeof *R))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory for %zu samples x %zu functions", nil, k);
+    for (size_t i = 0, r = 0; !rc && i < n2; i++) {
+        if (!(mask[i] > 0)) continue;
+        for (size_t j = 0; j < k; j++) A[r * k + j] = lf->scale * full[i * k + j];
+        memcpy(E + r * m, wf + i * m, m * sizeof *E);
+        r++;
+    }
+    double diag = 0, w2 = 0;
+    if (!rc) {
+        cblas_dsyrk(CblasRowMajor, CblasUpper, CblasTrans, (int)k, (int)nil, 1.0, A, (int)k, 0.0, G, (int)k);
+        cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)k, (int)m, (int)nil, 1.0, A, (int)k, E, (int)m, 0.0, R,
+                    (int)m);
+        for (size_t j = 0; j < k; j++) diag += G[j * k + j];
+        diag /= (double)(k ? k : 1);
+        if (!(diag > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: the basis is zero on the pupil", lf->basis);
+    }
+    if (!rc) {
+        for (size_t j = 0; j < k; j++) G[j * k + j] += SWFS_LINEAR_FIT_RIDGE * diag;
+        const lapack_int info = LAPACKE_dposv(LAPACK_ROW_MAJOR, 'U', (lapack_int)k, (lapack_int)m, G, (lapack_int)k, R,
+                                              (lapack_int)m);
+        if (info) rc = swfs_fail(SWFS_ERR_NUMERIC, "%s: the basis's normal equations on the pupil (%zu functions) "
+                                 "are not positive definite (LAPACK dposv info %d)", lf->basis, k, (int)info);
+    }
+    if (!rc && resid) {
+        for (size_t i = 0; i < nil * m; i++) w2 += E[i] * E[i];
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nil, (int)m, (int)k, 1.0, A, (int)k, R, (int)m, -1.0,
+                    E, (int)m);
+        double e2 = 0;
+        for (size_t i = 0; i < nil * m; i++) e2 += E[i] * E[i];
+        *resid = w2 > 0 ? sqrt(e2 / w2) : 0.0;
+    }
+    if (!rc) {
+        *coef = R;
+        R = NULL;
+    }
+    free(R);
+    free(G);
+    free(E);
+    free(A);
+    free(full);
     free(shapes);
     swfs_sparse_free(B);
     return rc;

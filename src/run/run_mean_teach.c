@@ -439,6 +439,8 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     if (!rc) rc = swfs_config_put_(c, "cube_frames", "%zu", (loop_frames - 300) / 10);
     if (!rc) rc = swfs_config_put_(c, "cube_gap", "0");
     if (!rc) rc = swfs_config_put_(c, "wfs_file_frames", "%zu", loop_frames + 20);
+    /* the true residual per frame, for the map learned from the loops (run_loops_map.c) */
+    if (!rc) rc = swfs_config_put_(c, "export_truth", "1");
     int pyr = 0;
     if (!rc) rc = sensor_keys(names[0], c, &pyr);
     r->pyramid = pyr;

@@ -3,6 +3,7 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/source.h"
 #include "specklewfs/speckles.h"
 #include "specklewfs/reduce.h"
@@ -28,6 +29,7 @@ void swfs_speckles_run_options_default(swfs_speckles_run_options *o)
     o->teach_seed = 101;
     o->mean_teach_loops = 4;
     o->mean_teach = SWFS_MEAN_TEACH_AUTO;
+    o->loops_map = SWFS_LOOPS_MAP_AUTO;
 }
 
 static size_t piece(const swfs_speckles_run_options *o) { return o->batch ? o->batch : 128; }
@@ -472,7 +474,24 @@ static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speck
     if (rc) return rc;
     if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     r->wavelen = w->g.wavelen;
-    return swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
+    rc = swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
+    if (rc || !o->resmean_from) return rc;
+    /* another run's mean of the same frames (loops_map: the interaction matrix's, corrected) */
+    swfs_real *m = NULL;
+    rc = swfs_fits_read_real(o->resmean_from, "RESMEAN", &m, NULL);
+    if (!rc && (m->nx != n || m->ny != n || m->nz != 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zu x %zu x %zu; expected the pupil grid, %zu x %zu",
+                       o->resmean_from, m->nx, m->ny, m->nz, n, n);
+    double *tmp = rc ? NULL : malloc(n * n * sizeof *tmp);
+    if (!rc && !tmp) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) {
+        memcpy(w->resmean->data, m->data, n * n * sizeof *tmp);
+        memcpy(tmp, m->data, n * n * sizeof *tmp);
+        r->resmean_rms = swfs_wfe_remove_ptt(tmp, swfs_pipeline_mask(w->p), n);
+    }
+    free(tmp);
+    swfs_real_free(m);
+    return rc;
 }
 
 /* OUT = the frames of IN (a cube aligned with the science cube) of the usable cubes, with
@@ -715,6 +734,12 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         int erc = swfs_outputs_end(rc == SWFS_OK);
         if (!rc) rc = erc;
     }
+    /* the loops' own map and the self-check's choice (run_loops_map.c): with the interaction
+     * matrix and mean loops, where they are the default's own (a pyramid's) or asked for */
+    const int lmap = o->loops_map == 1 || (o->loops_map == SWFS_LOOPS_MAP_AUTO && r->mean_teach.done &&
+                                           r->mean_teach.automatic);
+    if (!rc && !team && lmap && o->lin.basis && o->lin.imat && o->nmean_loops)
+        rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout, &r->loops_map);
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);
     work_free(&w);

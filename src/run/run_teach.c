@@ -148,7 +148,7 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
 }
 
 /* run_internal.h: loops first..first+n-1 of the description as it is (speckles --mean-loop
- * teach). */
+ * teach; with its true residual where the description exports it). */
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what)
 {
     loop_job *jobs = calloc(n ? n : 1, sizeof *jobs);
@@ -166,7 +166,7 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
         }
     }
     size_t nrun = 0;
-    const int rc = simulate_loops(o, NULL, jobs, n, what, &nrun, 0);
+    const int rc = simulate_loops(o, NULL, jobs, n, what, &nrun, o->sim.export_truth ? 1 : 0);
     free(jobs);
     return rc;
 }

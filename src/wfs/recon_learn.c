@@ -499,21 +499,26 @@ static int solve_sums(const swfs_recon_learner *l, const swfs_recon_learner *m, 
 
 /* The map of all inputs (block SIZE_MAX) or of lag block `block` alone, in the full layout of
  * those inputs (a block's map takes one frame's slopes). */
-static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, swfs_recon **out,
-                       swfs_recon_learn_info *info)
+static int solve_block(const swfs_recon_learner *l, const swfs_recon_learner *m, size_t block, double ridge,
+                       swfs_recon **out, swfs_recon_learn_info *info)
 {
     *out = NULL;
+    size_t *mp = NULL;
+    int prc = positions(l, m, &mp);
+    if (prc) return prc;
     const size_t ns = block == SIZE_MAX ? l->nslopes : l->ns0, na = l->nact;
     size_t *idx = malloc((l->nc + 1) * sizeof *idx), nu = 0;
     swfs_recon *r = calloc(1, sizeof *r);
     if (r) r->W = calloc(na * ns, sizeof *r->W);
     if (!idx || !r || !r->W) {
         free(idx);
+        free(mp);
         swfs_recon_free(r);
         return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
     }
     double *A = NULL, lam = 0;
-    int rc = solve_sums(l, NULL, NULL, ridge, block, idx, &nu, &A, &lam);
+    int rc = solve_sums(l, m, mp, ridge, block, idx, &nu, &A, &lam);
+    free(mp);
     if (rc) {
         free(idx);
         swfs_recon_free(r);
@@ -531,7 +536,7 @@ static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, 
     r->nact = na;
     r->nslopes = ns;
     r->nmodes = 0;
-    if (info) {
+    if (info && !m) {
         /* The training misfit: sum |z - W s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), and
          * (G + lam) A = H + lam A0 makes tr(A^T G A) = tr(A^T H) - lam (|A|^2 - A.A0). */
         double cross = 0, aa = 0;
@@ -553,7 +558,18 @@ static int solve_block(const swfs_recon_learner *l, size_t block, double ridge, 
 
 int swfs_recon_learner_solve(const swfs_recon_learner *l, double ridge, swfs_recon **out, swfs_recon_learn_info *info)
 {
-    return solve_block(l, SIZE_MAX, ridge, out, info);
+    return solve_block(l, NULL, SIZE_MAX, ridge, out, info);
+}
+
+int swfs_recon_learner_solve_without(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
+                                     swfs_recon **out)
+{
+    *out = NULL;
+    if (part->nslopes != all->nslopes || part->nact != all->nact || part->nframes >= all->nframes)
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a part of %zu frames (%zu inputs, %zu outputs) left "
+                         "out of sums over %zu frames (%zu, %zu)", part->nframes, part->nslopes, part->nact,
+                         all->nframes, all->nslopes, all->nact);
+    return solve_block(all, part, SIZE_MAX, ridge, out, NULL);
 }
 
 int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double ridge, swfs_recon **out,
@@ -562,7 +578,7 @@ int swfs_recon_learner_solve_lag(const swfs_recon_learner *l, size_t k, double r
     *out = NULL;
     if (!l->nc || k >= l->nl)
         return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: lag block %zu of %zu (no frames added?)", k, l->nl);
-    return solve_block(l, k, ridge, out, info);
+    return solve_block(l, NULL, k, ridge, out, info);
 }
 
 int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,

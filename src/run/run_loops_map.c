@@ -1,0 +1,237 @@
+/* speckles' second map for a linear model with loops of the system (run.h loops_map;
+ * docs/telemetry.md, "The loops' own map, chosen by the self-check"): the map learn makes from
+ * the loops' telemetry to their true residual, carried from the loops' DM onto the
+ * observation's basis by least squares over the pupil, applied to the observation as a
+ * control matrix with the loops' miss of the residual's mean, and kept where its speckles
+ * explain more of the science frames than the interaction matrix's (the self-check of
+ * `pupil A.fits B.fits`, swfs_halo_choose_files). */
+#include "specklewfs/run.h"
+#include "specklewfs/fits.h"
+#include "specklewfs/parallel.h"
+#include "specklewfs/pipeline.h"
+#include "specklewfs/wfs.h"
+#include "run_internal.h"
+
+#include <cblas.h>
+#include <math.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* W_loops (nact_l x nsig: the loops' truth on their DM's functions per telemetry value) onto
+ * the observation's basis: C = P W_loops, P the least-squares coefficients of each of the
+ * loops' influence functions (loops[0]/influence.fits, on the same pupil grid) on the basis;
+ * written as a control matrix file (NAXIS1 = telemetry values, NAXIS2 = basis functions). */
+static int carry_map(const swfs_speckles_run_options *o, const char *loop0, const char *learned, const char *out,
+                     const swfs_geom *g, const double *mask, swfs_loops_map_result *r)
+{
+    char ip[4400];
+    snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
+    swfs_recon *wl = NULL, c;
+    swfs_real *inf = NULL;
+    double *F = NULL, *P = NULL;
+    size_t nk = 0;
+    memset(&c, 0, sizeof c);
+    swfs_real *mm = NULL;
+    double *cmm = NULL;
+    int rc = swfs_recon_read(learned, &wl);
+    if (!rc) rc = swfs_fits_read_real(ip, NULL, &inf, NULL);
+    /* the loops' miss of the mean, per output (learn's MEANMISS, where kept) */
+    swfs_fits_in *fi = NULL;
+    int has = 0;
+    if (!rc && !(rc = swfs_fits_in_open(&fi, learned, NULL))) has = swfs_fits_in_has_ext(fi, "MEANMISS");
+    swfs_fits_in_close(fi);
+    if (!rc && has) rc = swfs_fits_read_real(learned, "MEANMISS", &mm, NULL);
+    if (!rc && mm && mm->nx * mm->ny * mm->nz != wl->nact)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: MEANMISS holds %zu values for %zu outputs", learned,
+                       mm->nx * mm->ny * mm->nz, wl->nact);
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    if (!rc && (inf->nx != np || inf->ny != np || inf->nz != wl->nact))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' influence functions are %zu x %zu x %zu; expected PUPN = %zu "
+                       "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
+    const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
+    if (!rc && !(F = malloc(n2 * na * sizeof *F))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t a = 0; !rc && a < na; a++) /* sample i's row: every function's value there */
+        for (size_t i = 0; i < n2; i++) F[i * na + a] = inf->data[a * n2 + i];
+    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, F, na, &P, &nk, &r->carry_resid);
+    if (!rc) {
+        c.nact = nk;
+        c.nslopes = ns;
+        if (!(c.W = malloc(nk * ns * sizeof *c.W))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    if (!rc) {
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nk, (int)ns, (int)na, 1.0, P, (int)na, wl->W, (int)ns,
+                    0.0, c.W, (int)ns);
+        if (mm && !(cmm = malloc(nk * sizeof *cmm))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (cmm) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nk, (int)na, 1.0, P, (int)na, mm->data, 1, 0.0, cmm, 1);
+    }
+    if (!rc) {
+        swfs_fits_out *f = NULL;
+        rc = swfs_fits_out_create(&f, out);
+        if (!rc) rc = swfs_recon_write_hdu(f, &c);
+        if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
+        if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "LOOPS", "learned from the loops, carried onto the basis");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", r->carry_resid, "the loops' DM on the basis: rms residual");
+        if (!rc) rc = swfs_fits_out_history(f, "specklewfs: the map learned from the loops of the system (speckles' "
+                                            "loops_map), NAXIS1 = telemetry values, NAXIS2 = basis functions");
+        if (!rc && cmm) { /* the loops' miss of the mean on the basis: speckles adds it to RESMEAN */
+            swfs_real m = {nk, 1, 1, cmm};
+            rc = swfs_fits_out_real(f, "MEANMISS", &m, -64);
+            if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "the map's miss of the residual's time mean, "
+                                                   "per basis function (the loops', held out)");
+        }
+        if (rc) swfs_fits_out_abort(f);
+        else rc = swfs_fits_out_commit(f);
+    }
+    free(c.W);
+    free(cmm);
+    swfs_real_free(mm);
+    free(P);
+    free(F);
+    swfs_real_free(inf);
+    swfs_recon_free(wl);
+    return rc;
+}
+
+static int estimate_into(const char *sci, const char *sp, const char *out, const swfs_speckles_run_options *o)
+{
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = sci;
+    eo.speckles = sp;
+    eo.out = out;
+    eo.prov = o->prov;
+    eo.nprov = o->nprov;
+    swfs_estimate_run_result er;
+    const int rc = swfs_estimate_run(&eo, &er);
+    if (!rc) swfs_halo_free(er.halo);
+    return rc;
+}
+
+/* Replace dst by a copy of src (atomic.h: the whole file or the old one). */
+static int replace_with(const char *src, const char *dst, const char *why)
+{
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_copy(&f, src, dst);
+    if (!rc) rc = swfs_fits_out_history(f, why);
+    if (rc) {
+        swfs_fits_out_abort(f);
+        return rc;
+    }
+    return swfs_fits_out_commit(f);
+}
+
+static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, double imat_heldout,
+                     swfs_loops_map_result *r)
+{
+    int made = 0;
+    int rc = swfs_speckles_work_folder_(o, r->work, sizeof r->work, &made);
+    char learned[4400], sp[4400], sci[4400], h0[4400], h1[4400];
+    snprintf(learned, sizeof learned, "%.4300s/loops_learned.fits", r->work);
+    snprintf(r->map, sizeof r->map, "%.4100s/loops_map.fits", r->work);
+    snprintf(sp, sizeof sp, "%.4300s/speckles_loops.fits", r->work);
+    snprintf(sci, sizeof sci, "%.4300s/science_loops.fits", r->work);
+    snprintf(h0, sizeof h0, "%.4300s/halo_imat.fits", r->work);
+    snprintf(h1, sizeof h1, "%.4300s/halo_loops.fits", r->work);
+    /* 1. learn: the loops' telemetry to their true residual on their DM (truewf_NNN.fits) */
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = o->mean_loops;
+    lo.ndirs = o->nmean_loops;
+    lo.out = learned;
+    lo.no_heldout = 1;
+    /* the map's miss of the mean, each loop's by the map of the others (held out: the map of all
+     * fits its loops' means in-sample), written where the loops share it */
+    lo.mean_miss = 1;
+    lo.mean_miss_heldout = 1;
+    lo.prov = o->prov;
+    lo.nprov = o->nprov;
+    lo.progress = o->progress;
+    lo.progress_ctx = o->progress_ctx;
+    swfs_learn_run_result lr;
+    if (!rc) rc = swfs_learn_run(&lo, &lr);
+    if (!rc) {
+        r->meanmiss_heldout = lr.meanmiss_heldout;
+        r->nframes = lr.info.nframes;
+        r->inputs = lr.info.nslopes_seen;
+        r->misfit_rms = lr.info.misfit_rms;
+        r->truth_rms = lr.info.truth_rms;
+    }
+    /* enough frames for a map of its own: a least-squares map of p inputs learned from n
+     * independent frames misses new frames by (1 + p / n) times its floor in misfit^2, so n >= p /
+     * SWFS_LEARN_CURVE_EXCESS (teach's floor on its loops, run.h); fewer, and the map's excess
+     * (and its miss of the mean, learned in-sample) is the loops' noise, not the sensor's */
+    const double need = (double)r->inputs / SWFS_LEARN_CURVE_EXCESS;
+    if (!rc && (double)r->nframes < need)
+        rc = swfs_fail(SWFS_ERR_VALUE, "the loops hold %zu frames for a map of %zu inputs, fewer than the %.0f a "
+                       "least-squares map needs to come within %.0f %% of its floor (more loops: --mean-teach-loops)",
+                       r->nframes, r->inputs, need, 100 * SWFS_LEARN_CURVE_EXCESS);
+    /* 2. onto the observation's basis */
+    if (!rc) rc = carry_map(o, o->mean_loops[0], learned, r->map, g, mask, r);
+    /* 3. the observation through it, with its miss of the mean (MEANMISS) and a copy of the
+     * science frames it covers */
+    swfs_speckles_run_options s2 = *o;
+    s2.lin.imat = NULL;
+    s2.lin.control = r->map;
+    s2.out = sp;
+    const char *min[1] = {o->science}, *mout[1] = {sci};
+    s2.match_in = min;
+    s2.match_out = mout;
+    s2.nmatch = 1;
+    s2.write_recon = NULL;
+    s2.mean_teach = 0;
+    s2.mean_loops = NULL; /* the map's own miss instead (MEANMISS: held out) */
+    s2.nmean_loops = 0;
+    /* the residual's mean: where the loops share the interaction matrix's miss (held out < 1)
+     * but not this map's, the interaction matrix's corrected mean is the one the loops vouch
+     * for; else the map's own, with its miss where shared */
+    r->mean_from_imat = !rc && !(r->meanmiss_heldout < 1) && imat_heldout < 1;
+    if (r->mean_from_imat) s2.resmean_from = o->out;
+    s2.loops_map = 0;
+    s2.teach_work = NULL;
+    s2.teach_again = 0;
+    s2.nteach_keys = 0;
+    s2.teach_keys = NULL;
+    swfs_speckles_run_options d;
+    swfs_speckles_run_options_default(&d);
+    s2.teach_seed = d.teach_seed;
+    swfs_speckles_run_result r2;
+    if (!rc) rc = swfs_speckles_run(&s2, &r2);
+    if (!rc) r->meanmiss_rms = r2.meanmiss_rms;
+    /* 4. both estimated on the same frames; the self-check's choice */
+    if (!rc) rc = estimate_into(sci, o->out, h0, o);
+    if (!rc) rc = estimate_into(sci, sp, h1, o);
+    const char *halos[2] = {h0, h1};
+    size_t best = 0;
+    if (!rc) rc = swfs_halo_choose_files(halos, 2, r->explained, &best, &r->ncommon, NULL, NULL);
+    if (!rc) r->tried = 1;
+    if (!rc && best == 1) {
+        char why[200];
+        snprintf(why, sizeof why, "specklewfs speckles: the loops' map's speckles (loops_map.fits), chosen by the "
+                 "self-check: %.4g %% of the frames' variance explained, the interaction matrix's %.4g %%",
+                 100 * r->explained[1], 100 * r->explained[0]);
+        rc = replace_with(sp, o->out, why);
+        if (!rc && o->write_recon) rc = replace_with(r->map, o->write_recon, "specklewfs speckles: the loops' map, "
+                                                     "chosen by the self-check");
+        if (!rc) r->chosen = 1;
+    }
+    (void)remove(sp); /* the scored speckles and frames: the halos and maps stay */
+    (void)remove(sci);
+    return rc;
+}
+
+int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                             double imat_heldout, swfs_loops_map_result *r)
+{
+    const double t0 = swfs_wall_seconds();
+    memset(r, 0, sizeof *r);
+    r->explained[0] = r->explained[1] = r->carry_resid = r->meanmiss_heldout = NAN;
+    const int rc = loops_map(o, g, mask, imat_heldout, r);
+    r->seconds = swfs_wall_seconds() - t0;
+    if (rc) { /* the interaction matrix's speckles stay, and the run says why */
+        snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());
+        swfs_clear_error();
+        r->tried = r->chosen = 0;
+    }
+    return SWFS_OK;
+}
