@@ -122,7 +122,7 @@ grep -q "no map from the loops to choose .*fewer than the" "$D/speckles_mt.log" 
     || { cat "$D/loop3.log"; fail "simulate mean_loops.conf"; }
 "$B" speckles "$D/timing.txt" --science "$D/science.fits" "${pyr[@]}" --mean-loop "$D/tw/mean_00" \
     --mean-loop "$D/tw/mean_01" --mean-loop "$D/loop3" --loops-map choose --teach-work "$D/lmw" \
-    -o "$D/speckles_lm.fits" --match "$D/science.fits" "$D/sci_lm.fits" 2> "$D/speckles_lm.log" \
+    --write-recon "$D/lm_w.fits" -o "$D/speckles_lm.fits" --match "$D/science.fits" "$D/sci_lm.fits" 2> "$D/speckles_lm.log" \
     || { cat "$D/speckles_lm.log"; fail "--loops-map choose"; }
 lm=$(grep -- "--loops-map: a map learned from the 3 loops" "$D/speckles_lm.log") \
     || { cat "$D/speckles_lm.log"; fail "--loops-map: no line"; }
@@ -132,12 +132,14 @@ x1=$(sed -n "s/.*the loops' map's \([0-9.]*\) % -> .*/\1/p" <<< "$lm")
     > "$D/pupil_lmch.log" || fail "pupil (the two halos)"
 picked=$(awk '/<- used/ { print $1 }' "$D/pupil_lmch.log")
 if awk -v a="$x0" -v b="$x1" 'BEGIN { exit !(b > a) }'; then
-    want="halo_loops.fits"
+    want="halo_loops.fits" rw="LOOPS"
     grep -q "the loops' map's speckles written" <<< "$lm" || fail "--loops-map: $x1 % > $x0 %, not written"
 else
-    want="halo_imat.fits"
+    want="halo_imat.fits" rw="MAP"
     grep -q "the interaction matrix's kept" <<< "$lm" || fail "--loops-map: $x1 % <= $x0 %, not kept"
 fi
+# --write-recon's map is the written speckles' map
+head -c 8640 "$D/lm_w.fits" | grep -aq "RECON   = '$rw *'" || fail "--loops-map: --write-recon's map is not RECON = '$rw'"
 [ "$(basename "$picked")" = "$want" ] || { cat "$D/pupil_lmch.log"; fail "pupil chose $picked, speckles $want"; }
 "$B" estimate "$D/sci_lm.fits" "$D/speckles_lm.fits" -o "$D/halo_lm.fits" > /dev/null 2>&1 || fail "estimate (lm)"
 "$B" pupil "$D/halo_lm.fits" -o "$D/pupil_lm.fits" --truth "$S/truth.fits" > "$D/pupil_lm.log" || fail "pupil (lm)"

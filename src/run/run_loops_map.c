@@ -6,6 +6,7 @@
  * explain more of the science frames than the interaction matrix's (the self-check of
  * `pupil A.fits B.fits`, swfs_halo_choose_files). */
 #include "specklewfs/run.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
@@ -210,9 +211,12 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         snprintf(why, sizeof why, "specklewfs speckles: the loops' map's speckles (loops_map.fits), chosen by the "
                  "self-check: %.4g %% of the frames' variance explained, the interaction matrix's %.4g %%",
                  100 * r->explained[1], 100 * r->explained[0]);
+        swfs_outputs_begin(); /* the speckles and --write-recon's map replaced together, or neither */
         rc = replace_with(sp, o->out, why);
         if (!rc && o->write_recon) rc = replace_with(r->map, o->write_recon, "specklewfs speckles: the loops' map, "
                                                      "chosen by the self-check");
+        const int erc = swfs_outputs_end(rc == SWFS_OK);
+        if (!rc) rc = erc;
         if (!rc) r->chosen = 1;
     }
     (void)remove(sp); /* the scored speckles and frames: the halos and maps stay */
