@@ -10,7 +10,7 @@
 
 static const char *usage_text =
     "usage: specklewfs learn SIMDIR... -o W.fits [--modal] [--ridge R] [--prior W0.fits] [--no-heldout]\n"
-    "                        [--no-mean-miss]\n"
+    "                        [--no-mean-miss | --mean-miss-heldout]\n"
     "                        [--lags L,L,...]\n"
     "                        [--perframe-out W1.fits] [--curve] [--curve-radius R0,R1] [--threads N]\n"
     "\n"
@@ -48,6 +48,9 @@ static const char *usage_text =
     "                map of their own (not with --lags)\n"
     "  --no-mean-miss  no MEANMISS: the map's miss of the residual's time mean where the\n"
     "                folders share it (a pyramid's), which speckles adds to RESMEAN\n"
+    "  --mean-miss-heldout  each folder's miss of the mean taken with the map of the other\n"
+    "                folders (their sums, its own left out), not with the map of all: with few\n"
+    "                folders the map fits their means in-sample and misses new frames' more\n"
     "  --no-heldout  skip the held-out check: with more than one folder each is left out in\n"
     "                turn and the map of the others applied to its frames (against the\n"
     "                training misfit: do the conditions cover each other? every file read twice)\n"
@@ -95,6 +98,7 @@ int swfs_cmd_learn(int argc, char **argv)
         {"--prior", CLI_STRING, &o.prior, "a map file", 0},
         {"--no-heldout", CLI_SET, &o.no_heldout, NULL, 1},
         {"--no-mean-miss", CLI_SET, &no_mean_miss, NULL, 1},
+        {"--mean-miss-heldout", CLI_SET, &o.mean_miss_heldout, NULL, 1},
         {"--modal", CLI_SET, &o.modal, NULL, 1},
         {"--perframe-out", CLI_STRING, &o.perframe_out, "a file name", 0},
         {"--curve", CLI_SET, &o.curve, NULL, 1},
@@ -121,6 +125,8 @@ int swfs_cmd_learn(int argc, char **argv)
             rc = cli_usage_error(cmd, "--curve-radius is where the checks are measured: it goes with --curve or "
                                  "with the held-out check (two or more folders, without --no-heldout)");
     }
+    if (!rc && no_mean_miss && o.mean_miss_heldout)
+        rc = cli_usage_error(cmd, "--no-mean-miss and --mean-miss-heldout: one or the other");
     if (!rc && o.perframe_out && o.nlags < 2)
         rc = cli_usage_error(cmd, "--perframe-out goes with --lags (without them the map is per frame already)");
     if (rc) { free(dirs); return rc; }

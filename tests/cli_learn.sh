@@ -39,6 +39,17 @@ set -- $ra $rp
 awk -v a="$1" -v na="$2" -v p="$4" -v np="$5" -v n="$6" 'BEGIN { exit !(na == n && np < n && np > 0 && p < a) }' \
     || fail "learn: held out over the pupil's annulus $4 ($5 of $6 outputs) against $1 over all ($2)"
 echo "cli_learn: held out over the pupil's $5 of $6 actuators: $4 of the truth (all of them: $1)"
+# each loop's miss of the mean by the map of the other loops (--mean-miss-heldout): larger than
+# by the map of all, which fits its loops' means in-sample
+"$B" learn train/* -o mmh.fits --mean-miss-heldout --no-heldout > learn_mmh.log 2>&1 \
+    || { cat learn_mmh.log; fail "learn --mean-miss-heldout"; }
+m_in=$(sed -n "s/^learn: the map's miss of the residual's time mean: \([0-9.]*\) nm rms per data set.*/\1/p" recipe.log)
+m_ho=$(sed -n "s/^learn: the map's miss of the residual's time mean: \([0-9.]*\) nm rms per data set.*/\1/p" learn_mmh.log)
+awk -v a="$m_in" -v b="$m_ho" 'BEGIN { exit !(a > 0 && b > a) }' \
+    || fail "learn: the held-out miss of the mean $m_ho nm against $m_in nm in-sample"
+echo "cli_learn: the loops' miss of the mean per loop: $m_in nm by the map of all, $m_ho nm by the others' map"
+"$B" learn train/* -o bad.fits --no-mean-miss --mean-miss-heldout > bad.log 2>&1 && fail "--no-mean-miss --mean-miss-heldout accepted"
+grep -q "one or the other" bad.log || { cat bad.log; fail "learn: --no-mean-miss with --mean-miss-heldout's message"; }
 "$B" learn train/* -o bad.fits --curve-radius 5,6 > bad.log 2>&1 && fail "an annulus holding no actuator accepted"
 grep -q "no output within 5 to 6 m of the centre" bad.log || { cat bad.log; fail "learn: the empty annulus's message"; }
 [ -e bad.fits ] && fail "learn left a map after an empty annulus"

@@ -111,7 +111,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
 
 
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
-          curve_radius=None, threads=0, mean_miss=True, prior=None):
+          curve_radius=None, threads=0, mean_miss=True, prior=None, mean_miss_heldout=False):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -156,7 +156,9 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     checked. prior (a map file of the same slopes and outputs, e.g. what speckles(...,
     write_recon=) wrote for the linear model's MAP; `learn --prior`): the map shrinks toward
     it, as far from it as the ridge lets the frames move it (give a ridge of weight, e.g. 0.1;
-    not with lags)."""
+    not with lags). mean_miss_heldout=True (`learn --mean-miss-heldout`): each folder's miss
+    taken with the map of the other folders, not the map of all (which fits few folders' means
+    in-sample)."""
     if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
         dirs = [dirs]
     o = _lib.swfs_learn_run_options()
@@ -179,6 +181,7 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     o.curve = int(bool(curve))
     o.threads = int(threads)
     o.mean_miss = int(bool(mean_miss))
+    o.mean_miss_heldout = int(bool(mean_miss_heldout))
     if prior is not None:
         o.prior = enc(prior)
     if curve_radius is not None:
