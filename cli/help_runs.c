@@ -125,8 +125,9 @@ static const char *speckles_usage_mean =
     "                      of the mean; both estimated on the science frames and the set\n"
     "                      whose speckles explain more of them written (the self-check of\n"
     "                      `pupil A.fits B.fits`); files in the teach folder. auto (default):\n"
-    "                      where the loops are speckles' own default (a pyramid's); choose:\n"
-    "                      with any mean loops; none: the interaction matrix's alone\n";
+    "                      where speckles simulated the loops of a pyramid (--mean-loop teach,\n"
+    "                      its default for a pyramid); choose: with any mean loops (--mean-loop\n"
+    "                      DIR... with truewf_NNN.fits, influence.fits); none: never\n";
 
 void cli_help_speckles(void)
 {

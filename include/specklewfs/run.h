@@ -217,8 +217,9 @@ typedef struct swfs_speckles_run_options {
                                  their truewf_NNN.fits and influence.fits needed), also the map
                                  learned from the loops, carried onto the basis, and the self-check's
                                  choice between the two sets of speckles (swfs_loops_map_result).
-                                 SWFS_LOOPS_MAP_AUTO: where the mean loops are speckles' own
-                                 default (a pyramid's telemetry); 1: with any mean loops; 0: never */
+                                 SWFS_LOOPS_MAP_AUTO: where speckles simulated the mean loops
+                                 (mean_teach) of a pyramid (by default for a pyramid's telemetry);
+                                 1: with any mean loops; 0: never */
     const char *resmean_from; /* NULL, or a SPECKLES.fits of the same frames whose residual mean
                                  (RESMEAN) this run writes instead of its own reconstruction's
                                  (loops_map: the interaction matrix's, corrected by the loops'

@@ -453,8 +453,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     mean_loops='none': never. loops_map ('auto', 'choose' or 'none'; `--loops-map`): with
     linear's interaction matrix (imat) and mean loops, also the map learned from the loops
     (their truth, carried from their DM onto the basis) and the self-check's choice between the
-    two speckle sets on the science frames; 'auto' where the loops are the default's own (a
-    pyramid's), 'choose' with any mean loops. Returned as loops_map (a dict: chosen, explained
+    two speckle sets on the science frames; 'auto' where speckles simulated the loops of a
+    pyramid (mean_loops='teach', its default for one), 'choose' with any mean loops. Returned as loops_map (a dict: chosen, explained
     (the interaction matrix's, the loops' map's), map, work, meanmiss_heldout, mean_from_imat,
     carry_resid, nframes, inputs) when tried, else None and loops_map_fallback says why (too
     few frames in the loops for a map of their own, ...)."""
