@@ -2,7 +2,9 @@
  * docs/telemetry.md, "The loops' own map, chosen by the self-check"): the map learn makes from
  * the loops' telemetry to their true residual, carried from the loops' DM onto the
  * observation's basis by least squares over the pupil, applied to the observation as a
- * control matrix with the loops' miss of the residual's mean, and kept where its speckles
+ * control matrix with its own miss of the residual's mean (each loop's by the map of the
+ * others), or the interaction matrix's corrected mean where only that one's miss is shared,
+ * and kept where its speckles
  * explain more of the science frames than the interaction matrix's (the self-check of
  * `pupil A.fits B.fits`, swfs_halo_choose_files). */
 #include "specklewfs/run.h"
@@ -22,7 +24,8 @@
 /* W_loops (nact_l x nsig: the loops' truth on their DM's functions per telemetry value) onto
  * the observation's basis: C = P W_loops, P the least-squares coefficients of each of the
  * loops' influence functions (loops[0]/influence.fits, on the same pupil grid) on the basis;
- * written as a control matrix file (NAXIS1 = telemetry values, NAXIS2 = basis functions). */
+ * written as a control matrix file (NAXIS1 = telemetry values, NAXIS2 = basis functions), with
+ * learn's MEANMISS carried the same way (P times it) where learn kept one. */
 static int carry_map(const swfs_speckles_run_options *o, const char *loop0, const char *learned, const char *out,
                      const swfs_geom *g, const double *mask, swfs_loops_map_result *r)
 {
