@@ -210,7 +210,7 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
 int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *coef,
                            size_t nk, double *out);
 /* run_linear.c: the coefficients on lf's basis of m wavefronts given on the PUPN x PUPN grid
- * (wf: npup^2 x m, row-major: sample i's values in row i) by least squares over the
+ * (wf: a cube's layout, wavefront j's samples at wf + j npup^2) by least squares over the
  * illuminated samples of mask: c = (A^T A + mu I)^-1 A^T w, A = scale x the basis there, mu =
  * SWFS_LINEAR_FIT_RIDGE x the mean diagonal of A^T A (a basis function that barely touches the
  * pupil is kept from running away, as the DM fit's default, dmfit.h). coef: nk x m row-major

@@ -133,7 +133,7 @@ int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const doub
     for (size_t i = 0, r = 0; !rc && i < n2; i++) {
         if (!(mask[i] > 0)) continue;
         for (size_t j = 0; j < k; j++) A[r * k + j] = lf->scale * full[i * k + j];
-        memcpy(E + r * m, wf + i * m, m * sizeof *E);
+        for (size_t j = 0; j < m; j++) E[r * m + j] = wf[j * n2 + i];
         r++;
     }
     double diag = 0, w2 = 0;

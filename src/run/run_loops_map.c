@@ -33,7 +33,7 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
     swfs_recon *wl = NULL, c;
     swfs_real *inf = NULL;
-    double *F = NULL, *P = NULL;
+    double *P = NULL;
     size_t nk = 0;
     memset(&c, 0, sizeof c);
     swfs_real *mm = NULL;
@@ -49,15 +49,12 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     if (!rc && mm && mm->nx * mm->ny * mm->nz != wl->nact)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: MEANMISS holds %zu values for %zu outputs", learned,
                        mm->nx * mm->ny * mm->nz, wl->nact);
-    const size_t np = (size_t)g->pupn, n2 = np * np;
+    const size_t np = (size_t)g->pupn;
     if (!rc && (inf->nx != np || inf->ny != np || inf->nz != wl->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' influence functions are %zu x %zu x %zu; expected PUPN = %zu "
                        "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
     const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
-    if (!rc && !(F = malloc(n2 * na * sizeof *F))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t a = 0; !rc && a < na; a++) /* sample i's row: every function's value there */
-        for (size_t i = 0; i < n2; i++) F[i * na + a] = inf->data[a * n2 + i];
-    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, F, na, &P, &nk, &r->carry_resid);
+    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, &r->carry_resid);
     if (!rc) {
         c.nact = nk;
         c.nslopes = ns;
@@ -91,7 +88,6 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     free(cmm);
     swfs_real_free(mm);
     free(P);
-    free(F);
     swfs_real_free(inf);
     swfs_recon_free(wl);
     return rc;

@@ -474,8 +474,7 @@ static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speck
     if (rc) return rc;
     if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     r->wavelen = w->g.wavelen;
-    rc = swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
-    if (rc || !o->resmean_from) return rc;
+    if (!o->resmean_from) return swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
     /* another run's mean of the same frames (loops_map: the interaction matrix's, corrected) */
     swfs_real *m = NULL;
     rc = swfs_fits_read_real(o->resmean_from, "RESMEAN", &m, NULL);
