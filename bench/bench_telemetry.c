@@ -49,10 +49,9 @@
  * seeds, as --control: what a pyramid system's user gets from simulations of it.
  * --kind pyramid-miss: --kind pyramid's --imat path with the same 4 loops as --mean-loop: the
  * miss of the residual's time mean by the observation's own reconstruction, from the loops.
- * --kind pyramid-choose: both, from the same 4 loops (pyramid-miss's speckles and pyramid-learn's),
- * estimated on the same frames, and the halo whose speckles explain more of the frames kept
- * (pupil A.fits B.fits's self-check, swfs_halo_choose_files): the procedure a pyramid system's
- * user with simulations of it runs; both NCP errors and both scores printed under the row.
+ * --kind pyramid-choose: pyramid-miss's loops given to speckles --loops-map choose (the map
+ * learned from them against the interaction matrix's, the self-check choosing): what a pyramid
+ * system's user with simulations of it gets; both NCP errors and both scores under the row.
  * --kind pyramid is speckles' default for a pyramid's telemetry: with --mean-loop teach, the
  * loops speckles simulates itself of the system the observation's files describe (no key of
  * the bench's own given to them); --kind pyramid-imat: --mean-loop none (the --imat path alone).
@@ -119,7 +118,7 @@ static int modal_rm; /* --kind modal-rm: the same through the modal response mat
 static int pyramid;  /* --kind pyramid: a modulated pyramid senses; its signals through --basis --imat */
 static int pyr_learn; /* --kind pyramid-learn: the same through a map learned from loops of the system (--control) */
 static int pyr_miss;  /* --kind pyramid-miss: --imat, with the mean's miss from loops of the system (--mean-loop) */
-static int pyr_choose; /* --kind pyramid-choose: pyramid-miss's and pyramid-learn's speckles, the self-check chooses */
+static int pyr_choose; /* --kind pyramid-choose: pyramid-miss's loops, speckles --loops-map choose on them */
 static int pyr_imat;  /* --kind pyramid-imat: --imat alone, --mean-loop none (the default's loops left out) */
 static swfs_dm_registration modal_reg;
 static int truth; /* --truth: also simulate export_truth=1 export_modal=1 (for --keep) */
@@ -228,7 +227,7 @@ static int pyramid_learn(const system_def *s, unsigned seed, int quick)
         swfs_ts_summary ts;
         rc = simulate_into(s, 1000 * seed + (unsigned)k, quick, &ts, tdir[k]);
     }
-    if (rc || (pyr_miss && !pyr_choose)) return rc; /* --kind pyramid-miss: the loops themselves, no map */
+    if (rc || pyr_miss) return rc; /* --kind pyramid-miss, -choose: the loops themselves, no map */
     swfs_learn_run_options lo;
     swfs_learn_run_options_default(&lo);
     lo.dirs = dirs;
@@ -355,44 +354,6 @@ static void modal_files(swfs_linear_files *lf)
     lf->scale = 2e-6; /* um of DM surface on unit-rms modes */
 }
 
-/* --kind pyramid-choose: the same observation through the map learned from the loops (W.fits,
- * its MEANMISS), estimated on the same frames; the self-check (pupil A.fits B.fits) keeps the
- * halo whose speckles explain more, and its NCP errors replace e (the --imat path's). */
-static int choose_learned(const swfs_speckles_run_options *imat, const swfs_real *ncp, double e[2], double *resm)
-{
-    swfs_speckles_run_options sp = *imat;
-    sp.lin.imat = NULL;
-    sp.lin.control = pth("W.fits");
-    sp.mean_loops = NULL;
-    sp.nmean_loops = 0;
-    sp.mean_teach = 0;
-    sp.nmatch = 0; /* the linear model's frames are not re-centred: science_m.fits serves both */
-    sp.out = pth("speckles_learned.fits");
-    swfs_speckles_run_result spr;
-    int rc = swfs_speckles_run(&sp, &spr);
-    if (!rc) rc = estimate(pth("science_m.fits"), pth("speckles_learned.fits"), pth("halo_learned.fits"));
-    double el[2], resm_l;
-    if (!rc) rc = ncp_error(pth("halo_learned.fits"), ncp, el, &resm_l);
-    const char *halos[2];
-    char hp[2][sizeof dir + 32];
-    snprintf(hp[0], sizeof hp[0], "%s/halo.fits", dir);
-    snprintf(hp[1], sizeof hp[1], "%s/halo_learned.fits", dir);
-    halos[0] = hp[0];
-    halos[1] = hp[1];
-    double expl[2];
-    size_t best = 0, ncommon = 0;
-    if (!rc) rc = swfs_halo_choose_files(halos, 2, expl, &best, &ncommon, NULL, NULL);
-    if (rc) return rc;
-    printf("  (self-check over %zu pixels: --imat + loops' miss %.2f %% explained, NCP %.1f nm; learned %.2f %%, %.1f nm: "
-           "chose %s)\n", ncommon, 100 * expl[0], 1e9 * e[0], 100 * expl[1], 1e9 * el[0], best ? "learned" : "--imat");
-    if (best) {
-        e[0] = el[0];
-        e[1] = el[1];
-        *resm = resm_l;
-    }
-    return SWFS_OK;
-}
-
 static int run_system(const system_def *s, unsigned seed, int quick, row *r)
 {
     const double t0 = swfs_wall_seconds();
@@ -470,6 +431,7 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
             sp.mean_loops = loops;
             sp.nmean_loops = PYR_LEARN_LOOPS;
         }
+        if (pyr_choose) sp.loops_map = 1; /* speckles --loops-map choose on the same loops */
     } else if (modal_cm) {
         sp.valid = pth("valid.fits");
     } else if (modal) {
@@ -518,7 +480,6 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     double e1[2], e2[2];
     rc = ncp_error(pth("halo.fits"), ncp, e1, &r->resm_slopes);
     if (!rc) rc = ncp_error(pth("halo_ideal.fits"), ncp, e2, &r->resm_ideal);
-    if (!rc && pyr_choose) rc = choose_learned(&sp, ncp, e1, &r->resm_slopes);
     r->slopes = e1[0];
     r->slopes_keep = e1[1];
     r->ideal = e2[0];
@@ -596,7 +557,7 @@ int main(int argc, char **argv)
     printf("NCP error [nm rms, piston+tip/tilt removed], default options everywhere (%s)%s\n",
            quick ? "3 cubes x 60 frames" : "6 cubes x 100 frames", tiptilt == SWFS_TT_FRAME ? ", --tiptilt frame" :
            pyr_learn ? ", a modulated pyramid's signals (--basis influence.fits --control W.fits, learned from 4 loops)" :
-           pyr_choose ? ", a modulated pyramid's signals (--imat with --mean-loop x 4, or --control W.fits learned from the same 4 loops: the self-check chooses)" :
+           pyr_choose ? ", a modulated pyramid's signals (--imat, --mean-loop x 4, --loops-map choose)" :
            pyr_miss ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop x 4)" :
            pyr_imat ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits, --mean-loop none)" :
            pyramid ? ", a modulated pyramid's signals (--basis influence.fits --imat imat_ao.fits; the default's --mean-loop teach)" :
