@@ -90,7 +90,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     const char *cmd = "speckles";
     double slope_noise = 0;
     long threads = 1, batch = (long)o->batch, tloops = (long)o->teach_loops, tseed = (long)o->teach_seed,
-         tmax = (long)o->teach_max_loops, mtloops = (long)o->mean_teach_loops;
+         tmax = (long)o->teach_max_loops, mtloops = (long)o->mean_teach_loops, mtmax = (long)o->mean_teach_max_loops;
     spk_args d = {o, min, mout, tkeys, mloops, o->pipe.rcond, 0, 0, 0, 0};
     const char *fn = "a file name";
     const cli_opt opts[] = {
@@ -106,7 +106,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
         {"--teach-max-loops", CLI_LONG, &tmax, NULL, 0},
         {"--teach-keep-loops", CLI_SET, &o->teach_keep_loops, NULL, 1},
         {"--teach-again", CLI_SET, &o->teach_again, NULL, 1},
-        {"--mean-teach-loops", CLI_LONG, &mtloops, NULL, 0},
+        {"--mean-teach-loops", CLI_LONG, &mtloops, NULL, 0}, {"--mean-teach-max-loops", CLI_LONG, &mtmax, NULL, 0},
     };
     const char **const pos[] = {&o->timing};
     const cli_args args = {cmd, NULL, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
@@ -119,7 +119,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     /* Signs and the one check that depends on what was typed; the library checks the rest
      * (run.h swfs_speckles_run_options_check), with the same messages for every caller. */
     if (d.rcond_given && o->pipe.recon != SWFS_RECON_SVD) return cli_usage_error(cmd, "--rcond and --modes go with --recon svd");
-    if (d.modes < 0 || threads < 1 || batch < 1 || tloops < 0 || tseed < 0 || tmax < 0 || mtloops < 0)
+    if (d.modes < 0 || threads < 1 || batch < 1 || tloops < 0 || tseed < 0 || tmax < 0 || mtloops < 0 || mtmax < 0)
         return cli_usage_error(cmd, "--modes must be >= 0, --threads, --batch and --teach-loops >= 1, --teach-seed >= 0");
     if (o->pipe.wfs_rate && d.tt_given && o->pipe.tiptilt == SWFS_TT_EXPOSURE) /* asked for by name: refused */
         return cli_usage_error(cmd, "--wfs-rate removes the tip-tilt per WFS frame (or --tiptilt keep); --tiptilt exposure "
@@ -128,6 +128,7 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     o->teach_loops = (size_t)tloops;
     o->teach_max_loops = (size_t)tmax;
     o->mean_teach_loops = (size_t)mtloops;
+    o->mean_teach_max_loops = (size_t)mtmax;
     o->teach_seed = (uint64_t)tseed;
     o->pipe.rcond = d.rcond;
     o->pipe.max_modes = (size_t)d.modes;

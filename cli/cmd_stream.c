@@ -56,7 +56,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
 {
     const char *cmd = "stream";
     const char *stat = "auto";
-    long every = 0, threads = o->threads, batch = (long)o->batch, max_frames = 0, mloops = (long)o->mean_teach_loops;
+    long every = 0, threads = o->threads, batch = (long)o->batch, max_frames = 0, mloops = (long)o->mean_teach_loops,
+         mmax = (long)o->mean_teach_max_loops;
     const char *v = "a value";
     const cli_opt opts[] = {
         {"--timing", CLI_STRING, &o->timing, v, 0},       {"--science", CLI_STRING, &o->science, v, 0},
@@ -71,6 +72,7 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
         {"--g-smooth", CLI_DOUBLE, &o->g_smooth_lod, NULL, 0}, {"--clock", CLI_STRING, &o->clock, v, 0},
         {"--exptime", CLI_DOUBLE, &o->exptime, NULL, 0}, {"--valid", CLI_STRING, &o->valid, v, 0},
         {"--teach-work", CLI_STRING, &o->teach_work, v, 0}, {"--mean-teach-loops", CLI_LONG, &mloops, NULL, 0},
+        {"--mean-teach-max-loops", CLI_LONG, &mmax, NULL, 0},
     };
     for (int i = 1; i < argc; i++)
         if (cli_is_help(argv[i])) {
@@ -81,10 +83,11 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
     /* Signs here; the library checks the rest (run.h swfs_stream_run_options_check). */
-    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1 || mloops < 0)
+    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1 || mloops < 0 || mmax < 0)
         return cli_usage_error(cmd, "--every, --max-frames and --mean-teach-loops must be >= 0, --threads and --batch "
                                ">= 1");
     o->mean_teach_loops = (size_t)mloops;
+    o->mean_teach_max_loops = (size_t)mmax;
     o->stream.every = (size_t)every;
     o->stream.max_frames = (size_t)max_frames;
     o->threads = threads > INT_MAX ? INT_MAX : (int)threads;

@@ -127,7 +127,10 @@ static const char *speckles_usage_mean =
     "                      `pupil A.fits B.fits`); files in the teach folder. auto (default):\n"
     "                      where speckles simulated the loops of a pyramid (--mean-loop teach,\n"
     "                      its default for a pyramid); choose: with any mean loops (--mean-loop\n"
-    "                      DIR... with truewf_NNN.fits, influence.fits); none: never\n";
+    "                      DIR... with truewf_NNN.fits, influence.fits); none: never. Where\n"
+    "                      speckles simulates the loops for it, more of them where that map's\n"
+    "                      learning curve over the first asks for more frames (teach's rule),\n"
+    "                      up to --mean-teach-max-loops M (4 N, at most 16)\n";
 
 void cli_help_speckles(void)
 {
@@ -211,7 +214,8 @@ static const char *stream_usage_mpi =
     "                        pyramid's telemetry with --basis and --timing) loops of the system\n"
     "                        the files describe, --mean-teach-loops N (4) in --teach-work\n"
     "                        (OUT.teach), reused while the description is the same (speckles'\n"
-    "                        too, given its --teach-work; --teach-again: anew); none: without\n"
+    "                        too, given its --teach-work, and as many: --mean-teach-max-loops\n"
+    "                        M as speckles'; --teach-again: anew); none: without\n"
     "  --wfs-log DIR|FILE    instead of --timing: a WFS milk log (folder of NAME_hh:mm:ss.s.fits[.fz]\n"
     "                        + .txt, or one file); several are concatenated into one slope vector.\n"
     "                        The science cube's STAMPS (reduce of camera logs) place every exposure\n"

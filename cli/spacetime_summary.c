@@ -176,6 +176,10 @@ void cli_mean_teach_summary(const char *cmd, const swfs_mean_teach_result *m)
         for (size_t l = 0; l < m->nlayers; l++)
             fprintf(stderr, "%s %.1f m/s toward %.0f deg", l ? "," : ", layers", m->speed[l], m->direction[l]);
         if (m->act_pitch > 0) fprintf(stderr, ", DM pitch %.4g m (the basis)", m->act_pitch);
+        if (m->nloops > m->nloops_first || isfinite(m->curve_excess))
+            fprintf(stderr, ", %zu loops where the loops' map's learning curve over the first %zu (%.0f %% above "
+                    "unlimited frames) asked for %zu frames", m->nloops, m->nloops_first, 100 * m->curve_excess,
+                    m->curve_frames);
         if (m->r0_pairs)
             fprintf(stderr, ", r0 %.4g m fitted to the telemetry's residual power (%zu pair%s of loops; the kept pair's "
                     "%.2f of it)", m->r0, m->r0_pairs, m->r0_pairs > 1 ? "s" : "", m->power_ratio);

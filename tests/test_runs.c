@@ -1651,6 +1651,8 @@ static void test_options_checks(void **state)
         "a --control map is its own file, and without either there is no map",
         "loops_map must be 0, 1 or SWFS_LOOPS_MAP_AUTO (-1), got 3",
         "--loops-map choose goes with the linear model's --imat (the map it is chosen against) and mean loops",
+        "--mean-teach-max-loops must be --mean-teach-loops (4)..16, got 3",
+        "--mean-teach-max-loops must be --mean-teach-loops (4)..16, got 17",
     };
     const char *two[2] = {"loop_a", "loop_b"};
     const char *tk_ok[1] = {"dm_coupling=0.15"}, *tk_bogus[1] = {"bogus_key=1"}, *tk_noeq[1] = {"dm_coupling"},
@@ -1704,6 +1706,8 @@ static void test_options_checks(void **state)
             sp.nmean_loops = 2;
             sp.loops_map = 1;
             break;
+        case 27: sp.mean_teach_max_loops = 3; break; /* below the first loops */
+        case 28: sp.mean_teach_max_loops = 17; break; /* beyond SWFS_MEAN_TEACH_MAX */
         default: sp.teach_keys = tk_ok; sp.nteach_keys = 1; break; /* the defaults, and a key teach takes */
         }
         if (k == npat) {

@@ -224,6 +224,12 @@ typedef struct swfs_speckles_run_options {
                                  (RESMEAN) this run writes instead of its own reconstruction's
                                  (loops_map: the interaction matrix's, corrected by the loops'
                                  shared miss, where the loops' map's miss is not shared) */
+    size_t mean_teach_max_loops; /* where the loops' map will be learned from the mean loops
+                                 speckles simulates (loops_map with --imat): more loops than
+                                 mean_teach_loops where that map's learning curve over the first
+                                 ones asks for more frames (swfs_learn_run_result.curve_frames,
+                                 teach's rule), up to this many (0: 4 mean_teach_loops, at most
+                                 SWFS_MEAN_TEACH_MAX); mean_teach_loops..SWFS_MEAN_TEACH_MAX */
 } swfs_speckles_run_options;
 
 #define SWFS_LOOPS_MAP_AUTO (-1)
@@ -303,6 +309,12 @@ typedef struct swfs_mean_teach_result {
     double power, power_ratio; /* the telemetry's residual power per value (each value's variance,
                                  tip-tilt and white noise removed: swfs_slopes_white_noise), and
                                  the kept pair's over it */
+    size_t nloops_first;      /* the loops simulated first (mean_teach_loops); nloops more where
+                                 the loops' map's learning curve over them asked for more frames */
+    double curve_excess;      /* that curve over the first loops (swfs_learn_run_result): the map of
+                                 their frames above unlimited frames' misfit^2, a fraction; NaN:
+                                 not measured (no loops' map to follow, or fewer than 4 loops) */
+    size_t curve_frames;      /* the frames it asked for (SWFS_LEARN_CURVE_EXCESS); 0: none */
     double seconds;
     char work[4200];          /* the folder holding mean_NN and mean_loops.conf (their description) */
 } swfs_mean_teach_result;
@@ -461,6 +473,8 @@ typedef struct swfs_stream_run_options {
     size_t mean_teach_loops;  /* 4; 2..SWFS_MEAN_TEACH_MAX */
     const char *teach_work;
     int teach_again;
+    size_t mean_teach_max_loops; /* speckles' (0: its default): the same loops as speckles makes
+                                 for the same files, more where the loops' map's curve asks */
 } swfs_stream_run_options;
 
 void swfs_stream_run_options_default(swfs_stream_run_options *o);

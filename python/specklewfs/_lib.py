@@ -333,7 +333,7 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("teach_seed", c_u64),
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
     ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int),
-    ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str)])
+    ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str), ("mean_teach_max_loops", c_size)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
 swfs_loops_map_result = _s("swfs_loops_map_result", [
@@ -346,6 +346,7 @@ swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("noise_rms", c_dbl), ("photons", c_dbl), ("slope_noise", c_dbl), ("knee", c_size), ("nlayers", c_size),
     ("speed", c_dbl * WIND_MAXLAYERS), ("direction", c_dbl * WIND_MAXLAYERS), ("act_pitch", c_dbl),
     ("r0", c_dbl), ("r0_pairs", c_size), ("power", c_dbl), ("power_ratio", c_dbl),
+    ("nloops_first", c_size), ("curve_excess", c_dbl), ("curve_frames", c_size),
     ("seconds", c_dbl), ("work", ctypes.c_char * 4200)])
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]

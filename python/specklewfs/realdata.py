@@ -405,7 +405,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
              teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None, mean_teach_loops=None,
-             loops_map="auto"):
+             loops_map="auto", mean_teach_max_loops=None):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -457,7 +457,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     pyramid (mean_loops='teach', its default for one), 'choose' with any mean loops. Returned as loops_map (a dict: chosen, explained
     (the interaction matrix's, the loops' map's), map, work, meanmiss_heldout, mean_from_imat,
     carry_resid, nframes, inputs) when tried, else None and loops_map_fallback says why (too
-    few frames in the loops for a map of their own, ...)."""
+    few frames in the loops for a map of their own, ...). Where speckles simulates the loops for
+    that map, it simulates more of them where the map's learning curve over the first ones asks
+    for more frames (teach's rule), up to mean_teach_max_loops (None: 4 mean_teach_loops, at
+    most 16); mean_teach then says nloops, nloops_first, curve_excess and curve_frames."""
     if (linear is None) == (actuators is None):
         raise ValueError("speckles: give the actuators (the Shack-Hartmann model) or linear (the linear model), not both")
     o = _lib.swfs_speckles_run_options()
@@ -484,6 +487,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         raise ValueError("speckles: mean_loops takes a list of folders, 'teach' or 'none'")
     if mean_teach_loops is not None:  # None: the library's default (4)
         o.mean_teach_loops = int(mean_teach_loops)
+    if mean_teach_max_loops is not None:  # None: 4 mean_teach_loops (at most 16) where the curve asks
+        o.mean_teach_max_loops = int(mean_teach_max_loops)
     mloops = [os.fspath(m) for m in (mean_loops or ())]
     o.mean_loops, o.nmean_loops = _lib.strings(mloops)
     if loops_map not in ("auto", "choose", "none"):
@@ -529,7 +534,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         reused=bool(m.reused), automatic=bool(m.automatic), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
         noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
         layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch,
-        r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, seconds=m.seconds, work=m.work.decode())
+        r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, nloops_first=m.nloops_first,
+        curve_excess=m.curve_excess, curve_frames=m.curve_frames, seconds=m.seconds, work=m.work.decode())
     lm = r.loops_map
     d["loops_map_fallback"] = lm.fallback.decode()
     d["loops_map"] = None if not lm.tried else dict(

@@ -25,7 +25,7 @@
  * run simulates (mean_teach: 0, 1 or AUTO; mean_teach_loops of them; with the linear model,
  * not with folders, not in a team); what --mean-loop teach goes with otherwise is the caller's. */
 static int mean_loop_checks(const char *const *loops, size_t nloops, int mean_teach, size_t mean_teach_loops,
-                            int basis, const char *basis_why, const swfs_team *team)
+                            size_t max_loops, int basis, const char *basis_why, const swfs_team *team)
 {
     if (nloops == 1 || (nloops && !loops))
         FAIL("--mean-loop: the residual mean's miss needs at least 2 simulated loops (each is checked against the "
@@ -37,6 +37,9 @@ static int mean_loop_checks(const char *const *loops, size_t nloops, int mean_te
     if (mean_teach_loops < 2 || mean_teach_loops > SWFS_MEAN_TEACH_MAX)
         FAIL("--mean-teach-loops must be 2..%d (each loop is checked against the others'), got %zu",
              SWFS_MEAN_TEACH_MAX, mean_teach_loops);
+    if (max_loops && (max_loops < mean_teach_loops || max_loops > SWFS_MEAN_TEACH_MAX))
+        FAIL("--mean-teach-max-loops must be --mean-teach-loops (%zu)..%d, got %zu", mean_teach_loops,
+             SWFS_MEAN_TEACH_MAX, max_loops);
     if (mean_teach == 1) {
         if (!basis) FAIL("--mean-loop teach goes with the linear model (--basis); %s", basis_why);
         if (nloops) FAIL("--mean-loop takes loops' folders or teach, not both");
@@ -80,7 +83,8 @@ int swfs_speckles_run_options_check(const swfs_speckles_run_options *o)
     if (p->threads < 1 || p->threads > SWFS_ENGINE_MAX_THREADS)
         FAIL("--threads must be 1..%d, got %d", SWFS_ENGINE_MAX_THREADS, p->threads);
     if (o->batch > BATCH_MAX) FAIL("--batch must be 1..%d, got %zu", BATCH_MAX, o->batch);
-    const int mrc = mean_loop_checks(o->mean_loops, o->nmean_loops, o->mean_teach, o->mean_teach_loops, basis,
+    const int mrc = mean_loop_checks(o->mean_loops, o->nmean_loops, o->mean_teach, o->mean_teach_loops,
+                                     o->mean_teach_max_loops, basis,
                                      "with --actuators the default teaches its map from loops of the system already",
                                      o->team);
     if (mrc) return mrc;
@@ -148,7 +152,7 @@ static int stream_ranges(const swfs_stream_run_options *o)
         FAIL("--static: unknown mode %d (expected auto, none or a file)", o->stream.static_mode);
     if (o->stream.static_mode == SWFS_STATIC_GIVEN && !o->static_file) FAIL("--static FILE: no file given");
     const int mrc = mean_loop_checks(o->mean_loops, o->nmean_loops, o->mean_teach, o->mean_teach_loops,
-                                     o->lin.basis != NULL, "with --recon and --actuators give the map speckles "
+                                     o->mean_teach_max_loops, o->lin.basis != NULL, "with --recon and --actuators give the map speckles "
                                      "taught from loops of the system", o->team);
     if (mrc) return mrc;
     if (o->mean_teach == 1 && !o->timing)

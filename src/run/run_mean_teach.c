@@ -30,7 +30,8 @@
 
 /* What the description's rule is: part of the loops' fingerprint (a change of it makes them
  * anew). */
-#define MEAN_TEACH_RULE "mean-teach 2: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power"
+#define MEAN_TEACH_RULE "mean-teach 3: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
+                        "more loops where the loops' map's learning curve asks"
 
 /* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one
  * more at the last prediction, unchecked), and the step below which the fit stops whatever the
@@ -347,14 +348,16 @@ static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size
 }
 
 /* The description's text (mean_loops.conf): the fingerprint first, then key = value. */
-static int write_description(const char *path, const swfs_config *c, const char *fpr)
+static int write_description(const char *path, const swfs_config *c, const char *fpr, const swfs_mean_teach_result *r)
 {
-    size_t cap = 256;
+    size_t cap = 512;
     for (size_t k = 0; k < swfs_config_count(c); k++) cap += strlen(swfs_config_key(c, k)) + strlen(swfs_config_value(c, k)) + 8;
     char *buf = malloc(cap);
     if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     size_t len = (size_t)snprintf(buf, cap, "# fingerprint %s\n# the loops of speckles --mean-loop teach (simulate "
-                                  "mode=timeseries keys; seeds in the fingerprint)\n", fpr);
+                                  "mode=timeseries keys; seeds in the fingerprint)\n# loops %zu (the first %zu; "
+                                  "more where the loops' map's learning curve asked: %.3g excess, %zu frames)\n", fpr,
+                                  r->nloops, r->nloops_first, r->curve_excess, r->curve_frames);
     for (size_t k = 0; k < swfs_config_count(c) && len < cap; k++)
         len += (size_t)snprintf(buf + len, cap - len, "%s = %s\n", swfs_config_key(c, k), swfs_config_value(c, k));
     const int rc = len < cap ? swfs_text_write(path, buf, len) : swfs_fail(SWFS_ERR_INTERNAL, "mean_loops.conf overflow");
@@ -362,8 +365,10 @@ static int write_description(const char *path, const swfs_config *c, const char 
     return rc;
 }
 
-/* 1 when path's first line is the fingerprint fpr and every loop's truth.fits is there; then
- * the loops' r0 as the description wrote it (r->r0; r0_pairs 0: not fitted by this run). */
+/* 1 when path's first line is the fingerprint fpr and every loop's truth.fits is there (the
+ * description's count, at least n, at most SWFS_MEAN_TEACH_MAX); then the loops' r0 as the
+ * description wrote it (r->r0; r0_pairs 0: not fitted by this run) and the count (r->nloops,
+ * with the curve's figures). */
 static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_t n, swfs_mean_teach_result *r)
 {
     FILE *f = fopen(path, "r");
@@ -372,10 +377,20 @@ static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_
     int ok = fgets(line, sizeof line, f) != NULL;
     snprintf(want, sizeof want, "# fingerprint %s\n", fpr);
     ok = ok && !strcmp(line, want);
-    while (ok && fgets(line, sizeof line, f)) (void)sscanf(line, "r0 = %lf", &r->r0);
+    size_t nl = 0, first = 0, frames = 0;
+    double excess = NAN;
+    while (ok && fgets(line, sizeof line, f)) {
+        (void)sscanf(line, "r0 = %lf", &r->r0);
+        (void)sscanf(line, "# loops %zu (the first %zu; more where the loops' map's learning curve asked: %lf excess, %zu",
+                     &nl, &first, &excess, &frames);
+    }
     fclose(f);
-    if (!ok) return 0;
-    for (size_t k = 0; k < n; k++) {
+    if (!ok || nl < n || nl > SWFS_MEAN_TEACH_MAX) return 0;
+    r->nloops = nl;
+    r->nloops_first = first;
+    r->curve_excess = excess;
+    r->curve_frames = frames;
+    for (size_t k = 0; k < nl; k++) {
         char t[4500];
         snprintf(t, sizeof t, "%s/truth.fits", dirs[k]);
         if (access(t, R_OK)) return 0;
@@ -385,14 +400,14 @@ static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_
 
 /* The description's fingerprint: the library's version and the rule, its keys and values in
  * order, the loops and their seed, and the contents of the files it names. */
-static int fingerprint(const swfs_config *c, size_t nloops, uint64_t seed, char out[17])
+static int fingerprint(const swfs_config *c, size_t nloops, size_t max_loops, uint64_t seed, char out[17])
 {
     uint64_t h = 0xcbf29ce484222325ULL;
     h = swfs_fnv_text_(swfs_fnv_text_(h, "specklewfs " SWFS_VERSION), MEAN_TEACH_RULE);
     for (size_t k = 0; k < swfs_config_count(c); k++)
         h = swfs_fnv_text_(swfs_fnv_text_(h, swfs_config_key(c, k)), swfs_config_value(c, k));
     char v[64];
-    snprintf(v, sizeof v, "loops %zu seed %" PRIu64, nloops, seed);
+    snprintf(v, sizeof v, "loops %zu max %zu seed %" PRIu64, nloops, max_loops, seed);
     h = swfs_fnv_text_(h, v);
     int rc = SWFS_OK;
     for (size_t i = 0; !rc && i < swfs_config_count(c); i++) {
@@ -401,6 +416,53 @@ static int fingerprint(const swfs_config *c, size_t nloops, uint64_t seed, char 
             rc = swfs_fnv_file_(&h, k, swfs_config_value(c, i));
     }
     if (!rc) snprintf(out, 17, "%016" PRIx64, h);
+    return rc;
+}
+
+/* More loops where the map the loops' map step learns from them asks for more frames
+ * (run_loops_map.c): learn's learning curve over the first nl loops, over the pupil's annulus
+ * (the points whose wavefront makes the speckles), gives the frames that bring the map within
+ * SWFS_LEARN_CURVE_EXCESS of unlimited frames' misfit (teach's rule for its own loops,
+ * run_teach.c); loops nl.. of the same description up to that many, at most max. */
+static int loops_as_curve_asks(const swfs_speckles_run_options *o, const swfs_teach_run_options *to, const swfs_geom *g,
+                               char (*dirs)[4400], size_t nl, size_t max, swfs_mean_teach_result *r)
+{
+    const char *d[SWFS_MEAN_TEACH_MAX];
+    for (size_t k = 0; k < nl; k++) d[k] = dirs[k];
+    char out[4500];
+    snprintf(out, sizeof out, "%.4300s/loops_curve.fits", r->work);
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = d;
+    lo.ndirs = nl;
+    lo.out = out;
+    lo.no_heldout = 1;
+    lo.mean_miss = 0;
+    lo.curve = 1;
+    lo.curve_radius[0] = 0.5 * g->obscur * g->teldiam;
+    lo.curve_radius[1] = 0.5 * g->teldiam;
+    lo.prov = o->prov;
+    lo.nprov = o->nprov;
+    lo.progress = o->progress;
+    lo.progress_ctx = o->progress_ctx;
+    swfs_learn_run_result lr;
+    int rc = swfs_learn_run(&lo, &lr);
+    (void)remove(out); /* the map of the first loops: the loops' map step learns from all */
+    if (rc) { /* no curve: the first loops stay, and the loops' map step says what it cannot learn */
+        swfs_clear_error();
+        return SWFS_OK;
+    }
+    r->curve_excess = lr.curve_excess;
+    r->curve_frames = lr.curve_frames;
+    size_t want = nl;
+    if (lr.curve_frames > lr.info.nframes) {
+        const double per = (double)lr.info.nframes / (double)nl;
+        const double w = ceil((double)lr.curve_frames / per);
+        want = w > (double)max ? max : (size_t)w;
+    }
+    if (want > nl)
+        rc = swfs_teach_loops_(to, "mean", nl, want - nl, "simulating more loops (the loops' map's learning curve)");
+    if (!rc) r->nloops = want;
     return rc;
 }
 
@@ -453,13 +515,22 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     const int r0_given = swfs_config_has(c, "r0");
     if (!rc && !r0_given) rc = power_above_noise(names[0], svar, white, &r->power);
     swfs_real_free(obs);
+    /* more loops where the loops' map will be learned from them (run_speckles.c's condition
+     * for run_loops_map.c: the interaction matrix, a pyramid's by default) and its curve asks;
+     * the curve needs 4 data sets */
+    const int lmap = o->lin.imat && (o->loops_map == 1 || (o->loops_map == SWFS_LOOPS_MAP_AUTO && pyr));
+    size_t max = o->mean_teach_max_loops ? o->mean_teach_max_loops : 4 * nl;
+    if (max > SWFS_MEAN_TEACH_MAX) max = SWFS_MEAN_TEACH_MAX;
+    if (!lmap || nl < 4 || max < nl) max = nl;
     char fpr[17] = "", conf[4500];
     snprintf(conf, sizeof conf, "%s/mean_loops.conf", r->work);
-    if (!rc) rc = fingerprint(c, nl, o->teach_seed, fpr);
-    for (size_t k = 0; !rc && k < nl; k++)
+    if (!rc) rc = fingerprint(c, nl, max, o->teach_seed, fpr);
+    for (size_t k = 0; !rc && k < SWFS_MEAN_TEACH_MAX; k++)
         if (snprintf(dirs[k], sizeof dirs[k], "%.4000s/mean_%02zu", r->work, k) >= (int)sizeof dirs[k])
             rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", r->work);
-    r->nloops = nl;
+    r->nloops = r->nloops_first = nl;
+    r->curve_excess = NAN;
+    r->curve_frames = 0;
     if (!rc && !o->teach_again && made_for(conf, fpr, dirs, nl, r)) {
         r->reused = r->done = 1;
     } else if (!rc) {
@@ -477,8 +548,9 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
             to.progress_ctx = o->progress_ctx;
             rc = loops_fitted(&to, r0_given, r->power, nl, nslopes, nsub, r);
         }
+        if (!rc && max > nl) rc = loops_as_curve_asks(o, &to, g, dirs, nl, max, r);
         if (!rc) rc = swfs_config_put_(c, "r0", "%.6g", r->r0);
-        if (!rc) rc = write_description(conf, c, fpr);
+        if (!rc) rc = write_description(conf, c, fpr, r);
         r->done = !rc;
     }
     if (!rc) r->loop_frames = loop_frames;

@@ -44,6 +44,7 @@ static int stream_mean_teach(const swfs_stream_run_options *o, const swfs_geom *
     so.mask = o->mask;
     so.mean_teach = o->mean_teach;
     so.mean_teach_loops = o->mean_teach_loops;
+    so.mean_teach_max_loops = o->mean_teach_max_loops; /* speckles' loops for the same files */
     so.teach_work = o->teach_work;
     so.teach_again = o->teach_again;
     so.prov = o->prov;
