@@ -84,8 +84,8 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     if (prc) return prc;
     /* Signs here; the library checks the rest (run.h swfs_stream_run_options_check). */
     if (every < 0 || max_frames < 0 || threads < 1 || batch < 1 || mloops < 0 || mmax < 0)
-        return cli_usage_error(cmd, "--every, --max-frames and --mean-teach-loops must be >= 0, --threads and --batch "
-                               ">= 1");
+        return cli_usage_error(cmd, "--every, --max-frames, --mean-teach-loops and --mean-teach-max-loops must be >= 0, "
+                               "--threads and --batch >= 1");
     o->mean_teach_loops = (size_t)mloops;
     o->mean_teach_max_loops = (size_t)mmax;
     o->stream.every = (size_t)every;

@@ -519,6 +519,8 @@ def test_pyramid_timeseries(tmp_path):
     assert mt["pyramid"] and mt["automatic"] and not mt["reused"] and mt["nloops"] == 2 and mt["loop_frames"] >= 1000
     assert 700 < mt["photons"] < 1400 and mt["act_pitch"] == pytest.approx(0.45, rel=0.02)
     assert abs(mt["knee"] - 56) <= 3 and len(mt["layers"]) >= 1 and np.isfinite(t1["meanmiss_heldout"])
+    # two loops: no learning curve (it takes 4), so no more loops
+    assert mt["nloops_first"] == 2 and np.isnan(mt["curve_excess"]) and mt["curve_frames"] == 0
     assert sp["mean_teach"] is None and os.path.isfile(os.path.join(tw, "mean_loops.conf"))
     # their r0 fitted to the signals' residual power: the simulator's 0.15 here, so the first
     # pair's power is the telemetry's and the fit stops there
@@ -570,6 +572,8 @@ def test_pyramid_timeseries(tmp_path):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "t3.fits"), mean_loops="teach")
     with pytest.raises(sw.Error, match="--mean-teach-loops must be 2"):
         sw.speckles(timing, sci, None, str(tmp_path / "t3.fits"), linear=lin, mean_loops="teach", mean_teach_loops=1)
+    with pytest.raises(sw.Error, match=r"--mean-teach-max-loops must be --mean-teach-loops \(2\)..16, got 1"):
+        sw.speckles(timing, sci, None, str(tmp_path / "t3.fits"), linear=lin, mean_teach_loops=2, mean_teach_max_loops=1)
     assert not os.path.exists(tmp_path / "t3.fits")
     with pytest.raises(sw.Error, match="WFSTYPE = 'PYRAMID': not a Shack-Hartmann's slopes"):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp2.fits"), recon="vk")
