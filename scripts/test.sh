@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # All tests: a Release build with -Werror and the tests that need its speed (ctest label
-# "release": the two systems with teach's loops, the Python package's), then every test of
+# "release": the two systems with teach's loops, the pyramid's loops as its curve asks, the Python
+# package's), then every test of
 # the suite under AddressSanitizer + UndefinedBehaviorSanitizer (Python's aside: a sanitized
 # library cannot be loaded into Debian's python3). Used by the README's test command and by
 # CI. The Release pass builds only what its tests run (the command and the library, with
