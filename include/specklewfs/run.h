@@ -201,7 +201,8 @@ typedef struct swfs_speckles_run_options {
                                  takes the place of a map's MEANMISS); docs/telemetry.md */
     size_t nmean_loops;
     int mean_teach;           /* the mean loops simulated by speckles itself, mean_teach_loops of them
-                                 (4; 2..SWFS_MEAN_TEACH_MAX), of the system the observation's files
+                                 (4; 2..SWFS_MEAN_TEACH_MAX; more where the loops' map's learning
+                                 curve asks, mean_teach_max_loops), of the system the observation's files
                                  describe (swfs_mean_teach_result below), in the teach folder
                                  (teach_work) as mean_NN, seeds teach_seed + k, and reused while
                                  their fingerprint is this run's (teach_again: anew).
@@ -288,7 +289,7 @@ typedef struct swfs_mean_teach_result {
     int automatic;            /* SWFS_MEAN_TEACH_AUTO chose them (a pyramid's telemetry) */
     char fallback[1024];      /* SWFS_MEAN_TEACH_AUTO on a pyramid's telemetry: why there are no
                                  loops (the files do not describe them, a team), "" otherwise */
-    size_t nloops, loop_frames;
+    size_t nloops, loop_frames; /* nloops: all of them (nloops_first, then those the curve asked for) */
     int pyramid;              /* the loops sense with a pyramid (WFSTYPE, or wfs= given) */
     double noise_rms;         /* the telemetry's white noise per value (its curl, wfs.h) */
     double photons;           /* pyramid: photons per subaperture and frame, 1 / noise_rms^2; NAN: given */
