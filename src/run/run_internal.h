@@ -169,6 +169,11 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
  * SWFS_OK: where it cannot, r->fallback says why and o->out stays. */
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
                              double imat_heldout, swfs_loops_map_result *r);
+/* run_loops_map.c: 1 where o's run learns the loops' own map from its mean loops (the linear
+ * model's interaction matrix; --loops-map choose, or auto where the loops are of a pyramid):
+ * speckles' condition for swfs_speckles_loops_map_, and the mean loops' for more loops where
+ * that map's learning curve asks (run_mean_teach.c) */
+int swfs_loops_map_wanted_(const swfs_speckles_run_options *o, int pyramid_loops);
 
 /* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid
  * with what the caller gives, required): the keys it and the other files give, into c. */

@@ -223,6 +223,12 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     return rc;
 }
 
+int swfs_loops_map_wanted_(const swfs_speckles_run_options *o, int pyramid_loops)
+{
+    return o->lin.basis && o->lin.imat &&
+           (o->loops_map == 1 || (o->loops_map == SWFS_LOOPS_MAP_AUTO && pyramid_loops));
+}
+
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
                              double imat_heldout, swfs_loops_map_result *r)
 {

@@ -347,6 +347,9 @@ static int loops_fitted(swfs_teach_run_options *to, int given, double pobs, size
     return rc;
 }
 
+/* mean_loops.conf's line of the loops' count, written and read back (made_for) */
+#define LOOPS_LINE "# loops %zu (the first %zu; more where the loops' map's learning curve asked: "
+
 /* The description's text (mean_loops.conf): the fingerprint first, then key = value. */
 static int write_description(const char *path, const swfs_config *c, const char *fpr, const swfs_mean_teach_result *r)
 {
@@ -355,8 +358,8 @@ static int write_description(const char *path, const swfs_config *c, const char 
     char *buf = malloc(cap);
     if (!buf) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     size_t len = (size_t)snprintf(buf, cap, "# fingerprint %s\n# the loops of speckles --mean-loop teach (simulate "
-                                  "mode=timeseries keys; seeds in the fingerprint)\n# loops %zu (the first %zu; "
-                                  "more where the loops' map's learning curve asked: %.3g excess, %zu frames)\n", fpr,
+                                  "mode=timeseries keys; seeds in the fingerprint)\n" LOOPS_LINE "%.3g excess, %zu "
+                                  "frames)\n", fpr,
                                   r->nloops, r->nloops_first, r->curve_excess, r->curve_frames);
     for (size_t k = 0; k < swfs_config_count(c) && len < cap; k++)
         len += (size_t)snprintf(buf + len, cap - len, "%s = %s\n", swfs_config_key(c, k), swfs_config_value(c, k));
@@ -381,8 +384,7 @@ static int made_for(const char *path, const char *fpr, char (*dirs)[4400], size_
     double excess = NAN;
     while (ok && fgets(line, sizeof line, f)) {
         (void)sscanf(line, "r0 = %lf", &r->r0);
-        (void)sscanf(line, "# loops %zu (the first %zu; more where the loops' map's learning curve asked: %lf excess, %zu",
-                     &nl, &first, &excess, &frames);
+        (void)sscanf(line, LOOPS_LINE "%lf excess, %zu", &nl, &first, &excess, &frames);
     }
     fclose(f);
     if (!ok || nl < n || nl > SWFS_MEAN_TEACH_MAX) return 0;
@@ -515,13 +517,12 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     const int r0_given = swfs_config_has(c, "r0");
     if (!rc && !r0_given) rc = power_above_noise(names[0], svar, white, &r->power);
     swfs_real_free(obs);
-    /* more loops where the loops' map will be learned from them (run_speckles.c's condition
-     * for run_loops_map.c: the interaction matrix, a pyramid's by default) and its curve asks;
-     * the curve needs 4 data sets */
-    const int lmap = o->lin.imat && (o->loops_map == 1 || (o->loops_map == SWFS_LOOPS_MAP_AUTO && pyr));
+    /* more loops where the loops' map will be learned from them (swfs_loops_map_wanted_,
+     * speckles' own condition: the interaction matrix, a pyramid's loops by default) and its
+     * curve asks; the curve needs 4 data sets */
     size_t max = o->mean_teach_max_loops ? o->mean_teach_max_loops : 4 * nl;
     if (max > SWFS_MEAN_TEACH_MAX) max = SWFS_MEAN_TEACH_MAX;
-    if (!lmap || nl < 4 || max < nl) max = nl;
+    if (!swfs_loops_map_wanted_(o, pyr) || nl < 4) max = nl;
     char fpr[17] = "", conf[4500];
     snprintf(conf, sizeof conf, "%s/mean_loops.conf", r->work);
     if (!rc) rc = fingerprint(c, nl, max, o->teach_seed, fpr);

@@ -735,9 +735,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     }
     /* the loops' own map and the self-check's choice (run_loops_map.c): with the interaction
      * matrix and mean loops, where speckles simulated them of a pyramid or it is asked for */
-    const int lmap = o->loops_map == 1 || (o->loops_map == SWFS_LOOPS_MAP_AUTO && r->mean_teach.done &&
-                                           r->mean_teach.pyramid);
-    if (!rc && !team && lmap && o->lin.basis && o->lin.imat && o->nmean_loops)
+    const int lmap = swfs_loops_map_wanted_(o, r->mean_teach.done && r->mean_teach.pyramid);
+    if (!rc && !team && lmap && o->nmean_loops)
         rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout, &r->loops_map);
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);
