@@ -475,7 +475,11 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
         printf("  (--loops-map: explained %.2f %% (--imat) / %.2f %% (the loops' map; DM carried within %.3f; its miss "
                "held out %.2f%s): %s; NCP %.1f / %.1f nm, kept %.1f / %.1f)\n", 100 * lm->explained[0],
                100 * lm->explained[1], lm->carry_resid, lm->meanmiss_heldout, lm->mean_from_imat ? ", the --imat mean" : "",
-               lm->chosen ? "the loops' map" : "--imat", 1e9 * ea[0], 1e9 * eb[0], 1e9 * ea[1], 1e9 * eb[1]);
+               lm->weight == 1 ? "--imat" : lm->weight == 0 ? "the loops' map" : "a mix", 1e9 * ea[0], 1e9 * eb[0],
+               1e9 * ea[1], 1e9 * eb[1]);
+        printf("  (--loops-map: the two mixed at %.2f / %.2f / %.2f of --imat's map: explained %.2f / %.2f / %.2f %%; "
+               "written w = %.2f)\n", lm->mix_weight[0], lm->mix_weight[1], lm->mix_weight[2], 100 * lm->explained_mix[0],
+               100 * lm->explained_mix[1], 100 * lm->explained_mix[2], lm->weight);
     }
     double e1[2], e2[2];
     rc = ncp_error(pth("halo.fits"), ncp, e1, &r->resm_slopes);

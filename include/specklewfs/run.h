@@ -241,11 +241,15 @@ typedef struct swfs_speckles_run_options {
  * pupil of the loops' influence functions, loops[0]/influence.fits), applied to the
  * observation with its own miss of the residual's mean (each loop's by the map of the others,
  * where the loops share it: MEANMISS carried onto the basis); both speckle
- * sets estimated on the same science frames and the one whose speckles explain more of them
- * (swfs_halo_choose_files) written to the output (and --write-recon's map with it). */
+ * sets, and those of the two maps mixed at quarters, estimated on the same science frames and
+ * the one whose speckles explain most of them (swfs_halo_choose_files) written to the output
+ * (and --write-recon's map with it). */
+#define SWFS_LOOPS_MAP_NMIX 3
+
 typedef struct swfs_loops_map_result {
     int tried;                /* both sets scored */
-    int chosen;               /* 1: the loops' map's speckles written; 0: the interaction matrix's */
+    int chosen;               /* 1: the loops' map's speckles or a mix of the two maps written
+                                 (weight); 0: the interaction matrix's */
     double explained[2];      /* the self-check's score: the interaction matrix's, the loops' map's */
     size_t ncommon;           /* focal pixels scored */
     size_t nframes, inputs;   /* the loops' frames learned from, the map's inputs (telemetry values
@@ -265,6 +269,12 @@ typedef struct swfs_loops_map_result {
                                  halo_loops.fits */
     char map[4400];           /* the loops' map on the basis (a --control matrix) */
     char fallback[1024];      /* why it was not tried ("" otherwise): the --imat speckles stay */
+    /* the two maps mixed, C_w = w C_imat + (1 - w) C_loops (their speckles' mean RESMEAN mixed
+     * alike), scored with the two: w on the grid of quarters between them */
+    double mix_weight[SWFS_LOOPS_MAP_NMIX];    /* w of each mix: 0.75, 0.5, 0.25 */
+    double explained_mix[SWFS_LOOPS_MAP_NMIX]; /* their self-check scores (NAN: not scored) */
+    double weight;            /* w of the written speckles' map: 1 the interaction matrix's, 0 the
+                                 loops' map's, else their mix (mix_NN.fits, NN = 100 w) */
 } swfs_loops_map_result;
 
 #define SWFS_MEAN_TEACH_MAX 16

@@ -452,10 +452,13 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     and where the files do not describe the loops goes on without them, warning why;
     mean_loops='none': never. loops_map ('auto', 'choose' or 'none'; `--loops-map`): with
     linear's interaction matrix (imat) and mean loops, also the map learned from the loops
-    (their truth, carried from their DM onto the basis) and the self-check's choice between the
-    two speckle sets on the science frames; 'auto' where speckles simulated the loops of a
-    pyramid (mean_loops='teach', its default for one), 'choose' with any mean loops. Returned as loops_map (a dict: chosen, explained
-    (the interaction matrix's, the loops' map's), map, work, meanmiss_heldout, mean_from_imat,
+    (their truth, carried from their DM onto the basis) and the self-check's choice among the
+    two speckle sets and those of the two maps mixed at quarters (w the interaction matrix's
+    map + (1 - w) the loops', w = 0.75, 0.5, 0.25) on the science frames; 'auto' where speckles
+    simulated the loops of a pyramid (mean_loops='teach', its default for one), 'choose' with any
+    mean loops. Returned as loops_map (a dict: chosen, explained (the interaction matrix's, the
+    loops' map's), mix_weight, explained_mix (the mixes'), weight (the written set's w: 1 the
+    interaction matrix's, 0 the loops'), map, work, meanmiss_heldout, mean_from_imat,
     carry_resid, nframes, inputs) when tried, else None and loops_map_fallback says why (too
     few frames in the loops for a map of their own, ...). Where speckles simulates the loops for
     that map, it simulates more of them where the map's learning curve over the first ones asks
@@ -542,7 +545,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         chosen=bool(lm.chosen), explained=(lm.explained[0], lm.explained[1]), ncommon=lm.ncommon, nframes=lm.nframes,
         inputs=lm.inputs, misfit_rms=lm.misfit_rms, truth_rms=lm.truth_rms, carry_resid=lm.carry_resid,
         meanmiss_heldout=lm.meanmiss_heldout, meanmiss_rms=lm.meanmiss_rms, mean_from_imat=bool(lm.mean_from_imat),
-        seconds=lm.seconds, work=lm.work.decode(), map=lm.map.decode())
+        seconds=lm.seconds, work=lm.work.decode(), map=lm.map.decode(), mix_weight=tuple(lm.mix_weight),
+        explained_mix=tuple(lm.explained_mix), weight=lm.weight)
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

@@ -540,7 +540,20 @@ def test_pyramid_timeseries(tmp_path):
                      teach_work=str(tmp_path / "tw5"))
     L = t5["loops_map"]
     assert L is not None and L["inputs"] == 2 * r["nvalid"] and L["nframes"] >= 10 * L["inputs"]
-    assert L["chosen"] == (L["explained"][1] > L["explained"][0]) and L["carry_resid"] < 0.2
+    # the written set is the one of the five (the two ends, the three mixes) that explains most
+    scores = [L["explained"][0], L["explained"][1]] + list(L["explained_mix"])
+    weights = [1.0, 0.0] + list(L["mix_weight"])
+    assert weights[2:] == [0.75, 0.5, 0.25] and all(0 < e < 1 for e in scores)
+    assert L["weight"] == weights[scores.index(max(scores))] and L["chosen"] == (L["weight"] != 1.0)
+    assert L["carry_resid"] < 0.2
+    # each mix w C_imat + (1 - w) C_loops: the interaction matrix's map from the 0.25 mix and the
+    # loops' map gives the 0.75 and the 0.5 ones
+    Cl = sw.read_fits(L["map"])[0].copy()
+    Cm = {pc: sw.read_fits(os.path.join(L["work"], f"mix_{pc:02d}.fits"))[0].copy() for pc in (75, 50, 25)}
+    Ci = 4 * Cm[25] - 3 * Cl
+    assert np.abs(Ci - Cl).max() > 1e-3 * np.abs(Cl).max()
+    for pc in (75, 50):
+        assert np.allclose(Cm[pc], pc / 100 * Ci + (1 - pc / 100) * Cl, rtol=0, atol=1e-9 * np.abs(Ci).max())
     C5 = sw.read_fits(L["map"])[0]
     assert C5.shape == (r["nact"], s.shape[1]) and os.path.isfile(os.path.join(L["work"], "halo_loops.fits"))
     with pytest.raises(ValueError, match="loops_map takes"):

@@ -165,10 +165,11 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
 
 /* run_loops_map.c: the loops' own map and the self-check's choice (run.h loops_map), after o's
  * run wrote o->out from the interaction matrix with the mean loops o->mean_loops (its miss
- * held out: imat_heldout); g, mask: the run's geometry and pupil (swfs_pipeline_mask). Always
+ * held out: imat_heldout) through imat_map (swfs_pipeline_linear_map); g, mask: the run's
+ * geometry and pupil (swfs_pipeline_mask). Always
  * SWFS_OK: where it cannot, r->fallback says why and o->out stays. */
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                             double imat_heldout, swfs_loops_map_result *r);
+                             double imat_heldout, const swfs_recon *imat_map, swfs_loops_map_result *r);
 /* run_loops_map.c: 1 where o's run learns the loops' own map from its mean loops (the linear
  * model's interaction matrix; --loops-map choose, or auto where the loops are of a pyramid):
  * speckles' condition for swfs_speckles_loops_map_, and the mean loops' for more loops where

@@ -3,10 +3,10 @@
  * the loops' telemetry to their true residual, carried from the loops' DM onto the
  * observation's basis by least squares over the pupil, applied to the observation as a
  * control matrix with its own miss of the residual's mean (each loop's by the map of the
- * others), or the interaction matrix's corrected mean where only that one's miss is shared,
- * and kept where its speckles
- * explain more of the science frames than the interaction matrix's (the self-check of
- * `pupil A.fits B.fits`, swfs_halo_choose_files). */
+ * others), or the interaction matrix's corrected mean where only that one's miss is shared;
+ * the two maps also mixed at quarters (w C_imat + (1 - w) C_loops, their means alike); of
+ * the five, the speckles that explain most of the science frames are written (the self-check
+ * of `pupil A.fits B.fits ...`, swfs_halo_choose_files). */
 #include "specklewfs/run.h"
 #include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
@@ -121,8 +121,85 @@ static int replace_with(const char *src, const char *dst, const char *why)
     return swfs_fits_out_commit(f);
 }
 
+/* The maps' mixes (docs/telemetry.md, "The two maps mixed"): two reconstructions of the same
+ * frames whose errors are partly their own average to a smaller error, and the self-check
+ * scores the mix as it scores the ends. The mean is linear in the map, so the mix's RESMEAN is
+ * the same mix of the two sets' (each with the miss it carries). */
+typedef struct mixer {
+    const swfs_recon *imat;    /* the interaction matrix's map (swfs_pipeline_linear_map) */
+    swfs_recon *loops;         /* the loops' map on the basis (loops_map.fits) */
+    swfs_real *mean0, *mean1;  /* RESMEAN of the two sets (NULL: either has none) */
+} mixer;
+
+static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const char *sp0, const char *sp1)
+{
+    memset(m, 0, sizeof *m);
+    m->imat = imat;
+    if (!imat) return swfs_fail(SWFS_ERR_ARG, "no interaction matrix's map to mix with the loops'");
+    int rc = swfs_recon_read(map, &m->loops);
+    if (!rc && (m->loops->nact != imat->nact || m->loops->nslopes != imat->nslopes || m->loops->nlags || imat->nlags))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' map is %zu x %zu; the interaction matrix's %zu x %zu", map,
+                       m->loops->nact, m->loops->nslopes, imat->nact, imat->nslopes);
+    int h0 = 0, h1 = 0;
+    swfs_fits_in *f = NULL;
+    if (!rc && !(rc = swfs_fits_in_open(&f, sp0, NULL))) h0 = swfs_fits_in_has_ext(f, "RESMEAN");
+    swfs_fits_in_close(f);
+    f = NULL;
+    if (!rc && !(rc = swfs_fits_in_open(&f, sp1, NULL))) h1 = swfs_fits_in_has_ext(f, "RESMEAN");
+    swfs_fits_in_close(f);
+    if (!rc && h0 && h1) rc = swfs_fits_read_real(sp0, "RESMEAN", &m->mean0, NULL);
+    if (!rc && h0 && h1) rc = swfs_fits_read_real(sp1, "RESMEAN", &m->mean1, NULL);
+    if (!rc && m->mean0 && (m->mean1->nx != m->mean0->nx || m->mean1->ny != m->mean0->ny || m->mean1->nz != m->mean0->nz))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s and %s: RESMEAN of two shapes", sp0, sp1);
+    return rc;
+}
+
+static void mixer_close(mixer *m)
+{
+    swfs_recon_free(m->loops);
+    swfs_real_free(m->mean0);
+    swfs_real_free(m->mean1);
+}
+
+/* C_w to map (a --control file, RECON = 'MIX') and the mixed RESMEAN to mean (NULL where the
+ * sets have none) */
+static int mixer_write(const mixer *m, double w, const char *map, const char *mean)
+{
+    const size_t n = m->imat->nact * m->imat->nslopes;
+    swfs_recon c;
+    memset(&c, 0, sizeof c);
+    c.nact = m->imat->nact;
+    c.nslopes = m->imat->nslopes;
+    if (!(c.W = malloc(n * sizeof *c.W))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t i = 0; i < n; i++) c.W[i] = w * m->imat->W[i] + (1 - w) * m->loops->W[i];
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_create(&f, map);
+    if (!rc) rc = swfs_recon_write_hdu(f, &c);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
+    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "MIX", "the interaction matrix's map and the loops' mixed");
+    if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
+    if (!rc) rc = swfs_fits_out_history(f, "specklewfs: speckles' loops_map, w MAP + (1 - w) LOOPS, NAXIS1 = telemetry "
+                                        "values, NAXIS2 = basis functions");
+    if (rc) swfs_fits_out_abort(f);
+    else rc = swfs_fits_out_commit(f);
+    free(c.W);
+    if (rc || !mean) return rc;
+    swfs_real a = *m->mean0;
+    const size_t na = a.nx * a.ny * a.nz;
+    if (!(a.data = malloc(na * sizeof *a.data))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t i = 0; i < na; i++) a.data[i] = w * m->mean0->data[i] + (1 - w) * m->mean1->data[i];
+    f = NULL;
+    rc = swfs_fits_out_create(&f, mean);
+    if (!rc) rc = swfs_fits_out_real(f, "RESMEAN", &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m", "the two sets' RESMEAN mixed as their maps");
+    if (rc) swfs_fits_out_abort(f);
+    else rc = swfs_fits_out_commit(f);
+    free(a.data);
+    return rc;
+}
+
 static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, double imat_heldout,
-                     swfs_loops_map_result *r)
+                     const swfs_recon *imat_map, swfs_loops_map_result *r)
 {
     int made = 0;
     int rc = swfs_speckles_work_folder_(o, r->work, sizeof r->work, &made);
@@ -198,28 +275,74 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     swfs_speckles_run_result r2;
     if (!rc) rc = swfs_speckles_run(&s2, &r2);
     if (!rc) r->meanmiss_rms = r2.meanmiss_rms;
-    /* 4. both estimated on the same frames; the self-check's choice */
+    /* 4. both estimated on the same frames */
     if (!rc) rc = estimate_into(sci, o->out, h0, o);
     if (!rc) rc = estimate_into(sci, sp, h1, o);
-    const char *halos[2] = {h0, h1};
+    /* 5. the two maps mixed at quarters, each through the observation as in 3 (its mean the
+     * same mix of the two sets'), estimated alike */
+    enum { NC = 2 + SWFS_LOOPS_MAP_NMIX };
+    char mmap[SWFS_LOOPS_MAP_NMIX][4400], msp[SWFS_LOOPS_MAP_NMIX][4400], mh[SWFS_LOOPS_MAP_NMIX][4400], mmean[4400];
+    snprintf(mmean, sizeof mmean, "%.4300s/mix_resmean.fits", r->work);
+    mixer mx;
+    int mixed = 0;
+    if (!rc) rc = mixer_open(&mx, imat_map, r->map, o->out, sp);
+    if (!rc) mixed = 1;
+    for (size_t k = 0; !rc && k < SWFS_LOOPS_MAP_NMIX; k++) {
+        const double w = 1.0 - (double)(k + 1) / (SWFS_LOOPS_MAP_NMIX + 1); /* 0.75, 0.5, 0.25 */
+        const int pc = (int)lround(100 * w);
+        r->mix_weight[k] = w;
+        snprintf(mmap[k], sizeof mmap[k], "%.4300s/mix_%02d.fits", r->work, pc);
+        snprintf(msp[k], sizeof msp[k], "%.4300s/speckles_mix_%02d.fits", r->work, pc);
+        snprintf(mh[k], sizeof mh[k], "%.4300s/halo_mix_%02d.fits", r->work, pc);
+        rc = mixer_write(&mx, w, mmap[k], mx.mean0 ? mmean : NULL);
+        swfs_speckles_run_options s3 = s2;
+        s3.lin.control = mmap[k];
+        s3.out = msp[k];
+        s3.nmatch = 0; /* the frames: science_loops.fits of 3 */
+        s3.match_in = s3.match_out = NULL;
+        s3.resmean_from = mx.mean0 ? mmean : NULL;
+        swfs_speckles_run_result r3;
+        if (!rc) rc = swfs_speckles_run(&s3, &r3);
+        if (!rc) rc = estimate_into(sci, msp[k], mh[k], o);
+    }
+    if (mixed) mixer_close(&mx);
+    /* 6. the self-check's choice among the five */
+    const char *halos[NC] = {h0, h1, mh[0], mh[1], mh[2]}, *sps[NC] = {o->out, sp, msp[0], msp[1], msp[2]},
+               *maps[NC] = {NULL, r->map, mmap[0], mmap[1], mmap[2]};
+    double ex[NC];
     size_t best = 0;
-    if (!rc) rc = swfs_halo_choose_files(halos, 2, r->explained, &best, &r->ncommon, NULL, NULL);
-    if (!rc) r->tried = 1;
-    if (!rc && best == 1) {
-        char why[200];
-        snprintf(why, sizeof why, "specklewfs speckles: the loops' map's speckles (loops_map.fits), chosen by the "
-                 "self-check: %.4g %% of the frames' variance explained, the interaction matrix's %.4g %%",
-                 100 * r->explained[1], 100 * r->explained[0]);
+    if (!rc) rc = swfs_halo_choose_files(halos, NC, ex, &best, &r->ncommon, NULL, NULL);
+    if (!rc) {
+        r->tried = 1;
+        r->explained[0] = ex[0];
+        r->explained[1] = ex[1];
+        for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) r->explained_mix[k] = ex[2 + k];
+        r->weight = best == 0 ? 1.0 : best == 1 ? 0.0 : r->mix_weight[best - 2];
+    }
+    if (!rc && best > 0) {
+        char why[300];
+        if (best == 1)
+            snprintf(why, sizeof why, "specklewfs speckles: the loops' map's speckles (loops_map.fits), chosen by the "
+                     "self-check: %.4g %% of the frames' variance explained, the interaction matrix's %.4g %%",
+                     100 * ex[1], 100 * ex[0]);
+        else
+            snprintf(why, sizeof why, "specklewfs speckles: the speckles of %.2f the interaction matrix's map + %.2f the "
+                     "loops' (%s), chosen by the self-check: %.4g %% of the frames' variance explained, the interaction "
+                     "matrix's %.4g %%, the loops' map's %.4g %%", r->weight, 1 - r->weight, mmap[best - 2] +
+                     strlen(r->work) + 1, 100 * ex[best], 100 * ex[0], 100 * ex[1]);
         swfs_outputs_begin(); /* the speckles and --write-recon's map replaced together, or neither */
-        rc = replace_with(sp, o->out, why);
-        if (!rc && o->write_recon) rc = replace_with(r->map, o->write_recon, "specklewfs speckles: the loops' map, "
-                                                     "chosen by the self-check");
+        rc = replace_with(sps[best], o->out, why);
+        if (!rc && o->write_recon) rc = replace_with(maps[best], o->write_recon, "specklewfs speckles: the map of the "
+                                                     "speckles the self-check chose");
         const int erc = swfs_outputs_end(rc == SWFS_OK);
         if (!rc) rc = erc;
         if (!rc) r->chosen = 1;
     }
-    (void)remove(sp); /* the scored speckles and frames: the halos and maps stay */
+    /* the scored speckles, frames and mixed mean: the halos and maps stay */
+    (void)remove(sp);
     (void)remove(sci);
+    (void)remove(mmean);
+    for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) (void)remove(msp[k]);
     return rc;
 }
 
@@ -230,17 +353,20 @@ int swfs_loops_map_wanted_(const swfs_speckles_run_options *o, int pyramid_loops
 }
 
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                             double imat_heldout, swfs_loops_map_result *r)
+                             double imat_heldout, const swfs_recon *imat_map, swfs_loops_map_result *r)
 {
     const double t0 = swfs_wall_seconds();
     memset(r, 0, sizeof *r);
     r->explained[0] = r->explained[1] = r->carry_resid = r->meanmiss_heldout = NAN;
-    const int rc = loops_map(o, g, mask, imat_heldout, r);
+    for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) r->mix_weight[k] = r->explained_mix[k] = NAN;
+    r->weight = 1.0;
+    const int rc = loops_map(o, g, mask, imat_heldout, imat_map, r);
     r->seconds = swfs_wall_seconds() - t0;
     if (rc) { /* the interaction matrix's speckles stay, and the run says why */
         snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());
         swfs_clear_error();
         r->tried = r->chosen = 0;
+        r->weight = 1.0;
     }
     return SWFS_OK;
 }

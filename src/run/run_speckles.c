@@ -737,7 +737,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
      * matrix and mean loops, where speckles simulated them of a pyramid or it is asked for */
     const int lmap = swfs_loops_map_wanted_(o, r->mean_teach.done && r->mean_teach.pyramid);
     if (!rc && !team && lmap && o->nmean_loops)
-        rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout, &r->loops_map);
+        rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout,
+                                      swfs_pipeline_linear_map(w.p), &r->loops_map);
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);
     work_free(&w);
