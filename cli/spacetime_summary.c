@@ -145,19 +145,23 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
         snprintf(mmw, sizeof mmw, "(each loop's by the map of the others, held out %.2f: %s)", lm->meanmiss_heldout,
                  lm->mean_from_imat ? "not shared; the interaction matrix's corrected mean instead"
                                     : lm->meanmiss_rms > 0 ? "added" : "none added");
+    if (lm->mix_note[0])
+        fprintf(stderr, "%s: note: the two maps not mixed (--loops-map): %s; the two scored alone\n", cmd, lm->mix_note);
     char wr[160];
     if (lm->weight == 1) snprintf(wr, sizeof wr, "the interaction matrix's kept");
     else if (lm->weight == 0) snprintf(wr, sizeof wr, "the loops' map's speckles written");
     else snprintf(wr, sizeof wr, "the mix at %.2f of the interaction matrix's map written", lm->weight);
+    char mix[400] = "";
+    for (int k = 0, n = 0; k < SWFS_LOOPS_MAP_NMIX && isfinite(lm->explained_mix[k]) && n >= 0 && n < (int)sizeof mix; k++)
+        n += snprintf(mix + n, sizeof mix - (size_t)n, "%s%.2f: %.2f %%", k ? ", " : ", the two mixed at ",
+                      lm->mix_weight[k], 100 * lm->explained_mix[k]);
     if (lm->tried)
         fprintf(stderr, "%s: --loops-map: a map learned from the %zu loops' %zu frames for %zu inputs (misfit %.1f of "
                 "%.1f nm per output; their DM on the basis within %.2g), its miss of the mean %s: "
-                "the self-check over %zu pixels, the interaction matrix's %.2f %% explained, the loops' map's %.2f %%, "
-                "the two mixed at %.2f / %.2f / %.2f of the interaction matrix's %.2f / %.2f / %.2f %% -> %s (%.0f s; "
-                "%s)\n", cmd, nml, lm->nframes, lm->inputs, 1e9 * lm->misfit_rms, 1e9 * lm->truth_rms,
-                lm->carry_resid, mmw, lm->ncommon, 100 * lm->explained[0], 100 * lm->explained[1], lm->mix_weight[0],
-                lm->mix_weight[1], lm->mix_weight[2], 100 * lm->explained_mix[0], 100 * lm->explained_mix[1],
-                100 * lm->explained_mix[2], wr, lm->seconds, lm->work);
+                "the self-check over %zu pixels, the interaction matrix's %.2f %% explained, the loops' map's %.2f %%%s "
+                "-> %s (%.0f s; %s)\n", cmd, nml, lm->nframes, lm->inputs, 1e9 * lm->misfit_rms, 1e9 * lm->truth_rms,
+                lm->carry_resid, mmw, lm->ncommon, 100 * lm->explained[0], 100 * lm->explained[1], mix, wr, lm->seconds,
+                lm->work);
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);

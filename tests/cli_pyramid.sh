@@ -159,7 +159,7 @@ lm=$(grep -- "--loops-map: a map learned from the $nlm loops" "$D/speckles_lm.lo
     || { cat "$D/speckles_lm.log"; fail "--loops-map: no line"; }
 x0=$(sed -n "s/.*the interaction matrix's \([0-9.]*\) % explained.*/\1/p" <<< "$lm")
 x1=$(sed -n "s/.*the loops' map's \([0-9.]*\) %, the two mixed.*/\1/p" <<< "$lm")
-xm=$(sed -n "s/.*the two mixed at 0.75 \/ 0.50 \/ 0.25 of the interaction matrix's \([0-9.]*\) \/ \([0-9.]*\) \/ \([0-9.]*\) % -> .*/\1 \2 \3/p" <<< "$lm")
+xm=$(sed -n "s/.*the two mixed at 0.75: \([0-9.]*\) %, 0.50: \([0-9.]*\) %, 0.25: \([0-9.]*\) % -> .*/\1 \2 \3/p" <<< "$lm")
 [ -n "$x0" ] && [ -n "$x1" ] && [ -n "$xm" ] || fail "--loops-map: the scores not in: $lm"
 "$B" pupil "$D/lmw/halo_imat.fits" "$D/lmw/halo_loops.fits" "$D/lmw/halo_mix_75.fits" "$D/lmw/halo_mix_50.fits" \
     "$D/lmw/halo_mix_25.fits" -o "$D/pupil_lmch.fits" --truth "$S/truth.fits" > "$D/pupil_lmch.log" || fail "pupil (the five halos)"

@@ -275,6 +275,7 @@ typedef struct swfs_loops_map_result {
     double explained_mix[SWFS_LOOPS_MAP_NMIX]; /* their self-check scores (NAN: not scored) */
     double weight;            /* w of the written speckles' map: 1 the interaction matrix's, 0 the
                                  loops' map's, else their mix (mix_NN.fits, NN = 100 w) */
+    char mix_note[1024];      /* why the maps were not mixed ("" otherwise): the two ends scored */
 } swfs_loops_map_result;
 
 #define SWFS_MEAN_TEACH_MAX 16

@@ -341,7 +341,7 @@ swfs_loops_map_result = _s("swfs_loops_map_result", [
     ("inputs", c_size), ("misfit_rms", c_dbl), ("truth_rms", c_dbl), ("carry_resid", c_dbl),
     ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl), ("mean_from_imat", c_int), ("seconds", c_dbl),
     ("work", ctypes.c_char * 4200), ("map", ctypes.c_char * 4400), ("fallback", ctypes.c_char * 1024),
-    ("mix_weight", c_dbl * 3), ("explained_mix", c_dbl * 3), ("weight", c_dbl)])
+    ("mix_weight", c_dbl * 3), ("explained_mix", c_dbl * 3), ("weight", c_dbl), ("mix_note", ctypes.c_char * 1024)])
 LOOPS_MAP_NMIX = 3  # run.h SWFS_LOOPS_MAP_NMIX
 swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("done", c_int), ("reused", c_int), ("automatic", c_int), ("fallback", ctypes.c_char * 1024), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),

@@ -546,7 +546,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         inputs=lm.inputs, misfit_rms=lm.misfit_rms, truth_rms=lm.truth_rms, carry_resid=lm.carry_resid,
         meanmiss_heldout=lm.meanmiss_heldout, meanmiss_rms=lm.meanmiss_rms, mean_from_imat=bool(lm.mean_from_imat),
         seconds=lm.seconds, work=lm.work.decode(), map=lm.map.decode(), mix_weight=tuple(lm.mix_weight),
-        explained_mix=tuple(lm.explained_mix), weight=lm.weight)
+        explained_mix=tuple(lm.explained_mix), weight=lm.weight, mix_note=lm.mix_note.decode())
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

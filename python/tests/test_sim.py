@@ -545,6 +545,7 @@ def test_pyramid_timeseries(tmp_path):
     weights = [1.0, 0.0] + list(L["mix_weight"])
     assert weights[2:] == [0.75, 0.5, 0.25] and all(0 < e < 1 for e in scores)
     assert L["weight"] == weights[scores.index(max(scores))] and L["chosen"] == (L["weight"] != 1.0)
+    assert L["mix_note"] == ""
     assert L["carry_resid"] < 0.2
     # each mix w C_imat + (1 - w) C_loops: the interaction matrix's map from the 0.25 mix and the
     # loops' map gives the 0.75 and the 0.5 ones

@@ -198,6 +198,38 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
     return rc;
 }
 
+/* The mixes' speckles and halos (step 5 of loops_map): nmix of them made */
+static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckles_run_options *s2,
+                          const swfs_recon *imat_map, swfs_loops_map_result *r, const char *sci, const char *mmean,
+                          char (*mmap)[4400], char (*msp)[4400], char (*mh)[4400], size_t *nmix)
+{
+    mixer mx;
+    int rc = mixer_open(&mx, imat_map, r->map, o->out, s2->out);
+    for (size_t k = 0; !rc && k < SWFS_LOOPS_MAP_NMIX; k++) {
+        const double w = 1.0 - (double)(k + 1) / (SWFS_LOOPS_MAP_NMIX + 1); /* 0.75, 0.5, 0.25 */
+        const int pc = (int)lround(100 * w);
+        snprintf(mmap[k], 4400, "%.4300s/mix_%02d.fits", r->work, pc);
+        snprintf(msp[k], 4400, "%.4300s/speckles_mix_%02d.fits", r->work, pc);
+        snprintf(mh[k], 4400, "%.4300s/halo_mix_%02d.fits", r->work, pc);
+        rc = mixer_write(&mx, w, mmap[k], mx.mean0 ? mmean : NULL);
+        swfs_speckles_run_options s3 = *s2;
+        s3.lin.control = mmap[k];
+        s3.out = msp[k];
+        s3.nmatch = 0; /* the frames: s2's match, sci */
+        s3.match_in = s3.match_out = NULL;
+        s3.resmean_from = mx.mean0 ? mmean : NULL;
+        swfs_speckles_run_result r3;
+        if (!rc) rc = swfs_speckles_run(&s3, &r3);
+        if (!rc) rc = estimate_into(sci, msp[k], mh[k], o);
+        if (!rc) {
+            r->mix_weight[k] = w;
+            *nmix = k + 1;
+        }
+    }
+    mixer_close(&mx);
+    return rc;
+}
+
 static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, double imat_heldout,
                      const swfs_recon *imat_map, swfs_loops_map_result *r)
 {
@@ -279,44 +311,33 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     if (!rc) rc = estimate_into(sci, o->out, h0, o);
     if (!rc) rc = estimate_into(sci, sp, h1, o);
     /* 5. the two maps mixed at quarters, each through the observation as in 3 (its mean the
-     * same mix of the two sets'), estimated alike */
+     * same mix of the two sets'), estimated alike; where they cannot be, the two ends alone */
     enum { NC = 2 + SWFS_LOOPS_MAP_NMIX };
     char mmap[SWFS_LOOPS_MAP_NMIX][4400], msp[SWFS_LOOPS_MAP_NMIX][4400], mh[SWFS_LOOPS_MAP_NMIX][4400], mmean[4400];
+    memset(mmap, 0, sizeof mmap);
+    memset(msp, 0, sizeof msp);
+    memset(mh, 0, sizeof mh);
     snprintf(mmean, sizeof mmean, "%.4300s/mix_resmean.fits", r->work);
-    mixer mx;
-    int mixed = 0;
-    if (!rc) rc = mixer_open(&mx, imat_map, r->map, o->out, sp);
-    if (!rc) mixed = 1;
-    for (size_t k = 0; !rc && k < SWFS_LOOPS_MAP_NMIX; k++) {
-        const double w = 1.0 - (double)(k + 1) / (SWFS_LOOPS_MAP_NMIX + 1); /* 0.75, 0.5, 0.25 */
-        const int pc = (int)lround(100 * w);
-        r->mix_weight[k] = w;
-        snprintf(mmap[k], sizeof mmap[k], "%.4300s/mix_%02d.fits", r->work, pc);
-        snprintf(msp[k], sizeof msp[k], "%.4300s/speckles_mix_%02d.fits", r->work, pc);
-        snprintf(mh[k], sizeof mh[k], "%.4300s/halo_mix_%02d.fits", r->work, pc);
-        rc = mixer_write(&mx, w, mmap[k], mx.mean0 ? mmean : NULL);
-        swfs_speckles_run_options s3 = s2;
-        s3.lin.control = mmap[k];
-        s3.out = msp[k];
-        s3.nmatch = 0; /* the frames: science_loops.fits of 3 */
-        s3.match_in = s3.match_out = NULL;
-        s3.resmean_from = mx.mean0 ? mmean : NULL;
-        swfs_speckles_run_result r3;
-        if (!rc) rc = swfs_speckles_run(&s3, &r3);
-        if (!rc) rc = estimate_into(sci, msp[k], mh[k], o);
+    size_t nmix = 0;
+    if (!rc) {
+        const int mrc = mix_candidates(o, &s2, imat_map, r, sci, mmean, mmap, msp, mh, &nmix);
+        if (mrc) { /* the note says why; the two ends are scored as before */
+            snprintf(r->mix_note, sizeof r->mix_note, "%s", swfs_last_error());
+            swfs_clear_error();
+            nmix = 0;
+        }
     }
-    if (mixed) mixer_close(&mx);
     /* 6. the self-check's choice among the five */
     const char *halos[NC] = {h0, h1, mh[0], mh[1], mh[2]}, *sps[NC] = {o->out, sp, msp[0], msp[1], msp[2]},
                *maps[NC] = {NULL, r->map, mmap[0], mmap[1], mmap[2]};
     double ex[NC];
     size_t best = 0;
-    if (!rc) rc = swfs_halo_choose_files(halos, NC, ex, &best, &r->ncommon, NULL, NULL);
+    if (!rc) rc = swfs_halo_choose_files(halos, 2 + nmix, ex, &best, &r->ncommon, NULL, NULL);
     if (!rc) {
         r->tried = 1;
         r->explained[0] = ex[0];
         r->explained[1] = ex[1];
-        for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) r->explained_mix[k] = ex[2 + k];
+        for (size_t k = 0; k < nmix; k++) r->explained_mix[k] = ex[2 + k];
         r->weight = best == 0 ? 1.0 : best == 1 ? 0.0 : r->mix_weight[best - 2];
     }
     if (!rc && best > 0) {
@@ -342,7 +363,8 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     (void)remove(sp);
     (void)remove(sci);
     (void)remove(mmean);
-    for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) (void)remove(msp[k]);
+    for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++)
+        if (msp[k][0]) (void)remove(msp[k]);
     return rc;
 }
 
