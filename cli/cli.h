@@ -188,6 +188,10 @@ void cli_meanmiss_summary(const char *cmd, size_t nloops, double heldout, double
 /* The loops `--mean-loop teach` (a pyramid's default) simulated or reused: their description
  * from the files, or why there are none. */
 void cli_mean_teach_summary(const char *cmd, const struct swfs_mean_teach_result *m);
+struct swfs_loops_map_result;
+/* The loops' own map (--loops-map): what was learned, the self-check's scores of the two sets
+ * and their mixes, and what was written, or why it was not tried (nml: the loops). */
+void cli_loops_map_summary(const char *cmd, const struct swfs_loops_map_result *lm, size_t nml);
 /* --mean-loop folders a stream or live run takes at most */
 #define CLI_MAX_MEAN_LOOPS 64
 /* Where a space-time map's lags ran on across telemetry files and were clamped (speckles,
