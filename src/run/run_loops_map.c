@@ -9,6 +9,7 @@
  * of `pupil A.fits B.fits ...`, swfs_halo_choose_files). */
 #include "specklewfs/run.h"
 #include "specklewfs/atomic.h"
+#include "specklewfs/estimate.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
@@ -20,6 +21,17 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+
+/* A map on the basis started as a --control file (NAXIS1 = telemetry values, NAXIS2 = basis
+ * functions) with its kind (RECON); the caller adds its keys and commits (aborted on failure) */
+static int map_out(swfs_fits_out **f, const char *path, const swfs_recon *c, const char *kind, const char *comment)
+{
+    int rc = swfs_fits_out_create(f, path);
+    if (!rc) rc = swfs_recon_write_hdu(*f, c);
+    if (!rc) rc = swfs_fits_out_key_string(*f, "BUNIT", "", "basis coefficient per telemetry value");
+    if (!rc) rc = swfs_fits_out_key_string(*f, "RECON", kind, comment);
+    return rc;
+}
 
 /* W_loops (nact_l x nsig: the loops' truth on their DM's functions per telemetry value) onto
  * the observation's basis: C = P W_loops, P the least-squares coefficients of each of the
@@ -68,10 +80,7 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     }
     if (!rc) {
         swfs_fits_out *f = NULL;
-        rc = swfs_fits_out_create(&f, out);
-        if (!rc) rc = swfs_recon_write_hdu(f, &c);
-        if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
-        if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "LOOPS", "learned from the loops, carried onto the basis");
+        rc = map_out(&f, out, &c, "LOOPS", "learned from the loops, carried onto the basis");
         if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", r->carry_resid, "the loops' DM on the basis: rms residual");
         if (!rc) rc = swfs_fits_out_history(f, "specklewfs: the map learned from the loops of the system (speckles' "
                                             "loops_map), NAXIS1 = telemetry values, NAXIS2 = basis functions");
@@ -131,6 +140,17 @@ typedef struct mixer {
     swfs_real *mean0, *mean1;  /* RESMEAN of the two sets (NULL: either has none) */
 } mixer;
 
+/* A speckles file's RESMEAN (swfs_resmean_read_ext), NULL where it has none */
+static int read_resmean(const char *path, swfs_real **out)
+{
+    *out = NULL;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc && swfs_fits_in_has_ext(f, "RESMEAN")) rc = swfs_resmean_read_ext(f, path, out);
+    swfs_fits_in_close(f);
+    return rc;
+}
+
 static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const char *sp0, const char *sp1)
 {
     memset(m, 0, sizeof *m);
@@ -140,15 +160,16 @@ static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const c
     if (!rc && (m->loops->nact != imat->nact || m->loops->nslopes != imat->nslopes || m->loops->nlags || imat->nlags))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' map is %zu x %zu; the interaction matrix's %zu x %zu", map,
                        m->loops->nact, m->loops->nslopes, imat->nact, imat->nslopes);
-    int h0 = 0, h1 = 0;
-    swfs_fits_in *f = NULL;
-    if (!rc && !(rc = swfs_fits_in_open(&f, sp0, NULL))) h0 = swfs_fits_in_has_ext(f, "RESMEAN");
-    swfs_fits_in_close(f);
-    f = NULL;
-    if (!rc && !(rc = swfs_fits_in_open(&f, sp1, NULL))) h1 = swfs_fits_in_has_ext(f, "RESMEAN");
-    swfs_fits_in_close(f);
-    if (!rc && h0 && h1) rc = swfs_fits_read_real(sp0, "RESMEAN", &m->mean0, NULL);
-    if (!rc && h0 && h1) rc = swfs_fits_read_real(sp1, "RESMEAN", &m->mean1, NULL);
+    swfs_real *a = NULL, *b = NULL;
+    if (!rc) rc = read_resmean(sp0, &a);
+    if (!rc) rc = read_resmean(sp1, &b);
+    if (!rc && a && b) { /* either without one: no mixed mean */
+        m->mean0 = a;
+        m->mean1 = b;
+        a = b = NULL;
+    }
+    swfs_real_free(a);
+    swfs_real_free(b);
     if (!rc && m->mean0 && (m->mean1->nx != m->mean0->nx || m->mean1->ny != m->mean0->ny || m->mean1->nz != m->mean0->nz))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s and %s: RESMEAN of two shapes", sp0, sp1);
     return rc;
@@ -173,10 +194,7 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
     if (!(c.W = malloc(n * sizeof *c.W))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t i = 0; i < n; i++) c.W[i] = w * m->imat->W[i] + (1 - w) * m->loops->W[i];
     swfs_fits_out *f = NULL;
-    int rc = swfs_fits_out_create(&f, map);
-    if (!rc) rc = swfs_recon_write_hdu(f, &c);
-    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "basis coefficient per telemetry value");
-    if (!rc) rc = swfs_fits_out_key_string(f, "RECON", "MIX", "the interaction matrix's map and the loops' mixed");
+    int rc = map_out(&f, map, &c, "MIX", "the interaction matrix's map and the loops' mixed");
     if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs: speckles' loops_map, w MAP + (1 - w) LOOPS, NAXIS1 = telemetry "
                                         "values, NAXIS2 = basis functions");
@@ -348,9 +366,9 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
                      100 * ex[1], 100 * ex[0]);
         else
             snprintf(why, sizeof why, "specklewfs speckles: the speckles of %.2f the interaction matrix's map + %.2f the "
-                     "loops' (%s), chosen by the self-check: %.4g %% of the frames' variance explained, the interaction "
-                     "matrix's %.4g %%, the loops' map's %.4g %%", r->weight, 1 - r->weight, mmap[best - 2] +
-                     strlen(r->work) + 1, 100 * ex[best], 100 * ex[0], 100 * ex[1]);
+                     "loops' (mix_%02d.fits), chosen by the self-check: %.4g %% of the frames' variance explained, the "
+                     "interaction matrix's %.4g %%, the loops' map's %.4g %%", r->weight, 1 - r->weight,
+                     (int)lround(100 * r->weight), 100 * ex[best], 100 * ex[0], 100 * ex[1]);
         swfs_outputs_begin(); /* the speckles and --write-recon's map replaced together, or neither */
         rc = replace_with(sps[best], o->out, why);
         if (!rc && o->write_recon) rc = replace_with(maps[best], o->write_recon, "specklewfs speckles: the map of the "
