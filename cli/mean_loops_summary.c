@@ -44,7 +44,8 @@ void cli_meanmiss_summary(const char *cmd, size_t nloops, double heldout, double
                 heldout < 1 ? "shared, their mean added" : "each loop's own, nothing added");
     if (rms > 0)
         fprintf(stderr, "%s: with the %s miss of it added, %.1f nm rms\n", cmd,
-                nloops ? "loops' shared" : "map's own (MEANMISS: its training loops', learn)", rms * 1e9);
+                nloops ? "loops' shared" : "map's own (MEANMISS: from the loops it was made with, by learn or speckles' "
+                "choice)", rms * 1e9);
 }
 
 void cli_loops_map_summary(const char *cmd, const swfs_loops_map_result *lm, size_t nml)

@@ -15,7 +15,9 @@
 # against 4244), so speckles simulates a fifth (--mean-teach-max-loops 5, for the time), scores
 # the map of the 5, the interaction matrix's and the two maps mixed at 0.75 / 0.5 / 0.25, and
 # writes the set that explains most (measured 57.65 / 59.02 / 58.44 58.83 58.99 %: the loops'
-# map, 19.0 nm; the mixes 19.2 / 19.0 / 19.0), and a second run reuses the 5 loops (Release
+# map, 19.0 nm; the mixes 19.2 / 19.0 / 19.0; --write-recon's map carries that set's miss of the
+# mean, MEANMISS, and stream given it alone makes the same RESMEAN without loops), and a second
+# run reuses the 5 loops (Release
 # build; under the sanitizers the same choice on 3 given loops: 57.65 / 59.20 / 58.50 58.93
 # 59.13 %, 19.2 nm). The Shack-Hartmann model refuses the signals (speckles
 # --actuators, teach) naming the file and what describes them; export_modal and an unknown wfs
@@ -188,6 +190,22 @@ ech=$(ncp_error "$D/pupil_lmch.log")
 echo "cli_pyramid: --loops-map, $nlm loops $asked: explained $x0 % (interaction matrix) / $x1 % (the loops' map) / $xm % (mixed at 0.75 / 0.5 / 0.25): $want written, NCP error $el nm" >&2
 awk -v e="$el" -v c="$ech" -v i="$i" 'BEGIN { exit !(e > 0 && e < 2 * i && e > c - 0.05 && e < c + 0.05) }' \
     || fail "--loops-map: NCP error $el nm (the chosen halo's $ech nm, ideal $i nm)"
+# --write-recon's map carries the miss of the mean the written set was given (MEANMISS on the
+# pupil grid), so stream given that map alone makes speckles' choice: no loops simulated for
+# it, speckles' RESMEAN (measured 3e-8 of its rms apart) and its NCP error
+grep -aq "EXTNAME = 'MEANMISS" "$D/lm_w.fits" || fail "--write-recon's map carries no MEANMISS"
+"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --control "$D/lm_w.fits" \
+    -o "$D/stream_lm.fits" > "$D/stream_lm.log" 2>&1 || { cat "$D/stream_lm.log"; fail "stream --control (the written map)"; }
+grep -q -- "--mean-loop teach" "$D/stream_lm.log" && { cat "$D/stream_lm.log"; fail "stream simulated loops for a map with its miss"; }
+grep -q "with the map's own (MEANMISS: .*) miss of it added" "$D/stream_lm.log" \
+    || { cat "$D/stream_lm.log"; fail "stream: the map's miss not added"; }
+rs=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/speckles_lm.fits[RESMEAN]" "$D/stream_lm.fits[RESMEAN]") \
+    || fail "fitsdiff RESMEAN (speckles, stream)"
+"$B" pupil "$D/stream_lm.fits" -o "$D/pupil_slm.fits" --truth "$S/truth.fits" > "$D/pupil_slm.log" || fail "pupil (stream lm)"
+esl=$(ncp_error "$D/pupil_slm.log")
+echo "cli_pyramid: stream --control with --write-recon's map: RESMEAN $rs of speckles' rms apart, NCP error $esl nm" >&2
+awk -v r="$rs" -v a="$esl" -v b="$el" 'BEGIN { exit !(r < 1e-6 && a > b - 0.15 && a < b + 0.15) }' \
+    || fail "stream with the written map: RESMEAN $rs apart, $esl nm against speckles' $el nm"
 expect_error "loops-map choose goes with the linear model's --imat" "$B" speckles "$D/timing.txt" --science \
     "$D/science.fits" "${pyr[@]}" --mean-loop none --loops-map choose -o "$D/lm_x.fits"
 [ ! -e "$D/lm_x.fits" ] || fail "speckles left an output after refusing --loops-map"

@@ -481,6 +481,18 @@ def test_pyramid_timeseries(tmp_path):
     inside = diff != 0
     assert np.sqrt(np.mean(diff[inside] ** 2)) == pytest.approx(a1["meanmiss_rms"], rel=1e-3)
     assert np.corrcoef(diff[inside], F2[inside])[0, 1] > 0.99
+    # the miss as an image on the pupil grid (what speckles' choice among the loops' maps gives
+    # --write-recon's map): added as it stands, the same as through the basis, and the default's
+    # loops for a pyramid's telemetry not simulated for a map that carries its own miss
+    sw.write_fits(str(tmp_path / "Cpg.fits"), {"C": C, "MEANMISS": F2})
+    a2 = sw.speckles(timing, sci, None, str(tmp_path / "a2.fits"), linear=dict(basis=lin["basis"], control=str(tmp_path / "Cpg.fits")))
+    assert a2["mean_teach"] is None and a2["meanmiss_rms"] == pytest.approx(a1["meanmiss_rms"], rel=1e-9)
+    d2 = sw.read_fits(str(tmp_path / "a2.fits"), "RESMEAN")[0] - sw.read_fits(str(tmp_path / "a0.fits"), "RESMEAN")[0]
+    assert np.max(np.abs(d2 - diff)) < 1e-9 * np.max(np.abs(diff))
+    sw.write_fits(str(tmp_path / "Cbad.fits"), {"C": C, "MEANMISS": F2[:10, :10]})
+    with pytest.raises(sw.Error, match=r"Cbad.fits: MEANMISS is a 10 x 10 x 1 image; expected the pupil grid"):
+        sw.speckles(timing, sci, None, str(tmp_path / "a3.fits"), linear=dict(basis=lin["basis"], control=str(tmp_path / "Cbad.fits")))
+    assert not os.path.exists(tmp_path / "a3.fits")
     # the miss of the observation's own reconstruction from simulated loops (mean_loops): here
     # the run itself twice, so the loops agree (held out 0) and the miss added is its own: the
     # mean taken out comes nearer the true one (truth.fits RESMEAN, over the camera's frames:

@@ -165,11 +165,12 @@ int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_tim
 
 /* run_loops_map.c: the loops' own map and the self-check's choice (run.h loops_map), after o's
  * run wrote o->out from the interaction matrix with the mean loops o->mean_loops (its miss
- * held out: imat_heldout) through imat_map (swfs_pipeline_linear_map); g, mask: the run's
- * geometry and pupil (swfs_pipeline_mask). Always
+ * held out: imat_heldout) through its pipeline p (its map, swfs_pipeline_linear_map, and the
+ * telemetry's mean over the exposures, for the misses the written maps carry); g, mask: the
+ * run's geometry and pupil (swfs_pipeline_mask). Always
  * SWFS_OK: where it cannot, r->fallback says why and o->out stays. */
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                             double imat_heldout, const swfs_recon *imat_map, swfs_loops_map_result *r);
+                             double imat_heldout, swfs_pipeline *p, swfs_loops_map_result *r);
 /* run_loops_map.c: 1 where o's run learns the loops' own map from its mean loops (the linear
  * model's interaction matrix; --loops-map choose, or auto where the loops are of a pyramid):
  * speckles' condition for swfs_speckles_loops_map_, and the mean loops' for more loops where
@@ -227,11 +228,15 @@ int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const doub
                      double **coef, size_t *nk, double *resid);
 /* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,
  * or with lin->basis a --control matrix; NULL: none) has the extension MEANMISS (learn's, one
- * value per output), its wavefront on the pupil grid (the Shack-Hartmann model's interpolation
- * of the map's outputs, or the linear model's basis) becomes p's mean offset
+ * value per output; or, from speckles' loops_map, an image on the pupil grid), its wavefront on
+ * the pupil grid (the Shack-Hartmann model's interpolation of the map's outputs, the linear
+ * model's basis, or the image itself) becomes p's mean offset
  * (swfs_pipeline_set_mean_offset); *rms its rms in the pupil, piston, tip and tilt removed (0:
  * none). speckles and stream call it on the pipeline they built. */
 int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
                           double *rms);
+/* 1 where the map file `path` has a MEANMISS extension (its own miss of the mean: the default's
+ * mean loops are not simulated for it, run_speckles.c, run_stream.c); 0 otherwise or NULL */
+int swfs_map_has_meanmiss_(const char *path);
 
 #endif

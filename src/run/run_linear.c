@@ -174,6 +174,16 @@ int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const doub
     return rc;
 }
 
+int swfs_map_has_meanmiss_(const char *path)
+{
+    if (!path) return 0;
+    swfs_fits_in *f = NULL;
+    const int has = !swfs_fits_in_open(&f, path, NULL) && swfs_fits_in_has_ext(f, "MEANMISS");
+    swfs_fits_in_close(f);
+    swfs_clear_error(); /* a file that cannot be read says so where it is read as the map */
+    return has;
+}
+
 int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
                           double *rms)
 {
@@ -193,7 +203,13 @@ int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_
     for (size_t k = 0; !rc && k < nk; k++)
         if (!isfinite(m->data[k])) rc = swfs_fail(SWFS_ERR_VALUE, "%s: MEANMISS value %zu is not finite", path, k);
     const double *mask = swfs_pipeline_mask(p);
-    if (!rc && lin && lin->basis) {
+    if (!rc && m->ny > 1) { /* an image: the miss on the pupil grid itself (speckles' loops_map) */
+        if (m->nx != n || m->ny != n || m->nz != 1)
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: MEANMISS is a %zu x %zu x %zu image; expected the pupil grid, %zu x %zu "
+                           "(or one value per output)", path, m->nx, m->ny, m->nz, n, n);
+        else
+            memcpy(map, m->data, n * n * sizeof *map);
+    } else if (!rc && lin && lin->basis) {
         rc = swfs_linear_wavefront_(lin, g, mask, m->data, nk, map);
     } else if (!rc) {
         const swfs_speckle_model *mod = swfs_pipeline_model(p);

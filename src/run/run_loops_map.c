@@ -138,6 +138,11 @@ typedef struct mixer {
     const swfs_recon *imat;    /* the interaction matrix's map (swfs_pipeline_linear_map) */
     swfs_recon *loops;         /* the loops' map on the basis (loops_map.fits) */
     swfs_real *mean0, *mean1;  /* RESMEAN of the two sets (NULL: either has none) */
+    double *off0, *off1;       /* each set's RESMEAN less its map's reconstruction of the
+                                  telemetry's mean, on the pupil grid (piston, tip and tilt out of
+                                  both): the miss each was given, which a map file carries as its
+                                  MEANMISS image so that stream and live add what speckles did
+                                  (NULL: no means, or the engine's mean not the maps' input) */
 } mixer;
 
 /* A speckles file's RESMEAN (swfs_resmean_read_ext), NULL where it has none */
@@ -148,6 +153,50 @@ static int read_resmean(const char *path, swfs_real **out)
     int rc = swfs_fits_in_open(&f, path, NULL);
     if (!rc && swfs_fits_in_has_ext(f, "RESMEAN")) rc = swfs_resmean_read_ext(f, path, out);
     swfs_fits_in_close(f);
+    return rc;
+}
+
+/* The map c's reconstruction of the telemetry's mean v (c->nslopes values) on the pupil grid,
+ * piston, tip and tilt removed, subtracted from mean into off (masked) */
+static int offset_of(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, const swfs_recon *c,
+                     const double *v, const swfs_real *mean, double **off)
+{
+    const size_t n = (size_t)g->pupn;
+    double *coef = malloc(c->nact * sizeof *coef);
+    *off = calloc(n * n, sizeof **off);
+    int rc = coef && *off ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) {
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1, 0.0,
+                    coef, 1);
+        rc = swfs_linear_wavefront_(&o->lin, g, mask, coef, c->nact, *off);
+    }
+    if (!rc) {
+        swfs_wfe_remove_ptt(*off, mask, n);
+        for (size_t i = 0; i < n * n; i++) (*off)[i] = mask[i] > 0 ? mean->data[i] - (*off)[i] : 0.0;
+    }
+    free(coef);
+    return rc;
+}
+
+/* The two sets' misses (mixer.off0, off1) from the observation's pipeline p: the mean of its
+ * engine's input over the exposures, the maps' input where it is the telemetry itself (with
+ * the exposure-relative tilt's two columns after it, whose mean is 0: swfs_pipeline_wavefront_of_mean) */
+static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                         swfs_pipeline *p)
+{
+    double *sum = NULL;
+    size_t nc = 0, nexp = 0;
+    swfs_pipeline_mean_state(p, &sum, &nc, &nexp);
+    const size_t ns = m->imat->nslopes;
+    if (!m->mean0 || !sum || !nexp || (nc != ns && nc != ns + 2) || m->mean0->nx != (size_t)g->pupn ||
+        m->mean0->ny != (size_t)g->pupn)
+        return SWFS_OK;
+    double *v = malloc(ns * sizeof *v);
+    if (!v) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; k < ns; k++) v[k] = sum[k] / (double)nexp;
+    int rc = offset_of(o, g, mask, m->imat, v, m->mean0, &m->off0);
+    if (!rc) rc = offset_of(o, g, mask, m->loops, v, m->mean1, &m->off1);
+    free(v);
     return rc;
 }
 
@@ -180,6 +229,21 @@ static void mixer_close(mixer *m)
     swfs_recon_free(m->loops);
     swfs_real_free(m->mean0);
     swfs_real_free(m->mean1);
+    free(m->off0);
+    free(m->off1);
+}
+
+/* w off0 + (1 - w) off1 as the MEANMISS image of the map file f (the pupil grid) */
+static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w, size_t n)
+{
+    swfs_real a = {n, n, 1, malloc(n * n * sizeof(double))};
+    if (!a.data) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t i = 0; i < n * n; i++) a.data[i] = w * m->off0[i] + (1 - w) * m->off1[i];
+    int rc = swfs_fits_out_real(f, "MEANMISS", &a, -64);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m", "the miss of the residual's time mean speckles added with "
+                                           "this map (its RESMEAN less the map's reconstruction), on the pupil grid");
+    free(a.data);
+    return rc;
 }
 
 /* C_w to map (a --control file, RECON = 'MIX') and the mixed RESMEAN to mean (NULL where the
@@ -198,6 +262,7 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
     if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs: speckles' loops_map, w MAP + (1 - w) LOOPS, NAXIS1 = telemetry "
                                         "values, NAXIS2 = basis functions");
+    if (!rc && m->off0) rc = mixer_miss_out(f, m, w, m->mean0->nx);
     if (rc) swfs_fits_out_abort(f);
     else rc = swfs_fits_out_commit(f);
     free(c.W);
@@ -216,13 +281,13 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
     return rc;
 }
 
-/* The mixes' speckles and halos (step 5 of loops_map): nmix of them made */
-static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckles_run_options *s2,
-                          const swfs_recon *imat_map, swfs_loops_map_result *r, const char *sci, const char *mmean,
-                          char (*mmap)[4400], char (*msp)[4400], char (*mh)[4400], size_t *nmix)
+/* The mixes' speckles and halos (step 5 of loops_map): nmix of them made, with mx open */
+static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckles_run_options *s2, const mixer *pmx,
+                          swfs_loops_map_result *r, const char *sci, const char *mmean, char (*mmap)[4400],
+                          char (*msp)[4400], char (*mh)[4400], size_t *nmix)
 {
-    mixer mx;
-    int rc = mixer_open(&mx, imat_map, r->map, o->out, s2->out);
+    const mixer mx = *pmx;
+    int rc = SWFS_OK;
     for (size_t k = 0; !rc && k < SWFS_LOOPS_MAP_NMIX; k++) {
         const double w = 1.0 - (double)(k + 1) / (SWFS_LOOPS_MAP_NMIX + 1); /* 0.75, 0.5, 0.25 */
         const int pc = (int)lround(100 * w);
@@ -244,12 +309,27 @@ static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckle
             *nmix = k + 1;
         }
     }
-    mixer_close(&mx);
     return rc;
 }
 
+/* --write-recon's map for the written set (dst, or src copied onto it), with the miss of the
+ * mean that set was given as its MEANMISS image where the file has no MEANMISS of its own
+ * (the loops' map's, per basis function) */
+static int recon_with_miss(const char *src, const char *dst, const mixer *mx, double w, size_t n)
+{
+    swfs_fits_out *f = NULL;
+    int rc = swfs_fits_out_copy(&f, src, dst);
+    if (!rc) rc = swfs_fits_out_history(f, "specklewfs speckles: the map of the speckles the self-check chose");
+    if (!rc && mx->off0 && !swfs_map_has_meanmiss_(src)) rc = mixer_miss_out(f, mx, w, n);
+    if (rc) {
+        swfs_fits_out_abort(f);
+        return rc;
+    }
+    return swfs_fits_out_commit(f);
+}
+
 static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, double imat_heldout,
-                     const swfs_recon *imat_map, swfs_loops_map_result *r)
+                     swfs_pipeline *p, swfs_loops_map_result *r)
 {
     int made = 0;
     int rc = swfs_speckles_work_folder_(o, r->work, sizeof r->work, &made);
@@ -337,12 +417,19 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     memset(mh, 0, sizeof mh);
     snprintf(mmean, sizeof mmean, "%.4300s/mix_resmean.fits", r->work);
     size_t nmix = 0;
+    mixer mx;
+    memset(&mx, 0, sizeof mx);
     if (!rc) {
-        const int mrc = mix_candidates(o, &s2, imat_map, r, sci, mmean, mmap, msp, mh, &nmix);
+        int mrc = mixer_open(&mx, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
+        if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p);
+        if (!mrc) mrc = mix_candidates(o, &s2, &mx, r, sci, mmean, mmap, msp, mh, &nmix);
         if (mrc) { /* the note says why; the two ends are scored as before */
             snprintf(r->mix_note, sizeof r->mix_note, "%s", swfs_last_error());
             swfs_clear_error();
             nmix = 0;
+            free(mx.off0); /* and their maps go out without the misses */
+            free(mx.off1);
+            mx.off0 = mx.off1 = NULL;
         }
     }
     /* 6. the self-check's choice among the five */
@@ -358,6 +445,9 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         for (size_t k = 0; k < nmix; k++) r->explained_mix[k] = ex[2 + k];
         r->weight = best == 0 ? 1.0 : best == 1 ? 0.0 : r->mix_weight[best - 2];
     }
+    const size_t n = (size_t)g->pupn;
+    if (!rc && best == 0 && o->write_recon && mx.off0) /* the interaction matrix's map, with its miss */
+        rc = recon_with_miss(o->write_recon, o->write_recon, &mx, 1.0, n);
     if (!rc && best > 0) {
         char why[300];
         if (best == 1)
@@ -371,12 +461,12 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
                      (int)lround(100 * r->weight), 100 * ex[best], 100 * ex[0], 100 * ex[1]);
         swfs_outputs_begin(); /* the speckles and --write-recon's map replaced together, or neither */
         rc = replace_with(sps[best], o->out, why);
-        if (!rc && o->write_recon) rc = replace_with(maps[best], o->write_recon, "specklewfs speckles: the map of the "
-                                                     "speckles the self-check chose");
+        if (!rc && o->write_recon) rc = recon_with_miss(maps[best], o->write_recon, &mx, r->weight, n);
         const int erc = swfs_outputs_end(rc == SWFS_OK);
         if (!rc) rc = erc;
         if (!rc) r->chosen = 1;
     }
+    mixer_close(&mx);
     /* the scored speckles, frames and mixed mean: the halos and maps stay */
     (void)remove(sp);
     (void)remove(sci);
@@ -393,14 +483,14 @@ int swfs_loops_map_wanted_(const swfs_speckles_run_options *o, int pyramid_loops
 }
 
 int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                             double imat_heldout, const swfs_recon *imat_map, swfs_loops_map_result *r)
+                             double imat_heldout, swfs_pipeline *p, swfs_loops_map_result *r)
 {
     const double t0 = swfs_wall_seconds();
     memset(r, 0, sizeof *r);
     r->explained[0] = r->explained[1] = r->carry_resid = r->meanmiss_heldout = NAN;
     for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) r->mix_weight[k] = r->explained_mix[k] = NAN;
     r->weight = 1.0;
-    const int rc = loops_map(o, g, mask, imat_heldout, imat_map, r);
+    const int rc = loops_map(o, g, mask, imat_heldout, p, r);
     r->seconds = swfs_wall_seconds() - t0;
     if (rc) { /* the interaction matrix's speckles stay, and the run says why */
         snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());

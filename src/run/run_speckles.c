@@ -648,8 +648,9 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     /* --mean-loop teach: the loops of the system the files describe, simulated (or reused) as
      * the mean loops (run_mean_teach.c) */
     const char *mt_ptr[SWFS_MEAN_TEACH_MAX];
+    /* (a --control map that carries its own miss of the mean, MEANMISS, needs no loops for it) */
     const int mteach = o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO && o->lin.basis && !o->nmean_loops &&
-                                              !o->pipe.wfs_rate);
+                                              !o->pipe.wfs_rate && !swfs_map_has_meanmiss_(o->lin.control));
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc && mteach) rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs, mt_ptr);
@@ -737,8 +738,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
      * matrix and mean loops, where speckles simulated them of a pyramid or it is asked for */
     const int lmap = swfs_loops_map_wanted_(o, r->mean_teach.done && r->mean_teach.pyramid);
     if (!rc && !team && lmap && o->nmean_loops)
-        rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout,
-                                      swfs_pipeline_linear_map(w.p), &r->loops_map);
+        rc = swfs_speckles_loops_map_(o, &w.g, swfs_pipeline_mask(w.p), r->meanmiss_heldout, w.p, &r->loops_map);
     /* Every member ends with member 0's writing status. */
     if (team) rc = swfs_team_agree(o->team, rc);
     work_free(&w);

@@ -456,7 +456,8 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles;
      * from files with a timing table the loops may be simulated here, as speckles does */
     const int mteach = !hk && o->timing && (o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO &&
-                                                                   o->lin.basis && !o->nmean_loops));
+                                                                   o->lin.basis && !o->nmean_loops &&
+                                                                   !swfs_map_has_meanmiss_(o->lin.control)));
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     const char *mt[SWFS_MEAN_TEACH_MAX];
