@@ -4,15 +4,15 @@
 # package's), then every test of
 # the suite under AddressSanitizer + UndefinedBehaviorSanitizer (Python's aside: a sanitized
 # library cannot be loaded into Debian's python3). Used by the README's test command and by
-# CI. The Release pass builds only what its tests run (the command and the library, with
-# -Werror); the sanitizer pass builds every target (tests, benchmarks, fuzz corpus runners),
+# CI. The Release pass builds only what its tests run (the command, the library and the
+# tests' fitsdiff, with -Werror); the sanitizer pass builds every target (tests, benchmarks, fuzz corpus runners),
 # also with -Werror. The whole suite in the Release build: `cmake --build build -j2 && cd build
 # && ctest -j2`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 jobs=$(nproc)
 cmake -S . -B build -DCMAKE_BUILD_TYPE=Release -DSWFS_WERROR=ON >/dev/null
-cmake --build build -j"$jobs" --target specklewfs-cli specklewfs
+cmake --build build -j"$jobs" --target specklewfs-cli specklewfs fitsdiff
 . scripts/blas-env.sh
 blas_env ./build/specklewfs
 (cd build && ctest --output-on-failure -j"$jobs" -L release)

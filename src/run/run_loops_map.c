@@ -197,6 +197,11 @@ static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swf
     int rc = offset_of(o, g, mask, m->imat, v, m->mean0, &m->off0);
     if (!rc) rc = offset_of(o, g, mask, m->loops, v, m->mean1, &m->off1);
     free(v);
+    if (rc) { /* both or neither */
+        free(m->off0);
+        free(m->off1);
+        m->off0 = m->off1 = NULL;
+    }
     return rc;
 }
 
@@ -423,13 +428,11 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         int mrc = mixer_open(&mx, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
         if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p);
         if (!mrc) mrc = mix_candidates(o, &s2, &mx, r, sci, mmean, mmap, msp, mh, &nmix);
-        if (mrc) { /* the note says why; the two ends are scored as before */
+        if (mrc) { /* the note says why; the two ends are scored as before (their misses, where
+                    * made, still go with --write-recon's map) */
             snprintf(r->mix_note, sizeof r->mix_note, "%s", swfs_last_error());
             swfs_clear_error();
             nmix = 0;
-            free(mx.off0); /* and their maps go out without the misses */
-            free(mx.off1);
-            mx.off0 = mx.off1 = NULL;
         }
     }
     /* 6. the self-check's choice among the five */
