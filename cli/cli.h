@@ -49,7 +49,7 @@ int cli_usage_error(const char *cmd, const char *fmt, ...)
 /* A library options check (run.h *_options_check): 0 when rc is 0, else its message printed as
  * a usage error (CLI_USAGE). */
 int cli_check(const char *cmd, int rc);
-/* The usage texts of speckles, stream and live (help_runs.c), and of teach (help_teach.c),
+/* The usage texts of speckles, stream and live (help_speckles.c, help_stream.c), and of teach (help_teach.c),
  * printed to stdout. */
 void cli_help_speckles(void);
 void cli_help_stream(void);
@@ -205,6 +205,14 @@ struct swfs_learn_run_result;
  * its excess over unlimited frames and the frames for 10 % (or why there is no curve);
  * u, unit: the misfit's scale and unit. */
 void cli_curve_line(FILE *f, const char *cmd, const struct swfs_learn_run_result *r, double u, const char *unit);
+/* learn --lags: the wind its training loops' slopes show (the tracked layers), or that none
+ * was found; nd the data sets (on stdout) */
+void cli_learn_wind_summary(const struct swfs_learn_run_result *r, size_t nd);
+/* pupil --method fit: the joint fit's lines (method, self-check, its rings, the mean
+ * intensity's model; a warning on stderr where it took no step from its start) for out */
+struct swfs_pupil_result;
+struct swfs_geom;
+void cli_pupil_fit_summary(const struct swfs_pupil_result *r, const struct swfs_geom *g, const char *out);
 struct swfs_teach_run_result;
 struct swfs_speckles_run_options;
 /* What a successful `speckles` run prints: the reconstructor in use (for the taught default

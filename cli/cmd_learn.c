@@ -160,17 +160,7 @@ int swfs_cmd_learn(int argc, char **argv)
     if (o.perframe_out && o.nlags > 1)
         printf("learn: the per-frame map of the same frames (the lag-0 block) misses the residual by %.1f nm -> %s\n",
                1e9 * r.perframe_info.misfit_rms, o.perframe_out);
-    if (o.nlags > 1 && r.nwind)
-        printf("learn: the training loops' slopes move (%.4f, %.4f) subapertures per WFS frame (%zu of %zu data sets; "
-               "the farthest %.4f from that; the tracked layers), and their layers:\n", r.wind_vx, r.wind_vy,
-               r.nwind, nd, r.wind_spread);
-    for (size_t k = 0; o.nlags > 1 && k < r.nwlayers; k++)
-        printf("learn: layer %zu of the training loops' slopes: (%.4f, %.4f) subapertures per WFS frame, in %zu data "
-               "set%s (the farthest %.4f from that)\n", k + 1, r.wlayer_vx[k], r.wlayer_vy[k], r.wlayer_n[k],
-               r.wlayer_n[k] == 1 ? "" : "s", r.wlayer_spread[k]);
-    if (o.nlags > 1 && !r.nwind)
-        printf("learn: no wind found in the training loops' slopes (full layout needed): speckles cannot check the "
-               "observation's against it\n");
+    if (o.nlags > 1) cli_learn_wind_summary(&r, nd);
     if (o.curve) cli_curve_line(stdout, "learn:", &r, o.modal ? 1 : 1e9, o.modal ? "" : " nm");
     if (r.nheldout) {
         printf("learn: each data set held out in turn, the map of the others applied to it (misfit / residual; "

@@ -163,3 +163,18 @@ void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, do
                "to %.0f %%\n", r->info.nframes, 100 * r->curve_excess, u * sqrt(r->curve_a), unit, r->curve_frames,
                100 * SWFS_LEARN_CURVE_EXCESS);
 }
+
+void cli_learn_wind_summary(const swfs_learn_run_result *r, size_t nd)
+{
+    if (r->nwind)
+        printf("learn: the training loops' slopes move (%.4f, %.4f) subapertures per WFS frame (%zu of %zu data sets; "
+               "the farthest %.4f from that; the tracked layers), and their layers:\n", r->wind_vx, r->wind_vy,
+               r->nwind, nd, r->wind_spread);
+    for (size_t k = 0; k < r->nwlayers; k++)
+        printf("learn: layer %zu of the training loops' slopes: (%.4f, %.4f) subapertures per WFS frame, in %zu data "
+               "set%s (the farthest %.4f from that)\n", k + 1, r->wlayer_vx[k], r->wlayer_vy[k], r->wlayer_n[k],
+               r->wlayer_n[k] == 1 ? "" : "s", r->wlayer_spread[k]);
+    if (!r->nwind)
+        printf("learn: no wind found in the training loops' slopes (full layout needed): speckles cannot check the "
+               "observation's against it\n");
+}
