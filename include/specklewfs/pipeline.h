@@ -182,8 +182,11 @@ void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
  * and the map's rms in the pupil [m]. SWFS_ERR_VALUE before any exposure. */
 int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms);
 /* A map [m] (PUPN x PUPN, kept inside the pupil) that swfs_pipeline_mean_wavefront adds to the
- * reconstructed mean before piston, tip and tilt come out: a learned map's own miss of the
- * residual's time mean (learn's MEANMISS, docs/telemetry.md). NULL: none (the default). */
+ * reconstructed mean before piston, tip and tilt come out: a map's own miss of the residual's
+ * time mean (learn's MEANMISS, or the MEANMISS image of the map speckles' choice among the
+ * loops' maps writes; simulated loops' shared miss, docs/telemetry.md). NULL: none (the
+ * default). A sample inside the pupil that is not finite is refused, and the offset set
+ * before stays. */
 int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map);
 /* The wavefront [m] (PUPN x PUPN, piston, tip and tilt removed; no mean offset) that the
  * pipeline reconstructs from a mean of n telemetry values per WFS frame, as

@@ -595,6 +595,7 @@ _PROTOS = {
     "swfs_pipeline_flat_halo": (c_int, [c_ptr, c_ptr]),
     "swfs_pipeline_mean_wavefront": (c_int, [c_ptr, P(c_dbl), P(c_size), P(c_dbl)]),
     "swfs_pipeline_mean_reset": (None, [c_ptr]),
+    "swfs_pipeline_set_mean_offset": (c_int, [c_ptr, P(c_dbl)]),
     "swfs_pipeline_mean_loops": (c_int, [c_ptr, P(c_str), c_size, P(c_dbl), P(c_dbl)]),
     "swfs_pipeline_get_info": (None, [c_ptr, P(swfs_pipeline_info)]),
     "swfs_pipeline_recon": (P(swfs_recon), [c_ptr]),

@@ -231,6 +231,19 @@ class Pipeline:
         check(lib.swfs_pipeline_mean_wavefront(self._p, dptr(out), ctypes.byref(nexp), None), "swfs_pipeline_mean_wavefront")
         return out, nexp.value
 
+    def mean_offset(self, offset):
+        """A miss of the AO residual's time mean, added to mean_wavefront() from then on before
+        piston, tip and tilt come out (pipeline.h swfs_pipeline_set_mean_offset): offset (pupn,
+        pupn) [m] on the pupil grid, e.g. the MEANMISS image of the map speckles wrote
+        (write_recon=) where it chose among the loops' maps, read_fits(path, 'MEANMISS')[0];
+        None: none. What `stream --control` and `live` add from such a map."""
+        if offset is None:
+            check(lib.swfs_pipeline_set_mean_offset(self._p, None), "swfs_pipeline_set_mean_offset")
+            return
+        n = self.geom.pupn
+        off = as_array(offset, "offset", np.float64, shape=(n, n))
+        check(lib.swfs_pipeline_set_mean_offset(self._p, dptr(off)), "swfs_pipeline_set_mean_offset")
+
     def mean_reset(self):
         """Start the time mean anew."""
         lib.swfs_pipeline_mean_reset(self._p)

@@ -83,6 +83,27 @@ def test_pipeline_matches_engine_pieces(data):
     ref, rms = sw.wfe_remove_ptt((T.to_dense() @ (p.recon.W @ sbar)).reshape(40, 40), p.mask)
     inside = p.mask > 0
     assert rms > 0 and np.abs(m[inside] - ref[inside]).max() < 1e-4 * rms  # single-precision engine
+    # A miss of the mean (a map's MEANMISS image) is added before piston, tip and tilt come out.
+    yy, xx = (np.indices((40, 40)) - 19.5) / 20
+    off = 30e-9 * (xx ** 2 - yy ** 2 + 0.5 * xx + 0.2)  # astigmatism, with a tilt and a piston
+    p.mean_offset(off)
+    m2, _ = p.mean_wavefront()
+    want, _ = sw.wfe_remove_ptt(np.where(inside, off, 0.0), p.mask)
+    assert np.abs((m2 - m)[inside] - want[inside]).max() < 1e-12 * np.abs(want).max()
+    bad = off.copy()
+    k = np.flatnonzero(inside)[100]  # inside the pupil: refused, the offset set before stays
+    bad.flat[k] = np.nan
+    with pytest.raises(sw.Error, match=rf"mean offset sample {k} \(x {k % 40}, y {k // 40}\) is not finite"):
+        p.mean_offset(bad)
+    bad.flat[k] = off.flat[k]
+    bad[~inside] = np.nan  # outside it: not used
+    p.mean_offset(bad)
+    np.testing.assert_array_equal(p.mean_wavefront()[0], m2)
+    np.testing.assert_array_equal(p.mean_wavefront()[0], m2)
+    p.mean_offset(None)
+    np.testing.assert_array_equal(p.mean_wavefront()[0], m)
+    with pytest.raises(ValueError):
+        p.mean_offset(off[:10])
     p.mean_reset()
     with pytest.raises(sw.Error):
         p.mean_wavefront()

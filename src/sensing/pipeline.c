@@ -490,11 +490,12 @@ int swfs_pipeline_set_mean_offset(swfs_pipeline *p, const double *map)
         p->moff = NULL;
         return SWFS_OK;
     }
+    for (size_t i = 0; i < n * n; i++) /* checked before anything changes: a refused offset leaves the one set */
+        if (p->mask[i] > 0 && !isfinite(map[i]))
+            return swfs_fail(SWFS_ERR_VALUE, "pipeline: mean offset sample %zu (x %zu, y %zu) is not finite", i, i % n,
+                             i / n);
     if (!p->moff && !(p->moff = malloc(n * n * sizeof *p->moff))) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-    for (size_t i = 0; i < n * n; i++) {
-        if (!isfinite(map[i])) return swfs_fail(SWFS_ERR_VALUE, "pipeline: mean offset sample %zu is not finite", i);
-        p->moff[i] = p->mask[i] > 0 ? map[i] : 0.0;
-    }
+    for (size_t i = 0; i < n * n; i++) p->moff[i] = p->mask[i] > 0 ? map[i] : 0.0;
     return SWFS_OK;
 }
 
