@@ -435,7 +435,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     DM's grid dm_pitch [m], dm_offset (x, y) [m], dm_rot [deg], dm_flip; e.g. a pyramid's
     signals with simulate wfs=pyramid's influence.fits and imat_ao.fits. No map is taught for
     a linear model (recon applies to the Shack-Hartmann's); write_recon then writes its map to
-    the coefficients (imat's reconstructor, MAP or SVD), which control= takes back. teach_keys: what the files do not
+    the coefficients (imat's reconstructor, MAP or SVD), which control= takes back (where
+    loops_map chose among the loops' maps, the written set's map, carrying the miss of the
+    residual's mean that set was given as a MEANMISS image: stream and live add it, and no
+    default loops are simulated for a control= map that carries one). teach_keys: what the files do not
     say of the system teach's loops simulate, a dict in `simulate mode=timeseries` keys (e.g.
     dict(dm_coupling=0.15) for a DM of Gaussian influence functions; `--teach-set`), as
     teach(**params): they win over the files' description and are part of the fingerprint.
