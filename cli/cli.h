@@ -211,7 +211,6 @@ void cli_learn_wind_summary(const struct swfs_learn_run_result *r, size_t nd);
 /* pupil --method fit: the joint fit's lines (method, self-check, its rings, the mean
  * intensity's model; a warning on stderr where it took no step from its start) for out */
 struct swfs_pupil_result;
-struct swfs_geom;
 void cli_pupil_fit_summary(const struct swfs_pupil_result *r, const struct swfs_geom *g, const char *out);
 struct swfs_teach_run_result;
 struct swfs_speckles_run_options;

@@ -188,17 +188,12 @@ int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_
                           double *rms)
 {
     *rms = 0;
-    if (!path) return SWFS_OK;
-    swfs_fits_in *f = NULL;
-    int rc = swfs_fits_in_open(&f, path, NULL);
-    const int has = !rc && swfs_fits_in_has_ext(f, "MEANMISS");
-    swfs_fits_in_close(f);
-    if (rc || !has) return rc;
+    if (!swfs_map_has_meanmiss_(path)) return SWFS_OK; /* (the map itself was read by the pipeline) */
     const size_t n = (size_t)g->pupn;
     swfs_real *m = NULL;
     double *map = calloc(n * n, sizeof *map);
     if (!map) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    rc = swfs_fits_read_real(path, "MEANMISS", &m, NULL);
+    int rc = swfs_fits_read_real(path, "MEANMISS", &m, NULL);
     const size_t nk = rc ? 0 : m->nx * m->ny * m->nz;
     for (size_t k = 0; !rc && k < nk; k++)
         if (!isfinite(m->data[k])) rc = swfs_fail(SWFS_ERR_VALUE, "%s: MEANMISS value %zu is not finite", path, k);

@@ -238,9 +238,10 @@ static void mixer_close(mixer *m)
     free(m->off1);
 }
 
-/* w off0 + (1 - w) off1 as the MEANMISS image of the map file f (the pupil grid) */
-static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w, size_t n)
+/* w off0 + (1 - w) off1 as the MEANMISS image of the map file f (the pupil grid, RESMEAN's) */
+static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w)
 {
+    const size_t n = m->mean0->nx;
     swfs_real a = {n, n, 1, malloc(n * n * sizeof(double))};
     if (!a.data) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t i = 0; i < n * n; i++) a.data[i] = w * m->off0[i] + (1 - w) * m->off1[i];
@@ -267,7 +268,7 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
     if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs: speckles' loops_map, w MAP + (1 - w) LOOPS, NAXIS1 = telemetry "
                                         "values, NAXIS2 = basis functions");
-    if (!rc && m->off0) rc = mixer_miss_out(f, m, w, m->mean0->nx);
+    if (!rc && m->off0) rc = mixer_miss_out(f, m, w);
     if (rc) swfs_fits_out_abort(f);
     else rc = swfs_fits_out_commit(f);
     free(c.W);
@@ -287,11 +288,10 @@ static int mixer_write(const mixer *m, double w, const char *map, const char *me
 }
 
 /* The mixes' speckles and halos (step 5 of loops_map): nmix of them made, with mx open */
-static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckles_run_options *s2, const mixer *pmx,
+static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckles_run_options *s2, const mixer *mx,
                           swfs_loops_map_result *r, const char *sci, const char *mmean, char (*mmap)[4400],
                           char (*msp)[4400], char (*mh)[4400], size_t *nmix)
 {
-    const mixer mx = *pmx;
     int rc = SWFS_OK;
     for (size_t k = 0; !rc && k < SWFS_LOOPS_MAP_NMIX; k++) {
         const double w = 1.0 - (double)(k + 1) / (SWFS_LOOPS_MAP_NMIX + 1); /* 0.75, 0.5, 0.25 */
@@ -299,13 +299,13 @@ static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckle
         snprintf(mmap[k], 4400, "%.4300s/mix_%02d.fits", r->work, pc);
         snprintf(msp[k], 4400, "%.4300s/speckles_mix_%02d.fits", r->work, pc);
         snprintf(mh[k], 4400, "%.4300s/halo_mix_%02d.fits", r->work, pc);
-        rc = mixer_write(&mx, w, mmap[k], mx.mean0 ? mmean : NULL);
+        rc = mixer_write(mx, w, mmap[k], mx->mean0 ? mmean : NULL);
         swfs_speckles_run_options s3 = *s2;
         s3.lin.control = mmap[k];
         s3.out = msp[k];
         s3.nmatch = 0; /* the frames: s2's match, sci */
         s3.match_in = s3.match_out = NULL;
-        s3.resmean_from = mx.mean0 ? mmean : NULL;
+        s3.resmean_from = mx->mean0 ? mmean : NULL;
         swfs_speckles_run_result r3;
         if (!rc) rc = swfs_speckles_run(&s3, &r3);
         if (!rc) rc = estimate_into(sci, msp[k], mh[k], o);
@@ -320,12 +320,12 @@ static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckle
 /* --write-recon's map for the written set (dst, or src copied onto it), with the miss of the
  * mean that set was given as its MEANMISS image where the file has no MEANMISS of its own
  * (the loops' map's, per basis function) */
-static int recon_with_miss(const char *src, const char *dst, const mixer *mx, double w, size_t n)
+static int recon_with_miss(const char *src, const char *dst, const mixer *mx, double w)
 {
     swfs_fits_out *f = NULL;
     int rc = swfs_fits_out_copy(&f, src, dst);
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs speckles: the map of the speckles the self-check chose");
-    if (!rc && mx->off0 && !swfs_map_has_meanmiss_(src)) rc = mixer_miss_out(f, mx, w, n);
+    if (!rc && mx->off0 && !swfs_map_has_meanmiss_(src)) rc = mixer_miss_out(f, mx, w);
     if (rc) {
         swfs_fits_out_abort(f);
         return rc;
@@ -437,7 +437,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     }
     /* 6. the self-check's choice among the five */
     const char *halos[NC] = {h0, h1, mh[0], mh[1], mh[2]}, *sps[NC] = {o->out, sp, msp[0], msp[1], msp[2]},
-               *maps[NC] = {NULL, r->map, mmap[0], mmap[1], mmap[2]};
+               *maps[NC] = {o->write_recon, r->map, mmap[0], mmap[1], mmap[2]}; /* o->write_recon: o's own map */
     double ex[NC];
     size_t best = 0;
     if (!rc) rc = swfs_halo_choose_files(halos, 2 + nmix, ex, &best, &r->ncommon, NULL, NULL);
@@ -448,9 +448,8 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         for (size_t k = 0; k < nmix; k++) r->explained_mix[k] = ex[2 + k];
         r->weight = best == 0 ? 1.0 : best == 1 ? 0.0 : r->mix_weight[best - 2];
     }
-    const size_t n = (size_t)g->pupn;
     if (!rc && best == 0 && o->write_recon && mx.off0) /* the interaction matrix's map, with its miss */
-        rc = recon_with_miss(o->write_recon, o->write_recon, &mx, 1.0, n);
+        rc = recon_with_miss(maps[0], o->write_recon, &mx, r->weight);
     if (!rc && best > 0) {
         char why[300];
         if (best == 1)
@@ -464,7 +463,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
                      (int)lround(100 * r->weight), 100 * ex[best], 100 * ex[0], 100 * ex[1]);
         swfs_outputs_begin(); /* the speckles and --write-recon's map replaced together, or neither */
         rc = replace_with(sps[best], o->out, why);
-        if (!rc && o->write_recon) rc = recon_with_miss(maps[best], o->write_recon, &mx, r->weight, n);
+        if (!rc && o->write_recon) rc = recon_with_miss(maps[best], o->write_recon, &mx, r->weight);
         const int erc = swfs_outputs_end(rc == SWFS_OK);
         if (!rc) rc = erc;
         if (!rc) r->chosen = 1;
