@@ -155,6 +155,12 @@ size_t swfs_loop_first_frame_(const char *dir);
  * true residual (truewf_NNN.fits) where o->sim.export_truth; what: the progress's stage. */
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what);
 
+/* Whether a run simulates the mean loops (run_mean_teach.c): --mean-loop teach, or the default
+ * (SWFS_MEAN_TEACH_AUTO) for the linear model where no loops are given, the output is per
+ * camera exposure (not per_wfs_frame, speckles --wfs-rate) and the --control map carries no
+ * miss of its own (MEANMISS). */
+int swfs_mean_teach_wanted_(int mean_teach, const swfs_linear_files *lin, size_t nmean_loops, int per_wfs_frame);
+
 /* speckles --mean-loop teach (run_mean_teach.c): the loops of the system the observation's
  * files describe, simulated (or reused) into r->work/mean_NN; dirs[k] their folders and, where
  * r->done, loops[k] pointing at them (r->nloops of them, SWFS_MEAN_TEACH_MAX long): what

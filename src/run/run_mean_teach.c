@@ -614,6 +614,12 @@ static int mean_teach_auto(const swfs_speckles_run_options *o, const swfs_timing
     return SWFS_OK;
 }
 
+int swfs_mean_teach_wanted_(int mean_teach, const swfs_linear_files *lin, size_t nmean_loops, int per_wfs_frame)
+{
+    return mean_teach == 1 || (mean_teach == SWFS_MEAN_TEACH_AUTO && lin->basis && !nmean_loops && !per_wfs_frame &&
+                               !swfs_map_has_meanmiss_(lin->control));
+}
+
 int swfs_speckles_mean_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                               const swfs_geom *g, size_t nslopes, swfs_mean_teach_result *r, char (*dirs)[4400],
                               const char **loops)

@@ -649,8 +649,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
      * the mean loops (run_mean_teach.c) */
     const char *mt_ptr[SWFS_MEAN_TEACH_MAX];
     /* (a --control map that carries its own miss of the mean, MEANMISS, needs no loops for it) */
-    const int mteach = o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO && o->lin.basis && !o->nmean_loops &&
-                                              !o->pipe.wfs_rate && !swfs_map_has_meanmiss_(o->lin.control));
+    const int mteach = swfs_mean_teach_wanted_(o->mean_teach, &o->lin, o->nmean_loops, o->pipe.wfs_rate);
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc && mteach) rc = swfs_speckles_mean_teach_(o, w.t, w.tdir, &w.g, w.nslopes, &r->mean_teach, dirs, mt_ptr);

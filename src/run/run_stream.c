@@ -455,9 +455,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
     /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles;
      * from files with a timing table the loops may be simulated here, as speckles does */
-    const int mteach = !hk && o->timing && (o->mean_teach == 1 || (o->mean_teach == SWFS_MEAN_TEACH_AUTO &&
-                                                                   o->lin.basis && !o->nmean_loops &&
-                                                                   !swfs_map_has_meanmiss_(o->lin.control)));
+    const int mteach = !hk && o->timing && swfs_mean_teach_wanted_(o->mean_teach, &o->lin, o->nmean_loops, 0);
     char (*dirs)[4400] = mteach ? calloc(SWFS_MEAN_TEACH_MAX, sizeof *dirs) : NULL;
     if (!rc && mteach && !dirs) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     const char *mt[SWFS_MEAN_TEACH_MAX];
