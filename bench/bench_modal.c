@@ -72,7 +72,7 @@ static double run(const sys_def *d, int factored, int threads, double seconds, d
     swfs_pipeline_options o;
     swfs_pipeline_options_default(&o);
     o.threads = threads;
-    swfs_linear_input in = {nk, B, NULL, NULL, 1e-9, factored ? shapes : NULL, factored ? nk : 0};
+    swfs_linear_input in = {nk, B, NULL, NULL, 1e-9, factored ? shapes : NULL, factored ? nk : 0, 0};
     swfs_pipeline *p = NULL;
     if (swfs_pipeline_create_linear(&p, &g, d->nf, d->nf, mask, &in, NULL, 0, &o)) die("pipeline");
     *build_s = now() - t0;

@@ -53,11 +53,14 @@ void cli_loops_map_summary(const char *cmd, const swfs_loops_map_result *lm, siz
     if (lm->fallback[0])
         fprintf(stderr, "%s: note: no map from the loops to choose against the interaction matrix's (--loops-map): %s; "
                 "its speckles as written\n", cmd, lm->fallback);
-    char mmw[160] = "";
+    char mmw[300] = "", pf[120] = "";
+    if (isfinite(lm->pf_meanmiss_heldout))
+        snprintf(pf, sizeof pf, "; the per-frame map's of the same loops %.2f%s", lm->pf_meanmiss_heldout,
+                 lm->mean_from_perframe ? ": its mean instead" : "");
     if (isfinite(lm->meanmiss_heldout))
-        snprintf(mmw, sizeof mmw, "(each loop's by the map of the others, held out %.2f: %s)", lm->meanmiss_heldout,
-                 lm->mean_from_imat ? "not shared; the interaction matrix's corrected mean instead"
-                                    : lm->meanmiss_rms > 0 ? "added" : "none added");
+        snprintf(mmw, sizeof mmw, "(each loop's by the map of the others, held out %.2f: %s%s)", lm->meanmiss_heldout,
+                 lm->mean_from_perframe ? "not shared" : lm->mean_from_imat ? "not shared; the interaction matrix's "
+                 "corrected mean instead" : lm->meanmiss_rms > 0 ? "added" : "none added", pf);
     if (lm->mix_note[0])
         fprintf(stderr, "%s: note: the two maps not mixed (--loops-map): %s; the two scored alone\n", cmd, lm->mix_note);
     char wr[160];
@@ -68,6 +71,20 @@ void cli_loops_map_summary(const char *cmd, const swfs_loops_map_result *lm, siz
     for (int k = 0, n = 0; k < SWFS_LOOPS_MAP_NMIX && isfinite(lm->explained_mix[k]) && n >= 0 && n < (int)sizeof mix; k++)
         n += snprintf(mix + n, sizeof mix - (size_t)n, "%s%.2f: %.2f %%", k ? ", " : ", the two mixed at ",
                       lm->mix_weight[k], 100 * lm->explained_mix[k]);
+    if (lm->tried && lm->nlags) {
+        char lg[200] = "";
+        for (size_t k = 0, n = 0; k < lm->nlags && n < sizeof lg; k++)
+            n += (size_t)snprintf(lg + n, sizeof lg - n, "%s%ld", k ? "," : "", lm->lags[k]);
+        char why[160];
+        if (lm->lag_speed > 0)
+            snprintf(why, sizeof why, "the loops' fastest layer %.4f subapertures per WFS frame: half a subaperture in "
+                     "%ld frames", lm->lag_speed, lm->lags[2]);
+        else
+            snprintf(why, sizeof why, "no layer tracked in the loops: the frames next to each");
+        fprintf(stderr, "%s: --loops-map: a space-time map, the loops' telemetry at lags %s (%s)\n", cmd, lg, why);
+    } else if (lm->tried && lm->st_frames)
+        fprintf(stderr, "%s: --loops-map: a per-frame map (a space-time one's inputs need %zu frames; the loops hold "
+                "%zu)\n", cmd, lm->st_frames, lm->nframes);
     if (lm->tried)
         fprintf(stderr, "%s: --loops-map: a map learned from the %zu loops' %zu frames for %zu inputs (misfit %.1f of "
                 "%.1f nm per output; their DM on the basis within %.2g), its miss of the mean %s: "

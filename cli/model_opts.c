@@ -146,9 +146,13 @@ void cli_band_summary(const char *cmd, const swfs_pipeline_info *in, int given)
 
 void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs_pipeline_info *in)
 {
+    char st[120] = "control matrix";
+    if (in->nlags > 1)
+        snprintf(st, sizeof st, "space-time control matrix of %zu lags (the telemetry of %zu frames stacked)", in->nlags,
+                 in->nlags);
     fprintf(stderr, "%s: linear model %s: %zu basis functions (%zu nonzeros on the pupil%s), %s, scale %g; residual "
             "%.1f nm rms (tip-tilt removed)%s\n", cmd, lf->basis, in->nbasis, in->basis_nnz,
-            lf->reg.pitch > 0 ? ", from the DM grid" : "", lf->control ? "control matrix" : lf->imat ?
+            lf->reg.pitch > 0 ? ", from the DM grid" : "", lf->control ? st : lf->imat ?
             (in->ntrain ? "interaction matrix, MAP reconstructor" : "interaction matrix, SVD reconstructor") :
             "the telemetry as coefficients", lf->scale, in->resid_rms * 1e9,
             in->composed ? "; basis and control folded into one matrix" : "");

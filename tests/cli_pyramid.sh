@@ -228,6 +228,38 @@ ell=$(ncp_error "$D/pupil_llm.log")
 echo "cli_pyramid: live --control with --write-recon's map: RESMEAN $rl of stream's rms apart, NCP error $ell nm" >&2
 awk -v r="$rl" -v a="$ell" -v b="$esl" 'BEGIN { exit !(r < 1e-6 && a > 0.95 * b && a < 1.05 * b) }' \
     || fail "live with the written map: RESMEAN $rl apart, $ell nm against stream's $esl nm"
+# a space-time control matrix through the linear model (a cube of one plane per lag, NLAGS and
+# LAGk: learn --lags on the two loops, their own DM as the basis): speckles stacks the signals
+# at its lags, stream makes the same RESMEAN and NCP error, live on the replayed streams the
+# same as stream
+"$B" learn "$D/tw/mean_00" "$D/tw/mean_01" -o "$D/st_w.fits" --lags 0,-4,4 --no-heldout --no-mean-miss \
+    > "$D/learn_st.log" 2>&1 || { cat "$D/learn_st.log"; fail "learn --lags (the two loops)"; }
+stb=(--basis "$D/tw/mean_00/influence.fits" --control "$D/st_w.fits")
+"$B" speckles "$D/timing.txt" --science "$D/science.fits" "${stb[@]}" --mean-loop none -o "$D/speckles_st.fits" \
+    2> "$D/speckles_st.log" || { cat "$D/speckles_st.log"; fail "speckles --control (space-time)"; }
+grep -q "space-time control matrix of 3 lags" "$D/speckles_st.log" || { cat "$D/speckles_st.log"; fail "speckles: no lags"; }
+"$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${stb[@]}" --mean-loop none -o "$D/stream_st.fits" \
+    > "$D/stream_st.log" 2>&1 || { cat "$D/stream_st.log"; fail "stream --control (space-time)"; }
+rst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/speckles_st.fits[RESMEAN]" "$D/stream_st.fits[RESMEAN]") \
+    || fail "fitsdiff RESMEAN (speckles, stream: space-time)"
+"$B" estimate "$D/science.fits" "$D/speckles_st.fits" -o "$D/halo_st.fits" > /dev/null 2>&1 || fail "estimate (space-time)"
+"$B" pupil "$D/halo_st.fits" -o "$D/pupil_st.fits" --truth "$S/truth.fits" > "$D/pupil_st.log" || fail "pupil (space-time)"
+"$B" pupil "$D/stream_st.fits" -o "$D/pupil_sst.fits" --truth "$S/truth.fits" > "$D/pupil_sst.log" || fail "pupil (stream st)"
+est=$(ncp_error "$D/pupil_st.log")
+esst=$(ncp_error "$D/pupil_sst.log")
+"$B" live --shm-dir "$D/shm" --wfs w2 --camera c2 --geom "$D/science.fits" "${stb[@]}" --batch 8 --max-wait 60 \
+    --idle-exit 0.5 -o "$D/live_st.fits" > "$D/live_st.log" 2>&1 &
+live_pid=$!
+"$B" replay --shm-dir "$D/shm" --wfs-name w2 --camera-name c2 --timing "$D/timing.txt" --science "$D/science.fits" \
+    --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay_st.log" 2>&1 \
+    || { cat "$D/replay_st.log"; fail "replay (space-time)"; }
+wait "$live_pid" || { cat "$D/live_st.log"; fail "live --control (space-time)"; }
+grep -q "live_st.fits: $nsci camera frames used" "$D/live_st.log" || { cat "$D/live_st.log"; fail "live st: frames"; }
+rlst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/stream_st.fits[RESMEAN]" "$D/live_st.fits[RESMEAN]") \
+    || fail "fitsdiff RESMEAN (stream, live: space-time)"
+echo "cli_pyramid: a space-time control matrix (lags 0,-4,4): NCP error $est nm (speckles) / $esst nm (stream), RESMEAN $rst (stream) and $rlst (live) apart" >&2
+awk -v r="$rst" -v q="$rlst" -v a="$est" -v b="$esst" -v i="$i" 'BEGIN { exit !(r < 1e-6 && q < 1e-6 && a > 0 &&
+    a < 2 * i && b > a - 0.15 && b < a + 0.15) }' || fail "space-time control: $est / $esst nm (ideal $i), RESMEAN $rst / $rlst"
 expect_error "loops-map choose goes with the linear model's --imat" "$B" speckles "$D/timing.txt" --science \
     "$D/science.fits" "${pyr[@]}" --mean-loop none --loops-map choose -o "$D/lm_x.fits"
 [ ! -e "$D/lm_x.fits" ] || fail "speckles left an output after refusing --loops-map"

@@ -210,7 +210,7 @@ static void test_linear_equals_shack_hartmann(void **state)
         const swfs_recon *used = swfs_pipeline_recon(sh);
         const swfs_sparse *T = swfs_pipeline_model(sh)->T;
         /* (1) the interpolation as the basis, W as the control matrix: the two-stage form */
-        swfs_linear_input in = {f.nslopes, T, used->W, NULL, 1.0, NULL, 0};
+        swfs_linear_input in = {f.nslopes, T, used->W, NULL, 1.0, NULL, 0, 0};
         assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
         swfs_pipeline_info li;
         swfs_pipeline_get_info(lin, &li);
@@ -226,7 +226,7 @@ static void test_linear_equals_shack_hartmann(void **state)
         }
         swfs_sparse *B = NULL;
         assert_ok(swfs_basis_from_pupil(&B, cube, NPUP, ns, f.mask));
-        swfs_linear_input in2 = {ns, B, NULL, NULL, 1.0, NULL, 0};
+        swfs_linear_input in2 = {ns, B, NULL, NULL, 1.0, NULL, 0, 0};
         assert_ok(swfs_pipeline_create_linear(&fold, &f.g, NF, NF, f.mask, &in2, f.slopes, f.nwfs, &o));
         swfs_pipeline_get_info(fold, &li);
         assert_int_equal(li.composed, 1);
@@ -284,7 +284,7 @@ static void test_mean_wavefront(void **state)
         swfs_pipeline *sh = NULL, *lin = NULL;
         assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, ns, f.rec, NULL, 0, &o));
         const swfs_sparse *T = swfs_pipeline_model(sh)->T;
-        swfs_linear_input in = {ns, T, f.rec->W, NULL, 1.0, NULL, 0};
+        swfs_linear_input in = {ns, T, f.rec->W, NULL, 1.0, NULL, 0, 0};
         assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
         size_t nexp = 99;
         assert_int_equal(swfs_pipeline_mean_wavefront(sh, got, &nexp, NULL), SWFS_ERR_VALUE);
@@ -449,12 +449,12 @@ static void test_linear_refusals(void **state)
     assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
     const swfs_sparse *T = swfs_pipeline_model(sh)->T;
     /* um of DM surface taken as metres: a wavefront of kilometres */
-    swfs_linear_input in = {f.nslopes, T, f.rec->W, NULL, 2e6, NULL, 0};
+    swfs_linear_input in = {f.nslopes, T, f.rec->W, NULL, 2e6, NULL, 0, 0};
     assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o), SWFS_ERR_VALUE);
     printf("lmodel: %s\n", swfs_last_error());
     assert_non_null(strstr(swfs_last_error(), "scale (2e+06)"));
     /* the coefficients of a basis of another size */
-    swfs_linear_input bad = {f.nslopes + 1, T, NULL, NULL, 1.0, NULL, 0};
+    swfs_linear_input bad = {f.nslopes + 1, T, NULL, NULL, 1.0, NULL, 0, 0};
     assert_int_equal(swfs_pipeline_create_linear(&p, &f.g, NF, NF, f.mask, &bad, NULL, 0, &o), SWFS_ERR_SHAPE);
     assert_non_null(strstr(swfs_last_error(), "129 telemetry values per frame taken as the coefficients of"));
     assert_null(p);
@@ -481,7 +481,7 @@ static void test_interaction_matrix(void **state)
     const swfs_speckle_model *m = swfs_pipeline_model(sh);
     double *D = NULL;
     assert_ok(swfs_interaction_matrix(m->wfs, m->T, &D));
-    swfs_linear_input in = {f.nslopes, m->T, NULL, D, 1.0, NULL, 0};
+    swfs_linear_input in = {f.nslopes, m->T, NULL, D, 1.0, NULL, 0, 0};
     assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, f.nwfs, &o));
     swfs_pipeline_info a, b;
     swfs_pipeline_get_info(sh, &a);
@@ -535,7 +535,7 @@ static void test_factored_grid_basis(void **state)
     swfs_pipeline_options o;
     swfs_pipeline_options_default(&o);
     swfs_pipeline *dense = NULL, *fact = NULL;
-    swfs_linear_input a = {nk, B, NULL, NULL, 1.0, NULL, 0}, b = {nk, T, NULL, NULL, 1.0, shapes, nk};
+    swfs_linear_input a = {nk, B, NULL, NULL, 1.0, NULL, 0, 0}, b = {nk, T, NULL, NULL, 1.0, shapes, nk, 0};
     assert_ok(swfs_pipeline_create_linear(&dense, &f.g, NF, NF, f.mask, &a, v, f.nwfs, &o));
     assert_ok(swfs_pipeline_create_linear(&fact, &f.g, NF, NF, f.mask, &b, v, f.nwfs, &o));
     swfs_pipeline_info ia, ib;

@@ -120,6 +120,10 @@ typedef struct swfs_linear_input {
                                   (e.g. a mode cube's values at the DM-grid points); control, imat and
                                   the coefficients then refer to the nshapes functions */
     size_t nshapes;
+    size_t nlags;              /* 0 or 1: one frame's values; more: a space-time control matrix, each
+                                  frame's input the values of frames t + lags[k] stacked (the caller
+                                  stacks them, wfs.h swfs_slopes_stack): nmeas = nlags x the values
+                                  per frame, control in lag blocks (imat: not with lags) */
 } swfs_linear_input;
 
 /* The wavefront of a linear model's frame [m] beyond this rms is no residual of a working AO
@@ -181,6 +185,9 @@ void swfs_pipeline_get_info(const swfs_pipeline *p, swfs_pipeline_info *info);
  * subtracts it (pupil.h, docs/telemetry.md). nexp, rms (may be NULL): the exposures averaged,
  * and the map's rms in the pupil [m]. SWFS_ERR_VALUE before any exposure. */
 int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms);
+/* The same mean as the engine reconstructs it alone, without the offset set by
+ * swfs_pipeline_set_mean_offset (a map's or loops' miss of it): what a miss is measured against. */
+int swfs_pipeline_mean_reconstruction(const swfs_pipeline *p, double *out);
 /* A map [m] (PUPN x PUPN, kept inside the pupil) that swfs_pipeline_mean_wavefront adds to the
  * reconstructed mean before piston, tip and tilt come out: a map's own miss of the residual's
  * time mean (learn's MEANMISS, or the MEANMISS image of the map speckles' choice among the

@@ -55,7 +55,9 @@ typedef struct swfs_linear_files {
     const char *basis;       /* NULL: the Shack-Hartmann model. A cube PUPN x PUPN x nk on the
                                 pupil grid, or gx x gy x nk on the DM's grid placed by reg */
     const char *control;     /* NAXIS1 = telemetry values per frame, NAXIS2 = nk: the
-                                coefficients = C v; NULL (and no imat): v are the coefficients */
+                                coefficients = C v; NULL (and no imat): v are the coefficients.
+                                A cube of them, one plane per lag (NLAGS, LAGk): a space-time
+                                control matrix of the values of frames t + LAGk */
     const char *imat;        /* NAXIS1 = nk, NAXIS2 = telemetry values: the interaction matrix,
                                 inverted by the telemetry-learned MAP reconstructor (or SVD) */
     swfs_dm_registration reg;/* reg.pitch 0: the basis is on the pupil grid */
@@ -67,6 +69,12 @@ void swfs_linear_files_default(swfs_linear_files *lf);
  * wavefront per value (2 x nmeas, caller frees; swfs_pipeline_tilt_rows) on the geometry of
  * the science cube `science`. */
 int swfs_linear_tilt_rows(const swfs_linear_files *lf, const char *science, size_t nmeas, double **R);
+/* The lags of lf's control matrix where it is a space-time one (a cube of one plane per lag,
+ * NLAGS and LAGk: `learn --lags`, speckles' loops' map): *nl of them into lags
+ * (SWFS_RECON_MAXLAGS long); *nl = 0 for a per-frame matrix or none. Its input is then the
+ * telemetry of frames t + lags[k] stacked (swfs_slopes_stack), which speckles, stream and live
+ * stack as they do for a Shack-Hartmann's space-time map. */
+int swfs_linear_control_lags(const swfs_linear_files *lf, long *lags, size_t *nl);
 /* The pipeline over lf's model (swfs_pipeline_create_linear) for telemetry of nmeas values
  * per frame (0: as many as the control matrix takes, or the basis functions): the files read, their shapes checked against each other, nmeas and PUPN, each
  * message naming the file. mask: PUPN^2 or NULL (the annulus of g). *n_outside: illuminated
@@ -231,6 +239,10 @@ typedef struct swfs_speckles_run_options {
                                  ones asks for more frames (swfs_learn_run_result.curve_frames,
                                  teach's rule), up to this many (0: 4 mean_teach_loops, at most
                                  SWFS_MEAN_TEACH_MAX); mean_teach_loops..SWFS_MEAN_TEACH_MAX */
+    const char *mean_rec_out; /* NULL, or a file this run writes (extension RESMEAN) with its own
+                                 reconstruction of the residual's mean, no miss added nor
+                                 resmean_from's (swfs_pipeline_mean_reconstruction): loops_map's
+                                 misses, RESMEAN less it, for the maps stream and live take */
 } swfs_speckles_run_options;
 
 #define SWFS_LOOPS_MAP_AUTO (-1)
@@ -276,6 +288,19 @@ typedef struct swfs_loops_map_result {
     double weight;            /* w of the written speckles' map: 1 the interaction matrix's, 0 the
                                  loops' map's, else their mix (mix_NN.fits, NN = 100 w) */
     char mix_note[1024];      /* why the maps were not mixed ("" otherwise): the two ends scored */
+    /* the loops' map is a space-time one (docs/telemetry.md, "A space-time loops' map"): frame
+     * t's residual from the telemetry of frames t + lags[k], teach's rule (swfs_loops_map_lags_) */
+    size_t nlags;             /* 0: per frame */
+    long lags[SWFS_RECON_MAXLAGS];
+    double lag_speed;         /* [subapertures per WFS frame] the fastest layer `wind` tracked in the
+                                 first loop's telemetry (0: none, or not a Shack-Hartmann layout) */
+    size_t st_frames;         /* the frames the space-time map needed (SWFS_LEARN_CURVE_EXCESS of its
+                                 inputs) where the loops held fewer: the per-frame map instead (0 else) */
+    double pf_meanmiss_heldout; /* a space-time map whose miss of the mean the loops do not share:
+                                 the per-frame map of the same loops', held out alike (NaN: not
+                                 learned); below 1 its mean goes with the space-time speckles */
+    int mean_from_perframe;   /* 1: that per-frame map's mean (its reconstruction of the telemetry's
+                                 mean plus its shared miss) is the written speckles' RESMEAN */
 } swfs_loops_map_result;
 
 #define SWFS_MEAN_TEACH_MAX 16
@@ -326,7 +351,9 @@ typedef struct swfs_mean_teach_result {
     double curve_excess;      /* that curve over the first loops (swfs_learn_run_result): the map of
                                  their frames above unlimited frames' misfit^2, a fraction; NaN:
                                  not measured (no loops' map to follow, or fewer than 4 loops) */
-    size_t curve_frames;      /* the frames it asked for (SWFS_LEARN_CURVE_EXCESS); 0: none */
+    size_t curve_frames;      /* the frames it asked for (SWFS_LEARN_CURVE_EXCESS), times the space-time
+                                 loops' map's lags (its inputs that many times the per-frame map's);
+                                 0: none */
     double seconds;
     char work[4200];          /* the folder holding mean_NN and mean_loops.conf (their description) */
 } swfs_mean_teach_result;

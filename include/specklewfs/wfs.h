@@ -342,6 +342,9 @@ int swfs_recon_write_outxy(struct swfs_fits_out *f, const swfs_recon *r);
 /* The map and, when the file has extension OUTXY, its output points (r->oxy; checked to be
  * nact finite (x, y) pairs). */
 int swfs_recon_read(const char *path, swfs_recon **out);
+/* The lags of a cube of nz planes, one per lag, from its primary header (NLAGS = nz, LAG1 ..
+ * LAGnz, swfs_lags_check'd) into lags (nz long): a space-time map's, or a control matrix's. */
+int swfs_lags_read(const char *path, size_t nz, long *lags);
 /* Extension OUTXY of `path` (NAXIS1 = 2, NAXIS2 = n finite (x, y) [m]) into *xy (malloc'd),
  * or *xy = NULL when the file has none: a map's output points, or those truewf_NNN.fits were
  * fitted on (simulate's truth_actuators). */

@@ -160,7 +160,7 @@ swfs_dm_registration = _s("swfs_dm_registration", [("pitch", c_dbl), ("x0", c_db
                                                    ("flip_x", c_int)])
 swfs_linear_input = _s("swfs_linear_input", [("nmeas", c_size), ("basis", P(swfs_sparse)), ("control", P(c_dbl)),
                                              ("imat", P(c_dbl)), ("scale", c_dbl), ("shapes", P(c_dbl)),
-                                             ("nshapes", c_size)])
+                                             ("nshapes", c_size), ("nlags", c_size)])
 swfs_shwfs = _s("swfs_shwfs", [("nsub", c_size), ("nslopes", c_size), ("npup", c_size), ("pupdx", c_dbl),
                                ("diam", c_dbl), ("S", P(swfs_sparse)), ("valid", P(ctypes.c_ubyte)),
                                ("nvalid", c_size)])
@@ -333,7 +333,8 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("teach_seed", c_u64),
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
     ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int),
-    ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str), ("mean_teach_max_loops", c_size)])
+    ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str), ("mean_teach_max_loops", c_size),
+    ("mean_rec_out", c_str)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
 swfs_loops_map_result = _s("swfs_loops_map_result", [
@@ -341,7 +342,9 @@ swfs_loops_map_result = _s("swfs_loops_map_result", [
     ("inputs", c_size), ("misfit_rms", c_dbl), ("truth_rms", c_dbl), ("carry_resid", c_dbl),
     ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl), ("mean_from_imat", c_int), ("seconds", c_dbl),
     ("work", ctypes.c_char * 4200), ("map", ctypes.c_char * 4400), ("fallback", ctypes.c_char * 1024),
-    ("mix_weight", c_dbl * 3), ("explained_mix", c_dbl * 3), ("weight", c_dbl), ("mix_note", ctypes.c_char * 1024)])
+    ("mix_weight", c_dbl * 3), ("explained_mix", c_dbl * 3), ("weight", c_dbl), ("mix_note", ctypes.c_char * 1024),
+    ("nlags", c_size), ("lags", ctypes.c_long * RECON_MAXLAGS), ("lag_speed", c_dbl), ("st_frames", c_size),
+    ("pf_meanmiss_heldout", c_dbl), ("mean_from_perframe", c_int)])
 LOOPS_MAP_NMIX = 3  # run.h SWFS_LOOPS_MAP_NMIX
 swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("done", c_int), ("reused", c_int), ("automatic", c_int), ("fallback", ctypes.c_char * 1024), ("nloops", c_size), ("loop_frames", c_size), ("pyramid", c_int),

@@ -462,7 +462,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     mean loops. Returned as loops_map (a dict: chosen, explained (the interaction matrix's, the
     loops' map's), mix_weight, explained_mix (the mixes'), weight (the written set's w: 1 the
     interaction matrix's, 0 the loops'), map, work, meanmiss_heldout, mean_from_imat,
-    carry_resid, nframes, inputs) when tried, else None and loops_map_fallback says why (too
+    carry_resid, nframes, inputs; lags: the space-time map's (teach's rule: 0, -L, L, -2L, 2L,
+    the loops' fastest layer moving half a subaperture in L frames, lag_speed [subapertures per
+    frame], 0 none), () where the loops held fewer frames than it needs (st_frames) and the
+    per-frame map was learned; pf_meanmiss_heldout, mean_from_perframe: where the space-time
+    map's miss of the mean is not shared, the per-frame map's of the same loops and whether its
+    mean went with the speckles) when tried, else None and loops_map_fallback says why (too
     few frames in the loops for a map of their own, ...). Where speckles simulates the loops for
     that map, it simulates more of them where the map's learning curve over the first ones asks
     for more frames (teach's rule), up to mean_teach_max_loops (None: 4 mean_teach_loops, at
@@ -549,7 +554,9 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         inputs=lm.inputs, misfit_rms=lm.misfit_rms, truth_rms=lm.truth_rms, carry_resid=lm.carry_resid,
         meanmiss_heldout=lm.meanmiss_heldout, meanmiss_rms=lm.meanmiss_rms, mean_from_imat=bool(lm.mean_from_imat),
         seconds=lm.seconds, work=lm.work.decode(), map=lm.map.decode(), mix_weight=tuple(lm.mix_weight),
-        explained_mix=tuple(lm.explained_mix), weight=lm.weight, mix_note=lm.mix_note.decode())
+        explained_mix=tuple(lm.explained_mix), weight=lm.weight, mix_note=lm.mix_note.decode(),
+        lags=tuple(lm.lags[k] for k in range(lm.nlags)), lag_speed=lm.lag_speed, st_frames=lm.st_frames,
+        pf_meanmiss_heldout=lm.pf_meanmiss_heldout, mean_from_perframe=bool(lm.mean_from_perframe))
     d["modal_regularized"], d["modal_lsq"] = bool(r.modal_regularized), r.modal_lsq
     if r.modal_regularized:
         warnings.warn("speckles: these slopes came through modal_slopes(..., imat=) from coefficients whose white "

@@ -552,6 +552,9 @@ def test_pyramid_timeseries(tmp_path):
                      teach_work=str(tmp_path / "tw5"))
     L = t5["loops_map"]
     assert L is not None and L["inputs"] == 2 * r["nvalid"] and L["nframes"] >= 10 * L["inputs"]
+    # (a space-time map, teach's five lags, would need ten times its inputs in frames: these three
+    # loops hold fewer, so the per-frame map of them, and the run says how many it needed)
+    assert L["lags"] == () and L["st_frames"] > L["nframes"] and L["st_frames"] >= 10 * 5 * L["inputs"]
     # the written set is the one of the five (the two ends, the three mixes) that explains most
     scores = [L["explained"][0], L["explained"][1]] + list(L["explained_mix"])
     weights = [1.0, 0.0] + list(L["mix_weight"])

@@ -185,8 +185,7 @@ int swfs_recon_write(const swfs_recon *r, const char *path)
     return swfs_fits_out_commit(o);
 }
 
-/* A cube's lags from its keywords (nz planes). */
-static int read_lags(const char *path, size_t nz, swfs_recon *r)
+int swfs_lags_read(const char *path, size_t nz, long *lags)
 {
     swfs_fits_in *f = NULL;
     int rc = swfs_fits_in_open(&f, path, NULL);
@@ -199,12 +198,11 @@ static int read_lags(const char *path, size_t nz, swfs_recon *r)
     for (long k = 0; !rc && k < n; k++) {
         char key[32];
         snprintf(key, sizeof key, "LAG%ld", k + 1);
-        rc = swfs_fits_in_key_long_opt(f, key, LONG_MIN, LONG_MAX, &r->lags[k], &found); /* checked below */
+        rc = swfs_fits_in_key_long_opt(f, key, LONG_MIN, LONG_MAX, &lags[k], &found); /* checked below */
         if (!rc && !found) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: NLAGS = %ld but no %s", path, n, key);
     }
     swfs_fits_in_close(f);
-    if (!rc) rc = swfs_lags_check(r->lags, nz, path);
-    if (!rc) r->nlags = nz;
+    if (!rc) rc = swfs_lags_check(lags, nz, path);
     return rc;
 }
 
@@ -238,7 +236,8 @@ int swfs_recon_read(const char *path, swfs_recon **out)
             memcpy(r->W + j * r->nslopes + k * ns, a->data + (k * na + j) * ns, ns * sizeof *r->W);
     r->nmodes = 0;
     swfs_real_free(a);
-    if ((nl > 1 && (rc = read_lags(path, nl, r))) || (rc = swfs_outxy_read(path, r->nact, &r->oxy))) {
+    if (nl > 1 && !(rc = swfs_lags_read(path, nl, r->lags))) r->nlags = nl;
+    if (rc || (rc = swfs_outxy_read(path, r->nact, &r->oxy))) {
         swfs_recon_free(r);
         return rc;
     }

@@ -41,6 +41,55 @@ static int read_matrix(const char *path, const char *what, size_t *ncols, size_t
     return SWFS_OK;
 }
 
+/* A control matrix file: an image (NAXIS1 = telemetry values per frame, NAXIS2 = basis
+ * functions), or a space-time one's cube of them, one plane per lag (NLAGS, LAGk: `learn
+ * --lags`, speckles' loops' map), read into lag blocks (nk x nl nm: swfs_slopes_stack's layout of
+ * the input). *nm, *nk: expected (0: any), then the file's; *nl its lags (1: per frame). */
+static int read_control(const char *path, size_t *nm, size_t *nk, swfs_real **m, long *lags, size_t *nl)
+{
+    *nl = 1;
+    int rc = swfs_fits_read_real(path, NULL, m, NULL);
+    if (rc) return rc;
+    const swfs_real *a = *m;
+    if ((*nm && a->nx != *nm) || (*nk && a->ny != *nk) || a->nz > SWFS_RECON_MAXLAGS)
+        return swfs_fail(SWFS_ERR_SHAPE, "%s: the control matrix (telemetry values x basis functions) is %zu x %zu x %zu; "
+                         "expected NAXIS1 = %zu%s, NAXIS2 = %zu%s (and NAXIS3 one plane per lag of a space-time map, at "
+                         "most %d)", path, a->nx, a->ny, a->nz, *nm, *nm ? "" : " (any)", *nk, *nk ? "" : " (any)",
+                         SWFS_RECON_MAXLAGS);
+    if (a->nz > 1) {
+        if ((rc = swfs_lags_read(path, a->nz, lags))) return rc;
+        swfs_real *b = swfs_real_alloc(a->nz * a->nx, a->ny, 1);
+        if (!b) return swfs_fail_context(SWFS_ERR_NOMEM, "%s", path);
+        for (size_t k = 0; k < a->nz; k++)
+            for (size_t j = 0; j < a->ny; j++)
+                memcpy(b->data + j * b->nx + k * a->nx, a->data + (k * a->ny + j) * a->nx, a->nx * sizeof *b->data);
+        *nl = a->nz;
+        swfs_real_free(*m);
+        *m = b;
+        *nm = b->nx / *nl;
+    } else {
+        lags[0] = 0;
+        *nm = a->nx;
+    }
+    *nk = (*m)->ny;
+    return SWFS_OK;
+}
+
+int swfs_linear_control_lags(const swfs_linear_files *lf, long *lags, size_t *nl)
+{
+    *nl = 0;
+    if (!lf->control) return SWFS_OK;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, lf->control, NULL);
+    const size_t nz = rc ? 0 : swfs_fits_in_shape(f)->nz;
+    swfs_fits_in_close(f);
+    if (!rc && nz > SWFS_RECON_MAXLAGS)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the control matrix has %zu planes; a space-time one has one per lag, at most %d",
+                       lf->control, nz, SWFS_RECON_MAXLAGS);
+    if (!rc && nz > 1 && !(rc = swfs_lags_read(lf->control, nz, lags))) *nl = nz;
+    return rc;
+}
+
 /* The basis: on the pupil grid, resampled as it is; on a DM grid, in factored form (the
  * grid's interpolation onto the pupil, *shapes = the cube's values at the grid points,
  * gx gy x nk: pipeline.h swfs_linear_input.shapes). *nk: the basis functions. */
@@ -240,26 +289,38 @@ int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const s
     }
     swfs_sparse *B = NULL;
     swfs_real *m = NULL;
-    double *shapes = NULL;
-    size_t nk = 0, nm = nmeas;
+    double *shapes = NULL, *stacked = NULL;
+    size_t nk = 0, nm = nmeas, nl = 1;
+    long lags[SWFS_RECON_MAXLAGS];
     rc = load_basis(lf, g, mask, &B, &shapes, &nk);
     if (!rc && !nmeas) nmeas = nm = lf->control || lf->imat ? 0 : nk; /* taken from the files */
-    if (!rc && lf->control) rc = read_matrix(lf->control, "control matrix (telemetry values x basis functions)", &nm, &nk, &m);
+    if (!rc && lf->control) rc = read_control(lf->control, &nm, &nk, &m, lags, &nl);
     if (!rc && lf->imat) rc = read_matrix(lf->imat, "interaction matrix (basis functions x telemetry values)", &nk, &nm, &m);
     if (!rc && !nmeas) nmeas = nm;
+    /* a space-time control matrix: its input, and the training frames checked through it, are
+     * the values of frames t + lags stacked (swfs_slopes_stack, clamped at the frames' ends) */
+    if (!rc && nl > 1 && train && ntrain) {
+        if (!(stacked = malloc(ntrain * nl * nmeas * sizeof *stacked)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory for %zu stacked training frames", ntrain);
+        else {
+            swfs_slopes_stack(train, ntrain, nmeas, lags, nl, 0, ntrain, stacked);
+            train = stacked;
+        }
+    }
     if (!rc && !lf->control && !lf->imat && nmeas != nk)
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions but the telemetry has %zu values per frame, taken as their "
                        "coefficients; give the control matrix (--control) or the interaction matrix (--imat) to map "
                        "other telemetry", lf->basis, nk, nmeas);
     if (!rc) {
-        swfs_linear_input in = {nmeas, B, lf->control ? m->data : NULL, lf->imat ? m->data : NULL, lf->scale, shapes,
-                                shapes ? nk : 0};
+        swfs_linear_input in = {nl * nmeas, B, lf->control ? m->data : NULL, lf->imat ? m->data : NULL, lf->scale, shapes,
+                                shapes ? nk : 0, nl > 1 ? nl : 0};
         rc = swfs_pipeline_create_linear(p, g, nfx, nfy, mask, &in, train, ntrain, po);
         if (rc) swfs_fail_context(rc, "the linear model of %s", lf->basis);
     }
     swfs_real_free(m);
     swfs_sparse_free(B);
     free(shapes);
+    free(stacked);
     free(annulus);
     return rc;
 }
@@ -280,8 +341,14 @@ int swfs_linear_tilt_rows(const swfs_linear_files *lf, const char *science, size
     swfs_pipeline *p = NULL;
     if ((rc = swfs_linear_pipeline(&p, lf, &g, 2, 2, NULL, nmeas, NULL, 0, &po))) return rc;
     const double *r = swfs_pipeline_tilt_rows(p);
-    if (!(*R = malloc(2 * nmeas * sizeof **R))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    else memcpy(*R, r, 2 * nmeas * sizeof **R);
+    swfs_pipeline_info in;
+    swfs_pipeline_get_info(p, &in);
+    /* a space-time control matrix: its response to a tilt held over its lags, their blocks summed */
+    const size_t nl = in.nlags > 1 ? in.nlags : 1;
+    if (!(*R = calloc(2 * nmeas, sizeof **R))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t t = 0; !rc && t < 2; t++)
+        for (size_t k = 0; k < nl; k++)
+            for (size_t i = 0; i < nmeas; i++) (*R)[t * nmeas + i] += r[t * nl * nmeas + k * nmeas + i];
     swfs_pipeline_free(p);
     return rc;
 }

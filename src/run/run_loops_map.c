@@ -13,6 +13,7 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
+#include "specklewfs/source.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
@@ -31,6 +32,32 @@ static int map_out(swfs_fits_out **f, const char *path, const swfs_recon *c, con
     if (!rc) rc = swfs_fits_out_key_string(*f, "BUNIT", "", "basis coefficient per telemetry value");
     if (!rc) rc = swfs_fits_out_key_string(*f, "RECON", kind, comment);
     return rc;
+}
+
+int swfs_loops_map_lags_(const char *loop0, long *lags, size_t *nl, double *speed)
+{
+    *nl = 0;
+    *speed = 0;
+    char path[4400];
+    snprintf(path, sizeof path, "%.4300s/slopes_000.fits", loop0);
+    swfs_real *s = NULL;
+    int rc = swfs_telemetry_read(path, 0, &s, NULL);
+    if (rc) return rc;
+    const size_t nsub = (size_t)llround(sqrt(0.5 * (double)s->nx));
+    swfs_wind_estimate e;
+    memset(&e, 0, sizeof e);
+    if (2 * nsub * nsub == s->nx) rc = swfs_spacetime_stats_(s->data, s->ny, s->nx, nsub, NULL, NULL, 0, &e, NULL);
+    swfs_real_free(s);
+    if (rc) return swfs_fail_context(rc, "the loops' wind (%s)", path);
+    for (size_t j = 0; e.found && j < e.nlayers; j++) *speed = fmax(*speed, e.layer[j].speed);
+    /* teach's rule (run_teach.c): the fastest layer moves half a subaperture in L1 frames; none
+     * tracked, the loop's own time scale (L1 = 1) */
+    long l1 = *speed > 0 ? lround(0.5 / *speed) : 1;
+    if (l1 < 1) l1 = 1;
+    const long l[5] = {0, -l1, l1, -2 * l1, 2 * l1};
+    memcpy(lags, l, sizeof l);
+    *nl = 5;
+    return SWFS_OK;
 }
 
 /* W_loops (nact_l x nsig: the loops' truth on their DM's functions per telemetry value) onto
@@ -67,9 +94,11 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
                        "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
     const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
     if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, &r->carry_resid);
-    if (!rc) {
+    if (!rc) { /* (a space-time map's lag blocks carried alike: P acts on its outputs) */
         c.nact = nk;
         c.nslopes = ns;
+        c.nlags = wl->nlags;
+        memcpy(c.lags, wl->lags, sizeof c.lags);
         if (!(c.W = malloc(nk * ns * sizeof *c.W))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     if (!rc) {
@@ -178,11 +207,14 @@ static int offset_of(const swfs_speckles_run_options *o, const swfs_geom *g, con
     return rc;
 }
 
-/* The two sets' misses (mixer.off0, off1) from the observation's pipeline p: the mean of its
- * engine's input over the exposures, the maps' input where it is the telemetry itself (with
- * the exposure-relative tilt's two columns after it, whose mean is 0: swfs_pipeline_wavefront_of_mean) */
+/* The two sets' misses (mixer.off0, off1): the interaction matrix's from the observation's
+ * pipeline p, the mean of its engine's input over the exposures, the map's input where it is
+ * the telemetry itself (with the exposure-relative tilt's two columns after it, whose mean is 0:
+ * swfs_pipeline_wavefront_of_mean); the loops' map's from its run's own reconstruction of the
+ * mean, rec1 (mean_rec_out: a space-time map's input is the telemetry at its lags, whose means
+ * over the exposures are not the telemetry's) */
 static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                         swfs_pipeline *p)
+                         swfs_pipeline *p, const char *rec1)
 {
     double *sum = NULL;
     size_t nc = 0, nexp = 0;
@@ -195,8 +227,16 @@ static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swf
     if (!v) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t k = 0; k < ns; k++) v[k] = sum[k] / (double)nexp;
     int rc = offset_of(o, g, mask, m->imat, v, m->mean0, &m->off0);
-    if (!rc) rc = offset_of(o, g, mask, m->loops, v, m->mean1, &m->off1);
     free(v);
+    swfs_real *rec = NULL;
+    const size_t n = (size_t)g->pupn;
+    if (!rc) rc = swfs_fits_read_real(rec1, "RESMEAN", &rec, NULL);
+    if (!rc && (rec->nx != n || rec->ny != n || rec->nz != 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zu x %zu x %zu; expected %zu x %zu", rec1, rec->nx, rec->ny,
+                       rec->nz, n, n);
+    if (!rc && !(m->off1 = calloc(n * n, sizeof *m->off1))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t i = 0; !rc && i < n * n; i++) m->off1[i] = mask[i] > 0 ? m->mean1->data[i] - rec->data[i] : 0.0;
+    swfs_real_free(rec);
     if (rc) { /* both or neither */
         free(m->off0);
         free(m->off1);
@@ -211,9 +251,10 @@ static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const c
     m->imat = imat;
     if (!imat) return swfs_fail(SWFS_ERR_ARG, "no interaction matrix's map to mix with the loops'");
     int rc = swfs_recon_read(map, &m->loops);
-    if (!rc && (m->loops->nact != imat->nact || m->loops->nslopes != imat->nslopes || m->loops->nlags || imat->nlags))
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' map is %zu x %zu; the interaction matrix's %zu x %zu", map,
-                       m->loops->nact, m->loops->nslopes, imat->nact, imat->nslopes);
+    const size_t nl = !rc && m->loops->nlags > 1 ? m->loops->nlags : 1;
+    if (!rc && (m->loops->nact != imat->nact || m->loops->nslopes != nl * imat->nslopes || imat->nlags))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' map is %zu x %zu (%zu lags); the interaction matrix's %zu x %zu", map,
+                       m->loops->nact, m->loops->nslopes, nl, imat->nact, imat->nslopes);
     swfs_real *a = NULL, *b = NULL;
     if (!rc) rc = read_resmean(sp0, &a);
     if (!rc) rc = read_resmean(sp1, &b);
@@ -252,17 +293,20 @@ static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w)
     return rc;
 }
 
-/* C_w to map (a --control file, RECON = 'MIX') and the mixed RESMEAN to mean (NULL where the
- * sets have none) */
+/* C_w to map (a --control file, RECON = 'MIX'; the loops' map's lags, the interaction matrix's
+ * map in its lag-0 block) and the mixed RESMEAN to mean (NULL where the sets have none) */
 static int mixer_write(const mixer *m, double w, const char *map, const char *mean)
 {
-    const size_t n = m->imat->nact * m->imat->nslopes;
-    swfs_recon c;
-    memset(&c, 0, sizeof c);
-    c.nact = m->imat->nact;
-    c.nslopes = m->imat->nslopes;
-    if (!(c.W = malloc(n * sizeof *c.W))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t i = 0; i < n; i++) c.W[i] = w * m->imat->W[i] + (1 - w) * m->loops->W[i];
+    swfs_recon c = *m->loops;
+    c.sv = NULL;
+    c.oxy = NULL;
+    const size_t ns = m->imat->nslopes, nc = c.nslopes;
+    size_t k0 = 0;
+    while (c.nlags > 1 && k0 + 1 < c.nlags && c.lags[k0] != 0) k0++;
+    if (!(c.W = malloc(c.nact * nc * sizeof *c.W))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t i = 0; i < c.nact * nc; i++) c.W[i] = (1 - w) * m->loops->W[i];
+    for (size_t a = 0; a < c.nact; a++)
+        for (size_t i = 0; i < ns; i++) c.W[a * nc + k0 * ns + i] += w * m->imat->W[a * ns + i];
     swfs_fits_out *f = NULL;
     int rc = map_out(&f, map, &c, "MIX", "the interaction matrix's map and the loops' mixed");
     if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
@@ -306,6 +350,7 @@ static int mix_candidates(const swfs_speckles_run_options *o, const swfs_speckle
         s3.nmatch = 0; /* the frames: s2's match, sci */
         s3.match_in = s3.match_out = NULL;
         s3.resmean_from = mx->mean0 ? mmean : NULL;
+        s3.mean_rec_out = NULL;
         swfs_speckles_run_result r3;
         if (!rc) rc = swfs_speckles_run(&s3, &r3);
         if (!rc) rc = estimate_into(sci, msp[k], mh[k], o);
@@ -333,24 +378,88 @@ static int recon_with_miss(const char *src, const char *dst, const mixer *mx, do
     return swfs_fits_out_commit(f);
 }
 
+/* A space-time map's mean where the loops do not share its miss of it (its inputs the lags'
+ * times a frame's: each loop's mean is fitted more in-sample) but share the per-frame map's
+ * (learned, its MEANMISS kept): the observation's mean telemetry (p's engine input over the
+ * exposures) through the per-frame map carried onto the basis, plus its miss,
+ * piston, tip and tilt out, into the file mean (extension RESMEAN, what resmean_from takes);
+ * mean[0] = 0 where they do not */
+static int perframe_mean(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, swfs_pipeline *p,
+                         const char *learned, swfs_loops_map_result *r, char *mean, size_t len)
+{
+    mean[0] = 0;
+    char map[4400];
+    snprintf(map, sizeof map, "%.4300s/loops_map_pf.fits", r->work);
+    const double carried = r->carry_resid; /* (the same DM on the same basis) */
+    int rc = carry_map(o, o->mean_loops[0], learned, map, g, mask, r);
+    r->carry_resid = carried;
+    double *sum = NULL;
+    size_t nc = 0, nexp = 0;
+    swfs_pipeline_mean_state(p, &sum, &nc, &nexp);
+    const swfs_recon *im = swfs_pipeline_linear_map(p);
+    swfs_recon *c = NULL;
+    swfs_real *mm = NULL;
+    const size_t n = (size_t)g->pupn;
+    double *v = NULL, *w = NULL, *z = calloc(n * n, sizeof *z);
+    if (!rc && !z) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc && (!im || !sum || !nexp || (nc != im->nslopes && nc != im->nslopes + 2)))
+        rc = swfs_fail(SWFS_ERR_VALUE, "the observation's mean telemetry is not the per-frame map's input");
+    if (!rc) rc = swfs_recon_read(map, &c);
+    if (!rc) rc = swfs_fits_read_real(map, "MEANMISS", &mm, NULL);
+    if (!rc && (c->nslopes != im->nslopes || mm->nx * mm->ny * mm->nz != c->nact))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu x %zu with %zu MEANMISS values; expected %zu values per frame", map,
+                       c->nact, c->nslopes, mm->nx * mm->ny * mm->nz, im->nslopes);
+    if (!rc && (!(v = malloc(c->nslopes * sizeof *v)) || !(w = malloc(c->nact * sizeof *w))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) { /* its coefficients of the mean, its miss added on the same basis */
+        for (size_t k = 0; k < c->nslopes; k++) v[k] = sum[k] / (double)nexp;
+        memcpy(w, mm->data, c->nact * sizeof *w);
+        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1, 1.0, w,
+                    1);
+        rc = swfs_linear_wavefront_(&o->lin, g, mask, w, c->nact, z);
+    }
+    swfs_fits_out *f = NULL;
+    if (!rc) {
+        swfs_wfe_remove_ptt(z, mask, n);
+        snprintf(mean, len, "%.4300s/mean_pf.fits", r->work);
+        rc = swfs_fits_out_create(&f, mean);
+    }
+    if (!rc) rc = swfs_fits_out_real(f, "RESMEAN", &(swfs_real){n, n, 1, z}, -64);
+    if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m", "the per-frame loops' map's mean with its shared miss");
+    if (f && rc) swfs_fits_out_abort(f);
+    else if (f) rc = swfs_fits_out_commit(f);
+    if (rc) mean[0] = 0;
+    free(v);
+    free(w);
+    free(z);
+    swfs_real_free(mm);
+    swfs_recon_free(c);
+    return rc;
+}
+
 static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, double imat_heldout,
                      swfs_pipeline *p, swfs_loops_map_result *r)
 {
     int made = 0;
     int rc = swfs_speckles_work_folder_(o, r->work, sizeof r->work, &made);
-    char learned[4400], sp[4400], sci[4400], h0[4400], h1[4400];
+    char learned[4400], learned_pf[4400], sp[4400], sci[4400], h0[4400], h1[4400], rec1[4400];
     snprintf(learned, sizeof learned, "%.4300s/loops_learned.fits", r->work);
+    snprintf(learned_pf, sizeof learned_pf, "%.4300s/loops_learned_pf.fits", r->work);
     snprintf(r->map, sizeof r->map, "%.4100s/loops_map.fits", r->work);
     snprintf(sp, sizeof sp, "%.4300s/speckles_loops.fits", r->work);
     snprintf(sci, sizeof sci, "%.4300s/science_loops.fits", r->work);
     snprintf(h0, sizeof h0, "%.4300s/halo_imat.fits", r->work);
     snprintf(h1, sizeof h1, "%.4300s/halo_loops.fits", r->work);
-    /* 1. learn: the loops' telemetry to their true residual on their DM (truewf_NNN.fits) */
+    snprintf(rec1, sizeof rec1, "%.4300s/rec_loops.fits", r->work);
+    /* 1. learn: the loops' telemetry to their true residual on their DM (truewf_NNN.fits), a
+     * space-time map at teach's lags (docs/telemetry.md, "A space-time loops' map": frames at
+     * half a subaperture's wind motion tell what one frame's signals under-read) */
+    if (!rc) rc = swfs_loops_map_lags_(o->mean_loops[0], r->lags, &r->nlags, &r->lag_speed);
     swfs_learn_run_options lo;
     swfs_learn_run_options_default(&lo);
     lo.dirs = o->mean_loops;
     lo.ndirs = o->nmean_loops;
-    lo.out = learned;
+    lo.out = learned_pf;
     lo.no_heldout = 1;
     /* the map's miss of the mean, each loop's by the map of the others (held out: the map of all
      * fits its loops' means in-sample), written where the loops share it */
@@ -361,6 +470,13 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     lo.progress = o->progress;
     lo.progress_ctx = o->progress_ctx;
     swfs_learn_run_result lr;
+    /* enough frames for a map of its own: a least-squares map of p inputs learned from n
+     * independent frames misses new frames by (1 + p / n) times its floor in misfit^2, so n >= p /
+     * SWFS_LEARN_CURVE_EXCESS (teach's floor on its loops, run.h); fewer, and the map's excess
+     * (and its miss of the mean, learned in-sample) is the loops' noise, not the sensor's. The
+     * per-frame map first; the space-time one, its lags' times the inputs, where the frames are
+     * enough for it (else the per-frame map is the loops') */
+    const int st = !rc && r->nlags > 1;
     if (!rc) rc = swfs_learn_run(&lo, &lr);
     if (!rc) {
         r->meanmiss_heldout = lr.meanmiss_heldout;
@@ -369,17 +485,36 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         r->misfit_rms = lr.info.misfit_rms;
         r->truth_rms = lr.info.truth_rms;
     }
-    /* enough frames for a map of its own: a least-squares map of p inputs learned from n
-     * independent frames misses new frames by (1 + p / n) times its floor in misfit^2, so n >= p /
-     * SWFS_LEARN_CURVE_EXCESS (teach's floor on its loops, run.h); fewer, and the map's excess
-     * (and its miss of the mean, learned in-sample) is the loops' noise, not the sensor's */
+    const double need_st = (double)r->nlags * (double)r->inputs / SWFS_LEARN_CURVE_EXCESS;
+    if (!rc && st && (double)r->nframes < need_st) {
+        r->st_frames = (size_t)ceil(need_st);
+        r->nlags = 0;
+    }
+    const char *map_from = r->nlags ? learned : learned_pf;
+    if (!rc && r->nlags) {
+        const double pf_heldout = r->meanmiss_heldout;
+        lo.out = learned;
+        lo.lags = r->lags;
+        lo.nlags = r->nlags;
+        rc = swfs_learn_run(&lo, &lr);
+        if (!rc) {
+            r->pf_meanmiss_heldout = pf_heldout;
+            r->meanmiss_heldout = lr.meanmiss_heldout;
+            r->inputs = lr.info.nslopes_seen;
+            r->misfit_rms = lr.info.misfit_rms;
+        }
+    }
     const double need = (double)r->inputs / SWFS_LEARN_CURVE_EXCESS;
     if (!rc && (double)r->nframes < need)
         rc = swfs_fail(SWFS_ERR_VALUE, "the loops hold %zu frames for a map of %zu inputs, fewer than the %.0f a "
                        "least-squares map needs to come within %.0f %% of its floor (more loops: --mean-teach-loops)",
                        r->nframes, r->inputs, need, 100 * SWFS_LEARN_CURVE_EXCESS);
     /* 2. onto the observation's basis */
-    if (!rc) rc = carry_map(o, o->mean_loops[0], learned, r->map, g, mask, r);
+    if (!rc) rc = carry_map(o, o->mean_loops[0], map_from, r->map, g, mask, r);
+    /* the space-time map's mean where its miss is not shared: the per-frame map's where that is */
+    char pfmean[4400] = "";
+    if (!rc && r->nlags && !(r->meanmiss_heldout < 1) && r->pf_meanmiss_heldout < 1)
+        rc = perframe_mean(o, g, mask, p, learned_pf, r, pfmean, sizeof pfmean);
     /* 3. the observation through it, with its miss of the mean (MEANMISS) and a copy of the
      * science frames it covers */
     swfs_speckles_run_options s2 = *o;
@@ -397,9 +532,12 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     /* the residual's mean: where the loops share the interaction matrix's miss (held out < 1)
      * but not this map's, the interaction matrix's corrected mean is the one the loops vouch
      * for; else the map's own, with its miss where shared */
-    r->mean_from_imat = !rc && !(r->meanmiss_heldout < 1) && imat_heldout < 1;
-    if (r->mean_from_imat) s2.resmean_from = o->out;
+    r->mean_from_perframe = !rc && pfmean[0];
+    r->mean_from_imat = !rc && !r->mean_from_perframe && !(r->meanmiss_heldout < 1) && imat_heldout < 1;
+    if (r->mean_from_perframe) s2.resmean_from = pfmean;
+    else if (r->mean_from_imat) s2.resmean_from = o->out;
     s2.loops_map = 0;
+    s2.mean_rec_out = rec1;
     s2.teach_work = NULL;
     s2.teach_again = 0;
     s2.nteach_keys = 0;
@@ -426,7 +564,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     memset(&mx, 0, sizeof mx);
     if (!rc) {
         int mrc = mixer_open(&mx, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
-        if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p);
+        if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p, rec1);
         if (!mrc) mrc = mix_candidates(o, &s2, &mx, r, sci, mmean, mmap, msp, mh, &nmix);
         if (mrc) { /* the note says why; the two ends are scored as before (their misses, where
                     * made, still go with --write-recon's map) */
@@ -473,6 +611,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     (void)remove(sp);
     (void)remove(sci);
     (void)remove(mmean);
+    (void)remove(rec1);
     for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++)
         if (msp[k][0]) (void)remove(msp[k]);
     return rc;
@@ -489,7 +628,7 @@ int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom
 {
     const double t0 = swfs_wall_seconds();
     memset(r, 0, sizeof *r);
-    r->explained[0] = r->explained[1] = r->carry_resid = r->meanmiss_heldout = NAN;
+    r->explained[0] = r->explained[1] = r->carry_resid = r->meanmiss_heldout = r->pf_meanmiss_heldout = NAN;
     for (size_t k = 0; k < SWFS_LOOPS_MAP_NMIX; k++) r->mix_weight[k] = r->explained_mix[k] = NAN;
     r->weight = 1.0;
     const int rc = loops_map(o, g, mask, imat_heldout, p, r);

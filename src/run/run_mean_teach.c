@@ -30,8 +30,8 @@
 
 /* What the description's rule is: part of the loops' fingerprint (a change of it makes them
  * anew). */
-#define MEAN_TEACH_RULE "mean-teach 3: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
-                        "more loops where the loops' map's learning curve asks"
+#define MEAN_TEACH_RULE "mean-teach 4: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
+                        "more loops where the space-time loops' map's learning curve asks"
 
 /* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one
  * more at the last prediction, unchecked), and the step below which the fit stops whatever the
@@ -422,7 +422,8 @@ static int fingerprint(const swfs_config *c, size_t nloops, size_t max_loops, ui
 }
 
 /* More loops where the map the loops' map step learns from them asks for more frames
- * (run_loops_map.c): learn's learning curve over the first nl loops, over the pupil's annulus
+ * (run_loops_map.c): learn's learning curve of the per-frame map over the first nl loops, over
+ * the pupil's annulus
  * (the points whose wavefront makes the speckles), gives the frames that bring the map within
  * SWFS_LEARN_CURVE_EXCESS of unlimited frames' misfit (teach's rule for its own loops,
  * run_teach.c); loops nl.. of the same description up to that many, at most max. */
@@ -454,12 +455,22 @@ static int loops_as_curve_asks(const swfs_speckles_run_options *o, const swfs_te
         swfs_clear_error();
         return SWFS_OK;
     }
+    /* the space-time map the step learns where the frames allow (its lags, swfs_loops_map_lags_)
+     * has its lags' times the inputs, and a least-squares map's excess over its floor goes as its
+     * inputs over its frames (run_loops_map.c): its lags' times the frames */
+    long lags[SWFS_RECON_MAXLAGS];
+    size_t nlags = 0;
+    double speed = 0;
+    if (swfs_loops_map_lags_(dirs[0], lags, &nlags, &speed)) {
+        swfs_clear_error(); /* the step says so */
+        nlags = 1;
+    }
     r->curve_excess = lr.curve_excess;
-    r->curve_frames = lr.curve_frames;
+    r->curve_frames = lr.curve_frames > SIZE_MAX / nlags ? SIZE_MAX : lr.curve_frames * nlags;
     size_t want = nl;
-    if (lr.curve_frames > lr.info.nframes) {
+    if (r->curve_frames > lr.info.nframes) {
         const double per = (double)lr.info.nframes / (double)nl;
-        const double w = ceil((double)lr.curve_frames / per);
+        const double w = ceil((double)r->curve_frames / per);
         want = w > (double)max ? max : (size_t)w;
     }
     if (want > nl)

@@ -48,6 +48,8 @@ typedef struct work {
     swfs_real *resmean; /* the reconstructed residual's time mean (PUPN x PUPN) [m] */
     swfs_real *slopes;
     swfs_lag_stacker_ stk; /* a space-time reconstructor's input, piece by piece of the file in memory */
+    long lags[SWFS_RECON_MAXLAGS]; /* a space-time map's (the reconstructor's, or the linear */
+    size_t nlags;                  /* model's control matrix's): its input stacked; 0: per frame */
     swfs_exposure *sched;
     size_t *cfirst, *cn;
     char tdir[4096], path[8192], loaded[8192];
@@ -244,6 +246,7 @@ static int build_linear(const swfs_speckles_run_options *o, work *w)
     int rc = swfs_telemetry_load_training(w->tdir, w->t, w->nslopes, &w->train, &w->ntrain);
     if (!rc) rc = swfs_linear_pipeline(&w->p, &o->lin, &w->g, w->nfx, w->nfy, w->mask, w->nslopes, w->train, w->ntrain,
                                        &o->pipe);
+    if (!rc) rc = swfs_linear_control_lags(&o->lin, w->lags, &w->nlags);
     if (rc) return swfs_fail_context(rc, "with %s", w->path);
     free(w->train);
     w->train = NULL;
@@ -317,6 +320,8 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
         /* With a valid map the telemetry may hold the used subapertures only and the
          * reconstructor the full layout of the map's nsub (e.g. learned on simulations). */
         const size_t nl = w->rin->nlags ? w->rin->nlags : 1, per = w->rin->nslopes / nl;
+        w->nlags = w->rin->nlags > 1 ? w->rin->nlags : 0;
+        memcpy(w->lags, w->rin->lags, sizeof w->lags);
         size_t vn = 0, vv = 0;
         unsigned char *vm = NULL;
         if (per != w->nslopes && o->valid && (rc = swfs_valid_map_read(o->valid, &vm, &vn, &vv))) return rc;
@@ -417,9 +422,8 @@ static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs
                                  tc->start, tc->start + (double)tc->nframes * t->ratio, w->path, w->slopes->ny);
             const double *sp = w->slopes->data + (size_t)k0 * w->nslopes;
             /* a space-time reconstructor: the lags run on into contiguous neighbour files */
-            if (w->rin && w->rin->nlags > 1 &&
-                (rc = swfs_lag_stacker_rows_(&w->stk, w->tdir, t, tc->slopes, w->path, w->slopes, w->rin->lags,
-                                             w->rin->nlags, (size_t)k0, need, &sp)))
+            if (w->nlags > 1 && (rc = swfs_lag_stacker_rows_(&w->stk, w->tdir, t, tc->slopes, w->path, w->slopes,
+                                                              w->lags, w->nlags, (size_t)k0, need, &sp)))
                 return rc;
             swfs_complex *dst = swfs_cplx_frame(w->halo, c0 + a - first);
             rc = o->pipe.wfs_rate ? swfs_pipeline_process_wfs(w->p, sp, n, dst)
@@ -474,6 +478,18 @@ static int residual_mean(const swfs_speckles_run_options *o, work *w, swfs_speck
     if (rc) return rc;
     if (!(w->resmean = swfs_real_alloc(n, n, 1))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     r->wavelen = w->g.wavelen;
+    if (o->mean_rec_out) { /* its own reconstruction, for loops_map's misses */
+        swfs_real *rec = swfs_real_alloc(n, n, 1);
+        swfs_fits_out *f = NULL;
+        rc = rec ? swfs_pipeline_mean_reconstruction(w->p, rec->data) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!rc) rc = swfs_fits_out_create(&f, o->mean_rec_out);
+        if (!rc) rc = swfs_fits_out_real(f, "RESMEAN", rec, -64);
+        if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m", "the run's own reconstruction of the residual's mean");
+        if (f && rc) swfs_fits_out_abort(f);
+        else if (f) rc = swfs_fits_out_commit(f);
+        swfs_real_free(rec);
+        if (rc) return rc;
+    }
     if (!o->resmean_from) return swfs_pipeline_mean_wavefront(w->p, w->resmean->data, NULL, &r->resmean_rms);
     /* another run's mean of the same frames (loops_map: the interaction matrix's, corrected) */
     swfs_real *m = NULL;
@@ -694,14 +710,18 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         else snprintf(band, sizeof band, "the whole window");
         const int tt = o->pipe.tiptilt;
         char model[160];
-        if (o->lin.basis)
-            snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis, o->lin.scale,
-                     o->lin.control ? "control matrix" : o->lin.imat ? "interaction matrix" : "modal coefficients");
-        else if (r->info.nlags) {
+        if (o->lin.basis) {
+            int n = snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis,
+                             o->lin.scale, o->lin.control ? (w.nlags ? "space-time control matrix of lags"
+                                                                     : "control matrix")
+                                                          : o->lin.imat ? "interaction matrix" : "modal coefficients");
+            for (size_t k = 0; k < w.nlags && n > 0 && (size_t)n < sizeof model; k++)
+                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.lags[k]);
+        } else if (r->info.nlags) {
             int n = snprintf(model, sizeof model, "%zu %s, space-time reconstructor of lags", r->info.nact,
                              r->info.out_pitch > 0 ? "output points" : "actuators");
-            for (size_t k = 0; k < w.rin->nlags && n > 0 && (size_t)n < sizeof model; k++)
-                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.rin->lags[k]);
+            for (size_t k = 0; k < w.nlags && n > 0 && (size_t)n < sizeof model; k++)
+                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.lags[k]);
         } else
             snprintf(model, sizeof model, "%zu %s", r->info.nact, r->info.out_pitch > 0 ? "output points" : "actuators");
         snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %s, %zu telemetry values, %zu reconstructor "

@@ -243,6 +243,10 @@ static int setup_linear(const swfs_stream_run_options *o, const char *first_tel,
                                   tr ? tr->data : NULL, tr ? tr->ny : 0, &po);
         if (rc) swfs_fail_context(rc, "with %s", tr ? first_tel : "the live telemetry");
         else swfs_pipeline_get_info(*p, &r->info);
+        /* a space-time control matrix: its input stacked at its lags, as a reconstructor's below */
+        size_t nl = 0;
+        if (!rc) rc = swfs_linear_control_lags(&o->lin, u->lags, &nl);
+        if (!rc && nl > 1) u->nlags = nl;
         if (!rc) rc = swfs_meanmiss_attach_(*p, o->lin.control, &o->lin, &u->g, &r->meanmiss_rms);
     }
     swfs_real_free(tr);

@@ -448,16 +448,24 @@ void swfs_pipeline_mean_state(swfs_pipeline *p, double **sum, size_t *n, size_t 
 
 void swfs_pipeline_mean_set_count(swfs_pipeline *p, size_t nexp) { p->mexp = nexp; }
 
-int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms)
+int swfs_pipeline_mean_reconstruction(const swfs_pipeline *p, double *out)
 {
     const size_t n = p->info.npup;
-    if (nexp) *nexp = p->mexp;
     if (!p->mexp) return swfs_fail(SWFS_ERR_VALUE, "pipeline: no exposure processed, so no time mean");
     double *v = malloc(p->mcols * sizeof *v);
     if (!v) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     for (size_t k = 0; k < p->mcols; k++) v[k] = p->macc[k] / (double)p->mexp;
     int rc = swfs_engine_wavefront(p->engine, v, out);
     free(v);
+    if (!rc) swfs_wfe_remove_ptt(out, p->mask, n);
+    return rc;
+}
+
+int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *nexp, double *rms)
+{
+    const size_t n = p->info.npup;
+    if (nexp) *nexp = p->mexp;
+    int rc = swfs_pipeline_mean_reconstruction(p, out);
     for (size_t i = 0; !rc && p->moff && i < n * n; i++) out[i] += p->moff[i];
     if (!rc) {
         const double r = swfs_wfe_remove_ptt(out, p->mask, n);
@@ -468,14 +476,15 @@ int swfs_pipeline_mean_wavefront(const swfs_pipeline *p, double *out, size_t *ne
 
 int swfs_pipeline_wavefront_of_mean(const swfs_pipeline *p, const double *mean, size_t n, double *out)
 {
-    const size_t np = p->info.npup, nc = p->mcols;
+    const size_t np = p->info.npup, nc = p->mcols, nl = p->info.nlags > 1 ? p->info.nlags : 1;
     /* the engine's input for a mean: the mean itself, at every lag of a space-time map, and 0
      * for the exposure-relative tilt columns (their mean over an exposure is 0) */
-    if (!n || !(nc == n || nc == n + 2 || (nc > n && nc % n == 0)))
-        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: a mean of %zu telemetry values, but the engine takes %zu", n, nc);
+    if (!n || !(nc == nl * n || nc == nl * n + 2))
+        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: a mean of %zu telemetry values, but the engine takes %zu (%zu lags)",
+                         n, nc, nl);
     double *v = calloc(nc, sizeof *v);
     if (!v) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-    for (size_t k = 0; k < nc; k++) v[k] = nc == n + 2 ? (k < n ? mean[k] : 0.0) : mean[k % n];
+    for (size_t k = 0; k < nl * n; k++) v[k] = mean[k % n];
     int rc = swfs_engine_wavefront(p->engine, v, out);
     free(v);
     if (!rc) swfs_wfe_remove_ptt(out, p->mask, np);

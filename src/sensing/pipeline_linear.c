@@ -48,6 +48,10 @@ static int check_input(const swfs_linear_input *in, size_t ng)
         return swfs_fail(SWFS_ERR_SHAPE, "pipeline: %zu telemetry values per frame taken as the coefficients of %zu basis "
                          "functions; expected as many (or give a control or interaction matrix)", in->nmeas,
                          nfunctions(in));
+    if (in->nlags > 1 && (in->imat || in->nmeas % in->nlags))
+        return swfs_fail(SWFS_ERR_SHAPE, "pipeline: a space-time control matrix of %zu lags needs a control matrix and "
+                         "a multiple of %zu telemetry values (got %zu%s)", in->nlags, in->nlags, in->nmeas,
+                         in->imat ? ", and an interaction matrix" : "");
     if (!isfinite(in->scale) || in->scale == 0)
         return swfs_fail(SWFS_ERR_VALUE, "pipeline: the linear model's scale must be finite and non-zero, got %g",
                          in->scale);
@@ -257,6 +261,7 @@ static int build(swfs_pipeline *p, lin *l, const swfs_geom *g, const swfs_linear
     if (!rc) rc = swfs_pipeline_band_(p, g, 0);
     if (rc) return rc;
     p->info.nslopes = l->nmeas;
+    p->info.nlags = in->nlags > 1 ? in->nlags : 0;
     p->info.nact = l->nrows;
     p->info.nbasis = nfunctions(in);
     p->info.basis_nnz = in->basis->nnz;
