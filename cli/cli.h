@@ -234,7 +234,9 @@ const char *cli_teach_chosen(int chosen);
     "                      --dm-rot DEG (counter-clockwise), --dm-flip (x mirrored first)\n" \
     "  --control C.fits    control matrix, NAXIS1 = telemetry values, NAXIS2 = basis functions:\n" \
     "                      coefficients = C v for any WFS signal (pyramid, SH in any layout, ...);\n" \
-    "                      without it the telemetry values are the coefficients (cacao modevalWFS)\n" \
+    "                      without it the telemetry values are the coefficients (cacao modevalWFS);\n" \
+    "                      a cube of them with NLAGS, LAG1..: a space-time one (`learn --lags`,\n" \
+    "                      speckles --loops-map), on the telemetry of frames t + LAGk stacked\n" \
     "  --imat D.fits       instead of --control: the interaction matrix (NAXIS1 = basis functions,\n" \
     "                      NAXIS2 = telemetry values), inverted by the MAP reconstructor learned from\n" \
     "                      the telemetry (--recon svd: the truncated SVD)\n" \

@@ -128,7 +128,10 @@ static const char *speckles_usage_mean =
     "                      `pupil A.fits B.fits`); files in the teach folder. auto (default):\n"
     "                      where speckles simulated the loops of a pyramid (--mean-loop teach,\n"
     "                      its default for a pyramid); choose: with any mean loops (--mean-loop\n"
-    "                      DIR... with truewf_NNN.fits, influence.fits); none: never. Where\n"
+    "                      DIR... with truewf_NNN.fits, influence.fits); none: never. The map is\n"
+    "                      a space-time one, the loops' telemetry at teach's lags 0, +-L, +-2L\n"
+    "                      (their fastest layer moves half a subaperture in L frames), where the\n"
+    "                      loops hold 10 frames per input of it, else a per-frame one. Where\n"
     "                      speckles simulates the loops for it, more of them where that map's\n"
     "                      learning curve over the first asks for more frames (teach's rule),\n"
     "                      up to --mean-teach-max-loops M (4 N, at most 16)\n";

@@ -66,7 +66,7 @@ int swfs_loops_map_lags_(const char *loop0, long *lags, size_t *nl, double *spee
  * written as a control matrix file (NAXIS1 = telemetry values, NAXIS2 = basis functions), with
  * learn's MEANMISS carried the same way (P times it) where learn kept one. */
 static int carry_map(const swfs_speckles_run_options *o, const char *loop0, const char *learned, const char *out,
-                     const swfs_geom *g, const double *mask, swfs_loops_map_result *r)
+                     const swfs_geom *g, const double *mask, double *carry_resid)
 {
     char ip[4400];
     snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
@@ -93,7 +93,7 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' influence functions are %zu x %zu x %zu; expected PUPN = %zu "
                        "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
     const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
-    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, &r->carry_resid);
+    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, carry_resid);
     if (!rc) { /* (a space-time map's lag blocks carried alike: P acts on its outputs) */
         c.nact = nk;
         c.nslopes = ns;
@@ -110,7 +110,7 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     if (!rc) {
         swfs_fits_out *f = NULL;
         rc = map_out(&f, out, &c, "LOOPS", "learned from the loops, carried onto the basis");
-        if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", r->carry_resid, "the loops' DM on the basis: rms residual");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", *carry_resid, "the loops' DM on the basis: rms residual");
         if (!rc) rc = swfs_fits_out_history(f, "specklewfs: the map learned from the loops of the system (speckles' "
                                             "loops_map), NAXIS1 = telemetry values, NAXIS2 = basis functions");
         if (!rc && cmm) { /* the loops' miss of the mean on the basis: speckles adds it to RESMEAN */
@@ -185,51 +185,58 @@ static int read_resmean(const char *path, swfs_real **out)
     return rc;
 }
 
-/* The map c's reconstruction of the telemetry's mean v (c->nslopes values) on the pupil grid,
- * piston, tip and tilt removed, subtracted from mean into off (masked) */
-static int offset_of(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask, const swfs_recon *c,
-                     const double *v, const swfs_real *mean, double **off)
+/* The telemetry's mean over the exposures as the per-frame maps take it (*v, malloc'd, the
+ * interaction matrix's map's width): the observation's pipeline p's engine input, the
+ * telemetry itself (with the exposure-relative tilt's two columns after it, whose mean is 0:
+ * swfs_pipeline_wavefront_of_mean); *v NULL where p has none of that width */
+static int telemetry_mean(swfs_pipeline *p, double **v)
 {
-    const size_t n = (size_t)g->pupn;
+    *v = NULL;
+    double *sum = NULL;
+    size_t nc = 0, nexp = 0;
+    swfs_pipeline_mean_state(p, &sum, &nc, &nexp);
+    const swfs_recon *im = swfs_pipeline_linear_map(p);
+    const size_t ns = im ? im->nslopes : 0;
+    if (!ns || !sum || !nexp || (nc != ns && nc != ns + 2)) return SWFS_OK;
+    if (!(*v = malloc(ns * sizeof **v))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; k < ns; k++) (*v)[k] = sum[k] / (double)nexp;
+    return SWFS_OK;
+}
+
+/* The per-frame map c's reconstruction of the telemetry's mean v (c->nslopes values), plus
+ * extra coefficients (NULL: none), on the pupil grid, piston, tip and tilt removed, into out */
+static int mean_through(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                        const swfs_recon *c, const double *v, const double *extra, double *out)
+{
     double *coef = malloc(c->nact * sizeof *coef);
-    *off = calloc(n * n, sizeof **off);
-    int rc = coef && *off ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc) {
-        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1, 0.0,
-                    coef, 1);
-        rc = swfs_linear_wavefront_(&o->lin, g, mask, coef, c->nact, *off);
-    }
-    if (!rc) {
-        swfs_wfe_remove_ptt(*off, mask, n);
-        for (size_t i = 0; i < n * n; i++) (*off)[i] = mask[i] > 0 ? mean->data[i] - (*off)[i] : 0.0;
-    }
+    if (!coef) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (extra) memcpy(coef, extra, c->nact * sizeof *coef);
+    cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1,
+                extra ? 1.0 : 0.0, coef, 1);
+    int rc = swfs_linear_wavefront_(&o->lin, g, mask, coef, c->nact, out);
+    if (!rc) swfs_wfe_remove_ptt(out, mask, (size_t)g->pupn);
     free(coef);
     return rc;
 }
 
-/* The two sets' misses (mixer.off0, off1): the interaction matrix's from the observation's
- * pipeline p, the mean of its engine's input over the exposures, the map's input where it is
- * the telemetry itself (with the exposure-relative tilt's two columns after it, whose mean is 0:
- * swfs_pipeline_wavefront_of_mean); the loops' map's from its run's own reconstruction of the
- * mean, rec1 (mean_rec_out: a space-time map's input is the telemetry at its lags, whose means
- * over the exposures are not the telemetry's) */
+/* The two sets' misses (mixer.off0, off1), each set's RESMEAN less its map's reconstruction of
+ * the mean: the interaction matrix's map through the telemetry's mean (telemetry_mean of the
+ * observation's pipeline p); the loops' map's from its run's own, rec1 (mean_rec_out: a
+ * space-time map's input is the telemetry at its lags, whose means over the exposures are not
+ * the telemetry's) */
 static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
                          swfs_pipeline *p, const char *rec1)
 {
-    double *sum = NULL;
-    size_t nc = 0, nexp = 0;
-    swfs_pipeline_mean_state(p, &sum, &nc, &nexp);
-    const size_t ns = m->imat->nslopes;
-    if (!m->mean0 || !sum || !nexp || (nc != ns && nc != ns + 2) || m->mean0->nx != (size_t)g->pupn ||
-        m->mean0->ny != (size_t)g->pupn)
-        return SWFS_OK;
-    double *v = malloc(ns * sizeof *v);
-    if (!v) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t k = 0; k < ns; k++) v[k] = sum[k] / (double)nexp;
-    int rc = offset_of(o, g, mask, m->imat, v, m->mean0, &m->off0);
+    const size_t n = (size_t)g->pupn;
+    if (!m->mean0 || m->mean0->nx != n || m->mean0->ny != n) return SWFS_OK;
+    double *v = NULL;
+    int rc = telemetry_mean(p, &v);
+    if (rc || !v) return rc;
+    if (!(m->off0 = calloc(n * n, sizeof *m->off0))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc) rc = mean_through(o, g, mask, m->imat, v, NULL, m->off0);
+    for (size_t i = 0; !rc && i < n * n; i++) m->off0[i] = mask[i] > 0 ? m->mean0->data[i] - m->off0[i] : 0.0;
     free(v);
     swfs_real *rec = NULL;
-    const size_t n = (size_t)g->pupn;
     if (!rc) rc = swfs_fits_read_real(rec1, "RESMEAN", &rec, NULL);
     if (!rc && (rec->nx != n || rec->ny != n || rec->nz != 1))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: RESMEAN is %zu x %zu x %zu; expected %zu x %zu", rec1, rec->nx, rec->ny,
@@ -390,37 +397,24 @@ static int perframe_mean(const swfs_speckles_run_options *o, const swfs_geom *g,
     mean[0] = 0;
     char map[4400];
     snprintf(map, sizeof map, "%.4300s/loops_map_pf.fits", r->work);
-    const double carried = r->carry_resid; /* (the same DM on the same basis) */
-    int rc = carry_map(o, o->mean_loops[0], learned, map, g, mask, r);
-    r->carry_resid = carried;
-    double *sum = NULL;
-    size_t nc = 0, nexp = 0;
-    swfs_pipeline_mean_state(p, &sum, &nc, &nexp);
-    const swfs_recon *im = swfs_pipeline_linear_map(p);
+    double resid = 0;
+    int rc = carry_map(o, o->mean_loops[0], learned, map, g, mask, &resid);
     swfs_recon *c = NULL;
     swfs_real *mm = NULL;
     const size_t n = (size_t)g->pupn;
-    double *v = NULL, *w = NULL, *z = calloc(n * n, sizeof *z);
+    double *v = NULL, *z = calloc(n * n, sizeof *z);
     if (!rc && !z) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc && (!im || !sum || !nexp || (nc != im->nslopes && nc != im->nslopes + 2)))
-        rc = swfs_fail(SWFS_ERR_VALUE, "the observation's mean telemetry is not the per-frame map's input");
+    if (!rc) rc = telemetry_mean(p, &v);
+    if (!rc && !v) rc = swfs_fail(SWFS_ERR_VALUE, "the observation's mean telemetry is not the per-frame map's input");
     if (!rc) rc = swfs_recon_read(map, &c);
     if (!rc) rc = swfs_fits_read_real(map, "MEANMISS", &mm, NULL);
-    if (!rc && (c->nslopes != im->nslopes || mm->nx * mm->ny * mm->nz != c->nact))
+    if (!rc && (c->nslopes != swfs_pipeline_linear_map(p)->nslopes || mm->nx * mm->ny * mm->nz != c->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu x %zu with %zu MEANMISS values; expected %zu values per frame", map,
-                       c->nact, c->nslopes, mm->nx * mm->ny * mm->nz, im->nslopes);
-    if (!rc && (!(v = malloc(c->nslopes * sizeof *v)) || !(w = malloc(c->nact * sizeof *w))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc) { /* its coefficients of the mean, its miss added on the same basis */
-        for (size_t k = 0; k < c->nslopes; k++) v[k] = sum[k] / (double)nexp;
-        memcpy(w, mm->data, c->nact * sizeof *w);
-        cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1, 1.0, w,
-                    1);
-        rc = swfs_linear_wavefront_(&o->lin, g, mask, w, c->nact, z);
-    }
+                       c->nact, c->nslopes, mm->nx * mm->ny * mm->nz, swfs_pipeline_linear_map(p)->nslopes);
+    /* its coefficients of the mean, its miss added on the same basis */
+    if (!rc) rc = mean_through(o, g, mask, c, v, mm->data, z);
     swfs_fits_out *f = NULL;
     if (!rc) {
-        swfs_wfe_remove_ptt(z, mask, n);
         snprintf(mean, len, "%.4300s/mean_pf.fits", r->work);
         rc = swfs_fits_out_create(&f, mean);
     }
@@ -430,7 +424,6 @@ static int perframe_mean(const swfs_speckles_run_options *o, const swfs_geom *g,
     else if (f) rc = swfs_fits_out_commit(f);
     if (rc) mean[0] = 0;
     free(v);
-    free(w);
     free(z);
     swfs_real_free(mm);
     swfs_recon_free(c);
@@ -510,7 +503,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
                        "least-squares map needs to come within %.0f %% of its floor (more loops: --mean-teach-loops)",
                        r->nframes, r->inputs, need, 100 * SWFS_LEARN_CURVE_EXCESS);
     /* 2. onto the observation's basis */
-    if (!rc) rc = carry_map(o, o->mean_loops[0], map_from, r->map, g, mask, r);
+    if (!rc) rc = carry_map(o, o->mean_loops[0], map_from, r->map, g, mask, &r->carry_resid);
     /* the space-time map's mean where its miss is not shared: the per-frame map's where that is */
     char pfmean[4400] = "";
     if (!rc && r->nlags && !(r->meanmiss_heldout < 1) && r->pf_meanmiss_heldout < 1)
