@@ -248,6 +248,98 @@ static void test_linear_equals_shack_hartmann(void **state)
     fixture_free(&f);
 }
 
+/* A space-time control matrix (swfs_linear_input.nlags): lag blocks [W, 0] on the telemetry
+ * stacked at lags 0 and 2 give the per-frame W's fields and mean reconstruction; [0, W] the
+ * per-frame W's on the telemetry two frames on; the mean of a constant telemetry through
+ * [W/2, W/2] is W's (swfs_pipeline_wavefront_of_mean at every lag); a width that is not a
+ * multiple of the lags, or an interaction matrix with lags, refused. */
+static void test_space_time_control(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_GIVEN;
+    swfs_pipeline *sh = NULL;
+    assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, f.nslopes, f.rec, NULL, 0, &o));
+    const swfs_recon *used = swfs_pipeline_recon(sh);
+    const swfs_sparse *T = swfs_pipeline_model(sh)->T;
+    const size_t ns = f.nslopes, na = f.nact, nw = f.nwfs;
+    const long lags[2] = {0, 2};
+    double *st = malloc(nw * 2 * ns * sizeof *st), *c0 = calloc(na * 2 * ns, sizeof *c0),
+           *c1 = calloc(na * 2 * ns, sizeof *c1), *ch = calloc(na * 2 * ns, sizeof *ch);
+    swfs_slopes_stack(f.slopes, nw, ns, lags, 2, 0, nw, st);
+    for (size_t a = 0; a < na; a++)
+        for (size_t i = 0; i < ns; i++) {
+            c0[a * 2 * ns + i] = used->W[a * ns + i];
+            c1[a * 2 * ns + ns + i] = used->W[a * ns + i];
+            ch[a * 2 * ns + i] = ch[a * 2 * ns + ns + i] = 0.5 * used->W[a * ns + i];
+        }
+    swfs_pipeline *lin = NULL, *p0 = NULL, *p1 = NULL, *ph = NULL;
+    swfs_linear_input in = {ns, T, used->W, NULL, 1.0, NULL, 0, 0};
+    swfs_linear_input i0 = {2 * ns, T, c0, NULL, 1.0, NULL, 0, 2}, i1 = i0, ih = i0;
+    i1.control = c1;
+    ih.control = ch;
+    assert_ok(swfs_pipeline_create_linear(&lin, &f.g, NF, NF, f.mask, &in, f.slopes, nw, &o));
+    assert_ok(swfs_pipeline_create_linear(&p0, &f.g, NF, NF, f.mask, &i0, st, nw, &o));
+    assert_ok(swfs_pipeline_create_linear(&p1, &f.g, NF, NF, f.mask, &i1, st, nw, &o));
+    assert_ok(swfs_pipeline_create_linear(&ph, &f.g, NF, NF, f.mask, &ih, st, nw, &o));
+    swfs_pipeline_info li;
+    swfs_pipeline_get_info(p0, &li);
+    assert_int_equal(li.nlags, 2);
+    assert_int_equal(li.nslopes, 2 * ns);
+    swfs_exposure sched[8];
+    const size_t need = swfs_engine_schedule(3.5, 0.3, 8, sched);
+    assert_true(need + 2 <= nw);
+    const size_t nf2 = NF * NF, n = NPUP * NPUP;
+    swfs_complex *ha = malloc(8 * nf2 * sizeof *ha), *hb = malloc(8 * nf2 * sizeof *hb);
+    double d0 = 0, d1 = 0, peak = 0;
+    assert_ok(swfs_pipeline_process(lin, f.slopes, need, sched, 8, ha));
+    assert_ok(swfs_pipeline_process(p0, st, need, sched, 8, hb));
+    for (size_t k = 0; k < 8 * nf2; k++) {
+        d0 = fmax(d0, cabs(ha[k] - hb[k]));
+        peak = fmax(peak, cabs(ha[k]));
+    }
+    double *ma = malloc(n * sizeof *ma), *mb = malloc(n * sizeof *mb), dm = 0, pm = 0;
+    assert_ok(swfs_pipeline_mean_reconstruction(lin, ma));
+    assert_ok(swfs_pipeline_mean_reconstruction(p0, mb));
+    for (size_t i = 0; i < n; i++) {
+        dm = fmax(dm, fabs(ma[i] - mb[i]));
+        pm = fmax(pm, fabs(ma[i]));
+    }
+    /* [0, W]: the per-frame map two frames on */
+    swfs_pipeline_mean_reset(lin);
+    assert_ok(swfs_pipeline_process(lin, f.slopes + 2 * ns, need, sched, 8, ha));
+    assert_ok(swfs_pipeline_process(p1, st, need, sched, 8, hb));
+    for (size_t k = 0; k < 8 * nf2; k++) d1 = fmax(d1, cabs(ha[k] - hb[k]));
+    /* the mean at every lag: [W/2, W/2] of a constant telemetry is W's */
+    double dc = 0, pc = 0;
+    assert_ok(swfs_pipeline_wavefront_of_mean(lin, f.slopes + 5 * ns, ns, ma));
+    assert_ok(swfs_pipeline_wavefront_of_mean(ph, f.slopes + 5 * ns, ns, mb));
+    for (size_t i = 0; i < n; i++) {
+        dc = fmax(dc, fabs(ma[i] - mb[i]));
+        pc = fmax(pc, fabs(ma[i]));
+    }
+    printf("lmodel: space-time control [W, 0] %.2g, [0, W] %.2g of the fields' peak; mean %.2g, of a constant %.2g\n",
+           d0 / peak, d1 / peak, dm / pm, dc / pc);
+    assert_true(peak > 0 && pm > 0 && pc > 0);
+    assert_true(d0 / peak < 2e-5 && d1 / peak < 2e-5); /* the single-precision engine */
+    assert_true(dm / pm < 1e-5 && dc / pc < 1e-5);
+    /* refused: a width not a multiple of the lags; an interaction matrix with lags */
+    swfs_pipeline *bad = NULL;
+    swfs_linear_input odd = i0;
+    odd.nmeas = 2 * ns + 1;
+    assert_int_equal(swfs_pipeline_create_linear(&bad, &f.g, NF, NF, f.mask, &odd, NULL, 0, &o), SWFS_ERR_SHAPE);
+    assert_non_null(strstr(swfs_last_error(), "a multiple of 2 telemetry values"));
+    assert_null(bad);
+    swfs_clear_error();
+    free(ha); free(hb); free(ma); free(mb); free(st); free(c0); free(c1); free(ch);
+    swfs_pipeline_free(lin); swfs_pipeline_free(p0); swfs_pipeline_free(p1); swfs_pipeline_free(ph);
+    swfs_pipeline_free(sh);
+    fixture_free(&f);
+}
+
 /* The reconstruction's time mean (swfs_pipeline_mean_wavefront): over the exposures
  * processed, each its frames' weighted mean, it is T W s_bar with s_bar the mean of the
  * exposures' weighted mean slopes, piston, tip and tilt removed -- the same from the
@@ -567,6 +659,7 @@ int main(void)
         cmocka_unit_test(test_registration_round_trip),
         cmocka_unit_test(test_grid_resampling_exact_for_quadratics),
         cmocka_unit_test(test_linear_equals_shack_hartmann),
+        cmocka_unit_test(test_space_time_control),
         cmocka_unit_test(test_mean_wavefront),
         cmocka_unit_test(test_linear_refusals),
         cmocka_unit_test(test_valid_map),
