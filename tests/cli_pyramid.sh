@@ -209,16 +209,23 @@ awk -v r="$rs" -v a="$esl" -v b="$el" 'BEGIN { exit !(r < 1e-6 && a > b - 0.15 &
     || fail "stream with the written map: RESMEAN $rs apart, $esl nm against speckles' $el nm"
 # live given the same map takes its miss too: the signals and frames replay publishes, every
 # camera frame used, the map's MEANMISS added, stream's RESMEAN and NCP error
+# live_replay TAG [live options]: live into $D/TAG.fits on the streams replay publishes of the
+# timing table's signals and frames (streams of their own, TAG's), every camera frame used
 mkdir -p "$D/shm"
-"$B" live --shm-dir "$D/shm" --wfs w --camera c --geom "$D/science.fits" --basis "$S/influence.fits" \
-    --control "$D/lm_w.fits" --batch 8 --max-wait 60 --idle-exit 0.5 -o "$D/live_lm.fits" > "$D/live_lm.log" 2>&1 &
-live_pid=$!
-"$B" replay --shm-dir "$D/shm" --wfs-name w --camera-name c --timing "$D/timing.txt" --science "$D/science.fits" \
-    --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay_lm.log" 2>&1 \
-    || { cat "$D/replay_lm.log"; fail "replay (the pyramid's signals)"; }
-wait "$live_pid" || { cat "$D/live_lm.log"; fail "live --control (the written map)"; }
 nsci=$(awk '$1 == "cube" && $NF == "ok" { n += $4 } END { print n }' "$D/timing.txt")
-grep -q "live_lm.fits: $nsci camera frames used" "$D/live_lm.log" || { cat "$D/live_lm.log"; fail "live: not all $nsci frames"; }
+live_replay() {
+    local tag=$1
+    shift
+    "$B" live --shm-dir "$D/shm" --wfs "w_$tag" --camera "c_$tag" --geom "$D/science.fits" "$@" --batch 8 \
+        --max-wait 60 --idle-exit 0.5 -o "$D/$tag.fits" > "$D/$tag.log" 2>&1 &
+    local pid=$!
+    "$B" replay --shm-dir "$D/shm" --wfs-name "w_$tag" --camera-name "c_$tag" --timing "$D/timing.txt" \
+        --science "$D/science.fits" --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay_$tag.log" 2>&1 \
+        || { cat "$D/replay_$tag.log"; fail "replay ($tag)"; }
+    wait "$pid" || { cat "$D/$tag.log"; fail "live $*"; }
+    grep -q "$tag.fits: $nsci camera frames used" "$D/$tag.log" || { cat "$D/$tag.log"; fail "live $*: not all $nsci frames"; }
+}
+live_replay live_lm --basis "$S/influence.fits" --control "$D/lm_w.fits"
 grep -q "with the map's own (MEANMISS: .*) miss of it added" "$D/live_lm.log" \
     || { cat "$D/live_lm.log"; fail "live: the map's miss not added"; }
 rl=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/stream_lm.fits[RESMEAN]" "$D/live_lm.fits[RESMEAN]") \
@@ -247,14 +254,7 @@ rst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/speckles_st.fits[RESMEAN]" "$D/
 "$B" pupil "$D/stream_st.fits" -o "$D/pupil_sst.fits" --truth "$S/truth.fits" > "$D/pupil_sst.log" || fail "pupil (stream st)"
 est=$(ncp_error "$D/pupil_st.log")
 esst=$(ncp_error "$D/pupil_sst.log")
-"$B" live --shm-dir "$D/shm" --wfs w2 --camera c2 --geom "$D/science.fits" "${stb[@]}" --batch 8 --max-wait 60 \
-    --idle-exit 0.5 -o "$D/live_st.fits" > "$D/live_st.log" 2>&1 &
-live_pid=$!
-"$B" replay --shm-dir "$D/shm" --wfs-name w2 --camera-name c2 --timing "$D/timing.txt" --science "$D/science.fits" \
-    --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay_st.log" 2>&1 \
-    || { cat "$D/replay_st.log"; fail "replay (space-time)"; }
-wait "$live_pid" || { cat "$D/live_st.log"; fail "live --control (space-time)"; }
-grep -q "live_st.fits: $nsci camera frames used" "$D/live_st.log" || { cat "$D/live_st.log"; fail "live st: frames"; }
+live_replay live_st "${stb[@]}"
 rlst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/stream_st.fits[RESMEAN]" "$D/live_st.fits[RESMEAN]") \
     || fail "fitsdiff RESMEAN (stream, live: space-time)"
 echo "cli_pyramid: a space-time control matrix (lags 0,-4,4): NCP error $est nm (speckles) / $esst nm (stream), RESMEAN $rst (stream) and $rlst (live) apart" >&2
