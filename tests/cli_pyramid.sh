@@ -195,18 +195,30 @@ awk -v e="$el" -v c="$ech" -v i="$i" 'BEGIN { exit !(e > 0 && e < 2 * i && e > c
 # pupil grid), so stream given that map alone makes speckles' choice: no loops simulated for
 # it, speckles' RESMEAN (measured 3e-8 of its rms apart) and its NCP error
 grep -aq "EXTNAME = 'MEANMISS" "$D/lm_w.fits" || fail "--write-recon's map carries no MEANMISS"
+# resmean_apart A B: the rms of B's RESMEAN less A's over A's rms; halo_ncp FILE TAG: pupil's NCP
+# error [nm] from a halo file
+resmean_apart() { "$(dirname "$B")/tests/fitsdiff" --rms "$1[RESMEAN]" "$2[RESMEAN]"; }
+halo_ncp() {
+    "$B" pupil "$1" -o "$D/pupil_$2.fits" --truth "$S/truth.fits" > "$D/pupil_$2.log" || return 1
+    ncp_error "$D/pupil_$2.log"
+}
 "$B" stream --timing "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --control "$D/lm_w.fits" \
     -o "$D/stream_lm.fits" > "$D/stream_lm.log" 2>&1 || { cat "$D/stream_lm.log"; fail "stream --control (the written map)"; }
 grep -q -- "--mean-loop teach" "$D/stream_lm.log" && { cat "$D/stream_lm.log"; fail "stream simulated loops for a map with its miss"; }
-grep -q "with the map's own (MEANMISS: .*) miss of it added" "$D/stream_lm.log" \
-    || { cat "$D/stream_lm.log"; fail "stream: the map's miss not added"; }
-rs=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/speckles_lm.fits[RESMEAN]" "$D/stream_lm.fits[RESMEAN]") \
-    || fail "fitsdiff RESMEAN (speckles, stream)"
-"$B" pupil "$D/stream_lm.fits" -o "$D/pupil_slm.fits" --truth "$S/truth.fits" > "$D/pupil_slm.log" || fail "pupil (stream lm)"
-esl=$(ncp_error "$D/pupil_slm.log")
-echo "cli_pyramid: stream --control with --write-recon's map: RESMEAN $rs of speckles' rms apart, NCP error $esl nm" >&2
-awk -v r="$rs" -v a="$esl" -v b="$el" 'BEGIN { exit !(r < 1e-6 && a > b - 0.15 && a < b + 0.15) }' \
-    || fail "stream with the written map: RESMEAN $rs apart, $esl nm against speckles' $el nm"
+# with_written_map WHAT TAG REF REF_NCP: the run into $D/TAG.fits (its log $D/TAG.log) added the
+# written map's miss, its RESMEAN is REF's to 1e-6 of its rms and its NCP error REF_NCP's to
+# 0.15 nm; the error in $ncp
+with_written_map() {
+    grep -q "with the map's own (MEANMISS: .*) miss of it added" "$D/$2.log" || { cat "$D/$2.log"; fail "$1: the map's miss not added"; }
+    local r
+    r=$(resmean_apart "$3" "$D/$2.fits") || fail "fitsdiff RESMEAN ($1)"
+    ncp=$(halo_ncp "$D/$2.fits" "$2") || fail "pupil ($1)"
+    echo "cli_pyramid: $1 --control with --write-recon's map: RESMEAN $r of $3's rms apart, NCP error $ncp nm" >&2
+    awk -v r="$r" -v a="$ncp" -v b="$4" 'BEGIN { exit !(r < 1e-6 && a > b - 0.15 && a < b + 0.15) }' \
+        || fail "$1 with the written map: RESMEAN $r apart, $ncp nm against $4 nm"
+}
+with_written_map stream stream_lm "$D/speckles_lm.fits" "$el"
+esl=$ncp
 # live given the same map takes its miss too: the signals and frames replay publishes, every
 # camera frame used, the map's MEANMISS added, stream's RESMEAN and NCP error
 # live_replay TAG [live options]: live into $D/TAG.fits on the streams replay publishes of the
@@ -226,15 +238,7 @@ live_replay() {
     grep -q "$tag.fits: $nsci camera frames used" "$D/$tag.log" || { cat "$D/$tag.log"; fail "live $*: not all $nsci frames"; }
 }
 live_replay live_lm --basis "$S/influence.fits" --control "$D/lm_w.fits"
-grep -q "with the map's own (MEANMISS: .*) miss of it added" "$D/live_lm.log" \
-    || { cat "$D/live_lm.log"; fail "live: the map's miss not added"; }
-rl=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/stream_lm.fits[RESMEAN]" "$D/live_lm.fits[RESMEAN]") \
-    || fail "fitsdiff RESMEAN (stream, live)"
-"$B" pupil "$D/live_lm.fits" -o "$D/pupil_llm.fits" --truth "$S/truth.fits" > "$D/pupil_llm.log" || fail "pupil (live lm)"
-ell=$(ncp_error "$D/pupil_llm.log")
-echo "cli_pyramid: live --control with --write-recon's map: RESMEAN $rl of stream's rms apart, NCP error $ell nm" >&2
-awk -v r="$rl" -v a="$ell" -v b="$esl" 'BEGIN { exit !(r < 1e-6 && a > 0.95 * b && a < 1.05 * b) }' \
-    || fail "live with the written map: RESMEAN $rl apart, $ell nm against stream's $esl nm"
+with_written_map live live_lm "$D/stream_lm.fits" "$esl"
 # a space-time control matrix through the linear model (a cube of one plane per lag, NLAGS and
 # LAGk: learn --lags on the two loops, their own DM as the basis): speckles stacks the signals
 # at its lags, stream makes the same RESMEAN and NCP error, live on the replayed streams the
@@ -247,16 +251,12 @@ stb=(--basis "$D/tw/mean_00/influence.fits" --control "$D/st_w.fits")
 grep -q "space-time control matrix of 3 lags" "$D/speckles_st.log" || { cat "$D/speckles_st.log"; fail "speckles: no lags"; }
 "$B" stream --timing "$D/timing.txt" --science "$D/science.fits" "${stb[@]}" --mean-loop none -o "$D/stream_st.fits" \
     > "$D/stream_st.log" 2>&1 || { cat "$D/stream_st.log"; fail "stream --control (space-time)"; }
-rst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/speckles_st.fits[RESMEAN]" "$D/stream_st.fits[RESMEAN]") \
-    || fail "fitsdiff RESMEAN (speckles, stream: space-time)"
+rst=$(resmean_apart "$D/speckles_st.fits" "$D/stream_st.fits") || fail "fitsdiff RESMEAN (speckles, stream: space-time)"
 "$B" estimate "$D/science.fits" "$D/speckles_st.fits" -o "$D/halo_st.fits" > /dev/null 2>&1 || fail "estimate (space-time)"
-"$B" pupil "$D/halo_st.fits" -o "$D/pupil_st.fits" --truth "$S/truth.fits" > "$D/pupil_st.log" || fail "pupil (space-time)"
-"$B" pupil "$D/stream_st.fits" -o "$D/pupil_sst.fits" --truth "$S/truth.fits" > "$D/pupil_sst.log" || fail "pupil (stream st)"
-est=$(ncp_error "$D/pupil_st.log")
-esst=$(ncp_error "$D/pupil_sst.log")
+est=$(halo_ncp "$D/halo_st.fits" st) || fail "pupil (space-time)"
+esst=$(halo_ncp "$D/stream_st.fits" sst) || fail "pupil (stream st)"
 live_replay live_st "${stb[@]}"
-rlst=$("$(dirname "$B")/tests/fitsdiff" --rms "$D/stream_st.fits[RESMEAN]" "$D/live_st.fits[RESMEAN]") \
-    || fail "fitsdiff RESMEAN (stream, live: space-time)"
+rlst=$(resmean_apart "$D/stream_st.fits" "$D/live_st.fits") || fail "fitsdiff RESMEAN (stream, live: space-time)"
 echo "cli_pyramid: a space-time control matrix (lags 0,-4,4): NCP error $est nm (speckles) / $esst nm (stream), RESMEAN $rst (stream) and $rlst (live) apart" >&2
 awk -v r="$rst" -v q="$rlst" -v a="$est" -v b="$esst" -v i="$i" 'BEGIN { exit !(r < 1e-6 && q < 1e-6 && a > 0 &&
     a < 2 * i && b > a - 0.15 && b < a + 0.15) }' || fail "space-time control: $est / $esst nm (ideal $i), RESMEAN $rst / $rlst"
