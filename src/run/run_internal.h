@@ -182,11 +182,14 @@ int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom
  * speckles' condition for swfs_speckles_loops_map_, and the mean loops' for more loops where
  * that map's learning curve asks (run_mean_teach.c) */
 int swfs_loops_map_wanted_(const swfs_speckles_run_options *o, int pyramid_loops);
-/* The loops' map's lags by teach's rule (run_teach.c): the fastest layer `wind` tracks in the
- * loop folder loop0's telemetry (slopes_000.fits; *speed [subapertures per WFS frame], 0 where
- * none is tracked or the values are not a Shack-Hartmann layout of 2 nsub^2) moves half a
- * subaperture in L1 frames, lags 0, -L1, L1, -2 L1, 2 L1 (L1 = 1 without a layer: the loop's
- * own time scale); *nl = 5. */
+/* Teach's space-time lags (run_teach.c): 0, -L1, L1, -2 L1, 2 L1 with L1 = round(frames), the
+ * WFS frames in which the fastest layer moves half a subaperture (at least 1; frames <= 0, no
+ * layer tracked: 1, the loop's own time scale), into lags (SWFS_SPACETIME_NLAGS of them). */
+#define SWFS_SPACETIME_NLAGS 5
+void swfs_spacetime_lags_(double frames, long *lags);
+/* The loops' map's lags by that rule: the fastest layer `wind` tracks in the loop folder
+ * loop0's telemetry (slopes_000.fits; *speed [subapertures per WFS frame], 0 where none is
+ * tracked or the values are not a Shack-Hartmann layout of 2 nsub^2); *nl = SWFS_SPACETIME_NLAGS. */
 int swfs_loops_map_lags_(const char *loop0, long *lags, size_t *nl, double *speed);
 
 /* swfs_teach_describe with the science cube's geometry already in hand (g: read, overlaid

@@ -50,13 +50,8 @@ int swfs_loops_map_lags_(const char *loop0, long *lags, size_t *nl, double *spee
     swfs_real_free(s);
     if (rc) return swfs_fail_context(rc, "the loops' wind (%s)", path);
     for (size_t j = 0; e.found && j < e.nlayers; j++) *speed = fmax(*speed, e.layer[j].speed);
-    /* teach's rule (run_teach.c): the fastest layer moves half a subaperture in L1 frames; none
-     * tracked, the loop's own time scale (L1 = 1) */
-    long l1 = *speed > 0 ? lround(0.5 / *speed) : 1;
-    if (l1 < 1) l1 = 1;
-    const long l[5] = {0, -l1, l1, -2 * l1, 2 * l1};
-    memcpy(lags, l, sizeof l);
-    *nl = 5;
+    swfs_spacetime_lags_(*speed > 0 ? 0.5 / *speed : 0.0, lags);
+    *nl = SWFS_SPACETIME_NLAGS;
     return SWFS_OK;
 }
 

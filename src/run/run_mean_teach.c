@@ -455,16 +455,10 @@ static int loops_as_curve_asks(const swfs_speckles_run_options *o, const swfs_te
         swfs_clear_error();
         return SWFS_OK;
     }
-    /* the space-time map the step learns where the frames allow (its lags, swfs_loops_map_lags_)
-     * has its lags' times the inputs, and a least-squares map's excess over its floor goes as its
-     * inputs over its frames (run_loops_map.c): its lags' times the frames */
-    long lags[SWFS_RECON_MAXLAGS];
-    size_t nlags = 0;
-    double speed = 0;
-    if (swfs_loops_map_lags_(dirs[0], lags, &nlags, &speed)) {
-        swfs_clear_error(); /* the step says so */
-        nlags = 1;
-    }
+    /* the space-time map the step learns where the frames allow (swfs_loops_map_lags_) has its
+     * lags' times the inputs, and a least-squares map's excess over its floor goes as its inputs
+     * over its frames (run_loops_map.c): its lags' times the frames */
+    const size_t nlags = SWFS_SPACETIME_NLAGS;
     r->curve_excess = lr.curve_excess;
     r->curve_frames = lr.curve_frames > SIZE_MAX / nlags ? SIZE_MAX : lr.curve_frames * nlags;
     size_t want = nl;

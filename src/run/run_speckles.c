@@ -710,20 +710,16 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         else snprintf(band, sizeof band, "the whole window");
         const int tt = o->pipe.tiptilt;
         char model[160];
-        if (o->lin.basis) {
-            int n = snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis,
-                             o->lin.scale, o->lin.control ? (w.nlags ? "space-time control matrix of lags"
-                                                                     : "control matrix")
-                                                          : o->lin.imat ? "interaction matrix" : "modal coefficients");
-            for (size_t k = 0; k < w.nlags && n > 0 && (size_t)n < sizeof model; k++)
-                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.lags[k]);
-        } else if (r->info.nlags) {
-            int n = snprintf(model, sizeof model, "%zu %s, space-time reconstructor of lags", r->info.nact,
-                             r->info.out_pitch > 0 ? "output points" : "actuators");
-            for (size_t k = 0; k < w.nlags && n > 0 && (size_t)n < sizeof model; k++)
-                n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.lags[k]);
-        } else
-            snprintf(model, sizeof model, "%zu %s", r->info.nact, r->info.out_pitch > 0 ? "output points" : "actuators");
+        int n;
+        if (o->lin.basis)
+            n = snprintf(model, sizeof model, "linear model: %zu basis functions x %g, %s", r->info.nbasis, o->lin.scale,
+                         o->lin.control ? (w.nlags ? "space-time control matrix of lags" : "control matrix")
+                                        : o->lin.imat ? "interaction matrix" : "modal coefficients");
+        else
+            n = snprintf(model, sizeof model, "%zu %s%s", r->info.nact, r->info.out_pitch > 0 ? "output points" : "actuators",
+                         w.nlags ? ", space-time reconstructor of lags" : "");
+        for (size_t k = 0; k < w.nlags && n > 0 && (size_t)n < sizeof model; k++) /* (0 per frame) */
+            n += snprintf(model + n, sizeof model - (size_t)n, "%s%ld", k ? "," : " ", w.lags[k]);
         snprintf(info, sizeof info, "speckles%s: ratio %.6f, lag %.4f, %s, %zu telemetry values, %zu reconstructor "
                  "modes, tip-tilt %s, static halo %s, speckles within %s", o->pipe.wfs_rate ? " at the WFS rate" : "", r->ratio, r->lag,
                  model, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?

@@ -31,6 +31,14 @@ void swfs_teach_run_options_default(swfs_teach_run_options *o)
     o->seed = 101;
 }
 
+
+void swfs_spacetime_lags_(double frames, long *lags)
+{
+    long l1 = frames > 0 ? lround(frames) : 1;
+    if (l1 < 1) l1 = 1;
+    const long l[SWFS_SPACETIME_NLAGS] = {0, -l1, l1, -2 * l1, 2 * l1};
+    memcpy(lags, l, sizeof l);
+}
 static void stage(const swfs_teach_run_options *o, const char *what, size_t done, size_t total)
 {
     if (o->progress) o->progress(o->progress_ctx, what, done, total);
@@ -922,11 +930,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * few frames, its sensor's noise does not, so they average the noise and show the DM's
      * response to the slopes just before (docs/telemetry.md, "Slopes without a frozen-flow
      * layer": on noise-dominated slopes the per-frame map was worse than von Karman's) */
-    long l1 = prior ? 1 : lround(r->wind.pitch * r->wind.rate / (2.0 * vmax));
-    if (l1 < 1) l1 = 1;
-    const long lags[5] = {0, -l1, l1, -2 * l1, 2 * l1};
-    memcpy(r->lags, lags, sizeof lags);
-    r->nlags = 5;
+    swfs_spacetime_lags_(prior ? 0.0 : r->wind.pitch * r->wind.rate / (2.0 * vmax), r->lags);
+    r->nlags = SWFS_SPACETIME_NLAGS;
     /* 2. the loops' slope noise and modal filter: given, or from the observation's slopes.
      * Loops of less noise than the observation's give a map that amplifies its noise
      * (docs/telemetry.md, "The loops' slope noise from the slopes"). */
@@ -997,7 +1002,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     r->max_loops = max_loops;
     if (!rc) {
         stage(o, "learning the space-time map", 0, 1);
-        rc = learn(o, &pj, jobs, o->nloops, lags, 5, st, pf, max_loops > o->nloops, &lr);
+        rc = learn(o, &pj, jobs, o->nloops, r->lags, r->nlags, st, pf, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
@@ -1019,7 +1024,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         r->st_loops = n;
         if (!rc) {
             stage(o, "learning the space-time map again", 0, 1);
-            rc = learn(o, &pj, jobs, n, lags, 5, st, pf, 1, &lr);
+            rc = learn(o, &pj, jobs, n, r->lags, r->nlags, st, pf, 1, &lr);
             r->curve = lr;
         }
     }
@@ -1029,7 +1034,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     }
     if (!rc && !prior) { /* none where no layer was tracked: they compare the loops' layers with the slopes' */
         r->check.info.nlags = 5;
-        rc = swfs_spacetime_check_(st, lags, 5, obs->data, obs->ny, obs->nx, nsub, valid, &r->check);
+        rc = swfs_spacetime_check_(st, r->lags, r->nlags, obs->data, obs->ny, obs->nx, nsub, valid, &r->check);
     }
     swfs_real_free(obs);
     if (!rc && !prior) r->warns = swfs_spacetime_warns(&r->check);
