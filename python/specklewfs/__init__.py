@@ -15,7 +15,7 @@ from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_s
                         ShackHartmann,
                         dm_modes, slopes_remove_tiptilt, wind_from_slopes, slopes_noise_var, slopes_white_noise,
                         slopes_curl_noise,
-                        vk_covariance, Recon, SpeckleModel,
+                        vk_covariance, Recon, SpeckleModel, stack_lags, read_control,
                         schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,
                         bandwidth_radius)

@@ -11,7 +11,7 @@ from . import _lib
 from ._lib import lib, check, as_array, dptr
 from .core import Geom
 from .estimate import Accumulator, Halo, G_SMOOTH_DEFAULT
-from .telemetry import Recon, SpeckleModel, _sched
+from .telemetry import Recon, SpeckleModel, _sched, _lags_c
 
 P = ctypes.POINTER
 _RECON = {"vk": 0, "map": 1, "svd": 2, "given": 3}
@@ -35,7 +35,9 @@ class Pipeline:
 
     geom: a Geom with every keyword; nfx, nfy: the focal window; xy: (nact, 2) actuator
     positions [m]; nslopes: 2 nsub^2; mask: (pupn, pupn) or None (annulus); recon: 'vk'
-    (default), 'map', 'svd' or a (nact, nslopes) matrix / Recon (used as given); training:
+    (default), 'map', 'svd' or a (nact, nslopes) matrix / Recon (used as given; a space-time
+    one, Recon.read of `learn --lags`' map or Recon.from_matrix(W, lags), takes each frame as
+    stack_lags(slopes, recon.lags)'s row: the pipeline's lags and nslopes say so); training:
     (ntrain, nslopes) WFS frames for 'vk' / 'map'; rcond, max_modes: for 'svd';
     slope_noise [rad] (0: estimated); vk_l0 [m]; tiptilt: 'exposure' (default), 'frame'
     or 'keep' (speckles.h); threads: engine workers; wfs_rate: one field per WFS frame
@@ -88,19 +90,41 @@ class Pipeline:
                                        ctypes.byref(o)), "swfs_pipeline_create")
         self._p = p
         self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
-        self.geom, self.nfx, self.nfy, self.nslopes = geom, int(nfx), int(nfy), int(nslopes)
+        self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
         self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+        self._frame_width(int(nslopes), rin.lags if rin is not None else ())
+
+    def _frame_width(self, nvalues, lags):
+        """nvalues: the telemetry's values per WFS frame; lags: a space-time map's (() for
+        one frame's): each frame given to process is then stack_lags' row of them, nslopes
+        = len(lags) x nvalues values (the pipeline's info.nslopes)."""
+        self.lags, self.nvalues = tuple(lags), nvalues
+        self.nslopes = int(self.info["nslopes"])
+
+    def _frames(self, slopes, name="slopes"):
+        s = np.asarray(slopes)
+        if self.lags and s.ndim == 2 and s.shape[1] == self.nvalues:
+            raise ValueError(f"{name}: {s.shape[1]} values per frame, one frame's; this pipeline's map is space-time "
+                             f"(lags {list(self.lags)}): give each frame with its lagged frames, "
+                             f"stack_lags({name}, pipeline.lags) over the contiguous series "
+                             f"({self.nslopes} values per frame)")
+        return as_array(s, name, np.float64, shape=(None, self.nslopes))
 
     @classmethod
     def linear(cls, geom, nfx, nfy, basis, control=None, imat=None, scale=1.0, registration=None, mask=None,
-               training=None, recon="map", rcond=5e-2, tiptilt="exposure", threads=1, wfs_rate=False, band="auto"):
+               training=None, recon="map", rcond=5e-2, tiptilt="exposure", threads=1, wfs_rate=False, band="auto",
+               lags=None):
         """The pipeline over the generic linear model (lmodel.h, docs/telemetry.md): per WFS
         frame the wavefront is scale * B (A v).
 
         basis: (nk, pupn, pupn) on the pupil grid, or (nk, gy, gx) on the DM's own grid with
         registration = dict(pitch=[m per grid step], offset=(x0, y0) [m], rot=[deg],
-        flip=bool); control: (nk, nmeas) or None (the telemetry values are the coefficients);
-        imat: (nmeas, nk) instead, inverted by the MAP reconstructor learned from training
+        flip=bool); control: (nk, nmeas) or None (the telemetry values are the coefficients),
+        or a space-time control matrix with lags = its lags [WFS frames] (one of them 0): a
+        cube (nlags, nk, nv), one plane per lag as `learn --lags` writes it (read_control), or
+        (nk, nlags nv) with lag k's block in columns [k nv, (k + 1) nv); each frame's
+        coefficients are then sum_k C_k v(t + lags[k]), and process takes each frame as
+        stack_lags(values, lags)'s row; imat: (nmeas, nk) instead (not with lags), inverted by the MAP reconstructor learned from training
         (ntrain, nmeas) ('map') or the truncated SVD ('svd', rcond); scale: metres of
         wavefront per unit of basis x coefficient (cacao: 2e-6); band: as for Pipeline
         ('auto' = everywhere here: a linear model has no subapertures to derive a band from)."""
@@ -137,9 +161,22 @@ class Pipeline:
             ctl = im = None
             if control is not None and imat is not None:
                 raise ValueError("control and imat: give one of them")
+            lag_arr, nl = (None, 0) if lags is None else _lags_c(lags, "Pipeline.linear: lags")
             if control is not None:
-                ctl = as_array(control, "control", np.float64, shape=(nk, None))
+                ctl = as_array(control, "control", np.float64, ndim=(2, 3))
+                if ctl.ndim == 3:
+                    if nl != ctl.shape[0]:
+                        raise ValueError(f"control: a cube of {ctl.shape[0]} lags' planes needs lags= with as many "
+                                         f"lags, got {'none' if lags is None else list(lags)}")
+                    ctl = as_array(ctl, "control", np.float64, shape=(nl, nk, None))
+                    ctl = np.ascontiguousarray(ctl.transpose(1, 0, 2).reshape(nk, -1))
+                ctl = as_array(ctl, "control", np.float64, shape=(nk, None))
+                if nl > 1 and ctl.shape[1] % nl:
+                    raise ValueError(f"control: {ctl.shape[1]} columns, not {nl} lags' blocks of equal width")
                 nmeas = ctl.shape[1]
+            elif nl > 1:
+                raise ValueError("lags: a space-time model needs its control matrix (control=); imat and the "
+                                 "coefficients themselves are one frame's")
             elif imat is not None:
                 im = as_array(imat, "imat", np.float64, shape=(None, nk))
                 nmeas = im.shape[0]
@@ -159,7 +196,7 @@ class Pipeline:
                 tr = as_array(training, "training", np.float64, shape=(None, nmeas))
                 ntr = tr.shape[0]
             lin = _lib.swfs_linear_input(nmeas, B, dptr(ctl), dptr(im), float(scale), dptr(shapes),
-                                         nk if shapes is not None else 0)
+                                         nk if shapes is not None else 0, nl if nl > 1 else 0)
             p = ctypes.c_void_p()
             check(lib.swfs_pipeline_create_linear(ctypes.byref(p), ctypes.byref(g), int(nfx), int(nfy), dptr(mask),
                                                   ctypes.byref(lin), dptr(tr), ntr, ctypes.byref(o)),
@@ -169,8 +206,9 @@ class Pipeline:
         self = cls.__new__(cls)
         self._p = p
         self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
-        self.geom, self.nfx, self.nfy, self.nslopes = geom, int(nfx), int(nfy), int(nmeas)
+        self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
         self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+        self._frame_width(nmeas // nl if nl > 1 else nmeas, tuple(lag_arr[:nl]) if nl > 1 else ())
         return self
 
     @property
@@ -202,8 +240,9 @@ class Pipeline:
 
     def process(self, slopes, sched, out=None):
         """(nexp, nfy, nfx) core-referenced focal fields (before the static halo is
-        subtracted) of the exposures sched over slopes (nwfs, nslopes)."""
-        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        subtracted) of the exposures sched over slopes (nwfs, nslopes): each WFS frame's
+        values, or with lags (a space-time map) stack_lags(values, lags)'s rows."""
+        s = self._frames(slopes)
         sched = _sched(sched)
         if out is None:
             out = np.empty((sched.shape[0], self.nfy, self.nfx), np.complex128)
@@ -213,7 +252,7 @@ class Pipeline:
         return out
 
     def process_wfs(self, slopes, out=None):
-        s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
+        s = self._frames(slopes)
         if out is None:
             out = np.empty((s.shape[0], self.nfy, self.nfx), np.complex128)
         out = as_array(out, "out", np.complex128, shape=(s.shape[0], self.nfy, self.nfx), writable=True)
@@ -315,7 +354,7 @@ class Stream:
             slopes, sched, science = item[:3]
             cube = item[3] if len(item) > 3 else 0
         p = self.pipeline
-        s = as_array(slopes, "slopes", np.float64, shape=(None, p.nslopes))
+        s = p._frames(slopes)
         sc = _sched(sched)
         sci = as_array(science, "science", np.float64, shape=(sc.shape[0], p.nfy, p.nfx))
         if sc.shape[0] and int((sc["first"] + sc["count"]).max()) > s.shape[0]:

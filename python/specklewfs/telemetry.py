@@ -6,6 +6,7 @@ Slopes are (nframes, nslopes) float64 arrays (x slopes then y slopes, wfs.h unit
 actuator positions (nact, 2) [m]; reconstructors (nact, nslopes) [m/rad]; pupil maps
 (npup, npup); focal fields (nfy, nfx) complex."""
 import ctypes
+import os
 
 import numpy as np
 
@@ -259,9 +260,49 @@ def vk_covariance(xy, L0):
 
 # ---- reconstructors ------------------------------------------------------------------
 
+def _lags_c(lags, what):
+    """Lags [WFS frames] as the library's array, checked as it checks them (one of them 0,
+    distinct, at most RECON_MAXLAGS; wfs.h swfs_lags_check)."""
+    lv = [int(v) for v in lags]
+    arr = (ctypes.c_long * max(len(lv), 1))(*lv)
+    check(lib.swfs_lags_check(arr, len(lv), enc(what)), what)
+    return arr, len(lv)
+
+
+def stack_lags(values, lags, first=0, count=None):
+    """A space-time map's input (wfs.h swfs_slopes_stack): row t = the values of frames
+    first + t + lags[k] of values (nframes, nv), k = 0..len(lags)-1, side by side
+    ((count, len(lags) nv)); frames beyond the series' ends repeat its edge frame. count:
+    None = every frame from first on. Stack one contiguous series at a time: its ends are
+    the only frames clamped."""
+    v = as_array(values, "values", np.float64, ndim=(2,))
+    arr, nl = _lags_c(lags, "stack_lags")
+    n = v.shape[0] - int(first) if count is None else int(count)
+    if int(first) < 0 or n < 0 or int(first) + n > v.shape[0]:
+        raise ValueError(f"stack_lags: frames {first}..{int(first) + n} of a series of {v.shape[0]}")
+    out = np.empty((n, nl * v.shape[1]), np.float64)
+    lib.swfs_slopes_stack(dptr(v), v.shape[0], v.shape[1], arr, nl, int(first), n, dptr(out))
+    return out
+
+
+def read_control(path):
+    """A linear model's control matrix from its file (`--control`): (control, lags), control
+    (nk, nmeas) with lags None, or a space-time one's cube (nlags, nk, nv) with its lags
+    (NLAGS, LAG1..LAGn, as `learn --lags` writes them) for Pipeline.linear(control=,
+    lags=)."""
+    from .fits import read_fits
+    c = np.ascontiguousarray(read_fits(path, squeeze=False)[0], dtype=np.float64)
+    if c.shape[0] == 1:
+        return np.ascontiguousarray(c[0]), None
+    arr = (ctypes.c_long * c.shape[0])()
+    check(lib.swfs_lags_read(enc(os.fspath(path)), c.shape[0], arr), "swfs_lags_read")
+    return c, tuple(arr)
+
+
 class Recon:
     """A reconstructor (wfs.h): W (nact, nslopes) [m/rad], nmodes, sv (singular values of
-    D or None), noise_var, dof. Build with Recon.svd / map / vk / modal, or from_matrix."""
+    D or None), noise_var, dof, lags (a space-time map's, () for one frame's slopes: W then
+    takes stack_lags(slopes, lags)). Build with Recon.svd / map / vk / modal, or from_matrix."""
 
     def __init__(self, ptr, owner):
         self._p, self._owner = ptr, owner
@@ -272,6 +313,8 @@ class Recon:
                    if r.sv else None)
 
     nmodes = property(lambda self: self._p.contents.nmodes)
+    lags = property(lambda self: tuple(self._p.contents.lags[:self._p.contents.nlags])
+                    if self._p.contents.nlags > 1 else ())
     noise_var = property(lambda self: self._p.contents.noise_var)
     dof = property(lambda self: self._p.contents.dof)
 
@@ -280,10 +323,18 @@ class Recon:
         return cls(p, _lib.Owner(p, lib.swfs_recon_free))
 
     @classmethod
-    def from_matrix(cls, W):
-        """A reconstructor over a numpy matrix (nact, nslopes) (used in place)."""
+    def from_matrix(cls, W, lags=None):
+        """A reconstructor over a numpy matrix (nact, nslopes) (used in place). lags: a
+        space-time map's (nslopes = len(lags) x the slopes per frame, lag k's block in
+        columns [k ns, (k + 1) ns), stack_lags' layout), or None."""
         W = as_array(W, "W", np.float64, ndim=2)
         r = _lib.swfs_recon(W.shape[0], W.shape[1], dptr(W), W.shape[0], None, 0, 0.0, 0.0)
+        if lags is not None and len(lags) > 1:
+            arr, nl = _lags_c(lags, "Recon.from_matrix")
+            if W.shape[1] % nl:
+                raise ValueError(f"Recon.from_matrix: W has {W.shape[1]} columns, not a multiple of its {nl} lags")
+            r.nlags = nl
+            r.lags[:nl] = arr[:nl]
         self = cls(ctypes.pointer(r), None)
         self._keep = (W, r)
         self.W = W

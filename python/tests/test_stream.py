@@ -230,6 +230,72 @@ def test_linear_pipeline_equals_shack_hartmann(data):
         sw.Pipeline.linear(GEOM, NF, NF, basis, control=W * 1e6, mask=sh.mask, scale=1e6, training=d["slopes"])
 
 
+def test_space_time_pipelines(data, tmp_path):
+    """A space-time map in Python: the linear model's control cube (one plane per lag, as
+    `learn --lags` writes it, read back by read_control) and a Shack-Hartmann Recon with lags
+    take each frame as stack_lags' row. [W, 0] at lags (0, 2) gives W's fields, [0, W] W's two
+    frames on (the series' last frame repeated past its end); one frame's slopes given to a
+    space-time pipeline are refused, naming stack_lags; bad lags are refused."""
+    d = data
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none", wfs_rate=True)
+    from specklewfs._lib import lib
+    from specklewfs.telemetry import Sparse
+    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()
+    W = np.array(sh.recon.W)
+    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    s = d["slopes"]
+    n = s.shape[0]
+    lags = (0, 2)
+    st = sw.stack_lags(s, lags)
+    assert st.shape == (n, 2 * NSLOPES)
+    np.testing.assert_array_equal(st[:, NSLOPES:][: n - 2], s[2:])
+    np.testing.assert_array_equal(st[n - 2:, NSLOPES:], s[[n - 1, n - 1]])
+    np.testing.assert_array_equal(sw.stack_lags(s, (0, -1), first=5, count=3)[:, NSLOPES:], s[4:7])
+    ref = sw.Pipeline.linear(GEOM, NF, NF, basis, control=W, mask=sh.mask, tiptilt="keep", wfs_rate=True).process_wfs(s)
+    peak = np.abs(ref).max()
+    zero = np.zeros_like(W)
+    path = str(tmp_path / "control.fits")
+    sw.write_fits(path, np.stack([zero, W]), keys={"NLAGS": 2, "LAG1": 0, "LAG2": 2})
+    cube, lg = sw.read_control(path)
+    assert lg == lags and cube.shape == (2, W.shape[0], NSLOPES)
+    for ctl, lg, shift in ((np.stack([W, zero]), lags, 0), (np.hstack([W, zero]), lags, 0), (cube, lg, 2)):
+        p = sw.Pipeline.linear(GEOM, NF, NF, basis, control=ctl, mask=sh.mask, tiptilt="keep", lags=lg, wfs_rate=True)
+        assert p.lags == lags and p.nvalues == NSLOPES and p.nslopes == 2 * NSLOPES
+        assert p.info["nlags"] == 2
+        out = p.process_wfs(st)
+        np.testing.assert_allclose(out[: n - shift], ref[shift:], rtol=0, atol=2e-5 * peak)
+        if shift:
+            np.testing.assert_allclose(out[n - shift:], ref[[n - 1] * shift], rtol=0, atol=2e-5 * peak)
+        with pytest.raises(ValueError, match=r"stack_lags\(slopes, pipeline.lags\)"):
+            p.process_wfs(s)
+    r = sw.Recon.from_matrix(np.hstack([zero, W]), lags=(0, 3))
+    assert r.lags == (0, 3)
+    shp = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=r, tiptilt="keep", band="none", wfs_rate=True)
+    assert shp.lags == (0, 3) and shp.nslopes == 2 * NSLOPES and shp.info["nlags"] == 2
+    out = shp.process_wfs(sw.stack_lags(s, (0, 3)))
+    ref_sh = sh.process_wfs(s)
+    np.testing.assert_allclose(out[: n - 3], ref_sh[3:], rtol=0, atol=2e-5 * np.abs(ref_sh).max())
+    # per exposure, and in a stream: [W, 0] gives W's exposures; one frame's slopes refused
+    exp = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=sw.Recon.from_matrix(np.hstack([W, zero]), lags=(0, 3)),
+                      tiptilt="keep", band="none")
+    ref_exp = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none").process(
+        s, d["sched"])
+    np.testing.assert_allclose(exp.process(sw.stack_lags(s, (0, 3)), d["sched"]), ref_exp, rtol=0,
+                               atol=2e-5 * np.abs(ref_exp).max())
+    sl, sc, sci = next(batches(d, 5))
+    with pytest.raises(ValueError, match="stack_lags"):
+        sw.Stream(exp).push(sl, sc, sci)
+    sw.Stream(exp).push(sw.stack_lags(sl, (0, 3)), sc, sci)
+    with pytest.raises(ValueError, match="needs lags="):
+        sw.Pipeline.linear(GEOM, NF, NF, basis, control=np.stack([W, zero]), mask=sh.mask)
+    with pytest.raises(sw.Error, match="no lag 0"):
+        sw.Pipeline.linear(GEOM, NF, NF, basis, control=np.stack([W, zero]), mask=sh.mask, lags=(1, 2))
+    with pytest.raises(ValueError, match="control matrix"):
+        sw.Pipeline.linear(GEOM, NF, NF, basis, imat=W.T, mask=sh.mask, lags=lags)
+    with pytest.raises(ValueError, match="not a multiple"):
+        sw.Recon.from_matrix(np.hstack([zero, W[:, 1:]]), lags=(0, 3))
+
+
 def test_pipeline_valid_map_takes_used_slopes_only(data):
     """With the AO system's valid-subaperture map the pipeline takes the used subapertures'
     slopes only (x then y, 2 nvalid values): the same fields as the full layout, the
