@@ -264,6 +264,14 @@ swfs_stream_options = _s("swfs_stream_options", [("static_mode", c_int), ("stati
                                                  ("noise", swfs_noise), ("est", swfs_estimate_options),
                                                  ("every", c_size), ("every_seconds", c_dbl),
                                                  ("max_frames", c_size)])
+swfs_framesync_options = _s("swfs_framesync_options", [("batch", c_size), ("max_wait", c_dbl), ("exptime", c_dbl),
+                                                       ("clock_memory", c_dbl), ("wfs_history", c_size),
+                                                       ("camera_queue", c_size), ("lags", P(c_long)), ("nlags", c_size)])
+FRAMESYNC_COUNTS = ["wfs_received", "camera_received", "wfs_dropped", "camera_dropped", "wfs_restarts",
+                    "camera_restarts", "wfs_segments", "camera_segments", "used", "incomplete", "no_wfs", "unsettled",
+                    "overrun", "wfs_bad", "wfs_late", "batches"]
+swfs_framesync_stats = _s("swfs_framesync_stats", [(n, c_u64) for n in FRAMESYNC_COUNTS] +
+                          [("wfs_period", c_dbl), ("camera_period", c_dbl)])
 swfs_fits_shape = _s("swfs_fits_shape", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("is_complex", c_int),
                                          ("bitpix", c_int)])
 
@@ -613,6 +621,17 @@ _PROTOS = {
     "swfs_stream_options_default": (None, [P(swfs_stream_options)]),
     "swfs_stream_create": (c_int, [P(c_ptr), c_ptr, P(swfs_stream_options)]),
     "swfs_stream_free": (None, [c_ptr]),
+    "swfs_framesync_options_default": (None, [P(swfs_framesync_options)]),
+    "swfs_framesync_create": (c_int, [P(c_ptr), c_size, P(c_size), c_size, P(swfs_framesync_options)]),
+    "swfs_framesync_free": (None, [c_ptr]),
+    "swfs_framesync_add_wfs": (c_int, [c_ptr, c_size, c_u64, ctypes.c_int64, P(c_dbl), c_dbl]),
+    "swfs_framesync_add_camera": (c_int, [c_ptr, c_u64, ctypes.c_int64, P(c_dbl), c_dbl]),
+    "swfs_framesync_expect": (None, [c_ptr, c_int, c_size, c_u64, c_int]),
+    "swfs_framesync_settle": (None, [c_ptr, ctypes.c_int64]),
+    "swfs_framesync_next": (c_int, [c_ptr, c_dbl, c_int, P(swfs_batch)]),
+    "swfs_framesync_batch_stamps": (P(ctypes.c_int64), [c_ptr]),
+    "swfs_framesync_get_stats": (None, [c_ptr, P(swfs_framesync_stats)]),
+    "swfs_framesync_nslopes": (c_size, [c_ptr]),
     "swfs_stream_push": (c_int, [c_ptr, P(swfs_batch)]),
     "swfs_stream_run": (c_int, [c_ptr, SOURCE_FN, c_ptr, UPDATE_FN, c_ptr]),
     "swfs_stream_estimate": (c_int, [c_ptr, P(P(swfs_halo))]),

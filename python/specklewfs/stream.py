@@ -4,6 +4,7 @@ accumulators -> the static-halo estimate, updated as the data arrive), with a Py
 source callback."""
 import ctypes
 import os
+import time
 
 import numpy as np
 
@@ -12,6 +13,7 @@ from ._lib import lib, check, as_array, dptr
 from .core import Geom
 from .estimate import Accumulator, Halo, G_SMOOTH_DEFAULT
 from .telemetry import Recon, SpeckleModel, _sched, _lags_c
+from ._lib import EXPOSURE_DTYPE
 
 P = ctypes.POINTER
 _RECON = {"vk": 0, "map": 1, "svd": 2, "given": 3}
@@ -432,3 +434,111 @@ class Stream:
     wfs_frames = property(lambda self: lib.swfs_stream_wfs_frames(self._s))
     seconds = property(lambda self: lib.swfs_stream_seconds(self._s))
     static_scale = property(lambda self: lib.swfs_stream_static_scale(self._s))
+
+
+class FrameSync:
+    """Timestamped frames -> stream batches (framesync.h): the live counterpart of the
+    timing table, for frames that come from a source of one's own (a telemetry server, a
+    camera SDK) rather than shared memory (`live`).
+
+    nvals: values per frame of each WFS stream (an int for one; several are concatenated
+    in this order into each frame's slope vector); shape: the camera frames' (nfy, nfx);
+    batch: camera frames per batch; max_wait [s]: the longest a ready camera frame waits
+    for its batch to fill; exptime [s]: the camera's exposure (0: its frame period);
+    clock_memory [frames]; wfs_history, camera_queue: 0 for the library's defaults; lags:
+    a space-time map's (pipeline.lags), each batch row then the frame's values stacked at
+    them, the batch waiting for the frames its largest lag needs (framesync.h "Lags").
+
+    Stamps are integers [ns] of the writers' clock marking the END of each frame, counters
+    the writers' frame counters (a jump counts dropped frames, one going back a restart).
+    Add frames in the order they arrive; take the batches with next() or batches(), each a
+    dict (slopes (nwfs, nslopes), sched, science (nexp, nfy, nfx), cube, stamps [ns]; copies,
+    valid after the next call) as Stream.run takes its source's batches, or
+    Stream.push(b["slopes"], b["sched"], b["science"]). now [s]: the monotonic time for
+    max_wait (default time.monotonic())."""
+
+    def __init__(self, nvals, shape, batch=16, max_wait=0.5, exptime=0.0, clock_memory=4096.0, wfs_history=0,
+                 camera_queue=0, lags=None):
+        nv = [int(nvals)] if np.ndim(nvals) == 0 else [int(v) for v in nvals]
+        if not nv or min(nv) < 1:
+            raise ValueError(f"nvals: expected values per frame of each WFS stream (>= 1), got {nvals!r}")
+        ny, nx = (int(v) for v in shape)
+        if ny < 1 or nx < 1:
+            raise ValueError(f"shape: expected the camera frames' (nfy, nfx), got {shape!r}")
+        o = _lib.swfs_framesync_options()
+        lib.swfs_framesync_options_default(ctypes.byref(o))
+        o.batch, o.max_wait, o.exptime, o.clock_memory = int(batch), float(max_wait), float(exptime), float(clock_memory)
+        o.wfs_history, o.camera_queue = int(wfs_history), int(camera_queue)
+        self.lags = ()
+        if lags is not None and len(lags) > 1:
+            self._lag_arr, n = _lags_c(lags, "FrameSync: lags")
+            o.lags, o.nlags = self._lag_arr, n
+            self.lags = tuple(self._lag_arr[:n])
+        nva = (ctypes.c_size_t * len(nv))(*nv)
+        f = ctypes.c_void_p()
+        check(lib.swfs_framesync_create(ctypes.byref(f), len(nv), nva, ny * nx, ctypes.byref(o)), "swfs_framesync_create")
+        self._f = f
+        self._owner = _lib.Owner(f, lib.swfs_framesync_free)
+        self.nvals, self.shape = tuple(nv), (ny, nx)
+        self.nvalues = int(lib.swfs_framesync_nslopes(f))
+        self.nslopes = self.nvalues * max(len(self.lags), 1)
+
+    @staticmethod
+    def _now(now):
+        return time.monotonic() if now is None else float(now)
+
+    def add_wfs(self, values, counter, stamp_ns, stream=0, now=None):
+        """One frame of WFS stream `stream`: its nvals[stream] values (copied)."""
+        i = int(stream)
+        if not 0 <= i < len(self.nvals):
+            raise ValueError(f"stream: expected 0..{len(self.nvals) - 1}, got {stream}")
+        v = as_array(values, "values", np.float64, shape=(self.nvals[i],))
+        check(lib.swfs_framesync_add_wfs(self._f, i, int(counter), int(stamp_ns), dptr(v), self._now(now)),
+              "swfs_framesync_add_wfs")
+
+    def add_camera(self, frame, counter, stamp_ns, now=None):
+        """One camera frame (nfy, nfx) (copied)."""
+        fr = as_array(frame, "frame", np.float64, shape=self.shape)
+        check(lib.swfs_framesync_add_camera(self._f, int(counter), int(stamp_ns), dptr(fr), self._now(now)),
+              "swfs_framesync_add_camera")
+
+    def expect(self, last, camera=False, stream=0, restarted=False):
+        """The counter of WFS stream `stream` (or of the camera) stood at `last` when it was
+        opened: frames after it that never arrive count as dropped; restarted: the writer
+        started counting again (a new segment)."""
+        lib.swfs_framesync_expect(self._f, int(bool(camera)), int(stream), int(last), int(bool(restarted)))
+
+    def settle(self, stamp_ns):
+        """Skip camera exposures that begin before stamp_ns (e.g. until a DM change settled)."""
+        lib.swfs_framesync_settle(self._f, int(stamp_ns))
+
+    def next(self, flush=False, now=None):
+        """The next batch if one is ready, else None; flush: close the batch being filled
+        and skip frames that cannot be completed (the end of the data)."""
+        b = _lib.swfs_batch()
+        check(lib.swfs_framesync_next(self._f, self._now(now), int(bool(flush)), ctypes.byref(b)),
+              "swfs_framesync_next")
+        if not b.nexp:
+            return None
+        addr = lambda p: ctypes.cast(p, ctypes.c_void_p).value
+        sl = _lib.view(addr(b.slopes), (b.nwfs, self.nslopes), np.float64, None).copy()
+        sc = _lib.view(b.sched, (b.nexp,), EXPOSURE_DTYPE, None).copy()
+        sci = _lib.view(addr(b.science), (b.nexp,) + self.shape, np.float64, None).copy()
+        st = _lib.view(addr(lib.swfs_framesync_batch_stamps(self._f)), (b.nexp,), np.int64, None).copy()
+        return dict(slopes=sl, sched=sc, science=sci, cube=int(b.cube), stamps=st)
+
+    def batches(self, flush=False, now=None):
+        """Every batch ready now (with flush: and the rest), as next() gives them."""
+        while True:
+            b = self.next(flush, now)
+            if b is None:
+                return
+            yield b
+
+    @property
+    def stats(self):
+        """dict: the counts of framesync.h swfs_framesync_stats (frames received, dropped,
+        restarts, segments, used, skipped by cause, batches) and wfs_period, camera_period [s]."""
+        st = _lib.swfs_framesync_stats()
+        lib.swfs_framesync_get_stats(self._f, ctypes.byref(st))
+        return {n: getattr(st, n) for n, _t in st._fields_}

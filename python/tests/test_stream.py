@@ -323,3 +323,77 @@ def test_pipeline_valid_map_takes_used_slopes_only(data):
         sw.Pipeline(GEOM, NF, NF, d["xy"], len(cols) + 2, recon="svd", valid=used.reshape(nsub, nsub))
     with pytest.raises(ValueError, match="square"):
         sw.Pipeline(GEOM, NF, NF, d["xy"], len(cols), recon="svd", valid=np.ones((3, 4)))
+
+
+def feed_framesync(fs, slopes, sched, science, period=1e-3, t0=10**12, drop_camera=()):
+    """The data set as timestamped frames in time order (WFS frame k ends at (k + 1) periods,
+    exposure j at its schedule's end, 0.3 + 3.5 (j + 1) frames; counters from 1), the
+    batches collected as they come and, at the end, flushed."""
+    ends = sched["first"] + sched["count"] - 1 + sched["w_last"]  # in WFS periods
+    out, cam = [], 0
+    for k in range(slopes.shape[0]):
+        fs.add_wfs(slopes[k], k + 1, t0 + round((k + 1) * period * 1e9), now=0)
+        while cam < len(sched) and ends[cam] <= k + 1 + 1e-9:
+            if cam not in drop_camera:
+                fs.add_camera(science[cam], cam + 1, t0 + round(ends[cam] * period * 1e9), now=0)
+            cam += 1
+        out += list(fs.batches(now=0))
+    return out + list(fs.batches(flush=True, now=0))
+
+
+def test_framesync_batches(data):
+    """Timestamped frames through FrameSync (framesync.h) in Python: regular stamps give the
+    schedule's exposures and, streamed, the estimate of the whole data set pushed at once
+    (to the engine's precision); with a space-time pipeline's lags each row is its frame's
+    values stacked at them (the series' ends clamped), and the space-time stream [W, 0]
+    gives W's estimate; a dropped camera frame is counted and skipped."""
+    d = data
+    nexp = len(d["sched"])
+    fs = sw.FrameSync(NSLOPES, (NF, NF), batch=16, max_wait=1e9)
+    out = feed_framesync(fs, d["slopes"], d["sched"], d["science"])
+    st = fs.stats
+    assert st["used"] == nexp and st["camera_received"] == nexp and st["batches"] == len(out) == 8
+    assert st["wfs_period"] == pytest.approx(1e-3, rel=1e-9) and st["camera_period"] == pytest.approx(3.5e-3, rel=1e-9)
+    np.testing.assert_array_equal(np.concatenate([b["science"] for b in out]), d["science"])
+    assert np.all(np.diff(np.concatenate([b["stamps"] for b in out])) > 0)
+    for b in out:  # each exposure's frames are the schedule's, relative to its batch's rows
+        j = np.flatnonzero((d["science"] == b["science"][0]).all(axis=(1, 2)))[0]
+        ref = d["sched"][j:j + len(b["sched"])]
+        lo = int(ref["first"].min())
+        np.testing.assert_array_equal(b["sched"]["first"] + lo, ref["first"])
+        np.testing.assert_array_equal(b["sched"]["count"], ref["count"])
+        np.testing.assert_allclose(b["sched"]["w_first"], ref["w_first"], atol=1e-9)
+        np.testing.assert_allclose(b["sched"]["w_last"], ref["w_last"], atol=1e-9)
+        np.testing.assert_array_equal(b["slopes"][: int((b["sched"]["first"] + b["sched"]["count"]).max())],
+                                      d["slopes"][lo: lo + int((b["sched"]["first"] + b["sched"]["count"]).max())])
+    one = sw.Stream(d["pipe"], static=d["static"]).push(d["slopes"], d["sched"], d["science"]).estimate()
+    live = sw.Stream(d["pipe"], static=d["static"]).run(out).estimate()
+    for name in ("HALO", "GAIN", "MEAN_SP"):
+        ref = one.maps[name]
+        np.testing.assert_allclose(live.maps[name], ref, rtol=0, atol=1e-4 * np.abs(ref).max(), err_msg=name)
+    # a space-time pipeline: rows stacked at its lags, clamped at the series' ends
+    W = np.array(d["pipe"].recon.W)
+    stp = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=sw.Recon.from_matrix(np.hstack([W, 0 * W, 0 * W]),
+                                                                                   lags=(0, -2, 3)), band="none")
+    code = np.arange(d["slopes"].shape[0], dtype=float)[:, None] * np.ones(NSLOPES)  # each value its frame
+    fsl = sw.FrameSync(NSLOPES, (NF, NF), batch=16, max_wait=1e9, lags=stp.lags)
+    assert fsl.lags == (0, -2, 3) and fsl.nslopes == stp.nslopes == 3 * NSLOPES
+    n = code.shape[0]
+    for b in feed_framesync(fsl, code, d["sched"], d["science"]):
+        t = b["slopes"][:, 0]
+        np.testing.assert_array_equal(b["slopes"][:, NSLOPES], np.clip(t - 2, 0, n - 1))
+        np.testing.assert_array_equal(b["slopes"][:, 2 * NSLOPES], np.clip(t + 3, 0, n - 1))
+    fsl = sw.FrameSync(NSLOPES, (NF, NF), batch=16, max_wait=1e9, lags=stp.lags)
+    st_est = sw.Stream(stp, static=d["static"]).run(feed_framesync(fsl, d["slopes"], d["sched"],
+                                                                   d["science"])).estimate()
+    ref = one.maps["HALO"]
+    np.testing.assert_allclose(st_est.maps["HALO"], ref, rtol=0, atol=1e-4 * np.abs(ref).max())
+    # a camera frame that never arrives: counted from the counters, its batch split there
+    fsd = sw.FrameSync(NSLOPES, (NF, NF), batch=16, max_wait=1e9)
+    outd = feed_framesync(fsd, d["slopes"], d["sched"], d["science"], drop_camera=(40,))
+    assert fsd.stats["camera_dropped"] == 1 and fsd.stats["used"] == nexp - 1
+    assert sum(len(b["sched"]) for b in outd) == nexp - 1
+    with pytest.raises(ValueError, match=r"values: expected shape \(128\), got \(5,\)"):
+        fsd.add_wfs(np.zeros(5), 999, 10**13)
+    with pytest.raises(ValueError, match="nvals"):
+        sw.FrameSync(0, (NF, NF))
