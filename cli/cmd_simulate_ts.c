@@ -21,13 +21,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     swfs_ts_params_default(&p);
     if (swfs_ts_params_from_config(cfg, &p) || swfs_config_check_unused(cfg) || swfs_ts_params_check(&p))
         return cli_error(cmd);
-    int rc = cli_make_dir(cmd, outdir);
-    if (rc) return rc;
-    char sub[4200];
-    for (int k = 0; k < 2 && p.milk; k++) { /* the milk logs' stream folders */
-        snprintf(sub, sizeof sub, "%s/milk/%s", outdir, k ? "cam" : "wfs");
-        if ((rc = cli_make_dir(cmd, sub))) return rc;
-    }
+    if (swfs_ts_make_dirs(&p, outdir)) return cli_error(cmd);
     swfs_paths *paths = NULL;
     swfs_paths_create(&paths);
     swfs_paths_input(paths, "config file", cfgfile);
@@ -39,7 +33,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     swfs_ts_summary s;
     /* All files renamed into place at the end, or none (atomic.h). */
     swfs_outputs_begin();
-    rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s);
+    int rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s);
     int erc = swfs_outputs_end(rc == SWFS_OK);
     if (rc || erc) return cli_error(cmd);
     swfs_dm_registration reg;

@@ -231,7 +231,11 @@ int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t 
  * ones left out). 0 when fewer than 6 have one, or out of memory. */
 size_t swfs_mode_knee(const double *var, size_t n);
 
-/* Simulate and write DIR (must exist). */
+/* DIR and, for milk=1, its milk/wfs and milk/cam folders, created where missing (what
+ * swfs_ts_run writes into; a command calls it before checking the outputs). */
+int swfs_ts_make_dirs(const swfs_ts_params *p, const char *dir);
+
+/* Simulate and write DIR (its folders made by swfs_ts_make_dirs where missing). */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
 

@@ -22,6 +22,7 @@ from .coherence import (Coherence, coherence, default_lags, read_coherence_input
 from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, mode_variance, mode_timecorr, demo
 from .stream import Pipeline, Stream, FrameSync
 from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
+from .streamfiles import stream_files, sync_wfs_log
 
 try:
     from ._config import VERSION as __version__

@@ -361,6 +361,36 @@ swfs_mean_teach_result = _s("swfs_mean_teach_result", [
     ("r0", c_dbl), ("r0_pairs", c_size), ("power", c_dbl), ("power_ratio", c_dbl),
     ("nloops_first", c_size), ("curve_excess", c_dbl), ("curve_frames", c_size),
     ("seconds", c_dbl), ("work", ctypes.c_char * 4200)])
+swfs_milk_source_stats = _s("swfs_milk_source_stats", [("sync", swfs_framesync_stats), ("wfs_dropped_log", c_u64),
+                                                       ("camera_dropped_log", c_u64), ("exptime", c_dbl)])
+swfs_stream_run_options = _s("swfs_stream_run_options", [
+    ("timing", c_str), ("science", c_str), ("slopes", c_str), ("recon", c_str), ("actuators", c_str), ("out", c_str),
+    ("pupil_out", c_str), ("pupil_method", c_int), ("checkpoint", c_str), ("static_file", c_str),
+    ("static_out", c_str), ("mask", c_str), ("tiptilt", c_int), ("threads", c_int), ("batch", c_size),
+    ("read_noise", c_dbl), ("gain", c_dbl), ("g_smooth_lod", c_dbl), ("stream", swfs_stream_options),
+    ("prov", P(c_str)), ("nprov", c_size), ("on_update", c_ptr), ("update_ctx", c_ptr), ("team", c_ptr),
+    ("pupil_source", c_int), ("geom", swfs_geom), ("lin", swfs_linear_files), ("wfs_logs", P(c_str)),
+    ("nwfs_logs", c_size), ("clock", c_str), ("exptime", c_dbl), ("valid", c_str), ("band", c_dbl),
+    ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int), ("mean_teach_loops", c_size),
+    ("teach_work", c_str), ("teach_again", c_int), ("mean_teach_max_loops", c_size)])
+swfs_stream_run_result = _s("swfs_stream_run_result", [
+    ("camera_frames", c_size), ("wfs_frames", c_dbl), ("seconds", c_dbl), ("wfs_rate", c_dbl),
+    ("static_scale", c_dbl), ("ratio", c_dbl), ("noise", swfs_noise), ("info", swfs_pipeline_info),
+    ("stamped", c_int), ("stamps", swfs_milk_source_stats), ("st_lags", c_long * RECON_MAXLAGS),
+    ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
+    ("st_edges_why", ctypes.c_char * 512), ("meanmiss_rms", c_dbl), ("meanmiss_heldout", c_dbl),
+    ("mean_teach", swfs_mean_teach_result)])
+swfs_clock = _s("swfs_clock", [("epoch", ctypes.c_int64), ("offset", c_dbl), ("drift", c_dbl), ("offset_err", c_dbl),
+                               ("drift_err", c_dbl), ("fit", swfs_sync_result), ("resid", c_dbl), ("exptime", c_dbl),
+                               ("wfs_period", c_dbl), ("cam_period", c_dbl), ("wfs_jitter", c_dbl),
+                               ("cam_jitter", c_dbl), ("nused", c_size), ("ncam", c_size), ("nsegments", c_size)])
+swfs_clock_params = _s("swfs_clock_params", [("offset_min", c_dbl), ("offset_max", c_dbl), ("drift_max", c_dbl)])
+swfs_clock_run_options = _s("swfs_clock_run_options", [
+    ("science", c_str), ("wfs", P(c_str)), ("nwfs", c_size), ("out", c_str), ("exptime", c_dbl),
+    ("lin", swfs_linear_files), ("params", swfs_clock_params), ("prov", P(c_str)), ("nprov", c_size)])
+swfs_clock_run_result = _s("swfs_clock_run_result", [("clock", swfs_clock), ("wfs_dropped", c_u64),
+                                                     ("cam_dropped", c_u64), ("wfs_frames", c_size),
+                                                     ("wfs_files", c_size)])
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
@@ -697,6 +727,10 @@ _PROTOS = {
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),
     "swfs_speckles_run": (c_int, [P(swfs_speckles_run_options), P(swfs_speckles_run_result)]),
+    "swfs_stream_run_options_default": (None, [P(swfs_stream_run_options)]),
+    "swfs_stream_run_files": (c_int, [P(swfs_stream_run_options), P(swfs_stream_run_result)]),
+    "swfs_clock_run_options_default": (None, [P(swfs_clock_run_options)]),
+    "swfs_clock_run": (c_int, [P(swfs_clock_run_options), P(swfs_clock_run_result)]),
     "swfs_estimate_run_options_default": (None, [P(swfs_estimate_run_options)]),
     "swfs_estimate_run": (c_int, [P(swfs_estimate_run_options), P(swfs_estimate_run_result)]),
 }

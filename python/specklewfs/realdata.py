@@ -401,6 +401,20 @@ def _teach_dict(r, modes_from_slopes):
     return d
 
 
+def _mean_teach_dict(m, what):
+    """The loops a run simulated for the residual mean's miss (run.h swfs_mean_teach_result)
+    as a dict, None where it simulated none; a RuntimeWarning where the default could not."""
+    if m.fallback:
+        warnings.warn(f"{what}: a pyramid's telemetry, but no loops of the system for the residual mean's miss: "
+                      f"{m.fallback.decode()}", RuntimeWarning, stacklevel=3)
+    return None if not m.done else dict(
+        reused=bool(m.reused), automatic=bool(m.automatic), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
+        noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
+        layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch,
+        r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, nloops_first=m.nloops_first,
+        curve_excess=m.curve_excess, curve_frames=m.curve_frames, seconds=m.seconds, work=m.work.decode())
+
+
 def speckles(timing, science, actuators, out, match=(), recon="teach", band="auto", valid=None, write_recon=None,
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
@@ -537,16 +551,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d["resmean_rms"], d["wavelen"] = r.resmean_rms, r.wavelen
     d["curl_noise"] = r.curl_noise
     d["meanmiss_rms"], d["meanmiss_heldout"] = r.meanmiss_rms, r.meanmiss_heldout
-    m = r.mean_teach
-    if m.fallback:
-        warnings.warn("speckles: a pyramid's telemetry, but no loops of the system for the residual mean's miss: "
-                      f"{m.fallback.decode()}", RuntimeWarning, stacklevel=2)
-    d["mean_teach"] = None if not m.done else dict(
-        reused=bool(m.reused), automatic=bool(m.automatic), nloops=m.nloops, loop_frames=m.loop_frames, pyramid=bool(m.pyramid),
-        noise_rms=m.noise_rms, photons=m.photons, slope_noise=m.slope_noise, knee=m.knee,
-        layers=[(m.speed[k], m.direction[k]) for k in range(m.nlayers)], act_pitch=m.act_pitch,
-        r0=m.r0, r0_pairs=m.r0_pairs, power=m.power, power_ratio=m.power_ratio, nloops_first=m.nloops_first,
-        curve_excess=m.curve_excess, curve_frames=m.curve_frames, seconds=m.seconds, work=m.work.decode())
+    d["mean_teach"] = _mean_teach_dict(r.mean_teach, "speckles")
     lm = r.loops_map
     d["loops_map_fallback"] = lm.fallback.decode()
     d["loops_map"] = None if not lm.tried else dict(

@@ -552,3 +552,61 @@ def test_speckles_falls_back_where_no_map_can_be_taught(series, tmp_path):
     vk = sw.speckles(timing, sci, act, str(tmp_path / "sp_vk.fits"), recon="vk")
     assert vk["nout"] == sp["nout"] and "taught" not in vk
     np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "sp.fits"))[0], sw.read_fits(str(tmp_path / "sp_vk.fits"))[0])
+
+
+def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
+    """milk/cacao logs from Python: reduce of the camera's logs (STAMPS), sync_wfs_log (the
+    clock file: drift and offset near the simulated ones, the drops counted) and stream_files
+    over the WFS logs give the command line's clock and halo; the time-stamped path's NCP
+    error within 10 % of the handshake path's through stream_files with the timing table."""
+    d, s = tmp_path, tmp_path / "sim"
+    sw.simulate_timeseries(str(s), pupn=66, pupdx=0.1, screen_n=1024, ncubes=4, cube_frames=50, cube_gap=1500,
+                           layer_speed=[30, 40], vib_amp=0.6, jitter_amp=0.15, seed=1, milk=1, milk_file_frames=2000)
+    truth = dict(line.split()[:2] for line in open(s / "milk" / "truth.txt") if line.strip() and line[0] != "#")
+    raws = sorted(str(p) for p in s.glob("raw_*.fits"))
+    cams = sorted(str(p) for p in (s / "milk" / "cam").glob("*.fits"))
+    cal = dict(dark=str(s / "dark.fits"), flat=str(s / "flat.fits"))
+    sw.reduce(raws, str(d / "sci.fits"), **cal)
+    sw.sync(str(d / "sci.fits"), str(s / "handshake.log"), str(d / "timing.txt"), ratio=(5, 8))
+    sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"), recon="vk",
+                write_recon=str(d / "recon.fits"))
+    rm = sw.reduce(cams, str(d / "sci_milk.fits"), **cal)
+    assert rm["stamped"] and rm["dropped"] == int(truth["cam_dropped"])
+    wfs = str(s / "milk" / "wfs")
+    c = sw.sync_wfs_log(str(d / "sci_milk.fits"), wfs, str(d / "clock.txt"))
+    assert c["epoch"] == round(float(truth["epoch"]) * 1e9)
+    assert abs(c["drift"] - float(truth["drift"])) <= 2e-5 and abs(c["offset"] - float(truth["offset"])) <= 3e-4
+    assert c["wfs_dropped"] == int(truth["wfs_dropped"]) and c["nsegments"] == 4
+    model = dict(recon=str(d / "recon.fits"), actuators=str(s / "actuators.fits"))
+    m = sw.stream_files(str(d / "sci_milk.fits"), str(d / "halo_milk.fits"), wfs_log=wfs, clock=str(d / "clock.txt"),
+                        **model)
+    assert m["stamped"] and m["stamps"]["camera_dropped_log"] == int(truth["cam_dropped"])
+    assert m["stamps"]["wfs_dropped_log"] == int(truth["wfs_dropped"]) and m["camera_frames"] > 150
+    n = sw.stream_files(str(d / "sci.fits"), str(d / "halo_native.fits"), timing=str(d / "timing.txt"), **model)
+    assert not n["stamped"] and n["stamps"] is None and n["camera_frames"] > 150
+    # the command line on the same files: the same clock and the same halo
+    run = lambda *a: subprocess.run([cli, *a], check=True, capture_output=True)  # noqa: E731
+    run("sync", "--wfs-log", wfs, str(d / "sci_milk.fits"), "-o", str(d / "clock_cli.txt"))
+    keep = lambda p: [x for x in open(p) if x.split()[:1] in (["epoch"], ["offset"], ["drift"], ["pairing"])]  # noqa
+    assert keep(d / "clock.txt") == keep(d / "clock_cli.txt") and len(keep(d / "clock.txt")) == 4
+    run("stream", "--wfs-log", wfs, "--clock", str(d / "clock.txt"), "--science", str(d / "sci_milk.fits"),
+        "--recon", model["recon"], "--actuators", model["actuators"], "-o", str(d / "halo_cli.fits"))
+    for ext in ("HALO", "GAIN", "MEAN_SP"):
+        np.testing.assert_array_equal(sw.read_fits(str(d / "halo_milk.fits"), ext)[0],
+                                      sw.read_fits(str(d / "halo_cli.fits"), ext)[0], err_msg=ext)
+    ncp = sw.read_fits(str(s / "truth.fits"), "NCP")[0]
+    err = {}
+    for k in ("milk", "native"):
+        h = sw.Halo.read(str(d / f"halo_{k}.fits"))
+        p = sw.pupil_estimate(h, sw.read_geom(str(d / f"halo_{k}.fits")))
+        err[k] = sw.wfe_compare(p.wfe, ncp, p.mask)[0]
+    print(f"NCP error: milk logs {err['milk'] * 1e9:.1f} nm, timing table {err['native'] * 1e9:.1f} nm")
+    assert 0 < err["native"] < 35e-9 and err["milk"] <= 1.1 * err["native"]
+    # bad input: one of the two inputs, a clock without logs, a log that is not there
+    with pytest.raises(ValueError, match="one of them"):
+        sw.stream_files(str(d / "sci.fits"), str(d / "x.fits"), timing=str(d / "timing.txt"), wfs_log=wfs, **model)
+    with pytest.raises(ValueError, match="clock goes with wfs_log"):
+        sw.stream_files(str(d / "sci.fits"), str(d / "x.fits"), timing=str(d / "timing.txt"), clock="c.txt", **model)
+    with pytest.raises(sw.Error, match="nowhere"):
+        sw.stream_files(str(d / "sci_milk.fits"), str(d / "x.fits"), wfs_log=str(d / "nowhere"), **model)
+    assert not os.path.exists(d / "x.fits")

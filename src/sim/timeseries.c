@@ -488,6 +488,18 @@ void swfs_ts_camera_light(swfs_ts_params *p)
     if (swfs_ts_nframes(&l) == nwfs) *p = l;
 }
 
+int swfs_ts_make_dirs(const swfs_ts_params *p, const char *dir)
+{
+    int rc = swfs_make_dirs(dir);
+    char sub[4200];
+    for (int k = 0; !rc && k < 2 && p->milk; k++) { /* the milk logs' stream folders */
+        if (snprintf(sub, sizeof sub, "%s/milk/%s", dir, k ? "cam" : "wfs") >= (int)sizeof sub)
+            return swfs_fail(SWFS_ERR_ARG, "output folder name too long: %.200s...", dir);
+        rc = swfs_make_dirs(sub);
+    }
+    return rc;
+}
+
 int swfs_ts_add_outputs(const swfs_ts_params *p, const char *dir, swfs_paths *paths)
 {
     static const char *fixed[] = {"actuators.fits", "pupil.fits", "recon_ao.fits", "handshake.log", "dark.fits", "flat.fits",
@@ -797,6 +809,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
 {
     memset(sum, 0, sizeof *sum);
     int rc = swfs_ts_params_check(p);
+    if (!rc) rc = swfs_ts_make_dirs(p, dir);
     if (rc) return rc;
     struct timespec ts0;
     clock_gettime(CLOCK_MONOTONIC, &ts0);
