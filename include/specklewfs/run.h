@@ -638,6 +638,32 @@ typedef struct swfs_sync_run_result {
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);
 
+/* ---- dmoffsets: the pupil product's NCP -> deformable-mirror offsets (dmfit.h) ------------- */
+
+typedef struct swfs_dmoffsets_run_options {
+    const char *pupil;        /* a pupil product (`pupil`'s output: WFE [m], PUPIL, the geometry) */
+    const char *actuators;    /* the actuators' positions (2 x nact [m], pupil frame), or NULL with: */
+    double hexapolar;         /* [m] > 0: a hexapolar layout of rings this far apart covering the pupil */
+    const char *out;          /* OFFSETS.fits (swfs_dmfit_write's layout) */
+    swfs_dmfit_options fit;   /* influence, coupling, pitch, modes, reg (swfs_dmfit_options_default) */
+    const char *const *prov;
+    size_t nprov;
+} swfs_dmoffsets_run_options;
+
+void swfs_dmoffsets_run_options_default(swfs_dmoffsets_run_options *o);
+
+typedef struct swfs_dmoffsets_run_result {
+    size_t nact, active;      /* actuators, those whose influence reaches the pupil */
+    double pitch;             /* [m] the pitch the fit used */
+    swfs_dmfit_stats stats;   /* the correction -WFE/2 of surface and what the fit did with it [m] */
+} swfs_dmoffsets_run_result;
+
+/* The correction surface -WFE/2 (a reflective DM changes the wavefront by twice its surface)
+ * fitted by least squares over the pupil onto the actuators' influence functions, written to
+ * out. Refused, naming the file: a product without WFE or its geometry, a WFE not finite or
+ * beyond 10 wavelengths inside the pupil, actuators that do not cover the pupil. */
+int swfs_dmoffsets_run(const swfs_dmoffsets_run_options *o, swfs_dmoffsets_run_result *r);
+
 /* ---- sync --wfs-log: time-stamped frames -> the clock file (clocksync.h) ------------- */
 
 typedef struct swfs_clock_run_options {

@@ -23,6 +23,7 @@ from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, 
 from .stream import Pipeline, Stream, FrameSync
 from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
 from .streamfiles import stream_files, sync_wfs_log
+from .dm import DMFit, dm_offsets
 
 try:
     from ._config import VERSION as __version__

@@ -453,6 +453,11 @@ swfs_dmfit_options = _s("swfs_dmfit_options", [
 DMFIT_STATS_FIELDS = ["target_rms", "modal_rms", "filtered_rms", "fit_rms", "fiterr_rms", "unfit_rms", "cmd_rms",
                       "cmd_min", "cmd_max"]
 swfs_dmfit_stats = _s("swfs_dmfit_stats", [(n, c_dbl) for n in DMFIT_STATS_FIELDS])
+swfs_dmoffsets_run_options = _s("swfs_dmoffsets_run_options", [
+    ("pupil", c_str), ("actuators", c_str), ("hexapolar", c_dbl), ("out", c_str), ("fit", swfs_dmfit_options),
+    ("prov", P(c_str)), ("nprov", c_size)])
+swfs_dmoffsets_run_result = _s("swfs_dmoffsets_run_result", [("nact", c_size), ("active", c_size), ("pitch", c_dbl),
+                                                             ("stats", swfs_dmfit_stats)])
 swfs_loop_params = _s("swfs_loop_params", [
     ("iterations", c_size), ("gain", c_dbl), ("sigma", c_dbl), ("act_pitch", c_dbl), ("act_xy", P(c_dbl)),
     ("nact", c_size), ("act_name", c_str), ("fit", swfs_dmfit_options), ("pupil", swfs_pupil_options),
@@ -727,6 +732,17 @@ _PROTOS = {
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),
     "swfs_speckles_run": (c_int, [P(swfs_speckles_run_options), P(swfs_speckles_run_result)]),
+    "swfs_dmfit_options_default": (None, [P(swfs_dmfit_options)]),
+    "swfs_dmfit_create": (c_int, [P(c_ptr), P(c_dbl), c_size, P(swfs_geom), P(c_dbl), P(swfs_dmfit_options)]),
+    "swfs_dmfit_free": (None, [c_ptr]),
+    "swfs_dmfit_apply": (c_int, [c_ptr, P(c_dbl), P(c_dbl), P(c_dbl), P(swfs_dmfit_stats)]),
+    "swfs_dmfit_surface": (None, [c_ptr, P(c_dbl), P(c_dbl)]),
+    "swfs_dmfit_nact": (c_size, [c_ptr]),
+    "swfs_dmfit_npup": (c_size, [c_ptr]),
+    "swfs_dmfit_active": (c_size, [c_ptr]),
+    "swfs_dmfit_pitch": (c_dbl, [c_ptr]),
+    "swfs_dmoffsets_run_options_default": (None, [P(swfs_dmoffsets_run_options)]),
+    "swfs_dmoffsets_run": (c_int, [P(swfs_dmoffsets_run_options), P(swfs_dmoffsets_run_result)]),
     "swfs_stream_run_options_default": (None, [P(swfs_stream_run_options)]),
     "swfs_stream_run_files": (c_int, [P(swfs_stream_run_options), P(swfs_stream_run_result)]),
     "swfs_clock_run_options_default": (None, [P(swfs_clock_run_options)]),

@@ -168,3 +168,48 @@ def test_aperture():
     assert m[100, 100] == 0 and m[100, 150] == 1
     sp = sw.aperture(200, 0.01, 2.0, 0.0, nspiders=4, spider_width=0.05)
     assert sp.sum() < m.sum() + np.pi * 0.04 / 0.01 ** 2 * 0.99 and sp[100, 150] == 0  # vane along +x
+
+
+def test_dm_offsets(tmp_path, cli):
+    """The NCP correction on the DM from Python: dm_offsets on a pupil product writes the
+    command line's OFFSETS.fits (the same offsets and surface), DMFit on the arrays gives the
+    same commands, a smooth aberration is fitted to a few % of its rms (-WFE/2 of surface,
+    whose DM surface puts back what the commands say), and bad input is refused naming it."""
+    import subprocess
+    g = sw.Geom(wavelen=1.6e-6, teldiam=6.5, obscur=0.1, pixscale=0.5, pupdx=0.1, pupn=66)
+    mask = sw.aperture(g.pupn, g.pupdx, g.teldiam, g.obscur)
+    y, x = (np.indices((g.pupn, g.pupn)) - (g.pupn - 1) / 2) * g.pupdx / (g.teldiam / 2)
+    wfe = 40e-9 * (x ** 2 - y ** 2) + 25e-9 * x * (x ** 2 + y ** 2) * mask  # astigmatism and coma [m]
+    wfe *= mask
+    sw.write_fits(str(tmp_path / "p.fits"), {"WFE": wfe, "PUPIL": mask}, geom=g)
+    r = sw.dm_offsets(str(tmp_path / "p.fits"), str(tmp_path / "off.fits"), hexapolar=0.35)
+    assert r["nact"] == 331 and 0 < r["active"] <= r["nact"] and r["pitch"] > 0.3
+    st = r["stats"]
+    inside = mask > 0
+    assert st["target_rms"] == pytest.approx(np.std(wfe[inside]) / 2, rel=0.02)
+    assert st["unfit_rms"] < 0.05 * st["target_rms"] and st["fit_rms"] == pytest.approx(st["target_rms"], rel=0.05)
+    subprocess.run([cli, "dmoffsets", str(tmp_path / "p.fits"), "-o", str(tmp_path / "off_cli.fits"), "--hexapolar",
+                    "0.35"], check=True, capture_output=True)
+    for ext in ("OFFSETS", "SURFACE", "UNFIT", "ACTUATORS"):
+        np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "off.fits"), ext)[0],
+                                      sw.read_fits(str(tmp_path / "off_cli.fits"), ext)[0], err_msg=ext)
+    xy = sw.actuators_hexapolar(g.teldiam, 0.35, g.pupdx)
+    f = sw.DMFit(xy, g, mask)
+    cmd, fitted, st2 = f.fit(-wfe / 2)
+    assert f.nact == 331 and f.active == r["active"] and f.pitch == pytest.approx(r["pitch"])
+    off = sw.read_fits(str(tmp_path / "off.fits"), "OFFSETS")[0].ravel()
+    np.testing.assert_allclose(cmd, off, rtol=0, atol=1e-6 * np.abs(off).max())
+    np.testing.assert_allclose(f.surface(cmd), fitted, rtol=0, atol=1e-12 * np.abs(fitted).max())
+    assert st2["unfit_rms"] == pytest.approx(st["unfit_rms"], rel=1e-6)
+    # bad input: both layouts, a NaN inside the pupil (nothing written), a product without WFE
+    with pytest.raises(ValueError, match="one of them"):
+        sw.dm_offsets(str(tmp_path / "p.fits"), str(tmp_path / "x.fits"), hexapolar=0.35, actuators="a.fits")
+    bad = wfe.copy()
+    bad[33, 50] = np.nan  # row 33, column 50: inside the pupil
+    sw.write_fits(str(tmp_path / "bad.fits"), {"WFE": bad, "PUPIL": mask}, geom=g)
+    with pytest.raises(sw.Error, match=r"bad.fits: WFE at pupil sample \(50, 33\) is nan"):
+        sw.dm_offsets(str(tmp_path / "bad.fits"), str(tmp_path / "x.fits"), hexapolar=0.35)
+    sw.write_fits(str(tmp_path / "nowfe.fits"), {"PUPIL": mask}, geom=g)
+    with pytest.raises(sw.Error, match="nowfe.fits: no WFE extension"):
+        sw.dm_offsets(str(tmp_path / "nowfe.fits"), str(tmp_path / "x.fits"), hexapolar=0.35)
+    assert not (tmp_path / "x.fits").exists()
