@@ -19,7 +19,7 @@ from .telemetry import (Sparse, interp_ct_grid, actuators_hexapolar, actuators_s
                         schedule, make_schedule, speckles_expand, speckles_subtract_static, Engine, MFT)
 from .coherence import (Coherence, coherence, default_lags, read_coherence_input, snr_factor, exposure_limit_wind,
                         bandwidth_radius)
-from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, mode_variance, mode_timecorr, demo
+from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, mode_variance, mode_timecorr, demo, report
 from .stream import Pipeline, Stream, FrameSync
 from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
 from .streamfiles import stream_files, sync_wfs_log

@@ -458,6 +458,22 @@ swfs_dmoffsets_run_options = _s("swfs_dmoffsets_run_options", [
     ("prov", P(c_str)), ("nprov", c_size)])
 swfs_dmoffsets_run_result = _s("swfs_dmoffsets_run_result", [("nact", c_size), ("active", c_size), ("pitch", c_dbl),
                                                              ("stats", swfs_dmfit_stats)])
+REPORT_MAX = dict(figures=96, ranges=64, notes=64, levels=16)  # SWFS_REPORT_MAX_* (report.h)
+swfs_report_options = _s("swfs_report_options", [("pct_lo", c_dbl), ("pct_hi", c_dbl), ("log_decades", c_dbl),
+                                                 ("pixel_i", c_long), ("pixel_j", c_long), ("title", c_str)])
+swfs_report_range = _s("swfs_report_range", [("name", ctypes.c_char * 24), ("lo", c_dbl), ("hi", c_dbl), ("log", c_int)])
+swfs_report_figure = _s("swfs_report_figure", [("file", ctypes.c_char * 64), ("width", c_int), ("height", c_int)])
+REPORT_LEVEL_FIELDS = ["sigma", "valid_fraction", "median_snr", "wfe_rms", "strehl", "ncp_rms", "err_rms"]
+swfs_report_level = _s("swfs_report_level", [(n, c_dbl) for n in REPORT_LEVEL_FIELDS] + [("nfigures", c_size)])
+REPORT_KEY_FIELDS = ["frames", "valid_fraction", "median_snr", "wfe_rms", "wfe_pv", "strehl", "ncp_rms", "err_rms",
+                     "tau0_median"]
+swfs_report_summary = _s("swfs_report_summary", [
+    ("nfigures", c_size), ("figures", swfs_report_figure * REPORT_MAX["figures"]), ("nranges", c_size),
+    ("ranges", swfs_report_range * REPORT_MAX["ranges"]), ("nnotes", c_size),
+    ("notes", (ctypes.c_char * 200) * REPORT_MAX["notes"])] + [(n, c_dbl) for n in REPORT_KEY_FIELDS] + [
+    ("pixel_i", c_long), ("pixel_j", c_long), ("pixel_halo_phase", c_dbl), ("pixel_fit_phase", c_dbl),
+    ("html", ctypes.c_char * 4096), ("demo", c_int), ("nlevels", c_size),
+    ("levels", swfs_report_level * REPORT_MAX["levels"]), ("recovery_rows", c_size), ("loop_rows", c_size)])
 swfs_loop_params = _s("swfs_loop_params", [
     ("iterations", c_size), ("gain", c_dbl), ("sigma", c_dbl), ("act_pitch", c_dbl), ("act_xy", P(c_dbl)),
     ("nact", c_size), ("act_name", c_str), ("fit", swfs_dmfit_options), ("pupil", swfs_pupil_options),
@@ -732,6 +748,8 @@ _PROTOS = {
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),
     "swfs_speckles_run": (c_int, [P(swfs_speckles_run_options), P(swfs_speckles_run_result)]),
+    "swfs_report_options_default": (None, [P(swfs_report_options)]),
+    "swfs_report_run": (c_int, [c_str, c_str, P(swfs_report_options), P(swfs_report_summary)]),
     "swfs_dmfit_options_default": (None, [P(swfs_dmfit_options)]),
     "swfs_dmfit_create": (c_int, [P(c_ptr), P(c_dbl), c_size, P(swfs_geom), P(c_dbl), P(swfs_dmfit_options)]),
     "swfs_dmfit_free": (None, [c_ptr]),

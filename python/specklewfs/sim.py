@@ -235,6 +235,40 @@ def demo(directory="demo-out", config=None, levels=(0, 10, 100, 1000), report=Tr
     return res
 
 
+def report(run_dir, out_dir=None, title=None, pixel=None, percentiles=None, log_decades=None):
+    """`specklewfs report`: the figures of a run folder (its science, speckles, halo and
+    pupil products) or of a demo folder, as PNGs and an index.html in out_dir (None:
+    RUN_DIR/report). title: the page's; pixel (i, j): the pixel of pixel.png (None: chosen
+    from the data); percentiles (lo, hi) [%] of the colour ranges (1, 99.5); log_decades (4).
+    Returns html (the page), figures [(file, width, height)], ranges {name: (lo, hi, log)} in
+    displayed units, notes (figures skipped and why), the run's key numbers (frames,
+    valid_fraction, median_snr, wfe_rms, wfe_pv, strehl, ncp_rms, err_rms [m], tau0_median
+    [s]; NaN where the products lack them), pixel, and for a demo folder demo=True with
+    levels (one dict per noise level), recovery_rows, loop_rows. A folder with nothing to
+    report raises Error naming what was looked for, and writes no page."""
+    o = _lib.swfs_report_options()
+    lib.swfs_report_options_default(ctypes.byref(o))
+    if title is not None:
+        o.title = enc(str(title))
+    if pixel is not None:
+        o.pixel_i, o.pixel_j = int(pixel[0]), int(pixel[1])
+    if percentiles is not None:
+        o.pct_lo, o.pct_hi = float(percentiles[0]), float(percentiles[1])
+    if log_decades is not None:
+        o.log_decades = float(log_decades)
+    s = _lib.swfs_report_summary()
+    check(lib.swfs_report_run(enc(str(run_dir)), None if out_dir is None else enc(str(out_dir)), ctypes.byref(o),
+                              ctypes.byref(s)), "swfs_report_run")
+    d = {n: getattr(s, n) for n in _lib.REPORT_KEY_FIELDS}
+    d.update(html=s.html.decode(), demo=bool(s.demo), pixel=(s.pixel_i, s.pixel_j),
+             figures=[(f.file.decode(), f.width, f.height) for f in s.figures[:s.nfigures]],
+             ranges={r.name.decode(): (r.lo, r.hi, bool(r.log)) for r in s.ranges[:s.nranges]},
+             notes=[n.value.decode() for n in s.notes[:s.nnotes]], recovery_rows=s.recovery_rows,
+             loop_rows=s.loop_rows,
+             levels=[{n: getattr(v, n) for n in _lib.REPORT_LEVEL_FIELDS + ["nfigures"]} for v in s.levels[:s.nlevels]])
+    return d
+
+
 def ncp_map(config=None, mask=None, **params):
     """The NCP map [m] the parameters describe, on the pupil grid, and its rms and pv."""
     from .core import aperture

@@ -609,3 +609,28 @@ def test_pyramid_timeseries(tmp_path):
     assert not os.path.exists(tmp_path / "sp2.fits")
     with pytest.raises(ValueError, match="not both"):
         sw.speckles(timing, sci, str(d / "actuators.fits"), str(tmp_path / "sp3.fits"), linear=lin)
+
+
+def test_report(tmp_path, cli):
+    """report(): the figures of a demo folder and of one of its run folders from Python, as
+    the command line draws them (the same files); key numbers from the products; a folder
+    with nothing to report raises naming what was looked for, and writes no page."""
+    import subprocess
+    d = tmp_path / "demo"
+    sw.demo(str(d), levels=(0, 100), loop_iterations=1, report=False, screen_n=256, teldiam=2.5, pupn=64, nscreens=2,
+            nfx=32, nfy=24)
+    r = sw.report(str(d))
+    assert r["demo"] and len(r["levels"]) == 2 and r["recovery_rows"] == 2 and r["loop_rows"] >= 1
+    assert [lv["sigma"] for lv in r["levels"]] == [0, 100] and all(lv["nfigures"] > 0 for lv in r["levels"])
+    assert r["html"] == str(d / "report" / "index.html") and os.path.getsize(r["html"]) > 1000
+    assert r["figures"] and all(os.path.getsize(d / "report" / f) > 0 for f, _w, _h in r["figures"])
+    run = sw.report(str(d / "sigma100"), str(tmp_path / "page"), title="sigma 100")
+    assert not run["demo"] and run["figures"] and "sigma 100" in open(run["html"]).read()
+    assert 0 < run["wfe_rms"] < 1e-6 and 0 < run["err_rms"] < run["ncp_rms"] and 0 < run["valid_fraction"] <= 1
+    assert "halo_amp" in run["ranges"] and run["pixel"][0] >= 0
+    subprocess.run([cli, "report", str(d / "sigma100"), "-o", str(tmp_path / "page_cli")], check=True, capture_output=True)
+    assert sorted(os.listdir(tmp_path / "page")) == sorted(os.listdir(tmp_path / "page_cli"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(sw.Error, match="nothing to report.*halo.fits"):
+        sw.report(str(tmp_path / "empty"), str(tmp_path / "none"))
+    assert not (tmp_path / "none" / "index.html").exists()
