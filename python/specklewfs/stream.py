@@ -9,11 +9,10 @@ import time
 import numpy as np
 
 from . import _lib
-from ._lib import lib, check, as_array, dptr
+from ._lib import lib, check, as_array, dptr, EXPOSURE_DTYPE
 from .core import Geom
 from .estimate import Accumulator, Halo, G_SMOOTH_DEFAULT
 from .telemetry import Recon, SpeckleModel, _sched, _lags_c
-from ._lib import EXPOSURE_DTYPE
 
 P = ctypes.POINTER
 _RECON = {"vk": 0, "map": 1, "svd": 2, "given": 3}
@@ -126,8 +125,9 @@ class Pipeline:
         cube (nlags, nk, nv), one plane per lag as `learn --lags` writes it (read_control), or
         (nk, nlags nv) with lag k's block in columns [k nv, (k + 1) nv); each frame's
         coefficients are then sum_k C_k v(t + lags[k]), and process takes each frame as
-        stack_lags(values, lags)'s row; imat: (nmeas, nk) instead (not with lags), inverted by the MAP reconstructor learned from training
-        (ntrain, nmeas) ('map') or the truncated SVD ('svd', rcond); scale: metres of
+        stack_lags(values, lags)'s row; imat: (nmeas, nk) instead (not with lags), inverted
+        by the MAP reconstructor learned from training (ntrain, nmeas) ('map') or the
+        truncated SVD ('svd', rcond); scale: metres of
         wavefront per unit of basis x coefficient (cacao: 2e-6); band: as for Pipeline
         ('auto' = everywhere here: a linear model has no subapertures to derive a band from)."""
         geom = geom if isinstance(geom, Geom) else Geom(**geom)
