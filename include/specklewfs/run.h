@@ -82,6 +82,15 @@ int swfs_linear_control_lags(const swfs_linear_files *lf, long *lags, size_t *nl
 int swfs_linear_pipeline(swfs_pipeline **p, const swfs_linear_files *lf, const swfs_geom *g, size_t nfx, size_t nfy,
                          const double *mask, size_t nmeas, const double *train, size_t ntrain,
                          const swfs_pipeline_options *po);
+/* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,
+ * or with lin->basis a --control matrix; NULL: none) has the extension MEANMISS (learn's, one
+ * value per output; or, from speckles' loops_map, an image on the pupil grid), its wavefront on
+ * the pupil grid (the Shack-Hartmann model's interpolation of the map's outputs, the linear
+ * model's basis, or the image itself) becomes p's mean offset
+ * (swfs_pipeline_set_mean_offset); *rms its rms in the pupil, piston, tip and tilt removed (0:
+ * none). speckles and stream call it on the pipeline they built (Python: Pipeline.from_files). */
+int swfs_map_meanmiss_attach(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
+                             double *rms);
 /* The Shack-Hartmann pipeline (swfs_pipeline_create) with the valid-subaperture map of the
  * file `valid` (NULL: po's own, normally none; swfs_valid_map_read), then the NSUB keyword of
  * the telemetry file `telemetry` (NULL or "": none) checked against the model it made.

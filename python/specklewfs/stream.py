@@ -213,6 +213,55 @@ class Pipeline:
         self._frame_width(nmeas // nl if nl > 1 else nmeas, tuple(lag_arr[:nl]) if nl > 1 else ())
         return self
 
+    @classmethod
+    def from_files(cls, geom, nfx, nfy, linear, nmeas=0, training=None, mask=None, recon="map", rcond=5e-2,
+                   tiptilt="exposure", threads=1, wfs_rate=False, band="auto"):
+        """The linear model's pipeline from its files, as `stream --basis` and `live --basis`
+        build it (run.h swfs_linear_pipeline): linear = dict(basis=, control= or imat=, scale=,
+        dm_pitch=, dm_offset=, dm_rot=, dm_flip=) as speckles() takes it; a space-time control
+        cube's lags (NLAGS, LAGk) become the pipeline's lags, and a map's MEANMISS (learn's, or
+        the image speckles' write_recon= writes) its mean offset (meanmiss_rms [m]: its rms,
+        0 without). nmeas: telemetry values per frame (0: as the control matrix takes)."""
+        from .realdata import _linear
+        geom = geom if isinstance(geom, Geom) else Geom(**geom)
+        g = geom.to_c()
+        lf = _lib.swfs_linear_files()
+        _linear(lf, linear)
+        if mask is not None:
+            mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
+        o = _lib.swfs_pipeline_options()
+        lib.swfs_pipeline_options_default(ctypes.byref(o))
+        if recon not in ("map", "svd"):
+            raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
+        if tiptilt not in _TT:
+            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+        o.recon, o.rcond = _RECON[recon], float(rcond)
+        o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+        o.band = _band(band)
+        tr, ntr = None, 0
+        if training is not None:
+            tr = as_array(training, "training", np.float64, ndim=(2,))
+            ntr = tr.shape[0]
+        p = ctypes.c_void_p()
+        check(lib.swfs_linear_pipeline(ctypes.byref(p), ctypes.byref(lf), ctypes.byref(g), int(nfx), int(nfy),
+                                       dptr(mask), int(nmeas), dptr(tr), ntr, ctypes.byref(o)), "swfs_linear_pipeline")
+        self = cls.__new__(cls)
+        self._p = p
+        self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
+        self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
+        self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+        lags = (ctypes.c_long * _lib.RECON_MAXLAGS)()
+        nl = ctypes.c_size_t()
+        check(lib.swfs_linear_control_lags(ctypes.byref(lf), lags, ctypes.byref(nl)), "swfs_linear_control_lags")
+        nls = nl.value if nl.value > 1 else 0
+        width = int(self.info["nslopes"])
+        self._frame_width(width // nls if nls else width, tuple(lags[:nls]))
+        rms = ctypes.c_double()
+        check(lib.swfs_map_meanmiss_attach(p, lf.control, ctypes.byref(lf), ctypes.byref(g), ctypes.byref(rms)),
+              "swfs_map_meanmiss_attach")
+        self.meanmiss_rms = rms.value
+        return self
+
     @property
     def info(self):
         """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,

@@ -397,3 +397,44 @@ def test_framesync_batches(data):
         fsd.add_wfs(np.zeros(5), 999, 10**13)
     with pytest.raises(ValueError, match="nvals"):
         sw.FrameSync(0, (NF, NF))
+
+
+def test_linear_pipeline_from_files(data, tmp_path):
+    """Pipeline.from_files builds the linear model's pipeline from its files as stream and
+    live do: a space-time control cube's lags from its keys (the same fields as
+    Pipeline.linear with the arrays), a map's MEANMISS image as the mean offset (the same mean
+    wavefront as mean_offset given it), and a basis of another grid refused naming the file."""
+    d = data
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
+    from specklewfs._lib import lib
+    from specklewfs.telemetry import Sparse
+    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()
+    W = np.array(sh.recon.W)
+    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    sw.write_fits(str(tmp_path / "basis.fits"), basis, geom=GEOM)
+    cube = np.stack([W, 0.5 * W, -0.25 * W])
+    sw.write_fits(str(tmp_path / "st.fits"), cube, keys={"NLAGS": 3, "LAG1": 0, "LAG2": -2, "LAG3": 4})
+    lin = dict(basis=str(tmp_path / "basis.fits"), control=str(tmp_path / "st.fits"))
+    p = sw.Pipeline.from_files(GEOM, NF, NF, lin, mask=sh.mask, tiptilt="keep", wfs_rate=True)
+    assert p.lags == (0, -2, 4) and p.nvalues == NSLOPES and p.nslopes == 3 * NSLOPES and p.meanmiss_rms == 0
+    q = sw.Pipeline.linear(GEOM, NF, NF, basis, control=cube, lags=(0, -2, 4), mask=sh.mask, tiptilt="keep",
+                           wfs_rate=True)
+    st = sw.stack_lags(d["slopes"], p.lags)
+    a, b = p.process_wfs(st), q.process_wfs(st)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-6 * np.abs(b).max())
+    # a per-frame map with its miss of the mean as an image on the pupil grid
+    y, x = np.indices((GEOM.pupn, GEOM.pupn)) - GEOM.pupn / 2
+    miss = 30e-9 * (x ** 2 - y ** 2) / (GEOM.pupn / 2) ** 2 * (sh.mask > 0)
+    sw.write_fits(str(tmp_path / "mm.fits"), {"C": W, "MEANMISS": miss})
+    pm = sw.Pipeline.from_files(GEOM, NF, NF, dict(basis=lin["basis"], control=str(tmp_path / "mm.fits")),
+                                mask=sh.mask)
+    qm = sw.Pipeline.linear(GEOM, NF, NF, basis, control=W, mask=sh.mask)
+    qm.mean_offset(miss)
+    assert pm.lags == () and 5e-9 < pm.meanmiss_rms < 30e-9
+    for pl in (pm, qm):
+        pl.process(d["slopes"], d["sched"])
+    np.testing.assert_allclose(pm.mean_wavefront()[0], qm.mean_wavefront()[0], rtol=0, atol=1e-6 * np.abs(miss).max())
+    small = sw.Geom(wavelen=GEOM.wavelen, teldiam=GEOM.teldiam, obscur=GEOM.obscur, pixscale=GEOM.pixscale,
+                    pupdx=GEOM.pupdx * 2, pupn=GEOM.pupn // 2)
+    with pytest.raises(sw.Error, match="basis.fits"):
+        sw.Pipeline.from_files(small, NF, NF, lin)

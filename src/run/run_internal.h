@@ -241,15 +241,6 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
 #define SWFS_LINEAR_FIT_RIDGE 1e-3
 int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *wf, size_t m,
                      double **coef, size_t *nk, double *resid);
-/* A learned map's miss of the residual's time mean: where the map file `path` (a --recon map,
- * or with lin->basis a --control matrix; NULL: none) has the extension MEANMISS (learn's, one
- * value per output; or, from speckles' loops_map, an image on the pupil grid), its wavefront on
- * the pupil grid (the Shack-Hartmann model's interpolation of the map's outputs, the linear
- * model's basis, or the image itself) becomes p's mean offset
- * (swfs_pipeline_set_mean_offset); *rms its rms in the pupil, piston, tip and tilt removed (0:
- * none). speckles and stream call it on the pipeline they built. */
-int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
-                          double *rms);
 /* 1 where the map file `path` has a MEANMISS extension (its own miss of the mean: the default's
  * mean loops are not simulated for it, run_speckles.c, run_stream.c); 0 otherwise or NULL */
 int swfs_map_has_meanmiss_(const char *path);

@@ -233,8 +233,8 @@ int swfs_map_has_meanmiss_(const char *path)
     return has;
 }
 
-int swfs_meanmiss_attach_(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
-                          double *rms)
+int swfs_map_meanmiss_attach(swfs_pipeline *p, const char *path, const swfs_linear_files *lin, const swfs_geom *g,
+                             double *rms)
 {
     *rms = 0;
     if (!swfs_map_has_meanmiss_(path)) return SWFS_OK; /* (the map itself was read by the pipeline) */

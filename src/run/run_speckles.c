@@ -679,9 +679,8 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     if (group) swfs_outputs_begin();
     if (!rc) rc = build_pipeline(o, &w);
     /* a learned map's own miss of the residual's mean (learn's MEANMISS), added to RESMEAN */
-    if (!rc)
-        rc = swfs_meanmiss_attach_(w.p, o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL,
-                                   &o->lin, &w.g, &r->meanmiss_rms);
+    const char *map = o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL;
+    if (!rc) rc = swfs_map_meanmiss_attach(w.p, map, &o->lin, &w.g, &r->meanmiss_rms);
     if (!rc && o->nmean_loops)
         rc = swfs_pipeline_mean_loops(w.p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
     if (!rc) rc = spacetime_check(o, &w, r);

@@ -247,7 +247,7 @@ static int setup_linear(const swfs_stream_run_options *o, const char *first_tel,
         size_t nl = 0;
         if (!rc) rc = swfs_linear_control_lags(&o->lin, u->lags, &nl);
         if (!rc && nl > 1) u->nlags = nl;
-        if (!rc) rc = swfs_meanmiss_attach_(*p, o->lin.control, &o->lin, &u->g, &r->meanmiss_rms);
+        if (!rc) rc = swfs_map_meanmiss_attach(*p, o->lin.control, &o->lin, &u->g, &r->meanmiss_rms);
     }
     swfs_real_free(tr);
     return rc;
@@ -316,7 +316,7 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
         rc = swfs_sh_pipeline(p, model, o->valid, first_tel, &u->g, *nfx, *nfy, act, nact,
                               u->mask ? u->mask->data : NULL, per, rec, NULL, 0, &po);
         if (!rc) swfs_pipeline_get_info(*p, &r->info);
-        if (!rc) rc = swfs_meanmiss_attach_(*p, o->recon, NULL, &u->g, &r->meanmiss_rms);
+        if (!rc) rc = swfs_map_meanmiss_attach(*p, o->recon, NULL, &u->g, &r->meanmiss_rms);
     }
     swfs_recon_free(rec);
     free(act);
