@@ -897,6 +897,11 @@ def cplx_struct(arr):
     return swfs_cplx(nx, ny, nz, arr.ctypes.data)
 
 
+def path_list(x):
+    """One path (str, bytes, os.PathLike) or an iterable of them, as a list (None: [])."""
+    return [x] if isinstance(x, (str, bytes)) or hasattr(x, "__fspath__") else list(x or ())
+
+
 def strings(lines):
     """(char **, n, keepalive) for provenance lines."""
     enc = [s.encode() for s in (lines or [])]

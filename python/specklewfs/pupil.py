@@ -128,8 +128,7 @@ def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, b
     left in, what keep_resmean=True gives from the same fit; err where none was taken out),
     ran_away (the WFE above half the wavelength: the fit ran away from its start,
     no estimate; the command line warns). Nothing is written on failure."""
-    if isinstance(halos, (str, bytes)) or hasattr(halos, "__fspath__"):
-        halos = [halos]
+    halos = _lib.path_list(halos)
     halos = [str(h) for h in halos]
     o = _lib.swfs_pupil_run_options()
     lib.swfs_pupil_run_options_default(ctypes.byref(o))

@@ -57,8 +57,7 @@ def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=
     Returns nframes, nbad, noise_var (written; 0 when the measured noise_var_measured came
     out below 0), noise_fac, missing (geometry keywords still absent), stamped, dropped,
     exptime."""
-    if isinstance(raw, (str, bytes)) or hasattr(raw, "__fspath__"):
-        raw = [raw]
+    raw = _lib.path_list(raw)
     o = _lib.swfs_reduce_run_options()
     lib.swfs_reduce_run_options_default(ctypes.byref(o))
     arr, n = _paths(raw)
@@ -159,8 +158,7 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     not with lags). mean_miss_heldout=True (`learn --mean-miss-heldout`): each folder's miss
     taken with the map of the other folders, not the map of all (which fits few folders' means
     in-sample)."""
-    if isinstance(dirs, (str, bytes)) or hasattr(dirs, "__fspath__"):
-        dirs = [dirs]
+    dirs = _lib.path_list(dirs)
     o = _lib.swfs_learn_run_options()
     lib.swfs_learn_run_options_default(ctypes.byref(o))
     arr, n = _paths(dirs)
@@ -284,8 +282,7 @@ def modal_slopes(files, cm=None, outdir=None, imat=None):
     Shack-Hartmann path (speckles with actuators, valid and pupil; its teach projects its loops'
     slopes the same way). Returns ncoef, nslopes, rank, nframes, cond and resid (the share of
     the coefficients CM cannot have made)."""
-    if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
-        files = [files]
+    files = _lib.path_list(files)
     if outdir is None:
         raise ValueError("modal_slopes: needs outdir, an existing folder")
     if (cm is None) == (imat is None):
@@ -336,8 +333,7 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     st_loops of them in all, and curve is the curve over them all. The curve is measured only
     where more loops may follow (max_loops, the budget in effect, above loops)."""
     from .sim import _checked_params
-    if isinstance(files, (str, bytes)) or hasattr(files, "__fspath__"):
-        files = [files]
+    files = _lib.path_list(files)
     params = dict(params)
     params.setdefault("mode", "timeseries")
     o = _lib.swfs_teach_run_options()

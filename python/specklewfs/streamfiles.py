@@ -17,10 +17,6 @@ from .stream import _TT, _band
 _STATIC = {"auto": 0, "none": 1}
 
 
-def _list(x):
-    return [x] if isinstance(x, (str, bytes, os.PathLike)) else list(x or ())
-
-
 def sync_wfs_log(science, wfs_log, out, exptime=0.0, offset=None, drift_max=None, linear=None, provenance=()):
     """The clock file (`specklewfs sync --wfs-log`): the camera's clock against the WFS's,
     t_wfs = epoch + (t_cam - epoch)(1 + drift) + offset, fitted by the pooled correlation
@@ -34,7 +30,7 @@ def sync_wfs_log(science, wfs_log, out, exptime=0.0, offset=None, drift_max=None
     counter jumps of both logs (wfs_dropped, cam_dropped)."""
     o = _lib.swfs_clock_run_options()
     lib.swfs_clock_run_options_default(ctypes.byref(o))
-    logs = _list(wfs_log)
+    logs = _lib.path_list(wfs_log)
     arr, n = _paths(logs)
     o.science, o.wfs, o.nwfs, o.out = enc(science), arr, n, enc(out)
     o.exptime = float(exptime)
@@ -85,7 +81,7 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     mean_teach (as speckles())."""
     o = _lib.swfs_stream_run_options()
     lib.swfs_stream_run_options_default(ctypes.byref(o))
-    logs = _list(wfs_log)
+    logs = _lib.path_list(wfs_log)
     if (timing is None) == (not logs):
         raise ValueError("stream_files: give timing (a timing table) or wfs_log (milk logs), one of them")
     if clock is not None and not logs:
