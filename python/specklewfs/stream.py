@@ -31,6 +31,20 @@ def _band(band):
     return b
 
 
+def _linear_options(recon, rcond, tiptilt, threads, wfs_rate, band):
+    """pipeline.h options of a linear model's pipeline (recon: its interaction matrix's inverse)."""
+    o = _lib.swfs_pipeline_options()
+    lib.swfs_pipeline_options_default(ctypes.byref(o))
+    if recon not in ("map", "svd"):
+        raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
+    if tiptilt not in _TT:
+        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+    o.recon, o.rcond = _RECON[recon], float(rcond)
+    o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+    o.band = _band(band)
+    return o
+
+
 class Pipeline:
     """The speckle pipeline (pipeline.h).
 
@@ -184,15 +198,7 @@ class Pipeline:
                 nmeas = im.shape[0]
             else:
                 nmeas = nk
-            o = _lib.swfs_pipeline_options()
-            lib.swfs_pipeline_options_default(ctypes.byref(o))
-            if recon not in ("map", "svd"):
-                raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
-            if tiptilt not in _TT:
-                raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-            o.recon, o.rcond = _RECON[recon], float(rcond)
-            o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
-            o.band = _band(band)
+            o = _linear_options(recon, rcond, tiptilt, threads, wfs_rate, band)
             tr, ntr = None, 0
             if training is not None:
                 tr = as_array(training, "training", np.float64, shape=(None, nmeas))
@@ -229,15 +235,7 @@ class Pipeline:
         _linear(lf, linear)
         if mask is not None:
             mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
-        o = _lib.swfs_pipeline_options()
-        lib.swfs_pipeline_options_default(ctypes.byref(o))
-        if recon not in ("map", "svd"):
-            raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
-        if tiptilt not in _TT:
-            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-        o.recon, o.rcond = _RECON[recon], float(rcond)
-        o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
-        o.band = _band(band)
+        o = _linear_options(recon, rcond, tiptilt, threads, wfs_rate, band)
         tr, ntr = None, 0
         if training is not None:
             tr = as_array(training, "training", np.float64, ndim=(2,))
