@@ -8,7 +8,6 @@
 
 #include <math.h>
 #include <stdio.h>
-#include <stdlib.h>
 #include <string.h>
 
 static const char *usage_text =
@@ -36,25 +35,20 @@ static const char *usage_text =
     "                      estimation noise is not driven into high orders (default: all)\n"
     "  --reg MU            Tikhonov damping relative to the mean diagonal (default 1e-3)\n";
 
-typedef struct dm_args {
-    swfs_dmfit_options opt;
-    double hexpitch;
-} dm_args;
-
-/* The options checked as they come. */
+/* The options checked as they come, into the run's options. */
 static int special(void *ctx, int argc, char **argv, int *i)
 {
     const char *cmd = "dmoffsets", *a = argv[*i];
-    dm_args *d = ctx;
+    swfs_dmoffsets_run_options *o = ctx;
     int bad;
     if (!strcmp(a, "--hexapolar"))
-        bad = cli_take_range(cmd, argc, argv, i, &d->hexpitch, 0, 1, INFINITY, 0, "--hexapolar needs a pitch > 0 [m]");
+        bad = cli_take_range(cmd, argc, argv, i, &o->hexapolar, 0, 1, INFINITY, 0, "--hexapolar needs a pitch > 0 [m]");
     else if (!strcmp(a, "--pitch"))
-        bad = cli_take_range(cmd, argc, argv, i, &d->opt.pitch, 0, 1, INFINITY, 0, "--pitch must be > 0 [m]");
+        bad = cli_take_range(cmd, argc, argv, i, &o->fit.pitch, 0, 1, INFINITY, 0, "--pitch must be > 0 [m]");
     else if (!strcmp(a, "--reg"))
-        bad = cli_take_range(cmd, argc, argv, i, &d->opt.reg, 0, 0, INFINITY, 0, "--reg must be >= 0");
+        bad = cli_take_range(cmd, argc, argv, i, &o->fit.reg, 0, 0, INFINITY, 0, "--reg must be >= 0");
     else
-        return cli_dmfit_option(cmd, argc, argv, i, &d->opt);
+        return cli_dmfit_option(cmd, argc, argv, i, &o->fit);
     return bad ? -CLI_USAGE : 1;
 }
 
@@ -63,16 +57,12 @@ int swfs_cmd_dmoffsets(int argc, char **argv)
     const char *cmd = "dmoffsets";
     swfs_dmoffsets_run_options o;
     swfs_dmoffsets_run_options_default(&o);
-    dm_args d = {.hexpitch = 0.0};
-    d.opt = o.fit;
     const cli_opt opts[] = {{"-o", CLI_STRING, &o.out, "a file name", 0},
                             {"--actuators", CLI_STRING, &o.actuators, "a file name", 0}};
     const char **const pos[] = {&o.pupil};
-    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &d, NULL, NULL};
+    const cli_args args = {cmd, usage_text, opts, CLI_NOPTS(opts), pos, 1, special, &o, NULL, NULL};
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc < 0 ? CLI_OK : prc;
-    o.fit = d.opt;
-    o.hexapolar = d.hexpitch;
     if (!o.pupil) return cli_usage_error(cmd, "needs PUPIL.fits");
     if (!o.out) return cli_usage_error(cmd, "needs -o OFFSETS.fits");
     if (!o.actuators && !(o.hexapolar > 0)) return cli_usage_error(cmd, "needs --actuators ACT.fits or --hexapolar PITCH");

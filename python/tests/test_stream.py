@@ -42,6 +42,17 @@ def batches(d, size):
         yield d["slopes"][lo:hi], sc, d["science"][j:j + size]
 
 
+def sh_as_linear(d, wfs_rate=False):
+    """The Shack-Hartmann pipeline (SVD reconstructor, tip-tilt kept, no band) and its pieces
+    as a linear model: T (pupn^2, nact) its interpolation, W its reconstructor, the basis
+    (nact, pupn, pupn) T's columns on the pupil grid."""
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none", wfs_rate=wfs_rate)
+    from specklewfs._lib import lib
+    from specklewfs.telemetry import Sparse
+    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()
+    return sh, T, np.array(sh.recon.W), T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+
+
 def test_pipeline_matches_engine_pieces(data):
     """With tip-tilt kept, the pipeline is the engine over the model's reconstructor,
     interpolation and mask."""
@@ -210,12 +221,7 @@ def test_linear_pipeline_equals_shack_hartmann(data):
     Shack-Hartmann pipeline's fields; the dense basis of the reconstructed wavefront per
     slope, with the slopes as coefficients, too; a units error is refused naming the size."""
     d = data
-    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
-    from specklewfs._lib import lib
-    from specklewfs.telemetry import Sparse
-    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()  # (pupn^2, nact)
-    W = np.array(sh.recon.W)
-    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    sh, T, W, basis = sh_as_linear(d)
     lin = sw.Pipeline.linear(GEOM, NF, NF, basis, control=W, mask=sh.mask, tiptilt="keep")
     dense = sw.Pipeline.linear(GEOM, NF, NF, (T @ W).T.reshape(-1, GEOM.pupn, GEOM.pupn), mask=sh.mask,
                                tiptilt="keep", training=d["slopes"])
@@ -237,12 +243,7 @@ def test_space_time_pipelines(data, tmp_path):
     frames on (the series' last frame repeated past its end); one frame's slopes given to a
     space-time pipeline are refused, naming stack_lags; bad lags are refused."""
     d = data
-    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none", wfs_rate=True)
-    from specklewfs._lib import lib
-    from specklewfs.telemetry import Sparse
-    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()
-    W = np.array(sh.recon.W)
-    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    sh, _, W, basis = sh_as_linear(d, wfs_rate=True)
     s = d["slopes"]
     n = s.shape[0]
     lags = (0, 2)
@@ -405,12 +406,7 @@ def test_linear_pipeline_from_files(data, tmp_path):
     Pipeline.linear with the arrays), a map's MEANMISS image as the mean offset (the same mean
     wavefront as mean_offset given it), and a basis of another grid refused naming the file."""
     d = data
-    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
-    from specklewfs._lib import lib
-    from specklewfs.telemetry import Sparse
-    T = Sparse._take(lib.swfs_pipeline_model(sh._p).contents.T, owner=sh._owner).to_dense()
-    W = np.array(sh.recon.W)
-    basis = T.T.reshape(-1, GEOM.pupn, GEOM.pupn)
+    sh, _, W, basis = sh_as_linear(d)
     sw.write_fits(str(tmp_path / "basis.fits"), basis, geom=GEOM)
     cube = np.stack([W, 0.5 * W, -0.25 * W])
     sw.write_fits(str(tmp_path / "st.fits"), cube, keys={"NLAGS": 3, "LAG1": 0, "LAG2": -2, "LAG3": 4})

@@ -31,7 +31,6 @@ void swfs_teach_run_options_default(swfs_teach_run_options *o)
     o->seed = 101;
 }
 
-
 void swfs_spacetime_lags_(double frames, long *lags)
 {
     long l1 = frames > 0 ? lround(frames) : 1;
@@ -39,6 +38,7 @@ void swfs_spacetime_lags_(double frames, long *lags)
     const long l[SWFS_SPACETIME_NLAGS] = {0, -l1, l1, -2 * l1, 2 * l1};
     memcpy(lags, l, sizeof l);
 }
+
 static void stage(const swfs_teach_run_options *o, const char *what, size_t done, size_t total)
 {
     if (o->progress) o->progress(o->progress_ctx, what, done, total);
@@ -1033,7 +1033,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         r->st_truth_rms = lr.info.truth_rms;
     }
     if (!rc && !prior) { /* none where no layer was tracked: they compare the loops' layers with the slopes' */
-        r->check.info.nlags = 5;
+        r->check.info.nlags = r->nlags;
         rc = swfs_spacetime_check_(st, r->lags, r->nlags, obs->data, obs->ny, obs->nx, nsub, valid, &r->check);
     }
     swfs_real_free(obs);
