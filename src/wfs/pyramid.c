@@ -1,7 +1,14 @@
 /* The modulated pyramid wavefront sensor (pyramid.h): one forward FFT of the padded pupil
  * field per frame, one inverse FFT per modulation point (single precision: the signals are
  * differences of binned intensities of order 1e-3 of them, far above float's rounding), the
- * four pupil images binned on the Shack-Hartmann's subaperture grid. */
+ * four pupil images binned on the Shack-Hartmann's subaperture grid.
+ *
+ * Each 2-D transform is FFTW's batched 1-D transforms, the rows then the columns, out of
+ * place (FFTW_ESTIMATE, so the same plan and the same numbers on every run): FFTW's 2-D plan
+ * of the sizes with a factor 7 that fast_size picks (140 for a 66-sample pupil) allocated
+ * a buffer per row at every execution (140 per transform, 41 transforms a frame) and took
+ * 118 us against 76 us for the two batches (measured on this machine class, single
+ * precision); the forward transform's rows are only the pupil's, the padding's being zero. */
 #include "specklewfs/pyramid.h"
 #include "specklewfs/wfs.h"
 #include "specklewfs/status.h"
@@ -27,9 +34,12 @@ static inline float complex cplxf(float re, float im)
 
 struct swfs_pyramid_work {
     fftwf_complex *field, *ehat, *work; /* N x N: the padded pupil field, its transform, one point's */
+    fftwf_complex *frows, *rows;        /* N x N: the forward's and the inverse's rows transformed
+                                           (the columns next; frows' padding rows stay zero) */
     fftwf_complex *masks;               /* nmod x N x N: the pyramid moved to each modulation point */
     float *inten;                       /* N x N: the modulation-averaged intensity */
-    fftwf_plan fwd, bwd;
+    fftwf_plan fwd_rows, fwd_cols;      /* field's pupil rows -> frows, frows' columns -> ehat */
+    fftwf_plan bwd_rows, bwd_cols;      /* work's rows -> rows, rows' columns -> work */
     long *sub;                          /* npup^2: the used subaperture (its index among them) of each
                                            pupil sample, -1 elsewhere */
     size_t off;                         /* the pupil's first row and column in the padded grid */
@@ -65,10 +75,12 @@ void swfs_pyramid_free(swfs_pyramid *p)
     swfs_pyramid_work *w = p->w;
     if (w) {
         swfs_planner_lock();
-        if (w->fwd) fftwf_destroy_plan(w->fwd);
-        if (w->bwd) fftwf_destroy_plan(w->bwd);
+        fftwf_plan pl[4] = {w->fwd_rows, w->fwd_cols, w->bwd_rows, w->bwd_cols};
+        for (int k = 0; k < 4; k++)
+            if (pl[k]) fftwf_destroy_plan(pl[k]);
         swfs_planner_unlock();
-        fftwf_free(w->field); fftwf_free(w->ehat); fftwf_free(w->work); fftwf_free(w->masks); fftwf_free(w->inten);
+        fftwf_free(w->field); fftwf_free(w->ehat); fftwf_free(w->work); fftwf_free(w->frows); fftwf_free(w->rows);
+        fftwf_free(w->masks); fftwf_free(w->inten);
         free(w->sub); free(w->counts); free(w->ref); free(w->vidx); free(w->mask);
         free(w);
     }
@@ -128,16 +140,27 @@ static void intensity(swfs_pyramid *p, const double *z)
             }
         }
     }
-    fftwf_execute(w->fwd);
+    fftwf_execute(w->fwd_rows);
+    fftwf_execute(w->fwd_cols);
     memset(w->inten, 0, NN * sizeof *w->inten);
     const float scale = 1.0f / ((float)p->nmod * (float)NN * (float)NN);
+    /* the products and intensities on the real and imaginary parts (C11 6.2.5: a complex is
+     * an array of its two real parts), which the compiler vectorizes; C's complex product
+     * would check every result for NaN */
+    const float *eh = (const float *)w->ehat;
+    float *wk = (float *)w->work, *in = w->inten;
     for (size_t m = 0; m < p->nmod; m++) {
-        const fftwf_complex *mk = w->masks + m * NN;
-        for (size_t e = 0; e < NN; e++) w->work[e] = w->ehat[e] * mk[e];
-        fftwf_execute(w->bwd);
+        const float *mk = (const float *)(w->masks + m * NN);
         for (size_t e = 0; e < NN; e++) {
-            const float re = crealf(w->work[e]), im = cimagf(w->work[e]);
-            w->inten[e] += scale * (re * re + im * im);
+            const float ar = eh[2 * e], ai = eh[2 * e + 1], br = mk[2 * e], bi = mk[2 * e + 1];
+            wk[2 * e] = ar * br - ai * bi;
+            wk[2 * e + 1] = ar * bi + ai * br;
+        }
+        fftwf_execute(w->bwd_rows);
+        fftwf_execute(w->bwd_cols);
+        for (size_t e = 0; e < NN; e++) {
+            const float re = wk[2 * e], im = wk[2 * e + 1];
+            in[e] += scale * (re * re + im * im);
         }
     }
 }
@@ -191,6 +214,8 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->field = fftwf_alloc_complex(NN);
         w->ehat = fftwf_alloc_complex(NN);
         w->work = fftwf_alloc_complex(NN);
+        w->frows = fftwf_alloc_complex(NN);
+        w->rows = fftwf_alloc_complex(NN);
         w->masks = fftwf_alloc_complex(p->nmod * NN);
         w->inten = fftwf_alloc_real(NN);
         w->sub = malloc(npup * npup * sizeof *w->sub);
@@ -199,19 +224,28 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->vidx = malloc(nv * sizeof *w->vidx);
         w->mask = malloc(npup * npup * sizeof *w->mask);
     }
-    if (!w || !w->field || !w->ehat || !w->work || !w->masks || !w->inten || !w->sub || !w->counts || !w->ref ||
-        !w->vidx || !w->mask) {
+    if (!w || !w->field || !w->ehat || !w->work || !w->frows || !w->rows || !w->masks || !w->inten || !w->sub ||
+        !w->counts || !w->ref || !w->vidx || !w->mask) {
         swfs_pyramid_free(p);
         return swfs_fail(SWFS_ERR_NOMEM, "pyramid: out of memory for %zu x %zu transforms and %zu modulation points",
                          N, N, p->nmod);
     }
     memset(w->field, 0, NN * sizeof *w->field);
+    memset(w->frows, 0, NN * sizeof *w->frows);
     memcpy(w->mask, mask, npup * npup * sizeof *mask);
+    w->off = (N - npup) / 2;
+    const int n1[1] = {(int)N}, iN = (int)N;
+    fftwf_complex *fr = w->field + w->off * N, *rr = w->frows + w->off * N;
     swfs_planner_lock();
-    w->fwd = fftwf_plan_dft_2d((int)N, (int)N, w->field, w->ehat, FFTW_FORWARD, FFTW_ESTIMATE);
-    w->bwd = fftwf_plan_dft_2d((int)N, (int)N, w->work, w->work, FFTW_BACKWARD, FFTW_ESTIMATE);
+    w->fwd_rows = fftwf_plan_many_dft(1, n1, (int)npup, fr, NULL, 1, iN, rr, NULL, 1, iN, FFTW_FORWARD, FFTW_ESTIMATE);
+    w->fwd_cols = fftwf_plan_many_dft(1, n1, iN, w->frows, NULL, iN, 1, w->ehat, NULL, iN, 1, FFTW_FORWARD,
+                                      FFTW_ESTIMATE);
+    w->bwd_rows = fftwf_plan_many_dft(1, n1, iN, w->work, NULL, 1, iN, w->rows, NULL, 1, iN, FFTW_BACKWARD,
+                                      FFTW_ESTIMATE);
+    w->bwd_cols = fftwf_plan_many_dft(1, n1, iN, w->rows, NULL, iN, 1, w->work, NULL, iN, 1, FFTW_BACKWARD,
+                                      FFTW_ESTIMATE);
     swfs_planner_unlock();
-    if (!w->fwd || !w->bwd) {
+    if (!w->fwd_rows || !w->fwd_cols || !w->bwd_rows || !w->bwd_cols) {
         swfs_pyramid_free(p);
         return swfs_fail(SWFS_ERR_NUMERIC, "pyramid: FFTW could not plan %zu x %zu transforms", N, N);
     }
@@ -240,7 +274,6 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
      * place (the inverse transform of exp(2 pi i a u / N) E^ is E(x + a)), u < 0's a to the
      * right; the same in y. */
     const size_t a = N / 4;
-    w->off = (N - npup) / 2;
     const size_t lo = w->off - a, hi = w->off + a;
     const size_t pos[4][2] = {{lo, lo}, {hi, lo}, {hi, hi}, {lo, hi}}; /* A, B, C, D */
     memcpy(w->img, pos, sizeof pos);
