@@ -487,6 +487,29 @@ swfs_loop_result = _s("swfs_loop_result", [
     ("pitch", c_dbl), ("rows", P(swfs_loop_iter)), ("residual", P(swfs_real)), ("estimate", P(swfs_real)),
     ("dm_surface", P(swfs_real)), ("commands", P(swfs_real)), ("actuators", P(swfs_real)), ("pupil", P(swfs_real)),
     ("seconds", c_dbl)])
+swfs_shm_source_options = _s("swfs_shm_source_options", [
+    ("dir", c_str), ("wfs", P(c_str)), ("nwfs", c_size), ("camera", c_str), ("nslopes", c_size), ("nfx", c_size),
+    ("nfy", c_size), ("sync", swfs_framesync_options), ("poll", c_dbl), ("timeout", c_dbl), ("idle", c_dbl),
+    ("stop", c_ptr), ("ring", c_size)])
+swfs_shm_source_stats = _s("swfs_shm_source_stats", [
+    ("sync", swfs_framesync_stats), ("ring_overruns", c_u64), ("reopens", c_u64), ("lag_count", c_size),
+    ("lag_median", c_dbl), ("lag_p99", c_dbl), ("lag_max", c_dbl), ("seconds", c_dbl)])
+swfs_live_options = _s("swfs_live_options", [
+    ("run", swfs_stream_run_options), ("src", swfs_shm_source_options), ("dm_out", c_str), ("dm_file", c_str),
+    ("dmfit", swfs_dmfit_options), ("dm_gain", c_dbl), ("dm_max_step", c_dbl), ("dm_max_rms", c_dbl),
+    ("dm_scale", c_dbl), ("dm_settle", c_dbl), ("dm_keep", c_int), ("dm_final", c_int), ("dm_tiptilt", c_int)])
+swfs_live_result = _s("swfs_live_result", [
+    ("run", swfs_stream_run_result), ("src", swfs_shm_source_stats), ("dm_updates", c_size), ("dm_step_rms", c_dbl),
+    ("dm_total_rms", c_dbl), ("dm_fixed", c_size)])
+swfs_replay_options = _s("swfs_replay_options", [
+    ("timing", c_str), ("science", c_str), ("slopes", c_str), ("dir", c_str), ("wfs_name", c_str),
+    ("camera_name", c_str), ("wfs_rate", c_dbl), ("speed", c_dbl), ("drop_wfs", c_dbl), ("drop_camera", c_dbl),
+    ("jitter", c_dbl), ("seed", c_u64), ("depth", c_size), ("wfs_type", c_int), ("camera_type", c_int),
+    ("wait_reader", c_dbl), ("restart_after", c_size), ("drop_log", c_str), ("remove", c_int),
+    ("progress", PROGRESS_FN), ("progress_ctx", c_ptr), ("wfs_log", c_str)])
+swfs_replay_result = _s("swfs_replay_result", [
+    ("wfs_frames", c_size), ("camera_frames", c_size), ("wfs_dropped", c_size), ("camera_dropped", c_size),
+    ("restarts", c_size), ("wfs_rate", c_dbl), ("ratio", c_dbl), ("seconds", c_dbl), ("late_max", c_dbl)])
 swfs_demo_run_options = _s("swfs_demo_run_options", [
     ("outdir", c_str), ("sim", swfs_sim_params), ("levels", P(c_dbl)), ("nlevels", c_size),
     ("loop", swfs_loop_params), ("report", c_int), ("config", c_str), ("prov", P(c_str)), ("nprov", c_size),
@@ -767,6 +790,10 @@ _PROTOS = {
     "swfs_dmoffsets_run": (c_int, [P(swfs_dmoffsets_run_options), P(swfs_dmoffsets_run_result)]),
     "swfs_stream_run_options_default": (None, [P(swfs_stream_run_options)]),
     "swfs_stream_run_files": (c_int, [P(swfs_stream_run_options), P(swfs_stream_run_result)]),
+    "swfs_live_options_default": (None, [P(swfs_live_options)]),
+    "swfs_live_run": (c_int, [P(swfs_live_options), P(swfs_live_result)]),
+    "swfs_replay_options_default": (None, [P(swfs_replay_options)]),
+    "swfs_replay_run": (c_int, [P(swfs_replay_options), P(swfs_replay_result)]),
     "swfs_clock_run_options_default": (None, [P(swfs_clock_run_options)]),
     "swfs_clock_run": (c_int, [P(swfs_clock_run_options), P(swfs_clock_run_result)]),
     "swfs_estimate_run_options_default": (None, [P(swfs_estimate_run_options)]),

@@ -13,7 +13,7 @@ from conftest import ROOT
 
 HEADERS = ["accum", "checkpoint", "coherence", "engine", "estimate", "fits", "geom", "pupil", "recovery", "sim",
            "sparse", "speckles", "timeseries", "wfs", "array", "pipeline", "stream", "lmodel", "reduce", "sync", "run",
-           "parallel", "framesync", "report"]
+           "parallel", "framesync", "report", "shm", "live"]
 
 
 def test_struct_layout(tmp_path):

@@ -1,0 +1,229 @@
+"""Live at the telescope from Python (live.h, docs/live.md): `live`, the NCP estimate beside
+a running AO system through ImageStreamIO shared-memory streams, and `replay`, which feeds
+such streams from recorded files (a timing table, its telemetry and the reduced science
+cube, or a WFS milk log) at the WFS rate or faster. Each runs as its command does and
+returns what it prints, as a dict; errors raise specklewfs.Error with the library's message.
+
+The library releases Python while it runs (ctypes), so a replay in a thread and live in
+another, or live in a thread beside one's own loop, run side by side:
+
+    stop = specklewfs.StopFlag()
+    t = threading.Thread(target=specklewfs.live, args=(["wfs"], "cam", "sci.fits", "HALO.fits"),
+                         kwargs=dict(recon="recon.fits", actuators="act.fits", stop=stop))
+    t.start(); ...; stop.set(); t.join()
+"""
+import ctypes
+import math
+import os
+
+from . import _lib
+from ._lib import lib, check, enc, c_ptr, P
+from .realdata import _linear, _opt
+from .sim import _struct_dict
+from .stream import _TT, _band
+from .streamfiles import _STATIC
+
+_SOURCE = {"wfe": 0, "halo": 1, "halo_lf": 2}
+_INFLUENCE = {"gauss": 0, "cubic": 1}
+
+# on_update(ctx, stream, halo, pupil_result, final) of run.h
+_UPDATE = ctypes.CFUNCTYPE(None, c_ptr, c_ptr, P(_lib.swfs_halo), P(_lib.swfs_pupil_result), ctypes.c_int)
+
+
+class StopFlag:
+    """A flag `live` polls (its streams' `stop`): set() ends the run cleanly at the next
+    batch, with the products of the data so far written, as Ctrl-C ends the command."""
+
+    def __init__(self):
+        self._flag = ctypes.c_int(0)
+
+    def set(self):
+        self._flag.value = 1
+
+    def clear(self):
+        self._flag.value = 0
+
+    def is_set(self):
+        return bool(self._flag.value)
+
+
+def _names(v, what):
+    names = [v] if isinstance(v, (str, bytes, os.PathLike)) else list(v)
+    if not names or len(names) > 8:
+        raise ValueError(f"live: {what}: expected 1 to 8 stream names, got {len(names)}")
+    return names
+
+
+def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_dir=None, batch=None,
+         max_wait=None, exptime=None, timeout=None, idle_exit=None, poll=None, tiptilt="exposure", threads=2,
+         read_noise=None, gain=None, g_smooth_lod=2.0, static="auto", static_out=None, every=0,
+         every_seconds=0.0, max_frames=0, pupil_out=None, pupil_source="wfe", checkpoint=None, pupil=None,
+         valid=None, band="auto", mean_loops=None, dm_out=None, dm_file=None, dm_gain=0.5, dm_max_step=0.0,
+         dm_max_rms=0.0, dm_scale=1.0, dm_settle=0.1, dm_keep=False, dm_final=False, dm_tiptilt=False,
+         dm_fit=None, stop=None, on_update=None, provenance=()):
+    """HALO.fits `out` from the WFS stream(s) `wfs` (a name, or up to 8 whose values are
+    concatenated in that order) and the camera stream `camera` in shm_dir (None: the
+    library's rule, $MILK_SHM_DIR or /milk/shm, else /dev/shm), as `specklewfs live`: the
+    frames' time stamps map WFS frames onto camera exposures, batches of `batch` camera
+    frames (None: 16) go through the stream run, the products are written every `every`
+    camera frames / `every_seconds` and at the end. geom: a FITS file with the geometry
+    keys, the camera frame size and the noise model (RDNOISE, GAIN), e.g. a reduced science
+    cube. The model: recon with actuators (the Shack-Hartmann model), or linear= (a dict
+    as speckles() takes). The run ends at the stop flag (StopFlag), after idle_exit seconds
+    without a frame, at max_frames, or when a stream's writer goes for longer than timeout
+    [s] (10). max_wait [s]: how long an exposure waits for its WFS frames; exptime [s]: the
+    camera's exposure (None: its frame period); poll [s] (0.02). pupil_out: the pupil
+    product at each update, from pupil_source 'wfe', 'halo' or 'halo_lf'. mean_loops:
+    folders of simulated loops (their shared miss of the residual mean added) or 'none'.
+    DM offsets (dm_out: a stream name; dm_file: OFFSETS.fits too): -WFE/2 fitted onto the
+    actuators (dm_fit: a dict of influence 'gauss'/'cubic', coupling, pitch, modes, reg)
+    times dm_gain, each step at most dm_max_step [m], the total at most dm_max_rms [m],
+    in stream units per metre dm_scale; exposures starting within dm_settle [s] of a write
+    skipped. on_update(d): called at each update with camera_frames, wfs_frames, final,
+    and valid_fraction, median_snr and wfe_rms [m] (None where not made); an exception in
+    it ends the run with that exception. Returns camera_frames, wfs_frames, seconds (the
+    processing), wfs_rate, ratio, noise, info (the pipeline's), st_lags, meanmiss_rms,
+    meanmiss_heldout, sync (framesync's counts: received, dropped, restarts, used,
+    skipped exposures, batches, the streams' periods), ring_overruns, reopens, lag_count,
+    lag_median, lag_p99, lag_max [s], data_seconds, dm_updates, dm_step_rms, dm_total_rms
+    [m] and dm_fixed."""
+    o = _lib.swfs_live_options()
+    lib.swfs_live_options_default(ctypes.byref(o))
+    if (recon is None) == (linear is None) or (recon is not None and actuators is None):
+        raise ValueError("live: give recon with actuators (the Shack-Hartmann model), or linear")
+    names = _names(wfs, "wfs")
+    warr = (ctypes.c_char_p * len(names))(*[enc(n) for n in names])
+    o.src.wfs, o.src.nwfs, o.src.camera, o.src.dir = ctypes.cast(warr, P(ctypes.c_char_p)), len(names), \
+        enc(camera), _opt(shm_dir)
+    for key, v in (("batch", batch), ("max_wait", max_wait), ("exptime", exptime)):
+        if v is not None:
+            setattr(o.src.sync, key, int(v) if key == "batch" else float(v))
+    for key, v in (("timeout", timeout), ("idle", idle_exit), ("poll", poll)):
+        if v is not None:
+            setattr(o.src, key, float(v))
+    flag = stop._flag if isinstance(stop, StopFlag) else None
+    if stop is not None and flag is None:
+        raise ValueError("live: stop takes a specklewfs.StopFlag")
+    o.src.stop = ctypes.addressof(flag) if flag is not None else None
+    r_ = o.run
+    r_.science, r_.out = enc(geom), enc(out)
+    r_.recon, r_.actuators = _opt(recon), _opt(actuators)
+    _linear(r_.lin, linear)
+    if tiptilt not in _TT:
+        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+    r_.tiptilt, r_.threads = _TT[tiptilt], int(threads)
+    r_.read_noise = math.nan if read_noise is None else float(read_noise)
+    r_.gain = math.nan if gain is None else float(gain)
+    r_.g_smooth_lod = float(g_smooth_lod)
+    if isinstance(static, str) and static in _STATIC:
+        r_.stream.static_mode = _STATIC[static]
+    else:
+        r_.stream.static_mode, r_.static_file = 2, enc(static)
+    r_.static_out, r_.pupil_out, r_.checkpoint = _opt(static_out), _opt(pupil_out), _opt(checkpoint)
+    if pupil_source not in _SOURCE:
+        raise ValueError(f"pupil_source: expected 'wfe', 'halo' or 'halo_lf', got {pupil_source!r}")
+    r_.pupil_source = _SOURCE[pupil_source]
+    r_.stream.every, r_.stream.every_seconds, r_.stream.max_frames = int(every), float(every_seconds), int(max_frames)
+    r_.mask, r_.valid, r_.band = _opt(pupil), _opt(valid), _band(band)
+    if isinstance(mean_loops, str) and mean_loops == "none":
+        r_.mean_teach, mean_loops = 0, None
+    elif isinstance(mean_loops, (str, bytes, os.PathLike)):
+        raise ValueError("live: mean_loops takes a list of folders or 'none' (teach needs recorded files: "
+                         "stream_files)")
+    mloops = [os.fspath(m) for m in (mean_loops or ())]
+    r_.mean_loops, r_.nmean_loops = _lib.strings(mloops)
+    o.dm_out, o.dm_file = _opt(dm_out), _opt(dm_file)
+    o.dm_gain, o.dm_max_step, o.dm_max_rms = float(dm_gain), float(dm_max_step), float(dm_max_rms)
+    o.dm_scale, o.dm_settle = float(dm_scale), float(dm_settle)
+    o.dm_keep, o.dm_final, o.dm_tiptilt = int(bool(dm_keep)), int(bool(dm_final)), int(bool(dm_tiptilt))
+    for key, v in (dm_fit or {}).items():
+        if key == "influence":
+            if v not in _INFLUENCE:
+                raise ValueError(f"dm_fit influence: expected 'gauss' or 'cubic', got {v!r}")
+            v = _INFLUENCE[v]
+        elif key not in ("coupling", "pitch", "modes", "reg"):
+            raise ValueError(f"dm_fit: unknown key {key!r} (influence, coupling, pitch, modes, reg)")
+        setattr(o.dmfit, key, int(v) if key in ("influence", "modes") else float(v))
+    raised = []
+    if on_update is not None:
+        def hook(ctx, s, h, pr, final):
+            if raised:
+                return
+            try:
+                d = dict(camera_frames=lib.swfs_stream_camera_frames(s), wfs_frames=lib.swfs_stream_wfs_frames(s),
+                         final=bool(final), valid_fraction=None, median_snr=None, wfe_rms=None)
+                if h:
+                    d.update(valid_fraction=h.contents.valid_fraction, median_snr=h.contents.median_snr)
+                if pr:
+                    d["wfe_rms"] = pr.contents.wfe_rms
+                on_update(d)
+            except BaseException as e:  # ends the run at its next batch
+                raised.append(e)
+                if flag is not None:
+                    flag.value = 1
+                else:
+                    stop_own.value = 1
+        cb = _UPDATE(hook)
+        r_.on_update = ctypes.cast(cb, c_ptr).value
+        if flag is None:  # a flag of our own, so that an exception in on_update ends the run
+            stop_own = ctypes.c_int(0)
+            o.src.stop = ctypes.addressof(stop_own)
+    prov, r_.nprov = _lib.strings(provenance)
+    r_.prov = prov
+    res = _lib.swfs_live_result()
+    rc = lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res))
+    if raised:
+        raise raised[0]
+    check(rc, "swfs_live_run")
+    rr = res.run
+    d = {k: getattr(rr, k) for k in ("camera_frames", "wfs_frames", "seconds", "wfs_rate", "ratio", "meanmiss_rms",
+                                      "meanmiss_heldout")}
+    d["noise"] = dict(read_noise=rr.noise.read_noise, gain=rr.noise.gain)
+    d["info"] = _struct_dict(rr.info)
+    d["st_lags"] = tuple(rr.st_lags[k] for k in range(rr.info.nlags))
+    d["sync"] = _struct_dict(res.src.sync)
+    d.update({k: getattr(res.src, k) for k in ("ring_overruns", "reopens", "lag_count", "lag_median", "lag_p99",
+                                                "lag_max")})
+    d["data_seconds"] = res.src.seconds
+    d.update({k: getattr(res, k) for k in ("dm_updates", "dm_step_rms", "dm_total_rms", "dm_fixed")})
+    return d
+
+
+_TYPES = {None: 0, "float32": 9, "float64": 10, "int16": 4, "uint16": 3}  # shm.h SWFS_SHM_*
+
+
+def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_name="swfs_wfs",
+           camera_name="swfs_camera", wfs_rate=0.0, speed=1.0, drop_wfs=0.0, drop_camera=0.0, jitter=0.0, seed=1,
+           depth=0, wfs_type=None, camera_type=None, wait_reader=0.0, restart_after=0, drop_log=None,
+           remove=False):
+    """Publishes recorded data into shared-memory streams as `specklewfs replay`: the
+    telemetry a timing table (`sync`'s) pairs with the reduced science cube `science`
+    (slopes: the telemetry's folder or one file; None: the table's folder), at wfs_rate
+    [Hz] (0: the telemetry's WFSRATE) times speed, with time stamps from the table; or a
+    WFS milk log (wfs_log) with its own stamps and lost frames, the camera frames at the
+    cube's STAMPS. drop_wfs / drop_camera: the probability of losing each frame; jitter
+    [s] rms on the stamps and publication times; seed; depth: slices of a rolling buffer
+    (0: 2-D streams); wfs_type / camera_type: 'float32', 'float64', 'int16', 'uint16'
+    (None: as the files); wait_reader [s]: wait that long for a reader on every stream
+    before publishing; restart_after: re-create the streams after that many WFS frames;
+    drop_log: a text file of the frames lost; remove: remove the streams at the end.
+    Returns wfs_frames, camera_frames, wfs_dropped, camera_dropped, restarts, wfs_rate,
+    ratio, seconds and late_max [s]."""
+    o = _lib.swfs_replay_options()
+    lib.swfs_replay_options_default(ctypes.byref(o))
+    if (timing is None) == (wfs_log is None):
+        raise ValueError("replay: give timing (a timing table) or wfs_log (a WFS milk log), one of them")
+    for what, t in (("wfs_type", wfs_type), ("camera_type", camera_type)):
+        if t not in _TYPES:
+            raise ValueError(f"replay: {what}: expected one of float32, float64, int16, uint16, got {t!r}")
+    o.timing, o.science, o.slopes, o.wfs_log = _opt(timing), enc(science), _opt(slopes), _opt(wfs_log)
+    o.dir, o.wfs_name, o.camera_name = _opt(shm_dir), enc(wfs_name), enc(camera_name)
+    o.wfs_rate, o.speed, o.drop_wfs, o.drop_camera = float(wfs_rate), float(speed), float(drop_wfs), \
+        float(drop_camera)
+    o.jitter, o.seed, o.depth = float(jitter), int(seed), int(depth)
+    o.wfs_type, o.camera_type = _TYPES[wfs_type], _TYPES[camera_type]
+    o.wait_reader, o.restart_after, o.drop_log, o.remove = float(wait_reader), int(restart_after), \
+        _opt(drop_log), int(bool(remove))
+    r = _lib.swfs_replay_result()
+    check(lib.swfs_replay_run(ctypes.byref(o), ctypes.byref(r)), "swfs_replay_run")
+    return _struct_dict(r)
