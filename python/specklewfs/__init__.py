@@ -24,7 +24,7 @@ from .stream import Pipeline, Stream, FrameSync
 from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
 from .streamfiles import stream_files, sync_wfs_log
 from .dm import DMFit, dm_offsets
-from .live import StopFlag, live, replay
+from .live import StopFlag, live, replay, live_loop
 
 try:
     from ._config import VERSION as __version__

@@ -510,6 +510,17 @@ swfs_replay_options = _s("swfs_replay_options", [
 swfs_replay_result = _s("swfs_replay_result", [
     ("wfs_frames", c_size), ("camera_frames", c_size), ("wfs_dropped", c_size), ("camera_dropped", c_size),
     ("restarts", c_size), ("wfs_rate", c_dbl), ("ratio", c_dbl), ("seconds", c_dbl), ("late_max", c_dbl)])
+LIVE_LOOP_MAX = 32
+swfs_live_loop_options = _s("swfs_live_loop_options", [
+    ("sim", swfs_ts_params), ("dir", c_str), ("iterations", c_size), ("speed", c_dbl), ("batch", c_size),
+    ("dmfit", swfs_dmfit_options), ("gain", c_dbl), ("max_step", c_dbl), ("max_rms", c_dbl), ("pupil_source", c_int),
+    ("tiptilt", c_int), ("stop", c_ptr), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),
+    ("progress_ctx", c_ptr)])
+swfs_live_loop_state = _s("swfs_live_loop_state", [
+    ("residual_rms", c_dbl), ("estimate_err", c_dbl), ("dm_rms", c_dbl), ("frames_used", c_size),
+    ("lag_median", c_dbl), ("lag_p99", c_dbl)])
+swfs_live_loop_result = _s("swfs_live_loop_result", [
+    ("nstates", c_size), ("s", swfs_live_loop_state * (LIVE_LOOP_MAX + 1)), ("seconds", c_dbl)])
 swfs_demo_run_options = _s("swfs_demo_run_options", [
     ("outdir", c_str), ("sim", swfs_sim_params), ("levels", P(c_dbl)), ("nlevels", c_size),
     ("loop", swfs_loop_params), ("report", c_int), ("config", c_str), ("prov", P(c_str)), ("nprov", c_size),
@@ -794,6 +805,8 @@ _PROTOS = {
     "swfs_live_run": (c_int, [P(swfs_live_options), P(swfs_live_result)]),
     "swfs_replay_options_default": (None, [P(swfs_replay_options)]),
     "swfs_replay_run": (c_int, [P(swfs_replay_options), P(swfs_replay_result)]),
+    "swfs_live_loop_options_default": (None, [P(swfs_live_loop_options)]),
+    "swfs_live_loop_run": (c_int, [P(swfs_live_loop_options), P(swfs_live_loop_result)]),
     "swfs_clock_run_options_default": (None, [P(swfs_clock_run_options)]),
     "swfs_clock_run": (c_int, [P(swfs_clock_run_options), P(swfs_clock_run_result)]),
     "swfs_estimate_run_options_default": (None, [P(swfs_estimate_run_options)]),

@@ -1,8 +1,9 @@
 """Live at the telescope from Python (live.h, docs/live.md): `live`, the NCP estimate beside
-a running AO system through ImageStreamIO shared-memory streams, and `replay`, which feeds
-such streams from recorded files (a timing table, its telemetry and the reduced science
-cube, or a WFS milk log) at the WFS rate or faster. Each runs as its command does and
-returns what it prints, as a dict; errors raise specklewfs.Error with the library's message.
+a running AO system through ImageStreamIO shared-memory streams; `replay`, which feeds such
+streams from recorded files (a timing table, its telemetry and the reduced science cube, or
+a WFS milk log) at the WFS rate or faster; and `live_loop`, the NCP loop closed in
+simulation through the streams. Each runs as its command does and returns what it prints,
+as a dict; errors raise specklewfs.Error with the library's message.
 
 The library releases Python while it runs (ctypes), so a replay in a thread and live in
 another, or live in a thread beside one's own loop, run side by side:
@@ -19,7 +20,7 @@ import os
 from . import _lib
 from ._lib import lib, check, enc, c_ptr, P
 from .realdata import _linear, _opt
-from .sim import _struct_dict
+from .sim import _checked_params, _progress, _struct_dict
 from .stream import _TT, _band
 from .streamfiles import _STATIC
 
@@ -227,3 +228,51 @@ def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_na
     r = _lib.swfs_replay_result()
     check(lib.swfs_replay_run(ctypes.byref(o), ctypes.byref(r)), "swfs_replay_run")
     return _struct_dict(r)
+
+
+def live_loop(directory, iterations=3, speed=2.0, batch=16, modes=0, influence="cubic", coupling=None, gain=0.5,
+              max_step=0.0, max_rms=0.0, pupil_source="halo", tiptilt=False, config=None, stop=None, progress=None,
+              provenance=(), **params):
+    """The NCP loop closed in simulation through shared-memory streams (`specklewfs
+    liveloop`), into directory (created if needed): iteration k simulates the AO time
+    series (params: the time-series config keys, as simulate_timeseries takes them; seed
+    + k) with the NCP plus twice the DM offsets read from the DM stream, reduces and syncs
+    it, replays it into streams at `speed` times real time, and live (batches of `batch`
+    camera frames) writes its correction (the pupil from pupil_source 'halo'/'halo_lf'/'wfe'
+    fitted onto the actuators with `influence` 'cubic'/'gauss', `coupling`, `modes` Zernike
+    modes (0: all), times gain, each step at most max_step [m], the total at most max_rms
+    [m], tip-tilt corrected with tiptilt) onto the DM stream. stop: a StopFlag; progress(stage,
+    done, total). Returns states (one per iteration and one after the last: residual_rms
+    [m] of the NCP plus twice the DM, piston, tip and tilt removed; estimate_err [m], live's
+    WFE against it, None after the last; dm_rms [m]; frames_used; lag_median, lag_p99 [s])
+    and seconds."""
+    o = _lib.swfs_live_loop_options()
+    lib.swfs_live_loop_options_default(ctypes.byref(o))
+    o.sim = _checked_params("ts", config, params)
+    os.makedirs(directory, exist_ok=True)
+    o.dir, o.iterations, o.speed, o.batch = enc(directory), int(iterations), float(speed), int(batch)
+    if influence not in _INFLUENCE:
+        raise ValueError(f"influence: expected 'gauss' or 'cubic', got {influence!r}")
+    o.dmfit.influence, o.dmfit.modes = _INFLUENCE[influence], int(modes)
+    if coupling is not None:
+        o.dmfit.coupling = float(coupling)
+    o.gain, o.max_step, o.max_rms = float(gain), float(max_step), float(max_rms)
+    if pupil_source not in _SOURCE:
+        raise ValueError(f"pupil_source: expected 'wfe', 'halo' or 'halo_lf', got {pupil_source!r}")
+    o.pupil_source, o.tiptilt = _SOURCE[pupil_source], int(bool(tiptilt))
+    if stop is not None and not isinstance(stop, StopFlag):
+        raise ValueError("live_loop: stop takes a specklewfs.StopFlag")
+    o.stop = ctypes.addressof(stop._flag) if stop is not None else None
+    prog = _progress(progress)
+    o.progress = prog
+    prov, o.nprov = _lib.strings(provenance)
+    o.prov = prov
+    r = _lib.swfs_live_loop_result()
+    check(lib.swfs_live_loop_run(ctypes.byref(o), ctypes.byref(r)), "swfs_live_loop_run")
+    states = []
+    for k in range(r.nstates):
+        st = _struct_dict(r.s[k])
+        if not math.isfinite(st["estimate_err"]):
+            st.update(estimate_err=None, frames_used=None, lag_median=None, lag_p99=None)
+        states.append(st)
+    return dict(states=states, seconds=r.seconds)
