@@ -19,10 +19,9 @@ import os
 
 from . import _lib
 from ._lib import lib, check, enc, c_ptr, P
-from .realdata import _linear, _opt
+from .realdata import _opt
 from .sim import _checked_params, _progress, _struct_dict
-from .stream import _TT, _band
-from .streamfiles import _STATIC
+from .streamfiles import _stream_run_model
 
 _SOURCE = {"wfe": 0, "halo": 1, "halo_lf": 2}
 _INFLUENCE = {"gauss": 0, "cubic": 1}
@@ -108,24 +107,11 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     o.src.stop = ctypes.addressof(flag) if flag is not None else None
     r_ = o.run
     r_.science, r_.out = enc(geom), enc(out)
-    r_.recon, r_.actuators = _opt(recon), _opt(actuators)
-    _linear(r_.lin, linear)
-    if tiptilt not in _TT:
-        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-    r_.tiptilt, r_.threads = _TT[tiptilt], int(threads)
-    r_.read_noise = math.nan if read_noise is None else float(read_noise)
-    r_.gain = math.nan if gain is None else float(gain)
-    r_.g_smooth_lod = float(g_smooth_lod)
-    if isinstance(static, str) and static in _STATIC:
-        r_.stream.static_mode = _STATIC[static]
-    else:
-        r_.stream.static_mode, r_.static_file = 2, enc(static)
-    r_.static_out, r_.pupil_out, r_.checkpoint = _opt(static_out), _opt(pupil_out), _opt(checkpoint)
+    _stream_run_model(r_, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static, static_out,
+                      pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band)
     if pupil_source not in _SOURCE:
         raise ValueError(f"pupil_source: expected 'wfe', 'halo' or 'halo_lf', got {pupil_source!r}")
     r_.pupil_source = _SOURCE[pupil_source]
-    r_.stream.every, r_.stream.every_seconds, r_.stream.max_frames = int(every), float(every_seconds), int(max_frames)
-    r_.mask, r_.valid, r_.band = _opt(pupil), _opt(valid), _band(band)
     if isinstance(mean_loops, str) and mean_loops == "none":
         r_.mean_teach, mean_loops = 0, None
     elif isinstance(mean_loops, (str, bytes, os.PathLike)):

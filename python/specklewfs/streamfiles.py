@@ -17,6 +17,27 @@ from .stream import _TT, _band
 _STATIC = {"auto": 0, "none": 1}
 
 
+def _stream_run_model(o, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static,
+                      static_out, pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band):
+    """swfs_stream_run_options o's model, noise, static halo, products and updates, as
+    stream_files and live take them"""
+    o.recon, o.actuators = _opt(recon), _opt(actuators)
+    _linear(o.lin, linear)
+    if tiptilt not in _TT:
+        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+    o.tiptilt, o.threads = _TT[tiptilt], int(threads)
+    o.read_noise = math.nan if read_noise is None else float(read_noise)
+    o.gain = math.nan if gain is None else float(gain)
+    o.g_smooth_lod = float(g_smooth_lod)
+    if isinstance(static, str) and static in _STATIC:
+        o.stream.static_mode = _STATIC[static]
+    else:
+        o.stream.static_mode, o.static_file = 2, enc(static)
+    o.static_out, o.pupil_out, o.checkpoint = _opt(static_out), _opt(pupil_out), _opt(checkpoint)
+    o.stream.every, o.stream.every_seconds, o.stream.max_frames = int(every), float(every_seconds), int(max_frames)
+    o.mask, o.valid, o.band = _opt(pupil), _opt(valid), _band(band)
+
+
 def sync_wfs_log(science, wfs_log, out, exptime=0.0, offset=None, drift_max=None, linear=None, provenance=()):
     """The clock file (`specklewfs sync --wfs-log`): the camera's clock against the WFS's,
     t_wfs = epoch + (t_cam - epoch)(1 + drift) + offset, fitted by the pooled correlation
@@ -92,21 +113,9 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     larr, nl = _paths(logs)
     o.wfs_logs, o.nwfs_logs = (larr, nl) if logs else (None, 0)
     o.clock, o.exptime = _opt(clock), float(exptime)
-    o.recon, o.actuators, o.slopes = _opt(recon), _opt(actuators), _opt(slopes)
-    _linear(o.lin, linear)
-    if tiptilt not in _TT:
-        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-    o.tiptilt, o.threads, o.batch = _TT[tiptilt], int(threads), int(batch)
-    o.read_noise = math.nan if read_noise is None else float(read_noise)
-    o.gain = math.nan if gain is None else float(gain)
-    o.g_smooth_lod = float(g_smooth_lod)
-    if isinstance(static, str) and static in _STATIC:
-        o.stream.static_mode = _STATIC[static]
-    else:
-        o.stream.static_mode, o.static_file = 2, enc(static)
-    o.static_out, o.pupil_out, o.checkpoint = _opt(static_out), _opt(pupil_out), _opt(checkpoint)
-    o.stream.every, o.stream.every_seconds, o.stream.max_frames = int(every), float(every_seconds), int(max_frames)
-    o.mask, o.valid, o.band = _opt(pupil), _opt(valid), _band(band)
+    o.slopes, o.batch = _opt(slopes), int(batch)
+    _stream_run_model(o, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static, static_out,
+                      pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band)
     if isinstance(mean_loops, str) and mean_loops in ("teach", "none"):
         o.mean_teach, mean_loops = int(mean_loops == "teach"), None
     elif isinstance(mean_loops, (str, bytes, os.PathLike)):
