@@ -19,12 +19,11 @@ import os
 
 from . import _lib
 from ._lib import lib, check, enc, c_ptr, P
+from .dm import _fit_options
+from .pupil import _SOURCES
 from .realdata import _opt
 from .sim import _checked_params, _progress, _struct_dict
-from .streamfiles import _stream_run_model
-
-_SOURCE = {"wfe": 0, "halo": 1, "halo_lf": 2}
-_INFLUENCE = {"gauss": 0, "cubic": 1}
+from .streamfiles import _stream_run_model, _stream_result
 
 # on_update(ctx, stream, halo, pupil_result, final) of run.h
 _UPDATE = ctypes.CFUNCTYPE(None, c_ptr, c_ptr, P(_lib.swfs_halo), P(_lib.swfs_pupil_result), ctypes.c_int)
@@ -47,6 +46,13 @@ class StopFlag:
         return bool(self._flag.value)
 
 
+def _source(name):
+    """The pupil product's source (pupil.h SWFS_SOURCE_*): 'lf' (or 'halo_lf': HALO_LF) or 'halo'."""
+    if name not in _SOURCES:
+        raise ValueError(f"pupil_source: expected 'lf' (HALO_LF) or 'halo', got {name!r}")
+    return _SOURCES[name]
+
+
 def _names(v, what):
     names = [v] if isinstance(v, (str, bytes, os.PathLike)) else list(v)
     if not names or len(names) > 8:
@@ -57,7 +63,7 @@ def _names(v, what):
 def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_dir=None, batch=None,
          max_wait=None, exptime=None, timeout=None, idle_exit=None, poll=None, tiptilt="exposure", threads=2,
          read_noise=None, gain=None, g_smooth_lod=2.0, static="auto", static_out=None, every=0,
-         every_seconds=0.0, max_frames=0, pupil_out=None, pupil_source="wfe", checkpoint=None, pupil=None,
+         every_seconds=0.0, max_frames=0, pupil_out=None, pupil_source="lf", checkpoint=None, pupil=None,
          valid=None, band="auto", mean_loops=None, dm_out=None, dm_file=None, dm_gain=0.5, dm_max_step=0.0,
          dm_max_rms=0.0, dm_scale=1.0, dm_settle=0.1, dm_keep=False, dm_final=False, dm_tiptilt=False,
          dm_fit=None, stop=None, on_update=None, provenance=()):
@@ -73,7 +79,7 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     without a frame, at max_frames, or when a stream's writer goes for longer than timeout
     [s] (10). max_wait [s]: how long an exposure waits for its WFS frames; exptime [s]: the
     camera's exposure (None: its frame period); poll [s] (0.02). pupil_out: the pupil
-    product at each update, from pupil_source 'wfe', 'halo' or 'halo_lf'. mean_loops:
+    product at each update, from pupil_source 'lf' (HALO_LF) or 'halo'. mean_loops:
     folders of simulated loops (their shared miss of the residual mean added) or 'none'.
     DM offsets (dm_out: a stream name; dm_file: OFFSETS.fits too): -WFE/2 fitted onto the
     actuators (dm_fit: a dict of influence 'gauss'/'cubic', coupling, pitch, modes, reg)
@@ -81,9 +87,9 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     in stream units per metre dm_scale; exposures starting within dm_settle [s] of a write
     skipped. on_update(d): called at each update with camera_frames, wfs_frames, final,
     and valid_fraction, median_snr and wfe_rms [m] (None where not made); an exception in
-    it ends the run with that exception. Returns camera_frames, wfs_frames, seconds (the
-    processing), wfs_rate, ratio, noise, info (the pipeline's), st_lags, meanmiss_rms,
-    meanmiss_heldout, sync (framesync's counts: received, dropped, restarts, used,
+    it ends the run with that exception. Returns what stream_files returns (camera_frames,
+    wfs_frames, seconds (the processing), wfs_rate, ratio, noise, info (the pipeline's),
+    st_lags, meanmiss_rms, meanmiss_heldout, ...) and sync (framesync's counts: received, dropped, restarts, used,
     skipped exposures, batches, the streams' periods), ring_overruns, reopens, lag_count,
     lag_median, lag_p99, lag_max [s], data_seconds, dm_updates, dm_step_rms, dm_total_rms
     [m] and dm_fixed."""
@@ -101,17 +107,15 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     for key, v in (("timeout", timeout), ("idle", idle_exit), ("poll", poll)):
         if v is not None:
             setattr(o.src, key, float(v))
-    flag = stop._flag if isinstance(stop, StopFlag) else None
-    if stop is not None and flag is None:
+    if stop is not None and not isinstance(stop, StopFlag):
         raise ValueError("live: stop takes a specklewfs.StopFlag")
-    o.src.stop = ctypes.addressof(flag) if flag is not None else None
+    stop = stop or StopFlag()  # one of our own: an exception in on_update sets it
+    o.src.stop = ctypes.addressof(stop._flag)
     r_ = o.run
     r_.science, r_.out = enc(geom), enc(out)
     _stream_run_model(r_, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static, static_out,
                       pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band)
-    if pupil_source not in _SOURCE:
-        raise ValueError(f"pupil_source: expected 'wfe', 'halo' or 'halo_lf', got {pupil_source!r}")
-    r_.pupil_source = _SOURCE[pupil_source]
+    r_.pupil_source = _source(pupil_source)
     if isinstance(mean_loops, str) and mean_loops == "none":
         r_.mean_teach, mean_loops = 0, None
     elif isinstance(mean_loops, (str, bytes, os.PathLike)):
@@ -123,14 +127,12 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     o.dm_gain, o.dm_max_step, o.dm_max_rms = float(dm_gain), float(dm_max_step), float(dm_max_rms)
     o.dm_scale, o.dm_settle = float(dm_scale), float(dm_settle)
     o.dm_keep, o.dm_final, o.dm_tiptilt = int(bool(dm_keep)), int(bool(dm_final)), int(bool(dm_tiptilt))
-    for key, v in (dm_fit or {}).items():
-        if key == "influence":
-            if v not in _INFLUENCE:
-                raise ValueError(f"dm_fit influence: expected 'gauss' or 'cubic', got {v!r}")
-            v = _INFLUENCE[v]
-        elif key not in ("coupling", "pitch", "modes", "reg"):
+    fit = dict(influence="gauss", coupling=None, pitch=None, modes=0, reg=None)
+    for key in dm_fit or {}:
+        if key not in fit:
             raise ValueError(f"dm_fit: unknown key {key!r} (influence, coupling, pitch, modes, reg)")
-        setattr(o.dmfit, key, int(v) if key in ("influence", "modes") else float(v))
+    fit.update(dm_fit or {})
+    o.dmfit = _fit_options(**fit)
     raised = []
     if on_update is not None:
         def hook(ctx, s, h, pr, final):
@@ -146,15 +148,9 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
                 on_update(d)
             except BaseException as e:  # ends the run at its next batch
                 raised.append(e)
-                if flag is not None:
-                    flag.value = 1
-                else:
-                    stop_own.value = 1
+                stop.set()
         cb = _UPDATE(hook)
         r_.on_update = ctypes.cast(cb, c_ptr).value
-        if flag is None:  # a flag of our own, so that an exception in on_update ends the run
-            stop_own = ctypes.c_int(0)
-            o.src.stop = ctypes.addressof(stop_own)
     prov, r_.nprov = _lib.strings(provenance)
     r_.prov = prov
     res = _lib.swfs_live_result()
@@ -162,12 +158,7 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     if raised:
         raise raised[0]
     check(rc, "swfs_live_run")
-    rr = res.run
-    d = {k: getattr(rr, k) for k in ("camera_frames", "wfs_frames", "seconds", "wfs_rate", "ratio", "meanmiss_rms",
-                                      "meanmiss_heldout")}
-    d["noise"] = dict(read_noise=rr.noise.read_noise, gain=rr.noise.gain)
-    d["info"] = _struct_dict(rr.info)
-    d["st_lags"] = tuple(rr.st_lags[k] for k in range(rr.info.nlags))
+    d = _stream_result(res.run, "live")
     d["sync"] = _struct_dict(res.src.sync)
     d.update({k: getattr(res.src, k) for k in ("ring_overruns", "reopens", "lag_count", "lag_median", "lag_p99",
                                                 "lag_max")})
@@ -224,7 +215,7 @@ def live_loop(directory, iterations=3, speed=2.0, batch=16, modes=0, influence="
     series (params: the time-series config keys, as simulate_timeseries takes them; seed
     + k) with the NCP plus twice the DM offsets read from the DM stream, reduces and syncs
     it, replays it into streams at `speed` times real time, and live (batches of `batch`
-    camera frames) writes its correction (the pupil from pupil_source 'halo'/'halo_lf'/'wfe'
+    camera frames) writes its correction (the pupil from pupil_source 'halo' or 'lf'
     fitted onto the actuators with `influence` 'cubic'/'gauss', `coupling`, `modes` Zernike
     modes (0: all), times gain, each step at most max_step [m], the total at most max_rms
     [m], tip-tilt corrected with tiptilt) onto the DM stream. stop: a StopFlag; progress(stage,
@@ -237,15 +228,9 @@ def live_loop(directory, iterations=3, speed=2.0, batch=16, modes=0, influence="
     o.sim = _checked_params("ts", config, params)
     os.makedirs(directory, exist_ok=True)
     o.dir, o.iterations, o.speed, o.batch = enc(directory), int(iterations), float(speed), int(batch)
-    if influence not in _INFLUENCE:
-        raise ValueError(f"influence: expected 'gauss' or 'cubic', got {influence!r}")
-    o.dmfit.influence, o.dmfit.modes = _INFLUENCE[influence], int(modes)
-    if coupling is not None:
-        o.dmfit.coupling = float(coupling)
+    o.dmfit = _fit_options(influence, coupling, None, modes, None)
     o.gain, o.max_step, o.max_rms = float(gain), float(max_step), float(max_rms)
-    if pupil_source not in _SOURCE:
-        raise ValueError(f"pupil_source: expected 'wfe', 'halo' or 'halo_lf', got {pupil_source!r}")
-    o.pupil_source, o.tiptilt = _SOURCE[pupil_source], int(bool(tiptilt))
+    o.pupil_source, o.tiptilt = _source(pupil_source), int(bool(tiptilt))
     if stop is not None and not isinstance(stop, StopFlag):
         raise ValueError("live_loop: stop takes a specklewfs.StopFlag")
     o.stop = ctypes.addressof(stop._flag) if stop is not None else None

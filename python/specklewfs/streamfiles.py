@@ -133,6 +133,11 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     o.prov = prov
     r = _lib.swfs_stream_run_result()
     check(lib.swfs_stream_run_files(ctypes.byref(o), ctypes.byref(r)), "swfs_stream_run_files")
+    return _stream_result(r, "stream_files")
+
+
+def _stream_result(r, what):
+    """swfs_stream_run_result r as the dict stream_files and live return"""
     d = {k: getattr(r, k) for k in ("camera_frames", "wfs_frames", "seconds", "wfs_rate", "static_scale", "ratio",
                                      "st_edges_joined", "st_edges_clamped", "st_edges_unreadable", "meanmiss_rms",
                                      "meanmiss_heldout")}
@@ -144,5 +149,5 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
                                                   exptime=r.stamps.exptime)
     d["st_lags"] = tuple(r.st_lags[k] for k in range(r.info.nlags))
     d["st_edges_why"] = r.st_edges_why.decode(errors="replace")
-    d["mean_teach"] = _mean_teach_dict(r.mean_teach, "stream_files")
+    d["mean_teach"] = _mean_teach_dict(r.mean_teach, what)
     return d
