@@ -14,10 +14,12 @@
 # frames, the note); from 4 loops first its learning curve asks for more frames (measured 32268
 # against 4244), so speckles simulates a fifth (--mean-teach-max-loops 5, for the time), scores
 # the map of the 5, the interaction matrix's and the two maps mixed at 0.75 / 0.5 / 0.25, and
-# writes the set that explains most (measured 57.65 / 59.02 / 58.44 58.83 58.99 %: the loops'
-# map, 19.0 nm; the mixes 19.2 / 19.0 / 19.0; --write-recon's map carries that set's miss of the
+# writes the set that explains most (measured 57.63 / 59.02 / 58.43 58.83 58.99 %: the loops'
+# map with its own miss of the mean, held out 0.78 on the pupil, 18.9 nm (19.0 with the
+# interaction matrix's mean before that check was made on the pupil); the mixes 19.2 / 18.9 /
+# 18.8; --write-recon's map carries that set's miss of the
 # mean, MEANMISS, and stream given it alone makes the same RESMEAN without loops, live on the
-# replayed streams the same as stream: measured 1.3e-14 apart, 19.0 nm), and a second
+# replayed streams the same as stream: measured 1.3e-14 apart, 18.9 nm), and a second
 # run reuses the 5 loops (Release
 # build; under the sanitizers the same choice on 3 given loops, the second twice: 57.67 /
 # 58.76 / 58.43 58.76 58.84 %, 19.4 nm). The Shack-Hartmann model refuses the signals (speckles

@@ -279,7 +279,9 @@ typedef struct swfs_loops_map_result {
     double misfit_rms, truth_rms; /* [m] learn's training misfit and truth per output */
     double carry_resid;       /* the loops' DM functions on the basis: rms residual / rms (LOOPFIT) */
     double meanmiss_heldout;  /* the loops' map's miss of the mean, each loop's by the map of the
-                                 others (learn's mean_miss_heldout), checked held out (< 1: added) */
+                                 others (learn's mean_miss_heldout), checked held out (< 1: added)
+                                 on the wavefront the misses make in the pupil, piston, tip and
+                                 tilt out (learn's meanmiss_metric from the loops' DM functions) */
     double meanmiss_rms;      /* [m] that miss as added to RESMEAN, its rms in the pupil (piston,
                                  tip, tilt removed; 0: none added) */
     int mean_from_imat;       /* 1: the loops' map's miss is not shared (held out >= 1) while the
@@ -802,6 +804,17 @@ typedef struct swfs_learn_run_options {
                                  other sets (their sums, the set's left out), not the map of all:
                                  a map learned from few sets fits their means in-sample, and its
                                  miss there is smaller than on new frames (speckles' loops_map) */
+    const double *meanmiss_metric; /* with mean_miss: NULL, or nact x nact (symmetric, positive
+                                 semi-definite, row-major; nact the truth's outputs) M: the check of
+                                 the misses weighs a miss m as m^T M m instead of its sum of
+                                 squares over the outputs. speckles' loops_map gives the mean
+                                 square over the pupil of the wavefront the outputs make (their
+                                 influence functions, piston, tip and tilt removed: what the NCP
+                                 error counts), where a DM's actuators beyond the pupil, whose
+                                 truth is its fit's extrapolation, count for what they put in it
+                                 (docs/telemetry.md, "The mean's miss over the pupil") */
+    size_t meanmiss_metric_n; /* its side: the truth's outputs (a run whose truth has another
+                                 count fails, naming both) */
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
@@ -864,7 +877,8 @@ typedef struct swfs_learn_run_result {
      * squares: meanmiss_heldout < 1 means the others' mean predicts a set's miss, and their
      * mean over all sets (meanmiss_rms its rms) is written as MEANMISS, which speckles adds to
      * the residual's reconstructed mean (RESMEAN); otherwise none is written. NaN / 0 when not
-     * checked. */
+     * checked. With meanmiss_metric the squares are that metric's, and meanmiss_set_rms is
+     * sqrt(m^T M m) over the sets (the pupil's rms for speckles' metric). */
     double meanmiss_heldout, meanmiss_rms, meanmiss_set_rms; /* meanmiss_set_rms: the sets' own, rms */
     int meanmiss_kept;
     /* The held-out check's outputs: those within curve_radius (the pupil's annulus: a truth on

@@ -317,7 +317,8 @@ swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("heldout_ratio", P(c_dbl)), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
     ("lags", P(ctypes.c_long)), ("nlags", c_size), ("perframe_out", c_str), ("curve", c_int),
     ("curve_radius", c_dbl * 2), ("project", P(c_dbl)), ("nproject", c_size), ("threads", c_int), ("mean_miss", c_int),
-    ("prior", c_str), ("mean_miss_heldout", c_int)])
+    ("prior", c_str), ("mean_miss_heldout", c_int), ("meanmiss_metric", P(c_dbl)),
+    ("meanmiss_metric_n", c_size)])
 swfs_recon_learn_info = _s("swfs_recon_learn_info", [("nframes", c_size), ("nslopes_seen", c_size),
                                                      ("truth_rms", c_dbl), ("misfit_rms", c_dbl)])
 swfs_learn_run_result = _s("swfs_learn_run_result", [

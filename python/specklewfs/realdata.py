@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 
 from . import _lib
-from ._lib import lib, check, dptr, enc
+from ._lib import lib, check, as_array, dptr, enc
 from .estimate import Halo
 from .sim import _cfg_value, _run, _struct_dict
 from .stream import _RECON, _TT, _band
@@ -110,7 +110,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
 
 
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
-          curve_radius=None, threads=0, mean_miss=True, prior=None, mean_miss_heldout=False):
+          curve_radius=None, threads=0, mean_miss=True, prior=None, mean_miss_heldout=False, meanmiss_metric=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the
     least-squares map from a frame's slopes to the true residual on the actuators over the
     folders `dirs` (simulate_timeseries(..., export_truth=1): slopes_NNN.fits beside
@@ -157,7 +157,11 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     it, as far from it as the ridge lets the frames move it (give a ridge of weight, e.g. 0.1;
     not with lags). mean_miss_heldout=True (`learn --mean-miss-heldout`): each folder's miss
     taken with the map of the other folders, not the map of all (which fits few folders' means
-    in-sample)."""
+    in-sample). meanmiss_metric: None, or an (nact, nact) symmetric positive semi-definite
+    matrix M: the check weighs a miss m as m^T M m instead of its sum of squares over the
+    outputs (speckles' loops map gives the mean square over the pupil of the wavefront the
+    outputs make, piston, tip and tilt removed; set_rms is then sqrt(m^T M m) over the
+    folders)."""
     dirs = _lib.path_list(dirs)
     o = _lib.swfs_learn_run_options()
     lib.swfs_learn_run_options_default(ctypes.byref(o))
@@ -182,6 +186,12 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     o.mean_miss_heldout = int(bool(mean_miss_heldout))
     if prior is not None:
         o.prior = enc(prior)
+    metric = None
+    if meanmiss_metric is not None:
+        metric = as_array(meanmiss_metric, "meanmiss_metric", np.float64, ndim=(2,))
+        if metric.shape[0] != metric.shape[1]:
+            raise ValueError(f"meanmiss_metric: expected a square (nact, nact) matrix, got shape {metric.shape}")
+        o.meanmiss_metric, o.meanmiss_metric_n = dptr(metric), metric.shape[0]
     if curve_radius is not None:
         o.curve_radius[0], o.curve_radius[1] = float(curve_radius[0]), float(curve_radius[1])
     r = _lib.swfs_learn_run_result()

@@ -309,6 +309,51 @@ def test_learn_reconstructor(series, tmp_path):
     assert not os.path.exists(tmp_path / "W2.fits")
 
 
+def test_mean_miss_checked_on_a_metric(tmp_path):
+    """learn(meanmiss_metric=M): the check of the folders' misses of the mean weighs a miss m as
+    m^T M m. Six folders whose truth is a linear map of their slopes plus a time mean: on the
+    first 20 outputs the same pattern in every folder (the sensor's own miss), on the last 10
+    a large one of its own in each (a DM's actuators beyond the pupil, whose truth is the fit's
+    extrapolation). Over all outputs the others' mean does not predict a folder's miss (held
+    out >= 1: no MEANMISS); over the first 20 (M their projector) it does, to the folders'
+    noise, and MEANMISS is the mean miss; a metric of another size is refused naming both."""
+    rng = np.random.default_rng(5)
+    ns, na, nf = 16, 30, 400
+    W = rng.normal(size=(ns, na))
+    shared = np.zeros(na)
+    shared[:20] = rng.normal(size=20)
+    shared -= shared.mean()
+    dirs = []
+    for d in range(6):
+        s = rng.normal(size=(nf, ns))
+        own = np.zeros(na)
+        own[20:] = 30 * rng.normal(size=10)
+        t = s @ W + shared + own + 0.05 * rng.normal(size=(nf, na))
+        p = tmp_path / f"set_{d}"
+        p.mkdir()
+        sw.write_fits(str(p / "slopes_000.fits"), {"S": s})
+        sw.write_fits(str(p / "truewf_000.fits"), {"T": t})
+        dirs.append(str(p))
+    r0 = sw.learn(dirs, str(tmp_path / "W0.fits"), heldout=False)
+    assert r0["meanmiss"]["heldout"] >= 1 and not r0["meanmiss"]["kept"]
+    M = np.zeros((na, na))
+    M[:20, :20] = np.eye(20) - 1.0 / 20  # the first 20 outputs, their mean out
+    r1 = sw.learn(dirs, str(tmp_path / "W1.fits"), heldout=False, meanmiss_metric=M)
+    mm = r1["meanmiss"]
+    assert mm["heldout"] < 0.1 and mm["kept"]
+    got = sw.read_fits(str(tmp_path / "W1.fits"), "MEANMISS")[0].ravel()
+    sh = shared[:20] - shared[:20].mean()
+    g = got[:20] - got[:20].mean()
+    assert np.sqrt(np.mean((g - sh) ** 2)) < 0.05 * np.sqrt(np.mean(sh ** 2))
+    # set_rms in the metric's units: each folder's own miss is its pattern on the first 20
+    assert mm["set_rms"] == pytest.approx(np.sqrt(sh @ sh), rel=0.1)
+    with pytest.raises(sw.Error, match=r"metric is 29 x 29; the truth has 30 outputs"):
+        sw.learn(dirs, str(tmp_path / "W2.fits"), heldout=False, meanmiss_metric=np.eye(29))
+    assert not (tmp_path / "W2.fits").exists()
+    with pytest.raises(ValueError, match="square"):
+        sw.learn(dirs, str(tmp_path / "W3.fits"), meanmiss_metric=np.eye(30)[:5])
+
+
 def test_teach(series, tmp_path):
     """`specklewfs teach` from Python: the series' layers, loops of its own system at them, the
     space-time map and its checks, and the choice; the chosen map goes through speckles."""

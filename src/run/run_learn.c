@@ -543,6 +543,33 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
     return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
 }
 
+/* swfs_heldout_mean_ weighed by the metric M (n x n, symmetric): each set's x_d against the
+ * mean o_d of the others', sum of (x_d - o_d)^T M (x_d - o_d) over sum of x_d^T M x_d (*own);
+ * mean: the sets' mean. NaN with fewer than 2 sets or no square. */
+static double heldout_mean_metric(const double *x, size_t nsets, size_t n, const double *M, double *mean, double *own)
+{
+    double *e = malloc(2 * n * sizeof *e);
+    if (!e) return NAN;
+    double *Me = e + n, eho = 0, e0 = 0;
+    for (size_t i = 0; i < n; i++) {
+        double sum = 0;
+        for (size_t d = 0; d < nsets; d++) sum += x[d * n + i];
+        mean[i] = sum / (double)nsets;
+    }
+    for (size_t d = 0; nsets > 1 && d < nsets; d++) {
+        const double *v = x + d * n;
+        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, v, 1, 0.0, Me, 1);
+        e0 += cblas_ddot((int)n, v, 1, Me, 1);
+        /* the others' mean: (nsets mean - x_d) / (nsets - 1) */
+        for (size_t i = 0; i < n; i++) e[i] = v[i] - ((double)nsets * mean[i] - v[i]) / (double)(nsets - 1);
+        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, e, 1, 0.0, Me, 1);
+        eho += cblas_ddot((int)n, e, 1, Me, 1);
+    }
+    free(e);
+    if (own) *own = e0;
+    return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
+}
+
 /* The map's miss of the residual's time mean (swfs_learn_run_result.meanmiss_*): each data
  * set's mean slopes (as the map takes them: projected) and mean truth, summed over its files;
  * the miss is the truth's mean less the map applied to the slopes' mean at every lag (the
@@ -553,6 +580,9 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const
 {
     *off = NULL;
     const size_t ns = r->nslopes, na = r->nact, nd = o->ndirs, nl = o->nlags > 1 ? o->nlags : 1;
+    if (o->meanmiss_metric && o->meanmiss_metric_n != na)
+        return swfs_fail(SWFS_ERR_SHAPE, "learn: the mean's miss's metric is %zu x %zu; the truth has %zu outputs",
+                         o->meanmiss_metric_n, o->meanmiss_metric_n, na);
     double *ms = malloc(ns * nl * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
     int rc = ms && mt && miss ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     /* mean_miss_heldout: each set's miss by the map of the others (its sums left out) */
@@ -606,12 +636,14 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const
         for (size_t a = 0; !o->modal && a < na; a++) m[a] -= pm;
     }
     double e0 = 0;
-    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nd, na, NULL, mt, &e0);
+    const double ratio = rc ? NAN
+                         : o->meanmiss_metric ? heldout_mean_metric(miss, nd, na, o->meanmiss_metric, mt, &e0)
+                                              : swfs_heldout_mean_(miss, nd, na, NULL, mt, &e0);
     if (!rc && isfinite(ratio)) {
         double ss = 0;
         for (size_t a = 0; a < na; a++) ss += mt[a] * mt[a];
         r->meanmiss_heldout = ratio;
-        r->meanmiss_set_rms = sqrt(e0 / (double)(nd * na));
+        r->meanmiss_set_rms = sqrt(e0 / (double)(o->meanmiss_metric ? nd : nd * na));
         r->meanmiss_rms = sqrt(ss / (double)na);
         r->meanmiss_kept = r->meanmiss_heldout < 1;
         if (r->meanmiss_kept) { *off = mt; mt = NULL; }
