@@ -260,6 +260,55 @@ class Pipeline:
         self.meanmiss_rms = rms.value
         return self
 
+    @classmethod
+    def from_map(cls, geom, nfx, nfy, recon, actuators, valid=None, telemetry=None, mask=None, tiptilt="exposure",
+                 threads=1, wfs_rate=False, band="auto"):
+        """The Shack-Hartmann model's pipeline with a map from its file, as `stream --recon
+        W.fits --actuators A.fits [--valid V.fits]` and `live` build it (run.h
+        swfs_sh_pipeline): recon a map file (learn's, teach's, speckles' write_recon=, any
+        Recon.write; a space-time one's lags become the pipeline's lags: give each frame as
+        stack_lags' row), actuators a file (actuators.fits) or (nact, 2) positions [m], valid
+        None or the AO system's valid-subaperture map file (the map may then take the used
+        subapertures' slopes only), telemetry None or a telemetry file checked against the
+        model (a Shack-Hartmann's layout and NSUB, the file named where it is not), mask, tiptilt,
+        threads, wfs_rate, band as Pipeline's. The map's MEANMISS (learn's miss of the
+        residual's mean, per output) becomes the mean offset (meanmiss_rms [m]: its rms in the
+        pupil, piston, tip and tilt out; 0 without)."""
+        from .telemetry import actuators_read
+        geom = geom if isinstance(geom, Geom) else Geom(**geom)
+        g = geom.to_c()
+        path = os.fspath(recon)
+        rec = Recon.read(path)
+        if isinstance(actuators, (str, os.PathLike)):
+            xy, what = actuators_read(os.fspath(actuators)), os.fspath(actuators)
+        else:
+            xy, what = as_array(actuators, "actuators", np.float64, shape=(None, 2)), "the actuators given"
+        if mask is not None:
+            mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
+        o = _lib.swfs_pipeline_options()
+        lib.swfs_pipeline_options_default(ctypes.byref(o))
+        if tiptilt not in _TT:
+            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+        o.recon, o.rcond = _RECON["given"], 0.0
+        o.tiptilt, o.threads, o.wfs_rate, o.band = _TT[tiptilt], int(threads), int(bool(wfs_rate)), _band(band)
+        per = rec.nslopes // (len(rec.lags) or 1)
+        p = ctypes.c_void_p()
+        opt = lambda v: _lib.enc(os.fspath(v)) if v is not None else None
+        check(lib.swfs_sh_pipeline(ctypes.byref(p), _lib.enc(f"{path} with {what}"), opt(valid), opt(telemetry),
+                                   ctypes.byref(g), int(nfx), int(nfy), dptr(xy), xy.shape[0], dptr(mask), per, rec._p,
+                                   None, 0, ctypes.byref(o)), "swfs_sh_pipeline")
+        self = cls.__new__(cls)
+        self._p = p
+        self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
+        self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
+        self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
+        self._frame_width(per, rec.lags)
+        rms = ctypes.c_double()
+        check(lib.swfs_map_meanmiss_attach(p, _lib.enc(path), None, ctypes.byref(g), ctypes.byref(rms)),
+              "swfs_map_meanmiss_attach")
+        self.meanmiss_rms = rms.value
+        return self
+
     @property
     def info(self):
         """dict: nact, nslopes, npup, nfx, nfy, recon_modes, recon_dof, noise_var,

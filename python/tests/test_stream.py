@@ -434,3 +434,52 @@ def test_linear_pipeline_from_files(data, tmp_path):
                     pupdx=GEOM.pupdx * 2, pupn=GEOM.pupn // 2)
     with pytest.raises(sw.Error, match="basis.fits"):
         sw.Pipeline.from_files(small, NF, NF, lin)
+
+
+def test_sh_pipeline_from_map_file(data, tmp_path):
+    """Pipeline.from_map builds the Shack-Hartmann model's pipeline from a map file as stream
+    and live do (swfs_sh_pipeline): the fields of Pipeline given the same matrix; a space-time
+    map's lags from its keys; the map's MEANMISS (per actuator) as the mean offset; a valid map
+    of another size and a pyramid's telemetry refused, naming the file."""
+    d = data
+    sh = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon="svd", tiptilt="keep", band="none")
+    W = np.array(sh.recon.W)
+    sw.Recon.from_matrix(W).write(str(tmp_path / "W.fits"))
+    sw.actuators_write(d["xy"], str(tmp_path / "act.fits"))
+    p = sw.Pipeline.from_map(GEOM, NF, NF, tmp_path / "W.fits", tmp_path / "act.fits", tiptilt="keep", band="none")
+    assert p.lags == () and p.nslopes == NSLOPES and p.meanmiss_rms == 0
+    a, b = p.process(d["slopes"], d["sched"]), sh.process(d["slopes"], d["sched"])
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * np.abs(b).max())
+    # a space-time map (learn --lags' layout: one block per lag, NLAGS / LAGk)
+    Wst = np.hstack([W, 0.5 * W, -0.25 * W])
+    sw.Recon.from_matrix(Wst, lags=(0, -2, 4)).write(str(tmp_path / "Wst.fits"))
+    pst = sw.Pipeline.from_map(GEOM, NF, NF, str(tmp_path / "Wst.fits"), d["xy"], tiptilt="keep", band="none",
+                               wfs_rate=True)
+    qst = sw.Pipeline(GEOM, NF, NF, d["xy"], NSLOPES, recon=sw.Recon.from_matrix(Wst, lags=(0, -2, 4)),
+                      tiptilt="keep", band="none", wfs_rate=True)
+    assert pst.lags == (0, -2, 4) and pst.nvalues == NSLOPES and pst.nslopes == 3 * NSLOPES
+    st = sw.stack_lags(d["slopes"], pst.lags)
+    a, b = pst.process_wfs(st), qst.process_wfs(st)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * np.abs(b).max())
+    # the map's miss of the residual's mean: a focus of 20 nm peak on the actuators
+    r = np.hypot(d["xy"][:, 0], d["xy"][:, 1]) / np.hypot(d["xy"][:, 0], d["xy"][:, 1]).max()
+    c = 20e-9 * (2 * r ** 2 - 1)
+    sw.write_fits(str(tmp_path / "Wmm.fits"), {"W": W, "MEANMISS": (c - c.mean())[None, :]})
+    pm = sw.Pipeline.from_map(GEOM, NF, NF, str(tmp_path / "Wmm.fits"), str(tmp_path / "act.fits"), tiptilt="keep",
+                              band="none")
+    assert 2e-9 < pm.meanmiss_rms < 20e-9
+    for pl in (p, pm):
+        pl.mean_reset()
+        pl.process(d["slopes"], d["sched"])
+    diff = pm.mean_wavefront()[0] - p.mean_wavefront()[0]
+    inside = sh.mask > 0
+    assert np.sqrt(np.mean(diff[inside] ** 2)) == pytest.approx(pm.meanmiss_rms, rel=1e-3)
+    yy, xx = np.indices(diff.shape) - (GEOM.pupn - 1) / 2
+    assert np.corrcoef(diff[inside], (xx ** 2 + yy ** 2)[inside])[0, 1] > 0.99
+    # refused, naming the file: a valid map of another size, a pyramid's telemetry
+    sw.write_fits(str(tmp_path / "valid5.fits"), np.ones((5, 5)))
+    with pytest.raises(sw.Error, match="valid5.fits"):
+        sw.Pipeline.from_map(GEOM, NF, NF, str(tmp_path / "W.fits"), d["xy"], valid=str(tmp_path / "valid5.fits"))
+    sw.write_fits(str(tmp_path / "pyr.fits"), d["slopes"][:10], keys={"WFSTYPE": "PYRAMID", "NSUB": NSUB})
+    with pytest.raises(sw.Error, match=r"pyr.fits: WFSTYPE = 'PYRAMID'"):
+        sw.Pipeline.from_map(GEOM, NF, NF, str(tmp_path / "W.fits"), d["xy"], telemetry=str(tmp_path / "pyr.fits"))
