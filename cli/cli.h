@@ -55,6 +55,8 @@ void cli_help_speckles(void);
 void cli_help_stream(void);
 void cli_help_live(void);
 void cli_help_teach(void);
+/* learn's usage text (help_learn.c) */
+const char *cli_usage_learn(void);
 /* Strict number parsing for option values; on failure prints and returns non-zero. */
 int cli_parse_double(const char *cmd, const char *opt, const char *s, double *out);
 int cli_parse_long(const char *cmd, const char *opt, const char *s, long *out);

@@ -818,6 +818,14 @@ typedef struct swfs_learn_run_options {
 } swfs_learn_run_options;
 
 void swfs_learn_run_options_default(swfs_learn_run_options *o);
+/* learn's meanmiss_metric from the outputs' functions on the pupil grid: funcs a FITS cube
+ * (NAXIS1 = NAXIS2 = n, NAXIS3 = the truth's outputs: a DM's influence functions, the
+ * simulator's influence.fits; n 0: the file's own), over the pupil given as mask (n x n
+ * weights) or, with mask NULL, the file pupil (swfs_pupil_mask_read): M_ab = the
+ * mask-weighted mean over the pupil of f_a f_b, each f with piston, tip and tilt removed over
+ * the mask (what pupil --truth counts of a wavefront). *M malloc'd, *nf x *nf; the file named
+ * where a shape does not fit. */
+int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const char *pupil, double **M, size_t *nf);
 
 #define SWFS_LEARN_MAXWLAYERS 8
 

@@ -21,7 +21,8 @@ from .coherence import (Coherence, coherence, default_lags, read_coherence_input
                         bandwidth_radius)
 from .sim import SimResult, simulate, sim_params, ncp_map, simulate_timeseries, mode_variance, mode_timecorr, demo, report
 from .stream import Pipeline, Stream, FrameSync
-from .realdata import reduce, sync, boundary_check, boundary_gap, learn, teach, modal_slopes, speckles, estimate_files
+from .realdata import (reduce, sync, boundary_check, boundary_gap, learn, meanmiss_metric, teach, modal_slopes, speckles,
+                       estimate_files)
 from .streamfiles import stream_files, sync_wfs_log
 from .dm import DMFit, dm_offsets
 from .live import StopFlag, live, replay, live_loop

@@ -787,6 +787,7 @@ _PROTOS = {
                                      P(c_dbl), c_size, P(swfs_pipeline_options)]),
     "swfs_linear_control_lags": (c_int, [P(swfs_linear_files), P(c_long), P(c_size)]),
     "swfs_map_meanmiss_attach": (c_int, [c_ptr, c_str, P(swfs_linear_files), P(swfs_geom), P(c_dbl)]),
+    "swfs_meanmiss_metric": (c_int, [c_str, c_size, P(c_dbl), c_str, P(P(c_dbl)), P(c_size)]),
     "swfs_sh_pipeline": (c_int, [P(c_ptr), c_str, c_str, c_str, P(swfs_geom), c_size, c_size, P(c_dbl), c_size, P(c_dbl),
                                  c_size, P(swfs_recon), P(c_dbl), c_size, P(swfs_pipeline_options)]),
     "swfs_report_options_default": (None, [P(swfs_report_options)]),

@@ -109,6 +109,20 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
         lib.swfs_free(r.t.cubes)
 
 
+def meanmiss_metric(funcs, pupil):
+    """learn's meanmiss_metric from files, as `learn --mean-miss-over FUNCS,PUPIL` makes it
+    (run.h swfs_meanmiss_metric): funcs a FITS cube of the truth's outputs' functions on the
+    pupil grid (a DM's influence.fits, one plane per output), pupil the pupil mask's file;
+    returns M (nout, nout), the mask-weighted mean over the pupil of f_a f_b, each function
+    with piston, tip and tilt removed: m^T M m is the mean square of the wavefront a miss m
+    makes there."""
+    M = ctypes.POINTER(ctypes.c_double)()
+    n = ctypes.c_size_t()
+    check(lib.swfs_meanmiss_metric(enc(os.fspath(funcs)), 0, None, enc(os.fspath(pupil)), ctypes.byref(M),
+                                   ctypes.byref(n)), "swfs_meanmiss_metric")
+    return _lib.take_buffer(ctypes.cast(M, ctypes.c_void_p).value, (n.value, n.value), np.float64)
+
+
 def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=None, perframe_out=None, curve=False,
           curve_radius=None, threads=0, mean_miss=True, prior=None, mean_miss_heldout=False, meanmiss_metric=None):
     """A reconstructor learned from simulated closed loops (`specklewfs learn`): the

@@ -352,6 +352,25 @@ def test_mean_miss_checked_on_a_metric(tmp_path):
     assert not (tmp_path / "W2.fits").exists()
     with pytest.raises(ValueError, match="square"):
         sw.learn(dirs, str(tmp_path / "W3.fits"), meanmiss_metric=np.eye(30)[:5])
+    # the pupil's metric from files (learn --mean-miss-over FUNCS,PUPIL): each function's piston,
+    # tip and tilt out over the mask, the mask-weighted mean of their products
+    n = 16
+    funcs = rng.normal(size=(na, n, n))
+    yy, xx = np.indices((n, n)) - (n - 1) / 2
+    pupil = (np.hypot(xx, yy) < 7).astype(float) * (0.5 + 0.5 * (xx > 0))  # transmissions 0.5 and 1
+    sw.write_fits(str(tmp_path / "funcs.fits"), funcs)
+    sw.write_fits(str(tmp_path / "pupil.fits"), pupil)
+    Mf = sw.meanmiss_metric(tmp_path / "funcs.fits", tmp_path / "pupil.fits")
+    m = pupil > 0
+    B = np.stack([np.ones(m.sum()), xx[m], yy[m]], 1)
+    w = pupil[m]
+    F = funcs[:, m].T
+    F = F - B @ np.linalg.solve(B.T @ (w[:, None] * B), B.T @ (w[:, None] * F))
+    want = F.T @ (w[:, None] * F) / w.sum()
+    assert Mf.shape == (na, na) and np.abs(Mf - want).max() < 1e-12 * np.abs(want).max()
+    sw.write_fits(str(tmp_path / "p8.fits"), pupil[:8, :8])
+    with pytest.raises(sw.Error, match="p8.fits: pupil mask is 8x8x1 but the pupil grid is pupn x pupn = 16x16"):
+        sw.meanmiss_metric(tmp_path / "funcs.fits", tmp_path / "p8.fits")
 
 
 def test_teach(series, tmp_path):

@@ -4,6 +4,7 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/parallel.h"
+#include "specklewfs/pupil.h"
 #include "run_internal.h"
 
 #include <cblas.h>
@@ -541,6 +542,53 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
     }
     if (own) *own = e0;
     return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
+}
+
+int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const char *pupil, double **M, size_t *nf)
+{
+    *M = NULL;
+    *nf = 0;
+    if (!funcs || (!mask && !pupil))
+        return swfs_fail(SWFS_ERR_ARG, "the mean's miss's metric: needs the outputs' functions and a pupil mask");
+    swfs_real *inf = NULL, *pm = NULL;
+    int rc = swfs_fits_read_real(funcs, NULL, &inf, NULL);
+    if (!rc && n == 0) n = inf->nx;
+    if (!rc && (inf->nx != n || inf->ny != n || inf->nz < 1))
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the outputs' functions are %zu x %zu x %zu; expected %zu x %zu (the pupil "
+                       "grid) per output", funcs, inf->nx, inf->ny, inf->nz, n, n);
+    if (!rc && !mask && !(rc = swfs_pupil_mask_read(pupil, n, &pm))) mask = pm->data;
+    const size_t nq = n * n, na = rc ? 0 : inf->nz;
+    double ws = 0;
+    for (size_t q = 0; !rc && q < nq; q++) ws += mask[q] > 0 ? mask[q] : 0;
+    if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: an empty pupil mask", pupil ? pupil : "the mean's miss's metric");
+    /* each function's piston, tip and tilt out over the mask (inf is ours), then blocks of NB
+     * samples, each weighted by sqrt(mask / its sum), into M by rank-NB updates */
+    for (size_t a = 0; !rc && a < na; a++) swfs_wfe_remove_ptt(inf->data + a * nq, mask, n);
+    enum { NB = 2048 };
+    double *m = rc ? NULL : calloc(na * na, sizeof *m), *blk = rc ? NULL : malloc(na * NB * sizeof *blk);
+    if (!rc && (!m || !blk)) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t q = 0; !rc && q < nq;) {
+        size_t nb = 0;
+        for (; q < nq && nb < NB; q++) {
+            if (!(mask[q] > 0)) continue;
+            const double w = sqrt(mask[q] / ws);
+            for (size_t a = 0; a < na; a++) blk[a * NB + nb] = w * inf->data[a * nq + q];
+            nb++;
+        }
+        if (nb) cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)na, (int)nb, 1.0, blk, NB, 1.0, m, (int)na);
+    }
+    for (size_t a = 0; !rc && a < na; a++)
+        for (size_t b = 0; b < a; b++) m[a * na + b] = m[b * na + a];
+    free(blk);
+    swfs_real_free(inf);
+    swfs_real_free(pm);
+    if (rc) {
+        free(m);
+        return rc;
+    }
+    *M = m;
+    *nf = na;
+    return SWFS_OK;
 }
 
 /* swfs_heldout_mean_ weighed by the metric M (n x n, symmetric): each set's x_d against the

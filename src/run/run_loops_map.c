@@ -14,7 +14,6 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
-#include "specklewfs/pupil.h"
 #include "specklewfs/source.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
@@ -126,57 +125,6 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     swfs_real_free(inf);
     swfs_recon_free(wl);
     return rc;
-}
-
-/* The check of the loops' misses of the mean on what they put into the NCP (learn's
- * meanmiss_metric): M_ab = the mask-weighted mean over the pupil of f_a f_b, f_a the loops' DM
- * function a (loop0/influence.fits) with piston, tip and tilt removed over the mask, as pupil
- * --truth counts an error. *M malloc'd, *na its side. Summed over blocks of samples. */
-static int pupil_metric(const char *loop0, const swfs_geom *g, const double *mask, double **M, size_t *na)
-{
-    *M = NULL;
-    *na = 0;
-    char ip[4400];
-    snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
-    swfs_real *inf = NULL;
-    const size_t n = (size_t)g->pupn, nq = n * n;
-    int rc = swfs_fits_read_real(ip, NULL, &inf, NULL);
-    if (!rc && (inf->nx != n || inf->ny != n || inf->nz < 1))
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' influence functions are %zu x %zu x %zu; expected PUPN = %zu "
-                       "squared per function", ip, inf->nx, inf->ny, inf->nz, n);
-    const size_t nf = rc ? 0 : inf->nz;
-    double ws = 0;
-    for (size_t q = 0; q < nq; q++) ws += mask[q] > 0 ? mask[q] : 0;
-    if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "the mean's miss's metric: an empty pupil mask");
-    /* each function's PTT-free copy in place (inf is ours), then blocks of NB samples */
-    for (size_t a = 0; !rc && a < nf; a++) swfs_wfe_remove_ptt(inf->data + a * nq, mask, n);
-    enum { NB = 2048 };
-    double *m = rc ? NULL : calloc(nf * nf, sizeof *m), *blk = rc ? NULL : malloc(nf * NB * sizeof *blk);
-    if (!rc && (!m || !blk)) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t q0 = 0; !rc && q0 < nq;) {
-        size_t nb = 0;
-        size_t q = q0;
-        for (; q < nq && nb < NB; q++) {
-            if (!(mask[q] > 0)) continue;
-            const double w = sqrt(mask[q] / ws);
-            for (size_t a = 0; a < nf; a++) blk[a * NB + nb] = w * inf->data[a * nq + q];
-            nb++;
-        }
-        if (nb)
-            cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nf, (int)nb, 1.0, blk, NB, 1.0, m, (int)nf);
-        q0 = q;
-    }
-    for (size_t a = 0; !rc && a < nf; a++)
-        for (size_t b = 0; b < a; b++) m[a * nf + b] = m[b * nf + a];
-    free(blk);
-    swfs_real_free(inf);
-    if (rc) {
-        free(m);
-        return rc;
-    }
-    *M = m;
-    *na = nf;
-    return SWFS_OK;
 }
 
 static int estimate_into(const char *sci, const char *sp, const char *out, const swfs_speckles_run_options *o)
@@ -511,7 +459,9 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
      * extrapolation (hundreds of nm, another pattern in each loop), outweigh the rest and hide a
      * miss the loops share inside it (docs/telemetry.md, "The mean's miss over the pupil") */
     double *metric = NULL;
-    if (!rc) rc = pupil_metric(o->mean_loops[0], g, mask, &metric, &lo.meanmiss_metric_n);
+    char ip[4400];
+    snprintf(ip, sizeof ip, "%.4300s/influence.fits", o->mean_loops[0]);
+    if (!rc) rc = swfs_meanmiss_metric(ip, (size_t)g->pupn, mask, NULL, &metric, &lo.meanmiss_metric_n);
     lo.meanmiss_metric = metric;
     lo.prov = o->prov;
     lo.nprov = o->nprov;
