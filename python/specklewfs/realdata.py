@@ -174,7 +174,8 @@ def learn(dirs, out, ridge=None, heldout=True, modal=False, provenance=(), lags=
     in-sample). meanmiss_metric: None, or an (nact, nact) symmetric positive semi-definite
     matrix M: the check weighs a miss m as m^T M m instead of its sum of squares over the
     outputs (speckles' loops map gives the mean square over the pupil of the wavefront the
-    outputs make, piston, tip and tilt removed; set_rms is then sqrt(m^T M m) over the
+    outputs make, piston, tip and tilt removed, which meanmiss_metric(funcs, pupil) and `learn
+    --mean-miss-over FUNCS,PUPIL` make from files; set_rms is then sqrt(m^T M m) over the
     folders)."""
     dirs = _lib.path_list(dirs)
     o = _lib.swfs_learn_run_options()

@@ -293,7 +293,8 @@ class Pipeline:
         o.tiptilt, o.threads, o.wfs_rate, o.band = _TT[tiptilt], int(threads), int(bool(wfs_rate)), _band(band)
         per = rec.nslopes // (len(rec.lags) or 1)
         p = ctypes.c_void_p()
-        opt = lambda v: _lib.enc(os.fspath(v)) if v is not None else None
+        def opt(v):
+            return _lib.enc(os.fspath(v)) if v is not None else None
         check(lib.swfs_sh_pipeline(ctypes.byref(p), _lib.enc(f"{path} with {what}"), opt(valid), opt(telemetry),
                                    ctypes.byref(g), int(nfx), int(nfy), dptr(xy), xy.shape[0], dptr(mask), per, rec._p,
                                    None, 0, ctypes.byref(o)), "swfs_sh_pipeline")

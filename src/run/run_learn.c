@@ -558,6 +558,13 @@ int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const 
                        "grid) per output", funcs, inf->nx, inf->ny, inf->nz, n, n);
     if (!rc && !mask && !(rc = swfs_pupil_mask_read(pupil, n, &pm))) mask = pm->data;
     const size_t nq = n * n, na = rc ? 0 : inf->nz;
+    for (size_t a = 0; !rc && a < na; a++)
+        for (size_t q = 0; q < nq; q++)
+            if (mask[q] > 0 && !isfinite(inf->data[a * nq + q])) {
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: output %zu's function is %g at sample (%zu, %zu) inside the pupil; "
+                               "expected finite values", funcs, a, inf->data[a * nq + q], q % n, q / n);
+                break;
+            }
     double ws = 0;
     for (size_t q = 0; !rc && q < nq; q++) ws += mask[q] > 0 ? mask[q] : 0;
     if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: an empty pupil mask", pupil ? pupil : "the mean's miss's metric");
@@ -594,11 +601,10 @@ int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const 
 /* swfs_heldout_mean_ weighed by the metric M (n x n, symmetric): each set's x_d against the
  * mean o_d of the others', sum of (x_d - o_d)^T M (x_d - o_d) over sum of x_d^T M x_d (*own);
  * mean: the sets' mean. NaN with fewer than 2 sets or no square. */
-static double heldout_mean_metric(const double *x, size_t nsets, size_t n, const double *M, double *mean, double *own)
+static double heldout_mean_metric(const double *x, size_t nsets, size_t n, const double *M, double *mean, double *own,
+                                  double *work)
 {
-    double *e = malloc(2 * n * sizeof *e);
-    if (!e) return NAN;
-    double *Me = e + n, eho = 0, e0 = 0;
+    double *e = work, *Me = work + n, eho = 0, e0 = 0; /* work: 2 n */
     for (size_t i = 0; i < n; i++) {
         double sum = 0;
         for (size_t d = 0; d < nsets; d++) sum += x[d * n + i];
@@ -613,7 +619,6 @@ static double heldout_mean_metric(const double *x, size_t nsets, size_t n, const
         cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, e, 1, 0.0, Me, 1);
         eho += cblas_ddot((int)n, e, 1, Me, 1);
     }
-    free(e);
     if (own) *own = e0;
     return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
 }
@@ -684,9 +689,12 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const
         for (size_t a = 0; !o->modal && a < na; a++) m[a] -= pm;
     }
     double e0 = 0;
+    double *work = !rc && o->meanmiss_metric ? malloc(2 * na * sizeof *work) : NULL;
+    if (!rc && o->meanmiss_metric && !work) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     const double ratio = rc ? NAN
-                         : o->meanmiss_metric ? heldout_mean_metric(miss, nd, na, o->meanmiss_metric, mt, &e0)
+                         : o->meanmiss_metric ? heldout_mean_metric(miss, nd, na, o->meanmiss_metric, mt, &e0, work)
                                               : swfs_heldout_mean_(miss, nd, na, NULL, mt, &e0);
+    free(work);
     if (!rc && isfinite(ratio)) {
         double ss = 0;
         for (size_t a = 0; a < na; a++) ss += mt[a] * mt[a];
