@@ -23,7 +23,7 @@ from .dm import _fit_options
 from .pupil import _SOURCES
 from .realdata import _opt
 from .sim import _checked_params, _progress, _struct_dict
-from .streamfiles import _stream_run_model, _stream_result
+from .streamfiles import _mean_loops, _stream_run_model, _stream_result
 
 # on_update(ctx, stream, halo, pupil_result, final) of run.h
 _UPDATE = ctypes.CFUNCTYPE(None, c_ptr, c_ptr, P(_lib.swfs_halo), P(_lib.swfs_pupil_result), ctypes.c_int)
@@ -116,13 +116,8 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     _stream_run_model(r_, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static, static_out,
                       pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band)
     r_.pupil_source = _source(pupil_source)
-    if isinstance(mean_loops, str) and mean_loops == "none":
-        r_.mean_teach, mean_loops = 0, None
-    elif isinstance(mean_loops, (str, bytes, os.PathLike)):
-        raise ValueError("live: mean_loops takes a list of folders or 'none' (teach needs recorded files: "
-                         "stream_files)")
-    mloops = [os.fspath(m) for m in (mean_loops or ())]
-    r_.mean_loops, r_.nmean_loops = _lib.strings(mloops)
+    _mean_loops(r_, mean_loops, ("none",), "live: mean_loops takes a list of folders or 'none' (teach needs recorded "
+                "files: stream_files)")
     o.dm_out, o.dm_file = _opt(dm_out), _opt(dm_file)
     o.dm_gain, o.dm_max_step, o.dm_max_rms = float(dm_gain), float(dm_max_step), float(dm_max_rms)
     o.dm_scale, o.dm_settle = float(dm_scale), float(dm_settle)

@@ -33,10 +33,15 @@ def _band(band):
 
 def _linear_options(recon, rcond, tiptilt, threads, wfs_rate, band):
     """pipeline.h options of a linear model's pipeline (recon: its interaction matrix's inverse)."""
-    o = _lib.swfs_pipeline_options()
-    lib.swfs_pipeline_options_default(ctypes.byref(o))
     if recon not in ("map", "svd"):
         raise ValueError(f"recon: expected 'map' or 'svd' (an interaction matrix's inverse), got {recon!r}")
+    return _file_options(recon, rcond, tiptilt, threads, wfs_rate, band)
+
+
+def _file_options(recon, rcond, tiptilt, threads, wfs_rate, band):
+    """pipeline.h options of a pipeline built from files (Pipeline.from_files, from_map)."""
+    o = _lib.swfs_pipeline_options()
+    lib.swfs_pipeline_options_default(ctypes.byref(o))
     if tiptilt not in _TT:
         raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
     o.recon, o.rcond = _RECON[recon], float(rcond)
@@ -243,20 +248,27 @@ class Pipeline:
         p = ctypes.c_void_p()
         check(lib.swfs_linear_pipeline(ctypes.byref(p), ctypes.byref(lf), ctypes.byref(g), int(nfx), int(nfy),
                                        dptr(mask), int(nmeas), dptr(tr), ntr, ctypes.byref(o)), "swfs_linear_pipeline")
+        lags = (ctypes.c_long * _lib.RECON_MAXLAGS)()
+        nl = ctypes.c_size_t()
+        check(lib.swfs_linear_control_lags(ctypes.byref(lf), lags, ctypes.byref(nl)), "swfs_linear_control_lags")
+        nls = nl.value if nl.value > 1 else 0
+        return cls._built(p, geom, g, nfx, nfy, tiptilt, wfs_rate, tuple(lags[:nls]), lf.control, lf)
+
+    @classmethod
+    def _built(cls, p, geom, g, nfx, nfy, tiptilt, wfs_rate, lags, mapfile, lf):
+        """A Pipeline over the pipeline p a run.h builder made from files: its frame width from
+        its lags, the map file's MEANMISS (swfs_map_meanmiss_attach; lf the linear model's
+        files, None for the Shack-Hartmann model's) as its mean offset."""
         self = cls.__new__(cls)
         self._p = p
         self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
         self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
         self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
-        lags = (ctypes.c_long * _lib.RECON_MAXLAGS)()
-        nl = ctypes.c_size_t()
-        check(lib.swfs_linear_control_lags(ctypes.byref(lf), lags, ctypes.byref(nl)), "swfs_linear_control_lags")
-        nls = nl.value if nl.value > 1 else 0
         width = int(self.info["nslopes"])
-        self._frame_width(width // nls if nls else width, tuple(lags[:nls]))
+        self._frame_width(width // len(lags) if lags else width, lags)
         rms = ctypes.c_double()
-        check(lib.swfs_map_meanmiss_attach(p, lf.control, ctypes.byref(lf), ctypes.byref(g), ctypes.byref(rms)),
-              "swfs_map_meanmiss_attach")
+        check(lib.swfs_map_meanmiss_attach(p, mapfile, ctypes.byref(lf) if lf is not None else None, ctypes.byref(g),
+                                           ctypes.byref(rms)), "swfs_map_meanmiss_attach")
         self.meanmiss_rms = rms.value
         return self
 
@@ -285,12 +297,7 @@ class Pipeline:
             xy, what = as_array(actuators, "actuators", np.float64, shape=(None, 2)), "the actuators given"
         if mask is not None:
             mask = as_array(mask, "mask", np.float64, shape=(geom.pupn, geom.pupn))
-        o = _lib.swfs_pipeline_options()
-        lib.swfs_pipeline_options_default(ctypes.byref(o))
-        if tiptilt not in _TT:
-            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-        o.recon, o.rcond = _RECON["given"], 0.0
-        o.tiptilt, o.threads, o.wfs_rate, o.band = _TT[tiptilt], int(threads), int(bool(wfs_rate)), _band(band)
+        o = _file_options("given", 0.0, tiptilt, threads, wfs_rate, band)
         per = rec.nslopes // (len(rec.lags) or 1)
         p = ctypes.c_void_p()
         def opt(v):
@@ -298,17 +305,7 @@ class Pipeline:
         check(lib.swfs_sh_pipeline(ctypes.byref(p), _lib.enc(f"{path} with {what}"), opt(valid), opt(telemetry),
                                    ctypes.byref(g), int(nfx), int(nfy), dptr(xy), xy.shape[0], dptr(mask), per, rec._p,
                                    None, 0, ctypes.byref(o)), "swfs_sh_pipeline")
-        self = cls.__new__(cls)
-        self._p = p
-        self._owner = _lib.Owner(p, lib.swfs_pipeline_free)
-        self.geom, self.nfx, self.nfy = geom, int(nfx), int(nfy)
-        self.tiptilt, self.wfs_rate = tiptilt, bool(wfs_rate)
-        self._frame_width(per, rec.lags)
-        rms = ctypes.c_double()
-        check(lib.swfs_map_meanmiss_attach(p, _lib.enc(path), None, ctypes.byref(g), ctypes.byref(rms)),
-              "swfs_map_meanmiss_attach")
-        self.meanmiss_rms = rms.value
-        return self
+        return cls._built(p, geom, g, nfx, nfy, tiptilt, wfs_rate, rec.lags, _lib.enc(path), None)
 
     @property
     def info(self):

@@ -38,6 +38,16 @@ def _stream_run_model(o, recon, actuators, linear, tiptilt, threads, read_noise,
     o.mask, o.valid, o.band = _opt(pupil), _opt(valid), _band(band)
 
 
+def _mean_loops(o, mean_loops, words, refusal):
+    """swfs_stream_run_options o's mean loops: a list of folders, or one of words ('teach':
+    simulate them, 'none': neither); any other single name refused with `refusal`"""
+    if isinstance(mean_loops, str) and mean_loops in words:
+        o.mean_teach, mean_loops = int(mean_loops == "teach"), None
+    elif isinstance(mean_loops, (str, bytes, os.PathLike)):
+        raise ValueError(refusal)
+    o.mean_loops, o.nmean_loops = _lib.strings([os.fspath(m) for m in (mean_loops or ())])
+
+
 def sync_wfs_log(science, wfs_log, out, exptime=0.0, offset=None, drift_max=None, linear=None, provenance=()):
     """The clock file (`specklewfs sync --wfs-log`): the camera's clock against the WFS's,
     t_wfs = epoch + (t_cam - epoch)(1 + drift) + offset, fitted by the pooled correlation
@@ -116,12 +126,7 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     o.slopes, o.batch = _opt(slopes), int(batch)
     _stream_run_model(o, recon, actuators, linear, tiptilt, threads, read_noise, gain, g_smooth_lod, static, static_out,
                       pupil_out, checkpoint, every, every_seconds, max_frames, pupil, valid, band)
-    if isinstance(mean_loops, str) and mean_loops in ("teach", "none"):
-        o.mean_teach, mean_loops = int(mean_loops == "teach"), None
-    elif isinstance(mean_loops, (str, bytes, os.PathLike)):
-        raise ValueError("stream_files: mean_loops takes a list of folders, 'teach' or 'none'")
-    mloops = [os.fspath(m) for m in (mean_loops or ())]
-    o.mean_loops, o.nmean_loops = _lib.strings(mloops)
+    _mean_loops(o, mean_loops, ("teach", "none"), "stream_files: mean_loops takes a list of folders, 'teach' or 'none'")
     if mean_teach_loops is not None:
         o.mean_teach_loops = int(mean_teach_loops)
     if mean_teach_max_loops is not None:
