@@ -1,5 +1,6 @@
 #include "testutil.h"
 
+#include "specklewfs/parallel.h"
 #include "specklewfs/status.h"
 
 #include <math.h>
@@ -41,9 +42,18 @@ int test_file_exists(const char *path)
     return stat(path, &sb) == 0;
 }
 
+void test_cli_same_kernels(void)
+{
+    if (getenv("OPENBLAS_CORETYPE")) return;
+    swfs_blas_kernel_info k;
+    swfs_blas_kernel(&k);
+    if (strcmp(k.core, "unknown")) (void)setenv("OPENBLAS_CORETYPE", k.core, 0);
+}
+
 int test_run_cli(const char *dir, const char *args, char *out, size_t cap)
 {
     char cmd[8192];
+    test_cli_same_kernels();
     if (dir) snprintf(cmd, sizeof cmd, "cd '%s' && %s %s 2>&1", dir, SWFS_CLI_BIN, args);
     else snprintf(cmd, sizeof cmd, "%s %s 2>&1", SWFS_CLI_BIN, args);
     FILE *p = popen(cmd, "r");

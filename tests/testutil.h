@@ -20,8 +20,14 @@ int test_file_exists(const char *path);
 /* An annular pupil on the n x n grid of spacing dx [m]: 1 where obs diam / 2 <= r <= diam / 2
  * (r from the grid's centre), else 0 (malloc'd; the caller frees). */
 double *test_annulus(size_t n, double dx, double diam, double obs);
-/* Run `specklewfs ARGS` (in folder dir unless NULL), capture stdout + stderr into out;
- * return the exit status (-1 if it did not exit normally). */
+/* The command line's OpenBLAS kernels made this process's (OPENBLAS_CORETYPE, unless set):
+ * on a CPU OpenBLAS does not know, the command would switch to better kernels than the ones
+ * this process loaded, and a test comparing the two would measure the kernels' rounding
+ * (scripts/test.sh sets the variable for both; a plain ctest does not). */
+void test_cli_same_kernels(void);
+/* Run `specklewfs ARGS` (in folder dir unless NULL) with this process's kernels
+ * (test_cli_same_kernels), capture stdout + stderr into out; return the exit status (-1 if
+ * it did not exit normally). */
 int test_run_cli(const char *dir, const char *args, char *out, size_t cap);
 
 #endif

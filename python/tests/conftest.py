@@ -15,6 +15,13 @@ sys.path.insert(0, os.path.join(ROOT, "python"))
 
 import specklewfs as sw  # noqa: E402
 
+# The command line the tests run takes this process's OpenBLAS kernels: on a CPU OpenBLAS does
+# not know, it would switch itself to better ones than this process loaded, and a test comparing
+# the two would measure the kernels' rounding (scripts/test-python.sh sets the variable for
+# both; a plain ctest does not).
+if not os.environ.get("OPENBLAS_CORETYPE") and sw.blas_kernel()["core"] != "unknown":
+    os.environ["OPENBLAS_CORETYPE"] = sw.blas_kernel()["core"]
+
 
 @pytest.fixture(scope="session")
 def cli():
