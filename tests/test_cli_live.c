@@ -22,6 +22,7 @@
 
 #include <complex.h>
 #include <dirent.h>
+#include <errno.h>
 #include <fcntl.h>
 #include <math.h>
 #include <signal.h>
@@ -162,12 +163,13 @@ static void make_data(void)
     swfs_speckle_model_free(model);
 }
 
-/* Start `specklewfs ARGS` in dir with output to dir/LOG; returns the PID. */
+/* Start `specklewfs ARGS` in dir with output to dir/LOG, with this process's kernels; returns the PID. */
 static pid_t spawn_cli(const char *args, const char *log)
 {
     char cmd[8192];
     snprintf(cmd, sizeof cmd, "cd '%s' && exec %s %s > '%s' 2>&1", dir, SWFS_CLI_BIN, args, log);
     char *argv[] = {"sh", "-c", cmd, NULL};
+    test_cli_same_kernels();
     pid_t pid;
     assert_int_equal(posix_spawn(&pid, "/bin/sh", NULL, NULL, argv, environ), 0);
     return pid;
@@ -597,6 +599,71 @@ static void test_signal_and_errors(void **state)
     assert_int_equal(test_run_cli(dir, "replay --timing timing.txt --science sci.fits --drop-wfs 1", out, sizeof out), 2);
 }
 
+/* Streams that go away after the data ended (no frame for `idle` seconds) end the data
+ * cleanly however late the consumer asks for them: a live run far behind its streams (a
+ * loaded machine) got "disappeared and did not come back" for streams whose every frame it
+ * held. Where frames were still arriving within `idle`, the error stays. */
+static void gone_after(double idle, double timeout, int expect_error)
+{
+    char d[1200];
+    snprintf(d, sizeof d, "%s", test_path("cli_live_gone"));
+    assert_int_equal(mkdir(d, 0777) == 0 || errno == EEXIST, 1);
+    swfs_shm *w = NULL, *c = NULL;
+    const swfs_shm_shape ws = {SWFS_SHM_F32, NSL, 1, 1, 0, 0}, cs = {SWFS_SHM_F32, NF, NF, 1, 0, 0};
+    assert_ok(swfs_shm_create(&w, d, "gw", &ws));
+    assert_ok(swfs_shm_create(&c, d, "gc", &cs));
+    swfs_shm_source_options o;
+    swfs_shm_source_options_default(&o);
+    const char *wn[] = {"gw"};
+    o.dir = d;
+    o.wfs = wn;
+    o.nwfs = 1;
+    o.camera = "gc";
+    o.idle = idle;
+    o.timeout = timeout;
+    o.sync.batch = 2;
+    swfs_shm_source *src = NULL;
+    assert_ok(swfs_shm_source_open(&src, &o));
+    double wf[NSL] = {0}, cf[NF * NF] = {0};
+    for (int k = 0; k < 12; k++) {
+        wf[0] = k;
+        assert_ok(swfs_shm_write(w, wf, swfs_shm_now_ns()));
+        if (k % 3 == 2) assert_ok(swfs_shm_write(c, cf, swfs_shm_now_ns()));
+        nanosleep(&(struct timespec){0, 2000000}, NULL);
+    }
+    nanosleep(&(struct timespec){0, 100000000}, NULL); /* the readers take the frames */
+    swfs_shm_close(w, 1);
+    swfs_shm_close(c, 1);
+    /* the consumer behind by longer than idle + timeout */
+    const double behind = idle + timeout + 0.5;
+    nanosleep(&(struct timespec){(time_t)behind, (long)((behind - floor(behind)) * 1e9)}, NULL);
+    swfs_batch b;
+    int rc = SWFS_OK;
+    size_t batches = 0;
+    for (int guard = 0; guard < 100; guard++) {
+        if ((rc = swfs_shm_source_next(src, &b)) || !b.nexp) break;
+        batches++;
+    }
+    print_message("idle %g s, timeout %g s: %zu batches, %s\n", idle, timeout, batches,
+                  rc ? swfs_last_error() : "ended cleanly");
+    if (expect_error) {
+        assert_int_equal(rc, SWFS_ERR_IO);
+        assert_non_null(strstr(swfs_last_error(), "disappeared and did not come back"));
+    } else {
+        assert_ok(rc);
+        assert_int_equal(b.nexp, 0);
+    }
+    swfs_shm_source_close(src);
+}
+
+static void test_gone_after_idle(void **state)
+{
+    (void)state;
+    gone_after(0.2, 0.4, 0); /* the data had ended: every frame, no error */
+    gone_after(0.0, 0.4, 1); /* no idle end: the streams' absence is the error */
+    gone_after(2.0, 0.4, 1); /* gone before idle would end the data: the error */
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -604,6 +671,7 @@ int main(void)
         cmocka_unit_test(test_drops),
         cmocka_unit_test(test_dm_offsets),
         cmocka_unit_test(test_signal_and_errors),
+        cmocka_unit_test(test_gone_after_idle),
         cmocka_unit_test(test_equal_to_stream_milk), /* last: it makes its own folder */
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

@@ -143,7 +143,9 @@ void swfs_shm_set_last(swfs_shm *s, uint64_t last);
  * are skipped); a stream that disappears for longer than `timeout`, or comes back with
  * another frame size, ends the run with an error naming it. Setting *stop (e.g. from a
  * signal handler), `idle` seconds without a frame, or the end of the caller's frame
- * budget end the data cleanly: the batch being filled is handed over first. */
+ * budget end the data cleanly: the batch being filled is handed over first. Streams that
+ * disappear after the data have ended so (no frame from any for `idle` seconds) end them
+ * cleanly however far the consumer is behind: its frames are all handed over. */
 typedef struct swfs_shm_source_options {
     const char *dir;             /* stream folder (swfs_shm_dir rules) */
     const char *const *wfs;      /* nwfs WFS stream names, values concatenated in this order */

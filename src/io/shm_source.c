@@ -54,6 +54,7 @@ struct swfs_shm_source {
     pthread_cond_t cv;
     int quit;                   /* atomic */
     int failed;                 /* under mu */
+    double last_in;             /* under mu: monotonic seconds of the last frame a reader took (-1: none) */
     int fail_code;
     char err[4800];
     uint64_t reopens;           /* atomic */
@@ -187,6 +188,13 @@ static void *reader_main(void *arg)
             const double now = swfs_wall_seconds();
             if (gone_since < 0) gone_since = now;
             if (now - gone_since > s->o.timeout) {
+                /* No frame from any stream for `idle` seconds: the data had ended, as the
+                 * consumer sees when it keeps up (idle before the timeout); one far behind
+                 * must not get an error for it (nothing is missing) */
+                pthread_mutex_lock(&s->mu);
+                const double last_in = s->last_in;
+                pthread_mutex_unlock(&s->mu);
+                if (s->o.idle > 0 && last_in >= 0 && now - last_in > s->o.idle) break;
                 char path[4200];
                 swfs_shm_path(s->o.dir, rd->name, path, sizeof path);
                 snprintf(msg, sizeof msg, "%s stream '%s' (%s) %s for %.3g s", rd->camera ? "camera" : "WFS", rd->name,
@@ -214,6 +222,7 @@ static void *reader_main(void *arg)
         for (size_t k = 0; k < n; k++) push(rd, &rd->fm[k], rd->buf + k * rd->nvals);
         if (n) {
             pthread_mutex_lock(&s->mu);
+            s->last_in = swfs_wall_seconds();
             pthread_cond_signal(&s->cv);
             pthread_mutex_unlock(&s->mu);
         }
@@ -272,6 +281,7 @@ int swfs_shm_source_open(swfs_shm_source **out, const swfs_shm_source_options *o
     s->o = *o;
     pthread_mutex_init(&s->mu, NULL);
     pthread_cond_init(&s->cv, NULL);
+    s->last_in = -1;
     s->nr = o->nwfs + 1;
     for (size_t i = 0; i < s->nr; i++) {
         reader *rd = &s->r[i];
