@@ -222,8 +222,11 @@ int swfs_modal_project_(const double *P, size_t n, swfs_real *s, const char *wha
  * mean of the others: returns sum (x_d - mean of the others)^2 over sum x_d^2 (NAN for fewer
  * than 2 sets or all zero; < 1: the others' mean predicts each set's), over the samples where
  * mask > 0 (NULL: all); mean = the sets' mean there (0 elsewhere); *own (may be NULL) = sum
- * x_d^2. The check of learn's MEANMISS and of speckles' --mean-loop. */
-double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, double *mean, double *own);
+ * x_d^2. With M (n x n, symmetric; mask NULL) each square is weighed by it instead, v^T M v
+ * (work: 2 n doubles). The check of learn's MEANMISS (M: learn's meanmiss_metric) and of
+ * speckles' --mean-loop. */
+double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, const double *M, double *work,
+                          double *mean, double *own);
 
 /* run_linear.c: the wavefront [m] on the PUPN x PUPN grid of lf's basis at the coefficients
  * coef (nk of them, the basis's count; scaled by lf->scale), 0 outside the illuminated samples

@@ -525,7 +525,8 @@ static int check_outputs(const swfs_learn_run_options *o, swfs_learn_run_result 
     return SWFS_OK;
 }
 
-double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, double *mean, double *own)
+double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double *mask, const double *M, double *work,
+                          double *mean, double *own)
 {
     double eho = 0, e0 = 0;
     for (size_t i = 0; i < n; i++) {
@@ -534,11 +535,22 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
         double sum = 0;
         for (size_t d = 0; d < nsets; d++) sum += x[d * n + i];
         mean[i] = sum / (double)nsets;
-        for (size_t d = 0; d < nsets; d++) {
+        for (size_t d = 0; !M && d < nsets; d++) {
             const double v = x[d * n + i], others = (sum - v) / (double)(nsets - 1);
             eho += (v - others) * (v - others);
             e0 += v * v;
         }
+    }
+    /* the metric's form: each set's x_d and x_d less the others' mean, (nsets mean - x_d) /
+     * (nsets - 1), weighed by M */
+    double *e = work, *Me = work ? work + n : NULL;
+    for (size_t d = 0; M && nsets > 1 && d < nsets; d++) {
+        const double *v = x + d * n;
+        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, v, 1, 0.0, Me, 1);
+        e0 += cblas_ddot((int)n, v, 1, Me, 1);
+        for (size_t i = 0; i < n; i++) e[i] = v[i] - ((double)nsets * mean[i] - v[i]) / (double)(nsets - 1);
+        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, e, 1, 0.0, Me, 1);
+        eho += cblas_ddot((int)n, e, 1, Me, 1);
     }
     if (own) *own = e0;
     return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
@@ -596,31 +608,6 @@ int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const 
     *M = m;
     *nf = na;
     return SWFS_OK;
-}
-
-/* swfs_heldout_mean_ weighed by the metric M (n x n, symmetric): each set's x_d against the
- * mean o_d of the others', sum of (x_d - o_d)^T M (x_d - o_d) over sum of x_d^T M x_d (*own);
- * mean: the sets' mean. NaN with fewer than 2 sets or no square. */
-static double heldout_mean_metric(const double *x, size_t nsets, size_t n, const double *M, double *mean, double *own,
-                                  double *work)
-{
-    double *e = work, *Me = work + n, eho = 0, e0 = 0; /* work: 2 n */
-    for (size_t i = 0; i < n; i++) {
-        double sum = 0;
-        for (size_t d = 0; d < nsets; d++) sum += x[d * n + i];
-        mean[i] = sum / (double)nsets;
-    }
-    for (size_t d = 0; nsets > 1 && d < nsets; d++) {
-        const double *v = x + d * n;
-        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, v, 1, 0.0, Me, 1);
-        e0 += cblas_ddot((int)n, v, 1, Me, 1);
-        /* the others' mean: (nsets mean - x_d) / (nsets - 1) */
-        for (size_t i = 0; i < n; i++) e[i] = v[i] - ((double)nsets * mean[i] - v[i]) / (double)(nsets - 1);
-        cblas_dsymv(CblasRowMajor, CblasUpper, (int)n, 1.0, M, (int)n, e, 1, 0.0, Me, 1);
-        eho += cblas_ddot((int)n, e, 1, Me, 1);
-    }
-    if (own) *own = e0;
-    return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
 }
 
 /* The map's miss of the residual's time mean (swfs_learn_run_result.meanmiss_*): each data
@@ -691,9 +678,7 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const
     double e0 = 0;
     double *work = !rc && o->meanmiss_metric ? malloc(2 * na * sizeof *work) : NULL;
     if (!rc && o->meanmiss_metric && !work) rc = swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
-    const double ratio = rc ? NAN
-                         : o->meanmiss_metric ? heldout_mean_metric(miss, nd, na, o->meanmiss_metric, mt, &e0, work)
-                                              : swfs_heldout_mean_(miss, nd, na, NULL, mt, &e0);
+    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nd, na, NULL, o->meanmiss_metric, work, mt, &e0);
     free(work);
     if (!rc && isfinite(ratio)) {
         double ss = 0;

@@ -86,7 +86,7 @@ int swfs_pipeline_mean_loops(swfs_pipeline *p, const char *const *loops, size_t 
         }
         swfs_real_free(t);
     }
-    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nl, n * n, mask, rec, NULL);
+    const double ratio = rc ? NAN : swfs_heldout_mean_(miss, nl, n * n, mask, NULL, NULL, rec, NULL);
     if (!rc && isfinite(ratio)) {
         if (heldout) *heldout = ratio;
         if (ratio < 1) {
