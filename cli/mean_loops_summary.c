@@ -85,11 +85,16 @@ void cli_loops_map_summary(const char *cmd, const swfs_loops_map_result *lm, siz
     } else if (lm->tried && lm->st_frames)
         fprintf(stderr, "%s: --loops-map: a per-frame map (a space-time one's inputs need %zu frames; the loops hold "
                 "%zu)\n", cmd, lm->st_frames, lm->nframes);
+    char carried[120];
+    if (lm->carry_resid == 0) /* (exactly 0: the map stays on the loops' own output points) */
+        snprintf(carried, sizeof carried, "on the loops' output grid, finer than the DM");
+    else
+        snprintf(carried, sizeof carried, "their DM on the basis within %.2g", lm->carry_resid);
     if (lm->tried)
         fprintf(stderr, "%s: --loops-map: a map learned from the %zu loops' %zu frames for %zu inputs (misfit %.1f of "
-                "%.1f nm per output; their DM on the basis within %.2g), its miss of the mean %s: "
+                "%.1f nm per output; %s), its miss of the mean %s: "
                 "the self-check over %zu pixels, the interaction matrix's %.2f %% explained, the loops' map's %.2f %%%s "
                 "-> %s (%.0f s; %s)\n", cmd, nml, lm->nframes, lm->inputs, 1e9 * lm->misfit_rms, 1e9 * lm->truth_rms,
-                lm->carry_resid, mmw, lm->ncommon, 100 * lm->explained[0], 100 * lm->explained[1], mix, wr, lm->seconds,
+                carried, mmw, lm->ncommon, 100 * lm->explained[0], 100 * lm->explained[1], mix, wr, lm->seconds,
                 lm->work);
 }

@@ -240,16 +240,16 @@ live_replay() {
 live_replay live_lm --basis "$S/influence.fits" --control "$D/lm_w.fits"
 with_written_map live live_lm "$D/stream_lm.fits" "$esl"
 # learn's check of the loops' misses of the mean on the wavefront they make in the pupil
-# (--mean-miss-over the loops' DM functions and the pupil, as speckles' loops' map checks it):
-# said so, its held-out ratio in the map's header (LRNMMHO), another than over the actuators
-# (measured on the two loops 0.79 against 0.33; on the five of the Release pass's loops' map
-# 0.78 against 1.48, speckles' own figures); functions not on the pupil grid refused naming the
-# file, nothing written; the option without its pupil a usage error
+# (--mean-miss-over the functions of the loops' truth and the pupil, as speckles' loops' map
+# checks it; their truth is on teach's grid of half the DM's pitch, whose functions speckles
+# wrote beside them, tw/outfuncs.fits): said so, its held-out ratio in the map's header
+# (LRNMMHO), another than over the outputs themselves; functions not on the pupil grid refused
+# naming the file, nothing written; the option without its pupil a usage error
 mmo=(--mean-miss-heldout --no-heldout)
 "$B" learn "$D/tw/mean_00" "$D/tw/mean_01" -o "$D/mm_a.fits" "${mmo[@]}" > "$D/learn_mma.log" 2>&1 \
     || { cat "$D/learn_mma.log"; fail "learn --mean-miss-heldout"; }
 "$B" learn "$D/tw/mean_00" "$D/tw/mean_01" -o "$D/mm_p.fits" "${mmo[@]}" \
-    --mean-miss-over "$D/tw/mean_00/influence.fits,$S/pupil.fits" > "$D/learn_mmp.log" 2>&1 \
+    --mean-miss-over "$D/tw/outfuncs.fits,$S/pupil.fits" > "$D/learn_mmp.log" 2>&1 \
     || { cat "$D/learn_mmp.log"; fail "learn --mean-miss-over"; }
 ha=$(sed -n "s/.*rms per data set; the others' mean predicts each set's to \([0-9.]*\) of.*/\1/p" "$D/learn_mma.log")
 hp=$(sed -n "s/.*rms per data set in the pupil; the others' mean predicts each set's to \([0-9.]*\) of.*/\1/p" "$D/learn_mmp.log")

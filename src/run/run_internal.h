@@ -244,6 +244,26 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
 #define SWFS_LINEAR_FIT_RIDGE 1e-3
 int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *wf, size_t m,
                      double **coef, size_t *nk, double *resid);
+/* run_learn.c: swfs_meanmiss_metric on functions in memory: inf (na functions of n x n samples,
+ * function a's at inf + a n^2; each has its piston, tip and tilt removed over mask in place),
+ * mask (n x n weights); `what` names them in a message. *M malloc'd, na x na. */
+int swfs_meanmiss_metric_data_(double *inf, size_t na, size_t n, const double *mask, const char *what, double **M);
+/* run_teach.c: a map's output grid finer than the DM (teach's, docs/telemetry.md "A map finer
+ * than the DM"): a hexapolar grid of half the DM's pitch (sp's DM: its actuators file or its
+ * own layout; at least two pupil samples) over sp's telescope, written to work/outgrid.fits
+ * (its path into path), the points into *xy (*n, malloc'd), the DM's pitch into *dm_pitch. */
+int swfs_outgrid_make_(const swfs_ts_params *sp, const char *work, char *path, size_t cap, double *dm_pitch,
+                       double **xy, size_t *n);
+/* run_linear.c: output points xy (n of them [m]) as a basis on the PUPN x PUPN grid (*B: PUPN^2
+ * x n), their Clough-Tocher interpolation over the illuminated samples of mask, a rim beyond
+ * their hull continued from the nearest sample inside within one pitch, as the
+ * Shack-Hartmann's speckle model interpolates a map's own points (speckles.c); refused where
+ * the points do not cover the pupil. */
+int swfs_points_basis_(const double *xy, size_t n, const swfs_geom *g, const double *mask, struct swfs_sparse **B);
+/* run_linear.c: lf's basis functions on the PUPN x PUPN grid, times lf->scale (*F: *nk
+ * functions, function k's samples at F + k PUPN^2; the caller frees): a control matrix with
+ * output points of its own (OUTXY) gives their interpolation, as every linear-model step does. */
+int swfs_linear_functions_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, double **F, size_t *nk);
 /* 1 where the map file `path` has a MEANMISS extension (its own miss of the mean: the default's
  * mean loops are not simulated for it, run_speckles.c, run_stream.c); 0 otherwise or NULL */
 int swfs_map_has_meanmiss_(const char *path);

@@ -556,6 +556,48 @@ double swfs_heldout_mean_(const double *x, size_t nsets, size_t n, const double 
     return nsets > 1 && e0 > 0 ? eho / e0 : NAN;
 }
 
+int swfs_meanmiss_metric_data_(double *inf, size_t na, size_t n, const double *mask, const char *what, double **M)
+{
+    *M = NULL;
+    const size_t nq = n * n;
+    int rc = SWFS_OK;
+    for (size_t a = 0; !rc && a < na; a++)
+        for (size_t q = 0; q < nq; q++)
+            if (mask[q] > 0 && !isfinite(inf[a * nq + q])) {
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: output %zu's function is %g at sample (%zu, %zu) inside the pupil; "
+                               "expected finite values", what, a, inf[a * nq + q], q % n, q / n);
+                break;
+            }
+    double ws = 0;
+    for (size_t q = 0; !rc && q < nq; q++) ws += mask[q] > 0 ? mask[q] : 0;
+    if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: an empty pupil mask", what);
+    /* each function's piston, tip and tilt out over the mask, then blocks of NB samples, each
+     * weighted by sqrt(mask / its sum), into M by rank-NB updates */
+    for (size_t a = 0; !rc && a < na; a++) swfs_wfe_remove_ptt(inf + a * nq, mask, n);
+    enum { NB = 2048 };
+    double *m = rc ? NULL : calloc(na * na, sizeof *m), *blk = rc ? NULL : malloc(na * NB * sizeof *blk);
+    if (!rc && (!m || !blk)) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t q = 0; !rc && q < nq;) {
+        size_t nb = 0;
+        for (; q < nq && nb < NB; q++) {
+            if (!(mask[q] > 0)) continue;
+            const double w = sqrt(mask[q] / ws);
+            for (size_t a = 0; a < na; a++) blk[a * NB + nb] = w * inf[a * nq + q];
+            nb++;
+        }
+        if (nb) cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)na, (int)nb, 1.0, blk, NB, 1.0, m, (int)na);
+    }
+    for (size_t a = 0; !rc && a < na; a++)
+        for (size_t b = 0; b < a; b++) m[a * na + b] = m[b * na + a];
+    free(blk);
+    if (rc) {
+        free(m);
+        return rc;
+    }
+    *M = m;
+    return SWFS_OK;
+}
+
 int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const char *pupil, double **M, size_t *nf)
 {
     *M = NULL;
@@ -569,45 +611,11 @@ int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const 
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the outputs' functions are %zu x %zu x %zu; expected %zu x %zu (the pupil "
                        "grid) per output", funcs, inf->nx, inf->ny, inf->nz, n, n);
     if (!rc && !mask && !(rc = swfs_pupil_mask_read(pupil, n, &pm))) mask = pm->data;
-    const size_t nq = n * n, na = rc ? 0 : inf->nz;
-    for (size_t a = 0; !rc && a < na; a++)
-        for (size_t q = 0; q < nq; q++)
-            if (mask[q] > 0 && !isfinite(inf->data[a * nq + q])) {
-                rc = swfs_fail(SWFS_ERR_VALUE, "%s: output %zu's function is %g at sample (%zu, %zu) inside the pupil; "
-                               "expected finite values", funcs, a, inf->data[a * nq + q], q % n, q / n);
-                break;
-            }
-    double ws = 0;
-    for (size_t q = 0; !rc && q < nq; q++) ws += mask[q] > 0 ? mask[q] : 0;
-    if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: an empty pupil mask", pupil ? pupil : "the mean's miss's metric");
-    /* each function's piston, tip and tilt out over the mask (inf is ours), then blocks of NB
-     * samples, each weighted by sqrt(mask / its sum), into M by rank-NB updates */
-    for (size_t a = 0; !rc && a < na; a++) swfs_wfe_remove_ptt(inf->data + a * nq, mask, n);
-    enum { NB = 2048 };
-    double *m = rc ? NULL : calloc(na * na, sizeof *m), *blk = rc ? NULL : malloc(na * NB * sizeof *blk);
-    if (!rc && (!m || !blk)) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t q = 0; !rc && q < nq;) {
-        size_t nb = 0;
-        for (; q < nq && nb < NB; q++) {
-            if (!(mask[q] > 0)) continue;
-            const double w = sqrt(mask[q] / ws);
-            for (size_t a = 0; a < na; a++) blk[a * NB + nb] = w * inf->data[a * nq + q];
-            nb++;
-        }
-        if (nb) cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)na, (int)nb, 1.0, blk, NB, 1.0, m, (int)na);
-    }
-    for (size_t a = 0; !rc && a < na; a++)
-        for (size_t b = 0; b < a; b++) m[a * na + b] = m[b * na + a];
-    free(blk);
+    if (!rc) rc = swfs_meanmiss_metric_data_(inf->data, inf->nz, n, mask, funcs, M);
+    if (!rc) *nf = inf->nz;
     swfs_real_free(inf);
     swfs_real_free(pm);
-    if (rc) {
-        free(m);
-        return rc;
-    }
-    *M = m;
-    *nf = na;
-    return SWFS_OK;
+    return rc;
 }
 
 /* The map's miss of the residual's time mean (swfs_learn_run_result.meanmiss_*): each data

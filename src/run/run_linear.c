@@ -2,6 +2,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/aperture.h"
 #include "specklewfs/fits.h"
+#include "specklewfs/interp.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/sparse.h"
@@ -90,12 +91,61 @@ int swfs_linear_control_lags(const swfs_linear_files *lf, long *lags, size_t *nl
     return rc;
 }
 
+int swfs_points_basis_(const double *xy, size_t n, const swfs_geom *g, const double *mask, swfs_sparse **B)
+{
+    *B = NULL;
+    const size_t np = (size_t)g->pupn;
+    size_t nout = 0, next = 0, nfar = 0;
+    int rc = swfs_interp_ct_grid(xy, n, np, g->pupdx, mask, B, &nout);
+    const double pitch = swfs_points_pitch(xy, n);
+    if (!rc && nout) rc = swfs_interp_extend_rim(B, np, g->pupdx, mask, pitch, &next, &nfar);
+    if (!rc && nfar)
+        rc = swfs_fail(SWFS_ERR_VALUE, "%zu of the %zu illuminated pupil samples outside the output points' hull lie "
+                       "more than one pitch (%.3g m) from it: the points do not cover the pupil", nfar, nout, pitch);
+    if (rc) {
+        swfs_sparse_free(*B);
+        *B = NULL;
+    }
+    return rc;
+}
+
+/* The basis of a control matrix with output points of its own (its file's OUTXY: a map learned
+ * on a grid finer than the DM, run_loops_map.c): their interpolation on the pupil grid
+ * (swfs_points_basis_), *nk of them; *B NULL where the file has none. */
+static int control_points_basis(const char *control, const swfs_geom *g, const double *mask, swfs_sparse **B,
+                                size_t *nk)
+{
+    *B = NULL;
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, control, NULL);
+    const int has = !rc && swfs_fits_in_has_ext(f, "OUTXY");
+    const size_t n = has ? swfs_fits_in_shape(f)->ny : 0;
+    swfs_fits_in_close(f);
+    if (rc || !has) {
+        swfs_clear_error(); /* the control file itself is read, and named, where it is read as the map */
+        return SWFS_OK;
+    }
+    double *xy = NULL;
+    rc = swfs_outxy_read(control, n, &xy);
+    if (!rc && xy) rc = swfs_points_basis_(xy, n, g, mask, B);
+    if (rc) swfs_fail_context(rc, "%s: the basis on its output points (OUTXY)", control);
+    if (!rc && *B) *nk = n;
+    free(xy);
+    return rc;
+}
+
 /* The basis: on the pupil grid, resampled as it is; on a DM grid, in factored form (the
  * grid's interpolation onto the pupil, *shapes = the cube's values at the grid points,
- * gx gy x nk: pipeline.h swfs_linear_input.shapes). *nk: the basis functions. */
+ * gx gy x nk: pipeline.h swfs_linear_input.shapes); a control matrix with output points of its
+ * own, their interpolation (that map writes the wavefront there, not on the basis given). *nk:
+ * the basis functions. */
 static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, swfs_sparse **B,
                       double **shapes, size_t *nk)
 {
+    if (lf->control) {
+        const int prc = control_points_basis(lf->control, g, mask, B, nk);
+        if (prc || *B) return prc;
+    }
     swfs_real *c = NULL;
     int rc = swfs_fits_read_real(lf->basis, NULL, &c, NULL);
     if (rc) return rc;
@@ -156,24 +206,47 @@ int swfs_linear_wavefront_(const swfs_linear_files *lf, const swfs_geom *g, cons
     return rc;
 }
 
+/* lf's basis on the pupil grid, dense (*full: n2 x *k, row-major): the grid's interpolation times
+ * the grid values, or the pupil-grid basis applied to the identity (unscaled) */
+static int basis_dense(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, double **full, size_t *k)
+{
+    *full = NULL;
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    swfs_sparse *B = NULL;
+    double *shapes = NULL, *eye = NULL;
+    int rc = load_basis(lf, g, mask, &B, &shapes, k);
+    if (!rc && !shapes && !(eye = calloc(*k * *k, sizeof *eye))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
+    for (size_t j = 0; eye && j < *k; j++) eye[j * *k + j] = 1.0;
+    if (!rc && !(*full = malloc(n2 * *k * sizeof **full))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
+    if (!rc) swfs_sparse_apply_multi(B, shapes ? shapes : eye, *full, *k);
+    free(eye);
+    free(shapes);
+    swfs_sparse_free(B);
+    return rc;
+}
+
+int swfs_linear_functions_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, double **F, size_t *nk)
+{
+    *F = NULL;
+    const size_t n2 = (size_t)g->pupn * (size_t)g->pupn;
+    double *full = NULL;
+    int rc = basis_dense(lf, g, mask, &full, nk);
+    if (!rc && !(*F = malloc(n2 * *nk * sizeof **F))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear model: out of memory");
+    for (size_t i = 0; !rc && i < n2; i++)
+        for (size_t j = 0; j < *nk; j++) (*F)[j * n2 + i] = lf->scale * full[i * *nk + j];
+    free(full);
+    return rc;
+}
+
 int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const double *mask, const double *wf, size_t m,
                      double **coef, size_t *nk, double *resid)
 {
     *coef = NULL;
     const size_t np = (size_t)g->pupn, n2 = np * np;
-    swfs_sparse *B = NULL;
-    double *shapes = NULL, *full = NULL, *A = NULL, *G = NULL, *R = NULL, *E = NULL;
+    double *full = NULL, *A = NULL, *G = NULL, *R = NULL, *E = NULL;
     size_t k = 0, nil = 0;
-    int rc = load_basis(lf, g, mask, &B, &shapes, &k);
+    int rc = basis_dense(lf, g, mask, &full, &k);
     *nk = k;
-    /* the basis on the pupil grid, dense (n2 x k): the grid's interpolation times the grid
-     * values, or the pupil-grid basis applied to the identity */
-    double *eye = NULL;
-    if (!rc && !shapes && !(eye = calloc(k * k, sizeof *eye))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
-    for (size_t j = 0; eye && j < k; j++) eye[j * k + j] = 1.0;
-    if (!rc && !(full = malloc(n2 * k * sizeof *full))) rc = swfs_fail(SWFS_ERR_NOMEM, "linear fit: out of memory");
-    if (!rc) swfs_sparse_apply_multi(B, shapes ? shapes : eye, full, k);
-    free(eye);
     for (size_t i = 0; !rc && i < n2; i++) nil += mask[i] > 0;
     if (!rc && !nil) rc = swfs_fail(SWFS_ERR_VALUE, "linear fit: no illuminated pupil sample");
     if (!rc && (!(A = malloc(nil * k * sizeof *A)) || !(E = malloc(nil * m * sizeof *E)) ||
@@ -218,8 +291,6 @@ int swfs_linear_fit_(const swfs_linear_files *lf, const swfs_geom *g, const doub
     free(E);
     free(A);
     free(full);
-    free(shapes);
-    swfs_sparse_free(B);
     return rc;
 }
 

@@ -15,6 +15,7 @@
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/source.h"
+#include "specklewfs/sparse.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
@@ -74,7 +75,10 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     swfs_real *mm = NULL;
     double *cmm = NULL;
     int rc = swfs_recon_read(learned, &wl);
-    if (!rc) rc = swfs_fits_read_real(ip, NULL, &inf, NULL);
+    /* a map on points of its own (the loops' truth on their output grid, OUTXY) stays there:
+     * its basis is their interpolation (run_linear.c), finer than the observation's */
+    const int own = !rc && wl->oxy;
+    if (!rc && !own) rc = swfs_fits_read_real(ip, NULL, &inf, NULL);
     /* the loops' miss of the mean, per output (learn's MEANMISS, where kept) */
     swfs_fits_in *fi = NULL;
     int has = 0;
@@ -85,16 +89,23 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: MEANMISS holds %zu values for %zu outputs", learned,
                        mm->nx * mm->ny * mm->nz, wl->nact);
     const size_t np = (size_t)g->pupn;
-    if (!rc && (inf->nx != np || inf->ny != np || inf->nz != wl->nact))
+    if (!rc && !own && (inf->nx != np || inf->ny != np || inf->nz != wl->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' influence functions are %zu x %zu x %zu; expected PUPN = %zu "
                        "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
     const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
-    if (!rc) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, carry_resid);
+    if (!rc && !own) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, carry_resid);
+    if (!rc && own) { /* P the identity */
+        *carry_resid = 0;
+        nk = na;
+        if (!(P = calloc(na * na, sizeof *P))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        for (size_t a = 0; P && a < na; a++) P[a * na + a] = 1.0;
+    }
     if (!rc) { /* (a space-time map's lag blocks carried alike: P acts on its outputs) */
         c.nact = nk;
         c.nslopes = ns;
         c.nlags = wl->nlags;
         memcpy(c.lags, wl->lags, sizeof c.lags);
+        c.oxy = own ? wl->oxy : NULL;
         if (!(c.W = malloc(nk * ns * sizeof *c.W))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     if (!rc) {
@@ -105,10 +116,15 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
     }
     if (!rc) {
         swfs_fits_out *f = NULL;
-        rc = map_out(&f, out, &c, "LOOPS", "learned from the loops, carried onto the basis");
-        if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", *carry_resid, "the loops' DM on the basis: rms residual");
-        if (!rc) rc = swfs_fits_out_history(f, "specklewfs: the map learned from the loops of the system (speckles' "
+        rc = map_out(&f, out, &c, "LOOPS", own ? "learned from the loops, on their output points (OUTXY)"
+                                                : "learned from the loops, carried onto the basis");
+        if (!rc) rc = swfs_fits_out_key_double(f, "LOOPFIT", *carry_resid, own ? "0: on the loops' own output points, "
+                                               "not carried" : "the loops' DM on the basis: rms residual");
+        if (!rc) rc = swfs_fits_out_history(f, own ? "specklewfs: the map learned from the loops of the system (speckles' "
+                                            "loops_map), NAXIS1 = telemetry values, NAXIS2 = its output points (OUTXY)"
+                                            : "specklewfs: the map learned from the loops of the system (speckles' "
                                             "loops_map), NAXIS1 = telemetry values, NAXIS2 = basis functions");
+        if (!rc) rc = swfs_recon_write_outxy(f, &c);
         if (!rc && cmm) { /* the loops' miss of the mean on the basis: speckles adds it to RESMEAN */
             swfs_real m = {nk, 1, 1, cmm};
             rc = swfs_fits_out_real(f, "MEANMISS", &m, -64);
@@ -161,6 +177,9 @@ static int replace_with(const char *src, const char *dst, const char *why)
  * the same mix of the two sets' (each with the miss it carries). */
 typedef struct mixer {
     const swfs_recon *imat;    /* the interaction matrix's map (swfs_pipeline_linear_map) */
+    double *imat_own;          /* that map on the loops' map's own points where it has them
+                                  (loops->oxy: Q W, Q the least-squares coefficients of the
+                                  basis's functions on the points' interpolation), NULL else */
     swfs_recon *loops;         /* the loops' map on the basis (loops_map.fits) */
     swfs_real *mean0, *mean1;  /* RESMEAN of the two sets (NULL: either has none) */
     double *off0, *off1;       /* each set's RESMEAN less its map's reconstruction of the
@@ -168,6 +187,7 @@ typedef struct mixer {
                                   both): the miss each was given, which a map file carries as its
                                   MEANMISS image so that stream and live add what speckles did
                                   (NULL: no means, or the engine's mean not the maps' input) */
+    double *off0_own;          /* off0 for the mixes where they hold imat_own (NULL else) */
 } mixer;
 
 /* A speckles file's RESMEAN (swfs_resmean_read_ext), NULL where it has none */
@@ -201,7 +221,7 @@ static int telemetry_mean(swfs_pipeline *p, double **v)
 
 /* The per-frame map c's reconstruction of the telemetry's mean v (c->nslopes values), plus
  * extra coefficients (NULL: none), on the pupil grid, piston, tip and tilt removed, into out */
-static int mean_through(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+static int mean_through(const swfs_linear_files *lf, const swfs_geom *g, const double *mask,
                         const swfs_recon *c, const double *v, const double *extra, double *out)
 {
     double *coef = malloc(c->nact * sizeof *coef);
@@ -209,7 +229,7 @@ static int mean_through(const swfs_speckles_run_options *o, const swfs_geom *g, 
     if (extra) memcpy(coef, extra, c->nact * sizeof *coef);
     cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)c->nact, (int)c->nslopes, 1.0, c->W, (int)c->nslopes, v, 1,
                 extra ? 1.0 : 0.0, coef, 1);
-    int rc = swfs_linear_wavefront_(&o->lin, g, mask, coef, c->nact, out);
+    int rc = swfs_linear_wavefront_(lf, g, mask, coef, c->nact, out);
     if (!rc) swfs_wfe_remove_ptt(out, mask, (size_t)g->pupn);
     free(coef);
     return rc;
@@ -221,7 +241,7 @@ static int mean_through(const swfs_speckles_run_options *o, const swfs_geom *g, 
  * space-time map's input is the telemetry at its lags, whose means over the exposures are not
  * the telemetry's) */
 static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
-                         swfs_pipeline *p, const char *rec1)
+                         swfs_pipeline *p, const char *rec1, const char *map)
 {
     const size_t n = (size_t)g->pupn;
     if (!m->mean0 || m->mean0->nx != n || m->mean0->ny != n) return SWFS_OK;
@@ -229,8 +249,22 @@ static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swf
     int rc = telemetry_mean(p, &v);
     if (rc || !v) return rc;
     if (!(m->off0 = calloc(n * n, sizeof *m->off0))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    if (!rc) rc = mean_through(o, g, mask, m->imat, v, NULL, m->off0);
+    if (!rc) rc = mean_through(&o->lin, g, mask, m->imat, v, NULL, m->off0);
     for (size_t i = 0; !rc && i < n * n; i++) m->off0[i] = mask[i] > 0 ? m->mean0->data[i] - m->off0[i] : 0.0;
+    /* the same where the mixes hold the interaction matrix's map on the loops' output points
+     * (Q W, whose wavefront is the basis's to the fit's residual, which this miss then holds) */
+    if (!rc && m->imat_own) {
+        swfs_recon ci = *m->imat;
+        ci.W = m->imat_own;
+        ci.nact = m->loops->nact;
+        swfs_linear_files lf = o->lin;
+        lf.control = map;
+        lf.imat = NULL;
+        if (!(m->off0_own = calloc(n * n, sizeof *m->off0_own))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        if (!rc) rc = mean_through(&lf, g, mask, &ci, v, NULL, m->off0_own);
+        for (size_t i = 0; !rc && i < n * n; i++)
+            m->off0_own[i] = mask[i] > 0 ? m->mean0->data[i] - m->off0_own[i] : 0.0;
+    }
     free(v);
     swfs_real *rec = NULL;
     if (!rc) rc = swfs_fits_read_real(rec1, "RESMEAN", &rec, NULL);
@@ -242,20 +276,51 @@ static int mixer_offsets(mixer *m, const swfs_speckles_run_options *o, const swf
     swfs_real_free(rec);
     if (rc) { /* both or neither */
         free(m->off0);
+        free(m->off0_own);
         free(m->off1);
-        m->off0 = m->off1 = NULL;
+        m->off0 = m->off0_own = m->off1 = NULL;
     }
     return rc;
 }
 
-static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const char *sp0, const char *sp1)
+/* The interaction matrix's map imat (on o's basis) on the points of the map file `map`
+ * (nk of them): *W = Q imat->W, Q the least-squares coefficients of the basis's functions on
+ * the points' interpolation over the pupil (swfs_linear_fit_) */
+static int imat_on_points(const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                          const swfs_recon *imat, const char *map, size_t nk, double **W)
+{
+    *W = NULL;
+    swfs_linear_files ub = o->lin, pb = o->lin;
+    ub.control = ub.imat = NULL;
+    pb.control = map;
+    pb.imat = NULL;
+    double *F = NULL, *Q = NULL;
+    size_t nb = 0, nq = 0;
+    int rc = swfs_linear_functions_(&ub, g, mask, &F, &nb);
+    if (!rc && nb != imat->nact)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu basis functions, the interaction matrix's map %zu outputs", o->lin.basis,
+                       nb, imat->nact);
+    if (!rc) rc = swfs_linear_fit_(&pb, g, mask, F, nb, &Q, &nq, NULL);
+    if (!rc && nq != nk) rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu output points, its basis %zu", map, nk, nq);
+    if (!rc && !(*W = malloc(nk * imat->nslopes * sizeof **W))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (!rc)
+        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nk, (int)imat->nslopes, (int)nb, 1.0, Q, (int)nb,
+                    imat->W, (int)imat->nslopes, 0.0, *W, (int)imat->nslopes);
+    free(F);
+    free(Q);
+    return rc ? swfs_fail_context(rc, "the interaction matrix's map on the loops' output points") : SWFS_OK;
+}
+
+static int mixer_open(mixer *m, const swfs_speckles_run_options *o, const swfs_geom *g, const double *mask,
+                      const swfs_recon *imat, const char *map, const char *sp0, const char *sp1)
 {
     memset(m, 0, sizeof *m);
     m->imat = imat;
     if (!imat) return swfs_fail(SWFS_ERR_ARG, "no interaction matrix's map to mix with the loops'");
     int rc = swfs_recon_read(map, &m->loops);
     const size_t nl = !rc && m->loops->nlags > 1 ? m->loops->nlags : 1;
-    if (!rc && (m->loops->nact != imat->nact || m->loops->nslopes != nl * imat->nslopes || imat->nlags))
+    if (!rc && m->loops->oxy) rc = imat_on_points(o, g, mask, imat, map, m->loops->nact, &m->imat_own);
+    if (!rc && ((!m->imat_own && m->loops->nact != imat->nact) || m->loops->nslopes != nl * imat->nslopes || imat->nlags))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loops' map is %zu x %zu (%zu lags); the interaction matrix's %zu x %zu", map,
                        m->loops->nact, m->loops->nslopes, nl, imat->nact, imat->nslopes);
     swfs_real *a = NULL, *b = NULL;
@@ -275,10 +340,12 @@ static int mixer_open(mixer *m, const swfs_recon *imat, const char *map, const c
 
 static void mixer_close(mixer *m)
 {
+    free(m->imat_own);
     swfs_recon_free(m->loops);
     swfs_real_free(m->mean0);
     swfs_real_free(m->mean1);
     free(m->off0);
+    free(m->off0_own);
     free(m->off1);
 }
 
@@ -288,7 +355,10 @@ static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w)
     const size_t n = m->mean0->nx;
     swfs_real a = {n, n, 1, malloc(n * n * sizeof(double))};
     if (!a.data) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t i = 0; i < n * n; i++) a.data[i] = w * m->off0[i] + (1 - w) * m->off1[i];
+    /* (a mix holds the interaction matrix's map on the loops' points where they have their own;
+     * w = 1 is that map itself, on the basis) */
+    const double *o0 = w < 1 && m->off0_own ? m->off0_own : m->off0;
+    for (size_t i = 0; i < n * n; i++) a.data[i] = w * o0[i] + (1 - w) * m->off1[i];
     int rc = swfs_fits_out_real(f, "MEANMISS", &a, -64);
     if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "m", "the miss of the residual's time mean speckles added with "
                                            "this map (its RESMEAN less the map's reconstruction), on the pupil grid");
@@ -300,21 +370,22 @@ static int mixer_miss_out(swfs_fits_out *f, const mixer *m, double w)
  * map in its lag-0 block) and the mixed RESMEAN to mean (NULL where the sets have none) */
 static int mixer_write(const mixer *m, double w, const char *map, const char *mean)
 {
-    swfs_recon c = *m->loops;
+    swfs_recon c = *m->loops; /* (its output points, OUTXY, kept) */
     c.sv = NULL;
-    c.oxy = NULL;
     const size_t ns = m->imat->nslopes, nc = c.nslopes;
+    const double *wi = m->imat_own ? m->imat_own : m->imat->W;
     size_t k0 = 0;
     while (c.nlags > 1 && k0 + 1 < c.nlags && c.lags[k0] != 0) k0++;
     if (!(c.W = malloc(c.nact * nc * sizeof *c.W))) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t i = 0; i < c.nact * nc; i++) c.W[i] = (1 - w) * m->loops->W[i];
     for (size_t a = 0; a < c.nact; a++)
-        for (size_t i = 0; i < ns; i++) c.W[a * nc + k0 * ns + i] += w * m->imat->W[a * ns + i];
+        for (size_t i = 0; i < ns; i++) c.W[a * nc + k0 * ns + i] += w * wi[a * ns + i];
     swfs_fits_out *f = NULL;
     int rc = map_out(&f, map, &c, "MIX", "the interaction matrix's map and the loops' mixed");
     if (!rc) rc = swfs_fits_out_key_double(f, "LOOPMIXW", w, "weight of the interaction matrix's map (1 - w: loops')");
     if (!rc) rc = swfs_fits_out_history(f, "specklewfs: speckles' loops_map, w MAP + (1 - w) LOOPS, NAXIS1 = telemetry "
-                                        "values, NAXIS2 = basis functions");
+                                        "values, NAXIS2 = basis functions (or the loops' output points, OUTXY)");
+    if (!rc) rc = swfs_recon_write_outxy(f, &c);
     if (!rc && m->off0) rc = mixer_miss_out(f, m, w);
     if (rc) swfs_fits_out_abort(f);
     else rc = swfs_fits_out_commit(f);
@@ -407,8 +478,12 @@ static int perframe_mean(const swfs_speckles_run_options *o, const swfs_geom *g,
     if (!rc && (c->nslopes != swfs_pipeline_linear_map(p)->nslopes || mm->nx * mm->ny * mm->nz != c->nact))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %zu x %zu with %zu MEANMISS values; expected %zu values per frame", map,
                        c->nact, c->nslopes, mm->nx * mm->ny * mm->nz, swfs_pipeline_linear_map(p)->nslopes);
-    /* its coefficients of the mean, its miss added on the same basis */
-    if (!rc) rc = mean_through(o, g, mask, c, v, mm->data, z);
+    /* its coefficients of the mean, its miss added on the same basis (its own points' where
+     * it has them: the map's file as the control names them) */
+    swfs_linear_files lf = o->lin;
+    lf.control = map;
+    lf.imat = NULL;
+    if (!rc) rc = mean_through(&lf, g, mask, c, v, mm->data, z);
     swfs_fits_out *f = NULL;
     if (!rc) {
         snprintf(mean, len, "%.4300s/mean_pf.fits", r->work);
@@ -423,6 +498,46 @@ static int perframe_mean(const swfs_speckles_run_options *o, const swfs_geom *g,
     free(z);
     swfs_real_free(mm);
     swfs_recon_free(c);
+    return rc;
+}
+
+/* The mean's miss's metric (learn's meanmiss_metric) on the functions of the loops' truth: the
+ * interpolation of its own points where it has them (truewf's OUTXY: the loops' output grid),
+ * else their DM's influence functions (influence.fits) */
+static int loops_metric(const char *loop0, const swfs_geom *g, const double *mask, double **M, size_t *n)
+{
+    *M = NULL;
+    *n = 0;
+    char tp[4400];
+    snprintf(tp, sizeof tp, "%.4300s/truewf_000.fits", loop0);
+    swfs_fits_in *f = NULL;
+    int rc = swfs_fits_in_open(&f, tp, NULL);
+    const size_t nt = rc ? 0 : swfs_fits_in_shape(f)->nx;
+    swfs_fits_in_close(f);
+    double *xy = NULL, *F = NULL;
+    if (!rc) rc = swfs_outxy_read(tp, nt, &xy);
+    if (!rc && !xy) {
+        char ip[4400];
+        snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
+        return swfs_meanmiss_metric(ip, (size_t)g->pupn, mask, NULL, M, n);
+    }
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    swfs_sparse *B = NULL;
+    double *eye = NULL;
+    if (!rc) rc = swfs_points_basis_(xy, nt, g, mask, &B);
+    if (!rc && (!(eye = calloc(nt, sizeof *eye)) || !(F = malloc(n2 * nt * sizeof *F))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; !rc && k < nt; k++) {
+        eye[k] = 1.0;
+        swfs_sparse_apply(B, eye, F + k * n2);
+        eye[k] = 0.0;
+    }
+    if (!rc) rc = swfs_meanmiss_metric_data_(F, nt, np, mask, tp, M);
+    if (!rc) *n = nt;
+    free(eye);
+    free(F);
+    free(xy);
+    swfs_sparse_free(B);
     return rc;
 }
 
@@ -459,9 +574,7 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
      * extrapolation (hundreds of nm, another pattern in each loop), outweigh the rest and hide a
      * miss the loops share inside it (docs/telemetry.md, "The mean's miss over the pupil") */
     double *metric = NULL;
-    char ip[4400];
-    snprintf(ip, sizeof ip, "%.4300s/influence.fits", o->mean_loops[0]);
-    if (!rc) rc = swfs_meanmiss_metric(ip, (size_t)g->pupn, mask, NULL, &metric, &lo.meanmiss_metric_n);
+    if (!rc) rc = loops_metric(o->mean_loops[0], g, mask, &metric, &lo.meanmiss_metric_n);
     lo.meanmiss_metric = metric;
     lo.prov = o->prov;
     lo.nprov = o->nprov;
@@ -563,8 +676,8 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
     mixer mx;
     memset(&mx, 0, sizeof mx);
     if (!rc) {
-        int mrc = mixer_open(&mx, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
-        if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p, rec1);
+        int mrc = mixer_open(&mx, o, g, mask, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
+        if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p, rec1, r->map);
         if (!mrc) mrc = mix_candidates(o, &s2, &mx, r, sci, mmean, mmap, msp, mh, &nmix);
         if (mrc) { /* the note says why; the two ends are scored as before (their misses, where
                     * made, still go with --write-recon's map) */

@@ -5,11 +5,15 @@
  * mean is mostly the sensor's response under any residual of the loop's statistics (a pattern
  * at the pupil's rim, the same in every loop of the system), so loops of the described system
  * give it without the observation's own truth. */
+#include "specklewfs/aperture.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/config.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/interp.h"
 #include "specklewfs/parallel.h"
+#include "specklewfs/pupil.h"
 #include "specklewfs/run.h"
+#include "specklewfs/sparse.h"
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/table.h"
@@ -91,6 +95,62 @@ static int layout_count(int square, double p, const swfs_geom *g, size_t *n, dou
     if (nn) *nn = rc ? 0 : swfs_points_pitch(xy, *n);
     free(xy);
     return rc;
+}
+
+/* The loops' truth on a grid of half their DM's pitch (teach's output grid, swfs_outgrid_make_:
+ * work/outgrid.fits, its path put as truth_actuators into c), where their own map is learned
+ * from them: a map on the DM's actuators cannot write the residual beyond the DM's cutoff,
+ * which the lagged signals of frozen flow partly tell (docs/telemetry.md, "The loops' map on a
+ * grid finer than the DM"). Beside it work/outfuncs.fits, the points' functions on the pupil
+ * grid (swfs_points_basis_ over the observation's pupil; NAXIS3 = the points, float32): the
+ * functions learn --mean-miss-over takes for these loops. */
+static int loops_outgrid(const swfs_speckles_run_options *o, const swfs_geom *g, swfs_config *c, const char *work)
+{
+    swfs_ts_params p;
+    swfs_ts_params_default(&p);
+    int rc = swfs_ts_params_from_config(c, &p);
+    char path[4400], fpath[4400];
+    double pitch = 0, *xy = NULL, *mask = NULL, *F = NULL;
+    size_t n = 0;
+    const size_t np = (size_t)g->pupn, n2 = np * np;
+    if (!rc) rc = swfs_outgrid_make_(&p, work, path, sizeof path, &pitch, &xy, &n);
+    if (!rc) rc = swfs_config_put_(c, "truth_actuators", "%s", path);
+    swfs_real *pm = NULL;
+    if (!rc && o->mask) {
+        if (!(rc = swfs_pupil_mask_read(o->mask, np, &pm))) mask = pm->data;
+    } else if (!rc) {
+        if (!(mask = malloc(n2 * sizeof *mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        else rc = swfs_aperture_make(mask, np, g->pupdx, g->teldiam, g->obscur, 0, 0);
+    }
+    swfs_sparse *B = NULL;
+    if (!rc) rc = swfs_points_basis_(xy, n, g, mask, &B);
+    double *eye = NULL;
+    if (!rc && (!(eye = calloc(n, sizeof *eye)) || !(F = malloc(n2 * n * sizeof *F))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t k = 0; !rc && k < n; k++) { /* function k: the interpolation of point k alone */
+        eye[k] = 1.0;
+        swfs_sparse_apply(B, eye, F + k * n2);
+        eye[k] = 0.0;
+    }
+    swfs_fits_out *f = NULL;
+    if (!rc && snprintf(fpath, sizeof fpath, "%.4300s/outfuncs.fits", work) < (int)sizeof fpath) {
+        swfs_outputs_begin();
+        rc = swfs_fits_out_create(&f, fpath);
+        if (!rc) rc = swfs_fits_out_real(f, NULL, &(swfs_real){np, np, n, F}, -32);
+        if (!rc) rc = swfs_fits_out_key_string(f, "BUNIT", "", "the output points' (outgrid.fits) interpolation on the "
+                                               "pupil grid, one plane per point");
+        if (rc) swfs_fits_out_abort(f);
+        else rc = swfs_fits_out_commit(f);
+        const int erc = swfs_outputs_end(rc == SWFS_OK);
+        if (!rc) rc = erc;
+    }
+    free(eye);
+    free(F);
+    swfs_sparse_free(B);
+    if (pm) swfs_real_free(pm);
+    else free(mask);
+    free(xy);
+    return rc ? swfs_fail_context(rc, "the loops' output grid") : SWFS_OK;
 }
 
 /* The DM's pitch from the linear model's basis (act_pitch, unless the DM is given): the
@@ -522,6 +582,8 @@ static int mean_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     const int r0_given = swfs_config_has(c, "r0");
     if (!rc && !r0_given) rc = power_above_noise(names[0], svar, white, &r->power);
     swfs_real_free(obs);
+    if (!rc && swfs_loops_map_wanted_(o, pyr) && !swfs_config_has(c, "truth_actuators"))
+        rc = loops_outgrid(o, g, c, r->work);
     /* more loops where the loops' map will be learned from them (swfs_loops_map_wanted_,
      * speckles' own condition: the interaction matrix, a pyramid's loops by default) and its
      * curve asks; the curve needs 4 data sets */

@@ -771,6 +771,37 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *a
  * grid's cutoff is twice the DM's: with the residual's spectrum beyond the DM's cutoff
  * falling as f^-11/3, the octave it adds holds 1 - 2^-5/3 = 69 % of the fitting error's
  * variance (docs/telemetry.md, "A map finer than the DM"). */
+int swfs_outgrid_make_(const swfs_ts_params *sp, const char *work, char *path, size_t cap, double *dm_pitch,
+                       double **xy, size_t *n)
+{
+    *xy = NULL;
+    *n = 0;
+    const double D = sp->base.teldiam, dx = sp->base.pupdx;
+    /* the DM's positions: the file's, or the loops' own layout */
+    double *dm = NULL;
+    size_t nd = 0;
+    int rc = sp->actuators[0] ? swfs_actuators_read(sp->actuators, &dm, &nd) : swfs_ts_dm_layout(sp, &dm, &nd);
+    if (rc) return rc;
+    *dm_pitch = swfs_points_pitch(dm, nd);
+    free(dm);
+    const double pitch = fmax(0.5 * *dm_pitch, 2.0 * dx);
+    if (!(pitch > 0.0 && isfinite(pitch)))
+        return swfs_fail(SWFS_ERR_VALUE, "the DM's pitch %g m gives no output grid", *dm_pitch);
+    if (snprintf(path, cap, "%.1000s/outgrid.fits", work) >= (int)cap || strlen(work) > 1000)
+        return swfs_fail(SWFS_ERR_ARG, "%.200s: the folder's name is too long for the output grid's file "
+                         "(at most 1000 characters)", work);
+    if ((rc = swfs_actuators_hexapolar(D, pitch, dx, xy, n))) return rc;
+    swfs_outputs_begin();
+    rc = swfs_actuators_write(*xy, *n, path);
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (rc || erc) {
+        free(*xy);
+        *xy = NULL;
+        *n = 0;
+    }
+    return rc ? rc : erc;
+}
+
 static int output_grid(swfs_teach_run_options *o, swfs_teach_run_result *r)
 {
     swfs_ts_params *sp = &o->sim;
@@ -783,27 +814,11 @@ static int output_grid(swfs_teach_run_options *o, swfs_teach_run_result *r)
         r->out_points = rc ? 0 : n;
         return rc;
     }
-    const double D = sp->base.teldiam, dx = sp->base.pupdx;
-    /* the DM's positions: the file's, or the loops' own layout */
-    rc = sp->actuators[0] ? swfs_actuators_read(sp->actuators, &xy, &n) : swfs_ts_dm_layout(sp, &xy, &n);
-    if (rc) return rc;
-    r->dm_pitch = swfs_points_pitch(xy, n);
-    free(xy);
-    xy = NULL;
-    const double pitch = fmax(0.5 * r->dm_pitch, 2.0 * dx);
-    if (!(pitch > 0.0 && isfinite(pitch)))
-        return swfs_fail(SWFS_ERR_VALUE, "teach: the DM's pitch %g m gives no output grid", r->dm_pitch);
     char path[sizeof sp->truth_actuators];
-    if (snprintf(path, sizeof path, "%.1000s/outgrid.fits", o->work) >= (int)sizeof path || strlen(o->work) > 1000)
-        return swfs_fail(SWFS_ERR_ARG, "teach: %.200s: the folder's name is too long for the output grid's file "
-                         "(at most 1000 characters)", o->work);
-    if ((rc = swfs_actuators_hexapolar(D, pitch, dx, &xy, &n))) return rc;
+    rc = swfs_outgrid_make_(sp, o->work, path, sizeof path, &r->dm_pitch, &xy, &n);
+    if (rc) return swfs_fail_context(rc, "teach");
     r->out_pitch = swfs_points_pitch(xy, n);
-    swfs_outputs_begin();
-    rc = swfs_actuators_write(xy, n, path);
-    const int erc = swfs_outputs_end(rc == SWFS_OK);
     free(xy);
-    if (rc || erc) return rc ? rc : erc;
     r->out_points = n;
     memcpy(sp->truth_actuators, path, sizeof path);
     return SWFS_OK;
