@@ -490,7 +490,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     and where the files do not describe the loops goes on without them, warning why;
     mean_loops='none': never. loops_map ('auto', 'choose' or 'none'; `--loops-map`): with
     linear's interaction matrix (imat) and mean loops, also the map learned from the loops
-    (their truth, carried from their DM onto the basis) and the self-check's choice among the
+    (their truth on a grid of half their DM's pitch, the map on those points: carry_resid 0; loops
+    whose truth is on their DM: carried onto the basis) and the self-check's choice among the
     two speckle sets and those of the two maps mixed at quarters (w the interaction matrix's
     map + (1 - w) the loops', w = 0.75, 0.5, 0.25) on the science frames; 'auto' where speckles
     simulated the loops of a pyramid (mean_loops='teach', its default for one), 'choose' with any
