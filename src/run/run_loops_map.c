@@ -180,7 +180,8 @@ typedef struct mixer {
     double *imat_own;          /* that map on the loops' map's own points where it has them
                                   (loops->oxy: Q W, Q the least-squares coefficients of the
                                   basis's functions on the points' interpolation), NULL else */
-    swfs_recon *loops;         /* the loops' map on the basis (loops_map.fits) */
+    swfs_recon *loops;         /* the loops' map (loops_map.fits): on the basis, or on its own
+                                  points (OUTXY) */
     swfs_real *mean0, *mean1;  /* RESMEAN of the two sets (NULL: either has none) */
     double *off0, *off1;       /* each set's RESMEAN less its map's reconstruction of the
                                   telemetry's mean, on the pupil grid (piston, tip and tilt out of
