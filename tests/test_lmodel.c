@@ -4,16 +4,20 @@
  * linearly -- the actuators' interpolation as the basis and the reconstructor as the
  * control matrix (the two-stage engine form), or the reconstructed wavefront per slope as
  * a dense basis with the slopes as coefficients (the folded form) -- in every tip-tilt
- * mode. Wrong units and bad shapes are refused with the values named. */
+ * mode; a control matrix with output points of its own (OUTXY) takes their interpolation as
+ * its basis. Wrong units and bad shapes are refused with the values named. */
 #include "testutil.h"
 
 #include "specklewfs/aperture.h"
+#include "specklewfs/fits.h"
 #include "specklewfs/lmodel.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/rng.h"
+#include "specklewfs/run.h"
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
+#include "../src/run/run_internal.h"
 
 #include <complex.h>
 #include <math.h>
@@ -653,6 +657,84 @@ static void test_factored_grid_basis(void **state)
     fixture_free(&f);
 }
 
+/* A control matrix with output points of its own (extension OUTXY: speckles' loops' map on a
+ * grid finer than the DM, run_loops_map.c) gives the linear model their interpolation as its
+ * basis in place of the one --basis names: the same fields as the basis file of those
+ * functions with the plain matrix, and the same wavefront of given coefficients; the plain
+ * matrix on that other basis is refused (its functions' count). */
+static void write_cube(const char *path, double *data, size_t nx, size_t ny, size_t nz)
+{
+    swfs_fits_out *o = NULL;
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_real(o, NULL, &(swfs_real){nx, ny, nz, data}, -64));
+    assert_ok(swfs_fits_out_commit(o));
+}
+
+static void test_control_points_basis(void **state)
+{
+    (void)state;
+    fixture f;
+    fixture_make(&f);
+    const size_t ns = f.nslopes, ng = NPUP * NPUP;
+    swfs_pipeline_options o;
+    swfs_pipeline_options_default(&o);
+    o.recon = SWFS_RECON_GIVEN;
+    swfs_pipeline *sh = NULL, *pa = NULL, *pb = NULL;
+    assert_ok(swfs_pipeline_create(&sh, &f.g, NF, NF, f.xy, f.nact, f.mask, ns, f.rec, NULL, 0, &o));
+    const swfs_sparse *T = swfs_pipeline_model(sh)->T;
+    double *cube = malloc(ng * f.nact * sizeof *cube), *eye = calloc(f.nact, sizeof *eye), *other = malloc(2 * ng * sizeof *other);
+    for (size_t a = 0; a < f.nact; a++) {
+        eye[a] = 1.0;
+        swfs_sparse_apply(T, eye, cube + a * ng);
+        eye[a] = 0.0;
+    }
+    for (size_t k = 0; k < 2 * ng; k++) other[k] = 1.0;
+    char pbasis[4096], pother[4096], pc[4096], pcx[4096];
+    snprintf(pbasis, sizeof pbasis, "%s", test_path("lmodel_pts_basis.fits"));
+    snprintf(pother, sizeof pother, "%s", test_path("lmodel_pts_other.fits"));
+    snprintf(pc, sizeof pc, "%s", test_path("lmodel_pts_c.fits"));
+    snprintf(pcx, sizeof pcx, "%s", test_path("lmodel_pts_cxy.fits"));
+    write_cube(pbasis, cube, NPUP, NPUP, f.nact);
+    write_cube(pother, other, NPUP, NPUP, 2);
+    assert_ok(swfs_recon_write(f.rec, pc));
+    f.rec->oxy = f.xy; /* (borrowed for the write) */
+    assert_ok(swfs_recon_write(f.rec, pcx));
+    f.rec->oxy = NULL;
+    swfs_linear_files a, b;
+    swfs_linear_files_default(&a);
+    swfs_linear_files_default(&b);
+    a.basis = pbasis;
+    a.control = pc;
+    b.basis = pother;
+    b.control = pcx;
+    assert_ok(swfs_linear_pipeline(&pa, &a, &f.g, NF, NF, f.mask, ns, NULL, 0, &o));
+    assert_ok(swfs_linear_pipeline(&pb, &b, &f.g, NF, NF, f.mask, ns, NULL, 0, &o));
+    double peak;
+    const double d = field_difference(pa, pb, &f, &peak);
+    printf("lmodel: a control matrix's own points (OUTXY) as the basis: fields %.2g of the peak apart\n", d / peak);
+    assert_true(peak > 0 && d < 1e-6 * peak);
+    /* the wavefront of given coefficients through each */
+    double *c = malloc(f.nact * sizeof *c), *wa = malloc(ng * sizeof *wa), *wb = malloc(ng * sizeof *wb);
+    for (size_t k = 0; k < f.nact; k++) c[k] = 1e-8 * sin(0.37 * (double)k);
+    assert_ok(swfs_linear_wavefront_(&a, &f.g, f.mask, c, f.nact, wa));
+    assert_ok(swfs_linear_wavefront_(&b, &f.g, f.mask, c, f.nact, wb));
+    double dw = 0, pw = 0;
+    for (size_t k = 0; k < ng; k++) {
+        dw = fmax(dw, fabs(wa[k] - wb[k]));
+        pw = fmax(pw, fabs(wa[k]));
+    }
+    assert_true(pw > 0 && dw <= 1e-12 * pw);
+    swfs_pipeline *px = NULL;
+    b.control = pc;
+    assert_int_equal(swfs_linear_pipeline(&px, &b, &f.g, NF, NF, f.mask, ns, NULL, 0, &o), SWFS_ERR_SHAPE);
+    assert_null(px);
+    swfs_pipeline_free(sh);
+    swfs_pipeline_free(pa);
+    swfs_pipeline_free(pb);
+    free(cube); free(eye); free(other); free(c); free(wa); free(wb);
+    fixture_free(&f);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -665,6 +747,7 @@ int main(void)
         cmocka_unit_test(test_valid_map),
         cmocka_unit_test(test_interaction_matrix),
         cmocka_unit_test(test_factored_grid_basis),
+        cmocka_unit_test(test_control_points_basis),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }
