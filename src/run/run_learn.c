@@ -611,6 +611,9 @@ int swfs_meanmiss_metric(const char *funcs, size_t n, const double *mask, const 
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the outputs' functions are %zu x %zu x %zu; expected %zu x %zu (the pupil "
                        "grid) per output", funcs, inf->nx, inf->ny, inf->nz, n, n);
     if (!rc && !mask && !(rc = swfs_pupil_mask_read(pupil, n, &pm))) mask = pm->data;
+    double ws = 0;
+    for (size_t q = 0; !rc && q < n * n; q++) ws += mask[q] > 0 ? mask[q] : 0;
+    if (!rc && !(ws > 0)) rc = swfs_fail(SWFS_ERR_VALUE, "%s: an empty pupil mask", pupil ? pupil : "the mean's miss's metric");
     if (!rc) rc = swfs_meanmiss_metric_data_(inf->data, inf->nz, n, mask, funcs, M);
     if (!rc) *nf = inf->nz;
     swfs_real_free(inf);
