@@ -238,7 +238,9 @@ const char *cli_teach_chosen(int chosen);
     "                      coefficients = C v for any WFS signal (pyramid, SH in any layout, ...);\n" \
     "                      without it the telemetry values are the coefficients (cacao modevalWFS);\n" \
     "                      a cube of them with NLAGS, LAG1..: a space-time one (`learn --lags`,\n" \
-    "                      speckles --loops-map), on the telemetry of frames t + LAGk stacked\n" \
+    "                      speckles --loops-map), on the telemetry of frames t + LAGk stacked;\n" \
+    "                      with extension OUTXY (output points [m], as speckles' loops' map on a\n" \
+    "                      grid finer than the DM) its basis is their interpolation, not --basis\n" \
     "  --imat D.fits       instead of --control: the interaction matrix (NAXIS1 = basis functions,\n" \
     "                      NAXIS2 = telemetry values), inverted by the MAP reconstructor learned from\n" \
     "                      the telemetry (--recon svd: the truncated SVD)\n" \

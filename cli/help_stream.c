@@ -85,7 +85,8 @@ static const char *stream_usage_mpi =
     "  --clock CLOCK.txt     camera clock offset, drift and pairing from 'sync --wfs-log'\n"
     "  --exptime T           camera exposure [s] (default: STAMPS' EXPTIME, else the frame period)\n"
     CLI_GEOM_HELP
-    CLI_BAND_HELP
+    CLI_BAND_HELP;
+static const char *stream_usage_linear_mpi =
     CLI_LINEAR_HELP
     "\n"
     "Under mpirun (srun) every process streams a share of the camera frames (cut at --batch\n"
@@ -98,6 +99,7 @@ void cli_help_stream(void)
     fputs(stream_usage_text, stdout);
     fputs(stream_usage_text2, stdout);
     fputs(stream_usage_mpi, stdout);
+    fputs(stream_usage_linear_mpi, stdout);
 }
 
 static const char *live_usage_text =
