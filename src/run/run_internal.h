@@ -260,6 +260,9 @@ int swfs_outgrid_make_(const swfs_ts_params *sp, const char *work, char *path, s
  * Shack-Hartmann's speckle model interpolates a map's own points (speckles.c); refused where
  * the points do not cover the pupil. */
 int swfs_points_basis_(const double *xy, size_t n, const swfs_geom *g, const double *mask, struct swfs_sparse **B);
+/* run_linear.c: the same points' functions, dense (*F: n functions, point k's at F + k PUPN^2;
+ * the caller frees). */
+int swfs_points_functions_(const double *xy, size_t n, const swfs_geom *g, const double *mask, double **F);
 /* run_linear.c: lf's basis functions on the PUPN x PUPN grid, times lf->scale (*F: *nk
  * functions, function k's samples at F + k PUPN^2; the caller frees): a control matrix with
  * output points of its own (OUTXY) gives their interpolation, as every linear-model step does. */

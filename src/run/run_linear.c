@@ -109,6 +109,29 @@ int swfs_points_basis_(const double *xy, size_t n, const swfs_geom *g, const dou
     return rc;
 }
 
+int swfs_points_functions_(const double *xy, size_t n, const swfs_geom *g, const double *mask, double **F)
+{
+    *F = NULL;
+    const size_t n2 = (size_t)g->pupn * (size_t)g->pupn;
+    swfs_sparse *B = NULL;
+    double *eye = NULL;
+    int rc = swfs_points_basis_(xy, n, g, mask, &B);
+    if (!rc && (!(eye = calloc(n, sizeof *eye)) || !(*F = malloc(n2 * n * sizeof **F))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu points' functions", n);
+    for (size_t k = 0; !rc && k < n; k++) { /* function k: the interpolation of point k alone */
+        eye[k] = 1.0;
+        swfs_sparse_apply(B, eye, *F + k * n2);
+        eye[k] = 0.0;
+    }
+    if (rc) {
+        free(*F);
+        *F = NULL;
+    }
+    free(eye);
+    swfs_sparse_free(B);
+    return rc;
+}
+
 /* The basis of a control matrix with output points of its own (its file's OUTXY: a map learned
  * on a grid finer than the DM, run_loops_map.c): their interpolation on the pupil grid
  * (swfs_points_basis_), *nk of them; *B NULL where the file has none. */

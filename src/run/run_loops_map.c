@@ -15,7 +15,6 @@
 #include "specklewfs/parallel.h"
 #include "specklewfs/pipeline.h"
 #include "specklewfs/source.h"
-#include "specklewfs/sparse.h"
 #include "specklewfs/wfs.h"
 #include "run_internal.h"
 
@@ -94,11 +93,9 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
                        "squared by the %zu outputs of their learned map", ip, inf->nx, inf->ny, inf->nz, np, wl->nact);
     const size_t na = rc ? 0 : wl->nact, ns = rc ? 0 : wl->nslopes;
     if (!rc && !own) rc = swfs_linear_fit_(&o->lin, g, mask, inf->data, na, &P, &nk, carry_resid);
-    if (!rc && own) { /* P the identity */
+    if (!rc && own) { /* kept as it is: P would be the identity */
         *carry_resid = 0;
         nk = na;
-        if (!(P = calloc(na * na, sizeof *P))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-        for (size_t a = 0; P && a < na; a++) P[a * na + a] = 1.0;
     }
     if (!rc) { /* (a space-time map's lag blocks carried alike: P acts on its outputs) */
         c.nact = nk;
@@ -109,10 +106,13 @@ static int carry_map(const swfs_speckles_run_options *o, const char *loop0, cons
         if (!(c.W = malloc(nk * ns * sizeof *c.W))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     }
     if (!rc) {
-        cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nk, (int)ns, (int)na, 1.0, P, (int)na, wl->W, (int)ns,
-                    0.0, c.W, (int)ns);
+        if (own) memcpy(c.W, wl->W, nk * ns * sizeof *c.W);
+        else
+            cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nk, (int)ns, (int)na, 1.0, P, (int)na, wl->W,
+                        (int)ns, 0.0, c.W, (int)ns);
         if (mm && !(cmm = malloc(nk * sizeof *cmm))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-        if (cmm) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nk, (int)na, 1.0, P, (int)na, mm->data, 1, 0.0, cmm, 1);
+        if (cmm && own) memcpy(cmm, mm->data, nk * sizeof *cmm);
+        else if (cmm) cblas_dgemv(CblasRowMajor, CblasNoTrans, (int)nk, (int)na, 1.0, P, (int)na, mm->data, 1, 0.0, cmm, 1);
     }
     if (!rc) {
         swfs_fits_out *f = NULL;
@@ -522,23 +522,11 @@ static int loops_metric(const char *loop0, const swfs_geom *g, const double *mas
         snprintf(ip, sizeof ip, "%.4300s/influence.fits", loop0);
         return swfs_meanmiss_metric(ip, (size_t)g->pupn, mask, NULL, M, n);
     }
-    const size_t np = (size_t)g->pupn, n2 = np * np;
-    swfs_sparse *B = NULL;
-    double *eye = NULL;
-    if (!rc) rc = swfs_points_basis_(xy, nt, g, mask, &B);
-    if (!rc && (!(eye = calloc(nt, sizeof *eye)) || !(F = malloc(n2 * nt * sizeof *F))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t k = 0; !rc && k < nt; k++) {
-        eye[k] = 1.0;
-        swfs_sparse_apply(B, eye, F + k * n2);
-        eye[k] = 0.0;
-    }
-    if (!rc) rc = swfs_meanmiss_metric_data_(F, nt, np, mask, tp, M);
+    if (!rc) rc = swfs_points_functions_(xy, nt, g, mask, &F);
+    if (!rc) rc = swfs_meanmiss_metric_data_(F, nt, (size_t)g->pupn, mask, tp, M);
     if (!rc) *n = nt;
-    free(eye);
     free(F);
     free(xy);
-    swfs_sparse_free(B);
     return rc;
 }
 

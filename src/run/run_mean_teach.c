@@ -13,7 +13,6 @@
 #include "specklewfs/parallel.h"
 #include "specklewfs/pupil.h"
 #include "specklewfs/run.h"
-#include "specklewfs/sparse.h"
 #include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/table.h"
@@ -122,16 +121,7 @@ static int loops_outgrid(const swfs_speckles_run_options *o, const swfs_geom *g,
         if (!(mask = malloc(n2 * sizeof *mask))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         else rc = swfs_aperture_make(mask, np, g->pupdx, g->teldiam, g->obscur, 0, 0);
     }
-    swfs_sparse *B = NULL;
-    if (!rc) rc = swfs_points_basis_(xy, n, g, mask, &B);
-    double *eye = NULL;
-    if (!rc && (!(eye = calloc(n, sizeof *eye)) || !(F = malloc(n2 * n * sizeof *F))))
-        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    for (size_t k = 0; !rc && k < n; k++) { /* function k: the interpolation of point k alone */
-        eye[k] = 1.0;
-        swfs_sparse_apply(B, eye, F + k * n2);
-        eye[k] = 0.0;
-    }
+    if (!rc) rc = swfs_points_functions_(xy, n, g, mask, &F);
     swfs_fits_out *f = NULL;
     if (!rc && snprintf(fpath, sizeof fpath, "%.4300s/outfuncs.fits", work) < (int)sizeof fpath) {
         swfs_outputs_begin();
@@ -144,9 +134,7 @@ static int loops_outgrid(const swfs_speckles_run_options *o, const swfs_geom *g,
         const int erc = swfs_outputs_end(rc == SWFS_OK);
         if (!rc) rc = erc;
     }
-    free(eye);
     free(F);
-    swfs_sparse_free(B);
     if (pm) swfs_real_free(pm);
     else free(mask);
     free(xy);
