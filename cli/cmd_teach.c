@@ -4,6 +4,7 @@
 #include "cli.h"
 
 #include "specklewfs/config.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
 
@@ -75,6 +76,14 @@ static int parse(int argc, char **argv, swfs_config *cfg, swfs_teach_run_options
     if (maxl >= 0 && maxl && (maxl < loops || maxl > 64))
         return cli_usage_error(cmd, "--max-loops must be --loops (%ld) to 64 (0: 4 times --loops, at most 64), got %ld",
                                loops, maxl);
+    /* the files only this command reads (the library checks the telemetry and the system's) */
+    swfs_paths *pp = NULL;
+    int prc = swfs_paths_create(&pp);
+    if (!prc) prc = swfs_paths_input(pp, "science cube (--science)", ff->science);
+    if (!prc) prc = swfs_paths_input(pp, "system description (--system)", *cfgfile);
+    if (!prc) prc = swfs_paths_output(pp, "the taught map (-o)", o->out);
+    swfs_paths_free(pp);
+    if (prc) return cli_error(cmd);
     o->nloops = (size_t)loops;
     o->max_loops = maxl > 0 ? (size_t)maxl : 0;
     o->seed = (uint64_t)seed;

@@ -149,6 +149,28 @@ if grep -q "simulating the loops" err.txt || [ -e o.teach ]; then
     echo "FAIL speckles-nsub: teach ran before the NSUB check"
     nfail=$((nfail + 1))
 fi
+# a timing table whose rows time the same science frames twice (cube 1 edited to start at 0)
+sed 's/^\(cube 1 [^ ]*\) [0-9]* /\1 0 /' timing.txt > t_overlap.txt
+chk speckles-timing-overlap 1 "t_overlap.txt: cubes 0 (raw_000.fits) and 1 (raw_001.fits) both time science frames 0-19" o.fits -- speckles t_overlap.txt --science sci.fits --actuators ts/actuators.fits --recon vk -o o.fits
+chk stream-timing-overlap 1 "t_overlap.txt: cubes 0 (raw_000.fits) and 1 (raw_001.fits) both time science frames 0-19" o.fits -- stream --timing t_overlap.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
+# teach's map named as its own telemetry or science cube: refused before any loop, the input
+# as it was, no work folder left
+cp ts/slopes_000.fits tslopes.fits
+cp sci.fits tsci.fits
+for out in tslopes.fits tsci.fits; do
+    rm -rf "${out%.fits}.teach"
+    "$B" teach tslopes.fits --science tsci.fits --actuators ts/actuators.fits -o $out --loops 2 > out.txt 2> err.txt
+    rc=$?
+    if [ "$rc" = 1 ] && grep -qF "$out (the taught map (-o)) is the same file as the input $out" err.txt \
+        && cmp -s tslopes.fits ts/slopes_000.fits && cmp -s tsci.fits sci.fits && [ ! -e "${out%.fits}.teach" ] \
+        && ! grep -q "simulating" out.txt err.txt; then
+        pass=$((pass + 1))
+    else
+        echo "FAIL teach-out-is-input ($out): exit code $rc, the message, the input or its work folder"
+        sed 's/^/    /' err.txt | head -3
+        nfail=$((nfail + 1))
+    fi
+done
 chk stream-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --keep-tiptilt -o o.fits
 chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
 
@@ -203,6 +225,20 @@ chk learn-lags-text 1 "\"0,a\" is not a list of whole WFS frames" o.fits -- lear
 chk learn-lags-modal 1 "a modal control matrix (--modal) acts on one frame" o.fits -- learn lt1 -o o.fits --lags 0,2 --modal
 chk sim-spacetime-aorecon 1 "lw3.fits: a space-time reconstructor (3 lags) is no AO loop's" lt3/slopes_000.fits -- simulate mode=timeseries \
     $TS ncubes=2 cube_frames=40 cube_gap=40 ao_recon=lw3.fits -o lt3 --quiet
+# learn's map named as one of its data sets' files: refused, the file as it was; a data set whose
+# numbers skip one (000 and 002) is refused, naming the missing file, not read up to the gap
+rm -rf lr lg && cp -r lt1 lr && cp -r lt1 lg
+"$B" learn lr -o lr/truewf_000.fits > out.txt 2> err.txt
+rc=$?
+if [ "$rc" = 1 ] && grep -qF "lr/truewf_000.fits (output reconstructor) is the same file as the input lr/truewf_000.fits" err.txt \
+    && cmp -s lr/truewf_000.fits lt1/truewf_000.fits; then
+    pass=$((pass + 1))
+else
+    echo "FAIL learn-out-is-input: exit code $rc, the message or the truth file"; sed 's/^/    /' err.txt | head -3
+    nfail=$((nfail + 1))
+fi
+mv lg/slopes_000.fits lg/slopes_002.fits && cp lt1/slopes_000.fits lg/ && cp lg/truewf_000.fits lg/truewf_002.fits
+chk learn-gap 1 "lg: 2 slopes files numbered up to 002, but no slopes_001.fits" o.fits -- learn lg -o o.fits
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
 

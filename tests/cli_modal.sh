@@ -142,6 +142,13 @@ grep -q "warning: these slopes came through modal-slopes --imat from coefficient
 ! grep -q "warning: these slopes came through modal-slopes --imat" "$D/speckles_unvk.log" || fail "speckles: warned on --cm's slopes"
 "$B" modal-slopes "$S/modal_000.fits" --cm "$S/cm_modes.fits" -o "$S" > "$D/ms_bad.log" 2>&1 && fail "modal-slopes into the inputs' folder"
 grep -q "is in the output folder" "$D/ms_bad.log" || { cat "$D/ms_bad.log"; fail "modal-slopes: same folder"; }
+# the control matrix in the output folder, where its copy would be written over it: refused, as it was
+mkdir -p "$D/ms_cm" && cp "$S/cm_modes.fits" "$D/ms_cm/"
+"$B" modal-slopes "$S/modal_000.fits" --cm "$D/ms_cm/cm_modes.fits" -o "$D/ms_cm" > "$D/ms_cm.log" 2>&1 \
+    && fail "modal-slopes with its control matrix in the output folder"
+grep -q "the control matrix .*ms_cm/cm_modes.fits is in the output folder" "$D/ms_cm.log" && cmp -s "$S/cm_modes.fits" \
+    "$D/ms_cm/cm_modes.fits" && [ ! -e "$D/ms_cm/modal_000.fits" ] \
+    || { cat "$D/ms_cm.log"; fail "modal-slopes: the control matrix in the output folder, kept as it was"; }
 noflip=$(linear noflip "$D/timing_modal.txt" --basis "$S/dm_modes.fits" $(echo "$reg" | sed 's/--dm-flip//') \
     --coef-scale 2e-6)
 echo "cli_modal: NCP error native $native nm, modal $modal nm, control $control nm; modal unmirrored $noflip nm" >&2

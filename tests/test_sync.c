@@ -246,7 +246,22 @@ static void test_files_and_errors(void **state)
     fprintf(f, "ratio inf 0.1\nlag 2\ncube 0 a.fits 0 2 s.fits 10.5 ok\n");
     fclose(f);
     assert_int_equal(swfs_timing_read(test_path("inf.txt"), &tr), SWFS_ERR_FORMAT);
-    assert_non_null(strstr(swfs_last_error(), "inf.txt: the timing table needs 'ratio' and 'lag' lines"));
+    assert_non_null(strstr(swfs_last_error(), "inf.txt: ratio inf: expected a finite number of WFS frames per camera"));
+    /* a table without its ratio and lag lines says so; one whose rows time the same science
+     * frames twice (each with other telemetry) is refused, naming both rows and the frames */
+    f = fopen(test_path("nolines.txt"), "w");
+    fprintf(f, "cube 0 a.fits 0 2 s.fits 10.5 ok\n");
+    fclose(f);
+    assert_int_equal(swfs_timing_read(test_path("nolines.txt"), &tr), SWFS_ERR_FORMAT);
+    assert_non_null(strstr(swfs_last_error(), "nolines.txt: the timing table needs 'ratio' and 'lag' lines"));
+    f = fopen(test_path("overlap.txt"), "w");
+    fprintf(f, "ratio 6.5 0.1\nlag 2\ncube 0 a.fits 0 60 s.fits 10.5 ok\ncube 1 b.fits 60 60 s.fits 500.5 ok\n"
+               "cube 2 c.fits 100 60 t.fits 10.5 ok\n");
+    fclose(f);
+    assert_int_equal(swfs_timing_read(test_path("overlap.txt"), &tr), SWFS_ERR_FORMAT);
+    assert_null(tr);
+    assert_non_null(strstr(swfs_last_error(), "overlap.txt: cubes 1 (b.fits) and 2 (c.fits) both time science frames "
+                                              "100-119 (theirs 60-119 and 100-159)"));
 
     /* No overlap anywhere in the search range. */
     double m[50] = {0}, tt[10] = {0};

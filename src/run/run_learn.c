@@ -8,6 +8,7 @@
 #include "run_internal.h"
 
 #include <cblas.h>
+#include <dirent.h>
 #include <limits.h>
 #include <math.h>
 #include <stdatomic.h>
@@ -160,6 +161,61 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
     }
     if (rc) { swfs_fits_out_abort(f); return rc; }
     return swfs_fits_out_commit(f);
+}
+
+/* The number of a data set's file name: "slopes_NNN.fits" or "truewf_NNN.fits" as add_dir
+ * names them (%03zu), else -1; *truth 1 for a truewf file. */
+static long series_index(const char *name, int *truth)
+{
+    const char *p = !strncmp(name, "slopes_", 7) ? name + 7 : !strncmp(name, "truewf_", 7) ? name + 7 : NULL;
+    if (!p) return -1;
+    char *end = NULL;
+    const unsigned long k = strtoul(p, &end, 10);
+    if (end == p || end - p < 3 || strcmp(end, ".fits") || (*p == '0' && end - p > 3) || k > 100000) return -1;
+    *truth = name[0] == 't';
+    return (long)k;
+}
+
+/* A data set's files as inputs of the paths' check (an output named as one of them would
+ * overwrite it), and their numbers: slopes_000.fits on, one after the other, each beside its
+ * truewf (add_dir reads the series up to its first missing number: a gap would leave the
+ * files after it unread, in silence). */
+static int dir_inputs(swfs_paths *paths, const char *dir)
+{
+    DIR *d = opendir(dir);
+    if (!d) return SWFS_OK; /* not a folder, or unreadable: add_dir names it */
+    long last[2] = {-1, -1};
+    size_t count[2] = {0, 0};
+    int rc = SWFS_OK;
+    char path[4400];
+    for (struct dirent *e; !rc && (e = readdir(d));) {
+        int t = 0;
+        const long k = series_index(e->d_name, &t);
+        if (k < 0) continue;
+        count[t]++;
+        if (k > last[t]) last[t] = k;
+        if (snprintf(path, sizeof path, "%s/%s", dir, e->d_name) >= (int)sizeof path)
+            rc = swfs_fail(SWFS_ERR_ARG, "learn: %s: a path too long", dir);
+        else
+            rc = swfs_paths_input(paths, t ? "true residual" : "telemetry", path);
+    }
+    closedir(d);
+    for (int t = 0; !rc && t < 2; t++)
+        if (count[t] && count[t] != (size_t)last[t] + 1) {
+            const char *what = t ? "truewf" : "slopes";
+            size_t k = 0;
+            for (; k < (size_t)last[t]; k++) {
+                snprintf(path, sizeof path, "%.4000s/%s_%03zu.fits", dir, what, k);
+                if (access(path, F_OK) != 0) break;
+            }
+            rc = swfs_fail(SWFS_ERR_IO, "%s: %zu %s files numbered up to %03ld, but no %s_%03zu.fits: a data set's "
+                           "files are numbered from 000 without a gap (the series would end there, the rest unread)",
+                           dir, count[t], what, last[t], what, k);
+        }
+    if (!rc && count[1] > count[0])
+        rc = swfs_fail(SWFS_ERR_IO, "%s: %zu truewf files for %zu slopes files: every true residual needs the slopes "
+                       "of its frames (slopes_NNN.fits beside truewf_NNN.fits)", dir, count[1], count[0]);
+    return rc;
 }
 
 /* Every slopes_NNN.fits / truewf_NNN.fits pair of the folder `dir` added to *l (*nfiles
@@ -728,8 +784,10 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     swfs_paths *paths = NULL;
     rc = swfs_paths_create(&paths);
     if (!rc && o->prior) rc = swfs_paths_input(paths, "prior map (--prior)", o->prior);
-    for (size_t d = 0; !rc && d < o->ndirs; d++)
+    for (size_t d = 0; !rc && d < o->ndirs; d++) {
         rc = swfs_paths_input_or_dir(paths, "simulated data set", o->dirs[d]);
+        if (!rc) rc = dir_inputs(paths, o->dirs[d]);
+    }
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
     if (!rc && o->perframe_out && o->nlags > 1) rc = swfs_paths_output(paths, "output per-frame reconstructor", o->perframe_out);
     swfs_paths_free(paths);

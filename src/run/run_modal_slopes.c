@@ -216,6 +216,11 @@ int swfs_modal_slopes_run(const swfs_modal_slopes_options *o, swfs_modal_slopes_
     char od[PATH_MAX], id[PATH_MAX], dir[4200];
     if (!realpath(o->outdir, od))
         return swfs_fail(SWFS_ERR_IO, "modal-slopes: %s: not an existing folder", o->outdir);
+    swfs_path_dir(src, dir, sizeof dir);
+    if (realpath(dir, id) && !strcmp(id, od) && !strcmp(strrchr(src, '/') ? strrchr(src, '/') + 1 : src, cmbase))
+        return swfs_fail(SWFS_ERR_ARG, "modal-slopes: the control matrix %s is in the output folder %s, where its copy "
+                         "beside the slopes is written under its name: the output folder must be another", src,
+                         o->outdir);
     for (size_t k = 0; k < o->nfiles; k++) {
         swfs_path_dir(o->files[k], dir, sizeof dir);
         if (realpath(dir, id) && !strcmp(id, od))

@@ -3,6 +3,7 @@
 #include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/interp.h"
+#include "specklewfs/outpaths.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/plot.h"
 #include "specklewfs/report.h"
@@ -321,6 +322,25 @@ static int check_options(const swfs_teach_run_options *o)
         return swfs_fail(SWFS_ERR_ARG, "teach: the loop's filter from the slopes, but a zonal loop is given "
                          "(ao_rcond=%g): one or the other", o->sim.ao_rcond);
     return swfs_ts_params_check(&o->sim);
+}
+
+/* The map's name against every file teach reads (the telemetry, the system's files): an output
+ * that is one of them would overwrite it. */
+static int check_paths(const swfs_teach_run_options *o)
+{
+    swfs_paths *paths = NULL;
+    int rc = swfs_paths_create(&paths);
+    for (size_t k = 0; !rc && k < o->nfiles; k++) rc = swfs_paths_input(paths, "telemetry", o->files[k]);
+    const swfs_ts_params *sp = &o->sim;
+    const struct { const char *role, *path; } sys[] = {
+        {"the DM's actuators (actuators=)", sp->actuators}, {"the loop's reconstructor (ao_recon=)", sp->ao_recon},
+        {"the valid-subaperture map (valid=)", sp->valid}, {"the pupil (pupil_mask=)", sp->base.pupil_mask},
+        {"the truth's points (truth_actuators=)", sp->truth_actuators}};
+    for (size_t k = 0; !rc && k < sizeof sys / sizeof sys[0]; k++)
+        if (sys[k].path[0]) rc = swfs_paths_input(paths, sys[k].role, sys[k].path);
+    if (!rc) rc = swfs_paths_output(paths, "the taught map (-o)", o->out);
+    swfs_paths_free(paths);
+    return rc ? swfs_fail_context(rc, "teach") : SWFS_OK;
 }
 
 /* The mode variances of the slopes s (nf frames of ns: the full layout, or the used
@@ -839,6 +859,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     memset(r, 0, sizeof *r);
     const double t0 = swfs_wall_seconds();
     int rc = check_options(o);
+    if (!rc) rc = check_paths(o);
     if (rc) return rc;
     const swfs_ts_params *sp = &o->sim;
     const char *valid = sp->valid[0] ? sp->valid : NULL;

@@ -715,9 +715,27 @@ int swfs_timing_read(const char *path, swfs_timing **out)
         if (!ok) { rc = swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: cannot parse \"%.80s\" (see docs/telemetry.md)", path, lineno, s); break; }
     }
     fclose(f);
-    if (rc == SWFS_OK && (!(t->ratio > 0) || !isfinite(t->ratio) || !isfinite(t->lag)))
+    if (rc == SWFS_OK && (isnan(t->ratio) && isnan(t->lag)))
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table needs 'ratio' and 'lag' lines", path);
+    else if (rc == SWFS_OK && (!(t->ratio > 0) || !isfinite(t->ratio)))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: ratio %g: expected a finite number of WFS frames per camera frame > 0 "
+                       "(a 'ratio' line)", path, t->ratio);
+    else if (rc == SWFS_OK && !isfinite(t->lag))
+        rc = swfs_fail(SWFS_ERR_FORMAT, "%s: lag %g: expected a finite number of WFS frames (a 'lag' line)", path, t->lag);
     if (rc == SWFS_OK && t->ncubes == 0) rc = swfs_fail(SWFS_ERR_FORMAT, "%s: the timing table lists no cube", path);
+    /* each science frame timed once: two rows whose frames of the reduced science file overlap
+     * would take those frames twice, each with other telemetry, and leave others out */
+    for (size_t i = 0; rc == SWFS_OK && i < t->ncubes; i++)
+        for (size_t j = 0; rc == SWFS_OK && j < i; j++) {
+            const swfs_timing_cube *a = t->cubes + j, *b = t->cubes + i;
+            if (!a->nframes || !b->nframes || a->first >= b->first + b->nframes || b->first >= a->first + a->nframes)
+                continue;
+            rc = swfs_fail(SWFS_ERR_FORMAT, "%s: cubes %zu (%s) and %zu (%s) both time science frames %zu-%zu (theirs "
+                           "%zu-%zu and %zu-%zu): expected each frame of the reduced science file in one row", path, j,
+                           a->camera, i, b->camera, a->first > b->first ? a->first : b->first,
+                           (a->first + a->nframes < b->first + b->nframes ? a->first + a->nframes : b->first + b->nframes) - 1,
+                           a->first, a->first + a->nframes - 1, b->first, b->first + b->nframes - 1);
+        }
     if (rc) { swfs_timing_free(t); return rc; }
     *out = t;
     return SWFS_OK;
