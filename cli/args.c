@@ -14,8 +14,9 @@ int cli_parse_double(const char *cmd, const char *opt, const char *s, double *ou
     char *end;
     errno = 0;
     double v = strtod(s, &end);
-    if (end == s || *end || errno == ERANGE || !isfinite(v))
-        return cli_usage_error(cmd, "%s expects a finite number, got '%s'", opt, s);
+    /* (strtod reads C's hexadecimal numbers too: 0x10 would be 16) */
+    if (end == s || *end || errno == ERANGE || !isfinite(v) || strpbrk(s, "xX"))
+        return cli_usage_error(cmd, "%s expects a finite decimal number, got '%s'", opt, s);
     *out = v;
     return 0;
 }
@@ -46,6 +47,9 @@ int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *
 {
     const char *opt = argv[*i], *v = cli_next(argc, argv, i);
     if (!v) return cli_usage_error(cmd, "%s needs %s", opt, what);
+    /* "-o --gain": the next option, not a name (a file whose name starts so: ./--name) */
+    if (v[0] == '-' && v[1] == '-' && v[2])
+        return cli_usage_error(cmd, "%s needs %s, got the option '%s' (a file of that name: write ./%s)", opt, what, v, v);
     *out = v;
     return 0;
 }

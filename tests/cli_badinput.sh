@@ -171,6 +171,7 @@ for out in tslopes.fits tsci.fits; do
         nfail=$((nfail + 1))
     fi
 done
+chk stream-static-cube 1 "spw.fits: static halo is 54x54x260 but the science frames are 54x54: expected one complex image" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --static spw.fits -o o.fits
 chk stream-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --keep-tiptilt -o o.fits
 chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
 
@@ -251,6 +252,9 @@ chk wind-bad-valid 1 "sh.fits" o.fits -- wind ts/slopes_000.fits --teldiam 6.5 -
 # ---- pupil: halos of other frames to choose among
 chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits
 chk pupil-choose-missing 1 "nofile.fits" o.fits -- pupil run/halo.fits nofile.fits -o o.fits
+# the same frames' halo whose HALO header says another sampling: not one of these frames' halos
+/usr/bin/python3 "$FITSHDR" run/halo.fits hps.fits --hdu 2 PIXSCALE=0.5 && NOSUM hps.fits
+chk pupil-choose-pixscale 1 "hps.fits has PIXSCALE = 0.5 but run/halo.fits has" o.fits -- pupil run/halo.fits hps.fits -o o.fits
 
 # ---- merge
 chk merge-missing 1 "nofile.fits: cannot open" o.fits -- merge nofile.fits ck1.fits -o o.fits
@@ -283,7 +287,11 @@ chk dm-actuators 1 "run/science.fits: actuator positions must be a 2 x nact imag
     dmoffsets run/wavefront.fits -o o.fits --actuators run/science.fits
 chk dm-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- dmoffsets run/wavefront.fits -o $UW --hexapolar 0.35
 chk dm-pitch 2 "--hexapolar needs a pitch > 0" o.fits -- dmoffsets run/wavefront.fits -o o.fits --hexapolar 0
-chk dm-reg 2 "--reg expects a finite number, got 'nan'" o.fits -- dmoffsets run/wavefront.fits -o o.fits --hexapolar 0.35 --reg nan
+chk dm-reg 2 "--reg expects a finite decimal number, got 'nan'" o.fits -- dmoffsets run/wavefront.fits -o o.fits --hexapolar 0.35 --reg nan
+
+# ---- option values: the next option taken for a file name, C's hexadecimal numbers
+chk opt-value-is-option 2 "-o needs a file name, got the option '--gain' (a file of that name: write ./--gain)" ./--gain -- estimate run/science.fits run/speckles.fits -o --gain 2
+chk opt-hex-number 2 "--read-noise expects a finite decimal number, got '0x10'" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --read-noise 0x10
 
 # ---- correct, demo (argument and configuration errors; they simulate everything else)
 chk correct-unknown-key 1 "tel_diam" o -- correct $SMALL tel_diam=3 -o o --iterations 1

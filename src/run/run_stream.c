@@ -480,9 +480,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     so.est.g_smooth = swfs_g_smooth_pixels(o->g_smooth_lod, u.g.pixscale, &assumed);
     if (!rc && so.static_mode == SWFS_STATIC_GIVEN) {
         rc = swfs_fits_read_cplx(o->static_file, NULL, &stat_c, NULL);
-        if (!rc && (stat_c->nx != nfx || stat_c->ny != nfy))
-            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: static halo is %zux%zu but the science frames are %zux%zu", o->static_file,
-                           stat_c->nx, stat_c->ny, nfx, nfy);
+        if (!rc && (stat_c->nx != nfx || stat_c->ny != nfy || stat_c->nz != 1))
+            rc = swfs_fail(SWFS_ERR_SHAPE, "%s: static halo is %zux%zux%zu but the science frames are %zux%zu: expected "
+                           "one complex image of their size (a halo's, not a speckle cube)", o->static_file, stat_c->nx,
+                           stat_c->ny, stat_c->nz, nfx, nfy);
         for (size_t q = 0; !rc && q < nfx * nfy * stat_c->nz; q++)
             if (!isfinite(creal(stat_c->data[q])) || !isfinite(cimag(stat_c->data[q])))
                 rc = swfs_fail(SWFS_ERR_VALUE, "%s: static halo value at pixel (%zu, %zu) is not finite", o->static_file,
