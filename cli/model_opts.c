@@ -67,7 +67,12 @@ int cli_geom_option(const char *cmd, int argc, char **argv, int *i, swfs_geom *g
     double *const dst[5] = {&g->wavelen, &g->teldiam, &g->obscur, &g->pixscale, &g->pupdx};
     for (int k = 0; k < 5; k++)
         if (!strcmp(a, names[k])) return cli_take_double(cmd, argc, argv, i, dst[k]) ? -CLI_USAGE : 1;
-    if (!strcmp(a, "--pupn")) return cli_take_long(cmd, argc, argv, i, &g->pupn) ? -CLI_USAGE : 1;
+    if (!strcmp(a, "--pupn")) {
+        if (cli_take_long(cmd, argc, argv, i, &g->pupn)) return -CLI_USAGE;
+        /* (0 is the geometry's "not given": it would be dropped in silence) */
+        if (g->pupn < 2 || g->pupn > 8192) return -cli_usage_error(cmd, "--pupn must be 2 to 8192 pupil samples, got %ld", g->pupn);
+        return 1;
+    }
     if (strcmp(a, "--geom")) return 0;
     const char *path = NULL;
     if (cli_take_string(cmd, argc, argv, i, "a geometry file (FITS header or KEY = VALUE lines)", &path)) return -CLI_USAGE;

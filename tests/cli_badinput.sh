@@ -171,6 +171,7 @@ for out in tslopes.fits tsci.fits; do
         nfail=$((nfail + 1))
     fi
 done
+chk speckles-pupn 2 "--pupn must be 2 to 8192 pupil samples, got 0" o.fits -- speckles timing.txt --science sci.fits --actuators ts/actuators.fits --recon vk --pupn 0 -o o.fits
 chk stream-static-cube 1 "spw.fits: static halo is 54x54x260 but the science frames are 54x54: expected one complex image" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --static spw.fits -o o.fits
 chk stream-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --keep-tiptilt -o o.fits
 chk stream-nsub 1 "nsub/slopes_000.fits: NSUB = 16" o.fits -- stream --timing nsub/timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o o.fits
@@ -248,6 +249,13 @@ chk wind-no-teldiam 2 "needs --teldiam D > 0" o.fits -- wind ts/slopes_000.fits
 chk wind-missing 1 "nofile.fits" o.fits -- wind nofile.fits --teldiam 6.5
 chk wind-other-width 1 "expected 288 slopes x WFS frames as in ts/slopes_000.fits" o.fits -- wind ts/slopes_000.fits ts/actuators.fits --teldiam 6.5
 chk wind-bad-valid 1 "sh.fits" o.fits -- wind ts/slopes_000.fits --teldiam 6.5 --valid sh.fits
+# a series' file given twice, or a copy whose FRAME0 repeats the frames before it: not frames
+# that follow each other (their time correlations would count each frame twice)
+chk wind-same-file 1 "ts/slopes_000.fits and ts/slopes_000.fits are the same file" o.fits -- wind ts/slopes_000.fits ts/slopes_000.fits --teldiam 6.5
+cp ts/slopes_000.fits again.fits
+/usr/bin/python3 "$FITSHDR" ts/slopes_000.fits const.fits --fill 1e-6 1
+chk wind-constant 1 "const.fits: wind: the slopes of 0 of the 144 subapertures with signal vary in time" o.fits -- wind const.fits --teldiam 6.5
+chk wind-repeated-frames 1 "again.fits: FRAME0 = 0, but ts/slopes_000.fits ends at WFS frame 582" o.fits -- wind ts/slopes_000.fits again.fits --teldiam 6.5
 
 # ---- pupil: halos of other frames to choose among
 chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits

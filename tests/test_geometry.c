@@ -170,6 +170,23 @@ static void test_bad_geometry_files(void **state)
     fclose(f);
     assert_int_not_equal(swfs_geom_read_file(p("bad3.txt"), &g), 0);
     assert_non_null(strstr(swfs_last_error(), "no geometry keyword"));
+    /* a value of nan (the reader's "not given") or in hexadecimal, and a key given twice, are
+     * refused naming the line, not dropped or overwritten in silence */
+    f = fopen(p("bad4.txt"), "w");
+    fprintf(f, "PUPDX = 0.1\nTELDIAM = nan\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad4.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "bad4.txt:2: TELDIAM = nan: expected a finite decimal number"));
+    f = fopen(p("bad5.txt"), "w");
+    fprintf(f, "PUPDX = 0.1\nteldiam 8\npupdx 0.2\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad5.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "bad5.txt:3: PUPDX given again (line 1 gave it)"));
+    f = fopen(p("bad6.txt"), "w");
+    fprintf(f, "PUPN = 0x40\n");
+    fclose(f);
+    assert_int_not_equal(swfs_geom_read_file(p("bad6.txt"), &g), 0);
+    assert_non_null(strstr(swfs_last_error(), "bad6.txt:1: PUPN = 0x40: expected a finite decimal number"));
     assert_int_not_equal(swfs_geom_read_file(p("none.txt"), &g), 0);
     assert_non_null(strstr(swfs_last_error(), "none.txt"));
 }

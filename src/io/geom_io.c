@@ -16,7 +16,8 @@
 static int read_text(const char *path, FILE *f, swfs_geom *g)
 {
     char line[1024];
-    long lineno = 0;
+    long lineno = 0, seen[6] = {0}; /* the line of each keyword given (a second is refused) */
+    static const char *const keys[6] = {"WAVELEN", "TELDIAM", "OBSCUR", "PIXSCALE", "PUPDX", "PUPN"};
     int rc = SWFS_OK;
     while (swfs_text_line(f, line, sizeof line, path, ++lineno, &rc)) {
         char *h = strchr(line, '#');
@@ -33,6 +34,17 @@ static int read_text(const char *path, FILE *f, swfs_geom *g)
         if (end == p) return swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: '%s' has no number", path, lineno, key);
         while (isspace((unsigned char)*end)) end++;
         if (*end) return swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: '%s' is followed by '%s'", path, lineno, key, end);
+        /* (NaN is the reader's "not given": a value of nan would vanish in silence) */
+        if (!isfinite(v) || strpbrk(p, "xX"))
+            return swfs_fail(SWFS_ERR_VALUE, "%s:%ld: %s = %.*s: expected a finite decimal number", path, lineno, key,
+                             (int)(strcspn(p, " \t\r\n") < 40 ? strcspn(p, " \t\r\n") : 40), p);
+        for (int q = 0; q < 6; q++)
+            if (!strcasecmp(key, keys[q])) {
+                if (seen[q])
+                    return swfs_fail(SWFS_ERR_FORMAT, "%s:%ld: %s given again (line %ld gave it): one value each", path,
+                                     lineno, keys[q], seen[q]);
+                seen[q] = lineno;
+            }
         if (!strcasecmp(key, "WAVELEN")) g->wavelen = v;
         else if (!strcasecmp(key, "TELDIAM")) g->teldiam = v;
         else if (!strcasecmp(key, "OBSCUR")) g->obscur = v;

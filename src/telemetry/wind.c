@@ -204,6 +204,20 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         for (size_t t = 0; t < nframes; t++) s += w.x[t * nv + p] * w.x[t * nv + p] + w.y[t * nv + p] * w.y[t * nv + p];
         sd[p] = sqrt(s);
     }
+    size_t nvary = 0; /* (on the slopes as given: centring leaves a constant's rounding) */
+    for (size_t p = 0; p < nv; p++) {
+        const double x0 = slopes[col[p]], y0 = slopes[nslopes / 2 + col[p]];
+        int varies = 0;
+        for (size_t t = 1; !varies && t < nframes; t++)
+            varies = slopes[t * nslopes + col[p]] != x0 || slopes[t * nslopes + nslopes / 2 + col[p]] != y0;
+        nvary += (size_t)varies;
+    }
+    if (nvary < 8) {
+        free(col);
+        work_free(&w);
+        return swfs_fail(SWFS_ERR_VALUE, "wind: the slopes of %zu of the %zu subapertures with signal vary in time; need "
+                         "at least 8 (constant slopes carry no flow)", nvary, nv);
+    }
     const long R = (long)w.m.R;
     for (size_t p = 0; p < nv; p++)
         for (size_t q = 0; q < nv; q++) {
