@@ -220,5 +220,13 @@ expect_error "slopes_valid_000.fits: 224 slopes per frame is not 2 nsub^2.*valid
 expect_error "dm_modes.fits: a valid-subaperture map is a square nsub x nsub image" \
     "$B" speckles "$D/timing_valid.txt" --science "$D/science.fits" --actuators "$S/actuators.fits" \
     --valid "$S/dm_modes.fits" -o "$o"
+# a control matrix with an element of 1e300 (its products would overflow), an interaction matrix
+# with a NaN: named, file and element
+/usr/bin/python3 "$(dirname "$0")/tools/fitshdr.py" "$S/recon_ao.fits" "$D/cbig.fits" --fill 1e300 1
+/usr/bin/python3 "$(dirname "$0")/tools/fitshdr.py" "$S/recon_ao.fits" "$D/inan.fits" --fill nan 50
+expect_error "cbig.fits: element (1, 1) of the control matrix is 1e+300; expected finite and below 1e30" \
+    "$B" speckles "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --control "$D/cbig.fits" -o "$o"
+expect_error "inan.fits: element (1, 1) of the matrix is nan" \
+    "$B" speckles "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --imat "$D/inan.fits" -o "$o"
 ls "$D"/bad.fits* > /dev/null 2>&1 && fail "an output was left after a refusal"
 echo "cli_modal: ok"

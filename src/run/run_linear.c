@@ -28,10 +28,25 @@ void swfs_linear_files_default(swfs_linear_files *lf)
     lf->scale = 1.0;
 }
 
+/* Every element of a matrix file finite and below 1e30 in magnitude (a fill value, or a
+ * corrupt file: the products through it would overflow), the file and element named. */
+static int matrix_values(const char *path, const char *what, const swfs_real *m)
+{
+    const size_t n = m->nx * m->ny * m->nz;
+    for (size_t q = 0; q < n; q++)
+        if (!(fabs(m->data[q]) < 1e30))
+            return swfs_fail(SWFS_ERR_VALUE, "%s: element (%zu, %zu%s%.0zu) of the %s is %g; expected finite and below "
+                             "1e30 in magnitude (a fill value, or a corrupt file?)", path, q % m->nx + 1,
+                             q / m->nx % m->ny + 1, m->nz > 1 ? ", " : "", m->nz > 1 ? q / (m->nx * m->ny) + 1 : 0,
+                             what, m->data[q]);
+    return SWFS_OK;
+}
+
 /* A 2-D matrix file of ncols x nrows (either may be 0: taken from the file). */
 static int read_matrix(const char *path, const char *what, size_t *ncols, size_t *nrows, swfs_real **m)
 {
     int rc = swfs_fits_read_real(path, NULL, m, NULL);
+    if (!rc) rc = matrix_values(path, "matrix", *m);
     if (rc) return rc;
     if ((*m)->nz != 1 || (*ncols && (*m)->nx != *ncols) || (*nrows && (*m)->ny != *nrows))
         return swfs_fail(SWFS_ERR_SHAPE, "%s: the %s is %zu x %zu x %zu; expected NAXIS1 = %zu%s, NAXIS2 = %zu%s", path,
@@ -50,6 +65,7 @@ static int read_control(const char *path, size_t *nm, size_t *nk, swfs_real **m,
 {
     *nl = 1;
     int rc = swfs_fits_read_real(path, NULL, m, NULL);
+    if (!rc) rc = matrix_values(path, "control matrix", *m);
     if (rc) return rc;
     const swfs_real *a = *m;
     if ((*nm && a->nx != *nm) || (*nk && a->ny != *nk) || a->nz > SWFS_RECON_MAXLAGS)
