@@ -373,7 +373,11 @@ int swfs_coherence_compute(const swfs_cplx *cube, double framedt, const swfs_coh
         double complex *m = swfs_cplx_frame(c->mcf, i);
         for (size_t p = 0; p < npix; p++) m[p] = c->dense[p * (Ld + 1) + (size_t)c->lag_frames[i]];
     }
-    rc = SWFS_OK;
+    /* a cube without one pixel to measure gives maps of NaN only: said, not written */
+    rc = c->n_valid ? SWFS_OK
+                    : swfs_fail(SWFS_ERR_VALUE, "coherence: no pixel of the %zu x %zu speckle cube has speckle power to "
+                                "measure (%zu with a non-finite value in some frame, %zu without power)", nx, ny,
+                                c->n_nonfinite, c->n_nopower);
 done:
     work_free(&w);
     swfs_free(mean);

@@ -46,6 +46,15 @@ static int add_pair(const swfs_learn_run_options *o, const char *sp, const char 
     if (!rc && (s->nz != 1 || z->nz != 1 || s->ny != z->ny || s->nx % 2))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s (%zux%zux%zu) and %s (%zux%zux%zu): expected NSLOPES (even) x N and NACT x N "
                        "images of the same N frames", sp, s->nx, s->ny, s->nz, tp, z->nx, z->ny, z->nz);
+    /* a file of zeros (a loop that never ran, a fill) would teach the map nothing but weight */
+    for (int k = 0; !rc && k < 2; k++) {
+        const swfs_real *a = k ? z : s;
+        size_t q = 0;
+        while (q < a->nx * a->ny && a->data[q] == 0) q++;
+        if (q == a->nx * a->ny)
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: every value is 0: a data set holds a loop's %s", k ? tp : sp,
+                           k ? "true residual" : "telemetry");
+    }
     /* the slopes as the telemetry's own projection left them */
     if (!rc && o->project) rc = swfs_modal_project_(o->project, o->nproject, s, sp);
     if (!rc && r->nslopes && (s->nx != r->nslopes || z->nx != r->nact))
@@ -780,6 +789,9 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
                        "--recon); a modal control matrix (--modal) acts on one frame");
     if (!rc && o->prior && o->nlags > 1)
         rc = swfs_fail(SWFS_ERR_ARG, "learn: --prior is a per-frame map; a space-time learn (--lags) takes none");
+    if (!rc && !(o->ridge > 0 && o->ridge <= 1e6))
+        rc = swfs_fail(SWFS_ERR_ARG, "learn: ridge %g; expected a fraction > 0 and at most 1e6 of the normal equations' "
+                       "mean diagonal", o->ridge);
     if (rc) return rc;
     swfs_paths *paths = NULL;
     rc = swfs_paths_create(&paths);
