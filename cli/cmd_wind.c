@@ -39,6 +39,8 @@ int swfs_cmd_wind(int argc, char **argv)
 {
     const char *cmd = "wind";
     swfs_wind_run_options o = {0};
+    o.nsub = -1;   /* not given: the files' (0 to the library) */
+    o.rate = -1.0;
     const char **files = calloc((size_t)argc, sizeof *files);
     size_t nf = 0;
     if (!files) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
@@ -52,9 +54,13 @@ int swfs_cmd_wind(int argc, char **argv)
     int rc = cli_parse_args(&args, argc, argv);
     if (rc) { free(files); return rc < 0 ? CLI_OK : rc; }
     if (!nf) rc = cli_usage_error(cmd, "needs at least one telemetry file");
-    else if (!(o.teldiam > 0) || !isfinite(o.teldiam)) rc = cli_usage_error(cmd, "needs --teldiam D > 0 [m]");
-    else if (o.nsub < 0) rc = cli_usage_error(cmd, "--nsub must be > 0, got %ld", o.nsub);
-    else if (o.rate < 0 || !isfinite(o.rate)) rc = cli_usage_error(cmd, "--wfs-hz must be > 0, got %g", o.rate);
+    else if (o.teldiam == 0) rc = cli_usage_error(cmd, "needs --teldiam D > 0 [m]");
+    /* (the geometry's range of TELDIAM: beyond it the pitch's products overflow) */
+    else if (!(o.teldiam >= 1e-3 && o.teldiam <= 1e3)) rc = cli_usage_error(cmd, "--teldiam must be 1e-3 to 1e3 m, got %g", o.teldiam);
+    else if (o.nsub != -1 && !(o.nsub > 0 && o.nsub <= 100000)) rc = cli_usage_error(cmd, "--nsub must be 1 to 100000, got %ld", o.nsub);
+    else if (o.rate != -1.0 && !(o.rate > 0 && o.rate <= 1e7)) rc = cli_usage_error(cmd, "--wfs-hz must be > 0 and at most 1e7, got %g", o.rate);
+    if (o.nsub == -1) o.nsub = 0;
+    if (o.rate == -1.0) o.rate = 0.0;
     if (rc) { free(files); return rc; }
     o.files = files;
     o.nfiles = nf;

@@ -190,6 +190,10 @@ chk coh-truncated 1 "tspw.fits: file is truncated" o.fits -- coherence tspw.fits
 chk coh-real 1 "run/science.fits: missing keyword FRAMEDT" o.fits -- coherence run/science.fits -o o.fits
 chk coh-no-framedt 1 "nodt.fits: missing keyword FRAMEDT" o.fits -- coherence nodt.fits -o o.fits
 chk coh-neg-framedt 1 "negdt.fits: FRAMEDT = -" o.fits -- coherence negdt.fits -o o.fits
+/usr/bin/python3 "$FITSHDR" spw.fits negfr.fits FRATIO=-3
+chk coh-neg-fratio 1 "negfr.fits: FRATIO = -3, expected WFS frames per camera frame, a positive number" o.fits -- coherence negfr.fits -o o.fits
+/usr/bin/python3 "$FITSHDR" spw.fits hugedt.fits FRAMEDT=1e300
+chk coh-huge-framedt 1 "hugedt.fits: FRAMEDT = 1e+300, expected a positive number of seconds (at most 60)" o.fits -- coherence hugedt.fits -o o.fits
 chk coh-unwritable 1 "notfits.fits/x.fits: cannot create" $UW -- coherence spw.fits -o $UW
 chk coh-zero-exposure 2 "--exposure must be positive seconds, got 0" o.fits -- coherence spw.fits -o o.fits --exposure 0
 chk coh-pixel 2 "--pixel 100,3 is outside the 54x54 image" o.fits -- coherence spw.fits -o o.fits --pixel 100,3
@@ -254,6 +258,8 @@ chk wind-no-teldiam 2 "needs --teldiam D > 0" o.fits -- wind ts/slopes_000.fits
 chk wind-missing 1 "nofile.fits" o.fits -- wind nofile.fits --teldiam 6.5
 chk wind-other-width 1 "expected 288 slopes x WFS frames as in ts/slopes_000.fits" o.fits -- wind ts/slopes_000.fits ts/actuators.fits --teldiam 6.5
 chk wind-bad-valid 1 "sh.fits" o.fits -- wind ts/slopes_000.fits --teldiam 6.5 --valid sh.fits
+chk wind-huge-teldiam 2 "--teldiam must be 1e-3 to 1e3 m, got 1e+308" o.fits -- wind ts/slopes_000.fits --teldiam 1e308
+chk wind-nsub-zero 2 "--nsub must be 1 to 100000, got 0" o.fits -- wind ts/slopes_000.fits --teldiam 6.5 --nsub 0
 # a series' file given twice, or a copy whose FRAME0 repeats the frames before it: not frames
 # that follow each other (their time correlations would count each frame twice)
 chk wind-same-file 1 "ts/slopes_000.fits and ts/slopes_000.fits are the same file" o.fits -- wind ts/slopes_000.fits ts/slopes_000.fits --teldiam 6.5

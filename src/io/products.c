@@ -397,18 +397,25 @@ int swfs_coherence_read_input(const char *path, swfs_cplx **cube, double *framed
     if (!rc && !found)
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: missing keyword FRAMEDT (seconds between WFS frames); the "
                        "coherence needs a WFS-rate cube", path);
-    if (!rc && !(dt > 0 && isfinite(dt)))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRAMEDT = %g, expected a positive number of seconds", path, dt);
+    /* (a WFS frame of more than a minute is no AO loop's: a corrupt header) */
+    if (!rc && !(dt > 0 && dt <= 60))
+        rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRAMEDT = %g, expected a positive number of seconds (at most 60)", path, dt);
     if (!rc && !swfs_fits_in_shape(f)->is_complex)
         rc = swfs_fail(SWFS_ERR_FORMAT, "%s: expected a complex speckle cube (NAXIS1 = 2, CTYPE1 = 'COMPLEX')", path);
     if (!rc && g) rc = swfs_fits_in_geom(f, g);
     if (!rc && exposure) {
         double v = 0;
         rc = swfs_fits_in_key_double_opt(f, "CAMEXP", &v, &found);
-        if (!rc && found && v > 0) *exposure = v;
+        if (!rc && found && !(v > 0 && isfinite(v)))
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: CAMEXP = %g, expected the camera's exposure, a positive number of "
+                           "seconds", path, v);
+        if (!rc && found) *exposure = v;
         if (!rc && !found) {
             rc = swfs_fits_in_key_double_opt(f, "FRATIO", &v, &found);
-            if (!rc && found && v > 0) *exposure = v * dt;
+            if (!rc && found && !(v > 0 && isfinite(v)))
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRATIO = %g, expected WFS frames per camera frame, a positive "
+                               "number", path, v);
+            if (!rc && found) *exposure = v * dt;
         }
     }
     if (!rc) rc = swfs_fits_in_read_cplx_all(f, cube);
