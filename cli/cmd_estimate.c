@@ -22,7 +22,7 @@ static const char *usage_text =
     "  --read-noise SIGMA    per-frame background/read noise [counts]; default: the science\n"
     "                        header's RDNOISE, else 0\n"
     "  --gain G              detector gain [e-/count] for the photon-noise variance Phi_I/G;\n"
-    "                        default: the science header's GAIN, else no photon term\n"
+    "                        default: the science header's GAIN, else no photon term (as 0)\n"
     "  --g-smooth L          regularize the scale factor over Gaussian neighbourhoods whose size\n"
     "                        follows the data, on a ladder L 2^k lambda/D from half a pixel to the\n"
     "                        whole map (default 2; 0 = the paper's per-pixel g; docs/estimator.md)\n"
@@ -49,7 +49,7 @@ static int parse(int argc, char **argv, swfs_estimate_run_options *o)
     if (!o->science || !o->speckles) return cli_usage_error(cmd, "needs SCIENCE.fits and SPECKLES.fits");
     if (!o->out) return cli_usage_error(cmd, "needs -o HALO.fits");
     if (!isnan(o->read_noise) && o->read_noise < 0) return cli_usage_error(cmd, "--read-noise must be >= 0, got %g", o->read_noise);
-    if (!isnan(o->gain) && o->gain <= 0) return cli_usage_error(cmd, "--gain must be > 0, got %g", o->gain);
+    if (!isnan(o->gain) && o->gain < 0) return cli_usage_error(cmd, "--gain must be >= 0 (0: no photon noise), got %g", o->gain);
     if (block < 1 || block > (1L << 20)) return cli_usage_error(cmd, "--frames-per-read must be 1..%ld, got %ld", 1L << 20, block);
     if (!(o->g_smooth_lod >= 0)) return cli_usage_error(cmd, "--g-smooth must be >= 0, got %g", o->g_smooth_lod);
     o->block = (size_t)block;

@@ -310,6 +310,10 @@ chk dm-reg 2 "--reg expects a finite decimal number, got 'nan'" o.fits -- dmoffs
 
 # ---- option values: the next option taken for a file name, C's hexadecimal numbers
 chk opt-value-is-option 2 "-o needs a file name, got the option '--gain' (a file of that name: write ./--gain)" ./--gain -- estimate run/science.fits run/speckles.fits -o --gain 2
+chk est-gain-option 1 "the gain given (--gain) 1e-05 e-/count is outside 1e-4 .. 1e6" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --gain 1e-5
+chk est-g-smooth 1 "g smoothing 60 lambda/D is 240 pixels at run/speckles.fits's 0.25 lambda/D per pixel; expected at most 60 pixels (15 lambda/D)" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --g-smooth 60
+# and refused before a frame is read
+grep -q "frames" out.txt err.txt && echo "FAIL est-g-smooth: frames read before the check" && nfail=$((nfail + 1))
 chk opt-hex-number 2 "--read-noise expects a finite decimal number, got '0x10'" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --read-noise 0x10
 
 # ---- correct, demo (argument and configuration errors; they simulate everything else)

@@ -30,11 +30,18 @@ int swfs_noise_from_header(const char *path, double read_noise, double gain, swf
     /* Physical ranges: a camera's read noise is at most 1e6 counts rms; a gain is 0 (no
      * photon-noise term) or 1e-4 .. 1e6 e-/count -- a 1E-300 gain would turn Phi_I/GAIN
      * into a noise variance of 1E300. */
-    if (!(n.read_noise >= 0 && n.read_noise <= 1e6))
+    if (!(n.read_noise >= 0 && n.read_noise <= 1e6)) {
+        if (!isnan(read_noise))
+            return swfs_fail(SWFS_ERR_VALUE, "the read noise given (--read-noise) %g counts is outside 0 .. 1e6", n.read_noise);
         return swfs_fail(SWFS_ERR_VALUE, "%s: read noise RDNOISE = %g counts is outside 0 .. 1e6", path, n.read_noise);
-    if (!(n.gain == 0 || (n.gain >= 1e-4 && n.gain <= 1e6)))
+    }
+    if (!(n.gain == 0 || (n.gain >= 1e-4 && n.gain <= 1e6))) {
+        if (!isnan(gain))
+            return swfs_fail(SWFS_ERR_VALUE, "the gain given (--gain) %g e-/count is outside 1e-4 .. 1e6 (or 0: no photon "
+                             "noise)", n.gain);
         return swfs_fail(SWFS_ERR_VALUE, "%s: GAIN = %g e-/count is outside 1e-4 .. 1e6 (or 0: no photon noise)", path,
                          n.gain);
+    }
     *out = n;
     return SWFS_OK;
 }
@@ -153,6 +160,12 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     if (!rc) rc = check_orientation(o, fs, fp);
     if (!rc) rc = swfs_noise_from_header(o->science, o->read_noise, o->gain, &r->noise);
     if (!rc) rc = swfs_fits_in_geom(fp, &r->geom);
+    /* the scale factor's smoothing in pixels, checked before the frames are read */
+    swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
+    if (!rc && !(eopt.g_smooth <= 60))
+        rc = swfs_fail(SWFS_ERR_ARG, "estimate: g smoothing %g lambda/D is %g pixels at %s's %g lambda/D per pixel; "
+                       "expected at most 60 pixels (%g lambda/D)", o->g_smooth_lod, eopt.g_smooth, o->speckles,
+                       o->g_smooth_lod / eopt.g_smooth, 60 * o->g_smooth_lod / eopt.g_smooth);
     const swfs_fits_shape *ss = rc ? NULL : swfs_fits_in_shape(fs);
     if (!rc && !(acc = swfs_accum_create(ss->nx, ss->ny))) rc = swfs_fail(SWFS_ERR_NOMEM, "estimate: out of memory");
     if (!rc) {
@@ -162,7 +175,6 @@ int swfs_estimate_run(const swfs_estimate_run_options *o, swfs_estimate_run_resu
     }
     rc = swfs_team_agree(o->team, rc);
     if (!rc) rc = swfs_team_merge_accum(o->team, acc, acc);
-    swfs_estimate_options eopt = {swfs_g_smooth_pixels(o->g_smooth_lod, r->geom.pixscale, &r->g_smooth_assumed)};
     if (!rc && swfs_team_writer(o->team)) {
         if ((rc = swfs_estimate(acc, &r->noise, &eopt, &r->halo))) swfs_fail_context(rc, "%s + %s", o->science, o->speckles);
         /* the speckles' tip-tilt treatment, and the AO residual's time mean that speckles
