@@ -70,6 +70,14 @@ int cli_take_range(const char *cmd, int argc, char **argv, int *i, double *out, 
     return 0;
 }
 
+int cli_check_mins(const char *cmd, const cli_min *m, size_t n)
+{
+    for (size_t k = 0; k < n; k++)
+        if (m[k].value < m[k].min)
+            return cli_usage_error(cmd, "%s must be >= %ld, got %ld", m[k].name, m[k].min, m[k].value);
+    return 0;
+}
+
 int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out)
 {
     const char *opt = argv[*i];

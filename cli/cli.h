@@ -102,6 +102,13 @@ const char *cli_next(int argc, char **argv, int *i);
 int cli_take_string(const char *cmd, int argc, char **argv, int *i, const char *what, const char **out);
 int cli_take_double(const char *cmd, int argc, char **argv, int *i, double *out);
 int cli_take_long(const char *cmd, int argc, char **argv, int *i, long *out);
+/* Integer options' lower bounds: the first below its bound named, with its value
+ * ("<name> must be >= <min>, got <value>"), else 0. */
+typedef struct cli_min {
+    const char *name;
+    long value, min;
+} cli_min;
+int cli_check_mins(const char *cmd, const cli_min *m, size_t n);
 /* A number in [lo, hi] (an end excluded where its *_open is 1), else the usage error msg. */
 int cli_take_range(const char *cmd, int argc, char **argv, int *i, double *out, double lo, int lo_open, double hi,
                    int hi_open, const char *msg);

@@ -63,7 +63,7 @@ int swfs_cmd_coherence(int argc, char **argv)
     const char *cmd = "coherence";
     const char *in = NULL, *out = NULL;
     double exposure = 0, wind = 0, bw = 0, radius = 6, diam = NAN;
-    int exp_set = 0;
+    int exp_set = 0, exp_none = 0;
     long px = -1, py = -1, nfit = 4;
     int have_pixel = 0;
     const cli_opt opts[] = {
@@ -75,6 +75,7 @@ int swfs_cmd_coherence(int argc, char **argv)
         const char *a = argv[i];
         int bad = 0;
         if (cli_is_help(a)) { fputs(usage_text, stdout); return CLI_OK; }
+        else if (!strcmp(a, "--exposure") && i + 1 < argc && !strcmp(argv[i + 1], "none")) { exp_none = 1; i++; }
         else if (!strcmp(a, "--exposure")) { bad = cli_take_double(cmd, argc, argv, &i, &exposure); exp_set = 1; }
         else if (!strcmp(a, "--pixel")) { bad = cli_parse_xy(cmd, a, cli_next(argc, argv, &i), &px, &py); have_pixel = 1; }
         else if ((bad = cli_match(cmd, opts, CLI_NOPTS(opts), argc, argv, &i)) != 0) bad = bad < 0;
@@ -123,6 +124,7 @@ int swfs_cmd_coherence(int argc, char **argv)
     swfs_coh_options opt;
     swfs_coh_options_default(&opt);
     opt.nfit = (int)nfit;
+    if (exp_none) hdr_exp = 0; /* --exposure none: no SNR_FACT */
     opt.exposure = exposure > 0 ? exposure : hdr_exp;
     /* Keep enough lags for the header exposure too, when --exposure overrides it. */
     if (exposure > 0 && hdr_exp > 0) {
@@ -159,7 +161,8 @@ int swfs_cmd_coherence(int argc, char **argv)
         printf("  median SNR factor      %.4f at the actual exposure %.4g ms (header)\n", swfs_coh_median(snr2),
                1e3 * hdr_exp);
     }
-    if (!c->snr_fact) printf("  SNR factor             no exposure known (give --exposure T or CAMEXP/FRATIO in the header)\n");
+    if (!c->snr_fact && exp_none) printf("  SNR factor             none (--exposure none)\n");
+    else if (!c->snr_fact) printf("  SNR factor             no exposure known (give --exposure T or CAMEXP/FRATIO in the header)\n");
     double v[2];
     if (c->n_valid > 2 && isfinite(g.pixscale) && isfinite(g.teldiam) && !swfs_coherence_fit_wind(c, &g, v))
         printf("  apparent wind          %.2f m/s toward %.1f deg from +x (frozen-flow fit PHRATE = k theta.v)\n",

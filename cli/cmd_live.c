@@ -117,8 +117,9 @@ static int parse(int argc, char **argv, swfs_live_options *o, const char **wfs, 
         }
     }
     /* Signs here; the library checks the rest (live.h swfs_live_options_check). */
-    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1)
-        return cli_usage_error(cmd, "--every and --max-frames must be >= 0, --threads and --batch >= 1");
+    const cli_min mins[] = {{"--every", every, 0}, {"--max-frames", max_frames, 0}, {"--threads", threads, 1},
+                            {"--batch", batch, 1}};
+    if (cli_check_mins(cmd, mins, CLI_NOPTS(mins))) return CLI_USAGE;
     o->run.stream.every = (size_t)every;
     o->run.stream.max_frames = (size_t)max_frames;
     o->run.threads = threads > INT_MAX ? INT_MAX : (int)threads;

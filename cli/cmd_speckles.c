@@ -119,10 +119,10 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     /* Signs and the one check that depends on what was typed; the library checks the rest
      * (run.h swfs_speckles_run_options_check), with the same messages for every caller. */
     if (d.rcond_given && o->pipe.recon != SWFS_RECON_SVD) return cli_usage_error(cmd, "--rcond and --modes go with --recon svd");
-    if (d.modes < 0 || threads < 1 || batch < 1 || tloops < 0 || tseed < 0 || tmax < 0)
-        return cli_usage_error(cmd, "--modes must be >= 0, --threads, --batch and --teach-loops >= 1, --teach-seed >= 0");
-    if (mtloops < 0 || mtmax < 0)
-        return cli_usage_error(cmd, "--mean-teach-loops and --mean-teach-max-loops must be >= 0");
+    const cli_min mins[] = {{"--modes", d.modes, 0}, {"--threads", threads, 1}, {"--batch", batch, 1},
+                            {"--teach-loops", tloops, 0}, {"--teach-seed", tseed, 0}, {"--teach-max-loops", tmax, 0},
+                            {"--mean-teach-loops", mtloops, 0}, {"--mean-teach-max-loops", mtmax, 0}};
+    if (cli_check_mins(cmd, mins, CLI_NOPTS(mins))) return CLI_USAGE;
     if (o->pipe.wfs_rate && d.tt_given && o->pipe.tiptilt == SWFS_TT_EXPOSURE) /* asked for by name: refused */
         return cli_usage_error(cmd, "--wfs-rate removes the tip-tilt per WFS frame (or --tiptilt keep); --tiptilt exposure "
                                "does not apply");

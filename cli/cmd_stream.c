@@ -83,9 +83,9 @@ static int parse(int argc, char **argv, swfs_stream_run_options *o)
     int prc = cli_parse_args(&args, argc, argv);
     if (prc) return prc;
     /* Signs here; the library checks the rest (run.h swfs_stream_run_options_check). */
-    if (every < 0 || max_frames < 0 || threads < 1 || batch < 1 || mloops < 0 || mmax < 0)
-        return cli_usage_error(cmd, "--every, --max-frames, --mean-teach-loops and --mean-teach-max-loops must be >= 0, "
-                               "--threads and --batch >= 1");
+    const cli_min mins[] = {{"--every", every, 0}, {"--max-frames", max_frames, 0}, {"--threads", threads, 1},
+                            {"--batch", batch, 1}, {"--mean-teach-loops", mloops, 0}, {"--mean-teach-max-loops", mmax, 0}};
+    if (cli_check_mins(cmd, mins, CLI_NOPTS(mins))) return CLI_USAGE;
     o->mean_teach_loops = (size_t)mloops;
     o->mean_teach_max_loops = (size_t)mmax;
     o->stream.every = (size_t)every;

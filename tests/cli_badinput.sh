@@ -171,6 +171,8 @@ for out in tslopes.fits tsci.fits; do
         nfail=$((nfail + 1))
     fi
 done
+chk speckles-threads 2 "--threads must be >= 1, got 0" o.fits -- speckles timing.txt --science sci.fits --actuators ts/actuators.fits --recon vk --threads 0 -o o.fits
+chk stream-every 2 "--every must be >= 0, got -1" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --every -1 -o o.fits
 chk speckles-pupn 2 "--pupn must be 2 to 8192 pupil samples, got 0" o.fits -- speckles timing.txt --science sci.fits --actuators ts/actuators.fits --recon vk --pupn 0 -o o.fits
 chk stream-static-cube 1 "spw.fits: static halo is 54x54x260 but the science frames are 54x54: expected one complex image" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --static spw.fits -o o.fits
 chk stream-keep-registered 1 "sci.fits: REGISTER = 1 (frames re-centred on their peak), but --tiptilt keep" o.fits -- stream --timing timing.txt --science sci.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits --keep-tiptilt -o o.fits

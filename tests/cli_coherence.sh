@@ -60,6 +60,10 @@ grep -q "54.2 ms" <<< "$out" || fail "wind limit from TELDIAM"
 echo "$out" | grep -Eq "^ +1 +1.0000 +0.000000 +-1.000000 +1.000000 +-90.000" || fail "--pixel table lag 1"
 echo "$out" | grep -Eq "^ +7 " || fail "--pixel table stops at lag 7"
 grep -q "PHRATE -1571 rad/s" <<< "$out" || fail "signed phase rate"
+# --exposure none: no SNR_FACT, said so
+out=$("$BIN" coherence in.fits -o cohn.fits --exposure none)
+grep -q "SNR factor             none (--exposure none)" <<< "$out" && ! grep -aq "EXTNAME = 'SNR_FACT" cohn.fits \
+    || fail "--exposure none: $out"
 
 # Error paths: one line naming the file or value, non-zero exit.
 set +e
