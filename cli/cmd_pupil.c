@@ -70,7 +70,8 @@ static int special(void *vctx, int argc, char **argv, int *i)
         if (cli_parse_double(cmd, a, cli_next(argc, argv, i), &opt->bias)) return -CLI_USAGE;
     } else if (!strcmp(a, "--wiener-k")) {
         ctx->moments_opt = 1;
-        if (cli_take_range(cmd, argc, argv, i, &opt->wiener_k, 0, 1, INFINITY, 0, "--wiener-k must be > 0"))
+        if (cli_take_range(cmd, argc, argv, i, &opt->wiener_k, 0, 1, 1e6, 0,
+                           "--wiener-k must be > 0 and at most 1e6 (k^2 in the weight)"))
             return -CLI_USAGE;
     } else if (!strcmp(a, "--weight")) {
         ctx->moments_opt = 1;

@@ -251,6 +251,7 @@ mv lg/slopes_000.fits lg/slopes_002.fits && cp lt1/slopes_000.fits lg/ && cp lg/
 chk learn-gap 1 "lg: 2 slopes files numbered up to 002, but no slopes_001.fits" o.fits -- learn lg -o o.fits
 rm -rf lz && cp -r lt1 lz && /usr/bin/python3 "$FITSHDR" lt1/truewf_000.fits lz/truewf_000.fits --fill 0 1
 chk learn-zero-truth 1 "lz/truewf_000.fits: every value is 0: a data set holds a loop's true residual" o.fits -- learn lt1 lz -o o.fits
+chk learn-metric-count 1 "the mean's miss's metric is over 1 outputs' functions; lt1/truewf_000.fits has 217 outputs" o.fits -- learn lt1 -o o.fits --mean-miss-over ts/pupil.fits,ts/pupil.fits
 chk learn-ridge-huge 2 "--ridge must be a fraction > 0 and at most 1e6" o.fits -- learn lt1 -o o.fits --ridge 1e308
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
@@ -272,6 +273,8 @@ chk wind-repeated-frames 1 "again.fits: FRAME0 = 0, but ts/slopes_000.fits ends 
 
 # ---- pupil: halos of other frames to choose among
 chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits
+chk pupil-wiener-k 2 "--wiener-k must be > 0 and at most 1e6" o.fits -- pupil run/halo.fits -o o.fits --method moments --wiener-k 1e300
+chk teach-valid-size 1 "the valid map ts/pupil.fits is 66 x 66 (3268 used), but ts/slopes_000.fits has 288 slopes per WFS frame" o.fits -- teach ts/slopes_000.fits --science sci.fits --actuators ts/actuators.fits --valid ts/pupil.fits -o o.fits --loops 2
 chk pupil-choose-missing 1 "nofile.fits" o.fits -- pupil run/halo.fits nofile.fits -o o.fits
 # the same frames' halo whose HALO header says another sampling: not one of these frames' halos
 /usr/bin/python3 "$FITSHDR" run/halo.fits hps.fits --hdu 2 PIXSCALE=0.5 && NOSUM hps.fits
@@ -312,6 +315,8 @@ chk dm-reg 2 "--reg expects a finite decimal number, got 'nan'" o.fits -- dmoffs
 
 # ---- option values: the next option taken for a file name, C's hexadecimal numbers
 chk opt-value-is-option 2 "-o needs a file name, got the option '--gain' (a file of that name: write ./--gain)" ./--gain -- estimate run/science.fits run/speckles.fits -o --gain 2
+/usr/bin/python3 "$FITSHDR" run/science.fits allnan.fits --fill nan 1
+chk est-all-nan 1 "allnan.fits + run/speckles.fits: no pixel has 2 frames with finite values" o.fits -- estimate allnan.fits run/speckles.fits -o o.fits
 chk est-gain-option 1 "the gain given (--gain) 1e-05 e-/count is outside 1e-4 .. 1e6" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --gain 1e-5
 chk est-g-smooth 1 "g smoothing 60 lambda/D is 240 pixels at run/speckles.fits's 0.25 lambda/D per pixel; expected at most 60 pixels (15 lambda/D)" o.fits -- estimate run/science.fits run/speckles.fits -o o.fits --g-smooth 60
 # and refused before a frame is read

@@ -803,6 +803,20 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
     if (!rc && o->perframe_out && o->nlags > 1) rc = swfs_paths_output(paths, "output per-frame reconstructor", o->perframe_out);
     swfs_paths_free(paths);
+    /* the mean's miss's metric against the first truth file's outputs, before the sums */
+    if (!rc && o->meanmiss_metric) {
+        char tp[4200];
+        snprintf(tp, sizeof tp, "%.4000s/truewf_000.fits", o->dirs[0]);
+        swfs_fits_in *f = NULL;
+        if (swfs_fits_in_open(&f, tp, NULL)) {
+            swfs_clear_error(); /* an unreadable file is add_dir's to name */
+        } else if (swfs_fits_in_shape(f)->nx != o->meanmiss_metric_n) {
+            rc = swfs_fail(SWFS_ERR_SHAPE, "learn: the mean's miss's metric is over %zu outputs' functions; %s has %zu "
+                           "outputs (the functions file holds one plane per output)", o->meanmiss_metric_n, tp,
+                           swfs_fits_in_shape(f)->nx);
+        }
+        swfs_fits_in_close(f);
+    }
     if (rc) return rc;
     swfs_recon_learner *l = NULL;
     set_stats *sets = o->nlags > 1 ? calloc(o->ndirs, sizeof *sets) : NULL;

@@ -748,6 +748,10 @@ int swfs_teach_describe_geom_(swfs_config *c, const swfs_geom *gp, const char *a
         unsigned char *vm = NULL;
         if ((rc = swfs_valid_map_read(valid, &vm, &nsub, &nv))) return rc;
         free(vm);
+        if (width != 2 * nsub * nsub && width != 2 * nv)
+            return swfs_fail(SWFS_ERR_SHAPE, "teach: the valid map %s is %zu x %zu (%zu used), but %s has %zu slopes per "
+                             "WFS frame: expected 2 nsub^2 = %zu (the full layout) or twice the used subapertures, %zu",
+                             valid, nsub, nsub, nv, telemetry, width, 2 * nsub * nsub, 2 * nv);
     } else {
         nsub = (size_t)llround(sqrt((double)width / 2.0));
         if (2 * nsub * nsub != width)

@@ -332,6 +332,11 @@ int swfs_estimate(const swfs_accum *acc, const swfs_noise *noise, const swfs_est
     }
     h->radicand_min = INFINITY;
     for (size_t p = 0; p < np; p++) pixel_moments(h, acc->f, p, rdb, nvar);
+    if (h->n_valid == 0 && h->n_no_frames == np) {
+        rc = swfs_fail(SWFS_ERR_VALUE, "no pixel has 2 frames with finite values (science or speckles NaN or Inf "
+                       "everywhere but in at most one frame of each pixel): nothing to estimate from");
+        goto fail;
+    }
     if (h->n_valid == 0) {
         rc = swfs_fail(SWFS_ERR_NUMERIC,
                        "no pixel has a defined scale factor g: the radicand of eq:scale-factor is <= 0 in %zu "

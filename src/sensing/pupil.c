@@ -179,7 +179,8 @@ static int pupil_moments(const swfs_halo *h, const swfs_geom *g, const swfs_real
     if (!src) return swfs_fail(SWFS_ERR_FORMAT, "halo product has no %s", o.source == SWFS_SOURCE_HALO ? "HALO" : "HALO_LF");
     if (o.weight == SWFS_WEIGHT_SNR && (!h->stab || !h->stab_err))
         return swfs_fail(SWFS_ERR_FORMAT, "SNR weighting needs the STAB and STAB_ERR extensions of the halo product");
-    if (!(o.wiener_k > 0.0)) return swfs_fail(SWFS_ERR_ARG, "Wiener k must be > 0, got %g", o.wiener_k);
+    if (!(o.wiener_k > 0.0 && o.wiener_k <= 1e6))
+        return swfs_fail(SWFS_ERR_ARG, "Wiener k must be > 0 and at most 1e6, got %g", o.wiener_k);
     if (!isfinite(o.bias)) return swfs_fail(SWFS_ERR_ARG, "bias must be finite");
     const size_t n = (size_t)g->pupn, nx = h->nx, ny = h->ny, nf = nx * ny;
     if (mask && (mask->nx != n || mask->ny != n))
