@@ -40,8 +40,8 @@ int swfs_cmd_learn(int argc, char **argv)
     if (rc) { free(dirs); return rc < 0 ? CLI_OK : rc; }
     if (!nd) rc = cli_usage_error(cmd, "needs at least one simulated data set (a folder)");
     else if (!o.out) rc = cli_usage_error(cmd, "needs -o W.fits");
-    else if (!(o.ridge > 0) || !(o.ridge <= 1e6))
-        rc = cli_usage_error(cmd, "--ridge must be a fraction > 0 and at most 1e6 (of the normal equations' mean "
+    else if (!(o.ridge > 0) || !(o.ridge <= 1e30))
+        rc = cli_usage_error(cmd, "--ridge must be a fraction > 0 and at most 1e30 (of the normal equations' mean "
                              "diagonal: beyond, the map is the prior, or 0), got %g", o.ridge);
     else if (threads < 0 || threads > 4096) rc = cli_usage_error(cmd, "--threads must be 0 (the CPUs) to 4096, got %ld", threads);
     if (!rc && lags && swfs_lags_parse(lags, lagv, &o.nlags, "--lags")) rc = cli_error(cmd);

@@ -207,7 +207,7 @@ chk coh-unknown 2 "--bogus" o.fits -- coherence spw.fits -o o.fits --bogus
 # ---- learn (ts/ is a time series without the true residual)
 chk learn-no-truth 1 "ts/truewf_000.fits beside it" o.fits -- learn ts -o o.fits
 chk learn-not-sim 1 "run: no slopes_000.fits" o.fits -- learn run -o o.fits
-chk learn-ridge 2 "--ridge must be a fraction > 0 and at most 1e6 (of the normal equations' mean diagonal: beyond, the map is the prior, or 0), got 0" o.fits -- learn ts -o o.fits --ridge 0
+chk learn-ridge 2 "--ridge must be a fraction > 0 and at most 1e30 (of the normal equations' mean diagonal: beyond, the map is the prior, or 0), got 0" o.fits -- learn ts -o o.fits --ridge 0
 chk learn-no-dir 2 "needs at least one simulated data set" o.fits -- learn -o o.fits
 # two small loops with the true residual: learn writes the map and its held-out check; a truth
 # file cut short stops it with the file named and no map left
@@ -252,7 +252,7 @@ chk learn-gap 1 "lg: 2 slopes files numbered up to 002, but no slopes_001.fits" 
 rm -rf lz && cp -r lt1 lz && /usr/bin/python3 "$FITSHDR" lt1/truewf_000.fits lz/truewf_000.fits --fill 0 1
 chk learn-zero-truth 1 "lz/truewf_000.fits: every value is 0: a data set holds a loop's true residual" o.fits -- learn lt1 lz -o o.fits
 chk learn-metric-count 1 "the mean's miss's metric is over 1 outputs' functions; lt1/truewf_000.fits has 217 outputs" o.fits -- learn lt1 -o o.fits --mean-miss-over ts/pupil.fits,ts/pupil.fits
-chk learn-ridge-huge 2 "--ridge must be a fraction > 0 and at most 1e6" o.fits -- learn lt1 -o o.fits --ridge 1e308
+chk learn-ridge-huge 2 "--ridge must be a fraction > 0 and at most 1e30" o.fits -- learn lt1 -o o.fits --ridge 1e308
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits
 

@@ -789,8 +789,8 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
                        "--recon); a modal control matrix (--modal) acts on one frame");
     if (!rc && o->prior && o->nlags > 1)
         rc = swfs_fail(SWFS_ERR_ARG, "learn: --prior is a per-frame map; a space-time learn (--lags) takes none");
-    if (!rc && !(o->ridge > 0 && o->ridge <= 1e6))
-        rc = swfs_fail(SWFS_ERR_ARG, "learn: ridge %g; expected a fraction > 0 and at most 1e6 of the normal equations' "
+    if (!rc && !(o->ridge > 0 && o->ridge <= 1e30))
+        rc = swfs_fail(SWFS_ERR_ARG, "learn: ridge %g; expected a fraction > 0 and at most 1e30 of the normal equations' "
                        "mean diagonal", o->ridge);
     if (rc) return rc;
     swfs_paths *paths = NULL;
