@@ -251,7 +251,7 @@ mv lg/slopes_000.fits lg/slopes_002.fits && cp lt1/slopes_000.fits lg/ && cp lg/
 chk learn-gap 1 "lg: 2 slopes files numbered up to 002, but no slopes_001.fits" o.fits -- learn lg -o o.fits
 rm -rf lz && cp -r lt1 lz && /usr/bin/python3 "$FITSHDR" lt1/truewf_000.fits lz/truewf_000.fits --fill 0 1
 chk learn-zero-truth 1 "lz/truewf_000.fits: every value is 0: a data set holds a loop's true residual" o.fits -- learn lt1 lz -o o.fits
-chk learn-metric-count 1 "the mean's miss's metric is over 1 outputs' functions; lt1/truewf_000.fits has 217 outputs" o.fits -- learn lt1 -o o.fits --mean-miss-over ts/pupil.fits,ts/pupil.fits
+chk learn-metric-count 1 "the mean's miss's metric is 1 x 1; the truth has 217 outputs (lt1/truewf_000.fits" o.fits -- learn lt1 -o o.fits --mean-miss-over ts/pupil.fits,ts/pupil.fits
 chk learn-ridge-huge 2 "--ridge must be a fraction > 0 and at most 1e30" o.fits -- learn lt1 -o o.fits --ridge 1e308
 truncate -s 100000 lt2/truewf_000.fits
 chk learn-truncated 1 "lt2/truewf_000.fits: file is truncated" o.fits -- learn lt1 lt2 -o o.fits

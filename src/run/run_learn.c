@@ -811,9 +811,9 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
         if (swfs_fits_in_open(&f, tp, NULL)) {
             swfs_clear_error(); /* an unreadable file is add_dir's to name */
         } else if (swfs_fits_in_shape(f)->nx != o->meanmiss_metric_n) {
-            rc = swfs_fail(SWFS_ERR_SHAPE, "learn: the mean's miss's metric is over %zu outputs' functions; %s has %zu "
-                           "outputs (the functions file holds one plane per output)", o->meanmiss_metric_n, tp,
-                           swfs_fits_in_shape(f)->nx);
+            rc = swfs_fail(SWFS_ERR_SHAPE, "learn: the mean's miss's metric is %zu x %zu; the truth has %zu outputs "
+                           "(%s; a metric from functions takes one per output)", o->meanmiss_metric_n,
+                           o->meanmiss_metric_n, swfs_fits_in_shape(f)->nx, tp);
         }
         swfs_fits_in_close(f);
     }
