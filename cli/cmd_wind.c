@@ -4,6 +4,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
 
+#include <limits.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -39,8 +40,8 @@ int swfs_cmd_wind(int argc, char **argv)
 {
     const char *cmd = "wind";
     swfs_wind_run_options o = {0};
-    o.nsub = -1;   /* not given: the files' (0 to the library) */
-    o.rate = -1.0;
+    o.nsub = LONG_MIN; /* not given: the files' (0 to the library) */
+    o.rate = NAN;
     const char **files = calloc((size_t)argc, sizeof *files);
     size_t nf = 0;
     if (!files) { fprintf(stderr, "specklewfs %s: out of memory\n", cmd); return CLI_FAIL; }
@@ -57,10 +58,10 @@ int swfs_cmd_wind(int argc, char **argv)
     else if (o.teldiam == 0) rc = cli_usage_error(cmd, "needs --teldiam D > 0 [m]");
     /* (the geometry's range of TELDIAM: beyond it the pitch's products overflow) */
     else if (!(o.teldiam >= 1e-3 && o.teldiam <= 1e3)) rc = cli_usage_error(cmd, "--teldiam must be 1e-3 to 1e3 m, got %g", o.teldiam);
-    else if (o.nsub != -1 && !(o.nsub > 0 && o.nsub <= 100000)) rc = cli_usage_error(cmd, "--nsub must be 1 to 100000, got %ld", o.nsub);
-    else if (o.rate != -1.0 && !(o.rate > 0 && o.rate <= 1e7)) rc = cli_usage_error(cmd, "--wfs-hz must be > 0 and at most 1e7, got %g", o.rate);
-    if (o.nsub == -1) o.nsub = 0;
-    if (o.rate == -1.0) o.rate = 0.0;
+    else if (o.nsub != LONG_MIN && !(o.nsub > 0 && o.nsub <= 100000)) rc = cli_usage_error(cmd, "--nsub must be 1 to 100000, got %ld", o.nsub);
+    else if (!isnan(o.rate) && !(o.rate > 0 && o.rate <= 1e7)) rc = cli_usage_error(cmd, "--wfs-hz must be > 0 and at most 1e7, got %g", o.rate);
+    if (o.nsub == LONG_MIN) o.nsub = 0;
+    if (isnan(o.rate)) o.rate = 0.0;
     if (rc) { free(files); return rc; }
     o.files = files;
     o.nfiles = nf;
