@@ -828,11 +828,12 @@ for _name, (_res, _args) in _PROTOS.items():
 class Owner:
     """Frees a library object when the last Python reference to it (the wrapper object
     or any numpy view into its arrays) goes away."""
-    __slots__ = ("ptr", "free", "__weakref__")
+    __slots__ = ("ptr", "free", "keep", "__weakref__")
 
     def __init__(self, ptr, free):
         self.ptr = ptr
         self.free = free
+        self.keep = []  # owners of objects the library replaced in this one, kept for their views
 
     def __del__(self):
         if self.ptr is not None and self.free is not None:
@@ -954,5 +955,21 @@ def strings(lines):
 
 
 def enc(path):
-    return os.fsencode(path)
+    b = os.fsencode(path)
+    if b"\0" in b:  # the C side would read the name up to it, another file
+        raise ValueError(f"path {path!r} holds a NUL character")
+    return b
+
+
+def count(v, name, lo=0, hi=1 << 40):
+    """v as a whole number in [lo, hi] for a size_t / long argument (a negative number would wrap
+    to 2^64 - n, a fraction would be truncated), else ValueError naming it."""
+    try:
+        f = float(v)
+        i = int(v)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"{name}: expected a whole number, got {v!r}") from None
+    if f != i or not lo <= i <= hi:
+        raise ValueError(f"{name}: expected a whole number from {lo} to {hi}, got {v!r}")
+    return i
 

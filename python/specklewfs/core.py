@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from . import _lib
-from ._lib import lib, check, as_array, dptr, swfs_blas_kernel_info
+from ._lib import lib, check, as_array, dptr, count, swfs_blas_kernel_info
 
 
 @dataclass
@@ -86,7 +86,11 @@ def aperture(n, dx, diam, obscur=0.0, nspiders=0, spider_width=0.0):
 
 def zernike(n, m, rho, theta):
     """Peak-normalized Zernike Z_n^m (aperture.h convention), elementwise."""
-    f = np.vectorize(lambda r, t: lib.swfs_zernike(int(n), int(m), float(r), float(t)), otypes=[float])
+    # (whole numbers for the C side's ints; the radial polynomial takes (n - |m|)/2 recurrence
+    # steps per point)
+    n = count(n, "zernike: n", 0, 1000)
+    m = count(m, "zernike: m", -n, n)
+    f = np.vectorize(lambda r, t: lib.swfs_zernike(n, m, float(r), float(t)), otypes=[float])
     return f(rho, theta)
 
 

@@ -11,7 +11,7 @@ import os
 import numpy as np
 
 from . import _lib
-from ._lib import lib, check, check_ptr, as_array, dptr, enc, EXPOSURE_DTYPE
+from ._lib import lib, check, check_ptr, as_array, dptr, enc, count, EXPOSURE_DTYPE
 
 P = ctypes.POINTER
 _u8 = P(ctypes.c_ubyte)
@@ -74,6 +74,7 @@ def interp_ct_grid(xy, npup, pupdx, mask=None):
     """Clough-Tocher interpolation (interp.h) from the actuators xy (nact, 2) [m] to the
     npup x npup pupil grid: (T as Sparse (npup^2 x nact), n_outside)."""
     xy = as_array(xy, "xy", np.float64, shape=(None, 2))
+    npup = count(npup, "interp_ct_grid: npup", 2, 8192)
     if mask is not None:
         mask = as_array(mask, "mask", np.float64, shape=(npup, npup))
     out = P(_lib.swfs_sparse)()
@@ -203,6 +204,7 @@ def slopes_white_noise(slopes, nsub, valid=None):
     structure function extrapolated to lag 0): slopes (nframes >= 16, 2 nsub^2), valid (nsub^2
     flags, or None: the subapertures whose slopes vary). Returns (variance per slope [rad^2],
     cells used)."""
+    nsub = count(nsub, "slopes_white_noise: nsub", 1, 100000)
     s = as_array(slopes, "slopes", np.float64, shape=(None, 2 * nsub * nsub))
     v = _valid_flags(valid, nsub, "slopes_white_noise")
     var, nc = ctypes.c_double(), ctypes.c_size_t()
@@ -217,6 +219,7 @@ def slopes_curl_noise(slopes, nsub, valid=None):
     over 8: white noise and the aliasing a gradient model cannot make, the effective noise of
     the vk and MAP maps (speckles takes it on slopes modal-slopes made). slopes: (nframes >= 16,
     2 nsub^2) or, with valid, the used subapertures' only (nframes, 2 nvalid)."""
+    nsub = count(nsub, "slopes_curl_noise: nsub", 1, 100000)
     s = as_array(slopes, "slopes", np.float64, shape=(None, None))
     v = _valid_flags(valid, nsub, "slopes_curl_noise")
     white, total = ctypes.c_double(), ctypes.c_double()
@@ -235,6 +238,7 @@ def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
     vy, speed, direction, corr (the mean correlation along its track), signif (robust standard
     deviations above the candidates' median) and nlags; threshold: the significance a layer
     needs; next_signif: the best track not taken (NaN when none was scored)."""
+    nsub = count(nsub, "wind_from_slopes: nsub", 1, 100000)
     s = as_array(slopes, "slopes", np.float64, ndim=2)
     v = None if valid is None else as_array(valid, "valid", np.uint8, shape=(nsub, nsub))
     e = _lib.swfs_wind_estimate()
@@ -305,6 +309,9 @@ class Recon:
     takes stack_lags(slopes, lags)). Build with Recon.svd / map / vk / modal, or from_matrix."""
 
     def __init__(self, ptr, owner):
+        # the address itself, not the struct field it may have been read from (a field's pointer
+        # follows the field: a model's set_map would move this Recon onto its new map)
+        ptr = ctypes.cast(ctypes.cast(ptr, ctypes.c_void_p).value, P(_lib.swfs_recon))
         self._p, self._owner = ptr, owner
         r = ptr.contents
         self.nact, self.nslopes = r.nact, r.nslopes
@@ -450,22 +457,38 @@ class SpeckleModel:
     def interaction_matrix(self):
         return self.wfs.interaction_matrix(self.T)
 
+    def _replace_recon(self, call, function):
+        """call() replaces the model's reconstructor: the one it had is handed to an owner that
+        lives as long as the model's, so that the Recon taken before (its W, sv, and what was
+        built on it) stays valid; put back if the call fails."""
+        m = self._p.contents
+        old = ctypes.cast(m.recon, ctypes.c_void_p).value
+        m.recon = None
+        try:
+            check(call(), function)
+        except BaseException:
+            m.recon = ctypes.cast(old, type(m.recon))
+            raise
+        if old:
+            self._owner.keep.append(_lib.Owner(ctypes.cast(old, P(_lib.swfs_recon)), lib.swfs_recon_free))
+        self._refresh()
+        return self
+
     def set_map(self, slopes, noise_var=0.0, remove_tiptilt=True):
         """Replace the reconstructor by the MAP reconstructor learned from slopes."""
         s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
-        check(lib.swfs_speckle_model_set_map(self._p, dptr(s), s.shape[0], float(noise_var), int(bool(remove_tiptilt))),
-              "swfs_speckle_model_set_map")
-        self._refresh()
-        return self
+        return self._replace_recon(lambda: lib.swfs_speckle_model_set_map(self._p, dptr(s), s.shape[0], float(noise_var),
+                                                                          int(bool(remove_tiptilt))),
+                                   "swfs_speckle_model_set_map")
 
     def set_vk(self, slopes, L0=30.0, noise_var=0.0, remove_tiptilt=True):
         """Replace the reconstructor by the von Karman MAP reconstructor (the default of
         `specklewfs speckles`)."""
         s = as_array(slopes, "slopes", np.float64, shape=(None, self.nslopes))
-        check(lib.swfs_speckle_model_set_vk(self._p, dptr(self.xy), float(L0), dptr(s), s.shape[0], float(noise_var),
-                                            int(bool(remove_tiptilt))), "swfs_speckle_model_set_vk")
-        self._refresh()
-        return self
+        return self._replace_recon(lambda: lib.swfs_speckle_model_set_vk(self._p, dptr(self.xy), float(L0), dptr(s),
+                                                                         s.shape[0], float(noise_var),
+                                                                         int(bool(remove_tiptilt))),
+                                   "swfs_speckle_model_set_vk")
 
     def recon_tilt(self):
         """(W_ext (nact, nslopes + 2), R (2, nslopes)) of speckles.h for the exposure
@@ -501,6 +524,10 @@ def schedule(ratio, offset, nexp):
 def make_schedule(first, count, w_first=1.0, w_last=1.0):
     """A schedule from arrays (broadcast)."""
     first, count, w_first, w_last = np.broadcast_arrays(first, count, w_first, w_last)
+    for name, v in (("first", first), ("count", count)):  # whole frame numbers, not wrapped or truncated
+        v = np.asarray(v)
+        if v.size and (v.dtype.kind not in "iuf" or not np.all(np.isfinite(v)) or np.any(v < 0) or np.any(v != np.floor(v))):
+            raise ValueError(f"make_schedule: {name} must be whole numbers of WFS frames >= 0, got {v.ravel()[:6]}")
     s = np.zeros(first.shape, EXPOSURE_DTYPE)
     s["first"], s["count"], s["w_first"], s["w_last"] = first, count, w_first, w_last
     return s

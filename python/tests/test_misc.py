@@ -66,3 +66,36 @@ def test_fit_wind():
     np.testing.assert_allclose(np.median((c.phrate / np.where(rate == 0, np.nan, rate))[rate != 0]), 1, rtol=0.05)
     vx, vy = c.fit_wind(geom)
     np.testing.assert_allclose([vx, vy], v, rtol=0.05)
+
+
+def test_bad_sizes_and_replaced_reconstructors():
+    """Sizes and counts the C side takes as size_t are refused when negative or fractional (they
+    wrapped to 2^64 - n: a crash, or a read before the slopes), a path with a NUL is refused (the C
+    side would open the name up to it), high Zernike orders are right (R(1) = 1: the alternating sum
+    gave 48.6 at n = 50), and a Recon taken from a model stays what it was after set_map replaces
+    the model's (its W was freed memory)."""
+    rng = np.random.default_rng(2)
+    with pytest.raises(ValueError, match="first must be whole numbers of WFS frames >= 0"):
+        sw.make_schedule([0, -2 ** 20], [4, 2 ** 20 + 3])
+    with pytest.raises(ValueError, match="count must be whole numbers"):
+        sw.make_schedule([0], [2.5])
+    for f in (lambda: sw.slopes_white_noise(rng.normal(size=(40, 128)), -8),
+              lambda: sw.wind_from_slopes(rng.normal(size=(40, 128)), -8, 0.25, 1000),
+              lambda: sw.interp_ct_grid(sw.actuators_hexapolar(2.0, 0.4, 0.2), -40, 0.05)):
+        with pytest.raises(ValueError, match="expected a whole number from"):
+            f()
+    with pytest.raises(ValueError, match="NUL"):
+        sw.write_fits("nul\0x.fits", np.ones((2, 2)))
+    assert [sw.zernike(n, n % 2, 1.0, 0.0) for n in (50, 51, 200)] == pytest.approx([1, 1, 1], abs=1e-9)
+    xy = sw.actuators_hexapolar(2.0, 0.4, 0.2)
+    m = sw.SpeckleModel(xy, sw.aperture(40, 0.05, 2.0, 0.1), 0.05, 2.0, 8)
+    r = m.recon
+    W, s = r.W, rng.normal(size=(3, m.nslopes))
+    W0, a0 = W.copy(), r.apply(s)
+    m.set_map(rng.normal(size=(300, m.nslopes)) * 1e-7)
+    junk = [rng.normal(size=10000) for _ in range(50)]  # reuse of freed memory, if it were freed
+    assert np.array_equal(W, W0) and np.array_equal(r.apply(s), a0) and not np.array_equal(m.recon.W, W0)
+    del junk
+    with pytest.raises(sw.Error, match="not finite"):
+        m.set_map(np.full((300, m.nslopes), np.nan))
+    assert np.all(np.isfinite(m.recon.W))  # the model keeps the map it had

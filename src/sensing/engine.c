@@ -375,10 +375,10 @@ int swfs_engine_process(swfs_engine *e, const double *slopes, size_t nwfs, const
         return swfs_fail(SWFS_ERR_ARG, "engine: missing slopes, schedule or output buffer");
     for (size_t i = 0; i < nexp; i++) {
         const swfs_exposure *x = &sched[i];
-        if (x->count == 0 || x->first + x->count > nwfs)
+        if (x->count == 0 || x->first >= nwfs || x->count > nwfs - x->first) /* (no sum that could wrap) */
             return swfs_fail(SWFS_ERR_ARG,
-                             "engine: camera frame %zu integrates WFS frames %zu..%zu but the block holds %zu",
-                             i, x->first, x->first + x->count - 1, nwfs);
+                             "engine: camera frame %zu integrates %zu WFS frames from frame %zu but the block holds %zu",
+                             i, x->count, x->first, nwfs);
         if (!isfinite(x->w_first) || !isfinite(x->w_last))
             return swfs_fail(SWFS_ERR_VALUE, "engine: camera frame %zu has a non-finite weight", i);
     }

@@ -587,7 +587,12 @@ int swfs_pipeline_process(swfs_pipeline *p, const double *slopes, size_t nwfs, c
         if (!rc) band_apply(p, out, nexp);
         return rc;
     }
-    /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h). */
+    /* Tip-tilt relative to each exposure's mean, as two extra slopes (speckles.h); the schedule
+     * checked first, before its counts size the expanded frames */
+    for (size_t j = 0; j < nexp; j++)
+        if (sched[j].count == 0 || sched[j].first >= nwfs || sched[j].count > nwfs - sched[j].first)
+            return swfs_fail(SWFS_ERR_VALUE, "speckles: exposure %zu needs %zu WFS frames from frame %zu of %zu", j,
+                             sched[j].count, sched[j].first, nwfs);
     const size_t nx = swfs_speckles_expand_frames(sched, nexp);
     int rc = reserve(p, nx, nexp);
     if (!rc) rc = swfs_speckles_expand(slopes, p->info.nslopes, nwfs, p->Rtilt, sched, nexp, p->xslopes, p->xsched);

@@ -255,9 +255,9 @@ int swfs_speckles_expand(const double *slopes, size_t nslopes, size_t nwfs, cons
     size_t k = 0;
     for (size_t j = 0; j < nexp; j++) {
         const swfs_exposure *x = sched + j;
-        if (x->count == 0 || x->first + x->count > nwfs)
-            return swfs_fail(SWFS_ERR_VALUE, "speckles: exposure %zu needs WFS frames %zu..%zu of %zu", j, x->first,
-                             x->first + x->count, nwfs);
+        if (x->count == 0 || x->first >= nwfs || x->count > nwfs - x->first) /* (no sum that could wrap) */
+            return swfs_fail(SWFS_ERR_VALUE, "speckles: exposure %zu needs %zu WFS frames from frame %zu of %zu", j,
+                             x->count, x->first, nwfs);
         double sw = 0, tx = 0, ty = 0;
         for (size_t r = 0; r < x->count; r++) {
             double w = r == 0 ? x->w_first : (r + 1 == x->count ? x->w_last : 1.0), mx = 0, my = 0;
