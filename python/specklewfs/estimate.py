@@ -27,7 +27,8 @@ class Accumulator:
 
     def __init__(self, nx, ny, _ptr=None):
         if _ptr is None:
-            _ptr = check_ptr(lib.swfs_accum_create(int(nx), int(ny)), "swfs_accum_create")
+            nx, ny = _lib.count(nx, "Accumulator: nx"), _lib.count(ny, "Accumulator: ny")  # (the library's range)
+            _ptr = check_ptr(lib.swfs_accum_create(nx, ny), "swfs_accum_create")
         self._owner = _lib.Owner(_ptr, lib.swfs_accum_free)
         self._p = _ptr
         self.geom = None  # set by load() / merge_files()
@@ -92,6 +93,13 @@ class Accumulator:
         sci = as_array(sci, "science", np.float64, shape=shape)
         psi = as_array(psi, "psi", np.complex128, shape=sci.shape)
         n = 1 if frame else sci.shape[0]
+        # the speckles checked whole first: the library refuses a frame with a non-finite one,
+        # and the frames before it would already be in (a retry would count them twice)
+        bad = ~np.isfinite(psi)
+        if bad.any():
+            k, y, x = np.argwhere(bad.reshape(n, ny, nx))[0]
+            raise _lib.Error(_lib.STATUS_NAMES.index("SWFS_ERR_VALUE"), f"psi: the speckle value at pixel ({x}, {y}) "
+                             f"of frame {k} is not finite; no frame of the {n} added", "swfs_accum_add")
         np_ = nx * ny
         sbase, pbase = sci.ctypes.data, psi.ctypes.data
         dp = ctypes.POINTER(ctypes.c_double)

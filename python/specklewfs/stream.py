@@ -474,11 +474,15 @@ class Stream:
 
         def next_batch(ctx, bp):
             try:
-                item = next(it, None)
-                if item is None:
+                end = object()
+                item = next(it, end)
+                if item is end:
                     bp.contents.nexp = 0
                     state["keep"] = None
                     return 0
+                if item is None:  # (not the end: the batches after it would be dropped in silence)
+                    raise ValueError("Stream.run: the source gave None as a batch; expected (slopes, schedule, "
+                                     "science) batches, and the end of the iteration to stop")
                 b, keep = self._batch(item)
                 state["keep"] = keep  # valid until the next call, as stream.h asks
                 ctypes.memmove(bp, ctypes.byref(b), ctypes.sizeof(b))

@@ -99,3 +99,27 @@ def test_bad_sizes_and_replaced_reconstructors():
     with pytest.raises(sw.Error, match="not finite"):
         m.set_map(np.full((300, m.nslopes), np.nan))
     assert np.all(np.isfinite(m.recon.W))  # the model keeps the map it had
+
+
+def test_accumulator_and_simulation_writes_are_whole(small_sim, tmp_path):
+    """An Accumulator of a size whose pixel count would wrap is refused (2^33 x 2^33 was taken
+    as an empty one); a cube with a non-finite speckle value adds no frame at all (the frames
+    before it went in, and a retry counted them twice); SimResult.write writes its four files or
+    none (science.fits and speckles.fits stayed when truth.fits could not be written)."""
+    with pytest.raises(sw.Error, match="accumulator of size 8589934592x8589934592: expected 1 to 65536 pixels a side"):
+        sw.Accumulator(2 ** 33, 2 ** 33)
+    with pytest.raises(ValueError, match="Accumulator: nx: expected a whole number from 0"):
+        sw.Accumulator(-1, 5)
+    rng = np.random.default_rng(3)
+    a = sw.Accumulator(3, 2)
+    psi = rng.normal(size=(20, 2, 3)) + 1j * rng.normal(size=(20, 2, 3))
+    psi[13, 1, 2] = np.nan
+    with pytest.raises(sw.Error, match=r"pixel \(2, 1\) of frame 13 is not finite; no frame of the 20 added"):
+        a.add(rng.normal(size=(20, 2, 3)), psi)
+    assert a.frames == 0
+    d = tmp_path / "sim"
+    d.mkdir()
+    (d / "truth.fits").mkdir()  # the third file cannot be written
+    with pytest.raises(sw.Error):
+        small_sim.write(str(d))
+    assert sorted(p.name for p in d.iterdir()) == ["truth.fits"]

@@ -213,6 +213,10 @@ def test_stream_push_updates_auto_static_and_errors(data):
     with pytest.raises(sw.Error, match="no") as e:
         sw.Stream(d["pipe"]).run([])
     assert e.value.status_name == "SWFS_ERR_NUMERIC"
+    # a None among the batches is refused, not taken for the end (the batches after it were lost)
+    bs = list(batches(d, 40))
+    with pytest.raises(ValueError, match="the source gave None as a batch"):
+        sw.Stream(d["pipe"], static=d["static"]).run([bs[0], None, bs[1]])
 
 
 def test_linear_pipeline_equals_shack_hartmann(data):

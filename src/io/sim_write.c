@@ -1,4 +1,5 @@
 /* Writing the Sec. 3 data set: science.fits, speckles.fits, truth.fits, pupil.fits. */
+#include "specklewfs/atomic.h"
 #include "specklewfs/fits.h"
 #include "specklewfs/sim.h"
 #include "specklewfs/status.h"
@@ -65,8 +66,21 @@ static int finish(swfs_fits_out *o, int rc)
     return swfs_fits_out_commit(o);
 }
 
+static int sim_write_files(const swfs_sim_result *r, const swfs_real *science, double read_noise, double gain,
+                           const char *dir, const char *const *provenance, size_t nprov);
+
+/* The four files as one group (atomic.h): a failure at the third leaves none of them. */
 int swfs_sim_write(const swfs_sim_result *r, const swfs_real *science, double read_noise, double gain, const char *dir,
                    const char *const *provenance, size_t nprov)
+{
+    swfs_outputs_begin();
+    int rc = sim_write_files(r, science, read_noise, gain, dir, provenance, nprov);
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    return rc ? rc : erc;
+}
+
+static int sim_write_files(const swfs_sim_result *r, const swfs_real *science, double read_noise, double gain,
+                           const char *dir, const char *const *provenance, size_t nprov)
 {
     if (!r || !dir) return swfs_fail(SWFS_ERR_ARG, "simulation write: missing result or folder");
     if (!science) science = r->science;

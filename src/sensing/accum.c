@@ -9,8 +9,8 @@
 
 swfs_accum *swfs_accum_create(size_t nx, size_t ny)
 {
-    if (!nx || !ny) {
-        swfs_fail(SWFS_ERR_ARG, "accumulator of size %zux%zu", nx, ny);
+    if (!nx || !ny || nx > 65536 || ny > 65536) { /* (nx ny times 15 fields must not wrap) */
+        swfs_fail(SWFS_ERR_ARG, "accumulator of size %zux%zu: expected 1 to 65536 pixels a side", nx, ny);
         return NULL;
     }
     swfs_accum *a = calloc(1, sizeof *a);
