@@ -47,6 +47,16 @@ def test_fits_errors(tmp_path):
     with pytest.raises(ValueError, match=r"B: expected 2 or 3 dimensions, got shape \(4,\)"):
         sw.write_fits(str(tmp_path / "y.fits"), {"B": np.zeros(4)})
     assert not os.path.exists(str(tmp_path / "y.fits")) and not os.path.exists(str(tmp_path / "y.fits.part"))
+    # keys that would rewrite the data's layout or scaling (BZERO 100 read back every value
+    # shifted, NAXIS2 50 the padding as data), that FITS cannot spell, or whose value would cut
+    # the card: refused, no file left
+    for keys, what in (({"BZERO": 100}, "BZERO describes the data's layout"),
+                       ({"NAXIS2": 50}, "NAXIS2 describes the data's layout"),
+                       ({"bad key": 1}, "expected 1 to 8 of A-Z"),
+                       ({"NOTE": "a\nb"}, "control character")):
+        with pytest.raises(sw.Error, match=what):
+            sw.write_fits(str(tmp_path / "k.fits"), np.arange(4.0).reshape(2, 2), keys=keys)
+        assert not os.path.exists(str(tmp_path / "k.fits"))
 
 
 def test_blas_threads():

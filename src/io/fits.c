@@ -1103,8 +1103,34 @@ static int ensure_hdu(swfs_fits_out *o)
     return SWFS_OK;
 }
 
+/* A keyword the caller may write: not one that describes the HDU's layout or scaling (BZERO
+ * 100 would shift every value read back, NAXIS2 50 read the padding as data), which the
+ * writer sets itself, and FITS's own syntax (up to 8 of A-Z, 0-9, '-', '_'). */
+static int user_key(swfs_fits_out *o, const char *key)
+{
+    static const char *const layout[] = {"SIMPLE", "BITPIX", "NAXIS", "EXTEND", "XTENSION", "PCOUNT", "GCOUNT",
+                                         "BZERO", "BSCALE", "BLANK", "END", "EXTNAME", "CHECKSUM", "DATASUM",
+                                         "TFIELDS", "THEAP", "ZIMAGE", "ZBITPIX", "ZNAXIS", "ZCMPTYPE"};
+    size_t n = key ? strlen(key) : 0;
+    int ok = n >= 1 && n <= 8;
+    for (size_t i = 0; ok && i < n; i++)
+        ok = (key[i] >= 'A' && key[i] <= 'Z') || (key[i] >= '0' && key[i] <= '9') || key[i] == '-' || key[i] == '_';
+    if (!ok)
+        return swfs_fail(SWFS_ERR_ARG, "%s: keyword '%.20s': expected 1 to 8 of A-Z, 0-9, '-', '_'", o->path,
+                         key ? key : "");
+    for (size_t k = 0; k < sizeof layout / sizeof layout[0]; k++) {
+        const size_t m = strlen(layout[k]);
+        const int numbered = !strcmp(layout[k], "NAXIS") || !strcmp(layout[k], "ZNAXIS");
+        if (!strncmp(key, layout[k], m) && (key[m] == 0 || (numbered && strspn(key + m, "0123456789") == n - m)))
+            return swfs_fail(SWFS_ERR_ARG, "%s: keyword %s describes the data's layout or scaling, which the writer "
+                             "sets itself", o->path, key);
+    }
+    return SWFS_OK;
+}
+
 int swfs_fits_out_key_double(swfs_fits_out *o, const char *key, double v, const char *comment)
 {
+    if (user_key(o, key)) return SWFS_ERR_ARG;
     int st = 0, rc = ensure_hdu(o);
     if (rc) return rc;
     if (isfinite(v)) fits_update_key(o->fp, TDOUBLE, key, &v, comment, &st);
@@ -1115,6 +1141,7 @@ int swfs_fits_out_key_double(swfs_fits_out *o, const char *key, double v, const 
 
 int swfs_fits_out_key_long(swfs_fits_out *o, const char *key, long v, const char *comment)
 {
+    if (user_key(o, key)) return SWFS_ERR_ARG;
     int st = 0, rc = ensure_hdu(o);
     if (rc) return rc;
     fits_update_key(o->fp, TLONG, key, &v, comment, &st);
@@ -1124,6 +1151,11 @@ int swfs_fits_out_key_long(swfs_fits_out *o, const char *key, long v, const char
 
 int swfs_fits_out_key_string(swfs_fits_out *o, const char *key, const char *v, const char *comment)
 {
+    if (user_key(o, key)) return SWFS_ERR_ARG;
+    for (const unsigned char *c = (const unsigned char *)v; c && *c; c++) /* (a newline would cut the card) */
+        if (*c < 32 || *c == 127)
+            return swfs_fail(SWFS_ERR_ARG, "%s: keyword %s: its value holds a control character (code %d), which a "
+                             "FITS header cannot", o->path, key, *c);
     int st = 0, rc = ensure_hdu(o);
     if (rc) return rc;
     fits_update_key_longstr(o->fp, key, v, comment, &st);
