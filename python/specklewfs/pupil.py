@@ -1,5 +1,6 @@
 """Pupil field and NCP wavefront from the static halo (pupil.h)."""
 import ctypes
+import os
 
 import numpy as np
 
@@ -129,7 +130,7 @@ def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, b
     ran_away (the WFE above half the wavelength: the fit ran away from its start,
     no estimate; the command line warns). Nothing is written on failure."""
     halos = _lib.path_list(halos)
-    halos = [str(h) for h in halos]
+    halos = [os.fsdecode(h) for h in halos]  # (str, bytes or a path object)
     o = _lib.swfs_pupil_run_options()
     lib.swfs_pupil_run_options_default(ctypes.byref(o))
     _options(weight, wiener_k, bias, source, method, keep_resmean, o.pupil)

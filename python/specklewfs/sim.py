@@ -200,10 +200,10 @@ def demo(directory="demo-out", config=None, levels=(0, 10, 100, 1000), report=Tr
     if lv.ndim != 1 or lv.size == 0:
         raise ValueError("levels: expected a list of camera noise levels [counts], got %r" % (levels,))
     o.levels, o.nlevels = dptr(lv), lv.size
-    o.outdir = enc(str(directory))
+    o.outdir = enc(directory)
     o.report = 1 if report else 0
     if config is not None:
-        o.config = enc(str(config))
+        o.config = enc(config)
     if loop_iterations is not None:
         o.loop.iterations = int(loop_iterations)
     if loop_gain is not None:
@@ -257,7 +257,7 @@ def report(run_dir, out_dir=None, title=None, pixel=None, percentiles=None, log_
     if log_decades is not None:
         o.log_decades = float(log_decades)
     s = _lib.swfs_report_summary()
-    check(lib.swfs_report_run(enc(str(run_dir)), None if out_dir is None else enc(str(out_dir)), ctypes.byref(o),
+    check(lib.swfs_report_run(enc(run_dir), None if out_dir is None else enc(out_dir), ctypes.byref(o),
                               ctypes.byref(s)), "swfs_report_run")
     d = {n: getattr(s, n) for n in _lib.REPORT_KEY_FIELDS}
     d.update(html=s.html.decode(), demo=bool(s.demo), pixel=(s.pixel_i, s.pixel_j),
