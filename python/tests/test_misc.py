@@ -1,5 +1,7 @@
 """The remaining bindings: reset, geometry reads, modal reconstructor, model reconstructor
 swaps, the wind fit."""
+import os
+
 import numpy as np
 import pytest
 
@@ -123,3 +125,8 @@ def test_accumulator_and_simulation_writes_are_whole(small_sim, tmp_path):
     with pytest.raises(sw.Error):
         small_sim.write(str(d))
     assert sorted(p.name for p in d.iterdir()) == ["truth.fits"]
+    # a folder given as bytes is that folder (it became one named "b'...'")
+    b = tmp_path / "bytes"
+    b.mkdir()
+    small_sim.write(os.fsencode(str(b)))
+    assert sorted(p.name for p in b.iterdir()) == ["pupil.fits", "science.fits", "speckles.fits", "truth.fits"]
