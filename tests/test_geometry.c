@@ -154,39 +154,25 @@ static void test_bad_geometry_files(void **state)
 {
     (void)state;
     swfs_geom g;
-    FILE *f = fopen(p("bad1.txt"), "w");
-    fprintf(f, "WAVELEN = 3.8e-6\nPUPSIZE = 3\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad1.txt"), &g), 0);
-    assert_non_null(strstr(swfs_last_error(), "bad1.txt:2: unknown key 'PUPSIZE'"));
-    f = fopen(p("bad2.txt"), "w");
-    fprintf(f, "WAVELEN = 3.8\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad2.txt"), &g), 0);
-    print_message("%s\n", swfs_last_error());
-    assert_non_null(strstr(swfs_last_error(), "WAVELEN"));
-    f = fopen(p("bad3.txt"), "w");
-    fprintf(f, "# nothing\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad3.txt"), &g), 0);
-    assert_non_null(strstr(swfs_last_error(), "no geometry keyword"));
-    /* a value of nan (the reader's "not given") or in hexadecimal, and a key given twice, are
-     * refused naming the line, not dropped or overwritten in silence */
-    f = fopen(p("bad4.txt"), "w");
-    fprintf(f, "PUPDX = 0.1\nTELDIAM = nan\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad4.txt"), &g), 0);
-    assert_non_null(strstr(swfs_last_error(), "bad4.txt:2: TELDIAM = nan: expected a finite decimal number"));
-    f = fopen(p("bad5.txt"), "w");
-    fprintf(f, "PUPDX = 0.1\nteldiam 8\npupdx 0.2\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad5.txt"), &g), 0);
-    assert_non_null(strstr(swfs_last_error(), "bad5.txt:3: PUPDX given again (line 1 gave it)"));
-    f = fopen(p("bad6.txt"), "w");
-    fprintf(f, "PUPN = 0x40\n");
-    fclose(f);
-    assert_int_not_equal(swfs_geom_read_file(p("bad6.txt"), &g), 0);
-    assert_non_null(strstr(swfs_last_error(), "bad6.txt:1: PUPN = 0x40: expected a finite decimal number"));
+    /* each file refused, its message naming the line and what was wrong; a value of nan (the
+     * reader's "not given") or in hexadecimal, and a key given twice, are refused naming the
+     * line, not dropped or overwritten in silence */
+    const struct { const char *name, *text, *want; } bad[] = {
+        {"bad1.txt", "WAVELEN = 3.8e-6\nPUPSIZE = 3\n", "bad1.txt:2: unknown key 'PUPSIZE'"},
+        {"bad2.txt", "WAVELEN = 3.8\n", "WAVELEN"},
+        {"bad3.txt", "# nothing\n", "no geometry keyword"},
+        {"bad4.txt", "PUPDX = 0.1\nTELDIAM = nan\n", "bad4.txt:2: TELDIAM = nan: expected a finite decimal number"},
+        {"bad5.txt", "PUPDX = 0.1\nteldiam 8\npupdx 0.2\n", "bad5.txt:3: PUPDX given again (line 1 gave it)"},
+        {"bad6.txt", "PUPN = 0x40\n", "bad6.txt:1: PUPN = 0x40: expected a finite decimal number"},
+    };
+    for (size_t k = 0; k < sizeof bad / sizeof bad[0]; k++) {
+        FILE *f = fopen(p(bad[k].name), "w");
+        assert_non_null(f);
+        fputs(bad[k].text, f);
+        fclose(f);
+        assert_int_not_equal(swfs_geom_read_file(p(bad[k].name), &g), 0);
+        assert_non_null(strstr(swfs_last_error(), bad[k].want));
+    }
     assert_int_not_equal(swfs_geom_read_file(p("none.txt"), &g), 0);
     assert_non_null(strstr(swfs_last_error(), "none.txt"));
 }
