@@ -160,6 +160,8 @@ class ShackHartmann:
 def dm_modes(T, mask):
     """Lowest-energy DM modes (wfs.h): (nact, nact), column k = mode k."""
     mask = as_array(mask, "mask", np.float64, ndim=2)
+    if mask.shape[0] != mask.shape[1] or mask.size != T.shape[0]:
+        raise ValueError(f"dm_modes: mask: expected the square pupil grid of T's {T.shape[0]} rows, got shape {mask.shape}")
     out = P(ctypes.c_double)()
     check(lib.swfs_dm_modes(ctypes.byref(T._s), dptr(mask), mask.shape[0], ctypes.byref(out)), "swfs_dm_modes")
     return _lib.take_buffer(ctypes.cast(out, ctypes.c_void_p).value, (T.shape[1], T.shape[1]), np.float64)
@@ -173,6 +175,9 @@ def slopes_remove_tiptilt(slopes, valid=None):
     v = None
     if valid is not None:
         v = as_array(np.asarray(valid).astype(np.uint8), "valid", np.uint8, ndim=(1, 2))
+        if v.size != ss.shape[1] // 2:  # (the library reads one flag per subaperture)
+            raise ValueError(f"slopes_remove_tiptilt: valid has {v.size} flags, expected one per subaperture, "
+                             f"{ss.shape[1] // 2}")
     for k in range(ss.shape[0]):
         lib.swfs_slopes_remove_tiptilt(dptr(ss[k]), ss.shape[1], v.ctypes.data_as(_u8) if v is not None else None)
     return s
@@ -403,7 +408,13 @@ class Recon:
 
     def project_tiptilt(self, valid=None):
         """W <- W (I - M), M the mean-slope projector over the valid subapertures (in place)."""
-        v = None if valid is None else np.ascontiguousarray(np.asarray(valid).astype(np.uint8))
+        v = None if valid is None else np.ascontiguousarray(np.asarray(valid).astype(np.uint8).reshape(-1))
+        if v is not None and v.size != self.nslopes // 2:  # (the library reads one flag per subaperture)
+            raise ValueError(f"project_tiptilt: valid has {v.size} flags, expected one per subaperture, "
+                             f"{self.nslopes // 2}")
+        if not self.W.flags.writeable:
+            raise ValueError("project_tiptilt: W is read-only, and the projection changes it in place; give "
+                             "Recon.from_matrix a writable copy")
         check(lib.swfs_recon_project_tiptilt(self._p, v.ctypes.data_as(_u8) if v is not None else None),
               "swfs_recon_project_tiptilt")
         return self

@@ -101,6 +101,17 @@ def test_bad_sizes_and_replaced_reconstructors():
     with pytest.raises(sw.Error, match="not finite"):
         m.set_map(np.full((300, m.nslopes), np.nan))
     assert np.all(np.isfinite(m.recon.W))  # the model keeps the map it had
+    # validity flags and masks of another length than the library reads (it read past their end)
+    with pytest.raises(ValueError, match="project_tiptilt: valid has 3 flags, expected one per subaperture, 64"):
+        sw.Recon.from_matrix(rng.normal(size=(10, 128))).project_tiptilt(valid=np.ones(3))
+    with pytest.raises(ValueError, match="slopes_remove_tiptilt: valid has 2 flags, expected one per subaperture, 64"):
+        sw.slopes_remove_tiptilt(rng.normal(size=(1, 128)), valid=np.ones(2))
+    with pytest.raises(ValueError, match=r"dm_modes: mask: expected the square pupil grid of T's 1600 rows, got shape \(40, 41\)"):
+        sw.dm_modes(m.T, np.zeros((40, 41)))
+    W = rng.normal(size=(10, 128))
+    W.flags.writeable = False
+    with pytest.raises(ValueError, match="W is read-only"):
+        sw.Recon.from_matrix(W).project_tiptilt()
 
 
 def test_accumulator_and_simulation_writes_are_whole(small_sim, tmp_path):
