@@ -696,9 +696,6 @@ static int mean_miss(const swfs_learn_run_options *o, const swfs_recon *w, const
 {
     *off = NULL;
     const size_t ns = r->nslopes, na = r->nact, nd = o->ndirs, nl = o->nlags > 1 ? o->nlags : 1;
-    if (o->meanmiss_metric && o->meanmiss_metric_n != na)
-        return swfs_fail(SWFS_ERR_SHAPE, "learn: the mean's miss's metric is %zu x %zu; the truth has %zu outputs",
-                         o->meanmiss_metric_n, o->meanmiss_metric_n, na);
     double *ms = malloc(ns * nl * sizeof *ms), *mt = malloc(na * sizeof *mt), *miss = calloc(nd * na, sizeof *miss);
     int rc = ms && mt && miss ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "learn: out of memory");
     /* mean_miss_heldout: each set's miss by the map of the others (its sums left out) */
@@ -803,7 +800,8 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     if (!rc) rc = swfs_paths_output(paths, "output reconstructor", o->out);
     if (!rc && o->perframe_out && o->nlags > 1) rc = swfs_paths_output(paths, "output per-frame reconstructor", o->perframe_out);
     swfs_paths_free(paths);
-    /* the mean's miss's metric against the first truth file's outputs, before the sums */
+    /* the mean's miss's metric against the first truth file's outputs, before the sums (every
+     * data set has that many: add_pair) */
     if (!rc && o->meanmiss_metric) {
         char tp[4200];
         snprintf(tp, sizeof tp, "%.4000s/truewf_000.fits", o->dirs[0]);

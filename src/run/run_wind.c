@@ -11,48 +11,29 @@
 #include <string.h>
 #include <sys/stat.h>
 
-/* The series' files each once and in order: the same file twice (by device and inode) would
- * be read as frames that follow themselves, and files whose FRAME0 (the WFS frame of their
- * first row, where both have it) does not come after the previous file's last frame repeat
- * frames or run backwards; either inflates the time correlations the winds are read from. */
-static int series_order(const swfs_wind_run_options *o)
-{
-    long prev_end = -1;
-    for (size_t k = 0; k < o->nfiles; k++) {
-        struct stat a, b;
-        for (size_t j = 0; j < k && !stat(o->files[k], &a); j++)
-            if (!stat(o->files[j], &b) && a.st_dev == b.st_dev && a.st_ino == b.st_ino)
-                return swfs_fail(SWFS_ERR_ARG, "%s and %s are the same file: the series' files are given once each, "
-                                 "in time order", o->files[j], o->files[k]);
-        swfs_fits_in *f = NULL;
-        long f0 = 0;
-        int found = 0;
-        int rc = swfs_fits_in_open(&f, o->files[k], NULL);
-        if (!rc) rc = swfs_fits_in_key_long_opt(f, "FRAME0", 0, (long)1 << 50, &f0, &found);
-        const size_t rows = rc ? 0 : swfs_fits_in_shape(f)->ny;
-        swfs_fits_in_close(f);
-        if (rc) return rc;
-        if (found && prev_end >= 0 && f0 < prev_end)
-            return swfs_fail(SWFS_ERR_VALUE, "%s: FRAME0 = %ld, but %s ends at WFS frame %ld: the series' files are "
-                             "given in time order, without repeated frames", o->files[k], f0, o->files[k - 1],
-                             prev_end - 1);
-        prev_end = found ? f0 + (long)rows : -1;
-    }
-    return SWFS_OK;
-}
-
 /* The files' slopes one after the other (swfs_telemetry_read: the values checked, the file
  * named; the same width in all), NSUB and WFSRATE of the first that has them (*nsub, *rate: 0
- * when none). */
+ * when none). The files each once and in order: the same file twice (by device and inode)
+ * would be read as frames that follow themselves, and a file whose FRAME0 (the WFS frame of its
+ * first row, where it and the one before have it) does not come after the previous file's last
+ * frame repeats frames or runs backwards; either inflates the time correlations the winds are
+ * read from. */
 static int read_series(const swfs_wind_run_options *o, double **out, size_t *nframes, size_t *nslopes, long *nsub,
                        double *rate)
 {
     double *all = NULL;
     size_t n = 0, w = 0;
-    int rc = series_order(o);
+    int rc = SWFS_OK;
+    long prev_end = -1; /* the WFS frame after the previous file's last, from its FRAME0 (-1: none) */
     *nsub = 0;
     *rate = 0;
     for (size_t k = 0; k < o->nfiles && !rc; k++) {
+        struct stat a, b;
+        for (size_t j = 0; j < k && !rc && !stat(o->files[k], &a); j++)
+            if (!stat(o->files[j], &b) && a.st_dev == b.st_dev && a.st_ino == b.st_ino)
+                rc = swfs_fail(SWFS_ERR_ARG, "%s and %s are the same file: the series' files are given once each, in "
+                               "time order", o->files[j], o->files[k]);
+        if (rc) break;
         swfs_real *s = NULL;
         double wr = 0;
         if ((rc = swfs_telemetry_read(o->files[k], 0, &s, &wr))) break;
@@ -69,13 +50,21 @@ static int read_series(const swfs_wind_run_options *o, double **out, size_t *nfr
             n += s->ny;
             if (*rate == 0.0) *rate = wr;
         }
+        const size_t rows = s->ny;
         swfs_real_free(s);
-        if (!rc && !*nsub) { /* NSUB, when the file has it */
+        if (!rc) { /* NSUB, when the file has it, and FRAME0 */
             swfs_fits_in *f = NULL;
             int found = 0;
+            long f0 = 0;
             rc = swfs_fits_in_open(&f, o->files[k], NULL);
-            if (!rc) rc = swfs_fits_in_key_long_opt(f, "NSUB", 1, 100000, nsub, &found);
+            if (!rc && !*nsub) rc = swfs_fits_in_key_long_opt(f, "NSUB", 1, 100000, nsub, &found);
+            if (!rc) rc = swfs_fits_in_key_long_opt(f, "FRAME0", 0, (long)1 << 50, &f0, &found);
             swfs_fits_in_close(f);
+            if (!rc && found && prev_end >= 0 && f0 < prev_end)
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: FRAME0 = %ld, but %s ends at WFS frame %ld: the series' files are "
+                               "given in time order, without repeated frames", o->files[k], f0, o->files[k - 1],
+                               prev_end - 1);
+            prev_end = found ? f0 + (long)rows : -1;
         }
     }
     if (rc) { free(all); return rc; }
