@@ -38,7 +38,8 @@ void cli_print_loop_table(const struct swfs_loop_result *r);
 /* Exit codes. */
 enum { CLI_OK = 0, CLI_FAIL = 1, CLI_USAGE = 2 };
 
-/* Print "specklewfs <cmd>: <library message>" to stderr; return CLI_FAIL. */
+/* Print "specklewfs <cmd>: <library message>" to stderr; return CLI_FAIL (128 + the signal
+ * when SIGINT/SIGTERM stopped the run: cli_stage_progress). */
 int cli_error(const char *cmd);
 /* Print "specklewfs <cmd>: <formatted message>" to stderr; return CLI_USAGE. */
 int cli_usage_error(const char *cmd, const char *fmt, ...)
@@ -72,8 +73,13 @@ void cli_progress(const char *label, size_t k, size_t n);
 /* The folder part of a path ("." when there is none). */
 void cli_dir_of(const char *path, char *dir, size_t cap);
 /* A progress callback for the library's long runs: ctx is a label prefix (const char *,
- * or NULL for none) put before the stage name. */
-void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
+ * or NULL for none) put before the stage name. Its first call makes SIGINT and SIGTERM
+ * (where the command has no handler of its own) ask the run to stop at its next report:
+ * it returns non-zero then, and cli_error says which signal and returns 128 + its number. */
+int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
+/* The check inside cli_stage_progress (signals caught from its first call): non-zero once
+ * SIGINT/SIGTERM asked to stop, for a command's own progress callback. */
+int cli_stop_requested(void);
 /* --tiptilt exposure|frame|keep -> SWFS_TT_* (speckles.h); prints and returns CLI_USAGE otherwise. */
 int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */

@@ -77,7 +77,7 @@ static int parse_args(const char *cmd, int argc, char **argv, swfs_config *cfg, 
 }
 
 /* The run's stages as the demo's lines on stderr: what starts, and the progress bars. */
-static void demo_progress(void *ctx, const char *stage, size_t done, size_t total)
+static int demo_progress(void *ctx, const char *stage, size_t done, size_t total)
 {
     const swfs_demo_run_options *o = ctx;
     if (!strcmp(stage, "simulate"))
@@ -91,7 +91,8 @@ static void demo_progress(void *ctx, const char *stage, size_t done, size_t tota
         fprintf(stderr, "demo: closed loop, %zu iterations at gain %g, noise %g counts -> %s/loop\n", o->loop.iterations,
                 o->loop.gain, o->loop.sigma, o->outdir);
     else
-        cli_stage_progress((void *)"demo:", stage, done, total);
+        return cli_stage_progress((void *)"demo:", stage, done, total);
+    return cli_stop_requested();
 }
 
 int swfs_cmd_demo(int argc, char **argv)
@@ -121,7 +122,7 @@ int swfs_cmd_demo(int argc, char **argv)
     o.nprov = 1;
     o.progress = demo_progress;
     o.progress_ctx = &o;
-    if (swfs_demo_run(&o, &r)) { cli_error(cmd); goto done; }
+    if (swfs_demo_run(&o, &r)) { rc = cli_error(cmd); goto done; }
 
     const swfs_sim_params *p = &o.sim;
     const swfs_sim_result *sim = r.sim;

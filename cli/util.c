@@ -7,6 +7,7 @@
 #include "specklewfs/timeseries.h"
 
 #include <errno.h>
+#include <signal.h>
 #include <stdarg.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -15,6 +16,9 @@
 #include <time.h>
 #include <unistd.h>
 
+/* The signal (SIGINT, SIGTERM) that asked a run with progress to stop, or 0. */
+static volatile sig_atomic_t stop_signal;
+
 int cli_error(const char *cmd)
 {
     /* Library messages of a module named like the command ("report: ...") would read
@@ -22,6 +26,10 @@ int cli_error(const char *cmd)
     const char *msg = swfs_last_error();
     size_t n = strlen(cmd);
     if (!strncmp(msg, cmd, n) && msg[n] == ':' && msg[n + 1] == ' ') msg += n + 2;
+    if (stop_signal) { /* the shell's convention for a run ended by a signal: 128 + its number */
+        fprintf(stderr, "specklewfs %s: %s (%s)\n", cmd, msg, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
+        return 128 + stop_signal;
+    }
     fprintf(stderr, "specklewfs %s: %s\n", cmd, msg);
     return CLI_FAIL;
 }
@@ -60,7 +68,14 @@ double cli_now(void)
 void cli_progress(const char *label, size_t k, size_t n)
 {
     static int tty = -1;
+    static char last[128];
+    static size_t last_k, last_n;
     if (tty < 0) tty = isatty(fileno(stderr));
+    /* a stage may report the same count again (a long step checking whether to stop) */
+    if (k == last_k && n == last_n && !strncmp(label, last, sizeof last - 1)) return;
+    snprintf(last, sizeof last, "%s", label);
+    last_k = k;
+    last_n = n;
     if (tty) {
         fprintf(stderr, "\r%s %zu/%zu", label, k, n);
         if (k == n) fputc('\n', stderr);
@@ -70,12 +85,47 @@ void cli_progress(const char *label, size_t k, size_t n)
     fflush(stderr);
 }
 
-void cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
+static void on_stop_signal(int sig)
+{
+    static const char msg[] = "\nspecklewfs: stopping at the run's next step (the same signal again ends it at once)\n";
+    stop_signal = sig;
+    const ssize_t w = write(STDERR_FILENO, msg, sizeof msg - 1);
+    (void)w;
+}
+
+/* SIGINT and SIGTERM, where nothing else handles them, ask the run to stop at its next
+ * progress report (the library then removes its partial outputs); the handler is one-shot,
+ * so a second signal ends the process at once. */
+static void catch_stop_signals(void)
+{
+    static int done;
+    if (done) return;
+    done = 1;
+    const int sigs[2] = {SIGINT, SIGTERM};
+    for (int k = 0; k < 2; k++) {
+        struct sigaction old, sa;
+        if (sigaction(sigs[k], NULL, &old) || old.sa_handler != SIG_DFL) continue; /* live's own handlers */
+        memset(&sa, 0, sizeof sa);
+        sa.sa_handler = on_stop_signal;
+        sa.sa_flags = (int)SA_RESETHAND;
+        sigemptyset(&sa.sa_mask);
+        sigaction(sigs[k], &sa, NULL);
+    }
+}
+
+int cli_stop_requested(void)
+{
+    catch_stop_signals();
+    return stop_signal != 0;
+}
+
+int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
 {
     char label[128];
     if (ctx) snprintf(label, sizeof label, "%s %s", (const char *)ctx, stage);
     else snprintf(label, sizeof label, "%s", stage);
     cli_progress(label, done, total);
+    return cli_stop_requested();
 }
 
 int cli_make_dir(const char *cmd, const char *path)

@@ -20,6 +20,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <dirent.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -1297,6 +1298,100 @@ static void test_learn_reconstructor(void **state)
  * builds its model on them in place of the DM's actuators given, computes the speckles within
  * their sampling band D / (2 pitch) by default, and --write-recon keeps them. Refused: the
  * points without export_truth, training sets on different points, an OUTXY of another size. */
+/* A progress callback that asks the run to stop at its `at`-th report. */
+typedef struct stopper {
+    int calls, at;
+} stopper;
+
+static int stop_at(void *ctx, const char *stage, size_t done, size_t total)
+{
+    (void)stage, (void)done, (void)total;
+    stopper *s = ctx;
+    return ++s->calls >= s->at;
+}
+
+/* Entries of folder d (not . and ..), part files included. */
+static size_t entries_in(const char *d)
+{
+    DIR *dp = opendir(d);
+    assert_non_null(dp);
+    size_t n = 0;
+    for (struct dirent *e; (e = readdir(dp));) n += strcmp(e->d_name, ".") && strcmp(e->d_name, "..");
+    closedir(dp);
+    return n;
+}
+
+/* A run whose progress callback asks to stop: SWFS_ERR_STOPPED, the stage named, nothing
+ * written (no output, no part file) -- the time series, reduce, speckles, estimate, and learn
+ * read in turn and by its four parts' workers (the learning curve). */
+static void test_stopped_by_progress(void **state)
+{
+    (void)state;
+    swfs_ts_params tp;
+    small_params(NULL, 0, &tp);
+    const char *ts = p("stopped_ts");
+    mkdir(ts, 0755);
+    stopper s = {0, 3}; /* the screens, then the WFS frames */
+    swfs_ts_summary sm;
+    assert_int_equal(swfs_ts_run(&tp, ts, NULL, 0, stop_at, &s, &sm), SWFS_ERR_STOPPED);
+    assert_non_null(strstr(swfs_last_error(), "WFS frames: stopped by the caller at "));
+    assert_int_equal(s.calls, 3);
+    assert_int_equal(entries_in(ts), 0);
+
+    const char *out = p("stopped_out");
+    mkdir(out, 0755);
+    swfs_reduce_run_options ro;
+    swfs_reduce_run_options_default(&ro);
+    const char *raw[] = {p("raw_000.fits"), p("raw_001.fits"), p("raw_002.fits")};
+    ro.raw = raw;
+    ro.nraw = 3;
+    ro.out = p("stopped_out/science.fits");
+    ro.progress = stop_at;
+    ro.progress_ctx = &(stopper){0, 2};
+    swfs_reduce_run_result rr;
+    assert_int_equal(swfs_reduce_run(&ro, &rr), SWFS_ERR_STOPPED);
+    assert_string_equal(swfs_last_error(), "cubes: stopped by the caller at 2 of 3");
+
+    swfs_speckles_run_options sp;
+    given_recon_options(&sp, p("recon_vk.fits"), p("stopped_out/speckles.fits"));
+    sp.progress = stop_at;
+    sp.progress_ctx = &(stopper){0, 1};
+    swfs_speckles_run_result spr;
+    assert_int_equal(swfs_speckles_run(&sp, &spr), SWFS_ERR_STOPPED);
+    assert_non_null(strstr(swfs_last_error(), "cubes: stopped by the caller at 1 of 4"));
+
+    swfs_estimate_run_options eo;
+    swfs_estimate_run_options_default(&eo);
+    eo.science = p("sci_lv.fits");
+    eo.speckles = p("speckles_lv.fits");
+    eo.out = p("stopped_out/halo.fits");
+    eo.block = 16;
+    eo.progress = stop_at;
+    eo.progress_ctx = &(stopper){0, 2};
+    swfs_estimate_run_result er;
+    assert_int_equal(swfs_estimate_run(&eo, &er), SWFS_ERR_STOPPED);
+    assert_non_null(strstr(swfs_last_error(), "frames: stopped by the caller at 32 of"));
+
+    const char *dirs[] = {p("learn_a"), p("learn_b"), p("learn_c"), p("learn_held")};
+    swfs_learn_run_options lo;
+    swfs_learn_run_options_default(&lo);
+    lo.dirs = dirs;
+    lo.ndirs = 3;
+    lo.out = p("stopped_out/W.fits");
+    lo.progress = stop_at;
+    lo.progress_ctx = &(stopper){0, 2};
+    swfs_learn_run_result lr;
+    assert_int_equal(swfs_learn_run(&lo, &lr), SWFS_ERR_STOPPED);
+    assert_string_equal(swfs_last_error(), "read: stopped by the caller at 2 of 3");
+    lo.ndirs = 4;
+    lo.curve = 1;
+    lo.threads = 2;
+    lo.progress_ctx = &(stopper){0, 2};
+    assert_int_equal(swfs_learn_run(&lo, &lr), SWFS_ERR_STOPPED);
+    assert_non_null(strstr(swfs_last_error(), "read: stopped by the caller after "));
+    assert_int_equal(entries_in(out), 0);
+}
+
 static void test_learn_output_points(void **state)
 {
     (void)state;
@@ -1758,6 +1853,7 @@ int main(void)
         cmocka_unit_test(test_sync_unreadable_file),
         cmocka_unit_test(test_camera_light_same_slopes),
         cmocka_unit_test(test_learn_reconstructor),
+        cmocka_unit_test(test_stopped_by_progress),
         cmocka_unit_test(test_learn_output_points),
         cmocka_unit_test(test_spacetime_reconstructor),
         cmocka_unit_test(test_options_checks),

@@ -23,7 +23,8 @@ enum swfs_status {
     SWFS_ERR_SHAPE,    /* array shapes do not match */
     SWFS_ERR_VALUE,    /* a value is out of range, NaN/Inf where not allowed */
     SWFS_ERR_NUMERIC,  /* a computation has no valid result (e.g. nothing valid to estimate) */
-    SWFS_ERR_INTERNAL
+    SWFS_ERR_INTERNAL,
+    SWFS_ERR_STOPPED   /* the caller's progress callback asked the run to stop (swfs_progress_fn) */
 };
 
 /* Set the thread's error message (printf-style) and return code, so that
@@ -47,8 +48,16 @@ void swfs_clear_error(void);
 const char *swfs_status_name(int code);
 
 /* Progress of a long run: `done` of `total` units of the named stage. The library calls
- * it (when given one) and never prints; the application decides what to show. */
-typedef void (*swfs_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
+ * it (when given one) and never prints; the application decides what to show. It returns 0
+ * to go on; any other value stops the run at that point: the call returns SWFS_ERR_STOPPED
+ * ("<stage>: stopped by the caller at <done> of <total>") and, like any failure, leaves none
+ * of its output files (atomic.h). The callback is how an application offers Ctrl-C, a
+ * deadline or a cancel button; it is called on the caller's thread only. */
+typedef int (*swfs_progress_fn)(void *ctx, const char *stage, size_t done, size_t total);
+
+/* Call `progress` (if not NULL) and turn a request to stop into SWFS_ERR_STOPPED with its
+ * message; SWFS_OK otherwise. Every progress report of the library goes through it. */
+int swfs_progress_report(swfs_progress_fn progress, void *ctx, const char *stage, size_t done, size_t total);
 
 SWFS_END_DECLS
 

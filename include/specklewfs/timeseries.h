@@ -235,7 +235,8 @@ size_t swfs_mode_knee(const double *var, size_t n);
  * swfs_ts_run writes into; a command calls it before checking the outputs). */
 int swfs_ts_make_dirs(const swfs_ts_params *p, const char *dir);
 
-/* Simulate and write DIR (its folders made by swfs_ts_make_dirs where missing). */
+/* Simulate and write DIR (its folders made by swfs_ts_make_dirs where missing): its files
+ * as one output group (atomic.h), none of them left by a run that fails or is stopped. */
 int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *prov, size_t nprov,
                 swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
 

@@ -63,7 +63,8 @@ lib, LIBRARY_PATH = _load()
 # ---- errors ----------------------------------------------------------------------------
 
 STATUS_NAMES = ["SWFS_OK", "SWFS_ERR_ARG", "SWFS_ERR_NOMEM", "SWFS_ERR_IO", "SWFS_ERR_FORMAT", "SWFS_ERR_SHAPE",
-                "SWFS_ERR_VALUE", "SWFS_ERR_NUMERIC", "SWFS_ERR_INTERNAL"]  # enum swfs_status (status.h)
+                "SWFS_ERR_VALUE", "SWFS_ERR_NUMERIC", "SWFS_ERR_INTERNAL", "SWFS_ERR_STOPPED"]  # enum swfs_status (status.h)
+SWFS_ERR_STOPPED = STATUS_NAMES.index("SWFS_ERR_STOPPED")
 
 
 class Error(RuntimeError):
@@ -275,7 +276,7 @@ swfs_framesync_stats = _s("swfs_framesync_stats", [(n, c_u64) for n in FRAMESYNC
 swfs_fits_shape = _s("swfs_fits_shape", [("nx", c_size), ("ny", c_size), ("nz", c_size), ("is_complex", c_int),
                                          ("bitpix", c_int)])
 
-PROGRESS_FN = ctypes.CFUNCTYPE(None, c_ptr, c_str, c_size, c_size)
+PROGRESS_FN = ctypes.CFUNCTYPE(c_int, c_ptr, c_str, c_size, c_size)  # status.h: non-zero stops the run
 
 # run.h, reduce.h, sync.h: the real-data path's file-level steps (realdata.py)
 swfs_linear_files = _s("swfs_linear_files", [("basis", c_str), ("control", c_str), ("imat", c_str),
@@ -959,6 +960,16 @@ def enc(path):
     if b"\0" in b:  # the C side would read the name up to it, another file
         raise ValueError(f"path {path!r} holds a NUL character")
     return b
+
+
+def choice(table, v, name):
+    """table[v] for an option spelled as one of table's keys, else ValueError naming the option
+    and the spellings it takes (not a KeyError or TypeError from inside the package)."""
+    try:
+        return table[v]
+    except (KeyError, TypeError):
+        keys = ", ".join(repr(k) for k in table)
+        raise ValueError(f"{name}: expected one of {keys}, got {v!r}") from None
 
 
 def count(v, name, lo=0, hi=1 << 40):

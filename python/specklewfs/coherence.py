@@ -73,10 +73,11 @@ def coherence(cube, framedt, lags=None, max_lag=0, nfit=4, exposure=0.0, min_pow
     lib.swfs_coh_options_default(ctypes.byref(o))
     lag_arr = None
     if lags is not None:
-        lag_arr = (ctypes.c_long * len(lags))(*[int(x) for x in lags])
+        lag_arr = (ctypes.c_long * len(lags))(*[_lib.count(x, "coherence: lags", -(1 << 31), 1 << 31) for x in lags])
         o.lags, o.nlags = ctypes.cast(lag_arr, P(ctypes.c_long)), len(lags)
-    o.max_lag, o.nfit, o.exposure, o.min_power_rel = int(max_lag), int(nfit), float(exposure), float(min_power_rel)
-    o.method = _METHODS[method]
+    o.max_lag, o.nfit = _lib.count(max_lag, "coherence: max_lag"), _lib.count(nfit, "coherence: nfit", 0, (1 << 31) - 1)
+    o.exposure, o.min_power_rel = float(exposure), float(min_power_rel)
+    o.method = _lib.choice(_METHODS, method, "coherence: method")
     s = _lib.cplx_struct(cube)
     out = P(_lib.swfs_coherence)()
     check(lib.swfs_coherence_compute(ctypes.byref(s), float(framedt), ctypes.byref(o), ctypes.byref(out)),

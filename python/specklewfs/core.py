@@ -21,7 +21,7 @@ class Geom:
 
     def to_c(self):
         return _lib.swfs_geom(float(self.wavelen), float(self.teldiam), float(self.obscur), float(self.pixscale),
-                              float(self.pupdx), int(self.pupn))
+                              float(self.pupdx), count(self.pupn, "Geom.pupn", 0, 1 << 31))
 
     @classmethod
     def from_c(cls, g):

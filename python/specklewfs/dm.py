@@ -17,7 +17,7 @@ def _fit_options(influence, coupling, pitch, modes, reg):
     lib.swfs_dmfit_options_default(ctypes.byref(o))
     if influence not in _INFLUENCE:
         raise ValueError(f"influence: expected 'gauss' or 'cubic', got {influence!r}")
-    o.influence = _INFLUENCE[influence]
+    o.influence = _lib.choice(_INFLUENCE, influence, "influence")
     if coupling is not None:
         o.coupling = float(coupling)
     if pitch is not None:

@@ -22,7 +22,7 @@ from ._lib import lib, check, enc, c_ptr, P
 from .dm import _fit_options
 from .pupil import _SOURCES
 from .realdata import _opt
-from .sim import _checked_params, _progress, _struct_dict
+from .sim import _checked_params, _Progress, _struct_dict
 from .streamfiles import _mean_loops, _stream_run_model, _stream_result
 
 # on_update(ctx, stream, halo, pupil_result, final) of run.h
@@ -194,7 +194,8 @@ def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_na
     o.wfs_rate, o.speed, o.drop_wfs, o.drop_camera = float(wfs_rate), float(speed), float(drop_wfs), \
         float(drop_camera)
     o.jitter, o.seed, o.depth = float(jitter), int(seed), int(depth)
-    o.wfs_type, o.camera_type = _TYPES[wfs_type], _TYPES[camera_type]
+    o.wfs_type = _lib.choice(_TYPES, wfs_type, "replay: wfs_type")
+    o.camera_type = _lib.choice(_TYPES, camera_type, "replay: camera_type")
     o.wait_reader, o.restart_after, o.drop_log, o.remove = float(wait_reader), int(restart_after), \
         _opt(drop_log), int(bool(remove))
     r = _lib.swfs_replay_result()
@@ -229,12 +230,13 @@ def live_loop(directory, iterations=3, speed=2.0, batch=16, modes=0, influence="
     if stop is not None and not isinstance(stop, StopFlag):
         raise ValueError("live_loop: stop takes a specklewfs.StopFlag")
     o.stop = ctypes.addressof(stop._flag) if stop is not None else None
-    prog = _progress(progress)
-    o.progress = prog
     prov, o.nprov = _lib.strings(provenance)
     o.prov = prov
     r = _lib.swfs_live_loop_result()
-    check(lib.swfs_live_loop_run(ctypes.byref(o), ctypes.byref(r)), "swfs_live_loop_run")
+    with _Progress(progress) as prog:
+        o.progress = prog.fn
+        rc = lib.swfs_live_loop_run(ctypes.byref(o), ctypes.byref(r))
+    prog.check(rc, "swfs_live_loop_run")
     states = []
     for k in range(r.nstates):
         st = _struct_dict(r.s[k])

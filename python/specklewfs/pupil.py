@@ -104,13 +104,9 @@ def _options(weight, wiener_k, bias, source, method, keep_resmean, o=None):
     if o is None:
         o = _lib.swfs_pupil_options()
         lib.swfs_pupil_options_default(ctypes.byref(o))
-    try:
-        o.weight = _WEIGHTS[weight]
-        o.source = _SOURCES[source]
-        o.method = _METHODS[method]
-    except KeyError as e:
-        raise ValueError(f"weight must be 'snr' or 'none', source 'lf' or 'halo', method 'auto', 'fit' or "
-                         f"'moments', got {e}") from None
+    o.weight = _lib.choice(_WEIGHTS, weight, "pupil: weight")
+    o.source = _lib.choice(_SOURCES, source, "pupil: source")
+    o.method = _lib.choice(_METHODS, method, "pupil: method")
     o.wiener_k, o.bias = float(wiener_k), float(bias)
     o.keep_resmean = 1 if keep_resmean else 0
     return o

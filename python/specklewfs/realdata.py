@@ -545,17 +545,15 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
     elif recon in _RECON and recon != "given":
-        o.pipe.recon = _RECON[recon]
+        o.pipe.recon = _lib.choice(_RECON, recon, "speckles: recon")
     else:
         o.pipe.recon, o.recon = _RECON["given"], enc(recon)
     o.mask = _opt(pupil)
     o.pipe.band = _band(band)
     if tiptilt is not None:
-        if tiptilt not in _TT:
-            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
+        o.pipe.tiptilt = _lib.choice(_TT, tiptilt, "speckles: tiptilt")
         if wfs_rate and tiptilt == "exposure":
             raise ValueError("wfs_rate removes the tip-tilt per WFS frame (or tiptilt='keep'); 'exposure' does not apply")
-        o.pipe.tiptilt = _TT[tiptilt]
     if wfs_rate and match:
         raise ValueError("match pairs camera frames; it does not apply with wfs_rate")
     if wfs_hz is not None and not wfs_rate:

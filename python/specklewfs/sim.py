@@ -2,6 +2,8 @@
 (recovery.h) and the AO time series of the real-data path (timeseries.h)."""
 import ctypes
 import os
+import signal
+import threading
 
 import numpy as np
 
@@ -30,25 +32,70 @@ def _config(config, params):
     return c, owner
 
 
-def _progress(progress):
-    if progress is None:
-        return _lib.PROGRESS_FN()
+class _Progress:
+    """A run's progress callback (status.h swfs_progress_fn), used as `with _Progress(p) as
+    prog: rc = lib.f(..., prog.fn, ...)` then `prog.check(rc, "f")`. It calls the caller's
+    progress(stage, done, total), if given; an exception raised there asks the run to stop,
+    the library removes what it had begun to write, and check() raises that exception rather
+    than the library's SWFS_ERR_STOPPED. Ctrl-C stops the run the same way: for the call's
+    length (on the main thread, where SIGINT has Python's default handler) SIGINT only marks
+    the run interrupted, the library's next report asks it to stop, and check() raises
+    KeyboardInterrupt -- also after a run that ended before its next report."""
 
-    def cb(ctx, stage, done, total):
-        progress(stage.decode() if stage else "", int(done), int(total))
-    return _lib.PROGRESS_FN(cb)
+    def __init__(self, progress):
+        if progress is not None and not callable(progress):
+            raise TypeError(f"progress: expected a callable(stage, done, total) or None, got {progress!r}")
+        self.error, self.interrupted, self._old = None, False, None
+
+        def cb(_ctx, stage, done, total):
+            if self.interrupted:
+                return 1
+            try:
+                if progress is not None:
+                    progress(stage.decode(errors="replace") if stage else "", int(done), int(total))
+            except BaseException as e:  # noqa: B036 -- the caller's own KeyboardInterrupt too
+                self.error = e
+                return 1
+            return 1 if self.interrupted else 0
+        self.fn = _lib.PROGRESS_FN(cb)
+
+    def _on_sigint(self, _signum, _frame):
+        self.interrupted = True
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread() and \
+                signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+        return False
+
+    def check(self, rc, function):
+        e, self.error = self.error, None
+        if rc == _lib.SWFS_ERR_STOPPED and e is not None:
+            raise e
+        if self.interrupted:
+            raise KeyboardInterrupt
+        check(rc, function)
 
 
 def _run(function, o, result, geom=None, provenance=(), progress=None):
     """run.h's `function` on options o (their geometry, provenance and progress filled in
-    here); its result struct, raising Error on failure."""
+    here); its result struct, raising Error on failure (or the progress callback's own
+    exception: _Progress)."""
     if geom is not None:
         o.geom = geom_arg(geom)
     prov, o.nprov = _lib.strings(provenance)
     o.prov = prov
-    o.progress = _progress(progress)
     r = result()
-    check(getattr(lib, function)(ctypes.byref(o), ctypes.byref(r)), function)
+    with _Progress(progress) as prog:
+        o.progress = prog.fn
+        rc = getattr(lib, function)(ctypes.byref(o), ctypes.byref(r))
+    prog.check(rc, function)
     return r
 
 
@@ -170,14 +217,16 @@ def simulate(config=None, progress=None, ncp=None, **params):
     done, total). ncp: an NCP map [m] (pupn, pupn) replacing the parameters' NCP terms.
     Returns a SimResult."""
     p = _params(config, params)
-    cb = _progress(progress)
     out = P(_lib.swfs_sim_result)()
-    if ncp is None:
-        check(lib.swfs_sim_paper_run(ctypes.byref(p), cb, None, ctypes.byref(out)), "swfs_sim_paper_run")
-    else:
+    if ncp is not None:
         ncp = as_array(ncp, "ncp", np.float64, shape=(p.pupn, p.pupn))
-        check(lib.swfs_sim_paper_run_ncp(ctypes.byref(p), dptr(ncp), cb, None, ctypes.byref(out)),
-              "swfs_sim_paper_run_ncp")
+    with _Progress(progress) as prog:
+        if ncp is None:
+            rc, name = lib.swfs_sim_paper_run(ctypes.byref(p), prog.fn, None, ctypes.byref(out)), "swfs_sim_paper_run"
+        else:
+            rc = lib.swfs_sim_paper_run_ncp(ctypes.byref(p), dptr(ncp), prog.fn, None, ctypes.byref(out))
+            name = "swfs_sim_paper_run_ncp"
+    prog.check(rc, name)
     return SimResult(out)
 
 
@@ -330,6 +379,7 @@ def simulate_timeseries(directory, config=None, progress=None, provenance=(), **
     os.makedirs(directory, exist_ok=True)
     s = _lib.swfs_ts_summary()
     prov, n = _lib.strings(provenance)
-    check(lib.swfs_ts_run(ctypes.byref(p), enc(directory), prov, n, _progress(progress), None, ctypes.byref(s)),
-          "swfs_ts_run")
+    with _Progress(progress) as prog:
+        rc = lib.swfs_ts_run(ctypes.byref(p), enc(directory), prov, n, prog.fn, None, ctypes.byref(s))
+    prog.check(rc, "swfs_ts_run")
     return {k: getattr(s, k) for k, _t in _lib.TS_SUMMARY_FIELDS}

@@ -42,10 +42,8 @@ def _file_options(recon, rcond, tiptilt, threads, wfs_rate, band):
     """pipeline.h options of a pipeline built from files (Pipeline.from_files, from_map)."""
     o = _lib.swfs_pipeline_options()
     lib.swfs_pipeline_options_default(ctypes.byref(o))
-    if tiptilt not in _TT:
-        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-    o.recon, o.rcond = _RECON[recon], float(rcond)
-    o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+    o.recon, o.rcond = _lib.choice(_RECON, recon, "recon"), float(rcond)
+    o.tiptilt, o.threads, o.wfs_rate = _lib.choice(_TT, tiptilt, "tiptilt"), int(threads), int(bool(wfs_rate))
     o.band = _band(band)
     return o
 
@@ -83,15 +81,13 @@ class Pipeline:
         if isinstance(recon, str):
             if recon not in _RECON or recon == "given":
                 raise ValueError(f"recon: expected 'vk', 'map', 'svd' or a matrix, got {recon!r}")
-            o.recon = _RECON[recon]
+            o.recon = _lib.choice(_RECON, recon, "recon")
         else:
             rin = recon if isinstance(recon, Recon) else Recon.from_matrix(
                 as_array(recon, "recon", np.float64, shape=(xy.shape[0], nslopes)))
             o.recon = _RECON["given"]
-        if tiptilt not in _TT:
-            raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
         o.rcond, o.max_modes, o.slope_noise, o.vk_l0 = float(rcond), int(max_modes), float(slope_noise), float(vk_l0)
-        o.tiptilt, o.threads, o.wfs_rate = _TT[tiptilt], int(threads), int(bool(wfs_rate))
+        o.tiptilt, o.threads, o.wfs_rate = _lib.choice(_TT, tiptilt, "tiptilt"), int(threads), int(bool(wfs_rate))
         o.band = _band(band)
         vmap = None
         if valid is not None:

@@ -23,14 +23,12 @@ def _stream_run_model(o, recon, actuators, linear, tiptilt, threads, read_noise,
     stream_files and live take them"""
     o.recon, o.actuators = _opt(recon), _opt(actuators)
     _linear(o.lin, linear)
-    if tiptilt not in _TT:
-        raise ValueError(f"tiptilt: expected 'exposure', 'frame' or 'keep', got {tiptilt!r}")
-    o.tiptilt, o.threads = _TT[tiptilt], int(threads)
+    o.tiptilt, o.threads = _lib.choice(_TT, tiptilt, "stream_files: tiptilt"), int(threads)
     o.read_noise = math.nan if read_noise is None else float(read_noise)
     o.gain = math.nan if gain is None else float(gain)
     o.g_smooth_lod = float(g_smooth_lod)
     if isinstance(static, str) and static in _STATIC:
-        o.stream.static_mode = _STATIC[static]
+        o.stream.static_mode = _lib.choice(_STATIC, static, "stream_files: static")
     else:
         o.stream.static_mode, o.static_file = 2, enc(static)
     o.static_out, o.pupil_out, o.checkpoint = _opt(static_out), _opt(pupil_out), _opt(checkpoint)

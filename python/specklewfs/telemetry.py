@@ -272,7 +272,7 @@ def vk_covariance(xy, L0):
 def _lags_c(lags, what):
     """Lags [WFS frames] as the library's array, checked as it checks them (one of them 0,
     distinct, at most RECON_MAXLAGS; wfs.h swfs_lags_check)."""
-    lv = [int(v) for v in lags]
+    lv = [_lib.count(v, f"{what}: lag", -(1 << 31), 1 << 31) for v in lags]
     arr = (ctypes.c_long * max(len(lv), 1))(*lv)
     check(lib.swfs_lags_check(arr, len(lv), enc(what)), what)
     return arr, len(lv)
@@ -286,11 +286,12 @@ def stack_lags(values, lags, first=0, count=None):
     the only frames clamped."""
     v = as_array(values, "values", np.float64, ndim=(2,))
     arr, nl = _lags_c(lags, "stack_lags")
-    n = v.shape[0] - int(first) if count is None else int(count)
-    if int(first) < 0 or n < 0 or int(first) + n > v.shape[0]:
-        raise ValueError(f"stack_lags: frames {first}..{int(first) + n} of a series of {v.shape[0]}")
+    first = _lib.count(first, "stack_lags: first")
+    n = v.shape[0] - first if count is None else _lib.count(count, "stack_lags: count")
+    if n < 0 or first + n > v.shape[0]:
+        raise ValueError(f"stack_lags: frames {first}..{first + n} of a series of {v.shape[0]}")
     out = np.empty((n, nl * v.shape[1]), np.float64)
-    lib.swfs_slopes_stack(dptr(v), v.shape[0], v.shape[1], arr, nl, int(first), n, dptr(out))
+    lib.swfs_slopes_stack(dptr(v), v.shape[0], v.shape[1], arr, nl, first, n, dptr(out))
     return out
 
 

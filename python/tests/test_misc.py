@@ -88,6 +88,20 @@ def test_bad_sizes_and_replaced_reconstructors():
             f()
     with pytest.raises(ValueError, match="NUL"):
         sw.write_fits("nul\0x.fits", np.ones((2, 2)))
+    # fractional sizes and lags were truncated (pupn 40.7 -> 40, lag 1.7 -> 1)
+    with pytest.raises(ValueError, match=r"Geom.pupn: expected a whole number from 0 to \d+, got 40.7"):
+        sw.Geom(wavelen=1e-6, teldiam=2, obscur=0.1, pixscale=0.5, pupdx=0.05, pupn=40.7).to_c()
+    with pytest.raises(ValueError, match="stack_lags: lag: expected a whole number"):
+        sw.stack_lags(rng.normal(size=(10, 4)), [0, 1.7])
+    with pytest.raises(ValueError, match="stack_lags: first: expected a whole number"):
+        sw.stack_lags(rng.normal(size=(10, 4)), [0, 1], first=-1)
+    with pytest.raises(ValueError, match="coherence: lags: expected a whole number"):
+        sw.coherence(rng.normal(size=(8, 4, 4)) + 0j, 1e-3, lags=[0, 2.5])
+    # an option spelled wrong names itself and its spellings (it leaked as KeyError/TypeError)
+    with pytest.raises(ValueError, match="coherence: method: expected one of 'auto', 'fft', 'direct', got 'fast'"):
+        sw.coherence(rng.normal(size=(8, 4, 4)) + 0j, 1e-3, method="fast")
+    with pytest.raises(ValueError, match=r"tiptilt: expected one of 'exposure', 'frame', 'keep', got \['frame'\]"):
+        sw.speckles("timing.txt", "science.fits", "actuators.fits", "out.fits", tiptilt=["frame"])
     assert [sw.zernike(n, n % 2, 1.0, 0.0) for n in (50, 51, 200)] == pytest.approx([1, 1, 1], abs=1e-9)
     xy = sw.actuators_hexapolar(2.0, 0.4, 0.2)
     m = sw.SpeckleModel(xy, sw.aperture(40, 0.05, 2.0, 0.1), 0.05, 2.0, 8)

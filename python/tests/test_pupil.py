@@ -106,7 +106,7 @@ def test_pupil_weight_and_errors(tmp_path):
     with pytest.raises(sw.Error, match="PIXSCALE"):
         sw.pupil_estimate(no_stab, geom=sw.Geom(wavelen=1e-6, teldiam=1, obscur=0, pupdx=0.03, pupn=32),
                           weight="none")
-    with pytest.raises(ValueError, match="weight must be"):
+    with pytest.raises(ValueError, match="pupil: weight: expected one of 'none', 'snr', got 'bogus'"):
         sw.pupil_estimate(no_stab, weight="bogus")
     # SNR weight with a uniform, huge SNR is the unweighted estimate.
     stab = Psi.copy()

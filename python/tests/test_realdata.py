@@ -444,6 +444,20 @@ def test_teach(series, tmp_path):
         sw.teach(files, str(tmp_path / "bad.fits"), str(tmp_path / "badw"), config=conf, loops=2, nsub=16, **keys)
     assert not os.path.exists(tmp_path / "bad.fits")
 
+    # a progress callback that raises once a loop is done stops teach there, its loops on both
+    # workers: the exception comes out of the call; no map, no part file, fewer loops than asked
+    class Enough(Exception):
+        pass
+
+    def after_one(stage, done, total):
+        if stage == "simulating the loops" and done >= 1:
+            raise Enough(f"{done} of {total}")
+    with pytest.raises(Enough, match="of 4"):
+        sw.teach(files, str(tmp_path / "stopped.fits"), str(tmp_path / "sw"), config=conf, loops=4, progress=after_one,
+                 **keys)
+    assert not os.path.exists(tmp_path / "stopped.fits") and not list((tmp_path / "sw").rglob("*.part.*"))
+    assert 1 <= len([d for d in (tmp_path / "sw").glob("loop_*") if any(d.iterdir())]) < 4
+
 
 def test_mode_variance(series):
     """The loop's modal filter as its slopes show it (timeseries.h swfs_ts_mode_variance,

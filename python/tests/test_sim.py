@@ -2,7 +2,9 @@
 command line and through Python giving identical products."""
 import os
 import re
+import signal
 import subprocess
+import threading
 
 import numpy as np
 import pytest
@@ -154,6 +156,51 @@ def test_zonal_loop_parameter(tmp_path):
     with pytest.raises(sw.Error, match=r"ao_rcond=1.5: must be in \[0, 1\)"):
         sw.simulate_timeseries(str(tmp_path / "z"), ao_rcond=1.5)
     assert not (tmp_path / "z").exists() or not os.listdir(tmp_path / "z")
+
+
+TS_LONG = dict(pupn=66, pupdx=0.1, screen_n=256, wfs_file_frames=1000, ncubes=40, cube_frames=100)
+
+
+def test_progress_stops_a_run(tmp_path):
+    """An exception raised in a progress callback stops the library's run at that report: the
+    exception itself comes out of the call (not the library's SWFS_ERR_STOPPED), and nothing is
+    left in the output folder. Ctrl-C works the same way, with or without a callback of one's own:
+    Python raises KeyboardInterrupt inside the library's next report."""
+    class Enough(Exception):
+        pass
+
+    seen = []
+
+    def enough(stage, done, total):
+        seen.append((stage, done, total))
+        if stage == "WFS frames":
+            raise Enough(f"at {done} of {total}")
+    with pytest.raises(Enough, match=r"at \d+ of \d+"):
+        sw.simulate_timeseries(str(tmp_path / "a"), progress=enough, **TS_LONG)
+    assert seen[0] == ("screens", 1, 2) and seen[-1][0] == "WFS frames" and os.listdir(tmp_path / "a") == []
+
+    def ctrl_c(stage, done, total):
+        if stage == "WFS frames":
+            os.kill(os.getpid(), signal.SIGINT)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            sw.simulate_timeseries(str(tmp_path / "b"), progress=ctrl_c, **TS_LONG)
+        assert os.listdir(tmp_path / "b") == []
+        # no callback given: the signal, sent while the library runs, stops it at its next report
+        timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+        timer.start()
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                sw.simulate_timeseries(str(tmp_path / "c"), **TS_LONG)
+        finally:
+            timer.cancel()
+        assert os.listdir(tmp_path / "c") == []
+    finally:
+        signal.signal(signal.SIGINT, old)
+    # the run goes on where the callback returns normally; a callback that is not callable is refused
+    with pytest.raises(TypeError, match="progress: expected a callable"):
+        sw.simulate_timeseries(str(tmp_path / "d"), progress=5, **TS_LONG)
 
 
 def test_dm_coupling_parameter(tmp_path):

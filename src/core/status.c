@@ -51,6 +51,13 @@ const char *swfs_status_name(int code)
     case SWFS_ERR_SHAPE: return "shape mismatch";
     case SWFS_ERR_VALUE: return "invalid value";
     case SWFS_ERR_NUMERIC: return "numerical failure";
+    case SWFS_ERR_STOPPED: return "stopped by the caller";
     default: return "internal error";
     }
+}
+
+int swfs_progress_report(swfs_progress_fn progress, void *ctx, const char *stage, size_t done, size_t total)
+{
+    if (!progress || !progress(ctx, stage, done, total)) return SWFS_OK;
+    return swfs_fail(SWFS_ERR_STOPPED, "%s: stopped by the caller at %zu of %zu", stage ? stage : "run", done, total);
 }

@@ -43,18 +43,18 @@ typedef struct relay {
     const char *prefix;
 } relay;
 
-static void relay_progress(void *ctx, const char *stage, size_t done, size_t total)
+static int relay_progress(void *ctx, const char *stage, size_t done, size_t total)
 {
     const relay *rl = ctx;
     char s[96];
     if (!strcmp(stage, "loop")) snprintf(s, sizeof s, "%s", rl->prefix);
     else snprintf(s, sizeof s, "%s %s", rl->prefix, stage);
-    rl->o->progress(rl->o->progress_ctx, s, done, total);
+    return rl->o->progress(rl->o->progress_ctx, s, done, total);
 }
 
-static void stage(const swfs_demo_run_options *o, const char *name, size_t done, size_t total)
+static int stage(const swfs_demo_run_options *o, const char *name, size_t done, size_t total)
 {
-    if (o->progress) o->progress(o->progress_ctx, name, done, total);
+    return swfs_progress_report(o->progress, o->progress_ctx, name, done, total);
 }
 
 /* Folder dir made and its products (names, n) added as outputs. */
@@ -101,8 +101,9 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
     char dir[4096], noise_line[160];
     relay rl = {o, "simulate"};
     double t0 = swfs_wall_seconds();
-    stage(o, "simulate", 0, 1);
-    int rc = swfs_sim_paper_run(p, o->progress ? relay_progress : NULL, &rl, &r->sim);
+    int rc = stage(o, "simulate", 0, 1);
+    if (rc) return rc;
+    rc = swfs_sim_paper_run(p, o->progress ? relay_progress : NULL, &rl, &r->sim);
     if (rc) return rc;
     r->sim_seconds = swfs_wall_seconds() - t0;
     rc = swfs_wfe_compare(r->sim->ncp->data, r->sim->ncp->data, r->sim->pupil->data, (size_t)r->sim->geom.pupn, NULL,
@@ -114,7 +115,7 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
     if (!rc && (!prov || !r->levels || !r->level_seconds)) rc = swfs_fail(SWFS_ERR_NOMEM, "demo: out of memory");
     for (size_t i = 0; prov && i < o->nprov; i++) prov[i] = o->prov[i];
     for (size_t k = 0; !rc && k < o->nlevels; k++) {
-        stage(o, "noise levels", k, o->nlevels);
+        if ((rc = stage(o, "noise levels", k, o->nlevels))) break;
         snprintf(dir, sizeof dir, "%s/sigma%g", o->outdir, o->levels[k]);
         snprintf(noise_line, sizeof noise_line, "demo noise level: read noise %g counts, gain %g e-/count",
                  o->levels[k], p->gain);
@@ -125,7 +126,7 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
         r->level_seconds[k] = swfs_wall_seconds() - t1;
         r->nlevels = k + 1;
     }
-    if (!rc) stage(o, "noise levels", o->nlevels, o->nlevels);
+    if (!rc) rc = stage(o, "noise levels", o->nlevels, o->nlevels);
     if (!rc) {
         snprintf(dir, sizeof dir, "%s/recovery.tsv", o->outdir);
         rc = swfs_recovery_table_write(dir, r->levels, r->level_seconds, o->nlevels);
@@ -133,9 +134,9 @@ static int run_products(const swfs_demo_run_options *o, swfs_demo_run_result *r)
     if (!rc && o->loop.iterations > 0) {
         /* The simulation above is the loop's first measurement (the same parameters). */
         rl.prefix = "closed loop";
-        stage(o, "closed loop", 0, o->loop.iterations + 1);
         snprintf(dir, sizeof dir, "%s/loop", o->outdir);
-        rc = swfs_closed_loop_run(p, &o->loop, r->sim, o->progress ? relay_progress : NULL, &rl, &r->loop);
+        rc = stage(o, "closed loop", 0, o->loop.iterations + 1);
+        if (!rc) rc = swfs_closed_loop_run(p, &o->loop, r->sim, o->progress ? relay_progress : NULL, &rl, &r->loop);
         if (!rc) rc = swfs_closed_loop_write(r->loop, dir, o->prov, o->nprov);
     }
     free(prov);

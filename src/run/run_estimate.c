@@ -129,7 +129,7 @@ static int accumulate(const swfs_estimate_run_options *o, swfs_fits_in *fs, swfs
             break;
         for (size_t j = 0; j < n && !rc; j++)
             if ((rc = swfs_accum_add(acc, ibuf + j * np, pbuf + j * np))) swfs_fail_context(rc, "%s", o->speckles);
-        if (!rc && o->progress) o->progress(o->progress_ctx, "frames", k + n, count);
+        if (!rc) rc = swfs_progress_report(o->progress, o->progress_ctx, "frames", k + n, count);
     }
     free(ibuf);
     free(pbuf);

@@ -266,6 +266,7 @@ typedef struct parts_ctx {
     char why[4][1024];
     atomic_size_t done;
     size_t shown; /* the last count worker 0 reported */
+    atomic_int stop; /* the caller's progress asked to stop: no set is read after it */
 } parts_ctx;
 
 static void parts_worker(void *ctx, size_t begin, size_t end, int worker)
@@ -274,10 +275,11 @@ static void parts_worker(void *ctx, size_t begin, size_t end, int worker)
     swfs_learn_run_result r = *c->r;
     for (size_t k = begin; k < end; k++) {
         swfs_recon_learner *l = c->q[k];
-        for (size_t d = k ? k : 4; !c->rc[k] && d < c->o->ndirs; d += 4) {
+        for (size_t d = k ? k : 4; !c->rc[k] && !atomic_load(&c->stop) && d < c->o->ndirs; d += 4) {
             c->rc[k] = add_dir(c->o, c->o->dirs[d], &l, &r, &c->nfiles[k], c->sets ? c->sets + d : NULL);
             const size_t done = atomic_fetch_add(&c->done, 1) + 1;
-            if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, "read", c->shown = done, c->o->ndirs);
+            if (!worker && c->o->progress && c->o->progress(c->o->progress_ctx, "read", c->shown = done, c->o->ndirs))
+                atomic_store(&c->stop, 1);
         }
         if (c->rc[k]) snprintf(c->why[k], sizeof c->why[k], "%s", swfs_last_error());
     }
@@ -291,13 +293,16 @@ static int add_parts(const swfs_learn_run_options *o, swfs_recon_learner *q[4], 
     for (int k = 1; !rc && k < 4; k++) rc = swfs_recon_learner_new(r->nslopes * nl, r->nact, !o->modal, &q[k]);
     if (rc) return rc;
     parts_ctx c = {.o = o, .q = q, .r = r, .sets = sets, .done = 1, .shown = 1};
-    if (o->progress) o->progress(o->progress_ctx, "read", 1, o->ndirs);
+    if ((rc = swfs_progress_report(o->progress, o->progress_ctx, "read", 1, o->ndirs))) return rc;
     swfs_parallel_for(swfs_parallel_threads(o->threads, 4), 4, 1, parts_worker, &c);
     for (int k = 0; k < 4; k++) {
         if (c.rc[k]) return swfs_fail(c.rc[k], "%s", c.why[k]);
         r->nfiles += c.nfiles[k];
     }
-    if (o->progress && c.shown != o->ndirs) o->progress(o->progress_ctx, "read", o->ndirs, o->ndirs);
+    if (atomic_load(&c.stop))
+        return swfs_fail(SWFS_ERR_STOPPED, "read: stopped by the caller after %zu of %zu data sets", atomic_load(&c.done),
+                         o->ndirs);
+    if (c.shown != o->ndirs) return swfs_progress_report(o->progress, o->progress_ctx, "read", o->ndirs, o->ndirs);
     return SWFS_OK;
 }
 
@@ -333,9 +338,11 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
         if ((rc = add_dir(o, o->dirs[d], &part, r, NULL, NULL))) break;
         double md = 0, td = 0, sd = 0;
         rc = swfs_recon_learner_heldout_on(all, part, o->ridge, keep, &md, &td, &sd);
-        if (o->progress) o->progress(o->progress_ctx, "held out", d + 1, o->ndirs);
-        if (rc == SWFS_ERR_VALUE) { rc = SWFS_OK; continue; } /* too few frames without it */
+        const int skip = rc == SWFS_ERR_VALUE; /* too few frames without it: no ratio */
+        if (skip) rc = SWFS_OK;
+        if (!rc) rc = swfs_progress_report(o->progress, o->progress_ctx, "held out", d + 1, o->ndirs);
         if (rc) break;
+        if (skip) continue;
         const size_t n = swfs_recon_learner_frames(part);
         m2 += md * (double)n;
         t2 += td * (double)n;
@@ -376,6 +383,7 @@ typedef struct curve_ctx {
     curve_check ck[6];
     atomic_size_t done;
     size_t shown; /* the last count worker 0 reported */
+    atomic_int stop; /* the caller's progress asked to stop: no check starts after it */
 } curve_ctx;
 
 static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
@@ -385,6 +393,7 @@ static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
     int rc = swfs_recon_learner_new(c->nin, c->nact, !c->o->modal, &h);
     for (size_t k = begin; k < end; k++) {
         curve_check *ck = c->ck + k;
+        if (!rc && atomic_load(&c->stop)) rc = SWFS_ERR_STOPPED;
         if (!rc) {
             swfs_recon_learner_reset(h);
             rc = swfs_recon_learner_merge(h, c->q[k < 2 ? k : k - 2]);
@@ -396,7 +405,8 @@ static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
         if (rc) snprintf(ck->why, sizeof ck->why, "%s", swfs_last_error());
         rc = rc == SWFS_ERR_VALUE ? SWFS_OK : rc; /* a part too small: the next check may still run */
         const size_t done = atomic_fetch_add(&c->done, 1) + 1;
-        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, "learning curve", c->shown = done, 6);
+        if (!worker && c->o->progress && c->o->progress(c->o->progress_ctx, "learning curve", c->shown = done, 6))
+            atomic_store(&c->stop, 1);
     }
     swfs_recon_learner_free(h);
 }
@@ -422,7 +432,11 @@ static int learning_curve(const swfs_learn_run_options *o, const swfs_recon_lear
     const double avail = swfs_mem_available(), fit = avail > 0 ? avail / curve_check_bytes(c.nin, c.nact) : 6.0;
     const size_t cap = fit >= 6.0 ? 6 : fit >= 1.0 ? (size_t)fit : 1;
     swfs_parallel_for(swfs_parallel_threads(o->threads, cap), 6, 1, curve_worker, &c);
-    if (o->progress && c.shown != 6) o->progress(o->progress_ctx, "learning curve", 6, 6);
+    if (atomic_load(&c.stop)) return swfs_fail(SWFS_ERR_STOPPED, "learning curve: stopped by the caller");
+    if (c.shown != 6) {
+        const int rc = swfs_progress_report(o->progress, o->progress_ctx, "learning curve", 6, 6);
+        if (rc) return rc;
+    }
     double m2[2] = {0, 0}, s2[2] = {0, 0}, nt[2] = {0, 0}, ne[2] = {0, 0};
     for (size_t k = 0; k < 6; k++) {
         const curve_check *ck = c.ck + k;
@@ -827,7 +841,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     } else {
         for (size_t d = 0; !rc && d < o->ndirs; d++) {
             rc = add_dir(o, o->dirs[d], &l, r, &r->nfiles, sets ? sets + d : NULL);
-            if (o->progress && !rc) o->progress(o->progress_ctx, "read", d + 1, o->ndirs);
+            if (!rc) rc = swfs_progress_report(o->progress, o->progress_ctx, "read", d + 1, o->ndirs);
         }
         if (!rc) rc = set_prior(o, l);
     }

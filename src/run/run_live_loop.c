@@ -67,12 +67,12 @@ static double ptt_rms(const double *w, const double *mask, size_t n, double *zer
     return e;
 }
 
-static void stage(const swfs_live_loop_options *o, size_t k, const char *what)
+static int stage(const swfs_live_loop_options *o, size_t k, const char *what)
 {
-    if (!o->progress) return;
+    if (!o->progress) return SWFS_OK;
     char s[128];
     snprintf(s, sizeof s, "iteration %zu: %s", k, what);
-    o->progress(o->progress_ctx, s, k, o->iterations + 1);
+    return swfs_progress_report(o->progress, o->progress_ctx, s, k, o->iterations + 1);
 }
 
 int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r)
@@ -135,11 +135,11 @@ int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r
         }
         snprintf(rdir, sizeof rdir, "%s/iter_%02zu", o->dir, k);
         mkdir(rdir, 0777);
-        stage(o, k, "simulate");
+        if ((rc = stage(o, k, "simulate"))) goto done;
         swfs_ts_summary sum;
         if ((rc = swfs_ts_run(&p, rdir, o->prov, o->nprov, NULL, NULL, &sum))) goto done;
         /* The real-data path: reduce, sync (and the reconstructor once). */
-        stage(o, k, "reduce + sync");
+        if ((rc = stage(o, k, "reduce + sync"))) goto done;
         char sci[4400], tim[4400], raw[64][4400], dark[4400], flat[4400], hs[4400];
         const char *rawp[64];
         const size_t ncub = (size_t)p.ncubes < 64 ? (size_t)p.ncubes : 64;
@@ -199,7 +199,7 @@ int swfs_live_loop_run(const swfs_live_loop_options *o, swfs_live_loop_result *r
         }
         /* The AO system publishes (replay, its own thread); live listens and corrects the
          * DM stream at the end of the data. */
-        stage(o, k, "replay -> live");
+        if ((rc = stage(o, k, "replay -> live"))) goto done;
         replay_job job;
         memset(&job, 0, sizeof job);
         swfs_replay_options_default(&job.o);

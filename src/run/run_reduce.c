@@ -171,7 +171,7 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
             rc = swfs_fits_out_real_frames(out, k, 1, buf);
             track[4 * k] = px; track[4 * k + 1] = py; track[4 * k + 2] = (double)c; track[4 * k + 3] = (double)f;
         }
-        if (!rc && o->progress) o->progress(o->progress_ctx, "cubes", c + 1, o->nraw);
+        if (!rc) rc = swfs_progress_report(o->progress, o->progress_ctx, "cubes", c + 1, o->nraw);
     }
     if (!rc) {
         r->nframes = ntot;

@@ -313,7 +313,9 @@ int swfs_replay_run(const swfs_replay_options *o, swfs_replay_result *r)
             }
         }
         r->late_max = fmax(r->late_max, swfs_wall_seconds() - (mono0 + when));
-        if (o->progress && (nw + nc) % 1024 == 0) o->progress(o->progress_ctx, "frames", nw + nc, (size_t)(g_hi - g_lo) + ncam);
+        if ((nw + nc) % 1024 == 0 &&
+            (rc = swfs_progress_report(o->progress, o->progress_ctx, "frames", nw + nc, (size_t)(g_hi - g_lo) + ncam)))
+            goto done;
         if (o->restart_after && since_restart >= o->restart_after && row < g_hi) {
             /* The writer restarts: new files (new inodes), counters from 0. */
             since_restart = 0;

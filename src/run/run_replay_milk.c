@@ -122,7 +122,8 @@ int swfs_replay_milk_run_(const swfs_replay_options *o, swfs_replay_result *r)
                 i++;
             }
             r->late_max = fmax(r->late_max, swfs_wall_seconds() - (mono0 + when));
-            if (o->progress && (i + j) % 1024 == 0) o->progress(o->progress_ctx, "frames", i + j, in->nframes + m.ncam);
+            if (!rc && (i + j) % 1024 == 0)
+                rc = swfs_progress_report(o->progress, o->progress_ctx, "frames", i + j, in->nframes + m.ncam);
         }
         r->seconds = swfs_wall_seconds() - t_start;
         r->wfs_frames = i + r->wfs_dropped;

@@ -430,7 +430,7 @@ static int process_cubes(const swfs_speckles_run_options *o, work *w, const swfs
                                   : swfs_pipeline_process(w->p, sp, need, w->sched, n, dst);
             if (rc) return swfs_fail_context(rc, "%s cube %zu", w->path, c);
         }
-        if (o->progress) o->progress(o->progress_ctx, "cubes", ok_i, r->nok);
+        if ((rc = swfs_progress_report(o->progress, o->progress_ctx, "cubes", ok_i, r->nok))) return rc;
     }
     return SWFS_OK;
 }

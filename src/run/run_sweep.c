@@ -139,7 +139,7 @@ int swfs_sweep_run(const swfs_sweep_run_options *o, swfs_sweep_run_result *r)
             if (rc) swfs_fail_context(rc, "%s:%zu (set %zu: %s)", o->sweep->path, o->sweep->line[i], i, o->sweep->sets[i]);
         }
         rows[j * ncols + ncols - 1] = swfs_wall_seconds() - t0;
-        if (!rc && o->progress) o->progress(o->progress_ctx, "sets", j + 1, r->mine);
+        if (!rc) rc = swfs_progress_report(o->progress, o->progress_ctx, "sets", j + 1, r->mine);
     }
     rc = swfs_team_agree(t, rc);
     size_t *counts = NULL;

@@ -40,9 +40,9 @@ void swfs_spacetime_lags_(double frames, long *lags)
     memcpy(lags, l, sizeof l);
 }
 
-static void stage(const swfs_teach_run_options *o, const char *what, size_t done, size_t total)
+static int stage(const swfs_teach_run_options *o, const char *what, size_t done, size_t total)
 {
-    if (o->progress) o->progress(o->progress_ctx, what, done, total);
+    return swfs_progress_report(o->progress, o->progress_ctx, what, done, total);
 }
 
 /* One loop: work/name_NN, the system with these layers and this seed, the truth exported. */
@@ -67,7 +67,26 @@ typedef struct loops_ctx {
     size_t njobs;
     atomic_size_t done;  /* loops finished, over the workers */
     int truth;           /* simulate_loop's truth */
+    atomic_int stop;     /* the caller's progress asked to stop: every loop ends at its next report */
 } loops_ctx;
+
+/* A loop simulation's own progress (every 256 WFS frames): on the caller's thread (worker 0)
+ * the caller's callback is shown the loops' count again, so that a request to stop is seen
+ * within a loop, not only between loops; on every worker the answer is whether to stop. */
+typedef struct loop_poll {
+    loops_ctx *c;
+    int worker;
+} loop_poll;
+
+static int loop_progress(void *ctx, const char *stage, size_t done, size_t total)
+{
+    (void)stage, (void)done, (void)total;
+    const loop_poll *lp = ctx;
+    loops_ctx *c = lp->c;
+    if (!lp->worker && c->o->progress && c->o->progress(c->o->progress_ctx, c->stage, atomic_load(&c->done), c->njobs))
+        atomic_store(&c->stop, 1);
+    return atomic_load(&c->stop);
+}
 
 /* A loop's folder from an earlier teach in the same work folder (`speckles` teaches into
  * OUT.teach each run) may hold more slopes / truewf files than this loop writes, and learn
@@ -96,7 +115,7 @@ static int clear_loop(const char *path)
  * true residual (export_truth: the maps' training target), which the calibration loops, read
  * for their slopes only, go without (the slopes are the same either way). */
 static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threads, const swfs_ts_shared *shared,
-                         int truth)
+                         int truth, loop_poll *poll)
 {
     swfs_ts_params p = o->sim;
     p.nlayers = j->nl;
@@ -119,7 +138,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     if (!rc) rc = clear_loop(j->path);
     swfs_ts_summary sum;
     swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
-    if (!rc) rc = swfs_ts_run_shared(&p, shared, j->path, o->prov, o->nprov, NULL, NULL, &sum);
+    if (!rc) rc = swfs_ts_run_shared(&p, shared, j->path, o->prov, o->nprov, loop_progress, poll, &sum);
     const int erc = swfs_outputs_end(rc == SWFS_OK);
     if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", j->path);
     return SWFS_OK;
@@ -130,12 +149,21 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
 static void loops_worker(void *ctx, size_t begin, size_t end, int worker)
 {
     loops_ctx *c = ctx;
+    loop_poll poll = {c, worker};
     for (size_t i = begin; i < end; i++) {
         loop_job *j = c->jobs + i;
-        j->rc = simulate_loop(c->o, j, c->inner, c->shared, c->truth);
+        if (atomic_load(&c->stop)) {
+            j->rc = SWFS_ERR_STOPPED;
+            snprintf(j->why, sizeof j->why, "%s: stopped by the caller at %zu of %zu", c->stage, atomic_load(&c->done),
+                     c->njobs);
+            continue;
+        }
+        j->rc = simulate_loop(c->o, j, c->inner, c->shared, c->truth, &poll);
         if (j->rc) snprintf(j->why, sizeof j->why, "%s", swfs_last_error());
+        if (j->rc == SWFS_ERR_STOPPED) continue;
         const size_t done = atomic_fetch_add(&c->done, 1) + 1;
-        if (!worker && c->o->progress) c->o->progress(c->o->progress_ctx, c->stage, done, c->njobs);
+        if (!worker && swfs_progress_report(c->o->progress, c->o->progress_ctx, c->stage, done, c->njobs))
+            atomic_store(&c->stop, 1);
     }
 }
 
@@ -146,13 +174,16 @@ static int simulate_loops(const swfs_teach_run_options *o, const swfs_ts_shared 
                           const char *stage, size_t *nrun, int truth)
 {
     const int nt = swfs_parallel_threads(o->sim.base.threads, n);
-    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, shared, stage, n, 0, truth};
-    if (o->progress) o->progress(o->progress_ctx, stage, 0, n);
+    loops_ctx c = {o, jobs, nt > 1 ? 1 : o->sim.base.threads, shared, stage, n, 0, truth, 0};
+    int rc = swfs_progress_report(o->progress, o->progress_ctx, stage, 0, n);
+    if (rc) return rc;
     swfs_parallel_for(nt, n, 1, loops_worker, &c);
-    for (size_t i = 0; i < n; i++) {
-        if (jobs[i].rc) return swfs_fail(jobs[i].rc, "%s", jobs[i].why);
-        ++*nrun;
-    }
+    /* the first loop that failed on its own, else the request to stop */
+    for (size_t i = 0; i < n; i++)
+        if (jobs[i].rc && jobs[i].rc != SWFS_ERR_STOPPED) return swfs_fail(jobs[i].rc, "%s", jobs[i].why);
+    if (atomic_load(&c.stop))
+        return swfs_fail(SWFS_ERR_STOPPED, "%s: stopped by the caller after %zu of %zu loops", stage, atomic_load(&c.done), n);
+    *nrun += n;
     return SWFS_OK;
 }
 
@@ -940,7 +971,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     if (!rc) rc = noise_of(sp, obs, o->files[0], vmap, vn, r);
     free(vmap);
     /* 1. the layers */
-    stage(o, "the observation's layers (wind)", 0, 1);
+    if (!rc) rc = stage(o, "the observation's layers (wind)", 0, 1);
     swfs_wind_run_options wo = {o->files, o->nfiles, valid, sp->nsub, sp->base.teldiam, sp->wfs_rate};
     if (!rc) rc = swfs_wind_run(&wo, &r->wind);
     const swfs_wind_estimate *e = &r->wind.est;
@@ -1041,8 +1072,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     r->st_loops = o->nloops;
     r->max_loops = max_loops;
     if (!rc) {
-        stage(o, "learning the space-time map", 0, 1);
-        rc = learn(o, &pj, jobs, o->nloops, r->lags, r->nlags, st, pf, max_loops > o->nloops, &lr);
+        rc = stage(o, "learning the space-time map", 0, 1);
+        if (!rc) rc = learn(o, &pj, jobs, o->nloops, r->lags, r->nlags, st, pf, max_loops > o->nloops, &lr);
         r->curve_first = r->curve = lr;
     }
     /* 4b. more loops where the curve asks for more frames than the loops hold: as many as
@@ -1063,8 +1094,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
                             &r->nloops, 1);
         r->st_loops = n;
         if (!rc) {
-            stage(o, "learning the space-time map again", 0, 1);
-            rc = learn(o, &pj, jobs, n, r->lags, r->nlags, st, pf, 1, &lr);
+            rc = stage(o, "learning the space-time map again", 0, 1);
+            if (!rc) rc = learn(o, &pj, jobs, n, r->lags, r->nlags, st, pf, 1, &lr);
             r->curve = lr;
         }
     }
@@ -1101,8 +1132,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
         r->chosen = SWFS_TEACH_PERFRAME;
     }
     if (!rc && r->chosen == SWFS_TEACH_PERFRAME_MIXED) { /* other loops: their own map */
-        stage(o, "learning the per-frame map", 0, 1);
-        rc = learn(o, &pj, jobs, o->nloops, NULL, 0, pf, NULL, 0, &lr);
+        rc = stage(o, "learning the per-frame map", 0, 1);
+        if (!rc) rc = learn(o, &pj, jobs, o->nloops, NULL, 0, pf, NULL, 0, &lr);
     }
     if (!rc && r->warns) chosen = pf; /* of the same loops: learned with the space-time map */
     free(jobs);

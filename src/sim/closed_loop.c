@@ -283,7 +283,7 @@ int swfs_closed_loop_run(const swfs_sim_params *p, const swfs_loop_params *lp, c
             for (size_t a = 0; a < nact; a++) cn[a] = ck[a] + lp->gain * cmd[a];
         }
         row->seconds = swfs_wall_seconds() - t1;
-        if (progress) progress(ctx, "loop", k + 1, nrows);
+        if ((rc = swfs_progress_report(progress, ctx, "loop", k + 1, nrows))) goto done;
     }
     r->seconds = swfs_wall_seconds() - t0;
 

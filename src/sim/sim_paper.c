@@ -498,13 +498,13 @@ int swfs_sim_paper_run_ncp(const swfs_sim_params *p, const double *ncp, swfs_pro
         if ((rc = swfs_screen_gen_draw(gen, &rng))) goto done;
         if ((rc = apply_residual_filter(gen, p, r->kernel_sigma, nw))) goto done;
         if ((rc = swfs_screen_gen_finish(gen, scr1, two ? scr2 : NULL))) goto done;
-        if (progress) progress(ctx, "screens", 2 * b + 1 + (size_t)two, (size_t)p->nscreens);
+        if ((rc = swfs_progress_report(progress, ctx, "screens", 2 * b + 1 + (size_t)two, (size_t)p->nscreens))) goto done;
         sh.screens[0] = scr1;
         sh.screens[1] = scr2;
         sh.nscr = two ? 2 : 1;
         sh.first_screen = 2 * b;
         swfs_parallel_for(nw, sh.nscr * per2, 1, frames_fn, &sh);
-        if (progress) progress(ctx, "frames", (2 * b + sh.nscr) * per2, nframes);
+        if ((rc = swfs_progress_report(progress, ctx, "frames", (2 * b + sh.nscr) * per2, nframes))) goto done;
     }
     reduce_frames(&sh, nframes, r);
     r->seconds = swfs_wall_seconds() - t0;

@@ -803,9 +803,23 @@ int swfs_ts_run(const swfs_ts_params *p, const char *dir, const char *const *pro
     return swfs_ts_run_shared(p, NULL, dir, prov, nprov, progress, ctx, sum);
 }
 
+static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const char *dir, const char *const *prov,
+                  size_t nprov, swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum);
+
+/* The run's files as one output group (atomic.h): a run that fails or is stopped half way
+ * leaves none of them. */
 int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, const char *dir,
                        const char *const *prov, size_t nprov, swfs_ts_progress_fn progress, void *ctx,
                        swfs_ts_summary *sum)
+{
+    swfs_outputs_begin();
+    const int rc = ts_run(p, shared, dir, prov, nprov, progress, ctx, sum);
+    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    return rc ? rc : erc;
+}
+
+static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const char *dir, const char *const *prov,
+                  size_t nprov, swfs_ts_progress_fn progress, void *ctx, swfs_ts_summary *sum)
 {
     memset(sum, 0, sizeof *sum);
     int rc = swfs_ts_params_check(p);
@@ -902,7 +916,7 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         if ((rc = swfs_screen_vonkarman(&sp, &rng, s, NULL))) goto done;
         double sc = sqrt(p->layer_frac[l]);
         for (size_t k = 0; k < nsn * nsn; k++) s[k] *= sc;
-        if (progress) progress(ctx, "screens", (size_t)l + 1, (size_t)p->nlayers);
+        if ((rc = swfs_progress_report(progress, ctx, "screens", (size_t)l + 1, (size_t)p->nlayers))) goto done;
     }
 
     /* DM, WFS, the loop's reconstructor. */
@@ -916,9 +930,9 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
         if ((rc = swfs_pyramid_create(&pyr, (size_t)p->nsub, D, mask, np, dx, sh->valid, lw, p->pyr_mod,
                                       (size_t)p->pyr_nmod)))
             goto done;
-        if (progress) progress(ctx, "pyramid interaction matrix", 0, nact);
+        if ((rc = swfs_progress_report(progress, ctx, "pyramid interaction matrix", 0, nact))) goto done;
         if ((rc = swfs_pyramid_interaction(pyr, T, lw / 100, &Dm))) goto done;
-        if (progress) progress(ctx, "pyramid interaction matrix", nact, nact);
+        if ((rc = swfs_progress_report(progress, ctx, "pyramid interaction matrix", nact, nact))) goto done;
     } else if ((rc = swfs_interaction_matrix(sh, T, &Dm))) {
         goto done;
     }
@@ -1214,7 +1228,11 @@ int swfs_ts_run_shared(const swfs_ts_params *p, const swfs_ts_shared *shared, co
                 memset(et, 0, ng * sizeof *et);
             }
         }
-        if (progress && (k % 256 == 0 || k + 1 == nwfs)) progress(ctx, "WFS frames", k + 1, nwfs);
+        if ((k % 256 == 0 || k + 1 == nwfs) && (rc = swfs_progress_report(progress, ctx, "WFS frames", k + 1, nwfs))) {
+            free(tstart);
+            free(dact);
+            goto done;
+        }
     }
     free(dact);
     if (nlam > 1) swfs_mft_free(mft0);
