@@ -80,6 +80,9 @@ int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
 /* The check inside cli_stage_progress (signals caught from its first call): non-zero once
  * SIGINT/SIGTERM asked to stop, for a command's own progress callback. */
 int cli_stop_requested(void);
+/* A progress callback that prints nothing, only asks cli_stop_requested (a command whose
+ * own lines show its progress: stream's updates). */
+int cli_stop_check(void *ctx, const char *stage, size_t done, size_t total);
 /* --tiptilt exposure|frame|keep -> SWFS_TT_* (speckles.h); prints and returns CLI_USAGE otherwise. */
 int cli_parse_tiptilt(const char *cmd, const char *v, int *mode);
 /* mkdir -p for an output folder; prints and returns non-zero on failure. */

@@ -133,6 +133,7 @@ int swfs_cmd_stream(int argc, char **argv)
     double t0 = cli_now();
     o.on_update = cli_writer() ? on_update : NULL;
     o.update_ctx = &t0;
+    o.progress = cli_stop_check; /* SIGINT/SIGTERM stop a run from files (its updates removed) */
     swfs_stream_run_result r;
     if (swfs_stream_run_files(&o, &r)) return cli_writer() ? cli_error(cmd) : CLI_FAIL;
     if (!cli_writer()) return CLI_OK;

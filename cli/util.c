@@ -119,6 +119,12 @@ int cli_stop_requested(void)
     return stop_signal != 0;
 }
 
+int cli_stop_check(void *ctx, const char *stage, size_t done, size_t total)
+{
+    (void)ctx, (void)stage, (void)done, (void)total;
+    return cli_stop_requested();
+}
+
 int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)
 {
     char label[128];

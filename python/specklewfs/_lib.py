@@ -374,7 +374,8 @@ swfs_stream_run_options = _s("swfs_stream_run_options", [
     ("pupil_source", c_int), ("geom", swfs_geom), ("lin", swfs_linear_files), ("wfs_logs", P(c_str)),
     ("nwfs_logs", c_size), ("clock", c_str), ("exptime", c_dbl), ("valid", c_str), ("band", c_dbl),
     ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int), ("mean_teach_loops", c_size),
-    ("teach_work", c_str), ("teach_again", c_int), ("mean_teach_max_loops", c_size)])
+    ("teach_work", c_str), ("teach_again", c_int), ("mean_teach_max_loops", c_size), ("progress", PROGRESS_FN),
+    ("progress_ctx", c_ptr)])
 swfs_stream_run_result = _s("swfs_stream_run_result", [
     ("camera_frames", c_size), ("wfs_frames", c_dbl), ("seconds", c_dbl), ("wfs_rate", c_dbl),
     ("static_scale", c_dbl), ("ratio", c_dbl), ("noise", swfs_noise), ("info", swfs_pipeline_info),

@@ -11,7 +11,7 @@ from . import _lib
 from ._lib import lib, check, enc
 from .core import geom_arg
 from .realdata import _linear, _mean_teach_dict, _opt, _paths
-from .sim import _struct_dict
+from .sim import _Progress, _struct_dict
 from .stream import _TT, _band
 
 _STATIC = {"auto": 0, "none": 1}
@@ -86,7 +86,7 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
                  g_smooth_lod=2.0, static="auto", static_out=None, every=0, every_seconds=0.0, max_frames=0,
                  pupil_out=None, checkpoint=None, pupil=None, valid=None, band="auto", mean_loops=None,
                  mean_teach_loops=None, mean_teach_max_loops=None, teach_work=None, teach_again=False, geom=None,
-                 provenance=()):
+                 provenance=(), progress=None):
     """HALO.fits `out` updated as the data stream through (`specklewfs stream`): the science
     cube's frames with the telemetry that timing (`sync`'s table) pairs them with, or with
     wfs_log (milk logs: one folder or file, or several whose values are concatenated in the
@@ -107,7 +107,9 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     stamped and, for milk logs, stamps (framesync's counts in `sync`, the logs' counter jumps
     wfs_dropped_log / camera_dropped_log, exptime), st_lags (a space-time map's) and its file
     edges (st_edges_joined, _clamped, _unreadable, _why), meanmiss_rms, meanmiss_heldout and
-    mean_teach (as speckles())."""
+    mean_teach (as speckles()). progress(stage, done, total): after every batch, the camera
+    frames taken so far (total 0 for milk logs); an exception there, or Ctrl-C, stops the run,
+    removes the updates it had written and comes out of the call."""
     o = _lib.swfs_stream_run_options()
     lib.swfs_stream_run_options_default(ctypes.byref(o))
     logs = _lib.path_list(wfs_log)
@@ -135,7 +137,10 @@ def stream_files(science, out, timing=None, wfs_log=None, clock=None, exptime=0.
     prov, o.nprov = _lib.strings(provenance)
     o.prov = prov
     r = _lib.swfs_stream_run_result()
-    check(lib.swfs_stream_run_files(ctypes.byref(o), ctypes.byref(r)), "swfs_stream_run_files")
+    with _Progress(progress) as prog:
+        o.progress = prog.fn
+        rc = lib.swfs_stream_run_files(ctypes.byref(o), ctypes.byref(r))
+    prog.check(rc, "swfs_stream_run_files")
     return _stream_result(r, "stream_files")
 
 

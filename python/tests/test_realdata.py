@@ -664,8 +664,26 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
                         **model)
     assert m["stamped"] and m["stamps"]["camera_dropped_log"] == int(truth["cam_dropped"])
     assert m["stamps"]["wfs_dropped_log"] == int(truth["wfs_dropped"]) and m["camera_frames"] > 150
-    n = sw.stream_files(str(d / "sci.fits"), str(d / "halo_native.fits"), timing=str(d / "timing.txt"), **model)
+    seen = []
+    n = sw.stream_files(str(d / "sci.fits"), str(d / "halo_native.fits"), timing=str(d / "timing.txt"),
+                        progress=lambda *a: seen.append(a), **model)
     assert not n["stamped"] and n["stamps"] is None and n["camera_frames"] > 150
+    # progress: the camera frames after every batch (at most 128, within a cube), of the
+    # timing table's usable frames
+    assert seen[-1] == ("camera frames", n["camera_frames"], n["camera_frames"]) and 0 < seen[0][1] < seen[1][1]
+    # a progress callback that raises at the second batch stops the run; the update written
+    # after the first (every=1) is removed with it, and the exception comes out
+    class Enough(Exception):
+        pass
+
+    def two(stage, done, total):
+        if done > seen[0][1]:
+            assert os.path.exists(d / "halo_stop.fits")  # the first batch's update, in place
+            raise Enough(f"{stage} {done} of {total}")
+    with pytest.raises(Enough, match=f"camera frames {seen[1][1]} of {n['camera_frames']}"):
+        sw.stream_files(str(d / "sci.fits"), str(d / "halo_stop.fits"), timing=str(d / "timing.txt"), every=1,
+                        progress=two, **model)
+    assert not os.path.exists(d / "halo_stop.fits")
     # the command line on the same files: the same clock and the same halo
     run = lambda *a: subprocess.run([cli, *a], check=True, capture_output=True)  # noqa: E731
     run("sync", "--wfs-log", wfs, str(d / "sci_milk.fits"), "-o", str(d / "clock_cli.txt"))

@@ -124,6 +124,33 @@ static int stacked_next(void *ctx, swfs_batch *b)
     return rc;
 }
 
+/* A source whose batches are reported to the caller's progress (swfs_stream_run_options). */
+typedef struct progress_src {
+    swfs_source_fn next;
+    void *ctx;
+    const swfs_stream_run_options *o;
+    size_t done, total;
+} progress_src;
+
+static int progress_next(void *ctx, swfs_batch *b)
+{
+    progress_src *p = ctx;
+    const int rc = p->next(p->ctx, b);
+    if (rc || !b->nexp) return rc;
+    p->done += b->nexp;
+    if (p->total && p->done > p->total) p->done = p->total; /* the last batch cut at max_frames */
+    return swfs_progress_report(p->o->progress, p->o->progress_ctx, "camera frames", p->done, p->total);
+}
+
+/* The camera frames a run from a timing table takes: its usable cubes', the first max_frames. */
+static size_t usable_frames(const swfs_timing *t, size_t max_frames)
+{
+    size_t n = 0;
+    for (size_t c = 0; t && c < t->ncubes; c++)
+        if (t->cubes[c].status == SWFS_CUBE_OK) n += t->cubes[c].nframes;
+    return max_frames && n > max_frames ? max_frames : n;
+}
+
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
  * (too few frames yet) is not an error: the next update tries again. */
 static int update(void *ctx, const swfs_stream *s, int final)
@@ -506,8 +533,10 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
             rc = write_static(o->static_out, swfs_stream_static(s), nfx, nfy, &u.g, u.prov, u.nprov);
             u.static_written = 1;
         }
-        if (!rc) rc = hk ? swfs_stream_run(s, hk->source, hk->source_ctx, update, &u)
-                         : swfs_stream_run(s, stacked_next, &ss, update, &u);
+        progress_src ps = {hk ? hk->source : stacked_next, hk ? hk->source_ctx : (void *)&ss, o, 0,
+                           hk ? 0 : usable_frames(ss.t, o->stream.max_frames)};
+        const int report = o->progress && (!hk || hk->offline);
+        if (!rc) rc = report ? swfs_stream_run(s, progress_next, &ps, update, &u) : swfs_stream_run(s, ps.next, ps.ctx, update, &u);
         if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
             rc = hk ? swfs_fail(SWFS_ERR_VALUE, "no complete camera exposure arrived")
                     : swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
