@@ -173,7 +173,7 @@ int swfs_cmd_correct(int argc, char **argv)
     fprintf(stderr, "correct: %zu iterations at gain %g, sigma %g counts (%d screens of %zu^2 each)\n", lp.iterations,
             lp.gain, lp.sigma, p.nscreens, p.screen.n);
     if (swfs_closed_loop_run(&p, &lp, NULL, cli_stage_progress, (void *)"correct:", &res)) {
-        cli_error(cmd);
+        rc = cli_error(cmd); /* 128 + the signal where SIGINT/SIGTERM stopped it */
         goto done;
     }
     size_t nprov;

@@ -128,7 +128,7 @@ int swfs_cmd_simulate(int argc, char **argv)
 
     const double t0 = cli_now();
     swfs_sim_result *r = NULL;
-    if (swfs_sim_paper_run(&p, quiet ? NULL : cli_stage_progress, NULL, &r)) return cli_error(cmd);
+    if (swfs_sim_paper_run(&p, quiet ? cli_stop_check : cli_stage_progress, NULL, &r)) return cli_error(cmd);
     swfs_real *noisy = swfs_real_copy(r->science);
     /* The camera stream is independent of the screen streams (seed2(seed, pair)). */
     if (!noisy || swfs_sim_camera(r->science, p.read_noise, p.gain, p.seed ^ 0x5eed0fca3e7aULL, noisy)) {

@@ -33,7 +33,7 @@ int swfs_cmd_simulate_ts(struct swfs_config *cfg, const char *cfgfile, const cha
     swfs_ts_summary s;
     /* All files renamed into place at the end, or none (atomic.h). */
     swfs_outputs_begin();
-    int rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? NULL : cli_stage_progress, (void *)"simulate:", &s);
+    int rc = swfs_ts_run(&p, outdir, prov, 2, quiet ? cli_stop_check : cli_stage_progress, (void *)"simulate:", &s);
     int erc = swfs_outputs_end(rc == SWFS_OK);
     if (rc || erc) return cli_error(cmd);
     swfs_dm_registration reg;

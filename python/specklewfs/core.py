@@ -49,7 +49,12 @@ def geom_arg(geom):
         lib.swfs_geom_init(ctypes.byref(g))
         return g
     if isinstance(geom, dict):
+        unknown = sorted(set(geom) - {f.name for f in fields(Geom)})
+        if unknown:
+            raise ValueError(f"geom: unknown keys {unknown}; a geometry has {[f.name for f in fields(Geom)]}")
         geom = Geom(**geom)
+    if not isinstance(geom, Geom):
+        raise TypeError(f"geom: expected a specklewfs.Geom, a dict of its fields or None, got {type(geom).__name__}")
     return geom.to_c()
 
 

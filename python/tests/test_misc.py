@@ -97,6 +97,11 @@ def test_bad_sizes_and_replaced_reconstructors():
         sw.stack_lags(rng.normal(size=(10, 4)), [0, 1], first=-1)
     with pytest.raises(ValueError, match="coherence: lags: expected a whole number"):
         sw.coherence(rng.normal(size=(8, 4, 4)) + 0j, 1e-3, lags=[0, 2.5])
+    # a geometry that is not one (it leaked as AttributeError / TypeError from inside)
+    with pytest.raises(TypeError, match="geom: expected a specklewfs.Geom, a dict of its fields or None, got tuple"):
+        sw.reduce(["raw.fits"], "sci.fits", geom=(1e-6, 2.0))
+    with pytest.raises(ValueError, match=r"geom: unknown keys \['wavelength'\]"):
+        sw.reduce(["raw.fits"], "sci.fits", geom=dict(wavelength=1e-6))
     # an option spelled wrong names itself and its spellings (it leaked as KeyError/TypeError)
     with pytest.raises(ValueError, match="coherence: method: expected one of 'auto', 'fft', 'direct', got 'fast'"):
         sw.coherence(rng.normal(size=(8, 4, 4)) + 0j, 1e-3, method="fast")
