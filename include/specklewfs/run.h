@@ -527,7 +527,8 @@ typedef struct swfs_stream_run_options {
                                  for the same files, more where the loops' map's curve asks */
     /* Progress after every batch, stage "camera frames": the frames taken so far of the run's
      * (the timing table's usable frames up to max_frames; 0 for time-stamped input, whose
-     * count is known only at its end). A request to stop ends the run with SWFS_ERR_STOPPED
+     * count is known only at its end); before them the stages of the mean loops the run
+     * simulates (mean_teach), as speckles reports them. A request to stop ends the run with SWFS_ERR_STOPPED
      * and removes the updates it had put in place (status.h). Not called in a team, nor for a
      * live source (live's own stop flag ends those). */
     swfs_progress_fn progress;

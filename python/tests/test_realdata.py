@@ -636,6 +636,23 @@ def test_speckles_falls_back_where_no_map_can_be_taught(series, tmp_path):
     np.testing.assert_array_equal(sw.read_fits(str(tmp_path / "sp.fits"))[0], sw.read_fits(str(tmp_path / "sp_vk.fits"))[0])
 
 
+def test_a_stop_while_teaching_is_no_fallback(series, tmp_path):
+    """A progress callback that stops speckles while its default teaches the map ends the run:
+    no fallback to the von Karman map, no speckle cube (a map that cannot be taught falls back,
+    test_speckles_falls_back_where_no_map_can_be_taught; a request to stop is not one)."""
+    timing, sci, act = _series_copy(series, tmp_path, "stop", lambda d, rate: (d, {"WFSRATE": rate}))
+
+    class Enough(Exception):
+        pass
+
+    def at_loops(stage, done, total):
+        if stage.startswith("simulating"):
+            raise Enough(stage)
+    with pytest.raises(Enough, match="simulating"):
+        sw.speckles(timing, sci, act, str(tmp_path / "sp.fits"), teach_loops=2, teach_max_loops=2, progress=at_loops)
+    assert not os.path.exists(tmp_path / "sp.fits")
+
+
 def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
     """milk/cacao logs from Python: reduce of the camera's logs (STAMPS), sync_wfs_log (the
     clock file: drift and offset near the simulated ones, the drops counted) and stream_files

@@ -735,6 +735,7 @@ int swfs_speckles_loops_map_(const swfs_speckles_run_options *o, const swfs_geom
     r->weight = 1.0;
     const int rc = loops_map(o, g, mask, imat_heldout, p, r);
     r->seconds = swfs_wall_seconds() - t0;
+    if (rc == SWFS_ERR_STOPPED) return rc; /* the caller asked the whole run to stop: no fallback */
     if (rc) { /* the interaction matrix's speckles stay, and the run says why */
         snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());
         swfs_clear_error();

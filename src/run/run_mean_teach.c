@@ -661,6 +661,7 @@ static int mean_teach_auto(const swfs_speckles_run_options *o, const swfs_timing
         return SWFS_OK;
     }
     const int rc = mean_teach(o, t, tdir, g, nslopes, r, dirs);
+    if (rc == SWFS_ERR_STOPPED) return rc; /* the caller asked the whole run to stop: no fallback */
     if (rc) {
         snprintf(r->fallback, sizeof r->fallback, "%s", swfs_last_error());
         swfs_clear_error();

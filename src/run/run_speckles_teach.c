@@ -234,7 +234,7 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
     swfs_teach_run_result own, *tr = o->teach ? o->teach : &own;
     char *map = r->teach_map;
     const size_t cap = sizeof r->teach_map;
-    int taught = 0, rc = SWFS_OK;
+    int taught = 0, rc = SWFS_OK, trc = SWFS_OK;
     r->teach_fallback[0] = 0;
     map[0] = 0;
     /* a team: member 0 teaches, the others wait for its map (teach is the same to the bit
@@ -242,14 +242,18 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
     r->teach_reused = 0;
     r->teach_fingerprint[0] = 0;
     if (swfs_team_writer(o->team)) {
-        taught = !teach(o, t, tdir, g, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
+        trc = teach(o, t, tdir, g, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
+        taught = !trc;
         if (!taught)
             snprintf(r->teach_fallback, sizeof r->teach_fallback, "%s", swfs_last_error());
     } else {
         memset(tr, 0, sizeof *tr);
     }
+    /* a request to stop is not a map that cannot be taught: the run ends, with no fallback */
+    const int stopped = trc == SWFS_ERR_STOPPED ? trc : SWFS_OK;
+    if (!swfs_team_active(o->team) && stopped) return stopped;
     if (swfs_team_active(o->team)) {
-        rc = swfs_team_agree(o->team, SWFS_OK);
+        rc = swfs_team_agree(o->team, stopped);
         if (!rc) rc = o->team->bcast(o->team->ctx, &taught, sizeof taught, 0);
         if (!rc) rc = o->team->bcast(o->team->ctx, map, cap, 0);
         if (!rc && !taught && !swfs_team_writer(o->team))

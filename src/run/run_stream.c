@@ -50,6 +50,10 @@ static int stream_mean_teach(const swfs_stream_run_options *o, const swfs_geom *
     so.prov = o->prov;
     so.nprov = o->nprov;
     so.team = o->team;
+    if (!o->team) { /* the loops' simulation stops as the stream would (a team's members run them alike) */
+        so.progress = o->progress;
+        so.progress_ctx = o->progress_ctx;
+    }
     char tdir[4096];
     struct stat st;
     if (o->slopes && !stat(o->slopes, &st) && S_ISDIR(st.st_mode)) snprintf(tdir, sizeof tdir, "%s", o->slopes);
