@@ -668,8 +668,9 @@ static int loops_map(const swfs_speckles_run_options *o, const swfs_geom *g, con
         int mrc = mixer_open(&mx, o, g, mask, swfs_pipeline_linear_map(p), r->map, o->out, s2.out);
         if (!mrc) mrc = mixer_offsets(&mx, o, g, mask, p, rec1, r->map);
         if (!mrc) mrc = mix_candidates(o, &s2, &mx, r, sci, mmean, mmap, msp, mh, &nmix);
-        if (mrc) { /* the note says why; the two ends are scored as before (their misses, where
-                    * made, still go with --write-recon's map) */
+        if (mrc == SWFS_ERR_STOPPED) rc = mrc; /* the caller asked the run to stop */
+        else if (mrc) { /* the note says why; the two ends are scored as before (their misses, where
+                         * made, still go with --write-recon's map) */
             snprintf(r->mix_note, sizeof r->mix_note, "%s", swfs_last_error());
             swfs_clear_error();
             nmix = 0;

@@ -499,6 +499,7 @@ static int loops_as_curve_asks(const swfs_speckles_run_options *o, const swfs_te
     swfs_learn_run_result lr;
     int rc = swfs_learn_run(&lo, &lr);
     (void)remove(out); /* the map of the first loops: the loops' map step learns from all */
+    if (rc == SWFS_ERR_STOPPED) return rc; /* the caller asked the run to stop */
     if (rc) { /* no curve: the first loops stay, and the loops' map step says what it cannot learn */
         swfs_clear_error();
         return SWFS_OK;
