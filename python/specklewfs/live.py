@@ -16,6 +16,7 @@ another, or live in a thread beside one's own loop, run side by side:
 import ctypes
 import math
 import os
+import threading
 
 from . import _lib
 from ._lib import lib, check, enc, c_ptr, P
@@ -27,6 +28,27 @@ from .streamfiles import _mean_loops, _stream_run_model, _stream_result
 
 # on_update(ctx, stream, halo, pupil_result, final) of run.h
 _UPDATE = ctypes.CFUNCTYPE(None, c_ptr, c_ptr, P(_lib.swfs_halo), P(_lib.swfs_pupil_result), ctypes.c_int)
+
+
+def _run_stoppable(call, stop, raised):
+    """call() (a library run that polls `stop`) with Ctrl-C as its stop: on the main thread the
+    run goes to a thread of its own while this one waits, so that KeyboardInterrupt arrives
+    here at once; it sets the flag, the run ends cleanly at its next batch (the products of
+    the frames so far written, as the command line's SIGINT does), and the interrupt is put
+    in `raised` for the caller to raise after the run. Elsewhere call() runs as it is."""
+    if threading.current_thread() is not threading.main_thread():
+        return call()
+    box = []
+    t = threading.Thread(target=lambda: box.append(call()), name="specklewfs-live", daemon=True)
+    t.start()
+    while t.is_alive():
+        try:
+            t.join(0.2)
+        except KeyboardInterrupt as e:
+            if not raised:
+                raised.append(e)
+            stop.set()
+    return box[0] if box else -1
 
 
 class StopFlag:
@@ -149,7 +171,7 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     prov, r_.nprov = _lib.strings(provenance)
     r_.prov = prov
     res = _lib.swfs_live_result()
-    rc = lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res))
+    rc = _run_stoppable(lambda: lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res)), stop, raised)
     if raised:
         raise raised[0]
     check(rc, "swfs_live_run")

@@ -4,6 +4,7 @@ batch size live hands the stream the batches stream_files makes from the same fi
 products equal stream_files'; the updates reach on_update; StopFlag ends a run cleanly;
 errors raise with the library's message and leave no output."""
 import os
+import signal
 import threading
 
 import numpy as np
@@ -115,6 +116,27 @@ def test_stop_flag_and_update_errors(series, tmp_path):
                 max_wait=60, idle_exit=0.5, every=8, on_update=boom, **_model(d))
     t.join()
     assert "e" not in rep
+    # Ctrl-C (SIGINT while the library waits on the streams, no callback of one's own) ends the
+    # run as the StopFlag does -- the frames so far used, the products written -- and then
+    # raises KeyboardInterrupt; SIGINT's handler is Python's again afterwards
+    rep = {}
+    t = _replay_thread(d, shm, ("w4", "c4"), rep, speed=0.25)
+    timer = threading.Timer(1.5, os.kill, (os.getpid(), signal.SIGINT))
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            sw.live("w4", "c4", str(d / "sci.fits"), str(tmp_path / "ctrlc.fits"), shm_dir=str(shm), batch=8,
+                    max_wait=60, idle_exit=0.5, every=8, **_model(d))
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, old)
+    t.join()
+    assert "e" not in rep
+    used = sw.fits.read_keys(str(tmp_path / "ctrlc.fits"), ["NFRAMES"])["NFRAMES"]
+    print(f"live stopped by SIGINT after {used} of {rep['r']['camera_frames']} camera frames")
+    assert 8 <= used < rep["r"]["camera_frames"]
 
 
 def test_live_and_replay_errors(series, tmp_path):
