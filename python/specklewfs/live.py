@@ -35,11 +35,16 @@ def _run_stoppable(call, stop, raised):
     run goes to a thread of its own while this one waits, so that KeyboardInterrupt arrives
     here at once; it sets the flag, the run ends cleanly at its next batch (the products of
     the frames so far written, as the command line's SIGINT does), and the interrupt is put
-    in `raised` for the caller to raise after the run. Elsewhere call() runs as it is."""
+    in `raised` for the caller to raise after the run. Elsewhere call() runs as it is. Returns
+    (status, the library's message): the message is the thread's own (status.h), so it is
+    taken on the thread that ran the call."""
+    def run():
+        rc = call()
+        return rc, _lib._last_error() if rc else None
     if threading.current_thread() is not threading.main_thread():
-        return call()
+        return run()
     box = []
-    t = threading.Thread(target=lambda: box.append(call()), name="specklewfs-live", daemon=True)
+    t = threading.Thread(target=lambda: box.append(run()), name="specklewfs-live", daemon=True)
     t.start()
     while t.is_alive():
         try:
@@ -48,7 +53,7 @@ def _run_stoppable(call, stop, raised):
             if not raised:
                 raised.append(e)
             stop.set()
-    return box[0] if box else -1
+    return box[0] if box else (_lib.SWFS_ERR_INTERNAL, "live: the run's thread ended without a status")
 
 
 class StopFlag:
@@ -171,10 +176,11 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     prov, r_.nprov = _lib.strings(provenance)
     r_.prov = prov
     res = _lib.swfs_live_result()
-    rc = _run_stoppable(lambda: lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res)), stop, raised)
+    rc, msg = _run_stoppable(lambda: lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res)), stop, raised)
     if raised:
         raise raised[0]
-    check(rc, "swfs_live_run")
+    if rc:
+        raise _lib.Error(rc, msg, "swfs_live_run")
     d = _stream_result(res.run, "live")
     d["sync"] = _struct_dict(res.src.sync)
     d.update({k: getattr(res.src, k) for k in ("ring_overruns", "reopens", "lag_count", "lag_median", "lag_p99",
@@ -190,7 +196,7 @@ _TYPES = {None: 0, "float32": 9, "float64": 10, "int16": 4, "uint16": 3}  # shm.
 def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_name="swfs_wfs",
            camera_name="swfs_camera", wfs_rate=0.0, speed=1.0, drop_wfs=0.0, drop_camera=0.0, jitter=0.0, seed=1,
            depth=0, wfs_type=None, camera_type=None, wait_reader=0.0, restart_after=0, drop_log=None,
-           remove=False):
+           remove=False, progress=None):
     """Publishes recorded data into shared-memory streams as `specklewfs replay`: the
     telemetry a timing table (`sync`'s) pairs with the reduced science cube `science`
     (slopes: the telemetry's folder or one file; None: the table's folder), at wfs_rate
@@ -202,15 +208,13 @@ def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_na
     (None: as the files); wait_reader [s]: wait that long for a reader on every stream
     before publishing; restart_after: re-create the streams after that many WFS frames;
     drop_log: a text file of the frames lost; remove: remove the streams at the end.
-    Returns wfs_frames, camera_frames, wfs_dropped, camera_dropped, restarts, wfs_rate,
+    progress(stage, done, total): every 1024 frames published; an exception there, or
+    Ctrl-C on the main thread, stops the replay and comes out of the call. Returns wfs_frames, camera_frames, wfs_dropped, camera_dropped, restarts, wfs_rate,
     ratio, seconds and late_max [s]."""
     o = _lib.swfs_replay_options()
     lib.swfs_replay_options_default(ctypes.byref(o))
     if (timing is None) == (wfs_log is None):
         raise ValueError("replay: give timing (a timing table) or wfs_log (a WFS milk log), one of them")
-    for what, t in (("wfs_type", wfs_type), ("camera_type", camera_type)):
-        if t not in _TYPES:
-            raise ValueError(f"replay: {what}: expected one of float32, float64, int16, uint16, got {t!r}")
     o.timing, o.science, o.slopes, o.wfs_log = _opt(timing), enc(science), _opt(slopes), _opt(wfs_log)
     o.dir, o.wfs_name, o.camera_name = _opt(shm_dir), enc(wfs_name), enc(camera_name)
     o.wfs_rate, o.speed, o.drop_wfs, o.drop_camera = float(wfs_rate), float(speed), float(drop_wfs), \
@@ -221,7 +225,10 @@ def replay(science, timing=None, slopes=None, wfs_log=None, shm_dir=None, wfs_na
     o.wait_reader, o.restart_after, o.drop_log, o.remove = float(wait_reader), int(restart_after), \
         _opt(drop_log), int(bool(remove))
     r = _lib.swfs_replay_result()
-    check(lib.swfs_replay_run(ctypes.byref(o), ctypes.byref(r)), "swfs_replay_run")
+    with _Progress(progress) as prog:
+        o.progress = prog.fn
+        rc = lib.swfs_replay_run(ctypes.byref(o), ctypes.byref(r))
+    prog.check(rc, "swfs_replay_run")
     return _struct_dict(r)
 
 

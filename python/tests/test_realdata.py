@@ -701,6 +701,14 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
         sw.stream_files(str(d / "sci.fits"), str(d / "halo_stop.fits"), timing=str(d / "timing.txt"), every=1,
                         progress=two, **model)
     assert not os.path.exists(d / "halo_stop.fits")
+    # replay's progress, every 1024 frames published (WFS and camera): an exception there stops it
+    (d / "shm").mkdir()
+
+    def at_once(stage, done, total):
+        raise Enough(f"{stage} {done} of {total}")
+    with pytest.raises(Enough, match="frames 1024 of "):
+        sw.replay(str(d / "sci.fits"), timing=str(d / "timing.txt"), shm_dir=str(d / "shm"), speed=50, remove=True,
+                  progress=at_once)
     # the command line on the same files: the same clock and the same halo
     run = lambda *a: subprocess.run([cli, *a], check=True, capture_output=True)  # noqa: E731
     run("sync", "--wfs-log", wfs, str(d / "sci_milk.fits"), "-o", str(d / "clock_cli.txt"))
