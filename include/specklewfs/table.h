@@ -27,8 +27,9 @@ void swfs_table_free(swfs_table *t);
 /* Index of the column named `name`, or -1. */
 long swfs_table_col(const swfs_table *t, const char *name);
 
-/* Write len bytes to path through "path.part" + rename: a failure leaves no file under
- * the final name (and the previous one, if any, untouched). */
+/* Write len bytes to path through the atomic writer (atomic.h: a part file, fsync, rename;
+ * inside an output group, renamed with the group): a failure leaves no file under the final
+ * name (and the previous one, if any, untouched). */
 int swfs_text_write(const char *path, const char *data, size_t len);
 
 /* The demo's recovery table (one row per noise level, the columns `specklewfs demo`

@@ -107,6 +107,18 @@ def test_demo_through_python_equals_the_cli(small_sim, cli, tmp_path):
         sw.demo(tmp_path / "fail", levels=(0,), loop_iterations=1, report=False, **SMALL)
     assert not os.path.exists(tmp_path / "fail" / "sigma0" / "halo.fits")
     assert not os.path.exists(tmp_path / "fail" / "recovery.tsv")
+    # Stopped at the closed loop, after the levels' table was written: none of the run's
+    # products, that table included (text products join the run's output group)
+    class Enough(Exception):
+        pass
+
+    def at_loop(stage, done, total):
+        if stage == "closed loop":
+            raise Enough(stage)
+    with pytest.raises(Enough):
+        sw.demo(tmp_path / "stop", levels=(0,), loop_iterations=1, report=False, progress=at_loop, **SMALL)
+    assert not os.path.exists(tmp_path / "stop" / "recovery.tsv")
+    assert not os.path.exists(tmp_path / "stop" / "sigma0" / "halo.fits")
 
 
 def test_small_simulation(small_sim, tmp_path):

@@ -1,5 +1,6 @@
 /* Text products: TSV tables and atomic text files (include/specklewfs/table.h). */
 #include "specklewfs/table.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/status.h"
 
 #include <errno.h>
@@ -15,23 +16,16 @@
 
 int swfs_text_write(const char *path, const char *data, size_t len)
 {
-    char part[4096 + 8];
-    if (snprintf(part, sizeof part, "%s.part", path) >= (int)sizeof part)
-        return swfs_fail(SWFS_ERR_ARG, "%s: path too long", path);
-    FILE *f = fopen(part, "wb");
-    if (!f) return swfs_fail(SWFS_ERR_IO, "%s: cannot create: %s", part, strerror(errno));
-    int bad = fwrite(data, 1, len, f) != len, err = errno;
-    if (fclose(f) != 0 && !bad) bad = 1, err = errno;
-    if (bad) {
-        remove(part);
-        return swfs_fail(SWFS_ERR_IO, "%s: write failed: %s", part, strerror(err));
+    swfs_atomic *a = NULL;
+    int rc = swfs_atomic_begin(&a, path, 1);
+    if (rc) return rc;
+    if (len && fwrite(data, 1, len, swfs_atomic_stream(a)) != len) {
+        const int err = errno;
+        swfs_atomic_abort(a);
+        return swfs_fail(SWFS_ERR_IO, "%s: writing the output failed: %s (nothing written under that name)", path,
+                         strerror(err));
     }
-    if (rename(part, path) != 0) {
-        err = errno;
-        remove(part);
-        return swfs_fail(SWFS_ERR_IO, "%s: cannot rename into place: %s", path, strerror(err));
-    }
-    return SWFS_OK;
+    return swfs_atomic_commit(a); /* inside an output group: renamed with the group (atomic.h) */
 }
 
 void swfs_table_free(swfs_table *t)
