@@ -80,6 +80,10 @@ int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
 /* The check inside cli_stage_progress (signals caught from its first call): non-zero once
  * SIGINT/SIGTERM asked to stop, for a command's own progress callback. */
 int cli_stop_requested(void);
+/* Catch SIGINT and SIGTERM (where their disposition is the default) from now on, before a
+ * stoppable command's first progress report: main does so for those commands, so that a
+ * signal in the run's first moments stops it at that report rather than killing it. */
+void cli_stop_catch(void);
 /* A progress callback that prints nothing, only asks cli_stop_requested (a command whose
  * own lines show its progress: stream's updates). */
 int cli_stop_check(void *ctx, const char *stage, size_t done, size_t total);

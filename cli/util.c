@@ -87,7 +87,12 @@ void cli_progress(const char *label, size_t k, size_t n)
 
 static void on_stop_signal(int sig)
 {
-    static const char msg[] = "\nspecklewfs: stopping at the run's next step (the same signal again ends it at once)\n";
+    if (stop_signal) { /* the other of SIGINT and SIGTERM after the first: end at once */
+        signal(sig, SIG_DFL);
+        raise(sig);
+        return;
+    }
+    static const char msg[] = "\nspecklewfs: stopping at the run's next step (a second signal ends it at once)\n";
     stop_signal = sig;
     const ssize_t w = write(STDERR_FILENO, msg, sizeof msg - 1);
     (void)w;
@@ -95,8 +100,9 @@ static void on_stop_signal(int sig)
 
 /* SIGINT and SIGTERM, where nothing else handles them, ask the run to stop at its next
  * progress report (the library then removes its partial outputs); the handler is one-shot,
- * so a second signal ends the process at once. */
-static void catch_stop_signals(void)
+ * and the other signal after the first ends the process too, so a second signal of either
+ * kind ends it at once. */
+void cli_stop_catch(void)
 {
     static int done;
     if (done) return;
@@ -115,7 +121,7 @@ static void catch_stop_signals(void)
 
 int cli_stop_requested(void)
 {
-    catch_stop_signals();
+    cli_stop_catch();
     return stop_signal != 0;
 }
 

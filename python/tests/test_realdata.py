@@ -701,6 +701,21 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
         sw.stream_files(str(d / "sci.fits"), str(d / "halo_stop.fits"), timing=str(d / "timing.txt"), every=1,
                         progress=two, **model)
     assert not os.path.exists(d / "halo_stop.fits")
+    # the same stop in a run over an earlier run's products (the halo, its pupil and checkpoint):
+    # those are put back as they were, byte for byte, not removed with the run's own updates
+    prod = {k: d / f"prev_{k}.fits" for k in ("halo", "pupil", "ck")}
+    sw.stream_files(str(d / "sci.fits"), str(prod["halo"]), timing=str(d / "timing.txt"), pupil_out=str(prod["pupil"]),
+                    checkpoint=str(prod["ck"]), **model)
+    before = {k: p.read_bytes() for k, p in prod.items()}
+
+    def two_over(stage, done, total):
+        if done > seen[0][1]:
+            assert prod["halo"].read_bytes() != before["halo"]  # the first batch's update, in place
+            raise Enough(f"{stage} {done} of {total}")
+    with pytest.raises(Enough):
+        sw.stream_files(str(d / "sci.fits"), str(prod["halo"]), timing=str(d / "timing.txt"), every=1,
+                        pupil_out=str(prod["pupil"]), checkpoint=str(prod["ck"]), progress=two_over, **model)
+    assert {k: p.read_bytes() for k, p in prod.items()} == before and not list(d.glob("prev_*.prev.*"))
     # replay's progress, every 1024 frames published (WFS and camera): an exception there stops it
     (d / "shm").mkdir()
 

@@ -128,6 +128,40 @@ static int stacked_next(void *ctx, swfs_batch *b)
     return rc;
 }
 
+/* The products already under the run's output names (out, pupil_out, checkpoint, static_out),
+ * kept aside by a hard link until the run ends, so that a run from files that fails or is
+ * stopped after its first update puts them back rather than leaving none. */
+typedef struct kept {
+    const char *name[4];
+    char prev[4][4200];
+    int have[4];
+} kept;
+
+static void keep_previous(kept *k, const swfs_stream_run_options *o)
+{
+    const char *const names[4] = {o->out, o->pupil_out, o->checkpoint, o->static_out};
+    for (int i = 0; i < 4; i++) {
+        k->name[i] = names[i];
+        k->have[i] = names[i] && snprintf(k->prev[i], sizeof k->prev[i], "%s.prev.%ld", names[i], (long)getpid()) <
+                                      (int)sizeof k->prev[i] &&
+                     link(names[i], k->prev[i]) == 0; /* none there (or no hard links): nothing to put back */
+    }
+}
+
+/* The run failed: its own products removed (wrote[i]), the kept ones put back; or it
+ * succeeded (restore 0): the kept links dropped. */
+static void kept_end(kept *k, int restore, const int wrote[4])
+{
+    for (int i = 0; i < 4; i++) {
+        if (restore && k->have[i]) {
+            if (rename(k->prev[i], k->name[i]) == 0) continue;
+        } else if (restore && wrote[i] && k->name[i]) {
+            unlink(k->name[i]);
+        }
+        if (k->have[i]) unlink(k->prev[i]);
+    }
+}
+
 /* A source whose batches are reported to the caller's progress (swfs_stream_run_options). */
 typedef struct progress_src {
     swfs_source_fn next;
@@ -488,6 +522,9 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     int rc = hk ? SWFS_OK : check_paths(o, first_tel, sizeof first_tel);
     if (hk) first_tel[0] = 0;
     if (!rc) rc = setup(o, first_tel, &u, &p, &nfx, &nfy, r);
+    kept prev;
+    memset(&prev, 0, sizeof prev);
+    if (!rc && (!hk || hk->offline) && swfs_team_writer(o->team)) keep_previous(&prev, o);
     /* the loops' miss of the residual's mean takes the place of a map's MEANMISS, as in speckles;
      * from files with a timing table the loops may be simulated here, as speckles does */
     const int mteach = !hk && o->timing && swfs_mean_teach_wanted_(o->mean_teach, &o->lin, o->nmean_loops, 0);
@@ -547,15 +584,18 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
     }
     /* (A live run keeps them: its products and checkpoint are the complete state of the
      * frames that arrived before the streams failed, the point a restart resumes from.) */
-    if (rc && (!hk || hk->offline) && (u.updated || u.static_written)) {
+    const int offline = !hk || hk->offline;
+    if (offline) {
         /* A failed run leaves no product that looks complete: the updates it had put in
-         * place describe only the frames before the failure. */
-        const char *const mine[] = {o->out, o->pupil_out, o->checkpoint};
-        for (size_t k = 0; u.updated && k < 3; k++)
-            if (mine[k]) unlink(mine[k]);
-        if (u.static_written && o->static_out) unlink(o->static_out);
-        swfs_fail_context(rc, "%s: the run failed after %zu camera frames and removed the products it had written",
-                          o->out, s ? swfs_stream_camera_frames(s) : (size_t)0);
+         * place describe only the frames before the failure; earlier products of the same
+         * names are put back. */
+        const int wrote[4] = {u.updated, u.updated, u.updated, u.static_written};
+        kept_end(&prev, rc != SWFS_OK, wrote);
+        if (rc && (u.updated || u.static_written))
+            swfs_fail_context(rc, "%s: the run failed after %zu camera frames and removed the products it had written%s",
+                              o->out, s ? swfs_stream_camera_frames(s) : (size_t)0,
+                              prev.have[0] || prev.have[1] || prev.have[2] || prev.have[3]
+                                  ? " (the earlier files of those names put back)" : "");
     }
     if (s && !team) {
         r->camera_frames = swfs_stream_camera_frames(s);
