@@ -457,6 +457,23 @@ def test_teach(series, tmp_path):
                  **keys)
     assert not os.path.exists(tmp_path / "stopped.fits") and not list((tmp_path / "sw").rglob("*.part.*"))
     assert 1 <= len([d for d in (tmp_path / "sw").glob("loop_*") if any(d.iterdir())]) < 4
+    # a stop within the first loops (the loops' count is shown again every 256 WFS frames of
+    # the caller's loop), in the first run's work folder: its loops stay whole (a loop's earlier
+    # slopes and truth go only once the new loop's files are in place)
+    work = tmp_path / "work"
+    loops = sorted(work.glob("loop_*"))
+    assert len(loops) >= 4 and all((d / "slopes_000.fits").exists() for d in loops)
+    calls = []
+
+    def within(stage, done, total):
+        calls.append(stage)
+        if calls.count("simulating the loops") == 2:
+            raise Enough(f"{done} of {total}")
+    with pytest.raises(Enough, match="0 of 4"):
+        sw.teach(files, str(tmp_path / "again.fits"), str(work), config=conf, loops=4, progress=within, **keys)
+    for d in loops:
+        names = {f.name for f in d.iterdir()}
+        assert {"slopes_000.fits", "truewf_000.fits", "truth.fits"} <= names, (d.name, sorted(names))
 
 
 def test_mode_variance(series):

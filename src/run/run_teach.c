@@ -90,24 +90,61 @@ static int loop_progress(void *ctx, const char *stage, size_t done, size_t total
 
 /* A loop's folder from an earlier teach in the same work folder (`speckles` teaches into
  * OUT.teach each run) may hold more slopes / truewf files than this loop writes, and learn
- * reads every pair it finds: every slopes_NNN.fits and truewf_NNN.fits goes first, whatever
- * its number (a gap in the numbers included). A folder that does not exist yet holds none. */
-static int clear_loop(const char *path)
+ * reads every pair it finds: every slopes_NNN.fits and truewf_NNN.fits the new loop does not
+ * replace goes, whatever its number (a gap in the numbers included) -- once the new loop's
+ * files are in place, so that a loop that fails or is stopped leaves the earlier one whole.
+ * The files there before the loop, by name and inode (the atomic writer's rename gives a
+ * replaced file a new one). */
+typedef struct loop_files {
+    char (*name)[16];
+    ino_t *ino;
+    size_t n;
+} loop_files;
+
+static int loop_files_list(const char *path, loop_files *lf)
 {
+    memset(lf, 0, sizeof *lf);
     DIR *d = opendir(path);
     if (!d) return errno == ENOENT ? SWFS_OK : swfs_fail(SWFS_ERR_IO, "teach: cannot read %s: %s", path, strerror(errno));
     int rc = SWFS_OK;
+    size_t cap = 0;
     for (struct dirent *e; !rc && (e = readdir(d));) {
         unsigned k = 0;
-        char tail[8] = "";
+        char tail[8] = "", f[4400];
+        struct stat st;
         if ((sscanf(e->d_name, "slopes_%3u%7s", &k, tail) != 2 && sscanf(e->d_name, "truewf_%3u%7s", &k, tail) != 2) ||
             strcmp(tail, ".fits") || strlen(e->d_name) != 15)
             continue;
-        char f[4400];
         snprintf(f, sizeof f, "%s/%s", path, e->d_name);
-        if (remove(f) && errno != ENOENT) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot remove %s: %s", f, strerror(errno));
+        if (stat(f, &st)) continue; /* gone meanwhile */
+        if (lf->n == cap) {
+            cap = cap ? 2 * cap : 64;
+            char(*nn)[16] = realloc(lf->name, cap * sizeof *nn);
+            if (nn) lf->name = nn;
+            ino_t *ni = nn ? realloc(lf->ino, cap * sizeof *ni) : NULL;
+            if (ni) lf->ino = ni;
+            if (!nn || !ni) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        }
+        if (!rc) {
+            memcpy(lf->name[lf->n], e->d_name, 16);
+            lf->ino[lf->n++] = st.st_ino;
+        }
     }
     closedir(d);
+    return rc;
+}
+
+/* lf's files that the new loop did not replace (still the same inode), removed. */
+static int loop_files_drop_stale(const char *path, const loop_files *lf)
+{
+    int rc = SWFS_OK;
+    for (size_t i = 0; !rc && i < lf->n; i++) {
+        char f[4400];
+        struct stat st;
+        snprintf(f, sizeof f, "%s/%s", path, lf->name[i]);
+        if (stat(f, &st) || st.st_ino != lf->ino[i]) continue;
+        if (remove(f) && errno != ENOENT) rc = swfs_fail(SWFS_ERR_IO, "teach: cannot remove %s: %s", f, strerror(errno));
+    }
     return rc;
 }
 
@@ -134,12 +171,16 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
         return swfs_fail(SWFS_ERR_ARG, "teach: %s: the folder's name is too long", o->work);
     if (mkdir(j->path, 0777) && errno != EEXIST)
         return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", j->path, strerror(errno));
+    loop_files before = {NULL, NULL, 0};
     int rc = swfs_ts_params_check(&p);
-    if (!rc) rc = clear_loop(j->path);
+    if (!rc) rc = loop_files_list(j->path, &before);
     swfs_ts_summary sum;
     swfs_outputs_begin(); /* the loop's files all renamed into place, or none (atomic.h) */
     if (!rc) rc = swfs_ts_run_shared(&p, shared, j->path, o->prov, o->nprov, loop_progress, poll, &sum);
-    const int erc = swfs_outputs_end(rc == SWFS_OK);
+    int erc = swfs_outputs_end(rc == SWFS_OK);
+    if (!rc && !erc) erc = loop_files_drop_stale(j->path, &before);
+    free(before.name);
+    free(before.ino);
     if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", j->path);
     return SWFS_OK;
 }
