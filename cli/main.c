@@ -2,6 +2,7 @@
  * (Codona & Kenworthy 2013). Dispatches to the subcommands in cli/cmd_*.c. */
 #include "cli.h"
 
+#include "specklewfs/outpaths.h"
 #include "specklewfs/parallel.h"
 #include "specklewfs/version.h"
 
@@ -79,7 +80,9 @@ int main(int argc, char **argv)
     for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)
         if (!strcmp(argv[1], commands[i].name)) {
             if (commands[i].stoppable) cli_stop_catch();
+            swfs_made_dirs_begin(); /* a run that fails or is stopped leaves no empty folder it made */
             const int rc = commands[i].run(argc - 1, argv + 1);
+            swfs_made_dirs_end(rc == CLI_OK);
             cli_team_end();
             if (commands[i].stoppable && !rc && cli_stop_requested())
                 fprintf(stderr, "specklewfs %s: the signal came after the run's last step: it finished, its products "

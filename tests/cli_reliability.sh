@@ -270,12 +270,13 @@ expect stream-midrun 1 "removed the products it had written" -- stream --timing 
     || bad stream-midrun "products left or the bad telemetry file not named"
 
 # ---- Ctrl-C (SIGINT) and SIGTERM stop a run at its next progress report: the stage named,
-# exit code 128 + the signal, nothing in the output folder (no product, no part file). A
+# exit code 128 + the signal, no product and no part file, and the output folders the run
+# made (here stop_SIG and stop_SIG/run) gone with them. A
 # background job (and a suite started in the background) has SIGINT ignored, which a shell
 # cannot undo: the command starts with the terminal's default through Python's exec.
 for sig in INT TERM; do
     "$PY" -c 'import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); os.execv(sys.argv[1], sys.argv[1:])' \
-        "$B" simulate mode=timeseries $TS ncubes=40 cube_frames=100 -o stop_$sig > out.txt 2> err.txt &
+        "$B" simulate mode=timeseries $TS ncubes=40 cube_frames=100 -o stop_$sig/run > out.txt 2> err.txt &
     pid=$!
     for _ in $(seq 600); do grep -q "screens 2/2" err.txt && break; sleep 0.1; done
     kill -$sig $pid
@@ -285,7 +286,7 @@ for sig in INT TERM; do
     if [ "$rc" != "$want" ]; then bad stop-$sig "exit code $rc, expected $want"
     elif ! grep -qF "WFS frames: stopped by the caller at " err.txt || ! grep -qF "(SIG$sig)" err.txt; then
         bad stop-$sig "message lacks the stage or the signal"
-    elif [ -n "$(ls -A stop_$sig)" ]; then bad stop-$sig "left $(ls -A stop_$sig | head -3)"
+    elif [ -e stop_$sig ]; then bad stop-$sig "left $(find stop_$sig | head -3)"
     else pass=$((pass + 1)); fi
 done
 

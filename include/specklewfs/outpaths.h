@@ -51,6 +51,13 @@ int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, i
  * folder and the system's reason when it cannot be made or is not a folder. */
 int swfs_make_dirs(const char *path);
 
+/* The folders a run makes (thread-local, between the two calls): swfs_made_dirs_end(0),
+ * for a run that failed or was stopped, removes those of them left empty (its part files
+ * and products gone: atomic.h), the last made first; swfs_made_dirs_end(1) keeps them.
+ * swfs_make_dirs records what it makes while recording is on. */
+void swfs_made_dirs_begin(void);
+void swfs_made_dirs_end(int keep);
+
 SWFS_END_DECLS
 
 #endif

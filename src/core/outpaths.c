@@ -210,6 +210,44 @@ int swfs_text_line(FILE *f, char *buf, int cap, const char *path, long lineno, i
     return 1;
 }
 
+/* The folders made since swfs_made_dirs_begin (outpaths.h). */
+static _Thread_local struct {
+    int on;
+    size_t n, cap;
+    char **path;
+} made;
+
+static void made_add(const char *path)
+{
+    if (!made.on) return;
+    if (made.n == made.cap) {
+        const size_t cap = made.cap ? 2 * made.cap : 16;
+        char **p = realloc(made.path, cap * sizeof *p);
+        if (!p) return; /* a folder not recorded only stays */
+        made.path = p;
+        made.cap = cap;
+    }
+    if ((made.path[made.n] = strdup(path))) made.n++;
+}
+
+void swfs_made_dirs_begin(void)
+{
+    swfs_made_dirs_end(1);
+    made.on = 1;
+}
+
+void swfs_made_dirs_end(int keep)
+{
+    for (size_t i = made.n; i-- > 0;) {
+        if (!keep) (void)rmdir(made.path[i]); /* only an empty one goes */
+        free(made.path[i]);
+    }
+    free(made.path);
+    made.path = NULL;
+    made.n = made.cap = 0;
+    made.on = 0;
+}
+
 int swfs_make_dirs(const char *path)
 {
     char tmp[4096];
@@ -219,11 +257,13 @@ int swfs_make_dirs(const char *path)
     for (char *p = tmp + 1; *p; p++) {
         if (*p != '/') continue;
         *p = '\0';
-        if (mkdir(tmp, 0777) != 0 && errno != EEXIST)
+        if (mkdir(tmp, 0777) == 0) made_add(tmp);
+        else if (errno != EEXIST)
             return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s (making %s): %s", path, tmp, strerror(errno));
         *p = '/';
     }
-    if (mkdir(tmp, 0777) != 0 && errno != EEXIST)
+    if (mkdir(tmp, 0777) == 0) made_add(tmp);
+    else if (errno != EEXIST)
         return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s: %s", path, strerror(errno));
     struct stat sb;
     if (stat(tmp, &sb) != 0) return swfs_fail(SWFS_ERR_IO, "cannot create output folder %s: %s", path, strerror(errno));
