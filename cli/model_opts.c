@@ -161,4 +161,9 @@ void cli_linear_summary(const char *cmd, const swfs_linear_files *lf, const swfs
             (in->ntrain ? "interaction matrix, MAP reconstructor" : "interaction matrix, SVD reconstructor") :
             "the telemetry as coefficients", lf->scale, in->resid_rms * 1e9,
             in->composed ? "; basis and control folded into one matrix" : "");
+    if (lf->imat && in->imat_rank && in->imat_rank < in->nbasis)
+        fprintf(stderr, "%s: note: the interaction matrix %s has rank %zu of its %zu basis functions: the telemetry "
+                "senses %zu combinations of their coefficients, and the other %zu are never reconstructed (a column "
+                "that repeats another, or a mode the sensor cannot see, such as piston)\n", cmd, lf->imat,
+                in->imat_rank, in->nbasis, in->imat_rank, in->nbasis - in->imat_rank);
 }

@@ -103,6 +103,10 @@ typedef struct swfs_pipeline_info {
     double out_pitch;    /* [m] a given map's own output points (swfs_recon oxy, e.g. teach's grid
                             finer than the DM): their pitch, and the default band is their sampling
                             band D / (2 out_pitch); 0: the outputs are the actuators given */
+    size_t imat_rank;    /* the linear model's interaction matrix: its numerical rank (singular
+                            values above max(rows, columns) x machine epsilon x the largest, LAPACK's
+                            rule), the coefficients' combinations its telemetry senses; below
+                            nbasis, the others are never reconstructed. 0 without one */
 } swfs_pipeline_info;
 
 /* The generic linear model (lmodel.h): z = scale B (A v) per WFS frame. */

@@ -258,7 +258,7 @@ PIPELINE_INFO_FIELDS = [("nact", c_size), ("nslopes", c_size), ("npup", c_size),
                         ("ntrain", c_size), ("n_outside", c_size), ("vk_l0", c_dbl), ("recon_gain", c_dbl),
                         ("nbasis", c_size), ("basis_nnz", c_size), ("composed", c_int), ("resid_rms", c_dbl),
                         ("nsub", c_size), ("nvalid", c_size), ("band", c_dbl), ("band_out", c_size),
-                        ("nlags", c_size), ("out_pitch", c_dbl)]
+                        ("nlags", c_size), ("out_pitch", c_dbl), ("imat_rank", c_size)]
 swfs_pipeline_info = _s("swfs_pipeline_info", PIPELINE_INFO_FIELDS)
 swfs_batch = _s("swfs_batch", [("slopes", P(c_dbl)), ("nwfs", c_size), ("sched", c_ptr), ("science", P(c_dbl)),
                                ("nexp", c_size), ("cube", c_size)])

@@ -574,6 +574,12 @@ def test_pyramid_timeseries(tmp_path):
     g = sw.read_geom(sci)
     sci_shape = sw.fits_info(sci)
     pl = sw.Pipeline.linear(g, sci_shape["nx"], sci_shape["ny"], F, imat=D, training=s)
+    # the interaction matrix's rank: every basis function sensed; a matrix whose columns all
+    # repeat the first senses one combination, the sum of all functions, which is nearly piston:
+    # refused for its wavefront, naming the rank (it said "-nan nm rms", the root of a rounding)
+    assert pl.info["imat_rank"] == np.linalg.matrix_rank(D) == F.shape[0]
+    with pytest.raises(sw.Error, match=r"wavefront is [0-9.e-]+ nm rms .* senses only 1 combinations of its 217 basis"):
+        sw.Pipeline.linear(g, sci_shape["nx"], sci_shape["ny"], F, imat=np.repeat(D[:, :1], F.shape[0], 1), training=s)
     ml = pl.mean_loops([str(d), str(d)])
     assert ml["heldout"] == pytest.approx(0, abs=1e-12) and ml["rms"] > 0
     with pytest.raises(sw.Error, match="at least 2 folders"):

@@ -7,6 +7,7 @@
 #include "pipeline_internal.h"
 
 #include <cblas.h>
+#include <float.h>
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -85,6 +86,9 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
         if (rc) return rc;
         for (size_t k = 0; k < nk * nm; k++) l->A[k] = in->scale * r->W[k];
         info->recon_modes = r->nmodes;
+        info->imat_rank = 0;
+        for (size_t k = 0; r->sv && k < r->nsv; k++)
+            info->imat_rank += r->sv[k] > (double)(nm > nk ? nm : nk) * DBL_EPSILON * r->sv[0];
         info->recon_dof = r->dof;
         info->noise_var = r->noise_var;
         info->noise_given = o->slope_noise > 0;
@@ -227,18 +231,23 @@ static int check_residual(const lin *l, const swfs_linear_input *in, const doubl
         double s = 0, s2 = 0;
         for (size_t r = 0; r < ng; r++)
             if (mask[r] > 0) { s += z[r]; s2 += z[r] * z[r]; }
-        ss += s2 / (double)l->npin - (s / (double)l->npin) * (s / (double)l->npin);
+        const double var = s2 / (double)l->npin - (s / (double)l->npin) * (s / (double)l->npin);
+        ss += var > 0 ? var : 0; /* a flat wavefront's rounding: 0, not the root of a negative */
     }
     free(c);
     free(z);
     info->resid_rms = sqrt(ss / (double)nf);
     const double waves = info->resid_rms / wavelen;
+    char rank[160] = "";
+    if (info->imat_rank && info->imat_rank < nfunctions(in))
+        snprintf(rank, sizeof rank, "; the interaction matrix senses only %zu combinations of its %zu basis functions' "
+                 "coefficients (its rank)", info->imat_rank, nfunctions(in));
     if (!(waves <= SWFS_LINEAR_MAX_RMS_WAVES) || !(waves >= SWFS_LINEAR_MIN_RMS_WAVES))
         return swfs_fail(SWFS_ERR_VALUE, "pipeline: the linear model's wavefront is %.4g nm rms (tip-tilt removed) = %.3g "
                          "waves at %.4g um; expected %g..%g waves of an AO residual: are the basis x coefficients x scale "
-                         "(%g) metres of wavefront? (cacao: unit-rms modes of DM surface, coefficients in um: scale 2e-6)",
+                         "(%g) metres of wavefront? (cacao: unit-rms modes of DM surface, coefficients in um: scale 2e-6)%s",
                          info->resid_rms * 1e9, waves, wavelen * 1e6, SWFS_LINEAR_MIN_RMS_WAVES,
-                         SWFS_LINEAR_MAX_RMS_WAVES, in->scale);
+                         SWFS_LINEAR_MAX_RMS_WAVES, in->scale, rank);
     return SWFS_OK;
 }
 
