@@ -16,6 +16,8 @@ another, or live in a thread beside one's own loop, run side by side:
 import ctypes
 import math
 import os
+import select
+import signal
 import threading
 
 from . import _lib
@@ -31,29 +33,45 @@ _UPDATE = ctypes.CFUNCTYPE(None, c_ptr, c_ptr, P(_lib.swfs_halo), P(_lib.swfs_pu
 
 
 def _run_stoppable(call, stop, raised):
-    """call() (a library run that polls `stop`) with Ctrl-C as its stop: on the main thread the
-    run goes to a thread of its own while this one waits, so that KeyboardInterrupt arrives
-    here at once; it sets the flag, the run ends cleanly at its next batch (the products of
-    the frames so far written, as the command line's SIGINT does), and the interrupt is put
-    in `raised` for the caller to raise after the run. Elsewhere call() runs as it is. Returns
-    (status, the library's message): the message is the thread's own (status.h), so it is
-    taken on the thread that ran the call."""
-    def run():
-        rc = call()
-        return rc, _lib._last_error() if rc else None
-    if threading.current_thread() is not threading.main_thread():
-        return run()
-    box = []
-    t = threading.Thread(target=lambda: box.append(run()), name="specklewfs-live", daemon=True)
+    """call() (a library run that polls `stop`) with Ctrl-C as its stop, on this thread (so
+    on_update runs where the caller is). Python runs its own SIGINT handler only between its
+    bytecodes, never while the library waits on the streams; its C-level handler, though,
+    writes the signal's number to the wakeup fd (signal.set_wakeup_fd), which a watcher thread
+    reads: it sets the flag, the run ends cleanly at its next batch (the products of the frames
+    so far written, as the command line's SIGINT does), and a KeyboardInterrupt is put in
+    `raised` for the caller to raise after the run. For the call's length SIGINT's Python
+    handler only records it too (a KeyboardInterrupt raised inside on_update would be lost in
+    ctypes). Only on the main thread where SIGINT has Python's default handler; elsewhere
+    call() runs as it is. Returns call()'s status."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return call()
+
+    def interrupted(*_):
+        if not raised:
+            raised.append(KeyboardInterrupt())
+        stop.set()
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    old_fd = signal.set_wakeup_fd(w)
+    old_handler = signal.signal(signal.SIGINT, interrupted)
+    done = threading.Event()
+
+    def watch():
+        while not done.is_set():
+            if select.select([r], [], [], 0.1)[0] and signal.SIGINT in os.read(r, 512):
+                interrupted()
+    t = threading.Thread(target=watch, name="specklewfs-sigint", daemon=True)
     t.start()
-    while t.is_alive():
-        try:
-            t.join(0.2)
-        except KeyboardInterrupt as e:
-            if not raised:
-                raised.append(e)
-            stop.set()
-    return box[0] if box else (_lib.SWFS_ERR_INTERNAL, "live: the run's thread ended without a status")
+    try:
+        return call()
+    finally:
+        signal.signal(signal.SIGINT, old_handler)
+        signal.set_wakeup_fd(old_fd)
+        done.set()
+        t.join()
+        os.close(r)
+        os.close(w)
 
 
 class StopFlag:
@@ -176,11 +194,10 @@ def live(wfs, camera, geom, out, recon=None, actuators=None, linear=None, shm_di
     prov, r_.nprov = _lib.strings(provenance)
     r_.prov = prov
     res = _lib.swfs_live_result()
-    rc, msg = _run_stoppable(lambda: lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res)), stop, raised)
+    rc = _run_stoppable(lambda: lib.swfs_live_run(ctypes.byref(o), ctypes.byref(res)), stop, raised)
     if raised:
         raise raised[0]
-    if rc:
-        raise _lib.Error(rc, msg, "swfs_live_run")
+    check(rc, "swfs_live_run")
     d = _stream_result(res.run, "live")
     d["sync"] = _struct_dict(res.src.sync)
     d.update({k: getattr(res.src, k) for k in ("ring_overruns", "reopens", "lag_count", "lag_median", "lag_p99",

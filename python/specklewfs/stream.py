@@ -485,7 +485,7 @@ class Stream:
                 return 0
             except BaseException as e:  # noqa: BLE001 -- re-raised after the C call returns
                 state["exc"] = e
-                return 8  # SWFS_ERR_INTERNAL
+                return _lib.SWFS_ERR_INTERNAL
 
         def update(ctx, s, final):
             try:

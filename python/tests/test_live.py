@@ -95,6 +95,7 @@ def test_stop_flag_and_update_errors(series, tmp_path):
 
     def on_update(u):
         seen.append(u)
+        assert threading.current_thread() is threading.main_thread()  # the caller's thread
         if len(seen) == 2:
             stop.set()
     rep = {}
