@@ -733,6 +733,17 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
         sw.stream_files(str(d / "sci.fits"), str(prod["halo"]), timing=str(d / "timing.txt"), every=1,
                         pupil_out=str(prod["pupil"]), checkpoint=str(prod["ck"]), progress=two_over, **model)
     assert {k: p.read_bytes() for k, p in prod.items()} == before and not list(d.glob("prev_*.prev.*"))
+    # stopped before its first update (the kept links are the same files: they went too), and
+    # over a link name an earlier run killed outright left (the next free name is taken)
+    (d / f"prev_halo.fits.prev.{os.getpid()}.0").write_text("left by a run killed outright")
+
+    def at_first(stage, done, total):
+        raise Enough(stage)
+    with pytest.raises(Enough):
+        sw.stream_files(str(d / "sci.fits"), str(prod["halo"]), timing=str(d / "timing.txt"), every=1,
+                        pupil_out=str(prod["pupil"]), checkpoint=str(prod["ck"]), progress=at_first, **model)
+    assert {k: p.read_bytes() for k, p in prod.items()} == before
+    assert [p.name for p in d.glob("prev_*.prev.*")] == [f"prev_halo.fits.prev.{os.getpid()}.0"]
     # replay's progress, every 1024 frames published (WFS and camera): an exception there stops it
     (d / "shm").mkdir()
 

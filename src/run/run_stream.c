@@ -7,6 +7,8 @@
 #include "specklewfs/source.h"
 #include "run_internal.h"
 
+#include <errno.h>
+#include <fcntl.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -137,27 +139,54 @@ typedef struct kept {
     int have[4];
 } kept;
 
+/* A copy of file `from` as the new file `to` (where a hard link is not allowed: a
+ * filesystem without them, or protected_hardlinks on another user's file); 0 on success. */
+static int copy_file(const char *from, const char *to)
+{
+    FILE *in = fopen(from, "rb");
+    if (!in) return -1;
+    const int fd = open(to, O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
+    FILE *out = fd >= 0 ? fdopen(fd, "wb") : NULL;
+    if (!out && fd >= 0) close(fd);
+    char buf[65536];
+    size_t n;
+    int bad = !out;
+    while (!bad && (n = fread(buf, 1, sizeof buf, in)) > 0) bad = fwrite(buf, 1, n, out) != n;
+    bad = bad || ferror(in);
+    fclose(in);
+    if (out && fclose(out) != 0) bad = 1;
+    if (bad && out) unlink(to);
+    return bad ? -1 : 0;
+}
+
 static void keep_previous(kept *k, const swfs_stream_run_options *o)
 {
     const char *const names[4] = {o->out, o->pupil_out, o->checkpoint, o->static_out};
     for (int i = 0; i < 4; i++) {
         k->name[i] = names[i];
-        k->have[i] = names[i] && snprintf(k->prev[i], sizeof k->prev[i], "%s.prev.%ld", names[i], (long)getpid()) <
-                                      (int)sizeof k->prev[i] &&
-                     link(names[i], k->prev[i]) == 0; /* none there (or no hard links): nothing to put back */
+        k->have[i] = 0;
+        struct stat st;
+        if (!names[i] || stat(names[i], &st) || !S_ISREG(st.st_mode)) continue; /* nothing to put back */
+        /* a name of its own: NAME.prev.<pid>.<n>, the first free (one left by a run killed
+         * outright may hold an earlier pid's) */
+        for (int n = 0; n < 100 && !k->have[i]; n++) {
+            if (snprintf(k->prev[i], sizeof k->prev[i], "%s.prev.%ld.%d", names[i], (long)getpid(), n) >=
+                (int)sizeof k->prev[i])
+                break;
+            if (link(names[i], k->prev[i]) == 0) k->have[i] = 1;
+            else if (errno != EEXIST) k->have[i] = copy_file(names[i], k->prev[i]) == 0;
+        }
     }
 }
 
 /* The run failed: its own products removed (wrote[i]), the kept ones put back; or it
- * succeeded (restore 0): the kept links dropped. */
+ * succeeded (restore 0): the kept ones dropped. (A kept link to a file the run never
+ * replaced is the same file: the rename does nothing, and the unlink removes the link.) */
 static void kept_end(kept *k, int restore, const int wrote[4])
 {
     for (int i = 0; i < 4; i++) {
-        if (restore && k->have[i]) {
-            if (rename(k->prev[i], k->name[i]) == 0) continue;
-        } else if (restore && wrote[i] && k->name[i]) {
-            unlink(k->name[i]);
-        }
+        if (restore && k->have[i] && rename(k->prev[i], k->name[i]) != 0) continue; /* left beside, to recover */
+        if (restore && !k->have[i] && wrote[i] && k->name[i]) unlink(k->name[i]);
         if (k->have[i]) unlink(k->prev[i]);
     }
 }
