@@ -84,6 +84,9 @@ int cli_stop_requested(void);
  * stoppable command's first progress report: main does so for those commands, so that a
  * signal in the run's first moments stops it at that report rather than killing it. */
 void cli_stop_catch(void);
+/* For a command that does not stop at progress reports: SIGINT and SIGTERM (where their
+ * disposition is the default) still end it at once, its part files removed first. */
+void cli_end_catch(void);
 /* A progress callback that prints nothing, only asks cli_stop_requested (a command whose
  * own lines show its progress: stream's updates). */
 int cli_stop_check(void *ctx, const char *stage, size_t done, size_t total);

@@ -80,6 +80,7 @@ int main(int argc, char **argv)
     for (size_t i = 0; i < sizeof commands / sizeof commands[0]; i++)
         if (!strcmp(argv[1], commands[i].name)) {
             if (commands[i].stoppable) cli_stop_catch();
+            else cli_end_catch();
             swfs_made_dirs_begin(); /* a run that fails or is stopped leaves no empty folder it made */
             const int rc = commands[i].run(argc - 1, argv + 1);
             swfs_made_dirs_end(rc == CLI_OK);

@@ -1,6 +1,7 @@
 /* The command line's plumbing: error messages, the command line as provenance, progress,
  * output folders and paths (cli.h). */
 #include "cli.h"
+#include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
@@ -85,11 +86,18 @@ void cli_progress(const char *label, size_t k, size_t n)
     fflush(stderr);
 }
 
+/* End the process by the signal, its part files removed first (atomic.h). */
+static void end_by_signal(int sig)
+{
+    swfs_atomic_remove_parts();
+    signal(sig, SIG_DFL);
+    raise(sig);
+}
+
 static void on_stop_signal(int sig)
 {
-    if (stop_signal) { /* the other of SIGINT and SIGTERM after the first: end at once */
-        signal(sig, SIG_DFL);
-        raise(sig);
+    if (stop_signal) { /* a second signal, of either kind: end at once */
+        end_by_signal(sig);
         return;
     }
     static const char msg[] = "\nspecklewfs: stopping at the run's next step (a second signal ends it at once)\n";
@@ -99,24 +107,32 @@ static void on_stop_signal(int sig)
 }
 
 /* SIGINT and SIGTERM, where nothing else handles them, ask the run to stop at its next
- * progress report (the library then removes its partial outputs); the handler is one-shot,
- * and the other signal after the first ends the process too, so a second signal of either
- * kind ends it at once. */
+ * progress report (the library then removes its partial outputs); a second signal of either
+ * kind ends the process at once, its part files removed first. */
+static void catch_signals(void (*handler)(int))
+{
+    const int sigs[2] = {SIGINT, SIGTERM};
+    for (int k = 0; k < 2; k++) {
+        struct sigaction old, sa;
+        if (sigaction(sigs[k], NULL, &old) || old.sa_handler != SIG_DFL) continue; /* ignored, or live's own */
+        memset(&sa, 0, sizeof sa);
+        sa.sa_handler = handler;
+        sigemptyset(&sa.sa_mask);
+        sigaction(sigs[k], &sa, NULL);
+    }
+}
+
 void cli_stop_catch(void)
 {
     static int done;
     if (done) return;
     done = 1;
-    const int sigs[2] = {SIGINT, SIGTERM};
-    for (int k = 0; k < 2; k++) {
-        struct sigaction old, sa;
-        if (sigaction(sigs[k], NULL, &old) || old.sa_handler != SIG_DFL) continue; /* live's own handlers */
-        memset(&sa, 0, sizeof sa);
-        sa.sa_handler = on_stop_signal;
-        sa.sa_flags = (int)SA_RESETHAND;
-        sigemptyset(&sa.sa_mask);
-        sigaction(sigs[k], &sa, NULL);
-    }
+    catch_signals(on_stop_signal);
+}
+
+void cli_end_catch(void)
+{
+    catch_signals(end_by_signal);
 }
 
 int cli_stop_requested(void)

@@ -105,6 +105,41 @@ static void test_atomic_text(void **state)
     assert_non_null(strstr(swfs_last_error(), "No such file or directory"));
 }
 
+/* The part files a signal handler removes before the process ends (swfs_atomic_remove_parts):
+ * a part being written, and a group's finished parts, go; a product already renamed stays,
+ * and so does a part no longer listed (committed, then the process goes on). */
+static void test_atomic_parts_on_signal(void **state)
+{
+    (void)state;
+    const char *dir = scratch("signal");
+    char p1[4300], p2[4300], p3[4300];
+    snprintf(p1, sizeof p1, "%s/done.txt", dir);
+    snprintf(p2, sizeof p2, "%s/open.txt", dir);
+    snprintf(p3, sizeof p3, "%s/grouped.txt", dir);
+    swfs_atomic *a = NULL, *b = NULL, *c = NULL;
+    assert_ok(swfs_atomic_begin(&a, p1, 1));
+    fputs("1", swfs_atomic_stream(a));
+    assert_ok(swfs_atomic_commit(a));
+    assert_ok(swfs_atomic_begin(&b, p2, 1));
+    fputs("2", swfs_atomic_stream(b));
+    fflush(swfs_atomic_stream(b));
+    swfs_outputs_begin();
+    assert_ok(swfs_atomic_begin(&c, p3, 1));
+    fputs("3", swfs_atomic_stream(c));
+    assert_ok(swfs_atomic_commit(c));
+    assert_int_equal(count_prefixed(dir, "open.txt.part."), 1);
+    assert_int_equal(count_prefixed(dir, "grouped.txt.part."), 1);
+    swfs_atomic_remove_parts();
+    assert_int_equal(count_prefixed(dir, "open.txt.part."), 0);
+    assert_int_equal(count_prefixed(dir, "grouped.txt.part."), 0);
+    assert_true(test_file_exists(p1));
+    /* (the process would end here; the test tidies up: the group's rename now fails) */
+    assert_int_equal(swfs_outputs_end(1), SWFS_ERR_IO);
+    swfs_atomic_abort(b);
+    assert_false(test_file_exists(p2));
+    assert_false(test_file_exists(p3));
+}
+
 static void test_atomic_groups(void **state)
 {
     (void)state;
@@ -486,6 +521,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_atomic_text),
         cmocka_unit_test(test_atomic_groups),
+        cmocka_unit_test(test_atomic_parts_on_signal),
         cmocka_unit_test(test_fits_writer_failures),
         cmocka_unit_test(test_checksums),
         cmocka_unit_test(test_keywords_from_text),

@@ -41,6 +41,11 @@ void swfs_outputs_begin(void);
  * other files are removed and the error returned); commit = 0: remove the parts. */
 int swfs_outputs_end(int commit);
 
+/* Remove every part file not yet renamed into place (any thread's, groups' too). Only
+ * async-signal-safe calls: for a handler that then ends the process on SIGINT/SIGTERM, so
+ * that a run killed at once leaves no NAME.part.* behind. */
+void swfs_atomic_remove_parts(void);
+
 SWFS_END_DECLS
 
 #endif

@@ -5,6 +5,8 @@
 
 #include <errno.h>
 #include <fcntl.h>
+#include <pthread.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -16,7 +18,51 @@
 struct swfs_atomic {
     char *path, *part;
     FILE *fp;
+    int listed; /* its part is in the list swfs_atomic_remove_parts removes */
 };
+
+/* ---- the part files not yet renamed, for a signal handler (swfs_atomic_remove_parts) --- */
+
+#define PART_SLOTS 256
+static struct {
+    atomic_int used;
+    char path[4200];
+} parts[PART_SLOTS];
+static pthread_mutex_t parts_lock = PTHREAD_MUTEX_INITIALIZER;
+
+/* 1 when listed (a path too long, or more than PART_SLOTS parts at once, is not: such a part
+ * is only left behind by a process a signal ends) */
+static int part_list(const char *part)
+{
+    if (strlen(part) >= sizeof parts[0].path) return 0;
+    int listed = 0;
+    pthread_mutex_lock(&parts_lock);
+    for (int i = 0; i < PART_SLOTS && !listed; i++)
+        if (!atomic_load(&parts[i].used)) {
+            strcpy(parts[i].path, part);
+            atomic_store(&parts[i].used, 1); /* the path complete before a handler can see it */
+            listed = 1;
+        }
+    pthread_mutex_unlock(&parts_lock);
+    return listed;
+}
+
+static void part_unlist(const char *part)
+{
+    pthread_mutex_lock(&parts_lock);
+    for (int i = 0; i < PART_SLOTS; i++)
+        if (atomic_load(&parts[i].used) && !strcmp(parts[i].path, part)) {
+            atomic_store(&parts[i].used, 0);
+            break;
+        }
+    pthread_mutex_unlock(&parts_lock);
+}
+
+void swfs_atomic_remove_parts(void)
+{
+    for (int i = 0; i < PART_SLOTS; i++)
+        if (atomic_load(&parts[i].used)) (void)unlink(parts[i].path); /* async-signal-safe */
+}
 
 /* 48 random bits for the part name: two runs (or two threads) never pick the same one. */
 static unsigned long long part_tag(void)
@@ -55,6 +101,7 @@ static void sync_dir(const char *path)
 
 static void free_atomic(swfs_atomic *a)
 {
+    if (a->listed) part_unlist(a->part);
     free(a->path);
     free(a->part);
     free(a);
@@ -81,6 +128,7 @@ int swfs_atomic_begin(swfs_atomic **out, const char *path, int stdio)
                          path);
     }
     snprintf(a->part, cap, "%s.part.%ld.%012llx", path, (long)getpid(), part_tag());
+    a->listed = part_list(a->part);
     if (stdio) {
         int fd = open(a->part, O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
         if (fd < 0 || !(a->fp = fdopen(fd, "w"))) {
@@ -124,6 +172,7 @@ static int group_add(swfs_atomic *a)
     for (size_t i = 0; i < group.n; i++)
         if (!strcmp(group.path[i], a->path)) { /* rewritten within the group: the newer part wins */
             unlink(group.part[i]);
+            part_unlist(group.part[i]);
             free(group.part[i]);
             free(a->path);
             group.part[i] = a->part;
@@ -200,6 +249,7 @@ int swfs_outputs_end(int commit)
         if (rc && i < done) unlink(group.path[i]);
         else if (!commit || rc) unlink(group.part[i]);
         else sync_dir(group.path[i]);
+        part_unlist(group.part[i]);
         free(group.part[i]);
         free(group.path[i]);
     }
