@@ -456,7 +456,20 @@ def test_teach(series, tmp_path):
         sw.teach(files, str(tmp_path / "stopped.fits"), str(tmp_path / "sw"), config=conf, loops=4, progress=after_one,
                  **keys)
     assert not os.path.exists(tmp_path / "stopped.fits") and not list((tmp_path / "sw").rglob("*.part.*"))
-    assert 1 <= len([d for d in (tmp_path / "sw").glob("loop_*") if any(d.iterdir())]) < 4
+    made = list((tmp_path / "sw").glob("loop_*"))
+    assert 1 <= len(made) < 4 and all((d / "slopes_000.fits").exists() for d in made)
+    # stopped within its first loops (the loops' count is shown again every 256 WFS frames of the
+    # caller's loop) in a new work folder: the stopped loops' folders are gone, not left empty
+    polls = []
+
+    def first_poll(stage, done, total):
+        polls.append(stage)
+        if polls.count("simulating the loops") == 2:
+            raise Enough(f"{done} of {total}")
+    with pytest.raises(Enough, match="0 of 4"):
+        sw.teach(files, str(tmp_path / "stopped.fits"), str(tmp_path / "sw2"), config=conf, loops=4,
+                 progress=first_poll, **keys)
+    assert not list((tmp_path / "sw2").glob("loop_*"))
     # a stop within the first loops (the loops' count is shown again every 256 WFS frames of
     # the caller's loop), in the first run's work folder: its loops stay whole (a loop's earlier
     # slopes and truth go only once the new loop's files are in place)

@@ -23,6 +23,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 void swfs_teach_run_options_default(swfs_teach_run_options *o)
 {
@@ -169,7 +170,8 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     p.milk = 0;
     if (snprintf(j->path, sizeof j->path, "%.4000s/%s_%02zu", o->work, j->name, j->k) >= (int)sizeof j->path)
         return swfs_fail(SWFS_ERR_ARG, "teach: %s: the folder's name is too long", o->work);
-    if (mkdir(j->path, 0777) && errno != EEXIST)
+    const int made = mkdir(j->path, 0777) == 0;
+    if (!made && errno != EEXIST)
         return swfs_fail(SWFS_ERR_IO, "teach: cannot create %s: %s", j->path, strerror(errno));
     loop_files before = {NULL, NULL, 0};
     int rc = swfs_ts_params_check(&p);
@@ -181,6 +183,7 @@ static int simulate_loop(const swfs_teach_run_options *o, loop_job *j, int threa
     if (!rc && !erc) erc = loop_files_drop_stale(j->path, &before);
     free(before.name);
     free(before.ino);
+    if ((rc || erc) && made) (void)rmdir(j->path); /* the folder this loop made, left empty */
     if (rc || erc) return swfs_fail_context(rc ? rc : erc, "teach: the loop in %s", j->path);
     return SWFS_OK;
 }
