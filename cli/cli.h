@@ -73,13 +73,14 @@ void cli_progress(const char *label, size_t k, size_t n);
 /* The folder part of a path ("." when there is none). */
 void cli_dir_of(const char *path, char *dir, size_t cap);
 /* A progress callback for the library's long runs: ctx is a label prefix (const char *,
- * or NULL for none) put before the stage name. Its first call makes SIGINT and SIGTERM
- * (where the command has no handler of its own) ask the run to stop at its next report:
- * it returns non-zero then, and cli_error says which signal and returns 128 + its number. */
+ * or NULL for none) put before the stage name. It returns non-zero once SIGINT or SIGTERM
+ * asked the run to stop (cli_stop_catch), and cli_error then says which signal and returns
+ * 128 + its number. */
 int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total);
-/* The check inside cli_stage_progress (signals caught from its first call): non-zero once
- * SIGINT/SIGTERM asked to stop, for a command's own progress callback. */
+/* (cli/signals.c) The check inside cli_stage_progress: non-zero once SIGINT/SIGTERM asked
+ * to stop, for a command's own progress callback; cli_stop_signal says which (0: none). */
 int cli_stop_requested(void);
+int cli_stop_signal(void);
 /* Catch SIGINT and SIGTERM (where their disposition is the default) from now on, before a
  * stoppable command's first progress report: main does so for those commands, so that a
  * signal in the run's first moments stops it at that report rather than killing it. */

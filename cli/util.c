@@ -1,7 +1,6 @@
 /* The command line's plumbing: error messages, the command line as provenance, progress,
  * output folders and paths (cli.h). */
 #include "cli.h"
-#include "specklewfs/atomic.h"
 #include "specklewfs/outpaths.h"
 #include "specklewfs/config.h"
 #include "specklewfs/status.h"
@@ -17,9 +16,6 @@
 #include <time.h>
 #include <unistd.h>
 
-/* The signal (SIGINT, SIGTERM) that asked a run with progress to stop, or 0. */
-static volatile sig_atomic_t stop_signal;
-
 int cli_error(const char *cmd)
 {
     /* Library messages of a module named like the command ("report: ...") would read
@@ -27,9 +23,10 @@ int cli_error(const char *cmd)
     const char *msg = swfs_last_error();
     size_t n = strlen(cmd);
     if (!strncmp(msg, cmd, n) && msg[n] == ':' && msg[n + 1] == ' ') msg += n + 2;
-    if (stop_signal) { /* the shell's convention for a run ended by a signal: 128 + its number */
-        fprintf(stderr, "specklewfs %s: %s (%s)\n", cmd, msg, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
-        return 128 + stop_signal;
+    const int sig = cli_stop_signal();
+    if (sig) { /* the shell's convention for a run ended by a signal: 128 + its number */
+        fprintf(stderr, "specklewfs %s: %s (%s)\n", cmd, msg, sig == SIGINT ? "SIGINT" : "SIGTERM");
+        return 128 + sig;
     }
     fprintf(stderr, "specklewfs %s: %s\n", cmd, msg);
     return CLI_FAIL;
@@ -84,67 +81,6 @@ void cli_progress(const char *label, size_t k, size_t n)
         fprintf(stderr, "%s %zu/%zu\n", label, k, n);
     }
     fflush(stderr);
-}
-
-/* End the process by the signal, its part files removed first (atomic.h). */
-static void end_by_signal(int sig)
-{
-    swfs_atomic_remove_parts();
-    signal(sig, SIG_DFL);
-    raise(sig);
-}
-
-static void on_stop_signal(int sig)
-{
-    if (stop_signal) { /* a second signal, of either kind: end at once */
-        end_by_signal(sig);
-        return;
-    }
-    static const char msg[] = "\nspecklewfs: stopping at the run's next step (a second signal ends it at once)\n";
-    stop_signal = sig;
-    const ssize_t w = write(STDERR_FILENO, msg, sizeof msg - 1);
-    (void)w;
-}
-
-/* SIGINT and SIGTERM, where nothing else handles them, ask the run to stop at its next
- * progress report (the library then removes its partial outputs); a second signal of either
- * kind ends the process at once, its part files removed first. */
-static void catch_signals(void (*handler)(int))
-{
-    const int sigs[2] = {SIGINT, SIGTERM};
-    for (int k = 0; k < 2; k++) {
-        struct sigaction old, sa;
-        if (sigaction(sigs[k], NULL, &old) || old.sa_handler != SIG_DFL) continue; /* ignored, or live's own */
-        memset(&sa, 0, sizeof sa);
-        sa.sa_handler = handler;
-        sigemptyset(&sa.sa_mask);
-        sigaction(sigs[k], &sa, NULL);
-    }
-}
-
-void cli_stop_catch(void)
-{
-    static int done;
-    if (done) return;
-    done = 1;
-    catch_signals(on_stop_signal);
-}
-
-void cli_end_catch(void)
-{
-    catch_signals(end_by_signal);
-}
-
-int cli_stop_requested(void)
-{
-    cli_stop_catch();
-    return stop_signal != 0;
-}
-
-int cli_stop_check(void *ctx, const char *stage, size_t done, size_t total)
-{
-    (void)ctx, (void)stage, (void)done, (void)total;
-    return cli_stop_requested();
 }
 
 int cli_stage_progress(void *ctx, const char *stage, size_t done, size_t total)

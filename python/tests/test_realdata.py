@@ -15,6 +15,22 @@ import specklewfs as sw
 from conftest import ROOT
 
 
+class Enough(Exception):
+    """Raised by the tests' progress callbacks to stop a run."""
+
+
+def _at_second_poll():
+    """A progress callback that stops teach at the second report of its loops: the first
+    loops' count shown again from within the caller's loop (every 256 WFS frames)."""
+    calls = []
+
+    def poll(stage, done, total):
+        calls.append(stage)
+        if calls.count("simulating the loops") == 2:
+            raise Enough(f"{done} of {total}")
+    return poll
+
+
 @pytest.fixture(scope="module")
 def series(tmp_path_factory):
     d = tmp_path_factory.mktemp("realdata")
@@ -446,9 +462,6 @@ def test_teach(series, tmp_path):
 
     # a progress callback that raises once a loop is done stops teach there, its loops on both
     # workers: the exception comes out of the call; no map, no part file, fewer loops than asked
-    class Enough(Exception):
-        pass
-
     def after_one(stage, done, total):
         if stage == "simulating the loops" and done >= 1:
             raise Enough(f"{done} of {total}")
@@ -458,32 +471,20 @@ def test_teach(series, tmp_path):
     assert not os.path.exists(tmp_path / "stopped.fits") and not list((tmp_path / "sw").rglob("*.part.*"))
     made = list((tmp_path / "sw").glob("loop_*"))
     assert 1 <= len(made) < 4 and all((d / "slopes_000.fits").exists() for d in made)
-    # stopped within its first loops (the loops' count is shown again every 256 WFS frames of the
-    # caller's loop) in a new work folder: the stopped loops' folders are gone, not left empty
-    polls = []
-
-    def first_poll(stage, done, total):
-        polls.append(stage)
-        if polls.count("simulating the loops") == 2:
-            raise Enough(f"{done} of {total}")
+    # stopped within its first loops in a new work folder: the stopped loops' folders are gone,
+    # not left empty
     with pytest.raises(Enough, match="0 of 4"):
         sw.teach(files, str(tmp_path / "stopped.fits"), str(tmp_path / "sw2"), config=conf, loops=4,
-                 progress=first_poll, **keys)
+                 progress=_at_second_poll(), **keys)
     assert not list((tmp_path / "sw2").glob("loop_*"))
-    # a stop within the first loops (the loops' count is shown again every 256 WFS frames of
-    # the caller's loop), in the first run's work folder: its loops stay whole (a loop's earlier
-    # slopes and truth go only once the new loop's files are in place)
+    # the same stop in the first run's work folder: its loops stay whole (a loop's earlier slopes
+    # and truth go only once the new loop's files are in place)
     work = tmp_path / "work"
     loops = sorted(work.glob("loop_*"))
     assert len(loops) >= 4 and all((d / "slopes_000.fits").exists() for d in loops)
-    calls = []
-
-    def within(stage, done, total):
-        calls.append(stage)
-        if calls.count("simulating the loops") == 2:
-            raise Enough(f"{done} of {total}")
     with pytest.raises(Enough, match="0 of 4"):
-        sw.teach(files, str(tmp_path / "again.fits"), str(work), config=conf, loops=4, progress=within, **keys)
+        sw.teach(files, str(tmp_path / "again.fits"), str(work), config=conf, loops=4, progress=_at_second_poll(),
+                 **keys)
     for d in loops:
         names = {f.name for f in d.iterdir()}
         assert {"slopes_000.fits", "truewf_000.fits", "truth.fits"} <= names, (d.name, sorted(names))
@@ -672,9 +673,6 @@ def test_a_stop_while_teaching_is_no_fallback(series, tmp_path):
     test_speckles_falls_back_where_no_map_can_be_taught; a request to stop is not one)."""
     timing, sci, act = _series_copy(series, tmp_path, "stop", lambda d, rate: (d, {"WFSRATE": rate}))
 
-    class Enough(Exception):
-        pass
-
     def at_loops(stage, done, total):
         if stage.startswith("simulating"):
             raise Enough(stage)
@@ -720,9 +718,6 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
     assert seen[-1] == ("camera frames", n["camera_frames"], n["camera_frames"]) and 0 < seen[0][1] < seen[1][1]
     # a progress callback that raises at the second batch stops the run; the update written
     # after the first (every=1) is removed with it, and the exception comes out
-    class Enough(Exception):
-        pass
-
     def two(stage, done, total):
         if done > seen[0][1]:
             assert os.path.exists(d / "halo_stop.fits")  # the first batch's update, in place

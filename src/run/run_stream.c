@@ -209,13 +209,18 @@ static int progress_next(void *ctx, swfs_batch *b)
     return swfs_progress_report(p->o->progress, p->o->progress_ctx, "camera frames", p->done, p->total);
 }
 
-/* The camera frames a run from a timing table takes: its usable cubes', the first max_frames. */
-static size_t usable_frames(const swfs_timing *t, size_t max_frames)
+/* The camera frames a run from a timing table takes: its usable cubes', the first max_frames
+ * (0: all); len (if not NULL): each cube's share of them. */
+static size_t usable_frames(const swfs_timing *t, size_t max_frames, size_t *len)
 {
-    size_t n = 0;
-    for (size_t c = 0; t && c < t->ncubes; c++)
-        if (t->cubes[c].status == SWFS_CUBE_OK) n += t->cubes[c].nframes;
-    return max_frames && n > max_frames ? max_frames : n;
+    size_t total = 0;
+    for (size_t c = 0; t && c < t->ncubes; c++) {
+        size_t n = t->cubes[c].status == SWFS_CUBE_OK ? t->cubes[c].nframes : 0;
+        if (max_frames && total + n > max_frames) n = max_frames - total;
+        if (len) len[c] = n;
+        total += n;
+    }
+    return total;
 }
 
 /* Estimate from the accumulators and write the products. Before the end a failed estimate
@@ -422,15 +427,9 @@ static int setup(const swfs_stream_run_options *o, const char *first_tel, run_ct
 static int plan_share(const swfs_stream_run_options *o, const swfs_file_source *src, size_t *first, size_t *count)
 {
     const swfs_timing *t = swfs_file_source_timing(src);
-    size_t *len = calloc(t->ncubes ? t->ncubes : 1, sizeof *len), total = 0;
+    size_t *len = calloc(t->ncubes ? t->ncubes : 1, sizeof *len);
     if (!len) return swfs_fail(SWFS_ERR_NOMEM, "stream: out of memory");
-    const size_t cap = o->stream.max_frames;
-    for (size_t c = 0; c < t->ncubes; c++) {
-        if (t->cubes[c].status != SWFS_CUBE_OK) continue;
-        len[c] = t->cubes[c].nframes;
-        if (cap && total + len[c] > cap) len[c] = cap - total;
-        total += len[c];
-    }
+    const size_t total = usable_frames(t, o->stream.max_frames, len);
     swfs_team_share(len, t->ncubes, o->batch, o->team->rank, o->team->size, first, count);
     free(len);
     if (!total) return swfs_fail(SWFS_ERR_VALUE, "%s: no usable cube (all straddle their telemetry files?)", o->timing);
@@ -604,7 +603,7 @@ int swfs_stream_run_hooked(const swfs_stream_run_options *o, const swfs_run_hook
             u.static_written = 1;
         }
         progress_src ps = {hk ? hk->source : stacked_next, hk ? hk->source_ctx : (void *)&ss, o, 0,
-                           hk ? 0 : usable_frames(ss.t, o->stream.max_frames)};
+                           hk ? 0 : usable_frames(ss.t, o->stream.max_frames, NULL)};
         const int report = o->progress && (!hk || hk->offline);
         if (!rc) rc = report ? swfs_stream_run(s, progress_next, &ps, update, &u) : swfs_stream_run(s, ps.next, ps.ctx, update, &u);
         if (rc == SWFS_ERR_NUMERIC && s && !swfs_stream_camera_frames(s))
