@@ -9,7 +9,8 @@
 # naming the file and the value, with no output left; `stream --basis` runs the same model, and
 # `live` on the modal stream that `replay` publishes too. Measured: 23.0 nm native, 22.7 modal,
 # 22.7 control, 22.7 stream, 22.7 live (1135 nm with the mirror left out); the valid-only
-# slopes with the valid-subaperture map 23.0 nm, as native.
+# slopes with the valid-subaperture map 23.0 nm, as native. An --imat of lower rank than its
+# basis functions (columns repeated) runs, and the summary notes its rank.
 # usage: bash cli_modal.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
@@ -202,6 +203,24 @@ grep -q "halo_live.fits: 180 camera frames used" "$D/live.log" || { cat "$D/live
 lived=$(ncp_error "$D/pupil_live.log")
 echo "cli_modal: live --basis: NCP error $lived nm" >&2
 awk -v a="$lived" -v b="$streamed" 'BEGIN { exit !(a > 0 && a < 1.05 * b && a > 0.95 * b) }' || fail "live: $lived nm"
+# --imat with fewer independent columns than basis functions: the modal response matrix with its
+# last 16 columns (of 216) made copies of columns 184..199 has rank 200; speckles runs on it and
+# its summary notes the rank, the 200 combinations the telemetry senses and the 16 never
+# reconstructed (swfs_pipeline_info.imat_rank); the matrix itself, rank 216, gets no such note
+/usr/bin/python3 "$(dirname "$0")/tools/fitshdr.py" "$S/rm_modes.fits" "$D/rm_rank200.fits" --copy-columns 184 200 16
+for im in "$S/rm_modes.fits" "$D/rm_rank200.fits"; do
+    n=$(basename "$im" .fits)
+    # shellcheck disable=SC2086
+    "$B" speckles "$D/timing_valid.txt" --science "$D/science.fits" --basis "$S/dm_modes.fits" $reg --coef-scale 2e-6 \
+        --imat "$im" --mean-loop none -o "$D/sp_$n.fits" 2> "$D/speckles_$n.log" \
+        || { cat "$D/speckles_$n.log"; fail "speckles --imat $n"; }
+    grep -q "216 basis functions .*interaction matrix, MAP reconstructor" "$D/speckles_$n.log" \
+        || { cat "$D/speckles_$n.log"; fail "speckles --imat $n: the model's summary"; }
+done
+grep -qF "speckles: note: the interaction matrix $D/rm_rank200.fits has rank 200 of its 216 basis functions: the telemetry \
+senses 200 combinations of their coefficients, and the other 16 are never reconstructed (a column that repeats another" \
+    "$D/speckles_rm_rank200.log" || { cat "$D/speckles_rm_rank200.log"; fail "--imat of rank 200: no rank note"; }
+! grep -q "note: the interaction matrix" "$D/speckles_rm_modes.log" || fail "--imat of full rank: a rank note"
 # Refused, naming file and value, no output left:
 o="$D/bad.fits"
 expect_error "the basis is 63 x 63 x 216 but the pupil grid is PUPN = 66" \
@@ -226,7 +245,7 @@ expect_error "dm_modes.fits: a valid-subaperture map is a square nsub x nsub ima
 /usr/bin/python3 "$(dirname "$0")/tools/fitshdr.py" "$S/recon_ao.fits" "$D/inan.fits" --fill nan 50
 expect_error "cbig.fits: element (1, 1) of the control matrix is 1e+300; expected finite and below 1e30" \
     "$B" speckles "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --control "$D/cbig.fits" -o "$o"
-expect_error "inan.fits: element (1, 1) of the matrix is nan" \
+expect_error "inan.fits: element (1, 1) of the matrix is not finite (NaN or infinite)" \
     "$B" speckles "$D/timing.txt" --science "$D/science.fits" --basis "$S/influence.fits" --imat "$D/inan.fits" -o "$o"
 ls "$D"/bad.fits* > /dev/null 2>&1 && fail "an output was left after a refusal"
 echo "cli_modal: ok"

@@ -210,8 +210,19 @@ expect huge-wfe 1 "kf.fits: WFE at pupil sample" -- dmoffsets kf.fits -o x.fits 
 mkdir -p tsb && cp ts/* tsb/ && hdr ts/slopes_000.fits tsb/slopes_000.fits --fill 3.4e38 0.3
 expect huge-slopes 1 "tsb/slopes_000.fits: slope 0 of WFS frame 0 is 3.4e+38" -- sync sci.fits tsb/handshake.log -o x.txt
 hdr ts/slopes_000.fits tsb/slopes_000.fits --fill nan 1
-expect nan-slopes 1 "tsb/slopes_000.fits: slope 0 of WFS frame 0 is nan" -- stream --timing timing.txt \
+expect nan-slopes 1 "tsb/slopes_000.fits: slope 0 of WFS frame 0 is not finite (NaN or infinite)" -- stream --timing timing.txt \
     --science sci.fits --slopes tsb/slopes_000.fits --recon ts/recon_ao.fits --actuators ts/actuators.fits -o x.fits
+# an infinity alone in the file: CFITSIO reads it as NaN, so the message names both (it said
+# "is nan" of an infinity); the file, frame and slope named, no output
+rm -f x.txt x.fits
+hdr ts/slopes_000.fits tsb/slopes_000.fits --fill inf 0 581
+expect inf-slopes 1 "tsb/slopes_000.fits: slope 5 of WFS frame 2 is not finite (NaN or infinite); telemetry values must be finite" \
+    -- sync sci.fits tsb/handshake.log -o x.txt
+hdr ts/slopes_000.fits tsb/slopes_000.fits --fill -inf 0 290
+expect minus-inf-slopes 1 "tsb/slopes_000.fits: slope 2 of WFS frame 1 is not finite (NaN or infinite)" -- stream \
+    --timing timing.txt --science sci.fits --slopes tsb/slopes_000.fits --recon ts/recon_ao.fits \
+    --actuators ts/actuators.fits -o x.fits
+if [ -e x.txt ] || [ -e x.fits ]; then bad inf-slopes "an output was left"; fi
 hdr ts/actuators.fits ka.fits --fill nan 0.5
 expect nan-actuators 1 "ka.fits: actuator 0 has x = nan" -- dmoffsets run/wf.fits -o x.fits --actuators ka.fits
 hdr sh.fits kz.fits --hdu 2 --fill nan 1

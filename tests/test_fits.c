@@ -4,7 +4,9 @@
 #include "specklewfs/fits.h"
 #include "specklewfs/status.h"
 
+#include <dirent.h>
 #include <fitsio.h>
+#include <float.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -190,12 +192,93 @@ static void test_bad_files(void **state)
     assert_non_null(strstr(swfs_last_error(), "TELDIAM"));
 }
 
+/* Part files of `name` (NAME.part.<pid>.<n>) left in the test folder. */
+static int parts_left(const char *name)
+{
+    char prefix[256];
+    snprintf(prefix, sizeof prefix, "%s.part", name);
+    DIR *d = opendir(SWFS_TEST_TMPDIR);
+    int n = 0;
+    for (struct dirent *e; d && (e = readdir(d));) n += strncmp(e->d_name, prefix, strlen(prefix)) == 0;
+    if (d) closedir(d);
+    return n;
+}
+
+/* BITPIX -32: a finite value single precision cannot hold (it would be stored as infinite and
+ * read back as NaN) is refused, naming the file, the HDU, the value and its index; nothing is
+ * written (a previous file of that name is kept). The frame-by-frame writer (reduce, speckles'
+ * --match copies) checks its frames too; NaN, infinities and FLT_MAX itself are written. */
+static void test_single_precision_overflow(void **state)
+{
+    (void)state;
+    const char *path = test_path("f32.fits");
+    remove(path);
+    swfs_real *r = swfs_real_alloc(4, 3, 3);
+    for (size_t k = 0; k < swfs_real_size(r); k++) r->data[k] = (double)k;
+    swfs_fits_out *o;
+    assert_ok(swfs_fits_out_create(&o, path)); /* the file a refused write must leave as it is */
+    assert_ok(swfs_fits_out_real(o, NULL, r, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    r->data[33] = -1e39; /* x 1, y 2, frame 2 */
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_begin(o, "CUBE", 4, 3, 3, 0, -32));
+    assert_ok(swfs_fits_out_real_frames(o, 0, 2, r->data));
+    assert_int_equal(swfs_fits_out_real_frames(o, 2, 1, swfs_real_frame(r, 2)), SWFS_ERR_VALUE);
+    print_message("%s\n", swfs_last_error());
+    assert_non_null(strstr(swfs_last_error(), "f32.fits: extension CUBE: value 33 (x 1, y 2, frame 2) is -1e+39, beyond "
+                                              "single precision's largest 3.40282347e+38 (BITPIX -32 would store it as "
+                                              "infinite, read back as NaN); BITPIX -64 holds it"));
+    swfs_fits_out_abort(o);
+    assert_int_equal(parts_left("f32.fits"), 0);
+    swfs_real *back = NULL;
+    assert_ok(swfs_fits_read_real(path, NULL, &back, NULL)); /* the earlier file, as it was */
+    assert_close(back->data[33], 33.0, 0);
+    swfs_real_free(back);
+    /* the whole-array writer and complex values: the part named */
+    swfs_cplx *c = swfs_cplx_alloc(2, 2, 1);
+    c->data[3] = 1.0 + 1e300 * I;
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_int_equal(swfs_fits_out_cplx(o, NULL, c, -32), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "f32.fits: the image: the imaginary part of value 3 (x 1, y 1, frame 0) is "
+                                              "1e+300"));
+    swfs_fits_out_abort(o);
+    assert_int_equal(parts_left("f32.fits"), 0);
+    /* at -64 the same values are written and read back exactly */
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_real(o, NULL, r, -64));
+    assert_ok(swfs_fits_out_cplx(o, "Z", c, -64));
+    assert_ok(swfs_fits_out_commit(o));
+    assert_ok(swfs_fits_read_real(path, NULL, &back, NULL));
+    assert_close(back->data[33], -1e39, 0);
+    swfs_real_free(back);
+    /* NaN, infinities (read back as NaN, as CFITSIO reads them) and the largest values that
+     * round to FLT_MAX are written at -32; the first value beyond them is not */
+    r->data[0] = NAN; r->data[1] = INFINITY; r->data[2] = -INFINITY; r->data[3] = FLT_MAX;
+    r->data[33] = -0x1.fffffefffffffp+127; /* just below FLT_MAX + half its last unit: rounds to -FLT_MAX */
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_ok(swfs_fits_out_real(o, NULL, r, -32));
+    assert_ok(swfs_fits_out_commit(o));
+    assert_ok(swfs_fits_read_real(path, NULL, &back, NULL));
+    assert_true(isnan(back->data[0]) && isnan(back->data[1]) && isnan(back->data[2]));
+    assert_close(back->data[3], FLT_MAX, 0);
+    assert_close(back->data[33], -FLT_MAX, 0);
+    swfs_real_free(back);
+    r->data[33] = -0x1.ffffffp+127;
+    assert_ok(swfs_fits_out_create(&o, path));
+    assert_int_equal(swfs_fits_out_real(o, NULL, r, -32), SWFS_ERR_VALUE);
+    assert_non_null(strstr(swfs_last_error(), "value 33 (x 1, y 2, frame 2) is -3.40282357e+38"));
+    swfs_fits_out_abort(o);
+    swfs_cplx_free(c);
+    swfs_real_free(r);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_real_and_complex_round_trip),
         cmocka_unit_test(test_integer_bitpix_with_bzero),
         cmocka_unit_test(test_bad_files),
+        cmocka_unit_test(test_single_precision_overflow),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

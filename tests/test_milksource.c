@@ -13,6 +13,7 @@
 #include "specklewfs/status.h"
 
 #include <math.h>
+#include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -20,6 +21,10 @@
 enum { NW = 400, NC = 40 };
 static const int64_t E0 = 1700000000LL * 1000000000LL;
 static const double EXPT = 2.5e-3, DRIFT = -5e-5, OFF = 1.7e-3;
+
+/* A value written in place of value BAD_I of frame BAD_K of stream 0 (none: BAD_K = SIZE_MAX). */
+static size_t bad_k = SIZE_MAX, bad_i;
+static double bad_v;
 
 /* WFS frame k (0-based) ends at E0 + (k + 1) ms; its value is k. */
 static void write_wfs(const char *dir, int stream, size_t k0, size_t k1, size_t drop)
@@ -32,6 +37,7 @@ static void write_wfs(const char *dir, int stream, size_t k0, size_t k1, size_t 
     for (size_t k = k0; k < k1; k++) {
         if (k == drop) continue;
         for (size_t i = 0; i < nv; i++) a->data[n * nv + i] = stream ? -(double)k : (double)k;
+        if (!stream && k == bad_k) a->data[n * nv + bad_i] = bad_v;
         cnt[n] = k + 1;
         st[n] = E0 + (int64_t)(k + 1) * 1000000 + (stream ? 100000 : 0);
         n++;
@@ -152,8 +158,58 @@ static void test_batches(void **state)
     assert_non_null(strstr(swfs_last_error(), "5 values per frame but the reconstructor expects 6"));
 }
 
+/* A WFS value that is not finite: named with its file, frame and counter as "not finite (NaN
+ * or infinite)", for an infinity too (CFITSIO reads it as NaN: the message said "is nan");
+ * one beyond 1e30 with its value. */
+static void test_bad_values(void **state)
+{
+    (void)state;
+    const double vals[] = {INFINITY, -INFINITY, NAN, 3e38};
+    const char *want[] = {"is not finite (NaN or infinite)", "is not finite (NaN or infinite)",
+                          "is not finite (NaN or infinite)", "is 3e+38"};
+    for (int t = 0; t < 4; t++) {
+        const char *d = test_path("msrc_bad");
+        char cmd[4200], da[4200], db[4200], sci[4200];
+        snprintf(cmd, sizeof cmd, "rm -rf '%s' && mkdir -p '%s/a' '%s/b'", d, d, d);
+        assert_int_equal(system(cmd), 0);
+        snprintf(da, sizeof da, "%s/a", d);
+        snprintf(db, sizeof db, "%s/b", d);
+        snprintf(sci, sizeof sci, "%s/sci.fits", d);
+        bad_k = 30, bad_i = 1, bad_v = vals[t];
+        write_wfs(da, 0, 0, NW, NW);
+        bad_k = SIZE_MAX;
+        write_wfs(db, 1, 0, NW, NW);
+        int64_t tend[NC];
+        write_camera(sci, tend);
+        swfs_clock c;
+        memset(&c, 0, sizeof c);
+        c.epoch = E0;
+        c.offset = OFF;
+        c.drift = DRIFT;
+        c.fit.sign_x = c.fit.sign_y = 1;
+        const char *logs[] = {da, db};
+        swfs_milk_source_options o = {logs, 2, sci, &c, 0, 5, 4, 4, 4, NULL, 0};
+        swfs_milk_source *s = NULL;
+        assert_ok(swfs_milk_source_open(&s, &o));
+        int rc = 0;
+        for (int n = 0; n < 1000 && !rc; n++) {
+            swfs_batch b;
+            rc = swfs_milk_source_next(s, &b);
+            assert_true(rc || b.nexp); /* refused before the logs end */
+        }
+        swfs_milk_source_close(s);
+        assert_int_equal(rc, SWFS_ERR_VALUE);
+        print_message("%s\n", swfs_last_error());
+        char msg[256];
+        snprintf(msg, sizeof msg, ".fits: value 1 of frame 30 (cnt0 31) %s; telemetry values must be finite and below "
+                 "1e+30 in magnitude", want[t]);
+        assert_non_null(strstr(swfs_last_error(), msg));
+        assert_non_null(strstr(swfs_last_error(), "msrc_bad/a/"));
+    }
+}
+
 int main(void)
 {
-    const struct CMUnitTest tests[] = {cmocka_unit_test(test_batches)};
+    const struct CMUnitTest tests[] = {cmocka_unit_test(test_batches), cmocka_unit_test(test_bad_values)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

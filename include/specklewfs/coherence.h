@@ -71,7 +71,7 @@ typedef struct swfs_coherence {
     swfs_real *lags;     /* nlags x 1: lags [s] */
     swfs_real *mean_sp;  /* Phi_sp = Gamma(0) */
     swfs_real *tau0;     /* [s] */
-    swfs_real *trot;     /* [s] */
+    swfs_real *trot;     /* [s]; +Inf: no rotation, or one slower than FLT_MAX s */
     swfs_real *phrate;   /* [rad/s] */
     swfs_real *snr_fact; /* NULL unless exposure > 0 */
     swfs_cplx *mcf;      /* nx x ny x nlags, Gamma(tau)/Gamma(0) */

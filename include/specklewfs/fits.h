@@ -95,7 +95,10 @@ void swfs_fits_out_abort(swfs_fits_out *o);
 
 /* Append an image HDU. extname NULL: the data go into the primary HDU (single-cube
  * files such as science.fits); otherwise an empty primary is written first if needed.
- * bitpix: -32 or -64 (and 16/32 for real data). */
+ * bitpix: -32 or -64 (and 16/32 for real data). At -32 a finite value that single precision
+ * cannot hold (it would round to infinity, read back as NaN) is refused (SWFS_ERR_VALUE, the
+ * file, HDU, value and its index named) before it is written; NaN and infinite values are
+ * written as they are. The *_frames calls check the same. */
 int swfs_fits_out_real(swfs_fits_out *o, const char *extname, const swfs_real *a, int bitpix);
 int swfs_fits_out_cplx(swfs_fits_out *o, const char *extname, const swfs_cplx *a, int bitpix);
 /* Start a cube HDU to be filled frame by frame with swfs_fits_out_*_frames. */

@@ -80,7 +80,8 @@ int swfs_telemetry_check_sh(const char *path, const char *what);
 int swfs_telemetry_check(const char *path, size_t nslopes, size_t *nframes);
 /* Telemetry values: finite and at most SWFS_TELEMETRY_MAX in magnitude in any unit (FLT_MAX
  * and similar fill values are refused rather than averaged into the synchronization or the
- * reconstruction). SWFS_ERR_VALUE naming the file, slope and frame. */
+ * reconstruction). SWFS_ERR_VALUE naming the file, slope and frame; a NaN and an infinity
+ * alike are "not finite (NaN or infinite)" (CFITSIO reads a stored infinity as NaN). */
 #define SWFS_TELEMETRY_MAX 1e30
 int swfs_telemetry_check_values(const char *path, const swfs_real *s);
 /* Every telemetry file the usable cubes of t use, in the order they first appear,

@@ -45,6 +45,10 @@ int swfs_fail_context(int code, const char *fmt, ...)
 
 const char *swfs_last_error(void);
 void swfs_clear_error(void);
+
+/* A value for a message, into buf: "is 3.2e+31", or "is not finite (NaN or infinite)" (CFITSIO
+ * reads a stored infinity back as NaN, so a value read from a file cannot tell which). */
+const char *swfs_value_words(double v, char *buf, size_t cap);
 const char *swfs_status_name(int code);
 
 /* Progress of a long run: `done` of `total` units of the named stage. The library calls

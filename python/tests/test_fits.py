@@ -59,6 +59,34 @@ def test_fits_errors(tmp_path):
         assert not os.path.exists(str(tmp_path / "k.fits"))
 
 
+def test_single_precision_overflow_is_refused(tmp_path):
+    """write_fits(bitpix=-32) of a finite value single precision cannot hold: refused, naming
+    the file, the HDU, the value, its index and BITPIX -64; nothing written (an earlier file
+    of the name kept). It stored inf in silence, which read back as NaN. NaN and infinities
+    are written as before (read back as NaN, as CFITSIO reads them)."""
+    p = str(tmp_path / "x.fits")
+    sw.write_fits(p, np.zeros((2, 3, 4)), bitpix=-32)
+    before = open(p, "rb").read()
+    a = np.zeros((2, 3, 4))
+    a[1, 2, 3] = 1e300
+    with pytest.raises(sw.Error) as e:
+        sw.write_fits(p, a, bitpix=-32)
+    assert e.value.status_name == "SWFS_ERR_VALUE"
+    assert p + ": the image: value 23 (x 3, y 2, frame 1) is 1e+300, beyond single precision's largest " \
+        "3.40282347e+38 (BITPIX -32 would store it as infinite, read back as NaN); BITPIX -64 holds it" in e.value.message
+    assert open(p, "rb").read() == before and os.listdir(tmp_path) == ["x.fits"]
+    with pytest.raises(sw.Error, match=r"new.fits: extension Z: the real part of value 1 \(x 1, y 0, frame 0\) "
+                                       r"is -1e\+39, beyond single precision"):
+        sw.write_fits(str(tmp_path / "new.fits"), {"A": np.ones((2, 2)), "Z": np.array([[0, -1e39 + 1j]])}, bitpix=-32)
+    assert os.listdir(tmp_path) == ["x.fits"]
+    sw.write_fits(p, a)  # BITPIX -64 holds it
+    assert sw.read_fits(p)[0][1, 2, 3] == 1e300
+    b = np.array([[np.nan, np.inf], [-np.inf, -np.finfo(np.float32).max]])
+    sw.write_fits(p, b, bitpix=-32)
+    back = sw.read_fits(p)[0]
+    assert np.isnan(back[0]).all() and np.isnan(back[1, 0]) and back[1, 1] == b[1, 1]
+
+
 def test_blas_threads():
     # The package sets 1 at import (as the command line does) unless told otherwise.
     assert sw.blas_threads() == 1

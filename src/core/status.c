@@ -1,6 +1,7 @@
 #include "specklewfs/status.h"
 
 #include <stdarg.h>
+#include <math.h>
 #include <stdio.h>
 #include <string.h>
 
@@ -60,4 +61,11 @@ int swfs_progress_report(swfs_progress_fn progress, void *ctx, const char *stage
 {
     if (!progress || !progress(ctx, stage, done, total)) return SWFS_OK;
     return swfs_fail(SWFS_ERR_STOPPED, "%s: stopped by the caller at %zu of %zu", stage ? stage : "run", done, total);
+}
+
+const char *swfs_value_words(double v, char *buf, size_t cap)
+{
+    if (isfinite(v)) snprintf(buf, cap, "is %g", v);
+    else snprintf(buf, cap, "is not finite (NaN or infinite)");
+    return buf;
 }

@@ -5,6 +5,7 @@
 #include "specklewfs/status.h"
 
 #include <fftw3.h>
+#include <float.h>
 #include <math.h>
 #include <stdlib.h>
 #include <string.h>
@@ -366,7 +367,10 @@ int swfs_coherence_compute(const swfs_cplx *cube, double framedt, const swfs_coh
         c->tau0->data[p] = tau0 * framedt;
         double rate = pixel_phase_rate(g, c->nfit) / framedt;
         c->phrate->data[p] = rate;
-        c->trot->data[p] = rate != 0 ? (M_PI / 2) / fabs(rate) : INFINITY;
+        /* no rotation, or one slower than single precision spans (TROT is written at BITPIX
+         * -32, which refuses a finite value it would store as infinite): +Inf */
+        const double trot = (M_PI / 2) / fabs(rate);
+        c->trot->data[p] = rate != 0 && trot <= FLT_MAX ? trot : INFINITY;
         if (c->snr_fact) c->snr_fact->data[p] = swfs_coh_snr_factor(g, Ld + 1, framedt, opt.exposure);
     }
     for (size_t i = 0; i < nlags; i++) {

@@ -50,10 +50,12 @@ int swfs_telemetry_check_values(const char *path, const swfs_real *s)
 {
     const size_t n = s->nx * s->ny * s->nz;
     for (size_t i = 0; i < n; i++)
-        if (!isfinite(s->data[i]) || fabs(s->data[i]) > SWFS_TELEMETRY_MAX)
-            return swfs_fail(SWFS_ERR_VALUE, "%s: slope %zu of WFS frame %zu is %g; telemetry values must be finite and "
+        if (!isfinite(s->data[i]) || fabs(s->data[i]) > SWFS_TELEMETRY_MAX) {
+            char val[48];
+            return swfs_fail(SWFS_ERR_VALUE, "%s: slope %zu of WFS frame %zu %s; telemetry values must be finite and "
                              "below %g in magnitude (a fill value, or a corrupt file?)", path, i % s->nx, i / s->nx,
-                             s->data[i], SWFS_TELEMETRY_MAX);
+                             swfs_value_words(s->data[i], val, sizeof val), SWFS_TELEMETRY_MAX);
+        }
     return SWFS_OK;
 }
 

@@ -6,6 +6,7 @@
 #include "specklewfs/version.h"
 
 #include <errno.h>
+#include <float.h>
 #include <fitsio.h>
 #include <fitsio2.h> /* ffgbyt: raw header bytes (check_raw_header) */
 #include <limits.h>
@@ -886,6 +887,8 @@ struct swfs_fits_out {
     swfs_atomic *part;
     int nhdu;
     int cur_complex;
+    int cur_bitpix;   /* the current HDU's BITPIX */
+    char cur_ext[72]; /* its EXTNAME ("" for the primary) */
     size_t cur_nx, cur_ny, cur_nz;
     int have_stamp;
     swfs_geom stamp_geom;
@@ -1053,9 +1056,14 @@ int swfs_fits_out_begin(swfs_fits_out *o, const char *extname, size_t nx, size_t
     if (extname) fits_write_key(o->fp, TSTRING, "EXTNAME", (char *)extname, NULL, &st);
     if (st) return fits_fail(SWFS_ERR_IO, st, o->path, "writing header");
     o->cur_complex = is_complex;
+    o->cur_bitpix = bitpix;
+    snprintf(o->cur_ext, sizeof o->cur_ext, "%s", extname ? extname : "");
     o->cur_nx = nx; o->cur_ny = ny; o->cur_nz = nz;
     return stamp_current(o);
 }
+
+/* The smallest double that rounds to infinity as a float: FLT_MAX + half its last unit. */
+#define FLT_OVERFLOWS 0x1.ffffffp+127
 
 static int write_frames(swfs_fits_out *o, size_t first, size_t n, const double *buf, int is_complex)
 {
@@ -1065,6 +1073,20 @@ static int write_frames(swfs_fits_out *o, size_t first, size_t n, const double *
     if (first + n > o->cur_nz)
         return swfs_fail(SWFS_ERR_ARG, "%s: frame %zu beyond cube depth %zu", o->path, first + n, o->cur_nz);
     size_t per = o->cur_nx * o->cur_ny * (is_complex ? 2 : 1);
+    /* Single precision: a finite value that rounds to infinity (beyond FLT_MAX by half its
+     * last unit or more) would be stored as infinite, read back as NaN, in silence; refused
+     * before any of these frames is written. NaN and infinite values are written as they are
+     * (a product's "no value" and "beyond the range" marks). */
+    if (o->cur_bitpix == -32)
+        for (size_t i = 0; i < n * per; i++)
+            if (isfinite(buf[i]) && fabs(buf[i]) >= FLT_OVERFLOWS) {
+                const size_t q = first * per + i, v = is_complex ? q / 2 : q, np = o->cur_nx * o->cur_ny;
+                return swfs_fail(SWFS_ERR_VALUE, "%s: %s%s: %svalue %zu (x %zu, y %zu, frame %zu) is %.9g, beyond "
+                                 "single precision's largest %.9g (BITPIX -32 would store it as infinite, read back as "
+                                 "NaN); BITPIX -64 holds it", o->path, o->cur_ext[0] ? "extension " : "the image",
+                                 o->cur_ext, !is_complex ? "" : q % 2 ? "the imaginary part of " : "the real part of ",
+                                 v, v % o->cur_nx, v / o->cur_nx % o->cur_ny, v / np, buf[i], (double)FLT_MAX);
+            }
     int st = 0;
     fits_write_img(o->fp, TDOUBLE, (LONGLONG)(first * per + 1), (LONGLONG)(n * per), (double *)buf, &st);
     if (st) return fits_fail(SWFS_ERR_IO, st, o->path, "writing image data");

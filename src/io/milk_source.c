@@ -4,6 +4,7 @@
 #include "specklewfs/milklog.h"
 #include "specklewfs/numeric.h"
 #include "specklewfs/science.h"
+#include "specklewfs/source.h"
 #include "specklewfs/status.h"
 #include "specklewfs/sync.h"
 
@@ -178,10 +179,12 @@ static int feed_one(swfs_milk_source *s, int *rc)
     const double *v = s->wbuf;
     const size_t nv = swfs_milklog_get_info(l)->nvals;
     for (size_t i = 0; i < nv; i++)
-        if (!isfinite(v[i]) || fabs(v[i]) > 1e30) {
-            *rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu of frame %zu (cnt0 %llu) is %g; telemetry values must be "
-                            "finite", swfs_milklog_file_of(l, k), i, k, (unsigned long long)swfs_milklog_counters(l)[k],
-                            v[i]);
+        if (!isfinite(v[i]) || fabs(v[i]) > SWFS_TELEMETRY_MAX) {
+            char val[48];
+            *rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu of frame %zu (cnt0 %llu) %s; telemetry values must be "
+                            "finite and below %g in magnitude", swfs_milklog_file_of(l, k), i, k,
+                            (unsigned long long)swfs_milklog_counters(l)[k], swfs_value_words(v[i], val, sizeof val),
+                            SWFS_TELEMETRY_MAX);
             return -1;
         }
     *rc = swfs_framesync_add_wfs(s->fs, best, swfs_milklog_counters(l)[k], swfs_milklog_stamps(l)[k], v, 0.0);

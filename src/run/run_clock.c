@@ -36,9 +36,12 @@ static int mean_slopes(swfs_milklog *l, const double *R, double *mx, double *my)
         const size_t n = in->nframes - k < BLOCK ? in->nframes - k : BLOCK;
         if ((rc = swfs_milklog_read(l, k, n, buf))) break;
         for (size_t i = 0; i < n * in->nvals && !rc; i++)
-            if (!isfinite(buf[i]) || fabs(buf[i]) > SWFS_TELEMETRY_MAX)
-                rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu of frame %zu is %g; telemetry values must be finite",
-                               swfs_milklog_file_of(l, k + i / in->nvals), i % in->nvals, k + i / in->nvals, buf[i]);
+            if (!isfinite(buf[i]) || fabs(buf[i]) > SWFS_TELEMETRY_MAX) {
+                char val[48];
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu of frame %zu %s; telemetry values must be finite and "
+                               "below %g in magnitude", swfs_milklog_file_of(l, k + i / in->nvals), i % in->nvals,
+                               k + i / in->nvals, swfs_value_words(buf[i], val, sizeof val), SWFS_TELEMETRY_MAX);
+            }
         if (!rc && R) swfs_tilt_rows_apply(R, buf, in->nvals, n, mx + k, my + k);
         else if (!rc) swfs_slopes_mean_xy(buf, in->nvals, n, NULL, mx + k, my + k);
     }

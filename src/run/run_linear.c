@@ -33,12 +33,13 @@ void swfs_linear_files_default(swfs_linear_files *lf)
 static int matrix_values(const char *path, const char *what, const swfs_real *m)
 {
     const size_t n = m->nx * m->ny * m->nz;
+    char val[48];
     for (size_t q = 0; q < n; q++)
         if (!(fabs(m->data[q]) < 1e30))
-            return swfs_fail(SWFS_ERR_VALUE, "%s: element (%zu, %zu%s%.0zu) of the %s is %g; expected finite and below "
+            return swfs_fail(SWFS_ERR_VALUE, "%s: element (%zu, %zu%s%.0zu) of the %s %s; expected finite and below "
                              "1e30 in magnitude (a fill value, or a corrupt file?)", path, q % m->nx + 1,
                              q / m->nx % m->ny + 1, m->nz > 1 ? ", " : "", m->nz > 1 ? q / (m->nx * m->ny) + 1 : 0,
-                             what, m->data[q]);
+                             what, swfs_value_words(m->data[q], val, sizeof val));
     return SWFS_OK;
 }
 
@@ -201,10 +202,11 @@ static int load_basis(const swfs_linear_files *lf, const swfs_geom *g, const dou
     }
     size_t nout = 0;
     const size_t gn = c->nx * c->ny;
+    char val[48];
     for (size_t k = 0; !rc && k < gn * c->nz; k++)
         if (!isfinite(c->data[k]))
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (x %zu, y %zu, function %zu) is %g; expected finite",
-                           lf->basis, k, k % c->nx, k / c->nx % c->ny, k / gn, c->data[k]);
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: value %zu (x %zu, y %zu, function %zu) %s; expected finite", lf->basis, k,
+                           k % c->nx, k / c->nx % c->ny, k / gn, swfs_value_words(c->data[k], val, sizeof val));
     if (!rc && (rc = swfs_grid_interp(B, c->nx, c->ny, &lf->reg, mask, np, g->pupdx, &nout)))
         swfs_fail_context(rc, "%s", lf->basis);
     else if (!rc && nout)
