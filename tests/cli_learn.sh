@@ -122,6 +122,16 @@ grep -q "given space-time reconstructor lagged.fits: 288 slopes x 3 lags" speckl
     && grep -q "space-time map: this telemetry's slopes show 2 frozen-flow layers" speckles_st.log \
     || { cat speckles_st.log; fail "speckles printed no check of the space-time map"; }
 grep "space-time map" speckles_st.log | cut -c1-160
+# the gain check on a learned space-time map (RECON = 'learned') refuses only a sign: its lag
+# blocks' sum on a still wavefront is no convention's gain (a bright star's taught map had 2.03)
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --recon lagged.fits \
+    --recon-scale 3 -o spk_st3.fits 2> speckles_st3.log || { cat speckles_st3.log; fail "a learned space-time map x 3 refused"; }
+grep -q "lagged.fits: 288 slopes x 3 lags x 217 actuators, scale 3, gain [2-9]" speckles_st3.log || { cat speckles_st3.log; fail "speckles: the x 3 map's gain"; }
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --recon lagged.fits \
+    --recon-scale -1 -o spk_stm.fits 2> speckles_stm.log && fail "a learned space-time map of the other sign accepted"
+grep -q "lagged.fits: gain -[0-9.]* on the model's interaction matrix after the scale given" speckles_stm.log \
+    || { cat speckles_stm.log; fail "speckles: the sign's refusal"; }
+[ -e spk_stm.fits ] && fail "speckles left a product after the sign's refusal"
 # teach: the same rule in one command (wind -> loops at the layers found -> the space-time map
 # and its checks -> the choice; the loops in taught.teach, the default work folder). Its two layers must be the observation's (15 and 22 m/s), its
 # map the space-time one (neither check warns on loops of the same system), and through the

@@ -32,7 +32,9 @@ SWFS_BEGIN_DECLS
  * eigenvalue of W D, 1 for any reconstructor of D and about 1 for a Wiener-type one, whose
  * best-measured mode keeps nearly all of itself) is accepted in [SWFS_RECON_GAIN_MIN,
  * 1 / SWFS_RECON_GAIN_MIN]: the model's D differs from a real system's by calibration errors
- * of tens of percent, while a convention error is a sign or a factor 2 (docs/telemetry.md). */
+ * of tens of percent, while a convention error is a sign or a factor 2 (docs/telemetry.md).
+ * speckles checks only the sign of a space-time map learn or teach made (RECON = 'learned'):
+ * its lag blocks' sum on a still wavefront is no convention's gain. */
 #define SWFS_RECON_GAIN_MIN 0.5
 
 /* Reconstructor choices. */

@@ -283,6 +283,18 @@ int swfs_sh_pipeline(swfs_pipeline **p, const char *model, const char *valid, co
     return rc;
 }
 
+/* *learned: the reconstructor file says learn or teach made it (RECON = 'learned'). */
+static int learned_map(const char *path, int *learned)
+{
+    swfs_fits_in *f = NULL;
+    char kind[72] = "";
+    int found = 0, rc = swfs_fits_in_open(&f, path, NULL);
+    if (!rc) rc = swfs_fits_in_key_string_opt(f, "RECON", kind, sizeof kind, &found);
+    swfs_fits_in_close(f);
+    *learned = !rc && found && !strcmp(kind, "learned");
+    return rc;
+}
+
 /* Slopes modal-slopes made (their first file names the control matrix: MODALCM) lie in the
  * span of its modes: the vk and MAP maps' noise estimate, the slopes' power outside the
  * model's span (white noise and aliasing: the "effective" noise), finds next to nothing there
@@ -344,9 +356,17 @@ static int build_pipeline(const swfs_speckles_run_options *o, work *w)
     swfs_pipeline_info pinfo;
     swfs_pipeline_get_info(w->p, &pinfo);
     /* A given matrix in another convention (DM commands: a correction of the surface, about
-     * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused. */
+     * -1/2; slopes in other units) would give speckles of the wrong sign or size: refused.
+     * Not a space-time map that learn or teach made: its gain is its lag blocks' sum on a
+     * wavefront held still over the lags, which frozen flow never is, and a map learned from
+     * slopes of little noise spreads its response over the lags (2.03 on a bright star's
+     * 14 x 14 Shack-Hartmann, 0.496 at 1e-8 rad: docs/telemetry.md); its units are the
+     * library's by construction, so only a sign (a scale given to it) is refused. */
     const double gain = pinfo.recon_gain;
-    if (o->pipe.recon == SWFS_RECON_GIVEN && !(gain >= SWFS_RECON_GAIN_MIN && gain <= 1.0 / SWFS_RECON_GAIN_MIN))
+    int learned_st = 0;
+    if (o->pipe.recon == SWFS_RECON_GIVEN && w->nlags > 1 && (rc = learned_map(o->recon, &learned_st))) return rc;
+    const int in_range = learned_st ? gain > 0 : gain >= SWFS_RECON_GAIN_MIN && gain <= 1.0 / SWFS_RECON_GAIN_MIN;
+    if (o->pipe.recon == SWFS_RECON_GIVEN && !in_range)
         return swfs_fail(SWFS_ERR_VALUE, "%s: gain %.3g on the model's interaction matrix%s (expected about 1: the "
                          "residual wavefront [m of OPD] at the actuators = W slopes [rad]); a matrix to DM commands is a "
                          "correction of the surface (about -0.5), slopes in other units scale it; a scale of %.3g "
