@@ -320,7 +320,8 @@ def main():
                         acc = np.zeros((N, N), complex)
                         for wi, rfi, tx, ty in lst:
                             ph = rfi + (tx - mtx) * xs + (ty - mty) * ys
-                            acc += wi * mask * np.exp(2j * math.pi * ph / lam_sci)
+                            # weights in WFS frames, as the speckles of `speckles` sum them
+                            acc += wi / substeps * mask * np.exp(2j * math.pi * ph / lam_sci)
                             resmean += wi * rfi
                             resw += wi
                         h = Ex @ acc @ Ex.T
