@@ -24,7 +24,7 @@ usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [-
        foreign_loop.py OUTDIR --rho WORKDIR   (how much of the ideal speckles' variance the
                                               speckles WORKDIR/speckles.fits hold, by ring)
 Writes OUTDIR/raw_NNN.fits, dark.fits, flat.fits, slopes_000.fits, slopes_001.fits,
-valid.fits, actuators.fits, handshake.log, speckles_ideal.fits, truth.fits, pupil.fits and
+valid.fits, actuators.fits, control.fits (the loop's control matrix), handshake.log, speckles_ideal.fits, truth.fits, pupil.fits and
 foreign.json (the parameters and the true timing).
 """
 import argparse
@@ -363,6 +363,8 @@ def main():
                 os.path.join(args.out, f'geo_slopes_{i:03d}.fits'), overwrite=True)
     fits.PrimaryHDU(sh.valid.astype(np.uint8)).writeto(os.path.join(args.out, 'valid.fits'), overwrite=True)
     fits.PrimaryHDU(act, fits.Header([('BUNIT', 'm')])).writeto(os.path.join(args.out, 'actuators.fits'), overwrite=True)
+    # the loop's own control matrix (DM commands per valid-only slope), as an AO system keeps it
+    fits.PrimaryHDU(CM).writeto(os.path.join(args.out, 'control.fits'), overwrite=True)
     with open(os.path.join(args.out, 'handshake.log'), 'w') as f:
         f.write('# camera cube, slopes file, WFS frame logged at the cube start\n')
         for c, t0 in enumerate(t0s):

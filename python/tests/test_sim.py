@@ -170,6 +170,33 @@ def test_zonal_loop_parameter(tmp_path):
     assert not (tmp_path / "z").exists() or not os.listdir(tmp_path / "z")
 
 
+def test_loop_reconstructor_of_the_used_subapertures(tmp_path):
+    """ao_recon= may hold only the used subapertures' slopes (2 nvalid columns: their x slopes,
+    then their y slopes), as most AO systems keep their control matrix: the loop runs it as the
+    same matrix in the full layout (the same slopes to the bit). A width that is neither is
+    refused, naming both."""
+    ts = dict(pupn=66, pupdx=0.1, screen_n=256, ncubes=2, cube_frames=40, cube_gap=30, seed=4)
+    sw.simulate_timeseries(str(tmp_path / "a"), **ts)
+    W, _ = sw.read_fits(str(tmp_path / "a" / "recon_ao.fits"))[:2]
+    W = np.array(W)
+    s = np.array(sw.read_fits(str(tmp_path / "a" / "slopes_000.fits"))[0])
+    n2 = s.shape[1] // 2
+    used = np.flatnonzero(np.abs(s[:, :n2]).sum(0) + np.abs(s[:, n2:]).sum(0) > 0)
+    assert 0 < used.size < n2
+    sw.write_fits(str(tmp_path / "full.fits"), W)
+    sw.write_fits(str(tmp_path / "used.fits"), np.hstack([W[:, used], W[:, n2 + used]]))
+    for name in ("full", "used"):
+        sw.simulate_timeseries(str(tmp_path / name), ao_recon=str(tmp_path / f"{name}.fits"), **ts)
+    a = np.array(sw.read_fits(str(tmp_path / "full" / "slopes_000.fits"))[0])
+    b = np.array(sw.read_fits(str(tmp_path / "used" / "slopes_000.fits"))[0])
+    assert a.shape == s.shape and np.array_equal(a, b) and np.abs(a).max() > 0
+    sw.write_fits(str(tmp_path / "odd.fits"), W[:, :-2])
+    with pytest.raises(sw.Error, match=rf"odd.fits: the loop's reconstructor is {2 * n2 - 2} slopes x \d+ actuators, "
+                                       rf"but the simulated Shack-Hartmann gives {2 * n2} slopes \({used.size} used "
+                                       rf"subapertures: {2 * used.size} with the used ones' only\)"):
+        sw.simulate_timeseries(str(tmp_path / "odd"), ao_recon=str(tmp_path / "odd.fits"), **ts)
+
+
 TS_LONG = dict(pupn=66, pupdx=0.1, screen_n=256, wfs_file_frames=1000, ncubes=40, cube_frames=100)
 
 

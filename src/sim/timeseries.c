@@ -140,17 +140,45 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
     return SWFS_OK;
 }
 
-/* The loop's reconstructor from a file: its shape must be the simulated Shack-Hartmann's
- * slopes by the DM's actuators; the modes it keeps are its numerical rank. */
-static int check_given_recon(const char *path, swfs_recon *r, size_t nslopes, size_t nact)
+/* A reconstructor of the used subapertures' slopes only (2 nvalid columns: their x slopes in
+ * the full layout's order, then their y slopes), as most AO systems keep theirs, put in the
+ * simulated Shack-Hartmann's full layout (the unused subapertures' columns 0). */
+static int embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
 {
+    const size_t n2 = sh->nsub * sh->nsub, nv = r->nslopes / 2, na = r->nact;
+    double *W = calloc(na * sh->nslopes, sizeof *W);
+    if (!W) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    for (size_t i = 0, v = 0; i < n2; i++) {
+        if (!sh->valid[i]) continue;
+        for (size_t a = 0; a < na; a++) {
+            W[a * sh->nslopes + i] = r->W[a * r->nslopes + v];
+            W[a * sh->nslopes + n2 + i] = r->W[a * r->nslopes + nv + v];
+        }
+        v++;
+    }
+    free(r->W);
+    r->W = W;
+    r->nslopes = sh->nslopes;
+    return SWFS_OK;
+}
+
+/* The loop's reconstructor from a file: its shape must be the simulated Shack-Hartmann's
+ * slopes (the full layout, or the used subapertures' only) by the DM's actuators; the modes
+ * it keeps are its numerical rank. */
+static int check_given_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh, size_t nact)
+{
+    const size_t nslopes = sh->nslopes;
+    int rc = SWFS_OK;
+    if (r->nslopes == 2 * sh->nvalid && r->nslopes != nslopes && r->nact == nact &&
+        (rc = embed_valid_recon(path, r, sh)))
+        return rc;
     if (r->nslopes != nslopes || r->nact != nact)
         return swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the simulated "
-                         "Shack-Hartmann gives %zu slopes and the DM has %zu actuators (recon_ao.fits layout: NAXIS1 = "
-                         "slopes, NAXIS2 = actuators [m/rad])", path, r->nslopes, r->nact, nslopes, nact);
+                         "Shack-Hartmann gives %zu slopes (%zu used subapertures: %zu with the used ones' only) and the "
+                         "DM has %zu actuators (recon_ao.fits layout: NAXIS1 = slopes, NAXIS2 = actuators [m/rad])",
+                         path, r->nslopes, r->nact, nslopes, sh->nvalid, 2 * sh->nvalid, nact);
     const size_t k = nact < nslopes ? nact : nslopes;
     double *a = malloc(nact * nslopes * sizeof *a), *sv = malloc(k * sizeof *sv);
-    int rc = SWFS_OK;
     if (!a || !sv) rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
     if (!rc) {
         memcpy(a, r->W, nact * nslopes * sizeof *a);
@@ -945,7 +973,7 @@ static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const c
     if (lin && (rc = swfs_interaction_matrix(sh, Tp, &Dp))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
-        if ((rc = check_given_recon(p->ao_recon, rao, sh->nslopes, nact))) goto done;
+        if ((rc = check_given_recon(p->ao_recon, rao, sh, nact))) goto done;
     } else if (p->ao_rcond > 0) {
         /* A zonal loop: the pseudo-inverse of its own interaction matrix, the modes of small
          * singular value (piston, waffle, what the sensor barely sees) left out; the shared
