@@ -20,7 +20,8 @@ every model differs from the simulator it was developed with:
 - the reference: ideal speckles from the true residual (each exposure's mean tip-tilt
   removed, as `reduce` registers the frames), with its time mean as RESMEAN, and the NCP.
 
-usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--quick] [--geometric]
+usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--vib A]
+                       [--substeps N] [--delay N] [--quick] [--geometric]
        foreign_loop.py OUTDIR --rho WORKDIR   (how much of the ideal speckles' variance the
                                               speckles WORKDIR/speckles.fits hold, by ring)
 Writes OUTDIR/raw_NNN.fits, dark.fits, flat.fits, slopes_000.fits, slopes_001.fits,
@@ -166,6 +167,9 @@ def main():
                     help='also the mean-gradient slopes of the same residuals (geo_slopes_NNN.fits, handshake_geo.log)')
     ap.add_argument('--modes', type=int, default=0,
                     help='a modal loop controlling the K first Karhunen-Loeve modes (default: zonal, a truncated inverse)')
+    ap.add_argument('--substeps', type=int, default=2, help='time steps per WFS frame (the WFS and camera integrate them)')
+    ap.add_argument('--delay', type=int, default=2, help="the loop's delay [WFS frames]: slopes of frame k act from frame k + delay")
+    ap.add_argument('--vib', type=float, default=0.3, help="the telescope's tip-tilt vibration at 17 Hz [lambda_sci / D]")
     ap.add_argument('--lam-sci', type=float, default=1.65e-6, help='the science wavelength [m]')
     ap.add_argument('--photons', type=float, default=600.0, help='photons per subaperture and WFS frame')
     ap.add_argument('--rho', metavar='WORKDIR', help='compare WORKDIR/speckles.fits with the ideal speckles and stop')
@@ -183,14 +187,14 @@ def main():
     lam_wfs, lam_sci = 0.7e-6, args.lam_sci
     r0, l0 = 0.14, 25.0
     layers = [(0.6, 9.0, 30.0), (0.4, 17.0, 250.0)]  # share, m/s, direction [deg]
-    vib_amp, vib_freq = 0.3, 17.0  # lambda_sci / D, Hz
-    gain, delay, coupling, rcond = 0.4, 2, 0.15, 0.03
+    vib_amp, vib_freq = args.vib, 17.0  # lambda_sci / D, Hz
+    gain, delay, coupling, rcond = 0.4, args.delay, 0.15, 0.03
     photons, wfs_rn = args.photons, 0.5
     pixscale, W = 0.5, 64
     flux, cam_gain, cam_rn, bias = 2.0e5, 10.0, 10.0, 500.0
     ratio = 7.37  # WFS frames per camera frame
     ncubes, cube_frames, gap = (3, 80, 150) if args.quick else (4, 150, 200)
-    settle, substeps, true_lag = 300, 2, 2.4
+    settle, substeps, true_lag = 300, args.substeps, 2.4
     ncp_rms = 80e-9
 
     xs1 = (np.arange(N) - (N - 1) / 2) * dx
