@@ -93,29 +93,51 @@ static double mean_floor(double x0, double x1)
     return s / (x1 - x0);
 }
 
+/* Two WFS logs (folders a and b, written by the caller) and a camera cube in a fresh folder
+ * NAME, with the clock that maps the camera's stamps onto them and the source's options. */
+typedef struct {
+    char da[4200], db[4200], sci[4200];
+    const char *logs[2];
+    swfs_clock c;
+    swfs_milk_source_options o;
+} fixture;
+
+static void fixture_dirs(fixture *f, const char *name)
+{
+    const char *d = test_path(name);
+    char cmd[4200];
+    snprintf(cmd, sizeof cmd, "rm -rf '%s' && mkdir -p '%s/a' '%s/b'", d, d, d);
+    assert_int_equal(system(cmd), 0);
+    snprintf(f->da, sizeof f->da, "%s/a", d);
+    snprintf(f->db, sizeof f->db, "%s/b", d);
+    snprintf(f->sci, sizeof f->sci, "%s/sci.fits", d);
+}
+
+static void fixture_camera(fixture *f)
+{
+    int64_t tend[NC];
+    write_camera(f->sci, tend);
+    memset(&f->c, 0, sizeof f->c);
+    f->c.epoch = E0;
+    f->c.offset = OFF;
+    f->c.drift = DRIFT;
+    f->c.fit.sign_x = f->c.fit.sign_y = 1;
+    f->logs[0] = f->da;
+    f->logs[1] = f->db;
+    const swfs_milk_source_options o = {f->logs, 2, f->sci, &f->c, 0, 5, 4, 4, 4, NULL, 0};
+    f->o = o;
+}
+
 static void test_batches(void **state)
 {
     (void)state;
-    const char *d = test_path("msrc");
-    char cmd[4200], da[4200], db[4200], sci[4200];
-    snprintf(cmd, sizeof cmd, "rm -rf '%s' && mkdir -p '%s/a' '%s/b'", d, d, d);
-    assert_int_equal(system(cmd), 0);
-    snprintf(da, sizeof da, "%s/a", d);
-    snprintf(db, sizeof db, "%s/b", d);
-    snprintf(sci, sizeof sci, "%s/sci.fits", d);
-    write_wfs(da, 0, 0, 200, 61);  /* frame 61 dropped: exposures over it are incomplete */
-    write_wfs(da, 0, 200, NW, NW);
-    write_wfs(db, 1, 0, NW, NW);
-    int64_t tend[NC];
-    write_camera(sci, tend);
-    swfs_clock c;
-    memset(&c, 0, sizeof c);
-    c.epoch = E0;
-    c.offset = OFF;
-    c.drift = DRIFT;
-    c.fit.sign_x = c.fit.sign_y = 1;
-    const char *logs[] = {da, db};
-    swfs_milk_source_options o = {logs, 2, sci, &c, 0, 5, 4, 4, 4, NULL, 0};
+    static fixture f;
+    fixture_dirs(&f, "msrc");
+    write_wfs(f.da, 0, 0, 200, 61);  /* frame 61 dropped: exposures over it are incomplete */
+    write_wfs(f.da, 0, 200, NW, NW);
+    write_wfs(f.db, 1, 0, NW, NW);
+    fixture_camera(&f);
+    swfs_milk_source_options o = f.o;
     swfs_milk_source *s = NULL;
     assert_ok(swfs_milk_source_open(&s, &o));
     size_t seen = 0, checked = 0;
@@ -168,29 +190,15 @@ static void test_bad_values(void **state)
     const char *want[] = {"is not finite (NaN or infinite)", "is not finite (NaN or infinite)",
                           "is not finite (NaN or infinite)", "is 3e+38"};
     for (int t = 0; t < 4; t++) {
-        const char *d = test_path("msrc_bad");
-        char cmd[4200], da[4200], db[4200], sci[4200];
-        snprintf(cmd, sizeof cmd, "rm -rf '%s' && mkdir -p '%s/a' '%s/b'", d, d, d);
-        assert_int_equal(system(cmd), 0);
-        snprintf(da, sizeof da, "%s/a", d);
-        snprintf(db, sizeof db, "%s/b", d);
-        snprintf(sci, sizeof sci, "%s/sci.fits", d);
+        static fixture f;
+        fixture_dirs(&f, "msrc_bad");
         bad_k = 30, bad_i = 1, bad_v = vals[t];
-        write_wfs(da, 0, 0, NW, NW);
+        write_wfs(f.da, 0, 0, NW, NW);
         bad_k = SIZE_MAX;
-        write_wfs(db, 1, 0, NW, NW);
-        int64_t tend[NC];
-        write_camera(sci, tend);
-        swfs_clock c;
-        memset(&c, 0, sizeof c);
-        c.epoch = E0;
-        c.offset = OFF;
-        c.drift = DRIFT;
-        c.fit.sign_x = c.fit.sign_y = 1;
-        const char *logs[] = {da, db};
-        swfs_milk_source_options o = {logs, 2, sci, &c, 0, 5, 4, 4, 4, NULL, 0};
+        write_wfs(f.db, 1, 0, NW, NW);
+        fixture_camera(&f);
         swfs_milk_source *s = NULL;
-        assert_ok(swfs_milk_source_open(&s, &o));
+        assert_ok(swfs_milk_source_open(&s, &f.o));
         int rc = 0;
         for (int n = 0; n < 1000 && !rc; n++) {
             swfs_batch b;
