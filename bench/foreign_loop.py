@@ -21,7 +21,7 @@ every model differs from the simulator it was developed with:
   removed, as `reduce` registers the frames), with its time mean as RESMEAN, and the NCP.
 
 usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--vib A]
-                       [--substeps N] [--delay N] [--quick] [--geometric]
+                       [--substeps N] [--delay N] [--quick] [--geometric] [--loop-geometric]
        foreign_loop.py OUTDIR --rho WORKDIR   (how much of the ideal speckles' variance the
                                               speckles WORKDIR/speckles.fits hold, by ring)
 Writes OUTDIR/raw_NNN.fits, dark.fits, flat.fits, slopes_000.fits, slopes_001.fits,
@@ -167,6 +167,8 @@ def main():
                     help='also the mean-gradient slopes of the same residuals (geo_slopes_NNN.fits, handshake_geo.log)')
     ap.add_argument('--modes', type=int, default=0,
                     help='a modal loop controlling the K first Karhunen-Loeve modes (default: zonal, a truncated inverse)')
+    ap.add_argument('--loop-geometric', action='store_true',
+                    help='the loop senses with mean-gradient slopes (plus the CoG noise level) instead of the CoG')
     ap.add_argument('--substeps', type=int, default=2, help='time steps per WFS frame (the WFS and camera integrate them)')
     ap.add_argument('--delay', type=int, default=2, help="the loop's delay [WFS frames]: slopes of frame k act from frame k + delay")
     ap.add_argument('--vib', type=float, default=0.3, help="the telescope's tip-tilt vibration at 17 Hz [lambda_sci / D]")
@@ -224,11 +226,14 @@ def main():
                                        (ys[None] - act[:, 1, None, None]) ** 2) / pitch ** 2)
     IFm = IF.reshape(nact, -1)
 
-    # push-pull interaction matrix through the physical sensor, truncated pseudo-inverse
+    # push-pull interaction matrix through the sensor the loop runs, truncated pseudo-inverse
     poke = 20e-9
     IM = np.zeros((2 * nvalid, nact))
+    sense = (lambda o: sh.mean_gradient(o)) if args.loop_geometric else (lambda o: sh.slopes(o, False))
     for j in range(nact):
-        IM[:, j] = (sh.slopes(poke * IF[j], False) - sh.slopes(-poke * IF[j], False)) / (2 * poke)
+        IM[:, j] = (sense(poke * IF[j]) - sense(-poke * IF[j])) / (2 * poke)
+    # the CoG's white noise per slope, for the mean-gradient sensor (--loop-geometric)
+    geo_noise = float(np.std([sh.slopes(np.zeros((N, N))) for _ in range(50)], axis=0).mean()) if args.loop_geometric else 0.0
     if args.modes:
         # a modal loop: the turbulence's Karhunen-Loeve modes on the actuators (the Kolmogorov
         # structure function's covariance, piston out), the K of most variance controlled
@@ -287,7 +292,10 @@ def main():
             vib = vib_amp * lam_sci / D * math.sin(2 * math.pi * vib_freq * tt + vib_phase)
             turb = turb + vib * (math.cos(vib_dir) * xs + math.sin(vib_dir) * ys)
             subs.append(turb - dm)
-        s = sh.slopes(np.array(subs))
+        if args.loop_geometric:  # the mean-gradient sensor with the CoG's photon noise level
+            s = sum(sh.mean_gradient(x) for x in subs) / len(subs) + geo_noise * rng.standard_normal(2 * nvalid)
+        else:
+            s = sh.slopes(np.array(subs))
         slopes_all[k] = s
         if args.geometric:
             geo_all[k] = sum(sh.mean_gradient(x) for x in subs) / len(subs)
