@@ -206,7 +206,7 @@ expect nan-halo-lf 1 "no focal-plane pixel has a finite, non-zero HALO_LF" -- pu
 hdr run/halo.fits kf.fits --hdu 12 --fill nan 1
 expect nan-stab-err 1 "with a positive SNR weight" -- pupil kf.fits -o x.fits --method moments
 hdr run/wf.fits kf.fits --hdu 3 --fill 1.8e308 0.3
-expect huge-wfe 1 "kf.fits: WFE at pupil sample" -- dmoffsets kf.fits -o x.fits --hexapolar 0.35
+expect huge-wfe 1 "kf.fits: WFE [m] at pupil sample" -- dmoffsets kf.fits -o x.fits --hexapolar 0.35
 mkdir -p tsb && cp ts/* tsb/ && hdr ts/slopes_000.fits tsb/slopes_000.fits --fill 3.4e38 0.3
 expect huge-slopes 1 "tsb/slopes_000.fits: slope 0 of WFS frame 0 is 3.4e+38" -- sync sci.fits tsb/handshake.log -o x.txt
 hdr ts/slopes_000.fits tsb/slopes_000.fits --fill nan 1

@@ -140,7 +140,7 @@ static void test_estimate_bad_inputs(void **state)
     snprintf(sps, sizeof sps, "%s", test_path("b_sp_ressize.fits"));
     write_cubes(test_path("b_sci_rn.fits"), spn, 60, 0, 0, 2);
     write_cubes(test_path("b_sci_rs.fits"), sps, 60, 0, 0, 3);
-    estimate_refused(sci, spn, out, "b_sp_resnan.fits", "RESMEAN sample 5 is nan");
+    estimate_refused(sci, spn, out, "b_sp_resnan.fits", "RESMEAN sample 5 is not finite (NaN or infinite)");
     estimate_refused(sci, sps, out, "RESMEAN is 100x100 but PUPN = 163", NULL);
     /* Frame counts differ: both files and both shapes are named. */
     estimate_refused(sci, sp2, out, "12x10x50", "12x10x60");

@@ -207,7 +207,7 @@ def test_dm_offsets(tmp_path, cli):
     bad = wfe.copy()
     bad[33, 50] = np.nan  # row 33, column 50: inside the pupil
     sw.write_fits(str(tmp_path / "bad.fits"), {"WFE": bad, "PUPIL": mask}, geom=g)
-    with pytest.raises(sw.Error, match=r"bad.fits: WFE at pupil sample \(50, 33\) is nan"):
+    with pytest.raises(sw.Error, match=r"bad.fits: WFE \[m\] at pupil sample \(50, 33\) is not finite \(NaN or infinite\)"):
         sw.dm_offsets(str(tmp_path / "bad.fits"), str(tmp_path / "x.fits"), hexapolar=0.35)
     sw.write_fits(str(tmp_path / "nowfe.fits"), {"PUPIL": mask}, geom=g)
     with pytest.raises(sw.Error, match="nowfe.fits: no WFE extension"):

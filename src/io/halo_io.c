@@ -77,10 +77,11 @@ int swfs_resmean_read_ext(swfs_fits_in *f, const char *path, swfs_real **out)
     if (!rc && ((*out)->nx != (*out)->ny || (*out)->nz != 1))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: extension RESMEAN is %zux%zux%zu; expected one PUPN x PUPN map [m]", path,
                        (*out)->nx, (*out)->ny, (*out)->nz);
+    char val[48];
     for (size_t k = 0; !rc && k < (*out)->nx * (*out)->ny; k++)
         if (!isfinite((*out)->data[k]))
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: RESMEAN sample %zu is %g; expected a finite wavefront [m]", path, k,
-                           (*out)->data[k]);
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: RESMEAN sample %zu %s; expected a finite wavefront [m]", path, k,
+                           swfs_value_words((*out)->data[k], val, sizeof val));
     if (rc) {
         swfs_real_free(*out);
         *out = NULL;

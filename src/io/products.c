@@ -280,10 +280,11 @@ int swfs_valid_map_read(const char *path, unsigned char **map, size_t *nsub, siz
     for (size_t i = 0; i < nsa; i++) {
         const double v = a->data[i];
         if (!isfinite(v)) {
+            char val[48];
             free(m);
             swfs_real_free(a);
-            return swfs_fail(SWFS_ERR_VALUE, "%s: subaperture (%zu, %zu) is %g; expected 0 (unused) or nonzero (used)",
-                             path, i % n, i / n, v);
+            return swfs_fail(SWFS_ERR_VALUE, "%s: subaperture (%zu, %zu) %s; expected 0 (unused) or nonzero (used)",
+                             path, i % n, i / n, swfs_value_words(v, val, sizeof val));
         }
         nv += (m[i] = v != 0);
     }

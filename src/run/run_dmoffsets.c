@@ -49,10 +49,12 @@ static int read_pupil(const char *in, swfs_real **wfe, swfs_real **mask, swfs_ge
     }
     swfs_fits_in_close(f);
     const double *m = !rc && *mask ? (*mask)->data : NULL;
+    char val[48];
     for (size_t s = 0; !rc && s < (*wfe)->nx * (*wfe)->ny; s++)
         if ((!m || m[s] > 0) && (!isfinite((*wfe)->data[s]) || fabs((*wfe)->data[s]) > 10 * g->wavelen))
-            rc = swfs_fail(SWFS_ERR_VALUE, "%s: WFE at pupil sample (%zu, %zu) is %g m; a pupil WFE is finite and within "
-                           "10 wavelengths (%g m)", in, s % (*wfe)->nx, s / (*wfe)->nx, (*wfe)->data[s], 10 * g->wavelen);
+            rc = swfs_fail(SWFS_ERR_VALUE, "%s: WFE [m] at pupil sample (%zu, %zu) %s; a pupil WFE is finite and within "
+                           "10 wavelengths (%g m)", in, s % (*wfe)->nx, s / (*wfe)->nx,
+                           swfs_value_words((*wfe)->data[s], val, sizeof val), 10 * g->wavelen);
     return rc;
 }
 

@@ -643,8 +643,9 @@ int swfs_meanmiss_metric_data_(double *inf, size_t na, size_t n, const double *m
     for (size_t a = 0; !rc && a < na; a++)
         for (size_t q = 0; q < nq; q++)
             if (mask[q] > 0 && !isfinite(inf[a * nq + q])) {
-                rc = swfs_fail(SWFS_ERR_VALUE, "%s: output %zu's function is %g at sample (%zu, %zu) inside the pupil; "
-                               "expected finite values", what, a, inf[a * nq + q], q % n, q / n);
+                char val[48];
+                rc = swfs_fail(SWFS_ERR_VALUE, "%s: output %zu's function at sample (%zu, %zu) inside the pupil %s; "
+                               "expected finite values", what, a, q % n, q / n, swfs_value_words(inf[a * nq + q], val, sizeof val));
                 break;
             }
     double ws = 0;

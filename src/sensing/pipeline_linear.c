@@ -68,9 +68,10 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
         return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     if (in->control) {
         for (size_t k = 0; k < nk * nm; k++) {
+            char val[48];
             if (!isfinite(in->control[k]))
-                return swfs_fail(SWFS_ERR_VALUE, "pipeline: control matrix element (%zu, %zu) is %g; expected finite",
-                                 k / nm, k % nm, in->control[k]);
+                return swfs_fail(SWFS_ERR_VALUE, "pipeline: control matrix element (%zu, %zu) %s; expected finite",
+                                 k / nm, k % nm, swfs_value_words(in->control[k], val, sizeof val));
             l->A[k] = in->scale * in->control[k];
         }
     } else if (!in->imat) {
@@ -102,9 +103,10 @@ static int build_control(lin *l, const swfs_linear_input *in, const double *trai
     if (!QA) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
     for (size_t k = 0; k < nq * nk; k++)
         if (!isfinite(in->shapes[k])) {
+            char val[48];
             free(QA);
-            return swfs_fail(SWFS_ERR_VALUE, "pipeline: basis shape value (%zu, %zu) is %g; expected finite", k / nk,
-                             k % nk, in->shapes[k]);
+            return swfs_fail(SWFS_ERR_VALUE, "pipeline: basis shape value (%zu, %zu) %s; expected finite", k / nk,
+                             k % nk, swfs_value_words(in->shapes[k], val, sizeof val));
         }
     cblas_dgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, (int)nq, (int)nm, (int)nk, 1.0, in->shapes, (int)nk, l->A,
                 (int)nm, 0.0, QA, (int)nm);

@@ -123,10 +123,11 @@ static int check_cube(const double *cube, size_t a, size_t b, size_t nk, const c
     if (a > SIZE_MAX / b || a * b > SIZE_MAX / nk / sizeof(double))
         return swfs_fail(SWFS_ERR_VALUE, "basis: %s %zu x %zu x %zu is too large", what, a, b, nk);
     const size_t n = a * b * nk;
+    char val[48];
     for (size_t k = 0; k < n; k++)
         if (!isfinite(cube[k]))
-            return swfs_fail(SWFS_ERR_VALUE, "basis: %s value %zu (x %zu, y %zu, function %zu) is %g; expected finite",
-                             what, k, k % a, k / a % b, k / (a * b), cube[k]);
+            return swfs_fail(SWFS_ERR_VALUE, "basis: %s value %zu (x %zu, y %zu, function %zu) %s; expected finite",
+                             what, k, k % a, k / a % b, k / (a * b), swfs_value_words(cube[k], val, sizeof val));
     return SWFS_OK;
 }
 

@@ -88,9 +88,10 @@ int swfs_recon_learner_set_prior(swfs_recon_learner *l, const swfs_recon *w0)
     if (!W) return swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory for the prior map");
     for (size_t k = 0; k < na * ns; k++)
         if (!isfinite(w0->W[k])) {
+            char val[48];
             free(W);
-            return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: the prior map's element (%zu, %zu) is %g; expected "
-                             "finite", k / ns, k % ns, w0->W[k]);
+            return swfs_fail(SWFS_ERR_VALUE, "reconstructor learning: the prior map's element (%zu, %zu) %s; expected "
+                             "finite", k / ns, k % ns, swfs_value_words(w0->W[k], val, sizeof val));
         }
     memcpy(W, w0->W, na * ns * sizeof *W);
     /* the truth's piston is out of every frame (remove_mean): out of the prior's outputs too */
