@@ -76,6 +76,17 @@ int swfs_interaction_matrix(const swfs_shwfs *w, const swfs_sparse *T, double **
  * the pupil end up in the last modes. */
 int swfs_dm_modes(const swfs_sparse *T, const double *mask, size_t npup, double **modes);
 
+/* ---- slopes' layouts ------------------------------------------------------ */
+
+/* The used subapertures' slopes (valid: nsub^2 flags, subaperture (a, b) at b nsub + a): their
+ * indices in the full layout, x slopes in index order then y slopes, into *cols (malloc'd,
+ * 2 nvalid of them: the used-only layout's column k is full column (*cols)[k]). */
+int swfs_slopes_used_cols(const unsigned char *valid, size_t nsub, size_t **cols, size_t *ncols);
+
+/* rows x nc (row-major, the used-only layout's columns cols[0..nc)) -> rows x nfull, the other
+ * columns 0 (malloc'd; NULL when out of memory or too large). */
+double *swfs_slopes_expand_cols(const double *a, size_t rows, size_t nc, const size_t *cols, size_t nfull);
+
 /* ---- tip-tilt --------------------------------------------------------- */
 
 /* Subtract the mean x and the mean y slope over the valid subapertures (valid may be

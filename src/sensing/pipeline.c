@@ -145,24 +145,8 @@ static int slopes_layout(const swfs_pipeline_options *o, size_t nslopes, size_t 
         return swfs_fail(SWFS_ERR_SHAPE, "%zu slopes per frame, but the valid-subaperture map (%zu x %zu, %zu used) "
                          "expects %zu (the used subapertures) or %zu (all, unused ones 0)", nslopes, n, n, nv, 2 * nv,
                          2 * nsa);
-    size_t *c = malloc(2 * nv * sizeof *c), k = 0;
-    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
-    for (int axis = 0; axis < 2; axis++)
-        for (size_t i = 0; i < nsa; i++)
-            if (o->valid[i]) c[k++] = (size_t)axis * nsa + i;
-    *cols = c;
-    return SWFS_OK;
-}
-
-/* rows x ncols (row-major) of the used slopes' columns cols[0..nc) -> rows x nfull. */
-static double *expand_cols(const double *a, size_t rows, size_t nc, const size_t *cols, size_t nfull)
-{
-    if (rows > SIZE_MAX / sizeof(double) / nfull) return NULL;
-    double *b = calloc(rows * nfull, sizeof *b);
-    if (b)
-        for (size_t r = 0; r < rows; r++)
-            for (size_t k = 0; k < nc; k++) b[r * nfull + cols[k]] = a[r * nc + k];
-    return b;
+    size_t nc = 0;
+    return swfs_slopes_used_cols(o->valid, n, cols, &nc);
 }
 
 /* In place: rows x (nb blocks of nfull + extra) -> rows x (nb blocks of nc + extra), each
@@ -270,13 +254,13 @@ static int build_model(swfs_pipeline *p, const swfs_geom *g, const double *xy, s
     }
     double *train_full = NULL;
     swfs_recon rfull;
-    if (cols && training && !(training = train_full = expand_cols(training, ntrain, nslopes, cols, nfull)))
+    if (cols && training && !(training = train_full = swfs_slopes_expand_cols(training, ntrain, nslopes, cols, nfull)))
         rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory for %zu training frames", ntrain);
     if (!rc && cols && recon && !recon_full) {
         rfull = *recon;
         rfull.nslopes = nfull;
         rfull.sv = NULL;
-        if (!(rfull.W = expand_cols(recon->W, nact, nslopes, cols, nfull)))
+        if (!(rfull.W = swfs_slopes_expand_cols(recon->W, nact, nslopes, cols, nfull)))
             rc = swfs_fail(SWFS_ERR_NOMEM, "pipeline: out of memory");
         recon = &rfull;
     }

@@ -145,17 +145,12 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
  * simulated Shack-Hartmann's full layout (the unused subapertures' columns 0). */
 static int embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
 {
-    const size_t n2 = sh->nsub * sh->nsub, nv = r->nslopes / 2, na = r->nact;
-    double *W = calloc(na * sh->nslopes, sizeof *W);
+    size_t *cols = NULL, nc = 0;
+    int rc = swfs_slopes_used_cols(sh->valid, sh->nsub, &cols, &nc);
+    double *W = rc ? NULL : swfs_slopes_expand_cols(r->W, r->nact, nc, cols, sh->nslopes);
+    free(cols);
+    if (rc) return rc;
     if (!W) return swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
-    for (size_t i = 0, v = 0; i < n2; i++) {
-        if (!sh->valid[i]) continue;
-        for (size_t a = 0; a < na; a++) {
-            W[a * sh->nslopes + i] = r->W[a * r->nslopes + v];
-            W[a * sh->nslopes + n2 + i] = r->W[a * r->nslopes + nv + v];
-        }
-        v++;
-    }
     free(r->W);
     r->W = W;
     r->nslopes = sh->nslopes;

@@ -8,6 +8,7 @@
 
 #include <math.h>
 #include <pthread.h>
+#include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 
@@ -247,6 +248,31 @@ int swfs_interaction_matrix(const swfs_shwfs *w, const swfs_sparse *T, double **
     }
     *D = d;
     return SWFS_OK;
+}
+
+int swfs_slopes_used_cols(const unsigned char *valid, size_t nsub, size_t **cols, size_t *ncols)
+{
+    const size_t nsa = nsub * nsub;
+    size_t nv = 0, k = 0;
+    for (size_t i = 0; i < nsa; i++) nv += valid[i] != 0;
+    size_t *c = malloc((nv ? 2 * nv : 1) * sizeof *c);
+    if (!c) return swfs_fail(SWFS_ERR_NOMEM, "slopes' layout: out of memory");
+    for (int axis = 0; axis < 2; axis++)
+        for (size_t i = 0; i < nsa; i++)
+            if (valid[i]) c[k++] = (size_t)axis * nsa + i;
+    *cols = c;
+    *ncols = k;
+    return SWFS_OK;
+}
+
+double *swfs_slopes_expand_cols(const double *a, size_t rows, size_t nc, const size_t *cols, size_t nfull)
+{
+    if (rows > SIZE_MAX / sizeof(double) / nfull) return NULL;
+    double *b = calloc(rows * nfull, sizeof *b);
+    if (b)
+        for (size_t r = 0; r < rows; r++)
+            for (size_t k = 0; k < nc; k++) b[r * nfull + cols[k]] = a[r * nc + k];
+    return b;
 }
 
 void swfs_slopes_remove_tiptilt(double *s, size_t nslopes, const unsigned char *valid)
