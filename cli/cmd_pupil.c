@@ -15,7 +15,7 @@
 static const char *usage_text =
     "usage: specklewfs pupil HALO.fits [HALO2.fits ...] -o PUPIL.fits [--pupil MASK.fits] [--method fit|moments]\n"
     "                        [--bias B] [--weight none|snr] [--wiener-k K] [--source lf|halo]\n"
-    "                        [--keep-resmean]\n"
+    "                        [--keep-resmean] [--g-radial L]\n"
     "\n"
     "The pupil field and the NCP wavefront (eq:Pupil-field-with-NCP1, eq:NCP-WFE-estimate) from the\n"
     "static halo, inside the pupil with piston removed.\n"
@@ -31,6 +31,10 @@ static const char *usage_text =
     "  --method fit       (default when HALO.fits has REGSTATE) fit the pupil field, a smooth g map and\n"
     "                     the unexplained speckle fraction to every focal pixel's regression statistics\n"
     "                     at once; WFE = the fitted phase (docs/estimator.md)\n"
+    "  --g-radial L       the fit's g also varies with the distance from the star, on cubic\n"
+    "                     B-splines L lambda/D apart (default 3; 0: Legendre terms alone): computed\n"
+    "                     speckles hold less of the true field within the loop's control radius\n"
+    "                     than beyond it, a step at a radius (docs/estimator.md)\n"
     "  --method moments   inverse MFT of the per-pixel moment estimate (the paper's Sec. 4.6; with\n"
     "                     'estimate --g-smooth 0 --weight none' the paper's formulae exactly). The\n"
     "                     options below apply to it and imply it.\n"
@@ -49,11 +53,11 @@ static const char *usage_text =
     "                     the AO residual's mean was taken out, also the error with it kept in WFE\n"
     "                     (the one --keep-resmean gives), from the same fit\n";
 
-/* The options checked as they come: --method, and the moments' --bias, --wiener-k, --weight,
+/* The options checked as they come: --method, --g-radial, and the moments' --bias, --wiener-k, --weight,
  * --source (which imply the moments). */
 typedef struct pupil_ctx {
     swfs_pupil_options *opt;
-    int moments_opt;
+    int moments_opt, fit_opt;
 } pupil_ctx;
 
 static int special(void *vctx, int argc, char **argv, int *i)
@@ -64,6 +68,11 @@ static int special(void *vctx, int argc, char **argv, int *i)
     if (!strcmp(a, "--method")) {
         if (cli_parse_choice(cmd, a, cli_next(argc, argv, i), "fit", SWFS_PUPIL_FIT, "moments", SWFS_PUPIL_MOMENTS,
                              &opt->method))
+            return -CLI_USAGE;
+    } else if (!strcmp(a, "--g-radial")) {
+        ctx->fit_opt = 1;
+        if (cli_take_range(cmd, argc, argv, i, &opt->fit.g_radial, 0, 0, 1e3, 0,
+                           "--g-radial must be >= 0 (lambda/D; 0: no radial terms)"))
             return -CLI_USAGE;
     } else if (!strcmp(a, "--bias")) {
         ctx->moments_opt = 1;
@@ -95,7 +104,7 @@ int swfs_cmd_pupil(int argc, char **argv)
     const char *in = NULL, *out = NULL, *maskfile = NULL, *truthfile = NULL;
     swfs_pupil_options opt;
     swfs_pupil_options_default(&opt);
-    pupil_ctx pctx = {&opt, 0};
+    pupil_ctx pctx = {&opt, 0, 0};
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &out, "a file name", 0},         {"--pupil", CLI_STRING, &maskfile, "a file name", 0},
         {"--truth", CLI_STRING, &truthfile, "a file name", 0},  {"--keep-resmean", CLI_SET, &opt.keep_resmean, NULL, 1},
@@ -113,6 +122,10 @@ int swfs_cmd_pupil(int argc, char **argv)
     if (!out) urc = cli_usage_error(cmd, "needs -o PUPIL.fits");
     else if (pctx.moments_opt && opt.method == SWFS_PUPIL_FIT)
         urc = cli_usage_error(cmd, "--bias, --weight, --wiener-k and --source apply to --method moments, not fit");
+    else if (pctx.moments_opt && pctx.fit_opt)
+        urc = cli_usage_error(cmd, "--g-radial applies to the fit, not to --bias, --weight, --wiener-k or --source");
+    else if (pctx.fit_opt && opt.method == SWFS_PUPIL_MOMENTS)
+        urc = cli_usage_error(cmd, "--g-radial applies to --method fit, not moments");
     if (urc) { free(ins); return urc; }
     if (pctx.moments_opt) opt.method = SWFS_PUPIL_MOMENTS;
 

@@ -2,10 +2,12 @@
  * model, a fit that took no step), kept apart from its option parsing. */
 #include "cli.h"
 #include "specklewfs/jointfit.h"
+#include "specklewfs/numeric.h"
 #include "specklewfs/pupil.h"
 
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
 
 void cli_pupil_fit_summary(const swfs_pupil_result *r, const swfs_geom *g, const char *out)
 {
@@ -23,6 +25,26 @@ void cli_pupil_fit_summary(const swfs_pupil_result *r, const swfs_geom *g, const
         for (size_t k = 0; k < nr; k++)
             if (isfinite(ring[k])) printf(" %zu-%zu %.0f%%", k, k + 1, 100 * ring[k]);
         printf(" (median pixel; EXPLAINED)\n");
+    }
+    if (f->gain && g->pixscale > 0) {
+        /* the fitted g by ring over its median: lower where the speckles hold less of the true
+         * field (within the loop's control radius, say) */
+        double ring[32];
+        const size_t nr = (size_t)fmin(32, (double)swfs_pupil_explained_nrings(f->gain, g->pixscale));
+        swfs_pupil_explained_rings(f->gain, g->pixscale, ring, nr);
+        const size_t np = f->gain->nx * f->gain->ny;
+        double *v = malloc(np * sizeof *v), med = NAN;
+        size_t n = 0;
+        for (size_t k = 0; v && k < np; k++)
+            if (isfinite(f->gain->data[k])) v[n++] = f->gain->data[k];
+        if (n) med = swfs_median_inplace(v, n);
+        free(v);
+        if (med > 0) {
+            printf("  g by ring [l/D]  ");
+            for (size_t k = 0; k < nr; k++)
+                if (isfinite(ring[k])) printf(" %zu-%zu %.2f", k, k + 1, ring[k] / med);
+            printf(" (over its median; GAIN_FIT)\n");
+        }
     }
     if (isfinite(f->delta_chi2))
         printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one%s; limit %.0f)\n",

@@ -274,6 +274,9 @@ chk wind-repeated-frames 1 "again.fits: FRAME0 = 0, but ts/slopes_000.fits ends 
 # ---- pupil: halos of other frames to choose among
 chk pupil-choose-other 1 "window where run/halo.fits has" o.fits -- pupil run/halo.fits sh.fits -o o.fits
 chk pupil-wiener-k 2 "--wiener-k must be > 0 and at most 1e6" o.fits -- pupil run/halo.fits -o o.fits --method moments --wiener-k 1e300
+chk pupil-g-radial 2 "--g-radial must be >= 0" o.fits -- pupil run/halo.fits -o o.fits --g-radial -1
+chk pupil-g-radial-moments 2 "--g-radial applies to --method fit, not moments" o.fits -- pupil run/halo.fits -o o.fits --method moments --g-radial 2
+chk pupil-g-radial-bias 2 "--g-radial applies to the fit, not to --bias" o.fits -- pupil run/halo.fits -o o.fits --bias 0.5 --g-radial 2
 chk teach-valid-size 1 "the valid map ts/pupil.fits is 66 x 66 (3268 used), but ts/slopes_000.fits has 288 slopes per WFS frame" o.fits -- teach ts/slopes_000.fits --science sci.fits --actuators ts/actuators.fits --valid ts/pupil.fits -o o.fits --loops 2
 chk pupil-choose-missing 1 "nofile.fits" o.fits -- pupil run/halo.fits nofile.fits -o o.fits
 # the same frames' halo whose HALO header says another sampling: not one of these frames' halos

@@ -57,6 +57,14 @@ grep -q "no output within 5 to 6 m of the centre" bad.log || { cat bad.log; fail
 grep -q -- "--curve-radius is where the checks are measured" bad.log || { cat bad.log; fail "learn: --curve-radius alone"; }
 "$B" estimate science_m.fits speckles.fits -o halo_l.fits > /dev/null 2>&1 || fail "estimate (learned)"
 "$B" pupil halo_l.fits -o pupil_l.fits --truth obs/truth.fits > pupil_l.log || fail "pupil (learned)"
+# the fit's g by ring is printed; --g-radial 0 is the log g of Legendre terms alone (fewer unknowns)
+"$B" pupil halo_l.fits -o pupil_l0.fits --truth obs/truth.fits --g-radial 0 > pupil_l0.log || fail "pupil --g-radial 0"
+np_of() { sed -n 's/.*focal pixels, \([0-9]*\) parameters.*/\1/p' "$1"; }
+[ "$(grep '^  g by ring' pupil_l.log | grep -o ' [0-9]*-[0-9]* [0-9.]*' | wc -l)" -ge 3 ] \
+    || { cat pupil_l.log; fail "pupil printed no g by ring"; }
+[ -n "$(np_of pupil_l.log)" ] && [ "$(np_of pupil_l0.log)" -lt "$(np_of pupil_l.log)" ] \
+    || fail "pupil --g-radial 0: $(np_of pupil_l0.log) parameters, the default $(np_of pupil_l.log)"
+echo "cli_learn: pupil of the learned map's halo: $(ncp_error pupil_l.log) nm, with --g-radial 0 $(ncp_error pupil_l0.log) nm"
 # the same map as the linear model's control matrix over the actuators' influence functions
 # (how a system outside the simulator uses it): the same wavefronts through another
 # representation

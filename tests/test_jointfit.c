@@ -275,6 +275,60 @@ static void test_moments_varying_gain(void **state)
     free(v); free(gerr); free(merr);
 }
 
+/* Computed speckles that hold less of the true field inside a radius than beyond it, as a
+ * Shack-Hartmann's do where the loop controls its modes (its slopes there carry the aliases
+ * of the uncorrected turbulence; docs/estimator.md, "g that steps at a radius"): inside
+ * 4 lambda/D the speckles given are the true ones plus those of a frame half the cube away
+ * (independent, of the same power), so there the regression sees half of them. The fit's g
+ * must take that step -- its radial terms -- and the NCP error stay near the clean one, where
+ * a log g of Legendre terms alone cannot follow it (10.7 nm against 11.9, clean 7.1, at
+ * sigma = 10; the step costs the Legendre terms 4.8 nm, the radial ones 3.6). */
+static void test_radial_fidelity_step(void **state)
+{
+    (void)state;
+    const size_t nx = sim->speckles->nx, ny = sim->speckles->ny, nf = nx * ny, nt = sim->speckles->nz;
+    const double rstep = 4.0 / sim->geom.pixscale; /* pixels */
+    swfs_cplx *mixed = swfs_cplx_copy(sim->speckles);
+    assert_non_null(mixed);
+    size_t ninside = 0;
+    for (size_t k = 0; k < nf; k++) {
+        const double dx = (double)(k % nx) - (double)(nx / 2), dy = (double)(k / nx) - (double)(ny / 2);
+        if (hypot(dx, dy) >= rstep) continue;
+        ninside++;
+        for (size_t t = 0; t < nt; t++) mixed->data[t * nf + k] += sim->speckles->data[((t + nt / 2) % nt) * nf + k];
+    }
+    assert_true(ninside > nf / 8);
+    swfs_real *noisy = noisy_science(10.0);
+    swfs_regress_sol *sc = solve(noisy, sim->speckles), *sm = solve(noisy, mixed);
+    swfs_jointfit_options o;
+    swfs_jointfit_options_default(&o);
+    assert_true(o.g_radial == 3.0);
+    swfs_jointfit_result *clean = fit_sol(sc), *rad = fit_sol(sm), *leg;
+    o.g_radial = 0.0;
+    assert_ok(swfs_jointfit(sm, &sim->geom, sim->pupil, &o, &leg));
+    /* the fitted g inside the step over the one beyond, against the 1/2 the mixture gives */
+    double gin = 0.0, gout = 0.0, nin = 0.0, nout = 0.0;
+    for (size_t k = 0; k < nf; k++) {
+        const double dx = (double)(k % nx) - (double)(nx / 2), dy = (double)(k / nx) - (double)(ny / 2);
+        const double r = hypot(dx, dy);
+        if (r > 1.0 / sim->geom.pixscale && r < rstep - 1.0 / sim->geom.pixscale) { gin += rad->gain->data[k]; nin++; }
+        else if (r > rstep + 1.0 / sim->geom.pixscale && r < 2.0 * rstep) { gout += rad->gain->data[k]; nout++; }
+    }
+    const double ratio = (gin / nin) / (gout / nout);
+    const double e_clean = ncp_error(clean), e_rad = ncp_error(rad), e_leg = ncp_error(leg);
+    print_message("speckles half true within 4 lambda/D: NCP error %.2f nm (Legendre log g alone %.2f nm; the true "
+                  "speckles %.2f nm); fitted g inside / beyond %.3f (the mixture's 0.5); %zu parameters\n",
+                  e_rad * 1e9, e_leg * 1e9, e_clean * 1e9, ratio, rad->nparams);
+    assert_true(rad->nparams > leg->nparams);
+    assert_true(fabs(ratio - 0.5) < 0.1);
+    assert_true(e_rad < e_leg - 0.8e-9);
+    assert_true(e_rad < 1.6 * e_clean);
+    swfs_jointfit_result_free(clean); swfs_jointfit_result_free(rad); swfs_jointfit_result_free(leg);
+    swfs_regress_sol_free(sc); swfs_regress_sol_free(sm);
+    swfs_real_free(noisy);
+    swfs_cplx_free(mixed);
+}
+
 /* The data's weight by the evidence (noise_scale): counting every frame twice doubles every
  * information matrix without adding information. The evidence must see through it -- beta
  * halves, and the fit (its prior weights relative to the data) and so the NCP estimate stay
@@ -470,6 +524,7 @@ int main(void)
         cmocka_unit_test(test_paper_case),
         cmocka_unit_test(test_varying_gain),
         cmocka_unit_test(test_moments_varying_gain),
+        cmocka_unit_test(test_radial_fidelity_step),
         cmocka_unit_test(test_noise_scale_counts_information),
         cmocka_unit_test(test_incoherent_background),
         cmocka_unit_test(test_few_frame_pixels),

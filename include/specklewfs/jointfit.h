@@ -3,7 +3,8 @@
  *
  * Unknowns: the pupil field W = P exp(sum_j z_j B_j), z_j = alpha_j + i phi_j on tensor
  * cubic B-splines B_j restricted to the pupil P; log g = sum_m beta_m P_p(u) P_q(v) (2-D
- * Legendre, p + q <= order, u, v in [-1, 1] across the window); kappa >= 0, the fraction
+ * Legendre, p + q <= order, u, v in [-1, 1] across the window) + sum_r gamma_r b_r(rho)
+ * (cubic B-splines of the distance rho from the star, g_radial apart); kappa >= 0, the fraction
  * of speckle power the computed speckles do not explain. Model per focal pixel k:
  *
  *   Psi = MFT(W)  (mft.h, the docs/conventions.md conventions),
@@ -13,7 +14,7 @@
  *
  *   S = sum_k (theta_k^T F_k theta_k - 2 theta_k^T f_k) + lambda_phi phi^T R phi + lambda_alpha alpha^T R alpha
  *
- (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2). F_k, f_k from swfs_regress_solve (so the
+ (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2, and the same over the radial gamma_r). F_k, f_k from swfs_regress_solve (so the
  * first sum is the chi-square of the model up to a constant); R a roughness penalty of the
  * B-spline expansion over the pupil samples: thin-plate second differences by default,
  * first differences as an option. Levenberg-Marquardt from the linear GLS solution with a
@@ -74,6 +75,15 @@ typedef struct swfs_jointfit_options {
                               for the free fit's chi-square only where its early stop needs it:
                               the same result as one after the other); <= 0 (default): the
                               online CPUs; 1: one after the other */
+    double g_radial;       /* log g also holds radial terms: cubic B-splines of the distance
+                              from the star, centred every g_radial lambda/D (at least one
+                              pixel), each with the Legendre terms' prior s_beta. The share of
+                              the true speckle field a computed one holds changes at circles
+                              (the loop's control radius, the sensor's band edge) a low-order
+                              polynomial cannot follow; 3 (docs/estimator.md: the table over
+                              the matrix, the foreign observations and the paper's case; at
+                              1 the terms resolve the Airy rings and trade with Psi); <= 0:
+                              none (Legendre terms alone, the fit before 0.3.0) */
 } swfs_jointfit_options;
 
 void swfs_jointfit_options_default(swfs_jointfit_options *o);

@@ -138,7 +138,7 @@ swfs_jointfit_options = _s("swfs_jointfit_options", [
     ("knot_factor", c_dbl), ("legendre_order", c_int), ("g_prior_sigma", c_dbl), ("fit_kappa", c_int),
     ("max_iter", c_int), ("gls_iter", c_int), ("tol", c_dbl), ("lambda_phi", c_dbl), ("lambda_alpha", c_dbl),
     ("alpha_ratio", c_dbl), ("alpha_ratio_max", c_dbl), ("prior", c_int), ("intercept", c_int),
-    ("threads", c_int)])
+    ("threads", c_int), ("g_radial", c_dbl)])
 swfs_jointfit_result = _s("swfs_jointfit_result", [
     ("field", P(swfs_cplx)), ("wfe", P(swfs_real)), ("mask", P(swfs_real)), ("halo", P(swfs_cplx)),
     ("gain", P(swfs_real)), ("kappa", c_dbl), ("lambda_phi", c_dbl), ("lambda_alpha", c_dbl), ("gamma_phi", c_dbl),

@@ -31,6 +31,7 @@ void swfs_jointfit_options_default(swfs_jointfit_options *o)
     o->prior = SWFS_JF_PRIOR_CURVATURE;
     o->intercept = SWFS_JF_INTERCEPT_AUTO;
     o->threads = 0;
+    o->g_radial = 3.0;
 }
 
 void swfs_jointfit_result_free(swfs_jointfit_result *r)
@@ -616,11 +617,11 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     int rc = swfs_geom_require(geo, "joint fit");
     if (rc) return rc;
     if (!(o.knot_factor > 0.0) || o.legendre_order < 0 || o.legendre_order > 8 || o.max_iter < 0 || o.gls_iter < 0 ||
-        !(o.alpha_ratio >= 0.0) || !(o.alpha_ratio_max >= o.alpha_ratio) || !(o.tol >= 0.0) ||
+        !(o.alpha_ratio >= 0.0) || !(o.alpha_ratio_max >= o.alpha_ratio) || !(o.tol >= 0.0) || !isfinite(o.g_radial) ||
         (o.prior != SWFS_JF_PRIOR_GRADIENT && o.prior != SWFS_JF_PRIOR_CURVATURE))
         return swfs_fail(SWFS_ERR_ARG, "joint fit: invalid options (knot_factor %g, legendre_order %d, max_iter %d, "
-                                       "gls_iter %d, alpha_ratio %g, tol %g)",
-                         o.knot_factor, o.legendre_order, o.max_iter, o.gls_iter, o.alpha_ratio, o.tol);
+                                       "gls_iter %d, alpha_ratio %g, tol %g, g_radial %g)",
+                         o.knot_factor, o.legendre_order, o.max_iter, o.gls_iter, o.alpha_ratio, o.tol, o.g_radial);
     const size_t n = (size_t)geo->pupn, nfx = sol->nx, nfy = sol->ny, nf = nfx * nfy;
     if (nfx < 2 || nfy < 2) return swfs_fail(SWFS_ERR_SHAPE, "joint fit: the focal window %zux%zu is too small", nfx, nfy);
     if (mask_in && (mask_in->nx != n || mask_in->ny != n))
@@ -656,7 +657,11 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     if (o.prior == SWFS_JF_PRIOR_CURVATURE) jf_basis_penalty(ft.B, ft.mask, 1);
     /* R's null space: constants (gradient), constants and tilts (curvature) */
     ft.rank = (double)ft.nb - (o.prior == SWFS_JF_PRIOR_CURVATURE ? 3.0 : 1.0);
-    ft.nl = jf_legendre_count(o.legendre_order);
+    /* log g's terms: the 2-D Legendre ones, then the radial B-splines (their spacing in
+     * pixels: g_radial lambda/D, at least one pixel) */
+    const double hrad = o.g_radial > 0.0 ? fmax(o.g_radial / geo->pixscale, 1.0) : 0.0;
+    const size_t nleg = jf_legendre_count(o.legendre_order);
+    ft.nl = nleg + jf_radial_count(hrad, nfx, nfy);
     ft.np = 2 * ft.nb + ft.nl + 1;
     const size_t np = ft.np, nb = ft.nb, nc = ft.nl + 1;
     ft.leg = swfs_malloc(ft.nl * nf * sizeof *ft.leg);
@@ -692,6 +697,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
         goto done;
     }
     jf_legendre(o.legendre_order, nfx, nfy, ft.leg);
+    if (ft.nl > nleg) jf_radial(hrad, nfx, nfy, ft.leg + nleg * nf);
     if ((rc = load_pixels(&ft, sol))) goto done;
     start_constant(&ft);
 

@@ -285,3 +285,28 @@ void jf_legendre(int order, size_t nfx, size_t nfy, double *out)
             m++;
         }
 }
+
+/* The farthest pixel's distance from the star's pixel [pixels]. */
+static double radial_extent(size_t nfx, size_t nfy)
+{
+    const double cx = (double)(nfx / 2), cy = (double)(nfy / 2);
+    const double ex = fmax(cx, (double)(nfx - 1) - cx), ey = fmax(cy, (double)(nfy - 1) - cy);
+    return hypot(ex, ey);
+}
+
+size_t jf_radial_count(double h, size_t nfx, size_t nfy)
+{
+    if (!(h > 0.0)) return 0;
+    return (size_t)ceil(radial_extent(nfx, nfy) / h - 1e-9) + 2;
+}
+
+void jf_radial(double h, size_t nfx, size_t nfy, double *out)
+{
+    const size_t nr = jf_radial_count(h, nfx, nfy), nf = nfx * nfy;
+    const double cx = (double)(nfx / 2), cy = (double)(nfy / 2);
+    for (size_t j = 0; j < nfy; j++)
+        for (size_t i = 0; i < nfx; i++) {
+            const double u = hypot((double)i - cx, (double)j - cy) / h;
+            for (size_t m = 0; m < nr; m++) out[m * nf + j * nfx + i] = bspline3(u - (double)m);
+        }
+}

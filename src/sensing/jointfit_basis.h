@@ -47,4 +47,10 @@ void jf_jacobian(jf_basis *b, const double complex *W, double *yt);
 size_t jf_legendre_count(int order);
 void jf_legendre(int order, size_t nfx, size_t nfy, double *out);
 
+/* Radial terms: uniform cubic B-splines of the distance from the star's pixel (floor(nfx/2),
+ * floor(nfy/2)), centred every h pixels from 0 to the window's farthest pixel and one beyond;
+ * jf_radial_count gives their number, jf_radial fills out (count x (nfx nfy)). */
+size_t jf_radial_count(double h, size_t nfx, size_t nfy);
+void jf_radial(double h, size_t nfx, size_t nfy, double *out);
+
 #endif
