@@ -53,8 +53,8 @@ static const char *usage_text =
     "                     the AO residual's mean was taken out, also the error with it kept in WFE\n"
     "                     (the one --keep-resmean gives), from the same fit\n";
 
-/* The options checked as they come: --method, --g-radial, and the moments' --bias, --wiener-k, --weight,
- * --source (which imply the moments). */
+/* The options checked as they come: --method, the fit's --g-radial, and the moments' --bias,
+ * --wiener-k, --weight, --source (which imply the moments). */
 typedef struct pupil_ctx {
     swfs_pupil_options *opt;
     int moments_opt, fit_opt;

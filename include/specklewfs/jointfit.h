@@ -14,8 +14,9 @@
  *
  *   S = sum_k (theta_k^T F_k theta_k - 2 theta_k^T f_k) + lambda_phi phi^T R phi + lambda_alpha alpha^T R alpha
  *
- (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2, and the same over the radial gamma_r). F_k, f_k from swfs_regress_solve (so the
- * first sum is the chi-square of the model up to a constant); R a roughness penalty of the
+ * (plus sum_{m>=1} beta_m^2 / g_prior_sigma^2, and the same over the radial gamma_r). F_k,
+ * f_k from swfs_regress_solve (so the first sum is the chi-square of the model up to a
+ * constant); R a roughness penalty of the
  * B-spline expansion over the pupil samples: thin-plate second differences by default,
  * first differences as an option. Levenberg-Marquardt from the linear GLS solution with a
  * constant g; the prior weights follow MacKay's evidence rule every iteration

@@ -92,7 +92,7 @@ typedef struct fit {
     jf_basis *B;
     swfs_mft *mft;
     const double *mask;
-    double *leg;            /* nl x nf */
+    double *leg;            /* nl x nf: log g's terms, the Legendre ones then the radial ones */
     /* per pixel (pixel-major): F 16 (full 4x4), f 4, Phi_sp, marginal c-information 3 */
     double *F, *f, *phi, *mc, *chat, *konst;
     unsigned char *use;
@@ -115,7 +115,7 @@ typedef struct fit {
                                from here (NULL once read, and for every other fit) */
     /* work */
     double *yt, *H, *A, *grad, *step, *et, *C, *Rx;
-    double *lw;             /* 3 nf + nl nf: per pixel sqrt Q_gg, Q_g kappa, e_g; the Legendre rows
+    double *lw;             /* 3 nf + nl nf: per pixel sqrt Q_gg, Q_g kappa, e_g; log g's rows
                                scaled by sqrt Q_gg */
     float *ytf, *hf;        /* single-precision copy of the scaled Jacobian, field block of H */
     int evals;
@@ -255,7 +255,7 @@ static void build_normal(fit *ft, const double *x)
     }
     if (ft->stage == 1) {
         /* the log g block over the pixels: sum_k Q_gg L_k L_k^T (one rank-nf update of the
-         * Legendre rows scaled by sqrt Q_gg), its coupling to kappa and its gradient */
+         * log g's rows scaled by sqrt Q_gg), its coupling to kappa and its gradient */
         for (size_t m = 0; m < nl; m++)
             for (size_t k = 0; k < nf; k++) ls[m * nf + k] = ft->leg[m * nf + k] * qgg[k];
         cblas_dsyrk(CblasRowMajor, CblasUpper, CblasNoTrans, (int)nl, (int)nf, 1.0, ls, (int)nf, 0.0,
