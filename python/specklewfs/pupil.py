@@ -21,6 +21,7 @@ class PupilResult:
     weight, wiener_k, bias, source: the moments' options; geom. After a fit also halo_fit
     (complex focal-plane Psi of the fit), gain_fit (g map), kappa (unexplained speckle
     power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence),
+    fit_nparams (the fit's unknowns),
     explained, explained_median (the self-check of the speckles: the science variance they
     explain, summed and median pixel), explained_map (per pixel; NaN where not solved) and
     explained_rings(). resmean: the AO residual's time mean [m] taken out of wfe (the halo's
@@ -39,6 +40,7 @@ class PupilResult:
         self.source = "halo" if r.opt.source == 1 else "lf"
         self.method = "fit" if r.method == 1 else "moments"
         self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = self.fit_noise_scale = None
+        self.fit_nparams = None
         self.explained, self.explained_median = r.explained, r.explained_median
         self.explained_map = _lib.real_view(r.explained_map, self._owner) if r.explained_map else None
         self.resmean = _lib.real_view(r.resmean, self._owner) if r.resmean else None
@@ -48,6 +50,7 @@ class PupilResult:
             self.halo_fit = _lib.cplx_view(f.halo, self._owner)
             self.gain_fit = _lib.real_view(f.gain, self._owner)
             self.kappa, self.fit_iterations, self.fit_noise_scale = f.kappa, f.iterations, f.noise_scale
+            self.fit_nparams = f.nparams
         self.geom = geom
 
     def explained_rings(self, nrings=None):
@@ -70,7 +73,7 @@ class PupilResult:
 
 
 def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf", method="auto",
-                   keep_resmean=False):
+                   keep_resmean=False, g_radial=None):
     """Pupil field and NCP wavefront from a Halo (pupil.h; the defaults are those of
     `specklewfs pupil`). geom: a Geom (default halo.geom; needs WAVELEN, TELDIAM, OBSCUR,
     PIXSCALE, PUPDX, PUPN); mask: (pupn, pupn) transmission or None for the annulus;
@@ -78,7 +81,8 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     moments), 'fit' or 'moments'; for the moments: weight 'snr' (Wiener SNR^2/(SNR^2+k^2))
     or 'none', source 'lf' (HALO_LF) or 'halo'. When the halo carries the AO residual's time
     mean (HALO.fits RESMEAN, from `speckles` or a stream), it is taken out of the wavefront
-    unless keep_resmean (`pupil --keep-resmean`)."""
+    unless keep_resmean (`pupil --keep-resmean`). g_radial: the fit's radial log g terms'
+    spacing [lambda/D] (`pupil --g-radial`; None: the library's default, 3; 0: none)."""
     if not isinstance(halo, Halo):
         raise TypeError(f"halo: expected a specklewfs.Halo, got {type(halo).__name__}")
     geom = geom if geom is not None else halo.geom
@@ -87,7 +91,7 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     if isinstance(geom, dict):
         geom = Geom(**geom)
     g = geom.to_c()
-    o = _options(weight, wiener_k, bias, source, method, keep_resmean)
+    o = _options(weight, wiener_k, bias, source, method, keep_resmean, g_radial=g_radial)
     ms = ms_s = None
     if mask is not None:
         mask = as_array(mask, "mask", np.float64, ndim=2)
@@ -99,7 +103,7 @@ def pupil_estimate(halo, geom=None, mask=None, weight="snr", wiener_k=2.0, bias=
     return PupilResult(out, geom)
 
 
-def _options(weight, wiener_k, bias, source, method, keep_resmean, o=None):
+def _options(weight, wiener_k, bias, source, method, keep_resmean, o=None, g_radial=None):
     """pupil.h's swfs_pupil_options from the keyword arguments (o: fill this one)."""
     if o is None:
         o = _lib.swfs_pupil_options()
@@ -109,11 +113,18 @@ def _options(weight, wiener_k, bias, source, method, keep_resmean, o=None):
     o.method = _lib.choice(_METHODS, method, "pupil: method")
     o.wiener_k, o.bias = float(wiener_k), float(bias)
     o.keep_resmean = 1 if keep_resmean else 0
+    if g_radial is not None:
+        if method == "moments":
+            raise ValueError("pupil: g_radial applies to the fit, not to method='moments'")
+        g_radial = float(g_radial)
+        if not g_radial >= 0:
+            raise ValueError(f"pupil: g_radial must be >= 0 (lambda/D; 0: no radial terms), got {g_radial}")
+        o.fit.g_radial = g_radial
     return o
 
 
 def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, bias=0.0, source="lf",
-                method="auto", keep_resmean=False, provenance=()):
+                method="auto", keep_resmean=False, provenance=(), g_radial=None):
     """`specklewfs pupil` on files (run.h swfs_pupil_run): HALO.fits (a path, or several
     halos of the same frames, of which the self-check chooses one) -> PUPIL.fits `out`.
     mask: a pupil mask file (its PUPIL extension when it has one) or None for the annulus;
@@ -129,7 +140,7 @@ def pupil_files(halos, out, mask=None, truth=None, weight="snr", wiener_k=2.0, b
     halos = [os.fsdecode(h) for h in halos]  # (str, bytes or a path object)
     o = _lib.swfs_pupil_run_options()
     lib.swfs_pupil_run_options_default(ctypes.byref(o))
-    _options(weight, wiener_k, bias, source, method, keep_resmean, o.pupil)
+    _options(weight, wiener_k, bias, source, method, keep_resmean, o.pupil, g_radial=g_radial)
     names, o.nhalo = _lib.strings(halos)
     o.halos, o.out = names, enc(out)
     o.mask = enc(mask) if mask is not None else None

@@ -37,6 +37,15 @@ def test_paper_default_path_through_python(paper_sim):
     pf = sw.pupil_estimate(h, s.geom, mask=s.pupil)
     assert pf.method == "fit" and 0 <= pf.kappa < 0.1 and pf.halo_fit.shape == (60, 60)
     assert sw.wfe_compare(pf.wfe, s.ncp, s.pupil)[0] < 9e-9
+    # The fit's radial log g terms (6 on this window at 3 lambda/D); g_radial=0 the Legendre
+    # terms alone: the same NCP error within 0.2 nm on this case (docs/estimator.md)
+    pf0 = sw.pupil_estimate(h, s.geom, mask=s.pupil, g_radial=0)
+    assert pf.fit_nparams - pf0.fit_nparams == 6
+    assert abs(sw.wfe_compare(pf0.wfe, s.ncp, s.pupil)[0] - sw.wfe_compare(pf.wfe, s.ncp, s.pupil)[0]) < 0.2e-9
+    with pytest.raises(ValueError, match="g_radial applies to the fit"):
+        sw.pupil_estimate(h, s.geom, mask=s.pupil, method="moments", g_radial=3)
+    with pytest.raises(ValueError, match="g_radial must be >= 0"):
+        sw.pupil_estimate(h, s.geom, mask=s.pupil, g_radial=-1)
     # The self-check per pixel: its median is the median pixel's; by ring it is the median
     # of each ring [k, k + 1) lambda/D (the exact speckles of the simulation explain most).
     m = pf.explained_map
