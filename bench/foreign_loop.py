@@ -22,11 +22,16 @@ every model differs from the simulator it was developed with:
 
 usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--vib A]
                        [--substeps N] [--delay N] [--quick] [--geometric] [--loop-geometric]
+                       [--dump] [--train N]
        foreign_loop.py OUTDIR --rho WORKDIR   (how much of the ideal speckles' variance the
                                               speckles WORKDIR/speckles.fits hold, by ring)
 Writes OUTDIR/raw_NNN.fits, dark.fits, flat.fits, slopes_000.fits, slopes_001.fits,
 valid.fits, actuators.fits, control.fits (the loop's control matrix), handshake.log, speckles_ideal.fits, truth.fits, pupil.fits and
 foreign.json (the parameters and the true timing).
+--dump also writes the true residual of every WFS frame (residual.npy: the mean of its
+sub-steps on a grid of 2 x 2 samples, float32), the slopes (slopes_all.npy), the pupil
+(mask.npy) and the geometry (dump.json), for bench/foreign_oracle.py; --train N: only that,
+N WFS frames of the loop and no camera (a learning set for the oracle).
 """
 import argparse
 import json
@@ -174,12 +179,16 @@ def main():
     ap.add_argument('--vib', type=float, default=0.3, help="the telescope's tip-tilt vibration at 17 Hz [lambda_sci / D]")
     ap.add_argument('--lam-sci', type=float, default=1.65e-6, help='the science wavelength [m]')
     ap.add_argument('--photons', type=float, default=600.0, help='photons per subaperture and WFS frame')
+    ap.add_argument('--dump', action='store_true', help='also keep the true residual and the slopes per WFS frame')
+    ap.add_argument('--train', type=int, default=0, metavar='N',
+                    help='only the dump of N WFS frames, no camera (implies --dump)')
     ap.add_argument('--rho', metavar='WORKDIR', help='compare WORKDIR/speckles.fits with the ideal speckles and stop')
     args = ap.parse_args()
     if args.rho:
         return rho_by_ring(args.out, args.rho)
     rng = np.random.default_rng(args.seed)
     os.makedirs(args.out, exist_ok=True)
+    args.dump = args.dump or args.train > 0
 
     # --- the system (none of these values is one of specklewfs' configurations)
     D, obscur, nsub, npx = 8.2, 0.14, args.nsub, 8
@@ -265,6 +274,8 @@ def main():
         t0s.append(t)
         t += cube_frames * ratio + gap + rng.uniform(0, 1)
     nwfs = int(math.ceil(t)) + 10
+    if args.train:
+        nwfs, t0s = args.train, []
 
     Ex = np.exp(-2j * math.pi * np.outer((np.arange(W) - W // 2) * pixscale / D, xs1))
     cam_flux = flux / mask.sum() ** 2  # a perfect image's peak: `flux` photons
@@ -283,6 +294,7 @@ def main():
     A3 = np.stack([np.ones(mm.sum()), xs[mm], ys[mm]], 1)
     A3p = np.linalg.pinv(A3)
     res2 = []
+    dump = np.zeros((nwfs, N // 2, N // 2), np.float32) if args.dump else None
     for k in range(nwfs):
         dm = (queue[0] @ IFm).reshape(N, N)
         subs = []
@@ -299,6 +311,8 @@ def main():
         slopes_all[k] = s
         if args.geometric:
             geo_all[k] = sum(sh.mean_gradient(x) for x in subs) / len(subs)
+        if args.dump:
+            dump[k] = (sum(subs) / len(subs)).reshape(N // 2, 2, N // 2, 2).mean(axis=(1, 3))
         cmd = cmd + gain * (CM @ s)
         queue = queue[1:] + [cmd.copy()]
         for q, res in enumerate(subs):
@@ -341,6 +355,16 @@ def main():
                         ideal[c][e] = h * np.conj(core) / abs(core)
         if k % 500 == 0:
             print(f'  WFS frame {k} of {nwfs}', file=sys.stderr)
+    if args.dump:
+        np.save(os.path.join(args.out, 'residual.npy'), dump)
+        np.save(os.path.join(args.out, 'slopes_all.npy'), slopes_all)
+        np.save(os.path.join(args.out, 'mask.npy'), mask)
+        with open(os.path.join(args.out, 'dump.json'), 'w') as f:
+            json.dump(dict(D=D, N=N, dx=dx, nsub=nsub, npx=npx, settle=settle, seed=args.seed, modes=args.modes,
+                           valid=[int(b * nsub + a) for a, b in sh.ab]), f)
+        if args.train:
+            print(f'foreign loop: {nwfs} WFS frames of residual and slopes -> {args.out}')
+            return
     resmean = ptt_remove(resmean / resw, mask, xs, ys)
 
     # --- files, as an outside user's tools would write them
