@@ -47,8 +47,11 @@ enum { SWFS_JF_INTERCEPT_MODEL = 0, SWFS_JF_INTERCEPT_FREE = 1, SWFS_JF_INTERCEP
 #define SWFS_JF_NOISE_SCALE_MIN 1e-3
 
 typedef struct swfs_jointfit_options {
-    double knot_factor;    /* B-spline intervals across D = knot_factor * (window width in
-                              lambda/D), rounded up; 1 (see docs/estimator.md) */
+    double knot_factor;    /* B-spline intervals across D = knot_factor * (the width in
+                              lambda/D of the valid pixels' span about the star: 2 E + 1
+                              pixels, E the largest offset of a valid pixel along either
+                              axis; the window's width when every pixel is valid), rounded
+                              up; 1 (see docs/estimator.md) */
     int legendre_order;    /* p + q <= order for log g; 4 */
     double g_prior_sigma;  /* Gaussian prior of this standard deviation on each non-constant
                               log g coefficient (keeps g finite where no pixel constrains it);

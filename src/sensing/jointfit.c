@@ -76,6 +76,23 @@ static inline size_t tri(size_t i, size_t j)
     return i * 4 - i * (i + 1) / 2 + j;
 }
 
+/* The width in pixels of the valid pixels' span about the star (floor(nx/2), floor(ny/2)):
+ * 2 E + 1, E the largest offset along either axis of a valid pixel, at most the window's
+ * larger side (its width when every pixel is valid); 1 when none is. */
+static size_t jf_valid_span(const swfs_regress_sol *s, size_t nfx, size_t nfy)
+{
+    const size_t cx = nfx / 2, cy = nfy / 2, wmax = nfx > nfy ? nfx : nfy;
+    size_t e = 0;
+    for (size_t y = 0; y < nfy; y++)
+        for (size_t x = 0; x < nfx; x++) {
+            if (!(s->valid->data[y * nfx + x] > 0.5)) continue;
+            const size_t dx = x > cx ? x - cx : cx - x, dy = y > cy ? y - cy : cy - y;
+            if (dx > e) e = dx;
+            if (dy > e) e = dy;
+        }
+    return 2 * e + 1 < wmax ? 2 * e + 1 : wmax;
+}
+
 /* AUTO's two fits at once: the free fit's thread posts the model fit's rejection level here
  * when it ends (ok 0: it failed, and the model fit stops), the model fit waits for it where
  * its early stop first needs it. */
@@ -638,10 +655,15 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     if (!res->mask) { rc = SWFS_ERR_NOMEM; goto done; }
     if (!mask_in && (rc = swfs_aperture_make(res->mask->data, n, geo->pupdx, geo->teldiam, geo->obscur, 0, 0.0))) goto done;
 
-    /* Knots: the window spans +-(W/2) PIXSCALE lambda/D, so it constrains pupil-field
-     * structure up to that many cycles per D; a cubic B-spline grid resolves up to about
-     * one cycle per two intervals, hence intervals across D = window width in lambda/D. */
-    const double width = (double)(nfx > nfy ? nfx : nfy) * geo->pixscale;
+    /* Knots: the pixels the regression holds span +-E pixels from the star (E the largest
+     * offset along either axis of a valid one: the window's half-width when all are), so they
+     * constrain pupil-field structure up to E PIXSCALE cycles per D; a cubic B-spline grid
+     * resolves up to about one cycle per two intervals, hence intervals across D = their
+     * width, 2 E + 1 pixels, in lambda/D (the window's width when every pixel is valid).
+     * Speckles computed only within a band (the sampling band of a reconstructor's points)
+     * leave the pixels beyond it invalid; structure beyond them would be unconstrained
+     * unknowns that the fit trades with the constrained ones (docs/estimator.md). */
+    const double width = (double)jf_valid_span(sol, nfx, nfy) * geo->pixscale;
     size_t nint = (size_t)ceil(o.knot_factor * width - 1e-9);
     if (nint < 2) nint = 2;
     const double alpha = geo->pixscale * geo->pupdx / geo->teldiam;
