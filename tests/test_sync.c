@@ -63,8 +63,8 @@ static void make_tiptilt(double *mx, double *my, size_t n, swfs_rng *rng)
 }
 
 /* Six cubes in two telemetry files, the camera's axes swapped and x flipped, the handshake
- * logged `lag` whole frames late; sync over ratios 5-8 and lags [lag_min, lag_max]. */
-static void recover(double lag, double lag_min, double lag_max, swfs_sync_result *r)
+ * logged `lag` whole frames late; sync over ratios ratio_min-8 and lags [lag_min, lag_max]. */
+static void recover(double lag, double lag_min, double lag_max, double ratio_min, swfs_sync_result *r)
 {
     enum { NFILE = 2, NWFS = 2600, NCUBE = 6, NF = 100 };
     const double ratio = 6.48;
@@ -91,7 +91,7 @@ static void recover(double lag, double lag_min, double lag_max, swfs_sync_result
     }
     swfs_sync_params p;
     swfs_sync_params_default(&p);
-    p.ratio_min = 5; p.ratio_max = 8;
+    p.ratio_min = ratio_min; p.ratio_max = 8;
     p.lag_min = lag_min; p.lag_max = lag_max;
     assert_ok(swfs_sync_estimate(cubes, NCUBE, &p, r));
     print_message("lag %g in [%g, %g]: ratio %.4f +- %.4f lag %.3f (window %g .. %g, %d moves) swap %d signs %d %d "
@@ -116,11 +116,15 @@ static void test_sync_recovers_ratio_and_lag(void **state)
 {
     (void)state;
     swfs_sync_result r;
-    recover(3.0, -20, 20, &r);
+    recover(3.0, -20, 20, 5, &r);
     assert_int_equal(r.lag_moves, 0);
+    /* The refinement stays inside the range searched: a lower bound just above the true 6.48
+     * (the refinement once reached two coarse steps below the bound, and found 6.48). */
+    recover(3.0, -20, 20, 6.485, &r);
+    assert_true(r.ratio >= 6.485);
     /* A handshake logged 25 frames late, beyond the window -3 .. 12: the peak at the window's
      * edge moves it until the peak is inside. */
-    recover(25.0, -3, 12, &r);
+    recover(25.0, -3, 12, 5, &r);
     assert_true(r.lag_moves >= 1 && r.lag_min < 25 && r.lag_max > 25);
 }
 

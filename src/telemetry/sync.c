@@ -304,12 +304,14 @@ int swfs_sync_estimate(const swfs_sync_cube *cubes, size_t ncubes, const swfs_sy
     }
     r->lag_min = wl0;
     r->lag_max = wl1;
-    /* Refine twice, 10x finer each time, around the peak. */
+    /* Refine twice, 10x finer each time, around the peak and inside the range searched (a
+     * peak at a bound is refined on its inner side only). */
     double dr = p->ratio_step, dl = p->lag_step;
     for (int it = 0; it < 2; it++) {
-        double r0 = br - 2 * dr, l0 = bl - 2 * dl;
+        const double r0 = fmax(br - 2 * dr, p->ratio_min), r1 = fmin(br + 2 * dr, p->ratio_max);
+        const double l0 = fmax(bl - 2 * dl, wl0), l1 = fmin(bl + 2 * dl, wl1);
         dr /= 10; dl /= 10;
-        grid(pc, 0, ncubes, r0, r0 + 40 * dr, dr, l0, l0 + 40 * dl, dl, &br, &bl, &bs);
+        grid(pc, 0, ncubes, r0, r1, dr, l0, l1, dl, &br, &bl, &bs);
     }
     corr_acc acc;
     score_cubes(pc, 0, ncubes, br, bl, &acc);
