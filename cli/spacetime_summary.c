@@ -155,7 +155,8 @@ void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, do
             "%.4g%s; over %zu outputs); ", cmd, u * sqrt(r->curve_m2[0]), unit, r->curve_n[0], u * sqrt(r->curve_m2[1]),
             unit, r->curve_n[1], u * sqrt(r->curve_s2[0]), unit, u * sqrt(r->curve_s2[1]), unit, r->curve_outputs);
     if (!(r->curve_b > 0))
-        fprintf(f, "no fall with more frames: the %zu frames are enough\n", r->info.nframes);
+        fprintf(f, "no fall from %zu to %zu frames: the curve cannot tell whether more would help (the held-out "
+                "parts' scatter is larger than the fall)\n", r->curve_n[0], r->curve_n[1]);
     else if (isinf(r->curve_excess))
         fprintf(f, "steeper than a + b/n: more frames would still help (no bound)\n");
     else

@@ -12,6 +12,8 @@
 #include "specklewfs/status.h"
 #include "specklewfs/wfs.h"
 
+#include "../src/run/run_internal.h"
+
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -848,6 +850,36 @@ static void test_learning_curve(void **state)
     assert_true(isnan(r3.curve_excess));
 }
 
+/* Teach's rule for more loops after a learning curve (run_internal.h swfs_teach_more_loops_):
+ * a curve that asks for more frames than the loops hold gets as many loops as it asks (at
+ * most the budget); one measured that does not fall cannot tell, and doubles them once; no
+ * curve, or one that asks for nothing, adds none. */
+static void test_teach_more_loops(void **state)
+{
+    (void)state;
+    swfs_learn_run_result lr;
+    memset(&lr, 0, sizeof lr);
+    lr.info.nframes = 12000; /* 12 loops of 1000 frames */
+    int doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12); /* no curve */
+    lr.curve_n[0] = 6000; lr.curve_n[1] = 9000;
+    lr.curve_b = 1.0; lr.curve_a = 1.0; lr.curve_frames = 30500;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 31);
+    assert_int_equal(doubled, 0);
+    lr.curve_frames = 500000;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 48); /* the budget */
+    lr.curve_frames = 9000;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12); /* enough */
+    lr.curve_b = -0.1; lr.curve_frames = 0; /* rose: the held-out parts' scatter */
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 24);
+    assert_int_equal(doubled, 1);
+    lr.info.nframes = 24000;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 24, 48, &doubled), 24); /* flat again: no more */
+    doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 30, 48, &doubled), 48); /* doubling capped */
+    assert_int_equal(swfs_teach_more_loops_(&lr, 48, 48, &doubled), 48); /* at the budget */
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
@@ -856,6 +888,7 @@ int main(void)
                                        cmocka_unit_test(test_learner_grows),
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),
-                                       cmocka_unit_test(test_learner_merge), cmocka_unit_test(test_learning_curve)};
+                                       cmocka_unit_test(test_learner_merge), cmocka_unit_test(test_learning_curve),
+                                       cmocka_unit_test(test_teach_more_loops)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

@@ -154,6 +154,11 @@ size_t swfs_loop_first_frame_(const char *dir);
  * o->work/NAME_NN (NAME at most 7 characters), as many at once as its threads allow, with the
  * true residual (truewf_NNN.fits) where o->sim.export_truth; what: the progress's stage. */
 int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t first, size_t n, const char *what);
+/* Teach's space-time loops after a learning curve lr over `have` of them (run_teach.c, 4b):
+ * the count to simulate up to, at most max_loops (have: no more). As many as bring the map
+ * to SWFS_LEARN_CURVE_EXCESS where the curve asks for more frames than they hold; where it was
+ * measured and does not fall it cannot tell, and the loops are doubled once (*doubled set). */
+size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled);
 
 /* Whether a run simulates the mean loops (run_mean_teach.c): --mean-loop teach, or the default
  * (SWFS_MEAN_TEACH_AUTO) for the linear model where no loops are given, the output is per
