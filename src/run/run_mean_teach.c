@@ -33,8 +33,8 @@
 
 /* What the description's rule is: part of the loops' fingerprint (a change of it makes them
  * anew). */
-#define MEAN_TEACH_RULE "mean-teach 4: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
-                        "more loops where the space-time loops' map's learning curve asks"
+#define MEAN_TEACH_RULE "mean-teach 5: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
+                        "more loops where the space-time loops' map's learning curve asks; twice the first where it does not fall"
 
 /* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one
  * more at the last prediction, unchecked), and the step below which the fit stops whatever the
@@ -510,12 +510,12 @@ static int loops_as_curve_asks(const swfs_speckles_run_options *o, const swfs_te
     const size_t nlags = SWFS_SPACETIME_NLAGS;
     r->curve_excess = lr.curve_excess;
     r->curve_frames = lr.curve_frames > SIZE_MAX / nlags ? SIZE_MAX : lr.curve_frames * nlags;
-    size_t want = nl;
-    if (r->curve_frames > lr.info.nframes) {
-        const double per = (double)lr.info.nframes / (double)nl;
-        const double w = ceil((double)r->curve_frames / per);
-        want = w > (double)max ? max : (size_t)w;
-    }
+    /* teach's rule (run_teach.c): as many as the curve asks, or, where it does not fall and
+     * so cannot tell, twice the first loops; at most max */
+    swfs_learn_run_result lq = lr;
+    lq.curve_frames = r->curve_frames;
+    int doubled = 0;
+    const size_t want = swfs_teach_more_loops_(&lq, nl, max, &doubled);
     if (want > nl)
         rc = swfs_teach_loops_(to, "mean", nl, want - nl, "simulating more loops (the loops' map's learning curve)");
     if (!rc) r->nloops = want;
