@@ -1140,8 +1140,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * that does not fall from its first point to its second cannot tell (more frames never
      * raise the expected held-out misfit: a rise is the few held-out loops' scatter): once,
      * the loops are doubled and the curve measured again over all of them, which then asks
-     * as above. 12 loops of a short observation's length rose 304.5 -> 311.7 nm; 48 fell
-     * 210.9 -> 184.0 and asked for 762 968 frames (NCP 36.9 -> 21.7 nm, docs/telemetry.md). */
+     * as above. 12 loops of a short observation's length rose 304.5 -> 311.7 nm; doubled, their
+     * curve asked for the budget's 48 (NCP 36.9 -> 22.4 nm, docs/telemetry.md). */
     size_t have = o->nloops;
     int doubled = 0;
     while (!rc) {
