@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# The default path on six short observations made without specklewfs, of other geometries,
+# loops, noise and wavelengths (docs/telemetry.md, "Six more observations"): each through
+# bench/foreign.sh --quick, then one table of the NCP errors (default path, ideal speckles,
+# their ratio) and teach's loops. About 2-6 minutes per observation on 2 cores (the 20 x 20's
+# loops the longest); an observation already in WORK_DIR is not simulated again. Needs
+# Debian's python3-numpy and python3-astropy.
+#
+# usage: bash bench/foreign_sweep.sh BUILD_DIR WORK_DIR
+set -euo pipefail
+. "$(dirname "$0")/lib_bench.sh"
+[ $# -eq 2 ] || { sed -n '2,8p' "$0"; exit 2; }
+B=$1
+W=$2
+mkdir -p "$W"
+runs=(
+    "n10m40|--nsub 10 --modes 40 --seed 3"
+    "ph80|--photons 80 --seed 5"
+    "d1k|--delay 1 --substeps 3 --lam-sci 2.2e-6 --seed 6"
+    "m100|--vib 0 --modes 100 --seed 7"
+    "n20|--nsub 20 --seed 4"
+    "q60|--modes 60 --seed 1"
+)
+rows=()
+for r in "${runs[@]}"; do
+    name=${r%%|*}
+    opts=${r#*|}
+    echo "== $name: foreign.sh --quick $opts"
+    # shellcheck disable=SC2086
+    bash "$(dirname "$0")/foreign.sh" "$B" "$W/$name" --quick $opts > "$W/$name.out" 2>&1 \
+        || { echo "$name failed:"; tail -20 "$W/$name.out"; exit 1; }
+    grep -E "^NCP error" "$W/$name.out"
+    e=$(ncp_error "$W/$name/pupil.log")
+    i=$(ncp_error "$W/$name/pupil_i.log")
+    loops=$(grep -oE "[0-9]+ loops (simulated|in all)" "$W/$name/speckles.log" | tail -1 | awk '{ print $1 }')
+    rows+=("$(printf '%-7s %-52s %8s %8s %6s %6s' "$name" "$opts" "$e" "$i" \
+        "$(awk -v e="$e" -v i="$i" 'BEGIN { printf "%.2f", e / i }')" "${loops:-?}")")
+done
+echo
+printf '%-7s %-52s %8s %8s %6s %6s\n' run "foreign_loop.py options (--quick)" "default" "ideal" "x" loops
+for row in "${rows[@]}"; do echo "$row"; done
