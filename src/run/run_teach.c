@@ -1140,11 +1140,13 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * that does not fall from its first point to its second cannot tell (more frames never
      * raise the expected held-out misfit: a rise is the few held-out loops' scatter): once,
      * the loops are doubled and the curve measured again over all of them, which then asks
-     * as above. 12 loops of a short observation's length rose 304.5 -> 311.7 nm; doubled, their
-     * curve asked for the budget's 48 (NCP 36.9 -> 22.4 nm, docs/telemetry.md). */
+     * as above (once: the loops a curve asks for are the last). 12 loops of a short
+     * observation's length rose 304.5 -> 311.7 nm; doubled, their curve asked for the
+     * budget's 48 (NCP 36.9 -> 22.4 nm, docs/telemetry.md). */
     size_t have = o->nloops;
     int doubled = 0;
     while (!rc) {
+        const int was_doubled = doubled;
         const size_t n = swfs_teach_more_loops_(&lr, have, max_loops, &doubled);
         if (n <= have) break;
         for (size_t k = have; k < n; k++) {
@@ -1158,6 +1160,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             if (!rc) rc = learn(o, &pj, jobs, n, r->lags, r->nlags, st, pf, 1, &lr);
             r->curve = lr;
         }
+        if (doubled == was_doubled) break; /* the loops the curve asked for: the last step */
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
