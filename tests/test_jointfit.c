@@ -118,6 +118,13 @@ static void auto_threads_same(const swfs_regress_sol *s, int *intercept, int *st
     swfs_jointfit_result_free(j[1]);
 }
 
+/* Pixel k's offsets [pixels] from the star's pixel (floor(nx/2), floor(ny/2)) of an nx-wide window. */
+static void star_offset(size_t k, size_t nx, size_t ny, double *dx, double *dy)
+{
+    *dx = (double)(k % nx) - (double)(nx / 2);
+    *dy = (double)(k / nx) - (double)(ny / 2);
+}
+
 static double ncp_error(const swfs_jointfit_result *j)
 {
     double e;
@@ -292,7 +299,8 @@ static void test_radial_fidelity_step(void **state)
     assert_non_null(mixed);
     size_t ninside = 0;
     for (size_t k = 0; k < nf; k++) {
-        const double dx = (double)(k % nx) - (double)(nx / 2), dy = (double)(k / nx) - (double)(ny / 2);
+        double dx, dy;
+        star_offset(k, nx, ny, &dx, &dy);
         if (hypot(dx, dy) >= rstep) continue;
         ninside++;
         for (size_t t = 0; t < nt; t++) mixed->data[t * nf + k] += sim->speckles->data[((t + nt / 2) % nt) * nf + k];
@@ -309,7 +317,8 @@ static void test_radial_fidelity_step(void **state)
     /* the fitted g inside the step over the one beyond, against the 1/2 the mixture gives */
     double gin = 0.0, gout = 0.0, nin = 0.0, nout = 0.0;
     for (size_t k = 0; k < nf; k++) {
-        const double dx = (double)(k % nx) - (double)(nx / 2), dy = (double)(k / nx) - (double)(ny / 2);
+        double dx, dy;
+        star_offset(k, nx, ny, &dx, &dy);
         const double r = hypot(dx, dy);
         if (r > 1.0 / sim->geom.pixscale && r < rstep - 1.0 / sim->geom.pixscale) { gin += rad->gain->data[k]; nin++; }
         else if (r > rstep + 1.0 / sim->geom.pixscale && r < 2.0 * rstep) { gout += rad->gain->data[k]; nout++; }
@@ -342,10 +351,10 @@ static void test_knots_follow_valid_pixels(void **state)
     assert_non_null(cut);
     size_t e = 0;
     for (size_t k = 0; k < nf; k++) {
-        const size_t x = k % nx, y = k / nx, dx = x > nx / 2 ? x - nx / 2 : nx / 2 - x, dy = y > ny / 2 ? y - ny / 2 : ny / 2 - y;
-        if (hypot((double)dx, (double)dy) < band) {
-            if (dx > e) e = dx;
-            if (dy > e) e = dy;
+        double dx, dy;
+        star_offset(k, nx, ny, &dx, &dy);
+        if (hypot(dx, dy) < band) {
+            e = (size_t)fmax((double)e, fmax(fabs(dx), fabs(dy)));
             continue;
         }
         for (size_t t = 0; t < nt; t++) cut->data[t * nf + k] = 0.0;
