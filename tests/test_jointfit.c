@@ -362,7 +362,14 @@ static void test_knots_follow_valid_pixels(void **state)
     swfs_real *noisy = noisy_science(10.0);
     swfs_regress_sol *s = solve(noisy, cut);
     size_t valid = 0;
-    for (size_t k = 0; k < nf; k++) valid += s->valid->data[k] > 0.5;
+    double rmax = 0.0; /* the farthest solved pixel [pixels] */
+    for (size_t k = 0; k < nf; k++) {
+        if (!(s->valid->data[k] > 0.5)) continue;
+        double dx, dy;
+        star_offset(k, nx, ny, &dx, &dy);
+        rmax = fmax(rmax, hypot(dx, dy));
+        valid++;
+    }
     swfs_jointfit_result *j = fit_sol(s), *w;
     swfs_jointfit_options o;
     swfs_jointfit_options_default(&o);
@@ -375,6 +382,14 @@ static void test_knots_follow_valid_pixels(void **state)
     assert_int_equal(j->nintervals, (size_t)ceil((double)(2 * e + 1) * sim->geom.pixscale - 1e-9));
     assert_int_equal(w->nintervals, (size_t)ceil((double)nx * sim->geom.pixscale - 1e-9));
     assert_true(ej < ew - 0.4e-9);
+    /* log g's radial terms reach the farthest solved pixel, not the window's corner: 15
+     * Legendre terms, ceil(rmax / h) + 2 radial ones, kappa */
+    const double h = o.g_radial / sim->geom.pixscale;
+    const size_t nradial = (size_t)ceil(rmax / h - 1e-9) + 2;
+    print_message("log g: 15 Legendre and %zu radial terms (the window's corner would take %zu)\n", nradial,
+                  (size_t)ceil(hypot((double)(nx / 2), (double)(ny / 2)) / h - 1e-9) + 2);
+    assert_int_equal(j->nparams, 2 * j->nbasis + 15 + nradial + 1);
+    assert_int_equal(w->nparams, 2 * w->nbasis + 15 + nradial + 1);
     swfs_jointfit_result_free(j); swfs_jointfit_result_free(w);
     swfs_regress_sol_free(s);
     swfs_real_free(noisy);

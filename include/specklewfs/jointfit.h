@@ -3,8 +3,9 @@
  *
  * Unknowns: the pupil field W = P exp(sum_j z_j B_j), z_j = alpha_j + i phi_j on tensor
  * cubic B-splines B_j restricted to the pupil P; log g = sum_m beta_m P_p(u) P_q(v) (2-D
- * Legendre, p + q <= order, u, v in [-1, 1] across the window) + sum_r gamma_r b_r(rho)
- * (cubic B-splines of the distance rho from the star, g_radial apart); kappa >= 0, the fraction
+ * Legendre, p + q <= order, u, v in [-1, 1] across the solved pixels' bounding box) +
+ * sum_r gamma_r b_r(rho) (cubic B-splines of the distance rho from the star, g_radial apart, out
+ * to the farthest solved pixel); kappa >= 0, the fraction
  * of speckle power the computed speckles do not explain. Model per focal pixel k:
  *
  *   Psi = MFT(W)  (mft.h, the docs/conventions.md conventions),

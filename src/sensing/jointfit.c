@@ -76,21 +76,42 @@ static inline size_t tri(size_t i, size_t j)
     return i * 4 - i * (i + 1) / 2 + j;
 }
 
-/* The width in pixels of the valid pixels' span about the star (floor(nx/2), floor(ny/2)):
- * 2 E + 1, E the largest offset along either axis of a valid pixel, at most the window's
- * larger side (its width when every pixel is valid); 1 when none is. */
-static size_t jf_valid_span(const swfs_regress_sol *s, size_t nfx, size_t nfy)
+/* Where the valid pixels lie (the regression's solved pixels), once per fit. span: the width in
+ * pixels of their span about the star (floor(nx/2), floor(ny/2)), 2 E + 1 with E the largest
+ * offset along either axis of a valid pixel, at most the window's larger side (its width when
+ * every pixel is valid); 1 when none is. box: their bounding box {x0, x1, y0, y1} (inclusive),
+ * across which log g's Legendre terms run. rmax: the farthest one's distance from the star
+ * [pixels], to which the radial terms reach. With every pixel valid, box and rmax are the
+ * window's (its corner is the farthest pixel), so such a fit is the one before. */
+typedef struct jf_extent {
+    size_t span, box[4];
+    double rmax;
+} jf_extent;
+
+static jf_extent jf_valid_extent(const swfs_regress_sol *s, size_t nfx, size_t nfy)
 {
     const size_t cx = nfx / 2, cy = nfy / 2, wmax = nfx > nfy ? nfx : nfy;
-    size_t e = 0;
+    jf_extent x = { 0, { nfx, 0, nfy, 0 }, 0.0 };
+    size_t e = 0, nvalid = 0;
     for (size_t y = 0; y < nfy; y++)
-        for (size_t x = 0; x < nfx; x++) {
-            if (!(s->valid->data[y * nfx + x] > 0.5)) continue;
-            const size_t dx = x > cx ? x - cx : cx - x, dy = y > cy ? y - cy : cy - y;
+        for (size_t i = 0; i < nfx; i++) {
+            if (!(s->valid->data[y * nfx + i] > 0.5)) continue;
+            const size_t dx = i > cx ? i - cx : cx - i, dy = y > cy ? y - cy : cy - y;
             if (dx > e) e = dx;
             if (dy > e) e = dy;
+            if (i < x.box[0]) x.box[0] = i;
+            if (i > x.box[1]) x.box[1] = i;
+            if (y < x.box[2]) x.box[2] = y;
+            if (y > x.box[3]) x.box[3] = y;
+            x.rmax = fmax(x.rmax, hypot((double)dx, (double)dy));
+            nvalid++;
         }
-    return 2 * e + 1 < wmax ? 2 * e + 1 : wmax;
+    x.span = 2 * e + 1 < wmax ? 2 * e + 1 : wmax;
+    if (!nvalid) {
+        x.box[0] = 0; x.box[1] = nfx - 1; x.box[2] = 0; x.box[3] = nfy - 1;
+        x.rmax = hypot((double)cx, (double)cy);
+    }
+    return x;
 }
 
 /* AUTO's two fits at once: the free fit's thread posts the model fit's rejection level here
@@ -663,7 +684,8 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
      * Speckles computed only within a band (the sampling band of a reconstructor's points)
      * leave the pixels beyond it invalid; structure beyond them would be unconstrained
      * unknowns that the fit trades with the constrained ones (docs/estimator.md). */
-    const double width = (double)jf_valid_span(sol, nfx, nfy) * geo->pixscale;
+    const jf_extent ext = jf_valid_extent(sol, nfx, nfy);
+    const double width = (double)ext.span * geo->pixscale;
     size_t nint = (size_t)ceil(o.knot_factor * width - 1e-9);
     if (nint < 2) nint = 2;
     const double alpha = geo->pixscale * geo->pupdx / geo->teldiam;
@@ -679,11 +701,12 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     if (o.prior == SWFS_JF_PRIOR_CURVATURE) jf_basis_penalty(ft.B, ft.mask, 1);
     /* R's null space: constants (gradient), constants and tilts (curvature) */
     ft.rank = (double)ft.nb - (o.prior == SWFS_JF_PRIOR_CURVATURE ? 3.0 : 1.0);
-    /* log g's terms: the 2-D Legendre ones, then the radial B-splines (their spacing in
-     * pixels: g_radial lambda/D, at least one pixel) */
+    /* log g's terms: the 2-D Legendre ones across the valid pixels' box, then the radial
+     * B-splines out to the farthest valid pixel (their spacing in pixels: g_radial lambda/D,
+     * at least one pixel) */
     const double hrad = o.g_radial > 0.0 ? fmax(o.g_radial / geo->pixscale, 1.0) : 0.0;
     const size_t nleg = jf_legendre_count(o.legendre_order);
-    ft.nl = nleg + jf_radial_count(hrad, nfx, nfy);
+    ft.nl = nleg + jf_radial_count(hrad, ext.rmax);
     ft.np = 2 * ft.nb + ft.nl + 1;
     const size_t np = ft.np, nb = ft.nb, nc = ft.nl + 1;
     ft.leg = swfs_malloc(ft.nl * nf * sizeof *ft.leg);
@@ -718,8 +741,8 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
         rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory (joint fit, %zu parameters)", np);
         goto done;
     }
-    jf_legendre(o.legendre_order, nfx, nfy, ft.leg);
-    if (ft.nl > nleg) jf_radial(hrad, nfx, nfy, ft.leg + nleg * nf);
+    jf_legendre(o.legendre_order, nfx, nfy, ext.box, ft.leg);
+    if (ft.nl > nleg) jf_radial(hrad, ext.rmax, nfx, nfy, ft.leg + nleg * nf);
     if ((rc = load_pixels(&ft, sol))) goto done;
     start_constant(&ft);
 

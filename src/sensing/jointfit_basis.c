@@ -267,7 +267,15 @@ static double legendre(int p, double u)
     return p1;
 }
 
-void jf_legendre(int order, size_t nfx, size_t nfy, double *out)
+/* The coordinate of pixel i across [a, b] in [-1, 1], held at the ends beyond them. */
+static double box_coord(size_t i, size_t a, size_t b)
+{
+    if (b <= a) return 0.0;
+    const double u = (2.0 * (double)i - (double)a - (double)b) / (double)(b - a);
+    return u < -1.0 ? -1.0 : u > 1.0 ? 1.0 : u;
+}
+
+void jf_legendre(int order, size_t nfx, size_t nfy, const size_t box[4], double *out)
 {
     const size_t nf = nfx * nfy;
     size_t m = 0;
@@ -275,34 +283,23 @@ void jf_legendre(int order, size_t nfx, size_t nfy, double *out)
         for (int p = t; p >= 0; p--) {
             const int q = t - p;
             for (size_t j = 0; j < nfy; j++) {
-                const double v = nfy > 1 ? (2.0 * (double)j - (double)(nfy - 1)) / (double)(nfy - 1) : 0.0;
-                const double lq = legendre(q, v);
-                for (size_t i = 0; i < nfx; i++) {
-                    const double u = nfx > 1 ? (2.0 * (double)i - (double)(nfx - 1)) / (double)(nfx - 1) : 0.0;
-                    out[m * nf + j * nfx + i] = legendre(p, u) * lq;
-                }
+                const double lq = legendre(q, box_coord(j, box[2], box[3]));
+                for (size_t i = 0; i < nfx; i++)
+                    out[m * nf + j * nfx + i] = legendre(p, box_coord(i, box[0], box[1])) * lq;
             }
             m++;
         }
 }
 
-/* The farthest pixel's distance from the star's pixel [pixels]. */
-static double radial_extent(size_t nfx, size_t nfy)
-{
-    const double cx = (double)(nfx / 2), cy = (double)(nfy / 2);
-    const double ex = fmax(cx, (double)(nfx - 1) - cx), ey = fmax(cy, (double)(nfy - 1) - cy);
-    return hypot(ex, ey);
-}
-
-size_t jf_radial_count(double h, size_t nfx, size_t nfy)
+size_t jf_radial_count(double h, double rmax)
 {
     if (!(h > 0.0)) return 0;
-    return (size_t)ceil(radial_extent(nfx, nfy) / h - 1e-9) + 2;
+    return (size_t)ceil(fmax(rmax, 0.0) / h - 1e-9) + 2;
 }
 
-void jf_radial(double h, size_t nfx, size_t nfy, double *out)
+void jf_radial(double h, double rmax, size_t nfx, size_t nfy, double *out)
 {
-    const size_t nr = jf_radial_count(h, nfx, nfy), nf = nfx * nfy;
+    const size_t nr = jf_radial_count(h, rmax), nf = nfx * nfy;
     const double cx = (double)(nfx / 2), cy = (double)(nfy / 2);
     for (size_t j = 0; j < nfy; j++)
         for (size_t i = 0; i < nfx; i++) {

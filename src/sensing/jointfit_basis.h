@@ -43,14 +43,17 @@ void jf_basis_eval(const jf_basis *b, const double complex *z, double complex *Z
  * yt is (2 nb) x (2 nfx nfy) doubles, row-major. */
 void jf_jacobian(jf_basis *b, const double complex *W, double *yt);
 
-/* 2-D Legendre values: nl = (order + 1)(order + 2)/2 terms, out is nl x (nfx nfy). */
+/* 2-D Legendre values: nl = (order + 1)(order + 2)/2 terms, out is nl x (nfx nfy). u and v
+ * run over [-1, 1] across box = {x0, x1, y0, y1} (pixels, inclusive; the whole window is
+ * {0, nfx - 1, 0, nfy - 1}) and are held at +-1 beyond it. */
 size_t jf_legendre_count(int order);
-void jf_legendre(int order, size_t nfx, size_t nfy, double *out);
+void jf_legendre(int order, size_t nfx, size_t nfy, const size_t box[4], double *out);
 
 /* Radial terms: uniform cubic B-splines of the distance from the star's pixel (floor(nfx/2),
- * floor(nfy/2)), centred every h pixels from 0 to the window's farthest pixel and one beyond;
- * jf_radial_count gives their number, jf_radial fills out (count x (nfx nfy)). */
-size_t jf_radial_count(double h, size_t nfx, size_t nfy);
-void jf_radial(double h, size_t nfx, size_t nfy, double *out);
+ * floor(nfy/2)), centred every h pixels from 0 to rmax (pixels; the farthest pixel fitted)
+ * and one beyond; jf_radial_count gives their number, jf_radial fills out
+ * (count x (nfx nfy)). */
+size_t jf_radial_count(double h, double rmax);
+void jf_radial(double h, double rmax, size_t nfx, size_t nfy, double *out);
 
 #endif
