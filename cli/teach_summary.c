@@ -70,6 +70,10 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     if (r->curve.info.nframes > r->curve_first.info.nframes) { /* more loops, as the first curve asked */
         fprintf(f, "%s: over the first loops, ", cmd);
         cli_curve_line(f, maps, &r->curve_first, 1e9, " nm");
+        if (r->curve_doubled.curve_n[0] && r->curve_doubled.info.nframes < r->curve.info.nframes) {
+            fprintf(f, "%s: so twice the first loops; over them, ", cmd);
+            cli_curve_line(f, "the map's", &r->curve_doubled, 1e9, " nm");
+        }
         fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
         cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
     } else if (r->max_loops <= r->st_loops) {

@@ -1104,11 +1104,13 @@ typedef struct swfs_teach_run_result {
     /* The space-time map's learning curve (run.h swfs_learn_run_result.curve_*) over the nloops
      * first loops (curve_first) and over all the space-time loops (curve, st_loops of them:
      * more than nloops when the first curve asked for more frames than they hold, up to
-     * max_loops). curve_n[0] == 0: not measured. */
+     * max_loops). curve_doubled: where the first curve did not fall, the curve over twice the
+     * first loops, which then asked for the last ones (curve itself where it asked for none).
+     * curve_n[0] == 0: not measured. */
     size_t st_loops;
     size_t max_loops;           /* the budget in effect (max_loops, or its default); the curve is
                                    measured only where it exceeds nloops */
-    swfs_learn_run_result curve_first, curve;
+    swfs_learn_run_result curve_first, curve, curve_doubled;
     size_t project_rank;        /* the telemetry is modal-slopes' projection (its MODALCM key): the
                                    loops' slopes projected the same way, P = CM+ CM of this rank */
     size_t project_slopes;      /* over this many slopes; 0: no projection */

@@ -416,11 +416,18 @@ def test_teach(series, tmp_path):
     assert 0 < cf["outputs"] < r["out_points"] and cf["n"][0] < cf["n"][1] < cf["nframes"] and r["max_loops"] == 6
     assert all(m > 0 for m in cf["misfit_rms"])
     assert cf["b"] <= 0 or cf["a"] <= 0 or cf["excess"] == pytest.approx(cf["b"] / (cf["a"] * cf["nframes"]))
-    if cf["frames"] is None or cf["frames"] > cf["nframes"]:
+    # a curve that does not fall cannot tell: twice the loops (here the budget's 6), and the
+    # curve over them (curve_doubled) is the last one measured
+    if not cf["b"] > 0:
+        assert r["st_loops"] == 6 and r["curve"]["nframes"] == pytest.approx(6 * per)
+        assert r["curve_doubled"] == r["curve"]
+        assert sw.fits.read_keys(str(out), ["TEACHLCD"])["TEACHLCD"] == pytest.approx(r["curve"]["excess"])
+    elif cf["frames"] is None or cf["frames"] > cf["nframes"]:
         want = 6 if cf["frames"] is None else min(6, math.ceil(cf["frames"] / per))
         assert r["st_loops"] == want > 4 and r["curve"]["nframes"] == pytest.approx(want * per)
+        assert r["curve_doubled"] is None
     else:
-        assert r["st_loops"] == 4 and r["curve"] == cf
+        assert r["st_loops"] == 4 and r["curve"] == cf and r["curve_doubled"] is None
     print(f"teach: learning curve over 4 loops: excess {cf['excess']:.3f}, {cf['frames']} frames asked; "
           f"{r['st_loops']} loops")
     assert sw.fits.read_keys(str(out), ["TEACHSTL"])["TEACHSTL"] == r["st_loops"]

@@ -352,6 +352,10 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
     if (!rc && r->curve_first.curve_n[0])
         rc = swfs_fits_out_key_double(f, "TEACHLC1", isfinite(r->curve_first.curve_excess) ? r->curve_first.curve_excess
                                       : -1.0, "learning curve excess, first loops (-1: unbounded)");
+    if (!rc && r->curve_doubled.curve_n[0])
+        rc = swfs_fits_out_key_double(f, "TEACHLCD", isfinite(r->curve_doubled.curve_excess)
+                                      ? r->curve_doubled.curve_excess : -1.0,
+                                      "learning curve excess, doubled loops (-1: unbounded)");
     if (!rc && r->curve.curve_n[0])
         rc = swfs_fits_out_key_double(f, "TEACHLCE", isfinite(r->curve.curve_excess) ? r->curve.curve_excess : -1.0,
                                       "learning curve excess, all loops (-1: unbounded)");
@@ -1159,6 +1163,7 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             rc = stage(o, "learning the space-time map again", 0, 1);
             if (!rc) rc = learn(o, &pj, jobs, n, r->lags, r->nlags, st, pf, 1, &lr);
             r->curve = lr;
+            if (doubled != was_doubled) r->curve_doubled = lr;
         }
         if (doubled == was_doubled) break; /* the loops the curve asked for: the last step */
     }
