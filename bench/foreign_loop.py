@@ -29,8 +29,9 @@ Writes OUTDIR/raw_NNN.fits, dark.fits, flat.fits, slopes_000.fits, slopes_001.fi
 valid.fits, actuators.fits, control.fits (the loop's control matrix), handshake.log, speckles_ideal.fits, truth.fits, pupil.fits and
 foreign.json (the parameters and the true timing).
 --dump also writes the true residual of every WFS frame (residual.npy: the mean of its
-sub-steps on a grid of 2 x 2 samples, float32), the slopes (slopes_all.npy), the pupil
-(mask.npy) and the geometry (dump.json), for bench/foreign_oracle.py; --train N: only that,
+sub-steps on a grid of 2 x 2 samples, float32), the slopes (slopes_all.npy), the DM commands
+applied during each frame (commands.npy), the pupil (mask.npy) and the geometry (dump.json),
+for bench/foreign_oracle.py; --train N: only that,
 N WFS frames of the loop and no camera (a learning set for the oracle).
 """
 import argparse
@@ -295,6 +296,7 @@ def main():
     A3p = np.linalg.pinv(A3)
     res2 = []
     dump = np.zeros((nwfs, N // 2, N // 2), np.float32) if args.dump else None
+    cmd_all = np.zeros((nwfs, nact), np.float32) if args.dump else None
     for k in range(nwfs):
         dm = (queue[0] @ IFm).reshape(N, N)
         subs = []
@@ -313,6 +315,7 @@ def main():
             geo_all[k] = sum(sh.mean_gradient(x) for x in subs) / len(subs)
         if args.dump:
             dump[k] = (sum(subs) / len(subs)).reshape(N // 2, 2, N // 2, 2).mean(axis=(1, 3))
+            cmd_all[k] = queue[0]  # the commands applied during frame k
         cmd = cmd + gain * (CM @ s)
         queue = queue[1:] + [cmd.copy()]
         for q, res in enumerate(subs):
@@ -358,9 +361,11 @@ def main():
     if args.dump:
         np.save(os.path.join(args.out, 'residual.npy'), dump)
         np.save(os.path.join(args.out, 'slopes_all.npy'), slopes_all)
+        np.save(os.path.join(args.out, 'commands.npy'), cmd_all)
         np.save(os.path.join(args.out, 'mask.npy'), mask)
         with open(os.path.join(args.out, 'dump.json'), 'w') as f:
             json.dump(dict(D=D, N=N, dx=dx, nsub=nsub, npx=npx, settle=settle, seed=args.seed, modes=args.modes,
+                           gain=gain, delay=delay, lam_sci=lam_sci, pixscale=pixscale, W=W,
                            valid=[int(b * nsub + a) for a, b in sh.ab]), f)
         if args.train:
             print(f'foreign loop: {nwfs} WFS frames of residual and slopes -> {args.out}')
