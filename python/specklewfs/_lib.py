@@ -432,7 +432,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("dm_pitch", c_dbl), ("out_pitch", c_dbl), ("noise_rms", c_dbl), ("noise_cells", c_size),
     ("noise_share", c_dbl), ("slope_noise", c_dbl), ("st_loops", c_size), ("max_loops", c_size),
     ("curve_first", swfs_learn_run_result),
-    ("curve", swfs_learn_run_result), ("curve_doubled", swfs_learn_run_result), ("project_rank", c_size), ("project_slopes", c_size),
+    ("curve", swfs_learn_run_result), ("curve_doubled", swfs_learn_run_result), ("project_rank", c_size),
+    ("project_slopes", c_size),
     ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int),
     ("tcorr", c_dbl * 8), ("tcorr_lags", ctypes.c_long * 8), ("ntcorr", c_size), ("nspeed", c_size),
     ("speed_cal", c_dbl * 8), ("speed_misfit", c_dbl * 8), ("prior_speed", c_dbl)])
