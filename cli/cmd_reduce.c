@@ -26,7 +26,9 @@ static const char *usage_text =
     "  -o SCIENCE.fits     reduced cube (primary HDU) with RDNOISE = sqrt(background noise\n"
     "                      variance of the output frames) for estimate (the bilinear shift\n"
     "                      scales the raw variance NOISERAW by NOISEFAC, ~4/9; GAIN becomes\n"
-    "                      GAINRAW / NOISEFAC likewise), NCUBES, CUBEnnnn = raw file names, and the\n"
+    "                      GAINRAW / NOISEFAC likewise), NCUBES, CUBEnnnn = raw file names,\n"
+    "                      EXPTIME (the raw headers' least) and EXPTRES (the resolution its\n"
+    "                      header wrote it to) for sync's least frame ratio, and the\n"
     "                      extension TRACK (4 x nframes: peak x, peak y [pixels, before the\n"
     "                      shift], cube index, frame within the cube) that sync uses\n"
     "  --dark, --flat      calibration frames (default: 0 and 1)\n"
@@ -99,6 +101,9 @@ int swfs_cmd_reduce(int argc, char **argv)
         fprintf(stderr, "reduce: note: the background noise variance came out at %.4g counts^2, below 0: no read noise "
                 "above the photon noise the frames' counts predict (GAIN); 0 written (RDNOISE, NOISEVAR)\n",
                 r.noise_var_measured);
+    if (rc == CLI_OK && r.exptime > 0 && !r.stamped)
+        fprintf(stderr, "reduce: EXPTIME %.6g s, the least of the raw headers (EXPTIME, EXPTRES: sync's least frame "
+                "ratio)\n", r.exptime);
     if (rc == CLI_OK && r.stamped)
         fprintf(stderr, "reduce: milk time stamps of every frame in STAMPS: %llu camera frames dropped (counter jumps), "
                 "EXPTIME %s\n", (unsigned long long)r.dropped, r.exptime > 0 ? "from the raw header" : "absent");

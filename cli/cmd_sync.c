@@ -5,6 +5,7 @@
 #include "specklewfs/run.h"
 #include "specklewfs/status.h"
 
+#include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -32,8 +33,11 @@ static const char *usage_text =
     "  HANDSHAKE.log    lines \"CAMERA_FILE SLOPES_FILE WFS_FRAME\" (docs/telemetry.md); slopes\n"
     "                   files are found relative to the log's folder\n"
     "  -o TIMING.txt    timing table: ratio +- error, lag, axis pairing, one line per cube\n"
-    "  --ratio-min/max  search range of <t_sci/t_wfs> (default 0.1, a camera ten times faster than\n"
-    "                   the WFS, .. the handshake log's bound: a cube ends before the next cube\n"
+    "  --ratio-min/max  search range of <t_sci/t_wfs> (default: from EXPTIME x WFSRATE, the\n"
+    "                   science cube's exposure time by the telemetry's frame rate (an exposure\n"
+    "                   lasts at most its frame period), less 5 coarse steps, else 0.1, a camera\n"
+    "                   ten times faster than the WFS; a best ratio at that start searches again\n"
+    "                   from 0.1 .. the handshake log's bound: a cube ends before the next cube\n"
     "                   of its file starts; 12 when no two cubes start in one file). A fit whose\n"
     "                   correlations are not significant over the search is refused\n"
     "  --lag-min/max    search range of the lag [WFS frames] (default -3 .. 12: the log is written\n"
@@ -108,6 +112,7 @@ int swfs_cmd_sync(int argc, char **argv)
     swfs_sync_run_options o;
     swfs_sync_run_options_default(&o);
     swfs_sync_params *p = &o.params;
+    p->ratio_min = NAN; /* not given: 0, from EXPTIME (the library's default) */
     const cli_opt opts[] = {
         {"-o", CLI_STRING, &o.out, "a file name", 0},         {"--ratio-min", CLI_DOUBLE, &p->ratio_min, NULL, 0},
         {"--ratio-max", CLI_DOUBLE, &p->ratio_max, NULL, 0},  {"--lag-min", CLI_DOUBLE, &p->lag_min, NULL, 0},
@@ -120,6 +125,8 @@ int swfs_cmd_sync(int argc, char **argv)
     if (prc) return prc < 0 ? CLI_OK : prc;
     if (!o.science || !o.handshake) return cli_usage_error(cmd, "needs SCIENCE.fits and HANDSHAKE.log");
     if (!o.out) return cli_usage_error(cmd, "needs -o TIMING.txt");
+    if (isnan(p->ratio_min)) p->ratio_min = 0;
+    else if (!(p->ratio_min > 0)) return cli_usage_error(cmd, "--ratio-min must be > 0, got %g", p->ratio_min);
     swfs_sync_run_result r;
     int rc = swfs_sync_run(&o, &r);
     const swfs_timing *t = &r.t;
@@ -135,6 +142,13 @@ int swfs_cmd_sync(int argc, char **argv)
                "needs %.1f)\n", r.ratio_min, r.ratio_max, r.ratio_auto ? (r.ratio_bound > 0 ? " (to the handshake "
                "log's bound: a cube ends before the next one of its file starts)" : " (no two cubes start in one "
                "telemetry file: no bound from the log)") : "", t->fit.z, t->fit.neff, t->fit.z_need);
+        if (r.exptime_used)
+            printf("sync: the least ratio from the camera's exposure: EXPTIME x WFSRATE = %.4f WFS frames (an exposure "
+                   "lasts at most its frame period), searched from %d coarse steps below\n", r.exptime_ratio,
+                   SWFS_SYNC_EXPTIME_STEPS);
+        if (r.exptime_widened)
+            printf("sync: the best ratio lay at the least one EXPTIME x WFSRATE = %.4f gives: the header's exposure is "
+                   "longer than the frames' period; searched again from %g\n", r.exptime_ratio, r.ratio_min);
         if (t->fit.lag_moves)
             printf("sync: the best lag lay at the edge of the lag window %g .. %g: the window moved %d time%s, to %g .. "
                    "%g\n", p->lag_min, p->lag_max, t->fit.lag_moves, t->fit.lag_moves == 1 ? "" : "s", t->fit.lag_min,

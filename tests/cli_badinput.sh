@@ -133,6 +133,7 @@ chk sync-log-missing 1 "nolog.log: cannot open the handshake log" o.txt -- sync 
 chk sync-log-garbage 1 "notfits.fits:1: expected" o.txt -- sync sci.fits notfits.fits -o o.txt
 chk sync-unwritable 1 "notfits.fits/x.fits: cannot create output file (folder notfits.fits: Not a directory)" $UW -- sync sci.fits $H -o $UW
 chk sync-ratio-range 1 "ratio [8, 5]" o.txt -- sync sci.fits $H -o o.txt --ratio-min 8 --ratio-max 5
+chk sync-ratio-min-zero 2 "--ratio-min must be > 0, got 0" o.txt -- sync sci.fits $H -o o.txt --ratio-min 0
 chk sync-no-match 1 "matches the telemetry's nowhere in the search" o.txt -- sync sci.fits $H -o o.txt --ratio-min 2 --ratio-max 4
 chk sync-min-above-bound 1 "bounds the ratio at" o.txt -- sync sci.fits $H -o o.txt --ratio-min 8
 chk sync-nan 2 "got 'nan'" o.txt -- sync sci.fits $H -o o.txt --lag-step nan

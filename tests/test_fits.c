@@ -144,6 +144,41 @@ static void test_integer_bitpix_with_bzero(void **state)
     swfs_real_free(a);
 }
 
+/* A number's resolution as its header text shows it (swfs_fits_in_key_double_res_opt): half a
+ * unit in the last digit written, whatever the exponent letter. */
+static void test_key_resolution(void **state)
+{
+    (void)state;
+    const char *path = test_path("keyres.fits");
+    remove(path);
+    fitsfile *fp;
+    int st = 0;
+    long naxes[2] = {2, 2};
+    fits_create_file(&fp, path, &st);
+    fits_create_img(fp, FLOAT_IMG, 2, naxes, &st);
+    const char *cards[] = {"EXPA    =               0.0082 / 2 decimals", "EXPB    =             8.189E-3",
+                           "EXPC    =                   12", "EXPD    =               1.0D-6",
+                           "EXPE    =               -2.5e2", "EXPF    =                  10."};
+    for (size_t k = 0; k < sizeof cards / sizeof cards[0]; k++) fits_write_record(fp, cards[k], &st);
+    float z[4] = {0};
+    fits_write_img(fp, TFLOAT, 1, 4, z, &st);
+    fits_close_file(fp, &st);
+    assert_int_equal(st, 0);
+    const char *keys[] = {"EXPA", "EXPB", "EXPC", "EXPD", "EXPE", "EXPF", "EXPG"};
+    const double val[] = {0.0082, 8.189e-3, 12, 1e-6, -250, 10, 0}, res[] = {5e-5, 5e-7, 0.5, 5e-8, 5, 0.5, 0};
+    swfs_fits_in *f = NULL;
+    assert_ok(swfs_fits_in_open(&f, path, NULL));
+    for (size_t k = 0; k < sizeof keys / sizeof keys[0]; k++) {
+        double v = -1, r = -1;
+        int found = -1;
+        assert_ok(swfs_fits_in_key_double_res_opt(f, keys[k], &v, &r, &found));
+        assert_int_equal(found, k < 6);
+        if (found) assert_close(v, val[k], 1e-15 * fabs(val[k]));
+        assert_close(r, res[k], 1e-12 * res[k]);
+    }
+    swfs_fits_in_close(f);
+}
+
 static void test_bad_files(void **state)
 {
     (void)state;
@@ -277,6 +312,7 @@ int main(void)
     const struct CMUnitTest tests[] = {
         cmocka_unit_test(test_real_and_complex_round_trip),
         cmocka_unit_test(test_integer_bitpix_with_bzero),
+        cmocka_unit_test(test_key_resolution),
         cmocka_unit_test(test_bad_files),
         cmocka_unit_test(test_single_precision_overflow),
     };

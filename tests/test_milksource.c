@@ -76,7 +76,7 @@ static void write_camera(const char *path, int64_t *tend)
         n++;
     }
     const char *cubes[] = {"cam.fits"};
-    swfs_science_meta m = {NAN, 1, NAN, 1, cubes, 0, 1, cnt, st, EXPT / (1 + DRIFT)}; /* the camera's clock */
+    swfs_science_meta m = {NAN, 1, NAN, 1, cubes, 0, 1, cnt, st, EXPT / (1 + DRIFT), 0}; /* the camera's clock */
     swfs_fits_out *o = NULL;
     assert_ok(swfs_fits_out_create(&o, path));
     assert_ok(swfs_fits_out_real(o, NULL, a, -64));

@@ -15,6 +15,7 @@
 #include "specklewfs/stream.h"
 #include "specklewfs/timeseries.h"
 
+#include <fitsio.h>
 #include <lapacke.h>
 #include <math.h>
 #include <stdio.h>
@@ -838,10 +839,33 @@ static void test_sync_timestamped_files(void **state)
     free(b.t.cubes);
 }
 
-/* sync's ratio range by default: from 0.1 (a camera faster than the WFS) up to the handshake
- * log's bound, a cube of 60 frames ending before the next cube of its telemetry file starts;
- * the same fit as the explicit range 5-8, significant. A range without the true ratio is
- * refused: no table. */
+/* A copy of the science cube `src` at `dst` whose primary EXPTIME is exptime [s] (<= 0: none). */
+static void science_with_exptime(const char *src, const char *dst, double exptime)
+{
+    FILE *in = fopen(src, "rb"), *out = fopen(dst, "wb");
+    assert_non_null(in);
+    assert_non_null(out);
+    char buf[65536];
+    size_t n;
+    while ((n = fread(buf, 1, sizeof buf, in)) > 0) assert_int_equal(fwrite(buf, 1, n, out), n);
+    fclose(in);
+    assert_int_equal(fclose(out), 0);
+    fitsfile *fp;
+    int st = 0;
+    fits_open_file(&fp, dst, READWRITE, &st);
+    if (exptime > 0) fits_update_key(fp, TDOUBLE, "EXPTIME", &exptime, NULL, &st);
+    else fits_delete_key(fp, "EXPTIME", &st);
+    fits_write_chksum(fp, &st);
+    fits_close_file(fp, &st);
+    assert_int_equal(st, 0);
+}
+
+/* sync's ratio range by default: from the camera's EXPTIME x WFSRATE (an exposure lasts at most
+ * its frame period; 5 coarse steps below it) up to the handshake log's bound, a cube of 60
+ * frames ending before the next cube of its telemetry file starts; the same fit as the
+ * explicit range 5-8, significant. Without EXPTIME from 0.1 (a camera faster than the WFS);
+ * with an EXPTIME longer than the frames' period the best ratio lies at its bound and the
+ * search is made again from 0.1. A range without the true ratio is refused: no table. */
 static void test_sync_ratio_from_log(void **state)
 {
     (void)state;
@@ -868,10 +892,37 @@ static void test_sync_ratio_from_log(void **state)
     assert_int_equal(sr.ratio_auto, 1);
     assert_close(sr.ratio_bound, bound, 1e-12);
     assert_close(sr.ratio_max, bound, 1e-12);
-    assert_close(sr.ratio_min, 0.1, 0);
+    /* the simulator's camera writes EXPTIME = 6.48 WFS frames at 527 Hz, without dead time */
+    assert_true(sr.exptime_used && !sr.exptime_widened);
+    assert_close(sr.exptime_ratio, 6.48, 1e-9);
+    assert_close(sr.ratio_min, 6.48 - SWFS_SYNC_EXPTIME_STEPS * so.params.ratio_step, 1e-9);
     assert_true(fabs(sr.t.ratio - 6.48) <= 0.03);
     assert_true(sr.t.fit.z > sr.t.fit.z_need && sr.t.fit.neff > 10 && sr.t.fit.neff <= 180);
+    const double ratio = sr.t.ratio, lag = sr.t.lag, z_need = sr.t.fit.z_need;
     free(sr.t.cubes);
+    /* no EXPTIME: from 0.1, the same fit, a search that needs more */
+    science_with_exptime(p("science.fits"), p("science_noexp.fits"), 0);
+    so.science = p("science_noexp.fits");
+    assert_ok(swfs_sync_run(&so, &sr));
+    assert_close(sr.ratio_min, 0.1, 0);
+    assert_true(!sr.exptime_used && !sr.exptime_widened && sr.exptime_ratio == 0);
+    assert_close(sr.t.ratio, ratio, 1e-12);
+    assert_close(sr.t.lag, lag, 1e-12);
+    assert_true(sr.t.fit.z_need > z_need);
+    printf("test_runs: without EXPTIME from %g, the fit needs %.2f sigma (%.2f from EXPTIME's bound)\n", sr.ratio_min,
+           sr.t.fit.z_need, z_need);
+    free(sr.t.cubes);
+    /* an EXPTIME of 6.6 frames for frames 6.48 apart: the best ratio at its bound, searched again */
+    science_with_exptime(p("science.fits"), p("science_longexp.fits"), 6.6 / 527.0);
+    so.science = p("science_longexp.fits");
+    assert_ok(swfs_sync_run(&so, &sr));
+    assert_true(sr.exptime_widened && !sr.exptime_used);
+    assert_close(sr.exptime_ratio, 6.6, 1e-9);
+    assert_close(sr.ratio_min, 0.1, 0);
+    assert_close(sr.t.ratio, ratio, 1e-12);
+    assert_close(sr.t.lag, lag, 1e-12);
+    free(sr.t.cubes);
+    so.science = p("science.fits");
     so.params.ratio_min = 2;
     so.params.ratio_max = 4;
     so.out = p("timing_narrow.txt");

@@ -58,6 +58,10 @@ int swfs_fits_in_read_cplx_all(swfs_fits_in *f, swfs_cplx **out);
 /* Keywords of the current HDU, falling back to the primary header. */
 int swfs_fits_in_key_double(swfs_fits_in *f, const char *key, double *val);      /* missing: error */
 int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, int *found);
+/* The same, and *res the resolution the number was written to: half a unit in the last digit
+ * of its text ("0.0082" -> 5e-5, "8.189E-3" -> 5e-7, "12" -> 0.5); a value rounded when it
+ * was written lies within *res of the quantity (0 when the keyword is missing). */
+int swfs_fits_in_key_double_res_opt(swfs_fits_in *f, const char *key, double *val, double *res, int *found);
 int swfs_fits_in_key_string_opt(swfs_fits_in *f, const char *key, char *val, size_t cap, int *found);
 /* An integer keyword in lo..hi (SWFS_ERR_VALUE naming file, keyword and range otherwise). */
 int swfs_fits_in_key_long_opt(swfs_fits_in *f, const char *key, long lo, long hi, long *val, int *found);

@@ -602,7 +602,8 @@ typedef struct swfs_reduce_run_result {
     int stamped;              /* 1: every raw cube had a milk timestamp table (X.txt beside X.fits):
                                  the STAMPS extension was written (science.h) */
     uint64_t dropped;         /* camera counter jumps > 1 over the raw cubes (stamped only) */
-    double exptime;           /* [s] EXPTIME of the first raw cube (0: none) */
+    double exptime;           /* [s] the least EXPTIME of the raw cubes' headers (0: a cube has none),
+                                 written with the resolution its header shows (EXPTIME, EXPTRES) */
 } swfs_reduce_run_result;
 
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r);
@@ -612,8 +613,12 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
 typedef struct swfs_sync_run_options {
     const char *science, *handshake, *out;
     swfs_sync_params params;  /* search ranges (sync.h); lag -3..12 WFS frames by default; ratio from
-                                 ratio_min = SWFS_ENGINE_MIN_RATIO (0.1: a camera up to ten times
-                                 faster than the WFS) to ratio_max = 0: the handshake log's bound
+                                 ratio_min = 0: the camera's EXPTIME x the telemetry's WFSRATE (an
+                                 exposure lasts at most its frame period), less EXPTIME's resolution and
+                                 SWFS_SYNC_EXPTIME_STEPS coarse steps, where the science cube (reduce
+                                 copies the raw headers' EXPTIME) and the telemetry have both; else
+                                 SWFS_ENGINE_MIN_RATIO (0.1: a camera up to ten times faster than the
+                                 WFS) -- to ratio_max = 0: the handshake log's bound
                                  (a cube ends before the next one of its file starts),
                                  SWFS_SYNC_RATIO_MAX_FALLBACK when no two cubes start in one file. The fit
                                  is refused (SWFS_ERR_VALUE, nothing written) when its correlations
@@ -653,6 +658,12 @@ typedef struct swfs_sync_run_result {
     double ratio_first, lag_first; /* that first fit's ratio and lag */
     size_t nmissing, nexp_missing; /* cubes (exposures) left out: their telemetry file cannot be read */
     char missing_reason[1024]; /* the first such file's message */
+    double exptime_ratio;     /* EXPTIME x WFSRATE, EXPTIME less its resolution (0: the science cube or
+                                 the telemetry has none) */
+    int exptime_used;         /* 1: the search started SWFS_SYNC_EXPTIME_STEPS coarse steps below it */
+    int exptime_widened;      /* 1: the best ratio lay at that start (a header whose exposure is longer
+                                 than the frames' period): the search was made again from
+                                 SWFS_ENGINE_MIN_RATIO, and ratio_min is that */
 } swfs_sync_run_result;
 
 int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r);

@@ -29,7 +29,8 @@ typedef struct swfs_science_meta {
     int registered;
     const uint64_t *cnt;  /* nframes camera counters (cnt0) and stamps [ns]: STAMPS (NULL: none) */
     const int64_t *stamp;
-    double exptime;       /* [s] the raw header's EXPTIME (0: none) */
+    double exptime;       /* [s] the raw headers' EXPTIME, the least over the cubes (0: none) */
+    double exptime_res;   /* [s] the resolution it was written to (swfs_fits_in_key_double_res_opt) */
 } swfs_science_meta;
 
 /* Keywords and the TRACK extension (track: 4 x nframes) on an output whose frames are
@@ -43,6 +44,8 @@ typedef struct swfs_science_track {
     double *x, *y;     /* nframes peak positions [pixels] */
     size_t *first, *n; /* ncubes: first frame and frame count of each cube */
     char **camera;     /* ncubes raw camera file names */
+    double exptime;    /* [s] EXPTIME (0: none) */
+    double exptime_res; /* [s] its resolution: the raw header's (EXPTRES) or its own text's, the coarser */
 } swfs_science_track;
 
 int swfs_science_track_read(const char *path, swfs_science_track **out);

@@ -56,6 +56,12 @@ void swfs_sync_params_default(swfs_sync_params *p);
 #define SWFS_SYNC_MAX_GRID 1000000
 /* The ratio search's end when nothing bounds it (swfs_sync_run: no two cubes in one file). */
 #define SWFS_SYNC_RATIO_MAX_FALLBACK 12.0
+/* swfs_sync_run's least ratio from the camera's EXPTIME starts this many coarse ratio steps
+ * below EXPTIME x WFSRATE: room for the fit's scatter about a ratio at that bound (a camera
+ * without dead time has it there). The refit over joined files searches the same +-5 steps
+ * about the first fit; the matrix's fits lie within 0.002 of the true ratio, data made
+ * without specklewfs within 0.04 (docs/telemetry.md). */
+#define SWFS_SYNC_EXPTIME_STEPS 5
 int swfs_sync_params_check(const swfs_sync_params *p);
 /* The coarse grid's ratio and lag counts, as the search visits them. */
 void swfs_sync_grid_size(const swfs_sync_params *p, double *nratios, double *nlags);

@@ -312,7 +312,8 @@ swfs_sync_run_options = _s("swfs_sync_run_options", [("science", c_str), ("hands
 SYNC_RUN_FIELDS = [("nok", c_size), ("nexp", c_size), ("nexp_ok", c_size), ("ncontinued", c_size),
                    ("ratio_min", c_dbl), ("ratio_max", c_dbl), ("ratio_bound", c_dbl), ("ratio_auto", c_int),
                    ("refits", c_int), ("ratio_first", c_dbl), ("lag_first", c_dbl), ("nmissing", c_size),
-                   ("nexp_missing", c_size), ("missing_reason", ctypes.c_char * 1024)]
+                   ("nexp_missing", c_size), ("missing_reason", ctypes.c_char * 1024), ("exptime_ratio", c_dbl),
+                   ("exptime_used", c_int), ("exptime_widened", c_int)]
 swfs_sync_run_result = _s("swfs_sync_run_result", [("t", swfs_timing)] + SYNC_RUN_FIELDS)
 swfs_learn_run_options = _s("swfs_learn_run_options", [
     ("dirs", P(c_str)), ("ndirs", c_size), ("ridge", c_dbl), ("out", c_str), ("modal", c_int), ("no_heldout", c_int),

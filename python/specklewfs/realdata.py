@@ -70,13 +70,15 @@ def reduce(raw, out, dark=None, flat=None, badpix=None, geom=None, noise_region=
 def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_step=None, linear=None):
     """The timing table (`specklewfs sync`): the reduced science cube's TRACK against the
     telemetry files the handshake log names. ratio: (min, max) WFS frames per camera frame,
-    None: from 0.1 to the handshake log's bound (a cube ends before the next cube of its file
-    starts); lag: (min, max) WFS frames, None: -3 .. 12. A fit that is not significant over
+    None: from the camera's EXPTIME x the telemetry's WFSRATE (an exposure lasts at most its
+    frame period; less EXPTIME's resolution and 5 coarse steps), or 0.1 without them, to the
+    handshake log's bound (a cube ends before the next cube of its file starts); lag: (min, max) WFS frames, None: -3 .. 12. A fit that is not significant over
     its search raises Error and writes nothing; a best lag at the window's edge moves the
     window (lag_min, lag_max: the last one; lag_moves). Returns ratio, ratio_err, lag, the pairing
     (swap, sign_x, sign_y, corr_x, corr_y), z and z_need [sigma], neff, the exposures (nexp,
     nexp_ok), rows usable (nok), ncontinued and the ratios searched (ratio_min, ratio_max,
-    ratio_bound, ratio_auto); refits: times the fit was made again over cubes joined across
+    ratio_bound, ratio_auto; exptime_ratio, exptime_used, and exptime_widened: the best ratio
+    lay at EXPTIME's bound and the search was made again from 0.1); refits: times the fit was made again over cubes joined across
     contiguous telemetry files (ratio_first, lag_first: the fit over each cube's own file);
     nmissing, nexp_missing: cubes (their exposures) left out because the telemetry file the
     log names cannot be read (missing, truncated, another shape), missing_reason the first
@@ -88,6 +90,8 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
     o.science, o.handshake, o.out = enc(science), enc(handshake), enc(out)
     _linear(o.lin, linear)
     if ratio is not None:
+        if not float(ratio[0]) > 0:
+            raise ValueError(f"ratio: the least ratio must be > 0, got {ratio[0]} (None: from the camera's EXPTIME)")
         o.params.ratio_min, o.params.ratio_max = float(ratio[0]), float(ratio[1])
     if lag is not None:
         o.params.lag_min, o.params.lag_max = float(lag[0]), float(lag[1])
@@ -103,6 +107,7 @@ def sync(science, handshake, out, ratio=None, lag=None, ratio_step=None, lag_ste
                                         "neff", "z", "z_need", "lag_min", "lag_max", "lag_moves")}
         d.update({k: getattr(r, k) for k, _t in _lib.SYNC_RUN_FIELDS})
         d["ratio_auto"] = bool(d["ratio_auto"])
+        d["exptime_used"], d["exptime_widened"] = bool(d["exptime_used"]), bool(d["exptime_widened"])
         d["missing_reason"] = d["missing_reason"].decode(errors="replace")
         return d
     finally:

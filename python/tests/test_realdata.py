@@ -47,6 +47,9 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert r["nframes"] == 120 and r["missing"] == "" and 18 < r["noise_var_measured"] ** 0.5 < 20.5
     t = sw.sync(str(d / "sci.fits"), str(s / "handshake.log"), str(d / "timing.txt"))
     assert t["ratio_auto"] and t["ratio_bound"] > t["ratio"]
+    # the raw cubes' EXPTIME (6.48 WFS frames at 527 Hz) starts the search 5 coarse steps below it
+    assert t["exptime_used"] and not t["exptime_widened"] and t["exptime_ratio"] == pytest.approx(6.48, abs=1e-9)
+    assert t["ratio_min"] == pytest.approx(6.43, abs=1e-9)
     assert abs(t["ratio"] - 6.4811) < 0.01 and t["z"] > t["z_need"] and t["nexp_ok"] >= 118
     # The fit over each cube's own file, and the refit (if a cube crosses into a contiguous file).
     assert 0 <= t["refits"] <= 3 and abs(t["ratio_first"] - t["ratio"]) < 0.05 and abs(t["lag_first"] - t["lag"]) < 2
@@ -145,6 +148,8 @@ def test_errors_leave_nothing(series, tmp_path):
     with pytest.raises(sw.Error, match="nowhere in the search"):
         sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"), ratio=(2, 4))
     assert not os.path.exists(tmp_path / "t.txt")
+    with pytest.raises(ValueError, match="least ratio must be > 0"):
+        sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "t.txt"), ratio=(0, 8))
     # A log naming a telemetry file that is gone: its cube left out (rows marked missing);
     # every file gone: refused, no table.
     lines = (s / "handshake.log").read_text().splitlines()

@@ -789,6 +789,30 @@ int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, i
     return rc;
 }
 
+/* Half a unit in the last digit a number's text shows: "0.0082" 5e-5, "8.189E-3" 5e-7, "12" 0.5,
+ * "1.0D-6" 5e-8 (the text parse_number accepted). */
+static double written_resolution(const char *raw)
+{
+    while (*raw == ' ') raw++;
+    int decimals = 0, seen_point = 0;
+    const char *c = raw;
+    for (; *c && *c != 'E' && *c != 'e' && *c != 'D' && *c != 'd' && *c != ' '; c++) {
+        if (*c == '.') seen_point = 1;
+        else if (seen_point && *c >= '0' && *c <= '9') decimals++;
+    }
+    const long ex = (*c == 'E' || *c == 'e' || *c == 'D' || *c == 'd') ? strtol(c + 1, NULL, 10) : 0;
+    return 0.5 * pow(10.0, (double)(ex - decimals));
+}
+
+int swfs_fits_in_key_double_res_opt(swfs_fits_in *f, const char *key, double *val, double *res, int *found)
+{
+    char raw[FLEN_VALUE];
+    int rc = find_key(f, key, raw, found);
+    if (!rc && *found) rc = parse_number(f->path, key, raw, val);
+    *res = !rc && *found ? written_resolution(raw) : 0.0;
+    return rc;
+}
+
 int swfs_fits_in_key_double(swfs_fits_in *f, const char *key, double *val)
 {
     int found = 0, rc = swfs_fits_in_key_double_opt(f, key, val, &found);

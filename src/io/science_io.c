@@ -46,6 +46,12 @@ int swfs_science_write_meta(swfs_fits_out *o, const swfs_science_meta *m, const 
         ((rc = swfs_fits_out_key_double(o, "GAIN", m->gain_raw / q, "[e-/count] raw GAIN / NOISEFAC: photon noise")) ||
          (rc = swfs_fits_out_key_double(o, "GAINRAW", m->gain_raw, "[e-/count] from the raw cube"))))
         return rc;
+    /* The exposure time and the resolution the raw header wrote it to: sync's least frame
+     * ratio (an exposure lasts at most its frame period) */
+    if (m->exptime > 0 &&
+        ((rc = swfs_fits_out_key_double(o, "EXPTIME", m->exptime, "[s] from the raw headers (the least)")) ||
+         (rc = swfs_fits_out_key_double(o, "EXPTRES", m->exptime_res, "[s] EXPTIME's resolution in the raw header"))))
+        return rc;
     if ((rc = swfs_fits_out_key_long(o, "NCUBES", (long)m->ncubes, "raw cubes concatenated")) ||
         (rc = swfs_fits_out_key_long(o, "NBADPIX", (long)m->nbad, "pixels replaced by the 3x3 median")) ||
         (rc = swfs_fits_out_key_long(o, "REGISTER", m->registered, "1: peak shifted to (W/2, H/2)")))
@@ -184,6 +190,15 @@ int swfs_science_track_read(const char *path, swfs_science_track **out)
     }
     if (!rc) rc = split_cubes(path, track, t);
     if (!rc) rc = read_names(fs, path, t);
+    /* EXPTIME to the coarser of the resolution its own text shows and the raw header's (EXPTRES) */
+    double res = 0, raw_res = 0;
+    if (!rc) rc = swfs_fits_in_key_double_res_opt(fs, "EXPTIME", &v, &res, &found);
+    if (!rc && found && v > 0 && isfinite(v)) {
+        t->exptime = v;
+        t->exptime_res = res;
+        if (!(rc = swfs_fits_in_key_double_opt(fs, "EXPTRES", &raw_res, &found)) && found && raw_res > res && raw_res < v)
+            t->exptime_res = raw_res;
+    }
     swfs_fits_in_close(fs);
     swfs_real_free(track);
     if (rc) swfs_science_track_free(t);

@@ -33,13 +33,23 @@ static int read_map(const char *path, size_t nx, size_t ny, double **out)
     return rc;
 }
 
-/* Open every raw cube: real, one frame size. */
-static int open_raw(const swfs_reduce_run_options *o, swfs_fits_in **in, size_t *nx, size_t *ny, size_t *ntot)
+/* Open every raw cube: real, one frame size. *exptime: the least EXPTIME of their headers
+ * (0: a cube has none), *exptime_res the resolution that one was written to. */
+static int open_raw(const swfs_reduce_run_options *o, swfs_fits_in **in, size_t *nx, size_t *ny, size_t *ntot,
+                    double *exptime, double *exptime_res)
 {
     *ntot = 0;
+    *exptime = *exptime_res = 0;
     for (size_t c = 0; c < o->nraw; c++) {
         int rc = swfs_fits_in_open(&in[c], o->raw[c], NULL);
         if (rc) return rc;
+        int found = 0;
+        double e = 0, res = 0;
+        if ((rc = swfs_fits_in_key_double_res_opt(in[c], "EXPTIME", &e, &res, &found))) return rc;
+        if (found && !(e > 0 && e < 1e4))
+            return swfs_fail(SWFS_ERR_VALUE, "%s: EXPTIME = %g s; expected a positive exposure time", o->raw[c], e);
+        if (!found) *exptime = -1; /* a cube without: none */
+        else if (*exptime == 0 || (*exptime > 0 && e < *exptime)) { *exptime = e; *exptime_res = res; }
         const swfs_fits_shape *s = swfs_fits_in_shape(in[c]);
         if (s->is_complex)
             return swfs_fail(SWFS_ERR_FORMAT, "%s: camera cube is complex; expected real counts (x, y, frame)", o->raw[c]);
@@ -49,6 +59,7 @@ static int open_raw(const swfs_reduce_run_options *o, swfs_fits_in **in, size_t 
                              "frame size)", o->raw[c], s->nx, s->ny, o->raw[0], *nx, *ny);
         *ntot += s->nz;
     }
+    if (*exptime < 0) *exptime = *exptime_res = 0;
     return SWFS_OK;
 }
 
@@ -118,14 +129,8 @@ static int raw_stamps(const swfs_reduce_run_options *o, swfs_fits_in **in, size_
         free(tt);
         if (rc) return rc;
     }
-    int found = 0;
-    double e = 0;
-    int rc = swfs_fits_in_key_double_opt(in[0], "EXPTIME", &e, &found);
-    if (!rc && found && !(e > 0 && e < 1e4))
-        rc = swfs_fail(SWFS_ERR_VALUE, "%s: EXPTIME = %g s; expected a positive exposure time", o->raw[0], e);
-    r->exptime = found ? e : 0;
     r->stamped = 1;
-    return rc;
+    return SWFS_OK;
 }
 
 int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
@@ -151,7 +156,9 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
     swfs_geom geom;
     double gainv = NAN;
     size_t nx = 0, ny = 0, ntot = 0;
-    int rc = in ? open_raw(o, in, &nx, &ny, &ntot) : swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
+    double exptime_res = 0;
+    int rc = in ? open_raw(o, in, &nx, &ny, &ntot, &r->exptime, &exptime_res)
+                : swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", o->out);
     if (!rc) rc = raw_stamps(o, in, ntot, &cnt, &stamp, r);
     if (!rc && o->dark) rc = read_map(o->dark, nx, ny, &dark);
     if (!rc && o->flat) rc = read_map(o->flat, nx, ny, &flat);
@@ -181,7 +188,7 @@ int swfs_reduce_run(const swfs_reduce_run_options *o, swfs_reduce_run_result *r)
         r->noise_var = r->noise_var_measured < 0 ? 0.0 : r->noise_var_measured;
         r->noise_fac = swfs_reduce_noise_factor(red);
         swfs_science_meta m = {r->noise_var, r->noise_fac, gainv, o->nraw,   o->raw,
-                               r->nbad,      p.do_register, cnt,   stamp, r->exptime};
+                               r->nbad,      p.do_register, cnt,   stamp, r->exptime, exptime_res};
         if (!(rc = swfs_fits_out_geom(out, &geom)) && !(rc = swfs_fits_out_provenance(out, o->prov, o->nprov)) &&
             !(rc = swfs_science_write_meta(out, &m, track, ntot))) {
             rc = swfs_fits_out_commit(out);

@@ -23,7 +23,7 @@ void swfs_sync_run_options_default(swfs_sync_run_options *o)
     swfs_linear_files_default(&o->lin);
     o->params.lag_min = -3;
     o->params.lag_max = 12;
-    o->params.ratio_min = SWFS_ENGINE_MIN_RATIO; /* a camera faster than the WFS included */
+    o->params.ratio_min = 0; /* from EXPTIME x WFSRATE, else SWFS_ENGINE_MIN_RATIO (resolve_ratio_range) */
     o->params.ratio_max = 0; /* from the handshake log (ratio_bound) */
 }
 
@@ -48,6 +48,7 @@ typedef struct work {
     long *cube_hs;
     char logdir[4096];
     swfs_sync_params params;  /* o->params with the ratio range resolved (ratio_bound) */
+    double wfs_rate;          /* [Hz] WFSRATE of the first telemetry file that has it (0: none) */
     struct boundary_memo { size_t a, b; swfs_sync_boundary bd; } *memo; /* checked boundaries, file a -> b */
     size_t nmemo, memo_cap;
 } work;
@@ -77,6 +78,14 @@ static int load_file(work *w, const char *name, size_t *fi)
                        lin ? "telemetry" : "slopes", lin ? (w->nwfs_slopes ? "NVALUES (the same in every file)" : "NVALUES")
                        : (w->nwfs_slopes ? "NSLOPES (even, the same in every file)" : "NSLOPES (even)"), s->nx, s->ny, s->nz);
     if (!rc) rc = swfs_telemetry_check_values(path, s);
+    if (!rc && !(w->wfs_rate > 0)) { /* the frame rate, for the least ratio from the camera's EXPTIME */
+        swfs_fits_in *h = NULL;
+        int found = 0;
+        double rate = 0;
+        if (!(rc = swfs_fits_in_open(&h, path, NULL))) rc = swfs_fits_in_key_double_opt(h, "WFSRATE", &rate, &found);
+        swfs_fits_in_close(h);
+        if (!rc && found && rate > 0 && isfinite(rate)) w->wfs_rate = rate;
+    }
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double))))) {
         free(f->mx);
@@ -579,6 +588,24 @@ static int resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_resu
 {
     swfs_sync_params *p = &w->params;
     r->ratio_bound = ratio_bound(w, t);
+    /* ratio_min <= 0: from the camera's exposure, which lasts at most its frame period, so
+     * ratio >= EXPTIME x WFSRATE (EXPTIME less the resolution its header was written to; a
+     * camera with dead time has a larger ratio), less SWFS_SYNC_EXPTIME_STEPS coarse steps
+     * for the fit's own scatter about a ratio at the bound; SWFS_ENGINE_MIN_RATIO without
+     * both keywords, or where that bound is above ratio_max */
+    if (p->ratio_min <= 0) {
+        p->ratio_min = SWFS_ENGINE_MIN_RATIO;
+        if (w->tr->exptime > 0 && w->wfs_rate > 0) {
+            r->exptime_ratio = (w->tr->exptime - w->tr->exptime_res) * w->wfs_rate;
+            const double lo = r->exptime_ratio - SWFS_SYNC_EXPTIME_STEPS * p->ratio_step;
+            const double hi = p->ratio_max > 0 ? p->ratio_max : r->ratio_bound > 0 ? r->ratio_bound
+                                                              : SWFS_SYNC_RATIO_MAX_FALLBACK;
+            if (lo > p->ratio_min && lo < hi) {
+                p->ratio_min = lo;
+                r->exptime_used = 1;
+            }
+        }
+    }
     if (p->ratio_max > 0) return SWFS_OK;
     r->ratio_auto = 1;
     p->ratio_max = r->ratio_bound > 0 ? r->ratio_bound : SWFS_SYNC_RATIO_MAX_FALLBACK;
@@ -606,6 +633,7 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     /* The ranges checked now; a ratio_max from the log (<= 0) is resolved once the cubes are read. */
     w.params = o->params;
     swfs_sync_params chk = o->params;
+    if (chk.ratio_min <= 0) chk.ratio_min = SWFS_ENGINE_MIN_RATIO; /* resolved from EXPTIME once read */
     if (chk.ratio_max <= 0) chk.ratio_max = fmax(chk.ratio_min, SWFS_SYNC_RATIO_MAX_FALLBACK);
     int rc = swfs_sync_params_check(&chk);
     if (rc) return rc;
@@ -648,6 +676,18 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
         r->ratio_min = w.params.ratio_min;
         r->ratio_max = w.params.ratio_max;
         if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
+        /* A best ratio at the least one EXPTIME gave: the header does not describe the frames
+         * (an exposure time longer than their period); the search again from the engine's least */
+        if (!rc && r->exptime_used && t->fit.ratio < w.params.ratio_min + w.params.ratio_step) {
+            w.params = o->params;
+            w.params.ratio_min = SWFS_ENGINE_MIN_RATIO;
+            rc = resolve_ratio_range(&w, t, r);
+            r->ratio_min = w.params.ratio_min;
+            r->ratio_max = w.params.ratio_max;
+            r->exptime_used = 0;
+            r->exptime_widened = 1;
+            if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
+        }
         /* The continuations search the window the fit ended in. */
         if (!rc) {
             w.params.lag_min = t->fit.lag_min;

@@ -428,14 +428,16 @@ static int write_cplx_cube(const char *path, const swfs_cplx *c, const swfs_geom
     return swfs_fits_out_commit(o);
 }
 
+/* exptime > 0: a camera cube's EXPTIME [s], as a camera's header has it */
 static int write_real(const char *path, const swfs_real *a, const swfs_geom *g, const char *const *prov, size_t nprov,
-                      double gain)
+                      double gain, double exptime)
 {
     swfs_fits_out *o = NULL;
     int rc = swfs_fits_out_create(&o, path);
     if (rc) return rc;
     if (!(rc = swfs_fits_out_set_stamp(o, g, prov, nprov)) && !(rc = swfs_fits_out_real(o, NULL, a, -32)) && gain > 0)
         rc = swfs_fits_out_key_double(o, "GAIN", gain, "[e-/count]");
+    if (!rc && exptime > 0) rc = swfs_fits_out_key_double(o, "EXPTIME", exptime, "[s] exposure time");
     if (rc) { swfs_fits_out_abort(o); return rc; }
     return swfs_fits_out_commit(o);
 }
@@ -1340,7 +1342,7 @@ static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const c
     snprintf(path, sizeof path, "%s/actuators.fits", dir);
     if ((rc = swfs_actuators_write(xy, nact, path))) { swfs_real_free(noisy); free(tstart); goto done; }
     snprintf(path, sizeof path, "%s/pupil.fits", dir);
-    if ((rc = write_real(path, &(swfs_real){np, np, 1, mask}, &geom, prov, nprov, 0))) {
+    if ((rc = write_real(path, &(swfs_real){np, np, 1, mask}, &geom, prov, nprov, 0, 0))) {
         swfs_real_free(noisy); free(tstart); goto done;
     }
     snprintf(path, sizeof path, "%s/recon_ao.fits", dir);
@@ -1353,13 +1355,13 @@ static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const c
     for (size_t c = 0; c < ncub && rc == SWFS_OK; c++) {
         swfs_real cube = {nfx, nfy, nf, noisy->data + c * nf * nfp};
         snprintf(path, sizeof path, "%s/raw_%03zu.fits", dir, c);
-        rc = write_real(path, &cube, &geom, prov, nprov, b->gain);
+        rc = write_real(path, &cube, &geom, prov, nprov, b->gain, p->frame_ratio / p->wfs_rate);
     }
     if (!rc && p->milk) /* the same telemetry and frames as milk logs */
         rc = swfs_ts_milk_write(p, dir, slopes, nwfs, ns, noisy->data, nfx, nfy, tstart, &geom, prov, nprov, b->gain);
     swfs_real_free(noisy);
-    if (!rc) { snprintf(path, sizeof path, "%s/dark.fits", dir); rc = write_real(path, dark, &geom, prov, nprov, 0); }
-    if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0); }
+    if (!rc) { snprintf(path, sizeof path, "%s/dark.fits", dir); rc = write_real(path, dark, &geom, prov, nprov, 0, 0); }
+    if (!rc) { snprintf(path, sizeof path, "%s/flat.fits", dir); rc = write_real(path, flat, &geom, prov, nprov, 0, 0); }
     const swfs_real rmap = {np, np, 1, rmean};
     if (!rc) {
         snprintf(path, sizeof path, "%s/speckles_ideal.fits", dir);
