@@ -781,13 +781,6 @@ static int find_key(swfs_fits_in *f, const char *key, char *raw, int *found)
     return rc;
 }
 
-int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, int *found)
-{
-    char raw[FLEN_VALUE];
-    int rc = find_key(f, key, raw, found);
-    if (!rc && *found) rc = parse_number(f->path, key, raw, val);
-    return rc;
-}
 
 /* Half a unit in the last digit a number's text shows: "0.0082" 5e-5, "8.189E-3" 5e-7, "12" 0.5,
  * "1.0D-6" 5e-8 (the text parse_number accepted). */
@@ -811,6 +804,12 @@ int swfs_fits_in_key_double_res_opt(swfs_fits_in *f, const char *key, double *va
     if (!rc && *found) rc = parse_number(f->path, key, raw, val);
     *res = !rc && *found ? written_resolution(raw) : 0.0;
     return rc;
+}
+
+int swfs_fits_in_key_double_opt(swfs_fits_in *f, const char *key, double *val, int *found)
+{
+    double res;
+    return swfs_fits_in_key_double_res_opt(f, key, val, &res, found);
 }
 
 int swfs_fits_in_key_double(swfs_fits_in *f, const char *key, double *val)

@@ -588,6 +588,8 @@ static int resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_resu
 {
     swfs_sync_params *p = &w->params;
     r->ratio_bound = ratio_bound(w, t);
+    r->ratio_auto = !(p->ratio_max > 0);
+    if (r->ratio_auto) p->ratio_max = r->ratio_bound > 0 ? r->ratio_bound : SWFS_SYNC_RATIO_MAX_FALLBACK;
     /* ratio_min <= 0: from the camera's exposure, which lasts at most its frame period, so
      * ratio >= EXPTIME x WFSRATE (EXPTIME less the resolution its header was written to; a
      * camera with dead time has a larger ratio), less SWFS_SYNC_EXPTIME_STEPS coarse steps
@@ -598,17 +600,13 @@ static int resolve_ratio_range(work *w, const swfs_timing *t, swfs_sync_run_resu
         if (w->tr->exptime > 0 && w->wfs_rate > 0) {
             r->exptime_ratio = (w->tr->exptime - w->tr->exptime_res) * w->wfs_rate;
             const double lo = r->exptime_ratio - SWFS_SYNC_EXPTIME_STEPS * p->ratio_step;
-            const double hi = p->ratio_max > 0 ? p->ratio_max : r->ratio_bound > 0 ? r->ratio_bound
-                                                              : SWFS_SYNC_RATIO_MAX_FALLBACK;
-            if (lo > p->ratio_min && lo < hi) {
+            if (lo > p->ratio_min && lo < p->ratio_max) {
                 p->ratio_min = lo;
                 r->exptime_used = 1;
             }
         }
     }
-    if (p->ratio_max > 0) return SWFS_OK;
-    r->ratio_auto = 1;
-    p->ratio_max = r->ratio_bound > 0 ? r->ratio_bound : SWFS_SYNC_RATIO_MAX_FALLBACK;
+    if (!r->ratio_auto) return SWFS_OK;
     if (p->ratio_max < p->ratio_min)
         return swfs_fail(SWFS_ERR_ARG, "%s: the handshake log bounds the ratio at %g WFS frames per camera frame (a "
                          "camera cube ends before the next cube of its telemetry file starts), below the search's "
@@ -672,21 +670,18 @@ int swfs_sync_run(const swfs_sync_run_options *o, swfs_sync_run_result *r)
     for (size_t ci = 0; !rc && ci < t->ncubes; ci++)
         if (w.cube_file[ci] != NO_FILE) have[nhave++] = w.cubes[ci];
     if (!rc) {
-        rc = resolve_ratio_range(&w, t, r);
-        r->ratio_min = w.params.ratio_min;
-        r->ratio_max = w.params.ratio_max;
-        if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
         /* A best ratio at the least one EXPTIME gave: the header does not describe the frames
          * (an exposure time longer than their period); the search again from the engine's least */
-        if (!rc && r->exptime_used && t->fit.ratio < w.params.ratio_min + w.params.ratio_step) {
-            w.params = o->params;
-            w.params.ratio_min = SWFS_ENGINE_MIN_RATIO;
+        for (int pass = 0; !rc && pass < 2; pass++) {
             rc = resolve_ratio_range(&w, t, r);
             r->ratio_min = w.params.ratio_min;
             r->ratio_max = w.params.ratio_max;
+            if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
+            if (rc || !r->exptime_used || !(t->fit.ratio < w.params.ratio_min + w.params.ratio_step)) break;
+            w.params = o->params;
+            w.params.ratio_min = SWFS_ENGINE_MIN_RATIO;
             r->exptime_used = 0;
             r->exptime_widened = 1;
-            if (!rc) rc = swfs_sync_estimate(have, nhave, &w.params, &t->fit);
         }
         /* The continuations search the window the fit ended in. */
         if (!rc) {
