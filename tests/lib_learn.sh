@@ -48,10 +48,10 @@ teach_files() {
     # the modal filter from the slopes (the observation's loop controls the simulator's 56
     # modes; within 3 above), its calibration loops kept in modes_NN/, and the profiles it was
     # read from: modes.tsv (a row per mode after piston, the observation, the calibration loop
-    # and the closest zonal loop) and modes.png
+    # and each zonal loop) and modes.png
     head -c 11520 taught_f.fits | grep -aq "TEACHMSR= 'slopes" && [ -d taught_f/modes_00 ] \
         || fail "teach: TEACHMSR = 'slopes' and a calibration loop expected"
-    head -1 taught_f/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]	zonal_0\.[0-9]*$" \
+    head -1 taught_f/modes.tsv | grep -q "^# mode	observation	loop_5[3-9]	zonal_0.02	zonal_0.03	zonal_0.05	zonal_0.07	zonal_0.1	zonal_0.2$" \
         && [ "$(grep -vc '^#' taught_f/modes.tsv)" -gt 150 ] && [ -s taught_f/modes.png ] \
         || { head -3 taught_f/modes.tsv; fail "teach: modes.tsv / modes.png"; }
     etf=$(ncp_with taught_f.fits tf timing.txt)

@@ -850,6 +850,52 @@ static void test_learning_curve(void **state)
     assert_true(isnan(r3.curve_excess));
 }
 
+/* Teach's profile misfit (run_internal.h swfs_teach_profile_misfit_) on 300 modes of
+ * made-up variances with a ripple of 0.05 dex (the loops' and the observation's seeds):
+ * - an observation of a modal loop whose modes are not the DM's (its variances half a decade
+ *   up at mode 150, rising to the turbulence's by 200, as the foreign 20 x 20 of 200 modes in
+ *   docs/telemetry.md) is nearer a DM-mode loop of 152 modes (a step at 152) than a zonal loop
+ *   (flat, a decade below the observation's upper modes): 0.18 against 0.48, where the upper
+ *   half's own mean took the zonal loop for the nearer (0.156 against 0.162);
+ * - a zonal observation (flat) is nearer the zonal loop than a modal one;
+ * - a loop's whole profile scaled (its layers' strength) leaves the misfit as it was. */
+static void test_teach_profile_misfit(void **state)
+{
+    (void)state;
+    enum { N = 300 };
+    double obs[N], modal[N], zonal[N], flat[N], modal2[N];
+    for (size_t j = 0; j < N; j++) {
+        const double rip = 0.05 * sin(0.7 * (double)j), rip2 = 0.05 * cos(1.3 * (double)j);
+        const double up = j < 150 ? 0 : j < 200 ? 0.5 + 0.5 * (double)(j - 150) / 50.0 : 1.0;
+        obs[j] = pow(10.0, -13.5 + up + rip); /* half a decade up at 150, a decade by 200 */
+        modal[j] = pow(10.0, (j < 152 ? -13.5 : -12.4) + rip2);
+        zonal[j] = pow(10.0, -13.6 + rip2);
+        flat[j] = pow(10.0, -13.5 + rip);
+        modal2[j] = 2 * modal[j];
+    }
+    const double mm = swfs_teach_profile_misfit_(modal, N, obs, N), mz = swfs_teach_profile_misfit_(zonal, N, obs, N);
+    assert_true(mm < mz);
+    assert_true(mz > 0.3);
+    /* the upper half's own mean: the zonal loop's flat profile looked nearer */
+    double s[2] = {0}, s2[2] = {0};
+    const double *lp[2] = {modal, zonal};
+    for (size_t k = 0; k < 2; k++) {
+        for (size_t j = N / 2; j < N; j++) {
+            const double d = log10(lp[k][j] / obs[j]);
+            s[k] += d;
+            s2[k] += d * d;
+        }
+        s[k] /= N / 2;
+        s2[k] = sqrt(s2[k] / (N / 2) - s[k] * s[k]);
+    }
+    assert_true(s2[1] < s2[0]);
+    assert_true(swfs_teach_profile_misfit_(zonal, N, flat, N) < 0.1);
+    assert_true(swfs_teach_profile_misfit_(modal, N, flat, N) > 0.4);
+    assert_float_equal(swfs_teach_profile_misfit_(modal2, N, obs, N), mm, 1e-12);
+    assert_true(isinf(swfs_teach_profile_misfit_(modal, 2, obs, 2))); /* one mode to compare */
+    assert_true(!isinf(swfs_teach_profile_misfit_(modal, 4, obs, 4)));
+}
+
 /* Teach's rule for more loops after a learning curve (run_internal.h swfs_teach_more_loops_):
  * a curve that asks for more frames than the loops hold gets as many loops as it asks (at
  * most the budget); one measured that does not fall cannot tell, and doubles them once; no
@@ -889,6 +935,7 @@ int main(void)
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),
                                        cmocka_unit_test(test_learner_merge), cmocka_unit_test(test_learning_curve),
-                                       cmocka_unit_test(test_teach_more_loops)};
+                                       cmocka_unit_test(test_teach_more_loops),
+                                       cmocka_unit_test(test_teach_profile_misfit)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

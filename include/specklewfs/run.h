@@ -1052,7 +1052,7 @@ typedef struct swfs_teach_run_options {
  * 2026-12-03b: the loops' layers each at a speed within a factor sqrt 2 of the one found;
  * 2026-12-06: a first curve that does not fall doubles the loops and is measured again;
  * 2026-12-06b: the loops a curve asks for are the last, as before 2026-12-06). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-06b"
+#define SWFS_TEACH_RULE "teach rule 2026-12-07"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
@@ -1127,7 +1127,8 @@ typedef struct swfs_teach_run_result {
     size_t project_slopes;      /* over this many slopes; 0: no projection */
     /* modes_from_slopes: the zonal calibration loops (zonal_NN/, one per swfs_teach_zonal_rcond):
      * each one's profile misfit (the rms of log10 of the loop's mode variances over the
-     * observation's, about its mean), the closest one (its index), the modal loop's misfit (the
+     * observation's along the upper half of the modes, about its mean over all of them: teach
+     * rule 2026-12-07; before, about the upper half's own mean), the closest one (its index), the modal loop's misfit (the
      * calibration loop whose knee came closest), and whether the loops are zonal
      * (zonal_misfit[zonal_best] < misfit_modal: ao_rcond = swfs_teach_zonal_rcond[zonal_best],
      * ao_modes then 0) */

@@ -159,6 +159,10 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
  * to SWFS_LEARN_CURVE_EXCESS where the curve asks for more frames than they hold; where it was
  * measured and does not fall it cannot tell, and the loops are doubled once (*doubled set). */
 size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled);
+/* How far a calibration loop's mode variances (a, na) are from the observation's (b, nb)
+ * (run_teach.c): the rms of log10 a / b over the upper half of the modes, about its mean over
+ * all of them; INFINITY with fewer than 2 modes to compare. */
+double swfs_teach_profile_misfit_(const double *a, size_t na, const double *b, size_t nb);
 
 /* Whether a run simulates the mean loops (run_mean_teach.c): --mean-loop teach, or the default
  * (SWFS_MEAN_TEACH_AUTO) for the linear model where no loops are given, the output is per

@@ -443,8 +443,9 @@ typedef struct profile {
 } profile;
 
 /* work/modes.tsv (mode, then each profile's variance: the observation's, each calibration
- * loop's) and, where PLplot is, work/modes.png: what the loops' filter was read from. */
-static int write_profiles(const char *work, const profile *p, size_t nc)
+ * loop's, modal and zonal) and, where PLplot is, work/modes.png of the profiles plot[0..np):
+ * what the loops' filter was read from. */
+static int write_profiles(const char *work, const profile *p, size_t nc, const size_t *plot, size_t np)
 {
     char path[4200];
     size_t len = 0, cap = 64 + 40 * nc + p[0].n * (24 + 16 * nc); /* "%.6e" is at most 13 characters */
@@ -465,43 +466,53 @@ static int write_profiles(const char *work, const profile *p, size_t nc)
     if (rc || !swfs_plot_available()) return rc;
     const double *v[6];
     const char *labels[6];
-    size_t n[6], knee[6];
-    for (size_t c = 0; c < nc && c < 6; c++) {
-        v[c] = p[c].v;
-        n[c] = p[c].n;
-        knee[c] = p[c].knee;
-        labels[c] = p[c].label;
+    size_t n[6], knee[6], k = 0;
+    for (; k < np && k < 6; k++) {
+        v[k] = p[plot[k]].v;
+        n[k] = p[plot[k]].n;
+        knee[k] = p[plot[k]].knee;
+        labels[k] = p[plot[k]].label;
     }
     snprintf(path, sizeof path, "%.4000s/modes.png", work);
-    return swfs_fig_modes(path, v, n, knee, labels, nc < 6 ? nc : 6);
+    return swfs_fig_modes(path, v, n, knee, labels, k);
 }
 
 const double swfs_teach_zonal_rcond[SWFS_TEACH_NZONAL] = {0.02, 0.03, 0.05, 0.07, 0.1, 0.2};
 
 /* How far a calibration loop's mode variances (a, na) are from the observation's (b, nb)
  * where the filters differ: over the upper half of the modes (where both are positive and
- * finite), the rms of log10 a / b about its mean. A modal filter of K modes leaves the modes
- * above K to the turbulence where a zonal loop controls them; the zonal cuts differ in the
- * highest modes only (265 to 323 of 330 kept on a 16 x 16 system from 0.2 to 0.02). The lower
- * half differs between loops by their seeds and layers, and the level of the whole profile
- * by the layers' shares and speeds, which the slopes tell only roughly: on one observation
- * loops of one layer instead of its two raised every cut's profile by 0.3 in log10, the
- * plain rms then 0.30-0.33 for every cut from 0.02 to 0.07 (no choice left), the rms about
- * the mean still least at 0.05-0.07 (docs/telemetry.md, "A zonal loop"). */
-static double profile_misfit(const double *a, size_t na, const double *b, size_t nb)
+ * finite), the rms of log10 a / b about its mean over all the modes. A modal filter of K
+ * modes leaves the modes above K to the turbulence where a zonal loop controls them; the zonal
+ * cuts differ in the highest modes only (265 to 323 of 330 kept on a 16 x 16 system from 0.2
+ * to 0.02). The lower half differs between loops by their seeds and layers, and the level of
+ * the whole profile by the layers' shares and speeds, which the slopes tell only roughly: on
+ * one observation loops of one layer instead of its two raised every cut's profile by 0.3 in
+ * log10, the plain rms then 0.30-0.33 for every cut from 0.02 to 0.07 (no choice left), the
+ * rms about the mean still least at 0.05-0.07. The mean is the whole profile's: the level of
+ * the upper half against the lower is what tells a filter that leaves the upper modes to the
+ * turbulence from one that controls them (a zonal loop's flat profile a factor 10 below a
+ * 200-mode observation's upper half was 0.139 from its own half's mean, below the 152-mode
+ * loop's 0.147; from the whole profile's 0.42 against 0.149; docs/telemetry.md, "A zonal
+ * loop"). */
+double swfs_teach_profile_misfit_(const double *a, size_t na, const double *b, size_t nb)
 {
-    double s = 0, s2 = 0;
-    size_t m = 0;
-    for (size_t j = nb / 2; j < na && j < nb; j++)
+    const size_t n = na < nb ? na : nb;
+    double s = 0, s2 = 0, all = 0;
+    size_t m = 0, mall = 0;
+    for (size_t j = 0; j < n; j++)
         if (a[j] > 0 && b[j] > 0 && isfinite(a[j]) && isfinite(b[j])) {
             const double d = log10(a[j] / b[j]);
+            all += d;
+            mall++;
+            if (j < nb / 2) continue;
             s += d;
             s2 += d * d;
             m++;
         }
     if (m < 2) return INFINITY;
-    const double mean = s / (double)m, var = s2 / (double)m - mean * mean;
-    return sqrt(var > 0 ? var : 0);
+    /* the upper half's mean square about the whole profile's mean c: var + (mean - c)^2 */
+    const double mean = s / (double)m, c = all / (double)mall, ms = s2 / (double)m - 2 * c * mean + c * c;
+    return sqrt(ms > 0 ? ms : 0);
 }
 
 /* A calibration loop's job: tmpl's layers (and zonal cut), work/NAME_NN, teach's seed. */
@@ -572,7 +583,7 @@ static int calibration_loop(const swfs_teach_run_options *o, const loop_job *tmp
  * A zonal loop (every mode the sensor sees controlled: the truncated pseudo-inverse of the
  * interaction matrix, simulate's ao_rcond) has no knee: its profile is flat, and the knee
  * found is anywhere. So zonal loops too, one per cut of swfs_teach_zonal_rcond, and the loops
- * get the filter whose loop's profile is the closest to the observation's (profile_misfit;
+ * get the filter whose loop's profile is the closest to the observation's (swfs_teach_profile_misfit_;
  * docs/telemetry.md, "A zonal loop"). tmpl: the loop's layers. */
 static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, const loop_job *tmpl,
                              swfs_teach_run_result *r)
@@ -614,27 +625,34 @@ static int modes_from_slopes(swfs_teach_run_options *o, const swfs_real *s, cons
         K = next;
     }
     o->sim.ao_modes = best;
-    if (!rc) r->misfit_modal = profile_misfit(v[bi], nv[bi], v[0], nv[0]);
+    if (!rc) r->misfit_modal = swfs_teach_profile_misfit_(v[bi], nv[bi], v[0], nv[0]);
     for (size_t z = 0; !rc && z < SWFS_TEACH_NZONAL; z++) {
         if ((rc = calibration_knee(o, &bj[1 + z], &v[5 + z], &nv[5 + z], &zknee[z]))) break;
-        r->zonal_misfit[z] = profile_misfit(v[5 + z], nv[5 + z], v[0], nv[0]);
+        r->zonal_misfit[z] = swfs_teach_profile_misfit_(v[5 + z], nv[5 + z], v[0], nv[0]);
         if (r->zonal_misfit[z] < r->zonal_misfit[r->zonal_best]) r->zonal_best = z;
     }
     const size_t zb = r->zonal_best;
     r->zonal = !rc && r->zonal_misfit[zb] < r->misfit_modal;
     o->sim.ao_rcond = r->zonal ? swfs_teach_zonal_rcond[zb] : 0;
-    if (!rc) { /* the table and plot: the observation, the modal loops, the closest zonal one */
-        profile p[6] = {{v[0], nv[0], r->knee_obs, "observation", "observation"}};
+    if (!rc) { /* the table: the observation, the modal loops, each zonal one; the plot: the
+                  observation, the modal loops, the closest zonal one */
+        profile p[5 + SWFS_TEACH_NZONAL] = {{v[0], nv[0], r->knee_obs, "observation", "observation"}};
+        size_t plot[6], np = 0;
+        plot[np++] = 0;
         for (size_t c = 0; c < r->ncal; c++) {
             p[c + 1] = (profile){v[c + 1], nv[c + 1], r->cal_knee[c], "", ""};
             snprintf(p[c + 1].col, sizeof p[c + 1].col, "loop_%zu", r->cal_modes[c]);
             snprintf(p[c + 1].label, sizeof p[c + 1].label, "loop of %zu modes", r->cal_modes[c]);
+            plot[np++] = c + 1;
         }
-        profile *pz = &p[1 + r->ncal];
-        *pz = (profile){v[5 + zb], nv[5 + zb], zknee[zb], "", ""};
-        snprintf(pz->col, sizeof pz->col, "zonal_%g", swfs_teach_zonal_rcond[zb]);
-        snprintf(pz->label, sizeof pz->label, "zonal loop (ao_rcond %g)", swfs_teach_zonal_rcond[zb]);
-        rc = write_profiles(o->work, p, r->ncal + 2);
+        for (size_t z = 0; z < SWFS_TEACH_NZONAL; z++) {
+            profile *pz = &p[1 + r->ncal + z];
+            *pz = (profile){v[5 + z], nv[5 + z], zknee[z], "", ""};
+            snprintf(pz->col, sizeof pz->col, "zonal_%g", swfs_teach_zonal_rcond[z]);
+            snprintf(pz->label, sizeof pz->label, "zonal loop (ao_rcond %g)", swfs_teach_zonal_rcond[z]);
+        }
+        plot[np++] = 1 + r->ncal + zb;
+        rc = write_profiles(o->work, p, 1 + r->ncal + SWFS_TEACH_NZONAL, plot, np);
     }
     for (size_t c = 0; c < 5 + SWFS_TEACH_NZONAL; c++) free(v[c]);
     return rc;
