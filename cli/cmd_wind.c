@@ -32,9 +32,11 @@ static const char *usage_text =
     "time-series simulator's layer_dir]. Exit 0 also when no lag resolves a displacement (a\n"
     "layer too slow for the series, or no frozen flow): it says so.\n"
     "Then further layers: the maps over the whole grid at lags of 1, 2, 3, 4, 6, 8, ... frames\n"
-    "are summed along every candidate velocity's track (the tracked layer's left out); a track\n"
-    "that stands more than twice the expected noise maximum out of the candidates' scatter is\n"
-    "a layer (\"layer N: ... m/s toward ... deg\"), and the search repeats without it.\n";
+    "are summed along every candidate velocity's track over three lags or more (the tracked\n"
+    "layer's left out); a track that stands more than twice the expected noise maximum out of\n"
+    "the candidates' scatter is a layer (\"layer N: ... m/s toward ... deg\"), and the search\n"
+    "repeats without it. A tracked layer whose own track stands below that, where a further\n"
+    "one stands above it, is left out of the layers.\n";
 
 int swfs_cmd_wind(int argc, char **argv)
 {
@@ -84,8 +86,11 @@ int swfs_cmd_wind(int argc, char **argv)
         for (size_t k = 0; k < e->nlayers; k++) {
             const swfs_wind_layer *L = &e->layer[k];
             printf("layer %zu: %.2f m/s toward %.1f deg, correlation %.3f along %zu lags, %.1f sd%s\n", k + 1, L->speed,
-                   L->direction, L->corr, L->nlags, L->signif, k ? "" : " (the tracked layer)");
+                   L->direction, L->corr, L->nlags, L->signif, k || e->tracked_dropped ? "" : " (the tracked layer)");
         }
+        if (e->tracked_dropped)
+            printf("layers: the tracked layer's own track stands %.1f sd out, below the threshold where a further one "
+                   "stands above it: left out (its peaks were another layer's)\n", e->tracked_signif);
         if (isfinite(e->next_signif))
             printf("layers: %zu found; the best other track stands %.1f sd out\n", e->nlayers, e->next_signif);
         else

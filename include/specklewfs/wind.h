@@ -38,16 +38,24 @@
  * counted). A lag counts where u tau lies inside the map, at least 1.5 subapertures from
  * the centre and from every layer already found at that lag (the zero-lag correlation of
  * the slopes is non-zero out to the first ring of neighbours only: -0.2 at one
- * subaperture, |0.1| or less at two, over the matrix), and a score needs two lags. A
- * layer's pattern adds up along its own track; a static feature of the maps (the loop's
- * side lobes) adds at one lag per velocity, and noise at random. The candidates are
- * every map bin over every lag (u = bin / tau); the best is refined on a grid around it,
- * and counts as a layer when its score lies more than twice the expected maximum of
- * Gaussian noise over the map's bins, 2 sqrt(2 ln bins), robust standard deviations
- * (1.4826 x the median absolute deviation over all candidates) above the candidates'
- * median. Then that track is excluded too and the search repeats. Over the matrix's 24
- * runs the layers found stood 13-45 such deviations out, the best of the rest 3.5-5.7,
- * against thresholds of 6.8-7.7 (docs/telemetry.md). */
+ * subaperture, |0.1| or less at two, over the matrix), and a score needs three lags (a
+ * track counts at two only where it moves a third of the map per frame or more, so slowly
+ * that the longest lags alone take it off the centre, or alongside a layer found: on the
+ * matrix's zonal loops such tracks gave a layer at 1490 m/s and second copies of found
+ * ones). A layer's pattern adds up along its own track; a static feature of the maps (the
+ * loop's side lobes) adds at one lag per velocity, and noise at random. The tracked layer
+ * is left out both as tracked and as the stacking places it (refined on the grid below):
+ * the tracker's few lags can put it a few degrees off its stacked track, which would then
+ * stand out again. The candidates are every map bin over every lag (u = bin / tau); the
+ * best is refined on a grid around it, and counts as a layer when its score lies more than
+ * twice the expected maximum of Gaussian noise over the map's bins, 2 sqrt(2 ln bins),
+ * robust standard deviations (1.4826 x the median absolute deviation over all candidates)
+ * above the candidates' median. Then that track is excluded too and the search repeats.
+ * A tracked layer whose own track stands below that threshold where a further one stands
+ * above it is left out of layer[] (tracked_dropped): its peaks were another layer's. Over
+ * the matrix's 48 loops (modal and zonal, two seeds) the layers found stood 8-93 such
+ * deviations out, the best of the rest 3.3-7.2, against thresholds of 6.8-7.7
+ * (docs/telemetry.md). */
 #ifndef SWFS_WIND_H
 #define SWFS_WIND_H
 
@@ -88,13 +96,17 @@ typedef struct swfs_wind_estimate {
     size_t nvalid;                  /* subapertures used */
     size_t radius;                  /* the correlation map's half width [subapertures] */
     /* Every layer found: layer[0] the tracked one (vx, vy as above, its stacked score for
-     * comparison), layer[1..nlayers) the further ones, in the order found (wind.h). 0 when
-     * none was tracked. */
+     * comparison), layer[1..nlayers) the further ones, in the order found (wind.h); without
+     * the tracked one where tracked_dropped. 0 when none was tracked. */
     size_t nlayers;
     swfs_wind_layer layer[SWFS_WIND_MAXLAYERS];
     double threshold;               /* the detection threshold [robust sd] */
     double next_signif;             /* the best candidate not taken as a layer [robust sd] */
     size_t nstack;                  /* lags of the further layers' search */
+    double tracked_signif;          /* the tracked layer's standing [robust sd] (NAN: not scored) */
+    int tracked_dropped;            /* 1: it stood below the threshold where a further layer stood
+                                       above it, and layer[] holds the further ones only (vx, vy,
+                                       speed, direction stay the tracker's) */
 } swfs_wind_estimate;
 
 /* slopes: nframes rows of nslopes, either the full layout (2 nsub^2: x of every subaperture

@@ -208,7 +208,7 @@ swfs_wind_estimate = _s("swfs_wind_estimate", [
     ("found", c_int), ("vx", c_dbl), ("vy", c_dbl), ("speed", c_dbl), ("direction", c_dbl), ("nused", c_size),
     ("nlags", c_size), ("lag", swfs_wind_lag * WIND_MAXLAGS), ("nvalid", c_size), ("radius", c_size),
     ("nlayers", c_size), ("layer", swfs_wind_layer * WIND_MAXLAYERS), ("threshold", c_dbl), ("next_signif", c_dbl),
-    ("nstack", c_size)])
+    ("nstack", c_size), ("tracked_signif", c_dbl), ("tracked_dropped", c_int)])
 SIM_MAX_ZERNIKE = 64
 swfs_sim_params = _s("swfs_sim_params", [
     ("screen", swfs_screen_params), ("nscreens", c_int), ("teldiam", c_dbl), ("pupn", c_long), ("pupdx", c_dbl),

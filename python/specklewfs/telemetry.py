@@ -242,7 +242,9 @@ def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
     tracked one first, then those the stacking of the maps found (wind.h), each a dict of vx,
     vy, speed, direction, corr (the mean correlation along its track), signif (robust standard
     deviations above the candidates' median) and nlags; threshold: the significance a layer
-    needs; next_signif: the best track not taken (NaN when none was scored)."""
+    needs; next_signif: the best track not taken (NaN when none was scored); tracked_signif: the
+    tracked layer's own standing, and tracked_dropped: True where it stood below the threshold
+    while a further layer stood above it (then layers holds the further ones only)."""
     nsub = count(nsub, "wind_from_slopes: nsub", 1, 100000)
     s = as_array(slopes, "slopes", np.float64, ndim=2)
     v = None if valid is None else as_array(valid, "valid", np.uint8, shape=(nsub, nsub))
@@ -256,7 +258,8 @@ def wind_from_slopes(slopes, nsub, pitch, rate, valid=None):
                    nlags=L.nlags) for L in e.layer[:e.nlayers]]
     return dict(found=bool(e.found), vx=e.vx, vy=e.vy, speed=e.speed, direction=e.direction, nused=e.nused,
                 nvalid=e.nvalid, radius=e.radius, lags=lags, layers=layers, threshold=e.threshold,
-                next_signif=e.next_signif, nstack=e.nstack)
+                next_signif=e.next_signif, nstack=e.nstack, tracked_signif=e.tracked_signif,
+                tracked_dropped=bool(e.tracked_dropped))
 
 
 def vk_covariance(xy, L0):

@@ -33,7 +33,7 @@
 
 /* What the description's rule is: part of the loops' fingerprint (a change of it makes them
  * anew). */
-#define MEAN_TEACH_RULE "mean-teach 5: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
+#define MEAN_TEACH_RULE "mean-teach 6: sensor keys, noise, wind layers, knee, DM pitch from the files; r0 fitted to the power; " \
                         "more loops where the space-time loops' map's learning curve asks; twice the first where it does not fall"
 
 /* r0's fit: at most this many pairs of loops checked against the telemetry's power (then one

@@ -124,6 +124,7 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
 {
     if (!slopes || !out) return swfs_fail(SWFS_ERR_ARG, "wind: no slopes or no result");
     memset(out, 0, sizeof *out);
+    out->tracked_signif = NAN;
     if (nsub < 4) return swfs_fail(SWFS_ERR_VALUE, "wind: %zu x %zu subapertures; need at least 4 x 4", nsub, nsub);
     if (nframes < 64)
         return swfs_fail(SWFS_ERR_VALUE, "wind: %zu WFS frames; the displacement needs at least 64", nframes);

@@ -15,10 +15,18 @@
  * neighbours (wind.h). */
 #define STACK_EXCLUDE 1.5
 
+/* The lags a track must count to be scored (wind.h): a track counts at two lags only where
+ * it moves a third of the map or more per frame (lags 1 and 2 inside, 3 out), so slowly that
+ * only the longest lags take it off the centre, or alongside a layer already found; over
+ * the matrix's 48 loops (docs/telemetry.md, "Further layers") every two-lag layer was such
+ * a one, none a layer of the simulation. */
+#define STACK_MIN_LAGS 3
+
 typedef struct {
     const swfs_wind_maps_ *m;
     size_t minc;                           /* pairs a bin needs */
-    double ex[SWFS_WIND_MAXLAYERS][2];     /* the layers found [subapertures per frame] */
+    double ex[SWFS_WIND_MAXLAYERS + 1][2]; /* the layers found [subapertures per frame]; the tracked one
+                                              twice, as tracked and as stacked */
     size_t nex;
 } stack_ctx;
 
@@ -50,7 +58,7 @@ static double score_lag(const stack_ctx *s, size_t l, double px, double py)
 }
 
 /* The stacked score of velocity (ux, uy) [subapertures per frame]: the sum of the maps along
- * its track over sqrt(lags counted); NAN below two lags. *nl, *mean, *taumax: the lags
+ * its track over sqrt(lags counted); NAN below STACK_MIN_LAGS lags. *nl, *mean, *taumax: the lags
  * counted, the mean correlation, the longest lag counted. */
 static double score(const stack_ctx *s, double ux, double uy, size_t *nl, double *mean, size_t *taumax)
 {
@@ -68,7 +76,24 @@ static double score(const stack_ctx *s, double ux, double uy, size_t *nl, double
     if (nl) *nl = n;
     if (mean) *mean = n ? sum / (double)n : NAN;
     if (taumax) *taumax = tmax;
-    return n >= 2 ? sum / sqrt((double)n) : NAN;
+    return n >= STACK_MIN_LAGS ? sum / sqrt((double)n) : NAN;
+}
+
+/* The best score about (*ux, *uy) (its score *bs) on a grid of +-1/tau (tau the longest lag
+ * its track counts), then of +-0.1/tau, each of 21 x 21 points; moved to the best found. */
+static void refine(const stack_ctx *s, double *ux, double *uy, double *bs)
+{
+    size_t tmax;
+    score(s, *ux, *uy, NULL, NULL, &tmax);
+    const double t = (double)(tmax ? tmax : 1);
+    for (double h = 1.0 / t; h > 0.05 / t; h *= 0.1) {
+        const double cx = *ux, cy = *uy;
+        for (int j = -10; j <= 10; j++)
+            for (int i = -10; i <= 10; i++) {
+                const double v = score(s, cx + 0.1 * h * i, cy + 0.1 * h * j, NULL, NULL, NULL);
+                if (v > *bs) { *bs = v; *ux = cx + 0.1 * h * i; *uy = cy + 0.1 * h * j; }
+            }
+    }
 }
 
 /* The track's velocity to a fraction of a bin, as the tracker places its own: on each lag
@@ -197,23 +222,21 @@ int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate,
             e->layer[0].corr = mean;
             e->layer[0].signif = (v - med) / sd;
             e->layer[0].nlags = nl;
+            /* left out as tracked and as the stacking places it: the tracker fits its
+             * velocity from a few lags' peaks, and the stacked track a few degrees off it
+             * would otherwise stand out again as a layer of its own (docs/telemetry.md) */
+            double rx = u1x, ry = u1y, rs = v;
+            refine(&s, &rx, &ry, &rs);
+            polish(&s, &rx, &ry);
             s.ex[s.nex][0] = u1x;
             s.ex[s.nex][1] = u1y;
-            s.nex++;
+            s.ex[s.nex + 1][0] = rx;
+            s.ex[s.nex + 1][1] = ry;
+            s.nex += 2;
             continue; /* score again without the tracked layer's track */
         }
-        /* refine on a grid of +-1/tau (tau the longest lag the track counted), then +-0.1/tau */
-        size_t tmax;
-        score(&s, bx, by, NULL, NULL, &tmax);
         double ux = bx, uy = by;
-        for (double h = 1.0 / (double)(tmax ? tmax : 1); h > 0.05 / (double)(tmax ? tmax : 1); h *= 0.1) {
-            const double cx = ux, cy = uy;
-            for (int j = -10; j <= 10; j++)
-                for (int i = -10; i <= 10; i++) {
-                    const double v = score(&s, cx + 0.1 * h * i, cy + 0.1 * h * j, NULL, NULL, NULL);
-                    if (v > bs) { bs = v; ux = cx + 0.1 * h * i; uy = cy + 0.1 * h * j; }
-                }
-        }
+        refine(&s, &ux, &uy, &bs);
         const double z = (bs - med) / sd;
         if (!(z >= e->threshold)) { e->next_signif = z; break; }
         polish(&s, &ux, &uy);
@@ -226,5 +249,13 @@ int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate,
         s.nex++;
     }
     free(cu);
+    /* A tracked layer that does not stand out of the candidates where a further one does: the
+     * tracker's peaks were another layer's or the loop's (docs/telemetry.md) */
+    e->tracked_signif = e->layer[0].signif;
+    if (e->nlayers > 1 && isfinite(e->layer[0].signif) && e->layer[0].signif < e->threshold) {
+        memmove(&e->layer[0], &e->layer[1], (e->nlayers - 1) * sizeof e->layer[0]);
+        e->nlayers--;
+        e->tracked_dropped = 1;
+    }
     return SWFS_OK;
 }
