@@ -18,7 +18,7 @@
 /* The lags a track must count to be scored (wind.h): a track counts at two lags only where
  * it moves a third of the map or more per frame (lags 1 and 2 inside, 3 out), so slowly that
  * only the longest lags take it off the centre, or alongside a layer already found; over
- * the matrix's 48 loops (docs/telemetry.md, "Further layers") every two-lag layer was such
+ * the matrix's 48 loops (docs/telemetry.md, "On zonal loops' slopes") every two-lag layer was such
  * a one, none a layer of the simulation. */
 #define STACK_MIN_LAGS 3
 
