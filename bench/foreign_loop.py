@@ -198,7 +198,9 @@ def main():
     rate = 900.0
     lam_wfs, lam_sci = 0.7e-6, args.lam_sci
     r0, l0 = 0.14, 25.0
-    layers = [(0.6, 9.0, 30.0), (0.4, 17.0, 250.0)]  # share, m/s, direction [deg]
+    # share, m/s, direction [deg] of the pupil's window over the screen: the turbulence moves
+    # across the pupil the other way (toward direction + 180 deg, what `specklewfs wind` reports)
+    layers = [(0.6, 9.0, 30.0), (0.4, 17.0, 250.0)]
     vib_amp, vib_freq = args.vib, 17.0  # lambda_sci / D, Hz
     gain, delay, coupling, rcond = 0.4, args.delay, 0.15, 0.03
     photons, wfs_rn = args.photons, 0.5
