@@ -196,7 +196,7 @@ mkdir -p "$D/shm"
     --coef-scale 2e-6 --batch 8 --max-wait 60 --idle-exit 0.5 -o "$D/halo_live.fits" > "$D/live.log" 2>&1 &
 live_pid=$!
 "$B" replay --shm-dir "$D/shm" --wfs-name w --camera-name c --timing "$D/timing_modal.txt" --science "$D/science.fits" \
-    --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay.log" 2>&1 || { cat "$D/replay.log"; fail "replay"; }
+    --wait-reader 30 --depth 256 --remove --wfs-rate 1000 > "$D/replay.log" 2>&1 || { cat "$D/replay.log"; fail "replay"; }
 wait "$live_pid" || { cat "$D/live.log"; fail "live --basis"; }
 grep -q "halo_live.fits: 180 camera frames used" "$D/live.log" || { cat "$D/live.log"; fail "live: frames"; }
 "$B" pupil "$D/halo_live.fits" -o "$D/pupil_live.fits" --truth "$S/truth.fits" > "$D/pupil_live.log" || fail "pupil"

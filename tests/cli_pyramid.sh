@@ -232,7 +232,7 @@ live_replay() {
         --max-wait 60 --idle-exit 0.5 -o "$D/$tag.fits" > "$D/$tag.log" 2>&1 &
     local pid=$!
     "$B" replay --shm-dir "$D/shm" --wfs-name "w_$tag" --camera-name "c_$tag" --timing "$D/timing.txt" \
-        --science "$D/science.fits" --wait-reader 30 --depth 64 --remove --wfs-rate 1000 > "$D/replay_$tag.log" 2>&1 \
+        --science "$D/science.fits" --wait-reader 30 --depth 256 --remove --wfs-rate 1000 > "$D/replay_$tag.log" 2>&1 \
         || { cat "$D/replay_$tag.log"; fail "replay ($tag)"; }
     wait "$pid" || { cat "$D/$tag.log"; fail "live $*"; }
     grep -q "$tag.fits: $nsci camera frames used" "$D/$tag.log" || { cat "$D/$tag.log"; fail "live $*: not all $nsci frames"; }
