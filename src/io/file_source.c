@@ -115,9 +115,12 @@ int swfs_telemetry_read(const char *path, size_t nslopes, swfs_real **out, doubl
     if (!rc) rc = swfs_fits_in_key_double_opt(f, "WFSRATE", &r, &found);
     if (!rc) rc = swfs_fits_in_read_real_all(f, out);
     swfs_fits_in_close(f);
-    if (!rc && ((*out)->nz != 1 || (nslopes && (*out)->nx != nslopes)))
+    if (!rc && nslopes && ((*out)->nz != 1 || (*out)->nx != nslopes))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected %zu slopes per frame (the "
                        "reconstructor's width) x WFS frames", path, (*out)->nx, (*out)->ny, (*out)->nz, nslopes);
+    else if (!rc && (*out)->nz != 1)
+        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: telemetry is %zux%zux%zu; expected a 2-D image of slopes per frame x WFS "
+                       "frames", path, (*out)->nx, (*out)->ny, (*out)->nz);
     if (!rc) rc = swfs_telemetry_check_values(path, *out);
     if (rc) {
         swfs_real_free(*out);

@@ -70,22 +70,15 @@ static int load_file(work *w, const char *name, size_t *fi)
     swfs_real *s = NULL;
     if (!rc && access(path, F_OK) != 0)
         rc = swfs_fail(SWFS_ERR_IO, "%s: no such telemetry file (%s)", path, strerror(errno));
-    if (!rc) rc = swfs_fits_read_real(path, NULL, &s, NULL);
+    double rate = 0; /* WFSRATE (0: none), for the least ratio from the camera's EXPTIME */
+    if (!rc) rc = swfs_telemetry_read(path, 0, &s, &rate);
     if (rc) return rc;
+    if (!(w->wfs_rate > 0)) w->wfs_rate = rate;
     const int lin = w->o->lin.basis != NULL;
     if (s->nz != 1 || (!lin && s->nx % 2) || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %s must be a 2-D image %s x N_WFS, got %zux%zux%zu", path,
                        lin ? "telemetry" : "slopes", lin ? (w->nwfs_slopes ? "NVALUES (the same in every file)" : "NVALUES")
                        : (w->nwfs_slopes ? "NSLOPES (even, the same in every file)" : "NSLOPES (even)"), s->nx, s->ny, s->nz);
-    if (!rc) rc = swfs_telemetry_check_values(path, s);
-    if (!rc && !(w->wfs_rate > 0)) { /* the frame rate, for the least ratio from the camera's EXPTIME */
-        swfs_fits_in *h = NULL;
-        int found = 0;
-        double rate = 0;
-        if (!(rc = swfs_fits_in_open(&h, path, NULL))) rc = swfs_fits_in_key_double_opt(h, "WFSRATE", &rate, &found);
-        swfs_fits_in_close(h);
-        if (!rc && found && rate > 0 && isfinite(rate)) w->wfs_rate = rate;
-    }
     slopes_file *f = &w->files[*fi];
     if (!rc && (!(f->mx = malloc(s->ny * sizeof(double))) || !(f->my = malloc(s->ny * sizeof(double))))) {
         free(f->mx);
