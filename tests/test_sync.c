@@ -342,8 +342,36 @@ static void test_boundary(void **state)
     print_message("white noise at %zu cuts: %zu called contiguous, %zu not\n", cuts, yes, no);
     assert_int_equal(yes, 0);
     assert_true(no <= cuts / 50);
+    /* The WFS noise twice the one-frame change (per value): one step against one over two
+     * frames cannot tell most cuts; the means of a few frames either side can (the second
+     * stage), and a lost frame is called contiguous no more often than before. */
+    enum { NW = 1024 };
+    double *w = malloc((size_t)N * NW * sizeof *w);
+    make_ar(w, N, NW, rho, 2 * step, &rng);
+    size_t first = 0, lost_yes = 0, lost_no = 0;
+    yes = no = cuts = 0;
+    for (size_t c = K; c + 1 + K <= N; c += 3, cuts++) {
+        assert_ok(swfs_sync_boundary_check(w + (c - K) * NW, K, w + c * NW, K, NW, &b));
+        yes += b.verdict > 0;
+        no += b.verdict < 0;
+        first += b.verdict > 0 && !b.window;
+        if (b.window) assert_true(b.p_lost >= 0 && b.p_lost <= 1 && b.p_contiguous >= 0 && b.p_contiguous <= 1);
+        assert_ok(swfs_sync_boundary_check(w + (c - K) * NW, K, w + (c + 1) * NW, K, NW, &b));
+        lost_yes += b.verdict > 0;
+        lost_no += b.verdict < 0;
+    }
+    print_message("noisy, contiguous at %zu cuts: %zu called contiguous (%zu by one-frame steps), %zu not; "
+                  "one frame lost: %zu contiguous, %zu not\n", cuts, yes, first, no, lost_yes, lost_no);
+    assert_true(first <= cuts / 2);
+    assert_true(yes >= cuts * 8 / 10 && no <= cuts / 50);
+    assert_true(lost_yes <= cuts / 40);
+    assert_ok(swfs_sync_boundary_check(w + (size_t)(CUT - K) * NW, K, w + (size_t)CUT * NW, K, NW, &b));
+    print_message("noisy cut at %d: window %zu, q_m %.4g, P(lost <= q_m) %.3g, P(contiguous >= q_m) %.3g: %+d\n", CUT,
+                  b.window, b.q_window, b.p_lost, b.p_contiguous, b.verdict);
+    free(w);
     assert_ok(swfs_sync_boundary_check(v + (size_t)(CUT - 2) * NV, 2, v + (size_t)CUT * NV, K, NV, &b));
     assert_int_equal(b.verdict, 0);
+    assert_int_equal(b.window, 0);
     assert_int_equal(swfs_sync_boundary_check(NULL, 0, v, K, NV, &b), SWFS_ERR_ARG);
     free(v);
     free(u);

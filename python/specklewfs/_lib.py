@@ -301,7 +301,9 @@ SYNC_RESULT_FIELDS = [("ratio", c_dbl), ("ratio_err", c_dbl), ("lag", c_dbl), ("
                       ("lag_min", c_dbl), ("lag_max", c_dbl), ("lag_moves", c_int)]
 swfs_sync_result = _s("swfs_sync_result", SYNC_RESULT_FIELDS)
 swfs_sync_boundary = _s("swfs_sync_boundary", [("verdict", c_int), ("q", c_dbl), ("q1_max", c_dbl),
-                                               ("q2_min", c_dbl), ("n1", c_size), ("n2", c_size)])
+                                               ("q2_min", c_dbl), ("n1", c_size), ("n2", c_size),
+                                               ("window", c_size), ("q_window", c_dbl), ("p_lost", c_dbl),
+                                               ("p_contiguous", c_dbl)])
 swfs_sync_gap = _s("swfs_sync_gap", [("lost", c_long), ("consistent", c_int), ("separable", c_int), ("q", c_dbl),
                                      ("qk_min", c_dbl), ("qk_max", c_dbl), ("qfar_min", c_dbl)])
 SYNC_EDGE_FRAMES = 128  # SWFS_SYNC_EDGE_FRAMES (sync.h)

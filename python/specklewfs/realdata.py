@@ -276,9 +276,11 @@ def boundary_check(tail, head):
     """Whether the telemetry in `head` (nhead, nvals) starts with the frame that follows the
     last of `tail` (ntail, nvals): `sync`'s own check of two telemetry files (sync.h
     swfs_sync_boundary_check; use the last and first SYNC_EDGE_FRAMES = 128 frames of two
-    files). The step across the boundary against the one- and two-frame steps beside it.
-    Returns verdict (+1 contiguous, -1 not, 0 the telemetry cannot tell), q, q1_max, q2_min,
-    n1, n2."""
+    files). The step across the boundary against the one- and two-frame steps beside it; where
+    that cannot tell, the step between means of `window` frames either side against the same
+    inside the edges, contiguous and over a lost frame. Returns verdict (+1 contiguous, -1 not,
+    0 the telemetry cannot tell), q, q1_max, q2_min, n1, n2, and of the second stage window
+    (0 where it did not run), q_window, p_lost, p_contiguous."""
     t, h = _edges(tail, head)
     b = _lib.swfs_sync_boundary()
     check(lib.swfs_sync_boundary_check(dptr(t), t.shape[0], dptr(h), h.shape[0], t.shape[1], ctypes.byref(b)),

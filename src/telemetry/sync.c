@@ -453,10 +453,106 @@ static size_t step_extreme(const double *v, size_t n, size_t nvals, size_t lag, 
     return m;
 }
 
+/* The windows of the check's second stage [frames] (sync.h), and the tail probability it calls
+ * a boundary by: 0.5 %, the first stage's wrong-call rate (docs/telemetry.md). */
+static const size_t boundary_windows[] = {1, 2, 3, 4, 6, 8, 12, 16};
+#define BOUNDARY_ALPHA 0.005
+
+/* Mean and variance of the squared norms |B - A|^2 inside n frames, A the mean of m frames and B
+ * the mean of the m frames that start `gap` frames after A's end, at every place the two fit
+ * (running sums: nvals values each in sa, sb). Adds to s[0..2] (count, sum, sum of squares). */
+static void window_steps(const double *v, size_t n, size_t nvals, size_t m, size_t gap, double *sa, double *sb,
+                         double s[3])
+{
+    if (n < 2 * m + gap) return;
+    memset(sa, 0, nvals * sizeof *sa);
+    memset(sb, 0, nvals * sizeof *sb);
+    for (size_t k = 0; k < m; k++)
+        for (size_t i = 0; i < nvals; i++) {
+            sa[i] += v[k * nvals + i];
+            sb[i] += v[(m + gap + k) * nvals + i];
+        }
+    for (size_t t = 0;; t++) { /* A = frames [t, t + m), B = [t + m + gap, t + 2m + gap) */
+        double q = 0;
+        for (size_t i = 0; i < nvals; i++) q += (sb[i] - sa[i]) * (sb[i] - sa[i]);
+        q /= (double)(m * m);
+        s[0] += 1;
+        s[1] += q;
+        s[2] += q * q;
+        if (t + 2 * m + gap >= n) break;
+        const double *a0 = v + t * nvals, *a1 = v + (t + m) * nvals, *b0 = v + (t + m + gap) * nvals,
+                     *b1 = v + (t + 2 * m + gap) * nvals;
+        for (size_t i = 0; i < nvals; i++) {
+            sa[i] += a1[i] - a0[i];
+            sb[i] += b1[i] - b0[i];
+        }
+    }
+}
+
+/* z of x under a scaled chi-square of mean mu and variance var (Wilson-Hilferty). */
+static double wh_z(double x, double mu, double var)
+{
+    const double k = 2 * mu * mu / var, c = 2 / (9 * k);
+    return (cbrt(x / mu) - (1 - c)) / sqrt(c);
+}
+
+/* The second stage of swfs_sync_boundary_check (sync.h): window means of m frames either side
+ * of the boundary, m the window that best parts the contiguous steps from those over a lost
+ * frame inside the edges; contiguous when q_m is in the contiguous steps' bulk and below
+ * what a lost frame makes at BOUNDARY_ALPHA. */
+static int boundary_windowed(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
+                             swfs_sync_boundary *out)
+{
+    double *sa = malloc(2 * nvals * sizeof *sa);
+    if (!sa) return swfs_fail(SWFS_ERR_NOMEM, "sync: out of memory for a boundary check of %zu values", nvals);
+    double *sb = sa + nvals, best = -INFINITY, bc[2] = {0, 0}, bg[2] = {0, 0};
+    size_t bm = 0;
+    for (size_t w = 0; w < sizeof boundary_windows / sizeof *boundary_windows; w++) {
+        const size_t m = boundary_windows[w];
+        double c[3] = {0, 0, 0}, g[3] = {0, 0, 0};
+        window_steps(tail, ntail, nvals, m, 0, sa, sb, c);
+        window_steps(head, nhead, nvals, m, 0, sa, sb, c);
+        window_steps(tail, ntail, nvals, m, 1, sa, sb, g);
+        window_steps(head, nhead, nvals, m, 1, sa, sb, g);
+        if (16 * m > ntail || 16 * m > nhead) continue; /* fewer than 16 disjoint windows a side */
+        const double mc = c[1] / c[0], vc = c[2] / c[0] - mc * mc, mg = g[1] / g[0], vg = g[2] / g[0] - mg * mg;
+        if (!(mc > 0) || !(mg > 0) || !(vc > 0) || !(vg > 0)) continue;
+        const double d = -wh_z(mc, mg, vg); /* the contiguous steps' mean, in sd of the lost frame's */
+        if (d > best) {
+            best = d;
+            bm = m;
+            bc[0] = mc, bc[1] = vc, bg[0] = mg, bg[1] = vg;
+        }
+    }
+    /* only where the data part the two kinds at all: the contiguous steps' mean itself beyond
+     * what a lost frame makes at BOUNDARY_ALPHA (white noise, where a step over one frame is
+     * one over two, called 2 of 115 cuts contiguous without this) */
+    if (bm && 0.5 * erfc(best / sqrt(2.0)) < BOUNDARY_ALPHA) {
+        double q = 0;
+        for (size_t i = 0; i < nvals; i++) {
+            double a = 0, b = 0;
+            for (size_t k = 0; k < bm; k++) {
+                a += tail[(ntail - bm + k) * nvals + i];
+                b += head[k * nvals + i];
+            }
+            q += (b - a) * (b - a);
+        }
+        q /= (double)(bm * bm);
+        out->window = bm;
+        out->q_window = q;
+        out->p_lost = 0.5 * erfc(-wh_z(q, bg[0], bg[1]) / sqrt(2.0)); /* P(a lost frame's step <= q) */
+        out->p_contiguous = 0.5 * erfc(wh_z(q, bc[0], bc[1]) / sqrt(2.0)); /* P(a contiguous step >= q) */
+        if (out->p_lost < BOUNDARY_ALPHA && out->p_contiguous >= BOUNDARY_ALPHA) out->verdict = 1;
+    }
+    free(sa);
+    return SWFS_OK;
+}
+
 int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *head, size_t nhead, size_t nvals,
                              swfs_sync_boundary *out)
 {
     memset(out, 0, sizeof *out);
+    out->q_window = out->p_lost = out->p_contiguous = NAN;
     if (!tail || !head || !ntail || !nhead || !nvals)
         return swfs_fail(SWFS_ERR_ARG, "sync: boundary check without frames on both sides");
     const double *a = tail + (ntail - 1) * nvals;
@@ -474,6 +570,7 @@ int swfs_sync_boundary_check(const double *tail, size_t ntail, const double *hea
     if (q == 0) out->verdict = out->q1_max > 0 ? -1 : 0; /* a frame repeated, unless nothing moves */
     else if (q < out->q2_min && q <= out->q1_max) out->verdict = 1;
     else if (q > out->q1_max && q >= out->q2_min) out->verdict = -1;
+    else return boundary_windowed(tail, ntail, head, nhead, nvals, out);
     return SWFS_OK;
 }
 
