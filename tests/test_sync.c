@@ -163,13 +163,16 @@ static void test_continuation(void **state)
     assert_int_equal(cc.continues, 1);
     assert_true(fabs(cc.offset) < 0.2);
     assert_true(cc.corr_x > 0.9 && cc.corr_y > 0.9);
+    assert_int_equal(cc.off_significant, 0); /* where the fit's lag puts it */
     /* LOST frames between the files: the next file starts LOST frames later in the series. */
     part.mx = mx + NWFS + LOST;
     part.my = my + NWFS + LOST;
     assert_ok(swfs_sync_continuation_check(&part, &fit, &p, &cc));
-    print_message("%d lost: offset %+.3f\n", LOST, cc.offset);
+    print_message("%d lost: offset %+.3f, corr %.3f %.3f there, %.3f %.3f at the fit's lag\n", LOST, cc.offset,
+                  cc.corr_x, cc.corr_y, cc.corr_x0, cc.corr_y0);
     assert_int_equal(cc.continues, 0);
     assert_close(cc.offset, LOST, 0.3);
+    assert_int_equal(cc.off_significant, 1); /* the camera tells it from contiguous */
     /* Other data: a file from elsewhere in the series. */
     part.mx = mx + 2 * NWFS;
     part.my = my + 2 * NWFS;

@@ -110,6 +110,12 @@ typedef struct swfs_sync_continuation {
     double corr_x, corr_y;  /* the fit's pairing's correlations (signs applied) at the best lag */
     size_t nexp;            /* exposures of the part inside the file at the best lag */
     int significant;        /* both correlations positive and together 5 sigma, whatever the offset */
+    double corr_x0, corr_y0; /* the same where the fit's lag places the part (offset 0) */
+    int off_significant;    /* the best lag's correlations above those at offset 0 by 5 sigma together
+                               ((dz_x + dz_y) / 2 over the part's effective exposures, dz the rise in
+                               Fisher z; each dz of variance 2 / (ne - 3), the two placements taken
+                               as independent samples, which is the cautious side): the camera
+                               tells the part's lag from the fit's, not just prefers it */
 } swfs_sync_continuation;
 
 int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_result *fit, const swfs_sync_params *p,

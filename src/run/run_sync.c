@@ -310,9 +310,12 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
  *   slack > 0 widens it by the drift an uncertain ratio makes over the exposures in between.
  * - swfs_sync_boundary_check on the telemetry across the boundary. Where it says contiguous,
  *   the part joins unless the camera contradicts it: a significant best lag max(1, tol) frames
- *   or more from the fit's. A part of 25 exposures measures its lag to a few tenths of a frame
- *   only (contiguous files were refused at -0.66 and -0.74: docs/telemetry.md, t16-f250), and
- *   one of 5 exposures is not significant at all. Where the telemetry says not contiguous, the
+ *   or more from the fit's, whose correlations stand 5 sigma above those where the fit's lag
+ *   puts the part (off_significant: on centre-of-gravity slopes the tilt's correlation is a
+ *   flat ridge along lag, and a contiguous part's best lag lay 1.15 frames off at correlations
+ *   0.90 / 0.22 against 0.93 / 0.18 in place; docs/telemetry.md). A part of 25 exposures
+ *   measures its lag to a few tenths of a frame only (contiguous files were refused at -0.66
+ *   and -0.74: docs/telemetry.md, t16-f250), and one of 5 exposures is not significant at all. Where the telemetry says not contiguous, the
  *   part is refused, unless frames were lost or repeated there by a count the camera and the
  *   telemetry both show (below): then it is placed that many frames off. Where the telemetry
  *   cannot tell, the camera's rule alone decides. */
@@ -352,7 +355,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
             swfs_sync_boundary bd;
             if ((rc = boundary(w, dir < 0 ? fi : cur, dir < 0 ? cur : fi, &bd))) break;
             const double off = fabs(sg.cc.offset);
-            int ok = bd.verdict > 0 ? !(sg.cc.significant && !(off < fmax(1.0, tol)))
+            int ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
                                     : bd.verdict == 0 && sg.cc.significant && off < tol;
             if (bd.verdict < 0 && sg.cc.significant) {
                 /* Not contiguous: the camera counts the frames lost (or repeated) between the

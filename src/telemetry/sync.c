@@ -433,6 +433,15 @@ int swfs_sync_continuation_check(const swfs_sync_cube *part, const swfs_sync_res
                      ne = share * (double)out->nexp, zs = sqrt(ne > 3 ? ne - 3 : 0);
         const double zx = atanh(fmin(out->corr_x, 1 - 1e-12)) * zs, zy = atanh(fmin(out->corr_y, 1 - 1e-12)) * zs;
         out->significant = out->corr_x > 0 && out->corr_y > 0 && (zx + zy) / sqrt(2.0) > 5;
+        /* Whether the camera tells the best lag from the fit's at all: where the tilt's
+         * correlation with the track is a flat ridge along lag (centre-of-gravity slopes of a
+         * large residual: flat within 0.005 over 2 frames, docs/telemetry.md), a part's best
+         * lag wanders a frame or two from where contiguous files put it. */
+        paired_corr(&pc, fit, fit->lag, &out->corr_x0, &out->corr_y0);
+        const double c0x = fmin(fmax(out->corr_x0, -1 + 1e-12), 1 - 1e-12),
+                     c0y = fmin(fmax(out->corr_y0, -1 + 1e-12), 1 - 1e-12);
+        const double dz = zx + zy - (atanh(c0x) + atanh(c0y)) * zs; /* sum of the two rises, each var 2 */
+        out->off_significant = dz / 2 > 5;
         out->continues = out->significant && fabs(out->offset) < 0.5;
     }
     free(pc.Cx);
