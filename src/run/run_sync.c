@@ -315,7 +315,8 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
  *   flat ridge along lag, and a contiguous part's best lag lay 1.15 frames off at correlations
  *   0.90 / 0.22 against 0.93 / 0.18 in place; docs/telemetry.md). A part of 25 exposures
  *   measures its lag to a few tenths of a frame only (contiguous files were refused at -0.66
- *   and -0.74: docs/telemetry.md, t16-f250), and one of 5 exposures is not significant at all. Where the telemetry says not contiguous, the
+ *   and -0.74: docs/telemetry.md, t16-f250), and one of 5 exposures is not significant at all.
+ *   Where the telemetry says not contiguous, the
  *   part is refused, unless frames were lost or repeated there by a count the camera and the
  *   telemetry both show (below): then it is placed that many frames off. Where the telemetry
  *   cannot tell, the camera's rule alone decides. */

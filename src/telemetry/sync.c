@@ -518,12 +518,12 @@ static int boundary_windowed(const double *tail, size_t ntail, const double *hea
     size_t bm = 0;
     for (size_t w = 0; w < sizeof boundary_windows / sizeof *boundary_windows; w++) {
         const size_t m = boundary_windows[w];
+        if (16 * m > ntail || 16 * m > nhead) continue; /* fewer than 16 disjoint windows a side */
         double c[3] = {0, 0, 0}, g[3] = {0, 0, 0};
         window_steps(tail, ntail, nvals, m, 0, sa, sb, c);
         window_steps(head, nhead, nvals, m, 0, sa, sb, c);
         window_steps(tail, ntail, nvals, m, 1, sa, sb, g);
         window_steps(head, nhead, nvals, m, 1, sa, sb, g);
-        if (16 * m > ntail || 16 * m > nhead) continue; /* fewer than 16 disjoint windows a side */
         const double mc = c[1] / c[0], vc = c[2] / c[0] - mc * mc, mg = g[1] / g[0], vg = g[2] / g[0] - mg * mg;
         if (!(mc > 0) || !(mg > 0) || !(vc > 0) || !(vg > 0)) continue;
         const double d = -wh_z(mc, mg, vg); /* the contiguous steps' mean, in sd of the lost frame's */
