@@ -221,6 +221,8 @@ typedef struct swfs_timing_cube {
     int join_verdict;  /* the telemetry's own verdict on the boundary crossed (swfs_sync_boundary) */
     long join_lost;    /* WFS frames lost across it (< 0: repeated), counted by the camera where the
                           telemetry says the files do not continue each other; 0: contiguous */
+    size_t join_window; /* the verdict's window where the check's second stage gave it (the means of
+                           join_window frames either side); 0: the one-frame steps */
 } swfs_timing_cube;
 
 typedef struct swfs_timing {

@@ -251,6 +251,7 @@ typedef struct chain_seg {
     double s;
     swfs_sync_continuation cc;
     int verdict; /* the telemetry's verdict on the boundary into this segment's file */
+    size_t window; /* its second stage's window (swfs_sync_boundary), 0: none */
     long lost;   /* WFS frames lost across that boundary (< 0: repeated), the camera's count where
                     the telemetry says the files do not continue each other; 0: contiguous */
 } chain_seg;
@@ -295,7 +296,7 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
     const double st = sb + (double)j0 * R;
     const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
                                  w->files[fi].nwfs, st + fit->lag};
-    *sg = (chain_seg){fi, j0, j1, sb, {0}, 0, 0};
+    *sg = (chain_seg){fi, j0, j1, sb, {0}, 0, 0, 0};
     *rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg->cc);
     return 1;
 }
@@ -333,7 +334,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
         const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
         a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
     }
-    const chain_seg own = {fa, a0, a1, s, {0}, 0, 0};
+    const chain_seg own = {fa, a0, a1, s, {0}, 0, 0, 0};
     int rc = chain_push(ch, &own, 0);
     const double jown = 0.5 * (double)(a0 + a1);
     for (int dir = -1; !rc && dir <= 1; dir += 2) {
@@ -388,6 +389,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
                 if (rc) break;
             }
             sg.verdict = bd.verdict;
+            sg.window = bd.window;
             if (!ok) break;
             if ((rc = chain_push(ch, &sg, dir < 0))) break;
             cur = fi;
@@ -552,6 +554,7 @@ static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch,
                 row->join_corr_x = sg->cc.corr_x;
                 row->join_corr_y = sg->cc.corr_y;
                 row->join_verdict = sg->verdict;
+                row->join_window = sg->window;
                 row->join_lost = sg->lost;
                 r->ncontinued++;
             }

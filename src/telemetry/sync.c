@@ -755,11 +755,14 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
                     "WFS frames there, correlations %.3f %.3f\n", c->camera, c->first, c->first + c->nframes - 1,
                     labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated",
                     c->join_offset, c->join_corr_x, c->join_corr_y);
-        else if (c->joined)
+        else if (c->joined) {
+            char how[64] = "";
+            if (c->join_window && c->join_verdict > 0) snprintf(how, sizeof how, " (the means of %zu frames either side)", c->join_window);
             fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
-                    "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
+                    "frames, correlations %.3f %.3f; the telemetry across the boundary %s%s\n", c->camera, c->first,
                     c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y,
-                    c->join_verdict > 0 ? "continuous" : "undecided");
+                    c->join_verdict > 0 ? "continuous" : "undecided", how);
+        }
         if (c->status == SWFS_CUBE_MISSING)
             fprintf(f, "# %s frames %zu-%zu: the telemetry file cannot be read (sync's message says why)\n",
                     c->camera, c->first, c->first + c->nframes - 1);
