@@ -75,7 +75,8 @@ static int load_file(work *w, const char *name, size_t *fi)
     if (rc) return rc;
     if (!(w->wfs_rate > 0)) w->wfs_rate = rate;
     const int lin = w->o->lin.basis != NULL;
-    if (s->nz != 1 || (!lin && s->nx % 2) || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
+    /* the width (a 3-D file swfs_telemetry_read has refused) */
+    if ((!lin && s->nx % 2) || (w->nwfs_slopes && s->nx != w->nwfs_slopes))
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: %s must be a 2-D image %s x N_WFS, got %zux%zux%zu", path,
                        lin ? "telemetry" : "slopes", lin ? (w->nwfs_slopes ? "NVALUES (the same in every file)" : "NVALUES")
                        : (w->nwfs_slopes ? "NSLOPES (even, the same in every file)" : "NSLOPES (even)"), s->nx, s->ny, s->nz);
