@@ -2,9 +2,9 @@
 # The default path on an observation made without specklewfs (bench/foreign_loop.py: numpy and
 # astropy; a physical-optics Shack-Hartmann, a Fried-geometry DM of Gaussian influence
 # functions, a zonal or modal loop, a 16-bit camera; docs/telemetry.md, "Data made without
-# specklewfs"): reduce -> sync -> speckles (the default, with the observation's --valid map)
-# -> estimate -> pupil --truth, and the same frames with the ideal speckles; then how much of
-# the ideal speckles' variance the computed ones hold, ring by ring. About 3 minutes with
+# specklewfs"): reduce -> sync -> speckles (the default, with the observation's --valid map
+# and --pupil mask) -> estimate -> pupil --truth, and the same frames with the ideal speckles;
+# then how much of the ideal speckles' variance the computed ones hold, ring by ring. About 3 minutes with
 # --quick on 2 cores (the simulation 30 s), 6 without. Needs Debian's python3-numpy and
 # python3-astropy.
 #
@@ -29,12 +29,12 @@ step reduce "$W/reduce.log" "$X" reduce "$D"/raw_[0-9]*.fits --dark "$D/dark.fit
 step sync "$W/sync.log" "$X" sync "$W/science.fits" "$D/handshake.log" -o "$W/timing.txt"
 t0=$(date +%s)
 step speckles "$W/speckles.log" "$X" speckles "$W/timing.txt" --science "$W/science.fits" --actuators "$D/actuators.fits" \
-    --valid "$D/valid.fits" -o "$W/speckles.fits" --match "$W/science.fits" "$W/sci_m.fits"
+    --valid "$D/valid.fits" --pupil "$D/pupil.fits" -o "$W/speckles.fits" --match "$W/science.fits" "$W/sci_m.fits"
 t1=$(date +%s)
 step estimate "$W/estimate.log" "$X" estimate "$W/sci_m.fits" "$W/speckles.fits" -o "$W/halo.fits"
 step "estimate (ideal)" "$W/estimate_i.log" "$X" estimate "$W/science.fits" "$D/speckles_ideal.fits" -o "$W/halo_i.fits"
-step pupil "$W/pupil.log" "$X" pupil "$W/halo.fits" -o "$W/p_halo.fits" --truth "$D/truth.fits"
-step "pupil (ideal)" "$W/pupil_i.log" "$X" pupil "$W/halo_i.fits" -o "$W/p_halo_i.fits" --truth "$D/truth.fits"
+step pupil "$W/pupil.log" "$X" pupil "$W/halo.fits" -o "$W/p_halo.fits" --pupil "$D/pupil.fits" --truth "$D/truth.fits"
+step "pupil (ideal)" "$W/pupil_i.log" "$X" pupil "$W/halo_i.fits" -o "$W/p_halo_i.fits" --pupil "$D/pupil.fits" --truth "$D/truth.fits"
 "$PY" - "$D/foreign.json" "$W/timing.txt" <<'EOF'
 import json, sys
 info = json.load(open(sys.argv[1]))

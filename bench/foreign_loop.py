@@ -21,6 +21,7 @@ every model differs from the simulator it was developed with:
   removed, as `reduce` registers the frames), with its time mean as RESMEAN, and the NCP.
 
 usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--vib A]
+                       [--obscur F] [--spiders N] [--spider-width M] [--spider-angle DEG]
                        [--substeps N] [--delay N] [--quick] [--geometric] [--loop-geometric]
                        [--dump] [--train N]
        foreign_loop.py OUTDIR --rho WORKDIR   (how much of the ideal speckles' variance the
@@ -180,6 +181,10 @@ def main():
     ap.add_argument('--vib', type=float, default=0.3, help="the telescope's tip-tilt vibration at 17 Hz [lambda_sci / D]")
     ap.add_argument('--lam-sci', type=float, default=1.65e-6, help='the science wavelength [m]')
     ap.add_argument('--photons', type=float, default=600.0, help='photons per subaperture and WFS frame')
+    ap.add_argument('--obscur', type=float, default=0.14, help="the central obstruction [fraction of the diameter]")
+    ap.add_argument('--spiders', type=int, default=0, help='legs of the secondary\'s support, evenly spaced')
+    ap.add_argument('--spider-width', type=float, default=0.15, help="a leg's width [m]")
+    ap.add_argument('--spider-angle', type=float, default=45.0, help="the first leg's direction [deg from +x]")
     ap.add_argument('--dump', action='store_true', help='also keep the true residual and the slopes per WFS frame')
     ap.add_argument('--train', type=int, default=0, metavar='N',
                     help='only the dump of N WFS frames, no camera (implies --dump)')
@@ -192,7 +197,7 @@ def main():
     args.dump = args.dump or args.train > 0
 
     # --- the system (none of these values is one of specklewfs' configurations)
-    D, obscur, nsub, npx = 8.2, 0.14, args.nsub, 8
+    D, obscur, nsub, npx = 8.2, args.obscur, args.nsub, 8
     N = nsub * npx + 8  # pupil grid, a margin of half a subaperture each side
     dx = D / (nsub * npx)
     rate = 900.0
@@ -215,6 +220,10 @@ def main():
     xs, ys = np.meshgrid(xs1, xs1)
     r = np.hypot(xs, ys)
     mask = ((r <= D / 2) & (r >= obscur * D / 2)).astype(float)
+    for k in range(args.spiders):  # legs from the centre out, each a strip of the given width
+        t = math.radians(args.spider_angle) + 2 * math.pi * k / args.spiders
+        along, across = xs * math.cos(t) + ys * math.sin(t), -xs * math.sin(t) + ys * math.cos(t)
+        mask[(along > 0) & (np.abs(across) < args.spider_width / 2)] = 0.0
 
     # NCP: a power law between 1 and 10 cycles per D, 80 nm rms without piston, tip, tilt
     fq = np.fft.fftfreq(4 * N, dx) * D
@@ -432,7 +441,8 @@ def main():
         lags.append(math.floor(t0 + true_lag) - t0)
     info = dict(true_lags=lags, photons=photons, seed=args.seed, nsub=nsub, nvalid=nvalid, nact=nact, modes=nmodes, rate=rate,
                 ratio=ratio, lag=true_lag, layers=layers, r0=r0, vib=[vib_amp, vib_freq], ncp_rms=ncp_rms,
-                res_rms_ptt=res_rms, resmean_rms=rm_rms, wfs_frames=nwfs, cubes=ncubes, cube_frames=cube_frames)
+                res_rms_ptt=res_rms, resmean_rms=rm_rms, wfs_frames=nwfs, cubes=ncubes, cube_frames=cube_frames,
+                obscur=obscur, spiders=args.spiders, spider_width=args.spider_width)
     with open(os.path.join(args.out, 'foreign.json'), 'w') as f:
         json.dump(info, f, indent=1)
     print(f'foreign loop: {nsub} x {nsub} SH ({nvalid} valid), {nact} actuators, {nmodes} modes, '

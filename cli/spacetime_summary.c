@@ -157,6 +157,11 @@ void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, do
     if (!(r->curve_b > 0))
         fprintf(f, "no fall from %zu to %zu frames: the curve cannot tell whether more would help (the held-out "
                 "parts' scatter is larger than the fall)\n", r->curve_n[0], r->curve_n[1]);
+    else if (!swfs_learn_curve_falls(r))
+        fprintf(f, "a fall of %.2g %% in misfit^2 from %zu to %zu frames, within %.0f times its standard error from "
+                "the four held-out parts (%.2g %%): the curve cannot tell whether more would help\n",
+                100 * (r->curve_m2[0] - r->curve_m2[1]) / r->curve_m2[1], r->curve_n[0], r->curve_n[1],
+                SWFS_LEARN_CURVE_FALL_SE, 100 * r->curve_fall_se / r->curve_m2[1]);
     else if (isinf(r->curve_excess))
         fprintf(f, "steeper than a + b/n: more frames would still help (no bound)\n");
     else

@@ -234,6 +234,54 @@ static void test_learner_solve_without(void **state)
     free(z);
 }
 
+/* A held-out part in sub-parts (swfs_recon_learner_heldout_split): the map solved once from the
+ * other frames, its misfit on each sub-part as the map applied frame by frame gives it, their
+ * frames' weighted mean the part's misfit (swfs_recon_learner_heldout_on's); sub-parts of more
+ * frames than the part are refused. */
+static void test_learner_heldout_split(void **state)
+{
+    (void)state;
+    const size_t nr = 60, n1 = 25, n2 = 30;
+    double *s = NULL, *z = NULL;
+    draw_problem(29, nr + n1 + n2, &s, &z);
+    swfs_recon_learner *all = NULL, *part = NULL, *p1 = NULL, *p2 = NULL;
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &all));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &part));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &p1));
+    assert_ok(swfs_recon_learner_new(NS, NA, 1, &p2));
+    const double *s1 = s + nr * NS, *z1 = z + nr * NA, *s2 = s1 + n1 * NS, *z2 = z1 + n1 * NA;
+    assert_ok(swfs_recon_learner_add(all, s, z, nr + n1 + n2));
+    assert_ok(swfs_recon_learner_add(part, s1, z1, n1 + n2));
+    assert_ok(swfs_recon_learner_add(p1, s1, z1, n1));
+    assert_ok(swfs_recon_learner_add(p2, s2, z2, n2));
+    const swfs_recon_learner *subs[2] = {p1, p2};
+    double m = 0, t = 0, sc = 0, sub[2] = {0, 0}, mo = 0, to = 0, sco = 0;
+    assert_ok(swfs_recon_learner_heldout_split(all, part, subs, 2, SWFS_RECON_LEARN_RIDGE, NULL, &m, &t, &sc, sub));
+    assert_ok(swfs_recon_learner_heldout_on(all, part, SWFS_RECON_LEARN_RIDGE, NULL, &mo, &to, &sco));
+    swfs_recon *w = NULL;
+    assert_ok(swfs_recon_learner_solve_without(all, part, SWFS_RECON_LEARN_RIDGE, &w));
+    const double d1 = misfit2(w, s1, z1, n1), d2 = misfit2(w, s2, z2, n2);
+    printf("test_recon_learn: held out in two sub-parts: %.6g and %.6g (frame by frame %.6g, %.6g); the part %.6g, "
+           "its truth %.4g\n", sub[0], sub[1], d1, d2, m, t);
+    /* the sums' misfit is |z|^2 - 2 z.Ws + |Ws|^2 of a truth 3 decades above it: their rounding */
+    assert_close(sub[0], d1, 1e-5 * t);
+    assert_close(sub[1], d2, 1e-5 * t);
+    assert_true(fabs(sub[0] - sub[1]) > 1e-3 * m); /* two different numbers */
+    assert_close(m, ((double)n1 * sub[0] + (double)n2 * sub[1]) / (double)(n1 + n2), 1e-5 * t); /* the same rounding */
+    assert_true(m == mo && t == to && sc == sco);
+    const swfs_recon_learner *over[2] = {part, p1}; /* more frames than the part holds */
+    assert_int_equal(swfs_recon_learner_heldout_split(all, part, over, 2, SWFS_RECON_LEARN_RIDGE, NULL, &m, &t, NULL, sub),
+                     SWFS_ERR_ARG);
+    assert_true(isnan(sub[0]) && isnan(m));
+    swfs_recon_free(w);
+    swfs_recon_learner_free(all);
+    swfs_recon_learner_free(part);
+    swfs_recon_learner_free(p1);
+    swfs_recon_learner_free(p2);
+    free(s);
+    free(z);
+}
+
 static void test_learner_prior(void **state)
 {
     (void)state;
@@ -812,10 +860,10 @@ static void test_learning_curve(void **state)
     swfs_real_free(w1);
     for (int k = 0; k < 2; k++) {
         const swfs_learn_run_result *r = k ? &r4 : &r1;
-        printf("test_recon_learn: learning curve, frames held %d: misfit^2 %.4f at %zu, %.4f at %zu frames; a %.4f, "
-               "b %.1f (b/a %.1f); excess at %zu frames %.3f; %zu frames for 0.1\n", k ? HOLD : 1, r->curve_m2[0],
-               r->curve_n[0], r->curve_m2[1], r->curve_n[1], r->curve_a, r->curve_b, r->curve_b / r->curve_a,
-               r->info.nframes, r->curve_excess, r->curve_frames);
+        printf("test_recon_learn: learning curve, frames held %d: misfit^2 %.4f at %zu, %.4f at %zu frames (fall's "
+               "standard error %.4f); a %.4f, b %.1f (b/a %.1f); excess at %zu frames %.3f; %zu frames for 0.1\n",
+               k ? HOLD : 1, r->curve_m2[0], r->curve_n[0], r->curve_m2[1], r->curve_n[1], r->curve_fall_se, r->curve_a,
+               r->curve_b, r->curve_b / r->curve_a, r->info.nframes, r->curve_excess, r->curve_frames);
     }
     assert_int_equal(r1.curve_n[0], NDIR * CF / 2);
     assert_int_equal(r1.curve_n[1], NDIR * CF * 3 / 4);
@@ -823,6 +871,8 @@ static void test_learning_curve(void **state)
     assert_close(r1.curve_a, 1.0, 0.1);
     assert_true(r1.curve_b / r1.curve_a > 25 && r1.curve_b / r1.curve_a < 70);
     assert_true(r1.curve_frames < (size_t)(NDIR * CF)); /* enough already */
+    assert_true(isfinite(r1.curve_fall_se) && r1.curve_fall_se > 0);
+    assert_true(swfs_learn_curve_falls(&r1)); /* independent frames: the fall beyond the parts' scatter */
     assert_close(r1.curve_excess, r1.curve_b / (r1.curve_a * NDIR * CF), 1e-12);
     /* held frames: worth a quarter each */
     assert_true(r4.curve_b / r4.curve_a > 3 * r1.curve_b / r1.curve_a);
@@ -906,6 +956,7 @@ static void test_teach_more_loops(void **state)
     swfs_learn_run_result lr;
     memset(&lr, 0, sizeof lr);
     lr.info.nframes = 12000; /* 12 loops of 1000 frames */
+    lr.curve_fall_se = NAN;  /* the parts' scatter not measured: the fall's sign alone */
     int doubled = 0;
     assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12); /* no curve */
     lr.curve_n[0] = 6000; lr.curve_n[1] = 9000;
@@ -924,6 +975,22 @@ static void test_teach_more_loops(void **state)
     doubled = 0;
     assert_int_equal(swfs_teach_more_loops_(&lr, 30, 48, &doubled), 48); /* doubling capped */
     assert_int_equal(swfs_teach_more_loops_(&lr, 48, 48, &doubled), 48); /* at the budget */
+    /* a fall within twice its standard error from the parts' scatter: it cannot tell either,
+     * even where its a + b / n asks for nothing more (a fall of 0.23 % as a 14 x 14 zonal
+     * observation's first loops gave) */
+    lr.info.nframes = 12000;
+    lr.curve_m2[0] = 1.0023; lr.curve_m2[1] = 1.0;
+    lr.curve_b = 0.0023 / (1.0 / 6000 - 1.0 / 9000); lr.curve_a = 1.0 - lr.curve_b / 9000; lr.curve_frames = 420;
+    lr.curve_fall_se = 0.004;
+    assert_false(swfs_learn_curve_falls(&lr));
+    doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 24);
+    assert_int_equal(doubled, 1);
+    lr.curve_fall_se = 0.001; /* beyond twice it: enough, as its curve says */
+    assert_true(swfs_learn_curve_falls(&lr));
+    doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12);
+    assert_int_equal(doubled, 0);
 }
 
 int main(void)
@@ -931,6 +998,7 @@ int main(void)
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
                                        cmocka_unit_test(test_learner_prior),
                                        cmocka_unit_test(test_learner_solve_without),
+                                       cmocka_unit_test(test_learner_heldout_split),
                                        cmocka_unit_test(test_learner_grows),
                                        cmocka_unit_test(test_learner_modal),
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),

@@ -915,6 +915,12 @@ typedef struct swfs_learn_run_result {
      * leaves; wfs.h swfs_recon_learner_heldout_on). */
     size_t heldout_outputs;
     double heldout_scaled_rms;
+    /* With curve: the standard error of the curve's fall curve_m2[0] - curve_m2[1], from its four
+     * parts' own falls (each part's misfit under the map of two parts less that under the map
+     * of the other three: the same frames) and their scatter; NaN when not measured. A fall
+     * within twice it the curve cannot tell from the parts' scatter (teach then measures the
+     * curve again over twice the loops, as where it does not fall). Appended in 0.8.0. */
+    double curve_fall_se;
 } swfs_learn_run_result;
 
 /* The excess of a learned map's held-out misfit over unlimited data that is enough: 10 % of
@@ -922,6 +928,14 @@ typedef struct swfs_learn_run_result {
  * teach's floor on its loops; docs/telemetry.md, "Loops as long as the map's learning curve
  * asks"). */
 #define SWFS_LEARN_CURVE_EXCESS 0.1
+/* A learning curve tells its fall where the fall is more than this many standard errors
+ * (curve_fall_se): a one-sided test at about 93 % with the four parts' three degrees of
+ * freedom. */
+#define SWFS_LEARN_CURVE_FALL_SE 2.0
+/* Whether r's learning curve falls beyond its parts' scatter: measured, curve_b > 0 and, where
+ * curve_fall_se was measured, the fall more than SWFS_LEARN_CURVE_FALL_SE of it. Where it does
+ * not, the curve cannot tell whether more frames would help. */
+int swfs_learn_curve_falls(const swfs_learn_run_result *r);
 
 int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r);
 

@@ -309,6 +309,14 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
  * truth2. */
 int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                   const unsigned char *keep, double *misfit2, double *truth2, double *scaled2);
+/* The same check with the part's frames in sub-parts as well (subs: nsubs learners, each the
+ * sums of some of part's frames, together at most part's): sub_misfit2[k] the map's mean square
+ * misfit on subs[k] alone, over the same outputs. The map is solved once; a part dealt into
+ * data sets tells the held-out misfit of each (teach's learning curve pairs them). */
+int swfs_recon_learner_heldout_split(const swfs_recon_learner *all, const swfs_recon_learner *part,
+                                     const swfs_recon_learner *const *subs, size_t nsubs, double ridge,
+                                     const unsigned char *keep, double *misfit2, double *truth2, double *scaled2,
+                                     double *sub_misfit2);
 void swfs_recon_learner_reset(swfs_recon_learner *l); /* no frames, the shapes kept (and the prior) */
 /* A prior map w0 (nact x nslopes, the learner's shapes; NULL: none) that every later solve
  * shrinks toward: W = argmin sum |z - W s|^2 + lam |W - W0|^2, (G + lam I) A = H + lam A0,

@@ -337,7 +337,7 @@ swfs_learn_run_result = _s("swfs_learn_run_result", [
     ("curve_a", c_dbl),
     ("curve_b", c_dbl), ("curve_excess", c_dbl), ("curve_frames", c_size), ("curve_outputs", c_size),
     ("meanmiss_heldout", c_dbl), ("meanmiss_rms", c_dbl), ("meanmiss_set_rms", c_dbl), ("meanmiss_kept", c_int),
-    ("heldout_outputs", c_size), ("heldout_scaled_rms", c_dbl)])
+    ("heldout_outputs", c_size), ("heldout_scaled_rms", c_dbl), ("curve_fall_se", c_dbl)])
 swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("timing", c_str), ("science", c_str), ("actuators", c_str), ("out", c_str), ("recon", c_str), ("mask", c_str),
     ("write_recon", c_str), ("pipe", swfs_pipeline_options), ("mean_mode", c_int), ("wfs_hz", c_dbl),

@@ -240,7 +240,7 @@ def _curve_dict(r):
     if not r.curve_n[0]:
         return None
     return dict(n=(r.curve_n[0], r.curve_n[1]), misfit_rms=(math.sqrt(r.curve_m2[0]), math.sqrt(r.curve_m2[1])),
-                a=r.curve_a, b=r.curve_b, excess=r.curve_excess,
+                a=r.curve_a, b=r.curve_b, excess=r.curve_excess, fall_se=r.curve_fall_se,
                 frames=None if r.curve_frames == ctypes.c_size_t(-1).value else r.curve_frames,
                 nframes=r.info.nframes, outputs=r.curve_outputs)
 

@@ -144,6 +144,8 @@ static int write_recon(const swfs_learn_run_options *o, const char *path, const 
                                                   "misfit^2 excess at LRNFRAME, b/(aN) (-1: unbounded)");
         if (!rc) rc = swfs_fits_out_key_long(f, "LRNCFRM", r->curve_frames > (size_t)LONG_MAX ? -1 : (long)r->curve_frames,
                                              "frames for an excess of 0.1 (0 flat, -1 unbounded)");
+        if (!rc && isfinite(r->curve_fall_se))
+            rc = swfs_fits_out_key_double(f, "LRNCFSE", r->curve_fall_se, "[m^2] std error of LRNCM1^2 - LRNCM2^2");
     }
     if (!rc && !lag0 && isfinite(r->meanmiss_heldout)) {
         rc = swfs_fits_out_key_double(f, "LRNMMHO", r->meanmiss_heldout, "mean's miss, held out / its own (<1: kept)");
@@ -369,6 +371,7 @@ static int heldout(const swfs_learn_run_options *o, const swfs_recon_learner *al
  * c = 2..5 part c - 2 (a three-quarter map). */
 typedef struct curve_check {
     double md, td, sd; /* the held-out part's misfit, truth and scaled misfit (mean squares) */
+    double sub_md[2];  /* of a check holding out two parts: the misfit on each alone */
     size_t n;          /* its frames */
     int rc;
     char why[1024];
@@ -399,7 +402,10 @@ static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
             rc = swfs_recon_learner_merge(h, c->q[k < 2 ? k : k - 2]);
             if (!rc && k < 2) rc = swfs_recon_learner_merge(h, c->q[k + 2]);
             ck->n = rc ? 0 : swfs_recon_learner_frames(h);
-            if (!rc) rc = swfs_recon_learner_heldout_on(c->all, h, c->o->ridge, c->keep, &ck->md, &ck->td, &ck->sd);
+            /* a check of two parts tells each one's misfit too: the curve's fall part by part */
+            const swfs_recon_learner *subs[2] = {c->q[k], k < 2 ? c->q[k + 2] : NULL};
+            if (!rc) rc = swfs_recon_learner_heldout_split(c->all, h, subs, k < 2 ? 2 : 0, c->o->ridge, c->keep, &ck->md,
+                                                           &ck->td, &ck->sd, k < 2 ? ck->sub_md : NULL);
         }
         ck->rc = rc;
         if (rc) snprintf(ck->why, sizeof ck->why, "%s", swfs_last_error());
@@ -456,6 +462,14 @@ static int learning_curve(const swfs_learn_run_options *o, const swfs_recon_lear
         r->curve_s2[k] = s2[k] / ne[k];
         r->curve_n[k] = (size_t)llround(nt[k] / ne[k]);
     }
+    /* The fall m2[0] - m2[1] part by part: each part's misfit under the map of two parts (the
+     * check holding it out with the part two on) less that under the map of the other three,
+     * the same frames; their scatter over the four parts (loops dealt 3 and more to a part
+     * differ in their layers' mix) gives the fall's standard error. */
+    double d[4], dm = 0, dv = 0;
+    for (int p = 0; p < 4; p++) dm += (d[p] = c.ck[p % 2].sub_md[p / 2] - c.ck[2 + p].md) / 4.0;
+    for (int p = 0; p < 4; p++) dv += (d[p] - dm) * (d[p] - dm) / 3.0;
+    r->curve_fall_se = sqrt(dv / 4.0);
     const double n0 = (double)r->curve_n[0], n1 = (double)r->curve_n[1];
     if (!(n1 > n0)) return SWFS_OK;
     r->curve_b = (r->curve_m2[0] - r->curve_m2[1]) / (1.0 / n0 - 1.0 / n1);
@@ -472,6 +486,12 @@ static int learning_curve(const swfs_learn_run_options *o, const swfs_recon_lear
         r->curve_frames = SIZE_MAX;
     }
     return SWFS_OK;
+}
+
+int swfs_learn_curve_falls(const swfs_learn_run_result *r)
+{
+    if (!r->curve_n[0] || !(r->curve_b > 0)) return 0;
+    return !isfinite(r->curve_fall_se) || r->curve_m2[0] - r->curve_m2[1] > SWFS_LEARN_CURVE_FALL_SE * r->curve_fall_se;
 }
 
 /* The data sets' winds (those found: nwind) and slope correlations: their means and the
@@ -789,6 +809,7 @@ int swfs_learn_run(const swfs_learn_run_options *o, swfs_learn_run_result *r)
     memset(r, 0, sizeof *r);
     r->heldout_misfit_rms = r->heldout_truth_rms = r->heldout_worst = r->heldout_scaled_rms = NAN;
     r->curve_m2[0] = r->curve_m2[1] = r->curve_s2[0] = r->curve_s2[1] = r->curve_a = r->curve_b = r->curve_excess = NAN;
+    r->curve_fall_se = NAN;
     r->wind_vx = r->wind_vy = r->wind_spread = NAN;
     r->meanmiss_heldout = r->meanmiss_rms = r->meanmiss_set_rms = NAN;
     for (size_t k = 0; k < SWFS_RECON_MAXLAGS; k++) r->corr[k] = r->corr_spread[k] = NAN;

@@ -958,7 +958,7 @@ int swfs_teach_work_default(const char *out, char *work, size_t cap)
 size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled)
 {
     if (!have || max_loops <= have) return have;
-    const int flat = lr->curve_n[0] > 0 && !(lr->curve_b > 0);
+    const int flat = lr->curve_n[0] > 0 && !swfs_learn_curve_falls(lr);
     if (!(lr->curve_frames > lr->info.nframes) && !(flat && !*doubled)) return have;
     const double per = (double)lr->info.nframes / (double)have;
     const double want = flat ? 2.0 * (double)have : ceil((double)lr->curve_frames / per);

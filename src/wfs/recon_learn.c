@@ -588,16 +588,74 @@ int swfs_recon_learner_heldout(const swfs_recon_learner *all, const swfs_recon_l
     return swfs_recon_learner_heldout_on(all, part, ridge, NULL, misfit2, truth2, NULL);
 }
 
+/* On the sums s (with ms: s's positions in all's inputs): the misfit of the map A (nu inputs
+ * idx of all's, na outputs) over the outputs keep (NULL: all), as swfs_recon_learner_heldout_on
+ * defines them; Gp and C: nu x nu and nu x na of scratch. */
+static void misfit_on(const swfs_recon_learner *s, const size_t *ms, const size_t *idx, size_t nu, const double *A,
+                      const unsigned char *keep, double *Gp, double *C, double *misfit2, double *truth2, double *scaled2)
+{
+    const size_t na = s->nact;
+    /* On s's frames: sum |z - A^T s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), its sums. */
+    for (size_t i = 0; i < nu; i++)
+        for (size_t j = 0; j < nu; j++) {
+            const size_t p = ms[idx[i]], q = ms[idx[j]];
+            Gp[i * nu + j] = p == SIZE_MAX || q == SIZE_MAX ? 0.0 : s->G[MIN2(p, q) * s->nc + (p < q ? q : p)];
+        }
+    cblas_dsymm(CblasRowMajor, CblasLeft, CblasUpper, (int)nu, (int)na, 1.0, Gp, (int)nu, A, (int)na, 0.0, C, (int)na);
+    double cross = 0, quad = 0, zz = 0;
+    size_t nk = 0;
+    for (size_t a = 0; a < na; a++)
+        if (!keep || keep[a]) {
+            zz += s->zza[a];
+            nk++;
+        }
+    for (size_t i = 0; i < nu; i++) {
+        const size_t p = ms[idx[i]];
+        for (size_t a = 0; a < na; a++) {
+            if (keep && !keep[a]) continue;
+            cross += p == SIZE_MAX ? 0.0 : A[i * na + a] * s->H[p * na + a];
+            quad += A[i * na + a] * C[i * na + a];
+        }
+    }
+    const double n = (double)(s->nframes * (nk ? nk : 1));
+    *misfit2 = fmax(0.0, zz - 2 * cross + quad) / n;
+    if (truth2) *truth2 = zz / n;
+    /* scaled by the best single factor k = cross / quad: zz - cross^2 / quad */
+    if (scaled2) *scaled2 = quad > 0 ? fmax(0.0, zz - cross * cross / quad) / n : zz / n;
+}
+
 int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_recon_learner *part, double ridge,
                                   const unsigned char *keep, double *misfit2, double *truth2, double *scaled2)
 {
+    return swfs_recon_learner_heldout_split(all, part, NULL, 0, ridge, keep, misfit2, truth2, scaled2, NULL);
+}
+
+int swfs_recon_learner_heldout_split(const swfs_recon_learner *all, const swfs_recon_learner *part,
+                                     const swfs_recon_learner *const *subs, size_t nsubs, double ridge,
+                                     const unsigned char *keep, double *misfit2, double *truth2, double *scaled2,
+                                     double *sub_misfit2)
+{
     *misfit2 = *truth2 = NAN;
     if (scaled2) *scaled2 = NAN;
+    for (size_t k = 0; k < nsubs && sub_misfit2; k++) sub_misfit2[k] = NAN;
     const size_t ns = all->nslopes, na = all->nact;
     if (part->nslopes != ns || part->nact != na || part->nframes == 0 || part->nframes >= all->nframes)
         return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: a held-out part of %zu frames (%zu slopes, %zu "
                          "actuators) of sums over %zu frames (%zu, %zu)", part->nframes, part->nslopes, part->nact,
                          all->nframes, ns, na);
+    if (nsubs && !sub_misfit2) return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: sub-parts without their misfits' place");
+    size_t held = 0;
+    for (size_t k = 0; k < nsubs; k++) {
+        const swfs_recon_learner *s = subs[k];
+        if (!s || s->nslopes != ns || s->nact != na || s->nframes == 0)
+            return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: sub-part %zu of a held-out part: %zu frames of %zu "
+                             "slopes x %zu outputs, the part's %zu x %zu", k, s ? s->nframes : 0, s ? s->nslopes : 0,
+                             s ? s->nact : 0, ns, na);
+        held += s->nframes;
+    }
+    if (held > part->nframes)
+        return swfs_fail(SWFS_ERR_ARG, "reconstructor learning: sub-parts of %zu frames in all of a held-out part of %zu",
+                         held, part->nframes);
     size_t *mp = NULL;
     int rc = positions(all, part, &mp);
     if (rc) return rc;
@@ -614,35 +672,11 @@ int swfs_recon_learner_heldout_on(const swfs_recon_learner *all, const swfs_reco
         C = malloc(nu * na * sizeof *C);
         if (!Gp || !C) rc = swfs_fail(SWFS_ERR_NOMEM, "reconstructor learning: out of memory");
     }
-    if (!rc) {
-        /* On the part's frames: sum |z - A^T s|^2 = zz - 2 tr(A^T H) + tr(A^T G A), its sums. */
-        for (size_t i = 0; i < nu; i++)
-            for (size_t j = 0; j < nu; j++) {
-                const size_t p = mp[idx[i]], q = mp[idx[j]];
-                Gp[i * nu + j] = p == SIZE_MAX || q == SIZE_MAX ? 0.0 : part->G[MIN2(p, q) * part->nc + (p < q ? q : p)];
-            }
-        cblas_dsymm(CblasRowMajor, CblasLeft, CblasUpper, (int)nu, (int)na, 1.0, Gp, (int)nu, A, (int)na, 0.0, C,
-                    (int)na);
-        double cross = 0, quad = 0, zz = 0;
-        size_t nk = 0;
-        for (size_t a = 0; a < na; a++)
-            if (!keep || keep[a]) {
-                zz += part->zza[a];
-                nk++;
-            }
-        for (size_t i = 0; i < nu; i++) {
-            const size_t p = mp[idx[i]];
-            for (size_t a = 0; a < na; a++) {
-                if (keep && !keep[a]) continue;
-                cross += p == SIZE_MAX ? 0.0 : A[i * na + a] * part->H[p * na + a];
-                quad += A[i * na + a] * C[i * na + a];
-            }
-        }
-        const double n = (double)(part->nframes * (nk ? nk : 1));
-        *misfit2 = fmax(0.0, zz - 2 * cross + quad) / n;
-        *truth2 = zz / n;
-        /* scaled by the best single factor k = cross / quad: zz - cross^2 / quad */
-        if (scaled2) *scaled2 = quad > 0 ? fmax(0.0, zz - cross * cross / quad) / n : *truth2;
+    if (!rc) misfit_on(part, mp, idx, nu, A, keep, Gp, C, misfit2, truth2, scaled2);
+    for (size_t k = 0; !rc && k < nsubs; k++) {
+        size_t *ms = NULL;
+        if (!(rc = positions(all, subs[k], &ms))) misfit_on(subs[k], ms, idx, nu, A, keep, Gp, C, sub_misfit2 + k, NULL, NULL);
+        free(ms);
     }
     free(mp);
     free(idx);
