@@ -4,9 +4,9 @@
 # functions, a zonal or modal loop, a 16-bit camera; docs/telemetry.md, "Data made without
 # specklewfs"): reduce -> sync -> speckles (the default, with the observation's --valid map
 # and --pupil mask) -> estimate -> pupil --truth, and the same frames with the ideal speckles;
-# then how much of the ideal speckles' variance the computed ones hold, ring by ring. About 3 minutes with
-# --quick on 2 cores (the simulation 30 s), 6 without. Needs Debian's python3-numpy and
-# python3-astropy.
+# then how much of the ideal speckles' variance the computed ones hold, ring by ring. About 3
+# minutes with --quick on 2 cores (the simulation 30 s), 6 without. Needs Debian's
+# python3-numpy and python3-astropy.
 #
 # usage: bash bench/foreign.sh BUILD_DIR WORK_DIR [foreign_loop.py options: --seed S --photons P --quick ...]
 set -euo pipefail

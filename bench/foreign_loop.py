@@ -4,6 +4,8 @@ the files, written from the documented file formats alone (docs/conventions.md, 
 telemetry table of docs/telemetry.md), so that the default path is measured on data whose
 every model differs from the simulator it was developed with:
 
+- the pupil: an annulus of 8.2 m (obstruction 0.14, --obscur), with --spiders legs of
+  --spider-width (none by default);
 - turbulence: von Karman OPD screens by FFT, frozen flow by bilinear interpolation between
   samples, two layers;
 - the Shack-Hartmann: physical optics (each subaperture's field Fourier-transformed at twice

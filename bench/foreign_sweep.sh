@@ -1,15 +1,15 @@
 #!/usr/bin/env bash
-# The default path on six short observations made without specklewfs, of other geometries,
-# loops, noise and wavelengths (docs/telemetry.md, "Six more observations"): each through
-# bench/foreign.sh --quick, then one table of the NCP errors (default path, ideal speckles,
-# their ratio) and teach's loops. About 2-6 minutes per observation on 2 cores (the 20 x 20's
-# loops the longest); an observation already in WORK_DIR is not simulated again. Needs
-# Debian's python3-numpy and python3-astropy.
+# The default path on seven short observations made without specklewfs, of other geometries,
+# loops, noise, wavelengths and pupils (docs/telemetry.md, "Six more observations", "A pupil
+# under spiders"): each through bench/foreign.sh --quick, then one table of the NCP errors
+# (default path, ideal speckles, their ratio) and teach's loops. About 2-6 minutes per
+# observation on 2 cores (the 20 x 20's loops the longest); an observation already in WORK_DIR
+# is not simulated again. Needs Debian's python3-numpy and python3-astropy.
 #
 # usage: bash bench/foreign_sweep.sh BUILD_DIR WORK_DIR
 set -euo pipefail
 . "$(dirname "$0")/lib_bench.sh"
-[ $# -eq 2 ] || { sed -n '2,8p' "$0"; exit 2; }
+[ $# -eq 2 ] || { sed -n '2,9p' "$0"; exit 2; }
 B=$1
 W=$2
 mkdir -p "$W"
@@ -20,6 +20,7 @@ runs=(
     "m100|--vib 0 --modes 100 --seed 7"
     "n20|--nsub 20 --seed 4"
     "q60|--modes 60 --seed 1"
+    "sp4|--obscur 0.3 --spiders 4 --seed 8"
 )
 rows=()
 for r in "${runs[@]}"; do

@@ -1065,8 +1065,10 @@ typedef struct swfs_teach_run_options {
  * tracked, the space-time map at lags of 1 and 2 frames instead of the per-frame map;
  * 2026-12-03b: the loops' layers each at a speed within a factor sqrt 2 of the one found;
  * 2026-12-06: a first curve that does not fall doubles the loops and is measured again;
- * 2026-12-06b: the loops a curve asks for are the last, as before 2026-12-06). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-07"
+ * 2026-12-06b: the loops a curve asks for are the last, as before 2026-12-06;
+ * 2026-12-07: the profile misfit about the whole profile's mean; 2026-12-07b: a first curve
+ * whose fall is within twice its standard error doubles the loops as one that does not fall). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-07b"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4

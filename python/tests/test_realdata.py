@@ -427,9 +427,12 @@ def test_teach(series, tmp_path):
     assert 0 < cf["outputs"] < r["out_points"] and cf["n"][0] < cf["n"][1] < cf["nframes"] and r["max_loops"] == 6
     assert all(m > 0 for m in cf["misfit_rms"])
     assert cf["b"] <= 0 or cf["a"] <= 0 or cf["excess"] == pytest.approx(cf["b"] / (cf["a"] * cf["nframes"]))
-    # a curve that does not fall cannot tell: twice the loops (here the budget's 6), and the
-    # curve over them (curve_doubled) is the last one measured
-    if not cf["b"] > 0:
+    # a curve that does not fall, or falls within twice the standard error its four parts'
+    # own falls give, cannot tell: twice the loops (here the budget's 6), and the curve over
+    # them (curve_doubled) is the last one measured
+    assert math.isfinite(cf["fall_se"]) and cf["fall_se"] > 0
+    fall = cf["misfit_rms"][0] ** 2 - cf["misfit_rms"][1] ** 2
+    if not (cf["b"] > 0 and fall > 2 * cf["fall_se"]):
         assert r["st_loops"] == 6 and r["curve"]["nframes"] == pytest.approx(6 * per)
         assert r["curve_doubled"] == r["curve"]
         assert sw.fits.read_keys(str(out), ["TEACHLCD"])["TEACHLCD"] == pytest.approx(r["curve"]["excess"])
@@ -439,8 +442,8 @@ def test_teach(series, tmp_path):
         assert r["curve_doubled"] is None
     else:
         assert r["st_loops"] == 4 and r["curve"] == cf and r["curve_doubled"] is None
-    print(f"teach: learning curve over 4 loops: excess {cf['excess']:.3f}, {cf['frames']} frames asked; "
-          f"{r['st_loops']} loops")
+    print(f"teach: learning curve over 4 loops: excess {cf['excess']:.3f}, {cf['frames']} frames asked; fall "
+          f"{fall:.3g} m^2, {fall / cf['fall_se']:.2f} standard errors; {r['st_loops']} loops")
     assert sw.fits.read_keys(str(out), ["TEACHSTL"])["TEACHSTL"] == r["st_loops"]
     assert r["nloops"] == r["st_loops"] + (4 if r["chosen"] == "perframe_mixed" else 0)
     assert r["st_corr_obs"].shape == (5,) and r["st_corr_obs"][0] == pytest.approx(1.0)
