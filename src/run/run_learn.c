@@ -403,7 +403,7 @@ static void curve_worker(void *ctx, size_t begin, size_t end, int worker)
             if (!rc && k < 2) rc = swfs_recon_learner_merge(h, c->q[k + 2]);
             ck->n = rc ? 0 : swfs_recon_learner_frames(h);
             /* a check of two parts tells each one's misfit too: the curve's fall part by part */
-            const swfs_recon_learner *subs[2] = {c->q[k], k < 2 ? c->q[k + 2] : NULL};
+            const swfs_recon_learner *subs[2] = {k < 2 ? c->q[k] : NULL, k < 2 ? c->q[k + 2] : NULL};
             if (!rc) rc = swfs_recon_learner_heldout_split(c->all, h, subs, k < 2 ? 2 : 0, c->o->ridge, c->keep, &ck->md,
                                                            &ck->td, &ck->sd, k < 2 ? ck->sub_md : NULL);
         }
