@@ -446,6 +446,74 @@ static void test_gap(void **state)
     free(u);
 }
 
+/* The camera's orientation told by the speckles (swfs_orient_acc): frames |Psi + psi|^2 + noise
+ * of independent speckles psi in the model's frame, seen by a camera transposed and mirrored in
+ * x; the speckles' |psi|^2 against the camera's frames pick that pairing out of the 8, beyond
+ * any other by many standard errors, whichever pairing the table had; frames not square leave
+ * the swapped pairings out. */
+static void test_orient_from_speckles(void **state)
+{
+    (void)state;
+    enum { N = 32, NF = 200 };
+    swfs_rng rng;
+    swfs_rng_seed(&rng, 77);
+    swfs_sync_result truth = {0}, ident = {0};
+    truth.swap = 1; truth.sign_x = -1; truth.sign_y = 1;
+    ident.sign_x = ident.sign_y = 1;
+    swfs_orient_acc *a = NULL, *ar = NULL;
+    assert_ok(swfs_orient_acc_new(N, N, &a));
+    assert_ok(swfs_orient_acc_new(N, N / 2, &ar)); /* not square */
+    static double model[N * N], cam[N * N], psi2[N * N];
+    const long c = N / 2;
+    for (int f = 0; f < NF; f++) {
+        for (size_t j = 0; j < N; j++)
+            for (size_t i = 0; i < N; i++) {
+                const double r2 = (double)((long)i - c) * (double)((long)i - c) + (double)((long)j - c) * (double)((long)j - c);
+                const double P = 3.0 * exp(-r2 / 8.0) + 0.3;  /* the static field, real */
+                const double pr = swfs_rng_normal(&rng), pi = swfs_rng_normal(&rng);
+                psi2[j * N + i] = pr * pr + pi * pi;
+                model[j * N + i] = (P + pr) * (P + pr) + pi * pi + 0.5 * swfs_rng_normal(&rng);
+            }
+        /* the camera's pixel (c + a, c + b) shows model pixel (c + u, c + v): swfs_orient_frame's map */
+        for (size_t k = 0; k < N * N; k++) cam[k] = NAN;
+        for (long v = -c; v < c; v++)
+            for (long u = -c; u < c; u++) {
+                const long x = c + truth.sign_x * v, y = c + truth.sign_y * u; /* swapped */
+                if (x >= 0 && y >= 0 && x < N && y < N) cam[y * N + x] = model[(c + v) * N + (c + u)];
+            }
+        swfs_orient_acc_add(a, cam, psi2);
+        swfs_orient_acc_add(ar, model, psi2); /* the first N / 2 rows: a camera as the model */
+    }
+    swfs_orient_check_result r, ri, rr;
+    assert_ok(swfs_orient_acc_result(a, &truth, 1.0, &r));
+    assert_ok(swfs_orient_acc_result(a, &ident, 1.0, &ri));
+    assert_ok(swfs_orient_acc_result(ar, &ident, 1.0, &rr));
+    print_message("orientation from the speckles: %zu pixels, corr by pairing %.3f %.3f %.3f %.3f %.3f %.3f %.3f "
+                  "%.3f; best %d, against the identity %.3f +- %.4f\n", ri.npix, ri.corr[0], ri.corr[1], ri.corr[2],
+                  ri.corr[3], ri.corr[4], ri.corr[5], ri.corr[6], ri.corr[7], ri.best, ri.diff, ri.diff_se);
+    assert_int_equal(r.best, 6); /* swap 1, sign_x -1, sign_y +1 */
+    assert_int_equal(r.ref, 6);
+    assert_float_equal(r.diff, 0.0, 0.0);
+    assert_int_equal(ri.best, 6);
+    assert_int_equal(ri.ref, 0);
+    assert_true(ri.corr[6] > 0.3 && fabs(ri.corr[0]) < 0.05);
+    assert_true(ri.diff > 10 * ri.diff_se);
+    assert_int_equal(ri.nframes, NF);
+    assert_int_equal(rr.best, 0);
+    for (int k = 4; k < 8; k++) assert_true(isnan(rr.corr[k]));
+    swfs_sync_result p;
+    swfs_orient_pairing(6, &p);
+    assert_true(p.swap == 1 && p.sign_x == -1 && p.sign_y == 1);
+    /* too few frames: refused, nothing told */
+    swfs_orient_acc *e = NULL;
+    assert_ok(swfs_orient_acc_new(N, N, &e));
+    swfs_orient_acc_add(e, cam, psi2);
+    assert_int_equal(swfs_orient_acc_result(e, &ident, 1.0, &r), SWFS_ERR_VALUE);
+    swfs_orient_acc_free(e);
+    swfs_orient_acc_free(a);
+    swfs_orient_acc_free(ar);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
@@ -454,6 +522,7 @@ int main(void)
         cmocka_unit_test(test_continuation),
         cmocka_unit_test(test_boundary),
         cmocka_unit_test(test_gap),
+        cmocka_unit_test(test_orient_from_speckles),
         cmocka_unit_test(test_files_and_errors),
     };
     return cmocka_run_group_tests(tests, NULL, NULL);

@@ -432,7 +432,19 @@ typedef struct swfs_speckles_run_result {
                                  added to RESMEAN, its rms in the pupil (piston, tip, tilt removed);
                                  0: the map carries none */
     swfs_loops_map_result loops_map; /* loops_map: the second map and the choice */
+    /* The camera's orientation told by the speckles (sync.h swfs_orient_acc_result): the
+     * science frames of the usable cubes against the speckles' |psi|^2, in all 8 pairings;
+     * orient_done 0 where it did not run (a run of several processes, or too few frames). A
+     * pairing better than the timing table's by SWFS_ORIENT_WARN_SE standard errors makes
+     * swfs_speckles_orient_warns true: the table's pairing is likely wrong. Appended in 0.8.0. */
+    int orient_done;
+    swfs_orient_check_result orient;
 } swfs_speckles_run_result;
+
+/* How many standard errors a pairing must beat the timing table's by for the speckles'
+ * orientation check to warn: the significance sync asks of its own fits' parts. */
+#define SWFS_ORIENT_WARN_SE 5.0
+int swfs_speckles_orient_warns(const swfs_speckles_run_result *r);
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
  * `speckles` warns: a quarter subaperture at the largest lag (docs/telemetry.md: on the

@@ -249,6 +249,38 @@ void swfs_orient_describe(const swfs_sync_result *p, char *buf, size_t cap);
 /* cam (camera frame, nx x ny values of comps doubles each: 1 real, 2 complex) into model. */
 void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t comps, const double *cam, double *model);
 
+/* The camera's orientation told by the speckles themselves, a check of sync's pairing (which
+ * the star's track alone can get wrong: a vibration along a diagonal moves both slope axes
+ * alike, and the swapped pairing with both signs flipped then follows the track nearly as
+ * well). The science intensity fluctuates with the speckles' |psi|^2 (the g^2 |psi|^2 term of
+ * |Psi + g psi|^2) in the orientation the camera really has and hardly in any other (the
+ * 180 degree turn keeps some: |psi|^2 is nearly point-symmetric for small phases). Per model
+ * pixel, the correlation over the frames of the camera's intensity (each of the 8 pairings'
+ * pixel, swfs_orient_frame's mapping) with |psi|^2; over the pixels where both vary, the mean
+ * correlation of each pairing, and of the best against `ref` (the timing table's) the mean
+ * per-pixel difference and its standard error (the differences' spread over the pixels, the
+ * pixels counted in speckles: npix / pix_per_speckle independent). The accumulator takes the
+ * frames one at a time: 8 x 3 + 3 sums per pixel, no frame kept. */
+typedef struct swfs_orient_acc swfs_orient_acc;
+int swfs_orient_acc_new(size_t nx, size_t ny, swfs_orient_acc **out);
+void swfs_orient_acc_free(swfs_orient_acc *a);
+/* cam: the camera's frame as read (nx x ny); psi2: |psi|^2 of the frame in the model's frame.
+ * Pixels not finite in either are left out of that frame's sums for that pairing. */
+void swfs_orient_acc_add(swfs_orient_acc *a, const double *cam, const double *psi2);
+typedef struct swfs_orient_check_result {
+    double corr[8];    /* pairing k: swap = k / 4, sign_x = k & 2 ? -1 : 1, sign_y = k & 1 ? -1 : 1;
+                          NaN for a swapped one on frames that are not square */
+    int best, ref;     /* the pairing of the largest mean correlation; the timing table's */
+    double diff, diff_se; /* mean per-pixel correlation, best less ref, and its standard error */
+    size_t npix, nframes; /* the pixels that took part; the frames added */
+} swfs_orient_check_result;
+/* ref: the timing table's pairing; pix_per_speckle: pixels per speckle ((lambda/D / pixel
+ * scale)^2), >= 1. SWFS_ERR_VALUE when fewer than 3 frames or no pixel varies. */
+int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref, double pix_per_speckle,
+                           swfs_orient_check_result *r);
+/* The pairing k's swap and signs into p (its other fields untouched). */
+void swfs_orient_pairing(int k, swfs_sync_result *p);
+
 /* Text:  "ratio R ERR" / "lag L" / "pairing SWAP SX SY CX CY" lines, then one
  * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok, straddles
  * or missing); '#' comments. */

@@ -400,6 +400,9 @@ swfs_clock_run_result = _s("swfs_clock_run_result", [("clock", swfs_clock), ("wf
                                                      ("wfs_files", c_size)])
 SPECKLES_RUN_FIELDS = [("nout", c_size), ("ncubes", c_size), ("nok", c_size), ("ratio", c_dbl), ("lag", c_dbl),
                        ("wfs_hz", c_dbl)]
+swfs_orient_check_result = _s("swfs_orient_check_result", [
+    ("corr", c_dbl * 8), ("best", c_int), ("ref", c_int), ("diff", c_dbl), ("diff_se", c_dbl), ("npix", c_size),
+    ("nframes", c_size)])
 swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + [
     ("info", swfs_pipeline_info), ("resmean_rms", c_dbl), ("wavelen", c_dbl), ("taught", c_int),
     ("teach_map", ctypes.c_char * 4200), ("teach_fallback", ctypes.c_char * 1024), ("st_found", c_int), ("st_train_vx", c_dbl),
@@ -411,7 +414,8 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_edges_joined", c_size), ("st_edges_clamped", c_size), ("st_edges_unreadable", c_size),
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
     ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl),
-    ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl), ("loops_map", swfs_loops_map_result)])
+    ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl), ("loops_map", swfs_loops_map_result),
+    ("orient_done", c_int), ("orient", swfs_orient_check_result)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [
@@ -786,6 +790,7 @@ _PROTOS = {
     "swfs_teach_work_default": (c_int, [c_str, ctypes.c_char_p, c_size]),
     "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_resmean_warns": (c_int, [P(swfs_speckles_run_result)]),
+    "swfs_speckles_orient_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),

@@ -468,7 +468,9 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     RuntimeWarning), the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
-    swfs_speckles_resmean_warns: no closed loop's). tiptilt: None (the default: 'exposure',
+    swfs_speckles_resmean_warns: no closed loop's). orient: the camera's orientation told by the
+    speckles (corr by pairing (swap, sign_x, sign_y), best, table, diff, diff_se, npix, warns;
+    a RuntimeWarning where another pairing beats the timing table's by 5 standard errors). tiptilt: None (the default: 'exposure',
     or at the WFS rate 'frame'), 'exposure', 'frame' or 'keep'. wfs_rate: one speckle field
     per WFS frame instead of per exposure (`--wfs-rate`, for coherence(); FRAMEDT = 1/rate;
     wfs_hz [Hz] where the telemetry has no WFSRATE); it takes no match and no 'exposure'.
@@ -603,6 +605,16 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
                       "slope patterns the model's D does not make", RuntimeWarning, stacklevel=2)
     d["info"] = _struct_dict(r.info)
     d.update(_st_checks(r))
+    if r.orient_done:  # the camera's orientation told by the speckles (sync.h swfs_orient_acc_result)
+        o_ = r.orient
+        pair = [(k // 4, -1 if k & 2 else 1, -1 if k & 1 else 1) for k in range(8)]
+        d["orient"] = dict(corr={pair[k]: o_.corr[k] for k in range(8)}, best=pair[o_.best], table=pair[o_.ref],
+                           diff=o_.diff, diff_se=o_.diff_se, npix=o_.npix,
+                           warns=bool(lib.swfs_speckles_orient_warns(ctypes.byref(r))))
+        if d["orient"]["warns"]:
+            warnings.warn(f"speckles: the science frames follow the speckles best as pairing {pair[o_.best]} "
+                          f"(swap, sign_x, sign_y), not the timing table's {pair[o_.ref]} "
+                          f"({o_.diff / o_.diff_se:.1f} standard errors apart)", RuntimeWarning, stacklevel=2)
     if recon == "teach" and linear is None:
         d["taught"] = bool(r.taught)
         if r.taught:

@@ -9,6 +9,7 @@
 #include "specklewfs/reduce.h"
 #include "run_internal.h"
 
+#include <complex.h>
 #include <limits.h>
 #include <stdint.h>
 #include <math.h>
@@ -594,6 +595,51 @@ static int write_match(const char *in, const char *out, const work *w, const dou
     return rc;
 }
 
+int swfs_speckles_orient_warns(const swfs_speckles_run_result *r)
+{
+    const swfs_orient_check_result *c = &r->orient;
+    return r->orient_done && c->best != c->ref && c->diff > SWFS_ORIENT_WARN_SE * c->diff_se;
+}
+
+/* The camera's orientation from the speckles (sync.h swfs_orient_acc): the science frames of
+ * the usable cubes, as read, against |psi|^2 of the speckle cube (w->halo, in the model's
+ * frame), once after the products are written. Too few frames or nothing that varies: not
+ * run, no error. */
+static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r)
+{
+    swfs_fits_in *f = NULL;
+    swfs_orient_acc *a = NULL;
+    double *cam = NULL, *p2 = NULL;
+    const size_t np = w->nfx * w->nfy;
+    int rc = swfs_fits_in_open(&f, o->science, NULL);
+    if (!rc) rc = swfs_orient_acc_new(w->nfx, w->nfy, &a);
+    if (!rc && (!(cam = malloc(np * sizeof *cam)) || !(p2 = malloc(np * sizeof *p2))))
+        rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    for (size_t c = 0, k = 0; !rc && c < w->t->ncubes; c++) {
+        if (w->t->cubes[c].status != SWFS_CUBE_OK) continue;
+        for (size_t j = 0; !rc && j < w->t->cubes[c].nframes && k < w->halo->nz; j++, k++) {
+            rc = swfs_fits_in_read_real(f, w->t->cubes[c].first + j, 1, cam);
+            const swfs_complex *h = swfs_cplx_frame(w->halo, k);
+            for (size_t q = 0; !rc && q < np; q++) p2[q] = creal(h[q]) * creal(h[q]) + cimag(h[q]) * cimag(h[q]);
+            if (!rc) swfs_orient_acc_add(a, cam, p2);
+        }
+    }
+    const double pps = w->g.pixscale > 0 ? 1.0 / (w->g.pixscale * w->g.pixscale) : 1.0;
+    if (!rc) {
+        rc = swfs_orient_acc_result(a, &w->t->fit, pps, &r->orient);
+        r->orient_done = rc == SWFS_OK;
+        if (rc == SWFS_ERR_VALUE) { /* nothing to tell it by: not run */
+            swfs_clear_error();
+            rc = SWFS_OK;
+        }
+    }
+    swfs_orient_acc_free(a);
+    swfs_fits_in_close(f);
+    free(cam);
+    free(p2);
+    return rc;
+}
+
 /* The camera's orientation on the speckle cube: the science frames it goes with must have
  * been turned the same way (--match does it; estimate checks). */
 static int speckles_orient_key(swfs_fits_out *f, const work *w)
@@ -760,6 +806,7 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         }
         for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
             rc = write_match(o->match_in[k], o->match_out[k], &w, shx, shy, prov, o->nprov + 1);
+        if (!rc && !team && !o->pipe.wfs_rate && w.halo) rc = orient_check(o, &w, r);
         free(shx);
         free(shy);
         free(prov);

@@ -13,6 +13,8 @@
 
 #include <math.h>
 #include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
 
 int swfs_orient_is_identity(const swfs_sync_result *p)
 {
@@ -52,4 +54,147 @@ void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t c
             const double *s = cam + ((size_t)b * nx + (size_t)a) * comps;
             for (size_t c = 0; c < comps; c++) o[c] = s[c];
         }
+}
+
+/* ---- the orientation from the speckles (sync.h swfs_orient_acc) ---- */
+
+struct swfs_orient_acc {
+    size_t nx, ny, np, nframes;
+    long *src;         /* 8 x np: the camera pixel of model pixel p in pairing k, -1 outside */
+    double *sa, *saa, *sab, *sb, *sbb, *n; /* 8 x np each: camera, its square, the product; |psi|^2 and its square; count */
+};
+
+void swfs_orient_pairing(int k, swfs_sync_result *p)
+{
+    p->swap = k / 4;
+    p->sign_x = k & 2 ? -1 : 1;
+    p->sign_y = k & 1 ? -1 : 1;
+}
+
+static int pairing_index(const swfs_sync_result *p)
+{
+    return 4 * (p->swap ? 1 : 0) + (p->sign_x < 0 ? 2 : 0) + (p->sign_y < 0 ? 1 : 0);
+}
+
+int swfs_orient_acc_new(size_t nx, size_t ny, swfs_orient_acc **out)
+{
+    *out = NULL;
+    if (!nx || !ny) return swfs_fail(SWFS_ERR_ARG, "orientation check: frames of %zux%zu", nx, ny);
+    swfs_orient_acc *a = calloc(1, sizeof *a);
+    const size_t np = nx * ny;
+    if (a) {
+        a->nx = nx; a->ny = ny; a->np = np;
+        a->src = malloc(8 * np * sizeof *a->src);
+        a->sa = calloc(8 * np, sizeof *a->sa); a->saa = calloc(8 * np, sizeof *a->saa);
+        a->sab = calloc(8 * np, sizeof *a->sab); a->sb = calloc(8 * np, sizeof *a->sb);
+        a->sbb = calloc(8 * np, sizeof *a->sbb); a->n = calloc(8 * np, sizeof *a->n);
+    }
+    if (!a || !a->src || !a->sa || !a->saa || !a->sab || !a->sb || !a->sbb || !a->n) {
+        swfs_orient_acc_free(a);
+        return swfs_fail(SWFS_ERR_NOMEM, "orientation check: out of memory for %zux%zu frames", nx, ny);
+    }
+    const long cx = (long)(nx / 2), cy = (long)(ny / 2);
+    for (int k = 0; k < 8; k++) {
+        swfs_sync_result p;
+        swfs_orient_pairing(k, &p);
+        for (size_t j = 0; j < ny; j++)
+            for (size_t i = 0; i < nx; i++) {
+                const long u = (long)i - cx, v = (long)j - cy;
+                const long x = cx + p.sign_x * (p.swap ? v : u), y = cy + p.sign_y * (p.swap ? u : v);
+                const int in = (!p.swap || nx == ny) && x >= 0 && y >= 0 && x < (long)nx && y < (long)ny;
+                a->src[(size_t)k * np + j * nx + i] = in ? y * (long)nx + x : -1;
+            }
+    }
+    *out = a;
+    return SWFS_OK;
+}
+
+void swfs_orient_acc_free(swfs_orient_acc *a)
+{
+    if (!a) return;
+    free(a->src); free(a->sa); free(a->saa); free(a->sab); free(a->sb); free(a->sbb); free(a->n);
+    free(a);
+}
+
+void swfs_orient_acc_add(swfs_orient_acc *a, const double *cam, const double *psi2)
+{
+    const size_t np = a->np;
+    for (size_t k = 0; k < 8; k++) {
+        const long *src = a->src + k * np;
+        double *sa = a->sa + k * np, *saa = a->saa + k * np, *sab = a->sab + k * np, *sb = a->sb + k * np,
+               *sbb = a->sbb + k * np, *n = a->n + k * np;
+        for (size_t p = 0; p < np; p++) {
+            if (src[p] < 0) continue;
+            const double c = cam[src[p]], b = psi2[p];
+            if (!isfinite(c) || !isfinite(b)) continue;
+            sa[p] += c; saa[p] += c * c; sab[p] += c * b; sb[p] += b; sbb[p] += b * b; n[p] += 1;
+        }
+    }
+    a->nframes++;
+}
+
+/* The correlation over the frames at pixel p of pairing k; NaN where either does not vary. */
+static double pixel_corr(const swfs_orient_acc *a, size_t k, size_t p)
+{
+    const size_t q = k * a->np + p;
+    const double n = a->n[q];
+    if (n < 3) return NAN;
+    const double va = a->saa[q] - a->sa[q] * a->sa[q] / n, vb = a->sbb[q] - a->sb[q] * a->sb[q] / n;
+    const double cab = a->sab[q] - a->sa[q] * a->sb[q] / n;
+    /* a variance at the sums' rounding is none */
+    if (!(va > 1e-12 * a->saa[q]) || !(vb > 1e-12 * a->sbb[q])) return NAN;
+    return cab / sqrt(va * vb);
+}
+
+int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref, double pix_per_speckle,
+                           swfs_orient_check_result *r)
+{
+    memset(r, 0, sizeof *r);
+    r->nframes = a->nframes;
+    r->ref = pairing_index(ref);
+    r->best = r->ref;
+    r->diff = r->diff_se = NAN;
+    for (int k = 0; k < 8; k++) r->corr[k] = NAN;
+    if (a->nframes < 3)
+        return swfs_fail(SWFS_ERR_VALUE, "orientation check: %zu frames; the correlations need at least 3", a->nframes);
+    if (!(pix_per_speckle >= 1)) pix_per_speckle = 1;
+    /* the pixels every seen pairing has a correlation at: the means compare like with like */
+    size_t npix = 0;
+    double sum[8] = {0};
+    for (size_t p = 0; p < a->np; p++) {
+        double c[8];
+        int ok = 1;
+        for (size_t k = 0; k < 8 && ok; k++) {
+            c[k] = pixel_corr(a, k, p);
+            if (!isfinite(c[k]) && !(k >= 4 && a->nx != a->ny)) ok = 0;
+        }
+        if (!ok) continue;
+        for (size_t k = 0; k < 8; k++) sum[k] += c[k];
+        npix++;
+    }
+    r->npix = npix;
+    if (!npix) return swfs_fail(SWFS_ERR_VALUE, "orientation check: no pixel where the camera and the speckles both vary in every pairing");
+    for (int k = 0; k < 8; k++)
+        if (k < 4 || a->nx == a->ny) r->corr[k] = sum[k] / (double)npix;
+    for (int k = 0; k < 8; k++)
+        if (r->corr[k] > r->corr[r->best]) r->best = k;
+    /* the best's per-pixel excess over ref's, its mean and spread */
+    double sd = 0, sd2 = 0;
+    for (size_t p = 0; p < a->np; p++) {
+        double c[8];
+        int ok = 1;
+        for (size_t k = 0; k < 8 && ok; k++) {
+            c[k] = pixel_corr(a, k, p);
+            if (!isfinite(c[k]) && !(k >= 4 && a->nx != a->ny)) ok = 0;
+        }
+        if (!ok) continue;
+        const double d = c[r->best] - c[r->ref];
+        sd += d;
+        sd2 += d * d;
+    }
+    const double m = sd / (double)npix, var = npix > 1 ? fmax(0.0, sd2 / (double)npix - m * m) * (double)npix / (double)(npix - 1) : NAN;
+    const double neff = fmax(1.0, (double)npix / pix_per_speckle);
+    r->diff = m;
+    r->diff_se = sqrt(var / neff);
+    return SWFS_OK;
 }
