@@ -61,6 +61,12 @@ def test_path_on_files_equals_the_cli(series, cli):
     sp = sw.speckles(str(d / "timing.txt"), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp.fits"),
                      match=[(str(d / "sci.fits"), str(d / "sci_m.fits"))], teach_max_loops=12)
     assert sp["nout"] == t["nexp_ok"] and sp["resmean_rms"] > 0
+    # the camera's orientation told by the speckles: the table's pairing (as the model), well
+    # above the transposed ones, and no warning
+    o = sp["orient"]
+    assert o["table"] == o["best"] == (0, 1, 1) and not o["warns"] and o["npix"] > 100
+    assert o["corr"][(0, 1, 1)] > 0.05 and all(o["corr"][(1, sx, sy)] < 0.5 * o["corr"][(0, 1, 1)]
+                                               for sx in (1, -1) for sy in (1, -1))
     # the taught map writes on its own grid (half the DM's pitch): the speckles within its band
     assert sp["info"]["out_pitch"] == pytest.approx(sp["teach"]["out_pitch"], rel=1e-12)
     assert sp["info"]["band"] == pytest.approx(6.5 / (2 * sp["info"]["out_pitch"]), rel=1e-9) and sp["info"]["band"] > 6

@@ -146,6 +146,17 @@ static double pixel_corr(const swfs_orient_acc *a, size_t k, size_t p)
     return cab / sqrt(va * vb);
 }
 
+/* The 8 pairings' correlations at pixel p; 0 unless every pairing the frames allow has one
+ * (the swapped ones on frames that are not square: none, NaN). */
+static int pixel_corrs(const swfs_orient_acc *a, size_t p, double c[8])
+{
+    for (size_t k = 0; k < 8; k++) {
+        c[k] = pixel_corr(a, k, p);
+        if (!isfinite(c[k]) && !(k >= 4 && a->nx != a->ny)) return 0;
+    }
+    return 1;
+}
+
 int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref, double pix_per_speckle,
                            swfs_orient_check_result *r)
 {
@@ -163,12 +174,7 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
     double sum[8] = {0};
     for (size_t p = 0; p < a->np; p++) {
         double c[8];
-        int ok = 1;
-        for (size_t k = 0; k < 8 && ok; k++) {
-            c[k] = pixel_corr(a, k, p);
-            if (!isfinite(c[k]) && !(k >= 4 && a->nx != a->ny)) ok = 0;
-        }
-        if (!ok) continue;
+        if (!pixel_corrs(a, p, c)) continue;
         for (size_t k = 0; k < 8; k++) sum[k] += c[k];
         npix++;
     }
@@ -182,12 +188,7 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
     double sd = 0, sd2 = 0;
     for (size_t p = 0; p < a->np; p++) {
         double c[8];
-        int ok = 1;
-        for (size_t k = 0; k < 8 && ok; k++) {
-            c[k] = pixel_corr(a, k, p);
-            if (!isfinite(c[k]) && !(k >= 4 && a->nx != a->ny)) ok = 0;
-        }
-        if (!ok) continue;
+        if (!pixel_corrs(a, p, c)) continue;
         const double d = c[r->best] - c[r->ref];
         sd += d;
         sd2 += d * d;
