@@ -143,6 +143,24 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     return cli_check(cmd, swfs_speckles_run_options_check(o));
 }
 
+/* The camera's orientation told by the speckles (sync.h swfs_orient_acc), and the warning where
+ * another pairing beats the timing table's (run.h swfs_speckles_orient_warns). */
+static void orient_summary(const char *cmd, const swfs_speckles_run_result *r)
+{
+    if (!r->orient_done) return;
+    char line[400];
+    swfs_orient_check_describe(&r->orient, line, sizeof line);
+    fprintf(stderr, "%s: the camera's orientation by the speckles: %s\n", cmd, line);
+    if (!swfs_speckles_orient_warns(r)) return;
+    swfs_sync_result pb;
+    swfs_orient_pairing(r->orient.best, &pb);
+    fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
+            "timing table's pairing: the star's track can pair the axes wrongly where a vibration moves them alike; if "
+            "the camera is oriented so, set the first three numbers of the table's 'pairing' line to '%d %d %d' and "
+            "run speckles again (docs/telemetry.md, \"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x,
+            pb.sign_y);
+}
+
 int swfs_cmd_speckles(int argc, char **argv)
 {
     const char *cmd = "speckles";
@@ -163,7 +181,10 @@ int swfs_cmd_speckles(int argc, char **argv)
         swfs_teach_run_result tr;
         o.teach = &tr;
         rc = swfs_speckles_run(&o, &r) ? (cli_writer() ? cli_error(cmd) : CLI_FAIL) : CLI_OK;
-        if (!rc && cli_writer()) cli_speckles_summary(cmd, &o, &r, &tr);
+        if (!rc && cli_writer()) {
+            cli_speckles_summary(cmd, &o, &r, &tr);
+            orient_summary(cmd, &r);
+        }
     }
     free(names);
     return rc;

@@ -173,10 +173,8 @@ int swfs_cmd_sync(int argc, char **argv)
         if (c->join_lost)
             snprintf(across, sizeof across, "not continuous: %ld WFS frame%s %s there (the camera's count)",
                      labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated");
-        else if (c->join_window && c->join_verdict > 0)
-            snprintf(across, sizeof across, "continuous (the means of %zu frames either side)", c->join_window);
         else
-            snprintf(across, sizeof across, "%s", c->join_verdict > 0 ? "continuous" : "undecided");
+            swfs_timing_join_verdict(c, across, sizeof across);
         printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f, "
                "telemetry across the boundary %s\n", c->camera, c->first, c->first + c->nframes - 1, c->slopes,
                c->join_offset, c->join_corr_x, c->join_corr_y, across);

@@ -141,32 +141,7 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
     if (swfs_speckles_resmean_warns(r))
         fprintf(stderr, "specklewfs %s: warning: that mean is more than the wavelength (%.0f nm), which no closed loop's "
                 "is: the reconstructor amplifies slope patterns the model's D does not make\n", cmd, r->wavelen * 1e9);
-    cli_spacetime_summary(cmd, r);    if (r->orient_done) {
-        const swfs_orient_check_result *c = &r->orient;
-        char tb[64], bb[64];
-        swfs_sync_result pt, pb;
-        swfs_orient_pairing(c->ref, &pt);
-        swfs_orient_pairing(c->best, &pb);
-        swfs_orient_describe(&pt, tb, sizeof tb);
-        swfs_orient_describe(&pb, bb, sizeof bb);
-        if (c->best == c->ref)
-            fprintf(stderr, "%s: the camera's orientation by the speckles: the timing table's pairing (%s) follows them "
-                    "best, mean correlation of intensity and |psi|^2 %.3f over %zu pixels\n", cmd, tb, c->corr[c->ref],
-                    c->npix);
-        else
-            fprintf(stderr, "%s: the camera's orientation by the speckles: %s %.3f, the timing table's pairing (%s) %.3f "
-                    "(mean correlation of intensity and |psi|^2 over %zu pixels; %.1f standard errors apart)\n", cmd, bb,
-                    c->corr[c->best], tb, c->corr[c->ref], c->npix, c->diff / c->diff_se);
-    }
-    if (swfs_speckles_orient_warns(r)) {
-        const swfs_orient_check_result *c = &r->orient;
-        swfs_sync_result pb;
-        swfs_orient_pairing(c->best, &pb);
-        fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than "
-                "the timing table's pairing: the star's track can pair the axes wrongly where a vibration moves them "
-                "alike; if the camera is oriented so, set the first three numbers of the table's 'pairing' line to "
-                "'%d %d %d' and run speckles again (docs/telemetry.md, \"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x, pb.sign_y);
-    }
+    cli_spacetime_summary(cmd, r);
 }
 
 void cli_curve_line(FILE *f, const char *cmd, const swfs_learn_run_result *r, double u, const char *unit)

@@ -225,6 +225,11 @@ typedef struct swfs_timing_cube {
                            join_window frames either side); 0: the one-frame steps */
 } swfs_timing_cube;
 
+/* The telemetry's verdict on a joined row's boundary, as sync and its timing table word it:
+ * "continuous", "continuous (the means of 3 frames either side)" or "undecided" (a row whose
+ * files do not continue each other, join_lost != 0, is worded with the camera's count). */
+void swfs_timing_join_verdict(const swfs_timing_cube *c, char *buf, size_t cap);
+
 typedef struct swfs_timing {
     double ratio, ratio_err, lag;
     swfs_sync_result fit;
@@ -280,6 +285,10 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
                            swfs_orient_check_result *r);
 /* The pairing k's swap and signs into p (its other fields untouched). */
 void swfs_orient_pairing(int k, swfs_sync_result *p);
+/* One line of what the check found: "the timing table's pairing (SWAP=0 SX=+1 SY=+1) follows
+ * them best, mean correlation of intensity and |psi|^2 0.228 over 2321 pixels", or the best
+ * pairing's and the table's correlations and how many standard errors apart. */
+void swfs_orient_check_describe(const swfs_orient_check_result *c, char *buf, size_t cap);
 
 /* Text:  "ratio R ERR" / "lag L" / "pairing SWAP SX SY CX CY" lines, then one
  * "cube INDEX CAMERA FIRST NFRAMES SLOPES START STATUS" line per cube (STATUS ok, straddles

@@ -791,6 +791,8 @@ _PROTOS = {
     "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_resmean_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_orient_warns": (c_int, [P(swfs_speckles_run_result)]),
+    "swfs_orient_pairing": (None, [c_int, P(swfs_sync_result)]),
+    "swfs_orient_check_describe": (None, [P(swfs_orient_check_result), ctypes.c_char_p, c_size]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),
     "swfs_sync_boundary_gap": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, c_long, P(swfs_sync_gap)]),
     "swfs_speckles_run_options_default": (None, [P(swfs_speckles_run_options)]),

@@ -607,14 +607,20 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     d.update(_st_checks(r))
     if r.orient_done:  # the camera's orientation told by the speckles (sync.h swfs_orient_acc_result)
         o_ = r.orient
-        pair = [(k // 4, -1 if k & 2 else 1, -1 if k & 1 else 1) for k in range(8)]
+        pair = []
+        for k in range(8):
+            p_ = _lib.swfs_sync_result()
+            lib.swfs_orient_pairing(k, ctypes.byref(p_))
+            pair.append((p_.swap, p_.sign_x, p_.sign_y))
         d["orient"] = dict(corr={pair[k]: o_.corr[k] for k in range(8)}, best=pair[o_.best], table=pair[o_.ref],
                            diff=o_.diff, diff_se=o_.diff_se, npix=o_.npix,
                            warns=bool(lib.swfs_speckles_orient_warns(ctypes.byref(r))))
         if d["orient"]["warns"]:
-            warnings.warn(f"speckles: the science frames follow the speckles best as pairing {pair[o_.best]} "
-                          f"(swap, sign_x, sign_y), not the timing table's {pair[o_.ref]} "
-                          f"({o_.diff / o_.diff_se:.1f} standard errors apart)", RuntimeWarning, stacklevel=2)
+            line = ctypes.create_string_buffer(400)
+            lib.swfs_orient_check_describe(ctypes.byref(o_), line, 400)
+            warnings.warn(f"speckles: the science frames follow the speckles in another orientation than the timing "
+                          f"table's pairing (swap, sign_x, sign_y) {pair[o_.ref]}: {line.value.decode()}",
+                          RuntimeWarning, stacklevel=2)
     if recon == "teach" and linear is None:
         d["taught"] = bool(r.taught)
         if r.taught:

@@ -199,3 +199,20 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
     r->diff_se = sqrt(var / neff);
     return SWFS_OK;
 }
+
+void swfs_orient_check_describe(const swfs_orient_check_result *c, char *buf, size_t cap)
+{
+    char tb[64], bb[64];
+    swfs_sync_result pt, pb;
+    swfs_orient_pairing(c->ref, &pt);
+    swfs_orient_pairing(c->best, &pb);
+    swfs_orient_describe(&pt, tb, sizeof tb);
+    swfs_orient_describe(&pb, bb, sizeof bb);
+    if (c->best == c->ref)
+        snprintf(buf, cap, "the timing table's pairing (%s) follows them best, mean correlation of intensity and "
+                 "|psi|^2 %.3f over %zu pixels", tb, c->corr[c->ref], c->npix);
+    else
+        snprintf(buf, cap, "%s %.3f, the timing table's pairing (%s) %.3f (mean correlation of intensity and |psi|^2 "
+                 "over %zu pixels; %.1f standard errors apart)", bb, c->corr[c->best], tb, c->corr[c->ref], c->npix,
+                 c->diff / c->diff_se);
+}

@@ -734,6 +734,14 @@ void swfs_timing_free(swfs_timing *t)
     free(t);
 }
 
+void swfs_timing_join_verdict(const swfs_timing_cube *c, char *buf, size_t cap)
+{
+    if (c->join_verdict > 0 && c->join_window)
+        snprintf(buf, cap, "continuous (the means of %zu frames either side)", c->join_window);
+    else
+        snprintf(buf, cap, "%s", c->join_verdict > 0 ? "continuous" : "undecided");
+}
+
 int swfs_timing_write(const char *path, const swfs_timing *t)
 {
     swfs_atomic *a = NULL;
@@ -756,12 +764,11 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
                     labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated",
                     c->join_offset, c->join_corr_x, c->join_corr_y);
         else if (c->joined) {
-            char how[64] = "";
-            if (c->join_window && c->join_verdict > 0) snprintf(how, sizeof how, " (the means of %zu frames either side)", c->join_window);
+            char how[96];
+            swfs_timing_join_verdict(c, how, sizeof how);
             fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
-                    "frames, correlations %.3f %.3f; the telemetry across the boundary %s%s\n", c->camera, c->first,
-                    c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y,
-                    c->join_verdict > 0 ? "continuous" : "undecided", how);
+                    "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
+                    c->first + c->nframes - 1, c->join_offset, c->join_corr_x, c->join_corr_y, how);
         }
         if (c->status == SWFS_CUBE_MISSING)
             fprintf(f, "# %s frames %zu-%zu: the telemetry file cannot be read (sync's message says why)\n",
