@@ -73,6 +73,11 @@ static int special(void *ctx, int argc, char **argv, int *i)
         else if (!strcmp(v, "choose")) o->loops_map = 1;
         else if (!strcmp(v, "none")) o->loops_map = 0;
         else return -cli_usage_error(cmd, "--loops-map takes auto, choose or none, got '%s'", v);
+    } else if (!strcmp(a, "--pairing")) {
+        if (cli_take_string(cmd, argc, argv, i, "speckles or table", &v)) return -CLI_USAGE;
+        if (!strcmp(v, "table")) o->pairing_table = 1;
+        else if (!strcmp(v, "speckles")) o->pairing_table = 0;
+        else return -cli_usage_error(cmd, "--pairing takes speckles or table, got '%s'", v);
     } else if (!strcmp(a, "--match")) {
         if (*i + 2 >= argc) return -cli_usage_error(cmd, "--match needs IN.fits OUT.fits");
         d->min[o->nmatch] = argv[*i + 1];
@@ -143,8 +148,9 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     return cli_check(cmd, swfs_speckles_run_options_check(o));
 }
 
-/* The camera's orientation told by the speckles (sync.h swfs_orient_acc), and the warning where
- * another pairing beats the timing table's (run.h swfs_speckles_orient_warns). */
+/* The camera's orientation told by the speckles (sync.h swfs_orient_acc); where another pairing
+ * beats the timing table's (run.h swfs_speckles_orient_warns), that it was taken, or the
+ * warning that the table's was kept (--pairing table). */
 static void orient_summary(const char *cmd, const swfs_speckles_run_result *r)
 {
     if (!r->orient_done) return;
@@ -154,11 +160,18 @@ static void orient_summary(const char *cmd, const swfs_speckles_run_result *r)
     if (!swfs_speckles_orient_warns(r)) return;
     swfs_sync_result pb;
     swfs_orient_pairing(r->orient.best, &pb);
-    fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
-            "timing table's pairing: the star's track can pair the axes wrongly where a vibration moves them alike; if "
-            "the camera is oriented so, set the first three numbers of the table's 'pairing' line to '%d %d %d' and "
-            "run speckles again (docs/telemetry.md, \"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x,
-            pb.sign_y);
+    if (r->orient_adopted)
+        fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
+                "timing table's pairing (the star's track can pair the axes wrongly where a vibration moves them "
+                "alike): the speckle cube and the --match copies take the speckles' pairing; replay and stream take "
+                "the table's, so set the first three numbers of its 'pairing' line to '%d %d %d' for them "
+                "(docs/telemetry.md, \"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x, pb.sign_y);
+    else
+        fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
+                "timing table's pairing, which was kept (--pairing table): the star's track can pair the axes wrongly "
+                "where a vibration moves them alike; if the camera is oriented so, set the first three numbers of the "
+                "table's 'pairing' line to '%d %d %d' or run speckles without --pairing table (docs/telemetry.md, "
+                "\"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x, pb.sign_y);
 }
 
 int swfs_cmd_speckles(int argc, char **argv)

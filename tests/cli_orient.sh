@@ -33,6 +33,30 @@ for e in "$e1" "$e2" "$e3"; do
 done
 grep -q "CAMORIEN" "$D/flipx/sci_m.fits" || fail "the matched science copy records no CAMORIEN"
 
+# A timing table whose pairing ignores the mirror: speckles' orientation check (the science
+# frames against |psi|^2) finds the camera's pairing and the products take it, the same NCP as
+# the right table's; with --pairing table the table's is kept, with a warning, and the NCP is lost.
+wrong_table() { # wrong_table <dir> <speckles options...>: the NCP error with the mirror ignored
+    local w=$1 t=$1.timing.txt; shift
+    mkdir -p "$w"
+    # beside the right table: the telemetry names it gives are taken from its folder
+    awk '$1 == "pairing" { $2 = 0; $3 = 1; $4 = 1 } { print }' "$D/flipx/timing.txt" > "$t"
+    "$B" speckles "$t" --science "$D/flipx/science.fits" --actuators "$D/flipx/sim/actuators.fits" \
+        "${SPK_RECON[@]}" -o "$w/speckles.fits" --match "$D/flipx/science.fits" "$w/sci_m.fits" "$@" 2> "$w/speckles.log" \
+        || { cat "$w/speckles.log"; fail "$w: speckles"; }
+    "$B" estimate "$w/sci_m.fits" "$w/speckles.fits" -o "$w/halo.fits" > "$w/estimate.log" 2>&1 || fail "$w: estimate"
+    "$B" pupil "$w/halo.fits" -o "$w/pupil.fits" --truth "$D/flipx/sim/truth.fits" > "$w/pupil.log" || fail "$w: pupil"
+    ncp_error "$w/pupil.log"
+}
+ew=$(wrong_table "$D/flipx/wrong")
+grep -q "take the speckles' pairing" "$D/flipx/wrong/speckles.log" || { cat "$D/flipx/wrong/speckles.log"; fail "the wrong table's pairing was not replaced"; }
+grep -q "CAMORIEN= 'SWAP=0 SX=-1 SY=+1'" "$D/flipx/wrong/sci_m.fits" || fail "the matched copy is not turned by the speckles' pairing"
+ek=$(wrong_table "$D/flipx/kept" --pairing table)
+grep -q "which was kept" "$D/flipx/kept/speckles.log" || { cat "$D/flipx/kept/speckles.log"; fail "--pairing table: no warning"; }
+echo "a table that ignores the mirror: $ew nm (its pairing replaced by the speckles'), $ek nm (kept)"
+awk -v a="$e1" -v b="$ew" -v k="$ek" 'BEGIN { d = a - b; if (d < 0) d = -d; exit !(d < 0.02 * a && k > 2 * a) }' \
+    || fail "the wrong table: $ew nm with the speckles' pairing, $ek nm kept, against $e1 nm from the right table"
+
 # The camera's own (mirrored) frames with the speckles made for them: refused, no output.
 expect_error "speckles --match" "$B" estimate "$D/flipx/science.fits" "$D/flipx/speckles.fits" -o "$D/x.fits"
 [ ! -e "$D/x.fits" ] || fail "estimate left an output after refusing"

@@ -252,6 +252,10 @@ typedef struct swfs_speckles_run_options {
                                  reconstruction of the residual's mean, no miss added nor
                                  resmean_from's (swfs_pipeline_mean_reconstruction): loops_map's
                                  misses, RESMEAN less it, for the maps stream and live take */
+    int pairing_table;        /* 1: the timing table's pairing is kept whatever the speckles'
+                                 orientation check finds (it warns); 0 (the default): a pairing
+                                 that beats the table's by SWFS_ORIENT_WARN_SE standard errors is
+                                 the one the products take (orient_adopted). Appended in 0.9.0 */
 } swfs_speckles_run_options;
 
 #define SWFS_LOOPS_MAP_AUTO (-1)
@@ -436,13 +440,19 @@ typedef struct swfs_speckles_run_result {
      * science frames of the usable cubes against the speckles' |psi|^2, in all 8 pairings;
      * orient_done 0 where it did not run (a run of several processes, or too few frames). A
      * pairing better than the timing table's by SWFS_ORIENT_WARN_SE standard errors makes
-     * swfs_speckles_orient_warns true: the table's pairing is likely wrong. Appended in 0.8.0. */
+     * swfs_speckles_orient_warns true: the table's pairing is likely wrong. Appended in 0.8.0.
+     * The check runs before the products are written; unless pairing_table, such a pairing is
+     * the one they take: the speckle cube's CAMORIEN, the --match copies turned by it, the
+     * --tiptilt frame shifts (orient_adopted 1; the timing table itself is not changed: replay
+     * and stream take its pairing line). Appended in 0.9.0. */
     int orient_done;
     swfs_orient_check_result orient;
+    int orient_adopted;
 } swfs_speckles_run_result;
 
 /* How many standard errors a pairing must beat the timing table's by for the speckles'
- * orientation check to warn: the significance sync asks of its own fits' parts. */
+ * orientation check to warn and (by default) to be taken instead of the table's: the
+ * significance sync asks of its own fits' parts. */
 #define SWFS_ORIENT_WARN_SE 5.0
 int swfs_speckles_orient_warns(const swfs_speckles_run_result *r);
 

@@ -348,7 +348,7 @@ swfs_speckles_run_options = _s("swfs_speckles_run_options", [
     ("teach_keep_loops", c_int), ("teach", c_ptr), ("teach_again", c_int), ("teach_keys", P(c_str)),
     ("nteach_keys", c_size), ("mean_loops", P(c_str)), ("nmean_loops", c_size), ("mean_teach", c_int),
     ("mean_teach_loops", c_size), ("loops_map", c_int), ("resmean_from", c_str), ("mean_teach_max_loops", c_size),
-    ("mean_rec_out", c_str)])
+    ("mean_rec_out", c_str), ("pairing_table", c_int)])
 RECON_TEACH = 4  # run.h SWFS_RECON_TEACH: speckles' default
 MEAN_TEACH_MAX = 16  # run.h SWFS_MEAN_TEACH_MAX
 swfs_loops_map_result = _s("swfs_loops_map_result", [
@@ -415,7 +415,7 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
     ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl),
     ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl), ("loops_map", swfs_loops_map_result),
-    ("orient_done", c_int), ("orient", swfs_orient_check_result)])
+    ("orient_done", c_int), ("orient", swfs_orient_check_result), ("orient_adopted", c_int)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

@@ -449,7 +449,7 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
              geom=None, progress=None, provenance=(), pupil=None, teach_work=None, teach_loops=None, teach_seed=None,
              teach_keep_loops=False, tiptilt=None, wfs_rate=False, wfs_hz=None, teach_again=False,
              teach_max_loops=None, linear=None, teach_keys=None, mean_loops=None, mean_teach_loops=None,
-             loops_map="auto", mean_teach_max_loops=None):
+             loops_map="auto", mean_teach_max_loops=None, pairing="speckles"):
     """The speckle cube (`specklewfs speckles`) from the timing table, the reduced science
     cube (geometry, focal window) and the actuator positions. match: (in, out) pairs of
     science cubes reduced to the frames the speckle cube has (`--match`). recon: 'teach'
@@ -469,8 +469,11 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's). orient: the camera's orientation told by the
-    speckles (corr by pairing (swap, sign_x, sign_y), best, table, diff, diff_se, npix, warns;
-    a RuntimeWarning where another pairing beats the timing table's by 5 standard errors). tiptilt: None (the default: 'exposure',
+    speckles (corr by pairing (swap, sign_x, sign_y), best, table, diff, diff_se, npix, warns,
+    adopted; a RuntimeWarning where another pairing beats the timing table's by 5 standard
+    errors). pairing: 'speckles' (the default: such a pairing is the one the speckle cube and the
+    match copies take, adopted True; the timing table is not changed) or 'table' (the table's
+    kept, `--pairing table`). tiptilt: None (the default: 'exposure',
     or at the WFS rate 'frame'), 'exposure', 'frame' or 'keep'. wfs_rate: one speckle field
     per WFS frame instead of per exposure (`--wfs-rate`, for coherence(); FRAMEDT = 1/rate;
     wfs_hz [Hz] where the telemetry has no WFSRATE); it takes no match and no 'exposure'.
@@ -552,6 +555,9 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     if loops_map not in ("auto", "choose", "none"):
         raise ValueError(f"speckles: loops_map takes 'auto', 'choose' or 'none', got {loops_map!r}")
     o.loops_map = {"auto": -1, "choose": 1, "none": 0}[loops_map]
+    if pairing not in ("speckles", "table"):
+        raise ValueError(f"speckles: pairing takes 'speckles' or 'table', got {pairing!r}")
+    o.pairing_table = int(pairing == "table")
     if recon == "teach":
         o.pipe.recon = _lib.RECON_TEACH
         o.teach = ctypes.cast(ctypes.byref(tr), ctypes.c_void_p)
@@ -614,12 +620,15 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
             pair.append((p_.swap, p_.sign_x, p_.sign_y))
         d["orient"] = dict(corr={pair[k]: o_.corr[k] for k in range(8)}, best=pair[o_.best], table=pair[o_.ref],
                            diff=o_.diff, diff_se=o_.diff_se, npix=o_.npix,
-                           warns=bool(lib.swfs_speckles_orient_warns(ctypes.byref(r))))
+                           warns=bool(lib.swfs_speckles_orient_warns(ctypes.byref(r))),
+                           adopted=bool(r.orient_adopted))
         if d["orient"]["warns"]:
             line = ctypes.create_string_buffer(400)
             lib.swfs_orient_check_describe(ctypes.byref(o_), line, 400)
+            took = (f"the products take {pair[o_.best]}; replay and stream take the table's, whose pairing line "
+                    "should say so" if r.orient_adopted else "the table's was kept (pairing='table')")
             warnings.warn(f"speckles: the science frames follow the speckles in another orientation than the timing "
-                          f"table's pairing (swap, sign_x, sign_y) {pair[o_.ref]}: {line.value.decode()}",
+                          f"table's pairing (swap, sign_x, sign_y) {pair[o_.ref]}: {line.value.decode()}; {took}",
                           RuntimeWarning, stacklevel=2)
     if recon == "teach" and linear is None:
         d["taught"] = bool(r.taught)

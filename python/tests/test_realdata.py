@@ -67,6 +67,26 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert o["table"] == o["best"] == (0, 1, 1) and not o["warns"] and o["npix"] > 100
     assert o["corr"][(0, 1, 1)] > 0.05 and all(o["corr"][(1, sx, sy)] < 0.5 * o["corr"][(0, 1, 1)]
                                                for sx in (1, -1) for sy in (1, -1))
+    assert not o["adopted"]
+    # a table whose pairing mirrors the camera in x (beside the right one: the same telemetry
+    # names): the speckles' check finds the camera as the model and the matched copy takes it,
+    # the right table's frame for frame; with pairing='table' the table's is kept, and warned of
+    wrong = d / "timing_mirrored.txt"
+    wrong.write_text("".join("pairing 0 -1 1" + line[line.index(" 0 1 1 ") + 6:] if line.startswith("pairing")
+                             else line for line in (d / "timing.txt").read_text().splitlines(True)))
+    assert "pairing 0 -1 1 " in wrong.read_text()
+    with pytest.warns(RuntimeWarning, match="the products take"):
+        sw_ = sw.speckles(str(wrong), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp_w.fits"),
+                          match=[(str(d / "sci.fits"), str(d / "sci_w.fits"))], recon="vk")
+    assert sw_["orient"]["adopted"] and sw_["orient"]["best"] == (0, 1, 1) and sw_["orient"]["table"] == (0, -1, 1)
+    assert sw_["orient"]["diff"] > 5 * sw_["orient"]["diff_se"]
+    np.testing.assert_array_equal(sw.read_fits(str(d / "sci_w.fits"))[0], sw.read_fits(str(d / "sci_m.fits"))[0])
+    assert sw.read_keys(str(d / "sci_w.fits"), ["CAMORIEN"])["CAMORIEN"] is None
+    with pytest.warns(RuntimeWarning, match="was kept"):
+        sk = sw.speckles(str(wrong), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp_k.fits"),
+                         match=[(str(d / "sci.fits"), str(d / "sci_k.fits"))], recon="vk", pairing="table")
+    assert not sk["orient"]["adopted"] and sk["orient"]["warns"]
+    assert sw.read_keys(str(d / "sci_k.fits"), ["CAMORIEN"])["CAMORIEN"] == "SWAP=0 SX=-1 SY=+1"
     # the taught map writes on its own grid (half the DM's pitch): the speckles within its band
     assert sp["info"]["out_pitch"] == pytest.approx(sp["teach"]["out_pitch"], rel=1e-12)
     assert sp["info"]["band"] == pytest.approx(6.5 / (2 * sp["info"]["out_pitch"]), rel=1e-9) and sp["info"]["band"] > 6

@@ -603,7 +603,7 @@ int swfs_speckles_orient_warns(const swfs_speckles_run_result *r)
 
 /* The camera's orientation from the speckles (sync.h swfs_orient_acc): the science frames of
  * the usable cubes, as read, against |psi|^2 of the speckle cube (w->halo, in the model's
- * frame), once after the products are written. Too few frames or nothing that varies: not
+ * frame), once before the products are written. Too few frames or nothing that varies: not
  * run, no error. */
 static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r)
 {
@@ -764,13 +764,21 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w.stk.edges.why);
     if (!rc) rc = residual_mean(o, &w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
+    /* The camera's orientation by the speckles, before the products that depend on it: a
+     * pairing that beats the table's by SWFS_ORIENT_WARN_SE standard errors is theirs unless
+     * the table's is kept (pairing_table). */
+    if (!rc && !team && !o->pipe.wfs_rate && w.halo) rc = orient_check(o, &w, r);
+    if (!rc && swfs_speckles_orient_warns(r) && !o->pairing_table) {
+        swfs_orient_pairing(r->orient.best, &w.t->fit);
+        r->orient_adopted = 1;
+    }
     if (!rc) {
         r->ncubes = w.t->ncubes;
         r->ratio = w.t->ratio;
         r->lag = w.t->lag;
         swfs_pipeline_get_info(w.p, &r->info);
         r->curl_noise = w.curl_noise;
-        char info[600], band[64];
+        char info[800], band[64];
         if (r->info.band > 0) snprintf(band, sizeof band, "%.3g lambda/D", r->info.band);
         else snprintf(band, sizeof band, "the whole window");
         const int tt = o->pipe.tiptilt;
@@ -790,6 +798,13 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
                  model, w.nslopes, r->info.recon_modes, tt == SWFS_TT_KEEP ? "kept" : (tt == SWFS_TT_EXPOSURE ?
                  "exposure mean removed" : "removed per WFS frame"), o->mean_mode == SWFS_MEAN_CUBE ? "per cube" : "ensemble",
                  band);
+        if (r->orient_adopted) {
+            char d[64];
+            swfs_orient_describe(&w.t->fit, d, sizeof d);
+            const size_t len = strlen(info);
+            snprintf(info + len, sizeof info - len, ", camera %s by the speckles (the timing table's pairing beaten by "
+                     "%.1f standard errors)", d, r->orient.diff / r->orient.diff_se);
+        }
         const char **prov = writer ? swfs_prov_plus(o->prov, o->nprov, info) : NULL;
         if (writer && !prov) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
         if (!rc && writer) rc = write_speckles(o, &w, r, prov, o->nprov + 1);
@@ -806,7 +821,6 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
         }
         for (size_t k = 0; !rc && writer && k < o->nmatch; k++)
             rc = write_match(o->match_in[k], o->match_out[k], &w, shx, shy, prov, o->nprov + 1);
-        if (!rc && !team && !o->pipe.wfs_rate && w.halo) rc = orient_check(o, &w, r);
         free(shx);
         free(shy);
         free(prov);
