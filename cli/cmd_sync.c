@@ -169,12 +169,8 @@ int swfs_cmd_sync(int argc, char **argv)
     for (size_t i = 0; t->cubes && i < t->ncubes; i++) {
         const swfs_timing_cube *c = &t->cubes[i];
         if (!c->joined) continue;
-        char across[128];
-        if (c->join_lost)
-            snprintf(across, sizeof across, "not continuous: %ld WFS frame%s %s there (the camera's count)",
-                     labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated");
-        else
-            swfs_timing_join_verdict(c, across, sizeof across);
+        char across[160];
+        swfs_timing_join_verdict(c, across, sizeof across);
         printf("sync: %s frames %zu-%zu continue in %s: lag offset %+.3f WFS frames, correlations %.3f %.3f, "
                "telemetry across the boundary %s\n", c->camera, c->first, c->first + c->nframes - 1, c->slopes,
                c->join_offset, c->join_corr_x, c->join_corr_y, across);

@@ -186,6 +186,8 @@ static void test_sync_speckles_estimate(void **state)
     const size_t j = sr.t.cubes[3].first - 60;
     assert_close(sr.t.cubes[3].start, sr.t.cubes[1].start + (double)j * sr.t.ratio - 1000, 1e-9);
     assert_int_equal(sr.t.cubes[3].join_lost, 0);
+    /* the simulated files' FRAME0 (0, 1000) agree with the telemetry's verdict */
+    assert_true(sr.t.cubes[3].join_verdict > 0 && sr.t.cubes[3].join_frame0);
     const swfs_timing_cube whole = sr.t.cubes[3];
     const double whole_ratio = sr.t.ratio;
     free(sr.t.cubes);
@@ -262,6 +264,58 @@ static void test_sync_speckles_estimate(void **state)
     assert_ok(swfs_sync_boundary_gap(s0->data + (s0->ny - 1 - SWFS_SYNC_EDGE_FRAMES) * s0->nx, SWFS_SYNC_EDGE_FRAMES,
                                      s1->data, SWFS_SYNC_EDGE_FRAMES, s0->nx, -1, &gp));
     assert_false(gp.consistent); /* one lost is not one repeated */
+
+    /* The files' own frame counters (FRAME0, which simulate writes: 0 and 1000 here). Three
+       frames cut from slopes_000's end, FRAME0 kept in both: the counters say three lost, which
+       the telemetry does not contradict (not continuous) and could not count itself (above),
+       so the part is placed by them where the whole file puts it. One frame cut from the end
+       of slopes_000 and slopes_001's FRAME0 written as 999 (counters that lie): they say
+       contiguous, the telemetry not continuous, and the data decide as without counters (the
+       camera's count of 1, shown by the telemetry). */
+    for (int ic = 0; ic < 2; ic++) {
+        const size_t cut = ic == 0 ? 3 : 1;
+        swfs_real *a = swfs_real_alloc(s0->nx, s0->ny - cut, 1);
+        swfs_real *b = swfs_real_alloc(s1->nx, s1->ny, 1);
+        assert_true(a && b);
+        memcpy(a->data, s0->data, a->nx * a->ny * sizeof *a->data);
+        memcpy(b->data, s1->data, b->nx * b->ny * sizeof *b->data);
+        const swfs_real *ab[2] = {a, b};
+        const char *names[2] = {"lost/slopes_000.fits", "lost/slopes_001.fits"};
+        for (int k = 0; k < 2; k++) {
+            unlink(p(names[k]));
+            swfs_fits_out *fo = NULL;
+            assert_ok(swfs_fits_out_create(&fo, p(names[k])));
+            assert_ok(swfs_fits_out_real(fo, NULL, ab[k], -32));
+            assert_ok(swfs_fits_out_key_long(fo, "FRAME0", k ? (ic ? 999 : 1000) : 0, "global WFS frame of row 0"));
+            assert_ok(swfs_fits_out_commit(fo));
+        }
+        swfs_real_free(a);
+        swfs_real_free(b);
+        assert_ok(swfs_sync_run(&so, &sr));
+        const swfs_timing_cube *r3 = sr.t.ncubes > 3 ? &sr.t.cubes[3] : NULL;
+        char how[160] = "";
+        if (r3 && r3->joined) swfs_timing_join_verdict(r3, how, sizeof how);
+        printf("test_runs: %zu frame%s cut from slopes_000's end, FRAME0 %s: %zu of %zu exposures usable; the part "
+               "starts at %.4f (%.4f with the whole files), the boundary %s\n", cut, cut == 1 ? "" : "s",
+               ic ? "saying contiguous" : "kept", sr.nexp_ok, sr.nexp, r3 ? r3->start : NAN, whole.start, how);
+        assert_int_equal(sr.ncontinued, 1);
+        assert_int_equal(sr.nexp_ok, 179);
+        assert_true(r3->joined && r3->join_verdict == -1);
+        assert_int_equal(r3->first, whole.first);
+        assert_int_equal(r3->nframes, whole.nframes);
+        if (ic == 0) {
+            assert_true(r3->join_frame0);
+            assert_int_equal(r3->join_lost, 3);
+            assert_true(fabs(r3->start - whole.start) < 0.1);
+            assert_non_null(strstr(how, "3 WFS frames lost there by the files' FRAME0"));
+        } else {
+            assert_false(r3->join_frame0);
+            assert_int_equal(r3->join_lost, 1);
+            assert_true(fabs(r3->start - whole.start) < 0.1);
+            assert_non_null(strstr(how, "(the camera's count)"));
+        }
+        free(sr.t.cubes);
+    }
     swfs_real_free(s0);
     swfs_real_free(s1);
 
@@ -1105,20 +1159,37 @@ static void test_sync_files_shorter_than_cube(void **state)
     free(sr.t.cubes);
 
     /* slopes_006 whole again and slopes_007 gone: 150 frames lost between slopes_006 and
-       slopes_008 (the folder's next file). The camera's tip-tilt, periodic with the 20 Hz
-       vibration, matches there at the gap less six periods (4 frames "repeated"); the
-       telemetry does not show that count, and the chain stops at slopes_006. */
-    char f7k[1400];
+       slopes_008 (the folder's next file). The files' FRAME0 (900, 1200) count them, the
+       telemetry says not continuous, and raw_001's part in slopes_008 is placed by the count,
+       where the camera finds it. */
+    char f7k[1400], f8[1400], f8k[1400];
     snprintf(f7k, sizeof f7k, "%s/slopes_007.keep", c.sub);
+    snprintf(f8, sizeof f8, "%s/slopes_008.fits", c.sub);
+    snprintf(f8k, sizeof f8k, "%s/slopes_008.keep", c.sub);
     assert_ok(rename(f7, f7k));
     assert_ok(rename(lost, f6));
+    assert_ok(swfs_sync_run(&c.so, &sr));
+    const swfs_timing_cube *in8 = NULL;
+    for (size_t k = 0; k < sr.t.ncubes; k++)
+        if (sr.t.cubes[k].joined && strstr(sr.t.cubes[k].slopes, "slopes_008.fits")) in8 = &sr.t.cubes[k];
+    printf("test_runs: slopes_007 gone: %zu of %zu exposures; %s\n", sr.nexp_ok, sr.nexp,
+           in8 ? "a part placed in slopes_008 by the files' FRAME0" : "none in slopes_008");
+    assert_non_null(in8);
+    assert_true(in8->join_frame0 && in8->join_lost == 150 && in8->join_verdict == -1 && fabs(in8->join_offset) < 0.5);
+    assert_true(sr.nexp_ok < used);
+    const size_t with_frame0 = sr.nexp_ok;
+    free(sr.t.cubes);
+    /* Without FRAME0 in slopes_008 the data alone decide: the camera's tip-tilt, periodic with
+       the 20 Hz vibration, matches there at the gap less six periods (4 frames "repeated"); the
+       telemetry does not show that count, and the chain stops at slopes_006. */
+    cut_file_end(f8, f8k, 0);
     assert_ok(swfs_sync_run(&c.so, &sr));
     crosses = 0;
     for (size_t k = 0; k < sr.t.ncubes; k++)
         if (sr.t.cubes[k].joined && strstr(sr.t.cubes[k].slopes, "slopes_008.fits")) crosses = 1;
-    printf("test_runs: slopes_007 gone: %zu of %zu exposures\n", sr.nexp_ok, sr.nexp);
+    printf("test_runs: slopes_007 gone, no FRAME0 in slopes_008: %zu of %zu exposures\n", sr.nexp_ok, sr.nexp);
     assert_false(crosses);
-    assert_true(sr.nexp_ok < used);
+    assert_true(sr.nexp_ok < with_frame0);
     free(sr.t.cubes);
 }
 

@@ -223,11 +223,15 @@ typedef struct swfs_timing_cube {
                           telemetry says the files do not continue each other; 0: contiguous */
     size_t join_window; /* the verdict's window where the check's second stage gave it (the means of
                            join_window frames either side); 0: the one-frame steps */
+    int join_frame0;    /* 1: the two files' FRAME0 placed the part (join_lost their count), the
+                           telemetry not contradicting them (sync_run). Appended in 0.9.0 */
 } swfs_timing_cube;
 
-/* The telemetry's verdict on a joined row's boundary, as sync and its timing table word it:
- * "continuous", "continuous (the means of 3 frames either side)" or "undecided" (a row whose
- * files do not continue each other, join_lost != 0, is worded with the camera's count). */
+/* The boundary a joined row crossed, as sync and its timing table word it: the telemetry's
+ * verdict "continuous", "continuous (the means of 3 frames either side)" or "undecided", or
+ * "not continuous: 2 WFS frames lost there (the camera's count)"; with "; the files' FRAME0
+ * say contiguous" (or "agree") where the files' counters placed it, and their count for frames
+ * lost ("2 WFS frames lost there by the files' FRAME0; the telemetry undecided"). */
 void swfs_timing_join_verdict(const swfs_timing_cube *c, char *buf, size_t cap);
 
 typedef struct swfs_timing {

@@ -32,6 +32,8 @@ typedef struct slopes_file {
     char name[SWFS_SYNC_NAME];
     size_t nwfs;
     double *mx, *my;
+    int has_frame0;   /* the file's FRAME0 (the WFS frame counter of its first row) */
+    long frame0;
 } slopes_file;
 
 #define NO_FILE ((size_t)-1) /* work.cube_file of a cube whose telemetry file cannot be read */
@@ -85,6 +87,15 @@ static int load_file(work *w, const char *name, size_t *fi)
         free(f->mx);
         f->mx = NULL;
         rc = swfs_fail(SWFS_ERR_NOMEM, "%s: out of memory", path);
+    }
+    if (!rc) { /* FRAME0, where the writer gave it: the files' own account of their frames */
+        swfs_fits_in *h = NULL;
+        long f0 = 0;
+        f->has_frame0 = 0;
+        rc = swfs_fits_in_open(&h, path, NULL);
+        if (!rc) rc = swfs_fits_in_key_long_opt(h, "FRAME0", 0, (long)1 << 50, &f0, &f->has_frame0);
+        swfs_fits_in_close(h);
+        f->frame0 = f0;
     }
     if (!rc) {
         w->nwfs_slopes = s->nx;
@@ -254,7 +265,9 @@ typedef struct chain_seg {
     int verdict; /* the telemetry's verdict on the boundary into this segment's file */
     size_t window; /* its second stage's window (swfs_sync_boundary), 0: none */
     long lost;   /* WFS frames lost across that boundary (< 0: repeated), the camera's count where
-                    the telemetry says the files do not continue each other; 0: contiguous */
+                    the telemetry says the files do not continue each other, or the files' FRAME0;
+                    0: contiguous */
+    int frame0;  /* the files' FRAME0 placed the segment (the telemetry did not contradict them) */
 } chain_seg;
 
 typedef struct chain {
@@ -297,7 +310,7 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
     const double st = sb + (double)j0 * R;
     const swfs_sync_cube part = {j1 - j0, c->tx + j0, c->ty + j0, w->files[fi].mx, w->files[fi].my,
                                  w->files[fi].nwfs, st + fit->lag};
-    *sg = (chain_seg){fi, j0, j1, sb, {0}, 0, 0, 0};
+    *sg = (chain_seg){fi, j0, j1, sb, {0}, 0, 0, 0, 0};
     *rc = swfs_sync_continuation_check(&part, fit, &w->params, &sg->cc);
     return 1;
 }
@@ -321,7 +334,17 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
  *   Where the telemetry says not contiguous, the
  *   part is refused, unless frames were lost or repeated there by a count the camera and the
  *   telemetry both show (below): then it is placed that many frames off. Where the telemetry
- *   cannot tell, the camera's rule alone decides. */
+ *   cannot tell, the camera's rule alone decides.
+ * Where both files carry FRAME0 (the writer's WFS frame counter of its first row) they say
+ * where the part lies: B's first frame FRAME0_B - FRAME0_A - nwfs_A frames after A's last
+ * (0: contiguous). Unless the telemetry contradicts them (not contiguous where they say
+ * contiguous, contiguous where they count frames lost: a file cut or a header copied), the
+ * part is placed there and joins unless the camera contradicts it: by the contiguous
+ * verdict's rule where the telemetry says contiguous too, else a significant best lag tol or
+ * more from the fit's. Where either contradicts them the data decide as above. The 8 x 8 and
+ * 10 x 10 foreign loops of 40 modes lost a cube's 49 exposures where neither the telemetry
+ * (undecided) nor the camera (not significant over 49 exposures) could tell
+ * (docs/telemetry.md). */
 static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double slack, chain *ch)
 {
     const swfs_sync_cube *c = &w->cubes[ci];
@@ -335,7 +358,7 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
         const double e = s >= 0 ? floor(((double)w->files[fa].nwfs - s) / R) : ceil(-s / R);
         a0 = a1 = e <= 0 ? 0 : e >= (double)n ? n : (size_t)e;
     }
-    const chain_seg own = {fa, a0, a1, s, {0}, 0, 0, 0};
+    const chain_seg own = {fa, a0, a1, s, {0}, 0, 0, 0, 0};
     int rc = chain_push(ch, &own, 0);
     const double jown = 0.5 * (double)(a0 + a1);
     for (int dir = -1; !rc && dir <= 1; dir += 2) {
@@ -352,15 +375,31 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
             for (size_t k = 0; k < ch->nseg && !seen; k++) seen = ch->seg[k].fi == fi;
             if (seen) break;
             const double sb = dir < 0 ? scur + (double)w->files[fi].nwfs : scur - (double)w->files[cur].nwfs;
-            chain_seg sg;
-            if (!place_part(w, c, fi, sb, dir, lo, hi, fit, &sg, &rc) || rc) break;
-            const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown);
+            const size_t ea = dir < 0 ? fi : cur, eb = dir < 0 ? cur : fi;
+            const int hdr = w->files[ea].has_frame0 && w->files[eb].has_frame0;
+            const long hdr_lost = hdr ? w->files[eb].frame0 - w->files[ea].frame0 - (long)w->files[ea].nwfs : 0;
             swfs_sync_boundary bd;
-            if ((rc = boundary(w, dir < 0 ? fi : cur, dir < 0 ? cur : fi, &bd))) break;
+            if ((rc = boundary(w, ea, eb, &bd))) break;
+            const int by_hdr = hdr && (hdr_lost == 0 ? bd.verdict >= 0 : bd.verdict <= 0);
+            chain_seg sg;
+            int ok = 0;
+            if (by_hdr) { /* the part where the two counters put it, unless the camera contradicts */
+                const double sh = scur + (double)(w->files[cur].frame0 - w->files[fi].frame0);
+                if (!place_part(w, c, fi, sh, dir, lo, hi, fit, &sg, &rc) || rc) break;
+                const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown), off = fabs(sg.cc.offset);
+                ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
+                                    : !(sg.cc.significant && !(off < tol));
+                sg.frame0 = ok;
+                sg.lost = ok ? hdr_lost : 0;
+            }
+            if (!ok && !place_part(w, c, fi, sb, dir, lo, hi, fit, &sg, &rc)) break;
+            if (rc) break;
+            const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown);
             const double off = fabs(sg.cc.offset);
-            int ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
+            if (!ok)
+                ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
                                     : bd.verdict == 0 && sg.cc.significant && off < tol;
-            if (bd.verdict < 0 && sg.cc.significant) {
+            if (!ok && bd.verdict < 0 && sg.cc.significant) {
                 /* Not contiguous: the camera counts the frames lost (or repeated) between the
                  * files, a whole number k != 0 of WFS frames within tol of its lag offset, the
                  * nearest first (k > 0: the part lies k frames later than contiguity puts it,
@@ -371,7 +410,6 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
                  * tell (verdict 0) nothing is counted: a part of 25 exposures puts a contiguous
                  * boundary 0.6-0.7 frames off, and the telemetry that leaves 0 and 1 lost
                  * undecided cannot refuse the 1. */
-                const size_t ea = dir < 0 ? fi : cur, eb = dir < 0 ? cur : fi;
                 const double o = sg.cc.offset, k0 = nearbyint(o);
                 const chain_seg first = sg;
                 for (int t = 0; !ok && !rc && t <= 2 * (int)ceil(tol); t++) {
@@ -557,6 +595,7 @@ static int chain_rows(const work *w, const swfs_timing_cube *c, const chain *ch,
                 row->join_verdict = sg->verdict;
                 row->join_window = sg->window;
                 row->join_lost = sg->lost;
+                row->join_frame0 = sg->frame0;
                 r->ncontinued++;
             }
         }

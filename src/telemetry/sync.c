@@ -736,10 +736,21 @@ void swfs_timing_free(swfs_timing *t)
 
 void swfs_timing_join_verdict(const swfs_timing_cube *c, char *buf, size_t cap)
 {
+    char v[96];
     if (c->join_verdict > 0 && c->join_window)
-        snprintf(buf, cap, "continuous (the means of %zu frames either side)", c->join_window);
+        snprintf(v, sizeof v, "continuous (the means of %zu frames either side)", c->join_window);
     else
-        snprintf(buf, cap, "%s", c->join_verdict > 0 ? "continuous" : "undecided");
+        snprintf(v, sizeof v, "%s", c->join_verdict > 0 ? "continuous" : c->join_verdict < 0 ? "not continuous" : "undecided");
+    const long n = labs(c->join_lost);
+    const char *what = c->join_lost > 0 ? "lost" : "repeated", *s = n == 1 ? "" : "s";
+    if (c->join_lost && c->join_frame0)
+        snprintf(buf, cap, "%ld WFS frame%s %s there by the files' FRAME0; the telemetry %s", n, s, what, v);
+    else if (c->join_lost)
+        snprintf(buf, cap, "not continuous: %ld WFS frame%s %s there (the camera's count)", n, s, what);
+    else if (c->join_frame0)
+        snprintf(buf, cap, "%s; the files' FRAME0 %s", v, c->join_verdict > 0 ? "agree" : "say contiguous");
+    else
+        snprintf(buf, cap, "%s", v);
 }
 
 int swfs_timing_write(const char *path, const swfs_timing *t)
@@ -757,14 +768,8 @@ int swfs_timing_write(const char *path, const swfs_timing *t)
     fprintf(f, "# cube INDEX CAMERA_FILE FIRST_FRAME NFRAMES SLOPES_FILE START STATUS\n");
     for (size_t i = 0; i < t->ncubes; i++) {
         const swfs_timing_cube *c = t->cubes + i;
-        if (c->joined && c->join_lost)
-            fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file after %ld WFS frame%s %s "
-                    "at the boundary (the telemetry across it not continuous; the camera's count): lag offset %+.3f "
-                    "WFS frames there, correlations %.3f %.3f\n", c->camera, c->first, c->first + c->nframes - 1,
-                    labs(c->join_lost), labs(c->join_lost) == 1 ? "" : "s", c->join_lost > 0 ? "lost" : "repeated",
-                    c->join_offset, c->join_corr_x, c->join_corr_y);
-        else if (c->joined) {
-            char how[96];
+        if (c->joined) {
+            char how[160];
             swfs_timing_join_verdict(c, how, sizeof how);
             fprintf(f, "# %s frames %zu-%zu continue in the next or previous telemetry file: lag offset %+.3f WFS "
                     "frames, correlations %.3f %.3f; the telemetry across the boundary %s\n", c->camera, c->first,
