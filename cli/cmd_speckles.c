@@ -148,30 +148,16 @@ static int parse(int argc, char **argv, swfs_speckles_run_options *o, const char
     return cli_check(cmd, swfs_speckles_run_options_check(o));
 }
 
-/* The camera's orientation told by the speckles (sync.h swfs_orient_acc); where another pairing
- * beats the timing table's (run.h swfs_speckles_orient_warns), that it was taken, or the
- * warning that the table's was kept (--pairing table). */
+/* The camera's orientation told by the speckles (sync.h swfs_orient_acc), and the warning where
+ * another pairing beats the timing table's (run.h swfs_speckles_orient_warning). */
 static void orient_summary(const char *cmd, const swfs_speckles_run_result *r)
 {
     if (!r->orient_done) return;
-    char line[400];
+    char line[1024];
     swfs_orient_check_describe(&r->orient, line, sizeof line);
     fprintf(stderr, "%s: the camera's orientation by the speckles: %s\n", cmd, line);
-    if (!swfs_speckles_orient_warns(r)) return;
-    swfs_sync_result pb;
-    swfs_orient_pairing(r->orient.best, &pb);
-    if (r->orient_adopted)
-        fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
-                "timing table's pairing (the star's track can pair the axes wrongly where a vibration moves them "
-                "alike): the speckle cube and the --match copies take the speckles' pairing; replay and stream take "
-                "the table's, so set the first three numbers of its 'pairing' line to '%d %d %d' for them "
-                "(docs/telemetry.md, \"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x, pb.sign_y);
-    else
-        fprintf(stderr, "specklewfs %s: warning: the science frames follow the speckles in another orientation than the "
-                "timing table's pairing, which was kept (--pairing table): the star's track can pair the axes wrongly "
-                "where a vibration moves them alike; if the camera is oriented so, set the first three numbers of the "
-                "table's 'pairing' line to '%d %d %d' or run speckles without --pairing table (docs/telemetry.md, "
-                "\"The camera's orientation\")\n", cmd, pb.swap, pb.sign_x, pb.sign_y);
+    swfs_speckles_orient_warning(r, line, sizeof line);
+    if (line[0]) fprintf(stderr, "specklewfs %s: warning: %s\n", cmd, line);
 }
 
 int swfs_cmd_speckles(int argc, char **argv)

@@ -455,6 +455,9 @@ typedef struct swfs_speckles_run_result {
  * significance sync asks of its own fits' parts. */
 #define SWFS_ORIENT_WARN_SE 5.0
 int swfs_speckles_orient_warns(const swfs_speckles_run_result *r);
+/* The warning's words where swfs_speckles_orient_warns (what the products took, the numbers for
+ * the table's pairing line); "" otherwise. Added in 0.9.0. */
+void swfs_speckles_orient_warning(const swfs_speckles_run_result *r, char *buf, size_t cap);
 
 /* The space-time map's wind mismatch (swfs_speckles_run_result.st_mismatch) beyond which
  * `speckles` warns: a quarter subaperture at the largest lag (docs/telemetry.md: on the

@@ -791,6 +791,7 @@ _PROTOS = {
     "swfs_spacetime_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_resmean_warns": (c_int, [P(swfs_speckles_run_result)]),
     "swfs_speckles_orient_warns": (c_int, [P(swfs_speckles_run_result)]),
+    "swfs_speckles_orient_warning": (None, [P(swfs_speckles_run_result), ctypes.c_char_p, c_size]),
     "swfs_orient_pairing": (None, [c_int, P(swfs_sync_result)]),
     "swfs_orient_check_describe": (None, [P(swfs_orient_check_result), ctypes.c_char_p, c_size]),
     "swfs_sync_boundary_check": (c_int, [P(c_dbl), c_size, P(c_dbl), c_size, c_size, P(swfs_sync_boundary)]),

@@ -623,13 +623,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
                            warns=bool(lib.swfs_speckles_orient_warns(ctypes.byref(r))),
                            adopted=bool(r.orient_adopted))
         if d["orient"]["warns"]:
-            line = ctypes.create_string_buffer(400)
-            lib.swfs_orient_check_describe(ctypes.byref(o_), line, 400)
-            took = (f"the products take {pair[o_.best]}; replay and stream take the table's, whose pairing line "
-                    "should say so" if r.orient_adopted else "the table's was kept (pairing='table')")
-            warnings.warn(f"speckles: the science frames follow the speckles in another orientation than the timing "
-                          f"table's pairing (swap, sign_x, sign_y) {pair[o_.ref]}: {line.value.decode()}; {took}",
-                          RuntimeWarning, stacklevel=2)
+            line, why = ctypes.create_string_buffer(1024), ctypes.create_string_buffer(1024)
+            lib.swfs_orient_check_describe(ctypes.byref(o_), line, 1024)
+            lib.swfs_speckles_orient_warning(ctypes.byref(r), why, 1024)
+            warnings.warn(f"speckles: {why.value.decode()}; {line.value.decode()}", RuntimeWarning, stacklevel=2)
     if recon == "teach" and linear is None:
         d["taught"] = bool(r.taught)
         if r.taught:

@@ -75,14 +75,14 @@ def test_path_on_files_equals_the_cli(series, cli):
     wrong.write_text("".join("pairing 0 -1 1" + line[line.index(" 0 1 1 ") + 6:] if line.startswith("pairing")
                              else line for line in (d / "timing.txt").read_text().splitlines(True)))
     assert "pairing 0 -1 1 " in wrong.read_text()
-    with pytest.warns(RuntimeWarning, match="the products take"):
+    with pytest.warns(RuntimeWarning, match="take the speckles' pairing"):
         sw_ = sw.speckles(str(wrong), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp_w.fits"),
                           match=[(str(d / "sci.fits"), str(d / "sci_w.fits"))], recon="vk")
     assert sw_["orient"]["adopted"] and sw_["orient"]["best"] == (0, 1, 1) and sw_["orient"]["table"] == (0, -1, 1)
     assert sw_["orient"]["diff"] > 5 * sw_["orient"]["diff_se"]
     np.testing.assert_array_equal(sw.read_fits(str(d / "sci_w.fits"))[0], sw.read_fits(str(d / "sci_m.fits"))[0])
     assert sw.read_keys(str(d / "sci_w.fits"), ["CAMORIEN"])["CAMORIEN"] is None
-    with pytest.warns(RuntimeWarning, match="was kept"):
+    with pytest.warns(RuntimeWarning, match="which was kept"):
         sk = sw.speckles(str(wrong), str(d / "sci.fits"), str(s / "actuators.fits"), str(d / "sp_k.fits"),
                          match=[(str(d / "sci.fits"), str(d / "sci_k.fits"))], recon="vk", pairing="table")
     assert not sk["orient"]["adopted"] and sk["orient"]["warns"]

@@ -601,6 +601,26 @@ int swfs_speckles_orient_warns(const swfs_speckles_run_result *r)
     return r->orient_done && c->best != c->ref && c->diff > SWFS_ORIENT_WARN_SE * c->diff_se;
 }
 
+void swfs_speckles_orient_warning(const swfs_speckles_run_result *r, char *buf, size_t cap)
+{
+    if (cap) buf[0] = '\0';
+    if (!swfs_speckles_orient_warns(r)) return;
+    swfs_sync_result pb;
+    swfs_orient_pairing(r->orient.best, &pb);
+    if (r->orient_adopted)
+        snprintf(buf, cap, "the science frames follow the speckles in another orientation than the timing table's "
+                 "pairing (the star's track can pair the axes wrongly where a vibration moves them alike): the speckle "
+                 "cube and the --match copies take the speckles' pairing; replay and stream take the table's, so set "
+                 "the first three numbers of its 'pairing' line to '%d %d %d' for them (docs/telemetry.md, \"The "
+                 "camera's orientation\")", pb.swap, pb.sign_x, pb.sign_y);
+    else
+        snprintf(buf, cap, "the science frames follow the speckles in another orientation than the timing table's "
+                 "pairing, which was kept (--pairing table): the star's track can pair the axes wrongly where a "
+                 "vibration moves them alike; if the camera is oriented so, set the first three numbers of the table's "
+                 "'pairing' line to '%d %d %d' or run speckles without --pairing table (docs/telemetry.md, \"The "
+                 "camera's orientation\")", pb.swap, pb.sign_x, pb.sign_y);
+}
+
 /* The camera's orientation from the speckles (sync.h swfs_orient_acc): the science frames of
  * the usable cubes, as read, against |psi|^2 of the speckle cube (w->halo, in the model's
  * frame), once before the products are written. Too few frames or nothing that varies: not
