@@ -46,6 +46,9 @@ void cli_pupil_fit_summary(const swfs_pupil_result *r, const swfs_geom *g, const
             printf(" (over its median; GAIN_FIT)\n");
         }
     }
+    if (isfinite(f->log_evidence))
+        printf("  evidence          the fixed point of %s kept: log evidence %.1f, the other's %.1f (two starts)\n",
+               f->warm_start ? "the warm start" : "the rule from the start", f->log_evidence, f->log_evidence_alt);
     if (isfinite(f->delta_chi2))
         printf("  mean intensity    %s (chi-square of the intercept model %.0f above the free one%s; limit %.0f)\n",
                f->intercept == SWFS_JF_INTERCEPT_FREE ? "free per pixel: light the speckles do not model"

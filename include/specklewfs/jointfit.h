@@ -123,6 +123,12 @@ typedef struct swfs_jointfit_result {
                               could no longer come within the limit in the iterations left
                               (delta_chi2 is then where it stopped, above its converged value,
                               and the free intercept is kept); 0 otherwise */
+    /* Stage 1 is run twice, the evidence rule from the start and after a run to convergence at
+     * the start's prior weights (a warm start), and the fixed point of the larger log evidence
+     * (Laplace's approximation, constants dropped) is kept. Appended in 0.9.0. */
+    int warm_start;          /* 1: the warm start's fixed point was kept */
+    double log_evidence;     /* the kept fixed point's; NaN for a model fit stopped early */
+    double log_evidence_alt; /* the other's (-inf where its H + lambda R was not positive definite) */
 } swfs_jointfit_result;
 
 /* sol: swfs_regress_solve over the focal window of the geometry g (PIXSCALE, PUPDX, TELDIAM,

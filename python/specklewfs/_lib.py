@@ -145,7 +145,8 @@ swfs_jointfit_result = _s("swfs_jointfit_result", [
     ("gamma_alpha", c_dbl), ("chi2", c_dbl), ("cost", c_dbl), ("npix", c_size), ("nintervals", c_size),
     ("nbasis", c_size), ("nparams", c_size), ("iterations", c_int), ("evaluations", c_int), ("seconds", c_dbl),
     ("wfe_rms", c_dbl), ("intercept", c_int), ("delta_chi2", c_dbl), ("delta_chi2_limit", c_dbl),
-    ("noise_scale", c_dbl), ("model_stopped", c_int)])
+    ("noise_scale", c_dbl), ("model_stopped", c_int), ("warm_start", c_int), ("log_evidence", c_dbl),
+    ("log_evidence_alt", c_dbl)])
 swfs_pupil_options = _s("swfs_pupil_options", [("weight", c_int), ("wiener_k", c_dbl), ("bias", c_dbl),
                                                ("source", c_int), ("method", c_int),
                                                ("fit", swfs_jointfit_options), ("keep_resmean", c_int)])

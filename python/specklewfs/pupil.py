@@ -21,7 +21,9 @@ class PupilResult:
     weight, wiener_k, bias, source: the moments' options; geom. After a fit also halo_fit
     (complex focal-plane Psi of the fit), gain_fit (g map), kappa (unexplained speckle
     power fraction), fit_iterations, fit_noise_scale (the data's weight by the evidence),
-    fit_nparams (the fit's unknowns),
+    fit_nparams (the fit's unknowns), fit_warm_start, fit_log_evidence, fit_log_evidence_alt
+    (the evidence rule run from the start and after a warm start: which fixed point was kept,
+    its log evidence and the other's; jointfit.h),
     explained, explained_median (the self-check of the speckles: the science variance they
     explain, summed and median pixel), explained_map (per pixel; NaN where not solved) and
     explained_rings(). resmean: the AO residual's time mean [m] taken out of wfe (the halo's
@@ -40,7 +42,7 @@ class PupilResult:
         self.source = "halo" if r.opt.source == 1 else "lf"
         self.method = "fit" if r.method == 1 else "moments"
         self.halo_fit = self.gain_fit = self.kappa = self.fit_iterations = self.fit_noise_scale = None
-        self.fit_nparams = None
+        self.fit_nparams = self.fit_warm_start = self.fit_log_evidence = self.fit_log_evidence_alt = None
         self.explained, self.explained_median = r.explained, r.explained_median
         self.explained_map = _lib.real_view(r.explained_map, self._owner) if r.explained_map else None
         self.resmean = _lib.real_view(r.resmean, self._owner) if r.resmean else None
@@ -51,6 +53,8 @@ class PupilResult:
             self.gain_fit = _lib.real_view(f.gain, self._owner)
             self.kappa, self.fit_iterations, self.fit_noise_scale = f.kappa, f.iterations, f.noise_scale
             self.fit_nparams = f.nparams
+            self.fit_warm_start = bool(f.warm_start)
+            self.fit_log_evidence, self.fit_log_evidence_alt = f.log_evidence, f.log_evidence_alt
         self.geom = geom
 
     def explained_rings(self, nrings=None):

@@ -51,6 +51,13 @@ int swfs_pupil_write(const swfs_pupil_result *r, const char *path, const swfs_ge
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITLAMP", f->lambda_alpha, "log-amplitude prior weight");
     if (!rc && f) rc = swfs_fits_out_key_double(o, "FITNSCL", f->noise_scale, "data weight (evidence): dof / chi2");
     if (!rc && f) rc = swfs_fits_out_key_long(o, "FITITER", (long)f->iterations, "Levenberg-Marquardt steps");
+    if (!rc && f && isfinite(f->log_evidence))
+        rc = swfs_fits_out_key_long(o, "FITWARM", (long)f->warm_start, "1: the warm start's evidence fixed point kept");
+    if (!rc && f && isfinite(f->log_evidence))
+        rc = swfs_fits_out_key_double(o, "FITLEVD", f->log_evidence, "log evidence of the kept fixed point");
+    if (!rc && f && isfinite(f->log_evidence) && !isnan(f->log_evidence_alt))
+        rc = swfs_fits_out_key_double(o, "FITLEVA", isfinite(f->log_evidence_alt) ? f->log_evidence_alt : -1e300,
+                                      "log evidence of the other start's");
     if (!rc && f) rc = swfs_fits_out_key_string(o, "FITICPT", f->intercept == SWFS_JF_INTERCEPT_FREE ? "FREE" : "MODEL",
                                                 "mean intensity: modelled or free per pixel");
     if (!rc && f && isfinite(f->delta_chi2))
