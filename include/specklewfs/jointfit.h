@@ -127,7 +127,8 @@ typedef struct swfs_jointfit_result {
      * the start's prior weights (a warm start), and the fixed point of the larger log evidence
      * (Laplace's approximation, constants dropped) is kept. Appended in 0.9.0. */
     int warm_start;          /* 1: the warm start's fixed point was kept */
-    double log_evidence;     /* the kept fixed point's; NaN for a model fit stopped early */
+    double log_evidence;     /* the kept fixed point's; NaN for a model fit stopped early and
+                                where both prior weights are given (run once) */
     double log_evidence_alt; /* the other's (-inf where its H + lambda R was not positive definite) */
 } swfs_jointfit_result;
 

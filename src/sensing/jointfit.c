@@ -817,7 +817,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
      * 14 x 14 zonal one at 80 photons). So both are run, the rule at once and after that warm
      * start, and the one of the larger log evidence is kept (docs/estimator.md, "Two starts,
      * one evidence"). An intercept model stopped early (AUTO) is not run twice: its result
-     * is not used. */
+     * is not used; nor is a fit whose prior weights are given (no rule to start). */
     double *xa = swfs_malloc(np * sizeof *xa), *x0 = swfs_malloc(np * sizeof *x0);
     if (!xa || !x0) {
         free(xa);
@@ -829,7 +829,7 @@ static int jointfit_one(const swfs_regress_sol *sol, const swfs_geom *geo, const
     const fit_weights w0 = weights_get(&ft);
     cur = run_stage(&ft, o.max_iter, 0, &chi2);
     res->log_evidence = res->log_evidence_alt = NAN;
-    if (!ft.rejected) {
+    if (!ft.rejected && (o.lambda_phi <= 0.0 || o.lambda_alpha <= 0.0)) {
         const double le_a = log_evidence(&ft);
         const fit_weights wa = weights_get(&ft);
         memcpy(xa, ft.x, np * sizeof *xa);
