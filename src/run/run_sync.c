@@ -315,6 +315,17 @@ static int place_part(work *w, const swfs_sync_cube *c, size_t fi, double sb, in
     return 1;
 }
 
+/* Whether the camera lets a part join that something else (the telemetry, the files' FRAME0)
+ * places: it does not where its best lag is significant and tol or more from the fit's; where
+ * the telemetry itself says contiguous only where that lag is also told from the placement
+ * (off_significant) and a frame or more off (build_chain). */
+static int camera_allows(const swfs_sync_continuation *cc, double tol, int telemetry_contiguous)
+{
+    const double off = fabs(cc->offset);
+    return telemetry_contiguous ? !(cc->significant && cc->off_significant && !(off < fmax(1.0, tol)))
+                                : !(cc->significant && !(off < tol));
+}
+
 /* Cube ci's chain at fit: its own file's exposures, then file by file outwards (adjacent_file)
  * the neighbours' while the files continue each other. Two checks decide, one on the camera
  * and one on the telemetry alone:
@@ -382,23 +393,23 @@ static int build_chain(work *w, size_t ci, const swfs_sync_result *fit, double s
             if ((rc = boundary(w, ea, eb, &bd))) break;
             const int by_hdr = hdr && (hdr_lost == 0 ? bd.verdict >= 0 : bd.verdict <= 0);
             chain_seg sg;
-            int ok = 0;
+            int ok = 0, placed = 0;
             if (by_hdr) { /* the part where the two counters put it, unless the camera contradicts */
                 const double sh = scur + (double)(w->files[cur].frame0 - w->files[fi].frame0);
                 if (!place_part(w, c, fi, sh, dir, lo, hi, fit, &sg, &rc) || rc) break;
-                const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown), off = fabs(sg.cc.offset);
-                ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
-                                    : !(sg.cc.significant && !(off < tol));
+                ok = camera_allows(&sg.cc, 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown), bd.verdict > 0);
                 sg.frame0 = ok;
                 sg.lost = ok ? hdr_lost : 0;
+                /* counters that say contiguous placed it where the data would: the rules below
+                 * (the telemetry's verdict then >= 0) ask no less of the same check */
+                placed = hdr_lost == 0;
             }
-            if (!ok && !place_part(w, c, fi, sb, dir, lo, hi, fit, &sg, &rc)) break;
+            if (!ok && !placed && !place_part(w, c, fi, sb, dir, lo, hi, fit, &sg, &rc)) break;
             if (rc) break;
             const double tol = 0.5 + slack * fabs(0.5 * (double)(sg.j0 + sg.j1) - jown);
             const double off = fabs(sg.cc.offset);
             if (!ok)
-                ok = bd.verdict > 0 ? !(sg.cc.significant && sg.cc.off_significant && !(off < fmax(1.0, tol)))
-                                    : bd.verdict == 0 && sg.cc.significant && off < tol;
+                ok = bd.verdict > 0 ? camera_allows(&sg.cc, tol, 1) : bd.verdict == 0 && sg.cc.significant && off < tol;
             if (!ok && bd.verdict < 0 && sg.cc.significant) {
                 /* Not contiguous: the camera counts the frames lost (or repeated) between the
                  * files, a whole number k != 0 of WFS frames within tol of its lag offset, the

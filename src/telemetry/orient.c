@@ -39,20 +39,24 @@ void swfs_orient_describe(const swfs_sync_result *p, char *buf, size_t cap)
     snprintf(buf, cap, "SWAP=%d SX=%+d SY=%+d", p->swap, p->sign_x, p->sign_y);
 }
 
-void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t comps, const double *cam, double *model)
+/* The camera pixel model pixel (i, j) takes in pairing p, -1 where the camera did not see it
+ * (and for a swapped pairing of frames that are not square). */
+static long orient_source(const swfs_sync_result *p, size_t nx, size_t ny, size_t i, size_t j)
 {
     const long cx = (long)(nx / 2), cy = (long)(ny / 2);
+    const long u = (long)i - cx, v = (long)j - cy;
+    const long a = cx + p->sign_x * (p->swap ? v : u), b = cy + p->sign_y * (p->swap ? u : v);
+    if ((p->swap && nx != ny) || a < 0 || b < 0 || a >= (long)nx || b >= (long)ny) return -1;
+    return b * (long)nx + a;
+}
+
+void swfs_orient_frame(const swfs_sync_result *p, size_t nx, size_t ny, size_t comps, const double *cam, double *model)
+{
     for (size_t j = 0; j < ny; j++)
         for (size_t i = 0; i < nx; i++) {
-            const long u = (long)i - cx, v = (long)j - cy;
-            const long a = cx + p->sign_x * (p->swap ? v : u), b = cy + p->sign_y * (p->swap ? u : v);
+            const long q = orient_source(p, nx, ny, i, j);
             double *o = model + (j * nx + i) * comps;
-            if (a < 0 || b < 0 || a >= (long)nx || b >= (long)ny) {
-                for (size_t c = 0; c < comps; c++) o[c] = NAN;
-                continue;
-            }
-            const double *s = cam + ((size_t)b * nx + (size_t)a) * comps;
-            for (size_t c = 0; c < comps; c++) o[c] = s[c];
+            for (size_t c = 0; c < comps; c++) o[c] = q < 0 ? NAN : cam[(size_t)q * comps + c];
         }
 }
 
@@ -93,17 +97,11 @@ int swfs_orient_acc_new(size_t nx, size_t ny, swfs_orient_acc **out)
         swfs_orient_acc_free(a);
         return swfs_fail(SWFS_ERR_NOMEM, "orientation check: out of memory for %zux%zu frames", nx, ny);
     }
-    const long cx = (long)(nx / 2), cy = (long)(ny / 2);
     for (int k = 0; k < 8; k++) {
         swfs_sync_result p;
         swfs_orient_pairing(k, &p);
         for (size_t j = 0; j < ny; j++)
-            for (size_t i = 0; i < nx; i++) {
-                const long u = (long)i - cx, v = (long)j - cy;
-                const long x = cx + p.sign_x * (p.swap ? v : u), y = cy + p.sign_y * (p.swap ? u : v);
-                const int in = (!p.swap || nx == ny) && x >= 0 && y >= 0 && x < (long)nx && y < (long)ny;
-                a->src[(size_t)k * np + j * nx + i] = in ? y * (long)nx + x : -1;
-            }
+            for (size_t i = 0; i < nx; i++) a->src[(size_t)k * np + j * nx + i] = orient_source(&p, nx, ny, i, j);
     }
     *out = a;
     return SWFS_OK;
