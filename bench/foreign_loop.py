@@ -6,23 +6,26 @@ every model differs from the simulator it was developed with:
 
 - the pupil: an annulus of 8.2 m (obstruction 0.14, --obscur), with --spiders legs of
   --spider-width (none by default);
-- turbulence: von Karman OPD screens by FFT, frozen flow by bilinear interpolation between
-  samples, two layers;
+- turbulence: von Karman OPD screens by FFT (--r0), frozen flow by bilinear interpolation
+  between samples, two layers (--wind: one or two, their speeds and directions);
 - the Shack-Hartmann: physical optics (each subaperture's field Fourier-transformed at twice
   Nyquist, photon and read noise, centre of gravity over its window), the WFS integrating
   two sub-steps of each frame, valid-only slopes (with a valid map);
 - the DM: a Fried-geometry square grid (actuators at the subapertures' corners) of Gaussian
   influence functions, coupling 0.15; the interaction matrix measured through the physical
   sensor (push-pull); a least-squares control matrix truncated in its singular values (zonal)
-  or of the K first Karhunen-Loeve modes (--modes K); integrator with a two-frame delay; a
-  telescope vibration in tip-tilt;
-- the camera: the image of every sub-step through a matrix Fourier transform, integrated
-  over exposures that start at arbitrary fractions of a WFS frame, photon and read noise, a
+  or of the K first Karhunen-Loeve modes (--modes K); integrator of gain 0.4, two frames of delay
+  (--delay); a telescope vibration in tip-tilt (--vib, --vib-freq);
+- the camera: the image of every sub-step through a matrix Fourier transform (--pixscale,
+  +-16 lambda/D), integrated over exposures of --ratio WFS frames (at --rate) that start at
+  arbitrary fractions of a WFS frame, photon and read noise (--cam-rn), a
   flat field, a bias frame, 16-bit counts (astropy's BZERO); slopes in two files;
 - the reference: ideal speckles from the true residual (each exposure's mean tip-tilt
   removed, as `reduce` registers the frames), with its time mean as RESMEAN, and the NCP.
 
 usage: foreign_loop.py OUTDIR [--seed S] [--nsub N] [--modes K] [--lam-sci M] [--photons P] [--vib A]
+                       [--rate HZ] [--ratio R] [--wind V@DEG[,V@DEG]] [--r0 M] [--vib-freq HZ]
+                       [--cam-rn E] [--pixscale P]
                        [--obscur F] [--spiders N] [--spider-width M] [--spider-angle DEG]
                        [--substeps N] [--delay N] [--quick] [--geometric] [--loop-geometric]
                        [--dump] [--train N]
@@ -187,6 +190,15 @@ def main():
     ap.add_argument('--spiders', type=int, default=0, help='legs of the secondary\'s support, evenly spaced')
     ap.add_argument('--spider-width', type=float, default=0.15, help="a leg's width [m]")
     ap.add_argument('--spider-angle', type=float, default=45.0, help="the first leg's direction [deg from +x]")
+    ap.add_argument('--rate', type=float, default=900.0, help='the WFS frame rate [Hz]')
+    ap.add_argument('--ratio', type=float, default=7.37, help='WFS frames per camera exposure')
+    ap.add_argument('--wind', default='9@30,17@250', metavar='V@DEG[,V@DEG]',
+                    help="the layers' speeds [m/s] and the directions the pupil's window moves [deg]; "
+                         'one layer takes all the turbulence, two share it 0.6 / 0.4')
+    ap.add_argument('--r0', type=float, default=0.14, help="Fried's parameter at 0.5 um [m]")
+    ap.add_argument('--vib-freq', type=float, default=17.0, help="the vibration's frequency [Hz]")
+    ap.add_argument('--cam-rn', type=float, default=10.0, help="the camera's read noise [e-]")
+    ap.add_argument('--pixscale', type=float, default=0.5, help="the camera's pixel [lambda_sci / D]")
     ap.add_argument('--dump', action='store_true', help='also keep the true residual and the slopes per WFS frame')
     ap.add_argument('--train', type=int, default=0, metavar='N',
                     help='only the dump of N WFS frames, no camera (implies --dump)')
@@ -202,18 +214,22 @@ def main():
     D, obscur, nsub, npx = 8.2, args.obscur, args.nsub, 8
     N = nsub * npx + 8  # pupil grid, a margin of half a subaperture each side
     dx = D / (nsub * npx)
-    rate = 900.0
+    rate = args.rate
     lam_wfs, lam_sci = 0.7e-6, args.lam_sci
-    r0, l0 = 0.14, 25.0
+    r0, l0 = args.r0, 25.0
     # share, m/s, direction [deg] of the pupil's window over the screen: the turbulence moves
     # across the pupil the other way (toward direction + 180 deg, what `specklewfs wind` reports)
-    layers = [(0.6, 9.0, 30.0), (0.4, 17.0, 250.0)]
-    vib_amp, vib_freq = args.vib, 17.0  # lambda_sci / D, Hz
+    winds = [tuple(float(v) for v in w.split('@')) for w in args.wind.split(',')]
+    if not 1 <= len(winds) <= 2 or any(len(w) != 2 for w in winds):
+        ap.error(f'--wind {args.wind}: expected one or two V@DEG')
+    layers = [(sh_, v, a) for sh_, (v, a) in zip((1.0,) if len(winds) == 1 else (0.6, 0.4), winds)]
+    vib_amp, vib_freq = args.vib, args.vib_freq  # lambda_sci / D, Hz
     gain, delay, coupling, rcond = 0.4, args.delay, 0.15, 0.03
     photons, wfs_rn = args.photons, 0.5
-    pixscale, W = 0.5, 64
-    flux, cam_gain, cam_rn, bias = 2.0e5, 10.0, 10.0, 500.0
-    ratio = 7.37  # WFS frames per camera frame
+    pixscale = args.pixscale
+    W = 2 * int(round(16.0 / pixscale))  # +-16 lambda/D
+    flux, cam_gain, cam_rn, bias = 2.0e5, 10.0, args.cam_rn, 500.0
+    ratio = args.ratio  # WFS frames per camera frame
     ncubes, cube_frames, gap = (3, 80, 150) if args.quick else (4, 150, 200)
     settle, substeps, true_lag = 300, args.substeps, 2.4
     ncp_rms = 80e-9

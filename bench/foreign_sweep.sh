@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The default path on seven short observations made without specklewfs, of other geometries,
-# loops, noise, wavelengths and pupils (docs/telemetry.md, "Six more observations", "A pupil
-# under spiders"): each through bench/foreign.sh --quick, then one table of the NCP errors
-# (default path, ideal speckles, their ratio) and teach's loops. About 2-6 minutes per
+# The default path on eleven short observations made without specklewfs, of other geometries,
+# loops, noise, wavelengths, pupils, WFS rates, frame ratios, winds and camera sampling
+# (docs/telemetry.md, "Six more observations", "A pupil under spiders", "Other rates, frame
+# ratios, winds and pixels"): each through bench/foreign.sh --quick, then one table of the NCP
+# errors (default path, ideal speckles, their ratio) and teach's loops. About 1-6 minutes per
 # observation on 2 cores (the 20 x 20's loops the longest); an observation already in WORK_DIR
 # is not simulated again. Needs Debian's python3-numpy and python3-astropy.
 #
@@ -21,6 +22,10 @@ runs=(
     "n20|--nsub 20 --seed 4"
     "q60|--modes 60 --seed 1"
     "sp4|--obscur 0.3 --spiders 4 --seed 8"
+    "r4w22|--rate 500 --ratio 4.2 --wind 22@120 --seed 21"
+    "r10w5|--rate 1500 --ratio 10.3 --wind 5@300,12@45 --cam-rn 20 --seed 22"
+    "v5|--vib 0.5 --vib-freq 40 --rate 1200 --ratio 6 --wind 25@180 --seed 24"
+    "px35|--pixscale 0.35 --r0 0.1 --nsub 16 --modes 120 --seed 23"
 )
 rows=()
 for r in "${runs[@]}"; do
