@@ -74,7 +74,11 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
             fprintf(f, "%s: so twice the first loops; over them, ", cmd);
             cli_curve_line(f, "the map's", &r->curve_doubled, 1e9, " nm");
         }
-        fprintf(f, "%s: so %zu loops in all; over them, ", cmd, r->st_loops);
+        if (r->asked_loops) {
+            fprintf(f, "%s: so %zu loops; over them, ", cmd, r->asked_loops);
+            cli_curve_line(f, "the map's", &r->curve_asked, 1e9, " nm");
+        }
+        fprintf(f, "%s: so %zu loops in all%s; over them, ", cmd, r->st_loops, r->asked_loops ? " (the budget)" : "");
         cli_curve_line(f, "the map's", &r->curve, 1e9, " nm");
     } else if (r->max_loops <= r->st_loops) {
         fprintf(f, "%s: %s learning curve: not measured (at most %zu loops: no more to add)\n", cmd, maps, r->max_loops);

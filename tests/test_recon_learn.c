@@ -991,6 +991,25 @@ static void test_teach_more_loops(void **state)
     doubled = 0;
     assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12);
     assert_int_equal(doubled, 0);
+    assert_false(swfs_teach_curve_unbounded_(&lr)); /* a + b / n with a > 0: a bound */
+    /* the curve of a 16 x 16 foreign observation's 22 asked-for loops: 239.4 -> 193.2 nm from
+     * 18 700 to 27 973 frames, steeper than any a + b / n with a > 0, its fall 10 times its
+     * standard error: no bound, and the loops go on to the budget */
+    lr.info.nframes = 37400;
+    lr.curve_n[0] = 18700; lr.curve_n[1] = 27973;
+    lr.curve_m2[0] = 239.4 * 239.4; lr.curve_m2[1] = 193.2 * 193.2;
+    lr.curve_b = (lr.curve_m2[0] - lr.curve_m2[1]) / (1.0 / 18700 - 1.0 / 27973);
+    lr.curve_a = lr.curve_m2[1] - lr.curve_b / 27973;
+    lr.curve_frames = SIZE_MAX;
+    lr.curve_fall_se = 2000.0;
+    assert_true(lr.curve_a < 0);
+    assert_true(swfs_teach_curve_unbounded_(&lr));
+    doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 22, 48, &doubled), 48);
+    lr.curve_fall_se = 10000.0; /* the same fall within twice its scatter: it cannot tell */
+    assert_false(swfs_teach_curve_unbounded_(&lr));
+    lr.curve_n[0] = 0; /* no curve */
+    assert_false(swfs_teach_curve_unbounded_(&lr));
 }
 
 int main(void)

@@ -1092,8 +1092,10 @@ typedef struct swfs_teach_run_options {
  * 2026-12-06: a first curve that does not fall doubles the loops and is measured again;
  * 2026-12-06b: the loops a curve asks for are the last, as before 2026-12-06;
  * 2026-12-07: the profile misfit about the whole profile's mean; 2026-12-07b: a first curve
- * whose fall is within twice its standard error doubles the loops as one that does not fall). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-07b"
+ * whose fall is within twice its standard error doubles the loops as one that does not fall;
+ * 2026-12-07d: the loops a curve asked for are followed to the budget where their own curve
+ * falls without a bound). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-07d"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
@@ -1157,7 +1159,8 @@ typedef struct swfs_teach_run_result {
      * first loops (curve_first) and over all the space-time loops (curve, st_loops of them:
      * more than nloops when the first curve asked for more frames than they hold, up to
      * max_loops). curve_doubled: where the first curve did not fall, the curve over twice the
-     * first loops, which then asked for the last ones (curve itself where it asked for none).
+     * first loops, which then asked for the last ones (curve itself where it asked for none),
+     * unless the curve over those falls without a bound (asked_loops, curve_asked, below).
      * curve_n[0] == 0: not measured. */
     size_t st_loops;
     size_t max_loops;           /* the budget in effect (max_loops, or its default); the curve is
@@ -1189,6 +1192,11 @@ typedef struct swfs_teach_run_result {
     size_t ntcorr, nspeed;
     double speed_cal[SWFS_TEACH_NSPEED], speed_misfit[SWFS_TEACH_NSPEED];
     double prior_speed;
+    /* The loops a curve asked for (asked_loops of them) whose own curve (curve_asked) fell, beyond
+     * twice its parts' scatter, faster than any a + b / n allows: more loops followed, to the
+     * budget (st_loops, curve over them). asked_loops 0: that did not happen (0.10.0). */
+    size_t asked_loops;
+    swfs_learn_run_result curve_asked;
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

@@ -444,7 +444,8 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("project_slopes", c_size),
     ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int),
     ("tcorr", c_dbl * 8), ("tcorr_lags", ctypes.c_long * 8), ("ntcorr", c_size), ("nspeed", c_size),
-    ("speed_cal", c_dbl * 8), ("speed_misfit", c_dbl * 8), ("prior_speed", c_dbl)])
+    ("speed_cal", c_dbl * 8), ("speed_misfit", c_dbl * 8), ("prior_speed", c_dbl), ("asked_loops", c_size),
+    ("curve_asked", swfs_learn_run_result)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

@@ -364,8 +364,11 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     loops: never more),
     st_loops of them in all, and curve is the curve over them all. A first curve that does not
     fall cannot tell: the loops are doubled once, curve_doubled is the curve over them, and it
-    asks for more as any curve does (None where there was no doubling). The curve is measured only
-    where more loops may follow (max_loops, the budget in effect, above loops)."""
+    asks for more as any curve does (None where there was no doubling). The loops a curve asks
+    for are the last unless their own curve falls (beyond twice its parts' scatter) faster than
+    any a + b / n allows: then asked_loops is their count, curve_asked their curve, and more
+    loops follow to max_loops (asked_loops 0, curve_asked None otherwise). The curve is measured
+    only where more loops may follow (max_loops, the budget in effect, above loops)."""
     from .sim import _checked_params
     files = _lib.path_list(files)
     params = dict(params)
@@ -421,7 +424,8 @@ def _teach_dict(r, modes_from_slopes):
              out_points=r.out_points, out_pitch=r.out_pitch, dm_pitch=r.dm_pitch, noise_rms=r.noise_rms,
              noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise,
              st_loops=r.st_loops, max_loops=r.max_loops, curve_first=_curve_dict(r.curve_first),
-             curve=_curve_dict(r.curve), curve_doubled=_curve_dict(r.curve_doubled))
+             curve=_curve_dict(r.curve), curve_doubled=_curve_dict(r.curve_doubled), asked_loops=r.asked_loops,
+             curve_asked=_curve_dict(r.curve_asked))
     # no layer tracked: the speed from the slopes' time correlation
     if d["chosen"] in ("spacetime_prior", "perframe_prior"):
         d.update(tcorr_lags=list(r.tcorr_lags[:r.ntcorr]), tcorr=list(r.tcorr[:r.ntcorr]),

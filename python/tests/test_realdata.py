@@ -464,10 +464,21 @@ def test_teach(series, tmp_path):
         assert sw.fits.read_keys(str(out), ["TEACHLCD"])["TEACHLCD"] == pytest.approx(r["curve"]["excess"])
     elif cf["frames"] is None or cf["frames"] > cf["nframes"]:
         want = 6 if cf["frames"] is None else min(6, math.ceil(cf["frames"] / per))
-        assert r["st_loops"] == want > 4 and r["curve"]["nframes"] == pytest.approx(want * per)
         assert r["curve_doubled"] is None
+        # the loops asked for are the last unless their own curve falls without a bound: then
+        # the budget's 6
+        if r["asked_loops"]:
+            ca = r["curve_asked"]
+            assert r["asked_loops"] == want < 6 and ca["nframes"] == pytest.approx(want * per)
+            assert ca["b"] > 0 and ca["a"] <= 0 and ca["frames"] is None
+            assert r["st_loops"] == 6 and r["curve"]["nframes"] == pytest.approx(6 * per)
+            assert sw.fits.read_keys(str(out), ["TEACHASK"])["TEACHASK"] == want
+        else:
+            assert r["st_loops"] == want > 4 and r["curve"]["nframes"] == pytest.approx(want * per)
+            assert r["curve_asked"] is None
     else:
         assert r["st_loops"] == 4 and r["curve"] == cf and r["curve_doubled"] is None
+    assert r["asked_loops"] == 0 or r["curve_asked"] is not None
     print(f"teach: learning curve over 4 loops: excess {cf['excess']:.3f}, {cf['frames']} frames asked; fall "
           f"{fall:.3g} m^2, {fall / cf['fall_se']:.2f} standard errors; {r['st_loops']} loops")
     assert sw.fits.read_keys(str(out), ["TEACHSTL"])["TEACHSTL"] == r["st_loops"]

@@ -159,6 +159,11 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
  * to SWFS_LEARN_CURVE_EXCESS where the curve asks for more frames than they hold; where it was
  * measured and does not fall it cannot tell, and the loops are doubled once (*doubled set). */
 size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled);
+/* 1 where a learning curve falls, beyond twice its parts' scatter, faster than any a + b / n
+ * with a > 0 allows (its two points put the map of unlimited frames at or below zero misfit:
+ * more frames help without a bound it can name). The loops a curve asked for are the last
+ * unless their own curve says this; then teach goes on to its budget, max_loops. */
+int swfs_teach_curve_unbounded_(const swfs_learn_run_result *lr);
 /* How far a calibration loop's mode variances (a, na) are from the observation's (b, nb)
  * (run_teach.c): the rms of log10 a / b over the upper half of the modes, about its mean over
  * all of them; INFINITY with fewer than 2 modes to compare. */

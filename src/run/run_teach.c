@@ -356,6 +356,9 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
         rc = swfs_fits_out_key_double(f, "TEACHLCD", isfinite(r->curve_doubled.curve_excess)
                                       ? r->curve_doubled.curve_excess : -1.0,
                                       "learning curve excess, doubled loops (-1: unbounded)");
+    if (!rc && r->asked_loops)
+        rc = swfs_fits_out_key_long(f, "TEACHASK", (long)r->asked_loops,
+                                    "teach: loops a curve asked for, whose own had no bound");
     if (!rc && r->curve.curve_n[0])
         rc = swfs_fits_out_key_double(f, "TEACHLCE", isfinite(r->curve.curve_excess) ? r->curve.curve_excess : -1.0,
                                       "learning curve excess, all loops (-1: unbounded)");
@@ -966,6 +969,11 @@ size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size
     return want < (double)max_loops ? (want > (double)have ? (size_t)want : have) : max_loops;
 }
 
+int swfs_teach_curve_unbounded_(const swfs_learn_run_result *lr)
+{
+    return lr->curve_n[0] > 0 && lr->curve_b > 0 && !(lr->curve_a > 0) && swfs_learn_curve_falls(lr);
+}
+
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -1162,7 +1170,8 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
      * that does not fall from its first point to its second cannot tell (more frames never
      * raise the expected held-out misfit: a rise is the few held-out loops' scatter): once,
      * the loops are doubled and the curve measured again over all of them, which then asks
-     * as above (once: the loops a curve asks for are the last). 12 loops of a short
+     * as above (once: the loops a curve asks for are the last, unless their own curve falls
+     * without a bound, swfs_teach_curve_unbounded_: then the budget). 12 loops of a short
      * observation's length rose 304.5 -> 311.7 nm; doubled, their curve asked for the
      * budget's 48 (NCP 36.9 -> 22.4 nm, docs/telemetry.md). */
     size_t have = o->nloops;
@@ -1183,7 +1192,14 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
             r->curve = lr;
             if (doubled != was_doubled) r->curve_doubled = lr;
         }
-        if (doubled == was_doubled) break; /* the loops the curve asked for: the last step */
+        /* the loops the curve asked for: the last step, unless their own curve has no bound
+         * (then the budget: a 16 x 16 foreign observation's 22 asked-for loops fell 239.4 ->
+         * 193.2 nm from N/2 to 3N/4 frames; docs/telemetry.md) */
+        if (doubled == was_doubled) {
+            if (!swfs_teach_curve_unbounded_(&lr) || r->asked_loops || have >= max_loops) break;
+            r->asked_loops = have;
+            r->curve_asked = lr;
+        }
     }
     if (!rc) {
         r->st_misfit_rms = lr.info.misfit_rms;
