@@ -39,9 +39,9 @@ for r in "${runs[@]}"; do
     e=$(ncp_error "$W/$name/pupil.log")
     i=$(ncp_error "$W/$name/pupil_i.log")
     loops=$(grep -oE "[0-9]+ loops (simulated|in all)" "$W/$name/speckles.log" | tail -1 | awk '{ print $1 }')
-    rows+=("$(printf '%-7s %-52s %8s %8s %6s %6s' "$name" "$opts" "$e" "$i" \
+    rows+=("$(printf '%-7s %-72s %8s %8s %6s %6s' "$name" "$opts" "$e" "$i" \
         "$(awk -v e="$e" -v i="$i" 'BEGIN { printf "%.2f", e / i }')" "${loops:-?}")")
 done
 echo
-printf '%-7s %-52s %8s %8s %6s %6s\n' run "foreign_loop.py options (--quick)" "default" "ideal" "x" loops
+printf '%-7s %-72s %8s %8s %6s %6s\n' run "foreign_loop.py options (--quick)" "default" "ideal" "x" loops
 for row in "${rows[@]}"; do echo "$row"; done
