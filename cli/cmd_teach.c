@@ -112,6 +112,7 @@ int swfs_cmd_teach(int argc, char **argv)
     if (!rc) rc = cli_ts_params(cmd, cfgfile, cfg, &o.sim, &filter_given, &noise_given, ff.science ? describe : NULL, &ff);
     o.modes_from_slopes = !filter_given;
     o.noise_from_slopes = !noise_given;
+    o.coupling_from_recon = !swfs_config_has(cfg, "dm_coupling");
     char work[4200];
     if (!rc && !o.work) { /* W.teach beside W.fits */
         rc = swfs_teach_work_default(o.out, work, sizeof work) ? cli_usage_error(cmd, "%s (--work)", swfs_last_error()) : 0;

@@ -38,6 +38,11 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
     fprintf(f, "%s: the slopes' white noise %.3g rad rms per slope (the lag-0 excess of their curl over %zu cells of "
             "2 x 2 subapertures; %.1f %% of the slopes' variance); the loops' slope_noise %.3g rad%s\n", cmd, r->noise_rms,
             r->noise_cells, 100 * r->noise_share, r->slope_noise, r->slope_noise == r->noise_rms ? ", the same" : ", as given");
+    if (r->coupling_done)
+        fprintf(f, "%s: the DM's functions from the loops' control matrix (ao_recon, rank %zu): %s; Gaussian functions "
+                "of coupling %.3f miss its interaction matrix by %.1f %%, the interpolated surface by %.1f %%\n", cmd,
+                r->coupling.rank, r->coupling.gaussian ? "Gaussian, the loops' dm_coupling that" : "the interpolated "
+                "surface (dm_coupling 0)", r->coupling.coupling, 100 * r->coupling.misfit, 100 * r->coupling.misfit_interp);
     if (r->project_slopes)
         fprintf(f, "%s: the slopes are modal-slopes' projection (MODALCM): the loops' slopes learned on the same "
                 "projection, rank %zu of %zu\n", cmd, r->project_rank, r->project_slopes);

@@ -108,6 +108,20 @@ for bad in "bogus_key=1:unknown setting 'bogus_key'" "dm_coupling=1:dm_coupling=
     [ ! -e spk_bad.fits ] || fail "--teach-set ${bad%%:*} refused, but spk_bad.fits written"
 done
 echo "cli_teach: --teach-set dm_coupling=0.15: taught anew, other speckles; bad keys refused by name"
+# the system's own control matrix given to the loops (ao_recon) and no dm_coupling: the DM's
+# functions from that matrix (ts_coupling.c); this observation's DM is the interpolated surface,
+# which its matrix says (the Gaussian functions' best misfit larger), and the map says so
+"$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
+    --teach-max-loops 4 --teach-work spk_cm.teach --teach-set ao_recon=obs/recon_ao.fits -o spk_cm.fits \
+    2> speckles_cm.log || { cat speckles_cm.log; fail "speckles --teach-set ao_recon=obs/recon_ao.fits"; }
+line=$(grep "^speckles: the DM's functions from the loops' control matrix (ao_recon, rank [0-9]*): the interpolated surface" \
+    speckles_cm.log) || { cat speckles_cm.log; fail "ao_recon: the DM's functions from the control matrix expected"; }
+echo "$line" | awk '{ for (i = 1; i <= NF; i++) if ($i == "%,") g = $(i - 1); s = $(NF - 1) }
+    END { if (!(s + 0 < 1 && g + 0 > 5 * (s + 0))) exit 1 }' \
+    || fail "ao_recon: the surface's misfit under 1 % and the Gaussian functions' 5 times it expected: $line"
+head -c 20000 spk_cm.teach/taught.fits | grep -aq "TEACHCPL=  *0\.0* " \
+    || fail "ao_recon: the map's TEACHCPL (the loops' coupling) 0 expected"
+echo "cli_teach: ao_recon given: ${line#speckles: }"
 # the observation's telemetry as the used subapertures' slopes only (cacao's layout), with the
 # system's valid map (from the files, as above, with --valid): the same layers, filter and
 # loops as speckles' teach above, so the same map (the same calibration loops' profile misfits,

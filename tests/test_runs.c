@@ -623,6 +623,21 @@ static void test_gauss_dm_loop(void **state)
     assert_true(d > 0.01 * s);
     swfs_real_free(a);
     swfs_real_free(b);
+    /* the DM's functions from each loop's own control matrix (recon_ao.fits), the files
+     * describing the system otherwise (ts_coupling.c): the Gaussian coupling to 1 % and the
+     * interpolated surface told apart both ways */
+    swfs_ts_coupling cc;
+    small_params(NULL, 0, &tp);
+    snprintf(tp.ao_recon, sizeof tp.ao_recon, "%s", p("gauss_dm/recon_ao.fits"));
+    assert_ok(swfs_ts_coupling_from_recon(&tp, &cc));
+    printf("test_runs: the Gaussian DM's control matrix (rank %zu): coupling %.4f, misfit %.2e; the interpolated "
+           "surface %.3f\n", cc.rank, cc.coupling, cc.misfit, cc.misfit_interp);
+    assert_true(cc.gaussian && fabs(cc.coupling - 0.15) < 0.0015 && cc.misfit < 1e-3 && cc.misfit_interp > 0.05);
+    snprintf(tp.ao_recon, sizeof tp.ao_recon, "%s", p("ct_dm/recon_ao.fits"));
+    assert_ok(swfs_ts_coupling_from_recon(&tp, &cc));
+    printf("test_runs: the interpolated DM's control matrix (rank %zu): the surface's misfit %.2e; coupling %.4f "
+           "%.3f\n", cc.rank, cc.misfit_interp, cc.coupling, cc.misfit);
+    assert_true(!cc.gaussian && cc.misfit_interp < 1e-3 && cc.misfit > 0.05);
     small_params(NULL, 0, &tp);
     tp.dm_coupling = 1;
     assert_refused(swfs_ts_params_check(&tp), "dm_coupling 1", "dm_coupling=1: must be in [0, 1)", p("gauss_dm/none"));

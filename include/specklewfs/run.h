@@ -1080,6 +1080,10 @@ typedef struct swfs_teach_run_options {
     void *progress_ctx;
     const char *fingerprint;    /* NULL, or written into out as TEACHFPR: what the map was taught
                                    for (speckles' default reuses a map whose TEACHFPR is its own) */
+    int coupling_from_recon;    /* 1: where sim.ao_recon gives the loops the system's control
+                                   matrix, the DM's functions (sim.dm_coupling) from it
+                                   (timeseries.h swfs_ts_coupling_from_recon); for a description
+                                   without dm_coupling (0.10.0) */
 } swfs_teach_run_options;
 
 /* The version of teach's rule, hashed into speckles' fingerprint of a taught map's inputs
@@ -1094,8 +1098,9 @@ typedef struct swfs_teach_run_options {
  * 2026-12-07: the profile misfit about the whole profile's mean; 2026-12-07b: a first curve
  * whose fall is within twice its standard error doubles the loops as one that does not fall;
  * 2026-12-07d: the loops a curve asked for are followed to the budget where their own curve
- * falls without a bound). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-07d"
+ * falls without a bound; 2026-12-07e: with the system's control matrix (ao_recon) and no
+ * dm_coupling, the DM's functions from that matrix). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-07e"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
@@ -1197,6 +1202,11 @@ typedef struct swfs_teach_run_result {
      * budget (st_loops, curve over them). asked_loops 0: that did not happen (0.10.0). */
     size_t asked_loops;
     swfs_learn_run_result curve_asked;
+    /* coupling_from_recon with ao_recon: the DM's functions its control matrix says (coupling_done
+     * 1), and the loops' dm_coupling then: coupling.coupling where coupling.gaussian, else 0 (the
+     * interpolated surface) (0.10.0) */
+    int coupling_done;
+    swfs_ts_coupling coupling;
 } swfs_teach_run_result;
 
 int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r);

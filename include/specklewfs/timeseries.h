@@ -231,6 +231,27 @@ int swfs_ts_mode_timecorr(const swfs_ts_params *p, const double *slopes, size_t 
  * ones left out). 0 when fewer than 6 have one, or out of memory. */
 size_t swfs_mode_knee(const double *var, size_t n);
 
+/* The DM's influence functions the loop's given reconstructor (p->ao_recon: actuators x
+ * slopes, the full layout or the used subapertures' only) says: a pseudo-inverse of the
+ * interaction matrix the system measured, compared within its row and column spaces with the
+ * mean-gradient interaction matrix of the described sensor and DM (p's pupil, valid map and
+ * actuators) after the best single scale, for Gaussian functions of coupling c
+ * (swfs_influence_gauss_grid; c by a log-spaced grid over SWFS_TS_COUPLING_MIN..MAX, then
+ * golden-section search) and for the interpolated surface (dm_coupling 0). gaussian: 1 where
+ * the best c's misfit (relative, Frobenius) is below the surface's (docs/telemetry.md, "The
+ * DM's functions from the loop's control matrix"). */
+typedef struct swfs_ts_coupling {
+    double coupling;        /* the best Gaussian coupling */
+    double misfit;          /* its relative misfit */
+    double misfit_interp;   /* the interpolated surface's */
+    size_t rank;            /* the reconstructor's numerical rank (singular values above 1e-9 of the largest) */
+    int gaussian;
+} swfs_ts_coupling;
+#define SWFS_TS_COUPLING_MIN 0.02  /* the couplings searched: a facesheet whose neighbour moves by */
+#define SWFS_TS_COUPLING_MAX 0.8   /* 2 % of a command up to one that barely separates them */
+#define SWFS_TS_COUPLING_GRID 12
+int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out);
+
 /* DIR and, for milk=1, its milk/wfs and milk/cam folders, created where missing (what
  * swfs_ts_run writes into; a command calls it before checking the outputs). */
 int swfs_ts_make_dirs(const swfs_ts_params *p, const char *dir);

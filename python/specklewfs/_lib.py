@@ -423,7 +423,7 @@ swfs_teach_run_options = _s("swfs_teach_run_options", [
     ("sim", swfs_ts_params), ("files", P(c_str)), ("nfiles", c_size), ("out", c_str), ("work", c_str),
     ("nloops", c_size), ("max_loops", c_size), ("seed", c_u64), ("modes_from_slopes", c_int), ("noise_from_slopes", c_int),
     ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN), ("progress_ctx", c_ptr),
-    ("fingerprint", c_str)])
+    ("fingerprint", c_str), ("coupling_from_recon", c_int)])
 TEACH_CHOSEN = {0: "spacetime", 1: "perframe", 2: "perframe_mixed", 3: "perframe_prior", 4: "spacetime_prior"}
 SPACETIME_WARN_WIND, SPACETIME_WARN_CORR = 1, 2  # run.h swfs_spacetime_warns
 swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
@@ -431,6 +431,8 @@ swfs_modal_slopes_options = _s("swfs_modal_slopes_options", [
 swfs_modal_slopes_result = _s("swfs_modal_slopes_result", [
     ("ncoef", c_size), ("nslopes", c_size), ("rank", c_size), ("nframes", c_size), ("cond", c_dbl), ("resid", c_dbl),
     ("lsq_ratio", c_dbl), ("lsq_warns", c_int)])
+swfs_ts_coupling = _s("swfs_ts_coupling", [
+    ("coupling", c_dbl), ("misfit", c_dbl), ("misfit_interp", c_dbl), ("rank", c_size), ("gaussian", c_int)])
 swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("wind", swfs_wind_run_result), ("nlayers", c_size), ("lags", ctypes.c_long * 5), ("nlags", c_size),
     ("nloops", c_size), ("map_inputs", c_size), ("loop_frames", c_size), ("loop_frames_described", c_size),
@@ -445,7 +447,7 @@ swfs_teach_run_result = _s("swfs_teach_run_result", [
     ("zonal_misfit", c_dbl * 6), ("zonal_best", c_size), ("misfit_modal", c_dbl), ("zonal", c_int),
     ("tcorr", c_dbl * 8), ("tcorr_lags", ctypes.c_long * 8), ("ntcorr", c_size), ("nspeed", c_size),
     ("speed_cal", c_dbl * 8), ("speed_misfit", c_dbl * 8), ("prior_speed", c_dbl), ("asked_loops", c_size),
-    ("curve_asked", swfs_learn_run_result)])
+    ("curve_asked", swfs_learn_run_result), ("coupling_done", c_int), ("coupling", swfs_ts_coupling)])
 swfs_estimate_run_options = _s("swfs_estimate_run_options", [
     ("science", c_str), ("speckles", c_str), ("out", c_str), ("read_noise", c_dbl), ("gain", c_dbl),
     ("g_smooth_lod", c_dbl), ("block", c_size), ("prov", P(c_str)), ("nprov", c_size), ("progress", PROGRESS_FN),

@@ -380,11 +380,12 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     if (pupil is not None or valid is not None) and science is None:
         raise ValueError("teach: pupil and valid describe the system with science and actuators "
                          "(otherwise give pupil_mask= and valid= as params)")
-    filter_given, noise_given = [], []
+    filter_given, noise_given, coupling_given = [], [], []
 
     def describe(c):  # on the config of config and params, as the command does (cli_ts_params)
         filter_given.append(bool(lib.swfs_ts_config_gives_filter(c)))
         noise_given.append(lib.swfs_config_has(c, b"slope_noise"))
+        coupling_given.append(lib.swfs_config_has(c, b"dm_coupling"))
         if science is not None:
             check(lib.swfs_teach_describe(c, enc(science), enc(actuators), enc(pupil) if pupil is not None else None,
                                           enc(valid) if valid is not None else None, enc(files[0])),
@@ -392,6 +393,7 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     o.sim = _checked_params("ts", config, params, describe)
     o.modes_from_slopes = int(not filter_given[0])
     o.noise_from_slopes = int(not noise_given[0])
+    o.coupling_from_recon = int(not coupling_given[0])
     arr, n = _paths(files)
     if work is None:  # beside out (run.h swfs_teach_work_default)
         buf = ctypes.create_string_buffer(4200)
@@ -425,7 +427,10 @@ def _teach_dict(r, modes_from_slopes):
              noise_cells=r.noise_cells, noise_share=r.noise_share, slope_noise=r.slope_noise,
              st_loops=r.st_loops, max_loops=r.max_loops, curve_first=_curve_dict(r.curve_first),
              curve=_curve_dict(r.curve), curve_doubled=_curve_dict(r.curve_doubled), asked_loops=r.asked_loops,
-             curve_asked=_curve_dict(r.curve_asked))
+             curve_asked=_curve_dict(r.curve_asked),
+             coupling=dict(coupling=r.coupling.coupling, misfit=r.coupling.misfit,
+                           misfit_interp=r.coupling.misfit_interp, rank=r.coupling.rank,
+                           gaussian=bool(r.coupling.gaussian)) if r.coupling_done else None)
     # no layer tracked: the speed from the slopes' time correlation
     if d["chosen"] in ("spacetime_prior", "perframe_prior"):
         d.update(tcorr_lags=list(r.tcorr_lags[:r.ntcorr]), tcorr=list(r.tcorr[:r.ntcorr]),

@@ -581,6 +581,27 @@ def test_mode_variance(series):
     print(f"mode time correlation at 1, 2, 4, 8 frames: {np.round(rho, 3)}")
 
 
+def test_teach_coupling_from_cm(series, tmp_path):
+    """teach given the series' own loop control matrix (ao_recon) and no dm_coupling: the DM's
+    functions from that matrix (timeseries.h swfs_ts_coupling_from_recon); the series' DM is
+    the interpolated surface, which the matrix says, and the map's TEACHCPL is 0. With
+    dm_coupling given, nothing is taken from the matrix."""
+    conf = os.path.join(ROOT, "config", "mmt-clio.conf")
+    keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000)
+    s = series / "sim"
+    files = sorted(str(p) for p in s.glob("slopes_0*.fits"))
+    out = tmp_path / "C.fits"
+    r = sw.teach(files, str(out), str(tmp_path / "work"), config=conf, loops=2, max_loops=2,
+                 ao_recon=str(s / "recon_ao.fits"), **keys)
+    c = r["coupling"]
+    assert c is not None and not c["gaussian"] and c["misfit_interp"] < 1e-3 and c["misfit"] > 5 * c["misfit_interp"]
+    assert 0.02 <= c["coupling"] <= 0.8 and c["rank"] > 0
+    assert sw.fits.read_keys(str(out), ["TEACHCPL"])["TEACHCPL"] == 0
+    r = sw.teach(files, str(tmp_path / "D.fits"), str(tmp_path / "work2"), config=conf, loops=2, max_loops=2,
+                 ao_recon=str(s / "recon_ao.fits"), dm_coupling=0.2, **keys)
+    assert r["coupling"] is None
+
+
 def test_teach_from_files(series, tmp_path):
     """teach with no description: the system from the observation's own files (the science
     cube's geometry, the DM's positions; nsub, rate and length from the telemetry), the modal

@@ -212,6 +212,7 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
         to.seed = o->teach_seed;
         to.modes_from_slopes = !filter_given;
         to.noise_from_slopes = !noise_given;
+        to.coupling_from_recon = !swfs_config_has(c, "dm_coupling");
         to.prov = o->prov;
         to.nprov = o->nprov;
         to.progress = o->progress;

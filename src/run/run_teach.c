@@ -356,6 +356,9 @@ static int write_chosen(const char *from, const swfs_teach_run_options *o, const
         rc = swfs_fits_out_key_double(f, "TEACHLCD", isfinite(r->curve_doubled.curve_excess)
                                       ? r->curve_doubled.curve_excess : -1.0,
                                       "learning curve excess, doubled loops (-1: unbounded)");
+    if (!rc && r->coupling_done)
+        rc = swfs_fits_out_key_double(f, "TEACHCPL", r->coupling.gaussian ? r->coupling.coupling : 0.0,
+                                      "teach: the loops' DM coupling from ao_recon (0: surface)");
     if (!rc && r->asked_loops)
         rc = swfs_fits_out_key_long(f, "TEACHASK", (long)r->asked_loops,
                                     "teach: loops a curve asked for, whose own had no bound");
@@ -1095,6 +1098,19 @@ int swfs_teach_run(const swfs_teach_run_options *o, swfs_teach_run_result *r)
     /* no loop's camera is used: a described camera (cubes of many frames) integrates two short
      * cubes over the same WFS frames instead, the same slopes (timeseries.h camera_light) */
     swfs_ts_camera_light(&oo.sim);
+    /* the DM's functions from the system's control matrix, where the loops are given it and the
+     * description does not say them (docs/telemetry.md, "The DM's functions from the loop's
+     * control matrix") */
+    if (o->coupling_from_recon && oo.sim.ao_recon[0]) {
+        if ((rc = stage(o, "the DM's functions from the control matrix", 0, 1)) ||
+            (rc = swfs_ts_coupling_from_recon(&oo.sim, &r->coupling))) {
+            free(pj.P);
+            swfs_real_free(obs);
+            return swfs_fail_context(rc, "teach");
+        }
+        r->coupling_done = 1;
+        oo.sim.dm_coupling = r->coupling.gaussian ? r->coupling.coupling : 0.0;
+    }
     if (o->noise_from_slopes) oo.sim.slope_noise = r->noise_rms;
     r->slope_noise = oo.sim.slope_noise;
     if (o->modes_from_slopes) {
