@@ -143,7 +143,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 /* A reconstructor of the used subapertures' slopes only (2 nvalid columns: their x slopes in
  * the full layout's order, then their y slopes), as most AO systems keep theirs, put in the
  * simulated Shack-Hartmann's full layout (the unused subapertures' columns 0). */
-static int embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
+int swfs_ts_embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
 {
     size_t *cols = NULL, nc = 0;
     int rc = swfs_slopes_used_cols(sh->valid, sh->nsub, &cols, &nc);
@@ -165,7 +165,7 @@ static int check_given_recon(const char *path, swfs_recon *r, const swfs_shwfs *
     const size_t nslopes = sh->nslopes;
     int rc = SWFS_OK;
     if (r->nslopes == 2 * sh->nvalid && r->nslopes != nslopes && r->nact == nact &&
-        (rc = embed_valid_recon(path, r, sh)))
+        (rc = swfs_ts_embed_valid_recon(path, r, sh)))
         return rc;
     if (r->nslopes != nslopes || r->nact != nact)
         return swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the simulated "

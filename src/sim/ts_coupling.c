@@ -68,7 +68,7 @@ int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out)
     unsigned char *vmap = NULL;
     swfs_sparse *T = NULL;
     swfs_shwfs *sh = NULL;
-    size_t nact = 0, *cols = NULL, nc = 0;
+    size_t nact = 0;
     cfit f = {0};
     int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &xy, &nact, &rao, &vmap);
@@ -77,14 +77,9 @@ int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out)
     if (rc) goto done;
     const size_t ns = sh->nslopes;
     /* the used subapertures' slopes only: into the full layout (zero columns elsewhere) */
-    if (rao->nslopes == 2 * sh->nvalid && rao->nslopes != ns && rao->nact == nact) {
-        if ((rc = swfs_slopes_used_cols(sh->valid, sh->nsub, &cols, &nc))) goto done;
-        double *W = swfs_slopes_expand_cols(rao->W, rao->nact, nc, cols, ns);
-        if (!W) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
-        free(rao->W);
-        rao->W = W;
-        rao->nslopes = ns;
-    }
+    if (rao->nslopes == 2 * sh->nvalid && rao->nslopes != ns && rao->nact == nact &&
+        (rc = swfs_ts_embed_valid_recon(p->ao_recon, rao, sh)))
+        goto done;
     if (rao->nslopes != ns || rao->nact != nact) {
         rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the system gives "
                        "%zu slopes (%zu used subapertures) and %zu actuators", p->ao_recon, rao->nslopes, rao->nact, ns,
@@ -140,7 +135,6 @@ done:
     free(U);
     free(VT);
     free(S);
-    free(cols);
     free(vmap);
     swfs_recon_free(rao);
     swfs_shwfs_free(sh);
