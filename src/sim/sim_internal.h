@@ -18,9 +18,11 @@ int swfs_sim_config_path(swfs_config *c, const char *key, char *dst, size_t cap)
  * when not given. */
 int swfs_ts_read_given(const swfs_ts_params *p, double D, double **xy, size_t *nact, swfs_recon **rao,
                        unsigned char **vmap);
-/* A reconstructor of the used subapertures' slopes only (2 sh->nvalid columns) into the full
- * layout of sh's slopes, zero columns elsewhere (in place; path for the messages). */
-int swfs_ts_embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh);
+/* The loop's given reconstructor r (read from path) for the simulated Shack-Hartmann sh and nact
+ * actuators: one of the used subapertures' slopes only put into sh's full layout (in place),
+ * any other shape refused, its numerical rank (singular values above 1e-9 of the largest) in
+ * r->nmodes, a zero one refused. */
+int swfs_ts_check_given_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh, size_t nact);
 /* The loop's DM and WFS on the pupil mask: the actuators *xy (*nact of them) as given, or,
  * when *xy is NULL, built from act_pitch / act_square into it (the caller frees it either
  * way); their interpolation T and the Shack-Hartmann (vmap: its used subapertures, or NULL). */

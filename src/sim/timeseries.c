@@ -143,7 +143,7 @@ int swfs_ts_params_from_config(swfs_config *c, swfs_ts_params *p)
 /* A reconstructor of the used subapertures' slopes only (2 nvalid columns: their x slopes in
  * the full layout's order, then their y slopes), as most AO systems keep theirs, put in the
  * simulated Shack-Hartmann's full layout (the unused subapertures' columns 0). */
-int swfs_ts_embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
+static int embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh)
 {
     size_t *cols = NULL, nc = 0;
     int rc = swfs_slopes_used_cols(sh->valid, sh->nsub, &cols, &nc);
@@ -160,12 +160,12 @@ int swfs_ts_embed_valid_recon(const char *path, swfs_recon *r, const swfs_shwfs 
 /* The loop's reconstructor from a file: its shape must be the simulated Shack-Hartmann's
  * slopes (the full layout, or the used subapertures' only) by the DM's actuators; the modes
  * it keeps are its numerical rank. */
-static int check_given_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh, size_t nact)
+int swfs_ts_check_given_recon(const char *path, swfs_recon *r, const swfs_shwfs *sh, size_t nact)
 {
     const size_t nslopes = sh->nslopes;
     int rc = SWFS_OK;
     if (r->nslopes == 2 * sh->nvalid && r->nslopes != nslopes && r->nact == nact &&
-        (rc = swfs_ts_embed_valid_recon(path, r, sh)))
+        (rc = embed_valid_recon(path, r, sh)))
         return rc;
     if (r->nslopes != nslopes || r->nact != nact)
         return swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the simulated "
@@ -970,7 +970,7 @@ static int ts_run(const swfs_ts_params *p, const swfs_ts_shared *shared, const c
     if (lin && (rc = swfs_interaction_matrix(sh, Tp, &Dp))) goto done;
     if (p->ao_recon[0]) {
         /* The loop's own reconstructor (its modal filter and gains), as recon_ao.fits holds one. */
-        if ((rc = check_given_recon(p->ao_recon, rao, sh, nact))) goto done;
+        if ((rc = swfs_ts_check_given_recon(p->ao_recon, rao, sh, nact))) goto done;
     } else if (p->ao_rcond > 0) {
         /* A zonal loop: the pseudo-inverse of its own interaction matrix, the modes of small
          * singular value (piston, waffle, what the sensor barely sees) left out; the shared

@@ -28,16 +28,11 @@ typedef struct cfit {
     double *tmp, *A;         /* r x nact, r x r */
 } cfit;
 
-/* The misfit of the model with coupling c (0: the interpolated surface) in *e. */
-static int misfit(cfit *f, double c, double *e)
+/* The misfit of the DM T's interaction matrix in *e. */
+static int misfit_of(cfit *f, const swfs_sparse *T, double *e)
 {
-    swfs_sparse *T = NULL;
     double *D = NULL;
-    const size_t np = (size_t)f->p->base.pupn;
-    int rc = c > 0 ? swfs_influence_gauss_grid(f->xy, f->nact, np, f->p->base.pupdx, f->mask, c, &T)
-                   : swfs_interp_ct_grid(f->xy, f->nact, np, f->p->base.pupdx, f->mask, &T, NULL);
-    if (!rc) rc = swfs_interaction_matrix(f->sh, T, &D);
-    swfs_sparse_free(T);
+    const int rc = swfs_interaction_matrix(f->sh, T, &D);
     if (rc) return rc;
     const size_t r = f->r, nact = f->nact, ns = f->ns;
     /* A = V_r^T D U_r: (r x ns)(ns x nact) then (r x nact)(nact x r, the first r columns of U) */
@@ -58,6 +53,16 @@ static int misfit(cfit *f, double c, double *e)
     return SWFS_OK;
 }
 
+/* The misfit of Gaussian functions of coupling c in *e. */
+static int misfit(cfit *f, double c, double *e)
+{
+    swfs_sparse *T = NULL;
+    int rc = swfs_influence_gauss_grid(f->xy, f->nact, (size_t)f->p->base.pupn, f->p->base.pupdx, f->mask, c, &T);
+    if (!rc) rc = misfit_of(f, T, e);
+    swfs_sparse_free(T);
+    return rc;
+}
+
 int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out)
 {
     memset(out, 0, sizeof *out);
@@ -70,22 +75,15 @@ int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out)
     swfs_shwfs *sh = NULL;
     size_t nact = 0;
     cfit f = {0};
+    /* the sensor, the layout and the interpolated surface (the loop model at dm_coupling 0) */
+    swfs_ts_params q = *p;
+    q.dm_coupling = 0.0;
     int rc = mask ? swfs_sim_pupil(&p->base, mask) : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     if (!rc) rc = swfs_ts_read_given(p, p->base.teldiam, &xy, &nact, &rao, &vmap);
-    if (!rc) rc = swfs_ts_loop_model(p, mask, vmap, &xy, &nact, &T, &sh); /* the sensor and the layout */
-    swfs_sparse_free(T);
+    if (!rc) rc = swfs_ts_loop_model(&q, mask, vmap, &xy, &nact, &T, &sh);
+    if (!rc) rc = swfs_ts_check_given_recon(p->ao_recon, rao, sh, nact); /* the loop's own checks and rank */
     if (rc) goto done;
-    const size_t ns = sh->nslopes;
-    /* the used subapertures' slopes only: into the full layout (zero columns elsewhere) */
-    if (rao->nslopes == 2 * sh->nvalid && rao->nslopes != ns && rao->nact == nact &&
-        (rc = swfs_ts_embed_valid_recon(p->ao_recon, rao, sh)))
-        goto done;
-    if (rao->nslopes != ns || rao->nact != nact) {
-        rc = swfs_fail(SWFS_ERR_SHAPE, "%s: the loop's reconstructor is %zu slopes x %zu actuators, but the system gives "
-                       "%zu slopes (%zu used subapertures) and %zu actuators", p->ao_recon, rao->nslopes, rao->nact, ns,
-                       sh->nvalid, nact);
-        goto done;
-    }
+    const size_t ns = sh->nslopes, r = rao->nmodes;
     const size_t k = nact < ns ? nact : ns;
     a = malloc(nact * ns * sizeof *a);
     U = malloc(nact * k * sizeof *U);
@@ -96,13 +94,10 @@ int swfs_ts_coupling_from_recon(const swfs_ts_params *p, swfs_ts_coupling *out)
     lapack_int info = LAPACKE_dgesdd(LAPACK_ROW_MAJOR, 'S', (lapack_int)nact, (lapack_int)ns, a, (lapack_int)ns, S, U,
                                      (lapack_int)k, VT, (lapack_int)ns);
     if (info) { rc = swfs_fail(SWFS_ERR_NUMERIC, "%s: SVD of the loop's reconstructor failed (%d)", p->ao_recon, (int)info); goto done; }
-    size_t r = 0;
-    while (r < k && S[r] > 1e-9 * S[0]) r++; /* its numerical rank, as the loop keeps it */
-    if (!r) { rc = swfs_fail(SWFS_ERR_VALUE, "%s: the loop's reconstructor is zero", p->ao_recon); goto done; }
     f = (cfit){p, mask, xy, nact, ns, r, sh, U, VT, S, k, malloc(r * nact * sizeof *f.tmp), malloc(r * r * sizeof *f.A)};
     if (!f.tmp || !f.A) { rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory"); goto done; }
     out->rank = r;
-    if ((rc = misfit(&f, 0.0, &out->misfit_interp))) goto done;
+    if ((rc = misfit_of(&f, T, &out->misfit_interp))) goto done;
     /* the Gaussian coupling: a grid log-spaced over the couplings a continuous facesheet can have
      * (SWFS_TS_COUPLING_MIN .. MAX), then golden-section search in the best point's bracket */
     double cg[SWFS_TS_COUPLING_GRID], eg[SWFS_TS_COUPLING_GRID];
@@ -136,6 +131,7 @@ done:
     free(VT);
     free(S);
     free(vmap);
+    swfs_sparse_free(T);
     swfs_recon_free(rao);
     swfs_shwfs_free(sh);
     return rc;
