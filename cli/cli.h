@@ -250,6 +250,8 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
  * checks against the observation (speckles prints its own). */
 void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_result *r, int modes_from_slopes,
                        const char *out, const char *work, int checks);
+/* speckles' choice of the loops' DM by the science frames (run.h dm_choice_done), one line. */
+void cli_dm_choice_summary(const char *cmd, const struct swfs_speckles_run_result *r);
 /* The map teach chose (SWFS_TEACH_*), in words with why (teach_summary.c). */
 const char *cli_teach_chosen(int chosen);
 #define CLI_LINEAR_HELP \

@@ -105,6 +105,9 @@ void cli_speckles_summary(const char *cmd, const struct swfs_speckles_run_option
             }
             /* the filter from the slopes unless --teach-set gave one (then no knee was sought) */
             cli_teach_summary(stderr, cmd, tr, tr->knee_obs > 0, r->teach_map, work, 0);
+        }
+        if (r->taught) {
+            cli_dm_choice_summary(cmd, r);
         } else {
             fprintf(stderr, "specklewfs %s: warning: no map could be taught for this observation (%s); the von Karman "
                     "map (--recon vk) instead\n", cmd, r->teach_fallback);

@@ -25,6 +25,12 @@ grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.te
     && grep -q "ao_modes = 5[3-9]$" speckles_dt.log && [ -s spk_dt.teach/spacetime.fits ] \
     && [ -s spk_dt.teach/modes.tsv ] && ! ls -d spk_dt.teach/loop_* spk_dt.teach/modes_* spk_dt.teach/zonal_* > /dev/null 2>&1 \
     || { cat speckles_dt.log; fail "speckles (default): the taught map in spk_dt.teach, its loops removed"; }
+# told neither the DM's functions nor a control matrix, speckles teaches a second map of a DM
+# of Gaussian functions (spk_dt.teach/dm-gauss/) and keeps the one whose speckles follow the
+# frames better: the observation's own DM, simulate's interpolated surface
+grep -q "^speckles: the loops' DM by the science frames: the interpolated surface's map kept (mean correlation of intensity and |psi|^2: Gaussian influence functions of coupling 0.15 0\.[0-9]*, the interpolated surface 0\.[0-9]*; per pixel -0\.[0-9]* +- 0\.[0-9]* over [0-9]* pixels); the other map spk_dt.teach/dm-gauss/taught.fits" \
+    speckles_dt.log && [ -s spk_dt.teach/dm-gauss/taught.fits ] && ! ls -d spk_dt.teach/dm-gauss/loop_* > /dev/null 2>&1 \
+    || { cat speckles_dt.log; fail "speckles (default): the interpolated surface's map kept over a Gaussian DM's"; }
 "$B" estimate sci_dt.fits spk_dt.fits -o halo_dt.fits > /dev/null 2>&1 || fail "estimate (default)"
 "$B" pupil halo_dt.fits -o pupil_dt.fits --truth obs/truth.fits > pupil_dt.log || fail "pupil (default)"
 edt=$(ncp_error pupil_dt.log)
@@ -98,7 +104,8 @@ echo "cli_teach: speckles' default again on the same inputs: reused the map; --t
     -o spk_dm.fits 2> speckles_dm.log || { cat speckles_dm.log; fail "speckles --teach-set dm_coupling=0.15"; }
 grep -q "^speckles: the loops' system as its files describe it, with dm_coupling=0.15 (--teach-set)" speckles_dm.log \
     && grep -q "^speckles: chose the .* -> spk_dt.teach/taught.fits" speckles_dm.log && ! grep -q "reused" speckles_dm.log \
-    || { cat speckles_dm.log; fail "--teach-set: taught anew with the key, said so"; }
+    && ! grep -q "the loops' DM" speckles_dm.log \
+    || { cat speckles_dm.log; fail "--teach-set: taught anew with the key, said so, no second map (the DM told)"; }
 "$FITSDIFF" spk_dt.fits spk_dm.fits 2> /dev/null && fail "--teach-set dm_coupling=0.15: the default's speckles (the key did not reach the loops)"
 for bad in "bogus_key=1:unknown setting 'bogus_key'" "dm_coupling=1:dm_coupling=1: must be in \[0, 1)" \
            "dm_coupling:takes key=value"; do
@@ -114,6 +121,8 @@ echo "cli_teach: --teach-set dm_coupling=0.15: taught anew, other speckles; bad 
 "$B" speckles timing.txt --science science.fits --actuators actuators.fits --pupil pupil.fits --teach-loops 4 \
     --teach-max-loops 4 --teach-work spk_cm.teach --teach-set ao_recon=obs/recon_ao.fits -o spk_cm.fits \
     2> speckles_cm.log || { cat speckles_cm.log; fail "speckles --teach-set ao_recon=obs/recon_ao.fits"; }
+! grep -q "the loops' DM" speckles_cm.log && [ ! -e spk_cm.teach/dm-gauss ] \
+    || { cat speckles_cm.log; fail "ao_recon given: no second map (the DM's functions from the matrix)"; }
 line=$(grep "^speckles: the DM's functions from the loops' control matrix (ao_recon, rank [0-9]*): the interpolated surface" \
     speckles_cm.log) || { cat speckles_cm.log; fail "ao_recon: the DM's functions from the control matrix expected"; }
 echo "$line" | awk '{ for (i = 1; i <= NF; i++) if ($i == "%,") g = $(i - 1); s = $(NF - 1) }

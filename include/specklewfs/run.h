@@ -438,7 +438,8 @@ typedef struct swfs_speckles_run_result {
     swfs_loops_map_result loops_map; /* loops_map: the second map and the choice */
     /* The camera's orientation told by the speckles (sync.h swfs_orient_acc_result): the
      * science frames of the usable cubes against the speckles' |psi|^2, in all 8 pairings;
-     * orient_done 0 where it did not run (a run of several processes, or too few frames). A
+     * orient_done 0 where it did not run (too few frames; a run of several processes before
+     * 0.11.0, now member 0's check on the gathered cube). A
      * pairing better than the timing table's by SWFS_ORIENT_WARN_SE standard errors makes
      * swfs_speckles_orient_warns true: the table's pairing is likely wrong. Appended in 0.8.0.
      * The check runs before the products are written; unless pairing_table, such a pairing is
@@ -448,7 +449,34 @@ typedef struct swfs_speckles_run_result {
     int orient_done;
     swfs_orient_check_result orient;
     int orient_adopted;
+    /* The DM's influence functions of teach's loops, chosen by the science frames (0.11.0).
+     * The files do not say what a DM's functions are; where teach is told neither them
+     * (dm_coupling) nor the control matrix it would take them from (ao_recon), speckles teaches
+     * a second map, its loops' DM Gaussian functions of coupling SWFS_TEACH_DM_GAUSS, computes
+     * the speckles of both, and keeps the pair whose |psi|^2 follows the science frames
+     * better: per pixel the correlation of intensity and |psi|^2 over the frames (the
+     * orientation check's, at the pairing it found), the mean per-pixel difference and its
+     * standard error (the pixels counted in speckles). Camera frames and a taught map only
+     * (dm_choice_done 0 otherwise, or where the orientation check could not run); a team's
+     * member 0 teaches the second map and decides, every member computes both (the others'
+     * dm_* fields but dm_gauss_chosen are not filled). */
+    int dm_choice_done;
+    int dm_gauss_chosen;       /* 1: the Gaussian functions' map (teach_map, teach's result are its) */
+    double dm_gauss_coupling;  /* the coupling of the second map's functions (SWFS_TEACH_DM_GAUSS) */
+    double dm_corr[2];         /* mean correlation: [0] the interpolated surface's speckles, [1] the Gaussian's */
+    double dm_corr_diff, dm_corr_se; /* mean per-pixel [1] - [0] and its standard error */
+    size_t dm_npix;            /* the pixels both have a correlation at */
+    char dm_other_map[4200];   /* the map not kept */
+    char dm_fallback[1024];    /* the second map could not be taught or compared: why (the first kept) */
 } swfs_speckles_run_result;
+
+/* The coupling of the Gaussian influence functions (timeseries.h dm_coupling: a neighbour's
+ * share of an actuator's command) speckles' second map is taught with: the middle, on a log
+ * scale, of continuous-facesheet DMs' 0.05-0.4; docs/telemetry.md ("The DM's functions chosen
+ * by the science frames") measures the maps of 0.08-0.3 on observations of 0.15-0.2 and of
+ * the interpolated surface. SWFS_TEACH_DM_DIR: its teach folder, inside the first's. */
+#define SWFS_TEACH_DM_GAUSS 0.15
+#define SWFS_TEACH_DM_DIR "dm-gauss"
 
 /* How many standard errors a pairing must beat the timing table's by for the speckles'
  * orientation check to warn and (by default) to be taken instead of the table's: the

@@ -287,6 +287,11 @@ typedef struct swfs_orient_check_result {
  * scale)^2), >= 1. SWFS_ERR_VALUE when fewer than 3 frames or no pixel varies. */
 int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref, double pix_per_speckle,
                            swfs_orient_check_result *r);
+/* Pairing k's correlation at each of the nx x ny model pixels into c (NaN where either does
+ * not vary, or the pairing gives the pixel no camera pixel): what swfs_orient_acc_result
+ * averages, for comparing two speckle cubes of the same frames pixel by pixel (speckles'
+ * choice of the DM's functions). Added in 0.11.0. */
+void swfs_orient_acc_pixel_corrs(const swfs_orient_acc *a, int k, double *c);
 /* The pairing k's swap and signs into p (its other fields untouched). */
 void swfs_orient_pairing(int k, swfs_sync_result *p);
 /* One line of what the check found: "the timing table's pairing (SWAP=0 SX=+1 SY=+1) follows

@@ -30,7 +30,7 @@ from .live import StopFlag, live, replay, live_loop
 try:
     from ._config import VERSION as __version__
 except ImportError:
-    __version__ = "0.10.0"
+    __version__ = "0.11.0"
 
 merge_files = Accumulator.merge_files
 

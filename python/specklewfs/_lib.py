@@ -416,7 +416,10 @@ swfs_speckles_run_result = _s("swfs_speckles_run_result", SPECKLES_RUN_FIELDS + 
     ("st_edges_why", ctypes.c_char * 512), ("teach_reused", c_int), ("teach_fingerprint", ctypes.c_char * 17),
     ("curl_noise", c_dbl), ("modal_regularized", c_int), ("modal_lsq", c_dbl), ("meanmiss_heldout", c_dbl),
     ("mean_teach", swfs_mean_teach_result), ("meanmiss_rms", c_dbl), ("loops_map", swfs_loops_map_result),
-    ("orient_done", c_int), ("orient", swfs_orient_check_result), ("orient_adopted", c_int)])
+    ("orient_done", c_int), ("orient", swfs_orient_check_result), ("orient_adopted", c_int),
+    ("dm_choice_done", c_int), ("dm_gauss_chosen", c_int), ("dm_gauss_coupling", c_dbl), ("dm_corr", c_dbl * 2),
+    ("dm_corr_diff", c_dbl), ("dm_corr_se", c_dbl), ("dm_npix", c_size), ("dm_other_map", ctypes.c_char * 4200),
+    ("dm_fallback", ctypes.c_char * 1024)])
 swfs_wind_run_result = _s("swfs_wind_run_result", [("est", swfs_wind_estimate), ("nframes", c_size), ("nsub", c_size),
                                                    ("pitch", c_dbl), ("rate", c_dbl)])
 swfs_teach_run_options = _s("swfs_teach_run_options", [

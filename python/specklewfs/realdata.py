@@ -476,7 +476,10 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     modal_lsq (slopes modal_slopes(..., imat=) made from coefficients its check flagged: also a
     RuntimeWarning), the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
-    teach_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
+    teach_fallback (why not); where teach_keys say neither dm_coupling nor ao_recon, a second
+    map is taught with a DM of Gaussian functions and the one whose speckles follow the science
+    frames better kept: dm_choice (gauss, coupling, corr of each, diff, diff_se, npix,
+    other_map; None where not compared) and dm_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's). orient: the camera's orientation told by the
     speckles (corr by pairing (swap, sign_x, sign_y), best, table, diff, diff_se, npix, warns,
     adopted; a RuntimeWarning where another pairing beats the timing table's by 5 standard
@@ -644,6 +647,12 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
             d["teach_fingerprint"] = r.teach_fingerprint.decode()
             d["teach"] = ({"chosen": _lib.TEACH_CHOSEN[tr.chosen], "nloops": tr.nloops}
                           if r.teach_reused else _teach_dict(tr, True))
+            # the loops' DM chosen by the science frames (run.h dm_choice_done)
+            d["dm_choice"] = None if not r.dm_choice_done else dict(
+                gauss=bool(r.dm_gauss_chosen), coupling=r.dm_gauss_coupling,
+                corr=dict(surface=r.dm_corr[0], gauss=r.dm_corr[1]), diff=r.dm_corr_diff, diff_se=r.dm_corr_se,
+                npix=r.dm_npix, other_map=r.dm_other_map.decode())
+            d["dm_fallback"] = r.dm_fallback.decode()
         else:
             d["teach_fallback"] = r.teach_fallback.decode()
             warnings.warn(f"speckles: no map could be taught for this observation ({d['teach_fallback']}); the von "

@@ -92,6 +92,16 @@ def test_path_on_files_equals_the_cli(series, cli):
     assert sp["info"]["band"] == pytest.approx(6.5 / (2 * sp["info"]["out_pitch"]), rel=1e-9) and sp["info"]["band"] > 6
     # the default reconstructor: a map taught for this observation from its own files, in
     # sp.teach/ beside the output (the loops' layers those the slopes show)
+    # and a second one whose loops' DM has Gaussian functions (the files do not say the DM's):
+    # the one whose speckles follow the science frames better is kept, the series' own DM's
+    # (simulate's interpolated surface)
+    dm = sp["dm_choice"]
+    assert dm is not None and sp["dm_fallback"] == "" and dm["coupling"] == 0.15 and dm["npix"] > 100
+    print(f"the loops' DM: surface {dm['corr']['surface']:.4f}, Gaussian {dm['corr']['gauss']:.4f}, per pixel "
+          f"{dm['diff']:+.4f} +- {dm['diff_se']:.4f}")
+    assert not dm["gauss"] and dm["diff"] < 0 and dm["corr"]["surface"] > dm["corr"]["gauss"]
+    assert o["corr"][(0, 1, 1)] == dm["corr"]["surface"]  # the kept speckles' check is the one reported
+    assert dm["other_map"] == str(d / "sp.teach" / "dm-gauss" / "taught.fits") and os.path.exists(dm["other_map"])
     assert sp["taught"] and sp["teach_map"] == str(d / "sp.teach" / "taught.fits") and os.path.exists(sp["teach_map"])
     assert sp["teach"]["nloops"] >= 12 and sp["teach"]["modes_from_slopes"] and sp["teach"]["layers"]
     # at most 12 loops: no more to add, so no learning curve measured (test_teach measures it)
@@ -865,3 +875,44 @@ def test_milk_logs_stream_equals_the_cli(tmp_path, cli):
     with pytest.raises(sw.Error, match="nowhere"):
         sw.stream_files(str(d / "sci_milk.fits"), str(d / "x.fits"), wfs_log=str(d / "nowhere"), **model)
     assert not os.path.exists(d / "x.fits")
+
+
+def test_speckles_keeps_the_gaussian_dm_map(tmp_path):
+    """The series of test_path_on_files_equals_the_cli made with a DM of Gaussian functions
+    (dm_coupling=0.15, which the files do not say): speckles' second map, its loops' DM
+    Gaussian, follows the science frames better and is kept (write_recon writes it), and its NCP
+    error is below that of the map not kept (the interpolated surface's, given as recon=)."""
+    keys = dict(screen_n=512, ncubes=3, cube_frames=40, cube_gap=60, start_offset=50.4, wfs_file_frames=1000,
+                dm_coupling=0.15)
+    s = tmp_path / "sim"
+    sw.simulate_timeseries(str(s), config=os.path.join(ROOT, "config", "mmt-clio.conf"), **keys)
+    raws = [str(s / f"raw_{k:03d}.fits") for k in range(3)]
+    sw.reduce(raws, str(tmp_path / "sci.fits"), dark=str(s / "dark.fits"), flat=str(s / "flat.fits"))
+    sw.sync(str(tmp_path / "sci.fits"), str(s / "handshake.log"), str(tmp_path / "timing.txt"))
+    truth = sw.read_fits(str(s / "truth.fits"), "NCP")[0]
+    args = (str(tmp_path / "timing.txt"), str(tmp_path / "sci.fits"), str(s / "actuators.fits"))
+    sp = sw.speckles(*args, str(tmp_path / "sp_choice.fits"), teach_max_loops=12,
+                     match=[(str(tmp_path / "sci.fits"), str(tmp_path / "sci_choice.fits"))],
+                     write_recon=str(tmp_path / "recon_choice.fits"))
+    dm = sp["dm_choice"]
+    print(f"the loops' DM: surface {dm['corr']['surface']:.4f}, Gaussian {dm['corr']['gauss']:.4f}, per "
+          f"pixel {dm['diff']:+.4f} +- {dm['diff_se']:.4f}")
+    assert dm["gauss"] and dm["diff"] > 2 * dm["diff_se"] and dm["corr"]["gauss"] > dm["corr"]["surface"]
+    assert sp["teach_map"] == str(tmp_path / "sp_choice.teach" / "dm-gauss" / "taught.fits")
+    assert dm["other_map"] == str(tmp_path / "sp_choice.teach" / "taught.fits")
+    assert sp["orient"]["corr"][(0, 1, 1)] == dm["corr"]["gauss"]
+    # --write-recon writes the map kept, as the pipeline holds it (its form differs from the
+    # taught file's by about 1 % of the largest value either way): far from the other one
+    w = sw.read_fits(str(tmp_path / "recon_choice.fits"))[0]
+    kept, other = sw.read_fits(sp["teach_map"])[0], sw.read_fits(dm["other_map"])[0]
+    assert np.abs(w - kept).max() < 0.1 * np.abs(w - other).max()
+    sw.speckles(*args, str(tmp_path / "sp_surface.fits"), recon=dm["other_map"],
+                match=[(str(tmp_path / "sci.fits"), str(tmp_path / "sci_surface.fits"))])
+    errs = {}
+    for tag in ("choice", "surface"):
+        h = sw.estimate_files(str(tmp_path / f"sci_{tag}.fits"), str(tmp_path / f"sp_{tag}.fits"),
+                              str(tmp_path / f"halo_{tag}.fits"))
+        p = sw.pupil_estimate(h, sw.read_geom(str(tmp_path / f"halo_{tag}.fits")))
+        errs[tag] = sw.wfe_compare(p.wfe, truth, p.mask)[0]
+    print(f"NCP error: the choice {errs['choice'] * 1e9:.1f} nm, the surface's map {errs['surface'] * 1e9:.1f} nm")
+    assert errs["choice"] < errs["surface"]

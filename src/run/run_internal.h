@@ -223,6 +223,14 @@ extern const char *const swfs_teach_chosen_names_[5];
  * Karman map); an error only for a team's failure to agree. */
 int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                          const swfs_geom *g, swfs_speckles_run_result *r);
+/* Whether speckles compares the loops' DM models (run.h dm_choice_done): a taught map, one
+ * process, camera frames, and teach told neither dm_coupling nor ao_recon. */
+int swfs_speckles_dm_choice_wanted_(const swfs_speckles_run_options *o, const swfs_speckles_run_result *r);
+/* The second map, its loops' DM Gaussian functions of SWFS_TEACH_DM_GAUSS, taught (or reused)
+ * in the teach folder's SWFS_TEACH_DM_DIR: map, teach's result, the fingerprint, reused. */
+int swfs_speckles_teach_dm_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                            const swfs_geom *g, char *map, size_t cap, struct swfs_teach_run_result *tr,
+                            char fpr[17], int *reused);
 
 /* run_modal_slopes.c: P = CM+ CM (ns x ns, malloc'd), the projection modal-slopes' output went
  * through, from the control matrix file; *rank: CM's numerical rank. */

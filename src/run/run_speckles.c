@@ -625,7 +625,7 @@ void swfs_speckles_orient_warning(const swfs_speckles_run_result *r, char *buf, 
  * the usable cubes, as read, against |psi|^2 of the speckle cube (w->halo, in the model's
  * frame), once before the products are written. Too few frames or nothing that varies: not
  * run, no error. */
-static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r)
+static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r, double *pix)
 {
     swfs_fits_in *f = NULL;
     swfs_orient_acc *a = NULL;
@@ -648,6 +648,7 @@ static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_
     if (!rc) {
         rc = swfs_orient_acc_result(a, &w->t->fit, pps, &r->orient);
         r->orient_done = rc == SWFS_OK;
+        for (int k = 0; pix && k < 8; k++) swfs_orient_acc_pixel_corrs(a, k, pix + (size_t)k * np);
         if (rc == SWFS_ERR_VALUE) { /* nothing to tell it by: not run */
             swfs_clear_error();
             rc = SWFS_OK;
@@ -714,6 +715,204 @@ static int write_speckles(const swfs_speckles_run_options *o, const work *w, con
 
 int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->resmean_rms > r->wavelen; }
 
+/* The speckles of o's reconstructor into w (rc: the run's status so far, which a team's
+ * members agree on): the pipeline, every usable frame, the residual's mean, the static part
+ * out, and the camera's orientation by the speckles (before the products that depend on it:
+ * a pairing that beats the table's by SWFS_ORIENT_WARN_SE standard errors is theirs unless
+ * the table's is kept, pairing_table); pix (8 x the window's pixels, or NULL): the check's
+ * per-pixel correlations. */
+static int compute(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r, int rc, double *pix)
+{
+    if (!rc) rc = build_pipeline(o, w);
+    /* a learned map's own miss of the residual's mean (learn's MEANMISS), added to RESMEAN */
+    const char *map = o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL;
+    if (!rc) rc = swfs_map_meanmiss_attach(w->p, map, &o->lin, &w->g, &r->meanmiss_rms);
+    if (!rc && o->nmean_loops)
+        rc = swfs_pipeline_mean_loops(w->p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
+    if (!rc) rc = spacetime_check(o, w, r);
+    const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
+    if (team) {
+        rc = process_team(o, w, r, rc);
+    } else {
+        if (!rc && !(w->halo = swfs_cplx_alloc(w->nfx, w->nfy, r->nout)))
+            rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w->nfx, w->nfy);
+        if (!rc) rc = process_cubes(o, w, r, 0, r->nout);
+    }
+    r->st_edges_joined = w->stk.edges.joined;
+    r->st_edges_clamped = w->stk.edges.clamped;
+    r->st_edges_unreadable = w->stk.edges.unreadable;
+    snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w->stk.edges.why);
+    if (!rc) rc = residual_mean(o, w, r);
+    if (!rc && writer) rc = swfs_speckles_subtract_static(w->halo, w->cfirst, w->cn, r->nok, o->mean_mode);
+    if (!rc && writer && !o->pipe.wfs_rate && w->halo) rc = orient_check(o, w, r, pix);
+    return rc;
+}
+
+/* Member 0's value of *v to every member of a team (nothing alone). */
+static int team_bcast(const swfs_team *t, void *v, size_t bytes)
+{
+    return swfs_team_active(t) ? t->bcast(t->ctx, v, bytes, 0) : SWFS_OK;
+}
+
+/* speckles' second taught map, its loops' DM Gaussian functions (dm_choose). */
+typedef struct dm_second {
+    int taught;
+    char map[4200];
+    swfs_teach_run_result tr;
+    char fpr[17];
+    int reused;
+} dm_second;
+
+/* The second map taught before the products' group (teach's loops are their own groups), where
+ * the choice is wanted: d->taught, or r->dm_fallback says why not. A team's member 0 teaches,
+ * the others take its map. */
+static int dm_teach(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r, dm_second *d)
+{
+    r->dm_gauss_coupling = SWFS_TEACH_DM_GAUSS;
+    r->dm_corr[0] = r->dm_corr[1] = r->dm_corr_diff = r->dm_corr_se = NAN;
+    int rc = SWFS_OK;
+    if (swfs_team_writer(o->team)) {
+        rc = swfs_speckles_teach_dm_(o, w->t, w->tdir, &w->g, d->map, sizeof d->map, &d->tr, d->fpr, &d->reused);
+        if (rc && rc != SWFS_ERR_STOPPED) {
+            snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map could not be taught: %s", swfs_last_error());
+            swfs_clear_error();
+        }
+        d->taught = !rc;
+        if (rc != SWFS_ERR_STOPPED) rc = SWFS_OK;
+    }
+    if (swfs_team_active(o->team)) {
+        rc = swfs_team_agree(o->team, rc);
+        if (!rc) rc = team_bcast(o->team, &d->taught, sizeof d->taught);
+        if (!rc) rc = team_bcast(o->team, d->map, sizeof d->map);
+        if (!rc && !d->taught && !swfs_team_writer(o->team))
+            snprintf(r->dm_fallback, sizeof r->dm_fallback, "member 0 could not teach the second map (its output says why)");
+    }
+    return rc;
+}
+
+/* What compute makes of one reconstructor, held aside while another's is computed. */
+typedef struct made {
+    swfs_recon *rin;
+    swfs_pipeline *p;
+    swfs_cplx *halo;
+    swfs_real *resmean;
+    swfs_lag_stacker_ stk;
+    long lags[SWFS_RECON_MAXLAGS];
+    size_t nlags;
+} made;
+
+static void made_swap(work *w, made *m)
+{
+    made t = {w->rin, w->p, w->halo, w->resmean, w->stk, {0}, w->nlags};
+    memcpy(t.lags, w->lags, sizeof t.lags);
+    w->rin = m->rin; w->p = m->p; w->halo = m->halo; w->resmean = m->resmean; w->stk = m->stk; w->nlags = m->nlags;
+    memcpy(w->lags, m->lags, sizeof w->lags);
+    *m = t;
+}
+
+static void made_free(made *m)
+{
+    swfs_recon_free(m->rin);
+    swfs_pipeline_free(m->p);
+    swfs_cplx_free(m->halo);
+    swfs_real_free(m->resmean);
+    swfs_lag_stacker_free_(&m->stk);
+    memset(m, 0, sizeof *m);
+}
+
+/* The DM's functions of teach's loops, chosen by the science frames (run.h dm_choice_done):
+ * w and r hold the first map's speckles (the interpolated surface's), pix its per-pixel
+ * correlations; the second map, of Gaussian functions, is taught and its speckles computed;
+ * the pair whose |psi|^2 follows the frames better (the mean per-pixel difference at the
+ * pairing the first check found) is kept in w and r, with its teach result in o->teach. A
+ * second map that cannot be taught or compared leaves the first (dm_fallback says why). */
+static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r, const double *pix,
+                     const dm_second *d)
+{
+    const size_t np = w->nfx * w->nfy;
+    /* (a team: member 0 holds the frames' correlations and decides; every member computes) */
+    int can = r->orient_done;
+    int rc = team_bcast(o->team, &can, sizeof can);
+    if (rc) return rc;
+    if (!can) {
+        snprintf(r->dm_fallback, sizeof r->dm_fallback, "the speckles' correlation with the frames could not be "
+                 "measured (too few frames, or nothing varies)");
+        return SWFS_OK;
+    }
+    swfs_speckles_run_result *r2 = malloc(sizeof *r2);
+    double *pix2 = malloc(8 * np * sizeof *pix2);
+    made m1;
+    memset(&m1, 0, sizeof m1);
+    rc = r2 && pix2 ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (swfs_team_active(o->team)) rc = swfs_team_agree(o->team, rc);
+    swfs_speckles_run_options o2 = *o;
+    o2.recon = d->map;
+    o2.write_recon = NULL; /* the kept one's, by the caller */
+    if (!rc) {
+        *r2 = *r;
+        made_swap(w, &m1); /* the first's aside */
+        rc = compute(&o2, w, r2, rc, pix2);
+        if (rc && rc != SWFS_ERR_STOPPED) { /* the first stands */
+            snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map's speckles: %s", swfs_last_error());
+            swfs_clear_error();
+            rc = SWFS_OK;
+            made_swap(w, &m1);
+            goto done;
+        }
+    }
+    int can2 = !rc && r2->orient_done;
+    if (!rc) rc = team_bcast(o->team, &can2, sizeof can2);
+    if (!rc && !can2) {
+        snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map's speckles' correlation with the frames "
+                 "could not be measured");
+        made_swap(w, &m1);
+        goto done;
+    }
+    if (!rc) {
+        const int k = r->orient.best;
+        double sd = 0, sd2 = 0;
+        size_t n = 0;
+        for (size_t q = 0; swfs_team_writer(o->team) && q < np; q++) {
+            const double a = pix[(size_t)k * np + q], b = pix2[(size_t)k * np + q];
+            if (!isfinite(a) || !isfinite(b)) continue;
+            sd += b - a;
+            sd2 += (b - a) * (b - a);
+            n++;
+        }
+        const double pps = w->g.pixscale > 0 ? 1.0 / (w->g.pixscale * w->g.pixscale) : 1.0;
+        const double m = n ? sd / (double)n : NAN;
+        const double var = n > 1 ? fmax(0.0, sd2 / (double)n - m * m) * (double)n / (double)(n - 1) : NAN;
+        const double c0 = r->orient.corr[k], c1 = r2->orient.corr[k];
+        int gauss = n && m > 0;
+        if ((rc = team_bcast(o->team, &gauss, sizeof gauss))) goto done;
+        if (gauss) { /* the second's: m1 (the first's) freed below */
+            snprintf(r2->dm_other_map, sizeof r2->dm_other_map, "%s", r->teach_map);
+            snprintf(r2->teach_map, sizeof r2->teach_map, "%s", d->map);
+            snprintf(r2->teach_fingerprint, sizeof r2->teach_fingerprint, "%s", d->fpr);
+            r2->teach_reused = d->reused;
+            *r = *r2;
+            if (o->teach) *o->teach = d->tr;
+        } else {
+            made_swap(w, &m1); /* the first's back; m1 the second's */
+            snprintf(r->dm_other_map, sizeof r->dm_other_map, "%s", d->map);
+        }
+        r->dm_choice_done = n > 0; /* (member 0's: the others hold no correlations) */
+        r->dm_gauss_chosen = gauss;
+        r->dm_corr[0] = c0;
+        r->dm_corr[1] = c1;
+        r->dm_corr_diff = m;
+        r->dm_corr_se = sqrt(var / fmax(1.0, (double)n / (pps >= 1 ? pps : 1.0)));
+        r->dm_npix = n;
+        if (!n && swfs_team_writer(o->team))
+            snprintf(r->dm_fallback, sizeof r->dm_fallback, "no pixel where both speckle cubes vary");
+    }
+done:
+    made_free(&m1);
+    free(r2);
+    free(pix2);
+    return rc;
+}
+
 int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_result *r)
 {
     memset(r, 0, sizeof *r);
@@ -747,6 +946,13 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
             oo.recon = r->teach_map;
         }
     }
+    /* the second map, of a DM of Gaussian functions, for the choice by the science frames */
+    dm_second *dm = NULL;
+    if (!rc && oo.pipe.recon == SWFS_RECON_GIVEN && o->pipe.recon == SWFS_RECON_TEACH &&
+        swfs_speckles_dm_choice_wanted_(o, r)) {
+        if (!(dm = calloc(1, sizeof *dm))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+        else rc = dm_teach(o, &w, r, dm);
+    }
     /* --mean-loop teach: the loops of the system the files describe, simulated (or reused) as
      * the mean loops (run_mean_teach.c) */
     const char *mt_ptr[SWFS_MEAN_TEACH_MAX];
@@ -763,31 +969,18 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     /* The speckle cube, the reconstructor and the --match copies come as a set (atomic.h). */
     int group = !rc;
     if (group) swfs_outputs_begin();
-    if (!rc) rc = build_pipeline(o, &w);
-    /* a learned map's own miss of the residual's mean (learn's MEANMISS), added to RESMEAN */
-    const char *map = o->lin.basis ? o->lin.control : o->pipe.recon == SWFS_RECON_GIVEN ? o->recon : NULL;
-    if (!rc) rc = swfs_map_meanmiss_attach(w.p, map, &o->lin, &w.g, &r->meanmiss_rms);
-    if (!rc && o->nmean_loops)
-        rc = swfs_pipeline_mean_loops(w.p, o->mean_loops, o->nmean_loops, &r->meanmiss_heldout, &r->meanmiss_rms);
-    if (!rc) rc = spacetime_check(o, &w, r);
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
-    if (team) {
-        rc = process_team(o, &w, r, rc);
-    } else {
-        if (!rc && !(w.halo = swfs_cplx_alloc(w.nfx, w.nfy, r->nout)))
-            rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory for %zu frames of %zux%zu", r->nout, w.nfx, w.nfy);
-        if (!rc) rc = process_cubes(o, &w, r, 0, r->nout);
-    }
-    r->st_edges_joined = w.stk.edges.joined;
-    r->st_edges_clamped = w.stk.edges.clamped;
-    r->st_edges_unreadable = w.stk.edges.unreadable;
-    snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w.stk.edges.why);
-    if (!rc) rc = residual_mean(o, &w, r);
-    if (!rc && writer) rc = swfs_speckles_subtract_static(w.halo, w.cfirst, w.cn, r->nok, o->mean_mode);
-    /* The camera's orientation by the speckles, before the products that depend on it: a
-     * pairing that beats the table's by SWFS_ORIENT_WARN_SE standard errors is theirs unless
-     * the table's is kept (pairing_table). */
-    if (!rc && !team && !o->pipe.wfs_rate && w.halo) rc = orient_check(o, &w, r);
+    const int dm_choice = !rc && dm && dm->taught;
+    double *pix = NULL;
+    if (dm_choice && !(pix = malloc(8 * w.nfx * w.nfy * sizeof *pix))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    swfs_speckles_run_options o1 = *o;
+    if (dm_choice) o1.write_recon = NULL; /* the kept map's, once chosen */
+    rc = compute(&o1, &w, r, rc, pix);
+    /* the loops' DM: the interpolated surface's speckles against a Gaussian DM's */
+    if (!rc && dm_choice) rc = dm_choose(o, &w, r, pix, dm);
+    if (!rc && dm_choice && o->write_recon) rc = write_map(o, w.p);
+    free(pix);
+    free(dm);
     if (!rc && swfs_speckles_orient_warns(r) && !o->pairing_table) {
         swfs_orient_pairing(r->orient.best, &w.t->fit);
         r->orient_adopted = 1;

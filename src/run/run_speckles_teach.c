@@ -164,9 +164,11 @@ static int taught_for(const char *map, const char *fpr, struct swfs_teach_run_re
 }
 
 /* Teach as `teach --science --actuators [--pupil] [--valid]` does, into map; or reuse the map
- * there when it was taught for the same inputs (*reused = 1). fpr: their fingerprint. */
+ * there when it was taught for the same inputs (*reused = 1). fpr: their fingerprint. With
+ * dm_gauss > 0 the loops' DM has Gaussian influence functions of that coupling (one more
+ * `dm_coupling` key, after the user's), taught in the work folder's SWFS_TEACH_DM_DIR. */
 static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
-                 char *map, size_t cap, struct swfs_teach_run_result *tr, char fpr[17], int *reused)
+                 double dm_gauss, char *map, size_t cap, struct swfs_teach_run_result *tr, char fpr[17], int *reused)
 {
     *reused = 0;
     fpr[0] = 0;
@@ -179,6 +181,15 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
     if (!rc) rc = swfs_speckles_table_files_(t, tdir, names, &n);
     if (!rc && !n) rc = swfs_fail(SWFS_ERR_VALUE, "%s: names no telemetry file", o->timing);
     if (!rc) rc = swfs_speckles_work_folder_(o, work, sizeof work, &made);
+    if (!rc && dm_gauss > 0) {
+        const size_t len = strlen(work);
+        if (snprintf(work + len, sizeof work - len, "/%s", SWFS_TEACH_DM_DIR) >= (int)(sizeof work - len))
+            rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", work);
+        made = 0;
+        if (!rc && !mkdir(work, 0777)) made = 1;
+        else if (!rc && errno != EEXIST)
+            rc = swfs_fail(SWFS_ERR_IO, "speckles: cannot create the teach folder %s: %s", work, strerror(errno));
+    }
     if (!rc && snprintf(map, cap, "%s/taught.fits", work) >= (int)cap)
         rc = swfs_fail(SWFS_ERR_ARG, "speckles: the teach folder's name %s is too long", work);
     /* the rate the run uses where the telemetry has none (--wfs-hz) */
@@ -191,6 +202,11 @@ static int teach(const swfs_speckles_run_options *o, const swfs_timing *t, const
     /* what the user says of the system (--teach-set, checked with the options): first, so that
      * the files' description adds only the keys not given, as `teach key=value` */
     for (size_t k = 0; !rc && k < o->nteach_keys; k++) rc = swfs_config_set(c, o->teach_keys[k]);
+    if (!rc && dm_gauss > 0) {
+        char v[64];
+        snprintf(v, sizeof v, "%.17g", dm_gauss);
+        rc = swfs_config_set_kv(c, "dm_coupling", v);
+    }
     const int filter_given = !rc && swfs_ts_config_gives_filter(c), noise_given = !rc && swfs_config_has(c, "slope_noise");
     if (!rc) rc = swfs_teach_describe_geom_(c, g, o->actuators, o->mask, o->valid, names[0]);
     if (!rc) rc = fingerprint(o, c, names, n, fpr);
@@ -243,7 +259,7 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
     r->teach_reused = 0;
     r->teach_fingerprint[0] = 0;
     if (swfs_team_writer(o->team)) {
-        trc = teach(o, t, tdir, g, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
+        trc = teach(o, t, tdir, g, 0.0, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
         taught = !trc;
         if (!taught)
             snprintf(r->teach_fallback, sizeof r->teach_fallback, "%s", swfs_last_error());
@@ -263,4 +279,23 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
     r->taught = taught;
     if (!taught) map[0] = 0;
     return rc;
+}
+
+int swfs_speckles_dm_choice_wanted_(const swfs_speckles_run_options *o, const swfs_speckles_run_result *r)
+{
+    if (!r->taught || o->lin.basis || o->pipe.wfs_rate) return 0;
+    swfs_config *c = swfs_config_new();
+    int told = !c;
+    for (size_t k = 0; !told && k < o->nteach_keys; k++) told = swfs_config_set(c, o->teach_keys[k]) != SWFS_OK;
+    if (!told) told = swfs_config_has(c, "dm_coupling") || swfs_config_has(c, "ao_recon");
+    swfs_config_free(c);
+    swfs_clear_error(); /* (the keys were checked with the options) */
+    return !told;
+}
+
+int swfs_speckles_teach_dm_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                            const swfs_geom *g, char *map, size_t cap, struct swfs_teach_run_result *tr,
+                            char fpr[17], int *reused)
+{
+    return teach(o, t, tdir, g, SWFS_TEACH_DM_GAUSS, map, cap, tr, fpr, reused);
 }

@@ -144,6 +144,11 @@ static double pixel_corr(const swfs_orient_acc *a, size_t k, size_t p)
     return cab / sqrt(va * vb);
 }
 
+void swfs_orient_acc_pixel_corrs(const swfs_orient_acc *a, int k, double *c)
+{
+    for (size_t p = 0; p < a->np; p++) c[p] = k >= 0 && k < 8 ? pixel_corr(a, (size_t)k, p) : NAN;
+}
+
 /* The 8 pairings' correlations at pixel p; 0 unless every pairing the frames allow has one
  * (the swapped ones on frames that are not square: none, NaN). */
 static int pixel_corrs(const swfs_orient_acc *a, size_t p, double c[8])
