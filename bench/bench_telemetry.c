@@ -451,6 +451,10 @@ static int run_system(const system_def *s, unsigned seed, int quick, row *r)
     swfs_speckles_run_result spr;
     if (swfs_speckles_run(&sp, &spr)) return die("speckles");
     r->nexp = spr.nout;
+    if (spr.dm_choice_done) /* speckles' choice of the loops' DM by the science frames */
+        fprintf(stderr, "  %s s%d: the loops' DM: %s kept, correlation per pixel %+.4f +- %.4f\n", s->name, seed,
+                spr.dm_gauss_chosen ? "the Gaussian functions' map" : "the interpolated surface's map", spr.dm_corr_diff,
+                spr.dm_corr_se);
     const swfs_mean_teach_result *mt = &spr.mean_teach;
     if (mt->done)
         fprintf(stderr, "  %s s%d: the mean's loops: %zu of %zu frames, r0 %.4g m (%zu pairs for its fit; their power %.3f "

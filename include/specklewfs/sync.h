@@ -292,6 +292,12 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
  * averages, for comparing two speckle cubes of the same frames pixel by pixel (speckles'
  * choice of the DM's functions). Added in 0.11.0. */
 void swfs_orient_acc_pixel_corrs(const swfs_orient_acc *a, int k, double *c);
+/* Over the np pixels where both are finite, the mean of b - a (two such per-pixel
+ * correlations) and its standard error, the pixels counted in speckles (n / pix_per_speckle
+ * independent, at least 1): what swfs_orient_acc_result reports of the best pairing against
+ * the table's. Returns n (mean NaN where 0). Added in 0.11.0. */
+size_t swfs_orient_corr_diff(const double *a, const double *b, size_t np, double pix_per_speckle, double *mean,
+                             double *se);
 /* The pairing k's swap and signs into p (its other fields untouched). */
 void swfs_orient_pairing(int k, swfs_sync_result *p);
 /* One line of what the check found: "the timing table's pairing (SWAP=0 SX=+1 SY=+1) follows

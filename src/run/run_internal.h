@@ -227,10 +227,12 @@ int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *
  * process, camera frames, and teach told neither dm_coupling nor ao_recon. */
 int swfs_speckles_dm_choice_wanted_(const swfs_speckles_run_options *o, const swfs_speckles_run_result *r);
 /* The second map, its loops' DM Gaussian functions of SWFS_TEACH_DM_GAUSS, taught (or reused)
- * in the teach folder's SWFS_TEACH_DM_DIR: map, teach's result, the fingerprint, reused. */
+ * in the teach folder's SWFS_TEACH_DM_DIR as swfs_speckles_teach_ teaches the first (a team's
+ * member 0, the others take its map): map, teach's result, the fingerprint, reused, *taught
+ * or fallback saying why not; an error only for a request to stop or a team's failure to agree. */
 int swfs_speckles_teach_dm_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                             const swfs_geom *g, char *map, size_t cap, struct swfs_teach_run_result *tr,
-                            char fpr[17], int *reused);
+                            char fpr[17], int *reused, int *taught, char *fallback, size_t fcap);
 
 /* run_modal_slopes.c: P = CM+ CM (ns x ns, malloc'd), the projection modal-slopes' output went
  * through, from the control matrix file; *rank: CM's numerical rank. */

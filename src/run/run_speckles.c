@@ -764,29 +764,15 @@ typedef struct dm_second {
 } dm_second;
 
 /* The second map taught before the products' group (teach's loops are their own groups), where
- * the choice is wanted: d->taught, or r->dm_fallback says why not. A team's member 0 teaches,
- * the others take its map. */
+ * the choice is wanted: d->taught, or r->dm_fallback says why not. */
 static int dm_teach(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r, dm_second *d)
 {
     r->dm_gauss_coupling = SWFS_TEACH_DM_GAUSS;
     r->dm_corr[0] = r->dm_corr[1] = r->dm_corr_diff = r->dm_corr_se = NAN;
-    int rc = SWFS_OK;
-    if (swfs_team_writer(o->team)) {
-        rc = swfs_speckles_teach_dm_(o, w->t, w->tdir, &w->g, d->map, sizeof d->map, &d->tr, d->fpr, &d->reused);
-        if (rc && rc != SWFS_ERR_STOPPED) {
-            snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map could not be taught: %s", swfs_last_error());
-            swfs_clear_error();
-        }
-        d->taught = !rc;
-        if (rc != SWFS_ERR_STOPPED) rc = SWFS_OK;
-    }
-    if (swfs_team_active(o->team)) {
-        rc = swfs_team_agree(o->team, rc);
-        if (!rc) rc = team_bcast(o->team, &d->taught, sizeof d->taught);
-        if (!rc) rc = team_bcast(o->team, d->map, sizeof d->map);
-        if (!rc && !d->taught && !swfs_team_writer(o->team))
-            snprintf(r->dm_fallback, sizeof r->dm_fallback, "member 0 could not teach the second map (its output says why)");
-    }
+    char why[sizeof r->dm_fallback - 40];
+    const int rc = swfs_speckles_teach_dm_(o, w->t, w->tdir, &w->g, d->map, sizeof d->map, &d->tr, d->fpr, &d->reused,
+                                           &d->taught, why, sizeof why);
+    if (!rc && !d->taught) snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map could not be taught: %s", why);
     return rc;
 }
 
@@ -870,18 +856,10 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
     }
     if (!rc) {
         const int k = r->orient.best;
-        double sd = 0, sd2 = 0;
-        size_t n = 0;
-        for (size_t q = 0; swfs_team_writer(o->team) && q < np; q++) {
-            const double a = pix[(size_t)k * np + q], b = pix2[(size_t)k * np + q];
-            if (!isfinite(a) || !isfinite(b)) continue;
-            sd += b - a;
-            sd2 += (b - a) * (b - a);
-            n++;
-        }
         const double pps = w->g.pixscale > 0 ? 1.0 / (w->g.pixscale * w->g.pixscale) : 1.0;
-        const double m = n ? sd / (double)n : NAN;
-        const double var = n > 1 ? fmax(0.0, sd2 / (double)n - m * m) * (double)n / (double)(n - 1) : NAN;
+        double m = NAN, se = NAN;
+        const size_t n = swfs_team_writer(o->team) ? swfs_orient_corr_diff(pix + (size_t)k * np, pix2 + (size_t)k * np,
+                                                                            np, pps, &m, &se) : 0;
         const double c0 = r->orient.corr[k], c1 = r2->orient.corr[k];
         int gauss = n && m > 0;
         if ((rc = team_bcast(o->team, &gauss, sizeof gauss))) goto done;
@@ -901,7 +879,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
         r->dm_corr[0] = c0;
         r->dm_corr[1] = c1;
         r->dm_corr_diff = m;
-        r->dm_corr_se = sqrt(var / fmax(1.0, (double)n / (pps >= 1 ? pps : 1.0)));
+        r->dm_corr_se = se;
         r->dm_npix = n;
         if (!n && swfs_team_writer(o->team))
             snprintf(r->dm_fallback, sizeof r->dm_fallback, "no pixel where both speckle cubes vary");

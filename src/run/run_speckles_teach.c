@@ -245,40 +245,43 @@ done:
     return rc;
 }
 
-int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
-                         const swfs_geom *g, swfs_speckles_run_result *r)
+/* One map taught (teach above, dm_gauss as there) for a run alone or a team: member 0 teaches,
+ * the others wait for its map (teach is the same to the bit wherever it runs, but one folder
+ * holds it). *taught, or fallback saying why not; a request to stop is not a map that cannot
+ * be taught: the run ends, with no fallback. */
+static int team_teach(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir, const swfs_geom *g,
+                      double dm_gauss, char *map, size_t cap, struct swfs_teach_run_result *tr, char fpr[17],
+                      int *reused, int *taught, char *fallback, size_t fcap)
 {
-    swfs_teach_run_result own, *tr = o->teach ? o->teach : &own;
-    char *map = r->teach_map;
-    const size_t cap = sizeof r->teach_map;
-    int taught = 0, rc = SWFS_OK, trc = SWFS_OK;
-    r->teach_fallback[0] = 0;
-    map[0] = 0;
-    /* a team: member 0 teaches, the others wait for its map (teach is the same to the bit
-     * wherever it runs, but one folder holds it) */
-    r->teach_reused = 0;
-    r->teach_fingerprint[0] = 0;
+    int rc = SWFS_OK, trc = SWFS_OK;
+    *taught = *reused = 0;
+    fallback[0] = map[0] = fpr[0] = 0;
     if (swfs_team_writer(o->team)) {
-        trc = teach(o, t, tdir, g, 0.0, map, cap, tr, r->teach_fingerprint, &r->teach_reused);
-        taught = !trc;
-        if (!taught)
-            snprintf(r->teach_fallback, sizeof r->teach_fallback, "%s", swfs_last_error());
+        trc = teach(o, t, tdir, g, dm_gauss, map, cap, tr, fpr, reused);
+        *taught = !trc;
+        if (trc) snprintf(fallback, fcap, "%s", swfs_last_error());
     } else {
         memset(tr, 0, sizeof *tr);
     }
-    /* a request to stop is not a map that cannot be taught: the run ends, with no fallback */
     const int stopped = trc == SWFS_ERR_STOPPED ? trc : SWFS_OK;
     if (!swfs_team_active(o->team) && stopped) return stopped;
     if (swfs_team_active(o->team)) {
         rc = swfs_team_agree(o->team, stopped);
-        if (!rc) rc = o->team->bcast(o->team->ctx, &taught, sizeof taught, 0);
+        if (!rc) rc = o->team->bcast(o->team->ctx, taught, sizeof *taught, 0);
         if (!rc) rc = o->team->bcast(o->team->ctx, map, cap, 0);
-        if (!rc && !taught && !swfs_team_writer(o->team))
-            snprintf(r->teach_fallback, sizeof r->teach_fallback, "member 0 could not teach (its output says why)");
+        if (!rc && !*taught && !swfs_team_writer(o->team))
+            snprintf(fallback, fcap, "member 0 could not teach (its output says why)");
     }
-    r->taught = taught;
-    if (!taught) map[0] = 0;
+    if (!*taught) map[0] = 0;
     return rc;
+}
+
+int swfs_speckles_teach_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
+                         const swfs_geom *g, swfs_speckles_run_result *r)
+{
+    swfs_teach_run_result own, *tr = o->teach ? o->teach : &own;
+    return team_teach(o, t, tdir, g, 0.0, r->teach_map, sizeof r->teach_map, tr, r->teach_fingerprint,
+                      &r->teach_reused, &r->taught, r->teach_fallback, sizeof r->teach_fallback);
 }
 
 int swfs_speckles_dm_choice_wanted_(const swfs_speckles_run_options *o, const swfs_speckles_run_result *r)
@@ -295,7 +298,7 @@ int swfs_speckles_dm_choice_wanted_(const swfs_speckles_run_options *o, const sw
 
 int swfs_speckles_teach_dm_(const swfs_speckles_run_options *o, const swfs_timing *t, const char *tdir,
                             const swfs_geom *g, char *map, size_t cap, struct swfs_teach_run_result *tr,
-                            char fpr[17], int *reused)
+                            char fpr[17], int *reused, int *taught, char *fallback, size_t fcap)
 {
-    return teach(o, t, tdir, g, SWFS_TEACH_DM_GAUSS, map, cap, tr, fpr, reused);
+    return team_teach(o, t, tdir, g, SWFS_TEACH_DM_GAUSS, map, cap, tr, fpr, reused, taught, fallback, fcap);
 }

@@ -187,20 +187,37 @@ int swfs_orient_acc_result(const swfs_orient_acc *a, const swfs_sync_result *ref
         if (k < 4 || a->nx == a->ny) r->corr[k] = sum[k] / (double)npix;
     for (int k = 0; k < 8; k++)
         if (r->corr[k] > r->corr[r->best]) r->best = k;
-    /* the best's per-pixel excess over ref's, its mean and spread */
-    double sd = 0, sd2 = 0;
+    /* the best's per-pixel excess over ref's, its mean and spread (over the same pixels) */
+    double *cr = malloc(2 * a->np * sizeof *cr);
+    if (!cr) return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     for (size_t p = 0; p < a->np; p++) {
         double c[8];
-        if (!pixel_corrs(a, p, c)) continue;
-        const double d = c[r->best] - c[r->ref];
+        const int ok = pixel_corrs(a, p, c);
+        cr[p] = ok ? c[r->ref] : NAN;
+        cr[a->np + p] = ok ? c[r->best] : NAN;
+    }
+    swfs_orient_corr_diff(cr, cr + a->np, a->np, pix_per_speckle, &r->diff, &r->diff_se);
+    free(cr);
+    return SWFS_OK;
+}
+
+size_t swfs_orient_corr_diff(const double *a, const double *b, size_t np, double pix_per_speckle, double *mean,
+                             double *se)
+{
+    double sd = 0, sd2 = 0;
+    size_t n = 0;
+    for (size_t p = 0; p < np; p++) {
+        if (!isfinite(a[p]) || !isfinite(b[p])) continue;
+        const double d = b[p] - a[p];
         sd += d;
         sd2 += d * d;
+        n++;
     }
-    const double m = sd / (double)npix, var = npix > 1 ? fmax(0.0, sd2 / (double)npix - m * m) * (double)npix / (double)(npix - 1) : NAN;
-    const double neff = fmax(1.0, (double)npix / pix_per_speckle);
-    r->diff = m;
-    r->diff_se = sqrt(var / neff);
-    return SWFS_OK;
+    const double m = n ? sd / (double)n : NAN;
+    const double var = n > 1 ? fmax(0.0, sd2 / (double)n - m * m) * (double)n / (double)(n - 1) : NAN;
+    *mean = m;
+    *se = sqrt(var / fmax(1.0, (double)n / (pix_per_speckle >= 1 ? pix_per_speckle : 1.0)));
+    return n;
 }
 
 void swfs_orient_check_describe(const swfs_orient_check_result *c, char *buf, size_t cap)
