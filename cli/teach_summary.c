@@ -102,10 +102,11 @@ void cli_dm_choice_summary(const char *cmd, const struct swfs_speckles_run_resul
     if (r->dm_choice_done)
         fprintf(stderr, "%s: the loops' DM by the science frames: %s kept (mean correlation of intensity and |psi|^2: "
                 "Gaussian influence functions of coupling %.3g %.3f, the interpolated surface %.3f; per pixel %+.4f +- "
-                "%.4f over %zu pixels); the other map %s (--teach-set dm_coupling= says the DM)\n", cmd,
+                "%.4f over %zu pixels; the Gaussian's kept beyond %.0f standard errors); the other map %s (--teach-set "
+                "dm_coupling= says the DM)\n", cmd,
                 r->dm_gauss_chosen ? "the Gaussian functions' map" : "the interpolated surface's map",
                 r->dm_gauss_coupling, r->dm_corr[1], r->dm_corr[0], r->dm_corr_diff, r->dm_corr_se, r->dm_npix,
-                r->dm_other_map);
+                SWFS_TEACH_DM_SE, r->dm_other_map);
     else if (r->dm_fallback[0])
         fprintf(stderr, "%s: the loops' DM: the interpolated surface's map kept; no Gaussian DM's to compare (%s)\n", cmd,
                 r->dm_fallback);

@@ -28,7 +28,7 @@ grep -q "^speckles: chose the space-time map (neither check warned) -> spk_dt.te
 # told neither the DM's functions nor a control matrix, speckles teaches a second map of a DM
 # of Gaussian functions (spk_dt.teach/dm-gauss/) and keeps the one whose speckles follow the
 # frames better: the observation's own DM, simulate's interpolated surface
-grep -q "^speckles: the loops' DM by the science frames: the interpolated surface's map kept (mean correlation of intensity and |psi|^2: Gaussian influence functions of coupling 0.15 0\.[0-9]*, the interpolated surface 0\.[0-9]*; per pixel -0\.[0-9]* +- 0\.[0-9]* over [0-9]* pixels); the other map spk_dt.teach/dm-gauss/taught.fits" \
+grep -q "^speckles: the loops' DM by the science frames: the interpolated surface's map kept (mean correlation of intensity and |psi|^2: Gaussian influence functions of coupling 0.15 0\.[0-9]*, the interpolated surface 0\.[0-9]*; per pixel -0\.[0-9]* +- 0\.[0-9]* over [0-9]* pixels; the Gaussian's kept beyond 2 standard errors); the other map spk_dt.teach/dm-gauss/taught.fits" \
     speckles_dt.log && [ -s spk_dt.teach/dm-gauss/taught.fits ] && ! ls -d spk_dt.teach/dm-gauss/loop_* > /dev/null 2>&1 \
     || { cat speckles_dt.log; fail "speckles (default): the interpolated surface's map kept over a Gaussian DM's"; }
 "$B" estimate sci_dt.fits spk_dt.fits -o halo_dt.fits > /dev/null 2>&1 || fail "estimate (default)"

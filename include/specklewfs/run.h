@@ -453,8 +453,9 @@ typedef struct swfs_speckles_run_result {
      * The files do not say what a DM's functions are; where teach is told neither them
      * (dm_coupling) nor the control matrix it would take them from (ao_recon), speckles teaches
      * a second map, its loops' DM Gaussian functions of coupling SWFS_TEACH_DM_GAUSS, computes
-     * the speckles of both, and keeps the pair whose |psi|^2 follows the science frames
-     * better: per pixel the correlation of intensity and |psi|^2 over the frames (the
+     * the speckles of both, and keeps the Gaussian's where its |psi|^2 follows the science
+     * frames better by more than SWFS_TEACH_DM_SE standard errors (else the interpolated
+     * surface's): per pixel the correlation of intensity and |psi|^2 over the frames (the
      * orientation check's, at the pairing it found), the mean per-pixel difference and its
      * standard error (the pixels counted in speckles). Camera frames and a taught map only
      * (dm_choice_done 0 otherwise, or where the orientation check could not run); a team's
@@ -477,6 +478,12 @@ typedef struct swfs_speckles_run_result {
  * the interpolated surface. SWFS_TEACH_DM_DIR: its teach folder, inside the first's. */
 #define SWFS_TEACH_DM_GAUSS 0.15
 #define SWFS_TEACH_DM_DIR "dm-gauss"
+/* How many standard errors the Gaussian functions' map must beat the interpolated surface's by
+ * to be kept: the surface stays unless the frames tell otherwise, at the significance teach
+ * asks of a learning curve's fall (SWFS_LEARN_CURVE_FALL_SE). docs/telemetry.md: the Gaussian
+ * maps kept on the observations measured were 2.2-40 standard errors ahead; on a 24 x 24 of
+ * the surface the two were level (0.0), and the Gaussian's, kept, cost 0.9 nm. */
+#define SWFS_TEACH_DM_SE 2.0
 
 /* How many standard errors a pairing must beat the timing table's by for the speckles'
  * orientation check to warn and (by default) to be taken instead of the table's: the

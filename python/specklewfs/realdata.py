@@ -477,8 +477,8 @@ def speckles(timing, science, actuators, out, match=(), recon="teach", band="aut
     RuntimeWarning), the pipeline's info
     (dict), and with 'teach' taught (bool), teach_map and teach (what teach() returns) or
     teach_fallback (why not); where teach_keys say neither dm_coupling nor ao_recon, a second
-    map is taught with a DM of Gaussian functions and the one whose speckles follow the science
-    frames better kept: dm_choice (gauss, coupling, corr of each, diff, diff_se, npix,
+    map is taught with a DM of Gaussian functions, kept where its speckles follow the science
+    frames better by more than 2 standard errors: dm_choice (gauss, coupling, corr of each, diff, diff_se, npix,
     other_map; None where not compared) and dm_fallback (why not). A RuntimeWarning when resmean_rms exceeds the wavelength (run.h
     swfs_speckles_resmean_warns: no closed loop's). orient: the camera's orientation told by the
     speckles (corr by pairing (swap, sign_x, sign_y), best, table, diff, diff_se, npix, warns,

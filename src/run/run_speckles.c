@@ -808,9 +808,10 @@ static void made_free(made *m)
 
 /* The DM's functions of teach's loops, chosen by the science frames (run.h dm_choice_done):
  * w and r hold the first map's speckles (the interpolated surface's), pix its per-pixel
- * correlations; the second map, of Gaussian functions, is taught and its speckles computed;
- * the pair whose |psi|^2 follows the frames better (the mean per-pixel difference at the
- * pairing the first check found) is kept in w and r, with its teach result in o->teach. A
+ * correlations; the second map's, of Gaussian functions, are computed, and kept in w and r,
+ * with its teach result in o->teach, where their |psi|^2 follows the frames better by more
+ * than SWFS_TEACH_DM_SE standard errors (the mean per-pixel difference at the pairing the
+ * first check found). A
  * second map that cannot be taught or compared leaves the first (dm_fallback says why). */
 static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r, const double *pix,
                      const dm_second *d)
@@ -861,7 +862,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
         const size_t n = swfs_team_writer(o->team) ? swfs_orient_corr_diff(pix + (size_t)k * np, pix2 + (size_t)k * np,
                                                                             np, pps, &m, &se) : 0;
         const double c0 = r->orient.corr[k], c1 = r2->orient.corr[k];
-        int gauss = n && m > 0;
+        int gauss = n && m > SWFS_TEACH_DM_SE * se; /* (the surface unless the frames tell) */
         if ((rc = team_bcast(o->team, &gauss, sizeof gauss))) goto done;
         if (gauss) { /* the second's: m1 (the first's) freed below */
             snprintf(r2->dm_other_map, sizeof r2->dm_other_map, "%s", r->teach_map);
