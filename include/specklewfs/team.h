@@ -61,6 +61,8 @@ void swfs_team_share(const size_t *len, size_t nseg, size_t grain, int rank, int
 
 /* t->agree(status), or status itself without a team. */
 int swfs_team_agree(const swfs_team *t, int status);
+/* Member 0's `bytes` at v to every member of an active team; nothing alone (SWFS_OK). */
+int swfs_team_bcast0(const swfs_team *t, void *v, size_t bytes);
 /* The union of every member's accumulator `mine` into member 0's `out` (an accumulator of
  * the same size, may be `mine`; other members' out is not touched and may be NULL).
  * Without a team, out becomes a copy of mine. Transports swfs_accum_state_len(nx, ny)

@@ -625,7 +625,8 @@ void swfs_speckles_orient_warning(const swfs_speckles_run_result *r, char *buf, 
  * the usable cubes, as read, against |psi|^2 of the speckle cube (w->halo, in the model's
  * frame), once before the products are written. Too few frames or nothing that varies: not
  * run, no error. */
-static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r, double *pix)
+static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_speckles_run_result *r, double *pix,
+                        int pair)
 {
     swfs_fits_in *f = NULL;
     swfs_orient_acc *a = NULL;
@@ -648,7 +649,7 @@ static int orient_check(const swfs_speckles_run_options *o, const work *w, swfs_
     if (!rc) {
         rc = swfs_orient_acc_result(a, &w->t->fit, pps, &r->orient);
         r->orient_done = rc == SWFS_OK;
-        for (int k = 0; pix && k < 8; k++) swfs_orient_acc_pixel_corrs(a, k, pix + (size_t)k * np);
+        if (pix) swfs_orient_acc_pixel_corrs(a, pair >= 0 ? pair : r->orient.best, pix);
         if (rc == SWFS_ERR_VALUE) { /* nothing to tell it by: not run */
             swfs_clear_error();
             rc = SWFS_OK;
@@ -719,9 +720,10 @@ int swfs_speckles_resmean_warns(const swfs_speckles_run_result *r) { return r->r
  * members agree on): the pipeline, every usable frame, the residual's mean, the static part
  * out, and the camera's orientation by the speckles (before the products that depend on it:
  * a pairing that beats the table's by SWFS_ORIENT_WARN_SE standard errors is theirs unless
- * the table's is kept, pairing_table); pix (8 x the window's pixels, or NULL): the check's
- * per-pixel correlations. */
-static int compute(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r, int rc, double *pix)
+ * the table's is kept, pairing_table); pix (the window's pixels, or NULL): the check's
+ * per-pixel correlations at pairing `pair` (< 0: the best it found). */
+static int compute(const swfs_speckles_run_options *o, work *w, swfs_speckles_run_result *r, int rc, double *pix,
+                   int pair)
 {
     if (!rc) rc = build_pipeline(o, w);
     /* a learned map's own miss of the residual's mean (learn's MEANMISS), added to RESMEAN */
@@ -744,15 +746,10 @@ static int compute(const swfs_speckles_run_options *o, work *w, swfs_speckles_ru
     snprintf(r->st_edges_why, sizeof r->st_edges_why, "%s", w->stk.edges.why);
     if (!rc) rc = residual_mean(o, w, r);
     if (!rc && writer) rc = swfs_speckles_subtract_static(w->halo, w->cfirst, w->cn, r->nok, o->mean_mode);
-    if (!rc && writer && !o->pipe.wfs_rate && w->halo) rc = orient_check(o, w, r, pix);
+    if (!rc && writer && !o->pipe.wfs_rate && w->halo) rc = orient_check(o, w, r, pix, pair);
     return rc;
 }
 
-/* Member 0's value of *v to every member of a team (nothing alone). */
-static int team_bcast(const swfs_team *t, void *v, size_t bytes)
-{
-    return swfs_team_active(t) ? t->bcast(t->ctx, v, bytes, 0) : SWFS_OK;
-}
 
 /* speckles' second taught map, its loops' DM Gaussian functions (dm_choose). */
 typedef struct dm_second {
@@ -819,7 +816,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
     const size_t np = w->nfx * w->nfy;
     /* (a team: member 0 holds the frames' correlations and decides; every member computes) */
     int can = r->orient_done;
-    int rc = team_bcast(o->team, &can, sizeof can);
+    int rc = swfs_team_bcast0(o->team, &can, sizeof can);
     if (rc) return rc;
     if (!can) {
         snprintf(r->dm_fallback, sizeof r->dm_fallback, "the speckles' correlation with the frames could not be "
@@ -827,7 +824,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
         return SWFS_OK;
     }
     swfs_speckles_run_result *r2 = malloc(sizeof *r2);
-    double *pix2 = malloc(8 * np * sizeof *pix2);
+    double *pix2 = malloc(np * sizeof *pix2);
     made m1;
     memset(&m1, 0, sizeof m1);
     rc = r2 && pix2 ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "out of memory");
@@ -838,7 +835,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
     if (!rc) {
         *r2 = *r;
         made_swap(w, &m1); /* the first's aside */
-        rc = compute(&o2, w, r2, rc, pix2);
+        rc = compute(&o2, w, r2, rc, pix2, r->orient.best); /* at the first's pairing */
         if (rc && rc != SWFS_ERR_STOPPED) { /* the first stands */
             snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map's speckles: %s", swfs_last_error());
             swfs_clear_error();
@@ -848,7 +845,7 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
         }
     }
     int can2 = !rc && r2->orient_done;
-    if (!rc) rc = team_bcast(o->team, &can2, sizeof can2);
+    if (!rc) rc = swfs_team_bcast0(o->team, &can2, sizeof can2);
     if (!rc && !can2) {
         snprintf(r->dm_fallback, sizeof r->dm_fallback, "the second map's speckles' correlation with the frames "
                  "could not be measured");
@@ -859,11 +856,10 @@ static int dm_choose(const swfs_speckles_run_options *o, work *w, swfs_speckles_
         const int k = r->orient.best;
         const double pps = w->g.pixscale > 0 ? 1.0 / (w->g.pixscale * w->g.pixscale) : 1.0;
         double m = NAN, se = NAN;
-        const size_t n = swfs_team_writer(o->team) ? swfs_orient_corr_diff(pix + (size_t)k * np, pix2 + (size_t)k * np,
-                                                                            np, pps, &m, &se) : 0;
+        const size_t n = swfs_team_writer(o->team) ? swfs_orient_corr_diff(pix, pix2, np, pps, &m, &se) : 0;
         const double c0 = r->orient.corr[k], c1 = r2->orient.corr[k];
         int gauss = n && m > SWFS_TEACH_DM_SE * se; /* (the surface unless the frames tell) */
-        if ((rc = team_bcast(o->team, &gauss, sizeof gauss))) goto done;
+        if ((rc = swfs_team_bcast0(o->team, &gauss, sizeof gauss))) goto done;
         if (gauss) { /* the second's: m1 (the first's) freed below */
             snprintf(r2->dm_other_map, sizeof r2->dm_other_map, "%s", r->teach_map);
             snprintf(r2->teach_map, sizeof r2->teach_map, "%s", d->map);
@@ -951,10 +947,10 @@ int swfs_speckles_run(const swfs_speckles_run_options *o, swfs_speckles_run_resu
     const int team = swfs_team_active(o->team), writer = swfs_team_writer(o->team);
     const int dm_choice = !rc && dm && dm->taught;
     double *pix = NULL;
-    if (dm_choice && !(pix = malloc(8 * w.nfx * w.nfy * sizeof *pix))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    if (dm_choice && !(pix = malloc(w.nfx * w.nfy * sizeof *pix))) rc = swfs_fail(SWFS_ERR_NOMEM, "out of memory");
     swfs_speckles_run_options o1 = *o;
     if (dm_choice) o1.write_recon = NULL; /* the kept map's, once chosen */
-    rc = compute(&o1, &w, r, rc, pix);
+    rc = compute(&o1, &w, r, rc, pix, -1);
     /* the loops' DM: the interpolated surface's speckles against a Gaussian DM's */
     if (!rc && dm_choice) rc = dm_choose(o, &w, r, pix, dm);
     if (!rc && dm_choice && o->write_recon) rc = write_map(o, w.p);

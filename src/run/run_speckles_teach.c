@@ -267,8 +267,8 @@ static int team_teach(const swfs_speckles_run_options *o, const swfs_timing *t, 
     if (!swfs_team_active(o->team) && stopped) return stopped;
     if (swfs_team_active(o->team)) {
         rc = swfs_team_agree(o->team, stopped);
-        if (!rc) rc = o->team->bcast(o->team->ctx, taught, sizeof *taught, 0);
-        if (!rc) rc = o->team->bcast(o->team->ctx, map, cap, 0);
+        if (!rc) rc = swfs_team_bcast0(o->team, taught, sizeof *taught);
+        if (!rc) rc = swfs_team_bcast0(o->team, map, cap);
         if (!rc && !*taught && !swfs_team_writer(o->team))
             snprintf(fallback, fcap, "member 0 could not teach (its output says why)");
     }

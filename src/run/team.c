@@ -61,6 +61,11 @@ void swfs_team_share(const size_t *len, size_t nseg, size_t grain, int rank, int
     *count = b > a ? b - a : 0;
 }
 
+int swfs_team_bcast0(const swfs_team *t, void *v, size_t bytes)
+{
+    return swfs_team_active(t) ? t->bcast(t->ctx, v, bytes, 0) : SWFS_OK;
+}
+
 int swfs_team_agree(const swfs_team *t, int status)
 {
     return swfs_team_active(t) ? t->agree(t->ctx, status) : status;
