@@ -19,6 +19,7 @@
 #include "specklewfs/status.h"
 #include "specklewfs/timeseries.h"
 #include "specklewfs/wind.h"
+#include "../src/telemetry/wind_internal.h"
 
 #include <math.h>
 #include <stdio.h>
@@ -433,9 +434,60 @@ static void test_mode_timecorr(void **state)
     swfs_real_free(s);
 }
 
+/* The lag maps' sums (wind_internal.h swfs_wind_lag_sums_, by FFT) are the pairs' products
+ * summed directly: random slopes on 37 of a 7 x 7 grid's subapertures (taken in a shuffled
+ * order), 60 frames, lags 0, 1, 5 and 59; the whole spectrum at once and in bands of 4
+ * frequencies (a budget of 3 coefficients over the frames: the least band, 4, as the sums run
+ * over 4 frequencies side by side; 49 bands of the 14 x 14 padded grid's 196); and a lag as
+ * long as the series refused. */
+static void test_wind_lag_sums(void **state)
+{
+    (void)state;
+    enum { NS = 7, NV = 37, T = 60, NL = 4, NB = 2 * NS - 1 };
+    swfs_rng g;
+    swfs_rng_seed(&g, 21);
+    size_t pos[NS * NS];
+    for (size_t s = 0; s < NS * NS; s++) pos[s] = s;
+    for (size_t s = NS * NS - 1; s > 0; s--) {
+        const size_t j = (size_t)(swfs_rng_uniform(&g) * (double)(s + 1)) % (s + 1), v = pos[s];
+        pos[s] = pos[j];
+        pos[j] = v;
+    }
+    static double x[T * NV], y[T * NV], want[NL * NB * NB], got[NL * NB * NB];
+    for (size_t k = 0; k < T * NV; k++) {
+        x[k] = swfs_rng_normal(&g);
+        y[k] = swfs_rng_normal(&g) + 0.5 * x[k];
+    }
+    const size_t lag[NL] = {0, 1, 5, T - 1};
+    memset(want, 0, sizeof want);
+    double scale = 0;
+    for (size_t l = 0; l < NL; l++)
+        for (size_t p = 0; p < NV; p++)
+            for (size_t q = 0; q < NV; q++) {
+                const long a = (long)(pos[q] % NS) - (long)(pos[p] % NS), b = (long)(pos[q] / NS) - (long)(pos[p] / NS);
+                double v = 0;
+                for (size_t t = 0; t + lag[l] < T; t++)
+                    v += x[t * NV + p] * x[(t + lag[l]) * NV + q] + y[t * NV + p] * y[(t + lag[l]) * NV + q];
+                want[l * NB * NB + (size_t)(b + NS - 1) * NB + (size_t)(a + NS - 1)] += v;
+                scale = fmax(scale, fabs(v));
+            }
+    const size_t budgets[2] = {0, 3 * T * sizeof(double _Complex)};
+    for (int k = 0; k < 2; k++) {
+        assert_ok(swfs_wind_lag_sums_(x, y, T, NV, pos, NS, lag, NL, budgets[k], got));
+        double worst = 0;
+        for (size_t i = 0; i < NL * NB * NB; i++) worst = fmax(worst, fabs(got[i] - want[i]));
+        print_message("lag sums by FFT (%s): largest difference from the pairs' %.2e (largest pair sum %.1f)\n",
+                      k ? "bands of 4 frequencies" : "one band", worst, scale);
+        assert_true(worst < 1e-12 * scale);
+    }
+    const size_t far[1] = {T};
+    assert_int_equal(swfs_wind_lag_sums_(x, y, T, NV, pos, NS, far, 1, 0, got), SWFS_ERR_ARG);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {
+        cmocka_unit_test(test_wind_lag_sums),
         cmocka_unit_test(test_wind_of_simulated_loops),
         cmocka_unit_test(test_wind_valid_only),
         cmocka_unit_test(test_wind_two_layers_merged),

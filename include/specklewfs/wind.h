@@ -6,10 +6,10 @@
  * spatial filter and noise), so the residual slopes move with it too: the slopes of
  * subaperture p at frame t correlate best with those of the subaperture displaced by
  * v tau / pitch at frame t + tau. For lags tau = 1, 2, 4, ... frames (up to a quarter of the
- * series): one DGEMM gives the lagged covariance of every pair of valid subapertures (x and
- * y slopes summed, each frame's mean x/y slope and each subaperture's mean taken out), the
- * pairs are binned by their grid displacement (within +-(nsub/2 - 1) subapertures) and
- * normalized by their zero-lag standard deviations, and the peak of that correlation map,
+ * series): the lagged covariances of every pair of valid subapertures (x and y slopes summed,
+ * each frame's mean x/y slope and each subaperture's mean taken out), summed over the pairs
+ * of each grid displacement (within +-(nsub/2 - 1) subapertures; the slope grids' lagged
+ * cross-correlation, by FFT) and normalized by their zero-lag standard deviations, and the peak of that correlation map,
  * refined by a parabola through its neighbours on each axis, is the displacement at that lag.
  *
  * Which lags count: the displacement is resolved once it reaches one subaperture (shorter

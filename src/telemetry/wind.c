@@ -1,24 +1,24 @@
-/* The dominant layer's wind from the slopes: lagged covariances by DGEMM, binned by the
- * subapertures' displacement, peak tracked over doubling lags; further layers by stacking the
- * same maps (wind_stack.c; include/specklewfs/wind.h). */
+/* The dominant layer's wind from the slopes: lagged covariances binned by the subapertures'
+ * displacement (the slope grids' lagged cross-correlation, by FFT), peak tracked over doubling
+ * lags; further layers by stacking the same maps (wind_stack.c; include/specklewfs/wind.h). */
 #include "specklewfs/wind.h"
 #include "specklewfs/status.h"
+#include "../core/planner.h"
 #include "wind_internal.h"
 
-#include <cblas.h>
+#include <complex.h>
+#include <fftw3.h>
 #include <math.h>
+#include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
 
 typedef struct {
     size_t nv, T, R, nb;   /* valid subapertures, frames; the tracker's map: +-R, nb bins per side */
     double *x, *y;         /* T x nv, means taken out */
-    double *c;             /* nv x nv lagged covariance */
-    int *bin;              /* nv x nv: the pair's bin on the whole grid's map */
     double *den;           /* whole grid's bins: the pairs' zero-lag deviations' products summed */
     size_t *count;         /* whole grid's bins: pairs */
-    double *maps;          /* one whole-grid map per lag of m.lag, made when first asked for */
-    unsigned char made[SWFS_WIND_MAXMAPS];
+    double *maps;          /* one whole-grid map per lag of m.lag, all made at once (lag_maps) */
     swfs_wind_maps_ m;     /* the whole grid's maps (wind_internal.h) */
 } wind_work;
 
@@ -47,23 +47,122 @@ double swfs_wind_vertex_(double l, double c, double r)
     return o < -0.5 ? -0.5 : o > 0.5 ? 0.5 : o;
 }
 
-/* The whole grid's correlation map at lag m.lag[l] (made once: two DGEMMs, the pairs binned
- * by displacement and normalized; NAN in a bin of no pair). */
-static const double *lag_map(wind_work *w, size_t l)
+/* the frequencies whose series over the frames sit side by side (band: for each block of
+ * LAG_KB, each frame's LAG_KB real parts, then their imaginary parts) */
+#define LAG_KB 4
+/* frames transformed before their spectra go into the band (its writes then run along the frames) */
+#define LAG_TB 16
+
+int swfs_wind_lag_sums_(const double *x, const double *y, size_t T, size_t nv, const size_t *pos, size_t nsub,
+                        const size_t *lag, size_t nlags, size_t budget, double *sums)
 {
-    const size_t nv = w->nv, n = w->T - w->m.lag[l], nbb = w->m.nb * w->m.nb;
-    double *map = w->maps + l * nbb;
-    if (w->made[l]) return map;
-    const size_t tau = w->m.lag[l];
-    cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)n, 1.0, w->x, (int)nv,
-                w->x + tau * nv, (int)nv, 0.0, w->c, (int)nv);
-    cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)n, 1.0, w->y, (int)nv,
-                w->y + tau * nv, (int)nv, 1.0, w->c, (int)nv);
-    memset(map, 0, nbb * sizeof *map);
-    for (size_t k = 0; k < nv * nv; k++) map[w->bin[k]] += w->c[k];
-    for (size_t b = 0; b < nbb; b++) map[b] = w->den[b] > 0 ? map[b] / w->den[b] : NAN;
-    w->made[l] = 1;
-    return map;
+    const size_t P = 2 * nsub, PP = P * P, R = nsub - 1, nb = 2 * R + 1;
+    for (size_t l = 0; l < nlags; l++)
+        if (lag[l] >= T) return swfs_fail(SWFS_ERR_ARG, "wind: lag %zu of a series of %zu frames", lag[l], T);
+    /* the spectra of every frame for a band of kc frequencies at a time, each frequency's
+     * series over the frames contiguous (every lag's sum then reads it from the cache): by
+     * default twice the slopes' own size (x and y), at least 256 MB and at most 1 GB (a 24 x
+     * 24's 3700 frames: one band of 136 MB; each further band costs every frame's FFT again) */
+    if (!budget) {
+        budget = 2 * 2 * T * nv * sizeof(double);
+        budget = budget < ((size_t)256 << 20) ? (size_t)256 << 20 : budget > ((size_t)1 << 30) ? (size_t)1 << 30 : budget;
+    }
+    size_t kc = budget / (T * sizeof(fftw_complex)) / LAG_KB * LAG_KB;
+    kc = kc < LAG_KB ? LAG_KB : kc > PP ? PP : kc;
+    fftw_complex *grid = fftw_alloc_complex(PP), *spec = fftw_alloc_complex(PP * LAG_TB);
+    double *band = calloc(2 * T * (kc + LAG_KB), sizeof *band); /* (a last block's unused places 0) */
+    fftw_complex *acc = calloc(nlags * PP + 1, sizeof *acc);
+    if (!grid || !spec || !band || !acc) {
+        fftw_free(grid); fftw_free(spec); free(band); free(acc);
+        return swfs_fail(SWFS_ERR_NOMEM, "wind: out of memory for the spectra of %zu frames", T);
+    }
+    swfs_planner_lock();
+    /* the forward 2-D FFT as the nsub rows that hold slopes (the others are 0), then every column */
+    const int len = (int)P;
+    fftw_plan rows = fftw_plan_many_dft(1, &len, (int)nsub, grid, NULL, 1, len, spec, NULL, 1, len, FFTW_FORWARD,
+                                        FFTW_ESTIMATE);
+    fftw_plan cols = fftw_plan_many_dft(1, &len, len, spec, NULL, len, 1, spec, NULL, len, 1, FFTW_FORWARD, FFTW_ESTIMATE);
+    fftw_plan inv = fftw_plan_dft_2d((int)P, (int)P, spec, grid, FFTW_BACKWARD, FFTW_ESTIMATE);
+    swfs_planner_unlock();
+    int rc = rows && cols && inv ? SWFS_OK : swfs_fail(SWFS_ERR_NOMEM, "wind: no FFT plan of %zu x %zu", P, P);
+    /* z = x + i y on the grid (0 off the nv subapertures, and in the padding, which keeps the
+     * displacements' +-(nsub - 1) from wrapping): Re sum_s conj z_t(s) z_(t+tau)(s + d) is
+     * sum over the pairs at displacement d of x x' + y y', the pairs' lagged covariance */
+    for (size_t k0 = 0; !rc && k0 < PP; k0 += kc) {
+        const size_t nk = PP - k0 < kc ? PP - k0 : kc;
+        memset(grid, 0, PP * sizeof *grid);
+        for (size_t t0 = 0; t0 < T; t0 += LAG_TB) { /* LAG_TB frames' spectra, then into the band */
+            const size_t nt = T - t0 < LAG_TB ? T - t0 : LAG_TB;
+            for (size_t i = 0; i < nt; i++) {
+                const size_t t = t0 + i;
+                fftw_complex *sp = spec + i * PP;
+                for (size_t p = 0; p < nv; p++) {
+                    const size_t s = pos[p];
+                    grid[(s / nsub) * P + s % nsub] = x[t * nv + p] + I * y[t * nv + p];
+                }
+                fftw_execute_dft(rows, grid, sp);
+                memset(sp + nsub * P, 0, (PP - nsub * P) * sizeof *sp);
+                fftw_execute_dft(cols, sp, sp);
+            }
+            for (size_t k = 0; k < nk; k++) {
+                double *b = band + 2 * LAG_KB * ((k / LAG_KB) * T + t0) + k % LAG_KB;
+                for (size_t i = 0; i < nt; i++) {
+                    const double *sp = (const double *)(spec + i * PP + k0 + k);
+                    b[2 * LAG_KB * i] = sp[0];
+                    b[2 * LAG_KB * i + LAG_KB] = sp[1];
+                }
+            }
+        }
+        /* sum_t conj(z_t) z_(t+lag) per frequency and lag, in real arithmetic (C's complex
+         * product checks for infinities), LAG_KB frequencies side by side (one vector) */
+        for (size_t kb = 0; kb * LAG_KB < nk; kb++) {
+            const double *z = band + 2 * LAG_KB * kb * T;
+            for (size_t l = 0; l < nlags; l++) {
+                const double *v = z + 2 * LAG_KB * lag[l];
+                double re[LAG_KB] = {0}, im[LAG_KB] = {0};
+                for (size_t t = 0; t < T - lag[l]; t++) {
+                    const double *a = z + 2 * LAG_KB * t, *b = v + 2 * LAG_KB * t;
+                    for (size_t j = 0; j < LAG_KB; j++) {
+                        re[j] += a[j] * b[j] + a[LAG_KB + j] * b[LAG_KB + j];
+                        im[j] += a[j] * b[LAG_KB + j] - a[LAG_KB + j] * b[j];
+                    }
+                }
+                for (size_t j = 0; j < LAG_KB && kb * LAG_KB + j < nk; j++)
+                    acc[l * PP + k0 + kb * LAG_KB + j] = re[j] + I * im[j];
+            }
+        }
+    }
+    for (size_t l = 0; !rc && l < nlags; l++) {
+        memcpy(spec, acc + l * PP, PP * sizeof *spec);
+        fftw_execute_dft(inv, spec, grid);
+        for (size_t b = 0; b < nb; b++)
+            for (size_t a = 0; a < nb; a++)
+                sums[l * nb * nb + b * nb + a] = creal(grid[((b + P - R) % P) * P + (a + P - R) % P]) / (double)PP;
+    }
+    swfs_planner_lock();
+    if (rows) fftw_destroy_plan(rows);
+    if (cols) fftw_destroy_plan(cols);
+    if (inv) fftw_destroy_plan(inv);
+    swfs_planner_unlock();
+    fftw_free(grid);
+    fftw_free(spec);
+    free(band);
+    free(acc);
+    return rc;
+}
+
+/* The whole grid's correlation maps at every lag of m.lag (swfs_wind_lag_sums_, normalized by
+ * the bins' zero-lag deviations; NAN in a bin of no pair). */
+static int lag_maps(wind_work *w, const size_t *pos)
+{
+    const size_t nbb = w->m.nb * w->m.nb;
+    int rc = swfs_wind_lag_sums_(w->x, w->y, w->T, w->nv, pos, w->m.nsub, w->m.lag, w->m.nmaps, 0, w->maps);
+    for (size_t l = 0; !rc && l < w->m.nmaps; l++)
+        for (size_t b = 0; b < nbb; b++) {
+            double *v = w->maps + l * nbb + b;
+            *v = w->den[b] > 0 ? *v / w->den[b] : NAN;
+        }
+    return rc;
 }
 
 /* The tracker's peak at lag m.lag[l] into *L, on the map's inner +-R: the highest bin, or
@@ -72,7 +171,7 @@ static const double *lag_map(wind_work *w, size_t l)
  * peak elsewhere in the map is not this one's). */
 static void track_lag(wind_work *w, size_t l, double px, double py, double tol, swfs_wind_lag *L)
 {
-    const double *map = lag_map(w, l);
+    const double *map = w->maps + l * w->m.nb * w->m.nb;
     const size_t nb = w->nb, nbb = w->m.nb, off = w->m.R - w->R;
     const double R = (double)w->R;
     size_t best = SIZE_MAX, bi = 0, bj = 0;
@@ -116,7 +215,7 @@ static void fit_velocity(const swfs_wind_estimate *e, double *ux, double *uy)
 
 static void work_free(wind_work *w)
 {
-    free(w->x); free(w->y); free(w->c); free(w->bin); free(w->den); free(w->count); free(w->maps);
+    free(w->x); free(w->y); free(w->den); free(w->count); free(w->maps);
 }
 
 int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, size_t nsub,
@@ -179,13 +278,13 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
     const size_t nbb = w.m.nb * w.m.nb;
     w.x = malloc(nframes * nv * sizeof *w.x);
     w.y = malloc(nframes * nv * sizeof *w.y);
-    w.c = malloc(nv * nv * sizeof *w.c);
-    w.bin = malloc(nv * nv * sizeof *w.bin);
+    double *sd = malloc(nv * sizeof *sd);
     w.den = calloc(nbb, sizeof *w.den);
     w.count = calloc(nbb, sizeof *w.count);
     w.maps = malloc((w.m.nmaps ? w.m.nmaps : 1) * nbb * sizeof *w.maps);
-    if (!w.x || !w.y || !w.c || !w.bin || !w.den || !w.count || !w.maps) {
+    if (!w.x || !w.y || !sd || !w.den || !w.count || !w.maps) {
         free(col);
+        free(sd);
         work_free(&w);
         return swfs_fail(SWFS_ERR_NOMEM, "wind: out of memory for %zu frames of %zu subapertures", nframes, nv);
     }
@@ -198,8 +297,7 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         }
     centre(w.x, nframes, nv);
     centre(w.y, nframes, nv);
-    /* Each pair's bin and the bins' normalization: the zero-lag standard deviations. */
-    double *sd = w.c; /* the first nv entries, before the covariances use it */
+    /* The bins' normalization: the pairs' zero-lag standard deviations. */
     for (size_t p = 0; p < nv; p++) {
         double s = 0;
         for (size_t t = 0; t < nframes; t++) s += w.x[t * nv + p] * w.x[t * nv + p] + w.y[t * nv + p] * w.y[t * nv + p];
@@ -215,6 +313,7 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
     }
     if (nvary < 8) {
         free(col);
+        free(sd);
         work_free(&w);
         return swfs_fail(SWFS_ERR_VALUE, "wind: the slopes of %zu of the %zu subapertures with signal vary in time; need "
                          "at least 8 (constant slopes carry no flow)", nvary, nv);
@@ -227,9 +326,15 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
             const size_t bi = (size_t)(b + R) * w.m.nb + (size_t)(a + R);
             w.den[bi] += sd[p] * sd[q];
             w.count[bi]++;
-            w.bin[p * nv + q] = (int)bi;
         }
+    free(sd);
+    /* every lag's map at once (the tracker takes the powers of two, the stacking every one) */
+    int rc = lag_maps(&w, pos);
     free(col);
+    if (rc) {
+        work_free(&w);
+        return rc;
+    }
     out->nvalid = nv;
     out->radius = w.R;
     /* Doubling lags; tracking from the first resolved displacement (wind.h). */
@@ -261,7 +366,6 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         out->nused++;
         fit_velocity(out, &ux, &uy);
     }
-    int rc = SWFS_OK;
     if (out->nused >= 2) {
         out->found = 1;
         out->vx = ux * pitch * rate;
@@ -269,7 +373,6 @@ int swfs_wind_from_slopes(const double *slopes, size_t nframes, size_t nslopes, 
         out->speed = hypot(out->vx, out->vy);
         double dir = atan2(out->vy, out->vx) * 180.0 / M_PI;
         out->direction = dir < 0 ? dir + 360.0 : dir;
-        for (size_t l = 0; l < w.m.nmaps; l++) lag_map(&w, l); /* every lag, for the stacking */
         rc = swfs_wind_stack_layers_(&w.m, pitch, rate, out);
     }
     work_free(&w);

@@ -24,6 +24,16 @@ typedef struct {
  * (0 where they do not bend down). The tracker's and the stacking's peaks alike. */
 double swfs_wind_vertex_(double l, double c, double r);
 
+/* The slopes' lagged covariance summed over the pairs of subapertures at each displacement, for
+ * each of nlags lags: sums[l][(b + R) nb + a + R] = sum over frames t < T - lag[l] and pairs
+ * (p, q) with pos[q] - pos[p] = (a, b) on the nsub x nsub grid (R = nsub - 1, nb = 2 R + 1) of
+ * x_p(t) x_q(t + lag) + y_p(t) y_q(t + lag); x, y: T x nv. By FFT (the grid's lagged
+ * cross-correlation: O(T nsub^2 (log nsub + nlags)), where the pairs' products cost T nv^2 a
+ * lag), the frames' spectra held a band of frequencies at a time, in at most budget bytes (0:
+ * twice x and y's size, at least 256 MB and at most 1 GB). */
+int swfs_wind_lag_sums_(const double *x, const double *y, size_t T, size_t nv, const size_t *pos, size_t nsub,
+                        const size_t *lag, size_t nlags, size_t budget, double *sums);
+
 /* The further layers into e->layer[1..] (e->layer[0] and e->found set by the tracker; wind.h). */
 int swfs_wind_stack_layers_(const swfs_wind_maps_ *m, double pitch, double rate, swfs_wind_estimate *e);
 
