@@ -101,15 +101,20 @@ int main(int argc, char **argv)
             lags[nl++] = p2;
             if (p2 > 1 && 3 * p2 / 2 <= T / 4) lags[nl++] = 3 * p2 / 2;
         }
-        double *x = malloc(T * nv * sizeof *x), *cv = malloc(nv * nv * sizeof *cv);
+        double *x = malloc(2 * T * nv * sizeof *x), *y = x + T * nv, *cv = malloc(nv * nv * sizeof *cv);
         for (size_t t = 0; t < T; t++)
             for (size_t k = 0, q = 0; k < n * n; k++)
-                if (valid[k]) x[t * nv + q++] = s[t * ns + k];
+                if (valid[k]) {
+                    x[t * nv + q] = s[t * ns + k];
+                    y[t * nv + q++] = s[t * ns + n * n + k];
+                }
         t0 = now();
         for (size_t l = 0; l < nl; l++)
-            for (int axis = 0; axis < 2; axis++)
-                cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)(T - lags[l]), 1.0, x, (int)nv,
-                            x + lags[l] * nv, (int)nv, axis ? 1.0 : 0.0, cv, (int)nv);
+            for (int axis = 0; axis < 2; axis++) {
+                const double *a = axis ? y : x;
+                cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)(T - lags[l]), 1.0, a, (int)nv,
+                            a + lags[l] * nv, (int)nv, axis ? 1.0 : 0.0, cv, (int)nv);
+            }
         const double td = now() - t0;
         printf("%6zu %6zu %12.3f %10.0f %14.3f %14zu %8.1f   (%.2f subapertures per frame found, %.2f true)\n", n, nv, tw,
                (double)T / tw, td, nl, td / tw, hypot(e.vx, e.vy), hypot(0.13, 0.07));
