@@ -70,7 +70,7 @@ int swfs_wind_lag_sums_(const double *x, const double *y, size_t T, size_t nv, c
     size_t kc = budget / (T * sizeof(fftw_complex)) / LAG_KB * LAG_KB;
     kc = kc < LAG_KB ? LAG_KB : kc > PP ? PP : kc;
     fftw_complex *grid = fftw_alloc_complex(PP), *spec = fftw_alloc_complex(PP * LAG_TB);
-    double *band = calloc(2 * T * (kc + LAG_KB), sizeof *band); /* (a last block's unused places 0) */
+    double *band = malloc(2 * T * kc * sizeof *band); /* (PP = 4 nsub^2 and kc: whole blocks of LAG_KB) */
     fftw_complex *acc = calloc(nlags * PP + 1, sizeof *acc);
     if (!grid || !spec || !band || !acc) {
         fftw_free(grid); fftw_free(spec); free(band); free(acc);
@@ -88,9 +88,9 @@ int swfs_wind_lag_sums_(const double *x, const double *y, size_t T, size_t nv, c
     /* z = x + i y on the grid (0 off the nv subapertures, and in the padding, which keeps the
      * displacements' +-(nsub - 1) from wrapping): Re sum_s conj z_t(s) z_(t+tau)(s + d) is
      * sum over the pairs at displacement d of x x' + y y', the pairs' lagged covariance */
+    memset(grid, 0, PP * sizeof *grid); /* (the transforms out of it leave it as it is) */
     for (size_t k0 = 0; !rc && k0 < PP; k0 += kc) {
         const size_t nk = PP - k0 < kc ? PP - k0 : kc;
-        memset(grid, 0, PP * sizeof *grid);
         for (size_t t0 = 0; t0 < T; t0 += LAG_TB) { /* LAG_TB frames' spectra, then into the band */
             const size_t nt = T - t0 < LAG_TB ? T - t0 : LAG_TB;
             for (size_t i = 0; i < nt; i++) {
@@ -127,8 +127,7 @@ int swfs_wind_lag_sums_(const double *x, const double *y, size_t T, size_t nv, c
                         im[j] += a[j] * b[LAG_KB + j] - a[LAG_KB + j] * b[j];
                     }
                 }
-                for (size_t j = 0; j < LAG_KB && kb * LAG_KB + j < nk; j++)
-                    acc[l * PP + k0 + kb * LAG_KB + j] = re[j] + I * im[j];
+                for (size_t j = 0; j < LAG_KB; j++) acc[l * PP + k0 + kb * LAG_KB + j] = re[j] + I * im[j];
             }
         }
     }
