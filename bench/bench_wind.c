@@ -12,14 +12,6 @@
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
-#include <time.h>
-
-static double now(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
-}
 
 /* A smooth random field on an m x m grid (white noise averaged over 5 x 5 twice). */
 static double *field(size_t m, swfs_rng *g)
@@ -88,12 +80,12 @@ int main(int argc, char **argv)
                     s[t * ns + n * n + k] = valid[k] ? at(f, m, x, y + 1) - at(f, m, x, y - 1) + 0.1 * swfs_rng_normal(&g) : 0;
                 }
         swfs_wind_estimate e;
-        double t0 = now();
+        double t0 = swfs_wall_seconds();
         if (swfs_wind_from_slopes(s, T, ns, n, valid, 1.0, 1.0, &e)) {
             fprintf(stderr, "bench_wind: %s\n", swfs_last_error());
             return 1;
         }
-        const double tw = now() - t0;
+        const double tw = swfs_wall_seconds() - t0;
         /* the maps' lags (2^k and 3 x 2^k up to T / 4), two DGEMMs each over the valid
          * subapertures' x and y */
         size_t lags[64], nl = 0;
@@ -108,14 +100,14 @@ int main(int argc, char **argv)
                     x[t * nv + q] = s[t * ns + k];
                     y[t * nv + q++] = s[t * ns + n * n + k];
                 }
-        t0 = now();
+        t0 = swfs_wall_seconds();
         for (size_t l = 0; l < nl; l++)
             for (int axis = 0; axis < 2; axis++) {
                 const double *a = axis ? y : x;
                 cblas_dgemm(CblasRowMajor, CblasTrans, CblasNoTrans, (int)nv, (int)nv, (int)(T - lags[l]), 1.0, a, (int)nv,
                             a + lags[l] * nv, (int)nv, axis ? 1.0 : 0.0, cv, (int)nv);
             }
-        const double td = now() - t0;
+        const double td = swfs_wall_seconds() - t0;
         printf("%6zu %6zu %12.3f %10.0f %14.3f %14zu %8.1f   (%.2f subapertures per frame found, %.2f true)\n", n, nv, tw,
                (double)T / tw, td, nl, td / tw, hypot(e.vx, e.vy), hypot(0.13, 0.07));
         free(x);
