@@ -7,14 +7,6 @@
 
 #include <stdio.h>
 #include <stdlib.h>
-#include <time.h>
-
-static double now(void)
-{
-    struct timespec t;
-    clock_gettime(CLOCK_MONOTONIC, &t);
-    return (double)t.tv_sec + 1e-9 * (double)t.tv_nsec;
-}
 
 int main(int argc, char **argv)
 {
@@ -40,9 +32,9 @@ int main(int argc, char **argv)
         long maxlag = 0;
         for (int rep = 0; rep < 5; rep++) {
             swfs_coherence *co = NULL;
-            double t = now();
+            double t = swfs_wall_seconds();
             if (swfs_coherence_compute(c, 1e-3, &o, &co)) { fprintf(stderr, "%s\n", swfs_last_error()); return 1; }
-            t = now() - t;
+            t = swfs_wall_seconds() - t;
             if (t < best) best = t;
             used = co->method;
             maxlag = co->max_lag;

@@ -47,13 +47,6 @@ typedef struct ao_system {
     double alpha, build_s, nnz_per_row;
 } ao_system;
 
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
-
 static double peak_rss_mb(void)
 {
     struct rusage ru;
@@ -69,7 +62,7 @@ static int die(const char *what)
 
 static void build_system(ao_system *s, const system_def *d)
 {
-    const double t0 = now();
+    const double t0 = swfs_wall_seconds();
     s->def = d;
     const double pupdx = d->diam / ((double)d->npup - 0.5);
     s->alpha = d->pixscale * pupdx / d->diam;
@@ -89,7 +82,7 @@ static void build_system(ao_system *s, const system_def *d)
     if (!s->recon) die("memory");
     const double scale = d->wavelen / (2.0 * M_PI) / sqrt((double)d->nslopes);
     for (size_t k = 0; k < s->nact * d->nslopes; k++) s->recon[k] = scale * swfs_rng_normal(&r);
-    s->build_s = now() - t0;
+    s->build_s = swfs_wall_seconds() - t0;
 }
 
 static void free_system(ao_system *s)
@@ -152,13 +145,13 @@ static run_result run(const ao_system *s, int nthreads, int per_wfs, double seco
 
     double t_engine = 0.0, wfs_done = 0.0;
     size_t cam_done = 0, next_mem = 0;
-    const double t0 = now(), c0 = cpu_now();
-    while ((max_cam ? cam_done < max_cam : now() - t0 < seconds)) {
-        const double t1 = now();
+    const double t0 = swfs_wall_seconds(), c0 = cpu_now();
+    while ((max_cam ? cam_done < max_cam : swfs_wall_seconds() - t0 < seconds)) {
+        const double t1 = swfs_wall_seconds();
         int rc = per_wfs ? swfs_engine_process_wfs(e, slopes, nwfs, out)
                          : swfs_engine_process(e, slopes, nwfs, sched, batch, out);
         if (rc) die("engine run");
-        t_engine += now() - t1;
+        t_engine += swfs_wall_seconds() - t1;
         for (size_t j = 0; j < batch; j++) {
             double complex *psi = out + j * nf2;
             for (size_t k = 0; k < nf2; k++) psi[k] -= stat[k];
@@ -168,7 +161,7 @@ static run_result run(const ao_system *s, int nthreads, int per_wfs, double seco
         cam_done += batch;
         while (next_mem < n_mem && cam_done >= mem_at[next_mem]) mem_checkpoints[next_mem++] = peak_rss_mb();
     }
-    const double elapsed = now() - t0;
+    const double elapsed = swfs_wall_seconds() - t0;
     run_result res = {wfs_done / elapsed, wfs_done / t_engine, wfs_done / (cpu_now() - c0)};
     swfs_engine_free(e);
     swfs_accum_free(acc);
@@ -207,11 +200,11 @@ int main(int argc, char **argv)
             const size_t mem_at[3] = {1000, 10000, 100000};
             double mem[3] = {0, 0, 0};
             const size_t n_mem = quick ? 2 : 3;
-            const double rss0 = peak_rss_mb(), tm = now();
+            const double rss0 = peak_rss_mb(), tm = swfs_wall_seconds();
             run(&sys[0], 2, 0, 0.0, mem_at[n_mem - 1], mem, mem_at, n_mem);
             printf("\npeak RSS, MMT-like, 2 threads, one MFT per camera frame, batches of 512 camera frames "
                    "(%.1f s for %zu camera frames); %.1f MB before the run (inputs and plans):\n",
-                   now() - tm, mem_at[n_mem - 1], rss0);
+                   swfs_wall_seconds() - tm, mem_at[n_mem - 1], rss0);
             for (size_t k = 0; k < n_mem; k++) printf("  after %6zu camera frames: %7.1f MB\n", mem_at[k], mem[k]);
             printf("\n");
             fflush(stdout);

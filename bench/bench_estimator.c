@@ -27,14 +27,6 @@
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
-#include <time.h>
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
 
 static int die(const char *what)
 {
@@ -133,12 +125,12 @@ int main(int argc, char **argv)
                 for (int rep = 0; rep < 3; rep++) {
                     swfs_accum_reset(a);
                     swfs_regress_reset(r);
-                    double t0 = now();
+                    double t0 = swfs_wall_seconds();
                     for (size_t t = 0; t < nt; t++) swfs_accum_add(a, noisy->data + t * np, sim->speckles->data + t * np);
-                    double t1 = now();
+                    double t1 = swfs_wall_seconds();
                     for (size_t t = 0; t < nt; t++)
                         swfs_regress_add(r, noisy->data + t * np, (const double *)(sim->speckles->data + t * np), NULL);
-                    double t2 = now();
+                    double t2 = swfs_wall_seconds();
                     ba = fmin(ba, t1 - t0);
                     br = fmin(br, t2 - t1);
                 }

@@ -24,20 +24,12 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <time.h>
 
 typedef struct sys_def {
     const char *name;
     size_t nmodes, ngrid, npup, nf;
     double diam, obscur, wavelen, pixscale, ratio, realtime_hz;
 } sys_def;
-
-static double now(void)
-{
-    struct timespec ts;
-    clock_gettime(CLOCK_MONOTONIC, &ts);
-    return (double)ts.tv_sec + 1e-9 * (double)ts.tv_nsec;
-}
 
 static void die(const char *what)
 {
@@ -62,7 +54,7 @@ static double run(const sys_def *d, int factored, int threads, double seconds, d
         for (size_t k = 0; k < nk; k++) shapes[q * nk + k] = cube[k * gn + q];
     /* the grid spans the pupil with a step to spare */
     const swfs_dm_registration reg = {1.05 * d->diam / (double)(d->ngrid - 1), 0, 0, 0, 0};
-    const double t0 = now();
+    const double t0 = swfs_wall_seconds();
     swfs_sparse *B = NULL;
     size_t nout = 0;
     if (factored ? swfs_grid_interp(&B, d->ngrid, d->ngrid, &reg, mask, np, pupdx, &nout)
@@ -75,7 +67,7 @@ static double run(const sys_def *d, int factored, int threads, double seconds, d
     swfs_linear_input in = {nk, B, NULL, NULL, 1e-9, factored ? shapes : NULL, factored ? nk : 0, 0};
     swfs_pipeline *p = NULL;
     if (swfs_pipeline_create_linear(&p, &g, d->nf, d->nf, mask, &in, NULL, 0, &o)) die("pipeline");
-    *build_s = now() - t0;
+    *build_s = swfs_wall_seconds() - t0;
     const size_t nexp = threads > 1 ? 16 : 8;
     swfs_exposure *sched = malloc(nexp * sizeof *sched);
     const size_t nwfs = swfs_engine_schedule(d->ratio, 0.0, nexp, sched);
@@ -85,12 +77,12 @@ static double run(const sys_def *d, int factored, int threads, double seconds, d
     for (size_t k = 0; k < nwfs * nk; k++) v[k] = swfs_rng_normal(&r);
     if (swfs_pipeline_process(p, v, nwfs, sched, nexp, out)) die("process"); /* warm up */
     double wfs = 0;
-    const double t1 = now();
-    while (now() - t1 < seconds) {
+    const double t1 = swfs_wall_seconds();
+    while (swfs_wall_seconds() - t1 < seconds) {
         if (swfs_pipeline_process(p, v, nwfs, sched, nexp, out)) die("process");
         wfs += d->ratio * (double)nexp;
     }
-    const double rate = wfs / (now() - t1);
+    const double rate = wfs / (swfs_wall_seconds() - t1);
     swfs_pipeline_free(p);
     swfs_sparse_free(B);
     free(mask); free(cube); free(shapes); free(sched); free(v); free(out);
