@@ -1,7 +1,8 @@
 # Speckles' default, --recon teach (docs/telemetry.md): the teach run inside speckles on the
 # observation's own files gives the map `teach` gives on them, and the same NCP error; stream
 # takes that space-time map and its per-frame map; a later run on the same inputs reuses the
-# map (its fingerprint TEACHFPR); with the DM told (--teach-set, one map taught), --teach-again
+# map (its fingerprint TEACHFPR), and where its second map (the DM's choice) cannot be taught
+# goes on with the first; with the DM told (--teach-set, one map taught), --teach-again
 # and an edited telemetry file teach anew (the same speckles, compared value by value with
 # tests/tools/fitsdiff); teach on the used subapertures' slopes (cacao's layout) with --valid,
 # in a work folder holding stale loop files, clears them and gives the map of speckles' teach
@@ -81,6 +82,15 @@ grep -q "^speckles: reused spk_dt.teach/taught.fits, taught by an earlier run fo
     speckles_dt2.log && ! grep -q "simulating the loops" speckles_dt2.log \
     || { cat speckles_dt2.log; fail "speckles on the same inputs: the taught map should be reused"; }
 echo "cli_teach: speckles' default again on the same inputs: reused the map, the same speckles"
+# the second map cannot be taught (here its folder, spk_dt.teach/dm-gauss, is a file): the run
+# goes on with the first map, says why, and its speckles are the default's (the surface's map,
+# which the choice kept above)
+mv spk_dt.teach/dm-gauss spk_dt.teach/dm-gauss.kept && echo x > spk_dt.teach/dm-gauss || fail "the dm-gauss file"
+again dt dt5 timing.txt
+grep -q "^speckles: the loops' DM: the interpolated surface's map kept; no Gaussian DM's to compare (the second map could not be taught: teach: spk_dt.teach/dm-gauss/taught.fits: cannot create output file (folder spk_dt.teach/dm-gauss: Not a directory))" \
+    speckles_dt5.log || { cat speckles_dt5.log; fail "the second map not taught: the first's speckles, said why"; }
+rm spk_dt.teach/dm-gauss && mv spk_dt.teach/dm-gauss.kept spk_dt.teach/dm-gauss || fail "dm-gauss back"
+echo "cli_teach: the second map not taught (its folder a file): the first map's speckles, the reason said"
 # --teach-set: what the files do not say of the system, in simulate's keys (here the DM's
 # Gaussian influence functions, which the observation's own DM does not have): part of the
 # fingerprint (taught anew, not reused), said in the summary, and reaching the loops (other
