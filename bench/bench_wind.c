@@ -22,13 +22,13 @@ static double *field(size_t m, swfs_rng *g)
         for (size_t j = 0; j < m; j++)
             for (size_t i = 0; i < m; i++) {
                 double s = 0;
-                for (int d = -2; d <= 2; d++) s += a[j * m + (i + m + (size_t)(d + 2) - 2) % m];
+                for (size_t d = 0; d < 5; d++) s += a[j * m + (i + m + d - 2) % m];
                 b[j * m + i] = s / 5;
             }
         for (size_t j = 0; j < m; j++)
             for (size_t i = 0; i < m; i++) {
                 double s = 0;
-                for (int d = -2; d <= 2; d++) s += b[((j + m + (size_t)(d + 2) - 2) % m) * m + i];
+                for (size_t d = 0; d < 5; d++) s += b[((j + m + d - 2) % m) * m + i];
                 a[j * m + i] = s / 5;
             }
     }

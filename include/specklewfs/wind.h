@@ -9,8 +9,9 @@
  * series): the lagged covariances of every pair of valid subapertures (x and y slopes summed,
  * each frame's mean x/y slope and each subaperture's mean taken out), summed over the pairs
  * of each grid displacement (within +-(nsub/2 - 1) subapertures; the slope grids' lagged
- * cross-correlation, by FFT) and normalized by their zero-lag standard deviations, and the peak of that correlation map,
- * refined by a parabola through its neighbours on each axis, is the displacement at that lag.
+ * cross-correlation, by FFT) and normalized by their zero-lag standard deviations, and the
+ * peak of that correlation map, refined by a parabola through its neighbours on each axis, is
+ * the displacement at that lag.
  *
  * Which lags count: the displacement is resolved once it reaches one subaperture (shorter
  * lags see the correlation's width, not its shift). From the first lag whose peak lies at
@@ -30,32 +31,31 @@
  * counter-clockwise from +x toward which the pattern moves (the time-series simulator's
  * layer_dir). Measured over the issue-12 matrix in docs/telemetry.md.
  *
- * Further layers (layer[1..]): once one is tracked, the lagged correlation maps are made
- * again over every displacement on the grid (+-(nsub - 1), bins of at least nsub/2 pairs)
- * at lags of 1.5^k frames (rounded, distinct, up to a quarter of the series), and each
- * candidate velocity u [subapertures per frame] is scored by stacking the maps along its
- * track: the sum over lags of the map's correlation at u tau (bilinear), over sqrt(the lags
- * counted). A lag counts where u tau lies inside the map, at least 1.5 subapertures from
- * the centre and from every layer already found at that lag (the zero-lag correlation of
- * the slopes is non-zero out to the first ring of neighbours only: -0.2 at one
- * subaperture, |0.1| or less at two, over the matrix), and a score needs three lags (a
- * track counts at two only where it moves a third of the map per frame or more, so slowly
- * that the longest lags alone take it off the centre, or alongside a layer found: on the
- * matrix's zonal loops such tracks gave a layer at 1490 m/s and second copies of found
- * ones). A layer's pattern adds up along its own track; a static feature of the maps (the
- * loop's side lobes) adds at one lag per velocity, and noise at random. The tracked layer
- * is left out both as tracked and as the stacking places it (refined on the grid below):
- * the tracker's few lags can put it a few degrees off its stacked track, which would then
- * stand out again. The candidates are every map bin over every lag (u = bin / tau); the
- * best is refined on a grid around it, and counts as a layer when its score lies more than
- * twice the expected maximum of Gaussian noise over the map's bins, 2 sqrt(2 ln bins),
- * robust standard deviations (1.4826 x the median absolute deviation over all candidates)
- * above the candidates' median. Then that track is excluded too and the search repeats.
- * A tracked layer whose own track stands below that threshold where a further one stands
- * above it is left out of layer[] (tracked_dropped): its peaks were another layer's. Over
- * the matrix's 48 loops (modal and zonal, two seeds) the layers found stood 8-93 such
- * deviations out, the best of the rest 3.3-7.2, against thresholds of 6.8-7.7
- * (docs/telemetry.md). */
+ * Further layers (layer[1..]): once one is tracked, the lagged correlation maps over every
+ * displacement on the grid (+-(nsub - 1), bins of at least nsub/2 pairs; made with the
+ * tracker's, in one pass) at lags of 2^k and 3 x 2^(k-1) frames (1, 2, 3, 4, 6, 8, 12, ..., up
+ * to a quarter of the series), and each candidate velocity u [subapertures per frame] is scored
+ * by stacking the maps along its track: the sum over lags of the map's correlation at u tau
+ * (bilinear), over sqrt(the lags counted). A lag counts where u tau lies inside the map, at
+ * least 1.5 subapertures from the centre and from every layer already found at that lag (the
+ * zero-lag correlation of the slopes is non-zero out to the first ring of neighbours only: -0.2
+ * at one subaperture, |0.1| or less at two, over the matrix), and a score needs three lags (a
+ * track counts at two only where it moves a third of the map per frame or more, so slowly that
+ * the longest lags alone take it off the centre, or alongside a layer found: on the matrix's
+ * zonal loops such tracks gave a layer at 1490 m/s and second copies of found ones). A layer's
+ * pattern adds up along its own track; a static feature of the maps (the loop's side lobes)
+ * adds at one lag per velocity, and noise at random. The tracked layer is left out both as
+ * tracked and as the stacking places it (refined on the grid below): the tracker's few lags can
+ * put it a few degrees off its stacked track, which would then stand out again. The candidates
+ * are every map bin over every lag (u = bin / tau); the best is refined on a grid around it,
+ * and counts as a layer when its score lies more than twice the expected maximum of Gaussian
+ * noise over the map's bins, 2 sqrt(2 ln bins), robust standard deviations (1.4826 x the median
+ * absolute deviation over all candidates) above the candidates' median. Then that track is
+ * excluded too and the search repeats. A tracked layer whose own track stands below that
+ * threshold where a further one stands above it is left out of layer[] (tracked_dropped): its
+ * peaks were another layer's. Over the matrix's 48 loops (modal and zonal, two seeds) the
+ * layers found stood 8-93 such deviations out, the best of the rest 3.3-7.2, against thresholds
+ * of 6.8-7.7 (docs/telemetry.md). */
 #ifndef SWFS_WIND_H
 #define SWFS_WIND_H
 

@@ -7,7 +7,7 @@
 
 #include <stddef.h>
 
-/* The lags whose maps are made: 2^k and 3 x 2^k frames up to a quarter of the series (the
+/* The lags whose maps are made: 2^k and 3 x 2^(k-1) frames up to a quarter of the series (the
  * tracker takes the powers of two, the stacking every one). */
 #define SWFS_WIND_MAXMAPS 48
 
