@@ -11,7 +11,9 @@
  * four times, a quarter of the grid apart. The beam circles the apex (modulation) at
  * mod lambda/D: the intensities of nmod points on the circle are averaged, each the pyramid
  * moved by the opposite offset (the same relative geometry: one forward transform per frame
- * and one inverse per point; the mask, separable, kept as its row and column factors). The
+ * and one inverse per point; the mask, separable, kept as its row and column factors, the
+ * rows' transforms shared by the two points of one row factor, the columns transformed
+ * only where the images lie). The
  * four images are binned on the Shack-Hartmann's subaperture grid (subaperture (a, b)
  * covers x in [-D/2 + a d, -D/2 + (a+1) d), d = D/nsub, by the pixel centres, wfs.h),
  * facets A (u >= 0, v >= 0), B (u < 0, v >= 0), C (u < 0, v < 0), D (u >= 0, v < 0), and

@@ -1,5 +1,5 @@
 /* The modulated pyramid wavefront sensor (pyramid.h): one forward FFT of the padded pupil
- * field per frame, one inverse FFT per modulation point (single precision: the signals are
+ * field per frame, inverse FFTs per modulation point (single precision: the signals are
  * differences of binned intensities of order 1e-3 of them, far above float's rounding), the
  * four pupil images binned on the Shack-Hartmann's subaperture grid.
  *
@@ -8,7 +8,15 @@
  * of the sizes with a factor 7 that fast_size picks (140 for a 66-sample pupil) allocated
  * a buffer per row at every execution (140 per transform, 41 transforms a frame) and took
  * 118 us against 76 us for the two batches (measured on this machine class, single
- * precision); the forward transform's rows are only the pupil's, the padding's being zero. */
+ * precision); the forward transform's rows are only the pupil's, the padding's being zero.
+ *
+ * The inverse transforms do only what the images need. A point's mask is a row factor times
+ * a column factor (the facets' phase is separable), so the rows' transforms of the field
+ * times the row factor serve every point of the same row factor, the column factor
+ * multiplying their result: the points on the circle at angles th and -th move the pyramid
+ * by the same x, so the rows are transformed once for two points (the points' offsets are
+ * made mirror images exactly, so that they pair). The columns are then transformed only
+ * where an image lies (2 npup of the N), and the intensity summed only on the images. */
 #include "specklewfs/pyramid.h"
 #include "specklewfs/wfs.h"
 #include "specklewfs/status.h"
@@ -36,16 +44,24 @@ struct swfs_pyramid_work {
     fftwf_complex *field, *ehat, *work; /* N x N: the padded pupil field, its transform, one point's */
     fftwf_complex *frows, *rows;        /* N x N: the forward's and the inverse's rows transformed
                                            (the columns next; frows' padding rows stay zero) */
+    fftwf_complex *cin, *cout;          /* N x 2 npup: the images' columns of rows times a point's
+                                           column factor, and their transforms */
     fftwf_complex *mx, *my;             /* nmod x N each: the pyramid moved to each modulation point,
                                            exp(i pi/2 |u + dx|) and exp(i pi/2 |v + dy|), whose product
                                            is its mask (the facets' phase is separable) */
-    float *inten;                       /* N x N: the modulation-averaged intensity */
+    size_t ngrp;                        /* the points' groups of one row factor (mx) */
+    size_t *grp;                        /* ngrp + 1: group g's points are order[grp[g] .. grp[g+1]) */
+    size_t *order;                      /* nmod: the points, group by group */
+    float *inten;                       /* 2 npup x 2 npup: the modulation-averaged intensity on the
+                                           images' rows and columns (below) */
     fftwf_plan fwd_rows, fwd_cols;      /* field's pupil rows -> frows, frows' columns -> ehat */
-    fftwf_plan bwd_rows, bwd_cols;      /* work's rows -> rows, rows' columns -> work */
+    fftwf_plan bwd_rows, bwd_cols;      /* work's rows -> rows, cin's columns -> cout */
     long *sub;                          /* npup^2: the used subaperture (its index among them) of each
                                            pupil sample, -1 elsewhere */
     size_t off;                         /* the pupil's first row and column in the padded grid */
-    size_t img[4][2];                   /* images A, B, C, D: first column and row */
+    size_t lo, hi;                      /* the images' first rows and columns in the N x N grid
+                                           (A at (lo, lo), B at (hi, lo), C at (hi, hi), D at (lo, hi),
+                                           column first); in inten at 0 and npup alike */
     double *counts;                     /* 4 x nvalid */
     double *ref;                        /* nslopes: the flat wavefront's signals */
     size_t *vidx;                       /* nvalid: each used subaperture's index a + b nsub */
@@ -82,7 +98,8 @@ void swfs_pyramid_free(swfs_pyramid *p)
             if (pl[k]) fftwf_destroy_plan(pl[k]);
         swfs_planner_unlock();
         fftwf_free(w->field); fftwf_free(w->ehat); fftwf_free(w->work); fftwf_free(w->frows); fftwf_free(w->rows);
-        fftwf_free(w->mx); fftwf_free(w->my); fftwf_free(w->inten);
+        fftwf_free(w->cin); fftwf_free(w->cout); fftwf_free(w->mx); fftwf_free(w->my); fftwf_free(w->inten);
+        free(w->grp); free(w->order);
         free(w->sub); free(w->counts); free(w->ref); free(w->vidx); free(w->mask);
         free(w);
     }
@@ -94,12 +111,13 @@ void swfs_pyramid_free(swfs_pyramid *p)
 static void bin_images(const swfs_pyramid *p)
 {
     swfs_pyramid_work *w = p->w;
-    const size_t n = p->npup, N = p->nfft, nv = p->nvalid;
+    const size_t n = p->npup, nv = p->nvalid;
+    const size_t at[4][2] = {{0, 0}, {n, 0}, {n, n}, {0, n}}; /* A, B, C, D in inten: column, row */
     memset(w->counts, 0, 4 * nv * sizeof *w->counts);
     for (int j = 0; j < 4; j++) {
         double *c = w->counts + (size_t)j * nv;
         for (size_t q = 0; q < n; q++) {
-            const float *row = w->inten + (w->img[j][1] + q) * N + w->img[j][0];
+            const float *row = w->inten + (at[j][1] + q) * 2 * n + at[j][0];
             const long *s = w->sub + q * n;
             for (size_t i = 0; i < n; i++)
                 if (s[i] >= 0) c[s[i]] += row[i];
@@ -144,32 +162,54 @@ static void intensity(swfs_pyramid *p, const double *z)
     }
     fftwf_execute(w->fwd_rows);
     fftwf_execute(w->fwd_cols);
-    memset(w->inten, 0, NN * sizeof *w->inten);
+    const size_t n2 = 2 * n;
+    memset(w->inten, 0, n2 * n2 * sizeof *w->inten);
     const float scale = 1.0f / ((float)p->nmod * (float)NN * (float)NN);
     /* the products and intensities on the real and imaginary parts (C11 6.2.5: a complex is
      * an array of its two real parts), which the compiler vectorizes (C's complex product
-     * would check every result for NaN); each point's mask made from its row and column
-     * factors as it goes, 2 N values instead of N^2 read per point */
-    const float *eh = (const float *)w->ehat;
-    float *wk = (float *)w->work, *in = w->inten;
-    for (size_t m = 0; m < p->nmod; m++) {
-        const float *mx = (const float *)(w->mx + m * N), *my = (const float *)(w->my + m * N);
+     * would check every result for NaN) */
+    const float *eh = (const float *)w->ehat, *rw = (const float *)w->rows, *co = (const float *)w->cout;
+    float *wk = (float *)w->work, *ci = (float *)w->cin, *in = w->inten;
+    const size_t cols[2] = {w->lo, w->hi};
+    for (size_t g = 0; g < w->ngrp; g++) {
+        /* the field times the group's row factor, its rows transformed */
+        const float *mx = (const float *)(w->mx + w->order[w->grp[g]] * N);
         for (size_t v = 0; v < N; v++) {
-            const float cr = my[2 * v], ci = my[2 * v + 1];
             const float *ev = eh + 2 * v * N;
             float *wv = wk + 2 * v * N;
             for (size_t u = 0; u < N; u++) {
-                const float br = cr * mx[2 * u] - ci * mx[2 * u + 1], bi = cr * mx[2 * u + 1] + ci * mx[2 * u];
-                const float ar = ev[2 * u], ai = ev[2 * u + 1];
+                const float ar = ev[2 * u], ai = ev[2 * u + 1], br = mx[2 * u], bi = mx[2 * u + 1];
                 wv[2 * u] = ar * br - ai * bi;
                 wv[2 * u + 1] = ar * bi + ai * br;
             }
         }
         fftwf_execute(w->bwd_rows);
-        fftwf_execute(w->bwd_cols);
-        for (size_t e = 0; e < NN; e++) {
-            const float re = wk[2 * e], im = wk[2 * e + 1];
-            in[e] += scale * (re * re + im * im);
+        for (size_t t = w->grp[g]; t < w->grp[g + 1]; t++) {
+            /* the images' columns times the point's column factor, transformed */
+            const float *my = (const float *)(w->my + w->order[t] * N);
+            for (size_t v = 0; v < N; v++) {
+                const float cr = my[2 * v], cim = my[2 * v + 1];
+                for (int h = 0; h < 2; h++) {
+                    const float *r = rw + 2 * (v * N + cols[h]);
+                    float *o = ci + 2 * (v * n2 + (size_t)h * n);
+                    for (size_t i = 0; i < n; i++) {
+                        const float ar = r[2 * i], ai = r[2 * i + 1];
+                        o[2 * i] = ar * cr - ai * cim;
+                        o[2 * i + 1] = ar * cim + ai * cr;
+                    }
+                }
+            }
+            fftwf_execute(w->bwd_cols);
+            /* the intensity on the images' rows */
+            for (int h = 0; h < 2; h++)
+                for (size_t q = 0; q < n; q++) {
+                    const float *c = co + 2 * (cols[h] + q) * n2;
+                    float *row = in + ((size_t)h * n + q) * n2;
+                    for (size_t e = 0; e < n2; e++) {
+                        const float re = c[2 * e], im = c[2 * e + 1];
+                        row[e] += scale * (re * re + im * im);
+                    }
+                }
         }
     }
 }
@@ -225,16 +265,21 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->work = fftwf_alloc_complex(NN);
         w->frows = fftwf_alloc_complex(NN);
         w->rows = fftwf_alloc_complex(NN);
+        w->cin = fftwf_alloc_complex(N * 2 * npup);
+        w->cout = fftwf_alloc_complex(N * 2 * npup);
         w->mx = fftwf_alloc_complex(p->nmod * N);
         w->my = fftwf_alloc_complex(p->nmod * N);
-        w->inten = fftwf_alloc_real(NN);
+        w->grp = malloc((p->nmod + 1) * sizeof *w->grp);
+        w->order = malloc(p->nmod * sizeof *w->order);
+        w->inten = fftwf_alloc_real(4 * npup * npup);
         w->sub = malloc(npup * npup * sizeof *w->sub);
         w->counts = malloc(4 * nv * sizeof *w->counts);
         w->ref = calloc(2 * n2, sizeof *w->ref);
         w->vidx = malloc(nv * sizeof *w->vidx);
         w->mask = malloc(npup * npup * sizeof *w->mask);
     }
-    if (!w || !w->field || !w->ehat || !w->work || !w->frows || !w->rows || !w->mx || !w->my || !w->inten || !w->sub ||
+    if (!w || !w->field || !w->ehat || !w->work || !w->frows || !w->rows || !w->cin || !w->cout || !w->mx || !w->my ||
+        !w->grp || !w->order || !w->inten || !w->sub ||
         !w->counts || !w->ref || !w->vidx || !w->mask) {
         swfs_pyramid_free(p);
         return swfs_fail(SWFS_ERR_NOMEM, "pyramid: out of memory for %zu x %zu transforms and %zu modulation points",
@@ -244,7 +289,7 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
     memset(w->frows, 0, NN * sizeof *w->frows);
     memcpy(w->mask, mask, npup * npup * sizeof *mask);
     w->off = (N - npup) / 2;
-    const int n1[1] = {(int)N}, iN = (int)N;
+    const int n1[1] = {(int)N}, iN = (int)N, i2n = 2 * (int)npup;
     fftwf_complex *fr = w->field + w->off * N, *rr = w->frows + w->off * N;
     swfs_planner_lock();
     w->fwd_rows = fftwf_plan_many_dft(1, n1, (int)npup, fr, NULL, 1, iN, rr, NULL, 1, iN, FFTW_FORWARD, FFTW_ESTIMATE);
@@ -252,7 +297,7 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
                                       FFTW_ESTIMATE);
     w->bwd_rows = fftwf_plan_many_dft(1, n1, iN, w->work, NULL, 1, iN, w->rows, NULL, 1, iN, FFTW_BACKWARD,
                                       FFTW_ESTIMATE);
-    w->bwd_cols = fftwf_plan_many_dft(1, n1, iN, w->rows, NULL, iN, 1, w->work, NULL, iN, 1, FFTW_BACKWARD,
+    w->bwd_cols = fftwf_plan_many_dft(1, n1, i2n, w->cin, NULL, i2n, 1, w->cout, NULL, i2n, 1, FFTW_BACKWARD,
                                       FFTW_ESTIMATE);
     swfs_planner_unlock();
     if (!w->fwd_rows || !w->fwd_cols || !w->bwd_rows || !w->bwd_cols) {
@@ -284,15 +329,17 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
      * place (the inverse transform of exp(2 pi i a u / N) E^ is E(x + a)), u < 0's a to the
      * right; the same in y. */
     const size_t a = N / 4;
-    const size_t lo = w->off - a, hi = w->off + a;
-    const size_t pos[4][2] = {{lo, lo}, {hi, lo}, {hi, hi}, {lo, hi}}; /* A, B, C, D */
-    memcpy(w->img, pos, sizeof pos);
+    w->lo = w->off - a;
+    w->hi = w->off + a; /* N >= 2 npup + 8: the images do not overlap */
     /* the masks: the pyramid moved to minus each modulation point (angles offset by half a
-     * step, so that no point sits on a ridge and the path is the same seen by each facet) */
+     * step, so that no point sits on a ridge and the path is the same seen by each facet);
+     * the points at th and 2 pi - th (m and nmod - 1 - m) made mirror images to the bit, the
+     * same dx and opposite dy, so that they share their row factor */
     const double r = mod * p->sampling;
     for (size_t m = 0; m < p->nmod; m++) {
-        const double th = 2.0 * M_PI * ((double)m + 0.5) / (double)p->nmod;
-        const double dx = mod > 0 ? r * cos(th) : 0.0, dy = mod > 0 ? r * sin(th) : 0.0;
+        const size_t mm = m < p->nmod - 1 - m ? m : p->nmod - 1 - m;
+        const double th = 2.0 * M_PI * ((double)mm + 0.5) / (double)p->nmod, sg = mm == m ? 1.0 : -1.0;
+        const double dx = mod > 0 ? r * cos(th) : 0.0, dy = mod > 0 ? sg * r * sin(th) : 0.0;
         for (size_t i = 0; i < N; i++) {
             const double f = (double)(i < N / 2 ? (long)i : (long)i - (long)N);
             const double px = 0.5 * M_PI * fabs(f + dx), py = 0.5 * M_PI * fabs(f + dy);
@@ -300,6 +347,25 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
             w->my[m * N + i] = cplxf((float)cos(py), (float)sin(py));
         }
     }
+    /* the points grouped by their row factor (equal to the bit) */
+    w->ngrp = 0;
+    size_t placed = 0;
+    unsigned char *done = calloc(p->nmod, 1);
+    if (!done) {
+        swfs_pyramid_free(p);
+        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
+    }
+    for (size_t m = 0; m < p->nmod; m++) {
+        if (done[m]) continue;
+        w->grp[w->ngrp++] = placed;
+        for (size_t k = m; k < p->nmod; k++)
+            if (!done[k] && !memcmp(w->mx + k * N, w->mx + m * N, N * sizeof *w->mx)) {
+                done[k] = 1;
+                w->order[placed++] = k;
+            }
+    }
+    w->grp[w->ngrp] = placed;
+    free(done);
     /* the reference: a flat wavefront's signals */
     intensity(p, NULL);
     bin_images(p);
