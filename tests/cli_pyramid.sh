@@ -3,28 +3,28 @@
 # 'PYRAMID'), the run writes its linear model (influence.fits, imat_ao.fits, recon_ao.fits);
 # sync times the science frames from the signals (ratio and lag as from true timing), and the
 # linear model with the run's interaction matrix (--basis --imat: the MAP reconstructor from
-# the telemetry) recovers the NCP within 2x of the ideal speckles' (measured 1.6x on this
-# series, --mean-loop none; the MAP it writes, --write-recon, given back as --control gives the
-# same error), `stream` the same within 5 % (measured equal; with the loops speckles
-# simulated, --mean-loop DIR, or by its own default reusing them, equal to speckles' with them);
-# by default speckles
-# reads the system from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it
-# simulates of it (--mean-loop teach), reuses them on a second run, and stays within 2x
-# (measured 24.4 -> 19.6 nm); the loops' own map (--loops-map) is not tried on 2 loops (too few
-# frames, the note); from 4 loops first its learning curve asks for more frames (measured 32268
-# against 4244), so speckles simulates a fifth (--mean-teach-max-loops 5, for the time), scores
-# the map of the 5, the interaction matrix's and the two maps mixed at 0.75 / 0.5 / 0.25, and
-# writes the set that explains most (measured 57.63 / 59.02 / 58.43 58.83 58.99 %: the loops'
-# map with its own miss of the mean, held out 0.78 on the pupil, 18.9 nm (19.0 with the
-# interaction matrix's mean before that check was made on the pupil); the mixes 19.2 / 18.9 /
-# 18.8; --write-recon's map carries that set's miss of the
-# mean, MEANMISS, and stream given it alone makes the same RESMEAN without loops, live on the
-# replayed streams the same as stream: measured 1.3e-14 apart, 18.9 nm), and a second
-# run reuses the 5 loops (Release
-# build; under the sanitizers the same choice on 3 given loops, the second twice: 57.67 /
-# 58.76 / 58.43 58.76 58.84 %, 19.4 nm). The Shack-Hartmann model refuses the signals (speckles
-# --actuators, teach) naming the file and what describes them; export_modal and an unknown wfs
-# are refused.
+# the telemetry) recovers the NCP within 2x of the ideal speckles' (--mean-loop none; the MAP
+# it writes, --write-recon, given back as --control gives the same error), `stream` the same
+# within 5 % (measured equal; with the loops speckles simulated, --mean-loop DIR, or by its own
+# default reusing them, equal to speckles' with them); by default speckles reads the system
+# from the files (photons, knee, DM pitch, r0 fitted asserted) for loops it simulates of it
+# (--mean-loop teach), reuses them on a second run, and stays within 2x; the loops' own map
+# (--loops-map) is not tried on 2 loops (too few frames, the note); from 4 loops first its
+# learning curve asks for more frames than they hold (4 x 1061), so speckles simulates a fifth
+# (--mean-teach-max-loops 5, for the time), scores the map of the 5, the interaction matrix's
+# and the two maps mixed at 0.75 / 0.5 / 0.25, and writes the set that explains most;
+# --write-recon's map carries that set's miss of the mean, MEANMISS, and stream given it alone
+# makes the same RESMEAN without loops, live on the replayed streams the same as stream; a
+# second run reuses the 5 loops (Release build; under the sanitizers the same choice on 3 given
+# loops, the second twice).
+# Measured 2026-12-07 (Release; the sanitizer build's in brackets): ideal speckles 16.0 nm
+# (15.8); through the interaction matrix 24.4 nm (24.5), 1.5x; with the 2 loops' miss of the
+# mean 19.8 nm (19.7); the curve over 4 loops asked for 137255 frames; explained 57.65 %
+# (interaction matrix) / 59.14 % (the loops' map) / 58.50 58.92 59.10 % (mixes), the loops'
+# map written, 19.7 nm (3 given loops: 57.67 / 58.99 / 58.50 58.92 59.07 %, the 0.25 mix
+# written, 20.0 nm); live's RESMEAN 1.2e-14 of its rms from stream's.
+# The Shack-Hartmann model refuses the signals (speckles --actuators, teach) naming the file and
+# what describes them; export_modal and an unknown wfs are refused.
 # usage: bash cli_pyramid.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_cli.sh"
 cli_setup "$@"
