@@ -180,17 +180,18 @@ grep -q "224 slopes x 5 lags" speckles_tv.log || { cat speckles_tv.log; fail "sp
 echo "cli_teach: teach on the used subapertures' slopes: $etv nm (speckles' default on the full layout $edt nm)"
 [ "$etv" = "$edt" ] || fail "teach on the used subapertures' slopes $etv nm against speckles' default $edt nm"
 # slopes in which `wind` tracks no layer: a zonal loop (ao_rcond 0.05) of one 15 m/s layer on the
-# same system, seed 6, whose slopes are mostly its sensor's noise amplified. speckles' default
-# still teaches: the speed from the slopes' time correlation (measured 14.0 m/s), loops near it
-# in any direction, their space-time map at lags of 1 and 2 frames (TEACHSEL 'spacetime_prior',
-# the loops' folders removed; the per-frame map beside it). The NCP error below the von Karman
-# map's (measured 34.9 nm against 71.2 on 2026-12-07, 32.3 against 52.3 when first written; the
-# ideal speckles' 26.1; before the lags, the per-frame map, 35.8; bound 0.85 times vk's). Its
-# first 12 loops only (--teach-max-loops 12): the 40 its learning curve asked for gave the same
-# 32.3 nm when first written, at three times the cost. The DM told, the observation's own
-# (--teach-set dm_coupling=0, the interpolated surface: the map the default's choice by the
-# science frames keeps here, to the same speckles, fitsdiff), so one map is taught, not two (the
-# choice is the first run's subject).
+# same system, seed 6, whose slopes are mostly its sensor's noise amplified. speckles' default still
+# teaches: the speed from the slopes' time correlation (measured 14.0 m/s), loops near it in any
+# direction, their space-time map at lags of 1 and 2 frames (TEACHSEL 'spacetime_prior', the loops'
+# folders removed; the per-frame map beside it). The NCP error below the von Karman map's (measured
+# 34.9 nm against 71.2 on 2026-12-07, 32.3 against 52.3 when first written: the joint fit's radial g
+# terms, added between, cost both here, docs/estimator.md "Where the radial terms cost most"; the
+# ideal speckles' 26.1 then, 29.0 now; before the lags, the per-frame map, 35.8; bound 0.85 times
+# vk's). Its first 12 loops only (--teach-max-loops 12): the 40 its learning curve asked for gave
+# the same 32.3 nm when first written, at three times the cost. The DM told, the observation's own
+# (--teach-set dm_coupling=0, the interpolated surface: the map the default's choice by the science
+# frames keeps here, to the same speckles, fitsdiff), so one map is taught, not two (the choice is
+# the first run's subject).
 mkdir -p nowind && cd nowind || fail "cd nowind"
 "$B" simulate ../my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=6 ao_rcond=0.05 -o obs --quiet > /dev/null 2>&1 \
     || fail "simulate the zonal loop without a layer to track"
