@@ -217,8 +217,10 @@ static void direct_signals(const swfs_pyramid *p, const double *mask, const doub
         memset(in, 0, NN * sizeof *in);
         for (size_t q = 0; q < n; q++)
             for (size_t i = 0; i < n; i++)
-                if (mask[q * n + i] > 0)
-                    e[(off + q) * N + off + i] = mask[q * n + i] * cexp(I * (pass ? 2 * M_PI / p->wavelen * z[q * n + i] : 0.0));
+                if (mask[q * n + i] > 0) {
+                    const double ph = pass ? 2 * M_PI / p->wavelen * z[q * n + i] : 0.0;
+                    e[(off + q) * N + off + i] = mask[q * n + i] * cexp(I * ph);
+                }
         fftw_execute(fw);
         for (size_t m = 0; m < p->nmod; m++) {
             const double th = 2 * M_PI * ((double)m + 0.5) / (double)p->nmod;
@@ -236,7 +238,8 @@ static void direct_signals(const swfs_pyramid *p, const double *mask, const doub
         for (size_t q = 0; q < n; q++)
             for (size_t i = 0; i < n; i++) {
                 const double x = ((double)i - c0) * p->pupdx, y = ((double)q - c0) * p->pupdx;
-                const double ux = (x + 0.5 * p->diam) / p->diam * (double)nsub, uy = (y + 0.5 * p->diam) / p->diam * (double)nsub;
+                const double ux = (x + 0.5 * p->diam) / p->diam * (double)nsub;
+                const double uy = (y + 0.5 * p->diam) / p->diam * (double)nsub;
                 if (!(ux >= 0 && ux < (double)nsub && uy >= 0 && uy < (double)nsub)) continue;
                 const size_t s = (size_t)floor(uy) * nsub + (size_t)floor(ux);
                 if (!p->valid[s]) continue;

@@ -279,8 +279,7 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->mask = malloc(npup * npup * sizeof *w->mask);
     }
     if (!w || !w->field || !w->ehat || !w->work || !w->frows || !w->rows || !w->cin || !w->cout || !w->mx || !w->my ||
-        !w->grp || !w->order || !w->inten || !w->sub ||
-        !w->counts || !w->ref || !w->vidx || !w->mask) {
+        !w->grp || !w->order || !w->inten || !w->sub || !w->counts || !w->ref || !w->vidx || !w->mask) {
         swfs_pyramid_free(p);
         return swfs_fail(SWFS_ERR_NOMEM, "pyramid: out of memory for %zu x %zu transforms and %zu modulation points",
                          N, N, p->nmod);
