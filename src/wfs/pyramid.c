@@ -49,9 +49,6 @@ struct swfs_pyramid_work {
     fftwf_complex *mx, *my;             /* nmod x N each: the pyramid moved to each modulation point,
                                            exp(i pi/2 |u + dx|) and exp(i pi/2 |v + dy|), whose product
                                            is its mask (the facets' phase is separable) */
-    size_t ngrp;                        /* the points' groups of one row factor (mx) */
-    size_t *grp;                        /* ngrp + 1: group g's points are order[grp[g] .. grp[g+1]) */
-    size_t *order;                      /* nmod: the points, group by group */
     float *inten;                       /* 2 npup x 2 npup: the modulation-averaged intensity on the
                                            images' rows and columns (below) */
     fftwf_plan fwd_rows, fwd_cols;      /* field's pupil rows -> frows, frows' columns -> ehat */
@@ -99,7 +96,6 @@ void swfs_pyramid_free(swfs_pyramid *p)
         swfs_planner_unlock();
         fftwf_free(w->field); fftwf_free(w->ehat); fftwf_free(w->work); fftwf_free(w->frows); fftwf_free(w->rows);
         fftwf_free(w->cin); fftwf_free(w->cout); fftwf_free(w->mx); fftwf_free(w->my); fftwf_free(w->inten);
-        free(w->grp); free(w->order);
         free(w->sub); free(w->counts); free(w->ref); free(w->vidx); free(w->mask);
         free(w);
     }
@@ -171,9 +167,10 @@ static void intensity(swfs_pyramid *p, const double *z)
     const float *eh = (const float *)w->ehat, *rw = (const float *)w->rows, *co = (const float *)w->cout;
     float *wk = (float *)w->work, *ci = (float *)w->cin, *in = w->inten;
     const size_t cols[2] = {w->lo, w->hi};
-    for (size_t g = 0; g < w->ngrp; g++) {
-        /* the field times the group's row factor, its rows transformed */
-        const float *mx = (const float *)(w->mx + w->order[w->grp[g]] * N);
+    for (size_t m = 0; 2 * m < p->nmod; m++) {
+        /* the field times the row factor of points m and nmod - 1 - m (one point where they
+         * are the same), its rows transformed */
+        const float *mx = (const float *)(w->mx + m * N);
         for (size_t v = 0; v < N; v++) {
             const float *ev = eh + 2 * v * N;
             float *wv = wk + 2 * v * N;
@@ -184,9 +181,10 @@ static void intensity(swfs_pyramid *p, const double *z)
             }
         }
         fftwf_execute(w->bwd_rows);
-        for (size_t t = w->grp[g]; t < w->grp[g + 1]; t++) {
+        const size_t pts[2] = {m, p->nmod - 1 - m};
+        for (int t = 0; t < (pts[1] == m ? 1 : 2); t++) {
             /* the images' columns times the point's column factor, transformed */
-            const float *my = (const float *)(w->my + w->order[t] * N);
+            const float *my = (const float *)(w->my + pts[t] * N);
             for (size_t v = 0; v < N; v++) {
                 const float cr = my[2 * v], cim = my[2 * v + 1];
                 for (int h = 0; h < 2; h++) {
@@ -269,8 +267,6 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->cout = fftwf_alloc_complex(N * 2 * npup);
         w->mx = fftwf_alloc_complex(p->nmod * N);
         w->my = fftwf_alloc_complex(p->nmod * N);
-        w->grp = malloc((p->nmod + 1) * sizeof *w->grp);
-        w->order = malloc(p->nmod * sizeof *w->order);
         w->inten = fftwf_alloc_real(4 * npup * npup);
         w->sub = malloc(npup * npup * sizeof *w->sub);
         w->counts = malloc(4 * nv * sizeof *w->counts);
@@ -279,7 +275,7 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
         w->mask = malloc(npup * npup * sizeof *w->mask);
     }
     if (!w || !w->field || !w->ehat || !w->work || !w->frows || !w->rows || !w->cin || !w->cout || !w->mx || !w->my ||
-        !w->grp || !w->order || !w->inten || !w->sub || !w->counts || !w->ref || !w->vidx || !w->mask) {
+        !w->inten || !w->sub || !w->counts || !w->ref || !w->vidx || !w->mask) {
         swfs_pyramid_free(p);
         return swfs_fail(SWFS_ERR_NOMEM, "pyramid: out of memory for %zu x %zu transforms and %zu modulation points",
                          N, N, p->nmod);
@@ -346,25 +342,6 @@ int swfs_pyramid_create(swfs_pyramid **out, size_t nsub, double diam, const doub
             w->my[m * N + i] = cplxf((float)cos(py), (float)sin(py));
         }
     }
-    /* the points grouped by their row factor (equal to the bit) */
-    w->ngrp = 0;
-    size_t placed = 0;
-    unsigned char *done = calloc(p->nmod, 1);
-    if (!done) {
-        swfs_pyramid_free(p);
-        return swfs_fail(SWFS_ERR_NOMEM, "out of memory");
-    }
-    for (size_t m = 0; m < p->nmod; m++) {
-        if (done[m]) continue;
-        w->grp[w->ngrp++] = placed;
-        for (size_t k = m; k < p->nmod; k++)
-            if (!done[k] && !memcmp(w->mx + k * N, w->mx + m * N, N * sizeof *w->mx)) {
-                done[k] = 1;
-                w->order[placed++] = k;
-            }
-    }
-    w->grp[w->ngrp] = placed;
-    free(done);
     /* the reference: a flat wavefront's signals */
     intensity(p, NULL);
     bin_images(p);
