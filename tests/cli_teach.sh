@@ -1,15 +1,14 @@
 # Speckles' default, --recon teach (docs/telemetry.md): the teach run inside speckles on the
 # observation's own files gives the map `teach` gives on them, and the same NCP error; stream
-# takes that space-time map and its per-frame map; a later run on the same inputs reuses the
-# map (its fingerprint TEACHFPR), and where its second map (the DM's choice) cannot be taught
-# goes on with the first; with the DM told (--teach-set, one map taught), --teach-again
-# and an edited telemetry file teach anew (the same speckles, compared value by value with
-# tests/tools/fitsdiff); teach on the used subapertures' slopes (cacao's layout) with --valid,
-# in a work folder holding stale loop files, clears them and gives the map of speckles' teach
-# on the full layout. On
-# lib_learn.sh's observation (the 12 x 12 of cli_learn.sh, which runs the recipe, learn and
-# teach's other checks, teach_files among them). Then a zonal loop whose slopes show no layer to
-# `wind`: taught at the speed of their time correlation, better than the von Karman map.
+# takes that space-time map and its per-frame map; a later run on the same inputs reuses the map
+# (its fingerprint TEACHFPR), and where its second map (the DM's choice) cannot be taught goes on
+# with the first; with the DM told (--teach-set, one map taught), --teach-again and an edited
+# telemetry file teach anew (the same speckles, compared value by value with
+# tests/tools/fitsdiff); teach on the used subapertures' slopes (cacao's layout) with --valid, in
+# a work folder holding stale loop files, clears them and gives the map of speckles' teach on the
+# full layout. On lib_learn.sh's observation (the 12 x 12 of cli_learn.sh, which runs the recipe,
+# learn and teach's other checks, teach_files among them). Then a zonal loop whose slopes show no
+# layer to `wind`: taught at the speed of their time correlation, better than the von Karman map.
 # usage: bash cli_teach.sh <specklewfs> <scratch dir>
 . "$(dirname "$0")/lib_learn.sh"
 learn_setup "$@"
@@ -190,8 +189,8 @@ echo "cli_teach: teach on the used subapertures' slopes: $etv nm (speckles' defa
 # vk's). Its first 12 loops only (--teach-max-loops 12): the 40 its learning curve asked for gave
 # the same 32.3 nm when first written, at three times the cost. The DM told, the observation's own
 # (--teach-set dm_coupling=0, the interpolated surface: the map the default's choice by the science
-# frames keeps here, to the same speckles, fitsdiff), so one map is taught, not two (the choice is
-# the first run's subject).
+# frames keeps here, to the same speckles: fitsdiff, by hand), so one map is taught, not two (the
+# choice is the first run's subject).
 mkdir -p nowind && cd nowind || fail "cd nowind"
 "$B" simulate ../my.conf nlayers=1 layer_frac=1 layer_speed=15 layer_dir=30 seed=6 ao_rcond=0.05 -o obs --quiet > /dev/null 2>&1 \
     || fail "simulate the zonal loop without a layer to track"
