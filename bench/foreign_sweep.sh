@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
-# The default path on eleven short observations made without specklewfs, of other geometries,
-# loops, noise, wavelengths, pupils, WFS rates, frame ratios, winds and camera sampling
-# (docs/telemetry.md, "Six more observations", "A pupil under spiders", "Other rates, frame
-# ratios, winds and pixels"): each through bench/foreign.sh --quick, then one table of the NCP
+# The default path on sixteen short observations made without specklewfs, of other geometries,
+# loops, noise, wavelengths, pupils, WFS rates, frame ratios, winds, camera sampling, loop delays
+# and turbulence (docs/telemetry.md, "Six more observations", "A pupil under spiders", "Other
+# rates, frame ratios, winds and pixels", "Odd subapertures across, strong turbulence, a longer
+# delay, coarse pixels"): each through bench/foreign.sh --quick, then one table of the NCP
 # errors (default path, ideal speckles, their ratio) and teach's loops. About 1-6 minutes per
 # observation on 2 cores (the 20 x 20's loops the longest); an observation already in WORK_DIR
 # is not simulated again. Needs Debian's python3-numpy and python3-astropy.
@@ -26,6 +27,11 @@ runs=(
     "r10w5|--rate 1500 --ratio 10.3 --wind 5@300,12@45 --cam-rn 20 --seed 22"
     "v5|--vib 0.5 --vib-freq 40 --rate 1200 --ratio 6 --wind 25@180 --seed 24"
     "px35|--pixscale 0.35 --r0 0.1 --nsub 16 --modes 120 --seed 23"
+    "n13|--nsub 13 --seed 31"
+    "n11m50|--nsub 11 --modes 50 --seed 32"
+    "r008|--r0 0.08 --seed 36"
+    "d3|--delay 3 --seed 35"
+    "px80|--pixscale 0.8 --seed 37"
 )
 rows=()
 for r in "${runs[@]}"; do
