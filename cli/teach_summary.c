@@ -76,7 +76,9 @@ void cli_teach_summary(FILE *f, const char *cmd, const struct swfs_teach_run_res
         fprintf(f, "%s: over the first loops, ", cmd);
         cli_curve_line(f, maps, &r->curve_first, 1e9, " nm");
         if (r->curve_doubled.curve_n[0] && r->curve_doubled.info.nframes < r->curve.info.nframes) {
-            fprintf(f, "%s: so twice the first loops; over them, ", cmd);
+            fprintf(f, "%s: so twice the first loops%s; over them, ", cmd,
+                    swfs_learn_curve_falls(&r->curve_first) ? " (a first curve does not end teach: its held-out parts "
+                    "are a quarter of the first loops each)" : "");
             cli_curve_line(f, "the map's", &r->curve_doubled, 1e9, " nm");
         }
         if (r->asked_loops) {

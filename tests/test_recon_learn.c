@@ -1012,6 +1012,53 @@ static void test_teach_more_loops(void **state)
     assert_false(swfs_teach_curve_unbounded_(&lr));
 }
 
+/* teach rule 2026-12-08: the first loops' curve does not end teach, nor ask for fewer than
+ * twice them. The first curve of a foreign 14 x 14 observation (12 loops of 1267 frames, the
+ * 3-frame delay's `d3` of docs/telemetry.md): 246.1 -> 242.5 nm from 7602 to 11403 frames, 2.6
+ * standard errors of its parts, the map 4.8 % above unlimited frames: enough by its own
+ * a + b / n, doubled by the rule; the curve over the 24 then decides as any curve. */
+static void test_teach_next_loops(void **state)
+{
+    (void)state;
+    swfs_learn_run_result lr;
+    memset(&lr, 0, sizeof lr);
+    lr.info.nframes = 15204;
+    lr.curve_n[0] = 7602; lr.curve_n[1] = 11403;
+    lr.curve_m2[0] = 246.1 * 246.1; lr.curve_m2[1] = 242.5 * 242.5;
+    lr.curve_b = (lr.curve_m2[0] - lr.curve_m2[1]) / (1.0 / 7602 - 1.0 / 11403);
+    lr.curve_a = lr.curve_m2[1] - lr.curve_b / 11403;
+    lr.curve_frames = 7226;
+    lr.curve_fall_se = (lr.curve_m2[0] - lr.curve_m2[1]) / 2.6;
+    assert_true(swfs_learn_curve_falls(&lr));
+    assert_true(fabs(lr.curve_b / (lr.curve_a * 15204) - 0.048) < 0.002); /* the excess it printed */
+    int doubled = 0;
+    assert_int_equal(swfs_teach_more_loops_(&lr, 12, 48, &doubled), 12); /* its own rule: enough */
+    assert_int_equal(doubled, 0);
+    assert_int_equal(swfs_teach_next_loops_(&lr, 12, 12, 48, &doubled), 24); /* doubled */
+    assert_int_equal(doubled, 1);
+    doubled = 0; /* asking for a few more than the first loops (18): twice them all the same */
+    lr.curve_frames = 22806;
+    assert_int_equal(swfs_teach_next_loops_(&lr, 12, 12, 48, &doubled), 24);
+    assert_int_equal(doubled, 1);
+    doubled = 0; /* asking for more than twice them (36): as the curve asks, not doubled */
+    lr.curve_frames = 45612;
+    assert_int_equal(swfs_teach_next_loops_(&lr, 12, 12, 48, &doubled), 36);
+    assert_int_equal(doubled, 0);
+    doubled = 0; /* the budget below twice the first loops: the budget */
+    lr.curve_frames = 7226;
+    assert_int_equal(swfs_teach_next_loops_(&lr, 12, 12, 16, &doubled), 16);
+    assert_int_equal(swfs_teach_next_loops_(&lr, 12, 12, 12, &doubled), 12); /* no budget: no more */
+    doubled = 0; /* a later curve (over 24 of 12 first loops) ends teach as its own rule says */
+    lr.info.nframes = 30408;
+    assert_int_equal(swfs_teach_next_loops_(&lr, 24, 12, 48, &doubled), 24);
+    assert_int_equal(doubled, 0);
+    doubled = 0; /* too few first loops for a curve (none measured): no more, as before */
+    lr.info.nframes = 2534;
+    lr.curve_n[0] = 0; lr.curve_frames = 0;
+    assert_int_equal(swfs_teach_next_loops_(&lr, 2, 2, 8, &doubled), 2);
+    assert_int_equal(doubled, 0);
+}
+
 int main(void)
 {
     const struct CMUnitTest tests[] = {cmocka_unit_test(test_learner), cmocka_unit_test(test_learner_long_call),
@@ -1023,6 +1070,7 @@ int main(void)
                                        cmocka_unit_test(test_lags), cmocka_unit_test(test_learner_lagged),
                                        cmocka_unit_test(test_learner_merge), cmocka_unit_test(test_learning_curve),
                                        cmocka_unit_test(test_teach_more_loops),
+                                       cmocka_unit_test(test_teach_next_loops),
                                        cmocka_unit_test(test_teach_profile_misfit)};
     return cmocka_run_group_tests(tests, NULL, NULL);
 }

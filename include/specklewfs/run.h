@@ -1134,8 +1134,9 @@ typedef struct swfs_teach_run_options {
  * whose fall is within twice its standard error doubles the loops as one that does not fall;
  * 2026-12-07d: the loops a curve asked for are followed to the budget where their own curve
  * falls without a bound; 2026-12-07e: with the system's control matrix (ao_recon) and no
- * dm_coupling, the DM's functions from that matrix). */
-#define SWFS_TEACH_RULE "teach rule 2026-12-07e"
+ * dm_coupling, the DM's functions from that matrix; 2026-12-08: a first curve that falls
+ * and asks for no more than twice the first loops doubles them too). */
+#define SWFS_TEACH_RULE "teach rule 2026-12-08"
 
 /* The zonal calibration loops' ao_rcond (timeseries.h: the truncated pseudo-inverse's cut
  * relative to the largest singular value), 0.02, 0.03, 0.05, 0.07, 0.1, 0.2: a factor of 1.4
@@ -1198,8 +1199,9 @@ typedef struct swfs_teach_run_result {
     /* The space-time map's learning curve (run.h swfs_learn_run_result.curve_*) over the nloops
      * first loops (curve_first) and over all the space-time loops (curve, st_loops of them:
      * more than nloops when the first curve asked for more frames than they hold, up to
-     * max_loops). curve_doubled: where the first curve did not fall, the curve over twice the
-     * first loops, which then asked for the last ones (curve itself where it asked for none),
+     * max_loops). curve_doubled: where the first curve did not fall, or fell and asked for at
+     * most twice the first loops (teach rule 2026-12-08: a first curve does not end teach),
+     * the curve over twice the first loops, which then asked for the last ones (curve itself where it asked for none),
      * unless the curve over those falls without a bound (asked_loops, curve_asked, below).
      * curve_n[0] == 0: not measured. */
     size_t st_loops;

@@ -363,8 +363,9 @@ def teach(files, out, work=None, config=None, loops=None, seed=None, progress=No
     than they hold, more loops are simulated, up to max_loops (default 4 loops, at most 64;
     loops: never more),
     st_loops of them in all, and curve is the curve over them all. A first curve that does not
-    fall cannot tell: the loops are doubled once, curve_doubled is the curve over them, and it
-    asks for more as any curve does (None where there was no doubling). The loops a curve asks
+    fall cannot tell, nor end the loops (one that falls and asks for at most twice the first
+    loops: teach rule 2026-12-08): the loops are doubled once, curve_doubled is the curve over
+    them, and it asks for more as any curve does (None where there was no doubling). The loops a curve asks
     for are the last unless their own curve falls (beyond twice its parts' scatter) faster than
     any a + b / n allows: then asked_loops is their count, curve_asked their curve, and more
     loops follow to max_loops (asked_loops 0, curve_asked None otherwise). The curve is measured

@@ -159,6 +159,11 @@ int swfs_teach_loops_(const swfs_teach_run_options *o, const char *name, size_t 
  * to SWFS_LEARN_CURVE_EXCESS where the curve asks for more frames than they hold; where it was
  * measured and does not fall it cannot tell, and the loops are doubled once (*doubled set). */
 size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled);
+/* teach's loops after a curve over `have` of them (the first loops: `first`): as
+ * swfs_teach_more_loops_, but a measured first curve that asks for at most twice the first
+ * loops doubles them (*doubled set), so that the curve over them decides (teach rule 2026-12-08). */
+size_t swfs_teach_next_loops_(const swfs_learn_run_result *lr, size_t have, size_t first, size_t max_loops,
+                              int *doubled);
 /* 1 where a learning curve falls, beyond twice its parts' scatter, faster than any a + b / n
  * with a > 0 allows (its two points put the map of unlimited frames at or below zero misfit:
  * more frames help without a bound it can name). The loops a curve asked for are the last
