@@ -961,13 +961,20 @@ int swfs_teach_work_default(const char *out, char *work, size_t cap)
     return SWFS_OK;
 }
 
+/* The loops a curve over `have` of them (have > 0) asks for, before any budget caps them: as
+ * many as hold the frames it asks for, have where it asks for no more than they hold. */
+static double curve_asks(const swfs_learn_run_result *lr, size_t have)
+{
+    if (!(lr->curve_frames > lr->info.nframes)) return (double)have;
+    return ceil((double)lr->curve_frames / ((double)lr->info.nframes / (double)have));
+}
+
 size_t swfs_teach_more_loops_(const swfs_learn_run_result *lr, size_t have, size_t max_loops, int *doubled)
 {
     if (!have || max_loops <= have) return have;
     const int flat = lr->curve_n[0] > 0 && !swfs_learn_curve_falls(lr);
     if (!(lr->curve_frames > lr->info.nframes) && !(flat && !*doubled)) return have;
-    const double per = (double)lr->info.nframes / (double)have;
-    const double want = flat ? 2.0 * (double)have : ceil((double)lr->curve_frames / per);
+    const double want = flat ? 2.0 * (double)have : curve_asks(lr, have);
     *doubled |= flat;
     return want < (double)max_loops ? (want > (double)have ? (size_t)want : have) : max_loops;
 }
@@ -984,11 +991,9 @@ size_t swfs_teach_next_loops_(const swfs_learn_run_result *lr, size_t have, size
                               int *doubled)
 {
     const size_t n = swfs_teach_more_loops_(lr, have, max_loops, doubled);
-    if (have != first || *doubled || !lr->curve_n[0] || max_loops <= have) return n;
-    /* what the curve asks for, before the budget caps it (more than twice the first loops:
-     * followed as before) */
-    const double per = (double)lr->info.nframes / (double)have;
-    if (lr->curve_frames > lr->info.nframes && (double)lr->curve_frames / per > 2.0 * (double)have) return n;
+    /* (a curve that asks for more than twice the first loops: followed as before) */
+    if (have != first || *doubled || !lr->curve_n[0] || max_loops <= have || curve_asks(lr, have) > 2.0 * (double)have)
+        return n;
     *doubled = 1;
     return 2 * have < max_loops ? 2 * have : max_loops;
 }
